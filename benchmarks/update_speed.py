@@ -1,0 +1,125 @@
+"""Milliseconds per DrQ-v2 gradient update, ours against the reference implementation's operations.
+
+Both run in one process, on the same networks, the same replay buffer and the same device:
+
+- ``ours``: ``DrQv2.train(gradient_steps=1)``, i.e. replay sampling, integer-crop augmentation on uint8,
+  channels_last convolutions, the actor's backward restricted to the actor's parameters;
+- ``reference ops``: the operations of facebookresearch/drqv2's ``DrQV2Agent.update`` re-implemented here:
+  ``grid_sample`` augmentation on float images, NCHW convolutions, a full backward of the actor loss
+  (gradients of the critic computed and discarded). The batch is sampled from the same buffer (the
+  reference samples in DataLoader workers; sampling is included in both timings).
+
+Observations are 9x84x84 uint8 (3 stacked RGB frames), actions 6-d (walker). No rendering is involved.
+
+    python benchmarks/update_speed.py                  # batch 256 and 32 on the default device
+    python benchmarks/update_speed.py --batch-sizes 256 --updates 10 --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch as th
+import torch.nn.functional as F
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.utils import polyak_update
+
+from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.drqv2.augmentation import random_shift_grid_sample
+from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.drqv2.policies import sample_action
+
+
+def reference_update(model: DrQv2, batch_size: int) -> None:
+    """One update with the reference implementation's operations (see module docstring)."""
+    data = model.replay_buffer.sample(batch_size)
+    std = model.current_stddev
+    encoder, actor, critic = model.encoder, model.actor, model.critic
+    obs = random_shift_grid_sample(data.observations.float())
+    next_obs = random_shift_grid_sample(data.next_observations.float())
+    features = encoder(obs)
+    with th.no_grad():
+        next_features = encoder(next_obs)
+        next_action = sample_action(actor(next_features), std, clip=model.stddev_clip)
+        target_q = data.rewards + data.discounts * th.min(*model.critic_target(next_features, next_action))
+    q1, q2 = critic(features, data.actions)
+    critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
+    encoder.optimizer.zero_grad(set_to_none=True)
+    critic.optimizer.zero_grad(set_to_none=True)
+    critic_loss.backward()
+    critic.optimizer.step()
+    encoder.optimizer.step()
+    features = features.detach()
+    action = sample_action(actor(features), std, clip=model.stddev_clip)
+    actor_loss = -th.min(*critic(features, action)).mean()
+    actor.optimizer.zero_grad(set_to_none=True)
+    actor_loss.backward()
+    actor.optimizer.step()
+    polyak_update(critic.parameters(), model.critic_target.parameters(), model.tau)
+
+
+def build_model(device: str, channels_last: bool, buffer_size: int, seed: int = 0) -> DrQv2:
+    model = DrQv2(
+        "CnnPolicy",
+        RandomObservationEnv(),
+        buffer_size=buffer_size,
+        learning_starts=0,
+        device=device,
+        seed=seed,
+        policy_kwargs=dict(encoder_kwargs=dict(channels_last=channels_last)),
+    )
+    rng = np.random.default_rng(seed)
+    obs_shape, action_dim = model.observation_space.shape, model.action_space.shape[0]
+    for i in range(buffer_size):
+        obs = rng.integers(0, 256, (1, *obs_shape), dtype=np.uint8)
+        next_obs = rng.integers(0, 256, (1, *obs_shape), dtype=np.uint8)
+        action = rng.uniform(-1, 1, (1, action_dim)).astype(np.float32)
+        done = np.array([i % 500 == 499])
+        model.replay_buffer.add(obs, next_obs, action, rng.random(1), done, [{"TimeLimit.truncated": bool(done[0])}])
+    model.set_logger(configure(folder=None, format_strings=[]))
+    model.policy.set_training_mode(True)
+    return model
+
+
+def time_updates(update, updates: int, device: th.device) -> float:
+    """Median milliseconds of ``updates`` calls, after two warm-up calls."""
+    update()
+    update()
+    times = []
+    for _ in range(updates):
+        if device.type == "cuda":
+            th.cuda.synchronize()
+        start = time.perf_counter()
+        update()
+        if device.type == "cuda":
+            th.cuda.synchronize()
+        times.append((time.perf_counter() - start) * 1000)
+    return float(np.median(times))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 32], help="minibatch sizes")
+    parser.add_argument("--updates", type=int, default=5, help="timed updates per measurement (median reported)")
+    parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
+    parser.add_argument("--buffer-size", type=int, default=2000, help="transitions in the synthetic buffer")
+    args = parser.parse_args()
+
+    if args.device == "cuda" or (args.device == "auto" and th.cuda.is_available()):
+        th.backends.cudnn.benchmark = True
+    ours = build_model(args.device, channels_last=True, buffer_size=args.buffer_size)
+    baseline = build_model(args.device, channels_last=False, buffer_size=args.buffer_size)
+    device = ours.device
+    name = th.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {th.get_num_threads()} threads"
+    print(f"device: {name}; torch {th.__version__}; obs 9x84x84 uint8, 6-d actions")
+    print(f"{'batch':>6} {'reference ops (ms)':>19} {'ours (ms)':>10} {'ours / reference':>17}")
+    for batch_size in args.batch_sizes:
+        ref_ms = time_updates(lambda: reference_update(baseline, batch_size), args.updates, device)
+        ours_ms = time_updates(lambda: ours.train(gradient_steps=1, batch_size=batch_size), args.updates, device)
+        print(f"{batch_size:>6} {ref_ms:>19.1f} {ours_ms:>10.1f} {ours_ms / ref_ms:>17.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,8 @@
+"""sb3-collapse: DrQ-v2 for Stable-Baselines3 on DeepMind Control pixels, and tools to study action collapse."""
+
+from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.envs import make_dmc_env
+
+__version__ = "0.1.0"
+
+__all__ = ["DrQv2", "__version__", "make_dmc_env"]

@@ -1,0 +1,445 @@
+"""DrQ-v2 (Yarats et al., 2021) as a Stable-Baselines3 off-policy algorithm."""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
+from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.vec_env import VecEnv
+from torch.nn import functional as F
+
+from sb3_collapse.drqv2.augmentation import random_shift
+from sb3_collapse.drqv2.policies import (
+    Actor,
+    CnnPolicy,
+    Critic,
+    DrQv2Policy,
+    MlpPolicy,
+    PixelEncoder,
+    StateEncoder,
+    check_action_space,
+    sample_action,
+)
+from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
+
+SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
+
+ENV_CONFIG_KEYS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id", "obs_type")
+"""Settings read from a ``make_dmc_env`` environment and saved with the model (``model.env_config``)."""
+
+
+class DrQv2(OffPolicyAlgorithm):
+    """
+    DrQ-v2: DDPG with a twin critic, n-step returns, random-shift augmentation of the pixels and a scheduled
+    exploration noise; the convolutional encoder is trained by the critic loss only.
+
+    Paper: https://arxiv.org/abs/2107.09645 (reference code: https://github.com/facebookresearch/drqv2).
+    All step counts are **agent steps** (SB3's ``num_timesteps``); DrQ-v2 and the action-collapse paper
+    count frames, i.e. agent steps x action repeat (2 on DeepMind Control): ``learning_starts=2000`` agent
+    steps are DrQ-v2's 4,000 seed frames. ``model.num_frames`` gives the frame count.
+
+    :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8) or ``"MlpPolicy"``
+        (state vectors, no encoder and no augmentation), or a ``DrQv2Policy`` subclass
+    :param env: the environment (a ``VecEnv``, a gymnasium env, or a registered id such as
+        ``"sb3_collapse/walker-walk-v0"``)
+    :param learning_rate: Adam learning rate of the encoder, actor and critic (or an SB3 schedule of the
+        remaining progress)
+    :param buffer_size: replay buffer capacity, in transitions (agent steps x n_envs). SB3's buffer stores
+        obs and next_obs: about 127 KB per 9x84x84 transition.
+    :param learning_starts: agent steps of uniformly random actions before the first update
+    :param batch_size: minibatch size of each gradient update
+    :param tau: soft update coefficient of the target critic
+    :param gamma: discount factor
+    :param train_freq: agent steps between updates (per env), or ``(n, "step"/"episode")``
+    :param gradient_steps: gradient updates after each ``train_freq`` (``-1``: as many as steps collected)
+    :param n_steps: length of the n-step returns (SB3's ``NStepReplayBuffer`` when > 1)
+    :param stddev_schedule: exploration standard deviation as a function of the agent step: a float,
+        ``"linear(init,final,duration)"``, ``"step_linear(init,final1,duration1,final2,duration2)"``
+        (durations in agent steps) or a callable ``step -> std``
+    :param stddev_clip: clip of the exploration noise used in the updates (target action, actor loss)
+    :param augmentation_pad: random-shift padding in pixels; ``0`` disables the augmentation
+        (pixel policies only)
+    :param callback: callback(s) run at every ``learn()`` call, together with those given to ``learn()``
+        (e.g. ``CollapseReset()``); not saved with the model
+    :param replay_buffer_class: replay buffer class, ``None`` for SB3's (n-step when ``n_steps > 1``)
+    :param replay_buffer_kwargs: keyword arguments of the replay buffer
+    :param stats_window_size: episodes averaged in the rollout logs
+    :param tensorboard_log: TensorBoard log folder, ``None`` for none
+    :param policy_kwargs: keyword arguments of the policy: ``feature_dim`` (50), ``hidden_dim`` (1024),
+        ``encoder_kwargs`` (``channels``, ``channels_last``), ``optimizer_kwargs``
+    :param verbose: 0 silent, 1 info, 2 debug
+    :param seed: seed of the random generators
+    :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``
+    :param _init_setup_model: build the networks and the buffer now
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"CnnPolicy": CnnPolicy, "MlpPolicy": MlpPolicy}
+    policy: DrQv2Policy
+    encoder: PixelEncoder | StateEncoder
+    actor: Actor
+    critic: Critic
+    critic_target: Critic
+
+    def __init__(
+        self,
+        policy: str | type[DrQv2Policy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 1e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 2000,
+        batch_size: int = 256,
+        tau: float = 0.01,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 2,
+        gradient_steps: int = 1,
+        n_steps: int = 3,
+        stddev_schedule: ScheduleSpec = "linear(1.0,0.1,100000)",
+        stddev_clip: float = 0.3,
+        augmentation_pad: int = 4,
+        callback: MaybeCallback = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        if augmentation_pad < 0:
+            raise ValueError(f"augmentation_pad must be >= 0 pixels, got {augmentation_pad}.")
+        if stddev_clip < 0:
+            raise ValueError(f"stddev_clip must be >= 0, got {stddev_clip}.")
+        if n_steps < 1:
+            raise ValueError(f"n_steps must be >= 1, got {n_steps}.")
+        self.stddev_schedule = StddevSchedule(stddev_schedule)
+        super().__init__(
+            policy,
+            env,  # type: ignore[arg-type]
+            learning_rate,
+            buffer_size,
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
+            train_freq,
+            gradient_steps,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            n_steps=n_steps,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=None,  # checked below, with a clearer message than SB3's assertion
+            support_multi_env=True,
+        )
+        self.stddev_clip = stddev_clip
+        self.augmentation_pad = augmentation_pad
+        self.callback = callback
+        self.env_config = _read_env_config(self.env) if self.env is not None else None
+        self._last_grad_norms: th.Tensor | None = None
+        self._train_stats: dict[str, th.Tensor] = {}
+        self._train_stats_count = 0
+        if self.action_space is not None:
+            check_action_space(self.action_space)
+        if _init_setup_model:
+            self._setup_model()
+
+    # ------------------------------------------------------------------ setup
+    def _setup_model(self) -> None:
+        check_action_space(self.action_space)
+        try:
+            with warnings.catch_warnings():
+                if "n_steps" in self.replay_buffer_kwargs:
+                    # A loaded model has its n-step buffer class and kwargs set already: SB3's warning that
+                    # `n_steps` is ignored for a custom buffer class does not apply.
+                    warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored")
+                super()._setup_model()
+        except MemoryError as error:
+            raise MemoryError(
+                f"Could not allocate a replay buffer of {self.buffer_size:,} transitions for observations of "
+                f"shape {self.observation_space.shape} ({error}). SB3's buffer stores obs and next_obs "
+                "separately (~127 KB per 9x84x84 transition): pass a smaller buffer_size, e.g. "
+                "buffer_size=100_000 (~13 GB), or the number of agent steps of your run if it is smaller."
+            ) from None
+        self._create_aliases()
+        self._encoder_layers = _layers_with_parameters(self.encoder.named_layers())
+        self._actor_layers = _layers_with_parameters(self.actor.named_layers())
+        self._grad_layers = self._encoder_layers + self._actor_layers
+        self._encoder_grad_norms = th.zeros(len(self._encoder_layers), device=self.device)
+        self.policy.exploration_std = self.current_stddev
+
+    def _create_aliases(self) -> None:
+        self.encoder = self.policy.encoder
+        self.actor = self.policy.actor
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def current_stddev(self) -> float:
+        """Exploration standard deviation at the current agent step (``num_timesteps``)."""
+        return self.stddev_schedule(self.num_timesteps)
+
+    @property
+    def action_repeat(self) -> int:
+        """Frames per agent step, read from the environment (1 when it does not report an action repeat)."""
+        return int((self.env_config or {}).get("action_repeat") or 1)
+
+    @property
+    def num_frames(self) -> int:
+        """Environment frames so far: ``num_timesteps x action_repeat`` (the unit of DrQ-v2 and the paper)."""
+        return self.num_timesteps * self.action_repeat
+
+    @property
+    def last_grad_norms(self) -> dict[str, float]:
+        """
+        L2 norm of the gradient of each named layer's parameters at the last update (``cnn1``..``cnn4``
+        from the critic loss, ``mlp0``..``action`` from the actor loss); empty before the first update.
+        Reading it needs no extra backward pass.
+        """
+        if self._last_grad_norms is None:
+            return {}
+        values = self._last_grad_norms.tolist()
+        return {name: value for (name, _), value in zip(self._grad_layers, values)}
+
+    # ------------------------------------------------------------------ acting
+    def _sample_action(
+        self,
+        learning_starts: int,
+        action_noise: Any = None,
+        n_envs: int = 1,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Uniform actions during the warm-up, then the actor's mean plus scheduled Gaussian noise."""
+        if self.num_timesteps < learning_starts:
+            unscaled_action = np.array([self.action_space.sample() for _ in range(n_envs)])
+        else:
+            self.policy.exploration_std = self.current_stddev
+            unscaled_action, _ = self.predict(self._last_obs, deterministic=False)  # type: ignore[arg-type]
+        buffer_action = self.policy.scale_action(unscaled_action)
+        return self.policy.unscale_action(buffer_action), buffer_action
+
+    # ------------------------------------------------------------------ training
+    def train(self, gradient_steps: int, batch_size: int = 256) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizers)
+        std = self.current_stddev
+        for _ in range(gradient_steps):
+            self._n_updates += 1
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+            self._update(replay_data, discounts, std)
+        self._add_train_stat("stddev", th.tensor(std), count=False)
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+
+    def _update(self, data: ReplayBufferSamples, discounts: th.Tensor | float, std: float) -> None:
+        """
+        One DrQ-v2 update: augment, encode obs (with gradients) and next_obs (without), update the critic
+        and the encoder, update the actor on the detached features, then soft-update the target critic.
+        """
+        obs, next_obs = data.observations, data.next_observations
+        if self.augmentation_pad > 0 and self.encoder.has_cnn:
+            obs = random_shift(obs, self.augmentation_pad)
+            next_obs = random_shift(next_obs, self.augmentation_pad)
+        features = self.encoder(obs)
+        with th.no_grad():
+            next_features = self.encoder(next_obs)
+        self._update_critic(features, data.actions, data.rewards, data.dones, discounts, next_features, std)
+        self._update_actor(features.detach(), std)
+        polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+        self._add_train_stat("batch_reward", data.rewards.mean())
+        self._add_train_stat("grad_norms", self._last_grad_norms)  # type: ignore[arg-type]
+        self._train_stats_count += 1
+
+    def _update_critic(
+        self,
+        features: th.Tensor,
+        actions: th.Tensor,
+        rewards: th.Tensor,
+        dones: th.Tensor,
+        discounts: th.Tensor | float,
+        next_features: th.Tensor,
+        std: float,
+    ) -> None:
+        """
+        Critic and encoder step on ``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')``
+        with the target critic at a clipped-noise action of the actor. ``features`` must carry the encoder's
+        graph: the encoder is trained here, and only here.
+        """
+        with th.no_grad():
+            next_action = sample_action(self.actor(next_features), std, clip=self.stddev_clip)
+            target_q1, target_q2 = self.critic_target(next_features, next_action)
+            target_q = rewards + (1.0 - dones) * discounts * th.min(target_q1, target_q2)
+        q1, q2 = self.critic(features, actions)
+        critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
+        for optimizer in (self.encoder.optimizer, self.critic.optimizer):
+            if optimizer is not None:
+                optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self._encoder_grad_norms = self._layer_grad_norms(self._encoder_layers)
+        self.critic.optimizer.step()
+        if self.encoder.optimizer is not None:
+            self.encoder.optimizer.step()
+        self._add_train_stat("critic_loss", critic_loss.detach())
+        self._add_train_stat("q1_mean", q1.detach().mean())
+        self._add_train_stat("q2_mean", q2.detach().mean())
+        self._add_train_stat("target_q_mean", target_q.mean())
+
+    def _update_actor(self, features: th.Tensor, std: float) -> None:
+        """
+        Actor step on ``-min(Q1, Q2)`` at a clipped-noise action, on features detached from the encoder.
+        The critic's trunk runs without gradient and ``backward(inputs=...)`` computes the actor's gradients
+        only (the reference computes the critic's too, then discards them): the encoder and the critic
+        do not change.
+        """
+        action = sample_action(self.actor(features), std, clip=self.stddev_clip)
+        with th.no_grad():
+            critic_trunk = self.critic.trunk(features)
+        q1, q2 = self.critic.heads(critic_trunk, action)
+        actor_loss = -th.min(q1, q2).mean()
+        self.actor.optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward(inputs=list(self.actor.parameters()))
+        actor_grad_norms = self._layer_grad_norms(self._actor_layers)
+        self.actor.optimizer.step()
+        self._last_grad_norms = th.cat([self._encoder_grad_norms, actor_grad_norms])
+        self._add_train_stat("actor_loss", actor_loss.detach())
+
+    def _layer_grad_norms(self, layers: list[tuple[str, list[th.nn.Parameter]]]) -> th.Tensor:
+        """L2 norm of the gradient of each given layer, as one tensor on the device (no host sync)."""
+        norms = []
+        for _, params in layers:
+            grads = [p.grad for p in params if p.grad is not None]
+            if grads:
+                norms.append(th.linalg.vector_norm(th.stack(th._foreach_norm(grads))))
+            else:
+                norms.append(th.zeros((), device=self.device))
+        if not norms:
+            return th.zeros(0, device=self.device)
+        return th.stack(norms).detach()
+
+    def _add_train_stat(self, name: str, value: th.Tensor, count: bool = True) -> None:
+        """Accumulate a statistic on the device; it is averaged and logged at the next ``dump_logs``."""
+        if not count:
+            self._train_stats[name] = value
+            return
+        self._train_stats[name] = self._train_stats[name] + value if name in self._train_stats else value.clone()
+
+    def _record_train_stats(self) -> None:
+        """Write the averages of the statistics accumulated since the last dump to the logger."""
+        if self._train_stats_count == 0:
+            return
+        n = self._train_stats_count
+        stats = {name: value.detach().cpu() for name, value in self._train_stats.items()}
+        for name, value in stats.items():
+            if name == "grad_norms":
+                for (layer, _), norm in zip(self._grad_layers, (value / n).tolist()):
+                    self.logger.record(f"train/grad_norm/{layer}", norm)
+            elif name == "stddev":
+                self.logger.record("train/stddev", float(value))
+            else:
+                self.logger.record(f"train/{name}", float(value) / n)
+        self._train_stats = {}
+        self._train_stats_count = 0
+
+    def dump_logs(self) -> None:
+        self._record_train_stats()
+        self.logger.record("time/frames", self.num_frames)
+        super().dump_logs()
+
+    # ------------------------------------------------------------------ learn / save
+    def learn(
+        self: SelfDrQv2,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "DrQv2",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfDrQv2:
+        """
+        Train for ``total_timesteps`` agent steps (frames = agent steps x action repeat).
+
+        :param total_timesteps: number of agent steps (summed over environments) to train for
+        :param callback: callback(s) for this call, run after those given to the constructor
+        :param log_interval: episodes between two log dumps
+        :param tb_log_name: name of the TensorBoard run
+        :param reset_num_timesteps: restart the step count (and so the exploration schedule and the
+            warm-up); pass ``False`` to continue a loaded model where it stopped
+        :param progress_bar: show a progress bar (tqdm and rich)
+        :return: the trained model
+        """
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=self._combined_callbacks(callback),
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def _combined_callbacks(self, callback: MaybeCallback) -> MaybeCallback:
+        callbacks: list[BaseCallback] = []
+        for item in (self.callback, callback):
+            if item is None:
+                continue
+            callbacks.extend(item if isinstance(item, list) else [item])  # type: ignore[arg-type]
+        return callbacks or None
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        super().set_env(env, force_reset=force_reset)
+        self.env_config = _read_env_config(self.env) or self.env_config
+
+    def _excluded_save_params(self) -> list[str]:
+        return [
+            *super()._excluded_save_params(),
+            "encoder",
+            "actor",
+            "critic",
+            "critic_target",
+            "callback",
+            "_grad_layers",
+            "_encoder_layers",
+            "_actor_layers",
+            "_encoder_grad_norms",
+            "_last_grad_norms",
+            "_train_stats",
+            "_train_stats_count",
+        ]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
+        if self.policy.encoder.optimizer is not None:
+            state_dicts.append("encoder.optimizer")
+        return state_dicts, []
+
+
+def _layers_with_parameters(layers: dict[str, th.nn.Module]) -> list[tuple[str, list[th.nn.Parameter]]]:
+    """``(name, parameters)`` of the named layers that have parameters (``cnn0`` has none)."""
+    return [(name, list(module.parameters())) for name, module in layers.items() if list(module.parameters())]
+
+
+def _read_env_config(env: VecEnv) -> dict[str, Any] | None:
+    """The ``make_dmc_env`` settings of the (first) environment, or ``None`` for other environments."""
+    config = {}
+    for key in ENV_CONFIG_KEYS:
+        try:
+            config[key] = env.get_attr(key, indices=[0])[0]
+        except AttributeError:
+            config[key] = None
+    if config["task_id"] is None and config["action_repeat"] is None:
+        return None
+    return config
+

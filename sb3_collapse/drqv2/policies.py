@@ -1,0 +1,414 @@
+"""Networks of DrQ-v2: pixel encoder, actor and twin critic, wrapped as an SB3 policy.
+
+Layer names are the vocabulary shared by the callbacks, the probe and the plots:
+
+=========  ===========================================================================
+``cnn0``   normalized input pixels, ``obs / 255 - 0.5``
+``cnn1``   after Conv(3*stack -> 32, 3x3, stride 2) + ReLU
+``cnn2``   after Conv(32 -> 32, 3x3, stride 1) + ReLU
+``cnn3``   idem
+``cnn4``   idem (flattened, it is the 39,200-d representation of a 9x84x84 input)
+``mlp0``   actor trunk output: Linear(repr -> 50) + LayerNorm + Tanh
+``mlp1``   after the first 1024-unit Linear + ReLU of the actor
+``mlp2``   after the second 1024-unit Linear + ReLU of the actor
+``action`` deterministic action: Linear(1024 -> A) + Tanh
+=========  ===========================================================================
+
+:meth:`DrQv2Policy.named_layers` returns, for each name, the module whose forward output *is* that
+activation and whose parameters are that layer's weights (``cnn0`` has none). ``MlpPolicy`` has no
+``cnnK`` layers.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import is_image_space
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+
+LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
+"""Every named layer, input to output."""
+
+ACTION_EPS = 1e-6
+"""Sampled actions are clamped to ``[-1 + eps, 1 - eps]`` as in DrQ-v2's ``TruncatedNormal``."""
+
+
+def weight_init(module: nn.Module) -> None:
+    """
+    DrQ-v2's initialization: orthogonal weights (gain 1 for Linear, sqrt(2) for Conv), zero biases.
+    LayerNorm keeps PyTorch's default (unit scale, zero shift).
+
+    :param module: module to initialize in place (use with ``Module.apply``)
+    """
+    if isinstance(module, nn.Linear):
+        nn.init.orthogonal_(module.weight.data)
+        if module.bias is not None:
+            module.bias.data.fill_(0.0)
+    elif isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
+        nn.init.orthogonal_(module.weight.data, nn.init.calculate_gain("relu"))
+        if module.bias is not None:
+            module.bias.data.fill_(0.0)
+
+
+class PixelNormalization(nn.Module):
+    """
+    ``cnn0``: uint8 pixels to floats in [-0.5, 0.5].
+
+    :param channels_last: return the images in ``channels_last`` memory format (faster convolutions)
+    """
+
+    def __init__(self, channels_last: bool = True) -> None:
+        super().__init__()
+        self.channels_last = channels_last
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        if self.channels_last:
+            obs = obs.contiguous(memory_format=th.channels_last)
+        return obs.float().div_(255.0).sub_(0.5) if obs.dtype == th.uint8 else obs.float() / 255.0 - 0.5
+
+
+class PixelEncoder(nn.Module):
+    """
+    DrQ-v2's convolutional encoder: ``cnn0`` normalization, then four 3x3 convolutions with 32 channels
+    (stride 2, then 1, 1, 1), no padding, ReLU after each; the output is flattened in (C, H, W) order.
+    Initialized with :func:`weight_init` at construction.
+
+    :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
+    :param channels: number of filters of every convolution
+    :param channels_last: run the convolutions in ``channels_last`` memory format
+    """
+
+    has_cnn = True
+
+    def __init__(self, observation_space: spaces.Space, channels: int = 32, channels_last: bool = True) -> None:
+        super().__init__()
+        check_pixel_space(observation_space)
+        in_channels = observation_space.shape[0]
+        self.cnn0 = PixelNormalization(channels_last)
+        self.cnn1 = nn.Sequential(nn.Conv2d(in_channels, channels, 3, stride=2), nn.ReLU(inplace=True))
+        self.cnn2 = nn.Sequential(nn.Conv2d(channels, channels, 3, stride=1), nn.ReLU(inplace=True))
+        self.cnn3 = nn.Sequential(nn.Conv2d(channels, channels, 3, stride=1), nn.ReLU(inplace=True))
+        self.cnn4 = nn.Sequential(nn.Conv2d(channels, channels, 3, stride=1), nn.ReLU(inplace=True))
+        self.apply(weight_init)
+        if channels_last:
+            self.to(memory_format=th.channels_last)
+        self.repr_dim = channels * int(np.prod(_conv_output_size(observation_space.shape[1:])))
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        h = self.cnn4(self.cnn3(self.cnn2(self.cnn1(self.cnn0(obs)))))
+        return h.flatten(1)
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        return {"cnn0": self.cnn0, "cnn1": self.cnn1, "cnn2": self.cnn2, "cnn3": self.cnn3, "cnn4": self.cnn4}
+
+
+class StateEncoder(nn.Module):
+    """
+    Identity encoder for state vectors (``MlpPolicy``): the actor and critic trunks read the state directly.
+
+    :param observation_space: 1-d ``Box`` of floats
+    """
+
+    has_cnn = False
+
+    def __init__(self, observation_space: spaces.Space) -> None:
+        super().__init__()
+        check_state_space(observation_space)
+        self.repr_dim = int(observation_space.shape[0])
+        self.apply(weight_init)
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        return obs.float()
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        return {}
+
+
+class Actor(nn.Module):
+    """
+    DrQ-v2 actor: trunk ``Linear -> LayerNorm -> Tanh`` (``mlp0``), two ``Linear -> ReLU`` layers of
+    ``hidden_dim`` units (``mlp1``, ``mlp2``) and ``Linear -> Tanh`` (``action``), the mean action.
+
+    :param repr_dim: size of the encoder output
+    :param action_dim: number of action dimensions
+    :param feature_dim: size of the trunk output
+    :param hidden_dim: units of the two hidden layers
+    """
+
+    def __init__(self, repr_dim: int, action_dim: int, feature_dim: int = 50, hidden_dim: int = 1024) -> None:
+        super().__init__()
+        self.trunk = nn.Sequential(nn.Linear(repr_dim, feature_dim), nn.LayerNorm(feature_dim), nn.Tanh())
+        self.mlp1 = nn.Sequential(nn.Linear(feature_dim, hidden_dim), nn.ReLU(inplace=True))
+        self.mlp2 = nn.Sequential(nn.Linear(hidden_dim, hidden_dim), nn.ReLU(inplace=True))
+        self.action = nn.Sequential(nn.Linear(hidden_dim, action_dim), nn.Tanh())
+
+    def forward(self, features: th.Tensor) -> th.Tensor:
+        """
+        :param features: encoder output
+        :return: the mean action, in [-1, 1]
+        """
+        return self.action(self.mlp2(self.mlp1(self.trunk(features))))
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        return {"mlp0": self.trunk, "mlp1": self.mlp1, "mlp2": self.mlp2, "action": self.action}
+
+
+def sample_action(mean: th.Tensor, std: float, clip: float | None = None) -> th.Tensor:
+    """
+    Sample of DrQ-v2's ``TruncatedNormal(mean, std)``: ``mean + eps`` with ``eps ~ N(0, std)``, ``eps``
+    clipped to ``[-clip, clip]`` when ``clip`` is given, the action clamped to ``[-1 + 1e-6, 1 - 1e-6]``
+    with a straight-through gradient (the gradient reaches ``mean`` even where the clamp is active).
+
+    :param mean: mean action, in [-1, 1]
+    :param std: standard deviation of the noise
+    :param clip: noise clip, ``None`` for none
+    :return: the sampled action
+    """
+    eps = th.randn_like(mean) * std
+    if clip is not None:
+        eps = eps.clamp(-clip, clip)
+    action = mean + eps
+    clamped = action.clamp(-1.0 + ACTION_EPS, 1.0 - ACTION_EPS)
+    return action - action.detach() + clamped.detach()
+
+
+class Critic(nn.Module):
+    """
+    DrQ-v2 twin critic: its own trunk ``Linear -> LayerNorm -> Tanh`` shared by two Q heads, each
+    ``Linear(feature + A -> hidden) -> ReLU -> Linear(hidden -> hidden) -> ReLU -> Linear(hidden -> 1)``.
+
+    :param repr_dim: size of the encoder output
+    :param action_dim: number of action dimensions
+    :param feature_dim: size of the trunk output
+    :param hidden_dim: units of the hidden layers
+    """
+
+    def __init__(self, repr_dim: int, action_dim: int, feature_dim: int = 50, hidden_dim: int = 1024) -> None:
+        super().__init__()
+        self.trunk = nn.Sequential(nn.Linear(repr_dim, feature_dim), nn.LayerNorm(feature_dim), nn.Tanh())
+        self.q1 = _q_head(feature_dim + action_dim, hidden_dim)
+        self.q2 = _q_head(feature_dim + action_dim, hidden_dim)
+
+    def forward(self, features: th.Tensor, action: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :param features: encoder output
+        :param action: actions in [-1, 1]
+        :return: ``(Q1, Q2)``, each of shape ``(batch, 1)``
+        """
+        return self.heads(self.trunk(features), action)
+
+    def heads(self, trunk_features: th.Tensor, action: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :param trunk_features: output of :attr:`trunk`
+        :param action: actions in [-1, 1]
+        :return: ``(Q1, Q2)``
+        """
+        h_action = th.cat([trunk_features, action], dim=-1)
+        return self.q1(h_action), self.q2(h_action)
+
+
+def _q_head(in_dim: int, hidden_dim: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Linear(in_dim, hidden_dim),
+        nn.ReLU(inplace=True),
+        nn.Linear(hidden_dim, hidden_dim),
+        nn.ReLU(inplace=True),
+        nn.Linear(hidden_dim, 1),
+    )
+
+
+class DrQv2Policy(BasePolicy):
+    """
+    Encoder, actor, critic and target critic of DrQ-v2, with one Adam optimizer for each trained part.
+
+    The encoder is trained by the critic loss only; the target critic (trunk and heads) is a soft copy of
+    the critic; there is no target encoder and no target actor.
+
+    :param observation_space: observation space
+    :param action_space: action space, a bounded ``Box``
+    :param lr_schedule: learning rate schedule (constant 1e-4 in DrQ-v2)
+    :param feature_dim: size of the actor and critic trunk outputs (50; 100 for humanoid in DrQ-v2)
+    :param hidden_dim: units of the hidden layers of the actor and the Q heads
+    :param encoder_class: ``PixelEncoder`` (``CnnPolicy``) or ``StateEncoder`` (``MlpPolicy``)
+    :param encoder_kwargs: keyword arguments of the encoder (``channels``, ``channels_last``)
+    :param optimizer_class: optimizer of the encoder, actor and critic
+    :param optimizer_kwargs: its keyword arguments, learning rate excluded
+    """
+
+    encoder: PixelEncoder | StateEncoder
+    actor: Actor
+    critic: Critic
+    critic_target: Critic
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        feature_dim: int = 50,
+        hidden_dim: int = 1024,
+        encoder_class: type[PixelEncoder | StateEncoder] = PixelEncoder,
+        encoder_kwargs: dict[str, Any] | None = None,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(
+            observation_space,
+            action_space,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            squash_output=True,
+            normalize_images=False,
+        )
+        check_action_space(action_space)
+        self.feature_dim = feature_dim
+        self.hidden_dim = hidden_dim
+        self.encoder_class = encoder_class
+        self.encoder_kwargs = encoder_kwargs or {}
+        self.exploration_std = 1.0
+        """Standard deviation of the exploration noise of ``predict(deterministic=False)``; the algorithm
+        sets it from its schedule before every action it takes."""
+        self._build(lr_schedule)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        """Create fresh networks (new random weights) and fresh optimizers."""
+        action_dim = int(np.prod(self.action_space.shape))
+        self.encoder = self.encoder_class(self.observation_space, **self.encoder_kwargs)
+        repr_dim = self.encoder.repr_dim
+        self.actor = Actor(repr_dim, action_dim, self.feature_dim, self.hidden_dim)
+        self.critic = Critic(repr_dim, action_dim, self.feature_dim, self.hidden_dim)
+        # The encoder initializes itself (before switching to channels_last).
+        for module in (self.actor, self.critic):
+            module.apply(weight_init)
+        self.critic_target = copy.deepcopy(self.critic)
+        self.critic_target.requires_grad_(False)
+
+        lr = lr_schedule(1)
+        params = list(self.encoder.parameters())
+        self.encoder.optimizer = self.optimizer_class(params, lr=lr, **self.optimizer_kwargs) if params else None
+        self.actor.optimizer = self.optimizer_class(self.actor.parameters(), lr=lr, **self.optimizer_kwargs)
+        self.critic.optimizer = self.optimizer_class(self.critic.parameters(), lr=lr, **self.optimizer_kwargs)
+
+    @property
+    def optimizers(self) -> list[th.optim.Optimizer]:
+        """The optimizers of the encoder (pixels only), the actor and the critic."""
+        optimizers = [self.encoder.optimizer, self.actor.optimizer, self.critic.optimizer]
+        return [optimizer for optimizer in optimizers if optimizer is not None]
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        """
+        The modules that produce each named activation, input to output.
+
+        For each name in ``cnn0``..``cnn4`` (pixel policies only), ``mlp0``, ``mlp1``, ``mlp2`` and
+        ``action``, the module whose forward output is that activation (register a forward hook on it)
+        and whose parameters are that layer's weights (read their gradients for the layer's gradient norm).
+        ``cnn0`` is the normalization and has no parameters. Activations are those of ``encoder`` then
+        ``actor``; the critic's layers are not named.
+
+        :return: ordered mapping name -> module
+        """
+        return {**self.encoder.named_layers(), **self.actor.named_layers()}
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                feature_dim=self.feature_dim,
+                hidden_dim=self.hidden_dim,
+                encoder_class=self.encoder_class,
+                encoder_kwargs=self.encoder_kwargs,
+                optimizer_class=self.optimizer_class,
+                optimizer_kwargs=self.optimizer_kwargs,
+                lr_schedule=self._dummy_schedule,
+            )
+        )
+        return data
+
+    def forward(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        return self._predict(observation, deterministic=deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        mean = self.actor(self.encoder(observation))  # type: ignore[arg-type]
+        if deterministic:
+            return mean
+        return sample_action(mean, self.exploration_std, clip=None)
+
+    def set_training_mode(self, mode: bool) -> None:
+        self.encoder.train(mode)
+        self.actor.train(mode)
+        self.critic.train(mode)
+        self.training = mode
+
+
+class CnnPolicy(DrQv2Policy):
+    """DrQ-v2 from pixels: channel-first ``uint8`` image observations (e.g. 9x84x84 for 3 stacked RGB frames)."""
+
+    def __init__(self, *args: Any, encoder_class: type[PixelEncoder | StateEncoder] = PixelEncoder, **kwargs: Any):
+        super().__init__(*args, encoder_class=encoder_class, **kwargs)
+
+
+class MlpPolicy(DrQv2Policy):
+    """DrQ-v2 from state vectors: the same actor and critic, no encoder, no augmentation."""
+
+    def __init__(self, *args: Any, encoder_class: type[PixelEncoder | StateEncoder] = StateEncoder, **kwargs: Any):
+        super().__init__(*args, encoder_class=encoder_class, **kwargs)
+
+
+def check_pixel_space(observation_space: spaces.Space) -> None:
+    """
+    :param observation_space: space to check
+    :raises ValueError: unless it is a channel-first ``uint8`` image ``Box`` (``(C, H, W)``, ``C < H, W``)
+    """
+    if not (
+        isinstance(observation_space, spaces.Box)
+        and is_image_space(observation_space, check_channels=False)
+        and observation_space.shape[0] < min(observation_space.shape[1:])
+    ):
+        raise ValueError(
+            f"CnnPolicy needs channel-first uint8 image observations of shape (channels, height, width), "
+            f"such as make_dmc_env(...)'s (9, 84, 84), but got {observation_space}. "
+            "Use MlpPolicy for state vectors (make_dmc_env(..., obs_type='state'))."
+        )
+    height, width = observation_space.shape[1:]
+    if min(_conv_output_size((height, width))) < 1:
+        raise ValueError(f"Images of {height}x{width} pixels are too small for the DrQ-v2 encoder (at least 15x15).")
+
+
+def check_state_space(observation_space: spaces.Space) -> None:
+    """
+    :param observation_space: space to check
+    :raises ValueError: unless it is a 1-d ``Box`` that is not an image
+    """
+    if isinstance(observation_space, spaces.Box) and is_image_space(observation_space, check_channels=False):
+        raise ValueError(
+            f"MlpPolicy takes state vectors, but the observations are images {observation_space}: use CnnPolicy."
+        )
+    if not (isinstance(observation_space, spaces.Box) and len(observation_space.shape) == 1):
+        raise ValueError(
+            f"MlpPolicy needs a 1-d Box of state features, got {observation_space}. "
+            "Flatten dict observations first (gymnasium.wrappers.FlattenObservation)."
+        )
+
+
+def check_action_space(action_space: spaces.Space) -> None:
+    """
+    :param action_space: space to check
+    :raises TypeError: unless it is a ``Box`` with finite bounds (DrQ-v2 is for continuous control)
+    """
+    if not isinstance(action_space, spaces.Box):
+        raise TypeError(
+            f"DrQv2 is for continuous actions (gymnasium.spaces.Box), got {type(action_space).__name__}: {action_space}."
+        )
+    if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
+        raise TypeError(f"DrQv2 needs finite action bounds to rescale its tanh actions, got {action_space}.")
+
+
+def _conv_output_size(image_size: tuple[int, ...]) -> tuple[int, ...]:
+    """Height and width after the encoder: 3x3 stride 2 then three 3x3 stride 1, no padding."""
+    return tuple((size - 3) // 2 + 1 - 6 for size in image_size)

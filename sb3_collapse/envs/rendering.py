@@ -1,0 +1,196 @@
+"""Selection of a headless OpenGL backend for MuJoCo / dm_control rendering.
+
+dm_control picks its OpenGL backend once, when ``dm_control._render`` is first imported,
+from the ``MUJOCO_GL`` environment variable (``glfw`` by default, which needs a display).
+On a headless machine it therefore has to be set to ``egl`` or ``osmesa`` *before*
+dm_control is imported. :func:`ensure_rendering_backend` finds one that works by trying
+each in a throw-away subprocess, then exports it in ``os.environ`` so that the current
+process and any worker it starts later (e.g. ``SubprocVecEnv``) use it.
+
+Probing costs about half a second, so it is not done when ``sb3_collapse`` is imported: it is done
+when the first environment is built, or when ``dm_control`` or ``mujoco`` is first imported, whichever
+comes first (:func:`install_import_hook`, installed by ``import sb3_collapse.envs``).
+"""
+
+from __future__ import annotations
+
+import importlib.abc
+import os
+import subprocess
+import sys
+import warnings
+from typing import Any
+
+# Backends tried, in order, when ``MUJOCO_GL`` is not set. EGL uses the GPU when there is one
+# (and Mesa's software rasterizer otherwise); OSMesa is software only.
+HEADLESS_BACKENDS: tuple[str, ...] = ("egl", "osmesa")
+# Python code run in a subprocess to check that a backend can create an OpenGL context.
+PROBE_CODE = "import mujoco; c = mujoco.GLContext(8, 8); c.make_current(); c.free()"
+# Seconds allowed for one probe (importing mujoco and creating a context).
+PROBE_TIMEOUT_S = 60.0
+# Characters of each failed probe's stderr quoted in the error message.
+_STDERR_TAIL_CHARS = 600
+
+# Cache of the probing outcome in this process: the chosen backend, or the report of the failed probes.
+_chosen_backend: str | None = None
+_failure_report: str | None = None
+
+
+class RenderingBackendError(RuntimeError):
+    """No headless OpenGL backend could create a rendering context."""
+
+
+def ensure_rendering_backend(required: bool = True) -> str | None:
+    """
+    Make sure MuJoCo can render off-screen, choosing the OpenGL backend if needed.
+
+    If ``MUJOCO_GL`` is already set, it is respected and returned as is (nothing is probed).
+    Otherwise the backends in ``HEADLESS_BACKENDS`` (``egl`` then ``osmesa``) are tried, each in a
+    subprocess; the first that works is exported as ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` in
+    ``os.environ`` (so that subprocesses started afterwards inherit it) and returned.
+    The outcome is cached, so probing happens at most once per process.
+
+    This must run before ``dm_control`` is imported, since dm_control reads ``MUJOCO_GL`` only once,
+    at import: importing ``sb3_collapse`` before ``dm_control`` (or setting ``MUJOCO_GL``) takes care of it.
+
+    :param required: Whether rendering is needed (pixel observations). If True and no backend works,
+        raise :class:`RenderingBackendError`; if False (state observations), return None instead.
+    :return: The backend in use (value of ``MUJOCO_GL``), or None if none works and ``required`` is False.
+    :raises RenderingBackendError: if no backend works and ``required`` is True.
+    """
+    global _chosen_backend, _failure_report
+
+    preset = os.environ.get("MUJOCO_GL")
+    if preset:
+        return preset
+    if _chosen_backend is not None:
+        _export_backend(_chosen_backend)
+        return _chosen_backend
+
+    if _failure_report is None:
+        _warn_if_dm_control_imported()
+        failures = []
+        for backend in HEADLESS_BACKENDS:
+            works, stderr = _probe_backend(backend)
+            if works:
+                _chosen_backend = backend
+                _export_backend(backend)
+                return backend
+            failures.append(f"--- MUJOCO_GL={backend} ---\n{stderr.strip()[-_STDERR_TAIL_CHARS:]}")
+        _failure_report = "\n".join(failures)
+
+    if required:
+        raise RenderingBackendError(_no_backend_message(_failure_report))
+    return None
+
+
+class _ChooseBackendOnImport(importlib.abc.MetaPathFinder):
+    """Import hook choosing the backend just before ``dm_control`` or ``mujoco`` is first imported."""
+
+    watched = ("dm_control", "mujoco")
+
+    def __init__(self) -> None:
+        # Fires once. It is not removed from ``sys.meta_path`` when it fires, since the import system
+        # is iterating over that list then (removing it would skip the next finder).
+        self.fired = False
+
+    def find_spec(self, fullname: str, path: Any, target: Any = None) -> None:
+        """
+        Choose the backend if ``fullname`` is a watched package, then let the normal import proceed.
+
+        :param fullname: Name of the module being imported.
+        :param path: Unused (search path of the parent package).
+        :param target: Unused.
+        :return: None, so that the other finders import the module.
+        """
+        if not self.fired and fullname in self.watched:
+            self.fired = True
+            try:
+                ensure_rendering_backend(required=False)
+            except Exception as error:  # never break an import
+                warnings.warn(f"Could not choose a headless OpenGL backend: {error}", RuntimeWarning, stacklevel=2)
+
+
+def install_import_hook() -> None:
+    """
+    Make the first import of ``dm_control`` or ``mujoco`` call ``ensure_rendering_backend(required=False)`` first.
+
+    So ``import sb3_collapse`` followed by ``from dm_control import suite`` renders headless without a display,
+    while importing ``sb3_collapse`` stays fast. Nothing is installed if ``MUJOCO_GL`` is set or if
+    dm_control / mujoco is already imported (too late, :func:`ensure_rendering_backend` then warns).
+    """
+    if os.environ.get("MUJOCO_GL") or any(name in sys.modules for name in _ChooseBackendOnImport.watched):
+        return
+    if not any(isinstance(finder, _ChooseBackendOnImport) and not finder.fired for finder in sys.meta_path):
+        uninstall_import_hook()
+        sys.meta_path.insert(0, _ChooseBackendOnImport())
+
+
+def uninstall_import_hook() -> None:
+    """Remove the hook installed by :func:`install_import_hook`, if any (not to be called during an import)."""
+    sys.meta_path[:] = [finder for finder in sys.meta_path if not isinstance(finder, _ChooseBackendOnImport)]
+
+
+def _probe_backend(backend: str, timeout: float = PROBE_TIMEOUT_S) -> tuple[bool, str]:
+    """
+    Check, in a subprocess, whether MuJoCo can create an OpenGL context with a backend.
+
+    :param backend: Value tried for ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` ("egl" or "osmesa").
+    :param timeout: Seconds to wait for the subprocess before counting the backend as not working.
+    :return: Whether the backend works, and the subprocess' stderr (to explain a failure).
+    """
+    env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
+    try:
+        result = subprocess.run(
+            [sys.executable, "-c", PROBE_CODE],
+            check=False,
+            env=env,
+            stdin=subprocess.DEVNULL,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
+    except subprocess.TimeoutExpired:
+        return False, f"probe timed out after {timeout:.0f} s"
+    except OSError as error:
+        return False, f"could not start the probe: {error}"
+    return result.returncode == 0, result.stderr
+
+
+def _export_backend(backend: str) -> None:
+    """
+    Select a backend for this process and the subprocesses it starts from now on.
+
+    :param backend: Value for ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM``.
+    """
+    os.environ["MUJOCO_GL"] = backend
+    os.environ["PYOPENGL_PLATFORM"] = backend
+
+
+def _warn_if_dm_control_imported() -> None:
+    """Warn that the backend choice comes too late if dm_control's rendering is already imported."""
+    if "dm_control.mujoco" in sys.modules or "dm_control._render" in sys.modules:
+        warnings.warn(
+            "dm_control was imported before MUJOCO_GL was set, so it has already picked its OpenGL backend "
+            "(glfw by default, which needs a display) and will not use the headless backend chosen now. "
+            "Import sb3_collapse before dm_control, or set MUJOCO_GL (e.g. MUJOCO_GL=egl) yourself.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
+def _no_backend_message(failure_report: str) -> str:
+    """
+    :param failure_report: stderr tails of the failed probes.
+    :return: The message of the :class:`RenderingBackendError` raised when no backend works.
+    """
+    return (
+        "No headless OpenGL backend works for MuJoCo rendering (tried MUJOCO_GL="
+        + ", ".join(HEADLESS_BACKENDS)
+        + "), so pixel observations cannot be rendered. To fix it, install one of:\n"
+        "  - EGL (GPU driver, or Mesa software rendering): apt-get install libegl1 libgl1-mesa-dri libegl-mesa0\n"
+        "  - OSMesa (software rendering): apt-get install libosmesa6\n"
+        "or set MUJOCO_GL yourself (egl, osmesa or glfw) before importing sb3_collapse. "
+        "State observations (obs_type='state') need no rendering.\n"
+        f"Probe errors:\n{failure_report}"
+    )

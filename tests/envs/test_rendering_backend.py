@@ -1,0 +1,113 @@
+"""Tests of the headless OpenGL backend selection (sb3_collapse.envs.rendering)."""
+
+from __future__ import annotations
+
+import os
+import sys
+import types
+
+import pytest
+
+from sb3_collapse.envs import RenderingBackendError, ensure_rendering_backend, rendering
+
+
+@pytest.fixture
+def unset_backend(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No MUJOCO_GL and no cached choice; both are restored after the test."""
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    monkeypatch.setattr(rendering, "_chosen_backend", None)
+    monkeypatch.setattr(rendering, "_failure_report", None)
+    # dm_control is imported by other tests: hide it so that no "imported too early" warning is emitted.
+    for module in ("dm_control.mujoco", "dm_control._render"):
+        monkeypatch.delitem(sys.modules, module, raising=False)
+
+
+def fake_probe(working: set[str], calls: list[str]):
+    """:return: A replacement of ``_probe_backend`` where only the ``working`` backends work."""
+
+    def probe(backend: str, timeout: float = 60.0) -> tuple[bool, str]:
+        calls.append(backend)
+        if backend in working:
+            return True, ""
+        return False, f"{backend}: libEGL.so.1: cannot open shared object file"
+
+    return probe
+
+
+def test_preset_mujoco_gl_is_respected(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    calls: list[str] = []
+    monkeypatch.setattr(rendering, "_probe_backend", fake_probe(set(), calls))
+    assert ensure_rendering_backend() == "osmesa"
+    assert ensure_rendering_backend(required=False) == "osmesa"
+    assert calls == []
+    assert os.environ["MUJOCO_GL"] == "osmesa"
+
+
+@pytest.mark.usefixtures("unset_backend")
+def test_no_backend_raises_with_install_instructions(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[str] = []
+    monkeypatch.setattr(rendering, "_probe_backend", fake_probe(set(), calls))
+    with pytest.raises(RenderingBackendError) as error:
+        ensure_rendering_backend()
+    assert isinstance(error.value, RuntimeError)
+    message = str(error.value)
+    assert "No headless OpenGL backend" in message
+    assert "libosmesa6" in message
+    assert "libegl1" in message
+    assert "MUJOCO_GL" in message
+    assert "cannot open shared object file" in message  # the probes' stderr
+    assert calls == ["egl", "osmesa"]
+    assert "MUJOCO_GL" not in os.environ
+
+
+@pytest.mark.usefixtures("unset_backend")
+def test_no_backend_not_required_returns_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[str] = []
+    monkeypatch.setattr(rendering, "_probe_backend", fake_probe(set(), calls))
+    assert ensure_rendering_backend(required=False) is None
+    assert "MUJOCO_GL" not in os.environ
+    # The failure is cached: no second probing, but a later required call still raises.
+    assert ensure_rendering_backend(required=False) is None
+    with pytest.raises(RenderingBackendError, match="libosmesa6"):
+        ensure_rendering_backend(required=True)
+    assert calls == ["egl", "osmesa"]
+
+
+@pytest.mark.usefixtures("unset_backend")
+def test_first_working_backend_is_exported_and_cached(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[str] = []
+    monkeypatch.setattr(rendering, "_probe_backend", fake_probe({"osmesa"}, calls))
+    assert ensure_rendering_backend() == "osmesa"
+    assert os.environ["MUJOCO_GL"] == "osmesa"
+    assert os.environ["PYOPENGL_PLATFORM"] == "osmesa"
+    assert calls == ["egl", "osmesa"]
+    # Cached, and re-exported if the variables were removed meanwhile.
+    del os.environ["MUJOCO_GL"]
+    assert ensure_rendering_backend() == "osmesa"
+    assert os.environ["MUJOCO_GL"] == "osmesa"
+    assert calls == ["egl", "osmesa"]
+
+
+@pytest.mark.usefixtures("unset_backend")
+def test_warns_if_dm_control_was_imported_first(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "dm_control.mujoco", types.ModuleType("dm_control.mujoco"))
+    monkeypatch.setattr(rendering, "_probe_backend", fake_probe({"egl"}, []))
+    with pytest.warns(RuntimeWarning, match="Import sb3_collapse before dm_control"):
+        assert ensure_rendering_backend() == "egl"
+
+
+def test_probe_reports_a_broken_backend() -> None:
+    works, stderr = rendering._probe_backend("not_a_backend")
+    assert not works
+    assert stderr
+
+
+@pytest.mark.usefixtures("unset_backend")
+def test_real_probe_exports_a_headless_backend() -> None:
+    backend = ensure_rendering_backend(required=False)
+    if backend is None:
+        pytest.skip("no headless OpenGL backend on this machine")
+    assert backend in rendering.HEADLESS_BACKENDS
+    assert os.environ["MUJOCO_GL"] == os.environ["PYOPENGL_PLATFORM"] == backend
