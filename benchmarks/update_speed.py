@@ -1,13 +1,14 @@
 """Milliseconds per DrQ-v2 gradient update, ours against the reference implementation's operations.
 
-Both run in one process, on the same networks, the same replay buffer and the same device:
-
 - ``ours``: ``DrQv2.train(gradient_steps=1)``, i.e. replay sampling, integer-crop augmentation on uint8,
   channels_last convolutions, the actor's backward restricted to the actor's parameters;
 - ``reference ops``: the operations of facebookresearch/drqv2's ``DrQV2Agent.update`` re-implemented here:
   ``grid_sample`` augmentation on float images, NCHW convolutions, a full backward of the actor loss
-  (gradients of the critic computed and discarded). The batch is sampled from the same buffer (the
-  reference samples in DataLoader workers; sampling is included in both timings).
+  (gradients of the critic computed and discarded), non-fused Adam, and the C library's default allocator.
+  The batch is sampled from the same kind of buffer (the reference samples in DataLoader workers; sampling
+  is included in both timings).
+
+Each runs in its own process, on identical networks and synthetic replay data.
 
 Observations are 9x84x84 uint8 (3 stacked RGB frames), actions 6-d (walker). No rendering is involved.
 
@@ -18,6 +19,10 @@ Observations are 9x84x84 uint8 (3 stacked RGB frames), actions 6-d (walker). No 
 from __future__ import annotations
 
 import argparse
+import os
+import platform
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -60,7 +65,8 @@ def reference_update(model: DrQv2, batch_size: int) -> None:
     polyak_update(critic.parameters(), model.critic_target.parameters(), model.tau)
 
 
-def build_model(device: str, channels_last: bool, buffer_size: int, seed: int = 0) -> DrQv2:
+def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0) -> DrQv2:
+    """A DrQv2 on synthetic 9x84x84 observations with a filled buffer; ``reference``: NCHW, non-fused Adam."""
     model = DrQv2(
         "CnnPolicy",
         RandomObservationEnv(),
@@ -68,7 +74,7 @@ def build_model(device: str, channels_last: bool, buffer_size: int, seed: int = 
         learning_starts=0,
         device=device,
         seed=seed,
-        policy_kwargs=dict(encoder_kwargs=dict(channels_last=channels_last)),
+        policy_kwargs=dict(encoder_kwargs=dict(channels_last=not reference), optimizer_kwargs=dict(fused=not reference)),
     )
     rng = np.random.default_rng(seed)
     obs_shape, action_dim = model.observation_space.shape, model.action_space.shape[0]
@@ -99,25 +105,44 @@ def time_updates(update, updates: int, device: th.device) -> float:
     return float(np.median(times))
 
 
+def measure(impl: str, batch_sizes: list[int], updates: int, device: str, buffer_size: int) -> list[float]:
+    """Median ms per update of one implementation, for each batch size (in this process)."""
+    if device == "cuda" or (device == "auto" and th.cuda.is_available()):
+        th.backends.cudnn.benchmark = True
+    model = build_model(device, reference=impl == "reference", buffer_size=buffer_size)
+    if impl == "ours":
+        return [time_updates(lambda: model.train(gradient_steps=1, batch_size=b), updates, model.device) for b in batch_sizes]
+    return [time_updates(lambda: reference_update(model, b), updates, model.device) for b in batch_sizes]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 32], help="minibatch sizes")
     parser.add_argument("--updates", type=int, default=5, help="timed updates per measurement (median reported)")
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
-    parser.add_argument("--buffer-size", type=int, default=2000, help="transitions in the synthetic buffer")
+    parser.add_argument("--buffer-size", type=int, default=1000, help="transitions in the synthetic buffer")
+    parser.add_argument("--impl", choices=["ours", "reference"], help=argparse.SUPPRESS)
     args = parser.parse_args()
 
-    if args.device == "cuda" or (args.device == "auto" and th.cuda.is_available()):
-        th.backends.cudnn.benchmark = True
-    ours = build_model(args.device, channels_last=True, buffer_size=args.buffer_size)
-    baseline = build_model(args.device, channels_last=False, buffer_size=args.buffer_size)
-    device = ours.device
-    name = th.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {th.get_num_threads()} threads"
-    print(f"device: {name}; torch {th.__version__}; obs 9x84x84 uint8, 6-d actions")
+    if args.impl:  # one implementation, in a child process: print the timings as one line
+        print(" ".join(f"{ms:.3f}" for ms in measure(args.impl, args.batch_sizes, args.updates, args.device, args.buffer_size)))
+        return
+
+    # Each implementation runs in its own process: the reference with the default C allocator, as it runs
+    # on its own; ours as DrQv2 sets it up (sb3_collapse.drqv2.cpu_allocator, on the CPU only).
+    timings = {}
+    for impl in ("reference", "ours"):
+        env = dict(os.environ, SB3_COLLAPSE_TUNE_MALLOC="1" if impl == "ours" else "0")
+        command = [sys.executable, __file__, "--impl", impl, "--updates", str(args.updates), "--device", args.device,
+                   "--buffer-size", str(args.buffer_size), "--batch-sizes", *map(str, args.batch_sizes)]
+        output = subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout
+        timings[impl] = [float(value) for value in output.split()]
+
+    device = th.device("cuda" if args.device == "cuda" or (args.device == "auto" and th.cuda.is_available()) else "cpu")
+    name = th.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({platform.processor() or platform.machine()}), {th.get_num_threads()} threads"
+    print(f"device: {name}; torch {th.__version__}; obs 9x84x84 uint8, 6-d actions; median of {args.updates} updates")
     print(f"{'batch':>6} {'reference ops (ms)':>19} {'ours (ms)':>10} {'ours / reference':>17}")
-    for batch_size in args.batch_sizes:
-        ref_ms = time_updates(lambda: reference_update(baseline, batch_size), args.updates, device)
-        ours_ms = time_updates(lambda: ours.train(gradient_steps=1, batch_size=batch_size), args.updates, device)
+    for batch_size, ref_ms, ours_ms in zip(args.batch_sizes, timings["reference"], timings["ours"]):
         print(f"{batch_size:>6} {ref_ms:>19.1f} {ours_ms:>10.1f} {ours_ms / ref_ms:>17.2f}")
 
 

@@ -17,6 +17,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 
 from sb3_collapse.drqv2.augmentation import random_shift
+from sb3_collapse.drqv2.cpu_allocator import tune_cpu_allocator
 from sb3_collapse.drqv2.policies import (
     Actor,
     CnnPolicy,
@@ -77,7 +78,8 @@ class DrQv2(OffPolicyAlgorithm):
         ``encoder_kwargs`` (``channels``, ``channels_last``), ``optimizer_kwargs``
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
-    :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``
+    :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``. On the CPU, glibc's malloc is tuned to reuse large
+        freed buffers (a process-wide setting, see ``sb3_collapse.drqv2.cpu_allocator``)
     :param _init_setup_model: build the networks and the buffer now
     """
 
@@ -153,7 +155,7 @@ class DrQv2(OffPolicyAlgorithm):
         self._last_grad_norms: th.Tensor | None = None
         self._train_stats: dict[str, th.Tensor] = {}
         self._train_stats_count = 0
-        if self.action_space is not None:
+        if getattr(self, "action_space", None) is not None:  # absent when loading without an env
             check_action_space(self.action_space)
         if _init_setup_model:
             self._setup_model()
@@ -175,6 +177,8 @@ class DrQv2(OffPolicyAlgorithm):
                 "separately (~127 KB per 9x84x84 transition): pass a smaller buffer_size, e.g. "
                 "buffer_size=100_000 (~13 GB), or the number of agent steps of your run if it is smaller."
             ) from None
+        if self.device.type == "cpu" and tune_cpu_allocator() and self.verbose >= 1:
+            print("sb3_collapse: glibc malloc tuned to reuse freed buffers (SB3_COLLAPSE_TUNE_MALLOC=0 to disable)")
         self._create_aliases()
         self._encoder_layers = _layers_with_parameters(self.encoder.named_layers())
         self._actor_layers = _layers_with_parameters(self.actor.named_layers())

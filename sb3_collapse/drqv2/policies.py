@@ -76,8 +76,14 @@ class PixelNormalization(nn.Module):
 class PixelEncoder(nn.Module):
     """
     DrQ-v2's convolutional encoder: ``cnn0`` normalization, then four 3x3 convolutions with 32 channels
-    (stride 2, then 1, 1, 1), no padding, ReLU after each; the output is flattened in (C, H, W) order.
+    (stride 2, then 1, 1, 1), no padding, ReLU after each; the output is flattened.
     Initialized with :func:`weight_init` at construction.
+
+    With ``channels_last`` (the default) the convolutions run in ``channels_last`` memory format, faster on
+    CPU (oneDNN) and GPU (cuDNN), and the output is flattened in (H, W, C) order, which is free in that format;
+    otherwise in DrQ-v2's (C, H, W) order. The order only permutes the inputs of the trunks' first Linear
+    layers, whose orthogonal initialization is invariant to it: the learning dynamics are the same.
+    The ``cnnK`` activations (module outputs) are the same tensors either way.
 
     :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
     :param channels: number of filters of every convolution
@@ -96,12 +102,16 @@ class PixelEncoder(nn.Module):
         self.cnn3 = nn.Sequential(nn.Conv2d(channels, channels, 3, stride=1), nn.ReLU(inplace=True))
         self.cnn4 = nn.Sequential(nn.Conv2d(channels, channels, 3, stride=1), nn.ReLU(inplace=True))
         self.apply(weight_init)
+        self.channels_last = channels_last
         if channels_last:
             self.to(memory_format=th.channels_last)
         self.repr_dim = channels * int(np.prod(_conv_output_size(observation_space.shape[1:])))
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
         h = self.cnn4(self.cnn3(self.cnn2(self.cnn1(self.cnn0(obs)))))
+        if self.channels_last:
+            # (H, W, C) order: a free view of channels_last memory, where (C, H, W) order needs a copy.
+            return h.permute(0, 2, 3, 1).flatten(1)
         return h.flatten(1)
 
     def named_layers(self) -> dict[str, nn.Module]:
@@ -238,7 +248,8 @@ class DrQv2Policy(BasePolicy):
     :param encoder_class: ``PixelEncoder`` (``CnnPolicy``) or ``StateEncoder`` (``MlpPolicy``)
     :param encoder_kwargs: keyword arguments of the encoder (``channels``, ``channels_last``)
     :param optimizer_class: optimizer of the encoder, actor and critic
-    :param optimizer_kwargs: its keyword arguments, learning rate excluded
+    :param optimizer_kwargs: its keyword arguments, learning rate excluded (Adam gets ``fused=True`` unless
+        given otherwise)
     """
 
     encoder: PixelEncoder | StateEncoder
@@ -271,6 +282,9 @@ class DrQv2Policy(BasePolicy):
         self.hidden_dim = hidden_dim
         self.encoder_class = encoder_class
         self.encoder_kwargs = encoder_kwargs or {}
+        if optimizer_class is th.optim.Adam and "fused" not in self.optimizer_kwargs:
+            # One fused kernel per step instead of a dozen per tensor: same update, about 3x faster.
+            self.optimizer_kwargs["fused"] = True
         self.exploration_std = 1.0
         """Standard deviation of the exploration noise of ``predict(deterministic=False)``; the algorithm
         sets it from its schedule before every action it takes."""

@@ -1,0 +1,90 @@
+#!/usr/bin/env bash
+# sb3-collapse: set up and run.   bash run.sh demo   |   bash run.sh test   |   bash run.sh setup
+#
+# setup: headless OpenGL (Debian packages, when missing and apt-get can install them), a virtual
+#        environment in .venv (Python >= 3.10), PyTorch (CPU build 2.13.0 unless TORCH_SPEC says otherwise,
+#        or the one already there), then this package with its test extras.
+# demo:  setup, then a short DrQ-v2 run on walker-walk from pixels; writes runs/walker-walk_s0/.
+# test:  setup, then the test suite (pytest). Extra arguments go to pytest.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+PYTHON=${PYTHON:-}
+VENV=${VENV:-.venv}
+TORCH_SPEC=${TORCH_SPEC:-torch==2.13.0}
+EGL_PACKAGES=(libegl1 libgl1-mesa-dri libegl-mesa0)
+
+log() { printf '\n==> %s\n' "$*"; }
+
+install_rendering_packages() {
+    local missing=()
+    for package in "${EGL_PACKAGES[@]}"; do
+        dpkg -s "$package" >/dev/null 2>&1 || missing+=("$package")
+    done
+    if ((${#missing[@]} == 0)); then
+        return
+    fi
+    local sudo=""
+    if [[ $(id -u) != 0 ]]; then
+        if command -v sudo >/dev/null && sudo -n true 2>/dev/null; then sudo="sudo"; else
+            echo "Headless rendering needs: ${missing[*]} libosmesa6. Install them (apt-get install ...) and rerun." >&2
+            return
+        fi
+    fi
+    log "Installing headless OpenGL packages: ${missing[*]} libosmesa6"
+    $sudo apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" libosmesa6 >/dev/null
+}
+
+find_python() {
+    if [[ -n $PYTHON ]]; then echo "$PYTHON"; return; fi
+    for candidate in python3.11 python3.12 python3.10 python3; do
+        if command -v "$candidate" >/dev/null && "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 10))'; then
+            echo "$candidate"; return
+        fi
+    done
+    echo "Python >= 3.10 is required (set PYTHON=/path/to/python)." >&2
+    exit 1
+}
+
+setup() {
+    if command -v dpkg >/dev/null && command -v apt-get >/dev/null; then
+        install_rendering_packages
+    fi
+    if [[ ! -x $VENV/bin/python ]]; then
+        log "Creating the virtual environment $VENV"
+        "$(find_python)" -m venv "$VENV"
+    fi
+    local pip=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
+    if ! "$VENV/bin/python" -c 'import torch' 2>/dev/null; then
+        log "Installing PyTorch ($TORCH_SPEC)"
+        "${pip[@]}" install "$TORCH_SPEC"
+    fi
+    log "Installing sb3-collapse and its dependencies"
+    # (the filter drops pip warnings about unreadable local index folders of some machines)
+    "${pip[@]}" install -e ".[test]" 2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+}
+
+command=${1:-}
+shift || true
+case $command in
+    setup)
+        setup
+        ;;
+    demo)
+        setup
+        log "Training DrQ-v2 on walker-walk from pixels: 6,000 frames (about 5 minutes on 2 CPU cores)"
+        "$VENV/bin/python" -m sb3_collapse.train --env walker-walk --frames 6000 --seed 0 --logdir runs \
+            --seed-frames 2000 --batch-size 32 --eval-every-frames 3000 --eval-episodes 1 "$@"
+        echo "See the curves with: $VENV/bin/tensorboard --logdir runs"
+        ;;
+    test)
+        setup
+        log "Running the test suite"
+        "$VENV/bin/python" -m pytest "$@"
+        ;;
+    *)
+        echo "usage: bash run.sh demo|test|setup [extra arguments]" >&2
+        exit 2
+        ;;
+esac

@@ -1,0 +1,320 @@
+"""Train DrQ-v2 on a DeepMind Control task from pixels: ``python -m sb3_collapse.train --help``.
+
+    python -m sb3_collapse.train --env walker-walk --frames 100000 --seed 0 --logdir runs/
+
+Everything a run writes goes to one folder, ``<logdir>/<task>_s<seed>`` (``_2``, ``_3``... if it exists):
+TensorBoard events, ``progress.csv`` (the SB3 logger), ``eval.csv`` (one row per evaluation),
+``config.json`` (the settings) and ``final_model.zip`` (load it with ``DrQv2.load``).
+
+Budgets are in frames, as in DrQ-v2 and the paper (frames = agent steps x action repeat); the exploration
+schedule is in agent steps, as in DrQ-v2's configs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.monitor import Monitor
+
+from sb3_collapse.drqv2 import DrQv2, StddevSchedule
+from sb3_collapse.envs import make_dmc_env, parse_task
+
+
+@dataclass
+class TrainConfig:
+    """
+    Settings of one training run. Frame counts include the action repeat; ``stddev_schedule`` is in agent steps.
+
+    :param env: dm_control task, e.g. ``"walker-walk"``
+    :param frames: training budget, in frames
+    :param seed: random seed (environment, networks, exploration)
+    :param logdir: parent folder of the run folder
+    :param run_name: name of the run folder; ``<task>_s<seed>`` by default
+    :param action_repeat: frames per agent step
+    :param frame_stack: stacked RGB frames per observation
+    :param size: image height and width, in pixels
+    :param eval_every_frames: frames between evaluations (and one at frame 0); ``0`` disables evaluation
+    :param eval_episodes: episodes per evaluation (deterministic policy)
+    :param checkpoint_every_frames: frames between intermediate checkpoints; ``0`` for the final one only
+    :param seed_frames: frames of uniformly random actions before the first update
+    :param batch_size: minibatch size
+    :param buffer_size: replay capacity in transitions; ``None``: the run's agent steps, at most 1,000,000
+    :param learning_rate: Adam learning rate
+    :param n_steps: n-step return length
+    :param feature_dim: actor and critic trunk size
+    :param hidden_dim: hidden units of the actor and the Q heads
+    :param stddev_schedule: exploration std schedule, durations in agent steps
+    :param stddev_clip: noise clip in the updates
+    :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
+    :param progress_bar: show a progress bar
+    :param verbose: SB3 verbosity (0: silent, 1: log tables)
+    """
+
+    env: str = "walker-walk"
+    frames: int = 1_100_000
+    seed: int = 0
+    logdir: str = "runs"
+    run_name: str | None = None
+    action_repeat: int = 2
+    frame_stack: int = 3
+    size: int = 84
+    eval_every_frames: int = 10_000
+    eval_episodes: int = 10
+    checkpoint_every_frames: int = 0
+    seed_frames: int = 4000
+    batch_size: int = 256
+    buffer_size: int | None = None
+    learning_rate: float = 1e-4
+    n_steps: int = 3
+    feature_dim: int = 50
+    hidden_dim: int = 1024
+    stddev_schedule: str = "linear(1.0,0.1,100000)"
+    stddev_clip: float = 0.3
+    device: str = "auto"
+    progress_bar: bool = True
+    verbose: int = 0
+
+    def validate(self) -> None:
+        """
+        :raises ValueError: with a message naming the bad setting
+        """
+        parse_task(self.env)
+        StddevSchedule(self.stddev_schedule)
+        positive = ("frames", "action_repeat", "frame_stack", "size", "batch_size", "n_steps", "feature_dim", "hidden_dim")
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}.")
+        for name in ("eval_every_frames", "eval_episodes", "checkpoint_every_frames", "seed_frames"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}.")
+        if self.eval_every_frames > 0 and self.eval_episodes < 1:
+            raise ValueError("--eval-episodes must be >= 1 when evaluating (or pass --eval-every-frames 0).")
+        if self.buffer_size is not None and self.buffer_size < 1:
+            raise ValueError(f"--buffer-size must be >= 1 transition, got {self.buffer_size}.")
+
+    @property
+    def agent_steps(self) -> int:
+        """Training budget in agent steps."""
+        return max(1, self.frames // self.action_repeat)
+
+
+class PeriodicEvaluation(BaseCallback):
+    """
+    Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
+    (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done.
+
+    :param eval_env: evaluation environment (same pixel settings as the training one)
+    :param every_frames: frames between evaluations
+    :param episodes: episodes per evaluation
+    :param csv_path: CSV file with columns ``frame, step, mean_reward, std_reward, episodes, wall_time_s``
+    """
+
+    def __init__(self, eval_env: Any, every_frames: int, episodes: int, csv_path: Path) -> None:
+        super().__init__()
+        self.eval_env = eval_env
+        self.every_frames = every_frames
+        self.episodes = episodes
+        self.csv_path = csv_path
+        self.start_time = time.time()
+        self.next_eval_frame = 0
+        self.rows: list[dict[str, float]] = []
+
+    def _frames(self) -> int:
+        return self.model.num_timesteps * self.model.action_repeat  # type: ignore[attr-defined]
+
+    def _on_training_start(self) -> None:
+        self.next_eval_frame = self._frames()
+        self._maybe_evaluate()
+
+    def _on_step(self) -> bool:
+        self._maybe_evaluate()
+        return True
+
+    def _maybe_evaluate(self) -> None:
+        if self._frames() >= self.next_eval_frame:
+            self.evaluate()
+            while self.next_eval_frame <= self._frames():
+                self.next_eval_frame += self.every_frames
+
+    def evaluate(self) -> dict[str, float]:
+        """Evaluate now, log the result and append it to the CSV; return the CSV row."""
+        rewards, _ = evaluate_policy(
+            self.model, self.eval_env, n_eval_episodes=self.episodes, deterministic=True, return_episode_rewards=True
+        )
+        row = {
+            "frame": self._frames(),
+            "step": self.model.num_timesteps,
+            "mean_reward": float(sum(rewards) / len(rewards)),
+            "std_reward": float(_std(rewards)),
+            "episodes": len(rewards),
+            "wall_time_s": round(time.time() - self.start_time, 1),
+        }
+        new_file = not self.csv_path.exists()
+        with self.csv_path.open("a", newline="") as file:
+            writer = csv.DictWriter(file, fieldnames=list(row))
+            if new_file:
+                writer.writeheader()
+            writer.writerow(row)
+        self.rows.append(row)
+        self.logger.record("eval/mean_reward", row["mean_reward"])
+        self.logger.record("eval/std_reward", row["std_reward"])
+        self.logger.record("eval/frames", row["frame"])
+        self.logger.dump(step=self.model.num_timesteps)
+        return row
+
+
+def _std(values: list[float]) -> float:
+    mean = sum(values) / len(values)
+    return (sum((v - mean) ** 2 for v in values) / len(values)) ** 0.5
+
+
+@dataclass
+class TrainResult:
+    """
+    :param run_dir: folder of the run
+    :param model_path: the final checkpoint
+    :param evaluations: one dict per evaluation (``frame``, ``step``, ``mean_reward``, ...)
+    """
+
+    run_dir: Path
+    model_path: Path
+    evaluations: list[dict[str, float]]
+
+
+def _new_run_dir(logdir: Path, name: str) -> Path:
+    run_dir, index = logdir / name, 1
+    while run_dir.exists():
+        index += 1
+        run_dir = logdir / f"{name}_{index}"
+    run_dir.mkdir(parents=True)
+    return run_dir
+
+
+def train(config: TrainConfig) -> TrainResult:
+    """
+    Train DrQ-v2 as ``config`` says, evaluating and logging on the way, and save the final model.
+
+    :param config: the run's settings
+    :return: where things were written, and the evaluations
+    """
+    config.validate()
+    domain, task = parse_task(config.env)
+    task_id = f"{domain}-{task}"
+    env_kwargs = dict(action_repeat=config.action_repeat, frame_stack=config.frame_stack, size=config.size)
+    run_dir = _new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}")
+    (run_dir / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2) + "\n")
+
+    env = Monitor(make_dmc_env(task_id, seed=config.seed, **env_kwargs))
+    steps = config.agent_steps
+    model = DrQv2(
+        "CnnPolicy",
+        env,
+        learning_rate=config.learning_rate,
+        buffer_size=config.buffer_size or min(1_000_000, steps),
+        learning_starts=config.seed_frames // config.action_repeat,
+        batch_size=config.batch_size,
+        n_steps=config.n_steps,
+        stddev_schedule=config.stddev_schedule,
+        stddev_clip=config.stddev_clip,
+        policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim),
+        seed=config.seed,
+        device=config.device,
+        verbose=config.verbose,
+    )
+    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
+    model.set_logger(configure(str(run_dir), formats))
+
+    callbacks: list[BaseCallback] = []
+    evaluation = None
+    if config.eval_every_frames > 0:
+        eval_env = Monitor(make_dmc_env(task_id, seed=config.seed + 100_000, **env_kwargs))
+        evaluation = PeriodicEvaluation(eval_env, config.eval_every_frames, config.eval_episodes, run_dir / "eval.csv")
+        callbacks.append(evaluation)
+    if config.checkpoint_every_frames > 0:
+        save_freq = max(1, config.checkpoint_every_frames // config.action_repeat)
+        callbacks.append(CheckpointCallback(save_freq, str(run_dir / "checkpoints"), name_prefix="drqv2"))
+
+    print(
+        f"DrQ-v2 on {task_id} from pixels: {config.frames:,} frames = {steps:,} agent steps "
+        f"(action repeat {config.action_repeat}), seed {config.seed}, device {model.device}.\n"
+        f"Writing to {run_dir} (tensorboard --logdir {config.logdir})",
+        flush=True,
+    )
+    model.learn(steps, callback=CallbackList(callbacks), log_interval=1, progress_bar=config.progress_bar)
+    model_path = run_dir / "final_model.zip"
+    model.save(model_path)
+    if evaluation is not None and evaluation.rows and evaluation.rows[-1]["step"] < model.num_timesteps:
+        evaluation.evaluate()  # the budget's last frames were not evaluated yet
+    model.logger.close()
+    env.close()
+    evaluations = evaluation.rows if evaluation is not None else []
+    if evaluations:
+        last = evaluations[-1]
+        print(f"Last evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- {last['std_reward']:.1f}")
+    print(f"Saved {model_path}")
+    return TrainResult(run_dir=run_dir, model_path=model_path, evaluations=evaluations)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m sb3_collapse.train``, one flag per :class:`TrainConfig` field."""
+    d = TrainConfig()
+    p = argparse.ArgumentParser(
+        prog="python -m sb3_collapse.train",
+        description="Train DrQ-v2 from pixels on a DeepMind Control task, with periodic evaluation, "
+        "TensorBoard logs and a final checkpoint. Frames = agent steps x action repeat.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--env", default=d.env, help="dm_control task: walker-walk, cartpole-swingup, quadruped-run, ...")
+    p.add_argument("--frames", type=int, default=d.frames, help="training budget, in frames (1.1M: DrQ-v2's easy tasks)")
+    p.add_argument("--seed", type=int, default=d.seed, help="random seed")
+    p.add_argument("--logdir", default=d.logdir, help="parent folder of the run folder <task>_s<seed>")
+    p.add_argument("--run-name", default=d.run_name, help="run folder name instead of <task>_s<seed>")
+    p.add_argument("--action-repeat", type=int, default=d.action_repeat, help="frames per agent step")
+    p.add_argument("--frame-stack", type=int, default=d.frame_stack, help="stacked RGB frames per observation")
+    p.add_argument("--size", type=int, default=d.size, help="image height and width, in pixels")
+    p.add_argument("--eval-every-frames", type=int, default=d.eval_every_frames, help="frames between evaluations, also one at frame 0; 0 disables them")
+    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes, help="episodes per evaluation (deterministic policy)")
+    p.add_argument("--checkpoint-every-frames", type=int, default=d.checkpoint_every_frames, help="frames between intermediate checkpoints; 0: final checkpoint only")
+    p.add_argument("--seed-frames", type=int, default=d.seed_frames, help="frames of uniformly random actions before learning starts")
+    p.add_argument("--batch-size", type=int, default=d.batch_size, help="minibatch size of each update")
+    p.add_argument("--buffer-size", type=int, default=d.buffer_size, help="replay capacity, in transitions (agent steps); default: the run's agent steps, at most 1,000,000")
+    p.add_argument("--lr", dest="learning_rate", type=float, default=d.learning_rate, help="Adam learning rate")
+    p.add_argument("--n-steps", type=int, default=d.n_steps, help="n-step return length, in agent steps")
+    p.add_argument("--feature-dim", type=int, default=d.feature_dim, help="actor and critic trunk size")
+    p.add_argument("--hidden-dim", type=int, default=d.hidden_dim, help="hidden units of the actor and Q heads")
+    p.add_argument("--stddev-schedule", default=d.stddev_schedule, help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps")
+    p.add_argument("--stddev-clip", type=float, default=d.stddev_clip, help="clip of the exploration noise in the updates")
+    p.add_argument("--device", default=d.device, help="auto, cpu, cuda, cuda:1, ...")
+    p.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
+    p.add_argument("--verbose", type=int, default=d.verbose, help="1: print SB3's log tables")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """
+    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
+    :return: exit status
+    """
+    parser = build_parser()
+    config = TrainConfig(**vars(parser.parse_args(argv)))
+    try:
+        config.validate()
+    except ValueError as error:
+        parser.error(str(error))
+    train(config)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
