@@ -55,14 +55,18 @@ setup() {
         log "Creating the virtual environment $VENV"
         "$(find_python)" -m venv "$VENV"
     fi
-    local pip=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
     if ! "$VENV/bin/python" -c 'import torch' 2>/dev/null; then
         log "Installing PyTorch ($TORCH_SPEC)"
-        "${pip[@]}" install "$TORCH_SPEC"
+        pip_install "$TORCH_SPEC"
     fi
     log "Installing sb3-collapse and its dependencies"
-    # (the filter drops pip warnings about unreadable local index folders of some machines)
-    "${pip[@]}" install -e ".[test]" 2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+    pip_install -e ".[test]"
+}
+
+pip_install() {
+    # The filter drops pip's warnings about unreadable local index folders that some machines configure.
+    "$VENV/bin/python" -m pip --disable-pip-version-check -q install "$@" \
+        2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
 }
 
 command=${1:-}

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import os
 import warnings
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
@@ -54,7 +55,9 @@ class DrQv2(OffPolicyAlgorithm):
     :param learning_rate: Adam learning rate of the encoder, actor and critic (or an SB3 schedule of the
         remaining progress)
     :param buffer_size: replay buffer capacity, in transitions (agent steps x n_envs). SB3's buffer stores
-        obs and next_obs: about 127 KB per 9x84x84 transition.
+        obs and next_obs: about 127 KB per 9x84x84 transition, so DrQ-v2's 1,000,000 need ~127 GB. A warning
+        says so when the full buffer would not fit in RAM, and a ``MemoryError`` suggests a size when it
+        cannot even be reserved.
     :param learning_starts: agent steps of uniformly random actions before the first update
     :param batch_size: minibatch size of each gradient update
     :param tau: soft update coefficient of the target critic
@@ -79,7 +82,8 @@ class DrQv2(OffPolicyAlgorithm):
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``. On the CPU, glibc's malloc is tuned to reuse large
-        freed buffers (a process-wide setting, see ``sb3_collapse.drqv2.cpu_allocator``)
+        freed buffers (a process-wide setting, see ``sb3_collapse.drqv2.cpu_allocator``); on CUDA,
+        ``torch.backends.cudnn.benchmark`` is turned on, as DrQ-v2 does
     :param _init_setup_model: build the networks and the buffer now
     """
 
@@ -163,6 +167,7 @@ class DrQv2(OffPolicyAlgorithm):
     # ------------------------------------------------------------------ setup
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
+        self._check_replay_memory()
         try:
             with warnings.catch_warnings():
                 if "n_steps" in self.replay_buffer_kwargs:
@@ -172,19 +177,46 @@ class DrQv2(OffPolicyAlgorithm):
                 super()._setup_model()
         except MemoryError as error:
             raise MemoryError(
-                f"Could not allocate a replay buffer of {self.buffer_size:,} transitions for observations of "
-                f"shape {self.observation_space.shape} ({error}). SB3's buffer stores obs and next_obs "
-                "separately (~127 KB per 9x84x84 transition): pass a smaller buffer_size, e.g. "
-                "buffer_size=100_000 (~13 GB), or the number of agent steps of your run if it is smaller."
+                f"Could not allocate a replay buffer of {self.buffer_size:,} transitions ({error}). "
+                + self._replay_memory_advice()
             ) from None
         if self.device.type == "cpu" and tune_cpu_allocator() and self.verbose >= 1:
             print("sb3_collapse: glibc malloc tuned to reuse freed buffers (SB3_COLLAPSE_TUNE_MALLOC=0 to disable)")
+        if self.device.type == "cuda":
+            th.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest kernels
         self._create_aliases()
         self._encoder_layers = _layers_with_parameters(self.encoder.named_layers())
         self._actor_layers = _layers_with_parameters(self.actor.named_layers())
         self._grad_layers = self._encoder_layers + self._actor_layers
         self._encoder_grad_norms = th.zeros(len(self._encoder_layers), device=self.device)
         self.policy.exploration_std = self.current_stddev
+
+    def _replay_bytes_per_transition(self) -> int:
+        """Bytes per transition of SB3's replay buffers: obs and next_obs, action, reward, done, timeout."""
+        obs_bytes = int(np.prod(self.observation_space.shape)) * np.dtype(self.observation_space.dtype).itemsize
+        action_bytes = int(np.prod(self.action_space.shape)) * 4
+        return 2 * obs_bytes + action_bytes + 12
+
+    def _replay_memory_advice(self) -> str:
+        per_transition = self._replay_bytes_per_transition()
+        fitting = int(0.7 * physical_memory_bytes() / per_transition)
+        return (
+            f"SB3's buffer stores obs and next_obs separately: {per_transition / 1e3:,.0f} KB per transition, "
+            f"{self.buffer_size * per_transition / 1e9:,.1f} GB in all, and this machine has "
+            f"{physical_memory_bytes() / 1e9:,.1f} GB of RAM. Pass a smaller buffer_size, e.g. "
+            f"buffer_size={fitting:_} (70% of the RAM), or the number of agent steps of your run if smaller."
+        )
+
+    def _check_replay_memory(self) -> None:
+        """Warn now, rather than be killed hours later, when the full replay buffer cannot fit in RAM."""
+        if self.replay_buffer_class not in (None, ReplayBuffer, NStepReplayBuffer) or self.observation_space is None:
+            return
+        if self.buffer_size * self._replay_bytes_per_transition() > physical_memory_bytes():
+            warnings.warn(
+                f"The replay buffer of {self.buffer_size:,} transitions will not fit in memory once full. "
+                + self._replay_memory_advice(),
+                stacklevel=4,  # the user's DrQv2(...) call
+            )
 
     def _create_aliases(self) -> None:
         self.encoder = self.policy.encoder
@@ -428,6 +460,11 @@ class DrQv2(OffPolicyAlgorithm):
         if self.policy.encoder.optimizer is not None:
             state_dicts.append("encoder.optimizer")
         return state_dicts, []
+
+
+def physical_memory_bytes() -> int:
+    """Total RAM of this machine, in bytes."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 def _layers_with_parameters(layers: dict[str, th.nn.Module]) -> list[tuple[str, list[th.nn.Parameter]]]:

@@ -1,4 +1,5 @@
 import glob
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -6,7 +7,8 @@ import pytest
 import torch as th
 from stable_baselines3.common.buffers import NStepReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import DrQv2, make_dmc_env
@@ -226,6 +228,26 @@ def test_bad_inputs():
         DrQv2("CnnPolicy", pixel_env(), augmentation_pad=-1, **SMALL)
 
 
+def test_replay_buffer_too_big_for_ram_warns(monkeypatch):
+    monkeypatch.setattr("sb3_collapse.drqv2.drqv2.physical_memory_bytes", lambda: 10**9)
+    with pytest.warns(UserWarning, match=r"will not fit in memory once full.*127 KB per transition.*buffer_size=5_5"):
+        DrQv2("CnnPolicy", RandomObservationEnv(), buffer_size=10_000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        DrQv2("CnnPolicy", RandomObservationEnv(), buffer_size=5_000)
+
+
+def test_replay_buffer_allocation_failure_says_what_to_do(monkeypatch):
+    def fail(self):
+        raise MemoryError("Unable to allocate 59.1 GiB")
+
+    monkeypatch.setattr("stable_baselines3.common.off_policy_algorithm.OffPolicyAlgorithm._setup_model", fail)
+    with pytest.raises(MemoryError, match=r"1,000,000 transitions \(Unable to allocate 59.1 GiB\).*Pass a smaller buffer_size"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            DrQv2("CnnPolicy", RandomObservationEnv())
+
+
 def test_learn_on_dm_control_pixels(tmp_path):
     env = make_dmc_env("walker-walk", seed=0)
     model = DrQv2("CnnPolicy", env, buffer_size=200, learning_starts=40, batch_size=8, seed=0,
@@ -249,3 +271,17 @@ def test_learn_on_dm_control_states():
     assert model._n_updates == 50
     action, _ = model.predict(env.reset(seed=0)[0], deterministic=True)
     assert env.action_space.contains(action)
+
+
+def test_learn_with_subprocess_pixel_envs():
+    env = make_vec_env("sb3_collapse/walker-walk-v0", n_envs=2, seed=0, vec_env_cls=SubprocVecEnv,
+                       env_kwargs=dict(action_repeat=8))
+    try:
+        model = DrQv2("CnnPolicy", env, buffer_size=200, learning_starts=20, batch_size=8, seed=0,
+                      policy_kwargs=dict(hidden_dim=32))
+        assert model.action_repeat == 8
+        model.learn(60)
+        assert model.num_timesteps == 60 and model.num_frames == 480
+        assert model._n_updates > 0
+    finally:
+        env.close()
