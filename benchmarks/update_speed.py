@@ -33,8 +33,8 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.drqv2.augmentation import random_shift_grid_sample
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.drqv2.policies import sample_action
+from sb3_collapse.envs.synthetic import RandomObservationEnv
 
 
 def reference_update(model: DrQv2, batch_size: int) -> None:
@@ -111,8 +111,8 @@ def measure(impl: str, batch_sizes: list[int], updates: int, device: str, buffer
         th.backends.cudnn.benchmark = True
     model = build_model(device, reference=impl == "reference", buffer_size=buffer_size)
     if impl == "ours":
-        return [time_updates(lambda: model.train(gradient_steps=1, batch_size=b), updates, model.device) for b in batch_sizes]
-    return [time_updates(lambda: reference_update(model, b), updates, model.device) for b in batch_sizes]
+        return [time_updates(lambda b=b: model.train(gradient_steps=1, batch_size=b), updates, model.device) for b in batch_sizes]
+    return [time_updates(lambda b=b: reference_update(model, b), updates, model.device) for b in batch_sizes]
 
 
 def main() -> None:

@@ -149,7 +149,7 @@ class DrQv2(OffPolicyAlgorithm):
             device=device,
             seed=seed,
             sde_support=False,
-            supported_action_spaces=None,  # checked below, with a clearer message than SB3's assertion
+            supported_action_spaces=None,  # checked in _setup_model, with a clearer message than SB3's assertion
             support_multi_env=True,
         )
         self.stddev_clip = stddev_clip
@@ -159,8 +159,6 @@ class DrQv2(OffPolicyAlgorithm):
         self._last_grad_norms: th.Tensor | None = None
         self._train_stats: dict[str, th.Tensor] = {}
         self._train_stats_count = 0
-        if getattr(self, "action_space", None) is not None:  # absent when loading without an env
-            check_action_space(self.action_space)
         if _init_setup_model:
             self._setup_model()
 
@@ -278,7 +276,6 @@ class DrQv2(OffPolicyAlgorithm):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
             discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
             self._update(replay_data, discounts, std)
-        self._add_train_stat("stddev", th.tensor(std), count=False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
 
     def _update(self, data: ReplayBufferSamples, discounts: th.Tensor | float, std: float) -> None:
@@ -366,11 +363,8 @@ class DrQv2(OffPolicyAlgorithm):
             return th.zeros(0, device=self.device)
         return th.stack(norms).detach()
 
-    def _add_train_stat(self, name: str, value: th.Tensor, count: bool = True) -> None:
+    def _add_train_stat(self, name: str, value: th.Tensor) -> None:
         """Accumulate a statistic on the device; it is averaged and logged at the next ``dump_logs``."""
-        if not count:
-            self._train_stats[name] = value
-            return
         self._train_stats[name] = self._train_stats[name] + value if name in self._train_stats else value.clone()
 
     def _record_train_stats(self) -> None:
@@ -383,10 +377,9 @@ class DrQv2(OffPolicyAlgorithm):
             if name == "grad_norms":
                 for (layer, _), norm in zip(self._grad_layers, (value / n).tolist()):
                     self.logger.record(f"train/grad_norm/{layer}", norm)
-            elif name == "stddev":
-                self.logger.record("train/stddev", float(value))
             else:
                 self.logger.record(f"train/{name}", float(value) / n)
+        self.logger.record("train/stddev", self.current_stddev)
         self._train_stats = {}
         self._train_stats_count = 0
 

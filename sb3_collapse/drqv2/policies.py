@@ -330,19 +330,17 @@ class DrQv2Policy(BasePolicy):
         return {**self.encoder.named_layers(), **self.actor.named_layers()}
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update(
-            dict(
-                feature_dim=self.feature_dim,
-                hidden_dim=self.hidden_dim,
-                encoder_class=self.encoder_class,
-                encoder_kwargs=self.encoder_kwargs,
-                optimizer_class=self.optimizer_class,
-                optimizer_kwargs=self.optimizer_kwargs,
-                lr_schedule=self._dummy_schedule,
-            )
+        return dict(
+            observation_space=self.observation_space,
+            action_space=self.action_space,
+            feature_dim=self.feature_dim,
+            hidden_dim=self.hidden_dim,
+            encoder_class=self.encoder_class,
+            encoder_kwargs=self.encoder_kwargs,
+            optimizer_class=self.optimizer_class,
+            optimizer_kwargs=self.optimizer_kwargs,
+            lr_schedule=self._dummy_schedule,
         )
-        return data
 
     def forward(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
         return self._predict(observation, deterministic=deterministic)

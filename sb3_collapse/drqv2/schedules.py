@@ -10,11 +10,10 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable
-from typing import Union
 
 import numpy as np
 
-ScheduleSpec = Union[float, int, str, Callable[[int], float]]
+ScheduleSpec = float | int | str | Callable[[int], float]
 
 _NUMBER = r"\s*([-+0-9.eE]+)\s*"
 _LINEAR = re.compile(rf"^\s*linear\({_NUMBER},{_NUMBER},{_NUMBER}\)\s*$")

@@ -172,3 +172,12 @@ def test_mlp_policy_rejects_images():
 def test_rejects_discrete_actions():
     with pytest.raises(TypeError, match="continuous actions"):
         MlpPolicy(STATES, spaces.Discrete(3), _lr)
+
+
+def test_policy_save_load(tmp_path):
+    policy = CnnPolicy(spaces.Box(0, 255, (9, 32, 32), np.uint8), spaces.Box(-1, 1, (2,), np.float32), _lr, hidden_dim=16)
+    policy.save(tmp_path / "policy.pth")
+    loaded = CnnPolicy.load(tmp_path / "policy.pth")
+    obs = th.randint(0, 256, (3, 9, 32, 32), dtype=th.uint8)
+    assert th.equal(policy._predict(obs, deterministic=True), loaded._predict(obs, deterministic=True))
+    assert loaded.hidden_dim == 16
