@@ -2,9 +2,10 @@
 
 - ``ours``: ``DrQv2.train(gradient_steps=1)``, i.e. replay sampling, integer-crop augmentation on uint8,
   channels_last convolutions, the actor's backward restricted to the actor's parameters;
-- ``reference ops``: the operations of facebookresearch/drqv2's ``DrQV2Agent.update`` re-implemented here:
-  ``grid_sample`` augmentation on float images, NCHW convolutions, a full backward of the actor loss
-  (gradients of the critic computed and discarded), non-fused Adam, and the C library's default allocator.
+- ``reference ops``: ``sb3_collapse.drqv2.reference.reference_update``, the operations of facebookresearch/drqv2's
+  ``DrQV2Agent.update``: ``grid_sample`` augmentation on float images, a full backward of the actor loss
+  (gradients of the critic computed and discarded), here with NCHW convolutions, non-fused Adam and the C
+  library's default allocator, as the reference runs.
   The batch is sampled from the same kind of buffer (the reference samples in DataLoader workers; sampling
   is included in both timings).
 
@@ -27,42 +28,11 @@ import time
 
 import numpy as np
 import torch as th
-import torch.nn.functional as F
 from stable_baselines3.common.logger import configure
-from stable_baselines3.common.utils import polyak_update
 
 from sb3_collapse.drqv2 import DrQv2
-from sb3_collapse.drqv2.augmentation import random_shift_grid_sample
-from sb3_collapse.drqv2.policies import sample_action
+from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
-
-
-def reference_update(model: DrQv2, batch_size: int) -> None:
-    """One update with the reference implementation's operations (see module docstring)."""
-    data = model.replay_buffer.sample(batch_size)
-    std = model.current_stddev
-    encoder, actor, critic = model.encoder, model.actor, model.critic
-    obs = random_shift_grid_sample(data.observations.float())
-    next_obs = random_shift_grid_sample(data.next_observations.float())
-    features = encoder(obs)
-    with th.no_grad():
-        next_features = encoder(next_obs)
-        next_action = sample_action(actor(next_features), std, clip=model.stddev_clip)
-        target_q = data.rewards + data.discounts * th.min(*model.critic_target(next_features, next_action))
-    q1, q2 = critic(features, data.actions)
-    critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
-    encoder.optimizer.zero_grad(set_to_none=True)
-    critic.optimizer.zero_grad(set_to_none=True)
-    critic_loss.backward()
-    critic.optimizer.step()
-    encoder.optimizer.step()
-    features = features.detach()
-    action = sample_action(actor(features), std, clip=model.stddev_clip)
-    actor_loss = -th.min(*critic(features, action)).mean()
-    actor.optimizer.zero_grad(set_to_none=True)
-    actor_loss.backward()
-    actor.optimizer.step()
-    polyak_update(critic.parameters(), model.critic_target.parameters(), model.tau)
 
 
 def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0) -> DrQv2:
@@ -112,7 +82,7 @@ def measure(impl: str, batch_sizes: list[int], updates: int, device: str, buffer
     model = build_model(device, reference=impl == "reference", buffer_size=buffer_size)
     if impl == "ours":
         return [time_updates(lambda b=b: model.train(gradient_steps=1, batch_size=b), updates, model.device) for b in batch_sizes]
-    return [time_updates(lambda b=b: reference_update(model, b), updates, model.device) for b in batch_sizes]
+    return [time_updates(lambda b=b: reference_update(model, model.replay_buffer.sample(b)), updates, model.device) for b in batch_sizes]
 
 
 def main() -> None:

@@ -1,3 +1,4 @@
+import copy
 import glob
 import warnings
 
@@ -13,6 +14,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.drqv2.policies import LAYER_NAMES
+from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 
 SMALL = dict(buffer_size=500, learning_starts=20, batch_size=8, seed=0)
@@ -285,3 +287,43 @@ def test_learn_with_subprocess_pixel_envs():
         assert model._n_updates > 0
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_update_equals_reference_update(channels_last):
+    """Same weights, batch and random draws: our update gives the reference implementation's parameters."""
+    kwargs = dict(buffer_size=200, learning_starts=10, batch_size=16, seed=3, stddev_schedule=0.4)
+    oracle = DrQv2("CnnPolicy", pixel_env(), **kwargs, policy_kwargs=dict(
+        hidden_dim=32, encoder_kwargs=dict(channels_last=False), optimizer_kwargs=dict(fused=False)))
+    oracle.learn(40)  # fills the buffer and moves the weights and Adam state away from their initial values
+    ours = DrQv2("CnnPolicy", pixel_env(), **kwargs, policy_kwargs=dict(
+        hidden_dim=32, encoder_kwargs=dict(channels_last=channels_last)))
+    ours.policy.load_state_dict(oracle.policy.state_dict())
+    for name in ("encoder", "actor", "critic"):
+        # A deep copy: load_state_dict would otherwise share the Adam state tensors of both models.
+        getattr(ours, name).optimizer.load_state_dict(copy.deepcopy(getattr(oracle, name).optimizer.state_dict()))
+    if channels_last:
+        # The (H, W, C) flatten order of channels_last: permute the trunks' input columns to match.
+        c, h, w = 32, 9, 9  # encoder output of 9x32x32 images
+        order = th.arange(c * h * w).view(c, h, w).permute(1, 2, 0).flatten()
+        with th.no_grad():
+            for trunk in (ours.actor.trunk[0], ours.critic.trunk[0], ours.critic_target.trunk[0]):
+                trunk.weight.copy_(trunk.weight[:, order])
+            for part in (ours.actor, ours.critic):
+                adam_state = part.optimizer.state[part.trunk[0].weight]
+                for key in ("exp_avg", "exp_avg_sq"):
+                    adam_state[key].copy_(adam_state[key][:, order])
+    data = oracle.replay_buffer.sample(16)
+    ours.num_timesteps = oracle.num_timesteps
+
+    th.manual_seed(0)
+    reference_update(oracle, data)
+    th.manual_seed(0)
+    ours._update(data, data.discounts, ours.current_stddev)
+
+    expected = dict(oracle.policy.named_parameters())
+    for name, param in ours.policy.named_parameters():
+        reference = expected[name]
+        if channels_last and name.endswith("trunk.0.weight"):
+            reference = reference[:, order]
+        assert th.allclose(param, reference, atol=1e-6, rtol=1e-5), name
