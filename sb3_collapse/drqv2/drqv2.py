@@ -62,9 +62,11 @@ class DrQv2(OffPolicyAlgorithm):
     :param batch_size: minibatch size of each gradient update
     :param tau: soft update coefficient of the target critic
     :param gamma: discount factor
-    :param train_freq: agent steps between updates (per env), or ``(n, "step"/"episode")``
+    :param train_freq: agent steps between updates (per env), or ``(n, "step"/"episode")``; with ``n_envs``
+        environments each round collects ``train_freq x n_envs`` transitions, so pass ``gradient_steps=n_envs``
+        to keep DrQ-v2's one update per 2 transitions
     :param gradient_steps: gradient updates after each ``train_freq`` (``-1``: as many as steps collected)
-    :param n_steps: length of the n-step returns (SB3's ``NStepReplayBuffer`` when > 1)
+    :param n_steps: length of the n-step returns, in agent steps (SB3's ``NStepReplayBuffer`` when > 1)
     :param stddev_schedule: exploration standard deviation as a function of the agent step: a float,
         ``"linear(init,final,duration)"``, ``"step_linear(init,final1,duration1,final2,duration2)"``
         (durations in agent steps) or a callable ``step -> std``
