@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
@@ -155,8 +156,8 @@ class PeriodicEvaluation(BaseCallback):
         row = {
             "frame": self._frames(),
             "step": self.model.num_timesteps,
-            "mean_reward": float(sum(rewards) / len(rewards)),
-            "std_reward": float(_std(rewards)),
+            "mean_reward": float(np.mean(rewards)),
+            "std_reward": float(np.std(rewards)),
             "episodes": len(rewards),
             "wall_time_s": round(time.time() - self.start_time, 1),
         }
@@ -172,11 +173,6 @@ class PeriodicEvaluation(BaseCallback):
         self.logger.record("eval/frames", row["frame"])
         self.logger.dump(step=self.model.num_timesteps)
         return row
-
-
-def _std(values: list[float]) -> float:
-    mean = sum(values) / len(values)
-    return (sum((v - mean) ** 2 for v in values) / len(values)) ** 0.5
 
 
 @dataclass

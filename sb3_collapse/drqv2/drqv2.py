@@ -198,12 +198,12 @@ class DrQv2(OffPolicyAlgorithm):
         return 2 * obs_bytes + action_bytes + 12
 
     def _replay_memory_advice(self) -> str:
-        per_transition = self._replay_bytes_per_transition()
-        fitting = int(0.7 * physical_memory_bytes() / per_transition)
+        per_transition, ram = self._replay_bytes_per_transition(), physical_memory_bytes()
+        fitting = int(0.7 * ram / per_transition)
         return (
             f"SB3's buffer stores obs and next_obs separately: {per_transition / 1e3:,.0f} KB per transition, "
             f"{self.buffer_size * per_transition / 1e9:,.1f} GB in all, and this machine has "
-            f"{physical_memory_bytes() / 1e9:,.1f} GB of RAM. Pass a smaller buffer_size, e.g. "
+            f"{ram / 1e9:,.1f} GB of RAM. Pass a smaller buffer_size, e.g. "
             f"buffer_size={fitting:_} (70% of the RAM), or the number of agent steps of your run if smaller."
         )
 
@@ -464,7 +464,8 @@ def physical_memory_bytes() -> int:
 
 def _layers_with_parameters(layers: dict[str, th.nn.Module]) -> list[tuple[str, list[th.nn.Parameter]]]:
     """``(name, parameters)`` of the named layers that have parameters (``cnn0`` has none)."""
-    return [(name, list(module.parameters())) for name, module in layers.items() if list(module.parameters())]
+    with_params = ((name, list(module.parameters())) for name, module in layers.items())
+    return [(name, params) for name, params in with_params if params]
 
 
 def _read_env_config(env: VecEnv) -> dict[str, Any] | None:
