@@ -144,9 +144,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
         min_episode_length: int = 250,
     ) -> None:
         if optimize_memory_usage:
-            raise ValueError(
-                "FrameStackReplayBuffer stores each frame once already: pass optimize_memory_usage=False."
-            )
+            raise ValueError("FrameStackReplayBuffer stores each frame once already: pass optimize_memory_usage=False.")
         self.frame_stack = _check_layout(observation_space, frame_stack)
         if n_steps < 1:
             raise ValueError(f"n_steps must be >= 1 agent step, got {n_steps}.")

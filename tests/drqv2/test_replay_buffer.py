@@ -87,7 +87,9 @@ def test_samples_equal_nstep_replay_buffer(n_envs, frame_stack, n_steps, padding
         theirs.add(*args)
         if step in (0, 17, capacity - 1, capacity + 5, 129):  # not full, full, wrapped (several times)
             assert ours.pos == theirs.pos and ours.full == theirs.full
-            assert ours.is_sampleable(np.arange(ours.size()).repeat(n_envs), np.tile(np.arange(n_envs), ours.size())).all()
+            assert ours.is_sampleable(
+                np.arange(ours.size()).repeat(n_envs), np.tile(np.arange(n_envs), ours.size())
+            ).all()
             compare_all_indices(ours, theirs, seed=step)
     assert ours.dones.any() and ours.timeouts.any()  # terminations and time limits were both exercised
     # sample() draws (pos, env) with the same np.random calls as SB3.
@@ -129,8 +131,8 @@ def test_short_episodes_never_sample_overwritten_frames():
         ours._get_samples(pos[~sampleable][:1], env_indices=envs[~sampleable][:1])
     drawn = []
     original = ours._get_samples
-    ours._get_samples = lambda inds, env=None, env_indices=None: drawn.append((inds, env_indices)) or original(
-        inds, env, env_indices
+    ours._get_samples = lambda inds, env=None, env_indices=None: (
+        drawn.append((inds, env_indices)) or original(inds, env, env_indices)
     )
     ours.sample(256)
     inds, env_indices = drawn[0]
@@ -170,7 +172,9 @@ def test_refuses_what_it_cannot_deduplicate():
     space = stacked_space(3)
     with pytest.raises(ValueError, match="needs frame_stack"):
         FrameStackReplayBuffer(10, space, ACTIONS)
-    with pytest.raises(ValueError, match=r"shape \(channels \* 4, height, width\).*replay_buffer_class=NStepReplayBuffer"):
+    with pytest.raises(
+        ValueError, match=r"shape \(channels \* 4, height, width\).*replay_buffer_class=NStepReplayBuffer"
+    ):
         FrameStackReplayBuffer(10, space, ACTIONS, frame_stack=4)
     with pytest.raises(ValueError, match="shape"):
         FrameStackReplayBuffer(10, gym.spaces.Box(-1, 1, (9,)), ACTIONS, frame_stack=3)
@@ -216,7 +220,8 @@ class ShiftedStackEnv(gym.Env):
     """
 
     def __init__(self, frame_stack=3, size=32, episode_length=15, shifted=True):
-        self.frame_stack, self.action_repeat, self.episode_length, self.shifted = frame_stack, 2, episode_length, shifted
+        self.frame_stack, self.episode_length, self.shifted = frame_stack, episode_length, shifted
+        self.action_repeat = 2
         self.observation_space = gym.spaces.Box(0, 255, (3 * frame_stack, size, size), np.uint8)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
 
