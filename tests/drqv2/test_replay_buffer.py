@@ -48,12 +48,12 @@ def random_episodes(rng, n_envs, frame_stack, steps, padding="copies", p_termina
             obs[i] = reset_obs()
 
 
-def make_pair(buffer_size, n_envs, frame_stack, n_steps=3, **kwargs):
+def make_pair(buffer_size, n_envs, frame_stack, n_steps=3, handle_timeout_termination=True, **kwargs):
+    """A FrameStackReplayBuffer (``kwargs``: its own) and an NStepReplayBuffer with the same settings."""
     space = stacked_space(frame_stack)
-    ours = FrameStackReplayBuffer(
-        buffer_size, space, ACTIONS, "cpu", n_envs=n_envs, n_steps=n_steps, gamma=0.9, frame_stack=frame_stack, **kwargs
-    )
-    theirs = NStepReplayBuffer(buffer_size, space, ACTIONS, "cpu", n_envs=n_envs, n_steps=n_steps, gamma=0.9)
+    common = dict(n_envs=n_envs, n_steps=n_steps, gamma=0.9, handle_timeout_termination=handle_timeout_termination)
+    ours = FrameStackReplayBuffer(buffer_size, space, ACTIONS, "cpu", frame_stack=frame_stack, **common, **kwargs)
+    theirs = NStepReplayBuffer(buffer_size, space, ACTIONS, "cpu", **common)
     return ours, theirs
 
 
@@ -74,14 +74,21 @@ def compare_all_indices(ours, theirs, seed):
 
 
 @pytest.mark.parametrize(
-    "n_envs, frame_stack, n_steps, padding",
-    [(1, 3, 3, "copies"), (3, 3, 3, "zeros"), (2, 3, 1, "copies"), (2, 1, 3, "copies"), (2, 4, 5, "zeros")],
+    "n_envs, frame_stack, n_steps, padding, timeouts",
+    [
+        (1, 3, 3, "copies", True),
+        (3, 3, 3, "zeros", True),
+        (2, 3, 1, "copies", True),
+        (2, 1, 3, "copies", True),
+        (2, 4, 5, "zeros", True),
+        (2, 3, 3, "copies", False),
+    ],
 )
-def test_samples_equal_nstep_replay_buffer(n_envs, frame_stack, n_steps, padding):
+def test_samples_equal_nstep_replay_buffer(n_envs, frame_stack, n_steps, padding, timeouts):
     rng = np.random.default_rng(n_envs * 100 + n_steps)
     capacity = 40
     # Episodes of ~7 steps: a frame ring sized for episodes of >= 2 steps keeps every transition sampleable.
-    ours, theirs = make_pair(capacity * n_envs, n_envs, frame_stack, n_steps, min_episode_length=2)
+    ours, theirs = make_pair(capacity * n_envs, n_envs, frame_stack, n_steps, timeouts, min_episode_length=2)
     for step, args in enumerate(random_episodes(rng, n_envs, frame_stack, 130, padding)):
         ours.add(*args)
         theirs.add(*args)
@@ -91,7 +98,7 @@ def test_samples_equal_nstep_replay_buffer(n_envs, frame_stack, n_steps, padding
                 np.arange(ours.size()).repeat(n_envs), np.tile(np.arange(n_envs), ours.size())
             ).all()
             compare_all_indices(ours, theirs, seed=step)
-    assert ours.dones.any() and ours.timeouts.any()  # terminations and time limits were both exercised
+    assert ours.dones.any() and ours.timeouts.any() == timeouts  # terminations and time limits both exercised
     # sample() draws (pos, env) with the same np.random calls as SB3.
     np.random.seed(1)
     expected = theirs.sample(64)
