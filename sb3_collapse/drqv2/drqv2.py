@@ -30,7 +30,11 @@ from sb3_collapse.drqv2.policies import (
     check_action_space,
     sample_action,
 )
-from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer, frame_stack_storage_bytes
+from sb3_collapse.drqv2.replay_buffer import (
+    DEFAULT_MIN_EPISODE_LENGTH,
+    FrameStackReplayBuffer,
+    frame_stack_storage_bytes,
+)
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
@@ -242,7 +246,7 @@ class DrQv2(OffPolicyAlgorithm):
                 self.action_space,
                 kwargs["frame_stack"],
                 self.n_envs,
-                kwargs.get("min_episode_length", 250),
+                kwargs.get("min_episode_length", DEFAULT_MIN_EPISODE_LENGTH),
             )
             return total / self.buffer_size
         obs_bytes = int(np.prod(self.observation_space.shape)) * np.dtype(self.observation_space.dtype).itemsize

@@ -27,6 +27,9 @@ FALLBACK_ADVICE = (
 )
 """What to do when :class:`FrameStackReplayBuffer` cannot de-duplicate the observations."""
 
+DEFAULT_MIN_EPISODE_LENGTH = 250
+"""Default ``min_episode_length`` of :class:`FrameStackReplayBuffer`, in agent steps."""
+
 PER_TRANSITION_ARRAYS_BYTES = 8 + 4 + 4 + 4
 """Bytes per transition besides the frame and the action: frame index (int64), reward, done, timeout (float32)."""
 
@@ -54,7 +57,7 @@ def frame_stack_storage_bytes(
     action_space: spaces.Space,
     frame_stack: int,
     n_envs: int = 1,
-    min_episode_length: int = 250,
+    min_episode_length: int = DEFAULT_MIN_EPISODE_LENGTH,
 ) -> int:
     """
     Bytes of the arrays of a :class:`FrameStackReplayBuffer` built with these arguments, without building it.
@@ -141,7 +144,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
         n_steps: int = 3,
         gamma: float = 0.99,
         frame_stack: int | None = None,
-        min_episode_length: int = 250,
+        min_episode_length: int = DEFAULT_MIN_EPISODE_LENGTH,
     ) -> None:
         if optimize_memory_usage:
             raise ValueError("FrameStackReplayBuffer stores each frame once already: pass optimize_memory_usage=False.")
