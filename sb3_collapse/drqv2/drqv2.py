@@ -30,6 +30,11 @@ from sb3_collapse.drqv2.policies import (
     check_action_space,
     sample_action,
 )
+from sb3_collapse.drqv2.replay_buffer import (
+    DEFAULT_MIN_EPISODE_LENGTH,
+    FrameStackReplayBuffer,
+    frame_stack_storage_bytes,
+)
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
@@ -54,10 +59,12 @@ class DrQv2(OffPolicyAlgorithm):
         ``"sb3_collapse/walker-walk-v0"``)
     :param learning_rate: Adam learning rate of the encoder, actor and critic (or an SB3 schedule of the
         remaining progress)
-    :param buffer_size: replay buffer capacity, in transitions (agent steps x n_envs). SB3's buffer stores
-        obs and next_obs: about 127 KB per 9x84x84 transition, so DrQ-v2's 1,000,000 need ~127 GB. A warning
-        says so when the full buffer would not fit in RAM, and a ``MemoryError`` suggests a size when it
-        cannot even be reserved.
+    :param buffer_size: replay buffer capacity, in transitions (agent steps x n_envs). With ``CnnPolicy`` on a
+        frame-stacked env (``make_dmc_env``), the default ``FrameStackReplayBuffer`` stores each frame once:
+        about 21.5 KB per 9x84x84 transition, ~21.5 GB for DrQ-v2's 1,000,000 (11.8 GB for the 550,000 agent
+        steps of a 1.1M-frame run). SB3's buffers store obs and next_obs: about 127 KB per 9x84x84
+        transition, ~127 GB for 1,000,000. A warning says so when the full buffer would not fit in RAM, and
+        a ``MemoryError`` suggests a size when it cannot even be reserved.
     :param learning_starts: agent steps of uniformly random actions before the first update
     :param batch_size: minibatch size of each gradient update
     :param tau: soft update coefficient of the target critic
@@ -75,8 +82,12 @@ class DrQv2(OffPolicyAlgorithm):
         (pixel policies only)
     :param callback: callback(s) run at every ``learn()`` call, together with those given to ``learn()``
         (e.g. ``CollapseReset()``); not saved with the model
-    :param replay_buffer_class: replay buffer class, ``None`` for SB3's (n-step when ``n_steps > 1``)
-    :param replay_buffer_kwargs: keyword arguments of the replay buffer
+    :param replay_buffer_class: replay buffer class; ``None``: ``FrameStackReplayBuffer`` (n-step, each frame
+        stored once) for ``CnnPolicy`` on an env that reports a ``frame_stack`` > 1 (``make_dmc_env``), SB3's
+        otherwise (``NStepReplayBuffer`` when ``n_steps > 1``). Pass ``NStepReplayBuffer`` to store whole
+        observations (e.g. stacks that are not shifted frame by frame)
+    :param replay_buffer_kwargs: keyword arguments of the replay buffer (``n_steps``, ``gamma`` and
+        ``frame_stack`` of a ``FrameStackReplayBuffer`` default to the algorithm's and the env's)
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
     :param policy_kwargs: keyword arguments of the policy: ``feature_dim`` (50), ``hidden_dim`` (1024),
@@ -167,6 +178,7 @@ class DrQv2(OffPolicyAlgorithm):
     # ------------------------------------------------------------------ setup
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
+        self._select_replay_buffer()
         self._check_replay_memory()
         try:
             with warnings.catch_warnings():
@@ -191,8 +203,52 @@ class DrQv2(OffPolicyAlgorithm):
         self._encoder_grad_norms = th.zeros(len(self._encoder_layers), device=self.device)
         self.policy.exploration_std = self.current_stddev
 
-    def _replay_bytes_per_transition(self) -> int:
-        """Bytes per transition of SB3's replay buffers: obs and next_obs, action, reward, done, timeout."""
+    def _select_replay_buffer(self) -> None:
+        """
+        ``FrameStackReplayBuffer`` by default for ``CnnPolicy`` on an env reporting ``frame_stack > 1`` (pixel
+        observations); a class given by the user (or saved with the model) is kept. The algorithm's
+        ``n_steps`` and ``gamma`` (and the env's ``frame_stack``) fill in the kwargs of a
+        ``FrameStackReplayBuffer`` or ``NStepReplayBuffer`` that the user did not give.
+        """
+        config = self.env_config or {}
+        frame_stack = config.get("frame_stack")
+        if (
+            self.replay_buffer_class is None
+            and issubclass(self.policy_class, CnnPolicy)
+            and issubclass(self.policy_kwargs.get("encoder_class", PixelEncoder), PixelEncoder)
+            and config.get("obs_type") in (None, "pixels")
+            and isinstance(frame_stack, (int, np.integer))
+            and frame_stack > 1
+        ):
+            self.replay_buffer_class = FrameStackReplayBuffer
+        defaults: dict[str, Any] = {}
+        if self._uses_frame_stack_buffer():
+            defaults = {"n_steps": self.n_steps, "gamma": self.gamma, "frame_stack": frame_stack}
+        elif self.replay_buffer_class is not None and issubclass(self.replay_buffer_class, NStepReplayBuffer):
+            defaults = {"n_steps": self.n_steps, "gamma": self.gamma}
+        for key, value in defaults.items():
+            if key not in self.replay_buffer_kwargs and value is not None:
+                self.replay_buffer_kwargs[key] = value
+
+    def _uses_frame_stack_buffer(self) -> bool:
+        return self.replay_buffer_class is not None and issubclass(self.replay_buffer_class, FrameStackReplayBuffer)
+
+    def _replay_bytes_per_transition(self) -> float:
+        """
+        Bytes per transition of the replay buffer: for SB3's, obs and next_obs, action, reward, done, timeout;
+        for ``FrameStackReplayBuffer``, its arrays' bytes divided by ``buffer_size``.
+        """
+        if self._uses_frame_stack_buffer() and self.replay_buffer_kwargs.get("frame_stack") is not None:
+            kwargs = self.replay_buffer_kwargs
+            total = frame_stack_storage_bytes(
+                self.buffer_size,
+                self.observation_space,  # type: ignore[arg-type]
+                self.action_space,
+                kwargs["frame_stack"],
+                self.n_envs,
+                kwargs.get("min_episode_length", DEFAULT_MIN_EPISODE_LENGTH),
+            )
+            return total / self.buffer_size
         obs_bytes = int(np.prod(self.observation_space.shape)) * np.dtype(self.observation_space.dtype).itemsize
         action_bytes = int(np.prod(self.action_space.shape)) * 4
         return 2 * obs_bytes + action_bytes + 12
@@ -200,8 +256,13 @@ class DrQv2(OffPolicyAlgorithm):
     def _replay_memory_advice(self) -> str:
         per_transition, ram = self._replay_bytes_per_transition(), physical_memory_bytes()
         fitting = int(0.7 * ram / per_transition)
+        storage = (
+            "FrameStackReplayBuffer stores each frame once"
+            if self._uses_frame_stack_buffer()
+            else "SB3's buffer stores obs and next_obs separately"
+        )
         return (
-            f"SB3's buffer stores obs and next_obs separately: {per_transition / 1e3:,.0f} KB per transition, "
+            f"{storage}: {per_transition / 1e3:,.0f} KB per transition, "
             f"{self.buffer_size * per_transition / 1e9:,.1f} GB in all, and this machine has "
             f"{ram / 1e9:,.1f} GB of RAM. Pass a smaller buffer_size, e.g. "
             f"buffer_size={fitting:_} (70% of the RAM), or the number of agent steps of your run if smaller."
@@ -209,7 +270,10 @@ class DrQv2(OffPolicyAlgorithm):
 
     def _check_replay_memory(self) -> None:
         """Warn now, rather than be killed hours later, when the full replay buffer cannot fit in RAM."""
-        if self.replay_buffer_class not in (None, ReplayBuffer, NStepReplayBuffer) or self.observation_space is None:
+        known = (None, ReplayBuffer, NStepReplayBuffer)
+        if (self.replay_buffer_class not in known and not self._uses_frame_stack_buffer()) or (
+            self.observation_space is None
+        ):
             return
         if self.buffer_size * self._replay_bytes_per_transition() > physical_memory_bytes():
             warnings.warn(

@@ -13,6 +13,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse.drqv2 import FrameStackReplayBuffer
 from sb3_collapse.drqv2.policies import LAYER_NAMES
 from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
@@ -258,7 +259,10 @@ def test_learn_on_dm_control_pixels(tmp_path):
     assert model.env_config["task_id"] == "walker-walk" and model.action_repeat == 2
     assert model.num_frames == 160
     assert model._n_updates == 20
-    assert model.replay_buffer.observations.shape[1:] == (1, 9, 84, 84)
+    # Frame-stacked pixels: each 3x84x84 render is stored once, and sampled stacks are 9x84x84.
+    assert isinstance(model.replay_buffer, FrameStackReplayBuffer)
+    assert model.replay_buffer.frames.shape[1:] == (1, 3, 84, 84)
+    assert model.replay_buffer.sample(4).next_observations.shape == (4, 9, 84, 84)
     model.save(tmp_path / "walker.zip")
     loaded = DrQv2.load(tmp_path / "walker.zip", env=env)
     assert loaded.env_config == model.env_config

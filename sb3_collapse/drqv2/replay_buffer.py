@@ -1,0 +1,381 @@
+"""A replay buffer for frame-stacked pixel observations that stores each frame once.
+
+SB3's ``ReplayBuffer`` and ``NStepReplayBuffer`` store the whole stacked observation twice per transition
+(``obs`` and ``next_obs``): 2 x 9x84x84 bytes, 127 KB, for 3 stacked RGB frames. Consecutive stacks of an
+episode share all but one frame, so :class:`FrameStackReplayBuffer` keeps one copy of each frame (21 KB for
+3x84x84) and rebuilds the stacks by index when it samples, returning exactly what ``NStepReplayBuffer``
+returns.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.vec_env import VecNormalize
+
+FALLBACK_ADVICE = (
+    "If the observations are not stacked frames, pass replay_buffer_class=NStepReplayBuffer (n-step returns) "
+    "or ReplayBuffer (from stable_baselines3.common.buffers), which store whole observations."
+)
+"""What to do when :class:`FrameStackReplayBuffer` cannot de-duplicate the observations."""
+
+DEFAULT_MIN_EPISODE_LENGTH = 250
+"""Default ``min_episode_length`` of :class:`FrameStackReplayBuffer`, in agent steps."""
+
+PER_TRANSITION_ARRAYS_BYTES = 8 + 4 + 4 + 4
+"""Bytes per transition besides the frame and the action: frame index (int64), reward, done, timeout (float32)."""
+
+
+def frame_capacity(transitions: int, frame_stack: int, min_episode_length: int) -> int:
+    """
+    Frames one environment's column of the frame store holds.
+
+    ``transitions`` transitions whose episodes (more exactly: runs of consecutive stacks, see
+    :class:`FrameStackReplayBuffer`) are at least ``min_episode_length`` long span at most
+    ``ceil(transitions / min_episode_length) + 1`` episodes, each with ``frame_stack`` frames of its first
+    observation, plus one new frame per transition.
+
+    :param transitions: transitions per environment (``buffer_size // n_envs``)
+    :param frame_stack: frames per observation
+    :param min_episode_length: shortest episode, in agent steps, that keeps all transitions sampleable
+    :return: ``transitions + frame_stack * (1 + ceil(transitions / min_episode_length))``
+    """
+    return transitions + frame_stack * (1 + math.ceil(transitions / min_episode_length))
+
+
+def frame_stack_storage_bytes(
+    buffer_size: int,
+    observation_space: spaces.Box,
+    action_space: spaces.Space,
+    frame_stack: int,
+    n_envs: int = 1,
+    min_episode_length: int = DEFAULT_MIN_EPISODE_LENGTH,
+) -> int:
+    """
+    Bytes of the arrays of a :class:`FrameStackReplayBuffer` built with these arguments, without building it.
+
+    :param buffer_size: capacity in transitions (all environments together, as SB3 counts it)
+    :param observation_space: the stacked observation space, ``(channels * frame_stack, height, width)``
+    :param action_space: the action space
+    :param frame_stack: frames per observation
+    :param n_envs: number of environments
+    :param min_episode_length: see :class:`FrameStackReplayBuffer`
+    :return: the sum of the ``nbytes`` of the frame store and of the per-transition arrays
+    """
+    transitions = max(buffer_size // n_envs, 1)
+    frame_bytes = int(np.prod(observation_space.shape)) // frame_stack * np.dtype(observation_space.dtype).itemsize
+    action_dtype = ReplayBuffer._maybe_cast_dtype(action_space.dtype)
+    action_bytes = get_action_dim(action_space) * np.dtype(action_dtype).itemsize
+    frames = frame_capacity(transitions, frame_stack, min_episode_length) * n_envs * frame_bytes
+    return frames + transitions * n_envs * (action_bytes + PER_TRANSITION_ARRAYS_BYTES)
+
+
+class FrameStackReplayBuffer(ReplayBuffer):
+    """
+    N-step replay buffer for frame-stacked observations that stores each frame once.
+
+    Observations must be channel-first stacks of ``frame_stack`` frames, oldest first:
+    ``(channels * frame_stack, height, width)``, such as ``make_dmc_env``'s 9x84x84 (3 RGB frames), and each
+    ``next_obs`` must be its ``obs`` shifted by one frame, the new frame last. ``add`` checks this for every
+    transition and raises a ``ValueError`` otherwise (nothing is stored then).
+
+    **Storage.** Per environment, a ring of frames (``frames``, shape ``(frame_capacity, n_envs, channels,
+    height, width)``) receives, for each transition, the last frame of ``next_obs`` (the terminal frame too,
+    from ``infos[i]["terminal_observation"]`` as SB3's off-policy algorithms pass it), and, when ``obs`` is not
+    the previous transition's ``next_obs`` (a reset, or the first transition), the ``frame_stack`` frames of
+    ``obs`` first: ``make_dmc_env``'s first observation is copies of the first render, SB3's ``VecFrameStack``
+    pads with zeros; both work, as any padding does. ``frame_starts[pos, env]`` is the number (counted from the
+    first frame the environment wrote) of the first frame of the transition's ``obs``: ``obs`` is frames
+    ``frame_starts .. frame_starts + frame_stack - 1`` and ``next_obs`` frames ``frame_starts + 1 ..
+    frame_starts + frame_stack``. Actions, rewards, dones and timeouts are stored per transition as in SB3.
+
+    **Sampling** returns exactly what SB3's ``NStepReplayBuffer`` returns for the same ``(pos, env)`` indices:
+    ``rewards`` the n-step discounted return, summed up to the first termination or time limit (included)
+    and never past the last transition written; ``discounts`` ``gamma ** k`` for the ``k`` rewards summed;
+    ``next_observations`` the ``next_obs`` of the last transition summed; ``dones`` its termination, 0 after a
+    time limit (bootstrapped). ``sample`` draws indices as SB3 does, with the same calls to ``np.random``, so
+    the same seed gives the same batch while every transition is sampleable (see below).
+
+    **Wrap-around.** Transitions and frames are overwritten oldest first, in separate rings. The frame ring
+    holds ``buffer_size // n_envs + frame_stack * (1 + ceil(buffer_size // n_envs / min_episode_length))``
+    frames per environment: the frames of every transition in the buffer as long as its episodes are at least
+    ``min_episode_length`` agent steps long. With shorter episodes, the first-observation frames of the extra
+    episodes overwrite the frames of the oldest transitions before the transitions themselves are
+    overwritten: those transitions are never sampled (``sample`` draws again; ``_get_samples`` refuses them),
+    so the buffer holds slightly fewer than ``buffer_size`` sampleable transitions, and never a stack mixing
+    frames of two episodes. ``is_sampleable`` says which are.
+
+    :param buffer_size: capacity in transitions (all environments together, as in SB3)
+    :param observation_space: ``Box`` of shape ``(channels * frame_stack, height, width)``
+    :param action_space: the action space
+    :param device: PyTorch device of the sampled tensors
+    :param n_envs: number of parallel environments
+    :param optimize_memory_usage: must be ``False`` (frames are already stored once)
+    :param handle_timeout_termination: bootstrap at time limits (``infos[i]["TimeLimit.truncated"]``), as in SB3
+    :param n_steps: length of the n-step returns, in agent steps (1: one-step returns, with ``discounts``)
+    :param gamma: discount factor of the n-step returns
+    :param frame_stack: frames per observation (``make_dmc_env``'s ``frame_stack``; DrQv2 reads it from the env)
+    :param min_episode_length: shortest episode, in agent steps, for which all ``buffer_size`` transitions stay
+        sampleable; it sizes the frame ring (the default costs 1.2% more frames for ``frame_stack=3``;
+        ``make_dmc_env`` episodes are 1000 frames, 500 agent steps at action repeat 2)
+    """
+
+    frames: np.ndarray
+    frame_starts: np.ndarray
+    frame_heads: np.ndarray
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        n_steps: int = 3,
+        gamma: float = 0.99,
+        frame_stack: int | None = None,
+        min_episode_length: int = DEFAULT_MIN_EPISODE_LENGTH,
+    ) -> None:
+        if optimize_memory_usage:
+            raise ValueError("FrameStackReplayBuffer stores each frame once already: pass optimize_memory_usage=False.")
+        self.frame_stack = _check_layout(observation_space, frame_stack)
+        if n_steps < 1:
+            raise ValueError(f"n_steps must be >= 1 agent step, got {n_steps}.")
+        if min_episode_length < 1:
+            raise ValueError(f"min_episode_length must be >= 1 agent step, got {min_episode_length}.")
+        # BaseBuffer's __init__ only: ReplayBuffer's would allocate obs and next_obs arrays.
+        super(ReplayBuffer, self).__init__(buffer_size, observation_space, action_space, device, n_envs=n_envs)
+        self.buffer_size = max(buffer_size // n_envs, 1)
+        if n_steps > self.buffer_size:
+            raise ValueError(f"n_steps={n_steps} exceeds the capacity per environment ({self.buffer_size}).")
+        self.optimize_memory_usage = False
+        self.handle_timeout_termination = handle_timeout_termination
+        self.n_steps = n_steps
+        self.gamma = gamma
+        self.min_episode_length = min_episode_length
+
+        channels, height, width = self.obs_shape
+        self.frame_shape = (channels // self.frame_stack, height, width)
+        self.frame_capacity = frame_capacity(self.buffer_size, self.frame_stack, min_episode_length)
+        self.frames = np.zeros((self.frame_capacity, n_envs, *self.frame_shape), dtype=observation_space.dtype)
+        self.frame_starts = np.zeros((self.buffer_size, n_envs), dtype=np.int64)
+        self.frame_heads = np.zeros(n_envs, dtype=np.int64)  # frames written per env, since the last reset
+        action_dtype = self._maybe_cast_dtype(action_space.dtype)
+        self.actions = np.zeros((self.buffer_size, n_envs, self.action_dim), dtype=action_dtype)
+        self.rewards = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
+        self.dones = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
+        self.timeouts = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
+        self._frame_offsets = np.arange(self.frame_stack)
+        _warn_if_larger_than_available_memory(self.nbytes)
+
+    # ------------------------------------------------------------------ memory
+    @property
+    def storage_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays holding the data, by name."""
+        names = ("frames", "frame_starts", "actions", "rewards", "dones", "timeouts")
+        return {name: getattr(self, name) for name in names}
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the storage arrays once filled (``np.zeros`` reserves them lazily)."""
+        return sum(array.nbytes for array in self.storage_arrays.values())
+
+    # ------------------------------------------------------------------ writing
+    def reset(self) -> None:
+        """Empty the buffer: no transition and no frame remain sampleable (the arrays are not zeroed)."""
+        super().reset()
+        self.frame_heads[:] = 0
+
+    def add(
+        self,
+        obs: np.ndarray,
+        next_obs: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """
+        Store one transition per environment.
+
+        :param obs: stacked observations before the action, ``(n_envs, channels * frame_stack, height, width)``
+        :param next_obs: stacked observations after it (the terminal one for a finished episode)
+        :param action: actions, as SB3 stores them (scaled to [-1, 1] for Box actions)
+        :param reward: rewards
+        :param done: episode ends (termination or time limit)
+        :param infos: the environments' infos (``"TimeLimit.truncated"`` marks time limits)
+        :raises ValueError: if a ``next_obs`` is not its ``obs`` shifted by one frame (nothing is stored)
+        """
+        k, frame_shape = self.frame_stack, self.frame_shape
+        obs_frames = np.asarray(obs).reshape(self.n_envs, k, *frame_shape)
+        next_frames = np.asarray(next_obs).reshape(self.n_envs, k, *frame_shape)
+        for env_index in range(self.n_envs):
+            if not np.array_equal(next_frames[env_index, :-1], obs_frames[env_index, 1:]):
+                raise ValueError(
+                    f"FrameStackReplayBuffer stores each frame once, so it needs next_obs to be obs shifted by one "
+                    f"frame of {frame_shape[0]} channels, the new frame last (frame_stack={k}); the transition of "
+                    f"env {env_index} at position {self.pos} is not. Check frame_stack, or: {FALLBACK_ADVICE}"
+                )
+        for env_index in range(self.n_envs):
+            head = int(self.frame_heads[env_index])
+            if not self._continues(env_index, head, obs_frames[env_index]):
+                self.frames[(head + self._frame_offsets) % self.frame_capacity, env_index] = obs_frames[env_index]
+                head += k
+            self.frame_starts[self.pos, env_index] = head - k
+            self.frames[head % self.frame_capacity, env_index] = next_frames[env_index, -1]
+            self.frame_heads[env_index] = head + 1
+
+        self.actions[self.pos] = np.asarray(action).reshape(self.n_envs, self.action_dim)
+        self.rewards[self.pos] = np.asarray(reward)
+        self.dones[self.pos] = np.asarray(done)
+        if self.handle_timeout_termination:
+            self.timeouts[self.pos] = [info.get("TimeLimit.truncated", False) for info in infos]
+        self.pos += 1
+        if self.pos == self.buffer_size:
+            self.full = True
+            self.pos = 0
+
+    def _continues(self, env_index: int, head: int, obs_frames: np.ndarray) -> bool:
+        """Whether ``obs_frames`` are the last ``frame_stack`` frames written for this env (its last next_obs)."""
+        if head < self.frame_stack:
+            return False
+        last = self.frames[(head - self.frame_stack + self._frame_offsets) % self.frame_capacity, env_index]
+        return bool(np.array_equal(last, obs_frames))
+
+    # ------------------------------------------------------------------ sampling
+    def is_sampleable(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
+        """
+        :param batch_inds: positions in the buffer (``0 <= pos < size()``)
+        :param env_indices: environment of each position
+        :return: for each ``(pos, env)``, whether all frames of its ``obs`` and ``next_obs`` are still stored
+        """
+        starts = self.frame_starts[batch_inds, env_indices]
+        return starts >= self.frame_heads[env_indices] - self.frame_capacity
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
+        """
+        Sample transitions uniformly among the sampleable ones, drawing ``(pos, env)`` as SB3 does.
+
+        :param batch_size: number of transitions
+        :param env: VecNormalize env to normalize the observations and rewards with, as in SB3
+        :return: the n-step samples (see the class docstring)
+        """
+        upper_bound = self.buffer_size if self.full else self.pos
+        batch_inds = np.random.randint(0, upper_bound, size=batch_size)
+        env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
+        redraw = ~self.is_sampleable(batch_inds, env_indices)
+        while redraw.any():  # frames overwritten (episodes shorter than min_episode_length): draw those again
+            count = int(redraw.sum())
+            batch_inds[redraw] = np.random.randint(0, upper_bound, size=count)
+            env_indices[redraw] = np.random.randint(0, self.n_envs, size=count)
+            redraw[redraw] = ~self.is_sampleable(batch_inds[redraw], env_indices[redraw])
+        return self._get_samples(batch_inds, env=env, env_indices=env_indices)
+
+    def _get_samples(  # type: ignore[override]
+        self,
+        batch_inds: np.ndarray,
+        env: VecNormalize | None = None,
+        env_indices: np.ndarray | None = None,
+    ) -> ReplayBufferSamples:
+        """
+        The n-step transitions starting at ``(batch_inds, env_indices)``, as ``NStepReplayBuffer`` computes them.
+
+        :param batch_inds: positions of the first transitions
+        :param env: VecNormalize env to normalize the observations and rewards with, as in SB3
+        :param env_indices: their environments; ``None``: drawn uniformly with ``np.random.randint``, as SB3 does
+        :return: observations, actions, next observations, dones, n-step returns and their discounts
+        :raises ValueError: if a transition's frames have been overwritten (see :meth:`is_sampleable`)
+        """
+        if env_indices is None:
+            env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
+        if not self.is_sampleable(batch_inds, env_indices).all():
+            raise ValueError(
+                "Some requested transitions have had their frames overwritten by newer episodes: sample them "
+                "only where is_sampleable(batch_inds, env_indices) is True."
+            )
+        steps = np.arange(self.n_steps)
+        window = (batch_inds[:, None] + steps) % self.buffer_size  # [batch, n_steps]
+        envs = env_indices[:, None]
+        newest = (self.pos - 1) % self.buffer_size
+        # A window ends at the first termination or time limit, or at the newest transition (what follows it
+        # in the ring is older data, or nothing).
+        ends = (self.dones[window, envs] != 0) | (self.timeouts[window, envs] != 0) | (window == newest)
+        used = np.where(ends.any(axis=1), ends.argmax(axis=1), self.n_steps - 1)  # index of the last step summed
+        mask = steps[None, :] <= used[:, None]
+        rewards = self._normalize_reward(self.rewards[window, envs], env)
+        powers = self.gamma ** np.arange(self.n_steps, dtype=np.float32)
+        returns = (rewards * powers[None, :] * mask).sum(axis=1, keepdims=True)
+        discounts = self.gamma ** mask.sum(axis=1, keepdims=True).astype(np.float32)
+
+        last = (batch_inds + used) % self.buffer_size
+        dones = (self.dones[last, env_indices] * (1.0 - self.timeouts[last, env_indices]))[:, None]
+        obs = self._stacks(self.frame_starts[batch_inds, env_indices], env_indices)
+        next_obs = self._stacks(self.frame_starts[last, env_indices] + 1, env_indices)
+        return ReplayBufferSamples(
+            observations=self.to_torch(self._normalize_obs(obs, env), copy=False),  # type: ignore[arg-type]
+            actions=self.to_torch(self.actions[batch_inds, env_indices]),
+            next_observations=self.to_torch(self._normalize_obs(next_obs, env), copy=False),  # type: ignore[arg-type]
+            dones=self.to_torch(dones.astype(np.float32)),
+            rewards=self.to_torch(returns),
+            discounts=self.to_torch(discounts),
+        )
+
+    def _stacks(self, first_frames: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
+        """
+        :param first_frames: frame number of the first (oldest) frame of each stack
+        :param env_indices: environment of each stack
+        :return: the stacks, ``(batch, channels * frame_stack, height, width)``, in a new array
+        """
+        slots = (first_frames[:, None] + self._frame_offsets) % self.frame_capacity  # [batch, frame_stack]
+        flat_frames = self.frames.reshape(self.frame_capacity * self.n_envs, -1)
+        stacked = np.take(flat_frames, (slots * self.n_envs + env_indices[:, None]).ravel(), axis=0)
+        return stacked.reshape(len(first_frames), *self.obs_shape)
+
+
+def _check_layout(observation_space: spaces.Space, frame_stack: int | None) -> int:
+    """
+    :param observation_space: the stacked observation space
+    :param frame_stack: frames per observation
+    :return: ``frame_stack``
+    :raises ValueError: unless the space is a ``(channels * frame_stack, height, width)`` Box
+    """
+    if frame_stack is None:
+        raise ValueError(
+            "FrameStackReplayBuffer needs frame_stack, the number of frames per observation: pass "
+            "replay_buffer_kwargs=dict(frame_stack=...) (DrQv2 reads it from make_dmc_env environments)."
+        )
+    if isinstance(frame_stack, bool) or not isinstance(frame_stack, (int, np.integer)) or frame_stack < 1:
+        raise ValueError(f"frame_stack must be an integer >= 1, got {frame_stack!r}.")
+    shape = getattr(observation_space, "shape", None)
+    if not isinstance(observation_space, spaces.Box) or len(shape) != 3 or shape[0] % frame_stack != 0:
+        raise ValueError(
+            f"FrameStackReplayBuffer needs channel-first stacks of frame_stack={frame_stack} frames, a Box of "
+            f"shape (channels * {frame_stack}, height, width), got {observation_space}. {FALLBACK_ADVICE}"
+        )
+    return int(frame_stack)
+
+
+def _warn_if_larger_than_available_memory(nbytes: int) -> None:
+    """Warn, as SB3's buffers do, when the filled buffer would exceed the memory available now."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            fields = dict(line.split(":", 1) for line in meminfo)
+        available = int(fields["MemAvailable"].split()[0]) * 1024
+    except (OSError, KeyError, ValueError):
+        return
+    if nbytes > available:
+        warnings.warn(
+            f"This system does not have apparently enough memory to store the complete replay buffer "
+            f"{nbytes / 1e9:.2f}GB > {available / 1e9:.2f}GB",
+            stacklevel=3,
+        )
