@@ -105,7 +105,7 @@ def omp_path(
     if X.ndim != 2 or not X.is_floating_point():
         raise ValueError(f"X must be a 2-d float tensor, got shape {tuple(X.shape)} and dtype {X.dtype}.")
     n, d = X.shape
-    Y = Y.reshape(n, -1) if Y.ndim == 1 else Y
+    Y = Y[:, None] if Y.ndim == 1 else Y
     if Y.ndim != 2 or Y.shape[0] != n:
         raise ValueError(f"Y must have {n} rows like X, got shape {tuple(Y.shape)}.")
     if not 1 <= max_atoms <= d:
