@@ -129,7 +129,8 @@ def omp_path(
     for k in tqdm(range(max_atoms), desc=desc, disable=not progress, leave=False):
         if running.numel() == 0:
             break
-        R = residual[:, running].to(X.dtype)
+        sel = _selector(running, m)
+        R = residual[:, sel].to(X.dtype)
         correlations = X.T @ R  # (d, r): the one large product of the iteration
         if offset is not None:
             correlations -= offset[:, None] * R.sum(0)[None, :]
@@ -142,36 +143,44 @@ def omp_path(
             x_new -= offset[new, None].to(th.float64)
         squared_norm = (x_new * x_new).sum(1)
         if k > 0:
-            cross = th.bmm(atoms[running, :k], x_new.unsqueeze(2))  # (r, k, 1): X_S^T x_new
-            v = th.linalg.solve_triangular(chol[running, :k, :k], cross, upper=False).squeeze(2)
+            cross = th.bmm(atoms[sel, :k], x_new.unsqueeze(2))  # (r, k, 1): X_S^T x_new
+            v = th.linalg.solve_triangular(chol[sel, :k, :k], cross, upper=False).squeeze(2)
             pivot = squared_norm - (v * v).sum(1)
-            already = (indices[running, :k] == new[:, None]).any(1)
+            already = (indices[sel, :k] == new[:, None]).any(1)
         else:
             v, pivot = None, squared_norm
             already = th.zeros_like(new, dtype=th.bool)
         negligible = initial_correlations[new, running].to(th.float64) ** 2 < eps
         stop = already | negligible | (pivot <= eps)
-        n_active[running[stop]] = k
-        keep = ~stop
-        running = running[keep]
-        if running.numel() == 0:
-            break
+        if stop.any():
+            n_active[running[stop]] = k
+            keep = ~stop
+            running, new, x_new, pivot = running[keep], new[keep], x_new[keep], pivot[keep]
+            v = None if v is None else v[keep]
+            if running.numel() == 0:
+                break
+            sel = _selector(running, m)
         if v is not None:
-            chol[running, k, :k] = v[keep]
-        chol[running, k, k] = pivot[keep].sqrt()
-        atoms[running, k] = x_new[keep]
-        indices[running, k] = new[keep]
-        alpha[running, k] = (x_new[keep] * Y64[:, running].T).sum(1)
-        gamma = th.cholesky_solve(alpha[running, : k + 1, None], chol[running, : k + 1, : k + 1])  # (r, k+1, 1)
-        coef_path[running, : k + 1, k] = gamma.squeeze(2)
-        fitted = th.bmm(gamma.transpose(1, 2), atoms[running, : k + 1]).squeeze(1)  # (r, n)
-        residual[:, running] = Y64[:, running] - fitted.T
+            chol[sel, k, :k] = v
+        chol[sel, k, k] = pivot.sqrt()
+        atoms[sel, k] = x_new
+        indices[sel, k] = new
+        alpha[sel, k] = (x_new * Y64[:, sel].T).sum(1)
+        gamma = th.cholesky_solve(alpha[sel, : k + 1, None], chol[sel, : k + 1, : k + 1])  # (r, k+1, 1)
+        coef_path[sel, : k + 1, k] = gamma.squeeze(2)
+        fitted = th.bmm(gamma.transpose(1, 2), atoms[sel, : k + 1]).squeeze(1)  # (r, n)
+        residual[:, sel] = Y64[:, sel] - fitted.T
 
     for j in th.nonzero(n_active < max_atoms).flatten().tolist():  # early stops: keep the last solution
         last = int(n_active[j])
         if last > 0:
             coef_path[j, :, last:] = coef_path[j, :, last - 1 : last]
     return OMPPath(indices=indices, coef_path=coef_path, n_active=n_active)
+
+
+def _selector(running: th.Tensor, m: int) -> th.Tensor | slice:
+    """Index of the running targets: a slice (views, no copies) while all ``m`` run."""
+    return slice(None) if running.numel() == m else running
 
 
 def path_predictions(X: th.Tensor, path: OMPPath, x_offset: th.Tensor | None = None) -> th.Tensor:

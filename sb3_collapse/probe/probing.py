@@ -279,8 +279,8 @@ def probe_layer(
     val_pred = path_predictions(features[n_train : n_train + n_val], path)  # (n_val, K, tau_max)
     curve = ((val_pred - y_val[:, :, None]) ** 2).mean(0)  # (K, tau_max)
     best = curve.argmin(1)  # first minimum: the smallest tau on ties
-    test_pred = path_predictions(features[n_train + n_val :], path)[:, th.arange(k), best]
-    rows = th.arange(k)
+    rows = th.arange(k, device=curve.device)
+    test_pred = path_predictions(features[n_train + n_val :], path)[:, rows, best]
     return LayerProbe(
         layer=layer,
         n_features=n_features,
