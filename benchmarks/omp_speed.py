@@ -44,7 +44,9 @@ def synthetic_data(samples: int, features: int, targets: int, seed: int = 0) -> 
     Y = np.empty((samples, targets), dtype=np.float32)
     for j in range(targets):
         support = rng.choice(features, size=20, replace=False)
-        Y[:, j] = X[:, support] @ rng.standard_normal(20).astype(np.float32) + rng.standard_normal(samples, dtype=np.float32)
+        Y[:, j] = X[:, support] @ rng.standard_normal(20).astype(np.float32) + rng.standard_normal(
+            samples, dtype=np.float32
+        )
     return X, Y - Y.mean(0)
 
 
@@ -85,11 +87,19 @@ def benchmark_omp(args: argparse.Namespace, device: th.device) -> None:
     same = [set(indices[j].tolist()) == set(np.flatnonzero(sk_coef[j]).tolist()) for j in range(m)]
     scale = np.abs(sk_coef).max()
     diff = np.abs(ours_coef[:m] - sk_coef).max() / scale
-    print(f"sklearn ({m} fits, X in {args.sklearn_layout} order): {sk_s:.1f} s" + ("" if m == args.targets else
-          f", i.e. {sk_s * args.targets / m:.1f} s for {args.targets} targets (extrapolated)"))
+    print(
+        f"sklearn ({m} fits, X in {args.sklearn_layout} order): {sk_s:.1f} s"
+        + (
+            ""
+            if m == args.targets
+            else f", i.e. {sk_s * args.targets / m:.1f} s for {args.targets} targets (extrapolated)"
+        )
+    )
     per_target_ratio = (sk_s / m) / (ours_s / args.targets)
     print(f"sklearn / ours: {per_target_ratio:.1f}x  (per target)")
-    print(f"same selected atoms: {sum(same)}/{m} targets; largest coefficient difference {diff:.1e} (relative to the largest)")
+    print(
+        f"same selected atoms: {sum(same)}/{m} targets; largest coefficient difference {diff:.1e} (relative to the largest)"
+    )
 
 
 def benchmark_probe(args: argparse.Namespace, device: th.device) -> None:
@@ -104,9 +114,11 @@ def benchmark_probe(args: argparse.Namespace, device: th.device) -> None:
     model = DrQv2("CnnPolicy", RandomObservationEnv(), buffer_size=1, device=device, seed=0)
     rollouts = Rollouts(
         observations=rng.integers(0, 256, (n, 9, 84, 84), dtype=np.uint8),
-        states={"orientations": rng.standard_normal((n, 14), dtype=np.float32),
-                "height": rng.standard_normal((n, 1), dtype=np.float32),
-                "velocity": rng.standard_normal((n, 9), dtype=np.float32)},
+        states={
+            "orientations": rng.standard_normal((n, 14), dtype=np.float32),
+            "height": rng.standard_normal((n, 1), dtype=np.float32),
+            "velocity": rng.standard_normal((n, 9), dtype=np.float32),
+        },
         actions=np.zeros((n, 6), np.float32),
         rewards=np.zeros(n, np.float32),
         episode_ids=np.repeat(np.arange(episodes), -(-n // episodes))[:n],
@@ -116,13 +128,18 @@ def benchmark_probe(args: argparse.Namespace, device: th.device) -> None:
     checkpoint = Checkpoint(Path("fresh.zip"), model, "DrQv2", 0, 2)
     settings = ProbeSettings(max_tau=args.probe_max_tau, device=str(device), memory_gb=args.memory_gb, progress=False)
     split = split_by_episode(rollouts.episode_ids)
-    print(f"probe: {n:,} observations 9x84x84, 24 targets, 8 layers, max_tau {settings.max_tau}, "
-          f"memory budget {settings.memory_gb} GB", flush=True)
+    print(
+        f"probe: {n:,} observations 9x84x84, 24 targets, 8 layers, max_tau {settings.max_tau}, "
+        f"memory budget {settings.memory_gb} GB",
+        flush=True,
+    )
     start = time.perf_counter()
     result = probe_checkpoint(checkpoint, rollouts, split, settings)
     total = time.perf_counter() - start
     for layer in result.layers:
-        print(f"  {layer.layer}: {layer.n_features:>6,} features, standardize + OMP + evaluation {layer.fit_seconds:6.1f} s")
+        print(
+            f"  {layer.layer}: {layer.n_features:>6,} features, standardize + OMP + evaluation {layer.fit_seconds:6.1f} s"
+        )
     print(f"  forward passes (all layers): {result.extract_seconds:.1f} s")
     print(f"full probe of one checkpoint: {total:.1f} s ({total / 60:.1f} min)")
 
@@ -143,7 +160,11 @@ def main() -> None:
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
     args = parser.parse_args()
     device = resolve_device(args.device)
-    name = th.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({platform.processor() or platform.machine()}), {th.get_num_threads()} threads"
+    name = (
+        th.cuda.get_device_name(device)
+        if device.type == "cuda"
+        else f"cpu ({platform.processor() or platform.machine()}), {th.get_num_threads()} threads"
+    )
     print(f"device: {name}; torch {th.__version__}", flush=True)
     if not args.skip_omp:
         benchmark_omp(args, device)

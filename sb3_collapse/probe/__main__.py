@@ -24,12 +24,30 @@ SUBCOMMANDS = ("run", "record")
 
 def _recording_arguments(parser: argparse.ArgumentParser, defaults: RecordOptions) -> None:
     group = parser.add_argument_group("recording (settings left out come from the checkpoint, else make_dmc_env's)")
-    group.add_argument("--env", default=defaults.env, help="dm_control task, e.g. walker-walk (default: the checkpoint's)")
+    group.add_argument(
+        "--env", default=defaults.env, help="dm_control task, e.g. walker-walk (default: the checkpoint's)"
+    )
     group.add_argument("--episodes", type=int, default=defaults.episodes, help="episodes to record")
-    group.add_argument("--max-steps", type=int, default=defaults.max_steps, help="cap on agent steps per episode (default: the task's time limit, 500 agent steps for walker at action repeat 2)")
-    group.add_argument("--seed", type=int, default=defaults.seed, help="seed of the env's initial states and the action noise")
-    group.add_argument("--stochastic", action="store_true", help="sample the policy's own exploration instead of its deterministic action")
-    group.add_argument("--noise-std", type=float, default=defaults.noise_std, help="std of Gaussian noise added to each action (actions in [-1, 1])")
+    group.add_argument(
+        "--max-steps",
+        type=int,
+        default=defaults.max_steps,
+        help="cap on agent steps per episode (default: the task's time limit, 500 agent steps for walker at action repeat 2)",
+    )
+    group.add_argument(
+        "--seed", type=int, default=defaults.seed, help="seed of the env's initial states and the action noise"
+    )
+    group.add_argument(
+        "--stochastic",
+        action="store_true",
+        help="sample the policy's own exploration instead of its deterministic action",
+    )
+    group.add_argument(
+        "--noise-std",
+        type=float,
+        default=defaults.noise_std,
+        help="std of Gaussian noise added to each action (actions in [-1, 1])",
+    )
     group.add_argument("--action-repeat", type=int, help="frames per agent step")
     group.add_argument("--frame-stack", type=int, help="stacked RGB frames per observation")
     group.add_argument("--size", type=int, help="image height and width, in pixels")
@@ -78,13 +96,34 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--rollouts", help="rollouts .npz from `record` (default: record them from the first checkpoint)")
     run.add_argument("--out", default="probe", help="output folder")
     run.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
-    run.add_argument("--layers", nargs="+", help=f"layers to probe (default: those of {' '.join(PROBE_LAYERS)} the model has)")
-    run.add_argument("--max-tau", type=int, default=settings.max_tau, help="largest sparsity; every tau in 1..max-tau is validated")
-    run.add_argument("--split", type=float, nargs=3, default=list(settings.fractions), metavar=("TRAIN", "VAL", "TEST"), help="fractions of the episodes")
+    run.add_argument(
+        "--layers", nargs="+", help=f"layers to probe (default: those of {' '.join(PROBE_LAYERS)} the model has)"
+    )
+    run.add_argument(
+        "--max-tau", type=int, default=settings.max_tau, help="largest sparsity; every tau in 1..max-tau is validated"
+    )
+    run.add_argument(
+        "--split",
+        type=float,
+        nargs=3,
+        default=list(settings.fractions),
+        metavar=("TRAIN", "VAL", "TEST"),
+        help="fractions of the episodes",
+    )
     run.add_argument("--split-seed", type=int, default=settings.split_seed, help="seed of the episode shuffle")
     run.add_argument("--batch-size", type=int, default=settings.batch_size, help="observations per forward pass")
-    run.add_argument("--memory-gb", type=float, default=settings.memory_gb, help="activations held at once, in GB; layers share a forward pass while they fit")
-    run.add_argument("--min-std", type=float, default=settings.min_std, help="feature columns of a smaller train std are dropped as constant")
+    run.add_argument(
+        "--memory-gb",
+        type=float,
+        default=settings.memory_gb,
+        help="activations held at once, in GB; layers share a forward pass while they fit",
+    )
+    run.add_argument(
+        "--min-std",
+        type=float,
+        default=settings.min_std,
+        help="feature columns of a smaller train std are dropped as constant",
+    )
     run.add_argument("--device", default=settings.device, help="auto (CUDA when available), cpu, cuda, ...")
     run.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     _recording_arguments(run, defaults)

@@ -116,7 +116,7 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
     try:
         # A 1-transition buffer: loading must not reserve the replay memory of training.
         model = algorithm.load(path, device=device, buffer_size=1)
-    except Exception as error:  # noqa: BLE001 - any failure to load is reported as bad input
+    except Exception as error:
         raise ProbeError(f"{path}: {algorithm.__name__}.load failed ({type(error).__name__}: {error}).") from error
     try:
         layer_taps(model)
@@ -138,7 +138,10 @@ def checkpoint_labels(paths: list[str | Path]) -> list[str]:
         raise ProbeError("The same checkpoint is given twice.")
     depth = 1
     while True:
-        labels = ["/".join(p.with_suffix("").parts[-depth:]) if p.suffix == ".zip" else "/".join(p.parts[-depth:]) for p in resolved]
+        labels = [
+            "/".join(p.with_suffix("").parts[-depth:]) if p.suffix == ".zip" else "/".join(p.parts[-depth:])
+            for p in resolved
+        ]
         if len(set(labels)) == len(labels):
             return labels
         depth += 1

@@ -111,7 +111,7 @@ def omp_path(
     if not 1 <= max_atoms <= d:
         raise ValueError(f"max_atoms must be in 1..{d} (the number of features), got {max_atoms}.")
     device, m = X.device, Y.shape[1]
-    f64 = dict(dtype=th.float64, device=device)
+    f64 = {"dtype": th.float64, "device": device}
     eps = th.finfo(X.dtype).eps
     Y64 = Y.to(**f64)
     offset = None if x_offset is None else x_offset.to(device=device, dtype=X.dtype)

@@ -98,7 +98,11 @@ def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True
 
 
 def record_to_file(
-    checkpoint_path: str | Path, out: str | Path, options: RecordOptions, overwrite: bool = False, device: str = "auto",
+    checkpoint_path: str | Path,
+    out: str | Path,
+    options: RecordOptions,
+    overwrite: bool = False,
+    device: str = "auto",
     progress: bool = True,
 ) -> Path:
     """
@@ -119,7 +123,9 @@ def record_to_file(
     checkpoint = load_checkpoint(checkpoint_path, device=resolve_device(device))
     rollouts = record(checkpoint, options, progress)
     path = rollouts.save(out)
-    print(f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {rollouts.env_config['task_id']} to {path}")
+    print(
+        f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {rollouts.env_config['task_id']} to {path}"
+    )
     return path
 
 
@@ -174,7 +180,9 @@ def probe_to_folder(
             first = load_checkpoint(checkpoint_paths[0], device=device)
             rollouts = record(first, record_options or RecordOptions(), settings.progress)
             rollouts_path = rollouts.save(out / ROLLOUTS_NAME)
-            print(f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {rollouts_path}", flush=True)
+            print(
+                f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {rollouts_path}", flush=True
+            )
             del first
         else:
             rollouts = Rollouts.load(rollouts_path)
@@ -183,7 +191,10 @@ def probe_to_folder(
         for path, label in zip(checkpoint_paths, labels):
             checkpoint = load_checkpoint(path, device=device)
             checkpoint.label = label
-            print(f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)", flush=True)
+            print(
+                f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)",
+                flush=True,
+            )
             result = probe_checkpoint(checkpoint, rollouts, split, settings)
             result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
             results.append(result)
@@ -258,6 +269,8 @@ def _summary(
             }
             for r in results
         ],
-        "mse_over_training": "written" if over_training else "skipped: needs >= 2 checkpoints with distinct training steps",
+        "mse_over_training": "written"
+        if over_training
+        else "skipped: needs >= 2 checkpoints with distinct training steps",
         "files": files,
     }

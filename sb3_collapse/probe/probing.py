@@ -67,10 +67,14 @@ def split_by_episode(
     :raises ProbeError: with fewer than 3 episodes, or fractions that leave a set empty
     """
     if len(fractions) != 3 or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
-        raise ProbeError(f"--split must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}.")
+        raise ProbeError(
+            f"--split must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}."
+        )
     episodes = np.unique(episode_ids)
     if len(episodes) < 3:
-        raise ProbeError(f"Probing needs at least 3 episodes (train, validation, test), the rollouts have {len(episodes)}.")
+        raise ProbeError(
+            f"Probing needs at least 3 episodes (train, validation, test), the rollouts have {len(episodes)}."
+        )
     shuffled = np.random.default_rng(seed).permutation(episodes)
     n_val = max(1, round(fractions[1] * len(episodes)))
     n_test = max(1, round(fractions[2] * len(episodes)))
@@ -273,8 +277,9 @@ def probe_layer(
         val_mse = (y_val**2).mean(0).cpu().numpy()
         test_mse = (y_test**2).mean(0).cpu().numpy()
         zeros = np.zeros(k, dtype=np.int64)
-        return LayerProbe(layer, n_features, 0, 0, zeros, zeros, np.empty((k, 0)), val_mse, test_mse,
-                          time.perf_counter() - start_time)
+        return LayerProbe(
+            layer, n_features, 0, 0, zeros, zeros, np.empty((k, 0)), val_mse, test_mse, time.perf_counter() - start_time
+        )
     path = omp_path(features[:n_train], Y[:n_train], tau_max, progress=progress, desc=f"fitting {layer}")
     val_pred = path_predictions(features[n_train : n_train + n_val], path)  # (n_val, K, tau_max)
     curve = ((val_pred - y_val[:, :, None]) ** 2).mean(0)  # (K, tau_max)

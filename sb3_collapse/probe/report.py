@@ -14,10 +14,10 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from sb3_collapse.probe.errors import ProbeError  # noqa: E402
+from sb3_collapse.probe.errors import ProbeError
 
 CSV_NAME = "probe.csv"
 SUMMARY_NAME = "summary.json"
@@ -43,7 +43,9 @@ class StagedOutput:
             raise ProbeError(f"--out {self.out} is a file; give a folder.")
         existing = [name for name in OUTPUT_FILES if (self.out / name).exists()]
         if existing and not overwrite:
-            raise ProbeError(f"{self.out} already holds probe outputs ({', '.join(existing)}): pass --overwrite or another --out.")
+            raise ProbeError(
+                f"{self.out} already holds probe outputs ({', '.join(existing)}): pass --overwrite or another --out."
+            )
         self.staging = self.out / f".partial-{os.getpid()}"
         self.committed = False
 
@@ -72,7 +74,9 @@ class StagedOutput:
         self.committed = True
         return [self.out / name for name in staged]
 
-    def __exit__(self, exc_type: type | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         if not self.committed:
             shutil.rmtree(self.staging, ignore_errors=True)
 
@@ -146,7 +150,9 @@ def plot_mse_by_layer(rows: list[dict[str, Any]], path: Path) -> None:
     fig.tight_layout()
     if len(checkpoints) <= 10:
         handles, labels = axes.flat[0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=min(5, len(checkpoints)), fontsize=8)
+        fig.legend(
+            handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=min(5, len(checkpoints)), fontsize=8
+        )
     else:
         mappable = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, len(checkpoints) - 1))
         fig.colorbar(mappable, ax=axes, label="checkpoint (given order)", shrink=0.6)
@@ -185,7 +191,9 @@ def plot_mse_over_training(rows: list[dict[str, Any]], path: Path) -> bool:
     for ax, group in zip(axes.flat, groups):
         for i, layer in enumerate(layers):
             ys = [means.get((c, layer, group), np.nan) for c in order]
-            ax.plot(xs, ys, marker="o", ms=3, color=f"C{i}", linestyle="--" if layer.startswith("mlp") else "-", label=layer)
+            ax.plot(
+                xs, ys, marker="o", ms=3, color=f"C{i}", linestyle="--" if layer.startswith("mlp") else "-", label=layer
+            )
         ax.set_title(group, fontsize=10)
         ax.set_xlabel("training frames", fontsize=8)
         ax.set_ylim(bottom=0)

@@ -57,7 +57,12 @@ class Rollouts:
 
     def __post_init__(self) -> None:
         n = len(self.observations)
-        arrays = {"actions": self.actions, "rewards": self.rewards, "episode_ids": self.episode_ids, "steps": self.steps}
+        arrays = {
+            "actions": self.actions,
+            "rewards": self.rewards,
+            "episode_ids": self.episode_ids,
+            "steps": self.steps,
+        }
         arrays.update({f"state {name!r}": value for name, value in self.states.items()})
         wrong = {name: len(value) for name, value in arrays.items() if len(value) != n}
         if wrong:
@@ -132,7 +137,9 @@ class Rollouts:
         """
         path = Path(path)
         if not path.is_file():
-            raise ProbeError(f"Rollouts file {path} does not exist; record one with `python -m sb3_collapse.probe record`.")
+            raise ProbeError(
+                f"Rollouts file {path} does not exist; record one with `python -m sb3_collapse.probe record`."
+            )
         try:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
@@ -164,9 +171,13 @@ def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any
         raise ValueError(f"Unknown env settings {sorted(unknown)}; expected {list(defaults)}.")
     config = {**defaults, **saved, **given}
     if config["task_id"] is None:
-        raise ProbeError("The checkpoint does not say which environment it was trained on: pass --env, e.g. walker-walk.")
+        raise ProbeError(
+            "The checkpoint does not say which environment it was trained on: pass --env, e.g. walker-walk."
+        )
     if (model_env_config or {}).get("obs_type") not in (None, "pixels"):
-        raise ProbeError(f"The checkpoint was trained on {model_env_config['obs_type']!r} observations; probing needs pixels.")
+        raise ProbeError(
+            f"The checkpoint was trained on {model_env_config['obs_type']!r} observations; probing needs pixels."
+        )
     return config
 
 
@@ -216,7 +227,9 @@ def record_rollouts(
     if noise_std < 0:
         raise ProbeError(f"--noise-std must be >= 0, got {noise_std}.")
     try:
-        env = make_dmc_env(env_config["task_id"], seed=seed, obs_type="pixels", **{k: env_config[k] for k in ENV_SETTINGS[1:]})
+        env = make_dmc_env(
+            env_config["task_id"], seed=seed, obs_type="pixels", **{k: env_config[k] for k in ENV_SETTINGS[1:]}
+        )
     except ValueError as error:
         raise ProbeError(str(error)) from error
     model_shape = tuple(model.observation_space.shape or ())
@@ -230,7 +243,12 @@ def record_rollouts(
     observations, actions, rewards, episode_ids, steps = [], [], [], [], []
     states: dict[str, list[np.ndarray]] = {name: [] for name in env.state_shapes}
     per_episode = episode_length(env, max_steps)
-    bar = tqdm(total=None if per_episode is None else episodes * per_episode, desc="recording", unit="step", disable=not progress)
+    bar = tqdm(
+        total=None if per_episode is None else episodes * per_episode,
+        desc="recording",
+        unit="step",
+        disable=not progress,
+    )
     try:
         for episode in range(episodes):
             obs, _ = env.reset(seed=seed if episode == 0 else None)

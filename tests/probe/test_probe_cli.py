@@ -19,7 +19,7 @@ FAST = ["--max-tau", "4", "--no-progress"]
 
 def save_drqv2(path, size=32, num_timesteps=0):
     env = make_dmc_env("walker-walk", seed=0, action_repeat=8, size=size)
-    model = DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs=dict(hidden_dim=32), seed=0, device="cpu")
+    model = DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs={"hidden_dim": 32}, seed=0, device="cpu")
     model.num_timesteps = num_timesteps  # as if trained that long
     model.save(path)
     env.close()
@@ -49,15 +49,26 @@ def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES)
     rows = list(csv.DictReader((out / "probe.csv").open()))
     assert len(rows) == 2 * 8 * 24  # checkpoints x layers x components
-    assert {"checkpoint", "layer", "component", "tau", "validation_mse", "test_mse", "test_mse_raw", "n_train",
-            "n_validation", "n_test"} <= set(rows[0])
-    assert [r["layer"] for r in rows[:: 24][:8]] == ["cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2"]
+    assert {
+        "checkpoint",
+        "layer",
+        "component",
+        "tau",
+        "validation_mse",
+        "test_mse",
+        "test_mse_raw",
+        "n_train",
+        "n_validation",
+        "n_test",
+    } <= set(rows[0])
+    assert [r["layer"] for r in rows[::24][:8]] == ["cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2"]
     assert {r["checkpoint"] for r in rows} == {"ckpt_100", "ckpt_200"}
     assert all(1 <= int(r["tau"]) <= 4 for r in rows)
     assert (int(rows[0]["n_train"]), int(rows[0]["n_validation"]), int(rows[0]["n_test"])) == (12, 4, 4)
     row = rows[30]
-    np.testing.assert_allclose(float(row["test_mse_raw"]), float(row["test_mse"]) * float(row["target_std"]) ** 2,
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        float(row["test_mse_raw"]), float(row["test_mse"]) * float(row["target_std"]) ** 2, rtol=1e-6
+    )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] and summary["mse_over_training"] == "written"
     assert [c["num_timesteps"] for c in summary["checkpoints"]] == [200, 100]
@@ -71,8 +82,24 @@ def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
 
 def test_default_form_records_rollouts_first(files, tmp_path):
     out = tmp_path / "single"
-    assert main([str(files["early"]), "--episodes", "3", "--max-steps", "3", "--layers", "cnn4", "mlp2",
-                 "--out", str(out), *FAST]) == 0
+    assert (
+        main(
+            [
+                str(files["early"]),
+                "--episodes",
+                "3",
+                "--max-steps",
+                "3",
+                "--layers",
+                "cnn4",
+                "mlp2",
+                "--out",
+                str(out),
+                *FAST,
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in out.iterdir()) == ["mse_by_layer.png", "probe.csv", "rollouts.npz", "summary.json"]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["rollouts"]["samples"] == 9 and summary["rollouts"]["env_config"]["size"] == 32
@@ -84,7 +111,9 @@ def test_bad_inputs_exit_with_a_message_and_no_outputs(files, tmp_path, capsys):
     (folder / "notes.txt").write_text("hello")
     with zipfile.ZipFile(folder / "other.zip", "w") as archive:
         archive.writestr("readme.txt", "not a model")
-    PPO("MlpPolicy", RandomObservationEnv(gym.spaces.Box(-1, 1, (3,), np.float32)), n_steps=8, batch_size=8).save(folder / "ppo.zip")
+    PPO("MlpPolicy", RandomObservationEnv(gym.spaces.Box(-1, 1, (3,), np.float32)), n_steps=8, batch_size=8).save(
+        folder / "ppo.zip"
+    )
     bigger = save_drqv2(folder / "size40.zip", size=40)
     cases = {
         "does not exist": [str(folder / "missing.zip")],
@@ -106,7 +135,9 @@ def test_bad_inputs_exit_with_a_message_and_no_outputs(files, tmp_path, capsys):
 
 
 def test_help_of_the_module_and_its_sub_commands():
-    result = subprocess.run([sys.executable, "-m", "sb3_collapse.probe", "--help"], capture_output=True, text=True)
+    result = subprocess.run(
+        [sys.executable, "-m", "sb3_collapse.probe", "--help"], capture_output=True, text=True, check=False
+    )
     assert result.returncode == 0 and "record" in result.stdout and "run" in result.stdout
     for command, option in (("run", "--max-tau"), ("record", "--episodes")):
         with pytest.raises(SystemExit) as exit_info:

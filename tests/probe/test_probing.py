@@ -18,8 +18,11 @@ def test_split_never_cuts_an_episode():
     split = split_by_episode(episode_ids, (0.6, 0.2, 0.2), seed=3)
     assert (split.n_train, split.n_validation, split.n_test) == (42, 14, 14)
     assert sorted(split.order.tolist()) == list(range(70))
-    sets = [split.order[: split.n_train], split.order[split.n_train : split.n_train + split.n_validation],
-            split.order[split.n_train + split.n_validation :]]
+    sets = [
+        split.order[: split.n_train],
+        split.order[split.n_train : split.n_train + split.n_validation],
+        split.order[split.n_train + split.n_validation :],
+    ]
     episodes = [set(episode_ids[s]) for s in sets]
     assert [sorted(e) for e in episodes] == [split.episodes[k] for k in ("train", "validation", "test")]
     assert not (episodes[0] & episodes[1] or episodes[0] & episodes[2] or episodes[1] & episodes[2])
@@ -43,7 +46,7 @@ def test_features_standardized_in_place_with_train_statistics():
     expected = (kept - kept[:30].mean(0)) / kept[:30].std(0)
     np.testing.assert_allclose(standardized.numpy(), expected, rtol=1e-5, atol=1e-5)
 
-    targets, mean, scale = standardize_targets(np.stack([values[:, 0], np.full(50, 2.0)], 1), n_train=30)
+    targets, _mean, scale = standardize_targets(np.stack([values[:, 0], np.full(50, 2.0)], 1), n_train=30)
     np.testing.assert_allclose(targets[:30, 0].mean(), 0, atol=1e-12)
     np.testing.assert_allclose(targets[:30, 0].std(), 1)
     assert scale[1] == 1.0 and (targets[:, 1] == 0).all()  # a constant target is only centred

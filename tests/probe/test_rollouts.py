@@ -5,13 +5,13 @@ from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.probe import ProbeError, Rollouts, record_rollouts
 from sb3_collapse.probe.rollouts import resolve_env_config
 
-ENV = dict(action_repeat=8, frame_stack=3, size=32)
+ENV = {"action_repeat": 8, "frame_stack": 3, "size": 32}
 
 
 @pytest.fixture(scope="module")
 def model():
     env = make_dmc_env("walker-walk", seed=0, **ENV)
-    return DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs=dict(hidden_dim=32), seed=0, device="cpu")
+    return DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs={"hidden_dim": 32}, seed=0, device="cpu")
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,10 @@ def test_recorded_arrays_and_walker_targets(rollouts):
     assert rollouts.episode_ids.tolist() == [0] * 4 + [1] * 4 + [2] * 4
     assert rollouts.steps.tolist() == [0, 1, 2, 3] * 3
     assert {k: v.shape for k, v in rollouts.states.items()} == {
-        "orientations": (12, 14), "height": (12, 1), "velocity": (12, 9)}
+        "orientations": (12, 14),
+        "height": (12, 1),
+        "velocity": (12, 9),
+    }
     assert rollouts.env_config == {"task_id": "walker-walk", "camera_id": 0, **ENV}
     assert rollouts.actions.shape == (12, 6) and np.abs(rollouts.actions).max() <= 1
     names, groups, values = rollouts.targets()
