@@ -360,7 +360,10 @@ def select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[
     """
     available = list(layer_taps(checkpoint.model))
     if layers is None:
-        return [name for name in available if name in PROBE_LAYERS]
+        names = [name for name in available if name in PROBE_LAYERS]
+        if not names:
+            raise ProbeError(f"{checkpoint.path}: none of the layers {list(PROBE_LAYERS)}; it has {available}.")
+        return names
     missing = [name for name in layers if name not in available]
     if missing:
         raise ProbeError(f"{checkpoint.path}: no layer(s) {missing}; this {checkpoint.algorithm} has {available}.")

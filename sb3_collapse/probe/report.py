@@ -30,7 +30,8 @@ OUTPUT_FILES = (CSV_NAME, SUMMARY_NAME, BY_LAYER_PLOT, OVER_TRAINING_PLOT)
 class StagedOutput:
     """
     Write files into ``<out>/.partial-<pid>/`` and move them into ``out`` only on :meth:`commit`; on an error
-    (or without a commit) the staging folder is removed, so no output of a failed run looks complete.
+    (or without a commit) the staging folder is removed (and ``out`` too if this created it and it is empty), so no
+    output of a failed run looks complete.
 
     :param out: the output folder (created if needed)
     :param overwrite: replace the outputs of a previous run; otherwise their presence is an error
@@ -47,6 +48,7 @@ class StagedOutput:
                 f"{self.out} already holds probe outputs ({', '.join(existing)}): pass --overwrite or another --out."
             )
         self.staging = self.out / f".partial-{os.getpid()}"
+        self.created = not self.out.exists()
         self.committed = False
 
     def __enter__(self) -> StagedOutput:
@@ -79,6 +81,8 @@ class StagedOutput:
     ) -> None:
         if not self.committed:
             shutil.rmtree(self.staging, ignore_errors=True)
+            if self.created and not any(self.out.iterdir()):
+                self.out.rmdir()
 
 
 def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
