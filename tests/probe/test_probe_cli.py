@@ -7,7 +7,7 @@ import zipfile
 import gymnasium as gym
 import numpy as np
 import pytest
-from stable_baselines3 import PPO
+from stable_baselines3 import PPO, SAC
 
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.envs.synthetic import RandomObservationEnv
@@ -115,11 +115,15 @@ def test_bad_inputs_exit_with_a_message_and_no_outputs(files, tmp_path, capsys):
         folder / "ppo.zip"
     )
     bigger = save_drqv2(folder / "size40.zip", size=40)
+    SAC("MlpPolicy", RandomObservationEnv(gym.spaces.Box(-1, 1, (3,), np.float32)), buffer_size=10, use_sde=True).save(
+        folder / "sac_sde.zip"
+    )
     cases = {
         "does not exist": [str(folder / "missing.zip")],
         "not a zip": [str(folder / "notes.txt")],
         "not an SB3 model": [str(folder / "other.zip")],
         "cannot probe a model whose policy comes from 'stable_baselines3.common.policies'": [str(folder / "ppo.zip")],
+        "SAC with gSDE": [str(folder / "sac_sde.zip")],  # its layers cannot be mapped
         # the first checkpoint is probed, the second does not fit the rollouts: nothing is written
         "takes observations of shape (9, 40, 40)": [str(files["early"]), str(bigger)],
         "not a rollouts file": [str(files["early"]), "--rollouts", str(folder / "notes.txt")],
