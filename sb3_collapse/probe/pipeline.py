@@ -188,6 +188,7 @@ def probe_to_folder(
             rollouts = Rollouts.load(rollouts_path)
         split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
         results: list[CheckpointProbe] = []
+        reuse: dict = {}  # cnn0 (the normalized pixels) is probed once for checkpoints that normalize alike
         for path, label in zip(checkpoint_paths, labels):
             checkpoint = load_checkpoint(path, device=device)
             checkpoint.label = label
@@ -195,7 +196,7 @@ def probe_to_folder(
                 f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)",
                 flush=True,
             )
-            result = probe_checkpoint(checkpoint, rollouts, split, settings)
+            result = probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
             result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
             results.append(result)
             print(format_table(result.rows), flush=True)
@@ -262,6 +263,7 @@ def _summary(
                         "n_features_kept": p.n_features_kept,
                         "max_tau": p.max_tau,
                         "fit_seconds": round(p.fit_seconds, 2),
+                        "reused_from_an_earlier_checkpoint": p.reused,
                         "mean_test_mse": {g: means[(r.checkpoint.name, p.layer, g)] for g in dict.fromkeys(groups)},
                     }
                     for p in r.layers

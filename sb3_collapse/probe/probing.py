@@ -16,6 +16,8 @@ For a checkpoint, a layer ``l`` and a scalar state component ``k``:
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -230,6 +232,7 @@ class LayerProbe:
     :param validation_mse: ``(K,)`` validation MSE at ``tau``
     :param test_mse: ``(K,)`` test MSE at ``tau``
     :param fit_seconds: wall time of standardization, OMP and evaluation
+    :param reused: copied from an earlier checkpoint with identical activations (``cnn0``)
     """
 
     layer: str
@@ -242,6 +245,7 @@ class LayerProbe:
     validation_mse: np.ndarray
     test_mse: np.ndarray
     fit_seconds: float = 0.0
+    reused: bool = False
 
 
 def probe_layer(
@@ -370,8 +374,18 @@ def select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[
     return [name for name in available if name in layers]
 
 
+def _pixel_layer_key(model: object, observations: np.ndarray) -> str:
+    """A fingerprint of ``cnn0`` (the normalized pixels): its exact values on a few observations."""
+    pixels = collect_activations(model, observations, layers=["cnn0"])["cnn0"]
+    return hashlib.sha1(pixels.cpu().numpy().tobytes()).hexdigest()
+
+
 def probe_checkpoint(
-    checkpoint: Checkpoint, rollouts: Rollouts, split: EpisodeSplit, settings: ProbeSettings
+    checkpoint: Checkpoint,
+    rollouts: Rollouts,
+    split: EpisodeSplit,
+    settings: ProbeSettings,
+    reuse: dict[str, LayerProbe] | None = None,
 ) -> CheckpointProbe:
     """
     Probe every layer of a checkpoint for every state component of the rollouts.
@@ -380,6 +394,10 @@ def probe_checkpoint(
     :param rollouts: the recorded observations and states
     :param split: the episode split of the rollouts
     :param settings: the probe's settings
+    :param reuse: probes of ``cnn0`` from earlier checkpoints on the same rollouts and split, keyed by the exact
+        values of ``cnn0`` on the first 16 samples (updated here). ``cnn0`` is the normalized image, the same for
+        every checkpoint that normalizes pixels the same way (all DrQv2 checkpoints): its probe is then reused
+        instead of extracted and fitted again. ``None``: no reuse
     :return: the results; ``rows`` holds, per (layer, target): ``checkpoint``, ``algorithm``,
         ``num_timesteps`` (agent steps), ``frames``, ``layer``, ``component``, ``group``, ``tau``, ``max_tau``,
         ``validation_mse``, ``test_mse`` (standardized), ``validation_mse_raw``, ``test_mse_raw`` (state units
@@ -401,7 +419,14 @@ def probe_checkpoint(
     device = resolve_device(settings.device)
     dims = layer_dimensions(model, rollouts.observations[:1], layers)
     result = CheckpointProbe(checkpoint)
-    for layer_pass in plan_passes(dims, len(split.order), settings.memory_gb * 1e9):
+    probes: dict[str, LayerProbe] = {}
+    pixel_key = None
+    if reuse is not None and "cnn0" in layers:
+        pixel_key = _pixel_layer_key(model, rollouts.observations[split.order[:16]])
+        if pixel_key in reuse:
+            probes["cnn0"] = dataclasses.replace(reuse[pixel_key], fit_seconds=0.0, reused=True)
+    wanted = {name: dim for name, dim in dims.items() if name not in probes}
+    for layer_pass in plan_passes(wanted, len(split.order), settings.memory_gb * 1e9):
         start = time.perf_counter()
         activations = extract_activations(
             model, rollouts.observations, split.order, layer_pass, dims, settings.batch_size, device, settings.progress
@@ -409,32 +434,38 @@ def probe_checkpoint(
         result.extract_seconds += time.perf_counter() - start
         for layer in layer_pass:
             features = activations.pop(layer)
-            probe = probe_layer(layer, features, targets, split, settings.max_tau, settings.min_std, settings.progress)
+            probes[layer] = probe_layer(
+                layer, features, targets, split, settings.max_tau, settings.min_std, settings.progress
+            )
             del features
-            result.layers.append(probe)
-            for j, (name, group) in enumerate(zip(names, groups)):
-                scale = float(target_scale[j]) ** 2
-                result.rows.append(
-                    {
-                        "checkpoint": checkpoint.name,
-                        "algorithm": checkpoint.algorithm,
-                        "num_timesteps": checkpoint.num_timesteps,
-                        "frames": checkpoint.frames,
-                        "layer": layer,
-                        "component": name,
-                        "group": group,
-                        "tau": int(probe.tau[j]),
-                        "max_tau": probe.max_tau,
-                        "validation_mse": float(probe.validation_mse[j]),
-                        "test_mse": float(probe.test_mse[j]),
-                        "validation_mse_raw": float(probe.validation_mse[j]) * scale,
-                        "test_mse_raw": float(probe.test_mse[j]) * scale,
-                        "target_std": float(train_std[j]),
-                        "n_train": split.n_train,
-                        "n_validation": split.n_validation,
-                        "n_test": split.n_test,
-                        "n_features": probe.n_features,
-                        "n_features_kept": probe.n_features_kept,
-                    }
-                )
+    if pixel_key is not None:
+        reuse.setdefault(pixel_key, probes["cnn0"])
+    for layer in layers:
+        probe = probes[layer]
+        result.layers.append(probe)
+        for j, (name, group) in enumerate(zip(names, groups)):
+            scale = float(target_scale[j]) ** 2
+            result.rows.append(
+                {
+                    "checkpoint": checkpoint.name,
+                    "algorithm": checkpoint.algorithm,
+                    "num_timesteps": checkpoint.num_timesteps,
+                    "frames": checkpoint.frames,
+                    "layer": layer,
+                    "component": name,
+                    "group": group,
+                    "tau": int(probe.tau[j]),
+                    "max_tau": probe.max_tau,
+                    "validation_mse": float(probe.validation_mse[j]),
+                    "test_mse": float(probe.test_mse[j]),
+                    "validation_mse_raw": float(probe.validation_mse[j]) * scale,
+                    "test_mse_raw": float(probe.test_mse[j]) * scale,
+                    "target_std": float(train_std[j]),
+                    "n_train": split.n_train,
+                    "n_validation": split.n_validation,
+                    "n_test": split.n_test,
+                    "n_features": probe.n_features,
+                    "n_features_kept": probe.n_features_kept,
+                }
+            )
     return result

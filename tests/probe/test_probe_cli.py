@@ -11,6 +11,7 @@ from stable_baselines3 import PPO, SAC
 
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.probe import ProbeSettings, Rollouts, load_checkpoint, probe_checkpoint, split_by_episode
 from sb3_collapse.probe.__main__ import main
 from sb3_collapse.probe.report import OUTPUT_FILES
 
@@ -73,6 +74,12 @@ def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
     assert summary["complete"] and summary["mse_over_training"] == "written"
     assert [c["num_timesteps"] for c in summary["checkpoints"]] == [200, 100]
     assert summary["checkpoints"][0]["frames"] == 1600  # 200 agent steps x action repeat 8
+    reused = [c["layers"]["cnn0"]["reused_from_an_earlier_checkpoint"] for c in summary["checkpoints"]]
+    assert reused == [False, True]
+    cnn0 = [
+        [r["test_mse"] for r in rows if r["layer"] == "cnn0" and r["checkpoint"] == c] for c in ("ckpt_200", "ckpt_100")
+    ]
+    assert cnn0[0] == cnn0[1]
     assert set(summary["checkpoints"][0]["layers"]["cnn4"]["mean_test_mse"]) == {"orientations", "height", "velocity"}
     # The previous outputs are kept unless --overwrite.
     assert main(argv) == 2
@@ -147,3 +154,19 @@ def test_help_of_the_module_and_its_sub_commands():
         with pytest.raises(SystemExit) as exit_info:
             main([command, "--help"])
         assert exit_info.value.code == 0
+
+
+def test_cnn0_probe_is_reused_across_checkpoints(files):
+    """cnn0 (normalized pixels) is the same for every DrQv2: probed once, with the same result as a fresh fit."""
+    rollouts = Rollouts.load(files["rollouts"])
+    split = split_by_episode(rollouts.episode_ids)
+    settings = ProbeSettings(layers=["cnn0", "cnn4"], max_tau=4, device="cpu", progress=False)
+    reuse = {}
+    first = probe_checkpoint(load_checkpoint(files["early"]), rollouts, split, settings, reuse)
+    second = probe_checkpoint(load_checkpoint(files["late"]), rollouts, split, settings, reuse)
+    fresh = probe_checkpoint(load_checkpoint(files["late"]), rollouts, split, settings)
+    assert [p.reused for p in first.layers] == [False, False] and [p.reused for p in second.layers] == [True, False]
+    assert len(reuse) == 1
+    for reused, fitted in zip(second.layers, fresh.layers):
+        np.testing.assert_array_equal(reused.test_mse, fitted.test_mse)
+        np.testing.assert_array_equal(reused.tau, fitted.tau)
