@@ -162,25 +162,28 @@ def layer_dimensions(model: object, observation: np.ndarray, layers: Sequence[st
 
 def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float) -> list[list[str]]:
     """
-    Group layers into forward passes over the rollouts, in order, so that the float32 activations of a pass
-    take at most ``memory_bytes`` (a larger layer gets a pass of its own).
+    Group layers into forward passes over the rollouts so that the float32 activations of a pass take at most
+    ``memory_bytes`` (first fit, largest layer first; a layer larger than the budget gets a pass of its own).
 
     :param dimensions: name -> flattened activation size
     :param n_samples: observations per pass
     :param memory_bytes: budget of activations held at once
-    :return: the passes, each a list of layer names
+    :return: the passes, each a list of layer names in the order of ``dimensions``, ordered by their first layer
     """
+    order = list(dimensions)
     passes: list[list[str]] = []
-    used = 0.0
-    for name, dim in dimensions.items():
-        size = 4.0 * dim * n_samples
-        if passes and used + size <= memory_bytes:
-            passes[-1].append(name)
-            used += size
+    used: list[float] = []
+    for name in sorted(order, key=lambda layer: -dimensions[layer]):
+        size = 4.0 * dimensions[name] * n_samples
+        fits = [i for i, total in enumerate(used) if total + size <= memory_bytes]
+        if fits:
+            passes[fits[0]].append(name)
+            used[fits[0]] += size
         else:
             passes.append([name])
-            used = size
-    return passes
+            used.append(size)
+    passes = [sorted(layers, key=order.index) for layers in passes]
+    return sorted(passes, key=lambda layers: order.index(layers[0]))
 
 
 def extract_activations(

@@ -81,7 +81,9 @@ def test_probe_layer_without_varying_features_predicts_the_train_mean():
 def test_passes_respect_the_memory_budget():
     dims = {"cnn0": 63_504, "cnn1": 53_792, "cnn2": 39_200, "cnn3": 39_200, "cnn4": 39_200, "mlp0": 50, "mlp1": 1024}
     passes = plan_passes(dims, 10_000, 4e9)
-    assert passes == [["cnn0"], ["cnn1", "cnn2"], ["cnn3", "cnn4", "mlp0", "mlp1"]]
+    assert passes == [["cnn0", "mlp0", "mlp1"], ["cnn1", "cnn2"], ["cnn3", "cnn4"]]
+    without_cnn0 = {name: dim for name, dim in dims.items() if name != "cnn0"}  # cnn0 reused: one pass less
+    assert plan_passes(without_cnn0, 10_000, 4e9) == [["cnn1", "cnn2", "mlp0", "mlp1"], ["cnn3", "cnn4"]]
     assert plan_passes(dims, 10_000, 1e9) == [[name] for name in list(dims)[:5]] + [["mlp0", "mlp1"]]
 
 
