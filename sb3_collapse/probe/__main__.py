@@ -1,0 +1,194 @@
+"""
+Offline OMP probing of checkpoints: ``python -m sb3_collapse.probe --help``.
+
+    python -m sb3_collapse.probe ckpt.zip                                      # record rollouts, then probe
+    python -m sb3_collapse.probe good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/
+    python -m sb3_collapse.probe record good.zip --env walker-walk --episodes 20 --out walker.npz
+
+``run`` (the default when the first argument is not a sub-command) probes; ``record`` records rollouts.
+Errors in the input print ``error: ...`` and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
+from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
+
+PROG = "python -m sb3_collapse.probe"
+SUBCOMMANDS = ("run", "record")
+
+
+def _recording_arguments(parser: argparse.ArgumentParser, defaults: RecordOptions) -> None:
+    group = parser.add_argument_group("recording (settings left out come from the checkpoint, else make_dmc_env's)")
+    group.add_argument(
+        "--env", default=defaults.env, help="dm_control task, e.g. walker-walk (default: the checkpoint's)"
+    )
+    group.add_argument("--episodes", type=int, default=defaults.episodes, help="episodes to record")
+    group.add_argument(
+        "--max-steps",
+        type=int,
+        default=defaults.max_steps,
+        help="cap on agent steps per episode (default: the task's time limit, 500 agent steps for walker at action repeat 2)",
+    )
+    group.add_argument(
+        "--seed", type=int, default=defaults.seed, help="seed of the env's initial states and the action noise"
+    )
+    group.add_argument(
+        "--stochastic",
+        action="store_true",
+        help="sample the policy's own exploration instead of its deterministic action",
+    )
+    group.add_argument(
+        "--noise-std",
+        type=float,
+        default=defaults.noise_std,
+        help="std of Gaussian noise added to each action (actions in [-1, 1])",
+    )
+    group.add_argument("--action-repeat", type=int, help="frames per agent step")
+    group.add_argument("--frame-stack", type=int, help="stacked RGB frames per observation")
+    group.add_argument("--size", type=int, help="image height and width, in pixels")
+    group.add_argument("--camera-id", type=int, help="camera of the renders")
+
+
+def _record_options(args: argparse.Namespace) -> RecordOptions:
+    return RecordOptions(
+        env=args.env,
+        episodes=args.episodes,
+        max_steps=args.max_steps,
+        seed=args.seed,
+        deterministic=not args.stochastic,
+        noise_std=args.noise_std,
+        action_repeat=args.action_repeat,
+        frame_stack=args.frame_stack,
+        size=args.size,
+        camera_id=args.camera_id,
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: sub-commands ``run`` (the default) and ``record``."""
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Linear probing with a sparsity constraint (OMP) of an actor's layers cnn0..cnn4, mlp0..mlp2 "
+        "for the true state of DeepMind Control tasks (Section 4.1 of the action-collapse paper). Without a "
+        "sub-command, the arguments are those of `run`.",
+        epilog=f"examples:\n  {PROG} ckpt.zip\n  {PROG} good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/\n"
+        f"  {PROG} record good.zip --env walker-walk --episodes 20 --out walker.npz",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", metavar="{run,record}")
+    defaults, settings = RecordOptions(), ProbeSettings()
+
+    run = sub.add_parser(
+        "run",
+        help="probe checkpoints (the default)",
+        description="Probe each checkpoint's layers for every state component with OMP; write probe.csv, "
+        "summary.json, mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png "
+        "into --out, only when the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are "
+        "recorded first and saved to <out>/rollouts.npz.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    run.add_argument("checkpoints", nargs="+", help="SB3 zips of DrQv2, TD3, DDPG or SAC")
+    run.add_argument("--rollouts", help="rollouts .npz from `record` (default: record them from the first checkpoint)")
+    run.add_argument("--out", default="probe", help="output folder")
+    run.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
+    run.add_argument(
+        "--layers", nargs="+", help=f"layers to probe (default: those of {' '.join(PROBE_LAYERS)} the model has)"
+    )
+    run.add_argument(
+        "--max-tau", type=int, default=settings.max_tau, help="largest sparsity; every tau in 1..max-tau is validated"
+    )
+    run.add_argument(
+        "--split",
+        type=float,
+        nargs=3,
+        default=list(settings.fractions),
+        metavar=("TRAIN", "VAL", "TEST"),
+        help="fractions of the episodes",
+    )
+    run.add_argument("--split-seed", type=int, default=settings.split_seed, help="seed of the episode shuffle")
+    run.add_argument("--batch-size", type=int, default=settings.batch_size, help="observations per forward pass")
+    run.add_argument(
+        "--memory-gb",
+        type=float,
+        default=settings.memory_gb,
+        help="activations held at once, in GB; layers share a forward pass while they fit",
+    )
+    run.add_argument(
+        "--min-std",
+        type=float,
+        default=settings.min_std,
+        help="feature columns of a smaller train std are dropped as constant",
+    )
+    run.add_argument("--device", default=settings.device, help="auto (CUDA when available), cpu, cuda, ...")
+    run.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    _recording_arguments(run, defaults)
+
+    rec = sub.add_parser(
+        "record",
+        help="record rollouts of an agent",
+        description="Run an agent in its DeepMind Control pixel env and save observations, the named true-state "
+        "components, actions, rewards and episode ids to a compressed .npz.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    rec.add_argument("checkpoint", help="SB3 zip of the agent (usually a well-performing one)")
+    rec.add_argument("--out", default="rollouts.npz", help="the .npz to write")
+    rec.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    rec.add_argument("--device", default="auto", help="auto, cpu, cuda, ...")
+    rec.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    _recording_arguments(rec, defaults)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """
+    :param argv: the arguments (``sys.argv[1:]`` when ``None``); a first argument that is not a sub-command
+        (nor ``-h``/``--help``) means ``run``
+    :return: the exit status: 0, or 2 for bad input
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    if not argv:
+        parser.print_help(sys.stderr)
+        return 2
+    if argv[0] not in (*SUBCOMMANDS, "-h", "--help"):
+        argv = ["run", *argv]
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "record":
+            record_to_file(
+                args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, not args.no_progress
+            )
+        else:
+            settings = ProbeSettings(
+                layers=args.layers,
+                max_tau=args.max_tau,
+                fractions=tuple(args.split),
+                split_seed=args.split_seed,
+                batch_size=args.batch_size,
+                memory_gb=args.memory_gb,
+                min_std=args.min_std,
+                device=args.device,
+                progress=not args.no_progress,
+            )
+            probe_to_folder(
+                args.checkpoints,
+                args.out,
+                settings,
+                rollouts_path=args.rollouts,
+                record_options=_record_options(args),
+                overwrite=args.overwrite,
+                command=[PROG, *argv],
+            )
+    except ProbeError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,147 @@
+"""Load SB3 checkpoints to probe: DrQv2, and SB3's TD3 (also DDPG's checkpoints) and SAC."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch as th
+from stable_baselines3 import SAC, TD3
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.monitoring import LayerMappingError, layer_taps
+from sb3_collapse.probe.errors import ProbeError
+
+ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
+    "sb3_collapse.drqv2.policies": DrQv2,
+    "stable_baselines3.td3.policies": TD3,  # DDPG saves TD3's policy; its actor loads the same way
+    "stable_baselines3.sac.policies": SAC,
+}
+"""Module of the saved ``policy_class`` -> algorithm class that loads the checkpoint."""
+
+
+@dataclass
+class Checkpoint:
+    """
+    A loaded checkpoint.
+
+    :param path: the zip file
+    :param model: the algorithm, on the requested device, with a 1-transition replay buffer
+    :param algorithm: its class name
+    :param num_timesteps: training progress, in agent steps
+    :param action_repeat: frames per agent step (``model.action_repeat`` for DrQv2, else 1)
+    :param label: its name in the outputs (``None``: the file name without ``.zip``)
+    """
+
+    path: Path
+    model: BaseAlgorithm
+    algorithm: str
+    num_timesteps: int
+    action_repeat: int
+    label: str | None = None
+
+    @property
+    def name(self) -> str:
+        """Its name in the outputs: ``label``, or the file name without ``.zip``."""
+        return self.label or self.path.name.removesuffix(".zip")
+
+    @property
+    def frames(self) -> int:
+        """Training progress in frames: ``num_timesteps x action_repeat``."""
+        return self.num_timesteps * self.action_repeat
+
+    @property
+    def env_config(self) -> dict[str, Any] | None:
+        """The ``make_dmc_env`` settings saved with a DrQv2 checkpoint, else ``None``."""
+        return getattr(self.model, "env_config", None)
+
+
+def read_saved_data(path: str | Path) -> dict[str, Any]:
+    """
+    The ``data`` JSON of an SB3 zip, checked to come from an SB3 model.
+
+    :param path: the file
+    :return: the parsed JSON
+    :raises ProbeError: for a missing file, a file that is not a zip, or a zip without SB3's files
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ProbeError(f"Checkpoint {path} does not exist.")
+    if not zipfile.is_zipfile(path):
+        raise ProbeError(f"{path} is not a zip file; expected an SB3 checkpoint saved with `model.save(...)`.")
+    with zipfile.ZipFile(path) as archive:
+        names = set(archive.namelist())
+        missing = {"data", "policy.pth"} - names
+        if missing:
+            raise ProbeError(f"{path} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
+        try:
+            return json.loads(archive.read("data"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            raise ProbeError(f"{path}: SB3's `data` entry is not valid JSON ({error}).") from error
+
+
+def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgorithm]:
+    """
+    :param data: the ``data`` JSON of an SB3 zip
+    :param path: the file (for messages)
+    :return: the algorithm class that loads it
+    :raises ProbeError: for an algorithm whose actor has no named layers
+    """
+    module = (data.get("policy_class") or {}).get("__module__")
+    if module not in ALGORITHMS:
+        raise ProbeError(
+            f"{path}: cannot probe a model whose policy comes from {module!r}; named layers are defined for "
+            "DrQv2 (sb3_collapse) and SB3's TD3, DDPG and SAC."
+        )
+    return ALGORITHMS[module]
+
+
+def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkpoint:
+    """
+    Load a checkpoint for probing and check that its layers can be named.
+
+    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC
+    :param device: where the networks go
+    :return: the loaded checkpoint
+    :raises ProbeError: for a missing file, a non-zip, a zip that is not an SB3 model, an unknown algorithm,
+        a model that fails to load, or layers that cannot be mapped
+    """
+    path = Path(path)
+    data = read_saved_data(path)
+    algorithm = identify_algorithm(data, path)
+    try:
+        # A 1-transition buffer: loading must not reserve the replay memory of training.
+        model = algorithm.load(path, device=device, buffer_size=1)
+    except Exception as error:
+        raise ProbeError(f"{path}: {algorithm.__name__}.load failed ({type(error).__name__}: {error}).") from error
+    try:
+        layer_taps(model)
+    except LayerMappingError as error:
+        raise ProbeError(f"{path}: {error}") from error
+    action_repeat = int(getattr(model, "action_repeat", 1) or 1)
+    return Checkpoint(path, model, algorithm.__name__, int(model.num_timesteps), action_repeat)
+
+
+def checkpoint_labels(paths: list[str | Path]) -> list[str]:
+    """
+    Names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as it
+    takes to tell them apart (``run1/final_model`` and ``run2/final_model``).
+
+    :raises ProbeError: when the same file is given twice
+    """
+    resolved = [Path(p).resolve() for p in paths]
+    if len(set(resolved)) != len(resolved):
+        raise ProbeError("The same checkpoint is given twice.")
+    depth = 1
+    while True:
+        labels = [
+            "/".join(p.with_suffix("").parts[-depth:]) if p.suffix == ".zip" else "/".join(p.parts[-depth:])
+            for p in resolved
+        ]
+        if len(set(labels)) == len(labels):
+            return labels
+        depth += 1

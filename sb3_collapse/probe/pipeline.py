@@ -1,0 +1,278 @@
+"""The probe's two commands as library functions: record rollouts, and probe checkpoints into an output folder."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from sb3_collapse.probe.checkpoints import (
+    Checkpoint,
+    checkpoint_labels,
+    identify_algorithm,
+    load_checkpoint,
+    read_saved_data,
+)
+from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.probe.omp import resolve_device
+from sb3_collapse.probe.probing import CheckpointProbe, ProbeSettings, probe_checkpoint, split_by_episode
+from sb3_collapse.probe.report import (
+    BY_LAYER_PLOT,
+    CSV_NAME,
+    OVER_TRAINING_PLOT,
+    SUMMARY_NAME,
+    StagedOutput,
+    format_table,
+    group_means,
+    plot_mse_by_layer,
+    plot_mse_over_training,
+    write_csv,
+    write_json,
+)
+from sb3_collapse.probe.rollouts import Rollouts, record_rollouts, resolve_env_config
+
+ROLLOUTS_NAME = "rollouts.npz"
+
+
+@dataclass
+class RecordOptions:
+    """
+    How to record rollouts (``None`` settings come from the checkpoint, else ``make_dmc_env``'s defaults).
+
+    :param env: dm_control task, e.g. ``"walker-walk"``
+    :param episodes: episodes to record
+    :param max_steps: cap on agent steps per episode (``None``: the task's time limit)
+    :param seed: seed of the env and of the action noise
+    :param deterministic: the policy's deterministic action (else its own exploration)
+    :param noise_std: std of Gaussian noise added to the actions
+    :param action_repeat: frames per agent step
+    :param frame_stack: stacked frames per observation
+    :param size: image size in pixels
+    :param camera_id: camera of the renders
+    """
+
+    env: str | None = None
+    episodes: int = 20
+    max_steps: int | None = None
+    seed: int = 0
+    deterministic: bool = True
+    noise_std: float = 0.0
+    action_repeat: int | None = None
+    frame_stack: int | None = None
+    size: int | None = None
+    camera_id: int | None = None
+
+
+def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True) -> Rollouts:
+    """
+    Record rollouts of a checkpoint's agent.
+
+    :param checkpoint: the agent
+    :param options: what to record
+    :param progress: show a progress bar
+    :return: the rollouts
+    """
+    env_config = resolve_env_config(
+        checkpoint.env_config,
+        task_id=options.env,
+        action_repeat=options.action_repeat,
+        frame_stack=options.frame_stack,
+        size=options.size,
+        camera_id=options.camera_id,
+    )
+    return record_rollouts(
+        checkpoint.model,
+        env_config,
+        episodes=options.episodes,
+        seed=options.seed,
+        deterministic=options.deterministic,
+        noise_std=options.noise_std,
+        max_steps=options.max_steps,
+        progress=progress,
+        metadata={"checkpoint": str(checkpoint.path), "checkpoint_num_timesteps": checkpoint.num_timesteps},
+    )
+
+
+def record_to_file(
+    checkpoint_path: str | Path,
+    out: str | Path,
+    options: RecordOptions,
+    overwrite: bool = False,
+    device: str = "auto",
+    progress: bool = True,
+) -> Path:
+    """
+    ``python -m sb3_collapse.probe record``: record rollouts and save them (atomically).
+
+    :param checkpoint_path: the agent's checkpoint
+    :param out: the ``.npz`` to write
+    :param options: what to record
+    :param overwrite: replace an existing file
+    :param device: where the networks run
+    :param progress: show a progress bar
+    :return: the file written
+    :raises ProbeError: for bad input
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise ProbeError(f"{out} exists: pass --overwrite or another --out.")
+    checkpoint = load_checkpoint(checkpoint_path, device=resolve_device(device))
+    rollouts = record(checkpoint, options, progress)
+    path = rollouts.save(out)
+    print(
+        f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {rollouts.env_config['task_id']} to {path}"
+    )
+    return path
+
+
+def check_checkpoint_files(paths: Sequence[str | Path]) -> None:
+    """
+    Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm.
+
+    :raises ProbeError: naming the first bad file
+    """
+    if not paths:
+        raise ProbeError("Give at least one checkpoint (.zip).")
+    for path in paths:
+        identify_algorithm(read_saved_data(path), path)
+
+
+def probe_to_folder(
+    checkpoint_paths: Sequence[str | Path],
+    out: str | Path,
+    settings: ProbeSettings,
+    rollouts_path: str | Path | None = None,
+    record_options: RecordOptions | None = None,
+    overwrite: bool = False,
+    command: Sequence[str] | None = None,
+) -> dict[str, Any]:
+    """
+    ``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and the plots
+    into ``out`` (only when every checkpoint succeeded; see :class:`StagedOutput`).
+
+    Without ``rollouts_path``, rollouts of the first checkpoint are recorded first (``record_options``) and
+    saved to ``<out>/rollouts.npz`` for reuse.
+
+    :param checkpoint_paths: the checkpoints
+    :param out: the output folder
+    :param settings: the probe's settings
+    :param rollouts_path: recorded rollouts, or ``None`` to record them
+    :param record_options: how to record (when ``rollouts_path`` is ``None``)
+    :param overwrite: replace a previous run's outputs in ``out``
+    :param command: the command line, stored in the summary
+    :return: the summary (as written to ``summary.json``)
+    :raises ProbeError: for bad input
+    """
+    started = time.perf_counter()
+    settings.validate()
+    check_checkpoint_files(checkpoint_paths)
+    labels = checkpoint_labels(list(checkpoint_paths))
+    device = resolve_device(settings.device)
+    out = Path(out)
+    with StagedOutput(out, overwrite=overwrite) as staged:
+        if rollouts_path is None:
+            if (out / ROLLOUTS_NAME).exists() and not overwrite:
+                raise ProbeError(f"{out / ROLLOUTS_NAME} exists: reuse it with --rollouts, or pass --overwrite.")
+            first = load_checkpoint(checkpoint_paths[0], device=device)
+            rollouts = record(first, record_options or RecordOptions(), settings.progress)
+            rollouts_path = rollouts.save(out / ROLLOUTS_NAME)
+            print(
+                f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {rollouts_path}", flush=True
+            )
+            del first
+        else:
+            rollouts = Rollouts.load(rollouts_path)
+        split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
+        results: list[CheckpointProbe] = []
+        reuse: dict = {}  # cnn0 (the normalized pixels) is probed once for checkpoints that normalize alike
+        for path, label in zip(checkpoint_paths, labels):
+            checkpoint = load_checkpoint(path, device=device)
+            checkpoint.label = label
+            print(
+                f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)",
+                flush=True,
+            )
+            result = probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
+            result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
+            results.append(result)
+            print(format_table(result.rows), flush=True)
+
+        rows = [row for result in results for row in result.rows]
+        write_csv(rows, staged.path(CSV_NAME))
+        plot_mse_by_layer(rows, staged.path(BY_LAYER_PLOT))
+        over_training = plot_mse_over_training(rows, staged.path(OVER_TRAINING_PLOT))
+        summary = _summary(results, rows, rollouts, rollouts_path, split, settings, over_training, command)
+        summary["total_seconds"] = round(time.perf_counter() - started, 1)
+        write_json(summary, staged.path(SUMMARY_NAME))
+        files = staged.commit()
+    print("Wrote " + ", ".join(str(f) for f in files))
+    return summary
+
+
+def _summary(
+    results: list[CheckpointProbe],
+    rows: list[dict[str, Any]],
+    rollouts: Rollouts,
+    rollouts_path: str | Path,
+    split: Any,
+    settings: ProbeSettings,
+    over_training: bool,
+    command: Sequence[str] | None,
+) -> dict[str, Any]:
+    means = group_means(rows)
+    names, groups, _ = rollouts.targets()
+    files = [CSV_NAME, BY_LAYER_PLOT] + ([OVER_TRAINING_PLOT] if over_training else []) + [SUMMARY_NAME]
+    return {
+        "complete": True,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command": list(command) if command is not None else None,
+        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
+        "method": "OMP per (layer, component) on features standardized with train statistics (constant columns "
+        "dropped) and standardized targets, no intercept; tau = argmin validation MSE over 1..max_tau; "
+        "MSE in standardized units (columns *_mse) and in state units squared (*_mse_raw).",
+        "rollouts": {
+            "path": str(rollouts_path),
+            "samples": len(rollouts),
+            "episodes": rollouts.n_episodes,
+            "observation_shape": list(rollouts.observations.shape[1:]),
+            "env_config": rollouts.env_config,
+            "metadata": rollouts.metadata,
+        },
+        "split": {
+            "n_train": split.n_train,
+            "n_validation": split.n_validation,
+            "n_test": split.n_test,
+            "episodes": split.episodes,
+        },
+        "targets": {"names": names, "groups": groups},
+        "checkpoints": [
+            {
+                "name": r.checkpoint.name,
+                "path": str(r.checkpoint.path),
+                "algorithm": r.checkpoint.algorithm,
+                "num_timesteps": r.checkpoint.num_timesteps,
+                "frames": r.checkpoint.frames,
+                "extract_seconds": round(r.extract_seconds, 2),
+                "layers": {
+                    p.layer: {
+                        "n_features": p.n_features,
+                        "n_features_kept": p.n_features_kept,
+                        "max_tau": p.max_tau,
+                        "fit_seconds": round(p.fit_seconds, 2),
+                        "reused_from_an_earlier_checkpoint": p.reused,
+                        "mean_test_mse": {g: means[(r.checkpoint.name, p.layer, g)] for g in dict.fromkeys(groups)},
+                    }
+                    for p in r.layers
+                },
+            }
+            for r in results
+        ],
+        "mse_over_training": "written"
+        if over_training
+        else "skipped: needs >= 2 checkpoints with distinct training steps",
+        "files": files,
+    }

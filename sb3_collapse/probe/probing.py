@@ -1,0 +1,474 @@
+"""
+Linear probing with a sparsity constraint (Section 4.1 of the paper): how well each layer's activations
+predict each true-state component, by OMP.
+
+For a checkpoint, a layer ``l`` and a scalar state component ``k``:
+
+1. the recorded samples are split by episode into train / validation / test (60/20/20 of the episodes by
+   default; an episode is never split);
+2. the layer's activations ``h`` (flattened) are standardized with the train mean and std; columns constant on
+   the train set (std ``<= min_std``) are dropped; the target is standardized with its train mean and std;
+3. OMP (:func:`sb3_collapse.probe.omp.omp_path`, no intercept since both are centred on the train set) is fitted
+   on train up to ``max_tau`` atoms, which gives the solution for every sparsity ``tau = 1..max_tau``;
+4. ``tau`` is the one of lowest validation MSE (the smallest on ties); the test MSE of that solution is reported,
+   in standardized units (``mean((s - s_hat)^2) / std_train(s)^2``) and in the state's units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch as th
+from tqdm.auto import tqdm
+
+from sb3_collapse.monitoring import collect_activations, layer_taps
+from sb3_collapse.probe.checkpoints import Checkpoint
+from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.probe.omp import omp_path, path_predictions, resolve_device
+from sb3_collapse.probe.rollouts import Rollouts
+
+PROBE_LAYERS = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2")
+"""The layers of Figure 1 of the paper."""
+
+
+@dataclass
+class EpisodeSplit:
+    """
+    Samples split by episode.
+
+    :param order: sample indices, train first, then validation, then test (each in recording order)
+    :param n_train: train samples (``order[:n_train]``)
+    :param n_validation: validation samples (next ``n_validation``)
+    :param n_test: test samples (the rest)
+    :param episodes: ``"train"``, ``"validation"``, ``"test"`` -> sorted episode ids
+    """
+
+    order: np.ndarray
+    n_train: int
+    n_validation: int
+    n_test: int
+    episodes: dict[str, list[int]]
+
+
+def split_by_episode(
+    episode_ids: np.ndarray, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int = 0
+) -> EpisodeSplit:
+    """
+    Shuffle the episodes (with ``seed``) and give ``round(fraction x episodes)`` of them to validation and to
+    test (at least one each), the rest to train.
+
+    :param episode_ids: ``(N,)`` episode of each sample
+    :param fractions: train, validation, test fractions of the episodes (summing to 1)
+    :param seed: seed of the shuffle
+    :return: the split
+    :raises ProbeError: with fewer than 3 episodes, or fractions that leave a set empty
+    """
+    if len(fractions) != 3 or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
+        raise ProbeError(
+            f"--split must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}."
+        )
+    episodes = np.unique(episode_ids)
+    if len(episodes) < 3:
+        raise ProbeError(
+            f"Probing needs at least 3 episodes (train, validation, test), the rollouts have {len(episodes)}."
+        )
+    shuffled = np.random.default_rng(seed).permutation(episodes)
+    n_val = max(1, round(fractions[1] * len(episodes)))
+    n_test = max(1, round(fractions[2] * len(episodes)))
+    n_train = len(episodes) - n_val - n_test
+    if n_train < 1:
+        raise ProbeError(f"The split {list(fractions)} of {len(episodes)} episodes leaves none for training.")
+    sets = {
+        "train": np.sort(shuffled[:n_train]),
+        "validation": np.sort(shuffled[n_train : n_train + n_val]),
+        "test": np.sort(shuffled[n_train + n_val :]),
+    }
+    parts = [np.flatnonzero(np.isin(episode_ids, ids)) for ids in sets.values()]
+    return EpisodeSplit(
+        order=np.concatenate(parts),
+        n_train=len(parts[0]),
+        n_validation=len(parts[1]),
+        n_test=len(parts[2]),
+        episodes={name: ids.tolist() for name, ids in sets.items()},
+    )
+
+
+def standardize_features_(
+    features: th.Tensor, n_train: int, min_std: float = 1e-6, chunk_rows: int = 256
+) -> tuple[th.Tensor, th.Tensor]:
+    """
+    Standardize the columns with the mean and std of the first ``n_train`` rows and drop the columns whose
+    train std is ``<= min_std``, in place: the result is a view of ``features``' memory, which is overwritten.
+
+    :param features: ``(N, d)`` contiguous float tensor, train rows first
+    :param n_train: rows that give the statistics
+    :param min_std: columns of a smaller train std are constant and dropped
+    :param chunk_rows: rows processed at once (bounds the temporary memory)
+    :return: the ``(N, d_kept)`` standardized features and the ``(d,)`` bool mask of the kept columns
+    """
+    if not features.is_contiguous():
+        raise ValueError("standardize_features_ needs a contiguous tensor.")
+    n, d = features.shape
+    total = th.zeros(d, dtype=th.float64, device=features.device)
+    for start in range(0, n_train, chunk_rows):
+        total += features[start : min(start + chunk_rows, n_train)].sum(0, dtype=th.float64)
+    mean = total / n_train
+    squares = th.zeros_like(total)
+    for start in range(0, n_train, chunk_rows):
+        squares += ((features[start : min(start + chunk_rows, n_train)].to(th.float64) - mean) ** 2).sum(0)
+    std = (squares / n_train).sqrt()
+    keep = std > min_std
+    columns = th.nonzero(keep).flatten()
+    kept = len(columns)
+    mean32, std32 = mean[columns].to(features.dtype), std[columns].to(features.dtype)
+    flat = features.view(-1)
+    # Row block [start, stop) is written to flat[start * kept : stop * kept], which ends before the next
+    # block's first unread value (at stop * d >= stop * kept): compaction in place is safe.
+    for start in range(0, n, chunk_rows):
+        stop = min(start + chunk_rows, n)
+        block = (features[start:stop].index_select(1, columns) - mean32) / std32
+        flat[start * kept : stop * kept] = block.reshape(-1)
+    return flat[: n * kept].view(n, kept), keep
+
+
+def standardize_targets(targets: np.ndarray, n_train: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    :param targets: ``(N, K)`` state components, train rows first
+    :param n_train: rows that give the statistics
+    :return: ``(targets - mean) / scale`` (float64), the train ``mean`` and the ``scale``: the train std, or 1
+        for a target constant on the train set (which is then only centred)
+    """
+    train = targets[:n_train].astype(np.float64)
+    mean, std = train.mean(0), train.std(0)
+    scale = np.where(std > 0, std, 1.0)
+    return (targets.astype(np.float64) - mean) / scale, mean, scale
+
+
+def layer_dimensions(model: object, observation: np.ndarray, layers: Sequence[str]) -> dict[str, int]:
+    """
+    :param model: the checkpoint's algorithm
+    :param observation: one observation, ``(1, *obs_shape)``
+    :param layers: layer names
+    :return: name -> flattened activation size
+    """
+    activations = collect_activations(model, observation, layers=layers, batch_size=1)
+    return {name: int(np.prod(value.shape[1:])) for name, value in activations.items()}
+
+
+def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float) -> list[list[str]]:
+    """
+    Group layers into forward passes over the rollouts so that the float32 activations of a pass take at most
+    ``memory_bytes`` (first fit, largest layer first; a layer larger than the budget gets a pass of its own).
+
+    :param dimensions: name -> flattened activation size
+    :param n_samples: observations per pass
+    :param memory_bytes: budget of activations held at once
+    :return: the passes, each a list of layer names in the order of ``dimensions``, ordered by their first layer
+    """
+    order = list(dimensions)
+    passes: list[list[str]] = []
+    used: list[float] = []
+    for name in sorted(order, key=lambda layer: -dimensions[layer]):
+        size = 4.0 * dimensions[name] * n_samples
+        fits = [i for i, total in enumerate(used) if total + size <= memory_bytes]
+        if fits:
+            passes[fits[0]].append(name)
+            used[fits[0]] += size
+        else:
+            passes.append([name])
+            used.append(size)
+    passes = [sorted(layers, key=order.index) for layers in passes]
+    return sorted(passes, key=lambda layers: order.index(layers[0]))
+
+
+def extract_activations(
+    model: object,
+    observations: np.ndarray,
+    order: np.ndarray,
+    layers: Sequence[str],
+    dimensions: dict[str, int],
+    batch_size: int = 256,
+    device: th.device | str = "cpu",
+    progress: bool = True,
+) -> dict[str, th.Tensor]:
+    """
+    The flattened activations of ``observations[order]``, written batch by batch into preallocated tensors
+    (through :func:`sb3_collapse.monitoring.collect_activations`).
+
+    :param model: the algorithm
+    :param observations: ``(N, *obs_shape)``
+    :param order: the sample indices, in the order of the returned rows
+    :param layers: names to extract
+    :param dimensions: name -> flattened size (:func:`layer_dimensions`)
+    :param batch_size: observations per forward pass
+    :param device: where the activations are stored
+    :param progress: show a progress bar
+    :return: name -> ``(len(order), dimension)`` float32
+    """
+    out = {name: th.empty(len(order), dimensions[name], dtype=th.float32, device=device) for name in layers}
+    starts = range(0, len(order), batch_size)
+    for start in tqdm(starts, desc=f"extracting {'+'.join(layers)}", disable=not progress, leave=False):
+        batch = observations[order[start : start + batch_size]]
+        activations = collect_activations(model, batch, layers=layers, batch_size=batch_size, device=device)
+        for name, value in activations.items():
+            out[name][start : start + len(batch)] = value.reshape(len(batch), -1)
+    return out
+
+
+@dataclass
+class LayerProbe:
+    """
+    OMP probe of one layer for every target (standardized units).
+
+    :param layer: the layer name
+    :param n_features: flattened activation size
+    :param n_features_kept: columns not constant on the train set
+    :param max_tau: the largest sparsity fitted (``min(max_tau, n_features_kept)``; 0 without features)
+    :param tau: ``(K,)`` sparsity chosen on the validation set
+    :param n_active: ``(K,)`` atoms OMP selected before an early stop (``max_tau`` without one)
+    :param validation_curve: ``(K, max_tau)`` validation MSE of every sparsity ``1..max_tau``
+    :param validation_mse: ``(K,)`` validation MSE at ``tau``
+    :param test_mse: ``(K,)`` test MSE at ``tau``
+    :param fit_seconds: wall time of standardization, OMP and evaluation
+    :param reused: copied from an earlier checkpoint with identical activations (``cnn0``)
+    """
+
+    layer: str
+    n_features: int
+    n_features_kept: int
+    max_tau: int
+    tau: np.ndarray
+    n_active: np.ndarray
+    validation_curve: np.ndarray
+    validation_mse: np.ndarray
+    test_mse: np.ndarray
+    fit_seconds: float = 0.0
+    reused: bool = False
+
+
+def probe_layer(
+    layer: str,
+    features: th.Tensor,
+    targets: np.ndarray,
+    split: EpisodeSplit,
+    max_tau: int = 64,
+    min_std: float = 1e-6,
+    progress: bool = False,
+) -> LayerProbe:
+    """
+    Probe one layer (steps 2 to 4 of the module docstring). ``features`` is standardized in place.
+
+    :param layer: its name (for the result and the progress bar)
+    :param features: ``(N, d)`` float32 activations, rows in ``split.order``
+    :param targets: ``(N, K)`` standardized targets, rows in ``split.order``
+    :param split: the split
+    :param max_tau: the largest sparsity
+    :param min_std: train std at or below which a feature column is dropped
+    :param progress: show a progress bar over the OMP iterations
+    :return: the probe
+    """
+    start_time = time.perf_counter()
+    n_features = features.shape[1]
+    features, _ = standardize_features_(features, split.n_train, min_std=min_std)
+    n_kept, k = features.shape[1], targets.shape[1]
+    n_train, n_val = split.n_train, split.n_validation
+    Y = th.as_tensor(targets, dtype=th.float64, device=features.device)
+    y_val, y_test = Y[n_train : n_train + n_val], Y[n_train + n_val :]
+    tau_max = min(max_tau, n_kept)
+    if tau_max == 0:  # nothing varies: the prediction is the train mean, 0 in standardized units
+        val_mse = (y_val**2).mean(0).cpu().numpy()
+        test_mse = (y_test**2).mean(0).cpu().numpy()
+        zeros = np.zeros(k, dtype=np.int64)
+        return LayerProbe(
+            layer, n_features, 0, 0, zeros, zeros, np.empty((k, 0)), val_mse, test_mse, time.perf_counter() - start_time
+        )
+    path = omp_path(features[:n_train], Y[:n_train], tau_max, progress=progress, desc=f"fitting {layer}")
+    val_pred = path_predictions(features[n_train : n_train + n_val], path)  # (n_val, K, tau_max)
+    curve = ((val_pred - y_val[:, :, None]) ** 2).mean(0)  # (K, tau_max)
+    best = curve.argmin(1)  # first minimum: the smallest tau on ties
+    rows = th.arange(k, device=curve.device)
+    test_pred = path_predictions(features[n_train + n_val :], path)[:, rows, best]
+    return LayerProbe(
+        layer=layer,
+        n_features=n_features,
+        n_features_kept=n_kept,
+        max_tau=tau_max,
+        tau=(best + 1).cpu().numpy(),
+        n_active=path.n_active.cpu().numpy(),
+        validation_curve=curve.cpu().numpy(),
+        validation_mse=curve[rows, best].cpu().numpy(),
+        test_mse=((test_pred - y_test) ** 2).mean(0).cpu().numpy(),
+        fit_seconds=time.perf_counter() - start_time,
+    )
+
+
+@dataclass
+class ProbeSettings:
+    """
+    :param layers: layers to probe (``None``: those of :data:`PROBE_LAYERS` the model has)
+    :param max_tau: largest sparsity; every ``tau`` in ``1..max_tau`` is validated
+    :param fractions: train, validation, test fractions of the episodes
+    :param split_seed: seed of the episode shuffle
+    :param batch_size: observations per forward pass
+    :param memory_gb: activations held at once, in GB (layers share a forward pass while they fit)
+    :param min_std: train std at or below which a feature column is dropped
+    :param device: ``"auto"`` (CUDA when available), ``"cpu"``, ``"cuda"``...: networks and OMP
+    :param progress: progress bars
+    """
+
+    layers: Sequence[str] | None = None
+    max_tau: int = 64
+    fractions: Sequence[float] = (0.6, 0.2, 0.2)
+    split_seed: int = 0
+    batch_size: int = 256
+    memory_gb: float = 4.0
+    min_std: float = 1e-6
+    device: str = "auto"
+    progress: bool = True
+
+    def validate(self) -> None:
+        """:raises ProbeError: naming the bad setting"""
+        if self.max_tau < 1:
+            raise ProbeError(f"--max-tau must be >= 1, got {self.max_tau}.")
+        if self.batch_size < 1:
+            raise ProbeError(f"--batch-size must be >= 1, got {self.batch_size}.")
+        if self.memory_gb <= 0:
+            raise ProbeError(f"--memory-gb must be > 0, got {self.memory_gb}.")
+
+
+@dataclass
+class CheckpointProbe:
+    """
+    Results of one checkpoint.
+
+    :param checkpoint: the checkpoint
+    :param layers: one :class:`LayerProbe` per layer
+    :param rows: one dict per (layer, target), the rows of ``probe.csv``
+    :param extract_seconds: wall time of the forward passes
+    """
+
+    checkpoint: Checkpoint
+    layers: list[LayerProbe] = field(default_factory=list)
+    rows: list[dict] = field(default_factory=list)
+    extract_seconds: float = 0.0
+
+
+def select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[str]:
+    """
+    :param checkpoint: the checkpoint
+    :param layers: requested names, ``None`` for the paper's layers the model has
+    :return: the names, in the model's order
+    :raises ProbeError: for a requested name the model lacks
+    """
+    available = list(layer_taps(checkpoint.model))
+    if layers is None:
+        names = [name for name in available if name in PROBE_LAYERS]
+        if not names:
+            raise ProbeError(f"{checkpoint.path}: none of the layers {list(PROBE_LAYERS)}; it has {available}.")
+        return names
+    missing = [name for name in layers if name not in available]
+    if missing:
+        raise ProbeError(f"{checkpoint.path}: no layer(s) {missing}; this {checkpoint.algorithm} has {available}.")
+    return [name for name in available if name in layers]
+
+
+def _pixel_layer_key(model: object, observations: np.ndarray) -> str:
+    """A fingerprint of ``cnn0`` (the normalized pixels): its exact values on a few observations."""
+    pixels = collect_activations(model, observations, layers=["cnn0"])["cnn0"]
+    return hashlib.sha1(pixels.cpu().numpy().tobytes()).hexdigest()
+
+
+def probe_checkpoint(
+    checkpoint: Checkpoint,
+    rollouts: Rollouts,
+    split: EpisodeSplit,
+    settings: ProbeSettings,
+    reuse: dict[str, LayerProbe] | None = None,
+) -> CheckpointProbe:
+    """
+    Probe every layer of a checkpoint for every state component of the rollouts.
+
+    :param checkpoint: the loaded checkpoint (on ``settings.device``)
+    :param rollouts: the recorded observations and states
+    :param split: the episode split of the rollouts
+    :param settings: the probe's settings
+    :param reuse: probes of ``cnn0`` from earlier checkpoints on the same rollouts and split, keyed by the exact
+        values of ``cnn0`` on the first 16 samples (updated here). ``cnn0`` is the normalized image, the same for
+        every checkpoint that normalizes pixels the same way (all DrQv2 checkpoints): its probe is then reused
+        instead of extracted and fitted again. ``None``: no reuse
+    :return: the results; ``rows`` holds, per (layer, target): ``checkpoint``, ``algorithm``,
+        ``num_timesteps`` (agent steps), ``frames``, ``layer``, ``component``, ``group``, ``tau``, ``max_tau``,
+        ``validation_mse``, ``test_mse`` (standardized), ``validation_mse_raw``, ``test_mse_raw`` (state units
+        squared), ``target_std``, ``n_train``, ``n_validation``, ``n_test``, ``n_features``, ``n_features_kept``
+    :raises ProbeError: when the rollouts' observations do not fit the model
+    """
+    model = checkpoint.model
+    model_shape = tuple(model.observation_space.shape or ())
+    if tuple(rollouts.observations.shape[1:]) != model_shape:
+        raise ProbeError(
+            f"{checkpoint.path} takes observations of shape {model_shape}, the rollouts hold "
+            f"{tuple(rollouts.observations.shape[1:])}: record rollouts with this model's env settings "
+            "(size, frame stack)."
+        )
+    layers = select_layers(checkpoint, settings.layers)
+    names, groups, raw_targets = rollouts.targets()
+    targets, _, target_scale = standardize_targets(raw_targets[split.order], split.n_train)
+    train_std = raw_targets[split.order[: split.n_train]].std(0, dtype=np.float64)
+    device = resolve_device(settings.device)
+    dims = layer_dimensions(model, rollouts.observations[:1], layers)
+    result = CheckpointProbe(checkpoint)
+    probes: dict[str, LayerProbe] = {}
+    pixel_key = None
+    if reuse is not None and "cnn0" in layers:
+        pixel_key = _pixel_layer_key(model, rollouts.observations[split.order[:16]])
+        if pixel_key in reuse:
+            probes["cnn0"] = dataclasses.replace(reuse[pixel_key], fit_seconds=0.0, reused=True)
+    wanted = {name: dim for name, dim in dims.items() if name not in probes}
+    for layer_pass in plan_passes(wanted, len(split.order), settings.memory_gb * 1e9):
+        start = time.perf_counter()
+        activations = extract_activations(
+            model, rollouts.observations, split.order, layer_pass, dims, settings.batch_size, device, settings.progress
+        )
+        result.extract_seconds += time.perf_counter() - start
+        for layer in layer_pass:
+            features = activations.pop(layer)
+            probes[layer] = probe_layer(
+                layer, features, targets, split, settings.max_tau, settings.min_std, settings.progress
+            )
+            del features
+    if pixel_key is not None:
+        reuse.setdefault(pixel_key, probes["cnn0"])
+    for layer in layers:
+        probe = probes[layer]
+        result.layers.append(probe)
+        for j, (name, group) in enumerate(zip(names, groups)):
+            scale = float(target_scale[j]) ** 2
+            result.rows.append(
+                {
+                    "checkpoint": checkpoint.name,
+                    "algorithm": checkpoint.algorithm,
+                    "num_timesteps": checkpoint.num_timesteps,
+                    "frames": checkpoint.frames,
+                    "layer": layer,
+                    "component": name,
+                    "group": group,
+                    "tau": int(probe.tau[j]),
+                    "max_tau": probe.max_tau,
+                    "validation_mse": float(probe.validation_mse[j]),
+                    "test_mse": float(probe.test_mse[j]),
+                    "validation_mse_raw": float(probe.validation_mse[j]) * scale,
+                    "test_mse_raw": float(probe.test_mse[j]) * scale,
+                    "target_std": float(train_std[j]),
+                    "n_train": split.n_train,
+                    "n_validation": split.n_validation,
+                    "n_test": split.n_test,
+                    "n_features": probe.n_features,
+                    "n_features_kept": probe.n_features_kept,
+                }
+            )
+    return result

@@ -1,0 +1,291 @@
+"""
+Rollouts for probing: observations of an agent in a DeepMind Control pixel env, with the true state behind each.
+
+A :class:`Rollouts` holds, for every recorded agent step ``t`` of every episode: the observation the agent acted
+on, the named true-state components at the time that observation was rendered (``DMCEnv.get_state``), the
+action taken, the reward it received, the episode id and the step index. The final observation of an episode
+(on which no action is taken) is not recorded. Files are compressed ``.npz`` (no pickles) that also store the
+environment settings, so a file recorded from one agent can probe many checkpoints.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.base_class import BaseAlgorithm
+from tqdm.auto import tqdm
+
+from sb3_collapse.envs import make_dmc_env
+from sb3_collapse.probe.errors import ProbeError
+
+FORMAT_VERSION = 1
+ENV_SETTINGS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id")
+"""``make_dmc_env`` settings stored with the rollouts (``obs_type`` is always ``"pixels"``)."""
+
+
+@dataclass
+class Rollouts:
+    """
+    Recorded agent steps, ``N`` in all.
+
+    :param observations: ``(N, *obs_shape)`` observations as the env gives them (``uint8`` ``(N, 9, 84, 84)``)
+    :param states: true-state component name -> ``(N, size)`` float32, in dm_control's order (walker:
+        ``orientations`` (14), ``height`` (1), ``velocity`` (9))
+    :param actions: ``(N, action_dim)`` float32 actions taken, in [-1, 1]
+    :param rewards: ``(N,)`` float32 reward received for each action (summed over the action repeat)
+    :param episode_ids: ``(N,)`` int64 episode of each step, ``0..episodes - 1``
+    :param steps: ``(N,)`` int64 agent step of each observation within its episode (0: the reset observation)
+    :param env_config: ``make_dmc_env`` settings: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``,
+        ``camera_id``
+    :param metadata: how they were recorded (``checkpoint``, ``deterministic``, ``noise_std``, ``seed``, ...)
+    """
+
+    observations: np.ndarray
+    states: dict[str, np.ndarray]
+    actions: np.ndarray
+    rewards: np.ndarray
+    episode_ids: np.ndarray
+    steps: np.ndarray
+    env_config: dict[str, Any]
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n = len(self.observations)
+        arrays = {
+            "actions": self.actions,
+            "rewards": self.rewards,
+            "episode_ids": self.episode_ids,
+            "steps": self.steps,
+        }
+        arrays.update({f"state {name!r}": value for name, value in self.states.items()})
+        wrong = {name: len(value) for name, value in arrays.items() if len(value) != n}
+        if wrong:
+            raise ProbeError(f"Rollouts arrays must all have {n} rows (one per observation); got {wrong}.")
+
+    def __len__(self) -> int:
+        return len(self.observations)
+
+    @property
+    def n_episodes(self) -> int:
+        """Number of distinct episodes."""
+        return len(np.unique(self.episode_ids))
+
+    def targets(self) -> tuple[list[str], list[str], np.ndarray]:
+        """
+        The scalar probing targets: one per dimension of each state component.
+
+        :return: ``names`` (``"orientations_0"``.. for a multi-dimensional component, the component's own name
+            for a 1-d one such as ``"height"``), ``groups`` (the component of each target) and the ``(N, K)``
+            float32 matrix of their values
+        """
+        names, groups, columns = [], [], []
+        for component, values in self.states.items():
+            values = values.reshape(len(values), -1)
+            for i in range(values.shape[1]):
+                names.append(component if values.shape[1] == 1 else f"{component}_{i}")
+                groups.append(component)
+                columns.append(values[:, i])
+        if not columns:
+            raise ProbeError("The rollouts hold no state components to probe.")
+        return names, groups, np.stack(columns, axis=1).astype(np.float32)
+
+    def save(self, path: str | Path) -> Path:
+        """
+        Write a compressed ``.npz`` atomically (to ``<path>.partial``, renamed when complete).
+
+        :param path: the file
+        :return: the path written
+        """
+        path = Path(path)
+        partial = path.with_name(path.name + ".partial")
+        meta = {
+            "format_version": FORMAT_VERSION,
+            "env_config": self.env_config,
+            "metadata": self.metadata,
+            "state_components": list(self.states),
+        }
+        arrays = {
+            "observations": self.observations,
+            "actions": self.actions,
+            "rewards": self.rewards,
+            "episode_ids": self.episode_ids,
+            "steps": self.steps,
+            "meta": np.array(json.dumps(meta)),
+        }
+        arrays.update({f"state/{name}": value for name, value in self.states.items()})
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            with partial.open("wb") as file:
+                np.savez_compressed(file, **arrays)
+            os.replace(partial, path)
+        finally:
+            partial.unlink(missing_ok=True)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Rollouts:
+        """
+        :param path: a file written by :meth:`save`
+        :return: the rollouts
+        :raises ProbeError: for a missing file or one that is not a rollouts file
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise ProbeError(
+                f"Rollouts file {path} does not exist; record one with `python -m sb3_collapse.probe record`."
+            )
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                meta = json.loads(str(data["meta"]))
+                states = {name: data[f"state/{name}"] for name in meta["state_components"]}
+                arrays = {key: data[key] for key in ("observations", "actions", "rewards", "episode_ids", "steps")}
+        except (OSError, ValueError, KeyError, json.JSONDecodeError) as error:
+            raise ProbeError(
+                f"{path} is not a rollouts file of sb3_collapse.probe ({type(error).__name__}: {error}); "
+                "record one with `python -m sb3_collapse.probe record`."
+            ) from error
+        return cls(states=states, env_config=meta["env_config"], metadata=meta.get("metadata", {}), **arrays)
+
+
+def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any) -> dict[str, Any]:
+    """
+    The env settings for recording: those given (not ``None``), else the checkpoint's, else ``make_dmc_env``'s
+    defaults (action repeat 2, 3 stacked frames, 84 pixels, the domain's default camera).
+
+    :param model_env_config: ``model.env_config`` of a DrQv2 checkpoint, or ``None``
+    :param overrides: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``, ``camera_id``
+    :return: a complete settings dict
+    :raises ProbeError: when no task is known
+    """
+    defaults = {"task_id": None, "action_repeat": 2, "frame_stack": 3, "size": 84, "camera_id": None}
+    saved = {key: value for key, value in (model_env_config or {}).items() if key in defaults and value is not None}
+    given = {key: value for key, value in overrides.items() if value is not None}
+    unknown = set(given) - set(defaults)
+    if unknown:
+        raise ValueError(f"Unknown env settings {sorted(unknown)}; expected {list(defaults)}.")
+    config = {**defaults, **saved, **given}
+    if config["task_id"] is None:
+        raise ProbeError(
+            "The checkpoint does not say which environment it was trained on: pass --env, e.g. walker-walk."
+        )
+    if (model_env_config or {}).get("obs_type") not in (None, "pixels"):
+        raise ProbeError(
+            f"The checkpoint was trained on {model_env_config['obs_type']!r} observations; probing needs pixels."
+        )
+    return config
+
+
+def episode_length(env: Any, max_steps: int | None) -> int | None:
+    """Agent steps per episode of a ``DMCEnv`` (its time limit), at most ``max_steps``; ``None`` if unknown."""
+    limit = getattr(getattr(getattr(env, "_dmc", None), "_env", None), "_step_limit", None)
+    steps = None if limit is None or not math.isfinite(limit) else math.ceil(limit / env.action_repeat)
+    if max_steps is not None:
+        steps = max_steps if steps is None else min(steps, max_steps)
+    return steps
+
+
+def record_rollouts(
+    model: BaseAlgorithm,
+    env_config: dict[str, Any],
+    episodes: int,
+    seed: int = 0,
+    deterministic: bool = True,
+    noise_std: float = 0.0,
+    max_steps: int | None = None,
+    progress: bool = True,
+    metadata: dict[str, Any] | None = None,
+) -> Rollouts:
+    """
+    Run an agent in a DeepMind Control pixel env and record what probing needs.
+
+    Actions are ``model.predict(obs, deterministic)``, plus Gaussian noise of std ``noise_std`` when > 0,
+    clipped to [-1, 1].
+
+    :param model: the agent (its observation space must be the env's)
+    :param env_config: ``make_dmc_env`` settings (see :func:`resolve_env_config`)
+    :param episodes: episodes to record
+    :param seed: seed of the env's initial states and of the action noise
+    :param deterministic: the policy's deterministic action (else the model's own exploration)
+    :param noise_std: std of the Gaussian noise added to each action (in action units, [-1, 1])
+    :param max_steps: cap on agent steps per episode (``None``: the task's time limit, e.g. 500 agent steps
+        for walker at action repeat 2)
+    :param progress: show a progress bar over agent steps
+    :param metadata: extra entries of :attr:`Rollouts.metadata`
+    :return: the rollouts
+    :raises ProbeError: when the env's observations do not fit the model
+    """
+    if episodes < 1:
+        raise ProbeError(f"--episodes must be >= 1, got {episodes}.")
+    if max_steps is not None and max_steps < 1:
+        raise ProbeError(f"--max-steps must be >= 1 agent step, got {max_steps}.")
+    if noise_std < 0:
+        raise ProbeError(f"--noise-std must be >= 0, got {noise_std}.")
+    try:
+        env = make_dmc_env(
+            env_config["task_id"], seed=seed, obs_type="pixels", **{k: env_config[k] for k in ENV_SETTINGS[1:]}
+        )
+    except ValueError as error:
+        raise ProbeError(str(error)) from error
+    model_shape = tuple(model.observation_space.shape or ())
+    if env.observation_space.shape != model_shape:
+        env.close()
+        raise ProbeError(
+            f"The env gives observations of shape {env.observation_space.shape} but the model takes {model_shape}: "
+            "pass the --size / --frame-stack the model was trained with."
+        )
+    rng = np.random.default_rng(seed)
+    observations, actions, rewards, episode_ids, steps = [], [], [], [], []
+    states: dict[str, list[np.ndarray]] = {name: [] for name in env.state_shapes}
+    per_episode = episode_length(env, max_steps)
+    bar = tqdm(
+        total=None if per_episode is None else episodes * per_episode,
+        desc="recording",
+        unit="step",
+        disable=not progress,
+    )
+    try:
+        for episode in range(episodes):
+            obs, _ = env.reset(seed=seed if episode == 0 else None)
+            step, done = 0, False
+            while not done and (max_steps is None or step < max_steps):
+                action, _ = model.predict(obs, deterministic=deterministic)
+                action = np.asarray(action, dtype=np.float32).reshape(env.action_space.shape)
+                if noise_std > 0:
+                    action = np.clip(action + rng.normal(0.0, noise_std, action.shape), -1.0, 1.0).astype(np.float32)
+                observations.append(obs)
+                for name, value in env.get_state().items():
+                    states[name].append(value)
+                obs, reward, terminated, truncated, _ = env.step(action)
+                actions.append(action)
+                rewards.append(reward)
+                episode_ids.append(episode)
+                steps.append(step)
+                step += 1
+                done = terminated or truncated
+                bar.update(1)
+    finally:
+        bar.close()
+        env.close()
+    return Rollouts(
+        observations=np.stack(observations),
+        states={name: np.stack(values).astype(np.float32) for name, values in states.items()},
+        actions=np.stack(actions).astype(np.float32),
+        rewards=np.asarray(rewards, dtype=np.float32),
+        episode_ids=np.asarray(episode_ids, dtype=np.int64),
+        steps=np.asarray(steps, dtype=np.int64),
+        env_config={key: env_config[key] for key in ENV_SETTINGS},
+        metadata={
+            "seed": seed,
+            "episodes": episodes,
+            "deterministic": deterministic,
+            "noise_std": noise_std,
+            "max_steps": max_steps,
+            **(metadata or {}),
+        },
+    )

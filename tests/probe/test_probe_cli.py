@@ -1,0 +1,172 @@
+import csv
+import json
+import subprocess
+import sys
+import zipfile
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3 import PPO, SAC
+
+from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.probe import ProbeSettings, Rollouts, load_checkpoint, probe_checkpoint, split_by_episode
+from sb3_collapse.probe.__main__ import main
+from sb3_collapse.probe.report import OUTPUT_FILES
+
+FAST = ["--max-tau", "4", "--no-progress"]
+
+
+def save_drqv2(path, size=32, num_timesteps=0):
+    env = make_dmc_env("walker-walk", seed=0, action_repeat=8, size=size)
+    model = DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs={"hidden_dim": 32}, seed=0, device="cpu")
+    model.num_timesteps = num_timesteps  # as if trained that long
+    model.save(path)
+    env.close()
+    return path
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("probe")
+    early = save_drqv2(folder / "ckpt_100.zip", num_timesteps=100)
+    late = save_drqv2(folder / "ckpt_200.zip", num_timesteps=200)
+    rollouts = folder / "walker.npz"
+    argv = ["record", str(early), "--episodes", "5", "--max-steps", "4", "--out", str(rollouts), "--no-progress"]
+    assert main(argv) == 0
+    return {"folder": folder, "early": early, "late": late, "rollouts": rollouts}
+
+
+def assert_no_outputs(out):
+    """A failed run leaves neither outputs nor its staging folder (nor the output folder it created)."""
+    assert not out.exists(), sorted(p.name for p in out.rglob("*"))
+
+
+def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
+    out = tmp_path / "probe"
+    argv = [str(files["late"]), str(files["early"]), "--rollouts", str(files["rollouts"]), "--out", str(out), *FAST]
+    assert main(argv) == 0  # no sub-command word: `run`
+    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES)
+    rows = list(csv.DictReader((out / "probe.csv").open()))
+    assert len(rows) == 2 * 8 * 24  # checkpoints x layers x components
+    assert {
+        "checkpoint",
+        "layer",
+        "component",
+        "tau",
+        "validation_mse",
+        "test_mse",
+        "test_mse_raw",
+        "n_train",
+        "n_validation",
+        "n_test",
+    } <= set(rows[0])
+    assert [r["layer"] for r in rows[::24][:8]] == ["cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2"]
+    assert {r["checkpoint"] for r in rows} == {"ckpt_100", "ckpt_200"}
+    assert all(1 <= int(r["tau"]) <= 4 for r in rows)
+    assert (int(rows[0]["n_train"]), int(rows[0]["n_validation"]), int(rows[0]["n_test"])) == (12, 4, 4)
+    row = rows[30]
+    np.testing.assert_allclose(
+        float(row["test_mse_raw"]), float(row["test_mse"]) * float(row["target_std"]) ** 2, rtol=1e-6
+    )
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] and summary["mse_over_training"] == "written"
+    assert [c["num_timesteps"] for c in summary["checkpoints"]] == [200, 100]
+    assert summary["checkpoints"][0]["frames"] == 1600  # 200 agent steps x action repeat 8
+    reused = [c["layers"]["cnn0"]["reused_from_an_earlier_checkpoint"] for c in summary["checkpoints"]]
+    assert reused == [False, True]
+    cnn0 = [
+        [r["test_mse"] for r in rows if r["layer"] == "cnn0" and r["checkpoint"] == c] for c in ("ckpt_200", "ckpt_100")
+    ]
+    assert cnn0[0] == cnn0[1]
+    assert set(summary["checkpoints"][0]["layers"]["cnn4"]["mean_test_mse"]) == {"orientations", "height", "velocity"}
+    # The previous outputs are kept unless --overwrite.
+    assert main(argv) == 2
+    assert main([*argv, "--overwrite", "--layers", "mlp0", "cnn4"]) == 0
+    assert len(list(csv.DictReader((out / "probe.csv").open()))) == 2 * 2 * 24
+
+
+def test_default_form_records_rollouts_first(files, tmp_path):
+    out = tmp_path / "single"
+    assert (
+        main(
+            [
+                str(files["early"]),
+                "--episodes",
+                "3",
+                "--max-steps",
+                "3",
+                "--layers",
+                "cnn4",
+                "mlp2",
+                "--out",
+                str(out),
+                *FAST,
+            ]
+        )
+        == 0
+    )
+    assert sorted(p.name for p in out.iterdir()) == ["mse_by_layer.png", "probe.csv", "rollouts.npz", "summary.json"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["rollouts"]["samples"] == 9 and summary["rollouts"]["env_config"]["size"] == 32
+    assert summary["mse_over_training"].startswith("skipped")
+
+
+def test_bad_inputs_exit_with_a_message_and_no_outputs(files, tmp_path, capsys):
+    folder, out = files["folder"], tmp_path / "out"
+    (folder / "notes.txt").write_text("hello")
+    with zipfile.ZipFile(folder / "other.zip", "w") as archive:
+        archive.writestr("readme.txt", "not a model")
+    PPO("MlpPolicy", RandomObservationEnv(gym.spaces.Box(-1, 1, (3,), np.float32)), n_steps=8, batch_size=8).save(
+        folder / "ppo.zip"
+    )
+    bigger = save_drqv2(folder / "size40.zip", size=40)
+    SAC("MlpPolicy", RandomObservationEnv(gym.spaces.Box(-1, 1, (3,), np.float32)), buffer_size=10, use_sde=True).save(
+        folder / "sac_sde.zip"
+    )
+    cases = {
+        "does not exist": [str(folder / "missing.zip")],
+        "not a zip": [str(folder / "notes.txt")],
+        "not an SB3 model": [str(folder / "other.zip")],
+        "cannot probe a model whose policy comes from 'stable_baselines3.common.policies'": [str(folder / "ppo.zip")],
+        "SAC with gSDE": [str(folder / "sac_sde.zip")],  # its layers cannot be mapped
+        # the first checkpoint is probed, the second does not fit the rollouts: nothing is written
+        "takes observations of shape (9, 40, 40)": [str(files["early"]), str(bigger)],
+        "not a rollouts file": [str(files["early"]), "--rollouts", str(folder / "notes.txt")],
+        "--max-tau must be >= 1": [str(files["early"]), "--max-tau", "0"],
+    }
+    for message, args in cases.items():
+        rollouts = [] if "--rollouts" in args else ["--rollouts", str(files["rollouts"])]
+        assert main([*args, *rollouts, "--out", str(out), "--no-progress"]) == 2, message
+        assert message in capsys.readouterr().err
+        assert_no_outputs(out)
+    assert main(["record", str(folder / "ppo.zip"), "--out", str(tmp_path / "r.npz")]) == 2
+    assert "cannot probe" in capsys.readouterr().err and not (tmp_path / "r.npz").exists()
+
+
+def test_help_of_the_module_and_its_sub_commands():
+    result = subprocess.run(
+        [sys.executable, "-m", "sb3_collapse.probe", "--help"], capture_output=True, text=True, check=False
+    )
+    assert result.returncode == 0 and "record" in result.stdout and "run" in result.stdout
+    for command, option in (("run", "--max-tau"), ("record", "--episodes")):
+        with pytest.raises(SystemExit) as exit_info:
+            main([command, "--help"])
+        assert exit_info.value.code == 0
+
+
+def test_cnn0_probe_is_reused_across_checkpoints(files):
+    """cnn0 (normalized pixels) is the same for every DrQv2: probed once, with the same result as a fresh fit."""
+    rollouts = Rollouts.load(files["rollouts"])
+    split = split_by_episode(rollouts.episode_ids)
+    settings = ProbeSettings(layers=["cnn0", "cnn4"], max_tau=4, device="cpu", progress=False)
+    reuse = {}
+    first = probe_checkpoint(load_checkpoint(files["early"]), rollouts, split, settings, reuse)
+    second = probe_checkpoint(load_checkpoint(files["late"]), rollouts, split, settings, reuse)
+    fresh = probe_checkpoint(load_checkpoint(files["late"]), rollouts, split, settings)
+    assert [p.reused for p in first.layers] == [False, False] and [p.reused for p in second.layers] == [True, False]
+    assert len(reuse) == 1
+    for reused, fitted in zip(second.layers, fresh.layers):
+        np.testing.assert_array_equal(reused.test_mse, fitted.test_mse)
+        np.testing.assert_array_equal(reused.tau, fitted.tau)

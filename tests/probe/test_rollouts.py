@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+
+from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse.probe import ProbeError, Rollouts, record_rollouts
+from sb3_collapse.probe.rollouts import resolve_env_config
+
+ENV = {"action_repeat": 8, "frame_stack": 3, "size": 32}
+
+
+@pytest.fixture(scope="module")
+def model():
+    env = make_dmc_env("walker-walk", seed=0, **ENV)
+    return DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs={"hidden_dim": 32}, seed=0, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def rollouts(model):
+    config = resolve_env_config(model.env_config)
+    return record_rollouts(model, config, episodes=3, seed=5, max_steps=4, progress=False)
+
+
+def test_recorded_arrays_and_walker_targets(rollouts):
+    assert len(rollouts) == 12 and rollouts.n_episodes == 3
+    assert rollouts.observations.shape == (12, 9, 32, 32) and rollouts.observations.dtype == np.uint8
+    assert rollouts.episode_ids.tolist() == [0] * 4 + [1] * 4 + [2] * 4
+    assert rollouts.steps.tolist() == [0, 1, 2, 3] * 3
+    assert {k: v.shape for k, v in rollouts.states.items()} == {
+        "orientations": (12, 14),
+        "height": (12, 1),
+        "velocity": (12, 9),
+    }
+    assert rollouts.env_config == {"task_id": "walker-walk", "camera_id": 0, **ENV}
+    assert rollouts.actions.shape == (12, 6) and np.abs(rollouts.actions).max() <= 1
+    names, groups, values = rollouts.targets()
+    assert names[:2] == ["orientations_0", "orientations_1"] and names[14] == "height" and names[-1] == "velocity_8"
+    assert len(names) == 24 and groups.count("velocity") == 9 and values.shape == (12, 24)
+
+
+def test_state_is_the_one_behind_each_observation(model, rollouts):
+    """Replay the recorded actions in a fresh env: same observations, same states at the same steps."""
+    env = make_dmc_env("walker-walk", seed=5, **ENV)
+    obs, _ = env.reset(seed=5)
+    for t in range(4):
+        np.testing.assert_array_equal(obs, rollouts.observations[t])
+        state = np.concatenate(list(env.get_state().values()))
+        np.testing.assert_allclose(state, rollouts.targets()[2][t], rtol=1e-6)
+        obs, reward, *_ = env.step(rollouts.actions[t])
+        assert reward == pytest.approx(rollouts.rewards[t])
+    env.close()
+
+
+def test_save_load_roundtrip_and_bad_files(rollouts, tmp_path):
+    path = rollouts.save(tmp_path / "walker.npz")
+    assert path.exists() and not (tmp_path / "walker.npz.partial").exists()
+    loaded = Rollouts.load(path)
+    np.testing.assert_array_equal(loaded.observations, rollouts.observations)
+    assert list(loaded.states) == list(rollouts.states) and loaded.env_config == rollouts.env_config
+    assert loaded.metadata["deterministic"] is True and loaded.metadata["max_steps"] == 4
+    with pytest.raises(ProbeError, match="does not exist"):
+        Rollouts.load(tmp_path / "missing.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a numpy file")
+    with pytest.raises(ProbeError, match="not a rollouts file"):
+        Rollouts.load(tmp_path / "junk.npz")
+
+
+def test_noise_and_env_settings(model):
+    with pytest.raises(ProbeError, match="--env"):
+        resolve_env_config(None)
+    config = resolve_env_config(None, task_id="walker-walk", size=40)
+    assert config == {"task_id": "walker-walk", "action_repeat": 2, "frame_stack": 3, "size": 40, "camera_id": None}
+    with pytest.raises(ProbeError, match="--size"):
+        record_rollouts(model, config, episodes=1, max_steps=1, progress=False)
+    config = resolve_env_config(model.env_config)
+    noisy = record_rollouts(model, config, episodes=1, seed=5, noise_std=0.5, max_steps=3, progress=False)
+    clean = record_rollouts(model, config, episodes=1, seed=5, max_steps=3, progress=False)
+    assert not np.allclose(noisy.actions, clean.actions)
