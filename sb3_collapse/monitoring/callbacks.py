@@ -150,6 +150,8 @@ class FrameScheduleCallback(BaseCallback):
         self.check_every_frames = check_every_frames
         self.next_check_frame = check_every_frames
         self.action_repeat = 1
+        self.n_checks = 0
+        """Checks run so far (all ``learn()`` calls)."""
 
     def _init_callback(self) -> None:
         self.action_repeat = action_repeat_of(self.model)
@@ -169,6 +171,7 @@ class FrameScheduleCallback(BaseCallback):
         frames = self.frames
         if frames >= self.next_check_frame:
             self.next_check_frame = self._following_check(frames)
+            self.n_checks += 1
             self._on_check(frames)
         return True
 

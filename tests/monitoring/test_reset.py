@@ -1,8 +1,11 @@
+import glob
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3 import TD3
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
 from sb3_collapse.envs.synthetic import RandomObservationEnv
@@ -115,13 +118,20 @@ def test_healthy_actor_escapes_and_is_never_reset():
     assert model.num_timesteps == 160
 
 
-def test_max_resets_caps_the_resets():
-    model = tiny_model(learning_starts=1000)  # no update: only the schedule of the rule is tested
+def test_max_resets_caps_the_resets(tmp_path):
+    # No update (learning_starts > budget): only the schedule of the rule is tested.
+    model = tiny_model(learning_starts=1000, tensorboard_log=str(tmp_path))
     # An impossible threshold: every window ends without escape.
     rule = CollapseReset(window_frames=100, check_every_frames=20, threshold=1e9, max_resets=2)
     model.learn(200, callback=rule)
     assert rule.resets == 2 and rule.reset_frames == [100, 200] and not rule.escaped
-    assert model.reset_step == 100
+    assert model.reset_step == 100 and model.num_timesteps == 200
+    accumulator = EventAccumulator(glob.glob(str(tmp_path / "DrQv2_1" / "events.out.tfevents.*"))[0])
+    accumulator.Reload()
+    resets = accumulator.Scalars("collapse/reset_frame")
+    assert [(e.step, e.value) for e in resets] == [(50, 100.0), (100, 200.0)]  # at agent steps 50 and 100
+    assert accumulator.Scalars("collapse/resets")[-1].value == 2.0
+    assert all(e.value == 0.0 for e in accumulator.Scalars("collapse/escaped"))
 
 
 @pytest.mark.parametrize("metric", ["action_std", lambda model: model.actor.mlp1[0].bias.max().item() + 1.0])
