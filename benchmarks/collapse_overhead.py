@@ -72,20 +72,23 @@ def monitoring(args: argparse.Namespace) -> list:
     ]
 
 
-def train(args: argparse.Namespace, monitored: bool, folder: str) -> tuple[float, DrQv2, list]:
-    """Seconds of ``learn(frames / 2)``, the model, and its callbacks (empty when not monitored)."""
+def train(args: argparse.Namespace, monitored: bool, folder: str, frames: int) -> tuple[float, float, DrQv2, list]:
+    """
+    Wall and CPU seconds of ``learn(frames / 2)`` (CPU time of this process, all threads: less sensitive than
+    wall time to other jobs on a shared machine), the model, and its callbacks (empty when not monitored).
+    """
     model = build_model(args, folder)
     callbacks = monitoring(args) if monitored else []
     synchronize(model.device)
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     model.learn(
-        args.frames // 2,
+        frames // 2,
         callback=callbacks or None,
         progress_bar=args.progress,
         tb_log_name="monitored" if monitored else "plain",
     )
     synchronize(model.device)
-    return time.perf_counter() - start, model, callbacks
+    return time.perf_counter() - start, time.process_time() - start_cpu, model, callbacks
 
 
 def median_seconds(function, repeats: int, device: th.device) -> float:
@@ -128,26 +131,36 @@ def main() -> None:
         f"batch {args.batch_size}, one update per {args.train_freq} agent steps, check every {args.check_every_frames:,} frames"
     )
 
-    plain, monitored = [], []
+    wall: dict[bool, list[float]] = {False: [], True: []}
+    cpu: dict[bool, list[float]] = {False: [], True: []}
     with tempfile.TemporaryDirectory() as folder:
+        # Untimed warm-up: one-time costs (kernel selection, first page faults) must not land in the first run.
+        train(args, True, folder, frames=min(args.frames, 2 * args.learning_starts + 200))
         for repeat in range(args.repeats):
             order = (False, True) if repeat % 2 == 0 else (True, False)
             for with_monitoring in order:
-                seconds, model, callbacks = train(args, with_monitoring, folder)
-                (monitored if with_monitoring else plain).append(seconds)
+                seconds, cpu_seconds, model, callbacks = train(args, with_monitoring, folder, args.frames)
+                wall[with_monitoring].append(seconds)
+                cpu[with_monitoring].append(cpu_seconds)
                 label = "with monitoring   " if with_monitoring else "without monitoring"
                 checks = f", {callbacks[0].n_checks} checks, {callbacks[1].resets} resets" if callbacks else ""
-                print(f"run {repeat + 1} {label}: {seconds:8.1f} s ({model._n_updates} updates{checks})", flush=True)
+                print(
+                    f"run {repeat + 1} {label}: {seconds:8.1f} s wall, {cpu_seconds:8.1f} s CPU "
+                    f"({model._n_updates} updates{checks})",
+                    flush=True,
+                )
                 if with_monitoring and repeat == args.repeats - 1:
                     trained, metrics, rule = model, *callbacks
                 else:
                     del model
                     gc.collect()
 
-        ratio = sum(monitored) / sum(plain)
-        print(
-            f"overhead: {sum(monitored):.1f} s / {sum(plain):.1f} s = {ratio:.4f} ({100 * (ratio - 1):+.2f}% of wall time)"
-        )
+        for unit, times in (("wall", wall), ("CPU", cpu)):
+            ratio = sum(times[True]) / sum(times[False])
+            print(
+                f"overhead, {unit} time: {sum(times[True]):.1f} s / {sum(times[False]):.1f} s = {ratio:.4f} "
+                f"({100 * (ratio - 1):+.2f}%)"
+            )
 
         # One check, a reset and an update, each in isolation, on the trained model and its full buffer.
         check = median_seconds(metrics.compute, 3, device)
