@@ -4,7 +4,9 @@ Trains the same DrQ-v2 configuration twice in this process, with the same seed, 
 ``CollapseMetrics(check_every_frames=10_000, batch_size=512)`` and ``CollapseReset()`` (the paper's rule: a
 check every 10,000 frames), and prints both wall times and their ratio. The probe batch does not change the
 training's random streams, so both runs make the same updates; the difference is the cost of the checks
-(and noise: repeat with ``--repeats``, which alternates the order).
+(and noise: repeat with ``--repeats``, which alternates the order). Since run-to-run noise on a shared machine
+can exceed the effect by far, the monitored run also reports the wall time spent inside the two callbacks
+(every step's ``_on_step``, checks included) as a share of that same run.
 
 It then times, on the trained model, one check in isolation (``CollapseMetrics.compute()`` on a probe batch of
 512 and the rule's gradient-norm read), one ``reset_from_scratch()``, and a gradient update at the paper's
@@ -32,6 +34,7 @@ import time
 import gymnasium as gym
 import numpy as np
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
 from sb3_collapse.envs.synthetic import RandomObservationEnv
@@ -72,13 +75,30 @@ def monitoring(args: argparse.Namespace) -> list:
     ]
 
 
+def time_inside(callback: BaseCallback) -> BaseCallback:
+    """Accumulate the wall time of the callback's ``_on_step`` (its checks included) in ``callback.seconds``."""
+    on_step = callback._on_step
+    callback.seconds = 0.0
+
+    def timed_on_step() -> bool:
+        start = time.perf_counter()
+        try:
+            return on_step()
+        finally:
+            callback.seconds += time.perf_counter() - start
+
+    callback._on_step = timed_on_step
+    return callback
+
+
 def train(args: argparse.Namespace, monitored: bool, folder: str, frames: int) -> tuple[float, float, DrQv2, list]:
     """
     Wall and CPU seconds of ``learn(frames / 2)`` (CPU time of this process, all threads: less sensitive than
-    wall time to other jobs on a shared machine), the model, and its callbacks (empty when not monitored).
+    wall time to other jobs on a shared machine), the model, and its callbacks (empty when not monitored; each
+    with ``seconds``, its own wall time inside this run).
     """
     model = build_model(args, folder)
-    callbacks = monitoring(args) if monitored else []
+    callbacks = [time_inside(callback) for callback in monitoring(args)] if monitored else []
     synchronize(model.device)
     start, start_cpu = time.perf_counter(), time.process_time()
     model.learn(
@@ -143,7 +163,13 @@ def main() -> None:
                 wall[with_monitoring].append(seconds)
                 cpu[with_monitoring].append(cpu_seconds)
                 label = "with monitoring   " if with_monitoring else "without monitoring"
-                checks = f", {callbacks[0].n_checks} checks, {callbacks[1].resets} resets" if callbacks else ""
+                checks = ""
+                if callbacks:
+                    inside = sum(callback.seconds for callback in callbacks)
+                    checks = (
+                        f", {callbacks[0].n_checks} checks, {callbacks[1].resets} resets; {inside:.2f} s inside the "
+                        f"two callbacks = {100 * inside / seconds:.2f}% of this run"
+                    )
                 print(
                     f"run {repeat + 1} {label}: {seconds:8.1f} s wall, {cpu_seconds:8.1f} s CPU "
                     f"({model._n_updates} updates{checks})",
