@@ -15,7 +15,7 @@ batch size, and prints the overhead projected for DrQ-v2's configuration: one ch
 
 Observations are 9x84x84 uint8 from ``RandomObservationEnv`` (no rendering), actions 6-d, action repeat 2.
 The CPU default (batch 32, one update per 8 agent steps, 10,000 frames: one check, at the last step) takes
-5-10 minutes on a 2-core CPU; it does fewer and cheaper updates between two checks than DrQ-v2 (600 updates of
+5-20 minutes on a shared 2-core CPU; it does fewer and cheaper updates between two checks than DrQ-v2 (563 updates of
 batch 32, against 2,500 of batch 256), so its ratio is an upper bound of DrQ-v2's.
 
     python benchmarks/collapse_overhead.py                          # CPU-sized default
