@@ -2,7 +2,8 @@
 
 from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.envs import make_dmc_env
+from sb3_collapse.monitoring import ActivationLogger, CollapseMetrics, CollapseReset
 
 __version__ = "0.1.0"
 
-__all__ = ["DrQv2", "__version__", "make_dmc_env"]
+__all__ = ["ActivationLogger", "CollapseMetrics", "CollapseReset", "DrQv2", "__version__", "make_dmc_env"]

@@ -172,6 +172,8 @@ class DrQv2(OffPolicyAlgorithm):
         self._last_grad_norms: th.Tensor | None = None
         self._train_stats: dict[str, th.Tensor] = {}
         self._train_stats_count = 0
+        self.reset_step = 0
+        """Agent step (``num_timesteps``) of the last :meth:`reset_from_scratch`, 0 when none; saved with the model."""
         if _init_setup_model:
             self._setup_model()
 
@@ -291,8 +293,11 @@ class DrQv2(OffPolicyAlgorithm):
     # ------------------------------------------------------------------ properties
     @property
     def current_stddev(self) -> float:
-        """Exploration standard deviation at the current agent step (``num_timesteps``)."""
-        return self.stddev_schedule(self.num_timesteps)
+        """
+        Exploration standard deviation at the current agent step, counted from the last
+        :meth:`reset_from_scratch` (``num_timesteps - reset_step``; ``num_timesteps`` when there was none).
+        """
+        return self.stddev_schedule(self.num_timesteps - self.reset_step)
 
     @property
     def action_repeat(self) -> int:
@@ -323,8 +328,11 @@ class DrQv2(OffPolicyAlgorithm):
         action_noise: Any = None,
         n_envs: int = 1,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Uniform actions during the warm-up, then the actor's mean plus scheduled Gaussian noise."""
-        if self.num_timesteps < learning_starts:
+        """
+        Uniform actions during the warm-up (the first ``learning_starts`` agent steps, counted from the last
+        :meth:`reset_from_scratch` if any), then the actor's mean plus scheduled Gaussian noise.
+        """
+        if self.num_timesteps - self.reset_step < learning_starts:
             unscaled_action = np.array([self.action_space.sample() for _ in range(n_envs)])
         else:
             self.policy.exploration_std = self.current_stddev
@@ -334,6 +342,18 @@ class DrQv2(OffPolicyAlgorithm):
 
     # ------------------------------------------------------------------ training
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
+        """
+        ``gradient_steps`` DrQ-v2 updates on minibatches of ``batch_size`` transitions.
+
+        After a :meth:`reset_from_scratch` at agent step ``reset_step > 0``, no update happens until
+        ``learning_starts`` agent steps were collected since the reset: SB3's ``learn()`` asks for updates as
+        soon as ``num_timesteps > learning_starts``, and this moves that condition to
+        ``num_timesteps - reset_step > learning_starts`` (a verbose model says when it skips).
+        """
+        if self.reset_step > 0 and self.num_timesteps - self.reset_step <= self.learning_starts:
+            if self.verbose >= 2:
+                print(f"DrQv2: warm-up after the reset at agent step {self.reset_step}, no update")
+            return
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizers)
         std = self.current_stddev
@@ -472,10 +492,13 @@ class DrQv2(OffPolicyAlgorithm):
         :param log_interval: episodes between two log dumps
         :param tb_log_name: name of the TensorBoard run
         :param reset_num_timesteps: restart the step count (and so the exploration schedule and the
-            warm-up); pass ``False`` to continue a loaded model where it stopped
+            warm-up, and forget the step of the last :meth:`reset_from_scratch`); pass ``False`` to continue a
+            loaded model where it stopped
         :param progress_bar: show a progress bar (tqdm and rich)
         :return: the trained model
         """
+        if reset_num_timesteps:
+            self.reset_step = 0
         return super().learn(
             total_timesteps=total_timesteps,
             callback=self._combined_callbacks(callback),
@@ -492,6 +515,40 @@ class DrQv2(OffPolicyAlgorithm):
                 continue
             callbacks.extend(item if isinstance(item, list) else [item])  # type: ignore[arg-type]
         return callbacks or None
+
+    def reset_from_scratch(self) -> None:
+        """
+        Restart the training from scratch in the middle of ``learn()``, as the action-collapse paper's rule does.
+
+        Reset: the encoder, actor, critic and target critic get **new** random weights (DrQ-v2's
+        initialization drawn from torch's global generator in its current state, which has advanced since
+        the initial build: never reseeded, so the weights differ from the initial ones, and a seeded run
+        stays reproducible); the optimizers are new (empty Adam state); the replay buffer is emptied
+        (``replay_buffer.reset()``); the last gradient norms are forgotten (:attr:`last_grad_norms` is empty
+        until the next update); ``reset_step`` becomes ``num_timesteps``, so the exploration schedule restarts
+        from its first value, the first ``learning_starts`` agent steps after the reset take uniform random
+        actions again, and no update happens before ``learning_starts`` agent steps were collected since the
+        reset.
+
+        Kept: ``num_timesteps`` (TensorBoard curves continue on one axis, and the budget of ``learn()`` is
+        spent, not extended), the number of updates so far, the logger, the environment and its episode in
+        progress (the paper resets the training, not the environment; the transition of the current step is
+        the first one stored after the reset), the callbacks, the episode statistics, the hyperparameters and
+        the learning-rate schedule (a function of the progress of ``learn()``).
+        """
+        was_training = self.policy.training
+        self.policy._build(self.lr_schedule)
+        self.policy.to(self.device)
+        self.policy.set_training_mode(was_training)
+        self._create_aliases()
+        self._encoder_layers = _layers_with_parameters(self.encoder.named_layers())
+        self._actor_layers = _layers_with_parameters(self.actor.named_layers())
+        self._grad_layers = self._encoder_layers + self._actor_layers
+        self._encoder_grad_norms = th.zeros(len(self._encoder_layers), device=self.device)
+        self._last_grad_norms = None
+        self.replay_buffer.reset()  # type: ignore[union-attr]
+        self.reset_step = self.num_timesteps
+        self.policy.exploration_std = self.current_stddev
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         super().set_env(env, force_reset=force_reset)
@@ -543,4 +600,3 @@ def _read_env_config(env: VecEnv) -> dict[str, Any] | None:
     if config["task_id"] is None and config["action_repeat"] is None:
         return None
     return config
-

@@ -71,8 +71,9 @@ def test_sb3_actor_layers_are_mapped(algo, policy):
     if cnn:
         th.testing.assert_close(acts["cnn0"], th.as_tensor(obs, dtype=th.float32) / 255.0)
     params = layer_parameters(model)
-    assert "cnn0" not in params and params["mlp1"] == tuple(model.actor.latent_pi[0].parameters() if algo is SAC
-                                                            else model.actor.mu[0].parameters())
+    assert "cnn0" not in params and params["mlp1"] == tuple(
+        model.actor.latent_pi[0].parameters() if algo is SAC else model.actor.mu[0].parameters()
+    )
 
 
 def test_unmappable_policy_is_refused():

@@ -1,0 +1,380 @@
+"""
+Callbacks that watch for action collapse during ``learn()``: collapse metrics to TensorBoard, activations to disk.
+
+Both run on a schedule of **frames** (agent steps x the environment's action repeat, the unit of the paper) and
+read a probe batch of observations from the model's replay buffer. They are SB3 ``BaseCallback``s: pass them to
+``learn(callback=...)`` or to ``DrQv2(..., callback=...)``, alone or in a list with SB3's own callbacks.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import warnings
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
+from sb3_collapse.monitoring.metrics import (
+    DORMANT_TAU,
+    SATURATION_LIMIT,
+    SRANK_DELTA,
+    action_spread,
+    gradient_norm,
+    layer_metrics,
+    saturated_fraction,
+)
+
+
+def action_repeat_of(model: BaseAlgorithm) -> int:
+    """
+    Frames per agent step of a model's environment: ``model.action_repeat`` (DrQv2), else the ``action_repeat``
+    attribute of its (first) environment when it has one (``make_dmc_env``, ``RandomObservationEnv``), else 1.
+
+    :param model: an SB3 algorithm
+    :return: the action repeat
+    """
+    repeat = getattr(model, "action_repeat", None)
+    if repeat is None and model.get_env() is not None:
+        try:
+            repeat = model.get_env().get_attr("action_repeat", indices=[0])[0]  # type: ignore[union-attr]
+        except AttributeError:
+            repeat = None
+    return int(repeat or 1)
+
+
+def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
+    """
+    Frames so far: ``model.num_frames`` (DrQv2), else ``num_timesteps x action_repeat``.
+
+    :param model: an SB3 algorithm
+    :param action_repeat: frames per agent step, ``None`` to read it with :func:`action_repeat_of`
+    :return: the frame count
+    """
+    frames = getattr(model, "num_frames", None)
+    if frames is not None:
+        return int(frames)
+    return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
+
+
+def grad_norms_of(model: BaseAlgorithm) -> dict[str, float]:
+    """
+    L2 gradient norm of each named layer at the model's last update, without any backward pass.
+
+    DrQv2 keeps them on the device at each update (``model.last_grad_norms``: one host transfer here, none per
+    update). For SB3's TD3, DDPG and SAC they are read from the ``.grad`` that the last actor update left on
+    the parameters of :func:`~sb3_collapse.monitoring.activations.layer_parameters`.
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :return: layer name -> norm; empty before the first update (or the first update after a reset)
+    """
+    norms = getattr(model, "last_grad_norms", None)
+    if norms is not None:
+        return dict(norms)
+    params = layer_parameters(model)
+    if not any(p.grad is not None for layer in params.values() for p in layer):
+        return {}
+    return {name: gradient_norm(p.grad for p in layer) for name, layer in params.items()}
+
+
+class ProbeBatchSampler:
+    """
+    Draws a probe batch of observations from a replay buffer without touching the training's random streams.
+
+    Indices are drawn, without replacement, from the valid stored positions with this object's own
+    ``np.random.Generator``; the observations are then read through the buffer's ``_get_samples(indices, env)``,
+    the path SB3's ``sample()`` uses, so that any buffer class following SB3's interface works (including
+    buffers that do not store an ``observations`` array). SB3's ``_get_samples`` draws the environment index of
+    each sample from the global ``np.random``: its state is saved before the call and restored after it, so
+    the training's replay sampling is the same with or without the probe. Observations are the stored ones
+    (stacked pixels), not augmented.
+
+    :param seed: seed of the index generator (``None``: fresh entropy)
+    """
+
+    def __init__(self, seed: int | None = None) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    @staticmethod
+    def valid_positions(buffer: Any) -> np.ndarray:
+        """Stored positions of a buffer (``optimize_memory_usage`` excludes the one at ``pos``)."""
+        upper = buffer.buffer_size if buffer.full else buffer.pos
+        positions = np.arange(upper)
+        if getattr(buffer, "optimize_memory_usage", False) and buffer.full:
+            positions = positions[positions != buffer.pos]
+        return positions
+
+    def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[th.Tensor, np.ndarray] | None:
+        """
+        :param model: an off-policy model with a ``replay_buffer``
+        :param batch_size: observations to draw
+        :return: ``(observations, buffer indices)``, or ``None`` while the buffer holds fewer than
+            ``batch_size`` transitions
+        """
+        buffer = getattr(model, "replay_buffer", None)
+        if buffer is None:
+            raise TypeError(f"{type(model).__name__} has no replay buffer to draw a probe batch from.")
+        positions = self.valid_positions(buffer)
+        if len(positions) < batch_size:
+            return None
+        indices = np.sort(self.rng.choice(positions, size=batch_size, replace=False))
+        state = np.random.get_state()
+        try:
+            samples = buffer._get_samples(indices, env=getattr(model, "_vec_normalize_env", None))
+        finally:
+            np.random.set_state(state)
+        return samples.observations, indices
+
+
+class FrameScheduleCallback(BaseCallback):
+    """
+    Calls :meth:`_on_check` at the first step where the frame count reaches each multiple of
+    ``check_every_frames`` (frames = agent steps x action repeat, see :func:`frames_of`). A step that crosses
+    several multiples at once (several environments, an action repeat that does not divide the period)
+    gives one check.
+
+    :param check_every_frames: frames between two checks
+    :param verbose: 0 silent, 1 info
+    """
+
+    def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
+        super().__init__(verbose)
+        if check_every_frames < 1:
+            raise ValueError(f"check_every_frames must be >= 1 frame, got {check_every_frames}.")
+        self.check_every_frames = check_every_frames
+        self.next_check_frame = check_every_frames
+        self.action_repeat = 1
+        self.n_checks = 0
+        """Checks run so far (all ``learn()`` calls)."""
+
+    def _init_callback(self) -> None:
+        self.action_repeat = action_repeat_of(self.model)
+
+    def _on_training_start(self) -> None:
+        self.next_check_frame = self._following_check(self.frames)
+
+    def _following_check(self, frames: int) -> int:
+        return (frames // self.check_every_frames + 1) * self.check_every_frames
+
+    @property
+    def frames(self) -> int:
+        """Frames so far."""
+        return frames_of(self.model, self.action_repeat)
+
+    def _on_step(self) -> bool:
+        frames = self.frames
+        if frames >= self.next_check_frame:
+            self.next_check_frame = self._following_check(frames)
+            self.n_checks += 1
+            self._on_check(frames)
+        return True
+
+    def _on_check(self, frames: int) -> None:
+        raise NotImplementedError
+
+    def _seed(self) -> int | None:
+        return None if self.model.seed is None else int(self.model.seed) + 1_000_003
+
+
+class CollapseMetrics(FrameScheduleCallback):
+    """
+    Logs the collapse metrics of every named layer to the SB3 logger (TensorBoard) every ``check_every_frames``.
+
+    At each check, a probe batch of ``batch_size`` observations is drawn from the replay buffer (see
+    :class:`ProbeBatchSampler`; a check is skipped, with nothing logged, while the buffer holds fewer
+    transitions) and run through the actor with :func:`~sb3_collapse.monitoring.activations.collect_activations`
+    (no gradient, eval mode). For every named layer it records, with the definitions of
+    :mod:`sb3_collapse.monitoring.metrics`:
+
+    - ``collapse/<layer>/numerical_rank``, ``srank``, ``correlation``, ``zero_fraction``, ``dead_fraction``,
+      ``dormant_ratio``;
+    - ``collapse/<layer>/grad_norm``: the gradient norm of the layer at the **last update** before the check
+      (DrQv2's ``last_grad_norms``, computed in the update without extra backward pass; the paper computes it
+      at each check), for layers with parameters, once an update happened;
+    - ``collapse/action_std`` (:func:`~sb3_collapse.monitoring.metrics.action_spread`) and
+      ``collapse/action_saturation`` (:func:`~sb3_collapse.monitoring.metrics.saturated_fraction`) of the
+      deterministic actions;
+    - ``time/frames``.
+
+    The values are written at the check's agent step (``logger.dump(num_timesteps)``, as SB3's ``EvalCallback``
+    does), so they are not overwritten before SB3's next dump. The last values are in :attr:`last_metrics`.
+
+    :param check_every_frames: frames between two checks (10,000 in the paper)
+    :param batch_size: observations of the probe batch (512)
+    :param layers: the named layers to measure, ``None`` for all (``cnn0`` .. ``action``)
+    :param tau: threshold of the dormant ratio
+    :param delta: threshold of the effective rank
+    :param saturation_limit: ``|a|`` above which an action component counts as saturated
+    :param forward_batch_size: observations per forward pass
+    :param seed: seed of the probe indices; ``None``: derived from the model's seed
+    :param verbose: 0 silent, 1 prints a line per check
+    """
+
+    def __init__(
+        self,
+        check_every_frames: int = 10_000,
+        batch_size: int = 512,
+        layers: Iterable[str] | None = None,
+        tau: float = DORMANT_TAU,
+        delta: float = SRANK_DELTA,
+        saturation_limit: float = SATURATION_LIMIT,
+        forward_batch_size: int = 256,
+        seed: int | None = None,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(check_every_frames, verbose)
+        if batch_size < 2:
+            raise ValueError(f"batch_size must be >= 2 observations (correlations need pairs), got {batch_size}.")
+        self.batch_size = batch_size
+        self.layers = None if layers is None else list(layers)
+        self.tau = tau
+        self.delta = delta
+        self.saturation_limit = saturation_limit
+        self.forward_batch_size = forward_batch_size
+        self.seed = seed
+        self.sampler: ProbeBatchSampler | None = None
+        self.last_metrics: dict[str, float] = {}
+
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        self.sampler = ProbeBatchSampler(self.seed if self.seed is not None else self._seed())
+
+    def compute(self) -> dict[str, float] | None:
+        """
+        Every metric on a new probe batch, without logging.
+
+        :return: tag -> value, or ``None`` while the buffer holds fewer than ``batch_size`` transitions
+        """
+        assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
+        probe = self.sampler.sample(self.model, self.batch_size)
+        if probe is None:
+            return None
+        observations, _ = probe
+        device = self.model.device
+        activations = collect_activations(
+            self.model, observations, layers=self.layers, batch_size=self.forward_batch_size, device=device
+        )
+        values: dict[str, float] = {}
+        for layer, acts in activations.items():
+            for name, value in layer_metrics(acts, self.tau, self.delta).items():
+                values[f"collapse/{layer}/{name}"] = value
+        for layer, norm in grad_norms_of(self.model).items():
+            if self.layers is None or layer in self.layers:
+                values[f"collapse/{layer}/grad_norm"] = norm
+        if "action" in activations:
+            values["collapse/action_std"] = action_spread(activations["action"])
+            values["collapse/action_saturation"] = saturated_fraction(activations["action"], self.saturation_limit)
+        return values
+
+    def _on_check(self, frames: int) -> None:
+        values = self.compute()
+        if values is None:
+            if self.verbose >= 1:
+                print(
+                    f"CollapseMetrics: check at frame {frames} skipped, fewer than {self.batch_size} transitions stored"
+                )
+            return
+        self.last_metrics = values
+        for tag, value in values.items():
+            self.logger.record(tag, value)
+        self.logger.record("time/frames", frames)
+        self.logger.dump(self.num_timesteps)
+        if self.verbose >= 1:
+            summary = ", ".join(
+                f"{k}={v:.4g}" for k, v in values.items() if k.startswith(("collapse/mlp1/", "collapse/action_std"))
+            )
+            print(f"CollapseMetrics at frame {frames}: {summary}")
+
+
+class ActivationLogger(FrameScheduleCallback):
+    """
+    Saves the named activations of a probe batch every ``every_frames``, for offline analysis.
+
+    Each save is one compressed numpy file ``<path>/activations_<agent step, 10 digits>.npz`` holding one
+    float32 array per layer (``(batch_size, *shape)``, as returned by
+    :func:`~sb3_collapse.monitoring.activations.collect_activations`), ``step`` (agent steps), ``frames``,
+    ``indices`` (the replay-buffer positions of the probe) and ``layers`` (the names). The probe batch is drawn
+    as in :class:`CollapseMetrics`; a save is skipped while the buffer holds fewer than ``batch_size``
+    transitions.
+
+    Disk use is bounded by ``max_bytes``: a file that would take the total over it is deleted, a warning says
+    so, and nothing more is saved in this run (the earliest activations, where collapse shows, are kept).
+
+    :param every_frames: frames between two saves
+    :param path: folder of the files (created if needed)
+    :param batch_size: observations of the probe batch
+    :param layers: names to save; ``None``: ``mlp0``, ``mlp1``, ``mlp2``, ``action`` (the convolutional
+        activations take ~100 MB per 512 observations of 84x84 pixels: ask for them by name)
+    :param max_bytes: the most bytes all the files of this callback may take
+    :param seed: seed of the probe indices; ``None``: derived from the model's seed
+    :param verbose: 0 silent, 1 prints a line per file
+    """
+
+    DEFAULT_LAYERS = ("mlp0", "mlp1", "mlp2", "action")
+
+    def __init__(
+        self,
+        every_frames: int,
+        path: str | os.PathLike,
+        batch_size: int = 512,
+        layers: Iterable[str] | None = None,
+        max_bytes: int = 1_000_000_000,
+        seed: int | None = None,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(every_frames, verbose)
+        if max_bytes <= 0:
+            raise ValueError(f"max_bytes must be > 0, got {max_bytes}.")
+        self.path = Path(path)
+        self.batch_size = batch_size
+        self.layers = list(self.DEFAULT_LAYERS if layers is None else layers)
+        self.max_bytes = max_bytes
+        self.seed = seed
+        self.sampler: ProbeBatchSampler | None = None
+        self.bytes_written = 0
+        self.saved: list[Path] = []
+        self.stopped = False
+
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.sampler = ProbeBatchSampler(self.seed if self.seed is not None else self._seed())
+
+    def _on_check(self, frames: int) -> None:
+        if self.stopped:
+            return
+        assert self.sampler is not None
+        probe = self.sampler.sample(self.model, self.batch_size)
+        if probe is None:
+            return
+        observations, indices = probe
+        activations = collect_activations(self.model, observations, layers=self.layers)
+        arrays = {name: value.numpy() for name, value in activations.items()}
+        target = self.path / f"activations_{self.num_timesteps:010d}.npz"
+        handle, temporary = tempfile.mkstemp(suffix=".npz", dir=self.path)
+        os.close(handle)
+        np.savez_compressed(
+            temporary, **arrays, step=self.num_timesteps, frames=frames, indices=indices, layers=np.array(list(arrays))
+        )
+        size = os.path.getsize(temporary)
+        if self.bytes_written + size > self.max_bytes:
+            os.remove(temporary)
+            self.stopped = True
+            warnings.warn(
+                f"ActivationLogger: the activations at frame {frames} ({size / 1e6:.1f} MB) would take {self.path} "
+                f"over max_bytes={self.max_bytes:_}; no more files are saved in this run (pass a larger max_bytes, "
+                "fewer layers or a larger every_frames).",
+                stacklevel=2,
+            )
+            return
+        os.replace(temporary, target)
+        self.bytes_written += size
+        self.saved.append(target)
+        if self.verbose >= 1:
+            print(f"ActivationLogger: {target} ({size / 1e6:.1f} MB)")

@@ -1,0 +1,185 @@
+"""
+The action-collapse paper's rule (Section 5.2): reset the training from scratch when the agent has not escaped
+action collapse within a window of frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler, grad_norms_of
+from sb3_collapse.monitoring.metrics import action_spread
+
+Trigger = str | Callable[[BaseAlgorithm], "float | None"]
+
+
+class CollapseReset(FrameScheduleCallback):
+    """
+    Resets the training from scratch while the agent is stuck in action collapse (the paper's rule).
+
+    Every ``check_every_frames`` frames (agent steps x action repeat) the callback reads a health value, by
+    default the gradient L2 norm of the layer that produces ``layer`` (``mlp1``) at the last update (DrQv2's
+    ``last_grad_norms``: no extra backward pass, one host transfer per check). A value ``> threshold`` is
+    healthy. Once ``patience`` consecutive checks are healthy the agent has **escaped** collapse: the frame is
+    logged and the rule never fires again in this run. When a window of ``window_frames`` since the start of
+    training or the last reset ends without an escape, ``model.reset_from_scratch()`` restarts the training:
+    new random encoder, actor, critic and target critic, new optimizers, an empty replay buffer, and the
+    exploration schedule and the uniform-random warm-up restart from the reset (see
+    :meth:`sb3_collapse.DrQv2.reset_from_scratch`). ``num_timesteps`` is not reset: the budget of ``learn()``
+    is spent by the resets, not extended (the paper's Proposition 1), and the TensorBoard curves continue on
+    one axis.
+
+    A check with no value (no update yet since the start or the reset; for ``"action_std"``, fewer stored
+    transitions than ``batch_size``) is not a computation of the metric: it neither extends nor breaks the
+    streak. The window end is tested at every step (after that step's check, if any), so a reset happens at
+    the first step whose frame count reaches the window's end.
+
+    Logged at each check and each event, at the agent step (``logger.dump``): ``collapse/reset_rule/value``
+    (when there is one), ``collapse/reset_rule/streak``, ``collapse/resets`` (resets so far),
+    ``collapse/escaped`` (0 or 1), ``collapse/reset_frame`` (at each reset) and ``collapse/escape_frame`` (at
+    the escape). The same facts are in :attr:`resets`, :attr:`reset_frames`, :attr:`escaped`,
+    :attr:`escape_frame`, and every check's ``(frame, value)`` in :attr:`history`.
+
+    The state carries over to the next ``learn(reset_num_timesteps=False)`` call with the same callback
+    (e.g. one given to ``DrQv2(callback=...)``); a ``learn()`` that restarts from agent step 0 starts it over.
+
+    :param window_frames: frames after the start or the last reset within which the agent must escape
+        (200,000 in the paper: the end of DrQ-v2's exploration decay on most tasks)
+    :param check_every_frames: frames between two checks of the metric (10,000)
+    :param threshold: a value above it is healthy (gradient norm 0.001 in the paper)
+    :param patience: consecutive healthy checks that mean an escape (5)
+    :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
+    :param max_resets: the most resets in one run, ``None`` for no limit
+    :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"`` (the spread of the deterministic
+        actions on a probe batch of the replay buffer, see
+        :func:`~sb3_collapse.monitoring.metrics.action_spread`), or a callable ``model -> float | None``
+        (``None``: no value at this check); above ``threshold`` is healthy in every case
+    :param batch_size: probe batch for ``metric="action_std"``
+    :param verbose: 0 silent, 1 prints each reset and the escape
+    """
+
+    def __init__(
+        self,
+        window_frames: int = 200_000,
+        check_every_frames: int = 10_000,
+        threshold: float = 1e-3,
+        patience: int = 5,
+        layer: str = "mlp1",
+        max_resets: int | None = None,
+        metric: Trigger = "grad_norm",
+        batch_size: int = 512,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(check_every_frames, verbose)
+        if window_frames < 1:
+            raise ValueError(f"window_frames must be >= 1 frame, got {window_frames}.")
+        if patience < 1:
+            raise ValueError(f"patience must be >= 1 check, got {patience}.")
+        if max_resets is not None and max_resets < 0:
+            raise ValueError(f"max_resets must be >= 0 or None, got {max_resets}.")
+        if not (callable(metric) or metric in ("grad_norm", "action_std")):
+            raise ValueError(f"metric must be 'grad_norm', 'action_std' or a callable model -> float, got {metric!r}.")
+        self.window_frames = window_frames
+        self.threshold = threshold
+        self.patience = patience
+        self.layer = layer
+        self.max_resets = max_resets
+        self.metric = metric
+        self.batch_size = batch_size
+        self.sampler: ProbeBatchSampler | None = None
+        self._reset_state(window_start_frame=0)
+
+    def _reset_state(self, window_start_frame: int) -> None:
+        self.window_start_frame = window_start_frame
+        self.streak = 0
+        self.resets = 0
+        self.reset_frames: list[int] = []
+        self.escaped = False
+        self.escape_frame: int | None = None
+        self.history: list[tuple[int, float | None]] = []
+
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        if not callable(getattr(self.model, "reset_from_scratch", None)):
+            raise TypeError(
+                f"CollapseReset needs a model with a reset_from_scratch() method, such as sb3_collapse.DrQv2; "
+                f"{type(self.model).__name__} has none. Use CollapseMetrics to only watch the metrics."
+            )
+        if self.metric == "grad_norm":
+            names = list(layer_parameters(self.model))
+            if self.layer not in names:
+                raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
+        self.sampler = ProbeBatchSampler(self._seed())
+
+    def _on_training_start(self) -> None:
+        super()._on_training_start()
+        if self.num_timesteps == 0:  # a new run (learn() with reset_num_timesteps=True)
+            self._reset_state(window_start_frame=0)
+        elif self.resets == 0 and self.window_start_frame == 0:
+            # A loaded model that was reset in an earlier process: its window starts at its last reset.
+            self.window_start_frame = int(getattr(self.model, "reset_step", 0)) * self.action_repeat
+
+    def read_metric(self) -> float | None:
+        """
+        The health value of the model now (see ``metric``).
+
+        :return: the value, or ``None`` when there is none at this point
+        """
+        if callable(self.metric):
+            value = self.metric(self.model)
+            return None if value is None else float(value)
+        if self.metric == "grad_norm":
+            return grad_norms_of(self.model).get(self.layer)
+        assert self.sampler is not None
+        probe = self.sampler.sample(self.model, self.batch_size)
+        if probe is None:
+            return None
+        actions = collect_activations(self.model, probe[0], layers=["action"], device=self.model.device)["action"]
+        return action_spread(actions)
+
+    def _on_step(self) -> bool:
+        super()._on_step()  # runs _on_check at check frames
+        frames = self.frames
+        if not self.escaped and frames - self.window_start_frame >= self.window_frames:
+            if self.max_resets is None or self.resets < self.max_resets:
+                self._reset(frames)
+            else:
+                self.window_start_frame = frames  # no reset left: the next window only re-arms the test
+        return True
+
+    def _on_check(self, frames: int) -> None:
+        if self.escaped:
+            return
+        value = self.read_metric()
+        self.history.append((frames, value))
+        if value is not None:
+            self.streak = self.streak + 1 if value > self.threshold else 0
+            self.logger.record("collapse/reset_rule/value", value)
+        if self.streak >= self.patience:
+            self.escaped = True
+            self.escape_frame = frames
+            self.logger.record("collapse/escape_frame", frames)
+            if self.verbose >= 1:
+                print(f"CollapseReset: escaped action collapse at frame {frames} ({self.resets} resets)")
+        self._record(frames)
+
+    def _reset(self, frames: int) -> None:
+        self.model.reset_from_scratch()  # type: ignore[attr-defined]
+        self.resets += 1
+        self.reset_frames.append(frames)
+        self.window_start_frame = frames
+        self.streak = 0
+        if self.verbose >= 1:
+            print(f"CollapseReset: no escape within {self.window_frames} frames, training reset at frame {frames}")
+        self.logger.record("collapse/reset_frame", frames)
+        self._record(frames)
+
+    def _record(self, frames: int) -> None:
+        self.logger.record("collapse/reset_rule/streak", self.streak)
+        self.logger.record("collapse/resets", self.resets)
+        self.logger.record("collapse/escaped", int(self.escaped))
+        self.logger.record("time/frames", frames)
+        self.logger.dump(self.num_timesteps)

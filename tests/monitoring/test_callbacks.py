@@ -1,0 +1,166 @@
+import glob
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import TD3
+from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from sb3_collapse import ActivationLogger, CollapseMetrics, CollapseReset, DrQv2
+from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.monitoring import FrameScheduleCallback, ProbeBatchSampler
+
+PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
+METRICS = ("numerical_rank", "srank", "correlation", "zero_fraction", "dead_fraction", "dormant_ratio")
+LAYERS = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
+
+
+def pixel_env(action_repeat=2):
+    return RandomObservationEnv(PIXELS, action_repeat=action_repeat)
+
+
+def tiny_model(env=None, **kwargs):
+    params = dict(buffer_size=1000, learning_starts=20, batch_size=8, seed=0, policy_kwargs=dict(hidden_dim=32))
+    return DrQv2("CnnPolicy", env if env is not None else pixel_env(), **{**params, **kwargs})
+
+
+def scalars(folder):
+    events = glob.glob(str(folder / "events.out.tfevents.*"))
+    assert len(events) == 1
+    accumulator = EventAccumulator(events[0])
+    accumulator.Reload()
+    return accumulator
+
+
+class FrameRecorder(FrameScheduleCallback):
+    def __init__(self, every):
+        super().__init__(every)
+        self.checks = []
+
+    def _on_check(self, frames):
+        self.checks.append((self.num_timesteps, frames))
+
+
+def test_tensorboard_tags_inside_learn_with_sb3_callbacks(tmp_path):
+    model = tiny_model(tensorboard_log=str(tmp_path / "tb"))
+    metrics = CollapseMetrics(check_every_frames=40, batch_size=16)
+    rule = CollapseReset(window_frames=1000, check_every_frames=20, patience=3)
+    evaluation = EvalCallback(Monitor(pixel_env()), n_eval_episodes=1, eval_freq=50, verbose=0)
+    checkpoints = CheckpointCallback(save_freq=50, save_path=str(tmp_path / "ckpt"))
+    model.learn(100, callback=CallbackList([metrics, rule, evaluation, checkpoints]), log_interval=1)
+
+    accumulator = scalars(tmp_path / "tb" / "DrQv2_1")
+    tags = set(accumulator.Tags()["scalars"])
+    expected = {f"collapse/{layer}/{metric}" for layer in LAYERS for metric in METRICS}
+    expected |= {f"collapse/{layer}/grad_norm" for layer in LAYERS[1:]}
+    expected |= {"collapse/action_std", "collapse/action_saturation", "collapse/resets", "collapse/escaped"}
+    expected |= {"collapse/escape_frame", "collapse/reset_rule/value", "eval/mean_reward", "train/critic_loss"}
+    assert expected <= tags
+    # One point per check, at the agent step of the check: frames 40, 80, ..., 200 are agent steps 20, ..., 100;
+    # the buffer holds 16 transitions from step 16, so every check has a value.
+    assert [e.step for e in accumulator.Scalars("collapse/mlp1/numerical_rank")] == [20, 40, 60, 80, 100]
+    assert [e.step for e in accumulator.Scalars("collapse/escape_frame")] == [50]  # frames 60, 80, 100
+    assert all(0 <= e.value <= 16 for e in accumulator.Scalars("collapse/mlp1/numerical_rank"))
+    assert len(glob.glob(str(tmp_path / "ckpt" / "*.zip"))) == 2
+    assert rule.escaped and rule.resets == 0
+
+
+def test_constructor_callback_is_the_headline_usage():
+    rule = CollapseReset(window_frames=40, check_every_frames=20, threshold=1e9, max_resets=1)
+    model = tiny_model(callback=rule, learning_starts=1000)
+    model.learn(30)
+    assert rule.resets == 1 and model.reset_step == 20
+
+
+def test_probe_batch_does_not_change_training():
+    def run(callback):
+        env = DummyVecEnv([pixel_env, pixel_env])  # SB3's _get_samples draws env indices from np.random
+        model = tiny_model(env, gradient_steps=2)
+        model.learn(60, callback=callback)
+        return [p.detach().clone() for p in model.policy.parameters()], model
+
+    plain, _ = run(None)
+    watched, model = run(CollapseMetrics(check_every_frames=20, batch_size=16))
+    assert all(th.equal(a, b) for a, b in zip(plain, watched))
+    assert model.num_timesteps == 60
+
+
+def test_probe_indices_are_valid_distinct_positions():
+    model = tiny_model()
+    model.learn(30)
+    sampler = ProbeBatchSampler(seed=0)
+    observations, indices = sampler.sample(model, 25)
+    assert len(set(indices.tolist())) == 25 and indices.max() < 30
+    np.testing.assert_array_equal(observations.numpy(), model.replay_buffer.observations[indices, 0])
+    assert sampler.sample(model, 31) is None  # fewer transitions than asked
+
+
+def test_checks_follow_frames_with_several_envs_and_action_repeat():
+    # 2 envs: num_timesteps grows by 2 per step of the VecEnv, frames by 4 (action repeat 2).
+    recorder, every_step = FrameRecorder(every=30), FrameRecorder(every=3)
+    model = tiny_model(DummyVecEnv([pixel_env, pixel_env]), learning_starts=1000)
+    model.learn(50, callback=[recorder, every_step])
+    assert recorder.checks == [(16, 32), (30, 60), (46, 92)]  # the first frame count >= 30, 60, 90
+    # A step that crosses two multiples of 3 (e.g. frames 8 -> 12 cross 9 and 12) gives one check.
+    assert every_step.checks == [(t, 2 * t) for t in range(2, 54, 2)]  # learn() ends at 52 (rollouts of 2 x 2)
+
+
+def test_metrics_skip_checks_while_the_buffer_is_small(capsys):
+    metrics = CollapseMetrics(check_every_frames=20, batch_size=32, verbose=1)
+    tiny_model(learning_starts=1000).learn(40, callback=metrics)
+    out = capsys.readouterr().out
+    assert out.count("skipped") == 3  # frames 20, 40, 60: 10, 20, 30 transitions
+    assert "CollapseMetrics at frame 80" in out and metrics.last_metrics
+
+
+def test_metrics_on_sb3_td3_mlp_policy():
+    env = RandomObservationEnv(
+        gym.spaces.Box(-1, 1, (4,), np.float32), gym.spaces.Box(-1, 1, (2,), np.float32), action_repeat=3
+    )
+    model = TD3("MlpPolicy", env, learning_starts=10, batch_size=8, policy_kwargs=dict(net_arch=[16, 16]), seed=0)
+    metrics = CollapseMetrics(check_every_frames=60, batch_size=16)
+    model.learn(40, callback=metrics)  # frames = agent steps x 3, read from the env
+    values = metrics.last_metrics
+    assert {f"collapse/{layer}/numerical_rank" for layer in ("mlp0", "mlp1", "mlp2", "action")} <= set(values)
+    assert not any(tag.startswith("collapse/cnn") for tag in values)
+    assert values["collapse/mlp1/grad_norm"] > 0 and "collapse/action_std" in values
+
+
+def test_activation_logger_saves_bounded_files(tmp_path):
+    logger = ActivationLogger(every_frames=40, path=tmp_path / "acts", batch_size=8, layers=["mlp1", "action"])
+    tiny_model().learn(40, callback=logger)
+    files = sorted((tmp_path / "acts").glob("activations_*.npz"))
+    assert [f.name for f in files] == ["activations_0000000020.npz", "activations_0000000040.npz"]
+    with np.load(files[0]) as data:
+        assert data["mlp1"].shape == (8, 32) and data["action"].shape == (8, 6)
+        assert int(data["step"]) == 20 and int(data["frames"]) == 40 and len(set(data["indices"])) == 8
+        assert list(data["layers"]) == ["mlp1", "action"]
+
+    capped = ActivationLogger(
+        every_frames=40,
+        path=tmp_path / "capped",
+        batch_size=8,
+        layers=["mlp1", "action"],
+        max_bytes=files[0].stat().st_size + 100,
+    )
+    with pytest.warns(UserWarning, match="max_bytes"):
+        tiny_model().learn(60, callback=capped)
+    assert len(list((tmp_path / "capped").glob("*.npz"))) == 1 and capped.stopped
+    assert capped.bytes_written <= capped.max_bytes
+
+
+def test_bad_parameters_are_refused():
+    with pytest.raises(ValueError, match="check_every_frames"):
+        CollapseMetrics(check_every_frames=0)
+    with pytest.raises(ValueError, match="batch_size"):
+        CollapseMetrics(batch_size=1)
+    with pytest.raises(ValueError, match="max_bytes"):
+        ActivationLogger(every_frames=10, path="x", max_bytes=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        CollapseMetrics()  # the defaults are the paper's

@@ -1,0 +1,134 @@
+import math
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_collapse.monitoring.metrics import (
+    action_spread,
+    dead_fraction,
+    dormant_ratio,
+    effective_rank,
+    gradient_norm,
+    layer_metrics,
+    mean_pairwise_correlation,
+    numerical_rank,
+    saturated_fraction,
+    singular_values,
+    zero_fraction,
+)
+
+
+def test_identity_matrix():
+    eye = th.eye(10)
+    assert numerical_rank(eye) == pytest.approx(10.0)
+    assert effective_rank(eye) == 10.0
+    assert effective_rank(eye, delta=0.25) == 8.0  # the first 8 of 10 equal values reach 75%
+    # Rows e_i, e_j over 10 entries: mean 0.1, covariance -0.1, variance 0.9, so corr = -1/9.
+    assert mean_pairwise_correlation(eye) == pytest.approx(-1 / 9)
+    assert zero_fraction(eye) == pytest.approx(0.9)
+    assert dead_fraction(eye) == 0.0
+    assert dormant_ratio(eye) == 0.0
+
+
+def test_rank_one_matrix_wide_and_tall():
+    rng = np.random.default_rng(0)
+    for shape in ((64, 1000), (200, 20)):  # Gram path (d > n) and SVD path (d <= n)
+        u, v = rng.normal(size=(shape[0], 1)), rng.uniform(0.1, 1, size=(1, shape[1]))
+        h = th.as_tensor(u @ v, dtype=th.float32)
+        assert numerical_rank(h) == pytest.approx(1.0, abs=1e-4)
+        assert effective_rank(h) == 1.0
+        # Rows are multiples of one vector: correlation +1 or -1 by the sign of the multiple.
+        signs = np.sign(u[:, 0])
+        pairs = np.outer(signs, signs)
+        expected = (pairs.sum() - shape[0]) / (shape[0] * (shape[0] - 1))
+        assert mean_pairwise_correlation(h) == pytest.approx(expected, abs=1e-6)
+
+
+def test_singular_values_match_numpy():
+    h = th.randn(30, 200, generator=th.Generator().manual_seed(1))
+    np.testing.assert_allclose(
+        singular_values(h).numpy(), np.linalg.svd(h.double().numpy(), compute_uv=False), rtol=1e-7
+    )
+    s = np.linalg.svd(h.double().numpy(), compute_uv=False)
+    assert numerical_rank(h) == pytest.approx(s.sum() ** 2 / (s**2).sum())
+    cumulative = np.cumsum(s) / s.sum()
+    assert effective_rank(h) == int(np.argmax(cumulative >= 0.99)) + 1
+
+
+def test_identical_rows_collapse_to_one_point():
+    row = th.tensor([0.0, 1.0, 3.0, 0.5, 0.0])
+    h = row.repeat(8, 1)
+    assert mean_pairwise_correlation(h) == pytest.approx(1.0)
+    assert numerical_rank(h) == pytest.approx(1.0)
+    assert dead_fraction(h) == pytest.approx(2 / 5)
+    assert zero_fraction(h) == pytest.approx(2 / 5)
+
+
+def test_all_zero_rows_are_left_out_of_the_correlation():
+    h = th.tensor([[1.0, 2.0, 3.0], [2.0, 4.0, 6.5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    expected = np.corrcoef(h[0].numpy(), h[1].numpy())[0, 1]
+    assert mean_pairwise_correlation(h) == pytest.approx(expected)
+    assert math.isnan(mean_pairwise_correlation(th.zeros(5, 4)))  # no pair to correlate
+
+
+def test_all_zero_columns_are_dead_and_dormant():
+    h = th.rand(16, 10, generator=th.Generator().manual_seed(0)) + 0.5
+    h[:, [1, 4, 7]] = 0.0
+    assert dead_fraction(h) == pytest.approx(0.3)
+    assert zero_fraction(h) == pytest.approx(0.3)
+    assert dormant_ratio(h) == pytest.approx(0.3)
+    zero = th.zeros(4, 6)
+    assert dead_fraction(zero) == 1.0 and dormant_ratio(zero) == 1.0 and zero_fraction(zero) == 1.0
+    assert numerical_rank(zero) == 0.0 and effective_rank(zero) == 0.0
+
+
+def test_dormant_ratio_threshold_is_relative_to_the_layer_mean():
+    # Mean |activation| per unit: 1, 1, 1, 0.05 -> layer mean 0.7625; 0.05 / 0.7625 = 0.066.
+    h = th.tensor([[1.0, 1.0, 1.0, 0.05], [-1.0, 1.0, 1.0, -0.05]])
+    assert dormant_ratio(h, tau=0.025) == 0.0
+    assert dormant_ratio(h, tau=0.1) == pytest.approx(0.25)
+
+
+def test_convolutional_units_are_channels():
+    h = th.ones(4, 3, 5, 5)
+    h[:, 1] = 0.0  # channel 1 dead everywhere
+    h[0, 2, 0, 0] = 0.0  # channel 2 has one zero: not dead
+    assert dead_fraction(h) == pytest.approx(1 / 3)
+    assert zero_fraction(h) == pytest.approx((4 * 25 + 1) / (4 * 75))
+
+
+def test_action_spread_and_saturation():
+    actions = th.tensor([[1.0, 0.5], [-1.0, 0.5], [1.0, 0.5], [-1.0, 0.5]])
+    assert action_spread(actions) == pytest.approx(0.5)  # std 1 and 0, averaged
+    assert saturated_fraction(actions) == pytest.approx(0.5)
+    assert action_spread(th.full((10, 3), 0.2)) == 0.0
+    assert saturated_fraction(th.tensor([[0.995, -0.999, 0.98, 0.0]])) == pytest.approx(0.5)
+
+
+def test_gradient_norm():
+    assert gradient_norm([th.tensor([3.0]), th.tensor([[4.0, 0.0]]), None]) == pytest.approx(5.0)
+    assert gradient_norm([None]) == 0.0
+
+
+def test_layer_metrics_equal_the_single_functions():
+    h = th.relu(th.randn(40, 3, 6, 6, generator=th.Generator().manual_seed(2)))
+    metrics = layer_metrics(h)
+    assert metrics["numerical_rank"] == pytest.approx(numerical_rank(h))
+    assert metrics["srank"] == effective_rank(h)
+    assert metrics["correlation"] == pytest.approx(mean_pairwise_correlation(h))
+    assert metrics["zero_fraction"] == zero_fraction(h)
+    assert metrics["dead_fraction"] == dead_fraction(h)
+    assert metrics["dormant_ratio"] == dormant_ratio(h)
+    flat = h.reshape(40, -1).numpy()
+    corr = np.corrcoef(flat)
+    assert metrics["correlation"] == pytest.approx((corr.sum() - 40) / (40 * 39))
+
+
+def test_bad_input_is_refused():
+    with pytest.raises(ValueError, match="shape"):
+        numerical_rank(th.ones(5))
+    with pytest.raises(ValueError, match="delta"):
+        effective_rank(th.eye(3), delta=1.0)
+    with pytest.raises(ValueError, match="action_dim"):
+        action_spread(th.ones(4, 2, 2))

@@ -1,0 +1,167 @@
+import glob
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import TD3
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
+from sb3_collapse.envs.synthetic import RandomObservationEnv
+
+PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
+# A window of 200 frames checked every 20 frames, on an env of action repeat 2: 100 agent steps per window.
+RULE = dict(window_frames=200, check_every_frames=20, patience=3)
+
+
+def tiny_model(seed=0, **kwargs):
+    params = dict(buffer_size=1000, learning_starts=20, batch_size=8, seed=seed, policy_kwargs=dict(hidden_dim=32))
+    params.update(stddev_schedule="linear(1.0,0.1,100)", **kwargs)
+    return DrQv2("CnnPolicy", RandomObservationEnv(PIXELS, action_repeat=2), **params)
+
+
+def collapse(model):
+    """Kill every mlp1 unit: a bias of -1000 makes every ReLU input negative for inputs in [-1, 1]."""
+    with th.no_grad():
+        model.actor.mlp1[0].bias.fill_(-1e3)
+
+
+def weights(model):
+    return [p.detach().clone() for p in model.policy.parameters()]
+
+
+def differ_everywhere(a, b):
+    """Every weight tensor that is not all-zero biases or LayerNorm ones differs."""
+    return all(not th.equal(x, y) for x, y in zip(a, b) if x.dim() > 1)
+
+
+class SpyReset(CollapseReset):
+    """Records the model's state right after each reset, and the number of updates at every step."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.before, self.after, self.updates = [], [], {}
+
+    def _reset(self, frames):
+        self.before.append(weights(self.model))
+        super()._reset(frames)
+        model = self.model
+        self.after.append(
+            dict(
+                weights=weights(model),
+                buffer_size=model.replay_buffer.size(),
+                optimizer_states=[len(o.state) for o in model.policy.optimizers],
+                stddev=model.current_stddev,
+                step=model.num_timesteps,
+                grad_norms=model.last_grad_norms,
+            )
+        )
+
+    def _on_step(self):
+        self.updates[self.num_timesteps] = self.model._n_updates
+        return super()._on_step()
+
+
+def test_collapsed_actor_has_collapse_metrics_and_zero_gradient():
+    model = tiny_model()
+    collapse(model)
+    metrics = CollapseMetrics(check_every_frames=100, batch_size=32)
+    model.learn(60, callback=metrics)  # frame 100: 30 updates done, 60 transitions stored
+    values = metrics.last_metrics
+    assert values["collapse/mlp1/dead_fraction"] == 1.0 and values["collapse/mlp2/dead_fraction"] == 1.0
+    assert values["collapse/mlp1/zero_fraction"] == 1.0
+    assert values["collapse/mlp1/numerical_rank"] <= 1.0  # 0: the activation matrix is all zeros
+    assert values["collapse/action/numerical_rank"] <= 1.0 + 1e-6  # every input gets the same action
+    assert values["collapse/action_std"] < 1e-6
+    assert values["collapse/mlp1/grad_norm"] < 1e-3 and model.last_grad_norms["mlp1"] == 0.0
+    assert values["collapse/cnn1/numerical_rank"] > 5  # the encoder is not collapsed
+
+
+def test_collapsed_actor_is_reset_from_scratch_at_the_end_of_the_window():
+    model = tiny_model()
+    initial = weights(model)
+    collapse(model)
+    rule = SpyReset(**RULE, verbose=1)
+    model.learn(170, callback=rule)
+
+    assert model.num_timesteps == 170  # the budget is spent, not extended
+    assert rule.resets == 1 and rule.reset_frames == [200]
+    after = rule.after[0]
+    assert after["step"] == 100 and model.reset_step == 100
+    # New random weights: neither the collapsed ones nor the initial ones again.
+    assert differ_everywhere(after["weights"], rule.before[0])
+    assert differ_everywhere(after["weights"], initial)
+    assert model.actor.mlp1[0].bias.abs().max() < 1.0  # zero-initialized again, then trained a little
+    assert after["optimizer_states"] == [0, 0, 0]  # fresh Adam state
+    assert after["buffer_size"] == 0 and after["grad_norms"] == {}
+    assert after["stddev"] == 1.0  # the exploration schedule restarts (it was 0.1 at step 100)
+    # Warm-up again: no update from the reset until learning_starts=20 agent steps were collected.
+    assert rule.updates[100] == rule.updates[120] > 0
+    assert rule.updates[130] > rule.updates[120]
+    # The aliases and the gradient norms follow the new networks.
+    assert model.actor is model.policy.actor and model.encoder is model.policy.encoder
+    assert model._actor_layers[1][1][0] is model.policy.actor.mlp1[0].weight
+    assert model.last_grad_norms["mlp1"] > 1e-3
+    # The fresh actor is healthy: it escapes, and the rule stops.
+    assert rule.escaped and rule.escape_frame > 240
+
+
+def test_healthy_actor_escapes_and_is_never_reset():
+    # A fresh tiny actor on random rewards has an mlp1 gradient norm of 0.04..0.2 here, far above 1e-3.
+    model = tiny_model(seed=1)
+    rule = SpyReset(**RULE)
+    model.learn(160, callback=rule)
+    assert rule.escaped and rule.resets == 0 and model.reset_step == 0
+    assert rule.escape_frame == 100  # updates from agent step 21: healthy checks at frames 60, 80, 100
+    assert rule.streak >= 3 and not rule.before
+    assert model.num_timesteps == 160
+
+
+def test_max_resets_caps_the_resets(tmp_path):
+    # No update (learning_starts > budget): only the schedule of the rule is tested.
+    model = tiny_model(learning_starts=1000, tensorboard_log=str(tmp_path))
+    # An impossible threshold: every window ends without escape.
+    rule = CollapseReset(window_frames=100, check_every_frames=20, threshold=1e9, max_resets=2)
+    model.learn(200, callback=rule)
+    assert rule.resets == 2 and rule.reset_frames == [100, 200] and not rule.escaped
+    assert model.reset_step == 100 and model.num_timesteps == 200
+    accumulator = EventAccumulator(glob.glob(str(tmp_path / "DrQv2_1" / "events.out.tfevents.*"))[0])
+    accumulator.Reload()
+    resets = accumulator.Scalars("collapse/reset_frame")
+    assert [(e.step, e.value) for e in resets] == [(50, 100.0), (100, 200.0)]  # at agent steps 50 and 100
+    assert accumulator.Scalars("collapse/resets")[-1].value == 2.0
+    assert all(e.value == 0.0 for e in accumulator.Scalars("collapse/escaped"))
+
+
+@pytest.mark.parametrize("metric", ["action_std", lambda model: model.actor.mlp1[0].bias.max().item() + 1.0])
+def test_other_trigger_metrics(metric):
+    model = tiny_model()
+    collapse(model)
+    rule = CollapseReset(**RULE, metric=metric, batch_size=16)
+    model.learn(110, callback=rule)
+    assert rule.resets == 1  # action std 0 (or bias + 1 < 0) on the collapsed actor
+    before_reset = [value for frame, value in rule.history if frame <= 200 and value is not None]
+    assert before_reset and max(before_reset) <= 1e-3
+
+
+def test_reset_step_is_saved_and_restarts_with_learn(tmp_path):
+    model = tiny_model()
+    model.learn(30)
+    model.reset_from_scratch()
+    assert model.reset_step == 30 and model.replay_buffer.size() == 0
+    model.save(tmp_path / "model.zip")
+    loaded = DrQv2.load(tmp_path / "model.zip", env=RandomObservationEnv(PIXELS, action_repeat=2))
+    assert loaded.reset_step == 30
+    loaded.learn(10, reset_num_timesteps=True)
+    assert loaded.reset_step == 0
+
+
+def test_reset_rule_refuses_models_it_cannot_reset():
+    model = TD3("MlpPolicy", RandomObservationEnv(gym.spaces.Box(-1, 1, (4,), np.float32)), learning_starts=5)
+    with pytest.raises(TypeError, match="reset_from_scratch"):
+        model.learn(10, callback=CollapseReset())
+    with pytest.raises(ValueError, match="layer='cnn0'"):
+        tiny_model().learn(10, callback=CollapseReset(layer="cnn0"))
+    with pytest.raises(ValueError, match="metric"):
+        CollapseReset(metric="rank")
