@@ -199,11 +199,15 @@ class DrQv2(OffPolicyAlgorithm):
         if self.device.type == "cuda":
             th.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest kernels
         self._create_aliases()
+        self._index_grad_layers()
+        self.policy.exploration_std = self.current_stddev
+
+    def _index_grad_layers(self) -> None:
+        """The named layers whose gradient norms the update measures, read from the current networks."""
         self._encoder_layers = _layers_with_parameters(self.encoder.named_layers())
         self._actor_layers = _layers_with_parameters(self.actor.named_layers())
         self._grad_layers = self._encoder_layers + self._actor_layers
         self._encoder_grad_norms = th.zeros(len(self._encoder_layers), device=self.device)
-        self.policy.exploration_std = self.current_stddev
 
     def _select_replay_buffer(self) -> None:
         """
@@ -541,10 +545,7 @@ class DrQv2(OffPolicyAlgorithm):
         self.policy.to(self.device)
         self.policy.set_training_mode(was_training)
         self._create_aliases()
-        self._encoder_layers = _layers_with_parameters(self.encoder.named_layers())
-        self._actor_layers = _layers_with_parameters(self.actor.named_layers())
-        self._grad_layers = self._encoder_layers + self._actor_layers
-        self._encoder_grad_norms = th.zeros(len(self._encoder_layers), device=self.device)
+        self._index_grad_layers()
         self._last_grad_norms = None
         self.replay_buffer.reset()  # type: ignore[union-attr]
         self.reset_step = self.num_timesteps

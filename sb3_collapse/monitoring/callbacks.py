@@ -123,13 +123,28 @@ class ProbeBatchSampler:
         positions = self.valid_positions(buffer)
         if len(positions) < batch_size:
             return None
+        env = getattr(model, "_vec_normalize_env", None)
+        if hasattr(buffer, "is_sampleable"):  # FrameStackReplayBuffer: (position, env) pairs whose frames remain
+            return self._sample_where_sampleable(buffer, positions, batch_size, env)
         indices = np.sort(self.rng.choice(positions, size=batch_size, replace=False))
         state = np.random.get_state()
         try:
-            samples = buffer._get_samples(indices, env=getattr(model, "_vec_normalize_env", None))
+            samples = buffer._get_samples(indices, env=env)
         finally:
             np.random.set_state(state)
         return samples.observations, indices
+
+    def _sample_where_sampleable(
+        self, buffer: Any, positions: np.ndarray, batch_size: int, env: Any
+    ) -> tuple[th.Tensor, np.ndarray] | None:
+        """Draw ``(position, env)`` pairs among those ``buffer.is_sampleable`` accepts; ``None`` if too few."""
+        pairs = np.stack(np.meshgrid(positions, np.arange(buffer.n_envs), indexing="ij"), -1).reshape(-1, 2)
+        pairs = pairs[buffer.is_sampleable(pairs[:, 0], pairs[:, 1])]
+        if len(pairs) < batch_size:
+            return None
+        chosen = pairs[np.sort(self.rng.choice(len(pairs), size=batch_size, replace=False))]
+        samples = buffer._get_samples(chosen[:, 0], env=env, env_indices=chosen[:, 1])
+        return samples.observations, chosen[:, 0]
 
 
 class FrameScheduleCallback(BaseCallback):

@@ -100,6 +100,10 @@ def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgor
     return ALGORITHMS[module]
 
 
+PROBE_BUFFER_SIZE = 64
+"""Replay buffer capacity (transitions) of a model loaded for probing: it is never filled."""
+
+
 def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkpoint:
     """
     Load a checkpoint for probing and check that its layers can be named.
@@ -114,8 +118,8 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
     data = read_saved_data(path)
     algorithm = identify_algorithm(data, path)
     try:
-        # A 1-transition buffer: loading must not reserve the replay memory of training.
-        model = algorithm.load(path, device=device, buffer_size=1)
+        # A small buffer (room for any n-step window): loading must not reserve the replay memory of training.
+        model = algorithm.load(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
     except Exception as error:
         raise ProbeError(f"{path}: {algorithm.__name__}.load failed ({type(error).__name__}: {error}).") from error
     try:

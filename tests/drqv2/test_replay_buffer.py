@@ -304,3 +304,21 @@ def test_drqv2_memory_advice_uses_frame_bytes(monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         DrQv2("CnnPolicy", env, **{**SMALL, "buffer_size": 40_000})
+
+
+def test_probe_batches_skip_overwritten_frames():
+    """CollapseMetrics' probe sampler draws only sampleable (pos, env) pairs, and leaves np.random alone."""
+    from sb3_collapse.monitoring import ProbeBatchSampler
+
+    rng = np.random.default_rng(5)
+    ours, _ = make_pair(60, 2, 3, min_episode_length=250)
+    for args in random_episodes(rng, 2, 3, 100, p_terminate=0.2, p_truncate=0.2):
+        ours.add(*args)
+    pos, envs = np.arange(30).repeat(2), np.tile(np.arange(2), 30)
+    n_sampleable = int(ours.is_sampleable(pos, envs).sum())
+    model = type("Model", (), {"replay_buffer": ours})()
+    state = np.random.get_state()[1].copy()
+    observations, _ = ProbeBatchSampler(seed=0).sample(model, n_sampleable)
+    assert observations.shape == (n_sampleable, 9, *FRAME[1:])
+    assert np.array_equal(np.random.get_state()[1], state)
+    assert ProbeBatchSampler(seed=0).sample(model, n_sampleable + 1) is None
