@@ -77,6 +77,12 @@ def time_sklearn(X: np.ndarray, Y: np.ndarray, tau: int, targets: int) -> tuple[
 def benchmark_omp(args: argparse.Namespace, device: th.device) -> None:
     X, Y = synthetic_data(args.samples, args.features, args.targets)
     print(f"data: {args.samples:,} x {args.features:,} float32, {args.targets} targets, tau {args.max_tau}", flush=True)
+    # Untimed warm-up of both on a small slice: library initialisation is not part of either's speed.
+    small = (slice(0, min(1000, args.samples)), slice(0, min(2000, args.features)))
+    time_ours(X[small], Y[small[0]], min(4, args.max_tau), device)
+    OrthogonalMatchingPursuit(n_nonzero_coefs=min(4, args.max_tau), fit_intercept=False, precompute=False).fit(
+        np.asfortranarray(X[small]), Y[small[0], 0]
+    )
     ours_s, indices, ours_coef = time_ours(X, Y, args.max_tau, device)
     print(f"ours: {ours_s:.2f} s", flush=True)
     m = args.sklearn_targets or args.targets

@@ -30,6 +30,7 @@ from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.envs import make_dmc_env, parse_task
+from sb3_collapse.monitoring import CollapseMetrics, CollapseReset
 
 
 @dataclass
@@ -57,6 +58,11 @@ class TrainConfig:
     :param hidden_dim: hidden units of the actor and the Q heads
     :param stddev_schedule: exploration std schedule, durations in agent steps
     :param stddev_clip: noise clip in the updates
+    :param collapse_metrics_every_frames: frames between two ``CollapseMetrics`` checks (collapse metrics of every
+        named layer to TensorBoard); ``0`` disables them
+    :param collapse_probe_batch: observations of the replay buffer in each ``CollapseMetrics`` probe batch
+    :param reset_rule: apply the paper's reset-from-scratch rule (``CollapseReset``)
+    :param reset_window_frames: frames the agent has to escape collapse before a reset (the rule's window)
     :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
     :param progress_bar: show a progress bar
     :param verbose: SB3 verbosity (0: silent, 1: log tables)
@@ -82,6 +88,10 @@ class TrainConfig:
     hidden_dim: int = 1024
     stddev_schedule: str = "linear(1.0,0.1,100000)"
     stddev_clip: float = 0.3
+    collapse_metrics_every_frames: int = 10_000
+    collapse_probe_batch: int = 512
+    reset_rule: bool = False
+    reset_window_frames: int = 200_000
     device: str = "auto"
     progress_bar: bool = True
     verbose: int = 0
@@ -92,11 +102,13 @@ class TrainConfig:
         """
         parse_task(self.env)
         StddevSchedule(self.stddev_schedule)
-        positive = ("frames", "action_repeat", "frame_stack", "size", "batch_size", "n_steps", "feature_dim", "hidden_dim")
+        positive = ("frames", "action_repeat", "frame_stack", "size", "batch_size", "n_steps", "feature_dim", "hidden_dim",
+                    "collapse_probe_batch", "reset_window_frames")
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}.")
-        for name in ("eval_every_frames", "eval_episodes", "checkpoint_every_frames", "seed_frames"):
+        for name in ("eval_every_frames", "eval_episodes", "checkpoint_every_frames", "seed_frames",
+                     "collapse_metrics_every_frames"):
             if getattr(self, name) < 0:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}.")
         if self.eval_every_frames > 0 and self.eval_episodes < 1:
@@ -240,6 +252,11 @@ def train(config: TrainConfig) -> TrainResult:
     if config.checkpoint_every_frames > 0:
         save_freq = max(1, config.checkpoint_every_frames // config.action_repeat)
         callbacks.append(CheckpointCallback(save_freq, str(run_dir / "checkpoints"), name_prefix="drqv2"))
+    if config.collapse_metrics_every_frames > 0:
+        callbacks.append(CollapseMetrics(config.collapse_metrics_every_frames, batch_size=config.collapse_probe_batch))
+    if config.reset_rule:
+        check_every = min(10_000, config.reset_window_frames)  # the paper's: one check every 10,000 frames
+        callbacks.append(CollapseReset(config.reset_window_frames, check_every_frames=check_every, verbose=1))
 
     print(
         f"DrQ-v2 on {task_id} from pixels: {config.frames:,} frames = {steps:,} agent steps "
@@ -291,6 +308,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hidden-dim", type=int, default=d.hidden_dim, help="hidden units of the actor and Q heads")
     p.add_argument("--stddev-schedule", default=d.stddev_schedule, help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps")
     p.add_argument("--stddev-clip", type=float, default=d.stddev_clip, help="clip of the exploration noise in the updates")
+    p.add_argument("--collapse-metrics-every-frames", type=int, default=d.collapse_metrics_every_frames, help="frames between two checks of the collapse metrics (TensorBoard collapse/...); 0 disables them")
+    p.add_argument("--collapse-probe-batch", type=int, default=d.collapse_probe_batch, help="replay observations per collapse-metrics check")
+    p.add_argument("--reset-rule", action="store_true", help="reset training from scratch when the agent has not escaped action collapse within each window (the paper's rule)")
+    p.add_argument("--reset-window-frames", type=int, default=d.reset_window_frames, help="the reset rule's window, in frames")
     p.add_argument("--device", default=d.device, help="auto, cpu, cuda, cuda:1, ...")
     p.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
     p.add_argument("--verbose", type=int, default=d.verbose, help="1: print SB3's log tables")

@@ -41,6 +41,21 @@ def test_train_end_to_end(tmp_path):
     assert second.evaluations == []
 
 
+def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
+    config = TrainConfig(
+        env="walker-walk", frames=800, action_repeat=8, seed_frames=160, batch_size=8, hidden_dim=32,
+        eval_every_frames=0, logdir=str(tmp_path), progress_bar=False, collapse_metrics_every_frames=400,
+        collapse_probe_batch=16, reset_rule=True, reset_window_frames=400,
+    )
+    result = train(config)
+    accumulator = EventAccumulator(str(next(result.run_dir.glob("events.out.tfevents.*"))))
+    accumulator.Reload()
+    tags = set(accumulator.Tags()["scalars"])
+    assert {"collapse/mlp1/numerical_rank", "collapse/mlp1/grad_norm", "collapse/action_std"} <= tags
+    # One check per window of 400 frames: 5 healthy checks in a row cannot happen before the window ends.
+    assert [e.value for e in accumulator.Scalars("collapse/resets")][-1] >= 1
+
+
 def test_help_documents_units():
     out = subprocess.run([sys.executable, "-m", "sb3_collapse.train", "--help"], capture_output=True, text=True, check=True).stdout
     for flag in ("--frames", "--eval-every-frames", "--seed-frames", "--stddev-schedule", "--buffer-size", "--logdir"):
