@@ -35,14 +35,10 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.utils import get_device
 
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
 from sb3_collapse.envs.synthetic import RandomObservationEnv
-
-
-def resolve_device(device: str) -> th.device:
-    """``auto`` is CUDA when available, as in SB3."""
-    return th.device("cuda" if device == "auto" and th.cuda.is_available() else "cpu" if device == "auto" else device)
 
 
 def synchronize(device: th.device) -> None:
@@ -140,7 +136,7 @@ def main() -> None:
     if args.frames < args.check_every_frames:
         parser.error(f"--frames {args.frames} gives no check every {args.check_every_frames} frames.")
 
-    device = resolve_device(args.device)
+    device = get_device(args.device)
     name = (
         th.cuda.get_device_name(device)
         if device.type == "cuda"
