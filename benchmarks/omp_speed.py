@@ -33,8 +33,9 @@ from pathlib import Path
 import numpy as np
 import torch as th
 from sklearn.linear_model import OrthogonalMatchingPursuit
+from stable_baselines3.common.utils import get_device
 
-from sb3_collapse.probe.omp import omp_path, resolve_device
+from sb3_collapse.probe.omp import omp_path
 
 
 def synthetic_data(samples: int, features: int, targets: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -165,7 +166,7 @@ def main() -> None:
     parser.add_argument("--memory-gb", type=float, default=4.0, help="activation memory budget of the full probe")
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
     args = parser.parse_args()
-    device = resolve_device(args.device)
+    device = get_device(args.device)
     name = (
         th.cuda.get_device_name(device)
         if device.type == "cuda"

@@ -29,6 +29,7 @@ import time
 import numpy as np
 import torch as th
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.drqv2.reference import reference_update
@@ -75,11 +76,6 @@ def time_updates(update, updates: int, device: th.device) -> float:
     return float(np.median(times))
 
 
-def resolve_device(device: str) -> th.device:
-    """``auto`` is CUDA when available, as in SB3."""
-    return th.device("cuda" if device == "auto" and th.cuda.is_available() else "cpu" if device == "auto" else device)
-
-
 def measure(impl: str, batch_sizes: list[int], updates: int, device: str, buffer_size: int) -> list[float]:
     """Median ms per update of one implementation, for each batch size (in this process)."""
     model = build_model(device, reference=impl == "reference", buffer_size=buffer_size)
@@ -111,7 +107,7 @@ def main() -> None:
         output = subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout
         timings[impl] = [float(value) for value in output.split()]
 
-    device = resolve_device(args.device)
+    device = get_device(args.device)
     name = th.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({platform.processor() or platform.machine()}), {th.get_num_threads()} threads"
     print(f"device: {name}; torch {th.__version__}; obs 9x84x84 uint8, 6-d actions; median of {args.updates} updates")
     print(f"{'batch':>6} {'reference ops (ms)':>19} {'ours (ms)':>10} {'ours / reference':>17}")

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
 
@@ -202,13 +203,6 @@ def path_predictions(X: th.Tensor, path: OMPPath, x_offset: th.Tensor | None = N
     return th.einsum("nmk,mkt->nmt", selected, path.coef_path.to(X.device))
 
 
-def resolve_device(device: th.device | str) -> th.device:
-    """``"auto"``: CUDA when available, else the CPU."""
-    if device == "auto":
-        return th.device("cuda" if th.cuda.is_available() else "cpu")
-    return th.device(device)
-
-
 class OrthogonalMatchingPursuit:
     """
     A scikit-learn-like OMP estimator on :func:`omp_path` (all targets fitted together).
@@ -240,7 +234,7 @@ class OrthogonalMatchingPursuit:
     def _features(self, X: np.ndarray | th.Tensor) -> th.Tensor:
         X = th.as_tensor(X)
         dtype = self.dtype or (X.dtype if X.dtype in (th.float32, th.float64) else th.float32)
-        return X.to(device=resolve_device(self.device), dtype=dtype)
+        return X.to(device=get_device(self.device), dtype=dtype)
 
     def fit(self, X: np.ndarray | th.Tensor, y: np.ndarray | th.Tensor) -> OrthogonalMatchingPursuit:
         """

@@ -10,6 +10,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from stable_baselines3.common.utils import get_device
+
 from sb3_collapse.probe.checkpoints import (
     Checkpoint,
     checkpoint_labels,
@@ -18,7 +20,6 @@ from sb3_collapse.probe.checkpoints import (
     read_saved_data,
 )
 from sb3_collapse.probe.errors import ProbeError
-from sb3_collapse.probe.omp import resolve_device
 from sb3_collapse.probe.probing import CheckpointProbe, ProbeSettings, probe_checkpoint, split_by_episode
 from sb3_collapse.probe.report import (
     BY_LAYER_PLOT,
@@ -120,7 +121,7 @@ def record_to_file(
     out = Path(out)
     if out.exists() and not overwrite:
         raise ProbeError(f"{out} exists: pass --overwrite or another --out.")
-    checkpoint = load_checkpoint(checkpoint_path, device=resolve_device(device))
+    checkpoint = load_checkpoint(checkpoint_path, device=get_device(device))
     rollouts = record(checkpoint, options, progress)
     path = rollouts.save(out)
     print(
@@ -171,7 +172,7 @@ def probe_to_folder(
     settings.validate()
     check_checkpoint_files(checkpoint_paths)
     labels = checkpoint_labels(list(checkpoint_paths))
-    device = resolve_device(settings.device)
+    device = get_device(settings.device)
     out = Path(out)
     with StagedOutput(out, overwrite=overwrite) as staged:
         if rollouts_path is None:

@@ -24,12 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
 from sb3_collapse.monitoring import collect_activations, layer_taps
 from sb3_collapse.probe.checkpoints import Checkpoint
 from sb3_collapse.probe.errors import ProbeError
-from sb3_collapse.probe.omp import omp_path, path_predictions, resolve_device
+from sb3_collapse.probe.omp import omp_path, path_predictions
 from sb3_collapse.probe.rollouts import Rollouts
 
 PROBE_LAYERS = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2")
@@ -419,7 +420,7 @@ def probe_checkpoint(
     names, groups, raw_targets = rollouts.targets()
     targets, _, target_scale = standardize_targets(raw_targets[split.order], split.n_train)
     train_std = raw_targets[split.order[: split.n_train]].std(0, dtype=np.float64)
-    device = resolve_device(settings.device)
+    device = get_device(settings.device)
     dims = layer_dimensions(model, rollouts.observations[:1], layers)
     result = CheckpointProbe(checkpoint)
     probes: dict[str, LayerProbe] = {}
