@@ -14,6 +14,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.monitoring import LayerMappingError, layer_taps
+from sb3_collapse.monitoring.callbacks import action_repeat_of
 from sb3_collapse.probe.errors import ProbeError
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
@@ -30,10 +31,10 @@ class Checkpoint:
     A loaded checkpoint.
 
     :param path: the zip file
-    :param model: the algorithm, on the requested device, with a 1-transition replay buffer
+    :param model: the algorithm, on the requested device, with a ``PROBE_BUFFER_SIZE``-transition replay buffer
     :param algorithm: its class name
     :param num_timesteps: training progress, in agent steps
-    :param action_repeat: frames per agent step (``model.action_repeat`` for DrQv2, else 1)
+    :param action_repeat: frames per agent step (:func:`~sb3_collapse.monitoring.callbacks.action_repeat_of`)
     :param label: its name in the outputs (``None``: the file name without ``.zip``)
     """
 
@@ -126,8 +127,7 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
         layer_taps(model)
     except LayerMappingError as error:
         raise ProbeError(f"{path}: {error}") from error
-    action_repeat = int(getattr(model, "action_repeat", 1) or 1)
-    return Checkpoint(path, model, algorithm.__name__, int(model.num_timesteps), action_repeat)
+    return Checkpoint(path, model, algorithm.__name__, int(model.num_timesteps), action_repeat_of(model))
 
 
 def checkpoint_labels(paths: list[str | Path]) -> list[str]:
