@@ -3,7 +3,7 @@
 #
 # setup: headless OpenGL (Debian packages, when missing and apt-get can install them), a virtual
 #        environment in .venv (Python >= 3.10), PyTorch (CPU build 2.13.0 unless TORCH_SPEC says otherwise,
-#        or the one already there), then this package with its test extras.
+#        or the one already there), then this package (with its test, zoo and sweep extras for `test`).
 # demo:  setup, then a short DrQ-v2 run on walker-walk from pixels; writes runs/walker-walk_s0/.
 # test:  setup, then the test suite (pytest). Extra arguments go to pytest.
 set -euo pipefail
@@ -48,6 +48,7 @@ find_python() {
 }
 
 setup() {
+    local extras=${1:-}
     if command -v dpkg >/dev/null && command -v apt-get >/dev/null; then
         install_rendering_packages
     fi
@@ -60,7 +61,7 @@ setup() {
         pip_install "$TORCH_SPEC"
     fi
     log "Installing sb3-collapse and its dependencies"
-    pip_install -e ".[test]"
+    pip_install -e ".${extras:+[$extras]}"
 }
 
 pip_install() {
@@ -73,7 +74,7 @@ command=${1:-}
 shift || true
 case $command in
     setup)
-        setup
+        setup test,zoo,sweep
         ;;
     demo)
         setup
@@ -83,7 +84,7 @@ case $command in
         echo "See the curves with: $VENV/bin/tensorboard --logdir runs"
         ;;
     test)
-        setup
+        setup test,zoo,sweep
         log "Running the test suite"
         "$VENV/bin/python" -m pytest "$@"
         ;;
