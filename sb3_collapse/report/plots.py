@@ -109,7 +109,10 @@ def plot_figure5(
         ax.set_ylabel("evaluation return")
         ax.xaxis.set_major_formatter(EngFormatter(sep=""))
         ax.grid(alpha=0.3)
-        if len(ax.get_legend_handles_labels()[1]) > 5:  # many variants: beside the panel, not over the curves
+        entries = len(ax.get_legend_handles_labels()[1])
+        if entries == 0:
+            ax.text(0.5, 0.5, "no finished seed yet", ha="center", va="center", transform=ax.transAxes)
+        elif entries > 5:  # many variants: beside the panel, not over the curves
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
         else:
             ax.legend(fontsize=7, loc="best")
@@ -130,8 +133,7 @@ def plot_transplant_grid(grid: Mapping[str, Sequence[GridCell]], path: Path, suc
     """
     tasks = list(grid)
     fig, axes = _panels(len(tasks))
-    cmap = plt.get_cmap("viridis").copy()
-    cmap.set_bad("0.85")
+    cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
     size = len(TRANSPLANT_SOURCES)
     for ax, task in zip(axes.flat, tasks):
         lookup = {(c.cnn, c.mlp): c for c in grid[task]}
