@@ -138,7 +138,7 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
     skipped; so is any folder that does not have this three-level shape (e.g. ``<sweep>/report/``).
 
     :param sweep: the sweep folder
-    :return: ``(task, variant, seed, path)`` sorted by task, variant and seed
+    :return: ``(task, variant, seed, path)`` sorted by task, variant (:func:`variant_order`) and seed
     :raises ReportError: when the folder does not exist or holds no trial folder
     """
     root = Path(sweep)
@@ -157,7 +157,8 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
         raise ReportError(
             f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the --out folder of a sweep?"
         )
-    return sorted(found, key=lambda item: (item[0], variant_order([item[1]])[0], item[1], item[2]))
+    variants = variant_order(item[1] for item in found)
+    return sorted(found, key=lambda item: (item[0], variants.index(item[1]), item[2]))
 
 
 def read_json(path: Path) -> dict[str, Any]:
