@@ -11,6 +11,7 @@ from fabricated_sweep import FakeSweep, FakeTrial, write_fake_sweep
 from sb3_collapse.report import (
     ReportError,
     ReportSettings,
+    build_report,
     load_reference_curves,
     reference_task_name,
     stuck_in_collapse,
@@ -149,7 +150,7 @@ def test_percentile_bands(written):
     assert report.curves["hopper-stand"][1].frames[-1] == 200_000  # seed 4's extra 210,000 is dropped
 
 
-def test_transplant_grid_counts(written, tmp_path):
+def test_transplant_grid_counts(written):
     sweep, _, out = written
     rows = _read_csv(out / "transplant_grid.csv")
     assert len(rows) == 9 and {r["task"] for r in rows} == {"walker-walk"}
@@ -165,7 +166,7 @@ def test_transplant_grid_counts(written, tmp_path):
     text = (out / "transplant_grid.md").read_text()
     assert "| good CNN | 2/2 | 2/3 | 0/2 |" in text and "| bad CNN | - | 1/2 | 0/2 |" in text
     # Another success threshold, from the library.
-    strict = write_report(sweep.path, out=tmp_path, settings=ReportSettings(success_return=950), progress=False)
+    strict = build_report(sweep.path, settings=ReportSettings(success_return=950), progress=False)
     assert [(c.successes, c.seeds) for c in strict.grid["walker-walk"]][:2] == [(1, 2), (0, 2)]
 
 
@@ -256,20 +257,18 @@ def test_stuck_in_collapse_rule():
     assert stuck_in_collapse(np.zeros(0)) is None
 
 
-def test_collapse_settings_change_the_count(fake_sweep, tmp_path):
+def test_collapse_settings_change_the_count(fake_sweep):
     # With the last check only, the middle agent of hopper-stand (last value 9e-4) is still stuck, and a
     # threshold below 1e-6 makes the collapsed seeds healthy.
-    loose = write_report(
+    loose = build_report(
         fake_sweep.path,
-        out=tmp_path / "a",
         settings=ReportSettings(collapse_threshold=1e-8),
         tasks=["hopper-stand"],
         progress=False,
     )
     assert [r.stuck for r in loose.rows] == [0, 0]
-    one = write_report(
+    one = build_report(
         fake_sweep.path,
-        out=tmp_path / "b",
         settings=ReportSettings(collapse_checks=1),
         tasks=["hopper-stand"],
         progress=False,
