@@ -1,0 +1,126 @@
+"""
+Reports of a sweep folder (the paper's Figure 5, the table, the transplant grid): ``python -m sb3_collapse.report
+--help``.
+
+    python -m sb3_collapse.report runs/                          # writes runs/report/, prints the table
+    python -m sb3_collapse.report runs/ --reference --out figs/  # with the published DrQ-v2 curves
+
+Errors in the input print ``error: ...`` and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from sb3_collapse.report.errors import ReportError
+from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
+from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report
+from sb3_collapse.report.statistics import ReportSettings
+from sb3_collapse.report.tables import grid_markdown
+
+PROG = "python -m sb3_collapse.report"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line."""
+    defaults = ReportSettings()
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description=(
+            "Figure 5 (mean evaluation return and percentile band across seeds, per task and variant), the table "
+            "(final return, seeds stuck in action collapse, resets, std over the last evaluations) and, when "
+            "cnn-<src>_mlp-<src> variants exist, the transplant grid of a sweep folder "
+            "<sweep>/<task>/<variant>/seed_<k>/. Only finished trials (result.json) enter the statistics."
+        ),
+    )
+    parser.add_argument("sweep", help="the sweep folder (--out of python -m sb3_collapse.sweep)")
+    parser.add_argument("--out", help=f"output folder (default: <sweep>/{REPORT_FOLDER})")
+    parser.add_argument(
+        "--reference", action="store_true", help="overlay the published DrQ-v2 curves (dashed mean, hatched band)"
+    )
+    parser.add_argument(
+        "--include-unfinished",
+        action="store_true",
+        help="draw the partial curves of unfinished trials, dotted (never used in the table)",
+    )
+    parser.add_argument("--tasks", nargs="+", help="only these task folders (default: all)")
+    parser.add_argument("--variants", nargs="+", help="only these variant folders (default: all)")
+    parser.add_argument(
+        "--collapse-tag",
+        default=DEFAULT_COLLAPSE_TAG,
+        help="collapse_metrics.csv tag that decides 'stuck in action collapse' (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--collapse-threshold",
+        type=float,
+        default=defaults.collapse_threshold,
+        help="a seed is stuck when the median of its last --collapse-checks values is <= this (default: %(default)g)",
+    )
+    parser.add_argument(
+        "--collapse-checks",
+        type=int,
+        default=defaults.collapse_checks,
+        help="number of last collapse checks whose median is tested (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--last-evals",
+        type=int,
+        default=defaults.last_evals,
+        help="the across-seed std is averaged over this many last evaluations (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--success-return",
+        type=float,
+        default=defaults.success_return,
+        help="transplant grid: a seed succeeds when its final return is >= this (default: %(default)g)",
+    )
+    parser.add_argument(
+        "--percentiles",
+        type=float,
+        nargs=2,
+        metavar=("LOW", "HIGH"),
+        default=list(defaults.percentiles),
+        help="Figure 5's band, in percent (default: 5 95)",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """
+    :param argv: the arguments (``sys.argv[1:]`` when ``None``)
+    :return: 0 on success, 2 on bad input (after ``error: ...`` on stderr)
+    """
+    args = build_parser().parse_args(argv)
+    settings = ReportSettings(
+        collapse_tag=args.collapse_tag,
+        collapse_threshold=args.collapse_threshold,
+        collapse_checks=args.collapse_checks,
+        last_evals=args.last_evals,
+        success_return=args.success_return,
+        percentiles=(args.percentiles[0], args.percentiles[1]),
+    )
+    try:
+        report = write_report(
+            args.sweep,
+            out=args.out,
+            settings=settings,
+            reference=args.reference,
+            include_unfinished=args.include_unfinished,
+            tasks=args.tasks,
+            variants=args.variants,
+            progress=not args.no_progress,
+        )
+    except ReportError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    print(report.markdown)
+    if report.grid:
+        print(grid_markdown(report.grid, settings.success_return))
+    print("wrote " + ", ".join(str(path) for path in report.files))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""The report's PNG figures: Figure 5 (curves with percentile bands) and the transplant-grid heatmap."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.ticker import EngFormatter
+
+from sb3_collapse.report.loading import Trial
+from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, BandCurve, GridCell
+
+REFERENCE_COLOR = "0.15"
+
+
+def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...]]:
+    """
+    One colour per variant, the same in every panel (``tab10``, then ``tab20`` beyond ten variants).
+
+    :param variants: variant names in display order
+    :return: variant -> RGBA colour
+    """
+    cmap = plt.get_cmap("tab10" if len(variants) <= 10 else "tab20")
+    return {variant: cmap(i % cmap.N) for i, variant in enumerate(variants)}
+
+
+def _panels(count: int, columns: int = 3) -> tuple[plt.Figure, np.ndarray]:
+    ncols = min(columns, max(count, 1))
+    nrows = -(-max(count, 1) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.0 * ncols, 3.8 * nrows), squeeze=False)
+    for ax in axes.flat[count:]:
+        ax.set_visible(False)
+    return fig, axes
+
+
+def plot_figure5(
+    curves: Mapping[str, Sequence[BandCurve]],
+    path: Path,
+    references: Mapping[str, BandCurve] | None = None,
+    partial: Mapping[str, Sequence[Trial]] | None = None,
+    percentiles: tuple[float, float] = (5.0, 95.0),
+) -> None:
+    """
+    The paper's Figure 5: one panel per task, per variant the mean evaluation return over frames (solid) and the
+    percentile band across seeds (shaded); the legend gives the seed counts.
+
+    :param curves: task -> the variants' curves
+    :param path: the PNG file to write
+    :param references: task -> published DrQ-v2 curve, drawn dashed with a hatched band, cut at the last frame
+        of the task's own curves (whole when the task has none)
+    :param partial: task -> unfinished trials whose partial curves are drawn as thin dotted lines, labelled
+        "unfinished, partial"
+    :param percentiles: the band's percentiles (for the labels)
+    """
+    references = references or {}
+    partial = partial or {}
+    tasks = list(curves)
+    variants = list(
+        dict.fromkeys(
+            [c.name for task in tasks for c in curves[task]]
+            + [t.variant for task in tasks for t in partial.get(task, [])]
+        )
+    )
+    colors = variant_colors(variants)
+    low, high = percentiles
+    fig, axes = _panels(len(tasks))
+    for ax, task in zip(axes.flat, tasks):
+        last_frame = max((int(c.frames[-1]) for c in curves[task]), default=None)
+        reference = references.get(task)
+        if reference is not None:
+            keep = reference.frames <= last_frame if last_frame is not None else slice(None)
+            ax.plot(
+                reference.frames[keep],
+                reference.mean[keep],
+                "--",
+                color=REFERENCE_COLOR,
+                lw=1.5,
+                label=f"{reference.name} (n={reference.seeds})",
+            )
+            ax.fill_between(
+                reference.frames[keep],
+                reference.low[keep],
+                reference.high[keep],
+                facecolor="none",
+                edgecolor=REFERENCE_COLOR,
+                hatch="///",
+                lw=0.0,
+                alpha=0.35,
+            )
+        for curve in curves[task]:
+            color = colors[curve.name]
+            ax.plot(curve.frames, curve.mean, color=color, lw=2.0, label=f"{curve.name} (n={curve.seeds})")
+            ax.fill_between(curve.frames, curve.low, curve.high, color=color, alpha=0.2, lw=0.0)
+        labelled: set[str] = set()
+        for trial in partial.get(task, []):
+            if len(trial.frames) == 0:
+                continue
+            count = sum(t.variant == trial.variant and len(t.frames) > 0 for t in partial[task])
+            label = None if trial.variant in labelled else f"{trial.variant} unfinished, partial (n={count})"
+            labelled.add(trial.variant)
+            ax.plot(trial.frames, trial.returns, ":", color=colors[trial.variant], lw=1.0, label=label)
+        ax.set_title(task)
+        ax.set_xlabel("frames")
+        ax.set_ylabel("evaluation return")
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))
+        ax.grid(alpha=0.3)
+        entries = len(ax.get_legend_handles_labels()[1])
+        if entries == 0:
+            ax.text(0.5, 0.5, "no finished seed yet", ha="center", va="center", transform=ax.transAxes)
+        elif entries > 5:  # many variants: beside the panel, not over the curves
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+        else:
+            ax.legend(fontsize=7, loc="best")
+    fig.suptitle(f"Mean evaluation return, {low:g}th-{high:g}th percentile band across seeds", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_transplant_grid(grid: Mapping[str, Sequence[GridCell]], path: Path, success_return: float = 900.0) -> None:
+    """
+    The paper's Figure 3(a) as heatmaps: one per task, CNN source (rows) x MLP source (columns), coloured by the
+    fraction of successful seeds, with ``successes/seeds`` written in each cell (``-`` and grey without seeds).
+
+    :param grid: task -> 9 cells (:func:`~sb3_collapse.report.statistics.transplant_grid`)
+    :param path: the PNG file to write
+    :param success_return: the success threshold (for the title)
+    """
+    tasks = list(grid)
+    fig, axes = _panels(len(tasks))
+    cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
+    size = len(TRANSPLANT_SOURCES)
+    for ax, task in zip(axes.flat, tasks):
+        lookup = {(c.cnn, c.mlp): c for c in grid[task]}
+        fraction = np.full((size, size), np.nan)
+        for i, cnn in enumerate(TRANSPLANT_SOURCES):
+            for j, mlp in enumerate(TRANSPLANT_SOURCES):
+                cell = lookup[(cnn, mlp)]
+                if cell.seeds:
+                    fraction[i, j] = cell.successes / cell.seeds
+                text = f"{cell.successes}/{cell.seeds}" if cell.seeds else "-"
+                dark = cell.seeds and fraction[i, j] < 0.6
+                ax.text(j, i, text, ha="center", va="center", fontsize=12, color="white" if dark else "black")
+        image = ax.imshow(np.ma.masked_invalid(fraction), cmap=cmap, vmin=0.0, vmax=1.0)
+        ax.set_xticks(range(size), [f"{s} MLP" for s in TRANSPLANT_SOURCES])
+        ax.set_yticks(range(size), [f"{s} CNN" for s in TRANSPLANT_SOURCES])
+        ax.set_title(task)
+        fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04, label="fraction successful")
+    fig.suptitle(f"Successful seeds (final return >= {success_return:g}) / finished seeds", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

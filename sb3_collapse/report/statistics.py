@@ -1,0 +1,365 @@
+"""
+The numbers of the report, from loaded trials: aligned curves, percentile bands, the per-variant table and the
+layer-transplant grid. Pure functions of numpy arrays and :class:`~sb3_collapse.report.loading.Trial` lists.
+
+Conventions used throughout:
+
+- **Aligned grid.** The curves of a variant are compared on the evaluation frames that **every** finished seed of
+  the variant has (the intersection of their ``eval.csv`` frames). With one sweep's settings all seeds share one
+  grid and nothing is dropped; a seed trained longer (or evaluated on another grid) only contributes the shared
+  frames, and the report notes how many frames were dropped.
+- **Final return** of a seed: its evaluation return at the last frame of the aligned grid.
+- **Standard deviations** across seeds are sample standard deviations (``ddof=1``), as in the table of
+  ``../shared/reference/README.md``; undefined (nan) with fewer than 2 seeds.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sb3_collapse.report.loading import Sweep, Trial
+
+TRANSPLANT_SOURCES = ("blank", "good", "bad")
+"""Where a transplanted CNN or MLP comes from (rows and columns of the paper's Figure 3(a), in this order)."""
+TRANSPLANT_VARIANT = re.compile(r"^cnn-(blank|good|bad)_mlp-(blank|good|bad)$")
+
+
+@dataclass
+class ReportSettings:
+    """
+    The definitions of the report's numbers.
+
+    :param collapse_tag: the collapse metric whose recent values decide "stuck" (``collapse_metrics.csv`` tag)
+    :param collapse_threshold: a seed is stuck when the median of its last ``collapse_checks`` values of
+        ``collapse_tag`` is ``<=`` this (the reset rule's gradient-norm threshold, 1e-3)
+    :param collapse_checks: number of last checks whose median is compared with the threshold (5: the reset
+        rule's patience)
+    :param last_evals: the across-seed std is averaged over this many last frames of the aligned grid (10)
+    :param success_return: a seed whose final return is ``>=`` this succeeds (transplant grid; 900 in the paper)
+    :param percentiles: the band of Figure 5, in percent (5th and 95th)
+    """
+
+    collapse_tag: str = "collapse/mlp1/grad_norm"
+    collapse_threshold: float = 1e-3
+    collapse_checks: int = 5
+    last_evals: int = 10
+    success_return: float = 900.0
+    percentiles: tuple[float, float] = (5.0, 95.0)
+
+    def validate(self) -> None:
+        """:raises ValueError: on a setting out of range (the message names it)"""
+        if self.collapse_checks < 1:
+            raise ValueError(f"collapse_checks must be >= 1, got {self.collapse_checks}.")
+        if self.last_evals < 1:
+            raise ValueError(f"last_evals must be >= 1 evaluation, got {self.last_evals}.")
+        if not math.isfinite(self.collapse_threshold):
+            raise ValueError(f"collapse_threshold must be a finite number, got {self.collapse_threshold}.")
+        low, high = self.percentiles
+        if not 0 <= low < high <= 100:
+            raise ValueError(f"percentiles must satisfy 0 <= low < high <= 100, got {low} and {high}.")
+
+
+def common_frames(frame_lists: Sequence[np.ndarray]) -> np.ndarray:
+    """
+    :param frame_lists: the evaluation frames of each seed
+    :return: the frames that every list has, increasing (empty for no list)
+    """
+    if not frame_lists:
+        return np.zeros(0, dtype=np.int64)
+    common = frame_lists[0]
+    for frames in frame_lists[1:]:
+        common = np.intersect1d(common, frames)
+    return np.unique(common).astype(np.int64)
+
+
+def aligned_returns(trials: Sequence[Trial]) -> tuple[np.ndarray, np.ndarray]:
+    """
+    The evaluation returns of several seeds on their aligned grid (:func:`common_frames`).
+
+    :param trials: trials with evaluation curves (``frames`` increasing, no repeats)
+    :return: ``(frames, returns)`` with ``returns[i, j]`` the return of ``trials[i]`` at ``frames[j]``
+    """
+    frames = common_frames([trial.frames for trial in trials])
+    returns = np.array([trial.returns[np.searchsorted(trial.frames, frames)] for trial in trials], dtype=np.float64)
+    return frames, returns.reshape(len(trials), len(frames))
+
+
+def percentile_band(
+    returns: np.ndarray, percentiles: tuple[float, float] = (5.0, 95.0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """
+    The band across seeds at each frame: ``np.percentile`` with linear interpolation between order statistics.
+
+    :param returns: ``(seeds, frames)`` returns
+    :param percentiles: low and high percentiles, in percent
+    :return: ``(low, high)``, one value per frame
+    """
+    low, high = np.percentile(returns, percentiles, axis=0)
+    return low, high
+
+
+@dataclass
+class BandCurve:
+    """
+    A curve of Figure 5: the mean across seeds and a percentile band, at each aligned frame.
+
+    :param name: the variant (or the reference's label)
+    :param frames: the aligned frames (action repeat included)
+    :param mean: mean return across seeds at each frame
+    :param low: low percentile at each frame
+    :param high: high percentile at each frame
+    :param seeds: number of seeds
+    """
+
+    name: str
+    frames: np.ndarray
+    mean: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    seeds: int
+
+
+def band_curve(
+    name: str, frames: np.ndarray, returns: np.ndarray, percentiles: tuple[float, float] = (5.0, 95.0)
+) -> BandCurve:
+    """
+    :param name: the curve's name
+    :param frames: the aligned frames
+    :param returns: ``(seeds, frames)`` aligned returns (at least one seed)
+    :param percentiles: the band, in percent
+    :return: mean and :func:`percentile_band` at each frame
+    """
+    low, high = percentile_band(returns, percentiles)
+    return BandCurve(name, frames, returns.mean(axis=0), low, high, returns.shape[0])
+
+
+def variant_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = (5.0, 95.0)) -> list[BandCurve]:
+    """
+    :param sweep: the loaded sweep
+    :param task: a task
+    :param percentiles: the band, in percent
+    :return: one curve per variant of ``task`` with finished seeds sharing at least one frame, in display order
+    """
+    curves = []
+    for variant in sweep.variants(task):
+        finished = sweep.select(task, variant)
+        if finished:
+            frames, returns = aligned_returns(finished)
+            if len(frames):
+                curves.append(band_curve(variant, frames, returns, percentiles))
+    return curves
+
+
+def across_seed_std(values: np.ndarray, axis: int = 0) -> np.ndarray | float:
+    """
+    Sample standard deviation (``ddof=1``) across seeds; nan with fewer than 2 seeds.
+
+    :param values: values with the seeds along ``axis``
+    :param axis: the seed axis
+    :return: the std (an array without ``axis``, or a float for 1-d input)
+    """
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape[axis] < 2:
+        shape = values.shape[:axis] + values.shape[axis + 1 :]
+        return float("nan") if not shape else np.full(shape, np.nan)
+    std = np.std(values, axis=axis, ddof=1)
+    return float(std) if np.ndim(std) == 0 else std
+
+
+def last_evals_std_mean(returns: np.ndarray, last_evals: int = 10) -> float:
+    """
+    The paper's "average standard deviation over the last ten evaluations": at each of the last ``last_evals``
+    frames of the aligned grid (all frames when there are fewer), the across-seed std (:func:`across_seed_std`),
+    then the mean of these stds.
+
+    :param returns: ``(seeds, frames)`` aligned returns
+    :param last_evals: how many last frames
+    :return: the mean std (nan with fewer than 2 seeds or no frame)
+    """
+    if returns.shape[0] < 2 or returns.shape[1] == 0:
+        return float("nan")
+    return float(np.mean(across_seed_std(returns[:, -last_evals:], axis=0)))
+
+
+def stuck_in_collapse(values: np.ndarray, threshold: float = 1e-3, checks: int = 5) -> bool | None:
+    """
+    Whether a seed ends its training stuck in action collapse: the **median of its last** ``checks`` **values**
+    of the collapse metric (``collapse/mlp1/grad_norm`` by default, in frame order; all values when there are
+    fewer) is ``<= threshold``. With the defaults this is the reset rule's own test (gradient norm of mlp1
+    above 0.001 means healthy, 5 checks) applied to the end of the run; the median tolerates one or two
+    isolated spikes on either side.
+
+    :param values: the metric's finite values of one seed, in frame order
+    :param threshold: the value at or below which the metric means collapse
+    :param checks: how many last values
+    :return: ``True`` (stuck), ``False`` (not stuck) or ``None`` (unknown: no value logged)
+    """
+    if len(values) == 0:
+        return None
+    return bool(np.median(np.asarray(values[-checks:], dtype=np.float64)) <= threshold)
+
+
+@dataclass
+class VariantSummary:
+    """
+    One row of the table: a task and a variant.
+
+    :param task: task name
+    :param variant: variant name
+    :param seeds: finished seeds (the statistics use only these)
+    :param unfinished: trial folders of this task and variant that are not finished (not in the statistics)
+    :param final_frame: last frame of the aligned grid (``None`` without finished seeds)
+    :param final_mean: mean across seeds of the final return
+    :param final_std: across-seed std of the final return (``ddof=1``)
+    :param stuck: finished seeds stuck in action collapse (:func:`stuck_in_collapse`)
+    :param collapse_unknown: finished seeds without any value of the collapse metric
+    :param resets_total: resets summed over finished seeds (``result.json``)
+    :param seeds_reset: finished seeds with at least one reset
+    :param escaped: finished seeds whose reset rule saw an escape (``result.json`` ``escaped`` true)
+    :param reset_rule_seeds: finished seeds that ran the reset rule (``escaped`` not null)
+    :param last_evals: frames averaged in ``last_evals_std_mean`` (at most the setting)
+    :param last_evals_std_mean: :func:`last_evals_std_mean` of the aligned returns
+    :param dropped_frames: evaluation frames of some but not all finished seeds (not on the aligned grid)
+    :param finals: the final return of each finished seed, by seed
+    :param seed_ids: the finished seeds
+    """
+
+    task: str
+    variant: str
+    seeds: int
+    unfinished: int
+    final_frame: int | None = None
+    final_mean: float = float("nan")
+    final_std: float = float("nan")
+    stuck: int = 0
+    collapse_unknown: int = 0
+    resets_total: int = 0
+    seeds_reset: int = 0
+    escaped: int = 0
+    reset_rule_seeds: int = 0
+    last_evals: int = 0
+    last_evals_std_mean: float = float("nan")
+    dropped_frames: int = 0
+    finals: list[float] = field(default_factory=list)
+    seed_ids: list[int] = field(default_factory=list)
+
+
+def summarize_variant(
+    task: str, variant: str, finished: Sequence[Trial], unfinished: int, settings: ReportSettings
+) -> VariantSummary:
+    """
+    The table row of one task and variant.
+
+    :param task: task name
+    :param variant: variant name
+    :param finished: its finished trials
+    :param unfinished: the number of its unfinished trial folders
+    :param settings: the definitions
+    :return: the row (statistics nan / 0 without finished trials)
+    """
+    row = VariantSummary(task=task, variant=variant, seeds=len(finished), unfinished=unfinished)
+    if not finished:
+        return row
+    frames, returns = aligned_returns(finished)
+    row.dropped_frames = len(set().union(*(set(t.frames.tolist()) for t in finished))) - len(frames)
+    row.seed_ids = [t.seed for t in finished]
+    if len(frames):
+        finals = returns[:, -1]
+        row.final_frame = int(frames[-1])
+        row.finals = [float(v) for v in finals]
+        row.final_mean = float(np.mean(finals))
+        row.final_std = float(across_seed_std(finals))
+        row.last_evals = min(settings.last_evals, len(frames))
+        row.last_evals_std_mean = last_evals_std_mean(returns, settings.last_evals)
+    states = [
+        stuck_in_collapse(t.collapse_values, settings.collapse_threshold, settings.collapse_checks) for t in finished
+    ]
+    row.stuck = sum(state is True for state in states)
+    row.collapse_unknown = sum(state is None for state in states)
+    row.resets_total = sum(t.resets for t in finished)
+    row.seeds_reset = sum(t.resets >= 1 for t in finished)
+    row.escaped = sum(t.escaped is True for t in finished)
+    row.reset_rule_seeds = sum(t.escaped is not None for t in finished)
+    return row
+
+
+def summarize(sweep: Sweep, settings: ReportSettings) -> list[VariantSummary]:
+    """
+    :param sweep: the loaded sweep
+    :param settings: the definitions
+    :return: one row per task and variant (tasks sorted, variants in display order)
+    """
+    return [
+        summarize_variant(task, variant, sweep.select(task, variant), len(sweep.select(task, variant, False)), settings)
+        for task in sweep.tasks()
+        for variant in sweep.variants(task)
+    ]
+
+
+def transplant_sources(variant: str) -> tuple[str, str] | None:
+    """
+    :param variant: a variant name
+    :return: ``(cnn source, mlp source)`` for ``cnn-<src>_mlp-<src>``, else ``None``
+    """
+    match = TRANSPLANT_VARIANT.match(variant)
+    return (match.group(1), match.group(2)) if match else None
+
+
+@dataclass
+class GridCell:
+    """
+    One cell of the transplant grid.
+
+    :param task: task name
+    :param cnn: the CNN's source (blank, good, bad)
+    :param mlp: the MLP's source
+    :param successes: finished seeds whose final return is ``>= success_return``
+    :param seeds: finished seeds (0: no such variant, or none finished)
+    :param unfinished: unfinished trial folders of the cell
+    """
+
+    task: str
+    cnn: str
+    mlp: str
+    successes: int
+    seeds: int
+    unfinished: int
+
+
+def transplant_grid(rows: Sequence[VariantSummary], success_return: float = 900.0) -> dict[str, list[GridCell]]:
+    """
+    The paper's Figure 3(a): per task that has ``cnn-<src>_mlp-<src>`` variants, the 3 x 3 cells (CNN source x
+    MLP source, in :data:`TRANSPLANT_SOURCES` order, row-major) with the number of successful seeds: final
+    return (last frame of the cell's aligned grid) ``>= success_return``.
+
+    :param rows: the table rows (:func:`summarize`)
+    :param success_return: the success threshold (900)
+    :return: task -> 9 cells; tasks without transplant variants are absent
+    """
+    by_task: dict[str, dict[tuple[str, str], VariantSummary]] = {}
+    for row in rows:
+        sources = transplant_sources(row.variant)
+        if sources is not None:
+            by_task.setdefault(row.task, {})[sources] = row
+    grid = {}
+    for task, cells in sorted(by_task.items()):
+        grid[task] = []
+        for cnn in TRANSPLANT_SOURCES:
+            for mlp in TRANSPLANT_SOURCES:
+                row = cells.get((cnn, mlp))
+                grid[task].append(
+                    GridCell(
+                        task=task,
+                        cnn=cnn,
+                        mlp=mlp,
+                        successes=0 if row is None else sum(v >= success_return for v in row.finals),
+                        seeds=0 if row is None else row.seeds,
+                        unfinished=0 if row is None else row.unfinished,
+                    )
+                )
+    return grid

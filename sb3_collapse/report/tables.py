@@ -1,0 +1,165 @@
+"""The report's tables as CSV rows and Markdown text: ``summary.csv``/``.md`` and ``transplant_grid.csv``/``.md``."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, GridCell, ReportSettings, VariantSummary
+
+SUMMARY_COLUMNS = (
+    "task",
+    "variant",
+    "seeds",
+    "unfinished",
+    "final_frame",
+    "final_mean",
+    "final_std",
+    "stuck",
+    "collapse_unknown",
+    "resets_total",
+    "seeds_reset",
+    "escaped",
+    "reset_rule_seeds",
+    "last_evals",
+    "last_evals_std_mean",
+)
+"""Columns of ``summary.csv`` (see :class:`~sb3_collapse.report.statistics.VariantSummary`)."""
+
+GRID_COLUMNS = ("task", "cnn", "mlp", "successes", "seeds", "unfinished")
+"""Columns of ``transplant_grid.csv`` (see :class:`~sb3_collapse.report.statistics.GridCell`)."""
+
+
+def _cell(value: Any) -> Any:
+    """CSV cell: empty for None and nan, full precision otherwise."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    return value
+
+
+def summary_rows(rows: Sequence[VariantSummary]) -> list[dict[str, Any]]:
+    """:return: one dict per table row, keys :data:`SUMMARY_COLUMNS`, empty strings for undefined values"""
+    return [{column: _cell(getattr(row, column)) for column in SUMMARY_COLUMNS} for row in rows]
+
+
+def grid_rows(grid: dict[str, list[GridCell]]) -> list[dict[str, Any]]:
+    """:return: one dict per grid cell, keys :data:`GRID_COLUMNS`"""
+    return [{column: getattr(cell, column) for column in GRID_COLUMNS} for cells in grid.values() for cell in cells]
+
+
+def write_csv(rows: Sequence[dict[str, Any]], columns: Sequence[str], path: Path) -> None:
+    """Write ``rows`` with a header of ``columns``."""
+    with path.open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(columns))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _number(value: float, digits: int = 1) -> str:
+    return "-" if value is None or math.isnan(value) else f"{value:.{digits}f}"
+
+
+def _markdown_table(header: Sequence[str], body: Sequence[Sequence[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(cells) + " |" for cells in body]
+    return lines
+
+
+def summary_markdown(rows: Sequence[VariantSummary], settings: ReportSettings, notes: Sequence[str] = ()) -> str:
+    """
+    The table as Markdown, with the definitions under it and the report's notes (unfinished trials, dropped
+    frames) at the end.
+
+    :param rows: the table rows
+    :param settings: the definitions used
+    :param notes: lines listed under "Notes"
+    :return: the Markdown text
+    """
+    header = [
+        "task",
+        "variant",
+        "seeds",
+        "unfinished",
+        "final frame",
+        "final return (mean ± std)",
+        "stuck in collapse",
+        "collapse unknown",
+        "resets",
+        "seeds reset",
+        "escaped",
+        f"std over last {settings.last_evals} evals",
+    ]
+    body = []
+    for row in rows:
+        body.append(
+            [
+                row.task,
+                row.variant,
+                str(row.seeds),
+                str(row.unfinished),
+                "-" if row.final_frame is None else f"{row.final_frame:,}",
+                "-" if row.seeds == 0 else f"{_number(row.final_mean)} ± {_number(row.final_std)}",
+                f"{row.stuck}/{row.seeds}",
+                str(row.collapse_unknown),
+                str(row.resets_total),
+                str(row.seeds_reset),
+                f"{row.escaped}/{row.reset_rule_seeds}" if row.reset_rule_seeds else "-",
+                _number(row.last_evals_std_mean),
+            ]
+        )
+    low, high = settings.percentiles
+    lines = ["# Sweep report", ""] + _markdown_table(header, body)
+    lines += [
+        "",
+        (
+            "Definitions: only finished trials (`result.json` status `finished`) enter the statistics; *unfinished* "
+            "counts the other trial folders. Returns are compared on the evaluation frames that every finished seed of "
+            "a variant has; *final return* is each seed's return at the last of them (*final frame*, environment "
+            "frames, action repeat included). Standard deviations are across seeds (ddof=1). A seed is *stuck in "
+            f"collapse* when the median of its last {settings.collapse_checks} values of `{settings.collapse_tag}` in "
+            f"`collapse_metrics.csv` is <= {settings.collapse_threshold:g}; *collapse unknown* seeds logged no such "
+            "value. *Resets* sums `result.json`'s `resets`; *seeds reset* counts seeds with at least one; *escaped* "
+            "counts seeds whose reset rule saw an escape, over the seeds that ran the rule. "
+            f"*Std over last {settings.last_evals} evals*: the across-seed std at each of the last "
+            f"{settings.last_evals} aligned frames, averaged. Figure 5's band: {low:g}th to {high:g}th percentile "
+            "across seeds."
+        ),
+    ]
+    if notes:
+        lines += ["", "Notes:", ""] + [f"- {note}" for note in notes]
+    return "\n".join(lines) + "\n"
+
+
+def grid_markdown(grid: dict[str, list[GridCell]], success_return: float) -> str:
+    """
+    The transplant grids as Markdown: per task, CNN source (rows) x MLP source (columns), cells
+    ``successes/seeds`` (``-`` for a cell without finished seeds).
+
+    :param grid: :func:`~sb3_collapse.report.statistics.transplant_grid`
+    :param success_return: the success threshold (for the caption)
+    :return: the Markdown text
+    """
+    lines = ["# Layer transplants (Figure 3(a))", ""]
+    lines.append(f"Successful seeds (final evaluation return >= {success_return:g}) over finished seeds.")
+    for task, cells in grid.items():
+        lookup = {(c.cnn, c.mlp): c for c in cells}
+        body = []
+        for cnn in TRANSPLANT_SOURCES:
+            body.append(
+                [f"{cnn} CNN"]
+                + [
+                    "-"
+                    if lookup[(cnn, mlp)].seeds == 0
+                    else f"{lookup[(cnn, mlp)].successes}/{lookup[(cnn, mlp)].seeds}"
+                    for mlp in TRANSPLANT_SOURCES
+                ]
+            )
+        lines += ["", f"## {task}", ""]
+        lines += _markdown_table([""] + [f"{mlp} MLP" for mlp in TRANSPLANT_SOURCES], body)
+        unfinished = sum(c.unfinished for c in cells)
+        if unfinished:
+            lines += ["", f"{unfinished} unfinished trial(s) not counted."]
+    return "\n".join(lines) + "\n"
