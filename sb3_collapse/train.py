@@ -371,7 +371,7 @@ def train(config: TrainConfig) -> TrainResult:
     print(
         f"DrQ-v2 on {task_id} from pixels: {config.frames:,} frames = {steps:,} agent steps "
         f"(action repeat {config.action_repeat}), seed {config.seed}, device {model.device}.\n"
-        f"Writing to {run_dir} (tensorboard --logdir {config.logdir})",
+        f"Writing to {run_dir} (tensorboard --logdir {run_dir if config.run_dir else config.logdir})",
         flush=True,
     )
     model.learn(steps, callback=CallbackList(callbacks), log_interval=1, progress_bar=config.progress_bar)
