@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import io
 import os
+import pathlib
 import warnings
+from collections.abc import Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -36,6 +39,13 @@ from sb3_collapse.drqv2.replay_buffer import (
     frame_stack_storage_bytes,
 )
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
+from sb3_collapse.drqv2.transplant import (
+    TransplantSpec,
+    check_init_from,
+    describe_init_from,
+    load_sources,
+    transplant,
+)
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
 
@@ -97,6 +107,20 @@ class DrQv2(OffPolicyAlgorithm):
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``. On the CPU, glibc's malloc is tuned to reuse large
         freed buffers (a process-wide setting, see ``sb3_collapse.drqv2.cpu_allocator``); on CUDA,
         ``torch.backends.cudnn.benchmark`` is turned on, as DrQ-v2 does
+    :param init_from: layer transplant (the action-collapse paper's Study 2): group -> source, where a source
+        is the path of a zip saved by ``DrQv2.save`` (``.zip`` may be left out) or a DrQv2 model, e.g.
+        ``{"cnn": "good.zip", "mlp": "bad.zip"}``. Groups: ``"cnn"``, the encoder (conv layers ``cnn1``..``cnn4``,
+        shared by the actor and the critic); ``"mlp"``, the actor (trunk ``mlp0``, layers ``mlp1``, ``mlp2`` and
+        the ``action`` head); ``"critic"``, the critic (trunk and Q heads), also copied into the target critic
+        (DrQ-v2 starts the target as a copy of the critic). Exactly the parameters and buffers of the named
+        groups are copied, once, when the model is built; everything else is the model's own fresh (seeded)
+        initialization: the other groups' weights, the optimizers (empty Adam state), the replay buffer (empty),
+        ``num_timesteps`` (0) and the schedules. The shapes must match (same observation shape, action space,
+        ``feature_dim``, ``hidden_dim`` and encoder channels where the group depends on them) and every source is
+        checked before anything is copied; a mismatch raises a ``ValueError`` naming the parameter and the
+        settings that differ. Stored as ``model.init_from`` (group -> path, as plain strings) and saved;
+        ``DrQv2.load`` gives back the trained weights, it does not transplant again, and neither does
+        :meth:`reset_from_scratch`. See ``sb3_collapse.drqv2.transplant``
     :param _init_setup_model: build the networks and the buffer now
     """
 
@@ -132,8 +156,10 @@ class DrQv2(OffPolicyAlgorithm):
         verbose: int = 0,
         seed: int | None = None,
         device: th.device | str = "auto",
+        init_from: Mapping[str, TransplantSpec] | None = None,
         _init_setup_model: bool = True,
     ) -> None:
+        transplant_specs = check_init_from(init_from)  # before building anything: unknown keys, missing files
         if augmentation_pad < 0:
             raise ValueError(f"augmentation_pad must be >= 0 pixels, got {augmentation_pad}.")
         if stddev_clip < 0:
@@ -174,8 +200,19 @@ class DrQv2(OffPolicyAlgorithm):
         self._train_stats_count = 0
         self.reset_step = 0
         """Agent step (``num_timesteps``) of the last :meth:`reset_from_scratch`, 0 when none; saved with the model."""
+        self.init_from = describe_init_from(transplant_specs)
+        """Group -> source (plain strings) of the layer transplant this model was built with, ``None`` when none;
+        saved with the model."""
         if _init_setup_model:
+            # Read the sources first (a file that is no DrQv2 zip fails before the replay buffer is allocated);
+            # reading them builds no model and touches no random generator.
+            sources = load_sources(transplant_specs)
             self._setup_model()
+            if sources:
+                replaced = transplant(self.policy, sources)
+                if self.verbose >= 1:
+                    groups = ", ".join(f"{group} from {source}" for group, source in (self.init_from or {}).items())
+                    print(f"DrQv2: transplanted {groups} ({len(replaced)} tensors)")
 
     # ------------------------------------------------------------------ setup
     def _setup_model(self) -> None:
@@ -539,6 +576,10 @@ class DrQv2(OffPolicyAlgorithm):
         progress (the paper resets the training, not the environment; the transition of the current step is
         the first one stored after the reset), the callbacks, the episode statistics, the hyperparameters and
         the learning-rate schedule (a function of the progress of ``learn()``).
+
+        A model built with ``init_from`` is reset from scratch too: the transplanted groups get new random
+        weights like the others, ``init_from`` is **not** applied again (the paper's reset is a restart from
+        scratch). ``model.init_from`` still records how the model was first initialized.
         """
         was_training = self.policy.training
         self.policy._build(self.lr_schedule)
@@ -550,6 +591,48 @@ class DrQv2(OffPolicyAlgorithm):
         self.replay_buffer.reset()  # type: ignore[union-attr]
         self.reset_step = self.num_timesteps
         self.policy.exploration_std = self.current_stddev
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> DrQv2:
+        """
+        Load a model saved by :meth:`save`, with its trained weights (SB3's ``load``; see its documentation).
+
+        A model built with ``init_from`` comes back with the weights it was saved with: the transplant happened
+        once, when it was built, and is not done again (``model.init_from`` still names its sources).
+
+        :param path: the zip
+        :param env: environment to continue training on (``None``: predict only, or set it later)
+        :param device: where the networks go
+        :param custom_objects: saved attributes to replace instead of unpickling them
+        :param print_system_info: print the system info of the saving machine
+        :param force_reset: reset the environment before the next ``learn()``
+        :param kwargs: saved attributes to override (e.g. ``buffer_size``)
+        :return: the loaded model
+        :raises TypeError: for ``init_from``: loading does not transplant; build a new model with it instead
+        """
+        if "init_from" in kwargs:
+            raise TypeError(
+                "DrQv2.load does not transplant layers (init_from): it restores the saved weights. Build a new "
+                "model with DrQv2(policy, env, init_from={...}) to start from the layers of saved models."
+            )
+        return super().load(
+            path,
+            env=env,
+            device=device,
+            custom_objects=custom_objects,
+            print_system_info=print_system_info,
+            force_reset=force_reset,
+            **kwargs,
+        )
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         super().set_env(env, force_reset=force_reset)

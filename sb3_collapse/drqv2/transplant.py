@@ -1,0 +1,471 @@
+"""
+Layer transplants (the action-collapse paper's Study 2): start a new DrQv2 from parts of saved ones.
+
+A transplant copies the weights of named *groups* of a source model's policy into a freshly built model; every
+other weight keeps the model's own (seeded) random initialization, "the rest blank". The groups and the entries
+of ``DrQv2Policy.state_dict()`` (parameters **and** buffers) that each one replaces:
+
+==========  ===========================================================  ==============================
+group       what it is                                                   state_dict prefixes
+==========  ===========================================================  ==============================
+``cnn``     the encoder: conv layers ``cnn1``..``cnn4``, shared by the   ``encoder.``
+            actor and the critic (trained by the critic loss only)
+``mlp``     the actor: trunk ``mlp0`` (Linear, LayerNorm, Tanh), the     ``actor.``
+            hidden layers ``mlp1``, ``mlp2`` and the ``action`` head
+``critic``  the critic trunk and its two Q heads, and the target critic  ``critic.``, ``critic_target.``
+==========  ===========================================================  ==============================
+
+The target critic gets a copy of the **source's critic** (not the source's target critic): DrQ-v2 starts
+every run with a target equal to its critic, and a transplant is such a start.
+
+Nothing else is copied: not the optimizers' state (Adam moments), not the replay buffer, not the step
+counters or schedules. Sources are read on the CPU without their replay buffer and without building a
+model, so reading them touches no random generator. Every source and every entry is checked before the
+first one is copied: a failed transplant leaves the model as it was.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import os
+import zipfile
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.save_util import json_to_data
+
+from sb3_collapse.drqv2.policies import DrQv2Policy, PixelEncoder
+
+TRANSPLANT_GROUPS: dict[str, tuple[str, ...]] = {
+    "cnn": ("encoder.",),
+    "mlp": ("actor.",),
+    "critic": ("critic.", "critic_target."),
+}
+"""Group name -> prefixes of the policy ``state_dict`` keys it replaces."""
+
+GROUP_LAYERS: dict[str, tuple[str, ...]] = {
+    "cnn": ("cnn1", "cnn2", "cnn3", "cnn4"),
+    "mlp": ("mlp0", "mlp1", "mlp2", "action"),
+    "critic": (),
+}
+"""Group name -> the named layers (``DrQv2Policy.named_layers``) whose weights it holds; the critic's are unnamed."""
+
+SOURCE_PREFIXES: dict[str, str] = {"critic_target.": "critic."}
+"""Target prefix -> the source prefix it is copied from, where they differ: the target critic from the critic."""
+
+DRQV2_POLICY_MODULE = "sb3_collapse.drqv2.policies"
+"""Module of the ``policy_class`` saved in every DrQv2 zip."""
+
+TransplantSpec = str | os.PathLike | BaseAlgorithm
+"""A source: the path of a zip saved by ``DrQv2.save`` (``.zip`` may be left out), or a DrQv2 model."""
+
+
+@dataclass(frozen=True)
+class TransplantSource:
+    """
+    The policy weights of a source model and the settings that shape them.
+
+    :param description: where they come from: the zip's absolute path, or a description of an in-memory model
+    :param state_dict: the source policy's ``state_dict()``, on the CPU
+    :param settings: :func:`policy_settings` of the source
+    """
+
+    description: str
+    state_dict: dict[str, th.Tensor]
+    settings: dict[str, Any]
+
+
+def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str, TransplantSpec]:
+    """
+    Check the ``init_from`` argument of ``DrQv2`` and resolve its paths (reads no file).
+
+    :param init_from: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> source, or ``None``
+    :return: group -> resolved source (an absolute ``Path`` or the model), in ``TRANSPLANT_GROUPS`` order;
+        empty for ``None`` or an empty mapping
+    :raises TypeError: for a non-mapping, or a source that is neither a path nor a DrQv2 model
+    :raises ValueError: for an unknown group
+    :raises FileNotFoundError: for a path that does not exist (with or without ``.zip``)
+    """
+    if init_from is None:
+        return {}
+    if not isinstance(init_from, Mapping):
+        raise TypeError(
+            f"init_from must be a dict of group -> source, e.g. {{'cnn': 'good.zip', 'mlp': 'bad.zip'}}, "
+            f"got {type(init_from).__name__}."
+        )
+    unknown = [key for key in init_from if key not in TRANSPLANT_GROUPS]
+    if unknown:
+        raise ValueError(
+            f"init_from has unknown key(s) {unknown}; the keys must be a subset of {list(TRANSPLANT_GROUPS)} "
+            "('cnn': the encoder, 'mlp': the actor, 'critic': the critic and its target)."
+        )
+    resolved: dict[str, TransplantSpec] = {}
+    for key in TRANSPLANT_GROUPS:
+        if key not in init_from:
+            continue
+        source = init_from[key]
+        if isinstance(source, BaseAlgorithm):
+            if not isinstance(source.policy, DrQv2Policy):
+                raise TypeError(
+                    f"init_from[{key!r}]: a {type(source).__name__} model cannot be transplanted; "
+                    "give a DrQv2 model or the path of a zip saved by DrQv2.save."
+                )
+            resolved[key] = source
+        elif isinstance(source, (str, os.PathLike)):
+            resolved[key] = resolve_source_path(key, source)
+        else:
+            raise TypeError(
+                f"init_from[{key!r}] must be the path of a zip saved by DrQv2.save or a DrQv2 model, "
+                f"got {type(source).__name__}: {source!r}."
+            )
+    return resolved
+
+
+def resolve_source_path(key: str, path: str | os.PathLike[str]) -> Path:
+    """
+    :param key: the group (for messages)
+    :param path: a zip saved by ``DrQv2.save``; as in ``DrQv2.load``, ``.zip`` may be left out
+    :return: the absolute path of the existing file
+    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file
+    """
+    candidate = Path(path)
+    zipped = candidate.with_name(candidate.name + ".zip")
+    if not candidate.is_file() and candidate.suffix != ".zip" and zipped.is_file():
+        candidate = zipped
+    if not candidate.is_file():
+        raise FileNotFoundError(
+            f"init_from[{key!r}]: checkpoint {os.fspath(path)!r} does not exist; give the path of a zip saved by "
+            "DrQv2.save (e.g. a trial's final_model.zip)."
+        )
+    return candidate.resolve()
+
+
+def describe_init_from(resolved: Mapping[str, TransplantSpec]) -> dict[str, str] | None:
+    """
+    :param resolved: the output of :func:`check_init_from`
+    :return: group -> a plain string naming the source (the absolute path of a zip, or a description of an
+        in-memory model), what ``DrQv2`` stores and saves as ``init_from``; ``None`` when there is no source
+    """
+    if not resolved:
+        return None
+    return {key: describe_source(source) for key, source in resolved.items()}
+
+
+def describe_source(source: TransplantSpec) -> str:
+    """A plain string naming a resolved source: the path itself, or ``<in-memory DrQv2, seed 0, 120 agent steps>``."""
+    if isinstance(source, BaseAlgorithm):
+        return f"<in-memory {type(source).__name__}, seed {source.seed}, {source.num_timesteps} agent steps>"
+    return os.fspath(source)
+
+
+def load_sources(resolved: Mapping[str, TransplantSpec]) -> dict[str, TransplantSource]:
+    """
+    Read every source (each file once, on the CPU).
+
+    :param resolved: the output of :func:`check_init_from`
+    :return: group -> its source
+    :raises ValueError: for a file that is not a zip saved by ``DrQv2.save``
+    """
+    cache: dict[str, TransplantSource] = {}
+    sources: dict[str, TransplantSource] = {}
+    for key, spec in resolved.items():
+        if isinstance(spec, BaseAlgorithm):
+            sources[key] = source_from_model(spec)
+            continue
+        name = os.fspath(spec)
+        if name not in cache:
+            cache[name] = read_source_zip(key, spec)
+        sources[key] = cache[name]
+    return sources
+
+
+def source_from_model(model: BaseAlgorithm) -> TransplantSource:
+    """
+    :param model: a DrQv2 model
+    :return: a copy of its policy weights on the CPU and its settings
+    """
+    policy = model.policy
+    if not isinstance(policy, DrQv2Policy):
+        raise TypeError(f"A {type(model).__name__} model cannot be transplanted: its policy is not a DrQv2Policy.")
+    state_dict = {name: value.detach().to("cpu", copy=True) for name, value in policy.state_dict().items()}
+    settings = policy_settings(type(policy), model.policy_kwargs, policy.observation_space, policy.action_space)
+    return TransplantSource(describe_source(model), state_dict, settings)
+
+
+def read_source_zip(key: str, path: Path) -> TransplantSource:
+    """
+    Read the policy weights and settings of a zip saved by ``DrQv2.save``, without building a model: no replay
+    buffer, no optimizer, no random generator touched. Only the policy class, its keyword arguments and the
+    spaces are unpickled, and only once the class is known to be DrQv2's.
+
+    :param key: the group (for messages)
+    :param path: the zip
+    :return: its weights on the CPU and its settings
+    :raises ValueError: for a file that is not a zip, a zip that is not an SB3 model, a model of another
+        algorithm, or unreadable contents
+    """
+    where = f"init_from[{key!r}] = {os.fspath(path)!r}"
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{where} is not a zip file (corrupt or truncated?); expected a zip saved by DrQv2.save.")
+    with zipfile.ZipFile(path) as archive:
+        missing = {"data", "policy.pth"} - set(archive.namelist())
+        if missing:
+            raise ValueError(f"{where} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
+        raw = _read_member(where, "data", lambda: json.loads(archive.read("data")))
+        module = (raw.get("policy_class") or {}).get("__module__") if isinstance(raw, dict) else None
+        if module != DRQV2_POLICY_MODULE:
+            raise ValueError(
+                f"{where} is not a DrQv2 model: its policy comes from {module!r}, not {DRQV2_POLICY_MODULE!r}; "
+                "transplants copy DrQv2 layers, give a zip saved by DrQv2.save."
+            )
+        needed = ("policy_class", "policy_kwargs", "observation_space", "action_space")
+        data = _read_member(where, "data", lambda: json_to_data(json.dumps({name: raw[name] for name in needed})))
+        state_dict = _read_member(where, "policy.pth", lambda: _load_tensors(archive))
+    policy_class = data.get("policy_class")
+    restored = isinstance(policy_class, type) and issubclass(policy_class, DrQv2Policy)
+    if not restored:
+        raise ValueError(f"{where}: its policy class could not be restored as a DrQv2Policy (got {policy_class!r}).")
+    tensors = isinstance(state_dict, dict) and all(isinstance(v, th.Tensor) for v in state_dict.values())
+    if not tensors:
+        raise ValueError(f"{where}: policy.pth is not a state_dict of tensors; is the file corrupt?")
+    settings = policy_settings(
+        policy_class, data.get("policy_kwargs") or {}, data.get("observation_space"), data.get("action_space")
+    )
+    return TransplantSource(os.fspath(path), state_dict, settings)
+
+
+def _load_tensors(archive: zipfile.ZipFile) -> Any:
+    with archive.open("policy.pth") as file:
+        return th.load(file, map_location="cpu", weights_only=True)
+
+
+def _read_member(where: str, member: str, read: Callable[[], Any]) -> Any:
+    """``read()``, with any failure (damaged member, bad JSON, missing entry, bad pickle) as a ``ValueError``."""
+    try:
+        return read()
+    except Exception as error:
+        reason = (str(error).strip().splitlines() or [""])[0]
+        raise ValueError(
+            f"{where}: its {member!r} could not be read ({type(error).__name__}: {reason[:200]}); is the file "
+            "corrupt? Expected a zip saved by DrQv2.save."
+        ) from error
+
+
+def _constructor_default(cls: type, name: str) -> Any:
+    """The default of keyword ``name`` of ``cls.__init__``, looked up along the class hierarchy."""
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        if init is None:
+            continue
+        parameter = inspect.signature(init).parameters.get(name)
+        if parameter is not None and parameter.default is not inspect.Parameter.empty:
+            return parameter.default
+    return None
+
+
+def policy_settings(
+    policy_class: type[DrQv2Policy], policy_kwargs: Mapping[str, Any], observation_space: Any, action_space: Any
+) -> dict[str, Any]:
+    """
+    The settings that shape a DrQv2 policy's weights, with the defaults filled in; used to explain a shape
+    mismatch and to check that a transplanted trunk reads the encoder's output in the same order.
+
+    :param policy_class: ``CnnPolicy``, ``MlpPolicy`` or another ``DrQv2Policy`` subclass
+    :param policy_kwargs: the ``policy_kwargs`` the model was built with
+    :param observation_space: its observation space
+    :param action_space: its action space
+    :return: ``{"policy", "observation shape", "action dimensions", "feature_dim", "hidden_dim",
+        "encoder channels", "channels_last"}`` (the last two ``None`` without a pixel encoder)
+    """
+
+    def kwarg(name: str) -> Any:
+        return policy_kwargs[name] if name in policy_kwargs else _constructor_default(policy_class, name)
+
+    encoder_class = kwarg("encoder_class")
+    encoder_kwargs = kwarg("encoder_kwargs") or {}
+    pixel = isinstance(encoder_class, type) and issubclass(encoder_class, PixelEncoder)
+
+    def encoder_kwarg(name: str) -> Any:
+        if not pixel:
+            return None
+        return encoder_kwargs[name] if name in encoder_kwargs else _constructor_default(encoder_class, name)
+
+    shape = getattr(observation_space, "shape", None)
+    action_shape = getattr(action_space, "shape", None)
+    return {
+        "policy": policy_class.__name__,
+        "observation shape": tuple(shape) if shape is not None else None,
+        "action dimensions": int(np.prod(action_shape)) if action_shape is not None else None,
+        "feature_dim": kwarg("feature_dim"),
+        "hidden_dim": kwarg("hidden_dim"),
+        "encoder channels": encoder_kwarg("channels"),
+        "channels_last": encoder_kwarg("channels_last"),
+    }
+
+
+def target_settings(policy: DrQv2Policy) -> dict[str, Any]:
+    """:func:`policy_settings` of a built policy."""
+    encoder_kwargs = {**policy.encoder_kwargs}
+    if isinstance(policy.encoder, PixelEncoder):
+        encoder_kwargs.setdefault("channels_last", policy.encoder.channels_last)
+    kwargs = {
+        "feature_dim": policy.feature_dim,
+        "hidden_dim": policy.hidden_dim,
+        "encoder_class": policy.encoder_class,
+        "encoder_kwargs": encoder_kwargs,
+    }
+    return policy_settings(type(policy), kwargs, policy.observation_space, policy.action_space)
+
+
+SETTING_HINTS: dict[str, str] = {
+    "policy": "CnnPolicy reads pixels, MlpPolicy state vectors",
+    "observation shape": "a different frame_stack (3 channels per frame) or image size",
+    "action dimensions": "a different task (action space)",
+    "feature_dim": "policy_kwargs=dict(feature_dim=...)",
+    "hidden_dim": "policy_kwargs=dict(hidden_dim=...)",
+    "encoder channels": "policy_kwargs=dict(encoder_kwargs=dict(channels=...))",
+}
+"""Setting -> how it is set, appended to the explanation of a mismatch."""
+
+
+def likely_cause(source: Mapping[str, Any], target: Mapping[str, Any]) -> str:
+    """
+    :param source: :func:`policy_settings` of the source
+    :param target: those of the model being built
+    :return: a sentence naming the settings that differ, e.g. "the source was trained with feature_dim=100,
+        this model has feature_dim=50 (policy_kwargs=dict(feature_dim=...))"
+    """
+    differences = [
+        f"the source was trained with {name}={source[name]!r}, this model has {name}={target[name]!r}"
+        + (f" ({SETTING_HINTS[name]})" if name in SETTING_HINTS else "")
+        for name in SETTING_HINTS
+        if source.get(name) != target.get(name)
+    ]
+    if not differences:
+        return "the networks were built differently although their recorded settings agree"
+    return "; ".join(differences)
+
+
+def group_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
+    """
+    :param keys: ``state_dict`` keys (or the ``state_dict``)
+    :param group: ``"cnn"``, ``"mlp"`` or ``"critic"``
+    :return: the keys the group replaces, in the given order
+    """
+    prefixes = TRANSPLANT_GROUPS[group]
+    return [key for key in keys if key.startswith(prefixes)]
+
+
+def group_source_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
+    """
+    :param keys: a source's ``state_dict`` keys (or the ``state_dict``)
+    :param group: ``"cnn"``, ``"mlp"`` or ``"critic"``
+    :return: the keys the group copies from (the critic's only, for ``"critic"``), in the given order
+    """
+    prefixes = tuple(dict.fromkeys(SOURCE_PREFIXES.get(prefix, prefix) for prefix in TRANSPLANT_GROUPS[group]))
+    return [key for key in keys if key.startswith(prefixes)]
+
+
+def source_key(target_key: str) -> str:
+    """The source ``state_dict`` key copied into ``target_key`` (``critic_target.X`` <- ``critic.X``)."""
+    for target_prefix, source_prefix in SOURCE_PREFIXES.items():
+        if target_key.startswith(target_prefix):
+            return source_prefix + target_key[len(target_prefix) :]
+    return target_key
+
+
+def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]) -> dict[str, th.Tensor]:
+    """
+    Check a transplant and list what it copies; changes nothing.
+
+    :param policy: the freshly built policy to copy into
+    :param sources: group -> source (e.g. :func:`load_sources`)
+    :return: target ``state_dict`` key -> the source tensor to copy into it, for every key of the groups
+    :raises ValueError: for an unknown group, a group this model or a source lacks (``cnn`` with
+        ``MlpPolicy``), keys that differ, a shape or dtype mismatch (naming the key, both shapes and the
+        settings that differ), or trunks that would read the encoder's output in another order (``channels_last``)
+    """
+    target_state = policy.state_dict()
+    settings = target_settings(policy)
+    plan: dict[str, th.Tensor] = {}
+    for group, source in sources.items():
+        if group not in TRANSPLANT_GROUPS:
+            raise ValueError(f"Unknown transplant group {group!r}; expected one of {list(TRANSPLANT_GROUPS)}.")
+        where = f"init_from[{group!r}] = {source.description!r}"
+        targets = group_keys(target_state, group)
+        if not targets:
+            raise ValueError(
+                f"{where}: this model ({settings['policy']}) has no {group!r} weights to replace"
+                + (" (MlpPolicy has no CNN encoder)." if group == "cnn" else ".")
+            )
+        wanted = {source_key(key) for key in targets}
+        offered = set(group_source_keys(source.state_dict, group))
+        if not offered:
+            raise ValueError(
+                f"{where}: the source ({source.settings['policy']}) has no {group!r} weights"
+                + (" (an MlpPolicy model has no CNN encoder)." if group == "cnn" else ".")
+            )
+        if wanted != offered:
+            raise ValueError(
+                f"{where}: the source's {group!r} weights are not this model's: missing in the source "
+                f"{sorted(wanted - offered)}, unknown to this model {sorted(offered - wanted)}. Likely cause: "
+                f"{likely_cause(source.settings, settings)}."
+            )
+        orders = (settings["channels_last"], source.settings["channels_last"])
+        if group in ("mlp", "critic") and None not in orders and orders[0] != orders[1]:
+            raise ValueError(
+                f"{where}: the source's encoder was built with channels_last={source.settings['channels_last']}, "
+                f"this model's with channels_last={settings['channels_last']}: the encoder's output is flattened "
+                "in another order, so the transplanted trunk would read permuted features. Build this model with "
+                f"policy_kwargs=dict(encoder_kwargs=dict(channels_last={source.settings['channels_last']}))."
+            )
+        for key in targets:
+            value, expected = source.state_dict[source_key(key)], target_state[key]
+            if value.shape != expected.shape:
+                into = "" if source_key(key) == key else f" (copied into {key!r})"
+                raise ValueError(
+                    f"{where}: parameter {source_key(key)!r}{into} has shape {tuple(value.shape)} in the source and "
+                    f"{tuple(expected.shape)} in this model. Likely cause: {likely_cause(source.settings, settings)}. "
+                    "Build this model with the source's settings to transplant this group."
+                )
+            if value.dtype != expected.dtype:
+                raise ValueError(
+                    f"{where}: parameter {source_key(key)!r} is {value.dtype} in the source but {key!r} is "
+                    f"{expected.dtype} in this model."
+                )
+            plan[key] = value
+    return plan
+
+
+def apply_transplant(policy: DrQv2Policy, plan: Mapping[str, th.Tensor]) -> None:
+    """
+    Copy in place, so the optimizers keep referencing the same (still fresh) parameters and each tensor keeps
+    its device and memory format.
+
+    :param policy: the policy to copy into
+    :param plan: the output of :func:`plan_transplant` for this policy
+    """
+    target_state = policy.state_dict()  # tensors share storage with the parameters and buffers
+    with th.no_grad():
+        for key, value in plan.items():
+            target_state[key].copy_(value)
+
+
+def transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]) -> list[str]:
+    """
+    Check everything (:func:`plan_transplant`), then copy the groups' weights into ``policy``.
+
+    :param policy: the freshly built policy to copy into
+    :param sources: group -> source
+    :return: the ``state_dict`` keys that were replaced
+    :raises ValueError: see :func:`plan_transplant`; nothing is copied then
+    """
+    plan = plan_transplant(policy, sources)
+    apply_transplant(policy, plan)
+    return list(plan)
