@@ -34,6 +34,7 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
+from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.monitoring import CollapseMetrics, CollapseReset
 
@@ -70,6 +71,10 @@ class TrainConfig:
     :param collapse_probe_batch: observations of the replay buffer in each ``CollapseMetrics`` probe batch
     :param reset_rule: apply the paper's reset-from-scratch rule (``CollapseReset``)
     :param reset_window_frames: frames the agent has to escape collapse before a reset (the rule's window)
+    :param init_cnn: checkpoint (``DrQv2.save`` zip) whose encoder (``cnn1``..``cnn4``) the model starts from;
+        ``None``: random (see ``DrQv2``'s ``init_from``, the paper's layer transplants)
+    :param init_mlp: checkpoint whose actor (``mlp0``, ``mlp1``, ``mlp2``, ``action``) the model starts from
+    :param init_critic: checkpoint whose critic (and target critic) the model starts from
     :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
     :param torch_threads: threads of torch's CPU operations (``torch.set_num_threads``); ``None``: torch's default
     :param progress_bar: show a progress bar
@@ -105,6 +110,9 @@ class TrainConfig:
     collapse_probe_batch: int = 512
     reset_rule: bool = False
     reset_window_frames: int = 200_000
+    init_cnn: str | None = None
+    init_mlp: str | None = None
+    init_critic: str | None = None
     device: str = "auto"
     torch_threads: int | None = None
     progress_bar: bool = True
@@ -133,6 +141,11 @@ class TrainConfig:
             raise ValueError(f"--buffer-size must be >= 1 transition, got {self.buffer_size}.")
         if self.torch_threads is not None and self.torch_threads < 1:
             raise ValueError(f"--torch-threads must be >= 1, got {self.torch_threads}.")
+        for group, path in self.init_from.items():
+            try:
+                resolve_source_path(group, path)
+            except FileNotFoundError as error:
+                raise ValueError(f"--init-{group}: {error}") from None
         run_dir = None if self.run_dir is None else Path(self.run_dir)
         if run_dir is not None and run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
             raise ValueError(f"--run-dir {run_dir} exists and is not an empty folder: remove it or choose another.")
@@ -141,6 +154,12 @@ class TrainConfig:
     def agent_steps(self) -> int:
         """Training budget in agent steps."""
         return max(1, self.frames // self.action_repeat)
+
+    @property
+    def init_from(self) -> dict[str, str]:
+        """The ``init_from`` argument of ``DrQv2``: group (``cnn``, ``mlp``, ``critic``) -> checkpoint path."""
+        paths = {"cnn": self.init_cnn, "mlp": self.init_mlp, "critic": self.init_critic}
+        return {group: path for group, path in paths.items() if path is not None}
 
     @property
     def variant_name(self) -> str:
@@ -337,6 +356,7 @@ def train(config: TrainConfig) -> TrainResult:
         seed=config.seed,
         device=config.device,
         verbose=config.verbose,
+        init_from=config.init_from or None,
     )
     formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
     model.set_logger(configure(str(run_dir), formats))
@@ -450,6 +470,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--run-name", default=d.run_name, help="run folder name instead of <task>_s<seed>")
     g.add_argument("--run-dir", default=d.run_dir, help="the exact run folder (new or empty), instead of --logdir/--run-name")
     g.add_argument("--reset-rule", action="store_true", help="reset training from scratch when the agent has not escaped action collapse within each window (the paper's rule)")
+    g.add_argument("--init-cnn", default=d.init_cnn, help="start the encoder from this DrQv2 checkpoint (zip); default: random")
+    g.add_argument("--init-mlp", default=d.init_mlp, help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random")
+    g.add_argument("--init-critic", default=d.init_critic, help="start the critic from this DrQv2 checkpoint (zip); default: random")
     g.add_argument("--device", default=d.device, help="auto, cpu, cuda, cuda:1, ...")
     g.add_argument("--torch-threads", type=int, default=d.torch_threads, help="threads of torch's CPU operations; default: torch's")
     g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")

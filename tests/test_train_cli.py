@@ -102,6 +102,14 @@ def test_train_into_an_exact_run_dir(tmp_path):
     with pytest.raises(ValueError, match="not an empty folder"):
         train(config)
 
+    # Layer transplants: the encoder and the actor of that model, the critic blank.
+    transplanted = train(
+        TrainConfig(**{**config.__dict__, "run_dir": str(tmp_path / "transplanted"), "init_cnn": str(result.model_path),
+                       "init_mlp": str(run_dir / "final_model"), "variant": None, "transplant": None})
+    )  # fmt: skip
+    assert DrQv2.load(transplanted.model_path).init_from == {"cnn": str(result.model_path), "mlp": str(result.model_path)}
+    assert json.loads((transplanted.run_dir / "config.json").read_text())["init_mlp"] == str(run_dir / "final_model")
+
 
 def test_help_documents_units():
     out = subprocess.run([sys.executable, "-m", "sb3_collapse.train", "--help"], capture_output=True, text=True, check=True).stdout
@@ -118,6 +126,7 @@ def test_help_documents_units():
         (["--stddev-schedule", "linear(1,0.1)"], "stddev schedule"),
         (["--eval-episodes", "0"], "--eval-episodes must be >= 1"),
         (["--torch-threads", "0"], "--torch-threads must be >= 1"),
+        (["--init-mlp", "missing.zip"], "--init-mlp: init_from['mlp']: checkpoint 'missing.zip' does not exist"),
     ],
 )
 def test_bad_arguments_exit_with_a_message(argv, message, capsys):

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import parse_task
 from sb3_collapse.train import TrainConfig
 
@@ -144,7 +145,8 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
     """
     Checkpoints of one source (good or bad) per task, from ``PATH`` (every task) and ``TASK=PATH`` items (that
     task; it overrides a plain ``PATH``). An item is ``TASK=PATH`` when the text before its first ``=`` is a task
-    name; otherwise the whole item is a path. Paths are made absolute (trials may run in another folder).
+    name; otherwise the whole item is a path. As in ``DrQv2.load``, ``.zip`` may be left out. Paths are made
+    absolute (trials may run in another folder).
 
     :param specs: the items, ``None`` for none
     :param tasks: the sweep's tasks, ``<domain>-<task>``
@@ -175,9 +177,12 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
     for task, path in checkpoints.items():
         if path is None:
             continue
-        if not Path(path).is_file():
-            raise SweepError(f"{flag}: {path} (for {task}) is not a file; give a checkpoint saved by DrQv2.save.")
-        resolved[task] = str(Path(path).resolve())
+        try:
+            resolved[task] = str(resolve_source_path(flag, path))
+        except FileNotFoundError:
+            raise SweepError(
+                f"{flag}: {path} (for {task}) is not a file; give a checkpoint saved by DrQv2.save."
+            ) from None
     return resolved
 
 

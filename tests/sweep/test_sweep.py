@@ -7,6 +7,7 @@ import zipfile
 
 import pytest
 
+from sb3_collapse import DrQv2
 from sb3_collapse.sweep import (
     GRID_VARIANTS,
     SweepError,
@@ -185,6 +186,23 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     assert json.loads((out / "sweep.json").read_text())["checkpoints"] == {"good": {"walker-walk": str(broken)}}
 
 
+def test_transplant_grid_cell_starts_from_the_checkpoints(tiny_sweep, tmp_path):
+    good = tiny_sweep / "walker-walk" / "drqv2" / "seed_0" / "final_model.zip"
+    bad = tiny_sweep / "walker-walk" / "drqv2+reset" / "seed_0" / "final_model.zip"
+    out = tmp_path / "grid"
+    argv = ["--tasks", "walker-walk", "--seed-list", "1", "--variants", "cnn-good_mlp-bad", "--out", str(out),
+            "--good-checkpoint", str(good), "--bad-checkpoint", f"walker-walk={bad}", "--no-progress-bar",
+            *TINY, "--frames", "250", "--eval-every-frames", "0"]  # fmt: skip
+    assert main(argv) == 0
+    folder = out / "walker-walk" / "cnn-good_mlp-bad" / "seed_1"
+    config = json.loads((folder / "config.json").read_text())
+    assert config["transplant"] == {"cnn": "good", "mlp": "bad"} and config["variant"] == "cnn-good_mlp-bad"
+    assert (config["init_cnn"], config["init_mlp"], config["init_critic"]) == (str(good), str(bad), None)
+    assert config["reset_rule"] is False
+    assert DrQv2.load(folder / "final_model.zip").init_from == {"cnn": str(good), "mlp": str(bad)}
+    assert json.loads((folder / "result.json").read_text())["variant"] == "cnn-good_mlp-bad"
+
+
 def test_missing_ray_says_how_to_install_it(monkeypatch, tmp_path, capsys):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
     with pytest.raises(SystemExit) as exit_info:
@@ -239,6 +257,13 @@ def test_command_line_errors(tmp_path, capsys):
             main([*argv, "--out", out])
         assert exit_info.value.code == 2 and message in capsys.readouterr().err, argv
     assert not (tmp_path / "sweep").exists()
+    checkpoint = tmp_path / "agent.zip"
+    checkpoint.write_bytes(b"")
+    grid = ["--transplant-grid", "--good-checkpoint", str(checkpoint), "--bad-checkpoint", str(checkpoint)]
+    assert main(["--tasks", "walker-walk", "--seeds", "2", *grid, "--out", out, "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[-1] == "18 trials: 18 pending; 18 would run." and lines[0].endswith("cnn-blank_mlp-blank/seed_0")
+    assert not (tmp_path / "sweep").exists()  # a dry run writes nothing
     with pytest.raises(SystemExit):
         main(["--help"])
     help_text = capsys.readouterr().out
