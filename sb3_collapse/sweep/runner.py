@@ -308,10 +308,13 @@ def run_sweep(
     check_checkpoints(trials, checkpoints)
     out = Path(out).resolve()
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
-    prepare_sweep_folder(out, sweep_settings(trials, training, checkpoints, resources), allow_changed_settings)
-
+    settings = sweep_settings(trials, training, checkpoints, resources)
+    prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
     skipped = [trial for trial in trials if trial_status(trial_dir(out, trial)) == FINISHED]
     to_run = [trial for trial in trials if trial not in set(skipped)]
+    if to_run:
+        import_ray()  # before writing anything: a missing Ray leaves the folder as it was
+    prepare_sweep_folder(out, settings, allow_changed_settings)
     summary = SweepSummary(trials=list(trials), skipped=skipped, finished=[], failed={})
     if not to_run:
         return summary

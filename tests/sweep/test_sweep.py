@@ -181,7 +181,8 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     failed = out / "walker-walk" / "cnn-good_mlp-blank" / "seed_0"
     assert "1 finished now, 0 finished before, 1 failed" in stdout
     assert f"failed: walker-walk/cnn-good_mlp-blank/seed_0 (see {failed / 'error.txt'})" in stdout
-    assert (failed / "error.txt").read_text().startswith("Traceback (most recent call last)")
+    error = (failed / "error.txt").read_text()
+    assert error.startswith("Traceback (most recent call last)") and "is not a zip file" in error
     assert trial_status(failed) == "failed" and trial_status(out / "walker-walk" / "drqv2" / "seed_0") == "finished"
     assert json.loads((out / "sweep.json").read_text())["checkpoints"] == {"good": {"walker-walk": str(broken)}}
 
@@ -209,6 +210,7 @@ def test_missing_ray_says_how_to_install_it(monkeypatch, tmp_path, capsys):
         main([*TINY_TRIALS, "--out", str(tmp_path / "sweep"), *TINY])
     assert exit_info.value.code == 2
     assert "pip install 'sb3-collapse[sweep]'" in capsys.readouterr().err
+    assert not (tmp_path / "sweep").exists()  # nothing written
 
 
 def test_trials_variants_and_checkpoints(tmp_path):
