@@ -8,6 +8,10 @@ SB3 logger), ``eval.csv`` (one row per evaluation), ``collapse_metrics.csv`` (on
 check), ``collapse_events.csv`` (resets and the escape, with ``--reset-rule``), ``final_model.zip`` (load it with
 ``DrQv2.load``) and ``result.json`` (the outcome, written last: a folder without it is an unfinished run).
 
+``--init-cnn``, ``--init-mlp`` and ``--init-critic`` start the encoder, the actor or the critic from the weights of a
+saved DrQv2 (the paper's layer transplants, ``DrQv2(init_from=...)``). Sweeps of many such runs on Ray:
+``python -m sb3_collapse.sweep --help``.
+
 Budgets are in frames, as in DrQ-v2 and the paper (frames = agent steps x action repeat); the exploration
 schedule is in agent steps, as in DrQ-v2's configs.
 """
