@@ -23,7 +23,19 @@ def test_train_end_to_end(tmp_path):
     assert [int(row["frame"]) for row in rows] == [0, 400, 800]
     assert [int(row["step"]) for row in rows] == [0, 50, 100]
     assert all(np.isfinite(float(row["mean_reward"])) for row in rows)
-    assert json.loads((result.run_dir / "config.json").read_text())["frames"] == 800
+    saved_config = json.loads((result.run_dir / "config.json").read_text())
+    assert saved_config["frames"] == 800 and saved_config["variant"] == "drqv2" and saved_config["transplant"] is None
+    summary = json.loads((result.run_dir / "result.json").read_text())
+    assert summary == result.summary
+    assert summary["status"] == "finished" and summary["task"] == "walker-walk" and summary["variant"] == "drqv2"
+    assert summary["seed"] == 0 and summary["frames"] == 800 and summary["agent_steps"] == 100
+    assert summary["final_eval"] == {
+        "frame": 800, "mean_reward": float(rows[-1]["mean_reward"]), "std_reward": float(rows[-1]["std_reward"])
+    }
+    assert summary["resets"] == 0 and summary["reset_frames"] == [] and summary["escaped"] is None
+    assert summary["escape_frame"] is None and summary["wall_time_s"] > 0
+    assert not (result.run_dir / "collapse_events.csv").exists()  # no reset rule
+    assert not list(result.run_dir.glob("*.tmp"))
 
     model = DrQv2.load(result.model_path)
     assert model.num_timesteps == 100 and model.num_frames == 800
@@ -55,6 +67,49 @@ def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
     # One check per window of 400 frames: 5 healthy checks in a row cannot happen before the window ends.
     assert [e.value for e in accumulator.Scalars("collapse/resets")][-1] >= 1
 
+    # The same facts in the run folder's CSV files and result.json.
+    with open(result.run_dir / "collapse_metrics.csv") as file:
+        metric_rows = list(csv.DictReader(file))
+    assert list(metric_rows[0]) == ["frame", "step", "tag", "value"]
+    assert {int(row["frame"]) for row in metric_rows} == {400, 800} and {row["step"] for row in metric_rows} == {"50", "100"}
+    logged = accumulator.Scalars("collapse/mlp1/grad_norm")  # TensorBoard stores float32
+    in_csv = [row for row in metric_rows if row["tag"] == "collapse/mlp1/grad_norm"]
+    assert [int(row["step"]) for row in in_csv] == [e.step for e in logged]
+    assert [float(row["value"]) for row in in_csv] == pytest.approx([e.value for e in logged], rel=1e-6)
+    with open(result.run_dir / "collapse_events.csv") as file:
+        events = list(csv.DictReader(file))
+    summary = json.loads((result.run_dir / "result.json").read_text())
+    resets = [int(row["frame"]) for row in events if row["event"] == "reset"]
+    assert resets == summary["reset_frames"] and len(resets) == summary["resets"] >= 1
+    assert summary["escaped"] is False and summary["escape_frame"] is None and summary["variant"] == "drqv2+reset"
+    assert summary["final_eval"] is None  # no evaluation
+
+
+def test_train_into_an_exact_run_dir(tmp_path):
+    run_dir = tmp_path / "sweep" / "walker-walk" / "cnn-good_mlp-bad" / "seed_3"
+    config = TrainConfig(
+        env="walker_walk", frames=48, action_repeat=8, size=32, seed=3, seed_frames=400, eval_every_frames=0,
+        collapse_metrics_every_frames=0, run_dir=str(run_dir), progress_bar=False, torch_threads=1,
+        variant="cnn-good_mlp-bad", transplant={"cnn": "good", "mlp": "bad"},
+    )
+    result = train(config)
+    assert result.run_dir == run_dir and not (tmp_path / "runs").exists()
+    assert json.loads((run_dir / "config.json").read_text())["transplant"] == {"cnn": "good", "mlp": "bad"}
+    summary = json.loads((run_dir / "result.json").read_text())
+    assert summary["variant"] == "cnn-good_mlp-bad" and summary["task"] == "walker-walk" and summary["seed"] == 3
+    assert summary["frames"] == 48 and summary["agent_steps"] == 6
+    # A used folder is refused, with what to do.
+    with pytest.raises(ValueError, match="not an empty folder"):
+        train(config)
+
+    # Layer transplants: the encoder and the actor of that model, the critic blank.
+    transplanted = train(
+        TrainConfig(**{**config.__dict__, "run_dir": str(tmp_path / "transplanted"), "init_cnn": str(result.model_path),
+                       "init_mlp": str(run_dir / "final_model"), "variant": None, "transplant": None})
+    )  # fmt: skip
+    assert DrQv2.load(transplanted.model_path).init_from == {"cnn": str(result.model_path), "mlp": str(result.model_path)}
+    assert json.loads((transplanted.run_dir / "config.json").read_text())["init_mlp"] == str(run_dir / "final_model")
+
 
 def test_help_documents_units():
     out = subprocess.run([sys.executable, "-m", "sb3_collapse.train", "--help"], capture_output=True, text=True, check=True).stdout
@@ -70,6 +125,8 @@ def test_help_documents_units():
         (["--frames", "0"], "--frames must be >= 1"),
         (["--stddev-schedule", "linear(1,0.1)"], "stddev schedule"),
         (["--eval-episodes", "0"], "--eval-episodes must be >= 1"),
+        (["--torch-threads", "0"], "--torch-threads must be >= 1"),
+        (["--init-mlp", "missing.zip"], "--init-mlp: init_from['mlp']: checkpoint 'missing.zip' does not exist"),
     ],
 )
 def test_bad_arguments_exit_with_a_message(argv, message, capsys):

@@ -8,10 +8,11 @@ read a probe batch of observations from the model's replay buffer. They are SB3 
 
 from __future__ import annotations
 
+import csv
 import os
 import tempfile
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +62,22 @@ def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
     if frames is not None:
         return int(frames)
     return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
+
+
+def append_csv_rows(path: Path, fieldnames: Sequence[str], rows: Iterable[dict[str, Any]]) -> None:
+    """
+    Append rows to a CSV file, writing the header first when the file is new or empty.
+
+    :param path: the CSV file (its folder must exist)
+    :param fieldnames: the columns, in order
+    :param rows: one dict per row, keyed by column
+    """
+    new_file = not path.exists() or path.stat().st_size == 0
+    with path.open("a", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=fieldnames)
+        if new_file:
+            writer.writeheader()
+        writer.writerows(rows)
 
 
 def grad_norms_of(model: BaseAlgorithm) -> dict[str, float]:
@@ -220,6 +237,10 @@ class CollapseMetrics(FrameScheduleCallback):
     The values are written at the check's agent step (``logger.dump(num_timesteps)``, as SB3's ``EvalCallback``
     does), so they are not overwritten before SB3's next dump. The last values are in :attr:`last_metrics`.
 
+    With ``csv_path``, every check also appends its values to a CSV file in long format, one row per tag:
+    ``frame, step, tag, value`` (frames and agent steps at the check, the TensorBoard tag, the value). The file
+    gets its header when the callback is initialized, so it exists (header only) before the first check.
+
     :param check_every_frames: frames between two checks (10,000 in the paper)
     :param batch_size: observations of the probe batch (512)
     :param layers: the named layers to measure, ``None`` for all (``cnn0`` .. ``action``)
@@ -228,8 +249,11 @@ class CollapseMetrics(FrameScheduleCallback):
     :param saturation_limit: ``|a|`` above which an action component counts as saturated
     :param forward_batch_size: observations per forward pass
     :param seed: seed of the probe indices; ``None``: derived from the model's seed
+    :param csv_path: CSV file that each check appends its rows to (``None``: TensorBoard only)
     :param verbose: 0 silent, 1 prints a line per check
     """
+
+    CSV_FIELDS = ("frame", "step", "tag", "value")
 
     def __init__(
         self,
@@ -241,6 +265,7 @@ class CollapseMetrics(FrameScheduleCallback):
         saturation_limit: float = SATURATION_LIMIT,
         forward_batch_size: int = 256,
         seed: int | None = None,
+        csv_path: str | os.PathLike | None = None,
         verbose: int = 0,
     ) -> None:
         super().__init__(check_every_frames, verbose)
@@ -253,12 +278,15 @@ class CollapseMetrics(FrameScheduleCallback):
         self.saturation_limit = saturation_limit
         self.forward_batch_size = forward_batch_size
         self.seed = seed
+        self.csv_path = None if csv_path is None else Path(csv_path)
         self.sampler: ProbeBatchSampler | None = None
         self.last_metrics: dict[str, float] = {}
 
     def _init_callback(self) -> None:
         super()._init_callback()
         self.sampler = ProbeBatchSampler(self.seed if self.seed is not None else self._seed())
+        if self.csv_path is not None:
+            append_csv_rows(self.csv_path, self.CSV_FIELDS, [])
 
     def compute(self) -> dict[str, float] | None:
         """
@@ -300,6 +328,10 @@ class CollapseMetrics(FrameScheduleCallback):
             self.logger.record(tag, value)
         self.logger.record("time/frames", frames)
         self.logger.dump(self.num_timesteps)
+        if self.csv_path is not None:
+            step = self.num_timesteps
+            rows = [{"frame": frames, "step": step, "tag": tag, "value": value} for tag, value in values.items()]
+            append_csv_rows(self.csv_path, self.CSV_FIELDS, rows)
         if self.verbose >= 1:
             summary = ", ".join(
                 f"{k}={v:.4g}" for k, v in values.items() if k.startswith(("collapse/mlp1/", "collapse/action_std"))

@@ -5,12 +5,14 @@ action collapse within a window of frames.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from pathlib import Path
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
-from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler, grad_norms_of
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler, append_csv_rows, grad_norms_of
 from sb3_collapse.monitoring.metrics import action_spread
 
 Trigger = str | Callable[[BaseAlgorithm], "float | None"]
@@ -41,7 +43,10 @@ class CollapseReset(FrameScheduleCallback):
     (when there is one), ``collapse/reset_rule/streak``, ``collapse/resets`` (resets so far),
     ``collapse/escaped`` (0 or 1), ``collapse/reset_frame`` (at each reset) and ``collapse/escape_frame`` (at
     the escape). The same facts are in :attr:`resets`, :attr:`reset_frames`, :attr:`escaped`,
-    :attr:`escape_frame`, and every check's ``(frame, value)`` in :attr:`history`.
+    :attr:`escape_frame`, and every check's ``(frame, value)`` in :attr:`history`. With ``events_path``, each
+    reset and the escape also append a row ``frame, step, event, resets`` to a CSV file (``event`` is ``reset``
+    or ``escape``, ``resets`` the resets so far, this one included); the file gets its header when the callback
+    is initialized, so a run without events leaves a header-only file.
 
     The state carries over to the next ``learn(reset_num_timesteps=False)`` call with the same callback
     (e.g. one given to ``DrQv2(callback=...)``); a ``learn()`` that restarts from agent step 0 starts it over.
@@ -58,8 +63,11 @@ class CollapseReset(FrameScheduleCallback):
         :func:`~sb3_collapse.monitoring.metrics.action_spread`), or a callable ``model -> float | None``
         (``None``: no value at this check); above ``threshold`` is healthy in every case
     :param batch_size: probe batch for ``metric="action_std"``
+    :param events_path: CSV file that each reset and the escape append a row to (``None``: no file)
     :param verbose: 0 silent, 1 prints each reset and the escape
     """
+
+    EVENT_FIELDS = ("frame", "step", "event", "resets")
 
     def __init__(
         self,
@@ -71,6 +79,7 @@ class CollapseReset(FrameScheduleCallback):
         max_resets: int | None = None,
         metric: Trigger = "grad_norm",
         batch_size: int = 512,
+        events_path: str | os.PathLike | None = None,
         verbose: int = 0,
     ) -> None:
         super().__init__(check_every_frames, verbose)
@@ -89,6 +98,7 @@ class CollapseReset(FrameScheduleCallback):
         self.max_resets = max_resets
         self.metric = metric
         self.batch_size = batch_size
+        self.events_path = None if events_path is None else Path(events_path)
         self.sampler: ProbeBatchSampler | None = None
         self._reset_state(window_start_frame=0)
 
@@ -113,6 +123,13 @@ class CollapseReset(FrameScheduleCallback):
             if self.layer not in names:
                 raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
         self.sampler = ProbeBatchSampler(self._seed())
+        if self.events_path is not None:
+            append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
+
+    def _write_event(self, frames: int, event: str) -> None:
+        if self.events_path is not None:
+            row = {"frame": frames, "step": self.num_timesteps, "event": event, "resets": self.resets}
+            append_csv_rows(self.events_path, self.EVENT_FIELDS, [row])
 
     def _on_training_start(self) -> None:
         super()._on_training_start()
@@ -162,6 +179,7 @@ class CollapseReset(FrameScheduleCallback):
             self.escaped = True
             self.escape_frame = frames
             self.logger.record("collapse/escape_frame", frames)
+            self._write_event(frames, "escape")
             if self.verbose >= 1:
                 print(f"CollapseReset: escaped action collapse at frame {frames} ({self.resets} resets)")
         self._record(frames)
@@ -172,6 +190,7 @@ class CollapseReset(FrameScheduleCallback):
         self.reset_frames.append(frames)
         self.window_start_frame = frames
         self.streak = 0
+        self._write_event(frames, "reset")
         if self.verbose >= 1:
             print(f"CollapseReset: no escape within {self.window_frames} frames, training reset at frame {frames}")
         self.logger.record("collapse/reset_frame", frames)

@@ -1,3 +1,4 @@
+import csv
 import glob
 import warnings
 
@@ -68,6 +69,20 @@ def test_tensorboard_tags_inside_learn_with_sb3_callbacks(tmp_path):
     assert all(0 <= e.value <= 16 for e in accumulator.Scalars("collapse/mlp1/numerical_rank"))
     assert len(glob.glob(str(tmp_path / "ckpt" / "*.zip"))) == 2
     assert rule.escaped and rule.resets == 0
+
+
+def test_metrics_csv_has_one_group_of_rows_per_check(tmp_path):
+    path = tmp_path / "collapse_metrics.csv"
+    metrics = CollapseMetrics(check_every_frames=40, batch_size=32, csv_path=path)
+    tiny_model().learn(70, callback=metrics)  # checks at frames 40 (20 transitions: skipped), 80 and 120
+    with open(path) as file:
+        rows = list(csv.DictReader(file))
+    groups = [(row["frame"], row["step"]) for row in rows]
+    assert sorted(set(groups)) == [("120", "60"), ("80", "40")]  # the skipped check writes nothing
+    assert groups.count(("80", "40")) == groups.count(("120", "60"))
+    values = {row["tag"]: float(row["value"]) for row in rows if row["frame"] == "120"}
+    assert values == metrics.last_metrics and len(rows) == 2 * len(values)
+    assert {"collapse/mlp1/grad_norm", "collapse/mlp1/dead_fraction", "collapse/action_std"} <= set(values)
 
 
 def test_constructor_callback_is_the_headline_usage():

@@ -1,3 +1,4 @@
+import csv
 import glob
 
 import gymnasium as gym
@@ -78,11 +79,11 @@ def test_collapsed_actor_has_collapse_metrics_and_zero_gradient():
     assert values["collapse/cnn1/numerical_rank"] > 5  # the encoder is not collapsed
 
 
-def test_collapsed_actor_is_reset_from_scratch_at_the_end_of_the_window():
+def test_collapsed_actor_is_reset_from_scratch_at_the_end_of_the_window(tmp_path):
     model = tiny_model()
     initial = weights(model)
     collapse(model)
-    rule = SpyReset(**RULE, verbose=1)
+    rule = SpyReset(**RULE, verbose=1, events_path=tmp_path / "collapse_events.csv")
     model.learn(170, callback=rule)
 
     assert model.num_timesteps == 170  # the budget is spent, not extended
@@ -105,6 +106,19 @@ def test_collapsed_actor_is_reset_from_scratch_at_the_end_of_the_window():
     assert model.last_grad_norms["mlp1"] > 1e-3
     # The fresh actor is healthy: it escapes, and the rule stops.
     assert rule.escaped and rule.escape_frame > 240
+    # The events file: one row per reset and the escape, in frames and agent steps.
+    with open(tmp_path / "collapse_events.csv") as file:
+        rows = list(csv.DictReader(file))
+    assert rows == [
+        {"frame": "200", "step": "100", "event": "reset", "resets": "1"},
+        {"frame": str(rule.escape_frame), "step": str(rule.escape_frame // 2), "event": "escape", "resets": "1"},
+    ]
+
+
+def test_events_file_has_a_header_when_nothing_happens(tmp_path):
+    rule = CollapseReset(**RULE, events_path=tmp_path / "events.csv")
+    tiny_model(learning_starts=1000).learn(20, callback=rule)  # 40 frames: no update, no window end
+    assert (tmp_path / "events.csv").read_text().splitlines() == ["frame,step,event,resets"]
 
 
 def test_healthy_actor_escapes_and_is_never_reset():

@@ -1,0 +1,167 @@
+"""
+Multi-seed sweeps on Ray: ``python -m sb3_collapse.sweep --help``.
+
+    python -m sb3_collapse.sweep --tasks walker-walk hopper-stand finger-spin --seeds 40 \\
+        --variants drqv2 drqv2+reset --out runs/sweep
+
+Every (task, variant, seed) trains as an independent Ray task into ``<out>/<task>/<variant>/seed_<k>``; rerun the
+same command to resume (finished trials are skipped, unfinished ones restart).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from pathlib import Path
+
+from sb3_collapse.sweep.runner import RayMissingError, prepare_sweep_folder, run_sweep, sweep_settings
+from sb3_collapse.sweep.trials import (
+    GRID_VARIANTS,
+    PLAIN_VARIANTS,
+    TRANSPLANT_SOURCES,
+    SweepError,
+    check_checkpoints,
+    expand_trials,
+    parse_checkpoint_specs,
+    trial_dir,
+    trial_status,
+)
+from sb3_collapse.train import TrainConfig, training_arguments, training_settings
+
+DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags and every training flag of train."""
+    p = argparse.ArgumentParser(
+        prog="python -m sb3_collapse.sweep",
+        description="Run every (task, variant, seed) as an independent DrQ-v2 trial on Ray, each into "
+        "<out>/<task>/<variant>/seed_<k> (config.json, eval.csv, TensorBoard, collapse_metrics.csv, "
+        "collapse_events.csv, final_model.zip, result.json). Rerun the same command to resume: finished trials "
+        "are skipped, unfinished ones restart. Frames = agent steps x action repeat.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        parents=[training_arguments()],
+    )
+    g = p.add_argument_group("sweep")
+    g.add_argument("--tasks", nargs="+", required=True, help="dm_control tasks: walker-walk hopper-stand ...")
+    seeds = g.add_mutually_exclusive_group(required=True)
+    seeds.add_argument("--seeds", type=int, help="number of seeds: N runs seeds 0 .. N-1")
+    seeds.add_argument("--seed-list", type=int, nargs="+", help="explicit seeds, e.g. 3 7")
+    g.add_argument(
+        "--variants",
+        nargs="+",
+        help=f"{' '.join(PLAIN_VARIANTS)} (the paper's reset rule) or transplant-grid cells cnn-<src>_mlp-<src>, "
+        f"<src> in {'/'.join(TRANSPLANT_SOURCES)}; default: {' '.join(DEFAULT_VARIANTS)} (only the grid with "
+        "--transplant-grid)",
+    )
+    g.add_argument("--transplant-grid", action="store_true", help="add the 9 cells of the CNN x MLP transplant grid")
+    for source in ("good", "bad"):
+        g.add_argument(
+            f"--{source}-checkpoint",
+            nargs="+",
+            metavar="[TASK=]PATH",
+            help=f"DrQv2 checkpoint(s) of a {source} agent for the grid cells with a {source} CNN or MLP: PATH for "
+            "every task, TASK=PATH per task",
+        )
+    g.add_argument("--out", required=True, help="the sweep folder (with --address: on storage every node sees)")
+    g.add_argument(
+        "--address",
+        help="Ray cluster to run on ('auto', 'ray://head:10001', 'head:6379'); default: a new local Ray instance. "
+        "sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees",
+    )
+    g.add_argument(
+        "--cpus-per-trial", type=float, default=1, help="CPUs Ray reserves per trial; also its torch threads"
+    )
+    g.add_argument(
+        "--gpus-per-trial",
+        type=float,
+        default=0,
+        help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 trials per GPU); > 0 trains on cuda, 0 on cpu",
+    )
+    g.add_argument(
+        "--allow-changed-settings",
+        action="store_true",
+        help="run even if --out holds a sweep with other training settings (finished trials keep theirs)",
+    )
+    g.add_argument("--dry-run", action="store_true", help="list the trials and their status, run nothing")
+    g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """
+    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
+    :return: exit status: 0 when every trial finished, 1 when some failed, 2 for bad arguments
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    training = training_settings(args)
+    if args.seeds is not None and args.seeds < 1:
+        parser.error(f"--seeds must be >= 1, got {args.seeds}.")
+    seeds = range(args.seeds) if args.seeds is not None else args.seed_list
+    variants = list(args.variants or ([] if args.transplant_grid else DEFAULT_VARIANTS))
+    if args.transplant_grid:
+        variants += GRID_VARIANTS
+    try:
+        trials = expand_trials(args.tasks, variants, seeds)
+        TrainConfig(**training, env=trials[0].task).validate()
+        tasks = list(dict.fromkeys(trial.task for trial in trials))
+        checkpoints = {
+            source: parse_checkpoint_specs(getattr(args, f"{source}_checkpoint"), tasks, f"--{source}-checkpoint")
+            for source in ("good", "bad")
+        }
+        check_checkpoints(trials, checkpoints)
+        if args.dry_run:
+            return dry_run(trials, args.out, training, checkpoints, args.allow_changed_settings)
+        summary = run_sweep(
+            trials,
+            args.out,
+            training,
+            checkpoints,
+            cpus_per_trial=args.cpus_per_trial,
+            gpus_per_trial=args.gpus_per_trial,
+            address=args.address,
+            allow_changed_settings=args.allow_changed_settings,
+            progress_bar=args.progress_bar,
+        )
+    except (SweepError, RayMissingError, ValueError) as error:
+        parser.error(str(error))
+    except KeyboardInterrupt:
+        print(f"\nInterrupted: rerun the same command to resume (finished trials in {args.out} are kept).")
+        return 130
+    print(
+        f"{len(summary.trials)} trials in {args.out}: {len(summary.finished)} finished now, "
+        f"{len(summary.skipped)} finished before, {len(summary.failed)} failed."
+    )
+    for trial, error_path in summary.failed.items():
+        print(f"  failed: {trial} (see {error_path})")
+    if summary.failed:
+        print("Rerun the same command to retry the failed trials.")
+    return 0 if summary.ok else 1
+
+
+def dry_run(trials: list, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool) -> int:
+    """
+    Print each trial's status and folder, and the counts; check the settings against ``sweep.json``.
+
+    :return: exit status 0
+    :raises SweepError: when the training settings differ from those of ``sweep.json`` (and that is not allowed)
+    """
+    settings = sweep_settings(trials, training, checkpoints, resources={})
+    prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
+    statuses = {trial: trial_status(trial_dir(out, trial)) for trial in trials}
+    for trial, status in statuses.items():
+        action = "skip" if status == "finished" else "run"
+        print(f"{status:<9} {action:<4} {trial_dir(out, trial)}")
+    counts = Counter(statuses.values())
+    print(
+        f"{len(trials)} trials: "
+        + ", ".join(f"{counts[s]} {s}" for s in ("finished", "failed", "partial", "pending") if counts[s])
+        + f"; {sum(status != 'finished' for status in statuses.values())} would run."
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,349 @@
+"""
+Run the trials of a sweep on Ray: each trial is an independent Ray task (Ray core, ``ray.remote``) that asks for
+``cpus_per_trial`` CPUs and ``gpus_per_trial`` GPUs (fractions allowed) and calls :func:`sb3_collapse.train.train`
+into the trial's folder.
+
+Ray core rather than Ray Tune: the trials are fixed (no search, no scheduler, no early stopping) and each one
+writes its own folder with the contract that the report reads; a task per trial is all the engine has to do, with
+Ray's resource accounting, placement on a cluster and fractional GPUs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import shutil
+import traceback
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tqdm.auto import tqdm
+
+from sb3_collapse.sweep.trials import (
+    FINISHED,
+    SweepError,
+    Trial,
+    check_checkpoints,
+    trial_config,
+    trial_dir,
+    trial_status,
+)
+from sb3_collapse.train import TrainConfig, train, write_json_atomically
+
+INSTALL_HINT = "pip install 'sb3-collapse[sweep]'"
+
+
+class RayMissingError(ImportError):
+    """Ray is not installed."""
+
+
+def import_ray() -> Any:
+    """
+    :return: the ``ray`` module
+    :raises RayMissingError: with the command that installs it
+    """
+    try:
+        import ray
+    except ImportError as error:
+        raise RayMissingError(f"Sweeps run on Ray, which is not installed: {INSTALL_HINT} ({error}).") from None
+    return ray
+
+
+@contextlib.contextmanager
+def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iterator[Any]:
+    """
+    Connect to Ray for the duration of the block: an already initialized Ray is used as it is; otherwise
+    ``ray.init`` starts a local instance (``address=None``, no dashboard) or connects to the cluster at
+    ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects.
+
+    :param address: Ray cluster address, ``None`` for a new local instance
+    :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``
+    :return: the ``ray`` module
+    """
+    ray = import_ray()
+    if ray.is_initialized():
+        yield ray
+        return
+    if address is None:
+        ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
+    else:
+        ray.init(address=address, log_to_driver=True)
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_per_trial: float) -> None:
+    """
+    :param resources: the cluster's resources (``ray.cluster_resources()``)
+    :param cpus_per_trial: CPUs each trial asks for
+    :param gpus_per_trial: GPUs each trial asks for
+    :raises SweepError: when no trial could ever be scheduled
+    """
+    gpus, cpus = resources.get("GPU", 0.0), resources.get("CPU", 0.0)
+    if gpus_per_trial > 0 and gpus == 0:
+        raise SweepError(
+            f"--gpus-per-trial {gpus_per_trial} asks for GPUs, but Ray sees none in this cluster (resources: "
+            f"{dict(resources)}). Pass --gpus-per-trial 0 to train on CPU, or run on machines with GPUs."
+        )
+    if gpus_per_trial > gpus:
+        raise SweepError(f"--gpus-per-trial {gpus_per_trial} is more than the {gpus:g} GPUs Ray sees.")
+    if cpus_per_trial > cpus:
+        raise SweepError(f"--cpus-per-trial {cpus_per_trial} is more than the {cpus:g} CPUs Ray sees.")
+
+
+def write_error(folder: Path, text: str) -> None:
+    """
+    :param folder: a trial folder (created if needed)
+    :param text: the traceback, written to ``<folder>/error.txt`` (temporary file, then rename)
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    temporary = folder / ".error.txt.tmp"
+    temporary.write_text(text)
+    os.replace(temporary, folder / "error.txt")
+
+
+def run_trial(
+    trial: Trial,
+    out: str,
+    training: Mapping[str, Any],
+    checkpoints: Mapping[str, Mapping[str, str]] | None = None,
+    device: str = "cpu",
+    torch_threads: int | None = None,
+) -> dict[str, Any]:
+    """
+    Run one trial into its folder: delete what an earlier, unfinished attempt left there, then train (which
+    writes ``result.json`` last). A failure does not propagate: its traceback goes to ``<trial>/error.txt``.
+
+    :param trial: the trial
+    :param out: the sweep folder
+    :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials
+    :param checkpoints: source (``"good"``, ``"bad"``) -> task -> checkpoint path, for transplant-grid cells
+    :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
+    :param torch_threads: threads of torch's CPU operations
+    :return: ``{"trial": str, "status": "finished" | "failed", "error": last line of the traceback or None}``
+    """
+    folder = trial_dir(out, trial)
+    if folder.exists():
+        shutil.rmtree(folder)
+    try:
+        train(trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads))
+    except Exception as error:  # noqa: BLE001  reported in error.txt and in the sweep's summary, the other trials go on
+        write_error(folder, traceback.format_exc())
+        return {"trial": str(trial), "status": "failed", "error": f"{type(error).__name__}: {error}"}
+    return {"trial": str(trial), "status": FINISHED, "error": None}
+
+
+@dataclass
+class SweepSummary:
+    """
+    :param trials: every trial of the sweep
+    :param skipped: trials already finished before this run
+    :param finished: trials finished in this run
+    :param failed: trial -> path of its ``error.txt``, for the trials that failed in this run
+    """
+
+    trials: list[Trial]
+    skipped: list[Trial]
+    finished: list[Trial]
+    failed: dict[Trial, Path]
+
+    @property
+    def ok(self) -> bool:
+        """Whether no trial failed."""
+        return not self.failed
+
+
+TRAINING_KEYS = ("training", "checkpoints")
+"""Entries of ``sweep.json`` that change what a trial trains; a resumed sweep must keep them."""
+
+
+def sweep_settings(
+    trials: Sequence[Trial],
+    training: Mapping[str, Any],
+    checkpoints: Mapping[str, Mapping[str, str]],
+    resources: Mapping[str, Any],
+) -> dict[str, Any]:
+    """
+    The content of ``sweep.json``: ``training`` (the shared :class:`~sb3_collapse.train.TrainConfig` fields),
+    ``checkpoints`` (source -> task -> path), ``tasks``, ``variants``, ``seeds`` and ``resources`` (how trials
+    ran: CPUs and GPUs per trial, the Ray address).
+
+    :param trials: the sweep's trials
+    :param training: the shared training settings
+    :param checkpoints: the transplant checkpoints
+    :param resources: informational settings of the run
+    :return: the settings, JSON-serializable
+    """
+    return {
+        "training": dict(training),
+        "checkpoints": {source: dict(paths) for source, paths in checkpoints.items() if paths},
+        "tasks": list(dict.fromkeys(trial.task for trial in trials)),
+        "variants": list(dict.fromkeys(trial.variant for trial in trials)),
+        "seeds": sorted({trial.seed for trial in trials}),
+        "resources": dict(resources),
+    }
+
+
+def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) -> list[str]:
+    """
+    What differs between the training settings of two ``sweep.json`` contents: every ``training`` field, and the
+    checkpoint of every (source, task) that both name (a new task or source may be added to a sweep).
+
+    :param previous: the settings in ``sweep.json``
+    :param current: the settings of this run
+    :return: one line per difference, empty when the trials would train the same way
+    """
+    changes = []
+    old, new = previous.get("training", {}), current.get("training", {})
+    for name in sorted(set(old) | set(new)):
+        if old.get(name) != new.get(name):
+            flag = "--" + ("lr" if name == "learning_rate" else name.replace("_", "-"))
+            changes.append(f"{flag}: {old.get(name)!r} in sweep.json, {new.get(name)!r} now")
+    for source, paths in current.get("checkpoints", {}).items():
+        for task, path in paths.items():
+            before = previous.get("checkpoints", {}).get(source, {}).get(task)
+            if before is not None and before != path:
+                changes.append(f"--{source}-checkpoint for {task}: {before} in sweep.json, {path} now")
+    return changes
+
+
+def merge_settings(previous: Mapping[str, Any], current: Mapping[str, Any]) -> dict[str, Any]:
+    """
+    :param previous: the settings in ``sweep.json``
+    :param current: the settings of this run
+    :return: the current settings with the tasks, variants, seeds and checkpoints of both (a sweep folder
+        accumulates trials)
+    """
+    merged = dict(current)
+    for key in ("tasks", "variants"):
+        merged[key] = list(dict.fromkeys([*previous.get(key, []), *current.get(key, [])]))
+    merged["seeds"] = sorted({*previous.get("seeds", []), *current.get("seeds", [])})
+    checkpoints: dict[str, dict[str, str]] = {s: dict(p) for s, p in previous.get("checkpoints", {}).items()}
+    for source, paths in current.get("checkpoints", {}).items():
+        checkpoints.setdefault(source, {}).update(paths)
+    merged["checkpoints"] = checkpoints
+    return merged
+
+
+def prepare_sweep_folder(
+    out: str | Path, settings: Mapping[str, Any], allow_changed_settings: bool = False, write: bool = True
+) -> None:
+    """
+    Check this run's settings against ``<out>/sweep.json`` and write the merged settings there (atomically).
+
+    :param out: the sweep folder (created if needed)
+    :param settings: this run's :func:`sweep_settings`
+    :param allow_changed_settings: accept training settings that differ from those in ``sweep.json`` (the
+        finished trials keep the old ones)
+    :param write: write ``sweep.json``; ``False`` only checks (dry run)
+    :raises SweepError: when the training settings changed and that is not allowed
+    """
+    out = Path(out)
+    path = out / "sweep.json"
+    previous: dict[str, Any] = {}
+    if path.is_file():
+        previous = json.loads(path.read_text())
+        changes = settings_changes(previous, settings)
+        if changes and not allow_changed_settings:
+            raise SweepError(
+                f"{out} holds a sweep with other training settings:\n  "
+                + "\n  ".join(changes)
+                + "\nUse another --out, the same settings, or --allow-changed-settings to mix them (finished trials "
+                "are not rerun)."
+            )
+    if not write:
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomically(path, merge_settings(previous, settings))
+
+
+def run_sweep(
+    trials: Sequence[Trial],
+    out: str | Path,
+    training: Mapping[str, Any],
+    checkpoints: Mapping[str, Mapping[str, str]] | None = None,
+    cpus_per_trial: float = 1,
+    gpus_per_trial: float = 0,
+    address: str | None = None,
+    allow_changed_settings: bool = False,
+    progress_bar: bool = True,
+) -> SweepSummary:
+    """
+    Run every trial that is not finished, each as an independent Ray task, and wait for all of them.
+
+    Resumable: a trial whose ``result.json`` is there is skipped; any other trial folder (interrupted or failed)
+    is deleted and the trial runs again. ``<out>/sweep.json`` records the settings (see
+    :func:`prepare_sweep_folder`). A failing trial writes its traceback to ``<trial>/error.txt`` and the others
+    go on. Ray starts only when there is a trial to run.
+
+    :param trials: the trials (:func:`~sb3_collapse.sweep.trials.expand_trials`)
+    :param out: the sweep folder; with ``address`` it must be on storage that every node sees at the same path
+    :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials (not ``env``, ``seed``,
+        ``logdir``, ``run_name``, ``run_dir``, ``reset_rule``, ``device``, ``progress_bar``...)
+    :param checkpoints: source (``"good"``, ``"bad"``) -> task -> checkpoint path, for transplant-grid cells
+    :param cpus_per_trial: CPUs Ray reserves per trial; also the trial's torch threads (at least 1)
+    :param gpus_per_trial: GPUs Ray reserves per trial (``0.25``: four trials share a GPU); the trial trains on
+        ``cuda`` when it is > 0, else on ``cpu``
+    :param address: Ray cluster address, ``None`` for a local instance (or the Ray already initialized)
+    :param allow_changed_settings: run even if ``sweep.json`` has other training settings
+    :param progress_bar: show a progress bar over the trials
+    :return: what was skipped, finished and failed
+    :raises SweepError: for settings that cannot run (missing checkpoints, changed settings, resources)
+    :raises RayMissingError: when there are trials to run and Ray is not installed
+    """
+    if cpus_per_trial <= 0:
+        raise SweepError(f"--cpus-per-trial must be > 0, got {cpus_per_trial}.")
+    if gpus_per_trial < 0 or (gpus_per_trial > 1 and gpus_per_trial != int(gpus_per_trial)):
+        raise SweepError(f"--gpus-per-trial must be a fraction in [0, 1] or a whole number, got {gpus_per_trial}.")
+    unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
+    if unknown:
+        raise SweepError(f"Unknown training settings {unknown}: use TrainConfig field names.")
+    checkpoints = {source: dict(paths) for source, paths in (checkpoints or {}).items()}
+    check_checkpoints(trials, checkpoints)
+    out = Path(out).resolve()
+    resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
+    settings = sweep_settings(trials, training, checkpoints, resources)
+    prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
+    skipped = [trial for trial in trials if trial_status(trial_dir(out, trial)) == FINISHED]
+    to_run = [trial for trial in trials if trial not in set(skipped)]
+    if to_run:
+        import_ray()  # before writing anything: a missing Ray leaves the folder as it was
+    prepare_sweep_folder(out, settings, allow_changed_settings)
+    summary = SweepSummary(trials=list(trials), skipped=skipped, finished=[], failed={})
+    if not to_run:
+        return summary
+    with ray_session(address) as ray:
+        check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
+        remote = ray.remote(run_trial).options(num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=0)
+        device = "cuda" if gpus_per_trial > 0 else "cpu"
+        threads = max(1, int(cpus_per_trial))
+        pending = {
+            remote.remote(trial, str(out), dict(training), checkpoints, device, threads): trial for trial in to_run
+        }
+        with tqdm(total=len(to_run), desc="trials", unit="trial", disable=not progress_bar) as bar:
+            try:
+                while pending:
+                    done, _ = ray.wait(list(pending), num_returns=1)
+                    trial = pending.pop(done[0])
+                    try:
+                        outcome = ray.get(done[0])
+                    except Exception as error:  # noqa: BLE001  the Ray task itself died (worker crash, out of memory...)
+                        outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}".splitlines()[0]}
+                        write_error(trial_dir(out, trial), f"The Ray task of {trial} died:\n{error}\n")
+                    if outcome["status"] == FINISHED:
+                        summary.finished.append(trial)
+                    else:
+                        summary.failed[trial] = trial_dir(out, trial) / "error.txt"
+                        bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")
+                    bar.set_postfix(failed=len(summary.failed))
+                    bar.update()
+            finally:
+                for ref in pending:  # interrupted: stop the trials still running; they rerun on resume
+                    ray.cancel(ref, force=True)
+    return summary

@@ -1,0 +1,241 @@
+"""
+The trials of a sweep: one per (task, variant, seed), each in its own folder ``<out>/<task>/<variant>/seed_<k>``.
+
+Variants:
+
+- ``drqv2``: plain DrQ-v2;
+- ``drqv2+reset``: DrQ-v2 with the paper's reset-from-scratch rule (:class:`~sb3_collapse.CollapseReset`);
+- ``cnn-<src>_mlp-<src>`` with ``<src>`` in ``blank``, ``good``, ``bad``: a cell of the paper's transplant grid
+  (Study 2, Figure 3a), plain DrQ-v2 whose encoder (CNN) and actor (MLP) start from the weights of a "good" or a
+  "bad" checkpoint of the same task, or blank (the usual random initialization); the critic starts blank.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sb3_collapse.drqv2.transplant import resolve_source_path
+from sb3_collapse.envs import parse_task
+from sb3_collapse.train import TrainConfig
+
+PLAIN_VARIANTS = ("drqv2", "drqv2+reset")
+TRANSPLANT_SOURCES = ("blank", "good", "bad")
+GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
+"""The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
+
+FINISHED, FAILED, PARTIAL, PENDING = "finished", "failed", "partial", "pending"
+"""Trial statuses, see :func:`trial_status`."""
+
+
+class SweepError(ValueError):
+    """A sweep that cannot run as asked; the message says what to do."""
+
+
+@dataclass(frozen=True, order=True)
+class Trial:
+    """
+    One training run of a sweep.
+
+    :param task: the task, ``<domain>-<task>`` (``"walker-walk"``)
+    :param variant: the variant name (see the module docstring)
+    :param seed: the random seed
+    """
+
+    task: str
+    variant: str
+    seed: int
+
+    def __str__(self) -> str:
+        return f"{self.task}/{self.variant}/seed_{self.seed}"
+
+
+def canonical_task(name: str) -> str:
+    """
+    :param name: a task name in any form :func:`~sb3_collapse.envs.parse_task` accepts (``"walker_walk"``)
+    :return: its ``<domain>-<task>`` form (``"walker-walk"``)
+    :raises SweepError: for an unknown task, with close names
+    """
+    try:
+        domain, task = parse_task(name)
+    except ValueError as error:
+        raise SweepError(str(error)) from None
+    return f"{domain}-{task}"
+
+
+def transplant_of(variant: str) -> dict[str, str] | None:
+    """
+    :param variant: a variant name
+    :return: ``{"cnn": src, "mlp": src}`` for a transplant-grid cell, ``None`` for a plain variant
+    :raises SweepError: for an unknown variant, listing the valid ones
+    """
+    if variant in PLAIN_VARIANTS:
+        return None
+    if variant in GRID_VARIANTS:
+        cnn, mlp = variant.split("_")
+        return {"cnn": cnn.removeprefix("cnn-"), "mlp": mlp.removeprefix("mlp-")}
+    raise SweepError(
+        f"Unknown variant {variant!r}: use {', '.join(PLAIN_VARIANTS)} or a transplant-grid cell "
+        f"cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} (e.g. cnn-good_mlp-bad)."
+    )
+
+
+def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable[int]) -> list[Trial]:
+    """
+    Every (task, variant, seed) combination, in that nesting order, without duplicates.
+
+    :param tasks: task names (any form of :func:`canonical_task`)
+    :param variants: variant names
+    :param seeds: seeds (>= 0)
+    :return: the trials
+    :raises SweepError: for an unknown task or variant, a negative seed or an empty list
+    """
+    tasks = list(dict.fromkeys(canonical_task(task) for task in tasks))
+    variants = list(dict.fromkeys(variants))
+    seeds = list(dict.fromkeys(int(seed) for seed in seeds))
+    for variant in variants:
+        transplant_of(variant)
+    if any(seed < 0 for seed in seeds):
+        raise SweepError(f"Seeds must be >= 0, got {min(seeds)}.")
+    if not (tasks and variants and seeds):
+        raise SweepError("A sweep needs at least one task, one variant and one seed.")
+    return [Trial(task, variant, seed) for task in tasks for variant in variants for seed in seeds]
+
+
+def trial_dir(out: str | Path, trial: Trial) -> Path:
+    """
+    :param out: the sweep folder
+    :param trial: a trial
+    :return: its folder, ``<out>/<task>/<variant>/seed_<seed>``
+    """
+    return Path(out) / trial.task / trial.variant / f"seed_{trial.seed}"
+
+
+def trial_status(folder: str | Path) -> str:
+    """
+    The state of a trial folder:
+
+    - ``"finished"``: ``result.json`` holds ``"status": "finished"`` (train writes it last, atomically);
+    - ``"failed"``: no result, and ``error.txt`` (the traceback of the failure) is there;
+    - ``"partial"``: the folder exists without a result (interrupted);
+    - ``"pending"``: no folder.
+
+    A sweep reruns every trial that is not finished, deleting its folder first.
+
+    :param folder: the trial folder
+    :return: one of :data:`FINISHED`, :data:`FAILED`, :data:`PARTIAL`, :data:`PENDING`
+    """
+    folder = Path(folder)
+    if not folder.exists():
+        return PENDING
+    result = folder / "result.json"
+    if result.is_file():
+        try:
+            if json.loads(result.read_text()).get("status") == FINISHED:
+                return FINISHED
+        except (json.JSONDecodeError, AttributeError):
+            pass
+    return FAILED if (folder / "error.txt").is_file() else PARTIAL
+
+
+def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], flag: str) -> dict[str, str]:
+    """
+    Checkpoints of one source (good or bad) per task, from ``PATH`` (every task) and ``TASK=PATH`` items (that
+    task; it overrides a plain ``PATH``). An item is ``TASK=PATH`` when the text before its first ``=`` is a task
+    name; otherwise the whole item is a path. As in ``DrQv2.load``, ``.zip`` may be left out. Paths are made
+    absolute (trials may run in another folder).
+
+    :param specs: the items, ``None`` for none
+    :param tasks: the sweep's tasks, ``<domain>-<task>``
+    :param flag: the command-line flag, for the messages (``"--good-checkpoint"``)
+    :return: task -> absolute checkpoint path, for the tasks that have one
+    :raises SweepError: for two plain paths, a task that is not in the sweep, or a path that is not a file
+    """
+    default: str | None = None
+    by_task: dict[str, str] = {}
+    for item in specs or []:
+        name, separator, path = item.partition("=")
+        task = None
+        if separator:
+            try:
+                task = canonical_task(name)
+            except SweepError:
+                task = None
+        if task is None:
+            if default is not None:
+                raise SweepError(f"{flag}: two checkpoints for every task ({default}, {item}); use TASK=PATH per task.")
+            default = item
+        elif task not in tasks:
+            raise SweepError(f"{flag} {item}: {task} is not a task of this sweep ({', '.join(tasks)}).")
+        else:
+            by_task[task] = path
+    checkpoints = {task: by_task.get(task, default) for task in tasks}
+    resolved = {}
+    for task, path in checkpoints.items():
+        if path is None:
+            continue
+        try:
+            resolved[task] = str(resolve_source_path(flag, path))
+        except FileNotFoundError:
+            raise SweepError(
+                f"{flag}: {path} (for {task}) is not a file; give a checkpoint saved by DrQv2.save."
+            ) from None
+    return resolved
+
+
+def check_checkpoints(trials: Iterable[Trial], checkpoints: Mapping[str, Mapping[str, str]]) -> None:
+    """
+    :param trials: the sweep's trials
+    :param checkpoints: source (``"good"``, ``"bad"``) -> task -> path
+    :raises SweepError: naming the first transplant-grid trial whose checkpoint is missing and the flag to add
+    """
+    for trial in trials:
+        for part, source in (transplant_of(trial.variant) or {}).items():
+            if source != "blank" and trial.task not in checkpoints.get(source, {}):
+                raise SweepError(
+                    f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-checkpoint "
+                    f"PATH (or {trial.task}=PATH) for {trial.task}."
+                )
+
+
+def trial_config(
+    trial: Trial,
+    out: str | Path,
+    training: Mapping[str, Any],
+    checkpoints: Mapping[str, Mapping[str, str]] | None = None,
+    device: str = "cpu",
+    torch_threads: int | None = None,
+) -> TrainConfig:
+    """
+    The settings of one trial: the sweep's training settings, the trial's task and seed, its exact folder,
+    the variant's reset rule and initial weights, no progress bar.
+
+    :param trial: the trial
+    :param out: the sweep folder
+    :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials
+    :param checkpoints: source (``"good"``, ``"bad"``) -> task -> checkpoint path, for transplant-grid cells
+    :param device: the torch device of the trial
+    :param torch_threads: threads of torch's CPU operations in the trial
+    :return: the trial's :class:`~sb3_collapse.train.TrainConfig`
+    """
+    transplant = transplant_of(trial.variant)
+    per_trial: dict[str, Any] = {
+        "env": trial.task,
+        "seed": trial.seed,
+        "run_dir": str(trial_dir(out, trial)),
+        "reset_rule": trial.variant == "drqv2+reset",
+        "variant": trial.variant,
+        "transplant": transplant,
+        "device": device,
+        "torch_threads": torch_threads,
+        "progress_bar": False,
+    }
+    if transplant is not None:
+        checkpoints = checkpoints or {}
+        for part, source in transplant.items():
+            if source != "blank":
+                per_trial[f"init_{part}"] = checkpoints[source][trial.task]
+    return TrainConfig(**{**training, **per_trial})

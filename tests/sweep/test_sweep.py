@@ -1,0 +1,289 @@
+import csv
+import json
+import shutil
+import sys
+import time
+import zipfile
+
+import pytest
+
+from sb3_collapse import DrQv2
+from sb3_collapse.sweep import (
+    GRID_VARIANTS,
+    SweepError,
+    Trial,
+    expand_trials,
+    parse_checkpoint_specs,
+    ray_session,
+    run_sweep,
+    settings_changes,
+    transplant_of,
+    trial_config,
+    trial_dir,
+    trial_status,
+)
+from sb3_collapse.sweep.__main__ import main
+from sb3_collapse.sweep.runner import check_resources
+
+# A tiny trial: 1000 frames = 20 agent steps of 50 frames (a whole DMC episode is then 20 renders, so that the
+# evaluations at frames 0 and 1000 stay cheap), learning from agent step 10, collapse checks at frames 500 and
+# 1000, and with the reset rule a window of 500 frames (resets at frames 500 and 1000).
+TINY = [
+    "--frames", "1000", "--action-repeat", "50", "--size", "32", "--seed-frames", "500", "--batch-size", "8",
+    "--hidden-dim", "32", "--feature-dim", "16", "--eval-every-frames", "1000", "--eval-episodes", "1",
+    "--collapse-metrics-every-frames", "500", "--collapse-probe-batch", "8", "--reset-window-frames", "500",
+]  # fmt: skip
+TINY_TRIALS = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "drqv2+reset"]
+RESULT_KEYS = {
+    "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "resets", "reset_frames", "escaped",
+    "escape_frame", "wall_time_s",
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def ray_local():
+    """One local Ray instance (2 CPUs) for the module: the sweeps below use it instead of starting their own."""
+    pytest.importorskip("ray", reason="the sweep extra is not installed: pip install 'sb3-collapse[sweep]'")
+    with ray_session(num_cpus=2):
+        yield
+
+
+@pytest.fixture(scope="module")
+def tiny_sweep(ray_local, tmp_path_factory):
+    """A real sweep folder: walker-walk, variants drqv2 and drqv2+reset, seed 0, through the CLI (do not modify it)."""
+    out = tmp_path_factory.mktemp("tiny_sweep")
+    start = time.perf_counter()
+    status = main([*TINY_TRIALS, "--out", str(out), "--no-progress-bar", *TINY])
+    print(f"tiny sweep: 2 trials in {time.perf_counter() - start:.1f} s")
+    assert status == 0
+    return out
+
+
+def read_csv(path):
+    with open(path) as file:
+        return list(csv.DictReader(file))
+
+
+def mtimes(folder):
+    return {path: path.stat().st_mtime_ns for path in folder.rglob("*") if path.is_file()}
+
+
+def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
+    settings = json.loads((tiny_sweep / "sweep.json").read_text())
+    assert settings["tasks"] == ["walker-walk"] and settings["variants"] == ["drqv2", "drqv2+reset"]
+    assert settings["seeds"] == [0] and settings["training"]["frames"] == 1000
+    assert settings["resources"] == {"cpus_per_trial": 1, "gpus_per_trial": 0, "address": None}
+    for variant in ("drqv2", "drqv2+reset"):
+        folder = tiny_sweep / "walker-walk" / variant / "seed_0"
+        config = json.loads((folder / "config.json").read_text())
+        assert config["variant"] == variant and config["transplant"] is None and config["env"] == "walker-walk"
+        assert config["reset_rule"] == (variant == "drqv2+reset") and config["run_dir"] == str(folder)
+        assert config["device"] == "cpu" and config["torch_threads"] == 1 and config["progress_bar"] is False
+
+        evaluations = read_csv(folder / "eval.csv")
+        assert list(evaluations[0]) == ["frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s"]
+        assert [int(row["frame"]) for row in evaluations] == [0, 1000]
+        assert (folder / "progress.csv").stat().st_size > 0 and list(folder.glob("events.out.tfevents.*"))
+        assert zipfile.is_zipfile(folder / "final_model.zip")
+
+        metrics = read_csv(folder / "collapse_metrics.csv")
+        assert list(metrics[0]) == ["frame", "step", "tag", "value"]
+        assert {int(row["frame"]) for row in metrics} <= {500, 1000} and 1000 in {int(row["frame"]) for row in metrics}
+        tags = {row["tag"] for row in metrics if row["frame"] == "1000"}
+        assert {"collapse/mlp1/dead_fraction", "collapse/mlp1/srank", "collapse/action_std"} <= tags
+        # Gradient norms once an update happened: with the rule, the reset at frame 500 restarts the warm-up.
+        assert ("collapse/mlp1/grad_norm" in tags) == (variant == "drqv2")
+
+        result = json.loads((folder / "result.json").read_text())
+        assert set(result) == RESULT_KEYS
+        assert result["status"] == "finished" and result["task"] == "walker-walk" and result["variant"] == variant
+        assert result["seed"] == 0 and result["frames"] == 1000 and result["agent_steps"] == 20
+        assert result["final_eval"]["frame"] == 1000
+        assert result["final_eval"]["mean_reward"] == float(evaluations[-1]["mean_reward"])
+        assert result["wall_time_s"] > 0
+        assert trial_status(folder) == "finished" and not list(folder.glob(".*.tmp"))
+        if variant == "drqv2":
+            assert result["escaped"] is None and result["resets"] == 0 and result["reset_frames"] == []
+            assert not (folder / "collapse_events.csv").exists()
+        else:
+            events = read_csv(folder / "collapse_events.csv")
+            assert [(row["event"], int(row["frame"])) for row in events] == [("reset", 500), ("reset", 1000)]
+            assert result["resets"] == 2 and result["reset_frames"] == [500, 1000]
+            assert result["escaped"] is False and result["escape_frame"] is None
+
+
+def test_resume_skips_finished_trials_and_reruns_unfinished_ones(tiny_sweep, tmp_path, capsys):
+    out = tmp_path / "sweep"
+    shutil.copytree(tiny_sweep, out)  # copy2 keeps the modification times
+    before = mtimes(out / "walker-walk")
+    # The same command again: nothing to run, no trial file touched (Ray is not even needed).
+    assert main([*TINY_TRIALS, "--out", str(out), "--no-progress-bar", *TINY]) == 0
+    assert "0 finished now, 2 finished before, 0 failed" in capsys.readouterr().out
+    assert mtimes(out / "walker-walk") == before
+
+    # An interrupted trial: no result.json, a leftover file. It runs again from an empty folder; the other is kept.
+    partial = out / "walker-walk" / "drqv2" / "seed_0"
+    kept = out / "walker-walk" / "drqv2+reset" / "seed_0"
+    (partial / "result.json").unlink()
+    (partial / "leftover.txt").write_text("from the interrupted attempt")
+    assert trial_status(partial) == "partial"
+    training = json.loads((out / "sweep.json").read_text())["training"]
+    trials = expand_trials(["walker-walk"], ["drqv2", "drqv2+reset"], [0])
+    summary = run_sweep(trials, out, training, progress_bar=False)  # the library call behind the CLI
+    assert summary.finished == [Trial("walker-walk", "drqv2", 0)] and summary.skipped == [trials[1]] and summary.ok
+    assert trial_status(partial) == "finished" and not (partial / "leftover.txt").exists()
+    assert [int(row["frame"]) for row in read_csv(partial / "eval.csv")] == [0, 1000]
+    assert mtimes(kept) == {path: mtime for path, mtime in before.items() if kept in path.parents}
+
+
+def test_changed_training_settings_are_refused(tiny_sweep, capsys):
+    argv = [*TINY_TRIALS, "--out", str(tiny_sweep), *TINY, "--frames", "2000", "--lr", "0.001"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "--frames: 1000 in sweep.json, 2000 now" in err and "--lr: 0.0001 in sweep.json, 0.001 now" in err
+    assert "--allow-changed-settings" in err
+    assert json.loads((tiny_sweep / "sweep.json").read_text())["training"]["frames"] == 1000
+    assert main([*argv, "--allow-changed-settings", "--dry-run"]) == 0
+
+
+def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
+    argv = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset", "--out", str(tiny_sweep)]
+    before = mtimes(tiny_sweep)
+    assert main([*argv, *TINY, "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"finished  skip {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_0'}"
+    assert lines[1] == f"pending   run  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
+    assert lines[-1] == "4 trials: 2 finished, 2 pending; 2 would run."
+    assert mtimes(tiny_sweep) == before
+
+    # Every status, on fabricated folders.
+    out = tmp_path / "sweep"
+    finished, failed, partial = (trial_dir(out, Trial("walker-walk", "drqv2", seed)) for seed in (0, 1, 2))
+    for folder in (finished, failed, partial):
+        folder.mkdir(parents=True)
+    (finished / "result.json").write_text(json.dumps({"status": "finished"}))
+    (failed / "error.txt").write_text("Traceback ...")
+    assert [trial_status(f) for f in (finished, failed, partial, out / "nothing")] == [
+        "finished", "failed", "partial", "pending"
+    ]  # fmt: skip
+
+
+def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, capsys):
+    broken = tmp_path / "good.zip"
+    broken.write_text("not a checkpoint")
+    out = tmp_path / "sweep"
+    argv = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "cnn-good_mlp-blank",
+            "--good-checkpoint", str(broken), "--out", str(out), "--no-progress-bar",
+            *TINY, "--frames", "250", "--eval-every-frames", "0", "--collapse-metrics-every-frames", "0"]  # fmt: skip
+    assert main(argv) == 1
+    stdout = capsys.readouterr().out
+    failed = out / "walker-walk" / "cnn-good_mlp-blank" / "seed_0"
+    assert "1 finished now, 0 finished before, 1 failed" in stdout
+    assert f"failed: walker-walk/cnn-good_mlp-blank/seed_0 (see {failed / 'error.txt'})" in stdout
+    error = (failed / "error.txt").read_text()
+    assert error.startswith("Traceback (most recent call last)") and "is not a zip file" in error
+    assert trial_status(failed) == "failed" and trial_status(out / "walker-walk" / "drqv2" / "seed_0") == "finished"
+    assert json.loads((out / "sweep.json").read_text())["checkpoints"] == {"good": {"walker-walk": str(broken)}}
+
+
+def test_transplant_grid_cell_starts_from_the_checkpoints(tiny_sweep, tmp_path):
+    good = tiny_sweep / "walker-walk" / "drqv2" / "seed_0" / "final_model.zip"
+    bad = tiny_sweep / "walker-walk" / "drqv2+reset" / "seed_0" / "final_model.zip"
+    out = tmp_path / "grid"
+    argv = ["--tasks", "walker-walk", "--seed-list", "1", "--variants", "cnn-good_mlp-bad", "--out", str(out),
+            "--good-checkpoint", str(good), "--bad-checkpoint", f"walker-walk={bad}", "--no-progress-bar",
+            *TINY, "--frames", "250", "--eval-every-frames", "0"]  # fmt: skip
+    assert main(argv) == 0
+    folder = out / "walker-walk" / "cnn-good_mlp-bad" / "seed_1"
+    config = json.loads((folder / "config.json").read_text())
+    assert config["transplant"] == {"cnn": "good", "mlp": "bad"} and config["variant"] == "cnn-good_mlp-bad"
+    assert (config["init_cnn"], config["init_mlp"], config["init_critic"]) == (str(good), str(bad), None)
+    assert config["reset_rule"] is False
+    assert DrQv2.load(folder / "final_model.zip").init_from == {"cnn": str(good), "mlp": str(bad)}
+    assert json.loads((folder / "result.json").read_text())["variant"] == "cnn-good_mlp-bad"
+
+
+def test_missing_ray_says_how_to_install_it(monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
+    with pytest.raises(SystemExit) as exit_info:
+        main([*TINY_TRIALS, "--out", str(tmp_path / "sweep"), *TINY])
+    assert exit_info.value.code == 2
+    assert "pip install 'sb3-collapse[sweep]'" in capsys.readouterr().err
+    assert not (tmp_path / "sweep").exists()  # nothing written
+
+
+def test_trials_variants_and_checkpoints(tmp_path):
+    trials = expand_trials(["walker_walk", "cup-catch", "walker-walk"], ["drqv2", "drqv2+reset"], [1, 0, 1])
+    assert trials[:3] == [Trial("walker-walk", "drqv2", 1), Trial("walker-walk", "drqv2", 0),
+                          Trial("walker-walk", "drqv2+reset", 1)]  # fmt: skip
+    assert len(trials) == 8 and trials[-1] == Trial("ball_in_cup-catch", "drqv2+reset", 0)
+    assert trial_dir("runs", trials[2]).as_posix() == "runs/walker-walk/drqv2+reset/seed_1"
+    assert len(GRID_VARIANTS) == 9 and transplant_of("cnn-bad_mlp-good") == {"cnn": "bad", "mlp": "good"}
+    assert transplant_of("drqv2") is None
+    with pytest.raises(SweepError, match="cnn-<src>_mlp-<src>"):
+        expand_trials(["walker-walk"], ["cnn-good_mlp-ugly"], [0])
+    with pytest.raises(SweepError, match="walker-walk"):
+        expand_trials(["walker-wlak"], ["drqv2"], [0])
+
+    good, walker_good = tmp_path / "good.zip", tmp_path / "walker=good.zip"
+    good.write_bytes(b"")
+    walker_good.write_bytes(b"")
+    tasks = ["walker-walk", "hopper-stand"]
+    assert parse_checkpoint_specs([str(good)], tasks, "--good-checkpoint") == dict.fromkeys(tasks, str(good))
+    by_task = parse_checkpoint_specs([str(good), f"walker_walk={walker_good}"], tasks, "--good-checkpoint")
+    assert by_task == {"walker-walk": str(walker_good), "hopper-stand": str(good)}  # a task name before '='
+    assert parse_checkpoint_specs([str(walker_good)], tasks[:1], "--bad-checkpoint") == {tasks[0]: str(walker_good)}
+    with pytest.raises(SweepError, match="not a file"):
+        parse_checkpoint_specs([f"hopper-stand={tmp_path / 'missing.zip'}"], tasks, "--bad-checkpoint")
+    with pytest.raises(SweepError, match="not a task of this sweep"):
+        parse_checkpoint_specs([f"finger-spin={good}"], tasks, "--bad-checkpoint")
+
+    config = trial_config(Trial("walker-walk", "drqv2+reset", 3), tmp_path, {"frames": 800}, torch_threads=2)
+    assert config.reset_rule and config.seed == 3 and config.frames == 800 and config.torch_threads == 2
+    assert config.run_dir == str(tmp_path / "walker-walk" / "drqv2+reset" / "seed_3") and not config.progress_bar
+
+
+def test_command_line_errors(tmp_path, capsys):
+    out = str(tmp_path / "sweep")
+    cases = [
+        (["--tasks", "walker-walk", "--seeds", "2", "--transplant-grid"], "--good-checkpoint PATH"),
+        (["--tasks", "walker-walk", "--seeds", "0"], "--seeds must be >= 1"),
+        (["--tasks", "walker-walk", "--seed-list", "1", "--variants", "drqv2++"], "Unknown variant 'drqv2++'"),
+        (["--tasks", "walker-walk", "--seeds", "1", "--frames", "0"], "--frames must be >= 1"),
+        (["--tasks", "walker-walk", "--seeds", "1", "--gpus-per-trial", "1.5"], "--gpus-per-trial must be"),
+        (["--tasks", "walker-walk", "--seeds", "1", "--seed-list", "2"], "not allowed with argument"),
+    ]
+    for argv, message in cases:
+        with pytest.raises(SystemExit) as exit_info:
+            main([*argv, "--out", out])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err, argv
+    assert not (tmp_path / "sweep").exists()
+    checkpoint = tmp_path / "agent.zip"
+    checkpoint.write_bytes(b"")
+    grid = ["--transplant-grid", "--good-checkpoint", str(checkpoint), "--bad-checkpoint", str(checkpoint)]
+    assert main(["--tasks", "walker-walk", "--seeds", "2", *grid, "--out", out, "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[-1] == "18 trials: 18 pending; 18 would run." and lines[0].endswith("cnn-blank_mlp-blank/seed_0")
+    assert not (tmp_path / "sweep").exists()  # a dry run writes nothing
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    help_text = capsys.readouterr().out
+    for flag in ("--frames", "--stddev-schedule", "--reset-window-frames", "--address", "--gpus-per-trial"):
+        assert flag in help_text
+    for train_only in ("--env ", "--seed ", "--logdir", "--run-name", "--reset-rule"):
+        assert train_only not in help_text
+
+
+def test_resources_and_settings_checks():
+    with pytest.raises(SweepError, match="Ray sees none"):
+        check_resources({"CPU": 16.0}, cpus_per_trial=1, gpus_per_trial=0.25)
+    with pytest.raises(SweepError, match="more than the 2 CPUs"):
+        check_resources({"CPU": 2.0}, cpus_per_trial=4, gpus_per_trial=0)
+    check_resources({"CPU": 2.0, "GPU": 1.0}, cpus_per_trial=1, gpus_per_trial=0.25)
+    previous = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/a.zip"}}}
+    same = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/a.zip", "hopper-stand": "/b"}}}
+    assert settings_changes(previous, same) == []  # a new task's checkpoint is not a change
+    moved = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/c.zip"}}}
+    assert settings_changes(previous, moved) == ["--good-checkpoint for walker-walk: /a.zip in sweep.json, /c.zip now"]
