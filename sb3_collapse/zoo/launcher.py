@@ -50,11 +50,17 @@ DESCRIPTION = (
     "(sb3_collapse/<domain>-<task>-v0) available. Every other option goes to rl_zoo3 unchanged: "
     f"`{PROG} train --help` lists them. Counts are in agent steps (frames / action repeat)."
 )
+EPILOG = (
+    f"With --algo drqv2: train needs -conf (e.g. zoo_configs/drqv2.yml), evaluates every {DRQV2_EVAL_FREQ} agent "
+    f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's 10,000 "
+    "frames at action repeat 2), and refuses -optimize; enjoy runs with --no-render (the DeepMind Control envs "
+    "render off-screen only)."
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The launcher's own command line: the sub-command and the collapse switches (rl_zoo3 parses the rest)."""
-    parser = argparse.ArgumentParser(prog=PROG, usage=USAGE, description=DESCRIPTION, allow_abbrev=False)
+    parser = argparse.ArgumentParser(prog=PROG, usage=USAGE, description=DESCRIPTION, epilog=EPILOG)
     parser.add_argument("command", choices=COMMANDS, help="the rl_zoo3 script to run")
     switches = parser.add_argument_group("collapse monitoring (train only)")
     switches.add_argument(
@@ -181,9 +187,11 @@ def main(argv: list[str] | None = None) -> int:
     """
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
-    if not argv or argv[0] in ("-h", "--help"):
-        parser.print_help(sys.stdout if argv else sys.stderr)
-        return 0 if argv else 2
+    if not argv:
+        return _error("missing sub-command: train or enjoy (--help for more).")
+    if argv[0] in ("-h", "--help"):
+        parser.print_help()
+        return 0
     command, rest = argv[0], argv[1:]
     if command not in COMMANDS:
         return _error(f"unknown sub-command {command!r}: choose from {', '.join(COMMANDS)}.")

@@ -33,10 +33,30 @@ TINY = {
 }
 
 # DrQ-v2's published settings (facebookresearch/drqv2 cfgs/task/*.yaml), in frames, per task.
-EASY = ["walker_walk", "walker_stand", "hopper_stand", "finger_spin", "cartpole_balance", "cartpole_balance_sparse",
-        "cartpole_swingup", "cup_catch", "pendulum_swingup"]
-MEDIUM = ["walker_run", "hopper_hop", "cheetah_run", "quadruped_walk", "quadruped_run", "acrobot_swingup",
-          "cartpole_swingup_sparse", "finger_turn_easy", "finger_turn_hard", "reacher_easy", "reacher_hard"]
+EASY = [
+    "walker_walk",
+    "walker_stand",
+    "hopper_stand",
+    "finger_spin",
+    "cartpole_balance",
+    "cartpole_balance_sparse",
+    "cartpole_swingup",
+    "cup_catch",
+    "pendulum_swingup",
+]
+MEDIUM = [
+    "walker_run",
+    "hopper_hop",
+    "cheetah_run",
+    "quadruped_walk",
+    "quadruped_run",
+    "acrobot_swingup",
+    "cartpole_swingup_sparse",
+    "finger_turn_easy",
+    "finger_turn_hard",
+    "reacher_easy",
+    "reacher_hard",
+]
 HARD = ["humanoid_stand", "humanoid_walk", "humanoid_run"]  # fmt: skip
 
 
@@ -192,8 +212,36 @@ def test_launcher_trains_and_enjoys(tmp_path, capsys):
     assert model.num_timesteps == 32 and model.num_frames == 800 and model._n_updates == 8
     assert model.env_config["size"] == 32 and model.policy_kwargs == {"feature_dim": 16, "hidden_dim": 32}
 
+    # Continuing from the saved agent (-i): rl_zoo3 passes the config's stddev_schedule string to DrQv2.load.
+    assert (
+        main(["train", *args, "-n", "8", "--eval-freq", "-1", "-i", str(run / "sb3_collapse-walker-walk-v0.zip")]) == 0
+    )
+    assert (
+        DrQv2.load(logs / "drqv2" / "sb3_collapse-walker-walk-v0_2" / "sb3_collapse-walker-walk-v0.zip").num_timesteps
+        == 8
+    )
+
     capsys.readouterr()
-    assert main(["enjoy", "--algo", "drqv2", "--env", WALKER, "-f", str(logs), "-n", "45", "--num-threads", "1"]) == 0
+    assert (
+        main(
+            [
+                "enjoy",
+                "--exp-id",
+                "1",
+                "--algo",
+                "drqv2",
+                "--env",
+                WALKER,
+                "-f",
+                str(logs),
+                "-n",
+                "45",
+                "--num-threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "sb3_collapse-walker-walk-v0.zip" in out and "Episode Length 40" in out
 
@@ -202,7 +250,7 @@ def test_launcher_trains_and_enjoys(tmp_path, capsys):
     ("argv", "message"),
     [
         (["bogus"], "unknown sub-command 'bogus'"),
-        ([], "usage:"),
+        ([], "missing sub-command"),
         (["train", "--algo", "drqv2", "--env", WALKER], "-conf zoo_configs/drqv2.yml"),
         (["train", "--algo", "drqv2", "--env", WALKER, "-conf", "missing.yml"], "missing.yml not found"),
         (["train", "--algo", "drqv2", "--env", WALKER, "-conf", str(CONFIG), "-optimize"], "no hyperparameter sampler"),
@@ -239,6 +287,6 @@ def test_missing_rl_zoo3(monkeypatch, capsys):
 def test_help(capsys):
     assert main(["--help"]) == 0
     out = capsys.readouterr().out
-    assert "{train,enjoy}" in out and "--reset-rule" in out and "agent steps" in out
+    assert "{train,enjoy}" in out and "--reset-rule" in out and "agent steps" in out and "--no-render" in out
     assert main(["train", "--help"]) == 0
     assert "--conf-file" in capsys.readouterr().out  # rl_zoo3's own options follow
