@@ -23,7 +23,6 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
-from unittest import mock
 
 from sb3_collapse.zoo.errors import LauncherError, ZooConfigError, ZooNotInstalledError
 from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
@@ -137,14 +136,14 @@ def enjoy_arguments(zoo_args: list[str]) -> list[str]:
 
 
 @contextmanager
-def _argv(argv: list[str]) -> Iterator[None]:
-    """rl_zoo3's scripts parse ``sys.argv``: set it for the duration of the call."""
-    saved = sys.argv
-    sys.argv = argv
+def _replaced(owner: Any, name: str, value: Any) -> Iterator[None]:
+    """Set ``owner.name`` to ``value`` for the duration of the block, then restore it."""
+    saved = getattr(owner, name)
+    setattr(owner, name, value)
     try:
         yield
     finally:
-        sys.argv = saved
+        setattr(owner, name, saved)
 
 
 def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -> None:
@@ -159,7 +158,8 @@ def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -
     from sb3_collapse.zoo.experiment import ZooExperimentManager
 
     manager = ZooExperimentManager.with_callbacks(callbacks)
-    with _argv([f"{PROG} train", *zoo_args]), mock.patch.object(rl_zoo3.train, "ExperimentManager", manager):
+    # rl_zoo3's scripts parse sys.argv, and train() builds the ExperimentManager named in its module.
+    with _replaced(sys, "argv", [f"{PROG} train", *zoo_args]), _replaced(rl_zoo3.train, "ExperimentManager", manager):
         rl_zoo3.train.train()
 
 
@@ -171,7 +171,7 @@ def run_enjoy(zoo_args: list[str]) -> None:
     """
     import rl_zoo3.enjoy
 
-    with _argv([f"{PROG} enjoy", *zoo_args]):
+    with _replaced(sys, "argv", [f"{PROG} enjoy", *zoo_args]):
         rl_zoo3.enjoy.enjoy()
 
 

@@ -10,6 +10,8 @@ import yaml
 
 pytest.importorskip("rl_zoo3")
 
+import rl_zoo3.train
+from rl_zoo3.exp_manager import ExperimentManager
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.vec_env import VecTransposeImage, is_vecenv_wrapped
 
@@ -194,6 +196,7 @@ def test_launcher_trains_and_enjoys(tmp_path, capsys):
     args = ["--algo", "drqv2", "--env", WALKER, "-conf", str(tiny_config(tmp_path)), "-f", str(logs), "--seed", "0",
             "--eval-freq", "32", "--eval-episodes", "1", "--num-threads", "1"]  # fmt: skip
     assert main(["train", *args, "--collapse-metrics", "--reset-rule"]) == 0
+    assert rl_zoo3.train.ExperimentManager is ExperimentManager and sys.argv[0] != "python -m sb3_collapse.zoo train"
     run = logs / "drqv2" / "sb3_collapse-walker-walk-v0_1"
     params = run / "sb3_collapse-walker-walk-v0"
     assert {"sb3_collapse-walker-walk-v0.zip", "best_model.zip", "evaluations.npz", "0.monitor.csv"} <= {
