@@ -1,0 +1,177 @@
+"""rl_zoo3's ``ExperimentManager``, made safe for DrQv2 on DeepMind Control pixels."""
+
+from __future__ import annotations
+
+import inspect
+import os
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import yaml
+from rl_zoo3.exp_manager import ExperimentManager
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.vec_env import VecEnv, VecTransposeImage, is_vecenv_wrapped
+
+from sb3_collapse.drqv2 import StddevSchedule
+from sb3_collapse.envs.dmc import DMCEnv
+from sb3_collapse.envs.registration import ENTRY_POINT
+from sb3_collapse.zoo.errors import ZooConfigError
+from sb3_collapse.zoo.registration import ALGO_NAME
+
+CallbackSpec = dict[str, dict[str, Any]]
+"""A callback as rl_zoo3's ``callback:`` hyperparameter lists it: ``{"dotted.path.Class": {kwarg: value}}``."""
+
+PIXEL_SETTINGS = ("action_repeat", "frame_stack", "size", "camera_id", "obs_type")
+"""``DMCEnv`` arguments that shape the observations (and the agent step): the same in training and evaluation."""
+
+_DMC_DEFAULTS = {
+    name: parameter.default
+    for name, parameter in inspect.signature(DMCEnv.__init__).parameters.items()
+    if name in PIXEL_SETTINGS
+}
+
+
+def is_dmc_env_id(env_id: str) -> bool:
+    """
+    :param env_id: a registered Gymnasium id
+    :return: whether it builds a :class:`~sb3_collapse.envs.dmc.DMCEnv` (``sb3_collapse/<domain>-<task>-v0``)
+    """
+    return env_id in gym.registry and gym.registry[env_id].entry_point == ENTRY_POINT
+
+
+def pixel_settings(env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
+    """
+    :param env_kwargs: keyword arguments of a ``DMCEnv`` (``gymnasium.make``'s ``**kwargs``)
+    :return: the value of each of :data:`PIXEL_SETTINGS` they give, ``DMCEnv``'s default for the others
+    """
+    env_kwargs = env_kwargs or {}
+    return {name: env_kwargs.get(name, default) for name, default in _DMC_DEFAULTS.items()}
+
+
+def check_same_pixels(train_kwargs: dict[str, Any] | None, eval_kwargs: dict[str, Any] | None) -> None:
+    """
+    :param train_kwargs: ``env_kwargs`` of the training env
+    :param eval_kwargs: ``env_kwargs`` of the evaluation env
+    :raises ZooConfigError: if they give different :data:`PIXEL_SETTINGS` (missing ones count as the defaults)
+    """
+    train, evaluation = pixel_settings(train_kwargs), pixel_settings(eval_kwargs)
+    differing = {name: (train[name], evaluation[name]) for name in PIXEL_SETTINGS if train[name] != evaluation[name]}
+    if differing:
+        details = ", ".join(f"{name}: {a!r} in training, {b!r} in evaluation" for name, (a, b) in differing.items())
+        raise ZooConfigError(
+            f"The evaluation env must see the same pixels as the training env ({details}). "
+            "Drop these keys from --eval-env-kwargs (it defaults to the training env_kwargs)."
+        )
+
+
+def check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
+    """
+    Refuse the rl_zoo3 hyperparameters that break DrQv2 on pixels, before any env is built.
+
+    :param hyperparams: one entry of the config file, after the ``-params`` overrides
+    :raises ZooConfigError: for ``frame_stack`` (rl_zoo3's ``VecFrameStack``: the DMC envs stack frames themselves,
+        and DrQv2's replay buffer relies on their layout), ``normalize`` (``VecNormalize`` would turn the uint8
+        pixels into floats; DrQv2 scales them itself, layer ``cnn0``) and a malformed ``stddev_schedule``
+    """
+    if "frame_stack" in hyperparams:
+        raise ZooConfigError(
+            f"frame_stack: {hyperparams['frame_stack']!r} makes rl_zoo3 stack observations with VecFrameStack; "
+            "the DeepMind Control envs stack frames themselves: set env_kwargs: {frame_stack: ...} instead."
+        )
+    if hyperparams.get("normalize"):
+        raise ZooConfigError(
+            "normalize makes rl_zoo3 wrap the env in VecNormalize, which would turn the uint8 pixels into "
+            "normalized floats; DrQv2 scales the pixels itself (layer cnn0): remove normalize."
+        )
+    if "stddev_schedule" in hyperparams:
+        try:
+            StddevSchedule(hyperparams["stddev_schedule"])
+        except ValueError as error:
+            raise ZooConfigError(f"stddev_schedule: {error}") from None
+
+
+def merge_callbacks(configured: Any, extra: list[CallbackSpec]) -> list[Any]:
+    """
+    :param configured: the ``callback`` hyperparameter of the config file (``None``, a dotted name, a
+        ``{name: kwargs}`` dict or a list of those)
+    :param extra: callbacks to run after them
+    :return: one list with both, in that order
+    """
+    if configured is None:
+        configured = []
+    elif not isinstance(configured, list):
+        configured = [configured]
+    return [*configured, *extra]
+
+
+class ZooExperimentManager(ExperimentManager):
+    """
+    rl_zoo3's ``ExperimentManager`` (the launcher's ``train`` uses it in place of the original), with:
+
+    - the evaluation env built with the **training** ``env_kwargs`` (rl_zoo3 2.9 gives its ``EvalCallback`` env
+      the ``--env-kwargs`` of the command line only, so the ``env_kwargs`` of a config file did not reach it),
+      updated key by key by ``--eval-env-kwargs``; for the DeepMind Control ids, the pixel settings
+      (:data:`PIXEL_SETTINGS`) must then agree;
+    - for DrQv2: ``frame_stack``, ``normalize`` and malformed ``stddev_schedule`` refused with a clear message
+      (:func:`check_drqv2_hyperparams`), and a ``stddev_schedule`` string turned into a
+      :class:`~sb3_collapse.drqv2.StddevSchedule` when continuing from a saved agent (``-i``);
+    - a missing config file, or one without the ``--env``, reported as a :class:`ZooConfigError`;
+    - :attr:`extra_callbacks` appended to the config's ``callback`` list (and saved with it in ``config.yml``);
+    - a DeepMind Control pixel env wrapped in ``VecTransposeImage`` refused: its observations are channel first
+      already; SB3 guesses the channel axis as the smallest one, so this happens only when
+      ``3 * frame_stack > size``.
+    """
+
+    extra_callbacks: ClassVar[list[CallbackSpec]] = []
+    """Callbacks added to every experiment of this class (see :meth:`with_callbacks`)."""
+
+    @classmethod
+    def with_callbacks(cls, callbacks: list[CallbackSpec]) -> type[ZooExperimentManager]:
+        """
+        :param callbacks: callbacks in the format of rl_zoo3's ``callback`` hyperparameter
+        :return: a subclass that appends them to the callbacks of the config file
+        """
+        return type(cls.__name__, (cls,), {"extra_callbacks": [*cls.extra_callbacks, *callbacks]})
+
+    def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        if self.config.endswith((".yml", ".yaml", ".py")) and not os.path.isfile(self.config):
+            hint = " (pass -conf zoo_configs/drqv2.yml)" if self.algo == ALGO_NAME else ""
+            raise ZooConfigError(f"Config file {self.config} not found{hint}.")
+        try:
+            hyperparams, saved_hyperparams = super().read_hyperparameters()
+        except yaml.YAMLError as error:
+            raise ZooConfigError(f"Cannot parse {self.config}: {error}") from None
+        except ValueError as error:  # rl_zoo3: "Hyperparameters not found for <algo>-<env> in <config>"
+            raise ZooConfigError(f"{error}: add an entry for {self.env_name.gym_id} to it.") from None
+        if self.algo == ALGO_NAME:
+            check_drqv2_hyperparams(hyperparams)
+        if self.extra_callbacks:
+            callbacks = merge_callbacks(hyperparams.get("callback"), self.extra_callbacks)
+            hyperparams["callback"] = saved_hyperparams["callback"] = callbacks
+            print(f"Callbacks added to the config's: {[next(iter(spec)) for spec in self.extra_callbacks]}")
+        return hyperparams, saved_hyperparams
+
+    def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
+        processed = super()._preprocess_hyperparams(hyperparams)
+        # rl_zoo3 bound eval_env_kwargs to the command line's env_kwargs before reading the config file.
+        self.eval_env_kwargs = {**self.env_kwargs, **(self._eval_env_kwargs_args or {})}
+        if is_dmc_env_id(self.env_name.gym_id):
+            check_same_pixels(self.env_kwargs, self.eval_env_kwargs)
+        return processed
+
+    def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
+        env = super().create_envs(n_envs, eval_env=eval_env, no_log=no_log)
+        if is_dmc_env_id(self.env_name.gym_id) and is_vecenv_wrapped(env, VecTransposeImage):
+            shape = env.get_attr("observation_space", indices=[0])[0].shape
+            env.close()
+            raise ZooConfigError(
+                f"rl_zoo3 took the channel-first {shape} pixel observations for channel-last images (SB3 takes the "
+                "smallest axis for the channels) and would transpose them: use size >= 3 * frame_stack in env_kwargs."
+            )
+        return env
+
+    def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: VecEnv) -> BaseAlgorithm:
+        if self.algo == ALGO_NAME and "stddev_schedule" in hyperparams:
+            # load() sets the keyword arguments as attributes: DrQv2 needs the parsed schedule there.
+            hyperparams = {**hyperparams, "stddev_schedule": StddevSchedule(hyperparams["stddev_schedule"])}
+        return super()._load_pretrained_agent(hyperparams, env)

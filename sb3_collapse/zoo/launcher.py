@@ -1,0 +1,219 @@
+"""
+The rl_zoo3 launcher: rl_zoo3's ``train`` and ``enjoy`` scripts with DrQv2 registered.
+
+    python -m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf zoo_configs/drqv2.yml
+    python -m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf zoo_configs/drqv2.yml \\
+        --collapse-metrics --reset-rule --seed 3 -tb runs/
+    python -m sb3_collapse.zoo enjoy --algo drqv2 --env sb3_collapse/walker-walk-v0 -f logs/ -n 1000
+
+Every rl_zoo3 flag works as in ``python -m rl_zoo3.train`` / ``enjoy``; counts (``-n``, ``--eval-freq``,
+``--save-freq``) are in agent steps (frames / action repeat). With ``--algo drqv2`` the launcher also:
+
+- evaluates as DrQ-v2 does unless told otherwise: ``--eval-freq 5000`` (agent steps: 10,000 frames at action
+  repeat 2) and ``--eval-episodes 10``, instead of rl_zoo3's 25,000 and 5;
+- requires ``-conf`` (rl_zoo3 has no built-in DrQv2 file) and refuses ``-optimize`` (rl_zoo3 has no Optuna
+  sampler for DrQv2);
+- ``enjoy`` runs with ``--no-render``: the DeepMind Control envs render off-screen only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from sb3_collapse.zoo.errors import LauncherError, ZooConfigError, ZooNotInstalledError
+from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
+
+PROG = "python -m sb3_collapse.zoo"
+COMMANDS = ("train", "enjoy")
+SWITCHES = ("--collapse-metrics", "--reset-rule")
+"""The launcher's own options; every other one goes to rl_zoo3."""
+DRQV2_EVAL_FREQ = 5000
+"""DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` 10,000 / action repeat 2."""
+DRQV2_EVAL_EPISODES = 10
+"""DrQ-v2's ``num_eval_episodes``."""
+
+COLLAPSE_METRICS_CALLBACK = {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": 10_000}}
+"""``--collapse-metrics``: the collapse metrics of every named layer every 10,000 frames (the paper's period)."""
+RESET_RULE_CALLBACK = {
+    "sb3_collapse.monitoring.CollapseReset": {"window_frames": 200_000, "check_every_frames": 10_000, "verbose": 1}
+}
+"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (window 200,000 frames, a check every 10,000)."""
+
+USAGE = f"{PROG} {{train,enjoy}} [--collapse-metrics] [--reset-rule] [rl_zoo3 options]"
+DESCRIPTION = (
+    "Run rl_zoo3's train or enjoy script with DrQv2 registered as --algo drqv2 and the DeepMind Control ids "
+    "(sb3_collapse/<domain>-<task>-v0) available. Every other option goes to rl_zoo3 unchanged: "
+    f"`{PROG} train --help` lists them. Counts are in agent steps (frames / action repeat)."
+)
+EPILOG = (
+    f"With --algo drqv2: train needs -conf (e.g. zoo_configs/drqv2.yml), evaluates every {DRQV2_EVAL_FREQ} agent "
+    f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's 10,000 "
+    "frames at action repeat 2), and refuses -optimize; enjoy runs with --no-render (the DeepMind Control envs "
+    "render off-screen only)."
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The launcher's own command line: the sub-command and the collapse switches (rl_zoo3 parses the rest)."""
+    parser = argparse.ArgumentParser(prog=PROG, usage=USAGE, description=DESCRIPTION, epilog=EPILOG)
+    parser.add_argument("command", choices=COMMANDS, help="the rl_zoo3 script to run")
+    switches = parser.add_argument_group("collapse monitoring (train only)")
+    switches.add_argument(
+        "--collapse-metrics",
+        action="store_true",
+        help="add sb3_collapse.monitoring.CollapseMetrics to the config's callbacks: the collapse metrics of every "
+        "named layer (collapse/<layer>/..., to TensorBoard with -tb) every 10,000 frames",
+    )
+    switches.add_argument(
+        "--reset-rule",
+        action="store_true",
+        help="add sb3_collapse.monitoring.CollapseReset (the paper's reset rule: window 200,000 frames, mlp1 "
+        "gradient-norm threshold 1e-3, patience 5, a check every 10,000 frames) to the config's callbacks",
+    )
+    return parser
+
+
+def _peek_parser() -> argparse.ArgumentParser:
+    """The few rl_zoo3 options the launcher reads (they still go to rl_zoo3)."""
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument("--algo", default="ppo")
+    parser.add_argument("-conf", "--conf-file", dest="conf_file")
+    parser.add_argument("-optimize", "--optimize-hyperparameters", dest="optimize", action="store_true")
+    parser.add_argument("--eval-freq", dest="eval_freq")
+    parser.add_argument("--eval-episodes", dest="eval_episodes")
+    parser.add_argument("--no-render", dest="no_render", action="store_true")
+    return parser
+
+
+def collapse_callbacks(collapse_metrics: bool, reset_rule: bool) -> list[dict[str, dict[str, Any]]]:
+    """
+    :param collapse_metrics: add ``CollapseMetrics``
+    :param reset_rule: add ``CollapseReset``
+    :return: the callbacks, in the format of rl_zoo3's ``callback`` hyperparameter
+    """
+    callbacks = []
+    if collapse_metrics:
+        callbacks.append(COLLAPSE_METRICS_CALLBACK)
+    if reset_rule:
+        callbacks.append(RESET_RULE_CALLBACK)
+    return callbacks
+
+
+def train_arguments(zoo_args: list[str]) -> list[str]:
+    """
+    :param zoo_args: the rl_zoo3 ``train`` options of the command line
+    :return: them, plus DrQ-v2's evaluation period and episodes for ``--algo drqv2`` when not given
+    :raises LauncherError: for ``--algo drqv2`` without ``-conf``, or with ``-optimize``
+    """
+    peek, _ = _peek_parser().parse_known_args(zoo_args)
+    if peek.algo != ALGO_NAME or "-h" in zoo_args or "--help" in zoo_args:
+        return list(zoo_args)
+    if peek.conf_file is None:
+        raise LauncherError("--algo drqv2 needs a config file: pass -conf zoo_configs/drqv2.yml (or your own).")
+    if peek.optimize:
+        raise LauncherError("-optimize is not available for drqv2: rl_zoo3 has no hyperparameter sampler for it.")
+    args = list(zoo_args)
+    if peek.eval_freq is None:
+        args += ["--eval-freq", str(DRQV2_EVAL_FREQ)]
+    if peek.eval_episodes is None:
+        args += ["--eval-episodes", str(DRQV2_EVAL_EPISODES)]
+    return args
+
+
+def enjoy_arguments(zoo_args: list[str]) -> list[str]:
+    """
+    :param zoo_args: the rl_zoo3 ``enjoy`` options of the command line
+    :return: them, with ``--no-render`` (the DeepMind Control envs cannot open a window) for ``--algo drqv2``
+    """
+    peek, _ = _peek_parser().parse_known_args(zoo_args)
+    if peek.algo == ALGO_NAME and not peek.no_render:
+        return [*zoo_args, "--no-render"]
+    return list(zoo_args)
+
+
+@contextmanager
+def _replaced(owner: Any, name: str, value: Any) -> Iterator[None]:
+    """Set ``owner.name`` to ``value`` for the duration of the block, then restore it."""
+    saved = getattr(owner, name)
+    setattr(owner, name, value)
+    try:
+        yield
+    finally:
+        setattr(owner, name, saved)
+
+
+def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -> None:
+    """
+    Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`.
+
+    :param zoo_args: rl_zoo3 ``train`` options (after :func:`train_arguments`)
+    :param callbacks: callbacks appended to those of the config file
+    """
+    import rl_zoo3.train
+
+    from sb3_collapse.zoo.experiment import ZooExperimentManager
+
+    manager = ZooExperimentManager.with_callbacks(callbacks)
+    # rl_zoo3's scripts parse sys.argv, and train() builds the ExperimentManager named in its module.
+    with _replaced(sys, "argv", [f"{PROG} train", *zoo_args]), _replaced(rl_zoo3.train, "ExperimentManager", manager):
+        rl_zoo3.train.train()
+
+
+def run_enjoy(zoo_args: list[str]) -> None:
+    """
+    Run rl_zoo3's ``enjoy`` script.
+
+    :param zoo_args: rl_zoo3 ``enjoy`` options (after :func:`enjoy_arguments`)
+    """
+    import rl_zoo3.enjoy
+
+    with _replaced(sys, "argv", [f"{PROG} enjoy", *zoo_args]):
+        rl_zoo3.enjoy.enjoy()
+
+
+def _error(message: str) -> int:
+    print(f"usage: {USAGE}\n{PROG}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    """
+    :param argv: the command line without the program name (``sys.argv[1:]`` when ``None``)
+    :return: exit status (2 for a bad command line or config, rl_zoo3's own status when its parser exits)
+    """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser()
+    if not argv:
+        return _error("missing sub-command: train or enjoy (--help for more).")
+    if argv[0] in ("-h", "--help"):
+        parser.print_help()
+        return 0
+    command, rest = argv[0], argv[1:]
+    if command not in COMMANDS:
+        return _error(f"unknown sub-command {command!r}: choose from {', '.join(COMMANDS)}.")
+    switches = {name: name in rest for name in SWITCHES}
+    zoo_args = [arg for arg in rest if arg not in SWITCHES]
+    if command == "enjoy" and any(switches.values()):
+        return _error("--collapse-metrics and --reset-rule are train options.")
+    if "-h" in zoo_args or "--help" in zoo_args:
+        parser.print_help()
+        print(f"\nrl_zoo3 {command} options:")
+    try:
+        register_with_zoo()
+        runners: dict[str, Callable[[], None]] = {
+            "train": lambda: run_train(
+                train_arguments(zoo_args),
+                collapse_callbacks(switches["--collapse-metrics"], switches["--reset-rule"]),
+            ),
+            "enjoy": lambda: run_enjoy(enjoy_arguments(zoo_args)),
+        }
+        runners[command]()
+    except (LauncherError, ZooConfigError, ZooNotInstalledError) as error:
+        return _error(str(error))
+    except SystemExit as exit_:  # rl_zoo3's argparse: --help, or a bad option (it printed why)
+        return exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 2)
+    return 0
