@@ -615,7 +615,8 @@ class DrQv2(OffPolicyAlgorithm):
         :param custom_objects: saved attributes to replace instead of unpickling them
         :param print_system_info: print the system info of the saving machine
         :param force_reset: reset the environment before the next ``learn()``
-        :param kwargs: saved attributes to override (e.g. ``buffer_size``)
+        :param kwargs: saved attributes to override (e.g. ``buffer_size``; ``stddev_schedule`` takes the same
+            specifications as the constructor, e.g. ``"linear(1.0,0.1,500000)"``, durations in agent steps)
         :return: the loaded model
         :raises TypeError: for ``init_from``: loading does not transplant; build a new model with it instead
         """
@@ -624,6 +625,8 @@ class DrQv2(OffPolicyAlgorithm):
                 "DrQv2.load does not transplant layers (init_from): it restores the saved weights. Build a new "
                 "model with DrQv2(policy, env, init_from={...}) to start from the layers of saved models."
             )
+        if "stddev_schedule" in kwargs:  # SB3 sets kwargs as attributes: parse a specification as __init__ does
+            kwargs["stddev_schedule"] = StddevSchedule(kwargs["stddev_schedule"])
         return super().load(
             path,
             env=env,

@@ -107,7 +107,7 @@ class _ChooseBackendOnImport(importlib.abc.MetaPathFinder):
             self.fired = True
             try:
                 ensure_rendering_backend(required=False)
-            except Exception as error:  # never break an import
+            except Exception as error:  # noqa: BLE001  never break an import
                 warnings.warn(f"Could not choose a headless OpenGL backend: {error}", RuntimeWarning, stacklevel=2)
 
 

@@ -51,7 +51,7 @@ class StagedOutput:
         self.created = not self.out.exists()
         self.committed = False
 
-    def __enter__(self) -> StagedOutput:
+    def __enter__(self) -> StagedOutput:  # noqa: PYI034  a final class
         self.staging.mkdir(parents=True, exist_ok=False)
         return self
 

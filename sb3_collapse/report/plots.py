@@ -38,6 +38,22 @@ def _panels(count: int, columns: int = 3) -> tuple[plt.Figure, np.ndarray]:
     return fig, axes
 
 
+def _clip_reference(reference: BandCurve, last_frame: int | None) -> tuple[np.ndarray, ...]:
+    """
+    :param reference: a published curve (increasing frames)
+    :param last_frame: the last frame of the sweep's own curves (``None``: keep it all)
+    :return: ``frames, mean, low, high`` up to ``last_frame``, ending with the curve linearly interpolated at
+        ``last_frame`` when the published frames go beyond it (so that the line spans the sweep's whole x range)
+    """
+    frames = np.asarray(reference.frames, dtype=float)
+    columns = [np.asarray(c, dtype=float) for c in (reference.mean, reference.low, reference.high)]
+    if last_frame is None or frames[-1] <= last_frame:
+        return (frames, *columns)
+    keep = frames <= last_frame
+    ends = [np.interp(last_frame, frames, c) for c in columns]
+    return (np.append(frames[keep], last_frame), *(np.append(c[keep], end) for c, end in zip(columns, ends)))
+
+
 def plot_figure5(
     curves: Mapping[str, Sequence[BandCurve]],
     path: Path,
@@ -51,8 +67,8 @@ def plot_figure5(
 
     :param curves: task -> the variants' curves
     :param path: the PNG file to write
-    :param references: task -> published DrQ-v2 curve, drawn dashed with a hatched band, cut at the last frame
-        of the task's own curves (whole when the task has none)
+    :param references: task -> published DrQ-v2 curve, drawn dashed with a hatched band, up to the last frame
+        of the task's own curves (interpolated there; whole when the task has none)
     :param partial: task -> unfinished trials whose partial curves are drawn as thin dotted lines, labelled
         "unfinished, partial"
     :param percentiles: the band's percentiles (for the labels)
@@ -73,19 +89,20 @@ def plot_figure5(
         last_frame = max((int(c.frames[-1]) for c in curves[task]), default=None)
         reference = references.get(task)
         if reference is not None:
-            keep = reference.frames <= last_frame if last_frame is not None else slice(None)
+            frames, mean, low_band, high_band = _clip_reference(reference, last_frame)
             ax.plot(
-                reference.frames[keep],
-                reference.mean[keep],
+                frames,
+                mean,
                 "--",
+                marker="o" if len(frames) == 1 else None,
                 color=REFERENCE_COLOR,
                 lw=1.5,
                 label=f"{reference.name} (n={reference.seeds})",
             )
             ax.fill_between(
-                reference.frames[keep],
-                reference.low[keep],
-                reference.high[keep],
+                frames,
+                low_band,
+                high_band,
                 facecolor="none",
                 edgecolor=REFERENCE_COLOR,
                 hatch="///",
@@ -94,7 +111,10 @@ def plot_figure5(
             )
         for curve in curves[task]:
             color = colors[curve.name]
-            ax.plot(curve.frames, curve.mean, color=color, lw=2.0, label=f"{curve.name} (n={curve.seeds})")
+            marker = "o" if len(curve.frames) == 1 else None  # a single evaluation is a point, not a line
+            ax.plot(
+                curve.frames, curve.mean, color=color, lw=2.0, marker=marker, label=f"{curve.name} (n={curve.seeds})"
+            )
             ax.fill_between(curve.frames, curve.low, curve.high, color=color, alpha=0.2, lw=0.0)
         labelled: set[str] = set()
         for trial in partial.get(task, []):

@@ -9,7 +9,6 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import yaml
 from rl_zoo3.exp_manager import ExperimentManager
-from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv, VecTransposeImage, is_vecenv_wrapped
 
 from sb3_collapse.drqv2 import StddevSchedule
@@ -113,8 +112,7 @@ class ZooExperimentManager(ExperimentManager):
       updated key by key by ``--eval-env-kwargs``; for the DeepMind Control ids, the pixel settings
       (:data:`PIXEL_SETTINGS`) must then agree;
     - for DrQv2: ``frame_stack``, ``normalize`` and malformed ``stddev_schedule`` refused with a clear message
-      (:func:`check_drqv2_hyperparams`), and a ``stddev_schedule`` string turned into a
-      :class:`~sb3_collapse.drqv2.StddevSchedule` when continuing from a saved agent (``-i``);
+      (:func:`check_drqv2_hyperparams`);
     - a missing config file, or one without the ``--env``, reported as a :class:`ZooConfigError`;
     - :attr:`extra_callbacks` appended to the config's ``callback`` list (and saved with it in ``config.yml``);
     - a DeepMind Control pixel env wrapped in ``VecTransposeImage`` refused: its observations are channel first
@@ -169,9 +167,3 @@ class ZooExperimentManager(ExperimentManager):
                 "smallest axis for the channels) and would transpose them: use size >= 3 * frame_stack in env_kwargs."
             )
         return env
-
-    def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: VecEnv) -> BaseAlgorithm:
-        if self.algo == ALGO_NAME and "stddev_schedule" in hyperparams:
-            # load() sets the keyword arguments as attributes: DrQv2 needs the parsed schedule there.
-            hyperparams = {**hyperparams, "stddev_schedule": StddevSchedule(hyperparams["stddev_schedule"])}
-        return super()._load_pretrained_agent(hyperparams, env)

@@ -201,6 +201,12 @@ def test_save_load_round_trip(tmp_path):
     assert loaded.num_timesteps == 80
     assert loaded._n_updates > model._n_updates
 
+    # A new schedule given to load() as a specification, as to the constructor (rl_zoo3's `-i` does this).
+    continued = DrQv2.load(tmp_path / "model.zip", env=pixel_env(), stddev_schedule="linear(0.5,0.1,100)")
+    assert continued.current_stddev == pytest.approx(0.5 + (0.1 - 0.5) * 60 / 100)
+    with pytest.raises(ValueError, match="linear"):
+        DrQv2.load(tmp_path / "model.zip", stddev_schedule="linear(0.5,0.1)")
+
 
 def test_deterministic_predict_is_tanh_mean():
     model = small_pixel_model()

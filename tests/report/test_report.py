@@ -368,3 +368,18 @@ def test_fabricator_is_reproducible(tmp_path):
         tmp_path / "b/walker-walk/drqv2/seed_0/eval.csv"
     ).read_text()
     assert len(a.trials) == len(b.trials) == 40
+
+
+def test_reference_is_cut_at_the_sweeps_last_frame():
+    from sb3_collapse.report.plots import _clip_reference
+    from sb3_collapse.report.statistics import BandCurve
+
+    frames = np.array([0, 20_000, 40_000])
+    reference = BandCurve("published", frames, np.array([0.0, 200.0, 400.0]), np.zeros(3), np.array([10.0, 30, 50]), 10)
+    clipped = _clip_reference(reference, 30_000)  # between two published frames: interpolated there
+    np.testing.assert_allclose(clipped[0], [0, 20_000, 30_000])
+    np.testing.assert_allclose(clipped[1], [0, 200, 300])
+    np.testing.assert_allclose(clipped[3], [10, 30, 40])
+    whole = _clip_reference(reference, 40_000)
+    np.testing.assert_allclose(whole[1], reference.mean)
+    assert len(_clip_reference(reference, None)[0]) == 3

@@ -1,4 +1,5 @@
 import csv
+import itertools
 import json
 import shutil
 import sys
@@ -25,15 +26,16 @@ from sb3_collapse.sweep import (
 from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.runner import check_resources
 
-# A tiny trial: 1000 frames = 20 agent steps of 50 frames (a whole DMC episode is then 20 renders, so that the
-# evaluations at frames 0 and 1000 stay cheap), learning from agent step 10, collapse checks at frames 500 and
-# 1000, and with the reset rule a window of 500 frames (resets at frames 500 and 1000).
+# A tiny trial: 1000 frames = 250 agent steps of 4 frames (a whole DMC episode is then 250 agent steps, so that the
+# evaluations at frames 0 and 1000 stay cheap), 32x32 images, learning from frame 600 (agent step 150), collapse
+# checks at frames 500 and 1000, and with the reset rule a window of 500 frames (resets at frames 500 and 1000, so
+# the rule's runs never reach an update: their warm-up restarts at each reset).
 TINY = [
-    "--frames", "1000", "--action-repeat", "50", "--size", "32", "--seed-frames", "500", "--batch-size", "8",
+    "--frames", "1000", "--action-repeat", "4", "--size", "32", "--seed-frames", "600", "--batch-size", "8",
     "--hidden-dim", "32", "--feature-dim", "16", "--eval-every-frames", "1000", "--eval-episodes", "1",
     "--collapse-metrics-every-frames", "500", "--collapse-probe-batch", "8", "--reset-window-frames", "500",
 ]  # fmt: skip
-TINY_TRIALS = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "drqv2+reset"]
+TINY_TRIALS = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset"]
 RESULT_KEYS = {
     "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "resets", "reset_frames", "escaped",
     "escape_frame", "wall_time_s",
@@ -50,11 +52,12 @@ def ray_local():
 
 @pytest.fixture(scope="module")
 def tiny_sweep(ray_local, tmp_path_factory):
-    """A real sweep folder: walker-walk, variants drqv2 and drqv2+reset, seed 0, through the CLI (do not modify it)."""
+    """A real sweep folder: walker-walk, variants drqv2 and drqv2+reset, seeds 0 and 1, through the CLI (do not
+    modify it)."""
     out = tmp_path_factory.mktemp("tiny_sweep")
     start = time.perf_counter()
     status = main([*TINY_TRIALS, "--out", str(out), "--no-progress-bar", *TINY])
-    print(f"tiny sweep: 2 trials in {time.perf_counter() - start:.1f} s")
+    print(f"tiny sweep: 4 trials in {time.perf_counter() - start:.1f} s")
     assert status == 0
     return out
 
@@ -71,10 +74,10 @@ def mtimes(folder):
 def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
     settings = json.loads((tiny_sweep / "sweep.json").read_text())
     assert settings["tasks"] == ["walker-walk"] and settings["variants"] == ["drqv2", "drqv2+reset"]
-    assert settings["seeds"] == [0] and settings["training"]["frames"] == 1000
+    assert settings["seeds"] == [0, 1] and settings["training"]["frames"] == 1000
     assert settings["resources"] == {"cpus_per_trial": 1, "gpus_per_trial": 0, "address": None}
-    for variant in ("drqv2", "drqv2+reset"):
-        folder = tiny_sweep / "walker-walk" / variant / "seed_0"
+    for variant, seed in itertools.product(("drqv2", "drqv2+reset"), (0, 1)):
+        folder = tiny_sweep / "walker-walk" / variant / f"seed_{seed}"
         config = json.loads((folder / "config.json").read_text())
         assert config["variant"] == variant and config["transplant"] is None and config["env"] == "walker-walk"
         assert config["reset_rule"] == (variant == "drqv2+reset") and config["run_dir"] == str(folder)
@@ -97,7 +100,7 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
         result = json.loads((folder / "result.json").read_text())
         assert set(result) == RESULT_KEYS
         assert result["status"] == "finished" and result["task"] == "walker-walk" and result["variant"] == variant
-        assert result["seed"] == 0 and result["frames"] == 1000 and result["agent_steps"] == 20
+        assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == 250
         assert result["final_eval"]["frame"] == 1000
         assert result["final_eval"]["mean_reward"] == float(evaluations[-1]["mean_reward"])
         assert result["wall_time_s"] > 0
@@ -118,7 +121,7 @@ def test_resume_skips_finished_trials_and_reruns_unfinished_ones(tiny_sweep, tmp
     before = mtimes(out / "walker-walk")
     # The same command again: nothing to run, no trial file touched (Ray is not even needed).
     assert main([*TINY_TRIALS, "--out", str(out), "--no-progress-bar", *TINY]) == 0
-    assert "0 finished now, 2 finished before, 0 failed" in capsys.readouterr().out
+    assert "0 finished now, 4 finished before, 0 failed" in capsys.readouterr().out
     assert mtimes(out / "walker-walk") == before
 
     # An interrupted trial: no result.json, a leftover file. It runs again from an empty folder; the other is kept.
@@ -149,13 +152,14 @@ def test_changed_training_settings_are_refused(tiny_sweep, capsys):
 
 
 def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
-    argv = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset", "--out", str(tiny_sweep)]
+    argv = ["--tasks", "walker-walk", "--seeds", "3", "--variants", "drqv2", "drqv2+reset", "--out", str(tiny_sweep)]
     before = mtimes(tiny_sweep)
     assert main([*argv, *TINY, "--dry-run"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"finished  skip {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_0'}"
-    assert lines[1] == f"pending   run  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
-    assert lines[-1] == "4 trials: 2 finished, 2 pending; 2 would run."
+    assert lines[1] == f"finished  skip {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
+    assert lines[2] == f"pending   run  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_2'}"
+    assert lines[-1] == "6 trials: 4 finished, 2 pending; 2 would run."
     assert mtimes(tiny_sweep) == before
 
     # Every status, on fabricated folders.
@@ -287,3 +291,39 @@ def test_resources_and_settings_checks():
     assert settings_changes(previous, same) == []  # a new task's checkpoint is not a change
     moved = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/c.zip"}}}
     assert settings_changes(previous, moved) == ["--good-checkpoint for walker-walk: /a.zip in sweep.json, /c.zip now"]
+
+
+def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
+    from sb3_collapse.report import ReportSettings, write_report
+
+    # At frame 1000 the plain runs have an mlp1 gradient norm, the reset runs (reset at frames 500 and 1000, no
+    # update since) have none: collapse "unknown" for them, not stuck.
+    report = write_report(
+        tiny_sweep, out=tmp_path / "report", settings=ReportSettings(collapse_checks=1), progress=False
+    )
+    assert {path.name for path in report.files} == {"figure5.png", "summary.csv", "summary.md"}
+    for path in report.files:
+        assert path.parent == tmp_path / "report" and path.stat().st_size > 0
+    assert (tmp_path / "report" / "figure5.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+    rows = {row.variant: row for row in report.rows}
+    assert set(rows) == {"drqv2", "drqv2+reset"}
+    for variant, row in rows.items():
+        folders = [tiny_sweep / "walker-walk" / variant / f"seed_{seed}" for seed in (0, 1)]
+        finals = [json.loads((folder / "result.json").read_text())["final_eval"]["mean_reward"] for folder in folders]
+        assert row.task == "walker-walk" and row.seeds == 2 and row.unfinished == 0 and row.final_frame == 1000
+        assert row.final_mean == pytest.approx(sum(finals) / 2)
+        assert row.last_evals == 2  # evaluations at frames 0 and 1000
+    assert rows["drqv2"].resets_total == 0 and rows["drqv2"].reset_rule_seeds == 0
+    last_grad_norms = [
+        float(
+            [r for r in read_csv(folder / "collapse_metrics.csv") if r["tag"] == "collapse/mlp1/grad_norm"][-1]["value"]
+        )
+        for folder in (tiny_sweep / "walker-walk" / "drqv2" / f"seed_{seed}" for seed in (0, 1))
+    ]
+    assert rows["drqv2"].collapse_unknown == 0
+    assert rows["drqv2"].stuck == sum(norm <= 1e-3 for norm in last_grad_norms)
+    assert rows["drqv2+reset"].resets_total == 4 and rows["drqv2+reset"].seeds_reset == 2
+    assert rows["drqv2+reset"].collapse_unknown == 2 and rows["drqv2+reset"].stuck == 0
+    markdown = (tmp_path / "report" / "summary.md").read_text()
+    assert "drqv2+reset" in markdown and "walker-walk" in markdown
+    assert read_csv(tmp_path / "report" / "summary.csv")[0]["task"] == "walker-walk"
