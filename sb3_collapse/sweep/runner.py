@@ -1,7 +1,7 @@
 """
 Run the trials of a sweep on Ray: each trial is an independent Ray task (Ray core, ``ray.remote``) that asks for
 ``cpus_per_trial`` CPUs and ``gpus_per_trial`` GPUs (fractions allowed) and calls :func:`sb3_collapse.train.train`
-into the trial's folder.
+into the trial's folder, in a worker process of its own.
 
 Ray core rather than Ray Tune: the trials are fixed (no search, no scheduler, no early stopping) and each one
 writes its own folder with the contract that the report reads; a task per trial is all the engine has to do, with
@@ -320,7 +320,11 @@ def run_sweep(
         return summary
     with ray_session(address) as ray:
         check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
-        remote = ray.remote(run_trial).options(num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=0)
+        # max_calls=1: every trial in a fresh worker process, so that nothing a trial leaves in its process (freed
+        # replay memory kept by the tuned allocator, CUDA caches, torch threads, GL contexts) reaches the next one.
+        remote = ray.remote(max_calls=1)(run_trial).options(
+            num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=0
+        )
         device = "cuda" if gpus_per_trial > 0 else "cpu"
         threads = max(1, int(cpus_per_trial))
         pending = {

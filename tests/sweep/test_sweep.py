@@ -67,6 +67,11 @@ def read_csv(path):
         return list(csv.DictReader(file))
 
 
+def own_lines(stdout):
+    """The lines the CLI printed, without the trials' output that Ray forwards to the driver (it may arrive late)."""
+    return [line for line in stdout.splitlines() if "(run_trial pid=" not in line]
+
+
 def mtimes(folder):
     return {path: path.stat().st_mtime_ns for path in folder.rglob("*") if path.is_file()}
 
@@ -155,7 +160,7 @@ def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
     argv = ["--tasks", "walker-walk", "--seeds", "3", "--variants", "drqv2", "drqv2+reset", "--out", str(tiny_sweep)]
     before = mtimes(tiny_sweep)
     assert main([*argv, *TINY, "--dry-run"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    lines = own_lines(capsys.readouterr().out)
     assert lines[0] == f"finished  skip {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_0'}"
     assert lines[1] == f"finished  skip {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
     assert lines[2] == f"pending   run  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_2'}"
@@ -268,7 +273,7 @@ def test_command_line_errors(tmp_path, capsys):
     checkpoint.write_bytes(b"")
     grid = ["--transplant-grid", "--good-checkpoint", str(checkpoint), "--bad-checkpoint", str(checkpoint)]
     assert main(["--tasks", "walker-walk", "--seeds", "2", *grid, "--out", out, "--dry-run"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    lines = own_lines(capsys.readouterr().out)
     assert lines[-1] == "18 trials: 18 pending; 18 would run." and lines[0].endswith("cnn-blank_mlp-blank/seed_0")
     assert not (tmp_path / "sweep").exists()  # a dry run writes nothing
     with pytest.raises(SystemExit):
