@@ -26,11 +26,11 @@ from sb3_collapse.probe.report import (
     CSV_NAME,
     OVER_TRAINING_PLOT,
     SUMMARY_NAME,
-    StagedOutput,
     format_table,
     group_means,
     plot_mse_by_layer,
     plot_mse_over_training,
+    staged_output,
     write_csv,
     write_json,
 )
@@ -153,7 +153,7 @@ def probe_to_folder(
 ) -> dict[str, Any]:
     """
     ``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and the plots
-    into ``out`` (only when every checkpoint succeeded; see :class:`StagedOutput`).
+    into ``out`` (only when every checkpoint succeeded; see :func:`~sb3_collapse.probe.report.staged_output`).
 
     Without ``rollouts_path``, rollouts of the first checkpoint are recorded first (``record_options``) and
     saved to ``<out>/rollouts.npz`` for reuse.
@@ -174,7 +174,7 @@ def probe_to_folder(
     labels = checkpoint_labels(list(checkpoint_paths))
     device = get_device(settings.device)
     out = Path(out)
-    with StagedOutput(out, overwrite=overwrite) as staged:
+    with staged_output(out, overwrite=overwrite) as staged:
         if rollouts_path is None:
             if (out / ROLLOUTS_NAME).exists() and not overwrite:
                 raise ProbeError(f"{out / ROLLOUTS_NAME} exists: reuse it with --rollouts, or pass --overwrite.")

@@ -4,11 +4,8 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import shutil
 from collections import defaultdict
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import matplotlib
@@ -18,6 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.staged_outputs import StagedOutputs
 
 CSV_NAME = "probe.csv"
 SUMMARY_NAME = "summary.json"
@@ -27,62 +25,16 @@ OUTPUT_FILES = (CSV_NAME, SUMMARY_NAME, BY_LAYER_PLOT, OVER_TRAINING_PLOT)
 """The files a probe run writes (``summary.json`` last: its presence marks a complete run)."""
 
 
-class StagedOutput:
+def staged_output(out: str | Path, overwrite: bool = False) -> StagedOutputs:
     """
-    Write files into ``<out>/.partial-<pid>/`` and move them into ``out`` only on :meth:`commit`; on an error
-    (or without a commit) the staging folder is removed (and ``out`` too if this created it and it is empty), so no
-    output of a failed run looks complete.
+    The probe's output folder, staged (see :class:`~sb3_collapse.staged_outputs.StagedOutputs`): files are moved
+    into ``out`` only when the whole run succeeded, ``summary.json`` last.
 
     :param out: the output folder (created if needed)
     :param overwrite: replace the outputs of a previous run; otherwise their presence is an error
-    :raises ProbeError: when ``out`` holds a previous run's outputs and ``overwrite`` is false
+    :raises ProbeError: when ``out`` is a file, or holds a previous run's outputs and ``overwrite`` is false
     """
-
-    def __init__(self, out: str | Path, overwrite: bool = False) -> None:
-        self.out = Path(out)
-        if self.out.exists() and not self.out.is_dir():
-            raise ProbeError(f"--out {self.out} is a file; give a folder.")
-        existing = [name for name in OUTPUT_FILES if (self.out / name).exists()]
-        if existing and not overwrite:
-            raise ProbeError(
-                f"{self.out} already holds probe outputs ({', '.join(existing)}): pass --overwrite or another --out."
-            )
-        self.staging = self.out / f".partial-{os.getpid()}"
-        self.created = not self.out.exists()
-        self.committed = False
-
-    def __enter__(self) -> StagedOutput:  # noqa: PYI034  a final class
-        self.staging.mkdir(parents=True, exist_ok=False)
-        return self
-
-    def path(self, name: str) -> Path:
-        """Where to write ``name`` before the commit."""
-        return self.staging / name
-
-    def commit(self) -> list[Path]:
-        """
-        Move the staged files into ``out`` (``summary.json`` last) and remove stale outputs of a previous run.
-
-        :return: the final paths
-        """
-        staged = sorted(p.name for p in self.staging.iterdir())
-        for name in OUTPUT_FILES:
-            if name not in staged:
-                (self.out / name).unlink(missing_ok=True)
-        staged.sort(key=lambda name: name == SUMMARY_NAME)
-        for name in staged:
-            os.replace(self.staging / name, self.out / name)
-        self.staging.rmdir()
-        self.committed = True
-        return [self.out / name for name in staged]
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if not self.committed:
-            shutil.rmtree(self.staging, ignore_errors=True)
-            if self.created and not any(self.out.iterdir()):
-                self.out.rmdir()
+    return StagedOutputs(out, OUTPUT_FILES, SUMMARY_NAME, overwrite=overwrite, error=ProbeError)
 
 
 def write_csv(rows: list[dict[str, Any]], path: Path) -> None:

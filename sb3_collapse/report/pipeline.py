@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import os
-import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
 
 from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import Sweep, load_sweep
@@ -32,6 +29,7 @@ from sb3_collapse.report.tables import (
     summary_rows,
     write_csv,
 )
+from sb3_collapse.staged_outputs import StagedOutputs
 
 FIGURE5_PNG = "figure5.png"
 SUMMARY_CSV = "summary.csv"
@@ -43,55 +41,6 @@ OUTPUT_FILES = (FIGURE5_PNG, SUMMARY_CSV, GRID_CSV, GRID_MD, GRID_PNG, SUMMARY_M
 """Every file a report may write; ``summary.md`` is moved in last, so its presence marks a complete report."""
 REPORT_FOLDER = "report"
 """The default output folder inside the sweep folder."""
-
-
-class StagedFiles:
-    """
-    Write files into ``<out>/.partial-<pid>/`` and move them into ``out`` only on :meth:`commit`; on an error
-    (or without a commit) the staging folder is removed (and ``out`` too if this created it and it is empty).
-    The commit first removes the previous ``summary.md`` and every previous output that this report does not
-    write (e.g. a transplant grid of an earlier sweep), moves the new files in and ``summary.md`` last.
-
-    :param out: the output folder (created if needed)
-    :raises ReportError: when ``out`` is a file
-    """
-
-    def __init__(self, out: Path) -> None:
-        if out.exists() and not out.is_dir():
-            raise ReportError(f"--out {out} is a file; give a folder.")
-        self.out = out
-        self.staging = out / f".partial-{os.getpid()}"
-        self.created = not out.exists()
-        self.committed = False
-
-    def __enter__(self) -> StagedFiles:  # noqa: PYI034 (a final class)
-        self.staging.mkdir(parents=True, exist_ok=False)
-        return self
-
-    def path(self, name: str) -> Path:
-        """Where to write ``name`` before the commit."""
-        return self.staging / name
-
-    def commit(self) -> list[Path]:
-        """:return: the final paths, in the order they were moved in"""
-        staged = sorted((p.name for p in self.staging.iterdir()), key=lambda name: name == SUMMARY_MD)
-        (self.out / SUMMARY_MD).unlink(missing_ok=True)
-        for name in OUTPUT_FILES:
-            if name not in staged:
-                (self.out / name).unlink(missing_ok=True)
-        for name in staged:
-            os.replace(self.staging / name, self.out / name)
-        self.staging.rmdir()
-        self.committed = True
-        return [self.out / name for name in staged]
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if not self.committed:
-            shutil.rmtree(self.staging, ignore_errors=True)
-            if self.created and self.out.exists() and not any(self.out.iterdir()):
-                self.out.rmdir()
 
 
 @dataclass
@@ -224,7 +173,7 @@ def write_report(
     report = build_report(sweep_dir, settings, reference, include_unfinished, tasks, variants, progress)
     out_dir = Path(sweep_dir) / REPORT_FOLDER if out is None else Path(out)
     partial = {task: [t for t in report.sweep.unfinished if t.task == task] for task in report.sweep.tasks()}
-    with StagedFiles(out_dir) as staged:
+    with StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, error=ReportError) as staged:
         plot_figure5(
             report.curves,
             staged.path(FIGURE5_PNG),

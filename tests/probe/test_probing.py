@@ -10,7 +10,7 @@ from sb3_collapse.probe.probing import (
     standardize_features_,
     standardize_targets,
 )
-from sb3_collapse.probe.report import StagedOutput, training_order
+from sb3_collapse.probe.report import staged_output, training_order
 
 
 def test_split_never_cuts_an_episode():
@@ -96,7 +96,7 @@ def test_training_order_needs_distinct_steps():
 
 def test_staged_outputs_appear_only_on_commit(tmp_path):
     out = tmp_path / "probe"
-    with pytest.raises(RuntimeError), StagedOutput(out) as staged:
+    with pytest.raises(RuntimeError), staged_output(out) as staged:
         staged.path("probe.csv").write_text("partial")
         raise RuntimeError("interrupted while writing")
     assert not out.exists()
@@ -104,8 +104,8 @@ def test_staged_outputs_appear_only_on_commit(tmp_path):
     (out / "summary.json").write_text("old run")
     (out / "mse_over_training.png").write_text("old plot")
     with pytest.raises(ProbeError, match="--overwrite"):
-        StagedOutput(out)
-    with StagedOutput(out, overwrite=True) as staged:
+        staged_output(out)
+    with staged_output(out, overwrite=True) as staged:
         staged.path("probe.csv").write_text("new")
         staged.path("summary.json").write_text("new run")
         assert (out / "summary.json").read_text() == "old run"  # untouched until the commit

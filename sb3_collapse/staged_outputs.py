@@ -1,0 +1,81 @@
+"""Output folders that never show a partial set of files as complete (used by the probe and the report)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+
+
+class StagedOutputs:
+    """
+    Write files into ``<out>/.partial-<pid>/`` and move them into ``out`` only on :meth:`commit`; on an error (or
+    without a commit) the staging folder is removed, and ``out`` too if this created it and it is empty.
+
+    The commit first removes the previous ``marker`` file and every previous output (of ``outputs``) that this run
+    did not write, then moves the new files in, ``marker`` last: its presence marks a complete set.
+
+    :param out: the output folder (created if needed)
+    :param outputs: the names of every file a run may write
+    :param marker: the one of ``outputs`` moved in last
+    :param overwrite: replace the outputs of a previous run; otherwise their presence is an error
+    :param error: the exception class raised on a bad ``out``
+    :raises error: when ``out`` is a file, or holds a previous run's outputs and ``overwrite`` is false
+    """
+
+    def __init__(
+        self,
+        out: str | Path,
+        outputs: Sequence[str],
+        marker: str,
+        overwrite: bool = True,
+        error: type[Exception] = ValueError,
+    ) -> None:
+        if marker not in outputs:
+            raise ValueError(f"The marker {marker!r} must be one of the outputs {list(outputs)}.")
+        self.out = Path(out)
+        if self.out.exists() and not self.out.is_dir():
+            raise error(f"--out {self.out} is a file; give a folder.")
+        existing = [name for name in outputs if (self.out / name).exists()]
+        if existing and not overwrite:
+            raise error(f"{self.out} already holds outputs ({', '.join(existing)}): pass --overwrite or another --out.")
+        self.outputs = tuple(outputs)
+        self.marker = marker
+        self.staging = self.out / f".partial-{os.getpid()}"
+        self.created = not self.out.exists()
+        self.committed = False
+
+    def __enter__(self) -> StagedOutputs:  # noqa: PYI034  not subclassed
+        self.staging.mkdir(parents=True, exist_ok=False)
+        return self
+
+    def path(self, name: str) -> Path:
+        """Where to write ``name`` before the commit."""
+        return self.staging / name
+
+    def commit(self) -> list[Path]:
+        """
+        Move the staged files into ``out`` (the marker last) and remove the stale outputs of a previous run.
+
+        :return: the final paths, in the order they were moved in
+        """
+        staged = sorted((p.name for p in self.staging.iterdir()), key=lambda name: name == self.marker)
+        (self.out / self.marker).unlink(missing_ok=True)
+        for name in self.outputs:
+            if name not in staged:
+                (self.out / name).unlink(missing_ok=True)
+        for name in staged:
+            os.replace(self.staging / name, self.out / name)
+        self.staging.rmdir()
+        self.committed = True
+        return [self.out / name for name in staged]
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if not self.committed:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            if self.created and self.out.exists() and not any(self.out.iterdir()):
+                self.out.rmdir()
