@@ -253,23 +253,33 @@ class TrainResult:
     summary: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
-def write_json_atomically(path: Path, content: Any) -> None:
+def write_text_atomically(path: Path, text: str) -> None:
     """
-    Write ``content`` as indented JSON to a temporary file next to ``path``, then rename it to ``path``: readers
-    see either no file or the complete one.
+    Write ``text`` to a temporary file next to ``path``, then rename it to ``path``: readers see either no file or
+    the complete one.
 
-    :param path: the JSON file
-    :param content: anything ``json.dumps`` accepts
+    :param path: the file
+    :param text: its content
     """
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(handle, "w") as file:
-            file.write(json.dumps(content, indent=2) + "\n")
+            file.write(text)
         os.replace(temporary, path)
     except BaseException:
         if os.path.exists(temporary):
             os.remove(temporary)
         raise
+
+
+def write_json_atomically(path: Path, content: Any) -> None:
+    """
+    Write ``content`` as indented JSON with :func:`write_text_atomically`.
+
+    :param path: the JSON file
+    :param content: anything ``json.dumps`` accepts
+    """
+    write_text_atomically(path, json.dumps(content, indent=2) + "\n")
 
 
 def run_summary(

@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import os
 import shutil
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
@@ -32,7 +31,7 @@ from sb3_collapse.sweep.trials import (
     trial_dir,
     trial_status,
 )
-from sb3_collapse.train import TrainConfig, train, write_json_atomically
+from sb3_collapse.train import TrainConfig, train, write_json_atomically, write_text_atomically
 
 INSTALL_HINT = "pip install 'sb3-collapse[sweep]'"
 
@@ -103,9 +102,7 @@ def write_error(folder: Path, text: str) -> None:
     :param text: the traceback, written to ``<folder>/error.txt`` (temporary file, then rename)
     """
     folder.mkdir(parents=True, exist_ok=True)
-    temporary = folder / ".error.txt.tmp"
-    temporary.write_text(text)
-    os.replace(temporary, folder / "error.txt")
+    write_text_atomically(folder / "error.txt", text)
 
 
 def run_trial(
