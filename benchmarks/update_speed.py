@@ -1,7 +1,10 @@
-"""Milliseconds per DrQ-v2 gradient update, ours against the reference implementation's operations.
+"""Milliseconds per DrQ-v2 gradient update, ours (eager and compiled) against the reference implementation's operations.
 
 - ``ours``: ``DrQv2.train(gradient_steps=1)``, i.e. replay sampling, integer-crop augmentation on uint8,
   channels_last convolutions, the actor's backward restricted to the actor's parameters;
+- ``ours compiled``: the same with ``compile_update=True`` (``torch.compile`` of the update's forward and backward
+  passes; ``mode="reduce-overhead"``, CUDA graphs, on CUDA). Its compilation time is printed (the first update's
+  time minus the median);
 - ``reference ops``: ``sb3_collapse.drqv2.reference.reference_update``, the operations of facebookresearch/drqv2's
   ``DrQV2Agent.update``: ``grid_sample`` augmentation on float images, a full backward of the actor loss
   (gradients of the critic computed and discarded), here with NCHW convolutions, non-fused Adam and the C
@@ -9,12 +12,16 @@
   The batch is sampled from the same kind of buffer (the reference samples in DataLoader workers; sampling
   is included in both timings).
 
-Each runs in its own process, on identical networks and synthetic replay data.
+Each implementation runs in its own process, on identical networks and synthetic replay data. The processes take
+turns (one times ``--updates`` updates while the others wait), ``--rounds`` times, so that the ratios compare
+updates timed under the same load on a shared machine; the table gives the median over the rounds of each round's
+median, and the median of the per-round ratios.
 
 Observations are 9x84x84 uint8 (3 stacked RGB frames), actions 6-d (walker). No rendering is involved.
 
     python benchmarks/update_speed.py                  # batch 256 and 32 on the default device
     python benchmarks/update_speed.py --batch-sizes 256 --updates 10 --device cuda
+    python benchmarks/update_speed.py --impls reference ours ours-compiled --batch-sizes 32 --rounds 5
 """
 
 from __future__ import annotations
@@ -35,8 +42,11 @@ from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 
+IMPLS = ("reference", "ours", "ours-compiled")
+"""Implementations this script times (``--impls``)."""
 
-def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0) -> DrQv2:
+
+def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0, compile_update: bool = False) -> DrQv2:
     """A DrQv2 on synthetic 9x84x84 observations with a filled buffer; ``reference``: NCHW, non-fused Adam."""
     model = DrQv2(
         "CnnPolicy",
@@ -45,6 +55,7 @@ def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0) -
         learning_starts=0,
         device=device,
         seed=seed,
+        compile_update=compile_update,
         policy_kwargs=dict(encoder_kwargs=dict(channels_last=not reference), optimizer_kwargs=dict(fused=not reference)),
     )
     rng = np.random.default_rng(seed)
@@ -60,59 +71,95 @@ def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0) -
     return model
 
 
-def time_updates(update, updates: int, device: th.device) -> float:
-    """Median milliseconds of ``updates`` calls, after two warm-up calls."""
+def timed_ms(update, device: th.device) -> float:
+    """Milliseconds of one call of ``update`` (synchronizing CUDA before and after)."""
+    if device.type == "cuda":
+        th.cuda.synchronize()
+    start = time.perf_counter()
     update()
-    update()
-    times = []
-    for _ in range(updates):
-        if device.type == "cuda":
-            th.cuda.synchronize()
-        start = time.perf_counter()
-        update()
-        if device.type == "cuda":
-            th.cuda.synchronize()
-        times.append((time.perf_counter() - start) * 1000)
-    return float(np.median(times))
+    if device.type == "cuda":
+        th.cuda.synchronize()
+    return (time.perf_counter() - start) * 1000
 
 
-def measure(impl: str, batch_sizes: list[int], updates: int, device: str, buffer_size: int) -> list[float]:
-    """Median ms per update of one implementation, for each batch size (in this process)."""
-    model = build_model(device, reference=impl == "reference", buffer_size=buffer_size)
-    if impl == "ours":
-        return [time_updates(lambda b=b: model.train(gradient_steps=1, batch_size=b), updates, model.device) for b in batch_sizes]
-    return [time_updates(lambda b=b: reference_update(model, model.replay_buffer.sample(b)), updates, model.device) for b in batch_sizes]
+def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int) -> None:
+    """
+    One implementation in this process: build the model, make two warm-up updates per batch size (the first
+    compiles a compiled update) and print their times, then answer each ``<batch> <updates>`` line of stdin with the
+    milliseconds of that many updates.
+    """
+    model = build_model(device, reference=impl == "reference", buffer_size=buffer_size, compile_update=impl == "ours-compiled")
+    if impl == "reference":
+        updates = {b: (lambda b=b: reference_update(model, model.replay_buffer.sample(b))) for b in batch_sizes}
+    else:
+        updates = {b: (lambda b=b: model.train(gradient_steps=1, batch_size=b)) for b in batch_sizes}
+    warmup = [f"{timed_ms(updates[b], model.device):.3f}" for b in batch_sizes for _ in range(2)]
+    print("ready", *warmup, flush=True)
+    for line in sys.stdin:
+        batch_size, count = map(int, line.split())
+        print(" ".join(f"{timed_ms(updates[batch_size], model.device):.3f}" for _ in range(count)), flush=True)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 32], help="minibatch sizes")
-    parser.add_argument("--updates", type=int, default=5, help="timed updates per measurement (median reported)")
+    parser.add_argument("--updates", type=int, default=3, help="timed updates per implementation and round")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds of turns between the implementations")
+    parser.add_argument("--impls", nargs="+", choices=IMPLS, default=list(IMPLS[:2]), help="implementations to time")
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
     parser.add_argument("--buffer-size", type=int, default=1000, help="transitions in the synthetic buffer")
-    parser.add_argument("--impl", choices=["ours", "reference"], help=argparse.SUPPRESS)
+    parser.add_argument("--worker", choices=IMPLS, help=argparse.SUPPRESS)
     args = parser.parse_args()
 
-    if args.impl:  # one implementation, in a child process: print the timings as one line
-        print(" ".join(f"{ms:.3f}" for ms in measure(args.impl, args.batch_sizes, args.updates, args.device, args.buffer_size)))
+    if args.worker:
+        worker(args.worker, args.batch_sizes, args.device, args.buffer_size)
         return
 
-    # Each implementation runs in its own process: the reference with the default C allocator, as it runs
-    # on its own; ours as DrQv2 sets it up (sb3_collapse.drqv2.cpu_allocator, on the CPU only).
-    timings = {}
-    for impl in ("reference", "ours"):
-        env = dict(os.environ, SB3_COLLAPSE_TUNE_MALLOC="1" if impl == "ours" else "0")
-        command = [sys.executable, __file__, "--impl", impl, "--updates", str(args.updates), "--device", args.device,
+    # The reference runs with the default C allocator, as it runs on its own; ours as DrQv2 sets it up
+    # (sb3_collapse.drqv2.cpu_allocator, on the CPU only).
+    workers, warmups = {}, {}
+    for impl in args.impls:
+        env = dict(os.environ, SB3_COLLAPSE_TUNE_MALLOC="0" if impl == "reference" else "1")
+        command = [sys.executable, __file__, "--worker", impl, "--device", args.device,
                    "--buffer-size", str(args.buffer_size), "--batch-sizes", *map(str, args.batch_sizes)]
-        output = subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout
-        timings[impl] = [float(value) for value in output.split()]
+        workers[impl] = subprocess.Popen(command, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        reply = workers[impl].stdout.readline().split()  # one at a time: building and compiling do not overlap
+        if not reply or reply[0] != "ready":
+            raise RuntimeError(f"the {impl} worker failed (see its error above)")
+        warmups[impl] = [float(value) for value in reply[1:]]
+
+    medians = {(impl, b): [] for impl in args.impls for b in args.batch_sizes}
+    for _ in range(args.rounds):
+        for batch_size in args.batch_sizes:
+            for impl in args.impls:
+                workers[impl].stdin.write(f"{batch_size} {args.updates}\n")
+                workers[impl].stdin.flush()
+                times = [float(value) for value in workers[impl].stdout.readline().split()]
+                medians[impl, batch_size].append(float(np.median(times)))
+    for process in workers.values():
+        process.stdin.close()
+        process.wait()
 
     device = get_device(args.device)
     name = th.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({platform.processor() or platform.machine()}), {th.get_num_threads()} threads"
-    print(f"device: {name}; torch {th.__version__}; obs 9x84x84 uint8, 6-d actions; median of {args.updates} updates")
-    print(f"{'batch':>6} {'reference ops (ms)':>19} {'ours (ms)':>10} {'ours / reference':>17}")
-    for batch_size, ref_ms, ours_ms in zip(args.batch_sizes, timings["reference"], timings["ours"]):
-        print(f"{batch_size:>6} {ref_ms:>19.1f} {ours_ms:>10.1f} {ours_ms / ref_ms:>17.2f}")
+    print(f"device: {name}; torch {th.__version__}; obs 9x84x84 uint8, 6-d actions; {args.rounds} rounds of "
+          f"{args.updates} updates per implementation, taking turns")
+    header = f"{'batch':>6} " + " ".join(f"{impl + ' (ms)':>20}" for impl in args.impls)
+    baseline = args.impls[0]
+    ratios = args.impls[1:]
+    print(header + "".join(f"{impl + ' / ' + baseline:>28}" for impl in ratios))
+    for batch_size in args.batch_sizes:
+        row = f"{batch_size:>6} " + " ".join(f"{np.median(medians[impl, batch_size]):>20.1f}" for impl in args.impls)
+        for impl in ratios:
+            per_round = np.array(medians[impl, batch_size]) / np.array(medians[baseline, batch_size])
+            row += f"{np.median(per_round):>16.2f} ({per_round.min():.2f}-{per_round.max():.2f})"
+        print(row)
+    if "ours-compiled" in args.impls:
+        for index, batch_size in enumerate(args.batch_sizes):
+            first = warmups["ours-compiled"][2 * index]
+            steady = np.median(medians["ours-compiled", batch_size])
+            print(f"compilation, batch {batch_size}: first update {first / 1000:.1f} s, i.e. ~{(first - steady) / 1000:.1f} s "
+                  "more than a compiled update (each batch size is compiled for its own shapes)")
 
 
 if __name__ == "__main__":

@@ -13,7 +13,10 @@ saved DrQv2 (the paper's layer transplants, ``DrQv2(init_from=...)``). Sweeps of
 ``python -m sb3_collapse.sweep --help``.
 
 Budgets are in frames, as in DrQ-v2 and the paper (frames = agent steps x action repeat); the exploration
-schedule is in agent steps, as in DrQ-v2's configs.
+schedule is in agent steps, as in DrQ-v2's configs. With ``--n-envs N`` (N environments in subprocesses), agent steps
+are summed over the environments (transitions) everywhere: the budget, the seed frames, the schedule, the evaluation and
+collapse-check periods and DrQ-v2's one update per 2 transitions mean the same as with one environment
+(``docs/throughput.md``).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import functools
 import json
 import os
 import sys
@@ -36,10 +40,12 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Check
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import SubprocVecEnv
 
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task
+from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.monitoring import CollapseMetrics, CollapseReset
 
 
@@ -79,6 +85,13 @@ class TrainConfig:
         ``None``: random (see ``DrQv2``'s ``init_from``, the paper's layer transplants)
     :param init_mlp: checkpoint whose actor (``mlp0``, ``mlp1``, ``mlp2``, ``action``) the model starts from
     :param init_critic: checkpoint whose critic (and target critic) the model starts from
+    :param n_envs: training environments; more than one (or ``step_envs_during_updates``) runs them in subprocesses
+        (``SubprocVecEnv``, seeds ``seed``, ``seed + 1``...). Frame counts and ``stddev_schedule`` are summed over them,
+        and DrQ-v2 keeps one update per 2 transitions (see ``DrQv2``); the evaluation environment stays single
+    :param step_envs_during_updates: step the environments while the learner updates (``DrQv2``'s option of that name:
+        a one-round policy lag, DrQ-v2's reference order); runs the environments in subprocesses even when ``n_envs`` is 1
+    :param compile_update: compile the update with ``torch.compile`` (``DrQv2``'s ``compile_update=True``: CUDA graphs on
+        CUDA)
     :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
     :param torch_threads: threads of torch's CPU operations (``torch.set_num_threads``); ``None``: torch's default
     :param progress_bar: show a progress bar
@@ -117,6 +130,9 @@ class TrainConfig:
     init_cnn: str | None = None
     init_mlp: str | None = None
     init_critic: str | None = None
+    n_envs: int = 1
+    step_envs_during_updates: bool = False
+    compile_update: bool = False
     device: str = "auto"
     torch_threads: int | None = None
     progress_bar: bool = True
@@ -131,7 +147,7 @@ class TrainConfig:
         parse_task(self.env)
         StddevSchedule(self.stddev_schedule)
         positive = ("frames", "action_repeat", "frame_stack", "size", "batch_size", "n_steps", "feature_dim", "hidden_dim",
-                    "collapse_probe_batch", "reset_window_frames")
+                    "collapse_probe_batch", "reset_window_frames", "n_envs")
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}.")
@@ -156,7 +172,7 @@ class TrainConfig:
 
     @property
     def agent_steps(self) -> int:
-        """Training budget in agent steps."""
+        """Training budget in agent steps, summed over the environments (transitions)."""
         return max(1, self.frames // self.action_repeat)
 
     @property
@@ -295,7 +311,8 @@ def run_summary(
     trained, action repeat included), ``agent_steps``, ``final_eval`` (``frame``, ``mean_reward``, ``std_reward``
     of the last evaluation, or ``None`` without evaluation), ``resets`` (resets of the reset rule), ``reset_frames``
     (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
-    ``escape_frame`` (``None`` without escape) and ``wall_time_s`` (seconds of the whole run).
+    ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run) and ``timings`` (where the
+    time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see ``sb3_collapse.drqv2.timing``).
 
     :param config: the run's settings
     :param task_id: the task, ``<domain>-<task>``
@@ -321,7 +338,21 @@ def run_summary(
         "escaped": None if reset_rule is None else bool(reset_rule.escaped),
         "escape_frame": None if reset_rule is None or reset_rule.escape_frame is None else int(reset_rule.escape_frame),
         "wall_time_s": round(wall_time_s, 2),
+        "timings": model.timings.as_dict(),
     }
+
+
+def _monitored_dmc_env(task_id: str, seed: int, env_kwargs: dict[str, Any]) -> Monitor:
+    return Monitor(make_dmc_env(task_id, seed=seed, **env_kwargs))
+
+
+def _training_env(task_id: str, config: TrainConfig, env_kwargs: dict[str, Any]) -> Monitor | SubprocVecEnv:
+    """One ``Monitor``-ed env in this process, or ``n_envs`` of them in subprocesses (seeds ``seed``, ``seed + 1``...)."""
+    if config.n_envs == 1 and not config.step_envs_during_updates:
+        return _monitored_dmc_env(task_id, config.seed, env_kwargs)
+    ensure_rendering_backend()  # probed once here, inherited by the subprocesses
+    factories = [functools.partial(_monitored_dmc_env, task_id, config.seed + i, env_kwargs) for i in range(config.n_envs)]
+    return SubprocVecEnv(factories)
 
 
 def _new_run_dir(logdir: Path, name: str) -> Path:
@@ -354,7 +385,7 @@ def train(config: TrainConfig) -> TrainResult:
     if config.torch_threads is not None:
         th.set_num_threads(config.torch_threads)
 
-    env = Monitor(make_dmc_env(task_id, seed=config.seed, **env_kwargs))
+    env = _training_env(task_id, config, env_kwargs)
     steps = config.agent_steps
     model = DrQv2(
         "CnnPolicy",
@@ -371,6 +402,8 @@ def train(config: TrainConfig) -> TrainResult:
         device=config.device,
         verbose=config.verbose,
         init_from=config.init_from or None,
+        step_envs_during_updates=config.step_envs_during_updates,
+        compile_update=config.compile_update,
     )
     formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
     model.set_logger(configure(str(run_dir), formats))
@@ -404,7 +437,8 @@ def train(config: TrainConfig) -> TrainResult:
 
     print(
         f"DrQ-v2 on {task_id} from pixels: {config.frames:,} frames = {steps:,} agent steps "
-        f"(action repeat {config.action_repeat}), seed {config.seed}, device {model.device}.\n"
+        f"(action repeat {config.action_repeat}{f', summed over {config.n_envs} envs' if config.n_envs > 1 else ''}), "
+        f"seed {config.seed}, device {model.device}.\n"
         f"Writing to {run_dir} (tensorboard --logdir {run_dir if config.run_dir else config.logdir})",
         flush=True,
     )
@@ -454,6 +488,9 @@ def training_arguments() -> argparse.ArgumentParser:
     g.add_argument("--collapse-metrics-every-frames", type=int, default=d.collapse_metrics_every_frames, help="frames between two checks of the collapse metrics (TensorBoard collapse/..., collapse_metrics.csv); 0 disables them")
     g.add_argument("--collapse-probe-batch", type=int, default=d.collapse_probe_batch, help="replay observations per collapse-metrics check")
     g.add_argument("--reset-window-frames", type=int, default=d.reset_window_frames, help="the reset rule's window, in frames")
+    g.add_argument("--n-envs", type=int, default=d.n_envs, help="training environments (in subprocesses when more than 1); frames and agent steps are summed over them, with one update per 2 transitions as with one")
+    g.add_argument("--step-envs-during-updates", action="store_true", help="step the environments (in subprocesses) while the learner updates: the actions of that step come from the weights before the updates (DrQ-v2's reference order)")
+    g.add_argument("--compile-update", action="store_true", help="compile the update with torch.compile (CUDA graphs on CUDA); compilation takes tens of seconds at the first update")
     g.add_argument("--verbose", type=int, default=d.verbose, help="1: print SB3's log tables")
     return p
 

@@ -134,3 +134,26 @@ def test_bad_arguments_exit_with_a_message(argv, message, capsys):
         main(argv)
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_train_with_parallel_envs(tmp_path):
+    """--n-envs 2: subprocess envs, frames summed over them, one update per 2 transitions, the timings in result.json."""
+    out = subprocess.run(
+        [sys.executable, "-m", "sb3_collapse.train", "--env", "walker-walk", "--frames", "320", "--action-repeat", "8",
+         "--size", "48", "--seed-frames", "160", "--batch-size", "8", "--hidden-dim", "32", "--n-envs", "2",
+         "--eval-every-frames", "320", "--eval-episodes", "1", "--collapse-metrics-every-frames", "0",
+         "--run-dir", str(tmp_path / "run"), "--torch-threads", "1", "--no-progress-bar"],
+        capture_output=True, text=True, check=True,
+    ).stdout
+    assert "summed over 2 envs" in out
+    summary = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert summary["frames"] == 320 and summary["agent_steps"] == 40
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["n_envs"] == 2
+    timings = summary["timings"]
+    assert timings["warmup"]["transitions"] == 20 and timings["learning"]["transitions"] == 20
+    assert timings["learning"]["updates"] == 40 // 2 - 20 // 2
+    assert timings["learning"]["env_s"] > 0 and timings["first_round_updates"] == 1
+    model = DrQv2.load(tmp_path / "run" / "final_model.zip")
+    assert model.n_envs == 2 and model._n_updates == 10 and model.num_frames == 320
+    with open(tmp_path / "run" / "eval.csv") as file:  # the single evaluation env, at 0 and 320 frames
+        assert [int(row["frame"]) for row in csv.DictReader(file)] == [0, 320]

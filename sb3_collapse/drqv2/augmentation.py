@@ -6,6 +6,19 @@ import torch as th
 import torch.nn.functional as F
 
 
+def draw_shifts(batch_size: int, pad: int, device: th.device | str | None = None) -> th.Tensor:
+    """
+    The random offsets of :func:`random_shift`, drawn from torch's global generator as :func:`random_shift` draws
+    them when it is given none (so drawing them first, then shifting, gives the same images).
+
+    :param batch_size: number of images
+    :param pad: padding in pixels
+    :param device: where the offsets go
+    :return: integer offsets ``(batch_size, 2)`` in ``[0, 2 * pad]``, as ``(x, y)``
+    """
+    return th.randint(0, 2 * pad + 1, (batch_size, 2), device=device)
+
+
 def random_shift(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None) -> th.Tensor:
     """
     Random shift of DrQ-v2: replicate-pad every image by ``pad`` pixels, then crop it back to its size
@@ -31,7 +44,7 @@ def random_shift(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None) 
         return obs
     n, c, h, w = obs.shape
     if shifts is None:
-        shifts = th.randint(0, 2 * pad + 1, (n, 2), device=obs.device)
+        shifts = draw_shifts(n, pad, obs.device)
     shifts = shifts.to(device=obs.device, dtype=th.long)
     rows = (th.arange(h, device=obs.device).unsqueeze(0) + shifts[:, 1:2] - pad).clamp_(0, h - 1)
     cols = (th.arange(w, device=obs.device).unsqueeze(0) + shifts[:, 0:1] - pad).clamp_(0, w - 1)

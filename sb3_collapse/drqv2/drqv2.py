@@ -2,25 +2,36 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import pathlib
+import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
-from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.type_aliases import (
+    GymEnv,
+    MaybeCallback,
+    ReplayBufferSamples,
+    RolloutReturn,
+    Schedule,
+    TrainFreq,
+    TrainFrequencyUnit,
+)
+from stable_baselines3.common.utils import polyak_update, should_collect_more_steps
 from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 
-from sb3_collapse.drqv2.augmentation import random_shift
+from sb3_collapse.drqv2.augmentation import draw_shifts, random_shift
 from sb3_collapse.drqv2.cpu_allocator import tune_cpu_allocator
 from sb3_collapse.drqv2.policies import (
     Actor,
@@ -31,7 +42,8 @@ from sb3_collapse.drqv2.policies import (
     PixelEncoder,
     StateEncoder,
     check_action_space,
-    sample_action,
+    exploration_noise,
+    noisy_action,
 )
 from sb3_collapse.drqv2.replay_buffer import (
     DEFAULT_MIN_EPISODE_LENGTH,
@@ -39,6 +51,7 @@ from sb3_collapse.drqv2.replay_buffer import (
     frame_stack_storage_bytes,
 )
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
+from sb3_collapse.drqv2.timing import LearnTimings, PhaseTime
 from sb3_collapse.drqv2.transplant import (
     TransplantSpec,
     check_init_from,
@@ -59,37 +72,72 @@ class DrQv2(OffPolicyAlgorithm):
     exploration noise; the convolutional encoder is trained by the critic loss only.
 
     Paper: https://arxiv.org/abs/2107.09645 (reference code: https://github.com/facebookresearch/drqv2).
-    All step counts are **agent steps** (SB3's ``num_timesteps``); DrQ-v2 and the action-collapse paper
-    count frames, i.e. agent steps x action repeat (2 on DeepMind Control): ``learning_starts=2000`` agent
-    steps are DrQ-v2's 4,000 seed frames. ``model.num_frames`` gives the frame count.
 
-    :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8) or ``"MlpPolicy"``
-        (state vectors, no encoder and no augmentation), or a ``DrQv2Policy`` subclass
-    :param env: the environment (a ``VecEnv``, a gymnasium env, or a registered id such as
-        ``"sb3_collapse/walker-walk-v0"``)
+    **Units.** Step counts are **transitions**, summed over the environments: SB3's ``num_timesteps``, which
+    one ``env.step`` of a ``VecEnv`` of ``n_envs`` environments advances by ``n_envs`` (with one environment,
+    transitions are agent steps). ``learning_starts``, ``train_freq``, the ``stddev_schedule``'s durations,
+    ``buffer_size`` and the budget of :meth:`learn` are all in transitions, whatever ``n_envs``. DrQ-v2 and the
+    action-collapse paper count **frames**: transitions x action repeat (2 on DeepMind Control), so
+    ``learning_starts=2000`` transitions are DrQ-v2's 4,000 seed frames; ``model.num_frames`` gives the frame
+    count, and the callbacks of ``sb3_collapse.monitoring`` (collapse checks, the reset rule's window) read it.
+    Frames therefore mean the same with 1 or 8 environments: 8 environments reach a frame budget in 8 times
+    fewer ``env.step`` calls.
+
+    **Update ratio.** DrQ-v2 makes one update every 2 transitions (``train_freq=2``, ``gradient_steps=1``), and
+    so does this class on any number of environments: ``gradient_steps`` updates each time the transition count
+    passes a multiple of ``train_freq`` beyond ``learning_starts`` (counted from the last
+    :meth:`reset_from_scratch`). The updates are made at the end of the ``env.step`` in which they become due: one
+    environment makes one update every second step; 2 environments one update per step; 3 environments 1 and 2
+    updates on alternate steps (1.5 per step: the fractional part is carried exactly, as the count of multiples
+    passed); 4 environments 2 per step. After ``T`` transitions a model has made exactly
+    ``gradient_steps * (T // train_freq - (reset_step + learning_starts) // train_freq)`` updates (``T`` beyond
+    ``reset_step + learning_starts``).
+
+    **Overlapped environment steps** (``step_envs_during_updates=True``): the environments compute the next
+    step (physics and rendering) while the learner updates. That step's actions come from the weights before
+    the round of updates: a policy lag of one round (``n_envs / train_freq`` updates on average; one update with
+    one environment) with respect to the sequential loop, which is the order of DrQ-v2's reference loop (act,
+    update, then step the environment). See ``docs/throughput.md``.
+
     :param learning_rate: Adam learning rate of the encoder, actor and critic (or an SB3 schedule of the
         remaining progress)
-    :param buffer_size: replay buffer capacity, in transitions (agent steps x n_envs). With ``CnnPolicy`` on a
+    :param buffer_size: replay buffer capacity, in transitions (summed over the environments). With ``CnnPolicy`` on a
         frame-stacked env (``make_dmc_env``), the default ``FrameStackReplayBuffer`` stores each frame once:
         about 21.5 KB per 9x84x84 transition, ~21.5 GB for DrQ-v2's 1,000,000 (11.8 GB for the 550,000 agent
         steps of a 1.1M-frame run). SB3's buffers store obs and next_obs: about 127 KB per 9x84x84
         transition, ~127 GB for 1,000,000. A warning says so when the full buffer would not fit in RAM, and
         a ``MemoryError`` suggests a size when it cannot even be reserved.
-    :param learning_starts: agent steps of uniformly random actions before the first update
+    :param learning_starts: transitions (summed over the environments) of uniformly random actions before the
+        first update
     :param batch_size: minibatch size of each gradient update
     :param tau: soft update coefficient of the target critic
     :param gamma: discount factor
-    :param train_freq: agent steps between updates (per env), or ``(n, "step"/"episode")``; with ``n_envs``
-        environments each round collects ``train_freq x n_envs`` transitions, so pass ``gradient_steps=n_envs``
-        to keep DrQ-v2's one update per 2 transitions
-    :param gradient_steps: gradient updates after each ``train_freq`` (``-1``: as many as steps collected)
-    :param n_steps: length of the n-step returns, in agent steps (SB3's ``NStepReplayBuffer`` when > 1)
-    :param stddev_schedule: exploration standard deviation as a function of the agent step: a float,
-        ``"linear(init,final,duration)"``, ``"step_linear(init,final1,duration1,final2,duration2)"``
-        (durations in agent steps) or a callable ``step -> std``
+    :param train_freq: transitions (summed over the environments) per ``gradient_steps`` updates, whatever the
+        number of environments (see **Update ratio** above); or ``(n, "episode")``: ``gradient_steps`` updates
+        after every ``n`` episodes (one environment only, SB3's rule)
+    :param gradient_steps: updates per ``train_freq`` transitions (``-1``: one per transition)
+    :param n_steps: length of the n-step returns, in agent steps of one environment (SB3's ``NStepReplayBuffer`` when > 1)
+    :param stddev_schedule: exploration standard deviation as a function of the transition count
+        (``num_timesteps``, summed over the environments, counted from the last :meth:`reset_from_scratch`): a
+        float, ``"linear(init,final,duration)"``, ``"step_linear(init,final1,duration1,final2,duration2)"``
+        (durations in transitions; agent steps with one environment) or a callable ``step -> std``
     :param stddev_clip: clip of the exploration noise used in the updates (target action, actor loss)
     :param augmentation_pad: random-shift padding in pixels; ``0`` disables the augmentation
         (pixel policies only)
+    :param step_envs_during_updates: step the environments while the learner updates (see **Overlapped
+        environment steps** above): before each round of updates, the next actions are sent to the environments
+        (``VecEnv.step_async``), and their results collected after it (``step_wait``). It saves time only where
+        the environments run in other processes (``SubprocVecEnv``); with a ``DummyVecEnv`` they step after the
+        updates, with the same outcome. Off by default: the default keeps SB3's sequential loop (every action
+        from the latest weights), so seeded runs are those of earlier versions
+    :param compile_update: compile the update's forward and backward passes with ``torch.compile``: ``True``
+        for ``mode="reduce-overhead"`` (CUDA graphs) on CUDA and ``"default"`` elsewhere, or a ``torch.compile``
+        mode (``"default"``, ``"reduce-overhead"``, ``"max-autotune"``, ``"max-autotune-no-cudagraphs"``).
+        The random draws stay outside the compiled code, so the update is the uncompiled one up to float
+        rounding (tested against ``reference_update``). Compilation happens at the first update (tens of seconds
+        on a CPU; see ``model.timings.first_round_s``) and again after a :meth:`reset_from_scratch` (new
+        modules). Off by default: on the CPU it was not measured faster (``docs/throughput.md``), and it was not
+        measured on a GPU
     :param callback: callback(s) run at every ``learn()`` call, together with those given to ``learn()``
         (e.g. ``CollapseReset()``); not saved with the model
     :param replay_buffer_class: replay buffer class; ``None``: ``FrameStackReplayBuffer`` (n-step, each frame
@@ -147,6 +195,8 @@ class DrQv2(OffPolicyAlgorithm):
         stddev_schedule: ScheduleSpec = "linear(1.0,0.1,100000)",
         stddev_clip: float = 0.3,
         augmentation_pad: int = 4,
+        step_envs_during_updates: bool = False,
+        compile_update: bool | str = False,
         callback: MaybeCallback = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -166,6 +216,7 @@ class DrQv2(OffPolicyAlgorithm):
             raise ValueError(f"stddev_clip must be >= 0, got {stddev_clip}.")
         if n_steps < 1:
             raise ValueError(f"n_steps must be >= 1, got {n_steps}.")
+        check_compile_update(compile_update)
         self.stddev_schedule = StddevSchedule(stddev_schedule)
         super().__init__(
             policy,
@@ -193,7 +244,14 @@ class DrQv2(OffPolicyAlgorithm):
         )
         self.stddev_clip = stddev_clip
         self.augmentation_pad = augmentation_pad
+        self.step_envs_during_updates = step_envs_during_updates
+        self.compile_update = compile_update
         self.callback = callback
+        self.timings = LearnTimings()
+        """Where the time of the last (or current) :meth:`learn` call went (see ``sb3_collapse.drqv2.timing``)."""
+        self._compiled_losses: tuple[Any, Any] | None = None
+        self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
+        self._round, self._round_used_policy = PhaseTime(), False
         self.env_config = _read_env_config(self.env) if self.env is not None else None
         self._last_grad_norms: th.Tensor | None = None
         self._train_stats: dict[str, th.Tensor] = {}
@@ -363,17 +421,21 @@ class DrQv2(OffPolicyAlgorithm):
         return {name: value for (name, _), value in zip(self._grad_layers, values)}
 
     # ------------------------------------------------------------------ acting
+    def _in_warmup(self, learning_starts: int) -> bool:
+        """Whether the next actions are uniformly random (``learning_starts`` transitions since the last reset)."""
+        return self.num_timesteps - self.reset_step < learning_starts
+
     def _sample_action(
         self,
         learning_starts: int,
-        action_noise: Any = None,
+        action_noise: ActionNoise | None = None,
         n_envs: int = 1,
     ) -> tuple[np.ndarray, np.ndarray]:
         """
-        Uniform actions during the warm-up (the first ``learning_starts`` agent steps, counted from the last
+        Uniform actions during the warm-up (the first ``learning_starts`` transitions, counted from the last
         :meth:`reset_from_scratch` if any), then the actor's mean plus scheduled Gaussian noise.
         """
-        if self.num_timesteps - self.reset_step < learning_starts:
+        if self._in_warmup(learning_starts):
             unscaled_action = np.array([self.action_space.sample() for _ in range(n_envs)])
         else:
             self.policy.exploration_std = self.current_stddev
@@ -381,19 +443,148 @@ class DrQv2(OffPolicyAlgorithm):
         buffer_action = self.policy.scale_action(unscaled_action)
         return self.policy.unscale_action(buffer_action), buffer_action
 
+    def collect_rollouts(
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        train_freq: TrainFreq,
+        replay_buffer: ReplayBuffer,
+        action_noise: ActionNoise | None = None,
+        learning_starts: int = 0,
+        log_interval: int | None = None,
+    ) -> RolloutReturn:
+        """
+        Step the environments ``train_freq`` times and store the transitions (SB3's ``collect_rollouts``), timing
+        the waits for the environments. The first step completes the step sent before the last round of updates,
+        if there is one (``step_envs_during_updates``), instead of choosing new actions.
+
+        :param env: the training environments
+        :param callback: called at every step, and at the start and end of the rollout
+        :param train_freq: how many ``env.step`` calls (or episodes, one environment only) to collect
+        :param replay_buffer: where the transitions go
+        :param action_noise: optional additional action noise (DrQ-v2 uses none)
+        :param learning_starts: transitions of uniformly random actions since the last reset
+        :param log_interval: episodes between two log dumps
+        :return: transitions (summed over the environments) and episodes collected, and whether to go on
+        """
+        self.policy.set_training_mode(False)
+        if env.num_envs > 1 and train_freq.unit == TrainFrequencyUnit.EPISODE:
+            raise ValueError(
+                f"train_freq=({train_freq.frequency}, 'episode') counts episodes, which needs one environment, but the "
+                f"VecEnv has {env.num_envs}. Use train_freq in steps (transitions), e.g. train_freq=2."
+            )
+        num_collected_steps, num_collected_episodes = 0, 0
+        continue_training = True
+        callback.on_rollout_start()
+        while should_collect_more_steps(train_freq, num_collected_steps, num_collected_episodes):
+            if self._pending_step is not None:  # sent before the updates: its actions predate them
+                actions, buffer_actions = self._pending_step
+                self._pending_step = None
+                start = time.perf_counter()
+                new_obs, rewards, dones, infos = env.step_wait()
+            else:
+                self._round_used_policy |= not self._in_warmup(learning_starts)
+                actions, buffer_actions = self._sample_action(learning_starts, action_noise, env.num_envs)
+                start = time.perf_counter()
+                new_obs, rewards, dones, infos = env.step(actions)
+            self._round.env_s += time.perf_counter() - start
+            self._round.transitions += env.num_envs
+            self.num_timesteps += env.num_envs
+            num_collected_steps += 1
+
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return RolloutReturn(num_collected_steps * env.num_envs, num_collected_episodes, continue_training=False)
+            self._update_info_buffer(infos, dones)
+            self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
+            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+            self._on_step()
+            for done in dones:
+                if done:
+                    num_collected_episodes += 1
+                    self._episode_num += 1
+                    if log_interval is not None and self._episode_num % log_interval == 0:
+                        self.dump_logs()
+        if action_noise is not None:
+            action_noise.reset()  # DrQ-v2 adds no action noise; SB3's noises are reset per rollout here
+        callback.on_rollout_end()
+        return RolloutReturn(num_collected_steps * env.num_envs, num_collected_episodes, continue_training)
+
+    def _send_next_step(self) -> None:
+        """Choose the next actions with the current weights and send them to the environments (``step_async``)."""
+        assert self.env is not None
+        self._round_used_policy |= not self._in_warmup(self.learning_starts)
+        actions, buffer_actions = self._sample_action(self.learning_starts, self.action_noise, self.env.num_envs)
+        self.env.step_async(actions)
+        self._pending_step = (actions, buffer_actions)
+
+    def _finish_pending_step(self) -> None:
+        """
+        After an exception between :meth:`_send_next_step` and the next rollout: wait for the step in flight and
+        store its transition, so that the model's last observation is the environments' again. A step that cannot
+        be completed (the environments died) is dropped.
+        """
+        if self._pending_step is None or self.env is None:
+            return
+        _, buffer_actions = self._pending_step
+        self._pending_step = None
+        try:
+            new_obs, rewards, dones, infos = self.env.step_wait()
+        except Exception:  # noqa: BLE001 - the original exception is the one to report
+            return
+        self.num_timesteps += self.env.num_envs
+        self._update_info_buffer(infos, dones)
+        self._store_transition(self.replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
+
+    def _round_train_freq(self) -> TrainFreq:
+        """
+        ``env.step`` calls of the next rollout: up to the step in which the transition count reaches the next
+        multiple of ``train_freq`` (``train_freq`` steps with one environment, one step when ``n_envs >= train_freq``);
+        the episode count of an episodic ``train_freq`` as is.
+        """
+        if self.train_freq.unit != TrainFrequencyUnit.STEP:
+            return self.train_freq
+        frequency = self.train_freq.frequency
+        next_multiple = (self.num_timesteps // frequency + 1) * frequency
+        return TrainFreq(-(-(next_multiple - self.num_timesteps) // self.n_envs), TrainFrequencyUnit.STEP)
+
+    def updates_due(self, start: int, end: int) -> int:
+        """
+        Updates that DrQ-v2's ratio asks for when the transition count goes from ``start`` to ``end``:
+        ``gradient_steps`` for each multiple ``m`` of ``train_freq`` with ``start < m <= end`` and
+        ``m > reset_step + learning_starts`` (one per transition ``t`` in that range with ``gradient_steps=-1``).
+        With an episodic ``train_freq``: ``gradient_steps`` (``-1``: ``end - start``) when
+        ``end > reset_step + learning_starts``, else 0.
+
+        :param start: ``num_timesteps`` before the steps
+        :param end: ``num_timesteps`` after them
+        :return: the number of updates
+        """
+        first = self.reset_step + self.learning_starts  # no update at or before this transition count
+        if self.train_freq.unit != TrainFrequencyUnit.STEP:
+            if end <= first:
+                return 0
+            return self.gradient_steps if self.gradient_steps >= 0 else end - start
+        low = max(start, first)
+        if end <= low:
+            return 0
+        if self.gradient_steps < 0:
+            return end - low
+        frequency = self.train_freq.frequency
+        return self.gradient_steps * (end // frequency - low // frequency)
+
     # ------------------------------------------------------------------ training
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
         """
         ``gradient_steps`` DrQ-v2 updates on minibatches of ``batch_size`` transitions.
 
-        After a :meth:`reset_from_scratch` at agent step ``reset_step > 0``, no update happens until
-        ``learning_starts`` agent steps were collected since the reset: SB3's ``learn()`` asks for updates as
-        soon as ``num_timesteps > learning_starts``, and this moves that condition to
-        ``num_timesteps - reset_step > learning_starts`` (a verbose model says when it skips).
+        After a :meth:`reset_from_scratch` at transition ``reset_step > 0``, no update happens until
+        ``learning_starts`` transitions were collected since the reset (``learn()`` asks for none, see
+        :meth:`updates_due`; a direct call is skipped too, and a verbose model says so).
         """
         if self.reset_step > 0 and self.num_timesteps - self.reset_step <= self.learning_starts:
             if self.verbose >= 2:
-                print(f"DrQv2: warm-up after the reset at agent step {self.reset_step}, no update")
+                print(f"DrQv2: warm-up after the reset at transition {self.reset_step}, no update")
             return
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizers)
@@ -409,42 +600,100 @@ class DrQv2(OffPolicyAlgorithm):
         """
         One DrQ-v2 update: augment, encode obs (with gradients) and next_obs (without), update the critic
         and the encoder, update the actor on the detached features, then soft-update the target critic.
+
+        The random numbers (augmentation shifts, then the noise of the target action, then that of the actor's
+        action) are drawn first, in the order of ``reference_update``, so that the loss functions are
+        deterministic functions of their inputs: the same with ``compile_update`` or not.
         """
-        obs, next_obs = data.observations, data.next_observations
+        batch_size, action_dim = data.actions.shape
+        shifts = next_shifts = None
         if self.augmentation_pad > 0 and self.encoder.has_cnn:
-            obs = random_shift(obs, self.augmentation_pad)
-            next_obs = random_shift(next_obs, self.augmentation_pad)
-        features = self.encoder(obs)
-        with th.no_grad():
-            next_features = self.encoder(next_obs)
-        self._update_critic(features, data.actions, data.rewards, data.dones, discounts, next_features, std)
-        self._update_actor(features.detach(), std)
+            shifts = draw_shifts(batch_size, self.augmentation_pad, self.device)
+            next_shifts = draw_shifts(batch_size, self.augmentation_pad, self.device)
+        next_noise = exploration_noise((batch_size, action_dim), std, self.stddev_clip, self.device)
+        actor_noise = exploration_noise((batch_size, action_dim), std, self.stddev_clip, self.device)
+
+        critic_loss_fn, actor_loss_fn = self._loss_functions()
+        if self._uses_cuda_graphs():
+            th.compiler.cudagraph_mark_step_begin()
+        critic_loss, features, q1, q2, target_q = critic_loss_fn(
+            data.observations, data.next_observations, data.actions, data.rewards, data.dones, discounts,
+            shifts, next_shifts, next_noise,
+        )
+        self._update_critic(critic_loss)
+        with _frozen(self.critic):
+            actor_loss = actor_loss_fn(features.detach(), actor_noise)
+        self._update_actor(actor_loss)
         polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+
+        self._add_train_stat("critic_loss", critic_loss.detach())
+        self._add_train_stat("q1_mean", q1.detach().mean())
+        self._add_train_stat("q2_mean", q2.detach().mean())
+        self._add_train_stat("target_q_mean", target_q.detach().mean())
+        self._add_train_stat("actor_loss", actor_loss.detach())
         self._add_train_stat("batch_reward", data.rewards.mean())
         self._add_train_stat("grad_norms", self._last_grad_norms)  # type: ignore[arg-type]
         self._train_stats_count += 1
 
-    def _update_critic(
+    def _critic_loss(
         self,
-        features: th.Tensor,
+        obs: th.Tensor,
+        next_obs: th.Tensor,
         actions: th.Tensor,
         rewards: th.Tensor,
         dones: th.Tensor,
         discounts: th.Tensor | float,
-        next_features: th.Tensor,
-        std: float,
-    ) -> None:
+        shifts: th.Tensor | None,
+        next_shifts: th.Tensor | None,
+        next_noise: th.Tensor,
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
         """
-        Critic and encoder step on ``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')``
-        with the target critic at a clipped-noise action of the actor. ``features`` must carry the encoder's
-        graph: the encoder is trained here, and only here.
+        The critic loss ``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')`` with the
+        target critic at the actor's action plus ``next_noise`` on the next observations. No random draw, no
+        side effect: this is what ``compile_update`` compiles.
+
+        :param obs: observations
+        :param next_obs: next observations (n steps later)
+        :param actions: actions taken, in [-1, 1]
+        :param rewards: (n-step) rewards
+        :param dones: terminations
+        :param discounts: discount of the next value (per sample, or a float)
+        :param shifts: random-shift offsets of ``obs`` (:func:`draw_shifts`), ``None`` without augmentation
+        :param next_shifts: those of ``next_obs``
+        :param next_noise: clipped noise of the target action (:func:`exploration_noise`)
+        :return: the loss, the encoder features of ``obs`` (with the encoder's graph: the encoder is trained by this
+            loss, and only by it), ``Q1``, ``Q2`` and the target ``y``
         """
+        if shifts is not None and next_shifts is not None:
+            obs = random_shift(obs, self.augmentation_pad, shifts)
+            next_obs = random_shift(next_obs, self.augmentation_pad, next_shifts)
+        features = self.encoder(obs)
         with th.no_grad():
-            next_action = sample_action(self.actor(next_features), std, clip=self.stddev_clip)
+            next_features = self.encoder(next_obs)
+            next_action = noisy_action(self.actor(next_features), next_noise)
             target_q1, target_q2 = self.critic_target(next_features, next_action)
             target_q = rewards + (1.0 - dones) * discounts * th.min(target_q1, target_q2)
         q1, q2 = self.critic(features, actions)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
+        return critic_loss, features, q1, q2, target_q
+
+    def _actor_loss(self, features: th.Tensor, noise: th.Tensor) -> th.Tensor:
+        """
+        The actor loss ``-min(Q1, Q2)`` at the actor's action plus ``noise``, on features detached from the
+        encoder. :meth:`_update` calls it with the critic's parameters frozen (``requires_grad=False``), so that
+        the backward pass computes the actor's gradients only (the reference computes the critic's too, then
+        discards them). No random draw, no side effect: this is what ``compile_update`` compiles.
+
+        :param features: encoder features, detached
+        :param noise: clipped noise of the action (:func:`exploration_noise`)
+        :return: the loss
+        """
+        action = noisy_action(self.actor(features), noise)
+        q1, q2 = self.critic(features, action)
+        return -th.min(q1, q2).mean()
+
+    def _update_critic(self, critic_loss: th.Tensor) -> None:
+        """Critic and encoder step on ``critic_loss`` (from :meth:`_critic_loss`), measuring the encoder's gradients."""
         for optimizer in (self.encoder.optimizer, self.critic.optimizer):
             if optimizer is not None:
                 optimizer.zero_grad(set_to_none=True)
@@ -453,29 +702,33 @@ class DrQv2(OffPolicyAlgorithm):
         self.critic.optimizer.step()
         if self.encoder.optimizer is not None:
             self.encoder.optimizer.step()
-        self._add_train_stat("critic_loss", critic_loss.detach())
-        self._add_train_stat("q1_mean", q1.detach().mean())
-        self._add_train_stat("q2_mean", q2.detach().mean())
-        self._add_train_stat("target_q_mean", target_q.mean())
 
-    def _update_actor(self, features: th.Tensor, std: float) -> None:
-        """
-        Actor step on ``-min(Q1, Q2)`` at a clipped-noise action, on features detached from the encoder.
-        The critic's trunk runs without gradient and ``backward(inputs=...)`` computes the actor's gradients
-        only (the reference computes the critic's too, then discards them): the encoder and the critic
-        do not change.
-        """
-        action = sample_action(self.actor(features), std, clip=self.stddev_clip)
-        with th.no_grad():
-            critic_trunk = self.critic.trunk(features)
-        q1, q2 = self.critic.heads(critic_trunk, action)
-        actor_loss = -th.min(q1, q2).mean()
+    def _update_actor(self, actor_loss: th.Tensor) -> None:
+        """Actor step on ``actor_loss`` (from :meth:`_actor_loss`): the encoder and the critic do not change."""
         self.actor.optimizer.zero_grad(set_to_none=True)
         actor_loss.backward(inputs=list(self.actor.parameters()))
         actor_grad_norms = self._layer_grad_norms(self._actor_layers)
         self.actor.optimizer.step()
         self._last_grad_norms = th.cat([self._encoder_grad_norms, actor_grad_norms])
-        self._add_train_stat("actor_loss", actor_loss.detach())
+
+    def _loss_functions(self) -> tuple[Any, Any]:
+        """:meth:`_critic_loss` and :meth:`_actor_loss`, compiled once (lazily) when ``compile_update`` says so."""
+        if not self.compile_update:
+            return self._critic_loss, self._actor_loss
+        if self._compiled_losses is None:
+            mode = compile_mode(self.compile_update, self.device)
+            # Static shapes (the batch size is fixed during training): another batch size compiles its own code.
+            self._compiled_losses = (
+                th.compile(self._critic_loss, mode=mode, dynamic=False),
+                th.compile(self._actor_loss, mode=mode, dynamic=False),
+            )
+        return self._compiled_losses
+
+    def _uses_cuda_graphs(self) -> bool:
+        """Whether the compiled update replays CUDA graphs (each update then starts a new graph step)."""
+        return bool(self.compile_update) and self.device.type == "cuda" and compile_mode(
+            self.compile_update, self.device
+        ) in CUDA_GRAPH_MODES
 
     def _layer_grad_norms(self, layers: list[tuple[str, list[th.nn.Parameter]]]) -> th.Tensor:
         """L2 norm of the gradient of each given layer, as one tensor on the device (no host sync)."""
@@ -526,9 +779,12 @@ class DrQv2(OffPolicyAlgorithm):
         progress_bar: bool = False,
     ) -> SelfDrQv2:
         """
-        Train for ``total_timesteps`` agent steps (frames = agent steps x action repeat).
+        Train for ``total_timesteps`` transitions, summed over the environments (frames = transitions x action
+        repeat). Each round steps the environments up to the next update due (see **Update ratio** in the class
+        docstring), then makes those updates; ``model.timings`` says where the time went.
 
-        :param total_timesteps: number of agent steps (summed over environments) to train for
+        :param total_timesteps: number of transitions (summed over the environments; agent steps with one
+            environment) to train for; the last round may pass it by less than ``train_freq``
         :param callback: callback(s) for this call, run after those given to the constructor
         :param log_interval: episodes between two log dumps
         :param tb_log_name: name of the TensorBoard run
@@ -540,14 +796,55 @@ class DrQv2(OffPolicyAlgorithm):
         """
         if reset_num_timesteps:
             self.reset_step = 0
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=self._combined_callbacks(callback),
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
+        total_timesteps, all_callbacks = self._setup_learn(
+            total_timesteps, self._combined_callbacks(callback), reset_num_timesteps, tb_log_name, progress_bar
         )
+        all_callbacks.on_training_start(locals(), globals())
+        if self.env is None:
+            raise ValueError("DrQv2.learn needs an environment: pass env= to DrQv2(...) or DrQv2.load(...), or call set_env.")
+        self.timings = LearnTimings()
+        try:
+            while self.num_timesteps < total_timesteps:
+                if not self._learning_round(all_callbacks, total_timesteps, log_interval):
+                    break
+        finally:
+            self._finish_pending_step()  # only after an exception: a normal round leaves no step in flight
+        all_callbacks.on_training_end()
+        return self
+
+    def _learning_round(self, callback: BaseCallback, total_timesteps: int, log_interval: int) -> bool:
+        """
+        One round of :meth:`learn`: the environment steps up to the next update due, then the updates due (with
+        ``step_envs_during_updates``, the next step is sent to the environments first). Timed into
+        ``self.timings``.
+
+        :return: whether to go on (``False`` when a callback stopped the training)
+        """
+        round_start, start = time.perf_counter(), self.num_timesteps
+        self._round, self._round_used_policy = PhaseTime(rounds=1), False
+        rollout = self.collect_rollouts(
+            self.env,  # type: ignore[arg-type]
+            callback=callback,
+            train_freq=self._round_train_freq(),
+            replay_buffer=self.replay_buffer,  # type: ignore[arg-type]
+            action_noise=self.action_noise,
+            learning_starts=self.learning_starts,
+            log_interval=log_interval,
+        )
+        updates = self.updates_due(start, self.num_timesteps) if rollout.continue_training else 0
+        if updates > 0:
+            if self.step_envs_during_updates and self.num_timesteps < total_timesteps:
+                self._send_next_step()
+            update_start = time.perf_counter()
+            self.train(gradient_steps=updates, batch_size=self.batch_size)
+            self._round.update_s = time.perf_counter() - update_start
+            self._round.updates = updates
+            if self.timings.first_round_s is None:
+                self.timings.first_round_s, self.timings.first_round_updates = self._round.update_s, updates
+        self._round.total_s = time.perf_counter() - round_start
+        learning = self._round_used_policy or updates > 0
+        (self.timings.learning if learning else self.timings.warmup).add(self._round)
+        return rollout.continue_training
 
     def _combined_callbacks(self, callback: MaybeCallback) -> MaybeCallback:
         callbacks: list[BaseCallback] = []
@@ -656,6 +953,11 @@ class DrQv2(OffPolicyAlgorithm):
             "_last_grad_norms",
             "_train_stats",
             "_train_stats_count",
+            "timings",
+            "_compiled_losses",
+            "_pending_step",
+            "_round",
+            "_round_used_policy",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -663,6 +965,48 @@ class DrQv2(OffPolicyAlgorithm):
         if self.policy.encoder.optimizer is not None:
             state_dicts.append("encoder.optimizer")
         return state_dicts, []
+
+
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+"""The ``torch.compile`` modes that ``compile_update`` takes."""
+
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
+"""The modes among them that replay CUDA graphs on a CUDA device."""
+
+
+def check_compile_update(compile_update: bool | str) -> None:
+    """
+    :param compile_update: the ``compile_update`` argument of ``DrQv2``
+    :raises ValueError: unless it is a bool or one of :data:`COMPILE_MODES`
+    """
+    if isinstance(compile_update, bool) or compile_update in COMPILE_MODES:
+        return
+    raise ValueError(f"compile_update must be True, False or a torch.compile mode {COMPILE_MODES}, got {compile_update!r}.")
+
+
+def compile_mode(compile_update: bool | str, device: th.device) -> str:
+    """
+    :param compile_update: ``True`` or a mode (see ``DrQv2``)
+    :param device: the model's device
+    :return: the ``torch.compile`` mode: the given one, or for ``True`` ``"reduce-overhead"`` (CUDA graphs) on CUDA
+        and ``"default"`` elsewhere
+    """
+    if isinstance(compile_update, str):
+        return compile_update
+    return "reduce-overhead" if device.type == "cuda" else "default"
+
+
+@contextlib.contextmanager
+def _frozen(module: th.nn.Module) -> Iterator[None]:
+    """Parameters of ``module`` with ``requires_grad=False`` inside the block (the ones that required it before, after)."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
 
 
 def physical_memory_bytes() -> int:
@@ -680,10 +1024,8 @@ def _read_env_config(env: VecEnv) -> dict[str, Any] | None:
     """The ``make_dmc_env`` settings of the (first) environment, or ``None`` for other environments."""
     config = {}
     for key in ENV_CONFIG_KEYS:
-        try:
-            config[key] = env.get_attr(key, indices=[0])[0]
-        except AttributeError:
-            config[key] = None
+        # has_attr first: a SubprocVecEnv's worker dies on get_attr of a missing attribute.
+        config[key] = env.get_attr(key, indices=[0])[0] if env.has_attr(key) else None
     if config["task_id"] is None and config["action_repeat"] is None:
         return None
     return config

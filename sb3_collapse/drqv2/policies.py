@@ -174,15 +174,44 @@ def sample_action(mean: th.Tensor, std: float, clip: float | None = None) -> th.
     Sample of DrQ-v2's ``TruncatedNormal(mean, std)``: ``mean + eps`` with ``eps ~ N(0, std)``, ``eps``
     clipped to ``[-clip, clip]`` when ``clip`` is given, the action clamped to ``[-1 + 1e-6, 1 - 1e-6]``
     with a straight-through gradient (the gradient reaches ``mean`` even where the clamp is active).
+    Equal to ``noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device))``.
 
     :param mean: mean action, in [-1, 1]
     :param std: standard deviation of the noise
     :param clip: noise clip, ``None`` for none
     :return: the sampled action
     """
-    eps = th.randn_like(mean) * std
+    return noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device))
+
+
+def exploration_noise(
+    shape: tuple[int, ...] | th.Size, std: float, clip: float | None = None, device: th.device | str | None = None
+) -> th.Tensor:
+    """
+    The noise ``eps`` of :func:`sample_action`, drawn from torch's global generator: ``N(0, std)``, clipped to
+    ``[-clip, clip]`` when ``clip`` is given.
+
+    :param shape: shape of the actions
+    :param std: standard deviation
+    :param clip: noise clip, ``None`` for none
+    :param device: where the noise goes
+    :return: float32 noise of that shape
+    """
+    eps = th.randn(shape, device=device) * std
     if clip is not None:
         eps = eps.clamp(-clip, clip)
+    return eps
+
+
+def noisy_action(mean: th.Tensor, eps: th.Tensor) -> th.Tensor:
+    """
+    ``mean + eps`` clamped to ``[-1 + 1e-6, 1 - 1e-6]`` with a straight-through gradient (the gradient reaches
+    ``mean`` even where the clamp is active), as DrQ-v2's ``TruncatedNormal.sample``.
+
+    :param mean: mean action, in [-1, 1]
+    :param eps: noise, e.g. from :func:`exploration_noise`
+    :return: the action
+    """
     action = mean + eps
     clamped = action.clamp(-1.0 + ACTION_EPS, 1.0 - ACTION_EPS)
     return action - action.detach() + clamped.detach()

@@ -14,7 +14,8 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
-from sb3_collapse.drqv2.policies import LAYER_NAMES
+from sb3_collapse.drqv2.augmentation import draw_shifts
+from sb3_collapse.drqv2.policies import LAYER_NAMES, exploration_noise
 from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 
@@ -61,19 +62,24 @@ def test_defaults_are_drqv2s():
     assert model.policy.feature_dim == 50 and model.policy.hidden_dim == 1024
 
 
+def _noise(model, batch_size, std=0.5):
+    return exploration_noise((batch_size, model.action_space.shape[0]), std, model.stddev_clip)
+
+
 def test_critic_step_changes_encoder_actor_step_does_not():
     model = _filled(small_pixel_model())
     data = model.replay_buffer.sample(8)
-    features = model.encoder(data.observations)
-    with th.no_grad():
-        next_features = model.encoder(data.next_observations)
+    shifts, next_shifts = draw_shifts(8, 4), draw_shifts(8, 4)
     encoder, actor, critic = _params(model.encoder), _params(model.actor), _params(model.critic)
-    model._update_critic(features, data.actions, data.rewards, data.dones, data.discounts, next_features, std=0.5)
+    critic_loss, features, *_ = model._critic_loss(data.observations, data.next_observations, data.actions,
+                                                   data.rewards, data.dones, data.discounts, shifts, next_shifts,
+                                                   _noise(model, 8))
+    model._update_critic(critic_loss)
     assert _changed(encoder, model.encoder) and _changed(critic, model.critic)
     assert not _changed(actor, model.actor)
 
     encoder, actor, critic = _params(model.encoder), _params(model.actor), _params(model.critic)
-    model._update_actor(model.encoder(data.observations).detach(), std=0.5)
+    model._update_actor(model._actor_loss(model.encoder(data.observations).detach(), _noise(model, 8)))
     assert _changed(actor, model.actor)
     assert not _changed(encoder, model.encoder)
     assert not _changed(critic, model.critic)
@@ -84,7 +90,7 @@ def test_actor_loss_never_reaches_encoder():
     data = model.replay_buffer.sample(8)
     for p in [*model.encoder.parameters(), *model.critic.parameters()]:
         p.grad = None
-    model._update_actor(model.encoder(data.observations).detach(), std=0.5)
+    model._update_actor(model._actor_loss(model.encoder(data.observations).detach(), _noise(model, 8)))
     assert all(p.grad is None for p in model.encoder.parameters())
     assert all(p.grad is None for p in model.critic.parameters())
 
@@ -299,14 +305,17 @@ def test_learn_with_subprocess_pixel_envs():
         env.close()
 
 
-@pytest.mark.parametrize("channels_last", [False, True])
-def test_update_equals_reference_update(channels_last):
-    """Same weights, batch and random draws: our update gives the reference implementation's parameters."""
+@pytest.mark.parametrize(("channels_last", "compile_update"), [(False, False), (True, False), (True, True)])
+def test_update_equals_reference_update(channels_last, compile_update):
+    """
+    Same weights, batch and random draws: our update gives the reference implementation's parameters, with
+    ``torch.compile`` (``compile_update=True``, ~1 minute of compilation on 2 CPU cores) or without.
+    """
     kwargs = dict(buffer_size=200, learning_starts=10, batch_size=16, seed=3, stddev_schedule=0.4)
     oracle = DrQv2("CnnPolicy", pixel_env(), **kwargs, policy_kwargs=dict(
         hidden_dim=32, encoder_kwargs=dict(channels_last=False), optimizer_kwargs=dict(fused=False)))
     oracle.learn(40)  # fills the buffer and moves the weights and Adam state away from their initial values
-    ours = DrQv2("CnnPolicy", pixel_env(), **kwargs, policy_kwargs=dict(
+    ours = DrQv2("CnnPolicy", pixel_env(), **kwargs, compile_update=compile_update, policy_kwargs=dict(
         hidden_dim=32, encoder_kwargs=dict(channels_last=channels_last)))
     ours.policy.load_state_dict(oracle.policy.state_dict())
     for name in ("encoder", "actor", "critic"):

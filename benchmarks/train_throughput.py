@@ -1,0 +1,192 @@
+"""End-to-end training frames/s of ``python -m sb3_collapse.train``, split into environment, update and overhead time.
+
+Each configuration (number of environments x compiled update or not x environment steps overlapped with the updates
+or not) is one run of the train CLI, in its own process (``sb3_collapse.train.main``), at the paper's walker-walk
+configuration by default: 84x84 pixels, 3 stacked frames, action repeat 2, batch 512, 1-step returns, the 1024-unit
+networks, DrQ-v2's one update per 2 transitions; no evaluation, no collapse checks, no reset rule. The run starts with
+``--seed-frames`` frames of random actions (the warm-up: rendering only), then trains for ``--frames`` more frames;
+the CLI's result.json holds the time split of ``DrQv2.learn`` (``sb3_collapse.drqv2.timing``):
+
+- warm-up frames/s: frames of the warm-up / its seconds;
+- learning frames/s: frames after the warm-up / their seconds, with the first round of updates counted at the mean
+  time of the later ones; ``one-time (s)`` is what the first round took beyond that: ``torch.compile``'s
+  compilation with a compiled update, cuDNN's autotuning, first allocations;
+- env / update / overhead: shares of the learning seconds spent waiting for the environments, updating (replay
+  sampling included), and in the rest (action selection, storing transitions, logging);
+- ms/update: mean of the updates after the first round.
+
+The machine's load average is printed before and after: on a shared machine, compare the rows of one run only.
+
+    python benchmarks/train_throughput.py                                       # CPU, a few minutes: small counts
+    python benchmarks/train_throughput.py --envs 1 2 --compile off --batch-size 64
+    python benchmarks/train_throughput.py --device cuda --seed-frames 4000 --frames 20000 --overlap off on
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+FIELDS = (
+    "envs", "compiled", "overlap", "device", "batch_size", "warmup_frames", "warmup_fps", "learning_frames",
+    "learning_fps", "env_share", "update_share", "overhead_share", "ms_per_update", "updates", "first_round_s",
+    "one_time_s",
+    "peak_rss_mb", "peak_gpu_mb", "wall_s",
+)
+"""Columns of the CSV, in order."""
+
+
+def train_arguments(args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, run_dir: Path) -> list[str]:
+    """The train CLI's arguments of one configuration."""
+    argv = [
+        "--env", args.task, "--frames", str(args.seed_frames + args.frames), "--seed-frames", str(args.seed_frames),
+        "--batch-size", str(args.batch_size), "--n-steps", str(args.n_steps), "--hidden-dim", str(args.hidden_dim),
+        "--size", str(args.size), "--n-envs", str(envs), "--eval-every-frames", "0",
+        "--collapse-metrics-every-frames", "0", "--buffer-size", str(args.buffer_size), "--device", args.device,
+        "--run-dir", str(run_dir), "--seed", "0", "--no-progress-bar",
+    ]
+    if compiled:
+        argv.append("--compile-update")
+    if overlap:
+        argv.append("--step-envs-during-updates")
+    if args.torch_threads is not None:
+        argv += ["--torch-threads", str(args.torch_threads)]
+    return argv
+
+
+def child(argv: list[str]) -> None:
+    """Run the train CLI in this process, then print its peak memory (RSS, and the GPU's when on CUDA) as JSON."""
+    import torch as th
+
+    from sb3_collapse.train import main
+
+    main(argv)
+    peak_gpu = th.cuda.max_memory_reserved() / 2**20 if th.cuda.is_available() and th.cuda.is_initialized() else None
+    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print("PEAK " + json.dumps({"peak_rss_mb": round(peak_rss, 1), "peak_gpu_mb": peak_gpu}), flush=True)
+
+
+def measure(args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, folder: Path) -> dict:
+    """One configuration: run it, read its result.json, return its CSV row."""
+    run_dir = folder / f"envs{envs}_compiled{int(compiled)}_overlap{int(overlap)}"
+    command = [sys.executable, __file__, "--child", *train_arguments(args, envs, compiled, overlap, run_dir)]
+    start = time.perf_counter()
+    completed = subprocess.run(command, check=False, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if completed.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} failed:\n{completed.stderr[-3000:]}")
+    peak = json.loads(next(line for line in completed.stdout.splitlines() if line.startswith("PEAK "))[5:])
+    summary = json.loads((run_dir / "result.json").read_text())
+    timings = summary["timings"]
+    config = json.loads((run_dir / "config.json").read_text())
+    repeat = config["action_repeat"]
+    warmup, learning = timings["warmup"], timings["learning"]
+    steady_s = timings["steady_learning_s"]
+    first_round_s = timings["first_round_s"] or 0.0
+    later_updates = learning["updates"] - timings["first_round_updates"]
+    if later_updates > 0:
+        mean_update_s = (learning["update_s"] - first_round_s) / later_updates
+    else:
+        mean_update_s = learning["update_s"] / max(learning["updates"], 1)
+    steady_update_s = learning["update_s"] - first_round_s + mean_update_s * timings["first_round_updates"]
+    return {
+        "envs": envs,
+        "compiled": compiled,
+        "overlap": overlap,
+        "device": args.device,
+        "batch_size": args.batch_size,
+        "warmup_frames": warmup["transitions"] * repeat,
+        "warmup_fps": warmup["transitions"] * repeat / warmup["total_s"] if warmup["total_s"] else float("nan"),
+        "learning_frames": learning["transitions"] * repeat,
+        "learning_fps": learning["transitions"] * repeat / steady_s if steady_s else float("nan"),
+        "env_share": learning["env_s"] / steady_s,
+        "update_share": steady_update_s / steady_s,
+        "overhead_share": 1 - (learning["env_s"] + steady_update_s) / steady_s,
+        "ms_per_update": 1000 * mean_update_s,
+        "one_time_s": first_round_s - mean_update_s * timings["first_round_updates"],
+        "updates": learning["updates"],
+        "first_round_s": first_round_s,
+        **peak,
+        "wall_s": wall,
+    }
+
+
+def print_table(rows: list[dict]) -> None:
+    print(f"{'envs':>4} {'compiled':>8} {'overlap':>7} {'warm-up fps':>11} {'learning fps':>12} {'env':>5} {'update':>6} "
+          f"{'overhead':>8} {'ms/update':>9} {'one-time (s)':>12} {'peak RSS MB':>11} {'wall (s)':>8}")
+    for row in rows:
+        print(f"{row['envs']:>4} {'yes' if row['compiled'] else 'no':>8} {'yes' if row['overlap'] else 'no':>7} "
+              f"{row['warmup_fps']:>11.1f} {row['learning_fps']:>12.2f} {row['env_share']:>5.0%} {row['update_share']:>6.0%} "
+              f"{row['overhead_share']:>8.0%} {row['ms_per_update']:>9.0f} {row['one_time_s']:>12.1f} "
+              f"{row['peak_rss_mb']:>11.0f} {row['wall_s']:>8.0f}")
+
+
+def machine(device: str) -> str:
+    """The device in words, with the CPU count and the load average."""
+    import torch as th
+
+    if device.startswith("cuda"):
+        name = th.cuda.get_device_name(th.device(device))
+    else:
+        name = f"cpu ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, {th.get_num_threads()} torch threads)"
+    return f"{name}; torch {th.__version__}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", type=int, nargs="+", default=[1, 2, 4], help="numbers of training environments")
+    parser.add_argument("--compile", nargs="+", choices=["off", "on"], default=["off", "on"], help="compiled update or not")
+    parser.add_argument("--overlap", nargs="+", choices=["off", "on"], default=["off"],
+                        help="environment steps during the updates (--step-envs-during-updates) or not")
+    parser.add_argument("--task", default="walker-walk", help="dm_control task")
+    parser.add_argument("--seed-frames", type=int, default=200, help="warm-up frames (random actions, no update)")
+    parser.add_argument("--frames", type=int, default=48, help="frames timed after the warm-up (4 frames per update)")
+    parser.add_argument("--batch-size", type=int, default=512, help="minibatch size (the paper's walker-walk: 512)")
+    parser.add_argument("--n-steps", type=int, default=1, help="n-step returns (the paper's walker-walk: 1)")
+    parser.add_argument("--hidden-dim", type=int, default=1024, help="hidden units of the actor and the Q heads")
+    parser.add_argument("--size", type=int, default=84, help="image height and width")
+    parser.add_argument("--buffer-size", type=int, default=100_000, help="replay capacity, in transitions")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
+    parser.add_argument("--torch-threads", type=int, default=None, help="torch CPU threads of the learner; default: torch's")
+    parser.add_argument("--csv", default="train_throughput.csv", help="where to write the table")
+    parser.add_argument("--keep-runs", default=None, help="keep the run folders here (default: a temporary folder)")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args, rest = parser.parse_known_args()
+    if args.child:
+        child(rest)
+        return
+    if rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
+
+    print(f"{args.task}, {args.size}x{args.size}, batch {args.batch_size}, {args.n_steps}-step, hidden {args.hidden_dim}; "
+          f"{args.seed_frames} warm-up frames, then {args.frames} frames timed; {machine(args.device)}")
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as temporary:
+        folder = Path(args.keep_runs or temporary)
+        for envs in args.envs:
+            for compiled in (mode == "on" for mode in args.compile):
+                for overlap in (mode == "on" for mode in args.overlap):
+                    rows.append(measure(args, envs, compiled, overlap, folder))
+                    print(f"  done: {envs} envs, compiled {compiled}, overlap {overlap}: "
+                          f"{rows[-1]['learning_fps']:.2f} frames/s after the warm-up", flush=True)
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print_table(rows)
+    with open(args.csv, "w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {args.csv}")
+
+
+if __name__ == "__main__":
+    main()
