@@ -142,6 +142,9 @@ def machine(device: str) -> str:
 
 
 def main() -> None:
+    if sys.argv[1:2] == ["--child"]:  # one configuration: the rest are the train CLI's arguments
+        child(sys.argv[2:])
+        return
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 2, 4], help="numbers of training environments")
     parser.add_argument("--compile", nargs="+", choices=["off", "on"], default=["off", "on"], help="compiled update or not")
@@ -157,15 +160,9 @@ def main() -> None:
     parser.add_argument("--buffer-size", type=int, default=100_000, help="replay capacity, in transitions")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
     parser.add_argument("--torch-threads", type=int, default=None, help="torch CPU threads of the learner; default: torch's")
-    parser.add_argument("--csv", default="train_throughput.csv", help="where to write the table")
+    parser.add_argument("--csv", default="runs/train_throughput.csv", help="where to write the table")
     parser.add_argument("--keep-runs", default=None, help="keep the run folders here (default: a temporary folder)")
-    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    args, rest = parser.parse_known_args()
-    if args.child:
-        child(rest)
-        return
-    if rest:
-        parser.error(f"unrecognized arguments: {' '.join(rest)}")
+    args = parser.parse_args()
 
     print(f"{args.task}, {args.size}x{args.size}, batch {args.batch_size}, {args.n_steps}-step, hidden {args.hidden_dim}; "
           f"{args.seed_frames} warm-up frames, then {args.frames} frames timed; {machine(args.device)}")
@@ -181,6 +178,7 @@ def main() -> None:
                           f"{rows[-1]['learning_fps']:.2f} frames/s after the warm-up", flush=True)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print_table(rows)
+    Path(args.csv).parent.mkdir(parents=True, exist_ok=True)
     with open(args.csv, "w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=FIELDS)
         writer.writeheader()

@@ -499,14 +499,14 @@ class DrQv2(OffPolicyAlgorithm):
             self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
             self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
             self._on_step()
-            for done in dones:
+            for index, done in enumerate(dones):
                 if done:
                     num_collected_episodes += 1
                     self._episode_num += 1
+                    if action_noise is not None:
+                        action_noise.reset(**(dict(indices=[index]) if env.num_envs > 1 else {}))
                     if log_interval is not None and self._episode_num % log_interval == 0:
                         self.dump_logs()
-        if action_noise is not None:
-            action_noise.reset()  # DrQ-v2 adds no action noise; SB3's noises are reset per rollout here
         callback.on_rollout_end()
         return RolloutReturn(num_collected_steps * env.num_envs, num_collected_episodes, continue_training)
 

@@ -122,7 +122,7 @@ def test_checks_follow_frames_with_several_envs_and_action_repeat():
     model.learn(50, callback=[recorder, every_step])
     assert recorder.checks == [(16, 32), (30, 60), (46, 92)]  # the first frame count >= 30, 60, 90
     # A step that crosses two multiples of 3 (e.g. frames 8 -> 12 cross 9 and 12) gives one check.
-    assert every_step.checks == [(t, 2 * t) for t in range(2, 54, 2)]  # learn() ends at 52 (rollouts of 2 x 2)
+    assert every_step.checks == [(t, 2 * t) for t in range(2, 52, 2)]  # learn() ends at 50 (2 transitions per round)
 
 
 def test_metrics_skip_checks_while_the_buffer_is_small(capsys):
