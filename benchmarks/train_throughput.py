@@ -15,7 +15,8 @@ the CLI's result.json holds the time split of ``DrQv2.learn`` (``sb3_collapse.dr
   sampling included), and in the rest (action selection, storing transitions, logging);
 - ms/update: mean of the updates after the first round.
 
-The machine's load average is printed before and after: on a shared machine, compare the rows of one run only.
+The machine's load average is printed before and after: on a shared machine, compare the rows of one run only, and
+use ``--repeats`` (the configurations take turns; the table gives medians and ranges, the CSV every run).
 
     python benchmarks/train_throughput.py                                       # CPU, a few minutes: small counts
     python benchmarks/train_throughput.py --envs 1 2 --compile off --batch-size 64
@@ -30,6 +31,7 @@ import json
 import os
 import platform
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -37,7 +39,7 @@ import time
 from pathlib import Path
 
 FIELDS = (
-    "envs", "compiled", "overlap", "device", "batch_size", "warmup_frames", "warmup_fps", "learning_frames",
+    "repeat", "envs", "compiled", "overlap", "device", "batch_size", "warmup_frames", "warmup_fps", "learning_frames",
     "learning_fps", "env_share", "update_share", "overhead_share", "ms_per_update", "updates", "first_round_s",
     "one_time_s",
     "peak_rss_mb", "peak_gpu_mb", "wall_s",
@@ -121,13 +123,25 @@ def measure(args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, 
 
 
 def print_table(rows: list[dict]) -> None:
-    print(f"{'envs':>4} {'compiled':>8} {'overlap':>7} {'warm-up fps':>11} {'learning fps':>12} {'env':>5} {'update':>6} "
-          f"{'overhead':>8} {'ms/update':>9} {'one-time (s)':>12} {'peak RSS MB':>11} {'wall (s)':>8}")
-    for row in rows:
-        print(f"{row['envs']:>4} {'yes' if row['compiled'] else 'no':>8} {'yes' if row['overlap'] else 'no':>7} "
-              f"{row['warmup_fps']:>11.1f} {row['learning_fps']:>12.2f} {row['env_share']:>5.0%} {row['update_share']:>6.0%} "
-              f"{row['overhead_share']:>8.0%} {row['ms_per_update']:>9.0f} {row['one_time_s']:>12.1f} "
-              f"{row['peak_rss_mb']:>11.0f} {row['wall_s']:>8.0f}")
+    """One line per configuration: medians over the repeats (frames/s with their range when repeated)."""
+    configurations = sorted({(row["envs"], row["compiled"], row["overlap"]) for row in rows})
+    print(f"{'envs':>4} {'compiled':>8} {'overlap':>7} {'warm-up fps':>17} {'learning fps':>17} {'env':>5} {'update':>6} "
+          f"{'overhead':>8} {'ms/update':>9} {'one-time (s)':>12} {'peak RSS MB':>11}")
+
+    def spread(values: list[float], digits: int) -> str:
+        median = statistics.median(values)
+        return f"{median:.{digits}f}" + (f" ({min(values):.{digits}f}-{max(values):.{digits}f})" if len(values) > 1 else "")
+
+    for envs, compiled, overlap in configurations:
+        group = [row for row in rows if (row["envs"], row["compiled"], row["overlap"]) == (envs, compiled, overlap)]
+
+        def median(key: str, group: list[dict] = group) -> float:
+            return statistics.median(row[key] for row in group)
+
+        print(f"{envs:>4} {'yes' if compiled else 'no':>8} {'yes' if overlap else 'no':>7} "
+              f"{spread([row['warmup_fps'] for row in group], 1):>17} {spread([row['learning_fps'] for row in group], 2):>17} "
+              f"{median('env_share'):>5.0%} {median('update_share'):>6.0%} {median('overhead_share'):>8.0%} "
+              f"{median('ms_per_update'):>9.0f} {median('one_time_s'):>12.1f} {median('peak_rss_mb'):>11.0f}")
 
 
 def machine(device: str) -> str:
@@ -160,7 +174,9 @@ def main() -> None:
     parser.add_argument("--buffer-size", type=int, default=100_000, help="replay capacity, in transitions")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
     parser.add_argument("--torch-threads", type=int, default=None, help="torch CPU threads of the learner; default: torch's")
-    parser.add_argument("--csv", default="runs/train_throughput.csv", help="where to write the table")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="runs of every configuration, taking turns (the table gives medians, and the ranges)")
+    parser.add_argument("--csv", default="runs/train_throughput.csv", help="where to write the table (one row per run)")
     parser.add_argument("--keep-runs", default=None, help="keep the run folders here (default: a temporary folder)")
     args = parser.parse_args()
 
@@ -170,12 +186,13 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as temporary:
         folder = Path(args.keep_runs or temporary)
-        for envs in args.envs:
-            for compiled in (mode == "on" for mode in args.compile):
-                for overlap in (mode == "on" for mode in args.overlap):
-                    rows.append(measure(args, envs, compiled, overlap, folder))
-                    print(f"  done: {envs} envs, compiled {compiled}, overlap {overlap}: "
-                          f"{rows[-1]['learning_fps']:.2f} frames/s after the warm-up", flush=True)
+        for repeat in range(args.repeats):
+            for envs in args.envs:
+                for compiled in (mode == "on" for mode in args.compile):
+                    for overlap in (mode == "on" for mode in args.overlap):
+                        rows.append({"repeat": repeat, **measure(args, envs, compiled, overlap, folder / f"repeat{repeat}")})
+                        print(f"  done: {envs} envs, compiled {compiled}, overlap {overlap}: {rows[-1]['warmup_fps']:.1f} "
+                              f"frames/s in the warm-up, {rows[-1]['learning_fps']:.2f} after it", flush=True)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print_table(rows)
     Path(args.csv).parent.mkdir(parents=True, exist_ok=True)

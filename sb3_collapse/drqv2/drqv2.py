@@ -99,10 +99,14 @@ class DrQv2(OffPolicyAlgorithm):
     one environment) with respect to the sequential loop, which is the order of DrQ-v2's reference loop (act,
     update, then step the environment). See ``docs/throughput.md``.
 
+    :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8) or ``"MlpPolicy"``
+        (state vectors, no encoder and no augmentation), or a ``DrQv2Policy`` subclass
+    :param env: the environment (a ``VecEnv``, a gymnasium env, or a registered id such as
+        ``"sb3_collapse/walker-walk-v0"``)
     :param learning_rate: Adam learning rate of the encoder, actor and critic (or an SB3 schedule of the
         remaining progress)
-    :param buffer_size: replay buffer capacity, in transitions (summed over the environments). With ``CnnPolicy`` on a
-        frame-stacked env (``make_dmc_env``), the default ``FrameStackReplayBuffer`` stores each frame once:
+    :param buffer_size: replay buffer capacity, in transitions (summed over the environments). With ``CnnPolicy``
+        on a frame-stacked env (``make_dmc_env``), the default ``FrameStackReplayBuffer`` stores each frame once:
         about 21.5 KB per 9x84x84 transition, ~21.5 GB for DrQ-v2's 1,000,000 (11.8 GB for the 550,000 agent
         steps of a 1.1M-frame run). SB3's buffers store obs and next_obs: about 127 KB per 9x84x84
         transition, ~127 GB for 1,000,000. A warning says so when the full buffer would not fit in RAM, and
@@ -116,7 +120,8 @@ class DrQv2(OffPolicyAlgorithm):
         number of environments (see **Update ratio** above); or ``(n, "episode")``: ``gradient_steps`` updates
         after every ``n`` episodes (one environment only, SB3's rule)
     :param gradient_steps: updates per ``train_freq`` transitions (``-1``: one per transition)
-    :param n_steps: length of the n-step returns, in agent steps of one environment (SB3's ``NStepReplayBuffer`` when > 1)
+    :param n_steps: length of the n-step returns, in agent steps of one environment (SB3's ``NStepReplayBuffer``
+        when > 1)
     :param stddev_schedule: exploration standard deviation as a function of the transition count
         (``num_timesteps``, summed over the environments, counted from the last :meth:`reset_from_scratch`): a
         float, ``"linear(init,final,duration)"``, ``"step_linear(init,final1,duration1,final2,duration2)"``
