@@ -97,7 +97,11 @@ class DrQv2(OffPolicyAlgorithm):
         otherwise (``NStepReplayBuffer`` when ``n_steps > 1``). Pass ``NStepReplayBuffer`` to store whole
         observations (e.g. stacks that are not shifted frame by frame)
     :param replay_buffer_kwargs: keyword arguments of the replay buffer (``n_steps``, ``gamma`` and
-        ``frame_stack`` of a ``FrameStackReplayBuffer`` default to the algorithm's and the env's)
+        ``frame_stack`` of a ``FrameStackReplayBuffer`` default to the algorithm's and the env's). Its
+        ``sampling`` is ``"sb3"`` by default (SB3's semantics: the episode in progress is sampled too);
+        ``dict(sampling="drqv2")`` samples as DrQ-v2's reference does (finished episodes only, no n-step return
+        started in an episode's last ``n_steps - 1`` steps; updates wait until an episode has finished), as
+        ``python -m sb3_collapse.train``, the sweep and the rl_zoo3 config do by default
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
     :param policy_kwargs: keyword arguments of the policy: ``feature_dim`` (50), ``hidden_dim`` (1024),
@@ -198,6 +202,7 @@ class DrQv2(OffPolicyAlgorithm):
         self._last_grad_norms: th.Tensor | None = None
         self._train_stats: dict[str, th.Tensor] = {}
         self._train_stats_count = 0
+        self._warned_replay_not_ready = False
         self.reset_step = 0
         """Agent step (``num_timesteps``) of the last :meth:`reset_from_scratch`, 0 when none; saved with the model."""
         self.init_from = describe_init_from(transplant_specs)
@@ -395,6 +400,9 @@ class DrQv2(OffPolicyAlgorithm):
             if self.verbose >= 2:
                 print(f"DrQv2: warm-up after the reset at agent step {self.reset_step}, no update")
             return
+        if not getattr(self.replay_buffer, "ready_to_sample", True):
+            self._warn_replay_not_ready()
+            return
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizers)
         std = self.current_stddev
@@ -404,6 +412,19 @@ class DrQv2(OffPolicyAlgorithm):
             discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
             self._update(replay_data, discounts, std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+
+    def _warn_replay_not_ready(self) -> None:
+        """Say once per ``learn()`` why the updates wait (DrQ-v2's sampling: no finished episode stored yet)."""
+        if self._warned_replay_not_ready:
+            return
+        self._warned_replay_not_ready = True
+        warnings.warn(
+            f"DrQv2: no update at agent step {self.num_timesteps}: the replay buffer samples finished episodes only "
+            "(replay_buffer_kwargs sampling='drqv2', DrQ-v2's rule) and no episode has finished yet. Updates start "
+            "when the first episode ends. DrQ-v2 starts learning after 4,000 frames (several episodes); pass a "
+            "larger learning_starts, or sampling='sb3' to sample the episode in progress too.",
+            stacklevel=2,
+        )
 
     def _update(self, data: ReplayBufferSamples, discounts: th.Tensor | float, std: float) -> None:
         """
@@ -540,6 +561,7 @@ class DrQv2(OffPolicyAlgorithm):
         """
         if reset_num_timesteps:
             self.reset_step = 0
+        self._warned_replay_not_ready = False
         return super().learn(
             total_timesteps=total_timesteps,
             callback=self._combined_callbacks(callback),
@@ -656,6 +678,7 @@ class DrQv2(OffPolicyAlgorithm):
             "_last_grad_norms",
             "_train_stats",
             "_train_stats_count",
+            "_warned_replay_not_ready",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
