@@ -38,9 +38,11 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
+from sb3_collapse.drqv2.drqv2 import check_hyperparameters
 from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task
+from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.errors import ParameterError, cli_message
 from sb3_collapse.monitoring import CollapseMetrics, CollapseReset
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
@@ -203,23 +205,21 @@ class TrainConfig:
     def validate(self) -> None:
         """
         Check every setting that can be checked before anything is built or written (preset settings are checked
-        as resolved).
+        as resolved). Each value is checked where it is owned: the env's settings by ``make_dmc_env``'s check, the
+        algorithm's by ``DrQv2``'s, the callbacks' by their constructors; the run's own here.
 
         :raises ParameterError: with a message naming the bad setting
         """
         config = self if self.resolved else self.resolve()
-        parse_task(config.env)
         try:
             StddevSchedule(config.stddev_schedule)  # type: ignore[arg-type]
         except ValueError as error:
             raise ParameterError("stddev_schedule", f"stddev_schedule: {error}") from None
-        positive = ("frames", "action_repeat", "frame_stack", "size", "batch_size", "buffer_size", "n_steps",
-                    "feature_dim", "hidden_dim", "train_freq", "collapse_probe_batch", "reset_window_frames")
-        for name in positive:
-            if getattr(config, name) < 1:
-                raise ParameterError(name, f"{name} must be >= 1, got {getattr(config, name)}.")
+        check_env_arguments(config.action_repeat, config.frame_stack, config.size)  # type: ignore[arg-type]
+        if config.frames < 1:  # type: ignore[operator]
+            raise ParameterError("frames", f"frames must be >= 1, got {config.frames}.")
         for name in ("eval_every_frames", "eval_episodes", "checkpoint_every_frames", "seed_frames",
-                     "collapse_metrics_every_frames", "augmentation_pad"):
+                     "collapse_metrics_every_frames"):
             if getattr(config, name) < 0:
                 raise ParameterError(name, f"{name} must be >= 0, got {getattr(config, name)}.")
         if config.eval_every_frames > 0 and config.eval_episodes < 1:
@@ -231,6 +231,28 @@ class TrainConfig:
                 "replay_sampling",
                 f"replay_sampling must be one of {', '.join(REPLAY_SAMPLINGS)}, got {config.replay_sampling!r}.",
             )
+        check_hyperparameters(
+            learning_rate=config.learning_rate,  # type: ignore[arg-type]
+            buffer_size=config.buffer_size,  # type: ignore[arg-type]
+            batch_size=config.batch_size,  # type: ignore[arg-type]
+            tau=config.tau,  # type: ignore[arg-type]
+            gamma=config.gamma,  # type: ignore[arg-type]
+            train_freq=config.train_freq,  # type: ignore[arg-type]
+            n_steps=config.n_steps,  # type: ignore[arg-type]
+            stddev_clip=config.stddev_clip,  # type: ignore[arg-type]
+            augmentation_pad=config.augmentation_pad,  # type: ignore[arg-type]
+            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim),
+            seed=config.seed,
+            device=config.device,
+        )
+        for name, build in (
+            ("collapse_probe_batch", lambda: CollapseMetrics(batch_size=config.collapse_probe_batch)),
+            ("reset_window_frames", lambda: CollapseReset(config.reset_window_frames)),
+        ):
+            try:
+                build()
+            except ValueError as error:
+                raise ParameterError(name, f"{name}: {error}") from None
         if config.torch_threads is not None and config.torch_threads < 1:
             raise ParameterError("torch_threads", f"torch_threads must be >= 1, got {config.torch_threads}.")
         for group, path in config.init_from.items():

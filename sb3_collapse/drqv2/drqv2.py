@@ -46,6 +46,7 @@ from sb3_collapse.drqv2.transplant import (
     load_sources,
     transplant,
 )
+from sb3_collapse.errors import ParameterError
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
 
@@ -164,12 +165,22 @@ class DrQv2(OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ) -> None:
         transplant_specs = check_init_from(init_from)  # before building anything: unknown keys, missing files
-        if augmentation_pad < 0:
-            raise ValueError(f"augmentation_pad must be >= 0 pixels, got {augmentation_pad}.")
-        if stddev_clip < 0:
-            raise ValueError(f"stddev_clip must be >= 0, got {stddev_clip}.")
-        if n_steps < 1:
-            raise ValueError(f"n_steps must be >= 1, got {n_steps}.")
+        check_hyperparameters(
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            n_steps=n_steps,
+            stddev_clip=stddev_clip,
+            augmentation_pad=augmentation_pad,
+            policy_kwargs=policy_kwargs,
+            seed=seed,
+            device=device,
+        )
         self.stddev_schedule = StddevSchedule(stddev_schedule)
         super().__init__(
             policy,
@@ -686,6 +697,73 @@ class DrQv2(OffPolicyAlgorithm):
         if self.policy.encoder.optimizer is not None:
             state_dicts.append("encoder.optimizer")
         return state_dicts, []
+
+
+def check_hyperparameters(
+    *,
+    learning_rate: float | Schedule = 1e-4,
+    buffer_size: int = 1,
+    learning_starts: int = 0,
+    batch_size: int = 1,
+    tau: float = 0.01,
+    gamma: float = 0.99,
+    train_freq: int | tuple[int, str] = 1,
+    gradient_steps: int = 1,
+    n_steps: int = 1,
+    stddev_clip: float = 0.3,
+    augmentation_pad: int = 0,
+    policy_kwargs: Mapping[str, Any] | None = None,
+    seed: int | None = None,
+    device: th.device | str = "auto",
+) -> None:
+    """
+    Check :class:`DrQv2`'s hyperparameters (the constructor calls it; ``TrainConfig.validate`` too, before a run
+    folder is created), so that a bad value fails before anything is built, with its name.
+
+    :raises ParameterError: naming the first bad parameter, what it must be and what it got
+    """
+
+    def integer(name: str, value: Any, minimum: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+            raise ParameterError(name, f"{name} must be an integer >= {minimum}, got {value!r}.")
+
+    def number(name: str, value: Any, low: float, high: float = np.inf, low_open: bool = False) -> None:
+        valid = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value)
+        if not valid or value < low or (low_open and value == low) or value > high:
+            bounds = f"{'>' if low_open else '>='} {low:g}" + ("" if high == np.inf else f" and <= {high:g}")
+            raise ParameterError(name, f"{name} must be a finite number {bounds}, got {value!r}.")
+
+    if not callable(learning_rate):
+        number("learning_rate", learning_rate, 0.0, low_open=True)
+    integer("buffer_size", buffer_size, 1)
+    integer("learning_starts", learning_starts, 0)
+    integer("batch_size", batch_size, 1)
+    number("tau", tau, 0.0, 1.0)
+    number("gamma", gamma, 0.0, 1.0)
+    integer("train_freq", train_freq[0] if isinstance(train_freq, tuple) else train_freq, 1)
+    if gradient_steps != -1:
+        integer("gradient_steps", gradient_steps, 1)
+    integer("n_steps", n_steps, 1)
+    number("stddev_clip", stddev_clip, 0.0)
+    integer("augmentation_pad", augmentation_pad, 0)
+    for name in ("feature_dim", "hidden_dim"):
+        if name in (policy_kwargs or {}):
+            integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
+    if seed is not None:
+        integer("seed", seed, 0)
+    if device == "auto":
+        return
+    try:
+        parsed = th.device(device)
+    except (RuntimeError, TypeError) as error:
+        message = f"device must be 'auto', 'cpu', 'cuda', 'cuda:N'..., got {device!r} ({error})."
+        raise ParameterError("device", message) from None
+    if parsed.type == "cuda" and not th.cuda.is_available():
+        raise ParameterError(
+            "device",
+            f"device={str(device)!r} asks for a CUDA GPU, but torch sees none (torch.cuda.is_available() is False): "
+            "use device='cpu' or 'auto', or a CUDA build of torch on a machine with a GPU.",
+        )
 
 
 def physical_memory_bytes() -> int:
