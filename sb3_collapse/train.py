@@ -474,7 +474,7 @@ def train(config: TrainConfig) -> TrainResult:
 
     :param config: the run's settings
     :return: where things were written, and the evaluations
-    :raises ParameterError: for a bad setting, before anything is written
+    :raises InputError: for bad input (a ``ParameterError`` for a bad setting), before anything is written
     """
     start_time = time.time()
     config = config.resolve()
