@@ -3,9 +3,10 @@
 Each configuration (number of environments x compiled update or not x environment steps overlapped with the updates
 or not) is one run of the train CLI, in its own process (``sb3_collapse.train.main``), at the paper's walker-walk
 configuration by default: 84x84 pixels, 3 stacked frames, action repeat 2, batch 512, 1-step returns, the 1024-unit
-networks, DrQ-v2's one update per 2 transitions; no evaluation, no collapse checks, no reset rule. The run starts with
-``--seed-frames`` frames of random actions (the warm-up: rendering only), then trains for ``--frames`` more frames;
-the CLI's result.json holds the time split of ``DrQv2.learn`` (``sb3_collapse.drqv2.timing``):
+networks, DrQ-v2's one update per 2 transitions; SB3's replay sampling (DrQ-v2's waits for a finished episode, which
+short runs do not reach; the cost of an update is the same); no evaluation, no collapse checks, no reset rule. The
+run starts with ``--seed-frames`` frames of random actions (the warm-up: rendering only), then trains for
+``--frames`` more frames; the CLI's result.json holds the time split of ``DrQv2.learn`` (``sb3_collapse.drqv2.timing``):
 
 - warm-up frames/s: frames of the warm-up / its seconds;
 - learning frames/s: frames after the warm-up / their seconds, with the first round of updates counted at the mean
@@ -55,6 +56,9 @@ def train_arguments(args: argparse.Namespace, envs: int, compiled: bool, overlap
         "--size", str(args.size), "--n-envs", str(envs), "--eval-every-frames", "0",
         "--collapse-metrics-every-frames", "0", "--buffer-size", str(args.buffer_size), "--device", args.device,
         "--run-dir", str(run_dir), "--seed", "0", "--no-progress-bar",
+        # SB3's sampling: the updates start after the warm-up even before an episode has finished (DrQ-v2's sampling
+        # waits for one, 1,000 frames per env on walker); an update costs the same either way.
+        "--replay-sampling", "sb3",
     ]
     if compiled:
         argv.append("--compile-update")

@@ -5,15 +5,19 @@ action collapse within a window of frames.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
 from pathlib import Path
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_collapse.drqv2.policies import LAYER_NAMES
+from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
-from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler, append_csv_rows, grad_norms_of
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler, grad_norms_of
 from sb3_collapse.monitoring.metrics import action_spread
+from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, PAPER, append_csv_rows
 
 Trigger = str | Callable[[BaseAlgorithm], "float | None"]
 
@@ -22,8 +26,10 @@ class CollapseReset(FrameScheduleCallback):
     """
     Resets the training from scratch while the agent is stuck in action collapse (the paper's rule).
 
+    The defaults are the paper's, :data:`sb3_collapse.protocol.PAPER` (Section 5.2).
+
     Every ``check_every_frames`` frames (agent steps x action repeat) the callback reads a health value, by
-    default the gradient L2 norm of the layer that produces ``layer`` (``mlp1``) at the last update (DrQv2's
+    default the gradient L2 norm of the layer that produces ``layer`` at the last update (DrQv2's
     ``last_grad_norms``: no extra backward pass, one host transfer per check). A value ``> threshold`` is
     healthy. Once ``patience`` consecutive checks are healthy the agent has **escaped** collapse: the frame is
     logged and the rule never fires again in this run. When a window of ``window_frames`` since the start of
@@ -33,6 +39,11 @@ class CollapseReset(FrameScheduleCallback):
     :meth:`sb3_collapse.DrQv2.reset_from_scratch`). ``num_timesteps`` is not reset: the budget of ``learn()``
     is spent by the resets, not extended (the paper's Proposition 1), and the TensorBoard curves continue on
     one axis.
+
+    **At the end of the budget** no reset happens: a window that ends at or after the last frame of the
+    ``learn()`` call (its ``total_timesteps``) does not reset, since nothing would train after it. The model that
+    ``learn()`` returns (and that a run saves and evaluates last) is then the trained one, never a freshly reset
+    one.
 
     A check with no value (no update yet since the start or the reset; for ``"action_std"``, fewer stored
     transitions than ``batch_size``) is not a computation of the metric: it neither extends nor breaks the
@@ -52,10 +63,10 @@ class CollapseReset(FrameScheduleCallback):
     (e.g. one given to ``DrQv2(callback=...)``); a ``learn()`` that restarts from agent step 0 starts it over.
 
     :param window_frames: frames after the start or the last reset within which the agent must escape
-        (200,000 in the paper: the end of DrQ-v2's exploration decay on most tasks)
-    :param check_every_frames: frames between two checks of the metric (10,000)
-    :param threshold: a value above it is healthy (gradient norm 0.001 in the paper)
-    :param patience: consecutive healthy checks that mean an escape (5)
+        (the paper's: the end of DrQ-v2's exploration decay on the easy tasks)
+    :param check_every_frames: frames between two checks of the metric
+    :param threshold: a value above it is healthy (the paper's gradient-norm threshold)
+    :param patience: consecutive healthy checks that mean an escape
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
     :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"`` (the spread of the deterministic
@@ -67,15 +78,15 @@ class CollapseReset(FrameScheduleCallback):
     :param verbose: 0 silent, 1 prints each reset and the escape
     """
 
-    EVENT_FIELDS = ("frame", "step", "event", "resets")
+    EVENT_FIELDS = COLLAPSE_EVENT_FIELDS
 
     def __init__(
         self,
-        window_frames: int = 200_000,
-        check_every_frames: int = 10_000,
-        threshold: float = 1e-3,
-        patience: int = 5,
-        layer: str = "mlp1",
+        window_frames: int = PAPER.window_frames,
+        check_every_frames: int = PAPER.check_every_frames,
+        threshold: float = PAPER.threshold,
+        patience: int = PAPER.patience,
+        layer: str = PAPER.layer,
         max_resets: int | None = None,
         metric: Trigger = "grad_norm",
         batch_size: int = 512,
@@ -91,6 +102,16 @@ class CollapseReset(FrameScheduleCallback):
             raise ValueError(f"max_resets must be >= 0 or None, got {max_resets}.")
         if not (callable(metric) or metric in ("grad_norm", "action_std")):
             raise ValueError(f"metric must be 'grad_norm', 'action_std' or a callable model -> float, got {metric!r}.")
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
+            raise ParameterError("threshold", f"threshold must be a finite number, got {threshold!r}.")
+        if threshold < 0 and metric in ("grad_norm", "action_std"):
+            raise ParameterError(
+                "threshold",
+                f"threshold must be >= 0 for metric={metric!r} (a norm or a spread is never negative, so every check "
+                f"would be healthy), got {threshold}.",
+            )
+        if metric == "grad_norm" and layer not in LAYER_NAMES:
+            raise ParameterError("layer", f"layer must be one of {', '.join(LAYER_NAMES)}, got {layer!r}.")
         self.window_frames = window_frames
         self.threshold = threshold
         self.patience = patience
@@ -161,11 +182,18 @@ class CollapseReset(FrameScheduleCallback):
         super()._on_step()  # runs _on_check at check frames
         frames = self.frames
         if not self.escaped and frames - self.window_start_frame >= self.window_frames:
-            if self.max_resets is None or self.resets < self.max_resets:
+            if frames >= self._budget_end_frame():
+                pass  # the window ends with the budget: nothing trains after it, so no reset (see the class doc)
+            elif self.max_resets is None or self.resets < self.max_resets:
                 self._reset(frames)
             else:
                 self.window_start_frame = frames  # no reset left: the next window only re-arms the test
         return True
+
+    def _budget_end_frame(self) -> float:
+        """The frame at which the current ``learn()`` call ends (its ``total_timesteps``), inf when unknown."""
+        total = getattr(self.model, "_total_timesteps", None)
+        return float("inf") if not total else int(total) * self.action_repeat
 
     def _on_check(self, frames: int) -> None:
         if self.escaped:

@@ -9,8 +9,8 @@ The rl_zoo3 launcher: rl_zoo3's ``train`` and ``enjoy`` scripts with DrQv2 regis
 Every rl_zoo3 flag works as in ``python -m rl_zoo3.train`` / ``enjoy``; counts (``-n``, ``--eval-freq``,
 ``--save-freq``) are in agent steps (frames / action repeat). With ``--algo drqv2`` the launcher also:
 
-- evaluates as DrQ-v2 does unless told otherwise: ``--eval-freq 5000`` (agent steps: 10,000 frames at action
-  repeat 2) and ``--eval-episodes 10``, instead of rl_zoo3's 25,000 and 5;
+- evaluates as DrQ-v2 does unless told otherwise: ``--eval-freq`` at DrQ-v2's period (in agent steps: its
+  ``eval_every_frames`` / action repeat) and ``--eval-episodes`` at its episodes, instead of rl_zoo3's 25,000 and 5;
 - requires ``-conf`` (rl_zoo3 has no built-in DrQv2 file) and refuses ``-optimize`` (rl_zoo3 has no Optuna
   sampler for DrQv2);
 - ``enjoy`` runs with ``--no-render``: the DeepMind Control envs render off-screen only.
@@ -19,11 +19,15 @@ Every rl_zoo3 flag works as in ``python -m rl_zoo3.train`` / ``enjoy``; counts (
 from __future__ import annotations
 
 import argparse
+import difflib
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
+from sb3_collapse.presets import PRESETS
+from sb3_collapse.protocol import PAPER
 from sb3_collapse.zoo.errors import LauncherError, ZooConfigError, ZooNotInstalledError
 from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 
@@ -31,17 +35,22 @@ PROG = "python -m sb3_collapse.zoo"
 COMMANDS = ("train", "enjoy")
 SWITCHES = ("--collapse-metrics", "--reset-rule")
 """The launcher's own options; every other one goes to rl_zoo3."""
-DRQV2_EVAL_FREQ = 5000
-"""DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` 10,000 / action repeat 2."""
-DRQV2_EVAL_EPISODES = 10
+_DRQV2 = PRESETS["walker-walk"]  # the evaluation protocol is the same for every task
+DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat
+"""DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` / action repeat."""
+DRQV2_EVAL_EPISODES = _DRQV2.eval_episodes
 """DrQ-v2's ``num_eval_episodes``."""
 
-COLLAPSE_METRICS_CALLBACK = {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": 10_000}}
-"""``--collapse-metrics``: the collapse metrics of every named layer every 10,000 frames (the paper's period)."""
+COLLAPSE_METRICS_CALLBACK = {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}}
+"""``--collapse-metrics``: the collapse metrics of every named layer at the paper's period."""
 RESET_RULE_CALLBACK = {
-    "sb3_collapse.monitoring.CollapseReset": {"window_frames": 200_000, "check_every_frames": 10_000, "verbose": 1}
+    "sb3_collapse.monitoring.CollapseReset": {
+        "window_frames": PAPER.window_frames,
+        "check_every_frames": PAPER.check_every_frames,
+        "verbose": 1,
+    }
 }
-"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (window 200,000 frames, a check every 10,000)."""
+"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (:data:`sb3_collapse.protocol.PAPER`)."""
 
 USAGE = f"{PROG} {{train,enjoy}} [--collapse-metrics] [--reset-rule] [rl_zoo3 options]"
 DESCRIPTION = (
@@ -51,8 +60,8 @@ DESCRIPTION = (
 )
 EPILOG = (
     f"With --algo drqv2: train needs -conf (e.g. zoo_configs/drqv2.yml), evaluates every {DRQV2_EVAL_FREQ} agent "
-    f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's 10,000 "
-    "frames at action repeat 2), and refuses -optimize; enjoy runs with --no-render (the DeepMind Control envs "
+    f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's "
+    f"{_DRQV2.eval_every_frames:,} frames at action repeat {_DRQV2.action_repeat}), and refuses -optimize; enjoy runs with --no-render (the DeepMind Control envs "
     "render off-screen only)."
 )
 
@@ -66,13 +75,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--collapse-metrics",
         action="store_true",
         help="add sb3_collapse.monitoring.CollapseMetrics to the config's callbacks: the collapse metrics of every "
-        "named layer (collapse/<layer>/..., to TensorBoard with -tb) every 10,000 frames",
+        f"named layer (collapse/<layer>/..., to TensorBoard with -tb) every {PAPER.check_every_frames:,} frames",
     )
     switches.add_argument(
         "--reset-rule",
         action="store_true",
-        help="add sb3_collapse.monitoring.CollapseReset (the paper's reset rule: window 200,000 frames, mlp1 "
-        "gradient-norm threshold 1e-3, patience 5, a check every 10,000 frames) to the config's callbacks",
+        help=f"add sb3_collapse.monitoring.CollapseReset (the paper's reset rule: window {PAPER.window_frames:,} "
+        f"frames, {PAPER.layer} gradient-norm threshold {PAPER.threshold:g}, patience {PAPER.patience}, a check every "
+        f"{PAPER.check_every_frames:,} frames) to the config's callbacks",
     )
     return parser
 
@@ -81,6 +91,7 @@ def _peek_parser() -> argparse.ArgumentParser:
     """The few rl_zoo3 options the launcher reads (they still go to rl_zoo3)."""
     parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     parser.add_argument("--algo", default="ppo")
+    parser.add_argument("--env")
     parser.add_argument("-conf", "--conf-file", dest="conf_file")
     parser.add_argument("-optimize", "--optimize-hyperparameters", dest="optimize", action="store_true")
     parser.add_argument("--eval-freq", dest="eval_freq")
@@ -116,12 +127,47 @@ def train_arguments(zoo_args: list[str]) -> list[str]:
         raise LauncherError("--algo drqv2 needs a config file: pass -conf zoo_configs/drqv2.yml (or your own).")
     if peek.optimize:
         raise LauncherError("-optimize is not available for drqv2: rl_zoo3 has no hyperparameter sampler for it.")
+    check_env_and_config(peek.env, peek.conf_file)
     args = list(zoo_args)
     if peek.eval_freq is None:
         args += ["--eval-freq", str(DRQV2_EVAL_FREQ)]
     if peek.eval_episodes is None:
         args += ["--eval-episodes", str(DRQV2_EVAL_EPISODES)]
     return args
+
+
+def check_env_and_config(env_id: str | None, conf_file: str) -> None:
+    """
+    Check, before rl_zoo3 starts, what it would only report with a traceback: the env id is registered, and the
+    config file is a YAML mapping with an entry for it.
+
+    :param env_id: the ``--env`` of the command line (``None``: rl_zoo3's default, not checked)
+    :param conf_file: the ``-conf`` file
+    :raises LauncherError: saying what is wrong and what to pass
+    """
+    import gymnasium as gym
+    import yaml
+
+    import sb3_collapse.envs  # noqa: F401  registers the sb3_collapse/<domain>-<task>-v0 ids
+
+    if env_id is not None and env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
+        hint = f" Did you mean {', '.join(close)}?" if close else ""
+        raise LauncherError(
+            f"--env {env_id} is not a registered Gymnasium id.{hint} The DeepMind Control ids are "
+            "sb3_collapse/<domain>-<task>-v0, e.g. sb3_collapse/walker-walk-v0."
+        )
+    path = Path(conf_file)
+    if not path.is_file():
+        raise LauncherError(f"-conf {conf_file} is not a file; pass zoo_configs/drqv2.yml or your own YAML file.")
+    try:
+        config = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as error:
+        raise LauncherError(f"-conf {conf_file} is not a YAML file ({str(error).splitlines()[0]}).") from None
+    if not isinstance(config, dict):
+        raise LauncherError(f"-conf {conf_file} must map env ids to hyperparameters (rl_zoo3's format).")
+    if env_id is not None and env_id not in config:
+        raise LauncherError(f"-conf {conf_file} has no entry for {env_id}; add one or choose another --env.")
 
 
 def enjoy_arguments(zoo_args: list[str]) -> list[str]:
