@@ -37,10 +37,13 @@ class StagedOutputs:
             raise ValueError(f"The marker {marker!r} must be one of the outputs {list(outputs)}.")
         self.out = Path(out)
         if self.out.exists() and not self.out.is_dir():
-            raise error(f"--out {self.out} is a file; give a folder.")
+            raise error(f"out {self.out} is a file; give a folder.", parameter="out")
         existing = [name for name in outputs if (self.out / name).exists()]
         if existing and not overwrite:
-            raise error(f"{self.out} already holds outputs ({', '.join(existing)}): pass --overwrite or another --out.")
+            raise error(
+                f"{self.out} already holds outputs ({', '.join(existing)}): pass `overwrite=True` or another `out`.",
+                parameter="out",
+            )
         self.outputs = tuple(outputs)
         self.marker = marker
         self.staging = self.out / f".partial-{os.getpid()}"

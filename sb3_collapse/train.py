@@ -2,11 +2,15 @@
 
     python -m sb3_collapse.train --env walker-walk --frames 100000 --seed 0 --logdir runs/
 
+The defaults are **per task**: every DrQ-v2 hyperparameter left out (budget, batch size, n-step, learning rate,
+exploration schedule...) comes from the task's preset, :func:`sb3_collapse.presets.preset`; a value given
+explicitly overrides it, and the run's settings file records every value and where it came from.
+
 Everything a run writes goes to one folder, ``<logdir>/<task>_s<seed>`` (``_2``, ``_3``... if it exists), or
-exactly ``--run-dir``: ``config.json`` (the settings, written first), TensorBoard events and ``progress.csv`` (the
-SB3 logger), ``eval.csv`` (one row per evaluation), ``collapse_metrics.csv`` (one group of rows per collapse
-check), ``collapse_events.csv`` (resets and the escape, with ``--reset-rule``), ``final_model.zip`` (load it with
-``DrQv2.load``) and ``result.json`` (the outcome, written last: a folder without it is an unfinished run).
+exactly ``--run-dir``, in the run-folder format of :mod:`sb3_collapse.protocol`: the settings (written first),
+TensorBoard events and ``progress.csv`` (the SB3 logger), the evaluations, the collapse checks, the reset rule's
+events, the final model (load it with ``DrQv2.load``) and the result (written last: a folder without it is an
+unfinished run).
 
 ``--init-cnn``, ``--init-mlp`` and ``--init-critic`` start the encoder, the actor or the critic from the weights of a
 saved DrQv2 (the paper's layer transplants, ``DrQv2(init_from=...)``). Sweeps of many such runs on Ray:
@@ -19,12 +23,8 @@ schedule is in agent steps, as in DrQ-v2's configs.
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
-import json
-import os
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,15 +38,46 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
+from sb3_collapse.drqv2.drqv2 import check_hyperparameters
+from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task
+from sb3_collapse.envs.dmc import check_env_arguments
+from sb3_collapse.errors import ParameterError, cli_message
 from sb3_collapse.monitoring import CollapseMetrics, CollapseReset
+from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
+from sb3_collapse.protocol import (
+    CHECKPOINTS_DIR,
+    COLLAPSE_EVENTS_CSV,
+    COLLAPSE_METRICS_CSV,
+    CONFIG_JSON,
+    EVAL_CSV,
+    EVAL_FIELDS,
+    FINAL_MODEL,
+    FINISHED,
+    PAPER,
+    RESULT_JSON,
+    append_csv_rows,
+    write_json_atomically,
+)
+
+PRESET, USER = "preset", "user"
+"""Where a preset setting's value came from, in the run's settings file."""
 
 
 @dataclass
 class TrainConfig:
     """
-    Settings of one training run. Frame counts include the action repeat; ``stddev_schedule`` is in agent steps.
+    Settings of one training run. Frame counts include the action repeat; ``stddev_schedule``, ``n_steps`` and
+    ``train_freq`` are in agent steps, ``buffer_size`` in transitions.
+
+    **Per-task defaults.** Every DrQ-v2 hyperparameter (the fields of :class:`~sb3_collapse.presets.TaskPreset`:
+    ``frames``, ``action_repeat``, ``frame_stack``, ``seed_frames``, ``batch_size``, ``buffer_size``,
+    ``learning_rate``, ``n_steps``, ``feature_dim``, ``hidden_dim``, ``stddev_schedule``, ``stddev_clip``, ``tau``,
+    ``gamma``, ``train_freq``, ``augmentation_pad``, ``eval_every_frames``, ``eval_episodes``, ``replay_sampling``)
+    defaults to ``None``: :meth:`resolve` takes it from ``preset(env)``. A value given explicitly overrides the
+    preset; :attr:`sources` says, for each of them, ``"preset"`` or ``"user"``. The preset's ``buffer_size`` is
+    capped at the run's agent steps (a larger buffer is never filled).
 
     :param env: dm_control task, e.g. ``"walker-walk"``
     :param frames: training budget, in frames
@@ -63,13 +94,20 @@ class TrainConfig:
     :param checkpoint_every_frames: frames between intermediate checkpoints; ``0`` for the final one only
     :param seed_frames: frames of uniformly random actions before the first update
     :param batch_size: minibatch size
-    :param buffer_size: replay capacity in transitions; ``None``: the run's agent steps, at most 1,000,000
+    :param buffer_size: replay capacity, in transitions
     :param learning_rate: Adam learning rate
-    :param n_steps: n-step return length
+    :param n_steps: n-step return length, in agent steps
     :param feature_dim: actor and critic trunk size
     :param hidden_dim: hidden units of the actor and the Q heads
     :param stddev_schedule: exploration std schedule, durations in agent steps
     :param stddev_clip: noise clip in the updates
+    :param tau: soft-update coefficient of the target critic
+    :param gamma: discount factor
+    :param train_freq: agent steps between two updates
+    :param augmentation_pad: random-shift padding, in pixels
+    :param replay_sampling: ``"drqv2"`` (DrQ-v2's: finished episodes only, no n-step return started in an episode's
+        last ``n_steps - 1`` steps) or ``"sb3"`` (SB3's: the episode in progress too, returns truncated at the time
+        limit), see :class:`~sb3_collapse.drqv2.FrameStackReplayBuffer`
     :param collapse_metrics_every_frames: frames between two ``CollapseMetrics`` checks (collapse metrics of every
         named layer to TensorBoard); ``0`` disables them
     :param collapse_probe_batch: observations of the replay buffer in each ``CollapseMetrics`` probe batch
@@ -83,37 +121,42 @@ class TrainConfig:
     :param torch_threads: threads of torch's CPU operations (``torch.set_num_threads``); ``None``: torch's default
     :param progress_bar: show a progress bar
     :param verbose: SB3 verbosity (0: silent, 1: log tables)
-    :param variant: name of the variant in ``config.json`` and ``result.json``; ``None``: ``"drqv2+reset"`` with
-        the reset rule, else ``"drqv2"``
+    :param variant: name of the variant in the settings and the result; ``None``: ``"drqv2+reset"`` with the reset
+        rule, else ``"drqv2"``
     :param transplant: the sources of the initial weights, as the sweep's transplant grid names them
-        (``{"cnn": "blank" | "good" | "bad", "mlp": ...}``), recorded in ``config.json``; ``None``: not a grid cell
+        (``{"cnn": "blank" | "good" | "bad", "mlp": ...}``), recorded in the settings; ``None``: not a grid cell
     """
 
     env: str = "walker-walk"
-    frames: int = 1_100_000
+    frames: int | None = None
     seed: int = 0
     logdir: str = "runs"
     run_name: str | None = None
     run_dir: str | None = None
-    action_repeat: int = 2
-    frame_stack: int = 3
+    action_repeat: int | None = None
+    frame_stack: int | None = None
     size: int = 84
-    eval_every_frames: int = 10_000
-    eval_episodes: int = 10
+    eval_every_frames: int | None = None
+    eval_episodes: int | None = None
     checkpoint_every_frames: int = 0
-    seed_frames: int = 4000
-    batch_size: int = 256
+    seed_frames: int | None = None
+    batch_size: int | None = None
     buffer_size: int | None = None
-    learning_rate: float = 1e-4
-    n_steps: int = 3
-    feature_dim: int = 50
-    hidden_dim: int = 1024
-    stddev_schedule: str = "linear(1.0,0.1,100000)"
-    stddev_clip: float = 0.3
-    collapse_metrics_every_frames: int = 10_000
+    learning_rate: float | None = None
+    n_steps: int | None = None
+    feature_dim: int | None = None
+    hidden_dim: int | None = None
+    stddev_schedule: str | None = None
+    stddev_clip: float | None = None
+    tau: float | None = None
+    gamma: float | None = None
+    train_freq: int | None = None
+    augmentation_pad: int | None = None
+    replay_sampling: str | None = None
+    collapse_metrics_every_frames: int = PAPER.check_every_frames
     collapse_probe_batch: int = 512
     reset_rule: bool = False
-    reset_window_frames: int = 200_000
+    reset_window_frames: int = PAPER.window_frames
     init_cnn: str | None = None
     init_mlp: str | None = None
     init_critic: str | None = None
@@ -123,41 +166,111 @@ class TrainConfig:
     verbose: int = 0
     variant: str | None = None
     transplant: dict[str, str] | None = None
+    sources: dict[str, str] = dataclasses.field(default_factory=dict)
+    """For each preset setting, ``"preset"`` or ``"user"``; filled by :meth:`resolve`."""
+
+    @property
+    def preset(self) -> TaskPreset:
+        """DrQ-v2's preset of :attr:`env`."""
+        return preset(self.env)
+
+    @property
+    def resolved(self) -> bool:
+        """Whether every preset setting has a value (:meth:`resolve` was called)."""
+        return all(getattr(self, name) is not None for name in SETTING_NAMES)
+
+    def resolve(self) -> TrainConfig:
+        """
+        These settings with every preset setting left at ``None`` taken from the task's preset, and
+        :attr:`sources` filled in.
+
+        :return: a new, resolved config (this one is not changed)
+        :raises ParameterError: for an unknown task (``env``)
+        """
+        try:
+            task_preset = self.preset
+        except ValueError as error:
+            raise ParameterError("env", f"env: {error}") from None
+        values: dict[str, Any] = {}
+        sources: dict[str, str] = {}
+        for name in SETTING_NAMES:
+            value = getattr(self, name)
+            sources[name] = self.sources.get(name, USER if value is not None else PRESET)
+            values[name] = getattr(task_preset, name) if value is None else value
+        if sources["buffer_size"] == PRESET:  # a larger buffer is never filled
+            steps = max(1, values["frames"] // max(1, values["action_repeat"]))
+            values["buffer_size"] = min(values["buffer_size"], steps)
+        return dataclasses.replace(self, **values, sources=sources)
 
     def validate(self) -> None:
         """
-        :raises ValueError: with a message naming the bad setting
+        Check every setting that can be checked before anything is built or written (preset settings are checked
+        as resolved). Each value is checked where it is owned: the env's settings by ``make_dmc_env``'s check, the
+        algorithm's by ``DrQv2``'s, the callbacks' by their constructors; the run's own here.
+
+        :raises ParameterError: with a message naming the bad setting
         """
-        parse_task(self.env)
-        StddevSchedule(self.stddev_schedule)
-        positive = ("frames", "action_repeat", "frame_stack", "size", "batch_size", "n_steps", "feature_dim", "hidden_dim",
-                    "collapse_probe_batch", "reset_window_frames")
-        for name in positive:
-            if getattr(self, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}.")
+        config = self if self.resolved else self.resolve()
+        try:
+            StddevSchedule(config.stddev_schedule)  # type: ignore[arg-type]
+        except ValueError as error:
+            raise ParameterError("stddev_schedule", f"stddev_schedule: {error}") from None
+        check_env_arguments(config.action_repeat, config.frame_stack, config.size)  # type: ignore[arg-type]
+        if config.frames < 1:  # type: ignore[operator]
+            raise ParameterError("frames", f"frames must be >= 1, got {config.frames}.")
         for name in ("eval_every_frames", "eval_episodes", "checkpoint_every_frames", "seed_frames",
                      "collapse_metrics_every_frames"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}.")
-        if self.eval_every_frames > 0 and self.eval_episodes < 1:
-            raise ValueError("--eval-episodes must be >= 1 when evaluating (or pass --eval-every-frames 0).")
-        if self.buffer_size is not None and self.buffer_size < 1:
-            raise ValueError(f"--buffer-size must be >= 1 transition, got {self.buffer_size}.")
-        if self.torch_threads is not None and self.torch_threads < 1:
-            raise ValueError(f"--torch-threads must be >= 1, got {self.torch_threads}.")
-        for group, path in self.init_from.items():
+            if getattr(config, name) < 0:
+                raise ParameterError(name, f"{name} must be >= 0, got {getattr(config, name)}.")
+        if config.eval_every_frames > 0 and config.eval_episodes < 1:
+            raise ParameterError(
+                "eval_episodes", "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
+            )
+        if config.replay_sampling not in REPLAY_SAMPLINGS:
+            raise ParameterError(
+                "replay_sampling",
+                f"replay_sampling must be one of {', '.join(REPLAY_SAMPLINGS)}, got {config.replay_sampling!r}.",
+            )
+        check_hyperparameters(
+            learning_rate=config.learning_rate,  # type: ignore[arg-type]
+            buffer_size=config.buffer_size,  # type: ignore[arg-type]
+            batch_size=config.batch_size,  # type: ignore[arg-type]
+            tau=config.tau,  # type: ignore[arg-type]
+            gamma=config.gamma,  # type: ignore[arg-type]
+            train_freq=config.train_freq,  # type: ignore[arg-type]
+            n_steps=config.n_steps,  # type: ignore[arg-type]
+            stddev_clip=config.stddev_clip,  # type: ignore[arg-type]
+            augmentation_pad=config.augmentation_pad,  # type: ignore[arg-type]
+            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim),
+            seed=config.seed,
+            device=config.device,
+        )
+        for name, build in (
+            ("collapse_probe_batch", lambda: CollapseMetrics(batch_size=config.collapse_probe_batch)),
+            ("reset_window_frames", lambda: CollapseReset(config.reset_window_frames)),
+        ):
+            try:
+                build()
+            except ValueError as error:
+                raise ParameterError(name, f"{name}: {error}") from None
+        if config.torch_threads is not None and config.torch_threads < 1:
+            raise ParameterError("torch_threads", f"torch_threads must be >= 1, got {config.torch_threads}.")
+        for group, path in config.init_from.items():
             try:
                 resolve_source_path(group, path)
             except FileNotFoundError as error:
-                raise ValueError(f"--init-{group}: {error}") from None
-        run_dir = None if self.run_dir is None else Path(self.run_dir)
+                raise ParameterError(f"init_{group}", f"init_{group}: {error}") from None
+        run_dir = None if config.run_dir is None else Path(config.run_dir)
         if run_dir is not None and run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
-            raise ValueError(f"--run-dir {run_dir} exists and is not an empty folder: remove it or choose another.")
+            raise ParameterError(
+                "run_dir", f"run_dir {run_dir} exists and is not an empty folder: remove it or choose another."
+            )
 
     @property
     def agent_steps(self) -> int:
-        """Training budget in agent steps."""
-        return max(1, self.frames // self.action_repeat)
+        """Training budget in agent steps (of the resolved settings)."""
+        config = self if self.resolved else self.resolve()
+        return max(1, config.frames // config.action_repeat)  # type: ignore[operator]
 
     @property
     def init_from(self) -> dict[str, str]:
@@ -172,6 +285,19 @@ class TrainConfig:
             return self.variant
         return "drqv2+reset" if self.reset_rule else "drqv2"
 
+    def record(self) -> dict[str, Any]:
+        """
+        The content of the run's settings file: every setting (resolved), ``variant``, ``preset`` (the task's
+        preset: ``task``, ``tier``, ``from_drqv2``) and ``sources`` (preset setting -> ``"preset"`` or ``"user"``).
+        """
+        config = self if self.resolved else self.resolve()
+        task_preset = config.preset
+        return {
+            **dataclasses.asdict(config),
+            "variant": config.variant_name,
+            "preset": {"task": task_preset.task, "tier": task_preset.tier, "from_drqv2": task_preset.from_drqv2},
+        }
+
 
 class PeriodicEvaluation(BaseCallback):
     """
@@ -181,7 +307,7 @@ class PeriodicEvaluation(BaseCallback):
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations
     :param episodes: episodes per evaluation
-    :param csv_path: CSV file with columns ``frame, step, mean_reward, std_reward, episodes, wall_time_s``
+    :param csv_path: CSV file with the columns :data:`~sb3_collapse.protocol.EVAL_FIELDS`
     """
 
     def __init__(self, eval_env: Any, every_frames: int, episodes: int, csv_path: Path) -> None:
@@ -224,12 +350,7 @@ class PeriodicEvaluation(BaseCallback):
             "episodes": len(rewards),
             "wall_time_s": round(time.time() - self.start_time, 1),
         }
-        new_file = not self.csv_path.exists()
-        with self.csv_path.open("a", newline="") as file:
-            writer = csv.DictWriter(file, fieldnames=list(row))
-            if new_file:
-                writer.writeheader()
-            writer.writerow(row)
+        append_csv_rows(self.csv_path, EVAL_FIELDS, [row])
         self.rows.append(row)
         self.logger.record("eval/mean_reward", row["mean_reward"])
         self.logger.record("eval/std_reward", row["std_reward"])
@@ -244,42 +365,13 @@ class TrainResult:
     :param run_dir: folder of the run
     :param model_path: the final checkpoint
     :param evaluations: one dict per evaluation (``frame``, ``step``, ``mean_reward``, ...)
-    :param summary: the content of ``result.json`` (see :func:`run_summary`)
+    :param summary: the content of the result file (see :func:`run_summary`)
     """
 
     run_dir: Path
     model_path: Path
     evaluations: list[dict[str, float]]
     summary: dict[str, Any] = dataclasses.field(default_factory=dict)
-
-
-def write_text_atomically(path: Path, text: str) -> None:
-    """
-    Write ``text`` to a temporary file next to ``path``, then rename it to ``path``: readers see either no file or
-    the complete one.
-
-    :param path: the file
-    :param text: its content
-    """
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w") as file:
-            file.write(text)
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
-
-
-def write_json_atomically(path: Path, content: Any) -> None:
-    """
-    Write ``content`` as indented JSON with :func:`write_text_atomically`.
-
-    :param path: the JSON file
-    :param content: anything ``json.dumps`` accepts
-    """
-    write_text_atomically(path, json.dumps(content, indent=2) + "\n")
 
 
 def run_summary(
@@ -291,7 +383,8 @@ def run_summary(
     wall_time_s: float,
 ) -> dict[str, Any]:
     """
-    The content of ``result.json``: ``status`` (``"finished"``), ``task``, ``variant``, ``seed``, ``frames`` (frames
+    The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`): ``status``
+    (:data:`~sb3_collapse.protocol.FINISHED`), ``task``, ``variant``, ``seed``, ``frames`` (frames
     trained, action repeat included), ``agent_steps``, ``final_eval`` (``frame``, ``mean_reward``, ``std_reward``
     of the last evaluation, or ``None`` without evaluation), ``resets`` (resets of the reset rule), ``reset_frames``
     (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
@@ -300,14 +393,14 @@ def run_summary(
     :param config: the run's settings
     :param task_id: the task, ``<domain>-<task>``
     :param model: the trained model
-    :param evaluations: the rows of ``eval.csv``
+    :param evaluations: the evaluation rows
     :param reset_rule: the run's reset-rule callback, ``None`` without the rule
     :param wall_time_s: seconds the run took
     :return: the summary, JSON-serializable
     """
     last = evaluations[-1] if evaluations else None
     return {
-        "status": "finished",
+        "status": FINISHED,
         "task": task_id,
         "variant": config.variant_name,
         "seed": config.seed,
@@ -335,12 +428,15 @@ def _new_run_dir(logdir: Path, name: str) -> Path:
 
 def train(config: TrainConfig) -> TrainResult:
     """
-    Train DrQ-v2 as ``config`` says, evaluating and logging on the way, and save the final model.
+    Train DrQ-v2 as ``config`` says (preset settings left at ``None`` come from the task's preset), evaluating and
+    logging on the way, and save the final model.
 
     :param config: the run's settings
     :return: where things were written, and the evaluations
+    :raises ParameterError: for a bad setting, before anything is written
     """
     start_time = time.time()
+    config = config.resolve()
     config.validate()
     domain, task = parse_task(config.env)
     task_id = f"{domain}-{task}"
@@ -350,7 +446,7 @@ def train(config: TrainConfig) -> TrainResult:
         run_dir.mkdir(parents=True, exist_ok=True)
     else:
         run_dir = _new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}")
-    write_json_atomically(run_dir / "config.json", {**dataclasses.asdict(config), "variant": config.variant_name})
+    write_json_atomically(run_dir / CONFIG_JSON, config.record())
     if config.torch_threads is not None:
         th.set_num_threads(config.torch_threads)
 
@@ -360,12 +456,17 @@ def train(config: TrainConfig) -> TrainResult:
         "CnnPolicy",
         env,
         learning_rate=config.learning_rate,
-        buffer_size=config.buffer_size or min(1_000_000, steps),
+        buffer_size=config.buffer_size,
         learning_starts=config.seed_frames // config.action_repeat,
         batch_size=config.batch_size,
+        tau=config.tau,
+        gamma=config.gamma,
+        train_freq=config.train_freq,
         n_steps=config.n_steps,
         stddev_schedule=config.stddev_schedule,
         stddev_clip=config.stddev_clip,
+        augmentation_pad=config.augmentation_pad,
+        replay_buffer_kwargs=dict(sampling=config.replay_sampling),
         policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim),
         seed=config.seed,
         device=config.device,
@@ -379,37 +480,43 @@ def train(config: TrainConfig) -> TrainResult:
     evaluation = None
     if config.eval_every_frames > 0:
         eval_env = Monitor(make_dmc_env(task_id, seed=config.seed + 100_000, **env_kwargs))
-        evaluation = PeriodicEvaluation(eval_env, config.eval_every_frames, config.eval_episodes, run_dir / "eval.csv")
+        evaluation = PeriodicEvaluation(eval_env, config.eval_every_frames, config.eval_episodes, run_dir / EVAL_CSV)
         callbacks.append(evaluation)
     if config.checkpoint_every_frames > 0:
         save_freq = max(1, config.checkpoint_every_frames // config.action_repeat)
-        callbacks.append(CheckpointCallback(save_freq, str(run_dir / "checkpoints"), name_prefix="drqv2"))
+        callbacks.append(CheckpointCallback(save_freq, str(run_dir / CHECKPOINTS_DIR), name_prefix="drqv2"))
     if config.collapse_metrics_every_frames > 0:
         metrics = CollapseMetrics(
             config.collapse_metrics_every_frames,
             batch_size=config.collapse_probe_batch,
-            csv_path=run_dir / "collapse_metrics.csv",
+            csv_path=run_dir / COLLAPSE_METRICS_CSV,
         )
         callbacks.append(metrics)
     reset_rule = None
     if config.reset_rule:
-        check_every = min(10_000, config.reset_window_frames)  # the paper's: one check every 10,000 frames
         reset_rule = CollapseReset(
             config.reset_window_frames,
-            check_every_frames=check_every,
-            events_path=run_dir / "collapse_events.csv",
+            check_every_frames=min(PAPER.check_every_frames, config.reset_window_frames),
+            events_path=run_dir / COLLAPSE_EVENTS_CSV,
             verbose=1,
         )
         callbacks.append(reset_rule)
 
+    user = sorted(name for name, source in config.sources.items() if source == USER)
+    task_preset = config.preset
+    origin = f"DrQ-v2's {task_preset.tier} preset" if task_preset.from_drqv2 else (
+        f"the {task_preset.tier} tier (DrQ-v2 published no config for {task_id})"
+    )
     print(
         f"DrQ-v2 on {task_id} from pixels: {config.frames:,} frames = {steps:,} agent steps "
         f"(action repeat {config.action_repeat}), seed {config.seed}, device {model.device}.\n"
+        f"Settings: {origin}" + (f", overridden: {', '.join(user)}" if user else "") + f" (batch {config.batch_size}, "
+        f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {config.replay_sampling} replay sampling).\n"
         f"Writing to {run_dir} (tensorboard --logdir {run_dir if config.run_dir else config.logdir})",
         flush=True,
     )
     model.learn(steps, callback=CallbackList(callbacks), log_interval=1, progress_bar=config.progress_bar)
-    model_path = run_dir / "final_model.zip"
+    model_path = run_dir / FINAL_MODEL
     model.save(model_path)
     if evaluation is not None and evaluation.rows and evaluation.rows[-1]["step"] < model.num_timesteps:
         evaluation.evaluate()  # the budget's last frames were not evaluated yet
@@ -420,9 +527,12 @@ def train(config: TrainConfig) -> TrainResult:
         last = evaluations[-1]
         print(f"Last evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- {last['std_reward']:.1f}")
     summary = run_summary(config, task_id, model, evaluations, reset_rule, time.time() - start_time)
-    write_json_atomically(run_dir / "result.json", summary)  # last: it marks the run as finished
+    write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
     print(f"Saved {model_path}")
     return TrainResult(run_dir=run_dir, model_path=model_path, evaluations=evaluations, summary=summary)
+
+
+PRESET_HELP = "default: the task's DrQ-v2 preset (sb3_collapse.presets.preset(TASK), table in docs/presets.md)"
 
 
 def training_arguments() -> argparse.ArgumentParser:
@@ -430,38 +540,45 @@ def training_arguments() -> argparse.ArgumentParser:
     The training flags shared by ``python -m sb3_collapse.train`` and the sweep (``argparse`` parent, no
     ``--help``): every :class:`TrainConfig` setting that is the same for all the runs of a sweep. The run's task,
     seed, folder, device, reset rule and initial weights are flags of the train CLI only (the sweep sets them
-    per trial).
+    per trial). The flags of preset settings default to ``None``: the task's preset.
     """
     d = TrainConfig()
     p = argparse.ArgumentParser(add_help=False)
-    g = p.add_argument_group("training settings")
-    g.add_argument("--frames", type=int, default=d.frames, help="training budget, in frames (1.1M: DrQ-v2's easy tasks)")
-    g.add_argument("--action-repeat", type=int, default=d.action_repeat, help="frames per agent step")
-    g.add_argument("--frame-stack", type=int, default=d.frame_stack, help="stacked RGB frames per observation")
-    g.add_argument("--size", type=int, default=d.size, help="image height and width, in pixels")
-    g.add_argument("--eval-every-frames", type=int, default=d.eval_every_frames, help="frames between evaluations, also one at frame 0; 0 disables them")
-    g.add_argument("--eval-episodes", type=int, default=d.eval_episodes, help="episodes per evaluation (deterministic policy)")
-    g.add_argument("--checkpoint-every-frames", type=int, default=d.checkpoint_every_frames, help="frames between intermediate checkpoints; 0: final checkpoint only")
-    g.add_argument("--seed-frames", type=int, default=d.seed_frames, help="frames of uniformly random actions before learning starts")
-    g.add_argument("--batch-size", type=int, default=d.batch_size, help="minibatch size of each update")
-    g.add_argument("--buffer-size", type=int, default=d.buffer_size, help="replay capacity, in transitions (agent steps); default: the run's agent steps, at most 1,000,000")
-    g.add_argument("--lr", dest="learning_rate", type=float, default=d.learning_rate, help="Adam learning rate")
-    g.add_argument("--n-steps", type=int, default=d.n_steps, help="n-step return length, in agent steps")
-    g.add_argument("--feature-dim", type=int, default=d.feature_dim, help="actor and critic trunk size")
-    g.add_argument("--hidden-dim", type=int, default=d.hidden_dim, help="hidden units of the actor and Q heads")
-    g.add_argument("--stddev-schedule", default=d.stddev_schedule, help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps")
-    g.add_argument("--stddev-clip", type=float, default=d.stddev_clip, help="clip of the exploration noise in the updates")
-    g.add_argument("--collapse-metrics-every-frames", type=int, default=d.collapse_metrics_every_frames, help="frames between two checks of the collapse metrics (TensorBoard collapse/..., collapse_metrics.csv); 0 disables them")
-    g.add_argument("--collapse-probe-batch", type=int, default=d.collapse_probe_batch, help="replay observations per collapse-metrics check")
-    g.add_argument("--reset-window-frames", type=int, default=d.reset_window_frames, help="the reset rule's window, in frames")
-    g.add_argument("--verbose", type=int, default=d.verbose, help="1: print SB3's log tables")
+    g = p.add_argument_group(f"DrQ-v2 settings, per task ({PRESET_HELP})")
+    g.add_argument("--frames", type=int, help="training budget, in frames (easy tasks 1.1M, medium 3.1M, hard 30.1M)")
+    g.add_argument("--action-repeat", type=int, help="frames per agent step")
+    g.add_argument("--frame-stack", type=int, help="stacked RGB frames per observation")
+    g.add_argument("--seed-frames", type=int, help="frames of uniformly random actions before learning starts")
+    g.add_argument("--batch-size", type=int, help="minibatch size of each update (walker tasks 512, others 256)")
+    g.add_argument("--buffer-size", type=int, help="replay capacity, in transitions (agent steps); the preset's is capped at the run's agent steps")
+    g.add_argument("--lr", dest="learning_rate", type=float, help="Adam learning rate (humanoid 8e-5, others 1e-4)")
+    g.add_argument("--n-steps", type=int, help="n-step return length, in agent steps (walker tasks 1, others 3)")
+    g.add_argument("--feature-dim", type=int, help="actor and critic trunk size (humanoid 100, others 50)")
+    g.add_argument("--hidden-dim", type=int, help="hidden units of the actor and Q heads")
+    g.add_argument("--stddev-schedule", help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps")
+    g.add_argument("--stddev-clip", type=float, help="clip of the exploration noise in the updates")
+    g.add_argument("--tau", type=float, help="soft-update coefficient of the target critic")
+    g.add_argument("--gamma", type=float, help="discount factor")
+    g.add_argument("--train-freq", type=int, help="agent steps between two updates")
+    g.add_argument("--augmentation-pad", type=int, help="random-shift padding, in pixels (0: no augmentation)")
+    g.add_argument("--eval-every-frames", type=int, help="frames between evaluations, also one at frame 0; 0 disables them")
+    g.add_argument("--eval-episodes", type=int, help="episodes per evaluation (deterministic policy)")
+    g.add_argument("--replay-sampling", choices=REPLAY_SAMPLINGS, help="drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); sb3: the episode in progress too, returns truncated at the time limit (SB3's)")
+    g = p.add_argument_group("other training settings")
+    g.add_argument("--size", type=int, default=d.size, help="image height and width, in pixels (default: %(default)s)")
+    g.add_argument("--checkpoint-every-frames", type=int, default=d.checkpoint_every_frames, help="frames between intermediate checkpoints; 0: final checkpoint only (default: %(default)s)")
+    g.add_argument("--collapse-metrics-every-frames", type=int, default=d.collapse_metrics_every_frames, help="frames between two checks of the collapse metrics (TensorBoard collapse/..., collapse metrics CSV); 0 disables them (default: the paper's, %(default)s)")
+    g.add_argument("--collapse-probe-batch", type=int, default=d.collapse_probe_batch, help="replay observations per collapse-metrics check (default: %(default)s)")
+    g.add_argument("--reset-window-frames", type=int, default=d.reset_window_frames, help="the reset rule's window, in frames (default: the paper's, %(default)s)")
+    g.add_argument("--verbose", type=int, default=d.verbose, help="1: print SB3's log tables (default: %(default)s)")
     return p
 
 
 def training_settings(parsed: argparse.Namespace) -> dict[str, Any]:
     """
     :param parsed: arguments parsed by a parser with :func:`training_arguments` as a parent
-    :return: the :class:`TrainConfig` fields of :func:`training_arguments`, by field name
+    :return: the :class:`TrainConfig` fields of :func:`training_arguments`, by field name (``None`` for a preset
+        setting not given)
     """
     names = [action.dest for action in training_arguments()._actions if action.dest != "help"]
     return {name: getattr(parsed, name) for name in names}
@@ -473,23 +590,25 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m sb3_collapse.train",
         description="Train DrQ-v2 from pixels on a DeepMind Control task, with periodic evaluation, "
-        "TensorBoard logs and a final checkpoint. Frames = agent steps x action repeat.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        "TensorBoard logs and a final checkpoint. Frames = agent steps x action repeat. The DrQ-v2 settings "
+        "default to the task's preset (DrQ-v2's published per-task config: sb3_collapse.presets.preset(TASK), "
+        f"docs/presets.md); a flag overrides it, and {CONFIG_JSON} records every value and where it came from.",
         parents=[training_arguments()],
     )
     g = p.add_argument_group("this run")
-    g.add_argument("--env", default=d.env, help="dm_control task: walker-walk, cartpole-swingup, quadruped-run, ...")
-    g.add_argument("--seed", type=int, default=d.seed, help="random seed")
-    g.add_argument("--logdir", default=d.logdir, help="parent folder of the run folder <task>_s<seed>")
+    g.add_argument("--env", default=d.env, help="dm_control task: walker-walk, cartpole-swingup, quadruped-run, ... (default: %(default)s)")
+    g.add_argument("--seed", type=int, default=d.seed, help="random seed (default: %(default)s)")
+    g.add_argument("--logdir", default=d.logdir, help="parent folder of the run folder <task>_s<seed> (default: %(default)s)")
     g.add_argument("--run-name", default=d.run_name, help="run folder name instead of <task>_s<seed>")
     g.add_argument("--run-dir", default=d.run_dir, help="the exact run folder (new or empty), instead of --logdir/--run-name")
     g.add_argument("--reset-rule", action="store_true", help="reset training from scratch when the agent has not escaped action collapse within each window (the paper's rule)")
     g.add_argument("--init-cnn", default=d.init_cnn, help="start the encoder from this DrQv2 checkpoint (zip); default: random")
     g.add_argument("--init-mlp", default=d.init_mlp, help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random")
     g.add_argument("--init-critic", default=d.init_critic, help="start the critic from this DrQv2 checkpoint (zip); default: random")
-    g.add_argument("--device", default=d.device, help="auto, cpu, cuda, cuda:1, ...")
+    g.add_argument("--device", default=d.device, help="auto, cpu, cuda, cuda:1, ... (default: %(default)s)")
     g.add_argument("--torch-threads", type=int, default=d.torch_threads, help="threads of torch's CPU operations; default: torch's")
     g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
+    g.add_argument("--show-settings", action="store_true", help="print the resolved settings (and where each came from) and exit")
     return p
 
 
@@ -499,11 +618,19 @@ def main(argv: list[str] | None = None) -> int:
     :return: exit status
     """
     parser = build_parser()
-    config = TrainConfig(**vars(parser.parse_args(argv)))
+    arguments = vars(parser.parse_args(argv))
+    show = arguments.pop("show_settings")
     try:
+        config = TrainConfig(**arguments).resolve()
         config.validate()
     except ValueError as error:
-        parser.error(str(error))
+        parser.error(cli_message(error, parser))
+    if show:
+        flags = {action.dest: action.option_strings[0] for action in parser._actions if action.option_strings}
+        for name, value in config.record().items():
+            source = config.sources.get(name)
+            print(f"{flags.get(name, name):<32} {value!r}" + (f"  ({source})" if source else ""))
+        return 0
     train(config)
     return 0
 

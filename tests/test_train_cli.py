@@ -14,7 +14,7 @@ from sb3_collapse.train import TrainConfig, main, train
 def test_train_end_to_end(tmp_path):
     config = TrainConfig(
         env="walker-walk", frames=800, action_repeat=8, seed_frames=400, batch_size=8, hidden_dim=64,
-        eval_every_frames=400, eval_episodes=1, logdir=str(tmp_path), progress_bar=False,
+        eval_every_frames=400, eval_episodes=1, logdir=str(tmp_path), progress_bar=False, replay_sampling="sb3",
     )
     result = train(config)
     assert result.run_dir == tmp_path / "walker-walk_s0"
@@ -57,7 +57,7 @@ def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
     config = TrainConfig(
         env="walker-walk", frames=800, action_repeat=8, seed_frames=160, batch_size=8, hidden_dim=32,
         eval_every_frames=0, logdir=str(tmp_path), progress_bar=False, collapse_metrics_every_frames=400,
-        collapse_probe_batch=16, reset_rule=True, reset_window_frames=400,
+        collapse_probe_batch=16, reset_rule=True, reset_window_frames=400, replay_sampling="sb3",
     )
     result = train(config)
     accumulator = EventAccumulator(str(next(result.run_dir.glob("events.out.tfevents.*"))))

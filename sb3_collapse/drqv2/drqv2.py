@@ -46,6 +46,7 @@ from sb3_collapse.drqv2.transplant import (
     load_sources,
     transplant,
 )
+from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.grad_norms import GradNormRecorder
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
@@ -98,7 +99,11 @@ class DrQv2(OffPolicyAlgorithm):
         otherwise (``NStepReplayBuffer`` when ``n_steps > 1``). Pass ``NStepReplayBuffer`` to store whole
         observations (e.g. stacks that are not shifted frame by frame)
     :param replay_buffer_kwargs: keyword arguments of the replay buffer (``n_steps``, ``gamma`` and
-        ``frame_stack`` of a ``FrameStackReplayBuffer`` default to the algorithm's and the env's)
+        ``frame_stack`` of a ``FrameStackReplayBuffer`` default to the algorithm's and the env's). Its
+        ``sampling`` is ``"sb3"`` by default (SB3's semantics: the episode in progress is sampled too);
+        ``dict(sampling="drqv2")`` samples as DrQ-v2's reference does (finished episodes only, no n-step return
+        started in an episode's last ``n_steps - 1`` steps; updates wait until an episode has finished), as
+        ``python -m sb3_collapse.train``, the sweep and the rl_zoo3 config do by default
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
     :param policy_kwargs: keyword arguments of the policy: ``feature_dim`` (50), ``hidden_dim`` (1024),
@@ -161,12 +166,22 @@ class DrQv2(OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ) -> None:
         transplant_specs = check_init_from(init_from)  # before building anything: unknown keys, missing files
-        if augmentation_pad < 0:
-            raise ValueError(f"augmentation_pad must be >= 0 pixels, got {augmentation_pad}.")
-        if stddev_clip < 0:
-            raise ValueError(f"stddev_clip must be >= 0, got {stddev_clip}.")
-        if n_steps < 1:
-            raise ValueError(f"n_steps must be >= 1, got {n_steps}.")
+        check_hyperparameters(
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            n_steps=n_steps,
+            stddev_clip=stddev_clip,
+            augmentation_pad=augmentation_pad,
+            policy_kwargs=policy_kwargs,
+            seed=seed,
+            device=device,
+        )
         self.stddev_schedule = StddevSchedule(stddev_schedule)
         super().__init__(
             policy,
@@ -200,6 +215,7 @@ class DrQv2(OffPolicyAlgorithm):
         """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
         self._train_stats: dict[str, th.Tensor] = {}
         self._train_stats_count = 0
+        self._warned_replay_not_ready = False
         self.reset_step = 0
         """Agent step (``num_timesteps``) of the last :meth:`reset_from_scratch`, 0 when none; saved with the model."""
         self.init_from = describe_init_from(transplant_specs)
@@ -398,6 +414,9 @@ class DrQv2(OffPolicyAlgorithm):
             if self.verbose >= 2:
                 print(f"DrQv2: warm-up after the reset at agent step {self.reset_step}, no update")
             return
+        if not getattr(self.replay_buffer, "ready_to_sample", True):
+            self._warn_replay_not_ready()
+            return
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizers)
         std = self.current_stddev
@@ -407,6 +426,19 @@ class DrQv2(OffPolicyAlgorithm):
             discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
             self._update(replay_data, discounts, std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+
+    def _warn_replay_not_ready(self) -> None:
+        """Say once per ``learn()`` why the updates wait (DrQ-v2's sampling: no finished episode stored yet)."""
+        if self._warned_replay_not_ready:
+            return
+        self._warned_replay_not_ready = True
+        warnings.warn(
+            f"DrQv2: no update at agent step {self.num_timesteps}: the replay buffer samples finished episodes only "
+            "(replay_buffer_kwargs sampling='drqv2', DrQ-v2's rule) and no episode has finished yet. Updates start "
+            "when the first episode ends. DrQ-v2 starts learning after 4,000 frames (several episodes); pass a "
+            "larger learning_starts, or sampling='sb3' to sample the episode in progress too.",
+            stacklevel=2,
+        )
 
     def _update(self, data: ReplayBufferSamples, discounts: th.Tensor | float, std: float) -> None:
         """
@@ -527,6 +559,7 @@ class DrQv2(OffPolicyAlgorithm):
         """
         if reset_num_timesteps:
             self.reset_step = 0
+        self._warned_replay_not_ready = False
         return super().learn(
             total_timesteps=total_timesteps,
             callback=self._combined_callbacks(callback),
@@ -638,6 +671,7 @@ class DrQv2(OffPolicyAlgorithm):
             "grad_norm_recorder",
             "_train_stats",
             "_train_stats_count",
+            "_warned_replay_not_ready",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -645,6 +679,73 @@ class DrQv2(OffPolicyAlgorithm):
         if self.policy.encoder.optimizer is not None:
             state_dicts.append("encoder.optimizer")
         return state_dicts, []
+
+
+def check_hyperparameters(
+    *,
+    learning_rate: float | Schedule = 1e-4,
+    buffer_size: int = 1,
+    learning_starts: int = 0,
+    batch_size: int = 1,
+    tau: float = 0.01,
+    gamma: float = 0.99,
+    train_freq: int | tuple[int, str] = 1,
+    gradient_steps: int = 1,
+    n_steps: int = 1,
+    stddev_clip: float = 0.3,
+    augmentation_pad: int = 0,
+    policy_kwargs: Mapping[str, Any] | None = None,
+    seed: int | None = None,
+    device: th.device | str = "auto",
+) -> None:
+    """
+    Check :class:`DrQv2`'s hyperparameters (the constructor calls it; ``TrainConfig.validate`` too, before a run
+    folder is created), so that a bad value fails before anything is built, with its name.
+
+    :raises ParameterError: naming the first bad parameter, what it must be and what it got
+    """
+
+    def integer(name: str, value: Any, minimum: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+            raise ParameterError(name, f"{name} must be an integer >= {minimum}, got {value!r}.")
+
+    def number(name: str, value: Any, low: float, high: float = np.inf, low_open: bool = False) -> None:
+        valid = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value)
+        if not valid or value < low or (low_open and value == low) or value > high:
+            bounds = f"{'>' if low_open else '>='} {low:g}" + ("" if high == np.inf else f" and <= {high:g}")
+            raise ParameterError(name, f"{name} must be a finite number {bounds}, got {value!r}.")
+
+    if not callable(learning_rate):
+        number("learning_rate", learning_rate, 0.0, low_open=True)
+    integer("buffer_size", buffer_size, 1)
+    integer("learning_starts", learning_starts, 0)
+    integer("batch_size", batch_size, 1)
+    number("tau", tau, 0.0, 1.0)
+    number("gamma", gamma, 0.0, 1.0)
+    integer("train_freq", train_freq[0] if isinstance(train_freq, tuple) else train_freq, 1)
+    if gradient_steps != -1:
+        integer("gradient_steps", gradient_steps, 1)
+    integer("n_steps", n_steps, 1)
+    number("stddev_clip", stddev_clip, 0.0)
+    integer("augmentation_pad", augmentation_pad, 0)
+    for name in ("feature_dim", "hidden_dim"):
+        if name in (policy_kwargs or {}):
+            integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
+    if seed is not None:
+        integer("seed", seed, 0)
+    if device == "auto":
+        return
+    try:
+        parsed = th.device(device)
+    except (RuntimeError, TypeError) as error:
+        message = f"device must be 'auto', 'cpu', 'cuda', 'cuda:N'..., got {device!r} ({error})."
+        raise ParameterError("device", message) from None
+    if parsed.type == "cuda" and not th.cuda.is_available():
+        raise ParameterError(
+            "device",
+            f"device={str(device)!r} asks for a CUDA GPU, but torch sees none (torch.cuda.is_available() is False): "
+            "use device='cpu' or 'auto', or a CUDA build of torch on a machine with a GPU.",
+        )
 
 
 def physical_memory_bytes() -> int:

@@ -4,7 +4,7 @@ SB3's ``ReplayBuffer`` and ``NStepReplayBuffer`` store the whole stacked observa
 (``obs`` and ``next_obs``): 2 x 9x84x84 bytes, 127 KB, for 3 stacked RGB frames. Consecutive stacks of an
 episode share all but one frame, so :class:`FrameStackReplayBuffer` keeps one copy of each frame (21 KB for
 3x84x84) and rebuilds the stacks by index when it samples, returning exactly what ``NStepReplayBuffer``
-returns.
+returns. It samples either as SB3 does or as DrQ-v2's reference does (``sampling``).
 """
 
 from __future__ import annotations
@@ -20,6 +20,11 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_collapse.errors import ParameterError
+
+REPLAY_SAMPLINGS = ("sb3", "drqv2")
+"""The replay sampling rules of :class:`FrameStackReplayBuffer`."""
 
 FALLBACK_ADVICE = (
     "If the observations are not stacked frames, pass replay_buffer_class=NStepReplayBuffer (n-step returns) "
@@ -104,6 +109,23 @@ class FrameStackReplayBuffer(ReplayBuffer):
     time limit (bootstrapped). ``sample`` draws indices as SB3 does, with the same calls to ``np.random``, so
     the same seed gives the same batch while every transition is sampleable (see below).
 
+    **Which transitions are sampled** (``sampling``):
+
+    - ``"sb3"`` (the default, SB3's semantics): every stored transition, the episode in progress included; an
+      n-step return is truncated at the episode's end (and bootstraps after a time limit) and at the newest
+      transition.
+    - ``"drqv2"`` (the semantics of DrQ-v2's reference replay buffer, ``replay_buffer.py`` of
+      facebookresearch/drqv2): only transitions of **finished** episodes (the reference stores an episode when it
+      ends), and never one that starts an n-step return in an episode's last ``n_steps - 1`` transitions (its
+      ``idx`` is drawn in ``[1, len - nstep + 1]``): every sampled return sums exactly ``n_steps`` rewards, and
+      its ``dones`` is 1 only when the episode terminated at its last step. Transitions are drawn uniformly among
+      those (the reference draws an episode, then a step: the same distribution when, as on DeepMind Control,
+      every episode has the same length). Two differences remain: the reference evicts whole episodes when full
+      where this ring overwrites the oldest transitions (the remaining transitions of a partly overwritten
+      episode stay sampleable), and its loader workers see new episodes with a delay (``fetch_every``), which
+      is not reproduced. Until an episode has finished nothing is sampleable: :attr:`ready_to_sample` says so,
+      and ``DrQv2`` skips its updates until then.
+
     **Wrap-around.** Transitions and frames are overwritten oldest first, in separate rings. The frame ring
     holds ``buffer_size // n_envs + frame_stack * (1 + ceil(buffer_size // n_envs / min_episode_length))``
     frames per environment: the frames of every transition in the buffer as long as its episodes are at least
@@ -111,7 +133,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
     episodes overwrite the frames of the oldest transitions before the transitions themselves are
     overwritten: those transitions are never sampled (``sample`` draws again; ``_get_samples`` refuses them),
     so the buffer holds slightly fewer than ``buffer_size`` sampleable transitions, and never a stack mixing
-    frames of two episodes. ``is_sampleable`` says which are.
+    frames of two episodes. ``frames_stored`` says which are.
 
     :param buffer_size: capacity in transitions (all environments together, as in SB3)
     :param observation_space: ``Box`` of shape ``(channels * frame_stack, height, width)``
@@ -126,6 +148,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
     :param min_episode_length: shortest episode, in agent steps, for which all ``buffer_size`` transitions stay
         sampleable; it sizes the frame ring (the default costs 1.2% more frames for ``frame_stack=3``;
         ``make_dmc_env`` episodes are 1000 frames, 500 agent steps at action repeat 2)
+    :param sampling: ``"sb3"`` or ``"drqv2"``, which transitions are sampled (see above)
     """
 
     frames: np.ndarray
@@ -145,7 +168,12 @@ class FrameStackReplayBuffer(ReplayBuffer):
         gamma: float = 0.99,
         frame_stack: int | None = None,
         min_episode_length: int = DEFAULT_MIN_EPISODE_LENGTH,
+        sampling: str = "sb3",
     ) -> None:
+        if sampling not in REPLAY_SAMPLINGS:
+            raise ParameterError(
+                "sampling", f"sampling must be one of {', '.join(map(repr, REPLAY_SAMPLINGS))}, got {sampling!r}."
+            )
         if optimize_memory_usage:
             raise ValueError("FrameStackReplayBuffer stores each frame once already: pass optimize_memory_usage=False.")
         self.frame_stack = _check_layout(observation_space, frame_stack)
@@ -163,6 +191,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.n_steps = n_steps
         self.gamma = gamma
         self.min_episode_length = min_episode_length
+        self.sampling = sampling
 
         channels, height, width = self.obs_shape
         self.frame_shape = (channels // self.frame_stack, height, width)
@@ -175,6 +204,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.rewards = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
         self.dones = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
         self.timeouts = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
+        self.steps_since_done = np.zeros(n_envs, dtype=np.int64)  # transitions of each env's episode in progress
+        self.episodes_done = np.zeros(n_envs, dtype=np.int64)  # episodes ended per env, since the last reset
         self._frame_offsets = np.arange(self.frame_stack)
         _warn_if_larger_than_available_memory(self.nbytes)
 
@@ -195,6 +226,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
         """Empty the buffer: no transition and no frame remain sampleable (the arrays are not zeroed)."""
         super().reset()
         self.frame_heads[:] = 0
+        self.steps_since_done[:] = 0
+        self.episodes_done[:] = 0
 
     def add(
         self,
@@ -240,6 +273,9 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.dones[self.pos] = np.asarray(done)
         if self.handle_timeout_termination:
             self.timeouts[self.pos] = [info.get("TimeLimit.truncated", False) for info in infos]
+        ended = np.asarray(done, dtype=bool).reshape(self.n_envs)
+        self.steps_since_done = np.where(ended, 0, self.steps_since_done + 1)
+        self.episodes_done += ended
         self.pos += 1
         if self.pos == self.buffer_size:
             self.full = True
@@ -253,7 +289,18 @@ class FrameStackReplayBuffer(ReplayBuffer):
         return bool(np.array_equal(last, obs_frames))
 
     # ------------------------------------------------------------------ sampling
-    def is_sampleable(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
+    @property
+    def ready_to_sample(self) -> bool:
+        """
+        Whether :meth:`sample` has transitions to draw from: any stored one (``sampling="sb3"``), or one of a
+        finished episode (``"drqv2"``; with episodes shorter than ``n_steps`` there may still be none, and
+        :meth:`sample` says so).
+        """
+        if self.sampling == "drqv2":
+            return bool(self.episodes_done.any())
+        return self.size() > 0
+
+    def frames_stored(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
         """
         :param batch_inds: positions in the buffer (``0 <= pos < size()``)
         :param env_indices: environment of each position
@@ -262,24 +309,61 @@ class FrameStackReplayBuffer(ReplayBuffer):
         starts = self.frame_starts[batch_inds, env_indices]
         return starts >= self.frame_heads[env_indices] - self.frame_capacity
 
+    def is_sampleable(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
+        """
+        :param batch_inds: positions in the buffer (``0 <= pos < size()``)
+        :param env_indices: environment of each position
+        :return: for each ``(pos, env)``, whether :meth:`sample` may draw it: its frames are stored and, with
+            ``sampling="drqv2"``, its episode has finished and has at least ``n_steps`` transitions from it on
+        """
+        sampleable = self.frames_stored(batch_inds, env_indices)
+        if self.sampling == "drqv2":
+            newest = (self.pos - 1) % self.buffer_size
+            age = (newest - batch_inds) % self.buffer_size  # 0 for the newest transition
+            finished = age >= self.steps_since_done[env_indices]
+            window = (batch_inds[:, None] + np.arange(self.n_steps - 1)) % self.buffer_size  # [batch, n_steps - 1]
+            room = ~(self.dones[window, env_indices[:, None]] != 0).any(axis=1)
+            sampleable &= finished & room
+        return sampleable
+
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
         """
-        Sample transitions uniformly among the sampleable ones, drawing ``(pos, env)`` as SB3 does.
+        Sample transitions uniformly among the sampleable ones (:meth:`is_sampleable`), drawing ``(pos, env)`` as
+        SB3 does and drawing again those that are not.
 
         :param batch_size: number of transitions
         :param env: VecNormalize env to normalize the observations and rewards with, as in SB3
         :return: the n-step samples (see the class docstring)
+        :raises ValueError: when no transition is sampleable (``sampling="drqv2"`` before any episode with at
+            least ``n_steps`` transitions has finished)
         """
         upper_bound = self.buffer_size if self.full else self.pos
+        if upper_bound == 0:
+            raise ValueError("The replay buffer is empty: add transitions before sampling.")
         batch_inds = np.random.randint(0, upper_bound, size=batch_size)
         env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
         redraw = ~self.is_sampleable(batch_inds, env_indices)
-        while redraw.any():  # frames overwritten (episodes shorter than min_episode_length): draw those again
+        rounds = 0
+        while redraw.any():  # not sampleable (overwritten frames, or drqv2's rule): draw those again
+            rounds += 1
+            if rounds % 100 == 0 and not self._any_sampleable(upper_bound):
+                raise ValueError(
+                    f"No transition of the replay buffer can be sampled: with sampling={self.sampling!r} only "
+                    f"finished episodes of at least n_steps={self.n_steps} transitions are. Sample after the first "
+                    "episode ends (DrQ-v2 starts learning after 4,000 frames, several episodes), or use "
+                    "sampling='sb3'."
+                )
             count = int(redraw.sum())
             batch_inds[redraw] = np.random.randint(0, upper_bound, size=count)
             env_indices[redraw] = np.random.randint(0, self.n_envs, size=count)
             redraw[redraw] = ~self.is_sampleable(batch_inds[redraw], env_indices[redraw])
         return self._get_samples(batch_inds, env=env, env_indices=env_indices)
+
+    def _any_sampleable(self, upper_bound: int) -> bool:
+        """Whether any stored ``(pos, env)`` is sampleable (a pass over the whole buffer)."""
+        positions = np.repeat(np.arange(upper_bound), self.n_envs)
+        envs = np.tile(np.arange(self.n_envs), upper_bound)
+        return bool(self.is_sampleable(positions, envs).any())
 
     def _get_samples(  # type: ignore[override]
         self,
@@ -294,14 +378,14 @@ class FrameStackReplayBuffer(ReplayBuffer):
         :param env: VecNormalize env to normalize the observations and rewards with, as in SB3
         :param env_indices: their environments; ``None``: drawn uniformly with ``np.random.randint``, as SB3 does
         :return: observations, actions, next observations, dones, n-step returns and their discounts
-        :raises ValueError: if a transition's frames have been overwritten (see :meth:`is_sampleable`)
+        :raises ValueError: if a transition's frames have been overwritten (see :meth:`frames_stored`)
         """
         if env_indices is None:
             env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
-        if not self.is_sampleable(batch_inds, env_indices).all():
+        if not self.frames_stored(batch_inds, env_indices).all():
             raise ValueError(
                 "Some requested transitions have had their frames overwritten by newer episodes: sample them "
-                "only where is_sampleable(batch_inds, env_indices) is True."
+                "only where frames_stored(batch_inds, env_indices) is True."
             )
         steps = np.arange(self.n_steps)
         window = (batch_inds[:, None] + steps) % self.buffer_size  # [batch, n_steps]

@@ -2,7 +2,7 @@
 
 DrQ-v2 writes its exploration standard deviation as a string evaluated at the current *agent step*
 (``num_timesteps`` in SB3, not frames): ``"linear(1.0,0.1,100000)"`` decays linearly from 1.0 to 0.1
-over the first 100,000 agent steps (200,000 frames with action repeat 2), then stays at 0.1.
+over the first 100,000 agent steps (twice as many frames with action repeat 2), then stays at 0.1.
 """
 
 from __future__ import annotations

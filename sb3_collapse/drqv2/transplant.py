@@ -141,7 +141,7 @@ def resolve_source_path(key: str, path: str | os.PathLike[str]) -> Path:
     if not candidate.is_file():
         raise FileNotFoundError(
             f"init_from[{key!r}]: checkpoint {os.fspath(path)!r} does not exist; give the path of a zip saved by "
-            "DrQv2.save (e.g. a trial's final_model.zip)."
+            "DrQv2.save (e.g. a run's final model)."
         )
     return candidate.resolve()
 

@@ -21,6 +21,7 @@ from gymnasium.utils import EzPickle
 
 from sb3_collapse.envs.registration import DMC_TASKS, DOMAIN_ALIASES
 from sb3_collapse.envs.rendering import ensure_rendering_backend
+from sb3_collapse.errors import ParameterError
 
 OBS_TYPES = ("pixels", "state")
 # Camera used for pixel observations, per domain (DrQ-v2 zooms in on the quadruped); 0 otherwise.
@@ -146,7 +147,7 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
             obs_type=obs_type,
             render_mode=render_mode,
         )
-        _check_arguments(action_repeat, frame_stack, size, obs_type, render_mode)
+        check_env_arguments(action_repeat, frame_stack, size, obs_type, render_mode)
         self.domain, self.task_name = parse_task(task)
         self.task_id = f"{self.domain}-{self.task_name}"
         self.action_repeat = action_repeat
@@ -302,9 +303,12 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         return np.concatenate(list(self.get_state().values()))
 
 
-def _check_arguments(action_repeat: int, frame_stack: int, size: int, obs_type: str, render_mode: str | None) -> None:
+def check_env_arguments(
+    action_repeat: int, frame_stack: int, size: int, obs_type: str = "pixels", render_mode: str | None = None
+) -> None:
     """
-    Raise a ValueError for invalid :class:`DMCEnv` arguments (see its docstring for their meaning).
+    Raise a ``ParameterError`` (a ``ValueError``) for invalid :class:`DMCEnv` arguments (see its docstring for their
+    meaning), before any environment is built.
 
     :param action_repeat: Frames per agent step, at least 1.
     :param frame_stack: Renders per observation, at least 1.
@@ -314,11 +318,11 @@ def _check_arguments(action_repeat: int, frame_stack: int, size: int, obs_type: 
     """
     for name, value in (("action_repeat", action_repeat), ("frame_stack", frame_stack), ("size", size)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
+            raise ParameterError(name, f"{name} must be an integer >= 1, got {value!r}.")
     if obs_type not in OBS_TYPES:
-        raise ValueError(f"obs_type must be one of {OBS_TYPES}, got {obs_type!r}.")
+        raise ParameterError("obs_type", f"obs_type must be one of {OBS_TYPES}, got {obs_type!r}.")
     if render_mode not in (None, "rgb_array"):
-        raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}.")
+        raise ParameterError("render_mode", f"render_mode must be 'rgb_array' or None, got {render_mode!r}.")
 
 
 def make_dmc_env(

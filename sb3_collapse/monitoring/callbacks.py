@@ -8,11 +8,10 @@ read a probe batch of observations from the model's replay buffer. They are SB3 
 
 from __future__ import annotations
 
-import csv
 import os
 import tempfile
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +30,7 @@ from sb3_collapse.monitoring.metrics import (
     layer_metrics,
     saturated_fraction,
 )
+from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, PAPER, append_csv_rows, metric_tag
 
 
 def action_repeat_of(model: BaseAlgorithm) -> int:
@@ -64,29 +64,6 @@ def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
     return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
 
 
-def append_csv_rows(path: Path, fieldnames: Sequence[str], rows: Iterable[dict[str, Any]]) -> None:
-    """
-    Append rows to a CSV file, writing the header first when the file is new or empty.
-
-    :param path: the CSV file (its folder must exist)
-    :param fieldnames: the columns, in order
-    :param rows: one dict per row, keyed by column
-    :raises ValueError: when the file has another header (e.g. written by an older version): nothing is appended
-    """
-    new_file = not path.exists() or path.stat().st_size == 0
-    if not new_file:
-        with path.open(newline="") as file:
-            header = next(csv.reader(file), [])
-        if header != list(fieldnames):
-            raise ValueError(
-                f"{path} has the columns {','.join(header)}, not {','.join(fieldnames)}: it was written by another "
-                "version or another writer. Move it away (or write to another path); nothing was appended to it."
-            )
-    with path.open("a", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=fieldnames)
-        if new_file:
-            writer.writeheader()
-        writer.writerows(rows)
 
 
 class ProbeBatchSampler:
@@ -142,7 +119,7 @@ class ProbeBatchSampler:
         if len(positions) < batch_size:
             return None
         env = getattr(model, "_vec_normalize_env", None)
-        if hasattr(buffer, "is_sampleable"):  # FrameStackReplayBuffer: (position, env) pairs whose frames remain
+        if hasattr(buffer, "frames_stored"):  # FrameStackReplayBuffer: (position, env) pairs whose frames remain
             return self._sample_where_sampleable(buffer, positions, batch_size, env)
         indices = np.sort(self.rng.choice(positions, size=batch_size, replace=False))
         state = np.random.get_state()
@@ -155,9 +132,12 @@ class ProbeBatchSampler:
     def _sample_where_sampleable(
         self, buffer: Any, positions: np.ndarray, batch_size: int, env: Any
     ) -> tuple[Any, np.ndarray] | None:
-        """Draw ``(position, env)`` pairs among those ``buffer.is_sampleable`` accepts; ``None`` if too few."""
+        """
+        Draw ``(position, env)`` pairs among those whose frames ``buffer.frames_stored``; ``None`` if too few. Any
+        stored observation will do for a probe, whatever the buffer's sampling rule for updates.
+        """
         pairs = np.stack(np.meshgrid(positions, np.arange(buffer.n_envs), indexing="ij"), -1).reshape(-1, 2)
-        pairs = pairs[buffer.is_sampleable(pairs[:, 0], pairs[:, 1])]
+        pairs = pairs[buffer.frames_stored(pairs[:, 0], pairs[:, 1])]
         if len(pairs) < batch_size:
             return None
         chosen = pairs[np.sort(self.rng.choice(len(pairs), size=batch_size, replace=False))]
@@ -243,7 +223,7 @@ class CollapseMetrics(FrameScheduleCallback):
     ``frame, step, tag, value`` (frames and agent steps at the check, the TensorBoard tag, the value). The file
     gets its header when the callback is initialized, so it exists (header only) before the first check.
 
-    :param check_every_frames: frames between two checks (10,000 in the paper)
+    :param check_every_frames: frames between two checks (the paper's ``PAPER.check_every_frames``)
     :param batch_size: observations of the probe batch (512)
     :param layers: the named layers to measure, ``None`` for all (``cnn0`` .. ``action``)
     :param tau: threshold of the dormant ratio
@@ -255,11 +235,11 @@ class CollapseMetrics(FrameScheduleCallback):
     :param verbose: 0 silent, 1 prints a line per check
     """
 
-    CSV_FIELDS = ("frame", "step", "tag", "value")
+    CSV_FIELDS = COLLAPSE_METRICS_FIELDS
 
     def __init__(
         self,
-        check_every_frames: int = 10_000,
+        check_every_frames: int = PAPER.check_every_frames,
         batch_size: int = 512,
         layers: Iterable[str] | None = None,
         tau: float = DORMANT_TAU,
@@ -337,7 +317,7 @@ class CollapseMetrics(FrameScheduleCallback):
             append_csv_rows(self.csv_path, self.CSV_FIELDS, rows)
         if self.verbose >= 1:
             summary = ", ".join(
-                f"{k}={v:.4g}" for k, v in values.items() if k.startswith(("collapse/mlp1/", "collapse/action_std"))
+                f"{k}={v:.4g}" for k, v in values.items() if k.startswith((metric_tag(PAPER.layer, ""), "collapse/action_std"))
             )
             print(f"CollapseMetrics at frame {frames}: {summary}")
 

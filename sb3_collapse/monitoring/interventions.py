@@ -53,7 +53,7 @@ class InterventionResult:
     What an intervention did.
 
     :param name: the intervention (``"reset"``, ``"redo"``...)
-    :param detail: one short line for people and for ``collapse_events.csv`` (what was reset or recycled)
+    :param detail: one short line for people and for the rule's events file (what was reset or recycled)
     :param scalars: numbers logged to TensorBoard as ``collapse/intervention/<key>``: ``weights_changed`` (the
         parameter entries that got new values) for every intervention, ``transitions_dropped`` for ``reset``,
         ``units_recycled`` and ``units_total`` for ``redo``

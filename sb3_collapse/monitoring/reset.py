@@ -14,7 +14,7 @@ from typing import Any
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
-from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler, append_csv_rows
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
 from sb3_collapse.monitoring.interventions import (
     InterventionResult,
@@ -23,6 +23,7 @@ from sb3_collapse.monitoring.interventions import (
     forget_reset,
 )
 from sb3_collapse.monitoring.metrics import action_spread
+from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, PAPER, append_csv_rows
 
 Trigger = str | Callable[[BaseAlgorithm], "float | None"]
 
@@ -31,6 +32,8 @@ class CollapseReset(FrameScheduleCallback):
     """
     Resets the training from scratch while the agent is stuck in action collapse (the paper's rule), or applies
     another ``intervention``, on a DrQv2, TD3, DDPG or SAC model.
+
+    The defaults are the paper's, :data:`sb3_collapse.protocol.PAPER` (Section 5.2).
 
     Every ``check_every_frames`` frames (agent steps x action repeat) the callback reads a health value, by
     default the gradient L2 norm of the layer that produces ``layer`` (``mlp1``) at the last update (recorded
@@ -72,10 +75,10 @@ class CollapseReset(FrameScheduleCallback):
     (e.g. one given to ``DrQv2(callback=...)``); a ``learn()`` that restarts from agent step 0 starts it over.
 
     :param window_frames: frames after the start or the last reset within which the agent must escape
-        (200,000 in the paper: the end of DrQ-v2's exploration decay on most tasks)
-    :param check_every_frames: frames between two checks of the metric (10,000)
-    :param threshold: a value above it is healthy (gradient norm 0.001 in the paper)
-    :param patience: consecutive healthy checks that mean an escape (5)
+        (the paper's: the end of DrQ-v2's exploration decay on the easy tasks)
+    :param check_every_frames: frames between two checks of the metric
+    :param threshold: a value above it is healthy (the paper's gradient-norm threshold)
+    :param patience: consecutive healthy checks that mean an escape
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
     :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"`` (the spread of the deterministic
@@ -93,15 +96,15 @@ class CollapseReset(FrameScheduleCallback):
     :param verbose: 0 silent, 1 prints each intervention and the escape
     """
 
-    EVENT_FIELDS = ("frame", "step", "event", "resets", "intervention", "detail")
+    EVENT_FIELDS = COLLAPSE_EVENT_FIELDS
 
     def __init__(
         self,
-        window_frames: int = 200_000,
-        check_every_frames: int = 10_000,
-        threshold: float = 1e-3,
-        patience: int = 5,
-        layer: str = "mlp1",
+        window_frames: int = PAPER.window_frames,
+        check_every_frames: int = PAPER.check_every_frames,
+        threshold: float = PAPER.threshold,
+        patience: int = PAPER.patience,
+        layer: str = PAPER.layer,
         max_resets: int | None = None,
         metric: Trigger = "grad_norm",
         batch_size: int = 512,

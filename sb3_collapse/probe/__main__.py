@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from sb3_collapse.errors import cli_message
 from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
@@ -185,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
                 command=[PROG, *argv],
             )
     except ProbeError as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
     return 0
 

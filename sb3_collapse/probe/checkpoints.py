@@ -133,7 +133,7 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
 def checkpoint_labels(paths: list[str | Path]) -> list[str]:
     """
     Names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as it
-    takes to tell them apart (``run1/final_model`` and ``run2/final_model``).
+    takes to tell them apart (``run1/model`` and ``run2/model``).
 
     :raises ProbeError: when the same file is given twice
     """

@@ -1,5 +1,8 @@
 """The error of the probe's bad inputs."""
 
 
-class ProbeError(Exception):
+from sb3_collapse.errors import InputError
+
+
+class ProbeError(InputError):
     """Bad input to the probe (a file, a model, rollouts or a setting); the message says what to do."""

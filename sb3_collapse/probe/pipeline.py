@@ -120,7 +120,7 @@ def record_to_file(
     """
     out = Path(out)
     if out.exists() and not overwrite:
-        raise ProbeError(f"{out} exists: pass --overwrite or another --out.")
+        raise ProbeError(f"{out} exists: pass `overwrite=True` or another `out`.", parameter="out")
     checkpoint = load_checkpoint(checkpoint_path, device=get_device(device))
     rollouts = record(checkpoint, options, progress)
     path = rollouts.save(out)
@@ -177,7 +177,9 @@ def probe_to_folder(
     with staged_output(out, overwrite=overwrite) as staged:
         if rollouts_path is None:
             if (out / ROLLOUTS_NAME).exists() and not overwrite:
-                raise ProbeError(f"{out / ROLLOUTS_NAME} exists: reuse it with --rollouts, or pass --overwrite.")
+                raise ProbeError(
+                    f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
+                )
             first = load_checkpoint(checkpoint_paths[0], device=device)
             rollouts = record(first, record_options or RecordOptions(), settings.progress)
             rollouts_path = rollouts.save(out / ROLLOUTS_NAME)

@@ -71,7 +71,8 @@ def split_by_episode(
     """
     if len(fractions) != 3 or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
         raise ProbeError(
-            f"--split must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}."
+            f"fractions must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}.",
+            parameter="fractions",
         )
     episodes = np.unique(episode_ids)
     if len(episodes) < 3:
@@ -335,11 +336,11 @@ class ProbeSettings:
     def validate(self) -> None:
         """:raises ProbeError: naming the bad setting"""
         if self.max_tau < 1:
-            raise ProbeError(f"--max-tau must be >= 1, got {self.max_tau}.")
+            raise ProbeError(f"max_tau must be >= 1, got {self.max_tau}.", parameter="max_tau")
         if self.batch_size < 1:
-            raise ProbeError(f"--batch-size must be >= 1, got {self.batch_size}.")
+            raise ProbeError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
         if self.memory_gb <= 0:
-            raise ProbeError(f"--memory-gb must be > 0, got {self.memory_gb}.")
+            raise ProbeError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
 
 
 @dataclass

@@ -172,7 +172,7 @@ def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any
     config = {**defaults, **saved, **given}
     if config["task_id"] is None:
         raise ProbeError(
-            "The checkpoint does not say which environment it was trained on: pass --env, e.g. walker-walk."
+            "The checkpoint does not say which environment it was trained on: pass `env`, e.g. walker-walk."
         )
     if (model_env_config or {}).get("obs_type") not in (None, "pixels"):
         raise ProbeError(
@@ -221,11 +221,11 @@ def record_rollouts(
     :raises ProbeError: when the env's observations do not fit the model
     """
     if episodes < 1:
-        raise ProbeError(f"--episodes must be >= 1, got {episodes}.")
+        raise ProbeError(f"episodes must be >= 1, got {episodes}.", parameter="episodes")
     if max_steps is not None and max_steps < 1:
-        raise ProbeError(f"--max-steps must be >= 1 agent step, got {max_steps}.")
+        raise ProbeError(f"max_steps must be >= 1 agent step, got {max_steps}.", parameter="max_steps")
     if noise_std < 0:
-        raise ProbeError(f"--noise-std must be >= 0, got {noise_std}.")
+        raise ProbeError(f"noise_std must be >= 0, got {noise_std}.", parameter="noise_std")
     try:
         env = make_dmc_env(
             env_config["task_id"], seed=seed, obs_type="pixels", **{k: env_config[k] for k in ENV_SETTINGS[1:]}
@@ -237,7 +237,7 @@ def record_rollouts(
         env.close()
         raise ProbeError(
             f"The env gives observations of shape {env.observation_space.shape} but the model takes {model_shape}: "
-            "pass the --size / --frame-stack the model was trained with."
+            "pass the `size` and `frame_stack` the model was trained with."
         )
     rng = np.random.default_rng(seed)
     observations, actions, rewards, episode_ids, steps = [], [], [], [], []

@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from sb3_collapse.errors import cli_message
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
 from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report
@@ -31,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
             "Figure 5 (mean evaluation return and percentile band across seeds, per task and variant), the table "
             "(final return, seeds stuck in action collapse, resets, std over the last evaluations) and, when "
             "cnn-<src>_mlp-<src> variants exist, the transplant grid of a sweep folder "
-            "<sweep>/<task>/<variant>/seed_<k>/. Only finished trials (result.json) enter the statistics."
+            f"<sweep>/<task>/<variant>/seed_<k>/. Only finished trials ({RESULT_JSON}) enter the statistics."
         ),
     )
     parser.add_argument("sweep", help="the sweep folder (--out of python -m sb3_collapse.sweep)")
@@ -49,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--collapse-tag",
         default=DEFAULT_COLLAPSE_TAG,
-        help="collapse_metrics.csv tag that decides 'stuck in action collapse' (default: %(default)s)",
+        help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse' (default: %(default)s)",
     )
     parser.add_argument(
         "--collapse-threshold",
@@ -92,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     :param argv: the arguments (``sys.argv[1:]`` when ``None``)
     :return: 0 on success, 2 on bad input (after ``error: ...`` on stderr)
     """
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     settings = ReportSettings(
         collapse_tag=args.collapse_tag,
         collapse_threshold=args.collapse_threshold,
@@ -113,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
             progress=not args.no_progress,
         )
     except ReportError as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
     print(report.markdown)
     if report.grid:

@@ -2,8 +2,8 @@
 Read a sweep folder (the trial-folder contract of ``python -m sb3_collapse.sweep``) into one :class:`Trial` per
 ``<sweep>/<task>/<variant>/seed_<k>/`` folder.
 
-A trial is **finished** when its ``result.json`` exists and says ``"status": "finished"``; every other trial folder
-(no ``result.json`` yet, or another status) is **unfinished**: it is counted and reported, never mixed into the
+A trial is **finished** when its result file (``protocol.RESULT_JSON``) exists and says ``"status": "finished"``; every other trial folder
+(no result file (``protocol.RESULT_JSON``) yet, or another status) is **unfinished**: it is counted and reported, never mixed into the
 statistics. Files are read with :mod:`csv` and :mod:`json` only; a malformed file raises :class:`ReportError`
 naming the file.
 """
@@ -13,7 +13,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,16 +21,10 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, PAPER, RESULT_JSON, SEED_FOLDER
 from sb3_collapse.report.errors import ReportError
 
-SEED_FOLDER = re.compile(r"^seed_(\d+)$")
-"""The name of a trial folder: ``seed_<k>`` with ``<k>`` the seed."""
-
-EVAL_CSV = "eval.csv"
-COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
-RESULT_JSON = "result.json"
-CONFIG_JSON = "config.json"
-DEFAULT_COLLAPSE_TAG = "collapse/mlp1/grad_norm"
+DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
 """The collapse metric that decides "stuck in action collapse" (the paper's reset rule reads the same one)."""
 
 
@@ -44,9 +37,9 @@ class Trial:
     :param variant: the variant folder name, e.g. ``"drqv2+reset"``
     :param seed: the seed of the ``seed_<k>`` folder
     :param path: the trial folder
-    :param status: ``"finished"``, ``"running"`` (no ``result.json`` yet) or the ``status`` of ``result.json``
-    :param result: the parsed ``result.json`` (``None`` without one)
-    :param frames: evaluation frames (agent steps x action repeat), increasing, from ``eval.csv``
+    :param status: ``"finished"``, ``"running"`` (no result file yet) or the ``status`` of the result file
+    :param result: the parsed result file (``None`` without one)
+    :param frames: evaluation frames (agent steps x action repeat), increasing, from evaluation file
     :param returns: mean evaluation return at each of ``frames``
     :param collapse_frames: frames of the checks that logged the collapse tag, increasing
     :param collapse_values: the tag's value at each of ``collapse_frames`` (non-finite values dropped)
@@ -67,17 +60,17 @@ class Trial:
 
     @property
     def finished(self) -> bool:
-        """Whether ``result.json`` says the trial finished."""
-        return self.status == "finished"
+        """Whether result file says the trial finished."""
+        return self.status == FINISHED
 
     @property
     def resets(self) -> int:
-        """Resets of the reset rule in this trial (``result.json``'s ``resets``; 0 for an unfinished trial)."""
+        """Resets of the reset rule in this trial (result file's ``resets``; 0 for an unfinished trial)."""
         return int(self.result["resets"]) if self.result is not None else 0
 
     @property
     def escaped(self) -> bool | None:
-        """``result.json``'s ``escaped``: ``None`` when the trial ran without the reset rule."""
+        """result file's ``escaped``: ``None`` when the trial ran without the reset rule."""
         return None if self.result is None else self.result.get("escaped")
 
 
@@ -143,9 +136,9 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
     """
     root = Path(sweep)
     if not root.exists():
-        raise ReportError(f"sweep folder {root} does not exist; give the --out folder of python -m sb3_collapse.sweep.")
+        raise ReportError(f"sweep folder {root} does not exist; give the out folder of a sweep.", parameter="sweep")
     if not root.is_dir():
-        raise ReportError(f"{root} is not a folder; give the --out folder of python -m sb3_collapse.sweep.")
+        raise ReportError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
     found = []
     for task_dir in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         for variant_dir in sorted(p for p in task_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
@@ -155,7 +148,7 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
                     found.append((task_dir.name, variant_dir.name, int(match.group(1)), seed_dir))
     if not found:
         raise ReportError(
-            f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the --out folder of a sweep?"
+            f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?"
         )
     variants = variant_order(item[1] for item in found)
     return sorted(found, key=lambda item: (item[0], variants.index(item[1]), item[2]))
@@ -178,17 +171,17 @@ def read_json(path: Path) -> dict[str, Any]:
 
 def read_result(path: Path) -> dict[str, Any]:
     """
-    Read and check a trial's ``result.json``: ``status`` (str); for a finished trial also ``resets`` (int >= 0)
+    Read and check a trial's result file: ``status`` (str); for a finished trial also ``resets`` (int >= 0)
     and ``escaped`` (bool or null, may be absent).
 
-    :param path: the ``result.json`` file
+    :param path: the result file file
     :return: the parsed object
     :raises ReportError: when the file is malformed
     """
     result = read_json(path)
     if not isinstance(result.get("status"), str):
         raise ReportError(f"{path}: 'status' must be a string such as \"finished\", got {result.get('status')!r}.")
-    if result["status"] == "finished":
+    if result["status"] == FINISHED:
         resets = result.get("resets")
         if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
             raise ReportError(f"{path}: 'resets' must be an integer >= 0, got {resets!r}.")
@@ -215,7 +208,7 @@ def _rows(path: Path, columns: tuple[str, ...]) -> Iterable[tuple[int, dict[str,
 
 
 def _number(path: Path, line: int, row: dict[str, str], column: str, kind: type) -> Any:
-    """``row[column]`` as a float, or as an int (``"10000"`` or ``"10000.0"``) for ``kind=int``."""
+    """``row[column]`` as a float, or as an int (``"1000"`` or ``"1000.0"``) for ``kind=int``."""
     text = row.get(column)
     try:
         value = float(text)  # type: ignore[arg-type]
@@ -231,7 +224,7 @@ def _number(path: Path, line: int, row: dict[str, str], column: str, kind: type)
 
 def read_eval_curve(path: Path, partial: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """
-    Read an ``eval.csv`` (columns ``frame, step, mean_reward, ...``; one row per evaluation).
+    Read an evaluation file (columns ``frame, step, mean_reward, ...``; one row per evaluation).
 
     :param path: the file
     :param partial: the file may still be written: a last row with fewer fields than the header is dropped
@@ -260,10 +253,10 @@ def read_eval_curve(path: Path, partial: bool = False) -> tuple[np.ndarray, np.n
 
 def read_collapse_metric(path: Path, tag: str = DEFAULT_COLLAPSE_TAG) -> tuple[np.ndarray, np.ndarray]:
     """
-    One metric's values from a long-format ``collapse_metrics.csv`` (columns ``frame, step, tag, value``).
+    One metric's values from a long-format collapse metrics file (columns ``frame, step, tag, value``).
 
     :param path: the file
-    :param tag: the TensorBoard tag to read, e.g. ``collapse/mlp1/grad_norm``
+    :param tag: the TensorBoard tag to read, e.g. ``PAPER.collapse_tag``
     :return: ``(frames, values)`` sorted by frame; rows whose value is not finite (nan, inf) are dropped
     :raises ReportError: when the file is malformed or a value is not a number
     """
@@ -287,10 +280,10 @@ def load_trial(
     """
     Read one trial folder.
 
-    A finished trial must have a well-formed ``eval.csv`` with at least one row; its ``collapse_metrics.csv`` is
+    A finished trial must have a well-formed evaluation file with at least one row; its collapse metrics file is
     optional (without it, or without rows of ``collapse_tag``, the trial's collapse state is unknown). An
     unfinished trial's files are read only when ``partial`` is true (to plot partial curves), and a malformed or
-    missing ``eval.csv`` there (a file being written) is noted, not raised.
+    missing evaluation file there (a file being written) is noted, not raised.
 
     :param task: task folder name
     :param variant: variant folder name
@@ -344,7 +337,7 @@ def load_sweep(
     Read every trial folder of a sweep.
 
     :param sweep: the sweep folder (``--out`` of ``python -m sb3_collapse.sweep``)
-    :param collapse_tag: the collapse metric read from ``collapse_metrics.csv``
+    :param collapse_tag: the collapse metric read from collapse metrics file
     :param include_unfinished: also read the (partial) evaluation curves of unfinished trials
     :param tasks: keep only these task folders (``None``: all)
     :param variants: keep only these variant folders (``None``: all)
@@ -354,13 +347,15 @@ def load_sweep(
         malformed
     """
     found = find_trial_folders(sweep)
-    for name, wanted, index in (("--tasks", tasks, 0), ("--variants", variants, 1)):
+    for name, wanted, index in (("tasks", tasks, 0), ("variants", variants, 1)):
         if wanted is not None:
             wanted = list(wanted)
             available = sorted({item[index] for item in found})
             unknown = [w for w in wanted if w not in available]
             if unknown:
-                raise ReportError(f"{name} {' '.join(unknown)} not in {sweep}; available: {', '.join(available)}.")
+                raise ReportError(
+                    f"{name} {' '.join(unknown)} not in {sweep}; available: {', '.join(available)}.", parameter=name
+                )
             found = [item for item in found if item[index] in wanted]
     trials = [
         load_trial(task, variant, seed, path, collapse_tag, partial=include_unfinished)

@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import EngFormatter
 
+from sb3_collapse.protocol import PAPER
 from sb3_collapse.report.loading import Trial
 from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, BandCurve, GridCell
 
@@ -142,7 +143,9 @@ def plot_figure5(
     plt.close(fig)
 
 
-def plot_transplant_grid(grid: Mapping[str, Sequence[GridCell]], path: Path, success_return: float = 900.0) -> None:
+def plot_transplant_grid(
+    grid: Mapping[str, Sequence[GridCell]], path: Path, success_return: float = PAPER.success_return
+) -> None:
     """
     The paper's Figure 3(a) as heatmaps: one per task, CNN source (rows) x MLP source (columns), coloured by the
     fraction of successful seeds, with ``successes/seeds`` written in each cell (``-`` and grey without seeds).

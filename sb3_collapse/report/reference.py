@@ -2,7 +2,7 @@
 The published DrQ-v2 evaluation curves (facebookresearch/drqv2, folder ``curves/``, MIT licence), shipped in
 ``sb3_collapse/report/data/drqv2_curves.csv.gz``: columns ``task, seed, frame, episode_reward``, one row per
 (task, seed, evaluation), 24 DMC tasks, returns rounded to 0.01. ``frame`` counts environment frames (action
-repeat included), the unit of our ``eval.csv``. See ``data/README.md`` for the origin.
+repeat included), the unit of our evaluation files. See ``data/README.md`` for the origin.
 """
 
 from __future__ import annotations

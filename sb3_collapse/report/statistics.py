@@ -5,12 +5,12 @@ layer-transplant grid. Pure functions of numpy arrays and :class:`~sb3_collapse.
 Conventions used throughout:
 
 - **Aligned grid.** The curves of a variant are compared on the evaluation frames that **every** finished seed of
-  the variant has (the intersection of their ``eval.csv`` frames). With one sweep's settings all seeds share one
+  the variant has (the intersection of their evaluation file frames). With one sweep's settings all seeds share one
   grid and nothing is dropped; a seed trained longer (or evaluated on another grid) only contributes the shared
   frames, and the report notes how many frames were dropped.
 - **Final return** of a seed: its evaluation return at the last frame of the aligned grid.
-- **Standard deviations** across seeds are sample standard deviations (``ddof=1``), as in the table of
-  ``../shared/reference/README.md``; undefined (nan) with fewer than 2 seeds.
+- **Standard deviations** across seeds are sample standard deviations (``ddof=1``), as in the table of the
+  published DrQ-v2 curves (``sb3_collapse/report/data/README.md``); undefined (nan) with fewer than 2 seeds.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sb3_collapse.protocol import PAPER
 from sb3_collapse.report.loading import Sweep, Trial
 
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
@@ -34,22 +35,25 @@ class ReportSettings:
     """
     The definitions of the report's numbers.
 
-    :param collapse_tag: the collapse metric whose recent values decide "stuck" (``collapse_metrics.csv`` tag)
+    The defaults are the paper's protocol, :data:`sb3_collapse.protocol.PAPER`.
+
+    :param collapse_tag: the collapse metric whose recent values decide "stuck" (collapse metrics file tag; the
+        reset rule's metric)
     :param collapse_threshold: a seed is stuck when the median of its last ``collapse_checks`` values of
-        ``collapse_tag`` is ``<=`` this (the reset rule's gradient-norm threshold, 1e-3)
-    :param collapse_checks: number of last checks whose median is compared with the threshold (5: the reset
-        rule's patience)
-    :param last_evals: the across-seed std is averaged over this many last frames of the aligned grid (10)
-    :param success_return: a seed whose final return is ``>=`` this succeeds (transplant grid; 900 in the paper)
-    :param percentiles: the band of Figure 5, in percent (5th and 95th)
+        ``collapse_tag`` is ``<=`` this (the reset rule's threshold)
+    :param collapse_checks: number of last checks whose median is compared with the threshold (the reset rule's
+        patience)
+    :param last_evals: the across-seed std is averaged over this many last frames of the aligned grid
+    :param success_return: a seed whose final return is ``>=`` this succeeds (transplant grid)
+    :param percentiles: the band of Figure 5, in percent
     """
 
-    collapse_tag: str = "collapse/mlp1/grad_norm"
-    collapse_threshold: float = 1e-3
-    collapse_checks: int = 5
-    last_evals: int = 10
-    success_return: float = 900.0
-    percentiles: tuple[float, float] = (5.0, 95.0)
+    collapse_tag: str = PAPER.collapse_tag
+    collapse_threshold: float = PAPER.threshold
+    collapse_checks: int = PAPER.patience
+    last_evals: int = PAPER.last_evals
+    success_return: float = PAPER.success_return
+    percentiles: tuple[float, float] = PAPER.percentiles
 
     def validate(self) -> None:
         """:raises ValueError: on a setting out of range (the message names it)"""
@@ -186,12 +190,14 @@ def last_evals_std_mean(returns: np.ndarray, last_evals: int = 10) -> float:
     return float(np.mean(across_seed_std(returns[:, -last_evals:], axis=0)))
 
 
-def stuck_in_collapse(values: np.ndarray, threshold: float = 1e-3, checks: int = 5) -> bool | None:
+def stuck_in_collapse(
+    values: np.ndarray, threshold: float = PAPER.threshold, checks: int = PAPER.patience
+) -> bool | None:
     """
     Whether a seed ends its training stuck in action collapse: the **median of its last** ``checks`` **values**
-    of the collapse metric (``collapse/mlp1/grad_norm`` by default, in frame order; all values when there are
-    fewer) is ``<= threshold``. With the defaults this is the reset rule's own test (gradient norm of mlp1
-    above 0.001 means healthy, 5 checks) applied to the end of the run; the median tolerates one or two
+    of the collapse metric (``PAPER.collapse_tag`` by default, in frame order; all values when there are
+    fewer) is ``<= threshold``. With the defaults this is the reset rule's own test (the paper's threshold and
+    patience, :data:`sb3_collapse.protocol.PAPER`) applied to the end of the run; the median tolerates one or two
     isolated spikes on either side.
 
     :param values: the metric's finite values of one seed, in frame order
@@ -218,9 +224,9 @@ class VariantSummary:
     :param final_std: across-seed std of the final return (``ddof=1``)
     :param stuck: finished seeds stuck in action collapse (:func:`stuck_in_collapse`)
     :param collapse_unknown: finished seeds without any value of the collapse metric
-    :param resets_total: resets summed over finished seeds (``result.json``)
+    :param resets_total: resets summed over finished seeds (result files)
     :param seeds_reset: finished seeds with at least one reset
-    :param escaped: finished seeds whose reset rule saw an escape (``result.json`` ``escaped`` true)
+    :param escaped: finished seeds whose reset rule saw an escape (result file's ``escaped`` true)
     :param reset_rule_seeds: finished seeds that ran the reset rule (``escaped`` not null)
     :param last_evals: frames averaged in ``last_evals_std_mean`` (at most the setting)
     :param last_evals_std_mean: :func:`last_evals_std_mean` of the aligned returns
@@ -331,14 +337,16 @@ class GridCell:
     unfinished: int
 
 
-def transplant_grid(rows: Sequence[VariantSummary], success_return: float = 900.0) -> dict[str, list[GridCell]]:
+def transplant_grid(
+    rows: Sequence[VariantSummary], success_return: float = PAPER.success_return
+) -> dict[str, list[GridCell]]:
     """
     The paper's Figure 3(a): per task that has ``cnn-<src>_mlp-<src>`` variants, the 3 x 3 cells (CNN source x
     MLP source, in :data:`TRANSPLANT_SOURCES` order, row-major) with the number of successful seeds: final
     return (last frame of the cell's aligned grid) ``>= success_return``.
 
     :param rows: the table rows (:func:`summarize`)
-    :param success_return: the success threshold (900)
+    :param success_return: the success threshold (the paper's)
     :return: task -> 9 cells; tasks without transplant variants are absent
     """
     by_task: dict[str, dict[tuple[str, str], VariantSummary]] = {}

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
 from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, GridCell, ReportSettings, VariantSummary
 
 SUMMARY_COLUMNS = (
@@ -115,13 +116,13 @@ def summary_markdown(rows: Sequence[VariantSummary], settings: ReportSettings, n
     lines += [
         "",
         (
-            "Definitions: only finished trials (`result.json` status `finished`) enter the statistics; *unfinished* "
+            f"Definitions: only finished trials (`{RESULT_JSON}` status `{FINISHED}`) enter the statistics; *unfinished* "
             "counts the other trial folders. Returns are compared on the evaluation frames that every finished seed of "
             "a variant has; *final return* is each seed's return at the last of them (*final frame*, environment "
             "frames, action repeat included). Standard deviations are across seeds (ddof=1). A seed is *stuck in "
             f"collapse* when the median of its last {settings.collapse_checks} values of `{settings.collapse_tag}` in "
-            f"`collapse_metrics.csv` is <= {settings.collapse_threshold:g}; *collapse unknown* seeds logged no such "
-            "value. *Resets* sums `result.json`'s `resets`; *seeds reset* counts seeds with at least one; *escaped* "
+            f"`{COLLAPSE_METRICS_CSV}` is <= {settings.collapse_threshold:g}; *collapse unknown* seeds logged no such "
+            f"value. *Resets* sums `{RESULT_JSON}`'s `resets`; *seeds reset* counts seeds with at least one; *escaped* "
             "counts seeds whose reset rule saw an escape, over the seeds that ran the rule. "
             f"*Std over last {settings.last_evals} evals*: the across-seed std at each of the last "
             f"{settings.last_evals} aligned frames, averaged. Figure 5's band: {low:g}th to {high:g}th percentile "

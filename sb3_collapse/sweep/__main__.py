@@ -15,6 +15,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+from sb3_collapse.errors import cli_message
 from sb3_collapse.sweep.runner import RayMissingError, prepare_sweep_folder, run_sweep, sweep_settings
 from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
@@ -37,10 +38,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m sb3_collapse.sweep",
         description="Run every (task, variant, seed) as an independent DrQ-v2 trial on Ray, each into "
-        "<out>/<task>/<variant>/seed_<k> (config.json, eval.csv, TensorBoard, collapse_metrics.csv, "
-        "collapse_events.csv, final_model.zip, result.json). Rerun the same command to resume: finished trials "
-        "are skipped, unfinished ones restart. Frames = agent steps x action repeat.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        "<out>/<task>/<variant>/seed_<k> (the run folder of python -m sb3_collapse.train). Each task trains with "
+        "its own DrQ-v2 preset (sb3_collapse.presets, docs/presets.md); a DrQ-v2 flag given here overrides it for "
+        "every task and is recorded. Rerun the same command to resume: finished trials are skipped, unfinished "
+        "ones restart. Frames = agent steps x action repeat.",
         parents=[training_arguments()],
     )
     g = p.add_argument_group("sweep")
@@ -71,13 +72,14 @@ def build_parser() -> argparse.ArgumentParser:
         "sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees",
     )
     g.add_argument(
-        "--cpus-per-trial", type=float, default=1, help="CPUs Ray reserves per trial; also its torch threads"
+        "--cpus-per-trial", type=float, default=1, help="CPUs Ray reserves per trial; also its torch threads (default: %(default)s)"
     )
     g.add_argument(
         "--gpus-per-trial",
         type=float,
         default=0,
-        help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 trials per GPU); > 0 trains on cuda, 0 on cpu",
+        help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 trials per GPU); > 0 trains on cuda, 0 on cpu "
+        "(default: %(default)s)",
     )
     g.add_argument(
         "--allow-changed-settings",
@@ -105,8 +107,9 @@ def main(argv: list[str] | None = None) -> int:
         variants += GRID_VARIANTS
     try:
         trials = expand_trials(args.tasks, variants, seeds)
-        TrainConfig(**training, env=trials[0].task).validate()
         tasks = list(dict.fromkeys(trial.task for trial in trials))
+        for task in tasks:  # each task with its own preset
+            TrainConfig(**training, env=task).validate()
         checkpoints = {
             source: parse_checkpoint_specs(getattr(args, f"{source}_checkpoint"), tasks, f"--{source}-checkpoint")
             for source in ("good", "bad")
@@ -126,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
             progress_bar=args.progress_bar,
         )
     except (SweepError, RayMissingError, ValueError) as error:
-        parser.error(str(error))
+        parser.error(cli_message(error, parser))
     except KeyboardInterrupt:
         print(f"\nInterrupted: rerun the same command to resume (finished trials in {args.out} are kept).")
         return 130
@@ -143,10 +146,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def dry_run(trials: list, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool) -> int:
     """
-    Print each trial's status and folder, and the counts; check the settings against ``sweep.json``.
+    Print each trial's status and folder, and the counts; check the settings against the sweep's settings file.
 
     :return: exit status 0
-    :raises SweepError: when the training settings differ from those of ``sweep.json`` (and that is not allowed)
+    :raises SweepError: when the training settings differ from those of the sweep's settings file (and that is not allowed)
     """
     settings = sweep_settings(trials, training, checkpoints, resources={})
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)

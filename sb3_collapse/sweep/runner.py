@@ -22,6 +22,8 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
+from sb3_collapse.presets import SETTING_NAMES
+from sb3_collapse.protocol import ERROR_TXT, SWEEP_JSON, write_json_atomically, write_text_atomically
 from sb3_collapse.sweep.trials import (
     FINISHED,
     SweepError,
@@ -31,7 +33,7 @@ from sb3_collapse.sweep.trials import (
     trial_dir,
     trial_status,
 )
-from sb3_collapse.train import TrainConfig, train, write_json_atomically, write_text_atomically
+from sb3_collapse.train import TrainConfig, train
 
 INSTALL_HINT = "pip install 'sb3-collapse[sweep]'"
 
@@ -87,22 +89,27 @@ def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_
     gpus, cpus = resources.get("GPU", 0.0), resources.get("CPU", 0.0)
     if gpus_per_trial > 0 and gpus == 0:
         raise SweepError(
-            f"--gpus-per-trial {gpus_per_trial} asks for GPUs, but Ray sees none in this cluster (resources: "
-            f"{dict(resources)}). Pass --gpus-per-trial 0 to train on CPU, or run on machines with GPUs."
+            f"gpus_per_trial={gpus_per_trial} asks for GPUs, but Ray sees none in this cluster (resources: "
+            f"{dict(resources)}). Set gpus_per_trial=0 to train on CPU, or run on machines with GPUs.",
+            parameter="gpus_per_trial",
         )
     if gpus_per_trial > gpus:
-        raise SweepError(f"--gpus-per-trial {gpus_per_trial} is more than the {gpus:g} GPUs Ray sees.")
+        raise SweepError(
+            f"gpus_per_trial={gpus_per_trial} is more than the {gpus:g} GPUs Ray sees.", parameter="gpus_per_trial"
+        )
     if cpus_per_trial > cpus:
-        raise SweepError(f"--cpus-per-trial {cpus_per_trial} is more than the {cpus:g} CPUs Ray sees.")
+        raise SweepError(
+            f"cpus_per_trial={cpus_per_trial} is more than the {cpus:g} CPUs Ray sees.", parameter="cpus_per_trial"
+        )
 
 
 def write_error(folder: Path, text: str) -> None:
     """
     :param folder: a trial folder (created if needed)
-    :param text: the traceback, written to ``<folder>/error.txt`` (temporary file, then rename)
+    :param text: the traceback, written to the trial's error file (temporary file, then rename)
     """
     folder.mkdir(parents=True, exist_ok=True)
-    write_text_atomically(folder / "error.txt", text)
+    write_text_atomically(folder / ERROR_TXT, text)
 
 
 def run_trial(
@@ -115,7 +122,7 @@ def run_trial(
 ) -> dict[str, Any]:
     """
     Run one trial into its folder: delete what an earlier, unfinished attempt left there, then train (which
-    writes ``result.json`` last). A failure does not propagate: its traceback goes to ``<trial>/error.txt``.
+    writes its result file last). A failure does not propagate: its traceback goes to the trial's error file.
 
     :param trial: the trial
     :param out: the sweep folder
@@ -130,7 +137,7 @@ def run_trial(
         shutil.rmtree(folder)
     try:
         train(trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads))
-    except Exception as error:  # noqa: BLE001  reported in error.txt and in the sweep's summary, the other trials go on
+    except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary, the other trials go on
         write_error(folder, traceback.format_exc())
         return {"trial": str(trial), "status": "failed", "error": f"{type(error).__name__}: {error}"}
     return {"trial": str(trial), "status": FINISHED, "error": None}
@@ -142,7 +149,7 @@ class SweepSummary:
     :param trials: every trial of the sweep
     :param skipped: trials already finished before this run
     :param finished: trials finished in this run
-    :param failed: trial -> path of its ``error.txt``, for the trials that failed in this run
+    :param failed: trial -> path of its error file, for the trials that failed in this run
     """
 
     trials: list[Trial]
@@ -157,7 +164,7 @@ class SweepSummary:
 
 
 TRAINING_KEYS = ("training", "checkpoints")
-"""Entries of ``sweep.json`` that change what a trial trains; a resumed sweep must keep them."""
+"""Entries of the sweep's settings file that change what a trial trains; a resumed sweep must keep them."""
 
 
 def sweep_settings(
@@ -167,9 +174,11 @@ def sweep_settings(
     resources: Mapping[str, Any],
 ) -> dict[str, Any]:
     """
-    The content of ``sweep.json``: ``training`` (the shared :class:`~sb3_collapse.train.TrainConfig` fields),
-    ``checkpoints`` (source -> task -> path), ``tasks``, ``variants``, ``seeds`` and ``resources`` (how trials
-    ran: CPUs and GPUs per trial, the Ray address).
+    The content of the sweep's settings file: ``training`` (the shared :class:`~sb3_collapse.train.TrainConfig`
+    fields as given: ``None`` for a DrQ-v2 setting left to the presets), ``task_settings`` (task -> the DrQ-v2
+    settings its trials use: its preset, with the sweep's explicit settings over it), ``checkpoints`` (source ->
+    task -> path), ``tasks``, ``variants``, ``seeds`` and ``resources`` (how trials ran: CPUs and GPUs per trial,
+    the Ray address).
 
     :param trials: the sweep's trials
     :param training: the shared training settings
@@ -177,22 +186,35 @@ def sweep_settings(
     :param resources: informational settings of the run
     :return: the settings, JSON-serializable
     """
+    tasks = list(dict.fromkeys(trial.task for trial in trials))
     return {
         "training": dict(training),
+        "task_settings": {task: task_settings(task, training) for task in tasks},
         "checkpoints": {source: dict(paths) for source, paths in checkpoints.items() if paths},
-        "tasks": list(dict.fromkeys(trial.task for trial in trials)),
+        "tasks": tasks,
         "variants": list(dict.fromkeys(trial.variant for trial in trials)),
         "seeds": sorted({trial.seed for trial in trials}),
         "resources": dict(resources),
     }
 
 
+def task_settings(task: str, training: Mapping[str, Any]) -> dict[str, Any]:
+    """
+    :param task: a task
+    :param training: the sweep's shared training settings (``None``: the task's preset)
+    :return: the DrQ-v2 settings (:data:`~sb3_collapse.presets.SETTING_NAMES`) the task's trials use, by name
+    """
+    config = TrainConfig(**{**training, "env": task}).resolve()
+    return {name: getattr(config, name) for name in SETTING_NAMES}
+
+
 def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) -> list[str]:
     """
-    What differs between the training settings of two ``sweep.json`` contents: every ``training`` field, and the
-    checkpoint of every (source, task) that both name (a new task or source may be added to a sweep).
+    What differs between the training settings of two contents of the sweep's settings file: every ``training``
+    field, every preset-derived setting of a task that both have (the presets of another package version), and
+    the checkpoint of every (source, task) that both name (a new task or source may be added to a sweep).
 
-    :param previous: the settings in ``sweep.json``
+    :param previous: the settings in the sweep's settings file
     :param current: the settings of this run
     :return: one line per difference, empty when the trials would train the same way
     """
@@ -200,24 +222,38 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
     old, new = previous.get("training", {}), current.get("training", {})
     for name in sorted(set(old) | set(new)):
         if old.get(name) != new.get(name):
-            flag = "--" + ("lr" if name == "learning_rate" else name.replace("_", "-"))
-            changes.append(f"{flag}: {old.get(name)!r} in sweep.json, {new.get(name)!r} now")
+            changes.append(f"`{name}`: {_setting(old.get(name))} in {SWEEP_JSON}, {_setting(new.get(name))} now")
+    for task, settings in current.get("task_settings", {}).items():
+        before_settings = previous.get("task_settings", {}).get(task)
+        if before_settings is None:
+            continue
+        for name in sorted(set(before_settings) | set(settings)):
+            if old.get(name) == new.get(name) and before_settings.get(name) != settings.get(name):
+                changes.append(
+                    f"`{name}` of {task}: {before_settings.get(name)!r} in {SWEEP_JSON}, {settings.get(name)!r} now"
+                )
     for source, paths in current.get("checkpoints", {}).items():
         for task, path in paths.items():
             before = previous.get("checkpoints", {}).get(source, {}).get(task)
             if before is not None and before != path:
-                changes.append(f"--{source}-checkpoint for {task}: {before} in sweep.json, {path} now")
+                changes.append(f"`{source}_checkpoint` for {task}: {before} in {SWEEP_JSON}, {path} now")
     return changes
+
+
+def _setting(value: Any) -> str:
+    """A training setting in a message: ``None`` is the task presets'."""
+    return "the presets'" if value is None else repr(value)
 
 
 def merge_settings(previous: Mapping[str, Any], current: Mapping[str, Any]) -> dict[str, Any]:
     """
-    :param previous: the settings in ``sweep.json``
+    :param previous: the settings in the sweep's settings file
     :param current: the settings of this run
     :return: the current settings with the tasks, variants, seeds and checkpoints of both (a sweep folder
         accumulates trials)
     """
     merged = dict(current)
+    merged["task_settings"] = {**previous.get("task_settings", {}), **current.get("task_settings", {})}
     for key in ("tasks", "variants"):
         merged[key] = list(dict.fromkeys([*previous.get(key, []), *current.get(key, [])]))
     merged["seeds"] = sorted({*previous.get("seeds", []), *current.get("seeds", [])})
@@ -232,17 +268,17 @@ def prepare_sweep_folder(
     out: str | Path, settings: Mapping[str, Any], allow_changed_settings: bool = False, write: bool = True
 ) -> None:
     """
-    Check this run's settings against ``<out>/sweep.json`` and write the merged settings there (atomically).
+    Check this run's settings against the sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) and write the merged settings there (atomically).
 
     :param out: the sweep folder (created if needed)
     :param settings: this run's :func:`sweep_settings`
-    :param allow_changed_settings: accept training settings that differ from those in ``sweep.json`` (the
+    :param allow_changed_settings: accept training settings that differ from those in the sweep's settings file (the
         finished trials keep the old ones)
-    :param write: write ``sweep.json``; ``False`` only checks (dry run)
+    :param write: write the sweep's settings file; ``False`` only checks (dry run)
     :raises SweepError: when the training settings changed and that is not allowed
     """
     out = Path(out)
-    path = out / "sweep.json"
+    path = out / SWEEP_JSON
     previous: dict[str, Any] = {}
     if path.is_file():
         previous = json.loads(path.read_text())
@@ -251,7 +287,7 @@ def prepare_sweep_folder(
             raise SweepError(
                 f"{out} holds a sweep with other training settings:\n  "
                 + "\n  ".join(changes)
-                + "\nUse another --out, the same settings, or --allow-changed-settings to mix them (finished trials "
+                + "\nUse another `out`, the same settings, or `allow_changed_settings=True` to mix them (finished trials "
                 "are not rerun)."
             )
     if not write:
@@ -274,9 +310,9 @@ def run_sweep(
     """
     Run every trial that is not finished, each as an independent Ray task, and wait for all of them.
 
-    Resumable: a trial whose ``result.json`` is there is skipped; any other trial folder (interrupted or failed)
-    is deleted and the trial runs again. ``<out>/sweep.json`` records the settings (see
-    :func:`prepare_sweep_folder`). A failing trial writes its traceback to ``<trial>/error.txt`` and the others
+    Resumable: a trial whose result file is there is skipped; any other trial folder (interrupted or failed)
+    is deleted and the trial runs again. the sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) records the settings (see
+    :func:`prepare_sweep_folder`). A failing trial writes its traceback to the trial's error file and the others
     go on. Ray starts only when there is a trial to run.
 
     :param trials: the trials (:func:`~sb3_collapse.sweep.trials.expand_trials`)
@@ -288,16 +324,19 @@ def run_sweep(
     :param gpus_per_trial: GPUs Ray reserves per trial (``0.25``: four trials share a GPU); the trial trains on
         ``cuda`` when it is > 0, else on ``cpu``
     :param address: Ray cluster address, ``None`` for a local instance (or the Ray already initialized)
-    :param allow_changed_settings: run even if ``sweep.json`` has other training settings
+    :param allow_changed_settings: run even if the sweep's settings file has other training settings
     :param progress_bar: show a progress bar over the trials
     :return: what was skipped, finished and failed
     :raises SweepError: for settings that cannot run (missing checkpoints, changed settings, resources)
     :raises RayMissingError: when there are trials to run and Ray is not installed
     """
     if cpus_per_trial <= 0:
-        raise SweepError(f"--cpus-per-trial must be > 0, got {cpus_per_trial}.")
+        raise SweepError(f"cpus_per_trial must be > 0, got {cpus_per_trial}.", parameter="cpus_per_trial")
     if gpus_per_trial < 0 or (gpus_per_trial > 1 and gpus_per_trial != int(gpus_per_trial)):
-        raise SweepError(f"--gpus-per-trial must be a fraction in [0, 1] or a whole number, got {gpus_per_trial}.")
+        raise SweepError(
+            f"gpus_per_trial must be a fraction in [0, 1] or a whole number, got {gpus_per_trial}.",
+            parameter="gpus_per_trial",
+        )
     unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
     if unknown:
         raise SweepError(f"Unknown training settings {unknown}: use TrainConfig field names.")
@@ -340,7 +379,7 @@ def run_sweep(
                     if outcome["status"] == FINISHED:
                         summary.finished.append(trial)
                     else:
-                        summary.failed[trial] = trial_dir(out, trial) / "error.txt"
+                        summary.failed[trial] = trial_dir(out, trial) / ERROR_TXT
                         bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")
                     bar.set_postfix(failed=len(summary.failed))
                     bar.update()

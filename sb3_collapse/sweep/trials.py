@@ -20,6 +20,8 @@ from typing import Any
 
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import parse_task
+from sb3_collapse.errors import InputError
+from sb3_collapse.protocol import ERROR_TXT, FINISHED, RESULT_JSON, trial_path
 from sb3_collapse.train import TrainConfig
 
 PLAIN_VARIANTS = ("drqv2", "drqv2+reset")
@@ -27,12 +29,12 @@ TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
 """The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
 
-FINISHED, FAILED, PARTIAL, PENDING = "finished", "failed", "partial", "pending"
-"""Trial statuses, see :func:`trial_status`."""
+FAILED, PARTIAL, PENDING = "failed", "partial", "pending"
+"""Trial statuses besides :data:`~sb3_collapse.protocol.FINISHED`, see :func:`trial_status`."""
 
 
-class SweepError(ValueError):
-    """A sweep that cannot run as asked; the message says what to do."""
+class SweepError(InputError):
+    """A sweep that cannot run as asked; the message says what to do (``parameter``: the parameter at fault)."""
 
 
 @dataclass(frozen=True, order=True)
@@ -111,15 +113,15 @@ def trial_dir(out: str | Path, trial: Trial) -> Path:
     :param trial: a trial
     :return: its folder, ``<out>/<task>/<variant>/seed_<seed>``
     """
-    return Path(out) / trial.task / trial.variant / f"seed_{trial.seed}"
+    return trial_path(out, trial.task, trial.variant, trial.seed)
 
 
 def trial_status(folder: str | Path) -> str:
     """
     The state of a trial folder:
 
-    - ``"finished"``: ``result.json`` holds ``"status": "finished"`` (train writes it last, atomically);
-    - ``"failed"``: no result, and ``error.txt`` (the traceback of the failure) is there;
+    - ``"finished"``: the result file holds ``"status": "finished"`` (train writes it last, atomically);
+    - ``"failed"``: no result, and the error file (the traceback of the failure) is there;
     - ``"partial"``: the folder exists without a result (interrupted);
     - ``"pending"``: no folder.
 
@@ -131,14 +133,14 @@ def trial_status(folder: str | Path) -> str:
     folder = Path(folder)
     if not folder.exists():
         return PENDING
-    result = folder / "result.json"
+    result = folder / RESULT_JSON
     if result.is_file():
         try:
             if json.loads(result.read_text()).get("status") == FINISHED:
                 return FINISHED
         except (json.JSONDecodeError, AttributeError):
             pass
-    return FAILED if (folder / "error.txt").is_file() else PARTIAL
+    return FAILED if (folder / ERROR_TXT).is_file() else PARTIAL
 
 
 def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], flag: str) -> dict[str, str]:
@@ -211,11 +213,14 @@ def trial_config(
 ) -> TrainConfig:
     """
     The settings of one trial: the sweep's training settings, the trial's task and seed, its exact folder,
-    the variant's reset rule and initial weights, no progress bar.
+    the variant's reset rule and initial weights, no progress bar. The DrQ-v2 settings the sweep leaves at
+    ``None`` come from the trial's task preset (:func:`sb3_collapse.presets.preset`), so each task trains with its
+    own; one given to the sweep overrides every task's preset. The config is resolved (:meth:`TrainConfig.resolve`).
 
     :param trial: the trial
     :param out: the sweep folder
-    :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials
+    :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials (``None``: the task's
+        preset)
     :param checkpoints: source (``"good"``, ``"bad"``) -> task -> checkpoint path, for transplant-grid cells
     :param device: the torch device of the trial
     :param torch_threads: threads of torch's CPU operations in the trial
@@ -238,4 +243,4 @@ def trial_config(
         for part, source in transplant.items():
             if source != "blank":
                 per_trial[f"init_{part}"] = checkpoints[source][trial.task]
-    return TrainConfig(**{**training, **per_trial})
+    return TrainConfig(**{**training, **per_trial}).resolve()

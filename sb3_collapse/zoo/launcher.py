@@ -9,8 +9,8 @@ The rl_zoo3 launcher: rl_zoo3's ``train`` and ``enjoy`` scripts with DrQv2 regis
 Every rl_zoo3 flag works as in ``python -m rl_zoo3.train`` / ``enjoy``; counts (``-n``, ``--eval-freq``,
 ``--save-freq``) are in agent steps (frames / action repeat). With ``--algo drqv2`` the launcher also:
 
-- evaluates as DrQ-v2 does unless told otherwise: ``--eval-freq 5000`` (agent steps: 10,000 frames at action
-  repeat 2) and ``--eval-episodes 10``, instead of rl_zoo3's 25,000 and 5;
+- evaluates as DrQ-v2 does unless told otherwise: ``--eval-freq`` at DrQ-v2's period (in agent steps: its
+  ``eval_every_frames`` / action repeat) and ``--eval-episodes`` at its episodes, instead of rl_zoo3's 25,000 and 5;
 - requires ``-conf`` (rl_zoo3 has no built-in DrQv2 file) and refuses ``-optimize`` (rl_zoo3 has no Optuna
   sampler for DrQv2);
 - ``enjoy`` runs with ``--no-render``: the DeepMind Control envs render off-screen only.
@@ -24,6 +24,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from sb3_collapse.presets import PRESETS
+from sb3_collapse.protocol import PAPER
 from sb3_collapse.zoo.errors import LauncherError, ZooConfigError, ZooNotInstalledError
 from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 
@@ -31,17 +33,22 @@ PROG = "python -m sb3_collapse.zoo"
 COMMANDS = ("train", "enjoy")
 SWITCHES = ("--collapse-metrics", "--reset-rule")
 """The launcher's own options; every other one goes to rl_zoo3."""
-DRQV2_EVAL_FREQ = 5000
-"""DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` 10,000 / action repeat 2."""
-DRQV2_EVAL_EPISODES = 10
+_DRQV2 = PRESETS["walker-walk"]  # the evaluation protocol is the same for every task
+DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat
+"""DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` / action repeat."""
+DRQV2_EVAL_EPISODES = _DRQV2.eval_episodes
 """DrQ-v2's ``num_eval_episodes``."""
 
-COLLAPSE_METRICS_CALLBACK = {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": 10_000}}
-"""``--collapse-metrics``: the collapse metrics of every named layer every 10,000 frames (the paper's period)."""
+COLLAPSE_METRICS_CALLBACK = {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}}
+"""``--collapse-metrics``: the collapse metrics of every named layer at the paper's period."""
 RESET_RULE_CALLBACK = {
-    "sb3_collapse.monitoring.CollapseReset": {"window_frames": 200_000, "check_every_frames": 10_000, "verbose": 1}
+    "sb3_collapse.monitoring.CollapseReset": {
+        "window_frames": PAPER.window_frames,
+        "check_every_frames": PAPER.check_every_frames,
+        "verbose": 1,
+    }
 }
-"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (window 200,000 frames, a check every 10,000)."""
+"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (:data:`sb3_collapse.protocol.PAPER`)."""
 
 USAGE = f"{PROG} {{train,enjoy}} [--collapse-metrics] [--reset-rule] [rl_zoo3 options]"
 DESCRIPTION = (
@@ -51,8 +58,8 @@ DESCRIPTION = (
 )
 EPILOG = (
     f"With --algo drqv2: train needs -conf (e.g. zoo_configs/drqv2.yml), evaluates every {DRQV2_EVAL_FREQ} agent "
-    f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's 10,000 "
-    "frames at action repeat 2), and refuses -optimize; enjoy runs with --no-render (the DeepMind Control envs "
+    f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's "
+    f"{_DRQV2.eval_every_frames:,} frames at action repeat {_DRQV2.action_repeat}), and refuses -optimize; enjoy runs with --no-render (the DeepMind Control envs "
     "render off-screen only)."
 )
 
@@ -66,13 +73,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--collapse-metrics",
         action="store_true",
         help="add sb3_collapse.monitoring.CollapseMetrics to the config's callbacks: the collapse metrics of every "
-        "named layer (collapse/<layer>/..., to TensorBoard with -tb) every 10,000 frames",
+        f"named layer (collapse/<layer>/..., to TensorBoard with -tb) every {PAPER.check_every_frames:,} frames",
     )
     switches.add_argument(
         "--reset-rule",
         action="store_true",
-        help="add sb3_collapse.monitoring.CollapseReset (the paper's reset rule: window 200,000 frames, mlp1 "
-        "gradient-norm threshold 1e-3, patience 5, a check every 10,000 frames) to the config's callbacks",
+        help=f"add sb3_collapse.monitoring.CollapseReset (the paper's reset rule: window {PAPER.window_frames:,} "
+        f"frames, {PAPER.layer} gradient-norm threshold {PAPER.threshold:g}, patience {PAPER.patience}, a check every "
+        f"{PAPER.check_every_frames:,} frames) to the config's callbacks",
     )
     return parser
 

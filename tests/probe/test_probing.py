@@ -103,7 +103,7 @@ def test_staged_outputs_appear_only_on_commit(tmp_path):
     out.mkdir()
     (out / "summary.json").write_text("old run")
     (out / "mse_over_training.png").write_text("old plot")
-    with pytest.raises(ProbeError, match="--overwrite"):
+    with pytest.raises(ProbeError, match="overwrite=True"):
         staged_output(out)
     with staged_output(out, overwrite=True) as staged:
         staged.path("probe.csv").write_text("new")

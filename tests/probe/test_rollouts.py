@@ -65,11 +65,11 @@ def test_save_load_roundtrip_and_bad_files(rollouts, tmp_path):
 
 
 def test_noise_and_env_settings(model):
-    with pytest.raises(ProbeError, match="--env"):
+    with pytest.raises(ProbeError, match="pass `env`"):
         resolve_env_config(None)
     config = resolve_env_config(None, task_id="walker-walk", size=40)
     assert config == {"task_id": "walker-walk", "action_repeat": 2, "frame_stack": 3, "size": 40, "camera_id": None}
-    with pytest.raises(ProbeError, match="--size"):
+    with pytest.raises(ProbeError, match="`size` and `frame_stack` the model was trained with"):
         record_rollouts(model, config, episodes=1, max_steps=1, progress=False)
     config = resolve_env_config(model.env_config)
     noisy = record_rollouts(model, config, episodes=1, seed=5, noise_std=0.5, max_steps=3, progress=False)

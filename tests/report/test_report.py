@@ -294,7 +294,7 @@ def _copy(sweep: FakeSweep, tmp_path):
         ("result_resets", "walker-walk/drqv2/seed_0/result.json: 'resets' must be an integer"),
         ("metrics_number", "walker-walk/drqv2/seed_0/collapse_metrics.csv, line 2: column 'value' is 'x'"),
         ("unknown_task", "--tasks cheetah-run not in"),
-        ("bad_setting", "collapse_checks must be >= 1"),
+        ("bad_setting", "--collapse-checks must be >= 1"),
     ],
 )
 def test_cli_errors(fake_sweep, tmp_path, capsys, case, message):

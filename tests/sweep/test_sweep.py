@@ -34,6 +34,8 @@ TINY = [
     "--frames", "1000", "--action-repeat", "4", "--size", "32", "--seed-frames", "600", "--batch-size", "8",
     "--hidden-dim", "32", "--feature-dim", "16", "--eval-every-frames", "1000", "--eval-episodes", "1",
     "--collapse-metrics-every-frames", "500", "--collapse-probe-batch", "8", "--reset-window-frames", "500",
+    # The trial ends with its first episode: DrQ-v2's sampling (finished episodes only) would not update.
+    "--replay-sampling", "sb3",
 ]  # fmt: skip
 TINY_TRIALS = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset"]
 RESULT_KEYS = {
@@ -150,7 +152,7 @@ def test_changed_training_settings_are_refused(tiny_sweep, capsys):
         main(argv)
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
-    assert "--frames: 1000 in sweep.json, 2000 now" in err and "--lr: 0.0001 in sweep.json, 0.001 now" in err
+    assert "--frames: 1000 in sweep.json, 2000 now" in err and "--lr: the presets' in sweep.json, 0.001 now" in err
     assert "--allow-changed-settings" in err
     assert json.loads((tiny_sweep / "sweep.json").read_text())["training"]["frames"] == 1000
     assert main([*argv, "--allow-changed-settings", "--dry-run"]) == 0
@@ -295,7 +297,7 @@ def test_resources_and_settings_checks():
     same = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/a.zip", "hopper-stand": "/b"}}}
     assert settings_changes(previous, same) == []  # a new task's checkpoint is not a change
     moved = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/c.zip"}}}
-    assert settings_changes(previous, moved) == ["--good-checkpoint for walker-walk: /a.zip in sweep.json, /c.zip now"]
+    assert settings_changes(previous, moved) == ["`good_checkpoint` for walker-walk: /a.zip in sweep.json, /c.zip now"]
 
 
 def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):

@@ -32,6 +32,8 @@ TINY = {
     "batch_size": 8,
     "policy_kwargs": "dict(feature_dim=16, hidden_dim=32)",
     "env_kwargs": TINY_ENV,
+    # The tiny runs end before their first episode: DrQ-v2's sampling (finished episodes only) would not update.
+    "replay_buffer_kwargs": "dict(sampling='sb3')",
 }
 
 # DrQ-v2's published settings (facebookresearch/drqv2 cfgs/task/*.yaml), in frames, per task.

@@ -1,0 +1,84 @@
+"""
+Errors of bad input, and their translation into the words of a command line.
+
+Library code names Python parameters in its messages (``episodes must be >= 1, got 0``); a CLI passes the message
+through :func:`cli_message`, which names its flags instead (``--episodes must be >= 1, got 0``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+
+class InputError(ValueError):
+    """
+    Bad input to a library function or class: the message says what is wrong and what to do.
+
+    :param message: the message, in Python's words (parameter names, not flags)
+    :param parameter: the Python name of the parameter at fault, when there is one
+    """
+
+    def __init__(self, message: str, parameter: str | None = None) -> None:
+        super().__init__(message)
+        self.parameter = parameter
+
+
+class ParameterError(InputError):
+    """
+    A bad value of a parameter; the message starts with the parameter's name.
+
+    :param parameter: the parameter's Python name (``"batch_size"``)
+    :param message: what is wrong and what to do
+    """
+
+    def __init__(self, parameter: str, message: str) -> None:
+        super().__init__(message, parameter)
+
+
+def parameter_flags(parser: argparse.ArgumentParser) -> dict[str, str]:
+    """
+    :param parser: a command line (with its sub-commands' flags)
+    :return: destination (Python name) -> its long flag (``{"learning_rate": "--lr", "batch_size": "--batch-size"}``)
+    """
+    flags = {}
+    for action in parser._actions:
+        long_flags = [flag for flag in action.option_strings if flag.startswith("--")]
+        if long_flags and action.dest != "help":
+            flags.setdefault(action.dest, long_flags[0])
+        if isinstance(action, argparse._SubParsersAction):  # the flags of every sub-command
+            for subparser in action.choices.values():
+                for dest, flag in parameter_flags(subparser).items():
+                    flags.setdefault(dest, flag)
+    return flags
+
+
+def cli_message(error: BaseException, parser: argparse.ArgumentParser) -> str:
+    """
+    The message of a library error as a command line says it: the Python names of the parser's settings become
+    their flags (``learning_rate`` -> ``--lr``). Names with an underscore are replaced wherever they stand as a
+    word; a one-word name when it is the error's :attr:`ParameterError.parameter` and starts the message
+    (``episodes`` is also an ordinary word), or when it stands in backticks: `` `overwrite=True` `` becomes
+    ``--overwrite``, `` `episodes=3` `` ``--episodes 3`` and `` `out` `` ``--out``.
+
+    :param error: the error
+    :param parser: the command line whose flags name the settings
+    :return: the message
+    """
+    message = str(error)
+    flags = parameter_flags(parser)
+
+    def quoted(match: re.Match) -> str:
+        name, value = match.group(1), match.group(2)
+        if name not in flags:
+            return match.group(0)
+        return flags[name] if value in (None, "True") else f"{flags[name]} {value}"
+
+    message = re.sub(r"`(\w+)(?:=([^`]*))?`", quoted, message)
+    for name in sorted(flags, key=len, reverse=True):
+        if "_" in name:
+            message = re.sub(rf"(?<![\w\-./]){re.escape(name)}(?![\w\-/])", flags[name], message)
+    parameter = getattr(error, "parameter", None)
+    if parameter in flags and "_" not in parameter and message.startswith(parameter):
+        message = flags[parameter] + message[len(parameter) :]
+    return message

@@ -1,0 +1,200 @@
+"""
+The action-collapse paper's protocol numbers and the run-folder format, in one place.
+
+- :data:`PAPER` (a frozen :class:`PaperProtocol`): the numbers of Chen, Zhu & Perrault, *Understanding Learned
+  Representations and Action Collapse in Visual Reinforcement Learning*, each with the passage it comes from.
+  :class:`~sb3_collapse.CollapseReset`, :class:`~sb3_collapse.CollapseMetrics`, the train CLI, the sweep, the
+  rl_zoo3 launcher and the report take their defaults from it.
+- The **run folder**: what ``python -m sb3_collapse.train`` writes into one run's folder (and a sweep into each
+  ``<out>/<task>/<variant>/seed_<k>/``): the file names, the CSV columns, the keys of the result file, and the
+  atomic writers every module uses. The report and the sweep read the same names from here.
+
+DrQ-v2's own per-task hyperparameters (budgets, schedules, batch sizes...) are in :mod:`sb3_collapse.presets`.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class PaperProtocol:
+    """
+    The paper's protocol numbers. Frames count environment frames (agent steps x action repeat).
+
+    :param check_every_frames: frames between two computations of the collapse metrics (Section 4.1: "an
+        evaluation every 1e4 frames", the x axes of Figures 2, 4, 8, 9; the rule's "computations" of Section 5.2)
+    :param window_frames: the reset rule's window (Section 5.2: "reset the training from scratch every 2e5
+        frames", the end of DrQ-v2's exploration decay, x = 20 in Figure 4)
+    :param threshold: a gradient norm above it is healthy (Section 5.2: "a gradient norm larger than 0.001")
+    :param patience: consecutive healthy computations that mean an escape (Section 5.2: "of consecutive five
+        computations")
+    :param layer: the layer whose gradient norm the rule reads (Section 5.2: "the gradient norm of mlp1")
+    :param success_return: final return of a well-performing agent, at least (Section 4.1: "more than 900
+        rewards"; Figure 3: "successful (rewards >= 900)")
+    :param failure_return: final return of a poorly performing agent, below (Section 4.1: "less than 30 rewards")
+    :param last_evals: evaluations averaged for the across-seed standard deviation (Section 5.2: "the average
+        standard deviation over the last ten evaluations")
+    :param percentiles: the band of Figure 5, in percent ("the 5th percentile and the 95th percentile")
+    :param figure5_seeds: seeds per task and variant of Figure 5 ("40 seeds")
+    :param figure5_tasks: the tasks of Figure 5 (walker_walk, hopper_stand, finger_spin)
+    """
+
+    check_every_frames: int = 10_000
+    window_frames: int = 200_000
+    threshold: float = 1e-3
+    patience: int = 5
+    layer: str = "mlp1"
+    success_return: float = 900.0
+    failure_return: float = 30.0
+    last_evals: int = 10
+    percentiles: tuple[float, float] = (5.0, 95.0)
+    figure5_seeds: int = 40
+    figure5_tasks: tuple[str, ...] = ("walker-walk", "hopper-stand", "finger-spin")
+
+    @property
+    def collapse_tag(self) -> str:
+        """The ``collapse_metrics.csv`` / TensorBoard tag of the rule's metric (``collapse/mlp1/grad_norm``)."""
+        return metric_tag(self.layer, "grad_norm")
+
+
+PAPER = PaperProtocol()
+"""The paper's protocol."""
+
+
+def metric_tag(layer: str, metric: str) -> str:
+    """
+    :param layer: a named layer (``"mlp1"``)
+    :param metric: a metric name (``"grad_norm"``, ``"numerical_rank"``...)
+    :return: its TensorBoard and ``collapse_metrics.csv`` tag, ``collapse/<layer>/<metric>``
+    """
+    return f"collapse/{layer}/{metric}"
+
+
+# ---------------------------------------------------------------------------------------------- the run folder
+CONFIG_JSON = "config.json"
+"""The run's settings, written first (every value, and for preset settings whether it came from the preset)."""
+RESULT_JSON = "result.json"
+"""The outcome, written last and atomically: a folder without it is an unfinished run (keys: :data:`RESULT_KEYS`)."""
+EVAL_CSV = "eval.csv"
+"""One row per evaluation (columns :data:`EVAL_FIELDS`)."""
+COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
+"""One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
+COLLAPSE_EVENTS_CSV = "collapse_events.csv"
+"""One row per intervention (reset...) or escape of the reset rule (columns :data:`COLLAPSE_EVENT_FIELDS`)."""
+FINAL_MODEL = "final_model.zip"
+"""The final model, ``DrQv2.save``."""
+CHECKPOINTS_DIR = "checkpoints"
+"""Intermediate checkpoints."""
+ERROR_TXT = "error.txt"
+"""The traceback of a trial that failed (sweeps)."""
+SWEEP_JSON = "sweep.json"
+"""A sweep folder's settings."""
+
+EVAL_FIELDS = ("frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s")
+COLLAPSE_METRICS_FIELDS = ("frame", "step", "tag", "value")
+COLLAPSE_EVENT_FIELDS = ("frame", "step", "event", "resets", "intervention", "detail")
+"""``event``: ``reset`` (any intervention) or ``escape``; ``intervention``: the rule's (``reset``, ``redo``...);
+``detail``: what the intervention did, one line. Files of earlier versions have the first four columns only."""
+RESULT_KEYS = (
+    "status",
+    "task",
+    "variant",
+    "seed",
+    "frames",
+    "agent_steps",
+    "final_eval",
+    "resets",
+    "reset_frames",
+    "escaped",
+    "escape_frame",
+    "wall_time_s",
+)
+"""The keys of the result file, see :func:`sb3_collapse.train.run_summary`."""
+FINISHED = "finished"
+"""``status`` of a finished run."""
+
+SEED_FOLDER_PREFIX = "seed_"
+SEED_FOLDER = re.compile(rf"^{SEED_FOLDER_PREFIX}(\d+)$")
+"""The name of a sweep's trial folder: ``seed_<k>`` with ``<k>`` the seed."""
+
+
+def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Path:
+    """
+    :param out: a sweep folder
+    :param task: the task, ``<domain>-<task>``
+    :param variant: the variant name
+    :param seed: the seed
+    :return: the trial's folder, ``<out>/<task>/<variant>/seed_<seed>``
+    """
+    return Path(out) / task / variant / f"{SEED_FOLDER_PREFIX}{seed}"
+
+
+def write_text_atomically(path: str | os.PathLike, text: str) -> None:
+    """
+    Write ``text`` to a temporary file next to ``path``, flush it to disk, then rename it to ``path``: readers see
+    either the previous file (or none) or the complete new one. The file gets the permissions of a new file under
+    the process's umask.
+
+    :param path: the file
+    :param text: its content
+    """
+    path = Path(path)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "w") as file:
+            file.write(text)
+            file.flush()
+            os.fsync(file.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(temporary, 0o666 & ~umask)
+        os.replace(temporary, path)
+    except BaseException:
+        if os.path.exists(temporary):
+            os.remove(temporary)
+        raise
+
+
+def write_json_atomically(path: str | os.PathLike, content: Any) -> None:
+    """
+    Write ``content`` as indented JSON with :func:`write_text_atomically`.
+
+    :param path: the JSON file
+    :param content: anything ``json.dumps`` accepts
+    """
+    write_text_atomically(path, json.dumps(content, indent=2) + "\n")
+
+
+def append_csv_rows(path: str | os.PathLike, fieldnames: Sequence[str], rows: Iterable[dict[str, Any]]) -> None:
+    """
+    Append rows to a CSV file, writing the header first when the file is new or empty.
+
+    :param path: the CSV file (its folder must exist)
+    :param fieldnames: the columns, in order
+    :param rows: one dict per row, keyed by column
+    :raises ValueError: when the file has another header (e.g. written by an older version): nothing is appended
+    """
+    path = Path(path)
+    new_file = not path.exists() or path.stat().st_size == 0
+    if not new_file:
+        with path.open(newline="") as file:
+            header = next(csv.reader(file), [])
+        if header != list(fieldnames):
+            raise ValueError(
+                f"{path} has the columns {','.join(header)}, not {','.join(fieldnames)}: it was written by another "
+                "version or another writer. Move it away (or write to another path); nothing was appended to it."
+            )
+    with path.open("a", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=fieldnames)
+        if new_file:
+            writer.writeheader()
+        writer.writerows(rows)

@@ -1,0 +1,73 @@
+"""The paper's protocol and the run-folder format live in sb3_collapse.protocol alone; errors speak Python."""
+
+import argparse
+import os
+import re
+from pathlib import Path
+
+import pytest
+
+from sb3_collapse import CollapseMetrics, CollapseReset
+from sb3_collapse.errors import ParameterError, cli_message
+from sb3_collapse.protocol import PAPER, write_json_atomically
+from sb3_collapse.report import ReportSettings
+
+PACKAGE = Path(__file__).resolve().parents[1] / "sb3_collapse"
+OWNERS = {"protocol.py", "presets.py"}
+# The protocol numbers (window, threshold, success return) and the run-folder file names.
+LITERALS = re.compile(
+    r"\b(200_000|200000|200,000|1e-3|0\.001|900(\.0)?)\b|(result\.json|eval\.csv|collapse_metrics\.csv|"
+    r"collapse_events\.csv|config\.json|final_model|error\.txt|sweep\.json)"
+)
+
+
+def test_protocol_literals_live_in_the_protocol_module_only():
+    found = [
+        f"{path.relative_to(PACKAGE)}:{number}: {line.strip()}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if path.name not in OWNERS
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if LITERALS.search(line)
+    ]
+    assert found == []
+
+
+def test_the_paper_numbers_and_who_reads_them():
+    assert (PAPER.check_every_frames, PAPER.window_frames, PAPER.threshold, PAPER.patience) == (10_000, 200_000, 1e-3, 5)
+    assert (PAPER.layer, PAPER.success_return, PAPER.failure_return) == ("mlp1", 900.0, 30.0)
+    assert PAPER.collapse_tag == "collapse/mlp1/grad_norm"
+    with pytest.raises(AttributeError):
+        PAPER.threshold = 0.1  # frozen
+    rule = CollapseReset()
+    assert (rule.window_frames, rule.check_every_frames, rule.threshold, rule.patience, rule.layer) == (
+        200_000, 10_000, 1e-3, 5, "mlp1"
+    )
+    assert CollapseMetrics().check_every_frames == 10_000
+    report = ReportSettings()
+    assert (report.collapse_threshold, report.collapse_checks, report.success_return) == (1e-3, 5, 900.0)
+    assert report.collapse_tag == PAPER.collapse_tag and report.percentiles == (5.0, 95.0)
+
+
+def test_atomic_writer_follows_the_umask(tmp_path):
+    previous = os.umask(0o022)
+    try:
+        write_json_atomically(tmp_path / "result.json", {"status": "finished"})
+    finally:
+        os.umask(previous)
+    assert (tmp_path / "result.json").stat().st_mode & 0o777 == 0o644
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_library_errors_name_parameters_and_clis_translate():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--lr", dest="learning_rate")
+    parser.add_argument("--eval-every-frames", dest="eval_every_frames")
+    parser.add_argument("--episodes")
+    parser.add_argument("--overwrite", action="store_true")
+    parser.add_argument("--out")
+    error = ParameterError("learning_rate", "learning_rate must be > 0 (or set eval_every_frames=0).")
+    assert cli_message(error, parser) == "--lr must be > 0 (or set --eval-every-frames=0)."
+    assert cli_message(ParameterError("episodes", "episodes must be >= 1, got 0."), parser) == "--episodes must be >= 1, got 0."
+    assert cli_message(ValueError("3 episodes recorded: pass `overwrite=True` or another `out`."), parser) == (
+        "3 episodes recorded: pass --overwrite or another --out."
+    )
