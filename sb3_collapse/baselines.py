@@ -16,8 +16,9 @@ What is DrQ-v2's and what is SB3's:
   observations are frame stacks (each frame stored once: 21.5 KB per 84x84 transition instead of SB3's 127 KB;
   it samples exactly what SB3's buffer would), SB3's ``ReplayBuffer`` otherwise.
 - **Shared with the sweep's DrQ-v2** (the arguments): learning rate, batch size, buffer size, warm-up
-  (``learning_starts``, in agent steps), seed, device.
-- **SB3's defaults** for the rest: TD3 with ``tau=0.005``, ``policy_delay=2``, target policy noise 0.2 clipped at
+  (``learning_starts``, in agent steps), discount, seed, device.
+- **SB3's defaults** for the rest (``python -m sb3_collapse.train`` reports DrQ-v2's own settings,
+  :data:`DRQV2_ONLY_SETTINGS`, as unused): TD3 with ``tau=0.005``, ``policy_delay=2``, target policy noise 0.2 clipped at
   0.5, one update per agent step, plus Gaussian exploration noise of standard deviation
   :data:`TD3_ACTION_NOISE` (SB3 has none by default; 0.1 is SB3's documented example and DrQ-v2's final
   exploration std); SAC with a learned entropy coefficient (``"auto"``), ``tau=0.005``, one update per agent step.
@@ -37,6 +38,20 @@ from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 
 BASELINES: dict[str, type[TD3 | SAC]] = {"td3": TD3, "sac": SAC}
 """SB3's algorithms that :func:`build_baseline` builds, by name."""
+
+DRQV2_ONLY_SETTINGS = (
+    "n_steps",
+    "stddev_schedule",
+    "stddev_clip",
+    "tau",
+    "train_freq",
+    "augmentation_pad",
+    "replay_sampling",
+)
+"""Settings of ``TrainConfig`` that only DrQ-v2 uses: the baselines keep SB3's own values for them."""
+
+NATURE_CNN_MIN_SIZE = 36
+"""Smallest image side ``NatureCNN`` takes (8x8 stride 4, 4x4 stride 2, 3x3 stride 1, no padding)."""
 
 TD3_ACTION_NOISE = 0.1
 """Standard deviation of TD3's Gaussian exploration noise, on actions scaled to [-1, 1]."""
@@ -69,17 +84,23 @@ def build_baseline(
     :param batch_size: minibatch size
     :param feature_dim: output size of the ``NatureCNN`` features extractors (``mlp0``)
     :param hidden_dim: units of each of the two hidden layers of the actor and of each Q network
-    :param gamma: discount factor (SB3's default)
+    :param gamma: discount factor
     :param frame_stack: frames per observation (``make_dmc_env``'s): ``> 1`` stores each frame once
         (``FrameStackReplayBuffer``); ``None`` or 1: SB3's ``ReplayBuffer``
     :param seed: random seed
     :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
     :param verbose: SB3 verbosity
     :return: the model, ready to ``learn()``
-    :raises ValueError: for an unknown algorithm
+    :raises ValueError: for an unknown algorithm, or images smaller than ``NatureCNN`` takes
     """
     if algorithm not in BASELINES:
         raise ValueError(f"algorithm must be one of {', '.join(BASELINES)}, got {algorithm!r}.")
+    height, width = env.observation_space.shape[-2:]  # type: ignore[union-attr,index]
+    if min(height, width) < NATURE_CNN_MIN_SIZE:
+        raise ValueError(
+            f"SB3's NatureCNN needs images of at least {NATURE_CNN_MIN_SIZE}x{NATURE_CNN_MIN_SIZE} pixels, got "
+            f"{height}x{width}: render larger images (make_dmc_env(size=...))."
+        )
     policy_kwargs: dict[str, Any] = dict(
         net_arch=[hidden_dim, hidden_dim], features_extractor_kwargs=dict(features_dim=feature_dim)
     )

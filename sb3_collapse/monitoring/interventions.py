@@ -553,6 +553,15 @@ INTERVENTIONS: dict[str, Callable[..., InterventionResult]] = {
 }
 """The interventions by name, the values of ``CollapseReset(intervention=...)``."""
 
+INTERVENTION_LABELS = {
+    "reset": "reset from scratch",
+    "reset_actor": "actor reset",
+    "reset_mlp": "actor MLP reset",
+    "redo": "ReDo",
+    "shrink_perturb": "shrink & perturb",
+}
+"""What each intervention is called in figures (e.g. the report's legend)."""
+
 
 def check_intervention(name: str, model: BaseAlgorithm | None = None) -> None:
     """
