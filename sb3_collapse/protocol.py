@@ -19,6 +19,7 @@ import json
 import os
 import re
 import tempfile
+import traceback
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -95,7 +96,7 @@ FINAL_MODEL = "final_model.zip"
 CHECKPOINTS_DIR = "checkpoints"
 """Intermediate checkpoints."""
 ERROR_TXT = "error.txt"
-"""The traceback of a trial that failed (sweeps)."""
+"""The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
 SWEEP_JSON = "sweep.json"
 """A sweep folder's settings."""
 
@@ -136,6 +137,39 @@ def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Pa
     :return: the trial's folder, ``<out>/<task>/<variant>/seed_<seed>``
     """
     return Path(out) / task / variant / f"{SEED_FOLDER_PREFIX}{seed}"
+
+
+FAILURE_HEADER = "failed at agent step {step} (frame {frame})"
+"""First line of the error file that a run writes into its folder when it fails."""
+
+
+def write_failure(run_dir: str | os.PathLike, step: int, frame: int, error: BaseException) -> None:
+    """
+    Mark a run folder as failed: its error file (:data:`ERROR_TXT`) gets :data:`FAILURE_HEADER` and the traceback.
+
+    :param run_dir: the run folder
+    :param step: the agent step the run had reached
+    :param frame: the frame it had reached
+    :param error: the exception
+    """
+    lines = traceback.format_exception(type(error), error, error.__traceback__)
+    header = FAILURE_HEADER.format(step=step, frame=frame)
+    write_text_atomically(Path(run_dir) / ERROR_TXT, header + "\n" + "".join(lines))
+
+
+def failed_before_training(run_dir: str | os.PathLike) -> bool:
+    """
+    :param run_dir: a run folder
+    :return: whether it holds a run that failed before its first agent step (no result, an error file whose first
+        line says step 0): nothing of value, a new run may take the folder
+    """
+    run_dir = Path(run_dir)
+    error_file = run_dir / ERROR_TXT
+    if (run_dir / RESULT_JSON).exists() or not error_file.is_file():
+        return False
+    with error_file.open() as file:
+        first = file.readline().strip()
+    return first == FAILURE_HEADER.format(step=0, frame=0)
 
 
 def write_text_atomically(path: str | os.PathLike, text: str) -> None:

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -45,11 +47,12 @@ from stable_baselines3.common.monitor import Monitor
 from sb3_collapse.baselines import BASELINES, DRQV2_ONLY_SETTINGS, NATURE_CNN_MIN_SIZE, build_baseline
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.drqv2.drqv2 import check_hyperparameters
+from sb3_collapse.drqv2.policies import check_image_size
 from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import check_env_arguments
-from sb3_collapse.errors import ParameterError, cli_message
+from sb3_collapse.errors import InputError, ParameterError, cli_message
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset, frames_of
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import (
@@ -64,6 +67,8 @@ from sb3_collapse.protocol import (
     PAPER,
     RESULT_JSON,
     append_csv_rows,
+    failed_before_training,
+    write_failure,
     write_json_atomically,
 )
 
@@ -259,6 +264,7 @@ class TrainConfig:
         except ValueError as error:
             raise ParameterError("stddev_schedule", f"stddev_schedule: {error}") from None
         check_env_arguments(config.action_repeat, config.frame_stack, config.size)  # type: ignore[arg-type]
+        check_image_size(config.size)
         if config.frames < 1:  # type: ignore[operator]
             raise ParameterError("frames", f"frames must be >= 1, got {config.frames}.")
         for name in ("eval_every_frames", "eval_episodes", "checkpoint_every_frames", "seed_frames",
@@ -303,11 +309,18 @@ class TrainConfig:
                 resolve_source_path(group, path)
             except FileNotFoundError as error:
                 raise ParameterError(f"init_{group}", f"init_{group}: {error}") from None
-        run_dir = None if config.run_dir is None else Path(config.run_dir)
-        if run_dir is not None and run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+        if config.run_dir is not None and not _usable_run_dir(Path(config.run_dir)):
             raise ParameterError(
-                "run_dir", f"run_dir {run_dir} exists and is not an empty folder: remove it or choose another."
+                "run_dir",
+                f"run_dir {config.run_dir} exists and is not an empty folder (nor one of a run that failed before "
+                "training): remove it or choose another.",
             )
+        logdir = Path(config.logdir)
+        for parent in (logdir, *logdir.parents):
+            if parent.exists():
+                if not parent.is_dir():
+                    raise ParameterError("logdir", f"logdir {logdir}: {parent} is a file, not a folder.")
+                break
 
     @property
     def agent_steps(self) -> int:
@@ -347,6 +360,10 @@ class PeriodicEvaluation(BaseCallback):
     Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
     (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done.
 
+    Not at the last step of ``learn()``: SB3 calls the callbacks before that step's updates, so the model would
+    not be the one ``learn()`` returns. :func:`train` evaluates the final model after ``learn()`` instead (one
+    :meth:`evaluate` call), and that is the model it saves.
+
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations
     :param episodes: episodes per evaluation
@@ -371,7 +388,8 @@ class PeriodicEvaluation(BaseCallback):
         self._maybe_evaluate()
 
     def _on_step(self) -> bool:
-        self._maybe_evaluate()
+        if self.model.num_timesteps < getattr(self.model, "_total_timesteps", float("inf")):
+            self._maybe_evaluate()
         return True
 
     def _maybe_evaluate(self) -> None:
@@ -460,13 +478,26 @@ def run_summary(
     }
 
 
+def _usable_run_dir(path: Path) -> bool:
+    """Whether ``path`` can take a new run: missing, empty, or the folder of a run that failed before training."""
+    return not path.exists() or (path.is_dir() and (not any(path.iterdir()) or failed_before_training(path)))
+
+
 def _new_run_dir(logdir: Path, name: str) -> Path:
+    """The first of ``<logdir>/<name>``, ``<name>_2``, ``<name>_3``... that can take a new run."""
     run_dir, index = logdir / name, 1
-    while run_dir.exists():
+    while not _usable_run_dir(run_dir):
         index += 1
         run_dir = logdir / f"{name}_{index}"
-    run_dir.mkdir(parents=True)
     return run_dir
+
+
+def _prepare_run_dir(run_dir: Path) -> None:
+    """Create ``run_dir``, or empty the folder of a run that failed before training (it holds no result)."""
+    if run_dir.is_dir() and failed_before_training(run_dir):
+        for path in run_dir.iterdir():
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    run_dir.mkdir(parents=True, exist_ok=True)
 
 
 def train(config: TrainConfig) -> TrainResult:
@@ -474,9 +505,19 @@ def train(config: TrainConfig) -> TrainResult:
     Train DrQ-v2 as ``config`` says (preset settings left at ``None`` come from the task's preset), evaluating and
     logging on the way, and save the final model.
 
+    Everything that can fail on bad input (the settings, the initial weights of ``init_*``, the environments, the
+    model and its replay buffer) is checked or built **before** the run folder is created. A failure after it
+    marks the folder as failed (the error file, with the agent step it failed at; see
+    :func:`~sb3_collapse.protocol.write_failure`) and is raised again; a folder that failed before its first agent
+    step holds no training and is reused by the next run.
+
+    The model that is saved is the model of the last evaluation: the reset rule never resets at the budget's end
+    (see :class:`~sb3_collapse.CollapseReset`), and the budget's last frames are evaluated after ``learn()`` when
+    the periodic evaluation did not fall on them.
+
     :param config: the run's settings
     :return: where things were written, and the evaluations
-    :raises ParameterError: for a bad setting, before anything is written
+    :raises InputError: for bad input (a ``ParameterError`` for a bad setting), before anything is written
     """
     start_time = time.time()
     config = config.resolve()
@@ -484,17 +525,37 @@ def train(config: TrainConfig) -> TrainResult:
     domain, task = parse_task(config.env)
     task_id = f"{domain}-{task}"
     env_kwargs = dict(action_repeat=config.action_repeat, frame_stack=config.frame_stack, size=config.size)
-    if config.run_dir is not None:
-        run_dir = Path(config.run_dir)
-        run_dir.mkdir(parents=True, exist_ok=True)
-    else:
-        run_dir = _new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}")
-    write_json_atomically(run_dir / CONFIG_JSON, config.record())
     if config.torch_threads is not None:
         th.set_num_threads(config.torch_threads)
 
+    try:
+        env, eval_env, model = _build(config, task_id, env_kwargs)
+    except InputError:
+        raise
+    except (ValueError, TypeError, MemoryError, FileNotFoundError) as error:  # bad input: nothing written yet
+        raise InputError(str(error)) from error
+
+    if config.run_dir is not None:
+        run_dir = Path(config.run_dir)
+    else:
+        run_dir = _new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}")
+    _prepare_run_dir(run_dir)
+    write_json_atomically(run_dir / CONFIG_JSON, config.record())
+    try:
+        return _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time)
+    except BaseException as error:
+        write_failure(run_dir, model.num_timesteps, frames_of(model), error)
+        raise
+
+
+def _build(
+    config: TrainConfig, task_id: str, env_kwargs: dict[str, Any]
+) -> tuple[Monitor, Monitor | None, BaseAlgorithm]:
+    """The training env, the evaluation env (``None`` without evaluations) and the model of :func:`train`."""
     env = Monitor(make_dmc_env(task_id, seed=config.seed, **env_kwargs))
-    steps = config.agent_steps
+    eval_env = None
+    if config.eval_every_frames > 0:
+        eval_env = Monitor(make_dmc_env(task_id, seed=config.seed + 100_000, **env_kwargs))
     model: BaseAlgorithm
     if config.algorithm != "drqv2":  # SB3's TD3 or SAC from the same pixels
         model = build_baseline(
@@ -534,13 +595,26 @@ def train(config: TrainConfig) -> TrainResult:
             verbose=config.verbose,
             init_from=config.init_from or None,
         )
+    return env, eval_env, model
+
+
+def _train_into(
+    config: TrainConfig,
+    task_id: str,
+    run_dir: Path,
+    model: BaseAlgorithm,
+    env: Monitor,
+    eval_env: Monitor | None,
+    steps: int,
+    start_time: float,
+) -> TrainResult:
+    """:func:`train` once the model is built and the run folder holds the settings."""
     formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
     model.set_logger(configure(str(run_dir), formats))
 
     callbacks: list[BaseCallback] = []
     evaluation = None
-    if config.eval_every_frames > 0:
-        eval_env = Monitor(make_dmc_env(task_id, seed=config.seed + 100_000, **env_kwargs))
+    if eval_env is not None:
         evaluation = PeriodicEvaluation(eval_env, config.eval_every_frames, config.eval_episodes, run_dir / EVAL_CSV)
         callbacks.append(evaluation)
     if config.checkpoint_every_frames > 0:
@@ -703,7 +777,10 @@ def main(argv: list[str] | None = None) -> int:
             source = config.sources.get(name)
             print(f"{flags.get(name, name):<32} {value!r}" + (f"  ({source})" if source else ""))
         return 0
-    train(config)
+    try:
+        train(config)
+    except InputError as error:  # raised before the run folder was created: nothing was written
+        parser.error(re.sub(r"init_from\['(\w+)'\]", r"--init-\1", cli_message(error, parser)))
     return 0
 
 

@@ -142,10 +142,10 @@ def test_bad_arguments_exit_with_a_message(argv, message, capsys):
 
 
 def test_train_sb3_sac_with_an_intervention(tmp_path):
-    # 16 agent steps of 25 frames; the rule's window of 200 frames ends at frames 200 and 400.
+    # 20 agent steps of 25 frames; the rule's window of 200 frames ends at frames 200 and 400.
     config = TrainConfig(
-        env="cartpole-balance", algorithm="sac", reset_rule=True, intervention="shrink_perturb", frames=400,
-        action_repeat=25, size=48, hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=400,
+        env="cartpole-balance", algorithm="sac", reset_rule=True, intervention="shrink_perturb", frames=500,
+        action_repeat=25, size=48, hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=500,
         eval_episodes=1, collapse_metrics_every_frames=200, collapse_probe_batch=4, reset_window_frames=200,
         run_dir=str(tmp_path / "run"), progress_bar=False, torch_threads=1,
     )
@@ -153,8 +153,8 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
     result = train(config)
     saved = json.loads((result.run_dir / "config.json").read_text())
     assert (saved["algorithm"], saved["intervention"], saved["variant"]) == ("sac", "shrink_perturb", "sac+shrink_perturb")
-    assert result.summary["frames"] == 400 and result.summary["resets"] == 2
-    assert [row["frame"] for row in result.evaluations] == [0, 400]
+    assert result.summary["frames"] == 500 and result.summary["resets"] == 2
+    assert [row["frame"] for row in result.evaluations] == [0, 500]
     with open(result.run_dir / "collapse_events.csv") as file:
         events = list(csv.DictReader(file))
     assert [row["intervention"] for row in events] == ["shrink_perturb", "shrink_perturb"]
@@ -163,6 +163,6 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
         tags = {row["tag"] for row in csv.DictReader(file)}
     assert {"collapse/mlp1/grad_norm", "collapse/mlp1/dormant_ratio", "collapse/action_std"} <= tags
     model = SAC.load(result.model_path)
-    assert model.num_timesteps == 16 and model.actor.latent_pi[0].out_features == 32
+    assert model.num_timesteps == 20 and model.actor.latent_pi[0].out_features == 32
     assert TrainConfig(algorithm="td3").variant_name == "td3"
     assert TrainConfig(reset_rule=True).variant_name == "drqv2+reset"

@@ -638,12 +638,19 @@ class DrQv2(OffPolicyAlgorithm):
             specifications as the constructor, e.g. ``"linear(1.0,0.1,500000)"``, durations in agent steps)
         :return: the loaded model
         :raises TypeError: for ``init_from``: loading does not transplant; build a new model with it instead
+        :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
         """
         if "init_from" in kwargs:
             raise TypeError(
                 "DrQv2.load does not transplant layers (init_from): it restores the saved weights. Build a new "
                 "model with DrQv2(policy, env, init_from={...}) to start from the layers of saved models."
             )
+        if isinstance(path, (str, os.PathLike)):
+            given = pathlib.Path(path)
+            zipped = given.with_name(given.name + ".zip")
+            if not given.is_file() and not (given.suffix != ".zip" and zipped.is_file()):
+                tried = f"{os.fspath(path)!r}" + ("" if given.suffix == ".zip" else f" (nor {os.fspath(zipped)!r})")
+                raise FileNotFoundError(f"DrQv2.load: no model file {tried}; give the path of a zip saved by DrQv2.save.")
         if "stddev_schedule" in kwargs:  # SB3 sets kwargs as attributes: parse a specification as __init__ does
             kwargs["stddev_schedule"] = StddevSchedule(kwargs["stddev_schedule"])
         return super().load(
@@ -733,17 +740,27 @@ def check_hyperparameters(
             integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
     if seed is not None:
         integer("seed", seed, 0)
+    check_device(device)
+
+
+def check_device(device: th.device | str, name: str = "device") -> None:
+    """
+    :param device: a torch device, or ``"auto"``
+    :param name: the parameter's name, for the message
+    :raises ParameterError: for a device torch does not know, or CUDA without a GPU (instead of SB3's silent
+        fallback to the CPU)
+    """
     if device == "auto":
         return
     try:
         parsed = th.device(device)
     except (RuntimeError, TypeError) as error:
-        message = f"device must be 'auto', 'cpu', 'cuda', 'cuda:N'..., got {device!r} ({error})."
-        raise ParameterError("device", message) from None
+        message = f"{name} must be 'auto', 'cpu', 'cuda', 'cuda:N'..., got {device!r} ({error})."
+        raise ParameterError(name, message) from None
     if parsed.type == "cuda" and not th.cuda.is_available():
         raise ParameterError(
-            "device",
-            f"device={str(device)!r} asks for a CUDA GPU, but torch sees none (torch.cuda.is_available() is False): "
+            name,
+            f"{name}={str(device)!r} asks for a CUDA GPU, but torch sees none (torch.cuda.is_available() is False): "
             "use device='cpu' or 'auto', or a CUDA build of torch on a machine with a GPU.",
         )
 

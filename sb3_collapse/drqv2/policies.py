@@ -32,6 +32,8 @@ from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
+from sb3_collapse.errors import ParameterError
+
 LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
 """Every named layer, input to output."""
 
@@ -95,6 +97,8 @@ class PixelEncoder(nn.Module):
     def __init__(self, observation_space: spaces.Space, channels: int = 32, channels_last: bool = True) -> None:
         super().__init__()
         check_pixel_space(observation_space)
+        for name, size in zip(("height", "width"), observation_space.shape[1:]):
+            check_image_size(size, f"observation {name}")
         in_channels = observation_space.shape[0]
         self.cnn0 = PixelNormalization(channels_last)
         self.cnn1 = nn.Sequential(nn.Conv2d(in_channels, channels, 3, stride=2), nn.ReLU(inplace=True))
@@ -424,3 +428,21 @@ def check_action_space(action_space: spaces.Space) -> None:
 def _conv_output_size(image_size: tuple[int, ...]) -> tuple[int, ...]:
     """Height and width after the encoder: 3x3 stride 2 then three 3x3 stride 1, no padding."""
     return tuple((size - 3) // 2 + 1 - 6 for size in image_size)
+
+
+MIN_IMAGE_SIZE = 15
+"""The smallest image height and width, in pixels, that the encoder's convolutions leave at least 1x1 of."""
+
+
+def check_image_size(size: int, name: str = "size") -> None:
+    """
+    :param size: an image height or width, in pixels
+    :param name: the parameter's name, for the message
+    :raises ParameterError: when the encoder's convolutions would leave nothing of it
+    """
+    if size < MIN_IMAGE_SIZE:
+        raise ParameterError(
+            name,
+            f"{name} must be >= {MIN_IMAGE_SIZE} pixels (the encoder's 3x3 convolutions, the first with stride 2, "
+            f"leave nothing of smaller images), got {size}.",
+        )

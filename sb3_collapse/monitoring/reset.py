@@ -6,6 +6,7 @@ action collapse within a window of frames, or apply another intervention
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -13,6 +14,8 @@ from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_collapse.drqv2.policies import LAYER_NAMES
+from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
@@ -50,6 +53,11 @@ class CollapseReset(FrameScheduleCallback):
     and the TensorBoard curves continue on one axis. The other interventions (``"reset_actor"``,
     ``"reset_mlp"``, ``"redo"``, ``"shrink_perturb"``) change part of the networks and keep the replay buffer;
     the rule treats them as it treats a reset (a new window starts, the streak restarts).
+
+    **At the end of the budget** no reset happens: a window that ends at or after the last frame of the
+    ``learn()`` call (its ``total_timesteps``) does not reset, since nothing would train after it. The model that
+    ``learn()`` returns (and that a run saves and evaluates last) is then the trained one, never a freshly reset
+    one.
 
     A check with no value (no update yet since the start or the reset; for ``"action_std"``, fewer stored
     transitions than ``batch_size``) is not a computation of the metric: it neither extends nor breaks the
@@ -122,6 +130,16 @@ class CollapseReset(FrameScheduleCallback):
             raise ValueError(f"max_resets must be >= 0 or None, got {max_resets}.")
         if not (callable(metric) or metric in ("grad_norm", "action_std")):
             raise ValueError(f"metric must be 'grad_norm', 'action_std' or a callable model -> float, got {metric!r}.")
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
+            raise ParameterError("threshold", f"threshold must be a finite number, got {threshold!r}.")
+        if threshold < 0 and metric in ("grad_norm", "action_std"):
+            raise ParameterError(
+                "threshold",
+                f"threshold must be >= 0 for metric={metric!r} (a norm or a spread is never negative, so every check "
+                f"would be healthy), got {threshold}.",
+            )
+        if metric == "grad_norm" and layer not in LAYER_NAMES:
+            raise ParameterError("layer", f"layer must be one of {', '.join(LAYER_NAMES)}, got {layer!r}.")
         check_intervention(intervention)
         self.intervention = intervention
         self.intervention_kwargs = dict(intervention_kwargs or {})
@@ -208,11 +226,18 @@ class CollapseReset(FrameScheduleCallback):
         super()._on_step()  # runs _on_check at check frames
         frames = self.frames
         if not self.escaped and frames - self.window_start_frame >= self.window_frames:
-            if self.max_resets is None or self.resets < self.max_resets:
+            if frames >= self._budget_end_frame():
+                pass  # the window ends with the budget: nothing trains after it, so no reset (see the class doc)
+            elif self.max_resets is None or self.resets < self.max_resets:
                 self._reset(frames)
             else:
                 self.window_start_frame = frames  # no reset left: the next window only re-arms the test
         return True
+
+    def _budget_end_frame(self) -> float:
+        """The frame at which the current ``learn()`` call ends (its ``total_timesteps``), inf when unknown."""
+        total = getattr(self.model, "_total_timesteps", None)
+        return float("inf") if not total else int(total) * self.action_repeat
 
     def _on_check(self, frames: int) -> None:
         if self.escaped:

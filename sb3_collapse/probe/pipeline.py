@@ -12,6 +12,7 @@ from typing import Any
 
 from stable_baselines3.common.utils import get_device
 
+from sb3_collapse.drqv2.drqv2 import check_device
 from sb3_collapse.probe.checkpoints import (
     Checkpoint,
     checkpoint_labels,
@@ -20,7 +21,13 @@ from sb3_collapse.probe.checkpoints import (
     read_saved_data,
 )
 from sb3_collapse.probe.errors import ProbeError
-from sb3_collapse.probe.probing import CheckpointProbe, ProbeSettings, probe_checkpoint, split_by_episode
+from sb3_collapse.probe.probing import (
+    MIN_EPISODES,
+    CheckpointProbe,
+    ProbeSettings,
+    probe_checkpoint,
+    split_by_episode,
+)
 from sb3_collapse.probe.report import (
     BY_LAYER_PLOT,
     CSV_NAME,
@@ -34,7 +41,7 @@ from sb3_collapse.probe.report import (
     write_csv,
     write_json,
 )
-from sb3_collapse.probe.rollouts import Rollouts, record_rollouts, resolve_env_config
+from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
 
 ROLLOUTS_NAME = "rollouts.npz"
 
@@ -66,6 +73,10 @@ class RecordOptions:
     frame_stack: int | None = None
     size: int | None = None
     camera_id: int | None = None
+
+    def check(self) -> None:
+        """:raises ProbeError: for a bad option, before anything is loaded or recorded"""
+        check_record_arguments(self.episodes, self.max_steps, self.noise_std)
 
 
 def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True) -> Rollouts:
@@ -119,8 +130,12 @@ def record_to_file(
     :raises ProbeError: for bad input
     """
     out = Path(out)
+    if out.is_dir():
+        raise ProbeError(f"out {out} is a folder; give the path of the .npz file to write.", parameter="out")
     if out.exists() and not overwrite:
         raise ProbeError(f"{out} exists: pass `overwrite=True` or another `out`.", parameter="out")
+    options.check()
+    check_device(device)
     checkpoint = load_checkpoint(checkpoint_path, device=get_device(device))
     rollouts = record(checkpoint, options, progress)
     path = rollouts.save(out)
@@ -174,15 +189,25 @@ def probe_to_folder(
     labels = checkpoint_labels(list(checkpoint_paths))
     device = get_device(settings.device)
     out = Path(out)
+    if rollouts_path is None:
+        record_options = record_options or RecordOptions()
+        record_options.check()
+        if record_options.episodes < MIN_EPISODES:  # checked before recording: the split needs them
+            raise ProbeError(
+                f"episodes must be >= {MIN_EPISODES} to split them into training, validation and test episodes, "
+                f"got {record_options.episodes}.",
+                parameter="episodes",
+            )
+        if (out / ROLLOUTS_NAME).exists() and not overwrite:
+            raise ProbeError(
+                f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
+            )
     with staged_output(out, overwrite=overwrite) as staged:
         if rollouts_path is None:
-            if (out / ROLLOUTS_NAME).exists() and not overwrite:
-                raise ProbeError(
-                    f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
-                )
             first = load_checkpoint(checkpoint_paths[0], device=device)
-            rollouts = record(first, record_options or RecordOptions(), settings.progress)
-            rollouts_path = rollouts.save(out / ROLLOUTS_NAME)
+            rollouts = record(first, record_options, settings.progress)
+            rollouts.save(staged.path(ROLLOUTS_NAME))  # moved into out with the other files, only on success
+            rollouts_path = out / ROLLOUTS_NAME
             print(
                 f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {rollouts_path}", flush=True
             )

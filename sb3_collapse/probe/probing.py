@@ -27,11 +27,15 @@ import torch as th
 from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
+from sb3_collapse.drqv2.drqv2 import check_device
 from sb3_collapse.monitoring import collect_activations, layer_taps
 from sb3_collapse.probe.checkpoints import Checkpoint
 from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.omp import omp_path, path_predictions
 from sb3_collapse.probe.rollouts import Rollouts
+
+MIN_EPISODES = 3
+"""Episodes a probe needs at least: one each for training, validation and test."""
 
 PROBE_LAYERS = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2")
 """The layers of Figure 1 of the paper."""
@@ -75,9 +79,10 @@ def split_by_episode(
             parameter="fractions",
         )
     episodes = np.unique(episode_ids)
-    if len(episodes) < 3:
+    if len(episodes) < MIN_EPISODES:
         raise ProbeError(
-            f"Probing needs at least 3 episodes (train, validation, test), the rollouts have {len(episodes)}."
+            f"Probing needs at least {MIN_EPISODES} episodes (train, validation, test), the rollouts have "
+            f"{len(episodes)}."
         )
     shuffled = np.random.default_rng(seed).permutation(episodes)
     n_val = max(1, round(fractions[1] * len(episodes)))
@@ -341,6 +346,10 @@ class ProbeSettings:
             raise ProbeError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
         if self.memory_gb <= 0:
             raise ProbeError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
+        try:
+            check_device(self.device)
+        except ValueError as error:
+            raise ProbeError(str(error), parameter="device") from None
 
 
 @dataclass

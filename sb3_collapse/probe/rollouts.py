@@ -190,6 +190,20 @@ def episode_length(env: Any, max_steps: int | None) -> int | None:
     return steps
 
 
+def check_record_arguments(episodes: int, max_steps: int | None, noise_std: float) -> None:
+    """
+    Check :func:`record_rollouts`' arguments before anything is built.
+
+    :raises ProbeError: naming the bad argument
+    """
+    if episodes < 1:
+        raise ProbeError(f"episodes must be >= 1, got {episodes}.", parameter="episodes")
+    if max_steps is not None and max_steps < 1:
+        raise ProbeError(f"max_steps must be >= 1 agent step, got {max_steps}.", parameter="max_steps")
+    if not noise_std >= 0:  # nan too
+        raise ProbeError(f"noise_std must be >= 0, got {noise_std}.", parameter="noise_std")
+
+
 def record_rollouts(
     model: BaseAlgorithm,
     env_config: dict[str, Any],
@@ -220,12 +234,7 @@ def record_rollouts(
     :return: the rollouts
     :raises ProbeError: when the env's observations do not fit the model
     """
-    if episodes < 1:
-        raise ProbeError(f"episodes must be >= 1, got {episodes}.", parameter="episodes")
-    if max_steps is not None and max_steps < 1:
-        raise ProbeError(f"max_steps must be >= 1 agent step, got {max_steps}.", parameter="max_steps")
-    if noise_std < 0:
-        raise ProbeError(f"noise_std must be >= 0, got {noise_std}.", parameter="noise_std")
+    check_record_arguments(episodes, max_steps, noise_std)
     try:
         env = make_dmc_env(
             env_config["task_id"], seed=seed, obs_type="pixels", **{k: env_config[k] for k in ENV_SETTINGS[1:]}

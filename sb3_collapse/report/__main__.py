@@ -85,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=list(defaults.percentiles),
         help="Figure 5's band, in percent (default: 5 95)",
     )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace the files of a previous report in the output folder"
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -114,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
             tasks=args.tasks,
             variants=args.variants,
             progress=not args.no_progress,
+            overwrite=args.overwrite,
         )
     except ReportError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)

@@ -144,6 +144,7 @@ def write_report(
     tasks: Sequence[str] | None = None,
     variants: Sequence[str] | None = None,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> Report:
     """
     The report of a sweep folder, written to ``out`` (default ``<sweep>/report/``):
@@ -166,14 +167,17 @@ def write_report(
     :param tasks: only these tasks
     :param variants: only these variants
     :param progress: show a progress bar while reading trials
+    :param overwrite: replace the outputs of a previous report in ``out``; otherwise their presence is an error
+        (checked before the sweep is read)
     :return: the report, with ``files`` the written paths
     :raises ReportError: on a bad folder, file or setting; nothing is written then
     """
     settings = settings or ReportSettings()
-    report = build_report(sweep_dir, settings, reference, include_unfinished, tasks, variants, progress)
     out_dir = Path(sweep_dir) / REPORT_FOLDER if out is None else Path(out)
+    staged_outputs = StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, overwrite=overwrite, error=ReportError)
+    report = build_report(sweep_dir, settings, reference, include_unfinished, tasks, variants, progress)
     partial = {task: [t for t in report.sweep.unfinished if t.task == task] for task in report.sweep.tasks()}
-    with StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, error=ReportError) as staged:
+    with staged_outputs as staged:
         plot_figure5(
             report.curves,
             staged.path(FIGURE5_PNG),

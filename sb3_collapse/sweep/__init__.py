@@ -3,6 +3,7 @@
 from sb3_collapse.sweep.runner import (
     RayMissingError,
     SweepSummary,
+    check_sweep_arguments,
     import_ray,
     prepare_sweep_folder,
     ray_session,
@@ -44,6 +45,7 @@ __all__ = [
     "SweepSummary",
     "Trial",
     "canonical_task",
+    "check_sweep_arguments",
     "expand_trials",
     "import_ray",
     "parse_checkpoint_specs",

@@ -17,7 +17,13 @@ from pathlib import Path
 
 from sb3_collapse.errors import cli_message
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
-from sb3_collapse.sweep.runner import RayMissingError, prepare_sweep_folder, run_sweep, sweep_settings
+from sb3_collapse.sweep.runner import (
+    RayMissingError,
+    check_sweep_arguments,
+    prepare_sweep_folder,
+    run_sweep,
+    sweep_settings,
+)
 from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
     TRANSPLANT_SOURCES,
@@ -109,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.transplant_grid:
         variants += GRID_VARIANTS
     try:
+        check_sweep_arguments(args.out, training, args.cpus_per_trial, args.gpus_per_trial)
         trials = expand_trials(args.tasks, variants, seeds)
         tasks = list(dict.fromkeys(trial.task for trial in trials))
         for task in tasks:  # each task with its own preset, each variant with its algorithm and rule

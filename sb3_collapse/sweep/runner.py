@@ -13,7 +13,10 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import os
 import shutil
+import subprocess
+import sys
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -59,7 +62,9 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
     """
     Connect to Ray for the duration of the block: an already initialized Ray is used as it is; otherwise
     ``ray.init`` starts a local instance (``address=None``, no dashboard) or connects to the cluster at
-    ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects.
+    ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects. A local
+    instance never outlives this process: a watchdog (:mod:`sb3_collapse.sweep.watchdog`) ends its processes if
+    the process dies without shutting it down (SIGKILL, out of memory).
 
     :param address: Ray cluster address, ``None`` for a new local instance
     :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``
@@ -69,14 +74,33 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
     if ray.is_initialized():
         yield ray
         return
+    watchdog = None
     if address is None:
         ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
+        watchdog = _start_watchdog()
     else:
         ray.init(address=address, log_to_driver=True)
     try:
         yield ray
     finally:
         ray.shutdown()
+        if watchdog is not None:
+            watchdog.terminate()
+            watchdog.wait()
+
+
+def _start_watchdog() -> subprocess.Popen:
+    """
+    Start :mod:`sb3_collapse.sweep.watchdog` for the local Ray instance just started, so that its processes do not
+    outlive this driver when it is killed (SIGKILL skips Ray's clean-up).
+    """
+    return subprocess.Popen(
+        [sys.executable, "-m", "sb3_collapse.sweep.watchdog", str(os.getpid())],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,  # not in the driver's process group: a Ctrl-C or a group kill does not reach it
+    )
 
 
 def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_per_trial: float) -> None:
@@ -101,6 +125,39 @@ def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_
         raise SweepError(
             f"cpus_per_trial={cpus_per_trial} is more than the {cpus:g} CPUs Ray sees.", parameter="cpus_per_trial"
         )
+
+
+def check_sweep_arguments(
+    out: str | Path, training: Mapping[str, Any], cpus_per_trial: float = 1, gpus_per_trial: float = 0
+) -> None:
+    """
+    Check what a sweep can check before it writes anything or starts Ray.
+
+    :param out: the sweep folder: a folder or nothing yet, not a file
+    :param training: the shared training settings: evaluations on (``eval_every_frames`` 0 would leave the report
+        without returns)
+    :param cpus_per_trial: CPUs per trial, > 0
+    :param gpus_per_trial: GPUs per trial, a fraction in [0, 1] or a whole number
+    :raises SweepError: naming the parameter
+    """
+    if cpus_per_trial <= 0:
+        raise SweepError(f"cpus_per_trial must be > 0, got {cpus_per_trial}.", parameter="cpus_per_trial")
+    if gpus_per_trial < 0 or (gpus_per_trial > 1 and gpus_per_trial != int(gpus_per_trial)):
+        raise SweepError(
+            f"gpus_per_trial must be a fraction in [0, 1] or a whole number, got {gpus_per_trial}.",
+            parameter="gpus_per_trial",
+        )
+    if training.get("eval_every_frames") == 0:
+        raise SweepError(
+            "eval_every_frames=0 turns the evaluations off, and a sweep's report compares evaluation returns: "
+            "leave it to the presets or give a period in frames.",
+            parameter="eval_every_frames",
+        )
+    for parent in (Path(out), *Path(out).parents):
+        if parent.exists():
+            if not parent.is_dir():
+                raise SweepError(f"out {out}: {parent} is a file, not a folder.", parameter="out")
+            break
 
 
 def write_error(folder: Path, text: str) -> None:
@@ -330,13 +387,7 @@ def run_sweep(
     :raises SweepError: for settings that cannot run (missing checkpoints, changed settings, resources)
     :raises RayMissingError: when there are trials to run and Ray is not installed
     """
-    if cpus_per_trial <= 0:
-        raise SweepError(f"cpus_per_trial must be > 0, got {cpus_per_trial}.", parameter="cpus_per_trial")
-    if gpus_per_trial < 0 or (gpus_per_trial > 1 and gpus_per_trial != int(gpus_per_trial)):
-        raise SweepError(
-            f"gpus_per_trial must be a fraction in [0, 1] or a whole number, got {gpus_per_trial}.",
-            parameter="gpus_per_trial",
-        )
+    check_sweep_arguments(out, training, cpus_per_trial, gpus_per_trial)
     unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
     if unknown:
         raise SweepError(f"Unknown training settings {unknown}: use TrainConfig field names.")

@@ -113,17 +113,24 @@ def variant_settings(variant: str) -> dict[str, Any]:
 
 def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable[int]) -> list[Trial]:
     """
-    Every (task, variant, seed) combination, in that nesting order, without duplicates.
+    Every (task, variant, seed) combination, in that nesting order.
 
     :param tasks: task names (any form of :func:`canonical_task`)
     :param variants: variant names
     :param seeds: seeds (>= 0)
     :return: the trials
-    :raises SweepError: for an unknown task or variant, a negative seed or an empty list
+    :raises SweepError: for an unknown task or variant, a negative seed, an empty list or a value listed twice
+        (``walker-walk`` and ``walker_walk`` are the same task)
     """
-    tasks = list(dict.fromkeys(canonical_task(task) for task in tasks))
-    variants = list(dict.fromkeys(variants))
-    seeds = list(dict.fromkeys(int(seed) for seed in seeds))
+    tasks = [canonical_task(task) for task in tasks]
+    variants, seeds = list(variants), [int(seed) for seed in seeds]
+    for name, values in (("tasks", tasks), ("variants", variants), ("seeds", seeds)):
+        repeated = sorted({str(value) for value in values if values.count(value) > 1})
+        if repeated:
+            raise SweepError(
+                f"{name} lists {', '.join(repeated)} more than once: each (task, variant, seed) is one trial.",
+                parameter=name,
+            )
     for variant in variants:
         transplant_of(variant)
     if any(seed < 0 for seed in seeds):

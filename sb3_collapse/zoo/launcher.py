@@ -19,9 +19,11 @@ Every rl_zoo3 flag works as in ``python -m rl_zoo3.train`` / ``enjoy``; counts (
 from __future__ import annotations
 
 import argparse
+import difflib
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from sb3_collapse.presets import PRESETS
@@ -89,6 +91,7 @@ def _peek_parser() -> argparse.ArgumentParser:
     """The few rl_zoo3 options the launcher reads (they still go to rl_zoo3)."""
     parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     parser.add_argument("--algo", default="ppo")
+    parser.add_argument("--env")
     parser.add_argument("-conf", "--conf-file", dest="conf_file")
     parser.add_argument("-optimize", "--optimize-hyperparameters", dest="optimize", action="store_true")
     parser.add_argument("--eval-freq", dest="eval_freq")
@@ -124,12 +127,47 @@ def train_arguments(zoo_args: list[str]) -> list[str]:
         raise LauncherError("--algo drqv2 needs a config file: pass -conf zoo_configs/drqv2.yml (or your own).")
     if peek.optimize:
         raise LauncherError("-optimize is not available for drqv2: rl_zoo3 has no hyperparameter sampler for it.")
+    check_env_and_config(peek.env, peek.conf_file)
     args = list(zoo_args)
     if peek.eval_freq is None:
         args += ["--eval-freq", str(DRQV2_EVAL_FREQ)]
     if peek.eval_episodes is None:
         args += ["--eval-episodes", str(DRQV2_EVAL_EPISODES)]
     return args
+
+
+def check_env_and_config(env_id: str | None, conf_file: str) -> None:
+    """
+    Check, before rl_zoo3 starts, what it would only report with a traceback: the env id is registered, and the
+    config file is a YAML mapping with an entry for it.
+
+    :param env_id: the ``--env`` of the command line (``None``: rl_zoo3's default, not checked)
+    :param conf_file: the ``-conf`` file
+    :raises LauncherError: saying what is wrong and what to pass
+    """
+    import gymnasium as gym
+    import yaml
+
+    import sb3_collapse.envs  # noqa: F401  registers the sb3_collapse/<domain>-<task>-v0 ids
+
+    if env_id is not None and env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
+        hint = f" Did you mean {', '.join(close)}?" if close else ""
+        raise LauncherError(
+            f"--env {env_id} is not a registered Gymnasium id.{hint} The DeepMind Control ids are "
+            "sb3_collapse/<domain>-<task>-v0, e.g. sb3_collapse/walker-walk-v0."
+        )
+    path = Path(conf_file)
+    if not path.is_file():
+        raise LauncherError(f"-conf {conf_file} is not a file; pass zoo_configs/drqv2.yml or your own YAML file.")
+    try:
+        config = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as error:
+        raise LauncherError(f"-conf {conf_file} is not a YAML file ({str(error).splitlines()[0]}).") from None
+    if not isinstance(config, dict):
+        raise LauncherError(f"-conf {conf_file} must map env ids to hyperparameters (rl_zoo3's format).")
+    if env_id is not None and env_id not in config:
+        raise LauncherError(f"-conf {conf_file} has no entry for {env_id}; add one or choose another --env.")
 
 
 def enjoy_arguments(zoo_args: list[str]) -> list[str]:

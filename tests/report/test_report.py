@@ -343,7 +343,7 @@ def test_failed_report_keeps_the_previous_one(fake_sweep, tmp_path, monkeypatch)
 
     monkeypatch.setattr(report_pipeline, "plot_transplant_grid", broken)
     with pytest.raises(RuntimeError, match="disk full"):
-        write_report(root, progress=False)
+        write_report(root, progress=False, overwrite=True)
     assert {p.name: p.read_bytes() for p in (root / "report").iterdir()} == before  # no .partial-* left either
 
 
@@ -351,13 +351,16 @@ def test_stale_outputs_removed(fake_sweep, tmp_path):
     root = _copy(fake_sweep, tmp_path)
     write_report(root, progress=False)
     assert (root / "report" / "transplant_grid.png").exists()
-    report = write_report(root, variants=["drqv2", "drqv2+reset"], progress=False)
+    # A second report into the same folder is refused without overwrite, before the sweep is read.
+    with pytest.raises(ReportError, match="already holds outputs .* pass `overwrite=True`"):
+        write_report(root, progress=False)
+    report = write_report(root, variants=["drqv2", "drqv2+reset"], progress=False, overwrite=True)
     assert sorted(p.name for p in (root / "report").iterdir()) == ["figure5.png", "summary.csv", "summary.md"]
     assert report.grid == {}
     # A fresh sweep with nothing finished yet still reports, with the counts of unfinished trials.
     for result in root.glob("*/*/seed_*/result.json"):
         result.unlink()
-    report = write_report(root, progress=False)
+    report = write_report(root, progress=False, overwrite=True)
     assert all(r.seeds == 0 for r in report.rows) and report.notes[0].startswith("no finished trial")
 
 

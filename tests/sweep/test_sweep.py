@@ -2,6 +2,7 @@ import csv
 import itertools
 import json
 import shutil
+import subprocess
 import sys
 import time
 import zipfile
@@ -29,8 +30,8 @@ from sb3_collapse.sweep.runner import check_resources
 
 # A tiny trial: 1000 frames = 250 agent steps of 4 frames (a whole DMC episode is then 250 agent steps, so that the
 # evaluations at frames 0 and 1000 stay cheap), 32x32 images, learning from frame 600 (agent step 150), collapse
-# checks at frames 500 and 1000, and with the reset rule a window of 500 frames (resets at frames 500 and 1000, so
-# the rule's runs never reach an update: their warm-up restarts at each reset).
+# checks at frames 500 and 1000, and with the reset rule a window of 500 frames (a reset at frame 500; none at frame
+# 1000, the budget's end; the rule's runs never reach an update: their warm-up restarts at the reset).
 TINY = [
     "--frames", "1000", "--action-repeat", "4", "--size", "32", "--seed-frames", "600", "--batch-size", "8",
     "--hidden-dim", "32", "--feature-dim", "16", "--eval-every-frames", "1000", "--eval-episodes", "1",
@@ -118,8 +119,9 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
             assert not (folder / "collapse_events.csv").exists()
         else:
             events = read_csv(folder / "collapse_events.csv")
-            assert [(row["event"], int(row["frame"])) for row in events] == [("reset", 500), ("reset", 1000)]
-            assert result["resets"] == 2 and result["reset_frames"] == [500, 1000]
+            # No reset at frame 1000: that window ends with the budget (the saved model is the evaluated one).
+            assert [(row["event"], int(row["frame"])) for row in events] == [("reset", 500)]
+            assert result["resets"] == 1 and result["reset_frames"] == [500]
             assert result["escaped"] is False and result["escape_frame"] is None
 
 
@@ -188,7 +190,7 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     out = tmp_path / "sweep"
     argv = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "cnn-good_mlp-blank",
             "--good-checkpoint", str(broken), "--out", str(out), "--no-progress-bar",
-            *TINY, "--frames", "250", "--eval-every-frames", "0", "--collapse-metrics-every-frames", "0"]  # fmt: skip
+            *TINY, "--frames", "250", "--eval-every-frames", "1000", "--collapse-metrics-every-frames", "0"]  # fmt: skip
     assert main(argv) == 1
     stdout = capsys.readouterr().out
     failed = out / "walker-walk" / "cnn-good_mlp-blank" / "seed_0"
@@ -206,7 +208,7 @@ def test_transplant_grid_cell_starts_from_the_checkpoints(tiny_sweep, tmp_path):
     out = tmp_path / "grid"
     argv = ["--tasks", "walker-walk", "--seed-list", "1", "--variants", "cnn-good_mlp-bad", "--out", str(out),
             "--good-checkpoint", str(good), "--bad-checkpoint", f"walker-walk={bad}", "--no-progress-bar",
-            *TINY, "--frames", "250", "--eval-every-frames", "0"]  # fmt: skip
+            *TINY, "--frames", "250", "--eval-every-frames", "1000"]  # fmt: skip
     assert main(argv) == 0
     folder = out / "walker-walk" / "cnn-good_mlp-bad" / "seed_1"
     config = json.loads((folder / "config.json").read_text())
@@ -227,10 +229,15 @@ def test_missing_ray_says_how_to_install_it(monkeypatch, tmp_path, capsys):
 
 
 def test_trials_variants_and_checkpoints(tmp_path):
-    trials = expand_trials(["walker_walk", "cup-catch", "walker-walk"], ["drqv2", "drqv2+reset"], [1, 0, 1])
+    trials = expand_trials(["walker_walk", "cup-catch"], ["drqv2", "drqv2+reset"], [1, 0])
     assert trials[:3] == [Trial("walker-walk", "drqv2", 1), Trial("walker-walk", "drqv2", 0),
                           Trial("walker-walk", "drqv2+reset", 1)]  # fmt: skip
     assert len(trials) == 8 and trials[-1] == Trial("ball_in_cup-catch", "drqv2+reset", 0)
+    # The same trial twice is refused, naming what repeats (walker_walk is walker-walk).
+    with pytest.raises(SweepError, match="seeds lists 1 more than once"):
+        expand_trials(["walker-walk"], ["drqv2"], [1, 0, 1])
+    with pytest.raises(SweepError, match="tasks lists walker-walk more than once"):
+        expand_trials(["walker_walk", "walker-walk"], ["drqv2"], [0])
     assert trial_dir("runs", trials[2]).as_posix() == "runs/walker-walk/drqv2+reset/seed_1"
     assert len(GRID_VARIANTS) == 9 and transplant_of("cnn-bad_mlp-good") == {"cnn": "bad", "mlp": "good"}
     assert transplant_of("drqv2") is None
@@ -313,8 +320,8 @@ def test_resources_and_settings_checks():
 def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
     from sb3_collapse.report import ReportSettings, write_report
 
-    # At frame 1000 the plain runs have an mlp1 gradient norm, the reset runs (reset at frames 500 and 1000, no
-    # update since) have none: collapse "unknown" for them, not stuck.
+    # At frame 1000 the plain runs have an mlp1 gradient norm, the reset runs (reset at frame 500, no update since:
+    # the warm-up restarts) have none: collapse "unknown" for them, not stuck.
     report = write_report(
         tiny_sweep, out=tmp_path / "report", settings=ReportSettings(collapse_checks=1), progress=False
     )
@@ -339,21 +346,44 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
     ]
     assert rows["drqv2"].collapse_unknown == 0
     assert rows["drqv2"].stuck == sum(norm <= 1e-3 for norm in last_grad_norms)
-    assert rows["drqv2+reset"].resets_total == 4 and rows["drqv2+reset"].seeds_reset == 2
+    assert rows["drqv2+reset"].resets_total == 2 and rows["drqv2+reset"].seeds_reset == 2
     assert rows["drqv2+reset"].collapse_unknown == 2 and rows["drqv2+reset"].stuck == 0
     markdown = (tmp_path / "report" / "summary.md").read_text()
     assert "drqv2+reset" in markdown and "walker-walk" in markdown
     assert read_csv(tmp_path / "report" / "summary.csv")[0]["task"] == "walker-walk"
 
 
+def test_killed_driver_leaves_no_ray_process(tmp_path):
+    import psutil
+
+    out = tmp_path / "sweep"
+    argv = [sys.executable, "-m", "sb3_collapse.sweep", *TINY_TRIALS[:2], "--seeds", "1", "--variants", "drqv2",
+            "--out", str(out), "--no-progress-bar", *TINY, "--frames", "4000"]  # fmt: skip
+    driver = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "walker-walk" / "drqv2" / "seed_0" / "config.json").exists():  # the trial is training
+            assert time.monotonic() < deadline and driver.poll() is None, "the sweep's trial did not start"
+            time.sleep(0.5)
+        time.sleep(1)
+        ray_processes = psutil.Process(driver.pid).children(recursive=True)
+        names = {process.name() for process in ray_processes}
+        assert any("raylet" in name for name in names) and len(ray_processes) >= 4  # GCS, raylet, agents, worker
+    finally:
+        driver.kill()  # SIGKILL: Ray's own clean-up never runs
+        driver.wait()
+    _, alive = psutil.wait_procs(ray_processes, timeout=30)
+    assert [process.name() for process in alive] == []  # Ray's agents (ray::DashboardAgent...) included
+
+
 # Issue 15's comparison: the paper's reset, ReDo and SB3's TD3 with the reset, side by side. A few hundred frames:
-# 16 agent steps of 25 frames (a DMC episode is then 40 agent steps, so the evaluations at frames 0 and 400 stay
+# 20 agent steps of 25 frames (a DMC episode is then 40 agent steps, so the evaluations at frames 0 and 500 stay
 # cheap), 48x48 images (TD3's NatureCNN takes 36x36 at least), updates from agent step 5, and a window of 200
-# frames: every trial intervenes at frames 200 and 400.
+# frames: every trial intervenes at frames 200 and 400 (not at the budget's end).
 COMPARISON = [
     "--tasks", "cartpole-balance", "--seeds", "2", "--variants", "drqv2+reset", "drqv2+redo", "td3+reset",
-    "--frames", "400", "--action-repeat", "25", "--size", "48", "--hidden-dim", "64", "--feature-dim", "16",
-    "--batch-size", "8", "--seed-frames", "100", "--eval-every-frames", "400", "--eval-episodes", "1",
+    "--frames", "500", "--action-repeat", "25", "--size", "48", "--hidden-dim", "64", "--feature-dim", "16",
+    "--batch-size", "8", "--seed-frames", "100", "--eval-every-frames", "500", "--eval-episodes", "1",
     "--collapse-metrics-every-frames", "200", "--collapse-probe-batch", "4", "--reset-window-frames", "200",
     "--replay-sampling", "sb3", "--cpus-per-trial", "1",
 ]  # fmt: skip
@@ -375,7 +405,7 @@ def test_sweep_compares_interventions_and_sb3_algorithms(ray_local, tmp_path, mo
             config = json.loads((folder / "config.json").read_text())
             assert (config["algorithm"], config["intervention"]) == (algorithm, intervention) and config["reset_rule"]
             result = json.loads((folder / "result.json").read_text())
-            assert result["variant"] == variant and result["frames"] == 400 and result["agent_steps"] == 16
+            assert result["variant"] == variant and result["frames"] == 500 and result["agent_steps"] == 20
             assert result["resets"] == 2 and result["reset_frames"] == [200, 400]
             events = read_csv(folder / "collapse_events.csv")
             assert [(row["event"], row["frame"], row["intervention"]) for row in events] == [
@@ -394,7 +424,7 @@ def test_sweep_compares_interventions_and_sb3_algorithms(ray_local, tmp_path, mo
     rows = {row.variant: row for row in report.rows}
     assert list(rows) == ["drqv2+reset", "drqv2+redo", "td3+reset"]
     for row in rows.values():
-        assert row.seeds == 2 and row.final_frame == 400 and row.resets_total == 4 and row.seeds_reset == 2
+        assert row.seeds == 2 and row.final_frame == 500 and row.resets_total == 4 and row.seeds_reset == 2
     assert (tmp_path / "report" / "figure5.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
     (axes,) = [ax for ax in figures[0].axes if ax.get_visible()]
     legend = [text.get_text() for text in axes.get_legend().get_texts()]

@@ -257,7 +257,7 @@ def test_launcher_trains_and_enjoys(tmp_path, capsys):
         (["bogus"], "unknown sub-command 'bogus'"),
         ([], "missing sub-command"),
         (["train", "--algo", "drqv2", "--env", WALKER], "-conf zoo_configs/drqv2.yml"),
-        (["train", "--algo", "drqv2", "--env", WALKER, "-conf", "missing.yml"], "missing.yml not found"),
+        (["train", "--algo", "drqv2", "--env", WALKER, "-conf", "missing.yml"], "-conf missing.yml is not a file"),
         (["train", "--algo", "drqv2", "--env", WALKER, "-conf", str(CONFIG), "-optimize"], "no hyperparameter sampler"),
         (["enjoy", "--algo", "drqv2", "--reset-rule"], "train options"),
     ],
@@ -270,7 +270,7 @@ def test_bad_command_lines(argv, message, capsys):
 @pytest.mark.parametrize(
     ("env_id", "params", "message"),
     [
-        ("sb3_collapse/cheetah-run-v0", [], "add an entry for sb3_collapse/cheetah-run-v0"),
+        ("sb3_collapse/cheetah-run-v0", [], "has no entry for sb3_collapse/cheetah-run-v0; add one"),
         (WALKER, ["-params", "frame_stack:4"], "env_kwargs: {frame_stack: ...}"),
         (WALKER, ["-params", "normalize:True"], "remove normalize"),
         (WALKER, ["-params", "stddev_schedule:'linear(1.0)'"], "stddev_schedule"),
