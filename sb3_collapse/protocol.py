@@ -90,7 +90,7 @@ EVAL_CSV = "eval.csv"
 COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
 """One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
 COLLAPSE_EVENTS_CSV = "collapse_events.csv"
-"""One row per reset or escape of the reset rule (columns :data:`COLLAPSE_EVENT_FIELDS`)."""
+"""One row per intervention (reset...) or escape of the reset rule (columns :data:`COLLAPSE_EVENT_FIELDS`)."""
 FINAL_MODEL = "final_model.zip"
 """The final model, ``DrQv2.save``."""
 CHECKPOINTS_DIR = "checkpoints"
@@ -102,7 +102,9 @@ SWEEP_JSON = "sweep.json"
 
 EVAL_FIELDS = ("frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s")
 COLLAPSE_METRICS_FIELDS = ("frame", "step", "tag", "value")
-COLLAPSE_EVENT_FIELDS = ("frame", "step", "event", "resets")
+COLLAPSE_EVENT_FIELDS = ("frame", "step", "event", "resets", "intervention", "detail")
+"""``event``: ``reset`` (any intervention) or ``escape``; ``intervention``: the rule's (``reset``, ``redo``...);
+``detail``: what the intervention did, one line. Files of earlier versions have the first four columns only."""
 RESULT_KEYS = (
     "status",
     "task",
@@ -214,9 +216,18 @@ def append_csv_rows(path: str | os.PathLike, fieldnames: Sequence[str], rows: It
     :param path: the CSV file (its folder must exist)
     :param fieldnames: the columns, in order
     :param rows: one dict per row, keyed by column
+    :raises ValueError: when the file has another header (e.g. written by an older version): nothing is appended
     """
     path = Path(path)
     new_file = not path.exists() or path.stat().st_size == 0
+    if not new_file:
+        with path.open(newline="") as file:
+            header = next(csv.reader(file), [])
+        if header != list(fieldnames):
+            raise ValueError(
+                f"{path} has the columns {','.join(header)}, not {','.join(fieldnames)}: it was written by another "
+                "version or another writer. Move it away (or write to another path); nothing was appended to it."
+            )
     with path.open("a", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=fieldnames)
         if new_file:

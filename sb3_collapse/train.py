@@ -12,6 +12,10 @@ TensorBoard events and ``progress.csv`` (the SB3 logger), the evaluations, the c
 events, the final model (load it with ``DrQv2.load``) and the result (written last: a folder without it is an
 unfinished run).
 
+``--algorithm td3`` or ``sac`` trains SB3's own TD3 or SAC from the same pixels instead (built by
+:func:`sb3_collapse.baselines.build_baseline`; the DrQ-v2-only settings are reported unused); ``--reset-rule``
+applies the paper's rule, ``--intervention`` chooses what it does (:mod:`sb3_collapse.monitoring.interventions`).
+
 ``--init-cnn``, ``--init-mlp`` and ``--init-critic`` start the encoder, the actor or the critic from the weights of a
 saved DrQv2 (the paper's layer transplants, ``DrQv2(init_from=...)``). Sweeps of many such runs on Ray:
 ``python -m sb3_collapse.sweep --help``.
@@ -38,12 +42,14 @@ from typing import Any
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
+from sb3_collapse.baselines import BASELINES, DRQV2_ONLY_SETTINGS, NATURE_CNN_MIN_SIZE, build_baseline
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.drqv2.drqv2 import check_hyperparameters
 from sb3_collapse.drqv2.policies import check_image_size
@@ -53,7 +59,7 @@ from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.errors import InputError, ParameterError, cli_message
-from sb3_collapse.monitoring import CollapseMetrics, CollapseReset
+from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset, frames_of
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
@@ -71,6 +77,9 @@ from sb3_collapse.protocol import (
     write_failure,
     write_json_atomically,
 )
+
+ALGORITHMS = ("drqv2", *BASELINES)
+"""What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
 
 PRESET, USER = "preset", "user"
 """Where a preset setting's value came from, in the run's settings file."""
@@ -122,7 +131,13 @@ class TrainConfig:
     :param collapse_metrics_every_frames: frames between two ``CollapseMetrics`` checks (collapse metrics of every
         named layer to TensorBoard); ``0`` disables them
     :param collapse_probe_batch: observations of the replay buffer in each ``CollapseMetrics`` probe batch
+    :param algorithm: ``"drqv2"``, or SB3's ``"td3"`` or ``"sac"`` from the same pixels, with DrQ-v2's network sizes
+        (:func:`sb3_collapse.baselines.build_baseline`; they do not use the DrQ-v2-only settings
+        :data:`sb3_collapse.baselines.DRQV2_ONLY_SETTINGS`, nor layer transplants)
     :param reset_rule: apply the paper's reset-from-scratch rule (``CollapseReset``)
+    :param intervention: what the reset rule does at the end of a window without escape (``"reset"``,
+        ``"reset_actor"``, ``"reset_mlp"``, ``"redo"``, ``"shrink_perturb"``, see
+        :mod:`sb3_collapse.monitoring.interventions`); ``None``: ``"reset"``, the paper's. Needs ``reset_rule``
     :param reset_window_frames: frames the agent has to escape collapse before a reset (the rule's window)
     :param init_cnn: checkpoint (``DrQv2.save`` zip) whose encoder (``cnn1``..``cnn4``) the model starts from;
         ``None``: random (see ``DrQv2``'s ``init_from``, the paper's layer transplants)
@@ -140,8 +155,8 @@ class TrainConfig:
     :param torch_threads: threads of torch's CPU operations (``torch.set_num_threads``); ``None``: torch's default
     :param progress_bar: show a progress bar
     :param verbose: SB3 verbosity (0: silent, 1: log tables)
-    :param variant: name of the variant in the settings and the result; ``None``: ``"drqv2+reset"`` with the reset
-        rule, else ``"drqv2"``
+    :param variant: name of the variant in the settings and the result; ``None``: ``<algorithm>+<intervention>``
+        with the reset rule (``"drqv2+reset"``), else ``<algorithm>`` (``"drqv2"``)
     :param transplant: the sources of the initial weights, as the sweep's transplant grid names them
         (``{"cnn": "blank" | "good" | "bad", "mlp": ...}``), recorded in the settings; ``None``: not a grid cell
     """
@@ -174,7 +189,9 @@ class TrainConfig:
     replay_sampling: str | None = None
     collapse_metrics_every_frames: int = PAPER.check_every_frames
     collapse_probe_batch: int = 512
+    algorithm: str = "drqv2"
     reset_rule: bool = False
+    intervention: str | None = None
     reset_window_frames: int = PAPER.window_frames
     init_cnn: str | None = None
     init_mlp: str | None = None
@@ -233,6 +250,40 @@ class TrainConfig:
         :raises ParameterError: with a message naming the bad setting
         """
         config = self if self.resolved else self.resolve()
+        if config.algorithm not in ALGORITHMS:
+            raise ParameterError(
+                "algorithm", f"algorithm must be one of {', '.join(ALGORITHMS)}, got {config.algorithm!r}."
+            )
+        if config.intervention is not None:
+            if config.intervention not in INTERVENTIONS:
+                raise ParameterError(
+                    "intervention",
+                    f"intervention must be one of {', '.join(INTERVENTIONS)}, got {config.intervention!r}.",
+                )
+            if not config.reset_rule:
+                raise ParameterError(
+                    "intervention", f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
+                )
+        if config.algorithm in BASELINES and config.size < NATURE_CNN_MIN_SIZE:
+            raise ParameterError(
+                "size",
+                f"size must be >= {NATURE_CNN_MIN_SIZE} pixels for algorithm={config.algorithm!r} (SB3's NatureCNN), "
+                f"got {config.size}.",
+            )
+        if config.algorithm != "drqv2":
+            for name, default in (("n_envs", 1), ("step_envs_during_updates", False), ("compile_update", False)):
+                if getattr(config, name) != default:
+                    raise ParameterError(
+                        name,
+                        f"{name}={getattr(config, name)!r} is a DrQv2 option (docs/throughput.md); algorithm="
+                        f"{config.algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}.",
+                    )
+        if config.algorithm != "drqv2" and config.init_from:
+            raise ParameterError(
+                f"init_{next(iter(config.init_from))}",
+                f"init_{next(iter(config.init_from))}: layer transplants are for DrQ-v2 checkpoints; "
+                f"algorithm={config.algorithm!r} cannot start from them.",
+            )
         try:
             StddevSchedule(config.stddev_schedule)  # type: ignore[arg-type]
         except ValueError as error:
@@ -315,7 +366,7 @@ class TrainConfig:
         """:attr:`variant`, or the name of the plain variant these settings run."""
         if self.variant is not None:
             return self.variant
-        return "drqv2+reset" if self.reset_rule else "drqv2"
+        return f"{self.algorithm}+{self.intervention or 'reset'}" if self.reset_rule else self.algorithm
 
     def record(self) -> dict[str, Any]:
         """
@@ -357,7 +408,7 @@ class PeriodicEvaluation(BaseCallback):
         self.rows: list[dict[str, float]] = []
 
     def _frames(self) -> int:
-        return self.model.num_timesteps * self.model.action_repeat  # type: ignore[attr-defined]
+        return frames_of(self.model)
 
     def _on_training_start(self) -> None:
         self.next_eval_frame = self._frames()
@@ -414,7 +465,7 @@ class TrainResult:
 def run_summary(
     config: TrainConfig,
     task_id: str,
-    model: DrQv2,
+    model: BaseAlgorithm,
     evaluations: list[dict[str, float]],
     reset_rule: CollapseReset | None,
     wall_time_s: float,
@@ -442,7 +493,7 @@ def run_summary(
         "task": task_id,
         "variant": config.variant_name,
         "seed": config.seed,
-        "frames": int(model.num_timesteps * model.action_repeat),
+        "frames": int(frames_of(model)),
         "agent_steps": int(model.num_timesteps),
         "final_eval": None
         if last is None
@@ -522,7 +573,7 @@ def train(config: TrainConfig) -> TrainResult:
     try:
         return _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time)
     except BaseException as error:
-        write_failure(run_dir, model.num_timesteps, model.num_frames, error)
+        write_failure(run_dir, model.num_timesteps, frames_of(model), error)
         raise
 
 
@@ -541,35 +592,53 @@ def _training_env(config: TrainConfig, task_id: str, env_kwargs: dict[str, Any])
 
 def _build(
     config: TrainConfig, task_id: str, env_kwargs: dict[str, Any]
-) -> tuple[Monitor | SubprocVecEnv, Monitor | None, DrQv2]:
+) -> tuple[Monitor | SubprocVecEnv, Monitor | None, BaseAlgorithm]:
     """The training env(s), the evaluation env (``None`` without evaluations) and the model of :func:`train`."""
     env = _training_env(config, task_id, env_kwargs)
     eval_env = None
     if config.eval_every_frames > 0:
         eval_env = Monitor(make_dmc_env(task_id, seed=config.seed + 100_000, **env_kwargs))
-    model = DrQv2(
-        "CnnPolicy",
-        env,
-        learning_rate=config.learning_rate,
-        buffer_size=config.buffer_size,
-        learning_starts=config.seed_frames // config.action_repeat,
-        batch_size=config.batch_size,
-        tau=config.tau,
-        gamma=config.gamma,
-        train_freq=config.train_freq,
-        n_steps=config.n_steps,
-        stddev_schedule=config.stddev_schedule,
-        stddev_clip=config.stddev_clip,
-        augmentation_pad=config.augmentation_pad,
-        replay_buffer_kwargs=dict(sampling=config.replay_sampling),
-        policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim),
-        seed=config.seed,
-        device=config.device,
-        verbose=config.verbose,
-        init_from=config.init_from or None,
-        step_envs_during_updates=config.step_envs_during_updates,
-        compile_update=config.compile_update,
-    )
+    model: BaseAlgorithm
+    if config.algorithm != "drqv2":  # SB3's TD3 or SAC from the same pixels
+        model = build_baseline(
+            config.algorithm,
+            env,
+            learning_rate=config.learning_rate,  # type: ignore[arg-type]
+            buffer_size=config.buffer_size,  # type: ignore[arg-type]
+            learning_starts=config.seed_frames // config.action_repeat,  # type: ignore[operator]
+            batch_size=config.batch_size,  # type: ignore[arg-type]
+            feature_dim=config.feature_dim,  # type: ignore[arg-type]
+            hidden_dim=config.hidden_dim,  # type: ignore[arg-type]
+            gamma=config.gamma,  # type: ignore[arg-type]
+            frame_stack=config.frame_stack,
+            seed=config.seed,
+            device=config.device,
+            verbose=config.verbose,
+        )
+    else:
+        model = DrQv2(
+            "CnnPolicy",
+            env,
+            learning_rate=config.learning_rate,
+            buffer_size=config.buffer_size,
+            learning_starts=config.seed_frames // config.action_repeat,
+            batch_size=config.batch_size,
+            tau=config.tau,
+            gamma=config.gamma,
+            train_freq=config.train_freq,
+            n_steps=config.n_steps,
+            stddev_schedule=config.stddev_schedule,
+            stddev_clip=config.stddev_clip,
+            augmentation_pad=config.augmentation_pad,
+            replay_buffer_kwargs=dict(sampling=config.replay_sampling),
+            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim),
+            seed=config.seed,
+            device=config.device,
+            verbose=config.verbose,
+            init_from=config.init_from or None,
+            step_envs_during_updates=config.step_envs_during_updates,
+            compile_update=config.compile_update,
+        )
     return env, eval_env, model
 
 
@@ -577,7 +646,7 @@ def _train_into(
     config: TrainConfig,
     task_id: str,
     run_dir: Path,
-    model: DrQv2,
+    model: BaseAlgorithm,
     env: Monitor | SubprocVecEnv,
     eval_env: Monitor | None,
     steps: int,
@@ -594,7 +663,7 @@ def _train_into(
         callbacks.append(evaluation)
     if config.checkpoint_every_frames > 0:
         save_freq = max(1, config.checkpoint_every_frames // config.action_repeat)
-        callbacks.append(CheckpointCallback(save_freq, str(run_dir / CHECKPOINTS_DIR), name_prefix="drqv2"))
+        callbacks.append(CheckpointCallback(save_freq, str(run_dir / CHECKPOINTS_DIR), name_prefix=config.algorithm))
     if config.collapse_metrics_every_frames > 0:
         metrics = CollapseMetrics(
             config.collapse_metrics_every_frames,
@@ -607,7 +676,9 @@ def _train_into(
         reset_rule = CollapseReset(
             config.reset_window_frames,
             check_every_frames=min(PAPER.check_every_frames, config.reset_window_frames),
+            batch_size=config.collapse_probe_batch,
             events_path=run_dir / COLLAPSE_EVENTS_CSV,
+            intervention=config.intervention or "reset",
             verbose=1,
         )
         callbacks.append(reset_rule)
@@ -617,12 +688,19 @@ def _train_into(
     origin = f"DrQ-v2's {task_preset.tier} preset" if task_preset.from_drqv2 else (
         f"the {task_preset.tier} tier (DrQ-v2 published no config for {task_id})"
     )
+    if config.algorithm == "drqv2":
+        algorithm = "DrQ-v2"
+        details = f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {config.replay_sampling} replay sampling"
+    else:
+        algorithm = f"SB3's {type(model).__name__}"
+        details = f"lr {config.learning_rate:g}; DrQ-v2-only settings not used: {', '.join(DRQV2_ONLY_SETTINGS)}"
+    rule = f", reset rule: {config.intervention or 'reset'}" if config.reset_rule else ""
     print(
-        f"DrQ-v2 on {task_id} from pixels: {config.frames:,} frames = {steps:,} agent steps "
+        f"{algorithm} on {task_id} from pixels{rule}: {config.frames:,} frames = {steps:,} agent steps "
         f"(action repeat {config.action_repeat}{f', summed over {config.n_envs} envs' if config.n_envs > 1 else ''}), "
         f"seed {config.seed}, device {model.device}.\n"
         f"Settings: {origin}" + (f", overridden: {', '.join(user)}" if user else "") + f" (batch {config.batch_size}, "
-        f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {config.replay_sampling} replay sampling).\n"
+        f"{details}).\n"
         f"Writing to {run_dir} (tensorboard --logdir {run_dir if config.run_dir else config.logdir})",
         flush=True,
     )
@@ -715,7 +793,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--logdir", default=d.logdir, help="parent folder of the run folder <task>_s<seed> (default: %(default)s)")
     g.add_argument("--run-name", default=d.run_name, help="run folder name instead of <task>_s<seed>")
     g.add_argument("--run-dir", default=d.run_dir, help="the exact run folder (new or empty), instead of --logdir/--run-name")
+    g.add_argument("--algorithm", choices=ALGORITHMS, default=d.algorithm, help="drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes (docs/interventions.md) (default: %(default)s)")
     g.add_argument("--reset-rule", action="store_true", help="reset training from scratch when the agent has not escaped action collapse within each window (the paper's rule)")
+    g.add_argument("--intervention", choices=tuple(INTERVENTIONS), help="what the reset rule does instead of a reset from scratch (with --reset-rule; docs/interventions.md)")
     g.add_argument("--init-cnn", default=d.init_cnn, help="start the encoder from this DrQv2 checkpoint (zip); default: random")
     g.add_argument("--init-mlp", default=d.init_mlp, help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random")
     g.add_argument("--init-critic", default=d.init_critic, help="start the critic from this DrQv2 checkpoint (zip); default: random")

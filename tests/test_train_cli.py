@@ -5,6 +5,7 @@ import sys
 
 import numpy as np
 import pytest
+from stable_baselines3 import SAC
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import DrQv2
@@ -127,6 +128,10 @@ def test_help_documents_units():
         (["--eval-episodes", "0"], "--eval-episodes must be >= 1"),
         (["--torch-threads", "0"], "--torch-threads must be >= 1"),
         (["--init-mlp", "missing.zip"], "--init-mlp: init_from['mlp']: checkpoint 'missing.zip' does not exist"),
+        (["--intervention", "redo"], "--intervention='redo' is what the reset rule does: set --reset-rule"),
+        (["--algorithm", "td3", "--size", "32"], "--size must be >= 36 pixels for algorithm='td3' (SB3's NatureCNN)"),
+        (["--algorithm", "sac", "--init-cnn", "x.zip"], "layer transplants are for DrQ-v2 checkpoints"),
+        (["--algorithm", "ppo"], "invalid choice: 'ppo'"),
     ],
 )
 def test_bad_arguments_exit_with_a_message(argv, message, capsys):
@@ -134,6 +139,33 @@ def test_bad_arguments_exit_with_a_message(argv, message, capsys):
         main(argv)
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_train_sb3_sac_with_an_intervention(tmp_path):
+    # 20 agent steps of 25 frames; the rule's window of 200 frames ends at frames 200 and 400.
+    config = TrainConfig(
+        env="cartpole-balance", algorithm="sac", reset_rule=True, intervention="shrink_perturb", frames=500,
+        action_repeat=25, size=48, hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=500,
+        eval_episodes=1, collapse_metrics_every_frames=200, collapse_probe_batch=4, reset_window_frames=200,
+        run_dir=str(tmp_path / "run"), progress_bar=False, torch_threads=1,
+    )
+    assert config.variant_name == "sac+shrink_perturb"
+    result = train(config)
+    saved = json.loads((result.run_dir / "config.json").read_text())
+    assert (saved["algorithm"], saved["intervention"], saved["variant"]) == ("sac", "shrink_perturb", "sac+shrink_perturb")
+    assert result.summary["frames"] == 500 and result.summary["resets"] == 2
+    assert [row["frame"] for row in result.evaluations] == [0, 500]
+    with open(result.run_dir / "collapse_events.csv") as file:
+        events = list(csv.DictReader(file))
+    assert [row["intervention"] for row in events] == ["shrink_perturb", "shrink_perturb"]
+    assert events[0]["detail"].startswith("theta <- 0.8 theta + 0.2 fresh init on the actor, critic")
+    with open(result.run_dir / "collapse_metrics.csv") as file:
+        tags = {row["tag"] for row in csv.DictReader(file)}
+    assert {"collapse/mlp1/grad_norm", "collapse/mlp1/dormant_ratio", "collapse/action_std"} <= tags
+    model = SAC.load(result.model_path)
+    assert model.num_timesteps == 20 and model.actor.latent_pi[0].out_features == 32
+    assert TrainConfig(algorithm="td3").variant_name == "td3"
+    assert TrainConfig(reset_rule=True).variant_name == "drqv2+reset"
 
 
 def test_train_with_parallel_envs(tmp_path):
@@ -158,3 +190,5 @@ def test_train_with_parallel_envs(tmp_path):
     assert model.n_envs == 2 and model._n_updates == 10 and model.num_frames == 320
     with open(tmp_path / "run" / "eval.csv") as file:  # the single evaluation env, at 0 and 320 frames
         assert [int(row["frame"]) for row in csv.DictReader(file)] == [0, 320]
+    with pytest.raises(ValueError, match=r"n_envs=2 is a DrQv2 option"):
+        TrainConfig(algorithm="sac", n_envs=2).validate()

@@ -60,6 +60,7 @@ from sb3_collapse.drqv2.transplant import (
     transplant,
 )
 from sb3_collapse.errors import ParameterError
+from sb3_collapse.monitoring.grad_norms import GradNormRecorder
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
 
@@ -273,7 +274,8 @@ class DrQv2(OffPolicyAlgorithm):
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
         self._round, self._round_used_policy = PhaseTime(), False
         self.env_config = _read_env_config(self.env) if self.env is not None else None
-        self._last_grad_norms: th.Tensor | None = None
+        self.grad_norm_recorder: GradNormRecorder | None = None
+        """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
         self._train_stats: dict[str, th.Tensor] = {}
         self._train_stats_count = 0
         self._warned_replay_not_ready = False
@@ -319,11 +321,15 @@ class DrQv2(OffPolicyAlgorithm):
         self.policy.exploration_std = self.current_stddev
 
     def _index_grad_layers(self) -> None:
-        """The named layers whose gradient norms the update measures, read from the current networks."""
-        self._encoder_layers = _layers_with_parameters(self.encoder.named_layers())
-        self._actor_layers = _layers_with_parameters(self.actor.named_layers())
-        self._grad_layers = self._encoder_layers + self._actor_layers
-        self._encoder_grad_norms = th.zeros(len(self._encoder_layers), device=self.device)
+        """
+        Hook a new :class:`~sb3_collapse.monitoring.grad_norms.GradNormRecorder` on the current optimizers (the
+        previous one, if any, is removed): ``cnn1``..``cnn4`` are recorded when the encoder's optimizer steps,
+        ``mlp0``..``action`` when the actor's does.
+        """
+        if self.grad_norm_recorder is not None:
+            self.grad_norm_recorder.remove()
+        layers = {name: list(module.parameters()) for name, module in self.policy.named_layers().items()}
+        self.grad_norm_recorder = GradNormRecorder({k: v for k, v in layers.items() if v}, self.policy.optimizers)
 
     def _select_replay_buffer(self) -> None:
         """
@@ -434,12 +440,9 @@ class DrQv2(OffPolicyAlgorithm):
         """
         L2 norm of the gradient of each named layer's parameters at the last update (``cnn1``..``cnn4``
         from the critic loss, ``mlp0``..``action`` from the actor loss); empty before the first update.
-        Reading it needs no extra backward pass.
+        Recorded by :attr:`grad_norm_recorder` when the optimizers step: reading it needs no extra backward pass.
         """
-        if self._last_grad_norms is None:
-            return {}
-        values = self._last_grad_norms.tolist()
-        return {name: value for (name, _), value in zip(self._grad_layers, values)}
+        return {} if self.grad_norm_recorder is None else self.grad_norm_recorder.last()
 
     # ------------------------------------------------------------------ acting
     def _in_warmup(self, learning_starts: int) -> bool:
@@ -669,7 +672,7 @@ class DrQv2(OffPolicyAlgorithm):
         self._add_train_stat("target_q_mean", target_q.detach().mean())
         self._add_train_stat("actor_loss", actor_loss.detach())
         self._add_train_stat("batch_reward", data.rewards.mean())
-        self._add_train_stat("grad_norms", self._last_grad_norms)  # type: ignore[arg-type]
+        self._add_train_stat("grad_norms", self.grad_norm_recorder.norms)  # type: ignore[union-attr,arg-type]
         self._train_stats_count += 1
 
     def _critic_loss(
@@ -730,12 +733,11 @@ class DrQv2(OffPolicyAlgorithm):
         return -th.min(q1, q2).mean()
 
     def _update_critic(self, critic_loss: th.Tensor) -> None:
-        """Critic and encoder step on ``critic_loss`` (from :meth:`_critic_loss`), measuring the encoder's gradients."""
+        """Critic and encoder step on ``critic_loss`` (from :meth:`_critic_loss`)."""
         for optimizer in (self.encoder.optimizer, self.critic.optimizer):
             if optimizer is not None:
                 optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
-        self._encoder_grad_norms = self._layer_grad_norms(self._encoder_layers)
         self.critic.optimizer.step()
         if self.encoder.optimizer is not None:
             self.encoder.optimizer.step()
@@ -744,9 +746,7 @@ class DrQv2(OffPolicyAlgorithm):
         """Actor step on ``actor_loss`` (from :meth:`_actor_loss`): the encoder and the critic do not change."""
         self.actor.optimizer.zero_grad(set_to_none=True)
         actor_loss.backward(inputs=list(self.actor.parameters()))
-        actor_grad_norms = self._layer_grad_norms(self._actor_layers)
         self.actor.optimizer.step()
-        self._last_grad_norms = th.cat([self._encoder_grad_norms, actor_grad_norms])
 
     def _loss_functions(self) -> tuple[Any, Any]:
         """:meth:`_critic_loss` and :meth:`_actor_loss`, compiled once (lazily) when ``compile_update`` says so."""
@@ -767,19 +767,6 @@ class DrQv2(OffPolicyAlgorithm):
             self.compile_update, self.device
         ) in CUDA_GRAPH_MODES
 
-    def _layer_grad_norms(self, layers: list[tuple[str, list[th.nn.Parameter]]]) -> th.Tensor:
-        """L2 norm of the gradient of each given layer, as one tensor on the device (no host sync)."""
-        norms = []
-        for _, params in layers:
-            grads = [p.grad for p in params if p.grad is not None]
-            if grads:
-                norms.append(th.linalg.vector_norm(th.stack(th._foreach_norm(grads))))
-            else:
-                norms.append(th.zeros((), device=self.device))
-        if not norms:
-            return th.zeros(0, device=self.device)
-        return th.stack(norms).detach()
-
     def _add_train_stat(self, name: str, value: th.Tensor) -> None:
         """Accumulate a statistic on the device; it is averaged and logged at the next ``dump_logs``."""
         self._train_stats[name] = self._train_stats[name] + value if name in self._train_stats else value.clone()
@@ -792,7 +779,7 @@ class DrQv2(OffPolicyAlgorithm):
         stats = {name: value.detach().cpu() for name, value in self._train_stats.items()}
         for name, value in stats.items():
             if name == "grad_norms":
-                for (layer, _), norm in zip(self._grad_layers, (value / n).tolist()):
+                for layer, norm in zip(self.grad_norm_recorder.names, (value / n).tolist()):  # type: ignore[union-attr]
                     self.logger.record(f"train/grad_norm/{layer}", norm)
             else:
                 self.logger.record(f"train/{name}", float(value) / n)
@@ -921,8 +908,7 @@ class DrQv2(OffPolicyAlgorithm):
         self.policy.to(self.device)
         self.policy.set_training_mode(was_training)
         self._create_aliases()
-        self._index_grad_layers()
-        self._last_grad_norms = None
+        self._index_grad_layers()  # a new recorder, on the new optimizers: no norm until the next update
         self.replay_buffer.reset()  # type: ignore[union-attr]
         self.reset_step = self.num_timesteps
         self.policy.exploration_std = self.current_stddev
@@ -991,11 +977,7 @@ class DrQv2(OffPolicyAlgorithm):
             "critic",
             "critic_target",
             "callback",
-            "_grad_layers",
-            "_encoder_layers",
-            "_actor_layers",
-            "_encoder_grad_norms",
-            "_last_grad_norms",
+            "grad_norm_recorder",
             "_train_stats",
             "_train_stats_count",
             "_warned_replay_not_ready",
@@ -1137,12 +1119,6 @@ def _frozen(module: th.nn.Module) -> Iterator[None]:
 def physical_memory_bytes() -> int:
     """Total RAM of this machine, in bytes."""
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
-def _layers_with_parameters(layers: dict[str, th.nn.Module]) -> list[tuple[str, list[th.nn.Parameter]]]:
-    """``(name, parameters)`` of the named layers that have parameters (``cnn0`` has none)."""
-    with_params = ((name, list(module.parameters())) for name, module in layers.items())
-    return [(name, params) for name, params in with_params if params]
 
 
 def _read_env_config(env: VecEnv) -> dict[str, Any] | None:

@@ -20,13 +20,13 @@ import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
+from sb3_collapse.monitoring.activations import collect_activations
+from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
 from sb3_collapse.monitoring.metrics import (
     DORMANT_TAU,
     SATURATION_LIMIT,
     SRANK_DELTA,
     action_spread,
-    gradient_norm,
     layer_metrics,
     saturated_fraction,
 )
@@ -64,24 +64,6 @@ def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
     return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
 
 
-def grad_norms_of(model: BaseAlgorithm) -> dict[str, float]:
-    """
-    L2 gradient norm of each named layer at the model's last update, without any backward pass.
-
-    DrQv2 keeps them on the device at each update (``model.last_grad_norms``: one host transfer here, none per
-    update). For SB3's TD3, DDPG and SAC they are read from the ``.grad`` that the last actor update left on
-    the parameters of :func:`~sb3_collapse.monitoring.activations.layer_parameters`.
-
-    :param model: a DrQv2, TD3, DDPG or SAC model
-    :return: layer name -> norm; empty before the first update (or the first update after a reset)
-    """
-    norms = getattr(model, "last_grad_norms", None)
-    if norms is not None:
-        return dict(norms)
-    params = layer_parameters(model)
-    if not any(p.grad is not None for layer in params.values() for p in layer):
-        return {}
-    return {name: gradient_norm(p.grad for p in layer) for name, layer in params.items()}
 
 
 class ProbeBatchSampler:
@@ -118,6 +100,18 @@ class ProbeBatchSampler:
         :return: ``(observations, buffer indices)``, or ``None`` while the buffer holds fewer than
             ``batch_size`` transitions
         """
+        drawn = self.sample_transitions(model, batch_size)
+        return None if drawn is None else (drawn[0].observations, drawn[1])
+
+    def sample_transitions(self, model: BaseAlgorithm, batch_size: int) -> tuple[Any, np.ndarray] | None:
+        """
+        Like :meth:`sample`, with the whole stored transitions (observations, actions as stored, rewards...).
+
+        :param model: an off-policy model with a ``replay_buffer``
+        :param batch_size: transitions to draw
+        :return: ``(ReplayBufferSamples, buffer indices)``, or ``None`` while the buffer holds fewer than
+            ``batch_size`` transitions
+        """
         buffer = getattr(model, "replay_buffer", None)
         if buffer is None:
             raise TypeError(f"{type(model).__name__} has no replay buffer to draw a probe batch from.")
@@ -133,11 +127,11 @@ class ProbeBatchSampler:
             samples = buffer._get_samples(indices, env=env)
         finally:
             np.random.set_state(state)
-        return samples.observations, indices
+        return samples, indices
 
     def _sample_where_sampleable(
         self, buffer: Any, positions: np.ndarray, batch_size: int, env: Any
-    ) -> tuple[th.Tensor, np.ndarray] | None:
+    ) -> tuple[Any, np.ndarray] | None:
         """
         Draw ``(position, env)`` pairs among those whose frames ``buffer.frames_stored``; ``None`` if too few. Any
         stored observation will do for a probe, whatever the buffer's sampling rule for updates.
@@ -148,7 +142,7 @@ class ProbeBatchSampler:
             return None
         chosen = pairs[np.sort(self.rng.choice(len(pairs), size=batch_size, replace=False))]
         samples = buffer._get_samples(chosen[:, 0], env=env, env_indices=chosen[:, 1])
-        return samples.observations, chosen[:, 0]
+        return samples, chosen[:, 0]
 
 
 class FrameScheduleCallback(BaseCallback):
@@ -214,8 +208,9 @@ class CollapseMetrics(FrameScheduleCallback):
     - ``collapse/<layer>/numerical_rank``, ``srank``, ``correlation``, ``zero_fraction``, ``dead_fraction``,
       ``dormant_ratio``;
     - ``collapse/<layer>/grad_norm``: the gradient norm of the layer at the **last update** before the check
-      (DrQv2's ``last_grad_norms``, computed in the update without extra backward pass; the paper computes it
-      at each check), for layers with parameters, once an update happened;
+      (recorded when the optimizers step, without extra backward pass, see
+      :mod:`~sb3_collapse.monitoring.grad_norms`; the paper computes it at each check), for layers with
+      parameters, once an update happened;
     - ``collapse/action_std`` (:func:`~sb3_collapse.monitoring.metrics.action_spread`) and
       ``collapse/action_saturation`` (:func:`~sb3_collapse.monitoring.metrics.saturated_fraction`) of the
       deterministic actions;
@@ -271,6 +266,7 @@ class CollapseMetrics(FrameScheduleCallback):
 
     def _init_callback(self) -> None:
         super()._init_callback()
+        track_grad_norms(self.model)
         self.sampler = ProbeBatchSampler(self.seed if self.seed is not None else self._seed())
         if self.csv_path is not None:
             append_csv_rows(self.csv_path, self.CSV_FIELDS, [])

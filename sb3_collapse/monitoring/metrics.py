@@ -180,10 +180,21 @@ def dormant_ratio(activations: th.Tensor, tau: float = DORMANT_TAU) -> float:
     :param tau: threshold, relative to the layer's mean (``0.025`` in ReDo's reinforcement-learning experiments)
     :return: a fraction in ``[0, 1]``
     """
+    return float(dormant_units(activations, tau).double().mean())
+
+
+def dormant_units(activations: th.Tensor, tau: float = DORMANT_TAU) -> th.Tensor:
+    """
+    Which units are dormant in the sense of :func:`dormant_ratio` (the units that ReDo recycles).
+
+    :param activations: ``(n, d)`` or ``(n, C, height, width)`` activations
+    :param tau: threshold, relative to the layer's mean
+    :return: boolean mask of shape ``(units,)``
+    """
     if tau < 0:
         raise ValueError(f"tau must be >= 0, got {tau}.")
     score = unit_activations(activations).double().abs().mean(1)
-    return float((score / (score.mean() + 1e-9) <= tau).double().mean())
+    return score / (score.mean() + 1e-9) <= tau
 
 
 def action_spread(actions: th.Tensor) -> float:

@@ -1,6 +1,7 @@
 """
 The action-collapse paper's rule (Section 5.2): reset the training from scratch when the agent has not escaped
-action collapse within a window of frames.
+action collapse within a window of frames, or apply another intervention
+(:mod:`~sb3_collapse.monitoring.interventions`).
 """
 
 from __future__ import annotations
@@ -9,13 +10,21 @@ import math
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2.policies import LAYER_NAMES
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
-from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler, grad_norms_of
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler
+from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
+from sb3_collapse.monitoring.interventions import (
+    InterventionResult,
+    apply_intervention,
+    check_intervention,
+    forget_reset,
+)
 from sb3_collapse.monitoring.metrics import action_spread
 from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, PAPER, append_csv_rows
 
@@ -24,21 +33,26 @@ Trigger = str | Callable[[BaseAlgorithm], "float | None"]
 
 class CollapseReset(FrameScheduleCallback):
     """
-    Resets the training from scratch while the agent is stuck in action collapse (the paper's rule).
+    Resets the training from scratch while the agent is stuck in action collapse (the paper's rule), or applies
+    another ``intervention``, on a DrQv2, TD3, DDPG or SAC model.
 
     The defaults are the paper's, :data:`sb3_collapse.protocol.PAPER` (Section 5.2).
 
     Every ``check_every_frames`` frames (agent steps x action repeat) the callback reads a health value, by
-    default the gradient L2 norm of the layer that produces ``layer`` at the last update (DrQv2's
-    ``last_grad_norms``: no extra backward pass, one host transfer per check). A value ``> threshold`` is
-    healthy. Once ``patience`` consecutive checks are healthy the agent has **escaped** collapse: the frame is
-    logged and the rule never fires again in this run. When a window of ``window_frames`` since the start of
-    training or the last reset ends without an escape, ``model.reset_from_scratch()`` restarts the training:
-    new random encoder, actor, critic and target critic, new optimizers, an empty replay buffer, and the
-    exploration schedule and the uniform-random warm-up restart from the reset (see
-    :meth:`sb3_collapse.DrQv2.reset_from_scratch`). ``num_timesteps`` is not reset: the budget of ``learn()``
-    is spent by the resets, not extended (the paper's Proposition 1), and the TensorBoard curves continue on
-    one axis.
+    default the gradient L2 norm of the layer that produces ``layer`` (``mlp1``) at the last update (recorded
+    when the optimizer steps, see :mod:`~sb3_collapse.monitoring.grad_norms`: no extra backward pass, one host
+    transfer per check). A value ``> threshold`` is healthy. Once ``patience`` consecutive checks are healthy the
+    agent has **escaped** collapse: the frame is logged and the rule never fires again in this run. When a window
+    of ``window_frames`` since the start of training or the last intervention ends without an escape, the
+    intervention is applied (:mod:`~sb3_collapse.monitoring.interventions`). The default, ``"reset"``, restarts
+    the training: new random encoder, actor, critic and target networks, new optimizers, an empty replay buffer,
+    and the exploration schedule and the uniform-random warm-up restart from the reset (see
+    :meth:`sb3_collapse.DrQv2.reset_from_scratch` and
+    :func:`~sb3_collapse.monitoring.interventions.reset_from_scratch` for TD3, DDPG and SAC). ``num_timesteps``
+    is not reset: the budget of ``learn()`` is spent by the resets, not extended (the paper's Proposition 1),
+    and the TensorBoard curves continue on one axis. The other interventions (``"reset_actor"``,
+    ``"reset_mlp"``, ``"redo"``, ``"shrink_perturb"``) change part of the networks and keep the replay buffer;
+    the rule treats them as it treats a reset (a new window starts, the streak restarts).
 
     **At the end of the budget** no reset happens: a window that ends at or after the last frame of the
     ``learn()`` call (its ``total_timesteps``) does not reset, since nothing would train after it. The model that
@@ -51,13 +65,19 @@ class CollapseReset(FrameScheduleCallback):
     the first step whose frame count reaches the window's end.
 
     Logged at each check and each event, at the agent step (``logger.dump``): ``collapse/reset_rule/value``
-    (when there is one), ``collapse/reset_rule/streak``, ``collapse/resets`` (resets so far),
-    ``collapse/escaped`` (0 or 1), ``collapse/reset_frame`` (at each reset) and ``collapse/escape_frame`` (at
-    the escape). The same facts are in :attr:`resets`, :attr:`reset_frames`, :attr:`escaped`,
+    (when there is one), ``collapse/reset_rule/streak``, ``collapse/resets`` (interventions so far),
+    ``collapse/escaped`` (0 or 1), ``collapse/reset_frame`` (at each intervention), what the intervention did
+    (``collapse/intervention/<key>``, see :class:`~sb3_collapse.monitoring.interventions.InterventionResult`:
+    ``weights_changed`` always, ``transitions_dropped`` for a reset, ``units_recycled`` and ``units_total`` for
+    ReDo) and ``collapse/escape_frame`` (at the escape). The same facts are in :attr:`resets`,
+    :attr:`reset_frames`, :attr:`interventions` (one result per intervention), :attr:`escaped`,
     :attr:`escape_frame`, and every check's ``(frame, value)`` in :attr:`history`. With ``events_path``, each
-    reset and the escape also append a row ``frame, step, event, resets`` to a CSV file (``event`` is ``reset``
-    or ``escape``, ``resets`` the resets so far, this one included); the file gets its header when the callback
-    is initialized, so a run without events leaves a header-only file.
+    intervention and the escape also append a row to a CSV file with the columns :attr:`EVENT_FIELDS`:
+    ``frame, step, event, resets, intervention, detail`` (``event`` is ``reset`` for any intervention, or
+    ``escape``; ``resets`` the interventions so far, this one included; ``intervention`` the rule's intervention;
+    ``detail`` what it did, one line, empty for an escape). The file gets its header when the callback is
+    initialized, so a run without events leaves a header-only file; a file with another header (an older
+    version's ``frame, step, event, resets``) is refused rather than appended to.
 
     The state carries over to the next ``learn(reset_num_timesteps=False)`` call with the same callback
     (e.g. one given to ``DrQv2(callback=...)``); a ``learn()`` that restarts from agent step 0 starts it over.
@@ -73,9 +93,15 @@ class CollapseReset(FrameScheduleCallback):
         actions on a probe batch of the replay buffer, see
         :func:`~sb3_collapse.monitoring.metrics.action_spread`), or a callable ``model -> float | None``
         (``None``: no value at this check); above ``threshold`` is healthy in every case
-    :param batch_size: probe batch for ``metric="action_std"``
-    :param events_path: CSV file that each reset and the escape append a row to (``None``: no file)
-    :param verbose: 0 silent, 1 prints each reset and the escape
+    :param batch_size: probe batch of replay observations for ``metric="action_std"`` and for
+        ``intervention="redo"`` (the batch its dormant units are measured on)
+    :param events_path: CSV file that each intervention and the escape append a row to (``None``: no file)
+    :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's),
+        ``"reset_actor"``, ``"reset_mlp"``, ``"redo"`` or ``"shrink_perturb"`` (see
+        :mod:`~sb3_collapse.monitoring.interventions`)
+    :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"`` or
+        ``{"shrink": 0.5, "perturb": 0.1}`` for ``"shrink_perturb"`` (``None``: its defaults)
+    :param verbose: 0 silent, 1 prints each intervention and the escape
     """
 
     EVENT_FIELDS = COLLAPSE_EVENT_FIELDS
@@ -91,6 +117,8 @@ class CollapseReset(FrameScheduleCallback):
         metric: Trigger = "grad_norm",
         batch_size: int = 512,
         events_path: str | os.PathLike | None = None,
+        intervention: str = "reset",
+        intervention_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,
     ) -> None:
         super().__init__(check_every_frames, verbose)
@@ -112,6 +140,11 @@ class CollapseReset(FrameScheduleCallback):
             )
         if metric == "grad_norm" and layer not in LAYER_NAMES:
             raise ParameterError("layer", f"layer must be one of {', '.join(LAYER_NAMES)}, got {layer!r}.")
+        check_intervention(intervention)
+        self.intervention = intervention
+        self.intervention_kwargs = dict(intervention_kwargs or {})
+        if intervention == "redo":
+            self.intervention_kwargs.setdefault("batch_size", batch_size)
         self.window_frames = window_frames
         self.threshold = threshold
         self.patience = patience
@@ -128,33 +161,44 @@ class CollapseReset(FrameScheduleCallback):
         self.streak = 0
         self.resets = 0
         self.reset_frames: list[int] = []
+        self.interventions: list[InterventionResult] = []
         self.escaped = False
         self.escape_frame: int | None = None
         self.history: list[tuple[int, float | None]] = []
 
     def _init_callback(self) -> None:
         super()._init_callback()
-        if not callable(getattr(self.model, "reset_from_scratch", None)):
-            raise TypeError(
-                f"CollapseReset needs a model with a reset_from_scratch() method, such as sb3_collapse.DrQv2; "
-                f"{type(self.model).__name__} has none. Use CollapseMetrics to only watch the metrics."
-            )
+        try:
+            check_intervention(self.intervention, self.model)
+        except TypeError as error:
+            raise TypeError(f"CollapseReset: {error} Use CollapseMetrics to only watch the metrics.") from None
         if self.metric == "grad_norm":
             names = list(layer_parameters(self.model))
             if self.layer not in names:
                 raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
+            track_grad_norms(self.model)
         self.sampler = ProbeBatchSampler(self._seed())
+        if self.intervention == "redo":
+            self.intervention_kwargs.setdefault("sampler", self.sampler)
         if self.events_path is not None:
             append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
 
-    def _write_event(self, frames: int, event: str) -> None:
+    def _write_event(self, frames: int, event: str, detail: str = "") -> None:
         if self.events_path is not None:
-            row = {"frame": frames, "step": self.num_timesteps, "event": event, "resets": self.resets}
+            row = {
+                "frame": frames,
+                "step": self.num_timesteps,
+                "event": event,
+                "resets": self.resets,
+                "intervention": self.intervention,
+                "detail": detail,
+            }
             append_csv_rows(self.events_path, self.EVENT_FIELDS, [row])
 
     def _on_training_start(self) -> None:
         super()._on_training_start()
         if self.num_timesteps == 0:  # a new run (learn() with reset_num_timesteps=True)
+            forget_reset(self.model)  # an SB3 model reset in an earlier run gets its warm-up length back
             self._reset_state(window_start_frame=0)
         elif self.resets == 0 and self.window_start_frame == 0:
             # A loaded model that was reset in an earlier process: its window starts at its last reset.
@@ -213,15 +257,21 @@ class CollapseReset(FrameScheduleCallback):
         self._record(frames)
 
     def _reset(self, frames: int) -> None:
-        self.model.reset_from_scratch()  # type: ignore[attr-defined]
+        result = apply_intervention(self.model, self.intervention, **self.intervention_kwargs)
+        self.interventions.append(result)
         self.resets += 1
         self.reset_frames.append(frames)
         self.window_start_frame = frames
         self.streak = 0
-        self._write_event(frames, "reset")
+        self._write_event(frames, "reset", result.detail)
         if self.verbose >= 1:
-            print(f"CollapseReset: no escape within {self.window_frames} frames, training reset at frame {frames}")
+            print(
+                f"CollapseReset: no escape within {self.window_frames} frames, {self.intervention} at frame {frames}: "
+                f"{result.detail}"
+            )
         self.logger.record("collapse/reset_frame", frames)
+        for key, value in result.scalars.items():
+            self.logger.record(f"collapse/intervention/{key}", value)
         self._record(frames)
 
     def _record(self, frames: int) -> None:

@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import EngFormatter
 
+from sb3_collapse.monitoring.interventions import INTERVENTION_LABELS
 from sb3_collapse.protocol import PAPER
 from sb3_collapse.report.loading import Trial
 from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, BandCurve, GridCell
@@ -28,6 +29,19 @@ def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...]]:
     """
     cmap = plt.get_cmap("tab10" if len(variants) <= 10 else "tab20")
     return {variant: cmap(i % cmap.N) for i, variant in enumerate(variants)}
+
+
+def variant_label(variant: str) -> str:
+    """
+    The legend's name of a variant: a variant ``<algorithm>+<intervention>`` of the sweep gets the intervention's
+    name (``"drqv2+redo"`` -> ``"drqv2+redo: ReDo"``); any other name is kept.
+
+    :param variant: a variant name
+    :return: its label
+    """
+    _, plus, intervention = variant.partition("+")
+    label = INTERVENTION_LABELS.get(intervention) if plus else None
+    return variant if label is None else f"{variant}: {label}"
 
 
 def _panels(count: int, columns: int = 3) -> tuple[plt.Figure, np.ndarray]:
@@ -64,7 +78,8 @@ def plot_figure5(
 ) -> None:
     """
     The paper's Figure 5: one panel per task, per variant the mean evaluation return over frames (solid) and the
-    percentile band across seeds (shaded); the legend gives the seed counts.
+    percentile band across seeds (shaded), one colour per variant in every panel; the legend names each variant's
+    intervention (:func:`variant_label`) and gives the seed counts.
 
     :param curves: task -> the variants' curves
     :param path: the PNG file to write
@@ -114,7 +129,12 @@ def plot_figure5(
             color = colors[curve.name]
             marker = "o" if len(curve.frames) == 1 else None  # a single evaluation is a point, not a line
             ax.plot(
-                curve.frames, curve.mean, color=color, lw=2.0, marker=marker, label=f"{curve.name} (n={curve.seeds})"
+                curve.frames,
+                curve.mean,
+                color=color,
+                lw=2.0,
+                marker=marker,
+                label=f"{variant_label(curve.name)} (n={curve.seeds})",
             )
             ax.fill_between(curve.frames, curve.low, curve.high, color=color, alpha=0.2, lw=0.0)
         labelled: set[str] = set()
@@ -122,7 +142,11 @@ def plot_figure5(
             if len(trial.frames) == 0:
                 continue
             count = sum(t.variant == trial.variant and len(t.frames) > 0 for t in partial[task])
-            label = None if trial.variant in labelled else f"{trial.variant} unfinished, partial (n={count})"
+            label = (
+                None
+                if trial.variant in labelled
+                else f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
+            )
             labelled.add(trial.variant)
             ax.plot(trial.frames, trial.returns, ":", color=colors[trial.variant], lw=1.0, label=label)
         ax.set_title(task)

@@ -29,6 +29,7 @@ from sb3_collapse.sweep.trials import (
     trial_config,
     trial_dir,
     trial_status,
+    variant_settings,
 )
 
 __all__ = [
@@ -58,4 +59,5 @@ __all__ = [
     "trial_config",
     "trial_dir",
     "trial_status",
+    "variant_settings",
 ]

@@ -16,6 +16,7 @@ from collections import Counter
 from pathlib import Path
 
 from sb3_collapse.errors import cli_message
+from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.sweep.runner import (
     RayMissingError,
     check_sweep_arguments,
@@ -25,7 +26,6 @@ from sb3_collapse.sweep.runner import (
 )
 from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
-    PLAIN_VARIANTS,
     TRANSPLANT_SOURCES,
     SweepError,
     check_checkpoints,
@@ -33,8 +33,9 @@ from sb3_collapse.sweep.trials import (
     parse_checkpoint_specs,
     trial_dir,
     trial_status,
+    variant_settings,
 )
-from sb3_collapse.train import TrainConfig, training_arguments, training_settings
+from sb3_collapse.train import ALGORITHMS, TrainConfig, training_arguments, training_settings
 
 DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
 
@@ -58,9 +59,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument(
         "--variants",
         nargs="+",
-        help=f"{' '.join(PLAIN_VARIANTS)} (the paper's reset rule) or transplant-grid cells cnn-<src>_mlp-<src>, "
-        f"<src> in {'/'.join(TRANSPLANT_SOURCES)}; default: {' '.join(DEFAULT_VARIANTS)} (only the grid with "
-        "--transplant-grid)",
+        help=f"<algorithm> or <algorithm>+<intervention> (the paper's rule doing that intervention), <algorithm> in "
+        f"{'/'.join(ALGORITHMS)} (td3, sac: SB3's, from the same pixels), <intervention> in {'/'.join(INTERVENTIONS)} "
+        f"(e.g. drqv2+reset, drqv2+redo, td3+reset; docs/interventions.md), or transplant-grid cells "
+        f"cnn-<src>_mlp-<src>, <src> in {'/'.join(TRANSPLANT_SOURCES)}; default: {' '.join(DEFAULT_VARIANTS)} (only "
+        "the grid with --transplant-grid)",
     )
     g.add_argument("--transplant-grid", action="store_true", help="add the 9 cells of the CNN x MLP transplant grid")
     for source in ("good", "bad"):
@@ -115,8 +118,9 @@ def main(argv: list[str] | None = None) -> int:
         check_sweep_arguments(args.out, training, args.cpus_per_trial, args.gpus_per_trial)
         trials = expand_trials(args.tasks, variants, seeds)
         tasks = list(dict.fromkeys(trial.task for trial in trials))
-        for task in tasks:  # each task with its own preset
-            TrainConfig(**training, env=task).validate()
+        for task in tasks:  # each task with its own preset, each variant with its algorithm and rule
+            for variant in dict.fromkeys(trial.variant for trial in trials):
+                TrainConfig(**training, env=task, **variant_settings(variant)).validate()
         checkpoints = {
             source: parse_checkpoint_specs(getattr(args, f"{source}_checkpoint"), tasks, f"--{source}-checkpoint")
             for source in ("good", "bad")

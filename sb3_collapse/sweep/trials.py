@@ -3,8 +3,12 @@ The trials of a sweep: one per (task, variant, seed), each in its own folder ``<
 
 Variants:
 
-- ``drqv2``: plain DrQ-v2;
-- ``drqv2+reset``: DrQ-v2 with the paper's reset-from-scratch rule (:class:`~sb3_collapse.CollapseReset`);
+- ``drqv2``: plain DrQ-v2; ``td3``, ``sac``: SB3's TD3 or SAC from the same pixels, with DrQ-v2's network sizes
+  (:mod:`sb3_collapse.baselines`);
+- ``<algorithm>+<intervention>``: the algorithm with the paper's rule (:class:`~sb3_collapse.CollapseReset`) doing
+  the intervention at the end of each window without escape: ``drqv2+reset`` (the paper's reset from scratch),
+  ``drqv2+redo``, ``td3+reset``, ``sac+shrink_perturb``... (interventions:
+  :mod:`sb3_collapse.monitoring.interventions`);
 - ``cnn-<src>_mlp-<src>`` with ``<src>`` in ``blank``, ``good``, ``bad``: a cell of the paper's transplant grid
   (Study 2, Figure 3a), plain DrQ-v2 whose encoder (CNN) and actor (MLP) start from the weights of a "good" or a
   "bad" checkpoint of the same task, or blank (the usual random initialization); the critic starts blank.
@@ -21,10 +25,15 @@ from typing import Any
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import parse_task
 from sb3_collapse.errors import InputError
+from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.protocol import ERROR_TXT, FINISHED, RESULT_JSON, trial_path
-from sb3_collapse.train import TrainConfig
+from sb3_collapse.train import ALGORITHMS, TrainConfig
 
-PLAIN_VARIANTS = ("drqv2", "drqv2+reset")
+PLAIN_VARIANTS = tuple(
+    f"{algorithm}{suffix}" for algorithm in ALGORITHMS for suffix in ("", *(f"+{name}" for name in INTERVENTIONS))
+)
+"""``<algorithm>`` and ``<algorithm>+<intervention>``: ``drqv2``, ``drqv2+reset``, ``drqv2+reset_actor``..., ``td3``,
+``td3+reset``..., ``sac``..."""
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
 """The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
@@ -80,9 +89,26 @@ def transplant_of(variant: str) -> dict[str, str] | None:
         cnn, mlp = variant.split("_")
         return {"cnn": cnn.removeprefix("cnn-"), "mlp": mlp.removeprefix("mlp-")}
     raise SweepError(
-        f"Unknown variant {variant!r}: use {', '.join(PLAIN_VARIANTS)} or a transplant-grid cell "
-        f"cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} (e.g. cnn-good_mlp-bad)."
+        f"Unknown variant {variant!r}: use <algorithm> or <algorithm>+<intervention> with <algorithm> in "
+        f"{', '.join(ALGORITHMS)} and <intervention> in {', '.join(INTERVENTIONS)} (e.g. drqv2+reset, td3+redo), "
+        f"or a transplant-grid cell cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} "
+        "(e.g. cnn-good_mlp-bad)."
     )
+
+
+def variant_settings(variant: str) -> dict[str, Any]:
+    """
+    The :class:`~sb3_collapse.train.TrainConfig` settings a variant fixes.
+
+    :param variant: a variant name
+    :return: ``algorithm``, ``reset_rule`` and ``intervention`` (``None`` without the rule); transplant-grid cells
+        are plain DrQ-v2
+    :raises SweepError: for an unknown variant
+    """
+    if transplant_of(variant) is not None:
+        return {"algorithm": "drqv2", "reset_rule": False, "intervention": None}
+    algorithm, _, intervention = variant.partition("+")
+    return {"algorithm": algorithm, "reset_rule": bool(intervention), "intervention": intervention or None}
 
 
 def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable[int]) -> list[Trial]:
@@ -220,7 +246,8 @@ def trial_config(
 ) -> TrainConfig:
     """
     The settings of one trial: the sweep's training settings, the trial's task and seed, its exact folder,
-    the variant's reset rule and initial weights, no progress bar. The DrQ-v2 settings the sweep leaves at
+    the variant's algorithm, reset rule and intervention (:func:`variant_settings`) and initial weights, no
+    progress bar. The DrQ-v2 settings the sweep leaves at
     ``None`` come from the trial's task preset (:func:`sb3_collapse.presets.preset`), so each task trains with its
     own; one given to the sweep overrides every task's preset. The config is resolved (:meth:`TrainConfig.resolve`).
 
@@ -238,7 +265,7 @@ def trial_config(
         "env": trial.task,
         "seed": trial.seed,
         "run_dir": str(trial_dir(out, trial)),
-        "reset_rule": trial.variant == "drqv2+reset",
+        **variant_settings(trial.variant),
         "variant": trial.variant,
         "transplant": transplant,
         "device": device,

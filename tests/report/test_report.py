@@ -386,3 +386,13 @@ def test_reference_is_cut_at_the_sweeps_last_frame():
     whole = _clip_reference(reference, 40_000)
     np.testing.assert_allclose(whole[1], reference.mean)
     assert len(_clip_reference(reference, None)[0]) == 3
+
+
+def test_legend_names_the_intervention_of_a_variant():
+    from sb3_collapse.report.plots import variant_label
+
+    assert variant_label("drqv2+redo") == "drqv2+redo: ReDo"
+    assert variant_label("td3+reset") == "td3+reset: reset from scratch"
+    assert variant_label("sac+shrink_perturb") == "sac+shrink_perturb: shrink & perturb"
+    for other in ("drqv2", "cnn-good_mlp-bad", "mine+tweak"):  # other names are kept
+        assert variant_label(other) == other

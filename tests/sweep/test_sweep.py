@@ -23,6 +23,7 @@ from sb3_collapse.sweep import (
     trial_config,
     trial_dir,
     trial_status,
+    variant_settings,
 )
 from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.runner import check_resources
@@ -258,6 +259,15 @@ def test_trials_variants_and_checkpoints(tmp_path):
     with pytest.raises(SweepError, match="not a task of this sweep"):
         parse_checkpoint_specs([f"finger-spin={good}"], tasks, "--bad-checkpoint")
 
+    assert variant_settings("drqv2") == {"algorithm": "drqv2", "reset_rule": False, "intervention": None}
+    assert variant_settings("td3+reset") == {"algorithm": "td3", "reset_rule": True, "intervention": "reset"}
+    assert variant_settings("sac+shrink_perturb")["intervention"] == "shrink_perturb"
+    assert variant_settings("cnn-good_mlp-bad") == {"algorithm": "drqv2", "reset_rule": False, "intervention": None}
+    for unknown in ("td4", "drqv2+restart", "drqv2+", "+redo"):
+        with pytest.raises(SweepError, match="<algorithm>\\+<intervention> with <algorithm> in drqv2, td3, sac"):
+            expand_trials(["walker-walk"], [unknown], [0])
+    redo = trial_config(Trial("walker-walk", "sac+redo", 0), tmp_path, {"frames": 800})
+    assert (redo.algorithm, redo.reset_rule, redo.intervention, redo.variant_name) == ("sac", True, "redo", "sac+redo")
     config = trial_config(Trial("walker-walk", "drqv2+reset", 3), tmp_path, {"frames": 800}, torch_threads=2)
     assert config.reset_rule and config.seed == 3 and config.frames == 800 and config.torch_threads == 2
     assert config.run_dir == str(tmp_path / "walker-walk" / "drqv2+reset" / "seed_3") and not config.progress_bar
@@ -364,3 +374,66 @@ def test_killed_driver_leaves_no_ray_process(tmp_path):
         driver.wait()
     _, alive = psutil.wait_procs(ray_processes, timeout=30)
     assert [process.name() for process in alive] == []  # Ray's agents (ray::DashboardAgent...) included
+
+
+# Issue 15's comparison: the paper's reset, ReDo and SB3's TD3 with the reset, side by side. A few hundred frames:
+# 20 agent steps of 25 frames (a DMC episode is then 40 agent steps, so the evaluations at frames 0 and 500 stay
+# cheap), 48x48 images (TD3's NatureCNN takes 36x36 at least), updates from agent step 5, and a window of 200
+# frames: every trial intervenes at frames 200 and 400 (not at the budget's end).
+COMPARISON = [
+    "--tasks", "cartpole-balance", "--seeds", "2", "--variants", "drqv2+reset", "drqv2+redo", "td3+reset",
+    "--frames", "500", "--action-repeat", "25", "--size", "48", "--hidden-dim", "64", "--feature-dim", "16",
+    "--batch-size", "8", "--seed-frames", "100", "--eval-every-frames", "500", "--eval-episodes", "1",
+    "--collapse-metrics-every-frames", "200", "--collapse-probe-batch", "4", "--reset-window-frames", "200",
+    "--replay-sampling", "sb3", "--cpus-per-trial", "1",
+]  # fmt: skip
+
+
+def test_sweep_compares_interventions_and_sb3_algorithms(ray_local, tmp_path, monkeypatch):
+    from stable_baselines3 import TD3
+
+    from sb3_collapse.report import plots, write_report
+
+    out = tmp_path / "comparison"
+    start = time.perf_counter()
+    assert main([*COMPARISON, "--out", str(out), "--no-progress-bar"]) == 0
+    print(f"comparison sweep: 6 trials in {time.perf_counter() - start:.1f} s")
+    expected = {"drqv2+reset": ("drqv2", "reset"), "drqv2+redo": ("drqv2", "redo"), "td3+reset": ("td3", "reset")}
+    for variant, (algorithm, intervention) in expected.items():
+        for seed in (0, 1):
+            folder = out / "cartpole-balance" / variant / f"seed_{seed}"
+            config = json.loads((folder / "config.json").read_text())
+            assert (config["algorithm"], config["intervention"]) == (algorithm, intervention) and config["reset_rule"]
+            result = json.loads((folder / "result.json").read_text())
+            assert result["variant"] == variant and result["frames"] == 500 and result["agent_steps"] == 20
+            assert result["resets"] == 2 and result["reset_frames"] == [200, 400]
+            events = read_csv(folder / "collapse_events.csv")
+            assert [(row["event"], row["frame"], row["intervention"]) for row in events] == [
+                ("reset", "200", intervention),
+                ("reset", "400", intervention),
+            ]
+            what = "hidden units recycled (tau 0.025)" if intervention == "redo" else "replay buffer emptied"
+            assert all(what in row["detail"] for row in events)
+    td3 = TD3.load(out / "cartpole-balance" / "td3+reset" / "seed_0" / "final_model.zip")
+    assert td3.actor.features_extractor.features_dim == 16 and td3.actor.mu[0].out_features == 64
+    assert td3.reset_step == 16 and td3.learning_starts == 16 + 4  # the warm-up restarted at the last reset
+
+    figures = []  # the report's figure, kept open to read its legend
+    monkeypatch.setattr(plots.plt, "close", figures.append)
+    report = write_report(out, out=tmp_path / "report", progress=False)
+    rows = {row.variant: row for row in report.rows}
+    assert list(rows) == ["drqv2+reset", "drqv2+redo", "td3+reset"]
+    for row in rows.values():
+        assert row.seeds == 2 and row.final_frame == 500 and row.resets_total == 4 and row.seeds_reset == 2
+    assert (tmp_path / "report" / "figure5.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+    (axes,) = [ax for ax in figures[0].axes if ax.get_visible()]
+    legend = [text.get_text() for text in axes.get_legend().get_texts()]
+    assert legend == [
+        "drqv2+reset: reset from scratch (n=2)",
+        "drqv2+redo: ReDo (n=2)",
+        "td3+reset: reset from scratch (n=2)",
+    ]
+    colors = {line.get_label(): line.get_color() for line in axes.get_lines()}
+    assert len(set(colors.values())) == 3  # one colour per variant
+    markdown = (tmp_path / "report" / "summary.md").read_text()
+    assert all(f"| {variant} |" in markdown for variant in expected)

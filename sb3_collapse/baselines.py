@@ -1,0 +1,124 @@
+"""
+SB3's own TD3 and SAC on DeepMind Control pixels, built to be compared with DrQ-v2 (``python -m sb3_collapse.train
+--algorithm td3``, sweep variants ``td3``, ``sac``, ``td3+reset``...).
+
+What is DrQ-v2's and what is SB3's:
+
+- **Observations**: the same as DrQ-v2's, ``make_dmc_env``'s stacked pixels (``3 x frame_stack`` channels, uint8,
+  channel-first), the same action repeat.
+- **Networks**: SB3's ``CnnPolicy`` as SB3 users train it on pixels: ``NatureCNN`` (three convolutions, then
+  Linear + ReLU) with ``features_dim = feature_dim`` (DrQ-v2's 50), and actor and critic MLPs of two hidden
+  layers of ``hidden_dim`` units (DrQ-v2's 1024), so that ``mlp0`` is 50-d and ``mlp1``, ``mlp2`` have DrQ-v2's
+  width. SB3's defaults otherwise: the actor and the critic each have their own ``NatureCNN``, trained by their own
+  loss (DrQ-v2 has one encoder trained by the critic loss); no image augmentation (DrQ-v2's random shift is what
+  makes it work from pixels: expect these baselines to learn less).
+- **Replay**: :class:`~sb3_collapse.drqv2.replay_buffer.FrameStackReplayBuffer` with one-step returns when the
+  observations are frame stacks (each frame stored once: 21.5 KB per 84x84 transition instead of SB3's 127 KB;
+  it samples exactly what SB3's buffer would), SB3's ``ReplayBuffer`` otherwise.
+- **Shared with the sweep's DrQ-v2** (the arguments): learning rate, batch size, buffer size, warm-up
+  (``learning_starts``, in agent steps), discount, seed, device.
+- **SB3's defaults** for the rest (``python -m sb3_collapse.train`` reports DrQ-v2's own settings,
+  :data:`DRQV2_ONLY_SETTINGS`, as unused): TD3 with ``tau=0.005``, ``policy_delay=2``, target policy noise 0.2 clipped at
+  0.5, one update per agent step, plus Gaussian exploration noise of standard deviation
+  :data:`TD3_ACTION_NOISE` (SB3 has none by default; 0.1 is SB3's documented example and DrQ-v2's final
+  exploration std); SAC with a learned entropy coefficient (``"auto"``), ``tau=0.005``, one update per agent step.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3 import SAC, TD3
+from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.type_aliases import GymEnv
+
+from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
+
+BASELINES: dict[str, type[TD3 | SAC]] = {"td3": TD3, "sac": SAC}
+"""SB3's algorithms that :func:`build_baseline` builds, by name."""
+
+DRQV2_ONLY_SETTINGS = (
+    "n_steps",
+    "stddev_schedule",
+    "stddev_clip",
+    "tau",
+    "train_freq",
+    "augmentation_pad",
+    "replay_sampling",
+)
+"""Settings of ``TrainConfig`` that only DrQ-v2 uses: the baselines keep SB3's own values for them."""
+
+NATURE_CNN_MIN_SIZE = 36
+"""Smallest image side ``NatureCNN`` takes (8x8 stride 4, 4x4 stride 2, 3x3 stride 1, no padding)."""
+
+TD3_ACTION_NOISE = 0.1
+"""Standard deviation of TD3's Gaussian exploration noise, on actions scaled to [-1, 1]."""
+
+
+def build_baseline(
+    algorithm: str,
+    env: GymEnv,
+    *,
+    learning_rate: float,
+    buffer_size: int,
+    learning_starts: int,
+    batch_size: int,
+    feature_dim: int = 50,
+    hidden_dim: int = 1024,
+    gamma: float = 0.99,
+    frame_stack: int | None = None,
+    seed: int | None = None,
+    device: th.device | str = "auto",
+    verbose: int = 0,
+) -> TD3 | SAC:
+    """
+    SB3's TD3 or SAC from pixels, sized like DrQ-v2 (see the module docstring for what is whose).
+
+    :param algorithm: ``"td3"`` or ``"sac"``
+    :param env: a pixel environment, e.g. ``make_dmc_env(...)`` (channel-first uint8 images)
+    :param learning_rate: Adam learning rate of every network
+    :param buffer_size: replay capacity, in transitions (agent steps)
+    :param learning_starts: agent steps of uniformly random actions before the first update
+    :param batch_size: minibatch size
+    :param feature_dim: output size of the ``NatureCNN`` features extractors (``mlp0``)
+    :param hidden_dim: units of each of the two hidden layers of the actor and of each Q network
+    :param gamma: discount factor
+    :param frame_stack: frames per observation (``make_dmc_env``'s): ``> 1`` stores each frame once
+        (``FrameStackReplayBuffer``); ``None`` or 1: SB3's ``ReplayBuffer``
+    :param seed: random seed
+    :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
+    :param verbose: SB3 verbosity
+    :return: the model, ready to ``learn()``
+    :raises ValueError: for an unknown algorithm, or images smaller than ``NatureCNN`` takes
+    """
+    if algorithm not in BASELINES:
+        raise ValueError(f"algorithm must be one of {', '.join(BASELINES)}, got {algorithm!r}.")
+    height, width = env.observation_space.shape[-2:]  # type: ignore[union-attr,index]
+    if min(height, width) < NATURE_CNN_MIN_SIZE:
+        raise ValueError(
+            f"SB3's NatureCNN needs images of at least {NATURE_CNN_MIN_SIZE}x{NATURE_CNN_MIN_SIZE} pixels, got "
+            f"{height}x{width}: render larger images (make_dmc_env(size=...))."
+        )
+    policy_kwargs: dict[str, Any] = dict(
+        net_arch=[hidden_dim, hidden_dim], features_extractor_kwargs=dict(features_dim=feature_dim)
+    )
+    params: dict[str, Any] = dict(
+        learning_rate=learning_rate,
+        buffer_size=buffer_size,
+        learning_starts=learning_starts,
+        batch_size=batch_size,
+        gamma=gamma,
+        policy_kwargs=policy_kwargs,
+        seed=seed,
+        device=device,
+        verbose=verbose,
+    )
+    if frame_stack is not None and frame_stack > 1:
+        params["replay_buffer_class"] = FrameStackReplayBuffer
+        params["replay_buffer_kwargs"] = dict(n_steps=1, gamma=gamma, frame_stack=frame_stack)
+    if algorithm == "td3":
+        action_dim = int(np.prod(env.action_space.shape))  # type: ignore[union-attr]
+        params["action_noise"] = NormalActionNoise(np.zeros(action_dim), TD3_ACTION_NOISE * np.ones(action_dim))
+    return BASELINES[algorithm]("CnnPolicy", env, **params)

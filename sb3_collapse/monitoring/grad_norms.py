@@ -1,0 +1,175 @@
+"""
+Gradient norms of the named layers at each update, without an extra backward pass.
+
+One mechanism for every algorithm: a :class:`GradNormRecorder` hooks the optimizers that train the named layers
+(``Optimizer.register_step_pre_hook``). Just before an optimizer steps, the ``.grad`` that the update's own
+backward pass left on the parameters is the gradient of that update; the hook stores the L2 norm of each named
+layer it trains, on the device (no host transfer per update, one when the values are read).
+
+- ``DrQv2`` builds its recorder with its networks (``model.grad_norm_recorder``, read as
+  ``model.last_grad_norms``): ``cnn1``..``cnn4`` are recorded when the encoder's optimizer steps (critic loss),
+  ``mlp0``..``action`` when the actor's optimizer steps (actor loss).
+- SB3's ``TD3``, ``DDPG`` and ``SAC`` get theirs from :func:`track_grad_norms` (the callbacks call it when they
+  start): every named layer of :func:`~sb3_collapse.monitoring.activations.layer_parameters` (the actor's
+  features extractor and hidden layers) is recorded when the actor's optimizer steps (actor loss; every
+  ``policy_delay`` updates for TD3 and DDPG).
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Callable, Iterable, Mapping, Sequence
+
+import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
+from torch import nn
+
+from sb3_collapse.monitoring.activations import LayerMappingError, layer_parameters
+
+
+class GradNormRecorder:
+    """
+    Records the L2 gradient norm of named layers each time the optimizer that trains them steps.
+
+    Each layer belongs to the first of ``optimizers`` that holds its parameters; a layer that none holds is never
+    recorded (it is not trained). The norms are kept in one device tensor, in the order of ``layers``
+    (:attr:`norms`), and read on the host with :meth:`last`.
+
+    :param layers: layer name -> parameters, input to output
+    :param optimizers: the optimizers that train them (``None`` entries are skipped)
+    """
+
+    def __init__(
+        self, layers: Mapping[str, Sequence[nn.Parameter]], optimizers: Iterable[th.optim.Optimizer | None]
+    ) -> None:
+        self.names = list(layers)
+        self.optimizers = tuple(optimizer for optimizer in optimizers if optimizer is not None)
+        params = [list(layer) for layer in layers.values()]
+        self.device = params[0][0].device if params and params[0] else th.device("cpu")
+        self._norms: th.Tensor | None = None
+        self._recorded: set[int] = set()
+        self._handles: list[th.utils.hooks.RemovableHandle] = []
+        assigned: set[int] = set()
+        for optimizer in self.optimizers:
+            owned = {id(p) for group in optimizer.param_groups for p in group["params"]}
+            slots = [i for i, layer in enumerate(params) if layer and id(layer[0]) in owned and i not in assigned]
+            if slots:
+                assigned.update(slots)
+                self._handles.append(optimizer.register_step_pre_hook(self._hook([params[i] for i in slots], slots)))
+
+    def _hook(self, layers: list[list[nn.Parameter]], slots: list[int]) -> Callable[..., None]:
+        index = th.tensor(slots, device=self.device)
+
+        def record(_optimizer: th.optim.Optimizer, _args: tuple, _kwargs: dict) -> None:
+            norms = th.stack([_layer_norm(layer, self.device) for layer in layers])
+            base = self._norms if self._norms is not None else th.zeros(len(self.names), device=self.device)
+            self._norms = base.index_copy(0, index, norms)  # a new tensor: earlier reads are not modified
+            self._recorded.update(slots)
+
+        return record
+
+    @property
+    def norms(self) -> th.Tensor | None:
+        """
+        The last recorded norm of every layer, in the order of :attr:`names` (0 for a layer not recorded yet), as
+        one detached device tensor; ``None`` before the first recording.
+        """
+        return self._norms
+
+    def last(self) -> dict[str, float]:
+        """
+        :return: layer name -> norm at its optimizer's last step, for the layers recorded since the creation or
+            :meth:`clear` (one host transfer); empty before
+        """
+        if self._norms is None:
+            return {}
+        values = self._norms.tolist()
+        return {name: values[i] for i, name in enumerate(self.names) if i in self._recorded}
+
+    def clear(self) -> None:
+        """Forget the recorded norms (e.g. after the networks were re-initialized)."""
+        self._norms = None
+        self._recorded = set()
+
+    def watches(self, optimizers: Iterable[th.optim.Optimizer | None]) -> bool:
+        """:return: whether this recorder is hooked on exactly these optimizers (the same objects)"""
+        current = tuple(optimizer for optimizer in optimizers if optimizer is not None)
+        return len(current) == len(self.optimizers) and all(a is b for a, b in zip(current, self.optimizers))
+
+    def remove(self) -> None:
+        """Remove the hooks: nothing more is recorded."""
+        for handle in self._handles:
+            handle.remove()
+        self._handles = []
+
+
+def _layer_norm(params: list[nn.Parameter], device: th.device) -> th.Tensor:
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return th.zeros((), device=device)
+    return th.linalg.vector_norm(th.stack(th._foreach_norm(grads))).detach()
+
+
+_RECORDERS: weakref.WeakKeyDictionary[BaseAlgorithm, GradNormRecorder] = weakref.WeakKeyDictionary()
+
+
+def _sb3_optimizers(model: BaseAlgorithm) -> list[th.optim.Optimizer | None]:
+    policy = model.policy
+    return [getattr(getattr(policy, part, None), "optimizer", None) for part in ("actor", "critic")]
+
+
+def grad_norm_recorder(model: BaseAlgorithm) -> GradNormRecorder | None:
+    """
+    The recorder of a model: its own (``model.grad_norm_recorder``, DrQv2), or the one :func:`track_grad_norms`
+    attached to its current optimizers.
+
+    :param model: an SB3 algorithm
+    :return: the recorder, ``None`` when there is none for the model's current optimizers
+    """
+    own = getattr(model, "grad_norm_recorder", None)
+    if isinstance(own, GradNormRecorder):
+        return own
+    recorder = _RECORDERS.get(model)
+    if recorder is None or not recorder.watches(_sb3_optimizers(model)):
+        return None
+    return recorder
+
+
+def track_grad_norms(model: BaseAlgorithm) -> GradNormRecorder | None:
+    """
+    Make sure that the gradient norms of the model's named layers are recorded at each update.
+
+    A DrQv2 records them itself. For SB3's TD3, DDPG and SAC, a :class:`GradNormRecorder` is hooked on the
+    actor's and the critic's optimizers, once: calling again returns the same recorder, or a new one when the
+    optimizers were replaced (e.g. by a reset from scratch), the old hooks removed.
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :return: the recorder, ``None`` for a model whose layers cannot be named (e.g. PPO)
+    """
+    recorder = grad_norm_recorder(model)
+    if recorder is not None:
+        return recorder
+    try:
+        layers = layer_parameters(model)
+    except LayerMappingError:
+        return None
+    stale = _RECORDERS.pop(model, None)
+    if stale is not None:
+        stale.remove()
+    recorder = GradNormRecorder(layers, _sb3_optimizers(model))
+    _RECORDERS[model] = recorder
+    return recorder
+
+
+def grad_norms_of(model: BaseAlgorithm) -> dict[str, float]:
+    """
+    L2 gradient norm of each named layer at the model's last update, without any backward pass (see the module
+    docstring: recorded by the model's :class:`GradNormRecorder`).
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :return: layer name -> norm; empty before the first update (or the first update after a reset), and for an
+        SB3 model whose norms are not tracked (:func:`track_grad_norms`: ``CollapseMetrics`` and
+        ``CollapseReset`` call it when they start)
+    """
+    recorder = grad_norm_recorder(model)
+    return {} if recorder is None else recorder.last()

@@ -1,0 +1,598 @@
+"""
+Interventions on an off-policy actor-critic whose actor is stuck in action collapse: what
+:class:`~sb3_collapse.monitoring.reset.CollapseReset` does at the end of a window without escape.
+
+Each is a function ``model -> InterventionResult`` that changes exactly the parameters and state it names, and
+nothing else (the other weights, every optimizer state it does not name, the replay buffer, the step counters):
+
+==================  ========================================================================================
+``reset``           the paper's rule: restart from scratch (:func:`reset_from_scratch`)
+``reset_actor``     new actor and actor optimizer state; critic, encoder and buffer kept (:func:`reset_actor`)
+``reset_mlp``       new actor MLP after the encoder (:func:`reset_mlp`)
+``redo``            recycle the dormant units of the actor's and the critic's hidden layers (:func:`redo`)
+``shrink_perturb``  ``theta <- lambda theta + sigma fresh_init`` on the online networks (:func:`shrink_perturb`)
+==================  ========================================================================================
+
+Models: ``DrQv2`` (``CnnPolicy``, ``MlpPolicy``) and SB3's ``TD3``, ``DDPG`` and ``SAC`` (``CnnPolicy``,
+``MlpPolicy``; SAC without gSDE). New weights are drawn from torch's global generator in its current state (never
+reseeded: they differ from the initial ones, and a seeded run stays reproducible), with the algorithm's own
+initializer: DrQ-v2's orthogonal ``weight_init`` (LayerNorm: unit scale, zero shift) for DrQv2, PyTorch's default
+``reset_parameters()`` for SB3's networks (SB3's off-policy policies use it). Optimizer state is "forgotten" per
+parameter (its Adam moments and step count are dropped and start again at the next step) unless a whole new
+optimizer is built. Every intervention forgets the last recorded gradient norms (they were those of the old
+weights). See ``docs/interventions.md`` for the table of what each one resets and keeps.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch as th
+from stable_baselines3 import SAC, TD3
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.utils import get_parameters_by_name
+from torch import nn
+
+from sb3_collapse.monitoring.callbacks import ProbeBatchSampler
+from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, track_grad_norms
+from sb3_collapse.monitoring.metrics import DORMANT_TAU, dormant_units
+
+SHRINK = 0.8
+"""Shrink-and-perturb's shrink factor lambda (Ash & Adams, 2020)."""
+
+PERTURB = 0.2
+"""Shrink-and-perturb's noise scale sigma, times a fresh initialization (Ash & Adams, 2020)."""
+
+
+@dataclass(frozen=True)
+class InterventionResult:
+    """
+    What an intervention did.
+
+    :param name: the intervention (``"reset"``, ``"redo"``...)
+    :param detail: one short line for people and for the rule's events file (what was reset or recycled)
+    :param scalars: numbers logged to TensorBoard as ``collapse/intervention/<key>``: ``weights_changed`` (the
+        parameter entries that got new values) for every intervention, ``transitions_dropped`` for ``reset``,
+        ``units_recycled`` and ``units_total`` for ``redo``
+    :param units: for ``redo``, hidden layer -> indices of its recycled units (every hidden layer listed)
+    """
+
+    name: str
+    detail: str
+    scalars: dict[str, float]
+    units: dict[str, tuple[int, ...]] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------------------ the model's parts
+def _kind(model: BaseAlgorithm) -> str:
+    """``"drqv2"``, ``"td3"`` (TD3 and DDPG) or ``"sac"``; a ``TypeError`` for any other model."""
+    from sb3_collapse.drqv2 import DrQv2  # here: sb3_collapse.drqv2 imports this package
+
+    if isinstance(model, DrQv2):
+        return "drqv2"
+    if isinstance(model, TD3):
+        return "td3"
+    if isinstance(model, SAC):
+        if getattr(model.policy.actor, "use_sde", False):
+            raise TypeError("The interventions do not support SAC with gSDE (use_sde=True).")
+        return "sac"
+    raise TypeError(
+        f"The interventions work on DrQv2 and on SB3's TD3, DDPG and SAC; {type(model).__name__} is none of them."
+    )
+
+
+def _optimizers(model: BaseAlgorithm) -> list[th.optim.Optimizer]:
+    """The optimizers of the policy's networks (the entropy coefficient's excluded)."""
+    if _kind(model) == "drqv2":
+        return list(model.policy.optimizers)  # type: ignore[attr-defined]
+    return [model.policy.actor.optimizer, model.policy.critic.optimizer]  # type: ignore[union-attr]
+
+
+def _initialize(module: nn.Module, drqv2: bool) -> None:
+    """
+    Draw new initial values for every parameter of ``module``, in place, with the algorithm's initializer.
+
+    :raises TypeError: for a module with parameters that has no known initializer
+    """
+    from sb3_collapse.drqv2.policies import weight_init
+
+    for sub in module.modules():
+        if next(sub.parameters(recurse=False), None) is None:
+            continue
+        if drqv2 and isinstance(sub, (nn.Linear, nn.Conv2d)):
+            weight_init(sub)
+        elif callable(getattr(sub, "reset_parameters", None)):
+            sub.reset_parameters()  # type: ignore[operator]
+        else:
+            raise TypeError(f"Cannot draw new initial values for the parameters of {type(sub).__name__}.")
+
+
+def _fresh_copy(module: nn.Module, drqv2: bool) -> nn.Module:
+    """A copy of ``module`` with new initial values (contiguous memory, as the initializers need)."""
+    fresh = copy.deepcopy(module).to(memory_format=th.contiguous_format)
+    _initialize(fresh, drqv2)
+    return fresh
+
+
+def _forget_optimizer_state(optimizers: Iterable[th.optim.Optimizer], params: Iterable[nn.Parameter]) -> None:
+    """Drop the optimizer state (Adam moments, step) of these parameters; it starts again at their next step."""
+    ids = {id(p) for p in params}
+    for optimizer in optimizers:
+        for param in [p for p in optimizer.state if id(p) in ids]:
+            del optimizer.state[param]
+
+
+def _count(params: Iterable[nn.Parameter]) -> int:
+    return sum(p.numel() for p in {id(p): p for p in params}.values())
+
+
+def _forget_grad_norms(model: BaseAlgorithm) -> None:
+    recorder = grad_norm_recorder(model)
+    if recorder is not None:
+        recorder.clear()
+
+
+# ------------------------------------------------------------------------------------------------ reset from scratch
+def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
+    """
+    The action-collapse paper's rule (Section 5.2): restart the training from scratch, in the middle of ``learn()``.
+
+    DrQv2: :meth:`sb3_collapse.DrQv2.reset_from_scratch`. TD3, DDPG and SAC, with the same semantics:
+
+    - **reset**: the policy is built again (new actor, critic and their targets, with new random weights; new
+      optimizers); SAC's learned entropy coefficient starts again from its initial value with a new optimizer (a
+      fixed coefficient is kept); the replay buffer is emptied (``replay_buffer.reset()``); the action noise, if
+      any, is reset; the warm-up restarts: the model's ``reset_step`` becomes ``num_timesteps`` and
+      ``learning_starts`` becomes ``reset_step`` + the warm-up length, so the next ``learning_starts`` agent
+      steps after the reset take uniform random actions and no update happens before that many were collected
+      (a rollout in progress, with ``train_freq > 1``, ends with the actor's actions); the gradient norms are
+      recorded on the new optimizers (:func:`~sb3_collapse.monitoring.grad_norms.track_grad_norms`), none until
+      the next update;
+    - **kept**: ``num_timesteps`` (the budget of ``learn()`` is spent, not extended; TensorBoard curves continue
+      on one axis), the number of updates, the learning-rate schedule (a function of the progress of
+      ``learn()``), the environment and its episode in progress, the logger, the callbacks and the
+      hyperparameters.
+
+    A later ``learn()`` that restarts from agent step 0 with ``CollapseReset`` gives the warm-up its length back
+    (:func:`forget_reset`).
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :return: what was done
+    """
+    kind = _kind(model)
+    transitions = model.replay_buffer.size()  # type: ignore[union-attr]
+    if kind == "drqv2":
+        model.reset_from_scratch()  # type: ignore[attr-defined]
+        parts = "encoder, actor, critic, target critic and their optimizers"
+    else:
+        _rebuild_sb3(model, kind)
+        parts = (
+            "actor, target actor, critic, target critic and their optimizers"
+            if kind == "td3"
+            else "actor, critic, target critic and their optimizers"
+            + (", entropy coefficient" if model.ent_coef_optimizer is not None else "")  # type: ignore[attr-defined]
+        )
+    return InterventionResult(
+        "reset",
+        f"new {parts}; replay buffer emptied ({transitions} transitions); warm-up restarted",
+        {"weights_changed": float(_count(model.policy.parameters())), "transitions_dropped": float(transitions)},
+    )
+
+
+def _rebuild_sb3(model: BaseAlgorithm, kind: str) -> None:
+    """Reset from scratch of a TD3, DDPG or SAC model (see :func:`reset_from_scratch`)."""
+    was_training = model.policy.training
+    policy = model.policy_class(  # type: ignore[operator]
+        model.observation_space, model.action_space, model.lr_schedule, **model.policy_kwargs
+    ).to(model.device)
+    policy.set_training_mode(was_training)
+    model.policy = policy
+    model._create_aliases()  # type: ignore[attr-defined]
+    if kind == "td3":  # the running statistics of batch-norm layers, as TD3._setup_model lists them
+        for part in ("actor", "critic"):
+            setattr(model, f"{part}_batch_norm_stats", get_parameters_by_name(getattr(model, part), ["running_"]))
+            target = getattr(model, f"{part}_target")
+            setattr(model, f"{part}_batch_norm_stats_target", get_parameters_by_name(target, ["running_"]))
+    else:
+        model.batch_norm_stats = get_parameters_by_name(model.critic, ["running_"])  # type: ignore[attr-defined]
+        model.batch_norm_stats_target = get_parameters_by_name(model.critic_target, ["running_"])  # type: ignore[attr-defined]
+        if model.ent_coef_optimizer is not None:  # type: ignore[attr-defined]  # a learned coefficient
+            ent_coef = str(model.ent_coef)  # type: ignore[attr-defined]
+            initial = float(ent_coef.split("_")[1]) if "_" in ent_coef else 1.0  # SAC's "auto" / "auto_0.1"
+            model.log_ent_coef = th.log(th.ones(1, device=model.device) * initial).requires_grad_(True)  # type: ignore[attr-defined]
+            model.ent_coef_optimizer = th.optim.Adam([model.log_ent_coef], lr=model.lr_schedule(1))  # type: ignore[attr-defined]
+    model.replay_buffer.reset()  # type: ignore[union-attr]
+    if model.action_noise is not None:  # type: ignore[attr-defined]
+        model.action_noise.reset()  # type: ignore[attr-defined]
+    reset_step = int(getattr(model, "reset_step", 0))
+    warmup = model.learning_starts - reset_step  # type: ignore[attr-defined]
+    model.reset_step = model.num_timesteps  # type: ignore[attr-defined]
+    model.learning_starts = model.num_timesteps + warmup  # type: ignore[attr-defined]
+    track_grad_norms(model)
+
+
+def forget_reset(model: BaseAlgorithm) -> None:
+    """
+    For a new run from agent step 0 of a TD3, DDPG or SAC model reset earlier by :func:`reset_from_scratch`:
+    ``learning_starts`` gets its warm-up length back and ``reset_step`` becomes 0 (``DrQv2.learn`` does the same
+    for a DrQv2). Nothing happens for a model that was never reset.
+
+    :param model: an SB3 algorithm
+    """
+    reset_step = int(getattr(model, "reset_step", 0))
+    if reset_step > 0 and not callable(getattr(model, "reset_from_scratch", None)):
+        model.learning_starts -= reset_step  # type: ignore[attr-defined]
+        model.reset_step = 0  # type: ignore[attr-defined]
+
+
+# ------------------------------------------------------------------------------------------------ partial resets
+def _reset_modules(model: BaseAlgorithm, modules: Sequence[nn.Module], name: str, detail: str) -> InterventionResult:
+    """New weights for ``modules`` in place, their optimizer state forgotten; TD3's target actor follows."""
+    kind = _kind(model)
+    for module in modules:
+        _initialize(module, kind == "drqv2")
+    params = [p for module in modules for p in module.parameters()]
+    _forget_optimizer_state(_optimizers(model), params)
+    changed = _count(params)
+    if kind == "td3":  # TD3 builds its target actor as a copy of the actor: the new parts are copied again
+        target = model.policy.actor_target  # type: ignore[union-attr]
+        by_id = {id(module): module for module in modules}
+        for (_, online), (_, copied) in zip(model.policy.actor.named_modules(), target.named_modules()):  # type: ignore[union-attr]
+            if id(online) in by_id:
+                copied.load_state_dict(online.state_dict())
+                changed += _count(copied.parameters())
+    _forget_grad_norms(model)
+    return InterventionResult(name, detail, {"weights_changed": float(changed)})
+
+
+def reset_actor(model: BaseAlgorithm) -> InterventionResult:
+    """
+    Reset the actor only: new actor weights and a fresh actor optimizer state; the critic (and its target), the
+    encoder of DrQv2, SAC's entropy coefficient, the replay buffer and the step counters are kept. A partial reset in
+    the spirit of Nikishin et al., "The Primacy Bias in Deep Reinforcement Learning" (ICML 2022), who reset the
+    last layers of the networks and keep the replay buffer.
+
+    - DrQv2: the actor, ``mlp0``..``action`` (DrQ-v2's encoder is shared with the critic and trained by the critic
+      loss only: it is kept);
+    - TD3, DDPG: the actor network, its own features extractor (``cnn1``.., ``mlp0``) included, and the target
+      actor (a copy of the new actor, as TD3 builds it);
+    - SAC: the actor network, features extractor included (``share_features_extractor=True`` is refused: that
+      extractor is the critic's too; use ``reset_mlp``).
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :return: what was done
+    """
+    kind = _kind(model)
+    _check_own_extractor(model)
+    actor = model.policy.actor  # type: ignore[union-attr]
+    layers = "mlp0..action" if kind == "drqv2" else "features extractor and " + ("mu" if kind == "td3" else "MLP")
+    detail = f"new actor ({layers})" + (" and target actor" if kind == "td3" else "") + ", actor optimizer state"
+    return _reset_modules(model, [actor], "reset_actor", detail)
+
+
+def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
+    """
+    Reset the actor's MLP after the encoder, where the action-collapse paper's Figure 3 locates collapse: new
+    weights and a fresh optimizer state for those layers; the encoder (or features extractor), the critic, the
+    replay buffer and the step counters are kept (after Nikishin et al., ICML 2022, "The Primacy Bias in Deep
+    Reinforcement Learning": reset the last layers, keep the buffer).
+
+    - DrQv2: ``mlp0``..``action`` (the whole DrQ-v2 actor: its encoder is the shared one, so this is the same as
+      ``reset_actor``);
+    - TD3, DDPG: the actor's ``mu`` (``mlp1``..``action``; the features extractor, ``mlp0`` included, is kept), and
+      the target actor's ``mu`` (a copy of the new one);
+    - SAC: ``latent_pi``, ``mu`` and ``log_std``.
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :return: what was done
+    """
+    kind = _kind(model)
+    actor = model.policy.actor  # type: ignore[union-attr]
+    if kind == "drqv2":
+        modules, layers = [actor], "mlp0..action"
+    elif kind == "td3":
+        modules, layers = [actor.mu], "mu: mlp1..action, and the target actor's mu"
+    else:
+        modules, layers = [actor.latent_pi, actor.mu, actor.log_std], "latent_pi, mu, log_std: mlp1..action"
+    return _reset_modules(model, modules, "reset_mlp", f"new actor MLP ({layers}), its optimizer state")
+
+
+# ------------------------------------------------------------------------------------------------ ReDo
+@dataclass(frozen=True)
+class HiddenLayer:
+    """
+    A hidden layer that ReDo may recycle: ``activation(linear(x))``, read by the ``consumers``.
+
+    :param name: ``mlp1``, ``mlp2`` (actor), ``q1.mlp1``... (critic's Q networks)
+    :param linear: the layer's Linear (incoming weights)
+    :param activation: the module whose output is the layer's activation
+    :param consumers: the Linear layers that read it (outgoing weights)
+    """
+
+    name: str
+    linear: nn.Linear
+    activation: nn.Module
+    consumers: tuple[nn.Linear, ...]
+
+
+def _sequential_hidden(
+    prefix: str, modules: Sequence[nn.Module], tail: tuple[nn.Linear, ...] = (), first: int = 1
+) -> list[HiddenLayer]:
+    """
+    ``Linear, activation`` pairs of a flat module list; each one's consumer is the next Linear of the list, or
+    ``tail`` for the last. A Linear followed by a module with parameters (LayerNorm) or by nothing, and the output
+    Linear (no consumer), are not hidden layers. Names count the Linears from ``first``.
+    """
+    modules = list(modules)
+    linears = [i for i, module in enumerate(modules) if isinstance(module, nn.Linear)]
+    hidden = []
+    for k, i in enumerate(linears):
+        following = [modules[j] for j in linears if j > i]
+        consumers = (following[0],) if following else tail
+        if i + 1 < len(modules) and next(modules[i + 1].parameters(), None) is None and consumers:
+            hidden.append(HiddenLayer(f"{prefix}mlp{k + first}", modules[i], modules[i + 1], consumers))  # type: ignore[arg-type]
+    return hidden
+
+
+def hidden_layers(model: BaseAlgorithm) -> list[HiddenLayer]:
+    """
+    The hidden layers of the actor and the critic that :func:`redo` considers: the actor's ``mlp1``, ``mlp2``...
+    (as named by :func:`~sb3_collapse.monitoring.activations.layer_taps`) and each Q network's ``q<k>.mlp1``...
+    The encoder (or features extractor), DrQ-v2's trunks (Linear, LayerNorm, Tanh) and the target networks are not.
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :return: the layers, actor first
+    """
+    kind = _kind(model)
+    policy = model.policy
+    actor = policy.actor  # type: ignore[union-attr]
+    if kind == "drqv2":
+        layers = _sequential_hidden("", [*actor.trunk, *actor.mlp1, *actor.mlp2, *actor.action], first=0)
+        q_networks = [policy.critic.q1, policy.critic.q2]  # type: ignore[union-attr]
+    elif kind == "td3":
+        layers = _sequential_hidden("", list(actor.mu))
+        q_networks = list(policy.critic.q_networks)  # type: ignore[union-attr]
+    else:
+        layers = _sequential_hidden("", list(actor.latent_pi), tail=(actor.mu, actor.log_std))
+        q_networks = list(policy.critic.q_networks)  # type: ignore[union-attr]
+    for k, q_network in enumerate(q_networks, start=1):
+        layers += _sequential_hidden(f"q{k}.", list(q_network))
+    return layers
+
+
+def hidden_activations(model: BaseAlgorithm, layers: Sequence[HiddenLayer], samples: Any) -> dict[str, th.Tensor]:
+    """
+    The activations of hidden layers on a batch of stored transitions (observations for the actor, observations
+    and stored actions for the critic), in eval mode, without gradient; the mode is restored afterwards.
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :param layers: from :func:`hidden_layers`
+    :param samples: replay samples (``observations``, ``actions``), e.g. from
+        :meth:`~sb3_collapse.monitoring.callbacks.ProbeBatchSampler.sample_transitions`
+    :return: layer name -> ``(n, units)`` float tensor
+    """
+    kind = _kind(model)
+    policy = model.policy
+    outputs: dict[str, th.Tensor] = {}
+
+    def hook(name: str) -> Callable[..., None]:
+        def store(_module: nn.Module, _args: Any, output: th.Tensor) -> None:
+            outputs[name] = output.detach().float().clone()
+
+        return store
+
+    handles = [layer.activation.register_forward_hook(hook(layer.name)) for layer in layers]
+    was_training = policy.training
+    policy.set_training_mode(False)
+    try:
+        with th.no_grad():
+            obs, actions = samples.observations, samples.actions
+            if kind == "drqv2":
+                features = policy.encoder(obs)  # type: ignore[union-attr]
+                policy.actor(features)  # type: ignore[union-attr]
+                policy.critic(features, actions)  # type: ignore[union-attr]
+            else:
+                if kind == "td3":
+                    policy.actor(obs)  # type: ignore[union-attr]
+                else:
+                    policy.actor.get_action_dist_params(obs)  # type: ignore[union-attr]
+                policy.critic(obs, actions)  # type: ignore[union-attr]
+    finally:
+        for handle in handles:
+            handle.remove()
+        policy.set_training_mode(was_training)
+    return outputs
+
+
+def redo(
+    model: BaseAlgorithm,
+    tau: float = DORMANT_TAU,
+    batch_size: int = 512,
+    sampler: ProbeBatchSampler | None = None,
+    samples: Any = None,
+) -> InterventionResult:
+    """
+    ReDo, "Recycling Dormant neurons" (Sokar, Agarwal, Castro and Evci, "The Dormant Neuron Phenomenon in Deep
+    Reinforcement Learning", ICML 2023), once, on the actor's and the critic's hidden layers
+    (:func:`hidden_layers`).
+
+    On a batch of stored transitions, a unit is dormant when its mean absolute activation, divided by the mean
+    over its layer, is at most ``tau`` (:func:`~sb3_collapse.monitoring.metrics.dormant_units`, the definition of
+    the ``dormant_ratio`` metric; every layer is measured before any is changed). For each dormant unit: its
+    incoming weights and bias get new initial values (the algorithm's initializer), then its outgoing weights
+    (the consumers' columns) are set to zero, also where the consumer is a recycled unit itself (so that no
+    recycled unit changes the networks' outputs at first), and the Adam moments of exactly those entries are set
+    to zero (the step counts are kept). Everything else is kept: the other units, the encoder or features extractors, the target
+    networks, the replay buffer, the other optimizer state.
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :param tau: the dormancy threshold, relative to the layer's mean (0.025: ReDo's, and ``dormant_ratio``'s)
+    :param batch_size: stored transitions of the batch the activations are measured on
+    :param sampler: draws the batch from the replay buffer (``None``: a new :class:`ProbeBatchSampler`, seeded
+        from the model's seed)
+    :param samples: the batch itself (``observations``, ``actions``), instead of drawing one
+    :return: what was done; with fewer than ``batch_size`` stored transitions nothing is recycled and the detail
+        says so
+    """
+    kind = _kind(model)
+    layers = hidden_layers(model)
+    total = sum(layer.linear.out_features for layer in layers)
+    if samples is None:
+        sampler = sampler or ProbeBatchSampler(None if model.seed is None else int(model.seed) + 1_000_003)
+        drawn = sampler.sample_transitions(model, batch_size)
+        if drawn is None:
+            detail = f"nothing recycled: fewer than {batch_size} transitions in the replay buffer"
+            scalars = {"weights_changed": 0.0, "units_recycled": 0.0, "units_total": float(total)}
+            return InterventionResult("redo", detail, scalars, {layer.name: () for layer in layers})
+        samples = drawn[0]
+    activations = hidden_activations(model, layers, samples)
+    masks = {layer.name: dormant_units(activations[layer.name], tau) for layer in layers}
+    optimizers = _optimizers(model)
+    indices = {layer.name: masks[layer.name].nonzero().flatten().to(layer.linear.weight.device) for layer in layers}
+    units = {name: tuple(int(i) for i in index.tolist()) for name, index in indices.items()}
+    recycling = [(layer, indices[layer.name]) for layer in layers if len(indices[layer.name]) > 0]
+    changed = 0
+    for layer, index in recycling:  # all incoming weights first...
+        changed += _renew_incoming(layer, index, kind == "drqv2", optimizers)
+    for layer, index in recycling:  # ...then the outgoing ones: a recycled unit feeding another one stays silent
+        changed += _zero_outgoing(layer, index, optimizers)
+    _forget_grad_norms(model)
+    recycled = sum(len(indices) for indices in units.values())
+    listed = ", ".join(
+        f"{layer.name} {len(units[layer.name])}/{layer.linear.out_features}" for layer in layers if units[layer.name]
+    )
+    detail = f"{recycled} of {total} hidden units recycled (tau {tau:g})" + (f": {listed}" if listed else "")
+    scalars = {"weights_changed": float(changed), "units_recycled": float(recycled), "units_total": float(total)}
+    return InterventionResult("redo", detail, scalars, units)
+
+
+def _renew_incoming(layer: HiddenLayer, index: th.Tensor, drqv2: bool, optimizers: Sequence[th.optim.Optimizer]) -> int:
+    """New initial values for the incoming weights and bias of units ``index``; returns the entries changed."""
+    fresh = _fresh_copy(layer.linear, drqv2)
+    incoming = [(layer.linear.weight, fresh.weight)]
+    if layer.linear.bias is not None:
+        incoming.append((layer.linear.bias, fresh.bias))
+    with th.no_grad():
+        for param, new in incoming:
+            param[index] = new[index].to(param.dtype)
+    for optimizer in optimizers:
+        for param, _ in incoming:
+            _zero_moments(optimizer, param, 0, index)
+    return len(index) * (layer.linear.in_features + (layer.linear.bias is not None))
+
+
+def _zero_outgoing(layer: HiddenLayer, index: th.Tensor, optimizers: Sequence[th.optim.Optimizer]) -> int:
+    """Zero the outgoing weights of units ``index`` (the consumers' columns); returns the entries changed."""
+    with th.no_grad():
+        for consumer in layer.consumers:
+            consumer.weight[:, index] = 0.0
+    for optimizer in optimizers:
+        for consumer in layer.consumers:
+            _zero_moments(optimizer, consumer.weight, 1, index)
+    return len(index) * sum(consumer.out_features for consumer in layer.consumers)
+
+
+def _zero_moments(optimizer: th.optim.Optimizer, param: nn.Parameter, dim: int, index: th.Tensor) -> None:
+    """Zero the entries ``index`` along ``dim`` of every per-entry optimizer state of ``param`` (Adam's moments)."""
+    state = optimizer.state.get(param)
+    for value in (state or {}).values():
+        if isinstance(value, th.Tensor) and value.shape == param.shape:
+            with th.no_grad():
+                value.index_fill_(dim, index, 0.0)
+
+
+# ------------------------------------------------------------------------------------------------ shrink and perturb
+def shrink_perturb(model: BaseAlgorithm, shrink: float = SHRINK, perturb: float = PERTURB) -> InterventionResult:
+    """
+    Shrink and perturb (Ash and Adams, "On Warm-Starting Neural Network Training", NeurIPS 2020):
+    ``theta <- shrink * theta + perturb * theta_0``, with ``theta_0`` a fresh initialization (the algorithm's
+    initializer, drawn now), on every parameter of the online networks: DrQv2's encoder, actor and critic; the
+    actor and the critic of TD3, DDPG and SAC (with their features extractors). Kept: the target networks (they
+    follow by Polyak averaging), the optimizer state, SAC's entropy coefficient, the replay buffer and the step
+    counters.
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :param shrink: lambda, in ``(0, 1]`` (0.8)
+    :param perturb: sigma, ``>= 0`` (0.2)
+    :return: what was done
+    """
+    if not 0.0 < shrink <= 1.0:
+        raise ValueError(f"shrink must be in (0, 1], got {shrink}.")
+    if perturb < 0.0:
+        raise ValueError(f"perturb must be >= 0, got {perturb}.")
+    kind = _kind(model)
+    policy = model.policy
+    names = ["encoder", "actor", "critic"] if kind == "drqv2" else ["actor", "critic"]
+    seen: set[int] = set()
+    changed = 0
+    for name in names:
+        module = getattr(policy, name)
+        fresh = _fresh_copy(module, kind == "drqv2")
+        with th.no_grad():
+            for param, new in zip(module.parameters(), fresh.parameters()):
+                if id(param) in seen:  # a features extractor shared by the actor and the critic: once
+                    continue
+                seen.add(id(param))
+                param.mul_(shrink).add_(new, alpha=perturb)
+                changed += param.numel()
+    _forget_grad_norms(model)
+    detail = f"theta <- {shrink:g} theta + {perturb:g} fresh init on the {', '.join(names)}; optimizer state kept"
+    return InterventionResult("shrink_perturb", detail, {"weights_changed": float(changed)})
+
+
+# ------------------------------------------------------------------------------------------------ by name
+INTERVENTIONS: dict[str, Callable[..., InterventionResult]] = {
+    "reset": reset_from_scratch,
+    "reset_actor": reset_actor,
+    "reset_mlp": reset_mlp,
+    "redo": redo,
+    "shrink_perturb": shrink_perturb,
+}
+"""The interventions by name, the values of ``CollapseReset(intervention=...)``."""
+
+INTERVENTION_LABELS = {
+    "reset": "reset from scratch",
+    "reset_actor": "actor reset",
+    "reset_mlp": "actor MLP reset",
+    "redo": "ReDo",
+    "shrink_perturb": "shrink & perturb",
+}
+"""What each intervention is called in figures (e.g. the report's legend)."""
+
+
+def check_intervention(name: str, model: BaseAlgorithm | None = None) -> None:
+    """
+    :param name: an intervention name
+    :param model: the model it will be applied to (``None``: check the name only)
+    :raises ValueError: for an unknown name, or a model the intervention cannot change as it says
+    :raises TypeError: for a model that no intervention supports
+    """
+    if name not in INTERVENTIONS:
+        raise ValueError(f"intervention must be one of {', '.join(INTERVENTIONS)}; got {name!r}.")
+    if model is None:
+        return
+    _kind(model)
+    if name == "reset_actor":
+        _check_own_extractor(model)
+
+
+def _check_own_extractor(model: BaseAlgorithm) -> None:
+    if _kind(model) != "drqv2" and getattr(model.policy, "share_features_extractor", False):
+        raise ValueError(
+            f"intervention='reset_actor' on a {type(model).__name__} with share_features_extractor=True would reset "
+            "the critic's features extractor too: use 'reset_mlp' (the actor after the extractor)."
+        )
+
+
+def apply_intervention(model: BaseAlgorithm, name: str, **kwargs: Any) -> InterventionResult:
+    """
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :param name: one of :data:`INTERVENTIONS`
+    :param kwargs: the intervention's own parameters (e.g. ``tau`` for ``redo``)
+    :return: what was done
+    """
+    check_intervention(name, model)
+    return INTERVENTIONS[name](model, **kwargs)
