@@ -477,7 +477,8 @@ def run_summary(
     of the last evaluation, or ``None`` without evaluation), ``resets`` (resets of the reset rule), ``reset_frames``
     (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
     ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run) and ``timings`` (where the
-    time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see :mod:`sb3_collapse.drqv2.timing`).
+    time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see :mod:`sb3_collapse.drqv2.timing`; ``None`` for SB3's
+    TD3 and SAC).
 
     :param config: the run's settings
     :param task_id: the task, ``<domain>-<task>``
@@ -503,7 +504,7 @@ def run_summary(
         "escaped": None if reset_rule is None else bool(reset_rule.escaped),
         "escape_frame": None if reset_rule is None or reset_rule.escape_frame is None else int(reset_rule.escape_frame),
         "wall_time_s": round(wall_time_s, 2),
-        "timings": model.timings.as_dict(),
+        "timings": model.timings.as_dict() if isinstance(model, DrQv2) else None,
     }
 
 
