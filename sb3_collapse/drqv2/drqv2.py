@@ -141,10 +141,11 @@ class DrQv2(OffPolicyAlgorithm):
         for ``mode="reduce-overhead"`` (CUDA graphs) on CUDA and ``"default"`` elsewhere, or a ``torch.compile``
         mode (``"default"``, ``"reduce-overhead"``, ``"max-autotune"``, ``"max-autotune-no-cudagraphs"``).
         The random draws stay outside the compiled code, so the update is the uncompiled one up to float
-        rounding (tested against ``reference_update``). Compilation happens at the first update (tens of seconds
-        on a CPU; see ``model.timings.first_round_s``) and again after a :meth:`reset_from_scratch` (new
-        modules). Off by default: on the CPU it was not measured faster (``docs/throughput.md``), and it was not
-        measured on a GPU
+        rounding (tested against ``reference_update``). Compilation happens at the first update (about a minute
+        on a 2-core CPU with an empty inductor cache; see ``model.timings.first_round_s``) and again after a
+        :meth:`reset_from_scratch` (new modules). Off by default: on the CPU it was no faster at batch 32 and 256 and
+        ~10% faster per update at batch 512, too little to pay the compilation back in short runs; it was not
+        measured on a GPU (``docs/throughput.md``)
     :param callback: callback(s) run at every ``learn()`` call, together with those given to ``learn()``
         (e.g. ``CollapseReset()``); not saved with the model
     :param replay_buffer_class: replay buffer class; ``None``: ``FrameStackReplayBuffer`` (n-step, each frame
