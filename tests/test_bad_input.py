@@ -58,6 +58,7 @@ def bad_checkpoints(tmp_path_factory):
     return folder
 
 
+@pytest.mark.filterwarnings("ignore:The replay buffer of 1,000,000,000 transitions will not fit")
 @pytest.mark.parametrize(
     "argv, message",
     [
