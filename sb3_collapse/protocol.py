@@ -173,6 +173,19 @@ def failed_before_training(run_dir: str | os.PathLike) -> bool:
     return first == FAILURE_HEADER.format(step=0, frame=0)
 
 
+def blocking_file(folder: str | os.PathLike) -> Path | None:
+    """
+    :param folder: a folder to create (or that exists)
+    :return: the file that stands where ``folder`` or its nearest existing parent should be a folder, ``None`` when
+        ``folder`` can be created (or is a folder)
+    """
+    folder = Path(folder)
+    for parent in (folder, *folder.parents):
+        if parent.exists():
+            return None if parent.is_dir() else parent
+    return None
+
+
 def write_text_atomically(path: str | os.PathLike, text: str) -> None:
     """
     Write ``text`` to a temporary file next to ``path``, flush it to disk, then rename it to ``path``: readers see

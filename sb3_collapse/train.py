@@ -73,6 +73,7 @@ from sb3_collapse.protocol import (
     PAPER,
     RESULT_JSON,
     append_csv_rows,
+    blocking_file,
     failed_before_training,
     write_failure,
     write_json_atomically,
@@ -343,11 +344,9 @@ class TrainConfig:
                 "training): remove it or choose another.",
             )
         logdir = Path(config.logdir)
-        for parent in (logdir, *logdir.parents):
-            if parent.exists():
-                if not parent.is_dir():
-                    raise ParameterError("logdir", f"logdir {logdir}: {parent} is a file, not a folder.")
-                break
+        blocking = blocking_file(logdir)
+        if blocking is not None:
+            raise ParameterError("logdir", f"logdir {logdir}: {blocking} is a file, not a folder.")
 
     @property
     def agent_steps(self) -> int:

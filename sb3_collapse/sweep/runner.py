@@ -26,7 +26,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from sb3_collapse.presets import SETTING_NAMES
-from sb3_collapse.protocol import ERROR_TXT, SWEEP_JSON, write_json_atomically, write_text_atomically
+from sb3_collapse.protocol import ERROR_TXT, SWEEP_JSON, blocking_file, write_json_atomically, write_text_atomically
 from sb3_collapse.sweep.trials import (
     FINISHED,
     SweepError,
@@ -153,11 +153,9 @@ def check_sweep_arguments(
             "leave it to the presets or give a period in frames.",
             parameter="eval_every_frames",
         )
-    for parent in (Path(out), *Path(out).parents):
-        if parent.exists():
-            if not parent.is_dir():
-                raise SweepError(f"out {out}: {parent} is a file, not a folder.", parameter="out")
-            break
+    blocking = blocking_file(out)
+    if blocking is not None:
+        raise SweepError(f"out {out}: {blocking} is a file, not a folder.", parameter="out")
 
 
 def write_error(folder: Path, text: str) -> None:
