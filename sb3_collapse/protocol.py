@@ -47,6 +47,10 @@ class PaperProtocol:
     :param percentiles: the band of Figure 5, in percent ("the 5th percentile and the 95th percentile")
     :param figure5_seeds: seeds per task and variant of Figure 5 ("40 seeds")
     :param figure5_tasks: the tasks of Figure 5 (walker_walk, hopper_stand, finger_spin)
+    :param train_frames: frames of a run in Sections 4 and 5 (Section 4.1: "The total number of training frames is
+        1.1e6")
+    :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110", in
+        evaluations of 1e4 frames); a shorter run is read at the same fractions of its own length
     """
 
     check_every_frames: int = 10_000
@@ -60,6 +64,13 @@ class PaperProtocol:
     percentiles: tuple[float, float] = (5.0, 95.0)
     figure5_seeds: int = 40
     figure5_tasks: tuple[str, ...] = ("walker-walk", "hopper-stand", "finger-spin")
+    train_frames: int = 1_100_000
+    stage_frames: tuple[int, ...] = (0, 350_000, 700_000, 1_100_000)
+
+    @property
+    def stage_fractions(self) -> tuple[float, ...]:
+        """:attr:`stage_frames` as fractions of :attr:`train_frames` (0, 0.32, 0.64, 1)."""
+        return tuple(frame / self.train_frames for frame in self.stage_frames)
 
     @property
     def collapse_tag(self) -> str:
@@ -95,6 +106,8 @@ FINAL_MODEL = "final_model.zip"
 """The final model, ``DrQv2.save``."""
 CHECKPOINTS_DIR = "checkpoints"
 """Intermediate checkpoints."""
+PROBE_CHECKPOINTS_DIR = "probe_checkpoints"
+"""The weights the probe needs (encoder and actor), one zip per evaluation: ``<algorithm>_probe_<frame>_frames.zip``."""
 ERROR_TXT = "error.txt"
 """The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
 SWEEP_JSON = "sweep.json"

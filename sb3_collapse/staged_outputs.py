@@ -18,7 +18,8 @@ class StagedOutputs:
     did not write, then moves the new files in, ``marker`` last: its presence marks a complete set.
 
     :param out: the output folder (created if needed)
-    :param outputs: the names of every file a run may write
+    :param outputs: the names of every file a run may write; a name may be a glob pattern
+        (``collapse_metrics_*.png``) for files whose names depend on the input
     :param marker: the one of ``outputs`` moved in last
     :param overwrite: replace the outputs of a previous run; otherwise their presence is an error
     :param error: the exception class raised on a bad ``out``
@@ -38,17 +39,23 @@ class StagedOutputs:
         self.out = Path(out)
         if self.out.exists() and not self.out.is_dir():
             raise error(f"out {self.out} is a file; give a folder.", parameter="out")
-        existing = [name for name in outputs if (self.out / name).exists()]
+        self.outputs = tuple(outputs)
+        existing = self.existing()
         if existing and not overwrite:
             raise error(
                 f"{self.out} already holds outputs ({', '.join(existing)}): pass `overwrite=True` or another `out`.",
                 parameter="out",
             )
-        self.outputs = tuple(outputs)
         self.marker = marker
         self.staging = self.out / f".partial-{os.getpid()}"
         self.created = not self.out.exists()
         self.committed = False
+
+    def existing(self) -> list[str]:
+        """:return: the names in ``out`` of outputs (or matches of output patterns) of a previous run"""
+        if not self.out.is_dir():
+            return []
+        return sorted({path.name for pattern in self.outputs for path in self.out.glob(pattern) if path.is_file()})
 
     def __enter__(self) -> StagedOutputs:  # noqa: PYI034  not subclassed
         self.staging.mkdir(parents=True, exist_ok=False)
@@ -66,7 +73,7 @@ class StagedOutputs:
         """
         staged = sorted((p.name for p in self.staging.iterdir()), key=lambda name: name == self.marker)
         (self.out / self.marker).unlink(missing_ok=True)
-        for name in self.outputs:
+        for name in self.existing():
             if name not in staged:
                 (self.out / name).unlink(missing_ok=True)
         for name in staged:

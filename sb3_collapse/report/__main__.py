@@ -4,6 +4,7 @@ Reports of a sweep folder (the paper's Figure 5, the table, the transplant grid)
 
     python -m sb3_collapse.report runs/                          # writes runs/report/, prints the table
     python -m sb3_collapse.report runs/ --reference --out figs/  # with the published DrQ-v2 curves
+    python -m sb3_collapse.report runs/walker-walk_s0            # one run folder: its Figure 4
 
 Errors in the input print ``error: ...`` and exit with status 2.
 """
@@ -17,7 +18,8 @@ from sb3_collapse.errors import cli_message
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
-from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report
+from sb3_collapse.report.collapse_figure import is_run_folder
+from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_report
 from sb3_collapse.report.statistics import ReportSettings
 from sb3_collapse.report.tables import grid_markdown
 
@@ -33,10 +35,15 @@ def build_parser() -> argparse.ArgumentParser:
             "Figure 5 (mean evaluation return and percentile band across seeds, per task and variant), the table "
             "(final return, seeds stuck in action collapse, resets, std over the last evaluations) and, when "
             "cnn-<src>_mlp-<src> variants exist, the transplant grid of a sweep folder "
-            f"<sweep>/<task>/<variant>/seed_<k>/. Only finished trials ({RESULT_JSON}) enter the statistics."
+            f"<sweep>/<task>/<variant>/seed_<k>/, the collapse metrics of the best, a middle and the worst seed "
+            "(Figures 4, 8, 9), Figure 3(b) and Table 7, and report/index.html with all of them. Only finished "
+            f"trials ({RESULT_JSON}) enter the statistics. Given a single run folder of python -m sb3_collapse.train "
+            "instead, it draws that run's collapse metrics (Figure 4) and its index.html."
         ),
     )
-    parser.add_argument("sweep", help="the sweep folder (--out of python -m sb3_collapse.sweep)")
+    parser.add_argument(
+        "sweep", help="the sweep folder (--out of python -m sb3_collapse.sweep), or one run folder of the train CLI"
+    )
     parser.add_argument("--out", help=f"output folder (default: <sweep>/{REPORT_FOLDER})")
     parser.add_argument(
         "--reference", action="store_true", help="overlay the published DrQ-v2 curves (dashed mean, hatched band)"
@@ -107,6 +114,15 @@ def main(argv: list[str] | None = None) -> int:
         success_return=args.success_return,
         percentiles=(args.percentiles[0], args.percentiles[1]),
     )
+    if is_run_folder(args.sweep):
+        try:
+            trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
+        except ReportError as error:
+            print(f"error: {cli_message(error, parser)}", file=sys.stderr)
+            return 2
+        print(f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations")
+        print("wrote " + ", ".join(str(path) for path in files))
+        return 0
     try:
         report = write_report(
             args.sweep,

@@ -274,6 +274,51 @@ def read_collapse_metric(path: Path, tag: str = DEFAULT_COLLAPSE_TAG) -> tuple[n
     return np.asarray(frames, dtype=np.int64)[order], np.asarray(values, dtype=np.float64)[order]
 
 
+def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """
+    Every metric (or the ``tags``) of a long-format collapse metrics file, in one pass.
+
+    :param path: the file (columns ``frame, step, tag, value``)
+    :param tags: the tags to keep (``None``: all)
+    :return: tag -> ``(frames, values)`` sorted by frame, non-finite values dropped (tags in file order)
+    :raises ReportError: when the file is malformed or a value is not a number
+    """
+    wanted = None if tags is None else set(tags)
+    columns: dict[str, tuple[list[int], list[float]]] = {}
+    for line, row in _rows(path, ("frame", "tag", "value")):
+        if None in row.values() or None in row:
+            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
+        if wanted is not None and row["tag"] not in wanted:
+            continue
+        value = _number(path, line, row, "value", float)
+        if math.isfinite(value):
+            frames, values = columns.setdefault(row["tag"], ([], []))
+            frames.append(_number(path, line, row, "frame", int))
+            values.append(value)
+    metrics = {}
+    for tag, (frames, values) in columns.items():
+        order = np.argsort(np.asarray(frames, dtype=np.int64), kind="stable")
+        metrics[tag] = (np.asarray(frames, dtype=np.int64)[order], np.asarray(values, dtype=np.float64)[order])
+    return metrics
+
+
+def read_collapse_events(path: Path) -> list[tuple[int, str]]:
+    """
+    The events of a collapse events file (``protocol.COLLAPSE_EVENTS_CSV``; files of earlier versions with the
+    first four columns too).
+
+    :param path: the file
+    :return: ``(frame, event)`` in file order, ``event`` being ``"reset"`` (any intervention) or ``"escape"``
+    :raises ReportError: when the file is malformed
+    """
+    events = []
+    for line, row in _rows(path, ("frame", "event")):
+        if row.get("frame") is None or row.get("event") is None:
+            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
+        events.append((_number(path, line, row, "frame", int), row["event"]))
+    return events
+
+
 def load_trial(
     task: str, variant: str, seed: int, path: Path, collapse_tag: str = DEFAULT_COLLAPSE_TAG, partial: bool = False
 ) -> Trial:

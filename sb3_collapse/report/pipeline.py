@@ -2,34 +2,55 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from sb3_collapse.presets import preset
+from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON, SWEEP_JSON
+from sb3_collapse.report import html
+from sb3_collapse.report.collapse_figure import (
+    FIGURE4_LAYERS,
+    AgentMetrics,
+    agent_metrics,
+    figure_title,
+    pick_agents,
+    plot_collapse_metrics,
+    run_folder_trial,
+    run_title,
+)
 from sb3_collapse.report.errors import ReportError
-from sb3_collapse.report.loading import Sweep, load_sweep
-from sb3_collapse.report.plots import plot_figure5, plot_transplant_grid
+from sb3_collapse.report.loading import Sweep, Trial, load_sweep, read_json
+from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
 from sb3_collapse.report.statistics import (
     BandCurve,
     GridCell,
     ReportSettings,
+    TransplantCurves,
     VariantSummary,
     band_curve,
     summarize,
+    transplant_curves,
     transplant_grid,
+    transplant_sources,
     variant_curves,
 )
 from sb3_collapse.report.tables import (
     GRID_COLUMNS,
     SUMMARY_COLUMNS,
+    TABLE7_COLUMNS,
     grid_markdown,
     grid_rows,
     summary_markdown,
     summary_rows,
+    table7_markdown,
+    table7_rows,
     write_csv,
 )
 from sb3_collapse.staged_outputs import StagedOutputs
+from tqdm.auto import tqdm
 
 FIGURE5_PNG = "figure5.png"
 SUMMARY_CSV = "summary.csv"
@@ -37,7 +58,26 @@ SUMMARY_MD = "summary.md"
 GRID_CSV = "transplant_grid.csv"
 GRID_MD = "transplant_grid.md"
 GRID_PNG = "transplant_grid.png"
-OUTPUT_FILES = (FIGURE5_PNG, SUMMARY_CSV, GRID_CSV, GRID_MD, GRID_PNG, SUMMARY_MD)
+FIGURE3B_PNG = "figure3b.png"
+TABLE7_CSV = "table7.csv"
+TABLE7_MD = "table7.md"
+COLLAPSE_PNG = "collapse_metrics_{task}_{variant}.png"
+"""Figure 4 of one task and variant (``collapse_metrics_walker-walk_drqv2.png``)."""
+RUN_COLLAPSE_PNG = "collapse_metrics.png"
+"""Figure 4 of a single run folder."""
+OUTPUT_FILES = (
+    FIGURE5_PNG,
+    SUMMARY_CSV,
+    GRID_CSV,
+    GRID_MD,
+    GRID_PNG,
+    FIGURE3B_PNG,
+    TABLE7_CSV,
+    TABLE7_MD,
+    COLLAPSE_PNG.format(task="*", variant="*"),
+    html.INDEX_HTML,
+    SUMMARY_MD,
+)
 """Every file a report may write; ``summary.md`` is moved in last, so its presence marks a complete report."""
 REPORT_FOLDER = "report"
 """The default output folder inside the sweep folder."""
@@ -55,6 +95,9 @@ class Report:
     :param references: task -> the published DrQ-v2 curve (with ``reference=True`` and when the data has it)
     :param notes: what the report noticed (unfinished trials, dropped frames, missing reference curves)
     :param markdown: the text of ``summary.md``
+    :param transplant: task -> Figure 3(b)'s curves and Table 7's rows (empty without transplant variants)
+    :param collapse: ``(task, variant)`` -> Figure 4's rows (best, middle, worst seed), for the variants that
+        are not transplant cells
     :param files: the written files
     """
 
@@ -65,6 +108,8 @@ class Report:
     references: dict[str, BandCurve]
     notes: list[str]
     markdown: str
+    transplant: dict[str, list[TransplantCurves]] = field(default_factory=dict)
+    collapse: dict[tuple[str, str], list[AgentMetrics]] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
 
 
@@ -132,7 +177,15 @@ def build_report(
             else:
                 references[task] = band_curve(REFERENCE_LABEL, data.frames, data.returns, settings.percentiles)
     grid = transplant_grid(rows, settings.success_return)
-    return Report(sweep, rows, grid, curves, references, notes, summary_markdown(rows, settings, notes))
+    report = Report(sweep, rows, grid, curves, references, notes, summary_markdown(rows, settings, notes))
+    report.transplant = transplant_curves(sweep, settings.success_return)
+    for task in sweep.tasks():
+        for variant in sweep.variants(task):
+            if transplant_sources(variant) is None:
+                picked = pick_agents(sweep.select(task, variant))
+                if picked:
+                    report.collapse[(task, variant)] = [agent_metrics(trial, role) for role, trial in picked]
+    return report
 
 
 def write_report(
@@ -154,7 +207,13 @@ def write_report(
       trials with ``include_unfinished``);
     - ``summary.csv`` and ``summary.md``: the table per task and variant
       (:class:`~sb3_collapse.report.statistics.VariantSummary`);
-    - ``transplant_grid.csv``, ``.md`` and ``.png`` when ``cnn-<src>_mlp-<src>`` variants are present.
+    - ``transplant_grid.csv``, ``.md`` and ``.png`` when ``cnn-<src>_mlp-<src>`` variants are present, with
+      ``figure3b.png`` (curves of the successful seeds per cell) and ``table7.csv``/``.md`` (their std at four
+      training stages) when a cell has successful seeds;
+    - ``collapse_metrics_<task>_<variant>.png`` (the paper's Figures 4, 8, 9) per task and variant that is not a
+      transplant cell: the collapse metrics of the best, the middle and the worst seed by final return;
+    - ``index.html``: all of the above on one self-contained page, with the sweep's settings, the published
+      DrQ-v2 reference and the unfinished trials.
 
     The files are staged and moved into ``out`` only when all are written (``summary.md`` last); outputs of a
     previous report that this one does not write are removed.
@@ -190,6 +249,194 @@ def write_report(
             write_csv(grid_rows(report.grid), GRID_COLUMNS, staged.path(GRID_CSV))
             staged.path(GRID_MD).write_text(grid_markdown(report.grid, settings.success_return))
             plot_transplant_grid(report.grid, staged.path(GRID_PNG), settings.success_return)
+        if report.transplant:
+            plot_figure3b(report.transplant, staged.path(FIGURE3B_PNG), settings.success_return)
+            write_csv(table7_rows(report.transplant), TABLE7_COLUMNS, staged.path(TABLE7_CSV))
+            staged.path(TABLE7_MD).write_text(table7_markdown(report.transplant, settings.success_return))
+        for (task, variant), agents in tqdm(
+            report.collapse.items(), desc="collapse figures", unit="figure", disable=not progress
+        ):
+            path = staged.path(COLLAPSE_PNG.format(task=task, variant=variant))
+            plot_collapse_metrics(agents, path, figure_title(task, variant, agents))
+        staged.path(html.INDEX_HTML).write_text(sweep_page(report, settings, staged.path))
         staged.path(SUMMARY_MD).write_text(report.markdown)
         report.files = staged.commit()
     return report
+
+
+PRESET_COLUMNS = (
+    "tier",
+    "from_drqv2",
+    "frames",
+    "action_repeat",
+    "frame_stack",
+    "batch_size",
+    "learning_rate",
+    "n_steps",
+    "feature_dim",
+    "hidden_dim",
+    "stddev_schedule",
+    "eval_every_frames",
+)
+"""The preset settings shown on the page, per task."""
+
+
+def _preset_rows(tasks: Sequence[str]) -> list[list[object]]:
+    rows = []
+    for task in tasks:
+        try:
+            task_preset = preset(task)
+        except ValueError:
+            rows.append([task] + ["(not a DeepMind Control suite task)"] + [""] * (len(PRESET_COLUMNS) - 1))
+            continue
+        rows.append([task] + [getattr(task_preset, column) for column in PRESET_COLUMNS])
+    return rows
+
+
+def _reference_rows(report: Report) -> list[list[object]]:
+    """Per task: the published DrQ-v2 return at the frame nearest to the sweep's last frame and at its own end."""
+    rows = []
+    for task in report.sweep.tasks():
+        data = load_reference_curves(task)
+        if data is None:
+            rows.append([task, "-", "-", "-", "no published curve for this task"])
+            continue
+        last = max((int(c.frames[-1]) for c in report.curves.get(task, [])), default=int(data.frames[-1]))
+        for frame_index, what in (
+            (int(abs(data.frames - last).argmin()), "nearest to the sweep's last frame"),
+            (len(data.frames) - 1, "end of the published run"),
+        ):
+            values = data.returns[:, frame_index]
+            rows.append(
+                [task, int(data.frames[frame_index]), f"{values.mean():.1f} ± {values.std(ddof=1):.1f}", len(values), what]
+            )
+    return rows
+
+
+def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Path]) -> str:
+    """
+    The report's ``index.html``: the sweep's settings and presets, the table, the unfinished trials, Figure 5, the
+    published DrQ-v2 reference, Figures 4/8/9, the transplant grid, Figure 3(b) and Table 7, images embedded.
+
+    :param report: the computed report
+    :param settings: its definitions
+    :param png: name of a written figure -> its path (the figures must be written)
+    :return: the HTML text
+    """
+    sweep = report.sweep
+    sections = []
+    about = html.Section("Settings")
+    sweep_json = sweep.path / SWEEP_JSON
+    if sweep_json.exists():
+        about.parts.append(html.settings_table(read_json(sweep_json), caption=f"{SWEEP_JSON} of the sweep"))
+    else:
+        about.parts.append(html.paragraph(f"{sweep_json} is missing: the sweep's settings are unknown.", "note"))
+    about.parts.append(html.table(("task", *PRESET_COLUMNS), _preset_rows(sweep.tasks()), "DrQ-v2 presets per task"))
+    about.parts.append(html.settings_table(dataclasses.asdict(settings), caption="the report's definitions"))
+    sections.append(about)
+
+    summary = html.Section("Summary table")
+    summary.parts.append(html.dict_table(summary_rows(report.rows), SUMMARY_COLUMNS))
+    summary.parts.append(html.preformatted(report.markdown.split("\n\n", 2)[-1].split("\nNotes:")[0].strip()))
+    if report.notes:
+        summary.parts += [html.heading("Notes"), html.bullet_list(report.notes)]
+    sections.append(summary)
+
+    unfinished = html.Section("Unfinished trials")
+    if sweep.unfinished:
+        unfinished.parts.append(
+            html.table(
+                ("task", "variant", "seed", "status", "folder"),
+                [(t.task, t.variant, t.seed, t.status, str(t.path)) for t in sweep.unfinished],
+            )
+        )
+    else:
+        unfinished.parts.append(html.paragraph("Every trial folder is finished."))
+    sections.append(unfinished)
+
+    curves = html.Section("Figure 5: evaluation return")
+    low, high = settings.percentiles
+    curves.parts.append(
+        html.figure(
+            png(FIGURE5_PNG),
+            f"Mean evaluation return over frames per task and variant, {low:g}th-{high:g}th percentile band across "
+            "finished seeds" + (" (dashed: published DrQ-v2)" if report.references else "."),
+        )
+    )
+    curves.parts.append(
+        html.table(
+            ("task", "frame", "return (mean ± std)", "seeds", "which"),
+            _reference_rows(report),
+            f"{REFERENCE_LABEL} (facebookresearch/drqv2 curves)",
+        )
+    )
+    sections.append(curves)
+
+    if report.collapse:
+        collapse = html.Section("Figures 4, 8, 9: collapse metrics of three agents")
+        for (task, variant), agents in report.collapse.items():
+            collapse.parts.append(
+                html.figure(
+                    png(COLLAPSE_PNG.format(task=task, variant=variant)),
+                    figure_title(task, variant, agents) + f"; layers {', '.join(FIGURE4_LAYERS)}; vertical lines: "
+                    "resets and escapes of the reset rule.",
+                )
+            )
+        sections.append(collapse)
+
+    if report.grid:
+        transplant = html.Section("Figure 3 and Table 7: layer transplants")
+        transplant.parts.append(
+            html.figure(png(GRID_PNG), f"Figure 3(a): successful seeds (final return >= {settings.success_return:g}).")
+        )
+        transplant.parts.append(html.dict_table(grid_rows(report.grid), GRID_COLUMNS))
+        if report.transplant:
+            transplant.parts.append(
+                html.figure(png(FIGURE3B_PNG), "Figure 3(b): the successful seeds' curves per transplant cell.")
+            )
+            for task, cells in report.transplant.items():
+                header = ["combination", "successful seeds"] + [f"std at {f:,} frames" for f in cells[0].stage_frames]
+                rows = [[c.label, len(c.returns), *c.stage_std] for c in cells]
+                transplant.parts.append(html.table(header, rows, f"Table 7, {task}"))
+        sections.append(transplant)
+    title = f"Sweep report: {sweep.path}"
+    return html.html_page(title, sections, f"{len(sweep.finished)} finished, {len(sweep.unfinished)} unfinished trials")
+
+
+RUN_OUTPUT_FILES = (RUN_COLLAPSE_PNG, html.INDEX_HTML)
+"""The files of a single run folder's report (``index.html`` last)."""
+
+
+def write_run_report(
+    run_dir: str | Path, out: str | Path | None = None, overwrite: bool = False, layers: Sequence[str] = FIGURE4_LAYERS
+) -> tuple[Trial, list[Path]]:
+    """
+    The report of one run folder of ``python -m sb3_collapse.train`` (``runs/walker-walk_s0``): Figure 4 of this
+    run alone (``collapse_metrics.png``: return, numerical rank, correlation, zero fraction, gradient norm over
+    frames, resets marked) and ``index.html`` with it and the run's settings. An unfinished run is drawn as far as
+    its files go.
+
+    :param run_dir: the run folder
+    :param out: the output folder (``<run_dir>/report`` when ``None``)
+    :param overwrite: replace the outputs of a previous report
+    :param layers: the layers drawn
+    :return: the run (as a trial) and the written files
+    :raises ReportError: when the folder is not a run folder or a file is malformed
+    """
+    out_dir = Path(run_dir) / REPORT_FOLDER if out is None else Path(out)
+    staged_outputs = StagedOutputs(out_dir, RUN_OUTPUT_FILES, html.INDEX_HTML, overwrite=overwrite, error=ReportError)
+    trial = run_folder_trial(run_dir)
+    agent = agent_metrics(trial, "run", layers)
+    with staged_outputs as staged:
+        title = run_title(trial)
+        plot_collapse_metrics([agent], staged.path(RUN_COLLAPSE_PNG), title, layers)
+        section = html.Section("Figure 4: collapse metrics over training")
+        section.parts.append(html.figure(staged.path(RUN_COLLAPSE_PNG), title))
+        config = html.Section("Settings")
+        config.parts.append(html.settings_table(read_json(trial.path / CONFIG_JSON), f"{CONFIG_JSON} of the run"))
+        if trial.result is not None:
+            config.parts.append(html.settings_table(trial.result, f"{RESULT_JSON} of the run"))
+        page = html.html_page(f"Run report: {trial.path}", [section, config], title)
+        staged.path(html.INDEX_HTML).write_text(page)
+        files = staged.commit()
+    return trial, files

@@ -15,7 +15,8 @@ from matplotlib.ticker import EngFormatter
 from sb3_collapse.monitoring.interventions import INTERVENTION_LABELS
 from sb3_collapse.protocol import PAPER
 from sb3_collapse.report.loading import Trial
-from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, BandCurve, GridCell
+from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, BandCurve, GridCell, TransplantCurves
+from sb3_collapse.report.style import OKABE_ITO, frames_axis
 
 REFERENCE_COLOR = "0.15"
 
@@ -201,4 +202,43 @@ def plot_transplant_grid(
     fig.suptitle(f"Successful seeds (final return >= {success_return:g}) / finished seeds", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+SOURCE_COLORS = dict(zip(TRANSPLANT_SOURCES, (OKABE_ITO[3], OKABE_ITO[2], OKABE_ITO[4])))
+"""Figure 3(b): the CNN's source -> colour (blank blue, good green, bad vermillion)."""
+SOURCE_LINESTYLES = dict(zip(TRANSPLANT_SOURCES, (":", "-", "--")))
+"""Figure 3(b): the MLP's source -> line style (blank dotted, good solid, bad dashed)."""
+
+
+def plot_figure3b(
+    curves: Mapping[str, Sequence[TransplantCurves]], path: Path, success_return: float = PAPER.success_return
+) -> None:
+    """
+    The paper's Figure 3(b): per task, the mean evaluation return of the successful seeds of each transplant cell
+    (shaded: +- one std across them), colour by the CNN's source, line style by the MLP's source; the legend
+    (beside the panels) gives the number of successful seeds.
+
+    :param curves: task -> cells with successful seeds (:func:`~sb3_collapse.report.statistics.transplant_curves`)
+    :param path: the PNG file to write
+    :param success_return: the success threshold (for the title)
+    """
+    tasks = list(curves)
+    fig, axes = _panels(len(tasks), columns=2)
+    for ax, task in zip(axes.flat, tasks):
+        for cell in curves[task]:
+            mean = cell.returns.mean(axis=0)
+            color, style = SOURCE_COLORS[cell.cnn], SOURCE_LINESTYLES[cell.mlp]
+            ax.plot(cell.frames, mean, color=color, ls=style, lw=1.6, label=f"{cell.label} (n={len(cell.returns)})")
+            if len(cell.returns) > 1:
+                std = cell.returns.std(axis=0, ddof=1)
+                ax.fill_between(cell.frames, mean - std, mean + std, color=color, alpha=0.12, lw=0)
+        ax.set_title(f"{task}: successful seeds per transplant cell", fontsize=10)
+        ax.set_ylabel("evaluation return")
+        frames_axis(ax)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    fig.suptitle(f"Figure 3(b): mean +- std of the seeds with final return >= {success_return:g}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)

@@ -371,3 +371,82 @@ def transplant_grid(
                     )
                 )
     return grid
+
+
+def stage_indices(frames: np.ndarray, fractions: Sequence[float] = PAPER.stage_fractions) -> list[int]:
+    """
+    The evaluations nearest to the training stages of the paper's Tables 1-7 (``x = 0, 35, 70, 110`` of 110
+    evaluations), at the same fractions of this grid's last frame.
+
+    :param frames: increasing evaluation frames (at least one)
+    :param fractions: the stages, as fractions of the last frame (:attr:`PaperProtocol.stage_fractions`)
+    :return: one index into ``frames`` per stage (the earlier one on ties)
+    """
+    frames = np.asarray(frames, dtype=np.float64)
+    if len(frames) == 0:
+        raise ValueError("frames must hold at least one evaluation frame.")
+    return [int(np.argmin(np.abs(frames - fraction * frames[-1]))) for fraction in fractions]
+
+
+@dataclass
+class TransplantCurves:
+    """
+    A curve of the paper's Figure 3(b) and a row of its Table 7: the successful seeds of one transplant cell.
+
+    :param task: task name
+    :param cnn: the CNN's source
+    :param mlp: the MLP's source
+    :param frames: the aligned frames of the successful seeds
+    :param returns: ``(successes, frames)`` their returns
+    :param stage_frames: the frames of the four stages (:func:`stage_indices`)
+    :param stage_std: the across-seed std (ddof=1) at each stage (nan with fewer than 2 successful seeds)
+    """
+
+    task: str
+    cnn: str
+    mlp: str
+    frames: np.ndarray
+    returns: np.ndarray
+    stage_frames: list[int]
+    stage_std: list[float]
+
+    @property
+    def label(self) -> str:
+        """The row name of Table 7, e.g. ``good CNN x good MLP``."""
+        return f"{self.cnn} CNN x {self.mlp} MLP"
+
+
+def transplant_curves(
+    sweep: Sweep, success_return: float = PAPER.success_return, fractions: Sequence[float] = PAPER.stage_fractions
+) -> dict[str, list[TransplantCurves]]:
+    """
+    The paper's Figure 3(b) and Table 7: per task with transplant variants, for each cell with successful seeds
+    (final return ``>= success_return``, as in :func:`transplant_grid`), their evaluation curves on their aligned
+    grid and the across-seed std at the four training stages.
+
+    :param sweep: the loaded sweep
+    :param success_return: the success threshold
+    :param fractions: the stages
+    :return: task -> cells with at least one successful seed, in grid order; tasks without any are absent
+    """
+    curves: dict[str, list[TransplantCurves]] = {}
+    for task in sweep.tasks():
+        for cnn in TRANSPLANT_SOURCES:
+            for mlp in TRANSPLANT_SOURCES:
+                finished = sweep.select(task, f"cnn-{cnn}_mlp-{mlp}")
+                if not finished:
+                    continue
+                frames, returns = aligned_returns(finished)
+                if not len(frames):
+                    continue
+                successful = returns[returns[:, -1] >= success_return]
+                if not len(successful):
+                    continue
+                stages = stage_indices(frames, fractions)
+                stds = across_seed_std(successful[:, stages], axis=0)
+                curves.setdefault(task, []).append(
+                    TransplantCurves(
+                        task, cnn, mlp, frames, successful, [int(frames[i]) for i in stages], [float(s) for s in stds]
+                    )
+                )
+    return curves

@@ -9,7 +9,13 @@ from pathlib import Path
 from typing import Any
 
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
-from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, GridCell, ReportSettings, VariantSummary
+from sb3_collapse.report.statistics import (
+    TRANSPLANT_SOURCES,
+    GridCell,
+    ReportSettings,
+    TransplantCurves,
+    VariantSummary,
+)
 
 SUMMARY_COLUMNS = (
     "task",
@@ -31,6 +37,8 @@ SUMMARY_COLUMNS = (
 """Columns of ``summary.csv`` (see :class:`~sb3_collapse.report.statistics.VariantSummary`)."""
 
 GRID_COLUMNS = ("task", "cnn", "mlp", "successes", "seeds", "unfinished")
+TABLE7_COLUMNS = ("task", "cnn", "mlp", "successes", "stage", "frame", "std")
+"""Columns of ``table7.csv``: one row per transplant cell and training stage (0..3), the std across successful seeds."""
 """Columns of ``transplant_grid.csv`` (see :class:`~sb3_collapse.report.statistics.GridCell`)."""
 
 
@@ -163,4 +171,39 @@ def grid_markdown(grid: dict[str, list[GridCell]], success_return: float) -> str
         unfinished = sum(c.unfinished for c in cells)
         if unfinished:
             lines += ["", f"{unfinished} unfinished trial(s) not counted."]
+    return "\n".join(lines) + "\n"
+
+
+def table7_rows(curves: dict[str, list[TransplantCurves]]) -> list[dict[str, Any]]:
+    """:return: one dict per cell and stage, keys :data:`TABLE7_COLUMNS`"""
+    return [
+        {
+            "task": c.task,
+            "cnn": c.cnn,
+            "mlp": c.mlp,
+            "successes": len(c.returns),
+            "stage": stage,
+            "frame": frame,
+            "std": _cell(std),
+        }
+        for cells in curves.values()
+        for c in cells
+        for stage, (frame, std) in enumerate(zip(c.stage_frames, c.stage_std))
+    ]
+
+
+def table7_markdown(curves: dict[str, list[TransplantCurves]], success_return: float) -> str:
+    """
+    The paper's Table 7 per task: the std of the successful seeds' returns (Figure 3(b)) at four training stages,
+    one row per transplant cell with successful seeds.
+    """
+    lines = [f"# Table 7: std of the successful seeds' returns (final return >= {success_return:g})", ""]
+    for task, cells in curves.items():
+        header = ["combination", "successful seeds"] + [f"{frame:,} frames" for frame in cells[0].stage_frames]
+        body = [[c.label, str(len(c.returns))] + [_number(std) for std in c.stage_std] for c in cells]
+        lines += [f"## {task}", ""] + _markdown_table(header, body) + [""]
+    lines.append(
+        "Stages: the evaluations nearest to the paper's x = 0, 35, 70, 110 (of 1.1e6 frames), at the same fractions "
+        "of each cell's last aligned frame. Std across successful seeds, ddof=1 (- with one seed)."
+    )
     return "\n".join(lines) + "\n"

@@ -19,12 +19,13 @@ EVAL_EVERY = 10_000
 FRAMES = 200_000
 """Frames trained by the fabricated drqv2 / drqv2+reset trials."""
 TRANSPLANT_FRAMES = 50_000
-COLLAPSE_TAGS = (
-    "collapse/mlp1/grad_norm",
-    "collapse/mlp2/grad_norm",
-    "collapse/mlp1/dead_fraction",
-    "collapse/action_std",
-)
+COLLAPSE_TAGS = tuple(
+    f"collapse/{layer}/{metric}"
+    for layer in ("mlp0", "mlp1", "mlp2")
+    for metric in ("numerical_rank", "correlation", "zero_fraction", "dead_fraction", "grad_norm")
+) + ("collapse/action_std",)
+"""Every tag a fabricated collapse_metrics.csv has: Figure 4's metrics of mlp0..mlp2, consistent with the trial's
+collapse state (a collapsed check: rank ~1-3, correlation ~0.95, ~90% zeros, tiny grad norms), and others."""
 
 
 @dataclass
@@ -94,6 +95,22 @@ def _grad_norms(rng: np.random.Generator, frames: np.ndarray, healthy_from: int 
     return norms
 
 
+def _metric(rng: np.random.Generator, tag: str, mlp1_norm: float) -> float:
+    """A value of ``tag`` consistent with the check's mlp1 gradient norm (collapsed below 1e-3)."""
+    _, layer, metric = tag.split("/") if tag.count("/") == 2 else ("", "", tag)
+    collapsed = not mlp1_norm > 1e-3
+    width = 50 if layer == "mlp0" else 1024
+    if metric == "numerical_rank":
+        return rng.uniform(1.0, 3.0) if collapsed else rng.uniform(0.2, 0.6) * min(width, 100)
+    if metric == "correlation":
+        return rng.uniform(0.9, 0.99) if collapsed else rng.uniform(0.2, 0.4)
+    if metric in ("zero_fraction", "dead_fraction"):
+        return rng.uniform(0.85, 0.95) if collapsed else rng.uniform(0.4, 0.6)
+    if metric == "grad_norm":
+        return mlp1_norm * {"mlp0": 0.5, "mlp2": 2.0}.get(layer, 1.0)
+    return rng.uniform(0.0, 1.0)
+
+
 def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial_last_line: bool = False) -> None:
     folder = root / trial.task / trial.variant / f"seed_{trial.seed}"
     folder.mkdir(parents=True)
@@ -124,7 +141,7 @@ def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial
             writer.writerow(["frame", "step", "tag", "value"])
             for frame, norm in zip(trial.grad_frames, trial.grad_norms):
                 for tag in COLLAPSE_TAGS:
-                    value = norm if tag == "collapse/mlp1/grad_norm" else rng.uniform(0.0, 1.0)
+                    value = norm if tag == "collapse/mlp1/grad_norm" else _metric(rng, tag, norm)
                     writer.writerow(
                         [int(frame), int(frame) // 2, tag, "nan" if np.isnan(value) else repr(float(value))]
                     )

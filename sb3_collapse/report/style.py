@@ -1,0 +1,53 @@
+"""
+One look for every figure of the report and the probe: a colour-blind-safe palette (Okabe & Ito, *Color
+Universal Design*) with one colour per layer, the same in every figure, and frame axes in engineering notation.
+"""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+from matplotlib.axes import Axes
+from matplotlib.ticker import EngFormatter
+
+from sb3_collapse.drqv2.policies import LAYER_NAMES
+
+OKABE_ITO = (
+    "#E69F00",  # orange
+    "#56B4E9",  # sky blue
+    "#009E73",  # bluish green
+    "#0072B2",  # blue
+    "#D55E00",  # vermillion
+    "#CC79A7",  # reddish purple
+    "#F0E442",  # yellow
+    "#000000",  # black
+)
+"""The eight colours of Okabe & Ito, distinguishable with the common colour-vision deficiencies."""
+
+_LAYER_COLOR_LIST = ("#000000", "#56B4E9", "#009E73", "#F0E442", "#D55E00", "#CC79A7", "#0072B2", "#E69F00", "#777777")
+LAYER_COLORS: dict[str, str] = dict(zip(LAYER_NAMES, _LAYER_COLOR_LIST))
+"""Layer (``cnn0`` .. ``action``) -> its colour in every figure: ``cnn0`` (the pixels, the probe's baseline) black,
+``cnn1`` sky blue, ``cnn2`` green, ``cnn3`` yellow, ``cnn4`` vermillion (solid lines); ``mlp0`` purple, ``mlp1``
+blue, ``mlp2`` orange (dashed lines)."""
+
+RETURN_COLOR = "#000000"
+"""The evaluation return's colour."""
+RESET_COLOR = "#666666"
+"""Vertical lines at the resets of the reset rule."""
+ESCAPE_COLOR = "#009E73"
+"""Vertical lines at the reset rule's escapes."""
+
+
+def layer_style(layer: str) -> dict[str, object]:
+    """
+    :param layer: a layer name
+    :return: ``plot`` keywords: the layer's colour, solid for CNN layers and dashed for the MLP
+    """
+    return {"color": LAYER_COLORS.get(layer, "#777777"), "linestyle": "--" if layer.startswith("mlp") else "-"}
+
+
+def frames_axis(ax: Axes, label: str = "frames") -> None:
+    """Label the x axis in frames (environment frames, action repeat included), with 100k / 1M ticks."""
+    ax.set_xlabel(label)
+    ax.xaxis.set_major_formatter(EngFormatter(sep=""))
