@@ -16,9 +16,9 @@ import sys
 
 from sb3_collapse.errors import cli_message
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
+from sb3_collapse.report.collapse_figure import is_run_folder
 from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
-from sb3_collapse.report.collapse_figure import is_run_folder
 from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_report
 from sb3_collapse.report.statistics import ReportSettings
 from sb3_collapse.report.tables import grid_markdown

@@ -35,6 +35,8 @@ FIGURE4_METRICS: tuple[tuple[str, str], ...] = (
 """The metric columns of Figure 4, in order: ``collapse_metrics.csv`` metric -> axis label."""
 FIGURE4_LAYERS = ("mlp1", "mlp2")
 """The layers of Figure 4 ("we only visualize the metrics of mlp1 and mlp2"; ``mlp0`` on request)."""
+BOUNDED_METRICS = ("correlation", "zero_fraction")
+"""Metrics in [0, 1], drawn on that range."""
 ROLES = ("best", "middle", "worst")
 """The rows of Figure 4: highest, median and lowest final return."""
 
@@ -140,14 +142,19 @@ def plot_collapse_metrics(
     """
     if not agents:
         raise ValueError("agents must hold at least one agent to plot.")
-    columns = 1 + len(FIGURE4_METRICS)
-    fig, axes = plt.subplots(
-        len(agents), columns, figsize=(3.3 * columns, 2.5 * len(agents) + 0.9), squeeze=False, sharex=True
+    columns, rows = 1 + len(FIGURE4_METRICS), len(agents)
+    height = 2.4 * rows + 1.1
+    # Shared x, and shared y per column: the rows compare at a glance.
+    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, height), squeeze=False, sharex=True, sharey="col")
+    # A fixed layout (inches from the edges): tight_layout would double the drawing time.
+    fig.subplots_adjust(
+        left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - 0.45 / height, bottom=0.75 / height
     )
     for row, agent in zip(axes, agents):
         ax = row[0]
         ax.plot(agent.trial.frames, agent.trial.returns, color=RETURN_COLOR, lw=1.4)
         ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
+        ax.set_ylim(bottom=min(0.0, float(np.min(agent.trial.returns))))
         for ax, (metric, label) in zip(row[1:], FIGURE4_METRICS):
             drawn = False
             for layer in layers:
@@ -157,6 +164,8 @@ def plot_collapse_metrics(
                     drawn = True
             if metric == "grad_norm" and drawn:
                 ax.set_yscale("log")
+            if metric in BOUNDED_METRICS:
+                ax.set_ylim(-0.02, 1.02)
             if not drawn:
                 ax.text(0.5, 0.5, f"no {metric} in\n{COLLAPSE_METRICS_CSV}", ha="center", va="center",
                         transform=ax.transAxes, fontsize=8, color="0.4")
@@ -176,7 +185,6 @@ def plot_collapse_metrics(
         handles.append(Line2D([], [], color=ESCAPE_COLOR, ls=":", lw=1.0))
         labels.append("escape (reset rule)")
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
     fig.savefig(path, dpi=90)
     plt.close(fig)

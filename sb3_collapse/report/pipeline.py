@@ -7,6 +7,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tqdm.auto import tqdm
+
 from sb3_collapse.presets import preset
 from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON, SWEEP_JSON
 from sb3_collapse.report import html
@@ -50,7 +52,6 @@ from sb3_collapse.report.tables import (
     write_csv,
 )
 from sb3_collapse.staged_outputs import StagedOutputs
-from tqdm.auto import tqdm
 
 FIGURE5_PNG = "figure5.png"
 SUMMARY_CSV = "summary.csv"

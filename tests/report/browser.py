@@ -62,12 +62,12 @@ def chromium() -> str:
         pytest.skip("headless Chromium is needed to check the HTML report: install it with `sudo apt-get install chromium`")
     environment = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     install = subprocess.run(
-        ["apt-get", "install", "-y", "-qq", "chromium"], capture_output=True, text=True, env=environment, timeout=900
+        ["apt-get", "install", "-y", "-qq", "chromium"], capture_output=True, text=True, env=environment, timeout=900, check=False
     )
     if install.returncode != 0:  # the package lists may be missing or stale
-        subprocess.run(["apt-get", "update", "-qq"], capture_output=True, env=environment, timeout=600)
+        subprocess.run(["apt-get", "update", "-qq"], capture_output=True, env=environment, timeout=600, check=False)
         install = subprocess.run(
-            ["apt-get", "install", "-y", "-qq", "chromium"], capture_output=True, text=True, env=environment, timeout=900
+            ["apt-get", "install", "-y", "-qq", "chromium"], capture_output=True, text=True, env=environment, timeout=900, check=False
         )
     path = shutil.which("chromium")
     if install.returncode != 0 or path is None:
@@ -101,7 +101,7 @@ def check_page(page: Path, workdir: Path, binary: str | None = None, timeout: fl
         "--dump-dom",
         copy.resolve().as_uri(),
     ]
-    completed = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+    completed = subprocess.run(command, capture_output=True, text=True, timeout=timeout, check=False)
     assert completed.returncode == 0, f"chromium failed ({completed.returncode}): {completed.stderr[-2000:]}"
     dom = completed.stdout
     start = dom.find(f'<pre id="{RESULT_ID}">')

@@ -107,7 +107,7 @@ def _metric(rng: np.random.Generator, tag: str, mlp1_norm: float) -> float:
     if metric in ("zero_fraction", "dead_fraction"):
         return rng.uniform(0.85, 0.95) if collapsed else rng.uniform(0.4, 0.6)
     if metric == "grad_norm":
-        return mlp1_norm * {"mlp0": 0.5, "mlp2": 2.0}.get(layer, 1.0)
+        return mlp1_norm * {"mlp0": 0.5, "mlp2": 2.0}.get(layer, 1.0)  # mlp1's own; nan where it is nan
     return rng.uniform(0.0, 1.0)
 
 
@@ -139,9 +139,11 @@ def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial
         with (folder / "collapse_metrics.csv").open("w", newline="") as file:
             writer = csv.writer(file)
             writer.writerow(["frame", "step", "tag", "value"])
+            state = 0.0  # the other metrics follow the last finite grad norm (a nan row is a logging gap)
             for frame, norm in zip(trial.grad_frames, trial.grad_norms):
+                state = state if np.isnan(norm) else norm
                 for tag in COLLAPSE_TAGS:
-                    value = norm if tag == "collapse/mlp1/grad_norm" else _metric(rng, tag, norm)
+                    value = _metric(rng, tag, norm if tag.endswith("/grad_norm") else state)
                     writer.writerow(
                         [int(frame), int(frame) // 2, tag, "nan" if np.isnan(value) else repr(float(value))]
                     )
