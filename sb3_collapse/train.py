@@ -53,6 +53,7 @@ from sb3_collapse.baselines import BASELINES, DRQV2_ONLY_SETTINGS, NATURE_CNN_MI
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.drqv2.drqv2 import check_hyperparameters
 from sb3_collapse.drqv2.policies import check_image_size
+from sb3_collapse.drqv2.probe_checkpoint import ProbeCheckpoints
 from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task
@@ -71,6 +72,7 @@ from sb3_collapse.protocol import (
     FINAL_MODEL,
     FINISHED,
     PAPER,
+    PROBE_CHECKPOINTS_DIR,
     RESULT_JSON,
     append_csv_rows,
     blocking_file,
@@ -152,6 +154,9 @@ class TrainConfig:
         a one-round policy lag, DrQ-v2's reference order); runs the environments in subprocesses even when ``n_envs`` is 1
     :param compile_update: compile the update with ``torch.compile`` (``DrQv2``'s ``compile_update=True``: CUDA graphs on
         CUDA)
+    :param probe_checkpoints: save the encoder and actor (about 12 MB) at every evaluation and at the end into
+        ``probe_checkpoints/`` of the run folder, for ``python -m sb3_collapse.probe`` (the paper's Figure 2);
+        DrQ-v2 only, needs evaluations
     :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
     :param torch_threads: threads of torch's CPU operations (``torch.set_num_threads``); ``None``: torch's default
     :param progress_bar: show a progress bar
@@ -200,6 +205,7 @@ class TrainConfig:
     n_envs: int = 1
     step_envs_during_updates: bool = False
     compile_update: bool = False
+    probe_checkpoints: bool = False
     device: str = "auto"
     torch_threads: int | None = None
     progress_bar: bool = True
@@ -279,6 +285,12 @@ class TrainConfig:
                         f"{name}={getattr(config, name)!r} is a DrQv2 option (docs/throughput.md); algorithm="
                         f"{config.algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}.",
                     )
+        if config.probe_checkpoints and (config.algorithm != "drqv2" or config.eval_every_frames == 0):
+            raise ParameterError(
+                "probe_checkpoints",
+                "probe_checkpoints are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
+                f"eval_every_frames > 0 (got algorithm={config.algorithm!r}, eval_every_frames={config.eval_every_frames}).",
+            )
         if config.algorithm != "drqv2" and config.init_from:
             raise ParameterError(
                 f"init_{next(iter(config.init_from))}",
@@ -664,6 +676,10 @@ def _train_into(
     if config.checkpoint_every_frames > 0:
         save_freq = max(1, config.checkpoint_every_frames // config.action_repeat)
         callbacks.append(CheckpointCallback(save_freq, str(run_dir / CHECKPOINTS_DIR), name_prefix=config.algorithm))
+    probe_checkpoints = None
+    if config.probe_checkpoints:
+        probe_checkpoints = ProbeCheckpoints(config.eval_every_frames, run_dir / PROBE_CHECKPOINTS_DIR)
+        callbacks.append(probe_checkpoints)
     if config.collapse_metrics_every_frames > 0:
         metrics = CollapseMetrics(
             config.collapse_metrics_every_frames,
@@ -709,6 +725,8 @@ def _train_into(
     model.save(model_path)
     if evaluation is not None and evaluation.rows and evaluation.rows[-1]["step"] < model.num_timesteps:
         evaluation.evaluate()  # the budget's last frames were not evaluated yet
+    if probe_checkpoints is not None:
+        probe_checkpoints.save()  # the final model's, next to its evaluation (once per frame)
     model.logger.close()
     env.close()
     evaluations = evaluation.rows if evaluation is not None else []
@@ -756,6 +774,7 @@ def training_arguments() -> argparse.ArgumentParser:
     g = p.add_argument_group("other training settings")
     g.add_argument("--size", type=int, default=d.size, help="image height and width, in pixels (default: %(default)s)")
     g.add_argument("--checkpoint-every-frames", type=int, default=d.checkpoint_every_frames, help="frames between intermediate checkpoints; 0: final checkpoint only (default: %(default)s)")
+    g.add_argument("--probe-checkpoints", action="store_true", help=f"save the encoder and actor (about 12 MB at 84x84) at every evaluation and at the end into <run>/{PROBE_CHECKPOINTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only")
     g.add_argument("--collapse-metrics-every-frames", type=int, default=d.collapse_metrics_every_frames, help="frames between two checks of the collapse metrics (TensorBoard collapse/..., collapse metrics CSV); 0 disables them (default: the paper's, %(default)s)")
     g.add_argument("--collapse-probe-batch", type=int, default=d.collapse_probe_batch, help="replay observations per collapse-metrics check (default: %(default)s)")
     g.add_argument("--reset-window-frames", type=int, default=d.reset_window_frames, help="the reset rule's window, in frames (default: the paper's, %(default)s)")

@@ -13,6 +13,7 @@ from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.drqv2.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint
 from sb3_collapse.monitoring import LayerMappingError, layer_taps
 from sb3_collapse.monitoring.callbacks import action_repeat_of
 from sb3_collapse.probe.errors import ProbeError
@@ -109,7 +110,8 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
     """
     Load a checkpoint for probing and check that its layers can be named.
 
-    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC
+    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC, or a DrQv2 probe checkpoint (encoder and actor only,
+        :mod:`sb3_collapse.drqv2.probe_checkpoint`)
     :param device: where the networks go
     :return: the loaded checkpoint
     :raises ProbeError: for a missing file, a non-zip, a zip that is not an SB3 model, an unknown algorithm,
@@ -120,7 +122,10 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
     algorithm = identify_algorithm(data, path)
     try:
         # A small buffer (room for any n-step window): loading must not reserve the replay memory of training.
-        model = algorithm.load(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
+        if is_probe_checkpoint(path):  # encoder and actor only (train's probe_checkpoints)
+            model = load_probe_checkpoint(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
+        else:
+            model = algorithm.load(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
     except Exception as error:
         raise ProbeError(f"{path}: {algorithm.__name__}.load failed ({type(error).__name__}: {error}).") from error
     try:

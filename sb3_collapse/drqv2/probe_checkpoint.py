@@ -1,0 +1,166 @@
+"""
+Probe checkpoints: the weights the offline probe needs (the encoder ``cnn1``..``cnn4`` and the actor ``mlp0``..
+``action``), saved at every evaluation of a run for the paper's Figure 2 (probing MSE over training).
+
+A probe checkpoint is an SB3 zip like ``DrQv2.save`` writes (``data``, ``policy.pth``), whose ``policy.pth`` holds
+the encoder and actor entries only: no critic, no target critic, no optimizer state, no replay buffer. With
+DrQ-v2's sizes at 84x84 it is about 12 MB instead of 105 MB. A member ``probe_checkpoint.json`` marks it;
+:func:`load_probe_checkpoint` (and ``sb3_collapse.probe``'s checkpoint loader) reads it into a DrQv2 model whose
+critic keeps its random initialization (never used by the probe).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_file
+
+from sb3_collapse.drqv2.transplant import GROUP_LAYERS, TRANSPLANT_GROUPS
+from sb3_collapse.monitoring.callbacks import frames_of
+from sb3_collapse.protocol import PROBE_CHECKPOINT
+
+PROBE_GROUPS = ("cnn", "mlp")
+"""The transplant groups a probe checkpoint holds: the encoder and the actor."""
+PROBE_PREFIXES = tuple(prefix for group in PROBE_GROUPS for prefix in TRANSPLANT_GROUPS[group])
+"""Their ``state_dict`` prefixes (``encoder.``, ``actor.``)."""
+MARKER = "probe_checkpoint.json"
+"""The zip member that marks a probe checkpoint: ``{"groups", "layers", "num_timesteps", "frames"}``."""
+
+
+def save_probe_checkpoint(model: Any, path: str | os.PathLike) -> Path:
+    """
+    Save the encoder and actor of a DrQv2 model with the settings SB3 saves (atomically: a temporary file next to
+    ``path``, renamed).
+
+    :param model: a DrQv2 model
+    :param path: the zip to write (its folder is created)
+    :return: the path written
+    :raises TypeError: for a model without a DrQ-v2 encoder and actor
+    """
+    state_dict = model.policy.state_dict()
+    kept = {key: value.detach().cpu() for key, value in state_dict.items() if key.startswith(PROBE_PREFIXES)}
+    if not all(any(key.startswith(prefix) for key in kept) for prefix in PROBE_PREFIXES):
+        raise TypeError(f"model must be a DrQv2 model (policy entries {', '.join(PROBE_PREFIXES)}), got {type(model).__name__}.")
+    # The settings, as BaseAlgorithm.save keeps them: the attributes minus the excluded ones and the torch objects.
+    data = model.__dict__.copy()
+    excluded = set(model._excluded_save_params())
+    state_dicts, torch_variables = model._get_torch_save_params()
+    excluded.update(name.split(".")[0] for name in state_dicts + torch_variables)
+    for name in excluded:
+        data.pop(name, None)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(handle)
+    try:
+        save_to_zip_file(temporary, data=data, params={"policy": kept})
+        marker = {
+            "groups": list(PROBE_GROUPS),
+            "layers": [layer for group in PROBE_GROUPS for layer in GROUP_LAYERS[group]],
+            "num_timesteps": int(model.num_timesteps),
+            "frames": frames_of(model),
+        }
+        with zipfile.ZipFile(temporary, "a") as archive:
+            archive.writestr(MARKER, json.dumps(marker))
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def is_probe_checkpoint(path: str | os.PathLike) -> bool:
+    """:return: whether ``path`` is a zip with the probe checkpoint's marker"""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return MARKER in archive.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
+def load_probe_checkpoint(path: str | os.PathLike, device: th.device | str = "cpu", **kwargs: Any) -> Any:
+    """
+    Load a probe checkpoint into a DrQv2 model (without environment) for inference: the encoder and actor
+    are the saved ones, the critic is freshly initialized and must not be used.
+
+    :param path: the zip
+    :param device: where the networks go
+    :param kwargs: saved attributes to override (e.g. ``buffer_size`` for a small replay buffer)
+    :return: the model
+    :raises ValueError: for a zip that is not a probe checkpoint or lacks encoder or actor entries
+    """
+    from sb3_collapse.drqv2.drqv2 import DrQv2
+
+    if not is_probe_checkpoint(path):
+        raise ValueError(f"{path} is not a probe checkpoint (no {MARKER}); load a full checkpoint with DrQv2.load.")
+    data, params, _ = load_from_zip_file(path, device=device)
+    model = DrQv2(policy=data["policy_class"], env=None, device=device, _init_setup_model=False)
+    model.__dict__.update(data)
+    model.__dict__.update(kwargs)
+    model._setup_model()
+    missing, unexpected = model.policy.load_state_dict(params["policy"], strict=False)
+    lacking = [key for key in missing if key.startswith(PROBE_PREFIXES)]
+    if lacking or unexpected:
+        raise ValueError(
+            f"{path}: the encoder and actor do not match the saved settings (missing {lacking[:3]}, unexpected "
+            f"{list(unexpected)[:3]}); was the file written by another version?"
+        )
+    model.policy.set_training_mode(False)
+    return model
+
+
+class ProbeCheckpoints(BaseCallback):
+    """
+    Save a probe checkpoint (:func:`save_probe_checkpoint`) at frame 0 and every ``every_frames`` frames, on the
+    schedule of the train CLI's evaluations (and like them, not at the last step of ``learn()``: call
+    :meth:`save` on the final model).
+
+    Files: ``<folder>/`` :data:`~sb3_collapse.protocol.PROBE_CHECKPOINT` (``probe_<frames, 10 digits>_frames.zip``).
+
+    :param every_frames: frames between two checkpoints (the evaluation period)
+    :param folder: where the zips go
+    :param verbose: 0 silent, 1 a line per checkpoint
+    """
+
+    def __init__(self, every_frames: int, folder: str | os.PathLike, verbose: int = 0) -> None:
+        super().__init__(verbose)
+        if every_frames < 1:
+            raise ValueError(f"every_frames must be >= 1 frame, got {every_frames}.")
+        self.every_frames = every_frames
+        self.folder = Path(folder)
+        self.next_frame = 0
+        self.saved: list[Path] = []
+
+    def _on_training_start(self) -> None:
+        self.next_frame = frames_of(self.model)
+        self._maybe_save()
+
+    def _on_step(self) -> bool:
+        if self.model.num_timesteps < getattr(self.model, "_total_timesteps", float("inf")):
+            self._maybe_save()
+        return True
+
+    def _maybe_save(self) -> None:
+        frames = frames_of(self.model)
+        if frames >= self.next_frame:
+            self.save()
+            while self.next_frame <= frames:
+                self.next_frame += self.every_frames
+
+    def save(self) -> Path:
+        """Save the model's encoder and actor now, unless already saved at this frame; :return: the zip"""
+        path = self.folder / PROBE_CHECKPOINT.format(frames=frames_of(self.model))
+        if self.saved and self.saved[-1] == path:
+            return path
+        save_probe_checkpoint(self.model, path)
+        self.saved.append(path)
+        if self.verbose >= 1:
+            print(f"ProbeCheckpoints: saved {path}")
+        return path
