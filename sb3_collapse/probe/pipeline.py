@@ -21,6 +21,7 @@ from sb3_collapse.probe.checkpoints import (
     read_saved_data,
 )
 from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.protocol import PAPER
 from sb3_collapse.probe.probing import (
     MIN_EPISODES,
     CheckpointProbe,
@@ -44,6 +45,13 @@ from sb3_collapse.probe.report import (
 from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
 
 ROLLOUTS_NAME = "rollouts.npz"
+SELF_RECORDED_NOTE = (
+    "the rollouts were recorded by the first probed checkpoint itself; the paper's protocol (Section 4.1) records "
+    "them once from a well-performing agent (final return >= {success:g}) and probes every checkpoint on them: "
+    "record with `python -m sb3_collapse.probe record GOOD.zip --out rollouts.npz` and pass `--rollouts "
+    "rollouts.npz` (library: `rollouts_path`), or use `python -m sb3_collapse.probe sweep` on a sweep folder"
+)
+"""What the probe says when it records its rollouts from the checkpoint it probes (today's default)."""
 
 
 @dataclass
@@ -202,6 +210,7 @@ def probe_to_folder(
             raise ProbeError(
                 f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
             )
+    self_recorded = rollouts_path is None
     with staged_output(out, overwrite=overwrite) as staged:
         if rollouts_path is None:
             first = load_checkpoint(checkpoint_paths[0], device=device)
@@ -211,6 +220,7 @@ def probe_to_folder(
             print(
                 f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {rollouts_path}", flush=True
             )
+            print(f"Note: {SELF_RECORDED_NOTE.format(success=PAPER.success_return)}.", flush=True)
             del first
         else:
             rollouts = Rollouts.load(rollouts_path)
@@ -234,6 +244,8 @@ def probe_to_folder(
         plot_mse_by_layer(rows, staged.path(BY_LAYER_PLOT))
         over_training = plot_mse_over_training(rows, staged.path(OVER_TRAINING_PLOT))
         summary = _summary(results, rows, rollouts, rollouts_path, split, settings, over_training, command)
+        if self_recorded:
+            summary["rollouts"]["note"] = SELF_RECORDED_NOTE.format(success=PAPER.success_return)
         summary["total_seconds"] = round(time.perf_counter() - started, 1)
         write_json(summary, staged.path(SUMMARY_NAME))
         files = staged.commit()

@@ -87,7 +87,7 @@ def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
     assert len(list(csv.DictReader((out / "probe.csv").open()))) == 2 * 2 * 24
 
 
-def test_default_form_records_rollouts_first(files, tmp_path):
+def test_default_form_records_rollouts_first(files, tmp_path, capsys):
     out = tmp_path / "single"
     assert (
         main(
@@ -111,6 +111,10 @@ def test_default_form_records_rollouts_first(files, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["rollouts"]["samples"] == 9 and summary["rollouts"]["env_config"]["size"] == 32
     assert summary["mse_over_training"].startswith("skipped")
+    # the paper records from a well-performing agent: said on screen and in the summary, with how to do it
+    note = summary["rollouts"]["note"]
+    assert "well-performing agent (final return >= 900)" in note and "--rollouts" in note
+    assert note in capsys.readouterr().out.replace("\n", " ")
 
 
 def test_bad_inputs_exit_with_a_message_and_no_outputs(files, tmp_path, capsys):
