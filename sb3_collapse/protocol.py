@@ -114,6 +114,12 @@ ERROR_TXT = "error.txt"
 """The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
 SWEEP_JSON = "sweep.json"
 """A sweep folder's settings."""
+SWEEP_PROBE_DIR = "probe/{task}_{variant}"
+"""Inside a sweep folder: the outputs of ``python -m sb3_collapse.probe sweep`` for one task and variant (Figure 2)."""
+FIGURE2_PNG = "figure2.png"
+"""Figure 2 in :data:`SWEEP_PROBE_DIR`."""
+TABLES_1_6_CSV = "tables_1_6.csv"
+"""Tables 1-6 in :data:`SWEEP_PROBE_DIR`."""
 
 EVAL_FIELDS = ("frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s")
 COLLAPSE_METRICS_FIELDS = ("frame", "step", "tag", "value")

@@ -4,8 +4,10 @@ Offline OMP probing of checkpoints: ``python -m sb3_collapse.probe --help``.
     python -m sb3_collapse.probe ckpt.zip                                      # record rollouts, then probe
     python -m sb3_collapse.probe good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/
     python -m sb3_collapse.probe record good.zip --env walker-walk --episodes 20 --out walker.npz
+    python -m sb3_collapse.probe sweep runs/sweep --task walker-walk           # Figure 2 and Tables 1-6
 
-``run`` (the default when the first argument is not a sub-command) probes; ``record`` records rollouts.
+``run`` (the default when the first argument is not a sub-command) probes; ``record`` records rollouts; ``sweep``
+probes the probe checkpoints of a sweep's well- and poorly performing seeds.
 Errors in the input print ``error: ...`` and exit with status 2.
 """
 
@@ -18,9 +20,11 @@ from sb3_collapse.errors import cli_message
 from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
+from sb3_collapse.probe.sweep import DEFAULT_OUT, probe_sweep
+from sb3_collapse.protocol import PAPER, PROBE_CHECKPOINTS_DIR
 
 PROG = "python -m sb3_collapse.probe"
-SUBCOMMANDS = ("run", "record")
+SUBCOMMANDS = ("run", "record", "sweep")
 
 
 def _recording_arguments(parser: argparse.ArgumentParser, defaults: RecordOptions) -> None:
@@ -55,6 +59,39 @@ def _recording_arguments(parser: argparse.ArgumentParser, defaults: RecordOption
     group.add_argument("--camera-id", type=int, help="camera of the renders")
 
 
+def _probe_arguments(parser: argparse.ArgumentParser, settings: ProbeSettings) -> None:
+    parser.add_argument(
+        "--layers", nargs="+", help=f"layers to probe (default: those of {' '.join(PROBE_LAYERS)} the model has)"
+    )
+    parser.add_argument(
+        "--max-tau", type=int, default=settings.max_tau, help="largest sparsity; every tau in 1..max-tau is validated"
+    )
+    parser.add_argument(
+        "--split",
+        type=float,
+        nargs=3,
+        default=list(settings.fractions),
+        metavar=("TRAIN", "VAL", "TEST"),
+        help="fractions of the episodes",
+    )
+    parser.add_argument("--split-seed", type=int, default=settings.split_seed, help="seed of the episode shuffle")
+    parser.add_argument("--batch-size", type=int, default=settings.batch_size, help="observations per forward pass")
+    parser.add_argument(
+        "--memory-gb",
+        type=float,
+        default=settings.memory_gb,
+        help="activations held at once, in GB; layers share a forward pass while they fit",
+    )
+    parser.add_argument(
+        "--min-std",
+        type=float,
+        default=settings.min_std,
+        help="feature columns of a smaller train std are dropped as constant",
+    )
+    parser.add_argument("--device", default=settings.device, help="auto (CUDA when available), cpu, cuda, ...")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+
+
 def _record_options(args: argparse.Namespace) -> RecordOptions:
     return RecordOptions(
         env=args.env,
@@ -81,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
         f"  {PROG} record good.zip --env walker-walk --episodes 20 --out walker.npz",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = parser.add_subparsers(dest="command", metavar="{run,record}")
+    sub = parser.add_subparsers(dest="command", metavar="{run,record,sweep}")
     defaults, settings = RecordOptions(), ProbeSettings()
 
     run = sub.add_parser(
@@ -97,37 +134,29 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--rollouts", help="rollouts .npz from `record` (default: record them from the first checkpoint)")
     run.add_argument("--out", default="probe", help="output folder")
     run.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
-    run.add_argument(
-        "--layers", nargs="+", help=f"layers to probe (default: those of {' '.join(PROBE_LAYERS)} the model has)"
-    )
-    run.add_argument(
-        "--max-tau", type=int, default=settings.max_tau, help="largest sparsity; every tau in 1..max-tau is validated"
-    )
-    run.add_argument(
-        "--split",
-        type=float,
-        nargs=3,
-        default=list(settings.fractions),
-        metavar=("TRAIN", "VAL", "TEST"),
-        help="fractions of the episodes",
-    )
-    run.add_argument("--split-seed", type=int, default=settings.split_seed, help="seed of the episode shuffle")
-    run.add_argument("--batch-size", type=int, default=settings.batch_size, help="observations per forward pass")
-    run.add_argument(
-        "--memory-gb",
-        type=float,
-        default=settings.memory_gb,
-        help="activations held at once, in GB; layers share a forward pass while they fit",
-    )
-    run.add_argument(
-        "--min-std",
-        type=float,
-        default=settings.min_std,
-        help="feature columns of a smaller train std are dropped as constant",
-    )
-    run.add_argument("--device", default=settings.device, help="auto (CUDA when available), cpu, cuda, ...")
-    run.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    _probe_arguments(run, settings)
     _recording_arguments(run, defaults)
+
+    swp = sub.add_parser(
+        "sweep",
+        help="Figure 2 and Tables 1-6 of a sweep's task and variant",
+        description="Split the finished trials of one task and variant by final return (well-performing >= "
+        "--success-return, poorly performing < --failure-return), record rollouts once from the best well-performing "
+        f"seed (or read --rollouts), probe every {PROBE_CHECKPOINTS_DIR}/*.zip of those trials (train with "
+        "--probe-checkpoints) and write figure2.png (rows well/poor, columns torso velocity, joint orientations, "
+        "torso height), tables_1_6.csv/.md (std across agents at four training stages), probe.csv and summary.json.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    swp.add_argument("sweep", help="the sweep folder (--out of python -m sb3_collapse.sweep)")
+    swp.add_argument("--task", required=True, help="the task folder, e.g. walker-walk")
+    swp.add_argument("--variant", default="drqv2", help="the variant folder")
+    swp.add_argument("--out", help=f"output folder (default: <sweep>/{DEFAULT_OUT})")
+    swp.add_argument("--rollouts", help="rollouts .npz to probe on (default: record them from the best seed)")
+    swp.add_argument("--success-return", type=float, default=PAPER.success_return, help="well-performing: final return >= this")
+    swp.add_argument("--failure-return", type=float, default=PAPER.failure_return, help="poorly performing: final return < this")
+    swp.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
+    _probe_arguments(swp, settings)
+    _recording_arguments(swp, defaults)
 
     rec = sub.add_parser(
         "record",
@@ -143,6 +172,20 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     _recording_arguments(rec, defaults)
     return parser
+
+
+def _settings(args: argparse.Namespace) -> ProbeSettings:
+    return ProbeSettings(
+        layers=args.layers,
+        max_tau=args.max_tau,
+        fractions=tuple(args.split),
+        split_seed=args.split_seed,
+        batch_size=args.batch_size,
+        memory_gb=args.memory_gb,
+        min_std=args.min_std,
+        device=args.device,
+        progress=not args.no_progress,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -164,22 +207,25 @@ def main(argv: list[str] | None = None) -> int:
             record_to_file(
                 args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, not args.no_progress
             )
-        else:
-            settings = ProbeSettings(
-                layers=args.layers,
-                max_tau=args.max_tau,
-                fractions=tuple(args.split),
-                split_seed=args.split_seed,
-                batch_size=args.batch_size,
-                memory_gb=args.memory_gb,
-                min_std=args.min_std,
-                device=args.device,
-                progress=not args.no_progress,
+        elif args.command == "sweep":
+            probe_sweep(
+                args.sweep,
+                args.task,
+                args.variant,
+                out=args.out,
+                settings=_settings(args),
+                rollouts_path=args.rollouts,
+                record_options=_record_options(args),
+                success_return=args.success_return,
+                failure_return=args.failure_return,
+                overwrite=args.overwrite,
+                command=[PROG, *argv],
             )
+        else:
             probe_to_folder(
                 args.checkpoints,
                 args.out,
-                settings,
+                _settings(args),
                 rollouts_path=args.rollouts,
                 record_options=_record_options(args),
                 overwrite=args.overwrite,

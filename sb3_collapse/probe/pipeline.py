@@ -21,7 +21,6 @@ from sb3_collapse.probe.checkpoints import (
     read_saved_data,
 )
 from sb3_collapse.probe.errors import ProbeError
-from sb3_collapse.protocol import PAPER
 from sb3_collapse.probe.probing import (
     MIN_EPISODES,
     CheckpointProbe,
@@ -43,6 +42,7 @@ from sb3_collapse.probe.report import (
     write_json,
 )
 from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
+from sb3_collapse.protocol import PAPER
 
 ROLLOUTS_NAME = "rollouts.npz"
 SELF_RECORDED_NOTE = (

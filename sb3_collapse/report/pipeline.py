@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -10,7 +11,14 @@ from pathlib import Path
 from tqdm.auto import tqdm
 
 from sb3_collapse.presets import preset
-from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON, SWEEP_JSON
+from sb3_collapse.protocol import (
+    CONFIG_JSON,
+    FIGURE2_PNG,
+    RESULT_JSON,
+    SWEEP_JSON,
+    SWEEP_PROBE_DIR,
+    TABLES_1_6_CSV,
+)
 from sb3_collapse.report import html
 from sb3_collapse.report.collapse_figure import (
     FIGURE4_LAYERS,
@@ -314,6 +322,25 @@ def _reference_rows(report: Report) -> list[list[object]]:
     return rows
 
 
+def _tables_1_6(path: Path) -> list[str]:
+    """Tables 1-6 of ``python -m sb3_collapse.probe sweep`` as HTML tables, one per panel (layers x stages)."""
+    if not path.exists() or not path.stat().st_size:
+        return [html.paragraph(f"{path}: no tables (no agent in a row).", "note")]
+    with path.open(newline="") as file:
+        entries = list(csv.DictReader(file))
+    panels: dict[tuple[str, str, str, str], dict[str, dict[str, str]]] = {}
+    for e in entries:
+        key = (e["table"], e["row"], e["column"], e["agents"])
+        panels.setdefault(key, {}).setdefault(e["layer"], {})[e["frame"]] = e["std"]
+    parts = []
+    for (number, row, column, agents), layers in panels.items():
+        frames = list(dict.fromkeys(frame for stds in layers.values() for frame in stds))
+        rows = [[layer, *(float(stds[f]) if stds.get(f) else None for f in frames)] for layer, stds in layers.items()]
+        header = ["layer", *(f"std at {int(f):,} frames" for f in frames)]
+        parts.append(html.table(header, rows, f"Table {number}: {row} agents ({agents}), {column}"))
+    return parts
+
+
 def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Path]) -> str:
     """
     The report's ``index.html``: the sweep's settings and presets, the table, the unfinished trials, Figure 5, the
@@ -384,6 +411,16 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
                 )
             )
         sections.append(collapse)
+
+    probing = html.Section("Figure 2 and Tables 1-6: probing over training")
+    for task in sweep.tasks():
+        for variant in sweep.variants(task):
+            folder = sweep.path / SWEEP_PROBE_DIR.format(task=task, variant=variant)
+            if (folder / FIGURE2_PNG).exists():
+                probing.parts.append(html.figure(folder / FIGURE2_PNG, f"Figure 2, {task} / {variant} ({folder})."))
+                probing.parts += _tables_1_6(folder / TABLES_1_6_CSV)
+    if probing.parts:
+        sections.append(probing)
 
     if report.grid:
         transplant = html.Section("Figure 3 and Table 7: layer transplants")

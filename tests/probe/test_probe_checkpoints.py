@@ -1,5 +1,12 @@
 """Probe checkpoints (encoder and actor only) from a real tiny training run, read by the probe like full ones."""
 
+import csv
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import matplotlib.image
 import numpy as np
 import pytest
 import torch as th
@@ -9,8 +16,12 @@ from sb3_collapse.drqv2.probe_checkpoint import is_probe_checkpoint, load_probe_
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
-from sb3_collapse.protocol import PROBE_CHECKPOINT, PROBE_CHECKPOINTS_DIR
+from sb3_collapse.protocol import FIGURE2_PNG, PROBE_CHECKPOINT, PROBE_CHECKPOINTS_DIR, SWEEP_PROBE_DIR, TABLES_1_6_CSV
+from sb3_collapse.report import write_report
 from sb3_collapse.train import TrainConfig, train
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "report"))
+from fabricated_sweep import write_probe_sweep
 
 
 @pytest.fixture(scope="module")
@@ -77,3 +88,49 @@ def test_probe_checkpoints_need_drqv2_and_evaluations(tmp_path):
     with pytest.raises(TypeError, match="DrQv2 model"):
         save_probe_checkpoint(type("NotDrQ", (), {"policy": th.nn.Linear(2, 2)})(), tmp_path / "x.zip")
     assert not list(tmp_path.iterdir())
+
+
+def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
+    root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 1: 920.0, 2: 20.0, 3: 10.0, 4: 500.0})
+    argv = ["sweep", str(root), "--task", "walker-walk", "--episodes", "5", "--max-steps", "4", "--max-tau", "4"]
+    assert probe_main([*argv, "--layers", "cnn0", "cnn4", "mlp1", "--no-progress"]) == 0
+    out = root / SWEEP_PROBE_DIR.format(task="walker-walk", variant="drqv2")
+    summary = json.loads((out / "summary.json").read_text())
+    assert [(a["seed"], a["row"], a["checkpoints"]) for a in summary["agents"]] == [
+        (0, "well-performing", 3), (1, "well-performing", 3), (2, "poorly performing", 3), (3, "poorly performing", 3)
+    ]  # fmt: skip
+    assert summary["not_probed"] == [{"seed": 4, "final_return": 500.0}]
+    assert summary["rollouts"]["recorded_from"].endswith("seed_0/final_model.zip")  # the best seed
+    assert summary["columns"]["torso velocity"] == ["velocity_0", "velocity_1", "velocity_2"]
+    assert summary["columns"]["joint orientations"] == [f"orientations_{i}" for i in range(2, 14)]
+    image = matplotlib.image.imread(out / FIGURE2_PNG)
+    assert image.shape[1] > 1000 and image[..., :3].std() > 0.05
+    # Tables 1-6 from probe.csv, independently: per agent the mean test MSE over the column's targets, std across
+    # the row's agents (ddof=1) at the stages 0, 400 (0.32 x 800 -> nearest 400), 800 frames
+    with (out / "probe.csv").open() as file:
+        probe = list(csv.DictReader(file))
+    with (out / TABLES_1_6_CSV).open() as file:
+        tables = list(csv.DictReader(file))
+    assert len(tables) == 2 * 3 * 3 * 4  # rows x columns x layers x stages
+    assert sorted({int(t["table"]) for t in tables}) == [1, 2, 3, 4, 5, 6]
+    for entry in tables:
+        seeds = ["seed 0", "seed 1"] if entry["row"] == "well-performing" else ["seed 2", "seed 3"]
+        names = summary["columns"][entry["column"]]
+        per_agent = [
+            np.mean([float(r["test_mse"]) for r in probe if r["agent"] == agent and r["layer"] == entry["layer"]
+                     and int(r["frames"]) == int(entry["frame"]) and r["component"] in names])
+            for agent in seeds
+        ]  # fmt: skip
+        assert float(entry["std"]) == pytest.approx(np.std(per_agent, ddof=1), rel=1e-6, abs=1e-12)
+    assert [int(t["frame"]) for t in tables[:4]] == [0, 400, 400, 800]
+    assert {t["std"] for t in tables if t["layer"] == "cnn0"} == {"0.0"}  # the pixels are the same for every agent
+    assert any(float(t["std"]) > 0 for t in tables if t["layer"] == "mlp1")  # the noisy actors differ
+    # the HTML report of the sweep shows Figure 2 and the tables
+    write_report(root, progress=False)
+    page = (root / "report" / "index.html").read_text()
+    assert "Figure 2" in page and "Table 1" in page
+    capsys.readouterr()
+    # a trial without probe checkpoints: the message says how to get them
+    shutil.rmtree(root / "walker-walk" / "drqv2" / "seed_3" / PROBE_CHECKPOINTS_DIR)
+    assert probe_main([*argv, "--overwrite", "--no-progress"]) == 2
+    assert "--probe-checkpoints" in capsys.readouterr().err
