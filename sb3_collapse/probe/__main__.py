@@ -5,6 +5,7 @@ Offline OMP probing of checkpoints: ``python -m sb3_collapse.probe --help``.
     python -m sb3_collapse.probe good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/
     python -m sb3_collapse.probe record good.zip --env walker-walk --episodes 20 --out walker.npz
     python -m sb3_collapse.probe sweep runs/sweep --task walker-walk           # Figure 2 and Tables 1-6
+    python -m sb3_collapse.probe film good.zip bad.zip --seeds 0 1 --out film/ # Figures 6-7: frames and actions
 
 ``run`` (the default when the first argument is not a sub-command) probes; ``record`` records rollouts; ``sweep``
 probes the probe checkpoints of a sweep's well- and poorly performing seeds.
@@ -18,13 +19,14 @@ import sys
 
 from sb3_collapse.errors import cli_message
 from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, STRIP_EVERY_FRAMES, film_to_folder
 from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
 from sb3_collapse.probe.sweep import DEFAULT_OUT, probe_sweep
 from sb3_collapse.protocol import PAPER, PROBE_CHECKPOINTS_DIR
 
 PROG = "python -m sb3_collapse.probe"
-SUBCOMMANDS = ("run", "record", "sweep")
+SUBCOMMANDS = ("run", "record", "sweep", "film")
 
 
 def _recording_arguments(parser: argparse.ArgumentParser, defaults: RecordOptions) -> None:
@@ -118,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
         f"  {PROG} record good.zip --env walker-walk --episodes 20 --out walker.npz",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = parser.add_subparsers(dest="command", metavar="{run,record,sweep}")
+    sub = parser.add_subparsers(dest="command", metavar="{run,record,sweep,film}")
     defaults, settings = RecordOptions(), ProbeSettings()
 
     run = sub.add_parser(
@@ -157,6 +159,25 @@ def build_parser() -> argparse.ArgumentParser:
     swp.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
     _probe_arguments(swp, settings)
     _recording_arguments(swp, defaults)
+
+    flm = sub.add_parser(
+        "film",
+        help="frames of an episode and the actions taken (Figures 6-7)",
+        description="Run each agent from a reset (on its own observations) and render a larger view after each "
+        "agent step: filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the "
+        "action values plotted under each strip), one animated GIF per row and actions.csv, into --out.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    flm.add_argument("checkpoints", nargs="+", help="SB3 zips (full or probe checkpoints)")
+    flm.add_argument("--out", default="film", help="output folder")
+    flm.add_argument("--frames", type=int, default=FILM_FRAMES, help="environment frames per film")
+    flm.add_argument("--size", type=int, default=FILM_SIZE, help="height and width of the film's renders, in pixels")
+    flm.add_argument("--every-frames", type=int, default=STRIP_EVERY_FRAMES, help="frames between two pictures of the strip")
+    flm.add_argument("--seeds", type=int, nargs="+", default=[0], help="episode seeds (one row each)")
+    flm.add_argument("--env", help="dm_control task, when a checkpoint does not say")
+    flm.add_argument("--device", default="auto", help="auto, cpu, cuda, ...")
+    flm.add_argument("--overwrite", action="store_true", help="replace a previous film in --out")
+    flm.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
     rec = sub.add_parser(
         "record",
@@ -206,6 +227,19 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "record":
             record_to_file(
                 args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, not args.no_progress
+            )
+        elif args.command == "film":
+            film_to_folder(
+                args.checkpoints,
+                args.out,
+                frames=args.frames,
+                size=args.size,
+                every_frames=args.every_frames,
+                seeds=args.seeds,
+                env=args.env,
+                device=args.device,
+                overwrite=args.overwrite,
+                progress=not args.no_progress,
             )
         elif args.command == "sweep":
             probe_sweep(

@@ -10,12 +10,14 @@ import matplotlib.image
 import numpy as np
 import pytest
 import torch as th
+from PIL import Image
 
 from sb3_collapse import DrQv2
 from sb3_collapse.drqv2.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint, save_probe_checkpoint
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
+from sb3_collapse.probe.film import film_episode
 from sb3_collapse.protocol import FIGURE2_PNG, PROBE_CHECKPOINT, PROBE_CHECKPOINTS_DIR, SWEEP_PROBE_DIR, TABLES_1_6_CSV
 from sb3_collapse.report import write_report
 from sb3_collapse.train import TrainConfig, train
@@ -71,17 +73,6 @@ def test_probe_checkpoint_holds_the_final_encoder_and_actor(run):
     assert not th.equal(first.policy.state_dict()["actor.mlp1.0.weight"], reference["actor.mlp1.0.weight"])
 
 
-def test_probe_reads_probe_checkpoints_over_training(run, tmp_path):
-    rollouts = tmp_path / "rollouts.npz"
-    record = ["record", str(run.model_path), "--episodes", "5", "--max-steps", "4", "--out", str(rollouts)]
-    assert probe_main([*record, "--no-progress"]) == 0
-    checkpoints = sorted((run.run_dir / PROBE_CHECKPOINTS_DIR).glob("*.zip"))
-    out = tmp_path / "probe"
-    argv = [*map(str, checkpoints), "--rollouts", str(rollouts), "--out", str(out), "--max-tau", "4"]
-    assert probe_main([*argv, "--layers", "cnn4", "mlp1", "--no-progress"]) == 0
-    assert (out / "mse_over_training.png").exists() and (out / "probe.csv").exists()
-
-
 def test_probe_checkpoints_need_drqv2_and_evaluations(tmp_path):
     with pytest.raises(ParameterError, match="probe_checkpoints"):
         train(TrainConfig(env="walker-walk", frames=80, eval_every_frames=0, probe_checkpoints=True, logdir=str(tmp_path)))
@@ -134,3 +125,35 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     shutil.rmtree(root / "walker-walk" / "drqv2" / "seed_3" / PROBE_CHECKPOINTS_DIR)
     assert probe_main([*argv, "--overwrite", "--no-progress"]) == 2
     assert "--probe-checkpoints" in capsys.readouterr().err
+
+
+def test_film_of_checkpoints(run, tmp_path):
+    final = run.model_path
+    first = run.run_dir / PROBE_CHECKPOINTS_DIR / PROBE_CHECKPOINT.format(frames=0)
+    out = tmp_path / "film"
+    argv = ["film", str(final), str(first), "--frames", "60", "--size", "64", "--every-frames", "20", "--seeds", "0", "1"]
+    assert probe_main([*argv, "--out", str(out), "--no-progress"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == [
+        "actions.csv",
+        "filmstrip.png",
+        "final_model_seed0.gif",
+        "final_model_seed1.gif",
+        "probe_0000000000_frames_seed0.gif",
+        "probe_0000000000_frames_seed1.gif",
+    ]
+    with Image.open(out / "final_model_seed0.gif") as gif:
+        assert gif.size == (64, 64) and gif.n_frames == 4  # frames 0, 20, 40, 60 at action repeat 20
+    with (out / "actions.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert len(rows) == 4 * 4 and [int(r["frame"]) for r in rows[:4]] == [0, 20, 40, 60]
+    assert rows[3]["action_0"] == "" and all(-1 <= float(r["action_5"]) <= 1 for r in rows if r["action_5"])
+    # the actions are the agent's deterministic ones: filming again gives the same
+    model = DrQv2.load(final, buffer_size=64)
+    film = film_episode(model, model.env_config, "again", frames=60, size=32, seed=1)
+    again = [r for r in rows if r["film"].startswith("final_model") and r["film"].endswith("seed 1")]
+    np.testing.assert_allclose([[float(r[f"action_{d}"]) for d in range(6)] for r in again[:3]], film.actions[:3], rtol=1e-6)
+    image = matplotlib.image.imread(out / "filmstrip.png")
+    assert image.shape[0] > 800 and image[..., :3].std() > 0.05
+    assert probe_main([*argv, "--out", str(out), "--no-progress"]) == 2  # exists: --overwrite
+    assert probe_main(["film", str(final), "--frames", "0", "--out", str(tmp_path / "x"), "--no-progress"]) == 2
+    assert not (tmp_path / "x").exists()
