@@ -16,19 +16,23 @@ from sb3_collapse.monitoring.interventions import INTERVENTION_LABELS
 from sb3_collapse.protocol import PAPER
 from sb3_collapse.report.loading import Trial
 from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, BandCurve, GridCell, TransplantCurves
-from sb3_collapse.report.style import OKABE_ITO, frames_axis
+from sb3_collapse.report.style import OKABE_ITO, TOL_MUTED, frames_axis
 
 REFERENCE_COLOR = "0.15"
 
 
-def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...]]:
+def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str]:
     """
-    One colour per variant, the same in every panel (``tab10``, then ``tab20`` beyond ten variants).
+    One colour per variant, the same in every panel: the colour-blind-safe Okabe-Ito colours (black left to the
+    published reference), then Paul Tol's muted ones (16 variants in all), then ``tab20``.
 
     :param variants: variant names in display order
-    :return: variant -> RGBA colour
+    :return: variant -> colour
     """
-    cmap = plt.get_cmap("tab10" if len(variants) <= 10 else "tab20")
+    palette = [color for color in OKABE_ITO if color != "#000000"] + list(TOL_MUTED)
+    if len(variants) <= len(palette):
+        return {variant: palette[i] for i, variant in enumerate(variants)}
+    cmap = plt.get_cmap("tab20")
     return {variant: cmap(i % cmap.N) for i, variant in enumerate(variants)}
 
 
@@ -158,10 +162,8 @@ def plot_figure5(
         entries = len(ax.get_legend_handles_labels()[1])
         if entries == 0:
             ax.text(0.5, 0.5, "no finished seed yet", ha="center", va="center", transform=ax.transAxes)
-        elif entries > 5:  # many variants: beside the panel, not over the curves
+        else:  # beside the panel: never over the curves or bands
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
-        else:
-            ax.legend(fontsize=7, loc="best")
     fig.suptitle(f"Mean evaluation return, {low:g}th-{high:g}th percentile band across seeds", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")

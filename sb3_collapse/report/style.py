@@ -24,6 +24,8 @@ OKABE_ITO = (
     "#000000",  # black
 )
 """The eight colours of Okabe & Ito, distinguishable with the common colour-vision deficiencies."""
+TOL_MUTED = ("#332288", "#88CCEE", "#44AA99", "#117733", "#999933", "#DDCC77", "#CC6677", "#882255", "#AA4499")
+"""Paul Tol's colour-blind-safe "muted" scheme: more colours once Okabe-Ito's are used."""
 
 _LAYER_COLOR_LIST = ("#000000", "#56B4E9", "#009E73", "#F0E442", "#D55E00", "#CC79A7", "#0072B2", "#E69F00", "#777777")
 LAYER_COLORS: dict[str, str] = dict(zip(LAYER_NAMES, _LAYER_COLOR_LIST))
