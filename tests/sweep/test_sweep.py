@@ -38,6 +38,7 @@ TINY = [
     "--collapse-metrics-every-frames", "500", "--collapse-probe-batch", "8", "--reset-window-frames", "500",
     # The trial ends with its first episode: DrQ-v2's sampling (finished episodes only) would not update.
     "--replay-sampling", "sb3",
+    "--probe-checkpoints",  # encoder + actor at frames 0 and 1000, for the probe's Figure 2
 ]  # fmt: skip
 TINY_TRIALS = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset"]
 RESULT_KEYS = {
@@ -97,6 +98,9 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
         assert [int(row["frame"]) for row in evaluations] == [0, 1000]
         assert (folder / "progress.csv").stat().st_size > 0 and list(folder.glob("events.out.tfevents.*"))
         assert zipfile.is_zipfile(folder / "final_model.zip")
+        assert config["probe_checkpoints"] is True
+        probe_checkpoints = sorted(p.name for p in (folder / "probe_checkpoints").iterdir())
+        assert probe_checkpoints == ["probe_0000000000_frames.zip", "probe_0000001000_frames.zip"]
 
         metrics = read_csv(folder / "collapse_metrics.csv")
         assert list(metrics[0]) == ["frame", "step", "tag", "value"]
@@ -325,7 +329,14 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
     report = write_report(
         tiny_sweep, out=tmp_path / "report", settings=ReportSettings(collapse_checks=1), progress=False
     )
-    assert {path.name for path in report.files} == {"figure5.png", "summary.csv", "summary.md"}
+    assert {path.name for path in report.files} == {
+        "figure5.png",
+        "summary.csv",
+        "summary.md",
+        "index.html",
+        "collapse_metrics_walker-walk_drqv2.png",
+        "collapse_metrics_walker-walk_drqv2+reset.png",
+    }
     for path in report.files:
         assert path.parent == tmp_path / "report" and path.stat().st_size > 0
     assert (tmp_path / "report" / "figure5.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
@@ -351,6 +362,36 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
     markdown = (tmp_path / "report" / "summary.md").read_text()
     assert "drqv2+reset" in markdown and "walker-walk" in markdown
     assert read_csv(tmp_path / "report" / "summary.csv")[0]["task"] == "walker-walk"
+    # Figure 4's rows: the two seeds of each variant, by final return; the reset at frame 500 marked
+    agents = report.collapse[("walker-walk", "drqv2+reset")]
+    assert sorted(a.trial.seed for a in agents) == [0, 1] and all(a.resets == [500] for a in agents)
+
+
+def test_probe_sweep_on_the_tiny_real_sweep(tiny_sweep, tmp_path):
+    from sb3_collapse.probe import ProbeSettings
+    from sb3_collapse.probe.pipeline import RecordOptions
+    from sb3_collapse.probe.sweep import probe_sweep
+
+    finals = {
+        seed: json.loads((tiny_sweep / "walker-walk" / "drqv2" / f"seed_{seed}" / "result.json").read_text())[
+            "final_eval"
+        ]["mean_reward"]
+        for seed in (0, 1)
+    }
+    best = max(finals.values())  # tiny runs do not reach 900: the best seed is "well-performing" here
+    summary = probe_sweep(
+        tiny_sweep,
+        "walker-walk",
+        out=tmp_path / "probe",
+        settings=ProbeSettings(layers=["cnn4", "mlp1"], max_tau=2, progress=False),
+        record_options=RecordOptions(episodes=3, max_steps=3),
+        success_return=best,
+        failure_return=best,
+    )
+    rows = {a["seed"]: a["row"] for a in summary["agents"]}
+    assert rows == {s: "well-performing" if v >= best else "poorly performing" for s, v in finals.items()}
+    assert all(a["checkpoints"] == 2 for a in summary["agents"])
+    assert (tmp_path / "probe" / "figure2.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
 
 
 def test_killed_driver_leaves_no_ray_process(tmp_path):
