@@ -154,7 +154,7 @@ class TrainConfig:
         a one-round policy lag, DrQ-v2's reference order); runs the environments in subprocesses even when ``n_envs`` is 1
     :param compile_update: compile the update with ``torch.compile`` (``DrQv2``'s ``compile_update=True``: CUDA graphs on
         CUDA)
-    :param probe_checkpoints: save the encoder and actor (about 12 MB) at every evaluation and at the end into
+    :param probe_checkpoints: save the encoder and actor (about 13 MB) at every evaluation and at the end into
         ``probe_checkpoints/`` of the run folder, for ``python -m sb3_collapse.probe`` (the paper's Figure 2);
         DrQ-v2 only, needs evaluations
     :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
@@ -774,7 +774,7 @@ def training_arguments() -> argparse.ArgumentParser:
     g = p.add_argument_group("other training settings")
     g.add_argument("--size", type=int, default=d.size, help="image height and width, in pixels (default: %(default)s)")
     g.add_argument("--checkpoint-every-frames", type=int, default=d.checkpoint_every_frames, help="frames between intermediate checkpoints; 0: final checkpoint only (default: %(default)s)")
-    g.add_argument("--probe-checkpoints", action="store_true", help=f"save the encoder and actor (about 12 MB at 84x84) at every evaluation and at the end into <run>/{PROBE_CHECKPOINTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only")
+    g.add_argument("--probe-checkpoints", action="store_true", help=f"save the encoder and actor (about 13 MB at 84x84) at every evaluation and at the end into <run>/{PROBE_CHECKPOINTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only")
     g.add_argument("--collapse-metrics-every-frames", type=int, default=d.collapse_metrics_every_frames, help="frames between two checks of the collapse metrics (TensorBoard collapse/..., collapse metrics CSV); 0 disables them (default: the paper's, %(default)s)")
     g.add_argument("--collapse-probe-batch", type=int, default=d.collapse_probe_batch, help="replay observations per collapse-metrics check (default: %(default)s)")
     g.add_argument("--reset-window-frames", type=int, default=d.reset_window_frames, help="the reset rule's window, in frames (default: the paper's, %(default)s)")

@@ -2,8 +2,9 @@
 ``python -m sb3_collapse.probe sweep``: the paper's Figure 2 and Tables 1-6 for one task and variant of a sweep
 folder whose trials saved probe checkpoints (``--probe-checkpoints``).
 
-1. The finished trials are split by final return: well-performing (``>= success_return``, the paper's 900) and
-   poorly performing (``< failure_return``, the paper's 30); the others are not probed.
+1. The finished trials are split by final return: well-performing (``>= success_return``, default
+   ``PAPER.success_return``) and poorly performing (``< failure_return``, default ``PAPER.failure_return``); the
+   others are not probed.
 2. Rollouts are recorded once, from the well-performing seed of the highest final return (its final model), or
    read from ``rollouts_path``.
 3. Every probe checkpoint of those trials is probed on them (``cnn0``, the normalized pixels, once for all).

@@ -1,7 +1,8 @@
 """
 The paper's Figure 4 (walker-walk) and its appendix versions, Figures 8 (hopper-stand) and 9 (finger-spin): the
 collapse metrics of a well-performing, a middle and a poorly performing agent over training, next to the
-evaluation return, from each trial's ``collapse_metrics.csv`` and ``eval.csv``.
+evaluation return, from each trial's collapse metrics and evaluation files (``protocol.COLLAPSE_METRICS_CSV``,
+``protocol.EVAL_CSV``).
 
 The paper picks "a randomly picked well-performing agent", "a middle agent between goodness and badness" and "a
 randomly picked poorly performing agent"; here they are the seeds of the highest, the median and the lowest final
@@ -32,7 +33,7 @@ FIGURE4_METRICS: tuple[tuple[str, str], ...] = (
     ("zero_fraction", "zero activations (fraction)"),
     ("grad_norm", "gradient norm"),
 )
-"""The metric columns of Figure 4, in order: ``collapse_metrics.csv`` metric -> axis label."""
+"""The metric columns of Figure 4, in order: collapse metric (``collapse/<layer>/<metric>``) -> axis label."""
 FIGURE4_LAYERS = ("mlp1", "mlp2")
 """The layers of Figure 4 ("we only visualize the metrics of mlp1 and mlp2"; ``mlp0`` on request)."""
 BOUNDED_METRICS = ("correlation", "zero_fraction")
