@@ -21,6 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
+from matplotlib.ticker import LogLocator, NullLocator
 
 from sb3_collapse.protocol import COLLAPSE_EVENTS_CSV, COLLAPSE_METRICS_CSV, CONFIG_JSON, EVAL_CSV, metric_tag
 from sb3_collapse.report.errors import ReportError
@@ -165,6 +166,9 @@ def plot_collapse_metrics(
                     drawn = True
             if metric == "grad_norm" and drawn:
                 ax.set_yscale("log")
+                # a few major ticks and no minor ones: a log axis' minor ticks cost most of the drawing time
+                ax.yaxis.set_major_locator(LogLocator(numticks=5))
+                ax.yaxis.set_minor_locator(NullLocator())
             if metric in BOUNDED_METRICS:
                 ax.set_ylim(-0.02, 1.02)
             if not drawn:
