@@ -281,9 +281,20 @@ class ReplayStore:
         """
         _check_manifest(manifest)
         _check_layout(buffer, manifest["layout"])
+        _check_state(buffer, manifest["state"])
         row_bytes = _row_bytes(buffer)
         for chunk in manifest["chunks"]:
             path = self.directory / chunk["file"]
+            rings = {TRANSITIONS: buffer.buffer_size, FRAMES: buffer.frame_capacity}
+            if any(
+                _key(segment) not in row_bytes or segment["stop"] - segment["start"] > rings[segment["ring"]]
+                for segment in chunk["segments"]
+            ):
+                raise CheckpointError(
+                    f"The replay checkpoint manifest is inconsistent: chunk {path} lists segments outside this "
+                    "buffer's environments or rings. Resume from another checkpoint.",
+                    path,
+                )
             expected = _plan_bytes(chunk["segments"], row_bytes)
             if expected != chunk["bytes"]:
                 raise CheckpointError(
@@ -555,18 +566,76 @@ def _check_manifest(manifest: Any) -> None:
     missing = [key for key in ("layout", "state", "chunks") if key not in manifest]
     if missing:
         raise CheckpointError(f"The replay checkpoint manifest lacks {', '.join(missing)}: it is damaged.")
+    state, chunks = manifest["state"], manifest["chunks"]
+    problems = []
+    if not isinstance(manifest["layout"], dict):
+        problems.append("layout is not a mapping")
+    if not isinstance(state, dict) or any(key not in state for key in STATE_KEYS):
+        problems.append(f"state lacks some of {', '.join(STATE_KEYS)}")
+    if not isinstance(chunks, list):
+        problems.append("chunks is not a list")
+    else:
+        for chunk in chunks:
+            if not _valid_chunk(chunk):
+                problems.append(f"chunk entry {str(chunk)[:120]} is malformed")
+                break
+    if problems:
+        raise CheckpointError(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.")
+
+
+STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
+
+
+def _valid_chunk(chunk: Any) -> bool:
+    """Whether a manifest's chunk entry has a chunk file name (no path), integer sizes and valid segments."""
+    if not isinstance(chunk, dict) or not isinstance(chunk.get("file"), str) or not CHUNK_NAME.match(chunk["file"]):
+        return False
+    if not all(isinstance(chunk.get(key), int) and chunk[key] >= 0 for key in ("bytes", "crc32")):
+        return False
+    segments = chunk.get("segments")
+    if not isinstance(segments, list):
+        return False
+    for segment in segments:
+        if not isinstance(segment, dict) or segment.get("ring") not in (TRANSITIONS, FRAMES):
+            return False
+        if segment["ring"] == FRAMES and not isinstance(segment.get("env"), int):
+            return False
+        start, stop = segment.get("start"), segment.get("stop")
+        if not (isinstance(start, int) and isinstance(stop, int) and 0 <= start <= stop):
+            return False
+    return True
+
+
+def _check_state(buffer: FrameStackReplayBuffer, state: dict[str, Any]) -> None:
+    """Raise :class:`CheckpointError` unless the saved counters fit the buffer and agree with one another."""
+    try:
+        added = int(state["transitions_added"])
+        consistent = (
+            all(len(state[key]) == buffer.n_envs for key in ("frame_heads", "steps_since_done", "episodes_done"))
+            and int(state["pos"]) == added % buffer.buffer_size
+            and bool(state["full"]) == (added >= buffer.buffer_size)
+        )
+    except (TypeError, ValueError):
+        consistent = False
+    if not consistent:
+        raise CheckpointError(
+            f"The replay checkpoint manifest is damaged: its state {str(state)[:200]} does not describe a buffer of "
+            f"{buffer.n_envs} environments and {buffer.buffer_size} transitions each. Resume from another checkpoint."
+        )
 
 
 def _check_layout(buffer: FrameStackReplayBuffer, saved: dict[str, Any]) -> None:
     """Raise :class:`CheckpointError` when the buffer's sizes, shapes or dtypes differ from the saved ones."""
     current = _layout(buffer)
+    if not isinstance(saved.get("arrays"), dict):
+        raise CheckpointError("The replay checkpoint manifest is damaged: its layout lacks the arrays' shapes.")
     differences = []
     for key in ("n_envs", "buffer_size", "frame_capacity", "frame_stack"):
         if saved.get(key) != current[key]:
             differences.append(f"{key} is {saved.get(key)} in the checkpoint and {current[key]} in this buffer")
     for name, spec in current["arrays"].items():
         if saved.get("arrays", {}).get(name) != spec:
-            differences.append(f"{name} is {saved.get('arrays', {}).get(name)} in the checkpoint and {spec} here")
+            differences.append(f"{name} is {saved['arrays'].get(name)} in the checkpoint and {spec} here")
     if differences:
         raise CheckpointError(
             "The replay buffer does not match the checkpoint: "

@@ -282,7 +282,10 @@ def test_damaged_chunk_is_a_clear_error(tmp_path, damage):
         ReplayStore(tmp_path).restore(restored, manifest)
     assert info.value.path == path and str(path) in str(info.value)
     assert isinstance(info.value, InputError)
-    assert restored.size() == 0 and not restored.frame_heads.any()  # nothing half-restored is left as data
+    if damage == "corrupt":  # found while reading: the buffer is emptied, nothing half-restored is left as data
+        assert restored.size() == 0 and not restored.frame_heads.any()
+    else:  # found before reading: the buffer is unchanged
+        assert restored.transitions_added == 3 and restored.resets == 0
 
 
 def test_mismatched_buffer_or_manifest_is_a_clear_error(tmp_path):
@@ -297,6 +300,19 @@ def test_mismatched_buffer_or_manifest_is_a_clear_error(tmp_path):
     broken["chunks"][0]["bytes"] += 1
     with pytest.raises(CheckpointError, match="inconsistent"):
         ReplayStore(tmp_path).restore(make_buffer(), broken)
+    for damage in (
+        lambda m: m["chunks"][0].update(file="../../elsewhere.bin"),  # only chunk names of the folder are read
+        lambda m: m["chunks"][0]["segments"][0].update(start=-4),
+        lambda m: m["chunks"][0]["segments"][-1].update(env=5),
+        lambda m: m["chunks"].append("chunk"),
+        lambda m: m["state"].update(pos=2),  # disagrees with transitions_added
+        lambda m: m["state"].pop("frame_heads"),
+        lambda m: m.update(layout=[]),
+    ):
+        broken = through_json(manifest)
+        damage(broken)
+        with pytest.raises(CheckpointError, match="damaged|inconsistent"):
+            ReplayStore(tmp_path).restore(make_buffer(), broken)
     buffer.pos = 3  # changed behind add(): what is new is unknown
     with pytest.raises(CheckpointError, match="transitions_added"):
         ReplayStore(tmp_path).save(buffer)
