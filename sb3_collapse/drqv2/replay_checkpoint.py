@@ -275,9 +275,9 @@ class ReplayStore:
 
         :param buffer: the buffer to fill
         :param manifest: what :meth:`save` returned (possibly through JSON)
-        :raises CheckpointError: when the manifest is malformed, the buffer's layout differs from it (nothing is
-            changed then), or a chunk is missing, truncated or fails its checksum (checked before reading for
-            missing and truncated files; the buffer is then ``reset()``, empty)
+        :raises CheckpointError: when the manifest is malformed or the buffer's layout differs from it, or a chunk
+            is missing or has the wrong size (all found before anything is read: the buffer is unchanged), or a
+            chunk fails its CRC-32 or cannot be read (found while reading: the buffer is ``reset()``, empty)
         """
         _check_manifest(manifest)
         _check_layout(buffer, manifest["layout"])
