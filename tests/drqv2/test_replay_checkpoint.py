@@ -2,6 +2,8 @@ import errno
 import json
 import os
 import pickle
+import subprocess
+import sys
 
 import gymnasium as gym
 import numpy as np
@@ -409,3 +411,52 @@ def test_any_sequence_of_adds_saves_resets_and_resumes(tmp_path_factory, operati
             else:
                 ReplayStore(folder).restore(restored, manifest)
                 assert_same_state(buffer, restored, whole_arrays=not reset_seen)
+
+
+KILLED_DURING_SAVE = """
+import json, os, signal, sys
+sys.path.insert(0, sys.argv[1])
+from test_replay_checkpoint import Stream, make_buffer
+from sb3_collapse.drqv2 import replay_checkpoint
+from sb3_collapse.drqv2.replay_checkpoint import ReplayStore
+
+buffer, stream, store = make_buffer(buffer_size=40), Stream(1, seed=13), ReplayStore(sys.argv[2], max_file_bytes=2000)
+stream.add([buffer], 12)
+first = store.save(buffer)
+with open(sys.argv[3], "w") as file:
+    json.dump(first, file)
+stream.add([buffer], 20)
+
+def killed(file, data):
+    file.write(data)
+    if len([name for name in os.listdir(sys.argv[2]) if name.startswith("chunk-")]) > len(first["chunks"]):
+        os.kill(os.getpid(), signal.SIGKILL)  # a file of this save complete, the next one half written
+
+replay_checkpoint._write = killed
+store.save(buffer)
+"""
+
+
+def test_sigkill_during_a_save_leaves_the_previous_checkpoint_whole(tmp_path):
+    folder, manifest_path = tmp_path / "replay", tmp_path / "manifest.json"
+    child = subprocess.run(
+        [sys.executable, "-c", KILLED_DURING_SAVE, os.path.dirname(__file__), str(folder), str(manifest_path)],
+        check=False,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        timeout=120,
+    )
+    assert child.returncode == -9, child.stderr
+    manifest = json.loads(manifest_path.read_text())
+    leftovers = set(os.listdir(folder)) - listed(manifest)
+    assert any(name.endswith(replay_checkpoint.TEMP_SUFFIX) for name in leftovers)  # killed mid-write
+    assert any(name.startswith(replay_checkpoint.CHUNK_PREFIX) for name in leftovers)  # complete, never listed
+    buffer = make_buffer(buffer_size=40)
+    Stream(1, seed=13).add([buffer], 12)
+    restored = make_buffer(buffer_size=40)
+    store = ReplayStore(folder)
+    store.restore(restored, manifest)
+    assert_same_state(buffer, restored)
+    store.collect_garbage(keep=[manifest])
+    assert set(os.listdir(folder)) == listed(manifest)
