@@ -110,6 +110,19 @@ def _flat(state: dict, prefix: str = ""):
             yield f"{prefix}{key}", value
 
 
+def _scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    """Every TensorBoard scalar of a run folder as TensorBoard reads it (several event files, purges applied)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir))
+    events.Reload()
+    return {
+        tag: [(event.step, repr(event.value)) for event in events.Scalars(tag)]  # repr: nan == nan
+        for tag in events.Tags()["scalars"]
+        if tag not in ("time/fps", "time/time_elapsed")
+    }
+
+
 def _newest_step(run_dir: Path) -> int:
     return int(checkpoint_folders(run_dir / CHECKPOINTS_DIR)[0].name.split("_")[1])
 
@@ -167,6 +180,7 @@ def test_killed_stopped_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path, 
     assert _rows(reference / COLLAPSE_METRICS_CSV) == _rows(resumed / COLLAPSE_METRICS_CSV)
     timing = ("time/fps", "time/time_elapsed")
     assert _rows(reference / PROGRESS_CSV, drop=timing) == _rows(resumed / PROGRESS_CSV, drop=timing)
+    assert _scalars(reference) == _scalars(resumed)  # TensorBoard, the events after each checkpoint purged
     result = json.loads((resumed / RESULT_JSON).read_text())
     assert result["resumes"] == 2 and result["resets"] == 2  # the lineage of the final weights: two resumptions
     assert {k: v for k, v in result.items() if k not in ("wall_time_s", "timings", "resumes")} == {
