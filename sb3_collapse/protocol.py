@@ -105,7 +105,25 @@ COLLAPSE_EVENTS_CSV = "collapse_events.csv"
 FINAL_MODEL = "final_model.zip"
 """The final model, ``DrQv2.save``."""
 CHECKPOINTS_DIR = "checkpoints"
-"""Intermediate checkpoints."""
+"""The run's checkpoints, to resume it (:mod:`sb3_collapse.checkpoints`): one folder each, and the replay store."""
+CHECKPOINT_FOLDER = "step_{step:012d}"
+"""One checkpoint's folder in :data:`CHECKPOINTS_DIR`, named by the agent step (transitions) it was taken at."""
+CHECKPOINT_FOLDER_PATTERN = re.compile(r"^step_(\d{12})$")
+CHECKPOINT_JSON = "checkpoint.json"
+"""Written last into a checkpoint's folder (checksums of the others): a folder without it is not a checkpoint."""
+CHECKPOINT_MODEL = "model.zip"
+"""The model in a checkpoint (SB3's ``save``: weights, optimizers, counters)."""
+CHECKPOINT_STATE = "state.pt"
+"""Everything else in a checkpoint: random generators, environments' episodes, callbacks, logger."""
+REPLAY_DIR = "replay"
+"""The replay buffer's chunks, in :data:`CHECKPOINTS_DIR`, shared by the checkpoints."""
+LOCK_FILE = "run.lock"
+"""The owner (pid, host) of a run folder while a process trains into it."""
+PROGRESS_CSV = "progress.csv"
+"""SB3's CSV log (one row per log dump)."""
+EXIT_INTERRUPTED = 75
+"""Exit status of ``python -m sb3_collapse.train`` stopped by SIGTERM or SIGINT after writing a checkpoint
+(``EX_TEMPFAIL``: run the same command again to resume)."""
 PROBE_CHECKPOINTS_DIR = "probe_checkpoints"
 """The weights the probe needs (encoder and actor), one zip per evaluation (:data:`PROBE_CHECKPOINT`)."""
 PROBE_CHECKPOINT = "probe_{frames:010d}_frames.zip"
@@ -140,6 +158,7 @@ RESULT_KEYS = (
     "escape_frame",
     "wall_time_s",
     "timings",
+    "resumes",
 )
 """The keys of the result file, see :func:`sb3_collapse.train.run_summary`."""
 FINISHED = "finished"

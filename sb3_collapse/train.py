@@ -32,8 +32,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import json
 import re
 import shutil
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -43,13 +45,23 @@ from typing import Any
 import numpy as np
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
 from sb3_collapse.baselines import BASELINES, DRQV2_ONLY_SETTINGS, NATURE_CNN_MIN_SIZE, build_baseline
+from sb3_collapse.checkpoints import (
+    CheckpointError,
+    LoadedCheckpoint,
+    ResumableCheckpoints,
+    RunLock,
+    TrainingInterrupted,
+    load_checkpoint,
+    resumed_logger,
+    set_aside,
+    stop_signals,
+)
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.drqv2.drqv2 import check_hyperparameters
 from sb3_collapse.drqv2.policies import check_image_size
@@ -59,20 +71,26 @@ from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.envs.rendering import ensure_rendering_backend
+from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.errors import InputError, ParameterError, cli_message
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset, frames_of
+from sb3_collapse.monitoring.callbacks import ResumableCallback
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
     COLLAPSE_EVENTS_CSV,
     COLLAPSE_METRICS_CSV,
     CONFIG_JSON,
+    ERROR_TXT,
     EVAL_CSV,
     EVAL_FIELDS,
+    EXIT_INTERRUPTED,
     FINAL_MODEL,
     FINISHED,
+    LOCK_FILE,
     PAPER,
     PROBE_CHECKPOINTS_DIR,
+    PROGRESS_CSV,
     RESULT_JSON,
     append_csv_rows,
     blocking_file,
@@ -83,6 +101,18 @@ from sb3_collapse.protocol import (
 
 ALGORITHMS = ("drqv2", *BASELINES)
 """What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
+
+DEFAULT_CHECKPOINT_EVERY_FRAMES = 100_000
+"""Frames between two checkpoints by default: at DrQ-v2's ~100 frames/s on a V100, a stop loses at most ~17 minutes;
+each checkpoint writes the model (105 MB with Adam at the default sizes) and the replay data since the previous one
+(about 1.1 GB per 100,000 frames of 84x84 pixels at action repeat 2): docs/checkpoints.md."""
+
+RESUME_FREE_SETTINGS = (
+    "logdir", "run_name", "run_dir", "progress_bar", "verbose", "torch_threads", "device", "checkpoint_every_frames",
+    "sources",
+)
+"""Settings that may differ between a run and its resumption (where and how it is shown, how often checkpoints are
+taken; a resumption on another device or number of threads is not bit-identical, see docs/checkpoints.md)."""
 
 PRESET, USER = "preset", "user"
 """Where a preset setting's value came from, in the run's settings file."""
@@ -114,7 +144,8 @@ class TrainConfig:
     :param size: image height and width, in pixels
     :param eval_every_frames: frames between evaluations (and one at frame 0); ``0`` disables evaluation
     :param eval_episodes: episodes per evaluation (deterministic policy)
-    :param checkpoint_every_frames: frames between intermediate checkpoints; ``0`` for the final one only
+    :param checkpoint_every_frames: frames between two checkpoints of the run, to resume it (:mod:`sb3_collapse.checkpoints`;
+        a SIGTERM or SIGINT writes one too); ``0``: only at a signal. Deleted when the run finishes
     :param seed_frames: frames of uniformly random actions before the first update
     :param batch_size: minibatch size
     :param buffer_size: replay capacity, in transitions
@@ -178,7 +209,7 @@ class TrainConfig:
     size: int = 84
     eval_every_frames: int | None = None
     eval_episodes: int | None = None
-    checkpoint_every_frames: int = 0
+    checkpoint_every_frames: int = DEFAULT_CHECKPOINT_EVERY_FRAMES
     seed_frames: int | None = None
     batch_size: int | None = None
     buffer_size: int | None = None
@@ -349,12 +380,18 @@ class TrainConfig:
                 resolve_source_path(group, path)
             except FileNotFoundError as error:
                 raise ParameterError(f"init_{group}", f"init_{group}: {error}") from None
-        if config.run_dir is not None and not _usable_run_dir(Path(config.run_dir)):
-            raise ParameterError(
-                "run_dir",
-                f"run_dir {config.run_dir} exists and is not an empty folder (nor one of a run that failed before "
-                "training): remove it or choose another.",
-            )
+        if config.run_dir is not None:
+            state = run_folder_state(Path(config.run_dir))
+            if state == FOREIGN:
+                raise ParameterError(
+                    "run_dir",
+                    f"run_dir {config.run_dir} exists and is not an empty folder (nor the folder of a run): remove it "
+                    "or choose another.",
+                )
+            if state == FINISHED_RUN:
+                raise ParameterError(
+                    "run_dir", f"run_dir {config.run_dir} holds a finished run ({RESULT_JSON}): choose another folder."
+                )
         logdir = Path(config.logdir)
         blocking = blocking_file(logdir)
         if blocking is not None:
@@ -393,7 +430,7 @@ class TrainConfig:
         }
 
 
-class PeriodicEvaluation(BaseCallback):
+class PeriodicEvaluation(ResumableCallback):
     """
     Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
     (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done.
@@ -407,6 +444,8 @@ class PeriodicEvaluation(BaseCallback):
     :param episodes: episodes per evaluation
     :param csv_path: CSV file with the columns :data:`~sb3_collapse.protocol.EVAL_FIELDS`
     """
+
+    state_attributes = ("next_eval_frame", "rows")
 
     def __init__(self, eval_env: Any, every_frames: int, episodes: int, csv_path: Path) -> None:
         super().__init__()
@@ -480,6 +519,7 @@ def run_summary(
     evaluations: list[dict[str, float]],
     reset_rule: CollapseReset | None,
     wall_time_s: float,
+    resumes: int = 0,
 ) -> dict[str, Any]:
     """
     The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`): ``status``
@@ -487,9 +527,10 @@ def run_summary(
     trained, action repeat included), ``agent_steps``, ``final_eval`` (``frame``, ``mean_reward``, ``std_reward``
     of the last evaluation, or ``None`` without evaluation), ``resets`` (resets of the reset rule), ``reset_frames``
     (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
-    ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run) and ``timings`` (where the
-    time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see :mod:`sb3_collapse.drqv2.timing`; ``None`` for SB3's
-    TD3 and SAC).
+    ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run, over all its processes),
+    ``timings`` (where the time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see :mod:`sb3_collapse.drqv2.timing`,
+    of the last process only when the run was resumed; ``None`` for SB3's TD3 and SAC) and ``resumes`` (times the run
+    was resumed from a checkpoint).
 
     :param config: the run's settings
     :param task_id: the task, ``<domain>-<task>``
@@ -497,6 +538,7 @@ def run_summary(
     :param evaluations: the evaluation rows
     :param reset_rule: the run's reset-rule callback, ``None`` without the rule
     :param wall_time_s: seconds the run took
+    :param resumes: times the run was resumed from a checkpoint
     :return: the summary, JSON-serializable
     """
     last = evaluations[-1] if evaluations else None
@@ -516,29 +558,118 @@ def run_summary(
         "escape_frame": None if reset_rule is None or reset_rule.escape_frame is None else int(reset_rule.escape_frame),
         "wall_time_s": round(wall_time_s, 2),
         "timings": model.timings.as_dict() if isinstance(model, DrQv2) else None,
+        "resumes": resumes,
     }
 
 
-def _usable_run_dir(path: Path) -> bool:
-    """Whether ``path`` can take a new run: missing, empty, or the folder of a run that failed before training."""
-    return not path.exists() or (path.is_dir() and (not any(path.iterdir()) or failed_before_training(path)))
+NEW_RUN, UNFINISHED_RUN, FINISHED_RUN, FOREIGN = "new", "unfinished", "finished", "foreign"
+"""What a folder holds, for a run that wants it (:func:`run_folder_state`)."""
 
 
-def _new_run_dir(logdir: Path, name: str) -> Path:
-    """The first of ``<logdir>/<name>``, ``<name>_2``, ``<name>_3``... that can take a new run."""
+def run_folder_state(path: Path) -> str:
+    """
+    :param path: a run folder (or where one would go)
+    :return: :data:`NEW_RUN` (missing, empty, or a run that failed before training: a new run may take it),
+        :data:`UNFINISHED_RUN` (the settings file and no result: a run to resume from its checkpoints),
+        :data:`FINISHED_RUN` (a result file) or :data:`FOREIGN` (anything else: not for a run)
+    """
+    if not path.exists():
+        return NEW_RUN
+    if not path.is_dir():
+        return FOREIGN
+    if not any(entry.name != LOCK_FILE for entry in path.iterdir()) or failed_before_training(path):
+        return NEW_RUN
+    if (path / RESULT_JSON).exists():
+        return FINISHED_RUN
+    return UNFINISHED_RUN if (path / CONFIG_JSON).is_file() else FOREIGN
+
+
+def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str]:
+    """
+    :param saved: the settings file of a run folder
+    :param config: the settings of a run that wants to resume it
+    :return: one line per setting that differs (those of :data:`RESUME_FREE_SETTINGS` may), empty when the run
+        can resume it
+    """
+    current = json.loads(json.dumps(config.record()))
+    return [
+        f"`{name}={current.get(name)}` (the run folder has {saved.get(name)!r})"
+        for name in sorted(set(saved) | set(current))
+        if name not in RESUME_FREE_SETTINGS and saved.get(name) != current.get(name)
+    ]
+
+
+def _saved_settings(run_dir: Path) -> dict[str, Any]:
+    try:
+        return json.loads((run_dir / CONFIG_JSON).read_text())
+    except (OSError, ValueError) as error:
+        raise ParameterError("run_dir", f"run_dir {run_dir}: its {CONFIG_JSON} cannot be read ({error}).") from None
+
+
+def _new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
+    """
+    The first of ``<logdir>/<name>``, ``<name>_2``, ``<name>_3``... that can take this run: a new folder, or the
+    folder of an unfinished run with the same settings (resumed).
+    """
     run_dir, index = logdir / name, 1
-    while not _usable_run_dir(run_dir):
+    while True:
+        state = run_folder_state(run_dir)
+        if state == NEW_RUN:
+            return run_dir
+        if state == UNFINISHED_RUN:
+            differences = settings_differences(_saved_settings(run_dir), config)
+            if not differences:
+                return run_dir
+            print(f"{run_dir} holds an unfinished run with other settings ({'; '.join(differences)}): not resuming it.")
         index += 1
         run_dir = logdir / f"{name}_{index}"
-    return run_dir
 
 
-def _prepare_run_dir(run_dir: Path) -> None:
-    """Create ``run_dir``, or empty the folder of a run that failed before training (it holds no result)."""
-    if run_dir.is_dir() and failed_before_training(run_dir):
-        for path in run_dir.iterdir():
+def _empty_run_dir(run_dir: Path) -> None:
+    """Delete what a run folder holds, but the lock file (held by this process)."""
+    for path in run_dir.iterdir():
+        if path.name != LOCK_FILE:
             shutil.rmtree(path) if path.is_dir() else path.unlink()
-    run_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
+    """
+    With the run folder locked: a new run writes its settings; an unfinished run with the same settings is resumed
+    from its newest readable checkpoint (damaged newer ones are reported), or restarted without one.
+
+    :return: the checkpoint to resume from, ``None`` for a run from frame 0
+    :raises ParameterError: for a folder with a finished run, another run's settings or other content
+    """
+    state = run_folder_state(run_dir)
+    if state in (FINISHED_RUN, FOREIGN):
+        raise ParameterError(
+            "run_dir", f"run_dir {run_dir} holds a finished run or other files: choose another folder."
+        )
+    if state == UNFINISHED_RUN:
+        differences = settings_differences(_saved_settings(run_dir), config)
+        if differences:
+            raise ParameterError(
+                "run_dir",
+                f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run it "
+                "with its own settings to resume it, or train into another folder.",
+            )
+        checkpoint = load_checkpoint(run_dir / CHECKPOINTS_DIR)
+        skipped = [] if checkpoint is None else checkpoint.skipped
+        for folder, reason in skipped:  # kept aside under another name, never read again
+            print(f"Checkpoint {folder} is damaged ({reason}): falling back to the one before.")
+            set_aside(folder)
+        if checkpoint is not None:
+            error_file = run_dir / ERROR_TXT
+            if error_file.is_file():  # kept with the checkpoints, out of the way of the sweep's status
+                first = error_file.read_text().splitlines()[:1]
+                print(f"The previous attempt {first[0] if first else 'failed'}; resuming.")
+                error_file.replace(run_dir / CHECKPOINTS_DIR / f"error_{time.strftime('%Y%m%d-%H%M%S')}.txt")
+            print(f"Resuming {run_dir} from its checkpoint at frame {checkpoint.frames:,} ({checkpoint.folder.name}).")
+            return checkpoint
+        print(f"{run_dir} holds an unfinished run without a readable checkpoint: restarting it from frame 0.")
+    _empty_run_dir(run_dir)
+    write_json_atomically(run_dir / CONFIG_JSON, config.record())
+    return None
 
 
 def train(config: TrainConfig) -> TrainResult:
@@ -579,37 +710,49 @@ def train(config: TrainConfig) -> TrainResult:
     if config.run_dir is not None:
         run_dir = Path(config.run_dir)
     else:
-        run_dir = _new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}")
-    _prepare_run_dir(run_dir)
-    write_json_atomically(run_dir / CONFIG_JSON, config.record())
-    try:
-        return _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time)
-    except BaseException as error:
-        write_failure(run_dir, model.num_timesteps, frames_of(model), error)
-        raise
+        run_dir = _new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}", config)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with RunLock(run_dir):
+        checkpoint = _open_run_dir(run_dir, config)
+        try:
+            return _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint)
+        except TrainingInterrupted:
+            raise
+        except BaseException as error:
+            write_failure(run_dir, model.num_timesteps, frames_of(model), error)
+            raise
 
 
-def _monitored_dmc_env(task_id: str, seed: int, env_kwargs: dict[str, Any]) -> Monitor:
-    return Monitor(make_dmc_env(task_id, seed=seed, **env_kwargs))
+def _monitored_dmc_env(task_id: str, seed: int, env_kwargs: dict[str, Any]) -> EpisodeReplay:
+    """The env of a run: ``Monitor``-ed, and recording its episode for the checkpoints (``EpisodeReplay``)."""
+    return EpisodeReplay(Monitor(make_dmc_env(task_id, seed=seed, **env_kwargs)))
 
 
-def _training_env(config: TrainConfig, task_id: str, env_kwargs: dict[str, Any]) -> Monitor | SubprocVecEnv:
+def _subprocess_env(task_id: str, seed: int, env_kwargs: dict[str, Any]) -> EpisodeReplay:
+    """:func:`_monitored_dmc_env` in a worker of ``SubprocVecEnv``, deaf to SIGINT and SIGTERM: the main process
+    answers them with a checkpoint, which needs its workers alive."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return _monitored_dmc_env(task_id, seed, env_kwargs)
+
+
+def _training_env(config: TrainConfig, task_id: str, env_kwargs: dict[str, Any]) -> EpisodeReplay | SubprocVecEnv:
     """One ``Monitor``-ed env in this process, or ``n_envs`` of them in subprocesses (seeds ``seed``, ``seed + 1``...)."""
     if config.n_envs == 1 and not config.step_envs_during_updates:
         return _monitored_dmc_env(task_id, config.seed, env_kwargs)
     ensure_rendering_backend()  # probed once here, inherited by the subprocesses
-    factories = [functools.partial(_monitored_dmc_env, task_id, config.seed + i, env_kwargs) for i in range(config.n_envs)]
+    factories = [functools.partial(_subprocess_env, task_id, config.seed + i, env_kwargs) for i in range(config.n_envs)]
     return SubprocVecEnv(factories)
 
 
 def _build(
     config: TrainConfig, task_id: str, env_kwargs: dict[str, Any]
-) -> tuple[Monitor | SubprocVecEnv, Monitor | None, BaseAlgorithm]:
+) -> tuple[EpisodeReplay | SubprocVecEnv, EpisodeReplay | None, BaseAlgorithm]:
     """The training env(s), the evaluation env (``None`` without evaluations) and the model of :func:`train`."""
     env = _training_env(config, task_id, env_kwargs)
     eval_env = None
     if config.eval_every_frames > 0:
-        eval_env = Monitor(make_dmc_env(task_id, seed=config.seed + 100_000, **env_kwargs))
+        eval_env = _monitored_dmc_env(task_id, config.seed + 100_000, env_kwargs)
     model: BaseAlgorithm
     if config.algorithm != "drqv2":  # SB3's TD3 or SAC from the same pixels
         model = build_baseline(
@@ -659,23 +802,19 @@ def _train_into(
     task_id: str,
     run_dir: Path,
     model: BaseAlgorithm,
-    env: Monitor | SubprocVecEnv,
-    eval_env: Monitor | None,
+    env: EpisodeReplay | SubprocVecEnv,
+    eval_env: EpisodeReplay | None,
     steps: int,
     start_time: float,
+    checkpoint: LoadedCheckpoint | None = None,
 ) -> TrainResult:
-    """:func:`train` once the model is built and the run folder holds the settings."""
-    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
-    model.set_logger(configure(str(run_dir), formats))
+    """:func:`train` once the model is built and the run folder holds the settings (or a checkpoint to resume)."""
 
     callbacks: list[BaseCallback] = []
     evaluation = None
     if eval_env is not None:
         evaluation = PeriodicEvaluation(eval_env, config.eval_every_frames, config.eval_episodes, run_dir / EVAL_CSV)
         callbacks.append(evaluation)
-    if config.checkpoint_every_frames > 0:
-        save_freq = max(1, config.checkpoint_every_frames // config.action_repeat)
-        callbacks.append(CheckpointCallback(save_freq, str(run_dir / CHECKPOINTS_DIR), name_prefix=config.algorithm))
     probe_checkpoints = None
     if config.probe_checkpoints:
         probe_checkpoints = ProbeCheckpoints(config.eval_every_frames, run_dir / PROBE_CHECKPOINTS_DIR)
@@ -699,6 +838,28 @@ def _train_into(
         )
         callbacks.append(reset_rule)
 
+    earlier_s, resumes = 0.0, 0  # seconds and resumptions of the earlier processes of this run
+    checkpoints = ResumableCheckpoints(
+        run_dir / CHECKPOINTS_DIR,
+        config.checkpoint_every_frames,
+        callbacks=callbacks,
+        eval_env=eval_env,
+        csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
+        extra_state=lambda: {"elapsed_s": earlier_s + time.time() - start_time, "resumes": resumes},
+        verbose=1,
+    )
+    checkpoints.init_callback(model)
+    if checkpoint is not None:
+        checkpoint, notes = checkpoints.resume(checkpoint)
+        for note in notes:
+            print(f"Note: {note}")
+        earlier_s, resumes = checkpoint.state["extra"]["elapsed_s"], checkpoint.state["extra"]["resumes"] + 1
+        if evaluation is not None:
+            evaluation.start_time = start_time - earlier_s
+    callbacks.append(checkpoints)
+    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
+    model.set_logger(resumed_logger(run_dir, formats, checkpoint))
+
     user = sorted(name for name, source in config.sources.items() if source == USER)
     task_preset = config.preset
     origin = f"DrQ-v2's {task_preset.tier} preset" if task_preset.from_drqv2 else (
@@ -720,7 +881,19 @@ def _train_into(
         f"Writing to {run_dir} (tensorboard --logdir {run_dir if config.run_dir else config.logdir})",
         flush=True,
     )
-    model.learn(steps, callback=CallbackList(callbacks), log_interval=1, progress_bar=config.progress_bar)
+    try:
+        with stop_signals(checkpoints):
+            model.learn(
+                steps - model.num_timesteps,
+                callback=CallbackList(callbacks),
+                log_interval=1,
+                progress_bar=config.progress_bar,
+                reset_num_timesteps=checkpoint is None,
+            )
+    except TrainingInterrupted:
+        model.logger.close()
+        env.close()
+        raise
     model_path = run_dir / FINAL_MODEL
     model.save(model_path)
     if evaluation is not None and evaluation.rows and evaluation.rows[-1]["step"] < model.num_timesteps:
@@ -733,8 +906,9 @@ def _train_into(
     if evaluations:
         last = evaluations[-1]
         print(f"Last evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- {last['std_reward']:.1f}")
-    summary = run_summary(config, task_id, model, evaluations, reset_rule, time.time() - start_time)
+    summary = run_summary(config, task_id, model, evaluations, reset_rule, earlier_s + time.time() - start_time, resumes)
     write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
+    shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
     return TrainResult(run_dir=run_dir, model_path=model_path, evaluations=evaluations, summary=summary)
 
@@ -846,8 +1020,18 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         train(config)
-    except InputError as error:  # raised before the run folder was created: nothing was written
+    except InputError as error:  # raised before training: nothing was written
         parser.error(re.sub(r"init_from\['(\w+)'\]", r"--init-\1", cli_message(error, parser)))
+    except CheckpointError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    except TrainingInterrupted as error:
+        print(
+            f"Stopped by {error.signal_name} after the checkpoint {error.checkpoint}: run the same command again to "
+            f"resume (exit status {EXIT_INTERRUPTED}).",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
     return 0
 
 

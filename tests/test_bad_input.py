@@ -106,20 +106,21 @@ def test_failure_after_the_folder_exists_marks_it_and_a_rerun_is_not_blocked(tmp
     assert result.run_dir == run_dir and not (run_dir / ERROR_TXT).exists()
     assert json.loads((run_dir / "result.json").read_text())["status"] == "finished"
     # A folder that trained (here: finished) is never taken over.
-    with pytest.raises(ValueError, match="run_dir .* exists and is not an empty folder"):
+    with pytest.raises(ValueError, match="run_dir .* holds a finished run"):
         train(tiny_config(run_dir, frames=64))
 
 
 def test_final_model_is_the_evaluated_one_when_a_window_ends_with_the_budget(tmp_path):
     # The window (400 frames) ends at the budget's last frame: the rule must not reset the model it then saves.
-    config = tiny_config(tmp_path / "run", reset_rule=True, reset_window_frames=400)
+    # Action repeat 8: episodes (and evaluations) of 125 agent steps.
+    config = tiny_config(tmp_path / "run", reset_rule=True, reset_window_frames=400, action_repeat=8)
     result = train(config)
     summary = result.summary
     assert summary["resets"] == 0 and summary["final_eval"]["frame"] == 400
     model = DrQv2.load(result.model_path)
     assert model.reset_step == 0 and model._n_updates > 0
     # Re-evaluate the saved model as the run did: a fresh eval env, the frame-0 evaluation's episode first.
-    eval_env = Monitor(make_dmc_env("cartpole-balance", seed=config.seed + 100_000, size=48))
+    eval_env = Monitor(make_dmc_env("cartpole-balance", seed=config.seed + 100_000, size=48, action_repeat=8))
     evaluate_policy(model, eval_env, n_eval_episodes=1, deterministic=True)
     rewards, _ = evaluate_policy(model, eval_env, n_eval_episodes=1, deterministic=True, return_episode_rewards=True)
     assert float(np.mean(rewards)) == pytest.approx(summary["final_eval"]["mean_reward"], rel=1e-6)

@@ -99,9 +99,13 @@ def test_train_into_an_exact_run_dir(tmp_path):
     summary = json.loads((run_dir / "result.json").read_text())
     assert summary["variant"] == "cnn-good_mlp-bad" and summary["task"] == "walker-walk" and summary["seed"] == 3
     assert summary["frames"] == 48 and summary["agent_steps"] == 6
-    # A used folder is refused, with what to do.
-    with pytest.raises(ValueError, match="not an empty folder"):
+    # A finished run's folder is refused, with what to do; so is a folder that holds something else.
+    with pytest.raises(ValueError, match="holds a finished run .result.json.: choose another folder"):
         train(config)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("not a run")
+    with pytest.raises(ValueError, match="not an empty folder .nor the folder of a run.: remove it or choose another"):
+        train(TrainConfig(**{**config.__dict__, "run_dir": str(tmp_path / "other")}))
 
     # Layer transplants: the encoder and the actor of that model, the critic blank.
     transplanted = train(

@@ -8,7 +8,7 @@ import os
 import pathlib
 import time
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -273,6 +273,8 @@ class DrQv2(OffPolicyAlgorithm):
         """Where the time of the last (or current) :meth:`learn` call went (see ``sb3_collapse.drqv2.timing``)."""
         self._compiled_losses: tuple[Any, Any] | None = None
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
+        self.hold_next_step = False
+        """Set during a round: this round's updates do not step the environments (a checkpoint follows it)."""
         self._round, self._round_used_policy = PhaseTime(), False
         self.env_config = _read_env_config(self.env) if self.env is not None else None
         self.grad_norm_recorder: GradNormRecorder | None = None
@@ -859,7 +861,7 @@ class DrQv2(OffPolicyAlgorithm):
         )
         updates = self.updates_due(start, self.num_timesteps) if rollout.continue_training else 0
         if updates > 0:
-            if self.step_envs_during_updates and self.num_timesteps < total_timesteps:
+            if self.step_envs_during_updates and self.num_timesteps < total_timesteps and not self.hold_next_step:
                 self._send_next_step()
             update_start, updates_before = time.perf_counter(), self._n_updates
             self.train(gradient_steps=updates, batch_size=self.batch_size)
@@ -867,6 +869,7 @@ class DrQv2(OffPolicyAlgorithm):
             self._round.updates = self._n_updates - updates_before  # train() makes none while the buffer cannot sample
             if self.timings.first_round_s is None and self._round.updates > 0:
                 self.timings.first_round_s, self.timings.first_round_updates = self._round.update_s, self._round.updates
+        self.hold_next_step = False
         self._round.total_s = time.perf_counter() - round_start
         learning = self._round_used_policy or self._round.updates > 0
         (self.timings.learning if learning else self.timings.warmup).add(self._round)
@@ -956,7 +959,7 @@ class DrQv2(OffPolicyAlgorithm):
                 raise FileNotFoundError(f"DrQv2.load: no model file {tried}; give the path of a zip saved by DrQv2.save.")
         if "stddev_schedule" in kwargs:  # SB3 sets kwargs as attributes: parse a specification as __init__ does
             kwargs["stddev_schedule"] = StddevSchedule(kwargs["stddev_schedule"])
-        return super().load(
+        model = super().load(
             path,
             env=env,
             device=device,
@@ -965,6 +968,42 @@ class DrQv2(OffPolicyAlgorithm):
             force_reset=force_reset,
             **kwargs,
         )
+        specs = model.__dict__.pop("callback_specs", None) or []
+        if "callback" not in kwargs and specs:
+            from sb3_collapse.monitoring.callbacks import callback_from_spec
+
+            callbacks = [callback_from_spec(spec) for spec in specs]
+            lost = [spec["class"].rpartition(":")[2] for spec, built in zip(specs, callbacks) if built is None]
+            if lost:
+                warnings.warn(
+                    f"DrQv2.load: the constructor callback(s) {', '.join(lost)} could not be saved and are not restored; "
+                    "pass them again: DrQv2.load(path, callback=[...]).",
+                    stacklevel=2,
+                )
+            kept = [callback for callback in callbacks if callback is not None]
+            model.callback = kept[0] if len(kept) == 1 else kept or None
+        return model
+
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """
+        SB3's ``save``, keeping the constructor's callbacks (``callback=``) that can be built again: the
+        :class:`~sb3_collapse.monitoring.callbacks.ResumableCallback` ones (``CollapseReset``, ``CollapseMetrics``),
+        with their settings and their state (the reset rule's window, streak, resets...). :meth:`load` builds them
+        again; a ``learn(..., reset_num_timesteps=False)`` after it continues with them as they were.
+        """
+        from sb3_collapse.monitoring.callbacks import callback_spec
+
+        callbacks = self.callback if isinstance(self.callback, list) else [self.callback] if self.callback else []
+        self.callback_specs = [callback_spec(callback) for callback in callbacks]
+        try:
+            super().save(path, exclude=exclude, include=include)
+        finally:
+            del self.callback_specs
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         super().set_env(env, force_reset=force_reset)
@@ -987,6 +1026,7 @@ class DrQv2(OffPolicyAlgorithm):
             "_pending_step",
             "_round",
             "_round_used_policy",
+            "hold_next_step",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -20,11 +20,10 @@ from pathlib import Path
 from typing import Any
 
 import torch as th
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_file
 
 from sb3_collapse.drqv2.transplant import GROUP_LAYERS, TRANSPLANT_GROUPS
-from sb3_collapse.monitoring.callbacks import frames_of
+from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
 from sb3_collapse.protocol import PROBE_CHECKPOINT
 
 PROBE_GROUPS = ("cnn", "mlp")
@@ -117,11 +116,11 @@ def load_probe_checkpoint(path: str | os.PathLike, device: th.device | str = "cp
     return model
 
 
-class ProbeCheckpoints(BaseCallback):
+class ProbeCheckpoints(ResumableCallback):
     """
     Save a probe checkpoint (:func:`save_probe_checkpoint`) at frame 0 and every ``every_frames`` frames, on the
     schedule of the train CLI's evaluations (and like them, not at the last step of ``learn()``: call
-    :meth:`save` on the final model).
+    :meth:`save` on the final model). Its schedule is saved in the run's checkpoints: a resumed run continues it.
 
     Files: ``<folder>/`` :data:`~sb3_collapse.protocol.PROBE_CHECKPOINT` (``probe_<frames, 10 digits>_frames.zip``).
 
@@ -129,6 +128,8 @@ class ProbeCheckpoints(BaseCallback):
     :param folder: where the zips go
     :param verbose: 0 silent, 1 a line per checkpoint
     """
+
+    state_attributes = ("next_frame", "saved")
 
     def __init__(self, every_frames: int, folder: str | os.PathLike, verbose: int = 0) -> None:
         super().__init__(verbose)

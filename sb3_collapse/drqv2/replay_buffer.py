@@ -135,6 +135,11 @@ class FrameStackReplayBuffer(ReplayBuffer):
     so the buffer holds slightly fewer than ``buffer_size`` sampleable transitions, and never a stack mixing
     frames of two episodes. ``frames_stored`` says which are.
 
+    **Counters.** ``transitions_added`` (``add`` calls, i.e. transitions per environment) and ``frame_heads``
+    (frames written per environment) only grow until ``reset``, which sets them to 0 and adds one to ``resets``;
+    ``pos == transitions_added % buffer_size`` and ``full == (transitions_added >= buffer_size)``. They tell
+    :class:`~sb3_collapse.drqv2.replay_checkpoint.ReplayStore` which data is new since its last checkpoint.
+
     :param buffer_size: capacity in transitions (all environments together, as in SB3)
     :param observation_space: ``Box`` of shape ``(channels * frame_stack, height, width)``
     :param action_space: the action space
@@ -206,6 +211,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.timeouts = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
         self.steps_since_done = np.zeros(n_envs, dtype=np.int64)  # transitions of each env's episode in progress
         self.episodes_done = np.zeros(n_envs, dtype=np.int64)  # episodes ended per env, since the last reset
+        self.transitions_added = 0  # add() calls (transitions per env) since the last reset
+        self.resets = 0  # reset() calls since construction
         self._frame_offsets = np.arange(self.frame_stack)
         _warn_if_larger_than_available_memory(self.nbytes)
 
@@ -228,6 +235,16 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.frame_heads[:] = 0
         self.steps_since_done[:] = 0
         self.episodes_done[:] = 0
+        self.transitions_added = 0
+        self.resets += 1
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Unpickle, giving a buffer pickled before the counters existed the values its ``pos`` and ``full`` imply."""
+        self.__dict__.update(state)
+        if "transitions_added" not in state:
+            self.transitions_added = self.pos + (self.buffer_size if self.full else 0)
+        if "resets" not in state:
+            self.resets = 0
 
     def add(
         self,
@@ -276,6 +293,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
         ended = np.asarray(done, dtype=bool).reshape(self.n_envs)
         self.steps_since_done = np.where(ended, 0, self.steps_since_done + 1)
         self.episodes_done += ended
+        self.transitions_added += 1
         self.pos += 1
         if self.pos == self.buffer_size:
             self.full = True

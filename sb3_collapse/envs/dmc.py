@@ -220,6 +220,24 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
             raise RuntimeError("get_state() needs a current timestep: call reset() first.")
         return {name: np.array(value, dtype=np.float32).reshape(-1) for name, value in self._dmc_observation.items()}
 
+    def get_rng_state(self) -> dict[str, Any]:
+        """
+        The state of the environment's random generators: the task's (initial states) and the action space's.
+        With :meth:`set_rng_state`, a checkpoint can make the next :meth:`reset` give the same episode again.
+
+        :return: a picklable state
+        """
+        return {"task": self._dmc._env.task.random.get_state(), "action_space": self.action_space.np_random.bit_generator.state}
+
+    def set_rng_state(self, state: dict[str, Any]) -> None:
+        """
+        Put the random generators back in a state of :meth:`get_rng_state`.
+
+        :param state: what :meth:`get_rng_state` returned
+        """
+        self._dmc._env.task.random.set_state(state["task"])
+        self.action_space.np_random.bit_generator.state = state["action_space"]
+
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """
         Start a new episode.

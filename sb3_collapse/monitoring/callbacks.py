@@ -8,6 +8,9 @@ read a probe batch of observations from the model's replay buffer. They are SB3 
 
 from __future__ import annotations
 
+import copy
+import importlib
+import inspect
 import os
 import tempfile
 import warnings
@@ -145,7 +148,104 @@ class ProbeBatchSampler:
         return samples, chosen[:, 0]
 
 
-class FrameScheduleCallback(BaseCallback):
+class ResumableCallback(BaseCallback):
+    """
+    A callback whose state can be saved in a run checkpoint and put back in another process
+    (:mod:`sb3_collapse.checkpoints`).
+
+    :meth:`state_dict` returns the attributes named by :attr:`state_attributes` (deep copies) and the state of the
+    random generator of its ``sampler``, if it has one. :meth:`load_state_dict` keeps a state until the next
+    ``learn()`` starts: the callback is then initialized as usual (``_init_callback``) and, instead of starting
+    afresh (``_on_training_start``), takes the saved state, so the resumed ``learn()`` continues where the saved one
+    was.
+    """
+
+    state_attributes: tuple[str, ...] = ()
+    """The attributes that make up the state."""
+
+    _pending_state: dict[str, Any] | None = None
+
+    def state_dict(self) -> dict[str, Any]:
+        """:return: the callback's state (picklable copies)"""
+        state = {name: copy.deepcopy(getattr(self, name)) for name in self.state_attributes}
+        sampler = getattr(self, "sampler", None)
+        if isinstance(sampler, ProbeBatchSampler):
+            state["sampler"] = sampler.rng.bit_generator.state
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """
+        :param state: a :meth:`state_dict`, taken at the start of the next ``learn()`` instead of a fresh start
+        """
+        missing = [name for name in self.state_attributes if name not in state]
+        if missing:
+            raise ValueError(f"{type(self).__name__}: the saved state lacks {', '.join(missing)}.")
+        self._pending_state = state
+
+    def get_config(self) -> dict[str, Any]:
+        """
+        :return: the constructor's arguments (read from the attributes of the same names), to build this callback
+            again (:func:`callback_from_spec`)
+        """
+        parameters = [name for name in inspect.signature(type(self).__init__).parameters if name != "self"]
+        config = {name: copy.deepcopy(getattr(self, name)) for name in parameters}
+        kwargs = config.get("intervention_kwargs")
+        if isinstance(kwargs, dict):  # objects the callback added itself (its probe sampler) are not arguments
+            config["intervention_kwargs"] = {k: v for k, v in kwargs.items() if not isinstance(v, ProbeBatchSampler)}
+        return config
+
+    def on_training_start(self, locals_: dict[str, Any], globals_: dict[str, Any]) -> None:
+        if self._pending_state is not None and self.model.num_timesteps == 0:
+            self._pending_state = None  # learn() restarted the step count: a new run, not a continuation
+        if self._pending_state is None:
+            super().on_training_start(locals_, globals_)
+            return
+        self.locals, self.globals = locals_, globals_
+        self.num_timesteps = self.model.num_timesteps
+        state, self._pending_state = self._pending_state, None
+        for name in self.state_attributes:
+            setattr(self, name, copy.deepcopy(state[name]))
+        sampler = getattr(self, "sampler", None)
+        if "sampler" in state and isinstance(sampler, ProbeBatchSampler):
+            sampler.rng.bit_generator.state = state["sampler"]
+
+
+def callback_spec(callback: BaseCallback) -> dict[str, Any]:
+    """
+    What ``DrQv2.save`` keeps of a constructor callback: its class, its constructor's arguments and its state, for a
+    :class:`ResumableCallback` (``supported: False`` for another callback, which is not saved).
+
+    :param callback: the callback
+    :return: the specification (picklable)
+    """
+    kind = f"{type(callback).__module__}:{type(callback).__qualname__}"
+    if not isinstance(callback, ResumableCallback):
+        return {"class": kind, "supported": False}
+    try:
+        config = callback.get_config()
+    except AttributeError:
+        return {"class": kind, "supported": False}
+    state = callback.state_dict() if callback.model is not None else None
+    return {"class": kind, "supported": True, "config": config, "state": state}
+
+
+def callback_from_spec(spec: dict[str, Any]) -> BaseCallback | None:
+    """
+    :param spec: a :func:`callback_spec`
+    :return: the callback built again, holding the saved state for its next ``learn()`` (see
+        :meth:`ResumableCallback.load_state_dict`); ``None`` for an unsupported one
+    """
+    if not spec.get("supported"):
+        return None
+    module, _, name = spec["class"].partition(":")
+    kind = getattr(importlib.import_module(module), name)
+    callback = kind(**spec["config"])
+    if spec["state"] is not None:
+        callback.load_state_dict(spec["state"])
+    return callback
+
+
+class FrameScheduleCallback(ResumableCallback):
     """
     Calls :meth:`_on_check` at the first step where the frame count reaches each multiple of
     ``check_every_frames`` (frames = agent steps x action repeat, see :func:`frames_of`). A step that crosses
@@ -155,6 +255,8 @@ class FrameScheduleCallback(BaseCallback):
     :param check_every_frames: frames between two checks
     :param verbose: 0 silent, 1 info
     """
+
+    state_attributes = ("next_check_frame", "n_checks")
 
     def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
         super().__init__(verbose)
@@ -236,6 +338,7 @@ class CollapseMetrics(FrameScheduleCallback):
     """
 
     CSV_FIELDS = COLLAPSE_METRICS_FIELDS
+    state_attributes = (*FrameScheduleCallback.state_attributes, "last_metrics")
 
     def __init__(
         self,
@@ -347,6 +450,7 @@ class ActivationLogger(FrameScheduleCallback):
     """
 
     DEFAULT_LAYERS = ("mlp0", "mlp1", "mlp2", "action")
+    state_attributes = (*FrameScheduleCallback.state_attributes, "bytes_written", "stopped")
 
     def __init__(
         self,

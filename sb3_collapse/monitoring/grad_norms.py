@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import weakref
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -85,6 +86,24 @@ class GradNormRecorder:
             return {}
         values = self._norms.tolist()
         return {name: values[i] for i, name in enumerate(self.names) if i in self._recorded}
+
+    def state_dict(self) -> dict[str, Any]:
+        """:return: the recorded norms (on the CPU) and which layers were recorded, for a run checkpoint"""
+        return {
+            "names": list(self.names),
+            "norms": None if self._norms is None else self._norms.detach().cpu().clone(),
+            "recorded": sorted(self._recorded),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """
+        :param state: a :meth:`state_dict` of a recorder of the same layers
+        :raises ValueError: for another list of layers
+        """
+        if list(state["names"]) != self.names:
+            raise ValueError(f"GradNormRecorder: saved norms of layers {state['names']}, this one records {self.names}.")
+        self._norms = None if state["norms"] is None else state["norms"].to(self.device)
+        self._recorded = set(state["recorded"])
 
     def clear(self) -> None:
         """Forget the recorded norms (e.g. after the networks were re-initialized)."""

@@ -105,6 +105,17 @@ class CollapseReset(FrameScheduleCallback):
     """
 
     EVENT_FIELDS = COLLAPSE_EVENT_FIELDS
+    state_attributes = (
+        *FrameScheduleCallback.state_attributes,
+        "window_start_frame",
+        "streak",
+        "resets",
+        "reset_frames",
+        "interventions",
+        "escaped",
+        "escape_frame",
+        "history",
+    )
 
     def __init__(
         self,

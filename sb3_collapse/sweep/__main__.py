@@ -15,8 +15,10 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+from sb3_collapse.checkpoints import checkpoint_frames
 from sb3_collapse.errors import cli_message
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
+from sb3_collapse.protocol import CHECKPOINTS_DIR
 from sb3_collapse.sweep.runner import (
     RayMissingError,
     check_sweep_arguments,
@@ -31,6 +33,7 @@ from sb3_collapse.sweep.trials import (
     check_checkpoints,
     expand_trials,
     parse_checkpoint_specs,
+    trial_config,
     trial_dir,
     trial_status,
     variant_settings,
@@ -145,8 +148,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nInterrupted: rerun the same command to resume (finished trials in {args.out} are kept).")
         return 130
     print(
-        f"{len(summary.trials)} trials in {args.out}: {len(summary.finished)} finished now, "
-        f"{len(summary.skipped)} finished before, {len(summary.failed)} failed."
+        f"{len(summary.trials)} trials in {args.out}: {len(summary.finished)} finished now "
+        f"({len(summary.resumed)} resumed from a checkpoint), {len(summary.skipped)} finished before, "
+        f"{len(summary.failed)} failed."
     )
     for trial, error_path in summary.failed.items():
         print(f"  failed: {trial} (see {error_path})")
@@ -166,13 +170,18 @@ def dry_run(trials: list, out: str, training: dict, checkpoints: dict, allow_cha
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
     statuses = {trial: trial_status(trial_dir(out, trial)) for trial in trials}
     for trial, status in statuses.items():
-        action = "skip" if status == "finished" else "run"
-        print(f"{status:<9} {action:<4} {trial_dir(out, trial)}")
+        folder = trial_dir(out, trial)
+        total = int(trial_config(trial, out, training, checkpoints).frames)  # type: ignore[arg-type]
+        done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in ("failed", "partial") else None
+        action = "skip" if status == "finished" else "resume" if done is not None else "run"
+        frames = total if status == "finished" else done or 0
+        print(f"{status:<9} {action:<6} {frames:>10,} of {total:,} frames  {folder}")
     counts = Counter(statuses.values())
     print(
         f"{len(trials)} trials: "
         + ", ".join(f"{counts[s]} {s}" for s in ("finished", "failed", "partial", "pending") if counts[s])
-        + f"; {sum(status != 'finished' for status in statuses.values())} would run."
+        + f"; {sum(status != 'finished' for status in statuses.values())} would run (frames done: the newest "
+        "checkpoint of an unfinished trial)."
     )
     return 0
 

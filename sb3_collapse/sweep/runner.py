@@ -25,8 +25,16 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
+from sb3_collapse.checkpoints import TrainingInterrupted
 from sb3_collapse.presets import SETTING_NAMES
-from sb3_collapse.protocol import ERROR_TXT, SWEEP_JSON, blocking_file, write_json_atomically, write_text_atomically
+from sb3_collapse.protocol import (
+    CONFIG_JSON,
+    ERROR_TXT,
+    SWEEP_JSON,
+    blocking_file,
+    write_json_atomically,
+    write_text_atomically,
+)
 from sb3_collapse.sweep.trials import (
     FINISHED,
     SweepError,
@@ -36,7 +44,7 @@ from sb3_collapse.sweep.trials import (
     trial_dir,
     trial_status,
 )
-from sb3_collapse.train import TrainConfig, train
+from sb3_collapse.train import UNFINISHED_RUN, TrainConfig, run_folder_state, settings_differences, train
 
 INSTALL_HINT = "pip install 'sb3-collapse[sweep]'"
 
@@ -176,8 +184,10 @@ def run_trial(
     torch_threads: int | None = None,
 ) -> dict[str, Any]:
     """
-    Run one trial into its folder: delete what an earlier, unfinished attempt left there, then train (which
-    writes its result file last). A failure does not propagate: its traceback goes to the trial's error file.
+    Run one trial into its folder (``train`` writes its result file last). An earlier, unfinished attempt is resumed
+    from its newest checkpoint, or restarted from frame 0 without one (see :func:`~sb3_collapse.train.train`); one with
+    other training settings (a sweep run with ``allow_changed_settings``) is deleted first. A failure does not
+    propagate: its traceback goes to the trial's error file.
 
     :param trial: the trial
     :param out: the sweep folder
@@ -185,17 +195,26 @@ def run_trial(
     :param checkpoints: source (``"good"``, ``"bad"``) -> task -> checkpoint path, for transplant-grid cells
     :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
     :param torch_threads: threads of torch's CPU operations
-    :return: ``{"trial": str, "status": "finished" | "failed", "error": last line of the traceback or None}``
+    :return: ``{"trial": str, "status": "finished" | "failed" | "interrupted", "error": last line of the traceback or
+        None, "resumes": times the finished run was resumed from a checkpoint}``
     """
     folder = trial_dir(out, trial)
-    if folder.exists():
-        shutil.rmtree(folder)
+    config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads).resolve()
+    if run_folder_state(folder) == UNFINISHED_RUN:
+        try:
+            differences = settings_differences(json.loads((folder / CONFIG_JSON).read_text()), config)
+        except (OSError, ValueError):
+            differences = ["unreadable settings"]
+        if differences:  # the sweep's settings changed (allowed): this attempt cannot continue
+            shutil.rmtree(folder)
     try:
-        train(trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads))
+        result = train(config)
+    except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
+        return {"trial": str(trial), "status": "interrupted", "error": str(error), "resumes": 0}
     except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary, the other trials go on
         write_error(folder, traceback.format_exc())
-        return {"trial": str(trial), "status": "failed", "error": f"{type(error).__name__}: {error}"}
-    return {"trial": str(trial), "status": FINISHED, "error": None}
+        return {"trial": str(trial), "status": "failed", "error": f"{type(error).__name__}: {error}", "resumes": 0}
+    return {"trial": str(trial), "status": FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
 
 
 @dataclass
@@ -205,18 +224,24 @@ class SweepSummary:
     :param skipped: trials already finished before this run
     :param finished: trials finished in this run
     :param failed: trial -> path of its error file, for the trials that failed in this run
+    :param resumed: the trials finished in this run that continued from a checkpoint (of an earlier sweep run, or of
+        their own Ray task that died and was run again)
     """
 
     trials: list[Trial]
     skipped: list[Trial]
     finished: list[Trial]
     failed: dict[Trial, Path]
+    resumed: list[Trial] = dataclasses.field(default_factory=list)
 
     @property
     def ok(self) -> bool:
         """Whether no trial failed."""
         return not self.failed
 
+
+TRIAL_RETRIES = 3
+"""Times Ray runs a trial's task again after its worker died; each run resumes from the trial's checkpoint."""
 
 TRAINING_KEYS = ("training", "checkpoints")
 """Entries of the sweep's settings file that change what a trial trains; a resumed sweep must keep them."""
@@ -365,8 +390,10 @@ def run_sweep(
     """
     Run every trial that is not finished, each as an independent Ray task, and wait for all of them.
 
-    Resumable: a trial whose result file is there is skipped; any other trial folder (interrupted or failed)
-    is deleted and the trial runs again. the sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) records the settings (see
+    Resumable: a trial whose result file is there is skipped; any other trial (interrupted or failed) continues
+    from its newest checkpoint, or runs again from frame 0 without one. A trial whose Ray worker dies (killed, out of
+    memory, a lost node) is run again by Ray (up to :data:`TRIAL_RETRIES` times) and so continues from its
+    checkpoint too. The sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) records the settings (see
     :func:`prepare_sweep_folder`). A failing trial writes its traceback to the trial's error file and the others
     go on. Ray starts only when there is a trial to run.
 
@@ -407,8 +434,9 @@ def run_sweep(
         check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
         # max_calls=1: every trial in a fresh worker process, so that nothing a trial leaves in its process (freed
         # replay memory kept by the tuned allocator, CUDA caches, torch threads, GL contexts) reaches the next one.
+        # max_retries: Ray runs the task again when its worker dies (not when the trial raises): it resumes.
         remote = ray.remote(max_calls=1)(run_trial).options(
-            num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=0
+            num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=TRIAL_RETRIES
         )
         device = "cuda" if gpus_per_trial > 0 else "cpu"
         threads = max(1, int(cpus_per_trial))
@@ -427,6 +455,8 @@ def run_sweep(
                         write_error(trial_dir(out, trial), f"The Ray task of {trial} died:\n{error}\n")
                     if outcome["status"] == FINISHED:
                         summary.finished.append(trial)
+                        if outcome.get("resumes"):
+                            summary.resumed.append(trial)
                     else:
                         summary.failed[trial] = trial_dir(out, trial) / ERROR_TXT
                         bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")

@@ -1,15 +1,19 @@
 import csv
 import itertools
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 import zipfile
 
 import pytest
 
 from sb3_collapse import DrQv2
+from sb3_collapse.checkpoints import checkpoint_folders, checkpoint_frames
 from sb3_collapse.sweep import (
     GRID_VARIANTS,
     SweepError,
@@ -43,7 +47,7 @@ TINY = [
 TINY_TRIALS = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset"]
 RESULT_KEYS = {
     "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "resets", "reset_frames", "escaped",
-    "escape_frame", "wall_time_s", "timings",
+    "escape_frame", "wall_time_s", "timings", "resumes",
 }  # fmt: skip
 
 
@@ -135,7 +139,7 @@ def test_resume_skips_finished_trials_and_reruns_unfinished_ones(tiny_sweep, tmp
     before = mtimes(out / "walker-walk")
     # The same command again: nothing to run, no trial file touched (Ray is not even needed).
     assert main([*TINY_TRIALS, "--out", str(out), "--no-progress-bar", *TINY]) == 0
-    assert "0 finished now, 4 finished before, 0 failed" in capsys.readouterr().out
+    assert "0 finished now (0 resumed from a checkpoint), 4 finished before, 0 failed" in capsys.readouterr().out
     assert mtimes(out / "walker-walk") == before
 
     # An interrupted trial: no result.json, a leftover file. It runs again from an empty folder; the other is kept.
@@ -170,10 +174,10 @@ def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
     before = mtimes(tiny_sweep)
     assert main([*argv, *TINY, "--dry-run"]) == 0
     lines = own_lines(capsys.readouterr().out)
-    assert lines[0] == f"finished  skip {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_0'}"
-    assert lines[1] == f"finished  skip {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
-    assert lines[2] == f"pending   run  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_2'}"
-    assert lines[-1] == "6 trials: 4 finished, 2 pending; 2 would run."
+    assert lines[0] == f"finished  skip        1,000 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_0'}"
+    assert lines[1] == f"finished  skip        1,000 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
+    assert lines[2] == f"pending   run             0 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_2'}"
+    assert lines[-1].startswith("6 trials: 4 finished, 2 pending; 2 would run")
     assert mtimes(tiny_sweep) == before
 
     # Every status, on fabricated folders.
@@ -186,6 +190,12 @@ def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
     assert [trial_status(f) for f in (finished, failed, partial, out / "nothing")] == [
         "finished", "failed", "partial", "pending"
     ]  # fmt: skip
+    # An unfinished trial with a checkpoint is resumed: the dry run says from which frame.
+    (partial / "checkpoints" / "step_000000000100").mkdir(parents=True)
+    (partial / "checkpoints" / "step_000000000100" / "checkpoint.json").write_text(json.dumps({"frames": 400}))
+    capsys.readouterr()
+    assert main(["--tasks", "walker-walk", "--seeds", "3", "--variants", "drqv2", "--out", str(out), *TINY, "--dry-run"]) == 0
+    assert f"partial   resume        400 of 1,000 frames  {partial}" in own_lines(capsys.readouterr().out)
 
 
 def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, capsys):
@@ -198,7 +208,7 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     assert main(argv) == 1
     stdout = capsys.readouterr().out
     failed = out / "walker-walk" / "cnn-good_mlp-blank" / "seed_0"
-    assert "1 finished now, 0 finished before, 1 failed" in stdout
+    assert "1 finished now (0 resumed from a checkpoint), 0 finished before, 1 failed" in stdout
     assert f"failed: walker-walk/cnn-good_mlp-blank/seed_0 (see {failed / 'error.txt'})" in stdout
     error = (failed / "error.txt").read_text()
     assert error.startswith("Traceback (most recent call last)") and "is not a zip file" in error
@@ -478,3 +488,41 @@ def test_sweep_compares_interventions_and_sb3_algorithms(ray_local, tmp_path, mo
     assert len(set(colors.values())) == 3  # one colour per variant
     markdown = (tmp_path / "report" / "summary.md").read_text()
     assert all(f"| {variant} |" in markdown for variant in expected)
+
+
+# A trial that checkpoints: 60 agent steps of cartpole at action repeat 20 (episodes of 50 steps), a checkpoint every
+# 10 steps, updates from agent step 20, a reset at frame 800.
+RESUMABLE = [
+    "--tasks", "cartpole-balance", "--seeds", "1", "--variants", "drqv2+reset", "--frames", "1200",
+    "--action-repeat", "20", "--size", "48", "--hidden-dim", "64", "--feature-dim", "16", "--batch-size", "16",
+    "--seed-frames", "400", "--eval-every-frames", "1200", "--eval-episodes", "1", "--checkpoint-every-frames", "200",
+    "--collapse-metrics-every-frames", "400", "--collapse-probe-batch", "16", "--reset-window-frames", "800",
+    "--replay-sampling", "sb3", "--cpus-per-trial", "1",
+]  # fmt: skip
+
+
+def test_killed_trial_worker_is_run_again_and_resumes(ray_local, tmp_path, capsys):
+    out = tmp_path / "sweep"
+    folder = out / "cartpole-balance" / "drqv2+reset" / "seed_0"
+    killed = {}
+
+    def kill_the_worker() -> None:  # SIGKILL the Ray worker of the trial once it wrote a checkpoint
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            if checkpoint_folders(folder / "checkpoints"):
+                killed["pid"] = int((folder / "run.lock").read_text().split()[1])  # "pid <pid> on host ..."
+                killed["frames"] = checkpoint_frames(folder / "checkpoints")
+                os.kill(killed["pid"], signal.SIGKILL)
+                return
+            time.sleep(0.02)
+
+    killer = threading.Thread(target=kill_the_worker, daemon=True)
+    killer.start()
+    assert main([*RESUMABLE, "--out", str(out), "--no-progress-bar"]) == 0
+    killer.join()
+    assert killed["frames"] < 1200, "the trial finished before its worker was killed"
+    assert "1 finished now (1 resumed from a checkpoint), 0 finished before, 0 failed" in capsys.readouterr().out
+    result = json.loads((folder / "result.json").read_text())
+    assert result["resumes"] == 1 and result["frames"] == 1200 and result["resets"] == 1
+    assert [int(row["frame"]) for row in read_csv(folder / "eval.csv")] == [0, 1200]
+    assert [int(row["frame"]) for row in read_csv(folder / "collapse_events.csv")] == [800]

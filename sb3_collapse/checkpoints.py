@@ -1,0 +1,760 @@
+"""
+Run checkpoints: what a training run needs to continue in another process exactly as if it had not stopped.
+
+A checkpoint is taken **between two rounds** of ``learn()`` (at the start of a rollout: after the previous round's
+updates, before the next environment step), where nothing is in flight, and holds:
+
+- the model (SB3's ``save``: weights, optimizers, ``num_timesteps``, the last observation, episode statistics,
+  schedules' progress), and what ``save`` leaves out that the next updates use (``DrQv2``'s pending training
+  statistics, the last gradient norms of every layer);
+- the replay buffer, **incrementally**: only the frames and transitions added since the previous checkpoint go to
+  disk (:class:`~sb3_collapse.drqv2.replay_checkpoint.ReplayStore`, shared by the checkpoints);
+- every random generator: Python's, NumPy's global one, torch's (CPU and CUDA), the action space's, each
+  environment's (through its episode in progress, see below), each callback's probe sampler;
+- each environment's episode in progress: the random state or seed it was reset with and the actions since
+  (:class:`~sb3_collapse.envs.replay.EpisodeReplay`); a resume replays them, so checkpoints may fall anywhere in an
+  episode;
+- the state of every callback that has one (:class:`~sb3_collapse.monitoring.callbacks.ResumableCallback`: the
+  reset rule's window, streak, escape and resets, the collapse checks' schedule, the next evaluation), the
+  logger's pending values and the number of lines of each CSV file of the run folder, so that a resumed run
+  continues them without a duplicated or a missing row (TensorBoard events after the checkpoint are purged with
+  ``purge_step``).
+
+On disk (:mod:`sb3_collapse.protocol`): ``checkpoints/step_<agent step>/`` with the model, the state and, written
+last, ``checkpoint.json`` (format, package version, sizes and SHA-256 of the two files, the replay manifest), and
+``checkpoints/replay/``. A checkpoint is written into a hidden folder, flushed to disk and renamed; the older ones
+are deleted only then (the newest ``keep`` stay, so a damaged newest one falls back to the one before).
+
+Exactness: on one machine, with the same device and number of torch threads, a run resumed from any checkpoint
+ends with the same weights, evaluations and reset-rule events as the run that was not stopped (tested on the CPU).
+Timings (wall-clock columns, SB3's ``time/`` keys) differ, as they do between two uninterrupted runs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import hashlib
+import json
+import os
+import pickle
+import random
+import shutil
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Self
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import (
+    CSVOutputFormat,
+    Logger,
+    TensorBoardOutputFormat,
+    configure,
+    make_output_format,
+)
+from stable_baselines3.common.save_util import load_from_zip_file, recursive_setattr
+from torch.utils.tensorboard import SummaryWriter
+
+from sb3_collapse import __version__
+from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
+from sb3_collapse.drqv2.replay_checkpoint import CheckpointError as ReplayCheckpointError
+from sb3_collapse.drqv2.replay_checkpoint import ReplayStore
+from sb3_collapse.envs.replay import episode_records, replay_episodes
+from sb3_collapse.errors import InputError
+from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
+from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
+from sb3_collapse.protocol import (
+    CHECKPOINT_FOLDER,
+    CHECKPOINT_FOLDER_PATTERN,
+    CHECKPOINT_JSON,
+    CHECKPOINT_MODEL,
+    CHECKPOINT_STATE,
+    LOCK_FILE,
+    PROGRESS_CSV,
+    REPLAY_DIR,
+    write_json_atomically,
+)
+
+CHECKPOINT_FORMAT = 1
+"""Version of the checkpoint layout; a checkpoint of another format is refused."""
+
+MODEL_EXTRAS = ("_train_stats", "_train_stats_count", "_warned_replay_not_ready")
+"""Attributes that ``DrQv2.save`` leaves out and the resumed run needs (the training statistics not logged yet)."""
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint could not be written (a full disk...); the message names the folder and says what to do."""
+
+
+class CheckpointMismatch(InputError):
+    """The run folder's checkpoints cannot be used by this run (another package version or format, other spaces)."""
+
+
+class RunFolderLocked(InputError):
+    """Another process trains into the run folder."""
+
+
+class TrainingInterrupted(Exception):
+    """
+    ``learn()`` stopped at a signal after writing a checkpoint.
+
+    :param checkpoint: the checkpoint's folder
+    :param signal_name: the signal (``"SIGTERM"``, ``"SIGINT"``)
+    """
+
+    def __init__(self, checkpoint: Path, signal_name: str) -> None:
+        super().__init__(f"stopped by {signal_name} after writing the checkpoint {checkpoint}")
+        self.checkpoint = checkpoint
+        self.signal_name = signal_name
+
+
+class _Damaged(Exception):
+    """A checkpoint that cannot be read (internal: the loader falls back to the previous one)."""
+
+
+# ---------------------------------------------------------------------------------------------------------- the lock
+class RunLock:
+    """
+    An exclusive lock on a run folder (``flock`` on its lock file, released by the system if the process dies), with
+    the owner's pid, host and start time in the file for the message of a process that finds it taken.
+
+    :param run_dir: the run folder (it must exist)
+    """
+
+    def __init__(self, run_dir: str | os.PathLike) -> None:
+        self.path = Path(run_dir) / LOCK_FILE
+        self._file: Any = None
+
+    def __enter__(self) -> Self:
+        import fcntl
+
+        file = open(self.path, "a+")
+        try:
+            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            file.seek(0)
+            owner = file.read().strip() or "another process"
+            file.close()
+            if error.errno not in (errno.EAGAIN, errno.EACCES):
+                raise
+            raise RunFolderLocked(
+                f"run folder {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or train into "
+                "another folder."
+            ) from None
+        file.seek(0)
+        file.truncate()
+        file.write(f"pid {os.getpid()} on host {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        file.flush()
+        self._file = file
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._file is not None:
+            self._file.close()  # releases the flock; the file stays (deleting it would race with a new owner)
+            self._file = None
+
+
+# ---------------------------------------------------------------------------------------------- writing and reading
+def checkpoint_folders(directory: str | os.PathLike) -> list[Path]:
+    """
+    :param directory: a run's checkpoints folder
+    :return: its checkpoint folders, the newest (largest agent step) first; folders being written are not listed
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    folders = [path for path in directory.iterdir() if CHECKPOINT_FOLDER_PATTERN.match(path.name) and path.is_dir()]
+    return sorted(folders, key=lambda path: path.name, reverse=True)
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _digest(path: Path) -> dict[str, Any]:
+    sha = hashlib.sha256()
+    with path.open("rb") as file:
+        for block in iter(lambda: file.read(1 << 22), b""):
+            sha.update(block)
+    return {"bytes": path.stat().st_size, "sha256": sha.hexdigest()}
+
+
+def _line_count(path: Path) -> int:
+    with path.open("rb") as file:
+        return sum(block.count(b"\n") for block in iter(lambda: file.read(1 << 20), b""))
+
+
+def capture_state(
+    model: BaseAlgorithm,
+    callbacks: Sequence[BaseCallback] = (),
+    eval_env: Any = None,
+    csv_files: Sequence[Path] = (),
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """
+    Everything of a run between two rounds of ``learn()`` that the model's ``save`` and the replay store do not hold
+    (see the module docstring).
+
+    :param model: the model, between two rounds
+    :param callbacks: the run's callbacks; those that are :class:`ResumableCallback` are saved, in this order
+    :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
+    :param csv_files: CSV files whose number of lines to record
+    :param extra: anything else to keep (picklable)
+    :return: the state (picklable)
+    """
+    env = model.get_env()
+    if env is None:
+        raise ValueError("capture_state needs the model's environment.")
+    recorder = grad_norm_recorder(model)
+    logger = model.logger
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "num_timesteps": int(model.num_timesteps),
+        "rng": {
+            "python": random.getstate(),
+            "numpy": np.random.get_state(),
+            "torch": th.get_rng_state(),
+            "cuda": th.cuda.get_rng_state_all() if th.cuda.is_available() else None,
+        },
+        "action_space": model.action_space.np_random.bit_generator.state,
+        "envs": episode_records(env),
+        "eval_env": None if eval_env is None else eval_env.get_wrapper_attr("episode_record")(),
+        "callbacks": [
+            (type(callback).__name__, callback.state_dict())
+            for callback in callbacks
+            if isinstance(callback, ResumableCallback)
+        ],
+        "grad_norms": None if recorder is None else recorder.state_dict(),
+        "logger": {
+            "values": dict(logger.name_to_value),
+            "counts": dict(logger.name_to_count),
+            "excluded": dict(logger.name_to_excluded),
+        },
+        "csv_lines": {path.name: _line_count(path) if path.is_file() else 0 for path in csv_files},
+        "model_extras": {name: getattr(model, name) for name in MODEL_EXTRAS if hasattr(model, name)},
+        "extra": dict(extra or {}),
+    }
+
+
+def _replay_manifest(store: ReplayStore, buffer: Any) -> dict[str, Any]:
+    if isinstance(buffer, FrameStackReplayBuffer):
+        return {"store": store.save(buffer)}
+    return {"pickle": True}  # another buffer class: pickled whole into the state (its full size at each checkpoint)
+
+
+def save_checkpoint(
+    model: BaseAlgorithm,
+    directory: str | os.PathLike,
+    store: ReplayStore,
+    state: dict[str, Any],
+    keep: int = 2,
+) -> Path:
+    """
+    Write a checkpoint of ``model`` (between two rounds of ``learn()``) and ``state`` (:func:`capture_state`) into
+    ``directory/step_<agent step>``, then delete the checkpoints older than the newest ``keep`` and the replay
+    chunks that none of them needs.
+
+    :param model: the model
+    :param directory: the run's checkpoints folder
+    :param store: the replay store of the run (in ``directory/replay``)
+    :param state: what :func:`capture_state` returned
+    :param keep: complete checkpoints to keep (at least 1; 2 lets a damaged newest one fall back to the previous)
+    :return: the checkpoint's folder
+    :raises CheckpointError: when it cannot be written (e.g. a full disk): the previous checkpoints are intact
+    """
+    directory = Path(directory)
+    name = CHECKPOINT_FOLDER.format(step=model.num_timesteps)
+    final = directory / name
+    partial = directory / f".{name}.partial"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        for stale in directory.glob(".step_*.partial"):  # left by a process killed while writing (the run is locked)
+            shutil.rmtree(stale)
+        partial.mkdir()
+        replay = _replay_manifest(store, model.replay_buffer)
+        if "pickle" in replay:
+            state = {**state, "replay_buffer": model.replay_buffer}
+        model.save(partial / CHECKPOINT_MODEL)
+        with (partial / CHECKPOINT_STATE).open("wb") as file:
+            pickle.dump(state, file, protocol=pickle.HIGHEST_PROTOCOL)
+        for path in (partial / CHECKPOINT_MODEL, partial / CHECKPOINT_STATE):
+            _fsync(path)
+        info = {
+            "format": CHECKPOINT_FORMAT,
+            "version": __version__,
+            "agent_steps": int(model.num_timesteps),
+            "frames": int(frames_of(model)),
+            "written": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "files": {path.name: _digest(path) for path in (partial / CHECKPOINT_MODEL, partial / CHECKPOINT_STATE)},
+            "replay": replay,
+        }
+        write_json_atomically(partial / CHECKPOINT_JSON, info)
+        if final.exists():  # a stale one of an earlier process at this step (resumed from an older checkpoint)
+            shutil.rmtree(final)
+        os.replace(partial, final)
+        _fsync(directory)
+    except OSError as error:
+        shutil.rmtree(partial, ignore_errors=True)
+        previous = checkpoint_folders(directory)
+        kept = f"the previous checkpoint {previous[0].name} is intact" if previous else "there is no earlier checkpoint"
+        raise CheckpointError(
+            f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. Free space (or fix the "
+            "folder), then run the same command again to resume."
+        ) from error
+    kept_folders = checkpoint_folders(directory)[: max(1, keep)]
+    for folder in checkpoint_folders(directory)[max(1, keep):]:
+        shutil.rmtree(folder, ignore_errors=True)
+    manifests = []
+    for folder in kept_folders:
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            replay_info = json.loads((folder / CHECKPOINT_JSON).read_text())["replay"]
+            if "store" in replay_info:
+                manifests.append(replay_info["store"])
+    if len(manifests) == len(kept_folders):  # never collect with an unreadable manifest: its chunks would go
+        store.collect_garbage(manifests)
+    return final
+
+
+def checkpoint_frames(directory: str | os.PathLike) -> int | None:
+    """
+    :param directory: a run's checkpoints folder
+    :return: the frames of its newest checkpoint as it says (not verified: for listings), ``None`` without one
+    """
+    for folder in checkpoint_folders(directory):
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            return int(json.loads((folder / CHECKPOINT_JSON).read_text())["frames"])
+    return None
+
+
+@dataclass
+class LoadedCheckpoint:
+    """
+    :param folder: the checkpoint's folder
+    :param info: its ``checkpoint.json``
+    :param state: its state (:func:`capture_state`)
+    :param skipped: damaged newer checkpoints passed over, with the reason
+    """
+
+    folder: Path
+    info: dict[str, Any]
+    state: dict[str, Any]
+    skipped: list[tuple[Path, str]]
+
+    @property
+    def agent_steps(self) -> int:
+        return int(self.info["agent_steps"])
+
+    @property
+    def frames(self) -> int:
+        return int(self.info["frames"])
+
+
+def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    try:
+        info = json.loads((folder / CHECKPOINT_JSON).read_text())
+    except (OSError, ValueError) as error:
+        raise _Damaged(f"no readable {CHECKPOINT_JSON}: {error}") from None
+    if info.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointMismatch(
+            f"checkpoint {folder} has format {info.get('format')!r}, this version of sb3-collapse ({__version__}) "
+            f"reads format {CHECKPOINT_FORMAT}: resume with the version that wrote it ({info.get('version')}), or "
+            "train into a new folder."
+        )
+    if info.get("version") != __version__:
+        raise CheckpointMismatch(
+            f"checkpoint {folder} was written by sb3-collapse {info.get('version')}, this is {__version__}: resume "
+            "with the version that wrote it, or train into a new folder."
+        )
+    for name, expected in info["files"].items():
+        path = folder / name
+        if not path.is_file():
+            raise _Damaged(f"{name} is missing")
+        if path.stat().st_size != expected["bytes"]:
+            raise _Damaged(f"{name} has {path.stat().st_size} bytes, {expected['bytes']} were written")
+        if _digest(path)["sha256"] != expected["sha256"]:
+            raise _Damaged(f"{name} does not have the checksum it was written with")
+    try:
+        with (folder / CHECKPOINT_STATE).open("rb") as file:
+            state = pickle.load(file)
+    except Exception as error:  # noqa: BLE001 - any unpickling failure means a damaged file
+        raise _Damaged(f"{CHECKPOINT_STATE} cannot be read: {error}") from None
+    store_manifest = info["replay"].get("store")
+    if store_manifest is not None:  # their checksums are verified as the replay store reads them
+        replay_dir = folder.parent / REPLAY_DIR
+        for chunk in store_manifest.get("chunks", []):
+            path = replay_dir / chunk["file"]
+            if not path.is_file():
+                raise _Damaged(f"replay chunk {chunk['file']} is missing")
+            if path.stat().st_size != chunk["bytes"]:
+                raise _Damaged(f"replay chunk {chunk['file']} has {path.stat().st_size} bytes, {chunk['bytes']} were written")
+    return info, state
+
+
+def set_aside(folder: Path) -> Path:
+    """Rename a damaged checkpoint's folder so that it is never read again (and not lost): ``damaged_<name>``."""
+    target = folder.with_name(f"damaged_{folder.name}")
+    if target.exists():
+        shutil.rmtree(target)
+    folder.replace(target)
+    return target
+
+
+def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
+    """
+    The newest checkpoint of a run that can be read, verified (sizes and checksums); a damaged one (truncated, a
+    missing file, a bad checksum) is passed over for the one before, and listed in ``skipped``.
+
+    :param directory: the run's checkpoints folder
+    :return: the checkpoint, ``None`` when there is no readable one
+    :raises CheckpointMismatch: for a checkpoint of another format or package version
+    """
+    skipped: list[tuple[Path, str]] = []
+    for folder in checkpoint_folders(directory):
+        try:
+            info, state = _read_checkpoint(folder)
+        except _Damaged as error:
+            skipped.append((folder, str(error)))
+            continue
+        return LoadedCheckpoint(folder=folder, info=info, state=state, skipped=skipped)
+    return None
+
+
+# ---------------------------------------------------------------------------------------------------------- restoring
+def restore_model(model: BaseAlgorithm, path: str | os.PathLike) -> None:
+    """
+    Put a model saved by SB3's ``save`` back into ``model``, built with the same settings: its saved attributes
+    (counters, last observation, episode statistics, schedules) and parameters (weights, optimizers), as
+    ``BaseAlgorithm.load`` does, without building a new model and its replay buffer.
+
+    :param model: the model to restore into
+    :param path: the zip
+    :raises CheckpointMismatch: when the saved spaces are not the model's
+    """
+    data, params, variables = load_from_zip_file(path, device=model.device, print_system_info=False)
+    assert data is not None and params is not None
+    for name in ("observation_space", "action_space"):
+        saved, current = data[name], getattr(model, name)
+        if getattr(saved, "shape", None) != getattr(current, "shape", None):
+            raise CheckpointMismatch(f"the checkpoint's {name} is {saved}, the run's is {current}.")
+    model.__dict__.update(data)
+    model.set_parameters(params, exact_match=True, device=model.device)
+    for name, value in (variables or {}).items():
+        recursive_setattr(model, f"{name}.data", value.data)
+
+
+def restore_run(
+    model: BaseAlgorithm,
+    checkpoint: LoadedCheckpoint,
+    store: ReplayStore,
+    callbacks: Sequence[BaseCallback] = (),
+    eval_env: Any = None,
+) -> list[str]:
+    """
+    Make ``model`` (built with the run's settings, on the run's environments wrapped in ``EpisodeReplay``) and
+    ``callbacks`` continue from ``checkpoint``: the next ``learn(remaining, reset_num_timesteps=False)`` goes on as
+    the run that wrote it would have. The logger is restored by :func:`resumed_logger`.
+
+    :param model: the model
+    :param checkpoint: what :func:`load_checkpoint` returned
+    :param store: the run's replay store
+    :param callbacks: the run's callbacks, in the order they were saved (those that are :class:`ResumableCallback`
+        get their state at the start of the next ``learn()``)
+    :param eval_env: the evaluation environment, if any
+    :return: warnings for the user (empty when everything is as it was)
+    """
+    state = checkpoint.state
+    notes: list[str] = []
+    restore_model(model, checkpoint.folder / CHECKPOINT_MODEL)
+    replay = checkpoint.info["replay"]
+    if "store" in replay:
+        store.restore(model.replay_buffer, replay["store"])  # type: ignore[arg-type]
+    else:
+        model.replay_buffer = state["replay_buffer"]
+    env = model.get_env()
+    assert env is not None
+    observations = replay_episodes(env, state["envs"])
+    if model._last_obs is not None and not np.array_equal(np.stack(observations), model._last_obs):  # type: ignore[arg-type]
+        notes.append(
+            "the replayed episodes do not give the saved observations (another machine, device or library version?): "
+            "the resumed run will not be bit-identical to an uninterrupted one."
+        )
+    if eval_env is not None:
+        eval_env.get_wrapper_attr("replay_episode")(state["eval_env"])
+    saved = state["callbacks"]
+    resumable = [callback for callback in callbacks if isinstance(callback, ResumableCallback)]
+    if [name for name, _ in saved] != [type(callback).__name__ for callback in resumable]:
+        raise CheckpointMismatch(
+            f"the checkpoint has the callbacks {[name for name, _ in saved]}, this run "
+            f"{[type(callback).__name__ for callback in resumable]}: resume with the settings that wrote it."
+        )
+    for callback, (_, callback_state) in zip(resumable, saved):
+        callback.load_state_dict(callback_state)
+    for name, value in state["model_extras"].items():
+        setattr(model, name, value)
+    model.action_space.np_random.bit_generator.state = state["action_space"]
+    rng = state["rng"]
+    random.setstate(rng["python"])
+    np.random.set_state(rng["numpy"])
+    th.set_rng_state(rng["torch"])
+    if rng["cuda"] is not None and th.cuda.is_available():
+        th.cuda.set_rng_state_all(rng["cuda"])
+    return notes
+
+
+class _ResumedCSVOutputFormat(CSVOutputFormat):
+    """SB3's CSV log continuing an existing file: its header gives the columns, rows are appended."""
+
+    def __init__(self, filename: str) -> None:
+        self.file = open(filename, "r+")  # noqa: SIM115 - closed by Logger.close
+        header = self.file.readline().strip()
+        self.keys = header.split(",") if header else []
+        self.file.seek(0, os.SEEK_END)
+        self.separator = ","
+        self.quotechar = '"'
+
+
+class _ResumedTensorBoardOutputFormat(TensorBoardOutputFormat):
+    """TensorBoard events from ``purge_step`` on: TensorBoard drops the earlier files' events at or after it."""
+
+    def __init__(self, folder: str, purge_step: int) -> None:
+        self.writer = SummaryWriter(log_dir=folder, purge_step=purge_step)
+        self._is_closed = False
+
+
+def keep_lines(path: Path, lines: int) -> None:
+    """
+    Cut a text file after its first ``lines`` lines (rows written after a checkpoint, before the run stopped).
+
+    :param path: the file (nothing happens if it does not exist)
+    :param lines: lines to keep
+    """
+    if not path.is_file():
+        return
+    with path.open("rb") as file:
+        content = file.read()
+    kept = content.splitlines(keepends=True)[:lines]
+    if len(kept) < lines:
+        raise CheckpointMismatch(f"{path} has fewer lines ({len(kept)}) than when the checkpoint was taken ({lines}).")
+    data = b"".join(kept)
+    if data != content:
+        with path.open("r+b") as file:
+            file.truncate(len(data))
+            file.flush()
+            os.fsync(file.fileno())
+
+
+def resumed_logger(run_dir: Path, formats: Sequence[str], checkpoint: LoadedCheckpoint | None) -> Logger:
+    """
+    The run's SB3 logger: a new one (``configure``), or, resuming, one that continues ``progress.csv`` and the
+    TensorBoard events after the checkpoint, with the values recorded but not dumped yet when it was taken. The
+    other CSV files the checkpoint counted are cut back to their lines at that time.
+
+    :param run_dir: the run folder
+    :param formats: SB3 output formats (``"stdout"``, ``"csv"``, ``"tensorboard"``)
+    :param checkpoint: the checkpoint resumed from, ``None`` for a new run
+    :return: the logger
+    """
+    if checkpoint is None:
+        return configure(str(run_dir), list(formats))
+    state = checkpoint.state
+    for name, lines in state["csv_lines"].items():
+        keep_lines(run_dir / name, lines)
+    outputs = []
+    for kind in formats:
+        if kind == "csv" and (run_dir / PROGRESS_CSV).is_file():
+            outputs.append(_ResumedCSVOutputFormat(str(run_dir / PROGRESS_CSV)))
+        elif kind == "tensorboard":
+            outputs.append(_ResumedTensorBoardOutputFormat(str(run_dir), purge_step=state["num_timesteps"] + 1))
+        else:
+            outputs.append(make_output_format(kind, str(run_dir)))
+    logger = Logger(str(run_dir), outputs)
+    logger.name_to_value.update(state["logger"]["values"])
+    logger.name_to_count.update(state["logger"]["counts"])
+    logger.name_to_excluded.update(state["logger"]["excluded"])
+    return logger
+
+
+# ---------------------------------------------------------------------------------------------------------- callback
+class ResumableCheckpoints(BaseCallback):
+    """
+    Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, and one when
+    :meth:`request_stop` was called (by a SIGTERM or SIGINT handler, see :func:`stop_signals`), after which
+    ``learn()`` stops with :class:`TrainingInterrupted`.
+
+    Checkpoints are taken at the start of the first rollout at or after their frame, where nothing is in flight. With
+    ``DrQv2(step_envs_during_updates=True)``, the round before a checkpoint does not step the environments during its
+    updates (so that none is in flight); an uninterrupted run with the same ``every_frames`` does the same, so it is
+    still the run a resumed one reproduces (a signal adds one such round).
+
+    :param directory: the run's checkpoints folder
+    :param every_frames: frames between two checkpoints (``0``: only at a stop request)
+    :param callbacks: the run's other callbacks, whose states the checkpoints hold (in this order)
+    :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
+    :param csv_files: the run's CSV files, cut back to their checkpoint lines on resume
+    :param extra_state: called at each checkpoint for more picklable state (e.g. the run's elapsed time)
+    :param keep: complete checkpoints kept (see :func:`save_checkpoint`)
+    :param verbose: 1 prints a line per checkpoint
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike,
+        every_frames: int,
+        callbacks: Sequence[BaseCallback] = (),
+        eval_env: Any = None,
+        csv_files: Sequence[Path] = (),
+        extra_state: Callable[[], dict[str, Any]] | None = None,
+        keep: int = 2,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        if every_frames < 0:
+            raise ValueError(f"every_frames must be >= 0, got {every_frames}.")
+        if keep < 1:
+            raise ValueError(f"keep must be >= 1 checkpoint, got {keep}.")
+        self.directory = Path(directory)
+        self.every_frames = every_frames
+        self.callbacks = list(callbacks)
+        self.eval_env = eval_env
+        self.csv_files = list(csv_files)
+        self.extra_state = extra_state
+        self.keep = keep
+        self.store = ReplayStore(self.directory / REPLAY_DIR)
+        self.next_frame = every_frames
+        self.due = False
+        self.stop_signal: str | None = None
+        self.last_checkpoint: Path | None = None
+        self.written = 0
+        self.seconds = 0.0
+        self._grad_norms: dict[str, Any] | None = None
+
+    def resume(self, checkpoint: LoadedCheckpoint) -> tuple[LoadedCheckpoint, list[str]]:
+        """
+        Put the model, the environments and the callbacks back in the state of ``checkpoint``
+        (:func:`restore_run`), before ``learn(remaining, reset_num_timesteps=False)``. A checkpoint whose replay
+        chunks turn out damaged as they are read (a wrong checksum) is set aside (:func:`set_aside`) for the one
+        before.
+
+        :return: the checkpoint resumed from, and notes for the user (damaged checkpoints, see :func:`restore_run`)
+        :raises CheckpointError: when no checkpoint is left
+        """
+        notes: list[str] = []
+        while True:
+            try:
+                notes += restore_run(self.model, checkpoint, self.store, self.callbacks, self.eval_env)
+                break
+            except ReplayCheckpointError as error:
+                notes.append(f"checkpoint {checkpoint.folder} is damaged ({error}): falling back to the one before.")
+                set_aside(checkpoint.folder)
+                older = load_checkpoint(self.directory)
+                if older is None:
+                    raise CheckpointError(
+                        f"no readable checkpoint is left in {self.directory}: delete the run folder to restart the run."
+                    ) from error
+                notes += [f"checkpoint {folder} is damaged ({reason})." for folder, reason in older.skipped]
+                checkpoint = older
+        self._grad_norms = checkpoint.state["grad_norms"]
+        self.last_checkpoint = checkpoint.folder
+        return checkpoint, notes
+
+    def request_stop(self, signal_name: str) -> None:
+        """Write a checkpoint at the next round and stop ``learn()`` (safe to call from a signal handler)."""
+        self.stop_signal = signal_name
+
+    def _on_training_start(self) -> None:
+        self.next_frame = (self._frames() // self.every_frames + 1) * self.every_frames if self.every_frames else 0
+        if self._grad_norms is not None:  # the recorder exists now (the callbacks hook SB3 models' optimizers)
+            recorder = grad_norm_recorder(self.model)
+            if recorder is not None:
+                recorder.load_state_dict(self._grad_norms)
+            self._grad_norms = None
+
+    def _frames(self) -> int:
+        return frames_of(self.model)
+
+    def _on_step(self) -> bool:
+        if self.every_frames and self._frames() >= self.next_frame:
+            self.due = True
+            while self.next_frame <= self._frames():
+                self.next_frame += self.every_frames
+        if (self.due or self.stop_signal) and getattr(self.model, "step_envs_during_updates", False):
+            self.model.hold_next_step = True  # type: ignore[attr-defined]
+        return True
+
+    def _on_rollout_start(self) -> None:
+        if not (self.due or self.stop_signal):
+            return
+        if getattr(self.model, "_pending_step", None) is not None:
+            return  # a step is in flight: _on_step holds the next one back, the checkpoint comes one round later
+        self.save()
+        self.due = False
+        if self.stop_signal:
+            raise TrainingInterrupted(self.last_checkpoint, self.stop_signal)  # type: ignore[arg-type]
+
+    def save(self) -> Path:
+        """Write a checkpoint now (between two rounds of ``learn()``); return its folder."""
+        if self.last_checkpoint is not None and self.last_checkpoint.name == CHECKPOINT_FOLDER.format(
+            step=self.model.num_timesteps
+        ):
+            return self.last_checkpoint  # taken at this step already (a signal right after a scheduled checkpoint)
+        start = time.perf_counter()
+        state = capture_state(
+            self.model,
+            self.callbacks,
+            self.eval_env,
+            self.csv_files,
+            self.extra_state() if self.extra_state is not None else None,
+        )
+        self.last_checkpoint = save_checkpoint(self.model, self.directory, self.store, state, keep=self.keep)
+        self.written += 1
+        self.seconds += time.perf_counter() - start
+        if self.verbose >= 1:
+            print(
+                f"Checkpoint at frame {self._frames():,}: {self.last_checkpoint} "
+                f"({time.perf_counter() - start:.1f} s)",
+                flush=True,
+            )
+        return self.last_checkpoint
+
+
+@contextlib.contextmanager
+def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
+    """
+    While inside, SIGTERM and SIGINT ask ``checkpoints`` to write a checkpoint and stop (the run ends with
+    :class:`TrainingInterrupted`); a second SIGINT stops at once (``KeyboardInterrupt``). Outside the main thread,
+    nothing is installed.
+
+    :param checkpoints: the run's checkpoint callback
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    def handler(signum: int, _frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if signum == signal.SIGINT and checkpoints.stop_signal is not None:
+            raise KeyboardInterrupt
+        checkpoints.request_stop(name)
+        print(f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
+              flush=True)
+
+    for sig in previous:
+        signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)

@@ -1,0 +1,644 @@
+"""
+Incremental checkpoints of a :class:`~sb3_collapse.drqv2.replay_buffer.FrameStackReplayBuffer`.
+
+A paper-scale buffer holds 550,000 transitions, 11.8 GB of 84x84 RGB frames. Rewriting it at every run checkpoint
+would cost minutes and, while the new copy is written, twice the disk. :class:`ReplayStore` instead writes, at each
+:meth:`ReplayStore.save`, only what was added since its previous save, as new append-only **chunk files** in one
+folder, and returns a small JSON **manifest** that lists the chunk files the saved state needs, in order; the run
+stores the manifest inside its own checkpoint file (written atomically by the run). A checkpoint's cost therefore
+grows with the new data (10,000 frames: ~212 MB), not with the buffer.
+
+**What is new.** The buffer's counters only grow until ``reset()``: ``transitions_added`` (``add`` calls),
+``frame_heads`` (frames written, per environment) and ``resets`` (``reset`` calls). Transition number ``t`` lives at
+ring position ``t % buffer_size``, frame number ``f`` of environment ``e`` at ``frames[f % frame_capacity, e]``. The
+**live** data are the last ``buffer_size`` transitions and the last ``frame_capacity`` frames of each environment:
+everything sampling (and the next ``add``) can read. A save writes the transitions ``[previous, now)`` and each
+environment's frames ``[previous head, head)``, clipped to the live windows (when more was added than the rings
+hold, only the newest ring's worth is written). The first save of a buffer, a save after ``buffer.reset()``, and a
+save after the store's chunks were deleted behind its back write all the live data.
+
+**Chunk files** (``chunk-<number>-<random>.bin``, the number one more than the largest in the folder, so no two
+saves share a name) are raw bytes without compression (speed): for each **segment** of the chunk, a counter range
+``[start, stop)`` of one ring, the rows of the ring positions it covers (transitions: ``frame_starts``,
+``actions``, ``rewards``, ``dones``, ``timeouts``, each array's rows in turn, per contiguous piece of the ring;
+frames: the frames of one environment). A save's new data are split into files of at most ``max_file_bytes``
+(default: 1/32 of the buffer's arrays, at least 1 MiB), so that the ring's oldest live data never keep more than
+about 1/32 of the buffer of dead bytes on disk per ring: the folder stays within ~1.07x the buffer's RAM size
+(``benchmarks/replay_checkpoint.py`` measures it). Whole-chunk compaction (rewriting a partly overwritten chunk's
+live part) is therefore not done: with files that small it would save little and cost writes.
+
+**Manifest**: ``format``; ``layout`` (``n_envs``, ``buffer_size``, ``frame_capacity``, ``frame_stack``, each
+array's shape and dtype); ``state`` (``pos``, ``full``, ``transitions_added``, ``resets``, ``frame_heads``,
+``steps_since_done``, ``episodes_done``); ``chunks``: the files the state needs, oldest first, each with its
+``bytes``, ``crc32`` and ``segments``. A chunk is listed while any of its segments holds live data; a chunk whose
+data were all overwritten is dropped from the manifest (and deleted by :meth:`ReplayStore.collect_garbage`).
+
+**Restore** replays the chunks in order into a freshly built buffer (later chunks overwrite earlier positions, so a
+partly overwritten chunk's dead rows are overwritten again), checking each file's size and CRC-32 first and while
+reading, then sets the counters: the buffer's arrays equal the saved buffer's (byte for byte, wherever data were
+written since its last ``reset``), and ``sample`` with the same ``np.random`` state returns the same batch.
+
+**Writes never modify an existing file**: each chunk goes to a temporary name (``.chunk-....bin.tmp``), is flushed
+and ``fsync``'d, renamed, and the folder is ``fsync``'d. A process killed during a save leaves at most a temporary
+file or an unlisted chunk (which :meth:`ReplayStore.collect_garbage` deletes); a failed write (full disk) deletes
+what this save wrote and raises :class:`CheckpointWriteError` naming the folder: every older chunk is intact.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+import secrets
+import warnings
+import weakref
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
+from sb3_collapse.errors import InputError
+
+FORMAT = "sb3_collapse.replay_store/1"
+"""``manifest["format"]``: the manifest and chunk layout this module writes and reads."""
+
+CHUNK_PREFIX = "chunk-"
+CHUNK_SUFFIX = ".bin"
+TEMP_SUFFIX = ".tmp"
+CHUNK_NAME = re.compile(rf"^{CHUNK_PREFIX}(\d+)-[0-9a-f]+{re.escape(CHUNK_SUFFIX)}$")
+
+FILES_PER_BUFFER = 32
+"""The default ``max_file_bytes`` is the buffer's array bytes divided by this (dead bytes kept on disk: ~1/32)."""
+
+MIN_FILE_BYTES = 1 << 20
+"""The smallest default ``max_file_bytes``."""
+
+BLOCK_BYTES = 32 << 20
+"""Bytes copied, checksummed and written (or read) at once."""
+
+TRANSITION_ARRAYS = ("frame_starts", "actions", "rewards", "dones", "timeouts")
+"""The per-transition arrays of the buffer, in the order a transitions segment stores them."""
+
+TRANSITIONS = "transitions"
+FRAMES = "frames"
+
+
+class CheckpointError(InputError):
+    """
+    A replay checkpoint cannot be used: a chunk file is missing, truncated or corrupt, the manifest is malformed, or
+    the buffer does not match it.
+
+    :param message: what is wrong and what to do
+    :param path: the file or folder at fault, when there is one
+    """
+
+    def __init__(self, message: str, path: str | os.PathLike | None = None) -> None:
+        super().__init__(message)
+        self.path = None if path is None else Path(path)
+
+
+class CheckpointWriteError(OSError):
+    """
+    Writing a replay checkpoint failed (a full disk, an I/O error): what the failed save wrote is deleted, every
+    older chunk is intact. ``errno`` is the original error's (``errno.ENOSPC`` for a full disk).
+
+    :param error_number: the ``errno`` of the failure
+    :param message: what failed, naming the folder, and what to do
+    :param folder: the store's folder
+    """
+
+    def __init__(self, error_number: int | None, message: str, folder: Path) -> None:
+        super().__init__(error_number, message)
+        self.folder = folder
+
+
+@dataclass
+class _Tracked:
+    """What a store last saved or restored: the base of its next incremental save."""
+
+    buffer: weakref.ref
+    resets: int
+    transitions_added: int
+    frame_heads: np.ndarray
+    chunks: list[dict[str, Any]]
+
+
+def _write(file: BinaryIO, data: np.ndarray) -> None:
+    """Write ``data``'s bytes (one function, so tests can make it fail as a full disk would)."""
+    file.write(data)
+
+
+class ReplayStore:
+    """
+    Append-only chunk store of a :class:`FrameStackReplayBuffer`'s data in one folder (e.g.
+    ``<run>/checkpoints/replay/``). See the module docstring for the format and its guarantees.
+
+    :param directory: the folder (created at the first save)
+    :param max_file_bytes: largest chunk file; ``None``: the buffer's array bytes / 32, at least 1 MiB
+    """
+
+    def __init__(self, directory: str | os.PathLike, max_file_bytes: int | None = None) -> None:
+        if max_file_bytes is not None and (isinstance(max_file_bytes, bool) or max_file_bytes < 1):
+            raise InputError(f"max_file_bytes must be None or >= 1, got {max_file_bytes!r}.", "max_file_bytes")
+        self.directory = Path(directory)
+        if self.directory.exists() and not self.directory.is_dir():
+            raise InputError(f"directory {self.directory} is a file, not a folder.", "directory")
+        self.max_file_bytes = max_file_bytes
+        self._tracked: _Tracked | None = None
+
+    # ------------------------------------------------------------------ saving
+    def save(self, buffer: FrameStackReplayBuffer) -> dict[str, Any]:
+        """
+        Write, as new ``fsync``'d files (nothing existing is modified), the frames and transitions added since the
+        last :meth:`save` or :meth:`restore` of this store for this buffer (all live data the first time, after
+        ``buffer.reset()``, or when this store's earlier chunks are gone).
+
+        :param buffer: the buffer
+        :return: the JSON-serialisable manifest of the buffer's state: the chunk files it needs, in order, with their
+            sizes and CRC-32s, the buffer's counters and its layout. Store it in the run's checkpoint.
+        :raises CheckpointWriteError: when a write fails (full disk): nothing this call wrote remains, older chunks
+            are intact, the store's base for the next save is unchanged
+        :raises CheckpointError: when the buffer's ``pos``/``full`` disagree with ``transitions_added`` (changed
+            outside ``add``/``reset``)
+        """
+        _check_counters(buffer)
+        live = _live_windows(buffer)
+        base = self._base(buffer)
+        if base is None:
+            chain: list[dict[str, Any]] = []
+            new = live
+        else:
+            chain = list(base.chunks)
+            previous = {TRANSITIONS: base.transitions_added}
+            previous.update({_frames_key(env): int(head) for env, head in enumerate(base.frame_heads)})
+            new = {key: (max(previous[key], low), high) for key, (low, high) in live.items()}
+        segments = [_segment(key, low, high) for key, (low, high) in new.items() if high > low]
+        plans = _plan_files(segments, _row_bytes(buffer), self._max_file_bytes(buffer))
+        if plans:
+            written = self._write_chunks(buffer, plans)
+            chain = chain + written
+        chain = [chunk for chunk in chain if _is_live(chunk, live)]
+        manifest = {"format": FORMAT, "layout": _layout(buffer), "state": _state(buffer), "chunks": chain}
+        self._track(buffer, manifest)
+        return manifest
+
+    def _max_file_bytes(self, buffer: FrameStackReplayBuffer) -> int:
+        if self.max_file_bytes is not None:
+            return self.max_file_bytes
+        return max(MIN_FILE_BYTES, buffer.nbytes // FILES_PER_BUFFER)
+
+    def _base(self, buffer: FrameStackReplayBuffer) -> _Tracked | None:
+        """The last saved or restored state of this buffer when the next save can be incremental to it."""
+        tracked = self._tracked
+        if tracked is None or tracked.buffer() is not buffer or tracked.resets != buffer.resets:
+            return None
+        if buffer.transitions_added < tracked.transitions_added or (buffer.frame_heads < tracked.frame_heads).any():
+            return None
+        for chunk in tracked.chunks:
+            path = self.directory / chunk["file"]
+            if not path.is_file() or path.stat().st_size != chunk["bytes"]:
+                warnings.warn(
+                    f"The replay checkpoint chunk {path} is gone or changed: saving the whole replay buffer again.",
+                    stacklevel=3,
+                )
+                return None
+        return tracked
+
+    def _track(self, buffer: FrameStackReplayBuffer, manifest: dict[str, Any]) -> None:
+        self._tracked = _Tracked(
+            buffer=weakref.ref(buffer),
+            resets=int(buffer.resets),
+            transitions_added=int(buffer.transitions_added),
+            frame_heads=buffer.frame_heads.copy(),
+            chunks=list(manifest["chunks"]),
+        )
+
+    def _write_chunks(self, buffer: FrameStackReplayBuffer, plans: list[list[dict[str, Any]]]) -> list[dict]:
+        """Write one chunk file per plan; on failure delete them all and raise :class:`CheckpointWriteError`."""
+        written: list[dict[str, Any]] = []
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            number = self._next_number()
+            for plan in plans:
+                written.append(self._write_chunk(buffer, plan, number))
+                number += 1
+            _fsync_folder(self.directory)
+        except OSError as error:
+            for chunk in written:
+                (self.directory / chunk["file"]).unlink(missing_ok=True)
+            needed = sum(_plan_bytes(plan, _row_bytes(buffer)) for plan in plans)
+            raise CheckpointWriteError(
+                error.errno,
+                f"Could not write the replay buffer checkpoint in {self.directory}: "
+                f"{error.strerror or error} ({needed:,} bytes to write). Nothing of this checkpoint was kept and every "
+                f"earlier one is intact; free space in {self.directory} (or move the run) and resume from the last "
+                "checkpoint.",
+                self.directory,
+            ) from error
+        return written
+
+    def _next_number(self) -> int:
+        """One more than the largest chunk number in the folder (so no save reuses a name)."""
+        numbers = [int(match.group(1)) for name in os.listdir(self.directory) if (match := CHUNK_NAME.match(name))]
+        return max(numbers, default=0) + 1
+
+    def _write_chunk(self, buffer: FrameStackReplayBuffer, plan: list[dict[str, Any]], number: int) -> dict:
+        name = f"{CHUNK_PREFIX}{number:06d}-{secrets.token_hex(4)}{CHUNK_SUFFIX}"
+        temporary = self.directory / f".{name}{TEMP_SUFFIX}"
+        crc, size = 0, 0
+        try:
+            with open(temporary, "xb") as file:
+                for segment in plan:
+                    for view in _views(buffer, segment):
+                        for block in _blocks(view):
+                            data = np.ascontiguousarray(block).reshape(-1).view(np.uint8)
+                            crc = zlib.crc32(data, crc)
+                            _write(file, data)
+                            size += data.nbytes
+                file.flush()
+                os.fsync(file.fileno())
+            os.rename(temporary, self.directory / name)
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
+        return {"file": name, "bytes": size, "crc32": crc, "segments": plan}
+
+    # ------------------------------------------------------------------ restoring
+    def restore(self, buffer: FrameStackReplayBuffer, manifest: dict[str, Any]) -> None:
+        """
+        Make ``buffer`` (freshly built with the saved buffer's arguments) hold the saved state: the chunks' rows
+        replayed in order, then the counters. The next :meth:`save` of this store is incremental to it.
+
+        :param buffer: the buffer to fill
+        :param manifest: what :meth:`save` returned (possibly through JSON)
+        :raises CheckpointError: when the manifest is malformed or the buffer's layout differs from it, or a chunk
+            is missing or has the wrong size (all found before anything is read: the buffer is unchanged), or a
+            chunk fails its CRC-32 or cannot be read (found while reading: the buffer is ``reset()``, empty)
+        """
+        _check_manifest(manifest)
+        _check_layout(buffer, manifest["layout"])
+        _check_state(buffer, manifest["state"])
+        row_bytes = _row_bytes(buffer)
+        for chunk in manifest["chunks"]:
+            path = self.directory / chunk["file"]
+            rings = {TRANSITIONS: buffer.buffer_size, FRAMES: buffer.frame_capacity}
+            if any(
+                _key(segment) not in row_bytes or segment["stop"] - segment["start"] > rings[segment["ring"]]
+                for segment in chunk["segments"]
+            ):
+                raise CheckpointError(
+                    f"The replay checkpoint manifest is inconsistent: chunk {path} lists segments outside this "
+                    "buffer's environments or rings. Resume from another checkpoint.",
+                    path,
+                )
+            expected = _plan_bytes(chunk["segments"], row_bytes)
+            if expected != chunk["bytes"]:
+                raise CheckpointError(
+                    f"The replay checkpoint manifest is inconsistent: chunk {path} is listed with {chunk['bytes']:,} "
+                    f"bytes but its segments hold {expected:,}. Resume from another checkpoint.",
+                    path,
+                )
+            if not path.is_file():
+                raise CheckpointError(
+                    f"The replay checkpoint chunk {path} is missing. Resume from another checkpoint (an earlier one "
+                    "may still have all its chunks).",
+                    path,
+                )
+            size = path.stat().st_size
+            if size != chunk["bytes"]:
+                raise CheckpointError(
+                    f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
+                    f"{chunk['bytes']:,} ({'truncated' if size < chunk['bytes'] else 'changed'}). Resume from "
+                    "another checkpoint.",
+                    path,
+                )
+        try:
+            for chunk in manifest["chunks"]:
+                _read_chunk(buffer, self.directory / chunk["file"], chunk)
+        except BaseException:
+            buffer.reset()
+            raise
+        state = manifest["state"]
+        buffer.pos = int(state["pos"])
+        buffer.full = bool(state["full"])
+        buffer.transitions_added = int(state["transitions_added"])
+        buffer.resets = int(state["resets"])
+        buffer.frame_heads[:] = state["frame_heads"]
+        buffer.steps_since_done[:] = state["steps_since_done"]
+        buffer.episodes_done[:] = state["episodes_done"]
+        self._track(buffer, manifest)
+
+    # ------------------------------------------------------------------ disk
+    def collect_garbage(self, keep: list[dict[str, Any]]) -> int:
+        """
+        Delete the chunk files that none of the ``keep`` manifests lists, nor the state this store last saved or
+        restored (the base of its next save), and stray temporary files of interrupted saves.
+
+        :param keep: the manifests of the checkpoints to keep
+        :return: bytes freed
+        """
+        needed = set()
+        for manifest in keep:
+            _check_manifest(manifest)
+            needed.update(chunk["file"] for chunk in manifest["chunks"])
+        if self._tracked is not None:
+            needed.update(chunk["file"] for chunk in self._tracked.chunks)
+        if not self.directory.is_dir():
+            return 0
+        freed = 0
+        for path in self.directory.iterdir():
+            name = path.name
+            stray = name.startswith(f".{CHUNK_PREFIX}") and name.endswith(TEMP_SUFFIX)
+            if stray or (CHUNK_NAME.match(name) and name not in needed):
+                try:
+                    size = path.stat().st_size
+                    path.unlink()
+                except FileNotFoundError:
+                    continue
+                freed += size
+        return freed
+
+    @staticmethod
+    def bytes_needed(manifest: dict[str, Any]) -> int:
+        """
+        :param manifest: a manifest returned by :meth:`save`
+        :return: bytes of the chunk files it lists
+        """
+        return sum(int(chunk["bytes"]) for chunk in manifest["chunks"])
+
+    def disk_bytes(self) -> int:
+        """Bytes of all chunk and temporary files in the folder now."""
+        if not self.directory.is_dir():
+            return 0
+        return sum(
+            path.stat().st_size
+            for path in self.directory.iterdir()
+            if CHUNK_NAME.match(path.name) or path.name.endswith(TEMP_SUFFIX)
+        )
+
+
+# ---------------------------------------------------------------------- pure helpers
+def _frames_key(env: int) -> str:
+    return f"{FRAMES}/{env}"
+
+
+def _key(segment: dict[str, Any]) -> str:
+    return TRANSITIONS if segment["ring"] == TRANSITIONS else _frames_key(segment["env"])
+
+
+def _segment(key: str, start: int, stop: int) -> dict[str, Any]:
+    if key == TRANSITIONS:
+        return {"ring": TRANSITIONS, "start": int(start), "stop": int(stop)}
+    return {"ring": FRAMES, "env": int(key.split("/")[1]), "start": int(start), "stop": int(stop)}
+
+
+def _check_counters(buffer: FrameStackReplayBuffer) -> None:
+    added = buffer.transitions_added
+    if buffer.pos != added % buffer.buffer_size or buffer.full != (added >= buffer.buffer_size):
+        raise CheckpointError(
+            f"The replay buffer's pos={buffer.pos} and full={buffer.full} disagree with transitions_added={added} "
+            f"(buffer_size {buffer.buffer_size}): they were changed outside add() and reset(), so what is new since "
+            "the last checkpoint is unknown."
+        )
+
+
+def _live_windows(buffer: FrameStackReplayBuffer) -> dict[str, tuple[int, int]]:
+    """Counter ranges ``[low, high)`` of the data the rings hold: key -> range."""
+    added = int(buffer.transitions_added)
+    windows = {TRANSITIONS: (max(0, added - buffer.buffer_size), added)}
+    for env, head in enumerate(buffer.frame_heads):
+        windows[_frames_key(env)] = (max(0, int(head) - buffer.frame_capacity), int(head))
+    return windows
+
+
+def _is_live(chunk: dict[str, Any], live: dict[str, tuple[int, int]]) -> bool:
+    """Whether any segment of ``chunk`` holds data the rings still hold."""
+    for segment in chunk["segments"]:
+        low, high = live[_key(segment)]
+        if segment["start"] < high and segment["stop"] > low:
+            return True
+    return False
+
+
+def _row_bytes(buffer: FrameStackReplayBuffer) -> dict[str, int]:
+    """Bytes one counter of each ring takes in a chunk: key -> bytes."""
+    sizes = {TRANSITIONS: sum(getattr(buffer, name)[0].nbytes for name in TRANSITION_ARRAYS)}
+    sizes.update({_frames_key(env): buffer.frames[0, env].nbytes for env in range(buffer.n_envs)})
+    return sizes
+
+
+def _plan_bytes(plan: list[dict[str, Any]], row_bytes: dict[str, int]) -> int:
+    return sum((segment["stop"] - segment["start"]) * row_bytes[_key(segment)] for segment in plan)
+
+
+def _plan_files(segments: list[dict[str, Any]], row_bytes: dict[str, int], max_bytes: int) -> list[list[dict]]:
+    """Split the segments, in order, into files of at most ``max_bytes`` (at least one row each)."""
+    files: list[list[dict[str, Any]]] = []
+    current: list[dict[str, Any]] = []
+    used = 0
+    for segment in segments:
+        row = row_bytes[_key(segment)]
+        start = segment["start"]
+        while start < segment["stop"]:
+            room = (max_bytes - used) // row
+            if room < 1 and current:
+                files.append(current)
+                current, used = [], 0
+                continue
+            stop = min(segment["stop"], start + max(room, 1))
+            current.append({**segment, "start": start, "stop": stop})
+            used += (stop - start) * row
+            start = stop
+    if current:
+        files.append(current)
+    return files
+
+
+def _pieces(start: int, stop: int, size: int) -> Iterator[tuple[int, int]]:
+    """The contiguous ring position ranges of the counters ``[start, stop)`` in a ring of ``size``."""
+    first = start % size
+    count = stop - start
+    head = min(count, size - first)
+    yield first, first + head
+    if count > head:
+        yield 0, count - head
+
+
+def _views(buffer: FrameStackReplayBuffer, segment: dict[str, Any]) -> Iterator[np.ndarray]:
+    """The buffer's array views a segment covers, in the order its bytes are stored."""
+    if segment["ring"] == TRANSITIONS:
+        for low, high in _pieces(segment["start"], segment["stop"], buffer.buffer_size):
+            for name in TRANSITION_ARRAYS:
+                yield getattr(buffer, name)[low:high]
+    else:
+        for low, high in _pieces(segment["start"], segment["stop"], buffer.frame_capacity):
+            yield buffer.frames[low:high, segment["env"]]
+
+
+def _blocks(view: np.ndarray) -> Iterator[np.ndarray]:
+    """``view`` in slices of about :data:`BLOCK_BYTES` along its first axis."""
+    rows = max(1, BLOCK_BYTES // max(1, view[0].nbytes)) if len(view) else 1
+    for start in range(0, len(view), rows):
+        yield view[start : start + rows]
+
+
+def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any]) -> None:
+    """Read a chunk's rows into the buffer, checking its CRC-32."""
+    crc = 0
+    try:
+        with open(path, "rb") as file:
+            for segment in chunk["segments"]:
+                for view in _views(buffer, segment):
+                    for block in _blocks(view):
+                        target = block if block.flags.c_contiguous else np.empty_like(block)
+                        data = target.reshape(-1).view(np.uint8)
+                        if file.readinto(data) != data.nbytes:
+                            raise CheckpointError(
+                                f"The replay checkpoint chunk {path} ended early (truncated). Resume from another "
+                                "checkpoint.",
+                                path,
+                            )
+                        crc = zlib.crc32(data, crc)
+                        if target is not block:
+                            block[...] = target
+    except OSError as error:
+        raise CheckpointError(f"Could not read the replay checkpoint chunk {path}: {error}.", path) from error
+    if crc != chunk["crc32"]:
+        raise CheckpointError(
+            f"The replay checkpoint chunk {path} is corrupt (CRC-32 {crc:#010x}, the checkpoint expects "
+            f"{chunk['crc32']:#010x}). Resume from another checkpoint.",
+            path,
+        )
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Flush a folder's entries (the renames) to disk, where the system allows opening a folder."""
+    try:
+        handle = os.open(folder, os.O_RDONLY)
+    except OSError:  # e.g. Windows
+        return
+    try:
+        os.fsync(handle)
+    except OSError as error:
+        if error.errno not in (errno.EINVAL, errno.EBADF):  # folders that cannot be fsync'd
+            raise
+    finally:
+        os.close(handle)
+
+
+def _layout(buffer: FrameStackReplayBuffer) -> dict[str, Any]:
+    return {
+        "n_envs": int(buffer.n_envs),
+        "buffer_size": int(buffer.buffer_size),
+        "frame_capacity": int(buffer.frame_capacity),
+        "frame_stack": int(buffer.frame_stack),
+        "arrays": {
+            name: {"shape": list(array.shape), "dtype": array.dtype.str}
+            for name, array in buffer.storage_arrays.items()
+        },
+    }
+
+
+def _state(buffer: FrameStackReplayBuffer) -> dict[str, Any]:
+    return {
+        "pos": int(buffer.pos),
+        "full": bool(buffer.full),
+        "transitions_added": int(buffer.transitions_added),
+        "resets": int(buffer.resets),
+        "frame_heads": [int(value) for value in buffer.frame_heads],
+        "steps_since_done": [int(value) for value in buffer.steps_since_done],
+        "episodes_done": [int(value) for value in buffer.episodes_done],
+    }
+
+
+def _check_manifest(manifest: Any) -> None:
+    """Raise :class:`CheckpointError` unless ``manifest`` looks like one :meth:`ReplayStore.save` returned."""
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+        raise CheckpointError(
+            f"Not a replay checkpoint manifest of format {FORMAT!r} (found {found!r}): it was written by another "
+            "version of sb3-collapse, or is damaged."
+        )
+    missing = [key for key in ("layout", "state", "chunks") if key not in manifest]
+    if missing:
+        raise CheckpointError(f"The replay checkpoint manifest lacks {', '.join(missing)}: it is damaged.")
+    state, chunks = manifest["state"], manifest["chunks"]
+    problems = []
+    if not isinstance(manifest["layout"], dict):
+        problems.append("layout is not a mapping")
+    if not isinstance(state, dict) or any(key not in state for key in STATE_KEYS):
+        problems.append(f"state lacks some of {', '.join(STATE_KEYS)}")
+    if not isinstance(chunks, list):
+        problems.append("chunks is not a list")
+    else:
+        for chunk in chunks:
+            if not _valid_chunk(chunk):
+                problems.append(f"chunk entry {str(chunk)[:120]} is malformed")
+                break
+    if problems:
+        raise CheckpointError(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.")
+
+
+STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
+
+
+def _valid_chunk(chunk: Any) -> bool:
+    """Whether a manifest's chunk entry has a chunk file name (no path), integer sizes and valid segments."""
+    if not isinstance(chunk, dict) or not isinstance(chunk.get("file"), str) or not CHUNK_NAME.match(chunk["file"]):
+        return False
+    if not all(isinstance(chunk.get(key), int) and chunk[key] >= 0 for key in ("bytes", "crc32")):
+        return False
+    segments = chunk.get("segments")
+    if not isinstance(segments, list):
+        return False
+    for segment in segments:
+        if not isinstance(segment, dict) or segment.get("ring") not in (TRANSITIONS, FRAMES):
+            return False
+        if segment["ring"] == FRAMES and not isinstance(segment.get("env"), int):
+            return False
+        start, stop = segment.get("start"), segment.get("stop")
+        if not (isinstance(start, int) and isinstance(stop, int) and 0 <= start <= stop):
+            return False
+    return True
+
+
+def _check_state(buffer: FrameStackReplayBuffer, state: dict[str, Any]) -> None:
+    """Raise :class:`CheckpointError` unless the saved counters fit the buffer and agree with one another."""
+    try:
+        added = int(state["transitions_added"])
+        consistent = (
+            all(len(state[key]) == buffer.n_envs for key in ("frame_heads", "steps_since_done", "episodes_done"))
+            and int(state["pos"]) == added % buffer.buffer_size
+            and bool(state["full"]) == (added >= buffer.buffer_size)
+        )
+    except (TypeError, ValueError):
+        consistent = False
+    if not consistent:
+        raise CheckpointError(
+            f"The replay checkpoint manifest is damaged: its state {str(state)[:200]} does not describe a buffer of "
+            f"{buffer.n_envs} environments and {buffer.buffer_size} transitions each. Resume from another checkpoint."
+        )
+
+
+def _check_layout(buffer: FrameStackReplayBuffer, saved: dict[str, Any]) -> None:
+    """Raise :class:`CheckpointError` when the buffer's sizes, shapes or dtypes differ from the saved ones."""
+    current = _layout(buffer)
+    if not isinstance(saved.get("arrays"), dict):
+        raise CheckpointError("The replay checkpoint manifest is damaged: its layout lacks the arrays' shapes.")
+    differences = []
+    for key in ("n_envs", "buffer_size", "frame_capacity", "frame_stack"):
+        if saved.get(key) != current[key]:
+            differences.append(f"{key} is {saved.get(key)} in the checkpoint and {current[key]} in this buffer")
+    for name, spec in current["arrays"].items():
+        if saved.get("arrays", {}).get(name) != spec:
+            differences.append(f"{name} is {saved['arrays'].get(name)} in the checkpoint and {spec} here")
+    if differences:
+        raise CheckpointError(
+            "The replay buffer does not match the checkpoint: "
+            + "; ".join(differences)
+            + ". Build it with the run's buffer_size, n_envs, frame_stack, min_episode_length and spaces."
+        )

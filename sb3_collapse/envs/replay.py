@@ -1,0 +1,99 @@
+"""
+Rebuild an environment's episode in progress in a new process, bit for bit: what resuming a run from a checkpoint
+needs (:mod:`sb3_collapse.checkpoints`).
+
+A DeepMind Control episode is a deterministic function of the task's random state at its reset and of the actions
+taken since. :class:`EpisodeReplay` (the outermost wrapper of each environment) records both; in a new process,
+:meth:`EpisodeReplay.replay_episode` puts the random state back, resets and takes the same actions again, through
+every wrapper below it (so ``Monitor`` has the episode's rewards too). The cost of a replay is one render per agent
+step of the episode so far (under 15 s for a 500-step episode here), paid once per resume.
+
+The environment under the wrappers must have ``get_rng_state()`` and ``set_rng_state(state)``
+(:class:`~sb3_collapse.envs.DMCEnv` has them).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.vec_env import VecEnv
+
+
+class EpisodeReplay(gym.Wrapper):
+    """
+    Records, for the episode in progress, the seed or the random state it was reset with and the actions taken since,
+    so that :meth:`replay_episode` rebuilds it in another process.
+
+    :param env: the environment; ``env.unwrapped`` must have ``get_rng_state`` and ``set_rng_state``
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        for name in ("get_rng_state", "set_rng_state"):
+            if not callable(getattr(env.unwrapped, name, None)):
+                raise TypeError(f"EpisodeReplay needs an environment with {name}(), which {env.unwrapped} does not have.")
+        self._record: dict[str, Any] | None = None  # None before the first reset
+        self._actions: list[np.ndarray] = []
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
+        rng = None if seed is not None else self.env.unwrapped.get_rng_state()
+        self._record = {"seed": seed, "rng": rng, "options": options}
+        self._actions = []
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        self._actions.append(np.array(action, copy=True))
+        return self.env.step(action)
+
+    def episode_record(self) -> dict[str, Any] | None:
+        """
+        :return: what :meth:`replay_episode` needs to rebuild the episode in progress (picklable): the reset's seed or
+            random state and the actions since; ``None`` before the first reset
+        """
+        if self._record is None:
+            return None
+        return {**self._record, "actions": [action.copy() for action in self._actions]}
+
+    def replay_episode(self, record: dict[str, Any] | None) -> Any:
+        """
+        Rebuild the episode of ``record`` (of :meth:`episode_record`, possibly in another process): reset as it was
+        reset, then take its actions again.
+
+        :param record: the record; ``None`` (never reset) does nothing
+        :return: the observation after the last action (after the reset without actions); ``None`` for ``None``
+        :raises RuntimeError: if the episode ends during the replay (it did not when it was recorded)
+        """
+        if record is None:
+            return None
+        if record["seed"] is None:
+            self.env.unwrapped.set_rng_state(record["rng"])
+        observation, _ = self.reset(seed=record["seed"], options=record["options"])
+        for index, action in enumerate(record["actions"]):
+            observation, _, terminated, truncated, _ = self.step(action)
+            if (terminated or truncated) and index < len(record["actions"]) - 1:
+                raise RuntimeError(f"the replayed episode ended after {index + 1} of {len(record['actions'])} actions.")
+        return observation
+
+
+def episode_records(venv: VecEnv) -> list[dict[str, Any] | None]:
+    """
+    :param venv: environments each wrapped (outermost) in :class:`EpisodeReplay`
+    :return: each environment's :meth:`EpisodeReplay.episode_record`
+    """
+    return list(venv.env_method("episode_record"))
+
+
+def replay_episodes(venv: VecEnv, records: list[dict[str, Any] | None]) -> list[Any]:
+    """
+    Rebuild each environment's episode (:meth:`EpisodeReplay.replay_episode`), in another process than the one that
+    recorded them.
+
+    :param venv: environments built as those that were recorded, each wrapped (outermost) in :class:`EpisodeReplay`
+    :param records: :func:`episode_records` of the recorded ones
+    :return: each environment's observation after the replay
+    """
+    if len(records) != venv.num_envs:
+        raise ValueError(f"{len(records)} episode records for {venv.num_envs} environments.")
+    return [venv.env_method("replay_episode", record, indices=[index])[0] for index, record in enumerate(records)]
