@@ -45,6 +45,8 @@ from sb3_collapse.protocol import (
     EVAL_CSV,
     EXIT_INTERRUPTED,
     FINAL_MODEL,
+    PROBE_CHECKPOINT,
+    PROBE_CHECKPOINTS_DIR,
     PROGRESS_CSV,
     RESULT_JSON,
 )
@@ -58,6 +60,7 @@ FLAGS = [
     "--eval-every-frames", "1000", "--eval-episodes", "1", "--checkpoint-every-frames", "200",
     "--collapse-metrics-every-frames", "400", "--collapse-probe-batch", "16", "--reset-rule",
     "--reset-window-frames", "800", "--torch-threads", "1", "--no-progress-bar", "--replay-sampling", "sb3",
+    "--probe-checkpoints",
 ]  # fmt: skip
 REPEAT = 20
 
@@ -188,6 +191,14 @@ def test_killed_stopped_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path, 
         if k not in ("wall_time_s", "timings", "resumes")
     }
     assert not (resumed / CHECKPOINTS_DIR).exists()  # deleted once the run finished
+    # The probe checkpoints' schedule resumed with the run: the same files, the same encoder and actor weights.
+    probe = [sorted((run / PROBE_CHECKPOINTS_DIR).iterdir()) for run in (reference, resumed)]
+    assert [p.name for p in probe[0]] == [p.name for p in probe[1]] == [
+        PROBE_CHECKPOINT.format(frames=frames) for frames in (0, 1000, 2000)
+    ]
+    for a_zip, b_zip in zip(*probe):
+        a, b = load_from_zip_file(a_zip)[1]["policy"], load_from_zip_file(b_zip)[1]["policy"]
+        assert a.keys() == b.keys() and all(th.equal(a[name], b[name]) for name in a)
 
 
 def test_resume_with_other_settings_is_refused_with_the_differences(tmp_path, capsys):
