@@ -157,6 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
     swp.add_argument("--success-return", type=float, default=PAPER.success_return, help="well-performing: final return >= this")
     swp.add_argument("--failure-return", type=float, default=PAPER.failure_return, help="poorly performing: final return < this")
     swp.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
+    swp.add_argument("--jobs", type=int, default=1, help="checkpoints probed at once (threads); --memory-gb bounds them all together")
     _probe_arguments(swp, settings)
     _recording_arguments(swp, defaults)
 
@@ -254,6 +255,7 @@ def main(argv: list[str] | None = None) -> int:
                 failure_return=args.failure_return,
                 overwrite=args.overwrite,
                 command=[PROG, *argv],
+                jobs=args.jobs,
             )
         else:
             probe_to_folder(

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -91,6 +92,7 @@ def probe_sweep(
     failure_return: float = PAPER.failure_return,
     overwrite: bool = False,
     command: Sequence[str] | None = None,
+    jobs: int = 1,
 ) -> dict[str, Any]:
     """
     Figure 2 and Tables 1-6 of one task and variant of a sweep (see the module's documentation).
@@ -106,12 +108,18 @@ def probe_sweep(
     :param failure_return: final return of a poorly performing agent, below
     :param overwrite: replace a previous run's outputs in ``out``
     :param command: the command line, for the summary
+    :param jobs: checkpoints probed at once (threads: the forward passes and OMP fits run in torch, outside Python's
+        lock). ``settings.memory_gb`` bounds them all together: each gets ``memory_gb / jobs`` for its activations
+        (probe checkpoints themselves take ~13 MB each). The first checkpoint is probed alone, so that the others
+        reuse its ``cnn0`` probe. The results do not depend on ``jobs``
     :return: the summary (as written to ``summary.json``)
     :raises ProbeError: for bad input (nothing written then)
     """
     started = time.perf_counter()
     settings = settings or ProbeSettings()
     settings.validate()
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ProbeError(f"jobs must be an integer >= 1, got {jobs!r}.", parameter="jobs")
     if not failure_return <= success_return:
         raise ProbeError(
             f"failure_return must be <= success_return, got {failure_return:g} and {success_return:g}.",
@@ -163,18 +171,28 @@ def probe_sweep(
             rollouts = Rollouts.load(rollouts_path)
             recorded_from = str(rollouts_path)
         split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
-        rows: list[dict[str, Any]] = []
         reuse: dict = {}
-        quiet = dataclasses.replace(settings, progress=False)
+        quiet = dataclasses.replace(settings, progress=False, memory_gb=settings.memory_gb / jobs)
         work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
-        for trial, which, path in tqdm(work, desc="probing checkpoints", unit="checkpoint", disable=not settings.progress):
+
+        def probe_one(item: tuple[Trial, str, Path]) -> list[dict[str, Any]]:
+            trial, which, path = item
             checkpoint = load_checkpoint(path, device=device)
             checkpoint.label = f"seed_{trial.seed}/{path.stem}"
             result = probe_checkpoint(checkpoint, rollouts, split, quiet, reuse)
             for row in result.rows:
                 row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=float(trial.returns[-1]))
-            rows += result.rows
-            del checkpoint, result
+            return result.rows
+
+        per_checkpoint: list[list[dict[str, Any]]] = []
+        with tqdm(total=len(work), desc="probing checkpoints", unit="checkpoint", disable=not settings.progress) as bar:
+            per_checkpoint.append(probe_one(work[0]))  # alone: the others reuse its cnn0 probe
+            bar.update()
+            with ThreadPoolExecutor(max_workers=jobs) as pool:
+                for result_rows in pool.map(probe_one, work[1:]):  # in the order of work, whatever finishes first
+                    per_checkpoint.append(result_rows)
+                    bar.update()
+        rows = [row for result_rows in per_checkpoint for row in result_rows]
         names, groups, _ = rollouts.targets()
         columns = figure2_columns(task, names, groups)
         curves = panel_curves(rows, {f"seed {t.seed}": which for t, which in agents}, columns)
@@ -205,6 +223,7 @@ def probe_sweep(
             "rollouts": {"recorded_from": recorded_from, "samples": len(rollouts), "episodes": rollouts.n_episodes},
             "columns": {title: list(targets) for title, targets in columns},
             "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
+            "jobs": jobs,
             "total_seconds": round(time.perf_counter() - started, 1),
         }
         write_json(summary, staged.path(SUMMARY_JSON))

@@ -120,6 +120,11 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     write_report(root, progress=False)
     page = (root / "report" / "index.html").read_text()
     assert "Figure 2" in page and "Table 1" in page
+    # Two checkpoints at once, each with half the memory budget: the same results.
+    assert probe_main([*argv, "--layers", "cnn0", "cnn4", "mlp1", "--no-progress", "--overwrite", "--jobs", "2"]) == 0
+    with (out / "probe.csv").open() as file:
+        assert list(csv.DictReader(file)) == probe
+    assert json.loads((out / "summary.json").read_text())["jobs"] == 2
     capsys.readouterr()
     # a trial without probe checkpoints: the message says how to get them
     shutil.rmtree(root / "walker-walk" / "drqv2" / "seed_3" / PROBE_CHECKPOINTS_DIR)
