@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.callbacks import EveryNTimesteps, StopTrainingOnMaxEpisodes
 from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_collapse import CollapseReset, DrQv2, make_dmc_env
@@ -34,6 +35,7 @@ from sb3_collapse.checkpoints import (
     RunLock,
     checkpoint_folders,
     load_checkpoint,
+    stop_signals,
 )
 from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.protocol import (
@@ -281,3 +283,25 @@ def test_drqv2_save_and_load_keep_the_reset_rule(tmp_path):
     assert (restored.window_frames, restored.check_every_frames, restored.batch_size) == (160, 40, 4)
     loaded.learn(20, reset_num_timesteps=False)  # frames 200..360: the window of frame 160 ends at 320
     assert restored.resets == 2 and restored.reset_frames == [160, 320] and restored.window_start_frame == 320
+
+
+def test_second_sigint_stops_at_once():
+    checkpoints = ResumableCheckpoints("unused", every_frames=0)
+    with stop_signals(checkpoints):
+        signal.raise_signal(signal.SIGINT)  # the first asks for a checkpoint and a stop
+        assert checkpoints.stop_signal == "SIGINT"
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+
+
+def test_drqv2_load_warns_about_a_callback_it_cannot_rebuild(tmp_path):
+    env = make_dmc_env("cartpole-balance", seed=0, action_repeat=8, size=36)
+    model = DrQv2(
+        "CnnPolicy", env, buffer_size=50, seed=0, callback=[CollapseReset(), EveryNTimesteps(10, StopTrainingOnMaxEpisodes(1))],
+        policy_kwargs=dict(hidden_dim=16, feature_dim=4),
+    )  # fmt: skip
+    model.save(tmp_path / "model.zip")
+    with pytest.warns(UserWarning, match=r"callback\(s\) EveryNTimesteps could not be saved .* pass them again"):
+        loaded = DrQv2.load(tmp_path / "model.zip")
+    assert isinstance(loaded.callback, CollapseReset)

@@ -225,7 +225,7 @@ def callback_spec(callback: BaseCallback) -> dict[str, Any]:
         config = callback.get_config()
     except AttributeError:
         return {"class": kind, "supported": False}
-    state = callback.state_dict() if callback.model is not None else None
+    state = callback.state_dict() if getattr(callback, "model", None) is not None else None
     return {"class": kind, "supported": True, "config": config, "state": state}
 
 
