@@ -6,11 +6,13 @@ The defaults are **per task**: every DrQ-v2 hyperparameter left out (budget, bat
 exploration schedule...) comes from the task's preset, :func:`sb3_collapse.presets.preset`; a value given
 explicitly overrides it, and the run's settings file records every value and where it came from.
 
-Everything a run writes goes to one folder, ``<logdir>/<task>_s<seed>`` (``_2``, ``_3``... if it exists), or
-exactly ``--run-dir``, in the run-folder format of :mod:`sb3_collapse.protocol`: the settings (written first),
+Everything a run writes goes to one folder, ``<logdir>/<task>_s<seed>`` (``_2``, ``_3``... if it holds another run),
+or exactly ``--run-dir``, in the run-folder format of :mod:`sb3_collapse.protocol`: the settings (written first),
 TensorBoard events and ``progress.csv`` (the SB3 logger), the evaluations, the collapse checks, the reset rule's
 events, the final model (load it with ``DrQv2.load``) and the result (written last: a folder without it is an
-unfinished run).
+unfinished run). A run writes checkpoints (``--checkpoint-every-frames``, and at SIGTERM or SIGINT, after which it
+exits with status 75); the same command again resumes an unfinished run from its newest one, bit for bit
+(:mod:`sb3_collapse.checkpoints`).
 
 ``--algorithm td3`` or ``sac`` trains SB3's own TD3 or SAC from the same pixels instead (built by
 :func:`sb3_collapse.baselines.build_baseline`; the DrQ-v2-only settings are reported unused); ``--reset-rule``
@@ -683,13 +685,23 @@ def train(config: TrainConfig) -> TrainResult:
     :func:`~sb3_collapse.protocol.write_failure`) and is raised again; a folder that failed before its first agent
     step holds no training and is reused by the next run.
 
+    **Resuming.** The folder of an unfinished run with the same settings (but those of :data:`RESUME_FREE_SETTINGS`)
+    is resumed from its newest readable checkpoint (:mod:`sb3_collapse.checkpoints`), or restarted from frame 0
+    without one; with other settings it is refused (an explicit ``run_dir``) or passed over for ``<name>_2``... The
+    folder is locked while the run trains into it (a second process is refused). A SIGTERM or SIGINT writes a
+    checkpoint and raises :class:`~sb3_collapse.checkpoints.TrainingInterrupted`; the checkpoints are deleted once
+    the run has finished.
+
     The model that is saved is the model of the last evaluation: the reset rule never resets at the budget's end
     (see :class:`~sb3_collapse.CollapseReset`), and the budget's last frames are evaluated after ``learn()`` when
     the periodic evaluation did not fall on them.
 
     :param config: the run's settings
     :return: where things were written, and the evaluations
-    :raises InputError: for bad input (a ``ParameterError`` for a bad setting), before anything is written
+    :raises InputError: for bad input (a ``ParameterError`` for a bad setting), before anything is written; a
+        ``RunFolderLocked`` when another process trains into the folder
+    :raises TrainingInterrupted: after a SIGTERM or SIGINT, once the checkpoint is written
+    :raises CheckpointError: when a checkpoint cannot be written (a full disk): the previous one is intact
     """
     start_time = time.time()
     config = config.resolve()
