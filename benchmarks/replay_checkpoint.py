@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import csv
 import os
-import platform
 import shutil
 import tempfile
 import time
@@ -27,6 +26,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+from replay_buffer import cpu_name  # benchmarks/replay_buffer.py, beside this script
 
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
 from sb3_collapse.drqv2.replay_checkpoint import ReplayStore
@@ -136,17 +136,6 @@ def run(capacity: int, every: int, wrap: float, episode_length: int, folder: Pat
         if not same:
             raise SystemExit("restore differs from the saved buffer")
     return rows
-
-
-def cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            for line in cpuinfo:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main() -> None:
