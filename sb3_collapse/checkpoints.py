@@ -158,7 +158,8 @@ class RunLock:
 
     def __exit__(self, *exc: object) -> None:
         if self._file is not None:
-            self._file.close()  # releases the flock; the file stays (deleting it would race with a new owner)
+            self._file.close()  # releases the flock; the file stays (deleting it would race with a new owner; train()
+            # deletes it, still locked, once the run has finished and no process may take the folder)
             self._file = None
 
 

@@ -727,7 +727,9 @@ def train(config: TrainConfig) -> TrainResult:
     with RunLock(run_dir):
         checkpoint = _open_run_dir(run_dir, config)
         try:
-            return _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint)
+            result = _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint)
+            (run_dir / LOCK_FILE).unlink(missing_ok=True)  # finished: no process may take the folder any more
+            return result
         except TrainingInterrupted:
             raise
         except BaseException as error:

@@ -47,6 +47,7 @@ from sb3_collapse.protocol import (
     EVAL_CSV,
     EXIT_INTERRUPTED,
     FINAL_MODEL,
+    LOCK_FILE,
     PROBE_CHECKPOINT,
     PROBE_CHECKPOINTS_DIR,
     PROGRESS_CSV,
@@ -192,7 +193,7 @@ def test_killed_stopped_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path, 
         k: v for k, v in json.loads((reference / RESULT_JSON).read_text()).items()
         if k not in ("wall_time_s", "timings", "resumes")
     }
-    assert not (resumed / CHECKPOINTS_DIR).exists()  # deleted once the run finished
+    assert not (resumed / CHECKPOINTS_DIR).exists() and not (resumed / LOCK_FILE).exists()  # deleted once finished
     # The probe checkpoints' schedule resumed with the run: the same files, the same encoder and actor weights.
     probe = [sorted((run / PROBE_CHECKPOINTS_DIR).iterdir()) for run in (reference, resumed)]
     assert [p.name for p in probe[0]] == [p.name for p in probe[1]] == [
