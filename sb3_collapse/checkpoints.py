@@ -314,8 +314,9 @@ def save_checkpoint(
             f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. Free space (or fix the "
             "folder), then run the same command again to resume."
         ) from error
-    kept_folders = checkpoint_folders(directory)[: max(1, keep)]
-    for folder in checkpoint_folders(directory)[max(1, keep):]:
+    complete = checkpoint_folders(directory)
+    kept_folders = complete[: max(1, keep)]
+    for folder in complete[max(1, keep) :]:
         shutil.rmtree(folder, ignore_errors=True)
     manifests = []
     for folder in kept_folders:
@@ -393,13 +394,10 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         raise _Damaged(f"{CHECKPOINT_STATE} cannot be read: {error}") from None
     store_manifest = info["replay"].get("store")
     if store_manifest is not None:  # their checksums are verified as the replay store reads them
-        replay_dir = folder.parent / REPLAY_DIR
-        for chunk in store_manifest.get("chunks", []):
-            path = replay_dir / chunk["file"]
-            if not path.is_file():
-                raise _Damaged(f"replay chunk {chunk['file']} is missing")
-            if path.stat().st_size != chunk["bytes"]:
-                raise _Damaged(f"replay chunk {chunk['file']} has {path.stat().st_size} bytes, {chunk['bytes']} were written")
+        try:
+            ReplayStore(folder.parent / REPLAY_DIR).check_files(store_manifest)
+        except ReplayCheckpointError as error:
+            raise _Damaged(str(error)) from None
     return info, state
 
 

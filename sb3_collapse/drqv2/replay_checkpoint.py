@@ -302,20 +302,7 @@ class ReplayStore:
                     f"bytes but its segments hold {expected:,}. Resume from another checkpoint.",
                     path,
                 )
-            if not path.is_file():
-                raise CheckpointError(
-                    f"The replay checkpoint chunk {path} is missing. Resume from another checkpoint (an earlier one "
-                    "may still have all its chunks).",
-                    path,
-                )
-            size = path.stat().st_size
-            if size != chunk["bytes"]:
-                raise CheckpointError(
-                    f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
-                    f"{chunk['bytes']:,} ({'truncated' if size < chunk['bytes'] else 'changed'}). Resume from "
-                    "another checkpoint.",
-                    path,
-                )
+        self.check_files(manifest)
         try:
             for chunk in manifest["chunks"]:
                 _read_chunk(buffer, self.directory / chunk["file"], chunk)
@@ -331,6 +318,32 @@ class ReplayStore:
         buffer.steps_since_done[:] = state["steps_since_done"]
         buffer.episodes_done[:] = state["episodes_done"]
         self._track(buffer, manifest)
+
+    def check_files(self, manifest: dict[str, Any]) -> None:
+        """
+        Check, without reading them, that the chunks of a manifest are in the folder with the sizes they were written
+        with (what :meth:`restore` checks before it reads anything; their CRC-32 is checked as they are read).
+
+        :param manifest: what :meth:`save` returned
+        :raises CheckpointError: for a malformed manifest, a missing chunk or one of another size, naming the file
+        """
+        _check_manifest(manifest)
+        for chunk in manifest["chunks"]:
+            path = self.directory / chunk["file"]
+            if not path.is_file():
+                raise CheckpointError(
+                    f"The replay checkpoint chunk {path} is missing. Resume from another checkpoint (an earlier one "
+                    "may still have all its chunks).",
+                    path,
+                )
+            size = path.stat().st_size
+            if size != chunk["bytes"]:
+                raise CheckpointError(
+                    f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
+                    f"{chunk['bytes']:,} ({'truncated' if size < chunk['bytes'] else 'changed'}). Resume from "
+                    "another checkpoint.",
+                    path,
+                )
 
     # ------------------------------------------------------------------ disk
     def collect_garbage(self, keep: list[dict[str, Any]]) -> int:

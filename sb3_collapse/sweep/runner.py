@@ -199,7 +199,7 @@ def run_trial(
         None, "resumes": times the finished run was resumed from a checkpoint}``
     """
     folder = trial_dir(out, trial)
-    config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads).resolve()
+    config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)  # resolved
     if run_folder_state(folder) == UNFINISHED_RUN:
         try:
             differences = settings_differences(json.loads((folder / CONFIG_JSON).read_text()), config)
