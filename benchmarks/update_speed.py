@@ -1,14 +1,15 @@
 """Milliseconds per DrQ-v2 gradient update, ours (eager and compiled) against the reference implementation's operations.
 
-- ``ours``: ``DrQv2.train(gradient_steps=1)``, i.e. replay sampling, integer-crop augmentation on uint8,
-  channels_last convolutions, the actor's backward restricted to the actor's parameters;
+- ``ours``: ``DrQv2.train(gradient_steps=1)``, i.e. replay sampling, integer-crop augmentation on uint8 straight
+  into channels_last, channels_last convolutions with their ReLU fused (oneDNN, CPU), the actor's backward restricted
+  to the actor's parameters;
 - ``ours compiled``: the same with ``compile_update=True`` (``torch.compile`` of the update's forward and backward
   passes; ``mode="reduce-overhead"``, CUDA graphs, on CUDA). Its compilation time is printed (the first update's
   time minus the median);
 - ``reference ops``: ``sb3_collapse.drqv2.reference.reference_update``, the operations of facebookresearch/drqv2's
   ``DrQV2Agent.update``: ``grid_sample`` augmentation on float images, a full backward of the actor loss
-  (gradients of the critic computed and discarded), here with NCHW convolutions, non-fused Adam and the C
-  library's default allocator, as the reference runs.
+  (gradients of the critic computed and discarded), here with NCHW convolutions each followed by its own ReLU,
+  non-fused Adam and the C library's default allocator, as the reference runs.
   The batch is sampled from the same kind of buffer (the reference samples in DataLoader workers; sampling
   is included in both timings).
 
@@ -47,7 +48,8 @@ IMPLS = ("reference", "ours", "ours-compiled")
 
 
 def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0, compile_update: bool = False) -> DrQv2:
-    """A DrQv2 on synthetic 9x84x84 observations with a filled buffer; ``reference``: NCHW, non-fused Adam."""
+    """A DrQv2 on synthetic 9x84x84 observations with a filled buffer; ``reference``: NCHW, ReLU after each
+    convolution, non-fused Adam."""
     model = DrQv2(
         "CnnPolicy",
         RandomObservationEnv(),
@@ -56,7 +58,10 @@ def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0, c
         device=device,
         seed=seed,
         compile_update=compile_update,
-        policy_kwargs=dict(encoder_kwargs=dict(channels_last=not reference), optimizer_kwargs=dict(fused=not reference)),
+        policy_kwargs=dict(
+            encoder_kwargs=dict(channels_last=not reference, fused_relu=not reference),
+            optimizer_kwargs=dict(fused=not reference),
+        ),
     )
     rng = np.random.default_rng(seed)
     obs_shape, action_dim = model.observation_space.shape, model.action_space.shape[0]

@@ -19,7 +19,9 @@ def draw_shifts(batch_size: int, pad: int, device: th.device | str | None = None
     return th.randint(0, 2 * pad + 1, (batch_size, 2), device=device)
 
 
-def random_shift(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None) -> th.Tensor:
+def random_shift(
+    obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None, channels_last: bool = False
+) -> th.Tensor:
     """
     Random shift of DrQ-v2: replicate-pad every image by ``pad`` pixels, then crop it back to its size
     at an integer offset drawn uniformly in ``[0, 2 * pad]`` per sample and per axis.
@@ -28,12 +30,15 @@ def random_shift(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None) 
     exactly on pixel centres, so every output pixel is one input pixel. Here the same pixels are gathered
     directly (padding becomes clamped indices), in the input's dtype: no padded copy, no interpolation,
     and it works on ``uint8`` before the conversion to float. The result equals the reference one up to
-    the float rounding of ``grid_sample`` (tested).
+    the float rounding of ``grid_sample`` (tested). Each output pixel's channels are copied as one row of the
+    images' ``(height, width, channels)`` view, so ``channels_last`` output (what the encoder's convolutions
+    take) costs no transposition beyond the input's own.
 
     :param obs: images, shape ``(batch, channels, height, width)``, any dtype
     :param pad: padding in pixels; ``0`` returns ``obs`` unchanged
     :param shifts: optional integer offsets ``(batch, 2)`` in ``[0, 2 * pad]``, as ``(x, y)``;
         drawn at random when ``None``
+    :param channels_last: return the images in ``channels_last`` memory format (else contiguous)
     :return: shifted images, same shape, dtype and device as ``obs``
     """
     if pad < 0:
@@ -48,8 +53,11 @@ def random_shift(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None) 
     shifts = shifts.to(device=obs.device, dtype=th.long)
     rows = (th.arange(h, device=obs.device).unsqueeze(0) + shifts[:, 1:2] - pad).clamp_(0, h - 1)
     cols = (th.arange(w, device=obs.device).unsqueeze(0) + shifts[:, 0:1] - pad).clamp_(0, w - 1)
-    out = obs.gather(2, rows[:, None, :, None].expand(n, c, h, w))
-    return out.gather(3, cols[:, None, None, :].expand(n, c, h, w))
+    pixels = obs.permute(0, 2, 3, 1).contiguous().view(n * h * w, c)  # free for channels_last input
+    first = th.arange(n, device=obs.device).mul_(h * w)
+    index = (first[:, None, None] + rows[:, :, None] * w + cols[:, None, :]).view(-1)
+    out = pixels.index_select(0, index).view(n, h, w, c).permute(0, 3, 1, 2)
+    return out if channels_last else out.contiguous()
 
 
 def random_shift_grid_sample(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None) -> th.Tensor:

@@ -27,7 +27,7 @@ from stable_baselines3.common.type_aliases import (
     TrainFreq,
     TrainFrequencyUnit,
 )
-from stable_baselines3.common.utils import polyak_update, should_collect_more_steps
+from stable_baselines3.common.utils import should_collect_more_steps
 from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 
@@ -161,7 +161,7 @@ class DrQv2(OffPolicyAlgorithm):
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
     :param policy_kwargs: keyword arguments of the policy: ``feature_dim`` (50), ``hidden_dim`` (1024),
-        ``encoder_kwargs`` (``channels``, ``channels_last``), ``optimizer_kwargs``
+        ``encoder_kwargs`` (``channels``, ``channels_last``, ``fused_relu``), ``optimizer_kwargs``
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``. On the CPU, glibc's malloc is tuned to reuse large
@@ -667,7 +667,7 @@ class DrQv2(OffPolicyAlgorithm):
         with _frozen(self.critic):
             actor_loss = actor_loss_fn(features.detach(), actor_noise)
         self._update_actor(actor_loss)
-        polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+        soft_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
 
         self._add_train_stat("critic_loss", critic_loss.detach())
         self._add_train_stat("q1_mean", q1.detach().mean())
@@ -708,8 +708,9 @@ class DrQv2(OffPolicyAlgorithm):
             loss, and only by it), ``Q1``, ``Q2`` and the target ``y``
         """
         if shifts is not None and next_shifts is not None:
-            obs = random_shift(obs, self.augmentation_pad, shifts)
-            next_obs = random_shift(next_obs, self.augmentation_pad, next_shifts)
+            channels_last = self.encoder.channels_last  # the layout the convolutions take: no copy in cnn0
+            obs = random_shift(obs, self.augmentation_pad, shifts, channels_last)
+            next_obs = random_shift(next_obs, self.augmentation_pad, next_shifts, channels_last)
         features = self.encoder(obs)
         with th.no_grad():
             next_features = self.encoder(next_obs)
@@ -1155,6 +1156,21 @@ def _frozen(module: th.nn.Module) -> Iterator[None]:
     finally:
         for p in params:
             p.requires_grad_(True)
+
+
+def soft_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
+    """
+    SB3's ``polyak_update`` (``target = target * (1 - tau) + tau * param``, in place, the same operations and values)
+    as two ``torch._foreach`` calls instead of two per tensor.
+
+    :param params: parameters of the trained network
+    :param target_params: parameters of its target network, updated in place
+    :param tau: soft update coefficient
+    """
+    targets = list(target_params)
+    with th.no_grad():
+        th._foreach_mul_(targets, 1 - tau)
+        th._foreach_add_(targets, list(params), alpha=tau)
 
 
 def physical_memory_bytes() -> int:

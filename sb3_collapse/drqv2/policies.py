@@ -75,6 +75,67 @@ class PixelNormalization(nn.Module):
         return obs.float().div_(255.0).sub_(0.5) if obs.dtype == th.uint8 else obs.float() / 255.0 - 0.5
 
 
+def _fused_conv_relu_available() -> bool:
+    """Whether this torch build has oneDNN's convolution with a fused ReLU (``torch.ops.mkldnn``, CPU)."""
+    try:
+        return th.backends.mkldnn.is_available() and hasattr(th.ops.mkldnn, "_convolution_pointwise")
+    except (AttributeError, RuntimeError):
+        return False
+
+
+FUSED_CONV_RELU = _fused_conv_relu_available()
+"""Whether :class:`ConvReLU` runs its convolution and ReLU as one oneDNN kernel on the CPU."""
+
+
+class _FusedConvReLU(th.autograd.Function):
+    """``relu(conv2d(x, weight, bias))`` as one oneDNN kernel forward; backward as autograd computes it."""
+
+    @staticmethod
+    def forward(ctx: Any, x: th.Tensor, weight: th.Tensor, bias: th.Tensor, conv: nn.Conv2d) -> th.Tensor:
+        args = (list(conv.padding), list(conv.stride), list(conv.dilation), conv.groups)
+        y = th.ops.mkldnn._convolution_pointwise(x, weight, bias, *args, "relu", [], "")
+        ctx.save_for_backward(x, weight, y)
+        ctx.args = args
+        return y
+
+    @staticmethod
+    def backward(ctx: Any, grad_y: th.Tensor) -> tuple[th.Tensor | None, ...]:
+        x, weight, y = ctx.saved_tensors
+        padding, stride, dilation, groups = ctx.args
+        grad_z = th.ops.aten.threshold_backward(grad_y, y, 0)
+        grads = th.ops.aten.convolution_backward(
+            grad_z, x, weight, [weight.shape[0]], stride, padding, dilation, False, [0, 0], groups,
+            list(ctx.needs_input_grad[:3]),
+        )
+        return (*grads, None)
+
+
+class ConvReLU(nn.Sequential):
+    """
+    ``Conv2d`` then ``ReLU``: one named layer (``cnn1``..``cnn4``), whose output is the activation after the ReLU.
+
+    On the CPU, for float32 inputs, the two run as one oneDNN kernel (the convolution with a fused ReLU): the same
+    values as running them one after the other (tested), without a second pass over the activation. Elsewhere
+    (CUDA, other dtypes, under ``torch.compile``, which fuses by itself) it is the plain ``Sequential``.
+
+    :param in_channels: input channels
+    :param out_channels: filters
+    :param stride: stride of the 3x3 convolution (no padding)
+    :param fused: run the two as one kernel where possible; ``False`` runs them one after the other everywhere
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int, fused: bool = True) -> None:
+        super().__init__(nn.Conv2d(in_channels, out_channels, 3, stride=stride), nn.ReLU(inplace=True))
+        self.fused = fused
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        conv = self[0]
+        fusable = self.fused and x.device.type == "cpu" and x.dtype == conv.weight.dtype == th.float32
+        if FUSED_CONV_RELU and fusable and not th.compiler.is_compiling():
+            return _FusedConvReLU.apply(x, conv.weight, conv.bias, conv)
+        return super().forward(x)
+
+
 class PixelEncoder(nn.Module):
     """
     DrQ-v2's convolutional encoder: ``cnn0`` normalization, then four 3x3 convolutions with 32 channels
@@ -90,21 +151,24 @@ class PixelEncoder(nn.Module):
     :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
     :param channels: number of filters of every convolution
     :param channels_last: run the convolutions in ``channels_last`` memory format
+    :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`, same values)
     """
 
     has_cnn = True
 
-    def __init__(self, observation_space: spaces.Space, channels: int = 32, channels_last: bool = True) -> None:
+    def __init__(
+        self, observation_space: spaces.Space, channels: int = 32, channels_last: bool = True, fused_relu: bool = True
+    ) -> None:
         super().__init__()
         check_pixel_space(observation_space)
         for name, size in zip(("height", "width"), observation_space.shape[1:]):
             check_image_size(size, f"observation {name}")
         in_channels = observation_space.shape[0]
         self.cnn0 = PixelNormalization(channels_last)
-        self.cnn1 = nn.Sequential(nn.Conv2d(in_channels, channels, 3, stride=2), nn.ReLU(inplace=True))
-        self.cnn2 = nn.Sequential(nn.Conv2d(channels, channels, 3, stride=1), nn.ReLU(inplace=True))
-        self.cnn3 = nn.Sequential(nn.Conv2d(channels, channels, 3, stride=1), nn.ReLU(inplace=True))
-        self.cnn4 = nn.Sequential(nn.Conv2d(channels, channels, 3, stride=1), nn.ReLU(inplace=True))
+        self.cnn1 = ConvReLU(in_channels, channels, stride=2, fused=fused_relu)
+        self.cnn2 = ConvReLU(channels, channels, stride=1, fused=fused_relu)
+        self.cnn3 = ConvReLU(channels, channels, stride=1, fused=fused_relu)
+        self.cnn4 = ConvReLU(channels, channels, stride=1, fused=fused_relu)
         self.apply(weight_init)
         self.channels_last = channels_last
         if channels_last:
@@ -279,7 +343,7 @@ class DrQv2Policy(BasePolicy):
     :param feature_dim: size of the actor and critic trunk outputs (50; 100 for humanoid in DrQ-v2)
     :param hidden_dim: units of the hidden layers of the actor and the Q heads
     :param encoder_class: ``PixelEncoder`` (``CnnPolicy``) or ``StateEncoder`` (``MlpPolicy``)
-    :param encoder_kwargs: keyword arguments of the encoder (``channels``, ``channels_last``)
+    :param encoder_kwargs: keyword arguments of the encoder (``channels``, ``channels_last``, ``fused_relu``)
     :param optimizer_class: optimizer of the encoder, actor and critic
     :param optimizer_kwargs: its keyword arguments, learning rate excluded (Adam gets ``fused=True`` unless
         given otherwise)

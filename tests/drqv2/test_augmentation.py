@@ -68,3 +68,15 @@ def test_bad_input():
         random_shift(_images(), pad=-1)
     with pytest.raises(ValueError, match="batch, channels, height, width"):
         random_shift(th.zeros(9, 84, 84), pad=4)
+
+
+def test_channels_last_output_has_the_same_images():
+    obs = _images(n=5, h=20, w=24)
+    shifts = th.randint(0, 9, (5, 2))
+    contiguous = random_shift(obs, pad=4, shifts=shifts)
+    channels_last = random_shift(obs, pad=4, shifts=shifts, channels_last=True)
+    assert contiguous.is_contiguous()
+    assert channels_last.is_contiguous(memory_format=th.channels_last) and not channels_last.is_contiguous()
+    assert th.equal(channels_last, contiguous)
+    # A channels_last input gives the same images too.
+    assert th.equal(random_shift(obs.contiguous(memory_format=th.channels_last), pad=4, shifts=shifts), contiguous)

@@ -313,7 +313,7 @@ def test_update_equals_reference_update(channels_last, compile_update):
     """
     kwargs = dict(buffer_size=200, learning_starts=10, batch_size=16, seed=3, stddev_schedule=0.4)
     oracle = DrQv2("CnnPolicy", pixel_env(), **kwargs, policy_kwargs=dict(
-        hidden_dim=32, encoder_kwargs=dict(channels_last=False), optimizer_kwargs=dict(fused=False)))
+        hidden_dim=32, encoder_kwargs=dict(channels_last=False, fused_relu=False), optimizer_kwargs=dict(fused=False)))
     oracle.learn(40)  # fills the buffer and moves the weights and Adam state away from their initial values
     ours = DrQv2("CnnPolicy", pixel_env(), **kwargs, compile_update=compile_update, policy_kwargs=dict(
         hidden_dim=32, encoder_kwargs=dict(channels_last=channels_last)))

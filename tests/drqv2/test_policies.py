@@ -4,7 +4,7 @@ import torch as th
 from gymnasium import spaces
 from torch import nn
 
-from sb3_collapse.drqv2.policies import LAYER_NAMES, CnnPolicy, MlpPolicy, sample_action
+from sb3_collapse.drqv2.policies import FUSED_CONV_RELU, LAYER_NAMES, CnnPolicy, ConvReLU, MlpPolicy, sample_action
 
 PIXELS = spaces.Box(0, 255, (9, 84, 84), np.uint8)
 ACTIONS = spaces.Box(-1.0, 1.0, (6,), np.float32)
@@ -181,3 +181,51 @@ def test_policy_save_load(tmp_path):
     obs = th.randint(0, 256, (3, 9, 32, 32), dtype=th.uint8)
     assert th.equal(policy._predict(obs, deterministic=True), loaded._predict(obs, deterministic=True))
     assert loaded.hidden_dim == 16
+
+
+@pytest.mark.skipif(not FUSED_CONV_RELU, reason="this torch build has no oneDNN convolution with a fused ReLU")
+@pytest.mark.parametrize("memory_format", [th.channels_last, th.contiguous_format])
+@pytest.mark.parametrize("input_grad", [False, True])
+def test_fused_conv_relu_equals_conv_then_relu(memory_format, input_grad):
+    """The fused kernel gives the values and gradients of Conv2d then ReLU, exactly (this machine, these threads)."""
+    th.manual_seed(0)
+    fused, plain = ConvReLU(9, 32, stride=2), ConvReLU(9, 32, stride=2, fused=False)
+    plain.load_state_dict(fused.state_dict())
+    for layer in (fused, plain):
+        layer.to(memory_format=memory_format)
+    x = th.randn(4, 9, 30, 30).contiguous(memory_format=memory_format)
+    outputs, grads = [], []
+    for layer in (fused, plain):
+        xi = x.clone().requires_grad_(input_grad)
+        y = layer(xi)
+        assert (type(y.grad_fn).__name__ == "_FusedConvReLUBackward") == layer.fused
+        y.backward(th.linspace(-1, 1, y.numel()).view_as(y))
+        outputs.append(y.detach())
+        grads.append([xi.grad, layer[0].weight.grad, layer[0].bias.grad])
+    assert (outputs[0] > 0).any() and (outputs[0] == 0).any()  # the ReLU is active somewhere, and not everywhere
+    assert th.equal(outputs[0], outputs[1])
+    for fused_grad, plain_grad in zip(*grads):
+        assert (fused_grad is None) == (plain_grad is None) == (not input_grad and fused_grad is grads[0][0])
+        if plain_grad is not None:
+            assert th.equal(fused_grad, plain_grad)
+    with th.no_grad():
+        assert th.equal(fused(x), plain(x))
+
+
+def test_encoder_named_layers_fire_their_hooks_with_the_fused_kernel(policy):
+    seen = {}
+
+    def hook(name):
+        def record(_module, _args, output):
+            seen[name] = tuple(output.shape)
+
+        return record
+
+    handles = [module.register_forward_hook(hook(name)) for name, module in policy.encoder.named_layers().items()]
+    try:
+        policy.encoder(th.randint(0, 256, (2, 9, 84, 84), dtype=th.uint8))
+    finally:
+        for handle in handles:
+            handle.remove()
+    assert seen == {"cnn0": (2, 9, 84, 84), "cnn1": (2, 32, 41, 41), "cnn2": (2, 32, 39, 39),
+                    "cnn3": (2, 32, 37, 37), "cnn4": (2, 32, 35, 35)}

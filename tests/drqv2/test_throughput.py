@@ -213,3 +213,18 @@ def test_compile_update_is_checked_and_not_saved(tmp_path):
     loaded = DrQv2.load(tmp_path / "model.zip")
     assert loaded.compile_update == "default" and loaded.step_envs_during_updates is True
     assert loaded._compiled_losses is None and loaded._pending_step is None
+
+
+def test_soft_update_equals_sb3_polyak_update():
+    from stable_baselines3.common.utils import polyak_update
+
+    from sb3_collapse.drqv2.drqv2 import soft_update
+
+    th.manual_seed(0)
+    source = [th.randn(50, 300), th.randn(7), th.randn(3, 3, 4)]
+    ours = [th.randn_like(p) for p in source]
+    theirs = [p.clone() for p in ours]
+    soft_update(source, ours, 0.01)
+    polyak_update(source, theirs, 0.01)
+    assert all(th.equal(a, b) for a, b in zip(ours, theirs))
+    assert not th.equal(ours[0], source[0])
