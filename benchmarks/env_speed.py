@@ -4,12 +4,16 @@
     python benchmarks/env_speed.py --task quadruped-run --steps 1000
 
 Frames are simulator control steps: one agent step is ``action_repeat`` frames, rendered once (84x84).
+"CPU cores" is the process's CPU time (all its threads) over the wall time: above 1, the renderer runs on several
+cores (Mesa's llvmpipe uses a thread per core by default), which bounds what more environments can add on the
+same cores.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import time
 
 import numpy as np
@@ -17,22 +21,28 @@ import numpy as np
 from sb3_collapse.envs import make_dmc_env
 
 
-def steps_per_second(task: str, steps: int, obs_type: str, action_repeat: int, seed: int = 0) -> float:
+def steps_per_second(task: str, steps: int, obs_type: str, action_repeat: int, seed: int = 0) -> tuple[float, float]:
     """
-    :return: agent steps per second with uniformly random actions, episode resets included
+    :return: agent steps per second with uniformly random actions, episode resets included, and the CPU cores the
+        process used meanwhile (CPU seconds of all its threads per second)
     """
     env = make_dmc_env(task, seed=seed, action_repeat=action_repeat, obs_type=obs_type)
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     low, high = env.action_space.low, env.action_space.high
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), _cpu_seconds()
     for _ in range(steps):
         _, _, terminated, truncated, _ = env.step(rng.uniform(low, high).astype(np.float32))
         if terminated or truncated:
             env.reset()
-    elapsed = time.perf_counter() - start
+    elapsed, cpu = time.perf_counter() - start, _cpu_seconds() - cpu_start
     env.close()
-    return steps / elapsed
+    return steps / elapsed, cpu / elapsed
+
+
+def _cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
 
 
 def main() -> None:
@@ -44,9 +54,9 @@ def main() -> None:
 
     rows = [(obs_type, steps_per_second(args.task, args.steps, obs_type, args.action_repeat)) for obs_type in ("pixels", "state")]
     print(f"task {args.task}, action repeat {args.action_repeat}, {args.steps} agent steps, MUJOCO_GL={os.environ.get('MUJOCO_GL')}")
-    print(f"{'observations':>12} {'agent steps/s':>14} {'frames/s':>9} {'ms per agent step':>18}")
-    for obs_type, sps in rows:
-        print(f"{obs_type:>12} {sps:>14.1f} {sps * args.action_repeat:>9.1f} {1000 / sps:>18.2f}")
+    print(f"{'observations':>12} {'agent steps/s':>14} {'frames/s':>9} {'ms per agent step':>18} {'CPU cores':>10}")
+    for obs_type, (sps, cores) in rows:
+        print(f"{obs_type:>12} {sps:>14.1f} {sps * args.action_repeat:>9.1f} {1000 / sps:>18.2f} {cores:>10.2f}")
 
 
 if __name__ == "__main__":
