@@ -16,12 +16,18 @@ run starts with ``--seed-frames`` frames of random actions (the warm-up: renderi
   sampling included), and in the rest (action selection, storing transitions, logging);
 - ms/update: mean of the updates after the first round.
 
+``--concurrent K`` starts K identical runs of each configuration at once (seeds 0..K-1) and adds, per configuration,
+the sum of their learning frames/s: how many runs one machine (one GPU) serves at once, the sweep's
+``--gpus-per-trial``. Throughput stops growing where the device is full; on CUDA the table also gives how many runs
+the GPU's memory holds at each run's peak (``torch.cuda.max_memory_reserved``), leaving 10% free.
+
 The machine's load average is printed before and after: on a shared machine, compare the rows of one run only, and
 use ``--repeats`` (the configurations take turns; the table gives medians and ranges, the CSV every run).
 
     python benchmarks/train_throughput.py                                       # CPU, a few minutes: small counts
     python benchmarks/train_throughput.py --envs 1 2 --compile off --batch-size 64
     python benchmarks/train_throughput.py --device cuda --seed-frames 4000 --frames 20000 --overlap off on
+    python benchmarks/train_throughput.py --device cuda --envs 2 --compile off --concurrent 1 2 4 8
 """
 
 from __future__ import annotations
@@ -40,7 +46,7 @@ import time
 from pathlib import Path
 
 FIELDS = (
-    "repeat", "envs", "compiled", "overlap", "device", "batch_size", "warmup_frames", "warmup_fps", "learning_frames",
+    "repeat", "concurrent", "run", "envs", "compiled", "overlap", "device", "batch_size", "warmup_frames", "warmup_fps", "learning_frames",
     "learning_fps", "env_share", "update_share", "overhead_share", "ms_per_update", "updates", "first_round_s",
     "one_time_s",
     "peak_rss_mb", "peak_gpu_mb", "wall_s",
@@ -48,14 +54,16 @@ FIELDS = (
 """Columns of the CSV, in order."""
 
 
-def train_arguments(args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, run_dir: Path) -> list[str]:
+def train_arguments(
+    args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, run_dir: Path, seed: int = 0
+) -> list[str]:
     """The train CLI's arguments of one configuration."""
     argv = [
         "--env", args.task, "--frames", str(args.seed_frames + args.frames), "--seed-frames", str(args.seed_frames),
         "--batch-size", str(args.batch_size), "--n-steps", str(args.n_steps), "--hidden-dim", str(args.hidden_dim),
         "--size", str(args.size), "--n-envs", str(envs), "--eval-every-frames", "0",
         "--collapse-metrics-every-frames", "0", "--buffer-size", str(args.buffer_size), "--device", args.device,
-        "--run-dir", str(run_dir), "--seed", "0", "--no-progress-bar",
+        "--run-dir", str(run_dir), "--seed", str(seed), "--no-progress-bar",
         # SB3's sampling: the updates start after the warm-up even before an episode has finished (DrQ-v2's sampling
         # waits for one, 1,000 frames per env on walker); an update costs the same either way.
         "--replay-sampling", "sb3",
@@ -81,16 +89,32 @@ def child(argv: list[str]) -> None:
     print("PEAK " + json.dumps({"peak_rss_mb": round(peak_rss, 1), "peak_gpu_mb": peak_gpu}), flush=True)
 
 
-def measure(args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, folder: Path) -> dict:
-    """One configuration: run it, read its result.json, return its CSV row."""
-    run_dir = folder / f"envs{envs}_compiled{int(compiled)}_overlap{int(overlap)}"
-    command = [sys.executable, __file__, "--child", *train_arguments(args, envs, compiled, overlap, run_dir)]
+def measure(
+    args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, folder: Path, concurrent: int = 1
+) -> list[dict]:
+    """One configuration: run it ``concurrent`` times at once, read their result.json, return their CSV rows."""
+    processes = []
     start = time.perf_counter()
-    completed = subprocess.run(command, check=False, capture_output=True, text=True)
-    wall = time.perf_counter() - start
-    if completed.returncode != 0:
-        raise RuntimeError(f"{' '.join(command)} failed:\n{completed.stderr[-3000:]}")
-    peak = json.loads(next(line for line in completed.stdout.splitlines() if line.startswith("PEAK "))[5:])
+    for run in range(concurrent):
+        run_dir = folder / f"envs{envs}_compiled{int(compiled)}_overlap{int(overlap)}_concurrent{concurrent}_run{run}"
+        command = [sys.executable, __file__, "--child", *train_arguments(args, envs, compiled, overlap, run_dir, run)]
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        processes.append((run_dir, command, process))
+    rows = []
+    for run, (run_dir, command, process) in enumerate(processes):
+        stdout, stderr = process.communicate()
+        if process.returncode != 0:
+            for _, _, other in processes:
+                other.kill()
+            raise RuntimeError(f"{' '.join(command)} failed:\n{stderr[-3000:]}")
+        row = read_run(args, run_dir, stdout, time.perf_counter() - start)
+        rows.append({"concurrent": concurrent, "run": run, "envs": envs, "compiled": compiled, "overlap": overlap, **row})
+    return rows
+
+
+def read_run(args: argparse.Namespace, run_dir: Path, stdout: str, wall: float) -> dict:
+    """The CSV row of one finished run: its result.json's timings and the peak memory its process printed."""
+    peak = json.loads(next(line for line in stdout.splitlines() if line.startswith("PEAK "))[5:])
     summary = json.loads((run_dir / "result.json").read_text())
     timings = summary["timings"]
     config = json.loads((run_dir / "config.json").read_text())
@@ -105,9 +129,6 @@ def measure(args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, 
         mean_update_s = learning["update_s"] / max(learning["updates"], 1)
     steady_update_s = learning["update_s"] - first_round_s + mean_update_s * timings["first_round_updates"]
     return {
-        "envs": envs,
-        "compiled": compiled,
-        "overlap": overlap,
         "device": args.device,
         "batch_size": args.batch_size,
         "warmup_frames": warmup["transitions"] * repeat,
@@ -126,23 +147,39 @@ def measure(args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, 
     }
 
 
-def print_table(rows: list[dict]) -> None:
-    """One line per configuration: medians over the repeats (frames/s with their range when repeated)."""
-    configurations = sorted({(row["envs"], row["compiled"], row["overlap"]) for row in rows})
-    print(f"{'envs':>4} {'compiled':>8} {'overlap':>7} {'warm-up fps':>17} {'learning fps':>17} {'env':>5} {'update':>6} "
-          f"{'overhead':>8} {'ms/update':>9} {'one-time (s)':>12} {'peak RSS MB':>11}")
+def print_table(rows: list[dict], gpu_memory_mb: float | None = None) -> None:
+    """
+    One line per configuration: medians over the repeats (frames/s with their range when repeated) and over the
+    concurrent runs; with concurrent runs, the sum of their learning frames/s (median over the repeats), and on
+    CUDA how many runs the GPU's memory holds at their peak.
+    """
+    configurations = sorted({(row["envs"], row["compiled"], row["overlap"], row["concurrent"]) for row in rows})
+    concurrent = any(row["concurrent"] > 1 for row in rows)
+    extra = f" {'runs':>4} {'sum fps':>8}" if concurrent else ""
+    extra += f" {'peak GPU MB':>11} {'fit by memory':>13}" if gpu_memory_mb else ""
+    print(f"{'envs':>4} {'compiled':>8} {'overlap':>7}{extra} {'warm-up fps':>17} {'learning fps':>17} {'env':>5} "
+          f"{'update':>6} {'overhead':>8} {'ms/update':>9} {'one-time (s)':>12} {'peak RSS MB':>11}")
 
     def spread(values: list[float], digits: int) -> str:
         median = statistics.median(values)
         return f"{median:.{digits}f}" + (f" ({min(values):.{digits}f}-{max(values):.{digits}f})" if len(values) > 1 else "")
 
-    for envs, compiled, overlap in configurations:
-        group = [row for row in rows if (row["envs"], row["compiled"], row["overlap"]) == (envs, compiled, overlap)]
+    for configuration in configurations:
+        envs, compiled, overlap, runs = configuration
+        group = [row for row in rows if (row["envs"], row["compiled"], row["overlap"], row["concurrent"]) == configuration]
 
         def median(key: str, group: list[dict] = group) -> float:
             return statistics.median(row[key] for row in group)
 
-        print(f"{envs:>4} {'yes' if compiled else 'no':>8} {'yes' if overlap else 'no':>7} "
+        columns = ""
+        if concurrent:
+            repeats = sorted({row["repeat"] for row in group})
+            sums = [sum(row["learning_fps"] for row in group if row["repeat"] == repeat) for repeat in repeats]
+            columns += f" {runs:>4} {statistics.median(sums):>8.2f}"
+        if gpu_memory_mb:
+            peak = max(row["peak_gpu_mb"] for row in group)
+            columns += f" {peak:>11.0f} {int(0.9 * gpu_memory_mb // peak):>13}"
+        print(f"{envs:>4} {'yes' if compiled else 'no':>8} {'yes' if overlap else 'no':>7}{columns} "
               f"{spread([row['warmup_fps'] for row in group], 1):>17} {spread([row['learning_fps'] for row in group], 2):>17} "
               f"{median('env_share'):>5.0%} {median('update_share'):>6.0%} {median('overhead_share'):>8.0%} "
               f"{median('ms_per_update'):>9.0f} {median('one_time_s'):>12.1f} {median('peak_rss_mb'):>11.0f}")
@@ -157,6 +194,15 @@ def machine(device: str) -> str:
     else:
         name = f"cpu ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, {th.get_num_threads()} torch threads)"
     return f"{name}; torch {th.__version__}"
+
+
+def gpu_memory_mb(device: str) -> float | None:
+    """Total memory of the CUDA device, in MB; ``None`` on the CPU."""
+    import torch as th
+
+    if not device.startswith("cuda"):
+        return None
+    return th.cuda.get_device_properties(th.device(device)).total_memory / 2**20
 
 
 def main() -> None:
@@ -178,6 +224,8 @@ def main() -> None:
     parser.add_argument("--buffer-size", type=int, default=100_000, help="replay capacity, in transitions")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
     parser.add_argument("--torch-threads", type=int, default=None, help="torch CPU threads of the learner; default: torch's")
+    parser.add_argument("--concurrent", type=int, nargs="+", default=[1],
+                        help="identical runs of each configuration started at once (runs per machine or GPU)")
     parser.add_argument("--repeats", type=int, default=1,
                         help="runs of every configuration, taking turns (the table gives medians, and the ranges)")
     parser.add_argument("--csv", default="runs/train_throughput.csv", help="where to write the table (one row per run)")
@@ -191,14 +239,18 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as temporary:
         folder = Path(args.keep_runs or temporary)
         for repeat in range(args.repeats):
-            for envs in args.envs:
-                for compiled in (mode == "on" for mode in args.compile):
-                    for overlap in (mode == "on" for mode in args.overlap):
-                        rows.append({"repeat": repeat, **measure(args, envs, compiled, overlap, folder / f"repeat{repeat}")})
-                        print(f"  done: {envs} envs, compiled {compiled}, overlap {overlap}: {rows[-1]['warmup_fps']:.1f} "
-                              f"frames/s in the warm-up, {rows[-1]['learning_fps']:.2f} after it", flush=True)
+            for concurrent in args.concurrent:
+                for envs in args.envs:
+                    for compiled in (mode == "on" for mode in args.compile):
+                        for overlap in (mode == "on" for mode in args.overlap):
+                            runs = measure(args, envs, compiled, overlap, folder / f"repeat{repeat}", concurrent)
+                            rows += [{"repeat": repeat, **row} for row in runs]
+                            warmup = " ".join(f"{row['warmup_fps']:.1f}" for row in runs)
+                            learning = " ".join(f"{row['learning_fps']:.2f}" for row in runs)
+                            print(f"  done: {envs} envs, compiled {compiled}, overlap {overlap}, {concurrent} at once: "
+                                  f"{warmup} frames/s in the warm-up, {learning} after it", flush=True)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    print_table(rows)
+    print_table(rows, gpu_memory_mb(args.device))
     Path(args.csv).parent.mkdir(parents=True, exist_ok=True)
     with open(args.csv, "w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=FIELDS)
