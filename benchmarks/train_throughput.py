@@ -33,6 +33,7 @@ use ``--repeats`` (the configurations take turns; the table gives medians and ra
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import os
@@ -93,22 +94,26 @@ def measure(
     args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, folder: Path, concurrent: int = 1
 ) -> list[dict]:
     """One configuration: run it ``concurrent`` times at once, read their result.json, return their CSV rows."""
-    processes = []
+    folder.mkdir(parents=True, exist_ok=True)
+    rows, processes = [], []
     start = time.perf_counter()
-    for run in range(concurrent):
-        run_dir = folder / f"envs{envs}_compiled{int(compiled)}_overlap{int(overlap)}_concurrent{concurrent}_run{run}"
-        command = [sys.executable, __file__, "--child", *train_arguments(args, envs, compiled, overlap, run_dir, run)]
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        processes.append((run_dir, command, process))
-    rows = []
-    for run, (run_dir, command, process) in enumerate(processes):
-        stdout, stderr = process.communicate()
-        if process.returncode != 0:
-            for _, _, other in processes:
-                other.kill()
-            raise RuntimeError(f"{' '.join(command)} failed:\n{stderr[-3000:]}")
-        row = read_run(args, run_dir, stdout, time.perf_counter() - start)
-        rows.append({"concurrent": concurrent, "run": run, "envs": envs, "compiled": compiled, "overlap": overlap, **row})
+    with contextlib.ExitStack() as files:
+        for run in range(concurrent):
+            run_dir = folder / f"envs{envs}_compiled{int(compiled)}_overlap{int(overlap)}_concurrent{concurrent}_run{run}"
+            command = [sys.executable, __file__, "--child", *train_arguments(args, envs, compiled, overlap, run_dir, run)]
+            # Output to files, not pipes: no child blocks on a full pipe while another one is waited for.
+            out, err = (files.enter_context(open(f"{run_dir}.{name}", "w+")) for name in ("out", "err"))
+            processes.append((run_dir, command, subprocess.Popen(command, stdout=out, stderr=err, text=True), out, err))
+        for run, (run_dir, command, process, out, err) in enumerate(processes):
+            process.wait()
+            out.seek(0)
+            err.seek(0)
+            if process.returncode != 0:
+                for other in processes:
+                    other[2].kill()
+                raise RuntimeError(f"{' '.join(command)} failed:\n{err.read()[-3000:]}")
+            row = read_run(args, run_dir, out.read(), time.perf_counter() - start)
+            rows.append({"concurrent": concurrent, "run": run, "envs": envs, "compiled": compiled, "overlap": overlap, **row})
     return rows
 
 
