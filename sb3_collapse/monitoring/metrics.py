@@ -89,7 +89,9 @@ def _effective_rank(s: th.Tensor, delta: float) -> float:
     if total <= 0:
         return 0.0
     cumulative = th.cumsum(s, 0) / total
-    return float(int(th.searchsorted(cumulative, th.tensor([1.0 - delta], dtype=cumulative.dtype))[0]) + 1)
+    # The smallest k with cumulative[k - 1] >= 1 - delta: one more than the count of partial sums below it (they
+    # increase). A reduction on the singular values' own device: no tensor is made on another one.
+    return float(int((cumulative < 1.0 - delta).sum()) + 1)
 
 
 def effective_rank(activations: th.Tensor, delta: float = SRANK_DELTA) -> float:
