@@ -9,8 +9,9 @@ updates, before the next environment step), where nothing is in flight, and hold
   statistics, the last gradient norms of every layer);
 - the replay buffer, **incrementally**: only the frames and transitions added since the previous checkpoint go to
   disk (:class:`~sb3_collapse.drqv2.replay_checkpoint.ReplayStore`, shared by the checkpoints);
-- every random generator: Python's, NumPy's global one, torch's (CPU and CUDA), the action space's, each
-  environment's (through its episode in progress, see below), each callback's probe sampler;
+- every random generator: Python's, NumPy's global one, torch's (the CPU's, and that of the CUDA device the model
+  is on), the action space's, each environment's (through its episode in progress, see below), each callback's
+  probe sampler;
 - each environment's episode in progress: the random state or seed it was reset with and the actions since
   (:class:`~sb3_collapse.envs.replay.EpisodeReplay`); a resume replays them, so checkpoints may fall anywhere in an
   episode;
@@ -25,9 +26,15 @@ last, ``checkpoint.json`` (format, package version, sizes and SHA-256 of the two
 ``checkpoints/replay/``. A checkpoint is written into a hidden folder, flushed to disk and renamed; the older ones
 are deleted only then (the newest ``keep`` stay, so a damaged newest one falls back to the one before).
 
+Devices: every tensor of the state is moved to the CPU when it is written (:func:`tensors_to`), and the model's
+tensors to the model's device when it is read, so a checkpoint written on a GPU resumes on another GPU, or on a
+host without one. The CUDA generator saved is that of the model's device, restored on the resuming model's device
+(another index, or fewer visible GPUs, are fine).
+
 Exactness: on one machine, with the same device and number of torch threads, a run resumed from any checkpoint
 ends with the same weights, evaluations and reset-rule events as the run that was not stopped (tested on the CPU).
-Timings (wall-clock columns, SB3's ``time/`` keys) differ, as they do between two uninterrupted runs.
+A resume on another device type (CUDA to CPU, say) continues correctly but not bit for bit, and says so. Timings
+(wall-clock columns, SB3's ``time/`` keys) differ, as they do between two uninterrupted runs.
 """
 
 from __future__ import annotations
@@ -197,6 +204,45 @@ def _line_count(path: Path) -> int:
         return sum(block.count(b"\n") for block in iter(lambda: file.read(1 << 20), b""))
 
 
+def tensors_to(value: Any, device: th.device | str) -> Any:
+    """
+    A copy of ``value`` with every tensor moved to ``device`` (detached), through dicts, lists and tuples; other
+    values are kept as they are (not copied).
+
+    :param value: e.g. a checkpoint's state
+    :param device: where the tensors go (``"cpu"`` when a checkpoint is written)
+    :return: the moved copy
+    """
+    if isinstance(value, th.Tensor):
+        return value.detach().to(device, copy=True)
+    if isinstance(value, dict):
+        return {key: tensors_to(item, device) for key, item in value.items()}
+    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):  # not a namedtuple
+        return type(value)(tensors_to(item, device) for item in value)
+    return value
+
+
+def _cuda_rng_state(device: th.device) -> dict[str, Any] | None:
+    """The CUDA generator of ``device`` (the model's), ``None`` off CUDA."""
+    if device.type != "cuda" or not th.cuda.is_available():
+        return None
+    index = device.index if device.index is not None else th.cuda.current_device()
+    return {"device": index, "state": th.cuda.get_rng_state(index)}
+
+
+def _restore_cuda_rng_state(saved: Any, device: th.device) -> None:
+    """
+    Restore the CUDA generator saved by :func:`capture_state` on the CUDA device ``device`` (the resuming model's),
+    whatever its index was; nothing off CUDA. A checkpoint written by an earlier version holds one state per visible
+    GPU: the one of the first device is taken.
+    """
+    if saved is None or device.type != "cuda" or not th.cuda.is_available():
+        return
+    state = saved["state"] if isinstance(saved, dict) else saved[0]
+    index = device.index if device.index is not None else th.cuda.current_device()
+    th.cuda.set_rng_state(state.cpu(), index)
+
+
 def capture_state(
     model: BaseAlgorithm,
     callbacks: Sequence[BaseCallback] = (),
@@ -220,14 +266,15 @@ def capture_state(
         raise ValueError("capture_state needs the model's environment.")
     recorder = grad_norm_recorder(model)
     logger = model.logger
-    return {
+    state = {
         "format": CHECKPOINT_FORMAT,
         "num_timesteps": int(model.num_timesteps),
+        "device": str(model.device),
         "rng": {
             "python": random.getstate(),
             "numpy": np.random.get_state(),
             "torch": th.get_rng_state(),
-            "cuda": th.cuda.get_rng_state_all() if th.cuda.is_available() else None,
+            "cuda": _cuda_rng_state(model.device),
         },
         "action_space": model.action_space.np_random.bit_generator.state,
         "envs": episode_records(env),
@@ -247,6 +294,7 @@ def capture_state(
         "model_extras": {name: getattr(model, name) for name in MODEL_EXTRAS if hasattr(model, name)},
         "extra": dict(extra or {}),
     }
+    return tensors_to(state, "cpu")  # unpickled where it was written: a GPU's tensors would need that GPU
 
 
 def _replay_manifest(store: ReplayStore, buffer: Any) -> dict[str, Any]:
@@ -501,14 +549,19 @@ def restore_run(
     for callback, (_, callback_state) in zip(resumable, saved):
         callback.load_state_dict(callback_state)
     for name, value in state["model_extras"].items():
-        setattr(model, name, value)
+        setattr(model, name, tensors_to(value, model.device))
     model.action_space.np_random.bit_generator.state = state["action_space"]
     rng = state["rng"]
     random.setstate(rng["python"])
     np.random.set_state(rng["numpy"])
     th.set_rng_state(rng["torch"])
-    if rng["cuda"] is not None and th.cuda.is_available():
-        th.cuda.set_rng_state_all(rng["cuda"])
+    _restore_cuda_rng_state(rng["cuda"], model.device)
+    written_on = state.get("device")
+    if written_on is not None and th.device(written_on).type != model.device.type:
+        notes.append(
+            f"the checkpoint was written on {written_on} and the run resumes on {model.device}: it continues, but "
+            "not bit for bit as an uninterrupted run would (other kernels, other random generators)."
+        )
     return notes
 
 
