@@ -52,6 +52,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
+from sb3_collapse.backends import configure_backends
 from sb3_collapse.baselines import BASELINES, DRQV2_ONLY_SETTINGS, NATURE_CNN_MIN_SIZE, build_baseline
 from sb3_collapse.checkpoints import (
     CheckpointError,
@@ -190,6 +191,10 @@ class TrainConfig:
     :param probe_checkpoints: save the encoder and actor (about 13 MB) at every evaluation and at the end into
         ``probe_checkpoints/`` of the run folder, for ``python -m sb3_collapse.probe`` (the paper's Figure 2);
         DrQ-v2 only, needs evaluations
+    :param tf32: let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it
+        (:func:`~sb3_collapse.backends.configure_backends`; nothing changes on the CPU)
+    :param deterministic: reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has
+        them (:func:`~sb3_collapse.backends.configure_backends`); slower on a GPU, nothing changes on the CPU
     :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
     :param torch_threads: threads of torch's CPU operations (``torch.set_num_threads``); ``None``: torch's default
     :param progress_bar: show a progress bar
@@ -238,6 +243,8 @@ class TrainConfig:
     n_envs: int = 1
     step_envs_during_updates: bool = False
     compile_update: bool = False
+    tf32: bool = True
+    deterministic: bool = False
     probe_checkpoints: bool = False
     device: str = "auto"
     torch_threads: int | None = None
@@ -594,6 +601,9 @@ def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str
         can resume it
     """
     current = json.loads(json.dumps(config.record()))
+    # A setting added after the run folder was written: the run had its default.
+    defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig())))
+    saved = {**{name: defaults[name] for name in defaults if name not in saved and name not in SETTING_NAMES}, **saved}
     return [
         f"`{name}={current.get(name)}` (the run folder has {saved.get(name)!r})"
         for name in sorted(set(saved) | set(current))
@@ -711,6 +721,7 @@ def train(config: TrainConfig) -> TrainResult:
     env_kwargs = dict(action_repeat=config.action_repeat, frame_stack=config.frame_stack, size=config.size)
     if config.torch_threads is not None:
         th.set_num_threads(config.torch_threads)
+    configure_backends(tf32=config.tf32, deterministic=config.deterministic)
 
     try:
         env, eval_env, model = _build(config, task_id, env_kwargs)
@@ -968,6 +979,8 @@ def training_arguments() -> argparse.ArgumentParser:
     g.add_argument("--reset-window-frames", type=int, default=d.reset_window_frames, help="the reset rule's window, in frames (default: the paper's, %(default)s)")
     g.add_argument("--n-envs", type=int, default=d.n_envs, help="training environments (in subprocesses when more than 1); frames and agent steps are summed over them, with one update per 2 transitions as with one (default: %(default)s)")
     g.add_argument("--step-envs-during-updates", action="store_true", help="step the environments (in subprocesses) while the learner updates: the actions of that step come from the weights before the updates (DrQ-v2's reference order)")
+    g.add_argument("--no-tf32", dest="tf32", action="store_false", help="IEEE float32 matmuls and convolutions on CUDA instead of TensorFloat-32 (on by default for GPUs that have it; no effect on the CPU)")
+    g.add_argument("--deterministic", action="store_true", help="reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has them (slower on a GPU; the CPU is deterministic anyway)")
     g.add_argument("--compile-update", action="store_true", help="compile the update with torch.compile (CUDA graphs on CUDA); compilation takes about a minute at the first update on a CPU")
     g.add_argument("--verbose", type=int, default=d.verbose, help="1: print SB3's log tables (default: %(default)s)")
     return p
