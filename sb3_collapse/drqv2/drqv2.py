@@ -51,7 +51,7 @@ from sb3_collapse.drqv2.replay_buffer import (
     frame_stack_storage_bytes,
 )
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
-from sb3_collapse.drqv2.timing import LearnTimings, PhaseTime
+from sb3_collapse.drqv2.timing import LearnTimings, PhaseTime, UpdateClock
 from sb3_collapse.drqv2.transplant import (
     TransplantSpec,
     check_init_from,
@@ -166,7 +166,8 @@ class DrQv2(OffPolicyAlgorithm):
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``. On the CPU, glibc's malloc is tuned to reuse large
         freed buffers (a process-wide setting, see ``sb3_collapse.drqv2.cpu_allocator``); on CUDA,
-        ``torch.backends.cudnn.benchmark`` is turned on, as DrQ-v2 does
+        ``torch.backends.cudnn.benchmark`` is turned on, as DrQ-v2 does, unless torch's deterministic algorithms are
+        on (``torch.use_deterministic_algorithms(True)``, e.g. through ``sb3_collapse.backends.configure_backends``)
     :param init_from: layer transplant (the action-collapse paper's Study 2): group -> source, where a source
         is the path of a zip saved by ``DrQv2.save`` (``.zip`` may be left out) or a DrQv2 model, e.g.
         ``{"cnn": "good.zip", "mlp": "bad.zip"}``. Groups: ``"cnn"``, the encoder (conv layers ``cnn1``..``cnn4``,
@@ -271,6 +272,7 @@ class DrQv2(OffPolicyAlgorithm):
         self.callback = callback
         self.timings = LearnTimings()
         """Where the time of the last (or current) :meth:`learn` call went (see ``sb3_collapse.drqv2.timing``)."""
+        self._update_clock = UpdateClock()
         self._compiled_losses: tuple[Any, Any] | None = None
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
         self.hold_next_step = False
@@ -317,7 +319,7 @@ class DrQv2(OffPolicyAlgorithm):
             ) from None
         if self.device.type == "cpu" and tune_cpu_allocator() and self.verbose >= 1:
             print("sb3_collapse: glibc malloc tuned to reuse freed buffers (SB3_COLLAPSE_TUNE_MALLOC=0 to disable)")
-        if self.device.type == "cuda":
+        if self.device.type == "cuda" and not th.are_deterministic_algorithms_enabled():
             th.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest kernels
         self._create_aliases()
         self._index_grad_layers()
@@ -831,13 +833,14 @@ class DrQv2(OffPolicyAlgorithm):
         all_callbacks.on_training_start(locals(), globals())
         if self.env is None:
             raise ValueError("DrQv2.learn needs an environment: pass env= to DrQv2(...) or DrQv2.load(...), or call set_env.")
-        self.timings = LearnTimings()
+        self.timings, self._update_clock = LearnTimings(), UpdateClock()
         try:
             while self.num_timesteps < total_timesteps:
                 if not self._learning_round(all_callbacks, total_timesteps, log_interval):
                     break
         finally:
             self._finish_pending_step()  # only after an exception: a normal round leaves no step in flight
+            self._update_clock.collect(wait=True)
         all_callbacks.on_training_end()
         return self
 
@@ -851,6 +854,8 @@ class DrQv2(OffPolicyAlgorithm):
         """
         round_start, start = time.perf_counter(), self.num_timesteps
         self._round, self._round_used_policy = PhaseTime(rounds=1), False
+        self._update_clock.collect()  # the device time of earlier rounds that has completed
+        device_start = None
         rollout = self.collect_rollouts(
             self.env,  # type: ignore[arg-type]
             callback=callback,
@@ -865,6 +870,7 @@ class DrQv2(OffPolicyAlgorithm):
             if self.step_envs_during_updates and self.num_timesteps < total_timesteps and not self.hold_next_step:
                 self._send_next_step()
             update_start, updates_before = time.perf_counter(), self._n_updates
+            device_start = self._update_clock.start(self.device)
             self.train(gradient_steps=updates, batch_size=self.batch_size)
             self._round.update_s = time.perf_counter() - update_start
             self._round.updates = self._n_updates - updates_before  # train() makes none while the buffer cannot sample
@@ -873,7 +879,9 @@ class DrQv2(OffPolicyAlgorithm):
         self.hold_next_step = False
         self._round.total_s = time.perf_counter() - round_start
         learning = self._round_used_policy or self._round.updates > 0
-        (self.timings.learning if learning else self.timings.warmup).add(self._round)
+        phase = self.timings.learning if learning else self.timings.warmup
+        phase.add(self._round)
+        self._update_clock.stop(device_start, phase, self._round.update_s)
         return rollout.continue_training
 
     def _combined_callbacks(self, callback: MaybeCallback) -> MaybeCallback:
@@ -891,7 +899,8 @@ class DrQv2(OffPolicyAlgorithm):
         Reset: the encoder, actor, critic and target critic get **new** random weights (DrQ-v2's
         initialization drawn from torch's global generator in its current state, which has advanced since
         the initial build: never reseeded, so the weights differ from the initial ones, and a seeded run
-        stays reproducible); the optimizers are new (empty Adam state); the replay buffer is emptied
+        stays reproducible), copied into the existing parameter tensors (a compiled update keeps its code and
+        CUDA graphs); the optimizers are new (empty Adam state); the replay buffer is emptied
         (``replay_buffer.reset()``); the last gradient norms are forgotten (:attr:`last_grad_norms` is empty
         until the next update); ``reset_step`` becomes ``num_timesteps``, so the exploration schedule restarts
         from its first value, the first ``learning_starts`` agent steps after the reset take uniform random
@@ -909,8 +918,17 @@ class DrQv2(OffPolicyAlgorithm):
         scratch). ``model.init_from`` still records how the model was first initialized.
         """
         was_training = self.policy.training
-        self.policy._build(self.lr_schedule)
-        self.policy.to(self.device)
+        kept = {name: getattr(self.policy, name) for name in ("encoder", "actor", "critic", "critic_target")}
+        self.policy._build(self.lr_schedule)  # fresh weights and optimizers, drawn as the first build drew them
+        with th.no_grad():
+            for name, module in kept.items():
+                fresh = getattr(self.policy, name)
+                # Into the same tensors: a compiled update (its guards, its CUDA graphs' addresses) stays valid.
+                module.load_state_dict(fresh.state_dict())
+                optimizer = getattr(fresh, "optimizer", None)
+                if optimizer is not None:
+                    module.optimizer = type(optimizer)(module.parameters(), **optimizer.defaults)
+                setattr(self.policy, name, module)
         self.policy.set_training_mode(was_training)
         self._create_aliases()
         self._index_grad_layers()  # a new recorder, on the new optimizers: no norm until the next update
@@ -1023,6 +1041,7 @@ class DrQv2(OffPolicyAlgorithm):
             "_train_stats_count",
             "_warned_replay_not_ready",
             "timings",
+            "_update_clock",
             "_compiled_losses",
             "_pending_step",
             "_round",

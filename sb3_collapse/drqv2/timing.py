@@ -12,8 +12,13 @@ In each phase, ``env_s`` is the time spent waiting for the environments (``VecEn
 step sent before the updates, see ``DrQv2``'s ``step_envs_during_updates``), ``update_s`` the time in
 ``DrQv2.train`` (replay sampling included), ``total_s`` the wall-clock time of the phase's rounds, and
 ``overhead_s`` the rest: action selection, storing transitions, callbacks (evaluations and collapse checks run in
-callbacks: they count here), logging. On CUDA the update is timed from the host: kernels still queued when
-``train`` returns are counted in whatever waits for them next (usually the next action's copy to the host).
+callbacks: they count here), logging.
+
+On CUDA the kernels of an update are still running when ``train`` returns; whatever needs their result next (the next
+action's copy to the host) waits for them. :class:`UpdateClock` times each round's updates on the device as well,
+with a pair of CUDA events, and counts the update as ``max(host time, device time)``: the device time beyond the host
+time moves from ``overhead_s`` (where the wait fell) to ``update_s``. The events are read when they have completed
+(``Event.query``, no synchronization) and, for the last ones, once at the end of ``learn()``.
 
 The first round of updates of a ``learn()`` call also includes one-time costs: ``torch.compile``'s compilation
 (``compile_update``), cuDNN's autotuning, the allocators' first requests. ``first_round_s`` and
@@ -25,6 +30,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
+
+import torch as th
 
 
 @dataclass
@@ -99,3 +106,51 @@ class LearnTimings:
             "first_round_updates": self.first_round_updates,
             "steady_learning_s": self.steady_learning_s(),
         }
+
+
+class UpdateClock:
+    """
+    The device time of the rounds of updates on CUDA (see the module docstring); nothing on other devices.
+
+    Use: ``start = clock.start(device)`` before ``train``, ``clock.stop(start, phase, host_s)`` once the round is added
+    to ``phase``, :meth:`collect` now and then, ``collect(wait=True)`` at the end.
+    """
+
+    def __init__(self) -> None:
+        self._pending: list[tuple[Any, Any, PhaseTime, float]] = []
+
+    def start(self, device: th.device) -> Any:
+        """:return: a recorded CUDA event on ``device``'s current stream, ``None`` off CUDA"""
+        if device.type != "cuda":
+            return None
+        event = th.cuda.Event(enable_timing=True)
+        event.record(th.cuda.current_stream(device))
+        return event
+
+    def stop(self, start: Any, phase: PhaseTime, host_s: float) -> None:
+        """
+        :param start: what :meth:`start` returned (nothing happens for ``None``)
+        :param phase: the phase the round was added to
+        :param host_s: the round's ``update_s`` measured on the host, already in ``phase``
+        """
+        if start is None:
+            return
+        end = th.cuda.Event(enable_timing=True)
+        end.record()
+        self._pending.append((start, end, phase, host_s))
+
+    def collect(self, wait: bool = False) -> None:
+        """
+        Add the device time beyond the host time of each completed round to its phase's ``update_s``.
+
+        :param wait: wait for the rounds still running (a synchronization; for the end of ``learn()``)
+        """
+        pending = []
+        for start, end, phase, host_s in self._pending:
+            if wait:
+                end.synchronize()
+            elif not end.query():
+                pending.append((start, end, phase, host_s))
+                continue
+            phase.update_s += max(0.0, start.elapsed_time(end) / 1000.0 - host_s)
+        self._pending = pending
