@@ -6,6 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from torch._dynamo.eval_frame import _debug_get_cache_entry_list
 from stable_baselines3.common.buffers import NStepReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
@@ -346,3 +347,10 @@ def test_update_equals_reference_update(channels_last, compile_update):
         if channels_last and name.endswith("trunk.0.weight"):
             reference = reference[:, order]
         assert th.allclose(param, reference, atol=1e-6, rtol=1e-5), name
+
+    if compile_update:  # resets keep the compiled update: one compiled function each, nothing compiled again
+        for _ in range(2):
+            ours.reset_from_scratch()
+            ours._update(data, data.discounts, ours.current_stddev)
+        for loss in (DrQv2._critic_loss, DrQv2._actor_loss):
+            assert len(_debug_get_cache_entry_list(loss.__code__)) == 1, loss.__name__

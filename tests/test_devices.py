@@ -1,0 +1,357 @@
+"""
+CUDA readiness, checked as far as a CPU allows (the CUDA-only checks are in tests marked ``cuda``, run by
+``benchmarks/gpu.sh``): tensors made on their inputs' device, checkpoints of CPU tensors whatever the device,
+the CUDA generator of the model's device, backend settings, resets that keep a compiled update, gradient norms
+in a handful of kernels, the update timed where it runs.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import os
+import pickle
+import signal
+import threading
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from torch.overrides import TorchFunctionMode
+
+import sb3_collapse
+from sb3_collapse import CollapseMetrics, DrQv2
+from sb3_collapse.backends import configure_backends, current_backends
+from sb3_collapse.checkpoints import (
+    ResumableCheckpoints,
+    _cuda_rng_state,
+    _restore_cuda_rng_state,
+    checkpoint_folders,
+    load_checkpoint,
+    tensors_to,
+)
+from sb3_collapse.drqv2.timing import PhaseTime, UpdateClock
+from sb3_collapse.envs.replay import EpisodeReplay
+from sb3_collapse.monitoring import metrics
+from sb3_collapse.monitoring.grad_norms import GradNormRecorder
+from sb3_collapse.monitoring.interventions import INTERVENTIONS
+from sb3_collapse.probe.omp import omp_path
+from sb3_collapse.protocol import CHECKPOINT_STATE, CHECKPOINTS_DIR, CONFIG_JSON, EXIT_INTERRUPTED, RESULT_JSON
+from sb3_collapse.train import main
+
+PACKAGE = str(Path(sb3_collapse.__file__).parent)
+FACTORIES = {
+    th.tensor,
+    th.zeros,
+    th.ones,
+    th.empty,
+    th.full,
+    th.arange,
+    th.rand,
+    th.randn,
+    th.randint,
+    th.linspace,
+    th.eye,
+    th.randperm,
+    th.as_tensor,
+}
+
+
+class DeviceAudit(TorchFunctionMode):
+    """Records every tensor factory called from the package's code without ``device=`` (it would make a CPU tensor)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.found: list[str] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func in FACTORIES and "device" not in kwargs:
+            takes_device = func is th.as_tensor and args and isinstance(args[0], th.Tensor)  # keeps its device
+            caller = inspect.currentframe().f_back
+            while caller is not None and caller.f_code.co_filename.startswith(str(Path(th.__file__).parent)):
+                caller = caller.f_back
+            if caller is not None and caller.f_code.co_filename.startswith(PACKAGE) and not takes_device:
+                self.found.append(f"{func.__name__} at {caller.f_code.co_filename}:{caller.f_lineno}")
+        return func(*args, **kwargs)
+
+
+def _tiny_model(run_dir: Path) -> tuple[DrQv2, EpisodeReplay]:
+    env = EpisodeReplay(sb3_collapse.make_dmc_env("cartpole-balance", seed=0, action_repeat=8, size=36))
+    model = DrQv2(
+        "CnnPolicy", env, learning_starts=4, batch_size=4, buffer_size=200, seed=0,
+        policy_kwargs=dict(hidden_dim=16, feature_dim=4), replay_buffer_kwargs=dict(sampling="sb3"),
+    )  # fmt: skip
+    return model, env
+
+
+def _tiny_drqv2(**kwargs) -> DrQv2:
+    return DrQv2(
+        "MlpPolicy", gym.make("Pendulum-v1"), learning_starts=20, batch_size=8, buffer_size=200, seed=0,
+        policy_kwargs=dict(hidden_dim=16, feature_dim=8), **kwargs,
+    )  # fmt: skip
+
+
+def test_the_audit_finds_a_tensor_made_without_a_device():
+    """The audit itself: the mistake of the issue (a CPU threshold tensor next to device values) is found."""
+
+    def old_effective_rank(s: th.Tensor, delta: float) -> int:  # the former metrics._effective_rank
+        cumulative = th.cumsum(s, 0) / s.sum()
+        return int(th.searchsorted(cumulative, th.tensor([1.0 - delta], dtype=cumulative.dtype))[0]) + 1
+
+    audit = DeviceAudit()
+    old_effective_rank.__code__ = old_effective_rank.__code__.replace(co_filename=f"{PACKAGE}/fake.py")
+    with audit:
+        old_effective_rank(th.tensor([3.0, 2.0, 1.0], device="cpu"), 0.01)
+    assert audit.found == [f"tensor at {PACKAGE}/fake.py:{old_effective_rank.__code__.co_firstlineno + 2}"]
+
+
+def test_metrics_callbacks_interventions_and_probe_make_tensors_on_their_inputs_device():
+    """Every tensor that metric, callback, intervention and probe code makes takes ``device=`` (or an input's)."""
+    audit = DeviceAudit()
+    generator = th.Generator().manual_seed(0)
+    dense = th.relu(th.randn(32, 20, generator=generator))
+    conv = th.relu(th.randn(16, 4, 5, 5, generator=generator))
+    with audit:
+        for activations in (dense, conv):
+            metrics.layer_metrics(activations)
+            metrics.effective_rank(activations)
+            metrics.numerical_rank(activations)
+            metrics.dormant_units(activations)
+        metrics.gradient_norm([th.ones(3), None])
+        omp_path(th.randn(40, 12, generator=generator), th.randn(40, 2, generator=generator), max_atoms=4)
+        model, _ = _tiny_model(Path("unused"))  # pixels: convolutional channels too
+        model.learn(60, callback=CollapseMetrics(check_every_frames=160, batch_size=16))
+        for intervention in INTERVENTIONS.values():
+            intervention(model)
+        model.learn(30, reset_num_timesteps=False)
+    assert audit.found == []
+
+
+def test_effective_rank_is_the_smallest_k_reaching_one_minus_delta():
+    s = th.tensor([4.0, 3.0, 2.0, 1.0], dtype=th.float64)  # partial sums / 10: 0.4, 0.7, 0.9, 1.0
+    assert metrics._effective_rank(s, 0.3) == 2.0  # 0.7 >= 0.7
+    assert metrics._effective_rank(s, 0.25) == 3.0
+    assert metrics._effective_rank(s, 0.0) == 4.0
+    assert metrics._effective_rank(th.zeros(3, dtype=th.float64), 0.01) == 0.0
+
+
+def test_tensors_to_moves_nested_tensors_and_keeps_the_rest():
+    state = {"a": [th.ones(2), (th.zeros(1), 3)], "b": "text", "c": {"d": th.arange(3)}}
+    moved = tensors_to(state, "meta")
+    assert moved["a"][0].device.type == "meta" and moved["a"][1][0].device.type == "meta"
+    assert moved["c"]["d"].device.type == "meta" and moved["a"][1][1] == 3 and moved["b"] == "text"
+    assert isinstance(moved["a"][1], tuple) and state["a"][0].device.type == "cpu"  # the original is unchanged
+
+
+def test_checkpoint_state_holds_cpu_tensors_only_and_restores_them_on_the_models_device(tmp_path):
+    model, _ = _tiny_model(tmp_path)
+    model.learn(12, callback=ResumableCheckpoints(tmp_path, every_frames=80))
+    assert model._train_stats  # statistics not logged yet: device tensors of the model
+    with (checkpoint_folders(tmp_path)[0] / CHECKPOINT_STATE).open("rb") as file:
+        state = pickle.load(file)
+
+    def tensors(value):
+        if isinstance(value, th.Tensor):
+            yield value
+        elif isinstance(value, dict):
+            for item in value.values():
+                yield from tensors(item)
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                yield from tensors(item)
+
+    found = list(tensors(state))
+    assert found and all(tensor.device.type == "cpu" and not tensor.requires_grad for tensor in found)
+    assert state["device"] == "cpu" and state["rng"]["cuda"] is None  # no CUDA generator off CUDA
+
+    resumed, _ = _tiny_model(tmp_path)
+    checkpoints = ResumableCheckpoints(tmp_path, every_frames=80)
+    checkpoints.init_callback(resumed)
+    checkpoint = load_checkpoint(tmp_path)
+    checkpoint.state["device"] = "cuda:0"  # as written on a GPU
+    _, notes = checkpoints.resume(checkpoint)
+    assert any("written on cuda:0 and the run resumes on cpu" in note and "not bit for bit" in note for note in notes)
+    assert all(value.device == resumed.device for value in resumed._train_stats.values())
+    assert resumed._train_stats.keys() == model._train_stats.keys()
+
+
+def test_cuda_generator_of_the_models_device_is_saved_and_restored_on_the_resuming_device(monkeypatch):
+    calls = []
+    monkeypatch.setattr(th.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(th.cuda, "current_device", lambda: 0)
+    monkeypatch.setattr(th.cuda, "get_rng_state", lambda index: th.full((4,), index, dtype=th.uint8))
+    monkeypatch.setattr(th.cuda, "set_rng_state", lambda state, index: calls.append((state.tolist(), index)))
+    saved = _cuda_rng_state(th.device("cuda:3"))  # written by a model on the fourth GPU
+    assert saved["device"] == 3 and saved["state"].tolist() == [3, 3, 3, 3]
+    _restore_cuda_rng_state(saved, th.device("cuda"))  # resumed where one GPU is visible
+    _restore_cuda_rng_state([th.full((4,), 7, dtype=th.uint8)] * 8, th.device("cuda:1"))  # an earlier format
+    _restore_cuda_rng_state(saved, th.device("cpu"))  # resumed on the CPU: nothing to restore
+    assert calls == [([3, 3, 3, 3], 0), ([7, 7, 7, 7], 1)]
+    assert _cuda_rng_state(th.device("cpu")) is None
+
+
+@pytest.fixture
+def _restore_backends():
+    before = current_backends(), th.backends.cudnn.benchmark, th.backends.cudnn.deterministic
+    yield
+    configure_backends(tf32=before[0].tf32, deterministic=before[0].deterministic)
+    th.backends.cudnn.benchmark, th.backends.cudnn.deterministic = before[1], before[2]
+
+
+@pytest.mark.usefixtures("_restore_backends")
+def test_backend_settings_are_applied_and_checked(monkeypatch):
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    th.backends.cudnn.benchmark = True
+    assert configure_backends(tf32=False, deterministic=True) == current_backends()
+    assert current_backends().deterministic and not current_backends().tf32
+    assert th.are_deterministic_algorithms_enabled() and th.backends.cudnn.deterministic
+    assert not th.backends.cudnn.benchmark and os.environ["CUBLAS_WORKSPACE_CONFIG"] == ":4096:8"
+    configure_backends(tf32=True, deterministic=False)
+    assert current_backends().tf32 and not th.are_deterministic_algorithms_enabled()
+    with pytest.raises(TypeError, match="deterministic must be True or False"):
+        configure_backends(deterministic="yes")  # type: ignore[arg-type]
+
+
+@pytest.mark.usefixtures("_restore_backends")
+def test_drqv2_leaves_the_cudnn_autotuner_off_when_determinism_is_asked(monkeypatch):
+    """``DrQv2`` turns cuDNN's autotuner on for a CUDA model, unless torch's deterministic algorithms are on."""
+    monkeypatch.setattr(th.cuda, "is_available", lambda: True)  # the flags only: no tensor goes to CUDA here
+    model = _tiny_drqv2(_init_setup_model=False)
+    model.device = th.device("cuda")
+    monkeypatch.setattr(type(model), "_create_aliases", lambda self: None)
+    monkeypatch.setattr(type(model), "_index_grad_layers", lambda self: None)
+    monkeypatch.setattr(
+        "stable_baselines3.common.off_policy_algorithm.OffPolicyAlgorithm._setup_model", lambda self: None
+    )
+    for deterministic, benchmark in ((True, False), (False, True)):
+        configure_backends(deterministic=deterministic)
+        th.backends.cudnn.benchmark = False
+        model.policy = type("P", (), {"exploration_std": 0.0})()
+        model._setup_model()
+        assert th.backends.cudnn.benchmark is benchmark
+
+
+def test_train_records_the_backend_settings_and_a_run_resumes_with_another_thread_count(tmp_path, capsys):
+    """A run stopped by SIGTERM resumes with another ``--torch-threads`` (another device is the GPU script's)."""
+    run_dir = tmp_path / "run"
+    flags = [
+        "--env", "cartpole-balance", "--frames", "800", "--action-repeat", "20", "--size", "36", "--hidden-dim", "16",
+        "--feature-dim", "8", "--batch-size", "8", "--seed-frames", "200", "--eval-every-frames", "0",
+        "--checkpoint-every-frames", "200", "--collapse-metrics-every-frames", "0", "--no-progress-bar",
+        "--replay-sampling", "sb3", "--run-dir", str(run_dir), "--no-tf32", "--deterministic",
+    ]  # fmt: skip
+    threads = th.get_num_threads()
+
+    def stop_after_first_checkpoint() -> None:
+        deadline = time.time() + 120
+        while time.time() < deadline and not checkpoint_folders(run_dir / CHECKPOINTS_DIR):
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    try:
+        watcher = threading.Thread(target=stop_after_first_checkpoint, daemon=True)
+        watcher.start()
+        assert main([*flags, "--torch-threads", "2"]) == EXIT_INTERRUPTED
+        watcher.join()
+        assert main([*flags, "--torch-threads", "1"]) == 0
+    finally:
+        th.set_num_threads(threads)
+        configure_backends()
+    assert "Resuming" in capsys.readouterr().out
+    config = json.loads((run_dir / CONFIG_JSON).read_text())
+    assert config["tf32"] is False and config["deterministic"] is True
+    assert json.loads((run_dir / RESULT_JSON).read_text())["resumes"] == 1
+
+
+def test_reset_keeps_the_parameter_tensors_and_draws_the_fresh_weights(tmp_path):
+    model = _tiny_drqv2()
+    model.learn(40)
+    before = {name: param for name, param in model.policy.named_parameters()}
+    pointers = {name: param.data_ptr() for name, param in before.items()}
+    rng = th.get_rng_state()
+    model.reset_from_scratch()
+    after = dict(model.policy.named_parameters())
+    assert all(after[name] is before[name] and after[name].data_ptr() == pointers[name] for name in before)
+    th.set_rng_state(rng)  # the same draws, on a policy built anew: the weights of the reset
+    fresh = _tiny_drqv2(_init_setup_model=False)
+    fresh._setup_lr_schedule()
+    rebuilt = model.policy_class(model.observation_space, model.action_space, fresh.lr_schedule, **model.policy_kwargs)
+    th.set_rng_state(rng)
+    rebuilt._build(fresh.lr_schedule)
+    assert all(th.equal(after[name], param) for name, param in rebuilt.named_parameters())
+    optimizers = model.policy.optimizers
+    assert all(not optimizer.state for optimizer in optimizers)  # empty Adam state
+    assert {id(p) for optimizer in optimizers for group in optimizer.param_groups for p in group["params"]} == {
+        id(p) for name, p in before.items() if not name.startswith("critic_target")
+    }
+    model.learn(40, reset_num_timesteps=False)  # trains on
+
+
+def test_gradient_norms_in_one_pass_equal_the_per_layer_norms():
+    layers = {"a": [th.nn.Parameter(th.randn(3, 4)), th.nn.Parameter(th.randn(3))], "b": [th.nn.Parameter(th.randn(5))]}
+    unused = {"c": [th.nn.Parameter(th.randn(2))]}
+    optimizer = th.optim.SGD([p for params in layers.values() for p in params] + unused["c"], lr=0.0)
+    recorder = GradNormRecorder({**layers, **unused}, [optimizer])
+    for params in layers.values():
+        for p in params:
+            p.grad = th.randn_like(p)
+    optimizer.step()
+    expected = {
+        name: float(th.sqrt(sum((p.grad.double() ** 2).sum() for p in params))) for name, params in layers.items()
+    }
+    last = recorder.last()
+    assert last.keys() == {"a", "b", "c"} and last["c"] == 0.0  # no gradient: zero
+    assert all(abs(last[name] - value) < 1e-5 * value for name, value in expected.items())
+
+
+def test_update_clock_counts_device_time_beyond_the_host_time():
+    class Event:
+        def __init__(self, at: float) -> None:
+            self.at, self.done = at, False
+
+        def query(self) -> bool:
+            return self.done
+
+        def synchronize(self) -> None:
+            self.done = True
+
+        def elapsed_time(self, end) -> float:
+            return (end.at - self.at) * 1000.0
+
+    clock, phase = UpdateClock(), PhaseTime(update_s=0.5, total_s=2.0)
+    start, end = Event(0.0), Event(1.5)
+    clock._pending.append((start, end, phase, 0.5))  # 0.5 s on the host, 1.5 s on the device
+    clock.collect()
+    assert phase.update_s == 0.5  # still running: nothing counted, nothing waited for
+    end.done = True
+    clock.collect()
+    assert phase.update_s == 1.5 and phase.overhead_s == 0.5 and clock._pending == []
+    clock.stop(None, phase, 1.0)  # off CUDA: nothing to time
+    assert clock._pending == [] and clock.start(th.device("cpu")) is None
+
+
+def test_no_host_synchronization_in_an_update(monkeypatch):
+    """An update reads nothing back to the host: ``.item()``, ``float``, ``.cpu()``, ``.tolist()``, ``.numpy()``."""
+    model = DrQv2(
+        "CnnPolicy", sb3_collapse.make_dmc_env("cartpole-balance", seed=0, action_repeat=8, size=36),
+        learning_starts=10, batch_size=8, buffer_size=100, seed=0, policy_kwargs=dict(hidden_dim=16, feature_dim=8),
+        replay_buffer_kwargs=dict(sampling="sb3"),
+    )  # fmt: skip
+    model.learn(20)
+    reads = []
+
+    class SyncAudit(TorchFunctionMode):
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            name = getattr(func, "__name__", "")
+            if name in ("item", "tolist", "cpu", "numpy", "__float__", "__int__", "__bool__", "nonzero"):
+                reads.append(name)
+            return func(*args, **(kwargs or {}))
+
+    with SyncAudit():
+        model.train(gradient_steps=2, batch_size=8)
+    assert reads == []
+    assert np.isfinite(model.last_grad_norms["cnn1"])
