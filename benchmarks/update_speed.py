@@ -3,6 +3,8 @@
 - ``ours``: ``DrQv2.train(gradient_steps=1)``, i.e. replay sampling, integer-crop augmentation on uint8 straight
   into channels_last, channels_last convolutions with their ReLU fused (oneDNN, CPU), the actor's backward restricted
   to the actor's parameters;
+- ``ours-ieee``: ``ours`` with IEEE float32 matmuls and convolutions on CUDA (TensorFloat-32 off; the same as
+  ``ours`` on the CPU);
 - ``ours compiled``: the same with ``compile_update=True`` (``torch.compile`` of the update's forward and backward
   passes; ``mode="reduce-overhead"``, CUDA graphs, on CUDA). Its compilation time is printed (the first update's
   time minus the median);
@@ -39,12 +41,15 @@ import torch as th
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import get_device
 
+from sb3_collapse.backends import configure_backends
 from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 
-IMPLS = ("reference", "ours", "ours-compiled")
-"""Implementations this script times (``--impls``)."""
+IMPLS = ("reference", "ours", "ours-compiled", "ours-ieee")
+"""Implementations this script times (``--impls``): ``ours`` and ``ours-compiled`` with TensorFloat-32 on CUDA (the
+train command's default, ``sb3_collapse.backends``), ``ours-ieee`` without it (``--no-tf32``); the reference with
+torch's defaults, as it runs."""
 
 
 def build_model(device: str, reference: bool, buffer_size: int, seed: int = 0, compile_update: bool = False) -> DrQv2:
@@ -93,6 +98,8 @@ def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int) -> 
     compiles a compiled update) and print their times, then answer each ``<batch> <updates>`` line of stdin with the
     milliseconds of that many updates.
     """
+    if impl != "reference":
+        configure_backends(tf32=impl != "ours-ieee")
     model = build_model(device, reference=impl == "reference", buffer_size=buffer_size, compile_update=impl == "ours-compiled")
     if impl == "reference":
         updates = {b: (lambda b=b: reference_update(model, model.replay_buffer.sample(b))) for b in batch_sizes}
