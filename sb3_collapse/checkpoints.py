@@ -71,6 +71,7 @@ from stable_baselines3.common.save_util import load_from_zip_file, recursive_set
 from torch.utils.tensorboard import SummaryWriter
 
 from sb3_collapse import __version__
+from sb3_collapse.drqv2.divergence import DivergenceError, all_finite
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.replay_checkpoint import CheckpointError as ReplayCheckpointError
 from sb3_collapse.drqv2.replay_checkpoint import ReplayStore
@@ -762,6 +763,10 @@ class ResumableCheckpoints(BaseCallback):
         ):
             return self.last_checkpoint  # taken at this step already (a signal right after a scheduled checkpoint)
         start = time.perf_counter()
+        if not bool(all_finite(self.model.policy.parameters())):  # never a checkpoint of diverged weights
+            raise DivergenceError(
+                f"training diverged: a weight is not finite at frame {self._frames():,}; no checkpoint was written."
+            )
         state = capture_state(
             self.model,
             self.callbacks,

@@ -8,6 +8,8 @@ through :func:`cli_message`, which names its flags instead (``--episodes must be
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import re
 
 
@@ -34,6 +36,29 @@ class ParameterError(InputError):
 
     def __init__(self, parameter: str, message: str) -> None:
         super().__init__(message, parameter)
+
+
+READ_ONLY_ERRNOS = (errno.EROFS, errno.EACCES, errno.EPERM)
+"""``OSError`` numbers of a folder or file that cannot be written: read-only file system, no permission."""
+
+FULL_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+"""``OSError`` numbers of a full disk or quota."""
+
+
+def unwritable_message(error: BaseException) -> str | None:
+    """
+    One line for an output that could not be written (a read-only or full disk, no permission), saying what to do.
+
+    :param error: any exception
+    :return: the message, ``None`` for an error of another kind
+    """
+    if not isinstance(error, OSError) or error.errno not in (*READ_ONLY_ERRNOS, *FULL_DISK_ERRNOS):
+        return None
+    where = error.filename if error.filename is not None else "an output file"
+    reason = os.strerror(error.errno)
+    if error.errno in FULL_DISK_ERRNOS:
+        return f"could not write {where} ({reason}): free space, then run the same command again."
+    return f"cannot write {where} ({reason}): choose a folder you can write to, or make this one writable."
 
 
 def parameter_flags(parser: argparse.ArgumentParser) -> dict[str, str]:

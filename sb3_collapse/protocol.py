@@ -14,13 +14,14 @@ DrQ-v2's own per-task hyperparameters (budgets, schedules, batch sizes...) are i
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
 import re
 import tempfile
 import traceback
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -187,6 +188,8 @@ FAILURE_HEADER = "failed at agent step {step} (frame {frame})"
 def write_failure(run_dir: str | os.PathLike, step: int, frame: int, error: BaseException) -> None:
     """
     Mark a run folder as failed: its error file (:data:`ERROR_TXT`) gets :data:`FAILURE_HEADER` and the traceback.
+    Best effort: where the folder cannot be written (a full or read-only disk) nothing is written, and the caller's
+    error, which says so, is what the user sees.
 
     :param run_dir: the run folder
     :param step: the agent step the run had reached
@@ -195,7 +198,8 @@ def write_failure(run_dir: str | os.PathLike, step: int, frame: int, error: Base
     """
     lines = traceback.format_exception(type(error), error, error.__traceback__)
     header = FAILURE_HEADER.format(step=step, frame=frame)
-    write_text_atomically(Path(run_dir) / ERROR_TXT, header + "\n" + "".join(lines))
+    with contextlib.suppress(OSError):  # best effort: on a full or read-only disk, the error itself says so
+        write_text_atomically(Path(run_dir) / ERROR_TXT, header + "\n" + "".join(lines))
 
 
 def failed_before_training(run_dir: str | os.PathLike) -> bool:
@@ -226,6 +230,32 @@ def blocking_file(folder: str | os.PathLike) -> Path | None:
     return None
 
 
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
+    """
+    A temporary path next to ``path`` to write into; when the block ends without an error, the file is flushed to disk
+    and renamed to ``path`` (readers see the previous file, or none, or the complete new one); after an error it is
+    removed, and ``path`` is left as it was. The file gets the permissions of a new file under the process's umask.
+
+    :param path: the final file; the temporary one ends with the same suffix (``.zip`` for SB3's ``save``)
+    :return: the temporary path
+    """
+    path = Path(path)
+    handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".partial{path.suffix}", dir=path.parent)
+    os.close(handle)
+    temporary = Path(name)
+    try:
+        yield temporary
+        with temporary.open("rb+") as file:
+            os.fsync(file.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(temporary, 0o666 & ~umask)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
 def write_text_atomically(path: str | os.PathLike, text: str) -> None:
     """
     Write ``text`` to a temporary file next to ``path``, flush it to disk, then rename it to ``path``: readers see
@@ -235,21 +265,8 @@ def write_text_atomically(path: str | os.PathLike, text: str) -> None:
     :param path: the file
     :param text: its content
     """
-    path = Path(path)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w") as file:
-            file.write(text)
-            file.flush()
-            os.fsync(file.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(temporary, 0o666 & ~umask)
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
+    with atomic_output(path) as temporary:
+        temporary.write_text(text)
 
 
 def write_json_atomically(path: str | os.PathLike, content: Any) -> None:

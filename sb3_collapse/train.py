@@ -32,6 +32,7 @@ environment (``docs/throughput.md``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import functools
 import json
@@ -66,6 +67,7 @@ from sb3_collapse.checkpoints import (
     stop_signals,
 )
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
+from sb3_collapse.drqv2.divergence import DivergenceError
 from sb3_collapse.drqv2.drqv2 import check_hyperparameters
 from sb3_collapse.drqv2.policies import check_image_size
 from sb3_collapse.drqv2.probe_checkpoint import ProbeCheckpoints
@@ -75,7 +77,7 @@ from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.envs.replay import EpisodeReplay
-from sb3_collapse.errors import InputError, ParameterError, cli_message
+from sb3_collapse.errors import InputError, ParameterError, cli_message, unwritable_message
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset, frames_of
 from sb3_collapse.monitoring.callbacks import ResumableCallback
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
@@ -96,6 +98,7 @@ from sb3_collapse.protocol import (
     PROGRESS_CSV,
     RESULT_JSON,
     append_csv_rows,
+    atomic_output,
     blocking_file,
     failed_before_training,
     write_failure,
@@ -568,6 +571,7 @@ def run_summary(
         "wall_time_s": round(wall_time_s, 2),
         "timings": model.timings.as_dict() if isinstance(model, DrQv2) else None,
         "resumes": resumes,
+        "divergence_warnings": list(model.divergence_guard.warnings) if isinstance(model, DrQv2) else [],
     }
 
 
@@ -734,8 +738,17 @@ def train(config: TrainConfig) -> TrainResult:
         run_dir = Path(config.run_dir)
     else:
         run_dir = _new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}", config)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    with RunLock(run_dir):
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        lock = RunLock(run_dir)
+        lock.__enter__()
+    except OSError as error:  # a read-only or full disk, no permission: nothing was written
+        message = unwritable_message(error)
+        if message is None:
+            raise
+        raise InputError(f"run folder: {message}") from None
+    with contextlib.ExitStack() as stack:
+        stack.push(lock)
         checkpoint = _open_run_dir(run_dir, config)
         try:
             result = _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint)
@@ -897,6 +910,12 @@ def _train_into(
         algorithm = f"SB3's {type(model).__name__}"
         details = f"lr {config.learning_rate:g}; DrQ-v2-only settings not used: {', '.join(DRQV2_ONLY_SETTINGS)}"
     rule = f", reset rule: {config.intervention or 'reset'}" if config.reset_rule else ""
+    if config.frames % config.action_repeat:  # type: ignore[operator]
+        print(
+            f"Note: the budget of {config.frames:,} frames is not a multiple of the action repeat "
+            f"{config.action_repeat}: the run trains {steps * config.action_repeat:,} frames ({steps:,} agent steps).",
+            flush=True,
+        )
     print(
         f"{algorithm} on {task_id} from pixels{rule}: {config.frames:,} frames = {steps:,} agent steps "
         f"(action repeat {config.action_repeat}{f', summed over {config.n_envs} envs' if config.n_envs > 1 else ''}), "
@@ -919,20 +938,38 @@ def _train_into(
         model.logger.close()
         env.close()
         raise
+    except DivergenceError as error:
+        model.logger.close()
+        env.close()
+        kept = checkpoints.last_checkpoint
+        where = (
+            f"its last checkpoint, {kept}, holds the weights before it" if kept is not None else "no checkpoint was written"
+        )
+        raise DivergenceError(f"{error} The run stops; {where}. Try a smaller --lr in another run folder.") from None
     model_path = run_dir / FINAL_MODEL
-    model.save(model_path)
-    if evaluation is not None and evaluation.rows and evaluation.rows[-1]["step"] < model.num_timesteps:
-        evaluation.evaluate()  # the budget's last frames were not evaluated yet
-    if probe_checkpoints is not None:
-        probe_checkpoints.save()  # the final model's, next to its evaluation (once per frame)
-    model.logger.close()
-    env.close()
-    evaluations = evaluation.rows if evaluation is not None else []
-    if evaluations:
-        last = evaluations[-1]
-        print(f"Last evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- {last['std_reward']:.1f}")
-    summary = run_summary(config, task_id, model, evaluations, reset_rule, earlier_s + time.time() - start_time, resumes)
-    write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
+    try:
+        with atomic_output(model_path) as temporary:
+            model.save(temporary)
+        if evaluation is not None and evaluation.rows and evaluation.rows[-1]["step"] < model.num_timesteps:
+            evaluation.evaluate()  # the budget's last frames were not evaluated yet
+        if probe_checkpoints is not None:
+            probe_checkpoints.save()  # the final model's, next to its evaluation (once per frame)
+        model.logger.close()
+        env.close()
+        evaluations = evaluation.rows if evaluation is not None else []
+        if evaluations:
+            last = evaluations[-1]
+            print(f"Last evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- {last['std_reward']:.1f}")
+        elapsed = earlier_s + time.time() - start_time
+        summary = run_summary(config, task_id, model, evaluations, reset_rule, elapsed, resumes)
+        write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
+    except OSError as error:
+        message = unwritable_message(error)
+        if message is None:
+            raise
+        kept = checkpoints.last_checkpoint
+        resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
+        raise CheckpointError(f"{message} The run's final outputs are not written; {resume}.") from None
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
     return TrainResult(run_dir=run_dir, model_path=model_path, evaluations=evaluations, summary=summary)
@@ -1049,7 +1086,7 @@ def main(argv: list[str] | None = None) -> int:
         train(config)
     except InputError as error:  # raised before training: nothing was written
         parser.error(re.sub(r"init_from\['(\w+)'\]", r"--init-\1", cli_message(error, parser)))
-    except CheckpointError as error:
+    except (CheckpointError, DivergenceError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
     except TrainingInterrupted as error:

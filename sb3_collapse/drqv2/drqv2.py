@@ -33,6 +33,7 @@ from torch.nn import functional as F
 
 from sb3_collapse.drqv2.augmentation import draw_shifts, random_shift
 from sb3_collapse.drqv2.cpu_allocator import tune_cpu_allocator
+from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
 from sb3_collapse.drqv2.policies import (
     Actor,
     CnnPolicy,
@@ -283,6 +284,9 @@ class DrQv2(OffPolicyAlgorithm):
         """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
         self._train_stats: dict[str, th.Tensor] = {}
         self._train_stats_count = 0
+        self.divergence_guard = DivergenceGuard()
+        """Stops training on a loss or weight that is not finite, warns once when a loss grows by orders of magnitude
+        (read at each log dump; see ``sb3_collapse.drqv2.divergence``)."""
         self._warned_replay_not_ready = False
         self.reset_step = 0
         """Agent step (``num_timesteps``) of the last :meth:`reset_from_scratch`, 0 when none; saved with the model."""
@@ -469,6 +473,11 @@ class DrQv2(OffPolicyAlgorithm):
         else:
             self.policy.exploration_std = self.current_stddev
             unscaled_action, _ = self.predict(self._last_obs, deterministic=False)  # type: ignore[arg-type]
+            if not np.isfinite(unscaled_action).all():  # on the host already: checking costs nothing
+                raise DivergenceError(
+                    f"training diverged: the actor's action is not finite after update {self._n_updates} "
+                    f"(frame {self.num_frames:,})."
+                )
         buffer_action = self.policy.scale_action(unscaled_action)
         return self.policy.unscale_action(buffer_action), buffer_action
 
@@ -777,11 +786,16 @@ class DrQv2(OffPolicyAlgorithm):
         """Accumulate a statistic on the device; it is averaged and logged at the next ``dump_logs``."""
         self._train_stats[name] = self._train_stats[name] + value if name in self._train_stats else value.clone()
 
-    def _record_train_stats(self) -> None:
-        """Write the averages of the statistics accumulated since the last dump to the logger."""
+    def _record_train_stats(self) -> tuple[dict[str, float], bool] | None:
+        """
+        Write the averages of the statistics accumulated since the last dump to the logger.
+
+        :return: the mean losses and whether every weight is finite, for the divergence guard; ``None`` without updates
+        """
         if self._train_stats_count == 0:
-            return
+            return None
         n = self._train_stats_count
+        finite = all_finite(self.policy.parameters())
         stats = {name: value.detach().cpu() for name, value in self._train_stats.items()}
         for name, value in stats.items():
             if name == "grad_norms":
@@ -792,10 +806,21 @@ class DrQv2(OffPolicyAlgorithm):
         self.logger.record("train/stddev", self.current_stddev)
         self._train_stats = {}
         self._train_stats_count = 0
+        losses = {name: float(stats[name]) / n for name in ("critic_loss", "actor_loss") if name in stats}
+        return losses, bool(finite)
 
     def dump_logs(self) -> None:
-        self._record_train_stats()
+        checked = self._record_train_stats()
         self.logger.record("time/frames", self.num_frames)
+        if checked is not None:
+            given = len(self.divergence_guard.warnings)
+            try:
+                self.divergence_guard.check(*checked, update=self._n_updates, frame=self.num_frames)
+            except DivergenceError:
+                super().dump_logs()  # the non-finite values reach the logs too
+                raise
+            if len(self.divergence_guard.warnings) > given:
+                self.logger.record("train/divergence_warnings", len(self.divergence_guard.warnings))
         super().dump_logs()
 
     # ------------------------------------------------------------------ learn / save

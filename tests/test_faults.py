@@ -1,0 +1,153 @@
+"""
+Faults around a run's end and its folder: a full disk at the final save, a read-only folder, a diverging run.
+"""
+
+from __future__ import annotations
+
+import errno
+import math
+import warnings
+from pathlib import Path
+
+import pytest
+import torch as th
+from stable_baselines3.common.save_util import load_from_zip_file
+
+from sb3_collapse import DrQv2
+from sb3_collapse.checkpoints import checkpoint_folders
+from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
+from sb3_collapse.errors import unwritable_message
+from sb3_collapse.protocol import CHECKPOINT_MODEL, CHECKPOINTS_DIR, FINAL_MODEL, RESULT_JSON, atomic_output
+from sb3_collapse.train import main
+
+
+def _flags(run_dir: Path, frames: int = 800) -> list[str]:
+    return [
+        "--env", "cartpole-balance", "--frames", str(frames), "--action-repeat", "20", "--size", "36", "--hidden-dim", "16",
+        "--feature-dim", "8", "--batch-size", "8", "--seed-frames", "200", "--eval-every-frames", "0",
+        "--checkpoint-every-frames", "200", "--collapse-metrics-every-frames", "0", "--no-progress-bar",
+        "--replay-sampling", "sb3", "--torch-threads", "1", "--run-dir", str(run_dir),
+    ]  # fmt: skip
+
+
+@pytest.fixture(autouse=True)
+def _keep_torch_threads():
+    threads = th.get_num_threads()
+    yield
+    th.set_num_threads(threads)
+
+
+def test_atomic_output_leaves_nothing_under_the_final_name_after_an_error(tmp_path):
+    target = tmp_path / "final_model.zip"
+    target.write_text("previous")
+    with pytest.raises(OSError, match="No space"), atomic_output(target) as temporary:
+        assert temporary.suffix == ".zip" and temporary.parent == tmp_path
+        temporary.write_text("half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert target.read_text() == "previous" and [p.name for p in tmp_path.iterdir()] == ["final_model.zip"]
+    with atomic_output(target) as temporary:
+        temporary.write_text("new")
+    assert target.read_text() == "new" and [p.name for p in tmp_path.iterdir()] == ["final_model.zip"]
+
+
+def test_unwritable_messages():
+    assert unwritable_message(ValueError("x")) is None
+    assert unwritable_message(OSError(errno.ENOENT, "No such file", "a")) is None
+    full = unwritable_message(OSError(errno.ENOSPC, "No space left on device", "/runs/x/final_model.zip"))
+    assert (
+        full
+        == "could not write /runs/x/final_model.zip (No space left on device): free space, then run the same command again."
+    )
+    assert "cannot write /ro (Read-only file system): choose a folder you can write to" in unwritable_message(
+        OSError(errno.EROFS, "Read-only file system", "/ro")
+    )
+
+
+def test_full_disk_at_the_final_save_is_one_line_and_the_rerun_finishes(tmp_path, monkeypatch, capsys):
+    run_dir = tmp_path / "run"
+    original = DrQv2.save
+
+    def full_disk(self, path, *args, **kwargs):
+        if "final_model" not in str(path):  # the checkpoints fit
+            return original(self, path, *args, **kwargs)
+        with open(path, "wb") as file:
+            file.write(b"PK\x03\x04 truncated")  # what a full disk leaves behind
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(DrQv2, "save", full_disk)
+    assert main(_flags(run_dir, frames=810)) == 1
+    printed = capsys.readouterr()
+    assert (
+        "the budget of 810 frames is not a multiple of the action repeat 20: the run trains 800 frames" in printed.out
+    )
+    error = printed.err.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith("error: could not write ") and "No space left on device" in error[0]
+    assert "free space, then run the same command again" in error[0] and "resumes from the checkpoint step_" in error[0]
+    assert not (run_dir / FINAL_MODEL).exists() and not (run_dir / RESULT_JSON).exists()
+    assert not [path for path in run_dir.iterdir() if path.name.startswith(".")]  # no partial file left
+    assert checkpoint_folders(run_dir / CHECKPOINTS_DIR)
+
+    monkeypatch.setattr(DrQv2, "save", original)
+    assert main(_flags(run_dir, frames=810)) == 0  # the same command finishes from the checkpoint
+    assert "Resuming" in capsys.readouterr().out
+    assert (run_dir / RESULT_JSON).is_file() and load_from_zip_file(run_dir / FINAL_MODEL)[1]
+
+
+def test_read_only_run_folder_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys):
+    run_dir = tmp_path / "read-only" / "run"
+    original = Path.mkdir
+
+    def read_only(self, *args, **kwargs):
+        if str(self).startswith(str(tmp_path / "read-only")):
+            raise OSError(errno.EROFS, "Read-only file system", str(self))
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", read_only)
+    with pytest.raises(SystemExit) as exit_info:
+        main(_flags(run_dir))
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "error: run folder: cannot write " in error and "(Read-only file system)" in error
+    assert not (tmp_path / "read-only").exists()
+
+
+def test_divergence_guard_stops_on_non_finite_values_and_warns_once_on_growth():
+    guard = DivergenceGuard(growth=100.0, reference_dumps=2)
+    guard.check({"critic_loss": 3.0, "actor_loss": -0.5}, True, update=10, frame=100)
+    guard.check({"critic_loss": 5.0, "actor_loss": -0.2}, True, update=20, frame=200)
+    assert guard.scale == {"critic_loss": 5.0, "actor_loss": 1.0}
+    guard.check({"critic_loss": 400.0, "actor_loss": -90.0}, True, update=30, frame=300)  # 80x and 90x: no warning
+    with pytest.warns(RuntimeWarning, match=r"the critic_loss grew to 600 at update 40 \(frame 400\)"):
+        guard.check({"critic_loss": 600.0, "actor_loss": -1.0}, True, update=40, frame=400)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        guard.check({"critic_loss": 1e6, "actor_loss": -1.0}, True, update=50, frame=500)  # once per loss
+    assert len(guard.warnings) == 1
+    with pytest.raises(DivergenceError, match=r"the critic_loss is nan at update 60 \(frame 600\)"):
+        guard.check({"critic_loss": math.nan, "actor_loss": 0.0}, True, update=60, frame=600)
+    with pytest.raises(DivergenceError, match="a weight is not finite after update 70"):
+        guard.check({"critic_loss": 1.0}, False, update=70, frame=700)
+    assert bool(all_finite([th.ones(2), th.zeros(3)])) and not bool(all_finite([th.ones(2), th.tensor([math.inf])]))
+
+
+def test_diverging_run_stops_with_one_line_and_keeps_its_last_finite_checkpoint(tmp_path, monkeypatch, capsys):
+    run_dir = tmp_path / "run"
+    original = DrQv2._update
+    calls = []
+
+    def diverging(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        calls.append(1)
+        if len(calls) == 8:  # frame 520: after the checkpoint at frame 400
+            with th.no_grad():
+                next(self.critic.parameters()).fill_(math.nan)
+
+    monkeypatch.setattr(DrQv2, "_update", diverging)
+    assert main(_flags(run_dir)) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith("error: training diverged: ")
+    assert "its last checkpoint" in error[0] and "Try a smaller --lr" in error[0]
+    kept = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
+    assert kept and not (run_dir / RESULT_JSON).exists()
+    weights = load_from_zip_file(kept[0] / CHECKPOINT_MODEL)[1]["policy"]
+    assert all(th.isfinite(tensor).all() for tensor in weights.values())
