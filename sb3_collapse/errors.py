@@ -9,8 +9,14 @@ from __future__ import annotations
 
 import argparse
 import errno
+import functools
 import os
 import re
+import sys
+from collections.abc import Callable
+from typing import ParamSpec
+
+P = ParamSpec("P")
 
 
 class InputError(ValueError):
@@ -59,6 +65,30 @@ def unwritable_message(error: BaseException) -> str | None:
     if error.errno in FULL_DISK_ERRNOS:
         return f"could not write {where} ({reason}): free space, then run the same command again."
     return f"cannot write {where} ({reason}): choose a folder you can write to, or make this one writable."
+
+
+def report_unwritable_outputs(main: Callable[P, int]) -> Callable[P, int]:
+    """
+    Decorate a command line's ``main``: an output it could not write (:func:`unwritable_message`) ends it with one
+    line, ``error: ...``, on stderr and exit status 2 for a read-only folder or no permission (fix the input), 1 for a
+    full disk (try again), instead of a traceback. Other errors pass through.
+
+    :param main: the command's ``main(argv) -> exit status``
+    :return: the decorated ``main``
+    """
+
+    @functools.wraps(main)
+    def wrapped(*args: P.args, **kwargs: P.kwargs) -> int:
+        try:
+            return main(*args, **kwargs)
+        except OSError as error:
+            message = unwritable_message(error)
+            if message is None:
+                raise
+            print(f"error: {message}", file=sys.stderr)
+            return 1 if error.errno in FULL_DISK_ERRNOS else 2
+
+    return wrapped
 
 
 def parameter_flags(parser: argparse.ArgumentParser) -> dict[str, str]:

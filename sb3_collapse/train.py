@@ -77,7 +77,13 @@ from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.envs.replay import EpisodeReplay
-from sb3_collapse.errors import InputError, ParameterError, cli_message, unwritable_message
+from sb3_collapse.errors import (
+    InputError,
+    ParameterError,
+    cli_message,
+    report_unwritable_outputs,
+    unwritable_message,
+)
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset, frames_of
 from sb3_collapse.monitoring.callbacks import ResumableCallback
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
@@ -1063,6 +1069,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
     """
     :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)

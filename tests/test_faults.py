@@ -16,8 +16,9 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from sb3_collapse import DrQv2
 from sb3_collapse.checkpoints import checkpoint_folders
 from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
-from sb3_collapse.errors import unwritable_message
+from sb3_collapse.errors import report_unwritable_outputs, unwritable_message
 from sb3_collapse.protocol import CHECKPOINT_MODEL, CHECKPOINTS_DIR, FINAL_MODEL, RESULT_JSON, atomic_output
+from sb3_collapse.sweep.__main__ import main as sweep_main
 from sb3_collapse.train import main
 
 
@@ -151,3 +152,44 @@ def test_diverging_run_stops_with_one_line_and_keeps_its_last_finite_checkpoint(
     assert kept and not (run_dir / RESULT_JSON).exists()
     weights = load_from_zip_file(kept[0] / CHECKPOINT_MODEL)[1]["policy"]
     assert all(th.isfinite(tensor).all() for tensor in weights.values())
+
+
+def test_command_lines_end_with_one_line_on_an_unwritable_output(capsys):
+    def failing(error: OSError):
+        @report_unwritable_outputs
+        def main(argv: list[str] | None = None) -> int:
+            raise error
+
+        return main
+
+    assert failing(OSError(errno.EROFS, "Read-only file system", "/ro/out"))([]) == 2
+    assert failing(OSError(errno.ENOSPC, "No space left on device", "/full/out"))([]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        (
+            "error: cannot write /ro/out (Read-only file system): choose a folder you can write to, or make this one "
+            "writable."
+        ),
+        "error: could not write /full/out (No space left on device): free space, then run the same command again.",
+    ]
+    with pytest.raises(FileNotFoundError):
+        failing(FileNotFoundError(errno.ENOENT, "No such file or directory", "/x"))([])
+
+
+def test_sweep_into_a_read_only_folder_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "read-only" / "sweep"
+    original = Path.mkdir
+
+    def read_only(self, *args, **kwargs):
+        if "read-only" in str(self):
+            raise OSError(errno.EROFS, "Read-only file system", str(self))
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", read_only)
+    flags = ["--frames", "800", "--action-repeat", "20", "--size", "36", "--eval-every-frames", "400"]
+    status = sweep_main(["--tasks", "cartpole-balance", "--seeds", "1", "--out", str(out), *flags])
+    assert status == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error == [
+        f"error: cannot write {out} (Read-only file system): choose a folder you can write to, or make this one writable."
+    ]
+    assert not (tmp_path / "read-only").exists()

@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from sb3_collapse.errors import cli_message
+from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, STRIP_EVERY_FRAMES, film_to_folder
 from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
@@ -210,6 +210,7 @@ def _settings(args: argparse.Namespace) -> ProbeSettings:
     )
 
 
+@report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
     """
     :param argv: the arguments (``sys.argv[1:]`` when ``None``); a first argument that is not a sub-command

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from sb3_collapse.errors import cli_message
+from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.collapse_figure import is_run_folder
 from sb3_collapse.report.errors import ReportError
@@ -99,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
     """
     :param argv: the arguments (``sys.argv[1:]`` when ``None``)

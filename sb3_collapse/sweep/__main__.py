@@ -16,7 +16,7 @@ from collections import Counter
 from pathlib import Path
 
 from sb3_collapse.checkpoints import checkpoint_frames
-from sb3_collapse.errors import cli_message
+from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.protocol import CHECKPOINTS_DIR
 from sb3_collapse.sweep.runner import (
@@ -103,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
     """
     :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
