@@ -281,6 +281,8 @@ class ReplayPrefetcher:
     def _prefetched(
         self, buffer: FrameStackReplayBuffer, gradient_steps: int, batch_size: int
     ) -> Iterator[ReplayBufferSamples]:
+        if gradient_steps < 1:
+            return
         indices = [buffer.sample_indices(batch_size) for _ in range(gradient_steps)]  # all draws, in sample()'s order
         staging = self._staging_on(buffer.device)
         pending: Future[Any] | None = None

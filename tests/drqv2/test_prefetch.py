@@ -115,7 +115,7 @@ def test_prefetched_batches_are_those_of_sample(monkeypatch, staged, sampling, n
     expected_next = np.random.rand()
     np.random.seed(3)
     prefetcher = ReplayPrefetcher(enabled=True)
-    batches, next_draw = run_calls(prefetcher, buffer, calls, batch_size)
+    batches, next_draw = run_calls(prefetcher, buffer, (0, *calls), batch_size)  # a call of 0 steps draws nothing
     assert len(batches) == len(expected) == 10
     for batch, reference in zip(batches, expected):  # held until the end: no batch aliases a reused buffer
         assert_same_samples(batch, reference)
