@@ -46,6 +46,7 @@ from sb3_collapse.drqv2.policies import (
     exploration_noise,
     noisy_action,
 )
+from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
 from sb3_collapse.drqv2.replay_buffer import (
     DEFAULT_MIN_EPISODE_LENGTH,
     FrameStackReplayBuffer,
@@ -271,6 +272,7 @@ class DrQv2(OffPolicyAlgorithm):
         self.step_envs_during_updates = step_envs_during_updates
         self.compile_update = compile_update
         self.callback = callback
+        self.replay_prefetcher = ReplayPrefetcher()  # replay batches for train(), see sb3_collapse.drqv2.prefetch
         self.timings = LearnTimings()
         """Where the time of the last (or current) :meth:`learn` call went (see ``sb3_collapse.drqv2.timing``)."""
         self._update_clock = UpdateClock()
@@ -619,6 +621,9 @@ class DrQv2(OffPolicyAlgorithm):
         After a :meth:`reset_from_scratch` at transition ``reset_step > 0``, no update happens until
         ``learning_starts`` transitions were collected since the reset (``learn()`` asks for none, see
         :meth:`updates_due`; a direct call is skipped too, and a verbose model says so).
+
+        The batches are ``replay_buffer.sample``'s, in the same order; ``self.replay_prefetcher`` makes them (on
+        CUDA, one batch ahead through pinned buffers; see ``sb3_collapse.drqv2.prefetch``).
         """
         if self.reset_step > 0 and self.num_timesteps - self.reset_step <= self.learning_starts:
             if self.verbose >= 2:
@@ -630,11 +635,13 @@ class DrQv2(OffPolicyAlgorithm):
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizers)
         std = self.current_stddev
-        for _ in range(gradient_steps):
-            self._n_updates += 1
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-            self._update(replay_data, discounts, std)
+        buffer, env = self.replay_buffer, self._vec_normalize_env
+        assert buffer is not None
+        with self.replay_prefetcher.batches(buffer, gradient_steps, batch_size, env) as batches:
+            for replay_data in batches:
+                self._n_updates += 1
+                discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+                self._update(replay_data, discounts, std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
 
     def _warn_replay_not_ready(self) -> None:
@@ -1072,6 +1079,7 @@ class DrQv2(OffPolicyAlgorithm):
             "_round",
             "_round_used_policy",
             "hold_next_step",
+            "replay_prefetcher",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -107,7 +107,10 @@ class FrameStackReplayBuffer(ReplayBuffer):
     and never past the last transition written; ``discounts`` ``gamma ** k`` for the ``k`` rewards summed;
     ``next_observations`` the ``next_obs`` of the last transition summed; ``dones`` its termination, 0 after a
     time limit (bootstrapped). ``sample`` draws indices as SB3 does, with the same calls to ``np.random``, so
-    the same seed gives the same batch while every transition is sampleable (see below).
+    the same seed gives the same batch while every transition is sampleable (see below). It is two steps:
+    :meth:`sample_indices` draws the indices (the only random draws), :meth:`sample_arrays` gathers the
+    transitions on the host (``sb3_collapse.drqv2.prefetch`` gathers there ahead of the update, into pinned
+    buffers on CUDA), and ``_get_samples`` turns them into tensors on ``device``.
 
     **Which transitions are sampled** (``sampling``):
 
@@ -355,6 +358,20 @@ class FrameStackReplayBuffer(ReplayBuffer):
         :raises ValueError: when no transition is sampleable (``sampling="drqv2"`` before any episode with at
             least ``n_steps`` transitions has finished)
         """
+        batch_inds, env_indices = self.sample_indices(batch_size)
+        return self._get_samples(batch_inds, env=env, env_indices=env_indices)
+
+    def sample_indices(self, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+        """
+        The ``(pos, env)`` indices that :meth:`sample` draws (the same calls to ``np.random``, in the same order):
+        ``sample(batch_size, env)`` is ``_get_samples(*sample_indices(batch_size)...)``. Drawing depends on the
+        buffer's state, not on the samples: indices drawn ahead for several batches, with nothing else drawing from
+        ``np.random`` in between and nothing added to the buffer, are those of as many :meth:`sample` calls.
+
+        :param batch_size: number of transitions
+        :return: positions ``(batch_size,)`` and environments ``(batch_size,)``, all sampleable
+        :raises ValueError: as :meth:`sample`
+        """
         upper_bound = self.buffer_size if self.full else self.pos
         if upper_bound == 0:
             raise ValueError("The replay buffer is empty: add transitions before sampling.")
@@ -375,7 +392,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
             batch_inds[redraw] = np.random.randint(0, upper_bound, size=count)
             env_indices[redraw] = np.random.randint(0, self.n_envs, size=count)
             redraw[redraw] = ~self.is_sampleable(batch_inds[redraw], env_indices[redraw])
-        return self._get_samples(batch_inds, env=env, env_indices=env_indices)
+        return batch_inds, env_indices
 
     def _any_sampleable(self, upper_bound: int) -> bool:
         """Whether any stored ``(pos, env)`` is sampleable (a pass over the whole buffer)."""
@@ -400,11 +417,46 @@ class FrameStackReplayBuffer(ReplayBuffer):
         """
         if env_indices is None:
             env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
+        arrays = self.sample_arrays(batch_inds, env_indices, env=env)
+        return ReplayBufferSamples(
+            observations=self.to_torch(arrays["observations"], copy=False),
+            actions=self.to_torch(arrays["actions"]),
+            next_observations=self.to_torch(arrays["next_observations"], copy=False),
+            dones=self.to_torch(arrays["dones"]),
+            rewards=self.to_torch(arrays["rewards"]),
+            discounts=self.to_torch(arrays["discounts"]),
+        )
+
+    def sample_arrays(
+        self,
+        batch_inds: np.ndarray,
+        env_indices: np.ndarray,
+        env: VecNormalize | None = None,
+        frames_out: np.ndarray | None = None,
+    ) -> dict[str, np.ndarray]:
+        """
+        What :meth:`_get_samples` returns, as NumPy arrays on the host (it converts them with ``to_torch``); the
+        stacks can be gathered straight into a given array (e.g. a pinned staging buffer, see
+        ``sb3_collapse.drqv2.prefetch``). Reads the buffer, draws no random number.
+
+        :param batch_inds: positions of the first transitions
+        :param env_indices: their environments
+        :param env: VecNormalize env to normalize the observations and rewards with, as in SB3
+        :param frames_out: where to gather ``observations`` and ``next_observations`` (``frames_out[0]`` and
+            ``frames_out[1]``): a C-contiguous array ``(2, batch, channels * frame_stack, height, width)`` of the
+            frames' dtype; only without ``env`` (normalized observations are float). ``None``: new arrays
+        :return: the fields of ``ReplayBufferSamples`` by name: ``observations`` and ``next_observations``
+            ``(batch, channels * frame_stack, height, width)``, ``actions`` ``(batch, action_dim)``, ``dones``,
+            ``rewards`` (n-step returns) and ``discounts`` ``(batch, 1)``
+        :raises ValueError: if a transition's frames have been overwritten (see :meth:`frames_stored`)
+        """
         if not self.frames_stored(batch_inds, env_indices).all():
             raise ValueError(
                 "Some requested transitions have had their frames overwritten by newer episodes: sample them "
                 "only where frames_stored(batch_inds, env_indices) is True."
             )
+        if frames_out is not None and env is not None:
+            raise ValueError("sample_arrays: frames_out takes the stored frames, not normalized ones: pass env=None.")
         steps = np.arange(self.n_steps)
         window = (batch_inds[:, None] + steps) % self.buffer_size  # [batch, n_steps]
         envs = env_indices[:, None]
@@ -421,27 +473,41 @@ class FrameStackReplayBuffer(ReplayBuffer):
 
         last = (batch_inds + used) % self.buffer_size
         dones = (self.dones[last, env_indices] * (1.0 - self.timeouts[last, env_indices]))[:, None]
-        obs = self._stacks(self.frame_starts[batch_inds, env_indices], env_indices)
-        next_obs = self._stacks(self.frame_starts[last, env_indices] + 1, env_indices)
-        return ReplayBufferSamples(
-            observations=self.to_torch(self._normalize_obs(obs, env), copy=False),  # type: ignore[arg-type]
-            actions=self.to_torch(self.actions[batch_inds, env_indices]),
-            next_observations=self.to_torch(self._normalize_obs(next_obs, env), copy=False),  # type: ignore[arg-type]
-            dones=self.to_torch(dones.astype(np.float32)),
-            rewards=self.to_torch(returns),
-            discounts=self.to_torch(discounts),
-        )
+        out = (None, None) if frames_out is None else (frames_out[0], frames_out[1])
+        obs = self._stacks(self.frame_starts[batch_inds, env_indices], env_indices, out=out[0])
+        next_obs = self._stacks(self.frame_starts[last, env_indices] + 1, env_indices, out=out[1])
+        return {
+            "observations": self._normalize_obs(obs, env),  # type: ignore[dict-item]
+            "actions": self.actions[batch_inds, env_indices],
+            "next_observations": self._normalize_obs(next_obs, env),  # type: ignore[dict-item]
+            "dones": dones.astype(np.float32),
+            "rewards": returns,
+            "discounts": discounts,
+        }
 
-    def _stacks(self, first_frames: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
+    def _stacks(self, first_frames: np.ndarray, env_indices: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """
         :param first_frames: frame number of the first (oldest) frame of each stack
         :param env_indices: environment of each stack
-        :return: the stacks, ``(batch, channels * frame_stack, height, width)``, in a new array
+        :param out: a C-contiguous array ``(batch, channels * frame_stack, height, width)`` of the frames' dtype
+            to gather into; ``None``: a new array
+        :return: the stacks, ``(batch, channels * frame_stack, height, width)`` (``out`` when given)
         """
         slots = (first_frames[:, None] + self._frame_offsets) % self.frame_capacity  # [batch, frame_stack]
         flat_frames = self.frames.reshape(self.frame_capacity * self.n_envs, -1)
-        stacked = np.take(flat_frames, (slots * self.n_envs + env_indices[:, None]).ravel(), axis=0)
-        return stacked.reshape(len(first_frames), *self.obs_shape)
+        rows = (slots * self.n_envs + env_indices[:, None]).ravel()
+        if out is None:
+            stacked = np.take(flat_frames, rows, axis=0)
+            return stacked.reshape(len(first_frames), *self.obs_shape)
+        expected = (len(first_frames), *self.obs_shape)
+        if out.shape != expected or out.dtype != self.frames.dtype or not out.flags.c_contiguous:
+            raise ValueError(
+                f"frames_out must be C-contiguous {self.frames.dtype} of shape (2, *{expected}), got "
+                f"{out.dtype} {out.shape}."
+            )
+        # mode="clip" writes straight into out (the default mode="raise" buffers it); every row is in range.
+        np.take(flat_frames, rows, axis=0, out=out.reshape(len(rows), -1), mode="clip")
+        return out
 
 
 def _check_layout(observation_space: spaces.Space, frame_stack: int | None) -> int:
