@@ -6,7 +6,7 @@
 # On a GPU machine without network (this project's lent machines): run `bash benchmarks/gpu_prepare.sh` where there is
 # network, then carry .whl/ and .gl/ along; this script installs them. Steps, each under its own time limit:
 #   1. the CUDA tests (pytest -m cuda: tests/test_cuda.py and the other tests marked cuda)   ~3 min
-#   2. benchmarks/update_speed.py at the paper's batch sizes: reference, ours, compiled, TF32 off   ~2 min
+#   2. benchmarks/update_speed.py at the paper's batch sizes: reference, ours, compiled, TF32 off, no prefetch   ~2 min
 #   3. benchmarks/train_throughput.py at the paper's configuration (walker-walk, batch 512)   ~2 min
 #   4. a cartpole-balance learning run at its preset for the time left   ~2-3 min
 # Results go to $OUT (default benchmarks/gpu-results/), the figures benchmarks/README.md takes: machine.txt,
@@ -49,7 +49,7 @@ mapfile -t cuda_tests < <(grep -rl "mark.cuda" tests --include="test_*.py")  # n
 timeout 240 "$PY" -m pytest -m cuda -q -p no:cacheprovider "${cuda_tests[@]}" 2>&1 | tee "$OUT/cuda_tests.log"
 
 step "2. Update speed, batch 512 and 256"
-timeout 150 "$PY" benchmarks/update_speed.py --device cuda --impls reference ours ours-compiled ours-ieee \
+timeout 150 "$PY" benchmarks/update_speed.py --device cuda --impls reference ours ours-compiled ours-ieee ours-no-prefetch \
     --batch-sizes 512 256 --rounds 3 --updates 20 2>&1 | tee "$OUT/update_speed.txt"
 
 step "3. Training throughput, walker-walk at the paper's configuration"

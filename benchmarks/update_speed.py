@@ -5,6 +5,8 @@
   to the actor's parameters;
 - ``ours-ieee``: ``ours`` with IEEE float32 matmuls and convolutions on CUDA (TensorFloat-32 off; the same as
   ``ours`` on the CPU);
+- ``ours-no-prefetch``: ``ours`` with the replay batch copied to the device as before the prefetcher (pageable memory,
+  blocking copies; the same as ``ours`` on the CPU, where the prefetcher is off);
 - ``ours compiled``: the same with ``compile_update=True`` (``torch.compile`` of the update's forward and backward
   passes; ``mode="reduce-overhead"``, CUDA graphs, on CUDA). Its compilation time is printed (the first update's
   time minus the median);
@@ -46,9 +48,10 @@ from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 
-IMPLS = ("reference", "ours", "ours-compiled", "ours-ieee")
+IMPLS = ("reference", "ours", "ours-compiled", "ours-ieee", "ours-no-prefetch")
 """Implementations this script times (``--impls``): ``ours`` and ``ours-compiled`` with TensorFloat-32 on CUDA (the
-train command's default, ``sb3_collapse.backends``), ``ours-ieee`` without it (``--no-tf32``); the reference with
+train command's default, ``sb3_collapse.backends``), ``ours-ieee`` without it (``--no-tf32``), ``ours-no-prefetch``
+without the replay prefetcher (pageable memory, blocking copies: ``sb3_collapse.drqv2.prefetch``); the reference with
 torch's defaults, as it runs."""
 
 
@@ -101,6 +104,8 @@ def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int) -> 
     if impl != "reference":
         configure_backends(tf32=impl != "ours-ieee")
     model = build_model(device, reference=impl == "reference", buffer_size=buffer_size, compile_update=impl == "ours-compiled")
+    if impl == "ours-no-prefetch":
+        model.replay_prefetcher.enabled = False
     if impl == "reference":
         updates = {b: (lambda b=b: reference_update(model, model.replay_buffer.sample(b))) for b in batch_sizes}
     else:
