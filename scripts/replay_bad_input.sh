@@ -65,7 +65,25 @@ cases=(
   "-m sb3_collapse.report $work/s --out $work/report --no-progress"
   "-m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-wlak-v0 -conf zoo_configs/drqv2.yml"
   "-m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf $work/bad.yml"
+  "$TRAIN --run-dir $work/diverged --lr 1000 --action-repeat 8 --frames 1600 --seed-frames 400 --replay-sampling sb3"
 )
+# A read-only folder for every command's outputs: a read-only mount where this user may mount one (root), else skipped.
+readonly_dir="$work/read-only"
+mkdir -p "$readonly_dir"
+if mount -t tmpfs -o ro,size=1m tmpfs "$readonly_dir" 2>/dev/null; then
+  trap 'umount "$readonly_dir" 2>/dev/null; rm -rf "$work"' EXIT
+  cases+=(
+    "$TRAIN --run-dir $readonly_dir/run"
+    "$TRAIN --logdir $readonly_dir/runs"
+    "$SWEEP --seeds 1 --out $readonly_dir/sweep"
+    "-m sb3_collapse.probe record $work/walker.zip --out $readonly_dir/rollouts.npz --episodes 3"
+    "-m sb3_collapse.report $work/fake-sweep --out $readonly_dir/report --no-progress"
+  )
+  PYTHONPATH=tests/report "$PY" -c "import sys; from fabricated_sweep import write_fake_sweep; write_fake_sweep(sys.argv[1])" \
+    "$work/fake-sweep"
+else
+  echo "(read-only cases skipped: this user cannot mount a read-only file system)"
+fi
 for case in "${cases[@]}"; do
   # shellcheck disable=SC2086
   "$PY" $case >"$work/out" 2>"$work/err"
