@@ -118,7 +118,7 @@ def test_divergence_guard_stops_on_non_finite_values_and_warns_once_on_growth():
     guard.check({"critic_loss": 5.0, "actor_loss": -0.2}, True, update=20, frame=200)
     assert guard.scale == {"critic_loss": 5.0, "actor_loss": 1.0}
     guard.check({"critic_loss": 400.0, "actor_loss": -90.0}, True, update=30, frame=300)  # 80x and 90x: no warning
-    with pytest.warns(RuntimeWarning, match=r"the critic_loss grew to 600 at update 40 \(frame 400\)"):
+    with pytest.warns(RuntimeWarning, match=r"the critic_loss is 600 at update 40 \(frame 400\), over 100 times its"):
         guard.check({"critic_loss": 600.0, "actor_loss": -1.0}, True, update=40, frame=400)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -129,6 +129,19 @@ def test_divergence_guard_stops_on_non_finite_values_and_warns_once_on_growth():
     with pytest.raises(DivergenceError, match="a weight is not finite after update 70"):
         guard.check({"critic_loss": 1.0}, False, update=70, frame=700)
     assert bool(all_finite([th.ones(2), th.zeros(3)])) and not bool(all_finite([th.ones(2), th.tensor([math.inf])]))
+
+
+def test_divergence_guard_warns_on_losses_the_rewards_cannot_explain_from_the_first_dump():
+    """A run diverging from its first updates: its losses are compared with what its rewards allow."""
+    guard = DivergenceGuard()
+    # Rewards of at most 2 and gamma 0.99: values up to 200, a critic loss up to 100 x 200^2 = 4e6 without a warning.
+    guard.check({"critic_loss": 3.9e6, "actor_loss": -1.9e4, "batch_reward": 2.0}, True, 1, 10, gamma=0.99)
+    assert guard.warnings == [] and guard.max_reward == 2.0
+    with pytest.warns(RuntimeWarning, match=r"the critic_loss is 1.6e\+09 at update 2 .* rewards allow \(4e\+04\)"):
+        guard.check({"critic_loss": 1.6e9, "actor_loss": -10.0, "batch_reward": 0.5}, True, 2, 20, gamma=0.99)
+    with pytest.warns(RuntimeWarning, match=r"the actor_loss is -3e\+04 .* rewards allow \(200\)"):
+        guard.check({"critic_loss": 1.0, "actor_loss": -3e4, "batch_reward": 0.5}, True, 3, 30, gamma=0.99)
+    assert len(guard.warnings) == 2
 
 
 def test_diverging_run_stops_with_one_line_and_keeps_its_last_finite_checkpoint(tmp_path, monkeypatch, capsys):

@@ -4,8 +4,11 @@ synchronization per update).
 
 - A loss, or a weight, that is not finite stops training: :class:`DivergenceError` names the update and the frame.
   So does an action of the actor that is not finite (``DrQv2`` checks it on the host, before the environment gets it).
-- A loss that grows by orders of magnitude over its scale at the start of training warns once: its absolute value
-  above :data:`GROWTH_FACTOR` times the largest of the first :data:`REFERENCE_DUMPS` dumps (at least 1).
+- A loss that grows by orders of magnitude warns once (per loss): its absolute value above :data:`GROWTH_FACTOR`
+  times the largest of the first :data:`REFERENCE_DUMPS` dumps (at least 1), or, for a run that diverges from its
+  first updates, above :data:`VALUE_BOUND_FACTOR` times what its rewards allow: with ``r`` the largest mean batch
+  reward seen (n-step rewards, at least 1) and ``Q = r / (1 - gamma)`` the largest plausible value, ``Q^2`` for the
+  critic loss (a squared error of values) and ``Q`` for the actor loss (minus a value).
 """
 
 from __future__ import annotations
@@ -21,6 +24,9 @@ GROWTH_FACTOR = 1e4
 
 REFERENCE_DUMPS = 10
 """Log dumps whose losses set the starting scale."""
+
+VALUE_BOUND_FACTOR = 100.0
+"""How many times the bound its rewards allow a loss may reach before a warning."""
 
 
 class DivergenceError(FloatingPointError):
@@ -50,18 +56,33 @@ class DivergenceGuard:
         self.growth = growth
         self.reference_dumps = reference_dumps
         self.scale: dict[str, float] = {}
+        self.max_reward = 1.0
         self.dumps = 0
         self.warnings: list[str] = []
         """The warnings given, at most one per loss (for the run's summary)."""
 
-    def check(self, losses: Mapping[str, float], weights_finite: bool, update: int, frame: int) -> None:
+    def check(
+        self,
+        losses: Mapping[str, float],
+        weights_finite: bool,
+        update: int,
+        frame: int,
+        gamma: float | None = None,
+    ) -> None:
         """
-        :param losses: loss name -> its mean since the last dump
+        :param losses: name -> mean since the last dump: ``critic_loss``, ``actor_loss`` and ``batch_reward`` (the
+            mean reward of the sampled transitions, not checked, kept for the bound on the values)
         :param weights_finite: whether every weight is finite (:func:`all_finite`)
         :param update: the number of updates so far
         :param frame: the frame count
+        :param gamma: the discount, for the bound on the values; ``None``: no such bound
         :raises DivergenceError: for a loss or a weight that is not finite
         """
+        losses = dict(losses)
+        reward = losses.pop("batch_reward", None)
+        if reward is not None and math.isfinite(reward):
+            self.max_reward = max(self.max_reward, abs(reward))
+        value_bound = None if gamma is None else self.max_reward / max(1.0 - gamma, 1e-6)
         for name, value in losses.items():
             if not math.isfinite(value):
                 raise DivergenceError(f"training diverged: the {name} is {value} at update {update} (frame {frame:,}).")
@@ -69,21 +90,20 @@ class DivergenceGuard:
             raise DivergenceError(f"training diverged: a weight is not finite after update {update} (frame {frame:,}).")
         self.dumps += 1
         for name, value in losses.items():
-            if self.dumps <= self.reference_dumps:
-                self.scale[name] = max(self.scale.get(name, 1.0), abs(value))
-            elif abs(value) > self.growth * self.scale.get(name, 1.0) and not any(name in w for w in self.warnings):
-                message = (
-                    f"the {name} grew to {value:.3g} at update {update} (frame {frame:,}), over {self.growth:g} times "
-                    f"its scale at the start ({self.scale.get(name, 1.0):.3g}): training may be diverging (learning "
-                    "rate too high?)."
-                )
-                self.warnings.append(message)
-                warnings.warn(f"DrQv2: {message}", RuntimeWarning, stacklevel=2)
-
-    def state_dict(self) -> dict:
-        """:return: the starting scales, the dump count and the warnings (for a run checkpoint)"""
-        return {"scale": dict(self.scale), "dumps": self.dumps, "warnings": list(self.warnings)}
-
-    def load_state_dict(self, state: Mapping) -> None:
-        """:param state: a :meth:`state_dict`"""
-        self.scale, self.dumps, self.warnings = dict(state["scale"]), int(state["dumps"]), list(state["warnings"])
+            if any(w.startswith(f"the {name} ") for w in self.warnings):
+                continue
+            bound = None if value_bound is None else value_bound**2 if name == "critic_loss" else value_bound
+            if bound is not None and abs(value) > VALUE_BOUND_FACTOR * bound:
+                reason = f"over {VALUE_BOUND_FACTOR:g} times what the rewards allow ({bound:.3g})"
+            elif self.dumps > self.reference_dumps and abs(value) > self.growth * self.scale.get(name, 1.0):
+                reason = f"over {self.growth:g} times its scale at the start ({self.scale.get(name, 1.0):.3g})"
+            else:
+                if self.dumps <= self.reference_dumps:
+                    self.scale[name] = max(self.scale.get(name, 1.0), abs(value))
+                continue
+            message = (
+                f"the {name} is {value:.3g} at update {update} (frame {frame:,}), {reason}: training may be diverging "
+                "(learning rate too high?)."
+            )
+            self.warnings.append(message)
+            warnings.warn(f"DrQv2: {message}", RuntimeWarning, stacklevel=2)

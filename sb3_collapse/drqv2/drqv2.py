@@ -797,7 +797,8 @@ class DrQv2(OffPolicyAlgorithm):
         """
         Write the averages of the statistics accumulated since the last dump to the logger.
 
-        :return: the mean losses and whether every weight is finite, for the divergence guard; ``None`` without updates
+        :return: the mean losses (and batch reward) and whether every weight is finite, for the divergence guard;
+            ``None`` without updates
         """
         if self._train_stats_count == 0:
             return None
@@ -813,7 +814,7 @@ class DrQv2(OffPolicyAlgorithm):
         self.logger.record("train/stddev", self.current_stddev)
         self._train_stats = {}
         self._train_stats_count = 0
-        losses = {name: float(stats[name]) / n for name in ("critic_loss", "actor_loss") if name in stats}
+        losses = {name: float(stats[name]) / n for name in ("critic_loss", "actor_loss", "batch_reward") if name in stats}
         return losses, bool(finite)
 
     def dump_logs(self) -> None:
@@ -822,7 +823,7 @@ class DrQv2(OffPolicyAlgorithm):
         if checked is not None:
             given = len(self.divergence_guard.warnings)
             try:
-                self.divergence_guard.check(*checked, update=self._n_updates, frame=self.num_frames)
+                self.divergence_guard.check(*checked, update=self._n_updates, frame=self.num_frames, gamma=self.gamma)
             except DivergenceError:
                 super().dump_logs()  # the non-finite values reach the logs too
                 raise
