@@ -300,7 +300,8 @@ def plot_collapse_metrics(
     :param path: the PNG file to write
     :param title: the figure's title (task, variant, which seeds, which inputs)
     :param layers: the layers drawn
-    :param source: where a missing metric would come from (in the panel's "no ... in" text)
+    :param source: where a missing metric other than the gradient norm would come from (in the panel's "no ... in"
+        text; the gradient norms come from the collapse metrics file)
     """
     if not agents:
         raise ValueError("agents must hold at least one agent to plot.")
@@ -345,7 +346,8 @@ def plot_collapse_metrics(
                 if full_scale is not None:
                     ax.set_ylim(-0.02 * full_scale, 1.02 * full_scale)
             if not drawn and agent.trial is not None:
-                ax.text(0.5, 0.5, f"no {metric} in\n{source}", ha="center", va="center",
+                where = COLLAPSE_METRICS_CSV if metric == "grad_norm" else source  # gradient norms: training time
+                ax.text(0.5, 0.5, f"no {metric} in\n{where}", ha="center", va="center",
                         transform=ax.transAxes, fontsize=8, color="0.4")
             ax.set_ylabel(label, fontsize=8)
         for ax in row:

@@ -7,8 +7,8 @@ samples ("All the samples in three sets are collected from well-performing agent
 checkpoint (encoder and actor at each evaluation, ``protocol.PROBE_CHECKPOINTS_DIR``) of the picked agents is run
 on the same observations: the rollouts that ``python -m sb3_collapse.probe sweep`` recorded from a
 well-performing agent (``<sweep>/probe/<task>_<variant>/rollouts.npz``), or a rollouts file given by the user;
-agents are then compared on the same inputs. A seeded subset of :attr:`FixedInputSettings.samples` observations
-keeps the cost bounded (all of them with ``samples=None``).
+agents are then compared on the same inputs. A seeded subset of :attr:`FixedInputSettings.fixed_samples` observations
+keeps the cost bounded (all of them with ``fixed_samples=None``).
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ import torch as th
 from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
+from sb3_collapse.drqv2.drqv2 import check_device
+from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_metrics, unit_count
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.errors import ProbeError
@@ -54,7 +56,8 @@ class FixedInputSettings:
         well-performing bound is the report's ``success_return``)
     :param rollouts: the rollouts file of the observations (``None``: ``<sweep>/probe/<task>_<variant>/``
         ``rollouts.npz``, written by ``python -m sb3_collapse.probe sweep``)
-    :param samples: observations drawn from the rollouts (without replacement, with ``sample_seed``; ``None``: all)
+    :param fixed_samples: observations drawn from the rollouts (without replacement, with ``sample_seed``;
+        ``None``: all)
     :param sample_seed: seed of that draw
     :param device: where the checkpoints run (``"auto"``: CUDA when available)
     :param batch_size: observations per forward pass
@@ -64,7 +67,7 @@ class FixedInputSettings:
     pick_seed: int = 0
     failure_return: float = PAPER.failure_return
     rollouts: str | Path | None = None
-    samples: int | None = FIXED_SAMPLES
+    fixed_samples: int | None = FIXED_SAMPLES
     sample_seed: int = 0
     device: str = "auto"
     batch_size: int = 256
@@ -72,12 +75,16 @@ class FixedInputSettings:
 
     def validate(self) -> None:
         """:raises ReportError: on a setting out of range, naming its flag"""
-        if self.samples is not None and self.samples < 2:
+        if self.fixed_samples is not None and self.fixed_samples < 2:
             raise ReportError(
-                f"fixed samples must be >= 2 observations, got {self.samples}.", parameter="fixed_samples"
+                f"fixed_samples must be >= 2 observations, got {self.fixed_samples}.", parameter="fixed_samples"
             )
         if self.batch_size < 1:
             raise ReportError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
+        try:
+            check_device(self.device)
+        except ParameterError as error:
+            raise ReportError(str(error), parameter="device") from error
 
 
 @dataclass
@@ -90,6 +97,7 @@ class FixedInputs:
     :param source: the rollouts file
     :param total: observations in the file
     :param episodes: episodes in the file
+    :param recorded_from: the checkpoint the rollouts were recorded from (their metadata), ``None`` if unknown
     """
 
     observations: np.ndarray
@@ -97,11 +105,17 @@ class FixedInputs:
     source: Path
     total: int
     episodes: int
+    recorded_from: str | None = None
 
     def describe(self) -> str:
         """:return: what the metrics are computed on, for titles and captions"""
         subset = f"{len(self.indices)} of the {self.total}" if len(self.indices) < self.total else f"all {self.total}"
-        return f"the fixed probing set ({subset} observations of {self.source.name}, {self.episodes} episodes)"
+        agent = ""
+        if self.recorded_from is not None:
+            checkpoint = Path(self.recorded_from)
+            folder = checkpoint.parent.parent if checkpoint.parent.name == PROBE_CHECKPOINTS_DIR else checkpoint.parent
+            agent = f", recorded from {folder.name}/{checkpoint.name}"
+        return f"the fixed probing set ({subset} observations of {self.source.name}, {self.episodes} episodes{agent})"
 
 
 def default_rollouts(sweep_dir: str | Path, task: str, variant: str) -> Path:
@@ -130,7 +144,8 @@ def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, see
         indices = np.arange(total)
     else:
         indices = np.sort(np.random.default_rng(seed).choice(total, size=samples, replace=False))
-    return FixedInputs(rollouts.observations[indices], indices, path, total, rollouts.n_episodes)
+    recorded_from = rollouts.metadata.get("checkpoint")
+    return FixedInputs(rollouts.observations[indices], indices, path, total, rollouts.n_episodes, recorded_from)
 
 
 def snapshot_metrics(

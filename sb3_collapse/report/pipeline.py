@@ -279,7 +279,7 @@ def collapse_figures(
                     f"{COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)} shows the online metrics"
                 )
                 continue
-            inputs = load_fixed_inputs(rollouts, collapse_settings.samples, collapse_settings.sample_seed)
+            inputs = load_fixed_inputs(rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed)
             rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, progress)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
 
@@ -598,9 +598,9 @@ def write_run_report(
 ) -> tuple[Trial, list[Path]]:
     """
     The report of one run folder of ``python -m sb3_collapse.train`` (``runs/walker-walk_s0``): Figure 4 of this
-    run alone (``collapse_metrics.png``: return, numerical rank, correlation, zero fraction, gradient norm over
-    frames, resets marked) and ``index.html`` with it and the run's settings. An unfinished run is drawn as far as
-    its files go.
+    run alone (``collapse_metrics.png``: return, numerical rank, correlation, dead units, gradient norm over
+    frames, resets marked; the online metrics, on its replay batches) and ``index.html`` with it and the run's
+    settings. An unfinished run is drawn as far as its files go.
 
     :param run_dir: the run folder
     :param out: the output folder (``<run_dir>/report`` when ``None``)
