@@ -89,7 +89,8 @@ def _effective_rank(s: th.Tensor, delta: float) -> float:
     if total <= 0:
         return 0.0
     cumulative = th.cumsum(s, 0) / total
-    return float(int(th.searchsorted(cumulative, th.tensor([1.0 - delta], dtype=cumulative.dtype))[0]) + 1)
+    target = th.tensor([1.0 - delta], dtype=cumulative.dtype, device=cumulative.device)
+    return float(int(th.searchsorted(cumulative, target)[0]) + 1)
 
 
 def effective_rank(activations: th.Tensor, delta: float = SRANK_DELTA) -> float:

@@ -74,13 +74,19 @@ class FixedInputSettings:
     layers: tuple[str, ...] = FIGURE4_LAYERS
 
     def validate(self) -> None:
-        """:raises ReportError: on a setting out of range, naming its flag"""
+        """:raises ReportError: on a setting out of range, or a rollouts file that does not exist"""
         if self.fixed_samples is not None and self.fixed_samples < 2:
             raise ReportError(
                 f"fixed_samples must be >= 2 observations, got {self.fixed_samples}.", parameter="fixed_samples"
             )
         if self.batch_size < 1:
             raise ReportError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
+        if self.rollouts is not None and not Path(self.rollouts).is_file():
+            raise ReportError(
+                f"rollouts {self.rollouts} is not a file; give the rollouts.npz of python -m sb3_collapse.probe sweep "
+                "(or of probe record).",
+                parameter="rollouts",
+            )
         try:
             check_device(self.device)
         except ParameterError as error:

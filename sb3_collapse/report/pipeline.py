@@ -205,6 +205,8 @@ def build_report(
         settings.validate()
     except ValueError as error:
         raise ReportError(str(error)) from error
+    collapse_settings = collapse_settings or FixedInputSettings()
+    collapse_settings.validate()
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
     rows = summarize(sweep, settings)
     notes = _notes(sweep, rows, include_unfinished)
@@ -222,7 +224,7 @@ def build_report(
     grid = transplant_grid(rows, settings.success_return)
     report = Report(sweep, rows, grid, curves, references, notes, summary_markdown(rows, settings, notes))
     report.transplant = transplant_curves(sweep, settings.success_return)
-    collapse_figures(report, settings, collapse_settings or FixedInputSettings(), progress)
+    collapse_figures(report, settings, collapse_settings, progress)
     report.markdown = summary_markdown(rows, settings, report.notes)  # with the notes of the collapse figures
     return report
 

@@ -152,6 +152,18 @@ def test_collapse_figures_pick_the_fabricated_agents(reported):
     assert picks[0].pick_seed == 7 and picks[0].trial.seed in (0, 2, 4) and picks[1].trial is None
 
 
+def test_collapse_figure_flags(reported, tmp_path, capsys):
+    fake, _ = reported
+    for flags, named in (
+        (["--rollouts", str(tmp_path / "missing.npz")], "--rollouts"),
+        (["--fixed-samples", "1"], "--fixed-samples"),
+        (["--failure-return", "950"], "--failure-return"),
+    ):
+        assert main([str(fake.path), "--out", str(tmp_path / "out"), "--no-progress", *flags]) == 2
+        assert named in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_table7_matches_the_fabricated_returns(reported):
     fake, report = reported
     assert FIGURE3B_PNG in {p.name for p in report.files}
