@@ -104,6 +104,7 @@ class FixedInputs:
     :param total: observations in the file
     :param episodes: episodes in the file
     :param recorded_from: the checkpoint the rollouts were recorded from (their metadata), ``None`` if unknown
+    :param task: the task the rollouts were recorded on (``env_config["task_id"]``), ``None`` if unknown
     """
 
     observations: np.ndarray
@@ -112,6 +113,11 @@ class FixedInputs:
     total: int
     episodes: int
     recorded_from: str | None = None
+    task: str | None = None
+
+    def fits(self, task: str) -> bool:
+        """:return: whether the rollouts were recorded on ``task`` (or their task is unknown)"""
+        return self.task is None or self.task.replace("_", "-") == task.replace("_", "-")
 
     def describe(self) -> str:
         """:return: what the metrics are computed on, for titles and captions"""
@@ -151,7 +157,8 @@ def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, see
     else:
         indices = np.sort(np.random.default_rng(seed).choice(total, size=samples, replace=False))
     recorded_from = rollouts.metadata.get("checkpoint")
-    return FixedInputs(rollouts.observations[indices], indices, path, total, rollouts.n_episodes, recorded_from)
+    task = rollouts.env_config.get("task_id")
+    return FixedInputs(rollouts.observations[indices], indices, path, total, rollouts.n_episodes, recorded_from, task)
 
 
 def snapshot_metrics(

@@ -236,6 +236,8 @@ def collapse_figures(
     Fill the report's Figures 4, 8, 9 (see :mod:`sb3_collapse.report.collapse_figure`): per task and variant that
     is not a transplant cell, the agents picked by :func:`pick_paper_agents`, their online rows, and their rows on
     the fixed probing set when the rollouts and the probe checkpoints are there (else a note says what is missing).
+    A rollouts file of ``collapse_settings`` serves the tasks it was recorded on; the other tasks read the rollouts
+    of ``probe sweep`` in the sweep folder.
 
     :param report: the report being built (``collapse*`` fields and ``notes`` are filled)
     :param settings: the report's definitions (``success_return``)
@@ -246,6 +248,11 @@ def collapse_figures(
     """
     collapse_settings.validate()
     sweep = report.sweep
+    given = None  # a rollouts file given by the user serves the tasks it was recorded on
+    if collapse_settings.rollouts is not None:
+        given = load_fixed_inputs(
+            collapse_settings.rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed
+        )
     for task in sweep.tasks():
         for variant in sweep.variants(task):
             if transplant_sources(variant) is not None:
@@ -264,24 +271,26 @@ def collapse_figures(
                 continue
             report.collapse_picks[key] = picks
             report.collapse_online[key] = online_agent_rows(picks, collapse_settings.layers)
-            given = collapse_settings.rollouts is not None
-            rollouts = Path(collapse_settings.rollouts) if given else default_rollouts(sweep.path, task, variant)
-            lacking = [p.trial.seed for p in picks if p.trial is not None and not probe_checkpoint_paths(p.trial)]
-            if not given and not rollouts.is_file():
+            online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
+            inputs = given if given is not None and given.fits(task) else None
+            rollouts = default_rollouts(sweep.path, task, variant)
+            if inputs is None and not rollouts.is_file():
+                other = "" if given is None else f" ({given.source} was recorded on {given.task})"
                 report.notes.append(
-                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts} (run python -m "
-                    "sb3_collapse.probe sweep, or pass --rollouts); "
-                    f"{COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)} shows the online metrics"
+                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
+                    f"python -m sb3_collapse.probe sweep, or pass --rollouts); {online} shows the online metrics"
                 )
                 continue
+            lacking = [p.trial.seed for p in picks if p.trial is not None and not probe_checkpoint_paths(p.trial)]
             if lacking:
                 report.notes.append(
                     f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
                     f"{', '.join(map(str, lacking))} have no probe checkpoints (train with --probe-checkpoints); "
-                    f"{COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)} shows the online metrics"
+                    f"{online} shows the online metrics"
                 )
                 continue
-            inputs = load_fixed_inputs(rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed)
+            if inputs is None:
+                inputs = load_fixed_inputs(rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed)
             rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, progress)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
 

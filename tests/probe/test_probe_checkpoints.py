@@ -24,7 +24,7 @@ from sb3_collapse.probe.rollouts import record_rollouts, resolve_env_config
 from sb3_collapse.protocol import FIGURE2_PNG, PROBE_CHECKPOINT, PROBE_CHECKPOINTS_DIR, SWEEP_PROBE_DIR, TABLES_1_6_CSV
 from sb3_collapse.report import write_report
 from sb3_collapse.report.errors import ReportError
-from sb3_collapse.report.fixed_inputs import FixedInputSettings
+from sb3_collapse.report.fixed_inputs import FixedInputSettings, trial_fixed_metrics
 from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
 from sb3_collapse.train import TrainConfig, train
 
@@ -146,7 +146,7 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
 def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
     """Every probe checkpoint of the picked agents run on the same observations: the metrics are layer_metrics of
     the snapshot's activations of those observations."""
-    root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 1: 920.0, 2: 400.0, 3: 10.0})
+    root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 2: 400.0, 3: 10.0})
     recorder = load_checkpoint(root / "walker-walk" / "drqv2" / "seed_0" / "final_model.zip").model
     rollouts = record_rollouts(recorder, resolve_env_config(recorder.env_config), 2, max_steps=6, progress=False)
     path = rollouts.save(tmp_path / "rollouts.npz")
@@ -161,9 +161,10 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
     inputs = report.collapse_inputs[key]
     np.testing.assert_array_equal(inputs.indices, indices)
     np.testing.assert_array_equal(inputs.observations, rollouts.observations[indices])
+    assert inputs.task == "walker-walk" and inputs.fits("walker-walk") and not inputs.fits("hopper-stand")
     picks = report.collapse_picks[key]
     assert [(p.role, p.candidates) for p in picks] == [
-        ("well-performing", [0, 1]), ("middle", [2]), ("poorly performing", [3])
+        ("well-performing", [0]), ("middle", [2]), ("poorly performing", [3])
     ]  # fmt: skip
     with (folder / COLLAPSE_FIXED_CSV.format(task=key[0], variant=key[1])).open() as file:
         values = {(int(r["seed"]), r["checkpoint"], r["tag"]): float(r["value"]) for r in csv.DictReader(file)}
@@ -191,11 +192,10 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
         ("well-performing", str(picks[0].trial.seed), "1"), ("middle", "2", "1"), ("poorly performing", "3", "1")
     ]  # fmt: skip
     assert {a["inputs"] for a in agents} == {inputs.describe()} and "8 of the 12 observations" in inputs.describe()
-    # a given rollouts file whose images do not fit the checkpoints: the message names --rollouts
-    small = dataclasses.replace(rollouts, observations=rollouts.observations[:, :, :24, :24])
-    settings.rollouts = small.save(tmp_path / "small.npz")
+    # rollouts whose images do not fit the checkpoints: the message names the rollouts
+    small = dataclasses.replace(inputs, observations=inputs.observations[:, :, :24, :24])
     with pytest.raises(ReportError, match="rollouts") as error:
-        write_report(root, out=tmp_path / "bad", progress=False, collapse_settings=settings)
+        trial_fixed_metrics(picks[0].trial, small, settings)
     assert error.value.parameter == "rollouts"
 
 
