@@ -231,7 +231,7 @@ def trial_fixed_metrics(
         if tuple(inputs.observations.shape[1:]) != shape:
             raise ReportError(
                 f"{inputs.source} holds observations of shape {tuple(inputs.observations.shape[1:])} but {path} "
-                f"takes {shape}: pass --rollouts recorded with the sweep's image size and frame stack.",
+                f"takes {shape}: give rollouts (--rollouts) recorded with the sweep's image size and frame stack.",
                 parameter="rollouts",
             )
         values, result.widths = snapshot_metrics(
