@@ -3,8 +3,9 @@ The paper's Figure 4 (walker-walk) and its appendix versions, Figures 8 (hopper-
 collapse metrics of three agents over training, next to the evaluation return.
 
 **The three agents.** Figure 4's caption: "The first row is a randomly picked well-performing agent achieving larger
-than 900 rewards. The second row is a middle agent between goodness and badness. The third row is a randomly
-picked poorly performing agent achieving lower than 30 rewards." :func:`pick_paper_agents` picks them that way:
+than [``PAPER.success_return``] rewards. The second row is a middle agent between goodness and badness. The third
+row is a randomly picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards."
+:func:`pick_paper_agents` picks them that way:
 one agent at random (a recorded seed) among the finished seeds of each class of final return (the last
 evaluation, as ``probe sweep`` and the transplant grid read it): well-performing ``>= PAPER.success_return``,
 middle in between, poorly performing ``< PAPER.failure_return``. A class without a seed gives a row that says so,
@@ -140,10 +141,11 @@ def agent_class(
     final: float, success_return: float = PAPER.success_return, failure_return: float = PAPER.failure_return
 ) -> str:
     """
-    The class of an agent by its final return (Section 4.1: "well-performing agents achieving more than 900
-    rewards or poorly performing agents achieving less than 30 rewards, and only a few are middle agents between
-    them"). The bounds are those of ``probe sweep`` and the transplant grid: well-performing ``>= success_return``
-    (Figure 3: "successful (rewards >= 900)"), poorly performing ``< failure_return``, middle in between.
+    The class of an agent by its final return (Section 4.1: "well-performing agents achieving more than
+    [``PAPER.success_return``] rewards or poorly performing agents achieving less than [``PAPER.failure_return``]
+    rewards, and only a few are middle agents between them"). The bounds are those of ``probe sweep`` and the
+    transplant grid: well-performing ``>= success_return`` (Figure 3:
+    "successful (rewards >= [``PAPER.success_return``])"), poorly performing ``< failure_return``, middle in between.
 
     :param final: the final return
     :param success_return: well-performing at least
@@ -165,8 +167,9 @@ def pick_paper_agents(
 ) -> list[AgentPick]:
     """
     The three agents of Figures 4, 8, 9 (Figure 4's caption: "a randomly picked well-performing agent achieving
-    larger than 900 rewards", "a middle agent between goodness and badness", "a randomly picked poorly performing
-    agent achieving lower than 30 rewards"): among the finished trials with an evaluation, split by
+    larger than [``PAPER.success_return``] rewards", "a middle agent between goodness and badness", "a randomly
+    picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards"): among the finished
+    trials with an evaluation, split by
     :func:`agent_class` of their final return (:func:`final_return`, the last evaluation), one trial per class
     picked uniformly at random. Each class draws from its own generator, ``numpy.random.default_rng([pick_seed,
     k])`` for the k-th class, over its seeds in increasing order: the pick depends on ``pick_seed`` and the class's
