@@ -29,6 +29,7 @@ from sb3_collapse.monitoring.interventions import (
 from sb3_collapse.monitoring.metrics import (
     action_spread,
     dead_fraction,
+    dead_units,
     dormant_ratio,
     dormant_units,
     effective_rank,
@@ -38,6 +39,7 @@ from sb3_collapse.monitoring.metrics import (
     numerical_rank,
     saturated_fraction,
     singular_values,
+    unit_count,
     zero_fraction,
 )
 from sb3_collapse.monitoring.reset import CollapseReset
@@ -58,6 +60,7 @@ __all__ = [
     "apply_intervention",
     "collect_activations",
     "dead_fraction",
+    "dead_units",
     "dormant_ratio",
     "dormant_units",
     "effective_rank",
@@ -78,5 +81,6 @@ __all__ = [
     "shrink_perturb",
     "singular_values",
     "track_grad_norms",
+    "unit_count",
     "zero_fraction",
 ]

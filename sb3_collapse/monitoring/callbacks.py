@@ -308,7 +308,7 @@ class CollapseMetrics(FrameScheduleCallback):
     :mod:`sb3_collapse.monitoring.metrics`:
 
     - ``collapse/<layer>/numerical_rank``, ``srank``, ``correlation``, ``zero_fraction``, ``dead_fraction``,
-      ``dormant_ratio``;
+      ``dead_units``, ``dormant_ratio``;
     - ``collapse/<layer>/grad_norm``: the gradient norm of the layer at the **last update** before the check
       (recorded when the optimizers step, without extra backward pass, see
       :mod:`~sb3_collapse.monitoring.grad_norms`; the paper computes it at each check), for layers with

@@ -153,7 +153,8 @@ def unit_activations(activations: th.Tensor) -> th.Tensor:
 
 def zero_fraction(activations: th.Tensor) -> float:
     """
-    Fraction of the entries of ``H`` that are exactly zero.
+    Fraction of the entries of ``H`` that are exactly zero (entry level: a unit that is zero for some inputs
+    counts for those; the paper's "number of zero activations, also called dead neurons" is :func:`dead_units`).
 
     :param activations: ``(n, *unit_shape)`` activations
     :return: a fraction in ``[0, 1]``
@@ -170,6 +171,27 @@ def dead_fraction(activations: th.Tensor) -> float:
     :return: a fraction in ``[0, 1]``
     """
     return float((unit_activations(activations) == 0).all(1).double().mean())
+
+
+def unit_count(activations: th.Tensor) -> int:
+    """
+    :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
+    :return: the layer's width in units: ``d`` features, or ``C`` channels
+    """
+    return int(unit_activations(activations).shape[0])
+
+
+def dead_units(activations: th.Tensor) -> int:
+    """
+    The number of dead units: units that are zero for every input of the batch (a channel of a convolutional
+    layer counts when it is zero at every position too). The paper's "zeros" (Section 5.1): "the number of zero
+    activations, also called dead neurons (Lu et al., 2019)". Unlike :func:`zero_fraction` (entries that are
+    zero), a unit that is zero for some inputs only does not count.
+
+    :param activations: ``(n, d)`` or ``(n, C, height, width)`` activations
+    :return: a count in ``[0, units]`` (:func:`unit_count`)
+    """
+    return int((unit_activations(activations) == 0).all(1).sum())
 
 
 def dormant_ratio(activations: th.Tensor, tau: float = DORMANT_TAU) -> float:
@@ -244,7 +266,8 @@ def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float
     :param tau: threshold of :func:`dormant_ratio`
     :param delta: threshold of :func:`effective_rank`
     :return: ``numerical_rank`` (:func:`numerical_rank`), ``srank`` (:func:`effective_rank`), ``correlation``
-        (:func:`mean_pairwise_correlation`), ``zero_fraction``, ``dead_fraction``, ``dormant_ratio``
+        (:func:`mean_pairwise_correlation`), ``zero_fraction``, ``dead_fraction``, ``dead_units`` (a count, as a
+        float), ``dormant_ratio``
     """
     h = flatten_batch(activations)
     gram = _gram(h)
@@ -255,5 +278,6 @@ def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float
         "correlation": _correlation(gram, h.sum(1), h.abs().amax(1), h.shape[1]),
         "zero_fraction": zero_fraction(activations),
         "dead_fraction": dead_fraction(activations),
+        "dead_units": float(dead_units(activations)),
         "dormant_ratio": dormant_ratio(activations, tau),
     }

@@ -7,10 +7,13 @@ Reports of a sweep folder: the paper's Figure 5, the per-variant table and the l
   and the grid;
 - :mod:`~sb3_collapse.report.reference`: the published DrQ-v2 curves shipped with the package;
 - :mod:`~sb3_collapse.report.tables` and :mod:`~sb3_collapse.report.plots`: CSV, Markdown and PNG outputs;
+- :mod:`~sb3_collapse.report.collapse_figure` and :mod:`~sb3_collapse.report.fixed_inputs`: Figures 4, 8, 9 (the
+  three agents, their metrics on the fixed probing set and online);
 - :mod:`~sb3_collapse.report.pipeline`: :func:`build_report` and :func:`write_report`.
 """
 
 from sb3_collapse.report.errors import ReportError
+from sb3_collapse.report.fixed_inputs import FixedInputSettings
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
 from sb3_collapse.report.pipeline import Report, build_report, write_report
 from sb3_collapse.report.reference import ReferenceCurves, load_reference_curves, reference_task_name
@@ -29,6 +32,7 @@ from sb3_collapse.report.statistics import (
 
 __all__ = [
     "BandCurve",
+    "FixedInputSettings",
     "GridCell",
     "ReferenceCurves",
     "Report",

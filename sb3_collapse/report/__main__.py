@@ -18,6 +18,7 @@ from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.collapse_figure import is_run_folder
 from sb3_collapse.report.errors import ReportError
+from sb3_collapse.report.fixed_inputs import FixedInputSettings
 from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
 from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_report
 from sb3_collapse.report.statistics import ReportSettings
@@ -35,8 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
             "Figure 5 (mean evaluation return and percentile band across seeds, per task and variant), the table "
             "(final return, seeds stuck in action collapse, resets, std over the last evaluations) and, when "
             "cnn-<src>_mlp-<src> variants exist, the transplant grid of a sweep folder "
-            f"<sweep>/<task>/<variant>/seed_<k>/, the collapse metrics of the best, a middle and the worst seed "
-            "(Figures 4, 8, 9), Figure 3(b) and Table 7, and report/index.html with all of them. Only finished "
+            f"<sweep>/<task>/<variant>/seed_<k>/, the collapse metrics of a randomly picked well-performing, middle "
+            "and poorly performing seed (Figures 4, 8, 9: on the fixed probing set of python -m sb3_collapse.probe "
+            "sweep, and online on their replay batches), Figure 3(b) and Table 7, and report/index.html with all of "
+            "them. Only finished "
             f"trials ({RESULT_JSON}) enter the statistics. Given a single run folder of python -m sb3_collapse.train "
             "instead, it draws that run's collapse metrics (Figure 4) and its index.html."
         ),
@@ -92,6 +95,36 @@ def build_parser() -> argparse.ArgumentParser:
         default=list(defaults.percentiles),
         help="Figure 5's band, in percent (default: 5 95)",
     )
+    collapse = FixedInputSettings()
+    parser.add_argument(
+        "--failure-return",
+        type=float,
+        default=collapse.failure_return,
+        help="Figures 4, 8, 9: a seed is poorly performing when its final return is < this, well-performing when "
+        ">= --success-return, middle in between (default: %(default)g)",
+    )
+    parser.add_argument(
+        "--pick-seed",
+        type=int,
+        default=collapse.pick_seed,
+        help="Figures 4, 8, 9: seed of the random pick of one agent per class (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--rollouts",
+        help="Figures 4, 8, 9: rollouts file whose observations every probe checkpoint of the picked agents is run "
+        "on (default: <sweep>/probe/<task>_<variant>/rollouts.npz of python -m sb3_collapse.probe sweep)",
+    )
+    parser.add_argument(
+        "--fixed-samples",
+        type=int,
+        default=collapse.fixed_samples,
+        help="Figures 4, 8, 9: observations drawn from the rollouts (seeded; 0: all) (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--device",
+        default=collapse.device,
+        help="Figures 4, 8, 9: where the probe checkpoints run: auto, cpu, cuda (default: %(default)s)",
+    )
     parser.add_argument(
         "--overwrite", action="store_true", help="replace the files of a previous report in the output folder"
     )
@@ -115,6 +148,13 @@ def main(argv: list[str] | None = None) -> int:
         success_return=args.success_return,
         percentiles=(args.percentiles[0], args.percentiles[1]),
     )
+    collapse = FixedInputSettings(
+        pick_seed=args.pick_seed,
+        failure_return=args.failure_return,
+        rollouts=args.rollouts,
+        fixed_samples=args.fixed_samples or None,
+        device=args.device,
+    )
     if is_run_folder(args.sweep):
         try:
             trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
@@ -135,6 +175,7 @@ def main(argv: list[str] | None = None) -> int:
             variants=args.variants,
             progress=not args.no_progress,
             overwrite=args.overwrite,
+            collapse_settings=collapse,
         )
     except ReportError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)

@@ -1,12 +1,22 @@
 """
 The paper's Figure 4 (walker-walk) and its appendix versions, Figures 8 (hopper-stand) and 9 (finger-spin): the
-collapse metrics of a well-performing, a middle and a poorly performing agent over training, next to the
-evaluation return, from each trial's collapse metrics and evaluation files (``protocol.COLLAPSE_METRICS_CSV``,
-``protocol.EVAL_CSV``).
+collapse metrics of three agents over training, next to the evaluation return.
 
-The paper picks "a randomly picked well-performing agent", "a middle agent between goodness and badness" and "a
-randomly picked poorly performing agent"; here they are the seeds of the highest, the median and the lowest final
-return (named in the title, so the choice is reproducible).
+**The three agents.** Figure 4's caption: "The first row is a randomly picked well-performing agent achieving larger
+than [``PAPER.success_return``] rewards. The second row is a middle agent between goodness and badness. The third
+row is a randomly picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards."
+:func:`pick_paper_agents` picks them that way:
+one agent at random (a recorded seed) among the finished seeds of each class of final return (the last
+evaluation, as ``probe sweep`` and the transplant grid read it): well-performing ``>= PAPER.success_return``,
+middle in between, poorly performing ``< PAPER.failure_return``. A class without a seed gives a row that says so,
+never an agent of another class. (:func:`pick_agents`, the highest, median and lowest final return, is another
+reading, kept under its own name.)
+
+**The inputs.** The paper computes the metrics on ``H`` "as defined in Figure 1": the probing samples, "collected
+from well-performing agents". The report computes them after training on one fixed observation set for every
+probe checkpoint of the picked agents (:mod:`sb3_collapse.report.fixed_inputs`); the online metrics of each
+trial's collapse metrics file (``protocol.COLLAPSE_METRICS_CSV``: each agent's own replay batch, at training time)
+are drawn in a figure of their own. Gradient norms are training-time in both.
 """
 
 from __future__ import annotations
@@ -23,7 +33,7 @@ import numpy as np
 from matplotlib.lines import Line2D
 from matplotlib.ticker import LogLocator, NullLocator
 
-from sb3_collapse.protocol import COLLAPSE_EVENTS_CSV, COLLAPSE_METRICS_CSV, CONFIG_JSON, EVAL_CSV, metric_tag
+from sb3_collapse.protocol import COLLAPSE_EVENTS_CSV, COLLAPSE_METRICS_CSV, CONFIG_JSON, EVAL_CSV, PAPER, metric_tag
 from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import Trial, load_trial, read_collapse_events, read_collapse_metrics, read_json
 from sb3_collapse.report.style import ESCAPE_COLOR, RESET_COLOR, RETURN_COLOR, frames_axis, layer_style
@@ -31,16 +41,20 @@ from sb3_collapse.report.style import ESCAPE_COLOR, RESET_COLOR, RETURN_COLOR, f
 FIGURE4_METRICS: tuple[tuple[str, str], ...] = (
     ("numerical_rank", "numerical rank"),
     ("correlation", "correlation"),
-    ("zero_fraction", "zero activations (fraction)"),
+    ("dead_units", "dead units"),
     ("grad_norm", "gradient norm"),
 )
-"""The metric columns of Figure 4, in order: collapse metric (``collapse/<layer>/<metric>``) -> axis label."""
+"""The metric columns of Figure 4, in order: collapse metric (``collapse/<layer>/<metric>``) -> axis label. The
+paper's "zeros" are "the number of zero activations, also called dead neurons": the dead units
+(:func:`~sb3_collapse.monitoring.metrics.dead_units`), a count, the layer's width in the axis label."""
 FIGURE4_LAYERS = ("mlp1", "mlp2")
 """The layers of Figure 4 ("we only visualize the metrics of mlp1 and mlp2"; ``mlp0`` on request)."""
-BOUNDED_METRICS = ("correlation", "zero_fraction")
+BOUNDED_METRICS = ("correlation", "zero_fraction", "dead_fraction")
 """Metrics in [0, 1], drawn on that range."""
 ROLES = ("best", "middle", "worst")
-"""The rows of Figure 4: highest, median and lowest final return."""
+"""The rows of :func:`pick_agents`: highest, median and lowest final return."""
+PAPER_ROLES = ("well-performing", "middle", "poorly performing")
+"""The rows of Figures 4, 8, 9 (:func:`pick_paper_agents`), top to bottom."""
 
 
 @dataclass
@@ -53,18 +67,23 @@ class AgentMetrics:
     :param metrics: tag -> ``(frames, values)`` of its collapse metrics file (empty without one)
     :param resets: frames of the reset rule's interventions
     :param escapes: frames of its escapes
+    :param absent: for a row without an agent (``trial`` is ``None``): what it says, e.g. "no middle agent among
+        20 seeds"
+    :param widths: layer -> its width in units (the axis label of the dead units), where known
     """
 
-    trial: Trial
+    trial: Trial | None
     role: str
     metrics: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     resets: list[int] = field(default_factory=list)
     escapes: list[int] = field(default_factory=list)
+    absent: str = ""
+    widths: dict[str, int] = field(default_factory=dict)
 
     @property
     def final_return(self) -> float:
-        """The return of the last evaluation."""
-        return float(self.trial.returns[-1])
+        """The return of the last evaluation (nan for a row without an agent)."""
+        return float("nan") if self.trial is None else float(self.trial.returns[-1])
 
 
 def final_return(trial: Trial) -> float:
@@ -94,6 +113,122 @@ def pick_agents(trials: Sequence[Trial]) -> list[tuple[str, Trial]]:
     return chosen
 
 
+@dataclass
+class AgentPick:
+    """
+    One row of Figures 4, 8, 9 as :func:`pick_paper_agents` picked it.
+
+    :param role: one of :data:`PAPER_ROLES`
+    :param trial: the picked trial, ``None`` when its class is empty
+    :param candidates: the seeds of its class (the finished seeds whose final return falls in it)
+    :param seeds: the finished seeds with an evaluation among which it was picked
+    :param pick_seed: the seed of the random pick
+    """
+
+    role: str
+    trial: Trial | None
+    candidates: list[int]
+    seeds: int
+    pick_seed: int
+
+    @property
+    def absent(self) -> str:
+        """What the row says without an agent: ``"no middle agent among 20 seeds"``."""
+        return f"no {self.role} agent among {self.seeds} seeds"
+
+
+def agent_class(
+    final: float, success_return: float = PAPER.success_return, failure_return: float = PAPER.failure_return
+) -> str:
+    """
+    The class of an agent by its final return (Section 4.1: "well-performing agents achieving more than
+    [``PAPER.success_return``] rewards or poorly performing agents achieving less than [``PAPER.failure_return``]
+    rewards, and only a few are middle agents between them"). The bounds are those of ``probe sweep`` and the
+    transplant grid: well-performing ``>= success_return`` (Figure 3:
+    "successful (rewards >= [``PAPER.success_return``])"), poorly performing ``< failure_return``, middle in between.
+
+    :param final: the final return
+    :param success_return: well-performing at least
+    :param failure_return: poorly performing below
+    :return: one of :data:`PAPER_ROLES`
+    """
+    if final >= success_return:
+        return PAPER_ROLES[0]
+    if final < failure_return:
+        return PAPER_ROLES[2]
+    return PAPER_ROLES[1]
+
+
+def pick_paper_agents(
+    trials: Sequence[Trial],
+    pick_seed: int = 0,
+    success_return: float = PAPER.success_return,
+    failure_return: float = PAPER.failure_return,
+) -> list[AgentPick]:
+    """
+    The three agents of Figures 4, 8, 9 (Figure 4's caption: "a randomly picked well-performing agent achieving
+    larger than [``PAPER.success_return``] rewards", "a middle agent between goodness and badness", "a randomly
+    picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards"): among the finished
+    trials with an evaluation, split by :func:`agent_class` of their final return (:func:`final_return`, the last
+    evaluation), one trial per class picked uniformly at random. Each class draws from its own generator, ``numpy.random.default_rng([pick_seed,
+    k])`` for the k-th class, over its seeds in increasing order: the pick depends on ``pick_seed`` and the class's
+    seeds only. The middle agent is picked the same way (the paper had one).
+
+    :param trials: the trials of one task and variant
+    :param pick_seed: seed of the random picks (recorded in the figure's title and rows)
+    :param success_return: well-performing at least
+    :param failure_return: poorly performing below
+    :return: one :class:`AgentPick` per class of :data:`PAPER_ROLES`, in that order; ``trial`` is ``None`` for an
+        empty class
+    """
+    if not failure_return <= success_return:
+        raise ValueError(f"failure_return must be <= success_return, got {failure_return:g} and {success_return:g}.")
+    finished = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: t.seed)
+    picks = []
+    for k, role in enumerate(PAPER_ROLES):
+        members = [t for t in finished if agent_class(final_return(t), success_return, failure_return) == role]
+        trial = None
+        if members:
+            trial = members[int(np.random.default_rng([pick_seed, k]).integers(len(members)))]
+        picks.append(AgentPick(role, trial, [t.seed for t in members], len(finished), pick_seed))
+    return picks
+
+
+def layer_widths(trial: Trial, layers: Sequence[str]) -> dict[str, int]:
+    """
+    The widths of DrQ-v2's actor layers from a trial's settings file: ``mlp0`` its ``feature_dim`` (the 50-d
+    trunk), ``mlp1``, ``mlp2`` its ``hidden_dim`` (1024-unit ReLUs).
+
+    :param trial: the trial
+    :param layers: the layers wanted
+    :return: layer -> units, for the layers whose width the settings give
+    """
+    config_path = trial.path / CONFIG_JSON
+    config = read_json(config_path) if config_path.is_file() else {}
+    sizes = {"mlp0": config.get("feature_dim"), "mlp1": config.get("hidden_dim"), "mlp2": config.get("hidden_dim")}
+    return {layer: int(sizes[layer]) for layer in layers if isinstance(sizes.get(layer), int)}
+
+
+def online_agent_rows(
+    picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS
+) -> list[AgentMetrics]:
+    """
+    The rows of the online figure: each picked trial's collapse metrics file (its own replay batches at training
+    time, :func:`agent_metrics`), and a row that says so for an empty class.
+
+    :param picks: :func:`pick_paper_agents`' picks
+    :param layers: the layers read
+    :return: one row per pick
+    """
+    rows = []
+    for pick in picks:
+        if pick.trial is None:
+            rows.append(AgentMetrics(None, pick.role, absent=pick.absent))
+        else:
+            rows.append(agent_metrics(pick.trial, pick.role, layers))
+    return rows
+
+
 def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYERS) -> AgentMetrics:
     """
     Read the collapse metrics and events of a trial.
@@ -105,10 +240,15 @@ def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYER
     :raises ReportError: on a malformed file
     """
     tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
-    agent = AgentMetrics(trial, role)
+    tags += [metric_tag(layer, "dead_fraction") for layer in layers]
+    agent = AgentMetrics(trial, role, widths=layer_widths(trial, layers))
     metrics_path = trial.path / COLLAPSE_METRICS_CSV
     if metrics_path.exists():
         agent.metrics = read_collapse_metrics(metrics_path, tags)
+        for layer in layers:  # files written before dead_units was logged: the dead fraction times the width
+            fraction, tag = agent.metrics.get(metric_tag(layer, "dead_fraction")), metric_tag(layer, "dead_units")
+            if tag not in agent.metrics and fraction is not None and layer in agent.widths:
+                agent.metrics[tag] = (fraction[0], np.rint(fraction[1] * agent.widths[layer]))
     events_path = trial.path / COLLAPSE_EVENTS_CSV
     if events_path.exists():
         events = read_collapse_events(events_path)
@@ -118,8 +258,23 @@ def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYER
 
 
 def _row_label(agent: AgentMetrics) -> str:
+    if agent.trial is None:
+        return agent.role
     role = "" if agent.role == "run" else f"{agent.role}: "
     return f"{role}seed {agent.trial.seed}\nfinal return {agent.final_return:.0f}"
+
+
+def dead_units_label(widths: dict[str, int], layers: Sequence[str]) -> str:
+    """
+    The axis label of the dead units: ``"dead units (of 1024)"`` when the layers share a width,
+    ``"dead units (mlp0 of 50, mlp1 of 1024)"`` otherwise, ``"dead units"`` when no width is known.
+    """
+    known = {layer: widths[layer] for layer in layers if layer in widths}
+    if not known:
+        return "dead units"
+    if len(set(known.values())) == 1 and len(known) == len(layers):
+        return f"dead units (of {next(iter(known.values()))})"
+    return "dead units (" + ", ".join(f"{layer} of {width}" for layer, width in known.items()) + ")"
 
 
 def _mark_events(ax: plt.Axes, agent: AgentMetrics) -> None:
@@ -130,33 +285,50 @@ def _mark_events(ax: plt.Axes, agent: AgentMetrics) -> None:
 
 
 def plot_collapse_metrics(
-    agents: Sequence[AgentMetrics], path: Path, title: str, layers: Sequence[str] = FIGURE4_LAYERS
+    agents: Sequence[AgentMetrics],
+    path: Path,
+    title: str,
+    layers: Sequence[str] = FIGURE4_LAYERS,
+    source: str = COLLAPSE_METRICS_CSV,
 ) -> None:
     """
     The paper's Figure 4: one row per agent, columns evaluation return, then each metric of
-    :data:`FIGURE4_METRICS` with one line per layer (gradient norm on a log axis), the reset rule's resets and
-    escapes as vertical lines. A figure-wide legend under the panels names the layers and the event lines.
+    :data:`FIGURE4_METRICS` with one line per layer (dead units as a count, the layers' width in the axis label;
+    gradient norm on a log axis), the reset rule's resets and escapes as vertical lines. A row without an agent
+    (``trial`` ``None``) says why in its first panel. A figure-wide legend under the panels names the layers and
+    the event lines.
 
     :param agents: the rows
     :param path: the PNG file to write
-    :param title: the figure's title (task, variant and which seeds)
+    :param title: the figure's title (task, variant, which seeds, which inputs)
     :param layers: the layers drawn
+    :param source: where a missing metric other than the gradient norm would come from (in the panel's "no ... in"
+        text; the gradient norms come from the collapse metrics file)
     """
     if not agents:
         raise ValueError("agents must hold at least one agent to plot.")
     columns, rows = 1 + len(FIGURE4_METRICS), len(agents)
     height = 2.4 * rows + 1.1
+    widths: dict[str, int] = {}
+    for agent in agents:
+        widths.update(agent.widths)
+    shared_width = {widths.get(layer) for layer in layers}
+    full_scale = shared_width.pop() if len(shared_width) == 1 else None
     # Shared x, and shared y per column: the rows compare at a glance.
     fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, height), squeeze=False, sharex=True, sharey="col")
     # A fixed layout (inches from the edges): tight_layout would double the drawing time.
     fig.subplots_adjust(
-        left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - 0.45 / height, bottom=0.75 / height
+        left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - 0.6 / height, bottom=0.75 / height
     )
     for row, agent in zip(axes, agents):
         ax = row[0]
-        ax.plot(agent.trial.frames, agent.trial.returns, color=RETURN_COLOR, lw=1.4)
-        ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
-        ax.set_ylim(bottom=min(0.0, float(np.min(agent.trial.returns))))
+        if agent.trial is None:
+            ax.text(0.5, 0.5, agent.absent, ha="center", va="center", transform=ax.transAxes, fontsize=8, wrap=True)
+            ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
+        else:
+            ax.plot(agent.trial.frames, agent.trial.returns, color=RETURN_COLOR, lw=1.4)
+            ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
+            ax.set_ylim(bottom=min(0.0, float(np.min(agent.trial.returns))))
         for ax, (metric, label) in zip(row[1:], FIGURE4_METRICS):
             drawn = False
             for layer in layers:
@@ -171,8 +343,13 @@ def plot_collapse_metrics(
                 ax.yaxis.set_minor_locator(NullLocator())
             if metric in BOUNDED_METRICS:
                 ax.set_ylim(-0.02, 1.02)
-            if not drawn:
-                ax.text(0.5, 0.5, f"no {metric} in\n{COLLAPSE_METRICS_CSV}", ha="center", va="center",
+            if metric == "dead_units":
+                label = dead_units_label(widths, layers)
+                if full_scale is not None:
+                    ax.set_ylim(-0.02 * full_scale, 1.02 * full_scale)
+            if not drawn and agent.trial is not None:
+                where = COLLAPSE_METRICS_CSV if metric == "grad_norm" else source  # gradient norms: training time
+                ax.text(0.5, 0.5, f"no {metric} in\n{where}", ha="center", va="center",
                         transform=ax.transAxes, fontsize=8, color="0.4")
             ax.set_ylabel(label, fontsize=8)
         for ax in row:
@@ -189,16 +366,43 @@ def plot_collapse_metrics(
     if any(a.escapes for a in agents):
         handles.append(Line2D([], [], color=ESCAPE_COLOR, ls=":", lw=1.0))
         labels.append("escape (reset rule)")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(title, fontsize=9)
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
 
 def figure_title(task: str, variant: str, agents: Sequence[AgentMetrics]) -> str:
-    """The title of a Figure 4: task, variant and the seeds of each row with their final return."""
-    rows = ", ".join(f"{a.role} seed {a.trial.seed} ({a.final_return:.0f})" for a in agents)
+    """The title of a Figure 4 of :func:`pick_agents`' rows: task, variant and the seeds of each row with their final
+    return."""
+    rows = ", ".join(f"{a.role} seed {a.trial.seed} ({a.final_return:.0f})" for a in agents if a.trial is not None)
     return f"{task} / {variant}: collapse metrics over training, {rows} (final return)"
+
+
+ONLINE_INPUTS = "each agent's own replay batch at training time (online metrics)"
+"""What the online figure's metrics are computed on."""
+
+
+def paper_figure_title(task: str, variant: str, picks: Sequence[AgentPick], inputs: str) -> str:
+    """
+    The title of Figures 4, 8, 9: task, variant, each row's seed and final return (or that its class is empty),
+    the seed of the random pick, and which inputs the metrics are computed on.
+
+    :param task: the task
+    :param variant: the variant
+    :param picks: :func:`pick_paper_agents`' picks
+    :param inputs: what the metrics are computed on (:data:`ONLINE_INPUTS`, or the fixed observation set)
+    :return: the title, two lines
+    """
+    rows = "; ".join(
+        pick.absent if pick.trial is None else f"{pick.role}: seed {pick.trial.seed} ({final_return(pick.trial):.0f})"
+        for pick in picks
+    )
+    pick_seed = picks[0].pick_seed if picks else 0
+    return (
+        f"{task} / {variant}: {rows} (final return; picked at random, pick seed {pick_seed})\n"
+        f"rank, correlation, dead units on {inputs}; gradient norms at training time"
+    )
 
 
 def run_folder_trial(run_dir: str | Path) -> Trial:
@@ -233,6 +437,9 @@ def is_run_folder(path: str | Path) -> bool:
 
 
 def run_title(trial: Trial) -> str:
-    """The title of a single run's Figure 4."""
-    return f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})"
+    """The title of a single run's Figure 4 (online metrics: its replay batches)."""
+    return (
+        f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})\n"
+        f"on {ONLINE_INPUTS}"
+    )
 

@@ -22,15 +22,28 @@ from sb3_collapse.protocol import (
 from sb3_collapse.report import html
 from sb3_collapse.report.collapse_figure import (
     FIGURE4_LAYERS,
+    ONLINE_INPUTS,
     AgentMetrics,
+    AgentPick,
     agent_metrics,
-    figure_title,
-    pick_agents,
+    online_agent_rows,
+    paper_figure_title,
+    pick_paper_agents,
     plot_collapse_metrics,
     run_folder_trial,
     run_title,
 )
 from sb3_collapse.report.errors import ReportError
+from sb3_collapse.report.fixed_inputs import (
+    FixedInputs,
+    FixedInputSettings,
+    FixedMetrics,
+    default_rollouts,
+    fixed_agent_rows,
+    load_fixed_inputs,
+    probe_checkpoint_paths,
+    write_fixed_metrics_csv,
+)
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep, read_json
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
@@ -71,7 +84,14 @@ FIGURE3B_PNG = "figure3b.png"
 TABLE7_CSV = "table7.csv"
 TABLE7_MD = "table7.md"
 COLLAPSE_PNG = "collapse_metrics_{task}_{variant}.png"
-"""Figure 4 of one task and variant (``collapse_metrics_walker-walk_drqv2.png``)."""
+"""Figure 4 of one task and variant (``collapse_metrics_walker-walk_drqv2.png``): the metrics on the fixed probing
+set."""
+COLLAPSE_FIXED_CSV = "collapse_metrics_{task}_{variant}.csv"
+"""The values of :data:`COLLAPSE_PNG`: every metric of every probe checkpoint of the picked agents on the fixed set."""
+COLLAPSE_ONLINE_PNG = "collapse_metrics_online_{task}_{variant}.png"
+"""The same agents' online metrics (their own replay batches at training time)."""
+COLLAPSE_AGENTS_CSV = "collapse_agents.csv"
+"""The agents of Figures 4, 8, 9: task, variant, row, seed, final return, the class's seeds, the pick seed, inputs."""
 RUN_COLLAPSE_PNG = "collapse_metrics.png"
 """Figure 4 of a single run folder."""
 OUTPUT_FILES = (
@@ -84,6 +104,9 @@ OUTPUT_FILES = (
     TABLE7_CSV,
     TABLE7_MD,
     COLLAPSE_PNG.format(task="*", variant="*"),
+    COLLAPSE_FIXED_CSV.format(task="*", variant="*"),
+    COLLAPSE_ONLINE_PNG.format(task="*", variant="*"),
+    COLLAPSE_AGENTS_CSV,
     html.INDEX_HTML,
     SUMMARY_MD,
 )
@@ -105,9 +128,13 @@ class Report:
     :param notes: what the report noticed (unfinished trials, dropped frames, missing reference curves)
     :param markdown: the text of ``summary.md``
     :param transplant: task -> Figure 3(b)'s curves and Table 7's rows (empty without transplant variants)
-    :param collapse: ``(task, variant)`` -> Figure 4's rows (best, middle, worst seed), for the variants that
-        are not transplant cells
+    :param collapse: ``(task, variant)`` -> Figure 4's rows (well-performing, middle, poorly performing agent) on
+        the fixed probing set, where it was computed (rollouts and probe checkpoints found)
     :param files: the written files
+    :param collapse_picks: ``(task, variant)`` -> the picked agents, for the variants that are not transplant cells
+    :param collapse_online: ``(task, variant)`` -> the same rows with the online metrics (replay batches)
+    :param collapse_inputs: ``(task, variant)`` -> the fixed set the rows of ``collapse`` were computed on
+    :param collapse_fixed: ``(task, variant)`` -> seed -> every fixed-set metric of its probe checkpoints
     """
 
     sweep: Sweep
@@ -120,6 +147,10 @@ class Report:
     transplant: dict[str, list[TransplantCurves]] = field(default_factory=dict)
     collapse: dict[tuple[str, str], list[AgentMetrics]] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
+    collapse_picks: dict[tuple[str, str], list[AgentPick]] = field(default_factory=dict)
+    collapse_online: dict[tuple[str, str], list[AgentMetrics]] = field(default_factory=dict)
+    collapse_inputs: dict[tuple[str, str], FixedInputs] = field(default_factory=dict)
+    collapse_fixed: dict[tuple[str, str], dict[int, FixedMetrics]] = field(default_factory=dict)
 
 
 def _notes(sweep: Sweep, rows: Sequence[VariantSummary], include_unfinished: bool) -> list[str]:
@@ -152,6 +183,7 @@ def build_report(
     tasks: Sequence[str] | None = None,
     variants: Sequence[str] | None = None,
     progress: bool = True,
+    collapse_settings: FixedInputSettings | None = None,
 ) -> Report:
     """
     Read a sweep and compute everything the report shows, without writing.
@@ -163,6 +195,8 @@ def build_report(
     :param tasks: only these tasks (``None``: all)
     :param variants: only these variants (``None``: all)
     :param progress: show a progress bar while reading trials
+    :param collapse_settings: Figures 4, 8, 9: the pick's seed, the fixed observation set, the device
+        (:class:`FixedInputSettings` defaults when ``None``)
     :return: the report (``files`` empty)
     :raises ReportError: on a bad folder, file or setting
     """
@@ -171,6 +205,8 @@ def build_report(
         settings.validate()
     except ValueError as error:
         raise ReportError(str(error)) from error
+    collapse_settings = collapse_settings or FixedInputSettings()
+    collapse_settings.validate()
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
     rows = summarize(sweep, settings)
     notes = _notes(sweep, rows, include_unfinished)
@@ -188,13 +224,100 @@ def build_report(
     grid = transplant_grid(rows, settings.success_return)
     report = Report(sweep, rows, grid, curves, references, notes, summary_markdown(rows, settings, notes))
     report.transplant = transplant_curves(sweep, settings.success_return)
+    collapse_figures(report, settings, collapse_settings, progress)
+    report.markdown = summary_markdown(rows, settings, report.notes)  # with the notes of the collapse figures
+    return report
+
+
+def collapse_figures(
+    report: Report, settings: ReportSettings, collapse_settings: FixedInputSettings, progress: bool = False
+) -> None:
+    """
+    Fill the report's Figures 4, 8, 9 (see :mod:`sb3_collapse.report.collapse_figure`): per task and variant that
+    is not a transplant cell, the agents picked by :func:`pick_paper_agents`, their online rows, and their rows on
+    the fixed probing set when the rollouts and the probe checkpoints are there (else a note says what is missing).
+    A rollouts file of ``collapse_settings`` serves the tasks it was recorded on; the other tasks read the rollouts
+    of ``probe sweep`` in the sweep folder.
+
+    :param report: the report being built (``collapse*`` fields and ``notes`` are filled)
+    :param settings: the report's definitions (``success_return``)
+    :param collapse_settings: the pick's seed, the fixed set and where the checkpoints run
+    :param progress: progress bars over the checkpoints
+    :raises ReportError: for a bad setting, a given rollouts file that cannot be read, or a checkpoint that does not
+        fit the rollouts
+    """
+    collapse_settings.validate()
+    sweep = report.sweep
+    given = None  # a rollouts file given by the user serves the tasks it was recorded on
+    if collapse_settings.rollouts is not None:
+        given = load_fixed_inputs(
+            collapse_settings.rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed
+        )
     for task in sweep.tasks():
         for variant in sweep.variants(task):
-            if transplant_sources(variant) is None:
-                picked = pick_agents(sweep.select(task, variant))
-                if picked:
-                    report.collapse[(task, variant)] = [agent_metrics(trial, role) for role, trial in picked]
-    return report
+            if transplant_sources(variant) is not None:
+                continue
+            key = (task, variant)
+            try:
+                picks = pick_paper_agents(
+                    sweep.select(task, variant),
+                    collapse_settings.pick_seed,
+                    settings.success_return,
+                    collapse_settings.failure_return,
+                )
+            except ValueError as error:
+                raise ReportError(str(error), parameter="failure_return") from error
+            if not any(pick.trial is not None for pick in picks):
+                continue
+            report.collapse_picks[key] = picks
+            report.collapse_online[key] = online_agent_rows(picks, collapse_settings.layers)
+            online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
+            inputs = given if given is not None and given.fits(task) else None
+            rollouts = default_rollouts(sweep.path, task, variant)
+            if inputs is None and not rollouts.is_file():
+                other = "" if given is None else f" ({given.source} was recorded on {given.task})"
+                report.notes.append(
+                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
+                    f"python -m sb3_collapse.probe sweep, or pass --rollouts); {online} shows the online metrics"
+                )
+                continue
+            lacking = [p.trial.seed for p in picks if p.trial is not None and not probe_checkpoint_paths(p.trial)]
+            if lacking:
+                report.notes.append(
+                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
+                    f"{', '.join(map(str, lacking))} have no probe checkpoints (train with --probe-checkpoints); "
+                    f"{online} shows the online metrics"
+                )
+                continue
+            if inputs is None:
+                inputs = load_fixed_inputs(rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed)
+            rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, progress)
+            report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
+
+
+AGENTS_COLUMNS = ("task", "variant", "row", "seed", "final_return", "class_seeds", "seeds", "pick_seed", "inputs")
+
+
+def agents_rows(report: Report) -> list[dict[str, object]]:
+    """:return: one row of ``collapse_agents.csv`` per row of Figures 4, 8, 9 (:data:`AGENTS_COLUMNS`)"""
+    rows = []
+    for (task, variant), picks in report.collapse_picks.items():
+        inputs = report.collapse_inputs.get((task, variant))
+        for pick in picks:
+            rows.append(
+                {
+                    "task": task,
+                    "variant": variant,
+                    "row": pick.role,
+                    "seed": "" if pick.trial is None else pick.trial.seed,
+                    "final_return": "" if pick.trial is None else float(pick.trial.returns[-1]),
+                    "class_seeds": " ".join(map(str, pick.candidates)),
+                    "seeds": pick.seeds,
+                    "pick_seed": pick.pick_seed,
+                    "inputs": "online only" if inputs is None else inputs.describe(),
+                }
+            )
+    return rows
 
 
 def write_report(
@@ -207,6 +330,7 @@ def write_report(
     variants: Sequence[str] | None = None,
     progress: bool = True,
     overwrite: bool = False,
+    collapse_settings: FixedInputSettings | None = None,
 ) -> Report:
     """
     The report of a sweep folder, written to ``out`` (default ``<sweep>/report/``):
@@ -220,7 +344,10 @@ def write_report(
       ``figure3b.png`` (curves of the successful seeds per cell) and ``table7.csv``/``.md`` (their std at four
       training stages) when a cell has successful seeds;
     - ``collapse_metrics_<task>_<variant>.png`` (the paper's Figures 4, 8, 9) per task and variant that is not a
-      transplant cell: the collapse metrics of the best, the middle and the worst seed by final return;
+      transplant cell: the collapse metrics of a randomly picked well-performing, middle and poorly performing
+      agent, on the fixed probing set (``.csv``: the values), when the rollouts and probe checkpoints are there;
+      ``collapse_metrics_online_<task>_<variant>.png``: the same agents' online metrics (replay batches);
+      ``collapse_agents.csv``: which agents, picked with which seed;
     - ``index.html``: all of the above on one self-contained page, with the sweep's settings, the published
       DrQ-v2 reference and the unfinished trials.
 
@@ -237,13 +364,16 @@ def write_report(
     :param progress: show a progress bar while reading trials
     :param overwrite: replace the outputs of a previous report in ``out``; otherwise their presence is an error
         (checked before the sweep is read)
+    :param collapse_settings: Figures 4, 8, 9 (:class:`FixedInputSettings` defaults when ``None``)
     :return: the report, with ``files`` the written paths
     :raises ReportError: on a bad folder, file or setting; nothing is written then
     """
     settings = settings or ReportSettings()
     out_dir = Path(sweep_dir) / REPORT_FOLDER if out is None else Path(out)
     staged_outputs = StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, overwrite=overwrite, error=ReportError)
-    report = build_report(sweep_dir, settings, reference, include_unfinished, tasks, variants, progress)
+    report = build_report(
+        sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
+    )
     partial = {task: [t for t in report.sweep.unfinished if t.task == task] for task in report.sweep.tasks()}
     with staged_outputs as staged:
         plot_figure5(
@@ -262,11 +392,25 @@ def write_report(
             plot_figure3b(report.transplant, staged.path(FIGURE3B_PNG), settings.success_return)
             write_csv(table7_rows(report.transplant), TABLE7_COLUMNS, staged.path(TABLE7_CSV))
             staged.path(TABLE7_MD).write_text(table7_markdown(report.transplant, settings.success_return))
-        for (task, variant), agents in tqdm(
-            report.collapse.items(), desc="collapse figures", unit="figure", disable=not progress
+        layers = (collapse_settings or FixedInputSettings()).layers
+        for (task, variant), picks in tqdm(
+            report.collapse_picks.items(), desc="collapse figures", unit="figure", disable=not progress
         ):
-            path = staged.path(COLLAPSE_PNG.format(task=task, variant=variant))
-            plot_collapse_metrics(agents, path, figure_title(task, variant, agents))
+            path = staged.path(COLLAPSE_ONLINE_PNG.format(task=task, variant=variant))
+            title = paper_figure_title(task, variant, picks, ONLINE_INPUTS)
+            plot_collapse_metrics(report.collapse_online[(task, variant)], path, title, layers)
+            if (task, variant) in report.collapse:
+                inputs = report.collapse_inputs[(task, variant)]
+                path = staged.path(COLLAPSE_PNG.format(task=task, variant=variant))
+                title = paper_figure_title(task, variant, picks, inputs.describe())
+                plot_collapse_metrics(report.collapse[(task, variant)], path, title, layers, "probe checkpoints")
+                write_fixed_metrics_csv(
+                    staged.path(COLLAPSE_FIXED_CSV.format(task=task, variant=variant)),
+                    picks,
+                    report.collapse_fixed[(task, variant)],
+                )
+        if report.collapse_picks:
+            write_csv(agents_rows(report), AGENTS_COLUMNS, staged.path(COLLAPSE_AGENTS_CSV))
         staged.path(html.INDEX_HTML).write_text(sweep_page(report, settings, staged.path))
         staged.path(SUMMARY_MD).write_text(report.markdown)
         report.files = staged.commit()
@@ -400,15 +544,30 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
     )
     sections.append(curves)
 
-    if report.collapse:
+    if report.collapse_picks:
         collapse = html.Section("Figures 4, 8, 9: collapse metrics of three agents")
-        for (task, variant), agents in report.collapse.items():
+        for (task, variant), picks in report.collapse_picks.items():
+            events = "vertical lines: resets and escapes of the reset rule."
+            if (task, variant) in report.collapse:
+                inputs = report.collapse_inputs[(task, variant)].describe()
+                collapse.parts.append(
+                    html.figure(
+                        png(COLLAPSE_PNG.format(task=task, variant=variant)),
+                        paper_figure_title(task, variant, picks, inputs).replace("\n", "; ")
+                        + f"; every probe checkpoint run on the same observations; {events}",
+                    )
+                )
             collapse.parts.append(
                 html.figure(
-                    png(COLLAPSE_PNG.format(task=task, variant=variant)),
-                    figure_title(task, variant, agents) + f"; layers {', '.join(FIGURE4_LAYERS)}; vertical lines: "
-                    "resets and escapes of the reset rule.",
+                    png(COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)),
+                    "Online metrics (not the paper's inputs): "
+                    + paper_figure_title(task, variant, picks, ONLINE_INPUTS).replace("\n", "; ")
+                    + f"; {events}",
                 )
+            )
+            collapse.parts.append(
+                html.dict_table([r for r in agents_rows(report) if (r["task"], r["variant"]) == (task, variant)],
+                                AGENTS_COLUMNS)
             )
         sections.append(collapse)
 
@@ -450,9 +609,9 @@ def write_run_report(
 ) -> tuple[Trial, list[Path]]:
     """
     The report of one run folder of ``python -m sb3_collapse.train`` (``runs/walker-walk_s0``): Figure 4 of this
-    run alone (``collapse_metrics.png``: return, numerical rank, correlation, zero fraction, gradient norm over
-    frames, resets marked) and ``index.html`` with it and the run's settings. An unfinished run is drawn as far as
-    its files go.
+    run alone (``collapse_metrics.png``: return, numerical rank, correlation, dead units, gradient norm over
+    frames, resets marked; the online metrics, on its replay batches) and ``index.html`` with it and the run's
+    settings. An unfinished run is drawn as far as its files go.
 
     :param run_dir: the run folder
     :param out: the output folder (``<run_dir>/report`` when ``None``)

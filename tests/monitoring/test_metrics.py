@@ -7,6 +7,7 @@ import torch as th
 from sb3_collapse.monitoring.metrics import (
     action_spread,
     dead_fraction,
+    dead_units,
     dormant_ratio,
     effective_rank,
     gradient_norm,
@@ -15,6 +16,7 @@ from sb3_collapse.monitoring.metrics import (
     numerical_rank,
     saturated_fraction,
     singular_values,
+    unit_count,
     zero_fraction,
 )
 
@@ -98,6 +100,31 @@ def test_convolutional_units_are_channels():
     assert zero_fraction(h) == pytest.approx((4 * 25 + 1) / (4 * 75))
 
 
+def test_dead_units_count_units_zero_on_every_input_not_zero_entries():
+    # 6 inputs x 8 units: unit 2 is zero on every input (dead); units 0, 3, 5 are zero on some inputs only (half
+    # of unit 0's, one of unit 3's, all but one of unit 5's): 1 dead unit, while 6 + 3 + 1 + 5 = 15 of 48 entries
+    # are zero.
+    h = th.ones(6, 8)
+    h[:, 2] = 0.0
+    h[:3, 0] = 0.0
+    h[4, 3] = 0.0
+    h[1:, 5] = 0.0
+    assert unit_count(h) == 8
+    assert dead_units(h) == 1 and dead_fraction(h) == pytest.approx(1 / 8)
+    assert zero_fraction(h) == pytest.approx(15 / 48)
+    # every unit zero on some input, none on all: no dead unit, a large zero fraction
+    checker = th.ones(4, 8)
+    checker[::2, ::2] = 0.0
+    checker[1::2, 1::2] = 0.0
+    assert dead_units(checker) == 0 and zero_fraction(checker) == pytest.approx(0.5)
+    # a channel of a convolutional layer is one unit: dead only when zero at every position of every input
+    conv = th.ones(3, 4, 5, 5)
+    conv[:, 1] = 0.0
+    conv[:, 3, 2, 2] = 0.0
+    assert unit_count(conv) == 4 and dead_units(conv) == 1
+    assert dead_units(th.zeros(5, 7)) == 7
+
+
 def test_action_spread_and_saturation():
     actions = th.tensor([[1.0, 0.5], [-1.0, 0.5], [1.0, 0.5], [-1.0, 0.5]])
     assert action_spread(actions) == pytest.approx(0.5)  # std 1 and 0, averaged
@@ -120,6 +147,7 @@ def test_layer_metrics_equal_the_single_functions():
     assert metrics["zero_fraction"] == zero_fraction(h)
     assert metrics["dead_fraction"] == dead_fraction(h)
     assert metrics["dormant_ratio"] == dormant_ratio(h)
+    assert metrics["dead_units"] == dead_units(h)
     flat = h.reshape(40, -1).numpy()
     corr = np.corrcoef(flat)
     assert metrics["correlation"] == pytest.approx((corr.sum() - 40) / (40 * 39))

@@ -1,6 +1,7 @@
 """Probe checkpoints (encoder and actor only) from a real tiny training run, read by the probe like full ones."""
 
 import csv
+import dataclasses
 import json
 import shutil
 import sys
@@ -15,11 +16,16 @@ from PIL import Image
 from sb3_collapse import DrQv2
 from sb3_collapse.drqv2.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint, save_probe_checkpoint
 from sb3_collapse.errors import ParameterError
+from sb3_collapse.monitoring import collect_activations, layer_metrics
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.film import film_episode
+from sb3_collapse.probe.rollouts import record_rollouts, resolve_env_config
 from sb3_collapse.protocol import FIGURE2_PNG, PROBE_CHECKPOINT, PROBE_CHECKPOINTS_DIR, SWEEP_PROBE_DIR, TABLES_1_6_CSV
 from sb3_collapse.report import write_report
+from sb3_collapse.report.errors import ReportError
+from sb3_collapse.report.fixed_inputs import FixedInputSettings, trial_fixed_metrics
+from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
 from sb3_collapse.train import TrainConfig, train
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "report"))
@@ -117,9 +123,14 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     assert {t["std"] for t in tables if t["layer"] == "cnn0"} == {"0.0"}  # the pixels are the same for every agent
     assert any(float(t["std"]) > 0 for t in tables if t["layer"] == "mlp1")  # the noisy actors differ
     # the HTML report of the sweep shows Figure 2 and the tables
-    write_report(root, progress=False)
+    report = write_report(root, progress=False)
     page = (root / "report" / "index.html").read_text()
     assert "Figure 2" in page and "Table 1" in page
+    # Figure 4 on the rollouts probe sweep recorded (all 20 observations: fewer than the 2048 drawn by default)
+    assert (root / "report" / COLLAPSE_PNG.format(task="walker-walk", variant="drqv2")).exists()
+    inputs = report.collapse_inputs[("walker-walk", "drqv2")]
+    assert inputs.source == out / "rollouts.npz" and len(inputs.indices) == inputs.total == 20
+    assert "fixed probing set (all 20 observations of rollouts.npz, 5 episodes, recorded from seed_0/" in page
     # Two checkpoints at once, each with half the memory budget: the same results.
     assert probe_main([*argv, "--layers", "cnn0", "cnn4", "mlp1", "--no-progress", "--overwrite", "--jobs", "2"]) == 0
     with (out / "probe.csv").open() as file:
@@ -130,6 +141,62 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     shutil.rmtree(root / "walker-walk" / "drqv2" / "seed_3" / PROBE_CHECKPOINTS_DIR)
     assert probe_main([*argv, "--overwrite", "--no-progress"]) == 2
     assert "--probe-checkpoints" in capsys.readouterr().err
+
+
+def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
+    """Every probe checkpoint of the picked agents run on the same observations: the metrics are layer_metrics of
+    the snapshot's activations of those observations."""
+    root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 2: 400.0, 3: 10.0})
+    recorder = load_checkpoint(root / "walker-walk" / "drqv2" / "seed_0" / "final_model.zip").model
+    rollouts = record_rollouts(recorder, resolve_env_config(recorder.env_config), 2, max_steps=6, progress=False)
+    path = rollouts.save(tmp_path / "rollouts.npz")
+    settings = FixedInputSettings(pick_seed=1, rollouts=path, fixed_samples=8, sample_seed=5, device="cpu")
+    report = write_report(root, progress=False, collapse_settings=settings)
+    key = ("walker-walk", "drqv2")
+    folder = root / "report"
+    assert (folder / COLLAPSE_PNG.format(task=key[0], variant=key[1])).exists()
+    assert (folder / COLLAPSE_ONLINE_PNG.format(task=key[0], variant=key[1])).exists()
+    # the fixed set: 8 of the 12 observations, drawn with sample_seed
+    indices = np.sort(np.random.default_rng(5).choice(12, size=8, replace=False))
+    inputs = report.collapse_inputs[key]
+    np.testing.assert_array_equal(inputs.indices, indices)
+    np.testing.assert_array_equal(inputs.observations, rollouts.observations[indices])
+    assert inputs.task == "walker-walk" and inputs.fits("walker-walk") and not inputs.fits("hopper-stand")
+    picks = report.collapse_picks[key]
+    assert [(p.role, p.candidates) for p in picks] == [
+        ("well-performing", [0]), ("middle", [2]), ("poorly performing", [3])
+    ]  # fmt: skip
+    with (folder / COLLAPSE_FIXED_CSV.format(task=key[0], variant=key[1])).open() as file:
+        values = {(int(r["seed"]), r["checkpoint"], r["tag"]): float(r["value"]) for r in csv.DictReader(file)}
+    rows = report.collapse[key]
+    for pick, row in zip(picks, rows):
+        assert row.trial is pick.trial and row.widths == {"mlp1": 64, "mlp2": 64}  # hidden_dim 64
+        files = sorted((pick.trial.path / PROBE_CHECKPOINTS_DIR).glob("*.zip"))
+        assert len(files) == 3 and list(row.metrics["collapse/mlp1/dead_units"][0]) == [0, 400, 800]
+        for index, file in enumerate(files):
+            activations = collect_activations(load_checkpoint(file).model, rollouts.observations[indices])
+            for layer in ("mlp1", "mlp2"):
+                expected = layer_metrics(activations[layer])
+                for metric, value in expected.items():
+                    tag = f"collapse/{layer}/{metric}"
+                    assert values[(pick.trial.seed, file.name, tag)] == pytest.approx(value, rel=1e-9, nan_ok=True)
+                for metric in ("numerical_rank", "correlation", "dead_units"):
+                    tag = f"collapse/{layer}/{metric}"
+                    assert row.metrics[tag][1][index] == pytest.approx(expected[metric], rel=1e-9, nan_ok=True)
+    # the seeds' snapshots differ (noise added per seed), so do their metrics on the same inputs
+    ranks = [row.metrics["collapse/mlp1/numerical_rank"][1][-1] for row in rows]
+    assert ranks[0] != ranks[2]
+    with (folder / COLLAPSE_AGENTS_CSV).open() as file:
+        agents = list(csv.DictReader(file))
+    assert [(a["row"], a["seed"], a["pick_seed"]) for a in agents] == [
+        ("well-performing", str(picks[0].trial.seed), "1"), ("middle", "2", "1"), ("poorly performing", "3", "1")
+    ]  # fmt: skip
+    assert {a["inputs"] for a in agents} == {inputs.describe()} and "8 of the 12 observations" in inputs.describe()
+    # rollouts whose images do not fit the checkpoints: the message names the rollouts
+    small = dataclasses.replace(inputs, observations=inputs.observations[:, :, :24, :24])
+    with pytest.raises(ReportError, match="rollouts") as error:
+        trial_fixed_metrics(picks[0].trial, small, settings)
+    assert error.value.parameter == "rollouts"
 
 
 def test_film_of_checkpoints(run, tmp_path):

@@ -22,10 +22,11 @@ TRANSPLANT_FRAMES = 50_000
 COLLAPSE_TAGS = tuple(
     f"collapse/{layer}/{metric}"
     for layer in ("mlp0", "mlp1", "mlp2")
-    for metric in ("numerical_rank", "correlation", "zero_fraction", "dead_fraction", "grad_norm")
+    for metric in ("numerical_rank", "correlation", "zero_fraction", "dead_fraction", "dead_units", "grad_norm")
 ) + ("collapse/action_std",)
 """Every tag a fabricated collapse_metrics.csv has: Figure 4's metrics of mlp0..mlp2, consistent with the trial's
-collapse state (a collapsed check: rank ~1-3, correlation ~0.95, ~90% zeros, tiny grad norms), and others."""
+collapse state (a collapsed check: rank ~1-3, correlation ~0.95, ~90% zeros and dead units, tiny grad norms), and
+others."""
 
 
 @dataclass
@@ -106,6 +107,8 @@ def _metric(rng: np.random.Generator, tag: str, mlp1_norm: float) -> float:
         return rng.uniform(0.9, 0.99) if collapsed else rng.uniform(0.2, 0.4)
     if metric in ("zero_fraction", "dead_fraction"):
         return rng.uniform(0.85, 0.95) if collapsed else rng.uniform(0.4, 0.6)
+    if metric == "dead_units":
+        return float(round(width * (rng.uniform(0.85, 0.95) if collapsed else rng.uniform(0.1, 0.3))))
     if metric == "grad_norm":
         return mlp1_norm * {"mlp0": 0.5, "mlp2": 2.0}.get(layer, 1.0)  # mlp1's own; nan where it is nan
     return rng.uniform(0.0, 1.0)
@@ -120,6 +123,8 @@ def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial
         "frames": int(trial.frames[-1]) if len(trial.frames) else 0,
         "seed": trial.seed,
         "action_repeat": 2,
+        "feature_dim": 50,
+        "hidden_dim": 1024,
         "eval_every_frames": EVAL_EVERY,
         "variant": trial.variant,
         "transplant": None if sources is None else {"cnn": sources[0], "mlp": sources[1]},

@@ -12,9 +12,24 @@ from fabricated_sweep import TRANSPLANT_FRAMES, write_fake_sweep
 from sb3_collapse.protocol import PAPER
 from sb3_collapse.report import write_report
 from sb3_collapse.report.__main__ import main
-from sb3_collapse.report.collapse_figure import pick_agents
+from sb3_collapse.report.collapse_figure import (
+    PAPER_ROLES,
+    agent_class,
+    agent_metrics,
+    pick_agents,
+    pick_paper_agents,
+)
+from sb3_collapse.report.fixed_inputs import FixedInputSettings
 from sb3_collapse.report.loading import Trial, read_collapse_metrics
-from sb3_collapse.report.pipeline import COLLAPSE_PNG, FIGURE3B_PNG, RUN_COLLAPSE_PNG, TABLE7_CSV, write_run_report
+from sb3_collapse.report.pipeline import (
+    COLLAPSE_AGENTS_CSV,
+    COLLAPSE_ONLINE_PNG,
+    COLLAPSE_PNG,
+    FIGURE3B_PNG,
+    RUN_COLLAPSE_PNG,
+    TABLE7_CSV,
+    write_run_report,
+)
 from sb3_collapse.report.statistics import stage_indices
 
 
@@ -43,37 +58,110 @@ def test_pick_agents_best_median_worst():
     assert pick_agents([unfinished]) == []
 
 
+def test_agent_classes_follow_the_paper_thresholds():
+    assert PAPER.success_return == 900.0 and PAPER.failure_return == 30.0
+    assert [agent_class(x) for x in (950.0, 900.0, 899.99, 30.0, 29.99, -1.0)] == [
+        "well-performing", "well-performing", "middle", "middle", "poorly performing", "poorly performing"
+    ]  # fmt: skip
+
+
+def test_pick_paper_agents_by_class_at_random_with_a_recorded_seed():
+    finals = {0: 950.0, 1: 25.0, 2: 930.0, 3: 400.0, 4: 910.0, 5: 10.0, 6: 29.0, 7: 960.0, 8: 700.0}
+    trials = [_trial(seed, final) for seed, final in finals.items()]
+    picks = pick_paper_agents(trials, pick_seed=3)
+    assert [p.role for p in picks] == list(PAPER_ROLES)
+    assert [p.candidates for p in picks] == [[0, 2, 4, 7], [3, 8], [1, 5, 6]]
+    assert {p.seeds for p in picks} == {9} and {p.pick_seed for p in picks} == {3}
+    # each class: one of its own seeds, drawn by numpy.random.default_rng([pick_seed, k]) over its seeds in order
+    for k, pick in enumerate(picks):
+        assert pick.trial.seed == pick.candidates[int(np.random.default_rng([3, k]).integers(len(pick.candidates)))]
+    # reproducible for a seed (whatever the order of the trials), and other seeds pick other agents
+    assert [p.trial.seed for p in pick_paper_agents(trials[::-1], pick_seed=3)] == [p.trial.seed for p in picks]
+    chosen = {tuple(p.trial.seed for p in pick_paper_agents(trials, pick_seed=s)) for s in range(20)}
+    assert len(chosen) > 1
+    for choice in chosen:
+        assert finals[choice[0]] >= 900 and 30 <= finals[choice[1]] < 900 and finals[choice[2]] < 30
+    # no middle agent: the row says so, never an agent of another class
+    no_middle = [t for t in trials if t.seed not in (3, 8)]
+    picks = pick_paper_agents(no_middle, pick_seed=3)
+    assert picks[1].trial is None and picks[1].candidates == []
+    assert picks[1].absent == "no middle agent among 7 seeds"
+    assert picks[0].trial.seed in (0, 2, 4, 7) and picks[2].trial.seed in (1, 5, 6)
+    # unfinished trials are not candidates
+    running = _trial(9, 500.0)
+    running.status = "running"
+    assert pick_paper_agents([running, _trial(10, 950.0)])[1].absent == "no middle agent among 1 seeds"
+    with pytest.raises(ValueError, match="failure_return"):
+        pick_paper_agents(trials, success_return=20.0)
+
+
 def test_collapse_figures_pick_the_fabricated_agents(reported):
     fake, report = reported
-    files = {path.name for path in report.files}
+    files = {path.name: path for path in report.files}
     for task, variant in (
         ("walker-walk", "drqv2"),
         ("walker-walk", "drqv2+reset"),
         ("hopper-stand", "drqv2"),
         ("hopper-stand", "drqv2+reset"),
     ):
-        name = COLLAPSE_PNG.format(task=task, variant=variant)
-        assert name in files
-        image = matplotlib.image.imread(report.files[[p.name for p in report.files].index(name)])
+        # no rollouts in the fabricated sweep: the online figure only, and a note says why
+        assert COLLAPSE_PNG.format(task=task, variant=variant) not in files
+        assert any(f"{task} / {variant}: Figure 4 on the probing samples not drawn" in note for note in report.notes)
+        name = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
+        image = matplotlib.image.imread(files[name])
         assert image.shape[0] > 500 and image.shape[1] > 1000 and image[..., :3].std() > 0.05
-        finals = sorted((-t.returns[-1], t.seed) for t in fake.select(task, variant))
-        agents = report.collapse[(task, variant)]
-        assert [a.role for a in agents] == ["best", "middle", "worst"]
-        assert [a.trial.seed for a in agents] == [finals[0][1], finals[(len(finals) - 1) // 2][1], finals[-1][1]]
-    assert not any(name.startswith("collapse_metrics_walker-walk_cnn-") for name in files)
-    # walker-walk / drqv2: the worst seed collapsed for good (fabricated: seeds 1 and 3), the best succeeded
-    walker = report.collapse[("walker-walk", "drqv2")]
-    assert walker[0].final_return >= PAPER.success_return and walker[-1].final_return < PAPER.failure_return
-    frames, ranks = walker[-1].metrics["collapse/mlp1/numerical_rank"]
+        agents = report.collapse_online[(task, variant)]
+        assert [a.role for a in agents] == list(PAPER_ROLES)
+        for agent, pick in zip(agents, report.collapse_picks[(task, variant)]):
+            assert agent.trial is pick.trial
+            if agent.trial is not None:
+                assert agent_class(agent.final_return) == agent.role
+    # walker-walk / drqv2: seeds 0, 2, 4 escaped (~930), 1 and 3 collapsed (~25): no middle agent
+    walker = report.collapse_online[("walker-walk", "drqv2")]
+    assert walker[0].trial.seed in (0, 2, 4) and walker[2].trial.seed in (1, 3)
+    assert walker[1].trial is None and walker[1].absent == "no middle agent among 5 seeds"
+    frames, ranks = walker[2].metrics["collapse/mlp1/numerical_rank"]
     assert len(frames) == 20 and ranks.max() < 3.0  # collapsed all along: rank ~1-3
+    # the zeros column is the count of dead units (fabricated: ~85-95% of 1024 while collapsed)
+    frames, dead = walker[2].metrics["collapse/mlp1/dead_units"]
+    assert len(frames) == 20 and dead.min() >= 0.85 * 1024 and walker[2].widths == {"mlp1": 1024, "mlp2": 1024}
+    # hopper-stand / drqv2: seed 2 is the one middle agent (final ~410)
+    hopper = report.collapse_online[("hopper-stand", "drqv2")]
+    assert hopper[1].trial.seed == 2 and hopper[0].trial.seed in (1, 3, 4) and hopper[2].trial.seed == 0
+    # collapse_agents.csv records every row: seed, final return, its class's seeds, the pick seed
+    with files[COLLAPSE_AGENTS_CSV].open() as file:
+        rows = {(r["task"], r["variant"], r["row"]): r for r in csv.DictReader(file)}
+    middle = rows[("walker-walk", "drqv2", "middle")]
+    assert middle["seed"] == "" and middle["final_return"] == "" and middle["seeds"] == "5"
+    assert rows[("hopper-stand", "drqv2", "middle")]["seed"] == "2"
+    assert rows[("walker-walk", "drqv2", "poorly performing")]["class_seeds"] == "1 3"
+    assert {r["pick_seed"] for r in rows.values()} == {"0"} and {r["inputs"] for r in rows.values()} == {"online only"}
+    assert not any(name.startswith("collapse_metrics_online_walker-walk_cnn-") for name in files)
     # seed 2 of walker-walk / drqv2+reset: resets at 60k and 120k, escape at 170k, from collapse_events.csv
-    reset_agents = {a.trial.seed: a for a in report.collapse[("walker-walk", "drqv2+reset")]}
     seed2 = next(t for t in fake.select("walker-walk", "drqv2+reset") if t.seed == 2)
-    assert reset_agents[2].role == "worst"  # escaped last (170k frames): the lowest final return
-    assert reset_agents[2].resets == seed2.reset_frames and reset_agents[2].escapes == [seed2.escape_frame]
+    trial = next(t for t in report.sweep.select("walker-walk", "drqv2+reset") if t.seed == 2)
+    agent = agent_metrics(trial, "middle")
+    assert agent.resets == seed2.reset_frames and agent.escapes == [seed2.escape_frame]
     # a nan grad-norm row is dropped, not drawn: seed 4 of walker-walk / drqv2 has two
     seed4 = read_collapse_metrics(fake.path / "walker-walk" / "drqv2" / "seed_4" / "collapse_metrics.csv")
     assert len(seed4["collapse/mlp1/grad_norm"][0]) == 18 and len(seed4["collapse/mlp2/grad_norm"][0]) == 18
+    # another pick seed is recorded and may pick another well-performing agent, never another class
+    other = write_report(fake.path, out=fake.path / "report_seed7", progress=False,
+                         collapse_settings=FixedInputSettings(pick_seed=7))  # fmt: skip
+    picks = other.collapse_picks[("walker-walk", "drqv2")]
+    assert picks[0].pick_seed == 7 and picks[0].trial.seed in (0, 2, 4) and picks[1].trial is None
+
+
+def test_collapse_figure_flags(reported, tmp_path, capsys):
+    fake, _ = reported
+    for flags, named in (
+        (["--rollouts", str(tmp_path / "missing.npz")], "--rollouts"),
+        (["--fixed-samples", "1"], "--fixed-samples"),
+        (["--failure-return", "950"], "--failure-return"),
+    ):
+        assert main([str(fake.path), "--out", str(tmp_path / "out"), "--no-progress", *flags]) == 2
+        assert named in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_table7_matches_the_fabricated_returns(reported):
@@ -101,7 +189,7 @@ def test_html_page_loads_every_image_and_table_in_chromium(reported, tmp_path):
     assert "http://" not in text and "https://" not in text and "<script" not in text  # nothing from the network
     result = check_page(page, tmp_path)
     pngs = [p for p in report.files if p.suffix == ".png"]
-    assert len(result["images"]) == len(pngs) == 7  # figure 5, 4 collapse figures, the grid, figure 3(b)
+    assert len(result["images"]) == len(pngs) == 7  # figure 5, 4 online collapse figures, the grid, figure 3(b)
     for image in result["images"]:
         assert image["complete"] and image["width"] > 0 and image["height"] > 0, image
     assert len(result["tables"]) >= 6

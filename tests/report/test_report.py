@@ -172,11 +172,12 @@ def test_transplant_grid_counts(written):
 
 def test_pngs_written_and_valid(written):
     _, report, out = written
-    assert sorted(p.name for p in out.iterdir()) == [
-        "collapse_metrics_hopper-stand_drqv2+reset.png",
-        "collapse_metrics_hopper-stand_drqv2.png",
-        "collapse_metrics_walker-walk_drqv2+reset.png",
-        "collapse_metrics_walker-walk_drqv2.png",
+    assert sorted(p.name for p in out.iterdir()) == [  # no rollouts: the online collapse figures only
+        "collapse_agents.csv",
+        "collapse_metrics_online_hopper-stand_drqv2+reset.png",
+        "collapse_metrics_online_hopper-stand_drqv2.png",
+        "collapse_metrics_online_walker-walk_drqv2+reset.png",
+        "collapse_metrics_online_walker-walk_drqv2.png",
         "figure3b.png",
         "figure5.png",
         "index.html",
@@ -241,8 +242,9 @@ def test_cli_reference_overlay(fake_sweep, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "| walker-walk | drqv2+reset | 5 | 0 |" in printed and "hopper-stand" not in printed
     assert sorted(p.name for p in out.iterdir()) == [
-        "collapse_metrics_walker-walk_drqv2+reset.png",
-        "collapse_metrics_walker-walk_drqv2.png",
+        "collapse_agents.csv",
+        "collapse_metrics_online_walker-walk_drqv2+reset.png",
+        "collapse_metrics_online_walker-walk_drqv2.png",
         "figure5.png",
         "index.html",
         "summary.csv",
@@ -371,14 +373,15 @@ def test_stale_outputs_removed(fake_sweep, tmp_path):
         write_report(root, progress=False)
     report = write_report(root, variants=["drqv2"], progress=False, overwrite=True)
     assert sorted(p.name for p in (root / "report").iterdir()) == [  # the collapse figures of drqv2+reset too
-        "collapse_metrics_hopper-stand_drqv2.png",
-        "collapse_metrics_walker-walk_drqv2.png",
+        "collapse_agents.csv",
+        "collapse_metrics_online_hopper-stand_drqv2.png",
+        "collapse_metrics_online_walker-walk_drqv2.png",
         "figure5.png",
         "index.html",
         "summary.csv",
         "summary.md",
     ]
-    assert report.grid == {} and report.transplant == {} and len(report.collapse) == 2
+    assert report.grid == {} and report.transplant == {} and len(report.collapse_online) == 2
     # A fresh sweep with nothing finished yet still reports, with the counts of unfinished trials.
     for result in root.glob("*/*/seed_*/result.json"):
         result.unlink()

@@ -14,6 +14,7 @@ import pytest
 
 from sb3_collapse import DrQv2
 from sb3_collapse.checkpoints import checkpoint_folders, checkpoint_frames
+from sb3_collapse.report.collapse_figure import agent_class
 from sb3_collapse.sweep import (
     GRID_VARIANTS,
     SweepError,
@@ -344,8 +345,9 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
         "summary.csv",
         "summary.md",
         "index.html",
-        "collapse_metrics_walker-walk_drqv2.png",
-        "collapse_metrics_walker-walk_drqv2+reset.png",
+        "collapse_metrics_online_walker-walk_drqv2.png",
+        "collapse_metrics_online_walker-walk_drqv2+reset.png",
+        "collapse_agents.csv",
     }
     for path in report.files:
         assert path.parent == tmp_path / "report" and path.stat().st_size > 0
@@ -372,9 +374,10 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
     markdown = (tmp_path / "report" / "summary.md").read_text()
     assert "drqv2+reset" in markdown and "walker-walk" in markdown
     assert read_csv(tmp_path / "report" / "summary.csv")[0]["task"] == "walker-walk"
-    # Figure 4's rows: the two seeds of each variant, by final return; the reset at frame 500 marked
-    agents = report.collapse[("walker-walk", "drqv2+reset")]
-    assert sorted(a.trial.seed for a in agents) == [0, 1] and all(a.resets == [500] for a in agents)
+    # Figure 4's rows (online: no rollouts here): one seed per class of final return; the reset at frame 500 marked
+    agents = [a for a in report.collapse_online[("walker-walk", "drqv2+reset")] if a.trial is not None]
+    assert agents and {a.trial.seed for a in agents} <= {0, 1} and all(a.resets == [500] for a in agents)
+    assert all(agent_class(a.final_return) == a.role for a in agents)
 
 
 def test_probe_sweep_on_the_tiny_real_sweep(tiny_sweep, tmp_path):
