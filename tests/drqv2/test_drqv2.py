@@ -6,12 +6,12 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from torch._dynamo.eval_frame import _debug_get_cache_entry_list
 from stable_baselines3.common.buffers import NStepReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from torch._dynamo.eval_frame import _debug_get_cache_entry_list
 
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
