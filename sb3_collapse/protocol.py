@@ -31,8 +31,10 @@ class PaperProtocol:
     """
     The paper's protocol numbers. Frames count environment frames (agent steps x action repeat).
 
-    :param check_every_frames: frames between two computations of the collapse metrics (Section 4.1: "an
-        evaluation every 1e4 frames", the x axes of Figures 2, 4, 8, 9; the rule's "computations" of Section 5.2)
+    :param check_every_frames: frames between two evaluations and two computations of the collapse metrics
+        (Section 4.1: "The total number of training frames is 1.1e6 and there is an evaluation every 1e4 frames,
+        resulting in x in [0, 109] on the x-axes for all the figures regarding VRL training"; the rule's
+        "computations" of Section 5.2): :attr:`evaluations` evaluations, at frames 0, 1e4, ..., 1.09e6
     :param window_frames: the reset rule's window (Section 5.2: "reset the training from scratch every 2e5
         frames", the end of DrQ-v2's exploration decay, x = 20 in Figure 4)
     :param threshold: a gradient norm above it is healthy (Section 5.2: "a gradient norm larger than 0.001")
@@ -73,6 +75,11 @@ class PaperProtocol:
         return tuple(frame / self.train_frames for frame in self.stage_frames)
 
     @property
+    def evaluations(self) -> int:
+        """The evaluations of a run, the paper's x in [0, 109]: 110 (:func:`evaluation_schedule` of its budget)."""
+        return len(evaluation_schedule(self.train_frames, self.check_every_frames))
+
+    @property
     def collapse_tag(self) -> str:
         """The ``collapse_metrics.csv`` / TensorBoard tag of the rule's metric (``collapse/mlp1/grad_norm``)."""
         return metric_tag(self.layer, "grad_norm")
@@ -80,6 +87,31 @@ class PaperProtocol:
 
 PAPER = PaperProtocol()
 """The paper's protocol."""
+
+
+def evaluation_schedule(frames: int, every_frames: int, frames_per_step: int = 1) -> list[int]:
+    """
+    The frames of a run's scheduled evaluations, as the reference (facebookresearch/drqv2's ``train.py``) has them:
+    one before the first agent step (frame 0), then one every ``every_frames`` frames while the run still has agent
+    steps to take, never at the budget's end (the reference's loop stops there). For the paper's budget of 1.1e6
+    frames and an evaluation every 1e4 frames: 0, 1e4, ..., 1.09e6, 110 evaluations ("x in [0, 109]", Section
+    4.1). The paper's statistics (the last ten evaluations, the 900/30 classes) come from these; the evaluation of
+    the saved final model (at ``frames``) is not one of them.
+
+    :param frames: the run's budget, in frames
+    :param every_frames: frames between two evaluations (> 0)
+    :param frames_per_step: frames an agent step adds (action repeat x environments): an evaluation falls on the
+        first agent step at or after its frame
+    :return: the frames, increasing
+    """
+    if every_frames <= 0 or frames_per_step <= 0:
+        raise ValueError(f"every_frames and frames_per_step must be > 0, got {every_frames} and {frames_per_step}.")
+    schedule = []
+    for target in range(0, frames, every_frames):
+        frame = -(-target // frames_per_step) * frames_per_step
+        if frame < frames and (not schedule or frame > schedule[-1]):
+            schedule.append(frame)
+    return schedule
 
 
 def metric_tag(layer: str, metric: str) -> str:
@@ -97,7 +129,9 @@ CONFIG_JSON = "config.json"
 RESULT_JSON = "result.json"
 """The outcome, written last and atomically: a folder without it is an unfinished run (keys: :data:`RESULT_KEYS`)."""
 EVAL_CSV = "eval.csv"
-"""One row per evaluation (columns :data:`EVAL_FIELDS`)."""
+"""One row per scheduled evaluation (columns :data:`EVAL_FIELDS`, frames :func:`evaluation_schedule`); the saved
+final model's evaluation is in the result file (``final_model_eval``), not here. Files of earlier versions end
+with that evaluation, at the run's last frame: the report leaves it out."""
 COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
 """One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
 COLLAPSE_EVENTS_CSV = "collapse_events.csv"
@@ -152,6 +186,7 @@ RESULT_KEYS = (
     "frames",
     "agent_steps",
     "final_eval",
+    "final_model_eval",
     "resets",
     "reset_frames",
     "escaped",
