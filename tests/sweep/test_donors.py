@@ -12,7 +12,7 @@ from sb3_collapse.sweep.donors import donors_record, final_return
 from sb3_collapse.sweep.runner import sweep_settings
 
 sys.path.insert(0, str(Path(__file__).parent.parent / "report"))
-from fabricated_sweep import write_fake_sweep, write_final_models  # noqa: E402
+from fabricated_sweep import write_fake_sweep, write_final_models
 
 
 @pytest.fixture(scope="module")
