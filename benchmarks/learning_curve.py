@@ -13,7 +13,7 @@ not trained again, only drawn. Flags this script does not know go to the train C
 (``--out``) and prints every evaluation and whether the target is met.
 
 The scheduled evaluations (frame 0, then every ``eval_every_frames``: eval.csv) are drawn as a line; the saved final
-model's evaluation, at the budget's last frame (the result file's ``final_model_eval``), as a separate marker. Both
+model's evaluation, at the budget's last frame (the result file's ``saved_model_eval``), as a separate marker. Both
 count for the target.
 """
 
@@ -39,7 +39,9 @@ from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
 
 
 def parse_args(argv: list[str] | None = None) -> tuple[argparse.Namespace, list[str]]:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--env", default="cartpole-balance", help="the task (default: %(default)s)")
     p.add_argument("--frames", type=int, default=60_000, help="the run's budget, in frames (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="the run's seed (default: %(default)s)")
@@ -93,7 +95,7 @@ def read_evaluations(run_dir: Path) -> tuple[np.ndarray, np.ndarray, dict | None
                     returns.append(float(row["mean_reward"]))
     final_model = None
     if finished(run_dir):
-        final_model = json.loads((run_dir / RESULT_JSON).read_text()).get("final_model_eval")
+        final_model = json.loads((run_dir / RESULT_JSON).read_text()).get("saved_model_eval")
     return np.asarray(frames, dtype=np.int64), np.asarray(returns), final_model
 
 
@@ -113,7 +115,8 @@ def plot(args: argparse.Namespace, run_dir: Path, extra: list[str], out: Path) -
     if len(frames):
         ax.plot(frames, returns, "o-", color="C0", label=f"this run, seed {args.seed} (scheduled evaluations)")
     if final_model is not None:
-        ax.plot([final_model["frame"]], [final_model["mean_reward"]], "D", color="C3", label="this run, saved final model")
+        saved = ([final_model["frame"]], [final_model["mean_reward"]])
+        ax.plot(*saved, "D", color="C3", label="this run, saved final model")
     ax.axhline(args.target_return, color="C2", lw=0.8, ls=":")
     ax.axvline(args.target_frames, color="C2", lw=0.8, ls=":", label=f"target: >= {args.target_return:g} by "
                f"{args.target_frames:,} frames")  # fmt: skip

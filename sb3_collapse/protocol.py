@@ -169,7 +169,7 @@ RESULT_JSON = "result.json"
 """The outcome, written last and atomically: a folder without it is an unfinished run (keys: :data:`RESULT_KEYS`)."""
 EVAL_CSV = "eval.csv"
 """One row per scheduled evaluation (columns :data:`EVAL_FIELDS`, frames :func:`evaluation_schedule`); the saved
-final model's evaluation is in the result file (``final_model_eval``), not here. Files of earlier versions end
+final model's evaluation is in the result file (``saved_model_eval``), not here. Files of earlier versions end
 with that evaluation, at the run's last frame: the report leaves it out."""
 COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
 """One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
@@ -225,7 +225,7 @@ RESULT_KEYS = (
     "frames",
     "agent_steps",
     "final_eval",
-    "final_model_eval",
+    "saved_model_eval",
     "resets",
     "reset_frames",
     "escaped",

@@ -444,8 +444,8 @@ class PeriodicEvaluation(ResumableCallback):
 
     Not at the last step of ``learn()`` (the reference does not evaluate there either; there, SB3 calls the callbacks
     before that step's updates). :func:`train` evaluates the saved final model after ``learn()`` with
-    :meth:`evaluate_final_model`: that evaluation is labelled apart (TensorBoard ``eval_final_model/...``, the result
-    file's ``final_model_eval``), neither in the CSV nor in :attr:`rows`.
+    :meth:`evaluate_saved_model`: that evaluation is labelled apart (TensorBoard ``eval_saved_model/...``, the result
+    file's ``saved_model_eval``), neither in the CSV nor in :attr:`rows`.
 
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations
@@ -509,14 +509,14 @@ class PeriodicEvaluation(ResumableCallback):
         self.rows.append(row)
         return row
 
-    def evaluate_final_model(self) -> dict[str, float]:
+    def evaluate_saved_model(self) -> dict[str, float]:
         """
-        Evaluate the final model (after ``learn()``), logged as ``eval_final_model/...``; not a scheduled evaluation:
+        Evaluate the final model (after ``learn()``), logged as ``eval_saved_model/...``; not a scheduled evaluation:
         not in the CSV, not in :attr:`rows`.
 
         :return: the row (keys :data:`~sb3_collapse.protocol.EVAL_FIELDS`)
         """
-        return self._run_episodes("eval_final_model")
+        return self._run_episodes("eval_saved_model")
 
 
 @dataclass
@@ -526,7 +526,7 @@ class TrainResult:
     :param model_path: the final checkpoint
     :param evaluations: one dict per scheduled evaluation (``frame``, ``step``, ``mean_reward``, ...)
     :param summary: the content of the result file (see :func:`run_summary`)
-    :param final_model_evaluation: the evaluation of the saved final model (same keys; ``None`` without
+    :param saved_model_evaluation: the evaluation of the saved final model (same keys; ``None`` without
         evaluations), not one of ``evaluations``
     """
 
@@ -534,7 +534,7 @@ class TrainResult:
     model_path: Path
     evaluations: list[dict[str, float]]
     summary: dict[str, Any] = dataclasses.field(default_factory=dict)
-    final_model_evaluation: dict[str, float] | None = None
+    saved_model_evaluation: dict[str, float] | None = None
 
 
 def run_summary(
@@ -545,15 +545,16 @@ def run_summary(
     reset_rule: CollapseReset | None,
     wall_time_s: float,
     resumes: int = 0,
-    final_model_eval: dict[str, float] | None = None,
+    saved_model_eval: dict[str, float] | None = None,
 ) -> dict[str, Any]:
     """
     The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`): ``status``
     (:data:`~sb3_collapse.protocol.FINISHED`), ``task``, ``variant``, ``seed``, ``frames`` (frames
     trained, action repeat included), ``agent_steps``, ``final_eval`` (``frame``, ``mean_reward``, ``std_reward``
-    of the last scheduled evaluation, the one the paper's 900/30 classes read; ``None`` without evaluation),
-    ``final_model_eval`` (the same keys and ``episodes`` for the evaluation of the saved final model, at the run's
-    last frame, outside the schedule and the statistics; ``None`` without it), ``resets`` (resets of the reset rule), ``reset_frames``
+    of the last scheduled evaluation, the one the paper's success/failure classes read; ``None`` without evaluation),
+    ``saved_model_eval`` (the same keys and ``episodes`` for the evaluation of the saved final model, at the run's
+    last frame, outside the schedule and the statistics; ``None`` without it), ``resets`` (resets of the reset rule),
+    ``reset_frames``
     (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
     ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run, over all its processes),
     ``timings`` (where the time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see :mod:`sb3_collapse.drqv2.timing`,
@@ -567,14 +568,14 @@ def run_summary(
     :param reset_rule: the run's reset-rule callback, ``None`` without the rule
     :param wall_time_s: seconds the run took
     :param resumes: times the run was resumed from a checkpoint
-    :param final_model_eval: the evaluation of the saved final model (``PeriodicEvaluation.evaluate_final_model``)
+    :param saved_model_eval: the evaluation of the saved final model (``PeriodicEvaluation.evaluate_saved_model``)
     :return: the summary, JSON-serializable
     """
     last = evaluations[-1] if evaluations else None
-    final_model = None
-    if final_model_eval is not None:
-        final_model = {key: final_model_eval[key] for key in ("frame", "mean_reward", "std_reward", "episodes")}
-        final_model["frame"], final_model["episodes"] = int(final_model["frame"]), int(final_model["episodes"])
+    saved = None
+    if saved_model_eval is not None:
+        saved = {key: saved_model_eval[key] for key in ("frame", "mean_reward", "std_reward", "episodes")}
+        saved["frame"], saved["episodes"] = int(saved["frame"]), int(saved["episodes"])
     return {
         "status": FINISHED,
         "task": task_id,
@@ -585,7 +586,7 @@ def run_summary(
         "final_eval": None
         if last is None
         else {"frame": int(last["frame"]), "mean_reward": last["mean_reward"], "std_reward": last["std_reward"]},
-        "final_model_eval": final_model,
+        "saved_model_eval": saved,
         "resets": 0 if reset_rule is None else reset_rule.resets,
         "reset_frames": [] if reset_rule is None else [int(frame) for frame in reset_rule.reset_frames],
         "escaped": None if reset_rule is None else bool(reset_rule.escaped),
@@ -942,9 +943,9 @@ def _train_into(
         raise
     model_path = run_dir / FINAL_MODEL
     model.save(model_path)
-    final_model_eval = None
-    if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in eval.csv)
-        final_model_eval = evaluation.evaluate_final_model()
+    saved_model_eval = None
+    if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the evaluation file)
+        saved_model_eval = evaluation.evaluate_saved_model()
     if probe_checkpoints is not None:
         probe_checkpoints.save()  # the final model's, next to its evaluation (once per frame)
     model.logger.close()
@@ -955,13 +956,13 @@ def _train_into(
         print(
             f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- {last['std_reward']:.1f}"
         )
-    if final_model_eval is not None:
+    if saved_model_eval is not None:
         print(
-            f"Saved final model at frame {final_model_eval['frame']:,} (outside the schedule): "
-            f"{final_model_eval['mean_reward']:.1f} +- {final_model_eval['std_reward']:.1f}"
+            f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
+            f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
         )
     wall_time_s = earlier_s + time.time() - start_time
-    summary = run_summary(config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, final_model_eval)
+    summary = run_summary(config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval)
     write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
@@ -970,7 +971,7 @@ def _train_into(
         model_path=model_path,
         evaluations=evaluations,
         summary=summary,
-        final_model_evaluation=final_model_eval,
+        saved_model_evaluation=saved_model_eval,
     )
 
 

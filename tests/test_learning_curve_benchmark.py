@@ -26,13 +26,13 @@ def test_learning_curve_trains_draws_and_does_not_train_a_finished_run_again(tmp
         rows = list(csv.DictReader(file))
     assert [int(row["frame"]) for row in rows] == [0, 100]  # the scheduled evaluations; 200: the final model
     result = json.loads((run_dir / "result.json").read_text())
-    assert result["final_model_eval"]["frame"] == 200
+    assert result["saved_model_eval"]["frame"] == 200
     config = json.loads((run_dir / "config.json").read_text())
     assert (config["size"], config["action_repeat"], config["torch_threads"]) == (32, 25, 1)  # passed through
-    best = max([float(row["mean_reward"]) for row in rows] + [result["final_model_eval"]["mean_reward"]])
+    best = max([float(row["mean_reward"]) for row in rows] + [result["saved_model_eval"]["mean_reward"]])
     verdict = "met" if best >= 800 else "not met"
     assert f"target (>= 800 by 200 frames): {verdict}; best {best:.1f}" in printed
-    assert f"frame       200: {result['final_model_eval']['mean_reward']:8.1f}  (saved final model)" in printed
+    assert f"frame       200: {result['saved_model_eval']['mean_reward']:8.1f}  (saved final model)" in printed
     assert matplotlib.image.imread(png).shape[2] in (3, 4)
     # The same command again: the finished run is drawn, not trained again.
     before = (run_dir / "result.json").stat().st_mtime_ns

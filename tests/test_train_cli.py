@@ -36,9 +36,9 @@ def test_train_end_to_end(tmp_path):
         "frame": 400, "mean_reward": float(rows[-1]["mean_reward"]), "std_reward": float(rows[-1]["std_reward"])
     }
     # The saved model's evaluation, at the budget's end, is labelled apart: not a row of eval.csv.
-    final_model = summary["final_model_eval"]
+    final_model = summary["saved_model_eval"]
     assert final_model["frame"] == 800 and final_model["episodes"] == 1 and np.isfinite(final_model["mean_reward"])
-    assert result.final_model_evaluation["frame"] == 800 and len(result.evaluations) == 2
+    assert result.saved_model_evaluation["frame"] == 800 and len(result.evaluations) == 2
     assert summary["resets"] == 0 and summary["reset_frames"] == [] and summary["escaped"] is None
     assert summary["escape_frame"] is None and summary["wall_time_s"] > 0
     assert not (result.run_dir / "collapse_events.csv").exists()  # no reset rule
@@ -53,7 +53,7 @@ def test_train_end_to_end(tmp_path):
     accumulator = EventAccumulator(str(events[0]))
     accumulator.Reload()
     assert [e.step for e in accumulator.Scalars("eval/mean_reward")] == [0, 50]
-    assert [e.step for e in accumulator.Scalars("eval_final_model/mean_reward")] == [100]
+    assert [e.step for e in accumulator.Scalars("eval_saved_model/mean_reward")] == [100]
 
     # A second run with the same name gets its own folder.
     second = train(TrainConfig(**{**config.__dict__, "frames": 80, "eval_every_frames": 0}))
@@ -90,7 +90,7 @@ def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
     resets = [int(row["frame"]) for row in events if row["event"] == "reset"]
     assert resets == summary["reset_frames"] and len(resets) == summary["resets"] >= 1
     assert summary["escaped"] is False and summary["escape_frame"] is None and summary["variant"] == "drqv2+reset"
-    assert summary["final_eval"] is None and summary["final_model_eval"] is None  # no evaluation
+    assert summary["final_eval"] is None and summary["saved_model_eval"] is None  # no evaluation
 
 
 def test_train_into_an_exact_run_dir(tmp_path):
@@ -166,7 +166,7 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
     assert (saved["algorithm"], saved["intervention"], saved["variant"]) == ("sac", "shrink_perturb", "sac+shrink_perturb")
     assert result.summary["frames"] == 500 and result.summary["resets"] == 2
     assert [row["frame"] for row in result.evaluations] == [0]  # 500 is the budget: the final model's evaluation
-    assert result.summary["final_model_eval"]["frame"] == 500
+    assert result.summary["saved_model_eval"]["frame"] == 500
     with open(result.run_dir / "collapse_events.csv") as file:
         events = list(csv.DictReader(file))
     assert [row["intervention"] for row in events] == ["shrink_perturb", "shrink_perturb"]
@@ -202,7 +202,7 @@ def test_train_with_parallel_envs(tmp_path):
     assert model.n_envs == 2 and model._n_updates == 10 and model.num_frames == 320
     with open(tmp_path / "run" / "eval.csv") as file:  # the single evaluation env, at frame 0 (320: the final model)
         assert [int(row["frame"]) for row in csv.DictReader(file)] == [0]
-    assert summary["final_model_eval"]["frame"] == 320
+    assert summary["saved_model_eval"]["frame"] == 320
     with pytest.raises(ValueError, match=r"n_envs=2 is a DrQv2 option"):
         TrainConfig(algorithm="sac", n_envs=2).validate()
 

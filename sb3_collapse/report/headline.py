@@ -325,7 +325,9 @@ def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Prop
         if windows is not None and stuck.total:
             predicted = Estimate(escape_probability(stuck.fraction, windows), escape_interval(stuck.interval, windows))
         escaped = Proportion.of(row.escaped, row.reset_rule_seeds)
-        result.append(Proposition1Row(row.task, algorithm, row.variant, stuck, windows, predicted, escaped, window_frames))
+        result.append(
+            Proposition1Row(row.task, algorithm, row.variant, stuck, windows, predicted, escaped, window_frames)
+        )
     return result
 
 

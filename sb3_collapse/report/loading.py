@@ -326,14 +326,14 @@ def scheduled_evaluations(
     The scheduled evaluations of a finished run (:func:`sb3_collapse.protocol.evaluation_schedule`), where the
     paper's statistics come from: run folders of earlier versions end their evaluation file with the saved final
     model's evaluation, at the run's last frame (the result file's ``frames``; such files have no
-    ``final_model_eval``), which is left out here. Files of this version hold the scheduled evaluations only.
+    ``saved_model_eval``), which is left out here. Files of this version hold the scheduled evaluations only.
 
     :param frames: the evaluation file's frames, increasing
     :param returns: the return at each
     :param result: the run's result file
     :return: ``(frames, returns)`` without the final model's evaluation
     """
-    if "final_model_eval" not in result and len(frames) > 1 and int(frames[-1]) == result.get("frames"):
+    if "saved_model_eval" not in result and len(frames) > 1 and int(frames[-1]) == result.get("frames"):
         return frames[:-1], returns[:-1]
     return frames, returns
 
@@ -373,7 +373,8 @@ def load_trial(
         if not eval_path.exists():
             raise ReportError(f"{eval_path} is missing although {result_path} says the trial finished.")
         trial.frames, trial.returns = read_eval_curve(eval_path)
-        trial.frames, trial.returns = scheduled_evaluations(trial.frames, trial.returns, result)  # type: ignore[arg-type]
+        frames, returns = trial.frames, trial.returns
+        trial.frames, trial.returns = scheduled_evaluations(frames, returns, result)  # type: ignore[arg-type]
         if len(trial.frames) == 0:
             raise ReportError(f"{eval_path} has no evaluation rows although {result_path} says the trial finished.")
         metrics_path = path / COLLAPSE_METRICS_CSV

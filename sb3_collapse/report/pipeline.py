@@ -242,7 +242,8 @@ def write_report(
     The report of a sweep folder, written to ``out`` (default ``<sweep>/report/``):
 
     - ``figure5.png``: per task, mean evaluation return over frames with the percentile band across seeds for each
-      variant that is not a transplant-grid cell (those are Figure 3's) (plus the published DrQ-v2 curves with ``reference``, and dotted partial curves of unfinished
+      variant that is not a transplant-grid cell (those are Figure 3's) (plus the published DrQ-v2 curves with
+      ``reference``, and dotted partial curves of unfinished
       trials with ``include_unfinished``);
     - ``summary.csv`` and ``summary.md``: the table per task and variant
       (:class:`~sb3_collapse.report.statistics.VariantSummary`), ``summary.md`` led by the paper's headline numbers

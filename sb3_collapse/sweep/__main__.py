@@ -206,14 +206,16 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
     tasks = list(dict.fromkeys(trial.task for trial in trials))
     given = {key: getattr(args, key) for key in DONOR_KEYS if getattr(args, key) is not None}
     if args.donors_from is None:
-        checkpoints = {key: parse_checkpoint_specs(specs, tasks, f"--{key.replace('_', '-')}") for key, specs in given.items()}
+        checkpoints = {
+            key: parse_checkpoint_specs(specs, tasks, f"--{key.replace('_', '-')}") for key, specs in given.items()
+        }
         check_distinct_donors(checkpoints)
         return checkpoints, None
     if given:
         flags = ", ".join(f"--{key.replace('_', '-')}" for key in given)
         raise SweepError(f"--donors-from picks every donor: leave out {flags}.", parameter="donors_from")
     needed = {source for trial in trials for source in (transplant_of(trial.variant) or {}).values()} - {"blank"}
-    grid_tasks = [task for task in tasks if any(trial.task == task and transplant_of(trial.variant) for trial in trials)]
+    grid_tasks = list(dict.fromkeys(trial.task for trial in trials if transplant_of(trial.variant)))
     picked = {
         task: pick_donors(args.donors_from, task, args.donor_seed, args.donor_variant, sorted(needed))
         for task in grid_tasks
@@ -237,7 +239,8 @@ def dry_run(
     if donors is not None:
         for task, picked in donors["tasks"].items():
             for key, donor in picked.items():
-                print(f"donor {task} {key}: seed {donor['seed']} (final return {donor['final_return']:.1f}) {donor['path']}")
+                final = donor["final_return"]
+                print(f"donor {task} {key}: seed {donor['seed']} (final return {final:.1f}) {donor['path']}")
     settings = sweep_settings(trials, training, checkpoints, resources={}, donors=donors)
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
     statuses = {trial: trial_status(trial_dir(out, trial)) for trial in trials}

@@ -6,12 +6,11 @@ performing agents."
 So the good CNN and the good MLP come from **two different** agents (and the bad ones likewise): the cell
 ``cnn-good_mlp-good`` is then a new combination, not one agent reloaded. The donors are either given (two
 checkpoints per source: ``--good-cnn``, ``--good-mlp``, ``--bad-cnn``, ``--bad-mlp``) or picked at random, with a
-recorded seed, among the finished seeds of a sweep (``--donors-from``): well-performing agents are those whose final
-return is at least :attr:`~sb3_collapse.protocol.PaperProtocol.success_return` (Section 4.1: "more than 900
-rewards"), poorly performing ones below :attr:`~sb3_collapse.protocol.PaperProtocol.failure_return` ("less than 30
-rewards"). A seed's final return is its last scheduled evaluation
-(:func:`~sb3_collapse.protocol.evaluation_schedule`), the one the paper's classes read. The sweep's settings file
-records the donors (:func:`donors_record`).
+recorded seed, among the finished seeds of a sweep (``--donors-from``): well-performing agents (Section 4.1) are
+those whose final return is at least :attr:`~sb3_collapse.protocol.PaperProtocol.success_return`, poorly performing
+ones below :attr:`~sb3_collapse.protocol.PaperProtocol.failure_return` ("less than 30 rewards"). A seed's final
+return is its last scheduled evaluation (:func:`~sb3_collapse.protocol.evaluation_schedule`), the one the paper's
+classes read. The sweep's settings file records the donors (:func:`donors_record`).
 """
 
 from __future__ import annotations
@@ -45,7 +44,7 @@ class Donor:
 
     :param seed: its seed (``seed_<k>`` folder)
     :param final_return: its last scheduled evaluation's mean return
-    :param path: its saved model (``final_model.zip``), absolute
+    :param path: its saved model (:data:`~sb3_collapse.protocol.FINAL_MODEL`), absolute
     """
 
     seed: int
@@ -69,7 +68,7 @@ def final_return(folder: str | Path) -> float | None:
         return None
     if not isinstance(result, dict) or result.get("status") != FINISHED:
         return None
-    if "final_model_eval" not in result and len(rows) > 1 and rows[-1][0] == result.get("frames"):
+    if "saved_model_eval" not in result and len(rows) > 1 and rows[-1][0] == result.get("frames"):
         rows = rows[:-1]
     return rows[-1][1] if rows else None
 

@@ -164,7 +164,7 @@ def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial
             "frames": int(trial.frames[-1]),
             "agent_steps": int(trial.frames[-1]) // 2,
             "final_eval": {"frame": int(trial.frames[-1]), "mean_reward": float(trial.returns[-1]), "std_reward": 3.5},
-            "final_model_eval": {  # this version's key: eval.csv holds the scheduled evaluations only
+            "saved_model_eval": {  # this version's key: eval.csv holds the scheduled evaluations only
                 "frame": int(trial.frames[-1]), "mean_reward": float(trial.returns[-1]), "std_reward": 3.5, "episodes": 10
             },
             "resets": trial.resets,

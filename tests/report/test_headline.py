@@ -118,15 +118,16 @@ def test_figure5_has_no_transplant_series(fake, monkeypatch, tmp_path):
 
 def test_an_earlier_versions_final_model_row_is_left_out(fake):
     # Earlier versions appended the saved model's evaluation, at the run's last frame, to eval.csv (no
-    # final_model_eval in result.json): it is not a scheduled evaluation.
+    # saved_model_eval in result.json): it is not a scheduled evaluation.
     folder = fake.path / "walker-walk" / "drqv2" / "seed_0"
     result = json.loads((folder / "result.json").read_text())
     assert load_trial("walker-walk", "drqv2", 0, folder).frames[-1] == result["frames"] == FRAMES
-    old = {key: value for key, value in result.items() if key != "final_model_eval"}
+    old = {key: value for key, value in result.items() if key != "saved_model_eval"}
     (folder / "result.json").write_text(json.dumps(old))
     try:
         trial = load_trial("walker-walk", "drqv2", 0, folder)
-        assert trial.frames[-1] == FRAMES - 10_000 and len(trial.frames) == len(fake.select("walker-walk", "drqv2")[0].frames) - 1
+        written = fake.select("walker-walk", "drqv2")[0].frames
+        assert trial.frames[-1] == FRAMES - 10_000 and len(trial.frames) == len(written) - 1
     finally:
         (folder / "result.json").write_text(json.dumps(result))
 

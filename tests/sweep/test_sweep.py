@@ -46,7 +46,7 @@ TINY = [
 ]  # fmt: skip
 TINY_TRIALS = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset"]
 RESULT_KEYS = {
-    "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "final_model_eval", "resets",
+    "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "saved_model_eval", "resets",
     "reset_frames", "escaped", "escape_frame", "wall_time_s", "timings", "resumes",
 }  # fmt: skip
 
@@ -120,7 +120,7 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
         assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == 250
         assert result["final_eval"]["frame"] == 0  # the last scheduled evaluation
         assert result["final_eval"]["mean_reward"] == float(evaluations[-1]["mean_reward"])
-        assert result["final_model_eval"]["frame"] == 1000 and result["final_model_eval"]["episodes"] == 1
+        assert result["saved_model_eval"]["frame"] == 1000 and result["saved_model_eval"]["episodes"] == 1
         assert result["wall_time_s"] > 0
         assert trial_status(folder) == "finished" and not list(folder.glob(".*.tmp"))
         if variant == "drqv2":
@@ -291,7 +291,7 @@ def test_trials_variants_and_checkpoints(tmp_path):
 def test_command_line_errors(tmp_path, capsys):
     out = str(tmp_path / "sweep")
     cases = [
-        (["--tasks", "walker-walk", "--seeds", "2", "--transplant-grid"], "--good-cnn PATH"),
+        (["--tasks", "walker-walk", "--seeds", "2", "--transplant-grid"], "--good-mlp PATH"),
         (["--tasks", "walker-walk", "--seeds", "1", "--variants", "cnn-good_mlp-good", "--good-checkpoint", "a.zip"],
          "pass --good-cnn PATH --good-mlp PATH, or --donors-from SWEEP"),
         (["--tasks", "walker-walk", "--seeds", "0"], "--seeds must be >= 1"),
