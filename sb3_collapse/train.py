@@ -554,8 +554,7 @@ def run_summary(
     of the last scheduled evaluation, the one the paper's success/failure classes read; ``None`` without evaluation),
     ``saved_model_eval`` (the same keys and ``episodes`` for the evaluation of the saved final model, at the run's
     last frame, outside the schedule and the statistics; ``None`` without it), ``resets`` (resets of the reset rule),
-    ``reset_frames``
-    (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
+    ``reset_frames`` (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
     ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run, over all its processes),
     ``timings`` (where the time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see :mod:`sb3_collapse.drqv2.timing`,
     of the last process only when the run was resumed; ``None`` for SB3's TD3 and SAC) and ``resumes`` (times the run
