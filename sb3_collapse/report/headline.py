@@ -416,13 +416,13 @@ def headline_definitions(settings: ReportSettings) -> str:
     """:return: what the headline's and Proposition 1's cells mean, one paragraph"""
     return (
         f"Paper: Section 5.2 (40 seeds per task and variant). This sweep: {BASELINE_VARIANT} and {RULE_VARIANT}, "
-        "finished seeds. *Stuck in collapse*: seeds stuck at the end of training (see the summary's definitions), "
+        "finished seeds. Stuck in collapse: seeds stuck at the end of training (see the summary's definitions), "
         "of the seeds whose collapse state is known; for the rule the paper counts the seeds that never escaped. "
-        f"*Std over last {settings.last_evals} evals*: the across-seed std at each of the last "
+        f"Std over last {settings.last_evals} evals: the across-seed std at each of the last "
         f"{settings.last_evals} scheduled evaluations, averaged. Intervals: {CONFIDENCE:.0%}, Wilson for counts, "
         f"percentile bootstrap over seeds ({BOOTSTRAP_RESAMPLES} resamples) for the std. Proposition 1: p is the "
         "baseline's stuck fraction, n the rule's whole windows in the budget; p's Wilson interval [lo, hi] gives "
-        "[1 - hi^n, 1 - lo^n]; *observed escape*: the rule's seeds whose rule saw an escape."
+        "[1 - hi^n, 1 - lo^n]; observed escape: the rule's seeds whose rule saw an escape."
     )
 
 
