@@ -156,10 +156,11 @@ def main(argv: list[str] | None = None) -> int:
         command = train_command(args, run_dir, extra)
         print("Training (the same command resumes it):", " ".join(command), flush=True)
         env = {**os.environ, "OMP_NUM_THREADS": str(args.torch_threads), "MKL_NUM_THREADS": str(args.torch_threads)}
+        process = subprocess.Popen(command, env=env)
         try:
-            status = subprocess.run(command, check=False, env=env).returncode
-        except KeyboardInterrupt:  # the run got the same SIGINT, wrote its checkpoint and exits
-            status = EXIT_INTERRUPTED
+            status = process.wait()
+        except KeyboardInterrupt:  # the run got the same SIGINT: let it write its checkpoint and exit (75)
+            status = process.wait()
         if status == EXIT_INTERRUPTED:
             print("Interrupted: run the same command again to resume the run.")
         elif status != 0:
