@@ -32,8 +32,10 @@ class PaperProtocol:
     """
     The paper's protocol numbers. Frames count environment frames (agent steps x action repeat).
 
-    :param check_every_frames: frames between two computations of the collapse metrics (Section 4.1: "an
-        evaluation every 1e4 frames", the x axes of Figures 2, 4, 8, 9; the rule's "computations" of Section 5.2)
+    :param check_every_frames: frames between two evaluations and two computations of the collapse metrics
+        (Section 4.1: "The total number of training frames is 1.1e6 and there is an evaluation every 1e4 frames,
+        resulting in x in [0, 109] on the x-axes for all the figures regarding VRL training"; the rule's
+        "computations" of Section 5.2): :attr:`evaluations` evaluations, at frames 0, 1e4, ..., 1.09e6
     :param window_frames: the reset rule's window (Section 5.2: "reset the training from scratch every 2e5
         frames", the end of DrQ-v2's exploration decay, x = 20 in Figure 4)
     :param threshold: a gradient norm above it is healthy (Section 5.2: "a gradient norm larger than 0.001")
@@ -74,6 +76,11 @@ class PaperProtocol:
         return tuple(frame / self.train_frames for frame in self.stage_frames)
 
     @property
+    def evaluations(self) -> int:
+        """The evaluations of a run, the paper's x in [0, 109]: 110 (:func:`evaluation_schedule` of its budget)."""
+        return len(evaluation_schedule(self.train_frames, self.check_every_frames))
+
+    @property
     def collapse_tag(self) -> str:
         """The ``collapse_metrics.csv`` / TensorBoard tag of the rule's metric (``collapse/mlp1/grad_norm``)."""
         return metric_tag(self.layer, "grad_norm")
@@ -81,6 +88,70 @@ class PaperProtocol:
 
 PAPER = PaperProtocol()
 """The paper's protocol."""
+
+
+@dataclass(frozen=True)
+class PaperResult:
+    """
+    The paper's headline numbers of one task of Figure 5 (Section 5.2, "Results"), DrQ-v2 against DrQ-v2 plus the
+    rule, 40 seeds each.
+
+    :param task: the task, ``<domain>-<task>``
+    :param seeds: seeds per variant ("The performance comparison of 40 seeds", Figure 5)
+    :param stuck_baseline: DrQ-v2's seeds stuck in action collapse ("we count the number of seeds stuck in action
+        collapse continuously. There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2")
+    :param stuck_rule: the rule's ("In comparison, all 40 seeds of ours escape action collapse")
+    :param std_baseline: DrQ-v2's "average standard deviation over the last ten evaluations" ("drops a lot, from
+        418.2 to 38.2, from 359.5 to 93.8, and from 362.7 to 116.2 for the three tasks, respectively")
+    :param std_rule: the same with the rule
+    """
+
+    task: str
+    seeds: int
+    stuck_baseline: int
+    stuck_rule: int
+    std_baseline: float
+    std_rule: float
+
+
+PAPER_RESULTS: tuple[PaperResult, ...] = (
+    PaperResult("walker-walk", 40, 13, 0, 418.2, 38.2),
+    PaperResult("hopper-stand", 40, 8, 0, 359.5, 93.8),
+    PaperResult("finger-spin", 40, 7, 0, 362.7, 116.2),
+)
+"""The paper's headline numbers, in the order of its tasks (walker_walk, hopper_stand, finger_spin: Section 5.2)."""
+
+PROPOSITION_1 = (
+    "Supposing the number of training frames is n · m (m is the frames where the exploration decreases to the "
+    "smallest) and the probability of getting stuck in action collapse is p, then the probability of escaping action "
+    "collapse when applying our proposed rule is 1 - p^n."
+)
+"""Proposition 1 of the paper (Section 5.2), word for word."""
+
+
+def evaluation_schedule(frames: int, every_frames: int, frames_per_step: int = 1) -> list[int]:
+    """
+    The frames of a run's scheduled evaluations, as the reference (facebookresearch/drqv2's ``train.py``) has them:
+    one before the first agent step (frame 0), then one every ``every_frames`` frames while the run still has agent
+    steps to take, never at the budget's end (the reference's loop stops there). For the paper's budget of 1.1e6
+    frames and an evaluation every 1e4 frames: 0, 1e4, ..., 1.09e6, 110 evaluations ("x in [0, 109]", Section
+    4.1). The paper's statistics (the last ten evaluations, the 900/30 classes) come from these; the evaluation of
+    the saved final model (at ``frames``) is not one of them.
+
+    :param frames: the run's budget, in frames
+    :param every_frames: frames between two evaluations (> 0)
+    :param frames_per_step: frames an agent step adds (action repeat x environments): an evaluation falls on the
+        first agent step at or after its frame
+    :return: the frames, increasing
+    """
+    if every_frames <= 0 or frames_per_step <= 0:
+        raise ValueError(f"every_frames and frames_per_step must be > 0, got {every_frames} and {frames_per_step}.")
+    schedule = []
+    for target in range(0, frames, every_frames):
+        frame = -(-target // frames_per_step) * frames_per_step
+        if frame < frames and (not schedule or frame > schedule[-1]):
+            schedule.append(frame)
+    return schedule
 
 
 def metric_tag(layer: str, metric: str) -> str:
@@ -98,7 +169,9 @@ CONFIG_JSON = "config.json"
 RESULT_JSON = "result.json"
 """The outcome, written last and atomically: a folder without it is an unfinished run (keys: :data:`RESULT_KEYS`)."""
 EVAL_CSV = "eval.csv"
-"""One row per evaluation (columns :data:`EVAL_FIELDS`)."""
+"""One row per scheduled evaluation (columns :data:`EVAL_FIELDS`, frames :func:`evaluation_schedule`); the saved
+final model's evaluation is in the result file (``saved_model_eval``), not here. Files of earlier versions end
+with that evaluation, at the run's last frame: the report leaves it out."""
 COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
 """One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
 COLLAPSE_EVENTS_CSV = "collapse_events.csv"
@@ -153,6 +226,7 @@ RESULT_KEYS = (
     "frames",
     "agent_steps",
     "final_eval",
+    "saved_model_eval",
     "resets",
     "reset_frames",
     "escaped",

@@ -154,8 +154,11 @@ class TrainConfig:
     :param action_repeat: frames per agent step
     :param frame_stack: stacked RGB frames per observation
     :param size: image height and width, in pixels
-    :param eval_every_frames: frames between evaluations (and one at frame 0); ``0`` disables evaluation
-    :param eval_episodes: episodes per evaluation (deterministic policy)
+    :param eval_every_frames: frames between evaluations (and one at frame 0, none at the budget's end:
+        :func:`~sb3_collapse.protocol.evaluation_schedule`; the saved final model is evaluated apart); ``0``
+        disables evaluation
+    :param eval_episodes: episodes per evaluation (deterministic policy), on an evaluation environment seeded with
+        ``seed``, as the reference seeds its own (the same seed as the training environment)
     :param checkpoint_every_frames: frames between two checkpoints of the run, to resume it (:mod:`sb3_collapse.checkpoints`;
         a SIGTERM or SIGINT writes one too); ``0``: only at a signal. Deleted when the run finishes
     :param seed_frames: frames of uniformly random actions before the first update
@@ -451,11 +454,14 @@ class TrainConfig:
 class PeriodicEvaluation(ResumableCallback):
     """
     Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
-    (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done.
+    (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done: the scheduled
+    evaluations (:func:`~sb3_collapse.protocol.evaluation_schedule`), as in the reference's ``train.py``, where the
+    paper's statistics come from.
 
-    Not at the last step of ``learn()``: SB3 calls the callbacks before that step's updates, so the model would
-    not be the one ``learn()`` returns. :func:`train` evaluates the final model after ``learn()`` instead (one
-    :meth:`evaluate` call), and that is the model it saves.
+    Not at the last step of ``learn()`` (the reference does not evaluate there either; there, SB3 calls the callbacks
+    before that step's updates). :func:`train` evaluates the saved final model after ``learn()`` with
+    :meth:`evaluate_saved_model`: that evaluation is labelled apart (TensorBoard ``eval_saved_model/...``, the result
+    file's ``saved_model_eval``), neither in the CSV nor in :attr:`rows`.
 
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations
@@ -493,8 +499,8 @@ class PeriodicEvaluation(ResumableCallback):
             while self.next_eval_frame <= self._frames():
                 self.next_eval_frame += self.every_frames
 
-    def evaluate(self) -> dict[str, float]:
-        """Evaluate now, log the result and append it to the CSV; return the CSV row."""
+    def _run_episodes(self, prefix: str) -> dict[str, float]:
+        """Evaluate now and log the result under ``<prefix>/...``; return the row (keys :data:`EVAL_FIELDS`)."""
         rewards, _ = evaluate_policy(
             self.model, self.eval_env, n_eval_episodes=self.episodes, deterministic=True, return_episode_rewards=True
         )
@@ -506,13 +512,27 @@ class PeriodicEvaluation(ResumableCallback):
             "episodes": len(rewards),
             "wall_time_s": round(time.time() - self.start_time, 1),
         }
-        append_csv_rows(self.csv_path, EVAL_FIELDS, [row])
-        self.rows.append(row)
-        self.logger.record("eval/mean_reward", row["mean_reward"])
-        self.logger.record("eval/std_reward", row["std_reward"])
-        self.logger.record("eval/frames", row["frame"])
+        self.logger.record(f"{prefix}/mean_reward", row["mean_reward"])
+        self.logger.record(f"{prefix}/std_reward", row["std_reward"])
+        self.logger.record(f"{prefix}/frames", row["frame"])
         self.logger.dump(step=self.model.num_timesteps)
         return row
+
+    def evaluate(self) -> dict[str, float]:
+        """A scheduled evaluation: evaluate now, log the result and append it to the CSV; return the CSV row."""
+        row = self._run_episodes("eval")
+        append_csv_rows(self.csv_path, EVAL_FIELDS, [row])
+        self.rows.append(row)
+        return row
+
+    def evaluate_saved_model(self) -> dict[str, float]:
+        """
+        Evaluate the final model (after ``learn()``), logged as ``eval_saved_model/...``; not a scheduled evaluation:
+        not in the CSV, not in :attr:`rows`.
+
+        :return: the row (keys :data:`~sb3_collapse.protocol.EVAL_FIELDS`)
+        """
+        return self._run_episodes("eval_saved_model")
 
 
 @dataclass
@@ -520,14 +540,17 @@ class TrainResult:
     """
     :param run_dir: folder of the run
     :param model_path: the final checkpoint
-    :param evaluations: one dict per evaluation (``frame``, ``step``, ``mean_reward``, ...)
+    :param evaluations: one dict per scheduled evaluation (``frame``, ``step``, ``mean_reward``, ...)
     :param summary: the content of the result file (see :func:`run_summary`)
+    :param saved_model_evaluation: the evaluation of the saved final model (same keys; ``None`` without
+        evaluations), not one of ``evaluations``
     """
 
     run_dir: Path
     model_path: Path
     evaluations: list[dict[str, float]]
     summary: dict[str, Any] = dataclasses.field(default_factory=dict)
+    saved_model_evaluation: dict[str, float] | None = None
 
 
 def run_summary(
@@ -538,13 +561,16 @@ def run_summary(
     reset_rule: CollapseReset | None,
     wall_time_s: float,
     resumes: int = 0,
+    saved_model_eval: dict[str, float] | None = None,
 ) -> dict[str, Any]:
     """
     The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`): ``status``
     (:data:`~sb3_collapse.protocol.FINISHED`), ``task``, ``variant``, ``seed``, ``frames`` (frames
     trained, action repeat included), ``agent_steps``, ``final_eval`` (``frame``, ``mean_reward``, ``std_reward``
-    of the last evaluation, or ``None`` without evaluation), ``resets`` (resets of the reset rule), ``reset_frames``
-    (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
+    of the last scheduled evaluation, the one the paper's success/failure classes read; ``None`` without evaluation),
+    ``saved_model_eval`` (the same keys and ``episodes`` for the evaluation of the saved final model, at the run's
+    last frame, outside the schedule and the statistics; ``None`` without it), ``resets`` (resets of the reset rule),
+    ``reset_frames`` (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
     ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run, over all its processes),
     ``timings`` (where the time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see :mod:`sb3_collapse.drqv2.timing`,
     of the last process only when the run was resumed; ``None`` for SB3's TD3 and SAC) and ``resumes`` (times the run
@@ -557,9 +583,14 @@ def run_summary(
     :param reset_rule: the run's reset-rule callback, ``None`` without the rule
     :param wall_time_s: seconds the run took
     :param resumes: times the run was resumed from a checkpoint
+    :param saved_model_eval: the evaluation of the saved final model (``PeriodicEvaluation.evaluate_saved_model``)
     :return: the summary, JSON-serializable
     """
     last = evaluations[-1] if evaluations else None
+    saved = None
+    if saved_model_eval is not None:
+        saved = {key: saved_model_eval[key] for key in ("frame", "mean_reward", "std_reward", "episodes")}
+        saved["frame"], saved["episodes"] = int(saved["frame"]), int(saved["episodes"])
     return {
         "status": FINISHED,
         "task": task_id,
@@ -570,6 +601,7 @@ def run_summary(
         "final_eval": None
         if last is None
         else {"frame": int(last["frame"]), "mean_reward": last["mean_reward"], "std_reward": last["std_reward"]},
+        "saved_model_eval": saved,
         "resets": 0 if reset_rule is None else reset_rule.resets,
         "reset_frames": [] if reset_rule is None else [int(frame) for frame in reset_rule.reset_frames],
         "escaped": None if reset_rule is None else bool(reset_rule.escaped),
@@ -795,8 +827,8 @@ def _build(
     """The training env(s), the evaluation env (``None`` without evaluations) and the model of :func:`train`."""
     env = _training_env(config, task_id, env_kwargs)
     eval_env = None
-    if config.eval_every_frames > 0:
-        eval_env = _monitored_dmc_env(task_id, config.seed + 100_000, env_kwargs)
+    if config.eval_every_frames > 0:  # seeded as the reference's (dmc.make(..., cfg.seed), as the training env)
+        eval_env = _monitored_dmc_env(task_id, config.seed, env_kwargs)
     model: BaseAlgorithm
     if config.algorithm != "drqv2":  # SB3's TD3 or SAC from the same pixels
         model = build_baseline(
@@ -956,8 +988,9 @@ def _train_into(
     try:
         with atomic_output(model_path) as temporary:
             model.save(temporary)
-        if evaluation is not None and evaluation.rows and evaluation.rows[-1]["step"] < model.num_timesteps:
-            evaluation.evaluate()  # the budget's last frames were not evaluated yet
+        saved_model_eval = None
+        if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the evaluation file)
+            saved_model_eval = evaluation.evaluate_saved_model()
         if probe_checkpoints is not None:
             probe_checkpoints.save()  # the final model's, next to its evaluation (once per frame)
         model.logger.close()
@@ -965,9 +998,17 @@ def _train_into(
         evaluations = evaluation.rows if evaluation is not None else []
         if evaluations:
             last = evaluations[-1]
-            print(f"Last evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- {last['std_reward']:.1f}")
-        elapsed = earlier_s + time.time() - start_time
-        summary = run_summary(config, task_id, model, evaluations, reset_rule, elapsed, resumes)
+            print(
+                f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- "
+                f"{last['std_reward']:.1f}"
+            )
+        if saved_model_eval is not None:
+            print(
+                f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
+                f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
+            )
+        wall_time_s = earlier_s + time.time() - start_time
+        summary = run_summary(config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval)
         write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
     except OSError as error:
         message = unwritable_message(error)
@@ -978,7 +1019,13 @@ def _train_into(
         raise CheckpointError(f"{message} The run's final outputs are not written; {resume}.") from None
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
-    return TrainResult(run_dir=run_dir, model_path=model_path, evaluations=evaluations, summary=summary)
+    return TrainResult(
+        run_dir=run_dir,
+        model_path=model_path,
+        evaluations=evaluations,
+        summary=summary,
+        saved_model_evaluation=saved_model_eval,
+    )
 
 
 PRESET_HELP = "default: the task's DrQ-v2 preset (sb3_collapse.presets.preset(TASK), table in docs/presets.md)"

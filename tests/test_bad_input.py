@@ -116,14 +116,15 @@ def test_final_model_is_the_evaluated_one_when_a_window_ends_with_the_budget(tmp
     config = tiny_config(tmp_path / "run", reset_rule=True, reset_window_frames=400, action_repeat=8)
     result = train(config)
     summary = result.summary
-    assert summary["resets"] == 0 and summary["final_eval"]["frame"] == 400
+    assert summary["resets"] == 0 and summary["saved_model_eval"]["frame"] == 400 and summary["final_eval"]["frame"] == 0
     model = DrQv2.load(result.model_path)
     assert model.reset_step == 0 and model._n_updates > 0
-    # Re-evaluate the saved model as the run did: a fresh eval env, the frame-0 evaluation's episode first.
-    eval_env = Monitor(make_dmc_env("cartpole-balance", seed=config.seed + 100_000, size=48, action_repeat=8))
+    # Re-evaluate the saved model as the run did: a fresh eval env seeded as the reference's (the run's seed), the
+    # frame-0 evaluation's episode first.
+    eval_env = Monitor(make_dmc_env("cartpole-balance", seed=config.seed, size=48, action_repeat=8))
     evaluate_policy(model, eval_env, n_eval_episodes=1, deterministic=True)
     rewards, _ = evaluate_policy(model, eval_env, n_eval_episodes=1, deterministic=True, return_episode_rewards=True)
-    assert float(np.mean(rewards)) == pytest.approx(summary["final_eval"]["mean_reward"], rel=1e-6)
+    assert float(np.mean(rewards)) == pytest.approx(summary["saved_model_eval"]["mean_reward"], rel=1e-6)
 
 
 def test_library_values_are_checked_where_they_are_owned():

@@ -9,6 +9,7 @@ from stable_baselines3 import SAC
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import DrQv2
+from sb3_collapse.protocol import PAPER, evaluation_schedule
 from sb3_collapse.train import TrainConfig, main, train
 
 
@@ -21,8 +22,9 @@ def test_train_end_to_end(tmp_path):
     assert result.run_dir == tmp_path / "walker-walk_s0"
     with open(result.run_dir / "eval.csv") as file:
         rows = list(csv.DictReader(file))
-    assert [int(row["frame"]) for row in rows] == [0, 400, 800]
-    assert [int(row["step"]) for row in rows] == [0, 50, 100]
+    # The scheduled evaluations (the reference's: frame 0, then every 400 frames, none at the budget's end).
+    assert [int(row["frame"]) for row in rows] == evaluation_schedule(800, 400, 8) == [0, 400]
+    assert [int(row["step"]) for row in rows] == [0, 50]
     assert all(np.isfinite(float(row["mean_reward"])) for row in rows)
     saved_config = json.loads((result.run_dir / "config.json").read_text())
     assert saved_config["frames"] == 800 and saved_config["variant"] == "drqv2" and saved_config["transplant"] is None
@@ -31,8 +33,12 @@ def test_train_end_to_end(tmp_path):
     assert summary["status"] == "finished" and summary["task"] == "walker-walk" and summary["variant"] == "drqv2"
     assert summary["seed"] == 0 and summary["frames"] == 800 and summary["agent_steps"] == 100
     assert summary["final_eval"] == {
-        "frame": 800, "mean_reward": float(rows[-1]["mean_reward"]), "std_reward": float(rows[-1]["std_reward"])
+        "frame": 400, "mean_reward": float(rows[-1]["mean_reward"]), "std_reward": float(rows[-1]["std_reward"])
     }
+    # The saved model's evaluation, at the budget's end, is labelled apart: not a row of eval.csv.
+    final_model = summary["saved_model_eval"]
+    assert final_model["frame"] == 800 and final_model["episodes"] == 1 and np.isfinite(final_model["mean_reward"])
+    assert result.saved_model_evaluation["frame"] == 800 and len(result.evaluations) == 2
     assert summary["resets"] == 0 and summary["reset_frames"] == [] and summary["escaped"] is None
     assert summary["escape_frame"] is None and summary["wall_time_s"] > 0
     assert not (result.run_dir / "collapse_events.csv").exists()  # no reset rule
@@ -46,7 +52,8 @@ def test_train_end_to_end(tmp_path):
     events = list(result.run_dir.glob("events.out.tfevents.*"))
     accumulator = EventAccumulator(str(events[0]))
     accumulator.Reload()
-    assert [e.step for e in accumulator.Scalars("eval/mean_reward")] == [0, 50, 100]
+    assert [e.step for e in accumulator.Scalars("eval/mean_reward")] == [0, 50]
+    assert [e.step for e in accumulator.Scalars("eval_saved_model/mean_reward")] == [100]
 
     # A second run with the same name gets its own folder.
     second = train(TrainConfig(**{**config.__dict__, "frames": 80, "eval_every_frames": 0}))
@@ -83,7 +90,7 @@ def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
     resets = [int(row["frame"]) for row in events if row["event"] == "reset"]
     assert resets == summary["reset_frames"] and len(resets) == summary["resets"] >= 1
     assert summary["escaped"] is False and summary["escape_frame"] is None and summary["variant"] == "drqv2+reset"
-    assert summary["final_eval"] is None  # no evaluation
+    assert summary["final_eval"] is None and summary["saved_model_eval"] is None  # no evaluation
 
 
 def test_train_into_an_exact_run_dir(tmp_path):
@@ -158,7 +165,8 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
     saved = json.loads((result.run_dir / "config.json").read_text())
     assert (saved["algorithm"], saved["intervention"], saved["variant"]) == ("sac", "shrink_perturb", "sac+shrink_perturb")
     assert result.summary["frames"] == 500 and result.summary["resets"] == 2
-    assert [row["frame"] for row in result.evaluations] == [0, 500]
+    assert [row["frame"] for row in result.evaluations] == [0]  # 500 is the budget: the final model's evaluation
+    assert result.summary["saved_model_eval"]["frame"] == 500
     with open(result.run_dir / "collapse_events.csv") as file:
         events = list(csv.DictReader(file))
     assert [row["intervention"] for row in events] == ["shrink_perturb", "shrink_perturb"]
@@ -192,7 +200,20 @@ def test_train_with_parallel_envs(tmp_path):
     assert timings["learning"]["env_s"] > 0 and timings["first_round_updates"] == 1
     model = DrQv2.load(tmp_path / "run" / "final_model.zip")
     assert model.n_envs == 2 and model._n_updates == 10 and model.num_frames == 320
-    with open(tmp_path / "run" / "eval.csv") as file:  # the single evaluation env, at 0 and 320 frames
-        assert [int(row["frame"]) for row in csv.DictReader(file)] == [0, 320]
+    with open(tmp_path / "run" / "eval.csv") as file:  # the single evaluation env, at frame 0 (320: the final model)
+        assert [int(row["frame"]) for row in csv.DictReader(file)] == [0]
+    assert summary["saved_model_eval"]["frame"] == 320
     with pytest.raises(ValueError, match=r"n_envs=2 is a DrQv2 option"):
         TrainConfig(algorithm="sac", n_envs=2).validate()
+
+
+def test_evaluation_schedule_is_the_references():
+    # The paper's budget: frames 0, 10k, ..., 1.09M, its x in [0, 109]; none at 1.1M (the final model's, apart).
+    schedule = evaluation_schedule(PAPER.train_frames, PAPER.check_every_frames, frames_per_step=2)
+    assert schedule == list(range(0, 1_100_000, 10_000)) and len(schedule) == PAPER.evaluations == 110
+    assert schedule[-1] == 1_090_000
+    # An evaluation falls on the first agent step at or after its frame (action repeat 8 does not divide 300).
+    assert evaluation_schedule(1000, 300, frames_per_step=8) == [0, 304, 600, 904]
+    assert evaluation_schedule(800, 400, frames_per_step=8) == [0, 400]
+    with pytest.raises(ValueError, match="every_frames"):
+        evaluation_schedule(800, 0)

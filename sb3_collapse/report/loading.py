@@ -319,6 +319,25 @@ def read_collapse_events(path: Path) -> list[tuple[int, str]]:
     return events
 
 
+def scheduled_evaluations(
+    frames: np.ndarray, returns: np.ndarray, result: dict[str, Any]
+) -> tuple[np.ndarray, np.ndarray]:
+    """
+    The scheduled evaluations of a finished run (:func:`sb3_collapse.protocol.evaluation_schedule`), where the
+    paper's statistics come from: run folders of earlier versions end their evaluation file with the saved final
+    model's evaluation, at the run's last frame (the result file's ``frames``; such files have no
+    ``saved_model_eval``), which is left out here. Files of this version hold the scheduled evaluations only.
+
+    :param frames: the evaluation file's frames, increasing
+    :param returns: the return at each
+    :param result: the run's result file
+    :return: ``(frames, returns)`` without the final model's evaluation
+    """
+    if "saved_model_eval" not in result and len(frames) > 1 and int(frames[-1]) == result.get("frames"):
+        return frames[:-1], returns[:-1]
+    return frames, returns
+
+
 def load_trial(
     task: str, variant: str, seed: int, path: Path, collapse_tag: str = DEFAULT_COLLAPSE_TAG, partial: bool = False
 ) -> Trial:
@@ -354,6 +373,8 @@ def load_trial(
         if not eval_path.exists():
             raise ReportError(f"{eval_path} is missing although {result_path} says the trial finished.")
         trial.frames, trial.returns = read_eval_curve(eval_path)
+        frames, returns = trial.frames, trial.returns
+        trial.frames, trial.returns = scheduled_evaluations(frames, returns, result)  # type: ignore[arg-type]
         if len(trial.frames) == 0:
             raise ReportError(f"{eval_path} has no evaluation rows although {result_path} says the trial finished.")
         metrics_path = path / COLLAPSE_METRICS_CSV

@@ -44,6 +44,21 @@ from sb3_collapse.report.fixed_inputs import (
     probe_checkpoint_paths,
     write_fixed_metrics_csv,
 )
+from sb3_collapse.report.headline import (
+    HEADLINE_HEADER,
+    PROPOSITION1_HEADER,
+    PROPOSITION_1,
+    HeadlineRow,
+    Proposition1Row,
+    figure5_curves,
+    figure5_unfinished,
+    headline_definitions,
+    headline_markdown,
+    headline_rows,
+    headline_table,
+    proposition1_rows,
+    proposition1_table,
+)
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep, read_json
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
@@ -58,7 +73,6 @@ from sb3_collapse.report.statistics import (
     transplant_curves,
     transplant_grid,
     transplant_sources,
-    variant_curves,
 )
 from sb3_collapse.report.tables import (
     GRID_COLUMNS,
@@ -123,7 +137,7 @@ class Report:
     :param sweep: the loaded sweep
     :param rows: the table, one row per task and variant
     :param grid: the transplant grid per task (empty without transplant variants)
-    :param curves: task -> the variants' Figure 5 curves
+    :param curves: task -> the variants' Figure 5 curves (no transplant-grid cells: they are Figure 3's)
     :param references: task -> the published DrQ-v2 curve (with ``reference=True`` and when the data has it)
     :param notes: what the report noticed (unfinished trials, dropped frames, missing reference curves)
     :param markdown: the text of ``summary.md``
@@ -135,6 +149,8 @@ class Report:
     :param collapse_online: ``(task, variant)`` -> the same rows with the online metrics (replay batches)
     :param collapse_inputs: ``(task, variant)`` -> the fixed set the rows of ``collapse`` were computed on
     :param collapse_fixed: ``(task, variant)`` -> seed -> every fixed-set metric of its probe checkpoints
+    :param headline: the paper's headline numbers beside the sweep's (top of ``summary.md`` and ``index.html``)
+    :param proposition: Proposition 1's prediction beside the rule's escapes
     """
 
     sweep: Sweep
@@ -151,6 +167,8 @@ class Report:
     collapse_online: dict[tuple[str, str], list[AgentMetrics]] = field(default_factory=dict)
     collapse_inputs: dict[tuple[str, str], FixedInputs] = field(default_factory=dict)
     collapse_fixed: dict[tuple[str, str], dict[int, FixedMetrics]] = field(default_factory=dict)
+    headline: list[HeadlineRow] = field(default_factory=list)
+    proposition: list[Proposition1Row] = field(default_factory=list)
 
 
 def _notes(sweep: Sweep, rows: Sequence[VariantSummary], include_unfinished: bool) -> list[str]:
@@ -212,7 +230,8 @@ def build_report(
     notes = _notes(sweep, rows, include_unfinished)
     if not sweep.finished:
         notes.insert(0, "no finished trial yet: the table and figure have no statistics")
-    curves = {task: variant_curves(sweep, task, settings.percentiles) for task in sweep.tasks()}
+    curves = {task: figure5_curves(sweep, task, settings.percentiles) for task in sweep.tasks()}
+    curves = {task: task_curves for task, task_curves in curves.items() if task_curves or _plain_variants(sweep, task)}
     references = {}
     if reference:
         for task in sweep.tasks():
@@ -223,6 +242,12 @@ def build_report(
                 references[task] = band_curve(REFERENCE_LABEL, data.frames, data.returns, settings.percentiles)
     grid = transplant_grid(rows, settings.success_return)
     report = Report(sweep, rows, grid, curves, references, notes, summary_markdown(rows, settings, notes))
+    report.headline = headline_rows(sweep, rows, settings)
+    report.proposition = proposition1_rows(sweep, rows)
+    title = "# Sweep report\n\n"
+    report.markdown = title + headline_markdown(report.headline, report.proposition, settings) + "\n" + (
+        report.markdown.removeprefix(title)
+    )
     report.transplant = transplant_curves(sweep, settings.success_return)
     collapse_figures(report, settings, collapse_settings, progress)
     report.markdown = summary_markdown(rows, settings, report.notes)  # with the notes of the collapse figures
@@ -320,6 +345,11 @@ def agents_rows(report: Report) -> list[dict[str, object]]:
     return rows
 
 
+def _plain_variants(sweep: Sweep, task: str) -> bool:
+    """Whether ``task`` has a variant that is not a transplant-grid cell (it gets a Figure 5 panel)."""
+    return any(transplant_sources(variant) is None for variant in sweep.variants(task))
+
+
 def write_report(
     sweep_dir: str | Path,
     out: str | Path | None = None,
@@ -336,10 +366,12 @@ def write_report(
     The report of a sweep folder, written to ``out`` (default ``<sweep>/report/``):
 
     - ``figure5.png``: per task, mean evaluation return over frames with the percentile band across seeds for each
-      variant (plus the published DrQ-v2 curves with ``reference``, and dotted partial curves of unfinished
+      variant that is not a transplant-grid cell (those are Figure 3's) (plus the published DrQ-v2 curves with
+      ``reference``, and dotted partial curves of unfinished
       trials with ``include_unfinished``);
     - ``summary.csv`` and ``summary.md``: the table per task and variant
-      (:class:`~sb3_collapse.report.statistics.VariantSummary`);
+      (:class:`~sb3_collapse.report.statistics.VariantSummary`), ``summary.md`` led by the paper's headline numbers
+      beside the sweep's and Proposition 1 (:mod:`sb3_collapse.report.headline`);
     - ``transplant_grid.csv``, ``.md`` and ``.png`` when ``cnn-<src>_mlp-<src>`` variants are present, with
       ``figure3b.png`` (curves of the successful seeds per cell) and ``table7.csv``/``.md`` (their std at four
       training stages) when a cell has successful seeds;
@@ -374,7 +406,7 @@ def write_report(
     report = build_report(
         sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
     )
-    partial = {task: [t for t in report.sweep.unfinished if t.task == task] for task in report.sweep.tasks()}
+    partial = {task: figure5_unfinished(report.sweep, task) for task in report.curves}
     with staged_outputs as staged:
         plot_figure5(
             report.curves,
@@ -497,6 +529,16 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
     """
     sweep = report.sweep
     sections = []
+    headline = html.Section("The paper's headline beside this sweep's")
+    headline.parts.append(html.table(HEADLINE_HEADER, headline_table(report.headline)))
+    headline.parts.append(html.heading("Proposition 1"))
+    headline.parts.append(html.paragraph(f"“{PROPOSITION_1}” (Section 5.2)"))
+    if report.proposition:
+        headline.parts.append(html.table(PROPOSITION1_HEADER, proposition1_table(report.proposition)))
+    else:
+        headline.parts.append(html.paragraph("No rule variant with its baseline in this sweep.", "note"))
+    headline.parts.append(html.paragraph(headline_definitions(settings), "note"))
+    sections.append(headline)
     about = html.Section("Settings")
     sweep_json = sweep.path / SWEEP_JSON
     if sweep_json.exists():
@@ -509,7 +551,8 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
 
     summary = html.Section("Summary table")
     summary.parts.append(html.dict_table(summary_rows(report.rows), SUMMARY_COLUMNS))
-    summary.parts.append(html.preformatted(report.markdown.split("\n\n", 2)[-1].split("\nNotes:")[0].strip()))
+    definitions = summary_markdown(report.rows, settings).split("\n\n", 2)[-1].split("\nNotes:")[0].strip()
+    summary.parts.append(html.preformatted(definitions))
     if report.notes:
         summary.parts += [html.heading("Notes"), html.bullet_list(report.notes)]
     sections.append(summary)
@@ -531,7 +574,8 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
     curves.parts.append(
         html.figure(
             png(FIGURE5_PNG),
-            f"Mean evaluation return over frames per task and variant, {low:g}th-{high:g}th percentile band across "
+            f"Mean evaluation return over frames per task and variant (DrQ-v2, with the rule and the other "
+            f"interventions; the transplant cells are in Figure 3), {low:g}th-{high:g}th percentile band across "
             "finished seeds" + (" (dashed: published DrQ-v2)" if report.references else "."),
         )
     )

@@ -1,5 +1,6 @@
 """Multi-seed sweeps on Ray: every (task, variant, seed) trains as an independent trial into its own folder."""
 
+from sb3_collapse.sweep.donors import DONOR_KEYS, Donor, donor_candidates, pick_donors
 from sb3_collapse.sweep.runner import (
     RayMissingError,
     SweepSummary,
@@ -23,6 +24,7 @@ from sb3_collapse.sweep.trials import (
     SweepError,
     Trial,
     canonical_task,
+    donor_key,
     expand_trials,
     parse_checkpoint_specs,
     transplant_of,
@@ -33,6 +35,7 @@ from sb3_collapse.sweep.trials import (
 )
 
 __all__ = [
+    "DONOR_KEYS",
     "FAILED",
     "FINISHED",
     "GRID_VARIANTS",
@@ -40,15 +43,19 @@ __all__ = [
     "PENDING",
     "PLAIN_VARIANTS",
     "TRANSPLANT_SOURCES",
+    "Donor",
     "RayMissingError",
     "SweepError",
     "SweepSummary",
     "Trial",
     "canonical_task",
     "check_sweep_arguments",
+    "donor_candidates",
+    "donor_key",
     "expand_trials",
     "import_ray",
     "parse_checkpoint_specs",
+    "pick_donors",
     "prepare_sweep_folder",
     "ray_session",
     "run_sweep",

@@ -18,7 +18,15 @@ from pathlib import Path
 from sb3_collapse.checkpoints import checkpoint_frames
 from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
-from sb3_collapse.protocol import CHECKPOINTS_DIR
+from sb3_collapse.protocol import CHECKPOINTS_DIR, PAPER
+from sb3_collapse.sweep.donors import (
+    DONOR_KEYS,
+    DONOR_PARTS,
+    DONOR_SOURCES,
+    check_distinct_donors,
+    donors_record,
+    pick_donors,
+)
 from sb3_collapse.sweep.runner import (
     RayMissingError,
     check_sweep_arguments,
@@ -31,8 +39,10 @@ from sb3_collapse.sweep.trials import (
     TRANSPLANT_SOURCES,
     SweepError,
     check_checkpoints,
+    donor_key,
     expand_trials,
     parse_checkpoint_specs,
+    transplant_of,
     trial_config,
     trial_dir,
     trial_status,
@@ -69,14 +79,32 @@ def build_parser() -> argparse.ArgumentParser:
         "the grid with --transplant-grid)",
     )
     g.add_argument("--transplant-grid", action="store_true", help="add the 9 cells of the CNN x MLP transplant grid")
-    for source in ("good", "bad"):
-        g.add_argument(
-            f"--{source}-checkpoint",
-            nargs="+",
-            metavar="[TASK=]PATH",
-            help=f"DrQv2 checkpoint(s) of a {source} agent for the grid cells with a {source} CNN or MLP: PATH for "
-            "every task, TASK=PATH per task",
-        )
+    donors = p.add_argument_group(
+        "transplant donors (Study 2: the CNN and the MLP of a source from two different agents; docs/sweeps.md)"
+    )
+    for source in DONOR_SOURCES:
+        for part in DONOR_PARTS:
+            donors.add_argument(
+                f"--{source}-{part}",
+                dest=donor_key(source, part),
+                nargs="+",
+                metavar="[TASK=]PATH",
+                help=f"DrQv2 checkpoint(s) of the {'well' if source == 'good' else 'poorly'} performing agent that "
+                f"gives the {source} {part.upper()}: PATH for every task, TASK=PATH per task",
+            )
+        donors.add_argument(f"--{source}-checkpoint", nargs="+", help=argparse.SUPPRESS)  # refused: see main
+    donors.add_argument(
+        "--donors-from",
+        metavar="SWEEP",
+        help="pick the donors at random from this finished sweep instead: per task, two different seeds with a final "
+        f"return >= {PAPER.success_return:g} (good CNN, good MLP) and two < {PAPER.failure_return:g} (bad ones)",
+    )
+    donors.add_argument(
+        "--donor-variant", default="drqv2", help="the variant of --donors-from whose seeds give parts (default: %(default)s)"
+    )
+    donors.add_argument(
+        "--donor-seed", type=int, default=0, help="seed of the random pick of --donors-from (default: %(default)s)"
+    )
     g.add_argument("--out", required=True, help="the sweep folder (with --address: on storage every node sees)")
     g.add_argument(
         "--address",
@@ -125,13 +153,10 @@ def main(argv: list[str] | None = None) -> int:
         for task in tasks:  # each task with its own preset, each variant with its algorithm and rule
             for variant in dict.fromkeys(trial.variant for trial in trials):
                 TrainConfig(**training, env=task, **variant_settings(variant)).validate()
-        checkpoints = {
-            source: parse_checkpoint_specs(getattr(args, f"{source}_checkpoint"), tasks, f"--{source}-checkpoint")
-            for source in ("good", "bad")
-        }
+        checkpoints, donors = transplant_checkpoints(args, trials)
         check_checkpoints(trials, checkpoints)
         if args.dry_run:
-            return dry_run(trials, args.out, training, checkpoints, args.allow_changed_settings)
+            return dry_run(trials, args.out, training, checkpoints, args.allow_changed_settings, donors)
         summary = run_sweep(
             trials,
             args.out,
@@ -142,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             address=args.address,
             allow_changed_settings=args.allow_changed_settings,
             progress_bar=args.progress_bar,
+            donors=donors,
         )
     except (SweepError, RayMissingError, ValueError) as error:
         parser.error(cli_message(error, parser))
@@ -160,14 +186,63 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if summary.ok else 1
 
 
-def dry_run(trials: list, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool) -> int:
+def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict[str, dict[str, str]], dict | None]:
+    """
+    The donors' checkpoints of the transplant-grid cells, given (``--good-cnn``...) or picked (``--donors-from``).
+
+    :param args: the parsed command line
+    :param trials: the sweep's trials
+    :return: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> path, and the record of the pick (``None``
+        for given checkpoints)
+    :raises SweepError: for the old ``--good-checkpoint`` / ``--bad-checkpoint``, both forms at once, or one
+        agent giving both parts of a source
+    """
+    for source in DONOR_SOURCES:
+        if getattr(args, f"{source}_checkpoint") is not None:
+            raise SweepError(
+                f"--{source}-checkpoint gave one agent both the CNN and the MLP (the paper takes them from two "
+                f"different agents): pass --{source}-cnn PATH --{source}-mlp PATH, or --donors-from SWEEP.",
+                parameter=f"{source}_checkpoint",
+            )
+    tasks = list(dict.fromkeys(trial.task for trial in trials))
+    given = {key: getattr(args, key) for key in DONOR_KEYS if getattr(args, key) is not None}
+    if args.donors_from is None:
+        checkpoints = {
+            key: parse_checkpoint_specs(specs, tasks, f"--{key.replace('_', '-')}") for key, specs in given.items()
+        }
+        check_distinct_donors(checkpoints)
+        return checkpoints, None
+    if given:
+        flags = ", ".join(f"--{key.replace('_', '-')}" for key in given)
+        raise SweepError(f"--donors-from picks every donor: leave out {flags}.", parameter="donors_from")
+    needed = {source for trial in trials for source in (transplant_of(trial.variant) or {}).values()} - {"blank"}
+    grid_tasks = list(dict.fromkeys(trial.task for trial in trials if transplant_of(trial.variant)))
+    picked = {
+        task: pick_donors(args.donors_from, task, args.donor_seed, args.donor_variant, sorted(needed))
+        for task in grid_tasks
+    }
+    checkpoints: dict[str, dict[str, str]] = {}
+    for task, donors in picked.items():
+        for key, donor in donors.items():
+            checkpoints.setdefault(key, {})[task] = donor.path
+    return checkpoints, donors_record(args.donors_from, args.donor_seed, args.donor_variant, picked)
+
+
+def dry_run(
+    trials: list, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool, donors: dict | None = None
+) -> int:
     """
     Print each trial's status and folder, and the counts; check the settings against the sweep's settings file.
 
     :return: exit status 0
     :raises SweepError: when the training settings differ from those of the sweep's settings file (and that is not allowed)
     """
-    settings = sweep_settings(trials, training, checkpoints, resources={})
+    if donors is not None:
+        for task, picked in donors["tasks"].items():
+            for key, donor in picked.items():
+                final = donor["final_return"]
+                print(f"donor {task} {key}: seed {donor['seed']} (final return {final:.1f}) {donor['path']}")
+    settings = sweep_settings(trials, training, checkpoints, resources={}, donors=donors)
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
     statuses = {trial: trial_status(trial_dir(out, trial)) for trial in trials}
     for trial, status in statuses.items():

@@ -192,7 +192,8 @@ def run_trial(
     :param trial: the trial
     :param out: the sweep folder
     :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials
-    :param checkpoints: source (``"good"``, ``"bad"``) -> task -> checkpoint path, for transplant-grid cells
+    :param checkpoints: donor (``"good_cnn"``, ``"good_mlp"``, ``"bad_cnn"``, ``"bad_mlp"``) -> task -> checkpoint
+        path, for transplant-grid cells (:mod:`sb3_collapse.sweep.donors`)
     :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
     :param torch_threads: threads of torch's CPU operations
     :return: ``{"trial": str, "status": "finished" | "failed" | "interrupted", "error": last line of the traceback or
@@ -252,21 +253,26 @@ def sweep_settings(
     training: Mapping[str, Any],
     checkpoints: Mapping[str, Mapping[str, str]],
     resources: Mapping[str, Any],
+    donors: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """
     The content of the sweep's settings file: ``training`` (the shared :class:`~sb3_collapse.train.TrainConfig`
     fields as given: ``None`` for a DrQ-v2 setting left to the presets), ``task_settings`` (task -> the DrQ-v2
-    settings its trials use: its preset, with the sweep's explicit settings over it), ``checkpoints`` (source ->
-    task -> path), ``tasks``, ``variants``, ``seeds`` and ``resources`` (how trials ran: CPUs and GPUs per trial,
-    the Ray address).
+    settings its trials use: its preset, with the sweep's explicit settings over it), ``checkpoints`` (donor,
+    ``good_cnn``... -> task -> path), ``tasks``, ``variants``, ``seeds``, ``resources`` (how trials ran: CPUs and
+    GPUs per trial, the Ray address) and, when the donors were picked from a finished sweep, ``donors``
+    (:func:`~sb3_collapse.sweep.donors.donors_record`: the sweep, the seed of the draw, each donor's seed and final
+    return).
 
     :param trials: the sweep's trials
     :param training: the shared training settings
     :param checkpoints: the transplant checkpoints
     :param resources: informational settings of the run
+    :param donors: how the donors were picked, ``None`` when they were given
     :return: the settings, JSON-serializable
     """
     tasks = list(dict.fromkeys(trial.task for trial in trials))
+    extra = {} if donors is None else {"donors": dict(donors)}
     return {
         "training": dict(training),
         "task_settings": {task: task_settings(task, training) for task in tasks},
@@ -275,6 +281,7 @@ def sweep_settings(
         "variants": list(dict.fromkeys(trial.variant for trial in trials)),
         "seeds": sorted({trial.seed for trial in trials}),
         "resources": dict(resources),
+        **extra,
     }
 
 
@@ -316,7 +323,15 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
         for task, path in paths.items():
             before = previous.get("checkpoints", {}).get(source, {}).get(task)
             if before is not None and before != path:
-                changes.append(f"`{source}_checkpoint` for {task}: {before} in {SWEEP_JSON}, {path} now")
+                changes.append(f"`{source}` checkpoint for {task}: {before} in {SWEEP_JSON}, {path} now")
+    for source in ("good", "bad"):  # earlier versions: one agent gave both parts of a source
+        if source in previous.get("checkpoints", {}) and any(
+            key.startswith(f"{source}_") for key in current.get("checkpoints", {})
+        ):
+            changes.append(
+                f"`{source}` checkpoint: one agent for the CNN and the MLP in {SWEEP_JSON}, two agents now "
+                f"(--{source}-cnn, --{source}-mlp)"
+            )
     return changes
 
 
@@ -386,6 +401,7 @@ def run_sweep(
     address: str | None = None,
     allow_changed_settings: bool = False,
     progress_bar: bool = True,
+    donors: Mapping[str, Any] | None = None,
 ) -> SweepSummary:
     """
     Run every trial that is not finished, each as an independent Ray task, and wait for all of them.
@@ -401,13 +417,16 @@ def run_sweep(
     :param out: the sweep folder; with ``address`` it must be on storage that every node sees at the same path
     :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials (not ``env``, ``seed``,
         ``logdir``, ``run_name``, ``run_dir``, ``reset_rule``, ``device``, ``progress_bar``...)
-    :param checkpoints: source (``"good"``, ``"bad"``) -> task -> checkpoint path, for transplant-grid cells
+    :param checkpoints: donor (``"good_cnn"``, ``"good_mlp"``, ``"bad_cnn"``, ``"bad_mlp"``) -> task -> checkpoint
+        path, for transplant-grid cells (:mod:`sb3_collapse.sweep.donors`)
     :param cpus_per_trial: CPUs Ray reserves per trial; also the trial's torch threads (at least 1)
     :param gpus_per_trial: GPUs Ray reserves per trial (``0.25``: four trials share a GPU); the trial trains on
         ``cuda`` when it is > 0, else on ``cpu``
     :param address: Ray cluster address, ``None`` for a local instance (or the Ray already initialized)
     :param allow_changed_settings: run even if the sweep's settings file has other training settings
     :param progress_bar: show a progress bar over the trials
+    :param donors: how the transplant donors were picked (:func:`~sb3_collapse.sweep.donors.donors_record`),
+        recorded in the settings file; ``None`` when they were given as checkpoints (or there are none)
     :return: what was skipped, finished and failed
     :raises SweepError: for settings that cannot run (missing checkpoints, changed settings, resources)
     :raises RayMissingError: when there are trials to run and Ray is not installed
@@ -420,7 +439,7 @@ def run_sweep(
     check_checkpoints(trials, checkpoints)
     out = Path(out).resolve()
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
-    settings = sweep_settings(trials, training, checkpoints, resources)
+    settings = sweep_settings(trials, training, checkpoints, resources, donors)
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
     skipped = [trial for trial in trials if trial_status(trial_dir(out, trial)) == FINISHED]
     to_run = [trial for trial in trials if trial not in set(skipped)]

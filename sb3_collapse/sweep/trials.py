@@ -11,7 +11,9 @@ Variants:
   :mod:`sb3_collapse.monitoring.interventions`);
 - ``cnn-<src>_mlp-<src>`` with ``<src>`` in ``blank``, ``good``, ``bad``: a cell of the paper's transplant grid
   (Study 2, Figure 3a), plain DrQ-v2 whose encoder (CNN) and actor (MLP) start from the weights of a "good" or a
-  "bad" checkpoint of the same task, or blank (the usual random initialization); the critic starts blank.
+  "bad" agent of the same task, or blank (the usual random initialization); the critic starts blank. The CNN and
+  the MLP of a source come from two different agents (:mod:`sb3_collapse.sweep.donors`): the checkpoints are keyed
+  by :func:`donor_key` (``good_cnn``, ``good_mlp``, ``bad_cnn``, ``bad_mlp``).
 """
 
 from __future__ import annotations
@@ -37,6 +39,16 @@ PLAIN_VARIANTS = tuple(
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
 """The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
+
+def donor_key(source: str, part: str) -> str:
+    """
+    :param source: ``"good"`` or ``"bad"``
+    :param part: ``"cnn"`` or ``"mlp"``
+    :return: the key of that donor's checkpoints in a sweep's checkpoints (``"good_cnn"``); the flag is
+        ``--good-cnn``
+    """
+    return f"{source}_{part}"
+
 
 FAILED, PARTIAL, PENDING = "failed", "partial", "pending"
 """Trial statuses besides :data:`~sb3_collapse.protocol.FINISHED`, see :func:`trial_status`."""
@@ -185,7 +197,7 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
 
     :param specs: the items, ``None`` for none
     :param tasks: the sweep's tasks, ``<domain>-<task>``
-    :param flag: the command-line flag, for the messages (``"--good-checkpoint"``)
+    :param flag: the command-line flag, for the messages (``"--good-cnn"``)
     :return: task -> absolute checkpoint path, for the tasks that have one
     :raises SweepError: for two plain paths, a task that is not in the sweep, or a path that is not a file
     """
@@ -224,15 +236,15 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
 def check_checkpoints(trials: Iterable[Trial], checkpoints: Mapping[str, Mapping[str, str]]) -> None:
     """
     :param trials: the sweep's trials
-    :param checkpoints: source (``"good"``, ``"bad"``) -> task -> path
+    :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> path
     :raises SweepError: naming the first transplant-grid trial whose checkpoint is missing and the flag to add
     """
     for trial in trials:
         for part, source in (transplant_of(trial.variant) or {}).items():
-            if source != "blank" and trial.task not in checkpoints.get(source, {}):
+            if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
                 raise SweepError(
-                    f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-checkpoint "
-                    f"PATH (or {trial.task}=PATH) for {trial.task}."
+                    f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-{part} "
+                    f"PATH (or {trial.task}=PATH) for {trial.task}, or --donors-from a finished sweep."
                 )
 
 
@@ -255,7 +267,7 @@ def trial_config(
     :param out: the sweep folder
     :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials (``None``: the task's
         preset)
-    :param checkpoints: source (``"good"``, ``"bad"``) -> task -> checkpoint path, for transplant-grid cells
+    :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> checkpoint path, for transplant-grid cells
     :param device: the torch device of the trial
     :param torch_threads: threads of torch's CPU operations in the trial
     :return: the trial's :class:`~sb3_collapse.train.TrainConfig`
@@ -276,5 +288,5 @@ def trial_config(
         checkpoints = checkpoints or {}
         for part, source in transplant.items():
             if source != "blank":
-                per_trial[f"init_{part}"] = checkpoints[source][trial.task]
+                per_trial[f"init_{part}"] = checkpoints[donor_key(source, part)][trial.task]
     return TrainConfig(**{**training, **per_trial}).resolve()

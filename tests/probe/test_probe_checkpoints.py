@@ -51,7 +51,8 @@ def test_one_probe_checkpoint_per_evaluation(run):
         "probe_0000000400_frames.zip",
         "probe_0000000800_frames.zip",
     ]
-    assert [int(e["frame"]) for e in run.evaluations] == [0, 400, 800]
+    assert [int(e["frame"]) for e in run.evaluations] == [0, 400]  # scheduled; 800: the final model's, apart
+    assert run.saved_model_evaluation["frame"] == 800
     final_size = run.model_path.stat().st_size
     for path in folder.iterdir():
         assert is_probe_checkpoint(path) and path.stat().st_size < final_size / 2

@@ -169,6 +169,9 @@ def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial
             "frames": int(trial.frames[-1]),
             "agent_steps": int(trial.frames[-1]) // 2,
             "final_eval": {"frame": int(trial.frames[-1]), "mean_reward": float(trial.returns[-1]), "std_reward": 3.5},
+            "saved_model_eval": {  # this version's key: eval.csv holds the scheduled evaluations only
+                "frame": int(trial.frames[-1]), "mean_reward": float(trial.returns[-1]), "std_reward": 3.5, "episodes": 10
+            },
             "resets": trial.resets,
             "reset_frames": trial.reset_frames,
             "escaped": trial.escaped,
@@ -317,3 +320,24 @@ def write_probe_sweep(root: str | Path, run_dir: str | Path, finals: dict[int, f
                         parameter.add_(noise)
             save_probe_checkpoint(model, folder / PROBE_CHECKPOINTS_DIR / source.name)
     return root
+
+
+def write_final_models(fake: FakeSweep, task: str = "walker-walk", variant: str = "drqv2") -> dict[int, Path]:
+    """
+    Give the finished trials of a task and variant of a fabricated sweep a ``final_model.zip`` (an empty zip: the
+    transplant donors' pick only needs the file), as a finished sweep has.
+
+    :param fake: :func:`write_fake_sweep`'s sweep
+    :param task: the task
+    :param variant: the variant
+    :return: seed -> the written path
+    """
+    import zipfile
+
+    paths = {}
+    for trial in fake.select(task, variant):
+        path = fake.path / task / variant / f"seed_{trial.seed}" / "final_model.zip"
+        with zipfile.ZipFile(path, "w"):
+            pass
+        paths[trial.seed] = path
+    return paths

@@ -47,8 +47,8 @@ TINY = [
 ]  # fmt: skip
 TINY_TRIALS = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset"]
 RESULT_KEYS = {
-    "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "resets", "reset_frames", "escaped",
-    "escape_frame", "wall_time_s", "timings", "resumes",
+    "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "saved_model_eval", "resets",
+    "reset_frames", "escaped", "escape_frame", "wall_time_s", "timings", "resumes",
 }  # fmt: skip
 
 
@@ -100,7 +100,7 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
 
         evaluations = read_csv(folder / "eval.csv")
         assert list(evaluations[0]) == ["frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s"]
-        assert [int(row["frame"]) for row in evaluations] == [0, 1000]
+        assert [int(row["frame"]) for row in evaluations] == [0]  # scheduled; 1000 (the budget): the final model's
         assert (folder / "progress.csv").stat().st_size > 0 and list(folder.glob("events.out.tfevents.*"))
         assert zipfile.is_zipfile(folder / "final_model.zip")
         assert config["probe_checkpoints"] is True
@@ -119,8 +119,9 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
         assert set(result) == RESULT_KEYS
         assert result["status"] == "finished" and result["task"] == "walker-walk" and result["variant"] == variant
         assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == 250
-        assert result["final_eval"]["frame"] == 1000
+        assert result["final_eval"]["frame"] == 0  # the last scheduled evaluation
         assert result["final_eval"]["mean_reward"] == float(evaluations[-1]["mean_reward"])
+        assert result["saved_model_eval"]["frame"] == 1000 and result["saved_model_eval"]["episodes"] == 1
         assert result["wall_time_s"] > 0
         assert trial_status(folder) == "finished" and not list(folder.glob(".*.tmp"))
         if variant == "drqv2":
@@ -154,7 +155,7 @@ def test_resume_skips_finished_trials_and_reruns_unfinished_ones(tiny_sweep, tmp
     summary = run_sweep(trials, out, training, progress_bar=False)  # the library call behind the CLI
     assert summary.finished == [Trial("walker-walk", "drqv2", 0)] and summary.skipped == [trials[1]] and summary.ok
     assert trial_status(partial) == "finished" and not (partial / "leftover.txt").exists()
-    assert [int(row["frame"]) for row in read_csv(partial / "eval.csv")] == [0, 1000]
+    assert [int(row["frame"]) for row in read_csv(partial / "eval.csv")] == [0]
     assert mtimes(kept) == {path: mtime for path, mtime in before.items() if kept in path.parents}
 
 
@@ -204,7 +205,7 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     broken.write_text("not a checkpoint")
     out = tmp_path / "sweep"
     argv = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "cnn-good_mlp-blank",
-            "--good-checkpoint", str(broken), "--out", str(out), "--no-progress-bar",
+            "--good-cnn", str(broken), "--out", str(out), "--no-progress-bar",
             *TINY, "--frames", "250", "--eval-every-frames", "1000", "--collapse-metrics-every-frames", "0"]  # fmt: skip
     assert main(argv) == 1
     stdout = capsys.readouterr().out
@@ -214,7 +215,7 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     error = (failed / "error.txt").read_text()
     assert error.startswith("Traceback (most recent call last)") and "is not a zip file" in error
     assert trial_status(failed) == "failed" and trial_status(out / "walker-walk" / "drqv2" / "seed_0") == "finished"
-    assert json.loads((out / "sweep.json").read_text())["checkpoints"] == {"good": {"walker-walk": str(broken)}}
+    assert json.loads((out / "sweep.json").read_text())["checkpoints"] == {"good_cnn": {"walker-walk": str(broken)}}
 
 
 def test_transplant_grid_cell_starts_from_the_checkpoints(tiny_sweep, tmp_path):
@@ -222,7 +223,7 @@ def test_transplant_grid_cell_starts_from_the_checkpoints(tiny_sweep, tmp_path):
     bad = tiny_sweep / "walker-walk" / "drqv2+reset" / "seed_0" / "final_model.zip"
     out = tmp_path / "grid"
     argv = ["--tasks", "walker-walk", "--seed-list", "1", "--variants", "cnn-good_mlp-bad", "--out", str(out),
-            "--good-checkpoint", str(good), "--bad-checkpoint", f"walker-walk={bad}", "--no-progress-bar",
+            "--good-cnn", str(good), "--bad-mlp", f"walker-walk={bad}", "--no-progress-bar",
             *TINY, "--frames", "250", "--eval-every-frames", "1000"]  # fmt: skip
     assert main(argv) == 0
     folder = out / "walker-walk" / "cnn-good_mlp-bad" / "seed_1"
@@ -291,7 +292,9 @@ def test_trials_variants_and_checkpoints(tmp_path):
 def test_command_line_errors(tmp_path, capsys):
     out = str(tmp_path / "sweep")
     cases = [
-        (["--tasks", "walker-walk", "--seeds", "2", "--transplant-grid"], "--good-checkpoint PATH"),
+        (["--tasks", "walker-walk", "--seeds", "2", "--transplant-grid"], "--good-mlp PATH"),
+        (["--tasks", "walker-walk", "--seeds", "1", "--variants", "cnn-good_mlp-good", "--good-checkpoint", "a.zip"],
+         "pass --good-cnn PATH --good-mlp PATH, or --donors-from SWEEP"),
         (["--tasks", "walker-walk", "--seeds", "0"], "--seeds must be >= 1"),
         (["--tasks", "walker-walk", "--seed-list", "1", "--variants", "drqv2++"], "Unknown variant 'drqv2++'"),
         (["--tasks", "walker-walk", "--seeds", "1", "--frames", "0"], "--frames must be >= 1"),
@@ -305,7 +308,10 @@ def test_command_line_errors(tmp_path, capsys):
     assert not (tmp_path / "sweep").exists()
     checkpoint = tmp_path / "agent.zip"
     checkpoint.write_bytes(b"")
-    grid = ["--transplant-grid", "--good-checkpoint", str(checkpoint), "--bad-checkpoint", str(checkpoint)]
+    other = tmp_path / "other.zip"
+    other.write_bytes(b"")
+    grid = ["--transplant-grid", "--good-cnn", str(checkpoint), "--good-mlp", str(other), "--bad-cnn", str(checkpoint),
+            "--bad-mlp", str(other)]  # fmt: skip
     assert main(["--tasks", "walker-walk", "--seeds", "2", *grid, "--out", out, "--dry-run"]) == 0
     lines = own_lines(capsys.readouterr().out)
     assert lines[-1].startswith("18 trials: 18 pending; 18 would run") and lines[0].endswith("cnn-blank_mlp-blank/seed_0")
@@ -325,11 +331,16 @@ def test_resources_and_settings_checks():
     with pytest.raises(SweepError, match="more than the 2 CPUs"):
         check_resources({"CPU": 2.0}, cpus_per_trial=4, gpus_per_trial=0)
     check_resources({"CPU": 2.0, "GPU": 1.0}, cpus_per_trial=1, gpus_per_trial=0.25)
-    previous = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/a.zip"}}}
-    same = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/a.zip", "hopper-stand": "/b"}}}
+    previous = {"training": {"frames": 1000}, "checkpoints": {"good_cnn": {"walker-walk": "/a.zip"}}}
+    same = {"training": {"frames": 1000}, "checkpoints": {"good_cnn": {"walker-walk": "/a.zip", "hopper-stand": "/b"}}}
     assert settings_changes(previous, same) == []  # a new task's checkpoint is not a change
-    moved = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/c.zip"}}}
-    assert settings_changes(previous, moved) == ["`good_checkpoint` for walker-walk: /a.zip in sweep.json, /c.zip now"]
+    moved = {"training": {"frames": 1000}, "checkpoints": {"good_cnn": {"walker-walk": "/c.zip"}}}
+    assert settings_changes(previous, moved) == ["`good_cnn` checkpoint for walker-walk: /a.zip in sweep.json, /c.zip now"]
+    # A sweep of an earlier version took both good parts from one agent: continuing it with two agents is a change.
+    old_form = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/a.zip"}}}
+    assert settings_changes(old_form, moved) == [
+        "`good` checkpoint: one agent for the CNN and the MLP in sweep.json, two agents now (--good-cnn, --good-mlp)"
+    ]
 
 
 def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
@@ -357,9 +368,9 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
     for variant, row in rows.items():
         folders = [tiny_sweep / "walker-walk" / variant / f"seed_{seed}" for seed in (0, 1)]
         finals = [json.loads((folder / "result.json").read_text())["final_eval"]["mean_reward"] for folder in folders]
-        assert row.task == "walker-walk" and row.seeds == 2 and row.unfinished == 0 and row.final_frame == 1000
+        assert row.task == "walker-walk" and row.seeds == 2 and row.unfinished == 0 and row.final_frame == 0
         assert row.final_mean == pytest.approx(sum(finals) / 2)
-        assert row.last_evals == 2  # evaluations at frames 0 and 1000
+        assert row.last_evals == 1  # the scheduled evaluation at frame 0 (1000: the final model's, apart)
     assert rows["drqv2"].resets_total == 0 and rows["drqv2"].reset_rule_seeds == 0
     last_grad_norms = [
         float(
@@ -437,7 +448,7 @@ def test_killed_driver_leaves_no_ray_process(tmp_path):
 COMPARISON = [
     "--tasks", "cartpole-balance", "--seeds", "2", "--variants", "drqv2+reset", "drqv2+redo", "td3+reset",
     "--frames", "500", "--action-repeat", "25", "--size", "48", "--hidden-dim", "64", "--feature-dim", "16",
-    "--batch-size", "8", "--seed-frames", "100", "--eval-every-frames", "500", "--eval-episodes", "1",
+    "--batch-size", "8", "--seed-frames", "100", "--eval-every-frames", "250", "--eval-episodes", "1",
     "--collapse-metrics-every-frames", "200", "--collapse-probe-batch", "4", "--reset-window-frames", "200",
     "--replay-sampling", "sb3", "--cpus-per-trial", "1",
 ]  # fmt: skip
@@ -478,7 +489,8 @@ def test_sweep_compares_interventions_and_sb3_algorithms(ray_local, tmp_path, mo
     rows = {row.variant: row for row in report.rows}
     assert list(rows) == ["drqv2+reset", "drqv2+redo", "td3+reset"]
     for row in rows.values():
-        assert row.seeds == 2 and row.final_frame == 500 and row.resets_total == 4 and row.seeds_reset == 2
+        # The last scheduled evaluation: 250 (500, the budget, is the saved model's, outside the statistics).
+        assert row.seeds == 2 and row.final_frame == 250 and row.resets_total == 4 and row.seeds_reset == 2
     assert (tmp_path / "report" / "figure5.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
     (axes,) = [ax for ax in figures[0].axes if ax.get_visible()]
     legend = [text.get_text() for text in axes.get_legend().get_texts()]
@@ -527,5 +539,5 @@ def test_killed_trial_worker_is_run_again_and_resumes(ray_local, tmp_path, capsy
     assert "1 finished now (1 resumed from a checkpoint), 0 finished before, 0 failed" in capsys.readouterr().out
     result = json.loads((folder / "result.json").read_text())
     assert result["resumes"] == 1 and result["frames"] == 1200 and result["resets"] == 1
-    assert [int(row["frame"]) for row in read_csv(folder / "eval.csv")] == [0, 1200]
+    assert [int(row["frame"]) for row in read_csv(folder / "eval.csv")] == [0]  # 1200: the final model's
     assert [int(row["frame"]) for row in read_csv(folder / "collapse_events.csv")] == [800]

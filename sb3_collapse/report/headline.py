@@ -1,0 +1,453 @@
+"""
+The top of the report: the paper's headline numbers beside the sweep's (Section 5.2, "Results"), and Proposition 1
+(the escape probability the rule should reach) beside what the rule did. Also what Figure 5 compares.
+
+- **Headline** (:func:`headline_rows`): per task, DrQ-v2 (``baseline``) against DrQ-v2 plus the rule (``rule``):
+  the seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2. In
+  comparison, all 40 seeds of ours escape action collapse") as counts with a Wilson interval, and "the average
+  standard deviation over the last ten evaluations" with a bootstrap interval over seeds; the paper's numbers
+  (:data:`~sb3_collapse.protocol.PAPER_RESULTS`) on the same row.
+- **Proposition 1** (:func:`proposition1_rows`): "Supposing the number of training frames is n · m (m is the
+  frames where the exploration decreases to the smallest) and the probability of getting stuck in action collapse
+  is p, then the probability of escaping action collapse when applying our proposed rule is 1 - p^n." p is the
+  baseline's fraction of stuck seeds, n the rule's whole windows in the budget (``frames // reset_window_frames``:
+  5 for 1.1e6 frames and windows of 2e5, the paper's "larger than 1 - p^5"); the prediction 1 - p^n is set beside
+  the fraction of the rule's seeds that escaped (the rule saw an escape, the result file's ``escaped``).
+- **Figure 5** (:func:`figure5_curves`): "The performance comparison of 40 seeds between DrQ-v2 and DrQ-v2 plus
+  our rule": the plain variants and the interventions, never the transplant-grid cells (Figure 3's).
+
+Intervals: proportions get the Wilson score interval; 1 - p^n is decreasing in p, so p's interval [lo, hi] maps
+to [1 - hi^n, 1 - lo^n]; the mean std gets a percentile bootstrap over seeds (seeds resampled with replacement,
+a fixed seed, so the report is reproducible).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from sb3_collapse.protocol import CONFIG_JSON, PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
+from sb3_collapse.report.loading import Sweep, Trial
+from sb3_collapse.report.statistics import (
+    BandCurve,
+    ReportSettings,
+    VariantSummary,
+    aligned_returns,
+    last_evals_std_mean,
+    transplant_sources,
+    variant_curves,
+)
+
+CONFIDENCE = 0.95
+"""The confidence of every interval of the headline and of Proposition 1."""
+BOOTSTRAP_RESAMPLES = 2000
+"""Resamples of the bootstrap interval of the mean std."""
+BASELINE_VARIANT = "drqv2"
+RULE_VARIANT = "drqv2+reset"
+"""The variants of the paper's Figure 5: DrQ-v2, and DrQ-v2 plus the rule (reset from scratch)."""
+
+Interval = tuple[float, float]
+
+
+def wilson_interval(successes: int, trials: int, confidence: float = CONFIDENCE) -> Interval:
+    """
+    The Wilson score interval of a proportion.
+
+    :param successes: the count, ``0 <= successes <= trials``
+    :param trials: the number of trials
+    :param confidence: the confidence level, in (0, 1)
+    :return: ``(low, high)`` in [0, 1]; ``(nan, nan)`` without trials
+    """
+    if not 0 <= successes <= trials:
+        raise ValueError(f"successes must be in [0, trials], got {successes} of {trials}.")
+    if trials == 0:
+        return (math.nan, math.nan)
+    z = NormalDist().inv_cdf(0.5 + confidence / 2)
+    p = successes / trials
+    denominator = 1 + z * z / trials
+    centre = (p + z * z / (2 * trials)) / denominator
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denominator
+    low = 0.0 if successes == 0 else max(0.0, centre - half)  # exact bounds there, free of rounding
+    high = 1.0 if successes == trials else min(1.0, centre + half)
+    return (low, high)
+
+
+def escape_probability(p: float, windows: int) -> float:
+    """
+    Proposition 1's escape probability with the rule, ``1 - p^n``.
+
+    :param p: the probability of getting stuck in action collapse (one window)
+    :param windows: n, the windows of the budget
+    :return: ``1 - p ** windows``
+    """
+    return 1.0 - p**windows
+
+
+def escape_interval(p_interval: Interval, windows: int) -> Interval:
+    """
+    :param p_interval: an interval of p
+    :param windows: n
+    :return: the interval of ``1 - p^n``: ``(1 - high^n, 1 - low^n)`` (``1 - p^n`` decreases with p)
+    """
+    low, high = p_interval
+    return (escape_probability(high, windows), escape_probability(low, windows))
+
+
+def bootstrap_std_interval(
+    returns: np.ndarray,
+    last_evals: int = PAPER.last_evals,
+    confidence: float = CONFIDENCE,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = 0,
+) -> Interval:
+    """
+    Percentile bootstrap interval of :func:`~sb3_collapse.report.statistics.last_evals_std_mean` over seeds.
+
+    :param returns: ``(seeds, frames)`` aligned returns
+    :param last_evals: the last evaluations averaged
+    :param confidence: the confidence level
+    :param resamples: bootstrap resamples
+    :param seed: seed of the resampling
+    :return: ``(low, high)``; ``(nan, nan)`` with fewer than 2 seeds
+    """
+    seeds = returns.shape[0]
+    if seeds < 2 or returns.shape[1] == 0:
+        return (math.nan, math.nan)
+    rng = np.random.default_rng(seed)
+    values = np.array(
+        [last_evals_std_mean(returns[rng.integers(0, seeds, seeds)], last_evals) for _ in range(resamples)]
+    )
+    alpha = (1 - confidence) / 2
+    low, high = np.quantile(values, [alpha, 1 - alpha])
+    return (float(low), float(high))
+
+
+def figure5_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = PAPER.percentiles) -> list[BandCurve]:
+    """
+    Figure 5's curves of a task: "The performance comparison of 40 seeds between DrQ-v2 and DrQ-v2 plus our rule"
+    (and the other interventions and algorithms), without the transplant-grid cells, which are Figure 3's.
+
+    :param sweep: the loaded sweep
+    :param task: the task
+    :param percentiles: the band
+    :return: :func:`~sb3_collapse.report.statistics.variant_curves` without ``cnn-<src>_mlp-<src>`` variants
+    """
+    return [curve for curve in variant_curves(sweep, task, percentiles) if transplant_sources(curve.name) is None]
+
+
+def figure5_unfinished(sweep: Sweep, task: str) -> list[Trial]:
+    """:return: the unfinished trials of ``task`` that Figure 5 may draw (no transplant-grid cells)"""
+    return [t for t in sweep.unfinished if t.task == task and transplant_sources(t.variant) is None]
+
+
+@dataclass
+class Proportion:
+    """
+    A count of seeds out of a number, with its Wilson interval.
+
+    :param count: the seeds counted
+    :param total: out of these
+    :param interval: the Wilson interval of ``count / total``
+    """
+
+    count: int
+    total: int
+    interval: Interval
+
+    @property
+    def fraction(self) -> float:
+        """``count / total`` (nan without seeds)."""
+        return self.count / self.total if self.total else math.nan
+
+    @classmethod
+    def of(cls, count: int, total: int, confidence: float = CONFIDENCE) -> Proportion:
+        return cls(count, total, wilson_interval(count, total, confidence))
+
+
+@dataclass
+class Estimate:
+    """A value with its interval (nan when undefined)."""
+
+    value: float
+    interval: Interval
+
+
+@dataclass
+class HeadlineRow:
+    """
+    One task of the headline: the paper's numbers and the sweep's, DrQ-v2 against DrQ-v2 plus the rule.
+
+    :param task: the task
+    :param paper: the paper's numbers (``None`` for a task the paper does not report)
+    :param baseline: the sweep's baseline row (``None`` when the sweep lacks it)
+    :param rule: the sweep's rule row (``None`` when the sweep lacks it)
+    :param stuck_baseline: baseline seeds stuck in action collapse, of those whose collapse state is known
+    :param stuck_rule: the same for the rule
+    :param std_baseline: the baseline's mean std over the last evaluations, with a bootstrap interval
+    :param std_rule: the same for the rule
+    """
+
+    task: str
+    paper: PaperResult | None
+    baseline: VariantSummary | None
+    rule: VariantSummary | None
+    stuck_baseline: Proportion | None
+    stuck_rule: Proportion | None
+    std_baseline: Estimate | None
+    std_rule: Estimate | None
+
+
+def _stuck(row: VariantSummary | None) -> Proportion | None:
+    if row is None or row.seeds == 0:
+        return None
+    return Proportion.of(row.stuck, row.seeds - row.collapse_unknown)
+
+
+def _std(sweep: Sweep, row: VariantSummary | None, settings: ReportSettings) -> Estimate | None:
+    if row is None or row.seeds == 0:
+        return None
+    _, returns = aligned_returns(sweep.select(row.task, row.variant))
+    return Estimate(row.last_evals_std_mean, bootstrap_std_interval(returns, settings.last_evals))
+
+
+def headline_rows(
+    sweep: Sweep,
+    rows: Sequence[VariantSummary],
+    settings: ReportSettings,
+    baseline: str = BASELINE_VARIANT,
+    rule: str = RULE_VARIANT,
+) -> list[HeadlineRow]:
+    """
+    The headline: one row per task of the sweep (those of the paper's Figure 5 first, in its order,
+    :data:`~sb3_collapse.protocol.PAPER_RESULTS`; the others when they have the baseline or the rule).
+
+    :param sweep: the loaded sweep
+    :param rows: the summary rows (:func:`~sb3_collapse.report.statistics.summarize`)
+    :param settings: the report's definitions
+    :param baseline: the baseline variant
+    :param rule: the rule's variant
+    :return: the rows
+    """
+    by_key = {(row.task, row.variant): row for row in rows}
+    papers = {result.task: result for result in PAPER_RESULTS}
+    tasks = [task for task in papers if task in sweep.tasks()] + [t for t in sweep.tasks() if t not in papers]
+    headline = []
+    for task in tasks:
+        base, ruled = by_key.get((task, baseline)), by_key.get((task, rule))
+        if task not in papers and base is None and ruled is None:
+            continue
+        headline.append(
+            HeadlineRow(
+                task,
+                papers.get(task),
+                base,
+                ruled,
+                _stuck(base),
+                _stuck(ruled),
+                _std(sweep, base, settings),
+                _std(sweep, ruled, settings),
+            )
+        )
+    return headline
+
+
+@dataclass
+class Proposition1Row:
+    """
+    Proposition 1 for one task and rule variant.
+
+    :param task: the task
+    :param baseline: the variant whose stuck fraction is p (the algorithm without the rule)
+    :param rule: the variant with the rule
+    :param stuck: the baseline's stuck seeds, p = ``stuck.fraction`` with its Wilson interval
+    :param windows: n, the rule's whole windows in the budget (``None`` when unknown)
+    :param predicted: ``1 - p^n`` and its interval (``None`` without p or n)
+    :param escaped: the rule's seeds that escaped (the rule saw an escape), with its Wilson interval
+    :param window_frames: m, the rule's window, in frames (``None`` when unknown)
+    """
+
+    task: str
+    baseline: str
+    rule: str
+    stuck: Proportion
+    windows: int | None
+    predicted: Estimate | None
+    escaped: Proportion
+    window_frames: int | None = None
+
+
+def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
+    """
+    n and m of Proposition 1 for the trials of a rule variant, from their settings files: m the rule's window
+    (``reset_window_frames``, the paper's 2e5 by default), n the whole windows in the budget (``frames // m``).
+
+    :param trials: finished trials of the rule's variant
+    :return: ``(n, m)``, ``(None, None)`` when no settings file says, or the trials disagree
+    """
+    found = set()
+    for trial in trials:
+        try:
+            config = json.loads((trial.path / CONFIG_JSON).read_text())
+        except (OSError, ValueError):
+            continue
+        frames, window = config.get("frames"), config.get("reset_window_frames") or PAPER.window_frames
+        if isinstance(frames, int) and isinstance(window, int) and window > 0:
+            found.add((frames // window, window))
+    return found.pop() if len(found) == 1 else (None, None)
+
+
+def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Proposition1Row]:
+    """
+    Proposition 1 per task and rule variant (``<algorithm>+<intervention>``) whose algorithm's plain variant is in
+    the sweep: p from the plain variant's stuck seeds, n from the rule's settings, the prediction 1 - p^n beside the
+    rule's observed escapes. (The proposition assumes the intervention is a reset from scratch, so that the windows
+    are independent tries; other interventions are shown for comparison.)
+
+    :param sweep: the loaded sweep
+    :param rows: the summary rows
+    :return: the rows, by task then variant
+    """
+    by_key = {(row.task, row.variant): row for row in rows}
+    result = []
+    for row in rows:
+        algorithm, plus, _ = row.variant.partition("+")
+        base = by_key.get((row.task, algorithm))
+        if not plus or base is None or base.seeds == 0 or row.reset_rule_seeds == 0:
+            continue
+        stuck = Proportion.of(base.stuck, base.seeds - base.collapse_unknown)
+        windows, window_frames = rule_windows(sweep.select(row.task, row.variant))
+        predicted = None
+        if windows is not None and stuck.total:
+            predicted = Estimate(escape_probability(stuck.fraction, windows), escape_interval(stuck.interval, windows))
+        escaped = Proportion.of(row.escaped, row.reset_rule_seeds)
+        result.append(
+            Proposition1Row(row.task, algorithm, row.variant, stuck, windows, predicted, escaped, window_frames)
+        )
+    return result
+
+
+def _percent(value: float) -> str:
+    return "-" if math.isnan(value) else f"{100 * value:.0f}%"
+
+
+def _interval(interval: Interval, percent: bool = True) -> str:
+    low, high = interval
+    if math.isnan(low):
+        return "-"
+    return f"{_percent(low)}-{_percent(high)}" if percent else f"{low:.1f}-{high:.1f}"
+
+
+def _proportion(value: Proportion | None) -> str:
+    if value is None:
+        return "not in this sweep"
+    if value.total == 0:
+        return f"{value.count}/0"
+    return f"{value.count}/{value.total} ({_percent(value.fraction)}, CI {_interval(value.interval)})"
+
+
+def _estimate(value: Estimate | None) -> str:
+    if value is None:
+        return "not in this sweep"
+    if math.isnan(value.value):
+        return "-"
+    return f"{value.value:.1f} (CI {_interval(value.interval, percent=False)})"
+
+
+HEADLINE_HEADER = (
+    "task",
+    "stuck in collapse, DrQ-v2: paper",
+    "this sweep",
+    "with the rule: paper",
+    "this sweep",
+    "std over last 10 evals, DrQ-v2: paper",
+    "this sweep",
+    "with the rule: paper",
+    "this sweep",
+)
+PROPOSITION1_HEADER = (
+    "task",
+    "rule",
+    "p: baseline stuck",
+    "n windows (m frames)",
+    "predicted escape 1 - p^n",
+    "observed escape",
+)
+
+
+def headline_table(headline: Sequence[HeadlineRow]) -> list[list[str]]:
+    """:return: the headline's cells, one list per row (:data:`HEADLINE_HEADER`)"""
+    table = []
+    for row in headline:
+        paper = row.paper
+        table.append(
+            [
+                row.task,
+                "-" if paper is None else f"{paper.stuck_baseline}/{paper.seeds}",
+                _proportion(row.stuck_baseline),
+                "-" if paper is None else f"{paper.stuck_rule}/{paper.seeds}",
+                _proportion(row.stuck_rule),
+                "-" if paper is None else f"{paper.std_baseline:.1f}",
+                _estimate(row.std_baseline),
+                "-" if paper is None else f"{paper.std_rule:.1f}",
+                _estimate(row.std_rule),
+            ]
+        )
+    return table
+
+
+def proposition1_table(rows: Sequence[Proposition1Row]) -> list[list[str]]:
+    """:return: Proposition 1's cells, one list per row (:data:`PROPOSITION1_HEADER`)"""
+    table = []
+    for row in rows:
+        predicted = "-" if row.predicted is None else (
+            f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})"
+        )
+        windows = "unknown" if row.windows is None else f"{row.windows} ({row.window_frames:,})"
+        table.append([row.task, row.rule, _proportion(row.stuck), windows, predicted, _proportion(row.escaped)])
+    return table
+
+
+def headline_definitions(settings: ReportSettings) -> str:
+    """:return: what the headline's and Proposition 1's cells mean, one paragraph"""
+    return (
+        f"Paper: Section 5.2 (40 seeds per task and variant). This sweep: {BASELINE_VARIANT} and {RULE_VARIANT}, "
+        "finished seeds. Stuck in collapse: seeds stuck at the end of training (see the summary's definitions), "
+        "of the seeds whose collapse state is known; for the rule the paper counts the seeds that never escaped. "
+        f"Std over last {settings.last_evals} evals: the across-seed std at each of the last "
+        f"{settings.last_evals} scheduled evaluations, averaged. Intervals: {CONFIDENCE:.0%}, Wilson for counts, "
+        f"percentile bootstrap over seeds ({BOOTSTRAP_RESAMPLES} resamples) for the std. Proposition 1: p is the "
+        "baseline's stuck fraction, n the rule's whole windows in the budget; p's Wilson interval [lo, hi] gives "
+        "[1 - hi^n, 1 - lo^n]; observed escape: the rule's seeds whose rule saw an escape."
+    )
+
+
+def headline_markdown(
+    headline: Sequence[HeadlineRow], proposition: Sequence[Proposition1Row], settings: ReportSettings
+) -> str:
+    """
+    The headline and Proposition 1 as Markdown, for the top of ``summary.md``.
+
+    :param headline: :func:`headline_rows`
+    :param proposition: :func:`proposition1_rows`
+    :param settings: the report's definitions
+    :return: the Markdown text (ends with a blank line)
+    """
+    lines = ["## The paper's headline beside this sweep's", ""]
+    lines += _markdown(HEADLINE_HEADER, headline_table(headline))
+    lines += ["", "## Proposition 1", "", f"> {PROPOSITION_1}", ""]
+    if proposition:
+        lines += _markdown(PROPOSITION1_HEADER, proposition1_table(proposition))
+    else:
+        lines.append("No rule variant with its baseline in this sweep.")
+    lines += ["", headline_definitions(settings), ""]
+    return "\n".join(lines) + "\n"
+
+
+def _markdown(header: Sequence[str], body: Sequence[Sequence[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    return lines + ["| " + " | ".join(cells) + " |" for cells in body]

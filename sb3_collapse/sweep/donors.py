@@ -1,0 +1,204 @@
+"""
+The donors of the transplant grid (the paper's Study 2, Section 4.2): "We extract the CNN and MLP from two random
+well-performing agents, which we regard as "good" CNN and MLP. We also extract "bad" CNN and MLP from two poorly
+performing agents."
+
+So the good CNN and the good MLP come from **two different** agents (and the bad ones likewise): the cell
+``cnn-good_mlp-good`` is then a new combination, not one agent reloaded. The donors are either given (two
+checkpoints per source: ``--good-cnn``, ``--good-mlp``, ``--bad-cnn``, ``--bad-mlp``) or picked at random, with a
+recorded seed, among the finished seeds of a sweep (``--donors-from``): well-performing agents (Section 4.1) are
+those whose final return is at least :attr:`~sb3_collapse.protocol.PaperProtocol.success_return`, poorly performing
+ones below :attr:`~sb3_collapse.protocol.PaperProtocol.failure_return` ("less than 30 rewards"). A seed's final
+return is its last scheduled evaluation (:func:`~sb3_collapse.protocol.evaluation_schedule`), the one the paper's
+classes read. The sweep's settings file records the donors (:func:`donors_record`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sb3_collapse.protocol import EVAL_CSV, FINAL_MODEL, FINISHED, PAPER, RESULT_JSON, SEED_FOLDER
+from sb3_collapse.sweep.trials import SweepError, canonical_task, donor_key
+
+DONOR_PARTS = ("cnn", "mlp")
+"""The transplanted parts, in the order a pick assigns them (the first agent drawn gives the CNN)."""
+DONOR_SOURCES = ("good", "bad")
+"""The classes of donors (rows and columns of Figure 3(a) besides ``blank``)."""
+
+
+DONOR_KEYS = tuple(donor_key(source, part) for source in DONOR_SOURCES for part in DONOR_PARTS)
+"""``good_cnn``, ``good_mlp``, ``bad_cnn``, ``bad_mlp``."""
+
+
+@dataclass(frozen=True)
+class Donor:
+    """
+    An agent of a finished sweep that gives a transplanted part.
+
+    :param seed: its seed (``seed_<k>`` folder)
+    :param final_return: its last scheduled evaluation's mean return
+    :param path: its saved model (:data:`~sb3_collapse.protocol.FINAL_MODEL`), absolute
+    """
+
+    seed: int
+    final_return: float
+    path: str
+
+
+def final_return(folder: str | Path) -> float | None:
+    """
+    :param folder: a trial folder
+    :return: the mean return of its last scheduled evaluation, ``None`` when the trial is not finished or has no
+        evaluation; the final model's evaluation of earlier versions (the evaluation file's row at the result's
+        ``frames``) is not a scheduled one and is skipped
+    """
+    folder = Path(folder)
+    try:
+        result = json.loads((folder / RESULT_JSON).read_text())
+        with (folder / EVAL_CSV).open(newline="") as file:
+            rows = [(int(row["frame"]), float(row["mean_reward"])) for row in csv.DictReader(file)]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if not isinstance(result, dict) or result.get("status") != FINISHED:
+        return None
+    if "saved_model_eval" not in result and len(rows) > 1 and rows[-1][0] == result.get("frames"):
+        rows = rows[:-1]
+    return rows[-1][1] if rows else None
+
+
+def donor_candidates(
+    sweep: str | Path,
+    task: str,
+    variant: str = "drqv2",
+    success_return: float = PAPER.success_return,
+    failure_return: float = PAPER.failure_return,
+) -> dict[str, list[Donor]]:
+    """
+    The finished seeds of a task and variant of a sweep, by class.
+
+    :param sweep: a sweep folder
+    :param task: the task (any form of :func:`~sb3_collapse.sweep.trials.canonical_task`)
+    :param variant: the variant whose seeds may give parts
+    :param success_return: a final return at least this is a well-performing agent
+    :param failure_return: a final return below this is a poorly performing agent
+    :return: ``{"good": [...], "bad": [...]}``, each by seed; the seeds in between are in neither
+    """
+    folder = Path(sweep) / canonical_task(task) / variant
+    classes: dict[str, list[Donor]] = {"good": [], "bad": []}
+    if not folder.is_dir():
+        return classes
+    seeds = sorted(
+        (int(match.group(1)), child) for child in folder.iterdir() if (match := SEED_FOLDER.match(child.name))
+    )
+    for seed, child in seeds:
+        value = final_return(child)
+        if value is None or not (child / FINAL_MODEL).is_file():
+            continue
+        donor = Donor(seed=seed, final_return=value, path=str((child / FINAL_MODEL).resolve()))
+        if value >= success_return:
+            classes["good"].append(donor)
+        elif value < failure_return:
+            classes["bad"].append(donor)
+    return classes
+
+
+def pick_donors(
+    sweep: str | Path,
+    task: str,
+    seed: int = 0,
+    variant: str = "drqv2",
+    sources: Sequence[str] = DONOR_SOURCES,
+    success_return: float = PAPER.success_return,
+    failure_return: float = PAPER.failure_return,
+) -> dict[str, Donor]:
+    """
+    Pick the donors of one task at random: for each source, two different agents of its class (Section 4.2: "from
+    two random well-performing agents", "from two poorly performing agents"), the first for the CNN, the second for
+    the MLP. The same ``seed`` (and the same sweep) gives the same donors.
+
+    :param sweep: a finished sweep folder
+    :param task: the task
+    :param seed: the seed of the draw (recorded in the sweep's settings file)
+    :param variant: the variant whose seeds may give parts
+    :param sources: the classes to pick (``"good"``, ``"bad"``)
+    :param success_return: a final return at least this is a well-performing agent
+    :param failure_return: a final return below this is a poorly performing agent
+    :return: :func:`donor_key` -> donor, for each source and part
+    :raises SweepError: when a class has fewer than two agents (saying how many and what to pass instead)
+    """
+    candidates = donor_candidates(sweep, task, variant, success_return, failure_return)
+    rng = np.random.default_rng(seed)
+    picked: dict[str, Donor] = {}
+    for source in DONOR_SOURCES:
+        if source not in sources:
+            continue
+        pool = candidates[source]
+        if len(pool) < 2:
+            what = f"final return >= {success_return:g}" if source == "good" else f"final return < {failure_return:g}"
+            raise SweepError(
+                f"--donors-from {sweep}: {canonical_task(task)}/{variant} has {len(pool)} finished seed(s) with a "
+                f"{what} and a {FINAL_MODEL}; the {source} CNN and MLP need two different agents: pass "
+                f"--{source}-cnn PATH --{source}-mlp PATH instead.",
+                parameter="donors_from",
+            )
+        first, second = rng.choice(len(pool), size=2, replace=False)
+        for part, index in zip(DONOR_PARTS, (first, second)):
+            picked[donor_key(source, part)] = pool[int(index)]
+    return picked
+
+
+def check_distinct_donors(checkpoints: Mapping[str, Mapping[str, str]]) -> None:
+    """
+    :param checkpoints: :func:`donor_key` -> task -> path
+    :raises SweepError: when a source's CNN and MLP come from the same file for a task (one agent, not two)
+    """
+    for source in DONOR_SOURCES:
+        cnn, mlp = checkpoints.get(donor_key(source, "cnn"), {}), checkpoints.get(donor_key(source, "mlp"), {})
+        for task in sorted(set(cnn) & set(mlp)):
+            if Path(cnn[task]).resolve() == Path(mlp[task]).resolve():
+                raise SweepError(
+                    f"--{source}-cnn and --{source}-mlp give the same checkpoint {cnn[task]} for {task}: the paper "
+                    f"takes the {source} CNN and MLP from two different agents; pass another agent's checkpoint to "
+                    "one of them.",
+                    parameter=donor_key(source, "mlp"),
+                )
+
+
+def donors_record(
+    sweep: str | Path,
+    seed: int,
+    variant: str,
+    picked: Mapping[str, Mapping[str, Donor]],
+    success_return: float = PAPER.success_return,
+    failure_return: float = PAPER.failure_return,
+) -> dict[str, Any]:
+    """
+    What the sweep's settings file records of a draw (key ``donors``).
+
+    :param sweep: the sweep the donors come from
+    :param seed: the seed of the draw
+    :param variant: the variant they come from
+    :param picked: task -> :func:`pick_donors`
+    :param success_return: the threshold of the draw's well-performing agents
+    :param failure_return: the threshold of its poorly performing agents
+    :return: ``{"from": sweep, "seed": seed, "variant": variant, "success_return", "failure_return", "tasks": {task:
+        {key: {"seed", "final_return", "path"}}}}``, JSON-serializable
+    """
+    return {
+        "from": str(Path(sweep).resolve()),
+        "seed": int(seed),
+        "variant": variant,
+        "success_return": success_return,
+        "failure_return": failure_return,
+        "tasks": {
+            task: {key: {"seed": d.seed, "final_return": d.final_return, "path": d.path} for key, d in donors.items()}
+            for task, donors in picked.items()
+        },
+    }
