@@ -8,9 +8,9 @@
 #   1. the CUDA tests (pytest -m cuda: tests/test_cuda.py and the other tests marked cuda)   ~3 min
 #   2. benchmarks/update_speed.py at the paper's batch sizes: reference, ours, compiled, TF32 off, no prefetch   ~2 min
 #   3. benchmarks/train_throughput.py at the paper's configuration (walker-walk, batch 512)   ~2 min
-#   4. a cartpole-balance learning run at its preset for the time left   ~2-3 min
+#   4. a cartpole-balance learning curve at its preset for the time left (benchmarks/learning_curve.py)   ~2-3 min
 # Results go to $OUT (default benchmarks/gpu-results/), the figures benchmarks/README.md takes: machine.txt,
-# cuda_tests.log, update_speed.txt, train_throughput.csv, learning_eval.csv, gpu.log.
+# cuda_tests.log, update_speed.txt, train_throughput.csv, learning_curve.png, learning_eval.csv, gpu.log.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-benchmarks/gpu-results}
@@ -57,10 +57,12 @@ timeout 150 "$PY" benchmarks/train_throughput.py --device cuda --envs 1 2 --comp
     --frames 2000 --csv "$OUT/train_throughput.csv"
 
 left=$((570 - ($(date +%s) - START)))
-step "4. cartpole-balance learning run at its preset for ${left} s"
+step "4. cartpole-balance learning curve at its preset, for ${left} s (resumable: benchmarks/learning_curve.py)"
 if ((left > 30)); then
-    timeout --signal=TERM --kill-after=20 "$left" "$PY" -m sb3_collapse.train --env cartpole-balance --device cuda \
-        --run-dir /tmp/gpu-learning --eval-every-frames 10000 --eval-episodes 10 --no-progress-bar
+    curve=(benchmarks/learning_curve.py --env cartpole-balance --frames 60000 --run-dir /tmp/gpu-learning --device cuda
+           --out "$OUT/learning_curve.png")
+    timeout --signal=INT --kill-after=30 "$left" "$PY" "${curve[@]}"
+    "$PY" "${curve[@]}" --plot-only  # what the time allowed, over the published curves
     cp /tmp/gpu-learning/eval.csv "$OUT/learning_eval.csv" 2>/dev/null
 fi
 step "done"
