@@ -242,15 +242,15 @@ def build_report(
                 references[task] = band_curve(REFERENCE_LABEL, data.frames, data.returns, settings.percentiles)
     grid = transplant_grid(rows, settings.success_return)
     report = Report(sweep, rows, grid, curves, references, notes, summary_markdown(rows, settings, notes))
+    report.transplant = transplant_curves(sweep, settings.success_return)
+    collapse_figures(report, settings, collapse_settings, progress)
     report.headline = headline_rows(sweep, rows, settings)
     report.proposition = proposition1_rows(sweep, rows)
     title = "# Sweep report\n\n"
+    summary = summary_markdown(rows, settings, report.notes)  # with the notes of the collapse figures
     report.markdown = title + headline_markdown(report.headline, report.proposition, settings) + "\n" + (
-        report.markdown.removeprefix(title)
+        summary.removeprefix(title)
     )
-    report.transplant = transplant_curves(sweep, settings.success_return)
-    collapse_figures(report, settings, collapse_settings, progress)
-    report.markdown = summary_markdown(rows, settings, report.notes)  # with the notes of the collapse figures
     return report
 
 
