@@ -228,7 +228,8 @@ def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
     panels: dict[tuple, list[Mapping[str, Any]]] = defaultdict(list)
     for r in table_rows:
         panels[(r["table"], r["row"], r["column"])].append(r)
-    for (number, row, column), entries in sorted(panels.items(), key=lambda item: str(item[0][0]).zfill(3)):
+    numbered_first = sorted(panels.items(), key=lambda item: (item[0][0] == "", str(item[0][0]).zfill(3)))
+    for (number, row, column), entries in numbered_first:
         frames = list(dict.fromkeys(e["frame"] for e in entries))
         label = f"Table {number}" if number != "" else "Table"
         agents = entries[0]["agents"]
