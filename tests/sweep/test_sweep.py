@@ -497,7 +497,7 @@ def test_sweep_compares_interventions_and_sb3_algorithms(ray_local, tmp_path, mo
     legend = [text.get_text() for text in axes.get_legend().get_texts()]
     assert legend == [
         "drqv2+reset: reset from scratch (n=2)",
-        "drqv2+redo: ReDo (n=2)",
+        "drqv2+redo: ReDo, one-shot at the rule's trigger (n=2)",
         "td3+reset: reset from scratch (n=2)",
     ]
     colors = {line.get_label(): line.get_color() for line in axes.get_lines()}
