@@ -69,7 +69,7 @@ from sb3_collapse.checkpoints import (
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.drqv2.divergence import DivergenceError
 from sb3_collapse.drqv2.drqv2 import check_hyperparameters
-from sb3_collapse.drqv2.policies import check_image_size
+from sb3_collapse.drqv2.policies import ACTIVATIONS, check_activation, check_image_size
 from sb3_collapse.drqv2.probe_checkpoint import ProbeCheckpoints
 from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
@@ -86,6 +86,7 @@ from sb3_collapse.errors import (
 )
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset, frames_of
 from sb3_collapse.monitoring.callbacks import ResumableCallback
+from sb3_collapse.monitoring.redo import PeriodicReDo
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
@@ -188,6 +189,11 @@ class TrainConfig:
         ``"reset_actor"``, ``"reset_mlp"``, ``"redo"``, ``"shrink_perturb"``, see
         :mod:`sb3_collapse.monitoring.interventions`); ``None``: ``"reset"``, the paper's. Needs ``reset_rule``
     :param reset_window_frames: frames the agent has to escape collapse before a reset (the rule's window)
+    :param activation: hidden activation of DrQ-v2's encoder, actor and critic: ``"relu"`` (DrQ-v2's) or
+        ``"leaky_relu"`` (negative slope 0.01, the paper's footnote 1 ablation); DrQ-v2 only
+    :param redo_every_updates: recycle the dormant units every this many updates for the whole run (ReDo as Sokar et
+        al. run it, :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`, DrQ-v2's convolution channels included);
+        ``0``: never
     :param init_cnn: checkpoint (``DrQv2.save`` zip) whose encoder (``cnn1``..``cnn4``) the model starts from;
         ``None``: random (see ``DrQv2``'s ``init_from``, the paper's layer transplants)
     :param init_mlp: checkpoint whose actor (``mlp0``, ``mlp1``, ``mlp2``, ``action``) the model starts from
@@ -249,6 +255,8 @@ class TrainConfig:
     reset_rule: bool = False
     intervention: str | None = None
     reset_window_frames: int = PAPER.window_frames
+    activation: str = "relu"
+    redo_every_updates: int = 0
     init_cnn: str | None = None
     init_mlp: str | None = None
     init_critic: str | None = None
@@ -323,6 +331,16 @@ class TrainConfig:
                 raise ParameterError(
                     "intervention", f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
                 )
+        check_activation(config.activation)
+        if config.algorithm != "drqv2" and config.activation != "relu":
+            raise ParameterError(
+                "activation", f"activation={config.activation!r} is a DrQ-v2 option; algorithm={config.algorithm!r} "
+                "keeps SB3's ReLU networks."
+            )
+        if isinstance(config.redo_every_updates, bool) or config.redo_every_updates < 0:
+            raise ParameterError(
+                "redo_every_updates", f"redo_every_updates must be >= 0 (0: no ReDo), got {config.redo_every_updates}."
+            )
         if config.algorithm in BASELINES and config.size < NATURE_CNN_MIN_SIZE:
             raise ParameterError(
                 "size",
@@ -380,7 +398,7 @@ class TrainConfig:
             n_steps=config.n_steps,  # type: ignore[arg-type]
             stddev_clip=config.stddev_clip,  # type: ignore[arg-type]
             augmentation_pad=config.augmentation_pad,  # type: ignore[arg-type]
-            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim),
+            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
             seed=config.seed,
             device=config.device,
         )
@@ -435,7 +453,10 @@ class TrainConfig:
         """:attr:`variant`, or the name of the plain variant these settings run."""
         if self.variant is not None:
             return self.variant
-        return f"{self.algorithm}+{self.intervention or 'reset'}" if self.reset_rule else self.algorithm
+        base = self.algorithm + ("-leaky" if self.activation == "leaky_relu" else "")
+        if self.reset_rule:
+            return f"{base}+{self.intervention or 'reset'}"
+        return f"{base}+redo_periodic" if self.redo_every_updates > 0 else base
 
     def record(self) -> dict[str, Any]:
         """
@@ -862,7 +883,7 @@ def _build(
             stddev_clip=config.stddev_clip,
             augmentation_pad=config.augmentation_pad,
             replay_buffer_kwargs=dict(sampling=config.replay_sampling),
-            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim),
+            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
             seed=config.seed,
             device=config.device,
             verbose=config.verbose,
@@ -913,6 +934,8 @@ def _train_into(
             verbose=1,
         )
         callbacks.append(reset_rule)
+    if config.redo_every_updates > 0:
+        callbacks.append(PeriodicReDo(config.redo_every_updates, batch_size=config.collapse_probe_batch))
 
     earlier_s, resumes = 0.0, 0  # seconds and resumptions of the earlier processes of this run
     checkpoints = ResumableCheckpoints(
@@ -1105,6 +1128,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--run-dir", default=d.run_dir, help="the exact run folder (new or empty), instead of --logdir/--run-name")
     g.add_argument("--algorithm", choices=ALGORITHMS, default=d.algorithm, help="drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes (docs/interventions.md) (default: %(default)s)")
     g.add_argument("--reset-rule", action="store_true", help="reset training from scratch when the agent has not escaped action collapse within each window (the paper's rule)")
+    g.add_argument("--activation", choices=ACTIVATIONS, default=d.activation, help="hidden activation of DrQ-v2's encoder, actor and critic: relu, or leaky_relu with negative slope 0.01 (the paper's footnote 1 ablation) (default: %(default)s)")
+    g.add_argument("--redo-every-updates", type=int, default=d.redo_every_updates, help="recycle the dormant units (convolution channels included) every N updates for the whole run, as ReDo does (Sokar et al., 2023; docs/interventions.md); 0: never (default: %(default)s)")
     g.add_argument("--intervention", choices=tuple(INTERVENTIONS), help="what the reset rule does instead of a reset from scratch (with --reset-rule; docs/interventions.md)")
     g.add_argument("--init-cnn", default=d.init_cnn, help="start the encoder from this DrQv2 checkpoint (zip); default: random")
     g.add_argument("--init-mlp", default=d.init_mlp, help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random")

@@ -56,14 +56,14 @@ from sb3_collapse.protocol import (
 from sb3_collapse.train import main
 
 # 100 agent steps of cartpole at action repeat 20 (episodes of 50 steps): checkpoints every 10 steps, most of them
-# mid-episode; the reset rule resets at frames 800 and 1600; updates from step 20 on.
+# mid-episode; the reset rule resets at frames 800 and 1600; updates from step 20 on; ReDo every 7 updates.
 FLAGS = [
     "--env", "cartpole-balance", "--frames", "2000", "--seed", "3", "--action-repeat", "20", "--size", "48",
     "--hidden-dim", "64", "--feature-dim", "16", "--batch-size", "16", "--seed-frames", "400",
     "--eval-every-frames", "1000", "--eval-episodes", "1", "--checkpoint-every-frames", "200",
     "--collapse-metrics-every-frames", "400", "--collapse-probe-batch", "16", "--reset-rule",
     "--reset-window-frames", "800", "--torch-threads", "1", "--no-progress-bar", "--replay-sampling", "sb3",
-    "--probe-checkpoints",
+    "--probe-checkpoints", "--redo-every-updates", "7",
 ]  # fmt: skip
 REPEAT = 20
 
@@ -186,6 +186,8 @@ def test_killed_stopped_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path, 
     assert _rows(reference / COLLAPSE_METRICS_CSV) == _rows(resumed / COLLAPSE_METRICS_CSV)
     timing = ("time/fps", "time/time_elapsed")
     assert _rows(reference / PROGRESS_CSV, drop=timing) == _rows(resumed / PROGRESS_CSV, drop=timing)
+    recycles = [row["redo/recycles"] for row in _rows(resumed / PROGRESS_CSV) if row.get("redo/recycles")]
+    assert len(recycles) >= 2  # PeriodicReDo (every 7 updates) recycled, at the same steps as the uninterrupted run
     assert _scalars(reference) == _scalars(resumed)  # TensorBoard, the events after each checkpoint purged
     result = json.loads((resumed / RESULT_JSON).read_text())
     assert result["resumes"] == 2 and result["resets"] == 2  # the lineage of the final weights: two resumptions

@@ -5,6 +5,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3 import SAC
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -143,6 +144,9 @@ def test_help_documents_units():
         (["--algorithm", "td3", "--size", "32"], "--size must be >= 36 pixels for algorithm='td3' (SB3's NatureCNN)"),
         (["--algorithm", "sac", "--init-cnn", "x.zip"], "layer transplants are for DrQ-v2 checkpoints"),
         (["--algorithm", "ppo"], "invalid choice: 'ppo'"),
+        (["--algorithm", "td3", "--activation", "leaky_relu"], "is a DrQ-v2 option; algorithm='td3' keeps SB3's ReLU"),
+        (["--activation", "gelu"], "invalid choice: 'gelu'"),
+        (["--redo-every-updates", "-1"], "must be >= 0 (0: no ReDo), got -1"),
     ],
 )
 def test_bad_arguments_exit_with_a_message(argv, message, capsys):
@@ -170,7 +174,7 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
     with open(result.run_dir / "collapse_events.csv") as file:
         events = list(csv.DictReader(file))
     assert [row["intervention"] for row in events] == ["shrink_perturb", "shrink_perturb"]
-    assert events[0]["detail"].startswith("theta <- 0.8 theta + 0.2 fresh init on the actor, critic")
+    assert events[0]["detail"].startswith("theta <- 0.8 theta + 0.2 theta_0 (toward a fresh init) on the actor, critic")
     with open(result.run_dir / "collapse_metrics.csv") as file:
         tags = {row["tag"] for row in csv.DictReader(file)}
     assert {"collapse/mlp1/grad_norm", "collapse/mlp1/dormant_ratio", "collapse/action_std"} <= tags
@@ -217,3 +221,24 @@ def test_evaluation_schedule_is_the_references():
     assert evaluation_schedule(800, 400, frames_per_step=8) == [0, 400]
     with pytest.raises(ValueError, match="every_frames"):
         evaluation_schedule(800, 0)
+
+
+def test_train_leaky_relu_with_periodic_redo(tmp_path):
+    """The Leaky-ReLU ablation and ReDo every 3 updates: recorded in the settings, the saved model and the logs."""
+    config = TrainConfig(
+        env="cartpole-balance", activation="leaky_relu", redo_every_updates=3, frames=500, action_repeat=25, size=48,
+        hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=0, collapse_metrics_every_frames=0,
+        collapse_probe_batch=8, replay_sampling="sb3", run_dir=str(tmp_path / "run"), progress_bar=False, torch_threads=1,
+    )  # fmt: skip
+    assert config.variant_name == "drqv2-leaky+redo_periodic"
+    result = train(config)
+    saved = json.loads((result.run_dir / "config.json").read_text())
+    assert (saved["activation"], saved["redo_every_updates"], saved["variant"]) == (
+        "leaky_relu", 3, "drqv2-leaky+redo_periodic"
+    )  # fmt: skip
+    model = DrQv2.load(result.model_path)
+    assert model.policy_kwargs["activation"] == "leaky_relu"
+    assert isinstance(model.policy.critic.q1[1], th.nn.LeakyReLU)
+    with open(result.run_dir / "progress.csv") as file:
+        recycles = [row["redo/recycles"] for row in csv.DictReader(file) if row.get("redo/recycles")]
+    assert recycles and int(float(recycles[-1])) >= 2  # 8 updates (from step 4, one per 2 steps): at 3 and 6

@@ -14,6 +14,12 @@ Layer names are the vocabulary shared by the callbacks, the probe and the plots:
 ``action`` deterministic action: Linear(1024 -> A) + Tanh
 =========  ===========================================================================
 
+``activation="leaky_relu"`` (policy keyword argument) replaces every ReLU of the encoder, the actor and the critic
+(``cnn1``..``cnn4``, ``mlp1``, ``mlp2``, the Q heads) with a Leaky-ReLU of negative slope ``leaky_relu_slope``
+(PyTorch's default 0.01): the ablation of the paper's footnote 1, "We tried substituting all the ReLU with
+Leaky-ReLU (Maas et al., 2013) where the neurons cannot die, but it did not resolve action collapse." The layers keep
+their names.
+
 :meth:`DrQv2Policy.named_layers` returns, for each name, the module whose forward output *is* that
 activation and whose parameters are that layer's weights (``cnn0`` has none). ``MlpPolicy`` has no
 ``cnnK`` layers.
@@ -37,8 +43,40 @@ from sb3_collapse.errors import ParameterError
 LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
 """Every named layer, input to output."""
 
+ACTIVATIONS = ("relu", "leaky_relu")
+"""The hidden activations of the networks: ReLU (DrQ-v2's) or Leaky-ReLU (the paper's footnote 1 ablation)."""
+
+LEAKY_RELU_SLOPE = 0.01
+"""Negative slope of the Leaky-ReLU: PyTorch's default (the paper does not give one; Maas et al., 2013 used 0.01)."""
+
 ACTION_EPS = 1e-6
 """Sampled actions are clamped to ``[-1 + eps, 1 - eps]`` as in DrQ-v2's ``TruncatedNormal``."""
+
+
+def check_activation(activation: str, leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> None:
+    """
+    :param activation: one of :data:`ACTIVATIONS`
+    :param leaky_relu_slope: the Leaky-ReLU's negative slope, in (0, 1)
+    :raises ParameterError: for another activation or slope
+    """
+    if activation not in ACTIVATIONS:
+        raise ParameterError("activation", f"activation must be one of {', '.join(ACTIVATIONS)}, got {activation!r}.")
+    if isinstance(leaky_relu_slope, bool) or not 0.0 < leaky_relu_slope < 1.0:
+        raise ParameterError(
+            "leaky_relu_slope", f"leaky_relu_slope must be in (0, 1) (0 is a ReLU), got {leaky_relu_slope!r}."
+        )
+
+
+def hidden_activation(activation: str = "relu", leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> nn.Module:
+    """
+    :param activation: ``"relu"`` or ``"leaky_relu"``
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
+    :return: a new in-place activation module: ``nn.ReLU`` or ``nn.LeakyReLU(leaky_relu_slope)``
+    """
+    check_activation(activation, leaky_relu_slope)
+    if activation == "leaky_relu":
+        return nn.LeakyReLU(leaky_relu_slope, inplace=True)
+    return nn.ReLU(inplace=True)
 
 
 def weight_init(module: nn.Module) -> None:
@@ -112,21 +150,34 @@ class _FusedConvReLU(th.autograd.Function):
 
 class ConvReLU(nn.Sequential):
     """
-    ``Conv2d`` then ``ReLU``: one named layer (``cnn1``..``cnn4``), whose output is the activation after the ReLU.
+    ``Conv2d`` then ``ReLU`` (or Leaky-ReLU): one named layer (``cnn1``..``cnn4``), whose output is the activation
+    after the ReLU.
 
     On the CPU, for float32 inputs, the two run as one oneDNN kernel (the convolution with a fused ReLU): the same
     values as running them one after the other (tested), without a second pass over the activation. Elsewhere
-    (CUDA, other dtypes, under ``torch.compile``, which fuses by itself) it is the plain ``Sequential``.
+    (CUDA, other dtypes, under ``torch.compile``, which fuses by itself) it is the plain ``Sequential``; with
+    a Leaky-ReLU (the fused kernel is ReLU only) too.
 
     :param in_channels: input channels
     :param out_channels: filters
     :param stride: stride of the 3x3 convolution (no padding)
     :param fused: run the two as one kernel where possible; ``False`` runs them one after the other everywhere
+    :param activation: ``"relu"`` or ``"leaky_relu"`` (:func:`hidden_activation`)
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
     """
 
-    def __init__(self, in_channels: int, out_channels: int, stride: int, fused: bool = True) -> None:
-        super().__init__(nn.Conv2d(in_channels, out_channels, 3, stride=stride), nn.ReLU(inplace=True))
-        self.fused = fused
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        stride: int,
+        fused: bool = True,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
+    ) -> None:
+        conv = nn.Conv2d(in_channels, out_channels, 3, stride=stride)
+        super().__init__(conv, hidden_activation(activation, leaky_relu_slope))
+        self.fused = fused and activation == "relu"
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         conv = self[0]
@@ -151,13 +202,22 @@ class PixelEncoder(nn.Module):
     :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
     :param channels: number of filters of every convolution
     :param channels_last: run the convolutions in ``channels_last`` memory format
-    :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`, same values)
+    :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`, same values;
+        ignored with a Leaky-ReLU)
+    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` after each convolution
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
     """
 
     has_cnn = True
 
     def __init__(
-        self, observation_space: spaces.Space, channels: int = 32, channels_last: bool = True, fused_relu: bool = True
+        self,
+        observation_space: spaces.Space,
+        channels: int = 32,
+        channels_last: bool = True,
+        fused_relu: bool = True,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
     ) -> None:
         super().__init__()
         check_pixel_space(observation_space)
@@ -165,10 +225,11 @@ class PixelEncoder(nn.Module):
             check_image_size(size, f"observation {name}")
         in_channels = observation_space.shape[0]
         self.cnn0 = PixelNormalization(channels_last)
-        self.cnn1 = ConvReLU(in_channels, channels, stride=2, fused=fused_relu)
-        self.cnn2 = ConvReLU(channels, channels, stride=1, fused=fused_relu)
-        self.cnn3 = ConvReLU(channels, channels, stride=1, fused=fused_relu)
-        self.cnn4 = ConvReLU(channels, channels, stride=1, fused=fused_relu)
+        act = dict(fused=fused_relu, activation=activation, leaky_relu_slope=leaky_relu_slope)
+        self.cnn1 = ConvReLU(in_channels, channels, stride=2, **act)  # type: ignore[arg-type]
+        self.cnn2 = ConvReLU(channels, channels, stride=1, **act)  # type: ignore[arg-type]
+        self.cnn3 = ConvReLU(channels, channels, stride=1, **act)  # type: ignore[arg-type]
+        self.cnn4 = ConvReLU(channels, channels, stride=1, **act)  # type: ignore[arg-type]
         self.apply(weight_init)
         self.channels_last = channels_last
         if channels_last:
@@ -191,11 +252,15 @@ class StateEncoder(nn.Module):
     Identity encoder for state vectors (``MlpPolicy``): the actor and critic trunks read the state directly.
 
     :param observation_space: 1-d ``Box`` of floats
+    :param activation: unused (no layer), accepted so that every encoder takes the policy's activation
+    :param leaky_relu_slope: unused
     """
 
     has_cnn = False
 
-    def __init__(self, observation_space: spaces.Space) -> None:
+    def __init__(
+        self, observation_space: spaces.Space, activation: str = "relu", leaky_relu_slope: float = LEAKY_RELU_SLOPE
+    ) -> None:
         super().__init__()
         check_state_space(observation_space)
         self.repr_dim = int(observation_space.shape[0])
@@ -217,13 +282,23 @@ class Actor(nn.Module):
     :param action_dim: number of action dimensions
     :param feature_dim: size of the trunk output
     :param hidden_dim: units of the two hidden layers
+    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in ``mlp1`` and ``mlp2``
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
     """
 
-    def __init__(self, repr_dim: int, action_dim: int, feature_dim: int = 50, hidden_dim: int = 1024) -> None:
+    def __init__(
+        self,
+        repr_dim: int,
+        action_dim: int,
+        feature_dim: int = 50,
+        hidden_dim: int = 1024,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
+    ) -> None:
         super().__init__()
         self.trunk = nn.Sequential(nn.Linear(repr_dim, feature_dim), nn.LayerNorm(feature_dim), nn.Tanh())
-        self.mlp1 = nn.Sequential(nn.Linear(feature_dim, hidden_dim), nn.ReLU(inplace=True))
-        self.mlp2 = nn.Sequential(nn.Linear(hidden_dim, hidden_dim), nn.ReLU(inplace=True))
+        self.mlp1 = nn.Sequential(nn.Linear(feature_dim, hidden_dim), hidden_activation(activation, leaky_relu_slope))
+        self.mlp2 = nn.Sequential(nn.Linear(hidden_dim, hidden_dim), hidden_activation(activation, leaky_relu_slope))
         self.action = nn.Sequential(nn.Linear(hidden_dim, action_dim), nn.Tanh())
 
     def forward(self, features: th.Tensor) -> th.Tensor:
@@ -294,13 +369,23 @@ class Critic(nn.Module):
     :param action_dim: number of action dimensions
     :param feature_dim: size of the trunk output
     :param hidden_dim: units of the hidden layers
+    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in the Q heads
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
     """
 
-    def __init__(self, repr_dim: int, action_dim: int, feature_dim: int = 50, hidden_dim: int = 1024) -> None:
+    def __init__(
+        self,
+        repr_dim: int,
+        action_dim: int,
+        feature_dim: int = 50,
+        hidden_dim: int = 1024,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
+    ) -> None:
         super().__init__()
         self.trunk = nn.Sequential(nn.Linear(repr_dim, feature_dim), nn.LayerNorm(feature_dim), nn.Tanh())
-        self.q1 = _q_head(feature_dim + action_dim, hidden_dim)
-        self.q2 = _q_head(feature_dim + action_dim, hidden_dim)
+        self.q1 = _q_head(feature_dim + action_dim, hidden_dim, activation, leaky_relu_slope)
+        self.q2 = _q_head(feature_dim + action_dim, hidden_dim, activation, leaky_relu_slope)
 
     def forward(self, features: th.Tensor, action: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
@@ -320,12 +405,14 @@ class Critic(nn.Module):
         return self.q1(h_action), self.q2(h_action)
 
 
-def _q_head(in_dim: int, hidden_dim: int) -> nn.Sequential:
+def _q_head(
+    in_dim: int, hidden_dim: int, activation: str = "relu", leaky_relu_slope: float = LEAKY_RELU_SLOPE
+) -> nn.Sequential:
     return nn.Sequential(
         nn.Linear(in_dim, hidden_dim),
-        nn.ReLU(inplace=True),
+        hidden_activation(activation, leaky_relu_slope),
         nn.Linear(hidden_dim, hidden_dim),
-        nn.ReLU(inplace=True),
+        hidden_activation(activation, leaky_relu_slope),
         nn.Linear(hidden_dim, 1),
     )
 
@@ -347,6 +434,9 @@ class DrQv2Policy(BasePolicy):
     :param optimizer_class: optimizer of the encoder, actor and critic
     :param optimizer_kwargs: its keyword arguments, learning rate excluded (Adam gets ``fused=True`` unless
         given otherwise)
+    :param activation: the hidden activation of the encoder, the actor and the critic: ``"relu"`` (DrQ-v2's) or
+        ``"leaky_relu"`` (the paper's footnote 1 ablation); saved with the model (``policy_kwargs``)
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU (:data:`LEAKY_RELU_SLOPE`, PyTorch's default 0.01)
     """
 
     encoder: PixelEncoder | StateEncoder
@@ -365,7 +455,10 @@ class DrQv2Policy(BasePolicy):
         encoder_kwargs: dict[str, Any] | None = None,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
     ) -> None:
+        check_activation(activation, leaky_relu_slope)
         super().__init__(
             observation_space,
             action_space,
@@ -379,6 +472,8 @@ class DrQv2Policy(BasePolicy):
         self.hidden_dim = hidden_dim
         self.encoder_class = encoder_class
         self.encoder_kwargs = encoder_kwargs or {}
+        self.activation = activation
+        self.leaky_relu_slope = leaky_relu_slope
         if optimizer_class is th.optim.Adam and "fused" not in self.optimizer_kwargs:
             # One fused kernel per step instead of a dozen per tensor: same update, about 3x faster.
             self.optimizer_kwargs["fused"] = True
@@ -390,10 +485,12 @@ class DrQv2Policy(BasePolicy):
     def _build(self, lr_schedule: Schedule) -> None:
         """Create fresh networks (new random weights) and fresh optimizers."""
         action_dim = int(np.prod(self.action_space.shape))
-        self.encoder = self.encoder_class(self.observation_space, **self.encoder_kwargs)
+        act = {"activation": self.activation, "leaky_relu_slope": self.leaky_relu_slope}
+        encoder_act = act if self.activation != "relu" else {}  # an encoder class of its own may not take them
+        self.encoder = self.encoder_class(self.observation_space, **{**encoder_act, **self.encoder_kwargs})
         repr_dim = self.encoder.repr_dim
-        self.actor = Actor(repr_dim, action_dim, self.feature_dim, self.hidden_dim)
-        self.critic = Critic(repr_dim, action_dim, self.feature_dim, self.hidden_dim)
+        self.actor = Actor(repr_dim, action_dim, self.feature_dim, self.hidden_dim, **act)
+        self.critic = Critic(repr_dim, action_dim, self.feature_dim, self.hidden_dim, **act)
         # The encoder initializes itself (before switching to channels_last).
         for module in (self.actor, self.critic):
             module.apply(weight_init)
@@ -436,6 +533,8 @@ class DrQv2Policy(BasePolicy):
             encoder_kwargs=self.encoder_kwargs,
             optimizer_class=self.optimizer_class,
             optimizer_kwargs=self.optimizer_kwargs,
+            activation=self.activation,
+            leaky_relu_slope=self.leaky_relu_slope,
             lr_schedule=self._dummy_schedule,
         )
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import difflib
 from collections import OrderedDict, deque
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -37,6 +38,95 @@ _UNDERSCORE_NAMES.update(
         if d == domain
     }
 )
+
+
+@dataclass(frozen=True)
+class RewardInput:
+    """
+    A quantity that a DeepMind Control task's reward function (``Task.get_reward``) reads from the simulator: the
+    value of one of its ``Physics`` methods, or one element of it.
+
+    :param name: the quantity's name (``"torso_height"``)
+    :param method: the ``Physics`` method that the reward function calls (``"torso_height"``)
+    :param index: the element of the method's output that the reward reads (quadruped's ``torso_velocity()[0]``);
+        ``None``: the whole output, flattened
+    :param doc: what it is
+    """
+
+    name: str
+    method: str
+    index: int | None = None
+    doc: str = ""
+
+    def value(self, physics: Any) -> np.ndarray:
+        """
+        :param physics: the task's ``Physics``
+        :return: ``(size,)`` float64, what the reward function reads (a copy)
+        """
+        value = np.array(getattr(physics, self.method)(), dtype=np.float64).reshape(-1)
+        return value[[self.index]] if self.index is not None else value
+
+
+_QUADRUPED_MOVE = (
+    RewardInput("torso_upright", "torso_upright", doc="zz entry of the torso's rotation matrix (upright term)"),
+    RewardInput("torso_velocity_x", "torso_velocity", 0, doc="forward velocity of the torso (move term)"),
+)
+
+REWARD_INPUTS: dict[str, tuple[RewardInput, ...]] = {
+    "walker": (
+        RewardInput("torso_height", "torso_height", doc="height of the torso's frame (standing term)"),
+        RewardInput("torso_upright", "torso_upright", doc="zz entry of the torso's rotation matrix (upright term)"),
+        RewardInput(
+            "horizontal_velocity", "horizontal_velocity", doc="horizontal velocity of the centre of mass (move term)"
+        ),
+    ),
+    "hopper": (
+        RewardInput("height", "height", doc="torso height above the foot (standing term)"),
+        RewardInput("speed", "speed", doc="horizontal velocity of the centre of mass (hop term)"),
+    ),
+    "cartpole": (
+        RewardInput("cart_position", "cart_position", doc="the cart's position on the rail (centred term)"),
+        RewardInput("pole_angle_cosine", "pole_angle_cosine", doc="cosine of each pole's angle (upright term)"),
+        RewardInput("angular_vel", "angular_vel", doc="each pole's angular velocity (small-velocity term)"),
+    ),
+    "cheetah": (RewardInput("speed", "speed", doc="horizontal velocity of the centre of mass"),),
+    "finger-spin": (RewardInput("hinge_velocity", "hinge_velocity", doc="angular velocity of the spinner"),),
+    "finger": (RewardInput("dist_to_target", "dist_to_target", doc="distance from the spinner's tip to the target"),),
+    "reacher": (RewardInput("finger_to_target_dist", "finger_to_target_dist", doc="finger to target distance"),),
+    "ball_in_cup": (RewardInput("ball_to_target", "ball_to_target", doc="x and z from the ball to the cup's target"),),
+    "quadruped-walk": _QUADRUPED_MOVE,
+    "quadruped-run": _QUADRUPED_MOVE,
+    "acrobot": (RewardInput("to_target", "to_target", doc="distance from the tip to the target"),),
+    "pendulum": (RewardInput("pole_vertical", "pole_vertical", doc="zz entry of the pole's rotation matrix"),),
+    "humanoid": (
+        RewardInput("head_height", "head_height", doc="height of the head (standing term)"),
+        RewardInput("torso_upright", "torso_upright", doc="zz entry of the torso's rotation matrix (upright term)"),
+        RewardInput("com_velocity_x", "center_of_mass_velocity", 0, doc="centre-of-mass velocity along x (move)"),
+        RewardInput("com_velocity_y", "center_of_mass_velocity", 1, doc="centre-of-mass velocity along y (move)"),
+    ),
+}
+"""
+The paper chose Figure 2's state components "because all of them are the input to the reward function".
+``<domain>`` or ``<domain>-<task>`` (for a task whose reward reads other quantities than its domain's others) -> the
+quantities of the simulator state that the reward function reads, read from ``get_reward`` of each task of
+``dm_control.suite``: walker ``stand_reward`` (torso height, torso upright) times the move term (horizontal velocity);
+hopper standing (``height``) times hopping (``speed``); cartpole's cart position, pole angle cosines and angular
+velocities; cheetah's ``speed``; finger-spin's hinge velocity, finger-turn's distance to target; reacher's finger to
+target distance; ball_in_cup's ``in_target`` (from ``ball_to_target``); quadruped walk and run: torso upright and
+``torso_velocity()[0]``; acrobot's ``to_target``; pendulum's ``pole_vertical``; humanoid's head height, torso upright
+and horizontal centre-of-mass velocity. The control (the action, a reward input of hopper-stand, cartpole and
+humanoid) is not a state quantity: rollouts record it as the action. Domains and tasks not listed (dog, fish,
+quadruped escape and fetch...) have none.
+"""
+
+
+def reward_inputs_of(domain: str, task: str) -> tuple[RewardInput, ...]:
+    """
+    :param domain: the domain (``"walker"``)
+    :param task: the task (``"walk"``)
+    :return: the quantities that the task's reward reads (:data:`REWARD_INPUTS`); empty for a task not listed
+    """
+    return REWARD_INPUTS.get(f"{domain}-{task}", REWARD_INPUTS.get(domain, ()))
 
 
 def parse_task(name: str) -> tuple[str, str]:
@@ -219,6 +309,25 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         if self._dmc_observation is None:
             raise RuntimeError("get_state() needs a current timestep: call reset() first.")
         return {name: np.array(value, dtype=np.float32).reshape(-1) for name, value in self._dmc_observation.items()}
+
+    @property
+    def physics(self) -> Any:
+        """The dm_control ``Physics`` of the task (its simulator state)."""
+        return self._dmc._env.physics
+
+    def reward_inputs(self) -> dict[str, np.ndarray]:
+        """
+        The quantities that the task's reward function reads (:data:`REWARD_INPUTS`), at the current timestep (the
+        same one as :meth:`get_state`), computed by the task's ``Physics`` methods as ``get_reward`` computes them.
+
+        :return: name -> ``(size,)`` float32 (size 1 but for cartpole's per-pole values and ball_in_cup's
+            ``ball_to_target``); empty for a task without a known reward input
+        """
+        if self._dmc_observation is None:
+            raise RuntimeError("reward_inputs() needs a current timestep: call reset() first.")
+        physics = self.physics
+        inputs = reward_inputs_of(self.domain, self.task_name)
+        return {item.name: item.value(physics).astype(np.float32) for item in inputs}
 
     def get_rng_state(self) -> dict[str, Any]:
         """

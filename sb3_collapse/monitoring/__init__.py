@@ -25,6 +25,7 @@ from sb3_collapse.monitoring.interventions import (
     reset_from_scratch,
     reset_mlp,
     shrink_perturb,
+    shrink_perturb_noise,
 )
 from sb3_collapse.monitoring.metrics import (
     action_spread,
@@ -42,6 +43,7 @@ from sb3_collapse.monitoring.metrics import (
     unit_count,
     zero_fraction,
 )
+from sb3_collapse.monitoring.redo import PeriodicReDo
 from sb3_collapse.monitoring.reset import CollapseReset
 
 __all__ = [
@@ -54,6 +56,7 @@ __all__ = [
     "InterventionResult",
     "LayerMappingError",
     "LayerTap",
+    "PeriodicReDo",
     "ProbeBatchSampler",
     "action_repeat_of",
     "action_spread",
@@ -79,6 +82,7 @@ __all__ = [
     "reset_mlp",
     "saturated_fraction",
     "shrink_perturb",
+    "shrink_perturb_noise",
     "singular_values",
     "track_grad_norms",
     "unit_count",

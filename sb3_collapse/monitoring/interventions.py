@@ -9,8 +9,13 @@ nothing else (the other weights, every optimizer state it does not name, the rep
 ``reset``           the paper's rule: restart from scratch (:func:`reset_from_scratch`)
 ``reset_actor``     new actor and actor optimizer state; critic, encoder and buffer kept (:func:`reset_actor`)
 ``reset_mlp``       new actor MLP after the encoder (:func:`reset_mlp`)
-``redo``            recycle the dormant units of the actor's and the critic's hidden layers (:func:`redo`)
-``shrink_perturb``  ``theta <- lambda theta + sigma fresh_init`` on the online networks (:func:`shrink_perturb`)
+``redo``            ReDo once, at the rule's trigger: recycle the dormant units of the actor's and the critic's
+                    hidden layers (:func:`redo`; the periodic ReDo of Sokar et al. is the callback
+                    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`)
+``shrink_perturb``  interpolation toward a fresh initialization, ``theta <- 0.8 theta + 0.2 theta_0``, on the
+                    online networks (:func:`shrink_perturb`)
+``shrink_perturb_noise``  Ash and Adams' shrink and perturb, ``theta <- lambda theta + sigma noise`` (0.8, 0.01),
+                    the noise a fresh initialization (:func:`shrink_perturb_noise`)
 ==================  ========================================================================================
 
 Models: ``DrQv2`` (``CnnPolicy``, ``MlpPolicy``) and SB3's ``TD3``, ``DDPG`` and ``SAC`` (``CnnPolicy``,
@@ -44,7 +49,18 @@ SHRINK = 0.8
 """Shrink-and-perturb's shrink factor lambda (Ash & Adams, 2020)."""
 
 PERTURB = 0.2
-"""Shrink-and-perturb's noise scale sigma, times a fresh initialization (Ash & Adams, 2020)."""
+"""Shrink-and-perturb's weight of the fresh initialization, ``1 - SHRINK``: ``shrink_perturb`` interpolates."""
+
+REDO_EVERY_UPDATES = 1000
+"""ReDo's recycling period ``F`` by default, in updates (gradient steps), for
+:class:`~sb3_collapse.monitoring.redo.PeriodicReDo`."""
+
+NOISE_SHRINK = 0.8
+"""The default shrink factor lambda of :func:`shrink_perturb_noise` (Ash and Adams choose lambda per problem)."""
+
+NOISE_SCALE = 0.01
+"""The default noise scale sigma of :func:`shrink_perturb_noise`, times a fresh initialization (chosen per problem
+by Ash and Adams too)."""
 
 
 @dataclass(frozen=True)
@@ -304,18 +320,43 @@ def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
 @dataclass(frozen=True)
 class HiddenLayer:
     """
-    A hidden layer that ReDo may recycle: ``activation(linear(x))``, read by the ``consumers``.
+    A hidden layer that ReDo may recycle: ``activation(linear(x))``, read by the ``consumers``. A unit is an output
+    feature of a Linear, or an output channel of a convolution.
 
-    :param name: ``mlp1``, ``mlp2`` (actor), ``q1.mlp1``... (critic's Q networks)
-    :param linear: the layer's Linear (incoming weights)
+    :param name: ``mlp1``, ``mlp2`` (actor), ``q1.mlp1``... (critic's Q networks), ``cnn1``..``cnn4`` (DrQ-v2's
+        encoder)
+    :param linear: the layer's Linear or Conv2d (incoming weights: its rows, or output channels, and bias)
     :param activation: the module whose output is the layer's activation
-    :param consumers: the Linear layers that read it (outgoing weights)
+    :param consumers: the Linear or Conv2d layers that read it (outgoing weights: their input columns or channels)
+    :param positions: spatial positions per channel in the consumers' flattened input (the last convolution read by
+        the trunks' Linear layers: ``height x width``); 1 otherwise
+    :param channels_last: the consumers' flattened input is in (height, width, channel) order (DrQ-v2's
+        ``channels_last`` encoder), else (channel, height, width)
     """
 
     name: str
-    linear: nn.Linear
+    linear: nn.Linear | nn.Conv2d
     activation: nn.Module
-    consumers: tuple[nn.Linear, ...]
+    consumers: tuple[nn.Linear | nn.Conv2d, ...]
+    positions: int = 1
+    channels_last: bool = False
+
+    @property
+    def units(self) -> int:
+        """Output features or channels."""
+        return int(self.linear.weight.shape[0])
+
+    def consumer_columns(self, index: th.Tensor) -> th.Tensor:
+        """
+        :param index: ``(k,)`` indices of units
+        :return: the indices of the consumers' weight columns (dim 1) that read them, on ``index``'s device
+        """
+        if self.positions == 1:
+            return index
+        where = th.arange(self.positions, device=index.device)
+        if self.channels_last:  # column of (position p, channel c): p * channels + c
+            return (where[:, None] * self.units + index[None, :]).flatten()
+        return (index[:, None] * self.positions + where[None, :]).flatten()  # c * positions + p
 
 
 def _sequential_hidden(
@@ -363,6 +404,34 @@ def hidden_layers(model: BaseAlgorithm) -> list[HiddenLayer]:
     return layers
 
 
+def encoder_channels(model: BaseAlgorithm) -> list[HiddenLayer]:
+    """
+    The convolutional layers of DrQ-v2's pixel encoder as layers of channels that ReDo may recycle, ``cnn1``..
+    ``cnn4``: each output channel is a unit, its incoming weights the convolution's filter and bias for it, its
+    outgoing weights the next convolution's input channel, or, for ``cnn4``, the columns of the actor's and the
+    critic's trunk Linear that read that channel at every position. Sokar et al. recycle convolutional channels so.
+
+    :param model: a DrQv2 model (``CnnPolicy``); another model or ``MlpPolicy`` has none
+    :return: the layers, input to output (empty when there are none)
+    """
+    from sb3_collapse.drqv2.policies import PixelEncoder
+
+    if _kind(model) != "drqv2" or not isinstance(model.policy.encoder, PixelEncoder):  # type: ignore[union-attr]
+        return []
+    policy = model.policy
+    encoder = policy.encoder  # type: ignore[union-attr]
+    convs = [encoder.cnn1, encoder.cnn2, encoder.cnn3, encoder.cnn4]
+    channels = convs[-1][0].out_channels
+    trunks = (policy.actor.trunk[0], policy.critic.trunk[0])  # type: ignore[union-attr]
+    layers = []
+    for k, block in enumerate(convs):
+        last = k == len(convs) - 1
+        consumers = trunks if last else (convs[k + 1][0],)
+        positions = encoder.repr_dim // channels if last else 1
+        layers.append(HiddenLayer(f"cnn{k + 1}", block[0], block, consumers, positions, encoder.channels_last))
+    return layers
+
+
 def hidden_activations(model: BaseAlgorithm, layers: Sequence[HiddenLayer], samples: Any) -> dict[str, th.Tensor]:
     """
     The activations of hidden layers on a batch of stored transitions (observations for the actor, observations
@@ -372,7 +441,7 @@ def hidden_activations(model: BaseAlgorithm, layers: Sequence[HiddenLayer], samp
     :param layers: from :func:`hidden_layers`
     :param samples: replay samples (``observations``, ``actions``), e.g. from
         :meth:`~sb3_collapse.monitoring.callbacks.ProbeBatchSampler.sample_transitions`
-    :return: layer name -> ``(n, units)`` float tensor
+    :return: layer name -> ``(n, units)`` float tensor (``(n, channels, height, width)`` for a convolution)
     """
     kind = _kind(model)
     policy = model.policy
@@ -413,11 +482,15 @@ def redo(
     batch_size: int = 512,
     sampler: ProbeBatchSampler | None = None,
     samples: Any = None,
+    conv_channels: bool = False,
 ) -> InterventionResult:
     """
     ReDo, "Recycling Dormant neurons" (Sokar, Agarwal, Castro and Evci, "The Dormant Neuron Phenomenon in Deep
-    Reinforcement Learning", ICML 2023), once, on the actor's and the critic's hidden layers
-    (:func:`hidden_layers`).
+    Reinforcement Learning", ICML 2023), **once**, on the actor's and the critic's hidden layers
+    (:func:`hidden_layers`), and with ``conv_channels`` on the channels of DrQ-v2's convolutions
+    (:func:`encoder_channels`). Sokar et al. recycle every ``F`` updates for the whole run: that is the callback
+    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`, which calls this function; the reset rule's ``"redo"``
+    calls it once at each window without escape.
 
     On a batch of stored transitions, a unit is dormant when its mean absolute activation, divided by the mean
     over its layer, is at most ``tau`` (:func:`~sb3_collapse.monitoring.metrics.dormant_units`, the definition of
@@ -434,12 +507,14 @@ def redo(
     :param sampler: draws the batch from the replay buffer (``None``: a new :class:`ProbeBatchSampler`, seeded
         from the model's seed)
     :param samples: the batch itself (``observations``, ``actions``), instead of drawing one
+    :param conv_channels: recycle the dormant channels of DrQ-v2's ``cnn1``..``cnn4`` too (a channel's score is its
+        mean absolute activation over the batch and the positions)
     :return: what was done; with fewer than ``batch_size`` stored transitions nothing is recycled and the detail
         says so
     """
     kind = _kind(model)
-    layers = hidden_layers(model)
-    total = sum(layer.linear.out_features for layer in layers)
+    layers = (encoder_channels(model) if conv_channels else []) + hidden_layers(model)
+    total = sum(layer.units for layer in layers)
     if samples is None:
         sampler = sampler or ProbeBatchSampler(None if model.seed is None else int(model.seed) + 1_000_003)
         drawn = sampler.sample_transitions(model, batch_size)
@@ -461,9 +536,7 @@ def redo(
         changed += _zero_outgoing(layer, index, optimizers)
     _forget_grad_norms(model)
     recycled = sum(len(indices) for indices in units.values())
-    listed = ", ".join(
-        f"{layer.name} {len(units[layer.name])}/{layer.linear.out_features}" for layer in layers if units[layer.name]
-    )
+    listed = ", ".join(f"{layer.name} {len(units[layer.name])}/{layer.units}" for layer in layers if units[layer.name])
     detail = f"{recycled} of {total} hidden units recycled (tau {tau:g})" + (f": {listed}" if listed else "")
     scalars = {"weights_changed": float(changed), "units_recycled": float(recycled), "units_total": float(total)}
     return InterventionResult("redo", detail, scalars, units)
@@ -481,18 +554,19 @@ def _renew_incoming(layer: HiddenLayer, index: th.Tensor, drqv2: bool, optimizer
     for optimizer in optimizers:
         for param, _ in incoming:
             _zero_moments(optimizer, param, 0, index)
-    return len(index) * (layer.linear.in_features + (layer.linear.bias is not None))
+    return len(index) * (layer.linear.weight[0].numel() + (layer.linear.bias is not None))
 
 
 def _zero_outgoing(layer: HiddenLayer, index: th.Tensor, optimizers: Sequence[th.optim.Optimizer]) -> int:
     """Zero the outgoing weights of units ``index`` (the consumers' columns); returns the entries changed."""
+    columns = layer.consumer_columns(index)
     with th.no_grad():
         for consumer in layer.consumers:
-            consumer.weight[:, index] = 0.0
+            consumer.weight[:, columns] = 0.0
     for optimizer in optimizers:
         for consumer in layer.consumers:
-            _zero_moments(optimizer, consumer.weight, 1, index)
-    return len(index) * sum(consumer.out_features for consumer in layer.consumers)
+            _zero_moments(optimizer, consumer.weight, 1, columns)
+    return sum(consumer.weight[:, columns].numel() for consumer in layer.consumers)
 
 
 def _zero_moments(optimizer: th.optim.Optimizer, param: nn.Parameter, dim: int, index: th.Tensor) -> None:
@@ -507,22 +581,65 @@ def _zero_moments(optimizer: th.optim.Optimizer, param: nn.Parameter, dim: int, 
 # ------------------------------------------------------------------------------------------------ shrink and perturb
 def shrink_perturb(model: BaseAlgorithm, shrink: float = SHRINK, perturb: float = PERTURB) -> InterventionResult:
     """
-    Shrink and perturb (Ash and Adams, "On Warm-Starting Neural Network Training", NeurIPS 2020):
-    ``theta <- shrink * theta + perturb * theta_0``, with ``theta_0`` a fresh initialization (the algorithm's
-    initializer, drawn now), on every parameter of the online networks: DrQv2's encoder, actor and critic; the
-    actor and the critic of TD3, DDPG and SAC (with their features extractors). Kept: the target networks (they
-    follow by Polyak averaging), the optimizer state, SAC's entropy coefficient, the replay buffer and the step
-    counters.
+    Shrink and perturb as an **interpolation toward a fresh initialization**: ``theta <- shrink * theta + perturb *
+    theta_0``, with ``theta_0`` a fresh initialization (the algorithm's initializer, drawn now), on every parameter
+    of the online networks: DrQv2's encoder, actor and critic; the actor and the critic of TD3, DDPG and SAC (with
+    their features extractors). With the defaults (``shrink + perturb = 1``) every weight moves a fifth of the way
+    to a new initial value: ``theta + 0.2 (theta_0 - theta)``. Kept: the target networks (they follow by Polyak
+    averaging), the optimizer state, SAC's entropy coefficient, the replay buffer and the step counters. Ash and
+    Adams' own form, a shrink and a small noise, is :func:`shrink_perturb_noise`.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param shrink: lambda, in ``(0, 1]`` (0.8)
-    :param perturb: sigma, ``>= 0`` (0.2)
+    :param perturb: the weight of the fresh initialization, ``>= 0`` (0.2)
     :return: what was done
+    """
+    changed, names = _shrink_and_add_fresh(model, shrink, perturb)
+    detail = (
+        f"theta <- {shrink:g} theta + {perturb:g} theta_0 (toward a fresh init) on the {', '.join(names)}; "
+        "optimizer state kept"
+    )
+    return InterventionResult("shrink_perturb", detail, {"weights_changed": float(changed)})
+
+
+def shrink_perturb_noise(
+    model: BaseAlgorithm, shrink: float = NOISE_SHRINK, noise: float = NOISE_SCALE
+) -> InterventionResult:
+    """
+    Shrink and perturb in Ash and Adams' form ("On Warm-Starting Neural Network Training", NeurIPS 2020, "Shrink,
+    Perturb, Repeat": shrink the weights toward zero, then add noise): ``theta <- lambda * theta + sigma * noise``,
+    the noise a fresh draw of the algorithm's initializer (so that its scale is each layer's initial scale; Ash and
+    Adams write the perturbation ``p ~ N(0, sigma^2)``), on every parameter of the online networks, as
+    :func:`shrink_perturb`. ``lambda`` (0.8) shrinks the weights toward zero; ``sigma`` (0.01) is small, unlike
+    :func:`shrink_perturb`'s interpolation toward a fresh initialization (0.8 theta + 0.2 theta_0). Kept: the
+    target networks, the optimizer state, SAC's entropy coefficient, the replay buffer and the step counters.
+
+    :param model: a DrQv2, TD3, DDPG or SAC model
+    :param shrink: lambda, in ``(0, 1]``
+    :param noise: sigma, ``>= 0``
+    :return: what was done
+    """
+    changed, names = _shrink_and_add_fresh(model, shrink, noise, "noise")
+    detail = (
+        f"theta <- {shrink:g} theta + {noise:g} noise (Ash & Adams; noise: a fresh init) on the {', '.join(names)}; "
+        "optimizer state kept"
+    )
+    return InterventionResult("shrink_perturb_noise", detail, {"weights_changed": float(changed)})
+
+
+def _shrink_and_add_fresh(
+    model: BaseAlgorithm, shrink: float, scale: float, scale_name: str = "perturb"
+) -> tuple[int, list[str]]:
+    """
+    ``theta <- shrink * theta + scale * theta_fresh`` on the online networks, ``theta_fresh`` drawn module by module
+    (encoder, actor, critic for DrQv2; actor, critic otherwise) from torch's global generator.
+
+    :return: the parameter entries changed and the networks' names
     """
     if not 0.0 < shrink <= 1.0:
         raise ValueError(f"shrink must be in (0, 1], got {shrink}.")
-    if perturb < 0.0:
-        raise ValueError(f"perturb must be >= 0, got {perturb}.")
+    if not scale >= 0.0:
+        raise ValueError(f"{scale_name} must be >= 0, got {scale}.")
     kind = _kind(model)
     policy = model.policy
     names = ["encoder", "actor", "critic"] if kind == "drqv2" else ["actor", "critic"]
@@ -536,11 +653,10 @@ def shrink_perturb(model: BaseAlgorithm, shrink: float = SHRINK, perturb: float 
                 if id(param) in seen:  # a features extractor shared by the actor and the critic: once
                     continue
                 seen.add(id(param))
-                param.mul_(shrink).add_(new, alpha=perturb)
+                param.mul_(shrink).add_(new, alpha=scale)
                 changed += param.numel()
     _forget_grad_norms(model)
-    detail = f"theta <- {shrink:g} theta + {perturb:g} fresh init on the {', '.join(names)}; optimizer state kept"
-    return InterventionResult("shrink_perturb", detail, {"weights_changed": float(changed)})
+    return changed, names
 
 
 # ------------------------------------------------------------------------------------------------ by name
@@ -550,6 +666,7 @@ INTERVENTIONS: dict[str, Callable[..., InterventionResult]] = {
     "reset_mlp": reset_mlp,
     "redo": redo,
     "shrink_perturb": shrink_perturb,
+    "shrink_perturb_noise": shrink_perturb_noise,
 }
 """The interventions by name, the values of ``CollapseReset(intervention=...)``."""
 
@@ -557,10 +674,13 @@ INTERVENTION_LABELS = {
     "reset": "reset from scratch",
     "reset_actor": "actor reset",
     "reset_mlp": "actor MLP reset",
-    "redo": "ReDo",
-    "shrink_perturb": "shrink & perturb",
+    "redo": "ReDo, one-shot at the rule's trigger",
+    "shrink_perturb": "shrink & perturb, interpolation to a fresh init",
+    "shrink_perturb_noise": "shrink & perturb, Ash & Adams (lambda theta + sigma noise)",
+    "redo_periodic": f"ReDo every {REDO_EVERY_UPDATES} updates, whole run",
 }
-"""What each intervention is called in figures (e.g. the report's legend)."""
+"""What each intervention is called in figures (e.g. the report's legend), and the periodic ReDo of the variants
+``<algorithm>+redo_periodic`` (a callback, not an intervention of the rule)."""
 
 
 def check_intervention(name: str, model: BaseAlgorithm | None = None) -> None:

@@ -145,8 +145,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Split the finished trials of one task and variant by final return (well-performing >= "
         "--success-return, poorly performing < --failure-return), record rollouts once from the best well-performing "
         f"seed (or read --rollouts), probe every {PROBE_CHECKPOINTS_DIR}/*.zip of those trials (train with "
-        "--probe-checkpoints) and write figure2.png (rows well/poor, columns torso velocity, joint orientations, "
-        "torso height), tables_1_6.csv/.md (std across agents at four training stages), probe.csv and summary.json.",
+        "--probe-checkpoints) and write figure2.png (rows well/poor, columns the reward inputs torso velocity, torso "
+        "orientation and torso height, then state columns), tables_1_6.csv/.md (std across agents at four training "
+        "stages), probe.csv and summary.json.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     swp.add_argument("sweep", help="the sweep folder (--out of python -m sb3_collapse.sweep)")

@@ -4,17 +4,26 @@ agents, columns torso velocity, joint orientations, torso height; in each panel,
 row's agents of the probe's test MSE (standardized) against training frames; the tables give the std across the
 agents at four training stages.
 
-Which state dimensions each column averages (:data:`FIGURE2_COLUMNS`), from dm_control's models:
+The paper: "we plot the probing MSE for three environment state components: torso velocity, joint orientation, and
+torso height ... We choose these three components because all of them are the input to the reward function." The
+columns are therefore the quantities that the task's reward function reads (``reward:...`` targets, recorded by
+``DMCEnv.reward_inputs``, see :data:`sb3_collapse.envs.dmc.REWARD_INPUTS`), followed by the state-vector readings of
+the same names as extra columns (:data:`FIGURE2_COLUMNS`):
 
-- **walker** (qpos/qvel joints ``rootz, rootx, rooty, right_hip, right_knee, right_ankle, left_hip, left_knee,
-  left_ankle``; bodies ``torso, right_thigh, right_leg, right_foot, left_thigh, left_leg, left_foot``):
-  torso velocity = ``velocity_0..2`` (the root joints' velocities: torso vertical, horizontal and pitch
-  velocity); joint orientations = ``orientations_2..13`` (the x and z components of the orientation of the six
-  leg bodies; ``orientations_0..1`` are the torso's); torso height = ``height``.
-- **hopper** (``position`` = qpos without ``rootx``: ``rootz, rooty, waist, hip, knee, ankle``; ``velocity`` =
-  qvel: ``rootx, rootz, rooty, ...``): torso velocity = ``velocity_0..2``; torso height = ``position_0``
-  (``rootz``); no orientation observation, so no joint-orientation column.
-- any other domain: one column per state component (the whole component averaged).
+- **walker** (its reward: ``stand = (3 tolerance(torso_height) + (1 + torso_upright) / 2) / 4`` times a term of
+  ``horizontal_velocity``): torso velocity = ``reward:horizontal_velocity`` (the centre of mass's horizontal
+  velocity); orientation = ``reward:torso_upright`` (the torso's, the only orientation the reward reads; the paper
+  calls the column "joint orientation"); torso height = ``reward:torso_height``. Extra columns: root velocities
+  (state) = ``velocity_0..2`` (the root joints' velocities: torso vertical, horizontal and pitch velocity); leg
+  orientations (state) = ``orientations_2..13`` (the x and z components of the orientation of the six leg bodies;
+  ``orientations_0..1`` are the torso's). The state's ``height`` is ``torso_height`` itself, so it has no column of
+  its own.
+- **hopper** (its reward: ``tolerance(height)`` times a term of ``speed``): torso velocity = ``reward:speed``, torso
+  height = ``reward:height`` (torso above the foot); its reward reads no orientation. Extra columns: root
+  velocities (state) = ``velocity_0..2``; rootz (state) = ``position_0``.
+- any other domain: one column per reward input, then one per state component (the whole component averaged).
+
+Rollouts recorded before the reward inputs were have only the state columns.
 """
 
 from __future__ import annotations
@@ -32,19 +41,29 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
 
+from sb3_collapse.probe.rollouts import REWARD_PREFIX
 from sb3_collapse.protocol import PAPER
 from sb3_collapse.report.statistics import across_seed_std, stage_indices
 from sb3_collapse.report.style import frames_axis, layer_style
 
+ORIENTATION = "orientation (torso upright)"
+"""The title of walker's second column: the paper's "joint orientation", read as the orientation the reward reads."""
+PAPER_COLUMNS = ("torso velocity", ORIENTATION, "torso height")
+"""The paper's three columns, in its order (Tables 1-6 are numbered by them)."""
+
 FIGURE2_COLUMNS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
     "walker": (
-        ("torso velocity", tuple(f"velocity_{i}" for i in range(3))),
-        ("joint orientations", tuple(f"orientations_{i}" for i in range(2, 14))),
-        ("torso height", ("height",)),
+        ("torso velocity", ("reward:horizontal_velocity",)),
+        (ORIENTATION, ("reward:torso_upright",)),
+        ("torso height", ("reward:torso_height",)),
+        ("root velocities (state)", tuple(f"velocity_{i}" for i in range(3))),
+        ("leg orientations (state)", tuple(f"orientations_{i}" for i in range(2, 14))),
     ),
     "hopper": (
-        ("torso velocity", tuple(f"velocity_{i}" for i in range(3))),
-        ("torso height", ("position_0",)),
+        ("torso velocity", ("reward:speed",)),
+        ("torso height", ("reward:height",)),
+        ("root velocities (state)", tuple(f"velocity_{i}" for i in range(3))),
+        ("rootz (state)", ("position_0",)),
     ),
 }
 """Domain -> the columns of Figure 2: title and the probe targets (``probe.csv`` ``component``) it averages."""
@@ -58,7 +77,7 @@ def figure2_columns(task: str, components: Sequence[str], groups: Sequence[str])
     :param components: the probe targets (``probe.csv`` ``component``)
     :param groups: the state component of each target
     :return: the columns whose targets all exist; for a domain without :data:`FIGURE2_COLUMNS`, one column per
-        state component
+        reward input (``reward:`` groups), then one per state component
     """
     domain = task.split("-")[0]
     available = set(components)
@@ -67,7 +86,8 @@ def figure2_columns(task: str, components: Sequence[str], groups: Sequence[str])
     by_group: dict[str, list[str]] = defaultdict(list)
     for component, group in zip(components, groups):
         by_group[group].append(component)
-    return [(group, tuple(names)) for group, names in by_group.items()]
+    columns = [(group, tuple(names)) for group, names in by_group.items()]
+    return sorted(columns, key=lambda column: not column[0].startswith(REWARD_PREFIX))
 
 
 @dataclass
@@ -167,7 +187,8 @@ def plot_figure2(curves: Sequence[PanelCurve], path: Path, title: str) -> None:
 
 
 TABLE_NUMBERS = {(row, column): 1 + 2 * column + row for row in range(2) for column in range(3)}
-"""(row, column) of Figure 2 -> its table in the paper: Table 1 is subplot (1, 1), Table 2 (2, 1), Table 3 (1, 2)..."""
+"""(row, column) of the paper's Figure 2 -> its table in the paper: Table 1 is subplot (1, 1), Table 2 (2, 1), Table 3
+(1, 2)... Columns are those of :data:`PAPER_COLUMNS`; the other columns' tables have no number."""
 
 
 def stage_table_rows(curves: Sequence[PanelCurve], fractions: Sequence[float] = PAPER.stage_fractions) -> list[dict]:
@@ -179,12 +200,10 @@ def stage_table_rows(curves: Sequence[PanelCurve], fractions: Sequence[float] = 
     :param fractions: the stages
     :return: rows ``table, row, column, layer, agents, stage, frame, std``
     """
-    rows = list(dict.fromkeys(c.row for c in curves))
-    columns = list(dict.fromkeys(c.column for c in curves))
     table_rows = []
     for curve in curves:
-        position = (rows.index(curve.row), columns.index(curve.column))
-        number = TABLE_NUMBERS.get(position, "")
+        in_paper = curve.row in ROWS and curve.column in PAPER_COLUMNS
+        number = TABLE_NUMBERS[(ROWS.index(curve.row), PAPER_COLUMNS.index(curve.column))] if in_paper else ""
         stages = stage_indices(curve.frames, fractions) if len(curve.frames) else []
         stds = across_seed_std(curve.values[:, stages], axis=0) if stages else []
         for stage, (index, std) in enumerate(zip(stages, stds)):
@@ -209,7 +228,8 @@ def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
     panels: dict[tuple, list[Mapping[str, Any]]] = defaultdict(list)
     for r in table_rows:
         panels[(r["table"], r["row"], r["column"])].append(r)
-    for (number, row, column), entries in sorted(panels.items(), key=lambda item: str(item[0][0]).zfill(3)):
+    numbered_first = sorted(panels.items(), key=lambda item: (item[0][0] == "", str(item[0][0]).zfill(3)))
+    for (number, row, column), entries in numbered_first:
         frames = list(dict.fromkeys(e["frame"] for e in entries))
         label = f"Table {number}" if number != "" else "Table"
         agents = entries[0]["agents"]

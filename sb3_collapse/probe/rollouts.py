@@ -3,7 +3,8 @@ Rollouts for probing: observations of an agent in a DeepMind Control pixel env, 
 
 A :class:`Rollouts` holds, for every recorded agent step ``t`` of every episode: the observation the agent acted
 on, the named true-state components at the time that observation was rendered (``DMCEnv.get_state``), the
-action taken, the reward it received, the episode id and the step index. The final observation of an episode
+quantities of that state that the task's reward function reads (``DMCEnv.reward_inputs``: the paper's Figure 2
+probes components chosen "because all of them are the input to the reward function"), the action taken, the reward it received, the episode id and the step index. The final observation of an episode
 (on which no action is taken) is not recorded. Files are compressed ``.npz`` (no pickles) that also store the
 environment settings, so a file recorded from one agent can probe many checkpoints.
 """
@@ -24,7 +25,10 @@ from tqdm.auto import tqdm
 from sb3_collapse.envs import make_dmc_env
 from sb3_collapse.probe.errors import ProbeError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""Version 2 added the reward inputs (files of version 1 load with none)."""
+REWARD_PREFIX = "reward:"
+"""Prefix of the probing targets (and groups) that are reward inputs, e.g. ``reward:torso_height``."""
 ENV_SETTINGS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id")
 """``make_dmc_env`` settings stored with the rollouts (``obs_type`` is always ``"pixels"``)."""
 
@@ -44,6 +48,10 @@ class Rollouts:
     :param env_config: ``make_dmc_env`` settings: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``,
         ``camera_id``
     :param metadata: how they were recorded (``checkpoint``, ``deterministic``, ``noise_std``, ``seed``, ...)
+    :param reward_inputs: reward input name -> ``(N, size)`` float32, the quantities the task's reward function
+        reads at the time of each observation (:data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`; walker:
+        ``torso_height``, ``torso_upright``, ``horizontal_velocity``); empty for a task without any, or for a file
+        recorded before they were
     """
 
     observations: np.ndarray
@@ -54,6 +62,7 @@ class Rollouts:
     steps: np.ndarray
     env_config: dict[str, Any]
     metadata: dict[str, Any] = field(default_factory=dict)
+    reward_inputs: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = len(self.observations)
@@ -64,6 +73,7 @@ class Rollouts:
             "steps": self.steps,
         }
         arrays.update({f"state {name!r}": value for name, value in self.states.items()})
+        arrays.update({f"reward input {name!r}": value for name, value in self.reward_inputs.items()})
         wrong = {name: len(value) for name, value in arrays.items() if len(value) != n}
         if wrong:
             raise ProbeError(f"Rollouts arrays must all have {n} rows (one per observation); got {wrong}.")
@@ -78,19 +88,23 @@ class Rollouts:
 
     def targets(self) -> tuple[list[str], list[str], np.ndarray]:
         """
-        The scalar probing targets: one per dimension of each state component.
+        The scalar probing targets: one per dimension of each state component, then one per dimension of each
+        reward input.
 
         :return: ``names`` (``"orientations_0"``.. for a multi-dimensional component, the component's own name
-            for a 1-d one such as ``"height"``), ``groups`` (the component of each target) and the ``(N, K)``
-            float32 matrix of their values
+            for a 1-d one such as ``"height"``; reward inputs prefixed with :data:`REWARD_PREFIX`:
+            ``"reward:torso_height"``), ``groups`` (the component or reward input of each target, prefixed the same
+            way) and the ``(N, K)`` float32 matrix of their values
         """
         names, groups, columns = [], [], []
-        for component, values in self.states.items():
-            values = values.reshape(len(values), -1)
-            for i in range(values.shape[1]):
-                names.append(component if values.shape[1] == 1 else f"{component}_{i}")
-                groups.append(component)
-                columns.append(values[:, i])
+        sources = [("", self.states), (REWARD_PREFIX, self.reward_inputs)]
+        for prefix, components in sources:
+            for component, values in components.items():
+                values = values.reshape(len(values), -1)
+                for i in range(values.shape[1]):
+                    names.append(prefix + (component if values.shape[1] == 1 else f"{component}_{i}"))
+                    groups.append(prefix + component)
+                    columns.append(values[:, i])
         if not columns:
             raise ProbeError("The rollouts hold no state components to probe.")
         return names, groups, np.stack(columns, axis=1).astype(np.float32)
@@ -109,6 +123,7 @@ class Rollouts:
             "env_config": self.env_config,
             "metadata": self.metadata,
             "state_components": list(self.states),
+            "reward_inputs": list(self.reward_inputs),
         }
         arrays = {
             "observations": self.observations,
@@ -119,6 +134,7 @@ class Rollouts:
             "meta": np.array(json.dumps(meta)),
         }
         arrays.update({f"state/{name}": value for name, value in self.states.items()})
+        arrays.update({f"reward_input/{name}": value for name, value in self.reward_inputs.items()})
         path.parent.mkdir(parents=True, exist_ok=True)
         try:
             with partial.open("wb") as file:
@@ -144,13 +160,20 @@ class Rollouts:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
                 states = {name: data[f"state/{name}"] for name in meta["state_components"]}
+                reward_inputs = {name: data[f"reward_input/{name}"] for name in meta.get("reward_inputs", [])}
                 arrays = {key: data[key] for key in ("observations", "actions", "rewards", "episode_ids", "steps")}
         except (OSError, ValueError, KeyError, json.JSONDecodeError) as error:
             raise ProbeError(
                 f"{path} is not a rollouts file of sb3_collapse.probe ({type(error).__name__}: {error}); "
                 "record one with `python -m sb3_collapse.probe record`."
             ) from error
-        return cls(states=states, env_config=meta["env_config"], metadata=meta.get("metadata", {}), **arrays)
+        return cls(
+            states=states,
+            reward_inputs=reward_inputs,
+            env_config=meta["env_config"],
+            metadata=meta.get("metadata", {}),
+            **arrays,
+        )
 
 
 def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any) -> dict[str, Any]:
@@ -251,6 +274,7 @@ def record_rollouts(
     rng = np.random.default_rng(seed)
     observations, actions, rewards, episode_ids, steps = [], [], [], [], []
     states: dict[str, list[np.ndarray]] = {name: [] for name in env.state_shapes}
+    reward_inputs: dict[str, list[np.ndarray]] = {}
     per_episode = episode_length(env, max_steps)
     bar = tqdm(
         total=None if per_episode is None else episodes * per_episode,
@@ -270,6 +294,8 @@ def record_rollouts(
                 observations.append(obs)
                 for name, value in env.get_state().items():
                     states[name].append(value)
+                for name, value in env.reward_inputs().items():
+                    reward_inputs.setdefault(name, []).append(value)
                 obs, reward, terminated, truncated, _ = env.step(action)
                 actions.append(action)
                 rewards.append(reward)
@@ -284,6 +310,7 @@ def record_rollouts(
     return Rollouts(
         observations=np.stack(observations),
         states={name: np.stack(values).astype(np.float32) for name, values in states.items()},
+        reward_inputs={name: np.stack(values).astype(np.float32) for name, values in reward_inputs.items()},
         actions=np.stack(actions).astype(np.float32),
         rewards=np.asarray(rewards, dtype=np.float32),
         episode_ids=np.asarray(episode_ids, dtype=np.int64),

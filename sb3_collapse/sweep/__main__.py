@@ -18,6 +18,7 @@ from pathlib import Path
 from sb3_collapse.checkpoints import checkpoint_frames
 from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
+from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import CHECKPOINTS_DIR, PAPER
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
@@ -35,6 +36,7 @@ from sb3_collapse.sweep.runner import (
     sweep_settings,
 )
 from sb3_collapse.sweep.trials import (
+    BASE_VARIANTS,
     GRID_VARIANTS,
     TRANSPLANT_SOURCES,
     SweepError,
@@ -48,7 +50,7 @@ from sb3_collapse.sweep.trials import (
     trial_status,
     variant_settings,
 )
-from sb3_collapse.train import ALGORITHMS, TrainConfig, training_arguments, training_settings
+from sb3_collapse.train import TrainConfig, training_arguments, training_settings
 
 DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
 
@@ -73,8 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--variants",
         nargs="+",
         help=f"<algorithm> or <algorithm>+<intervention> (the paper's rule doing that intervention), <algorithm> in "
-        f"{'/'.join(ALGORITHMS)} (td3, sac: SB3's, from the same pixels), <intervention> in {'/'.join(INTERVENTIONS)} "
-        f"(e.g. drqv2+reset, drqv2+redo, td3+reset; docs/interventions.md), or transplant-grid cells "
+        f"{'/'.join(BASE_VARIANTS)} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations), "
+        f"<intervention> in {'/'.join(INTERVENTIONS)}, or <algorithm>+redo_periodic (ReDo every {REDO_EVERY_UPDATES} "
+        "updates, no rule) (e.g. drqv2+reset, drqv2+redo, drqv2-leaky+reset; docs/interventions.md), or transplant-grid cells "
         f"cnn-<src>_mlp-<src>, <src> in {'/'.join(TRANSPLANT_SOURCES)}; default: {' '.join(DEFAULT_VARIANTS)} (only "
         "the grid with --transplant-grid)",
     )

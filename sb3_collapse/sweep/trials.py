@@ -7,8 +7,13 @@ Variants:
   (:mod:`sb3_collapse.baselines`);
 - ``<algorithm>+<intervention>``: the algorithm with the paper's rule (:class:`~sb3_collapse.CollapseReset`) doing
   the intervention at the end of each window without escape: ``drqv2+reset`` (the paper's reset from scratch),
-  ``drqv2+redo``, ``td3+reset``, ``sac+shrink_perturb``... (interventions:
+  ``drqv2+redo`` (ReDo once at each trigger), ``td3+reset``, ``sac+shrink_perturb``... (interventions:
   :mod:`sb3_collapse.monitoring.interventions`);
+- ``<algorithm>+redo_periodic``: the algorithm with ReDo as Sokar et al. run it, every
+  :data:`~sb3_collapse.monitoring.redo.REDO_EVERY_UPDATES` updates for the whole run, no rule
+  (:class:`~sb3_collapse.monitoring.redo.PeriodicReDo`, DrQ-v2's convolution channels included);
+- ``drqv2-leaky``, ``drqv2-leaky+<intervention>``, ``drqv2-leaky+redo_periodic``: the same with every ReLU of
+  DrQ-v2's encoder, actor and critic replaced by a Leaky-ReLU (negative slope 0.01, the paper's footnote 1);
 - ``cnn-<src>_mlp-<src>`` with ``<src>`` in ``blank``, ``good``, ``bad``: a cell of the paper's transplant grid
   (Study 2, Figure 3a), plain DrQ-v2 whose encoder (CNN) and actor (MLP) start from the weights of a "good" or a
   "bad" agent of the same task, or blank (the usual random initialization); the critic starts blank. The CNN and
@@ -28,14 +33,24 @@ from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import parse_task
 from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
+from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import ERROR_TXT, FINISHED, RESULT_JSON, trial_path
 from sb3_collapse.train import ALGORITHMS, TrainConfig
 
+LEAKY = "-leaky"
+"""Suffix of the DrQ-v2 variants with Leaky-ReLU activations (``drqv2-leaky``)."""
+PERIODIC_REDO = "redo_periodic"
+"""``<algorithm>+redo_periodic``: ReDo every :data:`~sb3_collapse.monitoring.redo.REDO_EVERY_UPDATES` updates."""
+BASE_VARIANTS = ("drqv2", f"drqv2{LEAKY}", *(algorithm for algorithm in ALGORITHMS if algorithm != "drqv2"))
+"""The algorithms of the variants: ``drqv2``, ``drqv2-leaky``, ``td3``, ``sac``."""
 PLAIN_VARIANTS = tuple(
-    f"{algorithm}{suffix}" for algorithm in ALGORITHMS for suffix in ("", *(f"+{name}" for name in INTERVENTIONS))
+    f"{base}{suffix}"
+    for base in BASE_VARIANTS
+    for suffix in ("", *(f"+{name}" for name in INTERVENTIONS), f"+{PERIODIC_REDO}")
 )
-"""``<algorithm>`` and ``<algorithm>+<intervention>``: ``drqv2``, ``drqv2+reset``, ``drqv2+reset_actor``..., ``td3``,
-``td3+reset``..., ``sac``..."""
+"""``<algorithm>``, ``<algorithm>+<intervention>`` and ``<algorithm>+redo_periodic``: ``drqv2``, ``drqv2+reset``,
+``drqv2+reset_actor``..., ``drqv2+redo_periodic``, ``drqv2-leaky``, ``drqv2-leaky+reset``..., ``td3``, ``td3+reset``...,
+``sac``..."""
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
 """The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
@@ -102,7 +117,8 @@ def transplant_of(variant: str) -> dict[str, str] | None:
         return {"cnn": cnn.removeprefix("cnn-"), "mlp": mlp.removeprefix("mlp-")}
     raise SweepError(
         f"Unknown variant {variant!r}: use <algorithm> or <algorithm>+<intervention> with <algorithm> in "
-        f"{', '.join(ALGORITHMS)} and <intervention> in {', '.join(INTERVENTIONS)} (e.g. drqv2+reset, td3+redo), "
+        f"{', '.join(BASE_VARIANTS)} and <intervention> in {', '.join(INTERVENTIONS)} or {PERIODIC_REDO} (e.g. "
+        "drqv2+reset, td3+redo, drqv2-leaky+redo_periodic), "
         f"or a transplant-grid cell cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} "
         "(e.g. cnn-good_mlp-bad)."
     )
@@ -113,14 +129,25 @@ def variant_settings(variant: str) -> dict[str, Any]:
     The :class:`~sb3_collapse.train.TrainConfig` settings a variant fixes.
 
     :param variant: a variant name
-    :return: ``algorithm``, ``reset_rule`` and ``intervention`` (``None`` without the rule); transplant-grid cells
-        are plain DrQ-v2
+    :return: ``algorithm``, ``reset_rule``, ``intervention`` (``None`` without the rule), ``activation``
+        (``"leaky_relu"`` for ``drqv2-leaky...``) and ``redo_every_updates`` (for ``+redo_periodic``, else 0);
+        transplant-grid cells are plain DrQ-v2
     :raises SweepError: for an unknown variant
     """
+    settings: dict[str, Any] = {
+        "algorithm": "drqv2", "reset_rule": False, "intervention": None, "activation": "relu", "redo_every_updates": 0
+    }  # fmt: skip
     if transplant_of(variant) is not None:
-        return {"algorithm": "drqv2", "reset_rule": False, "intervention": None}
-    algorithm, _, intervention = variant.partition("+")
-    return {"algorithm": algorithm, "reset_rule": bool(intervention), "intervention": intervention or None}
+        return settings
+    base, _, suffix = variant.partition("+")
+    settings["algorithm"] = base.removesuffix(LEAKY)
+    if base.endswith(LEAKY):
+        settings["activation"] = "leaky_relu"
+    if suffix == PERIODIC_REDO:
+        settings["redo_every_updates"] = REDO_EVERY_UPDATES
+    elif suffix:
+        settings.update(reset_rule=True, intervention=suffix)
+    return settings
 
 
 def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable[int]) -> list[Trial]:

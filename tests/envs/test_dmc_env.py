@@ -19,11 +19,12 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_collapse.envs import DMC_TASKS, DMCEnv, make_dmc_env, parse_task
-from sb3_collapse.envs.dmc import scale_action
+from sb3_collapse.envs.dmc import REWARD_INPUTS, reward_inputs_of, scale_action
 
 # Imported after sb3_collapse.envs, so that the OpenGL backend is chosen first.
 from dm_control import suite  # isort: skip
 from dm_control.suite.wrappers import action_scale  # isort: skip
+from dm_control.utils import rewards as dm_rewards  # isort: skip
 
 WALKER_STATE_SHAPES = {"orientations": 14, "height": 1, "velocity": 9}
 
@@ -566,3 +567,94 @@ def test_subproc_vec_env_with_callables() -> None:
         assert vec_env.reset().shape == (2, 9, 32, 32)
     finally:
         vec_env.close()
+
+
+# ---------------------------------------------------------------- reward inputs (the paper's Figure 2 columns)
+
+
+def _tol(x, **kwargs) -> float:
+    return float(np.asarray(dm_rewards.tolerance(np.asarray(x, dtype=np.float64), **kwargs)).reshape(-1)[0])
+
+
+# Each task's reward, rebuilt from the recorded reward inputs alone (the formulas of dm_control's get_reward), and
+# what its Physics methods give at the same state. A reward input the reward does not read, or a wrong one, makes
+# the rebuilt reward differ from get_reward's.
+INF = float("inf")
+REWARD_FROM_INPUTS = {
+    "walker-walk": lambda r, p: (3 * _tol(r["torso_height"], bounds=(1.2, INF), margin=0.6)
+                                 + (1 + r["torso_upright"][0]) / 2) / 4
+    * (5 * _tol(r["horizontal_velocity"], bounds=(1, INF), margin=0.5, value_at_margin=0.5, sigmoid="linear") + 1) / 6,
+    "hopper-hop": lambda r, p: _tol(r["height"], bounds=(0.6, 2))
+    * _tol(r["speed"], bounds=(2, INF), margin=1, value_at_margin=0.5, sigmoid="linear"),
+    "cheetah-run": lambda r, p: _tol(r["speed"], bounds=(10, INF), margin=10, value_at_margin=0, sigmoid="linear"),
+    "cartpole-balance_sparse": lambda r, p: _tol(r["cart_position"], bounds=(-0.25, 0.25))
+    * _tol(r["pole_angle_cosine"], bounds=(0.995, 1)),
+    "finger-spin": lambda r, p: float(r["hinge_velocity"][0] <= -15),
+    "finger-turn_easy": lambda r, p: float(r["dist_to_target"][0] <= 0),
+    "reacher-easy": lambda r, p: _tol(
+        r["finger_to_target_dist"], bounds=(0, p.named.model.geom_size[["target", "finger"], 0].sum())
+    ),
+    "ball_in_cup-catch": lambda r, p: float(
+        all(abs(r["ball_to_target"]) < p.named.model.site_size["target", [0, 2]] - p.named.model.geom_size["ball", 0])
+    ),
+    "quadruped-walk": lambda r, p: _tol(r["torso_upright"], bounds=(1, INF), sigmoid="linear", margin=2,
+                                        value_at_margin=0)
+    * _tol(r["torso_velocity_x"], bounds=(0.5, INF), margin=0.5, value_at_margin=0.5, sigmoid="linear"),
+    "acrobot-swingup": lambda r, p: _tol(r["to_target"], bounds=(0, p.named.model.site_size["target", 0]), margin=1),
+    "pendulum-swingup": lambda r, p: _tol(r["pole_vertical"], bounds=(np.cos(np.deg2rad(8)), 1)),
+}
+PHYSICS_VALUES = {
+    "walker": lambda p: {
+        "torso_height": p.torso_height(), "torso_upright": p.torso_upright(),
+        "horizontal_velocity": p.horizontal_velocity(),
+    },
+    "hopper": lambda p: {"height": p.height(), "speed": p.speed()},
+    "cheetah": lambda p: {"speed": p.speed()},
+    "cartpole": lambda p: {
+        "cart_position": p.cart_position(), "pole_angle_cosine": p.pole_angle_cosine(), "angular_vel": p.angular_vel()
+    },
+    "finger-spin": lambda p: {"hinge_velocity": p.hinge_velocity()},
+    "finger": lambda p: {"dist_to_target": p.dist_to_target()},
+    "reacher": lambda p: {"finger_to_target_dist": p.finger_to_target_dist()},
+    "ball_in_cup": lambda p: {"ball_to_target": p.ball_to_target()},
+    "quadruped": lambda p: {"torso_upright": p.torso_upright(), "torso_velocity_x": p.torso_velocity()[0]},
+    "acrobot": lambda p: {"to_target": p.to_target()},
+    "pendulum": lambda p: {"pole_vertical": p.pole_vertical()},
+    "humanoid": lambda p: {
+        "head_height": p.head_height(), "torso_upright": p.torso_upright(),
+        "com_velocity_x": p.center_of_mass_velocity()[0], "com_velocity_y": p.center_of_mass_velocity()[1],
+    },
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("task", [*REWARD_FROM_INPUTS, "humanoid-walk"])
+def test_reward_inputs_are_what_the_reward_reads(make_env, task: str) -> None:
+    """At every step: the reward inputs equal the task's Physics methods at that state, and (but for humanoid, whose
+    reward also reads the control) dm_control's get_reward equals the reward rebuilt from them alone."""
+    env = make_env(task, seed=3, obs_type="state", action_repeat=1)
+    domain, name = parse_task(task)
+    expected_of = PHYSICS_VALUES.get(f"{domain}-{name}", PHYSICS_VALUES.get(domain))
+    env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for _ in range(12):
+        inputs = env.reward_inputs()
+        physics = env.physics
+        expected = {key: np.asarray(value, dtype=np.float32).reshape(-1) for key, value in expected_of(physics).items()}
+        assert list(inputs) == list(expected)
+        for key in inputs:
+            assert inputs[key].dtype == np.float32
+            np.testing.assert_array_equal(inputs[key], expected[key])
+        if task in REWARD_FROM_INPUTS:
+            inputs64 = {item.name: item.value(physics) for item in reward_inputs_of(domain, name)}  # float64
+            assert REWARD_FROM_INPUTS[task](inputs64, physics) == pytest.approx(
+                float(env._dmc._env.task.get_reward(physics)), abs=1e-9
+            )
+        env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+
+
+def test_reward_inputs_cover_the_preset_tasks() -> None:
+    from sb3_collapse.presets import PRESETS
+
+    domains = {parse_task(task)[0] for task in PRESETS}
+    assert domains <= {key.split("-")[0] for key in REWARD_INPUTS}
+    assert REWARD_INPUTS["finger-spin"] != REWARD_INPUTS["finger"]

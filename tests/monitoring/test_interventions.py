@@ -125,10 +125,14 @@ NAMED = {
     ("shrink_perturb", "td3"): r"(actor|critic)\.",
     ("shrink_perturb", "ddpg"): r"(actor|critic)\.",
     ("shrink_perturb", "sac"): r"(actor|critic)\.",
+    ("shrink_perturb_noise", "drqv2"): r"(encoder|actor|critic)\.",
+    ("shrink_perturb_noise", "td3"): r"(actor|critic)\.",
+    ("shrink_perturb_noise", "ddpg"): r"(actor|critic)\.",
+    ("shrink_perturb_noise", "sac"): r"(actor|critic)\.",
 }
 
 
-@pytest.mark.parametrize("intervention", ["reset_actor", "reset_mlp", "shrink_perturb"])
+@pytest.mark.parametrize("intervention", ["reset_actor", "reset_mlp", "shrink_perturb", "shrink_perturb_noise"])
 @pytest.mark.parametrize("algo,policy", MODELS)
 def test_partial_intervention_changes_exactly_what_it_names(algo, policy, intervention):
     model = trained(algo, policy)
@@ -142,7 +146,7 @@ def test_partial_intervention_changes_exactly_what_it_names(algo, policy, interv
     for key in sorted(changed):  # ...and nothing else changed
         param = param_of(key)
         assert param is not None and named.match(param), f"{intervention} changed {key}, which it does not name"
-    if intervention == "shrink_perturb":  # optimizer state, targets: kept
+    if intervention.startswith("shrink_perturb"):  # optimizer state, targets: kept
         assert not any(key.startswith("optim/") for key in changed)
     else:  # the named parameters' optimizer state is forgotten (Adam starts again for them), the rest kept
         for key in before:
@@ -156,6 +160,10 @@ def test_partial_intervention_changes_exactly_what_it_names(algo, policy, interv
         for key in (key for key in weights if before[key].dim() == 2):  # Linear weights
             difference = after[key] - 0.8 * before[key]  # = 0.2 x a fresh initialization: nonzero, |entries| <= 1
             assert 0 < difference.abs().max() <= 0.2 + 1e-6, key
+    if intervention == "shrink_perturb_noise":
+        for key in (key for key in weights if before[key].dim() == 2):
+            difference = after[key] - 0.8 * before[key]  # = 0.01 x a fresh initialization
+            assert 0 < difference.abs().max() <= 0.01 + 1e-6, key
     model.learn(10, reset_num_timesteps=False)  # training continues from the changed state
 
 

@@ -99,8 +99,13 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     ]  # fmt: skip
     assert summary["not_probed"] == [{"seed": 4, "final_return": 500.0}]
     assert summary["rollouts"]["recorded_from"].endswith("seed_0/final_model.zip")  # the best seed
-    assert summary["columns"]["torso velocity"] == ["velocity_0", "velocity_1", "velocity_2"]
-    assert summary["columns"]["joint orientations"] == [f"orientations_{i}" for i in range(2, 14)]
+    assert summary["columns"] == {  # the reward's inputs, then the state-vector groups
+        "torso velocity": ["reward:horizontal_velocity"],
+        "orientation (torso upright)": ["reward:torso_upright"],
+        "torso height": ["reward:torso_height"],
+        "root velocities (state)": ["velocity_0", "velocity_1", "velocity_2"],
+        "leg orientations (state)": [f"orientations_{i}" for i in range(2, 14)],
+    }
     image = matplotlib.image.imread(out / FIGURE2_PNG)
     assert image.shape[1] > 1000 and image[..., :3].std() > 0.05
     # Tables 1-6 from probe.csv, independently: per agent the mean test MSE over the column's targets, std across
@@ -109,8 +114,10 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
         probe = list(csv.DictReader(file))
     with (out / TABLES_1_6_CSV).open() as file:
         tables = list(csv.DictReader(file))
-    assert len(tables) == 2 * 3 * 3 * 4  # rows x columns x layers x stages
-    assert sorted({int(t["table"]) for t in tables}) == [1, 2, 3, 4, 5, 6]
+    assert len(tables) == 2 * 5 * 3 * 4  # rows x columns x layers x stages
+    numbers = {(t["row"], t["column"]): t["table"] for t in tables}
+    assert [numbers[("well-performing", c)] for c in summary["columns"]] == ["1", "3", "5", "", ""]
+    assert [numbers[("poorly performing", c)] for c in summary["columns"]] == ["2", "4", "6", "", ""]
     for entry in tables:
         seeds = ["seed 0", "seed 1"] if entry["row"] == "well-performing" else ["seed 2", "seed 3"]
         names = summary["columns"][entry["column"]]

@@ -49,7 +49,7 @@ def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
     assert main(argv) == 0  # no sub-command word: `run`
     assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES)
     rows = list(csv.DictReader((out / "probe.csv").open()))
-    assert len(rows) == 2 * 8 * 24  # checkpoints x layers x components
+    assert len(rows) == 2 * 8 * 27  # checkpoints x layers x components (24 state dimensions, 3 reward inputs)
     assert {
         "checkpoint",
         "layer",
@@ -62,7 +62,7 @@ def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
         "n_validation",
         "n_test",
     } <= set(rows[0])
-    assert [r["layer"] for r in rows[::24][:8]] == ["cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2"]
+    assert [r["layer"] for r in rows[::27][:8]] == ["cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2"]
     assert {r["checkpoint"] for r in rows} == {"ckpt_100", "ckpt_200"}
     assert all(1 <= int(r["tau"]) <= 4 for r in rows)
     assert (int(rows[0]["n_train"]), int(rows[0]["n_validation"]), int(rows[0]["n_test"])) == (12, 4, 4)
@@ -80,11 +80,13 @@ def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
         [r["test_mse"] for r in rows if r["layer"] == "cnn0" and r["checkpoint"] == c] for c in ("ckpt_200", "ckpt_100")
     ]
     assert cnn0[0] == cnn0[1]
-    assert set(summary["checkpoints"][0]["layers"]["cnn4"]["mean_test_mse"]) == {"orientations", "height", "velocity"}
+    assert set(summary["checkpoints"][0]["layers"]["cnn4"]["mean_test_mse"]) == {
+        "orientations", "height", "velocity", "reward:torso_height", "reward:torso_upright", "reward:horizontal_velocity"
+    }  # fmt: skip
     # The previous outputs are kept unless --overwrite.
     assert main(argv) == 2
     assert main([*argv, "--overwrite", "--layers", "mlp0", "cnn4"]) == 0
-    assert len(list(csv.DictReader((out / "probe.csv").open()))) == 2 * 2 * 24
+    assert len(list(csv.DictReader((out / "probe.csv").open()))) == 2 * 2 * 27
 
 
 def test_default_form_records_rollouts_first(files, tmp_path, capsys):

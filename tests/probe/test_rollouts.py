@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 
@@ -32,9 +34,18 @@ def test_recorded_arrays_and_walker_targets(rollouts):
     }
     assert rollouts.env_config == {"task_id": "walker-walk", "camera_id": 0, **ENV}
     assert rollouts.actions.shape == (12, 6) and np.abs(rollouts.actions).max() <= 1
+    assert {k: v.shape for k, v in rollouts.reward_inputs.items()} == {
+        "torso_height": (12, 1),
+        "torso_upright": (12, 1),
+        "horizontal_velocity": (12, 1),
+    }
     names, groups, values = rollouts.targets()
-    assert names[:2] == ["orientations_0", "orientations_1"] and names[14] == "height" and names[-1] == "velocity_8"
-    assert len(names) == 24 and groups.count("velocity") == 9 and values.shape == (12, 24)
+    assert names[:2] == ["orientations_0", "orientations_1"] and names[14] == "height" and names[23] == "velocity_8"
+    assert names[24:] == ["reward:torso_height", "reward:torso_upright", "reward:horizontal_velocity"]
+    assert groups[24:] == names[24:]
+    assert len(names) == 27 and groups.count("velocity") == 9 and values.shape == (12, 27)
+    # walker's observed height is the torso height its reward reads
+    np.testing.assert_array_equal(values[:, 14], values[:, 24])
 
 
 def test_state_is_the_one_behind_each_observation(model, rollouts):
@@ -43,8 +54,11 @@ def test_state_is_the_one_behind_each_observation(model, rollouts):
     obs, _ = env.reset(seed=5)
     for t in range(4):
         np.testing.assert_array_equal(obs, rollouts.observations[t])
-        state = np.concatenate(list(env.get_state().values()))
+        state = np.concatenate([*env.get_state().values(), *env.reward_inputs().values()])
         np.testing.assert_allclose(state, rollouts.targets()[2][t], rtol=1e-6)
+        physics = env.physics  # the reward inputs are the reward function's Physics methods at that state
+        expected = [physics.torso_height(), physics.torso_upright(), physics.horizontal_velocity()]
+        np.testing.assert_array_equal(rollouts.targets()[2][t, 24:], np.float32(expected))
         obs, reward, *_ = env.step(rollouts.actions[t])
         assert reward == pytest.approx(rollouts.rewards[t])
     env.close()
@@ -57,6 +71,19 @@ def test_save_load_roundtrip_and_bad_files(rollouts, tmp_path):
     np.testing.assert_array_equal(loaded.observations, rollouts.observations)
     assert list(loaded.states) == list(rollouts.states) and loaded.env_config == rollouts.env_config
     assert loaded.metadata["deterministic"] is True and loaded.metadata["max_steps"] == 4
+    assert list(loaded.reward_inputs) == list(rollouts.reward_inputs)
+    for name, value in rollouts.reward_inputs.items():
+        np.testing.assert_array_equal(loaded.reward_inputs[name], value)
+    # a file of format 1 (before reward inputs) loads with none: its targets are the state's
+    with np.load(path) as data:
+        arrays = {key: data[key] for key in data.files if not key.startswith("reward_input/")}
+    meta = json.loads(str(arrays["meta"]))
+    meta.pop("reward_inputs")
+    meta["format_version"] = 1
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez_compressed(tmp_path / "old.npz", **arrays)
+    old = Rollouts.load(tmp_path / "old.npz")
+    assert old.reward_inputs == {} and old.targets()[0] == rollouts.targets()[0][:24]
     with pytest.raises(ProbeError, match="does not exist"):
         Rollouts.load(tmp_path / "missing.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a numpy file")
@@ -75,3 +102,25 @@ def test_noise_and_env_settings(model):
     noisy = record_rollouts(model, config, episodes=1, seed=5, noise_std=0.5, max_steps=3, progress=False)
     clean = record_rollouts(model, config, episodes=1, seed=5, max_steps=3, progress=False)
     assert not np.allclose(noisy.actions, clean.actions)
+
+
+def test_figure2_columns_are_the_reward_inputs_then_the_state_groups(rollouts):
+    from sb3_collapse.probe.figure2 import figure2_columns
+
+    names, groups, _ = rollouts.targets()
+    columns = dict(figure2_columns("walker-walk", names, groups))
+    assert list(columns) == [
+        "torso velocity", "orientation (torso upright)", "torso height", "root velocities (state)",
+        "leg orientations (state)",
+    ]  # fmt: skip
+    assert columns["orientation (torso upright)"] == ("reward:torso_upright",)
+    assert columns["torso velocity"] == ("reward:horizontal_velocity",)
+    # rollouts without reward inputs keep the state columns only
+    assert list(dict(figure2_columns("walker-walk", names[:24], groups[:24]))) == [
+        "root velocities (state)", "leg orientations (state)"
+    ]  # fmt: skip
+    # another domain: one column per reward input first, then one per state component
+    generic = figure2_columns(
+        "cheetah-run", ["position_0", "velocity_0", "reward:speed"], ["position", "velocity", "reward:speed"]
+    )
+    assert generic == [("reward:speed", ("reward:speed",)), ("position", ("position_0",)), ("velocity", ("velocity_0",))]

@@ -416,8 +416,10 @@ def test_reference_is_cut_at_the_sweeps_last_frame():
 def test_legend_names_the_intervention_of_a_variant():
     from sb3_collapse.report.plots import variant_label
 
-    assert variant_label("drqv2+redo") == "drqv2+redo: ReDo"
+    assert variant_label("drqv2+redo") == "drqv2+redo: ReDo, one-shot at the rule's trigger"
+    assert variant_label("drqv2+redo_periodic") == "drqv2+redo_periodic: ReDo every 1000 updates, whole run"
     assert variant_label("td3+reset") == "td3+reset: reset from scratch"
-    assert variant_label("sac+shrink_perturb") == "sac+shrink_perturb: shrink & perturb"
+    assert variant_label("sac+shrink_perturb") == "sac+shrink_perturb: shrink & perturb, interpolation to a fresh init"
+    assert variant_label("drqv2-leaky+shrink_perturb_noise").endswith("Ash & Adams (lambda theta + sigma noise)")
     for other in ("drqv2", "cnn-good_mlp-bad", "mine+tweak"):  # other names are kept
         assert variant_label(other) == other

@@ -32,6 +32,7 @@ from sb3_collapse.sweep import (
 )
 from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.runner import check_resources
+from sb3_collapse.train import TrainConfig
 
 # A tiny trial: 1000 frames = 250 agent steps of 4 frames (a whole DMC episode is then 250 agent steps, so that the
 # evaluations at frames 0 and 1000 stay cheap), 32x32 images, learning from frame 600 (agent step 150), collapse
@@ -275,15 +276,30 @@ def test_trials_variants_and_checkpoints(tmp_path):
     with pytest.raises(SweepError, match="not a task of this sweep"):
         parse_checkpoint_specs([f"finger-spin={good}"], tasks, "--bad-checkpoint")
 
-    assert variant_settings("drqv2") == {"algorithm": "drqv2", "reset_rule": False, "intervention": None}
-    assert variant_settings("td3+reset") == {"algorithm": "td3", "reset_rule": True, "intervention": "reset"}
+    plain = {"algorithm": "drqv2", "reset_rule": False, "intervention": None, "activation": "relu",
+             "redo_every_updates": 0}  # fmt: skip
+    assert variant_settings("drqv2") == plain
+    assert variant_settings("td3+reset") == {**plain, "algorithm": "td3", "reset_rule": True, "intervention": "reset"}
     assert variant_settings("sac+shrink_perturb")["intervention"] == "shrink_perturb"
-    assert variant_settings("cnn-good_mlp-bad") == {"algorithm": "drqv2", "reset_rule": False, "intervention": None}
-    for unknown in ("td4", "drqv2+restart", "drqv2+", "+redo"):
-        with pytest.raises(SweepError, match="<algorithm>\\+<intervention> with <algorithm> in drqv2, td3, sac"):
+    assert variant_settings("cnn-good_mlp-bad") == plain
+    # the Leaky-ReLU ablation, alone and with an intervention; ReDo every F updates (no rule), alone and with it
+    assert variant_settings("drqv2-leaky") == {**plain, "activation": "leaky_relu"}
+    assert variant_settings("drqv2-leaky+redo") == {
+        **plain, "activation": "leaky_relu", "reset_rule": True, "intervention": "redo"
+    }  # fmt: skip
+    assert variant_settings("drqv2+redo_periodic") == {**plain, "redo_every_updates": 1000}
+    assert variant_settings("drqv2-leaky+redo_periodic")["activation"] == "leaky_relu"
+    for unknown in ("td4", "drqv2+restart", "drqv2+", "+redo", "td3-leaky", "drqv2-leaky+redo_periodic+reset"):
+        expected = "<algorithm>\\+<intervention> with <algorithm> in drqv2, drqv2-leaky, td3, sac"
+        with pytest.raises(SweepError, match=expected):
             expand_trials(["walker-walk"], [unknown], [0])
     redo = trial_config(Trial("walker-walk", "sac+redo", 0), tmp_path, {"frames": 800})
     assert (redo.algorithm, redo.reset_rule, redo.intervention, redo.variant_name) == ("sac", True, "redo", "sac+redo")
+    for variant in ("drqv2-leaky+shrink_perturb_noise", "drqv2-leaky+redo_periodic", "td3+redo_periodic"):
+        config = trial_config(Trial("walker-walk", variant, 0), tmp_path, {"frames": 800})
+        config.validate()
+        derived = TrainConfig(**variant_settings(variant), env="walker-walk").variant_name  # without the variant name
+        assert config.variant_name == variant == derived
     config = trial_config(Trial("walker-walk", "drqv2+reset", 3), tmp_path, {"frames": 800}, torch_threads=2)
     assert config.reset_rule and config.seed == 3 and config.frames == 800 and config.torch_threads == 2
     assert config.run_dir == str(tmp_path / "walker-walk" / "drqv2+reset" / "seed_3") and not config.progress_bar
@@ -496,7 +512,7 @@ def test_sweep_compares_interventions_and_sb3_algorithms(ray_local, tmp_path, mo
     legend = [text.get_text() for text in axes.get_legend().get_texts()]
     assert legend == [
         "drqv2+reset: reset from scratch (n=2)",
-        "drqv2+redo: ReDo (n=2)",
+        "drqv2+redo: ReDo, one-shot at the rule's trigger (n=2)",
         "td3+reset: reset from scratch (n=2)",
     ]
     colors = {line.get_label(): line.get_color() for line in axes.get_lines()}

@@ -1,0 +1,138 @@
+"""
+ReDo as Sokar et al. run it: recycle the dormant units every ``F`` updates, for the whole run
+(:class:`PeriodicReDo`). The reset rule's ``intervention="redo"`` is the one-shot form: the same recycling
+(:func:`~sb3_collapse.monitoring.interventions.redo`), once at the end of each window without escape.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from sb3_collapse.monitoring.callbacks import ProbeBatchSampler, ResumableCallback, frames_of
+from sb3_collapse.monitoring.interventions import REDO_EVERY_UPDATES, InterventionResult, _kind, redo
+from sb3_collapse.monitoring.metrics import DORMANT_TAU
+from sb3_collapse.protocol import append_csv_rows
+
+__all__ = ["REDO_EVERY_UPDATES", "PeriodicReDo"]
+
+
+class PeriodicReDo(ResumableCallback):
+    """
+    ReDo, "Recycling Dormant neurons" (Sokar, Agarwal, Castro and Evci, "The Dormant Neuron Phenomenon in Deep
+    Reinforcement Learning", ICML 2023), as the paper runs it: every ``every_updates`` updates (``F``), for the whole
+    run, the dormant units of the networks are recycled (:func:`~sb3_collapse.monitoring.interventions.redo`): a unit
+    whose mean absolute activation on a batch of stored transitions, divided by its layer's mean, is at most ``tau``
+    gets new incoming weights (the algorithm's initializer), zero outgoing weights and zero Adam moments for those
+    entries. With ``conv_channels`` (the default), the channels of DrQ-v2's convolutions ``cnn1``..``cnn4`` are
+    recycled too, a channel's score averaged over the batch and the positions; then the actor's and the critic's
+    hidden layers (``mlp1``, ``mlp2``, ``q1.mlp1``...). Models: DrQv2 and SB3's TD3, DDPG and SAC (their
+    convolutions are not recycled).
+
+    The recycling happens at the first agent step after the model's update count (``model._n_updates``) reaches each
+    multiple of ``every_updates`` (several multiples at once give one recycling). Logged at each one, at the agent
+    step (``logger.dump``): ``redo/units_recycled``, ``redo/units_total``, ``redo/recycles``; with ``events_path``,
+    a CSV row ``frame, step, updates, units_recycled, units_total, detail``. Every recycling is in :attr:`history`
+    (``(updates, frame, units_recycled)``) and, for this process, what it did in :attr:`results`. The state (the next multiple, the history, the batch sampler's generator) is saved in run
+    checkpoints and with ``DrQv2.save`` (a :class:`~sb3_collapse.monitoring.callbacks.ResumableCallback`): a resumed
+    run recycles at the same updates.
+
+    :param every_updates: ``F``, the updates between two recyclings (:data:`REDO_EVERY_UPDATES`)
+    :param tau: the dormancy threshold, relative to the layer's mean (0.025)
+    :param batch_size: stored transitions of the batch the activations are measured on; with fewer stored,
+        nothing is recycled at that multiple
+    :param conv_channels: recycle the channels of DrQ-v2's convolutions too
+    :param events_path: CSV file that each recycling appends a row to (``None``: no file)
+    :param verbose: 0 silent, 1 prints each recycling
+    """
+
+    EVENT_FIELDS = ("frame", "step", "updates", "units_recycled", "units_total", "detail")
+    state_attributes = ("next_update", "history")
+
+    def __init__(
+        self,
+        every_updates: int = REDO_EVERY_UPDATES,
+        tau: float = DORMANT_TAU,
+        batch_size: int = 512,
+        conv_channels: bool = True,
+        events_path: str | os.PathLike | None = None,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        if isinstance(every_updates, bool) or not isinstance(every_updates, int) or every_updates < 1:
+            raise ValueError(f"every_updates must be an integer >= 1, got {every_updates!r}.")
+        if not tau >= 0:
+            raise ValueError(f"tau must be >= 0, got {tau}.")
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}.")
+        self.every_updates = every_updates
+        self.tau = tau
+        self.batch_size = batch_size
+        self.conv_channels = conv_channels
+        self.events_path = None if events_path is None else Path(events_path)
+        self.sampler: ProbeBatchSampler | None = None
+        self.next_update = every_updates
+        self.history: list[tuple[int, int, int]] = []
+        self.results: list[InterventionResult] = []
+        """What each recycling of this process did (units by layer), in order; not saved with the state."""
+
+    @property
+    def recycles(self) -> int:
+        """Recyclings so far."""
+        return len(self.history)
+
+    def _init_callback(self) -> None:
+        _kind(self.model)  # a TypeError for a model the interventions do not support
+        seed = None if self.model.seed is None else int(self.model.seed) + 2_000_003
+        self.sampler = ProbeBatchSampler(seed)
+        if self.events_path is not None:
+            append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
+
+    def _on_training_start(self) -> None:
+        if self.model.num_timesteps == 0:  # a new run
+            self.history = []
+        self.next_update = self._following(self._updates())
+
+    def _updates(self) -> int:
+        return int(getattr(self.model, "_n_updates", 0))
+
+    def _following(self, updates: int) -> int:
+        return (updates // self.every_updates + 1) * self.every_updates
+
+    def _on_step(self) -> bool:
+        updates = self._updates()
+        if updates >= self.next_update:
+            self.next_update = self._following(updates)
+            self.recycle(updates)
+        return True
+
+    def recycle(self, updates: int) -> None:
+        """
+        Recycle the dormant units now (what each multiple of ``every_updates`` does).
+
+        :param updates: the model's update count, for the record
+        """
+        result = redo(
+            self.model, tau=self.tau, batch_size=self.batch_size, sampler=self.sampler, conv_channels=self.conv_channels
+        )
+        frames = frames_of(self.model)
+        recycled = int(result.scalars["units_recycled"])
+        self.results.append(result)
+        self.history.append((updates, frames, recycled))
+        if self.events_path is not None:
+            row = {
+                "frame": frames,
+                "step": self.model.num_timesteps,
+                "updates": updates,
+                "units_recycled": recycled,
+                "units_total": int(result.scalars["units_total"]),
+                "detail": result.detail,
+            }
+            append_csv_rows(self.events_path, self.EVENT_FIELDS, [row])
+        if self.verbose >= 1:
+            print(f"PeriodicReDo: update {updates}, frame {frames}: {result.detail}")
+        self.logger.record("redo/units_recycled", recycled)
+        self.logger.record("redo/units_total", result.scalars["units_total"])
+        self.logger.record("redo/recycles", self.recycles)
+        self.logger.record("time/frames", frames)
+        self.logger.dump(self.model.num_timesteps)
