@@ -2,7 +2,7 @@
 Process-wide settings of torch's CUDA backends for a training run: TensorFloat-32 and reproducibility.
 
 ``python -m sb3_collapse.train`` (and every sweep trial) calls :func:`configure_backends` before it builds the model,
-with the run's ``tf32`` and ``deterministic`` settings, which ``config.json`` records. Library users call it
+with the run's ``tf32`` and ``deterministic`` settings, which the run's settings file records. Library users call it
 themselves, or set torch's flags directly; ``DrQv2`` only turns cuDNN's autotuner on for a CUDA model when torch's
 deterministic algorithms are off (``torch.are_deterministic_algorithms_enabled()``).
 

@@ -49,7 +49,7 @@ TINY = [
 TINY_TRIALS = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset"]
 RESULT_KEYS = {
     "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "saved_model_eval", "resets",
-    "reset_frames", "escaped", "escape_frame", "wall_time_s", "timings", "resumes",
+    "reset_frames", "escaped", "escape_frame", "wall_time_s", "timings", "resumes", "divergence_warnings",
 }  # fmt: skip
 
 
