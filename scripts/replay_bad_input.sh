@@ -65,6 +65,7 @@ cases=(
   "-m sb3_collapse.report $work/s --out $work/report --no-progress"
   "-m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-wlak-v0 -conf zoo_configs/drqv2.yml"
   "-m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf $work/bad.yml"
+  # A diverging learning rate: exit 1 when a value becomes non-finite, else exit 0 with one warning (docs/reliability.md).
   "$TRAIN --run-dir $work/diverged --lr 1000 --action-repeat 8 --frames 1600 --seed-frames 400 --replay-sampling sb3"
 )
 # A read-only folder for every command's outputs: a read-only mount where this user may mount one (root), else skipped.
