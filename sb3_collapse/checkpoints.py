@@ -223,11 +223,16 @@ def tensors_to(value: Any, device: th.device | str) -> Any:
     return value
 
 
+def _cuda_index(device: th.device) -> int:
+    """The index of a CUDA device (``"cuda"`` alone: the current one)."""
+    return device.index if device.index is not None else th.cuda.current_device()
+
+
 def _cuda_rng_state(device: th.device) -> dict[str, Any] | None:
     """The CUDA generator of ``device`` (the model's), ``None`` off CUDA."""
     if device.type != "cuda" or not th.cuda.is_available():
         return None
-    index = device.index if device.index is not None else th.cuda.current_device()
+    index = _cuda_index(device)
     return {"device": index, "state": th.cuda.get_rng_state(index)}
 
 
@@ -240,8 +245,7 @@ def _restore_cuda_rng_state(saved: Any, device: th.device) -> None:
     if saved is None or device.type != "cuda" or not th.cuda.is_available():
         return
     state = saved["state"] if isinstance(saved, dict) else saved[0]
-    index = device.index if device.index is not None else th.cuda.current_device()
-    th.cuda.set_rng_state(state.cpu(), index)
+    th.cuda.set_rng_state(state.cpu(), _cuda_index(device))
 
 
 def capture_state(

@@ -797,17 +797,15 @@ def train(config: TrainConfig) -> TrainResult:
         run_dir = Path(config.run_dir)
     else:
         run_dir = _new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}", config)
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        lock = RunLock(run_dir)
-        lock.__enter__()
-    except OSError as error:  # a read-only or full disk, no permission: nothing was written
-        message = unwritable_message(error)
-        if message is None:
-            raise
-        raise InputError(f"run folder: {message}") from None
     with contextlib.ExitStack() as stack:
-        stack.push(lock)
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            stack.enter_context(RunLock(run_dir))
+        except OSError as error:  # a read-only or full disk, no permission: nothing was written
+            message = unwritable_message(error)
+            if message is None:
+                raise
+            raise InputError(f"run folder: {message}") from None
         checkpoint = _open_run_dir(run_dir, config)
         try:
             result = _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint)
@@ -1037,6 +1035,8 @@ def _train_into(
         message = unwritable_message(error)
         if message is None:
             raise
+        model.logger.close()  # closing again is harmless where the failure came after these
+        env.close()
         kept = checkpoints.last_checkpoint
         resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
         raise CheckpointError(f"{message} The run's final outputs are not written; {resume}.") from None
