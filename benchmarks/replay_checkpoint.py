@@ -29,7 +29,7 @@ import numpy as np
 from replay_buffer import cpu_name  # benchmarks/replay_buffer.py, beside this script
 
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
-from sb3_collapse.drqv2.replay_checkpoint import ReplayStore
+from sb3_collapse.run.replay_checkpoint import ReplayStore
 
 FRAME_STACK = 3
 FRAME = (3, 84, 84)

@@ -6,7 +6,7 @@ configuration by default: 84x84 pixels, 3 stacked frames, action repeat 2, batch
 networks, DrQ-v2's one update per 2 transitions; SB3's replay sampling (DrQ-v2's waits for a finished episode, which
 short runs do not reach; the cost of an update is the same); no evaluation, no collapse checks, no reset rule. The
 run starts with ``--seed-frames`` frames of random actions (the warm-up: rendering only), then trains for
-``--frames`` more frames; the CLI's result.json holds the time split of ``DrQv2.learn`` (``sb3_collapse.drqv2.timing``):
+``--frames`` more frames; the CLI's result.json holds the time split of ``DrQv2.learn`` (``sb3_collapse.run.timing``):
 
 - warm-up frames/s: frames of the warm-up / its seconds;
 - learning frames/s: frames after the warm-up / their seconds, with the first round of updates counted at the mean

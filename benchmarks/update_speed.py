@@ -47,6 +47,7 @@ from sb3_collapse.backends import configure_backends
 from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
 
 IMPLS = ("reference", "ours", "ours-compiled", "ours-ieee", "ours-no-prefetch")
 """Implementations this script times (``--impls``): ``ours`` and ``ours-compiled`` with TensorFloat-32 on CUDA (the
@@ -104,6 +105,8 @@ def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int) -> 
     if impl != "reference":
         configure_backends(tf32=impl != "ours-ieee")
     model = build_model(device, reference=impl == "reference", buffer_size=buffer_size, compile_update=impl == "ours-compiled")
+    if model.device.type == "cpu":
+        tune_cpu_allocator()  # as the train CLI does; SB3_COLLAPSE_TUNE_MALLOC=0 (the reference's worker) declines
     if impl == "ours-no-prefetch":
         model.replay_prefetcher.enabled = False
     if impl == "reference":
@@ -132,8 +135,8 @@ def main() -> None:
         worker(args.worker, args.batch_sizes, args.device, args.buffer_size)
         return
 
-    # The reference runs with the default C allocator, as it runs on its own; ours as DrQv2 sets it up
-    # (sb3_collapse.drqv2.cpu_allocator, on the CPU only).
+    # The reference runs with the default C allocator, as it runs on its own; ours as the train CLI sets it up
+    # (sb3_collapse.run.cpu_allocator, on the CPU only).
     workers, warmups = {}, {}
     for impl in args.impls:
         env = dict(os.environ, SB3_COLLAPSE_TUNE_MALLOC="0" if impl == "reference" else "1")

@@ -8,7 +8,7 @@ updates, before the next environment step), where nothing is in flight, and hold
   schedules' progress), and what ``save`` leaves out that the next updates use (``DrQv2``'s pending training
   statistics, the last gradient norms of every layer);
 - the replay buffer, **incrementally**: only the frames and transitions added since the previous checkpoint go to
-  disk (:class:`~sb3_collapse.drqv2.replay_checkpoint.ReplayStore`, shared by the checkpoints);
+  disk (:class:`~sb3_collapse.run.replay_checkpoint.ReplayStore`, shared by the checkpoints);
 - every random generator: Python's, NumPy's global one, torch's (the CPU's, and that of the CUDA device the model
   is on), the action space's, each environment's (through its episode in progress, see below), each callback's
   probe sampler;
@@ -73,8 +73,7 @@ from torch.utils.tensorboard import SummaryWriter
 from sb3_collapse import __version__
 from sb3_collapse.drqv2.divergence import DivergenceError, all_finite
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
-from sb3_collapse.drqv2.replay_checkpoint import CheckpointError as ReplayCheckpointError
-from sb3_collapse.drqv2.replay_checkpoint import ReplayStore
+from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.envs.replay import episode_records, replay_episodes
 from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
@@ -90,12 +89,15 @@ from sb3_collapse.protocol import (
     REPLAY_DIR,
     write_json_atomically,
 )
+from sb3_collapse.run.replay_checkpoint import CheckpointError as ReplayCheckpointError
+from sb3_collapse.run.replay_checkpoint import ReplayStore
 
 CHECKPOINT_FORMAT = 1
 """Version of the checkpoint layout; a checkpoint of another format is refused."""
 
-MODEL_EXTRAS = ("_train_stats", "_train_stats_count", "_warned_replay_not_ready")
-"""Attributes that ``DrQv2.save`` leaves out and the resumed run needs (the training statistics not logged yet)."""
+MODEL_EXTRAS = ("_warned_replay_not_ready",)
+"""Attributes that ``DrQv2.save`` leaves out and the resumed run needs (with ``DrQv2.update_stats``: the statistics of
+the updates not logged yet)."""
 
 
 class CheckpointError(RuntimeError):
@@ -297,6 +299,7 @@ def capture_state(
         },
         "csv_lines": {path.name: _line_count(path) if path.is_file() else 0 for path in csv_files},
         "model_extras": {name: getattr(model, name) for name in MODEL_EXTRAS if hasattr(model, name)},
+        "update_stats": stats.state_dict() if isinstance(stats := getattr(model, "update_stats", None), UpdateStats) else None,
         "extra": dict(extra or {}),
     }
     return tensors_to(state, "cpu")  # unpickled where it was written: a GPU's tensors would need that GPU
@@ -553,8 +556,13 @@ def restore_run(
         )
     for callback, (_, callback_state) in zip(resumable, saved):
         callback.load_state_dict(callback_state)
-    for name, value in state["model_extras"].items():
+    extras = dict(state["model_extras"])
+    if "_train_stats" in extras:  # written before UpdateStats (an unfinished run of an earlier version)
+        state["update_stats"] = {"sums": extras.pop("_train_stats"), "count": extras.pop("_train_stats_count", 0)}
+    for name, value in extras.items():
         setattr(model, name, tensors_to(value, model.device))
+    if state.get("update_stats") is not None:
+        model.update_stats.load_state_dict(tensors_to(state["update_stats"], model.device))
     model.action_space.np_random.bit_generator.state = state["action_space"]
     rng = state["rng"]
     random.setstate(rng["python"])

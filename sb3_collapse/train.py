@@ -51,7 +51,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import SubprocVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 from sb3_collapse.backends import configure_backends
 from sb3_collapse.baselines import BASELINES, DRQV2_ONLY_SETTINGS, NATURE_CNN_MIN_SIZE, build_baseline
@@ -67,10 +67,9 @@ from sb3_collapse.checkpoints import (
     stop_signals,
 )
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
+from sb3_collapse.drqv2.checks import check_hyperparameters
 from sb3_collapse.drqv2.divergence import DivergenceError
-from sb3_collapse.drqv2.drqv2 import check_hyperparameters
 from sb3_collapse.drqv2.policies import ACTIVATIONS, check_activation, check_image_size
-from sb3_collapse.drqv2.probe_checkpoint import ProbeCheckpoints
 from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task
@@ -111,6 +110,9 @@ from sb3_collapse.protocol import (
     write_failure,
     write_json_atomically,
 )
+from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
+from sb3_collapse.run.probe_checkpoint import ProbeCheckpoints
+from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
 
 ALGORITHMS = ("drqv2", *BASELINES)
 """What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
@@ -583,6 +585,7 @@ def run_summary(
     wall_time_s: float,
     resumes: int = 0,
     saved_model_eval: dict[str, float] | None = None,
+    timings: LearnTimings | None = None,
 ) -> dict[str, Any]:
     """
     The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`): ``status``
@@ -593,7 +596,7 @@ def run_summary(
     last frame, outside the schedule and the statistics; ``None`` without it), ``resets`` (resets of the reset rule),
     ``reset_frames`` (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without the rule),
     ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run, over all its processes),
-    ``timings`` (where the time of ``learn()`` went: ``DrQv2.timings.as_dict()``, see :mod:`sb3_collapse.drqv2.timing`,
+    ``timings`` (where the time of ``learn()`` went: ``LearnTimings.as_dict()``, see :mod:`sb3_collapse.run.timing`,
     of the last process only when the run was resumed; ``None`` for SB3's TD3 and SAC) and ``resumes`` (times the run
     was resumed from a checkpoint).
 
@@ -605,6 +608,7 @@ def run_summary(
     :param wall_time_s: seconds the run took
     :param resumes: times the run was resumed from a checkpoint
     :param saved_model_eval: the evaluation of the saved final model (``PeriodicEvaluation.evaluate_saved_model``)
+    :param timings: the time split of the run's ``learn()`` (:class:`~sb3_collapse.run.timing.LearnTimer`)
     :return: the summary, JSON-serializable
     """
     last = evaluations[-1] if evaluations else None
@@ -628,7 +632,7 @@ def run_summary(
         "escaped": None if reset_rule is None else bool(reset_rule.escaped),
         "escape_frame": None if reset_rule is None or reset_rule.escape_frame is None else int(reset_rule.escape_frame),
         "wall_time_s": round(wall_time_s, 2),
-        "timings": model.timings.as_dict() if isinstance(model, DrQv2) else None,
+        "timings": None if timings is None else timings.as_dict(),
         "resumes": resumes,
         "divergence_warnings": list(model.divergence_guard.warnings) if isinstance(model, DrQv2) else [],
     }
@@ -842,7 +846,7 @@ def _training_env(config: TrainConfig, task_id: str, env_kwargs: dict[str, Any])
 
 def _build(
     config: TrainConfig, task_id: str, env_kwargs: dict[str, Any]
-) -> tuple[EpisodeReplay | SubprocVecEnv, EpisodeReplay | None, BaseAlgorithm]:
+) -> tuple[EpisodeReplay | VecEnv, EpisodeReplay | None, BaseAlgorithm]:
     """The training env(s), the evaluation env (``None`` without evaluations) and the model of :func:`train`."""
     env = _training_env(config, task_id, env_kwargs)
     eval_env = None
@@ -866,6 +870,8 @@ def _build(
             verbose=config.verbose,
         )
     else:
+        single = env
+        env = TimedVecEnv(single if isinstance(single, VecEnv) else DummyVecEnv([lambda: single]))
         model = DrQv2(
             "CnnPolicy",
             env,
@@ -889,6 +895,8 @@ def _build(
             step_envs_during_updates=config.step_envs_during_updates,
             compile_update=config.compile_update,
         )
+        if model.device.type == "cpu":
+            tune_cpu_allocator()  # a process-wide setting: glibc keeps the update's freed buffers for reuse
     return env, eval_env, model
 
 
@@ -897,7 +905,7 @@ def _train_into(
     task_id: str,
     run_dir: Path,
     model: BaseAlgorithm,
-    env: EpisodeReplay | SubprocVecEnv,
+    env: EpisodeReplay | VecEnv,
     eval_env: EpisodeReplay | None,
     steps: int,
     start_time: float,
@@ -954,6 +962,7 @@ def _train_into(
         if evaluation is not None:
             evaluation.start_time = start_time - earlier_s
     callbacks.append(checkpoints)
+    timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
     formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
     model.set_logger(resumed_logger(run_dir, formats, checkpoint))
 
@@ -988,7 +997,7 @@ def _train_into(
         with stop_signals(checkpoints):
             model.learn(
                 steps - model.num_timesteps,
-                callback=CallbackList(callbacks),
+                callback=CallbackList([*callbacks, timer]),  # the timer last: the rest counts as overhead
                 log_interval=1,
                 progress_bar=config.progress_bar,
                 reset_num_timesteps=checkpoint is None,
@@ -1029,7 +1038,10 @@ def _train_into(
                 f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
             )
         wall_time_s = earlier_s + time.time() - start_time
-        summary = run_summary(config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval)
+        timings = timer.timings if isinstance(model, DrQv2) else None
+        summary = run_summary(
+            config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
+        )
         write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
     except OSError as error:
         message = unwritable_message(error)

@@ -26,6 +26,7 @@ from sb3_collapse.monitoring import metrics
 from sb3_collapse.monitoring.activations import collect_activations
 from sb3_collapse.monitoring.interventions import redo
 from sb3_collapse.protocol import CHECKPOINTS_DIR, COLLAPSE_METRICS_CSV, EXIT_INTERRUPTED, RESULT_JSON
+from sb3_collapse.run.timing import LearnTimer
 from sb3_collapse.train import main
 
 pytestmark = [
@@ -192,8 +193,8 @@ def test_deterministic_cuda_runs_are_identical(tmp_path):
 
 
 def test_update_clock_counts_the_update_where_it_runs():
-    model = _pixel_model("cuda")
-    model.learn(200)
-    learning = model.timings.learning
+    model, timer = _pixel_model("cuda"), LearnTimer()
+    model.learn(200, callback=timer)
+    learning = timer.timings.learning
     assert learning.updates > 0 and learning.update_s > 0
     assert learning.overhead_s >= -1e-3  # the device time moved from the overhead, never more than the round's time

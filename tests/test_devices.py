@@ -33,13 +33,13 @@ from sb3_collapse.checkpoints import (
     load_checkpoint,
     tensors_to,
 )
-from sb3_collapse.drqv2.timing import PhaseTime, UpdateClock
+from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.monitoring import metrics
-from sb3_collapse.monitoring.grad_norms import GradNormRecorder
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.probe.omp import omp_path
 from sb3_collapse.protocol import CHECKPOINT_STATE, CHECKPOINTS_DIR, CONFIG_JSON, EXIT_INTERRUPTED, RESULT_JSON
+from sb3_collapse.run.timing import PhaseTime, UpdateClock
 from sb3_collapse.train import main
 
 PACKAGE = str(Path(sb3_collapse.__file__).parent)
@@ -150,7 +150,7 @@ def test_tensors_to_moves_nested_tensors_and_keeps_the_rest():
 def test_checkpoint_state_holds_cpu_tensors_only_and_restores_them_on_the_models_device(tmp_path):
     model, _ = _tiny_model(tmp_path)
     model.learn(12, callback=ResumableCheckpoints(tmp_path, every_frames=80))
-    assert model._train_stats  # statistics not logged yet: device tensors of the model
+    assert model.update_stats.sums  # statistics not logged yet: device tensors of the model
     with (checkpoint_folders(tmp_path)[0] / CHECKPOINT_STATE).open("rb") as file:
         state = pickle.load(file)
 
@@ -175,8 +175,9 @@ def test_checkpoint_state_holds_cpu_tensors_only_and_restores_them_on_the_models
     checkpoint.state["device"] = "cuda:0"  # as written on a GPU
     _, notes = checkpoints.resume(checkpoint)
     assert any("written on cuda:0 and the run resumes on cpu" in note and "not bit for bit" in note for note in notes)
-    assert all(value.device == resumed.device for value in resumed._train_stats.values())
-    assert resumed._train_stats.keys() == model._train_stats.keys()
+    assert all(value.device == resumed.device for value in resumed.update_stats.sums.values())
+    assert resumed.update_stats.sums.keys() == model.update_stats.sums.keys()
+    assert resumed.update_stats.count > 0  # the updates after the checkpoint's last dump
 
 
 def test_cuda_generator_of_the_models_device_is_saved_and_restored_on_the_resuming_device(monkeypatch):

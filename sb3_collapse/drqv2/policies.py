@@ -475,7 +475,7 @@ class DrQv2Policy(BasePolicy):
         self.activation = activation
         self.leaky_relu_slope = leaky_relu_slope
         if optimizer_class is th.optim.Adam and "fused" not in self.optimizer_kwargs:
-            # One fused kernel per step instead of a dozen per tensor: same update, about 3x faster.
+            # One fused kernel per step instead of a dozen per tensor: the same update (speed: benchmarks/README.md).
             self.optimizer_kwargs["fused"] = True
         self.exploration_std = 1.0
         """Standard deviation of the exploration noise of ``predict(deterministic=False)``; the algorithm
@@ -552,6 +552,27 @@ class DrQv2Policy(BasePolicy):
         self.actor.train(mode)
         self.critic.train(mode)
         self.training = mode
+
+    def reinitialize(self, lr_schedule: Schedule) -> None:
+        """
+        New random weights for the encoder, actor, critic and target critic (drawn as :meth:`_build` draws them, from
+        torch's global generator as it is now), copied into the existing parameter tensors, so that compiled code
+        and CUDA graphs that hold them stay valid; new optimizers (empty state) over them.
+
+        :param lr_schedule: the learning-rate schedule of the new optimizers
+        """
+        was_training = self.training
+        kept = {name: getattr(self, name) for name in ("encoder", "actor", "critic", "critic_target")}
+        self._build(lr_schedule)
+        with th.no_grad():
+            for name, module in kept.items():
+                fresh = getattr(self, name)
+                module.load_state_dict(fresh.state_dict())
+                optimizer = getattr(fresh, "optimizer", None)
+                if optimizer is not None:
+                    module.optimizer = type(optimizer)(module.parameters(), **optimizer.defaults)
+                setattr(self, name, module)
+        self.set_training_mode(was_training)
 
 
 class CnnPolicy(DrQv2Policy):

@@ -141,7 +141,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
     **Counters.** ``transitions_added`` (``add`` calls, i.e. transitions per environment) and ``frame_heads``
     (frames written per environment) only grow until ``reset``, which sets them to 0 and adds one to ``resets``;
     ``pos == transitions_added % buffer_size`` and ``full == (transitions_added >= buffer_size)``. They tell
-    :class:`~sb3_collapse.drqv2.replay_checkpoint.ReplayStore` which data is new since its last checkpoint.
+    :class:`~sb3_collapse.run.replay_checkpoint.ReplayStore` which data is new since its last checkpoint.
 
     :param buffer_size: capacity in transitions (all environments together, as in SB3)
     :param observation_space: ``Box`` of shape ``(channels * frame_stack, height, width)``

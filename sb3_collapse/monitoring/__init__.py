@@ -15,7 +15,7 @@ from sb3_collapse.monitoring.callbacks import (
     action_repeat_of,
     frames_of,
 )
-from sb3_collapse.monitoring.grad_norms import GradNormRecorder, grad_norm_recorder, grad_norms_of, track_grad_norms
+from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, grad_norms_of, track_grad_norms
 from sb3_collapse.monitoring.interventions import (
     INTERVENTIONS,
     InterventionResult,
@@ -52,7 +52,6 @@ __all__ = [
     "CollapseMetrics",
     "CollapseReset",
     "FrameScheduleCallback",
-    "GradNormRecorder",
     "InterventionResult",
     "LayerMappingError",
     "LayerTap",

@@ -9,7 +9,6 @@ read a probe batch of observations from the model's replay buffer. They are SB3 
 from __future__ import annotations
 
 import copy
-import importlib
 import inspect
 import os
 import tempfile
@@ -65,8 +64,6 @@ def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
     if frames is not None:
         return int(frames)
     return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
-
-
 
 
 class ProbeBatchSampler:
@@ -185,7 +182,7 @@ class ResumableCallback(BaseCallback):
     def get_config(self) -> dict[str, Any]:
         """
         :return: the constructor's arguments (read from the attributes of the same names), to build this callback
-            again (:func:`callback_from_spec`)
+            again (:func:`sb3_collapse.common.saved_callbacks.callback_from_spec`)
         """
         parameters = [name for name in inspect.signature(type(self).__init__).parameters if name != "self"]
         config = {name: copy.deepcopy(getattr(self, name)) for name in parameters}
@@ -208,41 +205,6 @@ class ResumableCallback(BaseCallback):
         sampler = getattr(self, "sampler", None)
         if "sampler" in state and isinstance(sampler, ProbeBatchSampler):
             sampler.rng.bit_generator.state = state["sampler"]
-
-
-def callback_spec(callback: BaseCallback) -> dict[str, Any]:
-    """
-    What ``DrQv2.save`` keeps of a constructor callback: its class, its constructor's arguments and its state, for a
-    :class:`ResumableCallback` (``supported: False`` for another callback, which is not saved).
-
-    :param callback: the callback
-    :return: the specification (picklable)
-    """
-    kind = f"{type(callback).__module__}:{type(callback).__qualname__}"
-    if not isinstance(callback, ResumableCallback):
-        return {"class": kind, "supported": False}
-    try:
-        config = callback.get_config()
-    except AttributeError:
-        return {"class": kind, "supported": False}
-    state = callback.state_dict() if getattr(callback, "model", None) is not None else None
-    return {"class": kind, "supported": True, "config": config, "state": state}
-
-
-def callback_from_spec(spec: dict[str, Any]) -> BaseCallback | None:
-    """
-    :param spec: a :func:`callback_spec`
-    :return: the callback built again, holding the saved state for its next ``learn()`` (see
-        :meth:`ResumableCallback.load_state_dict`); ``None`` for an unsupported one
-    """
-    if not spec.get("supported"):
-        return None
-    module, _, name = spec["class"].partition(":")
-    kind = getattr(importlib.import_module(module), name)
-    callback = kind(**spec["config"])
-    if spec["state"] is not None:
-        callback.load_state_dict(spec["state"])
-    return callback
 
 
 class FrameScheduleCallback(ResumableCallback):
@@ -420,7 +382,9 @@ class CollapseMetrics(FrameScheduleCallback):
             append_csv_rows(self.csv_path, self.CSV_FIELDS, rows)
         if self.verbose >= 1:
             summary = ", ".join(
-                f"{k}={v:.4g}" for k, v in values.items() if k.startswith((metric_tag(PAPER.layer, ""), "collapse/action_std"))
+                f"{k}={v:.4g}"
+                for k, v in values.items()
+                if k.startswith((metric_tag(PAPER.layer, ""), "collapse/action_std"))
             )
             print(f"CollapseMetrics at frame {frames}: {summary}")
 

@@ -1,10 +1,6 @@
 """
-Gradient norms of the named layers at each update, without an extra backward pass.
-
-One mechanism for every algorithm: a :class:`GradNormRecorder` hooks the optimizers that train the named layers
-(``Optimizer.register_step_pre_hook``). Just before an optimizer steps, the ``.grad`` that the update's own
-backward pass left on the parameters is the gradient of that update; the hook stores the L2 norm of each named
-layer it trains, on the device (no host transfer per update, one when the values are read).
+Gradient norms of the named layers at each update, without an extra backward pass, for every algorithm: one
+:class:`~sb3_collapse.common.grad_norms.GradNormRecorder` per model.
 
 - ``DrQv2`` builds its recorder with its networks (``model.grad_norm_recorder``, read as
   ``model.last_grad_norms``): ``cnn1``..``cnn4`` are recorded when the encoder's optimizer steps (critic loss),
@@ -18,127 +14,12 @@ layer it trains, on the device (no host transfer per update, one when the values
 from __future__ import annotations
 
 import weakref
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any
 
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
-from torch import nn
 
+from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.monitoring.activations import LayerMappingError, layer_parameters
-
-
-class GradNormRecorder:
-    """
-    Records the L2 gradient norm of named layers each time the optimizer that trains them steps.
-
-    Each layer belongs to the first of ``optimizers`` that holds its parameters; a layer that none holds is never
-    recorded (it is not trained). The norms are kept in one device tensor, in the order of ``layers``
-    (:attr:`norms`), and read on the host with :meth:`last`.
-
-    :param layers: layer name -> parameters, input to output
-    :param optimizers: the optimizers that train them (``None`` entries are skipped)
-    """
-
-    def __init__(
-        self, layers: Mapping[str, Sequence[nn.Parameter]], optimizers: Iterable[th.optim.Optimizer | None]
-    ) -> None:
-        self.names = list(layers)
-        self.optimizers = tuple(optimizer for optimizer in optimizers if optimizer is not None)
-        params = [list(layer) for layer in layers.values()]
-        self.device = params[0][0].device if params and params[0] else th.device("cpu")
-        self._norms: th.Tensor | None = None
-        self._recorded: set[int] = set()
-        self._handles: list[th.utils.hooks.RemovableHandle] = []
-        assigned: set[int] = set()
-        for optimizer in self.optimizers:
-            owned = {id(p) for group in optimizer.param_groups for p in group["params"]}
-            slots = [i for i, layer in enumerate(params) if layer and id(layer[0]) in owned and i not in assigned]
-            if slots:
-                assigned.update(slots)
-                self._handles.append(optimizer.register_step_pre_hook(self._hook([params[i] for i in slots], slots)))
-
-    def _hook(self, layers: list[list[nn.Parameter]], slots: list[int]) -> Callable[..., None]:
-        params = [p for layer in layers for p in layer]
-        # Slot (in self.names) of each parameter, made once on the device: a hook call transfers nothing.
-        segment = th.tensor([slot for slot, layer in zip(slots, layers) for _ in layer], device=self.device)
-        index = th.tensor(slots, device=self.device)
-
-        def record(_optimizer: th.optim.Optimizer, _args: tuple, _kwargs: dict) -> None:
-            self._record(params, segment, index)
-            self._recorded.update(slots)
-
-        return record
-
-    def _record(self, params: list[nn.Parameter], segment: th.Tensor, index: th.Tensor) -> None:
-        """
-        The norm of each layer's gradient, ``sqrt(sum over its parameters of ||g||^2)``, with one ``_foreach_norm``
-        over every parameter and one segment sum (a handful of kernel launches per optimizer step, whatever the
-        number of layers; no host synchronization). A missing gradient counts as zero.
-
-        :param params: the parameters of the layers this optimizer trains, layer after layer
-        :param segment: ``(len(params),)``: the slot (index in :attr:`names`) of each parameter
-        :param index: ``(layers,)``: the slots of those layers, sorted as ``segment`` meets them
-        """
-        grads = [p.grad if p.grad is not None else p.new_zeros(()) for p in params]
-        squares = th.stack(th._foreach_norm(grads)).detach().float().square()
-        per_slot = th.zeros(len(self.names), device=self.device).index_add_(0, segment, squares)
-        norms = per_slot.index_select(0, index).sqrt()
-        base = self._norms if self._norms is not None else th.zeros(len(self.names), device=self.device)
-        self._norms = base.index_copy(0, index, norms)  # a new tensor: earlier reads are not modified
-
-    @property
-    def norms(self) -> th.Tensor | None:
-        """
-        The last recorded norm of every layer, in the order of :attr:`names` (0 for a layer not recorded yet), as
-        one detached device tensor; ``None`` before the first recording.
-        """
-        return self._norms
-
-    def last(self) -> dict[str, float]:
-        """
-        :return: layer name -> norm at its optimizer's last step, for the layers recorded since the creation or
-            :meth:`clear` (one host transfer); empty before
-        """
-        if self._norms is None:
-            return {}
-        values = self._norms.tolist()
-        return {name: values[i] for i, name in enumerate(self.names) if i in self._recorded}
-
-    def state_dict(self) -> dict[str, Any]:
-        """:return: the recorded norms (on the CPU) and which layers were recorded, for a run checkpoint"""
-        return {
-            "names": list(self.names),
-            "norms": None if self._norms is None else self._norms.detach().cpu().clone(),
-            "recorded": sorted(self._recorded),
-        }
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """
-        :param state: a :meth:`state_dict` of a recorder of the same layers
-        :raises ValueError: for another list of layers
-        """
-        if list(state["names"]) != self.names:
-            raise ValueError(f"GradNormRecorder: saved norms of layers {state['names']}, this one records {self.names}.")
-        self._norms = None if state["norms"] is None else state["norms"].to(self.device)
-        self._recorded = set(state["recorded"])
-
-    def clear(self) -> None:
-        """Forget the recorded norms (e.g. after the networks were re-initialized)."""
-        self._norms = None
-        self._recorded = set()
-
-    def watches(self, optimizers: Iterable[th.optim.Optimizer | None]) -> bool:
-        """:return: whether this recorder is hooked on exactly these optimizers (the same objects)"""
-        current = tuple(optimizer for optimizer in optimizers if optimizer is not None)
-        return len(current) == len(self.optimizers) and all(a is b for a, b in zip(current, self.optimizers))
-
-    def remove(self) -> None:
-        """Remove the hooks: nothing more is recorded."""
-        for handle in self._handles:
-            handle.remove()
-        self._handles = []
-
 
 _RECORDERS: weakref.WeakKeyDictionary[BaseAlgorithm, GradNormRecorder] = weakref.WeakKeyDictionary()
 

@@ -13,10 +13,10 @@ from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2 import DrQv2
-from sb3_collapse.drqv2.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint
 from sb3_collapse.monitoring import LayerMappingError, layer_taps
 from sb3_collapse.monitoring.callbacks import action_repeat_of
 from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.run.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "sb3_collapse.drqv2.policies": DrQv2,
@@ -111,7 +111,7 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
     Load a checkpoint for probing and check that its layers can be named.
 
     :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC, or a DrQv2 probe checkpoint (encoder and actor only,
-        :mod:`sb3_collapse.drqv2.probe_checkpoint`)
+        :mod:`sb3_collapse.run.probe_checkpoint`)
     :param device: where the networks go
     :return: the loaded checkpoint
     :raises ProbeError: for a missing file, a non-zip, a zip that is not an SB3 model, an unknown algorithm,

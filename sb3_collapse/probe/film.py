@@ -240,7 +240,7 @@ def film_to_folder(
     """
     from stable_baselines3.common.utils import get_device
 
-    from sb3_collapse.drqv2.drqv2 import check_device
+    from sb3_collapse.drqv2.checks import check_device
     from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
     from sb3_collapse.probe.pipeline import check_checkpoint_files
     from sb3_collapse.probe.rollouts import resolve_env_config

@@ -12,7 +12,7 @@ from typing import Any
 
 from stable_baselines3.common.utils import get_device
 
-from sb3_collapse.drqv2.drqv2 import check_device
+from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.probe.checkpoints import (
     Checkpoint,
     checkpoint_labels,

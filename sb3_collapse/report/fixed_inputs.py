@@ -23,7 +23,7 @@ import torch as th
 from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
-from sb3_collapse.drqv2.drqv2 import check_device
+from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_metrics, unit_count
 from sb3_collapse.probe.checkpoints import load_checkpoint

@@ -245,7 +245,7 @@ def test_bad_inputs():
 
 
 def test_replay_buffer_too_big_for_ram_warns(monkeypatch):
-    monkeypatch.setattr("sb3_collapse.drqv2.drqv2.physical_memory_bytes", lambda: 10**9)
+    monkeypatch.setattr("sb3_collapse.drqv2.replay_memory.physical_memory_bytes", lambda: 10**9)
     with pytest.warns(UserWarning, match=r"will not fit in memory once full.*127 KB per transition.*buffer_size=5_5"):
         DrQv2("CnnPolicy", RandomObservationEnv(), buffer_size=10_000)
     with warnings.catch_warnings():

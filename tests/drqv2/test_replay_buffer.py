@@ -297,7 +297,7 @@ def test_drqv2_keeps_sb3_buffer_when_it_cannot_or_is_told():
 
 
 def test_drqv2_memory_advice_uses_frame_bytes(monkeypatch):
-    monkeypatch.setattr("sb3_collapse.drqv2.drqv2.physical_memory_bytes", lambda: 10**9)
+    monkeypatch.setattr("sb3_collapse.drqv2.replay_memory.physical_memory_bytes", lambda: 10**9)
     env = ShiftedStackEnv(size=84)
     with pytest.warns(UserWarning, match=r"FrameStackReplayBuffer stores each frame once: 21 KB per transition"):
         DrQv2("CnnPolicy", env, **{**SMALL, "buffer_size": 60_000})

@@ -9,6 +9,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_collapse import DrQv2
 from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.run.timing import LearnTimer, TimedVecEnv
 
 
 def state_space():
@@ -48,8 +49,8 @@ def test_one_update_per_train_freq_transitions_whatever_n_envs(n_envs):
     """
     model = DrQv2("MlpPolicy", state_envs(n_envs), buffer_size=500, learning_starts=20, batch_size=8, seed=0,
                   policy_kwargs=dict(hidden_dim=32))
-    log = RoundLog()
-    model.learn(60, callback=log)
+    log, timer = RoundLog(), LearnTimer()
+    model.learn(60, callback=[log, timer])
     assert model.num_timesteps == 60
     assert model.replay_buffer.size() * n_envs == 60
     assert model._n_updates == 60 // 2 - 20 // 2 == 20
@@ -61,8 +62,8 @@ def test_one_update_per_train_freq_transitions_whatever_n_envs(n_envs):
     per_step = np.diff([u for t, u in log.rounds if t >= 20 + n_envs])
     if n_envs == 3:
         assert set(per_step) == {1, 2}
-    assert model.timings.learning.updates == 20
-    assert model.timings.warmup.transitions + model.timings.learning.transitions == 60
+    assert timer.timings.learning.updates == 20
+    assert timer.timings.warmup.transitions + timer.timings.learning.transitions == 60
 
 
 @pytest.mark.parametrize("n_envs", [1, 2, 3])
@@ -190,9 +191,12 @@ def test_overlap_without_subprocesses_and_interrupted_update():
 
 
 def test_timings_split_warmup_and_learning():
-    model = _pixel_model(DrQv2, DummyVecEnv, 2)
-    model.learn(40)
-    timings = model.timings
+    env = TimedVecEnv(DummyVecEnv([lambda: RandomObservationEnv(pixel_space(), episode_length=30) for _ in range(2)]))
+    model = DrQv2("CnnPolicy", env, buffer_size=300, learning_starts=16, batch_size=8, seed=0,
+                  policy_kwargs=dict(hidden_dim=32))
+    timer = LearnTimer(env)
+    model.learn(40, callback=timer)
+    timings = timer.timings
     assert timings.warmup.transitions == 16 and timings.warmup.updates == 0 and timings.warmup.update_s == 0
     assert timings.learning.transitions == 24 and timings.learning.updates == 40 // 2 - 16 // 2
     for phase in (timings.warmup, timings.learning):

@@ -14,7 +14,6 @@ import torch as th
 from PIL import Image
 
 from sb3_collapse import DrQv2
-from sb3_collapse.drqv2.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint, save_probe_checkpoint
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_metrics
 from sb3_collapse.probe.__main__ import main as probe_main
@@ -26,6 +25,7 @@ from sb3_collapse.report import write_report
 from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.fixed_inputs import FixedInputSettings, trial_fixed_metrics
 from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
+from sb3_collapse.run.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint, save_probe_checkpoint
 from sb3_collapse.train import TrainConfig, train
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "report"))

@@ -298,8 +298,8 @@ def write_probe_sweep(root: str | Path, run_dir: str | Path, finals: dict[int, f
 
     import torch as th
 
-    from sb3_collapse.drqv2.probe_checkpoint import load_probe_checkpoint, save_probe_checkpoint
     from sb3_collapse.protocol import PROBE_CHECKPOINTS_DIR
+    from sb3_collapse.run.probe_checkpoint import load_probe_checkpoint, save_probe_checkpoint
 
     root, run_dir = Path(root), Path(run_dir)
     sources = sorted((run_dir / PROBE_CHECKPOINTS_DIR).glob("*.zip"))

@@ -12,9 +12,10 @@ import torch as th
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sb3_collapse.drqv2 import FrameStackReplayBuffer, replay_checkpoint
-from sb3_collapse.drqv2.replay_checkpoint import CheckpointError, CheckpointWriteError, ReplayStore
+from sb3_collapse.drqv2 import FrameStackReplayBuffer
 from sb3_collapse.errors import InputError
+from sb3_collapse.run import replay_checkpoint
+from sb3_collapse.run.replay_checkpoint import CheckpointError, CheckpointWriteError, ReplayStore
 
 FRAME = (3, 8, 8)
 FRAME_STACK = 3
@@ -417,8 +418,8 @@ KILLED_DURING_SAVE = """
 import json, os, signal, sys
 sys.path.insert(0, sys.argv[1])
 from test_replay_checkpoint import Stream, make_buffer
-from sb3_collapse.drqv2 import replay_checkpoint
-from sb3_collapse.drqv2.replay_checkpoint import ReplayStore
+from sb3_collapse.run import replay_checkpoint
+from sb3_collapse.run.replay_checkpoint import ReplayStore
 
 buffer, stream, store = make_buffer(buffer_size=40), Stream(1, seed=13), ReplayStore(sys.argv[2], max_file_bytes=2000)
 stream.add([buffer], 12)

@@ -47,7 +47,9 @@ def save_probe_checkpoint(model: Any, path: str | os.PathLike) -> Path:
     state_dict = model.policy.state_dict()
     kept = {key: value.detach().cpu() for key, value in state_dict.items() if key.startswith(PROBE_PREFIXES)}
     if not all(any(key.startswith(prefix) for key in kept) for prefix in PROBE_PREFIXES):
-        raise TypeError(f"model must be a DrQv2 model (policy entries {', '.join(PROBE_PREFIXES)}), got {type(model).__name__}.")
+        raise TypeError(
+            f"model must be a DrQv2 model (policy entries {', '.join(PROBE_PREFIXES)}), got {type(model).__name__}."
+        )
     # The settings, as BaseAlgorithm.save keeps them: the attributes minus the excluded ones and the torch objects.
     data = model.__dict__.copy()
     excluded = set(model._excluded_save_params())
@@ -96,7 +98,7 @@ def load_probe_checkpoint(path: str | os.PathLike, device: th.device | str = "cp
     :return: the model
     :raises ValueError: for a zip that is not a probe checkpoint or lacks encoder or actor entries
     """
-    from sb3_collapse.drqv2.drqv2 import DrQv2
+    from sb3_collapse.drqv2.drqv2 import DrQv2  # lazy: only loading builds a model
 
     if not is_probe_checkpoint(path):
         raise ValueError(f"{path} is not a probe checkpoint (no {MARKER}); load a full checkpoint with DrQv2.load.")

@@ -1,0 +1,181 @@
+"""
+The replay buffer ``DrQv2`` picks, and its memory: which class stores the transitions, how many bytes each takes,
+and the advice given when the full buffer would not fit in RAM (a warning when the model is built, rather than the
+process killed hours later) or cannot even be reserved (a ``MemoryError`` that suggests a size).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
+
+from sb3_collapse.drqv2.policies import CnnPolicy, PixelEncoder
+from sb3_collapse.drqv2.replay_buffer import (
+    DEFAULT_MIN_EPISODE_LENGTH,
+    FrameStackReplayBuffer,
+    frame_stack_storage_bytes,
+)
+
+
+def default_replay_buffer(
+    replay_buffer_class: type[ReplayBuffer] | None,
+    replay_buffer_kwargs: dict[str, Any],
+    pixel_policy: bool,
+    env_config: dict[str, Any] | None,
+    n_steps: int,
+    gamma: float,
+) -> type[ReplayBuffer] | None:
+    """
+    ``FrameStackReplayBuffer`` for a pixel policy on an env reporting ``frame_stack > 1`` (``make_dmc_env``), unless
+    the user gave a class (or the model was saved with one). Fills in, in place, the kwargs of a
+    ``FrameStackReplayBuffer`` or ``NStepReplayBuffer`` that the user did not give: ``n_steps``, ``gamma`` and the
+    env's ``frame_stack``.
+
+    :param replay_buffer_class: the class given (``None``: choose)
+    :param replay_buffer_kwargs: its keyword arguments, completed in place
+    :param pixel_policy: whether the policy encodes pixels with DrQ-v2's encoder
+    :param env_config: the ``make_dmc_env`` settings of the env (``None`` for another env)
+    :param n_steps: the algorithm's n-step return length
+    :param gamma: the algorithm's discount
+    :return: the replay buffer class (``None``: SB3's default)
+    """
+    config = env_config or {}
+    frame_stack = config.get("frame_stack")
+    stacked = isinstance(frame_stack, (int, np.integer)) and frame_stack > 1
+    if replay_buffer_class is None and pixel_policy and config.get("obs_type") in (None, "pixels") and stacked:
+        replay_buffer_class = FrameStackReplayBuffer
+    defaults: dict[str, Any] = {}
+    if uses_frame_stack_buffer(replay_buffer_class):
+        defaults = {"n_steps": n_steps, "gamma": gamma, "frame_stack": frame_stack}
+    elif replay_buffer_class is not None and issubclass(replay_buffer_class, NStepReplayBuffer):
+        defaults = {"n_steps": n_steps, "gamma": gamma}
+    for key, value in defaults.items():
+        if key not in replay_buffer_kwargs and value is not None:
+            replay_buffer_kwargs[key] = value
+    return replay_buffer_class
+
+
+def uses_frame_stack_buffer(replay_buffer_class: type[ReplayBuffer] | None) -> bool:
+    """:return: whether the class is (a subclass of) ``FrameStackReplayBuffer``"""
+    return replay_buffer_class is not None and issubclass(replay_buffer_class, FrameStackReplayBuffer)
+
+
+def bytes_per_transition(
+    replay_buffer_class: type[ReplayBuffer] | None,
+    replay_buffer_kwargs: dict[str, Any],
+    buffer_size: int,
+    observation_space: spaces.Space,
+    action_space: spaces.Space,
+    n_envs: int,
+) -> float:
+    """
+    :return: bytes per transition of the replay buffer: for SB3's, obs and next_obs, action, reward, done, timeout;
+        for ``FrameStackReplayBuffer``, its arrays' bytes divided by ``buffer_size``
+    """
+    if uses_frame_stack_buffer(replay_buffer_class) and replay_buffer_kwargs.get("frame_stack") is not None:
+        total = frame_stack_storage_bytes(
+            buffer_size,
+            observation_space,  # type: ignore[arg-type]
+            action_space,
+            replay_buffer_kwargs["frame_stack"],
+            n_envs,
+            replay_buffer_kwargs.get("min_episode_length", DEFAULT_MIN_EPISODE_LENGTH),
+        )
+        return total / buffer_size
+    if isinstance(observation_space, spaces.Dict):
+        obs_bytes = sum(_space_bytes(space) for space in observation_space.spaces.values())
+    else:
+        obs_bytes = _space_bytes(observation_space)
+    return 2 * obs_bytes + int(np.prod(action_space.shape or (1,))) * 4 + 12
+
+
+def _space_bytes(space: spaces.Space) -> int:
+    return int(np.prod(space.shape or (1,))) * np.dtype(space.dtype or np.float32).itemsize
+
+
+def memory_advice(replay_buffer_class: type[ReplayBuffer] | None, buffer_size: int, per_transition: float) -> str:
+    """
+    :param replay_buffer_class: the replay buffer class
+    :param buffer_size: its capacity, in transitions
+    :param per_transition: its bytes per transition (:func:`bytes_per_transition`)
+    :return: what the buffer takes and which ``buffer_size`` would fit in 70% of this machine's RAM
+    """
+    ram = physical_memory_bytes()
+    fitting = int(0.7 * ram / per_transition)
+    storage = (
+        "FrameStackReplayBuffer stores each frame once"
+        if uses_frame_stack_buffer(replay_buffer_class)
+        else "SB3's buffer stores obs and next_obs separately"
+    )
+    return (
+        f"{storage}: {per_transition / 1e3:,.0f} KB per transition, "
+        f"{buffer_size * per_transition / 1e9:,.1f} GB in all, and this machine has "
+        f"{ram / 1e9:,.1f} GB of RAM. Pass a smaller buffer_size, e.g. "
+        f"buffer_size={fitting:_} (70% of the RAM), or the number of agent steps of your run if smaller."
+    )
+
+
+def warn_if_too_large(replay_buffer_class: type[ReplayBuffer] | None, buffer_size: int, per_transition: float) -> None:
+    """
+    Warn when the full replay buffer cannot fit in RAM (for the buffers whose size is known: SB3's and
+    ``FrameStackReplayBuffer``).
+    """
+    known = replay_buffer_class in (None, ReplayBuffer, NStepReplayBuffer) or uses_frame_stack_buffer(
+        replay_buffer_class
+    )
+    if known and buffer_size * per_transition > physical_memory_bytes():
+        warnings.warn(
+            f"The replay buffer of {buffer_size:,} transitions will not fit in memory once full. "
+            + memory_advice(replay_buffer_class, buffer_size, per_transition),
+            stacklevel=5,  # the user's DrQv2(...) call
+        )
+
+
+def physical_memory_bytes() -> int:
+    """Total RAM of this machine, in bytes."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def warn_not_ready(num_timesteps: int) -> None:
+    """Say why the updates wait: DrQ-v2's sampling takes finished episodes only, and none has finished yet."""
+    warnings.warn(
+        f"DrQv2: no update at transition {num_timesteps}: the replay buffer samples finished episodes only "
+        "(replay_buffer_kwargs sampling='drqv2', DrQ-v2's rule) and no episode has finished yet. Updates start "
+        "when the first episode ends. DrQ-v2 starts learning after 4,000 frames (several episodes); pass a "
+        "larger learning_starts, or sampling='sb3' to sample the episode in progress too.",
+        stacklevel=2,
+    )
+
+
+def choose_replay_buffer(model: Any) -> float:
+    """
+    Set a ``DrQv2``'s ``replay_buffer_class`` and complete its ``replay_buffer_kwargs`` (:func:`default_replay_buffer`),
+    and warn when the full buffer cannot fit in RAM (:func:`warn_if_too_large`); before the buffer is allocated.
+
+    :param model: the model, its networks not built yet
+    :return: the buffer's bytes per transition (:func:`bytes_per_transition`)
+    """
+    encoder_class = model.policy_kwargs.get("encoder_class", PixelEncoder)
+    model.replay_buffer_class = default_replay_buffer(
+        model.replay_buffer_class,
+        model.replay_buffer_kwargs,
+        pixel_policy=issubclass(model.policy_class, CnnPolicy) and issubclass(encoder_class, PixelEncoder),
+        env_config=model.env_config,
+        n_steps=model.n_steps,
+        gamma=model.gamma,
+    )
+    per_transition = bytes_per_transition(
+        model.replay_buffer_class,
+        model.replay_buffer_kwargs,
+        model.buffer_size,
+        model.observation_space,
+        model.action_space,
+        model.n_envs,
+    )
+    warn_if_too_large(model.replay_buffer_class, model.buffer_size, per_transition)
+    return per_transition

@@ -1,0 +1,220 @@
+"""
+The loop of ``DrQv2.learn()``: rounds of environment steps up to the next update due, then the updates due. It keeps
+DrQ-v2's update ratio (one update per ``train_freq`` transitions) on any number of environments, restarts the
+warm-up after a reset from scratch (``reset_step``), and can step the environments while the learner updates
+(``step_envs_during_updates``). ``docs/throughput.md`` explains the ratio and the overlap.
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+import numpy as np
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.utils import should_collect_more_steps
+from stable_baselines3.common.vec_env import VecEnv
+
+SelfRoundsAlgorithm = TypeVar("SelfRoundsAlgorithm", bound="RoundsAlgorithm")
+
+
+class RoundsAlgorithm(OffPolicyAlgorithm):
+    """
+    SB3's off-policy loop, in rounds whose updates are counted in transitions summed over the environments.
+
+    After ``T`` transitions a model has made exactly
+    ``gradient_steps * (T // train_freq - (reset_step + learning_starts) // train_freq)`` updates (``T`` beyond
+    ``reset_step + learning_starts``): the updates of a round are made at the end of the ``env.step`` in which they
+    become due (:meth:`updates_due`). With ``step_envs_during_updates``, the next actions are sent to the environments
+    (``VecEnv.step_async``) before a round of updates and collected after it (``step_wait``): a policy lag of one
+    round, which saves time where the environments run in other processes.
+    """
+
+    step_envs_during_updates: bool = False
+    """Step the environments while the learner updates (see the class docstring)."""
+    hold_next_step: bool = False
+    """Set during a round: this round's updates do not step the environments (e.g. a checkpoint follows it)."""
+    reset_step: int = 0
+    """Transition count (``num_timesteps``) of the last reset from scratch, 0 when none."""
+    _pending_step: tuple[np.ndarray, np.ndarray] | None = None
+
+    def learn(
+        self: SelfRoundsAlgorithm,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "run",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfRoundsAlgorithm:
+        if reset_num_timesteps:
+            self.reset_step = 0
+        total_timesteps, callback = self._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
+        callback.on_training_start(locals(), globals())
+        if self.env is None:
+            name = type(self).__name__
+            raise ValueError(
+                f"{name}.learn needs an environment: pass env= to {name}(...) or .load(...), or call set_env."
+            )
+        try:
+            while self.num_timesteps < total_timesteps:
+                if not self._learning_round(callback, total_timesteps, log_interval):
+                    break
+        finally:
+            self._finish_pending_step()  # only after an exception: a normal round leaves no step in flight
+        callback.on_training_end()
+        return self
+
+    def _learning_round(self, callback: BaseCallback, total_timesteps: int, log_interval: int) -> bool:
+        """
+        One round: the environment steps up to the next update due, then the updates due (with
+        ``step_envs_during_updates``, the next step is sent to the environments first).
+
+        :return: whether to go on (``False`` when a callback stopped the training)
+        """
+        start = self.num_timesteps
+        rollout = self.collect_rollouts(
+            self.env,  # type: ignore[arg-type]
+            callback=callback,
+            train_freq=self._round_train_freq(),
+            replay_buffer=self.replay_buffer,  # type: ignore[arg-type]
+            action_noise=self.action_noise,
+            learning_starts=self.learning_starts,
+            log_interval=log_interval,
+        )
+        updates = self.updates_due(start, self.num_timesteps) if rollout.continue_training else 0
+        if updates > 0:
+            if self.step_envs_during_updates and self.num_timesteps < total_timesteps and not self.hold_next_step:
+                self._send_next_step()
+            self.train(gradient_steps=updates, batch_size=self.batch_size)
+        self.hold_next_step = False
+        return rollout.continue_training
+
+    def in_warmup(self, learning_starts: int | None = None) -> bool:
+        """
+        :param learning_starts: warm-up length in transitions (``None``: the model's)
+        :return: whether the next actions are uniformly random (the first ``learning_starts`` transitions since the
+            last reset)
+        """
+        warmup = self.learning_starts if learning_starts is None else learning_starts
+        return self.num_timesteps - self.reset_step < warmup
+
+    def collect_rollouts(
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        train_freq: TrainFreq,
+        replay_buffer: ReplayBuffer,
+        action_noise: ActionNoise | None = None,
+        learning_starts: int = 0,
+        log_interval: int | None = None,
+    ) -> RolloutReturn:
+        """
+        SB3's ``collect_rollouts``, except that the first step completes the step sent before the last round of
+        updates, if there is one (``step_envs_during_updates``), instead of choosing new actions.
+        """
+        self.policy.set_training_mode(False)
+        if env.num_envs > 1 and train_freq.unit == TrainFrequencyUnit.EPISODE:
+            raise ValueError(
+                f"train_freq=({train_freq.frequency}, 'episode') counts episodes, which needs one environment, but the "
+                f"VecEnv has {env.num_envs}. Use train_freq in steps (transitions), e.g. train_freq=2."
+            )
+        num_collected_steps, num_collected_episodes = 0, 0
+        callback.on_rollout_start()
+        while should_collect_more_steps(train_freq, num_collected_steps, num_collected_episodes):
+            if self._pending_step is not None:  # sent before the updates: its actions predate them
+                actions, buffer_actions = self._pending_step
+                self._pending_step = None
+                new_obs, rewards, dones, infos = env.step_wait()
+            else:
+                actions, buffer_actions = self._sample_action(learning_starts, action_noise, env.num_envs)
+                new_obs, rewards, dones, infos = env.step(actions)
+            self.num_timesteps += env.num_envs
+            num_collected_steps += 1
+
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return RolloutReturn(
+                    num_collected_steps * env.num_envs, num_collected_episodes, continue_training=False
+                )
+            self._update_info_buffer(infos, dones)
+            self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
+            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+            self._on_step()
+            for index, done in enumerate(dones):
+                if done:
+                    num_collected_episodes += 1
+                    self._episode_num += 1
+                    if action_noise is not None:
+                        action_noise.reset(**(dict(indices=[index]) if env.num_envs > 1 else {}))
+                    if log_interval is not None and self._episode_num % log_interval == 0:
+                        self.dump_logs()
+        callback.on_rollout_end()
+        return RolloutReturn(num_collected_steps * env.num_envs, num_collected_episodes, continue_training=True)
+
+    def _send_next_step(self) -> None:
+        """Choose the next actions with the current weights and send them to the environments (``step_async``)."""
+        assert self.env is not None
+        actions, buffer_actions = self._sample_action(self.learning_starts, self.action_noise, self.env.num_envs)
+        self.env.step_async(actions)
+        self._pending_step = (actions, buffer_actions)
+
+    def _finish_pending_step(self) -> None:
+        """
+        After an exception between :meth:`_send_next_step` and the next rollout: wait for the step in flight and
+        store its transition, so that the model's last observation is the environments' again. A step that cannot
+        be completed (the environments died) is dropped.
+        """
+        if self._pending_step is None or self.env is None:
+            return
+        _, buffer_actions = self._pending_step
+        self._pending_step = None
+        try:
+            new_obs, rewards, dones, infos = self.env.step_wait()
+        except Exception:  # noqa: BLE001 - the original exception is the one to report
+            return
+        self.num_timesteps += self.env.num_envs
+        self._update_info_buffer(infos, dones)
+        self._store_transition(self.replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
+
+    def _round_train_freq(self) -> TrainFreq:
+        """
+        ``env.step`` calls of the next rollout: up to the step in which the transition count reaches the next
+        multiple of ``train_freq`` (``train_freq`` steps with one environment, one step when ``n_envs >= train_freq``);
+        the episode count of an episodic ``train_freq`` as is.
+        """
+        if self.train_freq.unit != TrainFrequencyUnit.STEP:
+            return self.train_freq
+        frequency = self.train_freq.frequency
+        next_multiple = (self.num_timesteps // frequency + 1) * frequency
+        return TrainFreq(-(-(next_multiple - self.num_timesteps) // self.n_envs), TrainFrequencyUnit.STEP)
+
+    def updates_due(self, start: int, end: int) -> int:
+        """
+        Updates that DrQ-v2's ratio asks for when the transition count goes from ``start`` to ``end``:
+        ``gradient_steps`` for each multiple ``m`` of ``train_freq`` with ``start < m <= end`` and
+        ``m > reset_step + learning_starts`` (one per transition ``t`` in that range with ``gradient_steps=-1``).
+        With an episodic ``train_freq``: ``gradient_steps`` (``-1``: ``end - start``) when
+        ``end > reset_step + learning_starts``, else 0.
+
+        :param start: ``num_timesteps`` before the steps
+        :param end: ``num_timesteps`` after them
+        :return: the number of updates
+        """
+        first = self.reset_step + self.learning_starts  # no update at or before this transition count
+        if self.train_freq.unit != TrainFrequencyUnit.STEP:
+            if end <= first:
+                return 0
+            return self.gradient_steps if self.gradient_steps >= 0 else end - start
+        low = max(start, first)
+        if end <= low:
+            return 0
+        if self.gradient_steps < 0:
+            return end - low
+        frequency = self.train_freq.frequency
+        return self.gradient_steps * (end // frequency - low // frequency)

@@ -1,0 +1,267 @@
+"""Where the wall-clock time of ``learn()`` goes: waiting for the environments, updating, and the rest.
+
+A :class:`LearnTimer` callback fills a :class:`LearnTimings` during every ``learn()`` call it is given to
+(``timer.timings``, reset at the start of the call); the environments' time comes from a :class:`TimedVecEnv` around
+the model's ``VecEnv``. The train CLI uses both and writes the timings into ``result.json``. Each round of the
+loop (the environment steps up to the next update, then that round of updates: ``sb3_collapse.drqv2.rounds``) is
+counted in one of two phases:
+
+- ``warmup``: rounds whose actions were all uniformly random and that made no update (the first
+  ``learning_starts`` transitions, and again after each reset from scratch): the environments alone;
+- ``learning``: every other round (actions of the policy, updates).
+
+In each phase, ``env_s`` is the time spent in the environments' ``step_async`` and ``step_wait`` (the waits for a
+step sent before the updates included, see ``DrQv2``'s ``step_envs_during_updates``), ``update_s`` the time from the
+end of a round's environment steps to the start of the next round's (the updates, replay sampling included, and the
+sending of an overlapped step), ``total_s`` the wall-clock time of the phase's rounds, and ``overhead_s`` the rest:
+action selection, storing transitions, callbacks (evaluations and collapse checks run in callbacks: they count
+here), logging.
+
+On CUDA the kernels of an update are still running when ``train`` returns; whatever needs their result next (the next
+action's copy to the host) waits for them. :class:`UpdateClock` times each round's updates on the device as well,
+with a pair of CUDA events, and counts the update as ``max(host time, device time)``: the device time beyond the host
+time moves from ``overhead_s`` (where the wait fell) to ``update_s``. The events are read when they have completed
+(``Event.query``, no synchronization) and, for the last ones, once at the end of ``learn()``.
+
+The first round of updates of a ``learn()`` call also includes one-time costs: ``torch.compile``'s compilation
+(``compile_update``), cuDNN's autotuning, the allocators' first requests. ``first_round_s`` and
+``first_round_updates`` record it, so that :meth:`LearnTimings.steady_learning_s` can leave it out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
+
+
+@dataclass
+class PhaseTime:
+    """
+    Seconds and counts of one phase of ``learn()`` (see the module docstring).
+
+    :param rounds: rounds of the loop (environment steps up to an update, then the updates)
+    :param transitions: transitions collected, summed over the environments (agent steps x ``n_envs``)
+    :param updates: gradient updates
+    :param env_s: seconds waiting for the environments
+    :param update_s: seconds of the updates (from the end of a round's environment steps to the next round)
+    :param total_s: wall-clock seconds of the phase's rounds
+    """
+
+    rounds: int = 0
+    transitions: int = 0
+    updates: int = 0
+    env_s: float = 0.0
+    update_s: float = 0.0
+    total_s: float = 0.0
+
+    @property
+    def overhead_s(self) -> float:
+        """Seconds neither waiting for the environments nor updating: ``total_s - env_s - update_s``."""
+        return self.total_s - self.env_s - self.update_s
+
+    def add(self, other: PhaseTime) -> None:
+        """Add ``other``'s counts and seconds to this phase's."""
+        for item in dataclasses.fields(self):
+            setattr(self, item.name, getattr(self, item.name) + getattr(other, item.name))
+
+
+@dataclass
+class LearnTimings:
+    """
+    Time split of one ``learn()`` call (``LearnTimer.timings``).
+
+    :param warmup: rounds of uniformly random actions without updates
+    :param learning: the other rounds
+    :param first_round_s: seconds of the first round of updates of the call (one-time costs included); ``None``
+        before any update
+    :param first_round_updates: updates in that round
+    """
+
+    warmup: PhaseTime = field(default_factory=PhaseTime)
+    learning: PhaseTime = field(default_factory=PhaseTime)
+    first_round_s: float | None = None
+    first_round_updates: int = 0
+
+    def steady_learning_s(self) -> float:
+        """
+        Seconds of the ``learning`` phase with the first round of updates replaced by the mean time of the same
+        number of later updates: the phase's duration without the one-time costs (compilation, autotuning).
+        Equal to ``learning.total_s`` before the second round of updates.
+        """
+        phase = self.learning
+        if self.first_round_s is None or phase.updates <= self.first_round_updates:
+            return phase.total_s
+        later_mean = (phase.update_s - self.first_round_s) / (phase.updates - self.first_round_updates)
+        return phase.total_s - self.first_round_s + later_mean * self.first_round_updates
+
+    def as_dict(self) -> dict[str, Any]:
+        """The timings as plain JSON types, with ``overhead_s`` of each phase."""
+        phases = {
+            name: {**dataclasses.asdict(getattr(self, name)), "overhead_s": getattr(self, name).overhead_s}
+            for name in ("warmup", "learning")
+        }
+        return {
+            **phases,
+            "first_round_s": self.first_round_s,
+            "first_round_updates": self.first_round_updates,
+            "steady_learning_s": self.steady_learning_s(),
+        }
+
+
+class UpdateClock:
+    """
+    The device time of the rounds of updates on CUDA (see the module docstring); nothing on other devices.
+
+    Use: ``start = clock.start(device)`` before ``train``, ``clock.stop(start, phase, host_s)`` once the round is added
+    to ``phase``, :meth:`collect` now and then, ``collect(wait=True)`` at the end.
+    """
+
+    def __init__(self) -> None:
+        self._pending: list[tuple[Any, Any, PhaseTime, float]] = []
+
+    def start(self, device: th.device) -> Any:
+        """:return: a recorded CUDA event on ``device``'s current stream, ``None`` off CUDA"""
+        if device.type != "cuda":
+            return None
+        event = th.cuda.Event(enable_timing=True)
+        event.record(th.cuda.current_stream(device))
+        return event
+
+    def stop(self, start: Any, phase: PhaseTime, host_s: float) -> None:
+        """
+        :param start: what :meth:`start` returned (nothing happens for ``None``)
+        :param phase: the phase the round was added to
+        :param host_s: the round's ``update_s`` measured on the host, already in ``phase``
+        """
+        if start is None:
+            return
+        end = th.cuda.Event(enable_timing=True)
+        end.record()
+        self._pending.append((start, end, phase, host_s))
+
+    def collect(self, wait: bool = False) -> None:
+        """
+        Add the device time beyond the host time of each completed round to its phase's ``update_s``.
+
+        :param wait: wait for the rounds still running (a synchronization; for the end of ``learn()``)
+        """
+        pending = []
+        for start, end, phase, host_s in self._pending:
+            if wait:
+                end.synchronize()
+            elif not end.query():
+                pending.append((start, end, phase, host_s))
+                continue
+            phase.update_s += max(0.0, start.elapsed_time(end) / 1000.0 - host_s)
+        self._pending = pending
+
+
+class TimedVecEnv(VecEnvWrapper):
+    """
+    A ``VecEnv`` that adds the seconds spent in its ``step_async`` and ``step_wait`` to :attr:`env_s`.
+
+    :param venv: the environments
+    """
+
+    def __init__(self, venv: VecEnv) -> None:
+        super().__init__(venv)
+        self.env_s = 0.0
+        """Seconds in ``step_async`` and ``step_wait`` since the wrapper was made."""
+
+    def reset(self) -> Any:
+        return self.venv.reset()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        start = time.perf_counter()
+        self.venv.step_async(actions)
+        self.env_s += time.perf_counter() - start
+
+    def step_wait(self) -> VecEnvStepReturn:
+        start = time.perf_counter()
+        try:
+            return self.venv.step_wait()
+        finally:
+            self.env_s += time.perf_counter() - start
+
+
+class LearnTimer(BaseCallback):
+    """
+    Fills :attr:`timings` during each ``learn()`` of a model whose loop runs in rounds (``DrQv2``): a round starts
+    at ``on_rollout_start``; its environment steps end at ``on_rollout_end``; its updates last until the next
+    round starts (or the training ends). Give it last in the callback list, so that the other callbacks' rollout
+    hooks count as overhead.
+
+    :param env: the model's environments wrapped in a :class:`TimedVecEnv`, for ``env_s``; ``None``: ``env_s`` is 0
+    """
+
+    def __init__(self, env: TimedVecEnv | None = None) -> None:
+        super().__init__()
+        self.env = env
+        self.timings = LearnTimings()
+        """The time split of the current (or last) ``learn()`` call."""
+        self.clock = UpdateClock()
+        self._round: PhaseTime | None = None
+        self._used_policy = False
+        self._start = self._steps_end = 0.0
+        self._env_start = 0.0
+        self._updates_at_steps_end = 0
+        self._device_start: Any = None
+
+    def _on_training_start(self) -> None:
+        self.timings, self.clock, self._round = LearnTimings(), UpdateClock(), None
+
+    def _on_rollout_start(self) -> None:
+        self._close_round()
+        self.clock.collect()  # the device time of earlier rounds that has completed
+        self._round, self._used_policy = PhaseTime(rounds=1, transitions=-self.model.num_timesteps), False
+        self._start, self._env_start = time.perf_counter(), self._env_s()
+        self._steps_end = 0.0
+
+    def _on_step(self) -> bool:
+        # The step's actions were chosen before it: from the policy unless the model was in its warm-up then.
+        n_envs = self.training_env.num_envs
+        before = self.model.num_timesteps - n_envs - getattr(self.model, "reset_step", 0)
+        self._used_policy |= before >= self.model.learning_starts
+        return True
+
+    def _on_rollout_end(self) -> None:
+        assert self._round is not None
+        self._steps_end = time.perf_counter()
+        self._round.transitions += self.model.num_timesteps
+        self._round.env_s = self._env_s() - self._env_start
+        self._updates_at_steps_end = self.model._n_updates
+        self._device_start = self.clock.start(self.model.device)
+
+    def _on_training_end(self) -> None:
+        self._close_round()
+        self.clock.collect(wait=True)
+
+    def _close_round(self) -> None:
+        """Add the round in progress to its phase (a round stopped by a callback before its updates included)."""
+        round_, self._round = self._round, None
+        if round_ is None:
+            return
+        now = time.perf_counter()
+        if self._steps_end == 0.0:  # stopped during its environment steps
+            round_.transitions += self.model.num_timesteps
+            round_.env_s = self._env_s() - self._env_start
+            self._steps_end, self._updates_at_steps_end, self._device_start = now, self.model._n_updates, None
+        round_.updates = self.model._n_updates - self._updates_at_steps_end
+        round_.update_s = now - self._steps_end if round_.updates > 0 else 0.0
+        round_.total_s = now - self._start
+        if self.timings.first_round_s is None and round_.updates > 0:
+            self.timings.first_round_s, self.timings.first_round_updates = round_.update_s, round_.updates
+        phase = self.timings.learning if self._used_policy or round_.updates > 0 else self.timings.warmup
+        phase.add(round_)
+        self.clock.stop(self._device_start if round_.updates > 0 else None, phase, round_.update_s)
+
+    def _env_s(self) -> float:
+        return 0.0 if self.env is None else self.env.env_s
