@@ -292,6 +292,7 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
     kind = _kind(networks)
     transitions = model.replay_buffer.size()  # type: ignore[union-attr]
     if kind is None:  # the model resets itself
+        _check_resets_itself(model)
         model.reset_from_scratch()  # type: ignore[attr-defined]
         parts = ", ".join([*networks.online_networks(), *networks.target_networks()]) + " and their optimizers"
     else:
@@ -307,6 +308,15 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
         f"new {parts}; replay buffer emptied ({transitions} transitions); warm-up restarted",
         {"weights_changed": float(_count(model.policy.parameters())), "transitions_dropped": float(transitions)},
     )
+
+
+def _check_resets_itself(model: BaseAlgorithm) -> None:
+    """A ``TypeError`` for a model whose policy provides the parts but that has no ``reset_from_scratch()``."""
+    if not callable(getattr(model, "reset_from_scratch", None)):
+        raise TypeError(
+            f"intervention='reset' needs {type(model).__name__}.reset_from_scratch(): its policy provides the parts of "
+            "the other interventions only."
+        )
 
 
 def _rebuild_sb3(model: BaseAlgorithm, kind: str) -> None:
@@ -762,7 +772,9 @@ def check_intervention(name: str, model: BaseAlgorithm | None = None) -> None:
         raise ValueError(f"intervention must be one of {', '.join(INTERVENTIONS)}; got {name!r}.")
     if model is None:
         return
-    intervention_parts(model)
+    parts = intervention_parts(model)
+    if name == "reset" and _kind(parts) is None:
+        _check_resets_itself(model)
     if name == "reset_actor":
         _check_own_extractor(model)
 

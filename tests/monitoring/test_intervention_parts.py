@@ -178,6 +178,10 @@ def test_the_interventions_act_on_any_policy_that_provides_the_parts():
     assert 3 in result.units["q3.mlp1"]
     assert policy.critic[2][0].bias[3] == 0.0 and policy.critic[2][2].weight[0, 3] == 0.0
 
+    # a reset from scratch is the model's own
+    with pytest.raises(TypeError, match=r"needs ToyModel.reset_from_scratch\(\)"):
+        apply_intervention(model, "reset")
+
 
 def test_sb3_models_get_an_adapter_and_other_models_a_type_error():
     from stable_baselines3 import TD3
