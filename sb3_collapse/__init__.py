@@ -1,22 +1,43 @@
 """sb3-collapse: DrQ-v2 for Stable-Baselines3 on DeepMind Control pixels, and tools to study action collapse."""
 
-import importlib
-from typing import Any
+from __future__ import annotations
 
-from sb3_collapse.drqv2 import DrQv2
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from sb3_collapse.envs import make_dmc_env  # registers the sb3_collapse/<domain>-<task>-v0 Gymnasium ids
+
+if TYPE_CHECKING:
+    from sb3_collapse.drqv2 import DrQv2
+    from sb3_collapse.monitoring import ActivationLogger, CollapseMetrics, CollapseReset, PeriodicReDo
 
 __version__ = "0.1.0"
 
-_MONITORING = ("ActivationLogger", "CollapseMetrics", "CollapseReset", "PeriodicReDo")
-"""Imported from ``sb3_collapse.monitoring`` when first used: importing the algorithm does not import them."""
+_LAZY = {
+    "DrQv2": "sb3_collapse.drqv2",
+    "ActivationLogger": "sb3_collapse.monitoring",
+    "CollapseMetrics": "sb3_collapse.monitoring",
+    "CollapseReset": "sb3_collapse.monitoring",
+    "PeriodicReDo": "sb3_collapse.monitoring",
+}
+"""Names imported from their package at their first use: importing the algorithm does not import the monitoring
+callbacks, nor the other way round."""
 
 __all__ = ["ActivationLogger", "CollapseMetrics", "CollapseReset", "DrQv2", "PeriodicReDo", "__version__", "make_dmc_env"]
 
 
 def __getattr__(name: str) -> Any:
-    if name in _MONITORING:
-        value = getattr(importlib.import_module("sb3_collapse.monitoring"), name)
+    """
+    :param name: one of the package's names
+    :return: its value, imported from its package at its first use
+    :raises AttributeError: for a name that is not one
+    """
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value
         return value
-    raise AttributeError(f"module 'sb3_collapse' has no attribute {name!r}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

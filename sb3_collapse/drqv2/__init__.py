@@ -1,8 +1,9 @@
 """DrQ-v2 for Stable-Baselines3: algorithm, policies, augmentation, exploration schedules and replay buffer."""
 
+from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2.augmentation import random_shift
 from sb3_collapse.drqv2.drqv2 import DrQv2
-from sb3_collapse.drqv2.policies import LAYER_NAMES, CnnPolicy, DrQv2Policy, MlpPolicy
+from sb3_collapse.drqv2.policies import CnnPolicy, DrQv2Policy, MlpPolicy
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.schedules import StddevSchedule
 

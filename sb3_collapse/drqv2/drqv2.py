@@ -509,7 +509,7 @@ class DrQv2(RoundsAlgorithm):
         the logger, the environments and their episodes in progress, the callbacks, the hyperparameters.
         ``init_from`` is not applied again. ``docs/interventions.md`` explains each choice.
         """
-        self.policy.reinitialize(self.lr_schedule)
+        self.policy.renew_networks(self.lr_schedule)
         self._create_aliases()
         self._index_grad_layers()  # a new recorder, on the new optimizers: no norm until the next update
         self.replay_buffer.reset()  # type: ignore[union-attr]

@@ -1,18 +1,7 @@
 """Networks of DrQ-v2: pixel encoder, actor and twin critic, wrapped as an SB3 policy.
 
-Layer names are the vocabulary shared by the callbacks, the probe and the plots:
-
-=========  ===========================================================================
-``cnn0``   normalized input pixels, ``obs / 255 - 0.5``
-``cnn1``   after Conv(3*stack -> 32, 3x3, stride 2) + ReLU
-``cnn2``   after Conv(32 -> 32, 3x3, stride 1) + ReLU
-``cnn3``   idem
-``cnn4``   idem (flattened, it is the 39,200-d representation of a 9x84x84 input)
-``mlp0``   actor trunk output: Linear(repr -> 50) + LayerNorm + Tanh
-``mlp1``   after the first 1024-unit Linear + ReLU of the actor
-``mlp2``   after the second 1024-unit Linear + ReLU of the actor
-``action`` deterministic action: Linear(1024 -> A) + Tanh
-=========  ===========================================================================
+The layers are named as in :data:`sb3_collapse.common.layers.LAYER_NAMES` (``cnn0``..``cnn4``, ``mlp0``..``mlp2``,
+``action``; the table is there), the vocabulary shared by the callbacks, the probe and the plots.
 
 ``activation="leaky_relu"`` (policy keyword argument) replaces every ReLU of the encoder, the actor and the critic
 (``cnn1``..``cnn4``, ``mlp1``, ``mlp2``, the Q heads) with a Leaky-ReLU of negative slope ``leaky_relu_slope``
@@ -38,10 +27,8 @@ from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
+from sb3_collapse.common.layers import LayerParts, reinitialize, sequential_hidden_parts
 from sb3_collapse.errors import ParameterError
-
-LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
-"""Every named layer, input to output."""
 
 ACTIVATIONS = ("relu", "leaky_relu")
 """The hidden activations of the networks: ReLU (DrQ-v2's) or Leaky-ReLU (the paper's footnote 1 ablation)."""
@@ -553,7 +540,7 @@ class DrQv2Policy(BasePolicy):
         self.critic.train(mode)
         self.training = mode
 
-    def reinitialize(self, lr_schedule: Schedule) -> None:
+    def renew_networks(self, lr_schedule: Schedule) -> None:
         """
         New random weights for the encoder, actor, critic and target critic (drawn as :meth:`_build` draws them, from
         torch's global generator as it is now), copied into the existing parameter tensors, so that compiled code
@@ -573,6 +560,94 @@ class DrQv2Policy(BasePolicy):
                     module.optimizer = type(optimizer)(module.parameters(), **optimizer.defaults)
                 setattr(self, name, module)
         self.set_training_mode(was_training)
+
+    # ---------------------------------------------------------------------------- the parts the interventions act on
+    # The protocol sb3_collapse.monitoring.interventions.InterventionParts (duck typed), with named_layers and optimizers.
+    def initialize_weights(self, module: nn.Module) -> None:
+        """
+        New initial values for every parameter of ``module`` (a part of this policy), in place, from torch's global
+        generator: :func:`weight_init` on Linear and Conv2d, ``reset_parameters()`` otherwise (LayerNorm: unit scale,
+        zero shift).
+
+        :param module: the module to initialize
+        :raises TypeError: for a submodule with parameters and no known initializer
+        """
+        reinitialize(module, weight_init)
+
+    def online_networks(self) -> dict[str, nn.Module]:
+        """:return: the trained networks by name, ``encoder``, ``actor`` and ``critic`` (the encoder even without
+        parameters)"""
+        return {"encoder": self.encoder, "actor": self.actor, "critic": self.critic}
+
+    def target_networks(self) -> dict[str, nn.Module]:
+        """:return: the target networks by name: ``target critic``"""
+        return {"target critic": self.critic_target}
+
+    def actor_modules(self) -> list[nn.Module]:
+        """:return: what a reset of the actor renews: the whole actor (the encoder is the critic's, it is kept)"""
+        return [self.actor]
+
+    def actor_mlp_modules(self) -> list[nn.Module]:
+        """:return: the actor's layers after the encoder: the whole actor, as :meth:`actor_modules`"""
+        return [self.actor]
+
+    @staticmethod
+    def _leaf_modules(module: nn.Module) -> list[nn.Module]:
+        """The modules of ``module`` without children, in registration order (the forward order here)."""
+        return [sub for sub in module.modules() if next(sub.children(), None) is None]
+
+    def _q_heads(self) -> list[nn.Module]:
+        """The critic's Q networks: its children but the trunk (the members of a ``ModuleList`` one by one)."""
+        children = [child for name, child in self.critic.named_children() if name != "trunk"]
+        return [head for child in children for head in (child if isinstance(child, nn.ModuleList) else [child])]
+
+    def hidden_layer_parts(self) -> list[LayerParts]:
+        """
+        The hidden layers whose units ReDo may recycle: the actor's ``mlp1``, ``mlp2``... (a ``Linear`` and its
+        activation, read by the next Linear; the trunk ``mlp0`` ends with LayerNorm and Tanh, it is not one), then
+        each Q network's ``q<k>.mlp1``, ``q<k>.mlp2``...
+
+        :return: the layers' parts, actor first
+        """
+        parts = sequential_hidden_parts("", self._leaf_modules(self.actor), first=0)
+        for k, head in enumerate(self._q_heads(), start=1):
+            parts += sequential_hidden_parts(f"q{k}.", self._leaf_modules(head))
+        return parts
+
+    def encoder_channel_parts(self) -> list[LayerParts]:
+        """
+        The convolutions of the pixel encoder as layers of channels that ReDo may recycle, ``cnn1``..``cnn4``: a
+        channel's consumers are the next convolution, or for the last one the first Linear of the actor and of the
+        critic, which read it at every position (in the encoder's flattening order).
+
+        :return: the layers' parts, input to output; ``[]`` for an encoder without convolutions (``MlpPolicy``)
+        """
+        if not isinstance(self.encoder, PixelEncoder):
+            return []
+        blocks = [(name, block) for name, block in self.encoder.named_layers().items() if isinstance(block, ConvReLU)]
+        trunks = tuple(next(m for m in net.modules() if isinstance(m, nn.Linear)) for net in (self.actor, self.critic))
+        positions = self.encoder.repr_dim // blocks[-1][1][0].out_channels
+        parts = []
+        for k, (name, block) in enumerate(blocks):
+            last = k == len(blocks) - 1
+            consumers = trunks if last else (blocks[k + 1][1][0],)
+            parts.append(
+                LayerParts(name, block[0], block, consumers, positions if last else 1, self.encoder.channels_last)
+            )
+        return parts
+
+    def forward_hidden(self, observations: PyTorchObs, actions: th.Tensor) -> None:
+        """
+        Run the layers of :meth:`hidden_layer_parts` and :meth:`encoder_channel_parts` on a batch, for hooks on their
+        activations to read: the encoder, the actor on its features, the critic on its features and the actions
+        (the caller sets the mode and the gradient).
+
+        :param observations: ``(n, *obs_shape)`` observations
+        :param actions: ``(n, action_dim)`` actions in [-1, 1]
+        """
+        features = self.encoder(observations)  # type: ignore[arg-type]
+        self.actor(features)
+        self.critic(features, actions)
 
 
 class CnnPolicy(DrQv2Policy):

@@ -18,11 +18,13 @@ nothing else (the other weights, every optimizer state it does not name, the rep
                     the noise a fresh initialization (:func:`shrink_perturb_noise`)
 ==================  ========================================================================================
 
-Models: ``DrQv2`` (``CnnPolicy``, ``MlpPolicy``) and SB3's ``TD3``, ``DDPG`` and ``SAC`` (``CnnPolicy``,
-``MlpPolicy``; SAC without gSDE). New weights are drawn from torch's global generator in its current state (never
-reseeded: they differ from the initial ones, and a seeded run stays reproducible), with the algorithm's own
-initializer: DrQ-v2's orthogonal ``weight_init`` (LayerNorm: unit scale, zero shift) for DrQv2, PyTorch's default
-``reset_parameters()`` for SB3's networks (SB3's off-policy policies use it). Optimizer state is "forgotten" per
+Models: those whose policy provides :class:`InterventionParts` (``DrQv2``'s ``CnnPolicy`` and ``MlpPolicy``), and
+SB3's ``TD3``, ``DDPG`` and ``SAC`` (``CnnPolicy``, ``MlpPolicy``; SAC without gSDE), through adapters of this module
+(:func:`intervention_parts`); this module imports no algorithm of this package. New weights are drawn from torch's
+global generator in its current state (never reseeded: they differ from the initial ones, and a seeded run stays
+reproducible), with the algorithm's own initializer (:meth:`InterventionParts.initialize_weights`): DrQ-v2's
+orthogonal ``weight_init`` (LayerNorm: unit scale, zero shift) for DrQv2, PyTorch's default ``reset_parameters()``
+for SB3's networks (SB3's off-policy policies use it). Optimizer state is "forgotten" per
 parameter (its Adam moments and step count are dropped and start again at the next step) unless a whole new
 optimizer is built. Every intervention forgets the last recorded gradient norms (they were those of the old
 weights). See ``docs/interventions.md`` for the table of what each one resets and keeps.
@@ -33,7 +35,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import torch as th
 from stable_baselines3 import SAC, TD3
@@ -41,6 +43,8 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.utils import get_parameters_by_name
 from torch import nn
 
+from sb3_collapse.common.layers import LayerParts, reinitialize, sequential_hidden_parts
+from sb3_collapse.monitoring.activations import layer_taps
 from sb3_collapse.monitoring.callbacks import ProbeBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, track_grad_norms
 from sb3_collapse.monitoring.metrics import DORMANT_TAU, dormant_units
@@ -83,12 +87,138 @@ class InterventionResult:
 
 
 # ------------------------------------------------------------------------------------------------ the model's parts
-def _kind(model: BaseAlgorithm) -> str:
-    """``"drqv2"``, ``"td3"`` (TD3 and DDPG) or ``"sac"``; a ``TypeError`` for any other model."""
-    from sb3_collapse.drqv2 import DrQv2  # here: sb3_collapse.drqv2 imports this package
+@runtime_checkable
+class InterventionParts(Protocol):
+    """
+    What a policy provides for the interventions to act on it, without this module knowing its algorithm
+    (``DrQv2Policy`` provides it by duck typing). SB3's TD3, DDPG and SAC policies get an adapter of this module
+    (:func:`intervention_parts`). A model whose policy provides it is reset from scratch by its own
+    ``model.reset_from_scratch()``.
+    """
 
-    if isinstance(model, DrQv2):
-        return "drqv2"
+    @property
+    def optimizers(self) -> list[th.optim.Optimizer]:
+        """The optimizers of the policy's networks (an entropy coefficient's excluded)."""
+        ...
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        """The modules that produce each named activation (``cnn0``..``action``), input to output: the details
+        of ``reset_actor`` and ``reset_mlp`` name the first and the last they renew."""
+        ...
+
+    def initialize_weights(self, module: nn.Module) -> None:
+        """New initial values, in place, for every parameter of ``module`` (a part of the policy), with the
+        algorithm's initializer, from torch's global generator, submodule by submodule in ``module.modules()``
+        order; a ``TypeError`` for a submodule it cannot initialize."""
+        ...
+
+    def online_networks(self) -> dict[str, nn.Module]:
+        """The trained networks by name (e.g. ``encoder``, ``actor``, ``critic``): what shrink and perturb
+        changes."""
+        ...
+
+    def target_networks(self) -> dict[str, nn.Module]:
+        """The target networks by name (e.g. ``target critic``)."""
+        ...
+
+    def actor_modules(self) -> list[nn.Module]:
+        """The modules that ``reset_actor`` renews: the actor, with a features extractor of its own."""
+        ...
+
+    def actor_mlp_modules(self) -> list[nn.Module]:
+        """The modules that ``reset_mlp`` renews: the actor's layers after the encoder or features extractor."""
+        ...
+
+    def hidden_layer_parts(self) -> list[LayerParts]:
+        """The actor's and the critic's hidden layers that ReDo may recycle, actor first (wrapped in
+        :class:`HiddenLayer` by :func:`hidden_layers`)."""
+        ...
+
+    def encoder_channel_parts(self) -> list[LayerParts]:
+        """The encoder's convolutions as layers of channels that ReDo may recycle, input to output; ``[]`` when
+        there are none."""
+        ...
+
+    def forward_hidden(self, observations: Any, actions: th.Tensor) -> None:
+        """Run the layers of :meth:`hidden_layer_parts` and :meth:`encoder_channel_parts` on a batch of
+        ``(n, ...)`` observations and ``(n, action_dim)`` actions, for forward hooks to read (the caller sets the
+        mode and the gradient)."""
+        ...
+
+
+class _SB3Parts:
+    """
+    :class:`InterventionParts` of SB3's TD3 and DDPG (``kind="td3"``) or SAC (``kind="sac"``) policies.
+
+    :param policy: the model's policy
+    :param kind: ``"td3"`` or ``"sac"``
+    """
+
+    def __init__(self, policy: Any, kind: str) -> None:
+        self.policy = policy
+        self.kind = kind
+
+    @property
+    def optimizers(self) -> list[th.optim.Optimizer]:
+        return [self.policy.actor.optimizer, self.policy.critic.optimizer]
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        return {name: tap.module for name, tap in layer_taps(self.policy).items()}
+
+    def initialize_weights(self, module: nn.Module) -> None:
+        reinitialize(module)
+
+    def online_networks(self) -> dict[str, nn.Module]:
+        return {"actor": self.policy.actor, "critic": self.policy.critic}
+
+    def target_networks(self) -> dict[str, nn.Module]:
+        targets = {"target actor": self.policy.actor_target} if self.kind == "td3" else {}
+        return {**targets, "target critic": self.policy.critic_target}
+
+    def actor_modules(self) -> list[nn.Module]:
+        return [self.policy.actor]
+
+    def actor_mlp_modules(self) -> list[nn.Module]:
+        actor = self.policy.actor
+        return [actor.mu] if self.kind == "td3" else [actor.latent_pi, actor.mu, actor.log_std]
+
+    def hidden_layer_parts(self) -> list[LayerParts]:
+        actor = self.policy.actor
+        if self.kind == "td3":
+            parts = sequential_hidden_parts("", list(actor.mu))
+        else:
+            parts = sequential_hidden_parts("", list(actor.latent_pi), tail=(actor.mu, actor.log_std))
+        for k, q_network in enumerate(self.policy.critic.q_networks, start=1):
+            parts += sequential_hidden_parts(f"q{k}.", list(q_network))
+        return parts
+
+    def encoder_channel_parts(self) -> list[LayerParts]:
+        return []
+
+    def forward_hidden(self, observations: Any, actions: th.Tensor) -> None:
+        if self.kind == "td3":
+            self.policy.actor(observations)
+        else:
+            self.policy.actor.get_action_dist_params(observations)
+        self.policy.critic(observations, actions)
+
+
+def intervention_parts(model: BaseAlgorithm) -> InterventionParts:
+    """
+    What the interventions act on: the model's policy when it provides :class:`InterventionParts` (DrQv2), an
+    adapter for SB3's TD3, DDPG and SAC.
+
+    :param model: a model
+    :return: its parts
+    :raises TypeError: for any other model, and for SAC with gSDE
+    """
+    if isinstance(model.policy, InterventionParts):
+        return model.policy
+    return _SB3Parts(model.policy, _sb3_kind(model))  # type: ignore[return-value]
+
+
+def _sb3_kind(model: BaseAlgorithm) -> str:
+    """``"td3"`` (TD3 and DDPG) or ``"sac"``; a ``TypeError`` for any other model."""
     if isinstance(model, TD3):
         return "td3"
     if isinstance(model, SAC):
@@ -100,36 +230,15 @@ def _kind(model: BaseAlgorithm) -> str:
     )
 
 
-def _optimizers(model: BaseAlgorithm) -> list[th.optim.Optimizer]:
-    """The optimizers of the policy's networks (the entropy coefficient's excluded)."""
-    if _kind(model) == "drqv2":
-        return list(model.policy.optimizers)  # type: ignore[attr-defined]
-    return [model.policy.actor.optimizer, model.policy.critic.optimizer]  # type: ignore[union-attr]
+def _kind(parts: InterventionParts) -> str | None:
+    """The SB3 adapter's kind, ``"td3"`` or ``"sac"``; ``None`` for a policy that provides the parts itself."""
+    return parts.kind if isinstance(parts, _SB3Parts) else None
 
 
-def _initialize(module: nn.Module, drqv2: bool) -> None:
-    """
-    Draw new initial values for every parameter of ``module``, in place, with the algorithm's initializer.
-
-    :raises TypeError: for a module with parameters that has no known initializer
-    """
-    from sb3_collapse.drqv2.policies import weight_init
-
-    for sub in module.modules():
-        if next(sub.parameters(recurse=False), None) is None:
-            continue
-        if drqv2 and isinstance(sub, (nn.Linear, nn.Conv2d)):
-            weight_init(sub)
-        elif callable(getattr(sub, "reset_parameters", None)):
-            sub.reset_parameters()  # type: ignore[operator]
-        else:
-            raise TypeError(f"Cannot draw new initial values for the parameters of {type(sub).__name__}.")
-
-
-def _fresh_copy(module: nn.Module, drqv2: bool) -> nn.Module:
+def _fresh_copy(module: nn.Module, parts: InterventionParts) -> nn.Module:
     """A copy of ``module`` with new initial values (contiguous memory, as the initializers need)."""
     fresh = copy.deepcopy(module).to(memory_format=th.contiguous_format)
-    _initialize(fresh, drqv2)
+    parts.initialize_weights(fresh)
     return fresh
 
 
@@ -156,7 +265,8 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
     """
     The action-collapse paper's rule (Section 5.2): restart the training from scratch, in the middle of ``learn()``.
 
-    DrQv2: :meth:`sb3_collapse.DrQv2.reset_from_scratch`. TD3, DDPG and SAC, with the same semantics:
+    DrQv2 (a model whose policy provides :class:`InterventionParts`): its own ``reset_from_scratch()``
+    (:meth:`sb3_collapse.DrQv2.reset_from_scratch`). TD3, DDPG and SAC, with the same semantics:
 
     - **reset**: the policy is built again (new actor, critic and their targets, with new random weights; new
       optimizers); SAC's learned entropy coefficient starts again from its initial value with a new optimizer (a
@@ -178,11 +288,13 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
     """
-    kind = _kind(model)
+    networks = intervention_parts(model)
+    kind = _kind(networks)
     transitions = model.replay_buffer.size()  # type: ignore[union-attr]
-    if kind == "drqv2":
+    if kind is None:  # the model resets itself
+        _check_resets_itself(model)
         model.reset_from_scratch()  # type: ignore[attr-defined]
-        parts = "encoder, actor, critic, target critic and their optimizers"
+        parts = ", ".join([*networks.online_networks(), *networks.target_networks()]) + " and their optimizers"
     else:
         _rebuild_sb3(model, kind)
         parts = (
@@ -196,6 +308,15 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
         f"new {parts}; replay buffer emptied ({transitions} transitions); warm-up restarted",
         {"weights_changed": float(_count(model.policy.parameters())), "transitions_dropped": float(transitions)},
     )
+
+
+def _check_resets_itself(model: BaseAlgorithm) -> None:
+    """A ``TypeError`` for a model whose policy provides the parts but that has no ``reset_from_scratch()``."""
+    if not callable(getattr(model, "reset_from_scratch", None)):
+        raise TypeError(
+            f"intervention='reset' needs {type(model).__name__}.reset_from_scratch(): its policy provides the parts of "
+            "the other interventions only."
+        )
 
 
 def _rebuild_sb3(model: BaseAlgorithm, kind: str) -> None:
@@ -247,11 +368,12 @@ def forget_reset(model: BaseAlgorithm) -> None:
 # ------------------------------------------------------------------------------------------------ partial resets
 def _reset_modules(model: BaseAlgorithm, modules: Sequence[nn.Module], name: str, detail: str) -> InterventionResult:
     """New weights for ``modules`` in place, their optimizer state forgotten; TD3's target actor follows."""
-    kind = _kind(model)
+    parts = intervention_parts(model)
+    kind = _kind(parts)
     for module in modules:
-        _initialize(module, kind == "drqv2")
+        parts.initialize_weights(module)
     params = [p for module in modules for p in module.parameters()]
-    _forget_optimizer_state(_optimizers(model), params)
+    _forget_optimizer_state(parts.optimizers, params)
     changed = _count(params)
     if kind == "td3":  # TD3 builds its target actor as a copy of the actor: the new parts are copied again
         target = model.policy.actor_target  # type: ignore[union-attr]
@@ -281,12 +403,13 @@ def reset_actor(model: BaseAlgorithm) -> InterventionResult:
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
     """
-    kind = _kind(model)
+    parts = intervention_parts(model)
+    kind = _kind(parts)
     _check_own_extractor(model)
-    actor = model.policy.actor  # type: ignore[union-attr]
-    layers = "mlp0..action" if kind == "drqv2" else "features extractor and " + ("mu" if kind == "td3" else "MLP")
+    modules = parts.actor_modules()
+    layers = _span(parts, modules) if kind is None else "features extractor and " + ("mu" if kind == "td3" else "MLP")
     detail = f"new actor ({layers})" + (" and target actor" if kind == "td3" else "") + ", actor optimizer state"
-    return _reset_modules(model, [actor], "reset_actor", detail)
+    return _reset_modules(model, modules, "reset_actor", detail)
 
 
 def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
@@ -305,15 +428,25 @@ def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
     """
-    kind = _kind(model)
-    actor = model.policy.actor  # type: ignore[union-attr]
-    if kind == "drqv2":
-        modules, layers = [actor], "mlp0..action"
+    parts = intervention_parts(model)
+    kind = _kind(parts)
+    modules = parts.actor_mlp_modules()
+    if kind is None:
+        layers = _span(parts, modules)
     elif kind == "td3":
-        modules, layers = [actor.mu], "mu: mlp1..action, and the target actor's mu"
+        layers = "mu: mlp1..action, and the target actor's mu"
     else:
-        modules, layers = [actor.latent_pi, actor.mu, actor.log_std], "latent_pi, mu, log_std: mlp1..action"
+        layers = "latent_pi, mu, log_std: mlp1..action"
     return _reset_modules(model, modules, "reset_mlp", f"new actor MLP ({layers}), its optimizer state")
+
+
+def _span(parts: InterventionParts, modules: Sequence[nn.Module]) -> str:
+    """The named layers inside ``modules``, ``first..last`` (``mlp0..action``)."""
+    inside = {id(sub) for module in modules for sub in module.modules()}
+    names = [name for name, layer in parts.named_layers().items() if id(layer) in inside]
+    if not names:
+        return ", ".join(type(module).__name__ for module in modules)
+    return names[0] if len(names) == 1 else f"{names[0]}..{names[-1]}"
 
 
 # ------------------------------------------------------------------------------------------------ ReDo
@@ -359,77 +492,31 @@ class HiddenLayer:
         return (index[:, None] * self.positions + where[None, :]).flatten()  # c * positions + p
 
 
-def _sequential_hidden(
-    prefix: str, modules: Sequence[nn.Module], tail: tuple[nn.Linear, ...] = (), first: int = 1
-) -> list[HiddenLayer]:
-    """
-    ``Linear, activation`` pairs of a flat module list; each one's consumer is the next Linear of the list, or
-    ``tail`` for the last. A Linear followed by a module with parameters (LayerNorm) or by nothing, and the output
-    Linear (no consumer), are not hidden layers. Names count the Linears from ``first``.
-    """
-    modules = list(modules)
-    linears = [i for i, module in enumerate(modules) if isinstance(module, nn.Linear)]
-    hidden = []
-    for k, i in enumerate(linears):
-        following = [modules[j] for j in linears if j > i]
-        consumers = (following[0],) if following else tail
-        if i + 1 < len(modules) and next(modules[i + 1].parameters(), None) is None and consumers:
-            hidden.append(HiddenLayer(f"{prefix}mlp{k + first}", modules[i], modules[i + 1], consumers))  # type: ignore[arg-type]
-    return hidden
-
-
 def hidden_layers(model: BaseAlgorithm) -> list[HiddenLayer]:
     """
-    The hidden layers of the actor and the critic that :func:`redo` considers: the actor's ``mlp1``, ``mlp2``...
-    (as named by :func:`~sb3_collapse.monitoring.activations.layer_taps`) and each Q network's ``q<k>.mlp1``...
-    The encoder (or features extractor), DrQ-v2's trunks (Linear, LayerNorm, Tanh) and the target networks are not.
+    The hidden layers of the actor and the critic that :func:`redo` considers
+    (:meth:`InterventionParts.hidden_layer_parts`): the actor's ``mlp1``, ``mlp2``... (as named by
+    :func:`~sb3_collapse.monitoring.activations.layer_taps`) and each Q network's ``q<k>.mlp1``... The encoder (or
+    features extractor), DrQ-v2's trunks (Linear, LayerNorm, Tanh) and the target networks are not.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: the layers, actor first
     """
-    kind = _kind(model)
-    policy = model.policy
-    actor = policy.actor  # type: ignore[union-attr]
-    if kind == "drqv2":
-        layers = _sequential_hidden("", [*actor.trunk, *actor.mlp1, *actor.mlp2, *actor.action], first=0)
-        q_networks = [policy.critic.q1, policy.critic.q2]  # type: ignore[union-attr]
-    elif kind == "td3":
-        layers = _sequential_hidden("", list(actor.mu))
-        q_networks = list(policy.critic.q_networks)  # type: ignore[union-attr]
-    else:
-        layers = _sequential_hidden("", list(actor.latent_pi), tail=(actor.mu, actor.log_std))
-        q_networks = list(policy.critic.q_networks)  # type: ignore[union-attr]
-    for k, q_network in enumerate(q_networks, start=1):
-        layers += _sequential_hidden(f"q{k}.", list(q_network))
-    return layers
+    return [HiddenLayer(*parts) for parts in intervention_parts(model).hidden_layer_parts()]
 
 
 def encoder_channels(model: BaseAlgorithm) -> list[HiddenLayer]:
     """
     The convolutional layers of DrQ-v2's pixel encoder as layers of channels that ReDo may recycle, ``cnn1``..
-    ``cnn4``: each output channel is a unit, its incoming weights the convolution's filter and bias for it, its
-    outgoing weights the next convolution's input channel, or, for ``cnn4``, the columns of the actor's and the
-    critic's trunk Linear that read that channel at every position. Sokar et al. recycle convolutional channels so.
+    ``cnn4`` (:meth:`InterventionParts.encoder_channel_parts`): each output channel is a unit, its incoming weights
+    the convolution's filter and bias for it, its outgoing weights the next convolution's input channel, or, for
+    ``cnn4``, the columns of the actor's and the critic's trunk Linear that read that channel at every position.
+    Sokar et al. recycle convolutional channels so.
 
     :param model: a DrQv2 model (``CnnPolicy``); another model or ``MlpPolicy`` has none
     :return: the layers, input to output (empty when there are none)
     """
-    from sb3_collapse.drqv2.policies import PixelEncoder
-
-    if _kind(model) != "drqv2" or not isinstance(model.policy.encoder, PixelEncoder):  # type: ignore[union-attr]
-        return []
-    policy = model.policy
-    encoder = policy.encoder  # type: ignore[union-attr]
-    convs = [encoder.cnn1, encoder.cnn2, encoder.cnn3, encoder.cnn4]
-    channels = convs[-1][0].out_channels
-    trunks = (policy.actor.trunk[0], policy.critic.trunk[0])  # type: ignore[union-attr]
-    layers = []
-    for k, block in enumerate(convs):
-        last = k == len(convs) - 1
-        consumers = trunks if last else (convs[k + 1][0],)
-        positions = encoder.repr_dim // channels if last else 1
-        layers.append(HiddenLayer(f"cnn{k + 1}", block[0], block, consumers, positions, encoder.channels_last))
-    return layers
+    return [HiddenLayer(*parts) for parts in intervention_parts(model).encoder_channel_parts()]
 
 
 def hidden_activations(model: BaseAlgorithm, layers: Sequence[HiddenLayer], samples: Any) -> dict[str, th.Tensor]:
@@ -443,7 +530,7 @@ def hidden_activations(model: BaseAlgorithm, layers: Sequence[HiddenLayer], samp
         :meth:`~sb3_collapse.monitoring.callbacks.ProbeBatchSampler.sample_transitions`
     :return: layer name -> ``(n, units)`` float tensor (``(n, channels, height, width)`` for a convolution)
     """
-    kind = _kind(model)
+    parts = intervention_parts(model)
     policy = model.policy
     outputs: dict[str, th.Tensor] = {}
 
@@ -458,17 +545,7 @@ def hidden_activations(model: BaseAlgorithm, layers: Sequence[HiddenLayer], samp
     policy.set_training_mode(False)
     try:
         with th.no_grad():
-            obs, actions = samples.observations, samples.actions
-            if kind == "drqv2":
-                features = policy.encoder(obs)  # type: ignore[union-attr]
-                policy.actor(features)  # type: ignore[union-attr]
-                policy.critic(features, actions)  # type: ignore[union-attr]
-            else:
-                if kind == "td3":
-                    policy.actor(obs)  # type: ignore[union-attr]
-                else:
-                    policy.actor.get_action_dist_params(obs)  # type: ignore[union-attr]
-                policy.critic(obs, actions)  # type: ignore[union-attr]
+            parts.forward_hidden(samples.observations, samples.actions)
     finally:
         for handle in handles:
             handle.remove()
@@ -512,7 +589,7 @@ def redo(
     :return: what was done; with fewer than ``batch_size`` stored transitions nothing is recycled and the detail
         says so
     """
-    kind = _kind(model)
+    parts = intervention_parts(model)
     layers = (encoder_channels(model) if conv_channels else []) + hidden_layers(model)
     total = sum(layer.units for layer in layers)
     if samples is None:
@@ -525,13 +602,13 @@ def redo(
         samples = drawn[0]
     activations = hidden_activations(model, layers, samples)
     masks = {layer.name: dormant_units(activations[layer.name], tau) for layer in layers}
-    optimizers = _optimizers(model)
+    optimizers = parts.optimizers
     indices = {layer.name: masks[layer.name].nonzero().flatten().to(layer.linear.weight.device) for layer in layers}
     units = {name: tuple(int(i) for i in index.tolist()) for name, index in indices.items()}
     recycling = [(layer, indices[layer.name]) for layer in layers if len(indices[layer.name]) > 0]
     changed = 0
     for layer, index in recycling:  # all incoming weights first...
-        changed += _renew_incoming(layer, index, kind == "drqv2", optimizers)
+        changed += _renew_incoming(layer, index, parts, optimizers)
     for layer, index in recycling:  # ...then the outgoing ones: a recycled unit feeding another one stays silent
         changed += _zero_outgoing(layer, index, optimizers)
     _forget_grad_norms(model)
@@ -542,9 +619,11 @@ def redo(
     return InterventionResult("redo", detail, scalars, units)
 
 
-def _renew_incoming(layer: HiddenLayer, index: th.Tensor, drqv2: bool, optimizers: Sequence[th.optim.Optimizer]) -> int:
+def _renew_incoming(
+    layer: HiddenLayer, index: th.Tensor, parts: InterventionParts, optimizers: Sequence[th.optim.Optimizer]
+) -> int:
     """New initial values for the incoming weights and bias of units ``index``; returns the entries changed."""
-    fresh = _fresh_copy(layer.linear, drqv2)
+    fresh = _fresh_copy(layer.linear, parts)
     incoming = [(layer.linear.weight, fresh.weight)]
     if layer.linear.bias is not None:
         incoming.append((layer.linear.bias, fresh.bias))
@@ -632,7 +711,8 @@ def _shrink_and_add_fresh(
 ) -> tuple[int, list[str]]:
     """
     ``theta <- shrink * theta + scale * theta_fresh`` on the online networks, ``theta_fresh`` drawn module by module
-    (encoder, actor, critic for DrQv2; actor, critic otherwise) from torch's global generator.
+    (:meth:`InterventionParts.online_networks`: encoder, actor, critic for DrQv2; actor, critic otherwise) from
+    torch's global generator.
 
     :return: the parameter entries changed and the networks' names
     """
@@ -640,14 +720,12 @@ def _shrink_and_add_fresh(
         raise ValueError(f"shrink must be in (0, 1], got {shrink}.")
     if not scale >= 0.0:
         raise ValueError(f"{scale_name} must be >= 0, got {scale}.")
-    kind = _kind(model)
-    policy = model.policy
-    names = ["encoder", "actor", "critic"] if kind == "drqv2" else ["actor", "critic"]
+    parts = intervention_parts(model)
+    networks = parts.online_networks()
     seen: set[int] = set()
     changed = 0
-    for name in names:
-        module = getattr(policy, name)
-        fresh = _fresh_copy(module, kind == "drqv2")
+    for module in networks.values():
+        fresh = _fresh_copy(module, parts)
         with th.no_grad():
             for param, new in zip(module.parameters(), fresh.parameters()):
                 if id(param) in seen:  # a features extractor shared by the actor and the critic: once
@@ -656,7 +734,7 @@ def _shrink_and_add_fresh(
                 param.mul_(shrink).add_(new, alpha=scale)
                 changed += param.numel()
     _forget_grad_norms(model)
-    return changed, names
+    return changed, list(networks)
 
 
 # ------------------------------------------------------------------------------------------------ by name
@@ -694,13 +772,15 @@ def check_intervention(name: str, model: BaseAlgorithm | None = None) -> None:
         raise ValueError(f"intervention must be one of {', '.join(INTERVENTIONS)}; got {name!r}.")
     if model is None:
         return
-    _kind(model)
+    parts = intervention_parts(model)
+    if name == "reset" and _kind(parts) is None:
+        _check_resets_itself(model)
     if name == "reset_actor":
         _check_own_extractor(model)
 
 
 def _check_own_extractor(model: BaseAlgorithm) -> None:
-    if _kind(model) != "drqv2" and getattr(model.policy, "share_features_extractor", False):
+    if _kind(intervention_parts(model)) is not None and getattr(model.policy, "share_features_extractor", False):
         raise ValueError(
             f"intervention='reset_actor' on a {type(model).__name__} with share_features_extractor=True would reset "
             "the critic's features extractor too: use 'reset_mlp' (the actor after the extractor)."

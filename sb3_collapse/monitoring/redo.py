@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 
 from sb3_collapse.monitoring.callbacks import ProbeBatchSampler, ResumableCallback, frames_of
-from sb3_collapse.monitoring.interventions import REDO_EVERY_UPDATES, InterventionResult, _kind, redo
+from sb3_collapse.monitoring.interventions import REDO_EVERY_UPDATES, InterventionResult, intervention_parts, redo
 from sb3_collapse.monitoring.metrics import DORMANT_TAU
 from sb3_collapse.protocol import append_csv_rows
 
@@ -82,7 +82,7 @@ class PeriodicReDo(ResumableCallback):
         return len(self.history)
 
     def _init_callback(self) -> None:
-        _kind(self.model)  # a TypeError for a model the interventions do not support
+        intervention_parts(self.model)  # a TypeError for a model the interventions do not support
         seed = None if self.model.seed is None else int(self.model.seed) + 2_000_003
         self.sampler = ProbeBatchSampler(seed)
         if self.events_path is not None:

@@ -14,7 +14,7 @@ from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from sb3_collapse.drqv2.policies import LAYER_NAMES
+from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler

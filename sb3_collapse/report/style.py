@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 from matplotlib.axes import Axes
 from matplotlib.ticker import EngFormatter
 
-from sb3_collapse.drqv2.policies import LAYER_NAMES
+from sb3_collapse.common.layers import LAYER_NAMES
 
 OKABE_ITO = (
     "#E69F00",  # orange

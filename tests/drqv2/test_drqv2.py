@@ -14,9 +14,10 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from torch._dynamo.eval_frame import _debug_get_cache_entry_list
 
 from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
 from sb3_collapse.drqv2.augmentation import draw_shifts
-from sb3_collapse.drqv2.policies import LAYER_NAMES, exploration_noise
+from sb3_collapse.drqv2.policies import exploration_noise
 from sb3_collapse.drqv2.reference import reference_update
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 
