@@ -29,9 +29,8 @@ from stable_baselines3.common.type_aliases import (
 )
 from stable_baselines3.common.utils import should_collect_more_steps
 from stable_baselines3.common.vec_env import VecEnv
-from torch.nn import functional as F
 
-from sb3_collapse.drqv2.augmentation import draw_shifts, random_shift
+from sb3_collapse.drqv2.augmentation import draw_shifts
 from sb3_collapse.drqv2.cpu_allocator import tune_cpu_allocator
 from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
 from sb3_collapse.drqv2.policies import (
@@ -40,10 +39,14 @@ from sb3_collapse.drqv2.policies import (
     Critic,
     DrQv2Policy,
     MlpPolicy,
+    MultiInputPolicy,
     PixelEncoder,
     StateEncoder,
     check_action_space,
+    check_policy_kwargs,
+    critic_mse,
     exploration_noise,
+    min_q,
     noisy_action,
 )
 from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
@@ -51,6 +54,13 @@ from sb3_collapse.drqv2.replay_buffer import (
     DEFAULT_MIN_EPISODE_LENGTH,
     FrameStackReplayBuffer,
     frame_stack_storage_bytes,
+)
+from sb3_collapse.drqv2.sb3_compat import (
+    DictNStepReplayBuffer,
+    action_noise_actions,
+    check_optimize_memory_usage,
+    combine_callbacks,
+    dict_replay_buffer_class,
 )
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
 from sb3_collapse.drqv2.timing import LearnTimings, PhaseTime, UpdateClock
@@ -187,7 +197,11 @@ class DrQv2(OffPolicyAlgorithm):
     :param _init_setup_model: build the networks and the buffer now
     """
 
-    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"CnnPolicy": CnnPolicy, "MlpPolicy": MlpPolicy}
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "CnnPolicy": CnnPolicy,
+        "MlpPolicy": MlpPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
     policy: DrQv2Policy
     encoder: PixelEncoder | StateEncoder
     actor: Actor
@@ -222,6 +236,8 @@ class DrQv2(OffPolicyAlgorithm):
         seed: int | None = None,
         device: th.device | str = "auto",
         init_from: Mapping[str, TransplantSpec] | None = None,
+        action_noise: ActionNoise | None = None,
+        optimize_memory_usage: bool = False,
         _init_setup_model: bool = True,
     ) -> None:
         transplant_specs = check_init_from(init_from)  # before building anything: unknown keys, missing files
@@ -254,8 +270,10 @@ class DrQv2(OffPolicyAlgorithm):
             gamma,
             train_freq,
             gradient_steps,
+            action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
             n_steps=n_steps,
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,
@@ -310,6 +328,9 @@ class DrQv2(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
         self._select_replay_buffer()
+        self.optimize_memory_usage = check_optimize_memory_usage(
+            self.optimize_memory_usage, self.replay_buffer_class, self._uses_frame_stack_buffer()
+        )
         self._check_replay_memory()
         try:
             with warnings.catch_warnings():
@@ -351,6 +372,8 @@ class DrQv2(OffPolicyAlgorithm):
         """
         config = self.env_config or {}
         frame_stack = config.get("frame_stack")
+        if self.replay_buffer_class is None:  # dict observations: SB3's DictReplayBuffer, n-step when n_steps > 1
+            self.replay_buffer_class = dict_replay_buffer_class(self.observation_space, self.n_steps)
         if (
             self.replay_buffer_class is None
             and issubclass(self.policy_class, CnnPolicy)
@@ -363,7 +386,9 @@ class DrQv2(OffPolicyAlgorithm):
         defaults: dict[str, Any] = {}
         if self._uses_frame_stack_buffer():
             defaults = {"n_steps": self.n_steps, "gamma": self.gamma, "frame_stack": frame_stack}
-        elif self.replay_buffer_class is not None and issubclass(self.replay_buffer_class, NStepReplayBuffer):
+        elif self.replay_buffer_class is not None and issubclass(
+            self.replay_buffer_class, (NStepReplayBuffer, DictNStepReplayBuffer)
+        ):
             defaults = {"n_steps": self.n_steps, "gamma": self.gamma}
         for key, value in defaults.items():
             if key not in self.replay_buffer_kwargs and value is not None:
@@ -474,13 +499,17 @@ class DrQv2(OffPolicyAlgorithm):
             unscaled_action = np.array([self.action_space.sample() for _ in range(n_envs)])
         else:
             self.policy.exploration_std = self.current_stddev
-            unscaled_action, _ = self.predict(self._last_obs, deterministic=False)  # type: ignore[arg-type]
+            # With an SB3 action noise, it replaces the schedule's Gaussian (SB3's TD3 exploration).
+            deterministic = action_noise is not None
+            unscaled_action, _ = self.predict(self._last_obs, deterministic=deterministic)  # type: ignore[arg-type]
             if not np.isfinite(unscaled_action).all():  # on the host already: checking costs nothing
                 raise DivergenceError(
                     f"training diverged: the actor's action is not finite after update {self._n_updates} "
                     f"(frame {self.num_frames:,})."
                 )
         buffer_action = self.policy.scale_action(unscaled_action)
+        if action_noise is not None and not self._in_warmup(learning_starts):
+            buffer_action = action_noise_actions(buffer_action, action_noise)
         return self.policy.unscale_action(buffer_action), buffer_action
 
     def collect_rollouts(
@@ -726,18 +755,17 @@ class DrQv2(OffPolicyAlgorithm):
             loss, and only by it), ``Q1``, ``Q2`` and the target ``y``
         """
         if shifts is not None and next_shifts is not None:
-            channels_last = self.encoder.channels_last  # the layout the convolutions take: no copy in cnn0
-            obs = random_shift(obs, self.augmentation_pad, shifts, channels_last)
-            next_obs = random_shift(next_obs, self.augmentation_pad, next_shifts, channels_last)
+            # Images only (the image keys of dict observations), in the layout the convolutions take.
+            obs = self.encoder.augment(obs, self.augmentation_pad, shifts)
+            next_obs = self.encoder.augment(next_obs, self.augmentation_pad, next_shifts)
         features = self.encoder(obs)
         with th.no_grad():
             next_features = self.encoder(next_obs)
             next_action = noisy_action(self.actor(next_features), next_noise)
-            target_q1, target_q2 = self.critic_target(next_features, next_action)
-            target_q = rewards + (1.0 - dones) * discounts * th.min(target_q1, target_q2)
-        q1, q2 = self.critic(features, actions)
-        critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
-        return critic_loss, features, q1, q2, target_q
+            target_q = rewards + (1.0 - dones) * discounts * min_q(self.critic_target(next_features, next_action))
+        q_values = self.critic(features, actions)  # n_critics heads, DrQ-v2's 2
+        critic_loss = critic_mse(q_values, target_q)
+        return critic_loss, features, q_values[0], q_values[min(1, len(q_values) - 1)], target_q
 
     def _actor_loss(self, features: th.Tensor, noise: th.Tensor) -> th.Tensor:
         """
@@ -751,8 +779,7 @@ class DrQv2(OffPolicyAlgorithm):
         :return: the loss
         """
         action = noisy_action(self.actor(features), noise)
-        q1, q2 = self.critic(features, action)
-        return -th.min(q1, q2).mean()
+        return -min_q(self.critic(features, action)).mean()
 
     def _update_critic(self, critic_loss: th.Tensor) -> None:
         """Critic and encoder step on ``critic_loss`` (from :meth:`_critic_loss`)."""
@@ -918,12 +945,7 @@ class DrQv2(OffPolicyAlgorithm):
         return rollout.continue_training
 
     def _combined_callbacks(self, callback: MaybeCallback) -> MaybeCallback:
-        callbacks: list[BaseCallback] = []
-        for item in (self.callback, callback):
-            if item is None:
-                continue
-            callbacks.extend(item if isinstance(item, list) else [item])  # type: ignore[arg-type]
-        return callbacks or None
+        return combine_callbacks(self.callback, callback)  # each converted as SB3 converts it (functions, lists)
 
     def reset_from_scratch(self) -> None:
         """
@@ -1133,13 +1155,14 @@ def check_hyperparameters(
     number("gamma", gamma, 0.0, 1.0)
     integer("train_freq", train_freq[0] if isinstance(train_freq, tuple) else train_freq, 1)
     if gradient_steps != -1:
-        integer("gradient_steps", gradient_steps, 1)
+        integer("gradient_steps", gradient_steps, 0)  # 0: collect without updating, as SB3 allows
     integer("n_steps", n_steps, 1)
     number("stddev_clip", stddev_clip, 0.0)
     integer("augmentation_pad", augmentation_pad, 0)
     for name in ("feature_dim", "hidden_dim"):
         if name in (policy_kwargs or {}):
             integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
+    check_policy_kwargs(policy_kwargs)  # SB3's keywords: net_arch, n_critics, share_features_extractor...
     if seed is not None:
         integer("seed", seed, 0)
     check_device(device)

@@ -392,7 +392,7 @@ def hidden_layers(model: BaseAlgorithm) -> list[HiddenLayer]:
     actor = policy.actor  # type: ignore[union-attr]
     if kind == "drqv2":
         layers = _sequential_hidden("", [*actor.trunk, *actor.mlp1, *actor.mlp2, *actor.action], first=0)
-        q_networks = [policy.critic.q1, policy.critic.q2]  # type: ignore[union-attr]
+        q_networks = list(policy.critic.q_networks)  # type: ignore[union-attr]
     elif kind == "td3":
         layers = _sequential_hidden("", list(actor.mu))
         q_networks = list(policy.critic.q_networks)  # type: ignore[union-attr]
