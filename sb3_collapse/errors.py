@@ -44,7 +44,17 @@ class ParameterError(InputError):
         super().__init__(message, parameter)
 
 
-class SpaceError(ParameterError, TypeError, AssertionError):
+class AssertedParameterError(ParameterError, AssertionError):
+    """
+    A bad value where Stable-Baselines3 raises an ``AssertionError``: also one, so that code written for SB3 catches
+    it, with a message that says what to do.
+
+    :param parameter: the parameter's Python name
+    :param message: what is wrong and what to do
+    """
+
+
+class SpaceError(AssertedParameterError, TypeError):
     """
     An observation or action space the algorithm or policy cannot take; the message says what to use instead.
 

@@ -71,7 +71,7 @@ from sb3_collapse.drqv2.transplant import (
     load_sources,
     transplant,
 )
-from sb3_collapse.errors import ParameterError
+from sb3_collapse.errors import AssertedParameterError, ParameterError
 from sb3_collapse.monitoring.grad_norms import GradNormRecorder
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
@@ -329,7 +329,7 @@ class DrQv2(OffPolicyAlgorithm):
         check_action_space(self.action_space)
         self._select_replay_buffer()
         self.optimize_memory_usage = check_optimize_memory_usage(
-            self.optimize_memory_usage, self.replay_buffer_class, self._uses_frame_stack_buffer()
+            self.optimize_memory_usage, self.replay_buffer_class, self._uses_frame_stack_buffer(), self.n_steps
         )
         self._check_replay_memory()
         try:
@@ -887,12 +887,14 @@ class DrQv2(OffPolicyAlgorithm):
         if reset_num_timesteps:
             self.reset_step = 0
         self._warned_replay_not_ready = False
+        if self.env is None:  # before SB3's assertion in _setup_learn; also an AssertionError, as SB3's
+            raise AssertedParameterError(
+                "env", "DrQv2.learn needs an environment: pass env= to DrQv2(...) or DrQv2.load(...), or call set_env."
+            )
         total_timesteps, all_callbacks = self._setup_learn(
             total_timesteps, self._combined_callbacks(callback), reset_num_timesteps, tb_log_name, progress_bar
         )
         all_callbacks.on_training_start(locals(), globals())
-        if self.env is None:
-            raise ValueError("DrQv2.learn needs an environment: pass env= to DrQv2(...) or DrQv2.load(...), or call set_env.")
         self.timings, self._update_clock = LearnTimings(), UpdateClock()
         try:
             while self.num_timesteps < total_timesteps:

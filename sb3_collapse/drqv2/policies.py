@@ -427,7 +427,9 @@ class FeaturesExtractorEncoder(nn.Module):
         normalize_images: bool = True,
     ) -> None:
         super().__init__()
-        if not (isinstance(features_extractor_class, type) and issubclass(features_extractor_class, BaseFeaturesExtractor)):
+        if not (
+            isinstance(features_extractor_class, type) and issubclass(features_extractor_class, BaseFeaturesExtractor)
+        ):
             raise ParameterError(
                 "policy_kwargs['features_extractor_class']",
                 "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
@@ -504,7 +506,9 @@ class Actor(nn.Module):
         in_dim = feature_dim
         for index, units in enumerate(hidden_layers(net_arch, hidden_dim), start=1):
             name = f"mlp{index}"
-            setattr(self, name, nn.Sequential(nn.Linear(in_dim, units), hidden_activation(activation, leaky_relu_slope)))
+            setattr(
+                self, name, nn.Sequential(nn.Linear(in_dim, units), hidden_activation(activation, leaky_relu_slope))
+            )
             self.hidden_names.append(name)
             in_dim = units
         self.action = nn.Sequential(nn.Linear(in_dim, action_dim), nn.Tanh())
@@ -784,17 +788,28 @@ class DrQv2Policy(BasePolicy):
         act = {"activation": self.activation, "leaky_relu_slope": self.leaky_relu_slope}
         if self.features_extractor_class is not None:
             self.encoder = FeaturesExtractorEncoder(
-                self.observation_space, self.features_extractor_class, self.features_extractor_kwargs, self.normalize_images
+                self.observation_space,
+                self.features_extractor_class,
+                self.features_extractor_kwargs,
+                self.normalize_images,
             )
         else:
             # An encoder class of its own may not take these: passed only when they differ from the defaults.
             encoder_act = act if self.activation != "relu" else {}
             normalize = {} if self.normalize_images else {"normalize_images": False}
-            self.encoder = self.encoder_class(self.observation_space, **{**encoder_act, **normalize, **self.encoder_kwargs})
+            self.encoder = self.encoder_class(
+                self.observation_space, **{**encoder_act, **normalize, **self.encoder_kwargs}
+            )
         repr_dim = self.encoder.repr_dim
         self.actor = Actor(repr_dim, action_dim, self.feature_dim, self.hidden_dim, **act, net_arch=self.actor_arch)
         self.critic = Critic(
-            repr_dim, action_dim, self.feature_dim, self.hidden_dim, **act, net_arch=self.critic_arch, n_critics=self.n_critics
+            repr_dim,
+            action_dim,
+            self.feature_dim,
+            self.hidden_dim,
+            **act,
+            net_arch=self.critic_arch,
+            n_critics=self.n_critics,
         )
         # The encoder initializes itself (before switching to channels_last).
         for module in (self.actor, self.critic):
@@ -893,7 +908,9 @@ ACTIVATION_FNS: dict[type[nn.Module], str] = {nn.ReLU: "relu", nn.LeakyReLU: "le
 """SB3's ``activation_fn`` values DrQv2 takes, and the ``activation`` each means."""
 
 
-def actor_critic_arch(net_arch: list[int] | dict[str, list[int]] | None, hidden_dim: int) -> tuple[list[int], list[int]]:
+def actor_critic_arch(
+    net_arch: list[int] | dict[str, list[int]] | None, hidden_dim: int
+) -> tuple[list[int], list[int]]:
     """
     SB3's ``get_actor_critic_arch`` with DrQ-v2's default.
 
@@ -951,7 +968,9 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
         )
     n_critics = kwargs.get("n_critics", 2)
     if isinstance(n_critics, bool) or not isinstance(n_critics, (int, np.integer)) or n_critics < 1:
-        raise ParameterError(name("n_critics"), f"policy_kwargs['n_critics'] must be an integer >= 1, got {n_critics!r}.")
+        raise ParameterError(
+            name("n_critics"), f"policy_kwargs['n_critics'] must be an integer >= 1, got {n_critics!r}."
+        )
     if kwargs.get("share_features_extractor", True) is not True:
         raise ParameterError(
             name("share_features_extractor"),
@@ -1028,7 +1047,8 @@ def check_state_space(observation_space: spaces.Space, where: str = "MlpPolicy")
     """
     if isinstance(observation_space, spaces.Box) and is_image_space(observation_space, check_channels=False):
         raise SpaceError(
-            "policy", f"{where} takes state vectors, but the observations are images {observation_space}: use CnnPolicy."
+            "policy",
+            f"{where} takes state vectors, but the observations are images {observation_space}: use CnnPolicy.",
         )
     if isinstance(observation_space, spaces.Dict):
         raise SpaceError(

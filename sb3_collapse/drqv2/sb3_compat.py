@@ -105,7 +105,9 @@ class DictNStepReplayBuffer(DictReplayBuffer):
             final_dones = next_dones * (1.0 - next_timeouts)
         finally:
             self.timeouts[last_valid_index] = original_timeouts
-        obs = self._normalize_obs({key: value[batch_inds, env_indices] for key, value in self.observations.items()}, env)
+        obs = self._normalize_obs(
+            {key: value[batch_inds, env_indices] for key, value in self.observations.items()}, env
+        )
         next_obs = self._normalize_obs(
             {key: value[last_indices, env_indices] for key, value in self.next_observations.items()}, env
         )
@@ -133,7 +135,7 @@ def dict_replay_buffer_class(observation_space: spaces.Space, n_steps: int) -> t
 
 
 def check_optimize_memory_usage(
-    optimize_memory_usage: bool, replay_buffer_class: type[ReplayBuffer] | None, frame_stack_buffer: bool
+    optimize_memory_usage: bool, replay_buffer_class: type[ReplayBuffer] | None, frame_stack_buffer: bool, n_steps: int
 ) -> bool:
     """
     SB3's ``optimize_memory_usage=True`` (next observations not stored, read from the next slot) where the replay
@@ -145,9 +147,11 @@ def check_optimize_memory_usage(
     :param replay_buffer_class: the replay buffer class DrQv2 will use (``None``: SB3's choice, ``ReplayBuffer`` or
         ``NStepReplayBuffer`` by ``n_steps``)
     :param frame_stack_buffer: whether it is a ``FrameStackReplayBuffer``
+    :param n_steps: the model's ``n_steps`` (SB3 picks its ``NStepReplayBuffer`` when > 1)
     :return: the value to hand to SB3's replay buffer
     """
-    if not optimize_memory_usage or replay_buffer_class is ReplayBuffer:
+    plain = replay_buffer_class is ReplayBuffer or (replay_buffer_class is None and n_steps == 1)
+    if not optimize_memory_usage or plain:
         return bool(optimize_memory_usage)
     if frame_stack_buffer:
         reason = "FrameStackReplayBuffer already stores each frame once (less memory than SB3's option)"
