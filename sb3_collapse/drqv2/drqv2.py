@@ -113,8 +113,11 @@ class DrQv2(OffPolicyAlgorithm):
     one environment) with respect to the sequential loop, which is the order of DrQ-v2's reference loop (act,
     update, then step the environment). See ``docs/throughput.md``.
 
-    :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8) or ``"MlpPolicy"``
-        (state vectors, no encoder and no augmentation), or a ``DrQv2Policy`` subclass
+    :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8), ``"MlpPolicy"``
+        (state vectors, no encoder and no augmentation; ``Discrete``, ``MultiDiscrete`` and ``MultiBinary``
+        observations one-hot encoded by SB3's ``preprocess_obs``) or ``"MultiInputPolicy"`` (``spaces.Dict``
+        observations: DrQ-v2's encoder on the image keys, the other keys flattened and concatenated, the augmentation
+        on the images only), or a ``DrQv2Policy`` subclass
     :param env: the environment (a ``VecEnv``, a gymnasium env, or a registered id such as
         ``"sb3_collapse/walker-walk-v0"``)
     :param learning_rate: Adam learning rate of the encoder, actor and critic (or an SB3 schedule of the
@@ -133,7 +136,8 @@ class DrQv2(OffPolicyAlgorithm):
     :param train_freq: transitions (summed over the environments) per ``gradient_steps`` updates, whatever the
         number of environments (see **Update ratio** above); or ``(n, "episode")``: ``gradient_steps`` updates
         after every ``n`` episodes (one environment only, SB3's rule)
-    :param gradient_steps: updates per ``train_freq`` transitions (``-1``: one per transition)
+    :param gradient_steps: updates per ``train_freq`` transitions (``-1``: one per transition; ``0``: collect
+        transitions without updating, as SB3 allows)
     :param n_steps: length of the n-step returns, in agent steps of one environment (SB3's ``NStepReplayBuffer``
         when > 1)
     :param stddev_schedule: exploration standard deviation as a function of the transition count
@@ -158,8 +162,10 @@ class DrQv2(OffPolicyAlgorithm):
         :meth:`reset_from_scratch` (new modules). Off by default: on the CPU it was no faster at batch 32 and 256 and
         ~10% faster per update at batch 512, too little to pay the compilation back in short runs; it was not
         measured on a GPU (``docs/throughput.md``)
-    :param callback: callback(s) run at every ``learn()`` call, together with those given to ``learn()``
-        (e.g. ``CollapseReset()``); not saved with the model
+    :param callback: callback(s) run at every ``learn()`` call, before those given to ``learn()``
+        (e.g. ``CollapseReset()``): what SB3's ``learn(callback=...)`` takes (a ``BaseCallback``, a function
+        ``(locals, globals) -> bool``, a list of these), each converted as SB3 converts it; saved with the model
+        only for the ``ResumableCallback`` ones (``CollapseReset``, ``CollapseMetrics``)
     :param replay_buffer_class: replay buffer class; ``None``: ``FrameStackReplayBuffer`` (n-step, each frame
         stored once) for ``CnnPolicy`` on an env that reports a ``frame_stack`` > 1 (``make_dmc_env``), SB3's
         otherwise (``NStepReplayBuffer`` when ``n_steps > 1``). Pass ``NStepReplayBuffer`` to store whole
@@ -173,7 +179,14 @@ class DrQv2(OffPolicyAlgorithm):
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
     :param policy_kwargs: keyword arguments of the policy: ``feature_dim`` (50), ``hidden_dim`` (1024),
-        ``encoder_kwargs`` (``channels``, ``channels_last``, ``fused_relu``), ``optimizer_kwargs``
+        ``encoder_kwargs`` (``channels``, ``channels_last``, ``fused_relu``), ``activation``, and SB3's, which mean
+        what they mean for TD3: ``net_arch`` (a list, or ``dict(pi=[...], qf=[...])``: the hidden layers of the actor
+        and of each Q head; DrQ-v2's ``[1024, 1024]``), ``n_critics`` (2; the minimum over the heads for any number),
+        ``features_extractor_class`` / ``features_extractor_kwargs`` (a ``BaseFeaturesExtractor`` in place of
+        DrQ-v2's encoder), ``normalize_images`` (``False``: float images taken as they are), ``activation_fn``
+        (``nn.ReLU`` or ``nn.LeakyReLU``), ``optimizer_class`` / ``optimizer_kwargs``; ``share_features_extractor``
+        is ``True`` only (one encoder trained by the critic loss, DrQ-v2's). See ``DrQv2Policy`` and
+        ``docs/algorithm.md``
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``. On the CPU, glibc's malloc is tuned to reuse large
@@ -194,6 +207,14 @@ class DrQv2(OffPolicyAlgorithm):
         settings that differ. Stored as ``model.init_from`` (group -> path, as plain strings) and saved;
         ``DrQv2.load`` gives back the trained weights, it does not transplant again, and neither does
         :meth:`reset_from_scratch`. See ``sb3_collapse.drqv2.transplant``
+    :param action_noise: an SB3 ``ActionNoise`` for exploration, in place of the ``stddev_schedule``'s Gaussian:
+        after the warm-up (uniform actions), the actor's deterministic action plus a draw of the noise, clipped to
+        the action bounds, as SB3's TD3 explores; the noise is reset at the end of each episode. The target-policy
+        smoothing noise of the updates stays DrQ-v2's (``stddev_schedule``, clipped at ``stddev_clip``)
+    :param optimize_memory_usage: SB3's keyword: passed on to SB3's ``ReplayBuffer`` (``n_steps=1``, not dict
+        observations), where it works (with ``replay_buffer_kwargs=dict(handle_timeout_termination=False)``, as in
+        SB3); ignored with a warning elsewhere: ``FrameStackReplayBuffer`` (``CnnPolicy`` on ``make_dmc_env``)
+        already stores each frame once, and SB3's n-step and dict buffers do not support it
     :param _init_setup_model: build the networks and the buffer now
     """
 

@@ -23,6 +23,11 @@ their names.
 :meth:`DrQv2Policy.named_layers` returns, for each name, the module whose forward output *is* that
 activation and whose parameters are that layer's weights (``cnn0`` has none). ``MlpPolicy`` has no
 ``cnnK`` layers.
+
+With SB3's ``net_arch`` (``policy_kwargs=dict(net_arch=[...])``), the actor's hidden layers are ``mlp1``..``mlpK``, one
+per entry (``mlp1`` and ``mlp2`` stay the first two hidden ReLU outputs; ``net_arch=[]`` has none). ``MultiInputPolicy``
+names its image key's encoder ``cnn0``..``cnn4`` (``cnn1.<key>``... with several image keys); a user's
+``features_extractor_class`` has no named layers. SB3's other policy keywords: see :class:`DrQv2Policy`.
 """
 
 from __future__ import annotations
