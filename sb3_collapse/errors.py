@@ -44,6 +44,28 @@ class ParameterError(InputError):
         super().__init__(message, parameter)
 
 
+class AssertedParameterError(ParameterError, AssertionError):
+    """
+    A bad value where Stable-Baselines3 raises an ``AssertionError``: also one, so that code written for SB3 catches
+    it, with a message that says what to do.
+
+    :param parameter: the parameter's Python name
+    :param message: what is wrong and what to do
+    """
+
+
+class SpaceError(AssertedParameterError, TypeError):
+    """
+    An observation or action space the algorithm or policy cannot take; the message says what to use instead.
+
+    Also a ``TypeError`` (what these checks raised before) and an ``AssertionError``: what Stable-Baselines3 raises for
+    an unsupported space (its ``supported_action_spaces`` assertion), so that code written for SB3 catches it.
+
+    :param parameter: the parameter that brought the space (``"env"``, ``"policy"``)
+    :param message: what is wrong and what to do
+    """
+
+
 READ_ONLY_ERRNOS = (errno.EROFS, errno.EACCES, errno.EPERM)
 """``OSError`` numbers of a folder or file that cannot be written: read-only file system, no permission."""
 

@@ -11,6 +11,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.type_aliases import Schedule
 
+from sb3_collapse.drqv2.policies import check_policy_kwargs
 from sb3_collapse.errors import ParameterError
 
 
@@ -57,13 +58,14 @@ def check_hyperparameters(
     number("gamma", gamma, 0.0, 1.0)
     integer("train_freq", train_freq[0] if isinstance(train_freq, tuple) else train_freq, 1)
     if gradient_steps != -1:
-        integer("gradient_steps", gradient_steps, 1)
+        integer("gradient_steps", gradient_steps, 0)  # 0: collect without updating, as SB3 allows
     integer("n_steps", n_steps, 1)
     number("stddev_clip", stddev_clip, 0.0)
     integer("augmentation_pad", augmentation_pad, 0)
     for name in ("feature_dim", "hidden_dim"):
         if name in (policy_kwargs or {}):
             integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
+    check_policy_kwargs(policy_kwargs)  # SB3's keywords: net_arch, n_critics, share_features_extractor...
     if seed is not None:
         integer("seed", seed, 0)
     check_device(device)

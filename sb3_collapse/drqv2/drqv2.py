@@ -16,12 +16,11 @@ from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
 from stable_baselines3.common.vec_env import VecEnv
-from torch.nn import functional as F
 
 from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.common.saved_callbacks import callback_specs, restore_callbacks
 from sb3_collapse.drqv2 import replay_memory
-from sb3_collapse.drqv2.augmentation import draw_shifts, random_shift
+from sb3_collapse.drqv2.augmentation import draw_shifts
 from sb3_collapse.drqv2.checks import (
     CUDA_GRAPH_MODES,
     check_compile_update,
@@ -36,14 +35,18 @@ from sb3_collapse.drqv2.policies import (
     Critic,
     DrQv2Policy,
     MlpPolicy,
+    MultiInputPolicy,
     PixelEncoder,
     StateEncoder,
     check_action_space,
+    critic_mse,
     exploration_noise,
+    min_q,
     noisy_action,
 )
 from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
 from sb3_collapse.drqv2.rounds import RoundsAlgorithm
+from sb3_collapse.drqv2.sb3_compat import action_noise_actions, combine_callbacks
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
 from sb3_collapse.drqv2.transplant import TransplantSpec, check_init_from, describe_init_from, load_sources, transplant
 from sb3_collapse.drqv2.update_stats import UpdateStats
@@ -66,8 +69,10 @@ class DrQv2(RoundsAlgorithm):
     (``model.num_frames``). One update per ``train_freq`` transitions holds on any number of environments
     (``sb3_collapse.drqv2.rounds``, ``docs/throughput.md``).
 
-    :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8), ``"MlpPolicy"`` (vectors: no
-        encoder, no augmentation) or a ``DrQv2Policy`` subclass
+    :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8), ``"MlpPolicy"`` (vectors, and
+        discrete observations through SB3's ``preprocess_obs``: no encoder, no augmentation), ``"MultiInputPolicy"``
+        (``spaces.Dict``: DrQ-v2's encoder on the image keys, the other keys flattened and concatenated) or a
+        ``DrQv2Policy`` subclass
     :param env: the environment (a ``VecEnv``, a gymnasium env or a registered id)
     :param learning_rate: Adam learning rate of the encoder, actor and critic, or an SB3 schedule
     :param buffer_size: replay capacity, in transitions (``sb3_collapse.drqv2.replay_memory``: the buffer chosen,
@@ -77,7 +82,8 @@ class DrQv2(RoundsAlgorithm):
     :param tau: soft update coefficient of the target critic
     :param gamma: discount factor
     :param train_freq: transitions per ``gradient_steps`` updates, or ``(n, "episode")`` (one environment only)
-    :param gradient_steps: updates per ``train_freq`` transitions (``-1``: one per transition)
+    :param gradient_steps: updates per ``train_freq`` transitions (``-1``: one per transition; ``0``: collect
+        without updating, as SB3 allows)
     :param n_steps: length of the n-step returns, in agent steps
     :param stddev_schedule: exploration std as a function of the transitions since the last
         :meth:`reset_from_scratch`: a float, ``"linear(init,final,duration)"``,
@@ -88,25 +94,35 @@ class DrQv2(RoundsAlgorithm):
         faster with a ``SubprocVecEnv``); off: SB3's sequential loop
     :param compile_update: ``torch.compile`` the losses: ``True`` (``"reduce-overhead"`` on CUDA, ``"default"``
         elsewhere) or a mode; the random draws stay outside, so the update is the same up to float rounding
-    :param callback: callback(s) run at every ``learn()``, before those given to it; saved with the model when they
-        can be built again (``sb3_collapse.common.saved_callbacks``)
+    :param callback: callback(s) run at every ``learn()``, before those given to it, each converted as SB3 converts
+        ``learn``'s (a ``BaseCallback``, a function ``(locals, globals) -> bool``, a list); saved with the model when
+        they can be built again (``sb3_collapse.common.saved_callbacks``)
     :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` (each frame stored once) for ``CnnPolicy`` on
         a frame-stacked env, SB3's otherwise (``NStepReplayBuffer`` when ``n_steps > 1``)
     :param replay_buffer_kwargs: its keyword arguments; ``dict(sampling="drqv2")`` samples finished episodes only,
         as DrQ-v2's reference and the train CLI do
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
-    :param policy_kwargs: keyword arguments of the policy (``DrQv2Policy``)
+    :param policy_kwargs: keyword arguments of the policy (``DrQv2Policy``): DrQ-v2's (``feature_dim``,
+        ``hidden_dim``, ``encoder_kwargs``, ``activation``) and SB3's, which mean what they mean for TD3
+        (``net_arch``, ``n_critics``, ``features_extractor_class``, ``normalize_images``, ``optimizer_class``...;
+        ``docs/algorithm.md``)
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``; CUDA without a GPU is refused (SB3 falls back to the
         CPU silently: the one deliberate departure, ``docs/algorithm.md``)
     :param init_from: the paper's layer transplant (Study 2): group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a zip
         saved by ``DrQv2.save`` or a DrQv2 model, copied once when the model is built (``sb3_collapse.drqv2.transplant``)
+    :param action_noise: an SB3 ``ActionNoise`` for exploration in place of the ``stddev_schedule``'s Gaussian (the
+        deterministic action plus the noise, clipped, as TD3 explores); the updates' target smoothing stays DrQ-v2's
+    :param optimize_memory_usage: SB3's keyword, passed on to SB3's ``ReplayBuffer`` where it works (``n_steps=1``);
+        elsewhere ignored with a warning (``FrameStackReplayBuffer`` already stores each frame once)
     :param _init_setup_model: build the networks and the buffer now
     """
 
-    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"CnnPolicy": CnnPolicy, "MlpPolicy": MlpPolicy}
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "CnnPolicy": CnnPolicy, "MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy
+    }  # fmt: skip
     policy: DrQv2Policy
     encoder: PixelEncoder | StateEncoder
     actor: Actor
@@ -141,6 +157,8 @@ class DrQv2(RoundsAlgorithm):
         seed: int | None = None,
         device: th.device | str = "auto",
         init_from: Mapping[str, TransplantSpec] | None = None,
+        action_noise: ActionNoise | None = None,
+        optimize_memory_usage: bool = False,
         _init_setup_model: bool = True,
     ) -> None:
         transplant_specs = check_init_from(init_from)  # before building anything: unknown keys, missing files
@@ -154,7 +172,8 @@ class DrQv2(RoundsAlgorithm):
         self.stddev_schedule = StddevSchedule(stddev_schedule)
         super().__init__(
             policy, env, learning_rate, buffer_size, learning_starts, batch_size, tau, gamma,  # type: ignore[arg-type]
-            train_freq, gradient_steps, replay_buffer_class=replay_buffer_class,
+            train_freq, gradient_steps, action_noise=action_noise, optimize_memory_usage=optimize_memory_usage,
+            replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs, n_steps=n_steps, policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size, tensorboard_log=tensorboard_log, verbose=verbose, device=device,
             seed=seed, sde_support=False, support_multi_env=True,
@@ -264,13 +283,16 @@ class DrQv2(RoundsAlgorithm):
             unscaled_action = np.array([self.action_space.sample() for _ in range(n_envs)])
         else:
             self.policy.exploration_std = self.current_stddev
-            unscaled_action, _ = self.predict(self._last_obs, deterministic=False)  # type: ignore[arg-type]
+            deterministic = action_noise is not None  # an SB3 action noise replaces the schedule's Gaussian
+            unscaled_action, _ = self.predict(self._last_obs, deterministic=deterministic)  # type: ignore[arg-type]
             if not np.isfinite(unscaled_action).all():  # on the host already: checking costs nothing
                 raise DivergenceError(
                     f"training diverged: the actor's action is not finite after update {self._n_updates} "
                     f"(frame {self.num_frames:,})."
                 )
         buffer_action = self.policy.scale_action(unscaled_action)
+        if action_noise is not None and not self.in_warmup(learning_starts):
+            buffer_action = action_noise_actions(buffer_action, action_noise)
         return self.policy.unscale_action(buffer_action), buffer_action
 
     # ------------------------------------------------------------------ training
@@ -383,18 +405,17 @@ class DrQv2(RoundsAlgorithm):
             loss, and only by it), ``Q1``, ``Q2`` and the target ``y``
         """
         if shifts is not None and next_shifts is not None:
-            channels_last = self.encoder.channels_last  # the layout the convolutions take: no copy in cnn0
-            obs = random_shift(obs, self.augmentation_pad, shifts, channels_last)
-            next_obs = random_shift(next_obs, self.augmentation_pad, next_shifts, channels_last)
+            # Images only (the image keys of dict observations), in the layout the convolutions take.
+            obs = self.encoder.augment(obs, self.augmentation_pad, shifts)
+            next_obs = self.encoder.augment(next_obs, self.augmentation_pad, next_shifts)
         features = self.encoder(obs)
         with th.no_grad():
             next_features = self.encoder(next_obs)
             next_action = noisy_action(self.actor(next_features), next_noise)
-            target_q1, target_q2 = self.critic_target(next_features, next_action)
-            target_q = rewards + (1.0 - dones) * discounts * th.min(target_q1, target_q2)
-        q1, q2 = self.critic(features, actions)
-        critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
-        return critic_loss, features, q1, q2, target_q
+            target_q = rewards + (1.0 - dones) * discounts * min_q(self.critic_target(next_features, next_action))
+        q_values = self.critic(features, actions)  # n_critics heads, DrQ-v2's 2
+        critic_loss = critic_mse(q_values, target_q)
+        return critic_loss, features, q_values[0], q_values[min(1, len(q_values) - 1)], target_q
 
     def _actor_loss(self, features: th.Tensor, noise: th.Tensor) -> th.Tensor:
         """
@@ -408,8 +429,7 @@ class DrQv2(RoundsAlgorithm):
         :return: the loss
         """
         action = noisy_action(self.actor(features), noise)
-        q1, q2 = self.critic(features, action)
-        return -th.min(q1, q2).mean()
+        return -min_q(self.critic(features, action)).mean()
 
     def _update_critic(self, critic_loss: th.Tensor) -> None:
         """Critic and encoder step on ``critic_loss`` (from :meth:`_critic_loss`)."""
@@ -490,12 +510,7 @@ class DrQv2(RoundsAlgorithm):
         return super().learn(total_timesteps, callbacks, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
     def _combined_callbacks(self, callback: MaybeCallback) -> MaybeCallback:
-        callbacks: list[Any] = []
-        for item in (self.callback, callback):
-            if item is None:
-                continue
-            callbacks.extend(item if isinstance(item, list) else [item])
-        return callbacks or None
+        return combine_callbacks(self.callback, callback)  # each converted as SB3 converts it (functions, lists)
 
     def reset_from_scratch(self) -> None:
         """

@@ -20,12 +20,14 @@ from sb3_collapse.drqv2.replay_buffer import (
     FrameStackReplayBuffer,
     frame_stack_storage_bytes,
 )
+from sb3_collapse.drqv2.sb3_compat import DictNStepReplayBuffer, check_optimize_memory_usage, dict_replay_buffer_class
 
 
 def default_replay_buffer(
     replay_buffer_class: type[ReplayBuffer] | None,
     replay_buffer_kwargs: dict[str, Any],
     pixel_policy: bool,
+    observation_space: spaces.Space,
     env_config: dict[str, Any] | None,
     n_steps: int,
     gamma: float,
@@ -39,6 +41,8 @@ def default_replay_buffer(
     :param replay_buffer_class: the class given (``None``: choose)
     :param replay_buffer_kwargs: its keyword arguments, completed in place
     :param pixel_policy: whether the policy encodes pixels with DrQ-v2's encoder
+    :param observation_space: the observations (``spaces.Dict``: SB3's ``DictReplayBuffer``, or
+        ``DictNStepReplayBuffer`` for n-step returns)
     :param env_config: the ``make_dmc_env`` settings of the env (``None`` for another env)
     :param n_steps: the algorithm's n-step return length
     :param gamma: the algorithm's discount
@@ -46,13 +50,15 @@ def default_replay_buffer(
     """
     config = env_config or {}
     frame_stack = config.get("frame_stack")
+    if replay_buffer_class is None:  # dict observations: SB3's DictReplayBuffer, n-step when n_steps > 1
+        replay_buffer_class = dict_replay_buffer_class(observation_space, n_steps)
     stacked = isinstance(frame_stack, (int, np.integer)) and frame_stack > 1
     if replay_buffer_class is None and pixel_policy and config.get("obs_type") in (None, "pixels") and stacked:
         replay_buffer_class = FrameStackReplayBuffer
     defaults: dict[str, Any] = {}
     if uses_frame_stack_buffer(replay_buffer_class):
         defaults = {"n_steps": n_steps, "gamma": gamma, "frame_stack": frame_stack}
-    elif replay_buffer_class is not None and issubclass(replay_buffer_class, NStepReplayBuffer):
+    elif replay_buffer_class is not None and issubclass(replay_buffer_class, (NStepReplayBuffer, DictNStepReplayBuffer)):
         defaults = {"n_steps": n_steps, "gamma": gamma}
     for key, value in defaults.items():
         if key not in replay_buffer_kwargs and value is not None:
@@ -155,7 +161,8 @@ def warn_not_ready(num_timesteps: int) -> None:
 def choose_replay_buffer(model: Any) -> float:
     """
     Set a ``DrQv2``'s ``replay_buffer_class`` and complete its ``replay_buffer_kwargs`` (:func:`default_replay_buffer`),
-    and warn when the full buffer cannot fit in RAM (:func:`warn_if_too_large`); before the buffer is allocated.
+    check its ``optimize_memory_usage`` for that buffer (``sb3_compat.check_optimize_memory_usage``) and warn when
+    the full buffer cannot fit in RAM (:func:`warn_if_too_large`); before the buffer is allocated.
 
     :param model: the model, its networks not built yet
     :return: the buffer's bytes per transition (:func:`bytes_per_transition`)
@@ -165,6 +172,7 @@ def choose_replay_buffer(model: Any) -> float:
         model.replay_buffer_class,
         model.replay_buffer_kwargs,
         pixel_policy=issubclass(model.policy_class, CnnPolicy) and issubclass(encoder_class, PixelEncoder),
+        observation_space=model.observation_space,
         env_config=model.env_config,
         n_steps=model.n_steps,
         gamma=model.gamma,
@@ -177,5 +185,9 @@ def choose_replay_buffer(model: Any) -> float:
         model.action_space,
         model.n_envs,
     )
+    model.optimize_memory_usage = check_optimize_memory_usage(
+        model.optimize_memory_usage, model.replay_buffer_class, uses_frame_stack_buffer(model.replay_buffer_class),
+        model.n_steps,
+    )  # fmt: skip
     warn_if_too_large(model.replay_buffer_class, model.buffer_size, per_transition)
     return per_transition

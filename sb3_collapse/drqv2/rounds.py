@@ -18,6 +18,8 @@ from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, 
 from stable_baselines3.common.utils import should_collect_more_steps
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_collapse.errors import AssertedParameterError
+
 SelfRoundsAlgorithm = TypeVar("SelfRoundsAlgorithm", bound="RoundsAlgorithm")
 
 
@@ -50,17 +52,16 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfRoundsAlgorithm:
+        if self.env is None:  # before SB3's assertion in _setup_learn; also an AssertionError, as SB3's
+            name = type(self).__name__
+            message = f"{name}.learn needs an environment: pass env= to {name}(...) or {name}.load(...), or call set_env."
+            raise AssertedParameterError("env", message)
         if reset_num_timesteps:
             self.reset_step = 0
         total_timesteps, callback = self._setup_learn(
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
         )
         callback.on_training_start(locals(), globals())
-        if self.env is None:
-            name = type(self).__name__
-            raise ValueError(
-                f"{name}.learn needs an environment: pass env= to {name}(...) or .load(...), or call set_env."
-            )
         try:
             while self.num_timesteps < total_timesteps:
                 if not self._learning_round(callback, total_timesteps, log_interval):

@@ -1,0 +1,537 @@
+"""SB3's contract: code written for SB3's TD3 runs with DrQv2 in its place (issue 22)."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer, ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
+from stable_baselines3.common.envs import FakeImageEnv, SimpleMultiObsEnv
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.noise import ActionNoise, NormalActionNoise
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+from torch import nn
+
+from sb3_collapse import DrQv2
+from sb3_collapse.common.layers import LAYER_NAMES
+from sb3_collapse.drqv2 import FrameStackReplayBuffer
+from sb3_collapse.drqv2.policies import DictEncoder, FeaturesExtractorEncoder, MultiInputPolicy
+from sb3_collapse.drqv2.sb3_compat import DictNStepReplayBuffer, combine_callbacks
+from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.errors import ParameterError, SpaceError
+
+th.set_num_threads(1)
+
+SMALL = dict(buffer_size=300, learning_starts=10, batch_size=8, seed=0)
+ACTIONS = spaces.Box(-1.0, 1.0, (2,), np.float32)
+PIXELS = spaces.Box(0, 255, (3, 36, 36), np.uint8)
+POLICIES = ("MlpPolicy", "CnnPolicy", "MultiInputPolicy")
+
+
+def dict_space(state_dim=4, size=36):
+    return spaces.Dict(
+        {"pixels": spaces.Box(0, 255, (3, size, size), np.uint8), "state": spaces.Box(-1, 1, (state_dim,), np.float32)}
+    )
+
+
+def make_env(policy, other_shape=False):
+    """Pendulum for MlpPolicy; small random image and dict envs for the others (``other_shape``: another obs shape)."""
+    if policy == "MlpPolicy":
+        if other_shape:
+            return RandomObservationEnv(spaces.Box(-1, 1, (5,), np.float32), spaces.Box(-2, 2, (1,), np.float32))
+        return gym.make("Pendulum-v1", max_episode_steps=20)
+    if policy == "CnnPolicy":
+        space = spaces.Box(0, 255, (3, 40, 40), np.uint8) if other_shape else PIXELS
+        return RandomObservationEnv(space, ACTIONS, episode_length=20)
+    return RandomObservationEnv(dict_space(5 if other_shape else 4), ACTIONS, episode_length=20)
+
+
+def tiny(policy, **policy_kwargs):
+    kwargs = dict(feature_dim=8, hidden_dim=16)
+    if policy != "MlpPolicy":
+        kwargs["encoder_kwargs"] = dict(channels=4)
+    return {**kwargs, **policy_kwargs}
+
+
+def model_for(policy, env=None, policy_kwargs=None, **kwargs):
+    env = env if env is not None else make_env(policy)
+    return DrQv2(policy, env, **{**SMALL, "policy_kwargs": tiny(policy, **(policy_kwargs or {})), **kwargs})
+
+
+def sample_obs(model, n=None):
+    space = model.observation_space
+    if n is None:
+        return space.sample()
+    samples = [space.sample() for _ in range(n)]
+    if isinstance(space, spaces.Dict):
+        return {key: np.stack([s[key] for s in samples]) for key in space.spaces}
+    return np.stack(samples)
+
+
+def params_equal(a, b):
+    return all(th.equal(x, y) for x, y in zip(a.policy.state_dict().values(), b.policy.state_dict().values()))
+
+
+# ----------------------------------------------------------------------------- 1. callbacks
+
+
+class Count(BaseCallback):
+    def __init__(self):
+        super().__init__()
+        self.calls = 0
+
+    def _on_step(self):
+        self.calls += 1
+        return True
+
+
+def test_function_callback_as_sb3_converts_it():
+    calls = []
+    model = DrQv2("MlpPolicy", "Pendulum-v1", **SMALL, policy_kwargs=tiny("MlpPolicy"))
+    model.learn(10, callback=lambda locals_, globals_: calls.append(1) or True)
+    assert len(calls) == 10
+
+
+@pytest.mark.parametrize("kind", ["function", "list", "callback_list", "none"])
+def test_constructor_and_learn_callbacks_combine(kind):
+    ctor, learned, calls = Count(), Count(), []
+
+    def function(locals_, globals_):
+        calls.append(locals_["self"].num_timesteps)
+        return True
+
+    given = {
+        "function": function,
+        "list": [function, learned],
+        "callback_list": CallbackList([learned, ConvertCallback(function)]),
+        "none": None,
+    }[kind]
+    model = model_for("MlpPolicy", callback=[ctor, function] if kind != "none" else ctor)
+    model.learn(10, callback=given)
+    assert ctor.calls == 10
+    assert len(calls) == {"function": 20, "list": 20, "callback_list": 20, "none": 0}[kind]
+    assert learned.calls == (10 if kind in ("list", "callback_list") else 0)
+
+
+def test_a_function_returning_false_stops_learning():
+    model = model_for("MlpPolicy")
+    model.learn(50, callback=lambda locals_, globals_: locals_["self"].num_timesteps < 5)
+    assert model.num_timesteps == 5
+
+
+def test_combine_callbacks():
+    assert combine_callbacks(None, None) is None
+    one = Count()
+    assert combine_callbacks(None, one) is one
+    combined = combine_callbacks([one], lambda locals_, globals_: True)
+    assert isinstance(combined, CallbackList) and len(combined.callbacks) == 2
+    with pytest.raises(TypeError, match="BaseCallback, a function"):
+        combine_callbacks(3)
+
+
+# ----------------------------------------------------------------------------- 2. policy keywords
+
+
+def test_default_architecture_is_drqv2s():
+    model = DrQv2("CnnPolicy", make_env("CnnPolicy"), buffer_size=100)
+    assert model.policy.actor_arch == [1024, 1024] and model.policy.critic_arch == [1024, 1024]
+    assert model.policy.n_critics == 2 and model.critic.q_names == ["q1", "q2"]
+    assert tuple(model.policy.named_layers()) == LAYER_NAMES
+    explicit = DrQv2(
+        "CnnPolicy",
+        make_env("CnnPolicy"),
+        buffer_size=100,
+        policy_kwargs=dict(
+            net_arch=[1024, 1024],
+            n_critics=2,
+            share_features_extractor=True,
+            normalize_images=True,
+            activation_fn=nn.ReLU,
+        ),
+    )
+    shapes = {name: p.shape for name, p in model.policy.state_dict().items()}
+    assert {name: p.shape for name, p in explicit.policy.state_dict().items()} == shapes
+
+
+@pytest.mark.parametrize(
+    ("net_arch", "actor", "critic"),
+    [
+        ([32, 16, 8], [32, 16, 8], [32, 16, 8]),
+        (dict(pi=[12], qf=[20, 24]), [12], [20, 24]),
+        ([], [], []),
+    ],
+)
+def test_net_arch(net_arch, actor, critic):
+    model = model_for("CnnPolicy", policy_kwargs=dict(net_arch=net_arch, hidden_dim=1024))
+    linear = [m.out_features for m in model.actor.modules() if isinstance(m, nn.Linear)]
+    assert linear == [8, *actor, 2]  # trunk (feature_dim 8), hidden layers, action
+    head = [m.out_features for m in model.critic.q1 if isinstance(m, nn.Linear)]
+    assert head == [*critic, 1]
+    names = list(model.policy.named_layers())
+    assert names == [
+        "cnn0",
+        "cnn1",
+        "cnn2",
+        "cnn3",
+        "cnn4",
+        "mlp0",
+        *[f"mlp{k}" for k in range(1, len(actor) + 1)],
+        "action",
+    ]
+    model.learn(20)
+    assert model._n_updates > 0 and set(model.last_grad_norms) == set(names) - {"cnn0"}
+
+
+def test_net_arch_refusals():
+    for bad, match in [(dict(pi=[8]), "'pi'.*'qf'"), ([8, 0], "layer sizes"), ("big", "layer sizes")]:
+        with pytest.raises(ParameterError, match=match):
+            model_for("MlpPolicy", policy_kwargs=dict(net_arch=bad))
+    with pytest.raises(ParameterError, match="pass one"):
+        model_for("MlpPolicy", policy_kwargs=dict(net_arch=[8], hidden_dim=32))
+
+
+@pytest.mark.parametrize("n_critics", [1, 3])
+def test_n_critics(n_critics):
+    model = model_for("MlpPolicy", policy_kwargs=dict(n_critics=n_critics))
+    assert len(model.critic.q_networks) == n_critics == len(model.critic_target.q_networks)
+    model.learn(30)
+    assert model._n_updates > 0
+    with pytest.raises(ParameterError, match="n_critics"):
+        model_for("MlpPolicy", policy_kwargs=dict(n_critics=0))
+
+
+def test_share_features_extractor():
+    assert model_for("CnnPolicy", policy_kwargs=dict(share_features_extractor=True)).policy.share_features_extractor
+    with pytest.raises(ParameterError, match="trained by the critic loss only") as error:
+        model_for("CnnPolicy", policy_kwargs=dict(share_features_extractor=False))
+    assert error.value.parameter == "policy_kwargs['share_features_extractor']"
+
+
+def test_activation_fn():
+    model = model_for("MlpPolicy", policy_kwargs=dict(activation_fn=nn.LeakyReLU))
+    assert model.policy.activation == "leaky_relu" and isinstance(model.actor.mlp1[1], nn.LeakyReLU)
+    with pytest.raises(ParameterError, match="nn.ReLU"):
+        model_for("MlpPolicy", policy_kwargs=dict(activation_fn=nn.Tanh))
+
+
+class SmallCnn(BaseFeaturesExtractor):
+    def __init__(self, observation_space, features_dim=12):
+        super().__init__(observation_space, features_dim)
+        self.net = nn.Sequential(nn.Conv2d(observation_space.shape[0], 4, 8, stride=4), nn.ReLU(), nn.Flatten())
+        with th.no_grad():
+            n = self.net(th.zeros(1, *observation_space.shape)).shape[1]
+        self.linear = nn.Linear(n, features_dim)
+        self.inputs = []
+
+    def forward(self, obs):
+        self.inputs.append(obs.detach())
+        return self.linear(self.net(obs))
+
+
+def test_features_extractor_class_replaces_the_encoder():
+    model = model_for(
+        "CnnPolicy",
+        policy_kwargs=dict(features_extractor_class=SmallCnn, features_extractor_kwargs=dict(features_dim=12)),
+    )
+    encoder = model.policy.encoder
+    assert isinstance(encoder, FeaturesExtractorEncoder) and encoder.repr_dim == 12 and encoder.has_cnn
+    assert model.actor.trunk[0].in_features == 12
+    actor_params = {id(p) for p in model.actor.parameters()}
+    assert not actor_params & {id(p) for p in encoder.parameters()}  # trained by the critic loss only
+    before = [p.detach().clone() for p in encoder.parameters()]
+    model.learn(20)
+    assert any(not th.equal(b, p) for b, p in zip(before, encoder.parameters()))
+    seen = encoder.extractor.inputs[-1]
+    assert seen.dtype == th.float32 and 0.0 <= seen.min() and seen.max() <= 1.0  # SB3's preprocess_obs: / 255
+    with pytest.raises(ParameterError, match="BaseFeaturesExtractor"):
+        model_for("CnnPolicy", policy_kwargs=dict(features_extractor_class=nn.Linear))
+
+
+def test_features_extractor_kwargs_alone_configure_drqv2s_encoder():
+    model = model_for("CnnPolicy", policy_kwargs=dict(encoder_kwargs={}, features_extractor_kwargs=dict(channels=6)))
+    assert model.encoder.cnn1[0].out_channels == 6
+
+
+def test_float_images_with_normalize_images_false():
+    space = spaces.Box(0.0, 1.0, (3, 36, 36), np.float32)
+    model = model_for("CnnPolicy", env=RandomObservationEnv(space, ACTIONS), policy_kwargs=dict(normalize_images=False))
+    obs = th.rand(2, 3, 36, 36)
+    assert th.equal(model.encoder.cnn0(obs), obs)  # taken as they are
+    model.learn(20)
+    assert model._n_updates > 0
+    with pytest.raises(SpaceError, match="normalize_images=False"):
+        model_for("CnnPolicy", env=RandomObservationEnv(space, ACTIONS))
+
+
+def test_custom_optimizer():
+    model = model_for(
+        "CnnPolicy", policy_kwargs=dict(optimizer_class=th.optim.SGD, optimizer_kwargs=dict(momentum=0.9))
+    )
+    assert all(type(opt) is th.optim.SGD and opt.defaults["momentum"] == 0.9 for opt in model.policy.optimizers)
+    model.learn(20)
+    model.reset_from_scratch()
+    assert all(type(opt) is th.optim.SGD for opt in model.policy.optimizers)
+    model.learn(20, reset_num_timesteps=False)
+
+
+# ----------------------------------------------------------------------------- 3. algorithm keywords
+
+
+class ConstantNoise(ActionNoise):
+    def __call__(self):
+        return np.array([0.25, -2.0], np.float32)
+
+
+def test_action_noise_replaces_the_scheduled_gaussian():
+    model = model_for("CnnPolicy", action_noise=ConstantNoise(), stddev_schedule=0.5)
+    assert model.action_noise is not None
+    model.learn(12)
+    actions, buffer_actions = model._sample_action(model.learning_starts, model.action_noise)
+    mean, _ = model.predict(model._last_obs, deterministic=True)
+    np.testing.assert_allclose(buffer_actions, np.clip(mean + [0.25, -2.0], -1, 1), atol=1e-6)
+    assert model.stddev_clip == 0.3 and model.current_stddev == 0.5  # the target smoothing noise stays DrQ-v2's
+    model = model_for("MlpPolicy", action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
+    model.learn(30)
+    assert model._n_updates > 0
+
+
+def test_gradient_steps_zero_collects_without_updating():
+    model = model_for("MlpPolicy", gradient_steps=0)
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    model.learn(40)
+    assert model._n_updates == 0 and model.replay_buffer.size() == 40
+    assert all(th.equal(b, p) for b, p in zip(before, model.policy.parameters()))
+    with pytest.raises(ParameterError, match="gradient_steps"):
+        model_for("MlpPolicy", gradient_steps=-2)
+
+
+def test_optimize_memory_usage():
+    with pytest.warns(UserWarning, match="optimize_memory_usage=True is ignored.*NStepReplayBuffer"):
+        model = model_for("MlpPolicy", optimize_memory_usage=True)
+    assert not model.optimize_memory_usage and not model.replay_buffer.optimize_memory_usage
+    # SB3's ReplayBuffer supports it (without its handling of time limits, as in SB3)
+    model = model_for(
+        "MlpPolicy", optimize_memory_usage=True, n_steps=1, replay_buffer_kwargs=dict(handle_timeout_termination=False)
+    )
+    assert type(model.replay_buffer) is ReplayBuffer and model.replay_buffer.optimize_memory_usage
+    model.learn(30)
+    assert model._n_updates > 0
+    with pytest.warns(UserWarning, match="FrameStackReplayBuffer already stores each frame once"):
+        model_for(
+            "CnnPolicy",
+            env=RandomObservationEnv(spaces.Box(0, 255, (9, 36, 36), np.uint8), ACTIONS),
+            optimize_memory_usage=True,
+            replay_buffer_class=FrameStackReplayBuffer,
+            replay_buffer_kwargs=dict(frame_stack=3),
+        )
+
+
+# ----------------------------------------------------------------------------- 4. observation spaces
+
+
+def test_multi_input_policy():
+    assert DrQv2.policy_aliases["MultiInputPolicy"] is MultiInputPolicy
+    model = model_for("MultiInputPolicy")
+    assert isinstance(model.encoder, DictEncoder) and isinstance(model.replay_buffer, DictNStepReplayBuffer)
+    assert model.encoder.image_keys == ["pixels"] and model.encoder.vector_keys == ["state"]
+    assert tuple(model.policy.named_layers()) == LAYER_NAMES
+    assert model.encoder.repr_dim == model.encoder.pixel_encoders["pixels"].repr_dim + 4
+    model.learn(30)
+    assert model._n_updates > 0 and set(model.last_grad_norms) == set(LAYER_NAMES) - {"cnn0"}
+    data = model.replay_buffer.sample(4)
+    shifted = model.encoder.augment(data.observations, 4, th.tensor([[0, 0], [8, 8], [4, 4], [1, 7]]))
+    assert th.equal(shifted["state"], data.observations["state"])  # vector keys are not augmented
+    assert not th.equal(shifted["pixels"], data.observations["pixels"])
+    assert th.equal(shifted["pixels"][2], data.observations["pixels"][2])  # shift (4, 4) with pad 4: identity
+    assert type(model_for("MultiInputPolicy", n_steps=1).replay_buffer) is DictReplayBuffer
+
+
+def test_multi_input_policy_on_sb3_env():
+    env = SimpleMultiObsEnv(random_start=False, discrete_actions=False, channel_last=False)
+    model = model_for("MultiInputPolicy", env=env)
+    model.learn(20)
+    assert model._n_updates > 0
+
+
+def test_several_image_keys_name_their_layers():
+    space = spaces.Dict({"front": PIXELS, "side": PIXELS, "joints": spaces.MultiBinary(3)})
+    model = model_for("MultiInputPolicy", env=RandomObservationEnv(space, ACTIONS))
+    assert "cnn1.front" in model.policy.named_layers() and "cnn4.side" in model.policy.named_layers()
+    assert model.encoder.repr_dim == 2 * model.encoder.pixel_encoders["front"].repr_dim + 3
+    model.learn(20)
+
+
+def test_dict_n_step_buffer_equals_sb3_n_step_buffer():
+    box = spaces.Box(-1, 1, (3,), np.float32)
+    kwargs = dict(n_envs=2, n_steps=3, gamma=0.9)
+    flat = NStepReplayBuffer(20, box, ACTIONS, **kwargs)
+    nested = DictNStepReplayBuffer(20, spaces.Dict({"x": box}), ACTIONS, **kwargs)
+    rng = np.random.default_rng(0)
+    for _ in range(30):  # wraps around
+        obs, next_obs = rng.random((2, 3), np.float32), rng.random((2, 3), np.float32)
+        action, reward = rng.random((2, 2), np.float32), rng.random(2, np.float32)
+        done = rng.random(2) < 0.2
+        infos = [{"TimeLimit.truncated": bool(rng.random() < 0.2)} for _ in range(2)]
+        flat.add(obs, next_obs, action, reward, done, infos)
+        nested.add({"x": obs}, {"x": next_obs}, action, reward, done, infos)
+    np.random.seed(1)
+    expected = flat.sample(16)
+    np.random.seed(1)
+    got = nested.sample(16)
+    for field in ("actions", "rewards", "dones", "discounts"):
+        assert th.allclose(getattr(got, field), getattr(expected, field)), field
+    assert th.equal(got.observations["x"], expected.observations)
+    assert th.equal(got.next_observations["x"], expected.next_observations)
+
+
+@pytest.mark.parametrize(
+    ("space", "repr_dim"),
+    [
+        (spaces.Discrete(5), 5),
+        (spaces.MultiDiscrete([3, 2]), 5),
+        (spaces.MultiBinary(4), 4),
+    ],
+)
+def test_discrete_observations_through_preprocess_obs(space, repr_dim):
+    model = model_for("MlpPolicy", env=RandomObservationEnv(space, ACTIONS))
+    assert model.encoder.repr_dim == repr_dim  # one-hot encodings
+    model.learn(20)
+    assert model._n_updates > 0
+    action, _ = model.predict(space.sample(), deterministic=True)
+    assert action.shape == (2,)
+
+
+def test_observation_space_refusals():
+    with pytest.raises(ValueError, match="MultiInputPolicy"):
+        model_for("MlpPolicy", env=make_env("MultiInputPolicy"))
+    with pytest.raises(SpaceError, match="MultiInputPolicy takes dict observations"):
+        model_for("MultiInputPolicy", env=make_env("CnnPolicy"))
+
+
+# ----------------------------------------------------------------------------- 5. error types
+
+
+def test_unsupported_action_space_is_also_an_assertion_error():
+    env = RandomObservationEnv(spaces.Box(-1, 1, (3,), np.float32), spaces.Discrete(3))
+    for kind in (AssertionError, ParameterError, TypeError):
+        with pytest.raises(kind, match="continuous actions"):
+            DrQv2("MlpPolicy", env, **SMALL)
+    env = RandomObservationEnv(spaces.Box(-1, 1, (3,), np.float32), spaces.Box(-np.inf, np.inf, (2,), np.float32))
+    with pytest.raises(AssertionError, match="finite"):  # SB3's own assertion comes first
+        DrQv2("MlpPolicy", env, **SMALL)
+
+
+@pytest.mark.skipif(th.cuda.is_available(), reason="the refusal is for machines without a GPU")
+def test_cuda_without_gpu_is_refused():
+    with pytest.raises(ParameterError, match="torch sees none"):
+        model_for("MlpPolicy", device="cuda")
+
+
+# ----------------------------------------------------------------------------- 6. the rest of SB3's contract
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_save_load_parameters_and_replay_buffer(policy, tmp_path):
+    model = model_for(policy)
+    model.learn(30)
+    obs = sample_obs(model, 3)
+    expected, _ = model.predict(obs, deterministic=True)
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+
+    without_env = DrQv2.load(tmp_path / "model.zip")
+    assert without_env.get_env() is None
+    np.testing.assert_array_equal(without_env.predict(obs, deterministic=True)[0], expected)
+    for kind in (ValueError, AssertionError):  # SB3 asserts
+        with pytest.raises(kind, match="needs an environment"):
+            without_env.learn(10)
+
+    loaded = DrQv2.load(tmp_path / "model.zip", env=make_env(policy), custom_objects={"learning_rate": 3e-4})
+    assert loaded.learning_rate == 3e-4 and loaded.lr_schedule(1.0) == 3e-4
+    assert params_equal(loaded, model) and loaded.num_timesteps == 30
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert type(loaded.replay_buffer) is type(model.replay_buffer)
+    assert loaded.replay_buffer.size() == model.replay_buffer.size() == 30
+    loaded.learn(10, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 40
+
+    # get_parameters / set_parameters
+    fresh = model_for(policy, seed=1)
+    assert not params_equal(fresh, model)
+    parameters = model.get_parameters()
+    assert {"policy", "actor.optimizer", "critic.optimizer"} <= set(parameters)
+    fresh.set_parameters(parameters, exact_match=True)
+    assert params_equal(fresh, model)
+    np.testing.assert_array_equal(fresh.predict(obs, deterministic=True)[0], expected)
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_set_env(policy):
+    model = model_for(policy)
+    model.set_env(DummyVecEnv([lambda: make_env(policy)]))
+    model.learn(10)
+    with pytest.raises(ValueError, match="spaces do not match"):
+        model.set_env(make_env(policy, other_shape=True))
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_predict_shapes(policy):
+    model = model_for(policy)
+    single = sample_obs(model)
+    for deterministic in (True, False):
+        action, state = model.predict(single, deterministic=deterministic)
+        assert action.shape == (2,) or (policy == "MlpPolicy" and action.shape == (1,))
+        assert state is None
+        actions, _ = model.predict(sample_obs(model, 4), deterministic=deterministic)
+        assert actions.shape[0] == 4 and actions.shape[1:] == action.shape
+        assert model.action_space.contains(actions[0].astype(np.float32))
+    actions, state = model.predict(
+        sample_obs(model, 2), state=None, episode_start=np.array([True, False]), deterministic=True
+    )
+    assert actions.shape[0] == 2 and state is None
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_evaluate_policy(policy):
+    model = model_for(policy)
+    mean, std = evaluate_policy(model, model.get_env(), n_eval_episodes=2)
+    assert np.isfinite(mean) and np.isfinite(std)
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_seeded_runs_are_identical(policy):
+    runs = []
+    for _ in range(2):
+        model = model_for(policy, seed=7)
+        model.learn(24)
+        runs.append(model)
+    assert runs[0]._n_updates > 0 and params_equal(*runs)
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_tensorboard_folder_and_learning_twice(policy, tmp_path):
+    model = model_for(policy, tensorboard_log=str(tmp_path))
+    model.learn(12)
+    assert (tmp_path / "DrQv2_1").is_dir()
+    model.learn(12, reset_num_timesteps=False)
+    assert model.num_timesteps == 24 and sorted(p.name for p in tmp_path.iterdir()) == ["DrQv2_1"]
+    model.learn(12)
+    assert model.num_timesteps == 12 and sorted(p.name for p in tmp_path.iterdir()) == ["DrQv2_1", "DrQv2_2"]
+
+
+def test_vec_normalize():
+    env = VecNormalize(DummyVecEnv([lambda: make_env("MlpPolicy")]), gamma=0.99)
+    model = model_for("MlpPolicy", env=env)
+    model.learn(40)
+    assert model._n_updates > 0 and model.get_vec_normalize_env() is env
+    assert env.obs_rms.count > 1
+
+
+def test_fake_image_env():
+    env = FakeImageEnv(action_dim=2, screen_height=36, screen_width=36, n_channels=3, discrete=False)
+    model = model_for("CnnPolicy", env=env)  # channel-last: SB3 transposes it (VecTransposeImage)
+    assert model.observation_space.shape == (3, 36, 36)
+    model.learn(20)
+    assert model._n_updates > 0
