@@ -69,7 +69,7 @@ from sb3_collapse.checkpoints import (
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.drqv2.checks import check_hyperparameters
 from sb3_collapse.drqv2.divergence import DivergenceError
-from sb3_collapse.drqv2.policies import ACTIVATIONS, check_activation, check_image_size
+from sb3_collapse.drqv2.encoders import ACTIVATIONS, check_activation, check_image_size
 from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import make_dmc_env, parse_task

@@ -29,6 +29,7 @@ from sb3_collapse.drqv2.checks import (
     compile_mode,
 )
 from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
+from sb3_collapse.drqv2.encoders import PixelEncoder, StateEncoder
 from sb3_collapse.drqv2.policies import (
     Actor,
     CnnPolicy,
@@ -36,8 +37,6 @@ from sb3_collapse.drqv2.policies import (
     DrQv2Policy,
     MlpPolicy,
     MultiInputPolicy,
-    PixelEncoder,
-    StateEncoder,
     check_action_space,
     critic_mse,
     exploration_noise,

@@ -14,7 +14,8 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 
-from sb3_collapse.drqv2.policies import CnnPolicy, PixelEncoder
+from sb3_collapse.drqv2.encoders import PixelEncoder
+from sb3_collapse.drqv2.policies import CnnPolicy
 from sb3_collapse.drqv2.replay_buffer import (
     DEFAULT_MIN_EPISODE_LENGTH,
     FrameStackReplayBuffer,

@@ -40,7 +40,8 @@ import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
 
-from sb3_collapse.drqv2.policies import DrQv2Policy, PixelEncoder
+from sb3_collapse.drqv2.encoders import PixelEncoder
+from sb3_collapse.drqv2.policies import DrQv2Policy
 
 TRANSPLANT_GROUPS: dict[str, tuple[str, ...]] = {
     "cnn": ("encoder.",),

@@ -5,7 +5,8 @@ from gymnasium import spaces
 from torch import nn
 
 from sb3_collapse.common.layers import LAYER_NAMES
-from sb3_collapse.drqv2.policies import FUSED_CONV_RELU, CnnPolicy, ConvReLU, MlpPolicy, sample_action
+from sb3_collapse.drqv2.encoders import FUSED_CONV_RELU, ConvReLU
+from sb3_collapse.drqv2.policies import CnnPolicy, MlpPolicy, sample_action
 
 PIXELS = spaces.Box(0, 255, (9, 84, 84), np.uint8)
 ACTIONS = spaces.Box(-1.0, 1.0, (6,), np.float32)

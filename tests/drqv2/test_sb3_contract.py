@@ -17,7 +17,8 @@ from torch import nn
 from sb3_collapse import DrQv2
 from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
-from sb3_collapse.drqv2.policies import DictEncoder, FeaturesExtractorEncoder, MultiInputPolicy
+from sb3_collapse.drqv2.encoders import DictEncoder, FeaturesExtractorEncoder
+from sb3_collapse.drqv2.policies import MultiInputPolicy
 from sb3_collapse.drqv2.sb3_compat import DictNStepReplayBuffer, combine_callbacks
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.errors import ParameterError, SpaceError

@@ -7,7 +7,7 @@ import torch as th
 from stable_baselines3 import TD3
 
 from sb3_collapse import DrQv2
-from sb3_collapse.drqv2.policies import PixelEncoder
+from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.drqv2.transplant import (
     GROUP_LAYERS,
     TRANSPLANT_GROUPS,

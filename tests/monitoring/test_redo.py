@@ -9,7 +9,7 @@ import torch as th
 from torch import nn
 
 from sb3_collapse import DrQv2, PeriodicReDo
-from sb3_collapse.drqv2.policies import LEAKY_RELU_SLOPE, weight_init
+from sb3_collapse.drqv2.encoders import LEAKY_RELU_SLOPE, weight_init
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring import ProbeBatchSampler, apply_intervention, collect_activations, dead_fraction

@@ -1,0 +1,513 @@
+"""The encoders of DrQ-v2's policies and their pieces: DrQ-v2's convolutional encoder of pixels (``cnn0``..``cnn4``),
+the state encoder of ``MlpPolicy``, the encoder of dict observations (``MultiInputPolicy``), a user's SB3 features
+extractor in its place, the hidden activation and DrQ-v2's weight initialization; the checks of observation spaces
+and image sizes."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.preprocessing import get_flattened_obs_dim, is_image_space, preprocess_obs
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.type_aliases import PyTorchObs
+from torch import nn
+
+from sb3_collapse.drqv2.augmentation import random_shift
+from sb3_collapse.errors import ParameterError, SpaceError
+
+ACTIVATIONS = ("relu", "leaky_relu")
+"""The hidden activations of the networks: ReLU (DrQ-v2's) or Leaky-ReLU (the paper's footnote 1 ablation)."""
+
+LEAKY_RELU_SLOPE = 0.01
+"""Negative slope of the Leaky-ReLU: PyTorch's default (the paper does not give one; Maas et al., 2013 used 0.01)."""
+
+
+
+def check_activation(activation: str, leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> None:
+    """
+    :param activation: one of :data:`ACTIVATIONS`
+    :param leaky_relu_slope: the Leaky-ReLU's negative slope, in (0, 1)
+    :raises ParameterError: for another activation or slope
+    """
+    if activation not in ACTIVATIONS:
+        raise ParameterError("activation", f"activation must be one of {', '.join(ACTIVATIONS)}, got {activation!r}.")
+    if isinstance(leaky_relu_slope, bool) or not 0.0 < leaky_relu_slope < 1.0:
+        raise ParameterError(
+            "leaky_relu_slope", f"leaky_relu_slope must be in (0, 1) (0 is a ReLU), got {leaky_relu_slope!r}."
+        )
+
+
+def hidden_activation(activation: str = "relu", leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> nn.Module:
+    """
+    :param activation: ``"relu"`` or ``"leaky_relu"``
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
+    :return: a new in-place activation module: ``nn.ReLU`` or ``nn.LeakyReLU(leaky_relu_slope)``
+    """
+    check_activation(activation, leaky_relu_slope)
+    if activation == "leaky_relu":
+        return nn.LeakyReLU(leaky_relu_slope, inplace=True)
+    return nn.ReLU(inplace=True)
+
+
+def weight_init(module: nn.Module) -> None:
+    """
+    DrQ-v2's initialization: orthogonal weights (gain 1 for Linear, sqrt(2) for Conv), zero biases.
+    LayerNorm keeps PyTorch's default (unit scale, zero shift).
+
+    :param module: module to initialize in place (use with ``Module.apply``)
+    """
+    if isinstance(module, nn.Linear):
+        nn.init.orthogonal_(module.weight.data)
+        if module.bias is not None:
+            module.bias.data.fill_(0.0)
+    elif isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
+        nn.init.orthogonal_(module.weight.data, nn.init.calculate_gain("relu"))
+        if module.bias is not None:
+            module.bias.data.fill_(0.0)
+
+
+class PixelNormalization(nn.Module):
+    """
+    ``cnn0``: uint8 pixels to floats in [-0.5, 0.5] (DrQ-v2's ``obs / 255 - 0.5``).
+
+    :param channels_last: return the images in ``channels_last`` memory format (faster convolutions)
+    :param normalize_images: ``False``: the images are already normalized (SB3's ``normalize_images=False``), they
+        are only converted to float
+    """
+
+    def __init__(self, channels_last: bool = True, normalize_images: bool = True) -> None:
+        super().__init__()
+        self.channels_last = channels_last
+        self.normalize_images = normalize_images
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        if self.channels_last:
+            obs = obs.contiguous(memory_format=th.channels_last)
+        if not self.normalize_images:
+            return obs.float()
+        return obs.float().div_(255.0).sub_(0.5) if obs.dtype == th.uint8 else obs.float() / 255.0 - 0.5
+
+
+def _fused_conv_relu_available() -> bool:
+    """Whether this torch build has oneDNN's convolution with a fused ReLU (``torch.ops.mkldnn``, CPU)."""
+    try:
+        return th.backends.mkldnn.is_available() and hasattr(th.ops.mkldnn, "_convolution_pointwise")
+    except (AttributeError, RuntimeError):
+        return False
+
+
+FUSED_CONV_RELU = _fused_conv_relu_available()
+"""Whether :class:`ConvReLU` runs its convolution and ReLU as one oneDNN kernel on the CPU."""
+
+
+class _FusedConvReLU(th.autograd.Function):
+    """``relu(conv2d(x, weight, bias))`` as one oneDNN kernel forward; backward as autograd computes it."""
+
+    @staticmethod
+    def forward(ctx: Any, x: th.Tensor, weight: th.Tensor, bias: th.Tensor, conv: nn.Conv2d) -> th.Tensor:
+        args = (list(conv.padding), list(conv.stride), list(conv.dilation), conv.groups)
+        y = th.ops.mkldnn._convolution_pointwise(x, weight, bias, *args, "relu", [], "")
+        ctx.save_for_backward(x, weight, y)
+        ctx.args = args
+        return y
+
+    @staticmethod
+    def backward(ctx: Any, grad_y: th.Tensor) -> tuple[th.Tensor | None, ...]:
+        x, weight, y = ctx.saved_tensors
+        padding, stride, dilation, groups = ctx.args
+        grad_z = th.ops.aten.threshold_backward(grad_y, y, 0)
+        grads = th.ops.aten.convolution_backward(
+            grad_z, x, weight, [weight.shape[0]], stride, padding, dilation, False, [0, 0], groups,
+            list(ctx.needs_input_grad[:3]),
+        )
+        return (*grads, None)
+
+
+class ConvReLU(nn.Sequential):
+    """
+    ``Conv2d`` then ``ReLU`` (or Leaky-ReLU): one named layer (``cnn1``..``cnn4``), whose output is the activation
+    after the ReLU.
+
+    On the CPU, for float32 inputs, the two run as one oneDNN kernel (the convolution with a fused ReLU): the same
+    values as running them one after the other (tested), without a second pass over the activation. Elsewhere
+    (CUDA, other dtypes, under ``torch.compile``, which fuses by itself) it is the plain ``Sequential``; with
+    a Leaky-ReLU (the fused kernel is ReLU only) too.
+
+    :param in_channels: input channels
+    :param out_channels: filters
+    :param stride: stride of the 3x3 convolution (no padding)
+    :param fused: run the two as one kernel where possible; ``False`` runs them one after the other everywhere
+    :param activation: ``"relu"`` or ``"leaky_relu"`` (:func:`hidden_activation`)
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        stride: int,
+        fused: bool = True,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
+    ) -> None:
+        conv = nn.Conv2d(in_channels, out_channels, 3, stride=stride)
+        super().__init__(conv, hidden_activation(activation, leaky_relu_slope))
+        self.fused = fused and activation == "relu"
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        conv = self[0]
+        fusable = self.fused and x.device.type == "cpu" and x.dtype == conv.weight.dtype == th.float32
+        if FUSED_CONV_RELU and fusable and not th.compiler.is_compiling():
+            return _FusedConvReLU.apply(x, conv.weight, conv.bias, conv)
+        return super().forward(x)
+
+
+class PixelEncoder(nn.Module):
+    """
+    DrQ-v2's convolutional encoder: ``cnn0`` normalization, then four 3x3 convolutions with 32 channels
+    (stride 2, then 1, 1, 1), no padding, ReLU after each; the output is flattened.
+    Initialized with :func:`weight_init` at construction.
+
+    With ``channels_last`` (the default) the convolutions run in ``channels_last`` memory format, faster on
+    CPU (oneDNN) and GPU (cuDNN), and the output is flattened in (H, W, C) order, which is free in that format;
+    otherwise in DrQ-v2's (C, H, W) order. The order only permutes the inputs of the trunks' first Linear
+    layers, whose orthogonal initialization is invariant to it: the learning dynamics are the same.
+    The ``cnnK`` activations (module outputs) are the same tensors either way.
+
+    :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
+    :param channels: number of filters of every convolution
+    :param channels_last: run the convolutions in ``channels_last`` memory format
+    :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`, same values;
+        ignored with a Leaky-ReLU)
+    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` after each convolution
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
+    :param normalize_images: ``True``: ``uint8`` images, ``cnn0`` computes ``obs / 255 - 0.5``; ``False`` (SB3's
+        keyword): images already normalized, any float ``Box`` of shape ``(channels, height, width)``, taken as they
+        are
+    """
+
+    has_cnn = True
+    """Random-shift augmentation applies to the observations (they are images)."""
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        channels: int = 32,
+        channels_last: bool = True,
+        fused_relu: bool = True,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
+        normalize_images: bool = True,
+    ) -> None:
+        super().__init__()
+        check_pixel_space(observation_space, normalize_images)
+        for name, size in zip(("height", "width"), observation_space.shape[1:]):
+            check_image_size(size, f"observation {name}")
+        in_channels = observation_space.shape[0]
+        self.cnn0 = PixelNormalization(channels_last, normalize_images)
+        act = dict(fused=fused_relu, activation=activation, leaky_relu_slope=leaky_relu_slope)
+        self.cnn1 = ConvReLU(in_channels, channels, stride=2, **act)  # type: ignore[arg-type]
+        self.cnn2 = ConvReLU(channels, channels, stride=1, **act)  # type: ignore[arg-type]
+        self.cnn3 = ConvReLU(channels, channels, stride=1, **act)  # type: ignore[arg-type]
+        self.cnn4 = ConvReLU(channels, channels, stride=1, **act)  # type: ignore[arg-type]
+        self.apply(weight_init)
+        self.channels_last = channels_last
+        if channels_last:
+            self.to(memory_format=th.channels_last)
+        self.repr_dim = channels * int(np.prod(_conv_output_size(observation_space.shape[1:])))
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        h = self.cnn4(self.cnn3(self.cnn2(self.cnn1(self.cnn0(obs)))))
+        if self.channels_last:
+            # (H, W, C) order: a free view of channels_last memory, where (C, H, W) order needs a copy.
+            return h.permute(0, 2, 3, 1).flatten(1)
+        return h.flatten(1)
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        return {"cnn0": self.cnn0, "cnn1": self.cnn1, "cnn2": self.cnn2, "cnn3": self.cnn3, "cnn4": self.cnn4}
+
+    def augment(self, obs: th.Tensor, pad: int, shifts: th.Tensor) -> th.Tensor:
+        """
+        :param obs: a batch of images
+        :param pad: random-shift padding in pixels
+        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`
+        :return: the shifted images, in the memory format the convolutions take (no copy in ``cnn0``)
+        """
+        return random_shift(obs, pad, shifts, self.channels_last)
+
+
+class StateEncoder(nn.Module):
+    """
+    Identity encoder for state vectors (``MlpPolicy``): the actor and critic trunks read the state directly.
+
+    Observations go through SB3's ``preprocess_obs`` and are flattened, as SB3's ``FlattenExtractor`` does: a
+    ``Box`` as floats, ``Discrete`` and ``MultiDiscrete`` one-hot encoded, ``MultiBinary`` as floats.
+
+    :param observation_space: a ``Box`` that is not an image (any shape, flattened), ``Discrete``, ``MultiDiscrete``
+        or ``MultiBinary``
+    :param activation: unused (no layer), accepted so that every encoder takes the policy's activation
+    :param leaky_relu_slope: unused
+    :param normalize_images: unused (no image), accepted as SB3's policies accept it
+    """
+
+    has_cnn = False
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
+        normalize_images: bool = True,
+    ) -> None:
+        super().__init__()
+        check_state_space(observation_space)
+        self.observation_space = observation_space
+        self.repr_dim = int(get_flattened_obs_dim(observation_space))
+        self.apply(weight_init)
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        if isinstance(self.observation_space, spaces.Box):
+            return obs.float().flatten(1)
+        return preprocess_obs(obs, self.observation_space).flatten(1)  # type: ignore[union-attr]
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        return {}
+
+
+def _image_keys(observation_space: spaces.Dict, normalize_images: bool) -> list[str]:
+    """The keys of a ``Dict`` space whose spaces are channel-first images (uint8, or any float with
+    ``normalize_images=False``)."""
+    return [
+        key
+        for key, space in observation_space.spaces.items()
+        if is_image_space(space, check_channels=False, normalized_image=not normalize_images)
+        and space.shape[0] < min(space.shape[1:])
+    ]
+
+
+def _shift_images(obs: Any, pad: int, shifts: th.Tensor, image_keys: Sequence[str] | None) -> Any:
+    """Random shift of the images of ``obs``: the tensor itself (``image_keys=None``) or its ``image_keys``."""
+    if image_keys is None:
+        return random_shift(obs, pad, shifts)
+    return {key: random_shift(value, pad, shifts) if key in image_keys else value for key, value in obs.items()}
+
+
+class DictEncoder(nn.Module):
+    """
+    Encoder of ``spaces.Dict`` observations (``MultiInputPolicy``), as visual RL with proprioception does: DrQ-v2's
+    :class:`PixelEncoder` on each image key (a channel-first ``uint8`` ``Box``; any float ``Box`` of 3 dimensions
+    with ``normalize_images=False``), every other key through SB3's ``preprocess_obs`` (one-hot for discrete
+    spaces), flattened; all concatenated, the image features first (in the space's key order), then the others.
+
+    Random-shift augmentation applies to the image keys only; a sample's image keys share one shift.
+
+    Named layers: with one image key, its encoder's ``cnn0``..``cnn4``; with several, ``cnn0.<key>``..
+    ``cnn4.<key>`` for each key; none without an image key.
+
+    :param observation_space: a ``spaces.Dict`` of ``Box``, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
+    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in the pixel encoders
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
+    :param normalize_images: as :class:`PixelEncoder`'s
+    :param encoder_kwargs: keyword arguments of each :class:`PixelEncoder` (``channels``, ``channels_last``,
+        ``fused_relu``)
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        activation: str = "relu",
+        leaky_relu_slope: float = LEAKY_RELU_SLOPE,
+        normalize_images: bool = True,
+        **encoder_kwargs: Any,
+    ) -> None:
+        super().__init__()
+        if not isinstance(observation_space, spaces.Dict):
+            raise SpaceError(
+                "policy",
+                f"MultiInputPolicy takes dict observations (gymnasium.spaces.Dict), got {observation_space}: use "
+                "CnnPolicy for images, MlpPolicy for state vectors.",
+            )
+        self.observation_space = observation_space
+        self.image_keys = _image_keys(observation_space, normalize_images)
+        self.vector_keys = [key for key in observation_space.spaces if key not in self.image_keys]
+        for key in self.vector_keys:
+            check_state_space(observation_space[key], f"MultiInputPolicy's key {key!r}")
+        kwargs = dict(activation=activation, leaky_relu_slope=leaky_relu_slope, normalize_images=normalize_images)
+        self.pixel_encoders = nn.ModuleDict(
+            {key: PixelEncoder(observation_space[key], **{**kwargs, **encoder_kwargs}) for key in self.image_keys}
+        )
+        self.has_cnn = bool(self.image_keys)
+        self.repr_dim = sum(encoder.repr_dim for encoder in self.pixel_encoders.values()) + sum(
+            get_flattened_obs_dim(observation_space[key]) for key in self.vector_keys
+        )
+
+    def forward(self, obs: dict[str, th.Tensor]) -> th.Tensor:
+        features = [self.pixel_encoders[key](obs[key]) for key in self.image_keys]
+        for key in self.vector_keys:
+            features.append(preprocess_obs(obs[key], self.observation_space[key]).float().flatten(1))  # type: ignore[union-attr]
+        return th.cat(features, dim=1)
+
+    def augment(self, obs: dict[str, th.Tensor], pad: int, shifts: th.Tensor) -> dict[str, th.Tensor]:
+        """
+        :param obs: a batch of dict observations
+        :param pad: random-shift padding in pixels
+        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`, one per sample
+        :return: the observations, their image keys shifted
+        """
+        return {
+            key: self.pixel_encoders[key].augment(value, pad, shifts) if key in self.image_keys else value
+            for key, value in obs.items()
+        }
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        if len(self.image_keys) == 1:
+            return self.pixel_encoders[self.image_keys[0]].named_layers()
+        return {
+            f"{name}.{key}": module
+            for key in self.image_keys
+            for name, module in self.pixel_encoders[key].named_layers().items()
+        }
+
+
+class FeaturesExtractorEncoder(nn.Module):
+    """
+    A user's SB3 features extractor (``policy_kwargs=dict(features_extractor_class=...)``) in place of DrQ-v2's
+    encoder: the observations go through SB3's ``preprocess_obs`` (images divided by 255 unless
+    ``normalize_images=False``, discrete spaces one-hot encoded), then the extractor, as in SB3's policies. It is
+    shared by the actor and the critic and trained by the critic loss only, as DrQ-v2's encoder.
+
+    Random-shift augmentation applies to image observations (a channel-first image ``Box``, or the image keys of a
+    ``Dict``), before the extractor. The extractor keeps its own initialization; it has no named layers.
+
+    :param observation_space: the observation space
+    :param features_extractor_class: a ``BaseFeaturesExtractor`` subclass
+    :param features_extractor_kwargs: its keyword arguments
+    :param normalize_images: SB3's: divide images by 255
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        features_extractor_class: type[BaseFeaturesExtractor],
+        features_extractor_kwargs: Mapping[str, Any] | None = None,
+        normalize_images: bool = True,
+    ) -> None:
+        super().__init__()
+        if not (
+            isinstance(features_extractor_class, type) and issubclass(features_extractor_class, BaseFeaturesExtractor)
+        ):
+            raise ParameterError(
+                "policy_kwargs['features_extractor_class']",
+                "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
+                f"(stable_baselines3.common.torch_layers), got {features_extractor_class!r}.",
+            )
+        self.observation_space = observation_space
+        self.normalize_images = normalize_images
+        self.extractor = features_extractor_class(observation_space, **(features_extractor_kwargs or {}))
+        self.repr_dim = int(self.extractor.features_dim)
+        self.image_keys: list[str] | None = None
+        if isinstance(observation_space, spaces.Dict):
+            self.image_keys = _image_keys(observation_space, normalize_images)
+            self.has_cnn = bool(self.image_keys)
+        else:
+            self.has_cnn = is_image_space(observation_space, normalized_image=not normalize_images) and (
+                observation_space.shape[0] < min(observation_space.shape[1:])  # channel-first
+            )
+
+    def forward(self, obs: PyTorchObs) -> th.Tensor:
+        return self.extractor(preprocess_obs(obs, self.observation_space, self.normalize_images))
+
+    def augment(self, obs: PyTorchObs, pad: int, shifts: th.Tensor) -> PyTorchObs:
+        """
+        :param obs: a batch of observations
+        :param pad: random-shift padding in pixels
+        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`, one per sample
+        :return: the observations, their images shifted
+        """
+        return _shift_images(obs, pad, shifts, self.image_keys)
+
+    def named_layers(self) -> dict[str, nn.Module]:
+        return {}
+
+
+def check_pixel_space(observation_space: spaces.Space, normalize_images: bool = True) -> None:
+    """
+    :param observation_space: space to check
+    :param normalize_images: ``False``: any float ``Box`` of 3 dimensions is an image (already normalized)
+    :raises SpaceError: unless it is a channel-first image ``Box`` (``(C, H, W)``, ``C < H, W``), ``uint8`` in
+        [0, 255] unless ``normalize_images=False``
+    """
+    if not (
+        isinstance(observation_space, spaces.Box)
+        and is_image_space(observation_space, check_channels=False, normalized_image=not normalize_images)
+        and observation_space.shape[0] < min(observation_space.shape[1:])
+    ):
+        raise SpaceError(
+            "policy",
+            f"CnnPolicy needs channel-first uint8 image observations of shape (channels, height, width), "
+            f"such as make_dmc_env(...)'s (9, 84, 84), but got {observation_space}. "
+            "Use MlpPolicy for state vectors (make_dmc_env(..., obs_type='state')), MultiInputPolicy for dict "
+            "observations, and policy_kwargs=dict(normalize_images=False) for float images already normalized.",
+        )
+    height, width = observation_space.shape[1:]
+    if min(_conv_output_size((height, width))) < 1:
+        raise SpaceError(
+            "env", f"Images of {height}x{width} pixels are too small for the DrQ-v2 encoder (at least 15x15)."
+        )
+
+
+STATE_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+"""The observation spaces of ``MlpPolicy`` (and of the non-image keys of ``MultiInputPolicy``)."""
+
+
+def check_state_space(observation_space: spaces.Space, where: str = "MlpPolicy") -> None:
+    """
+    :param observation_space: space to check
+    :param where: who takes it, for the message
+    :raises SpaceError: unless it is a ``Box`` that is not an image (flattened), ``Discrete``, ``MultiDiscrete`` or
+        ``MultiBinary``
+    """
+    if isinstance(observation_space, spaces.Box) and is_image_space(observation_space, check_channels=False):
+        raise SpaceError(
+            "policy",
+            f"{where} takes state vectors, but the observations are images {observation_space}: use CnnPolicy.",
+        )
+    if isinstance(observation_space, spaces.Dict):
+        raise SpaceError(
+            "policy",
+            f"{where} takes state vectors, got dict observations {observation_space}: use MultiInputPolicy "
+            "(images through DrQ-v2's encoder, the other keys concatenated), or flatten them "
+            "(gymnasium.wrappers.FlattenObservation).",
+        )
+    if not isinstance(observation_space, STATE_SPACES):
+        raise SpaceError(
+            "policy",
+            f"{where} needs a Box, Discrete, MultiDiscrete or MultiBinary observation space, got {observation_space}.",
+        )
+
+
+def _conv_output_size(image_size: tuple[int, ...]) -> tuple[int, ...]:
+    """Height and width after the encoder: 3x3 stride 2 then three 3x3 stride 1, no padding."""
+    return tuple((size - 3) // 2 + 1 - 6 for size in image_size)
+
+
+MIN_IMAGE_SIZE = 15
+"""The smallest image height and width, in pixels, that the encoder's convolutions leave at least 1x1 of."""
+
+
+def check_image_size(size: int, name: str = "size") -> None:
+    """
+    :param size: an image height or width, in pixels
+    :param name: the parameter's name, for the message
+    :raises ParameterError: when the encoder's convolutions would leave nothing of it
+    """
+    if size < MIN_IMAGE_SIZE:
+        raise ParameterError(
+            name,
+            f"{name} must be >= {MIN_IMAGE_SIZE} pixels (the encoder's 3x3 convolutions, the first with stride 2, "
+            f"leave nothing of smaller images), got {size}.",
+        )
