@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import pathlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -145,3 +145,23 @@ def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv
         if not given.is_file() and not (given.suffix != ".zip" and zipped.is_file()):
             tried = f"{os.fspath(path)!r}" + ("" if given.suffix == ".zip" else f" (nor {os.fspath(zipped)!r})")
             raise FileNotFoundError(f"{name}: no model file {tried}; give the path of a zip saved by DrQv2.save.")
+
+
+def compile_losses(critic_loss: Callable, actor_loss: Callable, compile_update: bool | str, device: th.device) -> tuple:
+    """
+    :param critic_loss: ``DrQv2._critic_loss``
+    :param actor_loss: ``DrQv2._actor_loss``
+    :param compile_update: ``DrQv2``'s argument (``False``: the functions as they are)
+    :param device: the model's device
+    :return: the two functions, ``torch.compile``-d in :func:`compile_mode` with static shapes (the batch size is fixed
+        during training: another batch size compiles its own code)
+    """
+    if not compile_update:
+        return critic_loss, actor_loss
+    mode = compile_mode(compile_update, device)
+    return th.compile(critic_loss, mode=mode, dynamic=False), th.compile(actor_loss, mode=mode, dynamic=False)
+
+
+def uses_cuda_graphs(compile_update: bool | str, device: th.device) -> bool:
+    """:return: whether the compiled update replays CUDA graphs (each update then starts a new graph step)"""
+    return bool(compile_update) and device.type == "cuda" and compile_mode(compile_update, device) in CUDA_GRAPH_MODES

@@ -22,11 +22,11 @@ from sb3_collapse.common.saved_callbacks import callback_specs, restore_callback
 from sb3_collapse.drqv2 import replay_memory
 from sb3_collapse.drqv2.augmentation import draw_shifts
 from sb3_collapse.drqv2.checks import (
-    CUDA_GRAPH_MODES,
     check_compile_update,
     check_hyperparameters,
     check_load_arguments,
-    compile_mode,
+    compile_losses,
+    uses_cuda_graphs,
 )
 from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
 from sb3_collapse.drqv2.encoders import PixelEncoder, StateEncoder
@@ -345,7 +345,7 @@ class DrQv2(RoundsAlgorithm):
         actor_noise = exploration_noise((batch_size, action_dim), std, self.stddev_clip, self.device)
 
         critic_loss_fn, actor_loss_fn = self._loss_functions()
-        if self._uses_cuda_graphs():
+        if uses_cuda_graphs(self.compile_update, self.device):
             th.compiler.cudagraph_mark_step_begin()
         critic_loss, features, q1, q2, target_q = critic_loss_fn(
             data.observations,
@@ -448,21 +448,9 @@ class DrQv2(RoundsAlgorithm):
 
     def _loss_functions(self) -> tuple[Any, Any]:
         """:meth:`_critic_loss` and :meth:`_actor_loss`, compiled once (lazily) when ``compile_update`` says so."""
-        if not self.compile_update:
-            return self._critic_loss, self._actor_loss
         if self._compiled_losses is None:
-            mode = compile_mode(self.compile_update, self.device)
-            # Static shapes (the batch size is fixed during training): another batch size compiles its own code.
-            self._compiled_losses = (
-                th.compile(self._critic_loss, mode=mode, dynamic=False),
-                th.compile(self._actor_loss, mode=mode, dynamic=False),
-            )
+            self._compiled_losses = compile_losses(self._critic_loss, self._actor_loss, self.compile_update, self.device)
         return self._compiled_losses
-
-    def _uses_cuda_graphs(self) -> bool:
-        """Whether the compiled update replays CUDA graphs (each update then starts a new graph step)."""
-        mode = compile_mode(self.compile_update, self.device) if self.compile_update else None
-        return self.device.type == "cuda" and mode in CUDA_GRAPH_MODES
 
     def dump_logs(self) -> None:
         """SB3's log dump, with the means of the updates since the last dump, checked by the divergence guard."""
