@@ -783,11 +783,34 @@ class ResumableCheckpoints(BaseCallback):
         self.seconds += time.perf_counter() - start
         if self.verbose >= 1:
             print(
-                f"Checkpoint at frame {self._frames():,}: {self.last_checkpoint} "
-                f"({time.perf_counter() - start:.1f} s)",
+                f"Checkpoint at frame {self._frames():,}: {self.last_checkpoint} ({time.perf_counter() - start:.1f} s)",
                 flush=True,
             )
         return self.last_checkpoint
+
+
+_stop_requests: list[str] = []
+"""Signal names of :func:`request_training_stop` calls not yet cleared (this process's training stops at them)."""
+_training: list[ResumableCheckpoints] = []
+"""The checkpoint callbacks of the runs training in this process (inside :func:`stop_signals`)."""
+
+
+def request_training_stop(signal_name: str) -> None:
+    """
+    Ask the training of this process to write a checkpoint and stop, as a SIGTERM would: at once for a run inside
+    :func:`stop_signals`, at its start for a run that has not got there yet. Safe from any thread (a sweep's trial
+    calls it when its driver asks the trials to stop).
+
+    :param signal_name: the signal the stop stands for (``"SIGTERM"``), named by :class:`TrainingInterrupted`
+    """
+    _stop_requests.append(signal_name)
+    for checkpoints in _training.copy():  # a copy: a run may end in another thread meanwhile
+        checkpoints.request_stop(signal_name)
+
+
+def clear_training_stop() -> None:
+    """Forget the requests of :func:`request_training_stop`: a later run of this process trains again."""
+    _stop_requests.clear()
 
 
 @contextlib.contextmanager
@@ -795,22 +818,40 @@ def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
     """
     While inside, SIGTERM and SIGINT ask ``checkpoints`` to write a checkpoint and stop (the run ends with
     :class:`TrainingInterrupted`); a second SIGINT stops at once (``KeyboardInterrupt``). Outside the main thread,
-    nothing is installed.
+    no signal handler is installed. A :func:`request_training_stop` (before or while inside) does what a SIGTERM
+    does, in any thread.
 
     :param checkpoints: the run's checkpoint callback
     """
+    _training.append(checkpoints)
+    if _stop_requests:
+        checkpoints.request_stop(_stop_requests[0])
+    try:
+        with _signal_handlers(checkpoints):
+            yield
+    finally:
+        _training.remove(checkpoints)
+
+
+@contextlib.contextmanager
+def _signal_handlers(checkpoints: ResumableCheckpoints) -> Iterator[None]:
+    """SIGTERM and SIGINT handlers for :func:`stop_signals` (in the main thread only)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+    received: list[str] = []  # signals, not requests: a sweep's request and a Ctrl-C are one stop, not two
 
     def handler(signum: int, _frame: Any) -> None:
         name = signal.Signals(signum).name
-        if signum == signal.SIGINT and checkpoints.stop_signal is not None:
+        if signum == signal.SIGINT and received:
             raise KeyboardInterrupt
+        received.append(name)
         checkpoints.request_stop(name)
-        print(f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
-              flush=True)
+        print(
+            f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
+            flush=True,
+        )
 
     for sig in previous:
         signal.signal(sig, handler)
