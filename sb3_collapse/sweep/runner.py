@@ -138,7 +138,10 @@ def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     :raises ClusterUnreachable: when no cluster answered in time
     """
     if address == "auto":
+        from ray._private.authentication.authentication_token_setup import maybe_enable_token_auth_if_token_available
         from ray._private.services import canonicalize_bootstrap_address_or_die
+
+        maybe_enable_token_auth_if_token_available(warn_if_disabled=False)  # as ray.init does for "auto"
 
         try:
             address = canonicalize_bootstrap_address_or_die("auto")
