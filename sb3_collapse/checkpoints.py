@@ -494,6 +494,26 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     return info, state
 
 
+def checkpoint_learning_rates(folder: str | os.PathLike) -> dict[str, list[float]]:
+    """
+    The learning rates a checkpoint's optimizers were stepping with (their ``param_groups``), read from its model
+    zip without loading the weights.
+
+    :param folder: a checkpoint's folder
+    :return: optimizer (``"actor.optimizer"``...) -> the learning rate of each of its parameter groups
+    """
+    import io
+    import zipfile
+
+    rates = {}
+    with zipfile.ZipFile(Path(folder) / CHECKPOINT_MODEL) as archive:
+        for name in archive.namelist():
+            if name.endswith("optimizer.pth"):
+                state = th.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
+                rates[name.removesuffix(".pth")] = [float(group["lr"]) for group in state["param_groups"]]
+    return rates
+
+
 def set_aside(folder: Path) -> Path:
     """Rename a damaged checkpoint's folder so that it is never read again (and not lost): ``damaged_<name>``."""
     target = folder.with_name(f"damaged_{folder.name}")

@@ -61,6 +61,7 @@ from sb3_collapse.checkpoints import (
     ResumableCheckpoints,
     RunLock,
     TrainingInterrupted,
+    checkpoint_learning_rates,
     load_checkpoint,
     resumed_logger,
     set_aside,
@@ -674,6 +675,20 @@ def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str
     ]
 
 
+def optimizer_differences(checkpoint: Path, config: TrainConfig) -> list[str]:
+    """
+    :param checkpoint: the folder of the checkpoint a run would resume from
+    :param config: the settings of the run
+    :return: one line per optimizer setting of the checkpoint (the learning rate of each optimizer) that is not the
+        run's: a settings file edited after the checkpoint was written would change the run mid-run
+    """
+    rates = sorted({rate for group in checkpoint_learning_rates(checkpoint).values() for rate in group})
+    if not rates or rates == [config.learning_rate]:
+        return []
+    trained = ", ".join(f"{rate:g}" for rate in rates)
+    return [f"`learning_rate={config.learning_rate}` (its checkpoint {checkpoint.name} trained with {trained})"]
+
+
 def _saved_settings(run_dir: Path) -> dict[str, Any]:
     try:
         return json.loads((run_dir / CONFIG_JSON).read_text())
@@ -734,6 +749,14 @@ def _open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None
             print(f"Checkpoint {folder} is damaged ({reason}): falling back to the one before.")
             set_aside(folder)
         if checkpoint is not None:
+            differences = optimizer_differences(checkpoint.folder, config)
+            if differences:  # the settings file was edited: the run would change its settings mid-run
+                raise ParameterError(
+                    "run_dir",
+                    f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run "
+                    f"it with the settings it trained with (and its {CONFIG_JSON} as it wrote it) to resume it, or "
+                    "train into another folder.",
+                )
             error_file = run_dir / ERROR_TXT
             if error_file.is_file():  # kept with the checkpoints, out of the way of the sweep's status
                 first = error_file.read_text().splitlines()[:1]
