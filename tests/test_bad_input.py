@@ -206,3 +206,36 @@ def test_zoo_refuses_unknown_env_ids_and_non_yaml_configs(tmp_path, capsys):
 
 def test_zip_of_a_checkpoint_stays_readable(bad_checkpoints):
     assert zipfile.is_zipfile(bad_checkpoints / "walker.zip")
+
+
+def test_probe_takes_probe_checkpoints_and_sb3_baselines_and_refuses_mixed_image_sizes(tmp_path, capsys):
+    from sb3_collapse.baselines import build_baseline
+    from sb3_collapse.drqv2.probe_checkpoint import save_probe_checkpoint
+
+    tiny = ["--episodes", "3", "--max-steps", "4", "--layers", "cnn3", "mlp1", "--no-progress"]
+    env = make_dmc_env("cartpole-balance", size=48, action_repeat=20)
+    agent = DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs=dict(hidden_dim=16, feature_dim=8))
+    probe_checkpoint = save_probe_checkpoint(agent, tmp_path / "probe_0000000000_frames.zip")
+    assert probe_main([str(probe_checkpoint), "--out", str(tmp_path / "a"), *tiny]) == 0  # the encoder and actor suffice
+    assert (tmp_path / "a" / "probe.csv").is_file()
+
+    td3 = tmp_path / "td3.zip"
+    build_baseline("td3", env, learning_rate=1e-4, buffer_size=10, learning_starts=0, batch_size=4, feature_dim=8,
+                   hidden_dim=16).save(td3)  # fmt: skip
+    assert probe_main([str(td3), "--out", str(tmp_path / "b"), *tiny]) == 2  # SB3's zip does not name the task
+    assert "The checkpoint does not say which environment it was trained on: pass --env" in one_line_error(capsys)
+    assert not (tmp_path / "b").exists()
+    argv = [str(td3), "--env", "cartpole-balance", "--size", "48", "--action-repeat", "20", "--out", str(tmp_path / "b")]
+    assert probe_main([*argv, *tiny]) == 0
+
+    small = tmp_path / "small.zip"  # another image size: the rollouts of the first cannot feed it
+    DrQv2("CnnPolicy", make_dmc_env("cartpole-balance", size=36), buffer_size=10, policy_kwargs=dict(hidden_dim=16)).save(
+        small
+    )
+    assert probe_main([str(probe_checkpoint), str(small), "--out", str(tmp_path / "c"), *tiny]) == 2
+    assert one_line_error(capsys).endswith(
+        f"{probe_checkpoint} takes observations of shape (9, 48, 48) and {small} of shape (9, 36, 36): the probe feeds "
+        "every checkpoint the same rollouts, so probe checkpoints of another image size or frame stack in a run of "
+        "their own."
+    )
+    assert not (tmp_path / "c").exists()  # refused before recording

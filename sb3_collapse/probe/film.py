@@ -249,7 +249,7 @@ def film_to_folder(
     check_film_arguments(frames, size, every_frames)
     if not seeds:
         raise ProbeError("seeds must hold at least one episode seed.", parameter="seeds")
-    check_checkpoint_files(checkpoint_paths)
+    check_checkpoint_files(checkpoint_paths, same_observations=False)  # each films in its own env
     check_device(device)
     labels = checkpoint_labels(list(checkpoint_paths))
     films = []
