@@ -198,8 +198,14 @@ def write_actions_csv(films: Sequence[Film], path: Path) -> None:
         writer.writerow(["film", "frame", "reward", *(f"action_{d}" for d in range(dims))])
         for film in films:
             for frame, reward, action in zip(film.frames, film.rewards, film.actions):
-                writer.writerow([film.label, int(frame), "" if np.isnan(reward) else float(reward),
-                                 *("" if np.isnan(a) else float(a) for a in action)])
+                writer.writerow(
+                    [
+                        film.label,
+                        int(frame),
+                        "" if np.isnan(reward) else float(reward),
+                        *("" if np.isnan(a) else float(a) for a in action),
+                    ]
+                )
 
 
 FILMSTRIP_PNG = "filmstrip.png"
