@@ -234,9 +234,8 @@ def test_probe_takes_probe_checkpoints_and_sb3_baselines_and_refuses_mixed_image
     env = make_dmc_env("cartpole-balance", size=48, action_repeat=20)
     agent = DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs=dict(hidden_dim=16, feature_dim=8))
     probe_checkpoint = save_probe_checkpoint(agent, tmp_path / "probe_0000000000_frames.zip")
-    assert (
-        probe_main([str(probe_checkpoint), "--out", str(tmp_path / "a"), *tiny]) == 0
-    )  # the encoder and actor suffice
+    # A probe checkpoint: the encoder and the actor suffice.
+    assert probe_main([str(probe_checkpoint), "--out", str(tmp_path / "a"), *tiny]) == 0
     assert (tmp_path / "a" / "probe.csv").is_file()
 
     td3 = tmp_path / "td3.zip"
