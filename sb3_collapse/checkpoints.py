@@ -77,7 +77,7 @@ from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.replay_checkpoint import CheckpointError as ReplayCheckpointError
 from sb3_collapse.drqv2.replay_checkpoint import ReplayStore
 from sb3_collapse.envs.replay import episode_records, replay_episodes
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import READ_ONLY_ERRNOS, InputError
 from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.protocol import (
@@ -403,9 +403,10 @@ def save_checkpoint(
         shutil.rmtree(partial, ignore_errors=True)
         previous = checkpoint_folders(directory)
         kept = f"the previous checkpoint {previous[0].name} is intact" if previous else "there is no earlier checkpoint"
+        fix = "Make the folder writable again" if error.errno in READ_ONLY_ERRNOS else "Free space (or fix the folder)"
         raise CheckpointError(
-            f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. Free space (or fix the "
-            "folder), then run the same command again to resume."
+            f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. {fix}, then run the "
+            "same command again to resume."
         ) from error
     complete = checkpoint_folders(directory)
     kept_folders = complete[: max(1, keep)]

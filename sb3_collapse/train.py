@@ -36,6 +36,7 @@ import contextlib
 import dataclasses
 import functools
 import json
+import os
 import re
 import shutil
 import signal
@@ -79,6 +80,7 @@ from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.errors import (
+    FULL_DISK_ERRNOS,
     InputError,
     ParameterError,
     cli_message,
@@ -1053,6 +1055,13 @@ def _train_into(
             else "no checkpoint was written"
         )
         raise DivergenceError(f"{error} The run stops; {where}. Try a smaller --lr in another run folder.") from None
+    except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
+        if unwritable_message(error) is None:
+            raise
+        with contextlib.suppress(OSError):  # closing flushes, into the same folder
+            model.logger.close()
+        env.close()
+        raise CheckpointError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
     model_path = run_dir / FINAL_MODEL
     try:
         with atomic_output(model_path) as temporary:
@@ -1096,6 +1105,22 @@ def _train_into(
         evaluations=evaluations,
         summary=summary,
         saved_model_evaluation=saved_model_eval,
+    )
+
+
+def stopped_writing_message(error: OSError, frame: int, kept: Path | None) -> str:
+    """
+    :param error: a write that failed while the run trained (:func:`~sb3_collapse.errors.unwritable_message`)
+    :param frame: the frame the run had reached
+    :param kept: its last checkpoint, ``None`` without one
+    :return: one line: what could not be written and why, and how the run continues
+    """
+    where = error.filename if error.filename is not None else "a file of the run folder"
+    fix = "free space" if error.errno in FULL_DISK_ERRNOS else "make the folder writable again"
+    resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
+    return (
+        f"could not write {where} ({os.strerror(error.errno)}) at frame {frame:,}: the run stops. {fix.capitalize()}, "
+        f"then run the same command again: {resume}."
     )
 
 

@@ -249,3 +249,34 @@ def test_resume_after_the_learning_rate_was_edited_in_the_settings_file_is_refus
     (run_dir / CONFIG_JSON).write_text(json.dumps(config))  # the settings file as the run wrote it: it resumes
     assert main(_flags(run_dir)) == 0
     assert json.loads((run_dir / RESULT_JSON).read_text())["resumes"] == 1
+
+
+def test_run_folder_turning_read_only_while_training_is_one_line_exit_1_and_the_rerun_resumes(
+    tmp_path, monkeypatch, capsys
+):
+    from stable_baselines3.common.logger import CSVOutputFormat
+
+    run_dir = tmp_path / "run"
+    original = CSVOutputFormat.write
+
+    def read_only_after_a_checkpoint(self, *args, **kwargs):
+        if checkpoint_folders(run_dir / CHECKPOINTS_DIR):  # the file system was remounted read-only
+            raise OSError(errno.EROFS, "Read-only file system", self.file.name)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(CSVOutputFormat, "write", read_only_after_a_checkpoint)
+    flags = _flags(run_dir, frames=1200)  # the first episode ends at frame 1000: SB3 logs, into progress.csv
+    assert main(flags) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    (kept,) = checkpoint_folders(run_dir / CHECKPOINTS_DIR)[:1]
+    assert len(error) == 1 and error[0].startswith(f"error: could not write {run_dir / 'progress.csv'} (Read-only file")
+    assert error[0].endswith(
+        f": the run stops. Make the folder writable again, then run the same command again: it resumes from the "
+        f"checkpoint {kept.name}, which is intact."
+    )
+    assert not (run_dir / RESULT_JSON).exists()
+    frames = json.loads((kept / "checkpoint.json").read_text())["frames"]
+    monkeypatch.setattr(CSVOutputFormat, "write", original)  # writable again
+    assert main(flags) == 0
+    assert f"from its checkpoint at frame {frames:,} ({kept.name})" in capsys.readouterr().out
+    assert json.loads((run_dir / RESULT_JSON).read_text())["resumes"] == 1
