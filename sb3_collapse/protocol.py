@@ -196,8 +196,9 @@ LOCK_FILE = "run.lock"
 PROGRESS_CSV = "progress.csv"
 """SB3's CSV log (one row per log dump)."""
 EXIT_INTERRUPTED = 75
-"""Exit status of ``python -m sb3_collapse.train`` stopped by SIGTERM or SIGINT after writing a checkpoint
-(``EX_TEMPFAIL``: run the same command again to resume)."""
+"""Exit status of ``python -m sb3_collapse.train`` stopped by SIGTERM or SIGINT after writing a checkpoint, of the
+sweep whose trials did so, and of the probe stopped before writing anything (``EX_TEMPFAIL``: run the same command
+again to resume)."""
 PROBE_CHECKPOINTS_DIR = "probe_checkpoints"
 """The weights the probe needs (encoder and actor), one zip per evaluation (:data:`PROBE_CHECKPOINT`)."""
 PROBE_CHECKPOINT = "probe_{frames:010d}_frames.zip"
