@@ -137,12 +137,16 @@ def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
         process does not have (``ray start`` turns token authentication on by default)
     :raises ClusterUnreachable: when no cluster answered in time
     """
+    deadline = time.monotonic() + timeout_s
     if address == "auto":
-        from ray._private.authentication.authentication_token_setup import maybe_enable_token_auth_if_token_available
-        from ray._private.services import canonicalize_bootstrap_address_or_die
-
+        try:  # Ray's own resolution of "auto" (private: another Ray version may lack it, then ray.init resolves it)
+            from ray._private.authentication.authentication_token_setup import (
+                maybe_enable_token_auth_if_token_available,
+            )
+            from ray._private.services import canonicalize_bootstrap_address_or_die
+        except ImportError:
+            return
         maybe_enable_token_auth_if_token_available(warn_if_disabled=False)  # as ray.init does for "auto"
-
         try:
             address = canonicalize_bootstrap_address_or_die("auto")
         except ConnectionError as error:
@@ -152,13 +156,15 @@ def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
             ) from None
     host, port = split_address(address)
     wait_for_port(address, host, port, timeout_s)
+    try:
+        from ray._raylet import GcsClient
+    except ImportError:  # another Ray version: reachability is all that is checked
+        return
     if address.startswith("ray://"):
         return
     outcome: list[BaseException | None] = []
 
     def connect() -> None:
-        from ray._raylet import GcsClient
-
         try:
             GcsClient(address=address)
             outcome.append(None)
@@ -168,7 +174,7 @@ def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     with _stderr_captured():
         thread = threading.Thread(target=connect, daemon=True)
         thread.start()
-        thread.join(timeout_s)
+        thread.join(max(1.0, deadline - time.monotonic()))
     if not outcome:
         raise ClusterUnreachable(
             f"address {address}: a process listens there, but no Ray cluster answered within {timeout_s:g} s. Check "
