@@ -343,6 +343,28 @@ def check_sweep_arguments(
         raise SweepError(f"out {out}: {blocking} is a file, not a folder.", parameter="out")
 
 
+def check_writable(folder: Path) -> None:
+    """
+    Check that ``folder`` can be created and written into, leaving nothing behind (what this created is removed).
+
+    :param folder: a folder to write into
+    :raises OSError: naming ``folder``, when it cannot be written (a read-only file system, no permission, a full
+        disk)
+    """
+    created = [path for path in (folder, *folder.parents) if not path.exists()]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write_check_{os.getpid()}"
+        probe.mkdir()
+        probe.rmdir()
+    except OSError as error:
+        raise OSError(error.errno, error.strerror, str(folder)) from None
+    finally:
+        for path in created:  # the deepest first
+            with contextlib.suppress(OSError):
+                path.rmdir()
+
+
 def write_error(folder: Path, text: str) -> None:
     """
     :param folder: a trial folder (created if needed)
@@ -697,6 +719,7 @@ def run_sweep(
         prepare_sweep_folder(out, settings, allow_changed_settings)
         return summary
     import_ray()  # before writing anything: a missing Ray leaves the folder as it was
+    check_writable(out)  # before starting Ray: a read-only folder is said at once
     with ray_session(address, connect_timeout_s=connect_timeout_s) as ray:
         check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
         prepare_sweep_folder(out, settings, allow_changed_settings)  # the cluster answered: now the folder
