@@ -46,6 +46,7 @@ import json
 import os
 import pickle
 import random
+import re
 import shutil
 import signal
 import socket
@@ -75,7 +76,7 @@ from sb3_collapse.drqv2.divergence import DivergenceError, all_finite
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.envs.replay import episode_records, replay_episodes
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import READ_ONLY_ERRNOS, InputError
 from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.protocol import (
@@ -171,6 +172,45 @@ class RunLock:
             self._file.close()  # releases the flock; the file stays (deleting it would race with a new owner; train()
             # deletes it, still locked, once the run has finished and no process may take the folder)
             self._file = None
+
+
+def run_folder_owner(run_dir: str | os.PathLike) -> str | None:
+    """
+    Whether a process trains into a run folder now: its lock (:class:`RunLock`) is held. An owner on this host whose
+    pid is gone does not (the lock is not touched); otherwise the lock is tried for an instant (``flock``, shared, as
+    far as the file system passes it on to other hosts).
+
+    :param run_dir: a run folder
+    :return: the owner, as the lock file says it (``"pid 1234 on host h since ..."``), or ``None`` when no process
+        holds the lock (a finished run, or an unfinished one whose process ended: killed, stopped, failed)
+    """
+    import fcntl
+
+    path = Path(run_dir) / LOCK_FILE
+    try:
+        owner = path.read_text().strip()
+    except OSError:
+        return None
+    match = re.match(r"pid (\d+) on host (\S+)", owner)
+    if match is not None and match.group(2) == socket.gethostname():
+        try:
+            os.kill(int(match.group(1)), 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:  # another user's process: alive
+            pass
+    try:
+        with open(path) as file:
+            try:
+                fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except OSError as error:
+                if error.errno in (errno.EAGAIN, errno.EACCES):
+                    return owner or "another process"
+                raise
+            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
+    except OSError:
+        return None
+    return None
 
 
 # ---------------------------------------------------------------------------------------------- writing and reading
@@ -366,9 +406,10 @@ def save_checkpoint(
         shutil.rmtree(partial, ignore_errors=True)
         previous = checkpoint_folders(directory)
         kept = f"the previous checkpoint {previous[0].name} is intact" if previous else "there is no earlier checkpoint"
+        fix = "Make the folder writable again" if error.errno in READ_ONLY_ERRNOS else "Free space (or fix the folder)"
         raise CheckpointError(
-            f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. Free space (or fix the "
-            "folder), then run the same command again to resume."
+            f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. {fix}, then run the "
+            "same command again to resume."
         ) from error
     complete = checkpoint_folders(directory)
     kept_folders = complete[: max(1, keep)]
@@ -455,6 +496,26 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         except ReplayCheckpointError as error:
             raise _Damaged(str(error)) from None
     return info, state
+
+
+def checkpoint_learning_rates(folder: str | os.PathLike) -> dict[str, list[float]]:
+    """
+    The learning rates a checkpoint's optimizers were stepping with (their ``param_groups``), read from its model
+    zip without loading the weights.
+
+    :param folder: a checkpoint's folder
+    :return: optimizer (``"actor.optimizer"``...) -> the learning rate of each of its parameter groups
+    """
+    import io
+    import zipfile
+
+    rates = {}
+    with zipfile.ZipFile(Path(folder) / CHECKPOINT_MODEL) as archive:
+        for name in archive.namelist():
+            if name.endswith("optimizer.pth"):
+                state = th.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
+                rates[name.removesuffix(".pth")] = [float(group["lr"]) for group in state["param_groups"]]
+    return rates
 
 
 def set_aside(folder: Path) -> Path:
@@ -791,11 +852,34 @@ class ResumableCheckpoints(BaseCallback):
         self.seconds += time.perf_counter() - start
         if self.verbose >= 1:
             print(
-                f"Checkpoint at frame {self._frames():,}: {self.last_checkpoint} "
-                f"({time.perf_counter() - start:.1f} s)",
+                f"Checkpoint at frame {self._frames():,}: {self.last_checkpoint} ({time.perf_counter() - start:.1f} s)",
                 flush=True,
             )
         return self.last_checkpoint
+
+
+_stop_requests: list[str] = []
+"""Signal names of :func:`request_training_stop` calls not yet cleared (this process's training stops at them)."""
+_training: list[ResumableCheckpoints] = []
+"""The checkpoint callbacks of the runs training in this process (inside :func:`stop_signals`)."""
+
+
+def request_training_stop(signal_name: str) -> None:
+    """
+    Ask the training of this process to write a checkpoint and stop, as a SIGTERM would: at once for a run inside
+    :func:`stop_signals`, at its start for a run that has not got there yet. Safe from any thread (a sweep's trial
+    calls it when its driver asks the trials to stop).
+
+    :param signal_name: the signal the stop stands for (``"SIGTERM"``), named by :class:`TrainingInterrupted`
+    """
+    _stop_requests.append(signal_name)
+    for checkpoints in _training.copy():  # a copy: a run may end in another thread meanwhile
+        checkpoints.request_stop(signal_name)
+
+
+def clear_training_stop() -> None:
+    """Forget the requests of :func:`request_training_stop`: a later run of this process trains again."""
+    _stop_requests.clear()
 
 
 @contextlib.contextmanager
@@ -803,22 +887,40 @@ def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
     """
     While inside, SIGTERM and SIGINT ask ``checkpoints`` to write a checkpoint and stop (the run ends with
     :class:`TrainingInterrupted`); a second SIGINT stops at once (``KeyboardInterrupt``). Outside the main thread,
-    nothing is installed.
+    no signal handler is installed. A :func:`request_training_stop` (before or while inside) does what a SIGTERM
+    does, in any thread.
 
     :param checkpoints: the run's checkpoint callback
     """
+    _training.append(checkpoints)
+    if _stop_requests:
+        checkpoints.request_stop(_stop_requests[0])
+    try:
+        with _signal_handlers(checkpoints):
+            yield
+    finally:
+        _training.remove(checkpoints)
+
+
+@contextlib.contextmanager
+def _signal_handlers(checkpoints: ResumableCheckpoints) -> Iterator[None]:
+    """SIGTERM and SIGINT handlers for :func:`stop_signals` (in the main thread only)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+    received: list[str] = []  # signals, not requests: a sweep's request and a Ctrl-C are one stop, not two
 
     def handler(signum: int, _frame: Any) -> None:
         name = signal.Signals(signum).name
-        if signum == signal.SIGINT and checkpoints.stop_signal is not None:
+        if signum == signal.SIGINT and received:
             raise KeyboardInterrupt
+        received.append(name)
         checkpoints.request_stop(name)
-        print(f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
-              flush=True)
+        print(
+            f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
+            flush=True,
+        )
 
     for sig in previous:
         signal.signal(sig, handler)

@@ -196,8 +196,9 @@ LOCK_FILE = "run.lock"
 PROGRESS_CSV = "progress.csv"
 """SB3's CSV log (one row per log dump)."""
 EXIT_INTERRUPTED = 75
-"""Exit status of ``python -m sb3_collapse.train`` stopped by SIGTERM or SIGINT after writing a checkpoint
-(``EX_TEMPFAIL``: run the same command again to resume)."""
+"""Exit status of ``python -m sb3_collapse.train`` stopped by SIGTERM or SIGINT after writing a checkpoint, of the
+sweep whose trials did so, and of the probe stopped before writing anything (``EX_TEMPFAIL``: run the same command
+again to resume)."""
 PROBE_CHECKPOINTS_DIR = "probe_checkpoints"
 """The weights the probe needs (encoder and actor), one zip per evaluation (:data:`PROBE_CHECKPOINT`)."""
 PROBE_CHECKPOINT = "probe_{frames:010d}_frames.zip"
@@ -206,6 +207,9 @@ ERROR_TXT = "error.txt"
 """The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
 SWEEP_JSON = "sweep.json"
 """A sweep folder's settings."""
+SWEEP_STOP = ".stop_requested"
+"""In a sweep folder while its driver stops at a SIGTERM or SIGINT: the signal's name. Each running trial, on any
+node, writes a checkpoint and stops when it sees the file; the driver deletes it before it exits."""
 SWEEP_PROBE_DIR = "probe/{task}_{variant}"
 """Inside a sweep folder: the outputs of ``python -m sb3_collapse.probe sweep`` for one task and variant (Figure 2)."""
 FIGURE2_PNG = "figure2.png"

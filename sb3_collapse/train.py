@@ -36,6 +36,7 @@ import contextlib
 import dataclasses
 import functools
 import json
+import os
 import re
 import shutil
 import signal
@@ -61,6 +62,7 @@ from sb3_collapse.checkpoints import (
     ResumableCheckpoints,
     RunLock,
     TrainingInterrupted,
+    checkpoint_learning_rates,
     load_checkpoint,
     resumed_logger,
     set_aside,
@@ -77,6 +79,7 @@ from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.errors import (
+    FULL_DISK_ERRNOS,
     InputError,
     ParameterError,
     cli_message,
@@ -123,7 +126,14 @@ each checkpoint writes the model (105 MB with Adam at the default sizes) and the
 (about 1.1 GB per 100,000 frames of 84x84 pixels at action repeat 2): docs/checkpoints.md."""
 
 RESUME_FREE_SETTINGS = (
-    "logdir", "run_name", "run_dir", "progress_bar", "verbose", "torch_threads", "device", "checkpoint_every_frames",
+    "logdir",
+    "run_name",
+    "run_dir",
+    "progress_bar",
+    "verbose",
+    "torch_threads",
+    "device",
+    "checkpoint_every_frames",
     "sources",
 )
 """Settings that may differ between a run and its resumption (where and how it is shown, how often checkpoints are
@@ -336,8 +346,9 @@ class TrainConfig:
         check_activation(config.activation)
         if config.algorithm != "drqv2" and config.activation != "relu":
             raise ParameterError(
-                "activation", f"activation={config.activation!r} is a DrQ-v2 option; algorithm={config.algorithm!r} "
-                "keeps SB3's ReLU networks."
+                "activation",
+                f"activation={config.activation!r} is a DrQ-v2 option; algorithm={config.algorithm!r} "
+                "keeps SB3's ReLU networks.",
             )
         if isinstance(config.redo_every_updates, bool) or config.redo_every_updates < 0:
             raise ParameterError(
@@ -377,8 +388,13 @@ class TrainConfig:
         check_image_size(config.size)
         if config.frames < 1:  # type: ignore[operator]
             raise ParameterError("frames", f"frames must be >= 1, got {config.frames}.")
-        for name in ("eval_every_frames", "eval_episodes", "checkpoint_every_frames", "seed_frames",
-                     "collapse_metrics_every_frames"):
+        for name in (
+            "eval_every_frames",
+            "eval_episodes",
+            "checkpoint_every_frames",
+            "seed_frames",
+            "collapse_metrics_every_frames",
+        ):
             if getattr(config, name) < 0:
                 raise ParameterError(name, f"{name} must be >= 0, got {getattr(config, name)}.")
         if config.eval_every_frames > 0 and config.eval_episodes < 1:
@@ -400,7 +416,9 @@ class TrainConfig:
             n_steps=config.n_steps,  # type: ignore[arg-type]
             stddev_clip=config.stddev_clip,  # type: ignore[arg-type]
             augmentation_pad=config.augmentation_pad,  # type: ignore[arg-type]
-            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
+            policy_kwargs=dict(
+                feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation
+            ),
             seed=config.seed,
             device=config.device,
         )
@@ -678,6 +696,20 @@ def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str
     ]
 
 
+def optimizer_differences(checkpoint: Path, config: TrainConfig) -> list[str]:
+    """
+    :param checkpoint: the folder of the checkpoint a run would resume from
+    :param config: the settings of the run
+    :return: one line per optimizer setting of the checkpoint (the learning rate of each optimizer) that is not the
+        run's: a settings file edited after the checkpoint was written would change the run mid-run
+    """
+    rates = sorted({rate for group in checkpoint_learning_rates(checkpoint).values() for rate in group})
+    if not rates or rates == [config.learning_rate]:
+        return []
+    trained = ", ".join(f"{rate:g}" for rate in rates)
+    return [f"`learning_rate={config.learning_rate}` (its checkpoint {checkpoint.name} trained with {trained})"]
+
+
 def _saved_settings(run_dir: Path) -> dict[str, Any]:
     try:
         return json.loads((run_dir / CONFIG_JSON).read_text())
@@ -738,6 +770,14 @@ def _open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None
             print(f"Checkpoint {folder} is damaged ({reason}): falling back to the one before.")
             set_aside(folder)
         if checkpoint is not None:
+            differences = optimizer_differences(checkpoint.folder, config)
+            if differences:  # the settings file was edited: the run would change its settings mid-run
+                raise ParameterError(
+                    "run_dir",
+                    f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run "
+                    f"it with the settings it trained with (and its {CONFIG_JSON} as it wrote it) to resume it, or "
+                    "train into another folder.",
+                )
             error_file = run_dir / ERROR_TXT
             if error_file.is_file():  # kept with the checkpoints, out of the way of the sweep's status
                 first = error_file.read_text().splitlines()[:1]
@@ -812,7 +852,9 @@ def train(config: TrainConfig) -> TrainResult:
             raise InputError(f"run folder: {message}") from None
         checkpoint = _open_run_dir(run_dir, config)
         try:
-            result = _train_into(config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint)
+            result = _train_into(
+                config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint
+            )
             (run_dir / LOCK_FILE).unlink(missing_ok=True)  # finished: no process may take the folder any more
             return result
         except TrainingInterrupted:
@@ -887,7 +929,9 @@ def _build(
             stddev_clip=config.stddev_clip,
             augmentation_pad=config.augmentation_pad,
             replay_buffer_kwargs=dict(sampling=config.replay_sampling),
-            policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
+            policy_kwargs=dict(
+                feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation
+            ),
             seed=config.seed,
             device=config.device,
             verbose=config.verbose,
@@ -968,12 +1012,16 @@ def _train_into(
 
     user = sorted(name for name, source in config.sources.items() if source == USER)
     task_preset = config.preset
-    origin = f"DrQ-v2's {task_preset.tier} preset" if task_preset.from_drqv2 else (
-        f"the {task_preset.tier} tier (DrQ-v2 published no config for {task_id})"
+    origin = (
+        f"DrQ-v2's {task_preset.tier} preset"
+        if task_preset.from_drqv2
+        else (f"the {task_preset.tier} tier (DrQ-v2 published no config for {task_id})")
     )
     if config.algorithm == "drqv2":
         algorithm = "DrQ-v2"
-        details = f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {config.replay_sampling} replay sampling"
+        details = (
+            f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {config.replay_sampling} replay sampling"
+        )
     else:
         algorithm = f"SB3's {type(model).__name__}"
         details = f"lr {config.learning_rate:g}; DrQ-v2-only settings not used: {', '.join(DRQV2_ONLY_SETTINGS)}"
@@ -1011,9 +1059,18 @@ def _train_into(
         env.close()
         kept = checkpoints.last_checkpoint
         where = (
-            f"its last checkpoint, {kept}, holds the weights before it" if kept is not None else "no checkpoint was written"
+            f"its last checkpoint, {kept}, holds the weights before it"
+            if kept is not None
+            else "no checkpoint was written"
         )
         raise DivergenceError(f"{error} The run stops; {where}. Try a smaller --lr in another run folder.") from None
+    except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
+        if unwritable_message(error) is None:
+            raise
+        with contextlib.suppress(OSError):  # closing flushes, into the same folder
+            model.logger.close()
+        env.close()
+        raise CheckpointError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
     model_path = run_dir / FINAL_MODEL
     try:
         with atomic_output(model_path) as temporary:
@@ -1063,6 +1120,22 @@ def _train_into(
     )
 
 
+def stopped_writing_message(error: OSError, frame: int, kept: Path | None) -> str:
+    """
+    :param error: a write that failed while the run trained (:func:`~sb3_collapse.errors.unwritable_message`)
+    :param frame: the frame the run had reached
+    :param kept: its last checkpoint, ``None`` without one
+    :return: one line: what could not be written and why, and how the run continues
+    """
+    where = error.filename if error.filename is not None else "a file of the run folder"
+    fix = "free space" if error.errno in FULL_DISK_ERRNOS else "make the folder writable again"
+    resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
+    return (
+        f"could not write {where} ({os.strerror(error.errno)}) at frame {frame:,}: the run stops. {fix.capitalize()}, "
+        f"then run the same command again: {resume}."
+    )
+
+
 PRESET_HELP = "default: the task's DrQ-v2 preset (sb3_collapse.presets.preset(TASK), table in docs/presets.md)"
 
 
@@ -1081,32 +1154,91 @@ def training_arguments() -> argparse.ArgumentParser:
     g.add_argument("--frame-stack", type=int, help="stacked RGB frames per observation")
     g.add_argument("--seed-frames", type=int, help="frames of uniformly random actions before learning starts")
     g.add_argument("--batch-size", type=int, help="minibatch size of each update (walker tasks 512, others 256)")
-    g.add_argument("--buffer-size", type=int, help="replay capacity, in transitions (agent steps); the preset's is capped at the run's agent steps")
+    g.add_argument(
+        "--buffer-size",
+        type=int,
+        help="replay capacity, in transitions (agent steps); the preset's is capped at the run's agent steps",
+    )
     g.add_argument("--lr", dest="learning_rate", type=float, help="Adam learning rate (humanoid 8e-5, others 1e-4)")
     g.add_argument("--n-steps", type=int, help="n-step return length, in agent steps (walker tasks 1, others 3)")
     g.add_argument("--feature-dim", type=int, help="actor and critic trunk size (humanoid 100, others 50)")
     g.add_argument("--hidden-dim", type=int, help="hidden units of the actor and Q heads")
-    g.add_argument("--stddev-schedule", help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps")
+    g.add_argument(
+        "--stddev-schedule",
+        help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps",
+    )
     g.add_argument("--stddev-clip", type=float, help="clip of the exploration noise in the updates")
     g.add_argument("--tau", type=float, help="soft-update coefficient of the target critic")
     g.add_argument("--gamma", type=float, help="discount factor")
     g.add_argument("--train-freq", type=int, help="agent steps (summed over the environments) per update")
     g.add_argument("--augmentation-pad", type=int, help="random-shift padding, in pixels (0: no augmentation)")
-    g.add_argument("--eval-every-frames", type=int, help="frames between evaluations, also one at frame 0; 0 disables them")
+    g.add_argument(
+        "--eval-every-frames", type=int, help="frames between evaluations, also one at frame 0; 0 disables them"
+    )
     g.add_argument("--eval-episodes", type=int, help="episodes per evaluation (deterministic policy)")
-    g.add_argument("--replay-sampling", choices=REPLAY_SAMPLINGS, help="drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); sb3: the episode in progress too, returns truncated at the time limit (SB3's)")
+    g.add_argument(
+        "--replay-sampling",
+        choices=REPLAY_SAMPLINGS,
+        help="drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); sb3: the episode in progress too, returns truncated at the time limit (SB3's)",
+    )
     g = p.add_argument_group("other training settings")
     g.add_argument("--size", type=int, default=d.size, help="image height and width, in pixels (default: %(default)s)")
-    g.add_argument("--checkpoint-every-frames", type=int, default=d.checkpoint_every_frames, help="frames between intermediate checkpoints; 0: final checkpoint only (default: %(default)s)")
-    g.add_argument("--probe-checkpoints", action="store_true", help=f"save the encoder and actor (about 13 MB at 84x84) at every evaluation and at the end into <run>/{PROBE_CHECKPOINTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only")
-    g.add_argument("--collapse-metrics-every-frames", type=int, default=d.collapse_metrics_every_frames, help="frames between two checks of the collapse metrics (TensorBoard collapse/..., collapse metrics CSV); 0 disables them (default: the paper's, %(default)s)")
-    g.add_argument("--collapse-probe-batch", type=int, default=d.collapse_probe_batch, help="replay observations per collapse-metrics check (default: %(default)s)")
-    g.add_argument("--reset-window-frames", type=int, default=d.reset_window_frames, help="the reset rule's window, in frames (default: the paper's, %(default)s)")
-    g.add_argument("--n-envs", type=int, default=d.n_envs, help="training environments (in subprocesses when more than 1); frames and agent steps are summed over them, with one update per 2 transitions as with one (default: %(default)s)")
-    g.add_argument("--step-envs-during-updates", action="store_true", help="step the environments (in subprocesses) while the learner updates: the actions of that step come from the weights before the updates (DrQ-v2's reference order)")
-    g.add_argument("--no-tf32", dest="tf32", action="store_false", help="IEEE float32 matmuls and convolutions on CUDA instead of TensorFloat-32 (on by default for GPUs that have it; no effect on the CPU)")
-    g.add_argument("--deterministic", action="store_true", help="reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has them (slower on a GPU; the CPU is deterministic anyway)")
-    g.add_argument("--compile-update", action="store_true", help="compile the update with torch.compile (CUDA graphs on CUDA); compilation takes about a minute at the first update on a CPU")
+    g.add_argument(
+        "--checkpoint-every-frames",
+        type=int,
+        default=d.checkpoint_every_frames,
+        help="frames between intermediate checkpoints; 0: final checkpoint only (default: %(default)s)",
+    )
+    g.add_argument(
+        "--probe-checkpoints",
+        action="store_true",
+        help=f"save the encoder and actor (about 13 MB at 84x84) at every evaluation and at the end into <run>/{PROBE_CHECKPOINTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only",
+    )
+    g.add_argument(
+        "--collapse-metrics-every-frames",
+        type=int,
+        default=d.collapse_metrics_every_frames,
+        help="frames between two checks of the collapse metrics (TensorBoard collapse/..., collapse metrics CSV); 0 disables them (default: the paper's, %(default)s)",
+    )
+    g.add_argument(
+        "--collapse-probe-batch",
+        type=int,
+        default=d.collapse_probe_batch,
+        help="replay observations per collapse-metrics check (default: %(default)s)",
+    )
+    g.add_argument(
+        "--reset-window-frames",
+        type=int,
+        default=d.reset_window_frames,
+        help="the reset rule's window, in frames (default: the paper's, %(default)s)",
+    )
+    g.add_argument(
+        "--n-envs",
+        type=int,
+        default=d.n_envs,
+        help="training environments (in subprocesses when more than 1); frames and agent steps are summed over them, with one update per 2 transitions as with one (default: %(default)s)",
+    )
+    g.add_argument(
+        "--step-envs-during-updates",
+        action="store_true",
+        help="step the environments (in subprocesses) while the learner updates: the actions of that step come from the weights before the updates (DrQ-v2's reference order)",
+    )
+    g.add_argument(
+        "--no-tf32",
+        dest="tf32",
+        action="store_false",
+        help="IEEE float32 matmuls and convolutions on CUDA instead of TensorFloat-32 (on by default for GPUs that have it; no effect on the CPU)",
+    )
+    g.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has them (slower on a GPU; the CPU is deterministic anyway)",
+    )
+    g.add_argument(
+        "--compile-update",
+        action="store_true",
+        help="compile the update with torch.compile (CUDA graphs on CUDA); compilation takes about a minute at the first update on a CPU",
+    )
     g.add_argument("--verbose", type=int, default=d.verbose, help="1: print SB3's log tables (default: %(default)s)")
     return p
 
@@ -1133,23 +1265,68 @@ def build_parser() -> argparse.ArgumentParser:
         parents=[training_arguments()],
     )
     g = p.add_argument_group("this run")
-    g.add_argument("--env", default=d.env, help="dm_control task: walker-walk, cartpole-swingup, quadruped-run, ... (default: %(default)s)")
+    g.add_argument(
+        "--env",
+        default=d.env,
+        help="dm_control task: walker-walk, cartpole-swingup, quadruped-run, ... (default: %(default)s)",
+    )
     g.add_argument("--seed", type=int, default=d.seed, help="random seed (default: %(default)s)")
-    g.add_argument("--logdir", default=d.logdir, help="parent folder of the run folder <task>_s<seed> (default: %(default)s)")
+    g.add_argument(
+        "--logdir", default=d.logdir, help="parent folder of the run folder <task>_s<seed> (default: %(default)s)"
+    )
     g.add_argument("--run-name", default=d.run_name, help="run folder name instead of <task>_s<seed>")
-    g.add_argument("--run-dir", default=d.run_dir, help="the exact run folder (new or empty), instead of --logdir/--run-name")
-    g.add_argument("--algorithm", choices=ALGORITHMS, default=d.algorithm, help="drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes (docs/interventions.md) (default: %(default)s)")
-    g.add_argument("--reset-rule", action="store_true", help="reset training from scratch when the agent has not escaped action collapse within each window (the paper's rule)")
-    g.add_argument("--activation", choices=ACTIVATIONS, default=d.activation, help="hidden activation of DrQ-v2's encoder, actor and critic: relu, or leaky_relu with negative slope 0.01 (the paper's footnote 1 ablation) (default: %(default)s)")
-    g.add_argument("--redo-every-updates", type=int, default=d.redo_every_updates, help="recycle the dormant units (convolution channels included) every N updates for the whole run, as ReDo does (Sokar et al., 2023; docs/interventions.md); 0: never (default: %(default)s)")
-    g.add_argument("--intervention", choices=tuple(INTERVENTIONS), help="what the reset rule does instead of a reset from scratch (with --reset-rule; docs/interventions.md)")
-    g.add_argument("--init-cnn", default=d.init_cnn, help="start the encoder from this DrQv2 checkpoint (zip); default: random")
-    g.add_argument("--init-mlp", default=d.init_mlp, help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random")
-    g.add_argument("--init-critic", default=d.init_critic, help="start the critic from this DrQv2 checkpoint (zip); default: random")
+    g.add_argument(
+        "--run-dir", default=d.run_dir, help="the exact run folder (new or empty), instead of --logdir/--run-name"
+    )
+    g.add_argument(
+        "--algorithm",
+        choices=ALGORITHMS,
+        default=d.algorithm,
+        help="drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes (docs/interventions.md) (default: %(default)s)",
+    )
+    g.add_argument(
+        "--reset-rule",
+        action="store_true",
+        help="reset training from scratch when the agent has not escaped action collapse within each window (the paper's rule)",
+    )
+    g.add_argument(
+        "--activation",
+        choices=ACTIVATIONS,
+        default=d.activation,
+        help="hidden activation of DrQ-v2's encoder, actor and critic: relu, or leaky_relu with negative slope 0.01 (the paper's footnote 1 ablation) (default: %(default)s)",
+    )
+    g.add_argument(
+        "--redo-every-updates",
+        type=int,
+        default=d.redo_every_updates,
+        help="recycle the dormant units (convolution channels included) every N updates for the whole run, as ReDo does (Sokar et al., 2023; docs/interventions.md); 0: never (default: %(default)s)",
+    )
+    g.add_argument(
+        "--intervention",
+        choices=tuple(INTERVENTIONS),
+        help="what the reset rule does instead of a reset from scratch (with --reset-rule; docs/interventions.md)",
+    )
+    g.add_argument(
+        "--init-cnn", default=d.init_cnn, help="start the encoder from this DrQv2 checkpoint (zip); default: random"
+    )
+    g.add_argument(
+        "--init-mlp",
+        default=d.init_mlp,
+        help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random",
+    )
+    g.add_argument(
+        "--init-critic",
+        default=d.init_critic,
+        help="start the critic from this DrQv2 checkpoint (zip); default: random",
+    )
     g.add_argument("--device", default=d.device, help="auto, cpu, cuda, cuda:1, ... (default: %(default)s)")
-    g.add_argument("--torch-threads", type=int, default=d.torch_threads, help="threads of torch's CPU operations; default: torch's")
+    g.add_argument(
+        "--torch-threads", type=int, default=d.torch_threads, help="threads of torch's CPU operations; default: torch's"
+    )
     g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
-    g.add_argument("--show-settings", action="store_true", help="print the resolved settings (and where each came from) and exit")
+    g.add_argument(
+        "--show-settings", action="store_true", help="print the resolved settings (and where each came from) and exit"
+    )
     return p
 
 

@@ -31,6 +31,15 @@ DrQv2("CnnPolicy", make_dmc_env("walker-walk", size=48), buffer_size=10, policy_
 PPO("MlpPolicy", RandomObservationEnv(gym.spaces.Box(-1, 1, (3,), np.float32)), n_steps=8, batch_size=8).save(
     work / "ppo.zip"
 )
+from sb3_collapse.baselines import build_baseline
+
+cartpole = make_dmc_env("cartpole-balance", size=48, action_repeat=20)
+build_baseline("td3", cartpole, learning_rate=1e-4, buffer_size=10, learning_starts=0, batch_size=4, hidden_dim=16).save(
+    work / "td3.zip"
+)
+DrQv2("CnnPolicy", make_dmc_env("walker-walk", size=36), buffer_size=10, policy_kwargs=dict(hidden_dim=64)).save(
+    work / "walker36.zip"
+)
 (work / "afile").write_text("")
 (work / "bad.yml").write_text("a: [")
 (work / "folder").mkdir()
@@ -61,6 +70,11 @@ cases=(
   "-m sb3_collapse.probe record $work/walker.zip --out $work/folder --overwrite"
   "-m sb3_collapse.probe $work/walker.zip --out $work/p --episodes 1"
   "-m sb3_collapse.probe $work/walker.zip --out $work/p --device cuda"
+  "-m sb3_collapse.probe $work/td3.zip --out $work/p --episodes 3"
+  "-m sb3_collapse.probe $work/walker.zip $work/walker36.zip --out $work/p"
+  # No Ray cluster at the address: one line within --connect-timeout, exit 1, nothing written into --out.
+  "$SWEEP --seeds 1 --out $work/s --address 127.0.0.1:1 --connect-timeout 5"
+  "$SWEEP --seeds 1 --out $work/s --address nosuchhost:6379"
   "-m sb3_collapse.report $work/sweep-missing --out $work/report"
   "-m sb3_collapse.report $work/s --out $work/report --no-progress"
   "-m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-wlak-v0 -conf zoo_configs/drqv2.yml"

@@ -4,6 +4,10 @@ the command lines, no traceback, and nothing written or lost.
 """
 
 import json
+import signal
+import subprocess
+import sys
+import time
 import zipfile
 
 import gymnasium as gym
@@ -116,7 +120,9 @@ def test_final_model_is_the_evaluated_one_when_a_window_ends_with_the_budget(tmp
     config = tiny_config(tmp_path / "run", reset_rule=True, reset_window_frames=400, action_repeat=8)
     result = train(config)
     summary = result.summary
-    assert summary["resets"] == 0 and summary["saved_model_eval"]["frame"] == 400 and summary["final_eval"]["frame"] == 0
+    assert (
+        summary["resets"] == 0 and summary["saved_model_eval"]["frame"] == 400 and summary["final_eval"]["frame"] == 0
+    )
     model = DrQv2.load(result.model_path)
     assert model.reset_step == 0 and model._n_updates > 0
     # Re-evaluate the saved model as the run did: a fresh eval env seeded as the reference's (the run's seed), the
@@ -155,8 +161,14 @@ def test_sweep_refuses_bad_input_before_writing(tmp_path, capsys):
     cases = [
         ([*base, "--seeds", "1", "--out", str(tmp_path / "afile")], "--out {tmp}/afile: {tmp}/afile is a file"),
         ([*base, "--seed-list", "1", "1", "--out", str(tmp_path / "s")], "seeds lists 1 more than once"),
-        ([*base, "--seeds", "1", "--cpus-per-trial", "0", "--out", str(tmp_path / "s")], "--cpus-per-trial must be > 0"),
-        ([*base, "--seeds", "1", "--eval-every-frames", "0", "--out", str(tmp_path / "s")], "--eval-every-frames=0 turns"),
+        (
+            [*base, "--seeds", "1", "--cpus-per-trial", "0", "--out", str(tmp_path / "s")],
+            "--cpus-per-trial must be > 0",
+        ),
+        (
+            [*base, "--seeds", "1", "--eval-every-frames", "0", "--out", str(tmp_path / "s")],
+            "--eval-every-frames=0 turns",
+        ),
     ]
     for argv, message in cases:
         with pytest.raises(SystemExit) as exit_info:
@@ -173,7 +185,10 @@ def test_probe_and_report_refuse_bad_input_before_writing(tmp_path, capsys):
     )
     (tmp_path / "folder").mkdir()
     cases = [
-        (["record", str(checkpoint), "--out", str(tmp_path / "folder"), "--overwrite"], "--out {tmp}/folder is a folder"),
+        (
+            ["record", str(checkpoint), "--out", str(tmp_path / "folder"), "--overwrite"],
+            "--out {tmp}/folder is a folder",
+        ),
         ([str(checkpoint), "--out", str(tmp_path / "probe"), "--episodes", "1"], "--episodes must be >= 3"),
     ]
     if not __import__("torch").cuda.is_available():
@@ -195,7 +210,10 @@ def test_zoo_refuses_unknown_env_ids_and_non_yaml_configs(tmp_path, capsys):
     (tmp_path / "bad.yml").write_text("a: [")
     config = str(tmp_path.parent.parent / "x.yml")  # does not exist
     cases = [
-        (["--env", "sb3_collapse/walker-wlak-v0", "-conf", "zoo_configs/drqv2.yml"], "Did you mean sb3_collapse/walker-walk-v0"),
+        (
+            ["--env", "sb3_collapse/walker-wlak-v0", "-conf", "zoo_configs/drqv2.yml"],
+            "Did you mean sb3_collapse/walker-walk-v0",
+        ),
         (["--env", "sb3_collapse/walker-walk-v0", "-conf", str(tmp_path / "bad.yml")], "is not a YAML file"),
         (["--env", "sb3_collapse/walker-walk-v0", "-conf", config], "is not a file"),
     ]
@@ -206,3 +224,74 @@ def test_zoo_refuses_unknown_env_ids_and_non_yaml_configs(tmp_path, capsys):
 
 def test_zip_of_a_checkpoint_stays_readable(bad_checkpoints):
     assert zipfile.is_zipfile(bad_checkpoints / "walker.zip")
+
+
+def test_probe_takes_probe_checkpoints_and_sb3_baselines_and_refuses_mixed_image_sizes(tmp_path, capsys):
+    from sb3_collapse.baselines import build_baseline
+    from sb3_collapse.drqv2.probe_checkpoint import save_probe_checkpoint
+
+    tiny = ["--episodes", "3", "--max-steps", "4", "--layers", "cnn3", "mlp1", "--no-progress"]
+    env = make_dmc_env("cartpole-balance", size=48, action_repeat=20)
+    agent = DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs=dict(hidden_dim=16, feature_dim=8))
+    probe_checkpoint = save_probe_checkpoint(agent, tmp_path / "probe_0000000000_frames.zip")
+    # A probe checkpoint: the encoder and the actor suffice.
+    assert probe_main([str(probe_checkpoint), "--out", str(tmp_path / "a"), *tiny]) == 0
+    assert (tmp_path / "a" / "probe.csv").is_file()
+
+    td3 = tmp_path / "td3.zip"
+    build_baseline("td3", env, learning_rate=1e-4, buffer_size=10, learning_starts=0, batch_size=4, feature_dim=8,
+                   hidden_dim=16).save(td3)  # fmt: skip
+    assert probe_main([str(td3), "--out", str(tmp_path / "b"), *tiny]) == 2  # SB3's zip does not name the task
+    assert "The checkpoint does not say which environment it was trained on: pass --env" in one_line_error(capsys)
+    assert not (tmp_path / "b").exists()
+    argv = [
+        str(td3),
+        "--env",
+        "cartpole-balance",
+        "--size",
+        "48",
+        "--action-repeat",
+        "20",
+        "--out",
+        str(tmp_path / "b"),
+    ]
+    assert probe_main([*argv, *tiny]) == 0
+
+    small = tmp_path / "small.zip"  # another image size: the rollouts of the first cannot feed it
+    DrQv2(
+        "CnnPolicy", make_dmc_env("cartpole-balance", size=36), buffer_size=10, policy_kwargs=dict(hidden_dim=16)
+    ).save(small)
+    assert probe_main([str(probe_checkpoint), str(small), "--out", str(tmp_path / "c"), *tiny]) == 2
+    assert one_line_error(capsys).endswith(
+        f"{probe_checkpoint} takes observations of shape (9, 48, 48) and {small} of shape (9, 36, 36): the probe feeds "
+        "every checkpoint the same rollouts, so probe checkpoints of another image size or frame stack in a run of "
+        "their own."
+    )
+    assert not (tmp_path / "c").exists()  # refused before recording
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT])
+def test_a_signal_during_a_probe_leaves_nothing_and_exits_75(tmp_path, signum):
+    checkpoint = tmp_path / "agent.zip"
+    env = make_dmc_env("cartpole-balance", size=36, action_repeat=8)
+    DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs=dict(hidden_dim=16, feature_dim=8)).save(checkpoint)
+    out = tmp_path / "probe"
+    argv = [sys.executable, "-m", "sb3_collapse.probe", str(checkpoint), "--out", str(out), "--episodes", "50",
+            "--no-progress"]  # fmt: skip
+    probe = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.glob(".partial-*")):  # recording into the staging folder
+            assert probe.poll() is None and time.monotonic() < deadline, probe.communicate()
+            time.sleep(0.05)
+        probe.send_signal(signum)
+        stdout, stderr = probe.communicate(timeout=60)
+    finally:
+        probe.kill()
+    assert probe.returncode == 75, stderr
+    assert "Traceback" not in stdout + stderr
+    assert stderr.strip().splitlines()[-1] == (
+        f"Stopped by {signal.Signals(signum).name}: nothing was written under {out} (the outputs are staged and moved "
+        "there only when complete); run the same command again (exit status 75)."
+    )
+    assert not out.exists()  # the staging folder removed, and the folder the probe created

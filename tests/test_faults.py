@@ -5,6 +5,7 @@ Faults around a run's end and its folder: a full disk at the final save, a read-
 from __future__ import annotations
 
 import errno
+import json
 import math
 import warnings
 from pathlib import Path
@@ -17,7 +18,14 @@ from sb3_collapse import DrQv2
 from sb3_collapse.checkpoints import checkpoint_folders
 from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
 from sb3_collapse.errors import report_unwritable_outputs, unwritable_message
-from sb3_collapse.protocol import CHECKPOINT_MODEL, CHECKPOINTS_DIR, FINAL_MODEL, RESULT_JSON, atomic_output
+from sb3_collapse.protocol import (
+    CHECKPOINT_MODEL,
+    CHECKPOINTS_DIR,
+    CONFIG_JSON,
+    FINAL_MODEL,
+    RESULT_JSON,
+    atomic_output,
+)
 from sb3_collapse.sweep.__main__ import main as sweep_main
 from sb3_collapse.train import main
 
@@ -206,3 +214,69 @@ def test_sweep_into_a_read_only_folder_is_one_line_and_exit_2(tmp_path, monkeypa
         f"error: cannot write {out} (Read-only file system): choose a folder you can write to, or make this one writable."
     ]
     assert not (tmp_path / "read-only").exists()
+
+
+def test_resume_after_the_learning_rate_was_edited_in_the_settings_file_is_refused(tmp_path, monkeypatch, capsys):
+    run_dir = tmp_path / "run"
+    original = DrQv2._update
+    calls = []
+
+    def crashing(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        calls.append(1)
+        if len(calls) == 8:  # frame 520: after the checkpoint at frame 400
+            raise RuntimeError("a crash")
+
+    monkeypatch.setattr(DrQv2, "_update", crashing)
+    with pytest.raises(RuntimeError, match="a crash"):
+        main(_flags(run_dir))
+    monkeypatch.setattr(DrQv2, "_update", original)
+    config = json.loads((run_dir / CONFIG_JSON).read_text())
+    trained_with = config["learning_rate"]
+    (run_dir / CONFIG_JSON).write_text(json.dumps({**config, "learning_rate": 0.001}))  # edited by hand
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        main([*_flags(run_dir), "--lr", "0.001"])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    (kept,) = checkpoint_folders(run_dir / CHECKPOINTS_DIR)[:1]
+    assert error.endswith(
+        f"error: --run-dir {run_dir} holds an unfinished run with other settings: --lr 0.001 (its checkpoint "
+        f"{kept.name} trained with {trained_with:g}). Run it with the settings it trained with (and its config.json "
+        "as it wrote it) to resume it, or train into another folder."
+    )
+    assert checkpoint_folders(run_dir / CHECKPOINTS_DIR)[0] == kept  # nothing changed
+    (run_dir / CONFIG_JSON).write_text(json.dumps(config))  # the settings file as the run wrote it: it resumes
+    assert main(_flags(run_dir)) == 0
+    assert json.loads((run_dir / RESULT_JSON).read_text())["resumes"] == 1
+
+
+def test_run_folder_turning_read_only_while_training_is_one_line_exit_1_and_the_rerun_resumes(
+    tmp_path, monkeypatch, capsys
+):
+    from stable_baselines3.common.logger import CSVOutputFormat
+
+    run_dir = tmp_path / "run"
+    original = CSVOutputFormat.write
+
+    def read_only_after_a_checkpoint(self, *args, **kwargs):
+        if checkpoint_folders(run_dir / CHECKPOINTS_DIR):  # the file system was remounted read-only
+            raise OSError(errno.EROFS, "Read-only file system", self.file.name)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(CSVOutputFormat, "write", read_only_after_a_checkpoint)
+    flags = _flags(run_dir, frames=1200)  # the first episode ends at frame 1000: SB3 logs, into progress.csv
+    assert main(flags) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    (kept,) = checkpoint_folders(run_dir / CHECKPOINTS_DIR)[:1]
+    assert len(error) == 1 and error[0].startswith(f"error: could not write {run_dir / 'progress.csv'} (Read-only file")
+    assert error[0].endswith(
+        f": the run stops. Make the folder writable again, then run the same command again: it resumes from the "
+        f"checkpoint {kept.name}, which is intact."
+    )
+    assert not (run_dir / RESULT_JSON).exists()
+    frames = json.loads((kept / "checkpoint.json").read_text())["frames"]
+    monkeypatch.setattr(CSVOutputFormat, "write", original)  # writable again
+    assert main(flags) == 0
+    assert f"from its checkpoint at frame {frames:,} ({kept.name})" in capsys.readouterr().out
+    assert json.loads((run_dir / RESULT_JSON).read_text())["resumes"] == 1

@@ -15,7 +15,11 @@ Errors in the input print ``error: ...`` and exit with status 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
+from collections.abc import Iterator
+from typing import Any
 
 from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.probe.errors import ProbeError
@@ -23,7 +27,7 @@ from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, STRIP_EVERY_FRAMES, 
 from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
 from sb3_collapse.probe.sweep import DEFAULT_OUT, probe_sweep
-from sb3_collapse.protocol import PAPER, PROBE_CHECKPOINTS_DIR
+from sb3_collapse.protocol import EXIT_INTERRUPTED, PAPER, PROBE_CHECKPOINTS_DIR
 
 PROG = "python -m sb3_collapse.probe"
 SUBCOMMANDS = ("run", "record", "sweep", "film")
@@ -155,10 +159,16 @@ def build_parser() -> argparse.ArgumentParser:
     swp.add_argument("--variant", default="drqv2", help="the variant folder")
     swp.add_argument("--out", help=f"output folder (default: <sweep>/{DEFAULT_OUT})")
     swp.add_argument("--rollouts", help="rollouts .npz to probe on (default: record them from the best seed)")
-    swp.add_argument("--success-return", type=float, default=PAPER.success_return, help="well-performing: final return >= this")
-    swp.add_argument("--failure-return", type=float, default=PAPER.failure_return, help="poorly performing: final return < this")
+    swp.add_argument(
+        "--success-return", type=float, default=PAPER.success_return, help="well-performing: final return >= this"
+    )
+    swp.add_argument(
+        "--failure-return", type=float, default=PAPER.failure_return, help="poorly performing: final return < this"
+    )
     swp.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
-    swp.add_argument("--jobs", type=int, default=1, help="checkpoints probed at once (threads); --memory-gb bounds them all together")
+    swp.add_argument(
+        "--jobs", type=int, default=1, help="checkpoints probed at once (threads); --memory-gb bounds them all together"
+    )
     _probe_arguments(swp, settings)
     _recording_arguments(swp, defaults)
 
@@ -174,7 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
     flm.add_argument("--out", default="film", help="output folder")
     flm.add_argument("--frames", type=int, default=FILM_FRAMES, help="environment frames per film")
     flm.add_argument("--size", type=int, default=FILM_SIZE, help="height and width of the film's renders, in pixels")
-    flm.add_argument("--every-frames", type=int, default=STRIP_EVERY_FRAMES, help="frames between two pictures of the strip")
+    flm.add_argument(
+        "--every-frames", type=int, default=STRIP_EVERY_FRAMES, help="frames between two pictures of the strip"
+    )
     flm.add_argument("--seeds", type=int, nargs="+", default=[0], help="episode seeds (one row each)")
     flm.add_argument("--env", help="dm_control task, when a checkpoint does not say")
     flm.add_argument("--device", default="auto", help="auto, cpu, cuda, ...")
@@ -216,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     :param argv: the arguments (``sys.argv[1:]`` when ``None``); a first argument that is not a sub-command
         (nor ``-h``/``--help``) means ``run``
-    :return: the exit status: 0, or 2 for bad input
+    :return: the exit status: 0, 2 for bad input, 75 when a SIGINT or SIGTERM stopped it (nothing written)
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -227,52 +239,81 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["run", *argv]
     args = parser.parse_args(argv)
     try:
-        if args.command == "record":
-            record_to_file(
-                args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, not args.no_progress
-            )
-        elif args.command == "film":
-            film_to_folder(
-                args.checkpoints,
-                args.out,
-                frames=args.frames,
-                size=args.size,
-                every_frames=args.every_frames,
-                seeds=args.seeds,
-                env=args.env,
-                device=args.device,
-                overwrite=args.overwrite,
-                progress=not args.no_progress,
-            )
-        elif args.command == "sweep":
-            probe_sweep(
-                args.sweep,
-                args.task,
-                args.variant,
-                out=args.out,
-                settings=_settings(args),
-                rollouts_path=args.rollouts,
-                record_options=_record_options(args),
-                success_return=args.success_return,
-                failure_return=args.failure_return,
-                overwrite=args.overwrite,
-                command=[PROG, *argv],
-                jobs=args.jobs,
-            )
-        else:
-            probe_to_folder(
-                args.checkpoints,
-                args.out,
-                _settings(args),
-                rollouts_path=args.rollouts,
-                record_options=_record_options(args),
-                overwrite=args.overwrite,
-                command=[PROG, *argv],
-            )
+        with _sigterm_as_interrupt():
+            _run(args, argv)
     except ProbeError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as stop:
+        name = stop.args[0] if stop.args else "SIGINT"
+        print(
+            f"\nStopped by {name}: nothing was written under {args.out or 'the output folder'} (the outputs are staged and "
+            f"moved there only when complete); run the same command again (exit status {EXIT_INTERRUPTED}).",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
     return 0
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """While inside, a SIGTERM stops the command as a Ctrl-C does (``KeyboardInterrupt("SIGTERM")``): the staged
+    outputs are removed on the way out instead of being left by a process killed where it stood."""
+
+    def stop(_signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt("SIGTERM")
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args: argparse.Namespace, argv: list[str]) -> None:
+    """Run the sub-command of ``args``."""
+    if args.command == "record":
+        record_to_file(
+            args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, not args.no_progress
+        )
+    elif args.command == "film":
+        film_to_folder(
+            args.checkpoints,
+            args.out,
+            frames=args.frames,
+            size=args.size,
+            every_frames=args.every_frames,
+            seeds=args.seeds,
+            env=args.env,
+            device=args.device,
+            overwrite=args.overwrite,
+            progress=not args.no_progress,
+        )
+    elif args.command == "sweep":
+        probe_sweep(
+            args.sweep,
+            args.task,
+            args.variant,
+            out=args.out,
+            settings=_settings(args),
+            rollouts_path=args.rollouts,
+            record_options=_record_options(args),
+            success_return=args.success_return,
+            failure_return=args.failure_return,
+            overwrite=args.overwrite,
+            command=[PROG, *argv],
+            jobs=args.jobs,
+        )
+    else:
+        probe_to_folder(
+            args.checkpoints,
+            args.out,
+            _settings(args),
+            rollouts_path=args.rollouts,
+            record_options=_record_options(args),
+            overwrite=args.overwrite,
+            command=[PROG, *argv],
+        )
 
 
 if __name__ == "__main__":

@@ -198,8 +198,14 @@ def write_actions_csv(films: Sequence[Film], path: Path) -> None:
         writer.writerow(["film", "frame", "reward", *(f"action_{d}" for d in range(dims))])
         for film in films:
             for frame, reward, action in zip(film.frames, film.rewards, film.actions):
-                writer.writerow([film.label, int(frame), "" if np.isnan(reward) else float(reward),
-                                 *("" if np.isnan(a) else float(a) for a in action)])
+                writer.writerow(
+                    [
+                        film.label,
+                        int(frame),
+                        "" if np.isnan(reward) else float(reward),
+                        *("" if np.isnan(a) else float(a) for a in action),
+                    ]
+                )
 
 
 FILMSTRIP_PNG = "filmstrip.png"
@@ -249,7 +255,7 @@ def film_to_folder(
     check_film_arguments(frames, size, every_frames)
     if not seeds:
         raise ProbeError("seeds must hold at least one episode seed.", parameter="seeds")
-    check_checkpoint_files(checkpoint_paths)
+    check_checkpoint_files(checkpoint_paths, same_observations=False)  # each films in its own env
     check_device(device)
     labels = checkpoint_labels(list(checkpoint_paths))
     films = []

@@ -153,16 +153,33 @@ def record_to_file(
     return path
 
 
-def check_checkpoint_files(paths: Sequence[str | Path]) -> None:
+def check_checkpoint_files(paths: Sequence[str | Path], same_observations: bool = True) -> None:
     """
-    Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm.
+    Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm, and that they all
+    take observations of one shape (the same rollouts feed them all: another image size or frame stack cannot be
+    probed with them).
 
-    :raises ProbeError: naming the first bad file
+    :param paths: the checkpoints
+    :param same_observations: check that they all take observations of one shape
+    :raises ProbeError: naming the first bad file, or two checkpoints whose observations differ
     """
     if not paths:
         raise ProbeError("Give at least one checkpoint (.zip).")
+    shapes: dict[tuple, str | Path] = {}
     for path in paths:
-        identify_algorithm(read_saved_data(path), path)
+        data = read_saved_data(path)
+        identify_algorithm(data, path)
+        shape = (data.get("observation_space") or {}).get("_shape")
+        if shape is not None:
+            shapes.setdefault(tuple(shape), path)
+    if same_observations and len(shapes) > 1:
+        (first, first_path), (other, other_path) = list(shapes.items())[:2]
+        raise ProbeError(
+            f"{first_path} takes observations of shape {first} and {other_path} of shape {other}: the probe feeds "
+            "every checkpoint the same rollouts, so probe checkpoints of another image size or frame stack in a run "
+            "of their own.",
+            parameter="checkpoints",
+        )
 
 
 def probe_to_folder(

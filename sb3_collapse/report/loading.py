@@ -21,10 +21,13 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
+from sb3_collapse.checkpoints import run_folder_owner
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, PAPER, RESULT_JSON, SEED_FOLDER
 from sb3_collapse.report.errors import ReportError
 
 DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
+RUNNING, UNFINISHED = "running", "unfinished"
+"""Statuses of a trial without a result file: a process holds its run folder's lock (it trains now), or none does."""
 """The collapse metric that decides "stuck in action collapse" (the paper's reset rule reads the same one)."""
 
 
@@ -37,7 +40,9 @@ class Trial:
     :param variant: the variant folder name, e.g. ``"drqv2+reset"``
     :param seed: the seed of the ``seed_<k>`` folder
     :param path: the trial folder
-    :param status: ``"finished"``, ``"running"`` (no result file yet) or the ``status`` of the result file
+    :param status: ``"finished"``, :data:`RUNNING` (no result file yet, and a process trains into the folder),
+        :data:`UNFINISHED` (no result file, and no process: stopped, killed or failed; a sweep resumes it) or the
+        ``status`` of the result file
     :param result: the parsed result file (``None`` without one)
     :param frames: evaluation frames (agent steps x action repeat), increasing, from evaluation file
     :param returns: mean evaluation return at each of ``frames``
@@ -147,9 +152,7 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
                 if match and seed_dir.is_dir():
                     found.append((task_dir.name, variant_dir.name, int(match.group(1)), seed_dir))
     if not found:
-        raise ReportError(
-            f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?"
-        )
+        raise ReportError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
     variants = variant_order(item[1] for item in found)
     return sorted(found, key=lambda item: (item[0], variants.index(item[1]), item[2]))
 
@@ -360,7 +363,10 @@ def load_trial(
     """
     result_path = path / RESULT_JSON
     result = read_result(result_path) if result_path.exists() else None
-    status = "running" if result is None else result["status"]
+    if result is not None:
+        status = result["status"]
+    else:  # no result: running only while a process holds the folder's lock, else stopped before its end
+        status = RUNNING if run_folder_owner(path) is not None else UNFINISHED
     trial = Trial(task=task, variant=variant, seed=seed, path=path, status=status, result=result)
     eval_path = path / EVAL_CSV
     if trial.finished:

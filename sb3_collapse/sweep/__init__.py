@@ -2,6 +2,8 @@
 
 from sb3_collapse.sweep.donors import DONOR_KEYS, Donor, donor_candidates, pick_donors
 from sb3_collapse.sweep.runner import (
+    CONNECT_TIMEOUT_S,
+    ClusterUnreachable,
     RayMissingError,
     SweepSummary,
     check_sweep_arguments,
@@ -35,6 +37,7 @@ from sb3_collapse.sweep.trials import (
 )
 
 __all__ = [
+    "CONNECT_TIMEOUT_S",
     "DONOR_KEYS",
     "FAILED",
     "FINISHED",
@@ -43,6 +46,7 @@ __all__ = [
     "PENDING",
     "PLAIN_VARIANTS",
     "TRANSPLANT_SOURCES",
+    "ClusterUnreachable",
     "Donor",
     "RayMissingError",
     "SweepError",

@@ -19,7 +19,7 @@ from sb3_collapse.checkpoints import checkpoint_frames
 from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
-from sb3_collapse.protocol import CHECKPOINTS_DIR, PAPER
+from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED, PAPER
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
     DONOR_PARTS,
@@ -29,6 +29,8 @@ from sb3_collapse.sweep.donors import (
     pick_donors,
 )
 from sb3_collapse.sweep.runner import (
+    CONNECT_TIMEOUT_S,
+    ClusterUnreachable,
     RayMissingError,
     check_sweep_arguments,
     prepare_sweep_folder,
@@ -103,7 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
         f"return >= {PAPER.success_return:g} (good CNN, good MLP) and two < {PAPER.failure_return:g} (bad ones)",
     )
     donors.add_argument(
-        "--donor-variant", default="drqv2", help="the variant of --donors-from whose seeds give parts (default: %(default)s)"
+        "--donor-variant",
+        default="drqv2",
+        help="the variant of --donors-from whose seeds give parts (default: %(default)s)",
     )
     donors.add_argument(
         "--donor-seed", type=int, default=0, help="seed of the random pick of --donors-from (default: %(default)s)"
@@ -115,7 +119,19 @@ def build_parser() -> argparse.ArgumentParser:
         "sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees",
     )
     g.add_argument(
-        "--cpus-per-trial", type=float, default=1, help="CPUs Ray reserves per trial; also its torch threads (default: %(default)s)"
+        "--connect-timeout",
+        dest="connect_timeout_s",
+        type=float,
+        default=CONNECT_TIMEOUT_S,
+        metavar="SECONDS",
+        help="with --address: give up, writing nothing, when the cluster does not answer within this time "
+        "(exit status 1; default: %(default)g)",
+    )
+    g.add_argument(
+        "--cpus-per-trial",
+        type=float,
+        default=1,
+        help="CPUs Ray reserves per trial; also its torch threads (default: %(default)s)",
     )
     g.add_argument(
         "--gpus-per-trial",
@@ -138,7 +154,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """
     :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
-    :return: exit status: 0 when every trial finished, 1 when some failed, 2 for bad arguments
+    :return: exit status: 0 when every trial finished, 1 when some failed (or the cluster did not answer), 2 for
+        bad arguments, {EXIT_INTERRUPTED} when a SIGTERM or SIGINT stopped the sweep (the trials wrote a checkpoint:
+        run the same command again)
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -150,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.transplant_grid:
         variants += GRID_VARIANTS
     try:
-        check_sweep_arguments(args.out, training, args.cpus_per_trial, args.gpus_per_trial)
+        check_sweep_arguments(args.out, training, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s)
         trials = expand_trials(args.tasks, variants, seeds)
         tasks = list(dict.fromkeys(trial.task for trial in trials))
         for task in tasks:  # each task with its own preset, each variant with its algorithm and rule
@@ -171,22 +189,41 @@ def main(argv: list[str] | None = None) -> int:
             allow_changed_settings=args.allow_changed_settings,
             progress_bar=args.progress_bar,
             donors=donors,
+            connect_timeout_s=args.connect_timeout_s,
         )
     except (SweepError, RayMissingError, ValueError) as error:
         parser.error(cli_message(error, parser))
+    except ClusterUnreachable as error:
+        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
-        print(f"\nInterrupted: rerun the same command to resume (finished trials in {args.out} are kept).")
-        return 130
+        print(
+            f"\nStopped at once: the running trials resume from their last checkpoints; run the same command again "
+            f"to resume (finished trials in {args.out} are kept; exit status {EXIT_INTERRUPTED}).",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    stopped = sum(checkpoint is not None for checkpoint in summary.interrupted.values())
     print(
         f"{len(summary.trials)} trials in {args.out}: {len(summary.finished)} finished now "
         f"({len(summary.resumed)} resumed from a checkpoint), {len(summary.skipped)} finished before, "
-        f"{len(summary.failed)} failed."
+        f"{len(summary.failed)} failed"
+        + (f", {stopped} stopped at a checkpoint" if stopped else "")
+        + (f", {len(summary.interrupted) - stopped} not started" if len(summary.interrupted) > stopped else "")
+        + "."
     )
     for trial, error_path in summary.failed.items():
         print(f"  failed: {trial} (see {error_path})")
     if summary.failed:
         print("Rerun the same command to retry the failed trials.")
-    return 0 if summary.ok else 1
+        return 1
+    if summary.interrupted:
+        print(
+            f"Stopped by {summary.stopped_by or 'a signal to the trials'}: run the same command again to resume "
+            f"(exit status {EXIT_INTERRUPTED})."
+        )
+        return EXIT_INTERRUPTED
+    return 0
 
 
 def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict[str, dict[str, str]], dict | None]:

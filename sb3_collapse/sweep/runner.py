@@ -15,8 +15,12 @@ import dataclasses
 import json
 import os
 import shutil
+import signal
+import socket
 import subprocess
 import sys
+import threading
+import time
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -25,12 +29,13 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from sb3_collapse.checkpoints import TrainingInterrupted
+from sb3_collapse.checkpoints import TrainingInterrupted, clear_training_stop, request_training_stop
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CONFIG_JSON,
     ERROR_TXT,
     SWEEP_JSON,
+    SWEEP_STOP,
     blocking_file,
     write_json_atomically,
     write_text_atomically,
@@ -65,18 +70,174 @@ def import_ray() -> Any:
     return ray
 
 
+CONNECT_TIMEOUT_S = 30.0
+"""Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
+
+
+class ClusterUnreachable(RuntimeError):
+    """
+    No Ray cluster answered at the sweep's address in time (nothing listens there, a firewall, a head still
+    starting): a fault to retry once the cluster is up. Nothing was written.
+
+    :param message: what happened and what to do, naming the parameter (``address``)
+    """
+
+    parameter = "address"
+
+
+def split_address(address: str) -> tuple[str, int]:
+    """
+    :param address: a Ray address, ``host:port`` or ``ray://host:port``
+    :return: the host and the port
+    :raises SweepError: for an address without a port
+    """
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise SweepError(f"address {address!r} is not 'auto', 'host:port' or 'ray://host:port'.", parameter="address")
+    return host.strip("[]"), int(port)
+
+
+def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
+    """
+    Wait until something accepts TCP connections at ``host:port`` (a cluster still starting gets ``timeout_s``).
+
+    :param address: the address as given, for the messages
+    :param host: the host
+    :param port: the port
+    :param timeout_s: seconds to wait at most
+    :raises SweepError: for a host that does not resolve
+    :raises ClusterUnreachable: when nothing accepted a connection in time
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=max(0.1, min(5.0, deadline - time.monotonic()))):
+                return
+        except socket.gaierror as error:
+            raise SweepError(f"address {address}: no host {host!r} ({error.strerror}).", parameter="address") from None
+        except OSError as error:
+            reason = error.strerror or type(error).__name__
+        if time.monotonic() + 0.5 >= deadline:
+            raise ClusterUnreachable(
+                f"address {address}: no Ray cluster answered within {timeout_s:g} s ({reason}). Start it (ray start "
+                "--head, docs/sweeps.md) or correct the address, then run the same command again; nothing was written."
+            )
+        time.sleep(0.5)
+
+
+def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """
+    Check that the Ray cluster at ``address`` answers and accepts this process, within ``timeout_s`` (``ray.init``
+    alone retries an unreachable address for minutes, and fails a cluster that wants a token after many seconds).
+    Ray's own log lines of a failed probe are kept off the terminal.
+
+    :param address: ``"auto"``, ``"host:port"`` (the GCS) or ``"ray://host:port"`` (Ray client: only reachability)
+    :param timeout_s: seconds to wait for the cluster at most
+    :raises SweepError: for an address that cannot be right, or a cluster that wants an authentication token this
+        process does not have (``ray start`` turns token authentication on by default)
+    :raises ClusterUnreachable: when no cluster answered in time
+    """
+    deadline = time.monotonic() + timeout_s
+    if address == "auto":
+        try:  # Ray's own resolution of "auto" (private: another Ray version may lack it, then ray.init resolves it)
+            from ray._private.authentication.authentication_token_setup import (
+                maybe_enable_token_auth_if_token_available,
+            )
+            from ray._private.services import canonicalize_bootstrap_address_or_die
+        except ImportError:
+            return
+        maybe_enable_token_auth_if_token_available(warn_if_disabled=False)  # as ray.init does for "auto"
+        try:
+            address = canonicalize_bootstrap_address_or_die("auto")
+        except ConnectionError as error:
+            raise ClusterUnreachable(
+                f"address auto: {error} Start a cluster on this machine (ray start --head) or give its address, then "
+                "run the same command again; nothing was written."
+            ) from None
+    host, port = split_address(address)
+    wait_for_port(address, host, port, timeout_s)
+    try:
+        from ray._raylet import GcsClient
+    except ImportError:  # another Ray version: reachability is all that is checked
+        return
+    if address.startswith("ray://"):
+        return
+    outcome: list[BaseException | None] = []
+
+    def connect() -> None:
+        try:
+            GcsClient(address=address)
+            outcome.append(None)
+        except Exception as error:  # noqa: BLE001  reported below
+            outcome.append(error)
+
+    with _stderr_captured():
+        thread = threading.Thread(target=connect, daemon=True)
+        thread.start()
+        thread.join(max(1.0, deadline - time.monotonic()))
+    if not outcome:
+        raise ClusterUnreachable(
+            f"address {address}: a process listens there, but no Ray cluster answered within {timeout_s:g} s. Check "
+            "the address (the head's GCS port, 6379 by default) and the cluster, then run the same command again; "
+            "nothing was written."
+        )
+    error = outcome[0]
+    if error is None:
+        return
+    if type(error).__name__ == "AuthenticationError":
+        token_mode = os.environ.get("RAY_AUTH_MODE", "").lower() == "token"
+        raise SweepError(
+            f"address {address}: the Ray cluster there wants an authentication token and "
+            + (
+                "the token of this process (RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token) is not its own"
+                if token_mode
+                else "this process sends none (ray start turns token authentication on by default)"
+            )
+            + ": set RAY_AUTH_MODE=token and the cluster's token (RAY_AUTH_TOKEN=<token>, or the file ~/.ray/auth_token; "
+            "`ray get-auth-token` on the head prints it), or start the cluster with RAY_AUTH_MODE=disabled "
+            "(docs/sweeps.md). Nothing was written.",
+            parameter="address",
+        )
+    first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    raise ClusterUnreachable(
+        f"address {address}: no Ray cluster answered there ({first_line}). Check the address (the head's GCS port, "
+        "6379 by default) and the cluster, then run the same command again; nothing was written."
+    )
+
+
 @contextlib.contextmanager
-def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iterator[Any]:
+def _stderr_captured() -> Iterator[None]:
+    """Send what is written to file descriptor 2 (Ray's C++ log lines) nowhere while inside."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as devnull:
+            os.dup2(devnull.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+@contextlib.contextmanager
+def ray_session(
+    address: str | None = None, num_cpus: int | None = None, connect_timeout_s: float = CONNECT_TIMEOUT_S
+) -> Iterator[Any]:
     """
     Connect to Ray for the duration of the block: an already initialized Ray is used as it is; otherwise
     ``ray.init`` starts a local instance (``address=None``, no dashboard) or connects to the cluster at
-    ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects. A local
-    instance never outlives this process: a watchdog (:mod:`sb3_collapse.sweep.watchdog`) ends its processes if
-    the process dies without shutting it down (SIGKILL, out of memory).
+    ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects. A cluster
+    is probed first (:func:`probe_cluster`): one that does not answer within ``connect_timeout_s``, or refuses this
+    process, ends the session before it starts. A local instance never outlives this process: a watchdog
+    (:mod:`sb3_collapse.sweep.watchdog`) ends its processes if the process dies without shutting it down (SIGKILL,
+    out of memory).
 
     :param address: Ray cluster address, ``None`` for a new local instance
     :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``
+    :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer
     :return: the ``ray`` module
+    :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time
+    :raises SweepError: for an address that cannot be right, or a cluster that wants a token this process lacks
     """
     ray = import_ray()
     if ray.is_initialized():
@@ -87,7 +248,13 @@ def ray_session(address: str | None = None, num_cpus: int | None = None) -> Iter
         ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
         watchdog = _start_watchdog()
     else:
-        ray.init(address=address, log_to_driver=True)
+        probe_cluster(address, connect_timeout_s)
+        try:
+            ray.init(address=address, log_to_driver=True)
+        except ConnectionError as error:
+            raise ClusterUnreachable(
+                f"address {address}: {error}. Check the cluster, then run the same command again; nothing was written."
+            ) from None
     try:
         yield ray
     finally:
@@ -136,7 +303,11 @@ def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_
 
 
 def check_sweep_arguments(
-    out: str | Path, training: Mapping[str, Any], cpus_per_trial: float = 1, gpus_per_trial: float = 0
+    out: str | Path,
+    training: Mapping[str, Any],
+    cpus_per_trial: float = 1,
+    gpus_per_trial: float = 0,
+    connect_timeout_s: float = CONNECT_TIMEOUT_S,
 ) -> None:
     """
     Check what a sweep can check before it writes anything or starts Ray.
@@ -146,8 +317,14 @@ def check_sweep_arguments(
         without returns)
     :param cpus_per_trial: CPUs per trial, > 0
     :param gpus_per_trial: GPUs per trial, a fraction in [0, 1] or a whole number
+    :param connect_timeout_s: seconds to wait for a cluster to answer, > 0
     :raises SweepError: naming the parameter
     """
+    if not connect_timeout_s > 0 or connect_timeout_s == float("inf"):
+        raise SweepError(
+            f"connect_timeout_s must be a finite number of seconds > 0, got {connect_timeout_s}.",
+            parameter="connect_timeout_s",
+        )
     if cpus_per_trial <= 0:
         raise SweepError(f"cpus_per_trial must be > 0, got {cpus_per_trial}.", parameter="cpus_per_trial")
     if gpus_per_trial < 0 or (gpus_per_trial > 1 and gpus_per_trial != int(gpus_per_trial)):
@@ -164,6 +341,28 @@ def check_sweep_arguments(
     blocking = blocking_file(out)
     if blocking is not None:
         raise SweepError(f"out {out}: {blocking} is a file, not a folder.", parameter="out")
+
+
+def check_writable(folder: Path) -> None:
+    """
+    Check that ``folder`` can be created and written into, leaving nothing behind (what this created is removed).
+
+    :param folder: a folder to write into
+    :raises OSError: naming ``folder``, when it cannot be written (a read-only file system, no permission, a full
+        disk)
+    """
+    created = [path for path in (folder, *folder.parents) if not path.exists()]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write_check_{os.getpid()}"
+        probe.mkdir()
+        probe.rmdir()
+    except OSError as error:
+        raise OSError(error.errno, error.strerror, str(folder)) from None
+    finally:
+        for path in created:  # the deepest first
+            with contextlib.suppress(OSError):
+                path.rmdir()
 
 
 def write_error(folder: Path, text: str) -> None:
@@ -197,8 +396,62 @@ def run_trial(
     :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
     :param torch_threads: threads of torch's CPU operations
     :return: ``{"trial": str, "status": "finished" | "failed" | "interrupted", "error": last line of the traceback or
-        None, "resumes": times the finished run was resumed from a checkpoint}``
+        None, "resumes": times the finished run was resumed from a checkpoint}``; ``"interrupted"``: the trial wrote
+        a checkpoint and stopped, at a SIGTERM or SIGINT to its worker or at the driver's stop request (the sweep
+        folder's :data:`~sb3_collapse.protocol.SWEEP_STOP` file, which the trial watches while it trains)
     """
+    stop_file = Path(out) / SWEEP_STOP
+    if stop_file.exists():  # the driver is stopping: a trial that had not started stays as it is
+        return {
+            "trial": str(trial),
+            "status": "interrupted",
+            "error": "not started: the sweep was stopping",
+            "resumes": 0,
+        }
+    with _stop_requests_watched(stop_file):
+        return _run_trial(trial, out, training, checkpoints, device, torch_threads)
+
+
+@contextlib.contextmanager
+def _stop_requests_watched(stop_file: Path, every_s: float = 0.25) -> Iterator[None]:
+    """
+    While inside, a thread checks every ``every_s`` seconds for the driver's stop request (``stop_file``, holding
+    the signal's name) and passes it to the training of this process
+    (:func:`~sb3_collapse.checkpoints.request_training_stop`: a checkpoint, then
+    :class:`~sb3_collapse.checkpoints.TrainingInterrupted`).
+    """
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.wait(every_s):
+            if stop_file.exists():
+                try:
+                    name = stop_file.read_text().strip() or "SIGTERM"
+                except OSError:
+                    name = "SIGTERM"
+                print(f"The sweep was stopped by {name}: writing a checkpoint at the end of this round.", flush=True)
+                request_training_stop(name)
+                return
+
+    watcher = threading.Thread(target=watch, name="sweep-stop-watcher", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        done.set()
+        watcher.join()
+        clear_training_stop()
+
+
+def _run_trial(
+    trial: Trial,
+    out: str,
+    training: Mapping[str, Any],
+    checkpoints: Mapping[str, Mapping[str, str]] | None,
+    device: str,
+    torch_threads: int | None,
+) -> dict[str, Any]:
+    """:func:`run_trial` once the stop requests are watched."""
     folder = trial_dir(out, trial)
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)  # resolved
     if run_folder_state(folder) == UNFINISHED_RUN:
@@ -211,7 +464,10 @@ def run_trial(
     try:
         result = train(config)
     except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
-        return {"trial": str(trial), "status": "interrupted", "error": str(error), "resumes": 0}
+        return {
+            "trial": str(trial), "status": "interrupted", "error": str(error), "resumes": 0,
+            "checkpoint": str(error.checkpoint),
+        }  # fmt: skip
     except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary, the other trials go on
         write_error(folder, traceback.format_exc())
         return {"trial": str(trial), "status": "failed", "error": f"{type(error).__name__}: {error}", "resumes": 0}
@@ -227,6 +483,9 @@ class SweepSummary:
     :param failed: trial -> path of its error file, for the trials that failed in this run
     :param resumed: the trials finished in this run that continued from a checkpoint (of an earlier sweep run, or of
         their own Ray task that died and was run again)
+    :param interrupted: trial -> the checkpoint it wrote as it stopped (``None``: it had not started), for the
+        trials stopped by a signal (to the driver, or to their worker); the next run resumes them
+    :param stopped_by: the signal that stopped the sweep's driver (``"SIGTERM"``, ``"SIGINT"``), ``None`` if none
     """
 
     trials: list[Trial]
@@ -234,6 +493,8 @@ class SweepSummary:
     finished: list[Trial]
     failed: dict[Trial, Path]
     resumed: list[Trial] = dataclasses.field(default_factory=list)
+    interrupted: dict[Trial, Path | None] = dataclasses.field(default_factory=dict)
+    stopped_by: str | None = None
 
     @property
     def ok(self) -> bool:
@@ -402,6 +663,7 @@ def run_sweep(
     allow_changed_settings: bool = False,
     progress_bar: bool = True,
     donors: Mapping[str, Any] | None = None,
+    connect_timeout_s: float = CONNECT_TIMEOUT_S,
 ) -> SweepSummary:
     """
     Run every trial that is not finished, each as an independent Ray task, and wait for all of them.
@@ -411,7 +673,12 @@ def run_sweep(
     memory, a lost node) is run again by Ray (up to :data:`TRIAL_RETRIES` times) and so continues from its
     checkpoint too. The sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) records the settings (see
     :func:`prepare_sweep_folder`). A failing trial writes its traceback to the trial's error file and the others
-    go on. Ray starts only when there is a trial to run.
+    go on. Ray starts only when there is a trial to run, and the settings file is written once Ray answered (a
+    cluster that does not answer leaves the folder as it was).
+
+    **Signals.** A SIGTERM or SIGINT to this process (in the main thread) asks every running trial to write a
+    checkpoint and stop, waits for them, and returns with ``stopped_by`` set and the trials in ``interrupted``:
+    the same call again resumes them. A second signal stops at once (``KeyboardInterrupt``).
 
     :param trials: the trials (:func:`~sb3_collapse.sweep.trials.expand_trials`)
     :param out: the sweep folder; with ``address`` it must be on storage that every node sees at the same path
@@ -427,11 +694,15 @@ def run_sweep(
     :param progress_bar: show a progress bar over the trials
     :param donors: how the transplant donors were picked (:func:`~sb3_collapse.sweep.donors.donors_record`),
         recorded in the settings file; ``None`` when they were given as checkpoints (or there are none)
-    :return: what was skipped, finished and failed
-    :raises SweepError: for settings that cannot run (missing checkpoints, changed settings, resources)
+    :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer (:func:`ray_session`)
+    :return: what was skipped, finished, failed and interrupted
+    :raises SweepError: for settings that cannot run (missing checkpoints, changed settings, resources, a cluster
+        that wants an authentication token)
     :raises RayMissingError: when there are trials to run and Ray is not installed
+    :raises ClusterUnreachable: when the cluster at ``address`` did not answer within ``connect_timeout_s``;
+        nothing was written
     """
-    check_sweep_arguments(out, training, cpus_per_trial, gpus_per_trial)
+    check_sweep_arguments(out, training, cpus_per_trial, gpus_per_trial, connect_timeout_s)
     unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
     if unknown:
         raise SweepError(f"Unknown training settings {unknown}: use TrainConfig field names.")
@@ -443,14 +714,16 @@ def run_sweep(
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
     skipped = [trial for trial in trials if trial_status(trial_dir(out, trial)) == FINISHED]
     to_run = [trial for trial in trials if trial not in set(skipped)]
-    if to_run:
-        import_ray()  # before writing anything: a missing Ray leaves the folder as it was
-    prepare_sweep_folder(out, settings, allow_changed_settings)
     summary = SweepSummary(trials=list(trials), skipped=skipped, finished=[], failed={})
     if not to_run:
+        prepare_sweep_folder(out, settings, allow_changed_settings)
         return summary
-    with ray_session(address) as ray:
+    import_ray()  # before writing anything: a missing Ray leaves the folder as it was
+    check_writable(out)  # before starting Ray: a read-only folder is said at once
+    with ray_session(address, connect_timeout_s=connect_timeout_s) as ray:
         check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
+        prepare_sweep_folder(out, settings, allow_changed_settings)  # the cluster answered: now the folder
+        (out / SWEEP_STOP).unlink(missing_ok=True)  # the request of an earlier run that did not end cleanly
         # max_calls=1: every trial in a fresh worker process, so that nothing a trial leaves in its process (freed
         # replay memory kept by the tuned allocator, CUDA caches, torch threads, GL contexts) reaches the next one.
         # max_retries: Ray runs the task again when its worker dies (not when the trial raises): it resumes.
@@ -464,24 +737,69 @@ def run_sweep(
         }
         with tqdm(total=len(to_run), desc="trials", unit="trial", disable=not progress_bar) as bar:
             try:
-                while pending:
-                    done, _ = ray.wait(list(pending), num_returns=1)
-                    trial = pending.pop(done[0])
-                    try:
-                        outcome = ray.get(done[0])
-                    except Exception as error:  # noqa: BLE001  the Ray task itself died (worker crash, out of memory...)
-                        outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}".splitlines()[0]}
-                        write_error(trial_dir(out, trial), f"The Ray task of {trial} died:\n{error}\n")
-                    if outcome["status"] == FINISHED:
-                        summary.finished.append(trial)
-                        if outcome.get("resumes"):
-                            summary.resumed.append(trial)
-                    else:
-                        summary.failed[trial] = trial_dir(out, trial) / ERROR_TXT
-                        bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")
-                    bar.set_postfix(failed=len(summary.failed))
-                    bar.update()
+                with _stop_on_signals(out, summary, bar):
+                    while pending:
+                        done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)  # signals run between waits
+                        if done:
+                            _collect(ray, done[0], pending.pop(done[0]), out, summary, bar)
             finally:
-                for ref in pending:  # interrupted: stop the trials still running; they rerun on resume
+                for ref in pending:  # stopped at once (a second signal): the trials rerun from their checkpoints
                     ray.cancel(ref, force=True)
+                (out / SWEEP_STOP).unlink(missing_ok=True)
     return summary
+
+
+def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary, bar: Any) -> None:
+    """Record the outcome of a trial's finished Ray task in ``summary``."""
+    try:
+        outcome = ray.get(ref)
+    except Exception as error:  # noqa: BLE001  the Ray task itself died (worker crash, out of memory...)
+        outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}".splitlines()[0]}
+        write_error(trial_dir(out, trial), f"The Ray task of {trial} died:\n{error}\n")
+    if outcome["status"] == FINISHED:
+        summary.finished.append(trial)
+        if outcome.get("resumes"):
+            summary.resumed.append(trial)
+    elif outcome["status"] == "interrupted":
+        checkpoint = outcome.get("checkpoint")
+        summary.interrupted[trial] = Path(checkpoint) if checkpoint else None
+        if checkpoint:
+            bar.write(f"stopped {trial} at its checkpoint {checkpoint}")
+    else:
+        summary.failed[trial] = trial_dir(out, trial) / ERROR_TXT
+        bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")
+    bar.set_postfix(failed=len(summary.failed))
+    bar.update()
+
+
+@contextlib.contextmanager
+def _stop_on_signals(out: Path, summary: SweepSummary, bar: Any) -> Iterator[None]:
+    """
+    While inside (in the main thread), a SIGTERM or SIGINT asks every trial to write a checkpoint and stop: the
+    driver writes the sweep folder's :data:`~sb3_collapse.protocol.SWEEP_STOP` file, which the trials watch
+    (:func:`run_trial`), and goes on collecting their outcomes; ``summary.stopped_by`` records the signal. A second
+    signal stops at once (``KeyboardInterrupt``): the trials are cancelled and resume from their last checkpoints.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    def handler(signum: int, _frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if summary.stopped_by is not None:
+            raise KeyboardInterrupt
+        summary.stopped_by = name
+        write_text_atomically(out / SWEEP_STOP, name + "\n")
+        bar.write(
+            f"\n{name}: asking the running trials to write a checkpoint and stop (a second signal: stop now, each "
+            "trial resuming from its last checkpoint)."
+        )
+
+    for sig in previous:
+        signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)

@@ -8,7 +8,10 @@ of a test module without ``__init__.py`` on ``sys.path``).
 from __future__ import annotations
 
 import csv
+import fcntl
 import json
+import os
+import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,7 +40,8 @@ class FakeTrial:
     :param task: task folder
     :param variant: variant folder
     :param seed: seed folder
-    :param status: ``"finished"``, ``"running"`` (no result.json) or another result.json status
+    :param status: ``"finished"``, ``"running"`` (no result.json, a run.lock of the writing process) or another
+        result.json status
     :param frames: evaluation frames written to eval.csv
     :param returns: mean evaluation returns written to eval.csv
     :param grad_frames: frames of the collapse checks written to collapse_metrics.csv
@@ -114,6 +118,10 @@ def _metric(rng: np.random.Generator, tag: str, mlp1_norm: float) -> float:
     return rng.uniform(0.0, 1.0)
 
 
+_HELD_LOCKS: list = []
+"""The run-folder locks of the fabricated running trials, held for the life of the process that wrote them."""
+
+
 def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial_last_line: bool = False) -> None:
     folder = root / trial.task / trial.variant / f"seed_{trial.seed}"
     folder.mkdir(parents=True)
@@ -160,7 +168,13 @@ def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial
                 writer.writerow([frame, frame // 2, "reset", i + 1])
             if trial.escape_frame is not None:
                 writer.writerow([trial.escape_frame, trial.escape_frame // 2, "escape", trial.resets])
-    if trial.status != "running":
+    if trial.status == "running":  # a process trains into it: the writing process stands in, holding the lock
+        lock = (folder / "run.lock").open("w")
+        fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+        lock.write(f"pid {os.getpid()} on host {socket.gethostname()} since 2026-01-01 00:00:00\n")
+        lock.flush()
+        _HELD_LOCKS.append(lock)
+    else:
         result = {
             "status": trial.status,
             "task": trial.task,
@@ -170,7 +184,10 @@ def _write_trial(root: Path, trial: FakeTrial, rng: np.random.Generator, partial
             "agent_steps": int(trial.frames[-1]) // 2,
             "final_eval": {"frame": int(trial.frames[-1]), "mean_reward": float(trial.returns[-1]), "std_reward": 3.5},
             "saved_model_eval": {  # this version's key: eval.csv holds the scheduled evaluations only
-                "frame": int(trial.frames[-1]), "mean_reward": float(trial.returns[-1]), "std_reward": 3.5, "episodes": 10
+                "frame": int(trial.frames[-1]),
+                "mean_reward": float(trial.returns[-1]),
+                "std_reward": 3.5,
+                "episodes": 10,
             },
             "resets": trial.resets,
             "reset_frames": trial.reset_frames,

@@ -212,6 +212,6 @@ def test_single_run_folder(reported, tmp_path, capsys):
     # an unfinished run is drawn as far as it goes
     (run / "result.json").unlink()
     trial, files = write_run_report(run, out=tmp_path / "partial")
-    assert trial.status == "running" and len(trial.frames) == 21 and len(files) == 2
+    assert trial.status == "unfinished" and len(trial.frames) == 21 and len(files) == 2  # no process holds it
     (run / "eval.csv").unlink()
     assert main([str(run), "--no-progress", "--overwrite"]) == 2  # no longer a run folder, nor a sweep

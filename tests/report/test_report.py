@@ -1,4 +1,5 @@
 import csv
+import fcntl
 import gzip
 import json
 import shutil
@@ -423,3 +424,30 @@ def test_legend_names_the_intervention_of_a_variant():
     assert variant_label("drqv2-leaky+shrink_perturb_noise").endswith("Ash & Adams (lambda theta + sigma noise)")
     for other in ("drqv2", "cnn-good_mlp-bad", "mine+tweak"):  # other names are kept
         assert variant_label(other) == other
+
+
+def test_a_trial_without_a_result_is_running_only_while_its_lock_is_held(tmp_path):
+    import socket
+
+    from sb3_collapse.checkpoints import RunLock
+    from sb3_collapse.report.loading import load_trial
+
+    folder = tmp_path / "walker-walk" / "drqv2" / "seed_0"
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text("{}")
+
+    def status() -> str:
+        return load_trial("walker-walk", "drqv2", 0, folder).status
+
+    assert status() == "unfinished"  # no lock file: stopped (or failed) before its end
+    with RunLock(folder):  # a process trains into it
+        assert status() == "running"
+    assert (folder / "run.lock").exists() and status() == "unfinished"  # the process ended: its lock is free
+    lock = folder / "run.lock"
+    lock.write_text(f"pid 999999999 on host {socket.gethostname()} since 2026-01-01 00:00:00\n")
+    assert status() == "unfinished"  # killed: the lock file stays, its process is gone
+    lock.write_text("pid 1 on host another-node since 2026-01-01 00:00:00\n")
+    assert status() == "unfinished"  # a process on another node: the lock itself is tried, and it is free
+    with open(lock) as held:
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX)
+        assert status() == "running"

@@ -197,7 +197,10 @@ def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
     (partial / "checkpoints" / "step_000000000100").mkdir(parents=True)
     (partial / "checkpoints" / "step_000000000100" / "checkpoint.json").write_text(json.dumps({"frames": 400}))
     capsys.readouterr()
-    assert main(["--tasks", "walker-walk", "--seeds", "3", "--variants", "drqv2", "--out", str(out), *TINY, "--dry-run"]) == 0
+    assert (
+        main(["--tasks", "walker-walk", "--seeds", "3", "--variants", "drqv2", "--out", str(out), *TINY, "--dry-run"])
+        == 0
+    )
     assert f"partial   resume        400 of 1,000 frames  {partial}" in own_lines(capsys.readouterr().out)
 
 
@@ -309,8 +312,10 @@ def test_command_line_errors(tmp_path, capsys):
     out = str(tmp_path / "sweep")
     cases = [
         (["--tasks", "walker-walk", "--seeds", "2", "--transplant-grid"], "--good-mlp PATH"),
-        (["--tasks", "walker-walk", "--seeds", "1", "--variants", "cnn-good_mlp-good", "--good-checkpoint", "a.zip"],
-         "pass --good-cnn PATH --good-mlp PATH, or --donors-from SWEEP"),
+        (
+            ["--tasks", "walker-walk", "--seeds", "1", "--variants", "cnn-good_mlp-good", "--good-checkpoint", "a.zip"],
+            "pass --good-cnn PATH --good-mlp PATH, or --donors-from SWEEP",
+        ),
         (["--tasks", "walker-walk", "--seeds", "0"], "--seeds must be >= 1"),
         (["--tasks", "walker-walk", "--seed-list", "1", "--variants", "drqv2++"], "Unknown variant 'drqv2++'"),
         (["--tasks", "walker-walk", "--seeds", "1", "--frames", "0"], "--frames must be >= 1"),
@@ -330,7 +335,9 @@ def test_command_line_errors(tmp_path, capsys):
             "--bad-mlp", str(other)]  # fmt: skip
     assert main(["--tasks", "walker-walk", "--seeds", "2", *grid, "--out", out, "--dry-run"]) == 0
     lines = own_lines(capsys.readouterr().out)
-    assert lines[-1].startswith("18 trials: 18 pending; 18 would run") and lines[0].endswith("cnn-blank_mlp-blank/seed_0")
+    assert lines[-1].startswith("18 trials: 18 pending; 18 would run") and lines[0].endswith(
+        "cnn-blank_mlp-blank/seed_0"
+    )
     assert not (tmp_path / "sweep").exists()  # a dry run writes nothing
     with pytest.raises(SystemExit):
         main(["--help"])
@@ -351,7 +358,9 @@ def test_resources_and_settings_checks():
     same = {"training": {"frames": 1000}, "checkpoints": {"good_cnn": {"walker-walk": "/a.zip", "hopper-stand": "/b"}}}
     assert settings_changes(previous, same) == []  # a new task's checkpoint is not a change
     moved = {"training": {"frames": 1000}, "checkpoints": {"good_cnn": {"walker-walk": "/c.zip"}}}
-    assert settings_changes(previous, moved) == ["`good_cnn` checkpoint for walker-walk: /a.zip in sweep.json, /c.zip now"]
+    assert settings_changes(previous, moved) == [
+        "`good_cnn` checkpoint for walker-walk: /a.zip in sweep.json, /c.zip now"
+    ]
     # A sweep of an earlier version took both good parts from one agent: continuing it with two agents is a change.
     old_form = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/a.zip"}}}
     assert settings_changes(old_form, moved) == [
@@ -557,3 +566,42 @@ def test_killed_trial_worker_is_run_again_and_resumes(ray_local, tmp_path, capsy
     assert result["resumes"] == 1 and result["frames"] == 1200 and result["resets"] == 1
     assert [int(row["frame"]) for row in read_csv(folder / "eval.csv")] == [0]  # 1200: the final model's
     assert [int(row["frame"]) for row in read_csv(folder / "collapse_events.csv")] == [800]
+
+
+def newest_checkpoint(folder):
+    """The newest checkpoint folder of a trial and its checkpoint.json, or (None, None)."""
+    kept = checkpoint_folders(folder / "checkpoints")
+    return (kept[0], json.loads((kept[0] / "checkpoint.json").read_text())) if kept else (None, None)
+
+
+def stop_after_first_checkpoint(folder, signum, process_id, record):
+    """Send ``signum`` to ``process_id`` once the trial in ``folder`` wrote a periodic checkpoint; ``record`` gets
+    that checkpoint's step and the time of the signal."""
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline:
+        periodic, info = newest_checkpoint(folder)
+        if periodic is not None:
+            record["periodic_step"], record["signal_time"] = info["agent_steps"], time.time()
+            os.kill(process_id, signum)
+            return
+        time.sleep(0.02)
+
+
+def test_sigint_to_the_sweep_stops_every_trial_at_a_checkpoint(ray_local, tmp_path, capsys):
+    """SIGINT (Ctrl-C) to the driver; SIGTERM, and the rerun that resumes, on a ray start cluster: test_cluster.py."""
+    out = tmp_path / "sweep"
+    folder = out / "cartpole-balance" / "drqv2+reset" / "seed_0"
+    record = {}
+    sender = threading.Thread(
+        target=stop_after_first_checkpoint, args=(folder, signal.SIGINT, os.getpid(), record), daemon=True
+    )
+    sender.start()
+    assert main([*RESUMABLE, "--out", str(out), "--no-progress-bar"]) == 75
+    sender.join()
+    stdout = own_lines(capsys.readouterr().out)
+    assert "1 trials in" in stdout[-2] and "0 failed, 1 stopped at a checkpoint." in stdout[-2]
+    assert stdout[-1] == "Stopped by SIGINT: run the same command again to resume (exit status 75)."
+    stopped, info = newest_checkpoint(folder)
+    assert info["agent_steps"] > record["periodic_step"] and info["frames"] < 1200  # written at the signal
+    assert (stopped / "checkpoint.json").stat().st_mtime >= record["signal_time"]
+    assert not (out / ".stop_requested").exists() and trial_status(folder) == "partial"
