@@ -228,7 +228,7 @@ def test_zip_of_a_checkpoint_stays_readable(bad_checkpoints):
 
 def test_probe_takes_probe_checkpoints_and_sb3_baselines_and_refuses_mixed_image_sizes(tmp_path, capsys):
     from sb3_collapse.baselines import build_baseline
-    from sb3_collapse.drqv2.probe_checkpoint import save_probe_checkpoint
+    from sb3_collapse.run.probe_checkpoint import save_probe_checkpoint
 
     tiny = ["--episodes", "3", "--max-steps", "4", "--layers", "cnn3", "mlp1", "--no-progress"]
     env = make_dmc_env("cartpole-balance", size=48, action_repeat=20)

@@ -2,7 +2,7 @@
 
 A :class:`LearnTimer` callback fills a :class:`LearnTimings` during every ``learn()`` call it is given to
 (``timer.timings``, reset at the start of the call); the environments' time comes from a :class:`TimedVecEnv` around
-the model's ``VecEnv``. The train CLI uses both and writes the timings into ``result.json``. Each round of the
+the model's ``VecEnv``. The train CLI uses both and writes the timings into the run's result file. Each round of the
 loop (the environment steps up to the next update, then that round of updates: ``sb3_collapse.drqv2.rounds``) is
 counted in one of two phases:
 
