@@ -23,7 +23,9 @@ _LAZY = {
 """Names imported from their package at their first use: importing the algorithm does not import the monitoring
 callbacks, nor the other way round."""
 
-__all__ = ["ActivationLogger", "CollapseMetrics", "CollapseReset", "DrQv2", "PeriodicReDo", "__version__", "make_dmc_env"]
+__all__ = [
+    "ActivationLogger", "CollapseMetrics", "CollapseReset", "DrQv2", "PeriodicReDo", "__version__", "make_dmc_env"
+]
 
 
 def __getattr__(name: str) -> Any:

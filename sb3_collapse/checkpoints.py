@@ -339,10 +339,16 @@ def capture_state(
         },
         "csv_lines": {path.name: _line_count(path) if path.is_file() else 0 for path in csv_files},
         "model_extras": {name: getattr(model, name) for name in MODEL_EXTRAS if hasattr(model, name)},
-        "update_stats": stats.state_dict() if isinstance(stats := getattr(model, "update_stats", None), UpdateStats) else None,
+        "update_stats": _update_stats_state(model),
         "extra": dict(extra or {}),
     }
     return tensors_to(state, "cpu")  # unpickled where it was written: a GPU's tensors would need that GPU
+
+
+def _update_stats_state(model: BaseAlgorithm) -> dict[str, Any] | None:
+    """The statistics of the updates not logged yet (``DrQv2.update_stats``), ``None`` for another model."""
+    stats = getattr(model, "update_stats", None)
+    return stats.state_dict() if isinstance(stats, UpdateStats) else None
 
 
 def _replay_manifest(store: ReplayStore, buffer: Any) -> dict[str, Any]:
