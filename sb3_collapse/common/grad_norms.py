@@ -47,6 +47,19 @@ class GradNormRecorder:
                 assigned.update(slots)
                 self._handles.append(optimizer.register_step_pre_hook(self._hook([params[i] for i in slots], slots)))
 
+    @classmethod
+    def of_modules(
+        cls, modules: Mapping[str, nn.Module], optimizers: Iterable[th.optim.Optimizer | None]
+    ) -> GradNormRecorder:
+        """
+        :param modules: layer name -> the module holding its parameters (e.g. ``policy.named_layers()``); modules
+            without parameters are left out
+        :param optimizers: the optimizers that train them
+        :return: a recorder of those layers
+        """
+        layers = {name: list(module.parameters()) for name, module in modules.items()}
+        return cls({name: params for name, params in layers.items() if params}, optimizers)
+
     def _hook(self, layers: list[list[nn.Parameter]], slots: list[int]) -> Callable[..., None]:
         params = [p for layer in layers for p in layer]
         # Slot (in self.names) of each parameter, made once on the device: a hook call transfers nothing.

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 import torch as th
 
@@ -60,6 +61,21 @@ class DivergenceGuard:
         self.dumps = 0
         self.warnings: list[str] = []
         """The warnings given, at most one per loss (for the run's summary)."""
+
+    def check_dump(
+        self, means: Mapping[str, float], weights_finite: bool, update: int, frame: int, gamma: float, logger: Any
+    ) -> None:
+        """
+        :meth:`check` the means of a log dump (``UpdateStats.dump``: the losses and the batch reward are read), and
+        record the number of warnings in ``logger`` (``train/divergence_warnings``) when this dump gave a new one.
+
+        :raises DivergenceError: as :meth:`check`
+        """
+        given = len(self.warnings)
+        losses = {name: means[name] for name in ("critic_loss", "actor_loss", "batch_reward") if name in means}
+        self.check(losses, weights_finite, update, frame, gamma=gamma)
+        if len(self.warnings) > given:
+            logger.record("train/divergence_warnings", len(self.warnings))
 
     def check(
         self,

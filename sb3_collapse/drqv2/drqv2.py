@@ -191,24 +191,17 @@ class DrQv2(RoundsAlgorithm):
         self.grad_norm_recorder: GradNormRecorder | None = None
         """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
         self.update_stats = UpdateStats()
-        self.divergence_guard = DivergenceGuard()
-        """Stops training on a loss or weight that is not finite, warns once when a loss grows by orders of magnitude
-        (read at each log dump; see ``sb3_collapse.drqv2.divergence``)."""
+        self.divergence_guard = DivergenceGuard()  # read at each log dump: sb3_collapse.drqv2.divergence
         self._warned_replay_not_ready = False
         self.reset_step = 0
-        self.init_from = describe_init_from(transplant_specs)
-        """Group -> source (plain strings) of the layer transplant this model was built with, ``None`` when none;
-        saved with the model."""
+        self.init_from = describe_init_from(transplant_specs)  # group -> source, saved with the model
         if _init_setup_model:
             # Read the sources first (a file that is no DrQv2 zip fails before the replay buffer is allocated);
             # reading them builds no model and touches no random generator.
             sources = load_sources(transplant_specs)
             self._setup_model()
             if sources:
-                replaced = transplant(self.policy, sources)
-                if self.verbose >= 1:
-                    groups = ", ".join(f"{group} from {source}" for group, source in (self.init_from or {}).items())
-                    print(f"DrQv2: transplanted {groups} ({len(replaced)} tensors)")
+                transplant(self.policy, sources, verbose=self.verbose)
 
     # ------------------------------------------------------------------ setup
     def _setup_model(self) -> None:
@@ -233,14 +226,11 @@ class DrQv2(RoundsAlgorithm):
         self.policy.exploration_std = self.current_stddev
 
     def _index_grad_layers(self) -> None:
-        """
-        A new gradient-norm recorder on the current optimizers (the previous one removed): ``cnn1``..``cnn4`` are
-        recorded when the encoder's optimizer steps, ``mlp0``..``action`` when the actor's does.
-        """
+        """A new gradient-norm recorder on the current optimizers, the previous one removed (``cnn1``..``cnn4``
+        recorded when the encoder's optimizer steps, ``mlp0``..``action`` when the actor's does)."""
         if self.grad_norm_recorder is not None:
             self.grad_norm_recorder.remove()
-        layers = {name: list(module.parameters()) for name, module in self.policy.named_layers().items()}
-        self.grad_norm_recorder = GradNormRecorder({k: v for k, v in layers.items() if v}, self.policy.optimizers)
+        self.grad_norm_recorder = GradNormRecorder.of_modules(self.policy.named_layers(), self.policy.optimizers)
 
     def _create_aliases(self) -> None:
         self.encoder = self.policy.encoder
@@ -297,14 +287,9 @@ class DrQv2(RoundsAlgorithm):
     # ------------------------------------------------------------------ training
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
         """
-        ``gradient_steps`` DrQ-v2 updates on minibatches of ``batch_size`` transitions.
-
-        After a :meth:`reset_from_scratch` at transition ``reset_step > 0``, no update happens until
-        ``learning_starts`` transitions were collected since the reset (``learn()`` asks for none, see
-        :meth:`updates_due`; a direct call is skipped too, and a verbose model says so).
-
-        The batches are ``replay_buffer.sample``'s, in the same order; ``self.replay_prefetcher`` makes them (on
-        CUDA, one batch ahead through pinned buffers; see ``sb3_collapse.drqv2.prefetch``).
+        ``gradient_steps`` DrQ-v2 updates on minibatches of ``batch_size`` transitions: ``replay_buffer.sample``'s, in
+        the same order, made by ``self.replay_prefetcher`` (on CUDA one batch ahead, ``sb3_collapse.drqv2.prefetch``).
+        None in the ``learning_starts`` transitions after a :meth:`reset_from_scratch`.
         """
         if self.reset_step > 0 and self.num_timesteps - self.reset_step <= self.learning_starts:
             if self.verbose >= 2:
@@ -348,16 +333,9 @@ class DrQv2(RoundsAlgorithm):
         if uses_cuda_graphs(self.compile_update, self.device):
             th.compiler.cudagraph_mark_step_begin()
         critic_loss, features, q1, q2, target_q = critic_loss_fn(
-            data.observations,
-            data.next_observations,
-            data.actions,
-            data.rewards,
-            data.dones,
-            discounts,
-            shifts,
-            next_shifts,
-            next_noise,
-        )
+            data.observations, data.next_observations, data.actions, data.rewards, data.dones, discounts,
+            shifts, next_shifts, next_noise,
+        )  # fmt: skip
         self._update_critic(critic_loss)
         with _frozen(self.critic):
             actor_loss = actor_loss_fn(features.detach(), actor_noise)
@@ -458,15 +436,12 @@ class DrQv2(RoundsAlgorithm):
         self.logger.record("time/frames", self.num_frames)
         if means is not None:
             self.logger.record("train/stddev", self.current_stddev)
-            losses = {k: v for k, v in means.items() if k in ("critic_loss", "actor_loss", "batch_reward")}
-            finite, given = bool(all_finite(self.policy.parameters())), len(self.divergence_guard.warnings)
+            finite = bool(all_finite(self.policy.parameters()))
             try:
-                self.divergence_guard.check(losses, finite, self._n_updates, self.num_frames, gamma=self.gamma)
+                self.divergence_guard.check_dump(means, finite, self._n_updates, self.num_frames, self.gamma, self.logger)
             except DivergenceError:
                 super().dump_logs()  # the non-finite values reach the logs too
                 raise
-            if len(self.divergence_guard.warnings) > given:
-                self.logger.record("train/divergence_warnings", len(self.divergence_guard.warnings))
         super().dump_logs()
 
     # ------------------------------------------------------------------ learn / save
@@ -480,17 +455,10 @@ class DrQv2(RoundsAlgorithm):
         progress_bar: bool = False,
     ) -> SelfDrQv2:
         """
-        Train for ``total_timesteps`` transitions (frames = transitions x action repeat), in rounds of environment
-        steps up to the next update due, then those updates (``sb3_collapse.drqv2.rounds``).
-
-        :param total_timesteps: transitions (agent steps with one environment) to train for
-        :param callback: callback(s) for this call, run after those given to the constructor
-        :param log_interval: episodes between two log dumps
-        :param tb_log_name: name of the TensorBoard run
-        :param reset_num_timesteps: restart the step count (and so the exploration schedule and the warm-up, and
-            forget the step of the last :meth:`reset_from_scratch`); ``False`` continues a loaded model
-        :param progress_bar: show a progress bar (tqdm and rich)
-        :return: the trained model
+        SB3's ``learn`` for ``total_timesteps`` transitions (frames = transitions x action repeat), in rounds of
+        environment steps up to the next update due, then those updates (``sb3_collapse.drqv2.rounds``). ``callback``
+        runs after the constructor's; ``reset_num_timesteps`` also restarts the exploration schedule and the warm-up
+        (``False`` continues a loaded model where it stopped).
         """
         self._warned_replay_not_ready = False
         callbacks = self._combined_callbacks(callback)
@@ -541,15 +509,7 @@ class DrQv2(RoundsAlgorithm):
         check_load_arguments(path, kwargs)
         if "stddev_schedule" in kwargs:  # SB3 sets kwargs as attributes: parse a specification as __init__ does
             kwargs["stddev_schedule"] = StddevSchedule(kwargs["stddev_schedule"])
-        model = super().load(
-            path,
-            env=env,
-            device=device,
-            custom_objects=custom_objects,
-            print_system_info=print_system_info,
-            force_reset=force_reset,
-            **kwargs,
-        )
+        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         specs = model.__dict__.pop("callback_specs", None) or []
         if "callback" not in kwargs and specs:
             model.callback = restore_callbacks(specs, "DrQv2.load")

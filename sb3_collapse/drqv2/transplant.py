@@ -458,15 +458,19 @@ def apply_transplant(policy: DrQv2Policy, plan: Mapping[str, th.Tensor]) -> None
             target_state[key].copy_(value)
 
 
-def transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]) -> list[str]:
+def transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource], verbose: int = 0) -> list[str]:
     """
     Check everything (:func:`plan_transplant`), then copy the groups' weights into ``policy``.
 
     :param policy: the freshly built policy to copy into
     :param sources: group -> source
+    :param verbose: 1 or more: print which groups came from where
     :return: the ``state_dict`` keys that were replaced
     :raises ValueError: see :func:`plan_transplant`; nothing is copied then
     """
     plan = plan_transplant(policy, sources)
     apply_transplant(policy, plan)
+    if verbose >= 1:
+        groups = ", ".join(f"{group} from {source.description}" for group, source in sources.items())
+        print(f"DrQv2: transplanted {groups} ({len(plan)} tensors)")
     return list(plan)
