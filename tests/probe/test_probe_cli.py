@@ -137,8 +137,8 @@ def test_bad_inputs_exit_with_a_message_and_no_outputs(files, tmp_path, capsys):
         "not an SB3 model": [str(folder / "other.zip")],
         "cannot probe a model whose policy comes from 'stable_baselines3.common.policies'": [str(folder / "ppo.zip")],
         "SAC with gSDE": [str(folder / "sac_sde.zip")],  # its layers cannot be mapped
-        # the first checkpoint is probed, the second does not fit the rollouts: nothing is written
-        "takes observations of shape (9, 40, 40)": [str(files["early"]), str(bigger)],
+        # checkpoints of two image sizes are refused before anything is recorded: nothing is written
+        "of shape (9, 40, 40): the probe feeds every checkpoint the same rollouts": [str(files["early"]), str(bigger)],
         "not a rollouts file": [str(files["early"]), "--rollouts", str(folder / "notes.txt")],
         "--max-tau must be >= 1": [str(files["early"]), "--max-tau", "0"],
     }
