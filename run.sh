@@ -3,7 +3,8 @@
 #
 # setup: headless OpenGL (Debian packages, when missing and apt-get can install them), a virtual
 #        environment in .venv (Python >= 3.10), PyTorch (CPU build 2.13.0 unless TORCH_SPEC says otherwise,
-#        or the one already there), then this package (with its test, zoo and sweep extras for `test`).
+#        or the one already there), then this package in editable mode (with its test, zoo, sweep and dev extras
+#        for `setup` and `test`).
 # demo:  setup, then a short DrQ-v2 run on walker-walk from pixels; writes runs/walker-walk_s0/.
 # test:  setup, then the test suite (pytest). Extra arguments go to pytest.
 set -euo pipefail
@@ -74,17 +75,17 @@ command=${1:-}
 shift || true
 case $command in
     setup)
-        setup test,zoo,sweep
+        setup test,zoo,sweep,dev
         ;;
     demo)
         setup
-        log "Training DrQ-v2 on walker-walk from pixels: 6,000 frames (5-9 minutes of training on 2 CPU cores), with the task's DrQ-v2 preset otherwise"
+        log "Training DrQ-v2 on walker-walk from pixels: 6,000 frames, batch 32, the task's DrQ-v2 preset otherwise (minutes on a CPU: benchmarks/README.md#demo)"
         "$VENV/bin/python" -m sb3_collapse.train --env walker-walk --frames 6000 --seed 0 --logdir runs \
             --seed-frames 2000 --batch-size 32 --eval-every-frames 3000 --eval-episodes 1 "$@"
         echo "See the curves with: $VENV/bin/tensorboard --logdir runs"
         ;;
     test)
-        setup test,zoo,sweep
+        setup test,zoo,sweep,dev
         log "Running the test suite"
         "$VENV/bin/python" -m pytest "$@"
         ;;

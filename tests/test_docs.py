@@ -108,12 +108,14 @@ def github_slug(heading: str) -> str:
 def anchors(path: Path) -> frozenset[str]:
     """
     :param path: a markdown file
-    :return: the anchors of its headings, duplicates numbered as GitHub numbers them (``-1``, ``-2``...)
+    :return: the anchors of its headings, duplicates numbered as GitHub numbers them (``-1``, ``-2``...), and
+        those of its HTML anchors (``<a id="env-speed"></a>``: the rows of benchmarks/README.md)
     """
     prose, _ = _prose_and_code(path)
     seen: dict[str, int] = {}
     found = set()
     for _, line in prose:
+        found.update(re.findall(r"<a\s+(?:id|name)=\"([^\"]+)\"", line))
         match = re.match(r"^#{1,6}\s+(.*?)\s*#*\s*$", line)
         if not match:
             continue

@@ -5,7 +5,7 @@ rl_zoo3 for DrQv2: ``python -m sb3_collapse.zoo train --algo drqv2 --env sb3_col
 rl_zoo3 has no plugin mechanism: :func:`register_with_zoo` adds DrQv2 to its algorithm table and registers the
 DeepMind Control ids, and :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager` (used by the launcher) gives
 the evaluation env the training env's pixel settings and refuses settings that would break pixel observations.
-Importing this package does not import rl_zoo3 (an optional dependency: ``pip install 'sb3-collapse[zoo]'``).
+Importing this package does not import rl_zoo3 (an optional dependency: ``pip install -e '.[zoo]'`` in a clone).
 """
 
 from sb3_collapse.zoo.errors import LauncherError, ZooConfigError, ZooNotInstalledError

@@ -9,7 +9,7 @@ from sb3_collapse.zoo.errors import ZooNotInstalledError
 ALGO_NAME = "drqv2"
 """Name of DrQv2 in rl_zoo3's algorithm table (``--algo drqv2``)."""
 
-INSTALL_HINT = "pip install 'sb3-collapse[zoo]'"
+INSTALL_HINT = "pip install -e '.[zoo]' in a clone of sb3-collapse"
 
 
 def import_rl_zoo3() -> ModuleType:

@@ -286,7 +286,7 @@ def test_bad_configs(tmp_path, env_id, params, message, capsys):
 def test_missing_rl_zoo3(monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "rl_zoo3", None)
     assert main(["train", "--algo", "drqv2"]) == 2
-    assert "pip install 'sb3-collapse[zoo]'" in capsys.readouterr().err
+    assert "pip install -e '.[zoo]'" in capsys.readouterr().err
 
 
 def test_help(capsys):

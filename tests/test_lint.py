@@ -1,0 +1,48 @@
+"""ruff (pyproject.toml's rules, line length included) passes on the package, the tests, the benchmarks and scripts."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CHECKED = ("sb3_collapse", "tests", "benchmarks", "scripts")
+
+# Files being split or moved by work in progress, whose long lines are fixed once that work is merged. Empty it then:
+# every file is checked with the same rules.
+PENDING_RESTRUCTURE: tuple[str, ...] = (
+    "sb3_collapse/train.py",
+    "sb3_collapse/checkpoints.py",
+    "sb3_collapse/sweep/runner.py",
+    "sb3_collapse/sweep/__main__.py",
+    "sb3_collapse/sweep/trials.py",
+)
+
+
+def _ruff() -> list[str] | None:
+    """The ruff command: the module of this interpreter's environment, else the one on the PATH; ``None``: none."""
+    try:
+        import ruff  # noqa: F401
+    except ImportError:
+        executable = shutil.which("ruff")
+        return [executable] if executable else None
+    return [sys.executable, "-m", "ruff"]
+
+
+def test_ruff_check_passes():
+    ruff = _ruff()
+    if ruff is None:
+        pytest.skip("ruff is not installed: pip install -e '.[dev]' (bash run.sh setup installs it)")
+    pending = [arg for path in PENDING_RESTRUCTURE for arg in ("--extend-per-file-ignores", f"{path}:E501")]
+    result = subprocess.run(
+        [*ruff, "check", "--no-cache", "--output-format", "concise", *pending, *CHECKED],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, f"ruff check failed (fix the lines below):\n{result.stdout}{result.stderr}"
