@@ -144,7 +144,8 @@ def main() -> None:
     )
     print(
         f"device: {name}; torch {th.__version__}; 9x84x84 uint8 obs, action repeat 2, {args.frames:,} frames per run, "
-        f"batch {args.batch_size}, one update per {args.train_freq} agent steps, check every {args.check_every_frames:,} frames"
+        f"batch {args.batch_size}, one update per {args.train_freq} agent steps, check every "
+        f"{args.check_every_frames:,} frames"
     )
 
     wall: dict[bool, list[float]] = {False: [], True: []}

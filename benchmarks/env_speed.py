@@ -52,8 +52,14 @@ def main() -> None:
     parser.add_argument("--action-repeat", type=int, default=2, help="frames per agent step")
     args = parser.parse_args()
 
-    rows = [(obs_type, steps_per_second(args.task, args.steps, obs_type, args.action_repeat)) for obs_type in ("pixels", "state")]
-    print(f"task {args.task}, action repeat {args.action_repeat}, {args.steps} agent steps, MUJOCO_GL={os.environ.get('MUJOCO_GL')}")
+    rows = [
+        (obs_type, steps_per_second(args.task, args.steps, obs_type, args.action_repeat))
+        for obs_type in ("pixels", "state")
+    ]
+    print(
+        f"task {args.task}, action repeat {args.action_repeat}, {args.steps} agent steps, "
+        f"MUJOCO_GL={os.environ.get('MUJOCO_GL')}"
+    )
     print(f"{'observations':>12} {'agent steps/s':>14} {'frames/s':>9} {'ms per agent step':>18} {'CPU cores':>10}")
     for obs_type, (sps, cores) in rows:
         print(f"{obs_type:>12} {sps:>14.1f} {sps * args.action_repeat:>9.1f} {1000 / sps:>18.2f} {cores:>10.2f}")

@@ -105,7 +105,8 @@ def benchmark_omp(args: argparse.Namespace, device: th.device) -> None:
     per_target_ratio = (sk_s / m) / (ours_s / args.targets)
     print(f"sklearn / ours: {per_target_ratio:.1f}x  (per target)")
     print(
-        f"same selected atoms: {sum(same)}/{m} targets; largest coefficient difference {diff:.1e} (relative to the largest)"
+        f"same selected atoms: {sum(same)}/{m} targets; largest coefficient difference {diff:.1e} (relative to the "
+        "largest)"
     )
 
 
@@ -145,7 +146,8 @@ def benchmark_probe(args: argparse.Namespace, device: th.device) -> None:
     total = time.perf_counter() - start
     for layer in result.layers:
         print(
-            f"  {layer.layer}: {layer.n_features:>6,} features, standardize + OMP + evaluation {layer.fit_seconds:6.1f} s"
+            f"  {layer.layer}: {layer.n_features:>6,} features, standardize + OMP + evaluation "
+            f"{layer.fit_seconds:6.1f} s"
         )
     print(f"  forward passes (all layers): {result.extract_seconds:.1f} s")
     print(f"full probe of one checkpoint: {total:.1f} s ({total / 60:.1f} min)")

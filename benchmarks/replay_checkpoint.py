@@ -3,7 +3,8 @@
 For each buffer capacity, a FrameStackReplayBuffer of 3x84x84 uint8 frames (frame_stack 3, 6-d actions, one env)
 receives transitions of synthetic episodes of 500 agent steps (frames copied from a pool of 64 random ones: no
 rendering), up to its capacity and then ``--wrap`` times its capacity more (at least 3 checkpoints' worth), and is
-checkpointed every ``--every`` transitions (5,000 = 10,000 frames at action repeat 2) as a run would: ``ReplayStore.save``, then, the new
+checkpointed every ``--every`` transitions (5,000 = 10,000 frames at action repeat 2) as a run would:
+``ReplayStore.save``, then, the new
 checkpoint being complete, ``collect_garbage(keep=[new manifest])``. Printed, per capacity: the last checkpoint's
 bytes written and seconds (save, fsync included), the largest over all checkpoints, and the folder's bytes after
 garbage collection and at its peak (during a checkpoint, when the new chunks exist beside the previous ones) as a

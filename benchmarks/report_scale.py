@@ -1,4 +1,5 @@
-"""Wall time of ``python -m sb3_collapse.report`` on a sweep of the paper's size (Figure 5: 3 tasks x 2 variants x 40 seeds).
+"""Wall time of ``python -m sb3_collapse.report`` on a sweep of the paper's size (Figure 5: 3 tasks x 2 variants x 40
+seeds).
 
 Writes a synthetic sweep folder in the trial-folder contract into a temporary folder: per trial an ``eval.csv``
 with an evaluation every 10,000 frames up to 1.1M frames (111 rows) and a long-format ``collapse_metrics.csv``
@@ -87,7 +88,8 @@ def main() -> None:
         elapsed = time.perf_counter() - start
     print(f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}")
     print(
-        f"trials: {len(report.sweep.trials)}, collapse-metric rows: {rows:,} (synthetic sweep written in {written:.1f} s)"
+        f"trials: {len(report.sweep.trials)}, collapse-metric rows: {rows:,} (synthetic sweep written in "
+        f"{written:.1f} s)"
     )
     print(f"write_report (read, statistics, figure5.png with reference, tables): {elapsed:.1f} s")
 

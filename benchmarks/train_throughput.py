@@ -47,11 +47,10 @@ import time
 from pathlib import Path
 
 FIELDS = (
-    "repeat", "concurrent", "run", "envs", "compiled", "overlap", "device", "batch_size", "warmup_frames", "warmup_fps", "learning_frames",
-    "learning_fps", "env_share", "update_share", "overhead_share", "ms_per_update", "updates", "first_round_s",
-    "one_time_s",
-    "peak_rss_mb", "peak_gpu_mb", "wall_s",
-)
+    "repeat", "concurrent", "run", "envs", "compiled", "overlap", "device", "batch_size", "warmup_frames", "warmup_fps",
+    "learning_frames", "learning_fps", "env_share", "update_share", "overhead_share", "ms_per_update", "updates",
+    "first_round_s", "one_time_s", "peak_rss_mb", "peak_gpu_mb", "wall_s",
+)  # fmt: skip
 """Columns of the CSV, in order."""
 
 
@@ -99,8 +98,15 @@ def measure(
     start = time.perf_counter()
     with contextlib.ExitStack() as files:
         for run in range(concurrent):
-            run_dir = folder / f"envs{envs}_compiled{int(compiled)}_overlap{int(overlap)}_concurrent{concurrent}_run{run}"
-            command = [sys.executable, __file__, "--child", *train_arguments(args, envs, compiled, overlap, run_dir, run)]
+            run_dir = (
+                folder / f"envs{envs}_compiled{int(compiled)}_overlap{int(overlap)}_concurrent{concurrent}_run{run}"
+            )
+            command = [
+                sys.executable,
+                __file__,
+                "--child",
+                *train_arguments(args, envs, compiled, overlap, run_dir, run),
+            ]
             # Output to files, not pipes: no child blocks on a full pipe while another one is waited for.
             out, err = (files.enter_context(open(f"{run_dir}.{name}", "w+")) for name in ("out", "err"))
             processes.append((run_dir, command, subprocess.Popen(command, stdout=out, stderr=err, text=True), out, err))
@@ -113,7 +119,9 @@ def measure(
                     other[2].kill()
                 raise RuntimeError(f"{' '.join(command)} failed:\n{err.read()[-3000:]}")
             row = read_run(args, run_dir, out.read(), time.perf_counter() - start)
-            rows.append({"concurrent": concurrent, "run": run, "envs": envs, "compiled": compiled, "overlap": overlap, **row})
+            rows.append(
+                {"concurrent": concurrent, "run": run, "envs": envs, "compiled": compiled, "overlap": overlap, **row}
+            )
     return rows
 
 
@@ -167,11 +175,15 @@ def print_table(rows: list[dict], gpu_memory_mb: float | None = None) -> None:
 
     def spread(values: list[float], digits: int) -> str:
         median = statistics.median(values)
-        return f"{median:.{digits}f}" + (f" ({min(values):.{digits}f}-{max(values):.{digits}f})" if len(values) > 1 else "")
+        return f"{median:.{digits}f}" + (
+            f" ({min(values):.{digits}f}-{max(values):.{digits}f})" if len(values) > 1 else ""
+        )
 
     for configuration in configurations:
         envs, compiled, overlap, runs = configuration
-        group = [row for row in rows if (row["envs"], row["compiled"], row["overlap"], row["concurrent"]) == configuration]
+        group = [
+            row for row in rows if (row["envs"], row["compiled"], row["overlap"], row["concurrent"]) == configuration
+        ]
 
         def median(key: str, group: list[dict] = group) -> float:
             return statistics.median(row[key] for row in group)
@@ -184,10 +196,13 @@ def print_table(rows: list[dict], gpu_memory_mb: float | None = None) -> None:
         if gpu_memory_mb:
             peak = max(row["peak_gpu_mb"] for row in group)
             columns += f" {peak:>11.0f} {int(0.9 * gpu_memory_mb // peak):>13}"
-        print(f"{envs:>4} {'yes' if compiled else 'no':>8} {'yes' if overlap else 'no':>7}{columns} "
-              f"{spread([row['warmup_fps'] for row in group], 1):>17} {spread([row['learning_fps'] for row in group], 2):>17} "
-              f"{median('env_share'):>5.0%} {median('update_share'):>6.0%} {median('overhead_share'):>8.0%} "
-              f"{median('ms_per_update'):>9.0f} {median('one_time_s'):>12.1f} {median('peak_rss_mb'):>11.0f}")
+        print(
+            f"{envs:>4} {'yes' if compiled else 'no':>8} {'yes' if overlap else 'no':>7}{columns} "
+            f"{spread([row['warmup_fps'] for row in group], 1):>17} "
+            f"{spread([row['learning_fps'] for row in group], 2):>17} "
+            f"{median('env_share'):>5.0%} {median('update_share'):>6.0%} {median('overhead_share'):>8.0%} "
+            f"{median('ms_per_update'):>9.0f} {median('one_time_s'):>12.1f} {median('peak_rss_mb'):>11.0f}"
+        )
 
 
 def machine(device: str) -> str:
@@ -197,7 +212,8 @@ def machine(device: str) -> str:
     if device.startswith("cuda"):
         name = th.cuda.get_device_name(th.device(device))
     else:
-        name = f"cpu ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, {th.get_num_threads()} torch threads)"
+        processor = platform.processor() or platform.machine()
+        name = f"cpu ({processor}, {os.cpu_count()} cores, {th.get_num_threads()} torch threads)"
     return f"{name}; torch {th.__version__}"
 
 
@@ -216,7 +232,9 @@ def main() -> None:
         return
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 2, 4], help="numbers of training environments")
-    parser.add_argument("--compile", nargs="+", choices=["off", "on"], default=["off", "on"], help="compiled update or not")
+    parser.add_argument(
+        "--compile", nargs="+", choices=["off", "on"], default=["off", "on"], help="compiled update or not"
+    )
     parser.add_argument("--overlap", nargs="+", choices=["off", "on"], default=["off"],
                         help="environment steps during the updates (--step-envs-during-updates) or not")
     parser.add_argument("--task", default="walker-walk", help="dm_control task")
@@ -228,7 +246,9 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=84, help="image height and width")
     parser.add_argument("--buffer-size", type=int, default=100_000, help="replay capacity, in transitions")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
-    parser.add_argument("--torch-threads", type=int, default=None, help="torch CPU threads of the learner; default: torch's")
+    parser.add_argument(
+        "--torch-threads", type=int, default=None, help="torch CPU threads of the learner; default: torch's"
+    )
     parser.add_argument("--concurrent", type=int, nargs="+", default=[1],
                         help="identical runs of each configuration started at once (runs per machine or GPU)")
     parser.add_argument("--repeats", type=int, default=1,
@@ -237,8 +257,11 @@ def main() -> None:
     parser.add_argument("--keep-runs", default=None, help="keep the run folders here (default: a temporary folder)")
     args = parser.parse_args()
 
-    print(f"{args.task}, {args.size}x{args.size}, batch {args.batch_size}, {args.n_steps}-step, hidden {args.hidden_dim}; "
-          f"{args.seed_frames} warm-up frames, then {args.frames} frames timed; {machine(args.device)}")
+    print(
+        f"{args.task}, {args.size}x{args.size}, batch {args.batch_size}, {args.n_steps}-step, hidden "
+        f"{args.hidden_dim}; "
+        f"{args.seed_frames} warm-up frames, then {args.frames} frames timed; {machine(args.device)}"
+    )
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory() as temporary:

@@ -104,7 +104,9 @@ def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int) -> 
     """
     if impl != "reference":
         configure_backends(tf32=impl != "ours-ieee")
-    model = build_model(device, reference=impl == "reference", buffer_size=buffer_size, compile_update=impl == "ours-compiled")
+    model = build_model(
+        device, reference=impl == "reference", buffer_size=buffer_size, compile_update=impl == "ours-compiled"
+    )
     if model.device.type == "cpu":
         tune_cpu_allocator()  # as the train CLI does; SB3_COLLAPSE_TUNE_MALLOC=0 (the reference's worker) declines
     if impl == "ours-no-prefetch":
@@ -161,7 +163,11 @@ def main() -> None:
         process.wait()
 
     device = get_device(args.device)
-    name = th.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({platform.processor() or platform.machine()}), {th.get_num_threads()} threads"
+    name = (
+        th.cuda.get_device_name(device)
+        if device.type == "cuda"
+        else f"cpu ({platform.processor() or platform.machine()}), {th.get_num_threads()} threads"
+    )
     print(f"device: {name}; torch {th.__version__}; obs 9x84x84 uint8, 6-d actions; {args.rounds} rounds of "
           f"{args.updates} updates per implementation, taking turns")
     header = f"{'batch':>6} " + " ".join(f"{impl + ' (ms)':>20}" for impl in args.impls)
@@ -178,8 +184,11 @@ def main() -> None:
         for index, batch_size in enumerate(args.batch_sizes):
             first = warmups["ours-compiled"][2 * index]
             steady = np.median(medians["ours-compiled", batch_size])
-            print(f"compilation, batch {batch_size}: first update {first / 1000:.1f} s, i.e. ~{(first - steady) / 1000:.1f} s "
-                  "more than a compiled update (each batch size is compiled for its own shapes)")
+            print(
+                f"compilation, batch {batch_size}: first update {first / 1000:.1f} s, i.e. "
+                f"~{(first - steady) / 1000:.1f} s "
+                "more than a compiled update (each batch size is compiled for its own shapes)"
+            )
 
 
 if __name__ == "__main__":

@@ -18,7 +18,8 @@ What is DrQ-v2's and what is SB3's:
 - **Shared with the sweep's DrQ-v2** (the arguments): learning rate, batch size, buffer size, warm-up
   (``learning_starts``, in agent steps), discount, seed, device.
 - **SB3's defaults** for the rest (``python -m sb3_collapse.train`` reports DrQ-v2's own settings,
-  :data:`DRQV2_ONLY_SETTINGS`, as unused): TD3 with ``tau=0.005``, ``policy_delay=2``, target policy noise 0.2 clipped at
+  :data:`DRQV2_ONLY_SETTINGS`, as unused): TD3 with ``tau=0.005``, ``policy_delay=2``, target policy noise 0.2
+  clipped at
   0.5, one update per agent step, plus Gaussian exploration noise of standard deviation
   :data:`TD3_ACTION_NOISE` (SB3 has none by default; 0.1 is SB3's documented example and DrQ-v2's final
   exploration std); SAC with a learned entropy coefficient (``"auto"``), ``tau=0.005``, one update per agent step.

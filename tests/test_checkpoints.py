@@ -301,7 +301,8 @@ def test_second_sigint_stops_at_once():
 def test_drqv2_load_warns_about_a_callback_it_cannot_rebuild(tmp_path):
     env = make_dmc_env("cartpole-balance", seed=0, action_repeat=8, size=36)
     model = DrQv2(
-        "CnnPolicy", env, buffer_size=50, seed=0, callback=[CollapseReset(), EveryNTimesteps(10, StopTrainingOnMaxEpisodes(1))],
+        "CnnPolicy", env, buffer_size=50, seed=0,
+        callback=[CollapseReset(), EveryNTimesteps(10, StopTrainingOnMaxEpisodes(1))],
         policy_kwargs=dict(hidden_dim=16, feature_dim=4),
     )  # fmt: skip
     model.save(tmp_path / "model.zip")

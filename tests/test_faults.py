@@ -32,7 +32,8 @@ from sb3_collapse.train import main
 
 def _flags(run_dir: Path, frames: int = 800) -> list[str]:
     return [
-        "--env", "cartpole-balance", "--frames", str(frames), "--action-repeat", "20", "--size", "36", "--hidden-dim", "16",
+        "--env", "cartpole-balance", "--frames", str(frames), "--action-repeat", "20", "--size", "36",
+        "--hidden-dim", "16",
         "--feature-dim", "8", "--batch-size", "8", "--seed-frames", "200", "--eval-every-frames", "0",
         "--checkpoint-every-frames", "200", "--collapse-metrics-every-frames", "0", "--no-progress-bar",
         "--replay-sampling", "sb3", "--torch-threads", "1", "--run-dir", str(run_dir),
@@ -65,7 +66,8 @@ def test_unwritable_messages():
     full = unwritable_message(OSError(errno.ENOSPC, "No space left on device", "/runs/x/final_model.zip"))
     assert (
         full
-        == "could not write /runs/x/final_model.zip (No space left on device): free space, then run the same command again."
+        == "could not write /runs/x/final_model.zip (No space left on device): free space, then run the same "
+           "command again."
     )
     assert "cannot write /ro (Read-only file system): choose a folder you can write to" in unwritable_message(
         OSError(errno.EROFS, "Read-only file system", "/ro")
@@ -211,7 +213,10 @@ def test_sweep_into_a_read_only_folder_is_one_line_and_exit_2(tmp_path, monkeypa
     assert status == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert error == [
-        f"error: cannot write {out} (Read-only file system): choose a folder you can write to, or make this one writable."
+        (
+            f"error: cannot write {out} (Read-only file system): choose a folder you can write to, or make this "
+            "one writable."
+        )
     ]
     assert not (tmp_path / "read-only").exists()
 

@@ -44,5 +44,6 @@ def test_ruff_check_passes():
         capture_output=True,
         text=True,
         timeout=120,
+        check=False,
     )
     assert result.returncode == 0, f"ruff check failed (fix the lines below):\n{result.stdout}{result.stderr}"

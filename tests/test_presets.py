@@ -17,7 +17,9 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 def test_table_holds_drqv2_published_configs():
     # facebookresearch/drqv2 cfgs/task/*.yaml, pinned here as literals.
-    walker, hopper, cheetah, humanoid = (preset(t) for t in ("walker_walk", "hopper-stand", "cheetah-run", "humanoid-walk"))
+    walker, hopper, cheetah, humanoid = (
+        preset(t) for t in ("walker_walk", "hopper-stand", "cheetah-run", "humanoid-walk")
+    )
     assert (walker.tier, walker.frames, walker.batch_size, walker.n_steps) == ("easy", 1_100_000, 512, 1)
     assert (hopper.batch_size, hopper.n_steps, hopper.stddev_schedule) == (256, 3, "linear(1.0,0.1,100000)")
     assert (cheetah.tier, cheetah.frames, cheetah.stddev_schedule) == ("medium", 3_100_000, "linear(1.0,0.1,500000)")
@@ -25,7 +27,9 @@ def test_table_holds_drqv2_published_configs():
     assert preset("quadruped-run").buffer_size == 100_000 and preset("walker-run").batch_size == 512
     assert preset("cup-catch") is PRESETS["ball_in_cup-catch"]
     assert len(PRESETS) == 23 and all(p.from_drqv2 and p.replay_sampling == "drqv2" for p in PRESETS.values())
-    assert {p.seed_frames for p in PRESETS.values()} == {4000} and {p.eval_every_frames for p in PRESETS.values()} == {10_000}
+    assert {p.seed_frames for p in PRESETS.values()} == {4000} and {p.eval_every_frames for p in PRESETS.values()} == {
+        10_000
+    }
     fallback = preset("dog-run")  # a suite task DrQ-v2 did not run: the easy tier, marked
     assert fallback.from_drqv2 is False and fallback.tier == "easy" and fallback.frames == 1_100_000
     with pytest.raises(ValueError, match="walker-walk"):
@@ -48,7 +52,9 @@ def _sweep_trial_configs(tmp_path, *flags):
 
 def test_sweep_gives_each_task_its_preset(tmp_path):
     training, trials, configs = _sweep_trial_configs(tmp_path)
-    walker, hopper, cheetah, humanoid = (configs[t] for t in ("walker-walk", "hopper-stand", "cheetah-run", "humanoid-walk"))
+    walker, hopper, cheetah, humanoid = (
+        configs[t] for t in ("walker-walk", "hopper-stand", "cheetah-run", "humanoid-walk")
+    )
     assert (walker.batch_size, walker.n_steps, walker.replay_sampling) == (512, 1, "drqv2")
     assert (hopper.batch_size, hopper.n_steps, hopper.replay_sampling) == (256, 3, "drqv2")
     assert (cheetah.frames, cheetah.stddev_schedule) == (3_100_000, "linear(1.0,0.1,500000)")

@@ -33,7 +33,12 @@ def test_protocol_literals_live_in_the_protocol_module_only():
 
 
 def test_the_paper_numbers_and_who_reads_them():
-    assert (PAPER.check_every_frames, PAPER.window_frames, PAPER.threshold, PAPER.patience) == (10_000, 200_000, 1e-3, 5)
+    assert (PAPER.check_every_frames, PAPER.window_frames, PAPER.threshold, PAPER.patience) == (
+        10_000,
+        200_000,
+        1e-3,
+        5,
+    )
     assert (PAPER.layer, PAPER.success_return, PAPER.failure_return) == ("mlp1", 900.0, 30.0)
     assert PAPER.collapse_tag == "collapse/mlp1/grad_norm"
     with pytest.raises(AttributeError):
@@ -67,7 +72,10 @@ def test_library_errors_name_parameters_and_clis_translate():
     parser.add_argument("--out")
     error = ParameterError("learning_rate", "learning_rate must be > 0 (or set eval_every_frames=0).")
     assert cli_message(error, parser) == "--lr must be > 0 (or set --eval-every-frames=0)."
-    assert cli_message(ParameterError("episodes", "episodes must be >= 1, got 0."), parser) == "--episodes must be >= 1, got 0."
+    assert (
+        cli_message(ParameterError("episodes", "episodes must be >= 1, got 0."), parser)
+        == "--episodes must be >= 1, got 0."
+    )
     assert cli_message(ValueError("3 episodes recorded: pass `overwrite=True` or another `out`."), parser) == (
         "3 episodes recorded: pass --overwrite or another --out."
     )

@@ -80,7 +80,10 @@ def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
     with open(result.run_dir / "collapse_metrics.csv") as file:
         metric_rows = list(csv.DictReader(file))
     assert list(metric_rows[0]) == ["frame", "step", "tag", "value"]
-    assert {int(row["frame"]) for row in metric_rows} == {400, 800} and {row["step"] for row in metric_rows} == {"50", "100"}
+    assert {int(row["frame"]) for row in metric_rows} == {400, 800} and {row["step"] for row in metric_rows} == {
+        "50",
+        "100",
+    }
     logged = accumulator.Scalars("collapse/mlp1/grad_norm")  # TensorBoard stores float32
     in_csv = [row for row in metric_rows if row["tag"] == "collapse/mlp1/grad_norm"]
     assert [int(row["step"]) for row in in_csv] == [e.step for e in logged]
@@ -120,12 +123,17 @@ def test_train_into_an_exact_run_dir(tmp_path):
         TrainConfig(**{**config.__dict__, "run_dir": str(tmp_path / "transplanted"), "init_cnn": str(result.model_path),
                        "init_mlp": str(run_dir / "final_model"), "variant": None, "transplant": None})
     )  # fmt: skip
-    assert DrQv2.load(transplanted.model_path).init_from == {"cnn": str(result.model_path), "mlp": str(result.model_path)}
+    assert DrQv2.load(transplanted.model_path).init_from == {
+        "cnn": str(result.model_path),
+        "mlp": str(result.model_path),
+    }
     assert json.loads((transplanted.run_dir / "config.json").read_text())["init_mlp"] == str(run_dir / "final_model")
 
 
 def test_help_documents_units():
-    out = subprocess.run([sys.executable, "-m", "sb3_collapse.train", "--help"], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "sb3_collapse.train", "--help"], capture_output=True, text=True, check=True
+    ).stdout
     for flag in ("--frames", "--eval-every-frames", "--seed-frames", "--stddev-schedule", "--buffer-size", "--logdir"):
         assert flag in out
     assert "in frames" in out and "agent steps" in out
@@ -167,7 +175,11 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
     assert config.variant_name == "sac+shrink_perturb"
     result = train(config)
     saved = json.loads((result.run_dir / "config.json").read_text())
-    assert (saved["algorithm"], saved["intervention"], saved["variant"]) == ("sac", "shrink_perturb", "sac+shrink_perturb")
+    assert (saved["algorithm"], saved["intervention"], saved["variant"]) == (
+        "sac",
+        "shrink_perturb",
+        "sac+shrink_perturb",
+    )
     assert result.summary["frames"] == 500 and result.summary["resets"] == 2
     assert [row["frame"] for row in result.evaluations] == [0]  # 500 is the budget: the final model's evaluation
     assert result.summary["saved_model_eval"]["frame"] == 500
@@ -185,7 +197,8 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
 
 
 def test_train_with_parallel_envs(tmp_path):
-    """--n-envs 2: subprocess envs, frames summed over them, one update per 2 transitions, the timings in result.json."""
+    """--n-envs 2: subprocess envs, frames summed over them, one update per 2 transitions, the timings in
+    result.json."""
     out = subprocess.run(
         [sys.executable, "-m", "sb3_collapse.train", "--env", "walker-walk", "--frames", "320", "--action-repeat", "8",
          "--size", "48", "--seed-frames", "160", "--batch-size", "8", "--hidden-dim", "32", "--n-envs", "2",
@@ -227,8 +240,9 @@ def test_train_leaky_relu_with_periodic_redo(tmp_path):
     """The Leaky-ReLU ablation and ReDo every 3 updates: recorded in the settings, the saved model and the logs."""
     config = TrainConfig(
         env="cartpole-balance", activation="leaky_relu", redo_every_updates=3, frames=500, action_repeat=25, size=48,
-        hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=0, collapse_metrics_every_frames=0,
-        collapse_probe_batch=8, replay_sampling="sb3", run_dir=str(tmp_path / "run"), progress_bar=False, torch_threads=1,
+        hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=0,
+        collapse_metrics_every_frames=0, collapse_probe_batch=8, replay_sampling="sb3", run_dir=str(tmp_path / "run"),
+        progress_bar=False, torch_threads=1,
     )  # fmt: skip
     assert config.variant_name == "drqv2-leaky+redo_periodic"
     result = train(config)

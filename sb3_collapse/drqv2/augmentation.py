@@ -44,7 +44,9 @@ def random_shift(
     if pad < 0:
         raise ValueError(f"pad must be >= 0 pixels, got {pad}.")
     if obs.dim() != 4:
-        raise ValueError(f"random_shift expects images of shape (batch, channels, height, width), got {tuple(obs.shape)}.")
+        raise ValueError(
+            f"random_shift expects images of shape (batch, channels, height, width), got {tuple(obs.shape)}."
+        )
     if pad == 0:
         return obs
     n, c, h, w = obs.shape

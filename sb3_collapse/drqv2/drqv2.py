@@ -111,7 +111,8 @@ class DrQv2(RoundsAlgorithm):
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``; CUDA without a GPU is refused (SB3 falls back to the
         CPU silently: the one deliberate departure, ``docs/algorithm.md``)
     :param init_from: the paper's layer transplant (Study 2): group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a zip
-        saved by ``DrQv2.save`` or a DrQv2 model, copied once when the model is built (``sb3_collapse.drqv2.transplant``)
+        saved by ``DrQv2.save`` or a DrQv2 model, copied once when the model is built
+        (``sb3_collapse.drqv2.transplant``)
     :param action_noise: an SB3 ``ActionNoise`` for exploration in place of the ``stddev_schedule``'s Gaussian (the
         deterministic action plus the noise, clipped, as TD3 explores); the updates' target smoothing stays DrQ-v2's
     :param optimize_memory_usage: SB3's keyword, passed on to SB3's ``ReplayBuffer`` where it works (``n_steps=1``);
@@ -427,7 +428,9 @@ class DrQv2(RoundsAlgorithm):
     def _loss_functions(self) -> tuple[Any, Any]:
         """:meth:`_critic_loss` and :meth:`_actor_loss`, compiled once (lazily) when ``compile_update`` says so."""
         if self._compiled_losses is None:
-            self._compiled_losses = compile_losses(self._critic_loss, self._actor_loss, self.compile_update, self.device)
+            self._compiled_losses = compile_losses(
+                self._critic_loss, self._actor_loss, self.compile_update, self.device
+            )
         return self._compiled_losses
 
     def dump_logs(self) -> None:
@@ -438,7 +441,9 @@ class DrQv2(RoundsAlgorithm):
             self.logger.record("train/stddev", self.current_stddev)
             finite = bool(all_finite(self.policy.parameters()))
             try:
-                self.divergence_guard.check_dump(means, finite, self._n_updates, self.num_frames, self.gamma, self.logger)
+                self.divergence_guard.check_dump(
+                    means, finite, self._n_updates, self.num_frames, self.gamma, self.logger
+                )
             except DivergenceError:
                 super().dump_logs()  # the non-finite values reach the logs too
                 raise
@@ -552,7 +557,8 @@ class DrQv2(RoundsAlgorithm):
 
 @contextlib.contextmanager
 def _frozen(module: th.nn.Module) -> Iterator[None]:
-    """Parameters of ``module`` with ``requires_grad=False`` inside the block (the ones that required it before, after)."""
+    """Parameters of ``module`` with ``requires_grad=False`` inside the block (the ones that required it before,
+    after)."""
     params = [p for p in module.parameters() if p.requires_grad]
     for p in params:
         p.requires_grad_(False)

@@ -487,7 +487,8 @@ class DrQv2Policy(BasePolicy):
         self.set_training_mode(was_training)
 
     # ---------------------------------------------------------------------------- the parts the interventions act on
-    # The protocol sb3_collapse.monitoring.interventions.InterventionParts (duck typed), with named_layers and optimizers.
+    # The protocol sb3_collapse.monitoring.interventions.InterventionParts (duck typed), with named_layers and
+    # optimizers.
     def initialize_weights(self, module: nn.Module) -> None:
         """
         New initial values for every parameter of ``module`` (a part of this policy), in place, from torch's global
@@ -648,7 +649,8 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
         if set(net_arch) != {"pi", "qf"}:
             raise ParameterError(
                 name("net_arch"),
-                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as SB3's "
+                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as "
+                "SB3's "
                 f"TD3; got {sorted(net_arch)}. Pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for both.",
             )
         for key in ("pi", "qf"):
@@ -698,7 +700,8 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
     if extractor is None and kwargs.get("features_extractor_kwargs") and kwargs.get("encoder_kwargs"):
         raise ParameterError(
             name("features_extractor_kwargs"),
-            "without features_extractor_class, features_extractor_kwargs are the keyword arguments of DrQ-v2's encoder, "
+            "without features_extractor_class, features_extractor_kwargs are the keyword arguments of DrQ-v2's "
+            "encoder, "
             "as encoder_kwargs: pass one of them.",
         )
 
@@ -712,7 +715,8 @@ def check_action_space(action_space: spaces.Space) -> None:
     if not isinstance(action_space, spaces.Box):
         raise SpaceError(
             "env",
-            f"DrQv2 is for continuous actions (gymnasium.spaces.Box), got {type(action_space).__name__}: {action_space}.",
+            f"DrQv2 is for continuous actions (gymnasium.spaces.Box), got {type(action_space).__name__}: "
+            f"{action_space}.",
         )
     if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
         raise SpaceError("env", f"DrQv2 needs finite action bounds to rescale its tanh actions, got {action_space}.")

@@ -59,7 +59,9 @@ def default_replay_buffer(
     defaults: dict[str, Any] = {}
     if uses_frame_stack_buffer(replay_buffer_class):
         defaults = {"n_steps": n_steps, "gamma": gamma, "frame_stack": frame_stack}
-    elif replay_buffer_class is not None and issubclass(replay_buffer_class, (NStepReplayBuffer, DictNStepReplayBuffer)):
+    elif replay_buffer_class is not None and issubclass(
+        replay_buffer_class, (NStepReplayBuffer, DictNStepReplayBuffer)
+    ):
         defaults = {"n_steps": n_steps, "gamma": gamma}
     for key, value in defaults.items():
         if key not in replay_buffer_kwargs and value is not None:

@@ -54,7 +54,9 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
     ) -> SelfRoundsAlgorithm:
         if self.env is None:  # before SB3's assertion in _setup_learn; also an AssertionError, as SB3's
             name = type(self).__name__
-            message = f"{name}.learn needs an environment: pass env= to {name}(...) or {name}.load(...), or call set_env."
+            message = (
+                f"{name}.learn needs an environment: pass env= to {name}(...) or {name}.load(...), or call set_env."
+            )
             raise AssertedParameterError("env", message)
         if reset_num_timesteps:
             self.reset_step = 0

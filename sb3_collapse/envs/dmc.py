@@ -336,7 +336,10 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
 
         :return: a picklable state
         """
-        return {"task": self._dmc._env.task.random.get_state(), "action_space": self.action_space.np_random.bit_generator.state}
+        return {
+            "task": self._dmc._env.task.random.get_state(),
+            "action_space": self.action_space.np_random.bit_generator.state,
+        }
 
     def set_rng_state(self, state: dict[str, Any]) -> None:
         """

@@ -33,7 +33,9 @@ class EpisodeReplay(gym.Wrapper):
         super().__init__(env)
         for name in ("get_rng_state", "set_rng_state"):
             if not callable(getattr(env.unwrapped, name, None)):
-                raise TypeError(f"EpisodeReplay needs an environment with {name}(), which {env.unwrapped} does not have.")
+                raise TypeError(
+                    f"EpisodeReplay needs an environment with {name}(), which {env.unwrapped} does not have."
+                )
         self._record: dict[str, Any] | None = None  # None before the first reset
         self._actions: list[np.ndarray] = []
 

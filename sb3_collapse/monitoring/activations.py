@@ -88,7 +88,9 @@ def layer_taps(model: BaseAlgorithm | BasePolicy) -> dict[str, LayerTap]:
     elif isinstance(getattr(actor, "mu", None), nn.Sequential):  # TD3 / DDPG: mu = hidden layers, Linear, Tanh
         linears = [i for i, m in enumerate(actor.mu) if isinstance(m, nn.Linear)]
         if not linears or linears[-1] + 1 >= len(actor.mu):
-            raise LayerMappingError(f"Cannot map the layers of {type(policy).__name__}: unexpected actor.mu {actor.mu}.")
+            raise LayerMappingError(
+                f"Cannot map the layers of {type(policy).__name__}: unexpected actor.mu {actor.mu}."
+            )
         last = linears[-1]
         taps.update(_hidden_taps(actor.mu[:last]))
         taps["action"] = LayerTap(actor.mu[last + 1], tuple(actor.mu[last].parameters()))

@@ -575,7 +575,8 @@ def redo(
     incoming weights and bias get new initial values (the algorithm's initializer), then its outgoing weights
     (the consumers' columns) are set to zero, also where the consumer is a recycled unit itself (so that no
     recycled unit changes the networks' outputs at first), and the Adam moments of exactly those entries are set
-    to zero (the step counts are kept). Everything else is kept: the other units, the encoder or features extractors, the target
+    to zero (the step counts are kept). Everything else is kept: the other units, the encoder or features extractors,
+    the target
     networks, the replay buffer, the other optimizer state.
 
     :param model: a DrQv2, TD3, DDPG or SAC model

@@ -33,7 +33,8 @@ class PeriodicReDo(ResumableCallback):
     multiple of ``every_updates`` (several multiples at once give one recycling). Logged at each one, at the agent
     step (``logger.dump``): ``redo/units_recycled``, ``redo/units_total``, ``redo/recycles``; with ``events_path``,
     a CSV row ``frame, step, updates, units_recycled, units_total, detail``. Every recycling is in :attr:`history`
-    (``(updates, frame, units_recycled)``) and, for this process, what it did in :attr:`results`. The state (the next multiple, the history, the batch sampler's generator) is saved in run
+    (``(updates, frame, units_recycled)``) and, for this process, what it did in :attr:`results`. The state (the next
+    multiple, the history, the batch sampler's generator) is saved in run
     checkpoints and with ``DrQv2.save`` (a :class:`~sb3_collapse.monitoring.callbacks.ResumableCallback`): a resumed
     run recycles at the same updates.
 

@@ -43,7 +43,8 @@ def _recording_arguments(parser: argparse.ArgumentParser, defaults: RecordOption
         "--max-steps",
         type=int,
         default=defaults.max_steps,
-        help="cap on agent steps per episode (default: the task's time limit, 500 agent steps for walker at action repeat 2)",
+        help="cap on agent steps per episode (default: the task's time limit, 500 agent steps for walker at action "
+             "repeat 2)",
     )
     group.add_argument(
         "--seed", type=int, default=defaults.seed, help="seed of the env's initial states and the action noise"
@@ -120,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Linear probing with a sparsity constraint (OMP) of an actor's layers cnn0..cnn4, mlp0..mlp2 "
         "for the true state of DeepMind Control tasks (Section 4.1 of the action-collapse paper). Without a "
         "sub-command, the arguments are those of `run`.",
-        epilog=f"examples:\n  {PROG} ckpt.zip\n  {PROG} good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/\n"
+        epilog=f"examples:\n  {PROG} ckpt.zip\n"
+        f"  {PROG} good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/\n"
         f"  {PROG} record good.zip --env walker-walk --episodes 20 --out walker.npz",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -247,7 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as stop:
         name = stop.args[0] if stop.args else "SIGINT"
         print(
-            f"\nStopped by {name}: nothing was written under {args.out or 'the output folder'} (the outputs are staged and "
+            f"\nStopped by {name}: nothing was written under {args.out or 'the output folder'} (the outputs are "
+            "staged and "
             f"moved there only when complete); run the same command again (exit status {EXIT_INTERRUPTED}).",
             file=sys.stderr,
         )

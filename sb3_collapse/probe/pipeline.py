@@ -148,7 +148,8 @@ def record_to_file(
     rollouts = record(checkpoint, options, progress)
     path = rollouts.save(out)
     print(
-        f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {rollouts.env_config['task_id']} to {path}"
+        f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {rollouts.env_config['task_id']} "
+        f"to {path}"
     )
     return path
 

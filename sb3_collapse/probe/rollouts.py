@@ -4,7 +4,8 @@ Rollouts for probing: observations of an agent in a DeepMind Control pixel env, 
 A :class:`Rollouts` holds, for every recorded agent step ``t`` of every episode: the observation the agent acted
 on, the named true-state components at the time that observation was rendered (``DMCEnv.get_state``), the
 quantities of that state that the task's reward function reads (``DMCEnv.reward_inputs``: the paper's Figure 2
-probes components chosen "because all of them are the input to the reward function"), the action taken, the reward it received, the episode id and the step index. The final observation of an episode
+probes components chosen "because all of them are the input to the reward function"), the action taken, the reward it
+received, the episode id and the step index. The final observation of an episode
 (on which no action is taken) is not recorded. Files are compressed ``.npz`` (no pickles) that also store the
 environment settings, so a file recorded from one agent can probe many checkpoints.
 """

@@ -128,7 +128,9 @@ def probe_sweep(
     try:
         sweep = load_sweep(sweep_dir, tasks=[task], variants=[variant], progress=False)
     except ReportError as error:
-        raise ProbeError(str(error), parameter=error.parameter if error.parameter != "sweep" else "sweep_dir") from error
+        raise ProbeError(
+            str(error), parameter=error.parameter if error.parameter != "sweep" else "sweep_dir"
+        ) from error
     well, poor = split_agents(sweep.finished, success_return, failure_return)
     if not well and not poor:
         finals = ", ".join(f"seed {t.seed}: {t.returns[-1]:.0f}" for t in sweep.finished) or "no finished trial"
@@ -155,7 +157,9 @@ def probe_sweep(
             )
         record_options.check()
         if record_options.episodes < MIN_EPISODES:
-            raise ProbeError(f"episodes must be >= {MIN_EPISODES}, got {record_options.episodes}.", parameter="episodes")
+            raise ProbeError(
+                f"episodes must be >= {MIN_EPISODES}, got {record_options.episodes}.", parameter="episodes"
+            )
     out = Path(sweep_dir) / DEFAULT_OUT.format(task=task, variant=variant) if out is None else Path(out)
     device = get_device(settings.device)
     with StagedOutputs(out, OUTPUT_FILES, SUMMARY_JSON, overwrite=overwrite, error=ProbeError) as staged:

@@ -170,7 +170,8 @@ def pick_paper_agents(
     larger than [``PAPER.success_return``] rewards", "a middle agent between goodness and badness", "a randomly
     picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards"): among the finished
     trials with an evaluation, split by :func:`agent_class` of their final return (:func:`final_return`, the last
-    evaluation), one trial per class picked uniformly at random. Each class draws from its own generator, ``numpy.random.default_rng([pick_seed,
+    evaluation), one trial per class picked uniformly at random. Each class draws from its own generator,
+    ``numpy.random.default_rng([pick_seed,
     k])`` for the k-th class, over its seeds in increasing order: the pick depends on ``pick_seed`` and the class's
     seeds only. The middle agent is picked the same way (the paper had one).
 

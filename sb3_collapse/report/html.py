@@ -110,7 +110,9 @@ def table(header: Sequence[str], rows: Iterable[Sequence[Any]], caption: str | N
     return f'<div class="scroll"><table>{title}<thead><tr>{head}</tr></thead><tbody>{body}</tbody></table></div>'
 
 
-def dict_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None, caption: str | None = None) -> str:
+def dict_table(
+    rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None, caption: str | None = None
+) -> str:
     """:return: :func:`table` of dict rows (columns: ``columns``, or the first row's keys)"""
     columns = list(columns or (rows[0] if rows else []))
     return table(columns, ([row.get(c) for c in columns] for row in rows), caption)
@@ -118,7 +120,9 @@ def dict_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None 
 
 def settings_table(settings: Mapping[str, Any], caption: str | None = None) -> str:
     """:return: a two-column table ``setting | value`` (nested values as compact JSON)"""
-    rows = [(key, value if isinstance(value, (str, int, float)) else json.dumps(value)) for key, value in settings.items()]
+    rows = [
+        (key, value if isinstance(value, (str, int, float)) else json.dumps(value)) for key, value in settings.items()
+    ]
     return table(("setting", "value"), rows, caption)
 
 
@@ -131,7 +135,9 @@ def html_page(title: str, sections: Sequence[Section], subtitle: str | None = No
     """
     created = datetime.now(timezone.utc).isoformat(timespec="seconds")
     contents = "".join(f'<li><a href="#{s.anchor}">{html.escape(s.title)}</a></li>' for s in sections)
-    body = "".join(f'<section id="{s.anchor}"><h2>{html.escape(s.title)}</h2>{"".join(s.parts)}</section>' for s in sections)
+    body = "".join(
+        f'<section id="{s.anchor}"><h2>{html.escape(s.title)}</h2>{"".join(s.parts)}</section>' for s in sections
+    )
     line = paragraph(subtitle, "note") if subtitle else ""
     return (
         "<!DOCTYPE html>\n"

@@ -2,8 +2,10 @@
 Read a sweep folder (the trial-folder contract of ``python -m sb3_collapse.sweep``) into one :class:`Trial` per
 ``<sweep>/<task>/<variant>/seed_<k>/`` folder.
 
-A trial is **finished** when its result file (``protocol.RESULT_JSON``) exists and says ``"status": "finished"``; every other trial folder
-(no result file (``protocol.RESULT_JSON``) yet, or another status) is **unfinished**: it is counted and reported, never mixed into the
+A trial is **finished** when its result file (``protocol.RESULT_JSON``) exists and says ``"status": "finished"``;
+every other trial folder
+(no result file (``protocol.RESULT_JSON``) yet, or another status) is **unfinished**: it is counted and reported,
+never mixed into the
 statistics. Files are read with :mod:`csv` and :mod:`json` only; a malformed file raises :class:`ReportError`
 naming the file.
 """

@@ -493,7 +493,13 @@ def _reference_rows(report: Report) -> list[list[object]]:
         ):
             values = data.returns[:, frame_index]
             rows.append(
-                [task, int(data.frames[frame_index]), f"{values.mean():.1f} ± {values.std(ddof=1):.1f}", len(values), what]
+                [
+                    task,
+                    int(data.frames[frame_index]),
+                    f"{values.mean():.1f} ± {values.std(ddof=1):.1f}",
+                    len(values),
+                    what,
+                ]
             )
     return rows
 

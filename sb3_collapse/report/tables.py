@@ -124,7 +124,8 @@ def summary_markdown(rows: Sequence[VariantSummary], settings: ReportSettings, n
     lines += [
         "",
         (
-            f"Definitions: only finished trials (`{RESULT_JSON}` status `{FINISHED}`) enter the statistics; *unfinished* "
+            f"Definitions: only finished trials (`{RESULT_JSON}` status `{FINISHED}`) enter the statistics; "
+            "*unfinished* "
             "counts the other trial folders. Returns are compared on the evaluation frames that every finished seed of "
             "a variant has; *final return* is each seed's return at the last of them (*final frame*, environment "
             "frames, action repeat included). Standard deviations are across seeds (ddof=1). A seed is *stuck in "

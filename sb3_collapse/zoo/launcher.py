@@ -41,7 +41,9 @@ DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat
 DRQV2_EVAL_EPISODES = _DRQV2.eval_episodes
 """DrQ-v2's ``num_eval_episodes``."""
 
-COLLAPSE_METRICS_CALLBACK = {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}}
+COLLAPSE_METRICS_CALLBACK = {
+    "sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}
+}
 """``--collapse-metrics``: the collapse metrics of every named layer at the paper's period."""
 RESET_RULE_CALLBACK = {
     "sb3_collapse.monitoring.CollapseReset": {
@@ -61,7 +63,8 @@ DESCRIPTION = (
 EPILOG = (
     f"With --algo drqv2: train needs -conf (e.g. zoo_configs/drqv2.yml), evaluates every {DRQV2_EVAL_FREQ} agent "
     f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's "
-    f"{_DRQV2.eval_every_frames:,} frames at action repeat {_DRQV2.action_repeat}), and refuses -optimize; enjoy runs with --no-render (the DeepMind Control envs "
+    f"{_DRQV2.eval_every_frames:,} frames at action repeat {_DRQV2.action_repeat}), and refuses -optimize; enjoy "
+    "runs with --no-render (the DeepMind Control envs "
     "render off-screen only)."
 )
 

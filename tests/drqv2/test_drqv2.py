@@ -259,7 +259,9 @@ def test_replay_buffer_allocation_failure_says_what_to_do(monkeypatch):
         raise MemoryError("Unable to allocate 59.1 GiB")
 
     monkeypatch.setattr("stable_baselines3.common.off_policy_algorithm.OffPolicyAlgorithm._setup_model", fail)
-    with pytest.raises(MemoryError, match=r"1,000,000 transitions \(Unable to allocate 59.1 GiB\).*Pass a smaller buffer_size"):
+    with pytest.raises(
+        MemoryError, match=r"1,000,000 transitions \(Unable to allocate 59.1 GiB\).*Pass a smaller buffer_size"
+    ):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             DrQv2("CnnPolicy", RandomObservationEnv())

@@ -99,7 +99,10 @@ def test_named_layers_outputs(policy):
     layers = policy.named_layers()
     assert tuple(layers) == LAYER_NAMES
     outputs = {}
-    handles = [m.register_forward_hook(lambda m, i, o, n=n: outputs.__setitem__(n, o.detach().clone())) for n, m in layers.items()]
+    handles = [
+        m.register_forward_hook(lambda m, i, o, n=n: outputs.__setitem__(n, o.detach().clone()))
+        for n, m in layers.items()
+    ]
     obs = th.randint(0, 256, (4, 9, 84, 84), dtype=th.uint8)
     with th.no_grad():
         action = policy._predict(obs, deterministic=True)
@@ -177,7 +180,9 @@ def test_rejects_discrete_actions():
 
 
 def test_policy_save_load(tmp_path):
-    policy = CnnPolicy(spaces.Box(0, 255, (9, 32, 32), np.uint8), spaces.Box(-1, 1, (2,), np.float32), _lr, hidden_dim=16)
+    policy = CnnPolicy(
+        spaces.Box(0, 255, (9, 32, 32), np.uint8), spaces.Box(-1, 1, (2,), np.float32), _lr, hidden_dim=16
+    )
     policy.save(tmp_path / "policy.pth")
     loaded = CnnPolicy.load(tmp_path / "policy.pth")
     obs = th.randint(0, 256, (3, 9, 32, 32), dtype=th.uint8)

@@ -43,7 +43,16 @@ def test_callable():
 
 @pytest.mark.parametrize(
     "spec",
-    ["linear(1.0,0.1)", "linear(a,b,c)", "exp(1,2,3)", "", "linear(1.0,0.1,0)", "step_linear(1,0.5,100,0.1)", None, [1]],
+    [
+        "linear(1.0,0.1)",
+        "linear(a,b,c)",
+        "exp(1,2,3)",
+        "",
+        "linear(1.0,0.1,0)",
+        "step_linear(1,0.5,100,0.1)",
+        None,
+        [1],
+    ],
 )
 def test_malformed_raises_value_error(spec):
     with pytest.raises(ValueError, match="stddev schedule"):

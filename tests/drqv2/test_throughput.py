@@ -21,7 +21,9 @@ def pixel_space():  # one per env: a space shared by several envs would share it
 
 
 def state_envs(n_envs, vec_env_cls=DummyVecEnv, episode_length=50):
-    return vec_env_cls([lambda: RandomObservationEnv(state_space(), episode_length=episode_length) for _ in range(n_envs)])
+    return vec_env_cls(
+        [lambda: RandomObservationEnv(state_space(), episode_length=episode_length) for _ in range(n_envs)]
+    )
 
 
 class RoundLog(BaseCallback):

@@ -226,7 +226,9 @@ def test_leaky_relu_everywhere_and_no_unit_dead(tmp_path):
         kill(layers["mlp2"], (1, 2))
         observations = ProbeBatchSampler(0).sample(net, 16)[0]
         activations = collect_activations(net, observations)
-        fractions = {name: dead_fraction(activations[name]) for name in ("cnn1", "cnn2", "cnn3", "cnn4", "mlp1", "mlp2")}
+        fractions = {
+            name: dead_fraction(activations[name]) for name in ("cnn1", "cnn2", "cnn3", "cnn4", "mlp1", "mlp2")
+        }
         if expected_dead:
             assert fractions["cnn3"] >= 1 / 8 and fractions["mlp2"] >= 2 / 32
         else:
@@ -241,6 +243,8 @@ def test_leaky_relu_everywhere_and_no_unit_dead(tmp_path):
     model.save(tmp_path / "leaky.zip")
     loaded = DrQv2.load(tmp_path / "leaky.zip")
     assert loaded.policy_kwargs["activation"] == "leaky_relu"
-    assert isinstance(loaded.policy.actor.mlp1[1], nn.LeakyReLU) and isinstance(loaded.policy.encoder.cnn4[1], nn.LeakyReLU)
+    assert isinstance(loaded.policy.actor.mlp1[1], nn.LeakyReLU) and isinstance(
+        loaded.policy.encoder.cnn4[1], nn.LeakyReLU
+    )
     with pytest.raises(ParameterError, match="activation must be one of relu, leaky_relu"):
         tiny(activation="gelu")

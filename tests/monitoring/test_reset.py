@@ -41,7 +41,11 @@ def differ_everywhere(a, b):
 def optimizers_of(model):
     if isinstance(model, DrQv2):
         return model.policy.optimizers
-    return [model.actor.optimizer, model.critic.optimizer, *([model.ent_coef_optimizer] if isinstance(model, SAC) else [])]
+    return [
+        model.actor.optimizer,
+        model.critic.optimizer,
+        *([model.ent_coef_optimizer] if isinstance(model, SAC) else []),
+    ]
 
 
 class SpyReset(CollapseReset):
@@ -116,7 +120,10 @@ def test_collapsed_actor_is_reset_from_scratch_at_the_end_of_the_window(tmp_path
     # The events file: one row per reset and the escape, in frames and agent steps.
     with open(tmp_path / "collapse_events.csv") as file:
         rows = list(csv.DictReader(file))
-    detail = "new encoder, actor, critic, target critic and their optimizers; replay buffer emptied (99 transitions); warm-up restarted"
+    detail = (
+        "new encoder, actor, critic, target critic and their optimizers; replay buffer emptied (99 transitions); "
+        "warm-up restarted"
+    )
     assert rows == [
         {"frame": "200", "step": "100", "event": "reset", "resets": "1", "intervention": "reset", "detail": detail},
         {
@@ -258,7 +265,9 @@ def test_collapsed_sb3_actor_is_reset_from_scratch_then_escapes(algo, tmp_path):
     assert "replay buffer emptied (99 transitions)" in rows[0]["detail"]
     accumulator = EventAccumulator(glob.glob(str(tmp_path / f"{algo.__name__}_1" / "events.out.tfevents.*"))[0])
     accumulator.Reload()
-    assert [(e.step, e.value) for e in accumulator.Scalars("collapse/intervention/transitions_dropped")] == [(100, 99.0)]
+    assert [(e.step, e.value) for e in accumulator.Scalars("collapse/intervention/transitions_dropped")] == [
+        (100, 99.0)
+    ]
 
     # A new run from agent step 0: the warm-up has its length back.
     model.learn(10, callback=rule)

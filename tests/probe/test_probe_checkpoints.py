@@ -82,7 +82,9 @@ def test_probe_checkpoint_holds_the_final_encoder_and_actor(run):
 
 def test_probe_checkpoints_need_drqv2_and_evaluations(tmp_path):
     with pytest.raises(ParameterError, match="probe_checkpoints"):
-        train(TrainConfig(env="walker-walk", frames=80, eval_every_frames=0, probe_checkpoints=True, logdir=str(tmp_path)))
+        train(
+            TrainConfig(env="walker-walk", frames=80, eval_every_frames=0, probe_checkpoints=True, logdir=str(tmp_path))
+        )
     with pytest.raises(TypeError, match="DrQv2 model"):
         save_probe_checkpoint(type("NotDrQ", (), {"policy": th.nn.Linear(2, 2)})(), tmp_path / "x.zip")
     assert not list(tmp_path.iterdir())
@@ -211,7 +213,20 @@ def test_film_of_checkpoints(run, tmp_path):
     final = run.model_path
     first = run.run_dir / PROBE_CHECKPOINTS_DIR / PROBE_CHECKPOINT.format(frames=0)
     out = tmp_path / "film"
-    argv = ["film", str(final), str(first), "--frames", "60", "--size", "64", "--every-frames", "20", "--seeds", "0", "1"]
+    argv = [
+        "film",
+        str(final),
+        str(first),
+        "--frames",
+        "60",
+        "--size",
+        "64",
+        "--every-frames",
+        "20",
+        "--seeds",
+        "0",
+        "1",
+    ]
     assert probe_main([*argv, "--out", str(out), "--no-progress"]) == 0
     assert sorted(p.name for p in out.iterdir()) == [
         "actions.csv",
@@ -231,7 +246,9 @@ def test_film_of_checkpoints(run, tmp_path):
     model = DrQv2.load(final, buffer_size=64)
     film = film_episode(model, model.env_config, "again", frames=60, size=32, seed=1)
     again = [r for r in rows if r["film"].startswith("final_model") and r["film"].endswith("seed 1")]
-    np.testing.assert_allclose([[float(r[f"action_{d}"]) for d in range(6)] for r in again[:3]], film.actions[:3], rtol=1e-6)
+    np.testing.assert_allclose(
+        [[float(r[f"action_{d}"]) for d in range(6)] for r in again[:3]], film.actions[:3], rtol=1e-6
+    )
     image = matplotlib.image.imread(out / "filmstrip.png")
     assert image.shape[0] > 800 and image[..., :3].std() > 0.05
     assert probe_main([*argv, "--out", str(out), "--no-progress"]) == 2  # exists: --overwrite

@@ -81,7 +81,8 @@ def test_probe_checkpoints_with_recorded_rollouts(files, tmp_path):
     ]
     assert cnn0[0] == cnn0[1]
     assert set(summary["checkpoints"][0]["layers"]["cnn4"]["mean_test_mse"]) == {
-        "orientations", "height", "velocity", "reward:torso_height", "reward:torso_upright", "reward:horizontal_velocity"
+        "orientations", "height", "velocity",
+        "reward:torso_height", "reward:torso_upright", "reward:horizontal_velocity",
     }  # fmt: skip
     # The previous outputs are kept unless --overwrite.
     assert main(argv) == 2

@@ -123,4 +123,8 @@ def test_figure2_columns_are_the_reward_inputs_then_the_state_groups(rollouts):
     generic = figure2_columns(
         "cheetah-run", ["position_0", "velocity_0", "reward:speed"], ["position", "velocity", "reward:speed"]
     )
-    assert generic == [("reward:speed", ("reward:speed",)), ("position", ("position_0",)), ("velocity", ("velocity_0",))]
+    assert generic == [
+        ("reward:speed", ("reward:speed",)),
+        ("position", ("position_0",)),
+        ("velocity", ("velocity_0",)),
+    ]

@@ -35,7 +35,8 @@ window.addEventListener("load", () => {{
   const images = Array.from(document.images).map(img => ({{
     alt: (img.alt || "").slice(0, 80), complete: img.complete, width: img.naturalWidth, height: img.naturalHeight}}));
   const tables = Array.from(document.querySelectorAll("table")).map(t => ({{
-    caption: t.caption ? t.caption.textContent.slice(0, 80) : "", body_rows: t.tBodies.length ? t.tBodies[0].rows.length : 0,
+    caption: t.caption ? t.caption.textContent.slice(0, 80) : "",
+    body_rows: t.tBodies.length ? t.tBodies[0].rows.length : 0,
     columns: t.rows.length ? t.rows[0].cells.length : 0}}));
   const pre = document.createElement("pre");
   pre.id = "{RESULT_ID}";
@@ -57,17 +58,31 @@ def chromium() -> str:
         if path:
             return path
     if shutil.which("apt-get") is None:
-        pytest.skip("headless Chromium is needed to check the HTML report: no chromium binary, and no apt-get to install it")
+        pytest.skip(
+            "headless Chromium is needed to check the HTML report: no chromium binary, and no apt-get to install it"
+        )
     if os.geteuid() != 0:
-        pytest.skip("headless Chromium is needed to check the HTML report: install it with `sudo apt-get install chromium`")
+        pytest.skip(
+            "headless Chromium is needed to check the HTML report: install it with `sudo apt-get install chromium`"
+        )
     environment = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     install = subprocess.run(
-        ["apt-get", "install", "-y", "-qq", "chromium"], capture_output=True, text=True, env=environment, timeout=900, check=False
+        ["apt-get", "install", "-y", "-qq", "chromium"],
+        capture_output=True,
+        text=True,
+        env=environment,
+        timeout=900,
+        check=False,
     )
     if install.returncode != 0:  # the package lists may be missing or stale
         subprocess.run(["apt-get", "update", "-qq"], capture_output=True, env=environment, timeout=600, check=False)
         install = subprocess.run(
-            ["apt-get", "install", "-y", "-qq", "chromium"], capture_output=True, text=True, env=environment, timeout=900, check=False
+            ["apt-get", "install", "-y", "-qq", "chromium"],
+            capture_output=True,
+            text=True,
+            env=environment,
+            timeout=900,
+            check=False,
         )
     path = shutil.which("chromium")
     if install.returncode != 0 or path is None:

@@ -74,7 +74,8 @@ def ray_cluster():
     ports = {
         "--port": port, "--ray-client-server-port": free_port(), "--dashboard-agent-listen-port": free_port(),
         "--dashboard-agent-grpc-port": free_port(), "--metrics-export-port": free_port(),
-        "--runtime-env-agent-port": free_port(), "--node-manager-port": free_port(), "--object-manager-port": free_port(),
+        "--runtime-env-agent-port": free_port(), "--node-manager-port": free_port(),
+        "--object-manager-port": free_port(),
     }  # fmt: skip
     command = [
         str(Path(sys.executable).with_name("ray")), "start", "--head", "--block", "--num-cpus", "2",

@@ -210,7 +210,8 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     out = tmp_path / "sweep"
     argv = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "cnn-good_mlp-blank",
             "--good-cnn", str(broken), "--out", str(out), "--no-progress-bar",
-            *TINY, "--frames", "250", "--eval-every-frames", "1000", "--collapse-metrics-every-frames", "0"]  # fmt: skip
+            *TINY, "--frames", "250", "--eval-every-frames", "1000",
+            "--collapse-metrics-every-frames", "0"]  # fmt: skip
     assert main(argv) == 1
     stdout = capsys.readouterr().out
     failed = out / "walker-walk" / "cnn-good_mlp-blank" / "seed_0"
