@@ -179,7 +179,8 @@ COLLAPSE_EVENTS_CSV = "collapse_events.csv"
 FINAL_MODEL = "final_model.zip"
 """The final model, ``DrQv2.save``."""
 CHECKPOINTS_DIR = "checkpoints"
-"""The run's checkpoints, to resume it (:mod:`sb3_collapse.checkpoints`): one folder each, and the replay store."""
+"""The run's checkpoints, to resume it (:mod:`sb3_collapse.run.checkpoints`): one folder each, and the replay
+store."""
 CHECKPOINT_FOLDER = "step_{step:012d}"
 """One checkpoint's folder in :data:`CHECKPOINTS_DIR`, named by the agent step (transitions) it was taken at."""
 CHECKPOINT_FOLDER_PATTERN = re.compile(r"^step_(\d{12})$")

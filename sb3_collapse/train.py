@@ -56,18 +56,6 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 from sb3_collapse.backends import configure_backends
 from sb3_collapse.baselines import BASELINES, DRQV2_ONLY_SETTINGS, NATURE_CNN_MIN_SIZE, build_baseline
-from sb3_collapse.checkpoints import (
-    CheckpointError,
-    LoadedCheckpoint,
-    ResumableCheckpoints,
-    RunLock,
-    TrainingInterrupted,
-    checkpoint_learning_rates,
-    load_checkpoint,
-    resumed_logger,
-    set_aside,
-    stop_signals,
-)
 from sb3_collapse.drqv2 import DrQv2, StddevSchedule
 from sb3_collapse.drqv2.checks import check_hyperparameters
 from sb3_collapse.drqv2.divergence import DivergenceError
@@ -113,8 +101,19 @@ from sb3_collapse.protocol import (
     write_failure,
     write_json_atomically,
 )
+from sb3_collapse.run.checkpoints import (
+    CheckpointError,
+    LoadedCheckpoint,
+    ResumableCheckpoints,
+    checkpoint_learning_rates,
+    load_checkpoint,
+    set_aside,
+)
 from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
+from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.probe_checkpoint import ProbeCheckpoints
+from sb3_collapse.run.resumed_logger import resumed_logger
+from sb3_collapse.run.signals import TrainingInterrupted, stop_signals
 from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
 
 ALGORITHMS = ("drqv2", *BASELINES)

@@ -1,6 +1,6 @@
 """
-Run checkpoints (sb3_collapse.checkpoints): a run stopped by SIGTERM, killed by SIGKILL, resumed from a damaged newest
-checkpoint, ends exactly as the same run uninterrupted; locks, refusals and a full disk.
+Run checkpoints (sb3_collapse.run.checkpoints): a run stopped by SIGTERM, killed by SIGKILL, resumed from a damaged
+newest checkpoint, ends exactly as the same run uninterrupted; locks, refusals and a full disk.
 
 One chain keeps the cost to about two tiny runs: the reference run (in this process), and the same run killed by
 SIGKILL (a subprocess), resumed and stopped by SIGTERM (in this process: exit status 75), its newest
@@ -27,16 +27,6 @@ from stable_baselines3.common.callbacks import EveryNTimesteps, StopTrainingOnMa
 from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_collapse import CollapseReset, DrQv2, make_dmc_env
-from sb3_collapse.checkpoints import (
-    CheckpointError,
-    CheckpointMismatch,
-    ResumableCheckpoints,
-    RunFolderLocked,
-    RunLock,
-    checkpoint_folders,
-    load_checkpoint,
-    stop_signals,
-)
 from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.protocol import (
     CHECKPOINT_JSON,
@@ -53,6 +43,15 @@ from sb3_collapse.protocol import (
     PROGRESS_CSV,
     RESULT_JSON,
 )
+from sb3_collapse.run.checkpoints import (
+    CheckpointError,
+    CheckpointMismatch,
+    ResumableCheckpoints,
+    checkpoint_folders,
+    load_checkpoint,
+)
+from sb3_collapse.run.lock import RunFolderLocked, RunLock
+from sb3_collapse.run.signals import stop_signals
 from sb3_collapse.train import main
 
 # 100 agent steps of cartpole at action repeat 20 (episodes of 50 steps): checkpoints every 10 steps, most of them
@@ -236,7 +235,7 @@ def test_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr("sb3_collapse.checkpoints.pickle.dump", full)
+    monkeypatch.setattr("sb3_collapse.run.checkpoints.pickle.dump", full)
     with pytest.raises(CheckpointError, match=rf"into {tmp_path / CHECKPOINTS_DIR} \(No space left on device\); the "
                        r"previous checkpoint step_000000000010 is intact"):
         model.learn(12, callback=checkpoints, reset_num_timesteps=False)

@@ -20,12 +20,12 @@ import torch as th
 
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.backends import configure_backends
-from sb3_collapse.checkpoints import checkpoint_folders
 from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.monitoring import metrics
 from sb3_collapse.monitoring.activations import collect_activations
 from sb3_collapse.monitoring.interventions import redo
 from sb3_collapse.protocol import CHECKPOINTS_DIR, COLLAPSE_METRICS_CSV, EXIT_INTERRUPTED, RESULT_JSON
+from sb3_collapse.run.checkpoints import checkpoint_folders
 from sb3_collapse.run.timing import LearnTimer
 from sb3_collapse.train import main
 

@@ -25,7 +25,13 @@ from torch.overrides import TorchFunctionMode
 import sb3_collapse
 from sb3_collapse import CollapseMetrics, DrQv2
 from sb3_collapse.backends import configure_backends, current_backends
-from sb3_collapse.checkpoints import (
+from sb3_collapse.common.grad_norms import GradNormRecorder
+from sb3_collapse.envs.replay import EpisodeReplay
+from sb3_collapse.monitoring import metrics
+from sb3_collapse.monitoring.interventions import INTERVENTIONS
+from sb3_collapse.probe.omp import omp_path
+from sb3_collapse.protocol import CHECKPOINT_STATE, CHECKPOINTS_DIR, CONFIG_JSON, EXIT_INTERRUPTED, RESULT_JSON
+from sb3_collapse.run.checkpoints import (
     ResumableCheckpoints,
     _cuda_rng_state,
     _restore_cuda_rng_state,
@@ -33,12 +39,6 @@ from sb3_collapse.checkpoints import (
     load_checkpoint,
     tensors_to,
 )
-from sb3_collapse.common.grad_norms import GradNormRecorder
-from sb3_collapse.envs.replay import EpisodeReplay
-from sb3_collapse.monitoring import metrics
-from sb3_collapse.monitoring.interventions import INTERVENTIONS
-from sb3_collapse.probe.omp import omp_path
-from sb3_collapse.protocol import CHECKPOINT_STATE, CHECKPOINTS_DIR, CONFIG_JSON, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.timing import PhaseTime, UpdateClock
 from sb3_collapse.train import main
 

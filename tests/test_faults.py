@@ -15,7 +15,6 @@ import torch as th
 from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_collapse import DrQv2
-from sb3_collapse.checkpoints import checkpoint_folders
 from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
 from sb3_collapse.errors import report_unwritable_outputs, unwritable_message
 from sb3_collapse.protocol import (
@@ -26,6 +25,7 @@ from sb3_collapse.protocol import (
     RESULT_JSON,
     atomic_output,
 )
+from sb3_collapse.run.checkpoints import checkpoint_folders
 from sb3_collapse.sweep.__main__ import main as sweep_main
 from sb3_collapse.train import main
 

@@ -1,6 +1,6 @@
 """
 Rebuild an environment's episode in progress in a new process, bit for bit: what resuming a run from a checkpoint
-needs (:mod:`sb3_collapse.checkpoints`).
+needs (:mod:`sb3_collapse.run.checkpoints`).
 
 A DeepMind Control episode is a deterministic function of the task's random state at its reset and of the actions
 taken since. :class:`EpisodeReplay` (the outermost wrapper of each environment) records both; in a new process,

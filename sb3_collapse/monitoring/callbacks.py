@@ -148,7 +148,7 @@ class ProbeBatchSampler:
 class ResumableCallback(BaseCallback):
     """
     A callback whose state can be saved in a run checkpoint and put back in another process
-    (:mod:`sb3_collapse.checkpoints`).
+    (:mod:`sb3_collapse.run.checkpoints`).
 
     :meth:`state_dict` returns the attributes named by :attr:`state_attributes` (deep copies) and the state of the
     random generator of its ``sampler``, if it has one. :meth:`load_state_dict` keeps a state until the next

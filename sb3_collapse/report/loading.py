@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from sb3_collapse.checkpoints import run_folder_owner
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, PAPER, RESULT_JSON, SEED_FOLDER
 from sb3_collapse.report.errors import ReportError
+from sb3_collapse.run.lock import run_folder_owner
 
 DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
 RUNNING, UNFINISHED = "running", "unfinished"

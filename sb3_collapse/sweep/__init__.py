@@ -1,15 +1,11 @@
 """Multi-seed sweeps on Ray: every (task, variant, seed) trains as an independent trial into its own folder."""
 
+from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError, import_ray, ray_session
 from sb3_collapse.sweep.donors import DONOR_KEYS, Donor, donor_candidates, pick_donors
 from sb3_collapse.sweep.runner import (
-    CONNECT_TIMEOUT_S,
-    ClusterUnreachable,
-    RayMissingError,
     SweepSummary,
     check_sweep_arguments,
-    import_ray,
     prepare_sweep_folder,
-    ray_session,
     run_sweep,
     run_trial,
     settings_changes,

@@ -15,11 +15,12 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from sb3_collapse.checkpoints import checkpoint_frames
 from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED, PAPER
+from sb3_collapse.run.checkpoints import checkpoint_frames
+from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
     DONOR_PARTS,
@@ -28,15 +29,7 @@ from sb3_collapse.sweep.donors import (
     donors_record,
     pick_donors,
 )
-from sb3_collapse.sweep.runner import (
-    CONNECT_TIMEOUT_S,
-    ClusterUnreachable,
-    RayMissingError,
-    check_sweep_arguments,
-    prepare_sweep_folder,
-    run_sweep,
-    sweep_settings,
-)
+from sb3_collapse.sweep.runner import check_sweep_arguments, prepare_sweep_folder, run_sweep, sweep_settings
 from sb3_collapse.sweep.trials import (
     BASE_VARIANTS,
     GRID_VARIANTS,

@@ -16,11 +16,7 @@ import json
 import os
 import shutil
 import signal
-import socket
-import subprocess
-import sys
 import threading
-import time
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -29,7 +25,6 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from sb3_collapse.checkpoints import TrainingInterrupted, clear_training_stop, request_training_stop
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CONFIG_JSON,
@@ -40,6 +35,13 @@ from sb3_collapse.protocol import (
     write_json_atomically,
     write_text_atomically,
 )
+from sb3_collapse.run.signals import (
+    TrainingInterrupted,
+    clear_training_stop,
+    request_training_stop,
+    stop_signal_handlers,
+)
+from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
 from sb3_collapse.sweep.trials import (
     FINISHED,
     SweepError,
@@ -50,256 +52,6 @@ from sb3_collapse.sweep.trials import (
     trial_status,
 )
 from sb3_collapse.train import UNFINISHED_RUN, TrainConfig, run_folder_state, settings_differences, train
-
-INSTALL_HINT = "pip install 'sb3-collapse[sweep]'"
-
-
-class RayMissingError(ImportError):
-    """Ray is not installed."""
-
-
-def import_ray() -> Any:
-    """
-    :return: the ``ray`` module
-    :raises RayMissingError: with the command that installs it
-    """
-    try:
-        import ray
-    except ImportError as error:
-        raise RayMissingError(f"Sweeps run on Ray, which is not installed: {INSTALL_HINT} ({error}).") from None
-    return ray
-
-
-CONNECT_TIMEOUT_S = 30.0
-"""Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
-
-
-class ClusterUnreachable(RuntimeError):
-    """
-    No Ray cluster answered at the sweep's address in time (nothing listens there, a firewall, a head still
-    starting): a fault to retry once the cluster is up. Nothing was written.
-
-    :param message: what happened and what to do, naming the parameter (``address``)
-    """
-
-    parameter = "address"
-
-
-def split_address(address: str) -> tuple[str, int]:
-    """
-    :param address: a Ray address, ``host:port`` or ``ray://host:port``
-    :return: the host and the port
-    :raises SweepError: for an address without a port
-    """
-    host, _, port = address.removeprefix("ray://").rpartition(":")
-    if not host or not port.isdigit():
-        raise SweepError(f"address {address!r} is not 'auto', 'host:port' or 'ray://host:port'.", parameter="address")
-    return host.strip("[]"), int(port)
-
-
-def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
-    """
-    Wait until something accepts TCP connections at ``host:port`` (a cluster still starting gets ``timeout_s``).
-
-    :param address: the address as given, for the messages
-    :param host: the host
-    :param port: the port
-    :param timeout_s: seconds to wait at most
-    :raises SweepError: for a host that does not resolve
-    :raises ClusterUnreachable: when nothing accepted a connection in time
-    """
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            with socket.create_connection((host, port), timeout=max(0.1, min(5.0, deadline - time.monotonic()))):
-                return
-        except socket.gaierror as error:
-            raise SweepError(f"address {address}: no host {host!r} ({error.strerror}).", parameter="address") from None
-        except OSError as error:
-            reason = error.strerror or type(error).__name__
-        if time.monotonic() + 0.5 >= deadline:
-            raise ClusterUnreachable(
-                f"address {address}: no Ray cluster answered within {timeout_s:g} s ({reason}). Start it (ray start "
-                "--head, docs/sweeps.md) or correct the address, then run the same command again; nothing was written."
-            )
-        time.sleep(0.5)
-
-
-def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
-    """
-    Check that the Ray cluster at ``address`` answers and accepts this process, within ``timeout_s`` (``ray.init``
-    alone retries an unreachable address for minutes, and fails a cluster that wants a token after many seconds).
-    Ray's own log lines of a failed probe are kept off the terminal.
-
-    :param address: ``"auto"``, ``"host:port"`` (the GCS) or ``"ray://host:port"`` (Ray client: only reachability)
-    :param timeout_s: seconds to wait for the cluster at most
-    :raises SweepError: for an address that cannot be right, or a cluster that wants an authentication token this
-        process does not have (``ray start`` turns token authentication on by default)
-    :raises ClusterUnreachable: when no cluster answered in time
-    """
-    deadline = time.monotonic() + timeout_s
-    if address == "auto":
-        try:  # Ray's own resolution of "auto" (private: another Ray version may lack it, then ray.init resolves it)
-            from ray._private.authentication.authentication_token_setup import (
-                maybe_enable_token_auth_if_token_available,
-            )
-            from ray._private.services import canonicalize_bootstrap_address_or_die
-        except ImportError:
-            return
-        maybe_enable_token_auth_if_token_available(warn_if_disabled=False)  # as ray.init does for "auto"
-        try:
-            address = canonicalize_bootstrap_address_or_die("auto")
-        except ConnectionError as error:
-            raise ClusterUnreachable(
-                f"address auto: {error} Start a cluster on this machine (ray start --head) or give its address, then "
-                "run the same command again; nothing was written."
-            ) from None
-    host, port = split_address(address)
-    wait_for_port(address, host, port, timeout_s)
-    try:
-        from ray._raylet import GcsClient
-    except ImportError:  # another Ray version: reachability is all that is checked
-        return
-    if address.startswith("ray://"):
-        return
-    outcome: list[BaseException | None] = []
-
-    def connect() -> None:
-        try:
-            GcsClient(address=address)
-            outcome.append(None)
-        except Exception as error:  # noqa: BLE001  reported below
-            outcome.append(error)
-
-    with _stderr_captured():
-        thread = threading.Thread(target=connect, daemon=True)
-        thread.start()
-        thread.join(max(1.0, deadline - time.monotonic()))
-    if not outcome:
-        raise ClusterUnreachable(
-            f"address {address}: a process listens there, but no Ray cluster answered within {timeout_s:g} s. Check "
-            "the address (the head's GCS port, 6379 by default) and the cluster, then run the same command again; "
-            "nothing was written."
-        )
-    error = outcome[0]
-    if error is None:
-        return
-    if type(error).__name__ == "AuthenticationError":
-        token_mode = os.environ.get("RAY_AUTH_MODE", "").lower() == "token"
-        raise SweepError(
-            f"address {address}: the Ray cluster there wants an authentication token and "
-            + (
-                "the token of this process (RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token) is not its own"
-                if token_mode
-                else "this process sends none (ray start turns token authentication on by default)"
-            )
-            + ": set RAY_AUTH_MODE=token and the cluster's token (RAY_AUTH_TOKEN=<token>, or the file ~/.ray/auth_token; "
-            "`ray get-auth-token` on the head prints it), or start the cluster with RAY_AUTH_MODE=disabled "
-            "(docs/sweeps.md). Nothing was written.",
-            parameter="address",
-        )
-    first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-    raise ClusterUnreachable(
-        f"address {address}: no Ray cluster answered there ({first_line}). Check the address (the head's GCS port, "
-        "6379 by default) and the cluster, then run the same command again; nothing was written."
-    )
-
-
-@contextlib.contextmanager
-def _stderr_captured() -> Iterator[None]:
-    """Send what is written to file descriptor 2 (Ray's C++ log lines) nowhere while inside."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "wb") as devnull:
-            os.dup2(devnull.fileno(), 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
-@contextlib.contextmanager
-def ray_session(
-    address: str | None = None, num_cpus: int | None = None, connect_timeout_s: float = CONNECT_TIMEOUT_S
-) -> Iterator[Any]:
-    """
-    Connect to Ray for the duration of the block: an already initialized Ray is used as it is; otherwise
-    ``ray.init`` starts a local instance (``address=None``, no dashboard) or connects to the cluster at
-    ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects. A cluster
-    is probed first (:func:`probe_cluster`): one that does not answer within ``connect_timeout_s``, or refuses this
-    process, ends the session before it starts. A local instance never outlives this process: a watchdog
-    (:mod:`sb3_collapse.sweep.watchdog`) ends its processes if the process dies without shutting it down (SIGKILL,
-    out of memory).
-
-    :param address: Ray cluster address, ``None`` for a new local instance
-    :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``
-    :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer
-    :return: the ``ray`` module
-    :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time
-    :raises SweepError: for an address that cannot be right, or a cluster that wants a token this process lacks
-    """
-    ray = import_ray()
-    if ray.is_initialized():
-        yield ray
-        return
-    watchdog = None
-    if address is None:
-        ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
-        watchdog = _start_watchdog()
-    else:
-        probe_cluster(address, connect_timeout_s)
-        try:
-            ray.init(address=address, log_to_driver=True)
-        except ConnectionError as error:
-            raise ClusterUnreachable(
-                f"address {address}: {error}. Check the cluster, then run the same command again; nothing was written."
-            ) from None
-    try:
-        yield ray
-    finally:
-        ray.shutdown()
-        if watchdog is not None:
-            watchdog.terminate()
-            watchdog.wait()
-
-
-def _start_watchdog() -> subprocess.Popen:
-    """
-    Start :mod:`sb3_collapse.sweep.watchdog` for the local Ray instance just started, so that its processes do not
-    outlive this driver when it is killed (SIGKILL skips Ray's clean-up).
-    """
-    return subprocess.Popen(
-        [sys.executable, "-m", "sb3_collapse.sweep.watchdog", str(os.getpid())],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,  # not in the driver's process group: a Ctrl-C or a group kill does not reach it
-    )
-
-
-def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_per_trial: float) -> None:
-    """
-    :param resources: the cluster's resources (``ray.cluster_resources()``)
-    :param cpus_per_trial: CPUs each trial asks for
-    :param gpus_per_trial: GPUs each trial asks for
-    :raises SweepError: when no trial could ever be scheduled
-    """
-    gpus, cpus = resources.get("GPU", 0.0), resources.get("CPU", 0.0)
-    if gpus_per_trial > 0 and gpus == 0:
-        raise SweepError(
-            f"gpus_per_trial={gpus_per_trial} asks for GPUs, but Ray sees none in this cluster (resources: "
-            f"{dict(resources)}). Set gpus_per_trial=0 to train on CPU, or run on machines with GPUs.",
-            parameter="gpus_per_trial",
-        )
-    if gpus_per_trial > gpus:
-        raise SweepError(
-            f"gpus_per_trial={gpus_per_trial} is more than the {gpus:g} GPUs Ray sees.", parameter="gpus_per_trial"
-        )
-    if cpus_per_trial > cpus:
-        raise SweepError(
-            f"cpus_per_trial={cpus_per_trial} is more than the {cpus:g} CPUs Ray sees.", parameter="cpus_per_trial"
-        )
 
 
 def check_sweep_arguments(
@@ -417,8 +169,8 @@ def _stop_requests_watched(stop_file: Path, every_s: float = 0.25) -> Iterator[N
     """
     While inside, a thread checks every ``every_s`` seconds for the driver's stop request (``stop_file``, holding
     the signal's name) and passes it to the training of this process
-    (:func:`~sb3_collapse.checkpoints.request_training_stop`: a checkpoint, then
-    :class:`~sb3_collapse.checkpoints.TrainingInterrupted`).
+    (:func:`~sb3_collapse.run.signals.request_training_stop`: a checkpoint, then
+    :class:`~sb3_collapse.run.signals.TrainingInterrupted`).
     """
     done = threading.Event()
 
@@ -772,18 +524,15 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
     bar.update()
 
 
-@contextlib.contextmanager
-def _stop_on_signals(out: Path, summary: SweepSummary, bar: Any) -> Iterator[None]:
+def _stop_on_signals(out: Path, summary: SweepSummary, bar: Any) -> contextlib.AbstractContextManager[None]:
     """
     While inside (in the main thread), a SIGTERM or SIGINT asks every trial to write a checkpoint and stop: the
     driver writes the sweep folder's :data:`~sb3_collapse.protocol.SWEEP_STOP` file, which the trials watch
     (:func:`run_trial`), and goes on collecting their outcomes; ``summary.stopped_by`` records the signal. A second
     signal stops at once (``KeyboardInterrupt``): the trials are cancelled and resume from their last checkpoints.
+
+    :return: the context manager (:func:`~sb3_collapse.run.signals.stop_signal_handlers`)
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
 
     def handler(signum: int, _frame: Any) -> None:
         name = signal.Signals(signum).name
@@ -796,10 +545,4 @@ def _stop_on_signals(out: Path, summary: SweepSummary, bar: Any) -> Iterator[Non
             "trial resuming from its last checkpoint)."
         )
 
-    for sig in previous:
-        signal.signal(sig, handler)
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
+    return stop_signal_handlers(handler)

@@ -429,8 +429,8 @@ def test_legend_names_the_intervention_of_a_variant():
 def test_a_trial_without_a_result_is_running_only_while_its_lock_is_held(tmp_path):
     import socket
 
-    from sb3_collapse.checkpoints import RunLock
     from sb3_collapse.report.loading import load_trial
+    from sb3_collapse.run.lock import RunLock
 
     folder = tmp_path / "walker-walk" / "drqv2" / "seed_0"
     folder.mkdir(parents=True)

@@ -22,7 +22,7 @@ import pytest
 
 from sb3_collapse.sweep import ClusterUnreachable, trial_status
 from sb3_collapse.sweep.__main__ import main
-from sb3_collapse.sweep.runner import probe_cluster
+from sb3_collapse.sweep.cluster import probe_cluster
 
 # A trial that checkpoints: 60 agent steps of cartpole at action repeat 20, a checkpoint every 10 agent steps.
 TRIAL = [
@@ -123,7 +123,7 @@ def test_cluster_that_wants_a_token_is_one_line_and_exit_2(ray_cluster, tmp_path
 
 
 def newest_checkpoint(folder):
-    from sb3_collapse.checkpoints import checkpoint_folders
+    from sb3_collapse.run.checkpoints import checkpoint_folders
 
     kept = checkpoint_folders(folder / "checkpoints")
     return (kept[0], json.loads((kept[0] / "checkpoint.json").read_text())) if kept else (None, None)

@@ -13,8 +13,8 @@ import zipfile
 import pytest
 
 from sb3_collapse import DrQv2
-from sb3_collapse.checkpoints import checkpoint_folders, checkpoint_frames
 from sb3_collapse.report.collapse_figure import agent_class
+from sb3_collapse.run.checkpoints import checkpoint_folders, checkpoint_frames
 from sb3_collapse.sweep import (
     GRID_VARIANTS,
     SweepError,
@@ -31,7 +31,7 @@ from sb3_collapse.sweep import (
     variant_settings,
 )
 from sb3_collapse.sweep.__main__ import main
-from sb3_collapse.sweep.runner import check_resources
+from sb3_collapse.sweep.cluster import check_resources
 from sb3_collapse.train import TrainConfig
 
 # A tiny trial: 1000 frames = 250 agent steps of 4 frames (a whole DMC episode is then 250 agent steps, so that the

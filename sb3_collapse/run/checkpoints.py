@@ -35,41 +35,31 @@ Exactness: on one machine, with the same device and number of torch threads, a r
 ends with the same weights, evaluations and reset-rule events as the run that was not stopped (tested on the CPU).
 A resume on another device type (CUDA to CPU, say) continues correctly but not bit for bit, and says so. Timings
 (wall-clock columns, SB3's ``time/`` keys) differ, as they do between two uninterrupted runs.
+
+Beside this module: the run folder's lock (:mod:`sb3_collapse.run.lock`), the resumed run's logger
+(:mod:`sb3_collapse.run.resumed_logger`) and the stop at SIGTERM or SIGINT (:mod:`sb3_collapse.run.signals`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import errno
 import hashlib
 import json
 import os
 import pickle
 import random
-import re
 import shutil
-import signal
-import socket
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.logger import (
-    CSVOutputFormat,
-    Logger,
-    TensorBoardOutputFormat,
-    configure,
-    make_output_format,
-)
 from stable_baselines3.common.save_util import load_from_zip_file, recursive_setattr
-from torch.utils.tensorboard import SummaryWriter
 
 from sb3_collapse import __version__
 from sb3_collapse.drqv2.divergence import DivergenceError, all_finite
@@ -85,13 +75,12 @@ from sb3_collapse.protocol import (
     CHECKPOINT_JSON,
     CHECKPOINT_MODEL,
     CHECKPOINT_STATE,
-    LOCK_FILE,
-    PROGRESS_CSV,
     REPLAY_DIR,
     write_json_atomically,
 )
 from sb3_collapse.run.replay_checkpoint import CheckpointError as ReplayCheckpointError
 from sb3_collapse.run.replay_checkpoint import ReplayStore
+from sb3_collapse.run.signals import TrainingInterrupted
 
 CHECKPOINT_FORMAT = 1
 """Version of the checkpoint layout; a checkpoint of another format is refused."""
@@ -109,108 +98,8 @@ class CheckpointMismatch(InputError):
     """The run folder's checkpoints cannot be used by this run (another package version or format, other spaces)."""
 
 
-class RunFolderLocked(InputError):
-    """Another process trains into the run folder."""
-
-
-class TrainingInterrupted(Exception):
-    """
-    ``learn()`` stopped at a signal after writing a checkpoint.
-
-    :param checkpoint: the checkpoint's folder
-    :param signal_name: the signal (``"SIGTERM"``, ``"SIGINT"``)
-    """
-
-    def __init__(self, checkpoint: Path, signal_name: str) -> None:
-        super().__init__(f"stopped by {signal_name} after writing the checkpoint {checkpoint}")
-        self.checkpoint = checkpoint
-        self.signal_name = signal_name
-
-
 class _Damaged(Exception):
     """A checkpoint that cannot be read (internal: the loader falls back to the previous one)."""
-
-
-# ---------------------------------------------------------------------------------------------------------- the lock
-class RunLock:
-    """
-    An exclusive lock on a run folder (``flock`` on its lock file, released by the system if the process dies), with
-    the owner's pid, host and start time in the file for the message of a process that finds it taken.
-
-    :param run_dir: the run folder (it must exist)
-    """
-
-    def __init__(self, run_dir: str | os.PathLike) -> None:
-        self.path = Path(run_dir) / LOCK_FILE
-        self._file: Any = None
-
-    def __enter__(self) -> Self:
-        import fcntl
-
-        file = open(self.path, "a+")
-        try:
-            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as error:
-            file.seek(0)
-            owner = file.read().strip() or "another process"
-            file.close()
-            if error.errno not in (errno.EAGAIN, errno.EACCES):
-                raise
-            raise RunFolderLocked(
-                f"run folder {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or train into "
-                "another folder."
-            ) from None
-        file.seek(0)
-        file.truncate()
-        file.write(f"pid {os.getpid()} on host {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
-        file.flush()
-        self._file = file
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._file is not None:
-            self._file.close()  # releases the flock; the file stays (deleting it would race with a new owner; train()
-            # deletes it, still locked, once the run has finished and no process may take the folder)
-            self._file = None
-
-
-def run_folder_owner(run_dir: str | os.PathLike) -> str | None:
-    """
-    Whether a process trains into a run folder now: its lock (:class:`RunLock`) is held. An owner on this host whose
-    pid is gone does not (the lock is not touched); otherwise the lock is tried for an instant (``flock``, shared, as
-    far as the file system passes it on to other hosts).
-
-    :param run_dir: a run folder
-    :return: the owner, as the lock file says it (``"pid 1234 on host h since ..."``), or ``None`` when no process
-        holds the lock (a finished run, or an unfinished one whose process ended: killed, stopped, failed)
-    """
-    import fcntl
-
-    path = Path(run_dir) / LOCK_FILE
-    try:
-        owner = path.read_text().strip()
-    except OSError:
-        return None
-    match = re.match(r"pid (\d+) on host (\S+)", owner)
-    if match is not None and match.group(2) == socket.gethostname():
-        try:
-            os.kill(int(match.group(1)), 0)
-        except ProcessLookupError:
-            return None
-        except PermissionError:  # another user's process: alive
-            pass
-    try:
-        with open(path) as file:
-            try:
-                fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except OSError as error:
-                if error.errno in (errno.EAGAIN, errno.EACCES):
-                    return owner or "another process"
-                raise
-            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
-    except OSError:
-        return None
-    return None
 
 
 # ---------------------------------------------------------------------------------------------- writing and reading
@@ -586,7 +475,8 @@ def restore_run(
     """
     Make ``model`` (built with the run's settings, on the run's environments wrapped in ``EpisodeReplay``) and
     ``callbacks`` continue from ``checkpoint``: the next ``learn(remaining, reset_num_timesteps=False)`` goes on as
-    the run that wrote it would have. The logger is restored by :func:`resumed_logger`.
+    the run that wrote it would have. The logger is restored by
+    :func:`~sb3_collapse.run.resumed_logger.resumed_logger`.
 
     :param model: the model
     :param checkpoint: what :func:`load_checkpoint` returned
@@ -645,85 +535,13 @@ def restore_run(
     return notes
 
 
-class _ResumedCSVOutputFormat(CSVOutputFormat):
-    """SB3's CSV log continuing an existing file: its header gives the columns, rows are appended."""
-
-    def __init__(self, filename: str) -> None:
-        self.file = open(filename, "r+")  # noqa: SIM115 - closed by Logger.close
-        header = self.file.readline().strip()
-        self.keys = header.split(",") if header else []
-        self.file.seek(0, os.SEEK_END)
-        self.separator = ","
-        self.quotechar = '"'
-
-
-class _ResumedTensorBoardOutputFormat(TensorBoardOutputFormat):
-    """TensorBoard events from ``purge_step`` on: TensorBoard drops the earlier files' events at or after it."""
-
-    def __init__(self, folder: str, purge_step: int) -> None:
-        self.writer = SummaryWriter(log_dir=folder, purge_step=purge_step)
-        self._is_closed = False
-
-
-def keep_lines(path: Path, lines: int) -> None:
-    """
-    Cut a text file after its first ``lines`` lines (rows written after a checkpoint, before the run stopped).
-
-    :param path: the file (nothing happens if it does not exist)
-    :param lines: lines to keep
-    """
-    if not path.is_file():
-        return
-    with path.open("rb") as file:
-        content = file.read()
-    kept = content.splitlines(keepends=True)[:lines]
-    if len(kept) < lines:
-        raise CheckpointMismatch(f"{path} has fewer lines ({len(kept)}) than when the checkpoint was taken ({lines}).")
-    data = b"".join(kept)
-    if data != content:
-        with path.open("r+b") as file:
-            file.truncate(len(data))
-            file.flush()
-            os.fsync(file.fileno())
-
-
-def resumed_logger(run_dir: Path, formats: Sequence[str], checkpoint: LoadedCheckpoint | None) -> Logger:
-    """
-    The run's SB3 logger: a new one (``configure``), or, resuming, one that continues ``progress.csv`` and the
-    TensorBoard events after the checkpoint, with the values recorded but not dumped yet when it was taken. The
-    other CSV files the checkpoint counted are cut back to their lines at that time.
-
-    :param run_dir: the run folder
-    :param formats: SB3 output formats (``"stdout"``, ``"csv"``, ``"tensorboard"``)
-    :param checkpoint: the checkpoint resumed from, ``None`` for a new run
-    :return: the logger
-    """
-    if checkpoint is None:
-        return configure(str(run_dir), list(formats))
-    state = checkpoint.state
-    for name, lines in state["csv_lines"].items():
-        keep_lines(run_dir / name, lines)
-    outputs = []
-    for kind in formats:
-        if kind == "csv" and (run_dir / PROGRESS_CSV).is_file():
-            outputs.append(_ResumedCSVOutputFormat(str(run_dir / PROGRESS_CSV)))
-        elif kind == "tensorboard":
-            outputs.append(_ResumedTensorBoardOutputFormat(str(run_dir), purge_step=state["num_timesteps"] + 1))
-        else:
-            outputs.append(make_output_format(kind, str(run_dir)))
-    logger = Logger(str(run_dir), outputs)
-    logger.name_to_value.update(state["logger"]["values"])
-    logger.name_to_count.update(state["logger"]["counts"])
-    logger.name_to_excluded.update(state["logger"]["excluded"])
-    return logger
-
-
 # ---------------------------------------------------------------------------------------------------------- callback
 class ResumableCheckpoints(BaseCallback):
     """
     Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, and one when
-    :meth:`request_stop` was called (by a SIGTERM or SIGINT handler, see :func:`stop_signals`), after which
-    ``learn()`` stops with :class:`TrainingInterrupted`.
+    :meth:`request_stop` was called (by a SIGTERM or SIGINT handler, see
+    :func:`~sb3_collapse.run.signals.stop_signals`), after which ``learn()`` stops with
+    :class:`~sb3_collapse.run.signals.TrainingInterrupted`.
 
     Checkpoints are taken at the start of the first rollout at or after their frame, where nothing is in flight. With
     ``DrQv2(step_envs_during_updates=True)``, the round before a checkpoint does not step the environments during its
@@ -863,75 +681,3 @@ class ResumableCheckpoints(BaseCallback):
             )
         return self.last_checkpoint
 
-
-_stop_requests: list[str] = []
-"""Signal names of :func:`request_training_stop` calls not yet cleared (this process's training stops at them)."""
-_training: list[ResumableCheckpoints] = []
-"""The checkpoint callbacks of the runs training in this process (inside :func:`stop_signals`)."""
-
-
-def request_training_stop(signal_name: str) -> None:
-    """
-    Ask the training of this process to write a checkpoint and stop, as a SIGTERM would: at once for a run inside
-    :func:`stop_signals`, at its start for a run that has not got there yet. Safe from any thread (a sweep's trial
-    calls it when its driver asks the trials to stop).
-
-    :param signal_name: the signal the stop stands for (``"SIGTERM"``), named by :class:`TrainingInterrupted`
-    """
-    _stop_requests.append(signal_name)
-    for checkpoints in _training.copy():  # a copy: a run may end in another thread meanwhile
-        checkpoints.request_stop(signal_name)
-
-
-def clear_training_stop() -> None:
-    """Forget the requests of :func:`request_training_stop`: a later run of this process trains again."""
-    _stop_requests.clear()
-
-
-@contextlib.contextmanager
-def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
-    """
-    While inside, SIGTERM and SIGINT ask ``checkpoints`` to write a checkpoint and stop (the run ends with
-    :class:`TrainingInterrupted`); a second SIGINT stops at once (``KeyboardInterrupt``). Outside the main thread,
-    no signal handler is installed. A :func:`request_training_stop` (before or while inside) does what a SIGTERM
-    does, in any thread.
-
-    :param checkpoints: the run's checkpoint callback
-    """
-    _training.append(checkpoints)
-    if _stop_requests:
-        checkpoints.request_stop(_stop_requests[0])
-    try:
-        with _signal_handlers(checkpoints):
-            yield
-    finally:
-        _training.remove(checkpoints)
-
-
-@contextlib.contextmanager
-def _signal_handlers(checkpoints: ResumableCheckpoints) -> Iterator[None]:
-    """SIGTERM and SIGINT handlers for :func:`stop_signals` (in the main thread only)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
-    received: list[str] = []  # signals, not requests: a sweep's request and a Ctrl-C are one stop, not two
-
-    def handler(signum: int, _frame: Any) -> None:
-        name = signal.Signals(signum).name
-        if signum == signal.SIGINT and received:
-            raise KeyboardInterrupt
-        received.append(name)
-        checkpoints.request_stop(name)
-        print(
-            f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
-            flush=True,
-        )
-
-    for sig in previous:
-        signal.signal(sig, handler)
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)

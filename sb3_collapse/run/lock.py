@@ -1,0 +1,102 @@
+"""
+The run folder's lock: one process trains into a run folder at a time (:class:`RunLock`), and whether one does now
+(:func:`run_folder_owner`, for the report's listing of unfinished runs).
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+import socket
+import time
+from pathlib import Path
+from typing import Any, Self
+
+from sb3_collapse.errors import InputError
+from sb3_collapse.protocol import LOCK_FILE
+
+
+class RunFolderLocked(InputError):
+    """Another process trains into the run folder."""
+
+
+class RunLock:
+    """
+    An exclusive lock on a run folder (``flock`` on its lock file, released by the system if the process dies), with
+    the owner's pid, host and start time in the file for the message of a process that finds it taken.
+
+    :param run_dir: the run folder (it must exist)
+    """
+
+    def __init__(self, run_dir: str | os.PathLike) -> None:
+        self.path = Path(run_dir) / LOCK_FILE
+        self._file: Any = None
+
+    def __enter__(self) -> Self:
+        import fcntl
+
+        file = open(self.path, "a+")
+        try:
+            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            file.seek(0)
+            owner = file.read().strip() or "another process"
+            file.close()
+            if error.errno not in (errno.EAGAIN, errno.EACCES):
+                raise
+            raise RunFolderLocked(
+                f"run folder {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or train into "
+                "another folder."
+            ) from None
+        file.seek(0)
+        file.truncate()
+        file.write(f"pid {os.getpid()} on host {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        file.flush()
+        self._file = file
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._file is not None:
+            self._file.close()  # releases the flock; the file stays (deleting it would race with a new owner; train()
+            # deletes it, still locked, once the run has finished and no process may take the folder)
+            self._file = None
+
+
+def run_folder_owner(run_dir: str | os.PathLike) -> str | None:
+    """
+    Whether a process trains into a run folder now: its lock (:class:`RunLock`) is held. An owner on this host whose
+    pid is gone does not (the lock is not touched); otherwise the lock is tried for an instant (``flock``, shared, as
+    far as the file system passes it on to other hosts).
+
+    :param run_dir: a run folder
+    :return: the owner, as the lock file says it (``"pid 1234 on host h since ..."``), or ``None`` when no process
+        holds the lock (a finished run, or an unfinished one whose process ended: killed, stopped, failed)
+    """
+    import fcntl
+
+    path = Path(run_dir) / LOCK_FILE
+    try:
+        owner = path.read_text().strip()
+    except OSError:
+        return None
+    match = re.match(r"pid (\d+) on host (\S+)", owner)
+    if match is not None and match.group(2) == socket.gethostname():
+        try:
+            os.kill(int(match.group(1)), 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:  # another user's process: alive
+            pass
+    try:
+        with open(path) as file:
+            try:
+                fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except OSError as error:
+                if error.errno in (errno.EAGAIN, errno.EACCES):
+                    return owner or "another process"
+                raise
+            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
+    except OSError:
+        return None
+    return None

@@ -1,0 +1,100 @@
+"""
+The SB3 logger of a run resumed from a checkpoint (:func:`resumed_logger`): ``progress.csv`` and the TensorBoard
+events continue after the checkpoint, the other CSV files are cut back to their lines at that time
+(:func:`keep_lines`), and the values recorded but not dumped yet come back.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from stable_baselines3.common.logger import (
+    CSVOutputFormat,
+    Logger,
+    TensorBoardOutputFormat,
+    configure,
+    make_output_format,
+)
+from torch.utils.tensorboard import SummaryWriter
+
+from sb3_collapse.protocol import PROGRESS_CSV
+from sb3_collapse.run.checkpoints import CheckpointMismatch
+
+if TYPE_CHECKING:
+    from sb3_collapse.run.checkpoints import LoadedCheckpoint
+
+
+class _ResumedCSVOutputFormat(CSVOutputFormat):
+    """SB3's CSV log continuing an existing file: its header gives the columns, rows are appended."""
+
+    def __init__(self, filename: str) -> None:
+        self.file = open(filename, "r+")  # noqa: SIM115 - closed by Logger.close
+        header = self.file.readline().strip()
+        self.keys = header.split(",") if header else []
+        self.file.seek(0, os.SEEK_END)
+        self.separator = ","
+        self.quotechar = '"'
+
+
+class _ResumedTensorBoardOutputFormat(TensorBoardOutputFormat):
+    """TensorBoard events from ``purge_step`` on: TensorBoard drops the earlier files' events at or after it."""
+
+    def __init__(self, folder: str, purge_step: int) -> None:
+        self.writer = SummaryWriter(log_dir=folder, purge_step=purge_step)
+        self._is_closed = False
+
+
+def keep_lines(path: Path, lines: int) -> None:
+    """
+    Cut a text file after its first ``lines`` lines (rows written after a checkpoint, before the run stopped).
+
+    :param path: the file (nothing happens if it does not exist)
+    :param lines: lines to keep
+    """
+    if not path.is_file():
+        return
+    with path.open("rb") as file:
+        content = file.read()
+    kept = content.splitlines(keepends=True)[:lines]
+    if len(kept) < lines:
+        raise CheckpointMismatch(f"{path} has fewer lines ({len(kept)}) than when the checkpoint was taken ({lines}).")
+    data = b"".join(kept)
+    if data != content:
+        with path.open("r+b") as file:
+            file.truncate(len(data))
+            file.flush()
+            os.fsync(file.fileno())
+
+
+def resumed_logger(run_dir: Path, formats: Sequence[str], checkpoint: LoadedCheckpoint | None) -> Logger:
+    """
+    The run's SB3 logger: a new one (``configure``), or, resuming, one that continues ``progress.csv`` and the
+    TensorBoard events after the checkpoint, with the values recorded but not dumped yet when it was taken. The
+    other CSV files the checkpoint counted are cut back to their lines at that time.
+
+    :param run_dir: the run folder
+    :param formats: SB3 output formats (``"stdout"``, ``"csv"``, ``"tensorboard"``)
+    :param checkpoint: the checkpoint resumed from, ``None`` for a new run
+    :return: the logger
+    """
+    if checkpoint is None:
+        return configure(str(run_dir), list(formats))
+    state = checkpoint.state
+    for name, lines in state["csv_lines"].items():
+        keep_lines(run_dir / name, lines)
+    outputs = []
+    for kind in formats:
+        if kind == "csv" and (run_dir / PROGRESS_CSV).is_file():
+            outputs.append(_ResumedCSVOutputFormat(str(run_dir / PROGRESS_CSV)))
+        elif kind == "tensorboard":
+            outputs.append(_ResumedTensorBoardOutputFormat(str(run_dir), purge_step=state["num_timesteps"] + 1))
+        else:
+            outputs.append(make_output_format(kind, str(run_dir)))
+    logger = Logger(str(run_dir), outputs)
+    logger.name_to_value.update(state["logger"]["values"])
+    logger.name_to_count.update(state["logger"]["counts"])
+    logger.name_to_excluded.update(state["logger"]["excluded"])
+    return logger
