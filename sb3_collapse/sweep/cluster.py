@@ -160,9 +160,9 @@ def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
                 if token_mode
                 else "this process sends none (ray start turns token authentication on by default)"
             )
-            + ": set RAY_AUTH_MODE=token and the cluster's token (RAY_AUTH_TOKEN=<token>, or the file ~/.ray/auth_token; "
-            "`ray get-auth-token` on the head prints it), or start the cluster with RAY_AUTH_MODE=disabled "
-            "(docs/sweeps.md). Nothing was written.",
+            + ": set RAY_AUTH_MODE=token and the cluster's token (RAY_AUTH_TOKEN=<token>, or the file "
+            "~/.ray/auth_token; `ray get-auth-token` on the head prints it), or start the cluster with "
+            "RAY_AUTH_MODE=disabled (docs/sweeps.md). Nothing was written.",
             parameter="address",
         )
     first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
