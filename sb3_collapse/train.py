@@ -89,6 +89,7 @@ from sb3_collapse.errors import (
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset, frames_of
 from sb3_collapse.monitoring.callbacks import ResumableCallback
 from sb3_collapse.monitoring.redo import PeriodicReDo
+from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
@@ -102,7 +103,6 @@ from sb3_collapse.protocol import (
     FINAL_MODEL,
     FINISHED,
     LOCK_FILE,
-    PAPER,
     PROBE_CHECKPOINTS_DIR,
     PROGRESS_CSV,
     RESULT_JSON,
@@ -168,7 +168,7 @@ class TrainConfig:
     :param frame_stack: stacked RGB frames per observation
     :param size: image height and width, in pixels
     :param eval_every_frames: frames between evaluations (and one at frame 0, none at the budget's end:
-        :func:`~sb3_collapse.protocol.evaluation_schedule`; the saved final model is evaluated apart); ``0``
+        :func:`~sb3_collapse.paper.evaluation_schedule`; the saved final model is evaluated apart); ``0``
         disables evaluation
     :param eval_episodes: episodes per evaluation (deterministic policy), on an evaluation environment seeded with
         ``seed``, as the reference seeds its own (the same seed as the training environment)
@@ -496,7 +496,7 @@ class PeriodicEvaluation(ResumableCallback):
     """
     Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
     (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done: the scheduled
-    evaluations (:func:`~sb3_collapse.protocol.evaluation_schedule`), as in the reference's ``train.py``, where the
+    evaluations (:func:`~sb3_collapse.paper.evaluation_schedule`), as in the reference's ``train.py``, where the
     paper's statistics come from.
 
     Not at the last step of ``learn()`` (the reference does not evaluate there either; there, SB3 calls the callbacks

@@ -10,7 +10,7 @@ from stable_baselines3 import SAC
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import DrQv2
-from sb3_collapse.protocol import PAPER, evaluation_schedule
+from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.train import TrainConfig, main, train
 
 

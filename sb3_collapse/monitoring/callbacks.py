@@ -32,7 +32,8 @@ from sb3_collapse.monitoring.metrics import (
     layer_metrics,
     saturated_fraction,
 )
-from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, PAPER, append_csv_rows, metric_tag
+from sb3_collapse.paper import PAPER, metric_tag
+from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows
 
 
 def action_repeat_of(model: BaseAlgorithm) -> int:

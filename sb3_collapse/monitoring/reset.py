@@ -26,7 +26,8 @@ from sb3_collapse.monitoring.interventions import (
     forget_reset,
 )
 from sb3_collapse.monitoring.metrics import action_spread
-from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, PAPER, append_csv_rows
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, append_csv_rows
 
 Trigger = str | Callable[[BaseAlgorithm], "float | None"]
 
@@ -36,7 +37,7 @@ class CollapseReset(FrameScheduleCallback):
     Resets the training from scratch while the agent is stuck in action collapse (the paper's rule), or applies
     another ``intervention``, on a DrQv2, TD3, DDPG or SAC model.
 
-    The defaults are the paper's, :data:`sb3_collapse.protocol.PAPER` (Section 5.2).
+    The defaults are the paper's, :data:`sb3_collapse.paper.PAPER` (Section 5.2).
 
     Every ``check_every_frames`` frames (agent steps x action repeat) the callback reads a health value, by
     default the gradient L2 norm of the layer that produces ``layer`` (``mlp1``) at the last update (recorded

@@ -21,13 +21,13 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
-from sb3_collapse.errors import cli_message, report_unwritable_outputs
-from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.errors import ProbeError, cli_message, report_unwritable_outputs
+from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, STRIP_EVERY_FRAMES, film_to_folder
 from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
 from sb3_collapse.probe.sweep import DEFAULT_OUT, probe_sweep
-from sb3_collapse.protocol import EXIT_INTERRUPTED, PAPER, PROBE_CHECKPOINTS_DIR
+from sb3_collapse.protocol import EXIT_INTERRUPTED, PROBE_CHECKPOINTS_DIR
 
 PROG = "python -m sb3_collapse.probe"
 SUBCOMMANDS = ("run", "record", "sweep", "film")

@@ -13,9 +13,9 @@ from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.errors import ProbeError
 from sb3_collapse.monitoring import LayerMappingError, layer_taps
 from sb3_collapse.monitoring.callbacks import action_repeat_of
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.run.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {

@@ -41,8 +41,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
 
+from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.rollouts import REWARD_PREFIX
-from sb3_collapse.protocol import PAPER
 from sb3_collapse.report.statistics import across_seed_std, stage_indices
 from sb3_collapse.report.style import frames_axis, layer_style
 

@@ -25,7 +25,7 @@ from PIL import Image
 from tqdm.auto import tqdm
 
 from sb3_collapse.envs import make_dmc_env
-from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.errors import ProbeError
 from sb3_collapse.report.style import OKABE_ITO, frames_axis
 
 FILM_FRAMES = 300

@@ -13,6 +13,8 @@ from typing import Any
 from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.drqv2.checks import check_device
+from sb3_collapse.errors import ProbeError
+from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import (
     Checkpoint,
     checkpoint_labels,
@@ -20,7 +22,6 @@ from sb3_collapse.probe.checkpoints import (
     load_checkpoint,
     read_saved_data,
 )
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.probing import (
     MIN_EPISODES,
     CheckpointProbe,
@@ -42,7 +43,6 @@ from sb3_collapse.probe.report import (
     write_json,
 )
 from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
-from sb3_collapse.protocol import PAPER
 
 ROLLOUTS_NAME = "rollouts.npz"
 SELF_RECORDED_NOTE = (

@@ -14,7 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.errors import ProbeError
 from sb3_collapse.staged_outputs import StagedOutputs
 
 CSV_NAME = "probe.csv"

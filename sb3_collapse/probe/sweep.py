@@ -25,8 +25,9 @@ from typing import Any
 from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
+from sb3_collapse.errors import ProbeError, ReportError
+from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import load_checkpoint
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.figure2 import (
     ROWS,
     figure2_columns,
@@ -42,12 +43,10 @@ from sb3_collapse.probe.rollouts import Rollouts
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
     FINAL_MODEL,
-    PAPER,
     PROBE_CHECKPOINTS_DIR,
     SWEEP_PROBE_DIR,
     TABLES_1_6_CSV,
 )
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import Trial, load_sweep
 from sb3_collapse.staged_outputs import StagedOutputs
 

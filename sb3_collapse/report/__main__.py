@@ -14,10 +14,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from sb3_collapse.errors import cli_message, report_unwritable_outputs
+from sb3_collapse.errors import ReportError, cli_message, report_unwritable_outputs
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.collapse_figure import is_run_folder
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.fixed_inputs import FixedInputSettings
 from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
 from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_report

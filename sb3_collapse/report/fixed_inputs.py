@@ -24,20 +24,19 @@ from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
 from sb3_collapse.drqv2.checks import check_device
-from sb3_collapse.errors import ParameterError
+from sb3_collapse.errors import ParameterError, ProbeError, ReportError
 from sb3_collapse.monitoring import collect_activations, layer_metrics, unit_count
+from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.probe.checkpoints import load_checkpoint
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
 from sb3_collapse.probe.rollouts import Rollouts
-from sb3_collapse.protocol import PAPER, PROBE_CHECKPOINTS_DIR, SWEEP_PROBE_DIR, metric_tag
+from sb3_collapse.protocol import PROBE_CHECKPOINTS_DIR, SWEEP_PROBE_DIR
 from sb3_collapse.report.collapse_figure import (
     FIGURE4_LAYERS,
     AgentMetrics,
     AgentPick,
     agent_metrics,
 )
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import Trial
 
 FIXED_SAMPLES = 2048

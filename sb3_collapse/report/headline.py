@@ -6,7 +6,7 @@ The top of the report: the paper's headline numbers beside the sweep's (Section 
   the seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2. In
   comparison, all 40 seeds of ours escape action collapse") as counts with a Wilson interval, and "the average
   standard deviation over the last ten evaluations" with a bootstrap interval over seeds; the paper's numbers
-  (:data:`~sb3_collapse.protocol.PAPER_RESULTS`) on the same row.
+  (:data:`~sb3_collapse.paper.PAPER_RESULTS`) on the same row.
 - **Proposition 1** (:func:`proposition1_rows`): "Supposing the number of training frames is n · m (m is the
   frames where the exploration decreases to the smallest) and the probability of getting stuck in action collapse
   is p, then the probability of escaping action collapse when applying our proposed rule is 1 - p^n." p is the
@@ -31,7 +31,8 @@ from statistics import NormalDist
 
 import numpy as np
 
-from sb3_collapse.protocol import CONFIG_JSON, PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
+from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
+from sb3_collapse.protocol import CONFIG_JSON
 from sb3_collapse.report.loading import Sweep, Trial
 from sb3_collapse.report.statistics import (
     BandCurve,
@@ -224,7 +225,7 @@ def headline_rows(
 ) -> list[HeadlineRow]:
     """
     The headline: one row per task of the sweep (those of the paper's Figure 5 first, in its order,
-    :data:`~sb3_collapse.protocol.PAPER_RESULTS`; the others when they have the baseline or the rule).
+    :data:`~sb3_collapse.paper.PAPER_RESULTS`; the others when they have the baseline or the rule).
 
     :param sweep: the loaded sweep
     :param rows: the summary rows (:func:`~sb3_collapse.report.statistics.summarize`)

@@ -22,8 +22,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from sb3_collapse.checkpoints import run_folder_owner
-from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, PAPER, RESULT_JSON, SEED_FOLDER
-from sb3_collapse.report.errors import ReportError
+from sb3_collapse.errors import ReportError
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, RESULT_JSON, SEED_FOLDER
 
 DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
 RUNNING, UNFINISHED = "running", "unfinished"
@@ -326,7 +327,7 @@ def scheduled_evaluations(
     frames: np.ndarray, returns: np.ndarray, result: dict[str, Any]
 ) -> tuple[np.ndarray, np.ndarray]:
     """
-    The scheduled evaluations of a finished run (:func:`sb3_collapse.protocol.evaluation_schedule`), where the
+    The scheduled evaluations of a finished run (:func:`sb3_collapse.paper.evaluation_schedule`), where the
     paper's statistics come from: run folders of earlier versions end their evaluation file with the saved final
     model's evaluation, at the run's last frame (the result file's ``frames``; such files have no
     ``saved_model_eval``), which is left out here. Files of this version hold the scheduled evaluations only.

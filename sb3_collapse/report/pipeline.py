@@ -10,6 +10,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
+from sb3_collapse.errors import ReportError
 from sb3_collapse.presets import preset
 from sb3_collapse.protocol import (
     CONFIG_JSON,
@@ -33,7 +34,6 @@ from sb3_collapse.report.collapse_figure import (
     run_folder_trial,
     run_title,
 )
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.fixed_inputs import (
     FixedInputs,
     FixedInputSettings,
