@@ -17,7 +17,7 @@ import os
 import re
 import tempfile
 import traceback
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,10 +58,14 @@ EXIT_INTERRUPTED = 75
 """Exit status of ``python -m sb3_collapse.train`` stopped by SIGTERM or SIGINT after writing a checkpoint, of the
 sweep whose trials did so, and of the probe stopped before writing anything (``EX_TEMPFAIL``: run the same command
 again to resume)."""
-PROBE_CHECKPOINTS_DIR = "probe_checkpoints"
-"""The weights the probe needs (encoder and actor), one zip per evaluation (:data:`PROBE_CHECKPOINT`)."""
-PROBE_CHECKPOINT = "probe_{frames:010d}_frames.zip"
-"""A probe checkpoint's file name in :data:`PROBE_CHECKPOINTS_DIR`: the training frames, 10 digits (sorts by time)."""
+SNAPSHOTS_DIR = "snapshots"
+"""The run's snapshots: its encoder and actor at every evaluation, one zip each (:data:`SNAPSHOT_FILE`), the
+weights the probe and the report's fixed-set figures read (:mod:`sb3_collapse.run.snapshots`)."""
+SNAPSHOT_FILE = "snapshot_{frames:010d}_frames.zip"
+"""A snapshot's file name in :data:`SNAPSHOTS_DIR`: the training frames, 10 digits (sorts by time)."""
+LEGACY_SNAPSHOTS_DIR = "probe_checkpoints"
+"""The folder of the snapshots in run folders of earlier versions (files ``probe_<frames, 10 digits>_frames.zip``),
+read as :data:`SNAPSHOTS_DIR` (:func:`snapshot_files`)."""
 ERROR_TXT = "error.txt"
 """The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
 SWEEP_JSON = "sweep.json"
@@ -116,6 +120,63 @@ def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Pa
     :return: the trial's folder, ``<out>/<task>/<variant>/seed_<seed>``
     """
     return Path(out) / task / variant / f"{SEED_FOLDER_PREFIX}{seed}"
+
+
+LEGACY_SETTING_NAMES = {"probe_checkpoints": "snapshots", "collapse_probe_batch": "collapse_metrics_batch"}
+"""Settings renamed since earlier versions wrote them into a settings file: old name -> current name
+(:func:`read_settings`)."""
+LEGACY_CALLBACK_NAMES = {"ProbeCheckpoints": "Snapshots"}
+"""Resumable callbacks renamed since earlier versions wrote their state into a checkpoint: old class name -> current
+one."""
+
+
+def current_setting_names(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """
+    :param settings: settings as a settings file of any version holds them (name -> value)
+    :return: the same settings under their current names (:data:`LEGACY_SETTING_NAMES`); a current name wins over
+        its old one
+    """
+    renamed = {LEGACY_SETTING_NAMES.get(name, name): value for name, value in settings.items()}
+    renamed.update({name: settings[name] for name in LEGACY_SETTING_NAMES.values() if name in settings})
+    return renamed
+
+
+def read_settings(path: str | os.PathLike) -> dict[str, Any]:
+    """
+    Read a run's settings file (:data:`CONFIG_JSON`) or a sweep's (:data:`SWEEP_JSON`, whose training settings are
+    under ``training``), with the settings of earlier versions under their current names
+    (:func:`current_setting_names`).
+
+    :param path: the settings file
+    :return: its content
+    :raises OSError: when it cannot be read
+    :raises ValueError: when it is not JSON
+    """
+    content = json.loads(Path(path).read_text())
+    if not isinstance(content, dict):
+        return content
+    content = current_setting_names(content)
+    if isinstance(content.get("training"), dict):
+        content["training"] = current_setting_names(content["training"])
+    return content
+
+
+def snapshot_files(run_dir: str | os.PathLike) -> list[Path]:
+    """
+    :param run_dir: a run folder
+    :return: its snapshots, in training order: the zips of :data:`SNAPSHOTS_DIR` and, for a run started by an
+        earlier version, of :data:`LEGACY_SNAPSHOTS_DIR`
+    """
+    files = [
+        path for folder in (LEGACY_SNAPSHOTS_DIR, SNAPSHOTS_DIR) for path in sorted((Path(run_dir) / folder).glob("*.zip"))
+    ]
+    return sorted(files, key=_snapshot_frames)
+
+
+def _snapshot_frames(path: Path) -> int:
+    """:return: the training frames in a snapshot's file name (-1 for another name: first)"""
+    match = re.search(r"_(\d+)_frames\.zip$", path.name)
+    return int(match.group(1)) if match else -1
 
 
 FAILURE_HEADER = "failed at agent step {step} (frame {frame})"

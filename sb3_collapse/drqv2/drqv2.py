@@ -186,7 +186,7 @@ class DrQv2(RoundsAlgorithm):
         self.replay_prefetcher = ReplayPrefetcher()  # replay batches for train(), see sb3_collapse.drqv2.prefetch
         self._compiled_losses: tuple[Any, Any] | None = None
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
-        self.hold_next_step = False
+        self.no_env_step_this_round = False
         self.env_config = _read_env_config(self.env) if self.env is not None else None
         self.grad_norm_recorder: GradNormRecorder | None = None
         """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
@@ -540,7 +540,7 @@ class DrQv2(RoundsAlgorithm):
         return [
             *super()._excluded_save_params(), "encoder", "actor", "critic", "critic_target", "callback",
             "grad_norm_recorder", "update_stats", "_warned_replay_not_ready", "_compiled_losses", "_pending_step",
-            "hold_next_step", "replay_prefetcher",
+            "no_env_step_this_round", "replay_prefetcher",
         ]  # fmt: skip
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -231,7 +231,7 @@ def film_to_folder(
     ``filmstrip.png``, ``<checkpoint>_seed<k>.gif`` per film and ``actions.csv`` into ``out`` (staged: all or
     nothing).
 
-    :param checkpoint_paths: the agents (full or probe checkpoints)
+    :param checkpoint_paths: the agents (full models or snapshots)
     :param out: the output folder
     :param frames: environment frames per film
     :param size: render size of the film, in pixels

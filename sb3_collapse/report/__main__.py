@@ -110,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--rollouts",
-        help="Figures 4, 8, 9: rollouts file whose observations every probe checkpoint of the picked agents is run "
+        help="Figures 4, 8, 9: rollouts file whose observations every snapshot of the picked agents is run "
         "on (default: <sweep>/probe/<task>_<variant>/rollouts.npz of python -m sb3_collapse.probe sweep)",
     )
     parser.add_argument(
@@ -122,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--device",
         default=collapse.device,
-        help="Figures 4, 8, 9: where the probe checkpoints run: auto, cpu, cuda (default: %(default)s)",
+        help="Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda (default: %(default)s)",
     )
     parser.add_argument(
         "--overwrite", action="store_true", help="replace the files of a previous report in the output folder"

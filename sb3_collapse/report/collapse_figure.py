@@ -14,7 +14,7 @@ reading, kept under its own name.)
 
 **The inputs.** The paper computes the metrics on ``H`` "as defined in Figure 1": the probing samples, "collected
 from well-performing agents". The report computes them after training on one fixed observation set for every
-probe checkpoint of the picked agents (:mod:`sb3_collapse.report.fixed_inputs`); the online metrics of each
+snapshot of the picked agents (:mod:`sb3_collapse.report.fixed_inputs`); the online metrics of each
 trial's collapse metrics file (``protocol.COLLAPSE_METRICS_CSV``: each agent's own replay batch, at training time)
 are drawn in a figure of their own. Gradient norms are training-time in both.
 """

@@ -23,7 +23,6 @@ a fixed seed, so the report is reproducible).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,7 +31,7 @@ from statistics import NormalDist
 import numpy as np
 
 from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
-from sb3_collapse.protocol import CONFIG_JSON
+from sb3_collapse.protocol import CONFIG_JSON, read_settings
 from sb3_collapse.report.loading import Sweep, Trial
 from sb3_collapse.report.statistics import (
     BandCurve,
@@ -293,7 +292,7 @@ def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
     found = set()
     for trial in trials:
         try:
-            config = json.loads((trial.path / CONFIG_JSON).read_text())
+            config = read_settings(trial.path / CONFIG_JSON)
         except (OSError, ValueError):
             continue
         frames, window = config.get("frames"), config.get("reset_window_frames") or PAPER.window_frames

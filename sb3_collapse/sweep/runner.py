@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import os
 import shutil
 import signal
@@ -37,6 +36,7 @@ from sb3_collapse.protocol import (
     SWEEP_JSON,
     SWEEP_STOP,
     blocking_file,
+    read_settings,
     write_json_atomically,
     write_text_atomically,
 )
@@ -125,11 +125,11 @@ def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
         time.sleep(0.5)
 
 
-def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     """
     Check that the Ray cluster at ``address`` answers and accepts this process, within ``timeout_s`` (``ray.init``
     alone retries an unreachable address for minutes, and fails a cluster that wants a token after many seconds).
-    Ray's own log lines of a failed probe are kept off the terminal.
+    Ray's own log lines of a failed check are kept off the terminal.
 
     :param address: ``"auto"``, ``"host:port"`` (the GCS) or ``"ray://host:port"`` (Ray client: only reachability)
     :param timeout_s: seconds to wait for the cluster at most
@@ -227,7 +227,7 @@ def ray_session(
     Connect to Ray for the duration of the block: an already initialized Ray is used as it is; otherwise
     ``ray.init`` starts a local instance (``address=None``, no dashboard) or connects to the cluster at
     ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects. A cluster
-    is probed first (:func:`probe_cluster`): one that does not answer within ``connect_timeout_s``, or refuses this
+    is checked first (:func:`check_cluster`): one that does not answer within ``connect_timeout_s``, or refuses this
     process, ends the session before it starts. A local instance never outlives this process: a watchdog
     (:mod:`sb3_collapse.sweep.watchdog`) ends its processes if the process dies without shutting it down (SIGKILL,
     out of memory).
@@ -248,7 +248,7 @@ def ray_session(
         ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
         watchdog = _start_watchdog()
     else:
-        probe_cluster(address, connect_timeout_s)
+        check_cluster(address, connect_timeout_s)
         try:
             ray.init(address=address, log_to_driver=True)
         except ConnectionError as error:
@@ -354,9 +354,9 @@ def check_writable(folder: Path) -> None:
     created = [path for path in (folder, *folder.parents) if not path.exists()]
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".write_check_{os.getpid()}"
-        probe.mkdir()
-        probe.rmdir()
+        write_check = folder / f".write_check_{os.getpid()}"
+        write_check.mkdir()
+        write_check.rmdir()
     except OSError as error:
         raise OSError(error.errno, error.strerror, str(folder)) from None
     finally:
@@ -456,7 +456,7 @@ def _run_trial(
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)  # resolved
     if run_folder_state(folder) == UNFINISHED_RUN:
         try:
-            differences = settings_differences(json.loads((folder / CONFIG_JSON).read_text()), config)
+            differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
         except (OSError, ValueError):
             differences = ["unreadable settings"]
         if differences:  # the sweep's settings changed (allowed): this attempt cannot continue
@@ -637,7 +637,7 @@ def prepare_sweep_folder(
     path = out / SWEEP_JSON
     previous: dict[str, Any] = {}
     if path.is_file():
-        previous = json.loads(path.read_text())
+        previous = read_settings(path)
         changes = settings_changes(previous, settings)
         if changes and not allow_changed_settings:
             raise SweepError(
