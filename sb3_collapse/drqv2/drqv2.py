@@ -553,14 +553,14 @@ class DrQv2(RoundsAlgorithm):
 @contextlib.contextmanager
 def _frozen(module: th.nn.Module) -> Iterator[None]:
     """Parameters of ``module`` with ``requires_grad=False`` inside the block (the ones that required it before, after)."""
-    params = [p for p in module.parameters() if p.requires_grad]
-    for p in params:
-        p.requires_grad_(False)
+    params = [param for param in module.parameters() if param.requires_grad]
+    for param in params:
+        param.requires_grad_(False)
     try:
         yield
     finally:
-        for p in params:
-            p.requires_grad_(True)
+        for param in params:
+            param.requires_grad_(True)
 
 
 def soft_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:

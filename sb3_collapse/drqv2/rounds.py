@@ -90,7 +90,8 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
         )
         updates = self.updates_due(start, self.num_timesteps) if rollout.continue_training else 0
         if updates > 0:
-            if self.step_envs_during_updates and self.num_timesteps < total_timesteps and not self.no_env_step_this_round:
+            stepping = self.step_envs_during_updates and not self.no_env_step_this_round
+            if stepping and self.num_timesteps < total_timesteps:
                 self._send_next_step()
             self.train(gradient_steps=updates, batch_size=self.batch_size)
         self.no_env_step_this_round = False

@@ -244,14 +244,14 @@ def _fresh_copy(module: nn.Module, parts: InterventionParts) -> nn.Module:
 
 def _forget_optimizer_state(optimizers: Iterable[th.optim.Optimizer], params: Iterable[nn.Parameter]) -> None:
     """Drop the optimizer state (Adam moments, step) of these parameters; it starts again at their next step."""
-    ids = {id(p) for p in params}
+    ids = {id(param) for param in params}
     for optimizer in optimizers:
-        for param in [p for p in optimizer.state if id(p) in ids]:
+        for param in [state_param for state_param in optimizer.state if id(state_param) in ids]:
             del optimizer.state[param]
 
 
 def _count(params: Iterable[nn.Parameter]) -> int:
-    return sum(p.numel() for p in {id(p): p for p in params}.values())
+    return sum(param.numel() for param in {id(param): param for param in params}.values())
 
 
 def _forget_grad_norms(model: BaseAlgorithm) -> None:
@@ -372,7 +372,7 @@ def _reset_modules(model: BaseAlgorithm, modules: Sequence[nn.Module], name: str
     kind = _kind(parts)
     for module in modules:
         parts.initialize_weights(module)
-    params = [p for module in modules for p in module.parameters()]
+    params = [param for module in modules for param in module.parameters()]
     _forget_optimizer_state(parts.optimizers, params)
     changed = _count(params)
     if kind == "td3":  # TD3 builds its target actor as a copy of the actor: the new parts are copied again

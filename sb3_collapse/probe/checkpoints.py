@@ -142,14 +142,14 @@ def checkpoint_labels(paths: list[str | Path]) -> list[str]:
 
     :raises ProbeError: when the same file is given twice
     """
-    resolved = [Path(p).resolve() for p in paths]
+    resolved = [Path(path).resolve() for path in paths]
     if len(set(resolved)) != len(resolved):
         raise ProbeError("The same checkpoint is given twice.")
     depth = 1
     while True:
         labels = [
-            "/".join(p.with_suffix("").parts[-depth:]) if p.suffix == ".zip" else "/".join(p.parts[-depth:])
-            for p in resolved
+            "/".join(path.with_suffix("").parts[-depth:]) if path.suffix == ".zip" else "/".join(path.parts[-depth:])
+            for path in resolved
         ]
         if len(set(labels)) == len(labels):
             return labels

@@ -315,15 +315,17 @@ def _summary(
                 "frames": r.checkpoint.frames,
                 "extract_seconds": round(r.extract_seconds, 2),
                 "layers": {
-                    p.layer: {
-                        "n_features": p.n_features,
-                        "n_features_kept": p.n_features_kept,
-                        "max_tau": p.max_tau,
-                        "fit_seconds": round(p.fit_seconds, 2),
-                        "reused_from_an_earlier_checkpoint": p.reused,
-                        "mean_test_mse": {g: means[(r.checkpoint.name, p.layer, g)] for g in dict.fromkeys(groups)},
+                    layer.layer: {
+                        "n_features": layer.n_features,
+                        "n_features_kept": layer.n_features_kept,
+                        "max_tau": layer.max_tau,
+                        "fit_seconds": round(layer.fit_seconds, 2),
+                        "reused_from_an_earlier_checkpoint": layer.reused,
+                        "mean_test_mse": {
+                            group: means[(r.checkpoint.name, layer.layer, group)] for group in dict.fromkeys(groups)
+                        },
                     }
-                    for p in r.layers
+                    for layer in r.layers
                 },
             }
             for r in results

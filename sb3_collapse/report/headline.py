@@ -68,24 +68,24 @@ def wilson_interval(successes: int, trials: int, confidence: float = CONFIDENCE)
     if trials == 0:
         return (math.nan, math.nan)
     z = NormalDist().inv_cdf(0.5 + confidence / 2)
-    p = successes / trials
+    proportion = successes / trials
     denominator = 1 + z * z / trials
-    centre = (p + z * z / (2 * trials)) / denominator
-    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denominator
+    centre = (proportion + z * z / (2 * trials)) / denominator
+    half = z * math.sqrt(proportion * (1 - proportion) / trials + z * z / (4 * trials * trials)) / denominator
     low = 0.0 if successes == 0 else max(0.0, centre - half)  # exact bounds there, free of rounding
     high = 1.0 if successes == trials else min(1.0, centre + half)
     return (low, high)
 
 
-def escape_probability(p: float, windows: int) -> float:
+def escape_probability(stuck_probability: float, windows: int) -> float:
     """
     Proposition 1's escape probability with the rule, ``1 - p^n``.
 
-    :param p: the probability of getting stuck in action collapse (one window)
+    :param stuck_probability: p, the probability of getting stuck in action collapse (one window)
     :param windows: n, the windows of the budget
-    :return: ``1 - p ** windows``
+    :return: ``1 - stuck_probability ** windows``
     """
-    return 1.0 - p**windows
+    return 1.0 - stuck_probability**windows
 
 
 def escape_interval(p_interval: Interval, windows: int) -> Interval:

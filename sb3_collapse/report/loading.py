@@ -146,8 +146,8 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
     if not root.is_dir():
         raise ReportError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
     found = []
-    for task_dir in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
-        for variant_dir in sorted(p for p in task_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
+    for task_dir in sorted(path for path in root.iterdir() if path.is_dir() and not path.name.startswith(".")):
+        for variant_dir in sorted(path for path in task_dir.iterdir() if path.is_dir() and not path.name.startswith(".")):
             for seed_dir in variant_dir.iterdir():
                 match = SEED_FOLDER.match(seed_dir.name)
                 if match and seed_dir.is_dir():

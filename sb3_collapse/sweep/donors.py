@@ -199,7 +199,7 @@ def donors_record(
         "success_return": success_return,
         "failure_return": failure_return,
         "tasks": {
-            task: {key: {"seed": d.seed, "final_return": d.final_return, "path": d.path} for key, d in donors.items()}
+            task: {key: {"seed": donor.seed, "final_return": donor.final_return, "path": donor.path} for key, donor in donors.items()}
             for task, donors in picked.items()
         },
     }
