@@ -66,7 +66,7 @@ def build_model(args: argparse.Namespace, tensorboard_log: str) -> DrQv2:
 def monitoring(args: argparse.Namespace) -> list:
     """CollapseMetrics and CollapseReset at the paper's frequency."""
     return [
-        CollapseMetrics(check_every_frames=args.check_every_frames, batch_size=args.probe_batch),
+        CollapseMetrics(check_every_frames=args.check_every_frames, batch_size=args.metrics_batch),
         CollapseReset(check_every_frames=args.check_every_frames),
     ]
 
@@ -126,7 +126,7 @@ def main() -> None:
     parser.add_argument("--learning-starts", type=int, default=500, help="agent steps of warm-up")
     parser.add_argument("--buffer-size", type=int, default=100_000, help="replay capacity (at most frames / 2)")
     parser.add_argument("--check-every-frames", type=int, default=10_000, help="frames between checks (paper: 10,000)")
-    parser.add_argument("--probe-batch", type=int, default=512, help="observations of the metrics batch (512)")
+    parser.add_argument("--metrics-batch", type=int, default=512, help="observations of the metrics batch (512)")
     parser.add_argument("--paper-batch", type=int, default=256, help="batch of the projected DrQ-v2 update")
     parser.add_argument("--repeats", type=int, default=1, help="pairs of runs; the order alternates")
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
@@ -192,7 +192,7 @@ def main() -> None:
         reset = median_seconds(trained.reset_from_scratch, 1, device)
     updates_per_check = args.check_every_frames / 2 / 2  # DrQ-v2: action repeat 2, one update per 2 agent steps
     print(
-        f"one CollapseMetrics check (probe of {args.probe_batch}, every layer): {check:.2f} s; "
+        f"one CollapseMetrics check (a batch of {args.metrics_batch}, every layer): {check:.2f} s; "
         f"one CollapseReset check: {1e3 * rule_check:.3f} ms; reset_from_scratch: {1e3 * reset:.0f} ms"
     )
     print(
