@@ -2,13 +2,13 @@
 
 Trains the same DrQ-v2 configuration twice in this process, with the same seed, once without and once with
 ``CollapseMetrics(check_every_frames=10_000, batch_size=512)`` and ``CollapseReset()`` (the paper's rule: a
-check every 10,000 frames), and prints both wall times and their ratio. The probe batch does not change the
+check every 10,000 frames), and prints both wall times and their ratio. The metrics batch does not change the
 training's random streams, so both runs make the same updates; the difference is the cost of the checks
 (and noise: repeat with ``--repeats``, which alternates the order). Since run-to-run noise on a shared machine
 can exceed the effect by far, the monitored run also reports the wall time spent inside the two callbacks
 (every step's ``_on_step``, checks included) as a share of that same run.
 
-It then times, on the trained model, one check in isolation (``CollapseMetrics.compute()`` on a probe batch of
+It then times, on the trained model, one check in isolation (``CollapseMetrics.compute()`` on a metrics batch of
 512 and the rule's gradient-norm read), one ``reset_from_scratch()``, and a gradient update at the paper's
 batch size, and prints the overhead projected for DrQ-v2's configuration: one check per
 ``check_every_frames / action_repeat / train_freq`` updates of batch 256.
@@ -66,7 +66,7 @@ def build_model(args: argparse.Namespace, tensorboard_log: str) -> DrQv2:
 def monitoring(args: argparse.Namespace) -> list:
     """CollapseMetrics and CollapseReset at the paper's frequency."""
     return [
-        CollapseMetrics(check_every_frames=args.check_every_frames, batch_size=args.probe_batch),
+        CollapseMetrics(check_every_frames=args.check_every_frames, batch_size=args.metrics_batch),
         CollapseReset(check_every_frames=args.check_every_frames),
     ]
 
@@ -126,7 +126,7 @@ def main() -> None:
     parser.add_argument("--learning-starts", type=int, default=500, help="agent steps of warm-up")
     parser.add_argument("--buffer-size", type=int, default=100_000, help="replay capacity (at most frames / 2)")
     parser.add_argument("--check-every-frames", type=int, default=10_000, help="frames between checks (paper: 10,000)")
-    parser.add_argument("--probe-batch", type=int, default=512, help="observations of the probe batch (512)")
+    parser.add_argument("--metrics-batch", type=int, default=512, help="observations of the metrics batch (512)")
     parser.add_argument("--paper-batch", type=int, default=256, help="batch of the projected DrQ-v2 update")
     parser.add_argument("--repeats", type=int, default=1, help="pairs of runs; the order alternates")
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
@@ -193,7 +193,7 @@ def main() -> None:
         reset = median_seconds(trained.reset_from_scratch, 1, device)
     updates_per_check = args.check_every_frames / 2 / 2  # DrQ-v2: action repeat 2, one update per 2 agent steps
     print(
-        f"one CollapseMetrics check (probe of {args.probe_batch}, every layer): {check:.2f} s; "
+        f"one CollapseMetrics check (a batch of {args.metrics_batch}, every layer): {check:.2f} s; "
         f"one CollapseReset check: {1e3 * rule_check:.3f} ms; reset_from_scratch: {1e3 * reset:.0f} ms"
     )
     print(

@@ -1,5 +1,6 @@
 """
-Errors of bad input, and their translation into the words of a command line.
+Errors of bad input (the library's, the probe's, the report's, the rl_zoo3 launcher's), and their translation into
+the words of a command line.
 
 Library code names Python parameters in its messages (``episodes must be >= 1, got 0``); a CLI passes the message
 through :func:`cli_message`, which names its flags instead (``--episodes must be >= 1, got 0``).
@@ -65,6 +66,29 @@ class SpaceError(AssertedParameterError, TypeError):
     :param message: what is wrong and what to do
     """
 
+
+
+class ProbeError(InputError):
+    """Bad input to the probe (a file, a model, rollouts or a setting); the message says what to do."""
+
+
+class ReportError(InputError):
+    """Bad input to the report (a sweep folder, a trial file or a setting); the message says what to do."""
+
+
+class ZooNotInstalledError(ImportError):
+    """rl_zoo3 (an optional dependency) or one of its own dependencies cannot be imported."""
+
+
+class ZooConfigError(ValueError):
+    """
+    A configuration rl_zoo3 would run wrongly or fail on deep inside; the message says what to change. The rl_zoo3
+    launcher's command line prints it as ``error: ...`` with exit status 2.
+    """
+
+
+class LauncherError(ValueError):
+    """A bad rl_zoo3 launcher command line; the message says what to pass (printed as ``error: ...``, status 2)."""
 
 READ_ONLY_ERRNOS = (errno.EROFS, errno.EACCES, errno.EPERM)
 """``OSError`` numbers of a folder or file that cannot be written: read-only file system, no permission."""

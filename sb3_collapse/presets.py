@@ -12,7 +12,8 @@ returns and batches of 512, quadruped-run a 100,000-transition buffer, the human
 
 ``python -m sb3_collapse.train``, every sweep trial and ``zoo_configs/drqv2.yml`` (generated from this table by
 :func:`sb3_collapse.zoo.config.render_zoo_config`) take their defaults from here; a setting given explicitly
-overrides the preset and ``config.json`` records where each value came from.
+overrides the preset and the run's settings file (:data:`~sb3_collapse.protocol.CONFIG_JSON`) records where each
+value came from.
 
 Units: ``frames``, ``seed_frames`` and ``eval_every_frames`` count frames (agent steps x ``action_repeat``), as
 DrQ-v2 does; ``buffer_size`` counts transitions (agent steps); ``n_steps``, ``train_freq`` and the durations of

@@ -1,15 +1,11 @@
 """
-The action-collapse paper's protocol numbers and the run-folder format, in one place.
+The run-folder format, in one place: what ``python -m sb3_collapse.train`` writes into one run's folder (and a sweep
+into each ``<out>/<task>/<variant>/seed_<k>/``): the file names, the CSV columns, the keys of the result file, the
+names of settings and files that earlier versions wrote (read as the current ones), and the atomic writers every
+module uses. The report, the probe and the sweep read the same names from here.
 
-- :data:`PAPER` (a frozen :class:`PaperProtocol`): the numbers of Chen, Zhu & Perrault, *Understanding Learned
-  Representations and Action Collapse in Visual Reinforcement Learning*, each with the passage it comes from.
-  :class:`~sb3_collapse.CollapseReset`, :class:`~sb3_collapse.CollapseMetrics`, the train CLI, the sweep, the
-  rl_zoo3 launcher and the report take their defaults from it.
-- The **run folder**: what ``python -m sb3_collapse.train`` writes into one run's folder (and a sweep into each
-  ``<out>/<task>/<variant>/seed_<k>/``): the file names, the CSV columns, the keys of the result file, and the
-  atomic writers every module uses. The report and the sweep read the same names from here.
-
-DrQ-v2's own per-task hyperparameters (budgets, schedules, batch sizes...) are in :mod:`sb3_collapse.presets`.
+The paper's numbers are in :mod:`sb3_collapse.paper`; DrQ-v2's own per-task hyperparameters (budgets, schedules,
+batch sizes...) in :mod:`sb3_collapse.presets`.
 """
 
 from __future__ import annotations
@@ -21,147 +17,9 @@ import os
 import re
 import tempfile
 import traceback
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
-
-
-@dataclass(frozen=True)
-class PaperProtocol:
-    """
-    The paper's protocol numbers. Frames count environment frames (agent steps x action repeat).
-
-    :param check_every_frames: frames between two evaluations and two computations of the collapse metrics
-        (Section 4.1: "The total number of training frames is 1.1e6 and there is an evaluation every 1e4 frames,
-        resulting in x in [0, 109] on the x-axes for all the figures regarding VRL training"; the rule's
-        "computations" of Section 5.2): :attr:`evaluations` evaluations, at frames 0, 1e4, ..., 1.09e6
-    :param window_frames: the reset rule's window (Section 5.2: "reset the training from scratch every 2e5
-        frames", the end of DrQ-v2's exploration decay, x = 20 in Figure 4)
-    :param threshold: a gradient norm above it is healthy (Section 5.2: "a gradient norm larger than 0.001")
-    :param patience: consecutive healthy computations that mean an escape (Section 5.2: "of consecutive five
-        computations")
-    :param layer: the layer whose gradient norm the rule reads (Section 5.2: "the gradient norm of mlp1")
-    :param success_return: final return of a well-performing agent, at least (Section 4.1: "more than 900
-        rewards"; Figure 3: "successful (rewards >= 900)")
-    :param failure_return: final return of a poorly performing agent, below (Section 4.1: "less than 30 rewards")
-    :param last_evals: evaluations averaged for the across-seed standard deviation (Section 5.2: "the average
-        standard deviation over the last ten evaluations")
-    :param percentiles: the band of Figure 5, in percent ("the 5th percentile and the 95th percentile")
-    :param figure5_seeds: seeds per task and variant of Figure 5 ("40 seeds")
-    :param figure5_tasks: the tasks of Figure 5 (walker_walk, hopper_stand, finger_spin)
-    :param train_frames: frames of a run in Sections 4 and 5 (Section 4.1: "The total number of training frames is
-        1.1e6")
-    :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110", in
-        evaluations of 1e4 frames); a shorter run is read at the same fractions of its own length
-    """
-
-    check_every_frames: int = 10_000
-    window_frames: int = 200_000
-    threshold: float = 1e-3
-    patience: int = 5
-    layer: str = "mlp1"
-    success_return: float = 900.0
-    failure_return: float = 30.0
-    last_evals: int = 10
-    percentiles: tuple[float, float] = (5.0, 95.0)
-    figure5_seeds: int = 40
-    figure5_tasks: tuple[str, ...] = ("walker-walk", "hopper-stand", "finger-spin")
-    train_frames: int = 1_100_000
-    stage_frames: tuple[int, ...] = (0, 350_000, 700_000, 1_100_000)
-
-    @property
-    def stage_fractions(self) -> tuple[float, ...]:
-        """:attr:`stage_frames` as fractions of :attr:`train_frames` (0, 0.32, 0.64, 1)."""
-        return tuple(frame / self.train_frames for frame in self.stage_frames)
-
-    @property
-    def evaluations(self) -> int:
-        """The evaluations of a run, the paper's x in [0, 109]: 110 (:func:`evaluation_schedule` of its budget)."""
-        return len(evaluation_schedule(self.train_frames, self.check_every_frames))
-
-    @property
-    def collapse_tag(self) -> str:
-        """The ``collapse_metrics.csv`` / TensorBoard tag of the rule's metric (``collapse/mlp1/grad_norm``)."""
-        return metric_tag(self.layer, "grad_norm")
-
-
-PAPER = PaperProtocol()
-"""The paper's protocol."""
-
-
-@dataclass(frozen=True)
-class PaperResult:
-    """
-    The paper's headline numbers of one task of Figure 5 (Section 5.2, "Results"), DrQ-v2 against DrQ-v2 plus the
-    rule, 40 seeds each.
-
-    :param task: the task, ``<domain>-<task>``
-    :param seeds: seeds per variant ("The performance comparison of 40 seeds", Figure 5)
-    :param stuck_baseline: DrQ-v2's seeds stuck in action collapse ("we count the number of seeds stuck in action
-        collapse continuously. There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2")
-    :param stuck_rule: the rule's ("In comparison, all 40 seeds of ours escape action collapse")
-    :param std_baseline: DrQ-v2's "average standard deviation over the last ten evaluations" ("drops a lot, from
-        418.2 to 38.2, from 359.5 to 93.8, and from 362.7 to 116.2 for the three tasks, respectively")
-    :param std_rule: the same with the rule
-    """
-
-    task: str
-    seeds: int
-    stuck_baseline: int
-    stuck_rule: int
-    std_baseline: float
-    std_rule: float
-
-
-PAPER_RESULTS: tuple[PaperResult, ...] = (
-    PaperResult("walker-walk", 40, 13, 0, 418.2, 38.2),
-    PaperResult("hopper-stand", 40, 8, 0, 359.5, 93.8),
-    PaperResult("finger-spin", 40, 7, 0, 362.7, 116.2),
-)
-"""The paper's headline numbers, in the order of its tasks (walker_walk, hopper_stand, finger_spin: Section 5.2)."""
-
-PROPOSITION_1 = (
-    "Supposing the number of training frames is n · m (m is the frames where the exploration decreases to the "
-    "smallest) and the probability of getting stuck in action collapse is p, then the probability of escaping action "
-    "collapse when applying our proposed rule is 1 - p^n."
-)
-"""Proposition 1 of the paper (Section 5.2), word for word."""
-
-
-def evaluation_schedule(frames: int, every_frames: int, frames_per_step: int = 1) -> list[int]:
-    """
-    The frames of a run's scheduled evaluations, as the reference (facebookresearch/drqv2's ``train.py``) has them:
-    one before the first agent step (frame 0), then one every ``every_frames`` frames while the run still has agent
-    steps to take, never at the budget's end (the reference's loop stops there). For the paper's budget of 1.1e6
-    frames and an evaluation every 1e4 frames: 0, 1e4, ..., 1.09e6, 110 evaluations ("x in [0, 109]", Section
-    4.1). The paper's statistics (the last ten evaluations, the 900/30 classes) come from these; the evaluation of
-    the saved final model (at ``frames``) is not one of them.
-
-    :param frames: the run's budget, in frames
-    :param every_frames: frames between two evaluations (> 0)
-    :param frames_per_step: frames an agent step adds (action repeat x environments): an evaluation falls on the
-        first agent step at or after its frame
-    :return: the frames, increasing
-    """
-    if every_frames <= 0 or frames_per_step <= 0:
-        raise ValueError(f"every_frames and frames_per_step must be > 0, got {every_frames} and {frames_per_step}.")
-    schedule = []
-    for target in range(0, frames, every_frames):
-        frame = -(-target // frames_per_step) * frames_per_step
-        if frame < frames and (not schedule or frame > schedule[-1]):
-            schedule.append(frame)
-    return schedule
-
-
-def metric_tag(layer: str, metric: str) -> str:
-    """
-    :param layer: a named layer (``"mlp1"``)
-    :param metric: a metric name (``"grad_norm"``, ``"numerical_rank"``...)
-    :return: its TensorBoard and ``collapse_metrics.csv`` tag, ``collapse/<layer>/<metric>``
-    """
-    return f"collapse/{layer}/{metric}"
-
 
 # ---------------------------------------------------------------------------------------------- the run folder
 CONFIG_JSON = "config.json"
@@ -169,9 +27,10 @@ CONFIG_JSON = "config.json"
 RESULT_JSON = "result.json"
 """The outcome, written last and atomically: a folder without it is an unfinished run (keys: :data:`RESULT_KEYS`)."""
 EVAL_CSV = "eval.csv"
-"""One row per scheduled evaluation (columns :data:`EVAL_FIELDS`, frames :func:`evaluation_schedule`); the saved
-final model's evaluation is in the result file (``saved_model_eval``), not here. Files of earlier versions end
-with that evaluation, at the run's last frame: the report leaves it out."""
+"""One row per scheduled evaluation (columns :data:`EVAL_FIELDS`, frames
+:func:`~sb3_collapse.paper.evaluation_schedule`); the saved final model's evaluation is in the result file
+(``saved_model_eval``), not here. Files of earlier versions end with that evaluation, at the run's last frame: the
+report leaves it out."""
 COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
 """One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
 COLLAPSE_EVENTS_CSV = "collapse_events.csv"
@@ -200,10 +59,14 @@ EXIT_INTERRUPTED = 75
 """Exit status of ``python -m sb3_collapse.train`` stopped by SIGTERM or SIGINT after writing a checkpoint, of the
 sweep whose trials did so, and of the probe stopped before writing anything (``EX_TEMPFAIL``: run the same command
 again to resume)."""
-PROBE_CHECKPOINTS_DIR = "probe_checkpoints"
-"""The weights the probe needs (encoder and actor), one zip per evaluation (:data:`PROBE_CHECKPOINT`)."""
-PROBE_CHECKPOINT = "probe_{frames:010d}_frames.zip"
-"""A probe checkpoint's file name in :data:`PROBE_CHECKPOINTS_DIR`: the training frames, 10 digits (sorts by time)."""
+SNAPSHOTS_DIR = "snapshots"
+"""The run's snapshots: its encoder and actor at every evaluation, one zip each (:data:`SNAPSHOT_FILE`), the
+weights the probe and the report's fixed-set figures read (:mod:`sb3_collapse.run.snapshots`)."""
+SNAPSHOT_FILE = "snapshot_{frames:010d}_frames.zip"
+"""A snapshot's file name in :data:`SNAPSHOTS_DIR`: the training frames, 10 digits (sorts by time)."""
+LEGACY_SNAPSHOTS_DIR = "probe_checkpoints"
+"""The folder of the snapshots in run folders of earlier versions (files ``probe_<frames, 10 digits>_frames.zip``),
+read as :data:`SNAPSHOTS_DIR` (:func:`snapshot_files`)."""
 ERROR_TXT = "error.txt"
 """The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
 SWEEP_JSON = "sweep.json"
@@ -258,6 +121,65 @@ def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Pa
     :return: the trial's folder, ``<out>/<task>/<variant>/seed_<seed>``
     """
     return Path(out) / task / variant / f"{SEED_FOLDER_PREFIX}{seed}"
+
+
+LEGACY_SETTING_NAMES = {"probe_checkpoints": "snapshots", "collapse_probe_batch": "collapse_metrics_batch"}
+"""Settings renamed since earlier versions wrote them into a settings file: old name -> current name
+(:func:`read_settings`)."""
+LEGACY_CALLBACK_NAMES = {"ProbeCheckpoints": "Snapshots"}
+"""Resumable callbacks renamed since earlier versions wrote their state into a checkpoint: old class name -> current
+one."""
+
+
+def current_setting_names(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """
+    :param settings: settings as a settings file of any version holds them (name -> value)
+    :return: the same settings under their current names (:data:`LEGACY_SETTING_NAMES`); a current name wins over
+        its old one
+    """
+    renamed = {LEGACY_SETTING_NAMES.get(name, name): value for name, value in settings.items()}
+    renamed.update({name: settings[name] for name in LEGACY_SETTING_NAMES.values() if name in settings})
+    return renamed
+
+
+def read_settings(path: str | os.PathLike) -> dict[str, Any]:
+    """
+    Read a run's settings file (:data:`CONFIG_JSON`) or a sweep's (:data:`SWEEP_JSON`, whose training settings are
+    under ``training``), with the settings of earlier versions under their current names
+    (:func:`current_setting_names`).
+
+    :param path: the settings file
+    :return: its content
+    :raises OSError: when it cannot be read
+    :raises ValueError: when it is not JSON
+    """
+    content = json.loads(Path(path).read_text())
+    if not isinstance(content, dict):
+        return content
+    content = current_setting_names(content)
+    if isinstance(content.get("training"), dict):
+        content["training"] = current_setting_names(content["training"])
+    return content
+
+
+def snapshot_files(run_dir: str | os.PathLike) -> list[Path]:
+    """
+    :param run_dir: a run folder
+    :return: its snapshots, in training order: the zips of :data:`SNAPSHOTS_DIR` and, for a run started by an
+        earlier version, of :data:`LEGACY_SNAPSHOTS_DIR`
+    """
+    files = [
+        path
+        for folder in (LEGACY_SNAPSHOTS_DIR, SNAPSHOTS_DIR)
+        for path in sorted((Path(run_dir) / folder).glob("*.zip"))
+    ]
+    return sorted(files, key=_snapshot_frames)
+
+
+def _snapshot_frames(path: Path) -> int:
+    """:return: the training frames in a snapshot's file name (-1 for another name: first)"""
+    match = re.search(r"_(\d+)_frames\.zip$", path.name)
+    return int(match.group(1)) if match else -1
 
 
 FAILURE_HEADER = "failed at agent step {step} (frame {frame})"

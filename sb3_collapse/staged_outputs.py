@@ -71,7 +71,7 @@ class StagedOutputs:
 
         :return: the final paths, in the order they were moved in
         """
-        staged = sorted((p.name for p in self.staging.iterdir()), key=lambda name: name == self.marker)
+        staged = sorted((path.name for path in self.staging.iterdir()), key=lambda name: name == self.marker)
         (self.out / self.marker).unlink(missing_ok=True)
         for name in self.existing():
             if name not in staged:

@@ -77,6 +77,7 @@ from sb3_collapse.errors import (
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset, frames_of
 from sb3_collapse.monitoring.callbacks import ResumableCallback
 from sb3_collapse.monitoring.redo import PeriodicReDo
+from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
@@ -90,14 +91,14 @@ from sb3_collapse.protocol import (
     FINAL_MODEL,
     FINISHED,
     LOCK_FILE,
-    PAPER,
-    PROBE_CHECKPOINTS_DIR,
     PROGRESS_CSV,
     RESULT_JSON,
+    SNAPSHOTS_DIR,
     append_csv_rows,
     atomic_output,
     blocking_file,
     failed_before_training,
+    read_settings,
     write_failure,
     write_json_atomically,
 )
@@ -111,9 +112,9 @@ from sb3_collapse.run.checkpoints import (
 )
 from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
 from sb3_collapse.run.lock import RunLock
-from sb3_collapse.run.probe_checkpoint import ProbeCheckpoints
 from sb3_collapse.run.resumed_logger import resumed_logger
 from sb3_collapse.run.signals import TrainingInterrupted, stop_signals
+from sb3_collapse.run.snapshots import Snapshots
 from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
 
 ALGORITHMS = ("drqv2", *BASELINES)
@@ -167,7 +168,7 @@ class TrainConfig:
     :param frame_stack: stacked RGB frames per observation
     :param size: image height and width, in pixels
     :param eval_every_frames: frames between evaluations (and one at frame 0, none at the budget's end:
-        :func:`~sb3_collapse.protocol.evaluation_schedule`; the saved final model is evaluated apart); ``0``
+        :func:`~sb3_collapse.paper.evaluation_schedule`; the saved final model is evaluated apart); ``0``
         disables evaluation
     :param eval_episodes: episodes per evaluation (deterministic policy), on an evaluation environment seeded with
         ``seed``, as the reference seeds its own (the same seed as the training environment)
@@ -191,7 +192,7 @@ class TrainConfig:
         limit), see :class:`~sb3_collapse.drqv2.FrameStackReplayBuffer`
     :param collapse_metrics_every_frames: frames between two ``CollapseMetrics`` checks (collapse metrics of every
         named layer to TensorBoard); ``0`` disables them
-    :param collapse_probe_batch: observations of the replay buffer in each ``CollapseMetrics`` probe batch
+    :param collapse_metrics_batch: observations of the replay buffer in each ``CollapseMetrics`` metrics batch
     :param algorithm: ``"drqv2"``, or SB3's ``"td3"`` or ``"sac"`` from the same pixels, with DrQ-v2's network sizes
         (:func:`sb3_collapse.baselines.build_baseline`; they do not use the DrQ-v2-only settings
         :data:`sb3_collapse.baselines.DRQV2_ONLY_SETTINGS`, nor layer transplants)
@@ -217,8 +218,8 @@ class TrainConfig:
         a one-round policy lag, DrQ-v2's reference order); runs the environments in subprocesses even when ``n_envs`` is 1
     :param compile_update: compile the update with ``torch.compile`` (``DrQv2``'s ``compile_update=True``: CUDA graphs on
         CUDA)
-    :param probe_checkpoints: save the encoder and actor (about 13 MB) at every evaluation and at the end into
-        ``probe_checkpoints/`` of the run folder, for ``python -m sb3_collapse.probe`` (the paper's Figure 2);
+    :param snapshots: save the encoder and actor (about 13 MB) at every evaluation and at the end into
+        ``snapshots/`` of the run folder, for ``python -m sb3_collapse.probe`` (the paper's Figure 2);
         DrQ-v2 only, needs evaluations
     :param tf32: let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it
         (:func:`~sb3_collapse.backends.configure_backends`; nothing changes on the CPU)
@@ -261,7 +262,7 @@ class TrainConfig:
     augmentation_pad: int | None = None
     replay_sampling: str | None = None
     collapse_metrics_every_frames: int = PAPER.check_every_frames
-    collapse_probe_batch: int = 512
+    collapse_metrics_batch: int = 512
     algorithm: str = "drqv2"
     reset_rule: bool = False
     intervention: str | None = None
@@ -276,7 +277,7 @@ class TrainConfig:
     compile_update: bool = False
     tf32: bool = True
     deterministic: bool = False
-    probe_checkpoints: bool = False
+    snapshots: bool = False
     device: str = "auto"
     torch_threads: int | None = None
     progress_bar: bool = True
@@ -367,10 +368,10 @@ class TrainConfig:
                         f"{name}={getattr(config, name)!r} is a DrQv2 option (docs/throughput.md); algorithm="
                         f"{config.algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}.",
                     )
-        if config.probe_checkpoints and (config.algorithm != "drqv2" or config.eval_every_frames == 0):
+        if config.snapshots and (config.algorithm != "drqv2" or config.eval_every_frames == 0):
             raise ParameterError(
-                "probe_checkpoints",
-                "probe_checkpoints are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
+                "snapshots",
+                "snapshots are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
                 f"eval_every_frames > 0 (got algorithm={config.algorithm!r}, eval_every_frames={config.eval_every_frames}).",
             )
         if config.algorithm != "drqv2" and config.init_from:
@@ -422,7 +423,7 @@ class TrainConfig:
             device=config.device,
         )
         for name, build in (
-            ("collapse_probe_batch", lambda: CollapseMetrics(batch_size=config.collapse_probe_batch)),
+            ("collapse_metrics_batch", lambda: CollapseMetrics(batch_size=config.collapse_metrics_batch)),
             ("reset_window_frames", lambda: CollapseReset(config.reset_window_frames)),
         ):
             try:
@@ -495,7 +496,7 @@ class PeriodicEvaluation(ResumableCallback):
     """
     Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
     (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done: the scheduled
-    evaluations (:func:`~sb3_collapse.protocol.evaluation_schedule`), as in the reference's ``train.py``, where the
+    evaluations (:func:`~sb3_collapse.paper.evaluation_schedule`), as in the reference's ``train.py``, where the
     paper's statistics come from.
 
     Not at the last step of ``learn()`` (the reference does not evaluate there either; there, SB3 calls the callbacks
@@ -711,7 +712,7 @@ def optimizer_differences(checkpoint: Path, config: TrainConfig) -> list[str]:
 
 def _saved_settings(run_dir: Path) -> dict[str, Any]:
     try:
-        return json.loads((run_dir / CONFIG_JSON).read_text())
+        return read_settings(run_dir / CONFIG_JSON)
     except (OSError, ValueError) as error:
         raise ParameterError("run_dir", f"run_dir {run_dir}: its {CONFIG_JSON} cannot be read ({error}).") from None
 
@@ -880,7 +881,7 @@ def _training_env(config: TrainConfig, task_id: str, env_kwargs: dict[str, Any])
     """One ``Monitor``-ed env in this process, or ``n_envs`` of them in subprocesses (seeds ``seed``, ``seed + 1``...)."""
     if config.n_envs == 1 and not config.step_envs_during_updates:
         return _monitored_dmc_env(task_id, config.seed, env_kwargs)
-    ensure_rendering_backend()  # probed once here, inherited by the subprocesses
+    ensure_rendering_backend()  # checked once here, inherited by the subprocesses
     factories = [functools.partial(_subprocess_env, task_id, config.seed + i, env_kwargs) for i in range(config.n_envs)]
     return SubprocVecEnv(factories)
 
@@ -961,14 +962,14 @@ def _train_into(
     if eval_env is not None:
         evaluation = PeriodicEvaluation(eval_env, config.eval_every_frames, config.eval_episodes, run_dir / EVAL_CSV)
         callbacks.append(evaluation)
-    probe_checkpoints = None
-    if config.probe_checkpoints:
-        probe_checkpoints = ProbeCheckpoints(config.eval_every_frames, run_dir / PROBE_CHECKPOINTS_DIR)
-        callbacks.append(probe_checkpoints)
+    snapshots = None
+    if config.snapshots:
+        snapshots = Snapshots(config.eval_every_frames, run_dir / SNAPSHOTS_DIR)
+        callbacks.append(snapshots)
     if config.collapse_metrics_every_frames > 0:
         metrics = CollapseMetrics(
             config.collapse_metrics_every_frames,
-            batch_size=config.collapse_probe_batch,
+            batch_size=config.collapse_metrics_batch,
             csv_path=run_dir / COLLAPSE_METRICS_CSV,
         )
         callbacks.append(metrics)
@@ -977,14 +978,14 @@ def _train_into(
         reset_rule = CollapseReset(
             config.reset_window_frames,
             check_every_frames=min(PAPER.check_every_frames, config.reset_window_frames),
-            batch_size=config.collapse_probe_batch,
+            batch_size=config.collapse_metrics_batch,
             events_path=run_dir / COLLAPSE_EVENTS_CSV,
             intervention=config.intervention or "reset",
             verbose=1,
         )
         callbacks.append(reset_rule)
     if config.redo_every_updates > 0:
-        callbacks.append(PeriodicReDo(config.redo_every_updates, batch_size=config.collapse_probe_batch))
+        callbacks.append(PeriodicReDo(config.redo_every_updates, batch_size=config.collapse_metrics_batch))
 
     earlier_s, resumes = 0.0, 0  # seconds and resumptions of the earlier processes of this run
     checkpoints = ResumableCheckpoints(
@@ -1077,8 +1078,8 @@ def _train_into(
         saved_model_eval = None
         if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the evaluation file)
             saved_model_eval = evaluation.evaluate_saved_model()
-        if probe_checkpoints is not None:
-            probe_checkpoints.save()  # the final model's, next to its evaluation (once per frame)
+        if snapshots is not None:
+            snapshots.save()  # the final model's, next to its evaluation (once per frame)
         model.logger.close()
         env.close()
         evaluations = evaluation.rows if evaluation is not None else []
@@ -1189,9 +1190,9 @@ def training_arguments() -> argparse.ArgumentParser:
         help="frames between intermediate checkpoints; 0: final checkpoint only (default: %(default)s)",
     )
     g.add_argument(
-        "--probe-checkpoints",
+        "--snapshots",
         action="store_true",
-        help=f"save the encoder and actor (about 13 MB at 84x84) at every evaluation and at the end into <run>/{PROBE_CHECKPOINTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only",
+        help=f"save the encoder and actor (about 13 MB at 84x84) at every evaluation and at the end into <run>/{SNAPSHOTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only",
     )
     g.add_argument(
         "--collapse-metrics-every-frames",
@@ -1200,9 +1201,9 @@ def training_arguments() -> argparse.ArgumentParser:
         help="frames between two checks of the collapse metrics (TensorBoard collapse/..., collapse metrics CSV); 0 disables them (default: the paper's, %(default)s)",
     )
     g.add_argument(
-        "--collapse-probe-batch",
+        "--collapse-metrics-batch",
         type=int,
-        default=d.collapse_probe_batch,
+        default=d.collapse_metrics_batch,
         help="replay observations per collapse-metrics check (default: %(default)s)",
     )
     g.add_argument(

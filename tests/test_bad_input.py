@@ -226,16 +226,16 @@ def test_zip_of_a_checkpoint_stays_readable(bad_checkpoints):
     assert zipfile.is_zipfile(bad_checkpoints / "walker.zip")
 
 
-def test_probe_takes_probe_checkpoints_and_sb3_baselines_and_refuses_mixed_image_sizes(tmp_path, capsys):
+def test_probe_takes_snapshots_and_sb3_baselines_and_refuses_mixed_image_sizes(tmp_path, capsys):
     from sb3_collapse.baselines import build_baseline
-    from sb3_collapse.run.probe_checkpoint import save_probe_checkpoint
+    from sb3_collapse.run.snapshots import save_snapshot
 
     tiny = ["--episodes", "3", "--max-steps", "4", "--layers", "cnn3", "mlp1", "--no-progress"]
     env = make_dmc_env("cartpole-balance", size=48, action_repeat=20)
     agent = DrQv2("CnnPolicy", env, buffer_size=10, policy_kwargs=dict(hidden_dim=16, feature_dim=8))
-    probe_checkpoint = save_probe_checkpoint(agent, tmp_path / "probe_0000000000_frames.zip")
-    # A probe checkpoint: the encoder and the actor suffice.
-    assert probe_main([str(probe_checkpoint), "--out", str(tmp_path / "a"), *tiny]) == 0
+    snapshot = save_snapshot(agent, tmp_path / "snapshot_0000000000_frames.zip")
+    # A snapshot: the encoder and the actor suffice.
+    assert probe_main([str(snapshot), "--out", str(tmp_path / "a"), *tiny]) == 0
     assert (tmp_path / "a" / "probe.csv").is_file()
 
     td3 = tmp_path / "td3.zip"
@@ -261,9 +261,9 @@ def test_probe_takes_probe_checkpoints_and_sb3_baselines_and_refuses_mixed_image
     DrQv2(
         "CnnPolicy", make_dmc_env("cartpole-balance", size=36), buffer_size=10, policy_kwargs=dict(hidden_dim=16)
     ).save(small)
-    assert probe_main([str(probe_checkpoint), str(small), "--out", str(tmp_path / "c"), *tiny]) == 2
+    assert probe_main([str(snapshot), str(small), "--out", str(tmp_path / "c"), *tiny]) == 2
     assert one_line_error(capsys).endswith(
-        f"{probe_checkpoint} takes observations of shape (9, 48, 48) and {small} of shape (9, 36, 36): the probe feeds "
+        f"{snapshot} takes observations of shape (9, 48, 48) and {small} of shape (9, 36, 36): the probe feeds "
         "every checkpoint the same rollouts, so probe checkpoints of another image size or frame stack in a run of "
         "their own."
     )

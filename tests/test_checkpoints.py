@@ -38,10 +38,10 @@ from sb3_collapse.protocol import (
     EXIT_INTERRUPTED,
     FINAL_MODEL,
     LOCK_FILE,
-    PROBE_CHECKPOINT,
-    PROBE_CHECKPOINTS_DIR,
     PROGRESS_CSV,
     RESULT_JSON,
+    SNAPSHOT_FILE,
+    SNAPSHOTS_DIR,
 )
 from sb3_collapse.run.checkpoints import (
     CheckpointError,
@@ -60,9 +60,9 @@ FLAGS = [
     "--env", "cartpole-balance", "--frames", "2000", "--seed", "3", "--action-repeat", "20", "--size", "48",
     "--hidden-dim", "64", "--feature-dim", "16", "--batch-size", "16", "--seed-frames", "400",
     "--eval-every-frames", "1000", "--eval-episodes", "1", "--checkpoint-every-frames", "200",
-    "--collapse-metrics-every-frames", "400", "--collapse-probe-batch", "16", "--reset-rule",
+    "--collapse-metrics-every-frames", "400", "--collapse-metrics-batch", "16", "--reset-rule",
     "--reset-window-frames", "800", "--torch-threads", "1", "--no-progress-bar", "--replay-sampling", "sb3",
-    "--probe-checkpoints", "--redo-every-updates", "7",
+    "--snapshots", "--redo-every-updates", "7",
 ]  # fmt: skip
 REPEAT = 20
 
@@ -195,12 +195,12 @@ def test_killed_stopped_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path, 
         if k not in ("wall_time_s", "timings", "resumes")
     }
     assert not (resumed / CHECKPOINTS_DIR).exists() and not (resumed / LOCK_FILE).exists()  # deleted once finished
-    # The probe checkpoints' schedule resumed with the run: the same files, the same encoder and actor weights.
-    probe = [sorted((run / PROBE_CHECKPOINTS_DIR).iterdir()) for run in (reference, resumed)]
-    assert [p.name for p in probe[0]] == [p.name for p in probe[1]] == [
-        PROBE_CHECKPOINT.format(frames=frames) for frames in (0, 1000, 2000)
+    # The snapshots' schedule resumed with the run: the same files, the same encoder and actor weights.
+    snapshots = [sorted((run / SNAPSHOTS_DIR).iterdir()) for run in (reference, resumed)]
+    assert [p.name for p in snapshots[0]] == [p.name for p in snapshots[1]] == [
+        SNAPSHOT_FILE.format(frames=frames) for frames in (0, 1000, 2000)
     ]
-    for a_zip, b_zip in zip(*probe):
+    for a_zip, b_zip in zip(*snapshots):
         a, b = load_from_zip_file(a_zip)[1]["policy"], load_from_zip_file(b_zip)[1]["policy"]
         assert a.keys() == b.keys() and all(th.equal(a[name], b[name]) for name in a)
 

@@ -149,7 +149,7 @@ def test_redo_and_channels_last_on_cuda():
 FLAGS = [
     "--env", "cartpole-balance", "--frames", "4000", "--action-repeat", "8", "--size", "64", "--batch-size", "64",
     "--seed-frames", "800", "--eval-every-frames", "2000", "--eval-episodes", "1", "--checkpoint-every-frames", "800",
-    "--collapse-metrics-every-frames", "800", "--collapse-probe-batch", "64", "--reset-rule",
+    "--collapse-metrics-every-frames", "800", "--collapse-metrics-batch", "64", "--reset-rule",
     "--reset-window-frames", "1600", "--no-progress-bar", "--replay-sampling", "sb3",
 ]  # fmt: skip
 

@@ -1,6 +1,7 @@
-"""The paper's protocol and the run-folder format live in sb3_collapse.protocol alone; errors speak Python."""
+"""The paper's numbers live in sb3_collapse.paper, the run-folder format in sb3_collapse.protocol."""
 
 import argparse
+import json
 import os
 import re
 from pathlib import Path
@@ -9,27 +10,41 @@ import pytest
 
 from sb3_collapse import CollapseMetrics, CollapseReset
 from sb3_collapse.errors import ParameterError, cli_message
-from sb3_collapse.protocol import PAPER, write_json_atomically
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import (
+    CONFIG_JSON,
+    LEGACY_SETTING_NAMES,
+    SWEEP_JSON,
+    read_settings,
+    write_json_atomically,
+)
 from sb3_collapse.report import ReportSettings
 
 PACKAGE = Path(__file__).resolve().parents[1] / "sb3_collapse"
-OWNERS = {"protocol.py", "presets.py"}
-# The protocol numbers (window, threshold, success return) and the run-folder file names.
-LITERALS = re.compile(
-    r"\b(200_000|200000|200,000|1e-3|0\.001|900(\.0)?)\b|(result\.json|eval\.csv|collapse_metrics\.csv|"
-    r"collapse_events\.csv|config\.json|final_model|error\.txt|sweep\.json)"
+# The paper's numbers (window, threshold, success return) live in paper.py (and DrQ-v2's presets); the run-folder
+# file names in protocol.py alone.
+NUMBER_OWNERS = {"paper.py", "presets.py"}
+NUMBERS = re.compile(r"\b(200_000|200000|200,000|1e-3|0\.001|900(\.0)?)\b")
+FILE_NAME_OWNERS = {"protocol.py"}
+FILE_NAMES = re.compile(
+    r"(result\.json|eval\.csv|collapse_metrics\.csv|collapse_events\.csv|config\.json|final_model|error\.txt|"
+    r"sweep\.json|probe_checkpoints)"
 )
 
 
-def test_protocol_literals_live_in_the_protocol_module_only():
-    found = [
+def _lines_matching(pattern: re.Pattern, owners: set[str]) -> list[str]:
+    return [
         f"{path.relative_to(PACKAGE)}:{number}: {line.strip()}"
         for path in sorted(PACKAGE.rglob("*.py"))
-        if path.name not in OWNERS
+        if path.name not in owners
         for number, line in enumerate(path.read_text().splitlines(), 1)
-        if LITERALS.search(line)
+        if pattern.search(line)
     ]
-    assert found == []
+
+
+def test_protocol_literals_live_in_the_protocol_module_only():
+    assert _lines_matching(NUMBERS, NUMBER_OWNERS) == []
+    assert _lines_matching(FILE_NAMES, FILE_NAME_OWNERS) == []
 
 
 def test_the_paper_numbers_and_who_reads_them():
@@ -79,3 +94,19 @@ def test_library_errors_name_parameters_and_clis_translate():
     assert cli_message(ValueError("3 episodes recorded: pass `overwrite=True` or another `out`."), parser) == (
         "3 episodes recorded: pass --overwrite or another --out."
     )
+
+
+def test_settings_files_of_earlier_versions_are_read_under_the_current_names(tmp_path):
+    from sb3_collapse.train import TrainConfig, settings_differences
+
+    config = TrainConfig(env="walker-walk", frames=800, snapshots=True, collapse_metrics_batch=16)
+    saved = json.loads(json.dumps(config.record()))
+    for old, new in LEGACY_SETTING_NAMES.items():  # the settings file of a run started by an earlier version
+        saved[old] = saved.pop(new)
+    write_json_atomically(tmp_path / CONFIG_JSON, saved)
+    raw = json.loads((tmp_path / CONFIG_JSON).read_text())
+    assert settings_differences(raw, config) != []
+    # read as a resumed run reads it: the same settings, the run is resumed
+    assert settings_differences(read_settings(tmp_path / CONFIG_JSON), config) == []
+    write_json_atomically(tmp_path / SWEEP_JSON, {"training": {"collapse_probe_batch": 8, "probe_checkpoints": True}})
+    assert read_settings(tmp_path / SWEEP_JSON)["training"] == {"collapse_metrics_batch": 8, "snapshots": True}

@@ -10,7 +10,7 @@ from stable_baselines3 import SAC
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import DrQv2
-from sb3_collapse.protocol import PAPER, evaluation_schedule
+from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.train import TrainConfig, main, train
 
 
@@ -66,7 +66,7 @@ def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
     config = TrainConfig(
         env="walker-walk", frames=800, action_repeat=8, seed_frames=160, batch_size=8, hidden_dim=32,
         eval_every_frames=0, logdir=str(tmp_path), progress_bar=False, collapse_metrics_every_frames=400,
-        collapse_probe_batch=16, reset_rule=True, reset_window_frames=400, replay_sampling="sb3",
+        collapse_metrics_batch=16, reset_rule=True, reset_window_frames=400, replay_sampling="sb3",
     )
     result = train(config)
     accumulator = EventAccumulator(str(next(result.run_dir.glob("events.out.tfevents.*"))))
@@ -169,7 +169,7 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
     config = TrainConfig(
         env="cartpole-balance", algorithm="sac", reset_rule=True, intervention="shrink_perturb", frames=500,
         action_repeat=25, size=48, hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=500,
-        eval_episodes=1, collapse_metrics_every_frames=200, collapse_probe_batch=4, reset_window_frames=200,
+        eval_episodes=1, collapse_metrics_every_frames=200, collapse_metrics_batch=4, reset_window_frames=200,
         run_dir=str(tmp_path / "run"), progress_bar=False, torch_threads=1,
     )
     assert config.variant_name == "sac+shrink_perturb"
@@ -241,7 +241,7 @@ def test_train_leaky_relu_with_periodic_redo(tmp_path):
     config = TrainConfig(
         env="cartpole-balance", activation="leaky_relu", redo_every_updates=3, frames=500, action_repeat=25, size=48,
         hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=0,
-        collapse_metrics_every_frames=0, collapse_probe_batch=8, replay_sampling="sb3", run_dir=str(tmp_path / "run"),
+        collapse_metrics_every_frames=0, collapse_metrics_batch=8, replay_sampling="sb3", run_dir=str(tmp_path / "run"),
         progress_bar=False, torch_threads=1,
     )  # fmt: skip
     assert config.variant_name == "drqv2-leaky+redo_periodic"

@@ -41,7 +41,7 @@ class GradNormRecorder:
         self._handles: list[th.utils.hooks.RemovableHandle] = []
         assigned: set[int] = set()
         for optimizer in self.optimizers:
-            owned = {id(p) for group in optimizer.param_groups for p in group["params"]}
+            owned = {id(parameter) for group in optimizer.param_groups for parameter in group["params"]}
             slots = [i for i, layer in enumerate(params) if layer and id(layer[0]) in owned and i not in assigned]
             if slots:
                 assigned.update(slots)
@@ -61,7 +61,7 @@ class GradNormRecorder:
         return cls({name: params for name, params in layers.items() if params}, optimizers)
 
     def _hook(self, layers: list[list[nn.Parameter]], slots: list[int]) -> Callable[..., None]:
-        params = [p for layer in layers for p in layer]
+        params = [parameter for layer in layers for parameter in layer]
         # Slot (in self.names) of each parameter, made once on the device: a hook call transfers nothing.
         segment = th.tensor([slot for slot, layer in zip(slots, layers) for _ in layer], device=self.device)
         index = th.tensor(slots, device=self.device)
@@ -82,7 +82,7 @@ class GradNormRecorder:
         :param segment: ``(len(params),)``: the slot (index in :attr:`names`) of each parameter
         :param index: ``(layers,)``: the slots of those layers, sorted as ``segment`` meets them
         """
-        grads = [p.grad if p.grad is not None else p.new_zeros(()) for p in params]
+        grads = [param.grad if param.grad is not None else param.new_zeros(()) for param in params]
         squares = th.stack(th._foreach_norm(grads)).detach().float().square()
         per_slot = th.zeros(len(self.names), device=self.device).index_add_(0, segment, squares)
         norms = per_slot.index_select(0, index).sqrt()

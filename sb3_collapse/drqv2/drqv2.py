@@ -187,7 +187,7 @@ class DrQv2(RoundsAlgorithm):
         self.replay_prefetcher = ReplayPrefetcher()  # replay batches for train(), see sb3_collapse.drqv2.prefetch
         self._compiled_losses: tuple[Any, Any] | None = None
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
-        self.hold_next_step = False
+        self.no_env_step_this_round = False
         self.env_config = _read_env_config(self.env) if self.env is not None else None
         self.grad_norm_recorder: GradNormRecorder | None = None
         """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
@@ -545,7 +545,7 @@ class DrQv2(RoundsAlgorithm):
         return [
             *super()._excluded_save_params(), "encoder", "actor", "critic", "critic_target", "callback",
             "grad_norm_recorder", "update_stats", "_warned_replay_not_ready", "_compiled_losses", "_pending_step",
-            "hold_next_step", "replay_prefetcher",
+            "no_env_step_this_round", "replay_prefetcher",
         ]  # fmt: skip
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -559,14 +559,14 @@ class DrQv2(RoundsAlgorithm):
 def _frozen(module: th.nn.Module) -> Iterator[None]:
     """Parameters of ``module`` with ``requires_grad=False`` inside the block (the ones that required it before,
     after)."""
-    params = [p for p in module.parameters() if p.requires_grad]
-    for p in params:
-        p.requires_grad_(False)
+    params = [param for param in module.parameters() if param.requires_grad]
+    for param in params:
+        param.requires_grad_(False)
     try:
         yield
     finally:
-        for p in params:
-            p.requires_grad_(True)
+        for param in params:
+            param.requires_grad_(True)
 
 
 def soft_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:

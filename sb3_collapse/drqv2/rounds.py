@@ -37,7 +37,7 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
 
     step_envs_during_updates: bool = False
     """Step the environments while the learner updates (see the class docstring)."""
-    hold_next_step: bool = False
+    no_env_step_this_round: bool = False
     """Set during a round: this round's updates do not step the environments (e.g. a checkpoint follows it)."""
     reset_step: int = 0
     """Transition count (``num_timesteps``) of the last reset from scratch, 0 when none."""
@@ -92,10 +92,11 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
         )
         updates = self.updates_due(start, self.num_timesteps) if rollout.continue_training else 0
         if updates > 0:
-            if self.step_envs_during_updates and self.num_timesteps < total_timesteps and not self.hold_next_step:
+            stepping = self.step_envs_during_updates and not self.no_env_step_this_round
+            if stepping and self.num_timesteps < total_timesteps:
                 self._send_next_step()
             self.train(gradient_steps=updates, batch_size=self.batch_size)
-        self.hold_next_step = False
+        self.no_env_step_this_round = False
         return rollout.continue_training
 
     def in_warmup(self, learning_starts: int | None = None) -> bool:

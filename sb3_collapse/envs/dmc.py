@@ -34,8 +34,8 @@ _UNDERSCORE_NAMES.update(
     {
         f"{alias}_{task}": (domain, task)
         for alias, domain in DOMAIN_ALIASES.items()
-        for d, task in DMC_TASKS
-        if d == domain
+        for task_domain, task in DMC_TASKS
+        if task_domain == domain
     }
 )
 
@@ -157,7 +157,7 @@ def _unknown_task_message(name: str) -> str:
     :return: Error message naming it, with close matches and how to list the tasks.
     """
     canonical = {f"{domain}-{task}": f"{domain}-{task}" for domain, task in DMC_TASKS}
-    canonical.update({underscored: f"{d}-{t}" for underscored, (d, t) in _UNDERSCORE_NAMES.items()})
+    canonical.update({underscored: f"{domain}-{task}" for underscored, (domain, task) in _UNDERSCORE_NAMES.items()})
     matches = difflib.get_close_matches(name, list(canonical), n=6, cutoff=0.6)
     suggestions = list(dict.fromkeys(canonical[match] for match in matches))[:3]
     hint = f" Did you mean {', '.join(repr(s) for s in suggestions)}?" if suggestions else ""

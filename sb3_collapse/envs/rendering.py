@@ -25,13 +25,13 @@ from typing import Any
 # (and Mesa's software rasterizer otherwise); OSMesa is software only.
 HEADLESS_BACKENDS: tuple[str, ...] = ("egl", "osmesa")
 # Python code run in a subprocess to check that a backend can create an OpenGL context.
-PROBE_CODE = "import mujoco; c = mujoco.GLContext(8, 8); c.make_current(); c.free()"
-# Seconds allowed for one probe (importing mujoco and creating a context).
-PROBE_TIMEOUT_S = 60.0
-# Characters of each failed probe's stderr quoted in the error message.
+CONTEXT_CHECK_CODE = "import mujoco; c = mujoco.GLContext(8, 8); c.make_current(); c.free()"
+# Seconds allowed for one backend check (importing mujoco and creating a context).
+CONTEXT_CHECK_TIMEOUT_S = 60.0
+# Characters of each failed check's stderr quoted in the error message.
 _STDERR_TAIL_CHARS = 600
 
-# Cache of the probing outcome in this process: the chosen backend, or the report of the failed probes.
+# Cache of the checks' outcome in this process: the chosen backend, or the report of the failed checks.
 _chosen_backend: str | None = None
 _failure_report: str | None = None
 
@@ -44,11 +44,11 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
     """
     Make sure MuJoCo can render off-screen, choosing the OpenGL backend if needed.
 
-    If ``MUJOCO_GL`` is already set, it is respected and returned as is (nothing is probed).
+    If ``MUJOCO_GL`` is already set, it is respected and returned as is (nothing is checked).
     Otherwise the backends in ``HEADLESS_BACKENDS`` (``egl`` then ``osmesa``) are tried, each in a
     subprocess; the first that works is exported as ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` in
     ``os.environ`` (so that subprocesses started afterwards inherit it) and returned.
-    The outcome is cached, so probing happens at most once per process.
+    The outcome is cached, so the backends are checked at most once per process.
 
     This must run before ``dm_control`` is imported, since dm_control reads ``MUJOCO_GL`` only once,
     at import: importing ``sb3_collapse`` before ``dm_control`` (or setting ``MUJOCO_GL``) takes care of it.
@@ -71,7 +71,7 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
         _warn_if_dm_control_imported()
         failures = []
         for backend in HEADLESS_BACKENDS:
-            works, stderr = _probe_backend(backend)
+            works, stderr = _backend_works(backend)
             if works:
                 _chosen_backend = backend
                 _export_backend(backend)
@@ -131,7 +131,7 @@ def uninstall_import_hook() -> None:
     sys.meta_path[:] = [finder for finder in sys.meta_path if not isinstance(finder, _ChooseBackendOnImport)]
 
 
-def _probe_backend(backend: str, timeout: float = PROBE_TIMEOUT_S) -> tuple[bool, str]:
+def _backend_works(backend: str, timeout: float = CONTEXT_CHECK_TIMEOUT_S) -> tuple[bool, str]:
     """
     Check, in a subprocess, whether MuJoCo can create an OpenGL context with a backend.
 
@@ -142,7 +142,7 @@ def _probe_backend(backend: str, timeout: float = PROBE_TIMEOUT_S) -> tuple[bool
     env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
     try:
         result = subprocess.run(
-            [sys.executable, "-c", PROBE_CODE],
+            [sys.executable, "-c", CONTEXT_CHECK_CODE],
             check=False,
             env=env,
             stdin=subprocess.DEVNULL,
@@ -151,9 +151,9 @@ def _probe_backend(backend: str, timeout: float = PROBE_TIMEOUT_S) -> tuple[bool
             timeout=timeout,
         )
     except subprocess.TimeoutExpired:
-        return False, f"probe timed out after {timeout:.0f} s"
+        return False, f"the check timed out after {timeout:.0f} s"
     except OSError as error:
-        return False, f"could not start the probe: {error}"
+        return False, f"could not start the check: {error}"
     return result.returncode == 0, result.stderr
 
 
@@ -181,7 +181,7 @@ def _warn_if_dm_control_imported() -> None:
 
 def _no_backend_message(failure_report: str) -> str:
     """
-    :param failure_report: stderr tails of the failed probes.
+    :param failure_report: stderr tails of the failed checks.
     :return: The message of the :class:`RenderingBackendError` raised when no backend works.
     """
     return (
@@ -192,5 +192,5 @@ def _no_backend_message(failure_report: str) -> str:
         "  - OSMesa (software rendering): apt-get install libosmesa6\n"
         "or set MUJOCO_GL yourself (egl, osmesa or glfw) before importing sb3_collapse. "
         "State observations (obs_type='state') need no rendering.\n"
-        f"Probe errors:\n{failure_report}"
+        f"Errors of the checks:\n{failure_report}"
     )

@@ -11,7 +11,7 @@ from sb3_collapse.monitoring.callbacks import (
     ActivationLogger,
     CollapseMetrics,
     FrameScheduleCallback,
-    ProbeBatchSampler,
+    MetricsBatchSampler,
     action_repeat_of,
     frames_of,
 )
@@ -55,8 +55,8 @@ __all__ = [
     "InterventionResult",
     "LayerMappingError",
     "LayerTap",
+    "MetricsBatchSampler",
     "PeriodicReDo",
-    "ProbeBatchSampler",
     "action_repeat_of",
     "action_spread",
     "apply_intervention",

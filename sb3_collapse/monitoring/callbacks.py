@@ -2,7 +2,7 @@
 Callbacks that watch for action collapse during ``learn()``: collapse metrics to TensorBoard, activations to disk.
 
 Both run on a schedule of **frames** (agent steps x the environment's action repeat, the unit of the paper) and
-read a probe batch of observations from the model's replay buffer. They are SB3 ``BaseCallback``s: pass them to
+read a metrics batch of observations from the model's replay buffer. They are SB3 ``BaseCallback``s: pass them to
 ``learn(callback=...)`` or to ``DrQv2(..., callback=...)``, alone or in a list with SB3's own callbacks.
 """
 
@@ -32,7 +32,8 @@ from sb3_collapse.monitoring.metrics import (
     layer_metrics,
     saturated_fraction,
 )
-from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, PAPER, append_csv_rows, metric_tag
+from sb3_collapse.paper import PAPER, metric_tag
+from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows
 
 
 def action_repeat_of(model: BaseAlgorithm) -> int:
@@ -66,16 +67,16 @@ def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
     return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
 
 
-class ProbeBatchSampler:
+class MetricsBatchSampler:
     """
-    Draws a probe batch of observations from a replay buffer without touching the training's random streams.
+    Draws a metrics batch of observations from a replay buffer without touching the training's random streams.
 
     Indices are drawn, without replacement, from the valid stored positions with this object's own
     ``np.random.Generator``; the observations are then read through the buffer's ``_get_samples(indices, env)``,
     the path SB3's ``sample()`` uses, so that any buffer class following SB3's interface works (including
     buffers that do not store an ``observations`` array). SB3's ``_get_samples`` draws the environment index of
     each sample from the global ``np.random``: its state is saved before the call and restored after it, so
-    the training's replay sampling is the same with or without the probe. Observations are the stored ones
+    the training's replay sampling is the same with or without the metrics. Observations are the stored ones
     (stacked pixels), not augmented.
 
     :param seed: seed of the index generator (``None``: fresh entropy)
@@ -114,7 +115,7 @@ class ProbeBatchSampler:
         """
         buffer = getattr(model, "replay_buffer", None)
         if buffer is None:
-            raise TypeError(f"{type(model).__name__} has no replay buffer to draw a probe batch from.")
+            raise TypeError(f"{type(model).__name__} has no replay buffer to draw a metrics batch from.")
         positions = self.valid_positions(buffer)
         if len(positions) < batch_size:
             return None
@@ -134,7 +135,7 @@ class ProbeBatchSampler:
     ) -> tuple[Any, np.ndarray] | None:
         """
         Draw ``(position, env)`` pairs among those whose frames ``buffer.frames_stored``; ``None`` if too few. Any
-        stored observation will do for a probe, whatever the buffer's sampling rule for updates.
+        stored observation will do for the metrics, whatever the buffer's sampling rule for updates.
         """
         pairs = np.stack(np.meshgrid(positions, np.arange(buffer.n_envs), indexing="ij"), -1).reshape(-1, 2)
         pairs = pairs[buffer.frames_stored(pairs[:, 0], pairs[:, 1])]
@@ -166,7 +167,7 @@ class ResumableCallback(BaseCallback):
         """:return: the callback's state (picklable copies)"""
         state = {name: copy.deepcopy(getattr(self, name)) for name in self.state_attributes}
         sampler = getattr(self, "sampler", None)
-        if isinstance(sampler, ProbeBatchSampler):
+        if isinstance(sampler, MetricsBatchSampler):
             state["sampler"] = sampler.rng.bit_generator.state
         return state
 
@@ -187,8 +188,8 @@ class ResumableCallback(BaseCallback):
         parameters = [name for name in inspect.signature(type(self).__init__).parameters if name != "self"]
         config = {name: copy.deepcopy(getattr(self, name)) for name in parameters}
         kwargs = config.get("intervention_kwargs")
-        if isinstance(kwargs, dict):  # objects the callback added itself (its probe sampler) are not arguments
-            config["intervention_kwargs"] = {k: v for k, v in kwargs.items() if not isinstance(v, ProbeBatchSampler)}
+        if isinstance(kwargs, dict):  # objects the callback added itself (its metrics batch sampler) are not arguments
+            config["intervention_kwargs"] = {k: v for k, v in kwargs.items() if not isinstance(v, MetricsBatchSampler)}
         return config
 
     def on_training_start(self, locals_: dict[str, Any], globals_: dict[str, Any]) -> None:
@@ -203,7 +204,7 @@ class ResumableCallback(BaseCallback):
         for name in self.state_attributes:
             setattr(self, name, copy.deepcopy(state[name]))
         sampler = getattr(self, "sampler", None)
-        if "sampler" in state and isinstance(sampler, ProbeBatchSampler):
+        if "sampler" in state and isinstance(sampler, MetricsBatchSampler):
             sampler.rng.bit_generator.state = state["sampler"]
 
 
@@ -263,8 +264,8 @@ class CollapseMetrics(FrameScheduleCallback):
     """
     Logs the collapse metrics of every named layer to the SB3 logger (TensorBoard) every ``check_every_frames``.
 
-    At each check, a probe batch of ``batch_size`` observations is drawn from the replay buffer (see
-    :class:`ProbeBatchSampler`; a check is skipped, with nothing logged, while the buffer holds fewer
+    At each check, a metrics batch of ``batch_size`` observations is drawn from the replay buffer (see
+    :class:`MetricsBatchSampler`; a check is skipped, with nothing logged, while the buffer holds fewer
     transitions) and run through the actor with :func:`~sb3_collapse.monitoring.activations.collect_activations`
     (no gradient, eval mode). For every named layer it records, with the definitions of
     :mod:`sb3_collapse.monitoring.metrics`:
@@ -288,13 +289,13 @@ class CollapseMetrics(FrameScheduleCallback):
     gets its header when the callback is initialized, so it exists (header only) before the first check.
 
     :param check_every_frames: frames between two checks (the paper's ``PAPER.check_every_frames``)
-    :param batch_size: observations of the probe batch (512)
+    :param batch_size: observations of the metrics batch (512)
     :param layers: the named layers to measure, ``None`` for all (``cnn0`` .. ``action``)
     :param tau: threshold of the dormant ratio
     :param delta: threshold of the effective rank
     :param saturation_limit: ``|a|`` above which an action component counts as saturated
     :param forward_batch_size: observations per forward pass
-    :param seed: seed of the probe indices; ``None``: derived from the model's seed
+    :param seed: seed of the batch's indices; ``None``: derived from the model's seed
     :param csv_path: CSV file that each check appends its rows to (``None``: TensorBoard only)
     :param verbose: 0 silent, 1 prints a line per check
     """
@@ -326,27 +327,27 @@ class CollapseMetrics(FrameScheduleCallback):
         self.forward_batch_size = forward_batch_size
         self.seed = seed
         self.csv_path = None if csv_path is None else Path(csv_path)
-        self.sampler: ProbeBatchSampler | None = None
+        self.sampler: MetricsBatchSampler | None = None
         self.last_metrics: dict[str, float] = {}
 
     def _init_callback(self) -> None:
         super()._init_callback()
         track_grad_norms(self.model)
-        self.sampler = ProbeBatchSampler(self.seed if self.seed is not None else self._seed())
+        self.sampler = MetricsBatchSampler(self.seed if self.seed is not None else self._seed())
         if self.csv_path is not None:
             append_csv_rows(self.csv_path, self.CSV_FIELDS, [])
 
     def compute(self) -> dict[str, float] | None:
         """
-        Every metric on a new probe batch, without logging.
+        Every metric on a new metrics batch, without logging.
 
         :return: tag -> value, or ``None`` while the buffer holds fewer than ``batch_size`` transitions
         """
         assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
-        probe = self.sampler.sample(self.model, self.batch_size)
-        if probe is None:
+        batch = self.sampler.sample(self.model, self.batch_size)
+        if batch is None:
             return None
-        observations, _ = probe
+        observations, _ = batch
         device = self.model.device
         activations = collect_activations(
             self.model, observations, layers=self.layers, batch_size=self.forward_batch_size, device=device
@@ -391,12 +392,12 @@ class CollapseMetrics(FrameScheduleCallback):
 
 class ActivationLogger(FrameScheduleCallback):
     """
-    Saves the named activations of a probe batch every ``every_frames``, for offline analysis.
+    Saves the named activations of a metrics batch every ``every_frames``, for offline analysis.
 
     Each save is one compressed numpy file ``<path>/activations_<agent step, 10 digits>.npz`` holding one
     float32 array per layer (``(batch_size, *shape)``, as returned by
     :func:`~sb3_collapse.monitoring.activations.collect_activations`), ``step`` (agent steps), ``frames``,
-    ``indices`` (the replay-buffer positions of the probe) and ``layers`` (the names). The probe batch is drawn
+    ``indices`` (the replay-buffer positions of the batch) and ``layers`` (the names). The metrics batch is drawn
     as in :class:`CollapseMetrics`; a save is skipped while the buffer holds fewer than ``batch_size``
     transitions.
 
@@ -405,11 +406,11 @@ class ActivationLogger(FrameScheduleCallback):
 
     :param every_frames: frames between two saves
     :param path: folder of the files (created if needed)
-    :param batch_size: observations of the probe batch
+    :param batch_size: observations of the metrics batch
     :param layers: names to save; ``None``: ``mlp0``, ``mlp1``, ``mlp2``, ``action`` (the convolutional
         activations take ~100 MB per 512 observations of 84x84 pixels: ask for them by name)
     :param max_bytes: the most bytes all the files of this callback may take
-    :param seed: seed of the probe indices; ``None``: derived from the model's seed
+    :param seed: seed of the batch's indices; ``None``: derived from the model's seed
     :param verbose: 0 silent, 1 prints a line per file
     """
 
@@ -434,7 +435,7 @@ class ActivationLogger(FrameScheduleCallback):
         self.layers = list(self.DEFAULT_LAYERS if layers is None else layers)
         self.max_bytes = max_bytes
         self.seed = seed
-        self.sampler: ProbeBatchSampler | None = None
+        self.sampler: MetricsBatchSampler | None = None
         self.bytes_written = 0
         self.saved: list[Path] = []
         self.stopped = False
@@ -442,16 +443,16 @@ class ActivationLogger(FrameScheduleCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         self.path.mkdir(parents=True, exist_ok=True)
-        self.sampler = ProbeBatchSampler(self.seed if self.seed is not None else self._seed())
+        self.sampler = MetricsBatchSampler(self.seed if self.seed is not None else self._seed())
 
     def _on_check(self, frames: int) -> None:
         if self.stopped:
             return
         assert self.sampler is not None
-        probe = self.sampler.sample(self.model, self.batch_size)
-        if probe is None:
+        batch = self.sampler.sample(self.model, self.batch_size)
+        if batch is None:
             return
-        observations, indices = probe
+        observations, indices = batch
         activations = collect_activations(self.model, observations, layers=self.layers)
         arrays = {name: value.numpy() for name, value in activations.items()}
         target = self.path / f"activations_{self.num_timesteps:010d}.npz"

@@ -45,7 +45,7 @@ from torch import nn
 
 from sb3_collapse.common.layers import LayerParts, reinitialize, sequential_hidden_parts
 from sb3_collapse.monitoring.activations import layer_taps
-from sb3_collapse.monitoring.callbacks import ProbeBatchSampler
+from sb3_collapse.monitoring.callbacks import MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, track_grad_norms
 from sb3_collapse.monitoring.metrics import DORMANT_TAU, dormant_units
 
@@ -244,14 +244,14 @@ def _fresh_copy(module: nn.Module, parts: InterventionParts) -> nn.Module:
 
 def _forget_optimizer_state(optimizers: Iterable[th.optim.Optimizer], params: Iterable[nn.Parameter]) -> None:
     """Drop the optimizer state (Adam moments, step) of these parameters; it starts again at their next step."""
-    ids = {id(p) for p in params}
+    ids = {id(param) for param in params}
     for optimizer in optimizers:
-        for param in [p for p in optimizer.state if id(p) in ids]:
+        for param in [state_param for state_param in optimizer.state if id(state_param) in ids]:
             del optimizer.state[param]
 
 
 def _count(params: Iterable[nn.Parameter]) -> int:
-    return sum(p.numel() for p in {id(p): p for p in params}.values())
+    return sum(param.numel() for param in {id(param): param for param in params}.values())
 
 
 def _forget_grad_norms(model: BaseAlgorithm) -> None:
@@ -372,7 +372,7 @@ def _reset_modules(model: BaseAlgorithm, modules: Sequence[nn.Module], name: str
     kind = _kind(parts)
     for module in modules:
         parts.initialize_weights(module)
-    params = [p for module in modules for p in module.parameters()]
+    params = [param for module in modules for param in module.parameters()]
     _forget_optimizer_state(parts.optimizers, params)
     changed = _count(params)
     if kind == "td3":  # TD3 builds its target actor as a copy of the actor: the new parts are copied again
@@ -527,7 +527,7 @@ def hidden_activations(model: BaseAlgorithm, layers: Sequence[HiddenLayer], samp
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param layers: from :func:`hidden_layers`
     :param samples: replay samples (``observations``, ``actions``), e.g. from
-        :meth:`~sb3_collapse.monitoring.callbacks.ProbeBatchSampler.sample_transitions`
+        :meth:`~sb3_collapse.monitoring.callbacks.MetricsBatchSampler.sample_transitions`
     :return: layer name -> ``(n, units)`` float tensor (``(n, channels, height, width)`` for a convolution)
     """
     parts = intervention_parts(model)
@@ -557,7 +557,7 @@ def redo(
     model: BaseAlgorithm,
     tau: float = DORMANT_TAU,
     batch_size: int = 512,
-    sampler: ProbeBatchSampler | None = None,
+    sampler: MetricsBatchSampler | None = None,
     samples: Any = None,
     conv_channels: bool = False,
 ) -> InterventionResult:
@@ -582,7 +582,7 @@ def redo(
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param tau: the dormancy threshold, relative to the layer's mean (0.025: ReDo's, and ``dormant_ratio``'s)
     :param batch_size: stored transitions of the batch the activations are measured on
-    :param sampler: draws the batch from the replay buffer (``None``: a new :class:`ProbeBatchSampler`, seeded
+    :param sampler: draws the batch from the replay buffer (``None``: a new :class:`MetricsBatchSampler`, seeded
         from the model's seed)
     :param samples: the batch itself (``observations``, ``actions``), instead of drawing one
     :param conv_channels: recycle the dormant channels of DrQ-v2's ``cnn1``..``cnn4`` too (a channel's score is its
@@ -594,7 +594,7 @@ def redo(
     layers = (encoder_channels(model) if conv_channels else []) + hidden_layers(model)
     total = sum(layer.units for layer in layers)
     if samples is None:
-        sampler = sampler or ProbeBatchSampler(None if model.seed is None else int(model.seed) + 1_000_003)
+        sampler = sampler or MetricsBatchSampler(None if model.seed is None else int(model.seed) + 1_000_003)
         drawn = sampler.sample_transitions(model, batch_size)
         if drawn is None:
             detail = f"nothing recycled: fewer than {batch_size} transitions in the replay buffer"

@@ -49,8 +49,8 @@ def _gram(h: th.Tensor) -> th.Tensor:
 
 
 def _singular_values_from(h: th.Tensor, gram: th.Tensor | None) -> th.Tensor:
-    n, d = h.shape
-    if d <= n:
+    n_inputs, n_units = h.shape
+    if n_units <= n_inputs:
         return th.linalg.svdvals(h)
     gram = _gram(h) if gram is None else gram
     return th.linalg.eigvalsh(gram).flip(0).clamp(min=0.0).sqrt()
@@ -108,13 +108,13 @@ def effective_rank(activations: th.Tensor, delta: float = SRANK_DELTA) -> float:
     return _effective_rank(singular_values(activations), delta)
 
 
-def _correlation(gram: th.Tensor, row_sums: th.Tensor, row_max_abs: th.Tensor, d: int) -> float:
-    # Centered Gram matrix: sum_k (h_ik - m_i)(h_jk - m_j) = (H H^T)_ij - r_i r_j / d, with r the row sums.
-    centered = gram - th.outer(row_sums, row_sums) / d
+def _correlation(gram: th.Tensor, row_sums: th.Tensor, row_max_abs: th.Tensor, n_units: int) -> float:
+    # Centered Gram matrix: sum_k (h_ik - m_i)(h_jk - m_j) = (H H^T)_ij - r_i r_j / n_units, with r the row sums.
+    centered = gram - th.outer(row_sums, row_sums) / n_units
     variance = centered.diagonal()
     # Inputs with an all-zero vector are left out (the definition); so are those with a constant vector, whose
     # Pearson correlation is undefined (zero variance, up to rounding).
-    scale = (row_max_abs**2) * d
+    scale = (row_max_abs**2) * n_units
     valid = (row_max_abs > 0) & (variance > 1e-12 * scale)
     m = int(valid.sum())
     if m < 2:
@@ -254,7 +254,7 @@ def gradient_norm(gradients: Iterable[th.Tensor | None]) -> float:
     :param gradients: the ``.grad`` of a layer's parameters
     :return: the norm
     """
-    squares = [th.linalg.vector_norm(g.detach().double()) ** 2 for g in gradients if g is not None]
+    squares = [th.linalg.vector_norm(gradient.detach().double()) ** 2 for gradient in gradients if gradient is not None]
     return float(th.stack(squares).sum().sqrt()) if squares else 0.0
 
 

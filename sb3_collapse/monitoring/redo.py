@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from sb3_collapse.monitoring.callbacks import ProbeBatchSampler, ResumableCallback, frames_of
+from sb3_collapse.monitoring.callbacks import MetricsBatchSampler, ResumableCallback, frames_of
 from sb3_collapse.monitoring.interventions import REDO_EVERY_UPDATES, InterventionResult, intervention_parts, redo
 from sb3_collapse.monitoring.metrics import DORMANT_TAU
 from sb3_collapse.protocol import append_csv_rows
@@ -71,7 +71,7 @@ class PeriodicReDo(ResumableCallback):
         self.batch_size = batch_size
         self.conv_channels = conv_channels
         self.events_path = None if events_path is None else Path(events_path)
-        self.sampler: ProbeBatchSampler | None = None
+        self.sampler: MetricsBatchSampler | None = None
         self.next_update = every_updates
         self.history: list[tuple[int, int, int]] = []
         self.results: list[InterventionResult] = []
@@ -85,7 +85,7 @@ class PeriodicReDo(ResumableCallback):
     def _init_callback(self) -> None:
         intervention_parts(self.model)  # a TypeError for a model the interventions do not support
         seed = None if self.model.seed is None else int(self.model.seed) + 2_000_003
-        self.sampler = ProbeBatchSampler(seed)
+        self.sampler = MetricsBatchSampler(seed)
         if self.events_path is not None:
             append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
 

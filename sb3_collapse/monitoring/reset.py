@@ -17,7 +17,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
-from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ProbeBatchSampler
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
 from sb3_collapse.monitoring.interventions import (
     InterventionResult,
@@ -26,7 +26,8 @@ from sb3_collapse.monitoring.interventions import (
     forget_reset,
 )
 from sb3_collapse.monitoring.metrics import action_spread
-from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, PAPER, append_csv_rows
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, append_csv_rows
 
 Trigger = str | Callable[[BaseAlgorithm], "float | None"]
 
@@ -36,7 +37,7 @@ class CollapseReset(FrameScheduleCallback):
     Resets the training from scratch while the agent is stuck in action collapse (the paper's rule), or applies
     another ``intervention``, on a DrQv2, TD3, DDPG or SAC model.
 
-    The defaults are the paper's, :data:`sb3_collapse.protocol.PAPER` (Section 5.2).
+    The defaults are the paper's, :data:`sb3_collapse.paper.PAPER` (Section 5.2).
 
     Every ``check_every_frames`` frames (agent steps x action repeat) the callback reads a health value, by
     default the gradient L2 norm of the layer that produces ``layer`` (``mlp1``) at the last update (recorded
@@ -90,10 +91,10 @@ class CollapseReset(FrameScheduleCallback):
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
     :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"`` (the spread of the deterministic
-        actions on a probe batch of the replay buffer, see
+        actions on a metrics batch of the replay buffer, see
         :func:`~sb3_collapse.monitoring.metrics.action_spread`), or a callable ``model -> float | None``
         (``None``: no value at this check); above ``threshold`` is healthy in every case
-    :param batch_size: probe batch of replay observations for ``metric="action_std"`` and for
+    :param batch_size: metrics batch of replay observations for ``metric="action_std"`` and for
         ``intervention="redo"`` (the batch its dormant units are measured on)
     :param events_path: CSV file that each intervention and the escape append a row to (``None``: no file)
     :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's),
@@ -164,7 +165,7 @@ class CollapseReset(FrameScheduleCallback):
         self.metric = metric
         self.batch_size = batch_size
         self.events_path = None if events_path is None else Path(events_path)
-        self.sampler: ProbeBatchSampler | None = None
+        self.sampler: MetricsBatchSampler | None = None
         self._reset_state(window_start_frame=0)
 
     def _reset_state(self, window_start_frame: int) -> None:
@@ -188,7 +189,7 @@ class CollapseReset(FrameScheduleCallback):
             if self.layer not in names:
                 raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
             track_grad_norms(self.model)
-        self.sampler = ProbeBatchSampler(self._seed())
+        self.sampler = MetricsBatchSampler(self._seed())
         if self.intervention == "redo":
             self.intervention_kwargs.setdefault("sampler", self.sampler)
         if self.events_path is not None:
@@ -227,10 +228,10 @@ class CollapseReset(FrameScheduleCallback):
         if self.metric == "grad_norm":
             return grad_norms_of(self.model).get(self.layer)
         assert self.sampler is not None
-        probe = self.sampler.sample(self.model, self.batch_size)
-        if probe is None:
+        batch = self.sampler.sample(self.model, self.batch_size)
+        if batch is None:
             return None
-        actions = collect_activations(self.model, probe[0], layers=["action"], device=self.model.device)["action"]
+        actions = collect_activations(self.model, batch[0], layers=["action"], device=self.model.device)["action"]
         return action_spread(actions)
 
     def _on_step(self) -> bool:

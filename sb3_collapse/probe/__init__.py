@@ -10,8 +10,8 @@ Offline linear probing of an actor's layers with Orthogonal Matching Pursuit (Se
 - :mod:`~sb3_collapse.probe.pipeline`: the two commands as functions.
 """
 
+from sb3_collapse.errors import ProbeError
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.omp import OMPPath, OrthogonalMatchingPursuit, omp_path, path_predictions
 from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings, probe_checkpoint, probe_layer, split_by_episode

@@ -8,7 +8,7 @@ Offline OMP probing of checkpoints: ``python -m sb3_collapse.probe --help``.
     python -m sb3_collapse.probe film good.zip bad.zip --seeds 0 1 --out film/ # Figures 6-7: frames and actions
 
 ``run`` (the default when the first argument is not a sub-command) probes; ``record`` records rollouts; ``sweep``
-probes the probe checkpoints of a sweep's well- and poorly performing seeds.
+probes the snapshots of a sweep's well- and poorly performing seeds.
 Errors in the input print ``error: ...`` and exit with status 2.
 """
 
@@ -21,13 +21,13 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
-from sb3_collapse.errors import cli_message, report_unwritable_outputs
-from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.errors import ProbeError, cli_message, report_unwritable_outputs
+from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, STRIP_EVERY_FRAMES, film_to_folder
 from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
 from sb3_collapse.probe.sweep import DEFAULT_OUT, probe_sweep
-from sb3_collapse.protocol import EXIT_INTERRUPTED, PAPER, PROBE_CHECKPOINTS_DIR
+from sb3_collapse.protocol import EXIT_INTERRUPTED, SNAPSHOTS_DIR
 
 PROG = "python -m sb3_collapse.probe"
 SUBCOMMANDS = ("run", "record", "sweep", "film")
@@ -150,8 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="Figure 2 and Tables 1-6 of a sweep's task and variant",
         description="Split the finished trials of one task and variant by final return (well-performing >= "
         "--success-return, poorly performing < --failure-return), record rollouts once from the best well-performing "
-        f"seed (or read --rollouts), probe every {PROBE_CHECKPOINTS_DIR}/*.zip of those trials (train with "
-        "--probe-checkpoints) and write figure2.png (rows well/poor, columns the reward inputs torso velocity, torso "
+        f"seed (or read --rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with "
+        "--snapshots) and write figure2.png (rows well/poor, columns the reward inputs torso velocity, torso "
         "orientation and torso height, then state columns), tables_1_6.csv/.md (std across agents at four training "
         "stages), probe.csv and summary.json.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
         "action values plotted under each strip), one animated GIF per row and actions.csv, into --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    flm.add_argument("checkpoints", nargs="+", help="SB3 zips (full or probe checkpoints)")
+    flm.add_argument("checkpoints", nargs="+", help="SB3 zips (full models or snapshots)")
     flm.add_argument("--out", default="film", help="output folder")
     flm.add_argument("--frames", type=int, default=FILM_FRAMES, help="environment frames per film")
     flm.add_argument("--size", type=int, default=FILM_SIZE, help="height and width of the film's renders, in pixels")

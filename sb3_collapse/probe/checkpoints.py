@@ -13,10 +13,10 @@ from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.errors import ProbeError
 from sb3_collapse.monitoring import LayerMappingError, layer_taps
 from sb3_collapse.monitoring.callbacks import action_repeat_of
-from sb3_collapse.probe.errors import ProbeError
-from sb3_collapse.run.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint
+from sb3_collapse.run.snapshots import is_snapshot, load_snapshot
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "sb3_collapse.drqv2.policies": DrQv2,
@@ -110,8 +110,8 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
     """
     Load a checkpoint for probing and check that its layers can be named.
 
-    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC, or a DrQv2 probe checkpoint (encoder and actor only,
-        :mod:`sb3_collapse.run.probe_checkpoint`)
+    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC, or a DrQv2 snapshot (encoder and actor only,
+        :mod:`sb3_collapse.run.snapshots`)
     :param device: where the networks go
     :return: the loaded checkpoint
     :raises ProbeError: for a missing file, a non-zip, a zip that is not an SB3 model, an unknown algorithm,
@@ -122,8 +122,8 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
     algorithm = identify_algorithm(data, path)
     try:
         # A small buffer (room for any n-step window): loading must not reserve the replay memory of training.
-        if is_probe_checkpoint(path):  # encoder and actor only (train's probe_checkpoints)
-            model = load_probe_checkpoint(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
+        if is_snapshot(path):  # encoder and actor only (train's snapshots)
+            model = load_snapshot(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
         else:
             model = algorithm.load(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
     except Exception as error:
@@ -142,14 +142,14 @@ def checkpoint_labels(paths: list[str | Path]) -> list[str]:
 
     :raises ProbeError: when the same file is given twice
     """
-    resolved = [Path(p).resolve() for p in paths]
+    resolved = [Path(path).resolve() for path in paths]
     if len(set(resolved)) != len(resolved):
         raise ProbeError("The same checkpoint is given twice.")
     depth = 1
     while True:
         labels = [
-            "/".join(p.with_suffix("").parts[-depth:]) if p.suffix == ".zip" else "/".join(p.parts[-depth:])
-            for p in resolved
+            "/".join(path.with_suffix("").parts[-depth:]) if path.suffix == ".zip" else "/".join(path.parts[-depth:])
+            for path in resolved
         ]
         if len(set(labels)) == len(labels):
             return labels

@@ -41,8 +41,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
 
+from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.rollouts import REWARD_PREFIX
-from sb3_collapse.protocol import PAPER
 from sb3_collapse.report.statistics import across_seed_std, stage_indices
 from sb3_collapse.report.style import frames_axis, layer_style
 
@@ -244,7 +244,7 @@ def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
             lines.append(f"| {layer} | " + " | ".join(cells) + " |")
         lines.append("")
     lines.append(
-        "Stages: the probe checkpoints nearest to the paper's x = 0, 35, 70, 110 (of 1.1e6 frames), at the same "
+        "Stages: the snapshots nearest to the paper's x = 0, 35, 70, 110 (of 1.1e6 frames), at the same "
         "fractions of the last shared frame. Std across agents, ddof=1 (- with one agent)."
     )
     return "\n".join(lines) + "\n"

@@ -25,7 +25,7 @@ from PIL import Image
 from tqdm.auto import tqdm
 
 from sb3_collapse.envs import make_dmc_env
-from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.errors import ProbeError
 from sb3_collapse.report.style import OKABE_ITO, frames_axis
 
 FILM_FRAMES = 300
@@ -133,7 +133,7 @@ def plot_filmstrip(films: Sequence[Film], path: Path, every_frames: int = STRIP_
     :param title: the figure's title
     """
     picks = [_one_per_period(f.frames, every_frames) for f in films]
-    columns = max(len(p) for p in picks)
+    columns = max(len(pick) for pick in picks)
     thumb = 1.15  # inches per picture: the strip's frame axis spans columns x every_frames frames
     left, right, top = 0.65, 1.0, 0.45
     strip_width = thumb * columns
@@ -155,9 +155,14 @@ def plot_filmstrip(films: Sequence[Film], path: Path, every_frames: int = STRIP_
         strip_ax.set_xticks([int(film.frames[j]) for j in pick])
         strip_ax.tick_params(labelsize=7, length=2)
         strip_ax.set_title(film.label, fontsize=9, loc="left")
-        for d in range(film.actions.shape[1]):
+        for dimension in range(film.actions.shape[1]):
             action_ax.step(
-                film.frames, film.actions[:, d], where="post", lw=1.1, color=OKABE_ITO[d % len(OKABE_ITO)], label=f"{d}"
+                film.frames,
+                film.actions[:, dimension],
+                where="post",
+                lw=1.1,
+                color=OKABE_ITO[dimension % len(OKABE_ITO)],
+                label=f"{dimension}",
             )
         action_ax.set_xlim(*limits)
         action_ax.set_ylim(-1.1, 1.1)
@@ -195,7 +200,7 @@ def write_actions_csv(films: Sequence[Film], path: Path) -> None:
     dims = max(f.actions.shape[1] for f in films)
     with path.open("w", newline="") as file:
         writer = csv.writer(file)
-        writer.writerow(["film", "frame", "reward", *(f"action_{d}" for d in range(dims))])
+        writer.writerow(["film", "frame", "reward", *(f"action_{dimension}" for dimension in range(dims))])
         for film in films:
             for frame, reward, action in zip(film.frames, film.rewards, film.actions):
                 writer.writerow(
@@ -231,7 +236,7 @@ def film_to_folder(
     ``filmstrip.png``, ``<checkpoint>_seed<k>.gif`` per film and ``actions.csv`` into ``out`` (staged: all or
     nothing).
 
-    :param checkpoint_paths: the agents (full or probe checkpoints)
+    :param checkpoint_paths: the agents (full models or snapshots)
     :param out: the output folder
     :param frames: environment frames per film
     :param size: render size of the film, in pixels

@@ -13,6 +13,8 @@ from typing import Any
 from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.drqv2.checks import check_device
+from sb3_collapse.errors import ProbeError
+from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import (
     Checkpoint,
     checkpoint_labels,
@@ -20,7 +22,6 @@ from sb3_collapse.probe.checkpoints import (
     load_checkpoint,
     read_saved_data,
 )
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.probing import (
     MIN_EPISODES,
     CheckpointProbe,
@@ -42,7 +43,6 @@ from sb3_collapse.probe.report import (
     write_json,
 )
 from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
-from sb3_collapse.protocol import PAPER
 
 ROLLOUTS_NAME = "rollouts.npz"
 SELF_RECORDED_NOTE = (
@@ -316,15 +316,17 @@ def _summary(
                 "frames": r.checkpoint.frames,
                 "extract_seconds": round(r.extract_seconds, 2),
                 "layers": {
-                    p.layer: {
-                        "n_features": p.n_features,
-                        "n_features_kept": p.n_features_kept,
-                        "max_tau": p.max_tau,
-                        "fit_seconds": round(p.fit_seconds, 2),
-                        "reused_from_an_earlier_checkpoint": p.reused,
-                        "mean_test_mse": {g: means[(r.checkpoint.name, p.layer, g)] for g in dict.fromkeys(groups)},
+                    layer.layer: {
+                        "n_features": layer.n_features,
+                        "n_features_kept": layer.n_features_kept,
+                        "max_tau": layer.max_tau,
+                        "fit_seconds": round(layer.fit_seconds, 2),
+                        "reused_from_an_earlier_checkpoint": layer.reused,
+                        "mean_test_mse": {
+                            group: means[(r.checkpoint.name, layer.layer, group)] for group in dict.fromkeys(groups)
+                        },
                     }
-                    for p in r.layers
+                    for layer in r.layers
                 },
             }
             for r in results

@@ -28,9 +28,9 @@ from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
 from sb3_collapse.drqv2.checks import check_device
+from sb3_collapse.errors import ProbeError
 from sb3_collapse.monitoring import collect_activations, layer_taps
 from sb3_collapse.probe.checkpoints import Checkpoint
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.omp import omp_path, path_predictions
 from sb3_collapse.probe.rollouts import Rollouts
 
@@ -120,8 +120,8 @@ def standardize_features_(
     """
     if not features.is_contiguous():
         raise ValueError("standardize_features_ needs a contiguous tensor.")
-    n, d = features.shape
-    total = th.zeros(d, dtype=th.float64, device=features.device)
+    n_rows, n_columns = features.shape
+    total = th.zeros(n_columns, dtype=th.float64, device=features.device)
     for start in range(0, n_train, chunk_rows):
         total += features[start : min(start + chunk_rows, n_train)].sum(0, dtype=th.float64)
     mean = total / n_train
@@ -135,12 +135,12 @@ def standardize_features_(
     mean32, std32 = mean[columns].to(features.dtype), std[columns].to(features.dtype)
     flat = features.view(-1)
     # Row block [start, stop) is written to flat[start * kept : stop * kept], which ends before the next
-    # block's first unread value (at stop * d >= stop * kept): compaction in place is safe.
-    for start in range(0, n, chunk_rows):
-        stop = min(start + chunk_rows, n)
+    # block's first unread value (at stop * n_columns >= stop * kept): compaction in place is safe.
+    for start in range(0, n_rows, chunk_rows):
+        stop = min(start + chunk_rows, n_rows)
         block = (features[start:stop].index_select(1, columns) - mean32) / std32
         flat[start * kept : stop * kept] = block.reshape(-1)
-    return flat[: n * kept].view(n, kept), keep
+    return flat[: n_rows * kept].view(n_rows, kept), keep
 
 
 def standardize_targets(targets: np.ndarray, n_train: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

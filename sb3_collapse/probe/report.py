@@ -14,7 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.errors import ProbeError
 from sb3_collapse.staged_outputs import StagedOutputs
 
 CSV_NAME = "probe.csv"
@@ -168,11 +168,13 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     """Text table of the mean test MSE (standardized) per checkpoint, layer and component group."""
     means = group_means(rows)
     groups = _unique([r["group"] for r in rows])
-    width = max(12, *(len(g) + 2 for g in groups))
+    width = max(12, *(len(group) + 2 for group in groups))
     lines = []
     for checkpoint in _unique([r["checkpoint"] for r in rows]):
         lines.append(f"{checkpoint}: mean test MSE (standardized) per component group")
-        lines.append(f"  {'layer':<6}" + "".join(f"{g:>{width}}" for g in groups))
+        lines.append(f"  {'layer':<6}" + "".join(f"{group:>{width}}" for group in groups))
         for layer in _unique([r["layer"] for r in rows if r["checkpoint"] == checkpoint]):
-            lines.append(f"  {layer:<6}" + "".join(f"{means[(checkpoint, layer, g)]:>{width}.4f}" for g in groups))
+            lines.append(
+                f"  {layer:<6}" + "".join(f"{means[(checkpoint, layer, group)]:>{width}.4f}" for group in groups)
+            )
     return "\n".join(lines)

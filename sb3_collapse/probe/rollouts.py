@@ -24,7 +24,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from tqdm.auto import tqdm
 
 from sb3_collapse.envs import make_dmc_env
-from sb3_collapse.probe.errors import ProbeError
+from sb3_collapse.errors import ProbeError
 
 FORMAT_VERSION = 2
 """Version 2 added the reward inputs (files of version 1 load with none)."""

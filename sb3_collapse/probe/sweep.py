@@ -1,13 +1,13 @@
 """
 ``python -m sb3_collapse.probe sweep``: the paper's Figure 2 and Tables 1-6 for one task and variant of a sweep
-folder whose trials saved probe checkpoints (``--probe-checkpoints``).
+folder whose trials saved snapshots (``--snapshots``: their encoder and actor at every evaluation).
 
 1. The finished trials are split by final return: well-performing (``>= success_return``, default
    ``PAPER.success_return``) and poorly performing (``< failure_return``, default ``PAPER.failure_return``); the
    others are not probed.
 2. Rollouts are recorded once, from the well-performing seed of the highest final return (its final model), or
    read from ``rollouts_path``.
-3. Every probe checkpoint of those trials is probed on them (``cnn0``, the normalized pixels, once for all).
+3. Every snapshot of those trials is probed on them (``cnn0``, the normalized pixels, once for all).
 4. Figure 2 (``figure2.png``), Tables 1-6 (``tables_1_6.csv``/``.md``), all probe rows (``probe.csv``) and
    ``summary.json`` are written into ``out``, only when everything succeeded.
 """
@@ -25,8 +25,9 @@ from typing import Any
 from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
+from sb3_collapse.errors import ProbeError, ReportError
+from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import load_checkpoint
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.figure2 import (
     ROWS,
     figure2_columns,
@@ -42,12 +43,11 @@ from sb3_collapse.probe.rollouts import Rollouts
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
     FINAL_MODEL,
-    PAPER,
-    PROBE_CHECKPOINTS_DIR,
+    SNAPSHOTS_DIR,
     SWEEP_PROBE_DIR,
     TABLES_1_6_CSV,
+    snapshot_files,
 )
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import Trial, load_sweep
 from sb3_collapse.staged_outputs import StagedOutputs
 
@@ -73,11 +73,6 @@ def split_agents(
     """
     ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.returns[-1], t.seed))
     return [t for t in ranked if t.returns[-1] >= success_return], [t for t in ranked if t.returns[-1] < failure_return]
-
-
-def probe_checkpoint_files(trial: Trial) -> list[Path]:
-    """:return: the trial's probe checkpoints, in training order (their names sort by frames)"""
-    return sorted((trial.path / PROBE_CHECKPOINTS_DIR).glob("*.zip"))
 
 
 def probe_sweep(
@@ -110,7 +105,7 @@ def probe_sweep(
     :param command: the command line, for the summary
     :param jobs: checkpoints probed at once (threads: the forward passes and OMP fits run in torch, outside Python's
         lock). ``settings.memory_gb`` bounds them all together: each gets ``memory_gb / jobs`` for its activations
-        (probe checkpoints themselves take ~13 MB each). The first checkpoint is probed alone, so that the others
+        (snapshots themselves take ~13 MB each). The first checkpoint is probed alone, so that the others
         reuse its ``cnn0`` probe. The results do not depend on ``jobs``
     :return: the summary (as written to ``summary.json``)
     :raises ProbeError: for bad input (nothing written then)
@@ -140,12 +135,12 @@ def probe_sweep(
             parameter="success_return",
         )
     agents = [(trial, ROWS[0]) for trial in well] + [(trial, ROWS[1]) for trial in poor]
-    files = {trial.seed: probe_checkpoint_files(trial) for trial, _ in agents}
+    files = {trial.seed: snapshot_files(trial.path) for trial, _ in agents}
     lacking = [t for t, _ in agents if not files[t.seed]]
     if lacking:
         raise ProbeError(
-            f"no {PROBE_CHECKPOINTS_DIR}/*.zip in {', '.join(str(t.path) for t in lacking)}: train the trials with "
-            "--probe-checkpoints (TrainConfig.probe_checkpoints) to probe them over training."
+            f"no {SNAPSHOTS_DIR}/*.zip in {', '.join(str(t.path) for t in lacking)}: train the trials with "
+            "--snapshots (TrainConfig.snapshots) to probe them over training."
         )
     record_options = record_options or RecordOptions()
     if rollouts_path is None:

@@ -12,7 +12,7 @@ Reports of a sweep folder: the paper's Figure 5, the per-variant table and the l
 - :mod:`~sb3_collapse.report.pipeline`: :func:`build_report` and :func:`write_report`.
 """
 
-from sb3_collapse.report.errors import ReportError
+from sb3_collapse.errors import ReportError
 from sb3_collapse.report.fixed_inputs import FixedInputSettings
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
 from sb3_collapse.report.pipeline import Report, build_report, write_report

@@ -14,10 +14,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from sb3_collapse.errors import cli_message, report_unwritable_outputs
+from sb3_collapse.errors import ReportError, cli_message, report_unwritable_outputs
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.collapse_figure import is_run_folder
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.fixed_inputs import FixedInputSettings
 from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
 from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_report
@@ -111,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--rollouts",
-        help="Figures 4, 8, 9: rollouts file whose observations every probe checkpoint of the picked agents is run "
+        help="Figures 4, 8, 9: rollouts file whose observations every snapshot of the picked agents is run "
         "on (default: <sweep>/probe/<task>_<variant>/rollouts.npz of python -m sb3_collapse.probe sweep)",
     )
     parser.add_argument(
@@ -123,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--device",
         default=collapse.device,
-        help="Figures 4, 8, 9: where the probe checkpoints run: auto, cpu, cuda (default: %(default)s)",
+        help="Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda (default: %(default)s)",
     )
     parser.add_argument(
         "--overwrite", action="store_true", help="replace the files of a previous report in the output folder"

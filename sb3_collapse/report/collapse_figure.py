@@ -14,7 +14,7 @@ reading, kept under its own name.)
 
 **The inputs.** The paper computes the metrics on ``H`` "as defined in Figure 1": the probing samples, "collected
 from well-performing agents". The report computes them after training on one fixed observation set for every
-probe checkpoint of the picked agents (:mod:`sb3_collapse.report.fixed_inputs`); the online metrics of each
+snapshot of the picked agents (:mod:`sb3_collapse.report.fixed_inputs`); the online metrics of each
 trial's collapse metrics file (``protocol.COLLAPSE_METRICS_CSV``: each agent's own replay batch, at training time)
 are drawn in a figure of their own. Gradient norms are training-time in both.
 """
@@ -33,8 +33,9 @@ import numpy as np
 from matplotlib.lines import Line2D
 from matplotlib.ticker import LogLocator, NullLocator
 
-from sb3_collapse.protocol import COLLAPSE_EVENTS_CSV, COLLAPSE_METRICS_CSV, CONFIG_JSON, EVAL_CSV, PAPER, metric_tag
-from sb3_collapse.report.errors import ReportError
+from sb3_collapse.errors import ReportError
+from sb3_collapse.paper import PAPER, metric_tag
+from sb3_collapse.protocol import COLLAPSE_EVENTS_CSV, COLLAPSE_METRICS_CSV, CONFIG_JSON, EVAL_CSV
 from sb3_collapse.report.loading import Trial, load_trial, read_collapse_events, read_collapse_metrics, read_json
 from sb3_collapse.report.style import ESCAPE_COLOR, RESET_COLOR, RETURN_COLOR, frames_axis, layer_style
 

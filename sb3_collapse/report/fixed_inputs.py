@@ -3,8 +3,8 @@ The collapse metrics of Figures 4, 8, 9 on one fixed observation set, after trai
 
 Section 5.1 of the paper computes the numerical rank "of the matrix of MLP activations H, as defined in Figure
 1", and the correlation and zeros of the same activations; Figure 1's H holds the activations of the probing
-samples ("All the samples in three sets are collected from well-performing agents", Section 4.1). So every probe
-checkpoint (encoder and actor at each evaluation, ``protocol.PROBE_CHECKPOINTS_DIR``) of the picked agents is run
+samples ("All the samples in three sets are collected from well-performing agents", Section 4.1). So every snapshot
+(encoder and actor at each evaluation, :func:`~sb3_collapse.protocol.snapshot_files`) of the picked agents is run
 on the same observations: the rollouts that ``python -m sb3_collapse.probe sweep`` recorded from a
 well-performing agent (``<sweep>/probe/<task>_<variant>/rollouts.npz``), or a rollouts file given by the user;
 agents are then compared on the same inputs. A seeded subset of :attr:`FixedInputSettings.fixed_samples` observations
@@ -24,20 +24,19 @@ from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
 from sb3_collapse.drqv2.checks import check_device
-from sb3_collapse.errors import ParameterError
+from sb3_collapse.errors import ParameterError, ProbeError, ReportError
 from sb3_collapse.monitoring import collect_activations, layer_metrics, unit_count
+from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.probe.checkpoints import load_checkpoint
-from sb3_collapse.probe.errors import ProbeError
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
 from sb3_collapse.probe.rollouts import Rollouts
-from sb3_collapse.protocol import PAPER, PROBE_CHECKPOINTS_DIR, SWEEP_PROBE_DIR, metric_tag
+from sb3_collapse.protocol import LEGACY_SNAPSHOTS_DIR, SNAPSHOTS_DIR, SWEEP_PROBE_DIR, snapshot_files
 from sb3_collapse.report.collapse_figure import (
     FIGURE4_LAYERS,
     AgentMetrics,
     AgentPick,
     agent_metrics,
 )
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.loading import Trial
 
 FIXED_SAMPLES = 2048
@@ -125,7 +124,11 @@ class FixedInputs:
         agent = ""
         if self.recorded_from is not None:
             checkpoint = Path(self.recorded_from)
-            folder = checkpoint.parent.parent if checkpoint.parent.name == PROBE_CHECKPOINTS_DIR else checkpoint.parent
+            folder = (
+                checkpoint.parent.parent
+                if checkpoint.parent.name in (SNAPSHOTS_DIR, LEGACY_SNAPSHOTS_DIR)
+                else checkpoint.parent
+            )
             agent = f", recorded from {folder.name}/{checkpoint.name}"
         return f"the fixed probing set ({subset} observations of {self.source.name}, {self.episodes} episodes{agent})"
 
@@ -185,15 +188,10 @@ def snapshot_metrics(
     )
 
 
-def probe_checkpoint_paths(trial: Trial) -> list[Path]:
-    """:return: the trial's probe checkpoints, in training order (their names sort by frames)"""
-    return sorted((trial.path / PROBE_CHECKPOINTS_DIR).glob("*.zip"))
-
-
 @dataclass
 class FixedMetrics:
     """
-    The metrics of one trial's probe checkpoints on the fixed set.
+    The metrics of one trial's snapshots on the fixed set.
 
     :param metrics: ``collapse/<layer>/<metric>`` -> ``(frames, values)``, one value per checkpoint
     :param widths: layer -> units
@@ -209,17 +207,17 @@ def trial_fixed_metrics(
     trial: Trial, inputs: FixedInputs, settings: FixedInputSettings, progress: bool = False
 ) -> FixedMetrics:
     """
-    Every probe checkpoint of a trial run on the fixed set (:func:`snapshot_metrics`).
+    Every snapshot of a trial run on the fixed set (:func:`snapshot_metrics`).
 
-    :param trial: the trial (its ``probe_checkpoints/*.zip``)
+    :param trial: the trial (its snapshots, :func:`~sb3_collapse.protocol.snapshot_files`)
     :param inputs: the fixed set
     :param settings: device, batch size, layers
     :param progress: a progress bar over the checkpoints
-    :return: the metrics (empty without probe checkpoints)
+    :return: the metrics (empty without snapshots)
     :raises ReportError: for a checkpoint that cannot be loaded or whose observations differ from the set's
     """
     device = get_device(settings.device)
-    paths = probe_checkpoint_paths(trial)
+    paths = snapshot_files(trial.path)
     columns: dict[str, tuple[list[int], list[float]]] = {}
     result = FixedMetrics(checkpoints=paths)
     for path in tqdm(paths, desc=f"seed {trial.seed} checkpoints", unit="checkpoint", disable=not progress):
@@ -258,7 +256,7 @@ def fixed_agent_rows(
     picks: Sequence[AgentPick], inputs: FixedInputs, settings: FixedInputSettings, progress: bool = False
 ) -> tuple[list[AgentMetrics], dict[int, FixedMetrics]]:
     """
-    The rows of Figures 4, 8, 9: for each picked agent, rank, correlation and dead units of its probe checkpoints
+    The rows of Figures 4, 8, 9: for each picked agent, rank, correlation and dead units of its snapshots
     on the fixed set, its training-time gradient norms, return curve, resets and escapes; a row that says so for
     an empty class.
 

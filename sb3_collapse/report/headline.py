@@ -6,7 +6,7 @@ The top of the report: the paper's headline numbers beside the sweep's (Section 
   the seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2. In
   comparison, all 40 seeds of ours escape action collapse") as counts with a Wilson interval, and "the average
   standard deviation over the last ten evaluations" with a bootstrap interval over seeds; the paper's numbers
-  (:data:`~sb3_collapse.protocol.PAPER_RESULTS`) on the same row.
+  (:data:`~sb3_collapse.paper.PAPER_RESULTS`) on the same row.
 - **Proposition 1** (:func:`proposition1_rows`): "Supposing the number of training frames is n · m (m is the
   frames where the exploration decreases to the smallest) and the probability of getting stuck in action collapse
   is p, then the probability of escaping action collapse when applying our proposed rule is 1 - p^n." p is the
@@ -23,7 +23,6 @@ a fixed seed, so the report is reproducible).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -31,7 +30,8 @@ from statistics import NormalDist
 
 import numpy as np
 
-from sb3_collapse.protocol import CONFIG_JSON, PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
+from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
+from sb3_collapse.protocol import CONFIG_JSON, read_settings
 from sb3_collapse.report.loading import Sweep, Trial
 from sb3_collapse.report.statistics import (
     BandCurve,
@@ -68,24 +68,24 @@ def wilson_interval(successes: int, trials: int, confidence: float = CONFIDENCE)
     if trials == 0:
         return (math.nan, math.nan)
     z = NormalDist().inv_cdf(0.5 + confidence / 2)
-    p = successes / trials
+    proportion = successes / trials
     denominator = 1 + z * z / trials
-    centre = (p + z * z / (2 * trials)) / denominator
-    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denominator
+    centre = (proportion + z * z / (2 * trials)) / denominator
+    half = z * math.sqrt(proportion * (1 - proportion) / trials + z * z / (4 * trials * trials)) / denominator
     low = 0.0 if successes == 0 else max(0.0, centre - half)  # exact bounds there, free of rounding
     high = 1.0 if successes == trials else min(1.0, centre + half)
     return (low, high)
 
 
-def escape_probability(p: float, windows: int) -> float:
+def escape_probability(stuck_probability: float, windows: int) -> float:
     """
     Proposition 1's escape probability with the rule, ``1 - p^n``.
 
-    :param p: the probability of getting stuck in action collapse (one window)
+    :param stuck_probability: p, the probability of getting stuck in action collapse (one window)
     :param windows: n, the windows of the budget
-    :return: ``1 - p ** windows``
+    :return: ``1 - stuck_probability ** windows``
     """
-    return 1.0 - p**windows
+    return 1.0 - stuck_probability**windows
 
 
 def escape_interval(p_interval: Interval, windows: int) -> Interval:
@@ -224,7 +224,7 @@ def headline_rows(
 ) -> list[HeadlineRow]:
     """
     The headline: one row per task of the sweep (those of the paper's Figure 5 first, in its order,
-    :data:`~sb3_collapse.protocol.PAPER_RESULTS`; the others when they have the baseline or the rule).
+    :data:`~sb3_collapse.paper.PAPER_RESULTS`; the others when they have the baseline or the rule).
 
     :param sweep: the loaded sweep
     :param rows: the summary rows (:func:`~sb3_collapse.report.statistics.summarize`)
@@ -292,7 +292,7 @@ def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
     found = set()
     for trial in trials:
         try:
-            config = json.loads((trial.path / CONFIG_JSON).read_text())
+            config = read_settings(trial.path / CONFIG_JSON)
         except (OSError, ValueError):
             continue
         frames, window = config.get("frames"), config.get("reset_window_frames") or PAPER.window_frames

@@ -23,8 +23,9 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, PAPER, RESULT_JSON, SEED_FOLDER
-from sb3_collapse.report.errors import ReportError
+from sb3_collapse.errors import ReportError
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, RESULT_JSON, SEED_FOLDER
 from sb3_collapse.run.lock import run_folder_owner
 
 DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
@@ -147,8 +148,10 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
     if not root.is_dir():
         raise ReportError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
     found = []
-    for task_dir in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
-        for variant_dir in sorted(p for p in task_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
+    for task_dir in sorted(path for path in root.iterdir() if path.is_dir() and not path.name.startswith(".")):
+        for variant_dir in sorted(
+            path for path in task_dir.iterdir() if path.is_dir() and not path.name.startswith(".")
+        ):
             for seed_dir in variant_dir.iterdir():
                 match = SEED_FOLDER.match(seed_dir.name)
                 if match and seed_dir.is_dir():
@@ -328,7 +331,7 @@ def scheduled_evaluations(
     frames: np.ndarray, returns: np.ndarray, result: dict[str, Any]
 ) -> tuple[np.ndarray, np.ndarray]:
     """
-    The scheduled evaluations of a finished run (:func:`sb3_collapse.protocol.evaluation_schedule`), where the
+    The scheduled evaluations of a finished run (:func:`sb3_collapse.paper.evaluation_schedule`), where the
     paper's statistics come from: run folders of earlier versions end their evaluation file with the saved final
     model's evaluation, at the run's last frame (the result file's ``frames``; such files have no
     ``saved_model_eval``), which is left out here. Files of this version hold the scheduled evaluations only.

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
+from sb3_collapse.errors import ReportError
 from sb3_collapse.presets import preset
 from sb3_collapse.protocol import (
     CONFIG_JSON,
@@ -18,6 +19,7 @@ from sb3_collapse.protocol import (
     SWEEP_JSON,
     SWEEP_PROBE_DIR,
     TABLES_1_6_CSV,
+    snapshot_files,
 )
 from sb3_collapse.report import html
 from sb3_collapse.report.collapse_figure import (
@@ -33,7 +35,6 @@ from sb3_collapse.report.collapse_figure import (
     run_folder_trial,
     run_title,
 )
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.fixed_inputs import (
     FixedInputs,
     FixedInputSettings,
@@ -41,7 +42,6 @@ from sb3_collapse.report.fixed_inputs import (
     default_rollouts,
     fixed_agent_rows,
     load_fixed_inputs,
-    probe_checkpoint_paths,
     write_fixed_metrics_csv,
 )
 from sb3_collapse.report.headline import (
@@ -101,7 +101,7 @@ COLLAPSE_PNG = "collapse_metrics_{task}_{variant}.png"
 """Figure 4 of one task and variant (``collapse_metrics_walker-walk_drqv2.png``): the metrics on the fixed probing
 set."""
 COLLAPSE_FIXED_CSV = "collapse_metrics_{task}_{variant}.csv"
-"""The values of :data:`COLLAPSE_PNG`: every metric of every probe checkpoint of the picked agents on the fixed set."""
+"""The values of :data:`COLLAPSE_PNG`: every metric of every snapshot of the picked agents on the fixed set."""
 COLLAPSE_ONLINE_PNG = "collapse_metrics_online_{task}_{variant}.png"
 """The same agents' online metrics (their own replay batches at training time)."""
 COLLAPSE_AGENTS_CSV = "collapse_agents.csv"
@@ -143,12 +143,12 @@ class Report:
     :param markdown: the text of ``summary.md``
     :param transplant: task -> Figure 3(b)'s curves and Table 7's rows (empty without transplant variants)
     :param collapse: ``(task, variant)`` -> Figure 4's rows (well-performing, middle, poorly performing agent) on
-        the fixed probing set, where it was computed (rollouts and probe checkpoints found)
+        the fixed probing set, where it was computed (rollouts and snapshots found)
     :param files: the written files
     :param collapse_picks: ``(task, variant)`` -> the picked agents, for the variants that are not transplant cells
     :param collapse_online: ``(task, variant)`` -> the same rows with the online metrics (replay batches)
     :param collapse_inputs: ``(task, variant)`` -> the fixed set the rows of ``collapse`` were computed on
-    :param collapse_fixed: ``(task, variant)`` -> seed -> every fixed-set metric of its probe checkpoints
+    :param collapse_fixed: ``(task, variant)`` -> seed -> every fixed-set metric of its snapshots
     :param headline: the paper's headline numbers beside the sweep's (top of ``summary.md`` and ``index.html``)
     :param proposition: Proposition 1's prediction beside the rule's escapes
     """
@@ -260,7 +260,7 @@ def collapse_figures(
     """
     Fill the report's Figures 4, 8, 9 (see :mod:`sb3_collapse.report.collapse_figure`): per task and variant that
     is not a transplant cell, the agents picked by :func:`pick_paper_agents`, their online rows, and their rows on
-    the fixed probing set when the rollouts and the probe checkpoints are there (else a note says what is missing).
+    the fixed probing set when the rollouts and the snapshots are there (else a note says what is missing).
     A rollouts file of ``collapse_settings`` serves the tasks it was recorded on; the other tasks read the rollouts
     of ``probe sweep`` in the sweep folder.
 
@@ -306,11 +306,13 @@ def collapse_figures(
                     f"python -m sb3_collapse.probe sweep, or pass --rollouts); {online} shows the online metrics"
                 )
                 continue
-            lacking = [p.trial.seed for p in picks if p.trial is not None and not probe_checkpoint_paths(p.trial)]
+            lacking = [
+                pick.trial.seed for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)
+            ]
             if lacking:
                 report.notes.append(
                     f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
-                    f"{', '.join(map(str, lacking))} have no probe checkpoints (train with --probe-checkpoints); "
+                    f"{', '.join(map(str, lacking))} have no snapshots (train with --snapshots); "
                     f"{online} shows the online metrics"
                 )
                 continue
@@ -377,7 +379,7 @@ def write_report(
       training stages) when a cell has successful seeds;
     - ``collapse_metrics_<task>_<variant>.png`` (the paper's Figures 4, 8, 9) per task and variant that is not a
       transplant cell: the collapse metrics of a randomly picked well-performing, middle and poorly performing
-      agent, on the fixed probing set (``.csv``: the values), when the rollouts and probe checkpoints are there;
+      agent, on the fixed probing set (``.csv``: the values), when the rollouts and snapshots are there;
       ``collapse_metrics_online_<task>_<variant>.png``: the same agents' online metrics (replay batches);
       ``collapse_agents.csv``: which agents, picked with which seed;
     - ``index.html``: all of the above on one self-contained page, with the sweep's settings, the published
@@ -435,7 +437,7 @@ def write_report(
                 inputs = report.collapse_inputs[(task, variant)]
                 path = staged.path(COLLAPSE_PNG.format(task=task, variant=variant))
                 title = paper_figure_title(task, variant, picks, inputs.describe())
-                plot_collapse_metrics(report.collapse[(task, variant)], path, title, layers, "probe checkpoints")
+                plot_collapse_metrics(report.collapse[(task, variant)], path, title, layers, "snapshots")
                 write_fixed_metrics_csv(
                     staged.path(COLLAPSE_FIXED_CSV.format(task=task, variant=variant)),
                     picks,
@@ -604,7 +606,7 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
                     html.figure(
                         png(COLLAPSE_PNG.format(task=task, variant=variant)),
                         paper_figure_title(task, variant, picks, inputs).replace("\n", "; ")
-                        + f"; every probe checkpoint run on the same observations; {events}",
+                        + f"; every snapshot run on the same observations; {events}",
                     )
                 )
             collapse.parts.append(

@@ -13,7 +13,7 @@ import numpy as np
 from matplotlib.ticker import EngFormatter
 
 from sb3_collapse.monitoring.interventions import INTERVENTION_LABELS
-from sb3_collapse.protocol import PAPER
+from sb3_collapse.paper import PAPER
 from sb3_collapse.report.loading import Trial
 from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, BandCurve, GridCell, TransplantCurves
 from sb3_collapse.report.style import OKABE_ITO, TOL_MUTED, frames_axis

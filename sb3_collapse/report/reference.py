@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sb3_collapse.report.errors import ReportError
+from sb3_collapse.errors import ReportError
 
 REFERENCE_FILE = Path(__file__).resolve().parent / "data" / "drqv2_curves.csv.gz"
 REFERENCE_LABEL = "DrQ-v2 published"

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sb3_collapse.protocol import PAPER
+from sb3_collapse.paper import PAPER
 from sb3_collapse.report.loading import Sweep, Trial
 
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
@@ -35,7 +35,7 @@ class ReportSettings:
     """
     The definitions of the report's numbers.
 
-    The defaults are the paper's protocol, :data:`sb3_collapse.protocol.PAPER`.
+    The defaults are the paper's protocol, :data:`sb3_collapse.paper.PAPER`.
 
     :param collapse_tag: the collapse metric whose recent values decide "stuck" (collapse metrics file tag; the
         reset rule's metric)
@@ -197,7 +197,7 @@ def stuck_in_collapse(
     Whether a seed ends its training stuck in action collapse: the **median of its last** ``checks`` **values**
     of the collapse metric (``PAPER.collapse_tag`` by default, in frame order; all values when there are
     fewer) is ``<= threshold``. With the defaults this is the reset rule's own test (the paper's threshold and
-    patience, :data:`sb3_collapse.protocol.PAPER`) applied to the end of the run; the median tolerates one or two
+    patience, :data:`sb3_collapse.paper.PAPER`) applied to the end of the run; the median tolerates one or two
     isolated spikes on either side.
 
     :param values: the metric's finite values of one seed, in frame order

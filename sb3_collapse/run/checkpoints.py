@@ -11,7 +11,7 @@ updates, before the next environment step), where nothing is in flight, and hold
   disk (:class:`~sb3_collapse.run.replay_checkpoint.ReplayStore`, shared by the checkpoints);
 - every random generator: Python's, NumPy's global one, torch's (the CPU's, and that of the CUDA device the model
   is on), the action space's, each environment's (through its episode in progress, see below), each callback's
-  probe sampler;
+  metrics batch sampler;
 - each environment's episode in progress: the random state or seed it was reset with and the actions since
   (:class:`~sb3_collapse.envs.replay.EpisodeReplay`); a resume replays them, so checkpoints may fall anywhere in an
   episode;
@@ -75,6 +75,7 @@ from sb3_collapse.protocol import (
     CHECKPOINT_JSON,
     CHECKPOINT_MODEL,
     CHECKPOINT_STATE,
+    LEGACY_CALLBACK_NAMES,
     REPLAY_DIR,
     write_json_atomically,
 )
@@ -506,9 +507,10 @@ def restore_run(
         eval_env.get_wrapper_attr("replay_episode")(state["eval_env"])
     saved = state["callbacks"]
     resumable = [callback for callback in callbacks if isinstance(callback, ResumableCallback)]
-    if [name for name, _ in saved] != [type(callback).__name__ for callback in resumable]:
+    saved_names = [LEGACY_CALLBACK_NAMES.get(name, name) for name, _ in saved]
+    if saved_names != [type(callback).__name__ for callback in resumable]:
         raise CheckpointMismatch(
-            f"the checkpoint has the callbacks {[name for name, _ in saved]}, this run "
+            f"the checkpoint has the callbacks {saved_names}, this run "
             f"{[type(callback).__name__ for callback in resumable]}: resume with the settings that wrote it."
         )
     for callback, (_, callback_state) in zip(resumable, saved):
@@ -640,7 +642,7 @@ class ResumableCheckpoints(BaseCallback):
             while self.next_frame <= self._frames():
                 self.next_frame += self.every_frames
         if (self.due or self.stop_signal) and getattr(self.model, "step_envs_during_updates", False):
-            self.model.hold_next_step = True  # type: ignore[attr-defined]
+            self.model.no_env_step_this_round = True  # type: ignore[attr-defined]
         return True
 
     def _on_rollout_start(self) -> None:

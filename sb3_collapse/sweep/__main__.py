@@ -18,7 +18,8 @@ from pathlib import Path
 from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
-from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED, PAPER
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError
 from sb3_collapse.sweep.donors import (

@@ -1,6 +1,6 @@
 """
 The Ray cluster of a sweep: Ray's import (:func:`import_ray`), the check that a cluster answers at the sweep's
-address before anything is written (:func:`probe_cluster`), the session (:func:`ray_session`: a local instance,
+address before anything is written (:func:`check_cluster`), the session (:func:`ray_session`: a local instance,
 watched so that it never outlives the driver, or a cluster) and the check of its resources (:func:`check_resources`).
 """
 
@@ -92,11 +92,11 @@ def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
         time.sleep(0.5)
 
 
-def probe_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     """
     Check that the Ray cluster at ``address`` answers and accepts this process, within ``timeout_s`` (``ray.init``
     alone retries an unreachable address for minutes, and fails a cluster that wants a token after many seconds).
-    Ray's own log lines of a failed probe are kept off the terminal.
+    Ray's own log lines of a failed check are kept off the terminal.
 
     :param address: ``"auto"``, ``"host:port"`` (the GCS) or ``"ray://host:port"`` (Ray client: only reachability)
     :param timeout_s: seconds to wait for the cluster at most
@@ -194,7 +194,7 @@ def ray_session(
     Connect to Ray for the duration of the block: an already initialized Ray is used as it is; otherwise
     ``ray.init`` starts a local instance (``address=None``, no dashboard) or connects to the cluster at
     ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects. A cluster
-    is probed first (:func:`probe_cluster`): one that does not answer within ``connect_timeout_s``, or refuses this
+    is checked first (:func:`check_cluster`): one that does not answer within ``connect_timeout_s``, or refuses this
     process, ends the session before it starts. A local instance never outlives this process: a watchdog
     (:mod:`sb3_collapse.sweep.watchdog`) ends its processes if the process dies without shutting it down (SIGKILL,
     out of memory).
@@ -215,7 +215,7 @@ def ray_session(
         ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
         watchdog = _start_watchdog()
     else:
-        probe_cluster(address, connect_timeout_s)
+        check_cluster(address, connect_timeout_s)
         try:
             ray.init(address=address, log_to_driver=True)
         except ConnectionError as error:

@@ -7,9 +7,9 @@ So the good CNN and the good MLP come from **two different** agents (and the bad
 ``cnn-good_mlp-good`` is then a new combination, not one agent reloaded. The donors are either given (two
 checkpoints per source: ``--good-cnn``, ``--good-mlp``, ``--bad-cnn``, ``--bad-mlp``) or picked at random, with a
 recorded seed, among the finished seeds of a sweep (``--donors-from``): well-performing agents (Section 4.1) are
-those whose final return is at least :attr:`~sb3_collapse.protocol.PaperProtocol.success_return`, poorly performing
-ones below :attr:`~sb3_collapse.protocol.PaperProtocol.failure_return` ("less than 30 rewards"). A seed's final
-return is its last scheduled evaluation (:func:`~sb3_collapse.protocol.evaluation_schedule`), the one the paper's
+those whose final return is at least :attr:`~sb3_collapse.paper.PaperProtocol.success_return`, poorly performing
+ones below :attr:`~sb3_collapse.paper.PaperProtocol.failure_return` ("less than 30 rewards"). A seed's final
+return is its last scheduled evaluation (:func:`~sb3_collapse.paper.evaluation_schedule`), the one the paper's
 classes read. The sweep's settings file records the donors (:func:`donors_record`).
 """
 
@@ -24,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from sb3_collapse.protocol import EVAL_CSV, FINAL_MODEL, FINISHED, PAPER, RESULT_JSON, SEED_FOLDER
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import EVAL_CSV, FINAL_MODEL, FINISHED, RESULT_JSON, SEED_FOLDER
 from sb3_collapse.sweep.trials import SweepError, canonical_task, donor_key
 
 DONOR_PARTS = ("cnn", "mlp")
@@ -198,7 +199,10 @@ def donors_record(
         "success_return": success_return,
         "failure_return": failure_return,
         "tasks": {
-            task: {key: {"seed": d.seed, "final_return": d.final_return, "path": d.path} for key, d in donors.items()}
+            task: {
+                key: {"seed": donor.seed, "final_return": donor.final_return, "path": donor.path}
+                for key, donor in donors.items()
+            }
             for task, donors in picked.items()
         },
     }

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import os
 import shutil
 import signal
@@ -32,6 +31,7 @@ from sb3_collapse.protocol import (
     SWEEP_JSON,
     SWEEP_STOP,
     blocking_file,
+    read_settings,
     write_json_atomically,
     write_text_atomically,
 )
@@ -106,9 +106,9 @@ def check_writable(folder: Path) -> None:
     created = [path for path in (folder, *folder.parents) if not path.exists()]
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".write_check_{os.getpid()}"
-        probe.mkdir()
-        probe.rmdir()
+        write_check = folder / f".write_check_{os.getpid()}"
+        write_check.mkdir()
+        write_check.rmdir()
     except OSError as error:
         raise OSError(error.errno, error.strerror, str(folder)) from None
     finally:
@@ -208,7 +208,7 @@ def _run_trial(
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)  # resolved
     if run_folder_state(folder) == UNFINISHED_RUN:
         try:
-            differences = settings_differences(json.loads((folder / CONFIG_JSON).read_text()), config)
+            differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
         except (OSError, ValueError):
             differences = ["unreadable settings"]
         if differences:  # the sweep's settings changed (allowed): this attempt cannot continue
@@ -389,7 +389,7 @@ def prepare_sweep_folder(
     path = out / SWEEP_JSON
     previous: dict[str, Any] = {}
     if path.is_file():
-        previous = json.loads(path.read_text())
+        previous = read_settings(path)
         changes = settings_changes(previous, settings)
         if changes and not allow_changed_settings:
             raise SweepError(

@@ -100,7 +100,7 @@ def render_zoo_config() -> str:
     """
     parts = [HEADER]
     for tier in ("easy", "medium", "hard"):
-        presets = [p for p in PRESETS.values() if p.tier == tier]
+        presets = [task_preset for task_preset in PRESETS.values() if task_preset.tier == tier]
         frames = presets[0].frames
         parts.append(f"\n# {tier} tasks: {frames:,} frames\n")
         for task_preset in presets:

@@ -14,7 +14,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecTransposeImage, is_vecen
 from sb3_collapse.drqv2 import StddevSchedule
 from sb3_collapse.envs.dmc import DMCEnv
 from sb3_collapse.envs.registration import ENTRY_POINT
-from sb3_collapse.zoo.errors import ZooConfigError
+from sb3_collapse.errors import ZooConfigError
 from sb3_collapse.zoo.registration import ALGO_NAME
 
 CallbackSpec = dict[str, dict[str, Any]]

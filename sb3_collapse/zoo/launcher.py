@@ -26,9 +26,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from sb3_collapse.errors import LauncherError, ZooConfigError, ZooNotInstalledError
+from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import PRESETS
-from sb3_collapse.protocol import PAPER
-from sb3_collapse.zoo.errors import LauncherError, ZooConfigError, ZooNotInstalledError
 from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 
 PROG = "python -m sb3_collapse.zoo"
@@ -52,7 +52,7 @@ RESET_RULE_CALLBACK = {
         "verbose": 1,
     }
 }
-"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (:data:`sb3_collapse.protocol.PAPER`)."""
+"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (:data:`sb3_collapse.paper.PAPER`)."""
 
 USAGE = f"{PROG} {{train,enjoy}} [--collapse-metrics] [--reset-rule] [rl_zoo3 options]"
 DESCRIPTION = (

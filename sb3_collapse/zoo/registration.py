@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from sb3_collapse.zoo.errors import ZooNotInstalledError
+from sb3_collapse.errors import ZooNotInstalledError
 
 ALGO_NAME = "drqv2"
 """Name of DrQv2 in rl_zoo3's algorithm table (``--algo drqv2``)."""

@@ -307,8 +307,8 @@ def test_drqv2_memory_advice_uses_frame_bytes(monkeypatch):
 
 
 def test_probe_batches_skip_overwritten_frames():
-    """CollapseMetrics' probe sampler draws only sampleable (pos, env) pairs, and leaves np.random alone."""
-    from sb3_collapse.monitoring import ProbeBatchSampler
+    """CollapseMetrics' metrics batch sampler draws only sampleable (pos, env) pairs, and leaves np.random alone."""
+    from sb3_collapse.monitoring import MetricsBatchSampler
 
     rng = np.random.default_rng(5)
     ours, _ = make_pair(60, 2, 3, min_episode_length=250)
@@ -318,7 +318,7 @@ def test_probe_batches_skip_overwritten_frames():
     n_sampleable = int(ours.is_sampleable(pos, envs).sum())
     model = type("Model", (), {"replay_buffer": ours})()
     state = np.random.get_state()[1].copy()
-    observations, _ = ProbeBatchSampler(seed=0).sample(model, n_sampleable)
+    observations, _ = MetricsBatchSampler(seed=0).sample(model, n_sampleable)
     assert observations.shape == (n_sampleable, 9, *FRAME[1:])
     assert np.array_equal(np.random.get_state()[1], state)
-    assert ProbeBatchSampler(seed=0).sample(model, n_sampleable + 1) is None
+    assert MetricsBatchSampler(seed=0).sample(model, n_sampleable + 1) is None

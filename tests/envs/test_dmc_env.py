@@ -151,7 +151,7 @@ import sb3_collapse.envs
 from sb3_collapse.envs import ensure_rendering_backend
 loaded = [m for m in sys.modules if m.split(".")[0] in ("dm_control", "mujoco", "shimmy")]
 assert not loaded, loaded
-assert "MUJOCO_GL" not in os.environ, "the backend must not be probed at import"
+assert "MUJOCO_GL" not in os.environ, "the backend must not be checked at import"
 from dm_control import suite  # the import hook chooses the backend first
 if ensure_rendering_backend(required=False) is not None:
     assert os.environ["MUJOCO_GL"] in ("egl", "osmesa"), os.environ["MUJOCO_GL"]

@@ -23,22 +23,22 @@ def unset_backend(monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.delitem(sys.modules, module, raising=False)
 
 
-def fake_probe(working: set[str], calls: list[str]):
-    """:return: A replacement of ``_probe_backend`` where only the ``working`` backends work."""
+def fake_check(working: set[str], calls: list[str]):
+    """:return: A replacement of ``_backend_works`` where only the ``working`` backends work."""
 
-    def probe(backend: str, timeout: float = 60.0) -> tuple[bool, str]:
+    def check(backend: str, timeout: float = 60.0) -> tuple[bool, str]:
         calls.append(backend)
         if backend in working:
             return True, ""
         return False, f"{backend}: libEGL.so.1: cannot open shared object file"
 
-    return probe
+    return check
 
 
 def test_preset_mujoco_gl_is_respected(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("MUJOCO_GL", "osmesa")
     calls: list[str] = []
-    monkeypatch.setattr(rendering, "_probe_backend", fake_probe(set(), calls))
+    monkeypatch.setattr(rendering, "_backend_works", fake_check(set(), calls))
     assert ensure_rendering_backend() == "osmesa"
     assert ensure_rendering_backend(required=False) == "osmesa"
     assert calls == []
@@ -48,7 +48,7 @@ def test_preset_mujoco_gl_is_respected(monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.mark.usefixtures("unset_backend")
 def test_no_backend_raises_with_install_instructions(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[str] = []
-    monkeypatch.setattr(rendering, "_probe_backend", fake_probe(set(), calls))
+    monkeypatch.setattr(rendering, "_backend_works", fake_check(set(), calls))
     with pytest.raises(RenderingBackendError) as error:
         ensure_rendering_backend()
     assert isinstance(error.value, RuntimeError)
@@ -57,7 +57,7 @@ def test_no_backend_raises_with_install_instructions(monkeypatch: pytest.MonkeyP
     assert "libosmesa6" in message
     assert "libegl1" in message
     assert "MUJOCO_GL" in message
-    assert "cannot open shared object file" in message  # the probes' stderr
+    assert "cannot open shared object file" in message  # the checks' stderr
     assert calls == ["egl", "osmesa"]
     assert "MUJOCO_GL" not in os.environ
 
@@ -65,7 +65,7 @@ def test_no_backend_raises_with_install_instructions(monkeypatch: pytest.MonkeyP
 @pytest.mark.usefixtures("unset_backend")
 def test_no_backend_not_required_returns_none(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[str] = []
-    monkeypatch.setattr(rendering, "_probe_backend", fake_probe(set(), calls))
+    monkeypatch.setattr(rendering, "_backend_works", fake_check(set(), calls))
     assert ensure_rendering_backend(required=False) is None
     assert "MUJOCO_GL" not in os.environ
     # The failure is cached: no second probing, but a later required call still raises.
@@ -78,7 +78,7 @@ def test_no_backend_not_required_returns_none(monkeypatch: pytest.MonkeyPatch) -
 @pytest.mark.usefixtures("unset_backend")
 def test_first_working_backend_is_exported_and_cached(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[str] = []
-    monkeypatch.setattr(rendering, "_probe_backend", fake_probe({"osmesa"}, calls))
+    monkeypatch.setattr(rendering, "_backend_works", fake_check({"osmesa"}, calls))
     assert ensure_rendering_backend() == "osmesa"
     assert os.environ["MUJOCO_GL"] == "osmesa"
     assert os.environ["PYOPENGL_PLATFORM"] == "osmesa"
@@ -93,19 +93,19 @@ def test_first_working_backend_is_exported_and_cached(monkeypatch: pytest.Monkey
 @pytest.mark.usefixtures("unset_backend")
 def test_warns_if_dm_control_was_imported_first(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "dm_control.mujoco", types.ModuleType("dm_control.mujoco"))
-    monkeypatch.setattr(rendering, "_probe_backend", fake_probe({"egl"}, []))
+    monkeypatch.setattr(rendering, "_backend_works", fake_check({"egl"}, []))
     with pytest.warns(RuntimeWarning, match="Import sb3_collapse before dm_control"):
         assert ensure_rendering_backend() == "egl"
 
 
-def test_probe_reports_a_broken_backend() -> None:
-    works, stderr = rendering._probe_backend("not_a_backend")
+def test_check_reports_a_broken_backend() -> None:
+    works, stderr = rendering._backend_works("not_a_backend")
     assert not works
     assert stderr
 
 
 @pytest.mark.usefixtures("unset_backend")
-def test_real_probe_exports_a_headless_backend() -> None:
+def test_real_check_exports_a_headless_backend() -> None:
     backend = ensure_rendering_backend(required=False)
     if backend is None:
         pytest.skip("no headless OpenGL backend on this machine")

@@ -14,7 +14,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_collapse import ActivationLogger, CollapseMetrics, CollapseReset, DrQv2
 from sb3_collapse.envs.synthetic import RandomObservationEnv
-from sb3_collapse.monitoring import FrameScheduleCallback, ProbeBatchSampler
+from sb3_collapse.monitoring import FrameScheduleCallback, MetricsBatchSampler
 
 PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
 METRICS = ("numerical_rank", "srank", "correlation", "zero_fraction", "dead_fraction", "dead_units", "dormant_ratio")
@@ -92,7 +92,7 @@ def test_constructor_callback_is_the_headline_usage():
     assert rule.resets == 1 and model.reset_step == 20
 
 
-def test_probe_batch_does_not_change_training():
+def test_metrics_batch_does_not_change_training():
     def run(callback):
         env = DummyVecEnv([pixel_env, pixel_env])  # SB3's _get_samples draws env indices from np.random
         model = tiny_model(env, gradient_steps=2)
@@ -105,10 +105,10 @@ def test_probe_batch_does_not_change_training():
     assert model.num_timesteps == 60
 
 
-def test_probe_indices_are_valid_distinct_positions():
+def test_metrics_batch_indices_are_valid_distinct_positions():
     model = tiny_model()
     model.learn(30)
-    sampler = ProbeBatchSampler(seed=0)
+    sampler = MetricsBatchSampler(seed=0)
     observations, indices = sampler.sample(model, 25)
     assert len(set(indices.tolist())) == 25 and indices.max() < 30
     np.testing.assert_array_equal(observations.numpy(), model.replay_buffer.observations[indices, 0])

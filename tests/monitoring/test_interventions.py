@@ -11,7 +11,7 @@ from stable_baselines3 import DDPG, SAC, TD3
 from sb3_collapse import DrQv2
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring import (
-    ProbeBatchSampler,
+    MetricsBatchSampler,
     apply_intervention,
     collect_activations,
     dormant_ratio,
@@ -213,7 +213,7 @@ def test_redo_recycles_exactly_the_dormant_units(algo, policy):
     assert names == ["mlp1", "mlp2", *[f"q{k}.mlp{j}" for k in range(1, q_networks + 1) for j in (1, 2)]]
     force_dormant(model, {"mlp1": (0, 1), "q1.mlp1": (2,)})
     before = snapshot(model)
-    result = apply_intervention(model, "redo", batch_size=32, sampler=ProbeBatchSampler(0))
+    result = apply_intervention(model, "redo", batch_size=32, sampler=MetricsBatchSampler(0))
     after = snapshot(model)
     assert {0, 1} <= set(result.units["mlp1"]) and {2} <= set(result.units["q1.mlp1"])
     assert result.scalars["units_recycled"] == sum(len(units) for units in result.units.values())
@@ -262,7 +262,7 @@ def test_redo_recycles_exactly_the_dormant_units(algo, policy):
 
 def test_redo_measures_dormancy_as_the_dormant_ratio_metric():
     model = trained("td3", "CnnPolicy")
-    samples, _ = ProbeBatchSampler(3).sample_transitions(model, 32)
+    samples, _ = MetricsBatchSampler(3).sample_transitions(model, 32)
     ratio = dormant_ratio(collect_activations(model, samples.observations, layers=["mlp1"])["mlp1"])
     result = apply_intervention(model, "redo", samples=samples)
     assert len(result.units["mlp1"]) / 16 == ratio

@@ -12,7 +12,7 @@ from sb3_collapse import DrQv2, PeriodicReDo
 from sb3_collapse.drqv2.encoders import LEAKY_RELU_SLOPE, weight_init
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.errors import ParameterError
-from sb3_collapse.monitoring import ProbeBatchSampler, apply_intervention, collect_activations, dead_fraction
+from sb3_collapse.monitoring import MetricsBatchSampler, apply_intervention, collect_activations, dead_fraction
 from sb3_collapse.monitoring.interventions import INTERVENTION_LABELS, encoder_channels, hidden_layers
 
 PIXELS = gym.spaces.Box(0, 255, (9, 36, 36), np.uint8)
@@ -102,7 +102,7 @@ def test_recycled_last_channel_no_longer_reaches_the_trunks():
         model.learn(30)
         cnn4 = encoder_channels(model)[-1]
         kill(cnn4, (2,))
-        samples, _ = ProbeBatchSampler(0).sample_transitions(model, 16)
+        samples, _ = MetricsBatchSampler(0).sample_transitions(model, 16)
         result = apply_intervention(model, "redo", samples=samples, conv_channels=True)
         assert 2 in result.units["cnn4"]
         policy = model.policy
@@ -224,7 +224,7 @@ def test_leaky_relu_everywhere_and_no_unit_dead(tmp_path):
         layers = {layer.name: layer for layer in encoder_channels(net) + hidden_layers(net)}
         kill(layers["cnn3"], (0,))
         kill(layers["mlp2"], (1, 2))
-        observations = ProbeBatchSampler(0).sample(net, 16)[0]
+        observations = MetricsBatchSampler(0).sample(net, 16)[0]
         activations = collect_activations(net, observations)
         fractions = {
             name: dead_fraction(activations[name]) for name in ("cnn1", "cnn2", "cnn3", "cnn4", "mlp1", "mlp2")

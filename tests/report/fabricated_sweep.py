@@ -299,14 +299,14 @@ def write_fake_sweep(root: str | Path, seed: int = 0) -> FakeSweep:
 
 def write_probe_sweep(root: str | Path, run_dir: str | Path, finals: dict[int, float], seed: int = 0) -> Path:
     """
-    A sweep folder ``<root>/walker-walk/drqv2/seed_<k>/`` whose trials have real probe checkpoints: those of a
-    trained run (``run_dir``, trained with ``probe_checkpoints``), with Gaussian noise added to every encoder and
+    A sweep folder ``<root>/walker-walk/drqv2/seed_<k>/`` whose trials have real snapshots: those of a
+    trained run (``run_dir``, trained with ``snapshots``), with Gaussian noise added to every encoder and
     actor weight per seed (std 0.05 x the weight's std, so that the seeds' probes differ), and fabricated
     evaluation curves ending at ``finals[k]``; result.json says finished. The run's final model is copied as
     each trial's final model (it records the rollouts).
 
     :param root: the sweep folder to create
-    :param run_dir: a run folder of ``python -m sb3_collapse.train --probe-checkpoints``
+    :param run_dir: a run folder of ``python -m sb3_collapse.train --snapshots``
     :param finals: seed -> final return
     :param seed: seed of the noise
     :return: ``root``
@@ -315,11 +315,11 @@ def write_probe_sweep(root: str | Path, run_dir: str | Path, finals: dict[int, f
 
     import torch as th
 
-    from sb3_collapse.protocol import PROBE_CHECKPOINTS_DIR
-    from sb3_collapse.run.probe_checkpoint import load_probe_checkpoint, save_probe_checkpoint
+    from sb3_collapse.protocol import SNAPSHOTS_DIR
+    from sb3_collapse.run.snapshots import load_snapshot, save_snapshot
 
     root, run_dir = Path(root), Path(run_dir)
-    sources = sorted((run_dir / PROBE_CHECKPOINTS_DIR).glob("*.zip"))
+    sources = sorted((run_dir / SNAPSHOTS_DIR).glob("*.zip"))
     frames = np.array([int(p.stem.split("_")[1]) for p in sources], dtype=np.int64)
     generator = th.Generator().manual_seed(seed)
     for k, final in finals.items():
@@ -329,13 +329,13 @@ def write_probe_sweep(root: str | Path, run_dir: str | Path, finals: dict[int, f
         folder = root / "walker-walk" / "drqv2" / f"seed_{k}"
         shutil.copy(run_dir / "final_model.zip", folder / "final_model.zip")
         for source in sources:
-            model = load_probe_checkpoint(source)
+            model = load_snapshot(source)
             with th.no_grad():
                 for name, parameter in model.policy.named_parameters():
                     if name.startswith(("encoder.", "actor.")) and parameter.numel() > 1:
                         noise = th.randn(parameter.shape, generator=generator) * 0.05 * parameter.std()
                         parameter.add_(noise)
-            save_probe_checkpoint(model, folder / PROBE_CHECKPOINTS_DIR / source.name)
+            save_snapshot(model, folder / SNAPSHOTS_DIR / source.name)
     return root
 
 

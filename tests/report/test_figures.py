@@ -9,7 +9,7 @@ import pytest
 from browser import check_page
 from fabricated_sweep import TRANSPLANT_FRAMES, write_fake_sweep
 
-from sb3_collapse.protocol import PAPER
+from sb3_collapse.paper import PAPER
 from sb3_collapse.report import write_report
 from sb3_collapse.report.__main__ import main
 from sb3_collapse.report.collapse_figure import (

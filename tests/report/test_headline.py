@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from fabricated_sweep import FRAMES, write_fake_sweep
 
-from sb3_collapse.protocol import PAPER, PAPER_RESULTS, PROPOSITION_1
+from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1
 from sb3_collapse.report import pipeline
 from sb3_collapse.report.headline import (
     escape_interval,

@@ -22,7 +22,7 @@ import pytest
 
 from sb3_collapse.sweep import ClusterUnreachable, trial_status
 from sb3_collapse.sweep.__main__ import main
-from sb3_collapse.sweep.cluster import probe_cluster
+from sb3_collapse.sweep.cluster import check_cluster
 
 # A trial that checkpoints: 60 agent steps of cartpole at action repeat 20, a checkpoint every 10 agent steps.
 TRIAL = [
@@ -44,7 +44,7 @@ def test_unreachable_cluster_is_one_line_exit_1_and_writes_nothing(tmp_path, cap
     address = f"127.0.0.1:{free_port()}"  # nothing listens there
     start = time.monotonic()
     with pytest.raises(ClusterUnreachable, match=rf"address {address}: no Ray cluster answered within 1 s"):
-        probe_cluster(address, timeout_s=1)
+        check_cluster(address, timeout_s=1)
     assert time.monotonic() - start < 5
     out = tmp_path / "sweep"
     status = main([*TRIAL, "--out", str(out), "--address", address, "--connect-timeout", "1"])

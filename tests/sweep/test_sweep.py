@@ -41,10 +41,10 @@ from sb3_collapse.train import TrainConfig
 TINY = [
     "--frames", "1000", "--action-repeat", "4", "--size", "32", "--seed-frames", "600", "--batch-size", "8",
     "--hidden-dim", "32", "--feature-dim", "16", "--eval-every-frames", "1000", "--eval-episodes", "1",
-    "--collapse-metrics-every-frames", "500", "--collapse-probe-batch", "8", "--reset-window-frames", "500",
+    "--collapse-metrics-every-frames", "500", "--collapse-metrics-batch", "8", "--reset-window-frames", "500",
     # The trial ends with its first episode: DrQ-v2's sampling (finished episodes only) would not update.
     "--replay-sampling", "sb3",
-    "--probe-checkpoints",  # encoder + actor at frames 0 and 1000, for the probe's Figure 2
+    "--snapshots",  # encoder + actor at frames 0 and 1000, for the probe's Figure 2
 ]  # fmt: skip
 TINY_TRIALS = ["--tasks", "walker-walk", "--seeds", "2", "--variants", "drqv2", "drqv2+reset"]
 RESULT_KEYS = {
@@ -104,9 +104,9 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
         assert [int(row["frame"]) for row in evaluations] == [0]  # scheduled; 1000 (the budget): the final model's
         assert (folder / "progress.csv").stat().st_size > 0 and list(folder.glob("events.out.tfevents.*"))
         assert zipfile.is_zipfile(folder / "final_model.zip")
-        assert config["probe_checkpoints"] is True
-        probe_checkpoints = sorted(p.name for p in (folder / "probe_checkpoints").iterdir())
-        assert probe_checkpoints == ["probe_0000000000_frames.zip", "probe_0000001000_frames.zip"]
+        assert config["snapshots"] is True
+        snapshots = sorted(p.name for p in (folder / "snapshots").iterdir())
+        assert snapshots == ["snapshot_0000000000_frames.zip", "snapshot_0000001000_frames.zip"]
 
         metrics = read_csv(folder / "collapse_metrics.csv")
         assert list(metrics[0]) == ["frame", "step", "tag", "value"]
@@ -475,7 +475,7 @@ COMPARISON = [
     "--tasks", "cartpole-balance", "--seeds", "2", "--variants", "drqv2+reset", "drqv2+redo", "td3+reset",
     "--frames", "500", "--action-repeat", "25", "--size", "48", "--hidden-dim", "64", "--feature-dim", "16",
     "--batch-size", "8", "--seed-frames", "100", "--eval-every-frames", "250", "--eval-episodes", "1",
-    "--collapse-metrics-every-frames", "200", "--collapse-probe-batch", "4", "--reset-window-frames", "200",
+    "--collapse-metrics-every-frames", "200", "--collapse-metrics-batch", "4", "--reset-window-frames", "200",
     "--replay-sampling", "sb3", "--cpus-per-trial", "1",
 ]  # fmt: skip
 
@@ -537,7 +537,7 @@ RESUMABLE = [
     "--tasks", "cartpole-balance", "--seeds", "1", "--variants", "drqv2+reset", "--frames", "1200",
     "--action-repeat", "20", "--size", "48", "--hidden-dim", "64", "--feature-dim", "16", "--batch-size", "16",
     "--seed-frames", "400", "--eval-every-frames", "1200", "--eval-episodes", "1", "--checkpoint-every-frames", "200",
-    "--collapse-metrics-every-frames", "400", "--collapse-probe-batch", "16", "--reset-window-frames", "800",
+    "--collapse-metrics-every-frames", "400", "--collapse-metrics-batch", "16", "--reset-window-frames", "800",
     "--replay-sampling", "sb3", "--cpus-per-trial", "1",
 ]  # fmt: skip
 

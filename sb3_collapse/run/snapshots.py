@@ -1,12 +1,14 @@
 """
-Probe checkpoints: the weights the offline probe needs (the encoder ``cnn1``..``cnn4`` and the actor ``mlp0``..
-``action``), saved at every evaluation of a run for the paper's Figure 2 (probing MSE over training).
+Snapshots: a run's encoder (``cnn1``..``cnn4``) and actor (``mlp0``..``action``) saved at every evaluation, the
+weights the offline probe (the paper's Figure 2, probing MSE over training) and the report's fixed-set metrics
+(Figures 4, 8, 9) read.
 
-A probe checkpoint is an SB3 zip like ``DrQv2.save`` writes (``data``, ``policy.pth``), whose ``policy.pth`` holds
+A snapshot is an SB3 zip like ``DrQv2.save`` writes (``data``, ``policy.pth``), whose ``policy.pth`` holds
 the encoder and actor entries only: no critic, no target critic, no optimizer state, no replay buffer. With
 DrQ-v2's sizes at 84x84 it is 12.8 MB (walker-walk) against 46 MB for ``DrQv2.save`` before the first update,
-more once Adam's moments are saved. A member ``probe_checkpoint.json`` marks it;
-:func:`load_probe_checkpoint` (and ``sb3_collapse.probe``'s checkpoint loader) reads it into a DrQv2 model whose
+more once Adam's moments are saved. A member :data:`MARKER` marks it (:data:`LEGACY_MARKER` in the files of earlier
+versions);
+:func:`load_snapshot` (and ``sb3_collapse.probe``'s checkpoint loader) reads it into a DrQv2 model whose
 critic keeps its random initialization (never used by the probe).
 """
 
@@ -24,17 +26,19 @@ from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_f
 
 from sb3_collapse.drqv2.transplant import GROUP_LAYERS, TRANSPLANT_GROUPS
 from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
-from sb3_collapse.protocol import PROBE_CHECKPOINT
+from sb3_collapse.protocol import SNAPSHOT_FILE
 
-PROBE_GROUPS = ("cnn", "mlp")
-"""The transplant groups a probe checkpoint holds: the encoder and the actor."""
-PROBE_PREFIXES = tuple(prefix for group in PROBE_GROUPS for prefix in TRANSPLANT_GROUPS[group])
+SNAPSHOT_GROUPS = ("cnn", "mlp")
+"""The transplant groups a snapshot holds: the encoder and the actor."""
+SNAPSHOT_PREFIXES = tuple(prefix for group in SNAPSHOT_GROUPS for prefix in TRANSPLANT_GROUPS[group])
 """Their ``state_dict`` prefixes (``encoder.``, ``actor.``)."""
-MARKER = "probe_checkpoint.json"
-"""The zip member that marks a probe checkpoint: ``{"groups", "layers", "num_timesteps", "frames"}``."""
+MARKER = "snapshot.json"
+"""The zip member that marks a snapshot: ``{"groups", "layers", "num_timesteps", "frames"}``."""
+LEGACY_MARKER = "probe_checkpoint.json"
+"""The marker of the snapshots that earlier versions wrote (then named probe checkpoints); read as :data:`MARKER`."""
 
 
-def save_probe_checkpoint(model: Any, path: str | os.PathLike) -> Path:
+def save_snapshot(model: Any, path: str | os.PathLike) -> Path:
     """
     Save the encoder and actor of a DrQv2 model with the settings SB3 saves (atomically: a temporary file next to
     ``path``, renamed).
@@ -45,10 +49,10 @@ def save_probe_checkpoint(model: Any, path: str | os.PathLike) -> Path:
     :raises TypeError: for a model without a DrQ-v2 encoder and actor
     """
     state_dict = model.policy.state_dict()
-    kept = {key: value.detach().cpu() for key, value in state_dict.items() if key.startswith(PROBE_PREFIXES)}
-    if not all(any(key.startswith(prefix) for key in kept) for prefix in PROBE_PREFIXES):
+    kept = {key: value.detach().cpu() for key, value in state_dict.items() if key.startswith(SNAPSHOT_PREFIXES)}
+    if not all(any(key.startswith(prefix) for key in kept) for prefix in SNAPSHOT_PREFIXES):
         raise TypeError(
-            f"model must be a DrQv2 model (policy entries {', '.join(PROBE_PREFIXES)}), got {type(model).__name__}."
+            f"model must be a DrQv2 model (policy entries {', '.join(SNAPSHOT_PREFIXES)}), got {type(model).__name__}."
         )
     # The settings, as BaseAlgorithm.save keeps them: the attributes minus the excluded ones and the torch objects.
     data = model.__dict__.copy()
@@ -64,8 +68,8 @@ def save_probe_checkpoint(model: Any, path: str | os.PathLike) -> Path:
     try:
         save_to_zip_file(temporary, data=data, params={"policy": kept})
         marker = {
-            "groups": list(PROBE_GROUPS),
-            "layers": [layer for group in PROBE_GROUPS for layer in GROUP_LAYERS[group]],
+            "groups": list(SNAPSHOT_GROUPS),
+            "layers": [layer for group in SNAPSHOT_GROUPS for layer in GROUP_LAYERS[group]],
             "num_timesteps": int(model.num_timesteps),
             "frames": frames_of(model),
         }
@@ -78,37 +82,37 @@ def save_probe_checkpoint(model: Any, path: str | os.PathLike) -> Path:
     return path
 
 
-def is_probe_checkpoint(path: str | os.PathLike) -> bool:
-    """:return: whether ``path`` is a zip with the probe checkpoint's marker"""
+def is_snapshot(path: str | os.PathLike) -> bool:
+    """:return: whether ``path`` is a zip with a snapshot's marker (:data:`MARKER`, or :data:`LEGACY_MARKER`)"""
     try:
         with zipfile.ZipFile(path) as archive:
-            return MARKER in archive.namelist()
+            return not {MARKER, LEGACY_MARKER}.isdisjoint(archive.namelist())
     except (OSError, zipfile.BadZipFile):
         return False
 
 
-def load_probe_checkpoint(path: str | os.PathLike, device: th.device | str = "cpu", **kwargs: Any) -> Any:
+def load_snapshot(path: str | os.PathLike, device: th.device | str = "cpu", **kwargs: Any) -> Any:
     """
-    Load a probe checkpoint into a DrQv2 model (without environment) for inference: the encoder and actor
+    Load a snapshot into a DrQv2 model (without environment) for inference: the encoder and actor
     are the saved ones, the critic is freshly initialized and must not be used.
 
     :param path: the zip
     :param device: where the networks go
     :param kwargs: saved attributes to override (e.g. ``buffer_size`` for a small replay buffer)
     :return: the model
-    :raises ValueError: for a zip that is not a probe checkpoint or lacks encoder or actor entries
+    :raises ValueError: for a zip that is not a snapshot or lacks encoder or actor entries
     """
     from sb3_collapse.drqv2.drqv2 import DrQv2  # lazy: only loading builds a model
 
-    if not is_probe_checkpoint(path):
-        raise ValueError(f"{path} is not a probe checkpoint (no {MARKER}); load a full checkpoint with DrQv2.load.")
+    if not is_snapshot(path):
+        raise ValueError(f"{path} is not a snapshot (no {MARKER}); load a full checkpoint with DrQv2.load.")
     data, params, _ = load_from_zip_file(path, device=device)
     model = DrQv2(policy=data["policy_class"], env=None, device=device, _init_setup_model=False)
     model.__dict__.update(data)
     model.__dict__.update(kwargs)
     model._setup_model()
     missing, unexpected = model.policy.load_state_dict(params["policy"], strict=False)
-    lacking = [key for key in missing if key.startswith(PROBE_PREFIXES)]
+    lacking = [key for key in missing if key.startswith(SNAPSHOT_PREFIXES)]
     if lacking or unexpected:
         raise ValueError(
             f"{path}: the encoder and actor do not match the saved settings (missing {lacking[:3]}, unexpected "
@@ -118,17 +122,17 @@ def load_probe_checkpoint(path: str | os.PathLike, device: th.device | str = "cp
     return model
 
 
-class ProbeCheckpoints(ResumableCallback):
+class Snapshots(ResumableCallback):
     """
-    Save a probe checkpoint (:func:`save_probe_checkpoint`) at frame 0 and every ``every_frames`` frames, on the
+    Save a snapshot (:func:`save_snapshot`) at frame 0 and every ``every_frames`` frames, on the
     schedule of the train CLI's evaluations (and like them, not at the last step of ``learn()``: call
     :meth:`save` on the final model). Its schedule is saved in the run's checkpoints: a resumed run continues it.
 
-    Files: ``<folder>/`` :data:`~sb3_collapse.protocol.PROBE_CHECKPOINT` (``probe_<frames, 10 digits>_frames.zip``).
+    Files: ``<folder>/`` :data:`~sb3_collapse.protocol.SNAPSHOT_FILE` (``snapshot_<frames, 10 digits>_frames.zip``).
 
-    :param every_frames: frames between two checkpoints (the evaluation period)
+    :param every_frames: frames between two snapshots (the evaluation period)
     :param folder: where the zips go
-    :param verbose: 0 silent, 1 a line per checkpoint
+    :param verbose: 0 silent, 1 a line per snapshot
     """
 
     state_attributes = ("next_frame", "saved")
@@ -160,11 +164,11 @@ class ProbeCheckpoints(ResumableCallback):
 
     def save(self) -> Path:
         """Save the model's encoder and actor now, unless already saved at this frame; :return: the zip"""
-        path = self.folder / PROBE_CHECKPOINT.format(frames=frames_of(self.model))
+        path = self.folder / SNAPSHOT_FILE.format(frames=frames_of(self.model))
         if self.saved and self.saved[-1] == path:
             return path
-        save_probe_checkpoint(self.model, path)
+        save_snapshot(self.model, path)
         self.saved.append(path)
         if self.verbose >= 1:
-            print(f"ProbeCheckpoints: saved {path}")
+            print(f"Snapshots: saved {path}")
         return path

@@ -1,10 +1,11 @@
-"""Probe checkpoints (encoder and actor only) from a real tiny training run, read by the probe like full ones."""
+"""Snapshots (encoder and actor only) from a real tiny training run, read by the probe like full ones."""
 
 import csv
 import dataclasses
 import json
 import shutil
 import sys
+import zipfile
 from pathlib import Path
 
 import matplotlib.image
@@ -14,18 +15,25 @@ import torch as th
 from PIL import Image
 
 from sb3_collapse import DrQv2
-from sb3_collapse.errors import ParameterError
+from sb3_collapse.errors import ParameterError, ReportError
 from sb3_collapse.monitoring import collect_activations, layer_metrics
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.film import film_episode
 from sb3_collapse.probe.rollouts import record_rollouts, resolve_env_config
-from sb3_collapse.protocol import FIGURE2_PNG, PROBE_CHECKPOINT, PROBE_CHECKPOINTS_DIR, SWEEP_PROBE_DIR, TABLES_1_6_CSV
+from sb3_collapse.protocol import (
+    FIGURE2_PNG,
+    LEGACY_SNAPSHOTS_DIR,
+    SNAPSHOT_FILE,
+    SNAPSHOTS_DIR,
+    SWEEP_PROBE_DIR,
+    TABLES_1_6_CSV,
+    snapshot_files,
+)
 from sb3_collapse.report import write_report
-from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.fixed_inputs import FixedInputSettings, trial_fixed_metrics
 from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
-from sb3_collapse.run.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint, save_probe_checkpoint
+from sb3_collapse.run.snapshots import LEGACY_MARKER, MARKER, is_snapshot, load_snapshot, save_snapshot
 from sb3_collapse.train import TrainConfig, train
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "report"))
@@ -37,31 +45,53 @@ def run(tmp_path_factory):
     """800 frames (40 agent steps at action repeat 20: short evaluation episodes) at 48x48, evaluated every 400."""
     config = TrainConfig(
         env="walker-walk", frames=800, action_repeat=20, seed_frames=400, batch_size=16, hidden_dim=64, size=48,
-        eval_every_frames=400, eval_episodes=1, logdir=str(tmp_path_factory.mktemp("probe_ckpt")), progress_bar=False,
-        replay_sampling="sb3", collapse_metrics_every_frames=0, probe_checkpoints=True, torch_threads=1,
+        eval_every_frames=400, eval_episodes=1, logdir=str(tmp_path_factory.mktemp("snapshots")), progress_bar=False,
+        replay_sampling="sb3", collapse_metrics_every_frames=0, snapshots=True, torch_threads=1,
     )  # fmt: skip
     return train(config)
 
 
-def test_one_probe_checkpoint_per_evaluation(run):
-    folder = run.run_dir / PROBE_CHECKPOINTS_DIR
+def test_one_snapshot_per_evaluation(run):
+    folder = run.run_dir / SNAPSHOTS_DIR
     names = sorted(p.name for p in folder.iterdir())
-    assert names == [PROBE_CHECKPOINT.format(frames=f) for f in (0, 400, 800)] == [
-        "probe_0000000000_frames.zip",
-        "probe_0000000400_frames.zip",
-        "probe_0000000800_frames.zip",
+    assert names == [SNAPSHOT_FILE.format(frames=f) for f in (0, 400, 800)] == [
+        "snapshot_0000000000_frames.zip",
+        "snapshot_0000000400_frames.zip",
+        "snapshot_0000000800_frames.zip",
     ]
     assert [int(e["frame"]) for e in run.evaluations] == [0, 400]  # scheduled; 800: the final model's, apart
     assert run.saved_model_evaluation["frame"] == 800
     final_size = run.model_path.stat().st_size
     for path in folder.iterdir():
-        assert is_probe_checkpoint(path) and path.stat().st_size < final_size / 2
-    assert not is_probe_checkpoint(run.model_path)
+        assert is_snapshot(path) and path.stat().st_size < final_size / 2
+    assert not is_snapshot(run.model_path)
 
 
-def test_probe_checkpoint_holds_the_final_encoder_and_actor(run):
+
+def test_snapshots_of_earlier_versions_are_read(run, tmp_path):
+    """A run folder of an earlier version (``probe_checkpoints/probe_*.zip``, marker ``probe_checkpoint.json``),
+    resumed by this one (``snapshots/``): both folders are read, in training order, and loaded."""
+    names = [SNAPSHOT_FILE.format(frames=frames) for frames in (0, 400, 800)]
+    legacy = tmp_path / LEGACY_SNAPSHOTS_DIR
+    legacy.mkdir()
+    for name in names[:2]:  # the marker renamed, as an earlier version wrote it
+        with zipfile.ZipFile(run.run_dir / SNAPSHOTS_DIR / name) as source, zipfile.ZipFile(
+            legacy / name.replace("snapshot_", "probe_"), "w"
+        ) as target:
+            for member in source.namelist():
+                target.writestr(LEGACY_MARKER if member == MARKER else member, source.read(member))
+    (tmp_path / SNAPSHOTS_DIR).mkdir()
+    shutil.copy(run.run_dir / SNAPSHOTS_DIR / names[2], tmp_path / SNAPSHOTS_DIR / names[2])
+    files = snapshot_files(tmp_path)
+    assert [path.name for path in files] == [
+        "probe_0000000000_frames.zip", "probe_0000000400_frames.zip", "snapshot_0000000800_frames.zip"
+    ]  # fmt: skip
+    assert all(is_snapshot(path) for path in files)
+    assert load_checkpoint(files[0]).model.num_timesteps == 0
+
+def test_snapshot_holds_the_final_encoder_and_actor(run):
     final = DrQv2.load(run.model_path, buffer_size=64)
-    checkpoint = load_checkpoint(run.run_dir / PROBE_CHECKPOINTS_DIR / PROBE_CHECKPOINT.format(frames=800))
+    checkpoint = load_checkpoint(run.run_dir / SNAPSHOTS_DIR / SNAPSHOT_FILE.format(frames=800))
     assert checkpoint.algorithm == "DrQv2" and checkpoint.num_timesteps == 40 and checkpoint.frames == 800
     assert checkpoint.env_config == final.env_config
     saved, reference = checkpoint.model.policy.state_dict(), final.policy.state_dict()
@@ -75,18 +105,16 @@ def test_probe_checkpoint_holds_the_final_encoder_and_actor(run):
         checkpoint.model.predict(observation, deterministic=True)[0], final.predict(observation, deterministic=True)[0]
     )
     # the earliest one differs from the final weights
-    first = load_probe_checkpoint(run.run_dir / PROBE_CHECKPOINTS_DIR / PROBE_CHECKPOINT.format(frames=0))
+    first = load_snapshot(run.run_dir / SNAPSHOTS_DIR / SNAPSHOT_FILE.format(frames=0))
     assert first.num_timesteps == 0
     assert not th.equal(first.policy.state_dict()["actor.mlp1.0.weight"], reference["actor.mlp1.0.weight"])
 
 
-def test_probe_checkpoints_need_drqv2_and_evaluations(tmp_path):
-    with pytest.raises(ParameterError, match="probe_checkpoints"):
-        train(
-            TrainConfig(env="walker-walk", frames=80, eval_every_frames=0, probe_checkpoints=True, logdir=str(tmp_path))
-        )
+def test_snapshots_need_drqv2_and_evaluations(tmp_path):
+    with pytest.raises(ParameterError, match="snapshots"):
+        train(TrainConfig(env="walker-walk", frames=80, eval_every_frames=0, snapshots=True, logdir=str(tmp_path)))
     with pytest.raises(TypeError, match="DrQv2 model"):
-        save_probe_checkpoint(type("NotDrQ", (), {"policy": th.nn.Linear(2, 2)})(), tmp_path / "x.zip")
+        save_snapshot(type("NotDrQ", (), {"policy": th.nn.Linear(2, 2)})(), tmp_path / "x.zip")
     assert not list(tmp_path.iterdir())
 
 
@@ -147,14 +175,14 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
         assert list(csv.DictReader(file)) == probe
     assert json.loads((out / "summary.json").read_text())["jobs"] == 2
     capsys.readouterr()
-    # a trial without probe checkpoints: the message says how to get them
-    shutil.rmtree(root / "walker-walk" / "drqv2" / "seed_3" / PROBE_CHECKPOINTS_DIR)
+    # a trial without snapshots: the message says how to get them
+    shutil.rmtree(root / "walker-walk" / "drqv2" / "seed_3" / SNAPSHOTS_DIR)
     assert probe_main([*argv, "--overwrite", "--no-progress"]) == 2
-    assert "--probe-checkpoints" in capsys.readouterr().err
+    assert "--snapshots" in capsys.readouterr().err
 
 
 def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
-    """Every probe checkpoint of the picked agents run on the same observations: the metrics are layer_metrics of
+    """Every snapshot of the picked agents run on the same observations: the metrics are layer_metrics of
     the snapshot's activations of those observations."""
     root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 2: 400.0, 3: 10.0})
     recorder = load_checkpoint(root / "walker-walk" / "drqv2" / "seed_0" / "final_model.zip").model
@@ -181,7 +209,7 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
     rows = report.collapse[key]
     for pick, row in zip(picks, rows):
         assert row.trial is pick.trial and row.widths == {"mlp1": 64, "mlp2": 64}  # hidden_dim 64
-        files = sorted((pick.trial.path / PROBE_CHECKPOINTS_DIR).glob("*.zip"))
+        files = sorted((pick.trial.path / SNAPSHOTS_DIR).glob("*.zip"))
         assert len(files) == 3 and list(row.metrics["collapse/mlp1/dead_units"][0]) == [0, 400, 800]
         for index, file in enumerate(files):
             activations = collect_activations(load_checkpoint(file).model, rollouts.observations[indices])
@@ -211,7 +239,7 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
 
 def test_film_of_checkpoints(run, tmp_path):
     final = run.model_path
-    first = run.run_dir / PROBE_CHECKPOINTS_DIR / PROBE_CHECKPOINT.format(frames=0)
+    first = run.run_dir / SNAPSHOTS_DIR / SNAPSHOT_FILE.format(frames=0)
     out = tmp_path / "film"
     argv = [
         "film",
@@ -233,8 +261,8 @@ def test_film_of_checkpoints(run, tmp_path):
         "filmstrip.png",
         "final_model_seed0.gif",
         "final_model_seed1.gif",
-        "probe_0000000000_frames_seed0.gif",
-        "probe_0000000000_frames_seed1.gif",
+        "snapshot_0000000000_frames_seed0.gif",
+        "snapshot_0000000000_frames_seed1.gif",
     ]
     with Image.open(out / "final_model_seed0.gif") as gif:
         assert gif.size == (64, 64) and gif.n_frames == 4  # frames 0, 20, 40, 60 at action repeat 20

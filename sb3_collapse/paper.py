@@ -1,0 +1,154 @@
+"""
+The action-collapse paper's numbers, each with the passage it comes from: Chen, Zhu & Perrault, *Understanding
+Learned Representations and Action Collapse in Visual Reinforcement Learning*.
+
+- :data:`PAPER` (a frozen :class:`PaperProtocol`): the protocol. :class:`~sb3_collapse.CollapseReset`,
+  :class:`~sb3_collapse.CollapseMetrics`, the train CLI, the sweep, the rl_zoo3 launcher, the probe and the report
+  take their defaults from it.
+- :data:`PAPER_RESULTS` and :data:`PROPOSITION_1`: the results the report sets beside a sweep's.
+- :func:`evaluation_schedule` (the frames of a run's evaluations, the paper's x axis) and :func:`metric_tag` (the
+  name of a collapse metric).
+
+The run-folder format (file names, columns, writers) is in :mod:`sb3_collapse.protocol`; DrQ-v2's own per-task
+hyperparameters (budgets, schedules, batch sizes...) in :mod:`sb3_collapse.presets`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class PaperProtocol:
+    """
+    The paper's protocol numbers. Frames count environment frames (agent steps x action repeat).
+
+    :param check_every_frames: frames between two evaluations and two computations of the collapse metrics
+        (Section 4.1: "The total number of training frames is 1.1e6 and there is an evaluation every 1e4 frames,
+        resulting in x in [0, 109] on the x-axes for all the figures regarding VRL training"; the rule's
+        "computations" of Section 5.2): :attr:`evaluations` evaluations, at frames 0, 1e4, ..., 1.09e6
+    :param window_frames: the reset rule's window (Section 5.2: "reset the training from scratch every 2e5
+        frames", the end of DrQ-v2's exploration decay, x = 20 in Figure 4)
+    :param threshold: a gradient norm above it is healthy (Section 5.2: "a gradient norm larger than 0.001")
+    :param patience: consecutive healthy computations that mean an escape (Section 5.2: "of consecutive five
+        computations")
+    :param layer: the layer whose gradient norm the rule reads (Section 5.2: "the gradient norm of mlp1")
+    :param success_return: final return of a well-performing agent, at least (Section 4.1: "more than 900
+        rewards"; Figure 3: "successful (rewards >= 900)")
+    :param failure_return: final return of a poorly performing agent, below (Section 4.1: "less than 30 rewards")
+    :param last_evals: evaluations averaged for the across-seed standard deviation (Section 5.2: "the average
+        standard deviation over the last ten evaluations")
+    :param percentiles: the band of Figure 5, in percent ("the 5th percentile and the 95th percentile")
+    :param figure5_seeds: seeds per task and variant of Figure 5 ("40 seeds")
+    :param figure5_tasks: the tasks of Figure 5 (walker_walk, hopper_stand, finger_spin)
+    :param train_frames: frames of a run in Sections 4 and 5 (Section 4.1: "The total number of training frames is
+        1.1e6")
+    :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110", in
+        evaluations of 1e4 frames); a shorter run is read at the same fractions of its own length
+    """
+
+    check_every_frames: int = 10_000
+    window_frames: int = 200_000
+    threshold: float = 1e-3
+    patience: int = 5
+    layer: str = "mlp1"
+    success_return: float = 900.0
+    failure_return: float = 30.0
+    last_evals: int = 10
+    percentiles: tuple[float, float] = (5.0, 95.0)
+    figure5_seeds: int = 40
+    figure5_tasks: tuple[str, ...] = ("walker-walk", "hopper-stand", "finger-spin")
+    train_frames: int = 1_100_000
+    stage_frames: tuple[int, ...] = (0, 350_000, 700_000, 1_100_000)
+
+    @property
+    def stage_fractions(self) -> tuple[float, ...]:
+        """:attr:`stage_frames` as fractions of :attr:`train_frames` (0, 0.32, 0.64, 1)."""
+        return tuple(frame / self.train_frames for frame in self.stage_frames)
+
+    @property
+    def evaluations(self) -> int:
+        """The evaluations of a run, the paper's x in [0, 109]: 110 (:func:`evaluation_schedule` of its budget)."""
+        return len(evaluation_schedule(self.train_frames, self.check_every_frames))
+
+    @property
+    def collapse_tag(self) -> str:
+        """The collapse-metrics file's / TensorBoard tag of the rule's metric (``collapse/mlp1/grad_norm``)."""
+        return metric_tag(self.layer, "grad_norm")
+
+
+PAPER = PaperProtocol()
+"""The paper's protocol."""
+
+
+@dataclass(frozen=True)
+class PaperResult:
+    """
+    The paper's headline numbers of one task of Figure 5 (Section 5.2, "Results"), DrQ-v2 against DrQ-v2 plus the
+    rule, 40 seeds each.
+
+    :param task: the task, ``<domain>-<task>``
+    :param seeds: seeds per variant ("The performance comparison of 40 seeds", Figure 5)
+    :param stuck_baseline: DrQ-v2's seeds stuck in action collapse ("we count the number of seeds stuck in action
+        collapse continuously. There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2")
+    :param stuck_rule: the rule's ("In comparison, all 40 seeds of ours escape action collapse")
+    :param std_baseline: DrQ-v2's "average standard deviation over the last ten evaluations" ("drops a lot, from
+        418.2 to 38.2, from 359.5 to 93.8, and from 362.7 to 116.2 for the three tasks, respectively")
+    :param std_rule: the same with the rule
+    """
+
+    task: str
+    seeds: int
+    stuck_baseline: int
+    stuck_rule: int
+    std_baseline: float
+    std_rule: float
+
+
+PAPER_RESULTS: tuple[PaperResult, ...] = (
+    PaperResult("walker-walk", 40, 13, 0, 418.2, 38.2),
+    PaperResult("hopper-stand", 40, 8, 0, 359.5, 93.8),
+    PaperResult("finger-spin", 40, 7, 0, 362.7, 116.2),
+)
+"""The paper's headline numbers, in the order of its tasks (walker_walk, hopper_stand, finger_spin: Section 5.2)."""
+
+PROPOSITION_1 = (
+    "Supposing the number of training frames is n · m (m is the frames where the exploration decreases to the "
+    "smallest) and the probability of getting stuck in action collapse is p, then the probability of escaping action "
+    "collapse when applying our proposed rule is 1 - p^n."
+)
+"""Proposition 1 of the paper (Section 5.2), word for word."""
+
+
+def evaluation_schedule(frames: int, every_frames: int, frames_per_step: int = 1) -> list[int]:
+    """
+    The frames of a run's scheduled evaluations, as the reference (facebookresearch/drqv2's ``train.py``) has them:
+    one before the first agent step (frame 0), then one every ``every_frames`` frames while the run still has agent
+    steps to take, never at the budget's end (the reference's loop stops there). For the paper's budget of 1.1e6
+    frames and an evaluation every 1e4 frames: 0, 1e4, ..., 1.09e6, 110 evaluations ("x in [0, 109]", Section
+    4.1). The paper's statistics (the last ten evaluations, the 900/30 classes) come from these; the evaluation of
+    the saved final model (at ``frames``) is not one of them.
+
+    :param frames: the run's budget, in frames
+    :param every_frames: frames between two evaluations (> 0)
+    :param frames_per_step: frames an agent step adds (action repeat x environments): an evaluation falls on the
+        first agent step at or after its frame
+    :return: the frames, increasing
+    """
+    if every_frames <= 0 or frames_per_step <= 0:
+        raise ValueError(f"every_frames and frames_per_step must be > 0, got {every_frames} and {frames_per_step}.")
+    schedule = []
+    for target in range(0, frames, every_frames):
+        frame = -(-target // frames_per_step) * frames_per_step
+        if frame < frames and (not schedule or frame > schedule[-1]):
+            schedule.append(frame)
+    return schedule
+
+
+def metric_tag(layer: str, metric: str) -> str:
+    """
+    :param layer: a named layer (``"mlp1"``)
+    :param metric: a metric name (``"grad_norm"``, ``"numerical_rank"``...)
+    :return: its TensorBoard and collapse-metrics file's tag, ``collapse/<layer>/<metric>``
+    """
+    return f"collapse/{layer}/{metric}"
