@@ -18,7 +18,7 @@ from typing import Any
 
 from sb3_collapse.sweep.trials import SweepError
 
-INSTALL_HINT = "pip install 'sb3-collapse[sweep]'"
+INSTALL_HINT = "pip install -e '.[sweep]'"
 
 
 class RayMissingError(ImportError):

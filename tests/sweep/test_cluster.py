@@ -40,7 +40,7 @@ def free_port() -> int:
 
 
 def test_unreachable_cluster_is_one_line_exit_1_and_writes_nothing(tmp_path, capsys):
-    pytest.importorskip("ray", reason="the sweep extra is not installed: pip install 'sb3-collapse[sweep]'")
+    pytest.importorskip("ray", reason="the sweep extra is not installed: pip install -e '.[sweep]'")
     address = f"127.0.0.1:{free_port()}"  # nothing listens there
     start = time.monotonic()
     with pytest.raises(ClusterUnreachable, match=rf"address {address}: no Ray cluster answered within 1 s"):
@@ -64,7 +64,7 @@ def ray_cluster():
     """A Ray cluster started with ``ray start --head --block`` (2 CPUs, its own ports and temporary folder), with
     token authentication and a token of its own; ends with the module. Yields its address and the environment of a
     driver that has the token."""
-    pytest.importorskip("ray", reason="the sweep extra is not installed: pip install 'sb3-collapse[sweep]'")
+    pytest.importorskip("ray", reason="the sweep extra is not installed: pip install -e '.[sweep]'")
     import psutil
 
     temp_dir = Path(tempfile.mkdtemp(prefix="ray", dir="/tmp"))  # short: Ray's socket paths have a length limit

@@ -56,7 +56,7 @@ RESULT_KEYS = {
 @pytest.fixture(scope="module")
 def ray_local():
     """One local Ray instance (2 CPUs) for the module: the sweeps below use it instead of starting their own."""
-    pytest.importorskip("ray", reason="the sweep extra is not installed: pip install 'sb3-collapse[sweep]'")
+    pytest.importorskip("ray", reason="the sweep extra is not installed: pip install -e '.[sweep]'")
     with ray_session(num_cpus=2):
         yield
 
@@ -245,7 +245,7 @@ def test_missing_ray_says_how_to_install_it(monkeypatch, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main([*TINY_TRIALS, "--out", str(tmp_path / "sweep"), *TINY])
     assert exit_info.value.code == 2
-    assert "pip install 'sb3-collapse[sweep]'" in capsys.readouterr().err
+    assert "pip install -e '.[sweep]'" in capsys.readouterr().err
     assert not (tmp_path / "sweep").exists()  # nothing written
 
 
