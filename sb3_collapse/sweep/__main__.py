@@ -20,6 +20,8 @@ from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED, PAPER
+from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.settings import training_arguments, training_settings
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
     DONOR_PARTS,
@@ -52,7 +54,6 @@ from sb3_collapse.sweep.trials import (
     trial_status,
     variant_settings,
 )
-from sb3_collapse.train import TrainConfig, training_arguments, training_settings
 
 DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
 

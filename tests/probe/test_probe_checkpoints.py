@@ -25,8 +25,9 @@ from sb3_collapse.report import write_report
 from sb3_collapse.report.errors import ReportError
 from sb3_collapse.report.fixed_inputs import FixedInputSettings, trial_fixed_metrics
 from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
+from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.probe_checkpoint import is_probe_checkpoint, load_probe_checkpoint, save_probe_checkpoint
-from sb3_collapse.train import TrainConfig, train
+from sb3_collapse.run.runner import train
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "report"))
 from fabricated_sweep import write_probe_sweep
