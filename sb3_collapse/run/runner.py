@@ -277,19 +277,18 @@ def build_envs_and_model(
     return env, eval_env, model
 
 
-def _train_into(
-    config: TrainConfig,
-    task_id: str,
-    run_dir: Path,
-    model: BaseAlgorithm,
-    env: EpisodeReplay | VecEnv,
-    eval_env: EpisodeReplay | None,
-    steps: int,
-    start_time: float,
-    checkpoint: LoadedCheckpoint | None = None,
-) -> TrainResult:
-    """:func:`train` once the model is built and the run folder holds the settings (or a checkpoint to resume)."""
+@dataclass
+class _RunCallbacks:
+    """The callbacks of a run, as :func:`_run_callbacks` builds them from its settings."""
 
+    callbacks: list[BaseCallback]
+    evaluation: PeriodicEvaluation | None
+    probe_checkpoints: ProbeCheckpoints | None
+    reset_rule: CollapseReset | None
+
+
+def _run_callbacks(config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay | None) -> _RunCallbacks:
+    """The evaluation, probe checkpoints, collapse metrics, reset rule and ReDo of a run, as its settings ask."""
     callbacks: list[BaseCallback] = []
     evaluation = None
     if eval_env is not None:
@@ -319,30 +318,11 @@ def _train_into(
         callbacks.append(reset_rule)
     if config.redo_every_updates > 0:
         callbacks.append(PeriodicReDo(config.redo_every_updates, batch_size=config.collapse_probe_batch))
+    return _RunCallbacks(callbacks, evaluation, probe_checkpoints, reset_rule)
 
-    earlier_s, resumes = 0.0, 0  # seconds and resumptions of the earlier processes of this run
-    checkpoints = ResumableCheckpoints(
-        run_dir / CHECKPOINTS_DIR,
-        config.checkpoint_every_frames,
-        callbacks=callbacks,
-        eval_env=eval_env,
-        csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
-        extra_state=lambda: {"elapsed_s": earlier_s + time.time() - start_time, "resumes": resumes},
-        verbose=1,
-    )
-    checkpoints.init_callback(model)
-    if checkpoint is not None:
-        checkpoint, notes = checkpoints.resume(checkpoint)
-        for note in notes:
-            print(f"Note: {note}")
-        earlier_s, resumes = checkpoint.state["extra"]["elapsed_s"], checkpoint.state["extra"]["resumes"] + 1
-        if evaluation is not None:
-            evaluation.start_time = start_time - earlier_s
-    callbacks.append(checkpoints)
-    timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
-    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
-    model.set_logger(resumed_logger(run_dir, formats, checkpoint))
 
+def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgorithm, steps: int) -> None:
+    """Print what the run trains, with which settings (and where they came from), and where it writes."""
     user = sorted(name for name, source in config.sources.items() if source == USER)
     task_preset = config.preset
     origin = (
@@ -374,6 +354,47 @@ def _train_into(
         f"Writing to {run_dir} (tensorboard --logdir {run_dir if config.run_dir else config.logdir})",
         flush=True,
     )
+
+
+def _train_into(
+    config: TrainConfig,
+    task_id: str,
+    run_dir: Path,
+    model: BaseAlgorithm,
+    env: EpisodeReplay | VecEnv,
+    eval_env: EpisodeReplay | None,
+    steps: int,
+    start_time: float,
+    checkpoint: LoadedCheckpoint | None = None,
+) -> TrainResult:
+    """:func:`train` once the model is built and the run folder holds the settings (or a checkpoint to resume)."""
+    run_callbacks = _run_callbacks(config, run_dir, eval_env)
+    callbacks, evaluation, reset_rule = run_callbacks.callbacks, run_callbacks.evaluation, run_callbacks.reset_rule
+
+    earlier_s, resumes = 0.0, 0  # seconds and resumptions of the earlier processes of this run
+    checkpoints = ResumableCheckpoints(
+        run_dir / CHECKPOINTS_DIR,
+        config.checkpoint_every_frames,
+        callbacks=callbacks,
+        eval_env=eval_env,
+        csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
+        extra_state=lambda: {"elapsed_s": earlier_s + time.time() - start_time, "resumes": resumes},
+        verbose=1,
+    )
+    checkpoints.init_callback(model)
+    if checkpoint is not None:
+        checkpoint, notes = checkpoints.resume(checkpoint)
+        for note in notes:
+            print(f"Note: {note}")
+        earlier_s, resumes = checkpoint.state["extra"]["elapsed_s"], checkpoint.state["extra"]["resumes"] + 1
+        if evaluation is not None:
+            evaluation.start_time = start_time - earlier_s
+    callbacks.append(checkpoints)
+    timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
+    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
+    model.set_logger(resumed_logger(run_dir, formats, checkpoint))
+
+    _announce(config, task_id, run_dir, model, steps)
     try:
         with stop_signals(checkpoints):
             model.learn(
@@ -411,8 +432,8 @@ def _train_into(
         saved_model_eval = None
         if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the evaluation file)
             saved_model_eval = evaluation.evaluate_saved_model()
-        if probe_checkpoints is not None:
-            probe_checkpoints.save()  # the final model's, next to its evaluation (once per frame)
+        if run_callbacks.probe_checkpoints is not None:
+            run_callbacks.probe_checkpoints.save()  # the final model's, next to its evaluation (once per frame)
         model.logger.close()
         env.close()
         evaluations = evaluation.rows if evaluation is not None else []
