@@ -103,7 +103,7 @@ RESULT_KEYS = (
     "timings",
     "resumes",
 )
-"""The keys of the result file, see :func:`sb3_collapse.train.run_summary`."""
+"""The keys of the result file, see :func:`sb3_collapse.run.runner.run_summary`."""
 FINISHED = "finished"
 """``status`` of a finished run."""
 

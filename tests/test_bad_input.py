@@ -22,8 +22,9 @@ from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.protocol import ERROR_TXT, failed_before_training
 from sb3_collapse.report.__main__ import main as report_main
+from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.runner import train
 from sb3_collapse.sweep.__main__ import main as sweep_main
-from sb3_collapse.train import TrainConfig, train
 from sb3_collapse.train import main as train_main
 from sb3_collapse.zoo.launcher import main as zoo_main
 

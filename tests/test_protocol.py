@@ -97,7 +97,8 @@ def test_library_errors_name_parameters_and_clis_translate():
 
 
 def test_settings_files_of_earlier_versions_are_read_under_the_current_names(tmp_path):
-    from sb3_collapse.train import TrainConfig, settings_differences
+    from sb3_collapse.run.config import TrainConfig
+    from sb3_collapse.run.folder import settings_differences
 
     config = TrainConfig(env="walker-walk", frames=800, snapshots=True, collapse_metrics_batch=16)
     saved = json.loads(json.dumps(config.record()))

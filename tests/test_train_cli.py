@@ -11,7 +11,9 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_collapse import DrQv2
 from sb3_collapse.paper import PAPER, evaluation_schedule
-from sb3_collapse.train import TrainConfig, main, train
+from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.runner import train
+from sb3_collapse.train import main
 
 
 def test_train_end_to_end(tmp_path):

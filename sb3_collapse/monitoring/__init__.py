@@ -1,4 +1,5 @@
-"""Collapse monitoring: named activations of an actor, collapse metrics, and the callbacks built on them."""
+"""Collapse monitoring: named activations of an actor, collapse metrics, and the callbacks built on them (and the
+run's periodic evaluation)."""
 
 from sb3_collapse.monitoring.activations import (
     LayerMappingError,
@@ -15,6 +16,7 @@ from sb3_collapse.monitoring.callbacks import (
     action_repeat_of,
     frames_of,
 )
+from sb3_collapse.monitoring.evaluation import PeriodicEvaluation
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, grad_norms_of, track_grad_norms
 from sb3_collapse.monitoring.interventions import (
     INTERVENTIONS,
@@ -56,6 +58,7 @@ __all__ = [
     "LayerMappingError",
     "LayerTap",
     "MetricsBatchSampler",
+    "PeriodicEvaluation",
     "PeriodicReDo",
     "action_repeat_of",
     "action_spread",

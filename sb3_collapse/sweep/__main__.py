@@ -21,6 +21,8 @@ from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED
 from sb3_collapse.run.checkpoints import checkpoint_frames
+from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.settings import training_arguments, training_settings
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
@@ -46,7 +48,6 @@ from sb3_collapse.sweep.trials import (
     trial_status,
     variant_settings,
 )
-from sb3_collapse.train import TrainConfig, training_arguments, training_settings
 
 DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
 
@@ -73,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"<algorithm> or <algorithm>+<intervention> (the paper's rule doing that intervention), <algorithm> in "
         f"{'/'.join(BASE_VARIANTS)} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations), "
         f"<intervention> in {'/'.join(INTERVENTIONS)}, or <algorithm>+redo_periodic (ReDo every {REDO_EVERY_UPDATES} "
-        "updates, no rule) (e.g. drqv2+reset, drqv2+redo, drqv2-leaky+reset; docs/interventions.md), or transplant-grid cells "
+        "updates, no rule) (e.g. drqv2+reset, drqv2+redo, drqv2-leaky+reset; docs/interventions.md), or "
+        "transplant-grid cells "
         f"cnn-<src>_mlp-<src>, <src> in {'/'.join(TRANSPLANT_SOURCES)}; default: {' '.join(DEFAULT_VARIANTS)} (only "
         "the grid with --transplant-grid)",
     )
@@ -269,7 +271,8 @@ def dry_run(
     Print each trial's status and folder, and the counts; check the settings against the sweep's settings file.
 
     :return: exit status 0
-    :raises SweepError: when the training settings differ from those of the sweep's settings file (and that is not allowed)
+    :raises SweepError: when the training settings differ from those of the sweep's settings file (and that is not
+    allowed)
     """
     if donors is not None:
         for task, picked in donors["tasks"].items():

@@ -1,6 +1,6 @@
 """
 Run the trials of a sweep on Ray: each trial is an independent Ray task (Ray core, ``ray.remote``) that asks for
-``cpus_per_trial`` CPUs and ``gpus_per_trial`` GPUs (fractions allowed) and calls :func:`sb3_collapse.train.train`
+``cpus_per_trial`` CPUs and ``gpus_per_trial`` GPUs (fractions allowed) and calls :func:`sb3_collapse.run.runner.train`
 into the trial's folder, in a worker process of its own.
 
 Ray core rather than Ray Tune: the trials are fixed (no search, no scheduler, no early stopping) and each one
@@ -35,6 +35,9 @@ from sb3_collapse.protocol import (
     write_json_atomically,
     write_text_atomically,
 )
+from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.folder import UNFINISHED_RUN, run_folder_state, settings_differences
+from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import (
     TrainingInterrupted,
     clear_training_stop,
@@ -51,7 +54,6 @@ from sb3_collapse.sweep.trials import (
     trial_dir,
     trial_status,
 )
-from sb3_collapse.train import UNFINISHED_RUN, TrainConfig, run_folder_state, settings_differences, train
 
 
 def check_sweep_arguments(
@@ -136,13 +138,14 @@ def run_trial(
 ) -> dict[str, Any]:
     """
     Run one trial into its folder (``train`` writes its result file last). An earlier, unfinished attempt is resumed
-    from its newest checkpoint, or restarted from frame 0 without one (see :func:`~sb3_collapse.train.train`); one with
+    from its newest checkpoint, or restarted from frame 0 without one (see :func:`~sb3_collapse.run.runner.train`); one
+    with
     other training settings (a sweep run with ``allow_changed_settings``) is deleted first. A failure does not
     propagate: its traceback goes to the trial's error file.
 
     :param trial: the trial
     :param out: the sweep folder
-    :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials
+    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials
     :param checkpoints: donor (``"good_cnn"``, ``"good_mlp"``, ``"bad_cnn"``, ``"bad_mlp"``) -> task -> checkpoint
         path, for transplant-grid cells (:mod:`sb3_collapse.sweep.donors`)
     :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
@@ -269,7 +272,7 @@ def sweep_settings(
     donors: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """
-    The content of the sweep's settings file: ``training`` (the shared :class:`~sb3_collapse.train.TrainConfig`
+    The content of the sweep's settings file: ``training`` (the shared :class:`~sb3_collapse.run.config.TrainConfig`
     fields as given: ``None`` for a DrQ-v2 setting left to the presets), ``task_settings`` (task -> the DrQ-v2
     settings its trials use: its preset, with the sweep's explicit settings over it), ``checkpoints`` (donor,
     ``good_cnn``... -> task -> path), ``tasks``, ``variants``, ``seeds``, ``resources`` (how trials ran: CPUs and
@@ -376,7 +379,8 @@ def prepare_sweep_folder(
     out: str | Path, settings: Mapping[str, Any], allow_changed_settings: bool = False, write: bool = True
 ) -> None:
     """
-    Check this run's settings against the sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) and write the merged settings there (atomically).
+    Check this run's settings against the sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`)
+    and write the merged settings there (atomically).
 
     :param out: the sweep folder (created if needed)
     :param settings: this run's :func:`sweep_settings`
@@ -395,8 +399,8 @@ def prepare_sweep_folder(
             raise SweepError(
                 f"{out} holds a sweep with other training settings:\n  "
                 + "\n  ".join(changes)
-                + "\nUse another `out`, the same settings, or `allow_changed_settings=True` to mix them (finished trials "
-                "are not rerun)."
+                + "\nUse another `out`, the same settings, or `allow_changed_settings=True` to mix them "
+                "(finished trials are not rerun)."
             )
     if not write:
         return
@@ -423,7 +427,8 @@ def run_sweep(
     Resumable: a trial whose result file is there is skipped; any other trial (interrupted or failed) continues
     from its newest checkpoint, or runs again from frame 0 without one. A trial whose Ray worker dies (killed, out of
     memory, a lost node) is run again by Ray (up to :data:`TRIAL_RETRIES` times) and so continues from its
-    checkpoint too. The sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) records the settings (see
+    checkpoint too. The sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) records the
+    settings (see
     :func:`prepare_sweep_folder`). A failing trial writes its traceback to the trial's error file and the others
     go on. Ray starts only when there is a trial to run, and the settings file is written once Ray answered (a
     cluster that does not answer leaves the folder as it was).
@@ -434,7 +439,7 @@ def run_sweep(
 
     :param trials: the trials (:func:`~sb3_collapse.sweep.trials.expand_trials`)
     :param out: the sweep folder; with ``address`` it must be on storage that every node sees at the same path
-    :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials (not ``env``, ``seed``,
+    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (not ``env``, ``seed``,
         ``logdir``, ``run_name``, ``run_dir``, ``reset_rule``, ``device``, ``progress_bar``...)
     :param checkpoints: donor (``"good_cnn"``, ``"good_mlp"``, ``"bad_cnn"``, ``"bad_mlp"``) -> task -> checkpoint
         path, for transplant-grid cells (:mod:`sb3_collapse.sweep.donors`)

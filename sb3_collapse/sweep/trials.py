@@ -35,7 +35,7 @@ from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import ERROR_TXT, FINISHED, RESULT_JSON, trial_path
-from sb3_collapse.train import ALGORITHMS, TrainConfig
+from sb3_collapse.run.config import ALGORITHMS, TrainConfig
 
 LEAKY = "-leaky"
 """Suffix of the DrQ-v2 variants with Leaky-ReLU activations (``drqv2-leaky``)."""
@@ -126,7 +126,7 @@ def transplant_of(variant: str) -> dict[str, str] | None:
 
 def variant_settings(variant: str) -> dict[str, Any]:
     """
-    The :class:`~sb3_collapse.train.TrainConfig` settings a variant fixes.
+    The :class:`~sb3_collapse.run.config.TrainConfig` settings a variant fixes.
 
     :param variant: a variant name
     :return: ``algorithm``, ``reset_rule``, ``intervention`` (``None`` without the rule), ``activation``
@@ -292,12 +292,12 @@ def trial_config(
 
     :param trial: the trial
     :param out: the sweep folder
-    :param training: :class:`~sb3_collapse.train.TrainConfig` fields shared by all trials (``None``: the task's
+    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (``None``: the task's
         preset)
     :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> checkpoint path, for transplant-grid cells
     :param device: the torch device of the trial
     :param torch_threads: threads of torch's CPU operations in the trial
-    :return: the trial's :class:`~sb3_collapse.train.TrainConfig`
+    :return: the trial's :class:`~sb3_collapse.run.config.TrainConfig`
     """
     transplant = transplant_of(trial.variant)
     per_trial: dict[str, Any] = {

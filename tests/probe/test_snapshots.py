@@ -33,8 +33,9 @@ from sb3_collapse.protocol import (
 from sb3_collapse.report import write_report
 from sb3_collapse.report.fixed_inputs import FixedInputSettings, trial_fixed_metrics
 from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
+from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.runner import train
 from sb3_collapse.run.snapshots import LEGACY_MARKER, MARKER, is_snapshot, load_snapshot, save_snapshot
-from sb3_collapse.train import TrainConfig, train
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "report"))
 from fabricated_sweep import write_probe_sweep

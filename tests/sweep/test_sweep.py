@@ -15,6 +15,7 @@ import pytest
 from sb3_collapse import DrQv2
 from sb3_collapse.report.collapse_figure import agent_class
 from sb3_collapse.run.checkpoints import checkpoint_folders, checkpoint_frames
+from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.sweep import (
     GRID_VARIANTS,
     SweepError,
@@ -32,7 +33,6 @@ from sb3_collapse.sweep import (
 )
 from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.cluster import check_resources
-from sb3_collapse.train import TrainConfig
 
 # A tiny trial: 1000 frames = 250 agent steps of 4 frames (a whole DMC episode is then 250 agent steps, so that the
 # evaluations at frames 0 and 1000 stay cheap), 32x32 images, learning from frame 600 (agent step 150), collapse

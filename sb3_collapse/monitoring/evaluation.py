@@ -1,0 +1,98 @@
+"""The periodic evaluation of a training run (:class:`PeriodicEvaluation`), as the reference evaluates."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.evaluation import evaluate_policy
+
+from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
+from sb3_collapse.protocol import EVAL_FIELDS, append_csv_rows
+
+
+class PeriodicEvaluation(ResumableCallback):
+    """
+    Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
+    (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done: the scheduled
+    evaluations (:func:`~sb3_collapse.paper.evaluation_schedule`), as in the reference's ``train.py``, where the
+    paper's statistics come from.
+
+    Not at the last step of ``learn()`` (the reference does not evaluate there either; there, SB3 calls the callbacks
+    before that step's updates). :func:`~sb3_collapse.run.runner.train` evaluates the saved final model after
+    ``learn()`` with
+    :meth:`evaluate_saved_model`: that evaluation is labelled apart (TensorBoard ``eval_saved_model/...``, the result
+    file's ``saved_model_eval``), neither in the CSV nor in :attr:`rows`.
+
+    :param eval_env: evaluation environment (same pixel settings as the training one)
+    :param every_frames: frames between evaluations
+    :param episodes: episodes per evaluation
+    :param csv_path: CSV file with the columns :data:`~sb3_collapse.protocol.EVAL_FIELDS`
+    """
+
+    state_attributes = ("next_eval_frame", "rows")
+
+    def __init__(self, eval_env: Any, every_frames: int, episodes: int, csv_path: Path) -> None:
+        super().__init__()
+        self.eval_env = eval_env
+        self.every_frames = every_frames
+        self.episodes = episodes
+        self.csv_path = csv_path
+        self.start_time = time.time()
+        self.next_eval_frame = 0
+        self.rows: list[dict[str, float]] = []
+
+    def _frames(self) -> int:
+        return frames_of(self.model)
+
+    def _on_training_start(self) -> None:
+        self.next_eval_frame = self._frames()
+        self._maybe_evaluate()
+
+    def _on_step(self) -> bool:
+        if self.model.num_timesteps < getattr(self.model, "_total_timesteps", float("inf")):
+            self._maybe_evaluate()
+        return True
+
+    def _maybe_evaluate(self) -> None:
+        if self._frames() >= self.next_eval_frame:
+            self.evaluate()
+            while self.next_eval_frame <= self._frames():
+                self.next_eval_frame += self.every_frames
+
+    def _run_episodes(self, prefix: str) -> dict[str, float]:
+        """Evaluate now and log the result under ``<prefix>/...``; return the row (keys :data:`EVAL_FIELDS`)."""
+        rewards, _ = evaluate_policy(
+            self.model, self.eval_env, n_eval_episodes=self.episodes, deterministic=True, return_episode_rewards=True
+        )
+        row = {
+            "frame": self._frames(),
+            "step": self.model.num_timesteps,
+            "mean_reward": float(np.mean(rewards)),
+            "std_reward": float(np.std(rewards)),
+            "episodes": len(rewards),
+            "wall_time_s": round(time.time() - self.start_time, 1),
+        }
+        self.logger.record(f"{prefix}/mean_reward", row["mean_reward"])
+        self.logger.record(f"{prefix}/std_reward", row["std_reward"])
+        self.logger.record(f"{prefix}/frames", row["frame"])
+        self.logger.dump(step=self.model.num_timesteps)
+        return row
+
+    def evaluate(self) -> dict[str, float]:
+        """A scheduled evaluation: evaluate now, log the result and append it to the CSV; return the CSV row."""
+        row = self._run_episodes("eval")
+        append_csv_rows(self.csv_path, EVAL_FIELDS, [row])
+        self.rows.append(row)
+        return row
+
+    def evaluate_saved_model(self) -> dict[str, float]:
+        """
+        Evaluate the final model (after ``learn()``), logged as ``eval_saved_model/...``; not a scheduled evaluation:
+        not in the CSV, not in :attr:`rows`.
+
+        :return: the row (keys :data:`~sb3_collapse.protocol.EVAL_FIELDS`)
+        """
+        return self._run_episodes("eval_saved_model")

@@ -1,0 +1,573 @@
+"""
+The settings of one training run, :class:`TrainConfig`, each declared once with :func:`setting`: its default, its
+help text, its unit and whether the task's preset fills it. The command lines' flags, ``--show-settings`` and the
+settings tables of ``docs/presets.md`` are generated from these declarations (:mod:`sb3_collapse.run.settings`),
+and the model's keyword arguments from the config by :func:`drqv2_kwargs` and :func:`baseline_kwargs`.
+
+**Per-task defaults.** Every DrQ-v2 hyperparameter left out (budget, batch size, n-step, learning rate, exploration
+schedule...) comes from the task's preset, :func:`sb3_collapse.presets.preset`; a value given explicitly overrides
+it, and the run's settings file records every value and where it came from.
+
+**Units.** Budgets are in frames, as in DrQ-v2 and the paper (frames = agent steps x action repeat); the exploration
+schedule is in agent steps, as in DrQ-v2's configs. With ``n_envs=N`` (N environments in subprocesses), agent steps
+are summed over the environments (transitions) everywhere: the budget, the seed frames, the schedule, ``train_freq``,
+the evaluation and collapse-check periods and DrQ-v2's one update per 2 transitions mean the same as with one
+environment (``docs/throughput.md``).
+
+:meth:`TrainConfig.validate` checks what needs no file system; the run folder's checks are
+:func:`sb3_collapse.run.folder.check_run_folder`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from dataclasses import dataclass
+from typing import Any
+
+from sb3_collapse.baselines import BASELINES, NATURE_CNN_MIN_SIZE
+from sb3_collapse.drqv2 import StddevSchedule
+from sb3_collapse.drqv2.checks import check_hyperparameters
+from sb3_collapse.drqv2.encoders import ACTIVATIONS, check_image_size
+from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
+from sb3_collapse.drqv2.transplant import resolve_source_path
+from sb3_collapse.envs.dmc import check_env_arguments
+from sb3_collapse.errors import ParameterError
+from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset
+from sb3_collapse.paper import PAPER
+from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
+from sb3_collapse.protocol import SNAPSHOTS_DIR
+
+ALGORITHMS = ("drqv2", *BASELINES)
+"""What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
+
+DEFAULT_CHECKPOINT_EVERY_FRAMES = 100_000
+"""Frames between two checkpoints by default: at DrQ-v2's ~100 frames/s on a V100, a stop loses at most ~17 minutes;
+each checkpoint writes the model (105 MB with Adam at the default sizes) and the replay data since the previous one
+(about 1.1 GB per 100,000 frames of 84x84 pixels at action repeat 2): docs/checkpoints.md."""
+
+RESUME_FREE_SETTINGS = (
+    "logdir",
+    "run_name",
+    "run_dir",
+    "progress_bar",
+    "verbose",
+    "torch_threads",
+    "device",
+    "checkpoint_every_frames",
+    "sources",
+)
+"""Settings that may differ between a run and its resumption (where and how it is shown, how often checkpoints are
+taken; a resumption on another device or number of threads is not bit-identical, see docs/checkpoints.md)."""
+
+PRESET, USER = "preset", "user"
+"""Where a preset setting's value came from, in the run's settings file."""
+
+TRAINING, RUN = "training", "run"
+"""Which command lines have a setting's flag (:func:`setting`'s ``cli``): ``TRAINING``, the train CLI and the sweep
+(the same for every run of a sweep); ``RUN``, the train CLI only (the sweep sets it per trial)."""
+
+UNITS = ("frames", "agent steps", "transitions", "pixels", "episodes", "updates", "observations", None)
+"""The units a setting may count in (``None``: not a count)."""
+
+
+def setting(
+    default: Any = None,
+    *,
+    help: str,
+    unit: str | None,
+    preset: bool = False,
+    cli: str | None = TRAINING,
+    flag: str | None = None,
+    choices: tuple[str, ...] | None = None,
+    minimum: int | None = None,
+    zero_means: str | None = None,
+    default_factory: Any = dataclasses.MISSING,
+) -> Any:
+    """
+    A :class:`TrainConfig` field, declared once: the flags, ``--show-settings`` and ``docs/presets.md`` read it.
+
+    :param default: the default value (``None`` for a preset setting: the task's preset fills it)
+    :param help: what the setting is, one sentence; other settings are named in backticks (`` `reset_rule` ``),
+        which a command line shows as their flags
+    :param unit: what it counts in, one of :data:`UNITS` (``None``: not a count)
+    :param preset: whether the task's preset fills it (one of :data:`~sb3_collapse.presets.SETTING_NAMES`)
+    :param cli: :data:`TRAINING` (a flag of the train CLI and the sweep), :data:`RUN` (the train CLI only) or
+        ``None`` (no flag)
+    :param flag: the flag, when not ``--<name-with-dashes>`` (``--no-<name>`` for a setting on by default)
+    :param choices: the values it takes, when there are few
+    :param minimum: the smallest integer it takes
+    :param zero_means: what ``0`` means, for a setting with ``minimum=0``
+    :param default_factory: instead of ``default``, for a mutable default
+    :return: the dataclass field
+    """
+    if unit not in UNITS:
+        raise ParameterError("unit", f"unit must be one of {UNITS}, got {unit!r}.")
+    metadata = dict(
+        help=help, unit=unit, preset=preset, cli=cli, flag=flag, choices=choices, minimum=minimum, zero_means=zero_means
+    )
+    if default_factory is not dataclasses.MISSING:
+        return dataclasses.field(default_factory=default_factory, metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+@dataclass
+class TrainConfig:
+    """
+    Settings of one training run (:func:`sb3_collapse.run.runner.train`). Each field's meaning, unit and flag are
+    declared with it (:func:`setting`), listed in ``docs/presets.md`` and by ``python -m sb3_collapse.train --help``.
+
+    **Per-task defaults.** Every DrQ-v2 hyperparameter (the fields of :class:`~sb3_collapse.presets.TaskPreset`)
+    defaults to ``None``: :meth:`resolve` takes it from ``preset(env)``. A value given explicitly overrides the
+    preset; :attr:`sources` says, for each of them, ``"preset"`` or ``"user"``. The preset's ``buffer_size`` is
+    capped at the run's agent steps (a larger buffer is never filled).
+    """
+
+    env: str = setting(
+        "walker-walk", help="dm_control task: walker-walk, cartpole-swingup, quadruped-run, ...", unit=None, cli=RUN
+    )
+    frames: int | None = setting(
+        help="training budget, in frames (easy tasks 1.1M, medium 3.1M, hard 30.1M)",
+        unit="frames",
+        preset=True,
+        minimum=1,
+    )
+    seed: int = setting(0, help="random seed (environment, networks, exploration)", unit=None, cli=RUN)
+    logdir: str = setting("runs", help="parent folder of the run folder <task>_s<seed>", unit=None, cli=RUN)
+    run_name: str | None = setting(help="name of the run folder instead of <task>_s<seed>", unit=None, cli=RUN)
+    run_dir: str | None = setting(
+        help="the exact run folder (created; new or empty, or an unfinished run to resume) instead of "
+        "`logdir`/`run_name`",
+        unit=None,
+        cli=RUN,
+    )
+    action_repeat: int | None = setting(help="frames per agent step", unit="frames", preset=True)
+    frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, preset=True)
+    size: int = setting(84, help="image height and width, in pixels", unit="pixels")
+    eval_every_frames: int | None = setting(
+        help="frames between evaluations of the deterministic policy, and one at frame 0, none at the budget's end "
+        "(sb3_collapse.paper.evaluation_schedule; the saved final model is evaluated apart)",
+        unit="frames",
+        preset=True,
+        minimum=0,
+        zero_means="no evaluation",
+    )
+    eval_episodes: int | None = setting(
+        help="episodes per evaluation (deterministic policy), on an evaluation environment seeded with `seed`, as "
+        "the reference seeds its own",
+        unit="episodes",
+        preset=True,
+        minimum=0,
+    )
+    checkpoint_every_frames: int = setting(
+        DEFAULT_CHECKPOINT_EVERY_FRAMES,
+        help="frames between two checkpoints of the run, to resume it (a SIGTERM "
+        "or SIGINT writes one too; deleted when the run finishes)",
+        unit="frames",
+        minimum=0,
+        zero_means="only at a signal",
+    )
+    seed_frames: int | None = setting(
+        help="frames of uniformly random actions before the first update", unit="frames", preset=True, minimum=0
+    )
+    batch_size: int | None = setting(
+        help="minibatch size of each update (walker tasks 512, others 256)", unit=None, preset=True
+    )
+    buffer_size: int | None = setting(
+        help="replay capacity, in transitions (agent steps); the preset's is capped at the run's agent steps",
+        unit="transitions",
+        preset=True,
+    )
+    learning_rate: float | None = setting(
+        help="Adam learning rate (humanoid 8e-5, others 1e-4)", unit=None, preset=True, flag="--lr"
+    )
+    n_steps: int | None = setting(
+        help="n-step return length, in agent steps (walker tasks 1, others 3)", unit="agent steps", preset=True
+    )
+    feature_dim: int | None = setting(
+        help="actor and critic trunk size (humanoid 100, others 50)", unit=None, preset=True
+    )
+    hidden_dim: int | None = setting(help="hidden units of the actor and the Q heads", unit=None, preset=True)
+    stddev_schedule: str | None = setting(
+        help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps",
+        unit="agent steps",
+        preset=True,
+    )
+    stddev_clip: float | None = setting(help="clip of the exploration noise in the updates", unit=None, preset=True)
+    tau: float | None = setting(help="soft-update coefficient of the target critic", unit=None, preset=True)
+    gamma: float | None = setting(help="discount factor", unit=None, preset=True)
+    train_freq: int | None = setting(
+        help="agent steps (summed over the environments) per update", unit="agent steps", preset=True
+    )
+    augmentation_pad: int | None = setting(
+        help="random-shift padding, in pixels (0: no augmentation)", unit="pixels", preset=True
+    )
+    replay_sampling: str | None = setting(
+        help="drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); "
+        "sb3: the episode in progress too, returns truncated at the time limit (SB3's); see "
+        "sb3_collapse.drqv2.FrameStackReplayBuffer",
+        unit=None,
+        preset=True,
+        choices=REPLAY_SAMPLINGS,
+    )
+    collapse_metrics_every_frames: int = setting(
+        PAPER.check_every_frames,
+        help="frames between two checks of the collapse metrics of every named layer "
+        "(TensorBoard collapse/..., the collapse metrics CSV); the paper's by default",
+        unit="frames",
+        minimum=0,
+        zero_means="no checks",
+    )
+    collapse_metrics_batch: int = setting(
+        512, help="replay observations per collapse-metrics check", unit="observations"
+    )
+    algorithm: str = setting(
+        "drqv2",
+        help="drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes "
+        "(sb3_collapse.baselines; they use neither the DrQ-v2-only settings nor layer transplants; "
+        "docs/interventions.md)",
+        unit=None,
+        cli=RUN,
+        choices=ALGORITHMS,
+    )
+    reset_rule: bool = setting(
+        False,
+        help="reset training from scratch when the agent has not escaped action collapse within each window "
+        "(the paper's rule, CollapseReset)",
+        unit=None,
+        cli=RUN,
+    )
+    intervention: str | None = setting(
+        help="what the reset rule does at the end of a window without escape instead of a reset from scratch (needs "
+        "`reset_rule`; sb3_collapse.monitoring.interventions, docs/interventions.md); default: reset, the paper's",
+        unit=None,
+        cli=RUN,
+        choices=tuple(INTERVENTIONS),
+    )
+    reset_window_frames: int = setting(
+        PAPER.window_frames, help="the reset rule's window, in frames (the paper's by default)", unit="frames"
+    )
+    activation: str = setting(
+        "relu",
+        help="hidden activation of DrQ-v2's encoder, actor and critic: relu, or leaky_relu with negative "
+        "slope 0.01 (the paper's footnote 1 ablation); DrQ-v2 only",
+        unit=None,
+        cli=RUN,
+        choices=ACTIVATIONS,
+    )
+    redo_every_updates: int = setting(
+        0,
+        help="recycle the dormant units (convolution channels included) every this many updates for the whole "
+        "run, as ReDo does (Sokar et al., 2023; PeriodicReDo, docs/interventions.md)",
+        unit="updates",
+        cli=RUN,
+        minimum=0,
+        zero_means="no ReDo",
+    )
+    init_cnn: str | None = setting(
+        help="start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; DrQv2's init_from, the paper's layer "
+        "transplants); default: random",
+        unit=None,
+        cli=RUN,
+    )
+    init_mlp: str | None = setting(
+        help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random", unit=None, cli=RUN
+    )
+    init_critic: str | None = setting(
+        help="start the critic (and target critic) from this DrQv2 checkpoint (zip); default: random",
+        unit=None,
+        cli=RUN,
+    )
+    n_envs: int = setting(
+        1,
+        help="training environments, in subprocesses when more than 1 (seeds seed, seed + 1...); frames and "
+        "agent steps are summed over them, with one update per `train_freq` transitions as with one; the "
+        "evaluation environment stays single",
+        unit=None,
+        minimum=1,
+    )
+    step_envs_during_updates: bool = setting(
+        False,
+        help="step the environments (in subprocesses) while the learner updates: the actions of that step "
+        "come from the weights before the updates (DrQ-v2's reference order)",
+        unit=None,
+    )
+    compile_update: bool = setting(
+        False,
+        help="compile the update with torch.compile (CUDA graphs on CUDA); compilation takes about a minute "
+        "at the first update on a CPU",
+        unit=None,
+    )
+    tf32: bool = setting(
+        True,
+        help="let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it (no effect on the "
+        "CPU; sb3_collapse.backends)",
+        unit=None,
+    )
+    deterministic: bool = setting(
+        False,
+        help="reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has them "
+        "(slower on a GPU; the CPU is deterministic anyway)",
+        unit=None,
+    )
+    snapshots: bool = setting(
+        False,
+        help="save the encoder and actor (sizes: benchmarks/README.md#checkpoint-sizes) at every evaluation and at the "
+        f"end into <run>/{SNAPSHOTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only, needs "
+        "evaluations",
+        unit=None,
+    )
+    device: str = setting("auto", help="auto, cpu, cuda, cuda:1, ...", unit=None, cli=RUN)
+    torch_threads: int | None = setting(
+        help="threads of torch's CPU operations (torch.set_num_threads); default: torch's",
+        unit=None,
+        cli=RUN,
+        minimum=1,
+    )
+    progress_bar: bool = setting(True, help="show a progress bar", unit=None, cli=RUN)
+    verbose: int = setting(0, help="SB3 verbosity (0: silent, 1: SB3's log tables)", unit=None)
+    variant: str | None = setting(
+        help="name of the variant in the settings and the result; default: <algorithm>+<intervention> with the reset "
+        "rule (drqv2+reset), else <algorithm> (drqv2)",
+        unit=None,
+        cli=None,
+    )
+    transplant: dict[str, str] | None = setting(  # noqa: RUF009 - setting() returns a dataclass field
+        help="the sources of the initial weights, as the sweep's transplant grid names them ({cnn: blank | good | "
+        "bad, mlp: ...}), recorded in the settings; default: not a grid cell",
+        unit=None,
+        cli=None,
+    )
+    sources: dict[str, str] = setting(  # noqa: RUF009 - setting() returns a dataclass field
+        help='for each preset setting, "preset" or "user" (where its value came from); filled by resolve()',
+        unit=None,
+        cli=None,
+        default_factory=dict,
+    )
+
+    @property
+    def preset(self) -> TaskPreset:
+        """DrQ-v2's preset of :attr:`env`."""
+        return preset(self.env)
+
+    @property
+    def resolved(self) -> bool:
+        """Whether every preset setting has a value (:meth:`resolve` was called)."""
+        return all(getattr(self, name) is not None for name in SETTING_NAMES)
+
+    def resolve(self) -> TrainConfig:
+        """
+        These settings with every preset setting left at ``None`` taken from the task's preset, and
+        :attr:`sources` filled in.
+
+        :return: a new, resolved config (this one is not changed)
+        :raises ParameterError: for an unknown task (``env``)
+        """
+        try:
+            task_preset = self.preset
+        except ValueError as error:
+            raise ParameterError("env", f"env: {error}") from None
+        values: dict[str, Any] = {}
+        sources: dict[str, str] = {}
+        for name in SETTING_NAMES:
+            value = getattr(self, name)
+            sources[name] = self.sources.get(name, USER if value is not None else PRESET)
+            values[name] = getattr(task_preset, name) if value is None else value
+        if sources["buffer_size"] == PRESET:  # a larger buffer is never filled
+            steps = max(1, values["frames"] // max(1, values["action_repeat"]))
+            values["buffer_size"] = min(values["buffer_size"], steps)
+        return dataclasses.replace(self, **values, sources=sources)
+
+    def validate(self) -> None:
+        """
+        Check every setting that can be checked before anything is built or written, without the file system's
+        state (preset settings are checked as resolved; the run folder:
+        :func:`~sb3_collapse.run.folder.check_run_folder`).
+        Each value is checked where it is owned: the env's settings by ``make_dmc_env``'s check, the algorithm's by
+        ``DrQv2``'s, the callbacks' by their constructors; the run's own here, the choices and minimums of the
+        fields' declarations first.
+
+        :raises ParameterError: with a message naming the bad setting
+        """
+        config = self if self.resolved else self.resolve()
+        for field in dataclasses.fields(config):
+            _check_declared(field, getattr(config, field.name))
+        if config.intervention is not None and not config.reset_rule:
+            raise ParameterError(
+                "intervention", f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
+            )
+        if config.algorithm != "drqv2":
+            _check_drqv2_only(config)
+        if config.snapshots and config.eval_every_frames == 0:
+            raise ParameterError(
+                "snapshots",
+                "snapshots are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
+                f"eval_every_frames > 0 (got algorithm={config.algorithm!r}, "
+                f"eval_every_frames={config.eval_every_frames}).",
+            )
+        if config.eval_every_frames > 0 and config.eval_episodes < 1:  # type: ignore[operator]
+            raise ParameterError(
+                "eval_episodes", "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
+            )
+        owners = (
+            ("stddev_schedule", lambda: StddevSchedule(config.stddev_schedule)),
+            ("collapse_metrics_batch", lambda: CollapseMetrics(batch_size=config.collapse_metrics_batch)),
+            ("reset_window_frames", lambda: CollapseReset(config.reset_window_frames)),
+        )
+        for name, build in owners:
+            try:
+                build()
+            except ValueError as error:
+                raise ParameterError(name, f"{name}: {error}") from None
+        check_env_arguments(**env_kwargs(config))
+        check_image_size(config.size)
+        checked = inspect.signature(check_hyperparameters).parameters
+        check_hyperparameters(**{name: value for name, value in drqv2_kwargs(config).items() if name in checked})
+        for group, path in config.init_from.items():
+            try:
+                resolve_source_path(group, path)
+            except FileNotFoundError as error:
+                raise ParameterError(f"init_{group}", f"init_{group}: {error}") from None
+
+    @property
+    def agent_steps(self) -> int:
+        """Training budget in agent steps, summed over the environments (transitions), of the resolved settings."""
+        config = self if self.resolved else self.resolve()
+        return max(1, config.frames // config.action_repeat)  # type: ignore[operator]
+
+    @property
+    def init_from(self) -> dict[str, str]:
+        """The ``init_from`` argument of ``DrQv2``: group (``cnn``, ``mlp``, ``critic``) -> checkpoint path."""
+        paths = {"cnn": self.init_cnn, "mlp": self.init_mlp, "critic": self.init_critic}
+        return {group: path for group, path in paths.items() if path is not None}
+
+    @property
+    def variant_name(self) -> str:
+        """:attr:`variant`, or the name of the plain variant these settings run."""
+        if self.variant is not None:
+            return self.variant
+        base = self.algorithm + ("-leaky" if self.activation == "leaky_relu" else "")
+        if self.reset_rule:
+            return f"{base}+{self.intervention or 'reset'}"
+        return f"{base}+redo_periodic" if self.redo_every_updates > 0 else base
+
+    def record(self) -> dict[str, Any]:
+        """
+        The content of the run's settings file: every setting (resolved), ``variant``, ``preset`` (the task's
+        preset: ``task``, ``tier``, ``from_drqv2``) and ``sources`` (preset setting -> ``"preset"`` or ``"user"``).
+        """
+        config = self if self.resolved else self.resolve()
+        task_preset = config.preset
+        return {
+            **dataclasses.asdict(config),
+            "variant": config.variant_name,
+            "preset": {"task": task_preset.task, "tier": task_preset.tier, "from_drqv2": task_preset.from_drqv2},
+        }
+
+
+def _check_declared(field: dataclasses.Field, value: Any) -> None:
+    """Check ``value`` against its field's declared ``choices`` and ``minimum`` (``None`` passes)."""
+    name, choices, minimum = field.name, field.metadata["choices"], field.metadata["minimum"]
+    if value is None:
+        return
+    if choices is not None and value not in choices:
+        raise ParameterError(name, f"{name} must be one of {', '.join(choices)}, got {value!r}.")
+    if minimum is not None:
+        zero = f" (0: {field.metadata['zero_means']})" if field.metadata["zero_means"] else ""
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ParameterError(name, f"{name} must be an integer >= {minimum}{zero}, got {value!r}.")
+        if value < minimum:
+            raise ParameterError(name, f"{name} must be >= {minimum}{zero}, got {value}.")
+
+
+def _check_drqv2_only(config: TrainConfig) -> None:
+    """Refuse DrQ-v2's own options for SB3's TD3 or SAC (``config.algorithm``)."""
+    algorithm = config.algorithm
+    if config.activation != "relu":
+        raise ParameterError(
+            "activation",
+            f"activation={config.activation!r} is a DrQ-v2 option; algorithm={algorithm!r} keeps SB3's ReLU networks.",
+        )
+    if config.size < NATURE_CNN_MIN_SIZE:
+        raise ParameterError(
+            "size",
+            f"size must be >= {NATURE_CNN_MIN_SIZE} pixels for algorithm={algorithm!r} (SB3's NatureCNN), "
+            f"got {config.size}.",
+        )
+    for name, default in (("n_envs", 1), ("step_envs_during_updates", False), ("compile_update", False)):
+        if getattr(config, name) != default:
+            raise ParameterError(
+                name,
+                f"{name}={getattr(config, name)!r} is a DrQv2 option (docs/throughput.md); algorithm="
+                f"{algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}.",
+            )
+    if config.snapshots:
+        raise ParameterError(
+            "snapshots",
+            "snapshots are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
+            f"eval_every_frames > 0 (got algorithm={algorithm!r}, eval_every_frames={config.eval_every_frames}).",
+        )
+    if config.init_from:
+        group = next(iter(config.init_from))
+        raise ParameterError(
+            f"init_{group}",
+            f"init_{group}: layer transplants are for DrQ-v2 checkpoints; algorithm={algorithm!r} cannot start "
+            "from them.",
+        )
+
+
+def env_kwargs(config: TrainConfig) -> dict[str, Any]:
+    """
+    :param config: resolved settings
+    :return: the pixel settings of ``make_dmc_env`` (``action_repeat``, ``frame_stack``, ``size``)
+    """
+    return dict(action_repeat=config.action_repeat, frame_stack=config.frame_stack, size=config.size)
+
+
+def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
+    """
+    :param config: resolved settings
+    :return: the keyword arguments of ``DrQv2(policy, env, ...)`` for these settings
+    """
+    return dict(
+        learning_rate=config.learning_rate,
+        buffer_size=config.buffer_size,
+        learning_starts=config.seed_frames // config.action_repeat,  # type: ignore[operator]
+        batch_size=config.batch_size,
+        tau=config.tau,
+        gamma=config.gamma,
+        train_freq=config.train_freq,
+        n_steps=config.n_steps,
+        stddev_schedule=config.stddev_schedule,
+        stddev_clip=config.stddev_clip,
+        augmentation_pad=config.augmentation_pad,
+        replay_buffer_kwargs=dict(sampling=config.replay_sampling),
+        policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
+        seed=config.seed,
+        device=config.device,
+        verbose=config.verbose,
+        init_from=config.init_from or None,
+        step_envs_during_updates=config.step_envs_during_updates,
+        compile_update=config.compile_update,
+    )
+
+
+def baseline_kwargs(config: TrainConfig) -> dict[str, Any]:
+    """
+    :param config: resolved settings (``algorithm`` one of :data:`~sb3_collapse.baselines.BASELINES`)
+    :return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` (after the algorithm and the
+        env) for these settings; the DrQ-v2-only settings are not among them
+    """
+    return dict(
+        learning_rate=config.learning_rate,
+        buffer_size=config.buffer_size,
+        learning_starts=config.seed_frames // config.action_repeat,  # type: ignore[operator]
+        batch_size=config.batch_size,
+        feature_dim=config.feature_dim,
+        hidden_dim=config.hidden_dim,
+        gamma=config.gamma,
+        frame_stack=config.frame_stack,
+        seed=config.seed,
+        device=config.device,
+        verbose=config.verbose,
+    )

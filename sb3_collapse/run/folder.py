@@ -1,0 +1,207 @@
+"""
+The run folder of one training run, as :func:`sb3_collapse.run.runner.train` takes it: what a folder holds
+(:func:`run_folder_state`), whether an unfinished run there has the same settings (:func:`settings_differences`),
+which folder a new run takes (:func:`new_run_dir`) and how it is opened (:func:`open_run_dir`: the settings of a
+new run, or the checkpoint an unfinished one resumes from). The folder's files are those of
+:mod:`sb3_collapse.protocol`; the lock that keeps a second process out is
+:class:`~sb3_collapse.run.lock.RunLock`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from sb3_collapse.errors import ParameterError
+from sb3_collapse.presets import SETTING_NAMES
+from sb3_collapse.protocol import (
+    CHECKPOINTS_DIR,
+    CONFIG_JSON,
+    ERROR_TXT,
+    LOCK_FILE,
+    RESULT_JSON,
+    blocking_file,
+    failed_before_training,
+    read_settings,
+    write_json_atomically,
+)
+from sb3_collapse.run.checkpoints import LoadedCheckpoint, checkpoint_learning_rates, load_checkpoint, set_aside
+from sb3_collapse.run.config import RESUME_FREE_SETTINGS, TrainConfig
+
+NEW_RUN, UNFINISHED_RUN, FINISHED_RUN, FOREIGN = "new", "unfinished", "finished", "foreign"
+"""What a folder holds, for a run that wants it (:func:`run_folder_state`)."""
+
+
+def run_folder_state(path: Path) -> str:
+    """
+    :param path: a run folder (or where one would go)
+    :return: :data:`NEW_RUN` (missing, empty, or a run that failed before training: a new run may take it),
+        :data:`UNFINISHED_RUN` (the settings file and no result: a run to resume from its checkpoints),
+        :data:`FINISHED_RUN` (a result file) or :data:`FOREIGN` (anything else: not for a run)
+    """
+    if not path.exists():
+        return NEW_RUN
+    if not path.is_dir():
+        return FOREIGN
+    if not any(entry.name != LOCK_FILE for entry in path.iterdir()) or failed_before_training(path):
+        return NEW_RUN
+    if (path / RESULT_JSON).exists():
+        return FINISHED_RUN
+    return UNFINISHED_RUN if (path / CONFIG_JSON).is_file() else FOREIGN
+
+
+def check_run_folder(config: TrainConfig) -> None:
+    """
+    The checks of :meth:`TrainConfig.validate` that read the file system: an explicit ``run_dir`` must be new,
+    empty or an unfinished run; ``logdir`` must not be (under) a file. Called before anything is written.
+
+    :param config: the run's settings
+    :raises ParameterError: naming ``run_dir`` or ``logdir``
+    """
+    if config.run_dir is not None:
+        state = run_folder_state(Path(config.run_dir))
+        if state == FOREIGN:
+            raise ParameterError(
+                "run_dir",
+                f"run_dir {config.run_dir} exists and is not an empty folder (nor the folder of a run): remove it "
+                "or choose another.",
+            )
+        if state == FINISHED_RUN:
+            raise ParameterError(
+                "run_dir", f"run_dir {config.run_dir} holds a finished run ({RESULT_JSON}): choose another folder."
+            )
+    logdir = Path(config.logdir)
+    blocking = blocking_file(logdir)
+    if blocking is not None:
+        raise ParameterError("logdir", f"logdir {logdir}: {blocking} is a file, not a folder.")
+
+
+def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str]:
+    """
+    :param saved: the settings file of a run folder
+    :param config: the settings of a run that wants to resume it
+    :return: one line per setting that differs (those of :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`
+        may), empty when the run can resume it
+    """
+    current = json.loads(json.dumps(config.record()))
+    # A setting added after the run folder was written: the run had its default.
+    defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig())))
+    saved = {**{name: defaults[name] for name in defaults if name not in saved and name not in SETTING_NAMES}, **saved}
+    return [
+        f"`{name}={current.get(name)}` (the run folder has {saved.get(name)!r})"
+        for name in sorted(set(saved) | set(current))
+        if name not in RESUME_FREE_SETTINGS and saved.get(name) != current.get(name)
+    ]
+
+
+def optimizer_differences(checkpoint: Path, config: TrainConfig) -> list[str]:
+    """
+    :param checkpoint: the folder of the checkpoint a run would resume from
+    :param config: the settings of the run
+    :return: one line per optimizer setting of the checkpoint (the learning rate of each optimizer) that is not the
+        run's: a settings file edited after the checkpoint was written would change the run mid-run
+    """
+    rates = sorted({rate for group in checkpoint_learning_rates(checkpoint).values() for rate in group})
+    if not rates or rates == [config.learning_rate]:
+        return []
+    trained = ", ".join(f"{rate:g}" for rate in rates)
+    return [f"`learning_rate={config.learning_rate}` (its checkpoint {checkpoint.name} trained with {trained})"]
+
+
+def saved_settings(run_dir: Path) -> dict[str, Any]:
+    """
+    :param run_dir: the folder of a run
+    :return: its settings file
+    :raises ParameterError: naming ``run_dir`` when the file cannot be read
+    """
+    try:
+        return read_settings(run_dir / CONFIG_JSON)
+    except (OSError, ValueError) as error:
+        raise ParameterError("run_dir", f"run_dir {run_dir}: its {CONFIG_JSON} cannot be read ({error}).") from None
+
+
+def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
+    """
+    :param logdir: the parent folder of the run folders
+    :param name: the run folder's name
+    :param config: the run's settings
+    :return: the first of ``<logdir>/<name>``, ``<name>_2``, ``<name>_3``... that can take this run: a new folder,
+        or the folder of an unfinished run with the same settings (resumed)
+    """
+    run_dir, index = logdir / name, 1
+    while True:
+        state = run_folder_state(run_dir)
+        if state == NEW_RUN:
+            return run_dir
+        if state == UNFINISHED_RUN:
+            differences = settings_differences(saved_settings(run_dir), config)
+            if not differences:
+                return run_dir
+            print(f"{run_dir} holds an unfinished run with other settings ({'; '.join(differences)}): not resuming it.")
+        index += 1
+        run_dir = logdir / f"{name}_{index}"
+
+
+def empty_run_dir(run_dir: Path) -> None:
+    """
+    Delete what a run folder holds, but the lock file (held by this process).
+
+    :param run_dir: the run folder
+    """
+    for path in run_dir.iterdir():
+        if path.name != LOCK_FILE:
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
+    """
+    With the run folder locked: a new run writes its settings; an unfinished run with the same settings is resumed
+    from its newest readable checkpoint (damaged newer ones are reported and set aside), or restarted without one.
+
+    :param run_dir: the run folder, locked by this process
+    :param config: the run's settings
+    :return: the checkpoint to resume from, ``None`` for a run from frame 0
+    :raises ParameterError: for a folder with a finished run, another run's settings or other content
+    """
+    state = run_folder_state(run_dir)
+    if state in (FINISHED_RUN, FOREIGN):
+        raise ParameterError(
+            "run_dir", f"run_dir {run_dir} holds a finished run or other files: choose another folder."
+        )
+    if state == UNFINISHED_RUN:
+        differences = settings_differences(saved_settings(run_dir), config)
+        if differences:
+            raise ParameterError(
+                "run_dir",
+                f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run it "
+                "with its own settings to resume it, or train into another folder.",
+            )
+        checkpoint = load_checkpoint(run_dir / CHECKPOINTS_DIR)
+        skipped = [] if checkpoint is None else checkpoint.skipped
+        for folder, reason in skipped:  # kept aside under another name, never read again
+            print(f"Checkpoint {folder} is damaged ({reason}): falling back to the one before.")
+            set_aside(folder)
+        if checkpoint is not None:
+            differences = optimizer_differences(checkpoint.folder, config)
+            if differences:  # the settings file was edited: the run would change its settings mid-run
+                raise ParameterError(
+                    "run_dir",
+                    f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run "
+                    f"it with the settings it trained with (and its {CONFIG_JSON} as it wrote it) to resume it, or "
+                    "train into another folder.",
+                )
+            error_file = run_dir / ERROR_TXT
+            if error_file.is_file():  # kept with the checkpoints, out of the way of the sweep's status
+                first = error_file.read_text().splitlines()[:1]
+                print(f"The previous attempt {first[0] if first else 'failed'}; resuming.")
+                error_file.replace(run_dir / CHECKPOINTS_DIR / f"error_{time.strftime('%Y%m%d-%H%M%S')}.txt")
+            print(f"Resuming {run_dir} from its checkpoint at frame {checkpoint.frames:,} ({checkpoint.folder.name}).")
+            return checkpoint
+        print(f"{run_dir} holds an unfinished run without a readable checkpoint: restarting it from frame 0.")
+    empty_run_dir(run_dir)
+    write_json_atomically(run_dir / CONFIG_JSON, config.record())
+    return None

@@ -1,0 +1,489 @@
+"""
+Train DrQ-v2 (or SB3's TD3 or SAC) on a DeepMind Control task from pixels, as a
+:class:`~sb3_collapse.run.config.TrainConfig` says: :func:`train`,
+behind ``python -m sb3_collapse.train`` and every sweep trial.
+
+Everything a run writes goes to one folder, ``<logdir>/<task>_s<seed>`` (``_2``, ``_3``... if it holds another run),
+or exactly ``run_dir``, in the run-folder format of :mod:`sb3_collapse.protocol`: the settings (written first),
+TensorBoard events and the SB3 logger's CSV, the evaluations, the collapse checks, the reset rule's events, the final
+model (load it with ``DrQv2.load``) and the result (written last: a folder without it is an unfinished run). A run
+writes checkpoints (``checkpoint_every_frames``, and at SIGTERM or SIGINT); the same settings again resume an
+unfinished run from its newest one, bit for bit (:mod:`sb3_collapse.run.checkpoints`, :mod:`sb3_collapse.run.folder`).
+
+``algorithm="td3"`` or ``"sac"`` trains SB3's own TD3 or SAC from the same pixels instead (built by
+:func:`sb3_collapse.baselines.build_baseline`; the DrQ-v2-only settings are reported unused); ``reset_rule``
+applies the paper's rule, ``intervention`` chooses what it does (:mod:`sb3_collapse.monitoring.interventions`).
+``init_cnn``, ``init_mlp`` and ``init_critic`` start the encoder, the actor or the critic from the weights of a
+saved DrQv2 (the paper's layer transplants, ``DrQv2(init_from=...)``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import os
+import shutil
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
+
+from sb3_collapse.backends import configure_backends
+from sb3_collapse.baselines import DRQV2_ONLY_SETTINGS, build_baseline
+from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.drqv2.divergence import DivergenceError
+from sb3_collapse.envs import make_dmc_env, parse_task
+from sb3_collapse.envs.rendering import ensure_rendering_backend
+from sb3_collapse.envs.replay import EpisodeReplay
+from sb3_collapse.errors import FULL_DISK_ERRNOS, InputError, unwritable_message
+from sb3_collapse.monitoring import CollapseMetrics, CollapseReset, PeriodicEvaluation, frames_of
+from sb3_collapse.monitoring.redo import PeriodicReDo
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import (
+    CHECKPOINTS_DIR,
+    COLLAPSE_EVENTS_CSV,
+    COLLAPSE_METRICS_CSV,
+    EVAL_CSV,
+    FINAL_MODEL,
+    FINISHED,
+    LOCK_FILE,
+    PROGRESS_CSV,
+    RESULT_JSON,
+    SNAPSHOTS_DIR,
+    atomic_output,
+    write_failure,
+    write_json_atomically,
+)
+from sb3_collapse.run.checkpoints import CheckpointError, LoadedCheckpoint, ResumableCheckpoints
+from sb3_collapse.run.config import USER, TrainConfig, baseline_kwargs, drqv2_kwargs, env_kwargs
+from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
+from sb3_collapse.run.folder import check_run_folder, new_run_dir, open_run_dir
+from sb3_collapse.run.lock import RunLock
+from sb3_collapse.run.resumed_logger import resumed_logger
+from sb3_collapse.run.signals import TrainingInterrupted, stop_signals
+from sb3_collapse.run.snapshots import Snapshots
+from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
+
+
+@dataclass
+class TrainResult:
+    """
+    :param run_dir: folder of the run
+    :param model_path: the final checkpoint
+    :param evaluations: one dict per scheduled evaluation (``frame``, ``step``, ``mean_reward``, ...)
+    :param summary: the content of the result file (see :func:`run_summary`)
+    :param saved_model_evaluation: the evaluation of the saved final model (same keys; ``None`` without
+        evaluations), not one of ``evaluations``
+    """
+
+    run_dir: Path
+    model_path: Path
+    evaluations: list[dict[str, float]]
+    summary: dict[str, Any] = dataclasses.field(default_factory=dict)
+    saved_model_evaluation: dict[str, float] | None = None
+
+
+def run_summary(
+    config: TrainConfig,
+    task_id: str,
+    model: BaseAlgorithm,
+    evaluations: list[dict[str, float]],
+    reset_rule: CollapseReset | None,
+    wall_time_s: float,
+    resumes: int = 0,
+    saved_model_eval: dict[str, float] | None = None,
+    timings: LearnTimings | None = None,
+) -> dict[str, Any]:
+    """
+    The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`): ``status``
+    (:data:`~sb3_collapse.protocol.FINISHED`), ``task``, ``variant``, ``seed``, ``frames`` (frames
+    trained, action repeat included), ``agent_steps``, ``final_eval`` (``frame``, ``mean_reward``, ``std_reward``
+    of the last scheduled evaluation, the one the paper's success/failure classes read; ``None`` without evaluation),
+    ``saved_model_eval`` (the same keys and ``episodes`` for the evaluation of the saved final model, at the run's
+    last frame, outside the schedule and the statistics; ``None`` without it), ``resets`` (resets of the reset rule),
+    ``reset_frames`` (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without
+    the rule),
+    ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run, over all its processes),
+    ``timings`` (where the time of ``learn()`` went: ``LearnTimings.as_dict()``, see :mod:`sb3_collapse.run.timing`,
+    of the last process only when the run was resumed; ``None`` for SB3's TD3 and SAC) and ``resumes`` (times the run
+    was resumed from a checkpoint).
+
+    :param config: the run's settings
+    :param task_id: the task, ``<domain>-<task>``
+    :param model: the trained model
+    :param evaluations: the evaluation rows
+    :param reset_rule: the run's reset-rule callback, ``None`` without the rule
+    :param wall_time_s: seconds the run took
+    :param resumes: times the run was resumed from a checkpoint
+    :param saved_model_eval: the evaluation of the saved final model (``PeriodicEvaluation.evaluate_saved_model``)
+    :param timings: the time split of the run's ``learn()`` (:class:`~sb3_collapse.run.timing.LearnTimer`)
+    :return: the summary, JSON-serializable
+    """
+    last = evaluations[-1] if evaluations else None
+    saved = None
+    if saved_model_eval is not None:
+        saved = {key: saved_model_eval[key] for key in ("frame", "mean_reward", "std_reward", "episodes")}
+        saved["frame"], saved["episodes"] = int(saved["frame"]), int(saved["episodes"])
+    return {
+        "status": FINISHED,
+        "task": task_id,
+        "variant": config.variant_name,
+        "seed": config.seed,
+        "frames": int(frames_of(model)),
+        "agent_steps": int(model.num_timesteps),
+        "final_eval": None
+        if last is None
+        else {"frame": int(last["frame"]), "mean_reward": last["mean_reward"], "std_reward": last["std_reward"]},
+        "saved_model_eval": saved,
+        "resets": 0 if reset_rule is None else reset_rule.resets,
+        "reset_frames": [] if reset_rule is None else [int(frame) for frame in reset_rule.reset_frames],
+        "escaped": None if reset_rule is None else bool(reset_rule.escaped),
+        "escape_frame": None if reset_rule is None or reset_rule.escape_frame is None else int(reset_rule.escape_frame),
+        "wall_time_s": round(wall_time_s, 2),
+        "timings": None if timings is None else timings.as_dict(),
+        "resumes": resumes,
+        "divergence_warnings": list(model.divergence_guard.warnings) if isinstance(model, DrQv2) else [],
+    }
+
+
+def train(config: TrainConfig) -> TrainResult:
+    """
+    Train DrQ-v2 as ``config`` says (preset settings left at ``None`` come from the task's preset), evaluating and
+    logging on the way, and save the final model.
+
+    Everything that can fail on bad input (the settings, the initial weights of ``init_*``, the environments, the
+    model and its replay buffer) is checked or built **before** the run folder is created. A failure after it
+    marks the folder as failed (the error file, with the agent step it failed at; see
+    :func:`~sb3_collapse.protocol.write_failure`) and is raised again; a folder that failed before its first agent
+    step holds no training and is reused by the next run.
+
+    **Resuming.** The folder of an unfinished run with the same settings (but those of
+    :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`)
+    is resumed from its newest readable checkpoint (:mod:`sb3_collapse.run.checkpoints`), or restarted from frame 0
+    without one; with other settings it is refused (an explicit ``run_dir``) or passed over for ``<name>_2``... The
+    folder is locked while the run trains into it (a second process is refused). A SIGTERM or SIGINT writes a
+    checkpoint and raises :class:`~sb3_collapse.run.signals.TrainingInterrupted`; the checkpoints are deleted once
+    the run has finished.
+
+    The model that is saved is the model of the last evaluation: the reset rule never resets at the budget's end
+    (see :class:`~sb3_collapse.CollapseReset`), and the budget's last frames are evaluated after ``learn()`` when
+    the periodic evaluation did not fall on them.
+
+    :param config: the run's settings
+    :return: where things were written, and the evaluations
+    :raises InputError: for bad input (a ``ParameterError`` for a bad setting), before anything is written; a
+        ``RunFolderLocked`` when another process trains into the folder
+    :raises TrainingInterrupted: after a SIGTERM or SIGINT, once the checkpoint is written
+    :raises CheckpointError: when a checkpoint cannot be written (a full disk): the previous one is intact
+    """
+    start_time = time.time()
+    config = config.resolve()
+    config.validate()
+    check_run_folder(config)
+    domain, task = parse_task(config.env)
+    task_id = f"{domain}-{task}"
+    if config.torch_threads is not None:
+        th.set_num_threads(config.torch_threads)
+    configure_backends(tf32=config.tf32, deterministic=config.deterministic)
+
+    try:
+        env, eval_env, model = build_envs_and_model(config, task_id)
+    except InputError:
+        raise
+    except (ValueError, TypeError, MemoryError, FileNotFoundError) as error:  # bad input: nothing written yet
+        raise InputError(str(error)) from error
+
+    if config.run_dir is not None:
+        run_dir = Path(config.run_dir)
+    else:
+        run_dir = new_run_dir(Path(config.logdir), config.run_name or f"{task_id}_s{config.seed}", config)
+    with contextlib.ExitStack() as stack:
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            stack.enter_context(RunLock(run_dir))
+        except OSError as error:  # a read-only or full disk, no permission: nothing was written
+            message = unwritable_message(error)
+            if message is None:
+                raise
+            raise InputError(f"run folder: {message}") from None
+        checkpoint = open_run_dir(run_dir, config)
+        try:
+            result = _train_into(
+                config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint
+            )
+            (run_dir / LOCK_FILE).unlink(missing_ok=True)  # finished: no process may take the folder any more
+            return result
+        except TrainingInterrupted:
+            raise
+        except BaseException as error:
+            write_failure(run_dir, model.num_timesteps, frames_of(model), error)
+            raise
+
+
+def _monitored_dmc_env(task_id: str, seed: int, pixels: dict[str, Any]) -> EpisodeReplay:
+    """The env of a run: ``Monitor``-ed, and recording its episode for the checkpoints (``EpisodeReplay``)."""
+    return EpisodeReplay(Monitor(make_dmc_env(task_id, seed=seed, **pixels)))
+
+
+def _subprocess_env(task_id: str, seed: int, pixels: dict[str, Any]) -> EpisodeReplay:
+    """:func:`_monitored_dmc_env` in a worker of ``SubprocVecEnv``, deaf to SIGINT and SIGTERM: the main process
+    answers them with a checkpoint, which needs its workers alive."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return _monitored_dmc_env(task_id, seed, pixels)
+
+
+def _training_env(config: TrainConfig, task_id: str, pixels: dict[str, Any]) -> EpisodeReplay | SubprocVecEnv:
+    """One ``Monitor``-ed env in this process, or ``n_envs`` of them in subprocesses (seeds ``seed``, ``seed +
+    1``...)."""
+    if config.n_envs == 1 and not config.step_envs_during_updates:
+        return _monitored_dmc_env(task_id, config.seed, pixels)
+    ensure_rendering_backend()  # checked once here, inherited by the subprocesses
+    factories = [functools.partial(_subprocess_env, task_id, config.seed + i, pixels) for i in range(config.n_envs)]
+    return SubprocVecEnv(factories)
+
+
+def build_envs_and_model(
+    config: TrainConfig, task_id: str
+) -> tuple[EpisodeReplay | VecEnv, EpisodeReplay | None, BaseAlgorithm]:
+    """
+    :param config: the run's resolved settings
+    :param task_id: the task, ``<domain>-<task>``
+    :return: the training env(s), the evaluation env (``None`` without evaluations) and the model of :func:`train`
+    """
+    pixels = env_kwargs(config)
+    env = _training_env(config, task_id, pixels)
+    eval_env = None
+    if config.eval_every_frames > 0:  # seeded as the reference's (dmc.make(..., cfg.seed), as the training env)
+        eval_env = _monitored_dmc_env(task_id, config.seed, pixels)
+    model: BaseAlgorithm
+    if config.algorithm != "drqv2":  # SB3's TD3 or SAC from the same pixels
+        model = build_baseline(config.algorithm, env, **baseline_kwargs(config))
+    else:
+        single = env
+        env = TimedVecEnv(single if isinstance(single, VecEnv) else DummyVecEnv([lambda: single]))
+        model = DrQv2("CnnPolicy", env, **drqv2_kwargs(config))
+        if model.device.type == "cpu":
+            tune_cpu_allocator()  # a process-wide setting: glibc keeps the update's freed buffers for reuse
+    return env, eval_env, model
+
+
+@dataclass
+class _RunCallbacks:
+    """The callbacks of a run, as :func:`_run_callbacks` builds them from its settings."""
+
+    callbacks: list[BaseCallback]
+    evaluation: PeriodicEvaluation | None
+    snapshots: Snapshots | None
+    reset_rule: CollapseReset | None
+
+
+def _run_callbacks(config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay | None) -> _RunCallbacks:
+    """The evaluation, probe checkpoints, collapse metrics, reset rule and ReDo of a run, as its settings ask."""
+    callbacks: list[BaseCallback] = []
+    evaluation = None
+    if eval_env is not None:
+        evaluation = PeriodicEvaluation(eval_env, config.eval_every_frames, config.eval_episodes, run_dir / EVAL_CSV)
+        callbacks.append(evaluation)
+    snapshots = None
+    if config.snapshots:
+        snapshots = Snapshots(config.eval_every_frames, run_dir / SNAPSHOTS_DIR)
+        callbacks.append(snapshots)
+    if config.collapse_metrics_every_frames > 0:
+        metrics = CollapseMetrics(
+            config.collapse_metrics_every_frames,
+            batch_size=config.collapse_metrics_batch,
+            csv_path=run_dir / COLLAPSE_METRICS_CSV,
+        )
+        callbacks.append(metrics)
+    reset_rule = None
+    if config.reset_rule:
+        reset_rule = CollapseReset(
+            config.reset_window_frames,
+            check_every_frames=min(PAPER.check_every_frames, config.reset_window_frames),
+            batch_size=config.collapse_metrics_batch,
+            events_path=run_dir / COLLAPSE_EVENTS_CSV,
+            intervention=config.intervention or "reset",
+            verbose=1,
+        )
+        callbacks.append(reset_rule)
+    if config.redo_every_updates > 0:
+        callbacks.append(PeriodicReDo(config.redo_every_updates, batch_size=config.collapse_metrics_batch))
+    return _RunCallbacks(callbacks, evaluation, snapshots, reset_rule)
+
+
+def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgorithm, steps: int) -> None:
+    """Print what the run trains, with which settings (and where they came from), and where it writes."""
+    user = sorted(name for name, source in config.sources.items() if source == USER)
+    task_preset = config.preset
+    origin = (
+        f"DrQ-v2's {task_preset.tier} preset"
+        if task_preset.from_drqv2
+        else (f"the {task_preset.tier} tier (DrQ-v2 published no config for {task_id})")
+    )
+    if config.algorithm == "drqv2":
+        algorithm = "DrQ-v2"
+        details = (
+            f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {config.replay_sampling} replay sampling"
+        )
+    else:
+        algorithm = f"SB3's {type(model).__name__}"
+        details = f"lr {config.learning_rate:g}; DrQ-v2-only settings not used: {', '.join(DRQV2_ONLY_SETTINGS)}"
+    rule = f", reset rule: {config.intervention or 'reset'}" if config.reset_rule else ""
+    if config.frames % config.action_repeat:  # type: ignore[operator]
+        print(
+            f"Note: the budget of {config.frames:,} frames is not a multiple of the action repeat "
+            f"{config.action_repeat}: the run trains {steps * config.action_repeat:,} frames ({steps:,} agent steps).",
+            flush=True,
+        )
+    print(
+        f"{algorithm} on {task_id} from pixels{rule}: {config.frames:,} frames = {steps:,} agent steps "
+        f"(action repeat {config.action_repeat}{f', summed over {config.n_envs} envs' if config.n_envs > 1 else ''}), "
+        f"seed {config.seed}, device {model.device}.\n"
+        f"Settings: {origin}" + (f", overridden: {', '.join(user)}" if user else "") + f" (batch {config.batch_size}, "
+        f"{details}).\n"
+        f"Writing to {run_dir} (tensorboard --logdir {run_dir if config.run_dir else config.logdir})",
+        flush=True,
+    )
+
+
+def _train_into(
+    config: TrainConfig,
+    task_id: str,
+    run_dir: Path,
+    model: BaseAlgorithm,
+    env: EpisodeReplay | VecEnv,
+    eval_env: EpisodeReplay | None,
+    steps: int,
+    start_time: float,
+    checkpoint: LoadedCheckpoint | None = None,
+) -> TrainResult:
+    """:func:`train` once the model is built and the run folder holds the settings (or a checkpoint to resume)."""
+    run_callbacks = _run_callbacks(config, run_dir, eval_env)
+    callbacks, evaluation, reset_rule = run_callbacks.callbacks, run_callbacks.evaluation, run_callbacks.reset_rule
+
+    earlier_s, resumes = 0.0, 0  # seconds and resumptions of the earlier processes of this run
+    checkpoints = ResumableCheckpoints(
+        run_dir / CHECKPOINTS_DIR,
+        config.checkpoint_every_frames,
+        callbacks=callbacks,
+        eval_env=eval_env,
+        csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
+        extra_state=lambda: {"elapsed_s": earlier_s + time.time() - start_time, "resumes": resumes},
+        verbose=1,
+    )
+    checkpoints.init_callback(model)
+    if checkpoint is not None:
+        checkpoint, notes = checkpoints.resume(checkpoint)
+        for note in notes:
+            print(f"Note: {note}")
+        earlier_s, resumes = checkpoint.state["extra"]["elapsed_s"], checkpoint.state["extra"]["resumes"] + 1
+        if evaluation is not None:
+            evaluation.start_time = start_time - earlier_s
+    callbacks.append(checkpoints)
+    timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
+    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
+    model.set_logger(resumed_logger(run_dir, formats, checkpoint))
+
+    _announce(config, task_id, run_dir, model, steps)
+    try:
+        with stop_signals(checkpoints):
+            model.learn(
+                steps - model.num_timesteps,
+                callback=CallbackList([*callbacks, timer]),  # the timer last: the rest counts as overhead
+                log_interval=1,
+                progress_bar=config.progress_bar,
+                reset_num_timesteps=checkpoint is None,
+            )
+    except TrainingInterrupted:
+        model.logger.close()
+        env.close()
+        raise
+    except DivergenceError as error:
+        model.logger.close()
+        env.close()
+        kept = checkpoints.last_checkpoint
+        where = (
+            f"its last checkpoint, {kept}, holds the weights before it"
+            if kept is not None
+            else "no checkpoint was written"
+        )
+        raise DivergenceError(f"{error} The run stops; {where}. Try a smaller --lr in another run folder.") from None
+    except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
+        if unwritable_message(error) is None:
+            raise
+        with contextlib.suppress(OSError):  # closing flushes, into the same folder
+            model.logger.close()
+        env.close()
+        raise CheckpointError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
+    model_path = run_dir / FINAL_MODEL
+    try:
+        with atomic_output(model_path) as temporary:
+            model.save(temporary)
+        saved_model_eval = None
+        if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the evaluation file)
+            saved_model_eval = evaluation.evaluate_saved_model()
+        if run_callbacks.snapshots is not None:
+            run_callbacks.snapshots.save()  # the final model's, next to its evaluation (once per frame)
+        model.logger.close()
+        env.close()
+        evaluations = evaluation.rows if evaluation is not None else []
+        if evaluations:
+            last = evaluations[-1]
+            print(
+                f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- "
+                f"{last['std_reward']:.1f}"
+            )
+        if saved_model_eval is not None:
+            print(
+                f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
+                f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
+            )
+        wall_time_s = earlier_s + time.time() - start_time
+        timings = timer.timings if isinstance(model, DrQv2) else None
+        summary = run_summary(
+            config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
+        )
+        write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
+    except OSError as error:
+        message = unwritable_message(error)
+        if message is None:
+            raise
+        model.logger.close()  # closing again is harmless where the failure came after these
+        env.close()
+        kept = checkpoints.last_checkpoint
+        resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
+        raise CheckpointError(f"{message} The run's final outputs are not written; {resume}.") from None
+    shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
+    print(f"Saved {model_path}")
+    return TrainResult(
+        run_dir=run_dir,
+        model_path=model_path,
+        evaluations=evaluations,
+        summary=summary,
+        saved_model_evaluation=saved_model_eval,
+    )
+
+
+def stopped_writing_message(error: OSError, frame: int, kept: Path | None) -> str:
+    """
+    :param error: a write that failed while the run trained (:func:`~sb3_collapse.errors.unwritable_message`)
+    :param frame: the frame the run had reached
+    :param kept: its last checkpoint, ``None`` without one
+    :return: one line: what could not be written and why, and how the run continues
+    """
+    where = error.filename if error.filename is not None else "a file of the run folder"
+    fix = "free space" if error.errno in FULL_DISK_ERRNOS else "make the folder writable again"
+    resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
+    return (
+        f"could not write {where} ({os.strerror(error.errno)}) at frame {frame:,}: the run stops. {fix.capitalize()}, "
+        f"then run the same command again: {resume}."
+    )
