@@ -42,6 +42,11 @@ def tiny_config(run_dir, **changes):
     return TrainConfig(**{**settings, **changes})
 
 
+def _default_sigint() -> None:
+    """In a child before it runs Python: SIGINT at its default, so that Python installs its own handler."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def one_line_error(capsys, prog="python -m sb3_collapse.train"):
     err = capsys.readouterr().err
     assert "Traceback" not in err
@@ -279,7 +284,9 @@ def test_a_signal_during_a_probe_leaves_nothing_and_exits_75(tmp_path, signum):
     out = tmp_path / "probe"
     argv = [sys.executable, "-m", "sb3_collapse.probe", str(checkpoint), "--out", str(out), "--episodes", "50",
             "--no-progress"]  # fmt: skip
-    probe = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    probe = subprocess.Popen(  # SIGINT's default handler even under a shell that started the tests with it ignored
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint  # noqa: PLW1509 (one call, no fork-unsafe work)
+    )
     try:
         deadline = time.monotonic() + 120
         while not list(out.glob(".partial-*")):  # recording into the staging folder
