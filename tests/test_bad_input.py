@@ -122,8 +122,8 @@ def test_failure_after_the_folder_exists_marks_it_and_a_rerun_is_not_blocked(tmp
 
 def test_final_model_is_the_evaluated_one_when_a_window_ends_with_the_budget(tmp_path):
     # The window (400 frames) ends at the budget's last frame: the rule must not reset the model it then saves.
-    # Action repeat 8: episodes (and evaluations) of 125 agent steps.
-    config = tiny_config(tmp_path / "run", reset_rule=True, reset_window_frames=400, action_repeat=8)
+    # Action repeat 20: episodes (and evaluations) of 50 agent steps.
+    config = tiny_config(tmp_path / "run", reset_rule=True, reset_window_frames=400, action_repeat=20)
     result = train(config)
     summary = result.summary
     assert (
@@ -133,7 +133,7 @@ def test_final_model_is_the_evaluated_one_when_a_window_ends_with_the_budget(tmp
     assert model.reset_step == 0 and model._n_updates > 0
     # Re-evaluate the saved model as the run did: a fresh eval env seeded as the reference's (the run's seed), the
     # frame-0 evaluation's episode first.
-    eval_env = Monitor(make_dmc_env("cartpole-balance", seed=config.seed, size=48, action_repeat=8))
+    eval_env = Monitor(make_dmc_env("cartpole-balance", seed=config.seed, size=48, action_repeat=20))
     evaluate_policy(model, eval_env, n_eval_episodes=1, deterministic=True)
     rewards, _ = evaluate_policy(model, eval_env, n_eval_episodes=1, deterministic=True, return_episode_rewards=True)
     assert float(np.mean(rewards)) == pytest.approx(summary["saved_model_eval"]["mean_reward"], rel=1e-6)

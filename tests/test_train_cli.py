@@ -18,7 +18,7 @@ from sb3_collapse.train import main
 
 def test_train_end_to_end(tmp_path):
     config = TrainConfig(
-        env="walker-walk", frames=800, action_repeat=8, seed_frames=400, batch_size=8, hidden_dim=64,
+        env="walker-walk", frames=800, action_repeat=20, seed_frames=400, batch_size=8, hidden_dim=64,
         eval_every_frames=400, eval_episodes=1, logdir=str(tmp_path), progress_bar=False, replay_sampling="sb3",
     )
     result = train(config)
@@ -26,15 +26,15 @@ def test_train_end_to_end(tmp_path):
     with open(result.run_dir / "eval.csv") as file:
         rows = list(csv.DictReader(file))
     # The scheduled evaluations (the reference's: frame 0, then every 400 frames, none at the budget's end).
-    assert [int(row["frame"]) for row in rows] == evaluation_schedule(800, 400, 8) == [0, 400]
-    assert [int(row["step"]) for row in rows] == [0, 50]
+    assert [int(row["frame"]) for row in rows] == evaluation_schedule(800, 400, 20) == [0, 400]
+    assert [int(row["step"]) for row in rows] == [0, 20]
     assert all(np.isfinite(float(row["mean_reward"])) for row in rows)
     saved_config = json.loads((result.run_dir / "config.json").read_text())
     assert saved_config["frames"] == 800 and saved_config["variant"] == "drqv2" and saved_config["transplant"] is None
     summary = json.loads((result.run_dir / "result.json").read_text())
     assert summary == result.summary
     assert summary["status"] == "finished" and summary["task"] == "walker-walk" and summary["variant"] == "drqv2"
-    assert summary["seed"] == 0 and summary["frames"] == 800 and summary["agent_steps"] == 100
+    assert summary["seed"] == 0 and summary["frames"] == 800 and summary["agent_steps"] == 40
     assert summary["final_eval"] == {
         "frame": 400, "mean_reward": float(rows[-1]["mean_reward"]), "std_reward": float(rows[-1]["std_reward"])
     }
@@ -48,15 +48,15 @@ def test_train_end_to_end(tmp_path):
     assert not list(result.run_dir.glob("*.tmp"))
 
     model = DrQv2.load(result.model_path)
-    assert model.num_timesteps == 100 and model.num_frames == 800
-    assert model.env_config["task_id"] == "walker-walk" and model.env_config["action_repeat"] == 8
-    assert model.learning_starts == 50 and model._n_updates == 25
+    assert model.num_timesteps == 40 and model.num_frames == 800
+    assert model.env_config["task_id"] == "walker-walk" and model.env_config["action_repeat"] == 20
+    assert model.learning_starts == 20 and model._n_updates == 10
 
     events = list(result.run_dir.glob("events.out.tfevents.*"))
     accumulator = EventAccumulator(str(events[0]))
     accumulator.Reload()
-    assert [e.step for e in accumulator.Scalars("eval/mean_reward")] == [0, 50]
-    assert [e.step for e in accumulator.Scalars("eval_saved_model/mean_reward")] == [100]
+    assert [e.step for e in accumulator.Scalars("eval/mean_reward")] == [0, 20]
+    assert [e.step for e in accumulator.Scalars("eval_saved_model/mean_reward")] == [40]
 
     # A second run with the same name gets its own folder.
     second = train(TrainConfig(**{**config.__dict__, "frames": 80, "eval_every_frames": 0}))
@@ -202,7 +202,7 @@ def test_train_with_parallel_envs(tmp_path):
     """--n-envs 2: subprocess envs, frames summed over them, one update per 2 transitions, the timings in
     result.json."""
     out = subprocess.run(
-        [sys.executable, "-m", "sb3_collapse.train", "--env", "walker-walk", "--frames", "320", "--action-repeat", "8",
+        [sys.executable, "-m", "sb3_collapse.train", "--env", "walker-walk", "--frames", "320", "--action-repeat", "20",
          "--size", "48", "--seed-frames", "160", "--batch-size", "8", "--hidden-dim", "32", "--n-envs", "2",
          "--eval-every-frames", "320", "--eval-episodes", "1", "--collapse-metrics-every-frames", "0",
          "--replay-sampling", "sb3",
@@ -211,14 +211,14 @@ def test_train_with_parallel_envs(tmp_path):
     ).stdout
     assert "summed over 2 envs" in out
     summary = json.loads((tmp_path / "run" / "result.json").read_text())
-    assert summary["frames"] == 320 and summary["agent_steps"] == 40
+    assert summary["frames"] == 320 and summary["agent_steps"] == 16
     assert json.loads((tmp_path / "run" / "config.json").read_text())["n_envs"] == 2
     timings = summary["timings"]
-    assert timings["warmup"]["transitions"] == 20 and timings["learning"]["transitions"] == 20
-    assert timings["learning"]["updates"] == 40 // 2 - 20 // 2
+    assert timings["warmup"]["transitions"] == 8 and timings["learning"]["transitions"] == 8
+    assert timings["learning"]["updates"] == 16 // 2 - 8 // 2
     assert timings["learning"]["env_s"] > 0 and timings["first_round_updates"] == 1
     model = DrQv2.load(tmp_path / "run" / "final_model.zip")
-    assert model.n_envs == 2 and model._n_updates == 10 and model.num_frames == 320
+    assert model.n_envs == 2 and model._n_updates == 4 and model.num_frames == 320
     with open(tmp_path / "run" / "eval.csv") as file:  # the single evaluation env, at frame 0 (320: the final model)
         assert [int(row["frame"]) for row in csv.DictReader(file)] == [0]
     assert summary["saved_model_eval"]["frame"] == 320

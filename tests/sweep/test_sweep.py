@@ -34,12 +34,13 @@ from sb3_collapse.sweep import (
 from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.cluster import check_resources
 
-# A tiny trial: 1000 frames = 250 agent steps of 4 frames (a whole DMC episode is then 250 agent steps, so that the
-# evaluations at frames 0 and 1000 stay cheap), 32x32 images, learning from frame 600 (agent step 150), collapse
-# checks at frames 500 and 1000, and with the reset rule a window of 500 frames (a reset at frame 500; none at frame
-# 1000, the budget's end; the rule's runs never reach an update: their warm-up restarts at the reset).
+# A tiny trial: 1000 frames = 50 agent steps of 20 frames (a whole DMC episode is then 50 agent steps, so that the
+# evaluations at frames 0 and 1000 stay cheap: rendering is most of a trial's time), 32x32 images, learning from
+# frame 600 (agent step 30), collapse checks at frames 500 and 1000, and with the reset rule a window of 500 frames
+# (a reset at frame 500; none at frame 1000, the budget's end; the rule's runs never reach an update: their warm-up
+# restarts at the reset).
 TINY = [
-    "--frames", "1000", "--action-repeat", "4", "--size", "32", "--seed-frames", "600", "--batch-size", "8",
+    "--frames", "1000", "--action-repeat", "20", "--size", "32", "--seed-frames", "600", "--batch-size", "8",
     "--hidden-dim", "32", "--feature-dim", "16", "--eval-every-frames", "1000", "--eval-episodes", "1",
     "--collapse-metrics-every-frames", "500", "--collapse-metrics-batch", "8", "--reset-window-frames", "500",
     # The trial ends with its first episode: DrQ-v2's sampling (finished episodes only) would not update.
@@ -119,7 +120,7 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
         result = json.loads((folder / "result.json").read_text())
         assert set(result) == RESULT_KEYS
         assert result["status"] == "finished" and result["task"] == "walker-walk" and result["variant"] == variant
-        assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == 250
+        assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == 50
         assert result["final_eval"]["frame"] == 0  # the last scheduled evaluation
         assert result["final_eval"]["mean_reward"] == float(evaluations[-1]["mean_reward"])
         assert result["saved_model_eval"]["frame"] == 1000 and result["saved_model_eval"]["episodes"] == 1
@@ -210,7 +211,7 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     out = tmp_path / "sweep"
     argv = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "cnn-good_mlp-blank",
             "--good-cnn", str(broken), "--out", str(out), "--no-progress-bar",
-            *TINY, "--frames", "250", "--eval-every-frames", "1000",
+            *TINY, "--frames", "250", "--action-repeat", "25", "--eval-every-frames", "1000",
             "--collapse-metrics-every-frames", "0"]  # fmt: skip
     assert main(argv) == 1
     stdout = capsys.readouterr().out
@@ -229,7 +230,7 @@ def test_transplant_grid_cell_starts_from_the_checkpoints(tiny_sweep, tmp_path):
     out = tmp_path / "grid"
     argv = ["--tasks", "walker-walk", "--seed-list", "1", "--variants", "cnn-good_mlp-bad", "--out", str(out),
             "--good-cnn", str(good), "--bad-mlp", f"walker-walk={bad}", "--no-progress-bar",
-            *TINY, "--frames", "250", "--eval-every-frames", "1000"]  # fmt: skip
+            *TINY, "--frames", "250", "--action-repeat", "25", "--eval-every-frames", "1000"]  # fmt: skip
     assert main(argv) == 0
     folder = out / "walker-walk" / "cnn-good_mlp-bad" / "seed_1"
     config = json.loads((folder / "config.json").read_text())
