@@ -42,9 +42,9 @@ ALGORITHMS = ("drqv2", *BASELINES)
 """What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
 
 DEFAULT_CHECKPOINT_EVERY_FRAMES = 100_000
-"""Frames between two checkpoints by default: at DrQ-v2's ~100 frames/s on a V100, a stop loses at most ~17 minutes;
-each checkpoint writes the model (105 MB with Adam at the default sizes) and the replay data since the previous one
-(about 1.1 GB per 100,000 frames of 84x84 pixels at action repeat 2): docs/checkpoints.md."""
+"""Frames between two checkpoints by default: each checkpoint writes the model with its optimizers and the replay data
+since the previous one; what a stop loses and what each checkpoint costs: docs/checkpoints.md and the checkpoint rows
+of benchmarks/README.md."""
 
 RESUME_FREE_SETTINGS = (
     "logdir",
