@@ -105,8 +105,8 @@ def probe_sweep(
     :param command: the command line, for the summary
     :param jobs: checkpoints probed at once (threads: the forward passes and OMP fits run in torch, outside Python's
         lock). ``settings.memory_gb`` bounds them all together: each gets ``memory_gb / jobs`` for its activations
-        (snapshots themselves take ~13 MB each). The first checkpoint is probed alone, so that the others
-        reuse its ``cnn0`` probe. The results do not depend on ``jobs``
+        (snapshots themselves are small: benchmarks/README.md#checkpoint-sizes). The first checkpoint is probed
+        alone, so that the others reuse its ``cnn0`` probe. The results do not depend on ``jobs``
     :return: the summary (as written to ``summary.json``)
     :raises ProbeError: for bad input (nothing written then)
     """

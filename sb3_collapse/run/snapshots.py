@@ -5,9 +5,8 @@ weights the offline probe (the paper's Figure 2, probing MSE over training) and 
 
 A snapshot is an SB3 zip like ``DrQv2.save`` writes (``data``, ``policy.pth``), whose ``policy.pth`` holds
 the encoder and actor entries only: no critic, no target critic, no optimizer state, no replay buffer. With
-DrQ-v2's sizes at 84x84 it is 12.8 MB (walker-walk) against 46 MB for ``DrQv2.save`` before the first update,
-more once Adam's moments are saved. A member :data:`MARKER` marks it (:data:`LEGACY_MARKER` in the files of earlier
-versions);
+DrQ-v2's sizes it is a fraction of a ``DrQv2.save`` zip (both measured: benchmarks/README.md#checkpoint-sizes). A
+member :data:`MARKER` marks it (:data:`LEGACY_MARKER` in the files of earlier versions);
 :func:`load_snapshot` (and ``sb3_collapse.probe``'s checkpoint loader) reads it into a DrQv2 model whose
 critic keeps its random initialization (never used by the probe).
 """
