@@ -151,11 +151,14 @@ class ResumableCallback(BaseCallback):
     A callback whose state can be saved in a run checkpoint and put back in another process
     (:mod:`sb3_collapse.run.checkpoints`).
 
-    :meth:`state_dict` returns the attributes named by :attr:`state_attributes` (deep copies) and the state of the
-    random generator of its ``sampler``, if it has one. :meth:`load_state_dict` keeps a state until the next
-    ``learn()`` starts: the callback is then initialized as usual (``_init_callback``) and, instead of starting
-    afresh (``_on_training_start``), takes the saved state, so the resumed ``learn()`` continues where the saved one
-    was.
+    :meth:`state_dict` returns the attributes named by :attr:`state_attributes` (deep copies), the state of the
+    random generator of its ``sampler``, if it has one, and the model's agent steps when it was taken.
+    :meth:`load_state_dict` keeps a state until the next ``learn()`` starts: the callback is then initialized as usual
+    (``_init_callback``) and, instead of starting afresh (``_on_training_start``), takes the saved state, so the
+    resumed ``learn()`` continues where the saved one was. A ``learn()`` that restarted the step count at 0
+    (``reset_num_timesteps=True``) from a state taken later is a new run: it starts afresh. A state taken at step 0
+    (a run stopped during its first evaluation) is continued at step 0: what the callback did at the start is not
+    done twice.
     """
 
     state_attributes: tuple[str, ...] = ()
@@ -166,6 +169,9 @@ class ResumableCallback(BaseCallback):
     def state_dict(self) -> dict[str, Any]:
         """:return: the callback's state (picklable copies)"""
         state = {name: copy.deepcopy(getattr(self, name)) for name in self.state_attributes}
+        model = getattr(self, "model", None)  # set by init_callback
+        if model is not None:
+            state["num_timesteps"] = int(model.num_timesteps)
         sampler = getattr(self, "sampler", None)
         if isinstance(sampler, MetricsBatchSampler):
             state["sampler"] = sampler.rng.bit_generator.state
@@ -194,7 +200,9 @@ class ResumableCallback(BaseCallback):
 
     def on_training_start(self, locals_: dict[str, Any], globals_: dict[str, Any]) -> None:
         if self._pending_state is not None and self.model.num_timesteps == 0:
-            self._pending_state = None  # learn() restarted the step count: a new run, not a continuation
+            saved_steps = self._pending_state.get("num_timesteps")  # None in states of earlier versions
+            if saved_steps is None or saved_steps > 0:
+                self._pending_state = None  # learn() restarted the step count: a new run, not a continuation
         if self._pending_state is None:
             super().on_training_start(locals_, globals_)
             return

@@ -8,6 +8,7 @@ import pytest
 import torch as th
 from stable_baselines3 import TD3
 from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
+from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -179,3 +180,34 @@ def test_bad_parameters_are_refused():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         CollapseMetrics()  # the defaults are the paper's
+
+
+def test_a_state_taken_at_step_0_is_continued_and_a_later_one_restarted_by_a_step_count_reset(tmp_path):
+    """A run stopped during its first evaluation resumes from a checkpoint at step 0: the evaluation is not run (and
+    written) twice. A state taken later, met by a learn() that restarted the step count, is a new run's start."""
+    from sb3_collapse.monitoring import PeriodicEvaluation
+
+    model = DrQv2("MlpPolicy", "Pendulum-v1", learning_starts=10, batch_size=8, buffer_size=100, seed=0,
+                  policy_kwargs=dict(net_arch=[16], feature_dim=8))  # fmt: skip
+    model.set_logger(configure(str(tmp_path / "logs"), ["csv"]))
+    csv_path = tmp_path / "eval.csv"
+
+    def evaluation() -> PeriodicEvaluation:
+        callback = PeriodicEvaluation(Monitor(gym.make("Pendulum-v1", max_episode_steps=20)), 50, 1, csv_path)
+        callback.init_callback(model)
+        return callback
+
+    first = evaluation()
+    first.on_training_start({}, {})  # the evaluation at frame 0, then the stop
+    state = first.state_dict()
+    assert state["num_timesteps"] == 0 and first.next_eval_frame == 50
+    resumed = evaluation()
+    resumed.load_state_dict(state)
+    resumed.on_training_start({}, {})
+    assert resumed.next_eval_frame == 50 and len(resumed.rows) == 1
+    assert len(csv_path.read_text().splitlines()) == 2  # the header and the one evaluation
+
+    restarted = evaluation()
+    restarted.load_state_dict({**state, "num_timesteps": 40})  # taken later; learn() then restarted the count at 0
+    restarted.on_training_start({}, {})
+    assert restarted.rows != [] and len(csv_path.read_text().splitlines()) == 3  # evaluated afresh at frame 0
