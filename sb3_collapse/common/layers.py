@@ -25,6 +25,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
+import torch as th
 from torch import nn
 
 LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
@@ -52,6 +53,23 @@ class LayerParts(NamedTuple):
     consumers: tuple[nn.Linear | nn.Conv2d, ...]
     positions: int = 1
     channels_last: bool = False
+
+    @property
+    def units(self) -> int:
+        """Output features or channels."""
+        return int(self.linear.weight.shape[0])
+
+    def consumer_columns(self, index: th.Tensor) -> th.Tensor:
+        """
+        :param index: ``(k,)`` indices of units
+        :return: the indices of the consumers' weight columns (dim 1) that read them, on ``index``'s device
+        """
+        if self.positions == 1:
+            return index
+        where = th.arange(self.positions, device=index.device)
+        if self.channels_last:  # column of (position p, channel c): p * channels + c
+            return (where[:, None] * self.units + index[None, :]).flatten()
+        return (index[:, None] * self.positions + where[None, :]).flatten()  # c * positions + p
 
 
 def sequential_hidden_parts(

@@ -130,8 +130,8 @@ class InterventionParts(Protocol):
         ...
 
     def hidden_layer_parts(self) -> list[LayerParts]:
-        """The actor's and the critic's hidden layers that ReDo may recycle, actor first (wrapped in
-        :class:`HiddenLayer` by :func:`hidden_layers`)."""
+        """The actor's and the critic's hidden layers that ReDo may recycle, actor first (what
+        :func:`hidden_layers` returns)."""
         ...
 
     def encoder_channel_parts(self) -> list[LayerParts]:
@@ -450,49 +450,7 @@ def _span(parts: InterventionParts, modules: Sequence[nn.Module]) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ ReDo
-@dataclass(frozen=True)
-class HiddenLayer:
-    """
-    A hidden layer that ReDo may recycle: ``activation(linear(x))``, read by the ``consumers``. A unit is an output
-    feature of a Linear, or an output channel of a convolution.
-
-    :param name: ``mlp1``, ``mlp2`` (actor), ``q1.mlp1``... (critic's Q networks), ``cnn1``..``cnn4`` (DrQ-v2's
-        encoder)
-    :param linear: the layer's Linear or Conv2d (incoming weights: its rows, or output channels, and bias)
-    :param activation: the module whose output is the layer's activation
-    :param consumers: the Linear or Conv2d layers that read it (outgoing weights: their input columns or channels)
-    :param positions: spatial positions per channel in the consumers' flattened input (the last convolution read by
-        the trunks' Linear layers: ``height x width``); 1 otherwise
-    :param channels_last: the consumers' flattened input is in (height, width, channel) order (DrQ-v2's
-        ``channels_last`` encoder), else (channel, height, width)
-    """
-
-    name: str
-    linear: nn.Linear | nn.Conv2d
-    activation: nn.Module
-    consumers: tuple[nn.Linear | nn.Conv2d, ...]
-    positions: int = 1
-    channels_last: bool = False
-
-    @property
-    def units(self) -> int:
-        """Output features or channels."""
-        return int(self.linear.weight.shape[0])
-
-    def consumer_columns(self, index: th.Tensor) -> th.Tensor:
-        """
-        :param index: ``(k,)`` indices of units
-        :return: the indices of the consumers' weight columns (dim 1) that read them, on ``index``'s device
-        """
-        if self.positions == 1:
-            return index
-        where = th.arange(self.positions, device=index.device)
-        if self.channels_last:  # column of (position p, channel c): p * channels + c
-            return (where[:, None] * self.units + index[None, :]).flatten()
-        return (index[:, None] * self.positions + where[None, :]).flatten()  # c * positions + p
-
-
-def hidden_layers(model: BaseAlgorithm) -> list[HiddenLayer]:
+def hidden_layers(model: BaseAlgorithm) -> list[LayerParts]:
     """
     The hidden layers of the actor and the critic that :func:`redo` considers
     (:meth:`InterventionParts.hidden_layer_parts`): the actor's ``mlp1``, ``mlp2``... (as named by
@@ -502,10 +460,10 @@ def hidden_layers(model: BaseAlgorithm) -> list[HiddenLayer]:
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: the layers, actor first
     """
-    return [HiddenLayer(*parts) for parts in intervention_parts(model).hidden_layer_parts()]
+    return intervention_parts(model).hidden_layer_parts()
 
 
-def encoder_channels(model: BaseAlgorithm) -> list[HiddenLayer]:
+def encoder_channels(model: BaseAlgorithm) -> list[LayerParts]:
     """
     The convolutional layers of DrQ-v2's pixel encoder as layers of channels that ReDo may recycle, ``cnn1``..
     ``cnn4`` (:meth:`InterventionParts.encoder_channel_parts`): each output channel is a unit, its incoming weights
@@ -516,10 +474,10 @@ def encoder_channels(model: BaseAlgorithm) -> list[HiddenLayer]:
     :param model: a DrQv2 model (``CnnPolicy``); another model or ``MlpPolicy`` has none
     :return: the layers, input to output (empty when there are none)
     """
-    return [HiddenLayer(*parts) for parts in intervention_parts(model).encoder_channel_parts()]
+    return intervention_parts(model).encoder_channel_parts()
 
 
-def hidden_activations(model: BaseAlgorithm, layers: Sequence[HiddenLayer], samples: Any) -> dict[str, th.Tensor]:
+def hidden_activations(model: BaseAlgorithm, layers: Sequence[LayerParts], samples: Any) -> dict[str, th.Tensor]:
     """
     The activations of hidden layers on a batch of stored transitions (observations for the actor, observations
     and stored actions for the critic), in eval mode, without gradient; the mode is restored afterwards.
@@ -621,7 +579,7 @@ def redo(
 
 
 def _renew_incoming(
-    layer: HiddenLayer, index: th.Tensor, parts: InterventionParts, optimizers: Sequence[th.optim.Optimizer]
+    layer: LayerParts, index: th.Tensor, parts: InterventionParts, optimizers: Sequence[th.optim.Optimizer]
 ) -> int:
     """New initial values for the incoming weights and bias of units ``index``; returns the entries changed."""
     fresh = _fresh_copy(layer.linear, parts)
@@ -637,7 +595,7 @@ def _renew_incoming(
     return len(index) * (layer.linear.weight[0].numel() + (layer.linear.bias is not None))
 
 
-def _zero_outgoing(layer: HiddenLayer, index: th.Tensor, optimizers: Sequence[th.optim.Optimizer]) -> int:
+def _zero_outgoing(layer: LayerParts, index: th.Tensor, optimizers: Sequence[th.optim.Optimizer]) -> int:
     """Zero the outgoing weights of units ``index`` (the consumers' columns); returns the entries changed."""
     columns = layer.consumer_columns(index)
     with th.no_grad():
