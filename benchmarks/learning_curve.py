@@ -3,7 +3,7 @@ Evidence that training learns: train one seed of a task at its DrQ-v2 preset wit
 (``python -m sb3_collapse.train``) and draw its evaluation returns over the published DrQ-v2 curves of the task
 (``sb3_collapse/report/data/``, :mod:`sb3_collapse.report.reference`).
 
-    python benchmarks/learning_curve.py --env cartpole-balance --frames 60000 --run-dir runs/learning_curve
+    python benchmarks/learning_curve.py --env cartpole-balance --frames 60000
 
 Target (cartpole-balance at its preset, one seed, on the CPU): an evaluation of at least 800 by 60,000 frames (the
 published mean is 835 at 40k frames and 985 at 60k). The run can span several sittings: stop it (Ctrl-C, SIGTERM:
@@ -33,6 +33,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import FuncFormatter
 
 from sb3_collapse.protocol import EVAL_CSV, EXIT_INTERRUPTED, FINISHED, RESULT_JSON
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
@@ -123,8 +124,10 @@ def plot(args: argparse.Namespace, run_dir: Path, extra: list[str], out: Path) -
     ax.set_xlim(0, last * 1.02)
     ax.set_xlabel("frames (action repeat included)")
     ax.set_ylabel("evaluation return")
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
     overrides = f"; overrides: {' '.join(extra)}" if extra else " at its DrQ-v2 preset"
-    ax.set_title(textwrap.fill(f"{args.env}, {args.frames:,} frames{overrides}", 110), fontsize=8)
+    unfinished = "" if finished(run_dir) else f" (unfinished: evaluated up to frame {max(frames, default=0):,})"
+    ax.set_title(textwrap.fill(f"{args.env}, {args.frames:,} frames{overrides}{unfinished}", 110), fontsize=8)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
