@@ -131,12 +131,13 @@ class InterventionParts(Protocol):
 
     def hidden_layer_parts(self) -> list[LayerParts]:
         """The actor's and the critic's hidden layers that ReDo may recycle, actor first (what
-        :func:`hidden_layers` returns)."""
+        :func:`hidden_layers` returns); each lists every consumer of its units, in any network."""
         ...
 
     def encoder_channel_parts(self) -> list[LayerParts]:
-        """The encoder's convolutions as layers of channels that ReDo may recycle, input to output; ``[]`` when
-        there are none."""
+        """The encoder's convolutions as layers of channels that ReDo may recycle, input to output, each with every
+        consumer of its channels, in any network (a target network that reads the online encoder included);
+        ``[]`` when there are none."""
         ...
 
     def forward_hidden(self, observations: Any, actions: th.Tensor) -> None:
@@ -183,6 +184,8 @@ class _SB3Parts:
         return [actor.mu] if self.kind == "td3" else [actor.latent_pi, actor.mu, actor.log_std]
 
     def hidden_layer_parts(self) -> list[LayerParts]:
+        # SB3 builds the target actor and critic with layers and features extractors of their own (shared, with
+        # share_features_extractor, between the two targets only): every consumer of these units is listed here.
         actor = self.policy.actor
         if self.kind == "td3":
             parts = sequential_hidden_parts("", list(actor.mu))
@@ -468,7 +471,8 @@ def encoder_channels(model: BaseAlgorithm) -> list[LayerParts]:
     The convolutional layers of DrQ-v2's pixel encoder as layers of channels that ReDo may recycle, ``cnn1``..
     ``cnn4`` (:meth:`InterventionParts.encoder_channel_parts`): each output channel is a unit, its incoming weights
     the convolution's filter and bias for it, its outgoing weights the next convolution's input channel, or, for
-    ``cnn4``, the columns of the actor's and the critic's trunk Linear that read that channel at every position.
+    ``cnn4``, the columns of the actor's, the critic's and the target critic's trunk Linear that read that channel
+    at every position (DrQ-v2's target critic reads the online encoder).
     Sokar et al. recycle convolutional channels so.
 
     :param model: a DrQv2 model (``CnnPolicy``); another model or ``MlpPolicy`` has none
@@ -531,11 +535,13 @@ def redo(
     over its layer, is at most ``tau`` (:func:`~sb3_collapse.monitoring.metrics.dormant_units`, the definition of
     the ``dormant_ratio`` metric; every layer is measured before any is changed). For each dormant unit: its
     incoming weights and bias get new initial values (the algorithm's initializer), then its outgoing weights
-    (the consumers' columns) are set to zero, also where the consumer is a recycled unit itself (so that no
-    recycled unit changes the networks' outputs at first), and the Adam moments of exactly those entries are set
-    to zero (the step counts are kept). Everything else is kept: the other units, the encoder or features extractors,
-    the target
-    networks, the replay buffer, the other optimizer state.
+    (the consumers' columns, in every network that reads the unit, target networks included) are set to zero, also
+    where the consumer is a recycled unit itself, and the Adam moments of exactly those entries are set to zero
+    (the step counts are kept). So recycling units that are dead on the batch changes no function of the agent:
+    the actor's, the critic's and the target networks' outputs are the same, as with Sokar et al.'s ReDo.
+    Everything else is kept: the other units, the encoder or features extractors, the target networks (but their
+    columns that read a recycled channel of DrQ-v2's encoder, which its target critic reads), the replay buffer,
+    the other optimizer state.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param tau: the dormancy threshold, relative to the layer's mean (0.025: ReDo's, and ``dormant_ratio``'s)

@@ -20,7 +20,7 @@ from sb3_collapse.monitoring import (
     layer_parameters,
     track_grad_norms,
 )
-from sb3_collapse.monitoring.interventions import hidden_layers
+from sb3_collapse.monitoring.interventions import encoder_channels, hidden_layers
 
 PIXELS = gym.spaces.Box(0, 255, (9, 36, 36), np.uint8)  # NatureCNN needs at least 36x36
 STATE = gym.spaces.Box(-1, 1, (5,), np.float32)
@@ -293,3 +293,65 @@ def test_recorded_grad_norms_are_those_of_the_last_update(algo):
     for name, params in layer_parameters(model).items():
         assert recorded[name] == pytest.approx(gradient_norm(p.grad for p in params), rel=1e-5), name
     assert recorded["mlp1"] > 0
+
+
+def agent_outputs(model, samples):
+    """Every function of the agent on a batch: the actor's, the critic's and the target networks' outputs."""
+    policy = model.policy
+    obs, actions = th.as_tensor(samples.observations), th.as_tensor(samples.actions)
+    policy.set_training_mode(False)
+    with th.no_grad():
+        if isinstance(model, DrQv2):  # one encoder, read by the actor, the critic and the target critic
+            features = policy.encoder(obs)
+            return {
+                "actor": policy.actor(features),
+                "critic": th.cat(policy.critic(features, actions), 1),
+                "target critic": th.cat(policy.critic_target(features, actions), 1),
+            }
+        outputs = {"critic": th.cat(policy.critic(obs, actions), 1)}
+        outputs["target critic"] = th.cat(policy.critic_target(obs, actions), 1)
+        if isinstance(model, SAC):
+            outputs["actor"] = th.cat(policy.actor.get_action_dist_params(obs)[:2], 1)  # mean and log std
+        else:
+            outputs["actor"], outputs["target actor"] = policy.actor(obs), policy.actor_target(obs)
+        return outputs
+
+
+@pytest.mark.parametrize("algo,policy", MODELS)
+def test_recycling_dead_units_changes_no_function_of_the_agent(algo, policy):
+    """ReDo on units that are exactly dead on the batch (tau 0): new incoming weights, zero outgoing weights in every
+    network that reads them (DrQ-v2's target critic reads the online encoder's cnn4), and the actor's, the critic's
+    and the target networks' outputs unchanged."""
+    model = trained(algo, policy)
+    conv = algo == "drqv2" and policy == "CnnPolicy"
+    layers = {layer.name: layer for layer in hidden_layers(model)}
+    if conv:
+        layers["cnn4"] = encoder_channels(model)[-1]
+    killed = {"mlp1": (0, 3), "q1.mlp2": (1,), **({"cnn4": (2, 5)} if conv else {})}
+    with th.no_grad():
+        for name, units in killed.items():
+            layers[name].linear.bias[list(units)] = -1e3
+    samples, _ = MetricsBatchSampler(0).sample_transitions(model, 32)
+    before = agent_outputs(model, samples)
+    incoming = {name: layers[name].linear.weight[list(units)].clone() for name, units in killed.items()}
+    result = apply_intervention(model, "redo", samples=samples, tau=0.0, conv_channels=conv)
+    after = agent_outputs(model, samples)
+    assert (
+        set(before)
+        == set(after)
+        == {"actor", "critic", "target critic"} | ({"target actor"} if algo in ("td3", "ddpg") else set())
+    )
+    for name in before:
+        th.testing.assert_close(after[name], before[name], rtol=0, atol=1e-6, msg=f"redo changed the {name}")
+    for name, units in killed.items():
+        layer = layers[name]
+        assert set(units) <= set(result.units[name])
+        assert (layer.linear.bias[list(units)] > -1e3).all() and (
+            layer.linear.weight[list(units)] != incoming[name]
+        ).all(1).any()
+        columns = layer.consumer_columns(th.tensor(units))
+        for consumer in layer.consumers:
+            assert (consumer.weight[:, columns] == 0).all()
+    if conv:  # the readers of cnn4: the trunk Linear of the actor, the critic and the target critic
+        trunks = [model.policy.actor.trunk[0], model.policy.critic.trunk[0], model.policy.critic_target.trunk[0]]
+        assert list(layers["cnn4"].consumers) == trunks

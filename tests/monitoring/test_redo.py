@@ -95,8 +95,9 @@ def test_periodic_redo_recycles_dormant_units_and_channels_every_f_updates(chann
 
 
 def test_recycled_last_channel_no_longer_reaches_the_trunks():
-    """cnn4's outgoing weights are the trunks' columns of that channel at every position (either flatten order):
-    after recycling, changing the channel's activation changes neither trunk's output."""
+    """cnn4's outgoing weights are the trunks' columns of that channel at every position (either flatten order), the
+    target critic's included (it reads the online encoder): after recycling, changing the channel's activation
+    changes no trunk's output."""
     for channels_last in (True, False):
         model = tiny(channels_last=channels_last)
         model.learn(30)
@@ -113,7 +114,7 @@ def test_recycled_last_channel_no_longer_reaches_the_trunks():
             changed[:, 2] += th.randn_like(changed[:, 2]) * 10
             flat = (lambda x: x.permute(0, 2, 3, 1).flatten(1)) if channels_last else (lambda x: x.flatten(1))
             assert th.equal(flat(h), policy.encoder(th.as_tensor(samples.observations)))
-            for trunk in (policy.actor.trunk[0], policy.critic.trunk[0]):
+            for trunk in (policy.actor.trunk[0], policy.critic.trunk[0], policy.critic_target.trunk[0]):
                 th.testing.assert_close(trunk(flat(changed)), trunk(flat(h)), rtol=0, atol=1e-5)
             for moment in moments(model, policy.actor.trunk[0].weight):
                 columns = cnn4.consumer_columns(th.tensor([2]))
