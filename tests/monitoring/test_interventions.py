@@ -160,10 +160,15 @@ def test_partial_intervention_changes_exactly_what_it_names(algo, policy, interv
         for key in (key for key in weights if before[key].dim() == 2):  # Linear weights
             difference = after[key] - 0.8 * before[key]  # = 0.2 x a fresh initialization: nonzero, |entries| <= 1
             assert 0 < difference.abs().max() <= 0.2 + 1e-6, key
-    if intervention == "shrink_perturb_noise":
-        for key in (key for key in weights if before[key].dim() == 2):
-            difference = after[key] - 0.8 * before[key]  # = 0.01 x a fresh initialization
-            assert 0 < difference.abs().max() <= 0.01 + 1e-6, key
+    if intervention == "shrink_perturb_noise":  # every parameter gets a noise, biases and LayerNorm's included
+        for key in weights:
+            noise = (after[key] - 0.8 * before[key]) / 0.01
+            if before[key].dim() > 1:  # weights: a fresh initialization (orthogonal, gain sqrt(2) for DrQ-v2's convs)
+                bound = 2**0.5
+            else:  # U(-1/sqrt(fan_in), 1/sqrt(fan_in)), fan_in of the layer's weight (LayerNorm: its features)
+                weight = before.get(key.removesuffix("bias") + "weight", before[key])
+                bound = (weight[0].numel() if weight.dim() > 1 else weight.numel()) ** -0.5
+            assert (noise != 0).float().mean() > 0.99 and noise.abs().max() <= bound * (1 + 1e-3) + 1e-4, key
     model.learn(10, reset_num_timesteps=False)  # training continues from the changed state
 
 
