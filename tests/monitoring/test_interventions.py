@@ -351,9 +351,8 @@ def test_recycling_dead_units_changes_no_function_of_the_agent(algo, policy):
     for name, units in killed.items():
         layer = layers[name]
         assert set(units) <= set(result.units[name])
-        assert (layer.linear.bias[list(units)] > -1e3).all() and (
-            layer.linear.weight[list(units)] != incoming[name]
-        ).all(1).any()
+        assert (layer.linear.bias[list(units)] > -1e3).all()  # new incoming weights and bias for each unit
+        assert (layer.linear.weight[list(units)] != incoming[name]).flatten(1).any(1).all()
         columns = layer.consumer_columns(th.tensor(units))
         for consumer in layer.consumers:
             assert (consumer.weight[:, columns] == 0).all()
