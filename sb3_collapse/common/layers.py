@@ -40,7 +40,9 @@ class LayerParts(NamedTuple):
     :param name: ``mlp1``, ``mlp2`` (actor), ``q1.mlp1``... (critic's Q networks), ``cnn1``..``cnn4`` (encoder)
     :param linear: the layer's Linear or Conv2d (incoming weights: its rows, or output channels, and bias)
     :param activation: the module whose output is the layer's activation
-    :param consumers: the Linear or Conv2d layers that read it (outgoing weights: their input columns or channels)
+    :param consumers: every Linear or Conv2d that reads it, in every network, target networks included (outgoing
+        weights: their input columns or channels); ReDo zeroes these alone, so a missing one changes that network's
+        output at recycling
     :param positions: spatial positions per channel in the consumers' flattened input (a last convolution read by
         Linear layers: ``height x width``); 1 otherwise
     :param channels_last: the consumers' flattened input is in (height, width, channel) order, else (channel,

@@ -50,6 +50,8 @@ from sb3_collapse.errors import ParameterError, SpaceError
 
 ACTION_EPS = 1e-6
 """Sampled actions are clamped to ``[-1 + eps, 1 - eps]`` as in DrQ-v2's ``TruncatedNormal``."""
+
+
 def hidden_layers(net_arch: Sequence[int] | None, hidden_dim: int) -> list[int]:
     """
     :param net_arch: SB3's ``net_arch`` of a network (units of each hidden layer), ``None`` for DrQ-v2's
@@ -509,6 +511,18 @@ class DrQv2Policy(BasePolicy):
         """:return: the target networks by name: ``target critic``"""
         return {"target critic": self.critic_target}
 
+    def feature_readers(self) -> list[nn.Module]:
+        """
+        The networks that read the encoder's features: every network of :meth:`online_networks` and
+        :meth:`target_networks` but the encoder (the actor, the critic, and the target critic, which DrQ-v2 runs on
+        the online encoder's features). The consumers of the encoder's last layer are read from this list, so a
+        network added to either is not missed when ReDo recycles a channel.
+
+        :return: the networks, in the order of those two methods
+        """
+        networks = {**self.online_networks(), **self.target_networks()}
+        return [network for network in networks.values() if network is not self.encoder]
+
     def actor_modules(self) -> list[nn.Module]:
         """:return: what a reset of the actor renews: the whole actor (the encoder is the critic's, it is kept)"""
         return [self.actor]
@@ -543,15 +557,16 @@ class DrQv2Policy(BasePolicy):
     def encoder_channel_parts(self) -> list[LayerParts]:
         """
         The convolutions of the pixel encoder as layers of channels that ReDo may recycle, ``cnn1``..``cnn4``: a
-        channel's consumers are the next convolution, or for the last one the first Linear of the actor and of the
-        critic, which read it at every position (in the encoder's flattening order).
+        channel's consumers are the next convolution, or for the last one the first Linear of each network of
+        :meth:`feature_readers` (actor, critic, target critic), which read it at every position (in the encoder's
+        flattening order).
 
         :return: the layers' parts, input to output; ``[]`` for an encoder without convolutions (``MlpPolicy``)
         """
         if not isinstance(self.encoder, PixelEncoder):
             return []
         blocks = [(name, block) for name, block in self.encoder.named_layers().items() if isinstance(block, ConvReLU)]
-        trunks = tuple(next(m for m in net.modules() if isinstance(m, nn.Linear)) for net in (self.actor, self.critic))
+        trunks = tuple(next(m for m in net.modules() if isinstance(m, nn.Linear)) for net in self.feature_readers())
         positions = self.encoder.repr_dim // blocks[-1][1][0].out_channels
         parts = []
         for k, (name, block) in enumerate(blocks):
@@ -720,4 +735,3 @@ def check_action_space(action_space: spaces.Space) -> None:
         )
     if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
         raise SpaceError("env", f"DrQv2 needs finite action bounds to rescale its tanh actions, got {action_space}.")
-

@@ -15,7 +15,8 @@ nothing else (the other weights, every optimizer state it does not name, the rep
 ``shrink_perturb``  interpolation toward a fresh initialization, ``theta <- 0.8 theta + 0.2 theta_0``, on the
                     online networks (:func:`shrink_perturb`)
 ``shrink_perturb_noise``  Ash and Adams' shrink and perturb, ``theta <- lambda theta + sigma noise`` (0.8, 0.01),
-                    the noise a fresh initialization (:func:`shrink_perturb_noise`)
+                    noise on every parameter, biases and normalization parameters included
+                    (:func:`shrink_perturb_noise`)
 ==================  ========================================================================================
 
 Models: those whose policy provides :class:`InterventionParts` (``DrQv2``'s ``CnnPolicy`` and ``MlpPolicy``), and
@@ -63,8 +64,8 @@ NOISE_SHRINK = 0.8
 """The default shrink factor lambda of :func:`shrink_perturb_noise` (Ash and Adams choose lambda per problem)."""
 
 NOISE_SCALE = 0.01
-"""The default noise scale sigma of :func:`shrink_perturb_noise`, times a fresh initialization (chosen per problem
-by Ash and Adams too)."""
+"""The default noise scale sigma of :func:`shrink_perturb_noise`, times a noise of each layer's initial scale (chosen
+per problem by Ash and Adams too)."""
 
 
 @dataclass(frozen=True)
@@ -131,12 +132,13 @@ class InterventionParts(Protocol):
 
     def hidden_layer_parts(self) -> list[LayerParts]:
         """The actor's and the critic's hidden layers that ReDo may recycle, actor first (what
-        :func:`hidden_layers` returns)."""
+        :func:`hidden_layers` returns); each lists every consumer of its units, in any network."""
         ...
 
     def encoder_channel_parts(self) -> list[LayerParts]:
-        """The encoder's convolutions as layers of channels that ReDo may recycle, input to output; ``[]`` when
-        there are none."""
+        """The encoder's convolutions as layers of channels that ReDo may recycle, input to output, each with every
+        consumer of its channels, in any network (a target network that reads the online encoder included);
+        ``[]`` when there are none."""
         ...
 
     def forward_hidden(self, observations: Any, actions: th.Tensor) -> None:
@@ -183,6 +185,8 @@ class _SB3Parts:
         return [actor.mu] if self.kind == "td3" else [actor.latent_pi, actor.mu, actor.log_std]
 
     def hidden_layer_parts(self) -> list[LayerParts]:
+        # SB3 builds the target actor and critic with layers and features extractors of their own (shared, with
+        # share_features_extractor, between the two targets only): every consumer of these units is listed here.
         actor = self.policy.actor
         if self.kind == "td3":
             parts = sequential_hidden_parts("", list(actor.mu))
@@ -468,7 +472,8 @@ def encoder_channels(model: BaseAlgorithm) -> list[LayerParts]:
     The convolutional layers of DrQ-v2's pixel encoder as layers of channels that ReDo may recycle, ``cnn1``..
     ``cnn4`` (:meth:`InterventionParts.encoder_channel_parts`): each output channel is a unit, its incoming weights
     the convolution's filter and bias for it, its outgoing weights the next convolution's input channel, or, for
-    ``cnn4``, the columns of the actor's and the critic's trunk Linear that read that channel at every position.
+    ``cnn4``, the columns of the actor's, the critic's and the target critic's trunk Linear that read that channel
+    at every position (DrQ-v2's target critic reads the online encoder).
     Sokar et al. recycle convolutional channels so.
 
     :param model: a DrQv2 model (``CnnPolicy``); another model or ``MlpPolicy`` has none
@@ -531,11 +536,13 @@ def redo(
     over its layer, is at most ``tau`` (:func:`~sb3_collapse.monitoring.metrics.dormant_units`, the definition of
     the ``dormant_ratio`` metric; every layer is measured before any is changed). For each dormant unit: its
     incoming weights and bias get new initial values (the algorithm's initializer), then its outgoing weights
-    (the consumers' columns) are set to zero, also where the consumer is a recycled unit itself (so that no
-    recycled unit changes the networks' outputs at first), and the Adam moments of exactly those entries are set
-    to zero (the step counts are kept). Everything else is kept: the other units, the encoder or features extractors,
-    the target
-    networks, the replay buffer, the other optimizer state.
+    (the consumers' columns, in every network that reads the unit, target networks included) are set to zero, also
+    where the consumer is a recycled unit itself, and the Adam moments of exactly those entries are set to zero
+    (the step counts are kept). So recycling units that are dead on the batch changes no function of the agent:
+    the actor's, the critic's and the target networks' outputs are the same, as with Sokar et al.'s ReDo.
+    Everything else is kept: the other units, the encoder or features extractors, the target networks (but their
+    columns that read a recycled channel of DrQ-v2's encoder, which its target critic reads), the replay buffer,
+    the other optimizer state.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param tau: the dormancy threshold, relative to the layer's mean (0.025: ReDo's, and ``dormant_ratio``'s)
@@ -632,7 +639,7 @@ def shrink_perturb(model: BaseAlgorithm, shrink: float = SHRINK, perturb: float 
     :param perturb: the weight of the fresh initialization, ``>= 0`` (0.2)
     :return: what was done
     """
-    changed, names = _shrink_and_add_fresh(model, shrink, perturb)
+    changed, names = _shrink_and_add(model, shrink, perturb, "perturb", _fresh_values)
     detail = (
         f"theta <- {shrink:g} theta + {perturb:g} theta_0 (toward a fresh init) on the {', '.join(names)}; "
         "optimizer state kept"
@@ -645,34 +652,50 @@ def shrink_perturb_noise(
 ) -> InterventionResult:
     """
     Shrink and perturb in Ash and Adams' form ("On Warm-Starting Neural Network Training", NeurIPS 2020, "Shrink,
-    Perturb, Repeat": shrink the weights toward zero, then add noise): ``theta <- lambda * theta + sigma * noise``,
-    the noise a fresh draw of the algorithm's initializer (so that its scale is each layer's initial scale; Ash and
-    Adams write the perturbation ``p ~ N(0, sigma^2)``), on every parameter of the online networks, as
-    :func:`shrink_perturb`. ``lambda`` (0.8) shrinks the weights toward zero; ``sigma`` (0.01) is small, unlike
-    :func:`shrink_perturb`'s interpolation toward a fresh initialization (0.8 theta + 0.2 theta_0). Kept: the
-    target networks, the optimizer state, SAC's entropy coefficient, the replay buffer and the step counters.
+    Perturb, Repeat": shrink the weights toward zero, then add noise): ``theta <- lambda * theta + sigma * noise``
+    on every parameter of the online networks, as :func:`shrink_perturb`. Ash and Adams write the perturbation
+    ``p ~ N(0, sigma^2)`` on every parameter; here each noise entry is independent, of mean zero, at each layer's
+    initial scale (:func:`perturbation_noise`):
+
+    - the weight of a Linear or a convolution: a fresh draw of the algorithm's initializer (DrQ-v2's orthogonal
+      initialization for DrQv2, PyTorch's default ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))`` for SB3's networks);
+    - every other parameter (the biases, which DrQ-v2 initializes to 0, and the gain and shift of a LayerNorm,
+      initialized to 1 and 0): ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, PyTorch's default distribution of a
+      Linear's bias, ``fan_in`` the inputs of one of the layer's units (a Linear's ``in_features``, a convolution's
+      input channels times its kernel area, a LayerNorm's normalized features).
+
+    ``lambda`` (0.8) shrinks the weights toward zero; ``sigma`` (0.01) is small, unlike :func:`shrink_perturb`'s
+    interpolation toward a fresh initialization (0.8 theta + 0.2 theta_0). Kept: the target networks, the optimizer
+    state, SAC's entropy coefficient, the replay buffer and the step counters.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param shrink: lambda, in ``(0, 1]``
     :param noise: sigma, ``>= 0``
     :return: what was done
     """
-    changed, names = _shrink_and_add_fresh(model, shrink, noise, "noise")
+    changed, names = _shrink_and_add(model, shrink, noise, "noise", perturbation_noise)
     detail = (
-        f"theta <- {shrink:g} theta + {noise:g} noise (Ash & Adams; noise: a fresh init) on the {', '.join(names)}; "
-        "optimizer state kept"
+        f"theta <- {shrink:g} theta + {noise:g} noise (Ash & Adams; noise at each layer's initial scale, biases and "
+        f"normalization parameters included) on the {', '.join(names)}; optimizer state kept"
     )
     return InterventionResult("shrink_perturb_noise", detail, {"weights_changed": float(changed)})
 
 
-def _shrink_and_add_fresh(
-    model: BaseAlgorithm, shrink: float, scale: float, scale_name: str = "perturb"
+def _shrink_and_add(
+    model: BaseAlgorithm,
+    shrink: float,
+    scale: float,
+    scale_name: str,
+    draw: Callable[[nn.Module, nn.Module], Iterable[tuple[nn.Parameter, th.Tensor]]],
 ) -> tuple[int, list[str]]:
     """
-    ``theta <- shrink * theta + scale * theta_fresh`` on the online networks, ``theta_fresh`` drawn module by module
-    (:meth:`InterventionParts.online_networks`: encoder, actor, critic for DrQv2; actor, critic otherwise) from
-    torch's global generator.
+    ``theta <- shrink * theta + scale * value`` on every parameter of the online networks, the values drawn network by
+    network (:meth:`InterventionParts.online_networks`: encoder, actor, critic for DrQv2; actor, critic otherwise)
+    from torch's global generator.
 
+    :param scale_name: the Python parameter that ``scale`` is, for the error message
+    :param draw: ``(network, a fresh initialization of it) -> (parameter, value)`` pairs: :func:`_fresh_values` or
+        :func:`perturbation_noise`
     :return: the parameter entries changed and the networks' names
     """
     if not 0.0 < shrink <= 1.0:
@@ -684,9 +707,8 @@ def _shrink_and_add_fresh(
     seen: set[int] = set()
     changed = 0
     for module in networks.values():
-        fresh = _fresh_copy(module, parts)
         with th.no_grad():
-            for param, new in zip(module.parameters(), fresh.parameters()):
+            for param, new in draw(module, _fresh_copy(module, parts)):
                 if id(param) in seen:  # a features extractor shared by the actor and the critic: once
                     continue
                 seen.add(id(param))
@@ -694,6 +716,38 @@ def _shrink_and_add_fresh(
                 changed += param.numel()
     _forget_grad_norms(model)
     return changed, list(networks)
+
+
+def _fresh_values(module: nn.Module, fresh: nn.Module) -> Iterable[tuple[nn.Parameter, th.Tensor]]:
+    """``(parameter, its fresh initial value)`` pairs of :func:`shrink_perturb`'s interpolation."""
+    return zip(module.parameters(), fresh.parameters())
+
+
+def perturbation_noise(module: nn.Module, fresh: nn.Module) -> list[tuple[nn.Parameter, th.Tensor]]:
+    """
+    The noise of :func:`shrink_perturb_noise` for every parameter of ``module``, drawn from torch's global generator
+    on each parameter's device, in its dtype: the weight of a Linear or a convolution is ``fresh``'s (a fresh
+    initialization of ``module``); any other parameter (a bias, a LayerNorm's gain and shift) is drawn from
+    ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, ``fan_in`` the inputs of one of the layer's units (a Linear's
+    ``in_features``, a convolution's input channels times its kernel area, else the parameter's entries: a
+    LayerNorm's normalized features).
+
+    :param module: the module whose parameters get the noise
+    :param fresh: a copy of ``module`` with new initial values (same structure)
+    :return: ``(parameter, noise)`` pairs, each noise of its parameter's shape, in ``module.modules()`` order
+    """
+    noise = []
+    for sub, fresh_sub in zip(module.modules(), fresh.modules()):
+        drawn = dict(fresh_sub.named_parameters(recurse=False))
+        for name, param in sub.named_parameters(recurse=False):
+            weighted = isinstance(sub, (nn.Linear, nn.Conv2d))
+            if weighted and name == "weight":
+                noise.append((param, drawn[name]))
+                continue
+            fan_in = sub.weight[0].numel() if weighted else param.numel()  # type: ignore[index]
+            bound = fan_in**-0.5
+            noise.append((param, th.empty_like(param).uniform_(-bound, bound)))
+    return noise
 
 
 # ------------------------------------------------------------------------------------------------ by name

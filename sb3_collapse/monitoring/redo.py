@@ -23,11 +23,12 @@ class PeriodicReDo(ResumableCallback):
     Reinforcement Learning", ICML 2023), as the paper runs it: every ``every_updates`` updates (``F``), for the whole
     run, the dormant units of the networks are recycled (:func:`~sb3_collapse.monitoring.interventions.redo`): a unit
     whose mean absolute activation on a batch of stored transitions, divided by its layer's mean, is at most ``tau``
-    gets new incoming weights (the algorithm's initializer), zero outgoing weights and zero Adam moments for those
-    entries. With ``conv_channels`` (the default), the channels of DrQ-v2's convolutions ``cnn1``..``cnn4`` are
-    recycled too, a channel's score averaged over the batch and the positions; then the actor's and the critic's
-    hidden layers (``mlp1``, ``mlp2``, ``q1.mlp1``...). Models: DrQv2 and SB3's TD3, DDPG and SAC (their
-    convolutions are not recycled).
+    gets new incoming weights (the algorithm's initializer), zero outgoing weights in every network that reads it
+    (DrQ-v2's target critic, which reads the online encoder, included) and zero Adam moments for those entries.
+    With ``conv_channels`` (the default), the channels of DrQ-v2's convolutions ``cnn1``..``cnn4`` are recycled
+    too, a channel's score averaged over the batch and the positions; then the actor's and the critic's hidden layers
+    (``mlp1``, ``mlp2``, ``q1.mlp1``...). Models: DrQv2 and SB3's TD3, DDPG and SAC (their convolutions are not
+    recycled).
 
     The recycling happens at the first agent step after the model's update count (``model._n_updates``) reaches each
     multiple of ``every_updates`` (several multiples at once give one recycling). Logged at each one, at the agent

@@ -61,7 +61,8 @@ def test_the_drqv2_policy_provides_the_parts(policy_class):
         assert channels == []
     else:
         assert [p.name for p in channels] == list(LAYER_NAMES[1:5])  # cnn1..cnn4
-        assert channels[-1].consumers == (policy.actor.trunk[0], policy.critic.trunk[0])
+        assert policy.feature_readers() == [policy.actor, policy.critic, policy.critic_target]
+        assert channels[-1].consumers == (policy.actor.trunk[0], policy.critic.trunk[0], policy.critic_target.trunk[0])
         assert channels[-1].positions == policy.encoder.repr_dim // 32 and channels[-1].channels_last
         assert channels[0].consumers == (policy.encoder.cnn2[0],) and channels[0].positions == 1
 

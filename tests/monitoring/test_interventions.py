@@ -20,7 +20,7 @@ from sb3_collapse.monitoring import (
     layer_parameters,
     track_grad_norms,
 )
-from sb3_collapse.monitoring.interventions import hidden_layers
+from sb3_collapse.monitoring.interventions import encoder_channels, hidden_layers
 
 PIXELS = gym.spaces.Box(0, 255, (9, 36, 36), np.uint8)  # NatureCNN needs at least 36x36
 STATE = gym.spaces.Box(-1, 1, (5,), np.float32)
@@ -160,10 +160,15 @@ def test_partial_intervention_changes_exactly_what_it_names(algo, policy, interv
         for key in (key for key in weights if before[key].dim() == 2):  # Linear weights
             difference = after[key] - 0.8 * before[key]  # = 0.2 x a fresh initialization: nonzero, |entries| <= 1
             assert 0 < difference.abs().max() <= 0.2 + 1e-6, key
-    if intervention == "shrink_perturb_noise":
-        for key in (key for key in weights if before[key].dim() == 2):
-            difference = after[key] - 0.8 * before[key]  # = 0.01 x a fresh initialization
-            assert 0 < difference.abs().max() <= 0.01 + 1e-6, key
+    if intervention == "shrink_perturb_noise":  # every parameter gets a noise, biases and LayerNorm's included
+        for key in weights:
+            noise = (after[key] - 0.8 * before[key]) / 0.01
+            if before[key].dim() > 1:  # weights: a fresh initialization (orthogonal, gain sqrt(2) for DrQ-v2's convs)
+                bound = 2**0.5
+            else:  # U(-1/sqrt(fan_in), 1/sqrt(fan_in)), fan_in of the layer's weight (LayerNorm: its features)
+                weight = before.get(key.removesuffix("bias") + "weight", before[key])
+                bound = (weight[0].numel() if weight.dim() > 1 else weight.numel()) ** -0.5
+            assert (noise != 0).float().mean() > 0.99 and noise.abs().max() <= bound * (1 + 1e-3) + 1e-4, key
     model.learn(10, reset_num_timesteps=False)  # training continues from the changed state
 
 
@@ -293,3 +298,64 @@ def test_recorded_grad_norms_are_those_of_the_last_update(algo):
     for name, params in layer_parameters(model).items():
         assert recorded[name] == pytest.approx(gradient_norm(p.grad for p in params), rel=1e-5), name
     assert recorded["mlp1"] > 0
+
+
+def agent_outputs(model, samples):
+    """Every function of the agent on a batch: the actor's, the critic's and the target networks' outputs."""
+    policy = model.policy
+    obs, actions = th.as_tensor(samples.observations), th.as_tensor(samples.actions)
+    policy.set_training_mode(False)
+    with th.no_grad():
+        if isinstance(model, DrQv2):  # one encoder, read by the actor, the critic and the target critic
+            features = policy.encoder(obs)
+            return {
+                "actor": policy.actor(features),
+                "critic": th.cat(policy.critic(features, actions), 1),
+                "target critic": th.cat(policy.critic_target(features, actions), 1),
+            }
+        outputs = {"critic": th.cat(policy.critic(obs, actions), 1)}
+        outputs["target critic"] = th.cat(policy.critic_target(obs, actions), 1)
+        if isinstance(model, SAC):
+            outputs["actor"] = th.cat(policy.actor.get_action_dist_params(obs)[:2], 1)  # mean and log std
+        else:
+            outputs["actor"], outputs["target actor"] = policy.actor(obs), policy.actor_target(obs)
+        return outputs
+
+
+@pytest.mark.parametrize("algo,policy", MODELS)
+def test_recycling_dead_units_changes_no_function_of_the_agent(algo, policy):
+    """ReDo on units that are exactly dead on the batch (tau 0): new incoming weights, zero outgoing weights in every
+    network that reads them (DrQ-v2's target critic reads the online encoder's cnn4), and the actor's, the critic's
+    and the target networks' outputs unchanged."""
+    model = trained(algo, policy)
+    conv = algo == "drqv2" and policy == "CnnPolicy"
+    layers = {layer.name: layer for layer in hidden_layers(model)}
+    if conv:
+        layers["cnn4"] = encoder_channels(model)[-1]
+    killed = {"mlp1": (0, 3), "q1.mlp2": (1,), **({"cnn4": (2, 5)} if conv else {})}
+    with th.no_grad():
+        for name, units in killed.items():
+            layers[name].linear.bias[list(units)] = -1e3
+    samples, _ = MetricsBatchSampler(0).sample_transitions(model, 32)
+    before = agent_outputs(model, samples)
+    incoming = {name: layers[name].linear.weight[list(units)].clone() for name, units in killed.items()}
+    result = apply_intervention(model, "redo", samples=samples, tau=0.0, conv_channels=conv)
+    after = agent_outputs(model, samples)
+    assert (
+        set(before)
+        == set(after)
+        == {"actor", "critic", "target critic"} | ({"target actor"} if algo in ("td3", "ddpg") else set())
+    )
+    for name in before:
+        th.testing.assert_close(after[name], before[name], rtol=0, atol=1e-6, msg=f"redo changed the {name}")
+    for name, units in killed.items():
+        layer = layers[name]
+        assert set(units) <= set(result.units[name])
+        assert (layer.linear.bias[list(units)] > -1e3).all()  # new incoming weights and bias for each unit
+        assert (layer.linear.weight[list(units)] != incoming[name]).flatten(1).any(1).all()
+        columns = layer.consumer_columns(th.tensor(units))
+        for consumer in layer.consumers:
+            assert (consumer.weight[:, columns] == 0).all()
+    if conv:  # the readers of cnn4: the trunk Linear of the actor, the critic and the target critic
+        trunks = [model.policy.actor.trunk[0], model.policy.critic.trunk[0], model.policy.critic_target.trunk[0]]
+        assert list(layers["cnn4"].consumers) == trunks

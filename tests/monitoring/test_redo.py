@@ -9,11 +9,16 @@ import torch as th
 from torch import nn
 
 from sb3_collapse import DrQv2, PeriodicReDo
-from sb3_collapse.drqv2.encoders import LEAKY_RELU_SLOPE, weight_init
+from sb3_collapse.drqv2.encoders import LEAKY_RELU_SLOPE
 from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring import MetricsBatchSampler, apply_intervention, collect_activations, dead_fraction
-from sb3_collapse.monitoring.interventions import INTERVENTION_LABELS, encoder_channels, hidden_layers
+from sb3_collapse.monitoring.interventions import (
+    INTERVENTION_LABELS,
+    encoder_channels,
+    hidden_layers,
+    perturbation_noise,
+)
 
 PIXELS = gym.spaces.Box(0, 255, (9, 36, 36), np.uint8)
 
@@ -95,8 +100,9 @@ def test_periodic_redo_recycles_dormant_units_and_channels_every_f_updates(chann
 
 
 def test_recycled_last_channel_no_longer_reaches_the_trunks():
-    """cnn4's outgoing weights are the trunks' columns of that channel at every position (either flatten order):
-    after recycling, changing the channel's activation changes neither trunk's output."""
+    """cnn4's outgoing weights are the trunks' columns of that channel at every position (either flatten order), the
+    target critic's included (it reads the online encoder): after recycling, changing the channel's activation
+    changes no trunk's output."""
     for channels_last in (True, False):
         model = tiny(channels_last=channels_last)
         model.learn(30)
@@ -113,7 +119,7 @@ def test_recycled_last_channel_no_longer_reaches_the_trunks():
             changed[:, 2] += th.randn_like(changed[:, 2]) * 10
             flat = (lambda x: x.permute(0, 2, 3, 1).flatten(1)) if channels_last else (lambda x: x.flatten(1))
             assert th.equal(flat(h), policy.encoder(th.as_tensor(samples.observations)))
-            for trunk in (policy.actor.trunk[0], policy.critic.trunk[0]):
+            for trunk in (policy.actor.trunk[0], policy.critic.trunk[0], policy.critic_target.trunk[0]):
                 th.testing.assert_close(trunk(flat(changed)), trunk(flat(h)), rtol=0, atol=1e-5)
             for moment in moments(model, policy.actor.trunk[0].weight):
                 columns = cnn4.consumer_columns(th.tensor([2]))
@@ -171,30 +177,52 @@ def test_ash_and_adams_shrink_perturb_is_lambda_theta_plus_sigma_noise():
     model.learn(30)
     policy = model.policy
     before = {k: v.detach().clone() for k, v in policy.state_dict().items()}
-    # the noise: a fresh draw of DrQ-v2's initializer for the encoder, the actor, the critic, in that order
-    th.manual_seed(7)
-    noise = {}
-    for part in ("encoder", "actor", "critic"):
-        fresh = copy.deepcopy(getattr(policy, part)).to(memory_format=th.contiguous_format)
-        for module in fresh.modules():
-            if isinstance(module, (nn.Linear, nn.Conv2d)):
-                weight_init(module)
-            elif isinstance(module, nn.LayerNorm):
-                module.reset_parameters()
-        noise.update({f"{part}.{k}": v for k, v in fresh.state_dict().items()})
     th.manual_seed(7)
     result = apply_intervention(model, "shrink_perturb_noise", shrink=0.6, noise=0.05)
     after = policy.state_dict()
+    online = [k for k in after if k.startswith(("encoder.", "actor.", "critic.")) and "running" not in k]
+    noise = {k: (after[k] - 0.6 * before[k]) / 0.05 for k in online}
+    for key, value in noise.items():  # every parameter moves by its own noise, biases and LayerNorm's included
+        assert (value != 0).float().mean() > 0.99, key
+    # the weights' noise: a fresh draw of DrQ-v2's initializer (orthogonal Linear weights)
+    th.testing.assert_close(
+        noise["actor.mlp2.0.weight"] @ noise["actor.mlp2.0.weight"].T, th.eye(32), atol=1e-3, rtol=0
+    )
+    # the other parameters' noise: U(-1/sqrt(fan_in), 1/sqrt(fan_in)), fan_in the inputs of one unit of the layer
+    fan_in = {"encoder.cnn1.0.bias": 9 * 9, "encoder.cnn2.0.bias": 8 * 9, "actor.trunk.0.bias": policy.encoder.repr_dim}
+    fan_in.update({"actor.trunk.1.weight": 16, "actor.trunk.1.bias": 16, "actor.mlp1.0.bias": 16})
+    fan_in.update({"actor.mlp2.0.bias": 32, "critic.q1.0.bias": 16 + 2, "critic.q1.4.bias": 32})
+    for key, inputs in fan_in.items():
+        assert noise[key].abs().max() <= inputs**-0.5 * (1 + 1e-4), key
+    # the LayerNorm gain gets a centred noise, not +sigma: all normalized noises pooled are U(-1, 1)
+    pooled = []
     for key, value in noise.items():
-        th.testing.assert_close(after[key], 0.6 * before[key] + 0.05 * value, rtol=1e-6, atol=1e-7)
-    # known parts of the noise: zero biases, LayerNorm scale 1, orthogonal Linear weights
-    assert th.equal(after["actor.mlp1.0.bias"], 0.6 * before["actor.mlp1.0.bias"])
-    th.testing.assert_close(after["actor.trunk.1.weight"], 0.6 * before["actor.trunk.1.weight"] + 0.05)
-    extracted = (after["actor.mlp2.0.weight"] - 0.6 * before["actor.mlp2.0.weight"]) / 0.05
-    th.testing.assert_close(extracted @ extracted.T, th.eye(32), atol=1e-3, rtol=0)
+        if value.dim() == 1:
+            weight = after.get(key.removesuffix("bias") + "weight", value)
+            pooled.append(value * (weight[0].numel() if weight.dim() > 1 else weight.numel()) ** 0.5)
+    pooled = th.cat(pooled)
+    assert len(pooled) > 300 and pooled.abs().max() <= 1 + 1e-3
+    assert abs(float(pooled.mean())) < 0.1 and float(pooled.std()) == pytest.approx(3**-0.5, rel=0.1)
     assert all(th.equal(after[k], before[k]) for k in after if k.startswith("critic_target."))  # targets kept
     assert result.name == "shrink_perturb_noise" and "Ash & Adams" in result.detail
-    assert result.scalars["weights_changed"] == sum(v.numel() for k, v in noise.items() if "running" not in k)
+    assert result.scalars["weights_changed"] == sum(after[k].numel() for k in online)
+
+
+@pytest.mark.parametrize("device", ["cpu", *(["cuda"] if th.cuda.is_available() else [])])
+def test_shrink_perturb_noise_is_drawn_on_each_parameter_device_and_dtype(device):
+    module = nn.Sequential(nn.Linear(4, 3), nn.LayerNorm(3), nn.Conv2d(2, 5, 3)).to(device, th.float64)
+    fresh = copy.deepcopy(module)
+    th.manual_seed(1)
+    drawn = perturbation_noise(module, fresh)
+    assert [param for param, _ in drawn] == list(module.parameters())
+    assert drawn[0][1] is fresh[0].weight and drawn[4][1] is fresh[2].weight  # weights: the fresh initialization
+    for (param, value), bound in zip(drawn, [None, 4, 3, 3, None, 2 * 9]):
+        assert value.device == param.device and value.dtype == th.float64 and value.shape == param.shape
+        if bound is not None:
+            assert 0 < value.abs().max() <= bound**-0.5
+    th.manual_seed(1)
+    again = perturbation_noise(module, fresh)
+    assert all(th.equal(value, repeated) for (_, value), (_, repeated) in zip(drawn, again))  # a fixed generator
 
 
 def test_each_shrink_and_perturb_is_labelled():
