@@ -590,9 +590,10 @@ def _quadruped_upright(upright: np.ndarray, deviation_angle: float = 0.0) -> flo
 
 
 def _humanoid(r, model, task, upright: str, stand_height: float) -> float:
-    stand = tol(r["head_height"], bounds=(stand_height, INF), margin=stand_height / 4)[0] * tol(
-        r[upright], bounds=(0.9, INF), sigmoid="linear", margin=1.9, value_at_margin=0
-    )[0]
+    stand = (
+        tol(r["head_height"], bounds=(stand_height, INF), margin=stand_height / 4)[0]
+        * tol(r[upright], bounds=(0.9, INF), sigmoid="linear", margin=1.9, value_at_margin=0)[0]
+    )
     small_control = (4 + _small_control(r["control"])) / 5
     horizontal = np.concatenate([r["com_velocity_x"], r["com_velocity_y"]])
     if task._move_speed == 0:
@@ -644,6 +645,12 @@ def _stacker(r, model, task) -> float:
     return float(tol(box_distance, margin=2 * box_size) * hand_is_far)
 
 
+def _fish_swim(r, model, task) -> float:
+    radii = model.geom_size[["mouth", "target"], 0].sum()
+    in_target = tol(np.linalg.norm(r["mouth_to_target"]), bounds=(0, radii), margin=2 * radii)
+    return (7 * in_target + 0.5 * (r["upright"][0] + 1)) / 8
+
+
 def _walker(r, model, task) -> float:
     stand = (3 * tol(r["torso_height"][0], bounds=(walker._STAND_HEIGHT, INF), margin=walker._STAND_HEIGHT / 2)
              + (1 + r["torso_upright"][0]) / 2) / 4  # fmt: skip
@@ -666,9 +673,9 @@ def _hopper(r, model, task) -> float:
 
 def _cartpole(r, model, task) -> float:
     if task._sparse:
-        return tol(r["cart_position"][0], task._CART_RANGE) * tol(
-            r["pole_angle_cosine"], task._ANGLE_COSINE_RANGE
-        ).prod()
+        return (
+            tol(r["cart_position"][0], task._CART_RANGE) * tol(r["pole_angle_cosine"], task._ANGLE_COSINE_RANGE).prod()
+        )
     upright = (r["pole_angle_cosine"] + 1) / 2
     centered = (1 + tol(r["cart_position"][0], margin=2)) / 2
     small_control = (4 + tol(r["control"], margin=1, value_at_margin=0, sigmoid="quadratic")[0]) / 5
@@ -694,11 +701,7 @@ REWARD_FROM_INPUTS: dict[str, Callable[[Any, Any, Any], float]] = {
     "finger-spin": lambda r, model, task: float(r["hinge_velocity"][0] <= -finger._SPIN_VELOCITY),
     "finger": lambda r, model, task: float(r["dist_to_target"][0] <= 0),
     "fish-upright": lambda r, model, task: tol(r["upright"][0], bounds=(1, 1), margin=1),
-    "fish-swim": lambda r, model, task: (
-        7 * tol(np.linalg.norm(r["mouth_to_target"]), bounds=(0, radii := model.geom_size[["mouth", "target"], 0].sum()),
-                margin=2 * radii)
-        + 0.5 * (r["upright"][0] + 1)
-    ) / 8,
+    "fish-swim": _fish_swim,
     "hopper": _hopper,
     "humanoid": lambda r, model, task: _humanoid(r, model, task, "torso_upright", humanoid._STAND_HEIGHT),
     "humanoid_CMU": lambda r, model, task: _humanoid(r, model, task, "thorax_upright", humanoid_CMU._STAND_HEIGHT),
