@@ -50,12 +50,17 @@ class RewardInput:
     :param method: the ``Physics`` method that the reward function calls (``"torso_height"``)
     :param index: the element of the method's output that the reward reads (quadruped's ``torso_velocity()[0]``);
         ``None``: the whole output, flattened
+    :param args: the method's arguments (stacker's ``site_distance("grasp", "target")``)
+    :param state: whether it is a component of the environment state (a probing target); ``False`` for the control
+        (``Physics.control()``, the last action in the task's bounds), which rollouts record as the action
     :param doc: what it is
     """
 
     name: str
     method: str
     index: int | None = None
+    args: tuple[str, ...] = ()
+    state: bool = True
     doc: str = ""
 
     def value(self, physics: Any) -> np.ndarray:
@@ -63,60 +68,157 @@ class RewardInput:
         :param physics: the task's ``Physics``
         :return: ``(size,)`` float64, what the reward function reads (a copy)
         """
-        value = np.array(getattr(physics, self.method)(), dtype=np.float64).reshape(-1)
+        value = np.array(getattr(physics, self.method)(*self.args), dtype=np.float64).reshape(-1)
         return value[[self.index]] if self.index is not None else value
 
 
-_QUADRUPED_MOVE = (
+CONTROL = RewardInput("control", "control", state=False, doc="the control, i.e. the last action (small-control term)")
+"""The control, read by the rewards that favour small actions (a reward input, not a state component)."""
+
+
+def _site_distance(site1: str, site2: str) -> RewardInput:
+    """:return: the distance between two sites (``Physics.site_distance(site1, site2)``)."""
+    return RewardInput(f"{site1}_to_{site2}", "site_distance", args=(site1, site2), doc=f"{site1} to {site2} distance")
+
+
+_WALKER_STAND = (
+    RewardInput("torso_height", "torso_height", doc="height of the torso's frame (standing term)"),
     RewardInput("torso_upright", "torso_upright", doc="zz entry of the torso's rotation matrix (upright term)"),
+)
+_WALKER_MOVE = (
+    *_WALKER_STAND,
+    RewardInput("horizontal_velocity", "horizontal_velocity", doc="horizontal velocity of the centre of mass (move)"),
+)
+_HOPPER_HEIGHT = RewardInput("height", "height", doc="torso height above the foot (standing term)")
+_CARTPOLE_SPARSE = (
+    RewardInput("cart_position", "cart_position", doc="the cart's position on the rail (centred term)"),
+    RewardInput("pole_angle_cosine", "pole_angle_cosine", doc="cosine of each pole's angle (upright term)"),
+)
+_CARTPOLE_SMOOTH = (
+    *_CARTPOLE_SPARSE,
+    CONTROL,
+    RewardInput("angular_vel", "angular_vel", doc="each pole's angular velocity (small-velocity term)"),
+)
+_FINGER_TURN = (RewardInput("dist_to_target", "dist_to_target", doc="distance from the spinner's tip to the target"),)
+_HUMANOID = (
+    RewardInput("head_height", "head_height", doc="height of the head (standing term)"),
+    RewardInput("torso_upright", "torso_upright", doc="zz entry of the torso's rotation matrix (upright term)"),
+    CONTROL,
+    RewardInput("com_velocity_x", "center_of_mass_velocity", 0, doc="centre-of-mass velocity along x (move term)"),
+    RewardInput("com_velocity_y", "center_of_mass_velocity", 1, doc="centre-of-mass velocity along y (move term)"),
+)
+_HUMANOID_CMU = (
+    _HUMANOID[0],
+    RewardInput("thorax_upright", "thorax_upright", doc="zz entry of the thorax's rotation matrix (upright term)"),
+    *_HUMANOID[2:],
+)
+_DOG_STAND = (
+    RewardInput("torso_pelvis_height", "torso_pelvis_height", doc="heights of the torso and the pelvis"),
+    RewardInput("upright", "upright", doc="zz entries of the skull's, torso's and pelvis's rotation matrices"),
+    RewardInput("touch_sensors", "touch_sensors", doc="touch forces of the palms and soles (summed)"),
+)
+_DOG_MOVE = (*_DOG_STAND, RewardInput("com_forward_velocity", "com_forward_velocity", doc="forward velocity"))
+_LQR = (RewardInput("position", "position", doc="the joints' positions (state cost)"), CONTROL)
+_MANIPULATOR_BALL = (_site_distance("ball", "target_ball"),)
+_MANIPULATOR_PEG = (
+    _site_distance("peg_grasp", "grasp"),
+    _site_distance("peg_pinch", "pinch"),
+    _site_distance("peg", "target_peg"),
+    _site_distance("target_peg_tip", "peg_tip"),
+)
+_POINT_MASS = (RewardInput("mass_to_target_dist", "mass_to_target_dist", doc="mass to target distance"), CONTROL)
+_QUADRUPED_UPRIGHT = RewardInput("torso_upright", "torso_upright", doc="zz entry of the torso's rotation matrix")
+_QUADRUPED_MOVE = (
+    _QUADRUPED_UPRIGHT,
     RewardInput("torso_velocity_x", "torso_velocity", 0, doc="forward velocity of the torso (move term)"),
 )
+_REACHER = (RewardInput("finger_to_target_dist", "finger_to_target_dist", doc="finger to target distance"),)
+_SWIMMER = (RewardInput("nose_to_target_dist", "nose_to_target_dist", doc="nose to target distance"),)
+_ACROBOT = (RewardInput("to_target", "to_target", doc="distance from the tip to the target"),)
+_FISH_UPRIGHT = RewardInput("upright", "upright", doc="zz entry of the torso's rotation matrix")
+
+
+def _stacker(n_boxes: int) -> tuple[RewardInput, ...]:
+    """:return: stacker's reward inputs with ``n_boxes`` boxes: each box to the target, then the hand to the target."""
+    return (*(_site_distance(f"box{b}", "target") for b in range(n_boxes)), _site_distance("grasp", "target"))
+
 
 REWARD_INPUTS: dict[str, tuple[RewardInput, ...]] = {
-    "walker": (
-        RewardInput("torso_height", "torso_height", doc="height of the torso's frame (standing term)"),
-        RewardInput("torso_upright", "torso_upright", doc="zz entry of the torso's rotation matrix (upright term)"),
-        RewardInput(
-            "horizontal_velocity", "horizontal_velocity", doc="horizontal velocity of the centre of mass (move term)"
-        ),
+    "acrobot-swingup": _ACROBOT,
+    "acrobot-swingup_sparse": _ACROBOT,
+    "ball_in_cup-catch": (
+        RewardInput("ball_to_target", "ball_to_target", doc="x and z from the ball to the cup's target (in_target)"),
     ),
-    "hopper": (
-        RewardInput("height", "height", doc="torso height above the foot (standing term)"),
-        RewardInput("speed", "speed", doc="horizontal velocity of the centre of mass (hop term)"),
+    "cartpole-balance": _CARTPOLE_SMOOTH,
+    "cartpole-balance_sparse": _CARTPOLE_SPARSE,
+    "cartpole-swingup": _CARTPOLE_SMOOTH,
+    "cartpole-swingup_sparse": _CARTPOLE_SPARSE,
+    "cartpole-two_poles": _CARTPOLE_SMOOTH,
+    "cartpole-three_poles": _CARTPOLE_SMOOTH,
+    "cheetah-run": (RewardInput("speed", "speed", doc="horizontal velocity of the centre of mass"),),
+    "dog-stand": _DOG_STAND,
+    "dog-walk": _DOG_MOVE,
+    "dog-trot": _DOG_MOVE,
+    "dog-run": _DOG_MOVE,
+    "dog-fetch": (
+        *_DOG_STAND,
+        RewardInput("ball_to_mouth_distance", "ball_to_mouth_distance", doc="ball to mouth distance (reach term)"),
+        RewardInput("ball_to_target_distance", "ball_to_target_distance", doc="ball to target distance (fetch)"),
     ),
-    "cartpole": (
-        RewardInput("cart_position", "cart_position", doc="the cart's position on the rail (centred term)"),
-        RewardInput("pole_angle_cosine", "pole_angle_cosine", doc="cosine of each pole's angle (upright term)"),
-        RewardInput("angular_vel", "angular_vel", doc="each pole's angular velocity (small-velocity term)"),
-    ),
-    "cheetah": (RewardInput("speed", "speed", doc="horizontal velocity of the centre of mass"),),
     "finger-spin": (RewardInput("hinge_velocity", "hinge_velocity", doc="angular velocity of the spinner"),),
-    "finger": (RewardInput("dist_to_target", "dist_to_target", doc="distance from the spinner's tip to the target"),),
-    "reacher": (RewardInput("finger_to_target_dist", "finger_to_target_dist", doc="finger to target distance"),),
-    "ball_in_cup": (RewardInput("ball_to_target", "ball_to_target", doc="x and z from the ball to the cup's target"),),
+    "finger-turn_easy": _FINGER_TURN,
+    "finger-turn_hard": _FINGER_TURN,
+    "fish-upright": (_FISH_UPRIGHT,),
+    "fish-swim": (
+        RewardInput("mouth_to_target", "mouth_to_target", doc="mouth to target, in the mouth's frame (its norm)"),
+        _FISH_UPRIGHT,
+    ),
+    "hopper-stand": (_HOPPER_HEIGHT, CONTROL),
+    "hopper-hop": (_HOPPER_HEIGHT, RewardInput("speed", "speed", doc="horizontal velocity of the torso (hop term)")),
+    "humanoid-stand": _HUMANOID,
+    "humanoid-walk": _HUMANOID,
+    "humanoid-run": _HUMANOID,
+    "humanoid-run_pure_state": _HUMANOID,
+    "humanoid_CMU-stand": _HUMANOID_CMU,
+    "humanoid_CMU-walk": _HUMANOID_CMU,
+    "humanoid_CMU-run": _HUMANOID_CMU,
+    "lqr-lqr_2_1": _LQR,
+    "lqr-lqr_6_2": _LQR,
+    "manipulator-bring_ball": _MANIPULATOR_BALL,
+    "manipulator-bring_peg": _MANIPULATOR_PEG,
+    "manipulator-insert_ball": _MANIPULATOR_BALL,
+    "manipulator-insert_peg": _MANIPULATOR_PEG,
+    "pendulum-swingup": (RewardInput("pole_vertical", "pole_vertical", doc="zz entry of the pole's rotation matrix"),),
+    "point_mass-easy": _POINT_MASS,
+    "point_mass-hard": _POINT_MASS,
     "quadruped-walk": _QUADRUPED_MOVE,
     "quadruped-run": _QUADRUPED_MOVE,
-    "acrobot": (RewardInput("to_target", "to_target", doc="distance from the tip to the target"),),
-    "pendulum": (RewardInput("pole_vertical", "pole_vertical", doc="zz entry of the pole's rotation matrix"),),
-    "humanoid": (
-        RewardInput("head_height", "head_height", doc="height of the head (standing term)"),
-        RewardInput("torso_upright", "torso_upright", doc="zz entry of the torso's rotation matrix (upright term)"),
-        RewardInput("com_velocity_x", "center_of_mass_velocity", 0, doc="centre-of-mass velocity along x (move)"),
-        RewardInput("com_velocity_y", "center_of_mass_velocity", 1, doc="centre-of-mass velocity along y (move)"),
+    "quadruped-escape": (
+        _QUADRUPED_UPRIGHT,
+        RewardInput("origin_distance", "origin_distance", doc="distance of the torso from the origin (escape)"),
     ),
+    "quadruped-fetch": (
+        _QUADRUPED_UPRIGHT,
+        RewardInput("self_to_ball_distance", "self_to_ball_distance", doc="workspace to ball distance (reach)"),
+        RewardInput("ball_to_target_distance", "ball_to_target_distance", doc="ball to target distance (fetch)"),
+    ),
+    "reacher-easy": _REACHER,
+    "reacher-hard": _REACHER,
+    "stacker-stack_2": _stacker(2),
+    "stacker-stack_4": _stacker(4),
+    "swimmer-swimmer6": _SWIMMER,
+    "swimmer-swimmer15": _SWIMMER,
+    "walker-stand": _WALKER_STAND,
+    "walker-walk": _WALKER_MOVE,
+    "walker-run": _WALKER_MOVE,
 }
 """
 The paper chose Figure 2's state components "because all of them are the input to the reward function".
-``<domain>`` or ``<domain>-<task>`` (for a task whose reward reads other quantities than its domain's others) -> the
-quantities of the simulator state that the reward function reads, read from ``get_reward`` of each task of
-``dm_control.suite``: walker ``stand_reward`` (torso height, torso upright) times the move term (horizontal velocity);
-hopper standing (``height``) times hopping (``speed``); cartpole's cart position, pole angle cosines and angular
-velocities; cheetah's ``speed``; finger-spin's hinge velocity, finger-turn's distance to target; reacher's finger to
-target distance; ball_in_cup's ``in_target`` (from ``ball_to_target``); quadruped walk and run: torso upright and
-``torso_velocity()[0]``; acrobot's ``to_target``; pendulum's ``pole_vertical``; humanoid's head height, torso upright
-and horizontal centre-of-mass velocity. The control (the action, a reward input of hopper-stand, cartpole and
-humanoid) is not a state quantity: rollouts record it as the action. Domains and tasks not listed (dog, fish,
-quadruped escape and fetch...) have none.
+``<domain>-<task>`` (every task of ``dm_control.suite``) -> the quantities that the task's ``get_reward`` reads, in
+the order it reads them, each computed by the ``Physics`` method it calls. Tasks of one domain differ: walker-stand
+reads no velocity (walk and run add ``horizontal_velocity``); hopper-stand reads ``height`` and the control,
+hopper-hop ``height`` and ``speed``; the sparse cartpole tasks read neither the control nor ``angular_vel``. The
+control (:data:`CONTROL`) is a reward input but not a state component: :meth:`DMCEnv.reward_inputs` leaves it out.
 """
 
 
@@ -124,9 +226,10 @@ def reward_inputs_of(domain: str, task: str) -> tuple[RewardInput, ...]:
     """
     :param domain: the domain (``"walker"``)
     :param task: the task (``"walk"``)
-    :return: the quantities that the task's reward reads (:data:`REWARD_INPUTS`); empty for a task not listed
+    :return: every quantity that the task's reward reads (:data:`REWARD_INPUTS`), the control included; empty for a
+        task not in the suite
     """
-    return REWARD_INPUTS.get(f"{domain}-{task}", REWARD_INPUTS.get(domain, ()))
+    return REWARD_INPUTS.get(f"{domain}-{task}", ())
 
 
 def parse_task(name: str) -> tuple[str, str]:
@@ -317,17 +420,18 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
 
     def reward_inputs(self) -> dict[str, np.ndarray]:
         """
-        The quantities that the task's reward function reads (:data:`REWARD_INPUTS`), at the current timestep (the
-        same one as :meth:`get_state`), computed by the task's ``Physics`` methods as ``get_reward`` computes them.
+        The state components that the task's reward function reads (:data:`REWARD_INPUTS` but the control, which is
+        the action), at the current timestep (the same one as :meth:`get_state`), computed by the task's ``Physics``
+        methods as ``get_reward`` computes them.
 
-        :return: name -> ``(size,)`` float32 (size 1 but for cartpole's per-pole values and ball_in_cup's
-            ``ball_to_target``); empty for a task without a known reward input
+        :return: name -> ``(size,)`` float32 (size 1 but for per-pole, per-body or vector quantities such as
+            cartpole's ``pole_angle_cosine`` or ball_in_cup's ``ball_to_target``)
         """
         if self._dmc_observation is None:
             raise RuntimeError("reward_inputs() needs a current timestep: call reset() first.")
         physics = self.physics
         inputs = reward_inputs_of(self.domain, self.task_name)
-        return {item.name: item.value(physics).astype(np.float32) for item in inputs}
+        return {item.name: item.value(physics).astype(np.float32) for item in inputs if item.state}
 
     def get_rng_state(self) -> dict[str, Any]:
         """

@@ -10,18 +10,22 @@ columns are therefore the quantities that the task's reward function reads (``re
 ``DMCEnv.reward_inputs``, see :data:`sb3_collapse.envs.dmc.REWARD_INPUTS`), followed by the state-vector readings of
 the same names as extra columns (:data:`FIGURE2_COLUMNS`):
 
-- **walker** (its reward: ``stand = (3 tolerance(torso_height) + (1 + torso_upright) / 2) / 4`` times a term of
-  ``horizontal_velocity``): torso velocity = ``reward:horizontal_velocity`` (the centre of mass's horizontal
+- **walker** (walker-walk's and walker-run's reward: ``stand = (3 tolerance(torso_height) + (1 + torso_upright) / 2)
+  / 4`` times a term of ``horizontal_velocity``; walker-stand's is ``stand`` alone, so it has no torso velocity
+  column): torso velocity = ``reward:horizontal_velocity`` (the centre of mass's horizontal
   velocity); orientation = ``reward:torso_upright`` (the torso's, the only orientation the reward reads; the paper
   calls the column "joint orientation"); torso height = ``reward:torso_height``. Extra columns: root velocities
   (state) = ``velocity_0..2`` (the root joints' velocities: torso vertical, horizontal and pitch velocity); leg
   orientations (state) = ``orientations_2..13`` (the x and z components of the orientation of the six leg bodies;
   ``orientations_0..1`` are the torso's). The state's ``height`` is ``torso_height`` itself, so it has no column of
   its own.
-- **hopper** (its reward: ``tolerance(height)`` times a term of ``speed``): torso velocity = ``reward:speed``, torso
-  height = ``reward:height`` (torso above the foot); its reward reads no orientation. Extra columns: root
-  velocities (state) = ``velocity_0..2``; rootz (state) = ``position_0``.
+- **hopper** (hopper-hop's reward: ``tolerance(height)`` times a term of ``speed``; hopper-stand's:
+  ``tolerance(height)`` times a term of the control, so it has no torso velocity column): torso velocity =
+  ``reward:speed``, torso height = ``reward:height`` (torso above the foot); its reward reads no orientation. Extra
+  columns: root velocities (state) = ``velocity_0..2``; rootz (state) = ``position_0``.
 - any other domain: one column per reward input, then one per state component (the whole component averaged).
+
+A column is shown when its targets exist: the rollouts hold the reward inputs of their own task only.
 
 Rollouts recorded before the reward inputs were have only the state columns.
 """

@@ -23,7 +23,8 @@ import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from tqdm.auto import tqdm
 
-from sb3_collapse.envs import make_dmc_env
+from sb3_collapse.envs import make_dmc_env, parse_task
+from sb3_collapse.envs.dmc import reward_inputs_of
 from sb3_collapse.errors import ProbeError
 
 FORMAT_VERSION = 2
@@ -49,10 +50,10 @@ class Rollouts:
     :param env_config: ``make_dmc_env`` settings: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``,
         ``camera_id``
     :param metadata: how they were recorded (``checkpoint``, ``deterministic``, ``noise_std``, ``seed``, ...)
-    :param reward_inputs: reward input name -> ``(N, size)`` float32, the quantities the task's reward function
-        reads at the time of each observation (:data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`; walker:
-        ``torso_height``, ``torso_upright``, ``horizontal_velocity``); empty for a task without any, or for a file
-        recorded before they were
+    :param reward_inputs: reward input name -> ``(N, size)`` float32, the state components the task's reward
+        function reads at the time of each observation (``DMCEnv.reward_inputs``, after
+        :data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`; walker-walk: ``torso_height``, ``torso_upright``,
+        ``horizontal_velocity``; hopper-stand: ``height``); empty for a file recorded before they were
     """
 
     observations: np.ndarray
@@ -149,7 +150,8 @@ class Rollouts:
     def load(cls, path: str | Path) -> Rollouts:
         """
         :param path: a file written by :meth:`save`
-        :return: the rollouts
+        :return: the rollouts, with the recorded reward inputs that the task's reward reads
+            (:data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`; any other recorded quantity is left out)
         :raises ProbeError: for a missing file or one that is not a rollouts file
         """
         path = Path(path)
@@ -161,7 +163,11 @@ class Rollouts:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
                 states = {name: data[f"state/{name}"] for name in meta["state_components"]}
-                reward_inputs = {name: data[f"reward_input/{name}"] for name in meta.get("reward_inputs", [])}
+                task = parse_task(meta["env_config"]["task_id"])
+                read = {item.name for item in reward_inputs_of(*task) if item.state}
+                reward_inputs = {
+                    name: data[f"reward_input/{name}"] for name in meta.get("reward_inputs", []) if name in read
+                }
                 arrays = {key: data[key] for key in ("observations", "actions", "rewards", "episode_ids", "steps")}
         except (OSError, ValueError, KeyError, json.JSONDecodeError) as error:
             raise ProbeError(

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import warnings
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -23,6 +24,9 @@ from sb3_collapse.envs.dmc import REWARD_INPUTS, reward_inputs_of, scale_action
 
 # Imported after sb3_collapse.envs, so that the OpenGL backend is chosen first.
 from dm_control import suite  # isort: skip
+from dm_control.suite import cheetah, dog, finger, hopper, humanoid, humanoid_CMU  # isort: skip
+from dm_control.suite import manipulator, pendulum, quadruped, stacker, walker  # isort: skip
+from dm_control.suite.utils import randomizers  # isort: skip
 from dm_control.suite.wrappers import action_scale  # isort: skip
 from dm_control.utils import rewards as dm_rewards  # isort: skip
 
@@ -571,90 +575,309 @@ def test_subproc_vec_env_with_callables() -> None:
 
 # ---------------------------------------------------------------- reward inputs (the paper's Figure 2 columns)
 
-
-def _tol(x, **kwargs) -> float:
-    return float(np.asarray(dm_rewards.tolerance(np.asarray(x, dtype=np.float64), **kwargs)).reshape(-1)[0])
-
-
-# Each task's reward, rebuilt from the recorded reward inputs alone (the formulas of dm_control's get_reward), and
-# what its Physics methods give at the same state. A reward input the reward does not read, or a wrong one, makes
-# the rebuilt reward differ from get_reward's.
 INF = float("inf")
-REWARD_FROM_INPUTS = {
-    "walker-walk": lambda r, p: (3 * _tol(r["torso_height"], bounds=(1.2, INF), margin=0.6)
-                                 + (1 + r["torso_upright"][0]) / 2) / 4
-    * (5 * _tol(r["horizontal_velocity"], bounds=(1, INF), margin=0.5, value_at_margin=0.5, sigmoid="linear") + 1) / 6,
-    "hopper-hop": lambda r, p: _tol(r["height"], bounds=(0.6, 2))
-    * _tol(r["speed"], bounds=(2, INF), margin=1, value_at_margin=0.5, sigmoid="linear"),
-    "cheetah-run": lambda r, p: _tol(r["speed"], bounds=(10, INF), margin=10, value_at_margin=0, sigmoid="linear"),
-    "cartpole-balance_sparse": lambda r, p: _tol(r["cart_position"], bounds=(-0.25, 0.25))
-    * _tol(r["pole_angle_cosine"], bounds=(0.995, 1)),
-    "finger-spin": lambda r, p: float(r["hinge_velocity"][0] <= -15),
-    "finger-turn_easy": lambda r, p: float(r["dist_to_target"][0] <= 0),
-    "reacher-easy": lambda r, p: _tol(
-        r["finger_to_target_dist"], bounds=(0, p.named.model.geom_size[["target", "finger"], 0].sum())
+tol = dm_rewards.tolerance
+
+
+def _small_control(control: np.ndarray) -> float:
+    """The small-control term of hopper-stand, humanoid and point_mass (before its ``(4 + x) / 5``)."""
+    return float(tol(control, margin=1, value_at_margin=0, sigmoid="quadratic").mean())
+
+
+def _quadruped_upright(upright: np.ndarray, deviation_angle: float = 0.0) -> float:
+    deviation = np.cos(np.deg2rad(deviation_angle))
+    return float(tol(upright, bounds=(deviation, INF), sigmoid="linear", margin=1 + deviation, value_at_margin=0)[0])
+
+
+def _humanoid(r, model, task, upright: str, stand_height: float) -> float:
+    stand = (
+        tol(r["head_height"], bounds=(stand_height, INF), margin=stand_height / 4)[0]
+        * tol(r[upright], bounds=(0.9, INF), sigmoid="linear", margin=1.9, value_at_margin=0)[0]
+    )
+    small_control = (4 + _small_control(r["control"])) / 5
+    horizontal = np.concatenate([r["com_velocity_x"], r["com_velocity_y"]])
+    if task._move_speed == 0:
+        return small_control * stand * float(tol(horizontal, margin=2).mean())
+    speed = task._move_speed
+    move = tol(np.linalg.norm(horizontal), bounds=(speed, INF), margin=speed, value_at_margin=0, sigmoid="linear")
+    return small_control * stand * (5 * float(move) + 1) / 6
+
+
+def _dog(r, model, task) -> float:
+    factors = [
+        tol(r["torso_pelvis_height"][0], bounds=(task._stand_height[0], INF), margin=task._stand_height[0]),
+        tol(r["torso_pelvis_height"][1], bounds=(task._stand_height[1], INF), margin=task._stand_height[1]),
+        *tol(r["upright"], bounds=(dog._MIN_UPRIGHT_COSINE, INF), sigmoid="linear",
+             margin=dog._MIN_UPRIGHT_COSINE + 1, value_at_margin=0),
+        tol(r["touch_sensors"].sum(), bounds=(task._body_weight, INF), margin=task._body_weight, sigmoid="linear",
+            value_at_margin=0.9),
+    ]  # fmt: skip
+    if "com_forward_velocity" in r:
+        speed = task._move_speed
+        forward = tol(r["com_forward_velocity"][0], bounds=(speed, 2 * speed), margin=max(1.0, speed),
+                      value_at_margin=0, sigmoid="linear")  # fmt: skip
+        factors.append((4 * forward + 1) / 5)
+    if "ball_to_mouth_distance" in r:
+        reach = (6 * tol(r["ball_to_mouth_distance"][0], bounds=(0, model.site_size["upper_bite", 0]),
+                         sigmoid="reciprocal", margin=2) + 1) / 7  # fmt: skip
+        target_radius = model.geom_size["target", 0]
+        near = tol(r["ball_to_target_distance"][0], bounds=(0, target_radius), sigmoid="reciprocal",
+                   margin=model.geom_size["floor", 0])  # fmt: skip
+        factors += [1 if r["ball_to_target_distance"][0] < 2 * target_radius else reach, (near + 1) / 2]
+    return float(np.prod(factors))
+
+
+def _manipulator(r, model, task) -> float:
+    def close(distance):
+        return float(tol(distance[0], (0, manipulator._CLOSE), manipulator._CLOSE * 2))
+
+    if not task._use_peg:
+        return close(r["ball_to_target_ball"])
+    grasping = (close(r["peg_grasp_to_grasp"]) + close(r["peg_pinch_to_pinch"])) / 2
+    bringing = (close(r["peg_to_target_peg"]) + close(r["target_peg_tip_to_peg_tip"])) / 2
+    return max(bringing, grasping / 3)
+
+
+def _stacker(r, model, task) -> float:
+    box_size = model.geom_size["target", 0]
+    box_distance = min(r[f"{name}_to_target"][0] for name in task._box_names)
+    hand_is_far = tol(r["grasp_to_target"][0], bounds=(0.1, INF), margin=stacker._CLOSE)
+    return float(tol(box_distance, margin=2 * box_size) * hand_is_far)
+
+
+def _fish_swim(r, model, task) -> float:
+    radii = model.geom_size[["mouth", "target"], 0].sum()
+    in_target = tol(np.linalg.norm(r["mouth_to_target"]), bounds=(0, radii), margin=2 * radii)
+    return (7 * in_target + 0.5 * (r["upright"][0] + 1)) / 8
+
+
+def _walker(r, model, task) -> float:
+    stand = (3 * tol(r["torso_height"][0], bounds=(walker._STAND_HEIGHT, INF), margin=walker._STAND_HEIGHT / 2)
+             + (1 + r["torso_upright"][0]) / 2) / 4  # fmt: skip
+    if task._move_speed == 0:
+        return stand
+    speed = task._move_speed
+    move = tol(r["horizontal_velocity"][0], bounds=(speed, INF), margin=speed / 2, value_at_margin=0.5,
+               sigmoid="linear")  # fmt: skip
+    return stand * (5 * move + 1) / 6
+
+
+def _hopper(r, model, task) -> float:
+    standing = tol(r["height"][0], (hopper._STAND_HEIGHT, 2))
+    if task._hopping:
+        speed = hopper._HOP_SPEED
+        return standing * tol(r["speed"][0], bounds=(speed, INF), margin=speed / 2, value_at_margin=0.5,
+                              sigmoid="linear")  # fmt: skip
+    return standing * (_small_control(r["control"]) + 4) / 5
+
+
+def _cartpole(r, model, task) -> float:
+    if task._sparse:
+        return (
+            tol(r["cart_position"][0], task._CART_RANGE) * tol(r["pole_angle_cosine"], task._ANGLE_COSINE_RANGE).prod()
+        )
+    upright = (r["pole_angle_cosine"] + 1) / 2
+    centered = (1 + tol(r["cart_position"][0], margin=2)) / 2
+    small_control = (4 + tol(r["control"], margin=1, value_at_margin=0, sigmoid="quadratic")[0]) / 5
+    small_velocity = (1 + tol(r["angular_vel"], margin=5).min()) / 2
+    return upright.mean() * small_control * small_velocity * centered
+
+
+# Each task's reward, rebuilt from its reward inputs alone (the formulas of dm_control's get_reward, its module
+# constants, the task's settings and the model's sizes; never the simulator state): r (name -> float64 input),
+# model (physics.named.model), task.
+REWARD_FROM_INPUTS: dict[str, Callable[[Any, Any, Any], float]] = {
+    "acrobot": lambda r, model, task: tol(
+        r["to_target"][0], bounds=(0, model.site_size["target", 0]), margin=0 if task._sparse else 1
     ),
-    "ball_in_cup-catch": lambda r, p: float(
-        all(abs(r["ball_to_target"]) < p.named.model.site_size["target", [0, 2]] - p.named.model.geom_size["ball", 0])
+    "ball_in_cup": lambda r, model, task: float(
+        all(abs(r["ball_to_target"]) < model.site_size["target", [0, 2]] - model.geom_size["ball", 0])
     ),
-    "quadruped-walk": lambda r, p: _tol(r["torso_upright"], bounds=(1, INF), sigmoid="linear", margin=2,
-                                        value_at_margin=0)
-    * _tol(r["torso_velocity_x"], bounds=(0.5, INF), margin=0.5, value_at_margin=0.5, sigmoid="linear"),
-    "acrobot-swingup": lambda r, p: _tol(r["to_target"], bounds=(0, p.named.model.site_size["target", 0]), margin=1),
-    "pendulum-swingup": lambda r, p: _tol(r["pole_vertical"], bounds=(np.cos(np.deg2rad(8)), 1)),
-}
-PHYSICS_VALUES = {
-    "walker": lambda p: {
-        "torso_height": p.torso_height(), "torso_upright": p.torso_upright(),
-        "horizontal_velocity": p.horizontal_velocity(),
-    },
-    "hopper": lambda p: {"height": p.height(), "speed": p.speed()},
-    "cheetah": lambda p: {"speed": p.speed()},
-    "cartpole": lambda p: {
-        "cart_position": p.cart_position(), "pole_angle_cosine": p.pole_angle_cosine(), "angular_vel": p.angular_vel()
-    },
-    "finger-spin": lambda p: {"hinge_velocity": p.hinge_velocity()},
-    "finger": lambda p: {"dist_to_target": p.dist_to_target()},
-    "reacher": lambda p: {"finger_to_target_dist": p.finger_to_target_dist()},
-    "ball_in_cup": lambda p: {"ball_to_target": p.ball_to_target()},
-    "quadruped": lambda p: {"torso_upright": p.torso_upright(), "torso_velocity_x": p.torso_velocity()[0]},
-    "acrobot": lambda p: {"to_target": p.to_target()},
-    "pendulum": lambda p: {"pole_vertical": p.pole_vertical()},
-    "humanoid": lambda p: {
-        "head_height": p.head_height(), "torso_upright": p.torso_upright(),
-        "com_velocity_x": p.center_of_mass_velocity()[0], "com_velocity_y": p.center_of_mass_velocity()[1],
-    },
+    "cartpole": _cartpole,
+    "cheetah": lambda r, model, task: tol(
+        r["speed"][0], bounds=(cheetah._RUN_SPEED, INF), margin=cheetah._RUN_SPEED, value_at_margin=0, sigmoid="linear"
+    ),
+    "dog": _dog,
+    "finger-spin": lambda r, model, task: float(r["hinge_velocity"][0] <= -finger._SPIN_VELOCITY),
+    "finger": lambda r, model, task: float(r["dist_to_target"][0] <= 0),
+    "fish-upright": lambda r, model, task: tol(r["upright"][0], bounds=(1, 1), margin=1),
+    "fish-swim": _fish_swim,
+    "hopper": _hopper,
+    "humanoid": lambda r, model, task: _humanoid(r, model, task, "torso_upright", humanoid._STAND_HEIGHT),
+    "humanoid_CMU": lambda r, model, task: _humanoid(r, model, task, "thorax_upright", humanoid_CMU._STAND_HEIGHT),
+    "lqr": lambda r, model, task: 1 - (
+        0.5 * r["position"] @ r["position"] + 0.5 * r["control"] @ r["control"] * task._control_cost_coef
+    ),
+    "manipulator": _manipulator,
+    "pendulum": lambda r, model, task: tol(r["pole_vertical"][0], (pendulum._COSINE_BOUND, 1)),
+    "point_mass": lambda r, model, task: tol(
+        r["mass_to_target_dist"][0], bounds=(0, size := model.geom_size["target", 0]), margin=size
+    ) * (_small_control(r["control"]) + 4) / 5,
+    "quadruped-escape": lambda r, model, task: _quadruped_upright(r["torso_upright"], 20) * tol(
+        r["origin_distance"][0], bounds=(size := model.hfield_size[quadruped._HEIGHTFIELD_ID, 0], INF), margin=size,
+        value_at_margin=0, sigmoid="linear",
+    ),
+    "quadruped-fetch": lambda r, model, task: _quadruped_upright(r["torso_upright"]) * tol(
+        r["self_to_ball_distance"][0], bounds=(0, model.site_size["workspace", 0] + model.geom_size["ball", 0]),
+        sigmoid="linear", margin=(arena := model.geom_size["floor", 0] * np.sqrt(2)), value_at_margin=0,
+    ) * (0.5 + 0.5 * tol(r["ball_to_target_distance"][0], bounds=(0, model.site_size["target", 0]),
+                         sigmoid="linear", margin=arena, value_at_margin=0)),
+    "quadruped": lambda r, model, task: _quadruped_upright(r["torso_upright"]) * tol(
+        r["torso_velocity_x"][0], bounds=(task._desired_speed, INF), margin=task._desired_speed, value_at_margin=0.5,
+        sigmoid="linear",
+    ),
+    "reacher": lambda r, model, task: tol(
+        r["finger_to_target_dist"][0], (0, model.geom_size[["target", "finger"], 0].sum())
+    ),
+    "stacker": _stacker,
+    "swimmer": lambda r, model, task: tol(
+        r["nose_to_target_dist"][0], bounds=(0, size := model.geom_size["target", 0]), margin=5 * size,
+        sigmoid="long_tail",
+    ),
+    "walker": _walker,
 }  # fmt: skip
 
 
-@pytest.mark.parametrize("task", [*REWARD_FROM_INPUTS, "humanoid-walk"])
-def test_reward_inputs_are_what_the_reward_reads(make_env, task: str) -> None:
-    """At every step: the reward inputs equal the task's Physics methods at that state, and (but for humanoid, whose
-    reward also reads the control) dm_control's get_reward equals the reward rebuilt from them alone."""
-    env = make_env(task, seed=3, obs_type="state", action_repeat=1)
+class _Recorder(dict):
+    """A dict that records the keys read from it."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.read: set[str] = set()
+
+    def __getitem__(self, key: str) -> Any:
+        self.read.add(key)
+        return super().__getitem__(key)
+
+
+def _to_target(physics, rng: np.random.Generator, kind: str, target: str, effector: str) -> None:
+    """Move the target (a model ``geom`` or ``body`` of the world) to near the effector's (``geom`` or ``site``)
+    current position."""
+    physics.forward()
+    position = getattr(physics.named.data, f"{'site' if kind == 'body' else kind}_xpos")[effector]
+    getattr(physics.named.model, f"{kind}_pos")[target] = position + rng.normal(0, 0.01, 3)
+
+
+def _ball_to(physics, rng: np.random.Generator, target: str) -> None:
+    """Move the ball (slide joints ``ball_x``, ``ball_z``) to near the ``target`` site."""
+    physics.forward()
+    data = physics.named.data
+    gap = data.site_xpos[target, ["x", "z"]] - data.site_xpos["ball", ["x", "z"]]
+    data.qpos[["ball_x", "ball_z"]] += gap + rng.normal(0, 0.01, 2)
+
+
+def _peg_to_target(physics, rng: np.random.Generator) -> None:
+    """Move manipulator's target peg onto the peg (the two bodies have the same sites)."""
+    physics.forward()
+    physics.named.model.body_pos["target_peg"] = physics.named.data.xpos["peg"] + rng.normal(0, 0.005, 3)
+    physics.named.model.body_quat["target_peg"] = physics.named.data.xquat["peg"]
+
+
+def _joints_near_zero(physics, rng: np.random.Generator, joints: list[str], root_velocity: str | None = None) -> None:
+    """Set the joints near 0 (upright, at the origin), and a random forward velocity."""
+    physics.named.data.qpos[joints] = rng.normal(0, 0.05, len(joints))
+    if root_velocity is not None:
+        physics.named.data.qvel[root_velocity] = rng.uniform(0, 4)
+
+
+def _lqr_near_zero(physics, rng: np.random.Generator) -> None:
+    """Set lqr's positions and controls (bounded by +-1e10) near 0, where both costs count."""
+    physics.data.qpos[:] = rng.normal(0, 0.5, physics.model.nq)
+    physics.data.ctrl[:] = rng.normal(0, 0.5, physics.model.nu)
+
+
+# Near-goal states, for the rewards that random joint states almost never make non-zero.
+GOAL_STATES: dict[str, Callable[[Any, np.random.Generator], None]] = {
+    "acrobot": lambda p, rng: _to_target(p, rng, "site", "target", "tip"),
+    "ball_in_cup": lambda p, rng: _ball_to(p, rng, "target"),
+    "cartpole": lambda p, rng: _joints_near_zero(p, rng, ["slider", "hinge_1"]),
+    "hopper": lambda p, rng: _joints_near_zero(p, rng, list(p.named.data.qpos.axes.row.names), "rootx"),
+    "lqr": lambda p, rng: _lqr_near_zero(p, rng),
+    "manipulator-bring_ball": lambda p, rng: _to_target(p, rng, "body", "target_ball", "ball"),
+    "manipulator-insert_ball": lambda p, rng: _to_target(p, rng, "body", "target_ball", "ball"),
+    "manipulator-bring_peg": _peg_to_target,
+    "manipulator-insert_peg": _peg_to_target,
+    "pendulum": lambda p, rng: _joints_near_zero(p, rng, ["hinge"]),
+    "point_mass": lambda p, rng: _to_target(p, rng, "geom", "target", "pointmass"),
+    "reacher": lambda p, rng: _to_target(p, rng, "geom", "target", "finger"),
+    "stacker": lambda p, rng: _to_target(p, rng, "body", "target", "box0"),
+}
+
+
+def _random_states(env, task: str, rng: np.random.Generator, steps: int = 4, states: int = 24) -> Iterator[float]:
+    """
+    :return: the reward of ``steps`` steps of random actions, then of ``states`` random states (joints at random
+        positions, velocities and controls; every other one near the task's goal, :data:`GOAL_STATES`), each as
+        ``get_reward`` gives it at the physics state left behind
+    """
+    physics, spec = env.physics, env.action_spec()
+    for _ in range(steps):
+        yield float(env.step(rng.uniform(spec.minimum, spec.maximum)).reward)
+    random_state = np.random.RandomState(int(rng.integers(2**31)))
+    goal = GOAL_STATES.get(task, GOAL_STATES.get(task.split("-")[0]))
+    for k in range(states):
+        with physics.reset_context():
+            randomizers.randomize_limited_and_rotational_joints(physics, random_state)
+            physics.data.qvel[:] = rng.normal(0, 0.5 + k / 2, physics.model.nv)
+            physics.data.ctrl[:] = rng.uniform(spec.minimum, spec.maximum) * rng.uniform(0, 1.5)
+            if goal is not None and k % 2:
+                physics.data.qvel[:] /= 10 + k
+                goal(physics, rng)
+        yield float(env.task.get_reward(physics))
+
+
+@pytest.mark.parametrize("task", [f"{domain}-{task}" for domain, task in DMC_TASKS])
+def test_reward_is_rebuilt_from_the_reward_inputs(task: str) -> None:
+    """On states met by random actions and on random joint states, each suite task's reward equals the reward
+    rebuilt from its reward inputs alone, and the rebuilt reward reads every one of them."""
     domain, name = parse_task(task)
-    expected_of = PHYSICS_VALUES.get(f"{domain}-{name}", PHYSICS_VALUES.get(domain))
+    rebuild = REWARD_FROM_INPUTS.get(task, REWARD_FROM_INPUTS.get(domain))
+    env = suite.load(domain, name, task_kwargs={"random": 0})
+    env.reset()
+    inputs = reward_inputs_of(domain, name)
+    read: set[str] = set()
+    rewards = set()
+    for reward in _random_states(env, task, np.random.default_rng(0)):
+        values = _Recorder({item.name: item.value(env.physics) for item in inputs})
+        assert float(rebuild(values, env.physics.named.model, env.task)) == pytest.approx(reward, rel=1e-9, abs=1e-9)
+        read |= values.read
+        rewards.add(round(reward, 9))
+    assert read == {item.name for item in inputs}
+    assert len(rewards) >= 2  # the states reach more than one reward
+
+
+def test_reward_inputs_are_per_task() -> None:
+    """Every suite task has its own entry; tasks of one domain whose rewards read different quantities differ."""
+    assert set(REWARD_INPUTS) == {f"{domain}-{task}" for domain, task in DMC_TASKS}
+
+    def names(task):
+        return [item.name for item in reward_inputs_of(*parse_task(task))]
+
+    assert names("hopper-stand") == ["height", "control"] and names("hopper-hop") == ["height", "speed"]
+    assert names("walker-stand") == ["torso_height", "torso_upright"]
+    assert names("walker-walk") == names("walker-run") == ["torso_height", "torso_upright", "horizontal_velocity"]
+    assert names("cartpole-balance_sparse") == ["cart_position", "pole_angle_cosine"]
+    assert reward_inputs_of("walker", "no_such_task") == ()
+
+
+@pytest.mark.parametrize(
+    "task, expected",
+    [
+        ("walker-walk", ["torso_height", "torso_upright", "horizontal_velocity"]),
+        ("walker-stand", ["torso_height", "torso_upright"]),
+        ("hopper-stand", ["height"]),  # its reward's other input, the control, is the action
+    ],
+)
+def test_env_reward_inputs_are_the_state_ones(make_env, task: str, expected: list[str]) -> None:
+    """DMCEnv.reward_inputs gives the state reward inputs (not the control), as float32 values of their Physics
+    methods at the current timestep."""
+    env = make_env(task, seed=3, obs_type="state", action_repeat=1)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.reward_inputs()
     env.reset(seed=3)
-    rng = np.random.default_rng(0)
-    for _ in range(12):
-        inputs = env.reward_inputs()
-        physics = env.physics
-        expected = {key: np.asarray(value, dtype=np.float32).reshape(-1) for key, value in expected_of(physics).items()}
-        assert list(inputs) == list(expected)
-        for key in inputs:
-            assert inputs[key].dtype == np.float32
-            np.testing.assert_array_equal(inputs[key], expected[key])
-        if task in REWARD_FROM_INPUTS:
-            inputs64 = {item.name: item.value(physics) for item in reward_inputs_of(domain, name)}  # float64
-            assert REWARD_FROM_INPUTS[task](inputs64, physics) == pytest.approx(
-                float(env._dmc._env.task.get_reward(physics)), abs=1e-9
-            )
-        env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
-
-
-def test_reward_inputs_cover_the_preset_tasks() -> None:
-    from sb3_collapse.presets import PRESETS
-
-    domains = {parse_task(task)[0] for task in PRESETS}
-    assert domains <= {key.split("-")[0] for key in REWARD_INPUTS}
-    assert REWARD_INPUTS["finger-spin"] != REWARD_INPUTS["finger"]
+    env.step(env.action_space.sample())
+    inputs = env.reward_inputs()
+    assert list(inputs) == expected
+    for name, value in inputs.items():
+        assert value.dtype == np.float32
+        np.testing.assert_array_equal(value, np.float32(getattr(env.physics, name)()).reshape(-1))

@@ -84,6 +84,16 @@ def test_save_load_roundtrip_and_bad_files(rollouts, tmp_path):
     np.savez_compressed(tmp_path / "old.npz", **arrays)
     old = Rollouts.load(tmp_path / "old.npz")
     assert old.reward_inputs == {} and old.targets()[0] == rollouts.targets()[0][:24]
+    # a recorded quantity that the task's reward does not read is no reward input: walker-stand reads no velocity
+    with np.load(path) as data:
+        arrays = {key: data[key] for key in data.files}
+    meta = json.loads(str(arrays["meta"]))
+    meta["env_config"]["task_id"] = "walker-stand"
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez_compressed(tmp_path / "stand.npz", **arrays)
+    stand = Rollouts.load(tmp_path / "stand.npz")
+    assert list(stand.reward_inputs) == ["torso_height", "torso_upright"]
+    assert stand.targets()[0][24:] == ["reward:torso_height", "reward:torso_upright"]
     with pytest.raises(ProbeError, match="does not exist"):
         Rollouts.load(tmp_path / "missing.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a numpy file")
@@ -118,6 +128,11 @@ def test_figure2_columns_are_the_reward_inputs_then_the_state_groups(rollouts):
     # rollouts without reward inputs keep the state columns only
     assert list(dict(figure2_columns("walker-walk", names[:24], groups[:24]))) == [
         "root velocities (state)", "leg orientations (state)"
+    ]  # fmt: skip
+    # hopper-stand's reward reads no speed: its rollouts hold no reward:speed, and Figure 2 has no torso velocity
+    hopper = ["position_0", "velocity_0", "velocity_1", "velocity_2", "reward:height"]
+    assert [title for title, _ in figure2_columns("hopper-stand", hopper, [n.split("_")[0] for n in hopper])] == [
+        "torso height", "root velocities (state)", "rootz (state)"
     ]  # fmt: skip
     # another domain: one column per reward input first, then one per state component
     generic = figure2_columns(
