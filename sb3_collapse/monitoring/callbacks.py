@@ -18,11 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_collapse.monitoring.activations import collect_activations
+from sb3_collapse.monitoring.activations import Observations, collect_activations
 from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
 from sb3_collapse.monitoring.metrics import (
     DORMANT_TAU,
@@ -94,12 +93,12 @@ class MetricsBatchSampler:
             positions = positions[positions != buffer.pos]
         return positions
 
-    def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[th.Tensor, np.ndarray] | None:
+    def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[Observations, np.ndarray] | None:
         """
         :param model: an off-policy model with a ``replay_buffer``
         :param batch_size: observations to draw
-        :return: ``(observations, buffer indices)``, or ``None`` while the buffer holds fewer than
-            ``batch_size`` transitions
+        :return: ``(observations, buffer indices)``: a tensor ``(batch_size, ...)``, or a dict of them for dict
+            observations (``MultiInputPolicy``); ``None`` while the buffer holds fewer than ``batch_size`` transitions
         """
         drawn = self.sample_transitions(model, batch_size)
         return None if drawn is None else (drawn[0].observations, drawn[1])
