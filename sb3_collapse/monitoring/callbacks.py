@@ -277,8 +277,9 @@ class CollapseMetrics(FrameScheduleCallback):
     (no gradient, eval mode). For every named layer it records, with the definitions of
     :mod:`sb3_collapse.monitoring.metrics`:
 
-    - ``collapse/<layer>/numerical_rank``, ``srank``, ``correlation``, ``zero_fraction``, ``dead_fraction``,
-      ``dead_units``, ``dormant_ratio``;
+    - ``collapse/<layer>/numerical_rank``, ``srank``, ``correlation`` (between units, the paper's),
+      ``input_correlation`` (between inputs), ``zero_fraction``, ``dead_fraction``, ``dead_units``,
+      ``dormant_ratio``;
     - ``collapse/<layer>/grad_norm``: the gradient norm of the layer at the **last update** before the check
       (recorded when the optimizers step, without extra backward pass, see
       :mod:`~sb3_collapse.monitoring.grad_norms`; the paper computes it at each check), for layers with

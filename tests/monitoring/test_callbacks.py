@@ -18,7 +18,16 @@ from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring import FrameScheduleCallback, MetricsBatchSampler
 
 PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
-METRICS = ("numerical_rank", "srank", "correlation", "zero_fraction", "dead_fraction", "dead_units", "dormant_ratio")
+METRICS = (
+    "numerical_rank",
+    "srank",
+    "correlation",
+    "input_correlation",
+    "zero_fraction",
+    "dead_fraction",
+    "dead_units",
+    "dormant_ratio",
+)
 LAYERS = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
 
 
