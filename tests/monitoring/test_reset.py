@@ -289,12 +289,7 @@ def test_rule_applies_the_chosen_intervention(intervention, tmp_path):
     model = tiny_model(tensorboard_log=str(tmp_path))
     collapse(model)
     rule = CollapseReset(
-        window_frames=200,
-        check_every_frames=20,
-        patience=3,
-        max_resets=1,
-        batch_size=16,
-        intervention=intervention,
+        window_frames=200, check_every_frames=20, patience=3, max_resets=1, batch_size=16, intervention=intervention,
         events_path=tmp_path / "events.csv",
     )
     model.learn(110, callback=rule)  # the window ends at frame 200, agent step 100
@@ -310,3 +305,4 @@ def test_rule_applies_the_chosen_intervention(intervention, tmp_path):
     accumulator = EventAccumulator(glob.glob(str(tmp_path / "DrQv2_1" / "events.out.tfevents.*"))[0])
     accumulator.Reload()
     assert accumulator.Scalars("collapse/intervention/weights_changed")[0].value > 0
+
