@@ -22,8 +22,9 @@ computes it (:func:`layer_parameters`, e.g. for its gradient norm).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from typing import TypeAlias
 
 import numpy as np
 import torch as th
@@ -139,9 +140,42 @@ def layer_parameters(model: BaseAlgorithm | BasePolicy) -> dict[str, tuple[nn.Pa
     return {name: tap.parameters for name, tap in layer_taps(model).items() if tap.parameters}
 
 
+Observations: TypeAlias = np.ndarray | th.Tensor | Mapping[str, np.ndarray | th.Tensor]
+"""A batch of observations: an array or tensor ``(n, ...)``, or a dict of them (``spaces.Dict``), ``n`` per key."""
+
+
+def _batch_length(observations: Observations) -> int:
+    """
+    :param observations: a batch of observations, an array or tensor, or a dict of them (``MultiInputPolicy``)
+    :return: the number ``n`` of observations
+    :raises ValueError: for a dict whose keys hold different numbers of observations, or no key
+    """
+    if not isinstance(observations, Mapping):
+        return len(observations)
+    lengths = {key: len(value) for key, value in observations.items()}
+    if len(set(lengths.values())) != 1:
+        raise ValueError(f"observations must hold the same number of observations under every key, got {lengths}.")
+    return next(iter(lengths.values()))
+
+
+def _batch_slice(
+    observations: Observations, start: int, stop: int, device: th.device | str
+) -> th.Tensor | dict[str, th.Tensor]:
+    """
+    :param observations: a batch of observations, an array or tensor, or a dict of them (``MultiInputPolicy``)
+    :param start: first observation
+    :param stop: one past the last observation
+    :param device: where the returned tensors live
+    :return: observations ``start:stop`` as a tensor, or a dict of tensors (each key sliced) for a dict
+    """
+    if isinstance(observations, Mapping):
+        return {key: th.as_tensor(value[start:stop], device=device) for key, value in observations.items()}
+    return th.as_tensor(observations[start:stop], device=device)
+
+
 def collect_activations(
     model: BaseAlgorithm | BasePolicy,
-    observations: np.ndarray | th.Tensor,
+    observations: Observations,
     layers: Iterable[str] | None = None,
     batch_size: int = 256,
     device: th.device | str = "cpu",
@@ -153,7 +187,8 @@ def collect_activations(
     the hooks are removed afterwards, even on error.
 
     :param model: a DrQv2, TD3, DDPG or SAC model, or its policy
-    :param observations: a batch of observations as stored by the env (e.g. uint8 ``(n, 9, 84, 84)``)
+    :param observations: a batch of observations as stored by the env (e.g. uint8 ``(n, 9, 84, 84)``), or a dict
+        of such batches, one per key, for dict observation spaces (``MultiInputPolicy``)
     :param layers: the names to return, ``None`` for all of :func:`layer_taps`
     :param batch_size: observations per forward pass
     :param device: where the returned activations live
@@ -172,9 +207,10 @@ def collect_activations(
     policy.set_training_mode(False)
     try:
         with th.no_grad():
-            for start in range(0, len(observations), batch_size):
-                batch = th.as_tensor(observations[start : start + batch_size], device=policy.device)
-                policy._predict(batch, deterministic=True)
+            for start in range(0, _batch_length(observations), batch_size):
+                policy._predict(
+                    _batch_slice(observations, start, start + batch_size, policy.device), deterministic=True
+                )
     finally:
         for handle in handles:
             handle.remove()

@@ -18,11 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_collapse.monitoring.activations import collect_activations
+from sb3_collapse.monitoring.activations import Observations, collect_activations
 from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
 from sb3_collapse.monitoring.metrics import (
     DORMANT_TAU,
@@ -94,12 +93,12 @@ class MetricsBatchSampler:
             positions = positions[positions != buffer.pos]
         return positions
 
-    def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[th.Tensor, np.ndarray] | None:
+    def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[Observations, np.ndarray] | None:
         """
         :param model: an off-policy model with a ``replay_buffer``
         :param batch_size: observations to draw
-        :return: ``(observations, buffer indices)``, or ``None`` while the buffer holds fewer than
-            ``batch_size`` transitions
+        :return: ``(observations, buffer indices)``: a tensor ``(batch_size, ...)``, or a dict of them for dict
+            observations (``MultiInputPolicy``); ``None`` while the buffer holds fewer than ``batch_size`` transitions
         """
         drawn = self.sample_transitions(model, batch_size)
         return None if drawn is None else (drawn[0].observations, drawn[1])
@@ -278,8 +277,9 @@ class CollapseMetrics(FrameScheduleCallback):
     (no gradient, eval mode). For every named layer it records, with the definitions of
     :mod:`sb3_collapse.monitoring.metrics`:
 
-    - ``collapse/<layer>/numerical_rank``, ``srank``, ``correlation``, ``zero_fraction``, ``dead_fraction``,
-      ``dead_units``, ``dormant_ratio``;
+    - ``collapse/<layer>/numerical_rank``, ``srank``, ``correlation`` (between units, the paper's),
+      ``input_correlation`` (between inputs), ``zero_fraction``, ``dead_fraction``, ``dead_units``,
+      ``dormant_ratio``;
     - ``collapse/<layer>/grad_norm``: the gradient norm of the layer at the **last update** before the check
       (recorded when the optimizers step, without extra backward pass, see
       :mod:`~sb3_collapse.monitoring.grad_norms`; the paper computes it at each check), for layers with

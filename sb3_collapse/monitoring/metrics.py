@@ -11,7 +11,7 @@ Every function takes the activations of one named layer for a batch of ``n`` inp
   as the square roots of the eigenvalues of the ``n x n`` Gram matrix ``H H^T``, which is exact to about
   ``1e-8 s_1`` and much faster than an SVD of a wide matrix).
 
-:func:`layer_metrics` computes every metric of a layer at once, from one Gram matrix.
+:func:`layer_metrics` computes every metric of a layer at once.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def effective_rank(activations: th.Tensor, delta: float = SRANK_DELTA) -> float:
     return _effective_rank(singular_values(activations), delta)
 
 
-def _correlation(gram: th.Tensor, row_sums: th.Tensor, row_max_abs: th.Tensor, n_units: int) -> float:
+def _input_correlation(gram: th.Tensor, row_sums: th.Tensor, row_max_abs: th.Tensor, n_units: int) -> float:
     # Centered Gram matrix: sum_k (h_ik - m_i)(h_jk - m_j) = (H H^T)_ij - r_i r_j / n_units, with r the row sums.
     centered = gram - th.outer(row_sums, row_sums) / n_units
     variance = centered.diagonal()
@@ -124,18 +124,72 @@ def _correlation(gram: th.Tensor, row_sums: th.Tensor, row_max_abs: th.Tensor, n
     return float((corr.sum() - corr.diagonal().sum()) / (m * (m - 1)))
 
 
-def mean_pairwise_correlation(activations: th.Tensor) -> float:
+def input_correlation(activations: th.Tensor) -> float:
     """
     Mean Pearson correlation between the activation vectors of two different inputs:
     ``mean over i != j of corr(H_i, H_j)``, where ``corr`` is Pearson's correlation of the ``d`` entries of the
     two rows, over the inputs whose activation vector is not all zero (and not constant, where Pearson's
     correlation is undefined). 1.0 means that every input maps to the same point (up to an affine map).
 
+    This is the pairs-of-inputs reading of the paper's correlation; its value follows the units' mean profile
+    (units with large biases make every two inputs alike, however well the layer separates them). Figures 4, 8,
+    9 show :func:`unit_correlation`, the reading of the paper's words.
+
     :param activations: ``(n, *unit_shape)`` activations
     :return: the mean correlation, in ``[-1, 1]``; NaN when fewer than two inputs qualify
     """
     h = flatten_batch(activations)
-    return _correlation(_gram(h), h.sum(1), h.abs().amax(1), h.shape[1])
+    return _input_correlation(_gram(h), h.sum(1), h.abs().amax(1), h.shape[1])
+
+
+CONSTANT_UNIT_RTOL = 1e-6
+"""A unit whose standard deviation over the inputs is at most this times its largest absolute value is constant."""
+
+
+def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
+    """
+    The paper's correlation (Section 5.1): "the average correlation among every two non-zero activations", with
+    "activations" the units, as in the same sentence's "number of zero activations, also called dead neurons"
+    (:func:`dead_units`). With ``u_a`` the vector of unit ``a`` over the inputs (a column of ``H``; for a
+    convolutional layer a channel, over every input and position, as :func:`unit_activations`), it is
+    ``mean over a != b of corr(u_a, u_b)``, Pearson's correlation over the inputs, among the units that vary:
+
+    - a **dead** unit (zero for every input) is left out: the paper's "non-zero activations";
+    - so is a **constant** unit (standard deviation over the inputs at most :data:`CONSTANT_UNIT_RTOL` times its
+      largest absolute value: float32 rounding of a constant stays far below), whose Pearson correlation is
+      undefined;
+    - with fewer than two units left, e.g. a collapsed layer where every input gives the same activations, the
+      value is undefined: NaN.
+
+    The mean is of the signed correlations ("the average correlation"): it is 1 when every unit moves as one
+    affine function of the others, increasing, near 0 for units that vary independently, and at least
+    ``-1 / (m - 1)`` for ``m`` units (the sum of a correlation matrix is ``|sum_a z_a|^2 >= 0``), so it reads
+    on ``[0, 1]`` at the paper's widths. ``absolute=True`` averages ``|corr|`` instead (any linear dependence,
+    either sign, counts as similarity).
+
+    Cost: the ``m x m`` correlation matrix of the centred, normalised unit vectors, ``O(m^2 n)`` operations in
+    float64 on the activations' device.
+
+    :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
+    :param absolute: average the absolute values of the correlations
+    :return: the mean correlation, in ``[-1 / (m - 1), 1]`` (in ``[0, 1]`` with ``absolute``); NaN when fewer
+        than two units vary over the inputs
+    """
+    units = unit_activations(activations).double()  # (units, N): N = n x positions
+    largest = th.maximum(units.amax(1), -units.amin(1))
+    centered = units - units.mean(1, keepdim=True)
+    del units  # at most two (units, N) float64 copies alive at once
+    norms = th.linalg.vector_norm(centered, dim=1)  # sqrt(N) x the standard deviation over the inputs
+    varies = norms > CONSTANT_UNIT_RTOL * largest * math.sqrt(centered.shape[1])
+    m = int(varies.sum())
+    if m < 2:
+        return math.nan
+    z = centered[varies] if m < len(varies) else centered
+    z /= norms[varies, None]  # in place: z is this function's own tensor
+    corr = z @ z.T  # (m, m)
+    if absolute:
+        corr = corr.abs()
+    return float((corr.sum() - corr.diagonal().sum()) / (m * (m - 1)))
 
 
 def unit_activations(activations: th.Tensor) -> th.Tensor:
@@ -260,14 +314,15 @@ def gradient_norm(gradients: Iterable[th.Tensor | None]) -> float:
 
 def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float = SRANK_DELTA) -> dict[str, float]:
     """
-    Every activation metric of one layer, sharing one Gram matrix ``H H^T`` (float64).
+    Every activation metric of one layer; the ranks and the input correlation share one Gram matrix ``H H^T``
+    (float64).
 
     :param activations: ``(n, *unit_shape)`` activations
     :param tau: threshold of :func:`dormant_ratio`
     :param delta: threshold of :func:`effective_rank`
     :return: ``numerical_rank`` (:func:`numerical_rank`), ``srank`` (:func:`effective_rank`), ``correlation``
-        (:func:`mean_pairwise_correlation`), ``zero_fraction``, ``dead_fraction``, ``dead_units`` (a count, as a
-        float), ``dormant_ratio``
+        (:func:`unit_correlation`, the paper's), ``input_correlation`` (:func:`input_correlation`),
+        ``zero_fraction``, ``dead_fraction``, ``dead_units`` (a count, as a float), ``dormant_ratio``
     """
     h = flatten_batch(activations)
     gram = _gram(h)
@@ -275,7 +330,8 @@ def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float
     return {
         "numerical_rank": _numerical_rank(s),
         "srank": _effective_rank(s, delta),
-        "correlation": _correlation(gram, h.sum(1), h.abs().amax(1), h.shape[1]),
+        "correlation": unit_correlation(activations),
+        "input_correlation": _input_correlation(gram, h.sum(1), h.abs().amax(1), h.shape[1]),
         "zero_fraction": zero_fraction(activations),
         "dead_fraction": dead_fraction(activations),
         "dead_units": float(dead_units(activations)),

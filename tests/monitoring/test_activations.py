@@ -55,6 +55,30 @@ def test_drqv2_state_policy_has_no_cnn_layers():
     assert list(acts) == ["mlp0", "mlp1", "mlp2", "action"]
 
 
+def test_dict_observations_are_sliced_per_key():
+    space = gym.spaces.Dict(
+        {"pixels": gym.spaces.Box(0, 255, (3, 36, 36), np.uint8), "state": gym.spaces.Box(-1, 1, (4,), np.float32)}
+    )
+    model = DrQv2(
+        "MultiInputPolicy",
+        RandomObservationEnv(space),
+        buffer_size=100,
+        policy_kwargs=dict(hidden_dim=16, feature_dim=8, encoder_kwargs=dict(channels=4)),
+        seed=0,
+    )
+    space.seed(0)
+    samples = [space.sample() for _ in range(5)]
+    obs = {key: np.stack([sample[key] for sample in samples]) for key in space.spaces}
+    acts = collect_activations(model, obs, batch_size=2)  # forward passes of 2, 2 and 1 observations
+    assert list(acts) == ["cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action"]
+    th.testing.assert_close(acts["cnn0"], th.as_tensor(obs["pixels"], dtype=th.float32) / 255.0 - 0.5)
+    np.testing.assert_allclose(acts["action"].numpy(), model.predict(obs, deterministic=True)[0], atol=1e-6)
+    tensors = collect_activations(model, {key: th.as_tensor(value) for key, value in obs.items()}, ["action"])
+    th.testing.assert_close(tensors["action"], acts["action"])
+    with pytest.raises(ValueError, match="same number of observations"):
+        collect_activations(model, {"pixels": obs["pixels"], "state": obs["state"][:3]})
+
+
 @pytest.mark.parametrize("algo", [TD3, DDPG, SAC])
 @pytest.mark.parametrize("policy", ["CnnPolicy", "MlpPolicy"])
 def test_sb3_actor_layers_are_mapped(algo, policy):

@@ -18,7 +18,16 @@ from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring import FrameScheduleCallback, MetricsBatchSampler
 
 PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
-METRICS = ("numerical_rank", "srank", "correlation", "zero_fraction", "dead_fraction", "dead_units", "dormant_ratio")
+METRICS = (
+    "numerical_rank",
+    "srank",
+    "correlation",
+    "input_correlation",
+    "zero_fraction",
+    "dead_fraction",
+    "dead_units",
+    "dormant_ratio",
+)
 LAYERS = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
 
 
@@ -145,6 +154,41 @@ def test_metrics_on_sb3_td3_mlp_policy():
     assert {f"collapse/{layer}/numerical_rank" for layer in ("mlp0", "mlp1", "mlp2", "action")} <= set(values)
     assert not any(tag.startswith("collapse/cnn") for tag in values)
     assert values["collapse/mlp1/grad_norm"] > 0 and "collapse/action_std" in values
+
+
+POLICY_SPACES = {
+    "MlpPolicy": gym.spaces.Box(-1, 1, (4,), np.float32),
+    "CnnPolicy": gym.spaces.Box(0, 255, (3, 36, 36), np.uint8),
+    "MultiInputPolicy": gym.spaces.Dict(
+        {"pixels": gym.spaces.Box(0, 255, (3, 36, 36), np.uint8), "state": gym.spaces.Box(-1, 1, (4,), np.float32)}
+    ),
+}
+
+
+@pytest.mark.parametrize("policy", list(POLICY_SPACES))
+def test_the_three_callbacks_on_every_drqv2_policy(policy, tmp_path):
+    kwargs = dict(hidden_dim=16, feature_dim=8)
+    if policy != "MlpPolicy":
+        kwargs["encoder_kwargs"] = dict(channels=4)
+    env = RandomObservationEnv(POLICY_SPACES[policy], gym.spaces.Box(-1, 1, (2,), np.float32), action_repeat=2)
+    model = DrQv2(policy, env, buffer_size=100, learning_starts=8, batch_size=4, seed=0, policy_kwargs=kwargs)
+    metrics = CollapseMetrics(check_every_frames=20, batch_size=8)
+    # An action spread of at most 1e9 is always "collapsed": the rule resets at the end of its first window.
+    rule = CollapseReset(
+        window_frames=40, check_every_frames=20, threshold=1e9, max_resets=1, metric="action_std", batch_size=8
+    )
+    logger = ActivationLogger(every_frames=40, path=tmp_path / "acts", batch_size=8, layers=["mlp1", "action"])
+    model.learn(30, callback=[metrics, logger, rule])  # the logger reads the buffer before the reset empties it
+
+    layers = ("mlp0", "mlp1", "mlp2", "action") if policy == "MlpPolicy" else LAYERS
+    assert {tag.split("/")[1] for tag in metrics.last_metrics if tag.count("/") == 2} == set(layers)
+    assert 1 <= metrics.last_metrics["collapse/mlp1/numerical_rank"] <= 8
+    assert rule.resets == 1 and model.reset_step == 20  # frames 40 = agent steps 20
+    assert rule.history and all(0 <= value <= 1 for _, value in rule.history)  # action spreads, actions in [-1, 1]
+    files = sorted((tmp_path / "acts").glob("activations_*.npz"))
+    assert [f.name for f in files] == ["activations_0000000020.npz"]
+    with np.load(files[0]) as data:
+        assert data["mlp1"].shape == (8, 16) and data["action"].shape == (8, 2) and len(set(data["indices"])) == 8
 
 
 def test_activation_logger_saves_bounded_files(tmp_path):

@@ -11,11 +11,13 @@ from sb3_collapse.monitoring.metrics import (
     dormant_ratio,
     effective_rank,
     gradient_norm,
+    input_correlation,
     layer_metrics,
-    mean_pairwise_correlation,
     numerical_rank,
     saturated_fraction,
     singular_values,
+    unit_activations,
+    unit_correlation,
     unit_count,
     zero_fraction,
 )
@@ -27,7 +29,7 @@ def test_identity_matrix():
     assert effective_rank(eye) == 10.0
     assert effective_rank(eye, delta=0.25) == 8.0  # the first 8 of 10 equal values reach 75%
     # Rows e_i, e_j over 10 entries: mean 0.1, covariance -0.1, variance 0.9, so corr = -1/9.
-    assert mean_pairwise_correlation(eye) == pytest.approx(-1 / 9)
+    assert input_correlation(eye) == pytest.approx(-1 / 9)
     assert zero_fraction(eye) == pytest.approx(0.9)
     assert dead_fraction(eye) == 0.0
     assert dormant_ratio(eye) == 0.0
@@ -44,7 +46,7 @@ def test_rank_one_matrix_wide_and_tall():
         signs = np.sign(u[:, 0])
         pairs = np.outer(signs, signs)
         expected = (pairs.sum() - shape[0]) / (shape[0] * (shape[0] - 1))
-        assert mean_pairwise_correlation(h) == pytest.approx(expected, abs=1e-6)
+        assert input_correlation(h) == pytest.approx(expected, abs=1e-6)
 
 
 def test_singular_values_match_numpy():
@@ -61,17 +63,64 @@ def test_singular_values_match_numpy():
 def test_identical_rows_collapse_to_one_point():
     row = th.tensor([0.0, 1.0, 3.0, 0.5, 0.0])
     h = row.repeat(8, 1)
-    assert mean_pairwise_correlation(h) == pytest.approx(1.0)
+    assert input_correlation(h) == pytest.approx(1.0)
+    # every unit is constant over the inputs: no pair of varying units, the paper's correlation is undefined
+    assert math.isnan(unit_correlation(h)) and math.isnan(unit_correlation(h, absolute=True))
+    assert math.isnan(layer_metrics(h)["correlation"])
     assert numerical_rank(h) == pytest.approx(1.0)
     assert dead_fraction(h) == pytest.approx(2 / 5)
     assert zero_fraction(h) == pytest.approx(2 / 5)
 
 
+def _mean_off_diagonal(corr):
+    return (corr.sum() - np.trace(corr)) / (len(corr) * (len(corr) - 1))
+
+
+def test_unit_correlation_by_hand():
+    # Units (columns) over 4 inputs: u0 = 0, 1, 2, 3; u1 = 3 - u0 (corr -1 with u0); u2 = 0, 1, 0, 1; a dead
+    # unit and a constant one (left out). Centred: u0 -1.5, -0.5, 0.5, 1.5 and u2 -0.5, 0.5, -0.5, 0.5, so
+    # corr(u0, u2) = 1 / (sqrt(5) * 1) and corr(u1, u2) = -1 / sqrt(5): signed mean (-1 + 0) / 3, absolute mean
+    # (1 + 2 / sqrt(5)) / 3.
+    u0 = [0.0, 1.0, 2.0, 3.0]
+    h = th.tensor([[a, 3.0 - a, b, 0.0, 2.0] for a, b in zip(u0, [0.0, 1.0, 0.0, 1.0])])
+    assert unit_correlation(h) == pytest.approx(-1 / 3)
+    assert unit_correlation(h, absolute=True) == pytest.approx((1 + 2 / math.sqrt(5)) / 3)
+    corr = np.corrcoef(h[:, :3].numpy().T)
+    assert unit_correlation(h) == pytest.approx(_mean_off_diagonal(corr))
+    assert unit_correlation(h, absolute=True) == pytest.approx(_mean_off_diagonal(np.abs(corr)))
+    assert math.isnan(unit_correlation(h[:, [0, 3, 4]]))  # one varying unit: no pair
+    assert math.isnan(unit_correlation(th.zeros(5, 4)))  # every unit dead
+    # a convolutional unit is a channel, its vector every input at every position
+    conv = th.relu(th.randn(6, 4, 3, 3, generator=th.Generator().manual_seed(3)) + 0.3)
+    conv[:, 2] = 0.0
+    channels = unit_activations(conv).double().numpy()[[0, 1, 3]]
+    assert unit_correlation(conv) == pytest.approx(_mean_off_diagonal(np.corrcoef(channels)))
+
+
+@pytest.mark.parametrize("bias_std", [1.0, 2.0])
+def test_unit_and_input_correlations_of_a_healthy_layer(bias_std):
+    # A full-rank random ReLU layer whose units have their own biases: 512 Gaussian inputs of dimension 512 through
+    # 512 units. The units vary nearly independently (pairwise correlations ~ 1/sqrt(512) of either sign, mean
+    # near 0), while every two inputs share the units' mean profile (a unit with a large bias is large for every
+    # input), so the input reading is large.
+    rng = np.random.default_rng(0)
+    n = d = k = 512
+    x = rng.standard_normal((n, k))
+    w = rng.standard_normal((d, k)) / np.sqrt(k)
+    b = rng.standard_normal(d) * bias_std
+    h = th.as_tensor(np.maximum(x @ w.T + b, 0.0), dtype=th.float32)
+    assert input_correlation(h) > {1.0: 0.35, 2.0: 0.65}[bias_std]
+    assert abs(unit_correlation(h)) < 0.01
+    assert unit_correlation(h, absolute=True) < 0.06  # |corr| of independent units over 512 inputs ~ 0.035
+    live = h.numpy().std(0) > 0
+    assert unit_correlation(h) == pytest.approx(_mean_off_diagonal(np.corrcoef(h.numpy()[:, live].T)), abs=1e-9)
+
+
 def test_all_zero_rows_are_left_out_of_the_correlation():
     h = th.tensor([[1.0, 2.0, 3.0], [2.0, 4.0, 6.5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     expected = np.corrcoef(h[0].numpy(), h[1].numpy())[0, 1]
-    assert mean_pairwise_correlation(h) == pytest.approx(expected)
-    assert math.isnan(mean_pairwise_correlation(th.zeros(5, 4)))  # no pair to correlate
+    assert input_correlation(h) == pytest.approx(expected)
+    assert math.isnan(input_correlation(th.zeros(5, 4)))  # no pair to correlate
 
 
 def test_all_zero_columns_are_dead_and_dormant():
@@ -143,14 +192,16 @@ def test_layer_metrics_equal_the_single_functions():
     metrics = layer_metrics(h)
     assert metrics["numerical_rank"] == pytest.approx(numerical_rank(h))
     assert metrics["srank"] == effective_rank(h)
-    assert metrics["correlation"] == pytest.approx(mean_pairwise_correlation(h))
+    assert metrics["correlation"] == pytest.approx(unit_correlation(h))
+    assert metrics["input_correlation"] == pytest.approx(input_correlation(h))
     assert metrics["zero_fraction"] == zero_fraction(h)
     assert metrics["dead_fraction"] == dead_fraction(h)
     assert metrics["dormant_ratio"] == dormant_ratio(h)
     assert metrics["dead_units"] == dead_units(h)
     flat = h.reshape(40, -1).numpy()
-    corr = np.corrcoef(flat)
-    assert metrics["correlation"] == pytest.approx((corr.sum() - 40) / (40 * 39))
+    assert metrics["input_correlation"] == pytest.approx(_mean_off_diagonal(np.corrcoef(flat)))
+    channels = h.transpose(0, 1).reshape(3, -1).double().numpy()  # every channel varies
+    assert metrics["correlation"] == pytest.approx(_mean_off_diagonal(np.corrcoef(channels)))
 
 
 def test_bad_input_is_refused():
