@@ -20,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.monitor import Monitor
 from torch.overrides import TorchFunctionMode
 
 import sb3_collapse
@@ -180,6 +181,34 @@ def test_checkpoint_state_holds_cpu_tensors_only_and_restores_them_on_the_models
     assert resumed.update_stats.count > 0  # the updates after the checkpoint's last dump
 
 
+def test_a_pickled_replay_buffer_written_on_cuda_samples_on_the_resuming_models_device(tmp_path):
+    """A state-observation run (SB3's n-step buffer, pickled whole into the checkpoint) written on ``cuda:0``: the
+    resumed buffer samples onto the CPU model's device and the updates run."""
+
+    def state_model() -> DrQv2:
+        env = EpisodeReplay(Monitor(sb3_collapse.make_dmc_env("cartpole-balance", seed=0, action_repeat=8, obs_type="state")))
+        return DrQv2(
+            "MlpPolicy", env, learning_starts=4, batch_size=4, buffer_size=200, seed=0,
+            policy_kwargs=dict(hidden_dim=16, feature_dim=4),
+        )  # fmt: skip
+
+    model = state_model()
+    model.learn(12, callback=ResumableCheckpoints(tmp_path, every_frames=80))
+    resumed = state_model()
+    checkpoints = ResumableCheckpoints(tmp_path, every_frames=80)
+    checkpoints.init_callback(resumed)
+    checkpoint = load_checkpoint(tmp_path)
+    assert "pickle" in checkpoint.info["replay"] and checkpoint.state["replay_buffer"].device == th.device("cpu")
+    checkpoint.state["replay_buffer"].device, checkpoint.state["device"] = th.device("cuda:0"), "cuda:0"  # a GPU's
+    checkpoint.state = pickle.loads(pickle.dumps(checkpoint.state))  # read back where there is no GPU
+    checkpoints.resume(checkpoint)
+    assert resumed.replay_buffer.device == resumed.device == th.device("cpu")
+    assert resumed.replay_buffer.sample(4).observations.device == th.device("cpu")
+    updates = resumed._n_updates
+    resumed.learn(8, reset_num_timesteps=False)
+    assert resumed._n_updates > updates
+
+
 def test_cuda_generator_of_the_models_device_is_saved_and_restored_on_the_resuming_device(monkeypatch):
     calls = []
     monkeypatch.setattr(th.cuda, "is_available", lambda: True)
@@ -333,6 +362,39 @@ def test_update_clock_counts_device_time_beyond_the_host_time():
     assert phase.update_s == 1.5 and phase.overhead_s == 0.5 and clock._pending == []
     clock.stop(None, phase, 1.0)  # off CUDA: nothing to time
     assert clock._pending == [] and clock.start(th.device("cpu")) is None
+
+
+def test_update_clock_records_both_events_on_the_models_device_stream(monkeypatch):
+    """A model on ``cuda:1`` while ``cuda:0`` is current: both events of a round on ``cuda:1``'s current stream, with
+    ``cuda:1`` current while they are recorded (``elapsed_time`` refuses events of two devices)."""
+    current = ["cuda:0"]
+    recorded: list[tuple[str, str]] = []
+
+    class DeviceGuard:  # torch.cuda.device
+        def __init__(self, device: th.device) -> None:
+            self.device = str(device)
+
+        def __enter__(self) -> None:
+            self.previous, current[0] = current[0], self.device
+
+        def __exit__(self, *exc) -> None:
+            current[0] = self.previous
+
+    class Event:  # torch.cuda.Event: recorded on the given stream, else on the current device's
+        def __init__(self, enable_timing: bool = False) -> None:
+            assert enable_timing
+
+        def record(self, stream: str | None = None) -> None:
+            recorded.append((stream or f"stream of {current[0]}", current[0]))
+
+    monkeypatch.setattr(th.cuda, "device", DeviceGuard)
+    monkeypatch.setattr(th.cuda, "Event", Event)
+    monkeypatch.setattr(th.cuda, "current_stream", lambda device=None: f"stream of {device or current[0]}")
+    clock, phase = UpdateClock(), PhaseTime()
+    start = clock.start(th.device("cuda:1"))
+    clock.stop(start, phase, 0.1)
+    assert recorded == [("stream of cuda:1", "cuda:1")] * 2 and current == ["cuda:0"]
+    assert len(clock._pending) == 1 and clock._pending[0][2] is phase
 
 
 def test_no_host_synchronization_in_an_update(monkeypatch):
