@@ -25,9 +25,10 @@ from torch.overrides import TorchFunctionMode
 
 import sb3_collapse
 from sb3_collapse import CollapseMetrics, DrQv2
-from sb3_collapse.backends import configure_backends, current_backends
+from sb3_collapse.backends import BackendSettings, configure_backends, current_backends
 from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.envs.replay import EpisodeReplay
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import metrics
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.probe.omp import omp_path
@@ -246,23 +247,79 @@ def test_backend_settings_are_applied_and_checked(monkeypatch):
         configure_backends(deterministic="yes")  # type: ignore[arg-type]
 
 
-@pytest.mark.usefixtures("_restore_backends")
-def test_drqv2_leaves_the_cudnn_autotuner_off_when_determinism_is_asked(monkeypatch):
-    """``DrQv2`` turns cuDNN's autotuner on for a CUDA model, unless torch's deterministic algorithms are on."""
-    monkeypatch.setattr(th.cuda, "is_available", lambda: True)  # the flags only: no tensor goes to CUDA here
-    model = _tiny_drqv2(_init_setup_model=False)
+def _process_settings() -> tuple:
+    """torch's process-wide flags that a training run sets (``sb3_collapse.backends``), and cuBLAS's workspace."""
+    return (
+        current_backends(),  # TF32 of the matmuls, deterministic algorithms
+        th.backends.cudnn.conv.fp32_precision if hasattr(th.backends.cudnn, "conv") else th.backends.cudnn.allow_tf32,
+        th.backends.cudnn.benchmark,
+        th.backends.cudnn.deterministic,
+        th.are_deterministic_algorithms_enabled(),
+        os.environ.get("CUBLAS_WORKSPACE_CONFIG"),
+    )
+
+
+def _fake_cuda_setup(monkeypatch, **kwargs) -> DrQv2:
+    """A DrQv2 whose ``_setup_model`` runs as on CUDA, without a GPU (the flags only: no tensor goes to CUDA)."""
+    monkeypatch.setattr(th.cuda, "is_available", lambda: True)
+    model = _tiny_drqv2(_init_setup_model=False, **kwargs)
     model.device = th.device("cuda")
     monkeypatch.setattr(type(model), "_create_aliases", lambda self: None)
     monkeypatch.setattr(type(model), "_index_grad_layers", lambda self: None)
     monkeypatch.setattr(
         "stable_baselines3.common.off_policy_algorithm.OffPolicyAlgorithm._setup_model", lambda self: None
     )
+    model.policy = type("P", (), {"exploration_std": 0.0})()
+    return model
+
+
+@pytest.mark.usefixtures("_restore_backends")
+def test_building_a_drqv2_leaves_the_process_wide_settings_unchanged(monkeypatch):
+    """Neither a CPU model (pixels and states) nor a CUDA one changes torch's process-wide flags or cuBLAS's
+    workspace, whatever they hold; ``cudnn_benchmark=True`` turns cuDNN's autotuner on for a CUDA model only, and
+    not under deterministic algorithms."""
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    for benchmark in (False, True):
+        th.backends.cudnn.benchmark = benchmark
+        before = _process_settings()
+        _tiny_drqv2()
+        _tiny_model(Path("unused"))
+        _tiny_drqv2(cudnn_benchmark=True)  # on the CPU: nothing to tune
+        assert _process_settings() == before
+    th.backends.cudnn.benchmark = False
+    before = _process_settings()
+    _fake_cuda_setup(monkeypatch)._setup_model()
+    assert _process_settings() == before
     for deterministic, benchmark in ((True, False), (False, True)):
         configure_backends(deterministic=deterministic)
         th.backends.cudnn.benchmark = False
-        model.policy = type("P", (), {"exploration_std": 0.0})()
-        model._setup_model()
+        _fake_cuda_setup(monkeypatch, cudnn_benchmark=True)._setup_model()
         assert th.backends.cudnn.benchmark is benchmark
+    with pytest.raises(ParameterError, match="cudnn_benchmark must be True or False, got 1"):
+        _tiny_drqv2(cudnn_benchmark=1)
+
+
+@pytest.mark.usefixtures("_restore_backends")
+def test_the_train_command_sets_the_process_wide_settings_before_it_builds_the_model(monkeypatch, tmp_path):
+    """``--deterministic`` or not, the train command (and so every sweep trial) sets the flags before the model."""
+    seen = []
+
+    def build(*args, **kwargs):
+        seen.append(_process_settings())
+        raise InputError("stop before building anything")
+
+    monkeypatch.setattr("sb3_collapse.run.runner.build_envs_and_model", build)
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    flags = ["--env", "cartpole-balance", "--run-dir", str(tmp_path / "run")]
+    for extra in (["--no-tf32", "--deterministic"], []):
+        th.backends.cudnn.benchmark = not extra
+        with pytest.raises(SystemExit):
+            main([*flags, *extra])
+    deterministic, default = seen
+    assert deterministic[0] == BackendSettings(tf32=False, deterministic=True) and deterministic[2:] == (
+        False, True, True, ":4096:8"
+    )  # fmt: skip
+    assert default[0] == BackendSettings(tf32=True, deterministic=False) and default[2:5] == (True, False, False)
 
 
 def test_train_records_the_backend_settings_and_a_run_resumes_with_another_thread_count(tmp_path, capsys):
