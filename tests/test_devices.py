@@ -28,9 +28,10 @@ from sb3_collapse import CollapseMetrics, DrQv2
 from sb3_collapse.backends import BackendSettings, configure_backends, current_backends
 from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.envs.replay import EpisodeReplay
+from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import metrics
-from sb3_collapse.monitoring.interventions import INTERVENTIONS
+from sb3_collapse.monitoring.interventions import INTERVENTIONS, redo
 from sb3_collapse.probe.omp import omp_path
 from sb3_collapse.protocol import CHECKPOINT_STATE, CHECKPOINTS_DIR, CONFIG_JSON, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import (
@@ -62,6 +63,16 @@ FACTORIES = {
 }
 
 
+def _package_caller() -> str | None:
+    """``file:line`` of the package's code that called the torch function being run (``None``: another caller)."""
+    caller = inspect.currentframe().f_back.f_back
+    while caller is not None and caller.f_code.co_filename.startswith(str(Path(th.__file__).parent)):
+        caller = caller.f_back
+    if caller is None or not caller.f_code.co_filename.startswith(PACKAGE):
+        return None
+    return f"{caller.f_code.co_filename}:{caller.f_lineno}"
+
+
 class DeviceAudit(TorchFunctionMode):
     """Records every tensor factory called from the package's code without ``device=`` (it would make a CPU tensor)."""
 
@@ -73,12 +84,29 @@ class DeviceAudit(TorchFunctionMode):
         kwargs = kwargs or {}
         if func in FACTORIES and "device" not in kwargs:
             takes_device = func is th.as_tensor and args and isinstance(args[0], th.Tensor)  # keeps its device
-            caller = inspect.currentframe().f_back
-            while caller is not None and caller.f_code.co_filename.startswith(str(Path(th.__file__).parent)):
-                caller = caller.f_back
-            if caller is not None and caller.f_code.co_filename.startswith(PACKAGE) and not takes_device:
-                self.found.append(f"{func.__name__} at {caller.f_code.co_filename}:{caller.f_lineno}")
+            caller = _package_caller()
+            if caller is not None and not takes_device:
+                self.found.append(f"{func.__name__} at {caller}")
         return func(*args, **kwargs)
+
+
+class DefaultDtypeAudit(TorchFunctionMode):
+    """Records every tensor factory called from the package's code that made a tensor of torch's default dtype
+    without ``dtype=`` (under a float64 default: a float64 tensor among float32 ones)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.found: list[str] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        result = func(*args, **kwargs)
+        if func in FACTORIES and "dtype" not in kwargs and getattr(result, "dtype", None) == th.get_default_dtype():
+            from_data = func in (th.as_tensor, th.tensor) and args and isinstance(args[0], (th.Tensor, np.ndarray))
+            caller = _package_caller()
+            if caller is not None and not from_data:  # an array or tensor keeps its dtype
+                self.found.append(f"{func.__name__} at {caller}")
+        return result
 
 
 def _tiny_model(run_dir: Path) -> tuple[DrQv2, EpisodeReplay]:
@@ -130,6 +158,45 @@ def test_metrics_callbacks_interventions_and_probe_make_tensors_on_their_inputs_
         for intervention in INTERVENTIONS.values():
             intervention(model)
         model.learn(30, reset_num_timesteps=False)
+    assert audit.found == []
+
+
+@pytest.fixture
+def _float64_default():
+    before = th.get_default_dtype()
+    th.set_default_dtype(th.float64)
+    try:
+        yield
+    finally:
+        th.set_default_dtype(before)
+
+
+@pytest.mark.usefixtures("_float64_default")
+@pytest.mark.parametrize("policy", ["CnnPolicy", "MlpPolicy"])
+def test_drqv2_trains_under_a_float64_default_dtype(policy):
+    """``torch.set_default_dtype(torch.float64)`` in the user's process: the networks stay float32 (SB3's observations
+    and replay samples are), and the updates, gradient norms, collapse metrics and interventions run, making no
+    tensor of the default dtype."""
+    pixels = policy == "CnnPolicy"
+    space = gym.spaces.Box(0, 255, (9, 36, 36), np.uint8) if pixels else gym.spaces.Box(-1, 1, (5,), np.float32)
+    env = RandomObservationEnv(space, gym.spaces.Box(-1, 1, (2,), np.float32), action_repeat=2)
+    audit = DefaultDtypeAudit()
+    with audit:
+        model = DrQv2(
+            policy, env, learning_starts=10, batch_size=8, buffer_size=200, seed=0,
+            policy_kwargs=dict(hidden_dim=16, feature_dim=8),
+        )  # fmt: skip
+        metrics_callback = CollapseMetrics(check_every_frames=20, batch_size=16)
+        model.learn(40, callback=metrics_callback)
+        assert model._n_updates > 0 and metrics_callback.last_metrics
+        assert set(model.last_grad_norms) == set(model.policy.named_layers()) - {"cnn0"}
+        redo(model, batch_size=16, conv_channels=pixels)
+        for intervention in INTERVENTIONS.values():
+            intervention(model)
+        updates = model._n_updates
+        model.learn(20, reset_num_timesteps=False)
+    assert model._n_updates > updates
+    assert {param.dtype for param in model.policy.parameters()} == {th.float32}
     assert audit.found == []
 
 
