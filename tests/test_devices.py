@@ -254,7 +254,9 @@ def test_a_pickled_replay_buffer_written_on_cuda_samples_on_the_resuming_models_
     resumed buffer samples onto the CPU model's device and the updates run."""
 
     def state_model() -> DrQv2:
-        env = EpisodeReplay(Monitor(sb3_collapse.make_dmc_env("cartpole-balance", seed=0, action_repeat=8, obs_type="state")))
+        env = EpisodeReplay(
+            Monitor(sb3_collapse.make_dmc_env("cartpole-balance", seed=0, action_repeat=8, obs_type="state"))
+        )
         return DrQv2(
             "MlpPolicy", env, learning_starts=4, batch_size=4, buffer_size=200, seed=0,
             policy_kwargs=dict(hidden_dim=16, feature_dim=4),
