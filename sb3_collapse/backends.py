@@ -2,9 +2,10 @@
 Process-wide settings of torch's CUDA backends for a training run: TensorFloat-32 and reproducibility.
 
 ``python -m sb3_collapse.train`` (and every sweep trial) calls :func:`configure_backends` before it builds the model,
-with the run's ``tf32`` and ``deterministic`` settings, which the run's settings file records. Library users call it
-themselves, or set torch's flags directly; ``DrQv2`` only turns cuDNN's autotuner on for a CUDA model when torch's
-deterministic algorithms are off (``torch.are_deterministic_algorithms_enabled()``).
+with the run's ``tf32`` and ``deterministic`` settings, which the run's settings file records. These flags belong to
+the process: building a ``DrQv2`` changes none of them (with ``cudnn_benchmark=True`` it turns cuDNN's autotuner on
+for a CUDA model, unless torch's deterministic algorithms are on). Library users call :func:`configure_backends`
+themselves, or set torch's flags directly.
 
 What is exact where (see docs/checkpoints.md): on the CPU, a seeded run is bit-for-bit repeatable on one machine with
 one number of threads. On a GPU, only with ``deterministic=True`` (cuDNN's autotuner off, its deterministic
@@ -46,8 +47,9 @@ def configure_backends(tf32: bool = True, deterministic: bool = False) -> Backen
       float32 for both (``"ieee"``).
     - ``deterministic``: ``torch.use_deterministic_algorithms(True, warn_only=True)``, cuDNN's deterministic
       algorithms without its autotuner, and ``CUBLAS_WORKSPACE_CONFIG`` (unless already set; it must be set before
-      the first cuBLAS call of the process). ``False`` turns torch's deterministic algorithms off again, and leaves
-      cuDNN's autotuner to the model (``DrQv2`` turns it on for a CUDA model).
+      the first cuBLAS call of the process, so it holds only when this runs before any CUDA work). ``False`` turns
+      torch's deterministic algorithms off again and cuDNN's autotuner on (``cudnn.benchmark``: DrQ-v2's fixed input
+      shapes, the kernels picked by timing them, as DrQ-v2's reference does).
 
     :param tf32: allow TensorFloat-32 on CUDA
     :param deterministic: ask for reproducible CUDA kernels
@@ -66,7 +68,7 @@ def configure_backends(tf32: bool = True, deterministic: bool = False) -> Backen
         th.backends.cudnn.allow_tf32 = tf32
     if deterministic:
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", CUBLAS_WORKSPACE_CONFIG)
-        th.backends.cudnn.benchmark = False
+    th.backends.cudnn.benchmark = not deterministic
     th.backends.cudnn.deterministic = deterministic
     th.use_deterministic_algorithms(deterministic, warn_only=True)
     return BackendSettings(tf32=tf32, deterministic=deterministic)

@@ -1,8 +1,9 @@
 """
 What only a CUDA GPU can check (``pytest -m cuda``, run by ``benchmarks/gpu.sh``; skipped without a GPU): the update
 on CUDA against the CPU's, the compiled update with CUDA graphs through resets, the gradient-norm recorder, ReDo and
-channels_last on CUDA, a short training run through a collapse check and a checkpoint, resumed on the CPU, and
-deterministic runs.
+channels_last on CUDA, conv-channel ReDo, a short training run through a collapse check and a checkpoint, resumed on
+the CPU (pixels, and a state-observation run's pickled replay buffer), deterministic runs, the update clock on the
+current device and on another one, and cuDNN's autotuner left to the user.
 """
 
 from __future__ import annotations
@@ -14,18 +15,22 @@ import signal
 import threading
 import time
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.backends import configure_backends
 from sb3_collapse.drqv2.encoders import PixelEncoder
-from sb3_collapse.monitoring import metrics
+from sb3_collapse.envs.replay import EpisodeReplay
+from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.monitoring import MetricsBatchSampler, metrics
 from sb3_collapse.monitoring.activations import collect_activations
-from sb3_collapse.monitoring.interventions import redo
+from sb3_collapse.monitoring.interventions import encoder_channels, redo
 from sb3_collapse.protocol import CHECKPOINTS_DIR, COLLAPSE_METRICS_CSV, EXIT_INTERRUPTED, RESULT_JSON
-from sb3_collapse.run.checkpoints import checkpoint_folders
+from sb3_collapse.run.checkpoints import ResumableCheckpoints, checkpoint_folders, load_checkpoint
 from sb3_collapse.run.timing import LearnTimer
 from sb3_collapse.train import main
 
@@ -101,11 +106,13 @@ def test_compiled_update_with_cuda_graphs_survives_resets():
 
     model = _pixel_model("cuda", compile_update=True)  # reduce-overhead: CUDA graphs
     model.learn(60)
+    losses = (DrQv2._critic_loss, DrQv2._actor_loss)
+    compiled = [len(_debug_get_cache_entry_list(loss.__code__)) for loss in losses]  # other tests' entries included
+    assert all(count >= 1 for count in compiled)
     for _ in range(3):
         model.reset_from_scratch()
         model.learn(60, reset_num_timesteps=False)
-    for loss in (DrQv2._critic_loss, DrQv2._actor_loss):
-        assert len(_debug_get_cache_entry_list(loss.__code__)) == 1, loss.__name__
+    assert [len(_debug_get_cache_entry_list(loss.__code__)) for loss in losses] == compiled  # nothing compiled again
     assert all(th.isfinite(p).all() for p in model.policy.parameters())
     assert set(model.last_grad_norms) >= {"cnn1", "mlp1"}
 
@@ -192,9 +199,92 @@ def test_deterministic_cuda_runs_are_identical(tmp_path):
     assert all(th.equal(weights[0][name], weights[1][name]) for name in weights[0])
 
 
-def test_update_clock_counts_the_update_where_it_runs():
-    model, timer = _pixel_model("cuda"), LearnTimer()
-    model.learn(200, callback=timer)
+def _synthetic_pixel_model(device: str, **kwargs) -> DrQv2:
+    """A pixel model on random 9x36x36 frames (``RandomObservationEnv``): no rendering needed."""
+    env = RandomObservationEnv(
+        gym.spaces.Box(0, 255, (9, 36, 36), np.uint8), gym.spaces.Box(-1, 1, (2,), np.float32), action_repeat=2
+    )
+    return DrQv2(
+        "CnnPolicy", env, buffer_size=300, learning_starts=20, batch_size=16, seed=3, device=device,
+        policy_kwargs=dict(hidden_dim=32, feature_dim=16, encoder_kwargs=dict(channels=8)), **kwargs,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("device", ["cuda:0", "cuda:1"])
+def test_update_clock_counts_the_update_where_it_runs(device):
+    """On the current device, and on another one (``cuda:1`` while ``cuda:0`` is current: both events of a round on
+    ``cuda:1``'s stream, else ``elapsed_time`` raises at the first round)."""
+    if th.device(device).index >= th.cuda.device_count():
+        pytest.skip(f"needs {device}; {th.cuda.device_count()} GPU(s) here")
+    with th.cuda.device(0):
+        model, timer = _synthetic_pixel_model(device), LearnTimer()
+        model.learn(200, callback=timer)
+        assert th.cuda.current_device() == 0
     learning = timer.timings.learning
-    assert learning.updates > 0 and learning.update_s > 0
+    assert model.device == th.device(device) and learning.updates > 0 and learning.update_s > 0
     assert learning.overhead_s >= -1e-3  # the device time moved from the overhead, never more than the round's time
+
+
+def test_a_cuda_model_leaves_cudnns_autotuner_as_it_is_unless_asked():
+    before = th.backends.cudnn.benchmark
+    try:
+        for benchmark in (False, True):
+            th.backends.cudnn.benchmark = benchmark
+            _synthetic_pixel_model("cuda")
+            assert th.backends.cudnn.benchmark is benchmark
+        th.backends.cudnn.benchmark = False
+        _synthetic_pixel_model("cuda", cudnn_benchmark=True)
+        assert th.backends.cudnn.benchmark
+    finally:
+        th.backends.cudnn.benchmark = before
+
+
+def test_conv_channel_redo_on_cuda():
+    """ReDo of ``cnn1``..``cnn4``'s channels on CUDA: the killed channels are recycled (new filters, bias 0), their
+    outgoing weights (``cnn3``'s input channel, the trunks' columns of a ``cnn4`` channel) and Adam moments are zero,
+    everything stays on the GPU and trains on."""
+    model = _synthetic_pixel_model("cuda")
+    model.learn(40)
+    layers = {layer.name: layer for layer in encoder_channels(model)}
+    with th.no_grad():  # dead channels: ReLU output 0 on every input
+        layers["cnn2"].linear.bias[3] = -1e3
+        layers["cnn4"].linear.bias[[1, 5]] = -1e3
+    samples, _ = MetricsBatchSampler(0).sample_transitions(model, 16)
+    result = redo(model, samples=samples, conv_channels=True)
+    assert 3 in result.units["cnn2"] and {1, 5} <= set(result.units["cnn4"])
+    assert layers["cnn2"].linear.bias[3].item() == 0.0 and layers["cnn4"].linear.bias[1].item() == 0.0
+    assert (layers["cnn3"].linear.weight[:, list(result.units["cnn2"])] == 0).all()
+    policy = model.policy
+    columns = layers["cnn4"].consumer_columns(th.tensor(result.units["cnn4"], device="cuda"))
+    for part in (policy.actor, policy.critic):
+        trunk = part.trunk[0].weight
+        assert (trunk[:, columns] == 0).all()
+        state = part.optimizer.state[trunk]
+        assert (state["exp_avg"][:, columns] == 0).all() and (state["exp_avg_sq"][:, columns] == 0).all()
+    assert all(p.device.type == "cuda" for p in policy.parameters())
+    model.learn(20, reset_num_timesteps=False)
+    assert all(th.isfinite(p).all() for p in policy.parameters())
+
+
+def test_a_state_observation_run_checkpointed_on_cuda_resumes_on_the_cpu(tmp_path):
+    """The pickled n-step replay buffer of a state-observation run written on CUDA samples on the CPU after a
+    resume, and the updates run."""
+
+    def state_model(device: str) -> DrQv2:
+        env = EpisodeReplay(Monitor(make_dmc_env("cartpole-balance", seed=0, action_repeat=8, obs_type="state")))
+        return DrQv2(
+            "MlpPolicy", env, learning_starts=4, batch_size=4, buffer_size=200, seed=0, device=device,
+            policy_kwargs=dict(hidden_dim=16, feature_dim=4),
+        )  # fmt: skip
+
+    state_model("cuda").learn(12, callback=ResumableCheckpoints(tmp_path, every_frames=80))
+    resumed = state_model("cpu")
+    checkpoints = ResumableCheckpoints(tmp_path, every_frames=80)
+    checkpoints.init_callback(resumed)
+    checkpoint = load_checkpoint(tmp_path)
+    assert checkpoint.state["device"].startswith("cuda") and checkpoint.state["replay_buffer"].device.type == "cuda"
+    checkpoints.resume(checkpoint)
+    assert resumed.replay_buffer.device == th.device("cpu")
+    updates = resumed._n_updates
+    resumed.learn(8, reset_num_timesteps=False)
+    assert resumed._n_updates > updates

@@ -20,15 +20,18 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.monitor import Monitor
 from torch.overrides import TorchFunctionMode
 
 import sb3_collapse
 from sb3_collapse import CollapseMetrics, DrQv2
-from sb3_collapse.backends import configure_backends, current_backends
+from sb3_collapse.backends import BackendSettings, configure_backends, current_backends
 from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.envs.replay import EpisodeReplay
+from sb3_collapse.envs.synthetic import RandomObservationEnv
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import metrics
-from sb3_collapse.monitoring.interventions import INTERVENTIONS
+from sb3_collapse.monitoring.interventions import INTERVENTIONS, redo
 from sb3_collapse.probe.omp import omp_path
 from sb3_collapse.protocol import CHECKPOINT_STATE, CHECKPOINTS_DIR, CONFIG_JSON, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import (
@@ -60,6 +63,16 @@ FACTORIES = {
 }
 
 
+def _package_caller() -> str | None:
+    """``file:line`` of the package's code that called the torch function being run (``None``: another caller)."""
+    caller = inspect.currentframe().f_back.f_back
+    while caller is not None and caller.f_code.co_filename.startswith(str(Path(th.__file__).parent)):
+        caller = caller.f_back
+    if caller is None or not caller.f_code.co_filename.startswith(PACKAGE):
+        return None
+    return f"{caller.f_code.co_filename}:{caller.f_lineno}"
+
+
 class DeviceAudit(TorchFunctionMode):
     """Records every tensor factory called from the package's code without ``device=`` (it would make a CPU tensor)."""
 
@@ -71,12 +84,29 @@ class DeviceAudit(TorchFunctionMode):
         kwargs = kwargs or {}
         if func in FACTORIES and "device" not in kwargs:
             takes_device = func is th.as_tensor and args and isinstance(args[0], th.Tensor)  # keeps its device
-            caller = inspect.currentframe().f_back
-            while caller is not None and caller.f_code.co_filename.startswith(str(Path(th.__file__).parent)):
-                caller = caller.f_back
-            if caller is not None and caller.f_code.co_filename.startswith(PACKAGE) and not takes_device:
-                self.found.append(f"{func.__name__} at {caller.f_code.co_filename}:{caller.f_lineno}")
+            caller = _package_caller()
+            if caller is not None and not takes_device:
+                self.found.append(f"{func.__name__} at {caller}")
         return func(*args, **kwargs)
+
+
+class DefaultDtypeAudit(TorchFunctionMode):
+    """Records every tensor factory called from the package's code that made a tensor of torch's default dtype
+    without ``dtype=`` (under a float64 default: a float64 tensor among float32 ones)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.found: list[str] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        result = func(*args, **kwargs)
+        if func in FACTORIES and "dtype" not in kwargs and getattr(result, "dtype", None) == th.get_default_dtype():
+            from_data = func in (th.as_tensor, th.tensor) and args and isinstance(args[0], (th.Tensor, np.ndarray))
+            caller = _package_caller()
+            if caller is not None and not from_data:  # an array or tensor keeps its dtype
+                self.found.append(f"{func.__name__} at {caller}")
+        return result
 
 
 def _tiny_model(run_dir: Path) -> tuple[DrQv2, EpisodeReplay]:
@@ -131,6 +161,45 @@ def test_metrics_callbacks_interventions_and_probe_make_tensors_on_their_inputs_
     assert audit.found == []
 
 
+@pytest.fixture
+def _float64_default():
+    before = th.get_default_dtype()
+    th.set_default_dtype(th.float64)
+    try:
+        yield
+    finally:
+        th.set_default_dtype(before)
+
+
+@pytest.mark.usefixtures("_float64_default")
+@pytest.mark.parametrize("policy", ["CnnPolicy", "MlpPolicy"])
+def test_drqv2_trains_under_a_float64_default_dtype(policy):
+    """``torch.set_default_dtype(torch.float64)`` in the user's process: the networks stay float32 (SB3's observations
+    and replay samples are), and the updates, gradient norms, collapse metrics and interventions run, making no
+    tensor of the default dtype."""
+    pixels = policy == "CnnPolicy"
+    space = gym.spaces.Box(0, 255, (9, 36, 36), np.uint8) if pixels else gym.spaces.Box(-1, 1, (5,), np.float32)
+    env = RandomObservationEnv(space, gym.spaces.Box(-1, 1, (2,), np.float32), action_repeat=2)
+    audit = DefaultDtypeAudit()
+    with audit:
+        model = DrQv2(
+            policy, env, learning_starts=10, batch_size=8, buffer_size=200, seed=0,
+            policy_kwargs=dict(hidden_dim=16, feature_dim=8),
+        )  # fmt: skip
+        metrics_callback = CollapseMetrics(check_every_frames=20, batch_size=16)
+        model.learn(40, callback=metrics_callback)
+        assert model._n_updates > 0 and metrics_callback.last_metrics
+        assert set(model.last_grad_norms) == set(model.policy.named_layers()) - {"cnn0"}
+        redo(model, batch_size=16, conv_channels=pixels)
+        for intervention in INTERVENTIONS.values():
+            intervention(model)
+        updates = model._n_updates
+        model.learn(20, reset_num_timesteps=False)
+    assert model._n_updates > updates
+    assert {param.dtype for param in model.policy.parameters()} == {th.float32}
+    assert audit.found == []
+
+
 def test_effective_rank_is_the_smallest_k_reaching_one_minus_delta():
     s = th.tensor([4.0, 3.0, 2.0, 1.0], dtype=th.float64)  # partial sums / 10: 0.4, 0.7, 0.9, 1.0
     assert metrics._effective_rank(s, 0.3) == 2.0  # 0.7 >= 0.7
@@ -180,6 +249,36 @@ def test_checkpoint_state_holds_cpu_tensors_only_and_restores_them_on_the_models
     assert resumed.update_stats.count > 0  # the updates after the checkpoint's last dump
 
 
+def test_a_pickled_replay_buffer_written_on_cuda_samples_on_the_resuming_models_device(tmp_path):
+    """A state-observation run (SB3's n-step buffer, pickled whole into the checkpoint) written on ``cuda:0``: the
+    resumed buffer samples onto the CPU model's device and the updates run."""
+
+    def state_model() -> DrQv2:
+        env = EpisodeReplay(
+            Monitor(sb3_collapse.make_dmc_env("cartpole-balance", seed=0, action_repeat=8, obs_type="state"))
+        )
+        return DrQv2(
+            "MlpPolicy", env, learning_starts=4, batch_size=4, buffer_size=200, seed=0,
+            policy_kwargs=dict(hidden_dim=16, feature_dim=4),
+        )  # fmt: skip
+
+    model = state_model()
+    model.learn(12, callback=ResumableCheckpoints(tmp_path, every_frames=80))
+    resumed = state_model()
+    checkpoints = ResumableCheckpoints(tmp_path, every_frames=80)
+    checkpoints.init_callback(resumed)
+    checkpoint = load_checkpoint(tmp_path)
+    assert "pickle" in checkpoint.info["replay"] and checkpoint.state["replay_buffer"].device == th.device("cpu")
+    checkpoint.state["replay_buffer"].device, checkpoint.state["device"] = th.device("cuda:0"), "cuda:0"  # a GPU's
+    checkpoint.state = pickle.loads(pickle.dumps(checkpoint.state))  # read back where there is no GPU
+    checkpoints.resume(checkpoint)
+    assert resumed.replay_buffer.device == resumed.device == th.device("cpu")
+    assert resumed.replay_buffer.sample(4).observations.device == th.device("cpu")
+    updates = resumed._n_updates
+    resumed.learn(8, reset_num_timesteps=False)
+    assert resumed._n_updates > updates
+
+
 def test_cuda_generator_of_the_models_device_is_saved_and_restored_on_the_resuming_device(monkeypatch):
     calls = []
     monkeypatch.setattr(th.cuda, "is_available", lambda: True)
@@ -217,23 +316,79 @@ def test_backend_settings_are_applied_and_checked(monkeypatch):
         configure_backends(deterministic="yes")  # type: ignore[arg-type]
 
 
-@pytest.mark.usefixtures("_restore_backends")
-def test_drqv2_leaves_the_cudnn_autotuner_off_when_determinism_is_asked(monkeypatch):
-    """``DrQv2`` turns cuDNN's autotuner on for a CUDA model, unless torch's deterministic algorithms are on."""
-    monkeypatch.setattr(th.cuda, "is_available", lambda: True)  # the flags only: no tensor goes to CUDA here
-    model = _tiny_drqv2(_init_setup_model=False)
+def _process_settings() -> tuple:
+    """torch's process-wide flags that a training run sets (``sb3_collapse.backends``), and cuBLAS's workspace."""
+    return (
+        current_backends(),  # TF32 of the matmuls, deterministic algorithms
+        th.backends.cudnn.conv.fp32_precision if hasattr(th.backends.cudnn, "conv") else th.backends.cudnn.allow_tf32,
+        th.backends.cudnn.benchmark,
+        th.backends.cudnn.deterministic,
+        th.are_deterministic_algorithms_enabled(),
+        os.environ.get("CUBLAS_WORKSPACE_CONFIG"),
+    )
+
+
+def _fake_cuda_setup(monkeypatch, **kwargs) -> DrQv2:
+    """A DrQv2 whose ``_setup_model`` runs as on CUDA, without a GPU (the flags only: no tensor goes to CUDA)."""
+    monkeypatch.setattr(th.cuda, "is_available", lambda: True)
+    model = _tiny_drqv2(_init_setup_model=False, **kwargs)
     model.device = th.device("cuda")
     monkeypatch.setattr(type(model), "_create_aliases", lambda self: None)
     monkeypatch.setattr(type(model), "_index_grad_layers", lambda self: None)
     monkeypatch.setattr(
         "stable_baselines3.common.off_policy_algorithm.OffPolicyAlgorithm._setup_model", lambda self: None
     )
+    model.policy = type("P", (), {"exploration_std": 0.0})()
+    return model
+
+
+@pytest.mark.usefixtures("_restore_backends")
+def test_building_a_drqv2_leaves_the_process_wide_settings_unchanged(monkeypatch):
+    """Neither a CPU model (pixels and states) nor a CUDA one changes torch's process-wide flags or cuBLAS's
+    workspace, whatever they hold; ``cudnn_benchmark=True`` turns cuDNN's autotuner on for a CUDA model only, and
+    not under deterministic algorithms."""
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    for benchmark in (False, True):
+        th.backends.cudnn.benchmark = benchmark
+        before = _process_settings()
+        _tiny_drqv2()
+        _tiny_model(Path("unused"))
+        _tiny_drqv2(cudnn_benchmark=True)  # on the CPU: nothing to tune
+        assert _process_settings() == before
+    th.backends.cudnn.benchmark = False
+    before = _process_settings()
+    _fake_cuda_setup(monkeypatch)._setup_model()
+    assert _process_settings() == before
     for deterministic, benchmark in ((True, False), (False, True)):
         configure_backends(deterministic=deterministic)
         th.backends.cudnn.benchmark = False
-        model.policy = type("P", (), {"exploration_std": 0.0})()
-        model._setup_model()
+        _fake_cuda_setup(monkeypatch, cudnn_benchmark=True)._setup_model()
         assert th.backends.cudnn.benchmark is benchmark
+    with pytest.raises(ParameterError, match="cudnn_benchmark must be True or False, got 1"):
+        _tiny_drqv2(cudnn_benchmark=1)
+
+
+@pytest.mark.usefixtures("_restore_backends")
+def test_the_train_command_sets_the_process_wide_settings_before_it_builds_the_model(monkeypatch, tmp_path):
+    """``--deterministic`` or not, the train command (and so every sweep trial) sets the flags before the model."""
+    seen = []
+
+    def build(*args, **kwargs):
+        seen.append(_process_settings())
+        raise InputError("stop before building anything")
+
+    monkeypatch.setattr("sb3_collapse.run.runner.build_envs_and_model", build)
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    flags = ["--env", "cartpole-balance", "--run-dir", str(tmp_path / "run")]
+    for extra in (["--no-tf32", "--deterministic"], []):
+        th.backends.cudnn.benchmark = not extra
+        with pytest.raises(SystemExit):
+            main([*flags, *extra])
+    deterministic, default = seen
+    assert deterministic[0] == BackendSettings(tf32=False, deterministic=True) and deterministic[2:] == (
+        False, True, True, ":4096:8"
+    )  # fmt: skip
+    assert default[0] == BackendSettings(tf32=True, deterministic=False) and default[2:5] == (True, False, False)
 
 
 def test_train_records_the_backend_settings_and_a_run_resumes_with_another_thread_count(tmp_path, capsys):
@@ -333,6 +488,39 @@ def test_update_clock_counts_device_time_beyond_the_host_time():
     assert phase.update_s == 1.5 and phase.overhead_s == 0.5 and clock._pending == []
     clock.stop(None, phase, 1.0)  # off CUDA: nothing to time
     assert clock._pending == [] and clock.start(th.device("cpu")) is None
+
+
+def test_update_clock_records_both_events_on_the_models_device_stream(monkeypatch):
+    """A model on ``cuda:1`` while ``cuda:0`` is current: both events of a round on ``cuda:1``'s current stream, with
+    ``cuda:1`` current while they are recorded (``elapsed_time`` refuses events of two devices)."""
+    current = ["cuda:0"]
+    recorded: list[tuple[str, str]] = []
+
+    class DeviceGuard:  # torch.cuda.device
+        def __init__(self, device: th.device) -> None:
+            self.device = str(device)
+
+        def __enter__(self) -> None:
+            self.previous, current[0] = current[0], self.device
+
+        def __exit__(self, *exc) -> None:
+            current[0] = self.previous
+
+    class Event:  # torch.cuda.Event: recorded on the given stream, else on the current device's
+        def __init__(self, enable_timing: bool = False) -> None:
+            assert enable_timing
+
+        def record(self, stream: str | None = None) -> None:
+            recorded.append((stream or f"stream of {current[0]}", current[0]))
+
+    monkeypatch.setattr(th.cuda, "device", DeviceGuard)
+    monkeypatch.setattr(th.cuda, "Event", Event)
+    monkeypatch.setattr(th.cuda, "current_stream", lambda device=None: f"stream of {device or current[0]}")
+    clock, phase = UpdateClock(), PhaseTime()
+    start = clock.start(th.device("cuda:1"))
+    clock.stop(start, phase, 0.1)
+    assert recorded == [("stream of cuda:1", "cuda:1")] * 2 and current == ["cuda:0"]
+    assert len(clock._pending) == 1 and clock._pending[0][2] is phase
 
 
 def test_no_host_synchronization_in_an_update(monkeypatch):

@@ -84,9 +84,9 @@ class GradNormRecorder:
         """
         grads = [param.grad if param.grad is not None else param.new_zeros(()) for param in params]
         squares = th.stack(th._foreach_norm(grads)).detach().float().square()
-        per_slot = th.zeros(len(self.names), device=self.device).index_add_(0, segment, squares)
+        per_slot = squares.new_zeros(len(self.names)).index_add_(0, segment, squares)
         norms = per_slot.index_select(0, index).sqrt()
-        base = self._norms if self._norms is not None else th.zeros(len(self.names), device=self.device)
+        base = self._norms if self._norms is not None else squares.new_zeros(len(self.names))
         self._norms = base.index_copy(0, index, norms)  # a new tensor: earlier reads are not modified
 
     @property

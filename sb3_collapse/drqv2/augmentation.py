@@ -76,9 +76,10 @@ def random_shift_grid_sample(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | N
     n, _, h, w = obs.shape
     padded = F.pad(obs, (pad,) * 4, "replicate")
     # Centres of the padded pixels in grid_sample's normalized coordinates (align_corners=False).
-    xs = th.linspace(-1.0 + 1.0 / (w + 2 * pad), 1.0 - 1.0 / (w + 2 * pad), w + 2 * pad, device=obs.device)[:w]
-    ys = th.linspace(-1.0 + 1.0 / (h + 2 * pad), 1.0 - 1.0 / (h + 2 * pad), h + 2 * pad, device=obs.device)[:h]
-    base_grid = th.stack(th.meshgrid(xs, ys, indexing="xy"), dim=-1).to(obs.dtype)  # (h, w, 2) as (x, y)
+    on = {"device": obs.device, "dtype": obs.dtype}
+    xs = th.linspace(-1.0 + 1.0 / (w + 2 * pad), 1.0 - 1.0 / (w + 2 * pad), w + 2 * pad, **on)[:w]
+    ys = th.linspace(-1.0 + 1.0 / (h + 2 * pad), 1.0 - 1.0 / (h + 2 * pad), h + 2 * pad, **on)[:h]
+    base_grid = th.stack(th.meshgrid(xs, ys, indexing="xy"), dim=-1)  # (h, w, 2) as (x, y)
     if shifts is None:
         shifts = th.randint(0, 2 * pad + 1, (n, 2), device=obs.device)
     scale = th.tensor([2.0 / (w + 2 * pad), 2.0 / (h + 2 * pad)], device=obs.device, dtype=obs.dtype)

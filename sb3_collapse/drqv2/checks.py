@@ -31,6 +31,7 @@ def check_hyperparameters(
     policy_kwargs: Mapping[str, Any] | None = None,
     seed: int | None = None,
     device: th.device | str = "auto",
+    cudnn_benchmark: bool = False,
 ) -> None:
     """
     Check :class:`DrQv2`'s hyperparameters (the constructor calls it; ``TrainConfig.validate`` too, before a run
@@ -69,6 +70,8 @@ def check_hyperparameters(
     if seed is not None:
         integer("seed", seed, 0)
     check_device(device)
+    if not isinstance(cudnn_benchmark, bool):
+        raise ParameterError("cudnn_benchmark", f"cudnn_benchmark must be True or False, got {cudnn_benchmark!r}.")
 
 
 def check_device(device: th.device | str, name: str = "device") -> None:

@@ -117,6 +117,10 @@ class DrQv2(RoundsAlgorithm):
         deterministic action plus the noise, clipped, as TD3 explores); the updates' target smoothing stays DrQ-v2's
     :param optimize_memory_usage: SB3's keyword, passed on to SB3's ``ReplayBuffer`` where it works (``n_steps=1``);
         elsewhere ignored with a warning (``FrameStackReplayBuffer`` already stores each frame once)
+    :param cudnn_benchmark: turn cuDNN's autotuner on (``torch.backends.cudnn.benchmark = True``, a process-wide
+        flag) when the model is built on CUDA, unless torch's deterministic algorithms are on; saved with the model.
+        ``False``: the model changes none of torch's process-wide settings (``sb3_collapse.backends`` sets them for the
+        train and sweep commands)
     :param _init_setup_model: build the networks and the buffer now
     """
 
@@ -159,6 +163,7 @@ class DrQv2(RoundsAlgorithm):
         init_from: Mapping[str, TransplantSpec] | None = None,
         action_noise: ActionNoise | None = None,
         optimize_memory_usage: bool = False,
+        cudnn_benchmark: bool = False,
         _init_setup_model: bool = True,
     ) -> None:
         transplant_specs = check_init_from(init_from)  # before building anything: unknown keys, missing files
@@ -166,7 +171,7 @@ class DrQv2(RoundsAlgorithm):
             learning_rate=learning_rate, buffer_size=buffer_size, learning_starts=learning_starts,
             batch_size=batch_size, tau=tau, gamma=gamma, train_freq=train_freq, gradient_steps=gradient_steps,
             n_steps=n_steps, stddev_clip=stddev_clip, augmentation_pad=augmentation_pad, policy_kwargs=policy_kwargs,
-            seed=seed, device=device,
+            seed=seed, device=device, cudnn_benchmark=cudnn_benchmark,
         )  # fmt: skip
         check_compile_update(compile_update)
         self.stddev_schedule = StddevSchedule(stddev_schedule)
@@ -183,6 +188,7 @@ class DrQv2(RoundsAlgorithm):
         self.augmentation_pad = augmentation_pad
         self.step_envs_during_updates = step_envs_during_updates
         self.compile_update = compile_update
+        self.cudnn_benchmark = cudnn_benchmark
         self.callback = callback
         self.replay_prefetcher = ReplayPrefetcher()  # replay batches for train(), see sb3_collapse.drqv2.prefetch
         self._compiled_losses: tuple[Any, Any] | None = None
@@ -220,7 +226,7 @@ class DrQv2(RoundsAlgorithm):
                 f"Could not allocate a replay buffer of {self.buffer_size:,} transitions ({error}). "
                 + replay_memory.memory_advice(self.replay_buffer_class, self.buffer_size, per_transition)
             ) from None
-        if self.device.type == "cuda" and not th.are_deterministic_algorithms_enabled():
+        if self.cudnn_benchmark and self.device.type == "cuda" and not th.are_deterministic_algorithms_enabled():
             th.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest kernels
         self._create_aliases()
         self._index_grad_layers()

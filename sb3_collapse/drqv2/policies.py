@@ -120,18 +120,22 @@ def sample_action(mean: th.Tensor, std: float, clip: float | None = None) -> th.
     Sample of DrQ-v2's ``TruncatedNormal(mean, std)``: ``mean + eps`` with ``eps ~ N(0, std)``, ``eps``
     clipped to ``[-clip, clip]`` when ``clip`` is given, the action clamped to ``[-1 + 1e-6, 1 - 1e-6]``
     with a straight-through gradient (the gradient reaches ``mean`` even where the clamp is active).
-    Equal to ``noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device))``.
+    Equal to ``noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device, mean.dtype))``.
 
     :param mean: mean action, in [-1, 1]
     :param std: standard deviation of the noise
     :param clip: noise clip, ``None`` for none
     :return: the sampled action
     """
-    return noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device))
+    return noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device, mean.dtype))
 
 
 def exploration_noise(
-    shape: tuple[int, ...] | th.Size, std: float, clip: float | None = None, device: th.device | str | None = None
+    shape: tuple[int, ...] | th.Size,
+    std: float,
+    clip: float | None = None,
+    device: th.device | str | None = None,
+    dtype: th.dtype = th.float32,
 ) -> th.Tensor:
     """
     The noise ``eps`` of :func:`sample_action`, drawn from torch's global generator: ``N(0, std)``, clipped to
@@ -141,9 +145,10 @@ def exploration_noise(
     :param std: standard deviation
     :param clip: noise clip, ``None`` for none
     :param device: where the noise goes
-    :return: float32 noise of that shape
+    :param dtype: its dtype (the actions'; float32 whatever torch's default dtype)
+    :return: noise of that shape
     """
-    eps = th.randn(shape, device=device) * std
+    eps = th.randn(shape, device=device, dtype=dtype) * std
     if clip is not None:
         eps = eps.clamp(-clip, clip)
     return eps
@@ -402,6 +407,8 @@ class DrQv2Policy(BasePolicy):
         # The encoder initializes itself (before switching to channels_last).
         for module in (self.actor, self.critic):
             module.apply(weight_init)
+        for module in (self.encoder, self.actor, self.critic):
+            module.float()  # SB3's observations and replay samples are float32, whatever torch's default dtype
         self.critic_target = copy.deepcopy(self.critic)
         self.critic_target.requires_grad_(False)
 

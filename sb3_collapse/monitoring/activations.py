@@ -215,7 +215,10 @@ def collect_activations(
         for handle in handles:
             handle.remove()
         policy.set_training_mode(was_training)
-    return {name: th.cat(chunks) if chunks else th.empty(0, device=device) for name, chunks in outputs.items()}
+    return {
+        name: th.cat(chunks) if chunks else th.empty(0, device=device, dtype=th.float32)
+        for name, chunks in outputs.items()
+    }
 
 
 def _register(tap: LayerTap, sink: list[th.Tensor], device: th.device | str) -> th.utils.hooks.RemovableHandle:

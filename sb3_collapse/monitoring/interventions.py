@@ -343,7 +343,8 @@ def _rebuild_sb3(model: BaseAlgorithm, kind: str) -> None:
         if model.ent_coef_optimizer is not None:  # type: ignore[attr-defined]  # a learned coefficient
             ent_coef = str(model.ent_coef)  # type: ignore[attr-defined]
             initial = float(ent_coef.split("_")[1]) if "_" in ent_coef else 1.0  # SAC's "auto" / "auto_0.1"
-            model.log_ent_coef = th.log(th.ones(1, device=model.device) * initial).requires_grad_(True)  # type: ignore[attr-defined]
+            dtype = model.log_ent_coef.dtype  # type: ignore[attr-defined]  # SB3's, kept
+            model.log_ent_coef = th.full((1,), initial, device=model.device, dtype=dtype).log().requires_grad_(True)  # type: ignore[attr-defined]
             model.ent_coef_optimizer = th.optim.Adam([model.log_ent_coef], lr=model.lr_schedule(1))  # type: ignore[attr-defined]
     model.replay_buffer.reset()  # type: ignore[union-attr]
     if model.action_noise is not None:  # type: ignore[attr-defined]

@@ -27,7 +27,8 @@ last, ``checkpoint.json`` (format, package version, sizes and SHA-256 of the two
 are deleted only then (the newest ``keep`` stay, so a damaged newest one falls back to the one before).
 
 Devices: every tensor of the state is moved to the CPU when it is written (:func:`tensors_to`), and the model's
-tensors to the model's device when it is read, so a checkpoint written on a GPU resumes on another GPU, or on a
+tensors to the model's device when it is read (a pickled replay buffer, of a state-observation or dict run, samples
+onto the resuming model's device), so a checkpoint written on a GPU resumes on another GPU, or on a
 host without one. The CUDA generator saved is that of the model's device, restored on the resuming model's device
 (another index, or fewer visible GPUs, are fine).
 
@@ -493,8 +494,9 @@ def restore_run(
     replay = checkpoint.info["replay"]
     if "store" in replay:
         store.restore(model.replay_buffer, replay["store"])  # type: ignore[arg-type]
-    else:
+    else:  # pickled with the device of the run that wrote it: sampled onto the resuming model's device
         model.replay_buffer = state["replay_buffer"]
+        model.replay_buffer.device = model.device
     env = model.get_env()
     assert env is not None
     observations = replay_episodes(env, state["envs"])

@@ -120,6 +120,10 @@ class UpdateClock:
     """
     The device time of the rounds of updates on CUDA (see the module docstring); nothing on other devices.
 
+    Both events of a round are recorded on the current stream of the model's device, with that device made current
+    (``torch.cuda.device``): a model on ``cuda:1`` while ``cuda:0`` is the current device is timed on ``cuda:1``
+    (``Event.elapsed_time`` needs two events of one device).
+
     Use: ``start = clock.start(device)`` before ``train``, ``clock.stop(start, phase, host_s)`` once the round is added
     to ``phase``, :meth:`collect` now and then, ``collect(wait=True)`` at the end.
     """
@@ -127,25 +131,31 @@ class UpdateClock:
     def __init__(self) -> None:
         self._pending: list[tuple[Any, Any, PhaseTime, float]] = []
 
-    def start(self, device: th.device) -> Any:
-        """:return: a recorded CUDA event on ``device``'s current stream, ``None`` off CUDA"""
-        if device.type != "cuda":
-            return None
-        event = th.cuda.Event(enable_timing=True)
-        event.record(th.cuda.current_stream(device))
+    @staticmethod
+    def _record(device: th.device) -> Any:
+        """:return: a timing CUDA event recorded on ``device``'s current stream, with ``device`` current"""
+        with th.cuda.device(device):
+            event = th.cuda.Event(enable_timing=True)
+            event.record(th.cuda.current_stream(device))
         return event
 
-    def stop(self, start: Any, phase: PhaseTime, host_s: float) -> None:
+    def start(self, device: th.device) -> tuple[th.device, Any] | None:
+        """:return: ``device`` and a CUDA event recorded on its current stream, ``None`` off CUDA"""
+        if device.type != "cuda":
+            return None
+        return device, self._record(device)
+
+    def stop(self, start: tuple[th.device, Any] | None, phase: PhaseTime, host_s: float) -> None:
         """
-        :param start: what :meth:`start` returned (nothing happens for ``None``)
+        :param start: what :meth:`start` returned (nothing happens for ``None``); the end event is recorded on the
+            same device's current stream
         :param phase: the phase the round was added to
         :param host_s: the round's ``update_s`` measured on the host, already in ``phase``
         """
         if start is None:
             return
-        end = th.cuda.Event(enable_timing=True)
-        end.record()
-        self._pending.append((start, end, phase, host_s))
+        device, event = start
+        self._pending.append((event, self._record(device), phase, host_s))
 
     def collect(self, wait: bool = False) -> None:
         """

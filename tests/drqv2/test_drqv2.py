@@ -351,9 +351,11 @@ def test_update_equals_reference_update(channels_last, compile_update):
             reference = reference[:, order]
         assert th.allclose(param, reference, atol=1e-6, rtol=1e-5), name
 
-    if compile_update:  # resets keep the compiled update: one compiled function each, nothing compiled again
+    if compile_update:  # resets keep the compiled update: nothing compiled again (whatever other tests compiled)
+        losses = (DrQv2._critic_loss, DrQv2._actor_loss)
+        compiled = [len(_debug_get_cache_entry_list(loss.__code__)) for loss in losses]
+        assert all(count >= 1 for count in compiled)
         for _ in range(2):
             ours.reset_from_scratch()
             ours._update(data, data.discounts, ours.current_stddev)
-        for loss in (DrQv2._critic_loss, DrQv2._actor_loss):
-            assert len(_debug_get_cache_entry_list(loss.__code__)) == 1, loss.__name__
+        assert [len(_debug_get_cache_entry_list(loss.__code__)) for loss in losses] == compiled
