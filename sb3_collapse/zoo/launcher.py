@@ -197,15 +197,19 @@ def _replaced(owner: Any, name: str, value: Any) -> Iterator[None]:
 
 def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -> None:
     """
-    Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`.
+    Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`, after setting
+    torch's process-wide CUDA flags as ``python -m sb3_collapse.train`` does by default
+    (:func:`~sb3_collapse.backends.configure_backends`).
 
     :param zoo_args: rl_zoo3 ``train`` options (after :func:`train_arguments`)
     :param callbacks: callbacks appended to those of the config file
     """
     import rl_zoo3.train
 
+    from sb3_collapse.backends import configure_backends
     from sb3_collapse.zoo.experiment import ZooExperimentManager
 
+    configure_backends()  # the train command's defaults: TF32 and cuDNN's autotuner on CUDA
     manager = ZooExperimentManager.with_callbacks(callbacks)
     # rl_zoo3's scripts parse sys.argv, and train() builds the ExperimentManager named in its module.
     with _replaced(sys, "argv", [f"{PROG} train", *zoo_args]), _replaced(rl_zoo3.train, "ExperimentManager", manager):

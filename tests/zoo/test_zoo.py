@@ -295,3 +295,27 @@ def test_help(capsys):
     assert "{train,enjoy}" in out and "--reset-rule" in out and "agent steps" in out and "--no-render" in out
     assert main(["train", "--help"]) == 0
     assert "--conf-file" in capsys.readouterr().out  # rl_zoo3's own options follow
+
+
+def test_zoo_train_sets_the_train_commands_cuda_flags(monkeypatch):
+    # Building a model leaves torch's process-wide flags alone; the zoo's train command sets them as `train` does.
+    from sb3_collapse.backends import configure_backends, current_backends
+    from sb3_collapse.zoo.launcher import run_train
+
+    before = current_backends()
+    benchmark_before = th.backends.cudnn.benchmark
+    seen = {}
+
+    def fake_train() -> None:
+        seen["settings"] = current_backends()
+        seen["benchmark"] = th.backends.cudnn.benchmark
+
+    monkeypatch.setattr(rl_zoo3.train, "train", fake_train)
+    configure_backends(tf32=False, deterministic=True)
+    try:
+        run_train(["--algo", "drqv2"], [])
+    finally:
+        configure_backends(tf32=before.tf32, deterministic=before.deterministic)
+        th.backends.cudnn.benchmark = benchmark_before
+    assert seen["settings"].tf32 and not seen["settings"].deterministic
+    assert seen["benchmark"] is True
