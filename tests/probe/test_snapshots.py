@@ -140,7 +140,7 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     image = matplotlib.image.imread(out / FIGURE2_PNG)
     assert image.shape[1] > 1000 and image[..., :3].std() > 0.05
     # Tables 1-6 from probe.csv, independently: per agent the mean test MSE over the column's targets, std across
-    # the row's agents (ddof=1) at the stages 0, 400 (0.32 x 800 -> nearest 400), 800 frames
+    # the row's agents (ddof=1) at the stages 0, 400 (255 and 509 of a budget of 800 -> nearest 400), 800 frames
     with (out / "probe.csv").open() as file:
         probe = list(csv.DictReader(file))
     with (out / TABLES_1_6_CSV).open() as file:
