@@ -101,7 +101,8 @@ class PaperResult:
     :param seeds: seeds per variant ("The performance comparison of 40 seeds", Figure 5)
     :param stuck_baseline: DrQ-v2's seeds stuck in action collapse ("we count the number of seeds stuck in action
         collapse continuously. There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2")
-    :param stuck_rule: the rule's ("In comparison, all 40 seeds of ours escape action collapse")
+    :param never_escaped_rule: the rule's seeds that never escaped action collapse ("In comparison, all 40 seeds of
+        ours escape action collapse")
     :param std_baseline: DrQ-v2's "average standard deviation over the last ten evaluations" ("drops a lot, from
         418.2 to 38.2, from 359.5 to 93.8, and from 362.7 to 116.2 for the three tasks, respectively")
     :param std_rule: the same with the rule
@@ -110,7 +111,7 @@ class PaperResult:
     task: str
     seeds: int
     stuck_baseline: int
-    stuck_rule: int
+    never_escaped_rule: int
     std_baseline: float
     std_rule: float
 
