@@ -419,8 +419,10 @@ def proposition1_table(rows: Sequence[Proposition1Row]) -> list[list[str]]:
     """:return: Proposition 1's cells, one list per row (:data:`PROPOSITION1_HEADER`)"""
     table = []
     for row in rows:
-        predicted = "-" if row.predicted is None else (
-            f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})"
+        predicted = (
+            "-"
+            if row.predicted is None
+            else (f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})")
         )
         windows = "unknown" if row.windows is None else f"{row.windows} ({row.window_frames:,})"
         table.append([row.task, row.rule, _proportion(row.stuck), windows, predicted, _proportion(row.escaped)])
@@ -433,7 +435,7 @@ def headline_definitions(settings: ReportSettings) -> str:
         f"Paper: Section 5.2 (40 seeds per task and variant). This sweep: {BASELINE_VARIANT} and {RULE_VARIANT}, "
         "finished seeds. Stuck in collapse (DrQ-v2) and stuck at the end (the rule): seeds stuck at the end of "
         "training (see the summary's definitions), of the seeds whose collapse state is known. Never escaped (the "
-        "rule; the paper: \"all 40 seeds of ours escape action collapse\"): seeds whose rule never saw an escape "
+        'rule; the paper: "all 40 seeds of ours escape action collapse"): seeds whose rule never saw an escape '
         "(result.json's escaped false), of the seeds that ran the rule; a seed that escaped and collapsed again "
         "counts as stuck at the end, not as never escaped. "
         f"Std over last {settings.last_evals} evals: the across-seed std at each of the last "
