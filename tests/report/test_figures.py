@@ -20,7 +20,7 @@ from sb3_collapse.report.collapse_figure import (
     pick_agents,
     pick_paper_agents,
 )
-from sb3_collapse.report.fixed_inputs import FixedInputSettings
+from sb3_collapse.report.fixed_inputs import FixedInputs, FixedInputSettings
 from sb3_collapse.report.loading import Sweep, Trial, read_collapse_metrics
 from sb3_collapse.report.pipeline import (
     COLLAPSE_AGENTS_CSV,
@@ -29,6 +29,7 @@ from sb3_collapse.report.pipeline import (
     FIGURE3B_PNG,
     RUN_COLLAPSE_PNG,
     TABLE7_CSV,
+    build_report,
     write_run_report,
 )
 from sb3_collapse.report.statistics import stage_indices, transplant_curves
@@ -151,6 +152,35 @@ def test_collapse_figures_pick_the_fabricated_agents(reported):
                          collapse_settings=FixedInputSettings(pick_seed=7))  # fmt: skip
     picks = other.collapse_picks[("walker-walk", "drqv2")]
     assert picks[0].pick_seed == 7 and picks[0].trial.seed in (0, 2, 4) and picks[1].trial is None
+
+
+def test_every_variant_reads_the_baselines_rollouts_by_default(reported, capsys, tmp_path):
+    fake, report = reported
+    baseline = fake.path / "probe" / "walker-walk_drqv2" / "rollouts.npz"
+    for variant in ("drqv2", "drqv2+reset"):  # no rollouts in the fabricated sweep: the notes name the baseline's
+        (note,) = [n for n in report.notes if n.startswith(f"walker-walk / {variant}: Figure 4 on the probing")]
+        command = f"python -m sb3_collapse.probe sweep {fake.path} --task walker-walk --variant drqv2,"
+        assert f"no {baseline} (run {command}" in note
+    own = build_report(fake.path, progress=False, collapse_settings=FixedInputSettings(rollouts_variant=None))
+    (note,) = [n for n in own.notes if n.startswith("walker-walk / drqv2+reset: Figure 4 on the probing")]
+    assert f"no {fake.path / 'probe' / 'walker-walk_drqv2+reset' / 'rollouts.npz'} " in note
+    argv = [str(fake.path), "--out", str(tmp_path / "out"), "--no-progress", "--rollouts-variant", "drqv2"]
+    with pytest.raises(SystemExit) as exit_status:  # one reading or the other
+        main([*argv, "--rollouts-per-variant"])
+    assert exit_status.value.code == 2 and "not allowed with" in capsys.readouterr().err
+
+
+def test_fixed_set_names_its_trial_checkpoint_and_frame(tmp_path):
+    snapshot = tmp_path / "sweep" / "walker-walk" / "drqv2" / "seed_3" / "snapshots" / "snapshot_0000400000_frames.zip"
+    inputs = FixedInputs(np.zeros((4, 9, 8, 8), np.uint8), np.array([0, 2, 5, 7]),
+                         tmp_path / "sweep" / "probe" / "walker-walk_drqv2" / "rollouts.npz", 10, 2,
+                         str(snapshot), "walker-walk", 400_000)  # fmt: skip
+    assert inputs.describe() == (
+        "the fixed probing set (4 of the 10 observations of walker-walk_drqv2/rollouts.npz, 2 episodes, recorded from "
+        "walker-walk/drqv2/seed_3/snapshots/snapshot_0000400000_frames.zip at 400,000 frames)"
+    )
+    inputs.recorded_from = str(snapshot.parent.parent / "final_model.zip")
+    assert "recorded from walker-walk/drqv2/seed_3/final_model.zip at 400,000 frames)" in inputs.describe()
 
 
 def test_collapse_figure_flags(reported, tmp_path, capsys):
