@@ -44,7 +44,7 @@ class PaperProtocol:
     :param train_frames: frames of a run in Sections 4 and 5 (Section 4.1: "The total number of training frames is
         1.1e6")
     :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110", in
-        evaluations of 1e4 frames); a shorter run is read at the same fractions of its own length
+        evaluations of 1e4 frames), in frames; :meth:`stages` gives those of a run of another budget
     """
 
     check_every_frames: int = 10_000
@@ -61,10 +61,20 @@ class PaperProtocol:
     train_frames: int = 1_100_000
     stage_frames: tuple[int, ...] = (0, 350_000, 700_000, 1_100_000)
 
-    @property
-    def stage_fractions(self) -> tuple[float, ...]:
-        """:attr:`stage_frames` as fractions of :attr:`train_frames` (0, 0.32, 0.64, 1)."""
-        return tuple(frame / self.train_frames for frame in self.stage_frames)
+    def stages(self, budget_frames: int | None = None) -> tuple[int, ...]:
+        """
+        The training stages of Tables 1-7 for a run of ``budget_frames`` frames: :attr:`stage_frames` at the
+        paper's budget (:attr:`train_frames`), the same fractions of another budget (rounded to whole frames).
+        A table reads each at the evaluation nearest to it, clipped to the run's last evaluation
+        (:func:`~sb3_collapse.report.statistics.stage_indices`).
+
+        :param budget_frames: the run's budget, in frames (``None``: the paper's)
+        :return: the stages, in frames, increasing
+        """
+        budget = self.train_frames if budget_frames is None else budget_frames
+        if budget <= 0:
+            raise ValueError(f"budget_frames must be > 0, got {budget}.")
+        return tuple(round(frame * budget / self.train_frames) for frame in self.stage_frames)
 
     @property
     def evaluations(self) -> int:
@@ -91,7 +101,8 @@ class PaperResult:
     :param seeds: seeds per variant ("The performance comparison of 40 seeds", Figure 5)
     :param stuck_baseline: DrQ-v2's seeds stuck in action collapse ("we count the number of seeds stuck in action
         collapse continuously. There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2")
-    :param stuck_rule: the rule's ("In comparison, all 40 seeds of ours escape action collapse")
+    :param never_escaped_rule: the rule's seeds that never escaped action collapse ("In comparison, all 40 seeds of
+        ours escape action collapse")
     :param std_baseline: DrQ-v2's "average standard deviation over the last ten evaluations" ("drops a lot, from
         418.2 to 38.2, from 359.5 to 93.8, and from 362.7 to 116.2 for the three tasks, respectively")
     :param std_rule: the same with the rule
@@ -100,7 +111,7 @@ class PaperResult:
     task: str
     seeds: int
     stuck_baseline: int
-    stuck_rule: int
+    never_escaped_rule: int
     std_baseline: float
     std_rule: float
 

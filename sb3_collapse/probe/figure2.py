@@ -45,9 +45,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
 
-from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.rollouts import REWARD_PREFIX
-from sb3_collapse.report.statistics import across_seed_std, stage_indices
+from sb3_collapse.report.statistics import across_seed_std, stage_indices, stages_caption
 from sb3_collapse.report.style import frames_axis, layer_style
 
 ORIENTATION = "orientation (torso upright)"
@@ -195,20 +194,20 @@ TABLE_NUMBERS = {(row, column): 1 + 2 * column + row for row in range(2) for col
 (1, 2)... Columns are those of :data:`PAPER_COLUMNS`; the other columns' tables have no number."""
 
 
-def stage_table_rows(curves: Sequence[PanelCurve], fractions: Sequence[float] = PAPER.stage_fractions) -> list[dict]:
+def stage_table_rows(curves: Sequence[PanelCurve], budget_frames: int | None = None) -> list[dict]:
     """
     Tables 1-6: per panel and layer, the std across the row's agents (ddof=1; nan with one agent) at the four
     training stages (:func:`~sb3_collapse.report.statistics.stage_indices`).
 
     :param curves: :func:`panel_curves`
-    :param fractions: the stages
+    :param budget_frames: the agents' budget, in frames (``None``: the paper's)
     :return: rows ``table, row, column, layer, agents, stage, frame, std``
     """
     table_rows = []
     for curve in curves:
         in_paper = curve.row in ROWS and curve.column in PAPER_COLUMNS
         number = TABLE_NUMBERS[(ROWS.index(curve.row), PAPER_COLUMNS.index(curve.column))] if in_paper else ""
-        stages = stage_indices(curve.frames, fractions) if len(curve.frames) else []
+        stages = stage_indices(curve.frames, budget_frames) if len(curve.frames) else []
         stds = across_seed_std(curve.values[:, stages], axis=0) if stages else []
         for stage, (index, std) in enumerate(zip(stages, stds)):
             table_rows.append(
@@ -247,8 +246,5 @@ def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
             cells = ["-" if np.isnan(stds[f]) else f"{stds[f]:.3f}" for f in frames]
             lines.append(f"| {layer} | " + " | ".join(cells) + " |")
         lines.append("")
-    lines.append(
-        "Stages: the snapshots nearest to the paper's x = 0, 35, 70, 110 (of 1.1e6 frames), at the same "
-        "fractions of the last shared frame. Std across agents, ddof=1 (- with one agent)."
-    )
+    lines.append(stages_caption("shared snapshots") + " Std across agents, ddof=1 (- with one agent).")
     return "\n".join(lines) + "\n"

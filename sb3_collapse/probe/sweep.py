@@ -49,6 +49,7 @@ from sb3_collapse.protocol import (
     snapshot_files,
 )
 from sb3_collapse.report.loading import Trial, load_sweep
+from sb3_collapse.report.statistics import budget_frames
 from sb3_collapse.staged_outputs import StagedOutputs
 
 TABLES_MD = "tables_1_6.md"
@@ -197,7 +198,7 @@ def probe_sweep(
         curves = panel_curves(rows, {f"seed {t.seed}": which for t, which in agents}, columns)
         described = f"well-performing: {len(well)}, poorly performing: {len(poor)}"
         plot_figure2(curves, staged.path(FIGURE2_PNG), f"{task} / {variant}: OMP probing over training ({described})")
-        table_rows = stage_table_rows(curves)
+        table_rows = stage_table_rows(curves, budget_frames([trial for trial, _ in agents]))
         if table_rows:
             write_csv(table_rows, staged.path(TABLES_1_6_CSV))
         staged.path(TABLES_MD).write_text(stage_tables_markdown(table_rows))

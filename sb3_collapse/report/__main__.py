@@ -18,6 +18,7 @@ from sb3_collapse.errors import ReportError, cli_message, report_unwritable_outp
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.collapse_figure import is_run_folder
 from sb3_collapse.report.fixed_inputs import FixedInputSettings
+from sb3_collapse.report.headline import BASELINE_VARIANT
 from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
 from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_report
 from sb3_collapse.report.statistics import ReportSettings
@@ -111,7 +112,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--rollouts",
         help="Figures 4, 8, 9: rollouts file whose observations every snapshot of the picked agents is run "
-        "on (default: <sweep>/probe/<task>_<variant>/rollouts.npz of python -m sb3_collapse.probe sweep)",
+        "on, for the tasks it was recorded on (default: the rollouts of --rollouts-variant)",
+    )
+    sets = parser.add_mutually_exclusive_group()
+    sets.add_argument(
+        "--rollouts-variant",
+        help="Figures 4, 8, 9: every variant of a task is run on the rollouts that python -m sb3_collapse.probe "
+        "sweep recorded from this variant's best well-performing seed, <sweep>/probe/<task>_<variant>/rollouts.npz "
+        f"(default: {collapse.rollouts_variant})",
+    )
+    sets.add_argument(
+        "--rollouts-per-variant",
+        action="store_true",
+        help="Figures 4, 8, 9: each variant on its own variant's rollouts instead (other observations per variant)",
     )
     parser.add_argument(
         "--fixed-samples",
@@ -151,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         pick_seed=args.pick_seed,
         failure_return=args.failure_return,
         rollouts=args.rollouts,
+        rollouts_variant=None if args.rollouts_per_variant else (args.rollouts_variant or BASELINE_VARIANT),
         fixed_samples=args.fixed_samples or None,
         device=args.device,
     )

@@ -5,10 +5,13 @@ Section 5.1 of the paper computes the numerical rank "of the matrix of MLP activ
 1", and the correlation and zeros of the same activations; Figure 1's H holds the activations of the probing
 samples ("All the samples in three sets are collected from well-performing agents", Section 4.1). So every snapshot
 (encoder and actor at each evaluation, :func:`~sb3_collapse.protocol.snapshot_files`) of the picked agents is run
-on the same observations: the rollouts that ``python -m sb3_collapse.probe sweep`` recorded from a
-well-performing agent (``<sweep>/probe/<task>_<variant>/rollouts.npz``), or a rollouts file given by the user;
-agents are then compared on the same inputs. A seeded subset of :attr:`FixedInputSettings.fixed_samples` observations
-keeps the cost bounded (all of them with ``fixed_samples=None``).
+on the same observations: by default one set per task, the rollouts that ``python -m sb3_collapse.probe sweep``
+recorded from the well-performing agent of the highest final return of the baseline variant
+(:attr:`FixedInputSettings.rollouts_variant`, ``drqv2``: ``<sweep>/probe/<task>_drqv2/rollouts.npz``), for every
+variant of the task, or a rollouts file given by the user; agents of every variant are then compared on the same
+inputs. (``rollouts_variant=None`` reads each variant's own rollouts instead: another set per variant.) A seeded
+subset of :attr:`FixedInputSettings.fixed_samples` observations keeps the cost bounded (all of them with
+``fixed_samples=None``).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from sb3_collapse.report.collapse_figure import (
     AgentPick,
     agent_metrics,
 )
+from sb3_collapse.report.headline import BASELINE_VARIANT
 from sb3_collapse.report.loading import Trial
 
 FIXED_SAMPLES = 2048
@@ -53,8 +57,11 @@ class FixedInputSettings:
         (:func:`~sb3_collapse.report.collapse_figure.pick_paper_agents`)
     :param failure_return: a final return below it is poorly performing (``PAPER.failure_return``; the
         well-performing bound is the report's ``success_return``)
-    :param rollouts: the rollouts file of the observations (``None``: ``<sweep>/probe/<task>_<variant>/``
-        ``rollouts.npz``, written by ``python -m sb3_collapse.probe sweep``)
+    :param rollouts: the rollouts file of the observations, for the tasks it was recorded on (``None``: those of
+        ``rollouts_variant``)
+    :param rollouts_variant: the variant whose rollouts (``<sweep>/probe/<task>_<variant>/rollouts.npz``, written
+        by ``python -m sb3_collapse.probe sweep`` from its well-performing seed of the highest final return) are the
+        fixed set of every variant of the task (the baseline, ``drqv2``); ``None``: each variant's own rollouts
     :param fixed_samples: observations drawn from the rollouts (without replacement, with ``sample_seed``;
         ``None``: all)
     :param sample_seed: seed of that draw
@@ -66,6 +73,7 @@ class FixedInputSettings:
     pick_seed: int = 0
     failure_return: float = PAPER.failure_return
     rollouts: str | Path | None = None
+    rollouts_variant: str | None = BASELINE_VARIANT
     fixed_samples: int | None = FIXED_SAMPLES
     sample_seed: int = 0
     device: str = "auto"
@@ -104,6 +112,8 @@ class FixedInputs:
     :param episodes: episodes in the file
     :param recorded_from: the checkpoint the rollouts were recorded from (their metadata), ``None`` if unknown
     :param task: the task the rollouts were recorded on (``env_config["task_id"]``), ``None`` if unknown
+    :param recorded_frames: the training frames of that checkpoint (its agent steps x the action repeat), ``None``
+        if unknown
     """
 
     observations: np.ndarray
@@ -113,28 +123,31 @@ class FixedInputs:
     episodes: int
     recorded_from: str | None = None
     task: str | None = None
+    recorded_frames: int | None = None
 
     def fits(self, task: str) -> bool:
         """:return: whether the rollouts were recorded on ``task`` (or their task is unknown)"""
         return self.task is None or self.task.replace("_", "-") == task.replace("_", "-")
 
     def describe(self) -> str:
-        """:return: what the metrics are computed on, for titles and captions"""
+        """
+        :return: what the metrics are computed on, for titles and captions: the rollouts file (its folder and name)
+            and the trial (``<task>/<variant>/seed_<k>`` of a sweep), checkpoint and frame they were recorded from
+        """
         subset = f"{len(self.indices)} of the {self.total}" if len(self.indices) < self.total else f"all {self.total}"
         agent = ""
         if self.recorded_from is not None:
             checkpoint = Path(self.recorded_from)
-            folder = (
-                checkpoint.parent.parent
-                if checkpoint.parent.name in (SNAPSHOTS_DIR, LEGACY_SNAPSHOTS_DIR)
-                else checkpoint.parent
-            )
-            agent = f", recorded from {folder.name}/{checkpoint.name}"
-        return f"the fixed probing set ({subset} observations of {self.source.name}, {self.episodes} episodes{agent})"
+            snapshot = checkpoint.parent.name in (SNAPSHOTS_DIR, LEGACY_SNAPSHOTS_DIR)  # one folder deeper
+            agent = f", recorded from {'/'.join(checkpoint.parts[-4 - snapshot :])}"
+            agent += "" if self.recorded_frames is None else f" at {self.recorded_frames:,} frames"
+        source = f"{self.source.parent.name}/{self.source.name}"
+        return f"the fixed probing set ({subset} observations of {source}, {self.episodes} episodes{agent})"
 
 
 def default_rollouts(sweep_dir: str | Path, task: str, variant: str) -> Path:
-    """:return: the rollouts file of ``probe sweep`` for a task and variant of a sweep"""
+    """:return: the rollouts file of ``probe sweep`` for a task and variant of a sweep (the fixed set of every variant
+    of the task when ``variant`` is :attr:`FixedInputSettings.rollouts_variant`)"""
     return Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) / ROLLOUTS_NAME
 
 
@@ -161,7 +174,11 @@ def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, see
         indices = np.sort(np.random.default_rng(seed).choice(total, size=samples, replace=False))
     recorded_from = rollouts.metadata.get("checkpoint")
     task = rollouts.env_config.get("task_id")
-    return FixedInputs(rollouts.observations[indices], indices, path, total, rollouts.n_episodes, recorded_from, task)
+    steps, repeat = rollouts.metadata.get("checkpoint_num_timesteps"), rollouts.env_config.get("action_repeat")
+    frames = int(steps) * int(repeat) if steps is not None and repeat is not None else None
+    return FixedInputs(
+        rollouts.observations[indices], indices, path, total, rollouts.n_episodes, recorded_from, task, frames
+    )
 
 
 def snapshot_metrics(

@@ -3,9 +3,11 @@ The top of the report: the paper's headline numbers beside the sweep's (Section 
 (the escape probability the rule should reach) beside what the rule did. Also what Figure 5 compares.
 
 - **Headline** (:func:`headline_rows`): per task, DrQ-v2 (``baseline``) against DrQ-v2 plus the rule (``rule``):
-  the seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2. In
-  comparison, all 40 seeds of ours escape action collapse") as counts with a Wilson interval, and "the average
-  standard deviation over the last ten evaluations" with a bootstrap interval over seeds; the paper's numbers
+  the seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2") and, for
+  the rule, the seeds that never escaped ("In comparison, all 40 seeds of ours escape action collapse": the rule
+  never saw an escape, the result file's ``escaped`` false), as counts with a Wilson interval; the rule's seeds
+  stuck at the end of training (the baseline's measure) on their own; and "the average standard deviation over the
+  last ten evaluations" with a bootstrap interval over seeds; the paper's numbers
   (:data:`~sb3_collapse.paper.PAPER_RESULTS`) on the same row.
 - **Proposition 1** (:func:`proposition1_rows`): "Supposing the number of training frames is n · m (m is the
   frames where the exploration decreases to the smallest) and the probability of getting stuck in action collapse
@@ -186,8 +188,11 @@ class HeadlineRow:
     :param paper: the paper's numbers (``None`` for a task the paper does not report)
     :param baseline: the sweep's baseline row (``None`` when the sweep lacks it)
     :param rule: the sweep's rule row (``None`` when the sweep lacks it)
-    :param stuck_baseline: baseline seeds stuck in action collapse, of those whose collapse state is known
+    :param stuck_baseline: baseline seeds stuck in action collapse at the end of training, of those whose collapse
+        state is known (:func:`~sb3_collapse.report.statistics.stuck_in_collapse`)
     :param stuck_rule: the same for the rule
+    :param never_escaped_rule: the rule's seeds that never escaped (the result file's ``escaped`` false), of those
+        that ran the rule: the paper's count for the rule ("all 40 seeds of ours escape action collapse")
     :param std_baseline: the baseline's mean std over the last evaluations, with a bootstrap interval
     :param std_rule: the same for the rule
     """
@@ -198,8 +203,15 @@ class HeadlineRow:
     rule: VariantSummary | None
     stuck_baseline: Proportion | None
     stuck_rule: Proportion | None
+    never_escaped_rule: Proportion | None
     std_baseline: Estimate | None
     std_rule: Estimate | None
+
+
+def _never_escaped(row: VariantSummary | None) -> Proportion | None:
+    if row is None or row.seeds == 0:
+        return None
+    return Proportion.of(row.reset_rule_seeds - row.escaped, row.reset_rule_seeds)
 
 
 def _stuck(row: VariantSummary | None) -> Proportion | None:
@@ -249,6 +261,7 @@ def headline_rows(
                 ruled,
                 _stuck(base),
                 _stuck(ruled),
+                _never_escaped(ruled),
                 _std(sweep, base, settings),
                 _std(sweep, ruled, settings),
             )
@@ -362,8 +375,9 @@ HEADLINE_HEADER = (
     "task",
     "stuck in collapse, DrQ-v2: paper",
     "this sweep",
-    "with the rule: paper",
+    "with the rule, never escaped: paper",
     "this sweep",
+    "with the rule, stuck at the end: this sweep",
     "std over last 10 evals, DrQ-v2: paper",
     "this sweep",
     "with the rule: paper",
@@ -389,7 +403,8 @@ def headline_table(headline: Sequence[HeadlineRow]) -> list[list[str]]:
                 row.task,
                 "-" if paper is None else f"{paper.stuck_baseline}/{paper.seeds}",
                 _proportion(row.stuck_baseline),
-                "-" if paper is None else f"{paper.stuck_rule}/{paper.seeds}",
+                "-" if paper is None else f"{paper.never_escaped_rule}/{paper.seeds}",
+                _proportion(row.never_escaped_rule),
                 _proportion(row.stuck_rule),
                 "-" if paper is None else f"{paper.std_baseline:.1f}",
                 _estimate(row.std_baseline),
@@ -404,8 +419,10 @@ def proposition1_table(rows: Sequence[Proposition1Row]) -> list[list[str]]:
     """:return: Proposition 1's cells, one list per row (:data:`PROPOSITION1_HEADER`)"""
     table = []
     for row in rows:
-        predicted = "-" if row.predicted is None else (
-            f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})"
+        predicted = (
+            "-"
+            if row.predicted is None
+            else (f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})")
         )
         windows = "unknown" if row.windows is None else f"{row.windows} ({row.window_frames:,})"
         table.append([row.task, row.rule, _proportion(row.stuck), windows, predicted, _proportion(row.escaped)])
@@ -416,8 +433,11 @@ def headline_definitions(settings: ReportSettings) -> str:
     """:return: what the headline's and Proposition 1's cells mean, one paragraph"""
     return (
         f"Paper: Section 5.2 (40 seeds per task and variant). This sweep: {BASELINE_VARIANT} and {RULE_VARIANT}, "
-        "finished seeds. Stuck in collapse: seeds stuck at the end of training (see the summary's definitions), "
-        "of the seeds whose collapse state is known; for the rule the paper counts the seeds that never escaped. "
+        "finished seeds. Stuck in collapse (DrQ-v2) and stuck at the end (the rule): seeds stuck at the end of "
+        "training (see the summary's definitions), of the seeds whose collapse state is known. Never escaped (the "
+        'rule; the paper: "all 40 seeds of ours escape action collapse"): seeds whose rule never saw an escape '
+        "(result.json's escaped false), of the seeds that ran the rule; a seed that escaped and collapsed again "
+        "counts as stuck at the end, not as never escaped. "
         f"Std over last {settings.last_evals} evals: the across-seed std at each of the last "
         f"{settings.last_evals} scheduled evaluations, averaged. Intervals: {CONFIDENCE:.0%}, Wilson for counts, "
         f"percentile bootstrap over seeds ({BOOTSTRAP_RESAMPLES} resamples) for the std. Proposition 1: p is the "

@@ -262,7 +262,8 @@ def collapse_figures(
     is not a transplant cell, the agents picked by :func:`pick_paper_agents`, their online rows, and their rows on
     the fixed probing set when the rollouts and the snapshots are there (else a note says what is missing).
     A rollouts file of ``collapse_settings`` serves the tasks it was recorded on; the other tasks read the rollouts
-    of ``probe sweep`` in the sweep folder.
+    of ``probe sweep`` in the sweep folder: one set per task, that of ``collapse_settings.rollouts_variant`` (the
+    baseline) for every variant (each variant's own with ``rollouts_variant=None``).
 
     :param report: the report being built (``collapse*`` fields and ``notes`` are filled)
     :param settings: the report's definitions (``success_return``)
@@ -278,6 +279,7 @@ def collapse_figures(
         given = load_fixed_inputs(
             collapse_settings.rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed
         )
+    loaded: dict[Path, FixedInputs] = {}  # each rollouts file read once: the same set for the variants of a task
     for task in sweep.tasks():
         for variant in sweep.variants(task):
             if transplant_sources(variant) is not None:
@@ -298,12 +300,14 @@ def collapse_figures(
             report.collapse_online[key] = online_agent_rows(picks, collapse_settings.layers)
             online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
             inputs = given if given is not None and given.fits(task) else None
-            rollouts = default_rollouts(sweep.path, task, variant)
+            source = collapse_settings.rollouts_variant or variant
+            rollouts = default_rollouts(sweep.path, task, source)
             if inputs is None and not rollouts.is_file():
                 other = "" if given is None else f" ({given.source} was recorded on {given.task})"
                 report.notes.append(
                     f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
-                    f"python -m sb3_collapse.probe sweep, or pass --rollouts); {online} shows the online metrics"
+                    f"python -m sb3_collapse.probe sweep {sweep.path} --task {task} --variant {source}, or pass "
+                    f"--rollouts); {online} shows the online metrics"
                 )
                 continue
             lacking = [
@@ -317,7 +321,11 @@ def collapse_figures(
                 )
                 continue
             if inputs is None:
-                inputs = load_fixed_inputs(rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed)
+                if rollouts not in loaded:
+                    loaded[rollouts] = load_fixed_inputs(
+                        rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed
+                    )
+                inputs = loaded[rollouts]
             rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, progress)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
 

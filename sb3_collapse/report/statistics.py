@@ -373,19 +373,44 @@ def transplant_grid(
     return grid
 
 
-def stage_indices(frames: np.ndarray, fractions: Sequence[float] = PAPER.stage_fractions) -> list[int]:
+def stage_indices(frames: np.ndarray, budget_frames: int | None = None) -> list[int]:
     """
-    The evaluations nearest to the training stages of the paper's Tables 1-7 (``x = 0, 35, 70, 110`` of 110
-    evaluations), at the same fractions of this grid's last frame.
+    The evaluations of the training stages of the paper's Tables 1-7 (``x = 0, 35, 70, 110``): for each of the
+    paper's stage frames (:meth:`PaperProtocol.stages <sb3_collapse.paper.PaperProtocol.stages>` of the run's
+    budget: 0, 350,000, 700,000 and 1,100,000 frames at the paper's budget of 1.1e6), clipped to the last
+    evaluation, the nearest evaluation. On the paper's grid of evaluations (0, 1e4, ..., 1.09e6) they are 0,
+    350,000, 700,000 and 1,090,000; on snapshots, which add one at the budget, 0, 350,000, 700,000 and 1,100,000.
 
     :param frames: increasing evaluation frames (at least one)
-    :param fractions: the stages, as fractions of the last frame (:attr:`PaperProtocol.stage_fractions`)
+    :param budget_frames: the run's budget, in frames (:func:`budget_frames`; ``None``: the paper's, 1.1e6)
     :return: one index into ``frames`` per stage (the earlier one on ties)
     """
     frames = np.asarray(frames, dtype=np.float64)
     if len(frames) == 0:
         raise ValueError("frames must hold at least one evaluation frame.")
-    return [int(np.argmin(np.abs(frames - fraction * frames[-1]))) for fraction in fractions]
+    stages = np.minimum(np.asarray(PAPER.stages(budget_frames), dtype=np.float64), frames[-1])
+    return [int(np.argmin(np.abs(frames - stage))) for stage in stages]
+
+
+def stages_caption(reading: str) -> str:
+    """
+    :param reading: what a table reads, in the plural (``"evaluations"``, ``"snapshots"``)
+    :return: the sentence that says which stages a table of Tables 1-7 reads (:func:`stage_indices`)
+    """
+    frames = ", ".join(f"{frame:,}" for frame in PAPER.stages())
+    return (
+        f"Stages: the paper's x = 0, 35, 70, 110 (frames {frames} of its {PAPER.train_frames:,}; the same fractions "
+        f"of another budget), each at the nearest of the {reading}, the last at most."
+    )
+
+
+def budget_frames(trials: Sequence[Trial]) -> int | None:
+    """
+    :param trials: finished trials
+    :return: the frames they trained (the smallest ``frames`` of their result files), ``None`` when none says
+    """
+    budgets = [int(t.result["frames"]) for t in trials if t.result is not None and t.result.get("frames")]
+    return min(budgets) if budgets else None
 
 
 @dataclass
@@ -398,7 +423,7 @@ class TransplantCurves:
     :param mlp: the MLP's source
     :param frames: the aligned frames of the successful seeds
     :param returns: ``(successes, frames)`` their returns
-    :param stage_frames: the frames of the four stages (:func:`stage_indices`)
+    :param stage_frames: the frames of the four stages (:func:`stage_indices` of the cell's budget)
     :param stage_std: the across-seed std (ddof=1) at each stage (nan with fewer than 2 successful seeds)
     """
 
@@ -416,17 +441,15 @@ class TransplantCurves:
         return f"{self.cnn} CNN x {self.mlp} MLP"
 
 
-def transplant_curves(
-    sweep: Sweep, success_return: float = PAPER.success_return, fractions: Sequence[float] = PAPER.stage_fractions
-) -> dict[str, list[TransplantCurves]]:
+def transplant_curves(sweep: Sweep, success_return: float = PAPER.success_return) -> dict[str, list[TransplantCurves]]:
     """
     The paper's Figure 3(b) and Table 7: per task with transplant variants, for each cell with successful seeds
     (final return ``>= success_return``, as in :func:`transplant_grid`), their evaluation curves on their aligned
-    grid and the across-seed std at the four training stages.
+    grid and the across-seed std at the four training stages (:func:`stage_indices` of the cell's
+    :func:`budget_frames`).
 
     :param sweep: the loaded sweep
     :param success_return: the success threshold
-    :param fractions: the stages
     :return: task -> cells with at least one successful seed, in grid order; tasks without any are absent
     """
     curves: dict[str, list[TransplantCurves]] = {}
@@ -442,7 +465,7 @@ def transplant_curves(
                 successful = returns[returns[:, -1] >= success_return]
                 if not len(successful):
                     continue
-                stages = stage_indices(frames, fractions)
+                stages = stage_indices(frames, budget_frames(finished))
                 stds = across_seed_std(successful[:, stages], axis=0)
                 curves.setdefault(task, []).append(
                     TransplantCurves(

@@ -15,6 +15,7 @@ from sb3_collapse.report.statistics import (
     ReportSettings,
     TransplantCurves,
     VariantSummary,
+    stages_caption,
 )
 
 SUMMARY_COLUMNS = (
@@ -204,7 +205,6 @@ def table7_markdown(curves: dict[str, list[TransplantCurves]], success_return: f
         body = [[c.label, str(len(c.returns))] + [_number(std) for std in c.stage_std] for c in cells]
         lines += [f"## {task}", ""] + _markdown_table(header, body) + [""]
     lines.append(
-        "Stages: the evaluations nearest to the paper's x = 0, 35, 70, 110 (of 1.1e6 frames), at the same fractions "
-        "of each cell's last aligned frame. Std across successful seeds, ddof=1 (- with one seed)."
+        stages_caption("cell's aligned evaluations") + " Std across successful seeds, ddof=1 (- with one seed)."
     )
     return "\n".join(lines) + "\n"

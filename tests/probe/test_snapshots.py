@@ -20,6 +20,7 @@ from sb3_collapse.monitoring import collect_activations, layer_metrics
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.film import film_episode
+from sb3_collapse.probe.pipeline import RecordOptions, record
 from sb3_collapse.probe.rollouts import record_rollouts, resolve_env_config
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
@@ -140,7 +141,7 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     image = matplotlib.image.imread(out / FIGURE2_PNG)
     assert image.shape[1] > 1000 and image[..., :3].std() > 0.05
     # Tables 1-6 from probe.csv, independently: per agent the mean test MSE over the column's targets, std across
-    # the row's agents (ddof=1) at the stages 0, 400 (0.32 x 800 -> nearest 400), 800 frames
+    # the row's agents (ddof=1) at the stages 0, 400 (255 and 509 of a budget of 800 -> nearest 400), 800 frames
     with (out / "probe.csv").open() as file:
         probe = list(csv.DictReader(file))
     with (out / TABLES_1_6_CSV).open() as file:
@@ -169,7 +170,8 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     assert (root / "report" / COLLAPSE_PNG.format(task="walker-walk", variant="drqv2")).exists()
     inputs = report.collapse_inputs[("walker-walk", "drqv2")]
     assert inputs.source == out / "rollouts.npz" and len(inputs.indices) == inputs.total == 20
-    assert "fixed probing set (all 20 observations of rollouts.npz, 5 episodes, recorded from seed_0/" in page
+    named = "all 20 observations of walker-walk_drqv2/rollouts.npz, 5 episodes, recorded from walker-walk/drqv2/seed_0/"
+    assert f"fixed probing set ({named}final_model.zip at 800 frames)" in page
     # Two checkpoints at once, each with half the memory budget: the same results.
     assert probe_main([*argv, "--layers", "cnn0", "cnn4", "mlp1", "--no-progress", "--overwrite", "--jobs", "2"]) == 0
     with (out / "probe.csv").open() as file:
@@ -236,6 +238,47 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
     with pytest.raises(ReportError, match="rollouts") as error:
         trial_fixed_metrics(picks[0].trial, small, settings)
     assert error.value.parameter == "rollouts"
+
+
+def test_figure4_reads_one_observation_set_per_task(run, tmp_path):
+    """By default every variant of a task runs on the baseline's rollouts (probe sweep's, of drqv2), named in the
+    figure; --rollouts-per-variant reads each variant's own."""
+    root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 2: 400.0, 3: 10.0})
+    shutil.copytree(root / "walker-walk" / "drqv2", root / "walker-walk" / "drqv2+reset")  # the same agents
+    checkpoint = load_checkpoint(root / "walker-walk" / "drqv2" / "seed_0" / "final_model.zip")
+    files = {}
+    for variant, seed in (("drqv2", 0), ("drqv2+reset", 1)):  # two sets: other episode seeds
+        folder = root / SWEEP_PROBE_DIR.format(task="walker-walk", variant=variant)
+        folder.mkdir(parents=True)
+        files[variant] = record(checkpoint, RecordOptions(episodes=2, max_steps=6, seed=seed), False).save(
+            folder / "rollouts.npz"
+        )
+    settings = FixedInputSettings(fixed_samples=None, device="cpu")
+    report = write_report(root, progress=False, collapse_settings=settings)
+    base, ruled = (
+        report.collapse_inputs[("walker-walk", "drqv2")],
+        report.collapse_inputs[("walker-walk", "drqv2+reset")],
+    )
+    assert base is ruled and base.source == files["drqv2"] and base.recorded_frames == 800
+    named = (
+        "12 observations of walker-walk_drqv2/rollouts.npz, 2 episodes, recorded from "
+        "walker-walk/drqv2/seed_0/final_model.zip at 800 frames"
+    )
+    assert named in base.describe()
+    page = (root / "report" / "index.html").read_text()
+    assert page.count(named) >= 2  # both figures' captions
+    fixed = {}
+    for variant in ("drqv2", "drqv2+reset"):
+        with (root / "report" / COLLAPSE_FIXED_CSV.format(task="walker-walk", variant=variant)).open() as file:
+            fixed[variant] = {(r["seed"], r["checkpoint"], r["tag"]): r["value"] for r in csv.DictReader(file)}
+    assert fixed["drqv2"] == fixed["drqv2+reset"]  # the same agents on the same observations
+    # the other reading: each variant on its own rollouts, other observations, other values
+    own = dataclasses.replace(settings, rollouts_variant=None)
+    other = write_report(root, out=tmp_path / "own", progress=False, collapse_settings=own)
+    assert other.collapse_inputs[("walker-walk", "drqv2+reset")].source == files["drqv2+reset"]
+    assert other.collapse_inputs[("walker-walk", "drqv2")].source == files["drqv2"]
+    with (tmp_path / "own" / COLLAPSE_FIXED_CSV.format(task="walker-walk", variant="drqv2+reset")).open() as file:
+        assert {(r["seed"], r["checkpoint"], r["tag"]): r["value"] for r in csv.DictReader(file)} != fixed["drqv2"]
 
 
 def test_film_of_checkpoints(run, tmp_path):

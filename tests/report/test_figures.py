@@ -9,7 +9,8 @@ import pytest
 from browser import check_page
 from fabricated_sweep import TRANSPLANT_FRAMES, write_fake_sweep
 
-from sb3_collapse.paper import PAPER
+from sb3_collapse.paper import PAPER, evaluation_schedule
+from sb3_collapse.probe.figure2 import PanelCurve, stage_table_rows
 from sb3_collapse.report import write_report
 from sb3_collapse.report.__main__ import main
 from sb3_collapse.report.collapse_figure import (
@@ -19,8 +20,8 @@ from sb3_collapse.report.collapse_figure import (
     pick_agents,
     pick_paper_agents,
 )
-from sb3_collapse.report.fixed_inputs import FixedInputSettings
-from sb3_collapse.report.loading import Trial, read_collapse_metrics
+from sb3_collapse.report.fixed_inputs import FixedInputs, FixedInputSettings
+from sb3_collapse.report.loading import Sweep, Trial, read_collapse_metrics
 from sb3_collapse.report.pipeline import (
     COLLAPSE_AGENTS_CSV,
     COLLAPSE_ONLINE_PNG,
@@ -28,9 +29,10 @@ from sb3_collapse.report.pipeline import (
     FIGURE3B_PNG,
     RUN_COLLAPSE_PNG,
     TABLE7_CSV,
+    build_report,
     write_run_report,
 )
-from sb3_collapse.report.statistics import stage_indices
+from sb3_collapse.report.statistics import stage_indices, transplant_curves
 
 
 @pytest.fixture(scope="module")
@@ -152,6 +154,35 @@ def test_collapse_figures_pick_the_fabricated_agents(reported):
     assert picks[0].pick_seed == 7 and picks[0].trial.seed in (0, 2, 4) and picks[1].trial is None
 
 
+def test_every_variant_reads_the_baselines_rollouts_by_default(reported, capsys, tmp_path):
+    fake, report = reported
+    baseline = fake.path / "probe" / "walker-walk_drqv2" / "rollouts.npz"
+    for variant in ("drqv2", "drqv2+reset"):  # no rollouts in the fabricated sweep: the notes name the baseline's
+        (note,) = [n for n in report.notes if n.startswith(f"walker-walk / {variant}: Figure 4 on the probing")]
+        command = f"python -m sb3_collapse.probe sweep {fake.path} --task walker-walk --variant drqv2,"
+        assert f"no {baseline} (run {command}" in note
+    own = build_report(fake.path, progress=False, collapse_settings=FixedInputSettings(rollouts_variant=None))
+    (note,) = [n for n in own.notes if n.startswith("walker-walk / drqv2+reset: Figure 4 on the probing")]
+    assert f"no {fake.path / 'probe' / 'walker-walk_drqv2+reset' / 'rollouts.npz'} " in note
+    argv = [str(fake.path), "--out", str(tmp_path / "out"), "--no-progress", "--rollouts-variant", "drqv2"]
+    with pytest.raises(SystemExit) as exit_status:  # one reading or the other
+        main([*argv, "--rollouts-per-variant"])
+    assert exit_status.value.code == 2 and "not allowed with" in capsys.readouterr().err
+
+
+def test_fixed_set_names_its_trial_checkpoint_and_frame(tmp_path):
+    snapshot = tmp_path / "sweep" / "walker-walk" / "drqv2" / "seed_3" / "snapshots" / "snapshot_0000400000_frames.zip"
+    inputs = FixedInputs(np.zeros((4, 9, 8, 8), np.uint8), np.array([0, 2, 5, 7]),
+                         tmp_path / "sweep" / "probe" / "walker-walk_drqv2" / "rollouts.npz", 10, 2,
+                         str(snapshot), "walker-walk", 400_000)  # fmt: skip
+    assert inputs.describe() == (
+        "the fixed probing set (4 of the 10 observations of walker-walk_drqv2/rollouts.npz, 2 episodes, recorded from "
+        "walker-walk/drqv2/seed_3/snapshots/snapshot_0000400000_frames.zip at 400,000 frames)"
+    )
+    inputs.recorded_from = str(snapshot.parent.parent / "final_model.zip")
+    assert "recorded from walker-walk/drqv2/seed_3/final_model.zip at 400,000 frames)" in inputs.describe()
+
+
 def test_collapse_figure_flags(reported, tmp_path, capsys):
     fake, _ = reported
     for flags, named in (
@@ -168,8 +199,8 @@ def test_table7_matches_the_fabricated_returns(reported):
     fake, report = reported
     assert FIGURE3B_PNG in {p.name for p in report.files}
     frames = np.arange(0, TRANSPLANT_FRAMES + 1, 10_000)
-    stages = stage_indices(frames)
-    assert [int(frames[i]) for i in stages] == [0, 20_000, 30_000, 50_000]  # 0.32 x 50k -> 20k, 0.64 x 50k -> 30k
+    stages = stage_indices(frames, TRANSPLANT_FRAMES)  # the paper's stages at a budget of 50k: 0, 15,909, 31,818, 50k
+    assert [int(frames[i]) for i in stages] == [0, 20_000, 30_000, 50_000]
     with (report.files[0].parent / TABLE7_CSV).open() as file:
         rows = list(csv.DictReader(file))
     good = [r for r in rows if (r["cnn"], r["mlp"]) == ("good", "good")]
@@ -180,6 +211,32 @@ def test_table7_matches_the_fabricated_returns(reported):
     cells = {(r["cnn"], r["mlp"]) for r in rows}
     assert not any(mlp == "bad" for _, mlp in cells)  # a bad MLP never succeeds: no curve, no row
     assert {r["std"] for r in rows if (r["cnn"], r["mlp"]) == ("blank", "blank")} == {""}  # one success: no std
+
+
+def test_tables_1_to_7_read_the_papers_stage_frames(tmp_path):
+    # The paper's budget: evaluations at 0, 1e4, ..., 1.09e6 (x in [0, 109]); snapshots add one at 1.1e6.
+    budget = PAPER.train_frames
+    evaluations = np.array(evaluation_schedule(budget, PAPER.check_every_frames))
+    snapshots = np.append(evaluations, budget)
+    assert PAPER.stages() == PAPER.stages(budget) == (0, 350_000, 700_000, 1_100_000)
+    assert [int(evaluations[i]) for i in stage_indices(evaluations, budget)] == [0, 350_000, 700_000, 1_090_000]
+    assert [int(snapshots[i]) for i in stage_indices(snapshots, budget)] == [0, 350_000, 700_000, 1_100_000]
+    assert PAPER.stages(50_000) == (0, 15_909, 31_818, 50_000)
+    # Table 7: a transplant cell of 3 successful seeds at the paper's budget, returns seed * frame / 1e4
+    trials = [
+        Trial("walker-walk", "cnn-good_mlp-good", seed, tmp_path, "finished", {"frames": budget}, evaluations,
+              np.where(evaluations == evaluations[-1], 950.0, seed * evaluations / 1e4))
+        for seed in (1, 2, 3)
+    ]  # fmt: skip
+    (cell,) = transplant_curves(Sweep(tmp_path, trials))["walker-walk"]
+    assert cell.stage_frames == [0, 350_000, 700_000, 1_090_000]
+    assert cell.stage_std == pytest.approx([0.0, 35.0, 70.0, 0.0])  # std of (1, 2, 3) x 35 and x 70, ddof=1
+    # Tables 1-6: a panel on the snapshots of the same budget, values seed * frame / 1e4
+    curve = PanelCurve("well-performing", "torso height", "mlp1", snapshots, np.outer([1, 2, 3], snapshots / 1e4),
+                       ["seed 1", "seed 2", "seed 3"])  # fmt: skip
+    rows = stage_table_rows([curve], budget)
+    assert [r["frame"] for r in rows] == [0, 350_000, 700_000, 1_100_000]
+    assert [r["std"] for r in rows] == pytest.approx([0.0, 35.0, 70.0, 110.0])
 
 
 def test_html_page_loads_every_image_and_table_in_chromium(reported, tmp_path):

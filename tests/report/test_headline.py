@@ -71,11 +71,13 @@ def test_headline_sets_the_papers_numbers_beside_the_sweeps(fake, tmp_path):
     assert [row.task for row in report.headline] == ["walker-walk", "hopper-stand"]  # the paper's order
     walker = report.headline[0]
     paper = {result.task: result for result in PAPER_RESULTS}["walker-walk"]
-    assert walker.paper == paper and (paper.stuck_baseline, paper.std_baseline, paper.std_rule) == (13, 418.2, 38.2)
+    assert (paper.stuck_baseline, paper.never_escaped_rule, paper.std_baseline, paper.std_rule) == (13, 0, 418.2, 38.2)
+    assert walker.paper == paper
     # The fabricated walker-walk: seeds 1 and 3 of drqv2's 5 finished seeds stay collapsed; the rule's 5 escape.
     assert (walker.stuck_baseline.count, walker.stuck_baseline.total) == (2, 5)
     assert walker.stuck_baseline.interval == wilson_interval(2, 5)
     assert (walker.stuck_rule.count, walker.stuck_rule.total) == (0, 5)
+    assert (walker.never_escaped_rule.count, walker.never_escaped_rule.total) == (0, 5)
     # The std over the last ten evaluations, from the written returns.
     returns = np.array([t.returns for t in fake.select("walker-walk", "drqv2")])
     expected = np.mean(np.std(returns[:, -PAPER.last_evals :], axis=0, ddof=1))
@@ -85,7 +87,9 @@ def test_headline_sets_the_papers_numbers_beside_the_sweeps(fake, tmp_path):
     markdown = (tmp_path / "report" / "summary.md").read_text()
     top = markdown.split("## Proposition 1")[0]
     assert markdown.startswith("# Sweep report\n\n## The paper's headline beside this sweep's")
-    assert "| walker-walk | 13/40 | 2/5 (40%, CI " in top and "| 0/40 | 0/5 (0%, CI 0%-" in top
+    assert "| walker-walk | 13/40 | 2/5 (40%, CI " in top
+    assert "| 0/40 | 0/5 (0%, CI 0%-43%) | 0/5 (0%, CI 0%-43%) |" in top  # never escaped; stuck at the end
+    assert "with the rule, never escaped: paper | this sweep | with the rule, stuck at the end: this sweep |" in top
     assert "| 418.2 | " in top and "| 38.2 | " in top and "| hopper-stand | 8/40 |" in top
     assert f"> {PROPOSITION_1}" in markdown and "| walker-walk | drqv2 |" in markdown  # the summary table follows
     page = (tmp_path / "report" / "index.html").read_text()
@@ -94,6 +98,33 @@ def test_headline_sets_the_papers_numbers_beside_the_sweeps(fake, tmp_path):
     walker_rule = next(row for row in report.proposition if row.task == "walker-walk")
     assert walker_rule.windows == FRAMES // PAPER.window_frames == 1
     assert walker_rule.predicted.value == pytest.approx(1 - 2 / 5) and walker_rule.escaped.count == 5
+
+
+def test_the_rules_cell_counts_the_seeds_that_never_escaped(fake, tmp_path):
+    # Seed 4 of walker-walk / drqv2+reset: its result file says the rule never saw an escape, yet its mlp1 gradient
+    # norms are healthy at the end: never escaped 1/5 (the paper's count), stuck at the end 0/5 (its own column).
+    path = fake.path / "walker-walk" / "drqv2+reset" / "seed_4" / "result.json"
+    result = json.loads(path.read_text())
+    path.write_text(json.dumps(result | {"escaped": False, "escape_frame": None}))
+    try:
+        report = write_report(fake.path, out=tmp_path / "report", progress=False)
+    finally:
+        path.write_text(json.dumps(result))
+    walker = report.headline[0]
+    never, stuck = walker.never_escaped_rule, walker.stuck_rule
+    assert (never.count, never.total, never.interval) == (1, 5, wilson_interval(1, 5))
+    assert (stuck.count, stuck.total, stuck.interval) == (0, 5, wilson_interval(0, 5))
+    low, high = wilson_interval(1, 5)
+    cells = f"| 0/40 | 1/5 (20%, CI {100 * low:.0f}%-{100 * high:.0f}%) | 0/5 (0%, CI 0%-43%) |"
+    assert cells == "| 0/40 | 1/5 (20%, CI 4%-62%) | 0/5 (0%, CI 0%-43%) |"
+    assert cells in (tmp_path / "report" / "summary.md").read_text().split("## Proposition 1")[0]
+    page = (tmp_path / "report" / "index.html").read_text()
+    for text in ("with the rule, never escaped: paper", "with the rule, stuck at the end: this sweep",
+                 "1/5 (20%, CI 4%-62%)", "never saw an escape"):  # fmt: skip
+        assert text in page
+    # Proposition 1's observed escape reads the same record: 4 of 5
+    walker_rule = next(row for row in report.proposition if row.task == "walker-walk")
+    assert (walker_rule.escaped.count, walker_rule.escaped.total) == (4, 5)
 
 
 def test_figure5_has_no_transplant_series(fake, monkeypatch, tmp_path):
@@ -135,5 +166,5 @@ def test_an_earlier_versions_final_model_row_is_left_out(fake):
 def test_headline_of_a_task_without_the_rule(fake):
     sweep = build_report(fake.path, variants=["drqv2"], progress=False)
     rows = headline_rows(sweep.sweep, sweep.rows, ReportSettings())
-    assert rows[0].stuck_rule is None and rows[0].stuck_baseline.count == 2
+    assert rows[0].stuck_rule is None and rows[0].never_escaped_rule is None and rows[0].stuck_baseline.count == 2
     assert "not in this sweep" in sweep.markdown and "No rule variant with its baseline" in sweep.markdown
