@@ -2,7 +2,8 @@
 What only a CUDA GPU can check (``pytest -m cuda``, run by ``benchmarks/gpu.sh``; skipped without a GPU): the update
 on CUDA against the CPU's, the compiled update with CUDA graphs through resets, the gradient-norm recorder, ReDo and
 channels_last on CUDA, a short training run through a collapse check and a checkpoint, resumed on the CPU, and
-deterministic runs.
+deterministic runs. Only the tests marked ``dmc`` render (the train CLI on cartpole-balance): the others train on
+synthetic pixels, so that ``benchmarks/gpu.sh`` runs them where rendering fails.
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ import time
 import numpy as np
 import pytest
 import torch as th
+from gymnasium.spaces import Box
 
-from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse import DrQv2
 from sb3_collapse.backends import configure_backends
 from sb3_collapse.drqv2.encoders import PixelEncoder
+from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring import metrics
 from sb3_collapse.monitoring.activations import collect_activations
 from sb3_collapse.monitoring.interventions import redo
@@ -44,7 +47,8 @@ def _ieee_float32():
 
 
 def _pixel_model(device: str, **kwargs) -> DrQv2:
-    env = make_dmc_env("cartpole-balance", seed=0, action_repeat=8, size=48)
+    """Synthetic pixels of cartpole-balance's shapes (9x48x48, a 1-d action): no rendering needed."""
+    env = RandomObservationEnv(Box(0, 255, (9, 48, 48), np.uint8), Box(-1.0, 1.0, (1,), np.float32), 125, 8)
     return DrQv2(
         "CnnPolicy", env, buffer_size=300, learning_starts=20, batch_size=16, seed=3, stddev_schedule=0.4,
         device=device, policy_kwargs=dict(hidden_dim=32), replay_buffer_kwargs=dict(sampling="sb3"), **kwargs,
@@ -154,6 +158,7 @@ FLAGS = [
 ]  # fmt: skip
 
 
+@pytest.mark.dmc
 def test_cuda_run_through_a_collapse_check_and_a_checkpoint_resumes_on_the_cpu(tmp_path, capsys):
     run_dir = tmp_path / "run"
 
@@ -179,6 +184,7 @@ def test_cuda_run_through_a_collapse_check_and_a_checkpoint_resumes_on_the_cpu(t
     assert result["resumes"] == 1
 
 
+@pytest.mark.dmc
 def test_deterministic_cuda_runs_are_identical(tmp_path):
     weights = []
     for name in ("a", "b"):
