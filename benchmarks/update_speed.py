@@ -223,7 +223,7 @@ def main() -> None:
         impls = list(workers)
         baseline = impls[0] if impls else None
         print(f"{'batch':>6} " + " ".join(f"{impl + ' (ms)':>20}" for impl in impls)
-              + "".join(f"{impl + ' / ' + baseline:>28}" for impl in impls[1:]), flush=True)  # fmt: skip
+              + "".join(f"{impl + ' / ' + baseline:>30}" for impl in impls[1:]), flush=True)  # fmt: skip
         for batch_size in args.batch_sizes:  # one row per batch size, printed once measured
             medians = {impl: [] for impl in workers if batch_size in sizes[impl]}
             for _ in range(args.rounds):
@@ -263,11 +263,11 @@ def table_row(batch_size: int, impls: list[str], baseline: str | None, medians: 
     )
     for impl in impls[1:]:
         if not medians.get(impl) or not medians.get(baseline):
-            row += f"{'-':>28}"
+            row += f"{'-':>30}"
             continue
         rounds = min(len(medians[impl]), len(medians[baseline]))
         per_round = np.array(medians[impl][:rounds]) / np.array(medians[baseline][:rounds])
-        row += f"{np.median(per_round):>16.2f} ({per_round.min():.2f}-{per_round.max():.2f})"
+        row += f"{np.median(per_round):>18.2f} ({per_round.min():.2f}-{per_round.max():.2f})"
     return row
 
 

@@ -23,7 +23,7 @@ def test_the_import_guard_refuses_what_the_gpu_machine_lacks_and_nothing_else(tm
     (carried / "carried_module").mkdir(parents=True)
     (carried / "carried_module" / "__init__.py").write_text("VALUE = 7\n")
     code = (
-        "import json, numpy, torch, sb3_collapse.errors, carried_module\n"  # stdlib, the image's, ours, carried
+        "import json, numpy, torch, carried_module\n"  # the standard library, the image's packages, the carried ones
         "assert carried_module.VALUE == 7\n"
         "try:\n    import stable_baselines3\nexcept ModuleNotFoundError as error:\n    print(error)\n"
         "else:\n    print('imported')\n"
