@@ -22,7 +22,9 @@ the sum of their learning frames/s: how many runs one machine (one GPU) serves a
 the GPU's memory holds at each run's peak (``torch.cuda.max_memory_reserved``), leaving 10% free.
 
 The machine's load average is printed before and after: on a shared machine, compare the rows of one run only, and
-use ``--repeats`` (the configurations take turns; the table gives medians and ranges, the CSV every run).
+use ``--repeats`` (the configurations take turns; the table gives medians and ranges, the CSV every run). The CSV
+gets each run's row when it ends; interrupted (Ctrl-C, ``timeout --signal=INT``), the script stops its runs and prints
+the table of the finished ones.
 
     python benchmarks/train_throughput.py                                       # CPU, a few minutes: small counts
     python benchmarks/train_throughput.py --envs 1 2 --compile off --batch-size 64
@@ -59,14 +61,39 @@ def train_arguments(
 ) -> list[str]:
     """The train CLI's arguments of one configuration."""
     argv = [
-        "--env", args.task, "--frames", str(args.seed_frames + args.frames), "--seed-frames", str(args.seed_frames),
-        "--batch-size", str(args.batch_size), "--n-steps", str(args.n_steps), "--hidden-dim", str(args.hidden_dim),
-        "--size", str(args.size), "--n-envs", str(envs), "--eval-every-frames", "0",
-        "--collapse-metrics-every-frames", "0", "--buffer-size", str(args.buffer_size), "--device", args.device,
-        "--run-dir", str(run_dir), "--seed", str(seed), "--no-progress-bar",
+        "--env",
+        args.task,
+        "--frames",
+        str(args.seed_frames + args.frames),
+        "--seed-frames",
+        str(args.seed_frames),
+        "--batch-size",
+        str(args.batch_size),
+        "--n-steps",
+        str(args.n_steps),
+        "--hidden-dim",
+        str(args.hidden_dim),
+        "--size",
+        str(args.size),
+        "--n-envs",
+        str(envs),
+        "--eval-every-frames",
+        "0",
+        "--collapse-metrics-every-frames",
+        "0",
+        "--buffer-size",
+        str(args.buffer_size),
+        "--device",
+        args.device,
+        "--run-dir",
+        str(run_dir),
+        "--seed",
+        str(seed),
+        "--no-progress-bar",
         # SB3's sampling: the updates start after the warm-up even before an episode has finished (DrQ-v2's sampling
         # waits for one, 1,000 frames per env on walker); an update costs the same either way.
-        "--replay-sampling", "sb3",
+        "--replay-sampling",
+        "sb3",
     ]
     if compiled:
         argv.append("--compile-update")
@@ -111,7 +138,13 @@ def measure(
             out, err = (files.enter_context(open(f"{run_dir}.{name}", "w+")) for name in ("out", "err"))
             processes.append((run_dir, command, subprocess.Popen(command, stdout=out, stderr=err, text=True), out, err))
         for run, (run_dir, command, process, out, err) in enumerate(processes):
-            process.wait()
+            try:
+                process.wait()
+            except KeyboardInterrupt:  # the runs got the same SIGINT: they write a checkpoint, which is not wanted
+                for other in processes:
+                    other[2].kill()
+                    other[2].wait()
+                raise
             out.seek(0)
             err.seek(0)
             if process.returncode != 0:
@@ -170,8 +203,10 @@ def print_table(rows: list[dict], gpu_memory_mb: float | None = None) -> None:
     concurrent = any(row["concurrent"] > 1 for row in rows)
     extra = f" {'runs':>4} {'sum fps':>8}" if concurrent else ""
     extra += f" {'peak GPU MB':>11} {'fit by memory':>13}" if gpu_memory_mb else ""
-    print(f"{'envs':>4} {'compiled':>8} {'overlap':>7}{extra} {'warm-up fps':>17} {'learning fps':>17} {'env':>5} "
-          f"{'update':>6} {'overhead':>8} {'ms/update':>9} {'one-time (s)':>12} {'peak RSS MB':>11}")
+    print(
+        f"{'envs':>4} {'compiled':>8} {'overlap':>7}{extra} {'warm-up fps':>17} {'learning fps':>17} {'env':>5} "
+        f"{'update':>6} {'overhead':>8} {'ms/update':>9} {'one-time (s)':>12} {'peak RSS MB':>11}"
+    )
 
     def spread(values: list[float], digits: int) -> str:
         median = statistics.median(values)
@@ -235,8 +270,13 @@ def main() -> None:
     parser.add_argument(
         "--compile", nargs="+", choices=["off", "on"], default=["off", "on"], help="compiled update or not"
     )
-    parser.add_argument("--overlap", nargs="+", choices=["off", "on"], default=["off"],
-                        help="environment steps during the updates (--step-envs-during-updates) or not")
+    parser.add_argument(
+        "--overlap",
+        nargs="+",
+        choices=["off", "on"],
+        default=["off"],
+        help="environment steps during the updates (--step-envs-during-updates) or not",
+    )
     parser.add_argument("--task", default="walker-walk", help="dm_control task")
     parser.add_argument("--seed-frames", type=int, default=200, help="warm-up frames (random actions, no update)")
     parser.add_argument("--frames", type=int, default=48, help="frames timed after the warm-up (4 frames per update)")
@@ -249,10 +289,19 @@ def main() -> None:
     parser.add_argument(
         "--torch-threads", type=int, default=None, help="torch CPU threads of the learner; default: torch's"
     )
-    parser.add_argument("--concurrent", type=int, nargs="+", default=[1],
-                        help="identical runs of each configuration started at once (runs per machine or GPU)")
-    parser.add_argument("--repeats", type=int, default=1,
-                        help="runs of every configuration, taking turns (the table gives medians, and the ranges)")
+    parser.add_argument(
+        "--concurrent",
+        type=int,
+        nargs="+",
+        default=[1],
+        help="identical runs of each configuration started at once (runs per machine or GPU)",
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="runs of every configuration, taking turns (the table gives medians, and the ranges)",
+    )
     parser.add_argument("--csv", default="runs/train_throughput.csv", help="where to write the table (one row per run)")
     parser.add_argument("--keep-runs", default=None, help="keep the run folders here (default: a temporary folder)")
     args = parser.parse_args()
@@ -264,26 +313,35 @@ def main() -> None:
     )
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     rows = []
-    with tempfile.TemporaryDirectory() as temporary:
-        folder = Path(args.keep_runs or temporary)
-        for repeat in range(args.repeats):
-            for concurrent in args.concurrent:
-                for envs in args.envs:
-                    for compiled in (mode == "on" for mode in args.compile):
-                        for overlap in (mode == "on" for mode in args.overlap):
-                            runs = measure(args, envs, compiled, overlap, folder / f"repeat{repeat}", concurrent)
-                            rows += [{"repeat": repeat, **row} for row in runs]
-                            warmup = " ".join(f"{row['warmup_fps']:.1f}" for row in runs)
-                            learning = " ".join(f"{row['learning_fps']:.2f}" for row in runs)
-                            print(f"  done: {envs} envs, compiled {compiled}, overlap {overlap}, {concurrent} at once: "
-                                  f"{warmup} frames/s in the warm-up, {learning} after it", flush=True)
-    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    print_table(rows, gpu_memory_mb(args.device))
     Path(args.csv).parent.mkdir(parents=True, exist_ok=True)
-    with open(args.csv, "w", newline="") as file:
+    with tempfile.TemporaryDirectory() as temporary, open(args.csv, "w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=FIELDS)
         writer.writeheader()
-        writer.writerows(rows)
+        file.flush()
+        folder = Path(args.keep_runs or temporary)
+        try:
+            for repeat in range(args.repeats):
+                for concurrent in args.concurrent:
+                    for envs in args.envs:
+                        for compiled in (mode == "on" for mode in args.compile):
+                            for overlap in (mode == "on" for mode in args.overlap):
+                                runs = measure(args, envs, compiled, overlap, folder / f"repeat{repeat}", concurrent)
+                                runs = [{"repeat": repeat, **row} for row in runs]
+                                rows += runs
+                                writer.writerows(runs)  # row by row: an interrupted benchmark keeps its runs
+                                file.flush()
+                                warmup = " ".join(f"{row['warmup_fps']:.1f}" for row in runs)
+                                learning = " ".join(f"{row['learning_fps']:.2f}" for row in runs)
+                                print(
+                                    f"  done: {envs} envs, compiled {compiled}, overlap {overlap}, {concurrent} at "
+                                    f"once: {warmup} frames/s in the warm-up, {learning} after it",
+                                    flush=True,
+                                )
+        except KeyboardInterrupt:
+            print(f"interrupted: the table holds the {len(rows)} finished runs", flush=True)
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    if rows:
+        print_table(rows, gpu_memory_mb(args.device))
     print(f"wrote {args.csv}")
 
 

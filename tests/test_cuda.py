@@ -3,7 +3,9 @@ What only a CUDA GPU can check (``pytest -m cuda``, run by ``benchmarks/gpu.sh``
 on CUDA against the CPU's, the compiled update with CUDA graphs through resets, the gradient-norm recorder, ReDo and
 channels_last on CUDA, conv-channel ReDo, a short training run through a collapse check and a checkpoint, resumed on
 the CPU (pixels, and a state-observation run's pickled replay buffer), deterministic runs, the update clock on the
-current device and on another one, and cuDNN's autotuner left to the user.
+current device and on another one, and cuDNN's autotuner left to the user. Only the tests marked ``dmc`` render (the
+train CLI on cartpole-balance): the others train on synthetic pixels, so that ``benchmarks/gpu.sh`` runs them where
+rendering fails.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from gymnasium.spaces import Box
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse import DrQv2, make_dmc_env
@@ -49,7 +52,8 @@ def _ieee_float32():
 
 
 def _pixel_model(device: str, **kwargs) -> DrQv2:
-    env = make_dmc_env("cartpole-balance", seed=0, action_repeat=8, size=48)
+    """Synthetic pixels of cartpole-balance's shapes (9x48x48, a 1-d action): no rendering needed."""
+    env = RandomObservationEnv(Box(0, 255, (9, 48, 48), np.uint8), Box(-1.0, 1.0, (1,), np.float32), 125, 8)
     return DrQv2(
         "CnnPolicy", env, buffer_size=300, learning_starts=20, batch_size=16, seed=3, stddev_schedule=0.4,
         device=device, policy_kwargs=dict(hidden_dim=32), replay_buffer_kwargs=dict(sampling="sb3"), **kwargs,
@@ -161,6 +165,7 @@ FLAGS = [
 ]  # fmt: skip
 
 
+@pytest.mark.dmc
 def test_cuda_run_through_a_collapse_check_and_a_checkpoint_resumes_on_the_cpu(tmp_path, capsys):
     run_dir = tmp_path / "run"
 
@@ -186,6 +191,7 @@ def test_cuda_run_through_a_collapse_check_and_a_checkpoint_resumes_on_the_cpu(t
     assert result["resumes"] == 1
 
 
+@pytest.mark.dmc
 def test_deterministic_cuda_runs_are_identical(tmp_path):
     weights = []
     for name in ("a", "b"):
