@@ -274,7 +274,7 @@ def _tensors(batch: Any) -> Iterator[th.Tensor]:
             yield from (item for item in value.values() if isinstance(item, th.Tensor))
 
 
-@dataclass
+@dataclass(repr=False)
 class PreparedBatch:
     """A batch drawn ahead of its update, and what draws it again after a load (see the module docstring)."""
 
@@ -291,8 +291,11 @@ class PreparedBatch:
     """Weak references to the buffer and the ``VecNormalize`` env it was drawn with, and its device."""
 
     def drawn_from(self, buffer: ReplayBuffer, batch_size: int, env: VecNormalize | None) -> bool:
-        """Whether this batch is one of ``buffer.sample(batch_size, env)`` in this process."""
+        """Whether this batch is one of ``buffer.sample(batch_size, env)`` in this process, since its last reset
+        (``FrameStackReplayBuffer.resets``)."""
         if self.batch is None or not self.source or batch_size != self.batch_size:
+            return False
+        if buffer_counters(buffer)[-1] != self.counters[-1]:
             return False
         buffer_ref, env_ref, device = self.source
         same_env = env is None if env_ref is None else env_ref() is env
@@ -300,6 +303,10 @@ class PreparedBatch:
 
     def __getstate__(self) -> dict[str, Any]:
         return {"batch_size": self.batch_size, "generator_state": self.generator_state, "counters": self.counters}
+
+    def __repr__(self) -> str:  # short: SB3's save writes str() of the saved objects' attributes into its JSON
+        made = "made" if self.batch is not None else "to draw again"
+        return f"PreparedBatch(batch_size={self.batch_size}, counters={self.counters}, {made})"
 
 
 class ReplayPrefetcher:

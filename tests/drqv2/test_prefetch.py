@@ -352,6 +352,15 @@ def test_a_batch_drawn_for_another_buffer_or_batch_size_is_not_used():
     for batch_size in (4, 8):
         with prefetcher.batches(other, 1, batch_size) as batches:
             assert next(iter(batches)).actions.shape == (batch_size, 2)
+    with prefetcher.batches(other, 1, 8) as batches:
+        list(batches)
+    other.reset()  # emptied: the batch drawn ahead from its old transitions is not used
+    Feeder(other).add(10)
+    state = np.random.get_state()
+    expected = other.sample(8)
+    np.random.set_state(state)
+    with prefetcher.batches(other, 1, 8) as batches:
+        assert_same_samples(next(iter(batches)), expected)
     prefetcher.discard()
     assert prefetcher.prepared is None
 
