@@ -5,8 +5,9 @@
   to the actor's parameters;
 - ``ours-ieee``: ``ours`` with IEEE float32 matmuls and convolutions on CUDA (TensorFloat-32 off; the same as
   ``ours`` on the CPU);
-- ``ours-no-prefetch``: ``ours`` with the replay batch copied to the device as before the prefetcher (pageable memory,
-  blocking copies; the same as ``ours`` on the CPU, where the prefetcher is off);
+- ``ours-no-prefetch``: ``ours`` with each replay batch drawn when its update is due, on the training thread
+  (pageable memory, blocking copies on CUDA; on the CPU the same work as ``ours``, which draws the next batch just
+  before the update instead);
 - ``ours compiled``: the same with ``compile_update=True`` (``torch.compile`` of the update's forward and backward
   passes; ``mode="reduce-overhead"``, CUDA graphs, on CUDA). Its compilation time is printed (the first update's
   time minus the median);
@@ -59,8 +60,8 @@ from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
 IMPLS = ("reference", "ours", "ours-compiled", "ours-ieee", "ours-no-prefetch")
 """Implementations this script times (``--impls``): ``ours`` and ``ours-compiled`` with TensorFloat-32 on CUDA (the
 train command's default, ``sb3_collapse.backends``), ``ours-ieee`` without it (``--no-tf32``), ``ours-no-prefetch``
-without the replay prefetcher (pageable memory, blocking copies: ``sb3_collapse.drqv2.prefetch``); the reference with
-torch's defaults, as it runs."""
+without drawing the batches ahead (``ReplayPrefetcher(enabled=False)``: ``sb3_collapse.drqv2.prefetch``); the
+reference with torch's defaults, as it runs."""
 
 
 def build_model(

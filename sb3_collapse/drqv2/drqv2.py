@@ -190,7 +190,7 @@ class DrQv2(RoundsAlgorithm):
         self.compile_update = compile_update
         self.cudnn_benchmark = cudnn_benchmark
         self.callback = callback
-        self.replay_prefetcher = ReplayPrefetcher()  # replay batches for train(), see sb3_collapse.drqv2.prefetch
+        self.replay_prefetcher = ReplayPrefetcher()  # train()'s batches, drawn ahead: sb3_collapse.drqv2.prefetch
         self._compiled_losses: tuple[Any, Any] | None = None
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
         self.no_env_step_this_round = False
@@ -294,9 +294,10 @@ class DrQv2(RoundsAlgorithm):
     # ------------------------------------------------------------------ training
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
         """
-        ``gradient_steps`` DrQ-v2 updates on minibatches of ``batch_size`` transitions: ``replay_buffer.sample``'s, in
-        the same order, made by ``self.replay_prefetcher`` (on CUDA one batch ahead, ``sb3_collapse.drqv2.prefetch``).
-        None in the ``learning_starts`` transitions after a :meth:`reset_from_scratch`.
+        ``gradient_steps`` DrQ-v2 updates on minibatches of ``batch_size`` transitions: ``replay_buffer.sample``'s,
+        each drawn by ``self.replay_prefetcher`` while the update before it runs (the first during the last update of
+        the previous call, before this round's transitions were added: ``sb3_collapse.drqv2.prefetch``). None in the
+        ``learning_starts`` transitions after a :meth:`reset_from_scratch`.
         """
         if self.reset_step > 0 and self.num_timesteps - self.reset_step <= self.learning_starts:
             if self.verbose >= 2:
@@ -469,9 +470,12 @@ class DrQv2(RoundsAlgorithm):
         SB3's ``learn`` for ``total_timesteps`` transitions (frames = transitions x action repeat), in rounds of
         environment steps up to the next update due, then those updates (``sb3_collapse.drqv2.rounds``). ``callback``
         runs after the constructor's; ``reset_num_timesteps`` also restarts the exploration schedule and the warm-up
-        (``False`` continues a loaded model where it stopped).
+        (``False`` continues a loaded model where it stopped; a loaded model whose replay buffer was restored with it
+        first draws again the batch it had drawn ahead, ``ReplayPrefetcher.restore``).
         """
         self._warned_replay_not_ready = False
+        if self.replay_buffer is not None:  # a loaded model's batch drawn ahead, from its restored replay buffer
+            self.replay_prefetcher.restore(self.replay_buffer, self._vec_normalize_env)
         callbacks = self._combined_callbacks(callback)
         return super().learn(total_timesteps, callbacks, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
@@ -484,16 +488,17 @@ class DrQv2(RoundsAlgorithm):
 
         New: the weights of the encoder, actor, critic and target critic (DrQ-v2's initialization, drawn from
         torch's global generator as it is now, copied into the existing parameter tensors so that a compiled update
-        stays valid), the optimizers (empty Adam state), an empty replay buffer, no gradient norm until the next
-        update; ``reset_step = num_timesteps``, so the exploration schedule and the warm-up of ``learning_starts``
-        transitions start again. Kept: ``num_timesteps`` (the budget is spent, not extended), the update count,
-        the logger, the environments and their episodes in progress, the callbacks, the hyperparameters.
-        ``init_from`` is not applied again. ``docs/interventions.md`` explains each choice.
+        stays valid), the optimizers (empty Adam state), an empty replay buffer (and no batch drawn ahead from the
+        old one), no gradient norm until the next update; ``reset_step = num_timesteps``, so the exploration schedule
+        and the warm-up of ``learning_starts`` transitions start again. Kept: ``num_timesteps`` (the budget is spent,
+        not extended), the update count, the logger, the environments and their episodes in progress, the callbacks,
+        the hyperparameters. ``init_from`` is not applied again. ``docs/interventions.md`` explains each choice.
         """
         self.policy.renew_networks(self.lr_schedule)
         self._create_aliases()
         self._index_grad_layers()  # a new recorder, on the new optimizers: no norm until the next update
         self.replay_buffer.reset()  # type: ignore[union-attr]
+        self.replay_prefetcher.discard()  # drawn from the old transitions
         self.reset_step = self.num_timesteps
         self.policy.exploration_std = self.current_stddev
 
@@ -551,7 +556,7 @@ class DrQv2(RoundsAlgorithm):
         return [
             *super()._excluded_save_params(), "encoder", "actor", "critic", "critic_target", "callback",
             "grad_norm_recorder", "update_stats", "_warned_replay_not_ready", "_compiled_losses", "_pending_step",
-            "no_env_step_this_round", "replay_prefetcher",
+            "no_env_step_this_round",
         ]  # fmt: skip
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

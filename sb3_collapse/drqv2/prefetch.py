@@ -1,49 +1,69 @@
 """
-Replay batches prepared ahead of the update, and copied to a CUDA device without blocking the training thread.
+Replay batches prepared one update ahead, while the update before runs, and handed to a CUDA device on a side
+stream.
 
 Without it, each update samples its batch on the training thread: ``FrameStackReplayBuffer.sample`` gathers the
-frame stacks with NumPy into new (pageable) arrays, then six tensors go to the device with blocking copies (each
-waits for the device to finish the work queued before it). :class:`ReplayPrefetcher` changes how a batch is
-made, not which batch: ``DrQv2.train`` takes its batches from :meth:`ReplayPrefetcher.batches`.
+frame stacks with NumPy into new (pageable) arrays (65 MB of uint8 at batch 512 for 9x84x84 observations), then the
+tensors go to the device with blocking copies, and the update waits for all of it. ``DrQv2.train`` takes its
+batches from :meth:`ReplayPrefetcher.batches` instead.
 
-**Same batches.** At the start of a ``train(gradient_steps)`` call, the training thread draws the indices of all
-``gradient_steps`` batches with ``FrameStackReplayBuffer.sample_indices``: the draws of as many ``sample`` calls,
-in the same order, from NumPy's global generator. Nothing else draws from it during the updates (augmentation
-shifts and action noise come from torch's generators; a round's updates run no callback and add no transition),
-and the buffer does not change during the call, so these are the indices today's loop would draw. Batches are
-prepared ahead only within one call: the next call's indices depend on the transitions added in between (the
-buffer's size, DrQ-v2's finished episodes). With one update per call (one environment, ``train_freq=2``,
-``gradient_steps=1``: DrQ-v2's ratio), nothing is prepared ahead; what remains is the pinned, non-blocking copy.
+**When a batch is drawn.** The batch of update ``k + 1`` is drawn (``replay_buffer.sample``'s draws from NumPy's
+global generator, in the same order) and gathered while update ``k`` runs, also when ``k`` is the last update of a
+``train`` call: with DrQ-v2's ratio (one environment, ``train_freq=2``, ``gradient_steps=1``, one update per
+round) the batch of the next round's update is drawn during this round's update, before the transitions of the
+next round are collected. So a batch sees the transitions added up to the round before its update, not those
+collected between update ``k`` and update ``k + 1`` (one round, ``train_freq`` transitions). The batches are
+those of a serial sampler calling ``replay_buffer.sample`` at these points (``tests/drqv2/test_prefetch.py``).
+DrQ-v2's reference lags further behind: its ``DataLoader`` keeps ``num_workers x prefetch_factor`` batches
+prepared (4 x 2 with its settings: up to 8 updates, 16 agent steps ahead), and each worker reads the newly
+finished episodes only once every ``fetch_every=1000`` samples it draws. ``enabled=False`` draws each batch when
+its update is due instead (``replay_buffer.sample`` per update: it sees every transition added before it).
 
-**Prepared ahead.** The first batch of a call is gathered on the training thread (the update waits for it
-anyway); each next one in a worker thread while the update of the previous one runs: one batch ahead. The
-worker gathers only (NumPy, which releases the GIL), never draws a random number, and has finished before the
-call returns (also when an update raises), so the buffer is never read while transitions are added. An exception
-in the worker is raised in the training thread, with its message, when its batch is due. The worker is one thread
-of a ``ThreadPoolExecutor``, made at the first call with two updates or more; it ends with the prefetcher (garbage
-collection of the model) or :meth:`ReplayPrefetcher.close`. The prefetcher pickles as its setting only (``DrQv2``
-does not save it: the loaded model has a new one).
+**Same draws, whatever the thread.** Nothing else draws from NumPy's global generator while an update runs
+(augmentation shifts and action noise come from torch's generators; callbacks run between rounds, not during
+updates), and the buffer does not change during a ``train`` call, so drawing in the worker thread gives the draws
+of the training thread. The worker has finished before ``train`` returns (also when an update raises), so the
+buffer is never read while transitions are added; an exception in the worker is raised in the training thread,
+with its message, when its batch is due. A prepared batch is dropped (not used) when the next call samples
+another buffer, batch size or ``VecNormalize`` env, and by ``DrQv2.reset_from_scratch`` (:meth:`discard`: the
+emptied buffer's old transitions are not trained on).
 
-**On CUDA** (:class:`HostStaging`): the batch is gathered straight into page-locked (``pin_memory``) host buffers
-(the frame stacks with ``np.take(..., out=)``, no intermediate array) and copied to the device with
-``non_blocking=True`` on the current CUDA stream: two copies per batch, the uint8 frames (``obs`` and
-``next_obs``: uint8 on the bus; the float conversion, crop and normalization stay on the device as before) and
-the float32 rest (actions, dones, n-step returns, discounts), each a contiguous view of its device copy. Two sets
-of host buffers alternate (double buffering): a CUDA event is recorded after the copies out of a set, and the
-set is written again only after that event has completed, so the host waits for the copy of two batches back
-at most, never for the update. The copies are ordered on the stream with the updates (no side stream): what
-runs concurrently with an update is the next batch's gather on the host, not its transfer. The staging buffers
-cost twice a batch of host memory, page-locked (about 65 MB per set at batch 512 for 9x84x84 observations).
+**Saved, and prepared again after a load.** The prefetcher pickles as its settings and, for a batch prepared and
+not yet used, NumPy's generator state before its draw, its batch size and the buffer's counters then (not the
+batch). ``DrQv2.learn`` calls :meth:`restore` first: when the replay buffer's counters are those of the draw (a run
+checkpoint, taken between rounds, restores both), the batch is drawn again from that state, which gives the same
+batch and leaves the generator where the checkpoint left it; so a resumed run draws the batches of the
+uninterrupted one. Otherwise (the buffer was not restored, or changed since) the draw is dropped and the next
+update draws afresh.
 
-**On the CPU** nothing is pinned or copied twice: a batch is ``_get_samples``' own tensors, as today. By default
-(``enabled=None``) the prefetcher is used on CUDA only; the CPU keeps today's loop (``sample`` per update), so
-that a gather thread does not compete with the update for the cores. ``enabled=True`` uses the prefetching path
-on the CPU too (same batches), ``False`` nowhere. Replay buffers other than ``FrameStackReplayBuffer`` (SB3's,
-for state observations), and a ``VecNormalize`` environment (float observations), take today's loop.
+**Where the work runs.** ``worker=None`` (default): in one worker thread on CUDA, on the training thread on the
+CPU. On the CPU the batch of update ``k + 1`` is then made just before update ``k`` (a reordering: the same
+batches, no concurrency): the update already runs on every core torch has (``torch.get_num_threads()``), and the
+gather is memory-bound NumPy work that a second thread would run on one of those cores, stalling the update's
+parallel regions rather than filling idle time. ``worker=True`` uses the thread on the CPU too (e.g. when torch
+is given fewer threads than there are cores), ``False`` nowhere. The worker is one thread of a
+``ThreadPoolExecutor``, made at its first use; it ends with the prefetcher (garbage collection of the model) or
+:meth:`ReplayPrefetcher.close`.
+
+**On CUDA** the batch is made on a side stream (:meth:`ReplayPrefetcher.batches`), so its transfer overlaps the
+update's kernels queued on the training thread's stream. For ``FrameStackReplayBuffer`` (without ``VecNormalize``)
+it is gathered straight into page-locked (``pin_memory``) host buffers (:class:`HostStaging`: the frame stacks with
+``np.take(..., out=)``, no intermediate array) and copied with ``non_blocking=True``: two copies per batch, the
+uint8 frames (``obs`` and ``next_obs``: uint8 on the bus; the float conversion, crop and normalization stay on the
+device) and the float32 rest (actions, dones, n-step returns, discounts), each a contiguous view of its device
+copy. Other buffers (SB3's, for state or dict observations) run their own ``sample`` on the side stream. An event
+recorded on the side stream after the copies is waited for by the update's stream (``wait_event``: on the device,
+the host does not wait) before the batch is used, and each tensor of the batch is marked used by that stream
+(``record_stream``), so that the caching allocator does not give its memory to a later batch on the side stream
+while the update may still read it. Two sets of host buffers alternate (double buffering): a set is written again
+only after the event recorded after the copy out of it has completed (the copy of two batches back). The staging
+buffers cost twice a batch of page-locked host memory (about 65 MB per set at batch 512 for 9x84x84 observations).
 """
 
 from __future__ import annotations
 
+import contextlib
+import weakref
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import wait as wait_futures
@@ -105,9 +125,9 @@ class HostStaging:
     """
     Host staging buffers of replay batches and their copy to the device (see the module docstring).
 
-    The training thread calls :meth:`claim` (which set the next batch goes to) and :meth:`to_device`; :meth:`gather`
-    may run in another thread, one at a time per set. A set is written only after the event recorded after the last
-    copy out of it has completed.
+    One thread at a time calls :meth:`claim` (which set the next batch goes to), :meth:`gather` and
+    :meth:`to_device` (the worker, or the training thread). A set is written only after the event recorded after
+    the last copy out of it has completed.
 
     :param device: where the batches go
     :param pin_memory: page-lock the host buffers (CUDA)
@@ -196,8 +216,8 @@ class HostStaging:
 
     def to_device(self, slot: int) -> ReplayBufferSamples:
         """
-        Copy the batch in ``slot`` to the device (``non_blocking``, on the current stream) and record the slot's
-        event after the copies. Call it on the training thread, after :meth:`gather` of that slot has returned.
+        Copy the batch in ``slot`` to the device (``non_blocking``, on the current stream: the prefetcher's side
+        stream) and record the slot's event after the copies, after :meth:`gather` of that slot has returned.
 
         :return: the batch on the device: contiguous views of one copy of the frames and one per dtype of the rest
         """
@@ -230,31 +250,94 @@ def staging_for(device: th.device) -> HostStaging | None:
     return HostStaging(device, pin_memory=True, event_factory=th.cuda.Event)
 
 
+def buffer_counters(buffer: ReplayBuffer) -> tuple[Any, ...]:
+    """
+    :param buffer: a replay buffer
+    :return: what identifies its contents between two ``add`` calls: its class, ``pos`` and ``full``, and
+        ``FrameStackReplayBuffer``'s ``transitions_added`` and ``resets``
+    """
+    counters = (getattr(buffer, "transitions_added", None), getattr(buffer, "resets", None))
+    return (type(buffer).__name__, int(buffer.pos), bool(buffer.full), *counters)
+
+
+def _same_generator_state(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
+    """Whether two ``np.random.get_state()`` values are equal."""
+    return a[0] == b[0] and np.array_equal(a[1], b[1]) and tuple(a[2:]) == tuple(b[2:])
+
+
+def _tensors(batch: Any) -> Iterator[th.Tensor]:
+    """The tensors of a batch (``ReplayBufferSamples`` or ``DictReplayBufferSamples``: dicts of tensors too)."""
+    for value in batch:
+        if isinstance(value, th.Tensor):
+            yield value
+        elif isinstance(value, dict):
+            yield from (item for item in value.values() if isinstance(item, th.Tensor))
+
+
+@dataclass(repr=False)
+class PreparedBatch:
+    """A batch drawn ahead of its update, and what draws it again after a load (see the module docstring)."""
+
+    batch_size: int
+    generator_state: tuple[Any, ...]
+    """``np.random.get_state()`` before the draw."""
+    counters: tuple[Any, ...]
+    """:func:`buffer_counters` of the replay buffer at the draw."""
+    batch: Any = None
+    """The batch on the device (``None`` once pickled: :meth:`ReplayPrefetcher.restore` makes it again)."""
+    ready: Any = None
+    """CUDA event recorded on the side stream after the batch's copies (``None`` on the CPU)."""
+    source: tuple[Any, ...] = ()
+    """Weak references to the buffer and the ``VecNormalize`` env it was drawn with, and its device."""
+
+    def drawn_from(self, buffer: ReplayBuffer, batch_size: int, env: VecNormalize | None) -> bool:
+        """Whether this batch is one of ``buffer.sample(batch_size, env)`` in this process, since its last reset
+        (``FrameStackReplayBuffer.resets``)."""
+        if self.batch is None or not self.source or batch_size != self.batch_size:
+            return False
+        if buffer_counters(buffer)[-1] != self.counters[-1]:
+            return False
+        buffer_ref, env_ref, device = self.source
+        same_env = env is None if env_ref is None else env_ref() is env
+        return buffer_ref() is buffer and same_env and device == buffer.device
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"batch_size": self.batch_size, "generator_state": self.generator_state, "counters": self.counters}
+
+    def __repr__(self) -> str:  # short: SB3's save writes str() of the saved objects' attributes into its JSON
+        made = "made" if self.batch is not None else "to draw again"
+        return f"PreparedBatch(batch_size={self.batch_size}, counters={self.counters}, {made})"
+
+
 class ReplayPrefetcher:
     """
     Where ``DrQv2.train`` takes its replay batches from (see the module docstring): the batches of
-    ``replay_buffer.sample``, drawn in the same order, gathered one batch ahead in a worker thread, through pinned
-    host buffers and non-blocking copies on CUDA.
+    ``replay_buffer.sample``, each drawn while the update before it runs (also across ``train`` calls), in a worker
+    thread on CUDA with pinned host buffers and a side stream.
 
-    :param enabled: ``None`` (default): on CUDA only; ``True``: on any device; ``False``: never (today's loop,
-        ``replay_buffer.sample`` per update)
+    :param enabled: ``True`` (default): draw each batch one update ahead; ``False``: call ``replay_buffer.sample``
+        when each update is due (it sees every transition added before it; nothing runs concurrently)
+    :param worker: where batches are made: ``None`` (default) in a worker thread on CUDA and on the training thread
+        on the CPU (see the module docstring); ``True`` in the worker thread; ``False`` on the training thread
     """
 
-    def __init__(self, enabled: bool | None = None) -> None:
+    def __init__(self, enabled: bool = True, worker: bool | None = None) -> None:
         self.enabled = enabled
+        self.worker = worker
         self._executor: ThreadPoolExecutor | None = None
         self._staging: HostStaging | None = None
-        self._staging_device: th.device | None = None
+        self._stream: Any = None  # torch.cuda.Stream of the batches (CUDA only)
+        self._device: th.device | None = None
+        self._prepared: PreparedBatch | None = None
 
-    def active(self, replay_buffer: ReplayBuffer, env: VecNormalize | None = None) -> bool:
-        """
-        :param replay_buffer: the model's replay buffer
-        :param env: the ``VecNormalize`` env the samples are normalized with, if any
-        :return: whether :meth:`batches` prefetches (otherwise it calls ``replay_buffer.sample`` per batch)
-        """
-        if not isinstance(replay_buffer, FrameStackReplayBuffer) or env is not None:
-            return False
-        return self.enabled if self.enabled is not None else replay_buffer.device.type == "cuda"
+    def uses_worker(self, device: th.device) -> bool:
+        """:return: whether batches for ``device`` are made in the worker thread"""
+        return self.worker if self.worker is not None else device.type == "cuda"
+
+    @property
+    def prepared(self) -> PreparedBatch | None:
+        """The batch drawn for the next update, if any (drawn during the last update of the last call)."""
+        return self._prepared
 
     def batches(
         self, replay_buffer: ReplayBuffer, gradient_steps: int, batch_size: int, env: VecNormalize | None = None
@@ -267,89 +350,159 @@ class ReplayPrefetcher:
                 for replay_data in batches:
                     ...
 
+        The first is the batch prepared during the last call's last update when it was drawn from this buffer with
+        this batch size and env (else it is drawn now); during each update the next one is drawn, the one after
+        the last kept for the next call.
+
         :param replay_buffer: the replay buffer (not changed until the block ends)
         :param gradient_steps: number of batches
         :param batch_size: transitions per batch
         :param env: ``VecNormalize`` env to normalize the samples with, as in SB3
-        :return: an iterable of ``gradient_steps`` ``ReplayBufferSamples`` on the buffer's device
+        :return: an iterable of ``gradient_steps`` samples of ``replay_buffer`` on its device
         """
-        if not self.active(replay_buffer, env):
+        if not self.enabled:
             return ReplayBatches(replay_buffer.sample(batch_size, env=env) for _ in range(gradient_steps))
-        assert isinstance(replay_buffer, FrameStackReplayBuffer)
-        return ReplayBatches(self._prefetched(replay_buffer, gradient_steps, batch_size))
+        return ReplayBatches(self._ahead(replay_buffer, gradient_steps, batch_size, env))
 
-    def _prefetched(
-        self, buffer: FrameStackReplayBuffer, gradient_steps: int, batch_size: int
-    ) -> Iterator[ReplayBufferSamples]:
+    def _ahead(
+        self, buffer: ReplayBuffer, gradient_steps: int, batch_size: int, env: VecNormalize | None
+    ) -> Iterator[Any]:
         if gradient_steps < 1:
             return
-        indices = [buffer.sample_indices(batch_size) for _ in range(gradient_steps)]  # all draws, in sample()'s order
-        staging = self._staging_on(buffer.device)
-        pending: Future[Any] | None = None
+        self._setup(buffer.device)
+        prepared, self._prepared = self._prepared, None
+        if prepared is None or not prepared.drawn_from(buffer, batch_size, env):
+            prepared = self._prepare(buffer, batch_size, env, reserve=True)
+        upcoming: Future[PreparedBatch] | PreparedBatch | None = None
         try:
-            ready = self._gather(staging, self._claim(staging), buffer, *indices[0])
-            if staging is not None:
-                staging.reserve_like(ready)  # the other set's buffers allocated here, not in the worker
-            for step in range(gradient_steps):
-                batch = ready if staging is None else staging.to_device(ready)  # records the set's event
-                if step + 1 < gradient_steps:
-                    slot = self._claim(staging)  # the other set: its last copy out was recorded a batch ago
-                    pending = self._worker().submit(self._gather, staging, slot, buffer, *indices[step + 1])
+            for _ in range(gradient_steps):
+                batch = self._hand_over(prepared)
+                if self.uses_worker(buffer.device):
+                    upcoming = self._worker().submit(self._prepare, buffer, batch_size, env)
+                else:
+                    upcoming = self._prepare(buffer, batch_size, env)  # before the update: the same batches
                 yield batch
-                if pending is not None:
-                    ready, pending = pending.result(), None  # a worker's exception is raised here
+                prepared = upcoming.result() if isinstance(upcoming, Future) else upcoming  # a worker's error here
+                upcoming = None
+            self._prepared = prepared
         finally:
-            if pending is not None:  # stopped early: the worker must not read the buffer after train() returns
-                wait_futures([pending])
+            if isinstance(upcoming, Future):  # stopped early: the worker must not read the buffer after train()
+                wait_futures([upcoming])
 
-    @staticmethod
-    def _claim(staging: HostStaging | None) -> int | None:
-        return None if staging is None else staging.claim()
+    def _prepare(
+        self, buffer: ReplayBuffer, batch_size: int, env: VecNormalize | None, reserve: bool = False
+    ) -> PreparedBatch:
+        """
+        Draw and make a batch (on either thread; on the side stream on CUDA).
 
-    @staticmethod
-    def _gather(
-        staging: HostStaging | None,
-        slot: int | None,
-        buffer: FrameStackReplayBuffer,
-        batch_inds: np.ndarray,
-        env_indices: np.ndarray,
-    ) -> Any:
-        """Runs on either thread. :return: the batch (no staging), or ``slot``, the staging buffers holding it"""
-        if staging is None or slot is None:
-            return buffer._get_samples(batch_inds, env_indices=env_indices)
-        staging.gather(slot, buffer, batch_inds, env_indices)
-        return slot
+        :param reserve: allocate the other staging sets now (on the training thread, not in the worker)
+        """
+        generator_state, counters = np.random.get_state(), buffer_counters(buffer)
+        staging = self._staging if isinstance(buffer, FrameStackReplayBuffer) and env is None else None
+        ready = None
+        with self._on_stream():
+            if staging is None:
+                batch = buffer.sample(batch_size, env=env)
+            else:
+                assert isinstance(buffer, FrameStackReplayBuffer)
+                batch_inds, env_indices = buffer.sample_indices(batch_size)  # sample()'s draws
+                slot = staging.claim()
+                staging.gather(slot, buffer, batch_inds, env_indices)
+                if reserve:
+                    staging.reserve_like(slot)
+                batch = staging.to_device(slot)
+            if self._stream is not None:
+                ready = th.cuda.Event()
+                ready.record(self._stream)
+        source = (weakref.ref(buffer), None if env is None else weakref.ref(env), buffer.device)
+        return PreparedBatch(batch_size, generator_state, counters, batch, ready, source)
 
-    def _staging_on(self, device: th.device) -> HostStaging | None:
-        if self._staging_device != device:
-            self._staging, self._staging_device = staging_for(device), device
-        return self._staging
+    def _hand_over(self, prepared: PreparedBatch) -> Any:
+        """The batch, usable on the current stream: it waits for the side stream's copies, which cannot reuse its
+        memory before the current stream is done with it."""
+        if prepared.ready is not None:
+            stream = th.cuda.current_stream(self._device)
+            stream.wait_event(prepared.ready)
+            for tensor in _tensors(prepared.batch):
+                tensor.record_stream(stream)
+        return prepared.batch
+
+    def _on_stream(self) -> contextlib.AbstractContextManager[Any]:
+        if self._stream is None:
+            return contextlib.nullcontext()
+        stack = contextlib.ExitStack()
+        stack.enter_context(th.cuda.device(self._device))
+        stack.enter_context(th.cuda.stream(self._stream))
+        return stack
+
+    def _setup(self, device: th.device) -> None:
+        """Staging buffers and side stream for ``device`` (on the training thread)."""
+        if device.type == "cuda" and device.index is None:
+            device = th.device("cuda", th.cuda.current_device())
+        if self._device != device:
+            self._staging, self._device = staging_for(device), device
+            self._stream = th.cuda.Stream(device) if device.type == "cuda" else None
 
     def _worker(self) -> ThreadPoolExecutor:
         if self._executor is None:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=WORKER_NAME)
         return self._executor
 
+    def restore(self, replay_buffer: ReplayBuffer, env: VecNormalize | None = None) -> bool:
+        """
+        Make again the batch that was prepared when the prefetcher was pickled (``DrQv2.learn`` calls it first), if
+        the replay buffer's counters are those of its draw: drawn from NumPy's generator state of then, which must
+        come back to its state now. Otherwise the draw is dropped.
+
+        :param replay_buffer: the (restored) replay buffer
+        :param env: ``VecNormalize`` env to normalize the samples with, as in SB3
+        :return: whether a batch was made again
+        """
+        prepared = self._prepared
+        if prepared is None or prepared.batch is not None:
+            return False
+        self._prepared = None
+        if not self.enabled or buffer_counters(replay_buffer) != prepared.counters:
+            return False
+        now = np.random.get_state()
+        np.random.set_state(prepared.generator_state)
+        try:
+            self._setup(replay_buffer.device)
+            again = self._prepare(replay_buffer, prepared.batch_size, env, reserve=True)
+        finally:
+            drawn_to = np.random.get_state()
+            np.random.set_state(now)
+        if not _same_generator_state(drawn_to, now):
+            return False  # not the draw it was (another buffer with the same counters)
+        self._prepared = again
+        return True
+
+    def discard(self) -> None:
+        """Drop the batch prepared for the next update (``DrQv2.reset_from_scratch``: the buffer was emptied)."""
+        self._prepared = None
+
     def close(self) -> None:
         """End the worker thread and free the staging buffers (a later call makes new ones)."""
         if self._executor is not None:
             self._executor.shutdown(wait=True)
-        self._executor, self._staging, self._staging_device = None, None, None
+        self._executor, self._staging, self._stream, self._device = None, None, None, None
 
     def __getstate__(self) -> dict[str, Any]:
-        return {"enabled": self.enabled}  # no thread, no buffers
+        return {"enabled": self.enabled, "worker": self.worker, "prepared": self._prepared}  # no thread, no buffers
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(**state)  # type: ignore[misc]
+        self.__init__(state["enabled"], state.get("worker"))  # type: ignore[misc]
+        prepared = state.get("prepared")
+        self._prepared = prepared if isinstance(prepared, PreparedBatch) else None
 
 
 class ReplayBatches:
     """The batches of one ``train`` call (:meth:`ReplayPrefetcher.batches`): an iterator and a context manager."""
 
-    def __init__(self, batches: Iterator[ReplayBufferSamples]) -> None:
+    def __init__(self, batches: Iterator[Any]) -> None:
         self._batches = batches
 
-    def __iter__(self) -> Iterator[ReplayBufferSamples]:
+    def __iter__(self) -> Iterator[Any]:
         return self._batches
 
     def __enter__(self) -> Self:
