@@ -39,7 +39,9 @@ _RECORD, _PROBE = RecordOptions(), ProbeSettings()
 class RecordingFlags:
     """The flags of recording rollouts (``run``, ``sweep``, ``record``): :class:`RecordOptions`."""
 
-    env: str | None = setting(_RECORD.env, help="dm_control task, e.g. walker-walk; default: the checkpoint's", unit=None)
+    env: str | None = setting(
+        _RECORD.env, help="dm_control task, e.g. walker-walk; default: the checkpoint's", unit=None
+    )
     episodes: int = setting(_RECORD.episodes, help="episodes to record", unit="episodes", minimum=1)
     max_steps: int | None = setting(
         _RECORD.max_steps,
@@ -129,15 +131,9 @@ class SweepFlags:
     task: str | None = setting(help="the task folder, e.g. walker-walk", unit=None, required=True)
     variant: str = setting("drqv2", help="the variant folder", unit=None)
     out: str | None = setting(help=f"output folder; default: <sweep>/{DEFAULT_OUT}", unit=None)
-    rollouts: str | None = setting(
-        help="rollouts .npz to probe on; default: record them from the best seed", unit=None
-    )
-    success_return: float = setting(
-        PAPER.success_return, help="well-performing: final return >= this", unit=None
-    )
-    failure_return: float = setting(
-        PAPER.failure_return, help="poorly performing: final return < this", unit=None
-    )
+    rollouts: str | None = setting(help="rollouts .npz to probe on; default: record them from the best seed", unit=None)
+    success_return: float = setting(PAPER.success_return, help="well-performing: final return >= this", unit=None)
+    failure_return: float = setting(PAPER.failure_return, help="poorly performing: final return < this", unit=None)
     overwrite: bool = setting(False, help="replace a previous run's outputs in `out`", unit=None)
     jobs: int = setting(
         1, help="checkpoints probed at once (threads); --memory-gb bounds them all together", unit=None, minimum=1
@@ -179,9 +175,9 @@ class RecordFlags:
 
 COMMANDS: dict[str, tuple[type, ...]] = {
     "run": (RunFlags, ProbeFlags, RecordingFlags),
+    "record": (RecordFlags, RecordingFlags),
     "sweep": (SweepFlags, ProbeFlags, RecordingFlags),
     "film": (FilmFlags,),
-    "record": (RecordFlags, RecordingFlags),
 }
 """Each sub-command's flags, by the dataclasses that declare them (its parser, its help, its range checks and its
 table in ``docs/probe.md`` are generated from them)."""
@@ -193,30 +189,38 @@ RECORDING_TITLE = "recording (settings left out come from the checkpoint, else m
 DESCRIPTIONS = {
     "run": (
         "probe checkpoints (the default)",
-        "Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json, "
-        "mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only "
-        "when the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and "
-        "saved to <out>/rollouts.npz.",
+        (
+            "Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json, "
+            "mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only "
+            "when the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and "
+            "saved to <out>/rollouts.npz."
+        ),
     ),
     "sweep": (
         "Figure 2 and Tables 1-6 of a sweep's task and variant",
-        "Split the finished trials of one task and variant by final return (well-performing >= --success-return, "
-        "poorly performing < --failure-return), record rollouts once from the best well-performing seed (or read "
-        f"--rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with --snapshots) and write "
-        "figure2.png (rows well/poor, columns the reward inputs torso velocity, torso orientation and torso height, "
-        "then state columns), tables_1_6.csv/.md (std across agents at four training stages), probe.csv and "
-        "summary.json.",
+        (
+            "Split the finished trials of one task and variant by final return (well-performing >= --success-return, "
+            "poorly performing < --failure-return), record rollouts once from the best well-performing seed (or read "
+            f"--rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with --snapshots) and write "
+            "figure2.png (rows well/poor, columns the reward inputs torso velocity, torso orientation and torso "
+            "height, then state columns), tables_1_6.csv/.md (std across agents at four training stages), probe.csv "
+            "and summary.json."
+        ),
     ),
     "film": (
         "frames of an episode and the actions taken (Figures 6-7)",
-        "Run each agent from a reset (on its own observations) and render a larger view after each agent step: "
-        "filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values "
-        "plotted under each strip), one animated GIF per row and actions.csv, into --out.",
+        (
+            "Run each agent from a reset (on its own observations) and render a larger view after each agent step: "
+            "filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values "
+            "plotted under each strip), one animated GIF per row and actions.csv, into --out."
+        ),
     ),
     "record": (
         "record rollouts of an agent",
-        "Run an agent in its DeepMind Control pixel env and save observations, the named true-state components, "
-        "actions, rewards and episode ids to a compressed .npz.",
+        (
+            "Run an agent in its DeepMind Control pixel env and save observations, the named true-state components, "
+            "actions, rewards and episode ids to a compressed .npz."
+        ),
     ),
 }
 """Each sub-command's help line and description."""
@@ -251,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
         f"  {prog} record good.zip --env walker-walk --episodes 20 --out walker.npz",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = parser.add_subparsers(dest="command", metavar="{" + ",".join(("run", "record", "sweep", "film")) + "}")
+    sub = parser.add_subparsers(dest="command", metavar="{" + ",".join(COMMANDS) + "}")
     for command, declarations in COMMANDS.items():
         help_line, description = DESCRIPTIONS[command]
         subparser = sub.add_parser(command, help=help_line, description=description)
@@ -328,9 +332,7 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 def _run(args: argparse.Namespace, command: list[str]) -> None:
     """Run the sub-command of ``args`` (``command``: the command line, recorded in the summary)."""
     if args.command == "record":
-        record_to_file(
-            args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, args.progress
-        )
+        record_to_file(args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, args.progress)
     elif args.command == "film":
         film_to_folder(
             args.checkpoints,

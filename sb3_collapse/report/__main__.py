@@ -39,18 +39,12 @@ class ReportFlags:
         flag="sweep",
     )
     out: str | None = setting(help=f"output folder; default: <sweep>/{REPORT_FOLDER}", unit=None)
-    reference: bool = setting(
-        False, help="overlay the published DrQ-v2 curves (dashed mean, hatched band)", unit=None
-    )
+    reference: bool = setting(False, help="overlay the published DrQ-v2 curves (dashed mean, hatched band)", unit=None)
     include_unfinished: bool = setting(
         False, help="draw the partial curves of unfinished trials, dotted (never used in the table)", unit=None
     )
-    tasks: tuple[str, ...] | None = setting(
-        help="only these task folders; default: all", unit=None, nargs="+"
-    )
-    variants: tuple[str, ...] | None = setting(
-        help="only these variant folders; default: all", unit=None, nargs="+"
-    )
+    tasks: tuple[str, ...] | None = setting(help="only these task folders; default: all", unit=None, nargs="+")
+    variants: tuple[str, ...] | None = setting(help="only these variant folders; default: all", unit=None, nargs="+")
     collapse_tag: str = setting(
         _REPORT.collapse_tag,
         help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse'",
@@ -108,12 +102,8 @@ class ReportFlags:
         minimum=0,
         zero_means="all",
     )
-    device: str = setting(
-        _FIXED.device, help="Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda", unit=None
-    )
-    overwrite: bool = setting(
-        False, help="replace the files of a previous report in the output folder", unit=None
-    )
+    device: str = setting(_FIXED.device, help="Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda", unit=None)
+    overwrite: bool = setting(False, help="replace the files of a previous report in the output folder", unit=None)
     progress: bool = setting(True, help="show a progress bar", unit=None)
 
 

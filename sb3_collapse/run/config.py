@@ -67,7 +67,19 @@ TRAINING, RUN = "training", "run"
 """Which command lines have a setting's flag (:func:`setting`'s ``cli``): ``TRAINING``, the train CLI and the sweep
 (the same for every run of a sweep); ``RUN``, the train CLI only (the sweep sets it per trial)."""
 
-UNITS = ("frames", "agent steps", "transitions", "pixels", "episodes", "updates", "observations", "evaluations", "GB", "percent", None)
+UNITS = (
+    "frames",
+    "agent steps",
+    "transitions",
+    "pixels",
+    "episodes",
+    "updates",
+    "observations",
+    "evaluations",
+    "GB",
+    "percent",
+    None,
+)
 """The units a setting may count in (``None``: not a count)."""
 
 
