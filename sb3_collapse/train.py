@@ -24,7 +24,7 @@ from sb3_collapse.run.checkpoints import CheckpointError
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import check_run_folder
 from sb3_collapse.run.runner import train
-from sb3_collapse.run.settings import add_run_arguments, show_settings, training_arguments
+from sb3_collapse.run.settings import add_run_arguments, prog_name, show_settings, training_arguments
 from sb3_collapse.run.signals import TrainingInterrupted
 
 CLI_ONLY_FLAGS = ("--show-settings",)
@@ -34,7 +34,7 @@ CLI_ONLY_FLAGS = ("--show-settings",)
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python -m sb3_collapse.train``, one flag per :class:`TrainConfig` field."""
     parser = argparse.ArgumentParser(
-        prog="python -m sb3_collapse.train",
+        prog=prog_name("sb3_collapse.train"),
         description="Train DrQ-v2 from pixels on a DeepMind Control task, with periodic evaluation, "
         "TensorBoard logs and a final checkpoint. Frames = agent steps x action repeat. The DrQ-v2 settings "
         "default to the task's preset (DrQ-v2's published per-task config: sb3_collapse.presets.preset(TASK), "

@@ -19,6 +19,7 @@ import contextlib
 import signal
 import sys
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
 from sb3_collapse.errors import ProbeError, cli_message, report_unwritable_outputs
@@ -28,75 +29,201 @@ from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_t
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
 from sb3_collapse.probe.sweep import DEFAULT_OUT, probe_sweep
 from sb3_collapse.protocol import EXIT_INTERRUPTED, SNAPSHOTS_DIR
+from sb3_collapse.run.config import setting
+from sb3_collapse.run.settings import add_setting_arguments, check_arguments, prog_name
 
-PROG = "python -m sb3_collapse.probe"
-SUBCOMMANDS = ("run", "record", "sweep", "film")
+_RECORD, _PROBE = RecordOptions(), ProbeSettings()
 
 
-def _recording_arguments(parser: argparse.ArgumentParser, defaults: RecordOptions) -> None:
-    group = parser.add_argument_group("recording (settings left out come from the checkpoint, else make_dmc_env's)")
-    group.add_argument(
-        "--env", default=defaults.env, help="dm_control task, e.g. walker-walk (default: the checkpoint's)"
+@dataclass
+class RecordingFlags:
+    """The flags of recording rollouts (``run``, ``sweep``, ``record``): :class:`RecordOptions`."""
+
+    env: str | None = setting(
+        _RECORD.env, help="dm_control task, e.g. walker-walk; default: the checkpoint's", unit=None
     )
-    group.add_argument("--episodes", type=int, default=defaults.episodes, help="episodes to record")
-    group.add_argument(
-        "--max-steps",
-        type=int,
-        default=defaults.max_steps,
-        help="cap on agent steps per episode (default: the task's time limit, 500 agent steps for walker at action "
-             "repeat 2)",
+    episodes: int = setting(_RECORD.episodes, help="episodes to record", unit="episodes", minimum=1)
+    max_steps: int | None = setting(
+        _RECORD.max_steps,
+        help="cap on agent steps per episode; default: the task's time limit (500 agent steps for walker at action "
+        "repeat 2)",
+        unit="agent steps",
+        minimum=1,
     )
-    group.add_argument(
-        "--seed", type=int, default=defaults.seed, help="seed of the env's initial states and the action noise"
-    )
-    group.add_argument(
-        "--stochastic",
-        action="store_true",
+    seed: int = setting(_RECORD.seed, help="seed of the env's initial states and the action noise", unit=None)
+    stochastic: bool = setting(
+        not _RECORD.deterministic,
         help="sample the policy's own exploration instead of its deterministic action",
+        unit=None,
     )
-    group.add_argument(
-        "--noise-std",
-        type=float,
-        default=defaults.noise_std,
-        help="std of Gaussian noise added to each action (actions in [-1, 1])",
+    noise_std: float = setting(
+        _RECORD.noise_std, help="std of Gaussian noise added to each action (actions in [-1, 1])", unit=None, minimum=0
     )
-    group.add_argument("--action-repeat", type=int, help="frames per agent step")
-    group.add_argument("--frame-stack", type=int, help="stacked RGB frames per observation")
-    group.add_argument("--size", type=int, help="image height and width, in pixels")
-    group.add_argument("--camera-id", type=int, help="camera of the renders")
+    action_repeat: int | None = setting(_RECORD.action_repeat, help="frames per agent step", unit="frames", minimum=1)
+    frame_stack: int | None = setting(
+        _RECORD.frame_stack, help="stacked RGB frames per observation", unit=None, minimum=1
+    )
+    size: int | None = setting(_RECORD.size, help="image height and width", unit="pixels", minimum=1)
+    camera_id: int | None = setting(_RECORD.camera_id, help="camera of the renders", unit=None)
 
 
-def _probe_arguments(parser: argparse.ArgumentParser, settings: ProbeSettings) -> None:
-    parser.add_argument(
-        "--layers", nargs="+", help=f"layers to probe (default: those of {' '.join(PROBE_LAYERS)} the model has)"
+@dataclass
+class ProbeFlags:
+    """The flags of probing (``run``, ``sweep``): :class:`ProbeSettings`."""
+
+    layers: tuple[str, ...] | None = setting(
+        _PROBE.layers,
+        help=f"layers to probe; default: those of {' '.join(PROBE_LAYERS)} the model has",
+        unit=None,
+        choices=PROBE_LAYERS,
+        nargs="+",
+        metavar="LAYER",
     )
-    parser.add_argument(
-        "--max-tau", type=int, default=settings.max_tau, help="largest sparsity; every tau in 1..max-tau is validated"
+    max_tau: int = setting(
+        _PROBE.max_tau, help="largest sparsity; every tau in 1..--max-tau is validated", unit=None, minimum=1
     )
-    parser.add_argument(
-        "--split",
-        type=float,
+    fractions: tuple[float, float, float] = setting(
+        tuple(_PROBE.fractions),
+        help="fractions of the episodes for training, validation and test, summing to 1",
+        unit=None,
+        flag="--split",
         nargs=3,
-        default=list(settings.fractions),
         metavar=("TRAIN", "VAL", "TEST"),
-        help="fractions of the episodes",
+        above=0,
+        maximum=1,
     )
-    parser.add_argument("--split-seed", type=int, default=settings.split_seed, help="seed of the episode shuffle")
-    parser.add_argument("--batch-size", type=int, default=settings.batch_size, help="observations per forward pass")
-    parser.add_argument(
-        "--memory-gb",
-        type=float,
-        default=settings.memory_gb,
+    split_seed: int = setting(_PROBE.split_seed, help="seed of the episode shuffle", unit=None)
+    batch_size: int = setting(_PROBE.batch_size, help="observations per forward pass", unit="observations", minimum=1)
+    memory_gb: float = setting(
+        _PROBE.memory_gb,
         help="activations held at once, in GB; layers share a forward pass while they fit",
+        unit="GB",
+        above=0,
     )
-    parser.add_argument(
-        "--min-std",
-        type=float,
-        default=settings.min_std,
-        help="feature columns of a smaller train std are dropped as constant",
+    min_std: float = setting(
+        _PROBE.min_std, help="feature columns of a smaller train std are dropped as constant", unit=None, minimum=0
     )
-    parser.add_argument("--device", default=settings.device, help="auto (CUDA when available), cpu, cuda, ...")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    device: str = setting(_PROBE.device, help="auto (CUDA when available), cpu, cuda, ...", unit=None)
+    progress: bool = setting(_PROBE.progress, help="show the progress bars", unit=None)
+
+
+@dataclass
+class RunFlags:
+    """The flags of ``run``, besides :class:`ProbeFlags` and :class:`RecordingFlags`."""
+
+    checkpoints: tuple[str, ...] | None = setting(
+        help="SB3 zips of DrQv2, TD3, DDPG or SAC", unit=None, flag="checkpoints", nargs="+"
+    )
+    rollouts: str | None = setting(
+        help="rollouts .npz from `record`; default: record them from the first checkpoint", unit=None
+    )
+    out: str = setting("probe", help="output folder", unit=None)
+    overwrite: bool = setting(False, help="replace a previous run's outputs in `out`", unit=None)
+
+
+@dataclass
+class SweepFlags:
+    """The flags of ``sweep``, besides :class:`ProbeFlags` and :class:`RecordingFlags`."""
+
+    sweep: str | None = setting(
+        help="the sweep folder (--out of python -m sb3_collapse.sweep)", unit=None, flag="sweep"
+    )
+    task: str | None = setting(help="the task folder, e.g. walker-walk", unit=None, required=True)
+    variant: str = setting("drqv2", help="the variant folder", unit=None)
+    out: str | None = setting(help=f"output folder; default: <sweep>/{DEFAULT_OUT}", unit=None)
+    rollouts: str | None = setting(help="rollouts .npz to probe on; default: record them from the best seed", unit=None)
+    success_return: float = setting(PAPER.success_return, help="well-performing: final return >= this", unit=None)
+    failure_return: float = setting(PAPER.failure_return, help="poorly performing: final return < this", unit=None)
+    overwrite: bool = setting(False, help="replace a previous run's outputs in `out`", unit=None)
+    jobs: int = setting(
+        1, help="checkpoints probed at once (threads); --memory-gb bounds them all together", unit=None, minimum=1
+    )
+
+
+@dataclass
+class FilmFlags:
+    """The flags of ``film``."""
+
+    checkpoints: tuple[str, ...] | None = setting(
+        help="SB3 zips (full models or snapshots)", unit=None, flag="checkpoints", nargs="+"
+    )
+    out: str = setting("film", help="output folder", unit=None)
+    frames: int = setting(FILM_FRAMES, help="environment frames per film", unit="frames", minimum=1)
+    size: int = setting(FILM_SIZE, help="height and width of the film's renders", unit="pixels", minimum=16)
+    every_frames: int = setting(
+        STRIP_EVERY_FRAMES, help="frames between two pictures of the strip", unit="frames", minimum=1
+    )
+    seeds: tuple[int, ...] = setting((0,), help="episode seeds (one row each)", unit=None, nargs="+")
+    env: str | None = setting(help="dm_control task, when a checkpoint does not say", unit=None)
+    device: str = setting("auto", help="auto, cpu, cuda, ...", unit=None)
+    overwrite: bool = setting(False, help="replace a previous film in `out`", unit=None)
+    progress: bool = setting(True, help="show the progress bar", unit=None)
+
+
+@dataclass
+class RecordFlags:
+    """The flags of ``record``, besides :class:`RecordingFlags`."""
+
+    checkpoint: str | None = setting(
+        help="SB3 zip of the agent (usually a well-performing one)", unit=None, flag="checkpoint"
+    )
+    out: str = setting("rollouts.npz", help="the .npz to write", unit=None)
+    overwrite: bool = setting(False, help="replace an existing file", unit=None)
+    device: str = setting("auto", help="auto, cpu, cuda, ...", unit=None)
+    progress: bool = setting(True, help="show the progress bar", unit=None)
+
+
+COMMANDS: dict[str, tuple[type, ...]] = {
+    "run": (RunFlags, ProbeFlags, RecordingFlags),
+    "record": (RecordFlags, RecordingFlags),
+    "sweep": (SweepFlags, ProbeFlags, RecordingFlags),
+    "film": (FilmFlags,),
+}
+"""Each sub-command's flags, by the dataclasses that declare them (its parser, its help, its range checks and its
+table in ``docs/probe.md`` are generated from them)."""
+
+SUBCOMMANDS = tuple(COMMANDS)
+
+RECORDING_TITLE = "recording (settings left out come from the checkpoint, else make_dmc_env's)"
+
+DESCRIPTIONS = {
+    "run": (
+        "probe checkpoints (the default)",
+        (
+            "Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json, "
+            "mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only "
+            "when the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and "
+            "saved to <out>/rollouts.npz."
+        ),
+    ),
+    "sweep": (
+        "Figure 2 and Tables 1-6 of a sweep's task and variant",
+        (
+            "Split the finished trials of one task and variant by final return (well-performing >= --success-return, "
+            "poorly performing < --failure-return), record rollouts once from the best well-performing seed (or read "
+            f"--rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with --snapshots) and write "
+            "figure2.png (rows well/poor, columns the reward inputs torso velocity, torso orientation and torso "
+            "height, then state columns), tables_1_6.csv/.md (std across agents at four training stages), probe.csv "
+            "and summary.json."
+        ),
+    ),
+    "film": (
+        "frames of an episode and the actions taken (Figures 6-7)",
+        (
+            "Run each agent from a reset (on its own observations) and render a larger view after each agent step: "
+            "filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values "
+            "plotted under each strip), one animated GIF per row and actions.csv, into --out."
+        ),
+    ),
+    "record": (
+        "record rollouts of an agent",
+        (
+            "Run an agent in its DeepMind Control pixel env and save observations, the named true-state components, "
+            "actions, rewards and episode ids to a compressed .npz."
+        ),
+    ),
+}
+"""Each sub-command's help line and description."""
 
 
 def _record_options(args: argparse.Namespace) -> RecordOptions:
@@ -115,99 +242,26 @@ def _record_options(args: argparse.Namespace) -> RecordOptions:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line: sub-commands ``run`` (the default) and ``record``."""
+    """The command line: sub-commands ``run`` (the default), ``sweep``, ``film`` and ``record``, their flags
+    generated from :data:`COMMANDS`."""
+    prog = prog_name("sb3_collapse.probe")
     parser = argparse.ArgumentParser(
-        prog=PROG,
+        prog=prog,
         description="Linear probing with a sparsity constraint (OMP) of an actor's layers cnn0..cnn4, mlp0..mlp2 "
         "for the true state of DeepMind Control tasks (Section 4.1 of the action-collapse paper). Without a "
         "sub-command, the arguments are those of `run`.",
-        epilog=f"examples:\n  {PROG} ckpt.zip\n"
-        f"  {PROG} good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/\n"
-        f"  {PROG} record good.zip --env walker-walk --episodes 20 --out walker.npz",
+        epilog=f"examples:\n  {prog} ckpt.zip\n"
+        f"  {prog} good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/\n"
+        f"  {prog} record good.zip --env walker-walk --episodes 20 --out walker.npz",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = parser.add_subparsers(dest="command", metavar="{run,record,sweep,film}")
-    defaults, settings = RecordOptions(), ProbeSettings()
-
-    run = sub.add_parser(
-        "run",
-        help="probe checkpoints (the default)",
-        description="Probe each checkpoint's layers for every state component with OMP; write probe.csv, "
-        "summary.json, mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png "
-        "into --out, only when the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are "
-        "recorded first and saved to <out>/rollouts.npz.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    run.add_argument("checkpoints", nargs="+", help="SB3 zips of DrQv2, TD3, DDPG or SAC")
-    run.add_argument("--rollouts", help="rollouts .npz from `record` (default: record them from the first checkpoint)")
-    run.add_argument("--out", default="probe", help="output folder")
-    run.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
-    _probe_arguments(run, settings)
-    _recording_arguments(run, defaults)
-
-    swp = sub.add_parser(
-        "sweep",
-        help="Figure 2 and Tables 1-6 of a sweep's task and variant",
-        description="Split the finished trials of one task and variant by final return (well-performing >= "
-        "--success-return, poorly performing < --failure-return), record rollouts once from the best well-performing "
-        f"seed (or read --rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with "
-        "--snapshots) and write figure2.png (rows well/poor, columns the reward inputs torso velocity, torso "
-        "orientation and torso height, then state columns), tables_1_6.csv/.md (std across agents at four training "
-        "stages), probe.csv and summary.json.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    swp.add_argument("sweep", help="the sweep folder (--out of python -m sb3_collapse.sweep)")
-    swp.add_argument("--task", required=True, help="the task folder, e.g. walker-walk")
-    swp.add_argument("--variant", default="drqv2", help="the variant folder")
-    swp.add_argument("--out", help=f"output folder (default: <sweep>/{DEFAULT_OUT})")
-    swp.add_argument("--rollouts", help="rollouts .npz to probe on (default: record them from the best seed)")
-    swp.add_argument(
-        "--success-return", type=float, default=PAPER.success_return, help="well-performing: final return >= this"
-    )
-    swp.add_argument(
-        "--failure-return", type=float, default=PAPER.failure_return, help="poorly performing: final return < this"
-    )
-    swp.add_argument("--overwrite", action="store_true", help="replace a previous run's outputs in --out")
-    swp.add_argument(
-        "--jobs", type=int, default=1, help="checkpoints probed at once (threads); --memory-gb bounds them all together"
-    )
-    _probe_arguments(swp, settings)
-    _recording_arguments(swp, defaults)
-
-    flm = sub.add_parser(
-        "film",
-        help="frames of an episode and the actions taken (Figures 6-7)",
-        description="Run each agent from a reset (on its own observations) and render a larger view after each "
-        "agent step: filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the "
-        "action values plotted under each strip), one animated GIF per row and actions.csv, into --out.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    flm.add_argument("checkpoints", nargs="+", help="SB3 zips (full models or snapshots)")
-    flm.add_argument("--out", default="film", help="output folder")
-    flm.add_argument("--frames", type=int, default=FILM_FRAMES, help="environment frames per film")
-    flm.add_argument("--size", type=int, default=FILM_SIZE, help="height and width of the film's renders, in pixels")
-    flm.add_argument(
-        "--every-frames", type=int, default=STRIP_EVERY_FRAMES, help="frames between two pictures of the strip"
-    )
-    flm.add_argument("--seeds", type=int, nargs="+", default=[0], help="episode seeds (one row each)")
-    flm.add_argument("--env", help="dm_control task, when a checkpoint does not say")
-    flm.add_argument("--device", default="auto", help="auto, cpu, cuda, ...")
-    flm.add_argument("--overwrite", action="store_true", help="replace a previous film in --out")
-    flm.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-
-    rec = sub.add_parser(
-        "record",
-        help="record rollouts of an agent",
-        description="Run an agent in its DeepMind Control pixel env and save observations, the named true-state "
-        "components, actions, rewards and episode ids to a compressed .npz.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    rec.add_argument("checkpoint", help="SB3 zip of the agent (usually a well-performing one)")
-    rec.add_argument("--out", default="rollouts.npz", help="the .npz to write")
-    rec.add_argument("--overwrite", action="store_true", help="replace an existing file")
-    rec.add_argument("--device", default="auto", help="auto, cpu, cuda, ...")
-    rec.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    _recording_arguments(rec, defaults)
+    sub = parser.add_subparsers(dest="command", metavar="{" + ",".join(COMMANDS) + "}")
+    for command, declarations in COMMANDS.items():
+        help_line, description = DESCRIPTIONS[command]
+        subparser = sub.add_parser(command, help=help_line, description=description)
+        for declaration in declarations:
+            group = subparser.add_argument_group(RECORDING_TITLE) if declaration is RecordingFlags else subparser
+            add_setting_arguments(group, declaration=declaration)
     return parser
 
 
@@ -215,13 +269,13 @@ def _settings(args: argparse.Namespace) -> ProbeSettings:
     return ProbeSettings(
         layers=args.layers,
         max_tau=args.max_tau,
-        fractions=tuple(args.split),
+        fractions=tuple(args.fractions),
         split_seed=args.split_seed,
         batch_size=args.batch_size,
         memory_gb=args.memory_gb,
         min_std=args.min_std,
         device=args.device,
-        progress=not args.no_progress,
+        progress=args.progress,
     )
 
 
@@ -240,9 +294,11 @@ def main(argv: list[str] | None = None) -> int:
     if argv[0] not in (*SUBCOMMANDS, "-h", "--help"):
         argv = ["run", *argv]
     args = parser.parse_args(argv)
+    subparsers = next(action for action in parser._actions if isinstance(action, argparse._SubParsersAction))
+    check_arguments(subparsers.choices[args.command], args, *COMMANDS[args.command])
     try:
         with _sigterm_as_interrupt():
-            _run(args, argv)
+            _run(args, [parser.prog, *argv])
     except ProbeError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
@@ -273,12 +329,10 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _run(args: argparse.Namespace, argv: list[str]) -> None:
-    """Run the sub-command of ``args``."""
+def _run(args: argparse.Namespace, command: list[str]) -> None:
+    """Run the sub-command of ``args`` (``command``: the command line, recorded in the summary)."""
     if args.command == "record":
-        record_to_file(
-            args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, not args.no_progress
-        )
+        record_to_file(args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, args.progress)
     elif args.command == "film":
         film_to_folder(
             args.checkpoints,
@@ -286,11 +340,11 @@ def _run(args: argparse.Namespace, argv: list[str]) -> None:
             frames=args.frames,
             size=args.size,
             every_frames=args.every_frames,
-            seeds=args.seeds,
+            seeds=list(args.seeds),
             env=args.env,
             device=args.device,
             overwrite=args.overwrite,
-            progress=not args.no_progress,
+            progress=args.progress,
         )
     elif args.command == "sweep":
         probe_sweep(
@@ -304,7 +358,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> None:
             success_return=args.success_return,
             failure_return=args.failure_return,
             overwrite=args.overwrite,
-            command=[PROG, *argv],
+            command=command,
             jobs=args.jobs,
         )
     else:
@@ -315,7 +369,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> None:
             rollouts_path=args.rollouts,
             record_options=_record_options(args),
             overwrite=args.overwrite,
-            command=[PROG, *argv],
+            command=command,
         )
 
 

@@ -60,6 +60,18 @@ class EpisodeSplit:
     episodes: dict[str, list[int]]
 
 
+def check_fractions(fractions: Sequence[float]) -> None:
+    """
+    :param fractions: train, validation, test fractions of the episodes
+    :raises ProbeError: unless they are 3 positive fractions summing to 1
+    """
+    if len(fractions) != 3 or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
+        raise ProbeError(
+            f"fractions must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}.",
+            parameter="fractions",
+        )
+
+
 def split_by_episode(
     episode_ids: np.ndarray, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int = 0
 ) -> EpisodeSplit:
@@ -73,11 +85,7 @@ def split_by_episode(
     :return: the split
     :raises ProbeError: with fewer than 3 episodes, or fractions that leave a set empty
     """
-    if len(fractions) != 3 or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
-        raise ProbeError(
-            f"fractions must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}.",
-            parameter="fractions",
-        )
+    check_fractions(fractions)
     episodes = np.unique(episode_ids)
     if len(episodes) < MIN_EPISODES:
         raise ProbeError(
@@ -346,6 +354,7 @@ class ProbeSettings:
             raise ProbeError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
         if self.memory_gb <= 0:
             raise ProbeError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
+        check_fractions(self.fractions)
         try:
             check_device(self.device)
         except ValueError as error:

@@ -13,25 +13,122 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 
 from sb3_collapse.errors import ReportError, cli_message, report_unwritable_outputs
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.collapse_figure import is_run_folder
 from sb3_collapse.report.fixed_inputs import FixedInputSettings
 from sb3_collapse.report.headline import BASELINE_VARIANT
-from sb3_collapse.report.loading import DEFAULT_COLLAPSE_TAG
 from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_report
 from sb3_collapse.report.statistics import ReportSettings
 from sb3_collapse.report.tables import grid_markdown
+from sb3_collapse.run.config import setting
+from sb3_collapse.run.settings import add_setting_arguments, check_arguments, prog_name
 
-PROG = "python -m sb3_collapse.report"
+_REPORT, _FIXED = ReportSettings(), FixedInputSettings()
+
+
+@dataclass
+class ReportFlags:
+    """The flags of ``python -m sb3_collapse.report`` (:class:`ReportSettings`, :class:`FixedInputSettings` and
+    :func:`write_report`'s own)."""
+
+    sweep: str | None = setting(
+        help="the sweep folder (--out of python -m sb3_collapse.sweep), or one run folder of the train CLI",
+        unit=None,
+        flag="sweep",
+    )
+    out: str | None = setting(help=f"output folder; default: <sweep>/{REPORT_FOLDER}", unit=None)
+    reference: bool = setting(False, help="overlay the published DrQ-v2 curves (dashed mean, hatched band)", unit=None)
+    include_unfinished: bool = setting(
+        False, help="draw the partial curves of unfinished trials, dotted (never used in the table)", unit=None
+    )
+    tasks: tuple[str, ...] | None = setting(help="only these task folders; default: all", unit=None, nargs="+")
+    variants: tuple[str, ...] | None = setting(help="only these variant folders; default: all", unit=None, nargs="+")
+    collapse_tag: str = setting(
+        _REPORT.collapse_tag,
+        help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse'",
+        unit=None,
+    )
+    collapse_threshold: float = setting(
+        _REPORT.collapse_threshold,
+        help="a seed is stuck when the median of its last `collapse_checks` values is <= this",
+        unit=None,
+    )
+    collapse_checks: int = setting(
+        _REPORT.collapse_checks,
+        help="number of last collapse checks whose median is tested",
+        unit=None,
+        minimum=1,
+    )
+    last_evals: int = setting(
+        _REPORT.last_evals,
+        help="the across-seed std is averaged over this many last evaluations",
+        unit="evaluations",
+        minimum=1,
+    )
+    success_return: float = setting(
+        _REPORT.success_return,
+        help="transplant grid: a seed succeeds when its final return is >= this",
+        unit=None,
+    )
+    percentiles: tuple[float, float] = setting(
+        tuple(_REPORT.percentiles),
+        help="Figure 5's band",
+        unit="percent",
+        nargs=2,
+        metavar=("LOW", "HIGH"),
+        minimum=0,
+        maximum=100,
+    )
+    failure_return: float = setting(
+        _FIXED.failure_return,
+        help="Figures 4, 8, 9: a seed is poorly performing when its final return is < this, well-performing when "
+        ">= `success_return`, middle in between",
+        unit=None,
+    )
+    pick_seed: int = setting(
+        _FIXED.pick_seed, help="Figures 4, 8, 9: seed of the random pick of one agent per class", unit=None
+    )
+    rollouts: str | None = setting(
+        help="Figures 4, 8, 9: rollouts file whose observations every snapshot of the picked agents is run on; "
+        "default: the rollouts of `rollouts_variant`",
+        unit=None,
+    )
+    rollouts_variant: str | None = setting(
+        help="Figures 4, 8, 9: every variant of a task is run on the rollouts that python -m sb3_collapse.probe "
+        "sweep recorded from this variant's best well-performing seed, <sweep>/probe/<task>_<variant>/rollouts.npz; "
+        f"default: {BASELINE_VARIANT}",
+        unit=None,
+    )
+    rollouts_per_variant: bool = setting(
+        False,
+        help="Figures 4, 8, 9: each variant on its own variant's rollouts instead (other observations per variant); "
+        "not allowed with `rollouts_variant`",
+        unit=None,
+    )
+    fixed_samples: int = setting(
+        _FIXED.fixed_samples,
+        help="Figures 4, 8, 9: observations drawn from the rollouts (seeded)",
+        unit="observations",
+        minimum=0,
+        zero_means="all",
+    )
+    device: str = setting(_FIXED.device, help="Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda", unit=None)
+    overwrite: bool = setting(False, help="replace the files of a previous report in the output folder", unit=None)
+    progress: bool = setting(True, help="show a progress bar", unit=None)
+
+
+COMMANDS: dict[str, tuple[type, ...]] = {"": (ReportFlags,)}
+"""The flags, by the dataclass that declares them (the parser, the help, the range checks and the table in
+``docs/sweeps.md`` are generated from it)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line."""
-    defaults = ReportSettings()
+    """The command line, its flags generated from :class:`ReportFlags`."""
     parser = argparse.ArgumentParser(
-        prog=PROG,
+        prog=prog_name("sb3_collapse.report"),
         description=(
             "Figure 5 (mean evaluation return and percentile band across seeds, per task and variant), the table "
             "(final return, seeds stuck in action collapse, resets, std over the last evaluations) and, when "
@@ -44,103 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
             "instead, it draws that run's collapse metrics (Figure 4) and its index.html."
         ),
     )
-    parser.add_argument(
-        "sweep", help="the sweep folder (--out of python -m sb3_collapse.sweep), or one run folder of the train CLI"
-    )
-    parser.add_argument("--out", help=f"output folder (default: <sweep>/{REPORT_FOLDER})")
-    parser.add_argument(
-        "--reference", action="store_true", help="overlay the published DrQ-v2 curves (dashed mean, hatched band)"
-    )
-    parser.add_argument(
-        "--include-unfinished",
-        action="store_true",
-        help="draw the partial curves of unfinished trials, dotted (never used in the table)",
-    )
-    parser.add_argument("--tasks", nargs="+", help="only these task folders (default: all)")
-    parser.add_argument("--variants", nargs="+", help="only these variant folders (default: all)")
-    parser.add_argument(
-        "--collapse-tag",
-        default=DEFAULT_COLLAPSE_TAG,
-        help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse' (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--collapse-threshold",
-        type=float,
-        default=defaults.collapse_threshold,
-        help="a seed is stuck when the median of its last --collapse-checks values is <= this (default: %(default)g)",
-    )
-    parser.add_argument(
-        "--collapse-checks",
-        type=int,
-        default=defaults.collapse_checks,
-        help="number of last collapse checks whose median is tested (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--last-evals",
-        type=int,
-        default=defaults.last_evals,
-        help="the across-seed std is averaged over this many last evaluations (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--success-return",
-        type=float,
-        default=defaults.success_return,
-        help="transplant grid: a seed succeeds when its final return is >= this (default: %(default)g)",
-    )
-    parser.add_argument(
-        "--percentiles",
-        type=float,
-        nargs=2,
-        metavar=("LOW", "HIGH"),
-        default=list(defaults.percentiles),
-        help="Figure 5's band, in percent (default: 5 95)",
-    )
-    collapse = FixedInputSettings()
-    parser.add_argument(
-        "--failure-return",
-        type=float,
-        default=collapse.failure_return,
-        help="Figures 4, 8, 9: a seed is poorly performing when its final return is < this, well-performing when "
-        ">= --success-return, middle in between (default: %(default)g)",
-    )
-    parser.add_argument(
-        "--pick-seed",
-        type=int,
-        default=collapse.pick_seed,
-        help="Figures 4, 8, 9: seed of the random pick of one agent per class (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--rollouts",
-        help="Figures 4, 8, 9: rollouts file whose observations every snapshot of the picked agents is run "
-        "on, for the tasks it was recorded on (default: the rollouts of --rollouts-variant)",
-    )
-    sets = parser.add_mutually_exclusive_group()
-    sets.add_argument(
-        "--rollouts-variant",
-        help="Figures 4, 8, 9: every variant of a task is run on the rollouts that python -m sb3_collapse.probe "
-        "sweep recorded from this variant's best well-performing seed, <sweep>/probe/<task>_<variant>/rollouts.npz "
-        f"(default: {collapse.rollouts_variant})",
-    )
-    sets.add_argument(
-        "--rollouts-per-variant",
-        action="store_true",
-        help="Figures 4, 8, 9: each variant on its own variant's rollouts instead (other observations per variant)",
-    )
-    parser.add_argument(
-        "--fixed-samples",
-        type=int,
-        default=collapse.fixed_samples,
-        help="Figures 4, 8, 9: observations drawn from the rollouts (seeded; 0: all) (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--device",
-        default=collapse.device,
-        help="Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--overwrite", action="store_true", help="replace the files of a previous report in the output folder"
-    )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_setting_arguments(parser, declaration=ReportFlags)
     return parser
 
 
@@ -152,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    check_arguments(parser, args, ReportFlags)
+    if args.rollouts_per_variant and args.rollouts_variant is not None:
+        parser.error("argument --rollouts-per-variant: not allowed with argument --rollouts-variant")
     settings = ReportSettings(
         collapse_tag=args.collapse_tag,
         collapse_threshold=args.collapse_threshold,
@@ -186,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             include_unfinished=args.include_unfinished,
             tasks=args.tasks,
             variants=args.variants,
-            progress=not args.no_progress,
+            progress=args.progress,
             overwrite=args.overwrite,
             collapse_settings=collapse,
         )

@@ -67,7 +67,19 @@ TRAINING, RUN = "training", "run"
 """Which command lines have a setting's flag (:func:`setting`'s ``cli``): ``TRAINING``, the train CLI and the sweep
 (the same for every run of a sweep); ``RUN``, the train CLI only (the sweep sets it per trial)."""
 
-UNITS = ("frames", "agent steps", "transitions", "pixels", "episodes", "updates", "observations", None)
+UNITS = (
+    "frames",
+    "agent steps",
+    "transitions",
+    "pixels",
+    "episodes",
+    "updates",
+    "observations",
+    "evaluations",
+    "GB",
+    "percent",
+    None,
+)
 """The units a setting may count in (``None``: not a count)."""
 
 
@@ -80,12 +92,19 @@ def setting(
     cli: str | None = TRAINING,
     flag: str | None = None,
     choices: tuple[str, ...] | None = None,
-    minimum: int | None = None,
+    minimum: float | None = None,
+    maximum: float | None = None,
+    above: float | None = None,
     zero_means: str | None = None,
+    nargs: int | str | None = None,
+    metavar: str | tuple[str, ...] | None = None,
+    required: bool = False,
     default_factory: Any = dataclasses.MISSING,
 ) -> Any:
     """
-    A :class:`TrainConfig` field, declared once: the flags, ``--show-settings`` and ``docs/presets.md`` read it.
+    A setting of a command line, declared once as a dataclass field (:class:`TrainConfig`'s, the probe's and the
+    report's flags): the parser, the help, the range checks, ``--show-settings`` and the docs' tables read it
+    (:mod:`sb3_collapse.run.settings`).
 
     :param default: the default value (``None`` for a preset setting: the task's preset fills it)
     :param help: what the setting is, one sentence; other settings are named in backticks (`` `reset_rule` ``),
@@ -93,18 +112,36 @@ def setting(
     :param unit: what it counts in, one of :data:`UNITS` (``None``: not a count)
     :param preset: whether the task's preset fills it (one of :data:`~sb3_collapse.presets.SETTING_NAMES`)
     :param cli: :data:`TRAINING` (a flag of the train CLI and the sweep), :data:`RUN` (the train CLI only) or
-        ``None`` (no flag)
-    :param flag: the flag, when not ``--<name-with-dashes>`` (``--no-<name>`` for a setting on by default)
-    :param choices: the values it takes, when there are few
-    :param minimum: the smallest integer it takes
+        ``None`` (no flag); the probe's and the report's settings keep the default: a flag
+    :param flag: the flag, when not ``--<name-with-dashes>`` (``--no-<name>`` for a setting on by default); a
+        name without dashes is a positional argument
+    :param choices: the values it takes (each value, with ``nargs``), when there are few
+    :param minimum: the smallest value it takes (an integer for an integer setting)
+    :param maximum: the largest value it takes
+    :param above: a bound its values must exceed
     :param zero_means: what ``0`` means, for a setting with ``minimum=0``
+    :param nargs: how many values the flag takes (``argparse``'s ``nargs``; the bounds hold for each)
+    :param metavar: the names of its values in the help
+    :param required: whether the command line needs it
     :param default_factory: instead of ``default``, for a mutable default
     :return: the dataclass field
     """
     if unit not in UNITS:
         raise ParameterError("unit", f"unit must be one of {UNITS}, got {unit!r}.")
     metadata = dict(
-        help=help, unit=unit, preset=preset, cli=cli, flag=flag, choices=choices, minimum=minimum, zero_means=zero_means
+        help=help,
+        unit=unit,
+        preset=preset,
+        cli=cli,
+        flag=flag,
+        choices=choices,
+        minimum=minimum,
+        maximum=maximum,
+        above=above,
+        zero_means=zero_means,
+        nargs=nargs,
+        metavar=metavar,
+        required=required,
     )
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=metadata)
@@ -465,19 +502,39 @@ class TrainConfig:
         }
 
 
-def _check_declared(field: dataclasses.Field, value: Any) -> None:
-    """Check ``value`` against its field's declared ``choices`` and ``minimum`` (``None`` passes)."""
-    name, choices, minimum = field.name, field.metadata["choices"], field.metadata["minimum"]
+def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str | None:
+    """
+    :param field: a field declared with :func:`setting`
+    :param value: one of its values (``None`` passes)
+    :param integer: whether the field holds integers
+    :return: what is wrong with the value against the field's ``choices`` and bounds (``"must be >= 1, got 0."``),
+        ``None`` when nothing is
+    """
+    metadata = field.metadata
     if value is None:
-        return
-    if choices is not None and value not in choices:
-        raise ParameterError(name, f"{name} must be one of {', '.join(choices)}, got {value!r}.")
-    if minimum is not None:
-        zero = f" (0: {field.metadata['zero_means']})" if field.metadata["zero_means"] else ""
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ParameterError(name, f"{name} must be an integer >= {minimum}{zero}, got {value!r}.")
-        if value < minimum:
-            raise ParameterError(name, f"{name} must be >= {minimum}{zero}, got {value}.")
+        return None
+    if metadata["choices"] is not None and value not in metadata["choices"]:
+        return f"must be one of {', '.join(metadata['choices'])}, got {value!r}."
+    bounds = [(f">= {metadata['minimum']}", metadata["minimum"], lambda v, b: v >= b)]
+    bounds += [(f"<= {metadata['maximum']}", metadata["maximum"], lambda v, b: v <= b)]
+    bounds += [(f"> {metadata['above']}", metadata["above"], lambda v, b: v > b)]
+    zero = f" (0: {metadata['zero_means']})" if metadata["zero_means"] else ""
+    for text, bound, holds in bounds:
+        if bound is None:
+            continue
+        kind = int if integer else (int, float)
+        if isinstance(value, bool) or not isinstance(value, kind):
+            return f"must be {'an integer' if integer else 'a number'} {text}{zero}, got {value!r}."
+        if not holds(value, bound):
+            return f"must be {text}{zero}, got {value}."
+    return None
+
+
+def _check_declared(field: dataclasses.Field, value: Any) -> None:
+    """Check ``value`` against its :class:`TrainConfig` field's declared ``choices`` and bounds."""
+    problem = declared_problem(field, value, integer=True)
+    if problem is not None:
+        raise ParameterError(field.name, f"{field.name} {problem}")
 
 
 def _check_drqv2_only(config: TrainConfig) -> None:

@@ -22,7 +22,7 @@ from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
-from sb3_collapse.run.settings import training_arguments, training_settings
+from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
@@ -55,7 +55,7 @@ DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags and every training flag of train."""
     p = argparse.ArgumentParser(
-        prog="python -m sb3_collapse.sweep",
+        prog=prog_name("sb3_collapse.sweep"),
         description="Run every (task, variant, seed) as an independent DrQ-v2 trial on Ray, each into "
         "<out>/<task>/<variant>/seed_<k> (the run folder of python -m sb3_collapse.train). Each task trains with "
         "its own DrQ-v2 preset (sb3_collapse.presets, docs/presets.md); a DrQ-v2 flag given here overrides it for "

@@ -141,7 +141,7 @@ def test_bad_inputs_exit_with_a_message_and_no_outputs(files, tmp_path, capsys):
         # checkpoints of two image sizes are refused before anything is recorded: nothing is written
         "of shape (9, 40, 40): the probe feeds every checkpoint the same rollouts": [str(files["early"]), str(bigger)],
         "not a rollouts file": [str(files["early"]), "--rollouts", str(folder / "notes.txt")],
-        "--max-tau must be >= 1": [str(files["early"]), "--max-tau", "0"],
+        "--split must be 3 positive fractions summing to 1": [str(files["early"]), "--split", "0.5", "0.5", "0.5"],
     }
     for message, args in cases.items():
         rollouts = [] if "--rollouts" in args else ["--rollouts", str(files["rollouts"])]

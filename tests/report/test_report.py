@@ -312,7 +312,7 @@ def _copy(sweep: FakeSweep, tmp_path):
         ("result_resets", "walker-walk/drqv2/seed_0/result.json: 'resets' must be an integer"),
         ("metrics_number", "walker-walk/drqv2/seed_0/collapse_metrics.csv, line 2: column 'value' is 'x'"),
         ("unknown_task", "--tasks cheetah-run not in"),
-        ("bad_setting", "--collapse-checks must be >= 1"),
+        ("bad_setting", "--collapse-threshold must be a finite number"),
     ],
 )
 def test_cli_errors(fake_sweep, tmp_path, capsys, case, message):
@@ -341,7 +341,7 @@ def test_cli_errors(fake_sweep, tmp_path, capsys, case, message):
     elif case == "unknown_task":
         extra = ["--tasks", "cheetah-run"]
     elif case == "bad_setting":
-        extra = ["--collapse-checks", "0"]
+        extra = ["--collapse-threshold", "nan"]
     assert main([str(root), "--no-progress", *extra]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err

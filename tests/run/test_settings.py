@@ -1,18 +1,29 @@
 """Each training setting is declared once, on its TrainConfig field; the flags, --show-settings and docs/presets.md
 are generated from the declarations."""
 
+import argparse
 import ast
 import dataclasses
+import sys
 from pathlib import Path
 
 import pytest
 
+import sb3_collapse.probe.__main__ as probe_cli
+import sb3_collapse.probe.pipeline as probe_pipeline
+import sb3_collapse.report.__main__ as report_cli
 from sb3_collapse.presets import SETTING_NAMES
+from sb3_collapse.probe import ProbeSettings
+from sb3_collapse.probe.pipeline import RecordOptions
 from sb3_collapse.run.config import RUN, TRAINING, UNITS, TrainConfig, setting
 from sb3_collapse.run.settings import (
+    FLAGS_END,
     MARKDOWN_BEGIN,
     MARKDOWN_END,
+    fields,
+    flag_of,
     main,
+    prog_name,
     setting_flags,
     settings_markdown,
     show_settings,
@@ -112,3 +123,140 @@ def test_no_package_module_imports_the_train_command():
             else:
                 continue
             assert "sb3_collapse.train" not in names, f"{path.relative_to(REPO_ROOT)} imports the train command"
+
+
+# The probe's and the report's flags: declared once with the same setting(), in their __main__ modules.
+
+CLIS = {"sb3_collapse.probe": probe_cli, "sb3_collapse.report": report_cli}
+POSITIONALS = {"run": ["a.zip"], "sweep": ["runs", "--task", "walker-walk"], "film": ["a.zip"], "record": ["a.zip"]}
+
+
+def _subparsers(cli):
+    """Sub-command ("" for none) -> (its parser, the arguments it needs)."""
+    parser = cli.build_parser()
+    if cli is report_cli:
+        return {"": (parser, ["runs"])}
+    (action,) = [action for action in parser._actions if isinstance(action, argparse._SubParsersAction)]
+    return {command: (action.choices[command], POSITIONALS[command]) for command in cli.COMMANDS}
+
+
+@pytest.mark.parametrize("package", CLIS)
+def test_every_probe_and_report_flag_is_declared_with_help_and_unit(package):
+    cli = CLIS[package]
+    for command, (parser, needed) in _subparsers(cli).items():
+        declared = {field.name: field for declaration in cli.COMMANDS[command] for field in fields(declaration)}
+        actions = [action for action in parser._actions if action.dest != "help"]
+        assert {action.dest for action in actions} == set(declared), command
+        for action in actions:
+            field = declared[action.dest]
+            flag = flag_of(field)
+            assert (action.option_strings or [action.dest]) == [flag], (command, flag)
+            assert isinstance(field.metadata["help"], str) and len(field.metadata["help"]) >= 10, flag
+            assert field.metadata["unit"] in UNITS, flag
+        # The parser's defaults are the declarations'.
+        parsed = parser.parse_args(needed)
+        for name, field in declared.items():
+            if flag_of(field).startswith("-") and not field.metadata["required"]:
+                assert getattr(parsed, name) == field.default, (command, name)
+
+
+def test_probe_flags_keep_their_spellings_and_defaults():
+    parser = probe_cli.build_parser()
+    args = parser.parse_args(["run", "a.zip", "b.zip", "--split", "0.5", "0.25", "0.25", "--no-progress"])
+    assert args.checkpoints == ["a.zip", "b.zip"] and args.fractions == [0.5, 0.25, 0.25] and args.progress is False
+    assert probe_cli._settings(args) == ProbeSettings(fractions=(0.5, 0.25, 0.25), progress=False)
+    args = parser.parse_args(["record", "a.zip", "--stochastic", "--noise-std", "0.1"])
+    assert probe_cli._record_options(args) == RecordOptions(deterministic=False, noise_std=0.1)
+    assert parser.parse_args(["sweep", "runs", "--task", "walker-walk"]).jobs == 1
+    assert parser.parse_args(["film", "a.zip", "--seeds", "0", "1"]).seeds == [0, 1]
+    report = report_cli.build_parser().parse_args(["runs", "--percentiles", "10", "90", "--tasks", "walker-walk"])
+    assert report.percentiles == [10.0, 90.0] and report.tasks == ["walker-walk"] and report.progress is True
+
+
+@pytest.mark.parametrize("page", ["probe.md", "sweeps.md"])
+def test_flag_tables_of_the_docs_are_fresh(page, tmp_path):
+    doc = (REPO_ROOT / "docs" / page).read_text()
+    assert doc == with_markdown(doc), (
+        f"docs/{page} is out of date: run python -m sb3_collapse.run.settings --markdown docs/{page}"
+    )
+    package = "sb3_collapse.probe" if page == "probe.md" else "sb3_collapse.report"
+    cli = CLIS[package]
+    for declarations in cli.COMMANDS.values():
+        for field in (field for declaration in declarations for field in fields(declaration)):
+            assert f"| `{flag_of(field)}`" in doc, field.name
+    begin = doc.index("<!-- flags of")
+    region = doc[doc.index("\n", begin) + 1 : doc.index(FLAGS_END)]
+    copy = tmp_path / page
+    copy.write_text(doc.replace(region, ""))
+    assert main(["--markdown", str(copy)]) == 0 and copy.read_text() == doc
+
+
+def _fail(*args, **kwargs):
+    raise AssertionError("work started before the arguments were checked")
+
+
+@pytest.mark.parametrize(
+    "package, argv, flag, problem",
+    [
+        ("sb3_collapse.probe", ["a.zip", "--layers", "mlp9"], "--layers", "invalid choice: 'mlp9'"),
+        ("sb3_collapse.probe", ["a.zip", "--max-tau", "0"], "--max-tau", "must be >= 1, got 0."),
+        ("sb3_collapse.probe", ["a.zip", "--split", "0.5", "0.5", "1.5"], "--split", "must be <= 1, got 1.5."),
+        ("sb3_collapse.probe", ["a.zip", "--memory-gb", "0"], "--memory-gb", "must be > 0, got 0.0."),
+        ("sb3_collapse.probe", ["a.zip", "--noise-std", "-1"], "--noise-std", "must be >= 0, got -1.0."),
+        ("sb3_collapse.probe", ["sweep", "runs", "--task", "t", "--jobs", "0"], "--jobs", "must be >= 1, got 0."),
+        ("sb3_collapse.probe", ["film", "a.zip", "--size", "8"], "--size", "must be >= 16, got 8."),
+        ("sb3_collapse.probe", ["record", "a.zip", "--episodes", "0"], "--episodes", "must be >= 1, got 0."),
+        ("sb3_collapse.report", ["runs", "--collapse-checks", "0"], "--collapse-checks", "must be >= 1, got 0."),
+        ("sb3_collapse.report", ["runs", "--percentiles", "5", "101"], "--percentiles", "must be <= 100, got 101.0."),
+        ("sb3_collapse.report", ["runs", "--fixed-samples", "-1"], "--fixed-samples", "must be >= 0 (0: all), got -1."),
+    ],
+)
+def test_a_bad_value_exits_2_with_one_line_naming_the_flag_before_any_work(
+    package, argv, flag, problem, monkeypatch, capsys
+):
+    cli = CLIS[package]
+    for name in ("probe_to_folder", "probe_sweep", "film_to_folder", "record_to_file", "write_report", "is_run_folder"):
+        if hasattr(cli, name):
+            monkeypatch.setattr(cli, name, _fail)
+    monkeypatch.setattr(sys, "argv", ["/venv/bin/sb3-collapse-" + package.rsplit(".", 1)[1]])
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(argv)
+    assert exit_info.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("sb3-collapse-") and f": error: {flag}" in last.replace("argument ", "") and problem in last
+
+
+def test_split_that_does_not_sum_to_1_is_refused_before_recording(monkeypatch, capsys):
+    monkeypatch.setattr(probe_pipeline, "load_checkpoint", _fail)
+    monkeypatch.setattr(probe_pipeline, "record", _fail)
+    assert probe_cli.main(["a.zip", "--split", "0.5", "0.5", "0.5"]) == 2
+    assert capsys.readouterr().err == (
+        "error: --split must be 3 positive fractions summing to 1 (train validation test), got [0.5, 0.5, 0.5].\n"
+    )
+
+
+@pytest.mark.parametrize(
+    "module", ["sb3_collapse.probe", "sb3_collapse.report", "sb3_collapse.train", "sb3_collapse.sweep"]
+)
+def test_console_scripts_name_themselves(module, monkeypatch):
+    build = {
+        "sb3_collapse.probe": probe_cli.build_parser,
+        "sb3_collapse.report": report_cli.build_parser,
+        "sb3_collapse.train": build_parser,
+        "sb3_collapse.sweep": sweep_parser,
+    }[module]
+    script = "sb3-collapse-" + module.rsplit(".", 1)[1]
+    monkeypatch.setattr(sys, "argv", [f"/venv/bin/{script}", "--help"])
+    assert prog_name(module) == script and build().prog == script
+    assert build().format_usage().startswith(f"usage: {script} ")
+    monkeypatch.setattr(sys, "argv", [f"/src/{module.replace('.', '/')}/__main__.py"])
+    assert build().prog == f"python -m {module}"
+
+
+def test_probe_help_shows_each_default_once_as_typed(capsys):
+    with pytest.raises(SystemExit):
+        probe_cli.main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: 0.6 0.2 0.2)" in text and "[0.6, 0.2, 0.2]" not in text and "(0.6, 0.2, 0.2)" not in text
+    assert text.count("(default: 64)") == 1 and "(default: 64) (default" not in text
+    assert "--no-progress do not show the progress bars" in text
