@@ -126,9 +126,6 @@ def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Pa
 LEGACY_SETTING_NAMES = {"probe_checkpoints": "snapshots", "collapse_probe_batch": "collapse_metrics_batch"}
 """Settings renamed since earlier versions wrote them into a settings file: old name -> current name
 (:func:`read_settings`)."""
-LEGACY_CALLBACK_NAMES = {"ProbeCheckpoints": "Snapshots"}
-"""Resumable callbacks renamed since earlier versions wrote their state into a checkpoint: old class name -> current
-one."""
 
 
 def current_setting_names(settings: Mapping[str, Any]) -> dict[str, Any]:

@@ -288,7 +288,9 @@ def test_drqv2_save_and_load_keep_the_reset_rule(tmp_path):
 
 
 def test_second_sigint_stops_at_once():
-    checkpoints = ResumableCheckpoints("unused", every_frames=0)
+    with pytest.raises(ValueError, match="^every_frames must be >= 0, got -1"):
+        ResumableCheckpoints("unused", every_frames=-1)
+    checkpoints = ResumableCheckpoints("unused", every_frames=0)  # 0: checkpoints only at a stop request
     before = signal.getsignal(signal.SIGINT)
     with stop_signals(checkpoints):
         signal.raise_signal(signal.SIGINT)  # the first asks for a checkpoint and a stop

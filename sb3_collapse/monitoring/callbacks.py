@@ -1,5 +1,7 @@
 """
-Callbacks that watch for action collapse during ``learn()``: collapse metrics to TensorBoard, activations to disk.
+Callbacks that watch for action collapse during ``learn()``: collapse metrics to TensorBoard, activations to disk;
+and the schedule every periodic callback of the package runs on (:class:`FrameScheduleCallback`, with the state it
+carries into checkpoints and ``DrQv2.save``: :class:`ResumableCallback`).
 
 Both run on a schedule of **frames** (agent steps x the environment's action repeat, the unit of the paper) and
 read a metrics batch of observations from the model's replay buffer. They are SB3 ``BaseCallback``s: pass them to
@@ -148,7 +150,7 @@ class MetricsBatchSampler:
 class ResumableCallback(BaseCallback):
     """
     A callback whose state can be saved in a run checkpoint and put back in another process
-    (:mod:`sb3_collapse.run.checkpoints`).
+    (:mod:`sb3_collapse.run.checkpoints`), or saved with ``DrQv2.save``.
 
     :meth:`state_dict` returns the attributes named by :attr:`state_attributes` (deep copies), the state of the
     random generator of its ``sampler``, if it has one, and the model's agent steps when it was taken.
@@ -178,11 +180,16 @@ class ResumableCallback(BaseCallback):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """
-        :param state: a :meth:`state_dict`, taken at the start of the next ``learn()`` instead of a fresh start
+        :param state: a :meth:`state_dict` taken while attached to a model, taken at the start of the next
+            ``learn()`` instead of a fresh start
+        :raises ValueError: for a state that lacks one of its entries (one written by another version)
         """
-        missing = [name for name in self.state_attributes if name not in state]
+        missing = [name for name in (*self.state_attributes, "num_timesteps") if name not in state]
         if missing:
-            raise ValueError(f"{type(self).__name__}: the saved state lacks {', '.join(missing)}.")
+            raise ValueError(
+                f"{type(self).__name__}: the saved state lacks {', '.join(missing)}: it was written by another version "
+                "of sb3-collapse; continue it with that version, or start a new run."
+            )
         self._pending_state = state
 
     def get_config(self) -> dict[str, Any]:
@@ -198,16 +205,14 @@ class ResumableCallback(BaseCallback):
         return config
 
     def on_training_start(self, locals_: dict[str, Any], globals_: dict[str, Any]) -> None:
-        if self._pending_state is not None and self.model.num_timesteps == 0:
-            saved_steps = self._pending_state.get("num_timesteps")  # None in states of earlier versions
-            if saved_steps is None or saved_steps > 0:
-                self._pending_state = None  # learn() restarted the step count: a new run, not a continuation
-        if self._pending_state is None:
+        state, self._pending_state = self._pending_state, None
+        if state is not None and self.model.num_timesteps == 0 and state["num_timesteps"] > 0:
+            state = None  # learn() restarted the step count: a new run, not a continuation
+        if state is None:
             super().on_training_start(locals_, globals_)
             return
         self.locals, self.globals = locals_, globals_
         self.num_timesteps = self.model.num_timesteps
-        state, self._pending_state = self._pending_state, None
         for name in self.state_attributes:
             setattr(self, name, copy.deepcopy(state[name]))
         sampler = getattr(self, "sampler", None)
@@ -217,50 +222,81 @@ class ResumableCallback(BaseCallback):
 
 class FrameScheduleCallback(ResumableCallback):
     """
-    Calls :meth:`_on_check` at the first step where the frame count reaches each multiple of
-    ``check_every_frames`` (frames = agent steps x action repeat, see :func:`frames_of`). A step that crosses
-    several multiples at once (several environments, an action repeat that does not divide the period)
-    gives one check.
+    The schedule of every periodic callback: calls :meth:`_on_check` at the first step where the count reaches each
+    multiple of the period. The count is the frames (agent steps x action repeat, see :func:`frames_of`), or what
+    :meth:`_count` counts instead (:class:`~sb3_collapse.monitoring.redo.PeriodicReDo`: updates). A step that crosses
+    several multiples at once (several environments, an action repeat that does not divide the period) gives one
+    check. The next check and the checks so far are part of the state: a resumed run checks at the same counts.
 
-    :param check_every_frames: frames between two checks
+    With :attr:`check_at_start`, a ``learn()`` that starts at a multiple (frame 0) checks at its start too, and the
+    last step of ``learn()`` is not checked (SB3 calls the callbacks before that step's updates: the model ``learn()``
+    returns is the caller's to check, as :func:`~sb3_collapse.run.runner.train` evaluates the saved model).
+
+    :param check_every_frames: frames between two checks (a subclass may name it otherwise:
+        :attr:`period_parameter`)
     :param verbose: 0 silent, 1 info
     """
 
-    state_attributes = ("next_check_frame", "n_checks")
+    state_attributes = ("next_check", "n_checks")
+    period_parameter = "check_every_frames"
+    """The constructor parameter, and attribute, that holds the period."""
+    min_period = 1
+    """The smallest period allowed (0: no scheduled check, for a callback that also acts on demand)."""
+    check_at_start = False
+    """Check at the start of ``learn()`` (at a multiple of the period), not at its last step."""
 
     def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
         super().__init__(verbose)
-        if check_every_frames < 1:
-            raise ValueError(f"check_every_frames must be >= 1 frame, got {check_every_frames}.")
-        self.check_every_frames = check_every_frames
-        self.next_check_frame = check_every_frames
-        self.action_repeat = 1
+        if check_every_frames < self.min_period:
+            raise ValueError(f"{self.period_parameter} must be >= {self.min_period}, got {check_every_frames}.")
+        setattr(self, self.period_parameter, check_every_frames)
+        self.next_check = 0
+        """The count of the next check (set when ``learn()`` starts)."""
         self.n_checks = 0
         """Checks run so far (all ``learn()`` calls)."""
+        self.action_repeat = 1
+
+    @property
+    def period(self) -> int:
+        """Counts (frames, or updates) between two checks."""
+        return getattr(self, self.period_parameter)
 
     def _init_callback(self) -> None:
         self.action_repeat = action_repeat_of(self.model)
 
     def _on_training_start(self) -> None:
-        self.next_check_frame = self._following_check(self.frames)
+        count = self._count()
+        self.next_check = self._following(count - 1 if self.check_at_start else count)
+        if self.check_at_start:
+            self._check_if_due()
 
-    def _following_check(self, frames: int) -> int:
-        return (frames // self.check_every_frames + 1) * self.check_every_frames
+    def _following(self, count: int) -> int:
+        """The first multiple of the period above ``count``."""
+        return (count // self.period + 1) * self.period if self.period else 0
 
     @property
     def frames(self) -> int:
         """Frames so far."""
         return frames_of(self.model, self.action_repeat)
 
-    def _on_step(self) -> bool:
-        frames = self.frames
-        if frames >= self.next_check_frame:
-            self.next_check_frame = self._following_check(frames)
-            self.n_checks += 1
-            self._on_check(frames)
-        return True
+    def _count(self) -> int:
+        return self.frames
 
-    def _on_check(self, frames: int) -> None:
+    def _on_step(self) -> bool:
+        if self.check_at_start and self.num_timesteps >= getattr(self.model, "_total_timesteps", float("inf")):
+            return True  # the last step of learn(), before its updates
+        return self._check_if_due()
+
+    def _check_if_due(self) -> bool:
+        count = self._count()
+        if not self.period or count < self.next_check:
+            return True
+        self.next_check = self._following(count)
+        self.n_checks += 1
+        return self._on_check(count) is not False
+
+    def _on_check(self, count: int) -> bool | None:
+        """A check at ``count`` (frames, or what :meth:`_count` counts); ``False`` stops ``learn()``."""
         raise NotImplementedError
 
     def _seed(self) -> int | None:
@@ -423,6 +459,7 @@ class ActivationLogger(FrameScheduleCallback):
     """
 
     DEFAULT_LAYERS = ("mlp0", "mlp1", "mlp2", "action")
+    period_parameter = "every_frames"
     state_attributes = (*FrameScheduleCallback.state_attributes, "bytes_written", "stopped")
 
     def __init__(

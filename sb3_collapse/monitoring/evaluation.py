@@ -7,13 +7,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 
-from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback
 from sb3_collapse.protocol import EVAL_FIELDS, append_csv_rows
 
 
-class PeriodicEvaluation(ResumableCallback):
+class PeriodicEvaluation(FrameScheduleCallback):
     """
     Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
     (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done: the scheduled
@@ -22,45 +23,53 @@ class PeriodicEvaluation(ResumableCallback):
 
     Not at the last step of ``learn()`` (the reference does not evaluate there either; there, SB3 calls the callbacks
     before that step's updates). :func:`~sb3_collapse.run.runner.train` evaluates the saved final model after
-    ``learn()`` with
-    :meth:`evaluate_saved_model`: that evaluation is labelled apart (TensorBoard ``eval_saved_model/...``, the result
-    file's ``saved_model_eval``), neither in the CSV nor in :attr:`rows`.
+    ``learn()`` with :meth:`evaluate_saved_model`: that evaluation is labelled apart (TensorBoard
+    ``eval_saved_model/...``, the result file's ``saved_model_eval``), neither in the CSV nor in :attr:`rows`.
+
+    After each evaluation, the scheduled ones and that of the saved model, ``callback_after_eval`` is called (its
+    ``on_step``), as in SB3's ``EvalCallback``: the train CLI's snapshots
+    (:class:`~sb3_collapse.run.snapshots.Snapshots`) are taken so; its ``False`` stops ``learn()``.
 
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations
     :param episodes: episodes per evaluation
     :param csv_path: CSV file with the columns :data:`~sb3_collapse.protocol.EVAL_FIELDS`
+    :param callback_after_eval: callback called after every evaluation (``None``: none)
     """
 
-    state_attributes = ("next_eval_frame", "rows")
+    period_parameter = "every_frames"
+    check_at_start = True
+    state_attributes = (*FrameScheduleCallback.state_attributes, "rows")
 
-    def __init__(self, eval_env: Any, every_frames: int, episodes: int, csv_path: Path) -> None:
-        super().__init__()
+    def __init__(
+        self,
+        eval_env: Any,
+        every_frames: int,
+        episodes: int,
+        csv_path: Path,
+        callback_after_eval: BaseCallback | None = None,
+    ) -> None:
+        super().__init__(every_frames)
         self.eval_env = eval_env
-        self.every_frames = every_frames
         self.episodes = episodes
         self.csv_path = csv_path
+        self.callback_after_eval = callback_after_eval
+        if callback_after_eval is not None:
+            callback_after_eval.parent = self
         self.start_time = time.time()
-        self.next_eval_frame = 0
         self.rows: list[dict[str, float]] = []
 
-    def _frames(self) -> int:
-        return frames_of(self.model)
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        if self.callback_after_eval is not None:
+            self.callback_after_eval.init_callback(self.model)
 
-    def _on_training_start(self) -> None:
-        self.next_eval_frame = self._frames()
-        self._maybe_evaluate()
+    def _on_check(self, count: int) -> bool:
+        self.evaluate()
+        return self._after_eval()
 
-    def _on_step(self) -> bool:
-        if self.model.num_timesteps < getattr(self.model, "_total_timesteps", float("inf")):
-            self._maybe_evaluate()
-        return True
-
-    def _maybe_evaluate(self) -> None:
-        if self._frames() >= self.next_eval_frame:
-            self.evaluate()
-            while self.next_eval_frame <= self._frames():
-                self.next_eval_frame += self.every_frames
+    def _after_eval(self) -> bool:
+        return self.callback_after_eval is None or self.callback_after_eval.on_step()
 
     def _run_episodes(self, prefix: str) -> dict[str, float]:
         """Evaluate now and log the result under ``<prefix>/...``; return the row (keys :data:`EVAL_FIELDS`)."""
@@ -68,7 +77,7 @@ class PeriodicEvaluation(ResumableCallback):
             self.model, self.eval_env, n_eval_episodes=self.episodes, deterministic=True, return_episode_rewards=True
         )
         row = {
-            "frame": self._frames(),
+            "frame": self.frames,
             "step": self.model.num_timesteps,
             "mean_reward": float(np.mean(rewards)),
             "std_reward": float(np.std(rewards)),
@@ -90,9 +99,11 @@ class PeriodicEvaluation(ResumableCallback):
 
     def evaluate_saved_model(self) -> dict[str, float]:
         """
-        Evaluate the final model (after ``learn()``), logged as ``eval_saved_model/...``; not a scheduled evaluation:
-        not in the CSV, not in :attr:`rows`.
+        Evaluate the final model (after ``learn()``), logged as ``eval_saved_model/...``, then call
+        ``callback_after_eval``; not a scheduled evaluation: not in the CSV, not in :attr:`rows`.
 
         :return: the row (keys :data:`~sb3_collapse.protocol.EVAL_FIELDS`)
         """
-        return self._run_episodes("eval_saved_model")
+        row = self._run_episodes("eval_saved_model")
+        self._after_eval()
+        return row

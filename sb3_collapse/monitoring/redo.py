@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from sb3_collapse.monitoring.callbacks import MetricsBatchSampler, ResumableCallback, frames_of
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatchSampler, frames_of
 from sb3_collapse.monitoring.interventions import REDO_EVERY_UPDATES, InterventionResult, intervention_parts, redo
 from sb3_collapse.monitoring.metrics import DORMANT_TAU
 from sb3_collapse.protocol import append_csv_rows
@@ -17,7 +17,7 @@ from sb3_collapse.protocol import append_csv_rows
 __all__ = ["REDO_EVERY_UPDATES", "PeriodicReDo"]
 
 
-class PeriodicReDo(ResumableCallback):
+class PeriodicReDo(FrameScheduleCallback):
     """
     ReDo, "Recycling Dormant neurons" (Sokar, Agarwal, Castro and Evci, "The Dormant Neuron Phenomenon in Deep
     Reinforcement Learning", ICML 2023), as the paper runs it: every ``every_updates`` updates (``F``), for the whole
@@ -31,13 +31,13 @@ class PeriodicReDo(ResumableCallback):
     recycled).
 
     The recycling happens at the first agent step after the model's update count (``model._n_updates``) reaches each
-    multiple of ``every_updates`` (several multiples at once give one recycling). Logged at each one, at the agent
-    step (``logger.dump``): ``redo/units_recycled``, ``redo/units_total``, ``redo/recycles``; with ``events_path``,
-    a CSV row ``frame, step, updates, units_recycled, units_total, detail``. Every recycling is in :attr:`history`
-    (``(updates, frame, units_recycled)``) and, for this process, what it did in :attr:`results`. The state (the next
-    multiple, the history, the batch sampler's generator) is saved in run
-    checkpoints and with ``DrQv2.save`` (a :class:`~sb3_collapse.monitoring.callbacks.ResumableCallback`): a resumed
-    run recycles at the same updates.
+    multiple of ``every_updates`` (several multiples at once give one recycling: the schedule of
+    :class:`~sb3_collapse.monitoring.callbacks.FrameScheduleCallback`, counting updates). Logged at each one, at the
+    agent step (``logger.dump``): ``redo/units_recycled``, ``redo/units_total``, ``redo/recycles``; with
+    ``events_path``, a CSV row ``frame, step, updates, units_recycled, units_total, detail``. Every recycling is in
+    :attr:`history` (``(updates, frame, units_recycled)``) and, for this process, what it did in :attr:`results`. The
+    state (the next multiple, the history, the batch sampler's generator) is saved in run checkpoints and with
+    ``DrQv2.save``: a resumed run recycles at the same updates.
 
     :param every_updates: ``F``, the updates between two recyclings (:data:`REDO_EVERY_UPDATES`)
     :param tau: the dormancy threshold, relative to the layer's mean (0.025)
@@ -49,7 +49,8 @@ class PeriodicReDo(ResumableCallback):
     """
 
     EVENT_FIELDS = ("frame", "step", "updates", "units_recycled", "units_total", "detail")
-    state_attributes = ("next_update", "history")
+    period_parameter = "every_updates"
+    state_attributes = (*FrameScheduleCallback.state_attributes, "history")
 
     def __init__(
         self,
@@ -60,20 +61,18 @@ class PeriodicReDo(ResumableCallback):
         events_path: str | os.PathLike | None = None,
         verbose: int = 0,
     ) -> None:
-        super().__init__(verbose)
         if isinstance(every_updates, bool) or not isinstance(every_updates, int) or every_updates < 1:
             raise ValueError(f"every_updates must be an integer >= 1, got {every_updates!r}.")
+        super().__init__(every_updates, verbose)
         if not tau >= 0:
             raise ValueError(f"tau must be >= 0, got {tau}.")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}.")
-        self.every_updates = every_updates
         self.tau = tau
         self.batch_size = batch_size
         self.conv_channels = conv_channels
         self.events_path = None if events_path is None else Path(events_path)
         self.sampler: MetricsBatchSampler | None = None
-        self.next_update = every_updates
         self.history: list[tuple[int, int, int]] = []
         self.results: list[InterventionResult] = []
         """What each recycling of this process did (units by layer), in order; not saved with the state."""
@@ -84,6 +83,7 @@ class PeriodicReDo(ResumableCallback):
         return len(self.history)
 
     def _init_callback(self) -> None:
+        super()._init_callback()
         intervention_parts(self.model)  # a TypeError for a model the interventions do not support
         seed = None if self.model.seed is None else int(self.model.seed) + 2_000_003
         self.sampler = MetricsBatchSampler(seed)
@@ -91,22 +91,15 @@ class PeriodicReDo(ResumableCallback):
             append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
 
     def _on_training_start(self) -> None:
-        if self.model.num_timesteps == 0:  # a new run
+        super()._on_training_start()
+        if self.num_timesteps == 0:  # a new run
             self.history = []
-        self.next_update = self._following(self._updates())
 
-    def _updates(self) -> int:
+    def _count(self) -> int:
         return int(getattr(self.model, "_n_updates", 0))
 
-    def _following(self, updates: int) -> int:
-        return (updates // self.every_updates + 1) * self.every_updates
-
-    def _on_step(self) -> bool:
-        updates = self._updates()
-        if updates >= self.next_update:
-            self.next_update = self._following(updates)
-            self.recycle(updates)
-        return True
+    def _on_check(self, count: int) -> None:
+        self.recycle(count)
 
     def recycle(self, updates: int) -> None:
         """

@@ -68,7 +68,7 @@ from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.envs.replay import episode_records, replay_episodes
 from sb3_collapse.errors import READ_ONLY_ERRNOS, InputError
-from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ResumableCallback, frames_of
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.protocol import (
     CHECKPOINT_FOLDER,
@@ -76,7 +76,6 @@ from sb3_collapse.protocol import (
     CHECKPOINT_JSON,
     CHECKPOINT_MODEL,
     CHECKPOINT_STATE,
-    LEGACY_CALLBACK_NAMES,
     REPLAY_DIR,
     write_json_atomically,
 )
@@ -509,14 +508,17 @@ def restore_run(
         eval_env.get_wrapper_attr("replay_episode")(state["eval_env"])
     saved = state["callbacks"]
     resumable = [callback for callback in callbacks if isinstance(callback, ResumableCallback)]
-    saved_names = [LEGACY_CALLBACK_NAMES.get(name, name) for name, _ in saved]
+    saved_names = [name for name, _ in saved]
     if saved_names != [type(callback).__name__ for callback in resumable]:
         raise CheckpointMismatch(
             f"the checkpoint has the callbacks {saved_names}, this run "
             f"{[type(callback).__name__ for callback in resumable]}: resume with the settings that wrote it."
         )
     for callback, (_, callback_state) in zip(resumable, saved):
-        callback.load_state_dict(callback_state)
+        try:
+            callback.load_state_dict(callback_state)
+        except ValueError as error:  # a state written by another version
+            raise CheckpointMismatch(f"checkpoint {checkpoint.folder}: {error}") from None
     extras = dict(state["model_extras"])
     if "_train_stats" in extras:  # written before UpdateStats (an unfinished run of an earlier version)
         state["update_stats"] = {"sums": extras.pop("_train_stats"), "count": extras.pop("_train_stats_count", 0)}
@@ -540,7 +542,7 @@ def restore_run(
 
 
 # ---------------------------------------------------------------------------------------------------------- callback
-class ResumableCheckpoints(BaseCallback):
+class ResumableCheckpoints(FrameScheduleCallback):
     """
     Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, and one when
     :meth:`request_stop` was called (by a SIGTERM or SIGINT handler, see
@@ -562,6 +564,9 @@ class ResumableCheckpoints(BaseCallback):
     :param verbose: 1 prints a line per checkpoint
     """
 
+    period_parameter = "every_frames"
+    min_period = 0
+
     def __init__(
         self,
         directory: str | os.PathLike,
@@ -573,20 +578,16 @@ class ResumableCheckpoints(BaseCallback):
         keep: int = 2,
         verbose: int = 0,
     ) -> None:
-        super().__init__(verbose)
-        if every_frames < 0:
-            raise ValueError(f"every_frames must be >= 0, got {every_frames}.")
+        super().__init__(every_frames, verbose)
         if keep < 1:
             raise ValueError(f"keep must be >= 1 checkpoint, got {keep}.")
         self.directory = Path(directory)
-        self.every_frames = every_frames
         self.callbacks = list(callbacks)
         self.eval_env = eval_env
         self.csv_files = list(csv_files)
         self.extra_state = extra_state
         self.keep = keep
         self.store = ReplayStore(self.directory / REPLAY_DIR)
-        self.next_frame = every_frames
         self.due = False
         self.stop_signal: str | None = None
         self.last_checkpoint: Path | None = None
@@ -628,21 +629,18 @@ class ResumableCheckpoints(BaseCallback):
         self.stop_signal = signal_name
 
     def _on_training_start(self) -> None:
-        self.next_frame = (self._frames() // self.every_frames + 1) * self.every_frames if self.every_frames else 0
+        super()._on_training_start()
         if self._grad_norms is not None:  # the recorder exists now (the callbacks hook SB3 models' optimizers)
             recorder = grad_norm_recorder(self.model)
             if recorder is not None:
                 recorder.load_state_dict(self._grad_norms)
             self._grad_norms = None
 
-    def _frames(self) -> int:
-        return frames_of(self.model)
+    def _on_check(self, count: int) -> None:
+        self.due = True
 
     def _on_step(self) -> bool:
-        if self.every_frames and self._frames() >= self.next_frame:
-            self.due = True
-            while self.next_frame <= self._frames():
-                self.next_frame += self.every_frames
+        super()._on_step()
         if (self.due or self.stop_signal) and getattr(self.model, "step_envs_during_updates", False):
             self.model.no_env_step_this_round = True  # type: ignore[attr-defined]
         return True
@@ -666,7 +664,7 @@ class ResumableCheckpoints(BaseCallback):
         start = time.perf_counter()
         if not bool(all_finite(self.model.policy.parameters())):  # never a checkpoint of diverged weights
             raise DivergenceError(
-                f"training diverged: a weight is not finite at frame {self._frames():,}; no checkpoint was written."
+                f"training diverged: a weight is not finite at frame {self.frames:,}; no checkpoint was written."
             )
         state = capture_state(
             self.model,
@@ -680,8 +678,7 @@ class ResumableCheckpoints(BaseCallback):
         self.seconds += time.perf_counter() - start
         if self.verbose >= 1:
             print(
-                f"Checkpoint at frame {self._frames():,}: {self.last_checkpoint} ({time.perf_counter() - start:.1f} s)",
+                f"Checkpoint at frame {self.frames:,}: {self.last_checkpoint} ({time.perf_counter() - start:.1f} s)",
                 flush=True,
             )
         return self.last_checkpoint
-

@@ -282,21 +282,19 @@ class _RunCallbacks:
 
     callbacks: list[BaseCallback]
     evaluation: PeriodicEvaluation | None
-    snapshots: Snapshots | None
     reset_rule: CollapseReset | None
 
 
 def _run_callbacks(config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay | None) -> _RunCallbacks:
-    """The evaluation, probe checkpoints, collapse metrics, reset rule and ReDo of a run, as its settings ask."""
+    """The evaluation (with its snapshots), collapse metrics, reset rule and ReDo of a run, as its settings ask."""
     callbacks: list[BaseCallback] = []
     evaluation = None
     if eval_env is not None:
-        evaluation = PeriodicEvaluation(eval_env, config.eval_every_frames, config.eval_episodes, run_dir / EVAL_CSV)
+        snapshots = Snapshots(run_dir / SNAPSHOTS_DIR) if config.snapshots else None
+        evaluation = PeriodicEvaluation(
+            eval_env, config.eval_every_frames, config.eval_episodes, run_dir / EVAL_CSV, callback_after_eval=snapshots
+        )
         callbacks.append(evaluation)
-    snapshots = None
-    if config.snapshots:
-        snapshots = Snapshots(config.eval_every_frames, run_dir / SNAPSHOTS_DIR)
-        callbacks.append(snapshots)
     if config.collapse_metrics_every_frames > 0:
         metrics = CollapseMetrics(
             config.collapse_metrics_every_frames,
@@ -317,7 +315,7 @@ def _run_callbacks(config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay |
         callbacks.append(reset_rule)
     if config.redo_every_updates > 0:
         callbacks.append(PeriodicReDo(config.redo_every_updates, batch_size=config.collapse_metrics_batch))
-    return _RunCallbacks(callbacks, evaluation, snapshots, reset_rule)
+    return _RunCallbacks(callbacks, evaluation, reset_rule)
 
 
 def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgorithm, steps: int) -> None:
@@ -430,9 +428,7 @@ def _train_into(
             model.save(temporary)
         saved_model_eval = None
         if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the evaluation file)
-            saved_model_eval = evaluation.evaluate_saved_model()
-        if run_callbacks.snapshots is not None:
-            run_callbacks.snapshots.save()  # the final model's, next to its evaluation (once per frame)
+            saved_model_eval = evaluation.evaluate_saved_model()  # and its snapshot
         model.logger.close()
         env.close()
         evaluations = evaluation.rows if evaluation is not None else []

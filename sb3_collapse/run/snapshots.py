@@ -21,10 +21,11 @@ from pathlib import Path
 from typing import Any
 
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_file
 
 from sb3_collapse.drqv2.transplant import GROUP_LAYERS, TRANSPLANT_GROUPS
-from sb3_collapse.monitoring.callbacks import ResumableCallback, frames_of
+from sb3_collapse.monitoring.callbacks import frames_of
 from sb3_collapse.protocol import SNAPSHOT_FILE
 
 SNAPSHOT_GROUPS = ("cnn", "mlp")
@@ -121,52 +122,32 @@ def load_snapshot(path: str | os.PathLike, device: th.device | str = "cpu", **kw
     return model
 
 
-class Snapshots(ResumableCallback):
+class Snapshots(BaseCallback):
     """
-    Save a snapshot (:func:`save_snapshot`) at frame 0 and every ``every_frames`` frames, on the
-    schedule of the train CLI's evaluations (and like them, not at the last step of ``learn()``: call
-    :meth:`save` on the final model). Its schedule is saved in the run's checkpoints: a resumed run continues it.
+    Save a snapshot (:func:`save_snapshot`) each time it is called: the after-evaluation hook of
+    :class:`~sb3_collapse.monitoring.evaluation.PeriodicEvaluation` (``callback_after_eval=Snapshots(folder)``), so a
+    snapshot is taken at every scheduled evaluation (frame 0 and every ``every_frames`` frames, resumed with the
+    evaluations' schedule) and at the evaluation of the saved final model.
 
     Files: ``<folder>/`` :data:`~sb3_collapse.protocol.SNAPSHOT_FILE` (``snapshot_<frames, 10 digits>_frames.zip``).
 
-    :param every_frames: frames between two snapshots (the evaluation period)
     :param folder: where the zips go
     :param verbose: 0 silent, 1 a line per snapshot
     """
 
-    state_attributes = ("next_frame", "saved")
-
-    def __init__(self, every_frames: int, folder: str | os.PathLike, verbose: int = 0) -> None:
+    def __init__(self, folder: str | os.PathLike, verbose: int = 0) -> None:
         super().__init__(verbose)
-        if every_frames < 1:
-            raise ValueError(f"every_frames must be >= 1 frame, got {every_frames}.")
-        self.every_frames = every_frames
         self.folder = Path(folder)
-        self.next_frame = 0
         self.saved: list[Path] = []
-
-    def _on_training_start(self) -> None:
-        self.next_frame = frames_of(self.model)
-        self._maybe_save()
+        """The zips written by this process, in order."""
 
     def _on_step(self) -> bool:
-        if self.model.num_timesteps < getattr(self.model, "_total_timesteps", float("inf")):
-            self._maybe_save()
+        self.save()
         return True
 
-    def _maybe_save(self) -> None:
-        frames = frames_of(self.model)
-        if frames >= self.next_frame:
-            self.save()
-            while self.next_frame <= frames:
-                self.next_frame += self.every_frames
-
     def save(self) -> Path:
-        """Save the model's encoder and actor now, unless already saved at this frame; :return: the zip"""
-        path = self.folder / SNAPSHOT_FILE.format(frames=frames_of(self.model))
-        if self.saved and self.saved[-1] == path:
-            return path
-        save_snapshot(self.model, path)
+        """Save the model's encoder and actor now; :return: the zip"""
+        path = save_snapshot(self.model, self.folder / SNAPSHOT_FILE.format(frames=frames_of(self.model)))
         self.saved.append(path)
         if self.verbose >= 1:
             print(f"Snapshots: saved {path}")

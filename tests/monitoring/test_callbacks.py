@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3 import TD3
-from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback, EvalCallback
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
@@ -221,6 +221,8 @@ def test_bad_parameters_are_refused():
         CollapseMetrics(batch_size=1)
     with pytest.raises(ValueError, match="max_bytes"):
         ActivationLogger(every_frames=10, path="x", max_bytes=0)
+    with pytest.raises(ValueError, match="^every_frames must be >= 1, got 0"):
+        ActivationLogger(every_frames=0, path="x")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         CollapseMetrics()  # the defaults are the paper's
@@ -244,14 +246,58 @@ def test_a_state_taken_at_step_0_is_continued_and_a_later_one_restarted_by_a_ste
     first = evaluation()
     first.on_training_start({}, {})  # the evaluation at frame 0, then the stop
     state = first.state_dict()
-    assert state["num_timesteps"] == 0 and first.next_eval_frame == 50
+    assert state["num_timesteps"] == 0 and first.next_check == 50
     resumed = evaluation()
     resumed.load_state_dict(state)
     resumed.on_training_start({}, {})
-    assert resumed.next_eval_frame == 50 and len(resumed.rows) == 1
+    assert resumed.next_check == 50 and len(resumed.rows) == 1
     assert len(csv_path.read_text().splitlines()) == 2  # the header and the one evaluation
 
     restarted = evaluation()
     restarted.load_state_dict({**state, "num_timesteps": 40})  # taken later; learn() then restarted the count at 0
     restarted.on_training_start({}, {})
     assert restarted.rows != [] and len(csv_path.read_text().splitlines()) == 3  # evaluated afresh at frame 0
+
+
+def test_evaluation_calls_its_after_eval_callback_after_each_evaluation_and_stops_when_it_says(tmp_path):
+    """Evaluations at frames 0, 50, 100 (not at the last step, 120), then the saved model's: the hook follows each;
+    a hook that returns False stops learn() at its evaluation."""
+    from sb3_collapse.monitoring import PeriodicEvaluation
+
+    class Hook(BaseCallback):
+        def __init__(self, stop_at=None):
+            super().__init__()
+            self.calls, self.stop_at = [], stop_at
+
+        def _on_step(self):
+            self.calls.append((self.num_timesteps, len(self.parent.rows)))
+            return self.num_timesteps != self.stop_at
+
+    def run(hook, steps):
+        model = DrQv2("MlpPolicy", "Pendulum-v1", learning_starts=200, batch_size=8, buffer_size=200, seed=0,
+                      policy_kwargs=dict(net_arch=[16], feature_dim=8))  # fmt: skip
+        model.set_logger(configure(str(tmp_path / "logs"), ["csv"]))
+        env = Monitor(gym.make("Pendulum-v1", max_episode_steps=5))
+        evaluation = PeriodicEvaluation(env, 50, 1, tmp_path / f"eval_{steps}.csv", callback_after_eval=hook)
+        model.learn(steps, callback=evaluation)
+        return model, evaluation
+
+    hook = Hook()
+    model, evaluation = run(hook, 120)
+    assert [row["frame"] for row in evaluation.rows] == [0, 50, 100] and evaluation.n_checks == 3
+    assert hook.calls == [(0, 1), (50, 2), (100, 3)] and hook.parent is evaluation and hook.model is model
+    assert evaluation.evaluate_saved_model()["frame"] == 120 and hook.calls[-1] == (120, 3)
+
+    stopping = Hook(stop_at=50)
+    model, evaluation = run(stopping, 120)
+    assert model.num_timesteps == 50 and [row["frame"] for row in evaluation.rows] == [0, 50]
+
+
+def test_a_state_of_another_version_is_refused_in_one_line():
+    rule = CollapseReset()
+    older = {"next_check_frame": 20_000, "n_checks": 2, "num_timesteps": 10_000}  # the schedule under an older name
+    older |= {name: getattr(rule, name) for name in rule.state_attributes if name not in ("next_check", "n_checks")}
+    with pytest.raises(ValueError, match="^CollapseReset: the saved state lacks next_check: it was written by another"):
+        rule.load_state_dict(older)
+    with pytest.raises(ValueError, match="^CollapseMetrics: the saved state lacks num_timesteps: "):
+        CollapseMetrics().load_state_dict({"next_check": 10_000, "n_checks": 0, "last_metrics": {}})

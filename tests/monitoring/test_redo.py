@@ -148,7 +148,7 @@ def test_periodic_redo_resumes_with_the_saved_model(tmp_path):
     redo = PeriodicReDo(every_updates=5, batch_size=16)
     model.callback = redo
     model.learn(26)  # updates 1..8: one recycling at 5, the next due at 10
-    assert [u for u, _, _ in redo.history] == [5] and redo.next_update == 10
+    assert [u for u, _, _ in redo.history] == [5] and redo.next_check == 10
     model.save(tmp_path / "model.zip")
     loaded = DrQv2.load(tmp_path / "model.zip", env=model.get_env())
     restored = loaded.callback
@@ -160,7 +160,7 @@ def test_periodic_redo_resumes_with_the_saved_model(tmp_path):
     state = restored.state_dict()
     fresh = PeriodicReDo(every_updates=5, batch_size=16)
     fresh.load_state_dict(state)
-    assert fresh._pending_state["next_update"] == restored.next_update and "sampler" in state
+    assert fresh._pending_state["next_check"] == restored.next_check and "sampler" in state
 
 
 def test_periodic_redo_checks_its_arguments():
