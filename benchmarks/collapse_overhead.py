@@ -28,8 +28,10 @@ import argparse
 import gc
 import platform
 import statistics
+import sys
 import tempfile
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -37,8 +39,10 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import get_device
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests/ (no install)
+
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
-from sb3_collapse.envs.synthetic import RandomObservationEnv
+from tests.random_env import RandomObservationEnv
 
 
 def synchronize(device: th.device) -> None:

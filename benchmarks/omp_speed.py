@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -34,6 +35,8 @@ import numpy as np
 import torch as th
 from sklearn.linear_model import OrthogonalMatchingPursuit
 from stable_baselines3.common.utils import get_device
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests/ (no install)
 
 from sb3_collapse.probe.omp import omp_path
 
@@ -112,10 +115,10 @@ def benchmark_omp(args: argparse.Namespace, device: th.device) -> None:
 
 def benchmark_probe(args: argparse.Namespace, device: th.device) -> None:
     from sb3_collapse import DrQv2
-    from sb3_collapse.envs.synthetic import RandomObservationEnv
     from sb3_collapse.probe.checkpoints import Checkpoint
     from sb3_collapse.probe.probing import ProbeSettings, probe_checkpoint, split_by_episode
     from sb3_collapse.probe.rollouts import Rollouts
+    from tests.random_env import RandomObservationEnv
 
     n, episodes = args.probe_samples, 20
     rng = np.random.default_rng(0)

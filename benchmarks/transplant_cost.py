@@ -17,6 +17,7 @@ import argparse
 import os
 import platform
 import statistics
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -26,9 +27,11 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests/ (no install)
+
 from sb3_collapse import DrQv2
 from sb3_collapse.drqv2.transplant import TRANSPLANT_GROUPS, check_init_from, load_sources, transplant
-from sb3_collapse.envs.synthetic import RandomObservationEnv
+from tests.random_env import RandomObservationEnv
 
 
 def timed(function: Callable[[], object], repeats: int) -> tuple[float, float]:

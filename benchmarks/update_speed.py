@@ -11,7 +11,7 @@
 - ``ours compiled``: the same with ``compile_update=True`` (``torch.compile`` of the update's forward and backward
   passes; ``mode="reduce-overhead"``, CUDA graphs, on CUDA). Its compilation time is printed (the first update's
   time minus the median);
-- ``reference ops``: ``sb3_collapse.drqv2.reference.reference_update``, the operations of facebookresearch/drqv2's
+- ``reference ops``: ``tests.drqv2_reference.reference_update``, the operations of facebookresearch/drqv2's
   ``DrQV2Agent.update``: ``grid_sample`` augmentation on float images, a full backward of the actor loss
   (gradients of the critic computed and discarded), here with NCHW convolutions each followed by its own ReLU,
   non-fused Adam and the C library's default allocator, as the reference runs.
@@ -44,6 +44,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -51,11 +52,13 @@ import torch as th
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import get_device
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests/ (no install)
+
 from sb3_collapse.backends import configure_backends
 from sb3_collapse.drqv2 import DrQv2
-from sb3_collapse.drqv2.reference import reference_update
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
+from tests.drqv2_reference import reference_update
+from tests.random_env import RandomObservationEnv
 
 IMPLS = ("reference", "ours", "ours-compiled", "ours-ieee", "ours-no-prefetch")
 """Implementations this script times (``--impls``): ``ours`` and ``ours-compiled`` with TensorFloat-32 on CUDA (the

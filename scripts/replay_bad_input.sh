@@ -20,7 +20,7 @@ import numpy as np
 from stable_baselines3 import PPO
 
 from sb3_collapse import DrQv2, make_dmc_env
-from sb3_collapse.envs.synthetic import RandomObservationEnv
+from tests.random_env import RandomObservationEnv
 
 work = Path(sys.argv[1])
 (work / "text.zip").write_text("not a zip")

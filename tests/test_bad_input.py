@@ -18,7 +18,6 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse import CollapseReset, DrQv2, make_dmc_env
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.protocol import ERROR_TXT, failed_before_training
 from sb3_collapse.report.__main__ import main as report_main
@@ -27,6 +26,7 @@ from sb3_collapse.run.runner import train
 from sb3_collapse.sweep.__main__ import main as sweep_main
 from sb3_collapse.train import main as train_main
 from sb3_collapse.zoo.launcher import main as zoo_main
+from tests.random_env import RandomObservationEnv
 
 TINY = ["--env", "cartpole-balance", "--frames", "400", "--seed-frames", "200", "--batch-size", "16",
         "--eval-every-frames", "400", "--eval-episodes", "1", "--collapse-metrics-every-frames", "0", "--size", "48",

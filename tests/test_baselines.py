@@ -10,8 +10,8 @@ from stable_baselines3.common.torch_layers import NatureCNN
 
 from sb3_collapse.baselines import TD3_ACTION_NOISE, build_baseline
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring import layer_parameters
+from tests.random_env import RandomObservationEnv
 
 SETTINGS = dict(learning_rate=3e-4, buffer_size=100, learning_starts=7, batch_size=16, seed=0)
 

@@ -28,7 +28,6 @@ from sb3_collapse import CollapseMetrics, DrQv2
 from sb3_collapse.backends import BackendSettings, configure_backends, current_backends
 from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.envs.replay import EpisodeReplay
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import metrics
 from sb3_collapse.monitoring.interventions import INTERVENTIONS, redo
@@ -44,6 +43,7 @@ from sb3_collapse.run.checkpoints import (
 )
 from sb3_collapse.run.timing import PhaseTime, UpdateClock
 from sb3_collapse.train import main
+from tests.random_env import RandomObservationEnv
 
 PACKAGE = str(Path(sb3_collapse.__file__).parent)
 FACTORIES = {

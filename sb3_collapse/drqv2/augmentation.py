@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import torch as th
-import torch.nn.functional as F
 
 
 def draw_shifts(batch_size: int, pad: int, device: th.device | str | None = None) -> th.Tensor:
@@ -60,28 +59,3 @@ def random_shift(
     index = (first[:, None, None] + rows[:, :, None] * w + cols[:, None, :]).view(-1)
     out = pixels.index_select(0, index).view(n, h, w, c).permute(0, 3, 1, 2)
     return out if channels_last else out.contiguous()
-
-
-def random_shift_grid_sample(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None) -> th.Tensor:
-    """
-    The same augmentation as :func:`random_shift`, formulated as DrQ-v2's reference does it: replicate
-    padding, then bilinear ``grid_sample`` on a grid of pixel centres moved by integer offsets. Slower; kept
-    as the definition that :func:`random_shift` is tested against, and as the baseline of the benchmarks.
-
-    :param obs: float images, shape ``(batch, channels, height, width)``
-    :param pad: padding in pixels
-    :param shifts: optional integer offsets ``(batch, 2)`` in ``[0, 2 * pad]``, as ``(x, y)``
-    :return: shifted float images, same shape
-    """
-    n, _, h, w = obs.shape
-    padded = F.pad(obs, (pad,) * 4, "replicate")
-    # Centres of the padded pixels in grid_sample's normalized coordinates (align_corners=False).
-    on = {"device": obs.device, "dtype": obs.dtype}
-    xs = th.linspace(-1.0 + 1.0 / (w + 2 * pad), 1.0 - 1.0 / (w + 2 * pad), w + 2 * pad, **on)[:w]
-    ys = th.linspace(-1.0 + 1.0 / (h + 2 * pad), 1.0 - 1.0 / (h + 2 * pad), h + 2 * pad, **on)[:h]
-    base_grid = th.stack(th.meshgrid(xs, ys, indexing="xy"), dim=-1)  # (h, w, 2) as (x, y)
-    if shifts is None:
-        shifts = th.randint(0, 2 * pad + 1, (n, 2), device=obs.device)
-    scale = th.tensor([2.0 / (w + 2 * pad), 2.0 / (h + 2 * pad)], device=obs.device, dtype=obs.dtype)
-    grid = base_grid.unsqueeze(0) + (shifts.to(obs.dtype) * scale).view(n, 1, 1, 2)
-    return F.grid_sample(padded, grid, padding_mode="zeros", align_corners=False)

@@ -1,25 +1,18 @@
-"""Selection of a headless OpenGL backend for MuJoCo / dm_control rendering.
+"""Selection of a headless OpenGL backend for MuJoCo / dm_control rendering: :func:`ensure_rendering_backend`.
 
-dm_control picks its OpenGL backend once, when ``dm_control._render`` is first imported,
-from the ``MUJOCO_GL`` environment variable (``glfw`` by default, which needs a display).
-On a headless machine it therefore has to be set to ``egl`` or ``osmesa`` *before*
-dm_control is imported. :func:`ensure_rendering_backend` finds one that works by trying
-each in a throw-away subprocess, then exports it in ``os.environ`` so that the current
-process and any worker it starts later (e.g. ``SubprocVecEnv``) use it.
-
-Probing costs about half a second, so it is not done when ``sb3_collapse`` is imported: it is done
-when the first environment is built, or when ``dm_control`` or ``mujoco`` is first imported, whichever
-comes first (:func:`install_import_hook`, installed by ``import sb3_collapse.envs``).
+dm_control reads ``MUJOCO_GL`` once, when it is first imported (``glfw`` by default, which needs a display), so the
+backend is chosen before that: :class:`~sb3_collapse.envs.DMCEnv` (hence ``make_dmc_env`` and the registered ids)
+calls :func:`ensure_rendering_backend` before it imports dm_control, the train runner before it starts
+``SubprocVecEnv`` workers (they inherit ``MUJOCO_GL`` from ``os.environ``), the rl_zoo3 launcher before rl_zoo3.
+Importing ``sb3_collapse`` chooses nothing. See docs/environments.md.
 """
 
 from __future__ import annotations
 
-import importlib.abc
 import os
 import subprocess
 import sys
 import warnings
-from typing import Any
 
 # Backends tried, in order, when ``MUJOCO_GL`` is not set. EGL uses the GPU when there is one
 # (and Mesa's software rasterizer otherwise); OSMesa is software only.
@@ -50,8 +43,8 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
     ``os.environ`` (so that subprocesses started afterwards inherit it) and returned.
     The outcome is cached, so the backends are checked at most once per process.
 
-    This must run before ``dm_control`` is imported, since dm_control reads ``MUJOCO_GL`` only once,
-    at import: importing ``sb3_collapse`` before ``dm_control`` (or setting ``MUJOCO_GL``) takes care of it.
+    Call it before ``dm_control`` or ``mujoco`` is imported (they read ``MUJOCO_GL`` only once, at import); building
+    a :class:`~sb3_collapse.envs.DMCEnv` calls it first.
 
     :param required: Whether rendering is needed (pixel observations). If True and no backend works,
         raise :class:`RenderingBackendError`; if False (state observations), return None instead.
@@ -82,53 +75,6 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
     if required:
         raise RenderingBackendError(_no_backend_message(_failure_report))
     return None
-
-
-class _ChooseBackendOnImport(importlib.abc.MetaPathFinder):
-    """Import hook choosing the backend just before ``dm_control`` or ``mujoco`` is first imported."""
-
-    watched = ("dm_control", "mujoco")
-
-    def __init__(self) -> None:
-        # Fires once. It is not removed from ``sys.meta_path`` when it fires, since the import system
-        # is iterating over that list then (removing it would skip the next finder).
-        self.fired = False
-
-    def find_spec(self, fullname: str, path: Any, target: Any = None) -> None:
-        """
-        Choose the backend if ``fullname`` is a watched package, then let the normal import proceed.
-
-        :param fullname: Name of the module being imported.
-        :param path: Unused (search path of the parent package).
-        :param target: Unused.
-        :return: None, so that the other finders import the module.
-        """
-        if not self.fired and fullname in self.watched:
-            self.fired = True
-            try:
-                ensure_rendering_backend(required=False)
-            except Exception as error:  # noqa: BLE001  never break an import
-                warnings.warn(f"Could not choose a headless OpenGL backend: {error}", RuntimeWarning, stacklevel=2)
-
-
-def install_import_hook() -> None:
-    """
-    Make the first import of ``dm_control`` or ``mujoco`` call ``ensure_rendering_backend(required=False)`` first.
-
-    So ``import sb3_collapse`` followed by ``from dm_control import suite`` renders headless without a display,
-    while importing ``sb3_collapse`` stays fast. Nothing is installed if ``MUJOCO_GL`` is set or if
-    dm_control / mujoco is already imported (too late, :func:`ensure_rendering_backend` then warns).
-    """
-    if os.environ.get("MUJOCO_GL") or any(name in sys.modules for name in _ChooseBackendOnImport.watched):
-        return
-    if not any(isinstance(finder, _ChooseBackendOnImport) and not finder.fired for finder in sys.meta_path):
-        uninstall_import_hook()
-        sys.meta_path.insert(0, _ChooseBackendOnImport())
-
-
-def uninstall_import_hook() -> None:
-    """Remove the hook installed by :func:`install_import_hook`, if any (not to be called during an import)."""
-    sys.meta_path[:] = [finder for finder in sys.meta_path if not isinstance(finder, _ChooseBackendOnImport)]
 
 
 def _backend_works(backend: str, timeout: float = CONTEXT_CHECK_TIMEOUT_S) -> tuple[bool, str]:
@@ -173,7 +119,8 @@ def _warn_if_dm_control_imported() -> None:
         warnings.warn(
             "dm_control was imported before MUJOCO_GL was set, so it has already picked its OpenGL backend "
             "(glfw by default, which needs a display) and will not use the headless backend chosen now. "
-            "Import sb3_collapse before dm_control, or set MUJOCO_GL (e.g. MUJOCO_GL=egl) yourself.",
+            "Call sb3_collapse.envs.ensure_rendering_backend() before importing dm_control, or set MUJOCO_GL "
+            "(e.g. MUJOCO_GL=egl) yourself.",
             RuntimeWarning,
             stacklevel=3,
         )
@@ -190,7 +137,7 @@ def _no_backend_message(failure_report: str) -> str:
         + "), so pixel observations cannot be rendered. To fix it, install one of:\n"
         "  - EGL (GPU driver, or Mesa software rendering): apt-get install libegl1 libgl1-mesa-dri libegl-mesa0\n"
         "  - OSMesa (software rendering): apt-get install libosmesa6\n"
-        "or set MUJOCO_GL yourself (egl, osmesa or glfw) before importing sb3_collapse. "
+        "or set MUJOCO_GL yourself (egl, osmesa or glfw) before dm_control is imported. "
         "State observations (obs_type='state') need no rendering.\n"
         f"Errors of the checks:\n{failure_report}"
     )

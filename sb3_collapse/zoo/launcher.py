@@ -26,6 +26,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.errors import LauncherError, ZooConfigError, ZooNotInstalledError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import PRESETS
@@ -255,6 +256,8 @@ def main(argv: list[str] | None = None) -> int:
     if "-h" in zoo_args or "--help" in zoo_args:
         parser.print_help()
         print(f"\nrl_zoo3 {command} options:")
+    # The OpenGL backend before rl_zoo3 is imported; its SubprocVecEnv workers inherit MUJOCO_GL from os.environ.
+    ensure_rendering_backend(required=False)
     try:
         register_with_zoo()
         runners: dict[str, Callable[[], None]] = {

@@ -2,7 +2,8 @@ import pytest
 import torch as th
 import torch.nn.functional as F
 
-from sb3_collapse.drqv2.augmentation import random_shift, random_shift_grid_sample
+from sb3_collapse.drqv2.augmentation import random_shift
+from tests.drqv2_reference import random_shift_grid_sample
 
 
 def _images(n=8, c=9, h=84, w=84, seed=0):

@@ -18,8 +18,8 @@ from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
 from sb3_collapse.drqv2.augmentation import draw_shifts
 from sb3_collapse.drqv2.policies import exploration_noise
-from sb3_collapse.drqv2.reference import reference_update
-from sb3_collapse.envs.synthetic import RandomObservationEnv
+from tests.drqv2_reference import reference_update
+from tests.random_env import RandomObservationEnv
 
 SMALL = dict(buffer_size=500, learning_starts=20, batch_size=8, seed=0)
 STATE_SPACE = gym.spaces.Box(-np.inf, np.inf, (5,), np.float32)

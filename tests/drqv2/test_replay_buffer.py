@@ -8,7 +8,7 @@ from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 
 from sb3_collapse.drqv2 import DrQv2, FrameStackReplayBuffer
 from sb3_collapse.drqv2.replay_buffer import frame_stack_storage_bytes
-from sb3_collapse.envs.synthetic import RandomObservationEnv
+from tests.random_env import RandomObservationEnv
 
 FRAME = (3, 6, 6)
 ACTIONS = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)

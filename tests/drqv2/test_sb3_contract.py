@@ -20,8 +20,8 @@ from sb3_collapse.drqv2 import FrameStackReplayBuffer
 from sb3_collapse.drqv2.encoders import DictEncoder, FeaturesExtractorEncoder
 from sb3_collapse.drqv2.policies import MultiInputPolicy
 from sb3_collapse.drqv2.sb3_compat import DictNStepReplayBuffer, combine_callbacks
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.errors import ParameterError, SpaceError
+from tests.random_env import RandomObservationEnv
 
 th.set_num_threads(1)
 

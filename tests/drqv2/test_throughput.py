@@ -8,8 +8,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_collapse import DrQv2
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.run.timing import LearnTimer, TimedVecEnv
+from tests.random_env import RandomObservationEnv
 
 
 def state_space():

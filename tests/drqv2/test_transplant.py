@@ -18,8 +18,8 @@ from sb3_collapse.drqv2.transplant import (
     source_key,
     transplant,
 )
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring.activations import layer_parameters
+from tests.random_env import RandomObservationEnv
 
 POLICY_KWARGS = {"hidden_dim": 32, "feature_dim": 16}
 SMALL = {"buffer_size": 200, "learning_starts": 20, "batch_size": 8}

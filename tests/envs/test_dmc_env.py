@@ -19,10 +19,10 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-from sb3_collapse.envs import DMC_TASKS, DMCEnv, make_dmc_env, parse_task
+from sb3_collapse.envs import DMC_TASKS, DMCEnv, ensure_rendering_backend, make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import REWARD_INPUTS, reward_inputs_of, scale_action
 
-# Imported after sb3_collapse.envs, so that the OpenGL backend is chosen first.
+ensure_rendering_backend(required=False)  # the OpenGL backend, before dm_control is imported (it reads MUJOCO_GL once)
 from dm_control import suite  # isort: skip
 from dm_control.suite import cheetah, dog, finger, hopper, humanoid, humanoid_CMU  # isort: skip
 from dm_control.suite import manipulator, pendulum, quadruped, stacker, walker  # isort: skip
@@ -149,25 +149,63 @@ def _wrappers(env: gym.Env) -> list[gym.Env]:
     return chain
 
 
-IMPORT_CHECK = """
+BACKEND_CHECK = """
 import os, sys
-import sb3_collapse.envs
-from sb3_collapse.envs import ensure_rendering_backend
+import gymnasium as gym
+import numpy as np
+finders = list(sys.meta_path)
+import sb3_collapse, sb3_collapse.envs
+from sb3_collapse.envs import make_dmc_env, rendering
+from stable_baselines3.common.vec_env import SubprocVecEnv
+hooks = [f for f in sys.meta_path if f not in finders and f.__module__.startswith("sb3_collapse")]
+assert not hooks, hooks  # importing the package installs no import hook (absl, editable installs add theirs)
 loaded = [m for m in sys.modules if m.split(".")[0] in ("dm_control", "mujoco", "shimmy")]
 assert not loaded, loaded
-assert "MUJOCO_GL" not in os.environ, "the backend must not be checked at import"
-from dm_control import suite  # the import hook chooses the backend first
-if ensure_rendering_backend(required=False) is not None:
-    assert os.environ["MUJOCO_GL"] in ("egl", "osmesa"), os.environ["MUJOCO_GL"]
-    assert suite.load("cartpole", "balance").physics.render(8, 8).shape == (8, 8, 3)
+assert "MUJOCO_GL" not in os.environ, "importing the package must not choose the backend"
+make_dmc_env("cartpole-balance", obs_type="state").close()  # building an env chooses it
+backend = os.environ.get("MUJOCO_GL")
+assert backend in (*rendering.HEADLESS_BACKENDS, None), backend  # None: no headless backend on this machine
+if backend is not None:
+    env = make_dmc_env("cartpole-balance", size=8)
+    assert env.reset(seed=0)[0].shape == (9, 8, 8)
+    env.close()
+    from dm_control import _render
+    assert _render.BACKEND == backend, _render.BACKEND
+
+    class Inherited(gym.Env):
+        observation_space = action_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+        def __init__(self):
+            self.mujoco_gl = os.environ.get("MUJOCO_GL")  # before anything in the worker could choose one
+
+    workers = SubprocVecEnv([Inherited])  # a forkserver worker, as the train runner starts them
+    assert workers.get_attr("mujoco_gl") == [backend], workers.get_attr("mujoco_gl")
+    workers.close()
+
+# A user's MUJOCO_GL is respected: building an env checks nothing and keeps it.
+def no_check(*args, **kwargs):
+    raise AssertionError("a backend was checked although MUJOCO_GL is set")
+os.environ["MUJOCO_GL"], rendering._chosen_backend, rendering._backend_works = "users-choice", None, no_check
+make_dmc_env("cartpole-balance", obs_type="state").close()
+assert os.environ["MUJOCO_GL"] == "users-choice"
+print("backend:", backend)
 """
 
 
-def test_import_is_lazy_and_chooses_the_backend_before_dm_control() -> None:
+def test_import_chooses_nothing_and_building_an_env_chooses_the_backend() -> None:
+    """In a fresh interpreter: ``import sb3_collapse`` adds no finder to ``sys.meta_path``, imports no dm_control and
+    sets no ``MUJOCO_GL``; building an env chooses a headless backend before dm_control is imported, and
+    ``SubprocVecEnv`` workers started afterwards inherit it; a ``MUJOCO_GL`` the user set is kept."""
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
-    subprocess.run(
-        [sys.executable, "-W", "error::RuntimeWarning", "-c", IMPORT_CHECK], env=env, check=True, timeout=120
+    result = subprocess.run(
+        [sys.executable, "-W", "error::RuntimeWarning", "-c", BACKEND_CHECK],
+        env=env,
+        check=False,
+        timeout=300,
+        capture_output=True,
+        text=True,
     )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines()[-1].startswith("backend: ")
 
 
 # ---------------------------------------------------------------- pixel observations

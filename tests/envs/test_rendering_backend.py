@@ -94,7 +94,7 @@ def test_first_working_backend_is_exported_and_cached(monkeypatch: pytest.Monkey
 def test_warns_if_dm_control_was_imported_first(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "dm_control.mujoco", types.ModuleType("dm_control.mujoco"))
     monkeypatch.setattr(rendering, "_backend_works", fake_check({"egl"}, []))
-    with pytest.warns(RuntimeWarning, match="Import sb3_collapse before dm_control"):
+    with pytest.warns(RuntimeWarning, match=r"Call sb3_collapse.envs.ensure_rendering_backend\(\) before importing"):
         assert ensure_rendering_backend() == "egl"
 
 

@@ -14,8 +14,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import ActivationLogger, CollapseMetrics, CollapseReset, DrQv2
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring import FrameScheduleCallback, MetricsBatchSampler
+from tests.random_env import RandomObservationEnv
 
 PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
 METRICS = (

@@ -9,7 +9,6 @@ import torch as th
 from stable_baselines3 import DDPG, SAC, TD3
 
 from sb3_collapse import DrQv2
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring import (
     MetricsBatchSampler,
     apply_intervention,
@@ -21,6 +20,7 @@ from sb3_collapse.monitoring import (
     track_grad_norms,
 )
 from sb3_collapse.monitoring.interventions import encoder_channels, hidden_layers
+from tests.random_env import RandomObservationEnv
 
 PIXELS = gym.spaces.Box(0, 255, (9, 36, 36), np.uint8)  # NatureCNN needs at least 36x36
 STATE = gym.spaces.Box(-1, 1, (5,), np.float32)

@@ -10,7 +10,6 @@ from torch import nn
 
 from sb3_collapse import DrQv2, PeriodicReDo
 from sb3_collapse.drqv2.encoders import LEAKY_RELU_SLOPE
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring import MetricsBatchSampler, apply_intervention, collect_activations, dead_fraction
 from sb3_collapse.monitoring.interventions import (
@@ -19,6 +18,7 @@ from sb3_collapse.monitoring.interventions import (
     hidden_layers,
     perturbation_noise,
 )
+from tests.random_env import RandomObservationEnv
 
 PIXELS = gym.spaces.Box(0, 255, (9, 36, 36), np.uint8)
 

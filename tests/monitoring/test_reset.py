@@ -9,8 +9,8 @@ from stable_baselines3 import PPO, SAC, TD3
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
-from sb3_collapse.envs.synthetic import RandomObservationEnv
 from sb3_collapse.monitoring import grad_norms_of
+from tests.random_env import RandomObservationEnv
 
 PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
 # A window of 200 frames checked every 20 frames, on an env of action repeat 2: 100 agent steps per window.

@@ -1,4 +1,7 @@
-"""Environments with random observations and no simulator, for fast tests and benchmarks."""
+"""An environment with random observations and no simulator, for fast tests and benchmarks.
+
+Imported as ``tests.random_env`` from the repository root.
+"""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
-"""DrQ-v2's update written with the reference implementation's operations, as an oracle and a baseline.
+"""DrQ-v2's augmentation and update with the reference implementation's operations: a test oracle and a baseline.
 
-Not used for training. :meth:`DrQv2._update` computes the same update faster: it is tested equal to
-:func:`reference_update` (same weights, same batch, same random draws), and ``benchmarks/update_speed.py``
-times both.
+``sb3_collapse.drqv2.augmentation.random_shift`` is tested equal to :func:`random_shift_grid_sample`, and
+``DrQv2._update`` to :func:`reference_update` (same weights, same batch, same random draws);
+``benchmarks/update_speed.py`` times both updates. Imported as ``tests.drqv2_reference`` from the repository root.
 """
 
 from __future__ import annotations
@@ -14,11 +14,34 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
-from sb3_collapse.drqv2.augmentation import random_shift_grid_sample
 from sb3_collapse.drqv2.policies import sample_action
 
 if TYPE_CHECKING:
     from sb3_collapse.drqv2.drqv2 import DrQv2
+
+
+def random_shift_grid_sample(obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None) -> th.Tensor:
+    """
+    The augmentation of ``sb3_collapse.drqv2.augmentation.random_shift``, as DrQ-v2's reference computes it:
+    replicate padding, then bilinear ``grid_sample`` on a grid of pixel centres moved by integer offsets.
+
+    :param obs: float images, shape ``(batch, channels, height, width)``
+    :param pad: padding in pixels
+    :param shifts: optional integer offsets ``(batch, 2)`` in ``[0, 2 * pad]``, as ``(x, y)``
+    :return: shifted float images, same shape
+    """
+    n, _, h, w = obs.shape
+    padded = F.pad(obs, (pad,) * 4, "replicate")
+    # Centres of the padded pixels in grid_sample's normalized coordinates (align_corners=False).
+    on = {"device": obs.device, "dtype": obs.dtype}
+    xs = th.linspace(-1.0 + 1.0 / (w + 2 * pad), 1.0 - 1.0 / (w + 2 * pad), w + 2 * pad, **on)[:w]
+    ys = th.linspace(-1.0 + 1.0 / (h + 2 * pad), 1.0 - 1.0 / (h + 2 * pad), h + 2 * pad, **on)[:h]
+    base_grid = th.stack(th.meshgrid(xs, ys, indexing="xy"), dim=-1)  # (h, w, 2) as (x, y)
+    if shifts is None:
+        shifts = th.randint(0, 2 * pad + 1, (n, 2), device=obs.device)
+    scale = th.tensor([2.0 / (w + 2 * pad), 2.0 / (h + 2 * pad)], device=obs.device, dtype=obs.dtype)
+    grid = base_grid.unsqueeze(0) + (shifts.to(obs.dtype) * scale).view(n, 1, 1, 2)
+    return F.grid_sample(padded, grid, padding_mode="zeros", align_corners=False)
 
 
 def reference_update(model: DrQv2, data: ReplayBufferSamples) -> None:
