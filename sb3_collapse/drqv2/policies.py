@@ -296,7 +296,8 @@ class DrQv2Policy(BasePolicy):
     :param observation_space: observation space
     :param action_space: action space, a bounded ``Box``
     :param lr_schedule: learning rate schedule (constant 1e-4 in DrQ-v2)
-    :param feature_dim: size of the actor and critic trunk outputs (50; 100 for humanoid in DrQ-v2)
+    :param feature_dim: size of the actor and critic trunk outputs (50; 100 for humanoid in DrQ-v2); SB3's
+        ``features_extractor_kwargs=dict(features_dim=...)`` (or ``cnn_output_dim``) sets it too
     :param hidden_dim: units of the two hidden layers of the actor and of each Q head (when ``net_arch`` is
         ``None``)
     :param encoder_class: ``PixelEncoder`` (``CnnPolicy``), ``StateEncoder`` (``MlpPolicy``) or ``DictEncoder``
@@ -788,9 +789,16 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
                 f"policy_kwargs gives activation_fn={activation_fn.__name__} and activation={kwargs['activation']!r}: "
                 "pass one.",
             )
+    extractor = kwargs.get("features_extractor_class")
+    if extractor is not None and not (isinstance(extractor, type) and issubclass(extractor, BaseFeaturesExtractor)):
+        raise ParameterError(
+            name("features_extractor_class"),
+            "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
+            f"(stable_baselines3.common.torch_layers), got {extractor!r}.",
+        )
     extractor_kwargs = kwargs.get("features_extractor_kwargs") or {}
     sizes = {key: extractor_kwargs[key] for key in SB3_FEATURE_SIZES if key in extractor_kwargs}
-    if kwargs.get("features_extractor_class") is None and sizes:
+    if extractor is None and sizes:
         for key, value in sizes.items():
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ParameterError(
@@ -804,18 +812,7 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
                 f"policy_kwargs gives {', '.join(f'{key}={value!r}' for key, value in given.items())}: with DrQ-v2's "
                 "encoder they are all the output size of the actor's and the critic's trunks (feature_dim): pass one.",
             )
-    extractor = kwargs.get("features_extractor_class")
-    if extractor is not None and not (isinstance(extractor, type) and issubclass(extractor, BaseFeaturesExtractor)):
-        raise ParameterError(
-            name("features_extractor_class"),
-            "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
-            f"(stable_baselines3.common.torch_layers), got {extractor!r}.",
-        )
-    if (
-        extractor is None
-        and split_sb3_feature_size(kwargs.get("features_extractor_kwargs"))[1]
-        and kwargs.get("encoder_kwargs")
-    ):
+    if extractor is None and split_sb3_feature_size(extractor_kwargs)[1] and kwargs.get("encoder_kwargs"):
         raise ParameterError(
             name("features_extractor_kwargs"),
             "without features_extractor_class, features_extractor_kwargs (but features_dim and cnn_output_dim, "

@@ -571,6 +571,32 @@ def test_sb3_feature_sizes_set_the_trunks(policy, key, tmp_path):
     assert loaded.actor.trunk[0].out_features == 12 and params_equal(loaded, model)
 
 
+def test_transplant_reads_sb3_feature_sizes(tmp_path):
+    source = DrQv2(
+        "CnnPolicy",
+        make_env("CnnPolicy"),
+        **SMALL,
+        policy_kwargs=sized("CnnPolicy", features_extractor_kwargs=dict(features_dim=12)),
+    )
+    source.save(tmp_path / "source.zip")
+    target = DrQv2(
+        "CnnPolicy",
+        make_env("CnnPolicy"),
+        **SMALL,
+        policy_kwargs=sized("CnnPolicy", feature_dim=12),
+        init_from={"mlp": tmp_path / "source.zip"},
+    )
+    assert th.equal(target.actor.trunk[0].weight, source.actor.trunk[0].weight)
+    with pytest.raises(ValueError, match="trained with feature_dim=12, this model has feature_dim=50"):
+        DrQv2(
+            "CnnPolicy",
+            make_env("CnnPolicy"),
+            **SMALL,
+            policy_kwargs=sized("CnnPolicy"),
+            init_from={"mlp": tmp_path / "source.zip"},
+        )
+
+
 def test_sb3_feature_sizes_keep_the_other_encoder_kwargs_and_refuse_two_sizes():
     kwargs = sized("CnnPolicy", encoder_kwargs={}, features_extractor_kwargs=dict(features_dim=10, channels=6))
     model = DrQv2("CnnPolicy", make_env("CnnPolicy"), **SMALL, policy_kwargs=kwargs)
