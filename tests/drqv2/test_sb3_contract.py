@@ -563,7 +563,7 @@ def test_sb3_feature_sizes_set_the_trunks(policy, key, tmp_path):
     assert model.policy.feature_dim == 12
     for network in (model.actor, model.critic, model.critic_target):
         assert network.trunk[0].out_features == 12 and network.trunk[0].in_features == model.encoder.repr_dim
-    assert model.critic.q1[0].in_features == 12 + 2 or policy == "MlpPolicy"
+    assert model.critic.q1[0].in_features == 12 + model.action_space.shape[0]
     model.learn(20)
     assert model._n_updates > 0
     model.save(tmp_path / "model.zip")
