@@ -12,6 +12,7 @@ import torch as th
 from stable_baselines3.common.type_aliases import Schedule
 
 from sb3_collapse.drqv2.policies import check_policy_kwargs
+from sb3_collapse.drqv2.rounds import TRAIN_FREQ_UNITS
 from sb3_collapse.errors import ParameterError
 
 
@@ -57,7 +58,14 @@ def check_hyperparameters(
     integer("batch_size", batch_size, 1)
     number("tau", tau, 0.0, 1.0)
     number("gamma", gamma, 0.0, 1.0)
-    integer("train_freq", train_freq[0] if isinstance(train_freq, tuple) else train_freq, 1)
+    pair = list(train_freq) if isinstance(train_freq, (tuple, list)) else None  # a list from rl_zoo3's YAML
+    integer("train_freq", pair[0] if pair else train_freq, 1)
+    if pair is not None and (len(pair) != 2 or getattr(pair[1], "value", pair[1]) not in TRAIN_FREQ_UNITS):
+        raise ParameterError(
+            "train_freq",
+            "train_freq must be n or (n, 'step') (SB3's: n steps of every environment), (n, 'episode'), or "
+            f"(n, 'transition') (n transitions summed over the environments, DrQ-v2's ratio), got {train_freq!r}.",
+        )
     if gradient_steps != -1:
         integer("gradient_steps", gradient_steps, 0)  # 0: collect without updating, as SB3 allows
     integer("n_steps", n_steps, 1)

@@ -63,9 +63,10 @@ class DrQv2(RoundsAlgorithm):
     convolutional encoder is trained by the critic loss only. ``docs/algorithm.md`` describes it and its use.
 
     **Units.** Step counts are **transitions**, summed over the environments (SB3's ``num_timesteps``; agent steps
-    with one environment): ``buffer_size``, ``learning_starts``, ``train_freq``, the ``stddev_schedule``'s durations
-    and the budget of :meth:`learn`. DrQ-v2 and the paper count **frames**: transitions x action repeat
-    (``model.num_frames``). One update per ``train_freq`` transitions holds on any number of environments
+    with one environment): ``buffer_size``, ``learning_starts``, the ``stddev_schedule``'s durations and the budget
+    of :meth:`learn`. DrQ-v2 and the paper count **frames**: transitions x action repeat (``model.num_frames``).
+    ``train_freq`` is SB3's (steps of every environment) unless given in transitions: the default
+    ``(2, "transition")``, DrQ-v2's one update per two transitions, holds on any number of environments
     (``sb3_collapse.drqv2.rounds``, ``docs/throughput.md``).
 
     :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8), ``"MlpPolicy"`` (vectors, and
@@ -76,13 +77,18 @@ class DrQv2(RoundsAlgorithm):
     :param learning_rate: Adam learning rate of the encoder, actor and critic, or an SB3 schedule
     :param buffer_size: replay capacity, in transitions (``sb3_collapse.drqv2.replay_memory``: the buffer chosen,
         a warning when it cannot fit in RAM)
-    :param learning_starts: transitions of uniformly random actions before the first update
+    :param learning_starts: transitions of uniformly random actions before the first update: DrQ-v2's 2000 (its
+        4,000 seed frames at action repeat 2), where TD3's default is 100, so that a ``learn()`` of fewer transitions
+        makes no update; with ``verbose >= 1`` the log says when the updates start
     :param batch_size: minibatch size of each update
     :param tau: soft update coefficient of the target critic
     :param gamma: discount factor
-    :param train_freq: transitions per ``gradient_steps`` updates, or ``(n, "episode")`` (one environment only)
-    :param gradient_steps: updates per ``train_freq`` transitions (``-1``: one per transition; ``0``: collect
-        without updating, as SB3 allows)
+    :param train_freq: when the ``gradient_steps`` updates are made: ``(n, "transition")`` every ``n``
+        transitions summed over the environments (DrQ-v2's ratio whatever their number; the default, the train
+        CLI's); SB3's ``n`` or ``(n, "step")`` after every ``n`` steps of every environment (``n x n_envs``
+        transitions, as TD3); ``(n, "episode")`` after every ``n`` episodes (one environment only)
+    :param gradient_steps: updates per ``train_freq`` (``-1``: one per transition; ``0``: collect without updating,
+        as SB3 allows)
     :param n_steps: length of the n-step returns, in agent steps
     :param stddev_schedule: exploration std as a function of the transitions since the last
         :meth:`reset_from_scratch`: a float, ``"linear(init,final,duration)"``,
@@ -109,7 +115,7 @@ class DrQv2(RoundsAlgorithm):
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``; CUDA without a GPU is refused (SB3 falls back to the
-        CPU silently: the one deliberate departure, ``docs/algorithm.md``)
+        CPU silently: a departure from TD3, ``docs/algorithm.md``)
     :param init_from: the paper's layer transplant (Study 2): group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a zip
         saved by ``DrQv2.save`` or a DrQv2 model, copied once when the model is built
         (``sb3_collapse.drqv2.transplant``)
@@ -143,7 +149,7 @@ class DrQv2(RoundsAlgorithm):
         batch_size: int = 256,
         tau: float = 0.01,
         gamma: float = 0.99,
-        train_freq: int | tuple[int, str] = 2,
+        train_freq: int | tuple[int, str] = (2, "transition"),
         gradient_steps: int = 1,
         n_steps: int = 3,
         stddev_schedule: ScheduleSpec = "linear(1.0,0.1,100000)",
@@ -308,6 +314,10 @@ class DrQv2(RoundsAlgorithm):
                 replay_memory.warn_not_ready(self.num_timesteps)
                 self._warned_replay_not_ready = True
             return
+        if self._n_updates == 0 and self.verbose >= 1:
+            print(
+                f"DrQv2: updates start at transition {self.num_timesteps:,} (learning_starts={self.learning_starts:,})"
+            )
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizers)
         std = self.current_stddev
@@ -477,6 +487,13 @@ class DrQv2(RoundsAlgorithm):
         if self.replay_buffer is not None:  # a loaded model's batch drawn ahead, from its restored replay buffer
             self.replay_prefetcher.restore(self.replay_buffer, self._vec_normalize_env)
         callbacks = self._combined_callbacks(callback)
+        if self.verbose >= 1:
+            start = 0 if reset_num_timesteps else self.num_timesteps - self.reset_step
+            if start < self.learning_starts:
+                print(
+                    f"DrQv2: updates start after {self.learning_starts:,} transitions of uniform random actions "
+                    f"(learning_starts), {self.learning_starts - start:,} from now"
+                )
         return super().learn(total_timesteps, callbacks, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
     def _combined_callbacks(self, callback: MaybeCallback) -> MaybeCallback:

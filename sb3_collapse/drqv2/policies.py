@@ -78,6 +78,10 @@ class Actor(nn.Module):
     :param net_arch: units of each hidden layer; ``None``: ``[hidden_dim, hidden_dim]`` (DrQ-v2's)
     """
 
+    features_extractor: nn.Module | None = None
+    """SB3's name for the encoder whose features this network reads (:func:`expose_encoder`): the policy's, shared,
+    not a submodule of this network; ``None`` for a network built alone."""
+
     def __init__(
         self,
         repr_dim: int,
@@ -186,6 +190,10 @@ class Critic(nn.Module):
     :param n_critics: number of Q heads (DrQ-v2's 2)
     """
 
+    features_extractor: nn.Module | None = None
+    """SB3's name for the encoder whose features this network reads (:func:`expose_encoder`): the policy's, shared,
+    not a submodule of this network; ``None`` for a network built alone."""
+
     def __init__(
         self,
         repr_dim: int,
@@ -260,6 +268,22 @@ def _q_head(
     return nn.Sequential(*layers, nn.Linear(in_dim, 1))
 
 
+def expose_encoder(encoder: nn.Module, *networks: nn.Module) -> None:
+    """
+    SB3's ``features_extractor`` on each network (``model.actor.features_extractor``, the critic's, the target
+    critic's, which DrQ-v2 runs on the online encoder's features): the policy's encoder, or a user's
+    ``BaseFeaturesExtractor`` itself (the ``extractor`` of :class:`FeaturesExtractorEncoder`). A reference, not a
+    submodule: the encoder's parameters are in ``state_dict()``, the optimizers and the saved zip once, under
+    ``encoder.``, and ``networks``' ``parameters()``, ``apply()`` and ``train()`` do not reach them.
+
+    :param encoder: the policy's encoder
+    :param networks: the networks that read its features
+    """
+    extractor = encoder.extractor if isinstance(encoder, FeaturesExtractorEncoder) else encoder
+    for network in networks:
+        network.__dict__["features_extractor"] = extractor  # nn.Module.__setattr__ would register it
+
+
 class DrQv2Policy(BasePolicy):
     """
     Encoder, actor, critic and target critic of DrQ-v2, with one Adam optimizer for each trained part.
@@ -272,7 +296,8 @@ class DrQv2Policy(BasePolicy):
     :param observation_space: observation space
     :param action_space: action space, a bounded ``Box``
     :param lr_schedule: learning rate schedule (constant 1e-4 in DrQ-v2)
-    :param feature_dim: size of the actor and critic trunk outputs (50; 100 for humanoid in DrQ-v2)
+    :param feature_dim: size of the actor and critic trunk outputs (50; 100 for humanoid in DrQ-v2); SB3's
+        ``features_extractor_kwargs=dict(features_dim=...)`` (or ``cnn_output_dim``) sets it too
     :param hidden_dim: units of the two hidden layers of the actor and of each Q head (when ``net_arch`` is
         ``None``)
     :param encoder_class: ``PixelEncoder`` (``CnnPolicy``), ``StateEncoder`` (``MlpPolicy``) or ``DictEncoder``
@@ -293,7 +318,10 @@ class DrQv2Policy(BasePolicy):
         encoder (:class:`FeaturesExtractorEncoder`), shared by the actor and the critic and trained by the critic
         loss; ``None``: DrQ-v2's encoder (``encoder_class``)
     :param features_extractor_kwargs: its keyword arguments; without ``features_extractor_class``, those of DrQ-v2's
-        encoder (as ``encoder_kwargs``)
+        encoder (as ``encoder_kwargs``), except SB3's sizes of the features ``features_dim`` (``NatureCNN``'s) and
+        ``cnn_output_dim`` (``CombinedExtractor``'s, ``MultiInputPolicy``), which set ``feature_dim``: the features
+        the actor's and the critic's hidden layers read are the outputs of their trunks (DrQ-v2's encoder has no
+        projection of its own; :data:`SB3_FEATURE_SIZES`)
     :param normalize_images: SB3's: ``True`` divides ``uint8`` images by 255 (DrQ-v2's encoder: ``obs / 255 - 0.5``);
         ``False`` takes images already normalized (float ``Box`` observations) as they are
     :param share_features_extractor: SB3's: ``True``, DrQ-v2's only setting (one encoder for the actor and the
@@ -329,6 +357,7 @@ class DrQv2Policy(BasePolicy):
     ) -> None:
         check_policy_kwargs(
             dict(
+                feature_dim=feature_dim,
                 hidden_dim=hidden_dim,
                 net_arch=net_arch,
                 activation=activation,
@@ -352,7 +381,8 @@ class DrQv2Policy(BasePolicy):
             normalize_images=normalize_images,
         )
         check_action_space(action_space)
-        self.feature_dim = feature_dim
+        sb3_size, drqv2_encoder_kwargs = split_sb3_feature_size(features_extractor_kwargs, features_extractor_class)
+        self.feature_dim = feature_dim if sb3_size is None else sb3_size
         self.hidden_dim = hidden_dim
         self.net_arch = net_arch
         self.actor_arch, self.critic_arch = actor_critic_arch(net_arch, hidden_dim)
@@ -363,8 +393,8 @@ class DrQv2Policy(BasePolicy):
         self.features_extractor_kwargs = features_extractor_kwargs or {}
         self.encoder_class = encoder_class
         self.encoder_kwargs = encoder_kwargs or {}
-        if features_extractor_class is None and features_extractor_kwargs:
-            self.encoder_kwargs = {**self.encoder_kwargs, **features_extractor_kwargs}  # DrQ-v2's encoder's
+        if drqv2_encoder_kwargs:
+            self.encoder_kwargs = {**self.encoder_kwargs, **drqv2_encoder_kwargs}  # DrQ-v2's encoder's
         self.activation = activation
         self.leaky_relu_slope = leaky_relu_slope
         if optimizer_class is th.optim.Adam and "fused" not in self.optimizer_kwargs:
@@ -411,6 +441,7 @@ class DrQv2Policy(BasePolicy):
             module.float()  # SB3's observations and replay samples are float32, whatever torch's default dtype
         self.critic_target = copy.deepcopy(self.critic)
         self.critic_target.requires_grad_(False)
+        expose_encoder(self.encoder, self.actor, self.critic, self.critic_target)
 
         lr = lr_schedule(1)
         params = list(self.encoder.parameters())
@@ -458,6 +489,26 @@ class DrQv2Policy(BasePolicy):
             n_critics=self.n_critics,
             lr_schedule=self._dummy_schedule,
         )
+
+    def extract_features(  # type: ignore[override]
+        self, obs: PyTorchObs, features_extractor: nn.Module | None = None
+    ) -> th.Tensor:
+        """
+        SB3's: the features that the actor and the critic read, from the one encoder they share (DrQ-v2's normalizes
+        the pixels itself in ``cnn0``; a user's extractor gets SB3's ``preprocess_obs`` first).
+
+        :param obs: observations
+        :param features_extractor: ``None``, or a network's ``features_extractor`` (the actor's, the critic's and the
+            target critic's are this encoder)
+        :return: ``(n, repr_dim)`` features
+        :raises ValueError: for another module
+        """
+        if features_extractor is not None and features_extractor is not self.actor.features_extractor:
+            raise ValueError(
+                "DrQv2Policy has one encoder, model.actor.features_extractor (the critic's and the target critic's "
+                f"too); got another module, {type(features_extractor).__name__}."
+            )
+        return self.encoder(obs)  # type: ignore[arg-type]
 
     def forward(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
         return self._predict(observation, deterministic=deterministic)
@@ -622,6 +673,32 @@ class MultiInputPolicy(DrQv2Policy):
         super().__init__(*args, encoder_class=encoder_class, **kwargs)
 
 
+SB3_FEATURE_SIZES = ("features_dim", "cnn_output_dim")
+"""
+The keys of SB3's ``features_extractor_kwargs`` that size the features its networks' hidden layers read: ``NatureCNN``'s
+``features_dim`` (its last Linear layer, ``CnnPolicy``) and ``CombinedExtractor``'s ``cnn_output_dim`` (that of each
+image key, ``MultiInputPolicy``). With DrQ-v2's encoder both set ``feature_dim``, the output of the actor's and the
+critic's trunks (Linear, LayerNorm, Tanh), which is where DrQ-v2 projects its convolutional features; with a dict,
+the trunks read the image and the other keys together.
+"""
+
+
+def split_sb3_feature_size(
+    features_extractor_kwargs: Mapping[str, Any] | None, features_extractor_class: type | None = None
+) -> tuple[int | None, dict[str, Any]]:
+    """
+    :param features_extractor_kwargs: SB3's ``policy_kwargs['features_extractor_kwargs']``
+    :param features_extractor_class: SB3's ``features_extractor_class``; with one, the kwargs are all its own
+    :return: the size of the features given by :data:`SB3_FEATURE_SIZES` (``None`` when none), and the other
+        keyword arguments, for DrQ-v2's encoder (``{}`` with a ``features_extractor_class``)
+    """
+    kwargs = dict(features_extractor_kwargs or {})
+    if features_extractor_class is not None:
+        return None, {}
+    sizes = [kwargs.pop(key) for key in SB3_FEATURE_SIZES if key in kwargs]
+    return (sizes[0] if sizes else None), kwargs
+
+
 ACTIVATION_FNS: dict[type[nn.Module], str] = {nn.ReLU: "relu", nn.LeakyReLU: "leaky_relu"}
 """SB3's ``activation_fn`` values DrQv2 takes, and the ``activation`` each means."""
 
@@ -719,12 +796,28 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
             "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
             f"(stable_baselines3.common.torch_layers), got {extractor!r}.",
         )
-    if extractor is None and kwargs.get("features_extractor_kwargs") and kwargs.get("encoder_kwargs"):
+    extractor_kwargs = kwargs.get("features_extractor_kwargs") or {}
+    sizes = {key: extractor_kwargs[key] for key in SB3_FEATURE_SIZES if key in extractor_kwargs}
+    if extractor is None and sizes:
+        for key, value in sizes.items():
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ParameterError(
+                    name("features_extractor_kwargs"),
+                    f"policy_kwargs['features_extractor_kwargs']['{key}'] must be an integer >= 1, got {value!r}.",
+                )
+        given = {**sizes, **({"feature_dim": kwargs["feature_dim"]} if kwargs.get("feature_dim", 50) != 50 else {})}
+        if len(set(given.values())) > 1:
+            raise ParameterError(
+                name("features_extractor_kwargs"),
+                f"policy_kwargs gives {', '.join(f'{key}={value!r}' for key, value in given.items())}: with DrQ-v2's "
+                "encoder they are all the output size of the actor's and the critic's trunks (feature_dim): pass one.",
+            )
+    if extractor is None and split_sb3_feature_size(extractor_kwargs)[1] and kwargs.get("encoder_kwargs"):
         raise ParameterError(
             name("features_extractor_kwargs"),
-            "without features_extractor_class, features_extractor_kwargs are the keyword arguments of DrQ-v2's "
-            "encoder, "
-            "as encoder_kwargs: pass one of them.",
+            "without features_extractor_class, features_extractor_kwargs (but features_dim and cnn_output_dim, "
+            "the trunks' feature_dim) are the keyword arguments of DrQ-v2's encoder, as encoder_kwargs: pass one of "
+            "them.",
         )
 
 

@@ -1,12 +1,15 @@
 """
-The loop of ``DrQv2.learn()``: rounds of environment steps up to the next update due, then the updates due. It keeps
-DrQ-v2's update ratio (one update per ``train_freq`` transitions) on any number of environments, restarts the
-warm-up after a reset from scratch (``reset_step``), and can step the environments while the learner updates
-(``step_envs_during_updates``). ``docs/throughput.md`` explains the ratio and the overlap.
+The loop of ``DrQv2.learn()``: rounds of environment steps up to the next update due, then the updates due. With
+``train_freq=(n, "transition")`` it keeps DrQ-v2's update ratio (one update per ``n`` transitions, summed over the
+environments) on any number of environments; SB3's ``train_freq`` (``n`` or ``(n, "step")``: ``n`` steps of every
+environment; ``(n, "episode")``) makes SB3's rounds. It restarts the warm-up after a reset from scratch
+(``reset_step``), and can step the environments while the learner updates (``step_envs_during_updates``).
+``docs/throughput.md`` explains the ratio and the overlap.
 """
 
 from __future__ import annotations
 
+from enum import Enum
 from typing import TypeVar
 
 import numpy as np
@@ -23,11 +26,30 @@ from sb3_collapse.errors import AssertedParameterError
 SelfRoundsAlgorithm = TypeVar("SelfRoundsAlgorithm", bound="RoundsAlgorithm")
 
 
+class TransitionUnit(Enum):
+    """
+    The unit of ``train_freq=(n, "transition")``: transitions summed over the environments (DrQ-v2's
+    ``update_every_steps`` with any number of environments), beside SB3's ``TrainFrequencyUnit`` (``"step"``: steps of
+    every environment, ``"episode"``). An ``Enum`` as SB3's, so that a saved ``TrainFreq`` comes back as one.
+    """
+
+    TRANSITION = "transition"
+
+
+TRANSITION = TransitionUnit.TRANSITION
+"""``train_freq=(n, "transition")`` is kept as ``TrainFreq(n, TRANSITION)``."""
+
+TRAIN_FREQ_UNITS = ("step", "episode", TRANSITION.value)
+"""The units ``train_freq=(n, unit)`` takes: SB3's two and :data:`TRANSITION`."""
+
+
 class RoundsAlgorithm(OffPolicyAlgorithm):
     """
-    SB3's off-policy loop, in rounds whose updates are counted in transitions summed over the environments.
+    SB3's off-policy loop, in rounds whose updates are counted in transitions summed over the environments
+    (``train_freq=(n, "transition")``), or SB3's rounds (``train_freq=n``, ``(n, "step")``: ``n`` steps of every
+    environment, then ``gradient_steps`` updates once ``learning_starts`` transitions are passed; ``(n, "episode")``).
 
-    After ``T`` transitions a model has made exactly
+    With ``(train_freq, "transition")``, after ``T`` transitions a model has made exactly
     ``gradient_steps * (T // train_freq - (reset_step + learning_starts) // train_freq)`` updates (``T`` beyond
     ``reset_step + learning_starts``): the updates of a round are made at the end of the ``env.step`` in which they
     become due (:meth:`updates_due`). With ``step_envs_during_updates``, the next actions are sent to the environments
@@ -186,13 +208,26 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
         self._update_info_buffer(infos, dones)
         self._store_transition(self.replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
 
+    def _convert_train_freq(self) -> None:
+        """SB3's conversion of ``train_freq`` to a ``TrainFreq``, and of ``(n, "transition")`` (or a list, as
+        rl_zoo3's YAML gives it) to ``TrainFreq(n, TRANSITION)``."""
+        train_freq = self.train_freq
+        if (
+            isinstance(train_freq, (tuple, list))
+            and len(train_freq) == 2
+            and train_freq[1] in (TRANSITION, "transition")
+        ):
+            self.train_freq = TrainFreq(train_freq[0], TRANSITION)  # type: ignore[arg-type]
+        else:
+            super()._convert_train_freq()
+
     def _round_train_freq(self) -> TrainFreq:
         """
-        ``env.step`` calls of the next rollout: up to the step in which the transition count reaches the next
-        multiple of ``train_freq`` (``train_freq`` steps with one environment, one step when ``n_envs >= train_freq``);
-        the episode count of an episodic ``train_freq`` as is.
+        ``env.step`` calls of the next rollout: with ``(n, "transition")``, up to the step in which the transition
+        count reaches the next multiple of ``n`` (``n`` steps with one environment, one step when ``n_envs >= n``);
+        SB3's ``train_freq`` (steps of every environment, or episodes) as is.
         """
-        if self.train_freq.unit != TrainFrequencyUnit.STEP:
+        if self.train_freq.unit != TRANSITION:
             return self.train_freq
         frequency = self.train_freq.frequency
         next_multiple = (self.num_timesteps // frequency + 1) * frequency
@@ -200,18 +235,18 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
 
     def updates_due(self, start: int, end: int) -> int:
         """
-        Updates that DrQ-v2's ratio asks for when the transition count goes from ``start`` to ``end``:
-        ``gradient_steps`` for each multiple ``m`` of ``train_freq`` with ``start < m <= end`` and
+        Updates due when the transition count goes from ``start`` to ``end``. With ``(n, "transition")``, DrQ-v2's
+        ratio: ``gradient_steps`` for each multiple ``m`` of ``n`` with ``start < m <= end`` and
         ``m > reset_step + learning_starts`` (one per transition ``t`` in that range with ``gradient_steps=-1``).
-        With an episodic ``train_freq``: ``gradient_steps`` (``-1``: ``end - start``) when
-        ``end > reset_step + learning_starts``, else 0.
+        With SB3's ``train_freq`` (the rollout of ``n`` steps of every environment, or of ``n`` episodes), SB3's:
+        ``gradient_steps`` (``-1``: ``end - start``) when ``end > reset_step + learning_starts``, else 0.
 
         :param start: ``num_timesteps`` before the steps
         :param end: ``num_timesteps`` after them
         :return: the number of updates
         """
         first = self.reset_step + self.learning_starts  # no update at or before this transition count
-        if self.train_freq.unit != TrainFrequencyUnit.STEP:
+        if self.train_freq.unit != TRANSITION:
             if end <= first:
                 return 0
             return self.gradient_steps if self.gradient_steps >= 0 else end - start

@@ -41,7 +41,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
 
 from sb3_collapse.drqv2.encoders import PixelEncoder
-from sb3_collapse.drqv2.policies import DrQv2Policy
+from sb3_collapse.drqv2.policies import DrQv2Policy, split_sb3_feature_size
 
 TRANSPLANT_GROUPS: dict[str, tuple[str, ...]] = {
     "cnn": ("encoder.",),
@@ -289,7 +289,11 @@ def policy_settings(
         return policy_kwargs[name] if name in policy_kwargs else _constructor_default(policy_class, name)
 
     encoder_class = kwarg("encoder_class")
-    encoder_kwargs = kwarg("encoder_kwargs") or {}
+    # SB3's features_extractor_kwargs: features_dim / cnn_output_dim is feature_dim, the rest DrQ-v2's encoder's
+    sb3_size, sb3_encoder_kwargs = split_sb3_feature_size(
+        policy_kwargs.get("features_extractor_kwargs"), policy_kwargs.get("features_extractor_class")
+    )
+    encoder_kwargs = {**(kwarg("encoder_kwargs") or {}), **sb3_encoder_kwargs}
     pixel = isinstance(encoder_class, type) and issubclass(encoder_class, PixelEncoder)
 
     def encoder_kwarg(name: str) -> Any:
@@ -303,7 +307,7 @@ def policy_settings(
         "policy": policy_class.__name__,
         "observation shape": tuple(shape) if shape is not None else None,
         "action dimensions": int(np.prod(action_shape)) if action_shape is not None else None,
-        "feature_dim": kwarg("feature_dim"),
+        "feature_dim": kwarg("feature_dim") if sb3_size is None else sb3_size,
         "hidden_dim": kwarg("hidden_dim"),
         "encoder channels": encoder_kwarg("channels"),
         "channels_last": encoder_kwarg("channels_last"),

@@ -593,7 +593,7 @@ def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
         batch_size=config.batch_size,
         tau=config.tau,
         gamma=config.gamma,
-        train_freq=config.train_freq,
+        train_freq=(config.train_freq, "transition"),  # DrQ-v2's ratio with any number of environments
         n_steps=config.n_steps,
         stddev_schedule=config.stddev_schedule,
         stddev_clip=config.stddev_clip,

@@ -1,4 +1,4 @@
-"""SB3's contract: code written for SB3's TD3 runs with DrQv2 in its place (issue 22)."""
+"""SB3's contract: code written for SB3's TD3 runs with DrQv2 in its place, SB3's own test bodies included."""
 
 import gymnasium as gym
 import numpy as np
@@ -7,10 +7,13 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import FakeImageEnv, SimpleMultiObsEnv
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.noise import ActionNoise, NormalActionNoise
+from stable_baselines3.common.preprocessing import get_flattened_obs_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from torch import nn
 
@@ -19,8 +22,10 @@ from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
 from sb3_collapse.drqv2.encoders import DictEncoder, FeaturesExtractorEncoder
 from sb3_collapse.drqv2.policies import MultiInputPolicy
+from sb3_collapse.drqv2.rounds import TRANSITION
 from sb3_collapse.drqv2.sb3_compat import DictNStepReplayBuffer, combine_callbacks
 from sb3_collapse.errors import ParameterError, SpaceError
+from sb3_collapse.run.config import TrainConfig, drqv2_kwargs
 from tests.random_env import RandomObservationEnv
 
 th.set_num_threads(1)
@@ -536,3 +541,269 @@ def test_fake_image_env():
     assert model.observation_space.shape == (3, 36, 36)
     model.learn(20)
     assert model._n_updates > 0
+
+
+# ----------------------------------------------------------------------------- 7. SB3's own test bodies
+
+
+def sized(policy, **kwargs):
+    """``tiny(policy)`` without ``feature_dim``, for SB3's size keywords."""
+    policy_kwargs = tiny(policy)
+    del policy_kwargs["feature_dim"]
+    return {**policy_kwargs, **kwargs}
+
+
+@pytest.mark.parametrize(
+    ("policy", "key"),
+    [("CnnPolicy", "features_dim"), ("MlpPolicy", "features_dim"), ("MultiInputPolicy", "cnn_output_dim")],
+)
+def test_sb3_feature_sizes_set_the_trunks(policy, key, tmp_path):
+    # SB3's test_cnn.py / test_dict_env.py: policy_kwargs=dict(features_extractor_kwargs=dict(features_dim=32)) ...
+    model = DrQv2(policy, make_env(policy), **SMALL, policy_kwargs=sized(policy, features_extractor_kwargs={key: 12}))
+    assert model.policy.feature_dim == 12
+    for network in (model.actor, model.critic, model.critic_target):
+        assert network.trunk[0].out_features == 12 and network.trunk[0].in_features == model.encoder.repr_dim
+    assert model.critic.q1[0].in_features == 12 + model.action_space.shape[0]
+    model.learn(20)
+    assert model._n_updates > 0
+    model.save(tmp_path / "model.zip")
+    loaded = DrQv2.load(tmp_path / "model.zip")
+    assert loaded.actor.trunk[0].out_features == 12 and params_equal(loaded, model)
+
+
+def test_transplant_reads_sb3_feature_sizes(tmp_path):
+    source = DrQv2(
+        "CnnPolicy",
+        make_env("CnnPolicy"),
+        **SMALL,
+        policy_kwargs=sized("CnnPolicy", features_extractor_kwargs=dict(features_dim=12)),
+    )
+    source.save(tmp_path / "source.zip")
+    target = DrQv2(
+        "CnnPolicy",
+        make_env("CnnPolicy"),
+        **SMALL,
+        policy_kwargs=sized("CnnPolicy", feature_dim=12),
+        init_from={"mlp": tmp_path / "source.zip"},
+    )
+    assert th.equal(target.actor.trunk[0].weight, source.actor.trunk[0].weight)
+    with pytest.raises(ValueError, match="trained with feature_dim=12, this model has feature_dim=50"):
+        DrQv2(
+            "CnnPolicy",
+            make_env("CnnPolicy"),
+            **SMALL,
+            policy_kwargs=sized("CnnPolicy"),
+            init_from={"mlp": tmp_path / "source.zip"},
+        )
+
+
+def test_sb3_feature_sizes_keep_the_other_encoder_kwargs_and_refuse_two_sizes():
+    kwargs = sized("CnnPolicy", encoder_kwargs={}, features_extractor_kwargs=dict(features_dim=10, channels=6))
+    model = DrQv2("CnnPolicy", make_env("CnnPolicy"), **SMALL, policy_kwargs=kwargs)
+    assert model.encoder.cnn1[0].out_channels == 6 and model.actor.trunk[0].out_features == 10
+    same = DrQv2("CnnPolicy", make_env("CnnPolicy"), **SMALL, policy_kwargs={**kwargs, "feature_dim": 10})
+    assert same.policy.feature_dim == 10
+    for bad, match in [
+        (dict(feature_dim=16, features_extractor_kwargs=dict(features_dim=12)), "feature_dim=16.*pass one"),
+        (dict(features_extractor_kwargs=dict(features_dim=12, cnn_output_dim=8)), "pass one"),
+        (dict(features_extractor_kwargs=dict(features_dim=0)), r"\['features_dim'\] must be an integer >= 1"),
+    ]:
+        with pytest.raises(ParameterError, match=match) as error:
+            DrQv2("CnnPolicy", make_env("CnnPolicy"), **SMALL, policy_kwargs=bad)
+        assert error.value.parameter == "policy_kwargs['features_extractor_kwargs']"
+
+
+class FlattenBatchNormDropoutExtractor(BaseFeaturesExtractor):
+    """SB3's, from tests/test_train_eval_mode.py."""
+
+    def __init__(self, observation_space):
+        super().__init__(observation_space, get_flattened_obs_dim(observation_space))
+        self.flatten = nn.Flatten()
+        self.batch_norm = nn.BatchNorm1d(self._features_dim)
+        self.dropout = nn.Dropout(0.5)
+
+    def forward(self, observations):
+        return self.dropout(self.batch_norm(self.flatten(observations)))
+
+
+def batch_norm_stats(model):
+    """SB3's ``clone_sac_batch_norm_stats``: the actor's, the critic's and the target critic's extractor."""
+    stats = []
+    for network in (model.actor, model.critic, model.critic_target):
+        batch_norm = network.features_extractor.batch_norm
+        stats += [batch_norm.bias.clone(), batch_norm.running_mean.clone()]
+    return stats
+
+
+def batch_norm_model(**kwargs):
+    policy_kwargs = dict(net_arch=[16, 16], features_extractor_class=FlattenBatchNormDropoutExtractor)
+    return DrQv2(
+        "MlpPolicy", "Pendulum-v1", policy_kwargs=policy_kwargs, seed=1, buffer_size=300, batch_size=8, **kwargs
+    )
+
+
+def test_sb3_batch_norm_collect_rollouts_changes_nothing():
+    # SB3's test_offpolicy_collect_rollout_batch_norm
+    model = batch_norm_model(learning_starts=10, gradient_steps=0, train_freq=1)
+    before = batch_norm_stats(model)
+    model.learn(total_timesteps=100)
+    assert all(th.isclose(a, b).all() for a, b in zip(before, batch_norm_stats(model), strict=True))
+
+
+def test_sb3_predict_with_dropout_batch_norm():
+    # SB3's test_predict_with_dropout_batch_norm
+    model = batch_norm_model(learning_starts=0, verbose=1)
+    before = batch_norm_stats(model)
+    observation = model.get_env().reset()
+    first_prediction, _ = model.predict(observation, deterministic=True)
+    for _ in range(5):
+        prediction, _ = model.predict(observation, deterministic=True)
+        np.testing.assert_allclose(first_prediction, prediction)
+    assert all(th.isclose(a, b).all() for a, b in zip(before, batch_norm_stats(model), strict=True))
+
+
+def test_sb3_train_with_batch_norm():
+    # SB3's test_td3_train_with_batch_norm (no actor target: DrQ-v2 has none)
+    model = batch_norm_model(learning_starts=0, tau=0)
+    bias, running_mean, *_ = batch_norm_stats(model)
+    model.learn(total_timesteps=60)
+    after = batch_norm_stats(model)
+    assert ~th.isclose(bias, after[0]).all() and ~th.isclose(running_mean, after[1]).all()  # trained by the critic
+    # the critic and the target critic read the same extractor: its running statistics are the critic's
+    assert th.equal(after[3], after[5]) and th.equal(after[1], after[3])
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_features_extractor_is_the_shared_encoder_once(policy, tmp_path):
+    model = model_for(policy)
+    keys = set(model.policy.state_dict())
+    for network in (model.actor, model.critic, model.critic_target):
+        assert network.features_extractor is model.encoder
+    assert not any("features_extractor" in key for key in keys)
+    assert {key.split(".")[0] for key in keys} <= {"encoder", "actor", "critic", "critic_target"}
+    # each parameter in one optimizer, once
+    optimized = [
+        id(p) for optimizer in model.policy.optimizers for group in optimizer.param_groups for p in group["params"]
+    ]
+    trained = {id(p) for p in model.policy.parameters()} - {id(p) for p in model.critic_target.parameters()}
+    assert len(optimized) == len(set(optimized)) and set(optimized) == trained
+    assert not {id(p) for p in model.actor.parameters()} & {id(p) for p in model.encoder.parameters()}
+    obs = (
+        th.as_tensor(sample_obs(model, 3))
+        if policy != "MultiInputPolicy"
+        else {key: th.as_tensor(value) for key, value in sample_obs(model, 3).items()}
+    )
+    features = model.policy.extract_features(obs, model.critic.features_extractor)
+    assert th.equal(features, model.encoder(obs)) and features.shape == (3, model.encoder.repr_dim)
+    with pytest.raises(ValueError, match="one encoder"):
+        model.policy.extract_features(obs, nn.Linear(2, 2))
+    model.learn(20)
+    model.save(tmp_path / "model.zip")
+    loaded = DrQv2.load(tmp_path / "model.zip", env=make_env(policy))
+    assert set(loaded.policy.state_dict()) == keys and params_equal(loaded, model)
+    assert loaded.actor.features_extractor is loaded.encoder is loaded.critic_target.features_extractor
+    loaded.reset_from_scratch()
+    assert loaded.actor.features_extractor is loaded.encoder and loaded.critic.features_extractor is loaded.encoder
+
+
+def test_features_extractor_of_a_users_class_is_the_users_module():
+    model = batch_norm_model(learning_starts=0)
+    assert isinstance(model.actor.features_extractor, FlattenBatchNormDropoutExtractor)
+    assert model.actor.features_extractor is model.encoder.extractor is model.critic_target.features_extractor
+
+
+class RolloutStarts(BaseCallback):
+    def __init__(self):
+        super().__init__()
+        self.starts = []
+
+    def _on_rollout_start(self):
+        self.starts.append((self.model.num_timesteps, self.model._n_updates))
+
+    def _on_step(self):
+        return True
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_sb3_train_freq_counts_steps_of_every_env(policy):
+    # SB3's test_offpolicy_multi_env: 3 steps x 2 envs collect 6 transitions, then gradient_steps updates
+    env = DummyVecEnv([lambda: make_env(policy)] * 2)
+    log = RolloutStarts()
+    model = model_for(policy, env=env, learning_starts=6, train_freq=3)
+    model.learn(total_timesteps=24, callback=log)
+    assert [t for t, _ in log.starts] == [0, 6, 12, 18] and model.num_timesteps == 24
+    assert [u for _, u in log.starts] == [0, 0, 1, 2] and model._n_updates == 3  # none at 6 (not > learning_starts)
+    # gradient_steps=-1: as many updates as transitions collected
+    model = model_for(policy, env=env, learning_starts=0, train_freq=3, gradient_steps=-1)
+    model.learn(total_timesteps=3)
+    assert model.logger.name_to_value["train/n_updates"] == 3 * env.num_envs
+    # DrQ-v2's ratio: one update per 3 transitions summed over the envs
+    model = model_for(policy, env=env, learning_starts=6, train_freq=(3, "transition"))
+    log = RolloutStarts()
+    model.learn(total_timesteps=24, callback=log)
+    assert [t for t, _ in log.starts] == [0, 4, 6, 10, 12, 16, 18, 22] and model._n_updates == 24 // 3 - 6 // 3
+
+
+def test_sb3_offpolicy_multi_env_body():
+    # SB3's test_offpolicy_multi_env for TD3, as it is (Pendulum, TimeLimit 50, 2 envs)
+    def make_env():
+        return gym.wrappers.TimeLimit(gym.make("Pendulum-v1"), 50)
+
+    env = make_vec_env(make_env, n_envs=2)
+    kwargs = dict(action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)), batch_size=8)
+    policy_kwargs = dict(net_arch=[64], n_critics=1)
+    model = DrQv2("MlpPolicy", env, policy_kwargs=policy_kwargs, learning_starts=100, buffer_size=10000, verbose=0,
+                  train_freq=5, **kwargs)  # fmt: skip
+    model.learn(total_timesteps=150)
+    assert model._n_updates == 5  # after the rounds of 10 transitions ending at 110, 120, ..., 150
+    train_freq = 3
+    model = DrQv2("MlpPolicy", env, policy_kwargs=policy_kwargs, learning_starts=0, buffer_size=10000, verbose=0,
+                  train_freq=train_freq, gradient_steps=-1, **kwargs)  # fmt: skip
+    model.learn(total_timesteps=train_freq)
+    assert model.logger.name_to_value["train/n_updates"] == train_freq * env.num_envs
+
+
+def test_train_freq_units_are_checked_and_saved(tmp_path):
+    with pytest.raises(ParameterError, match="train_freq must be n or .*'transition'") as error:
+        model_for("MlpPolicy", train_freq=(2, "transitions"))
+    assert error.value.parameter == "train_freq"
+    model = model_for("MlpPolicy")
+    assert model.train_freq == TrainFreq(2, TRANSITION)  # the default: DrQ-v2's ratio
+    model.save(tmp_path / "default.zip")
+    assert DrQv2.load(tmp_path / "default.zip").train_freq == TrainFreq(2, TRANSITION)
+    model = model_for("MlpPolicy", train_freq=3)
+    assert model.train_freq == TrainFreq(3, TrainFrequencyUnit.STEP)
+    model.save(tmp_path / "sb3.zip")
+    assert DrQv2.load(tmp_path / "sb3.zip").train_freq == TrainFreq(3, TrainFrequencyUnit.STEP)
+    assert model_for("MlpPolicy", train_freq=[4, "transition"]).train_freq == TrainFreq(4, TRANSITION)  # rl_zoo3's YAML
+    given = TrainFreq(2, TrainFrequencyUnit.EPISODE)
+    assert model_for("MlpPolicy", train_freq=given).train_freq == given
+
+
+def test_train_cli_keeps_drqv2s_ratio():
+    config = TrainConfig(env="walker-walk", n_envs=2, train_freq=2).resolve()
+    assert drqv2_kwargs(config)["train_freq"] == (2, "transition")
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_sb3_identity_warmup_is_visible(policy, capsys):
+    # SB3's test_identity.py trains TD3 400 steps with learning_starts left at its default (TD3's 100)
+    model = DrQv2(policy, make_env(policy), buffer_size=500, batch_size=8, policy_kwargs=tiny(policy), verbose=1)
+    assert model.learning_starts == 2000  # DrQ-v2's
+    model.learn(40)
+    assert model._n_updates == 0
+    out = capsys.readouterr().out
+    assert (
+        "DrQv2: updates start after 2,000 transitions of uniform random actions (learning_starts), 2,000 from now"
+        in out
+    )
+    model.learning_starts = 30
+    model.learn(20, reset_num_timesteps=False)
+    out = capsys.readouterr().out
+    assert "DrQv2: updates start at transition 42 (learning_starts=30)" in out and model._n_updates > 0
+    assert "updates start after" not in out  # the warm-up (30) is over at 40
+    model.learn(10, reset_num_timesteps=False)
+    assert "updates start" not in capsys.readouterr().out  # said once
+    quiet = DrQv2(policy, make_env(policy), **SMALL, policy_kwargs=tiny(policy))
+    quiet.learn(20)
+    assert quiet._n_updates > 0 and capsys.readouterr().out == ""

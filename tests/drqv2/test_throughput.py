@@ -92,8 +92,8 @@ def test_gradient_steps_and_episodic_train_freq():
                   gradient_steps=-1, policy_kwargs=dict(hidden_dim=32))
     model.learn(30)
     assert model._n_updates == 30  # -1: one per transition
-    model = DrQv2("MlpPolicy", state_envs(2), train_freq=4, gradient_steps=3, buffer_size=500, learning_starts=8,
-                  batch_size=4, seed=0, policy_kwargs=dict(hidden_dim=32))
+    model = DrQv2("MlpPolicy", state_envs(2), train_freq=(4, "transition"), gradient_steps=3, buffer_size=500,
+                  learning_starts=8, batch_size=4, seed=0, policy_kwargs=dict(hidden_dim=32))
     model.learn(40)
     assert model._n_updates == 3 * (40 // 4 - 8 // 4)
     episodic = DrQv2("MlpPolicy", state_envs(1, episode_length=10), train_freq=(1, "episode"), buffer_size=500,
