@@ -12,7 +12,7 @@ from stable_baselines3 import PPO, SAC
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.probe import ProbeSettings, Rollouts, load_checkpoint, probe_checkpoint, split_by_episode
 from sb3_collapse.probe.__main__ import main
-from sb3_collapse.probe.report import OUTPUT_FILES
+from sb3_collapse.report.probe_outputs import OUTPUT_FILES
 from tests.random_env import RandomObservationEnv
 
 FAST = ["--max-tau", "4", "--no-progress"]
