@@ -74,6 +74,7 @@ from sb3_collapse.protocol import (
     snapshot_files,
     write_json_atomically,
 )
+from sb3_collapse.report.collapse_figure import PAPER_ROLES, agent_class
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
 from sb3_collapse.report.statistics import across_seed_std, budget_frames, stage_indices, stages_caption
 from sb3_collapse.report.style import frames_axis, layer_style
@@ -101,8 +102,8 @@ FIGURE2_COLUMNS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
     ),
 }
 """Domain -> the columns of Figure 2: title and the probe targets (``probe.csv`` ``component``) it averages."""
-ROWS = ("well-performing", "poorly performing")
-"""The rows of Figure 2."""
+ROWS = (PAPER_ROLES[0], PAPER_ROLES[2])
+"""The rows of Figure 2: well-performing and poorly performing agents (:func:`agent_class`)."""
 
 
 def figure2_columns(task: str, components: Sequence[str], groups: Sequence[str]) -> list[tuple[str, tuple[str, ...]]]:
@@ -297,10 +298,11 @@ def split_agents(
     :param trials: finished trials
     :param success_return: a final return ``>=`` this is well-performing
     :param failure_return: a final return ``<`` this is poorly performing
-    :return: ``(well, poor)``, each by decreasing final return
+    :return: ``(well, poor)`` (:func:`agent_class` of their final return), each by decreasing final return
     """
     ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.returns[-1], t.seed))
-    return [t for t in ranked if t.returns[-1] >= success_return], [t for t in ranked if t.returns[-1] < failure_return]
+    classes = [agent_class(t.returns[-1], success_return, failure_return) for t in ranked]
+    return [t for t, c in zip(ranked, classes) if c == ROWS[0]], [t for t, c in zip(ranked, classes) if c == ROWS[1]]
 
 
 def probe_sweep(
