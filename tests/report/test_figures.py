@@ -186,8 +186,10 @@ def test_fixed_set_names_its_trial_checkpoint_and_frame(tmp_path):
 
 def test_collapse_figure_flags(reported, tmp_path, capsys):
     fake, _ = reported
+    (tmp_path / "text.npz").write_text("not a rollouts file")
     for flags, named in (
         (["--rollouts", str(tmp_path / "missing.npz")], "--rollouts"),
+        (["--rollouts", str(tmp_path / "text.npz")], "text.npz is not a rollouts file"),  # the probe's error
         (["--fixed-samples", "1"], "--fixed-samples"),
         (["--failure-return", "950"], "--failure-return"),
     ):
