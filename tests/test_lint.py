@@ -50,16 +50,25 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _imported_by_the_package() -> set[str]:
-    """The modules that some module of the package imports (``from a.b import c`` counts ``a.b`` and ``a.b.c``)."""
+def _imports(source: str, module: str) -> set[str]:
+    """
+    The modules that a module's source imports, at the top or inside a function (``from a.b import c`` counts
+    ``a.b`` and ``a.b.c``; a relative import is resolved against ``module``, the module's dotted name).
+    """
     imported = set()
-    for path in PACKAGE.rglob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Import):
-                imported.update(alias.name for alias in node.names)
-            elif isinstance(node, ast.ImportFrom) and node.module:
-                imported.update([node.module, *(f"{node.module}.{alias.name}" for alias in node.names)])
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            imported.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = module.split(".")[: -node.level] if node.level else []
+            name = ".".join([*base, *([node.module] if node.module else [])])
+            imported.update([name, *(f"{name}.{alias.name}" for alias in node.names)])
     return imported
+
+
+def _imported_by_the_package() -> set[str]:
+    """The modules that some module of the package imports."""
+    return {name for path in PACKAGE.rglob("*.py") for name in _imports(path.read_text(), _module_name(path))}
 
 
 def test_the_package_has_no_module_that_only_tests_use():
@@ -76,3 +85,35 @@ def test_the_package_has_no_module_that_only_tests_use():
             orphans.append(str(path.relative_to(ROOT)))
     assert not test_named, f"modules named as test doubles in the package (move them to tests/): {test_named}"
     assert not orphans, f"modules that no module of the package imports (move test-only code to tests/): {orphans}"
+
+
+def _draws(name: str) -> bool:
+    """:return: whether an imported module is the report or matplotlib"""
+    return any(name == top or name.startswith(top + ".") for top in ("sb3_collapse.report", "matplotlib"))
+
+
+def test_the_probe_computes_and_the_report_draws():
+    """No module of sb3_collapse/probe but its command line (``__main__.py``, the top layer) imports sb3_collapse.report
+    or matplotlib, at the top or inside a function: the report imports the probe, never the reverse."""
+    constructed = "import numpy\ndef plot():\n    from sb3_collapse import report\n    from ..report.film import x\n"
+    assert {n for n in _imports(constructed, "sb3_collapse.probe.film") if _draws(n)} == {
+        "sb3_collapse.report",
+        "sb3_collapse.report.film",
+        "sb3_collapse.report.film.x",
+    }
+    assert not any(_draws(n) for n in _imports("import matplotlib_inline\nfrom sb3_collapse import reporting", "a"))
+    drawing = {}
+    for path in sorted((PACKAGE / "probe").rglob("*.py")):
+        names = sorted(n for n in _imports(path.read_text(), _module_name(path)) if _draws(n))
+        if path.stem != "__main__" and names:
+            drawing[str(path.relative_to(ROOT))] = names
+    assert not drawing, f"probe modules that draw or import the report (move the drawing to report/): {drawing}"
+
+
+def test_importing_the_probe_loads_neither_the_report_nor_matplotlib():
+    """Every library module of sb3_collapse/probe imported in a fresh interpreter, with what they import in turn."""
+    modules = [_module_name(p) for p in sorted((PACKAGE / "probe").glob("*.py")) if p.stem != "__main__"]
+    code = f"import sys; [__import__(m) for m in {modules!r}]; print(' '.join(sys.modules))"
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=False)
+    assert result.returncode == 0, result.stderr
+    assert [name for name in result.stdout.split() if _draws(name)] == []

@@ -10,6 +10,11 @@ Offline OMP probing of checkpoints: ``python -m sb3_collapse.probe --help``.
 ``run`` (the default when the first argument is not a sub-command) probes; ``record`` records rollouts; ``sweep``
 probes the snapshots of a sweep's well- and poorly performing seeds.
 Errors in the input print ``error: ...`` and exit with status 2.
+
+The command line is the top layer: it runs the probe's computation (this package) and the drawing of
+:mod:`sb3_collapse.report` (:func:`~sb3_collapse.report.probe_outputs.probe_to_folder`,
+:func:`~sb3_collapse.report.figure2.probe_sweep`, :func:`~sb3_collapse.report.film.film_to_folder`); the library
+modules of this package import neither the report nor matplotlib.
 """
 
 from __future__ import annotations
@@ -24,11 +29,13 @@ from typing import Any
 
 from sb3_collapse.errors import ProbeError, cli_message, report_unwritable_outputs
 from sb3_collapse.paper import PAPER
-from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, STRIP_EVERY_FRAMES, film_to_folder
-from sb3_collapse.probe.pipeline import RecordOptions, probe_to_folder, record_to_file
+from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
+from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
 from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
-from sb3_collapse.probe.sweep import DEFAULT_OUT, probe_sweep
-from sb3_collapse.protocol import EXIT_INTERRUPTED, SNAPSHOTS_DIR
+from sb3_collapse.protocol import EXIT_INTERRUPTED, SNAPSHOTS_DIR, SWEEP_PROBE_DIR
+from sb3_collapse.report.figure2 import probe_sweep
+from sb3_collapse.report.film import STRIP_EVERY_FRAMES, film_to_folder
+from sb3_collapse.report.probe_outputs import probe_to_folder
 from sb3_collapse.run.config import setting
 from sb3_collapse.run.settings import add_setting_arguments, check_arguments, prog_name
 
@@ -130,7 +137,7 @@ class SweepFlags:
     )
     task: str | None = setting(help="the task folder, e.g. walker-walk", unit=None, required=True)
     variant: str = setting("drqv2", help="the variant folder", unit=None)
-    out: str | None = setting(help=f"output folder; default: <sweep>/{DEFAULT_OUT}", unit=None)
+    out: str | None = setting(help=f"output folder; default: <sweep>/{SWEEP_PROBE_DIR}", unit=None)
     rollouts: str | None = setting(help="rollouts .npz to probe on; default: record them from the best seed", unit=None)
     success_return: float = setting(PAPER.success_return, help="well-performing: final return >= this", unit=None)
     failure_return: float = setting(PAPER.failure_return, help="poorly performing: final return < this", unit=None)

@@ -20,7 +20,10 @@ import dataclasses
 import hashlib
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch as th
@@ -30,7 +33,7 @@ from tqdm.auto import tqdm
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import ProbeError
 from sb3_collapse.monitoring import collect_activations, layer_taps
-from sb3_collapse.probe.checkpoints import Checkpoint
+from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.omp import omp_path, path_predictions
 from sb3_collapse.probe.rollouts import Rollouts
 
@@ -492,3 +495,47 @@ def probe_checkpoint(
                 }
             )
     return result
+
+
+def probe_checkpoints(
+    paths: Sequence[str | Path],
+    labels: Sequence[str],
+    rollouts: Rollouts,
+    split: EpisodeSplit,
+    settings: ProbeSettings,
+    jobs: int = 1,
+) -> list[list[dict[str, Any]]]:
+    """
+    Probe many checkpoints on the same rollouts (:func:`probe_checkpoint`), ``jobs`` at once.
+
+    :param paths: the checkpoints
+    :param labels: their names in the rows (``checkpoint``)
+    :param rollouts: the recorded observations and states
+    :param split: the episode split of the rollouts
+    :param settings: the probe's settings; ``settings.progress`` shows one bar over the checkpoints
+    :param jobs: checkpoints probed at once (threads: the forward passes and OMP fits run in torch, outside Python's
+        lock). ``settings.memory_gb`` bounds them all together: each gets ``memory_gb / jobs`` for its activations.
+        The first checkpoint is probed alone, so that the others reuse its ``cnn0`` probe. The results do not
+        depend on ``jobs``
+    :return: each checkpoint's rows, in the order of ``paths``
+    :raises ProbeError: for a checkpoint that cannot be loaded or does not fit the rollouts
+    """
+    device = get_device(settings.device)
+    quiet = dataclasses.replace(settings, progress=False, memory_gb=settings.memory_gb / jobs)
+    reuse: dict[str, LayerProbe] = {}
+
+    def probe_one(item: tuple[str | Path, str]) -> list[dict[str, Any]]:
+        checkpoint = load_checkpoint(item[0], device=device)
+        checkpoint.label = item[1]
+        return probe_checkpoint(checkpoint, rollouts, split, quiet, reuse).rows
+
+    work = list(zip(paths, labels))
+    results: list[list[dict[str, Any]]] = []
+    with tqdm(total=len(work), desc="probing checkpoints", unit="checkpoint", disable=not settings.progress) as bar:
+        results.append(probe_one(work[0]))  # alone: the others reuse its cnn0 probe
+        bar.update()
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            for rows in pool.map(probe_one, work[1:]):  # in the order of work, whatever finishes first
+                results.append(rows)
+                bar.update()
+    return results

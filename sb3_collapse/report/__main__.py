@@ -17,8 +17,7 @@ from dataclasses import dataclass
 
 from sb3_collapse.errors import ReportError, cli_message, report_unwritable_outputs
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
-from sb3_collapse.report.collapse_figure import is_run_folder
-from sb3_collapse.report.fixed_inputs import FixedInputSettings
+from sb3_collapse.report.collapse_figure import FixedInputSettings, is_run_folder
 from sb3_collapse.report.headline import BASELINE_VARIANT
 from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_report
 from sb3_collapse.report.statistics import ReportSettings

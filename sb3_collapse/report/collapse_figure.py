@@ -14,13 +14,20 @@ reading, kept under its own name.)
 
 **The inputs.** The paper computes the metrics on ``H`` "as defined in Figure 1": the probing samples, "collected
 from well-performing agents". The report computes them after training on one fixed observation set for every
-snapshot of the picked agents (:mod:`sb3_collapse.report.fixed_inputs`); the online metrics of each
-trial's collapse metrics file (``protocol.COLLAPSE_METRICS_CSV``: each agent's own replay batch, at training time)
-are drawn in a figure of their own. Gradient norms are training-time in both.
+snapshot of the picked agents (:mod:`sb3_collapse.probe.fixed_inputs`): by default one set per task, the rollouts
+that ``python -m sb3_collapse.probe sweep`` recorded from the well-performing agent of the highest final return of
+the baseline variant (:attr:`FixedInputSettings.rollouts_variant`, ``drqv2``: ``<sweep>/probe/<task>_drqv2/
+rollouts.npz``), for every variant of the task, or a rollouts file given by the user; agents of every variant are
+then compared on the same inputs (``rollouts_variant=None`` reads each variant's own rollouts instead). A seeded
+subset of :attr:`FixedInputSettings.fixed_samples` observations keeps the cost bounded (all of them with
+``fixed_samples=None``). The online metrics of each trial's collapse metrics file (``protocol.COLLAPSE_METRICS_CSV``:
+each agent's own replay batch, at training time) are drawn in a figure of their own. Gradient norms are
+training-time in both.
 """
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,10 +39,22 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
 from matplotlib.ticker import LogLocator, NullLocator
+from stable_baselines3.common.utils import get_device
 
-from sb3_collapse.errors import ReportError
+from sb3_collapse.drqv2.checks import check_device
+from sb3_collapse.errors import ParameterError, ProbeError, ReportError
 from sb3_collapse.paper import PAPER, metric_tag
-from sb3_collapse.protocol import COLLAPSE_EVENTS_CSV, COLLAPSE_METRICS_CSV, CONFIG_JSON, EVAL_CSV
+from sb3_collapse.probe.fixed_inputs import FIXED_SAMPLES, FixedInputs, FixedMetrics, fixed_metrics, load_fixed_inputs
+from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
+from sb3_collapse.protocol import (
+    COLLAPSE_EVENTS_CSV,
+    COLLAPSE_METRICS_CSV,
+    CONFIG_JSON,
+    EVAL_CSV,
+    SWEEP_PROBE_DIR,
+    snapshot_files,
+)
+from sb3_collapse.report.headline import BASELINE_VARIANT
 from sb3_collapse.report.loading import Trial, load_trial, read_collapse_events, read_collapse_metrics, read_json
 from sb3_collapse.report.style import ESCAPE_COLOR, RESET_COLOR, RETURN_COLOR, frames_axis, layer_style
 
@@ -211,9 +230,7 @@ def layer_widths(trial: Trial, layers: Sequence[str]) -> dict[str, int]:
     return {layer: int(sizes[layer]) for layer in layers if isinstance(sizes.get(layer), int)}
 
 
-def online_agent_rows(
-    picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS
-) -> list[AgentMetrics]:
+def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS) -> list[AgentMetrics]:
     """
     The rows of the online figure: each picked trial's collapse metrics file (its own replay batches at training
     time, :func:`agent_metrics`), and a row that says so for an empty class.
@@ -319,9 +336,7 @@ def plot_collapse_metrics(
     # Shared x, and shared y per column: the rows compare at a glance.
     fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, height), squeeze=False, sharex=True, sharey="col")
     # A fixed layout (inches from the edges): tight_layout would double the drawing time.
-    fig.subplots_adjust(
-        left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - 0.6 / height, bottom=0.75 / height
-    )
+    fig.subplots_adjust(left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - 0.6 / height, bottom=0.75 / height)
     for row, agent in zip(axes, agents):
         ax = row[0]
         if agent.trial is None:
@@ -351,8 +366,16 @@ def plot_collapse_metrics(
                     ax.set_ylim(-0.02 * full_scale, 1.02 * full_scale)
             if not drawn and agent.trial is not None:
                 where = COLLAPSE_METRICS_CSV if metric == "grad_norm" else source  # gradient norms: training time
-                ax.text(0.5, 0.5, f"no {metric} in\n{where}", ha="center", va="center",
-                        transform=ax.transAxes, fontsize=8, color="0.4")
+                ax.text(
+                    0.5,
+                    0.5,
+                    f"no {metric} in\n{where}",
+                    ha="center",
+                    va="center",
+                    transform=ax.transAxes,
+                    fontsize=8,
+                    color="0.4",
+                )
             ax.set_ylabel(label, fontsize=8)
         for ax in row:
             _mark_events(ax, agent)
@@ -445,3 +468,146 @@ def run_title(trial: Trial) -> str:
         f"on {ONLINE_INPUTS}"
     )
 
+
+@dataclass
+class FixedInputSettings:
+    """
+    How Figures 4, 8, 9 are computed on the fixed observation set, and how their agents are picked.
+
+    :param pick_seed: seed of the random pick of the three agents
+        (:func:`~sb3_collapse.report.collapse_figure.pick_paper_agents`)
+    :param failure_return: a final return below it is poorly performing (``PAPER.failure_return``; the
+        well-performing bound is the report's ``success_return``)
+    :param rollouts: the rollouts file of the observations, for the tasks it was recorded on (``None``: those of
+        ``rollouts_variant``)
+    :param rollouts_variant: the variant whose rollouts (``<sweep>/probe/<task>_<variant>/rollouts.npz``, written
+        by ``python -m sb3_collapse.probe sweep`` from its well-performing seed of the highest final return) are the
+        fixed set of every variant of the task (the baseline, ``drqv2``); ``None``: each variant's own rollouts
+    :param fixed_samples: observations drawn from the rollouts (without replacement, with ``sample_seed``;
+        ``None``: all)
+    :param sample_seed: seed of that draw
+    :param device: where the checkpoints run (``"auto"``: CUDA when available)
+    :param batch_size: observations per forward pass
+    :param layers: the layers measured and drawn
+    """
+
+    pick_seed: int = 0
+    failure_return: float = PAPER.failure_return
+    rollouts: str | Path | None = None
+    rollouts_variant: str | None = BASELINE_VARIANT
+    fixed_samples: int | None = FIXED_SAMPLES
+    sample_seed: int = 0
+    device: str = "auto"
+    batch_size: int = 256
+    layers: tuple[str, ...] = FIGURE4_LAYERS
+
+    def validate(self) -> None:
+        """:raises ReportError: on a setting out of range, or a rollouts file that does not exist"""
+        if self.fixed_samples is not None and self.fixed_samples < 2:
+            raise ReportError(
+                f"fixed_samples must be >= 2 observations, got {self.fixed_samples}.", parameter="fixed_samples"
+            )
+        if self.batch_size < 1:
+            raise ReportError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
+        if self.rollouts is not None and not Path(self.rollouts).is_file():
+            raise ReportError(
+                f"rollouts {self.rollouts} is not a file; give the rollouts.npz of python -m sb3_collapse.probe sweep "
+                "(or of probe record).",
+                parameter="rollouts",
+            )
+        try:
+            check_device(self.device)
+        except ParameterError as error:
+            raise ReportError(str(error), parameter="device") from error
+
+    def load(self, path: str | Path) -> FixedInputs:
+        """
+        :param path: a rollouts file
+        :return: its fixed set (:func:`~sb3_collapse.probe.fixed_inputs.load_fixed_inputs` with these settings)
+        :raises ReportError: for a file that is missing or not a rollouts file
+        """
+        try:
+            return load_fixed_inputs(path, self.fixed_samples, self.sample_seed)
+        except ProbeError as error:
+            raise ReportError(str(error), parameter="rollouts") from error
+
+
+def default_rollouts(sweep_dir: str | Path, task: str, variant: str) -> Path:
+    """:return: the rollouts file of ``probe sweep`` for a task and variant of a sweep (the fixed set of every variant
+    of the task when ``variant`` is :attr:`FixedInputSettings.rollouts_variant`)"""
+    return Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) / ROLLOUTS_NAME
+
+
+FIXED_METRICS = ("numerical_rank", "correlation", "dead_units")
+"""The columns of Figure 4 taken from the fixed set (the gradient norm stays the training-time one)."""
+
+
+def fixed_agent_rows(
+    picks: Sequence[AgentPick], inputs: FixedInputs, settings: FixedInputSettings, progress: bool = False
+) -> tuple[list[AgentMetrics], dict[int, FixedMetrics]]:
+    """
+    The rows of Figures 4, 8, 9: for each picked agent, rank, correlation and dead units of its snapshots
+    on the fixed set, its training-time gradient norms, return curve, resets and escapes; a row that says so for
+    an empty class.
+
+    :param picks: :func:`~sb3_collapse.report.collapse_figure.pick_paper_agents`' picks
+    :param inputs: the fixed set
+    :param settings: how to compute
+    :param progress: progress bars over the checkpoints
+    :return: the rows, and seed -> its fixed-set metrics (every metric of :func:`layer_metrics`)
+    """
+    rows, computed = [], {}
+    for pick in picks:
+        if pick.trial is None:
+            rows.append(AgentMetrics(None, pick.role, absent=pick.absent))
+            continue
+        online = agent_metrics(pick.trial, pick.role, settings.layers)
+        try:
+            fixed = fixed_metrics(
+                snapshot_files(pick.trial.path),
+                inputs,
+                settings.layers,
+                get_device(settings.device),
+                settings.batch_size,
+                progress,
+                f"seed {pick.trial.seed} checkpoints",
+            )
+        except ProbeError as error:
+            raise ReportError(str(error), parameter=error.parameter) from error
+        computed[pick.trial.seed] = fixed
+        online.metrics = {tag: value for tag, value in online.metrics.items() if tag.endswith("/grad_norm")} | {
+            metric_tag(layer, metric): fixed.metrics[metric_tag(layer, metric)]
+            for layer in settings.layers
+            for metric in FIXED_METRICS
+            if metric_tag(layer, metric) in fixed.metrics
+        }
+        online.widths = fixed.widths or online.widths
+        rows.append(online)
+    return rows, computed
+
+
+FIXED_CSV_COLUMNS = ("role", "seed", "final_return", "checkpoint", "frame", "tag", "value")
+
+
+def write_fixed_metrics_csv(path: Path, picks: Sequence[AgentPick], computed: dict[int, FixedMetrics]) -> None:
+    """
+    Write every fixed-set metric of the picked agents, long format: role, seed, final return, checkpoint file,
+    frame, tag, value.
+
+    :param path: the CSV file
+    :param picks: the picks
+    :param computed: seed -> its metrics (:func:`fixed_agent_rows`)
+    """
+    with path.open("w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow(FIXED_CSV_COLUMNS)
+        for pick in picks:
+            if pick.trial is None or pick.trial.seed not in computed:
+                continue
+            fixed = computed[pick.trial.seed]
+            final = float(pick.trial.returns[-1])
+            for tag, (frames, values) in fixed.metrics.items():
+                for checkpoint, frame, value in zip(fixed.checkpoints, frames, values):
+                    writer.writerow(
+                        [pick.role, pick.trial.seed, repr(final), checkpoint.name, int(frame), tag, repr(float(value))]
+                    )

@@ -12,6 +12,7 @@ from tqdm.auto import tqdm
 
 from sb3_collapse.errors import ReportError
 from sb3_collapse.presets import preset
+from sb3_collapse.probe.fixed_inputs import FixedInputs, FixedMetrics
 from sb3_collapse.protocol import (
     CONFIG_JSON,
     FIGURE2_PNG,
@@ -27,21 +28,16 @@ from sb3_collapse.report.collapse_figure import (
     ONLINE_INPUTS,
     AgentMetrics,
     AgentPick,
+    FixedInputSettings,
     agent_metrics,
+    default_rollouts,
+    fixed_agent_rows,
     online_agent_rows,
     paper_figure_title,
     pick_paper_agents,
     plot_collapse_metrics,
     run_folder_trial,
     run_title,
-)
-from sb3_collapse.report.fixed_inputs import (
-    FixedInputs,
-    FixedInputSettings,
-    FixedMetrics,
-    default_rollouts,
-    fixed_agent_rows,
-    load_fixed_inputs,
     write_fixed_metrics_csv,
 )
 from sb3_collapse.report.headline import (
@@ -248,8 +244,8 @@ def build_report(
     report.proposition = proposition1_rows(sweep, rows)
     title = "# Sweep report\n\n"
     summary = summary_markdown(rows, settings, report.notes)  # with the notes of the collapse figures
-    report.markdown = title + headline_markdown(report.headline, report.proposition, settings) + "\n" + (
-        summary.removeprefix(title)
+    report.markdown = (
+        title + headline_markdown(report.headline, report.proposition, settings) + "\n" + (summary.removeprefix(title))
     )
     return report
 
@@ -276,9 +272,7 @@ def collapse_figures(
     sweep = report.sweep
     given = None  # a rollouts file given by the user serves the tasks it was recorded on
     if collapse_settings.rollouts is not None:
-        given = load_fixed_inputs(
-            collapse_settings.rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed
-        )
+        given = collapse_settings.load(collapse_settings.rollouts)
     loaded: dict[Path, FixedInputs] = {}  # each rollouts file read once: the same set for the variants of a task
     for task in sweep.tasks():
         for variant in sweep.variants(task):
@@ -322,9 +316,7 @@ def collapse_figures(
                 continue
             if inputs is None:
                 if rollouts not in loaded:
-                    loaded[rollouts] = load_fixed_inputs(
-                        rollouts, collapse_settings.fixed_samples, collapse_settings.sample_seed
-                    )
+                    loaded[rollouts] = collapse_settings.load(rollouts)
                 inputs = loaded[rollouts]
             rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, progress)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
@@ -626,8 +618,9 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
                 )
             )
             collapse.parts.append(
-                html.dict_table([r for r in agents_rows(report) if (r["task"], r["variant"]) == (task, variant)],
-                                AGENTS_COLUMNS)
+                html.dict_table(
+                    [r for r in agents_rows(report) if (r["task"], r["variant"]) == (task, variant)], AGENTS_COLUMNS
+                )
             )
         sections.append(collapse)
 

@@ -10,9 +10,16 @@ import pytest
 from stable_baselines3 import PPO, SAC
 
 from sb3_collapse import DrQv2, make_dmc_env
-from sb3_collapse.probe import ProbeSettings, Rollouts, load_checkpoint, probe_checkpoint, split_by_episode
+from sb3_collapse.probe import (
+    ProbeSettings,
+    Rollouts,
+    load_checkpoint,
+    probe_checkpoint,
+    probe_checkpoints,
+    split_by_episode,
+)
 from sb3_collapse.probe.__main__ import main
-from sb3_collapse.probe.report import OUTPUT_FILES
+from sb3_collapse.report.probe_outputs import OUTPUT_FILES
 from tests.random_env import RandomObservationEnv
 
 FAST = ["--max-tau", "4", "--no-progress"]
@@ -177,3 +184,12 @@ def test_cnn0_probe_is_reused_across_checkpoints(files):
     for reused, fitted in zip(second.layers, fresh.layers):
         np.testing.assert_array_equal(reused.test_mse, fitted.test_mse)
         np.testing.assert_array_equal(reused.tau, fitted.tau)
+    # many checkpoints at once: each one's rows as probe_checkpoint gives them, in the given order, labelled
+    paths, labels = [files["late"], files["early"], files["late"]], ["a/late", "b/early", "c/late"]
+    for jobs in (1, 2):
+        results = probe_checkpoints(paths, labels, rollouts, split, settings, jobs)
+        assert [{r["checkpoint"] for r in rows} for rows in results] == [{label} for label in labels]
+        for rows, expected in zip(results, (second, first, second)):
+            assert [(r["layer"], r["component"], r["tau"], r["test_mse"]) for r in rows] == [
+                (r["layer"], r["component"], r["tau"], r["test_mse"]) for r in expected.rows
+            ]

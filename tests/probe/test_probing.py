@@ -10,7 +10,7 @@ from sb3_collapse.probe.probing import (
     standardize_features_,
     standardize_targets,
 )
-from sb3_collapse.probe.report import staged_output, training_order
+from sb3_collapse.report.probe_outputs import staged_output, training_order
 
 
 def test_split_never_cuts_an_episode():

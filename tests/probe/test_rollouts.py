@@ -115,7 +115,7 @@ def test_noise_and_env_settings(model):
 
 
 def test_figure2_columns_are_the_reward_inputs_then_the_state_groups(rollouts):
-    from sb3_collapse.probe.figure2 import figure2_columns
+    from sb3_collapse.report.figure2 import figure2_columns
 
     names, groups, _ = rollouts.targets()
     columns = dict(figure2_columns("walker-walk", names, groups))

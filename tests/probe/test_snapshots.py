@@ -15,11 +15,12 @@ import torch as th
 from PIL import Image
 
 from sb3_collapse import DrQv2
-from sb3_collapse.errors import ParameterError, ReportError
+from sb3_collapse.errors import ParameterError, ProbeError, ReportError
 from sb3_collapse.monitoring import collect_activations, layer_metrics
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.film import film_episode
+from sb3_collapse.probe.fixed_inputs import fixed_metrics
 from sb3_collapse.probe.pipeline import RecordOptions, record
 from sb3_collapse.probe.rollouts import record_rollouts, resolve_env_config
 from sb3_collapse.protocol import (
@@ -32,7 +33,7 @@ from sb3_collapse.protocol import (
     snapshot_files,
 )
 from sb3_collapse.report import write_report
-from sb3_collapse.report.fixed_inputs import FixedInputSettings, trial_fixed_metrics
+from sb3_collapse.report.collapse_figure import FixedInputSettings, fixed_agent_rows
 from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
@@ -56,18 +57,21 @@ def run(tmp_path_factory):
 def test_one_snapshot_per_evaluation(run):
     folder = run.run_dir / SNAPSHOTS_DIR
     names = sorted(p.name for p in folder.iterdir())
-    assert names == [SNAPSHOT_FILE.format(frames=f) for f in (0, 400, 800)] == [
-        "snapshot_0000000000_frames.zip",
-        "snapshot_0000000400_frames.zip",
-        "snapshot_0000000800_frames.zip",
-    ]
+    assert (
+        names
+        == [SNAPSHOT_FILE.format(frames=f) for f in (0, 400, 800)]
+        == [
+            "snapshot_0000000000_frames.zip",
+            "snapshot_0000000400_frames.zip",
+            "snapshot_0000000800_frames.zip",
+        ]
+    )
     assert [int(e["frame"]) for e in run.evaluations] == [0, 400]  # scheduled; 800: the final model's, apart
     assert run.saved_model_evaluation["frame"] == 800
     final_size = run.model_path.stat().st_size
     for path in folder.iterdir():
         assert is_snapshot(path) and path.stat().st_size < final_size / 2
     assert not is_snapshot(run.model_path)
-
 
 
 def test_snapshots_of_earlier_versions_are_read(run, tmp_path):
@@ -77,9 +81,10 @@ def test_snapshots_of_earlier_versions_are_read(run, tmp_path):
     legacy = tmp_path / LEGACY_SNAPSHOTS_DIR
     legacy.mkdir()
     for name in names[:2]:  # the marker renamed, as an earlier version wrote it
-        with zipfile.ZipFile(run.run_dir / SNAPSHOTS_DIR / name) as source, zipfile.ZipFile(
-            legacy / name.replace("snapshot_", "probe_"), "w"
-        ) as target:
+        with (
+            zipfile.ZipFile(run.run_dir / SNAPSHOTS_DIR / name) as source,
+            zipfile.ZipFile(legacy / name.replace("snapshot_", "probe_"), "w") as target,
+        ):
             for member in source.namelist():
                 target.writestr(LEGACY_MARKER if member == MARKER else member, source.read(member))
     (tmp_path / SNAPSHOTS_DIR).mkdir()
@@ -90,6 +95,7 @@ def test_snapshots_of_earlier_versions_are_read(run, tmp_path):
     ]  # fmt: skip
     assert all(is_snapshot(path) for path in files)
     assert load_checkpoint(files[0]).model.num_timesteps == 0
+
 
 def test_snapshot_holds_the_final_encoder_and_actor(run):
     final = DrQv2.load(run.model_path, buffer_size=64)
@@ -233,10 +239,13 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
         ("well-performing", str(picks[0].trial.seed), "1"), ("middle", "2", "1"), ("poorly performing", "3", "1")
     ]  # fmt: skip
     assert {a["inputs"] for a in agents} == {inputs.describe()} and "8 of the 12 observations" in inputs.describe()
-    # rollouts whose images do not fit the checkpoints: the message names the rollouts
+    # rollouts whose images do not fit the checkpoints: the message names the rollouts, in the probe and the report
     small = dataclasses.replace(inputs, observations=inputs.observations[:, :, :24, :24])
+    with pytest.raises(ProbeError, match="rollouts") as error:
+        fixed_metrics(snapshot_files(picks[0].trial.path), small, ("mlp1",))
+    assert error.value.parameter == "rollouts"
     with pytest.raises(ReportError, match="rollouts") as error:
-        trial_fixed_metrics(picks[0].trial, small, settings)
+        fixed_agent_rows(picks[:1], small, settings)
     assert error.value.parameter == "rollouts"
 
 

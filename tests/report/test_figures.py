@@ -10,17 +10,18 @@ from browser import check_page
 from fabricated_sweep import TRANSPLANT_FRAMES, write_fake_sweep
 
 from sb3_collapse.paper import PAPER, evaluation_schedule
-from sb3_collapse.probe.figure2 import PanelCurve, stage_table_rows
+from sb3_collapse.probe.fixed_inputs import FixedInputs
 from sb3_collapse.report import write_report
 from sb3_collapse.report.__main__ import main
 from sb3_collapse.report.collapse_figure import (
     PAPER_ROLES,
+    FixedInputSettings,
     agent_class,
     agent_metrics,
     pick_agents,
     pick_paper_agents,
 )
-from sb3_collapse.report.fixed_inputs import FixedInputs, FixedInputSettings
+from sb3_collapse.report.figure2 import PanelCurve, stage_table_rows
 from sb3_collapse.report.loading import Sweep, Trial, read_collapse_metrics
 from sb3_collapse.report.pipeline import (
     COLLAPSE_AGENTS_CSV,
@@ -185,8 +186,10 @@ def test_fixed_set_names_its_trial_checkpoint_and_frame(tmp_path):
 
 def test_collapse_figure_flags(reported, tmp_path, capsys):
     fake, _ = reported
+    (tmp_path / "text.npz").write_text("not a rollouts file")
     for flags, named in (
         (["--rollouts", str(tmp_path / "missing.npz")], "--rollouts"),
+        (["--rollouts", str(tmp_path / "text.npz")], "text.npz is not a rollouts file"),  # the probe's error
         (["--fixed-samples", "1"], "--fixed-samples"),
         (["--failure-return", "950"], "--failure-return"),
     ):

@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 
 import sb3_collapse.probe.__main__ as probe_cli
-import sb3_collapse.probe.pipeline as probe_pipeline
 import sb3_collapse.report.__main__ as report_cli
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.probe import ProbeSettings
 from sb3_collapse.probe.pipeline import RecordOptions
+from sb3_collapse.report import probe_outputs
 from sb3_collapse.run.config import RUN, TRAINING, UNITS, TrainConfig, setting
 from sb3_collapse.run.settings import (
     FLAGS_END,
@@ -227,8 +227,8 @@ def test_a_bad_value_exits_2_with_one_line_naming_the_flag_before_any_work(
 
 
 def test_split_that_does_not_sum_to_1_is_refused_before_recording(monkeypatch, capsys):
-    monkeypatch.setattr(probe_pipeline, "load_checkpoint", _fail)
-    monkeypatch.setattr(probe_pipeline, "record", _fail)
+    monkeypatch.setattr(probe_outputs, "load_checkpoint", _fail)
+    monkeypatch.setattr(probe_outputs, "record", _fail)
     assert probe_cli.main(["a.zip", "--split", "0.5", "0.5", "0.5"]) == 2
     assert capsys.readouterr().err == (
         "error: --split must be 3 positive fractions summing to 1 (train validation test), got [0.5, 0.5, 0.5].\n"

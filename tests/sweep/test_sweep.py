@@ -421,7 +421,7 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
 def test_probe_sweep_on_the_tiny_real_sweep(tiny_sweep, tmp_path):
     from sb3_collapse.probe import ProbeSettings
     from sb3_collapse.probe.pipeline import RecordOptions
-    from sb3_collapse.probe.sweep import probe_sweep
+    from sb3_collapse.report.figure2 import probe_sweep
 
     finals = {
         seed: json.loads((tiny_sweep / "walker-walk" / "drqv2" / f"seed_{seed}" / "result.json").read_text())[

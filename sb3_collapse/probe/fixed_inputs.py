@@ -1,0 +1,189 @@
+"""
+The collapse metrics of a run's snapshots on one fixed observation set (Figures 4, 8, 9; the report draws them).
+
+Section 5.1 of the paper computes the numerical rank "of the matrix of MLP activations H, as defined in Figure
+1", and the correlation and zeros of the same activations; Figure 1's H holds the activations of the probing
+samples ("All the samples in three sets are collected from well-performing agents", Section 4.1). So every snapshot
+is run on the same observations: a seeded subset of a rollouts file (which file:
+:class:`~sb3_collapse.report.collapse_figure.FixedInputSettings`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch as th
+from tqdm.auto import tqdm
+
+from sb3_collapse.errors import ProbeError
+from sb3_collapse.monitoring import collect_activations, layer_metrics, unit_count
+from sb3_collapse.paper import metric_tag
+from sb3_collapse.probe.checkpoints import load_checkpoint
+from sb3_collapse.probe.rollouts import Rollouts
+from sb3_collapse.protocol import LEGACY_SNAPSHOTS_DIR, SNAPSHOTS_DIR
+
+FIXED_SAMPLES = 2048
+"""Observations of the fixed set by default: more than the 1024 units of ``mlp1`` and ``mlp2``, so that their
+numerical rank is not bounded by the number of inputs (the online batch of 512 bounds it at 512)."""
+
+
+@dataclass
+class FixedInputs:
+    """
+    The fixed observation set.
+
+    :param observations: ``(n, *obs_shape)`` observations as the env gives them (uint8)
+    :param indices: ``(n,)`` their rows in the rollouts file, increasing
+    :param source: the rollouts file
+    :param total: observations in the file
+    :param episodes: episodes in the file
+    :param recorded_from: the checkpoint the rollouts were recorded from (their metadata), ``None`` if unknown
+    :param task: the task the rollouts were recorded on (``env_config["task_id"]``), ``None`` if unknown
+    :param recorded_frames: the training frames of that checkpoint (its agent steps x the action repeat), ``None``
+        if unknown
+    """
+
+    observations: np.ndarray
+    indices: np.ndarray
+    source: Path
+    total: int
+    episodes: int
+    recorded_from: str | None = None
+    task: str | None = None
+    recorded_frames: int | None = None
+
+    def fits(self, task: str) -> bool:
+        """:return: whether the rollouts were recorded on ``task`` (or their task is unknown)"""
+        return self.task is None or self.task.replace("_", "-") == task.replace("_", "-")
+
+    def describe(self) -> str:
+        """
+        :return: what the metrics are computed on, for titles and captions: the rollouts file (its folder and name)
+            and the trial (``<task>/<variant>/seed_<k>`` of a sweep), checkpoint and frame they were recorded from
+        """
+        subset = f"{len(self.indices)} of the {self.total}" if len(self.indices) < self.total else f"all {self.total}"
+        agent = ""
+        if self.recorded_from is not None:
+            checkpoint = Path(self.recorded_from)
+            snapshot = checkpoint.parent.name in (SNAPSHOTS_DIR, LEGACY_SNAPSHOTS_DIR)  # one folder deeper
+            agent = f", recorded from {'/'.join(checkpoint.parts[-4 - snapshot :])}"
+            agent += "" if self.recorded_frames is None else f" at {self.recorded_frames:,} frames"
+        source = f"{self.source.parent.name}/{self.source.name}"
+        return f"the fixed probing set ({subset} observations of {source}, {self.episodes} episodes{agent})"
+
+
+def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, seed: int = 0) -> FixedInputs:
+    """
+    Read the fixed observation set: ``samples`` observations of a rollouts file drawn without replacement by
+    ``numpy.random.default_rng(seed)`` (kept in file order), or all of them.
+
+    :param path: a rollouts file (:class:`~sb3_collapse.probe.rollouts.Rollouts`)
+    :param samples: how many (``None`` or more than the file holds: all)
+    :param seed: seed of the draw
+    :return: the set
+    :raises ProbeError: for a file that is missing or not a rollouts file
+    """
+    path = Path(path)
+    rollouts = Rollouts.load(path)
+    total = len(rollouts)
+    if samples is None or samples >= total:
+        indices = np.arange(total)
+    else:
+        indices = np.sort(np.random.default_rng(seed).choice(total, size=samples, replace=False))
+    recorded_from = rollouts.metadata.get("checkpoint")
+    task = rollouts.env_config.get("task_id")
+    steps, repeat = rollouts.metadata.get("checkpoint_num_timesteps"), rollouts.env_config.get("action_repeat")
+    frames = int(steps) * int(repeat) if steps is not None and repeat is not None else None
+    return FixedInputs(
+        rollouts.observations[indices], indices, path, total, rollouts.n_episodes, recorded_from, task, frames
+    )
+
+
+def snapshot_metrics(
+    model: object,
+    observations: np.ndarray,
+    layers: Sequence[str],
+    device: th.device | str = "cpu",
+    batch_size: int = 256,
+) -> tuple[dict[str, dict[str, float]], dict[str, int]]:
+    """
+    :func:`~sb3_collapse.monitoring.metrics.layer_metrics` of a snapshot's activations of the observations.
+
+    :param model: a loaded DrQv2 (or TD3, DDPG, SAC) model
+    :param observations: ``(n, *obs_shape)`` observations
+    :param layers: the named layers
+    :param device: where the activations are gathered (float64 metrics are computed there)
+    :param batch_size: observations per forward pass
+    :return: layer -> metric -> value, and layer -> width in units
+    """
+    activations = collect_activations(model, observations, layers, batch_size=batch_size, device=device)
+    return (
+        {layer: layer_metrics(values) for layer, values in activations.items()},
+        {layer: unit_count(values) for layer, values in activations.items()},
+    )
+
+
+@dataclass
+class FixedMetrics:
+    """
+    The metrics of one trial's snapshots on the fixed set.
+
+    :param metrics: ``collapse/<layer>/<metric>`` -> ``(frames, values)``, one value per checkpoint
+    :param widths: layer -> units
+    :param checkpoints: the checkpoints read, in training order
+    """
+
+    metrics: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    widths: dict[str, int] = field(default_factory=dict)
+    checkpoints: list[Path] = field(default_factory=list)
+
+
+def fixed_metrics(
+    paths: Sequence[Path],
+    inputs: FixedInputs,
+    layers: Sequence[str],
+    device: th.device | str = "cpu",
+    batch_size: int = 256,
+    progress: bool = False,
+    desc: str = "checkpoints",
+) -> FixedMetrics:
+    """
+    Every checkpoint run on the fixed set (:func:`snapshot_metrics`).
+
+    :param paths: the checkpoints (a trial's snapshots, :func:`~sb3_collapse.protocol.snapshot_files`), in
+        training order
+    :param inputs: the fixed set
+    :param layers: the named layers
+    :param device: where the checkpoints run
+    :param batch_size: observations per forward pass
+    :param progress: a progress bar over the checkpoints
+    :param desc: its label
+    :return: the metrics (empty without checkpoints)
+    :raises ProbeError: for a checkpoint that cannot be loaded or whose observations differ from the set's
+    """
+    columns: dict[str, tuple[list[int], list[float]]] = {}
+    result = FixedMetrics(checkpoints=list(paths))
+    for path in tqdm(paths, desc=desc, unit="checkpoint", disable=not progress):
+        checkpoint = load_checkpoint(path, device=device)
+        shape = tuple(checkpoint.model.observation_space.shape or ())
+        if tuple(inputs.observations.shape[1:]) != shape:
+            raise ProbeError(
+                f"{inputs.source} holds observations of shape {tuple(inputs.observations.shape[1:])} but {path} "
+                f"takes {shape}: give `rollouts` recorded with the checkpoints' image size and frame stack.",
+                parameter="rollouts",
+            )
+        values, result.widths = snapshot_metrics(checkpoint.model, inputs.observations, layers, device, batch_size)
+        for layer, metrics in values.items():
+            for name, value in metrics.items():
+                frames, column = columns.setdefault(metric_tag(layer, name), ([], []))
+                frames.append(checkpoint.frames)
+                column.append(value)
+        del checkpoint
+    result.metrics = {
+        tag: (np.asarray(frames, dtype=np.int64), np.asarray(values, dtype=np.float64))
+        for tag, (frames, values) in columns.items()
+    }
+    return result

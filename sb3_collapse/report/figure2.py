@@ -1,0 +1,492 @@
+"""
+``python -m sb3_collapse.probe sweep``: the paper's Figure 2 and Tables 1-6 for one task and variant of a sweep
+folder whose trials saved snapshots (``--snapshots``: their encoder and actor at every evaluation).
+
+1. The finished trials are split by final return: well-performing (``>= success_return``, default
+   ``PAPER.success_return``) and poorly performing (``< failure_return``, default ``PAPER.failure_return``); the
+   others are not probed.
+2. Rollouts are recorded once, from the well-performing seed of the highest final return (its final model), or
+   read from ``rollouts_path``.
+3. Every snapshot of those trials is probed on them (``cnn0``, the normalized pixels, once for all).
+4. Figure 2 (``figure2.png``), Tables 1-6 (``tables_1_6.csv``/``.md``), all probe rows (``probe.csv``) and
+   ``summary.json`` are written into ``out``, only when everything succeeded.
+
+The figure, from the probe rows of many agents: rows well-performing / poorly performing
+agents, columns torso velocity, joint orientations, torso height; in each panel, per layer, the mean over the
+row's agents of the probe's test MSE (standardized) against training frames; the tables give the std across the
+agents at four training stages.
+
+The paper: "we plot the probing MSE for three environment state components: torso velocity, joint orientation, and
+torso height ... We choose these three components because all of them are the input to the reward function." The
+columns are therefore the quantities that the task's reward function reads (``reward:...`` targets, recorded by
+``DMCEnv.reward_inputs``, see :data:`sb3_collapse.envs.dmc.REWARD_INPUTS`), followed by the state-vector readings of
+the same names as extra columns (:data:`FIGURE2_COLUMNS`):
+
+- **walker** (walker-walk's and walker-run's reward: ``stand = (3 tolerance(torso_height) + (1 + torso_upright) / 2)
+  / 4`` times a term of ``horizontal_velocity``; walker-stand's is ``stand`` alone, so it has no torso velocity
+  column): torso velocity = ``reward:horizontal_velocity`` (the centre of mass's horizontal
+  velocity); orientation = ``reward:torso_upright`` (the torso's, the only orientation the reward reads; the paper
+  calls the column "joint orientation"); torso height = ``reward:torso_height``. Extra columns: root velocities
+  (state) = ``velocity_0..2`` (the root joints' velocities: torso vertical, horizontal and pitch velocity); leg
+  orientations (state) = ``orientations_2..13`` (the x and z components of the orientation of the six leg bodies;
+  ``orientations_0..1`` are the torso's). The state's ``height`` is ``torso_height`` itself, so it has no column of
+  its own.
+- **hopper** (hopper-hop's reward: ``tolerance(height)`` times a term of ``speed``; hopper-stand's:
+  ``tolerance(height)`` times a term of the control, so it has no torso velocity column): torso velocity =
+  ``reward:speed``, torso height = ``reward:height`` (torso above the foot); its reward reads no orientation. Extra
+  columns: root velocities (state) = ``velocity_0..2``; rootz (state) = ``position_0``.
+- any other domain: one column per reward input, then one per state component (the whole component averaged).
+
+A column is shown when its targets exist: the rollouts hold the reward inputs of their own task only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.lines import Line2D
+from stable_baselines3.common.utils import get_device
+
+from sb3_collapse.errors import ProbeError, ReportError
+from sb3_collapse.paper import PAPER
+from sb3_collapse.probe.checkpoints import load_checkpoint
+from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, record
+from sb3_collapse.probe.probing import MIN_EPISODES, ProbeSettings, probe_checkpoints, split_by_episode
+from sb3_collapse.probe.rollouts import REWARD_PREFIX, Rollouts
+from sb3_collapse.protocol import (
+    FIGURE2_PNG,
+    FINAL_MODEL,
+    SNAPSHOTS_DIR,
+    SWEEP_PROBE_DIR,
+    TABLES_1_6_CSV,
+    snapshot_files,
+    write_json_atomically,
+)
+from sb3_collapse.report.collapse_figure import PAPER_ROLES, agent_class
+from sb3_collapse.report.loading import Sweep, Trial, load_sweep
+from sb3_collapse.report.statistics import across_seed_std, budget_frames, stage_indices, stages_caption
+from sb3_collapse.report.style import frames_axis, layer_style
+from sb3_collapse.report.tables import write_csv
+from sb3_collapse.staged_outputs import StagedOutputs
+
+ORIENTATION = "orientation (torso upright)"
+"""The title of walker's second column: the paper's "joint orientation", read as the orientation the reward reads."""
+PAPER_COLUMNS = ("torso velocity", ORIENTATION, "torso height")
+"""The paper's three columns, in its order (Tables 1-6 are numbered by them)."""
+
+FIGURE2_COLUMNS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
+    "walker": (
+        ("torso velocity", ("reward:horizontal_velocity",)),
+        (ORIENTATION, ("reward:torso_upright",)),
+        ("torso height", ("reward:torso_height",)),
+        ("root velocities (state)", tuple(f"velocity_{i}" for i in range(3))),
+        ("leg orientations (state)", tuple(f"orientations_{i}" for i in range(2, 14))),
+    ),
+    "hopper": (
+        ("torso velocity", ("reward:speed",)),
+        ("torso height", ("reward:height",)),
+        ("root velocities (state)", tuple(f"velocity_{i}" for i in range(3))),
+        ("rootz (state)", ("position_0",)),
+    ),
+}
+"""Domain -> the columns of Figure 2: title and the probe targets (``probe.csv`` ``component``) it averages."""
+ROWS = (PAPER_ROLES[0], PAPER_ROLES[2])
+"""The rows of Figure 2: well-performing and poorly performing agents (:func:`agent_class`)."""
+
+
+def figure2_columns(task: str, components: Sequence[str], groups: Sequence[str]) -> list[tuple[str, tuple[str, ...]]]:
+    """
+    :param task: the task, ``<domain>-<task>``
+    :param components: the probe targets (``probe.csv`` ``component``)
+    :param groups: the state component of each target
+    :return: the columns whose targets all exist; for a domain without :data:`FIGURE2_COLUMNS`, one column per
+        reward input (``reward:`` groups), then one per state component
+    """
+    domain = task.split("-")[0]
+    available = set(components)
+    if domain in FIGURE2_COLUMNS:
+        return [(title, names) for title, names in FIGURE2_COLUMNS[domain] if set(names) <= available]
+    by_group: dict[str, list[str]] = defaultdict(list)
+    for component, group in zip(components, groups):
+        by_group[group].append(component)
+    columns = [(group, tuple(names)) for group, names in by_group.items()]
+    return sorted(columns, key=lambda column: not column[0].startswith(REWARD_PREFIX))
+
+
+@dataclass
+class PanelCurve:
+    """
+    One line of Figure 2: a layer in one panel (row, column).
+
+    :param row: ``"well-performing"`` or ``"poorly performing"``
+    :param column: the column's title
+    :param layer: the layer
+    :param frames: the training frames shared by every agent of the row
+    :param values: ``(agents, frames)`` each agent's mean test MSE over the column's targets
+    :param agents: the agents' labels (e.g. ``seed 3``)
+    """
+
+    row: str
+    column: str
+    layer: str
+    frames: np.ndarray
+    values: np.ndarray
+    agents: list[str]
+
+    @property
+    def mean(self) -> np.ndarray:
+        """The mean across agents at each frame."""
+        return self.values.mean(axis=0)
+
+
+def panel_curves(
+    rows: Sequence[Mapping[str, Any]], agents: Mapping[str, str], columns: Sequence[tuple[str, tuple[str, ...]]]
+) -> list[PanelCurve]:
+    """
+    :param rows: probe rows with ``checkpoint``, ``frames``, ``layer``, ``component``, ``test_mse`` and ``agent``
+    :param agents: agent label -> its row (:data:`ROWS`)
+    :param columns: the panels' columns (:func:`figure2_columns`)
+    :return: one curve per (row, column, layer) with at least one agent, on the frames every agent of the row has
+    """
+    values: dict[tuple[str, str, int, str], dict[str, float]] = defaultdict(dict)
+    for r in rows:
+        values[(r["agent"], r["layer"], int(r["frames"]), r["component"])] = r["test_mse"]  # type: ignore[index]
+    layers = list(dict.fromkeys(r["layer"] for r in rows))
+    curves = []
+    for row in ROWS:
+        members = [agent for agent, which in agents.items() if which == row]
+        if not members:
+            continue
+        frame_sets = [{int(r["frames"]) for r in rows if r["agent"] == agent} for agent in members]
+        frames = np.array(sorted(set.intersection(*frame_sets)), dtype=np.int64)
+        for title, names in columns:
+            for layer in layers:
+                matrix = np.array(
+                    [
+                        [np.mean([values[(agent, layer, int(f), name)] for name in names]) for f in frames]
+                        for agent in members
+                    ],
+                    dtype=np.float64,
+                ).reshape(len(members), len(frames))
+                curves.append(PanelCurve(row, title, layer, frames, matrix, members))
+    return curves
+
+
+def plot_figure2(curves: Sequence[PanelCurve], path: Path, title: str) -> None:
+    """
+    The paper's Figure 2: rows well / poorly performing agents, one column per state column, one line per layer
+    (mean over the row's agents; colours and line styles of :mod:`sb3_collapse.report.style`), a shared legend
+    under the panels.
+
+    :param curves: :func:`panel_curves`
+    :param path: the PNG file to write
+    :param title: the figure's title (task, variant, agents)
+    """
+    rows = list(dict.fromkeys(c.row for c in curves))
+    columns = list(dict.fromkeys(c.column for c in curves))
+    layers = list(dict.fromkeys(c.layer for c in curves))
+    height = 2.9 * len(rows) + 1.2
+    fig, axes = plt.subplots(
+        len(rows), len(columns), figsize=(4.3 * len(columns), height), squeeze=False, sharex=True, sharey="col"
+    )
+    fig.subplots_adjust(left=0.09, right=0.98, wspace=0.25, hspace=0.3, top=1 - 0.55 / height, bottom=0.95 / height)
+    for curve in curves:
+        ax = axes[rows.index(curve.row)][columns.index(curve.column)]
+        ax.plot(curve.frames, curve.mean, marker="o", ms=2.5, lw=1.3, **layer_style(curve.layer))
+        ax.set_title(f"{curve.row} ({len(curve.agents)}): {curve.column}", fontsize=9)
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+        ax.set_ylim(bottom=0)
+        ax.tick_params(labelsize=7)
+    for row in axes:
+        row[0].set_ylabel("test MSE (standardized)", fontsize=8)
+    for ax in axes[-1]:
+        frames_axis(ax, "training frames")
+    handles = [Line2D([], [], lw=1.3, **layer_style(layer)) for layer in layers]
+    fig.legend(handles, layers, loc="lower center", ncol=len(layers), fontsize=8, frameon=False)
+    fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+TABLE_NUMBERS = {(row, column): 1 + 2 * column + row for row in range(2) for column in range(3)}
+"""(row, column) of the paper's Figure 2 -> its table in the paper: Table 1 is subplot (1, 1), Table 2 (2, 1), Table 3
+(1, 2)... Columns are those of :data:`PAPER_COLUMNS`; the other columns' tables have no number."""
+
+
+def stage_table_rows(curves: Sequence[PanelCurve], budget_frames: int | None = None) -> list[dict]:
+    """
+    Tables 1-6: per panel and layer, the std across the row's agents (ddof=1; nan with one agent) at the four
+    training stages (:func:`~sb3_collapse.report.statistics.stage_indices`).
+
+    :param curves: :func:`panel_curves`
+    :param budget_frames: the agents' budget, in frames (``None``: the paper's)
+    :return: rows ``table, row, column, layer, agents, stage, frame, std``
+    """
+    table_rows = []
+    for curve in curves:
+        in_paper = curve.row in ROWS and curve.column in PAPER_COLUMNS
+        number = TABLE_NUMBERS[(ROWS.index(curve.row), PAPER_COLUMNS.index(curve.column))] if in_paper else ""
+        stages = stage_indices(curve.frames, budget_frames) if len(curve.frames) else []
+        stds = across_seed_std(curve.values[:, stages], axis=0) if stages else []
+        for stage, (index, std) in enumerate(zip(stages, stds)):
+            table_rows.append(
+                {
+                    "table": number,
+                    "row": curve.row,
+                    "column": curve.column,
+                    "layer": curve.layer,
+                    "agents": len(curve.agents),
+                    "stage": stage,
+                    "frame": int(curve.frames[index]),
+                    "std": float(std),
+                }
+            )
+    return table_rows
+
+
+def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
+    """Tables 1-6 as Markdown: one table per panel, a row per layer, a column per stage."""
+    lines = ["# Tables 1-6: std of the probe's test MSE across agents at four training stages", ""]
+    panels: dict[tuple, list[Mapping[str, Any]]] = defaultdict(list)
+    for r in table_rows:
+        panels[(r["table"], r["row"], r["column"])].append(r)
+    numbered_first = sorted(panels.items(), key=lambda item: (item[0][0] == "", str(item[0][0]).zfill(3)))
+    for (number, row, column), entries in numbered_first:
+        frames = list(dict.fromkeys(e["frame"] for e in entries))
+        label = f"Table {number}" if number != "" else "Table"
+        agents = entries[0]["agents"]
+        lines += [f"## {label}: {row} agents ({agents}), {column}", ""]
+        lines.append("| layer | " + " | ".join(f"{f:,} frames" for f in frames) + " |")
+        lines.append("|---|" + "---|" * len(frames))
+        by_layer: dict[str, dict[int, float]] = defaultdict(dict)
+        for e in entries:
+            by_layer[e["layer"]][e["frame"]] = e["std"]
+        for layer, stds in by_layer.items():
+            cells = ["-" if np.isnan(stds[f]) else f"{stds[f]:.3f}" for f in frames]
+            lines.append(f"| {layer} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines.append(stages_caption("shared snapshots") + " Std across agents, ddof=1 (- with one agent).")
+    return "\n".join(lines) + "\n"
+
+
+TABLES_MD = "tables_1_6.md"
+PROBE_CSV = "probe.csv"
+SUMMARY_JSON = "summary.json"
+OUTPUT_FILES = (FIGURE2_PNG, TABLES_1_6_CSV, TABLES_MD, PROBE_CSV, ROLLOUTS_NAME, SUMMARY_JSON)
+"""Every file ``probe sweep`` writes (``summary.json`` last)."""
+
+
+def split_agents(
+    trials: Sequence[Trial],
+    success_return: float = PAPER.success_return,
+    failure_return: float = PAPER.failure_return,
+) -> tuple[list[Trial], list[Trial]]:
+    """
+    :param trials: finished trials
+    :param success_return: a final return ``>=`` this is well-performing
+    :param failure_return: a final return ``<`` this is poorly performing
+    :return: ``(well, poor)`` (:func:`agent_class` of their final return), each by decreasing final return
+    """
+    ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.returns[-1], t.seed))
+    classes = [agent_class(t.returns[-1], success_return, failure_return) for t in ranked]
+    return [t for t, c in zip(ranked, classes) if c == ROWS[0]], [t for t, c in zip(ranked, classes) if c == ROWS[1]]
+
+
+def probe_sweep(
+    sweep_dir: str | Path,
+    task: str,
+    variant: str = "drqv2",
+    out: str | Path | None = None,
+    settings: ProbeSettings | None = None,
+    rollouts_path: str | Path | None = None,
+    record_options: RecordOptions | None = None,
+    success_return: float = PAPER.success_return,
+    failure_return: float = PAPER.failure_return,
+    overwrite: bool = False,
+    command: Sequence[str] | None = None,
+    jobs: int = 1,
+) -> dict[str, Any]:
+    """
+    Figure 2 and Tables 1-6 of one task and variant of a sweep (see the module's documentation).
+
+    :param sweep_dir: the sweep folder
+    :param task: its task folder, e.g. ``"walker-walk"``
+    :param variant: its variant folder
+    :param out: the output folder (default ``<sweep>/probe/<task>_<variant>``)
+    :param settings: the probe's settings
+    :param rollouts_path: rollouts to probe on (``None``: record them from the best well-performing seed)
+    :param record_options: how to record (``env`` and the pixel settings come from the recording checkpoint)
+    :param success_return: final return of a well-performing agent, at least
+    :param failure_return: final return of a poorly performing agent, below
+    :param overwrite: replace a previous run's outputs in ``out``
+    :param command: the command line, for the summary
+    :param jobs: checkpoints probed at once (:func:`~sb3_collapse.probe.probing.probe_checkpoints`; snapshots
+        themselves are small: benchmarks/README.md#checkpoint-sizes)
+    :return: the summary (as written to ``summary.json``)
+    :raises ProbeError: for bad input (nothing written then)
+    """
+    started = time.perf_counter()
+    settings = settings or ProbeSettings()
+    record_options = record_options or RecordOptions()
+    sweep, agents, files = _sweep_agents(
+        sweep_dir, task, variant, settings, rollouts_path, record_options, success_return, failure_return, jobs
+    )
+    out = Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) if out is None else Path(out)
+    with StagedOutputs(out, OUTPUT_FILES, SUMMARY_JSON, overwrite=overwrite, error=ProbeError) as staged:
+        if rollouts_path is None:
+            well = agents[0][0]
+            source = well.path / FINAL_MODEL
+            source = source if source.exists() else files[well.seed][-1]
+            recorder = load_checkpoint(source, device=get_device(settings.device))
+            rollouts = record(recorder, record_options, settings.progress)
+            del recorder
+            rollouts.save(staged.path(ROLLOUTS_NAME))
+            recorded_from = str(source)
+        else:
+            rollouts = Rollouts.load(rollouts_path)
+            recorded_from = str(rollouts_path)
+        split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
+        work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
+        per_checkpoint = probe_checkpoints(
+            [path for _, _, path in work],
+            [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work],
+            rollouts,
+            split,
+            settings,
+            jobs,
+        )
+        for (trial, which, _), result_rows in zip(work, per_checkpoint):
+            for row in result_rows:
+                row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=float(trial.returns[-1]))
+        rows = [row for result_rows in per_checkpoint for row in result_rows]
+        columns = _write_figure2(rows, rollouts, agents, task, variant, staged)
+        summary = {
+            "complete": True,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "command": list(command) if command is not None else None,
+            "sweep": str(sweep_dir),
+            "task": task,
+            "variant": variant,
+            "success_return": success_return,
+            "failure_return": failure_return,
+            "agents": [
+                {"seed": t.seed, "row": which, "final_return": float(t.returns[-1]), "checkpoints": len(files[t.seed])}
+                for t, which in agents
+            ],
+            "not_probed": [
+                {"seed": t.seed, "final_return": float(t.returns[-1])} for t in sweep.finished if t.seed not in files
+            ],
+            "unfinished": [t.seed for t in sweep.unfinished],
+            "rollouts": {"recorded_from": recorded_from, "samples": len(rollouts), "episodes": rollouts.n_episodes},
+            "columns": {title: list(targets) for title, targets in columns},
+            "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
+            "jobs": jobs,
+            "total_seconds": round(time.perf_counter() - started, 1),
+        }
+        write_json_atomically(staged.path(SUMMARY_JSON), summary)
+        written = staged.commit()
+    print("Wrote " + ", ".join(str(f) for f in written))
+    return summary
+
+
+def _sweep_agents(
+    sweep_dir: str | Path,
+    task: str,
+    variant: str,
+    settings: ProbeSettings,
+    rollouts_path: str | Path | None,
+    record_options: RecordOptions,
+    success_return: float,
+    failure_return: float,
+    jobs: int,
+) -> tuple[Sweep, list[tuple[Trial, str]], dict[int, list[Path]]]:
+    """
+    Check :func:`probe_sweep`'s arguments and the sweep before any work.
+
+    :return: the sweep, its agents with their row of Figure 2 (:data:`ROWS`), the well-performing ones first, and
+        seed -> the agent's snapshots
+    :raises ProbeError: naming the bad argument
+    """
+    settings.validate()
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ProbeError(f"jobs must be an integer >= 1, got {jobs!r}.", parameter="jobs")
+    if not failure_return <= success_return:
+        raise ProbeError(
+            f"failure_return must be <= success_return, got {failure_return:g} and {success_return:g}.",
+            parameter="failure_return",
+        )
+    try:
+        sweep = load_sweep(sweep_dir, tasks=[task], variants=[variant], progress=False)
+    except ReportError as error:
+        raise ProbeError(
+            str(error), parameter=error.parameter if error.parameter != "sweep" else "sweep_dir"
+        ) from error
+    well, poor = split_agents(sweep.finished, success_return, failure_return)
+    if not well and not poor:
+        finals = ", ".join(f"seed {t.seed}: {t.returns[-1]:.0f}" for t in sweep.finished) or "no finished trial"
+        raise ProbeError(
+            f"{task} / {variant} has no well-performing (final return >= {success_return:g}) nor poorly performing "
+            f"(< {failure_return:g}) finished trial ({finals}); lower success_return or raise failure_return.",
+            parameter="success_return",
+        )
+    agents = [(trial, ROWS[0]) for trial in well] + [(trial, ROWS[1]) for trial in poor]
+    files = {trial.seed: snapshot_files(trial.path) for trial, _ in agents}
+    lacking = [t for t, _ in agents if not files[t.seed]]
+    if lacking:
+        raise ProbeError(
+            f"no {SNAPSHOTS_DIR}/*.zip in {', '.join(str(t.path) for t in lacking)}: train the trials with "
+            "--snapshots (TrainConfig.snapshots) to probe them over training."
+        )
+    if rollouts_path is None:
+        if not well:
+            raise ProbeError(
+                f"{task} / {variant} has no well-performing trial (final return >= {success_return:g}) to record "
+                "rollouts from: pass rollouts_path (python -m sb3_collapse.probe record GOOD.zip).",
+                parameter="rollouts_path",
+            )
+        record_options.check()
+        if record_options.episodes < MIN_EPISODES:
+            raise ProbeError(
+                f"episodes must be >= {MIN_EPISODES}, got {record_options.episodes}.", parameter="episodes"
+            )
+    return sweep, agents, files
+
+
+def _write_figure2(
+    rows: list[dict[str, Any]],
+    rollouts: Rollouts,
+    agents: Sequence[tuple[Trial, str]],
+    task: str,
+    variant: str,
+    staged: StagedOutputs,
+) -> list[tuple[str, tuple[str, ...]]]:
+    """
+    Write Figure 2, Tables 1-6 and ``probe.csv`` into the staged folder.
+
+    :return: Figure 2's columns (:func:`figure2_columns`)
+    """
+    names, groups, _ = rollouts.targets()
+    columns = figure2_columns(task, names, groups)
+    curves = panel_curves(rows, {f"seed {t.seed}": which for t, which in agents}, columns)
+    well = sum(which == ROWS[0] for _, which in agents)
+    described = f"well-performing: {well}, poorly performing: {len(agents) - well}"
+    plot_figure2(curves, staged.path(FIGURE2_PNG), f"{task} / {variant}: OMP probing over training ({described})")
+    table_rows = stage_table_rows(curves, budget_frames([trial for trial, _ in agents]))
+    if table_rows:
+        write_csv(table_rows, list(table_rows[0]), staged.path(TABLES_1_6_CSV))
+    staged.path(TABLES_MD).write_text(stage_tables_markdown(table_rows))
+    write_csv(rows, list(rows[0]), staged.path(PROBE_CSV))
+    return columns
