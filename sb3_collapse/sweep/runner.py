@@ -599,7 +599,8 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
         outcome = ray.get(ref)
     except Exception as error:  # noqa: BLE001  the Ray task itself died (worker crash, out of memory...)
         outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}".splitlines()[0]}
-        write_error(trial_dir(out, trial), f"The Ray task of {trial} died:\n{error}\n")
+        # The first line reads on in the rerun's "The previous attempt failed: ...; resuming."
+        write_error(trial_dir(out, trial), f"failed: the Ray task of {trial} died\n{error}\n")
     if outcome["status"] == FINISHED:
         summary.finished.append(trial)
         if outcome.get("resumes"):
