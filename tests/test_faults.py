@@ -10,6 +10,8 @@ import math
 import warnings
 from pathlib import Path
 
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.save_util import load_from_zip_file
@@ -28,6 +30,7 @@ from sb3_collapse.protocol import (
 from sb3_collapse.run.checkpoints import checkpoint_folders
 from sb3_collapse.sweep.__main__ import main as sweep_main
 from sb3_collapse.train import main
+from tests.random_env import RandomObservationEnv
 
 
 def _flags(run_dir: Path, frames: int = 800) -> list[str]:
@@ -291,12 +294,8 @@ def test_reset_on_an_episode_end_waits_for_a_sampleable_episode_instead_of_faili
     step is stored, holds its last transition only (finished, but shorter than n_steps). With a warm-up shorter than
     an episode, DrQ-v2's sampling (finished episodes only) had nothing to draw and every rerun raised; the updates
     now wait for the next episode's end."""
-    import gymnasium as gym
-    import numpy as np
-
     from sb3_collapse import CollapseReset
     from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
-    from sb3_collapse.envs.synthetic import RandomObservationEnv
 
     env = RandomObservationEnv(gym.spaces.Box(0, 255, (9, 16, 16), np.uint8), episode_length=50, action_repeat=2)
     model = DrQv2(
@@ -416,16 +415,12 @@ def test_the_run_trains_exactly_its_budget_or_says_why_not():
     """SB3 completes a round of train_freq transitions past the budget: 375 agent steps (3,000 frames at action
     repeat 8) trained 376. A round now stops at the budget; with several environments, the budget rounds up to a
     multiple of n_envs, and the run says so."""
-    import gymnasium as gym
-    import numpy as np
-
-    from sb3_collapse.envs.synthetic import RandomObservationEnv
     from sb3_collapse.run.config import TrainConfig
     from sb3_collapse.run.runner import budget_note
 
     env = RandomObservationEnv(gym.spaces.Box(0, 255, (9, 16, 16), np.uint8), episode_length=50, action_repeat=8)
     model = DrQv2(
-        "CnnPolicy", env, buffer_size=400, learning_starts=360, batch_size=4, seed=0, train_freq=2,
+        "CnnPolicy", env, buffer_size=400, learning_starts=360, batch_size=4, seed=0,
         policy_kwargs=dict(hidden_dim=16, feature_dim=8),
     )  # fmt: skip
     model.learn(375)
