@@ -71,6 +71,8 @@ ERROR_TXT = "error.txt"
 """The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
 SWEEP_JSON = "sweep.json"
 """A sweep folder's settings."""
+SWEEP_LOCK = "sweep.lock"
+"""In a sweep folder while a sweep runs into it: the owner (pid, host) of the lock that refuses a second sweep."""
 SWEEP_STOP = ".stop_requested"
 """In a sweep folder while its driver stops at a SIGTERM or SIGINT: the signal's name. Each running trial, on any
 node, writes a checkpoint and stops when it sees the file; the driver deletes it before it exits."""

@@ -10,6 +10,8 @@ import math
 import warnings
 from pathlib import Path
 
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.save_util import load_from_zip_file
@@ -28,6 +30,7 @@ from sb3_collapse.protocol import (
 from sb3_collapse.run.checkpoints import checkpoint_folders
 from sb3_collapse.sweep.__main__ import main as sweep_main
 from sb3_collapse.train import main
+from tests.random_env import RandomObservationEnv
 
 
 def _flags(run_dir: Path, frames: int = 800) -> list[str]:
@@ -65,9 +68,8 @@ def test_unwritable_messages():
     assert unwritable_message(OSError(errno.ENOENT, "No such file", "a")) is None
     full = unwritable_message(OSError(errno.ENOSPC, "No space left on device", "/runs/x/final_model.zip"))
     assert (
-        full
-        == "could not write /runs/x/final_model.zip (No space left on device): free space, then run the same "
-           "command again."
+        full == "could not write /runs/x/final_model.zip (No space left on device): free space, then run the same "
+        "command again."
     )
     assert "cannot write /ro (Read-only file system): choose a folder you can write to" in unwritable_message(
         OSError(errno.EROFS, "Read-only file system", "/ro")
@@ -285,3 +287,154 @@ def test_run_folder_turning_read_only_while_training_is_one_line_exit_1_and_the_
     assert main(flags) == 0
     assert f"from its checkpoint at frame {frames:,} ({kept.name})" in capsys.readouterr().out
     assert json.loads((run_dir / RESULT_JSON).read_text())["resumes"] == 1
+
+
+def test_reset_on_an_episode_end_waits_for_a_sampleable_episode_instead_of_failing():
+    """The reset rule resets at agent step 100, where an episode of 50 steps ends: the buffer, emptied before that
+    step is stored, holds its last transition only (finished, but shorter than n_steps). With a warm-up shorter than
+    an episode, DrQ-v2's sampling (finished episodes only) had nothing to draw and every rerun raised; the updates
+    now wait for the next episode's end."""
+    from sb3_collapse import CollapseReset
+    from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
+
+    env = RandomObservationEnv(gym.spaces.Box(0, 255, (9, 16, 16), np.uint8), episode_length=50, action_repeat=2)
+    model = DrQv2(
+        "CnnPolicy", env, buffer_size=300, learning_starts=20, batch_size=4, seed=0, n_steps=3,
+        policy_kwargs=dict(hidden_dim=16, feature_dim=8), replay_buffer_class=FrameStackReplayBuffer,
+        replay_buffer_kwargs=dict(sampling="drqv2", frame_stack=1),
+    )  # fmt: skip
+    with th.no_grad():
+        model.actor.mlp1[0].bias.fill_(-1e3)  # collapsed: the rule resets at the end of its window
+    updates = {}
+
+    class Rule(CollapseReset):
+        def _on_step(self):
+            updates[self.num_timesteps] = self.model._n_updates
+            return super()._on_step()
+
+    rule = Rule(window_frames=200, check_every_frames=20, patience=3, max_resets=1)
+    with pytest.warns(UserWarning, match="no episode of at least n_steps transitions has finished"):
+        model.learn(160, callback=rule)
+    assert rule.reset_frames == [200] and model.reset_step == 100
+    assert model.replay_buffer.episodes_done.sum() == 2  # the cut one (1 transition) and the next, at step 150
+    assert updates[100] == updates[150] and model._n_updates > updates[150]  # no update until step 150's episode
+
+
+def _unfinished_run(run_dir: Path, monkeypatch, capsys) -> None:
+    """A tiny run stopped by a full disk at its final save: checkpoints at frames 400 and 600 (it trained 800)."""
+    original = DrQv2.save
+
+    def full_disk(self, path, *args, **kwargs):
+        if "final_model" not in str(path):
+            return original(self, path, *args, **kwargs)
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(DrQv2, "save", full_disk)
+    assert main(_flags(run_dir)) == 1
+    monkeypatch.setattr(DrQv2, "save", original)
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped"])
+def test_damaged_replay_chunk_shared_by_every_checkpoint_restarts_the_run_and_keeps_them(
+    tmp_path, monkeypatch, capsys, damage
+):
+    """Both checkpoints need the first replay chunk. Truncated, it is seen as the checkpoints are verified; a byte
+    flipped, only as the chunk is read (its CRC), after the model was restored. Either way the run says why it
+    restarts from frame 0, keeps the checkpoints aside (nothing is deleted), and finishes. A temporary file that a
+    kill in the middle of the final save left is removed."""
+    run_dir = tmp_path / "run"
+    _unfinished_run(run_dir, monkeypatch, capsys)
+    checkpoints = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
+    manifests = [json.loads((folder / "checkpoint.json").read_text())["replay"]["store"] for folder in checkpoints]
+    assert len(manifests) == 2
+    shared = manifests[0]["chunks"][0]["file"]
+    assert shared == manifests[1]["chunks"][0]["file"]
+    chunk = run_dir / CHECKPOINTS_DIR / "replay" / shared
+    data = bytearray(chunk.read_bytes())
+    if damage == "truncated":
+        del data[len(data) // 2 :]
+    else:
+        data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    partial = run_dir / ".final_model.zip.x1y2z3.partial.zip"  # what a kill in the middle of the final save leaves
+    partial.write_bytes(b"PK\x03\x04")
+
+    assert main(_flags(run_dir)) == 0
+    out = capsys.readouterr().out
+    notes = [line for line in out.splitlines() if line.startswith("Note: Every checkpoint")]
+    kept = run_dir / "damaged_checkpoints"
+    assert len(notes) == 1, out
+    assert notes[0].startswith(f"Note: Every checkpoint of {run_dir} is damaged (")
+    assert notes[0].endswith(f"): the run restarts from frame 0. They are kept in {kept}.")
+    assert all(folder.name in notes[0] for folder in checkpoints) and shared in notes[0]
+    assert (kept / "damaged.txt").read_text() == notes[0].removeprefix("Note: ") + "\n"
+    assert (kept / "replay" / shared).read_bytes() == bytes(data)  # set aside as it was
+    assert sorted(path.name for path in kept.iterdir() if path.name.startswith(("step_", "damaged_step_"))) == sorted(
+        ("damaged_" if damage == "flipped" else "") + folder.name for folder in checkpoints
+    )
+    result = json.loads((run_dir / RESULT_JSON).read_text())
+    assert result["frames"] == 800 and result["resumes"] == 0  # restarted from frame 0
+    assert not partial.exists() and not (run_dir / CHECKPOINTS_DIR).exists()
+
+
+def test_leftovers_of_a_run_killed_after_its_result_are_removed_by_the_same_command(tmp_path, capsys):
+    """A process killed between writing result.json and deleting its checkpoints and lock: the same command again
+    (refused: the run is finished) removes them; a sweep skipping the trial does the same (tidy_finished_run)."""
+    from sb3_collapse.run.folder import tidy_finished_run
+    from sb3_collapse.run.lock import RunLock
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / CONFIG_JSON).write_text("{}")
+    (run_dir / RESULT_JSON).write_text('{"status": "finished"}')
+    step = run_dir / CHECKPOINTS_DIR / "step_000000000040"
+    step.mkdir(parents=True)
+    (step / "model.zip").write_bytes(b"x" * 2_000_000)
+    (run_dir / "run.lock").write_text("pid 1 on host h since 2020-01-01 00:00:00\n")
+    (run_dir / "snapshots").mkdir()
+    (run_dir / "snapshots" / ".snapshot_0000000800_frames.zip.ab12.partial.zip").write_bytes(b"PK")
+
+    with RunLock(run_dir):  # a process still finishing: nothing is touched
+        assert tidy_finished_run(run_dir) == []
+    assert step.is_dir()
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(_flags(run_dir))
+    assert exit_info.value.code == 2
+    printed = capsys.readouterr()
+    assert "holds a finished run (result.json): choose another folder." in printed.err
+    assert printed.out.strip() == (
+        f"Removed what the finished run in {run_dir} left behind (killed after it finished): checkpoints/ (2.0 MB), "
+        ".snapshot_0000000800_frames.zip.ab12.partial.zip, run.lock."
+    )
+    assert sorted(path.name for path in run_dir.rglob("*")) == [CONFIG_JSON, RESULT_JSON, "snapshots"]
+
+
+def test_the_run_trains_exactly_its_budget_or_says_why_not():
+    """SB3 completes a round of train_freq transitions past the budget: 375 agent steps (3,000 frames at action
+    repeat 8) trained 376. A round now stops at the budget; with several environments, the budget rounds up to a
+    multiple of n_envs, and the run says so."""
+    from sb3_collapse.run.config import TrainConfig
+    from sb3_collapse.run.runner import budget_note
+
+    env = RandomObservationEnv(gym.spaces.Box(0, 255, (9, 16, 16), np.uint8), episode_length=50, action_repeat=8)
+    model = DrQv2(
+        "CnnPolicy", env, buffer_size=400, learning_starts=360, batch_size=4, seed=0,
+        policy_kwargs=dict(hidden_dim=16, feature_dim=8),
+    )  # fmt: skip
+    model.learn(375)
+    assert model.num_timesteps == 375 and model.num_frames == 3000
+    model.learn(5, reset_num_timesteps=False)  # a resumed run continues to its budget, not past it
+    assert model.num_timesteps == 380
+
+    config = dict(env="cartpole-balance", action_repeat=8)
+    assert budget_note(TrainConfig(frames=3000, **config).resolve()) is None
+    assert budget_note(TrainConfig(frames=3000, n_envs=2, **config).resolve()) == (
+        "Note: the budget of 3,000 frames is not a multiple of the action repeat 8 x 2 environments (16): the run "
+        "trains 3,008 frames (376 agent steps)."
+    )
+    assert budget_note(TrainConfig(frames=401, env="cartpole-balance", action_repeat=2).resolve()) == (
+        "Note: the budget of 401 frames is not a multiple of the action repeat 2: the run trains 400 frames (200 "
+        "agent steps)."
+    )

@@ -126,8 +126,9 @@ class FrameStackReplayBuffer(ReplayBuffer):
       every episode has the same length). Two differences remain: the reference evicts whole episodes when full
       where this ring overwrites the oldest transitions (the remaining transitions of a partly overwritten
       episode stay sampleable), and its loader workers see new episodes with a delay (``fetch_every``), which
-      is not reproduced. Until an episode has finished nothing is sampleable: :attr:`ready_to_sample` says so,
-      and ``DrQv2`` skips its updates until then.
+      is not reproduced. Until an episode of at least ``n_steps`` transitions has finished (since the last
+      :meth:`reset`: a reset near an episode's end leaves only its last few transitions) nothing is sampleable:
+      :attr:`ready_to_sample` says so, and ``DrQv2`` skips its updates until then.
 
     **Wrap-around.** Transitions and frames are overwritten oldest first, in separate rings. The frame ring
     holds ``buffer_size // n_envs + frame_stack * (1 + ceil(buffer_size // n_envs / min_episode_length))``
@@ -216,6 +217,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.episodes_done = np.zeros(n_envs, dtype=np.int64)  # episodes ended per env, since the last reset
         self.transitions_added = 0  # add() calls (transitions per env) since the last reset
         self.resets = 0  # reset() calls since construction
+        self._sampleable_checked: tuple[int, int, int, bool] | None = None  # ready_to_sample's last pass
         self._frame_offsets = np.arange(self.frame_stack)
         _warn_if_larger_than_available_memory(self.nbytes)
 
@@ -314,12 +316,24 @@ class FrameStackReplayBuffer(ReplayBuffer):
     def ready_to_sample(self) -> bool:
         """
         Whether :meth:`sample` has transitions to draw from: any stored one (``sampling="sb3"``), or one of a
-        finished episode (``"drqv2"``; with episodes shorter than ``n_steps`` there may still be none, and
-        :meth:`sample` says so).
+        finished episode with at least ``n_steps`` transitions in the buffer (``"drqv2"``: the episode that a
+        :meth:`reset` cut to its last few transitions, or episodes shorter than ``n_steps``, give none).
+
+        With ``"drqv2"`` the buffer is scanned (:meth:`is_sampleable`) only when an episode has ended since a scan that
+        found nothing, after a :meth:`reset`, and once per pass of the ring over the buffer.
         """
-        if self.sampling == "drqv2":
-            return bool(self.episodes_done.any())
-        return self.size() > 0
+        if self.sampling != "drqv2":
+            return self.size() > 0
+        episodes = int(self.episodes_done.sum())
+        if episodes == 0:
+            return False
+        laps = self.transitions_added // self.buffer_size
+        checked = getattr(self, "_sampleable_checked", None)  # absent in a buffer pickled before it existed
+        if checked is not None and checked[:2] == (self.resets, laps) and (checked[3] or checked[2] == episodes):
+            return checked[3]  # more finished episodes only add sampleable transitions until the ring wraps
+        ready = self._any_sampleable(self.buffer_size if self.full else self.pos)
+        self._sampleable_checked = (self.resets, laps, episodes, ready)
+        return ready
 
     def frames_stored(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
         """

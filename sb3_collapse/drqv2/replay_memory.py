@@ -151,12 +151,13 @@ def physical_memory_bytes() -> int:
 
 
 def warn_not_ready(num_timesteps: int) -> None:
-    """Say why the updates wait: DrQ-v2's sampling takes finished episodes only, and none has finished yet."""
+    """Say why the updates wait: DrQ-v2's sampling takes finished episodes only, and none it can sample has ended."""
     warnings.warn(
         f"DrQv2: no update at transition {num_timesteps}: the replay buffer samples finished episodes only "
-        "(replay_buffer_kwargs sampling='drqv2', DrQ-v2's rule) and no episode has finished yet. Updates start "
-        "when the first episode ends. DrQ-v2 starts learning after 4,000 frames (several episodes); pass a "
-        "larger learning_starts, or sampling='sb3' to sample the episode in progress too.",
+        "(replay_buffer_kwargs sampling='drqv2', DrQ-v2's rule) and no episode of at least n_steps transitions has "
+        "finished in it yet (since the last reset, if any). Updates start when one ends. DrQ-v2 starts learning "
+        "after 4,000 frames (several episodes); pass a larger learning_starts, or sampling='sb3' to sample the "
+        "episode in progress too.",
         stacklevel=2,
     )
 

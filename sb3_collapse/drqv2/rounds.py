@@ -224,14 +224,17 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
     def _round_train_freq(self) -> TrainFreq:
         """
         ``env.step`` calls of the next rollout: with ``(n, "transition")``, up to the step in which the transition
-        count reaches the next multiple of ``n`` (``n`` steps with one environment, one step when ``n_envs >= n``);
-        SB3's ``train_freq`` (steps of every environment, or episodes) as is.
+        count reaches the next multiple of ``n`` (``n`` steps with one environment, one step when ``n_envs >= n``) or
+        the budget of ``learn()``, whichever comes first (SB3 completes a round past the budget: a budget of 375
+        transitions would train 376 with ``n=2``; here it trains 375, or the next multiple of ``n_envs``, as every
+        environment steps at once); SB3's ``train_freq`` (steps of every environment, or episodes) as is.
         """
         if self.train_freq.unit != TRANSITION:
             return self.train_freq
         frequency = self.train_freq.frequency
         next_multiple = (self.num_timesteps // frequency + 1) * frequency
-        return TrainFreq(-(-(next_multiple - self.num_timesteps) // self.n_envs), TrainFrequencyUnit.STEP)
+        stop = min(next_multiple, max(self._total_timesteps, self.num_timesteps + 1))
+        return TrainFreq(-(-(stop - self.num_timesteps) // self.n_envs), TrainFrequencyUnit.STEP)
 
     def updates_due(self, start: int, end: int) -> int:
         """

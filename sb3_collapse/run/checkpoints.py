@@ -95,6 +95,10 @@ class CheckpointError(RuntimeError):
     """A checkpoint could not be written (a full disk...); the message names the folder and says what to do."""
 
 
+class CheckpointsDamaged(CheckpointError):
+    """Every checkpoint of a run turned out damaged as it was read; each is set aside (:func:`set_aside`)."""
+
+
 class CheckpointMismatch(InputError):
     """The run folder's checkpoints cannot be used by this run (another package version or format, other spaces)."""
 
@@ -414,22 +418,37 @@ def checkpoint_learning_rates(folder: str | os.PathLike) -> dict[str, list[float
     return rates
 
 
-def set_aside(folder: Path) -> Path:
-    """Rename a damaged checkpoint's folder so that it is never read again (and not lost): ``damaged_<name>``."""
-    target = folder.with_name(f"damaged_{folder.name}")
-    if target.exists():
-        shutil.rmtree(target)
+DAMAGED_NOTE = "damaged.txt"
+"""In a folder set aside as damaged (:func:`set_aside`): why."""
+
+
+def set_aside(folder: Path, reason: str | None = None) -> Path:
+    """
+    Rename a damaged checkpoint's folder (or a run's checkpoints folder) so that it is never read again, and not
+    lost: ``damaged_<name>`` (``damaged_<name>-2``... when that is taken: nothing set aside before is overwritten).
+
+    :param folder: the folder
+    :param reason: why, written into it (:data:`DAMAGED_NOTE`; best effort)
+    :return: its new path
+    """
+    target, number = folder.with_name(f"damaged_{folder.name}"), 2
+    while target.exists():
+        target, number = folder.with_name(f"damaged_{folder.name}-{number}"), number + 1
     folder.replace(target)
+    if reason is not None:
+        with contextlib.suppress(OSError):
+            (target / DAMAGED_NOTE).write_text(reason + "\n")
     return target
 
 
-def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
+def read_checkpoints(directory: str | os.PathLike) -> tuple[LoadedCheckpoint | None, list[tuple[Path, str]]]:
     """
     The newest checkpoint of a run that can be read, verified (sizes and checksums); a damaged one (truncated, a
-    missing file, a bad checksum) is passed over for the one before, and listed in ``skipped``.
+    missing file, a bad checksum) is passed over for the one before.
 
     :param directory: the run's checkpoints folder
-    :return: the checkpoint, ``None`` when there is no readable one
+    :return: the checkpoint (``None`` when there is no readable one), and the damaged newer ones passed over, with
+        the reason (all of them when none is readable)
     :raises CheckpointMismatch: for a checkpoint of another format or package version
     """
     skipped: list[tuple[Path, str]] = []
@@ -439,8 +458,18 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
         except _Damaged as error:
             skipped.append((folder, str(error)))
             continue
-        return LoadedCheckpoint(folder=folder, info=info, state=state, skipped=skipped)
-    return None
+        return LoadedCheckpoint(folder=folder, info=info, state=state, skipped=skipped), skipped
+    return None, skipped
+
+
+def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
+    """
+    :param directory: the run's checkpoints folder
+    :return: the newest readable checkpoint (:func:`read_checkpoints`; the damaged newer ones in ``skipped``),
+        ``None`` when there is none
+    :raises CheckpointMismatch: for a checkpoint of another format or package version
+    """
+    return read_checkpoints(directory)[0]
 
 
 # ---------------------------------------------------------------------------------------------------------- restoring
@@ -603,7 +632,7 @@ class ResumableCheckpoints(FrameScheduleCallback):
         before.
 
         :return: the checkpoint resumed from, and notes for the user (damaged checkpoints, see :func:`restore_run`)
-        :raises CheckpointError: when no checkpoint is left
+        :raises CheckpointsDamaged: when no checkpoint is left (``train`` then restarts the run from frame 0)
         """
         notes: list[str] = []
         while True:
@@ -612,11 +641,12 @@ class ResumableCheckpoints(FrameScheduleCallback):
                 break
             except ReplayCheckpointError as error:
                 notes.append(f"checkpoint {checkpoint.folder} is damaged ({error}): falling back to the one before.")
-                set_aside(checkpoint.folder)
+                set_aside(checkpoint.folder, str(error))
                 older = load_checkpoint(self.directory)
                 if older is None:
-                    raise CheckpointError(
-                        f"no readable checkpoint is left in {self.directory}: delete the run folder to restart the run."
+                    raise CheckpointsDamaged(
+                        f"no readable checkpoint is left in {self.directory} (each is set aside as damaged_step_...): "
+                        "the run restarts from frame 0."
                     ) from error
                 notes += [f"checkpoint {folder} is damaged ({reason})." for folder, reason in older.skipped]
                 checkpoint = older

@@ -9,6 +9,7 @@ new run, or the checkpoint an unfinished one resumes from). The folder's files a
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import shutil
@@ -29,8 +30,15 @@ from sb3_collapse.protocol import (
     read_settings,
     write_json_atomically,
 )
-from sb3_collapse.run.checkpoints import LoadedCheckpoint, checkpoint_learning_rates, load_checkpoint, set_aside
+from sb3_collapse.run.checkpoints import (
+    DAMAGED_NOTE,
+    LoadedCheckpoint,
+    checkpoint_learning_rates,
+    read_checkpoints,
+    set_aside,
+)
 from sb3_collapse.run.config import RESUME_FREE_SETTINGS, TrainConfig
+from sb3_collapse.run.lock import RunFolderLocked, RunLock
 
 NEW_RUN, UNFINISHED_RUN, FINISHED_RUN, FOREIGN = "new", "unfinished", "finished", "foreign"
 """What a folder holds, for a run that wants it (:func:`run_folder_state`)."""
@@ -71,6 +79,7 @@ def check_run_folder(config: TrainConfig) -> None:
                 "or choose another.",
             )
         if state == FINISHED_RUN:
+            tidy_finished_run(Path(config.run_dir))
             raise ParameterError(
                 "run_dir", f"run_dir {config.run_dir} holds a finished run ({RESULT_JSON}): choose another folder."
             )
@@ -137,6 +146,8 @@ def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
         state = run_folder_state(run_dir)
         if state == NEW_RUN:
             return run_dir
+        if state == FINISHED_RUN:
+            tidy_finished_run(run_dir)
         if state == UNFINISHED_RUN:
             differences = settings_differences(saved_settings(run_dir), config)
             if not differences:
@@ -146,15 +157,100 @@ def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
         run_dir = logdir / f"{name}_{index}"
 
 
+def partial_outputs(run_dir: Path) -> list[Path]:
+    """
+    :param run_dir: a run folder
+    :return: the temporary files of its atomic writes (``.<name>.*.partial<suffix>``,
+        :func:`~sb3_collapse.protocol.atomic_output`) that a process killed while writing left behind, but those of
+        the checkpoints (the next checkpoint removes them)
+    """
+    return [
+        path
+        for path in run_dir.rglob(".*.partial*")
+        if path.is_file() and CHECKPOINTS_DIR not in path.relative_to(run_dir).parts
+    ]
+
+
+def tidy_finished_run(run_dir: Path) -> list[str]:
+    """
+    Remove what a finished run's process, killed after it wrote its result file, left behind: the checkpoints (of
+    no use once the run has finished), the temporary files of atomic writes (:func:`partial_outputs`) and the lock
+    file. Nothing happens while a process holds the folder's lock (it is finishing, and removes them itself), or
+    where the folder cannot be written.
+
+    :param run_dir: a folder holding a finished run (its result file)
+    :return: what was removed, for the user (empty when nothing was)
+    """
+    checkpoints, lock = run_dir / CHECKPOINTS_DIR, run_dir / LOCK_FILE
+    leftovers = [path for path in (checkpoints, lock) if path.exists()] + partial_outputs(run_dir)
+    if not leftovers or not (run_dir / RESULT_JSON).is_file():
+        return []
+    removed = []
+    try:
+        with RunLock(run_dir):
+            for path in leftovers:
+                if path == lock:
+                    continue
+                if path.is_dir():
+                    size = sum(file.stat().st_size for file in path.rglob("*") if file.is_file())
+                    shutil.rmtree(path)
+                    removed.append(f"{path.name}/ ({size / 1e6:.1f} MB)")
+                else:
+                    path.unlink()
+                    removed.append(path.name)
+            lock.unlink()  # still locked: no process may take a finished run's folder
+            if lock in leftovers:
+                removed.append(LOCK_FILE)
+    except (RunFolderLocked, OSError):
+        pass
+    if removed:
+        listed = ", ".join(removed)
+        print(f"Removed what the finished run in {run_dir} left behind (killed after it finished): {listed}.")
+    return removed
+
+
 def empty_run_dir(run_dir: Path) -> None:
     """
-    Delete what a run folder holds, but the lock file (held by this process).
+    Delete what a run folder holds, but the lock file (held by this process) and what was set aside as damaged
+    (``damaged_*``, :func:`~sb3_collapse.run.checkpoints.set_aside`: never deleted, it cannot be rebuilt).
 
     :param run_dir: the run folder
     """
     for path in run_dir.iterdir():
-        if path.name != LOCK_FILE:
+        if path.name != LOCK_FILE and not path.name.startswith("damaged_"):
             shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def set_aside_damaged_checkpoints(run_dir: Path, skipped: list[tuple[Path, str]]) -> Path | None:
+    """
+    When no checkpoint of an unfinished run can be read and some are damaged (``skipped``, or set aside earlier as
+    ``damaged_step_*``), set the whole checkpoints folder aside (``damaged_checkpoints``, replay chunks included) and
+    say in one line, printed and written into it (:data:`~sb3_collapse.run.checkpoints.DAMAGED_NOTE`), that the run
+    restarts from frame 0 and why.
+
+    :param run_dir: the run folder, locked by this process
+    :param skipped: the damaged checkpoints and why (:func:`~sb3_collapse.run.checkpoints.read_checkpoints`)
+    :return: where the checkpoints went, ``None`` when none was damaged
+    """
+    checkpoints = run_dir / CHECKPOINTS_DIR
+    damaged = [f"{folder.name}: {reason}" for folder, reason in skipped]
+    for folder in sorted(checkpoints.glob("damaged_*")):  # set aside by an earlier process, with the reason
+        try:
+            reason = (folder / DAMAGED_NOTE).read_text().strip()
+        except OSError:
+            reason = "set aside as damaged"
+        damaged.append(f"{folder.name.removeprefix('damaged_')}: {reason}")
+    if not damaged:
+        return None
+    target = set_aside(checkpoints)
+    line = (
+        f"Every checkpoint of {run_dir} is damaged ({'; '.join(damaged)}): the run restarts from frame 0. They are "
+        f"kept in {target}."
+    )
+    with contextlib.suppress(OSError):
+        (target / DAMAGED_NOTE).write_text(line + "\n")
+    print(f"Note: {line}", flush=True)
+    return target
 
 
 def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
@@ -180,12 +276,13 @@ def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
                 f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run it "
                 "with its own settings to resume it, or train into another folder.",
             )
-        checkpoint = load_checkpoint(run_dir / CHECKPOINTS_DIR)
-        skipped = [] if checkpoint is None else checkpoint.skipped
-        for folder, reason in skipped:  # kept aside under another name, never read again
-            print(f"Checkpoint {folder} is damaged ({reason}): falling back to the one before.")
-            set_aside(folder)
+        for partial in partial_outputs(run_dir):  # a write of a killed process: written again as the run goes on
+            partial.unlink()
+        checkpoint, skipped = read_checkpoints(run_dir / CHECKPOINTS_DIR)
         if checkpoint is not None:
+            for folder, reason in skipped:  # kept aside under another name, never read again
+                print(f"Checkpoint {folder} is damaged ({reason}): falling back to the one before.")
+                set_aside(folder, reason)
             differences = optimizer_differences(checkpoint.folder, config)
             if differences:  # the settings file was edited: the run would change its settings mid-run
                 raise ParameterError(
@@ -201,7 +298,8 @@ def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
                 error_file.replace(run_dir / CHECKPOINTS_DIR / f"error_{time.strftime('%Y%m%d-%H%M%S')}.txt")
             print(f"Resuming {run_dir} from its checkpoint at frame {checkpoint.frames:,} ({checkpoint.folder.name}).")
             return checkpoint
-        print(f"{run_dir} holds an unfinished run without a readable checkpoint: restarting it from frame 0.")
+        if set_aside_damaged_checkpoints(run_dir, skipped) is None:
+            print(f"{run_dir} holds an unfinished run without a checkpoint: restarting it from frame 0.")
     empty_run_dir(run_dir)
     write_json_atomically(run_dir / CONFIG_JSON, config.record())
     return None

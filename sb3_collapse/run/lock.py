@@ -24,31 +24,51 @@ class RunFolderLocked(InputError):
 class RunLock:
     """
     An exclusive lock on a run folder (``flock`` on its lock file, released by the system if the process dies), with
-    the owner's pid, host and start time in the file for the message of a process that finds it taken.
+    the owner's pid, host and start time in the file for the message of a process that finds it taken. The owner may
+    delete the lock file while it holds it: a process that locked the deleted file takes the new one instead.
 
     :param run_dir: the run folder (it must exist)
+    :param lock_file: the lock file's name in it (a sweep's folder: :data:`~sb3_collapse.protocol.SWEEP_LOCK`)
+    :param folder: what the folder is, for the message (``"sweep folder"``)
+    :param instead: what to do instead of waiting, for the message
     """
 
-    def __init__(self, run_dir: str | os.PathLike) -> None:
-        self.path = Path(run_dir) / LOCK_FILE
+    def __init__(
+        self,
+        run_dir: str | os.PathLike,
+        lock_file: str = LOCK_FILE,
+        folder: str = "run folder",
+        instead: str = "train into another folder",
+    ) -> None:
+        self.path = Path(run_dir) / lock_file
+        self.folder = folder
+        self.instead = instead
         self._file: Any = None
 
     def __enter__(self) -> Self:
         import fcntl
 
-        file = open(self.path, "a+")
-        try:
-            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as error:
-            file.seek(0)
-            owner = file.read().strip() or "another process"
-            file.close()
-            if error.errno not in (errno.EAGAIN, errno.EACCES):
-                raise
-            raise RunFolderLocked(
-                f"run folder {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or train into "
-                "another folder."
-            ) from None
+        while True:
+            file = open(self.path, "a+")
+            try:
+                fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as error:
+                file.seek(0)
+                owner = file.read().strip() or "another process"
+                file.close()
+                if error.errno not in (errno.EAGAIN, errno.EACCES):
+                    raise
+                raise RunFolderLocked(
+                    f"{self.folder} {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or "
+                    f"{self.instead}."
+                ) from None
+            try:
+                current = os.stat(self.path).st_ino
+            except FileNotFoundError:
+                current = None
+            if current == os.fstat(file.fileno()).st_ino:
+                break
+            file.close()  # its owner deleted the file we locked: lock the one at the path now
         file.seek(0)
         file.truncate()
         file.write(f"pid {os.getpid()} on host {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")

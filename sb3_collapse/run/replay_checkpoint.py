@@ -317,6 +317,7 @@ class ReplayStore:
         buffer.frame_heads[:] = state["frame_heads"]
         buffer.steps_since_done[:] = state["steps_since_done"]
         buffer.episodes_done[:] = state["episodes_done"]
+        buffer._sampleable_checked = None  # ready_to_sample scans the restored content again
         self._track(buffer, manifest)
 
     def check_files(self, manifest: dict[str, Any]) -> None:

@@ -62,7 +62,7 @@ from sb3_collapse.protocol import (
     write_failure,
     write_json_atomically,
 )
-from sb3_collapse.run.checkpoints import CheckpointError, LoadedCheckpoint, ResumableCheckpoints
+from sb3_collapse.run.checkpoints import CheckpointError, CheckpointsDamaged, LoadedCheckpoint, ResumableCheckpoints
 from sb3_collapse.run.config import USER, TrainConfig, baseline_kwargs, drqv2_kwargs, env_kwargs
 from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
 from sb3_collapse.run.folder import check_run_folder, new_run_dir, open_run_dir
@@ -168,7 +168,10 @@ def train(config: TrainConfig) -> TrainResult:
     **Resuming.** The folder of an unfinished run with the same settings (but those of
     :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`)
     is resumed from its newest readable checkpoint (:mod:`sb3_collapse.run.checkpoints`), or restarted from frame 0
-    without one; with other settings it is refused (an explicit ``run_dir``) or passed over for ``<name>_2``... The
+    without one (damaged ones are set aside, never deleted, and the screen says why the run restarts); a temporary
+    file that a killed process left is removed, and so are the checkpoints and the lock that a process killed after
+    it finished left in a finished run's folder (:func:`~sb3_collapse.run.folder.tidy_finished_run`); with other
+    settings it is refused (an explicit ``run_dir``) or passed over for ``<name>_2``... The
     folder is locked while the run trains into it (a second process is refused). A SIGTERM or SIGINT writes a
     checkpoint and raises :class:`~sb3_collapse.run.signals.TrainingInterrupted`; the checkpoints are deleted once
     the run has finished.
@@ -216,9 +219,19 @@ def train(config: TrainConfig) -> TrainResult:
             raise InputError(f"run folder: {message}") from None
         checkpoint = open_run_dir(run_dir, config)
         try:
-            result = _train_into(
-                config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint
-            )
+            try:
+                result = _train_into(
+                    config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint
+                )
+            except CheckpointsDamaged:  # found as their replay chunks were read: each one is set aside
+                env.close()
+                if eval_env is not None:
+                    eval_env.close()
+                env, eval_env, model = build_envs_and_model(config, task_id)  # from frame 0, as a new run
+                result = _train_into(
+                    config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time,
+                    open_run_dir(run_dir, config),  # sets the checkpoints aside, and says why the run restarts
+                )  # fmt: skip
             (run_dir / LOCK_FILE).unlink(missing_ok=True)  # finished: no process may take the folder any more
             return result
         except TrainingInterrupted:
@@ -318,6 +331,27 @@ def _run_callbacks(config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay |
     return _RunCallbacks(callbacks, evaluation, reset_rule)
 
 
+def budget_note(config: TrainConfig) -> str | None:
+    """
+    The frames a run trains: exactly its budget (``frames``) when that is a multiple of the action repeat times the
+    number of environments (they all step at once); otherwise the nearest multiple that the environments reach (the
+    budget's agent steps, ``frames // action_repeat``, rounded up to a multiple of ``n_envs``), said in one line.
+
+    :param config: the run's resolved settings
+    :return: ``"Note: ..."``, ``None`` when the run trains its budget exactly
+    """
+    trained = -(-config.agent_steps // config.n_envs) * config.n_envs
+    if trained * config.action_repeat == config.frames:
+        return None
+    unit = f"{config.action_repeat}" + (
+        f" x {config.n_envs} environments ({config.action_repeat * config.n_envs})" if config.n_envs > 1 else ""
+    )
+    return (
+        f"Note: the budget of {config.frames:,} frames is not a multiple of the action repeat {unit}: the run trains "
+        f"{trained * config.action_repeat:,} frames ({trained:,} agent steps)."
+    )
+
+
 def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgorithm, steps: int) -> None:
     """Print what the run trains, with which settings (and where they came from), and where it writes."""
     user = sorted(name for name, source in config.sources.items() if source == USER)
@@ -336,12 +370,9 @@ def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgor
         algorithm = f"SB3's {type(model).__name__}"
         details = f"lr {config.learning_rate:g}; DrQ-v2-only settings not used: {', '.join(DRQV2_ONLY_SETTINGS)}"
     rule = f", reset rule: {config.intervention or 'reset'}" if config.reset_rule else ""
-    if config.frames % config.action_repeat:  # type: ignore[operator]
-        print(
-            f"Note: the budget of {config.frames:,} frames is not a multiple of the action repeat "
-            f"{config.action_repeat}: the run trains {steps * config.action_repeat:,} frames ({steps:,} agent steps).",
-            flush=True,
-        )
+    note = budget_note(config)
+    if note is not None:
+        print(note, flush=True)
     print(
         f"{algorithm} on {task_id} from pixels{rule}: {config.frames:,} frames = {steps:,} agent steps "
         f"(action repeat {config.action_repeat}{f', summed over {config.n_envs} envs' if config.n_envs > 1 else ''}), "

@@ -209,9 +209,10 @@ def main(argv: list[str] | None = None) -> int:
         + "."
     )
     for trial, error_path in summary.failed.items():
-        print(f"  failed: {trial} (see {error_path})")
+        again = ", and would again at a rerun" if trial in summary.repeating else ""
+        print(f"  failed{again}: {trial} (see {error_path})")
     if summary.failed:
-        print("Rerun the same command to retry the failed trials.")
+        print(failure_advice(len(summary.failed), len(summary.repeating)))
         return 1
     if summary.interrupted:
         print(
@@ -220,6 +221,23 @@ def main(argv: list[str] | None = None) -> int:
         )
         return EXIT_INTERRUPTED
     return 0
+
+
+def failure_advice(failed: int, repeating: int) -> str:
+    """
+    :param failed: trials that failed
+    :param repeating: those of them that a rerun would fail the same way (``SweepSummary.repeating``)
+    :return: one line: what to do about them
+    """
+    fix = "fix the cause first (their error.txt says it: bad settings, a diverging run, an error of the training code)"
+    if repeating == 0:
+        return "Rerun the same command to retry the failed trials."
+    if repeating == failed:
+        return f"A rerun would fail {'this trial' if failed == 1 else 'these trials'} the same way: {fix}."
+    return (
+        f"Rerun the same command to retry the other {failed - repeating} failed trials; the {repeating} marked would "
+        f"fail the same way: {fix}."
+    )
 
 
 def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict[str, dict[str, str]], dict | None]:

@@ -24,19 +24,23 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
+from sb3_collapse.errors import InputError
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CONFIG_JSON,
     ERROR_TXT,
     SWEEP_JSON,
+    SWEEP_LOCK,
     SWEEP_STOP,
     blocking_file,
     read_settings,
     write_json_atomically,
     write_text_atomically,
 )
+from sb3_collapse.run.checkpoints import CheckpointError
 from sb3_collapse.run.config import TrainConfig
-from sb3_collapse.run.folder import UNFINISHED_RUN, run_folder_state, settings_differences
+from sb3_collapse.run.folder import UNFINISHED_RUN, run_folder_state, settings_differences, tidy_finished_run
+from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import (
     TrainingInterrupted,
@@ -141,7 +145,8 @@ def run_trial(
     from its newest checkpoint, or restarted from frame 0 without one (see :func:`~sb3_collapse.run.runner.train`); one
     with
     other training settings (a sweep run with ``allow_changed_settings``) is deleted first. A failure does not
-    propagate: its traceback goes to the trial's error file.
+    propagate: its traceback goes to the trial's error file (where ``train`` did not write it already, with the agent
+    step it failed at first: :func:`~sb3_collapse.protocol.write_failure`).
 
     :param trial: the trial
     :param out: the sweep folder
@@ -216,6 +221,7 @@ def _run_trial(
             differences = ["unreadable settings"]
         if differences:  # the sweep's settings changed (allowed): this attempt cannot continue
             shutil.rmtree(folder)
+    before = _error_file_stamp(folder)
     try:
         result = train(config)
     except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
@@ -224,9 +230,38 @@ def _run_trial(
             "checkpoint": str(error.checkpoint),
         }  # fmt: skip
     except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary, the other trials go on
-        write_error(folder, traceback.format_exc())
-        return {"trial": str(trial), "status": "failed", "error": f"{type(error).__name__}: {error}", "resumes": 0}
+        if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
+            write_error(folder, traceback.format_exc())
+        return {
+            "trial": str(trial), "status": "failed", "error": f"{type(error).__name__}: {error}", "resumes": 0,
+            "retryable": retryable(error),
+        }  # fmt: skip
     return {"trial": str(trial), "status": FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
+
+
+def _error_file_stamp(folder: Path) -> tuple[int, int] | None:
+    """The inode and modification time of a trial's error file (a new file at each write), ``None`` without one."""
+    try:
+        stat = (folder / ERROR_TXT).stat()
+    except OSError:
+        return None
+    return stat.st_ino, stat.st_mtime_ns
+
+
+def retryable(error: BaseException) -> bool:
+    """
+    Whether running a failed trial again may finish it: a fault of what it ran on (a full or read-only disk, a
+    checkpoint that could not be written, memory) may be gone at the next run. Anything else (bad settings, a
+    diverging run, an error of the training code) comes back: the trial resumes from its checkpoint bit for bit and
+    meets it again.
+
+    :param error: what the trial raised
+    :return: whether a rerun may succeed
+    """
+    import torch as th
+
+    transient = (OSError, MemoryError, CheckpointError, th.cuda.OutOfMemoryError)
+    return isinstance(error, transient) and not isinstance(error, InputError)
 
 
 @dataclass
@@ -236,6 +271,8 @@ class SweepSummary:
     :param skipped: trials already finished before this run
     :param finished: trials finished in this run
     :param failed: trial -> path of its error file, for the trials that failed in this run
+    :param repeating: the failed trials that a rerun would fail the same way (:func:`retryable`: bad settings, a
+        diverging run, an error of the training code)
     :param resumed: the trials finished in this run that continued from a checkpoint (of an earlier sweep run, or of
         their own Ray task that died and was run again)
     :param interrupted: trial -> the checkpoint it wrote as it stopped (``None``: it had not started), for the
@@ -247,6 +284,7 @@ class SweepSummary:
     skipped: list[Trial]
     finished: list[Trial]
     failed: dict[Trial, Path]
+    repeating: list[Trial] = dataclasses.field(default_factory=list)
     resumed: list[Trial] = dataclasses.field(default_factory=list)
     interrupted: dict[Trial, Path | None] = dataclasses.field(default_factory=dict)
     stopped_by: str | None = None
@@ -431,7 +469,8 @@ def run_sweep(
     settings (see
     :func:`prepare_sweep_folder`). A failing trial writes its traceback to the trial's error file and the others
     go on. Ray starts only when there is a trial to run, and the settings file is written once Ray answered (a
-    cluster that does not answer leaves the folder as it was).
+    cluster that does not answer leaves the folder as it was). One sweep at a time runs into ``out``
+    (:func:`sweep_folder_locked`): a second one is refused before its Ray starts.
 
     **Signals.** A SIGTERM or SIGINT to this process (in the main thread) asks every running trial to write a
     checkpoint and stop, waits for them, and returns with ``stopped_by`` set and the trials in ``interrupted``:
@@ -458,6 +497,7 @@ def run_sweep(
     :raises RayMissingError: when there are trials to run and Ray is not installed
     :raises ClusterUnreachable: when the cluster at ``address`` did not answer within ``connect_timeout_s``;
         nothing was written
+    :raises RunFolderLocked: when another sweep runs into ``out``; nothing was written
     """
     check_sweep_arguments(out, training, cpus_per_trial, gpus_per_trial, connect_timeout_s)
     unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
@@ -469,14 +509,61 @@ def run_sweep(
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
     settings = sweep_settings(trials, training, checkpoints, resources, donors)
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
+    check_writable(out)  # before starting Ray: a read-only folder is said at once
+    with sweep_folder_locked(out):  # a second sweep into the folder is refused, before its Ray starts
+        return _run_locked_sweep(
+            trials, out, training, checkpoints, settings, cpus_per_trial, gpus_per_trial, address,
+            allow_changed_settings, progress_bar, connect_timeout_s,
+        )  # fmt: skip
+
+
+@contextlib.contextmanager
+def sweep_folder_locked(out: Path) -> Iterator[None]:
+    """
+    While inside, this process holds the sweep folder's lock (:class:`~sb3_collapse.run.lock.RunLock` on
+    ``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_LOCK`): a second sweep into the folder is refused. The lock file is
+    deleted at the end, and the folders created for it when nothing else was written into them.
+
+    :param out: the sweep folder (created if needed)
+    :raises RunFolderLocked: naming the process that runs a sweep into the folder
+    """
+    created = [path for path in (out, *out.parents) if not path.exists()]
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with RunLock(out, SWEEP_LOCK, folder="sweep folder", instead="give this sweep another `out`") as lock:
+            try:
+                yield
+            finally:
+                lock.path.unlink(missing_ok=True)  # still held: a sweep that locked the deleted file takes a new one
+    finally:
+        for path in created:  # the deepest first; only those left empty
+            with contextlib.suppress(OSError):
+                path.rmdir()
+
+
+def _run_locked_sweep(
+    trials: Sequence[Trial],
+    out: Path,
+    training: Mapping[str, Any],
+    checkpoints: dict[str, dict[str, str]],
+    settings: dict[str, Any],
+    cpus_per_trial: float,
+    gpus_per_trial: float,
+    address: str | None,
+    allow_changed_settings: bool,
+    progress_bar: bool,
+    connect_timeout_s: float,
+) -> SweepSummary:
+    """:func:`run_sweep` once the arguments are checked and the sweep folder is locked."""
     skipped = [trial for trial in trials if trial_status(trial_dir(out, trial)) == FINISHED]
+    for trial in skipped:  # a trial killed after its result file left its checkpoints and lock behind
+        tidy_finished_run(trial_dir(out, trial))
     to_run = [trial for trial in trials if trial not in set(skipped)]
     summary = SweepSummary(trials=list(trials), skipped=skipped, finished=[], failed={})
     if not to_run:
         prepare_sweep_folder(out, settings, allow_changed_settings)
         return summary
     import_ray()  # before writing anything: a missing Ray leaves the folder as it was
-    check_writable(out)  # before starting Ray: a read-only folder is said at once
     with ray_session(address, connect_timeout_s=connect_timeout_s) as ray:
         check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
         prepare_sweep_folder(out, settings, allow_changed_settings)  # the cluster answered: now the folder
@@ -512,7 +599,8 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
         outcome = ray.get(ref)
     except Exception as error:  # noqa: BLE001  the Ray task itself died (worker crash, out of memory...)
         outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}".splitlines()[0]}
-        write_error(trial_dir(out, trial), f"The Ray task of {trial} died:\n{error}\n")
+        # The first line reads on in the rerun's "The previous attempt failed: ...; resuming."
+        write_error(trial_dir(out, trial), f"failed: the Ray task of {trial} died\n{error}\n")
     if outcome["status"] == FINISHED:
         summary.finished.append(trial)
         if outcome.get("resumes"):
@@ -524,6 +612,8 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
             bar.write(f"stopped {trial} at its checkpoint {checkpoint}")
     else:
         summary.failed[trial] = trial_dir(out, trial) / ERROR_TXT
+        if not outcome.get("retryable", True):  # a dead Ray task (a crash, memory) is retryable
+            summary.repeating.append(trial)
         bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")
     bar.set_postfix(failed=len(summary.failed))
     bar.update()

@@ -93,6 +93,7 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
     assert settings["tasks"] == ["walker-walk"] and settings["variants"] == ["drqv2", "drqv2+reset"]
     assert settings["seeds"] == [0, 1] and settings["training"]["frames"] == 1000
     assert settings["resources"] == {"cpus_per_trial": 1, "gpus_per_trial": 0, "address": None}
+    assert not (tiny_sweep / "sweep.lock").exists()  # held while the sweep ran, deleted at its end
     for variant, seed in itertools.product(("drqv2", "drqv2+reset"), (0, 1)):
         folder = tiny_sweep / "walker-walk" / variant / f"seed_{seed}"
         config = json.loads((folder / "config.json").read_text())
@@ -217,7 +218,13 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     stdout = capsys.readouterr().out
     failed = out / "walker-walk" / "cnn-good_mlp-blank" / "seed_0"
     assert "1 finished now (0 resumed from a checkpoint), 0 finished before, 1 failed" in stdout
-    assert f"failed: walker-walk/cnn-good_mlp-blank/seed_0 (see {failed / 'error.txt'})" in stdout
+    # A checkpoint that is not a zip fails every rerun the same way: not called retryable.
+    assert (
+        f"failed, and would again at a rerun: walker-walk/cnn-good_mlp-blank/seed_0 (see {failed / 'error.txt'})"
+        in stdout
+    )
+    assert "A rerun would fail this trial the same way: fix the cause first" in stdout
+    assert "Rerun the same command" not in stdout
     error = (failed / "error.txt").read_text()
     assert error.startswith("Traceback (most recent call last)") and "is not a zip file" in error
     assert trial_status(failed) == "failed" and trial_status(out / "walker-walk" / "drqv2" / "seed_0") == "finished"
@@ -607,3 +614,63 @@ def test_sigint_to_the_sweep_stops_every_trial_at_a_checkpoint(ray_local, tmp_pa
     assert info["agent_steps"] > record["periodic_step"] and info["frames"] < 1200  # written at the signal
     assert (stopped / "checkpoint.json").stat().st_mtime >= record["signal_time"]
     assert not (out / ".stop_requested").exists() and trial_status(folder) == "partial"
+
+
+def test_second_sweep_into_the_same_out_is_refused_before_its_ray_starts(tmp_path):
+    """Two sweeps on one --out each marked the other's trials failed: the second one (a real process) is refused in
+    one line while this process holds the sweep folder's lock, as run_sweep does; nothing is written."""
+    from sb3_collapse.sweep.runner import sweep_folder_locked
+
+    out = tmp_path / "sweep"
+    argv = [sys.executable, "-m", "sb3_collapse.sweep", *TINY_TRIALS, "--out", str(out), "--no-progress-bar", *TINY]
+    with sweep_folder_locked(out):
+        second = subprocess.run(argv, check=False, capture_output=True, text=True, timeout=300)
+        assert sorted(path.name for path in out.iterdir()) == ["sweep.lock"]
+    assert second.returncode == 2, second.stderr
+    error = second.stderr.strip().splitlines()[-1]
+    assert error.startswith(f"python -m sb3_collapse.sweep: error: sweep folder {out} is in use by pid {os.getpid()} ")
+    assert error.endswith(": wait for it to end (or stop it), or give this sweep another --out.")
+    assert "ray" not in (second.stdout + second.stderr).lower().replace(error.lower(), "")  # Ray never started
+    assert not out.exists()  # the lock file and the folder it was created in are gone with the first sweep
+
+
+def test_failed_trial_keeps_trains_error_header_and_is_called_retryable_only_if_a_rerun_may_fix_it(
+    tmp_path, monkeypatch, capsys
+):
+    """A trial failing after its first checkpoints: the sweep kept train's error file (its first line: the step it
+    failed at) instead of writing the bare traceback over it; the rerun resumes and says where the attempt failed. An
+    error of the training code is not retryable; a full disk is."""
+    import errno
+
+    from sb3_collapse.errors import ParameterError
+    from sb3_collapse.run.checkpoints import CheckpointError
+    from sb3_collapse.sweep.__main__ import failure_advice
+    from sb3_collapse.sweep.runner import retryable, run_trial
+
+    trial = Trial("cartpole-balance", "drqv2", 0)
+    training = dict(
+        frames=800, action_repeat=20, size=36, hidden_dim=16, feature_dim=8, batch_size=8, seed_frames=200,
+        eval_every_frames=0, checkpoint_every_frames=200, collapse_metrics_every_frames=0, replay_sampling="sb3",
+    )  # fmt: skip
+    original = DrQv2.save
+
+    def failing(self, path, *args, **kwargs):
+        if "final_model" in str(path):
+            raise RuntimeError("a bug at the final save")
+        return original(self, path, *args, **kwargs)
+
+    monkeypatch.setattr(DrQv2, "save", failing)
+    outcome = run_trial(trial, str(tmp_path), training, torch_threads=1)
+    assert outcome["status"] == "failed" and outcome["retryable"] is False
+    error = (trial_dir(tmp_path, trial) / "error.txt").read_text()
+    assert error.startswith("failed at agent step 40 (frame 800)\nTraceback") and "a bug at the final save" in error
+    monkeypatch.setattr(DrQv2, "save", original)
+    capsys.readouterr()
+    assert run_trial(trial, str(tmp_path), training, torch_threads=1)["status"] == "finished"
+    assert "The previous attempt failed at agent step 40 (frame 800); resuming." in capsys.readouterr().out
+
+    assert retryable(OSError(errno.ENOSPC, "No space left on device")) and retryable(CheckpointError("full"))
+    assert retryable(MemoryError()) and not retryable(ParameterError("lr", "bad")) and not retryable(ValueError())
+    assert failure_advice(2, 0) == "Rerun the same command to retry the failed trials."
+    assert failure_advice(1, 1).startswith("A rerun would fail this trial the same way: fix the cause first")
+    assert failure_advice(3, 1).startswith("Rerun the same command to retry the other 2 failed trials; the 1 marked")
