@@ -39,7 +39,6 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.common.model import CollapseModel, CollapseModelBase
-from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 
 ModelT = TypeVar("ModelT", bound=BaseAlgorithm)
 
@@ -223,6 +222,8 @@ def build_baseline(
         verbose=verbose,
     )
     if frame_stack is not None and frame_stack > 1:
+        from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer  # monitoring imports this module, not drqv2
+
         params["replay_buffer_class"] = FrameStackReplayBuffer
         params["replay_buffer_kwargs"] = dict(n_steps=1, gamma=gamma, frame_stack=frame_stack)
     if algorithm == "td3":

@@ -277,9 +277,9 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
     the same semantics:
 
     - **reset**: SB3's ``_setup_model()`` builds the policy again (new actor, critic and their targets, with new
-      random weights; new optimizers); SAC's learned entropy coefficient starts again from its initial value with a new optimizer (a
-      fixed coefficient is kept); the replay buffer is emptied (``replay_buffer.reset()``); the action noise, if
-      any, is reset; the warm-up restarts: the model's ``reset_step`` becomes ``num_timesteps`` and
+      random weights; new optimizers); SAC's learned entropy coefficient starts again from its initial value with a
+      new optimizer (a fixed coefficient is kept); the replay buffer is emptied (``replay_buffer.reset()``); the
+      action noise, if any, is reset; the warm-up restarts: the model's ``reset_step`` becomes ``num_timesteps`` and
       ``learning_starts`` becomes ``reset_step`` + the warm-up length, so the next ``learning_starts`` agent
       steps after the reset take uniform random actions and no update happens before that many were collected
       (a rollout in progress, with ``train_freq > 1``, ends with the actor's actions); the gradient norms are
