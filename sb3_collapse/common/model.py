@@ -52,10 +52,12 @@ class CollapseModel(Protocol):
         """New networks and optimizers, an emptied replay buffer, the warm-up again (the paper's reset rule)."""
 
 
-class CollapseModelBase(ABC):  # SB3's BaseAlgorithm is an ABC: the same layout (``collapse_model`` needs it)
+class CollapseModelBase(ABC):
     """
     The parts of :class:`CollapseModel` that an SB3 off-policy algorithm has as it is (mixed in before it): the
-    counters, the action repeat of its environment, a safe point at every round.
+    counters, the action repeat of its environment, a safe point at every round. An ``ABC`` as SB3's
+    ``BaseAlgorithm``: a class that mixes it in has the instance layout of SB3's, so that ``collapse_model`` can
+    change the class of a model built with SB3's own.
     """
 
     reset_step: int = 0

@@ -316,8 +316,8 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
 
 
 def _check_resets_itself(model: BaseAlgorithm) -> None:
-    """A ``TypeError`` for a model without the model interface's ``reset_from_scratch()``."""
-    if not isinstance(collapse_model(model), CollapseModel):
+    """A ``TypeError`` for a model without the model interface's ``reset_from_scratch()`` (nor SB3's TD3, DDPG, SAC)."""
+    if not isinstance(model, CollapseModel) and _kind(intervention_parts(model)) is None:
         raise TypeError(
             f"intervention='reset' needs {type(model).__name__}.reset_from_scratch(): its policy provides the parts of "
             "the other interventions only."
