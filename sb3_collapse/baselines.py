@@ -27,15 +27,120 @@ What is DrQ-v2's and what is SB3's:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
+import stable_baselines3 as sb3
 import torch as th
-from stable_baselines3 import SAC, TD3
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import NormalActionNoise
-from stable_baselines3.common.type_aliases import GymEnv
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
-from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
+from sb3_collapse.common.grad_norms import GradNormRecorder
+from sb3_collapse.common.model import CollapseModel, CollapseModelBase
+
+ModelT = TypeVar("ModelT", bound=BaseAlgorithm)
+
+
+class SB3Model(CollapseModelBase):
+    """
+    :class:`~sb3_collapse.common.model.CollapseModel` for SB3's TD3, DDPG and SAC (mixed in before them): the
+    gradient norms of the named layers recorded when the actor's and the critic's optimizers step, and a reset from
+    scratch by SB3's own ``_setup_model()``.
+    """
+
+    def _setup_model(self) -> None:
+        super()._setup_model()  # type: ignore[misc]
+        self._record_grad_norms()
+
+    def _record_grad_norms(self) -> None:
+        """A new :class:`GradNormRecorder` on the current optimizers (``None`` for layers that cannot be named)."""
+        from sb3_collapse.monitoring.activations import LayerMappingError, layer_parameters  # monitoring imports us
+
+        if self.grad_norm_recorder is not None:
+            self.grad_norm_recorder.remove()
+        try:
+            layers = layer_parameters(self)  # type: ignore[arg-type]
+        except LayerMappingError:
+            self.grad_norm_recorder = None
+            return
+        policy = self.policy  # type: ignore[attr-defined]
+        self.grad_norm_recorder = GradNormRecorder(layers, [policy.actor.optimizer, policy.critic.optimizer])
+
+    def reset_from_scratch(self) -> None:
+        """
+        The action-collapse paper's rule in the middle of ``learn()``: SB3's ``_setup_model()`` again (new policy,
+        optimizers and SAC's learned entropy coefficient, drawn from the global generators as they are now, not
+        re-seeded), the replay buffer emptied in place, the action noise reset, ``reset_step = num_timesteps`` and
+        ``learning_starts`` moved so that the warm-up starts again. ``docs/interventions.md`` explains each choice.
+        """
+        model: Any = self
+        warmup = model.learning_starts - self.reset_step
+        was_training = model.policy.training
+        seed, model.seed = model.seed, None  # _setup_model seeds the generators with it: new weights need new draws
+        try:
+            model._setup_model()  # the replay buffer, which exists, is kept
+        finally:
+            model.seed = seed
+        model.policy.set_training_mode(was_training)
+        model.replay_buffer.reset()
+        if model.action_noise is not None:
+            model.action_noise.reset()
+        self.reset_step = self.num_timesteps
+        model.learning_starts = self.num_timesteps + warmup
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        if reset_num_timesteps and self.reset_step:  # a new run from step 0: the warm-up gets its length back
+            self.learning_starts -= self.reset_step  # type: ignore[attr-defined]
+            self.reset_step = 0
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)  # type: ignore[misc]
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "grad_norm_recorder"]  # type: ignore[misc]
+
+
+class TD3(SB3Model, sb3.TD3):
+    """SB3's ``TD3`` with the :class:`SB3Model` interface."""
+
+
+class SAC(SB3Model, sb3.SAC):
+    """SB3's ``SAC`` with the :class:`SB3Model` interface."""
+
+
+class DDPG(SB3Model, sb3.DDPG):
+    """SB3's ``DDPG`` with the :class:`SB3Model` interface."""
+
+
+_WRAPPERS: dict[type, type] = {sb3.TD3: TD3, sb3.SAC: SAC, sb3.DDPG: DDPG}
+
+
+def collapse_model(model: ModelT) -> ModelT:
+    """
+    The model itself with the :class:`~sb3_collapse.common.model.CollapseModel` interface: a ``DrQv2`` or a wrapper
+    as it is; a model of SB3's own ``TD3``, ``DDPG`` or ``SAC`` class (or a subclass) becomes an instance of the
+    matching wrapper class (the same object: its attributes, optimizers and buffer are kept); any other model is
+    returned as it is.
+
+    :param model: an SB3 algorithm
+    :return: the same object
+    """
+    cls = type(model)
+    if isinstance(model, CollapseModel) or not any(base in _WRAPPERS for base in cls.__mro__):
+        return model
+    if cls not in _WRAPPERS:  # a user's subclass: the class with SB3Model mixed in
+        _WRAPPERS[cls] = type(cls.__name__, (SB3Model, cls), {"__module__": cls.__module__, "__doc__": cls.__doc__})
+    model.__class__ = _WRAPPERS[cls]
+    model._record_grad_norms()  # type: ignore[attr-defined]
+    return model
+
 
 BASELINES: dict[str, type[TD3 | SAC]] = {"td3": TD3, "sac": SAC}
 """SB3's algorithms that :func:`build_baseline` builds, by name."""
@@ -117,6 +222,8 @@ def build_baseline(
         verbose=verbose,
     )
     if frame_stack is not None and frame_stack > 1:
+        from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer  # monitoring imports this module, not drqv2
+
         params["replay_buffer_class"] = FrameStackReplayBuffer
         params["replay_buffer_kwargs"] = dict(n_steps=1, gamma=gamma, frame_stack=frame_stack)
     if algorithm == "td3":

@@ -1,5 +1,6 @@
 """ruff (pyproject.toml's rules, line length included) passes on the package, the tests, the benchmarks and scripts;
-the package holds no module that only tests or benchmarks use (those live in tests/)."""
+the package holds no module that only tests or benchmarks use (those live in tests/); outside the models' own code, no
+``getattr(model, "_...")`` on a model's private attributes."""
 
 from __future__ import annotations
 
@@ -117,3 +118,59 @@ def test_importing_the_probe_loads_neither_the_report_nor_matplotlib():
     result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stderr
     assert [name for name in result.stdout.split() if _draws(name)] == []
+
+
+MODEL_OWNERS = ("sb3_collapse/drqv2/", "sb3_collapse/baselines.py")
+"""Where a model's private attributes may be read: the model's own package and the wrappers that implement
+``sb3_collapse.common.model.CollapseModel``."""
+
+
+def _private_model_probes(source: str, label: str) -> list[str]:
+    """``getattr``/``hasattr``/``setattr`` of a ``_private`` name on an expression that names a model, and
+    assignments to ``<...>model.no_env_step_this_round``, in one file's source (``label:line: code``, by line)."""
+    found = []
+    for node in ast.walk(ast.parse(source, label)):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and len(node.args) >= 2:
+            target, name = node.args[0], node.args[1]
+            if (
+                node.func.id in ("getattr", "hasattr", "setattr")
+                and "model" in ast.unparse(target)
+                and isinstance(name, ast.Constant)
+                and str(name.value).startswith("_")
+            ):
+                found.append((node.lineno, ast.unparse(node)))
+        if isinstance(node, ast.Assign):
+            for target in node.targets:
+                attribute = isinstance(target, ast.Attribute) and target.attr == "no_env_step_this_round"
+                if attribute and ast.unparse(target.value).endswith("model"):  # type: ignore[attr-defined]
+                    found.append((node.lineno, ast.unparse(node)))
+    return [f"{label}:{line}: {code}" for line, code in sorted(found)]
+
+
+def test_no_probe_of_a_models_private_attributes_outside_the_model():
+    """The callbacks, checkpoints and experiment code reach a model through the names of ``CollapseModel``
+    (``sb3_collapse/common/model.py``), not ``getattr(model, "_...")``."""
+    probes = [
+        probe
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if not str(path.relative_to(ROOT)).startswith(MODEL_OWNERS)
+        for probe in _private_model_probes(path.read_text(), str(path.relative_to(ROOT)))
+    ]
+    assert not probes, "use the CollapseModel names:\n" + "\n".join(probes)
+
+
+def test_the_probe_finder_finds_what_it_looks_for():
+    source = (
+        "def f(self, model, name):\n"
+        "    a = getattr(self.model, '_n_updates', 0)\n"
+        "    b = hasattr(model, '_pending_step')\n"
+        "    self.model.no_env_step_this_round = True\n"
+        "    c = getattr(model, 'num_frames')\n"  # public: allowed
+        "    d = getattr(self, '_state', None)\n"  # not a model: allowed
+        "    return a, b, c, d\n"
+    )
+    assert [probe.split(": ", 1)[0] for probe in _private_model_probes(source, "example.py")] == [
+        "example.py:2",
+        "example.py:3",
+        "example.py:4",
+    ]

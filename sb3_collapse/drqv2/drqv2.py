@@ -263,11 +263,6 @@ class DrQv2(RoundsAlgorithm):
         return int((self.env_config or {}).get("action_repeat") or 1)
 
     @property
-    def num_frames(self) -> int:
-        """Environment frames so far: ``num_timesteps x action_repeat`` (the unit of DrQ-v2 and the paper)."""
-        return self.num_timesteps * self.action_repeat
-
-    @property
     def last_grad_norms(self) -> dict[str, float]:
         """
         L2 norm of the gradient of each named layer's parameters at the last update (``cnn1``..``cnn4`` from the

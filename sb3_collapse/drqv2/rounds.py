@@ -21,6 +21,7 @@ from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, 
 from stable_baselines3.common.utils import should_collect_more_steps
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_collapse.common.model import CollapseModelBase
 from sb3_collapse.errors import AssertedParameterError
 
 SelfRoundsAlgorithm = TypeVar("SelfRoundsAlgorithm", bound="RoundsAlgorithm")
@@ -43,7 +44,7 @@ TRAIN_FREQ_UNITS = ("step", "episode", TRANSITION.value)
 """The units ``train_freq=(n, unit)`` takes: SB3's two and :data:`TRANSITION`."""
 
 
-class RoundsAlgorithm(OffPolicyAlgorithm):
+class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
     """
     SB3's off-policy loop, in rounds whose updates are counted in transitions summed over the environments
     (``train_freq=(n, "transition")``), or SB3's rounds (``train_freq=n``, ``(n, "step")``: ``n`` steps of every
@@ -61,9 +62,16 @@ class RoundsAlgorithm(OffPolicyAlgorithm):
     """Step the environments while the learner updates (see the class docstring)."""
     no_env_step_this_round: bool = False
     """Set during a round: this round's updates do not step the environments (e.g. a checkpoint follows it)."""
-    reset_step: int = 0
-    """Transition count (``num_timesteps``) of the last reset from scratch, 0 when none."""
     _pending_step: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def at_safe_point(self) -> bool:
+        """Whether no environment step is in flight (see :meth:`request_safe_point`)."""
+        return self._pending_step is None
+
+    def request_safe_point(self) -> None:
+        """The round in progress steps no environment during its updates: the next round starts at a safe point."""
+        self.no_env_step_this_round = True
 
     def learn(
         self: SelfRoundsAlgorithm,

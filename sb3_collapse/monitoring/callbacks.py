@@ -23,8 +23,10 @@ import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_collapse.baselines import collapse_model
+from sb3_collapse.common.model import CollapseModel, env_action_repeat
 from sb3_collapse.monitoring.activations import Observations, collect_activations
-from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
+from sb3_collapse.monitoring.grad_norms import grad_norms_of
 from sb3_collapse.monitoring.metrics import (
     DORMANT_TAU,
     SATURATION_LIMIT,
@@ -39,32 +41,24 @@ from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows
 
 def action_repeat_of(model: BaseAlgorithm) -> int:
     """
-    Frames per agent step of a model's environment: ``model.action_repeat`` (DrQv2), else the ``action_repeat``
-    attribute of its (first) environment when it has one (``make_dmc_env``, ``RandomObservationEnv``), else 1.
+    Frames per agent step of a model's environment: ``model.action_repeat`` (a
+    :class:`~sb3_collapse.common.model.CollapseModel`), else the ``action_repeat`` attribute of its (first)
+    environment when it has one (``make_dmc_env``), else 1.
 
     :param model: an SB3 algorithm
     :return: the action repeat
     """
-    repeat = getattr(model, "action_repeat", None)
-    if repeat is None and model.get_env() is not None:
-        try:
-            repeat = model.get_env().get_attr("action_repeat", indices=[0])[0]  # type: ignore[union-attr]
-        except AttributeError:
-            repeat = None
-    return int(repeat or 1)
+    return model.action_repeat if isinstance(model, CollapseModel) else env_action_repeat(model.get_env())
 
 
 def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
     """
-    Frames so far: ``model.num_frames`` (DrQv2), else ``num_timesteps x action_repeat``.
+    Frames so far: ``num_timesteps x action_repeat``.
 
     :param model: an SB3 algorithm
     :param action_repeat: frames per agent step, ``None`` to read it with :func:`action_repeat_of`
     :return: the frame count
     """
-    frames = getattr(model, "num_frames", None)
-    if frames is not None:
-        return int(frames)
     return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
 
 
@@ -120,7 +114,7 @@ class MetricsBatchSampler:
         positions = self.valid_positions(buffer)
         if len(positions) < batch_size:
             return None
-        env = getattr(model, "_vec_normalize_env", None)
+        env = model.get_vec_normalize_env()
         if hasattr(buffer, "frames_stored"):  # FrameStackReplayBuffer: (position, env) pairs whose frames remain
             return self._sample_where_sampleable(buffer, positions, batch_size, env)
         indices = np.sort(self.rng.choice(positions, size=batch_size, replace=False))
@@ -166,6 +160,10 @@ class ResumableCallback(BaseCallback):
     """The attributes that make up the state."""
 
     _pending_state: dict[str, Any] | None = None
+
+    def init_callback(self, model: BaseAlgorithm) -> None:
+        """SB3's, with a model of SB3's own TD3, DDPG or SAC class given the model interface (``collapse_model``)."""
+        super().init_callback(collapse_model(model))
 
     def state_dict(self) -> dict[str, Any]:
         """:return: the callback's state (picklable copies)"""
@@ -283,7 +281,7 @@ class FrameScheduleCallback(ResumableCallback):
         return self.frames
 
     def _on_step(self) -> bool:
-        if self.check_at_start and self.num_timesteps >= getattr(self.model, "_total_timesteps", float("inf")):
+        if self.check_at_start and self.num_timesteps >= self.locals.get("total_timesteps", float("inf")):
             return True  # the last step of learn(), before its updates
         return self._check_if_due()
 
@@ -376,7 +374,6 @@ class CollapseMetrics(FrameScheduleCallback):
 
     def _init_callback(self) -> None:
         super()._init_callback()
-        track_grad_norms(self.model)
         self.sampler = MetricsBatchSampler(self.seed if self.seed is not None else self._seed())
         if self.csv_path is not None:
             append_csv_rows(self.csv_path, self.CSV_FIELDS, [])

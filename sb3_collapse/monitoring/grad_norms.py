@@ -5,71 +5,41 @@ Gradient norms of the named layers at each update, without an extra backward pas
 - ``DrQv2`` builds its recorder with its networks (``model.grad_norm_recorder``, read as
   ``model.last_grad_norms``): ``cnn1``..``cnn4`` are recorded when the encoder's optimizer steps (critic loss),
   ``mlp0``..``action`` when the actor's optimizer steps (actor loss).
-- SB3's ``TD3``, ``DDPG`` and ``SAC`` get theirs from :func:`track_grad_norms` (the callbacks call it when they
-  start): every named layer of :func:`~sb3_collapse.monitoring.activations.layer_parameters` (the actor's
-  features extractor and hidden layers) is recorded when the actor's optimizer steps (actor loss; every
-  ``policy_delay`` updates for TD3 and DDPG).
+- SB3's ``TD3``, ``DDPG`` and ``SAC`` (the wrappers of :mod:`sb3_collapse.baselines`, which the callbacks make of
+  SB3's own classes when they start) build theirs with their networks: every named layer of
+  :func:`~sb3_collapse.monitoring.activations.layer_parameters` (the actor's features extractor and hidden layers) is
+  recorded when the actor's optimizer steps (actor loss; every ``policy_delay`` updates for TD3 and DDPG).
 """
 
 from __future__ import annotations
 
-import weakref
-
-import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_collapse.baselines import collapse_model
 from sb3_collapse.common.grad_norms import GradNormRecorder
-from sb3_collapse.monitoring.activations import LayerMappingError, layer_parameters
-
-_RECORDERS: weakref.WeakKeyDictionary[BaseAlgorithm, GradNormRecorder] = weakref.WeakKeyDictionary()
-
-
-def _sb3_optimizers(model: BaseAlgorithm) -> list[th.optim.Optimizer | None]:
-    policy = model.policy
-    return [getattr(getattr(policy, part, None), "optimizer", None) for part in ("actor", "critic")]
+from sb3_collapse.common.model import CollapseModel
 
 
 def grad_norm_recorder(model: BaseAlgorithm) -> GradNormRecorder | None:
     """
-    The recorder of a model: its own (``model.grad_norm_recorder``, DrQv2), or the one :func:`track_grad_norms`
-    attached to its current optimizers.
-
     :param model: an SB3 algorithm
-    :return: the recorder, ``None`` when there is none for the model's current optimizers
+    :return: its recorder (``model.grad_norm_recorder``), ``None`` for a model without one
     """
-    own = getattr(model, "grad_norm_recorder", None)
-    if isinstance(own, GradNormRecorder):
-        return own
-    recorder = _RECORDERS.get(model)
-    if recorder is None or not recorder.watches(_sb3_optimizers(model)):
-        return None
-    return recorder
+    return model.grad_norm_recorder if isinstance(model, CollapseModel) else None
 
 
 def track_grad_norms(model: BaseAlgorithm) -> GradNormRecorder | None:
     """
     Make sure that the gradient norms of the model's named layers are recorded at each update.
 
-    A DrQv2 records them itself. For SB3's TD3, DDPG and SAC, a :class:`GradNormRecorder` is hooked on the
-    actor's and the critic's optimizers, once: calling again returns the same recorder, or a new one when the
-    optimizers were replaced (e.g. by a reset from scratch), the old hooks removed.
+    A DrQv2 and the wrappers of :mod:`sb3_collapse.baselines` record them themselves; a model of SB3's own TD3,
+    DDPG or SAC class becomes a wrapper (:func:`~sb3_collapse.baselines.collapse_model`), its recorder hooked on
+    the actor's and the critic's optimizers, built again when a reset from scratch replaces them.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: the recorder, ``None`` for a model whose layers cannot be named (e.g. PPO)
     """
-    recorder = grad_norm_recorder(model)
-    if recorder is not None:
-        return recorder
-    try:
-        layers = layer_parameters(model)
-    except LayerMappingError:
-        return None
-    stale = _RECORDERS.pop(model, None)
-    if stale is not None:
-        stale.remove()
-    recorder = GradNormRecorder(layers, _sb3_optimizers(model))
-    _RECORDERS[model] = recorder
-    return recorder
+    return grad_norm_recorder(collapse_model(model))
 
 
 def grad_norms_of(model: BaseAlgorithm) -> dict[str, float]:

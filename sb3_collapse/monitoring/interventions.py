@@ -21,8 +21,9 @@ nothing else (the other weights, every optimizer state it does not name, the rep
 
 Models: those whose policy provides :class:`InterventionParts` (``DrQv2``'s ``CnnPolicy`` and ``MlpPolicy``), and
 SB3's ``TD3``, ``DDPG`` and ``SAC`` (``CnnPolicy``, ``MlpPolicy``; SAC without gSDE), through adapters of this module
-(:func:`intervention_parts`); this module imports no algorithm of this package. New weights are drawn from torch's
-global generator in its current state (never reseeded: they differ from the initial ones, and a seeded run stays
+(:func:`intervention_parts`); this module imports no algorithm of this package but the baselines' model interface
+(:func:`~sb3_collapse.baselines.collapse_model`, for the reset from scratch). New weights are drawn from torch's global
+generator in its current state (never reseeded: they differ from the initial ones, and a seeded run stays
 reproducible), with the algorithm's own initializer (:meth:`InterventionParts.initialize_weights`): DrQ-v2's
 orthogonal ``weight_init`` (LayerNorm: unit scale, zero shift) for DrQv2, PyTorch's default ``reset_parameters()``
 for SB3's networks (SB3's off-policy policies use it). Optimizer state is "forgotten" per
@@ -41,13 +42,14 @@ from typing import Any, Protocol, runtime_checkable
 import torch as th
 from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.utils import get_parameters_by_name
 from torch import nn
 
+from sb3_collapse.baselines import collapse_model
 from sb3_collapse.common.layers import LayerParts, reinitialize, sequential_hidden_parts
+from sb3_collapse.common.model import CollapseModel
 from sb3_collapse.monitoring.activations import layer_taps
 from sb3_collapse.monitoring.callbacks import MetricsBatchSampler
-from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, track_grad_norms
+from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.monitoring.metrics import DORMANT_TAU, dormant_units
 
 SHRINK = 0.8
@@ -269,25 +271,25 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
     """
     The action-collapse paper's rule (Section 5.2): restart the training from scratch, in the middle of ``learn()``.
 
-    DrQv2 (a model whose policy provides :class:`InterventionParts`): its own ``reset_from_scratch()``
-    (:meth:`sb3_collapse.DrQv2.reset_from_scratch`). TD3, DDPG and SAC, with the same semantics:
+    The model's own ``reset_from_scratch()`` (:class:`~sb3_collapse.common.model.CollapseModel`):
+    :meth:`sb3_collapse.DrQv2.reset_from_scratch`, and for TD3, DDPG and SAC (given the interface by
+    :func:`~sb3_collapse.baselines.collapse_model`) :meth:`sb3_collapse.baselines.SB3Model.reset_from_scratch`, with
+    the same semantics:
 
-    - **reset**: the policy is built again (new actor, critic and their targets, with new random weights; new
-      optimizers); SAC's learned entropy coefficient starts again from its initial value with a new optimizer (a
-      fixed coefficient is kept); the replay buffer is emptied (``replay_buffer.reset()``); the action noise, if
-      any, is reset; the warm-up restarts: the model's ``reset_step`` becomes ``num_timesteps`` and
+    - **reset**: SB3's ``_setup_model()`` builds the policy again (new actor, critic and their targets, with new
+      random weights; new optimizers); SAC's learned entropy coefficient starts again from its initial value with a
+      new optimizer (a fixed coefficient is kept); the replay buffer is emptied (``replay_buffer.reset()``); the
+      action noise, if any, is reset; the warm-up restarts: the model's ``reset_step`` becomes ``num_timesteps`` and
       ``learning_starts`` becomes ``reset_step`` + the warm-up length, so the next ``learning_starts`` agent
       steps after the reset take uniform random actions and no update happens before that many were collected
       (a rollout in progress, with ``train_freq > 1``, ends with the actor's actions); the gradient norms are
-      recorded on the new optimizers (:func:`~sb3_collapse.monitoring.grad_norms.track_grad_norms`), none until
-      the next update;
+      recorded on the new optimizers, none until the next update;
     - **kept**: ``num_timesteps`` (the budget of ``learn()`` is spent, not extended; TensorBoard curves continue
       on one axis), the number of updates, the learning-rate schedule (a function of the progress of
       ``learn()``), the environment and its episode in progress, the logger, the callbacks and the
       hyperparameters.
 
-    A later ``learn()`` that restarts from agent step 0 with ``CollapseReset`` gives the warm-up its length back
-    (:func:`forget_reset`).
+    A later ``learn()`` that restarts from agent step 0 gives the warm-up its length back.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
@@ -295,12 +297,11 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
     networks = intervention_parts(model)
     kind = _kind(networks)
     transitions = model.replay_buffer.size()  # type: ignore[union-attr]
-    if kind is None:  # the model resets itself
-        _check_resets_itself(model)
-        model.reset_from_scratch()  # type: ignore[attr-defined]
+    _check_resets_itself(model)
+    collapse_model(model).reset_from_scratch()  # type: ignore[attr-defined]
+    if kind is None:
         parts = ", ".join([*networks.online_networks(), *networks.target_networks()]) + " and their optimizers"
     else:
-        _rebuild_sb3(model, kind)
         parts = (
             "actor, target actor, critic, target critic and their optimizers"
             if kind == "td3"
@@ -315,59 +316,12 @@ def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
 
 
 def _check_resets_itself(model: BaseAlgorithm) -> None:
-    """A ``TypeError`` for a model whose policy provides the parts but that has no ``reset_from_scratch()``."""
-    if not callable(getattr(model, "reset_from_scratch", None)):
+    """A ``TypeError`` for a model without the model interface's ``reset_from_scratch()`` (nor SB3's TD3, DDPG, SAC)."""
+    if not isinstance(model, CollapseModel) and _kind(intervention_parts(model)) is None:
         raise TypeError(
             f"intervention='reset' needs {type(model).__name__}.reset_from_scratch(): its policy provides the parts of "
             "the other interventions only."
         )
-
-
-def _rebuild_sb3(model: BaseAlgorithm, kind: str) -> None:
-    """Reset from scratch of a TD3, DDPG or SAC model (see :func:`reset_from_scratch`)."""
-    was_training = model.policy.training
-    policy = model.policy_class(  # type: ignore[operator]
-        model.observation_space, model.action_space, model.lr_schedule, **model.policy_kwargs
-    ).to(model.device)
-    policy.set_training_mode(was_training)
-    model.policy = policy
-    model._create_aliases()  # type: ignore[attr-defined]
-    if kind == "td3":  # the running statistics of batch-norm layers, as TD3._setup_model lists them
-        for part in ("actor", "critic"):
-            setattr(model, f"{part}_batch_norm_stats", get_parameters_by_name(getattr(model, part), ["running_"]))
-            target = getattr(model, f"{part}_target")
-            setattr(model, f"{part}_batch_norm_stats_target", get_parameters_by_name(target, ["running_"]))
-    else:
-        model.batch_norm_stats = get_parameters_by_name(model.critic, ["running_"])  # type: ignore[attr-defined]
-        model.batch_norm_stats_target = get_parameters_by_name(model.critic_target, ["running_"])  # type: ignore[attr-defined]
-        if model.ent_coef_optimizer is not None:  # type: ignore[attr-defined]  # a learned coefficient
-            ent_coef = str(model.ent_coef)  # type: ignore[attr-defined]
-            initial = float(ent_coef.split("_")[1]) if "_" in ent_coef else 1.0  # SAC's "auto" / "auto_0.1"
-            dtype = model.log_ent_coef.dtype  # type: ignore[attr-defined]  # SB3's, kept
-            model.log_ent_coef = th.full((1,), initial, device=model.device, dtype=dtype).log().requires_grad_(True)  # type: ignore[attr-defined]
-            model.ent_coef_optimizer = th.optim.Adam([model.log_ent_coef], lr=model.lr_schedule(1))  # type: ignore[attr-defined]
-    model.replay_buffer.reset()  # type: ignore[union-attr]
-    if model.action_noise is not None:  # type: ignore[attr-defined]
-        model.action_noise.reset()  # type: ignore[attr-defined]
-    reset_step = int(getattr(model, "reset_step", 0))
-    warmup = model.learning_starts - reset_step  # type: ignore[attr-defined]
-    model.reset_step = model.num_timesteps  # type: ignore[attr-defined]
-    model.learning_starts = model.num_timesteps + warmup  # type: ignore[attr-defined]
-    track_grad_norms(model)
-
-
-def forget_reset(model: BaseAlgorithm) -> None:
-    """
-    For a new run from agent step 0 of a TD3, DDPG or SAC model reset earlier by :func:`reset_from_scratch`:
-    ``learning_starts`` gets its warm-up length back and ``reset_step`` becomes 0 (``DrQv2.learn`` does the same
-    for a DrQv2). Nothing happens for a model that was never reset.
-
-    :param model: an SB3 algorithm
-    """
-    reset_step = int(getattr(model, "reset_step", 0))
-    if reset_step > 0 and not callable(getattr(model, "reset_from_scratch", None)):
-        model.learning_starts -= reset_step  # type: ignore[attr-defined]
-        model.reset_step = 0  # type: ignore[attr-defined]
 
 
 # ------------------------------------------------------------------------------------------------ partial resets
@@ -786,8 +740,8 @@ def check_intervention(name: str, model: BaseAlgorithm | None = None) -> None:
         raise ValueError(f"intervention must be one of {', '.join(INTERVENTIONS)}; got {name!r}.")
     if model is None:
         return
-    parts = intervention_parts(model)
-    if name == "reset" and _kind(parts) is None:
+    intervention_parts(model)
+    if name == "reset":
         _check_resets_itself(model)
     if name == "reset_actor":
         _check_own_extractor(model)

@@ -30,7 +30,7 @@ class PeriodicReDo(FrameScheduleCallback):
     (``mlp1``, ``mlp2``, ``q1.mlp1``...). Models: DrQv2 and SB3's TD3, DDPG and SAC (their convolutions are not
     recycled).
 
-    The recycling happens at the first agent step after the model's update count (``model._n_updates``) reaches each
+    The recycling happens at the first agent step after the model's update count (``model.n_updates``) reaches each
     multiple of ``every_updates`` (several multiples at once give one recycling: the schedule of
     :class:`~sb3_collapse.monitoring.callbacks.FrameScheduleCallback`, counting updates). Logged at each one, at the
     agent step (``logger.dump``): ``redo/units_recycled``, ``redo/units_total``, ``redo/recycles``; with
@@ -96,7 +96,7 @@ class PeriodicReDo(FrameScheduleCallback):
             self.history = []
 
     def _count(self) -> int:
-        return int(getattr(self.model, "_n_updates", 0))
+        return self.model.n_updates
 
     def _on_check(self, count: int) -> None:
         self.recycle(count)

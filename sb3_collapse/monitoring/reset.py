@@ -15,15 +15,15 @@ from typing import Any
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.common.layers import LAYER_NAMES
+from sb3_collapse.common.model import CollapseModel
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatchSampler
-from sb3_collapse.monitoring.grad_norms import grad_norms_of, track_grad_norms
+from sb3_collapse.monitoring.grad_norms import grad_norms_of
 from sb3_collapse.monitoring.interventions import (
     InterventionResult,
     apply_intervention,
     check_intervention,
-    forget_reset,
 )
 from sb3_collapse.monitoring.metrics import action_spread
 from sb3_collapse.paper import PAPER
@@ -188,7 +188,6 @@ class CollapseReset(FrameScheduleCallback):
             names = list(layer_parameters(self.model))
             if self.layer not in names:
                 raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
-            track_grad_norms(self.model)
         self.sampler = MetricsBatchSampler(self._seed())
         if self.intervention == "redo":
             self.intervention_kwargs.setdefault("sampler", self.sampler)
@@ -210,11 +209,11 @@ class CollapseReset(FrameScheduleCallback):
     def _on_training_start(self) -> None:
         super()._on_training_start()
         if self.num_timesteps == 0:  # a new run (learn() with reset_num_timesteps=True)
-            forget_reset(self.model)  # an SB3 model reset in an earlier run gets its warm-up length back
             self._reset_state(window_start_frame=0)
         elif self.resets == 0 and self.window_start_frame == 0:
             # A loaded model that was reset in an earlier process: its window starts at its last reset.
-            self.window_start_frame = int(getattr(self.model, "reset_step", 0)) * self.action_repeat
+            reset_step = self.model.reset_step if isinstance(self.model, CollapseModel) else 0
+            self.window_start_frame = reset_step * self.action_repeat
 
     def read_metric(self) -> float | None:
         """
@@ -248,7 +247,7 @@ class CollapseReset(FrameScheduleCallback):
 
     def _budget_end_frame(self) -> float:
         """The frame at which the current ``learn()`` call ends (its ``total_timesteps``), inf when unknown."""
-        total = getattr(self.model, "_total_timesteps", None)
+        total = self.locals.get("total_timesteps")  # learn()'s, passed to on_training_start
         return float("inf") if not total else int(total) * self.action_repeat
 
     def _on_check(self, frames: int) -> None:

@@ -671,14 +671,14 @@ class ResumableCheckpoints(FrameScheduleCallback):
 
     def _on_step(self) -> bool:
         super()._on_step()
-        if (self.due or self.stop_signal) and getattr(self.model, "step_envs_during_updates", False):
-            self.model.no_env_step_this_round = True  # type: ignore[attr-defined]
+        if self.due or self.stop_signal:
+            self.model.request_safe_point()  # type: ignore[attr-defined]  # a CollapseModel
         return True
 
     def _on_rollout_start(self) -> None:
         if not (self.due or self.stop_signal):
             return
-        if getattr(self.model, "_pending_step", None) is not None:
+        if not self.model.at_safe_point:  # type: ignore[attr-defined]
             return  # a step is in flight: _on_step holds the next one back, the checkpoint comes one round later
         self.save()
         self.due = False

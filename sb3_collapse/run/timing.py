@@ -238,7 +238,7 @@ class LearnTimer(BaseCallback):
     def _on_step(self) -> bool:
         # The step's actions were chosen before it: from the policy unless the model was in its warm-up then.
         n_envs = self.training_env.num_envs
-        before = self.model.num_timesteps - n_envs - getattr(self.model, "reset_step", 0)
+        before = self.model.num_timesteps - n_envs - self.model.reset_step
         self._used_policy |= before >= self.model.learning_starts
         return True
 
@@ -247,7 +247,7 @@ class LearnTimer(BaseCallback):
         self._steps_end = time.perf_counter()
         self._round.transitions += self.model.num_timesteps
         self._round.env_s = self._env_s() - self._env_start
-        self._updates_at_steps_end = self.model._n_updates
+        self._updates_at_steps_end = self.model.n_updates
         self._device_start = self.clock.start(self.model.device)
 
     def _on_training_end(self) -> None:
@@ -263,8 +263,8 @@ class LearnTimer(BaseCallback):
         if self._steps_end == 0.0:  # stopped during its environment steps
             round_.transitions += self.model.num_timesteps
             round_.env_s = self._env_s() - self._env_start
-            self._steps_end, self._updates_at_steps_end, self._device_start = now, self.model._n_updates, None
-        round_.updates = self.model._n_updates - self._updates_at_steps_end
+            self._steps_end, self._updates_at_steps_end, self._device_start = now, self.model.n_updates, None
+        round_.updates = self.model.n_updates - self._updates_at_steps_end
         round_.update_s = now - self._steps_end if round_.updates > 0 else 0.0
         round_.total_s = now - self._start
         if self.timings.first_round_s is None and round_.updates > 0:
