@@ -47,22 +47,19 @@ class CollapseReset(FrameScheduleCallback):
     :attr:`EVENT_FIELDS`) and why: docs/monitoring.md and docs/interventions.md#what-is-logged.
 
     :param window_frames: frames after the start or the last reset within which the agent must escape
-        (the paper's: the end of DrQ-v2's exploration decay on the easy tasks)
     :param check_every_frames: frames between two checks of the metric
     :param threshold: a value above it is healthy (the paper's gradient-norm threshold)
     :param patience: consecutive healthy checks that mean an escape
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
-    :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"`` (the spread of the deterministic
-        actions on a metrics batch of the replay buffer, see
-        :func:`~sb3_collapse.monitoring.metrics.action_spread`), or a callable ``model -> float | None``
-        (``None``: no value at this check); above ``threshold`` is healthy in every case
+    :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"``
+        (:func:`~sb3_collapse.monitoring.metrics.action_spread` on a metrics batch), or a callable
+        ``model -> float | None`` (``None``: no value at this check); above ``threshold`` is healthy
     :param batch_size: metrics batch of replay observations for ``metric="action_std"`` and for
         ``intervention="redo"`` (the batch its dormant units are measured on)
     :param events_path: CSV file that each intervention and the escape append a row to (``None``: no file)
-    :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's),
-        ``"reset_actor"``, ``"reset_mlp"``, ``"redo"`` or ``"shrink_perturb"`` (see
-        :mod:`~sb3_collapse.monitoring.interventions`)
+    :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's) or another
+        intervention of :mod:`~sb3_collapse.monitoring.interventions`
     :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"`` or
         ``{"shrink": 0.5, "perturb": 0.1}`` for ``"shrink_perturb"`` (``None``: its defaults)
     :param verbose: 0 silent, 1 prints each intervention and the escape
