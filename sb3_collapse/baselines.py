@@ -1,28 +1,10 @@
 """
-SB3's own TD3 and SAC on DeepMind Control pixels, built to be compared with DrQ-v2 (``python -m sb3_collapse.train
---algorithm td3``, sweep variants ``td3``, ``sac``, ``td3+reset``...).
-
-What is DrQ-v2's and what is SB3's:
-
-- **Observations**: the same as DrQ-v2's, ``make_dmc_env``'s stacked pixels (``3 x frame_stack`` channels, uint8,
-  channel-first), the same action repeat.
-- **Networks**: SB3's ``CnnPolicy`` as SB3 users train it on pixels: ``NatureCNN`` (three convolutions, then
-  Linear + ReLU) with ``features_dim = feature_dim`` (DrQ-v2's 50), and actor and critic MLPs of two hidden
-  layers of ``hidden_dim`` units (DrQ-v2's 1024), so that ``mlp0`` is 50-d and ``mlp1``, ``mlp2`` have DrQ-v2's
-  width. SB3's defaults otherwise: the actor and the critic each have their own ``NatureCNN``, trained by their own
-  loss (DrQ-v2 has one encoder trained by the critic loss); no image augmentation (DrQ-v2's random shift is what
-  makes it work from pixels: expect these baselines to learn less).
-- **Replay**: :class:`~sb3_collapse.drqv2.replay_buffer.FrameStackReplayBuffer` with one-step returns when the
-  observations are frame stacks (each frame stored once: 21.5 KB per 84x84 transition instead of SB3's 127 KB;
-  it samples exactly what SB3's buffer would), SB3's ``ReplayBuffer`` otherwise.
-- **Shared with the sweep's DrQ-v2** (the arguments): learning rate, batch size, buffer size, warm-up
-  (``learning_starts``, in agent steps), discount, seed, device.
-- **SB3's defaults** for the rest (``python -m sb3_collapse.train`` reports DrQ-v2's own settings,
-  :data:`DRQV2_ONLY_SETTINGS`, as unused): TD3 with ``tau=0.005``, ``policy_delay=2``, target policy noise 0.2
-  clipped at
-  0.5, one update per agent step, plus Gaussian exploration noise of standard deviation
-  :data:`TD3_ACTION_NOISE` (SB3 has none by default; 0.1 is SB3's documented example and DrQ-v2's final
-  exploration std); SAC with a learned entropy coefficient (``"auto"``), ``tau=0.005``, one update per agent step.
+SB3's own TD3, SAC and DDPG with the package's model interface (:class:`SB3Model`, :func:`collapse_model`), and
+:func:`build_baseline`: SB3's TD3 or SAC on DeepMind Control pixels, sized like DrQ-v2, to be compared with it
+(``python -m sb3_collapse.train --algorithm td3``, sweep variants ``td3``, ``sac``, ``td3+reset``...). Observations,
+MLP widths, replay and the shared settings are DrQ-v2's; the encoders, the updates and the rest are SB3's defaults
+(TD3 with Gaussian exploration noise :data:`TD3_ACTION_NOISE`); DrQ-v2's own settings
+(:data:`DRQV2_ONLY_SETTINGS`) are unused. What is whose: docs/interventions.md#sb3s-td3-and-sac-on-pixels.
 """
 
 from __future__ import annotations
@@ -180,7 +162,7 @@ def build_baseline(
     verbose: int = 0,
 ) -> TD3 | SAC:
     """
-    SB3's TD3 or SAC from pixels, sized like DrQ-v2 (see the module docstring for what is whose).
+    SB3's TD3 or SAC from pixels, sized like DrQ-v2 (what is whose: docs/interventions.md#sb3s-td3-and-sac-on-pixels).
 
     :param algorithm: ``"td3"`` or ``"sac"``
     :param env: a pixel environment, e.g. ``make_dmc_env(...)`` (channel-first uint8 images)

@@ -24,11 +24,9 @@ class PaperProtocol:
     The paper's protocol numbers. Frames count environment frames (agent steps x action repeat).
 
     :param check_every_frames: frames between two evaluations and two computations of the collapse metrics
-        (Section 4.1: "The total number of training frames is 1.1e6 and there is an evaluation every 1e4 frames,
-        resulting in x in [0, 109] on the x-axes for all the figures regarding VRL training"; the rule's
-        "computations" of Section 5.2): :attr:`evaluations` evaluations, at frames 0, 1e4, ..., 1.09e6
+        (Section 4.1: "there is an evaluation every 1e4 frames"; the rule's "computations" of Section 5.2)
     :param window_frames: the reset rule's window (Section 5.2: "reset the training from scratch every 2e5
-        frames", the end of DrQ-v2's exploration decay, x = 20 in Figure 4)
+        frames")
     :param threshold: a gradient norm above it is healthy (Section 5.2: "a gradient norm larger than 0.001")
     :param patience: consecutive healthy computations that mean an escape (Section 5.2: "of consecutive five
         computations")
@@ -43,8 +41,8 @@ class PaperProtocol:
     :param figure5_tasks: the tasks of Figure 5 (walker_walk, hopper_stand, finger_spin)
     :param train_frames: frames of a run in Sections 4 and 5 (Section 4.1: "The total number of training frames is
         1.1e6")
-    :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110", in
-        evaluations of 1e4 frames), in frames; :meth:`stages` gives those of a run of another budget
+    :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110"), in frames;
+        :meth:`stages` gives those of a run of another budget
     """
 
     check_every_frames: int = 10_000

@@ -1,23 +1,15 @@
 """
-DrQ-v2's published per-task hyperparameters for the DeepMind Control pixel tasks, as one table.
-
-Source: facebookresearch/drqv2 (MIT), ``cfgs/config.yaml`` (the settings shared by every task) and
-``cfgs/task/{easy,medium,hard}.yaml`` with the per-task files ``cfgs/task/<task>.yaml``: walker tasks use 1-step
-returns and batches of 512, quadruped-run a 100,000-transition buffer, the humanoid tasks lr 8e-5 and
-``feature_dim`` 100. The tiers are those of the DrQ-v2 paper (Yarats et al., 2021).
+DrQ-v2's published per-task hyperparameters for the DeepMind Control pixel tasks, as one table
+(facebookresearch/drqv2, MIT: ``cfgs/config.yaml`` and ``cfgs/task/*.yaml``), the defaults of the train CLI, every
+sweep trial and ``zoo_configs/drqv2.yml``.
 
     >>> from sb3_collapse.presets import preset
     >>> preset("walker-walk").batch_size, preset("walker-walk").n_steps
     (512, 1)
 
-``python -m sb3_collapse.train``, every sweep trial and ``zoo_configs/drqv2.yml`` (generated from this table by
-:func:`sb3_collapse.zoo.config.render_zoo_config`) take their defaults from here; a setting given explicitly
-overrides the preset and the run's settings file (:data:`~sb3_collapse.protocol.CONFIG_JSON`) records where each
-value came from.
-
-Units: ``frames``, ``seed_frames`` and ``eval_every_frames`` count frames (agent steps x ``action_repeat``), as
-DrQ-v2 does; ``buffer_size`` counts transitions (agent steps); ``n_steps``, ``train_freq`` and the durations of
-``stddev_schedule`` count agent steps (DrQ-v2 evaluates its schedule at the agent step).
+Units: ``frames``, ``seed_frames`` and ``eval_every_frames`` in frames (agent steps x ``action_repeat``);
+``buffer_size`` in transitions; ``n_steps``, ``train_freq`` and ``stddev_schedule``'s durations in agent steps. See
+docs/presets.md#drq-v2s-presets-sb3_collapsepresets.
 """
 
 from __future__ import annotations

@@ -1,23 +1,12 @@
 """
 Layer names, and the layer structure that the DrQ-v2 policy and the interventions both read.
 
-The names are the vocabulary shared by the callbacks, the probe and the plots:
-
-=========  ===========================================================================
-``cnn0``   normalized input pixels, ``obs / 255 - 0.5``
-``cnn1``   after Conv(3*stack -> 32, 3x3, stride 2) + ReLU
-``cnn2``   after Conv(32 -> 32, 3x3, stride 1) + ReLU
-``cnn3``   idem
-``cnn4``   idem (flattened, it is the 39,200-d representation of a 9x84x84 input)
-``mlp0``   actor trunk output: Linear(repr -> 50) + LayerNorm + Tanh
-``mlp1``   after the first 1024-unit Linear + ReLU of the actor
-``mlp2``   after the second 1024-unit Linear + ReLU of the actor
-``action`` deterministic action: Linear(1024 -> A) + Tanh
-=========  ===========================================================================
-
-:class:`LayerParts` describes a hidden layer whose units ReDo may recycle
-(:mod:`sb3_collapse.monitoring.interventions`); :func:`sequential_hidden_parts` finds them in a flat list of
-modules, and :func:`reinitialize` draws new initial values for a module's parameters.
+The names (:data:`LAYER_NAMES`) are the vocabulary shared by the callbacks, the probe and the plots: ``cnn0`` the
+normalized pixels (``obs / 255 - 0.5``), ``cnn1``..``cnn4`` after each conv + ReLU, ``mlp0`` the actor trunk
+(Linear to 50, LayerNorm, Tanh), ``mlp1`` and ``mlp2`` after each 1024-unit Linear + ReLU, ``action`` the
+deterministic action (Linear + Tanh); per algorithm: docs/monitoring.md. :class:`LayerParts` describes a hidden
+layer whose units ReDo may recycle; :func:`sequential_hidden_parts` finds them in a flat list of modules, and
+:func:`reinitialize` draws new initial values for a module's parameters.
 """
 
 from __future__ import annotations

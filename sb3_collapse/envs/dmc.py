@@ -289,21 +289,11 @@ def scale_action(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.nd
 
 class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
     """
-    A DeepMind Control Suite task with DrQ-v2 preprocessing.
-
-    Pixel observations (``obs_type="pixels"``) are ``uint8`` arrays of shape ``(3 * frame_stack, size, size)``:
-    the last ``frame_stack`` renders (one per agent step, taken after the action repeat), channel-first,
-    concatenated oldest first; after a reset the stack holds copies of the first render.
-    State observations (``obs_type="state"``) are the dm_control observation components, flattened and
-    concatenated (in dm_control's order) as float32; nothing is rendered and ``frame_stack`` is ignored.
-
-    Actions are in [-1, 1] (clipped), rescaled linearly to the task's action bounds and repeated for
-    ``action_repeat`` frames, summing the rewards. ``terminated`` is True only when dm_control ends the
-    episode with discount 0; its time limit gives ``truncated=True`` instead (e.g. after 1000 frames,
-    i.e. 500 agent steps with ``action_repeat=2``, for walker). ``info["frames"]`` counts the frames
-    since the last reset.
-
-    The true state behind the current observation is available from :meth:`get_state`.
+    A DeepMind Control Suite task with DrQ-v2 preprocessing: observations ``uint8`` ``(3 * frame_stack, size,
+    size)``, the last ``frame_stack`` renders, channel-first, oldest first (``obs_type="state"``: the float32 state
+    vector, nothing rendered); actions in [-1, 1] rescaled to the task's bounds and repeated ``action_repeat``
+    frames, rewards summed; the time limit gives ``truncated=True``; ``info["frames"]`` counts frames since the
+    reset; :meth:`get_state` the true state. See docs/environments.md.
 
     :param task: Task name, e.g. "walker-walk" (see :func:`parse_task` for the accepted forms).
     :param seed: Seed of the task's random initial states (and of the action space); None for a random one.

@@ -35,16 +35,11 @@ class RenderingBackendError(RuntimeError):
 
 def ensure_rendering_backend(required: bool = True) -> str | None:
     """
-    Make sure MuJoCo can render off-screen, choosing the OpenGL backend if needed.
-
-    If ``MUJOCO_GL`` is already set, it is respected and returned as is (nothing is checked).
-    Otherwise the backends in ``HEADLESS_BACKENDS`` (``egl`` then ``osmesa``) are tried, each in a
-    subprocess; the first that works is exported as ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` in
-    ``os.environ`` (so that subprocesses started afterwards inherit it) and returned.
-    The outcome is cached, so the backends are checked at most once per process.
-
-    Call it before ``dm_control`` or ``mujoco`` is imported (they read ``MUJOCO_GL`` only once, at import); building
-    a :class:`~sb3_collapse.envs.DMCEnv` calls it first.
+    Make sure MuJoCo can render off-screen, choosing the OpenGL backend if needed: a ``MUJOCO_GL`` already set is
+    returned as is; otherwise ``HEADLESS_BACKENDS`` (``egl`` then ``osmesa``) are tried, each in a subprocess, once
+    per process, and the first that works is exported as ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM``. Call it before
+    ``dm_control`` or ``mujoco`` is imported; building a :class:`~sb3_collapse.envs.DMCEnv` calls it first. See
+    docs/environments.md.
 
     :param required: Whether rendering is needed (pixel observations). If True and no backend works,
         raise :class:`RenderingBackendError`; if False (state observations), return None instead.

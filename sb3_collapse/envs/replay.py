@@ -2,14 +2,11 @@
 Rebuild an environment's episode in progress in a new process, bit for bit: what resuming a run from a checkpoint
 needs (:mod:`sb3_collapse.run.checkpoints`).
 
-A DeepMind Control episode is a deterministic function of the task's random state at its reset and of the actions
-taken since. :class:`EpisodeReplay` (the outermost wrapper of each environment) records both; in a new process,
-:meth:`EpisodeReplay.replay_episode` puts the random state back, resets and takes the same actions again, through
-every wrapper below it (so ``Monitor`` has the episode's rewards too). The cost of a replay is one render per agent
-step of the episode so far (under 15 s for a 500-step episode here), paid once per resume.
-
-The environment under the wrappers must have ``get_rng_state()`` and ``set_rng_state(state)``
-(:class:`~sb3_collapse.envs.DMCEnv` has them).
+:class:`EpisodeReplay` (the outermost wrapper of each environment) records the task's random state at the reset and
+the actions taken since; :meth:`EpisodeReplay.replay_episode` puts the random state back, resets and takes the same
+actions again through every wrapper below it, one render per agent step of the episode so far. The environment
+under the wrappers must have ``get_rng_state()`` and ``set_rng_state(state)`` (:class:`~sb3_collapse.envs.DMCEnv`
+has them). See docs/checkpoints.md#what-is-in-one.
 """
 
 from __future__ import annotations

@@ -1,23 +1,8 @@
 """
-Named activations of an actor: ``cnn0`` .. ``cnn4``, ``mlp0`` .. ``mlp2`` and ``action``, read with forward hooks.
-
-The layer names are the shared vocabulary of the callbacks, the probe and the plots:
-
-=========  =====================================================  ==================================================
-name       DrQv2 (``CnnPolicy`` / ``MlpPolicy``)                  SB3 TD3, DDPG, SAC (actor network)
-=========  =====================================================  ==================================================
-``cnn0``   normalized pixels (``obs / 255 - 0.5``)                 normalized pixels, input of ``NatureCNN``
-``cnnK``   after the K-th conv + ReLU (K = 1..4)                   after the K-th conv + ReLU of ``NatureCNN`` (1..3)
-``mlp0``   actor trunk output (Linear, LayerNorm, Tanh; 50-d)      features: ``NatureCNN``'s Linear + ReLU (512-d),
-                                                                   or the flattened observation (``MlpPolicy``)
-``mlpK``   after the K-th hidden Linear + ReLU (1024 units)        after the K-th hidden layer of ``net_arch``
-                                                                   (``mu`` for TD3/DDPG, ``latent_pi`` for SAC)
-``action`` deterministic action in [-1, 1] (the actor's mean)      ``mu``'s Tanh output (TD3/DDPG), ``tanh(mu)`` (SAC)
-=========  =====================================================  ==================================================
-
-``cnnK`` names are absent where there is no CNN; ``mlpK`` runs up to the number of hidden layers. Each name
-maps to the module that produces the activation (:func:`layer_taps`) and to the parameters of the layer that
-computes it (:func:`layer_parameters`, e.g. for its gradient norm).
+Named activations of an actor: ``cnn0`` .. ``cnn4``, ``mlp0`` .. ``mlp2`` and ``action``, read with forward hooks,
+on DrQv2 and SB3's TD3, DDPG and SAC. Each name maps to the module that produces the activation
+(:func:`layer_taps`) and to the parameters of the layer that computes it (:func:`layer_parameters`). The names:
+:mod:`sb3_collapse.common.layers`; the mapping for SB3's policies: docs/monitoring.md.
 """
 
 from __future__ import annotations
@@ -64,7 +49,7 @@ def _policy_of(model: BaseAlgorithm | BasePolicy) -> BasePolicy:
 
 def layer_taps(model: BaseAlgorithm | BasePolicy) -> dict[str, LayerTap]:
     """
-    The named layers of a DrQv2, TD3, DDPG or SAC actor, input to output (see the module docstring).
+    The named layers of a DrQv2, TD3, DDPG or SAC actor, input to output (the mapping: docs/monitoring.md).
 
     :param model: an algorithm or its policy
     :return: ordered mapping name -> :class:`LayerTap`

@@ -303,32 +303,15 @@ class FrameScheduleCallback(ResumableCallback):
 
 class CollapseMetrics(FrameScheduleCallback):
     """
-    Logs the collapse metrics of every named layer to the SB3 logger (TensorBoard) every ``check_every_frames``.
+    Logs the collapse metrics of every named layer to the SB3 logger (TensorBoard) every ``check_every_frames``,
+    on a metrics batch of ``batch_size`` replay observations (:class:`MetricsBatchSampler`; a check is skipped
+    while the buffer holds fewer).
 
-    At each check, a metrics batch of ``batch_size`` observations is drawn from the replay buffer (see
-    :class:`MetricsBatchSampler`; a check is skipped, with nothing logged, while the buffer holds fewer
-    transitions) and run through the actor with :func:`~sb3_collapse.monitoring.activations.collect_activations`
-    (no gradient, eval mode). For every named layer it records, with the definitions of
-    :mod:`sb3_collapse.monitoring.metrics`:
-
-    - ``collapse/<layer>/numerical_rank``, ``srank``, ``correlation`` (between units, the paper's),
-      ``input_correlation`` (between inputs), ``zero_fraction``, ``dead_fraction``, ``dead_units``,
-      ``dormant_ratio``;
-    - ``collapse/<layer>/grad_norm``: the gradient norm of the layer at the **last update** before the check
-      (recorded when the optimizers step, without extra backward pass, see
-      :mod:`~sb3_collapse.monitoring.grad_norms`; the paper computes it at each check), for layers with
-      parameters, once an update happened;
-    - ``collapse/action_std`` (:func:`~sb3_collapse.monitoring.metrics.action_spread`) and
-      ``collapse/action_saturation`` (:func:`~sb3_collapse.monitoring.metrics.saturated_fraction`) of the
-      deterministic actions;
-    - ``time/frames``.
-
-    The values are written at the check's agent step (``logger.dump(num_timesteps)``, as SB3's ``EvalCallback``
-    does), so they are not overwritten before SB3's next dump. The last values are in :attr:`last_metrics`.
-
-    With ``csv_path``, every check also appends its values to a CSV file in long format, one row per tag:
-    ``frame, step, tag, value`` (frames and agent steps at the check, the TensorBoard tag, the value). The file
-    gets its header when the callback is initialized, so it exists (header only) before the first check.
+    Tags: ``collapse/<layer>/{numerical_rank,srank,correlation,input_correlation,zero_fraction,dead_fraction,
+    dead_units,dormant_ratio,grad_norm}`` (definitions in :mod:`sb3_collapse.monitoring.metrics`; ``grad_norm`` at
+    the last update before the check), ``collapse/action_std``, ``collapse/action_saturation`` and
+    ``time/frames``, written at the check's agent step; the last values are in :attr:`last_metrics`. With
+    ``csv_path`` each check also appends one row per tag, columns :attr:`CSV_FIELDS`. See docs/monitoring.md.
 
     :param check_every_frames: frames between two checks (the paper's ``PAPER.check_every_frames``)
     :param batch_size: observations of the metrics batch (512)
@@ -433,23 +416,17 @@ class CollapseMetrics(FrameScheduleCallback):
 
 class ActivationLogger(FrameScheduleCallback):
     """
-    Saves the named activations of a metrics batch every ``every_frames``, for offline analysis.
-
-    Each save is one compressed numpy file ``<path>/activations_<agent step, 10 digits>.npz`` holding one
-    float32 array per layer (``(batch_size, *shape)``, as returned by
-    :func:`~sb3_collapse.monitoring.activations.collect_activations`), ``step`` (agent steps), ``frames``,
-    ``indices`` (the replay-buffer positions of the batch) and ``layers`` (the names). The metrics batch is drawn
-    as in :class:`CollapseMetrics`; a save is skipped while the buffer holds fewer than ``batch_size``
-    transitions.
-
-    Disk use is bounded by ``max_bytes``: a file that would take the total over it is deleted, a warning says
-    so, and nothing more is saved in this run (the earliest activations, where collapse shows, are kept).
+    Saves the named activations of a metrics batch (drawn as in :class:`CollapseMetrics`) every ``every_frames``,
+    for offline analysis: one compressed ``<path>/activations_<agent step, 10 digits>.npz`` per save, with one
+    float32 ``(batch_size, *shape)`` array per layer, ``step`` (agent steps), ``frames``, ``indices`` (replay-buffer
+    positions) and ``layers``. Skipped while the buffer holds fewer than ``batch_size`` transitions; once a file
+    would take the total over ``max_bytes`` it is deleted with a warning and nothing more is saved.
 
     :param every_frames: frames between two saves
     :param path: folder of the files (created if needed)
     :param batch_size: observations of the metrics batch
-    :param layers: names to save; ``None``: ``mlp0``, ``mlp1``, ``mlp2``, ``action`` (the convolutional
-        activations take ~100 MB per 512 observations of 84x84 pixels: ask for them by name)
+    :param layers: names to save; ``None``: ``mlp0``, ``mlp1``, ``mlp2``, ``action`` (ask for the larger
+        convolutional activations by name)
     :param max_bytes: the most bytes all the files of this callback may take
     :param seed: seed of the batch's indices; ``None``: derived from the model's seed
     :param verbose: 0 silent, 1 prints a line per file

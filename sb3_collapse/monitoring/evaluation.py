@@ -16,19 +16,12 @@ from sb3_collapse.protocol import EVAL_FIELDS, append_csv_rows
 
 class PeriodicEvaluation(FrameScheduleCallback):
     """
-    Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged to TensorBoard
-    (``eval/mean_reward``, ``eval/std_reward``) and appended to a CSV as soon as it is done: the scheduled
-    evaluations (:func:`~sb3_collapse.paper.evaluation_schedule`), as in the reference's ``train.py``, where the
-    paper's statistics come from.
-
-    Not at the last step of ``learn()`` (the reference does not evaluate there either; there, SB3 calls the callbacks
-    before that step's updates). :func:`~sb3_collapse.run.runner.train` evaluates the saved final model after
-    ``learn()`` with :meth:`evaluate_saved_model`: that evaluation is labelled apart (TensorBoard
-    ``eval_saved_model/...``, the result file's ``saved_model_eval``), neither in the CSV nor in :attr:`rows`.
-
-    After each evaluation, the scheduled ones and that of the saved model, ``callback_after_eval`` is called (its
-    ``on_step``), as in SB3's ``EvalCallback``: the train CLI's snapshots
-    (:class:`~sb3_collapse.run.snapshots.Snapshots`) are taken so; its ``False`` stops ``learn()``.
+    Deterministic evaluation at frame 0 and every ``every_frames`` frames (not at the last step of ``learn()``),
+    the scheduled evaluations of :func:`~sb3_collapse.paper.evaluation_schedule`: logged to TensorBoard
+    (``eval/mean_reward``, ``eval/std_reward``), appended to ``csv_path`` and kept in :attr:`rows`. The final model's
+    evaluation (:meth:`evaluate_saved_model`) is labelled apart (``eval_saved_model/...``). After each evaluation
+    ``callback_after_eval`` is called, as in SB3's ``EvalCallback``; its ``False`` stops ``learn()``. See
+    docs/monitoring.md.
 
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations

@@ -1,14 +1,8 @@
 """
-Gradient norms of the named layers at each update, without an extra backward pass, for every algorithm: one
-:class:`~sb3_collapse.common.grad_norms.GradNormRecorder` per model.
-
-- ``DrQv2`` builds its recorder with its networks (``model.grad_norm_recorder``, read as
-  ``model.last_grad_norms``): ``cnn1``..``cnn4`` are recorded when the encoder's optimizer steps (critic loss),
-  ``mlp0``..``action`` when the actor's optimizer steps (actor loss).
-- SB3's ``TD3``, ``DDPG`` and ``SAC`` (the wrappers of :mod:`sb3_collapse.baselines`, which the callbacks make of
-  SB3's own classes when they start) build theirs with their networks: every named layer of
-  :func:`~sb3_collapse.monitoring.activations.layer_parameters` (the actor's features extractor and hidden layers) is
-  recorded when the actor's optimizer steps (actor loss; every ``policy_delay`` updates for TD3 and DDPG).
+Gradient norms of the named layers at each update, without an extra backward pass, for DrQv2 and SB3's TD3, DDPG
+and SAC: one :class:`~sb3_collapse.common.grad_norms.GradNormRecorder` per model, recorded when the optimizer that
+trains a layer steps. Which optimizer records which layer:
+docs/interventions.md#the-health-value-gradient-norms-recorded-at-each-update.
 """
 
 from __future__ import annotations

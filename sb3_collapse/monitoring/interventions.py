@@ -2,34 +2,11 @@
 Interventions on an off-policy actor-critic whose actor is stuck in action collapse: what
 :class:`~sb3_collapse.monitoring.reset.CollapseReset` does at the end of a window without escape.
 
-Each is a function ``model -> InterventionResult`` that changes exactly the parameters and state it names, and
-nothing else (the other weights, every optimizer state it does not name, the replay buffer, the step counters):
-
-==================  ========================================================================================
-``reset``           the paper's rule: restart from scratch (:func:`reset_from_scratch`)
-``reset_actor``     new actor and actor optimizer state; critic, encoder and buffer kept (:func:`reset_actor`)
-``reset_mlp``       new actor MLP after the encoder (:func:`reset_mlp`)
-``redo``            ReDo once, at the rule's trigger: recycle the dormant units of the actor's and the critic's
-                    hidden layers (:func:`redo`; the periodic ReDo of Sokar et al. is the callback
-                    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`)
-``shrink_perturb``  interpolation toward a fresh initialization, ``theta <- 0.8 theta + 0.2 theta_0``, on the
-                    online networks (:func:`shrink_perturb`)
-``shrink_perturb_noise``  Ash and Adams' shrink and perturb, ``theta <- lambda theta + sigma noise`` (0.8, 0.01),
-                    noise on every parameter, biases and normalization parameters included
-                    (:func:`shrink_perturb_noise`)
-==================  ========================================================================================
-
-Models: those whose policy provides :class:`InterventionParts` (``DrQv2``'s ``CnnPolicy`` and ``MlpPolicy``), and
-SB3's ``TD3``, ``DDPG`` and ``SAC`` (``CnnPolicy``, ``MlpPolicy``; SAC without gSDE), through adapters of this module
-(:func:`intervention_parts`); this module imports no algorithm of this package but the baselines' model interface
-(:func:`~sb3_collapse.baselines.collapse_model`, for the reset from scratch). New weights are drawn from torch's global
-generator in its current state (never reseeded: they differ from the initial ones, and a seeded run stays
-reproducible), with the algorithm's own initializer (:meth:`InterventionParts.initialize_weights`): DrQ-v2's
-orthogonal ``weight_init`` (LayerNorm: unit scale, zero shift) for DrQv2, PyTorch's default ``reset_parameters()``
-for SB3's networks (SB3's off-policy policies use it). Optimizer state is "forgotten" per
-parameter (its Adam moments and step count are dropped and start again at the next step) unless a whole new
-optimizer is built. Every intervention forgets the last recorded gradient norms (they were those of the old
-weights). See ``docs/interventions.md`` for the table of what each one resets and keeps.
+Each is a function ``model -> InterventionResult`` (``reset``, ``reset_actor``, ``reset_mlp``, ``redo``,
+``shrink_perturb``, ``shrink_perturb_noise``) that changes exactly the parameters and state it names, on a model
+whose policy provides :class:`InterventionParts` (DrQv2) or on SB3's TD3, DDPG and SAC through this module's
+adapters. What each one resets and keeps, and how new weights and optimizer state are drawn:
+docs/interventions.md#the-interventions.
 """
 
 from __future__ import annotations
@@ -269,27 +246,10 @@ def _forget_grad_norms(model: BaseAlgorithm) -> None:
 # ------------------------------------------------------------------------------------------------ reset from scratch
 def reset_from_scratch(model: BaseAlgorithm) -> InterventionResult:
     """
-    The action-collapse paper's rule (Section 5.2): restart the training from scratch, in the middle of ``learn()``.
-
-    The model's own ``reset_from_scratch()`` (:class:`~sb3_collapse.common.model.CollapseModel`):
-    :meth:`sb3_collapse.DrQv2.reset_from_scratch`, and for TD3, DDPG and SAC (given the interface by
-    :func:`~sb3_collapse.baselines.collapse_model`) :meth:`sb3_collapse.baselines.SB3Model.reset_from_scratch`, with
-    the same semantics:
-
-    - **reset**: SB3's ``_setup_model()`` builds the policy again (new actor, critic and their targets, with new
-      random weights; new optimizers); SAC's learned entropy coefficient starts again from its initial value with a
-      new optimizer (a fixed coefficient is kept); the replay buffer is emptied (``replay_buffer.reset()``); the
-      action noise, if any, is reset; the warm-up restarts: the model's ``reset_step`` becomes ``num_timesteps`` and
-      ``learning_starts`` becomes ``reset_step`` + the warm-up length, so the next ``learning_starts`` agent
-      steps after the reset take uniform random actions and no update happens before that many were collected
-      (a rollout in progress, with ``train_freq > 1``, ends with the actor's actions); the gradient norms are
-      recorded on the new optimizers, none until the next update;
-    - **kept**: ``num_timesteps`` (the budget of ``learn()`` is spent, not extended; TensorBoard curves continue
-      on one axis), the number of updates, the learning-rate schedule (a function of the progress of
-      ``learn()``), the environment and its episode in progress, the logger, the callbacks and the
-      hyperparameters.
-
-    A later ``learn()`` that restarts from agent step 0 gives the warm-up its length back.
+    The action-collapse paper's rule (Section 5.2): restart the training from scratch, in the middle of ``learn()``,
+    through the model's own ``reset_from_scratch()`` (:class:`~sb3_collapse.common.model.CollapseModel`): new
+    networks and optimizers, an empty replay buffer, the warm-up restarted; ``num_timesteps`` and the environment's
+    episode kept. See docs/interventions.md#reset-on-td3-ddpg-and-sac.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
@@ -347,17 +307,10 @@ def _reset_modules(model: BaseAlgorithm, modules: Sequence[nn.Module], name: str
 
 def reset_actor(model: BaseAlgorithm) -> InterventionResult:
     """
-    Reset the actor only: new actor weights and a fresh actor optimizer state; the critic (and its target), the
-    encoder of DrQv2, SAC's entropy coefficient, the replay buffer and the step counters are kept. A partial reset in
-    the spirit of Nikishin et al., "The Primacy Bias in Deep Reinforcement Learning" (ICML 2022), who reset the
-    last layers of the networks and keep the replay buffer.
-
-    - DrQv2: the actor, ``mlp0``..``action`` (DrQ-v2's encoder is shared with the critic and trained by the critic
-      loss only: it is kept);
-    - TD3, DDPG: the actor network, its own features extractor (``cnn1``.., ``mlp0``) included, and the target
-      actor (a copy of the new actor, as TD3 builds it);
-    - SAC: the actor network, features extractor included (``share_features_extractor=True`` is refused: that
-      extractor is the critic's too; use ``reset_mlp``).
+    Reset the actor only (after Nikishin et al., "The Primacy Bias in Deep Reinforcement Learning", ICML 2022): new
+    actor weights (TD3/DDPG: and target actor; SAC and TD3: with its own features extractor) and a fresh actor
+    optimizer state; the critic, DrQv2's encoder, the replay buffer and the counters are kept. SAC with
+    ``share_features_extractor=True`` is refused. See docs/interventions.md#the-interventions.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
@@ -480,24 +433,13 @@ def redo(
     conv_channels: bool = False,
 ) -> InterventionResult:
     """
-    ReDo, "Recycling Dormant neurons" (Sokar, Agarwal, Castro and Evci, "The Dormant Neuron Phenomenon in Deep
-    Reinforcement Learning", ICML 2023), **once**, on the actor's and the critic's hidden layers
-    (:func:`hidden_layers`), and with ``conv_channels`` on the channels of DrQ-v2's convolutions
-    (:func:`encoder_channels`). Sokar et al. recycle every ``F`` updates for the whole run: that is the callback
-    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`, which calls this function; the reset rule's ``"redo"``
-    calls it once at each window without escape.
-
-    On a batch of stored transitions, a unit is dormant when its mean absolute activation, divided by the mean
-    over its layer, is at most ``tau`` (:func:`~sb3_collapse.monitoring.metrics.dormant_units`, the definition of
-    the ``dormant_ratio`` metric; every layer is measured before any is changed). For each dormant unit: its
-    incoming weights and bias get new initial values (the algorithm's initializer), then its outgoing weights
-    (the consumers' columns, in every network that reads the unit, target networks included) are set to zero, also
-    where the consumer is a recycled unit itself, and the Adam moments of exactly those entries are set to zero
-    (the step counts are kept). So recycling units that are dead on the batch changes no function of the agent:
-    the actor's, the critic's and the target networks' outputs are the same, as with Sokar et al.'s ReDo.
-    Everything else is kept: the other units, the encoder or features extractors, the target networks (but their
-    columns that read a recycled channel of DrQ-v2's encoder, which its target critic reads), the replay buffer,
-    the other optimizer state.
+    ReDo, "Recycling Dormant neurons" (Sokar et al., ICML 2023), **once**, on the actor's and the critic's hidden
+    layers (:func:`hidden_layers`), and with ``conv_channels`` on DrQ-v2's convolution channels
+    (:func:`encoder_channels`). A unit is dormant when its mean absolute activation on the batch, divided by its
+    layer's mean, is at most ``tau`` (:func:`~sb3_collapse.monitoring.metrics.dormant_units`). Each dormant unit gets
+    new incoming weights, zero outgoing weights in every network that reads it (targets included) and zero Adam
+    moments for those entries, so no network's output changes. The periodic form is
+    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`. See docs/interventions.md#the-interventions.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param tau: the dormancy threshold, relative to the layer's mean (0.025: ReDo's, and ``dormant_ratio``'s)
@@ -606,22 +548,10 @@ def shrink_perturb_noise(
     model: BaseAlgorithm, shrink: float = NOISE_SHRINK, noise: float = NOISE_SCALE
 ) -> InterventionResult:
     """
-    Shrink and perturb in Ash and Adams' form ("On Warm-Starting Neural Network Training", NeurIPS 2020, "Shrink,
-    Perturb, Repeat": shrink the weights toward zero, then add noise): ``theta <- lambda * theta + sigma * noise``
-    on every parameter of the online networks, as :func:`shrink_perturb`. Ash and Adams write the perturbation
-    ``p ~ N(0, sigma^2)`` on every parameter; here each noise entry is independent, of mean zero, at each layer's
-    initial scale (:func:`perturbation_noise`):
-
-    - the weight of a Linear or a convolution: a fresh draw of the algorithm's initializer (DrQ-v2's orthogonal
-      initialization for DrQv2, PyTorch's default ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))`` for SB3's networks);
-    - every other parameter (the biases, which DrQ-v2 initializes to 0, and the gain and shift of a LayerNorm,
-      initialized to 1 and 0): ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, PyTorch's default distribution of a
-      Linear's bias, ``fan_in`` the inputs of one of the layer's units (a Linear's ``in_features``, a convolution's
-      input channels times its kernel area, a LayerNorm's normalized features).
-
-    ``lambda`` (0.8) shrinks the weights toward zero; ``sigma`` (0.01) is small, unlike :func:`shrink_perturb`'s
-    interpolation toward a fresh initialization (0.8 theta + 0.2 theta_0). Kept: the target networks, the optimizer
-    state, SAC's entropy coefficient, the replay buffer and the step counters.
+    Shrink and perturb in Ash and Adams' form ("On Warm-Starting Neural Network Training", NeurIPS 2020):
+    ``theta <- lambda * theta + sigma * noise`` on every parameter of the online networks, the noise at each
+    layer's initial scale (:func:`perturbation_noise`). Kept: the target networks, the optimizer state, SAC's
+    entropy coefficient, the replay buffer and the counters. See docs/interventions.md#the-interventions.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param shrink: lambda, in ``(0, 1]``

@@ -148,32 +148,17 @@ CONSTANT_UNIT_RTOL = 1e-6
 
 def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
     """
-    The paper's correlation (Section 5.1): "the average correlation among every two non-zero activations", with
-    "activations" the units, as in the same sentence's "number of zero activations, also called dead neurons"
-    (:func:`dead_units`). With ``u_a`` the vector of unit ``a`` over the inputs (a column of ``H``; for a
-    convolutional layer a channel, over every input and position, as :func:`unit_activations`), it is
-    ``mean over a != b of corr(u_a, u_b)``, Pearson's correlation over the inputs, among the units that vary:
-
-    - a **dead** unit (zero for every input) is left out: the paper's "non-zero activations";
-    - so is a **constant** unit (standard deviation over the inputs at most :data:`CONSTANT_UNIT_RTOL` times its
-      largest absolute value: float32 rounding of a constant stays far below), whose Pearson correlation is
-      undefined;
-    - with fewer than two units left, e.g. a collapsed layer where every input gives the same activations, the
-      value is undefined: NaN.
-
-    The mean is of the signed correlations ("the average correlation"): it is 1 when every unit moves as one
-    affine function of the others, increasing, near 0 for units that vary independently, and at least
-    ``-1 / (m - 1)`` for ``m`` units (the sum of a correlation matrix is ``|sum_a z_a|^2 >= 0``), so it reads
-    on ``[0, 1]`` at the paper's widths. ``absolute=True`` averages ``|corr|`` instead (any linear dependence,
-    either sign, counts as similarity).
-
-    Cost: the ``m x m`` correlation matrix of the centred, normalised unit vectors, ``O(m^2 n)`` operations in
-    float64 on the activations' device.
+    The paper's correlation (Section 5.1): "the average correlation among every two non-zero activations", the
+    activations being the units: ``mean over a != b of corr(u_a, u_b)``, Pearson's correlation over the inputs of
+    the vectors ``u_a`` of the units that vary (a column of ``H``; a channel of a conv layer, over the inputs and
+    positions, as :func:`unit_activations`). Dead units and constant units (std at most
+    :data:`CONSTANT_UNIT_RTOL` times the largest absolute value) are left out. Computed in float64 on the
+    activations' device. The reading: docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents.
 
     :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
     :param absolute: average the absolute values of the correlations
-    :return: the mean correlation, in ``[-1 / (m - 1), 1]`` (in ``[0, 1]`` with ``absolute``); NaN when fewer
-        than two units vary over the inputs
+    :return: the mean correlation, in ``[-1 / (m - 1), 1]`` for ``m`` varying units (in ``[0, 1]`` with
+        ``absolute``); NaN when fewer than two units vary over the inputs
     """
     units = unit_activations(activations).double()  # (units, N): N = n x positions
     largest = th.maximum(units.amax(1), -units.amin(1))

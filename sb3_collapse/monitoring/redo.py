@@ -19,32 +19,21 @@ __all__ = ["REDO_EVERY_UPDATES", "PeriodicReDo"]
 
 class PeriodicReDo(FrameScheduleCallback):
     """
-    ReDo, "Recycling Dormant neurons" (Sokar, Agarwal, Castro and Evci, "The Dormant Neuron Phenomenon in Deep
-    Reinforcement Learning", ICML 2023), as the paper runs it: every ``every_updates`` updates (``F``), for the whole
-    run, the dormant units of the networks are recycled (:func:`~sb3_collapse.monitoring.interventions.redo`): a unit
-    whose mean absolute activation on a batch of stored transitions, divided by its layer's mean, is at most ``tau``
-    gets new incoming weights (the algorithm's initializer), zero outgoing weights in every network that reads it
-    (DrQ-v2's target critic, which reads the online encoder, included) and zero Adam moments for those entries.
-    With ``conv_channels`` (the default), the channels of DrQ-v2's convolutions ``cnn1``..``cnn4`` are recycled
-    too, a channel's score averaged over the batch and the positions; then the actor's and the critic's hidden layers
-    (``mlp1``, ``mlp2``, ``q1.mlp1``...). Models: DrQv2 and SB3's TD3, DDPG and SAC (their convolutions are not
-    recycled).
-
-    The recycling happens at the first agent step after the model's update count (``model.n_updates``) reaches each
-    multiple of ``every_updates`` (several multiples at once give one recycling: the schedule of
-    :class:`~sb3_collapse.monitoring.callbacks.FrameScheduleCallback`, counting updates). Logged at each one, at the
-    agent step (``logger.dump``): ``redo/units_recycled``, ``redo/units_total``, ``redo/recycles``; with
-    ``events_path``, a CSV row ``frame, step, updates, units_recycled, units_total, detail``. Every recycling is in
-    :attr:`history` (``(updates, frame, units_recycled)``) and, for this process, what it did in :attr:`results`. The
-    state (the next multiple, the history, the batch sampler's generator) is saved in run checkpoints and with
-    ``DrQv2.save``: a resumed run recycles at the same updates.
+    ReDo, "Recycling Dormant neurons" (Sokar et al., "The Dormant Neuron Phenomenon in Deep Reinforcement
+    Learning", ICML 2023), as its authors run it: every ``every_updates`` updates (``F``), for the whole run, the
+    dormant units are recycled by :func:`~sb3_collapse.monitoring.interventions.redo` (with ``conv_channels``, the
+    channels of DrQ-v2's ``cnn1``..``cnn4`` too), at the first agent step after ``model.n_updates`` reaches each
+    multiple. Logs ``redo/units_recycled``, ``redo/units_total`` and ``redo/recycles``; :attr:`history` holds
+    ``(updates, frame, units_recycled)`` per recycling; the schedule is resumable. Models: DrQv2 and SB3's TD3, DDPG
+    and SAC (their convolutions are not recycled). See docs/interventions.md#redo-every-f-updates-periodicredo.
 
     :param every_updates: ``F``, the updates between two recyclings (:data:`REDO_EVERY_UPDATES`)
     :param tau: the dormancy threshold, relative to the layer's mean (0.025)
     :param batch_size: stored transitions of the batch the activations are measured on; with fewer stored,
         nothing is recycled at that multiple
     :param conv_channels: recycle the channels of DrQ-v2's convolutions too
-    :param events_path: CSV file that each recycling appends a row to (``None``: no file)
+    :param events_path: CSV file that each recycling appends a row to, columns :attr:`EVENT_FIELDS` (``None``: no
+        file)
     :param verbose: 0 silent, 1 prints each recycling
     """
 

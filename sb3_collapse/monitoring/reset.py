@@ -35,71 +35,31 @@ Trigger = str | Callable[[BaseAlgorithm], "float | None"]
 class CollapseReset(FrameScheduleCallback):
     """
     Resets the training from scratch while the agent is stuck in action collapse (the paper's rule), or applies
-    another ``intervention``, on a DrQv2, TD3, DDPG or SAC model.
+    another ``intervention``, on a DrQv2, TD3, DDPG or SAC model. The defaults are the paper's
+    (:data:`sb3_collapse.paper.PAPER`, Section 5.2: "if we do not see a gradient norm larger than 0.001 of
+    consecutive five computations every 2e5 frames, the training would be reset").
 
-    The defaults are the paper's, :data:`sb3_collapse.paper.PAPER` (Section 5.2).
-
-    Every ``check_every_frames`` frames (agent steps x action repeat) the callback reads a health value, by
-    default the gradient L2 norm of the layer that produces ``layer`` (``mlp1``) at the last update (recorded
-    when the optimizer steps, see :mod:`~sb3_collapse.monitoring.grad_norms`: no extra backward pass, one host
-    transfer per check). A value ``> threshold`` is healthy. Once ``patience`` consecutive checks are healthy the
-    agent has **escaped** collapse: the frame is logged and the rule never fires again in this run. When a window
-    of ``window_frames`` since the start of training or the last intervention ends without an escape, the
-    intervention is applied (:mod:`~sb3_collapse.monitoring.interventions`). The default, ``"reset"``, restarts
-    the training: new random encoder, actor, critic and target networks, new optimizers, an empty replay buffer,
-    and the exploration schedule and the uniform-random warm-up restart from the reset (see
-    :meth:`sb3_collapse.DrQv2.reset_from_scratch` and
-    :func:`~sb3_collapse.monitoring.interventions.reset_from_scratch` for TD3, DDPG and SAC). ``num_timesteps``
-    is not reset: the budget of ``learn()`` is spent by the resets, not extended (the paper's Proposition 1),
-    and the TensorBoard curves continue on one axis. The other interventions (``"reset_actor"``,
-    ``"reset_mlp"``, ``"redo"``, ``"shrink_perturb"``) change part of the networks and keep the replay buffer;
-    the rule treats them as it treats a reset (a new window starts, the streak restarts).
-
-    **At the end of the budget** no reset happens: a window that ends at or after the last frame of the
-    ``learn()`` call (its ``total_timesteps``) does not reset, since nothing would train after it. The model that
-    ``learn()`` returns (and that a run saves and evaluates last) is then the trained one, never a freshly reset
-    one.
-
-    A check with no value (no update yet since the start or the reset; for ``"action_std"``, fewer stored
-    transitions than ``batch_size``) is not a computation of the metric: it neither extends nor breaks the
-    streak. The window end is tested at every step (after that step's check, if any), so a reset happens at
-    the first step whose frame count reaches the window's end.
-
-    Logged at each check and each event, at the agent step (``logger.dump``): ``collapse/reset_rule/value``
-    (when there is one), ``collapse/reset_rule/streak``, ``collapse/resets`` (interventions so far),
-    ``collapse/escaped`` (0 or 1), ``collapse/reset_frame`` (at each intervention), what the intervention did
-    (``collapse/intervention/<key>``, see :class:`~sb3_collapse.monitoring.interventions.InterventionResult`:
-    ``weights_changed`` always, ``transitions_dropped`` for a reset, ``units_recycled`` and ``units_total`` for
-    ReDo) and ``collapse/escape_frame`` (at the escape). The same facts are in :attr:`resets`,
-    :attr:`reset_frames`, :attr:`interventions` (one result per intervention), :attr:`escaped`,
-    :attr:`escape_frame`, and every check's ``(frame, value)`` in :attr:`history`. With ``events_path``, each
-    intervention and the escape also append a row to a CSV file with the columns :attr:`EVENT_FIELDS`:
-    ``frame, step, event, resets, intervention, detail`` (``event`` is ``reset`` for any intervention, or
-    ``escape``; ``resets`` the interventions so far, this one included; ``intervention`` the rule's intervention;
-    ``detail`` what it did, one line, empty for an escape). The file gets its header when the callback is
-    initialized, so a run without events leaves a header-only file; a file with another header (an older
-    version's ``frame, step, event, resets``) is refused rather than appended to.
-
-    The state carries over to the next ``learn(reset_num_timesteps=False)`` call with the same callback
-    (e.g. one given to ``DrQv2(callback=...)``); a ``learn()`` that restarts from agent step 0 starts it over.
+    Every ``check_every_frames`` frames it reads a health value (by default the gradient L2 norm of ``layer`` at
+    the last update); ``patience`` consecutive values ``> threshold`` are an escape, after which the rule never
+    fires again. A window of ``window_frames`` since the start or the last intervention that ends without an
+    escape applies the intervention, except at or after the last frame of the ``learn()`` call. The state carries
+    over to a ``learn(reset_num_timesteps=False)``. What it logs (TensorBoard and ``events_path``, columns
+    :attr:`EVENT_FIELDS`) and why: docs/monitoring.md and docs/interventions.md#what-is-logged.
 
     :param window_frames: frames after the start or the last reset within which the agent must escape
-        (the paper's: the end of DrQ-v2's exploration decay on the easy tasks)
     :param check_every_frames: frames between two checks of the metric
     :param threshold: a value above it is healthy (the paper's gradient-norm threshold)
     :param patience: consecutive healthy checks that mean an escape
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
-    :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"`` (the spread of the deterministic
-        actions on a metrics batch of the replay buffer, see
-        :func:`~sb3_collapse.monitoring.metrics.action_spread`), or a callable ``model -> float | None``
-        (``None``: no value at this check); above ``threshold`` is healthy in every case
+    :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"``
+        (:func:`~sb3_collapse.monitoring.metrics.action_spread` on a metrics batch), or a callable
+        ``model -> float | None`` (``None``: no value at this check); above ``threshold`` is healthy
     :param batch_size: metrics batch of replay observations for ``metric="action_std"`` and for
         ``intervention="redo"`` (the batch its dormant units are measured on)
     :param events_path: CSV file that each intervention and the escape append a row to (``None``: no file)
-    :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's),
-        ``"reset_actor"``, ``"reset_mlp"``, ``"redo"`` or ``"shrink_perturb"`` (see
-        :mod:`~sb3_collapse.monitoring.interventions`)
+    :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's) or another
+        intervention of :mod:`~sb3_collapse.monitoring.interventions`
     :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"`` or
         ``{"shrink": 0.5, "perturb": 0.1}`` for ``"shrink_perturb"`` (``None``: its defaults)
     :param verbose: 0 silent, 1 prints each intervention and the escape

@@ -8,13 +8,9 @@ Offline OMP probing of checkpoints: ``python -m sb3_collapse.probe --help``.
     python -m sb3_collapse.probe film good.zip bad.zip --seeds 0 1 --out film/ # Figures 6-7: frames and actions
 
 ``run`` (the default when the first argument is not a sub-command) probes; ``record`` records rollouts; ``sweep``
-probes the snapshots of a sweep's well- and poorly performing seeds.
-Errors in the input print ``error: ...`` and exit with status 2.
-
-The command line is the top layer: it runs the probe's computation (this package) and the drawing of
-:mod:`sb3_collapse.report` (:func:`~sb3_collapse.report.probe_outputs.probe_to_folder`,
-:func:`~sb3_collapse.report.figure2.probe_sweep`, :func:`~sb3_collapse.report.film.film_to_folder`); the library
-modules of this package import neither the report nor matplotlib.
+probes the snapshots of a sweep's well- and poorly performing seeds. Errors in the input print ``error: ...`` and
+exit with status 2. The command line runs this package's computation and :mod:`sb3_collapse.report`'s drawing:
+docs/probe.md.
 """
 
 from __future__ import annotations

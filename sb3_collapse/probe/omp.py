@@ -12,20 +12,8 @@ correlated with the current residual and refits least squares on the selected at
         r_k = y - X[:, S_k] w_k
 
 The path is nested: one run up to ``max_atoms`` gives the solution for every sparsity ``tau <= max_atoms``
-(the first ``tau`` atoms and ``w_tau``), which is what :func:`omp_path` returns.
-
-Batching: all targets share ``X``, so each iteration computes the correlations of every target's residual
-with one matrix product ``X^T R`` (``d x m``), in ``X``'s dtype and on its device. The least squares use an
-incremental Cholesky factor of ``X_S^T X_S`` per target (``k x k``), in float64; nothing of size ``d x d`` is
-built. Memory beyond ``X``: ``O(d m + m max_atoms n)``.
-
-It follows scikit-learn's ``OrthogonalMatchingPursuit(precompute=False)`` (``_cholesky_omp``): same selection
-rule, same least squares (``L L^T w = X_S^T y``), and the same early stops, after which the solution stays at
-the atoms selected so far: the selected atom is already selected (the residual is orthogonal to every other
-atom up to rounding), its correlation with ``y`` is negligible (``(x_a^T y)^2 < eps``), or it is linearly
-dependent on the selected atoms (Cholesky pivot ``<= eps``), ``eps`` being the machine epsilon of ``X``'s dtype.
-Ties in ``|x_i^T r|`` go to the lowest feature index (scikit-learn's order differs only for exact ties, as it
-swaps the selected columns to the front).
+(:func:`omp_path`). It matches scikit-learn's ``OrthogonalMatchingPursuit(precompute=False)``, early stops and ties
+included: docs/probe.md#omp.
 """
 
 from __future__ import annotations

@@ -420,10 +420,9 @@ def probe_checkpoint(
     :param rollouts: the recorded observations and states
     :param split: the episode split of the rollouts
     :param settings: the probe's settings
-    :param reuse: probes of ``cnn0`` from earlier checkpoints on the same rollouts and split, keyed by the exact
-        values of ``cnn0`` on the first 16 samples (updated here). ``cnn0`` is the normalized image, the same for
-        every checkpoint that normalizes pixels the same way (all DrQv2 checkpoints): its probe is then reused
-        instead of extracted and fitted again. ``None``: no reuse
+    :param reuse: probes of ``cnn0`` (the normalized image) from earlier checkpoints on the same rollouts and
+        split, keyed by the values of ``cnn0`` on the first 16 samples (updated here), reused instead of fitted
+        again; ``None``: no reuse
     :return: the results; ``rows`` holds, per (layer, target): ``checkpoint``, ``algorithm``,
         ``num_timesteps`` (agent steps), ``frames``, ``layer``, ``component``, ``group``, ``tau``, ``max_tau``,
         ``validation_mse``, ``test_mse`` (standardized), ``validation_mse_raw``, ``test_mse_raw`` (state units

@@ -50,10 +50,8 @@ class Rollouts:
     :param env_config: ``make_dmc_env`` settings: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``,
         ``camera_id``
     :param metadata: how they were recorded (``checkpoint``, ``deterministic``, ``noise_std``, ``seed``, ...)
-    :param reward_inputs: reward input name -> ``(N, size)`` float32, the state components the task's reward
-        function reads at the time of each observation (``DMCEnv.reward_inputs``, after
-        :data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`; walker-walk: ``torso_height``, ``torso_upright``,
-        ``horizontal_velocity``; hopper-stand: ``height``); empty for a file recorded before they were
+    :param reward_inputs: reward input name -> ``(N, size)`` float32, what the task's reward function reads at
+        each observation (:data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`); empty when not recorded
     """
 
     observations: np.ndarray
@@ -246,10 +244,8 @@ def record_rollouts(
     metadata: dict[str, Any] | None = None,
 ) -> Rollouts:
     """
-    Run an agent in a DeepMind Control pixel env and record what probing needs.
-
-    Actions are ``model.predict(obs, deterministic)``, plus Gaussian noise of std ``noise_std`` when > 0,
-    clipped to [-1, 1].
+    Run an agent in a DeepMind Control pixel env and record what probing needs. Actions are
+    ``model.predict(obs, deterministic)``, plus Gaussian noise of std ``noise_std`` when > 0, clipped to [-1, 1].
 
     :param model: the agent (its observation space must be the env's)
     :param env_config: ``make_dmc_env`` settings (see :func:`resolve_env_config`)
@@ -257,8 +253,7 @@ def record_rollouts(
     :param seed: seed of the env's initial states and of the action noise
     :param deterministic: the policy's deterministic action (else the model's own exploration)
     :param noise_std: std of the Gaussian noise added to each action (in action units, [-1, 1])
-    :param max_steps: cap on agent steps per episode (``None``: the task's time limit, e.g. 500 agent steps
-        for walker at action repeat 2)
+    :param max_steps: cap on agent steps per episode (``None``: the task's time limit)
     :param progress: show a progress bar over agent steps
     :param metadata: extra entries of :attr:`Rollouts.metadata`
     :return: the rollouts

@@ -1,18 +1,8 @@
 """
-Reports of a sweep folder: the paper's Figure 5, the per-variant table and the layer-transplant grid
-(Figure 3(a)). ``python -m sb3_collapse.report --help`` for the command line; the library:
-
-- :mod:`~sb3_collapse.report.loading`: read ``<sweep>/<task>/<variant>/seed_<k>/`` folders (:func:`load_sweep`);
-- :mod:`~sb3_collapse.report.statistics`: aligned curves, percentile bands, "stuck in action collapse", the table
-  and the grid;
-- :mod:`~sb3_collapse.report.reference`: the published DrQ-v2 curves shipped with the package;
-- :mod:`~sb3_collapse.report.tables` and :mod:`~sb3_collapse.report.plots`: CSV, Markdown and PNG outputs;
-- :mod:`~sb3_collapse.report.collapse_figure`: Figures 4, 8, 9 (the three agents, their metrics on the fixed probing
-  set and online);
-- :mod:`~sb3_collapse.report.pipeline`: :func:`build_report` and :func:`write_report`;
-- the outputs of ``python -m sb3_collapse.probe``, from the probe's computations: :mod:`~sb3_collapse.report.figure2`
-  (Figure 2 and Tables 1-6, :func:`probe_sweep`), :mod:`~sb3_collapse.report.film` (Figures 6-7,
-  :func:`film_to_folder`), :mod:`~sb3_collapse.report.probe_outputs` (a probe's plots, :func:`probe_to_folder`).
+Every figure and table of the paper from a sweep or run folder: Figure 5 and its table, the layer-transplant grid
+(Figure 3), Figures 4, 8, 9 (:func:`write_report`), and the drawing of the probe's outputs: Figure 2 and Tables 1-6
+(:func:`probe_sweep`), Figures 6-7 (:func:`film_to_folder`), a probe's plots (:func:`probe_to_folder`).
+``python -m sb3_collapse.report --help`` for the command line; each module's part: docs/layout.md.
 """
 
 from sb3_collapse.errors import ReportError

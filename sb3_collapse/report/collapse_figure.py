@@ -2,27 +2,12 @@
 The paper's Figure 4 (walker-walk) and its appendix versions, Figures 8 (hopper-stand) and 9 (finger-spin): the
 collapse metrics of three agents over training, next to the evaluation return.
 
-**The three agents.** Figure 4's caption: "The first row is a randomly picked well-performing agent achieving larger
-than [``PAPER.success_return``] rewards. The second row is a middle agent between goodness and badness. The third
-row is a randomly picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards."
-:func:`pick_paper_agents` picks them that way:
-one agent at random (a recorded seed) among the finished seeds of each class of final return (the last
-evaluation, as ``probe sweep`` and the transplant grid read it): well-performing ``>= PAPER.success_return``,
-middle in between, poorly performing ``< PAPER.failure_return``. A class without a seed gives a row that says so,
-never an agent of another class. (:func:`pick_agents`, the highest, median and lowest final return, is another
-reading, kept under its own name.)
-
-**The inputs.** The paper computes the metrics on ``H`` "as defined in Figure 1": the probing samples, "collected
-from well-performing agents". The report computes them after training on one fixed observation set for every
-snapshot of the picked agents (:mod:`sb3_collapse.probe.fixed_inputs`): by default one set per task, the rollouts
-that ``python -m sb3_collapse.probe sweep`` recorded from the well-performing agent of the highest final return of
-the baseline variant (:attr:`FixedInputSettings.rollouts_variant`, ``drqv2``: ``<sweep>/probe/<task>_drqv2/
-rollouts.npz``), for every variant of the task, or a rollouts file given by the user; agents of every variant are
-then compared on the same inputs (``rollouts_variant=None`` reads each variant's own rollouts instead). A seeded
-subset of :attr:`FixedInputSettings.fixed_samples` observations keeps the cost bounded (all of them with
-``fixed_samples=None``). The online metrics of each trial's collapse metrics file (``protocol.COLLAPSE_METRICS_CSV``:
-each agent's own replay batch, at training time) are drawn in a figure of their own. Gradient norms are
-training-time in both.
+Figure 4's caption: "The first row is a randomly picked well-performing agent achieving larger than
+[``PAPER.success_return``] rewards. The second row is a middle agent between goodness and badness. The third row is
+a randomly picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards."
+(:func:`pick_paper_agents`; :func:`pick_agents` is the other reading). The metrics are computed on one fixed
+observation set per task (:mod:`sb3_collapse.probe.fixed_inputs`), and the online metrics of the collapse metrics
+file in a figure of their own. The readings chosen: docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents.
 """
 
 from __future__ import annotations
@@ -188,12 +173,10 @@ def pick_paper_agents(
     """
     The three agents of Figures 4, 8, 9 (Figure 4's caption: "a randomly picked well-performing agent achieving
     larger than [``PAPER.success_return``] rewards", "a middle agent between goodness and badness", "a randomly
-    picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards"): among the finished
-    trials with an evaluation, split by :func:`agent_class` of their final return (:func:`final_return`, the last
-    evaluation), one trial per class picked uniformly at random. Each class draws from its own generator,
-    ``numpy.random.default_rng([pick_seed,
-    k])`` for the k-th class, over its seeds in increasing order: the pick depends on ``pick_seed`` and the class's
-    seeds only. The middle agent is picked the same way (the paper had one).
+    picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards"): the finished trials
+    with an evaluation, split by :func:`agent_class` of their :func:`final_return`, one trial per class picked
+    uniformly at random with ``numpy.random.default_rng([pick_seed, k])`` for the k-th class, over its seeds in
+    increasing order. See docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents.
 
     :param trials: the trials of one task and variant
     :param pick_seed: seed of the random picks (recorded in the figure's title and rows)
@@ -474,14 +457,12 @@ class FixedInputSettings:
     """
     How Figures 4, 8, 9 are computed on the fixed observation set, and how their agents are picked.
 
-    :param pick_seed: seed of the random pick of the three agents
-        (:func:`~sb3_collapse.report.collapse_figure.pick_paper_agents`)
+    :param pick_seed: seed of the random pick of the three agents (:func:`pick_paper_agents`)
     :param failure_return: a final return below it is poorly performing (``PAPER.failure_return``; the
         well-performing bound is the report's ``success_return``)
     :param rollouts: the rollouts file of the observations, for the tasks it was recorded on (``None``: those of
         ``rollouts_variant``)
-    :param rollouts_variant: the variant whose rollouts (``<sweep>/probe/<task>_<variant>/rollouts.npz``, written
-        by ``python -m sb3_collapse.probe sweep`` from its well-performing seed of the highest final return) are the
+    :param rollouts_variant: the variant whose rollouts (``<sweep>/probe/<task>_<variant>/rollouts.npz``) are the
         fixed set of every variant of the task (the baseline, ``drqv2``); ``None``: each variant's own rollouts
     :param fixed_samples: observations drawn from the rollouts (without replacement, with ``sample_seed``;
         ``None``: all)

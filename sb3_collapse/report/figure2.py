@@ -1,43 +1,12 @@
 """
-``python -m sb3_collapse.probe sweep``: the paper's Figure 2 and Tables 1-6 for one task and variant of a sweep
-folder whose trials saved snapshots (``--snapshots``: their encoder and actor at every evaluation).
-
-1. The finished trials are split by final return: well-performing (``>= success_return``, default
-   ``PAPER.success_return``) and poorly performing (``< failure_return``, default ``PAPER.failure_return``); the
-   others are not probed.
-2. Rollouts are recorded once, from the well-performing seed of the highest final return (its final model), or
-   read from ``rollouts_path``.
-3. Every snapshot of those trials is probed on them (``cnn0``, the normalized pixels, once for all).
-4. Figure 2 (``figure2.png``), Tables 1-6 (``tables_1_6.csv``/``.md``), all probe rows (``probe.csv``) and
-   ``summary.json`` are written into ``out``, only when everything succeeded.
-
-The figure, from the probe rows of many agents: rows well-performing / poorly performing
-agents, columns torso velocity, joint orientations, torso height; in each panel, per layer, the mean over the
-row's agents of the probe's test MSE (standardized) against training frames; the tables give the std across the
-agents at four training stages.
+The paper's Figure 2 and Tables 1-6 for one task and variant of a sweep folder whose trials saved snapshots
+(``python -m sb3_collapse.probe sweep``): the probe's test MSE of each layer against training frames, for
+well- and poorly performing agents.
 
 The paper: "we plot the probing MSE for three environment state components: torso velocity, joint orientation, and
-torso height ... We choose these three components because all of them are the input to the reward function." The
-columns are therefore the quantities that the task's reward function reads (``reward:...`` targets, recorded by
-``DMCEnv.reward_inputs``, see :data:`sb3_collapse.envs.dmc.REWARD_INPUTS`), followed by the state-vector readings of
-the same names as extra columns (:data:`FIGURE2_COLUMNS`):
-
-- **walker** (walker-walk's and walker-run's reward: ``stand = (3 tolerance(torso_height) + (1 + torso_upright) / 2)
-  / 4`` times a term of ``horizontal_velocity``; walker-stand's is ``stand`` alone, so it has no torso velocity
-  column): torso velocity = ``reward:horizontal_velocity`` (the centre of mass's horizontal
-  velocity); orientation = ``reward:torso_upright`` (the torso's, the only orientation the reward reads; the paper
-  calls the column "joint orientation"); torso height = ``reward:torso_height``. Extra columns: root velocities
-  (state) = ``velocity_0..2`` (the root joints' velocities: torso vertical, horizontal and pitch velocity); leg
-  orientations (state) = ``orientations_2..13`` (the x and z components of the orientation of the six leg bodies;
-  ``orientations_0..1`` are the torso's). The state's ``height`` is ``torso_height`` itself, so it has no column of
-  its own.
-- **hopper** (hopper-hop's reward: ``tolerance(height)`` times a term of ``speed``; hopper-stand's:
-  ``tolerance(height)`` times a term of the control, so it has no torso velocity column): torso velocity =
-  ``reward:speed``, torso height = ``reward:height`` (torso above the foot); its reward reads no orientation. Extra
-  columns: root velocities (state) = ``velocity_0..2``; rootz (state) = ``position_0``.
-- any other domain: one column per reward input, then one per state component (the whole component averaged).
-
-A column is shown when its targets exist: the rollouts hold the reward inputs of their own task only.
+torso height". The columns (:data:`FIGURE2_COLUMNS`) are the reward's inputs of those names, then state-vector
+readings as extra columns; the steps, the columns of each domain and the reading chosen for "joint orientation":
+docs/figures.md#figure-2-and-tables-1-6-probing-over-training.
 """
 
 from __future__ import annotations
@@ -320,7 +289,8 @@ def probe_sweep(
     jobs: int = 1,
 ) -> dict[str, Any]:
     """
-    Figure 2 and Tables 1-6 of one task and variant of a sweep (see the module's documentation).
+    Figure 2 and Tables 1-6 of one task and variant of a sweep, written into ``out`` only when everything succeeded
+    (the steps: docs/figures.md#figure-2-and-tables-1-6-probing-over-training).
 
     :param sweep_dir: the sweep folder
     :param task: its task folder, e.g. ``"walker-walk"``
@@ -333,8 +303,7 @@ def probe_sweep(
     :param failure_return: final return of a poorly performing agent, below
     :param overwrite: replace a previous run's outputs in ``out``
     :param command: the command line, for the summary
-    :param jobs: checkpoints probed at once (:func:`~sb3_collapse.probe.probing.probe_checkpoints`; snapshots
-        themselves are small: benchmarks/README.md#checkpoint-sizes)
+    :param jobs: checkpoints probed at once (:func:`~sb3_collapse.probe.probing.probe_checkpoints`)
     :return: the summary (as written to ``summary.json``)
     :raises ProbeError: for bad input (nothing written then)
     """

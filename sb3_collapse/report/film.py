@@ -150,16 +150,15 @@ def film_to_folder(
     progress: bool = True,
 ) -> list[Path]:
     """
-    ``python -m sb3_collapse.probe film``: film every checkpoint from each episode seed and write
-    ``filmstrip.png``, ``<checkpoint>_seed<k>.gif`` per film and ``actions.csv`` into ``out`` (staged: all or
-    nothing).
+    ``python -m sb3_collapse.probe film``: film every checkpoint from each episode seed and write ``filmstrip.png``,
+    ``<checkpoint>_seed<k>.gif`` per film and ``actions.csv`` into ``out`` (staged: all or nothing).
 
     :param checkpoint_paths: the agents (full models or snapshots)
     :param out: the output folder
     :param frames: environment frames per film
     :param size: render size of the film, in pixels
     :param every_frames: frames between two pictures of the strip
-    :param seeds: episode seeds (one row per checkpoint and seed; the paper's Figure 6 shows a bad agent from two)
+    :param seeds: episode seeds (one row per checkpoint and seed)
     :param env: the task, when a checkpoint does not say
     :param device: where the networks run
     :param overwrite: replace a previous film in ``out``

@@ -1,26 +1,9 @@
 """
-The top of the report: the paper's headline numbers beside the sweep's (Section 5.2, "Results"), and Proposition 1
-(the escape probability the rule should reach) beside what the rule did. Also what Figure 5 compares.
-
-- **Headline** (:func:`headline_rows`): per task, DrQ-v2 (``baseline``) against DrQ-v2 plus the rule (``rule``):
-  the seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2") and, for
-  the rule, the seeds that never escaped ("In comparison, all 40 seeds of ours escape action collapse": the rule
-  never saw an escape, the result file's ``escaped`` false), as counts with a Wilson interval; the rule's seeds
-  stuck at the end of training (the baseline's measure) on their own; and "the average standard deviation over the
-  last ten evaluations" with a bootstrap interval over seeds; the paper's numbers
-  (:data:`~sb3_collapse.paper.PAPER_RESULTS`) on the same row.
-- **Proposition 1** (:func:`proposition1_rows`): "Supposing the number of training frames is n · m (m is the
-  frames where the exploration decreases to the smallest) and the probability of getting stuck in action collapse
-  is p, then the probability of escaping action collapse when applying our proposed rule is 1 - p^n." p is the
-  baseline's fraction of stuck seeds, n the rule's whole windows in the budget (``frames // reset_window_frames``:
-  5 for 1.1e6 frames and windows of 2e5, the paper's "larger than 1 - p^5"); the prediction 1 - p^n is set beside
-  the fraction of the rule's seeds that escaped (the rule saw an escape, the result file's ``escaped``).
-- **Figure 5** (:func:`figure5_curves`): "The performance comparison of 40 seeds between DrQ-v2 and DrQ-v2 plus
-  our rule": the plain variants and the interventions, never the transplant-grid cells (Figure 3's).
-
-Intervals: proportions get the Wilson score interval; 1 - p^n is decreasing in p, so p's interval [lo, hi] maps
-to [1 - hi^n, 1 - lo^n]; the mean std gets a percentile bootstrap over seeds (seeds resampled with replacement,
-a fixed seed, so the report is reproducible).
+The top of the report: the paper's headline numbers beside the sweep's (Section 5.2, "Results",
+:func:`headline_rows`), Proposition 1's predicted escape probability beside what the rule did
+(:func:`proposition1_rows`), and what Figure 5 compares (:func:`figure5_curves`). Proportions get a Wilson score
+interval, the mean std a percentile bootstrap over seeds (fixed seed). The readings:
+docs/figures.md#figure-5-the-headline-numbers-and-proposition-1.
 """
 
 from __future__ import annotations
@@ -236,7 +219,10 @@ def headline_rows(
 ) -> list[HeadlineRow]:
     """
     The headline: one row per task of the sweep (those of the paper's Figure 5 first, in its order,
-    :data:`~sb3_collapse.paper.PAPER_RESULTS`; the others when they have the baseline or the rule).
+    :data:`~sb3_collapse.paper.PAPER_RESULTS`; the others when they have the baseline or the rule): the baseline's
+    seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2"), the rule's
+    seeds that never escaped ("all 40 seeds of ours escape action collapse") and "the average standard deviation
+    over the last ten evaluations", each beside the paper's.
 
     :param sweep: the loaded sweep
     :param rows: the summary rows (:func:`~sb3_collapse.report.statistics.summarize`)
@@ -316,10 +302,10 @@ def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
 
 def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Proposition1Row]:
     """
-    Proposition 1 per task and rule variant (``<algorithm>+<intervention>``) whose algorithm's plain variant is in
-    the sweep: p from the plain variant's stuck seeds, n from the rule's settings, the prediction 1 - p^n beside the
-    rule's observed escapes. (The proposition assumes the intervention is a reset from scratch, so that the windows
-    are independent tries; other interventions are shown for comparison.)
+    Proposition 1 ("the probability of escaping action collapse when applying our proposed rule is 1 - p^n") per
+    task and rule variant (``<algorithm>+<intervention>``) whose algorithm's plain variant is in the sweep: p from
+    the plain variant's stuck seeds, n the rule's whole windows in the budget, the prediction 1 - p^n beside the
+    rule's observed escapes.
 
     :param sweep: the loaded sweep
     :param rows: the summary rows

@@ -365,28 +365,12 @@ def write_report(
     collapse_settings: FixedInputSettings | None = None,
 ) -> Report:
     """
-    The report of a sweep folder, written to ``out`` (default ``<sweep>/report/``):
-
-    - ``figure5.png``: per task, mean evaluation return over frames with the percentile band across seeds for each
-      variant that is not a transplant-grid cell (those are Figure 3's) (plus the published DrQ-v2 curves with
-      ``reference``, and dotted partial curves of unfinished
-      trials with ``include_unfinished``);
-    - ``summary.csv`` and ``summary.md``: the table per task and variant
-      (:class:`~sb3_collapse.report.statistics.VariantSummary`), ``summary.md`` led by the paper's headline numbers
-      beside the sweep's and Proposition 1 (:mod:`sb3_collapse.report.headline`);
-    - ``transplant_grid.csv``, ``.md`` and ``.png`` when ``cnn-<src>_mlp-<src>`` variants are present, with
-      ``figure3b.png`` (curves of the successful seeds per cell) and ``table7.csv``/``.md`` (their std at four
-      training stages) when a cell has successful seeds;
-    - ``collapse_metrics_<task>_<variant>.png`` (the paper's Figures 4, 8, 9) per task and variant that is not a
-      transplant cell: the collapse metrics of a randomly picked well-performing, middle and poorly performing
-      agent, on the fixed probing set (``.csv``: the values), when the rollouts and snapshots are there;
-      ``collapse_metrics_online_<task>_<variant>.png``: the same agents' online metrics (replay batches);
-      ``collapse_agents.csv``: which agents, picked with which seed;
-    - ``index.html``: all of the above on one self-contained page, with the sweep's settings, the published
-      DrQ-v2 reference and the unfinished trials.
-
-    The files are staged and moved into ``out`` only when all are written (``summary.md`` last); outputs of a
-    previous report that this one does not write are removed.
+    The report of a sweep folder, written to ``out`` (default ``<sweep>/report/``): Figure 5 and its table
+    (``summary.csv``/``.md``, led by the headline numbers and Proposition 1), the transplant grid, Figure 3(b) and
+    Table 7 when transplant variants are present, Figures 4, 8, 9 per task and variant where the rollouts and
+    snapshots are there, and ``index.html`` with all of them. The files are staged and moved into ``out`` only when
+    all are written; outputs of a previous report that this one does not write are removed. Every file:
+    docs/figures.md and docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
 
     :param sweep_dir: the sweep folder
     :param out: the output folder (``<sweep_dir>/report`` when ``None``)

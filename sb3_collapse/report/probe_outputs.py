@@ -42,7 +42,7 @@ SELF_RECORDED_NOTE = (
     "record with `python -m sb3_collapse.probe record GOOD.zip --out rollouts.npz` and pass `--rollouts "
     "rollouts.npz` (library: `rollouts_path`), or use `python -m sb3_collapse.probe sweep` on a sweep folder"
 )
-"""What the probe says when it records its rollouts from the checkpoint it probes (today's default)."""
+"""What the probe says when it records its rollouts from the checkpoint it probes (the default)."""
 
 
 def staged_output(out: str | Path, overwrite: bool = False) -> StagedOutputs:
@@ -198,10 +198,8 @@ def probe_to_folder(
 ) -> dict[str, Any]:
     """
     ``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and the plots
-    into ``out`` (only when every checkpoint succeeded; see :func:`staged_output`).
-
-    Without ``rollouts_path``, rollouts of the first checkpoint are recorded first (``record_options``) and
-    saved to ``<out>/rollouts.npz`` for reuse.
+    into ``out``, only when every checkpoint succeeded (:func:`staged_output`). Without ``rollouts_path``, rollouts
+    of the first checkpoint are recorded first (``record_options``) and saved to ``<out>/rollouts.npz``.
 
     :param checkpoint_paths: the checkpoints
     :param out: the output folder

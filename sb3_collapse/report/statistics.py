@@ -2,15 +2,10 @@
 The numbers of the report, from loaded trials: aligned curves, percentile bands, the per-variant table and the
 layer-transplant grid. Pure functions of numpy arrays and :class:`~sb3_collapse.report.loading.Trial` lists.
 
-Conventions used throughout:
-
-- **Aligned grid.** The curves of a variant are compared on the evaluation frames that **every** finished seed of
-  the variant has (the intersection of their evaluation file frames). With one sweep's settings all seeds share one
-  grid and nothing is dropped; a seed trained longer (or evaluated on another grid) only contributes the shared
-  frames, and the report notes how many frames were dropped.
-- **Final return** of a seed: its evaluation return at the last frame of the aligned grid.
-- **Standard deviations** across seeds are sample standard deviations (``ddof=1``), as in the table of the
-  published DrQ-v2 curves (``sb3_collapse/report/data/README.md``); undefined (nan) with fewer than 2 seeds.
+A variant's seeds are compared on the evaluation frames that every finished seed has (the aligned grid; the
+report notes the frames dropped); a seed's **final return** is its return at the last frame of that grid; standard
+deviations across seeds use ``ddof=1`` (nan with fewer than 2 seeds). See
+docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
 """
 
 from __future__ import annotations

@@ -2,18 +2,11 @@
 The rl_zoo3 launcher: rl_zoo3's ``train`` and ``enjoy`` scripts with DrQv2 registered.
 
     python -m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf zoo_configs/drqv2.yml
-    python -m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf zoo_configs/drqv2.yml \\
-        --collapse-metrics --reset-rule --seed 3 -tb runs/
     python -m sb3_collapse.zoo enjoy --algo drqv2 --env sb3_collapse/walker-walk-v0 -f logs/ -n 1000
 
 Every rl_zoo3 flag works as in ``python -m rl_zoo3.train`` / ``enjoy``; counts (``-n``, ``--eval-freq``,
-``--save-freq``) are in agent steps (frames / action repeat). With ``--algo drqv2`` the launcher also:
-
-- evaluates as DrQ-v2 does unless told otherwise: ``--eval-freq`` at DrQ-v2's period (in agent steps: its
-  ``eval_every_frames`` / action repeat) and ``--eval-episodes`` at its episodes, instead of rl_zoo3's 25,000 and 5;
-- requires ``-conf`` (rl_zoo3 has no built-in DrQv2 file) and refuses ``-optimize`` (rl_zoo3 has no Optuna
-  sampler for DrQv2);
-- ``enjoy`` runs with ``--no-render``: the DeepMind Control envs render off-screen only.
+``--save-freq``) are in agent steps (frames / action repeat). With ``--algo drqv2`` it evaluates as DrQ-v2 does by
+default, requires ``-conf``, refuses ``-optimize``, and ``enjoy`` runs with ``--no-render``: docs/zoo.md.
 """
 
 from __future__ import annotations
