@@ -36,8 +36,8 @@ class CollapseReset(FrameScheduleCallback):
     """
     Resets the training from scratch while the agent is stuck in action collapse (the paper's rule), or applies
     another ``intervention``, on a DrQv2, TD3, DDPG or SAC model. The defaults are the paper's
-    (:data:`sb3_collapse.paper.PAPER`, Section 5.2: "if we do not see a gradient norm larger than 0.001 of
-    consecutive five computations every 2e5 frames, the training would be reset").
+    (:data:`sb3_collapse.paper.PAPER`, Section 5.2: "if we do not see a gradient norm larger than [``threshold``]
+    of consecutive five computations every 2e5 frames, the training would be reset").
 
     Every ``check_every_frames`` frames it reads a health value (by default the gradient L2 norm of ``layer`` at
     the last update); ``patience`` consecutive values ``> threshold`` are an escape, after which the rule never

@@ -13,7 +13,7 @@ from sb3_collapse.probe.probing import (
     PROBE_LAYERS,
     ProbeSettings,
     probe_checkpoint,
-    probe_checkpoints,
+    probe_each_checkpoint,
     probe_layer,
     split_by_episode,
 )
@@ -32,7 +32,7 @@ __all__ = [
     "omp_path",
     "path_predictions",
     "probe_checkpoint",
-    "probe_checkpoints",
+    "probe_each_checkpoint",
     "probe_layer",
     "record_rollouts",
     "record_to_file",

@@ -496,7 +496,7 @@ def probe_checkpoint(
     return result
 
 
-def probe_checkpoints(
+def probe_each_checkpoint(
     paths: Sequence[str | Path],
     labels: Sequence[str],
     rollouts: Rollouts,

@@ -32,7 +32,7 @@ from sb3_collapse.errors import ProbeError, ReportError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, record
-from sb3_collapse.probe.probing import MIN_EPISODES, ProbeSettings, probe_checkpoints, split_by_episode
+from sb3_collapse.probe.probing import MIN_EPISODES, ProbeSettings, probe_each_checkpoint, split_by_episode
 from sb3_collapse.probe.rollouts import REWARD_PREFIX, Rollouts
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
@@ -303,7 +303,7 @@ def probe_sweep(
     :param failure_return: final return of a poorly performing agent, below
     :param overwrite: replace a previous run's outputs in ``out``
     :param command: the command line, for the summary
-    :param jobs: checkpoints probed at once (:func:`~sb3_collapse.probe.probing.probe_checkpoints`)
+    :param jobs: checkpoints probed at once (:func:`~sb3_collapse.probe.probing.probe_each_checkpoint`)
     :return: the summary (as written to ``summary.json``)
     :raises ProbeError: for bad input (nothing written then)
     """
@@ -329,7 +329,7 @@ def probe_sweep(
             recorded_from = str(rollouts_path)
         split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
         work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
-        per_checkpoint = probe_checkpoints(
+        per_checkpoint = probe_each_checkpoint(
             [path for _, _, path in work],
             [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work],
             rollouts,

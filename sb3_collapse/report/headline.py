@@ -16,7 +16,7 @@ from statistics import NormalDist
 import numpy as np
 
 from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
-from sb3_collapse.protocol import CONFIG_JSON, read_settings
+from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON, read_settings
 from sb3_collapse.report.loading import Sweep, Trial
 from sb3_collapse.report.statistics import (
     BandCurve,
@@ -422,7 +422,7 @@ def headline_definitions(settings: ReportSettings) -> str:
         "finished seeds. Stuck in collapse (DrQ-v2) and stuck at the end (the rule): seeds stuck at the end of "
         "training (see the summary's definitions), of the seeds whose collapse state is known. Never escaped (the "
         'rule; the paper: "all 40 seeds of ours escape action collapse"): seeds whose rule never saw an escape '
-        "(result.json's escaped false), of the seeds that ran the rule; a seed that escaped and collapsed again "
+        f"({RESULT_JSON}'s escaped false), of the seeds that ran the rule; a seed that escaped and collapsed again "
         "counts as stuck at the end, not as never escaped. "
         f"Std over last {settings.last_evals} evals: the across-seed std at each of the last "
         f"{settings.last_evals} scheduled evaluations, averaged. Intervals: {CONFIDENCE:.0%}, Wilson for counts, "

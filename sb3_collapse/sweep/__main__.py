@@ -19,7 +19,7 @@ from sb3_collapse.errors import cli_message, report_unwritable_outputs
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED
+from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
@@ -229,7 +229,10 @@ def failure_advice(failed: int, repeating: int) -> str:
     :param repeating: those of them that a rerun would fail the same way (``SweepSummary.repeating``)
     :return: one line: what to do about them
     """
-    fix = "fix the cause first (their error.txt says it: bad settings, a diverging run, an error of the training code)"
+    fix = (
+        f"fix the cause first (their {ERROR_TXT} says it: bad settings, a diverging run, an error of the training "
+        "code)"
+    )
     if repeating == 0:
         return "Rerun the same command to retry the failed trials."
     if repeating == failed:

@@ -15,7 +15,7 @@ from sb3_collapse.probe import (
     Rollouts,
     load_checkpoint,
     probe_checkpoint,
-    probe_checkpoints,
+    probe_each_checkpoint,
     split_by_episode,
 )
 from sb3_collapse.probe.__main__ import main
@@ -187,7 +187,7 @@ def test_cnn0_probe_is_reused_across_checkpoints(files):
     # many checkpoints at once: each one's rows as probe_checkpoint gives them, in the given order, labelled
     paths, labels = [files["late"], files["early"], files["late"]], ["a/late", "b/early", "c/late"]
     for jobs in (1, 2):
-        results = probe_checkpoints(paths, labels, rollouts, split, settings, jobs)
+        results = probe_each_checkpoint(paths, labels, rollouts, split, settings, jobs)
         assert [{r["checkpoint"] for r in rows} for rows in results] == [{label} for label in labels]
         for rows, expected in zip(results, (second, first, second)):
             assert [(r["layer"], r["component"], r["tau"], r["test_mse"]) for r in rows] == [
