@@ -30,7 +30,7 @@ from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_collapse.common.saved_callbacks import callback_specs, restore_callbacks
+from sb3_collapse.common.saved_callbacks import restore_callbacks, saved_callbacks
 from sb3_collapse.drqv2.checks import check_load_arguments
 
 SelfConstructorCallbacks = TypeVar("SelfConstructorCallbacks", bound="ConstructorCallbacks")
@@ -105,9 +105,9 @@ class ConstructorCallbacks:
         check_load_arguments(path, kwargs, f"{cls.__name__}.load")
         kwargs = {name: cls.load_parsers.get(name, lambda value: value)(value) for name, value in kwargs.items()}
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[misc]
-        specs = model.__dict__.pop("callback_specs", None) or []
-        if "callback" not in kwargs and specs:
-            model.callback = restore_callbacks(specs, f"{cls.__name__}.load")
+        saved = model.__dict__.pop("constructor_callbacks", None)
+        if "callback" not in kwargs and saved is not None and saved["specs"]:
+            model.callback = restore_callbacks(saved, f"{cls.__name__}.load")
         return model
 
     def save(
@@ -116,12 +116,12 @@ class ConstructorCallbacks:
         exclude: Iterable[str] | None = None,
         include: Iterable[str] | None = None,
     ) -> None:
-        """SB3's ``save``, with the constructor's callbacks (``saved_callbacks.callback_specs``)."""
-        self.callback_specs = callback_specs(self.callback)  # type: ignore[arg-type]
+        """SB3's ``save``, with the constructor's callbacks (``sb3_collapse.common.saved_callbacks``)."""
+        self.constructor_callbacks = saved_callbacks(self.callback)  # type: ignore[arg-type]
         try:
             super().save(path, exclude=exclude, include=include)  # type: ignore[misc]
         finally:
-            del self.callback_specs
+            del self.constructor_callbacks
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "callback"]  # type: ignore[misc]
