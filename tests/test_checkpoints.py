@@ -287,6 +287,56 @@ def test_drqv2_save_and_load_keep_the_reset_rule(tmp_path):
     assert restored.resets == 2 and restored.reset_frames == [160, 320] and restored.window_start_frame == 320
 
 
+def test_a_callbacks_state_goes_through_the_same_functions_in_a_run_checkpoint_and_drqv2_save(tmp_path, monkeypatch):
+    """The reset rule's state, kept by a run checkpoint and by DrQv2.save, is taken by ``callback_states`` and put back
+    by ``load_callback_states`` (``sb3_collapse.common.saved_callbacks``) on both paths: the same state both ways."""
+    from sb3_collapse.common.saved_callbacks import callback_states, load_callback_states
+
+    callers = {"state_dict": [], "load_state_dict": []}
+
+    def spy(name):
+        original = getattr(CollapseReset, name)
+
+        def method(self, *args):
+            frame = sys._getframe(1)
+            while frame.f_code.co_name.startswith("<"):  # a comprehension's frame: the function around it
+                frame = frame.f_back
+            callers[name].append(frame.f_code.co_name)  # the function that called it
+            return original(self, *args)
+
+        return method
+
+    for name in callers:
+        monkeypatch.setattr(CollapseReset, name, spy(name))
+
+    def built(rule=None):
+        rule = rule or CollapseReset(window_frames=160, check_every_frames=40, batch_size=4)
+        env = EpisodeReplay(make_dmc_env("cartpole-balance", seed=0, action_repeat=8, size=36))
+        model = DrQv2(
+            "CnnPolicy", env, learning_starts=10, batch_size=4, buffer_size=200, seed=0, callback=rule,
+            policy_kwargs=dict(hidden_dim=16, feature_dim=4), replay_buffer_kwargs=dict(sampling="sb3"),
+        )  # fmt: skip
+        return model, rule, ResumableCheckpoints(tmp_path / CHECKPOINTS_DIR, every_frames=0, callbacks=[rule])
+
+    model, rule, checkpoints = built()
+    model.learn(25, callback=checkpoints)  # a reset at frame 160, then the next window
+    checkpoints.save()
+    model.save(tmp_path / "model.zip")
+    # The checkpoint's callback states, its model (saved by DrQv2.save, constructor callbacks included), the zip.
+    assert callers["state_dict"] == [callback_states.__name__] * 3
+    expected = rule.state_dict()
+    assert expected["resets"] == 1 and expected["num_timesteps"] == 25
+
+    resumed, resumed_rule, resumed_checkpoints = built()
+    resumed_checkpoints.init_callback(resumed)
+    resumed_checkpoints.resume(load_checkpoint(tmp_path / CHECKPOINTS_DIR))
+    loaded = DrQv2.load(tmp_path / "model.zip")
+    assert callers["load_state_dict"] == [load_callback_states.__name__] * 2
+    assert resumed_rule._pending_state == loaded.callback._pending_state == expected
+    with pytest.raises(ValueError, match=r"^the callbacks saved are \['CollapseReset'\], these are \[\]: use the"):
+        load_callback_states([], callback_states([rule]))  # a run checkpoint resumed without its callbacks
+
+
 def test_second_sigint_stops_at_once():
     with pytest.raises(ValueError, match="^every_frames must be >= 0, got -1"):
         ResumableCheckpoints("unused", every_frames=-1)

@@ -1,6 +1,6 @@
 """ruff (pyproject.toml's rules, line length included) passes on the package, the tests, the benchmarks and scripts;
 the package holds no module that only tests or benchmarks use (those live in tests/); outside the models' own code, no
-``getattr(model, "_...")`` on a model's private attributes."""
+``getattr(model, "_...")`` on a model's private attributes; ``DrQv2`` in at most 450 lines."""
 
 from __future__ import annotations
 
@@ -174,3 +174,13 @@ def test_the_probe_finder_finds_what_it_looks_for():
         "example.py:3",
         "example.py:4",
     ]
+
+
+DRQV2_MAX_LINES = 450
+"""``DrQv2`` stays the algorithm, in SB3's override set (as SB3's ``td3/td3.py``): checks, save/load plumbing and
+replay memory live beside it in ``sb3_collapse/drqv2/``."""
+
+
+def test_the_drqv2_algorithm_module_is_at_most_450_lines():
+    lines = len((PACKAGE / "drqv2" / "drqv2.py").read_text().splitlines())
+    assert lines <= DRQV2_MAX_LINES, f"sb3_collapse/drqv2/drqv2.py has {lines} lines (at most {DRQV2_MAX_LINES})"

@@ -7,7 +7,7 @@ with SB3's own classes).
 from __future__ import annotations
 
 from abc import ABC
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -101,3 +101,22 @@ def env_action_repeat(env: VecEnv | None) -> int:
         return int(env.get_attr("action_repeat", indices=[0])[0] or 1)
     except AttributeError:
         return 1
+
+
+ENV_CONFIG_KEYS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id", "obs_type")
+"""Settings read from a ``make_dmc_env`` environment and saved with a ``DrQv2`` model (``model.env_config``)."""
+
+
+def read_env_config(env: VecEnv) -> dict[str, Any] | None:
+    """
+    :param env: a vectorized environment
+    :return: the :data:`ENV_CONFIG_KEYS` of its first environment, ``None`` for an environment not made by
+        ``make_dmc_env``
+    """
+    config = {}
+    for key in ENV_CONFIG_KEYS:
+        # has_attr first: a SubprocVecEnv's worker dies on get_attr of a missing attribute.
+        config[key] = env.get_attr(key, indices=[0])[0] if env.has_attr(key) else None
+    if config["task_id"] is None and config["action_repeat"] is None:
+        return None
+    return config

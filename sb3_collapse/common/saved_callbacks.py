@@ -1,29 +1,30 @@
 """
-Callbacks saved with a model: what ``DrQv2.save`` keeps of the constructor's callbacks, and how ``DrQv2.load`` builds
-them again.
+The state a callback carries, saved and put back by one pair of functions (:func:`callback_states`,
+:func:`load_callback_states`) for run checkpoints (``sb3_collapse.run.checkpoints``) and for the constructor's callbacks
+that ``DrQv2.save`` keeps and ``DrQv2.load`` builds again (:func:`saved_callbacks`, :func:`restore_callbacks`).
 
-A callback can be saved when it provides ``get_config()`` (its constructor's arguments), ``state_dict()`` and
-``load_state_dict(state)`` (:class:`SavableCallback`), as ``sb3_collapse.monitoring``'s resumable callbacks
-(``CollapseReset``, ``CollapseMetrics``...) do. Any other callback is recorded by its class name only, so that
-``load`` can say which ones the user must pass again.
+A callback carries a state when it has ``state_dict()`` and ``load_state_dict(state)`` (:class:`StatefulCallback`), as
+``sb3_collapse.monitoring``'s resumable callbacks (``CollapseReset``, ``CollapseMetrics``...) do; a model saves one
+that ``get_config()`` can also build again (:class:`SavableCallback`). Any other constructor callback is recorded by
+its class name only, so that ``load`` can say which ones the user must pass again.
 """
 
 from __future__ import annotations
 
 import importlib
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterable
 from typing import Any, Protocol, runtime_checkable
 
 from stable_baselines3.common.callbacks import BaseCallback
 
+CallbackStates = list[tuple[str, "dict[str, Any] | None"]]
+"""``(class name, state)`` of each callback that carries a state, in order (:func:`callback_states`)."""
+
 
 @runtime_checkable
-class SavableCallback(Protocol):
-    """A callback that can be built again with its settings and its state."""
-
-    def get_config(self) -> dict[str, Any]:
-        """:return: the constructor's keyword arguments"""
+class StatefulCallback(Protocol):
+    """A callback whose state can be saved and put back."""
 
     def state_dict(self) -> dict[str, Any]:
         """:return: the state, picklable"""
@@ -32,72 +33,85 @@ class SavableCallback(Protocol):
         """:param state: a :meth:`state_dict`, taken when the next ``learn()`` starts"""
 
 
-def callback_spec(callback: BaseCallback) -> dict[str, Any]:
-    """
-    :param callback: a callback given to a model's constructor
-    :return: its class (``"module:QualName"``) and, for a :class:`SavableCallback`, its constructor's arguments and
-        its state (``None`` before it was attached to a model); ``supported: False`` for another callback
-    """
-    kind = f"{type(callback).__module__}:{type(callback).__qualname__}"
-    if not isinstance(callback, SavableCallback):
-        return {"class": kind, "supported": False}
-    try:
-        config = callback.get_config()
-    except AttributeError:  # a constructor argument that is not kept as an attribute of the same name
-        return {"class": kind, "supported": False}
-    state = callback.state_dict() if getattr(callback, "model", None) is not None else None
-    return {"class": kind, "supported": True, "config": config, "state": state}
+@runtime_checkable
+class SavableCallback(StatefulCallback, Protocol):
+    """A callback that can also be built again with its settings."""
+
+    def get_config(self) -> dict[str, Any]:
+        """:return: the constructor's keyword arguments"""
 
 
-def callback_from_spec(spec: dict[str, Any]) -> BaseCallback | None:
+def callback_states(callbacks: Iterable[BaseCallback]) -> CallbackStates:
     """
-    :param spec: a :func:`callback_spec`
-    :return: the callback built again, holding the saved state for its next ``learn()``; ``None`` for an
-        unsupported one
+    :param callbacks: callbacks, in the order they run
+    :return: the class name and the ``state_dict()`` of each :class:`StatefulCallback` among them (the state ``None``
+        for one never attached to a model: it has nothing to continue)
     """
-    if not spec.get("supported"):
-        return None
-    module, _, name = spec["class"].partition(":")
-    callback = getattr(importlib.import_module(module), name)(**spec["config"])
-    if spec["state"] is not None:
-        callback.load_state_dict(spec["state"])
-    return callback
+    return [
+        (type(callback).__name__, callback.state_dict() if getattr(callback, "model", None) is not None else None)
+        for callback in callbacks
+        if isinstance(callback, StatefulCallback)
+    ]
 
 
-def callback_specs(callback: BaseCallback | list[BaseCallback] | None) -> list[dict[str, Any]]:
+def load_callback_states(callbacks: Iterable[BaseCallback], states: CallbackStates) -> None:
+    """
+    Give each :class:`StatefulCallback` among ``callbacks`` its saved state (``load_state_dict``: taken at the start of
+    its next ``learn()``).
+
+    :param callbacks: callbacks, in the order they run
+    :param states: :func:`callback_states` of the same callbacks
+    :raises ValueError: when the callbacks are not those saved (their classes, in order), or for a state that lacks
+        an entry (written by another version)
+    """
+    stateful = [callback for callback in callbacks if isinstance(callback, StatefulCallback)]
+    names, saved_names = [type(callback).__name__ for callback in stateful], [name for name, _ in states]
+    if names != saved_names:
+        raise ValueError(f"the callbacks saved are {saved_names}, these are {names}: use the settings that saved them.")
+    for callback, (_, state) in zip(stateful, states):
+        if state is not None:
+            callback.load_state_dict(state)
+
+
+def saved_callbacks(callback: BaseCallback | list[BaseCallback] | None) -> dict[str, Any]:
     """
     :param callback: a model's constructor callback(s)
-    :return: the :func:`callback_spec` of each
+    :return: what ``DrQv2.save`` keeps of them: ``specs``, the class (``"module:QualName"``) of each and, for a
+        :class:`SavableCallback`, its constructor's arguments (``config``, ``None`` for another callback); ``states``,
+        the :func:`callback_states` of those that have a ``config``
     """
     callbacks = callback if isinstance(callback, list) else [callback] if callback is not None else []
-    return [callback_spec(item) for item in callbacks]
+    specs = [{"class": f"{type(item).__module__}:{type(item).__qualname__}", "config": None} for item in callbacks]
+    for item, spec in zip(callbacks, specs):
+        if isinstance(item, SavableCallback):
+            try:
+                spec["config"] = item.get_config()
+            except AttributeError:  # a constructor argument that is not kept as an attribute of the same name
+                pass
+    savable = [item for item, spec in zip(callbacks, specs) if spec["config"] is not None]
+    return {"specs": specs, "states": callback_states(savable)}
 
 
-def callbacks_from_specs(specs: Sequence[dict[str, Any]]) -> tuple[BaseCallback | list[BaseCallback] | None, list[str]]:
+def restore_callbacks(saved: dict[str, Any], caller: str) -> BaseCallback | list[BaseCallback] | None:
     """
-    :param specs: :func:`callback_specs` of a saved model
-    :return: the callbacks built again (one, a list, or ``None``, as a constructor takes them) and the class names of
-        those that could not be saved
-    """
-    built = [callback_from_spec(spec) for spec in specs]
-    lost = [spec["class"].rpartition(":")[2] for spec, callback in zip(specs, built) if callback is None]
-    kept = [callback for callback in built if callback is not None]
-    return (kept[0] if len(kept) == 1 else kept or None), lost
+    The callbacks of a loaded model, built again with their states; a warning names those that could not be saved.
 
-
-def restore_callbacks(specs: Sequence[dict[str, Any]], caller: str) -> BaseCallback | list[BaseCallback] | None:
-    """
-    The callbacks of a loaded model, built again; a warning names those that could not be saved.
-
-    :param specs: :func:`callback_specs` of the saved model
+    :param saved: :func:`saved_callbacks` of the saved model
     :param caller: what loads the model, for the warning (``"DrQv2.load"``)
     :return: the callbacks (one, a list, or ``None``, as a constructor takes them)
     """
-    callbacks, lost = callbacks_from_specs(specs)
+    built, lost = [], []
+    for spec in saved["specs"]:
+        module, _, name = spec["class"].partition(":")
+        if spec["config"] is None:
+            lost.append(name)
+        else:
+            built.append(getattr(importlib.import_module(module), name)(**spec["config"]))
+    load_callback_states(built, saved["states"])
     if lost:
         warnings.warn(
             f"{caller}: the constructor callback(s) {', '.join(lost)} could not be saved and are not restored; "
             f"pass them again: {caller}(path, callback=[...]).",
             stacklevel=3,
         )
-    return callbacks
+    return built[0] if len(built) == 1 else built or None

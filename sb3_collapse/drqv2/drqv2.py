@@ -1,12 +1,8 @@
-"""DrQ-v2 (Yarats et al., 2021) as a Stable-Baselines3 off-policy algorithm."""
+"""DrQ-v2 (Yarats et al., 2021) as a Stable-Baselines3 off-policy algorithm: ``docs/algorithm.md``."""
 
 from __future__ import annotations
 
-import contextlib
-import io
-import pathlib
-import warnings
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -15,16 +11,14 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
-from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_collapse.common.grad_norms import GradNormRecorder
-from sb3_collapse.common.saved_callbacks import callback_specs, restore_callbacks
+from sb3_collapse.common.model import read_env_config
 from sb3_collapse.drqv2 import replay_memory
 from sb3_collapse.drqv2.augmentation import draw_shifts
 from sb3_collapse.drqv2.checks import (
     check_compile_update,
     check_hyperparameters,
-    check_load_arguments,
     compile_losses,
     uses_cuda_graphs,
 )
@@ -40,99 +34,72 @@ from sb3_collapse.drqv2.policies import (
     check_action_space,
     critic_mse,
     exploration_noise,
+    frozen,
     min_q,
     noisy_action,
+    soft_update,
 )
 from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
 from sb3_collapse.drqv2.rounds import RoundsAlgorithm
-from sb3_collapse.drqv2.sb3_compat import action_noise_actions, combine_callbacks
+from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, action_noise_actions, combine_callbacks
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
 from sb3_collapse.drqv2.transplant import TransplantSpec, check_init_from, describe_init_from, load_sources, transplant
 from sb3_collapse.drqv2.update_stats import UpdateStats
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
 
-ENV_CONFIG_KEYS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id", "obs_type")
-"""Settings read from a ``make_dmc_env`` environment and saved with the model (``model.env_config``)."""
 
-
-class DrQv2(RoundsAlgorithm):
+class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     """
-    DrQ-v2 (https://arxiv.org/abs/2107.09645; reference code https://github.com/facebookresearch/drqv2): DDPG with a
-    twin critic, n-step returns, random-shift augmentation of the pixels and a scheduled exploration noise; the
-    convolutional encoder is trained by the critic loss only. ``docs/algorithm.md`` describes it and its use.
+    DrQ-v2: Mastering Visual Continuous Control (https://arxiv.org/abs/2107.09645; reference code
+    https://github.com/facebookresearch/drqv2): DDPG with a twin critic, n-step returns, random-shift augmentation
+    and a scheduled exploration noise; the encoder is trained by the critic loss only. ``docs/algorithm.md``.
 
-    **Units.** Step counts are **transitions**, summed over the environments (SB3's ``num_timesteps``; agent steps
-    with one environment): ``buffer_size``, ``learning_starts``, the ``stddev_schedule``'s durations and the budget
-    of :meth:`learn`. DrQ-v2 and the paper count **frames**: transitions x action repeat (``model.num_frames``).
-    ``train_freq`` is SB3's (steps of every environment) unless given in transitions: the default
-    ``(2, "transition")``, DrQ-v2's one update per two transitions, holds on any number of environments
-    (``sb3_collapse.drqv2.rounds``, ``docs/throughput.md``).
+    Step counts are transitions summed over the environments (SB3's ``num_timesteps``); the paper counts frames,
+    transitions x action repeat (``model.num_frames``). ``docs/throughput.md`` (Units).
 
-    :param policy: ``"CnnPolicy"`` (pixels, e.g. ``make_dmc_env``'s 9x84x84 uint8), ``"MlpPolicy"`` (vectors, and
-        discrete observations through SB3's ``preprocess_obs``: no encoder, no augmentation), ``"MultiInputPolicy"``
-        (``spaces.Dict``: DrQ-v2's encoder on the image keys, the other keys flattened and concatenated) or a
-        ``DrQv2Policy`` subclass
+    :param policy: ``"CnnPolicy"`` (pixels), ``"MlpPolicy"`` (vectors, no encoder), ``"MultiInputPolicy"``
+        (``spaces.Dict``) or a ``DrQv2Policy`` subclass
     :param env: the environment (a ``VecEnv``, a gymnasium env or a registered id)
     :param learning_rate: Adam learning rate of the encoder, actor and critic, or an SB3 schedule
-    :param buffer_size: replay capacity, in transitions (``sb3_collapse.drqv2.replay_memory``: the buffer chosen,
-        a warning when it cannot fit in RAM)
-    :param learning_starts: transitions of uniformly random actions before the first update: DrQ-v2's 2000 (its
-        4,000 seed frames at action repeat 2), where TD3's default is 100, so that a ``learn()`` of fewer transitions
-        makes no update; with ``verbose >= 1`` the log says when the updates start
+    :param buffer_size: replay capacity, in transitions (a warning when it cannot fit in RAM)
+    :param learning_starts: transitions of uniformly random actions before the first update (DrQ-v2's 4,000 frames)
     :param batch_size: minibatch size of each update
     :param tau: soft update coefficient of the target critic
     :param gamma: discount factor
-    :param train_freq: when the ``gradient_steps`` updates are made: ``(n, "transition")`` every ``n``
-        transitions summed over the environments (DrQ-v2's ratio whatever their number; the default, the train
-        CLI's); SB3's ``n`` or ``(n, "step")`` after every ``n`` steps of every environment (``n x n_envs``
-        transitions, as TD3); ``(n, "episode")`` after every ``n`` episodes (one environment only)
-    :param gradient_steps: updates per ``train_freq`` (``-1``: one per transition; ``0``: collect without updating,
-        as SB3 allows)
+    :param train_freq: ``(n, "transition")``: ``gradient_steps`` updates every ``n`` transitions summed over the
+        environments (DrQ-v2's ratio); SB3's ``n``, ``(n, "step")`` or ``(n, "episode")`` as in TD3
+    :param gradient_steps: updates per ``train_freq`` (``-1``: one per transition; ``0``: none)
     :param n_steps: length of the n-step returns, in agent steps
-    :param stddev_schedule: exploration std as a function of the transitions since the last
-        :meth:`reset_from_scratch`: a float, ``"linear(init,final,duration)"``,
-        ``"step_linear(init,final1,duration1,final2,duration2)"`` (durations in transitions) or a callable
+    :param stddev_schedule: exploration std as a function of the transitions since the last reset: a float,
+        ``"linear(init,final,duration)"``, ``"step_linear(init,final1,duration1,final2,duration2)"`` or a callable
     :param stddev_clip: clip of the exploration noise in the updates (target action, actor loss)
     :param augmentation_pad: random-shift padding in pixels; ``0``: no augmentation
-    :param step_envs_during_updates: step the environments while the learner updates (a policy lag of one round,
-        faster with a ``SubprocVecEnv``); off: SB3's sequential loop
-    :param compile_update: ``torch.compile`` the losses: ``True`` (``"reduce-overhead"`` on CUDA, ``"default"``
-        elsewhere) or a mode; the random draws stay outside, so the update is the same up to float rounding
-    :param callback: callback(s) run at every ``learn()``, before those given to it, each converted as SB3 converts
-        ``learn``'s (a ``BaseCallback``, a function ``(locals, globals) -> bool``, a list); saved with the model when
-        they can be built again (``sb3_collapse.common.saved_callbacks``)
-    :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` (each frame stored once) for ``CnnPolicy`` on
-        a frame-stacked env, SB3's otherwise (``NStepReplayBuffer`` when ``n_steps > 1``)
-    :param replay_buffer_kwargs: its keyword arguments; ``dict(sampling="drqv2")`` samples finished episodes only,
-        as DrQ-v2's reference and the train CLI do
+    :param step_envs_during_updates: step the environments while the learner updates (a policy lag of one round)
+    :param compile_update: ``torch.compile`` the losses: ``True`` or a ``torch.compile`` mode
+    :param callback: callback(s) run at every ``learn()`` before its own, saved with the model when they can be
+        built again (:class:`~sb3_collapse.drqv2.sb3_compat.ConstructorCallbacks`)
+    :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` for ``CnnPolicy`` on a frame-stacked env,
+        SB3's otherwise
+    :param replay_buffer_kwargs: its keyword arguments (``dict(sampling="drqv2")``: finished episodes only)
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
-    :param policy_kwargs: keyword arguments of the policy (``DrQv2Policy``): DrQ-v2's (``feature_dim``,
-        ``hidden_dim``, ``encoder_kwargs``, ``activation``) and SB3's, which mean what they mean for TD3
-        (``net_arch``, ``n_critics``, ``features_extractor_class``, ``normalize_images``, ``optimizer_class``...;
-        ``docs/algorithm.md``)
+    :param policy_kwargs: keyword arguments of the policy (``DrQv2Policy``): DrQ-v2's and SB3's
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
-    :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``; CUDA without a GPU is refused (SB3 falls back to the
-        CPU silently: a departure from TD3, ``docs/algorithm.md``)
-    :param init_from: the paper's layer transplant (Study 2): group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a zip
-        saved by ``DrQv2.save`` or a DrQv2 model, copied once when the model is built
-        (``sb3_collapse.drqv2.transplant``)
-    :param action_noise: an SB3 ``ActionNoise`` for exploration in place of the ``stddev_schedule``'s Gaussian (the
-        deterministic action plus the noise, clipped, as TD3 explores); the updates' target smoothing stays DrQ-v2's
-    :param optimize_memory_usage: SB3's keyword, passed on to SB3's ``ReplayBuffer`` where it works (``n_steps=1``);
-        elsewhere ignored with a warning (``FrameStackReplayBuffer`` already stores each frame once)
-    :param cudnn_benchmark: turn cuDNN's autotuner on (``torch.backends.cudnn.benchmark = True``, a process-wide
-        flag) when the model is built on CUDA, unless torch's deterministic algorithms are on; saved with the model.
-        ``False``: the model changes none of torch's process-wide settings (``sb3_collapse.backends`` sets them for the
-        train and sweep commands)
+    :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``; CUDA without a GPU is refused
+    :param init_from: the paper's layer transplant: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a saved DrQv2
+        zip or model, copied once when the model is built (``sb3_collapse.drqv2.transplant``)
+    :param action_noise: an SB3 ``ActionNoise`` in place of the ``stddev_schedule``'s Gaussian when acting
+    :param optimize_memory_usage: SB3's, where SB3's ``ReplayBuffer`` is used with ``n_steps=1`` (else a warning)
+    :param cudnn_benchmark: turn cuDNN's autotuner on when built on CUDA (a process-wide flag); saved with the model
     :param _init_setup_model: build the networks and the buffer now
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "CnnPolicy": CnnPolicy, "MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy
     }  # fmt: skip
+    load_parsers: ClassVar[dict[str, Callable[[Any], Any]]] = {"stddev_schedule": StddevSchedule}  # as __init__
     policy: DrQv2Policy
     encoder: PixelEncoder | StateEncoder
     actor: Actor
@@ -200,7 +167,7 @@ class DrQv2(RoundsAlgorithm):
         self._compiled_losses: tuple[Any, Any] | None = None
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
         self.no_env_step_this_round = False
-        self.env_config = _read_env_config(self.env) if self.env is not None else None
+        self.env_config = read_env_config(self.env) if self.env is not None else None
         self.grad_norm_recorder: GradNormRecorder | None = None
         """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
         self.update_stats = UpdateStats()
@@ -216,34 +183,15 @@ class DrQv2(RoundsAlgorithm):
             if sources:
                 transplant(self.policy, sources, verbose=self.verbose)
 
-    # ------------------------------------------------------------------ setup
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
-        per_transition = replay_memory.choose_replay_buffer(self)
-        try:
-            with warnings.catch_warnings():
-                if "n_steps" in self.replay_buffer_kwargs:
-                    # A loaded model has its n-step buffer class and kwargs set already: SB3's warning that
-                    # `n_steps` is ignored for a custom buffer class does not apply.
-                    warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored")
-                super()._setup_model()
-        except MemoryError as error:
-            raise MemoryError(
-                f"Could not allocate a replay buffer of {self.buffer_size:,} transitions ({error}). "
-                + replay_memory.memory_advice(self.replay_buffer_class, self.buffer_size, per_transition)
-            ) from None
+        with replay_memory.replay_buffer_setup(self):  # the buffer chosen; a MemoryError suggests a size
+            super()._setup_model()
         if self.cudnn_benchmark and self.device.type == "cuda" and not th.are_deterministic_algorithms_enabled():
             th.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest kernels
         self._create_aliases()
         self._index_grad_layers()
         self.policy.exploration_std = self.current_stddev
-
-    def _index_grad_layers(self) -> None:
-        """A new gradient-norm recorder on the current optimizers, the previous one removed (``cnn1``..``cnn4``
-        recorded when the encoder's optimizer steps, ``mlp0``..``action`` when the actor's does)."""
-        if self.grad_norm_recorder is not None:
-            self.grad_norm_recorder.remove()
-        self.grad_norm_recorder = GradNormRecorder.of_modules(self.policy.named_layers(), self.policy.optimizers)
 
     def _create_aliases(self) -> None:
         self.encoder = self.policy.encoder
@@ -251,10 +199,16 @@ class DrQv2(RoundsAlgorithm):
         self.critic = self.policy.critic
         self.critic_target = self.policy.critic_target
 
-    # ------------------------------------------------------------------ properties
+    def _index_grad_layers(self) -> None:
+        """A new gradient-norm recorder on the current optimizers (``cnn1``..``cnn4`` recorded when the encoder's
+        optimizer steps, ``mlp0``..``action`` when the actor's does), the previous one removed."""
+        if self.grad_norm_recorder is not None:
+            self.grad_norm_recorder.remove()
+        self.grad_norm_recorder = GradNormRecorder.of_modules(self.policy.named_layers(), self.policy.optimizers)
+
     @property
     def current_stddev(self) -> float:
-        """Exploration standard deviation now: the schedule at ``num_timesteps - reset_step``."""
+        """Exploration standard deviation now: the schedule at ``num_timesteps - reset_step`` transitions."""
         return self.stddev_schedule(self.num_timesteps - self.reset_step)
 
     @property
@@ -264,14 +218,9 @@ class DrQv2(RoundsAlgorithm):
 
     @property
     def last_grad_norms(self) -> dict[str, float]:
-        """
-        L2 norm of the gradient of each named layer's parameters at the last update (``cnn1``..``cnn4`` from the
-        critic loss, ``mlp0``..``action`` from the actor loss), recorded when the optimizers step; empty before the
-        first update.
-        """
+        """L2 norm of each named layer's gradient at the last update; empty before the first update."""
         return {} if self.grad_norm_recorder is None else self.grad_norm_recorder.last()
 
-    # ------------------------------------------------------------------ acting
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -292,12 +241,10 @@ class DrQv2(RoundsAlgorithm):
             buffer_action = action_noise_actions(buffer_action, action_noise)
         return self.policy.unscale_action(buffer_action), buffer_action
 
-    # ------------------------------------------------------------------ training
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
         """
-        ``gradient_steps`` DrQ-v2 updates on minibatches of ``batch_size`` transitions: ``replay_buffer.sample``'s,
-        each drawn by ``self.replay_prefetcher`` while the update before it runs (the first during the last update of
-        the previous call, before this round's transitions were added: ``sb3_collapse.drqv2.prefetch``). None in the
+        ``gradient_steps`` updates on minibatches of ``batch_size`` transitions, each drawn by
+        ``self.replay_prefetcher`` while the update before it runs (``sb3_collapse.drqv2.prefetch``). None in the
         ``learning_starts`` transitions after a :meth:`reset_from_scratch`.
         """
         if self.reset_step > 0 and self.num_timesteps - self.reset_step <= self.learning_starts:
@@ -327,12 +274,9 @@ class DrQv2(RoundsAlgorithm):
 
     def _update(self, data: ReplayBufferSamples, discounts: th.Tensor | float, std: float) -> None:
         """
-        One DrQ-v2 update: augment, encode obs (with gradients) and next_obs (without), update the critic
-        and the encoder, update the actor on the detached features, then soft-update the target critic.
-
-        The random numbers (augmentation shifts, then the noise of the target action, then that of the actor's
-        action) are drawn first, in the order of ``reference_update``, so that the loss functions are
-        deterministic functions of their inputs: the same with ``compile_update`` or not.
+        One DrQ-v2 update (the reference's ``update``): the critic and the encoder on the augmented batch, the actor
+        on the detached features, then the target critic. The random draws (shifts, target noise, actor noise) come
+        first, in the reference's order, so that the losses are functions of their inputs, compiled or not.
         """
         batch_size, action_dim = data.actions.shape
         shifts = next_shifts = None
@@ -342,7 +286,11 @@ class DrQv2(RoundsAlgorithm):
         next_noise = exploration_noise((batch_size, action_dim), std, self.stddev_clip, self.device)
         actor_noise = exploration_noise((batch_size, action_dim), std, self.stddev_clip, self.device)
 
-        critic_loss_fn, actor_loss_fn = self._loss_functions()
+        if self._compiled_losses is None:  # compile_update: compiled once, at the first update
+            self._compiled_losses = compile_losses(
+                self._critic_loss, self._actor_loss, self.compile_update, self.device
+            )
+        critic_loss_fn, actor_loss_fn = self._compiled_losses
         if uses_cuda_graphs(self.compile_update, self.device):
             th.compiler.cudagraph_mark_step_begin()
         critic_loss, features, q1, q2, target_q = critic_loss_fn(
@@ -350,7 +298,7 @@ class DrQv2(RoundsAlgorithm):
             shifts, next_shifts, next_noise,
         )  # fmt: skip
         self._update_critic(critic_loss)
-        with _frozen(self.critic):
+        with frozen(self.critic):  # the actor's backward computes the actor's gradients only
             actor_loss = actor_loss_fn(features.detach(), actor_noise)
         self._update_actor(actor_loss)
         soft_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
@@ -378,21 +326,10 @@ class DrQv2(RoundsAlgorithm):
         next_noise: th.Tensor,
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
         """
-        The critic loss ``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')`` with the
-        target critic at the actor's action plus ``next_noise`` on the next observations. No random draw, no
-        side effect: this is what ``compile_update`` compiles.
+        ``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')`` at the actor's next action plus
+        ``next_noise``; ``shifts``: :func:`draw_shifts`'s (``None``: no augmentation). No random draw, no side effect.
 
-        :param obs: observations
-        :param next_obs: next observations (n steps later)
-        :param actions: actions taken, in [-1, 1]
-        :param rewards: (n-step) rewards
-        :param dones: terminations
-        :param discounts: discount of the next value (per sample, or a float)
-        :param shifts: random-shift offsets of ``obs`` (:func:`draw_shifts`), ``None`` without augmentation
-        :param next_shifts: those of ``next_obs``
-        :param next_noise: clipped noise of the target action (:func:`exploration_noise`)
-        :return: the loss, the encoder features of ``obs`` (with the encoder's graph: the encoder is trained by this
-            loss, and only by it), ``Q1``, ``Q2`` and the target ``y``
+        :return: the loss, the encoder features of ``obs`` (with their graph), ``Q1``, ``Q2`` and ``y`` (``(batch, 1)``)
         """
         if shifts is not None and next_shifts is not None:
             # Images only (the image keys of dict observations), in the layout the convolutions take.
@@ -408,16 +345,8 @@ class DrQv2(RoundsAlgorithm):
         return critic_loss, features, q_values[0], q_values[min(1, len(q_values) - 1)], target_q
 
     def _actor_loss(self, features: th.Tensor, noise: th.Tensor) -> th.Tensor:
-        """
-        The actor loss ``-min(Q1, Q2)`` at the actor's action plus ``noise``, on features detached from the
-        encoder. :meth:`_update` calls it with the critic's parameters frozen (``requires_grad=False``), so that
-        the backward pass computes the actor's gradients only (the reference computes the critic's too, then
-        discards them). No random draw, no side effect: this is what ``compile_update`` compiles.
-
-        :param features: encoder features, detached
-        :param noise: clipped noise of the action (:func:`exploration_noise`)
-        :return: the loss
-        """
+        """``-min(Q1, Q2)`` at the actor's action plus ``noise`` on detached ``features``. No random draw, no side
+        effect."""
         action = noisy_action(self.actor(features), noise)
         return -min_q(self.critic(features, action)).mean()
 
@@ -437,14 +366,6 @@ class DrQv2(RoundsAlgorithm):
         actor_loss.backward(inputs=list(self.actor.parameters()))
         self.actor.optimizer.step()
 
-    def _loss_functions(self) -> tuple[Any, Any]:
-        """:meth:`_critic_loss` and :meth:`_actor_loss`, compiled once (lazily) when ``compile_update`` says so."""
-        if self._compiled_losses is None:
-            self._compiled_losses = compile_losses(
-                self._critic_loss, self._actor_loss, self.compile_update, self.device
-            )
-        return self._compiled_losses
-
     def dump_logs(self) -> None:
         """SB3's log dump, with the means of the updates since the last dump, checked by the divergence guard."""
         means = self.update_stats.dump(self.logger, self.grad_norm_recorder.names)  # type: ignore[union-attr]
@@ -461,7 +382,6 @@ class DrQv2(RoundsAlgorithm):
                 raise
         super().dump_logs()
 
-    # ------------------------------------------------------------------ learn / save
     def learn(
         self: SelfDrQv2,
         total_timesteps: int,
@@ -472,16 +392,13 @@ class DrQv2(RoundsAlgorithm):
         progress_bar: bool = False,
     ) -> SelfDrQv2:
         """
-        SB3's ``learn`` for ``total_timesteps`` transitions (frames = transitions x action repeat), in rounds of
-        environment steps up to the next update due, then those updates (``sb3_collapse.drqv2.rounds``). ``callback``
-        runs after the constructor's; ``reset_num_timesteps`` also restarts the exploration schedule and the warm-up
-        (``False`` continues a loaded model where it stopped; a loaded model whose replay buffer was restored with it
-        first draws again the batch it had drawn ahead, ``ReplayPrefetcher.restore``).
+        SB3's ``learn`` for ``total_timesteps`` transitions, in rounds (``sb3_collapse.drqv2.rounds``), with the
+        constructor's callbacks before ``callback``. ``reset_num_timesteps=True`` also restarts the exploration
+        schedule and the warm-up; a loaded model first draws again the batch it had drawn ahead.
         """
         self._warned_replay_not_ready = False
         if self.replay_buffer is not None:  # a loaded model's batch drawn ahead, from its restored replay buffer
             self.replay_prefetcher.restore(self.replay_buffer, self._vec_normalize_env)
-        callbacks = self._combined_callbacks(callback)
         if self.verbose >= 1:
             start = 0 if reset_num_timesteps else self.num_timesteps - self.reset_step
             if start < self.learning_starts:
@@ -489,22 +406,14 @@ class DrQv2(RoundsAlgorithm):
                     f"DrQv2: updates start after {self.learning_starts:,} transitions of uniform random actions "
                     f"(learning_starts), {self.learning_starts - start:,} from now"
                 )
+        callbacks = combine_callbacks(self.callback, callback)
         return super().learn(total_timesteps, callbacks, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
-
-    def _combined_callbacks(self, callback: MaybeCallback) -> MaybeCallback:
-        return combine_callbacks(self.callback, callback)  # each converted as SB3 converts it (functions, lists)
 
     def reset_from_scratch(self) -> None:
         """
-        Restart the training from scratch in the middle of ``learn()``, as the action-collapse paper's rule does.
-
-        New: the weights of the encoder, actor, critic and target critic (DrQ-v2's initialization, drawn from
-        torch's global generator as it is now, copied into the existing parameter tensors so that a compiled update
-        stays valid), the optimizers (empty Adam state), an empty replay buffer (and no batch drawn ahead from the
-        old one), no gradient norm until the next update; ``reset_step = num_timesteps``, so the exploration schedule
-        and the warm-up of ``learning_starts`` transitions start again. Kept: ``num_timesteps`` (the budget is spent,
-        not extended), the update count, the logger, the environments and their episodes in progress, the callbacks,
-        the hyperparameters. ``init_from`` is not applied again. ``docs/interventions.md`` explains each choice.
+        The paper's reset in the middle of ``learn()``: new weights copied into the existing parameters (a compiled
+        update stays valid), empty optimizers and replay buffer, the schedule and the warm-up from ``num_timesteps``;
+        the step counts, the callbacks and ``init_from`` untouched. ``docs/interventions.md``.
         """
         self.policy.renew_networks(self.lr_schedule)
         self._create_aliases()
@@ -514,61 +423,14 @@ class DrQv2(RoundsAlgorithm):
         self.reset_step = self.num_timesteps
         self.policy.exploration_std = self.current_stddev
 
-    @classmethod
-    def load(  # type: ignore[override]
-        cls,
-        path: str | pathlib.Path | io.BufferedIOBase,
-        env: GymEnv | None = None,
-        device: th.device | str = "auto",
-        custom_objects: dict[str, Any] | None = None,
-        print_system_info: bool = False,
-        force_reset: bool = True,
-        **kwargs: Any,
-    ) -> DrQv2:
-        """
-        SB3's ``load``, with the constructor's callbacks built again (:meth:`save`). A model built with ``init_from``
-        comes back with the weights it was saved with: the transplant is not done again.
-
-        :param kwargs: saved attributes to override, as in SB3 (``stddev_schedule`` takes the constructor's
-            specifications, e.g. ``"linear(1.0,0.1,500000)"``)
-        :raises TypeError: for ``init_from``: loading does not transplant; build a new model with it instead
-        :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
-        """
-        check_load_arguments(path, kwargs)
-        if "stddev_schedule" in kwargs:  # SB3 sets kwargs as attributes: parse a specification as __init__ does
-            kwargs["stddev_schedule"] = StddevSchedule(kwargs["stddev_schedule"])
-        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
-        specs = model.__dict__.pop("callback_specs", None) or []
-        if "callback" not in kwargs and specs:
-            model.callback = restore_callbacks(specs, "DrQv2.load")
-        return model
-
-    def save(
-        self,
-        path: str | pathlib.Path | io.BufferedIOBase,
-        exclude: Iterable[str] | None = None,
-        include: Iterable[str] | None = None,
-    ) -> None:
-        """
-        SB3's ``save``, keeping the constructor's callbacks (``callback=``) that can be built again, with their
-        settings and their state (``sb3_collapse.common.saved_callbacks``: ``CollapseReset``, ``CollapseMetrics``...).
-        :meth:`load` builds them again; a ``learn(..., reset_num_timesteps=False)`` after it continues with them.
-        """
-        self.callback_specs = callback_specs(self.callback)
-        try:
-            super().save(path, exclude=exclude, include=include)
-        finally:
-            del self.callback_specs
-
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         super().set_env(env, force_reset=force_reset)
-        self.env_config = _read_env_config(self.env) or self.env_config
+        self.env_config = read_env_config(self.env) or self.env_config
 
     def _excluded_save_params(self) -> list[str]:
         return [
-            *super()._excluded_save_params(), "encoder", "actor", "critic", "critic_target", "callback",
-            "grad_norm_recorder", "update_stats", "_warned_replay_not_ready", "_compiled_losses", "_pending_step",
-            "no_env_step_this_round",
+            *super()._excluded_save_params(), "encoder", "actor", "critic", "critic_target", "grad_norm_recorder",
+            "update_stats", "_warned_replay_not_ready", "_compiled_losses", "_pending_step", "no_env_step_this_round",
         ]  # fmt: skip
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -576,43 +438,3 @@ class DrQv2(RoundsAlgorithm):
         if self.policy.encoder.optimizer is not None:
             state_dicts.append("encoder.optimizer")
         return state_dicts, []
-
-
-@contextlib.contextmanager
-def _frozen(module: th.nn.Module) -> Iterator[None]:
-    """Parameters of ``module`` with ``requires_grad=False`` inside the block (the ones that required it before,
-    after)."""
-    params = [param for param in module.parameters() if param.requires_grad]
-    for param in params:
-        param.requires_grad_(False)
-    try:
-        yield
-    finally:
-        for param in params:
-            param.requires_grad_(True)
-
-
-def soft_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
-    """
-    SB3's ``polyak_update`` (``target = target * (1 - tau) + tau * param``, in place, the same operations and values)
-    as two ``torch._foreach`` calls instead of two per tensor.
-
-    :param params: parameters of the trained network
-    :param target_params: parameters of its target network, updated in place
-    :param tau: soft update coefficient
-    """
-    targets = list(target_params)
-    with th.no_grad():
-        th._foreach_mul_(targets, 1 - tau)
-        th._foreach_add_(targets, list(params), alpha=tau)
-
-
-def _read_env_config(env: VecEnv) -> dict[str, Any] | None:
-    """The ``make_dmc_env`` settings of the (first) environment, or ``None`` for other environments."""
-    config = {}
-    for key in ENV_CONFIG_KEYS:
-        # has_attr first: a SubprocVecEnv's worker dies on get_attr of a missing attribute.
-        config[key] = env.get_attr(key, indices=[0])[0] if env.has_attr(key) else None
-    if config["task_id"] is None and config["action_repeat"] is None:
-        return None
-    return config

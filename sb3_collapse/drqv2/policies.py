@@ -21,8 +21,9 @@ names its image key's encoder ``cnn0``..``cnn4`` (``cnn1.<key>``... with several
 
 from __future__ import annotations
 
+import contextlib
 import copy
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -256,6 +257,34 @@ def critic_mse(q_values: Sequence[th.Tensor], target_q: th.Tensor) -> th.Tensor:
     for q in q_values[1:]:
         loss = loss + F.mse_loss(q, target_q)
     return loss
+
+
+def soft_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
+    """
+    SB3's ``polyak_update`` (``target = target * (1 - tau) + tau * param``, in place, the same values) in two
+    ``torch._foreach`` calls instead of two per tensor.
+
+    :param params: parameters of the trained network
+    :param target_params: parameters of its target network, updated in place
+    :param tau: soft update coefficient
+    """
+    targets = list(target_params)
+    with th.no_grad():
+        th._foreach_mul_(targets, 1 - tau)
+        th._foreach_add_(targets, list(params), alpha=tau)
+
+
+@contextlib.contextmanager
+def frozen(module: nn.Module) -> Iterator[None]:
+    """Parameters of ``module`` with ``requires_grad=False`` inside the block (those that required it before, after)."""
+    params = [param for param in module.parameters() if param.requires_grad]
+    for param in params:
+        param.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for param in params:
+            param.requires_grad_(True)
 
 
 def _q_head(

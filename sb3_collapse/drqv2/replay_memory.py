@@ -6,8 +6,10 @@ process killed hours later) or cannot even be reserved (a ``MemoryError`` that s
 
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -162,14 +164,15 @@ def warn_not_ready(num_timesteps: int) -> None:
     )
 
 
-def choose_replay_buffer(model: Any) -> float:
+@contextlib.contextmanager
+def replay_buffer_setup(model: Any) -> Iterator[None]:
     """
-    Set a ``DrQv2``'s ``replay_buffer_class`` and complete its ``replay_buffer_kwargs`` (:func:`default_replay_buffer`),
-    check its ``optimize_memory_usage`` for that buffer (``sb3_compat.check_optimize_memory_usage``) and warn when
-    the full buffer cannot fit in RAM (:func:`warn_if_too_large`); before the buffer is allocated.
+    Around SB3's ``_setup_model`` of a ``DrQv2``, which allocates the buffer: first set its ``replay_buffer_class``
+    and complete its ``replay_buffer_kwargs`` (:func:`default_replay_buffer`), check its ``optimize_memory_usage``
+    for that buffer (``sb3_compat.check_optimize_memory_usage``) and warn when the full buffer cannot fit in RAM
+    (:func:`warn_if_too_large`); in the block, a ``MemoryError`` says what size would fit (:func:`memory_advice`).
 
     :param model: the model, its networks not built yet
-    :return: the buffer's bytes per transition (:func:`bytes_per_transition`)
     """
     encoder_class = model.policy_kwargs.get("encoder_class", PixelEncoder)
     model.replay_buffer_class = default_replay_buffer(
@@ -194,4 +197,15 @@ def choose_replay_buffer(model: Any) -> float:
         model.n_steps,
     )  # fmt: skip
     warn_if_too_large(model.replay_buffer_class, model.buffer_size, per_transition)
-    return per_transition
+    try:
+        with warnings.catch_warnings():
+            if "n_steps" in model.replay_buffer_kwargs:
+                # A loaded model has its n-step buffer class and kwargs set already: SB3's warning that
+                # `n_steps` is ignored for a custom buffer class does not apply.
+                warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored")
+            yield
+    except MemoryError as error:
+        raise MemoryError(
+            f"Could not allocate a replay buffer of {model.buffer_size:,} transitions ({error}). "
+            + memory_advice(model.replay_buffer_class, model.buffer_size, per_transition)
+        ) from None

@@ -3,6 +3,7 @@ What makes code written for SB3's TD3 run with :class:`~sb3_collapse.drqv2.DrQv2
 
 - :func:`combine_callbacks`: the constructor's ``callback=`` and ``learn()``'s, each converted as SB3 converts a
   callback (a function becomes a ``ConvertCallback``, a list a ``CallbackList``);
+- :class:`ConstructorCallbacks`: the constructor's ``callback=``, saved by ``save`` and built again by ``load``;
 - :class:`DictNStepReplayBuffer`: n-step returns on ``spaces.Dict`` observations (``MultiInputPolicy``), which SB3's
   ``DictReplayBuffer`` lacks (SB3 asserts ``n_steps == 1`` for dict observations);
 - :func:`dict_replay_buffer_class`: the replay buffer of dict observations;
@@ -14,17 +15,25 @@ See ``docs/algorithm.md`` (SB3's keywords in DrQv2).
 
 from __future__ import annotations
 
+import io
+import pathlib
 import warnings
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterable
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
+import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.type_aliases import DictReplayBufferSamples, MaybeCallback
+from stable_baselines3.common.type_aliases import DictReplayBufferSamples, GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_collapse.common.saved_callbacks import restore_callbacks, saved_callbacks
+from sb3_collapse.drqv2.checks import check_load_arguments
+
+SelfConstructorCallbacks = TypeVar("SelfConstructorCallbacks", bound="ConstructorCallbacks")
 
 
 def _as_callback(item: BaseCallback | Callable[[dict[str, Any], dict[str, Any]], bool]) -> BaseCallback:
@@ -60,6 +69,62 @@ def combine_callbacks(*callbacks: MaybeCallback) -> BaseCallback | None:
     if not flat:
         return None
     return flat[0] if len(flat) == 1 else CallbackList(flat)
+
+
+class ConstructorCallbacks:
+    """
+    SB3's ``save`` and ``load`` with the constructor's ``callback=`` (an SB3 algorithm's mixin, before it): ``save``
+    keeps those that can be built again, with their settings and their state (``sb3_collapse.common.saved_callbacks``:
+    ``CollapseReset``, ``CollapseMetrics``...), ``load`` builds them again (a warning names the others). ``learn()``
+    runs them before its own (:func:`combine_callbacks`).
+    """
+
+    callback: MaybeCallback = None
+    load_parsers: ClassVar[dict[str, Callable[[Any], Any]]] = {}
+    """``load(**kwargs)`` entries given as the constructor takes them, with the function that parses them."""
+
+    @classmethod
+    def load(  # type: ignore[misc]
+        cls: type[SelfConstructorCallbacks],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfConstructorCallbacks:
+        """
+        SB3's ``load``, with the constructor's callbacks built again unless ``callback=`` is given. A model built with
+        ``init_from`` comes back with the weights it was saved with: the transplant is not done again.
+
+        :param kwargs: saved attributes to override, as in SB3 (``stddev_schedule="linear(1.0,0.1,500000)"``...)
+        :raises TypeError: for ``init_from``: build a new model with it instead
+        :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
+        """
+        check_load_arguments(path, kwargs, f"{cls.__name__}.load")
+        kwargs = {name: cls.load_parsers.get(name, lambda value: value)(value) for name, value in kwargs.items()}
+        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[misc]
+        saved = model.__dict__.pop("constructor_callbacks", None)
+        if "callback" not in kwargs and saved is not None and saved["specs"]:
+            model.callback = restore_callbacks(saved, f"{cls.__name__}.load")
+        return model
+
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """SB3's ``save``, with the constructor's callbacks (``sb3_collapse.common.saved_callbacks``)."""
+        self.constructor_callbacks = saved_callbacks(self.callback)  # type: ignore[arg-type]
+        try:
+            super().save(path, exclude=exclude, include=include)  # type: ignore[misc]
+        finally:
+            del self.constructor_callbacks
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "callback"]  # type: ignore[misc]
 
 
 class DictNStepReplayBuffer(DictReplayBuffer):

@@ -193,7 +193,7 @@ class ResumableCallback(BaseCallback):
     def get_config(self) -> dict[str, Any]:
         """
         :return: the constructor's arguments (read from the attributes of the same names), to build this callback
-            again (:func:`sb3_collapse.common.saved_callbacks.callback_from_spec`)
+            again (:func:`sb3_collapse.common.saved_callbacks.restore_callbacks`)
         """
         parameters = [name for name in inspect.signature(type(self).__init__).parameters if name != "self"]
         config = {name: copy.deepcopy(getattr(self, name)) for name in parameters}

@@ -15,7 +15,8 @@ updates, before the next environment step), where nothing is in flight, and hold
 - each environment's episode in progress: the random state or seed it was reset with and the actions since
   (:class:`~sb3_collapse.envs.replay.EpisodeReplay`); a resume replays them, so checkpoints may fall anywhere in an
   episode;
-- the state of every callback that has one (:class:`~sb3_collapse.monitoring.callbacks.ResumableCallback`: the
+- the state of every callback that has one (:func:`~sb3_collapse.common.saved_callbacks.callback_states`, as
+  ``DrQv2.save`` keeps its constructor's callbacks; :class:`~sb3_collapse.monitoring.callbacks.ResumableCallback`: the
   reset rule's window, streak, escape and resets, the collapse checks' schedule, the next evaluation), the
   logger's pending values and the number of lines of each CSV file of the run folder, so that a resumed run
   continues them without a duplicated or a missing row (TensorBoard events after the checkpoint are purged with
@@ -63,12 +64,13 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.save_util import load_from_zip_file, recursive_setattr
 
 from sb3_collapse import __version__
+from sb3_collapse.common.saved_callbacks import callback_states, load_callback_states
 from sb3_collapse.drqv2.divergence import DivergenceError, all_finite
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.envs.replay import episode_records, replay_episodes
 from sb3_collapse.errors import READ_ONLY_ERRNOS, InputError
-from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, ResumableCallback, frames_of
+from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, frames_of
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.protocol import (
     CHECKPOINT_FOLDER,
@@ -196,7 +198,7 @@ def capture_state(
     (see the module docstring).
 
     :param model: the model, between two rounds
-    :param callbacks: the run's callbacks; those that are :class:`ResumableCallback` are saved, in this order
+    :param callbacks: the run's callbacks; the states of those that carry one are saved (:func:`callback_states`)
     :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
     :param csv_files: CSV files whose number of lines to record
     :param extra: anything else to keep (picklable)
@@ -220,11 +222,7 @@ def capture_state(
         "action_space": model.action_space.np_random.bit_generator.state,
         "envs": episode_records(env),
         "eval_env": None if eval_env is None else eval_env.get_wrapper_attr("episode_record")(),
-        "callbacks": [
-            (type(callback).__name__, callback.state_dict())
-            for callback in callbacks
-            if isinstance(callback, ResumableCallback)
-        ],
+        "callbacks": callback_states(callbacks),
         "grad_norms": None if recorder is None else recorder.state_dict(),
         "logger": {
             "values": dict(logger.name_to_value),
@@ -511,8 +509,8 @@ def restore_run(
     :param model: the model
     :param checkpoint: what :func:`load_checkpoint` returned
     :param store: the run's replay store
-    :param callbacks: the run's callbacks, in the order they were saved (those that are :class:`ResumableCallback`
-        get their state at the start of the next ``learn()``)
+    :param callbacks: the run's callbacks, in the order they were saved (those that carry a state get theirs at the
+        start of the next ``learn()``: :func:`load_callback_states`)
     :param eval_env: the evaluation environment, if any
     :return: warnings for the user (empty when everything is as it was)
     """
@@ -535,19 +533,10 @@ def restore_run(
         )
     if eval_env is not None:
         eval_env.get_wrapper_attr("replay_episode")(state["eval_env"])
-    saved = state["callbacks"]
-    resumable = [callback for callback in callbacks if isinstance(callback, ResumableCallback)]
-    saved_names = [name for name, _ in saved]
-    if saved_names != [type(callback).__name__ for callback in resumable]:
-        raise CheckpointMismatch(
-            f"the checkpoint has the callbacks {saved_names}, this run "
-            f"{[type(callback).__name__ for callback in resumable]}: resume with the settings that wrote it."
-        )
-    for callback, (_, callback_state) in zip(resumable, saved):
-        try:
-            callback.load_state_dict(callback_state)
-        except ValueError as error:  # a state written by another version
-            raise CheckpointMismatch(f"checkpoint {checkpoint.folder}: {error}") from None
+    try:
+        load_callback_states(callbacks, state["callbacks"])
+    except ValueError as error:  # other callbacks than the run that wrote it, or a state written by another version
+        raise CheckpointMismatch(f"checkpoint {checkpoint.folder}: {error}") from None
     extras = dict(state["model_extras"])
     if "_train_stats" in extras:  # written before UpdateStats (an unfinished run of an earlier version)
         state["update_stats"] = {"sums": extras.pop("_train_stats"), "count": extras.pop("_train_stats_count", 0)}

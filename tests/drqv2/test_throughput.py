@@ -224,7 +224,7 @@ def test_compile_update_is_checked_and_not_saved(tmp_path):
 def test_soft_update_equals_sb3_polyak_update():
     from stable_baselines3.common.utils import polyak_update
 
-    from sb3_collapse.drqv2.drqv2 import soft_update
+    from sb3_collapse.drqv2.policies import soft_update
 
     th.manual_seed(0)
     source = [th.randn(50, 300), th.randn(7), th.randn(3, 3, 4)]
