@@ -316,7 +316,7 @@ def test_probe_batches_skip_overwritten_frames():
         ours.add(*args)
     pos, envs = np.arange(30).repeat(2), np.tile(np.arange(2), 30)
     n_sampleable = int(ours.is_sampleable(pos, envs).sum())
-    model = type("Model", (), {"replay_buffer": ours})()
+    model = type("Model", (), {"replay_buffer": ours, "get_vec_normalize_env": lambda self: None})()
     state = np.random.get_state()[1].copy()
     observations, _ = MetricsBatchSampler(seed=0).sample(model, n_sampleable)
     assert observations.shape == (n_sampleable, 9, *FRAME[1:])
