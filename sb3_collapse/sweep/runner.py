@@ -28,6 +28,7 @@ from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CONFIG_JSON,
     ERROR_TXT,
+    FINISHED,
     SWEEP_JSON,
     SWEEP_STOP,
     blocking_file,
@@ -36,7 +37,7 @@ from sb3_collapse.protocol import (
     write_text_atomically,
 )
 from sb3_collapse.run.config import TrainConfig
-from sb3_collapse.run.folder import UNFINISHED_RUN, run_folder_state, settings_differences
+from sb3_collapse.run.folder import settings_differences
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import (
     TrainingInterrupted,
@@ -44,16 +45,9 @@ from sb3_collapse.run.signals import (
     request_training_stop,
     stop_signal_handlers,
 )
+from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
-from sb3_collapse.sweep.trials import (
-    FINISHED,
-    SweepError,
-    Trial,
-    check_checkpoints,
-    trial_config,
-    trial_dir,
-    trial_status,
-)
+from sb3_collapse.sweep.trials import SweepError, Trial, check_checkpoints, trial_config, trial_dir
 
 
 def check_sweep_arguments(
@@ -209,7 +203,7 @@ def _run_trial(
     """:func:`run_trial` once the stop requests are watched."""
     folder = trial_dir(out, trial)
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)  # resolved
-    if run_folder_state(folder) == UNFINISHED_RUN:
+    if run_status(folder) in RESUMABLE:
         try:
             differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
         except (OSError, ValueError):
@@ -469,7 +463,7 @@ def run_sweep(
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
     settings = sweep_settings(trials, training, checkpoints, resources, donors)
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
-    skipped = [trial for trial in trials if trial_status(trial_dir(out, trial)) == FINISHED]
+    skipped = [trial for trial in trials if run_status(trial_dir(out, trial)) == RunStatus.FINISHED]
     to_run = [trial for trial in trials if trial not in set(skipped)]
     summary = SweepSummary(trials=list(trials), skipped=skipped, finished=[], failed={})
     if not to_run:
