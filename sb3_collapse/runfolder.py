@@ -245,16 +245,8 @@ def read_collapse_metric(path: Path, tag: str = PAPER.collapse_tag) -> tuple[np.
     :return: ``(frames, values)`` sorted by frame; rows whose value is not finite (nan, inf) are dropped
     :raises InputError: when the file is malformed or a value is not a number
     """
-    frames, values = [], []
-    for line, row in csv_rows(path, ("frame", "tag", "value")):
-        if row["tag"] != tag:
-            continue
-        value = csv_number(path, line, row, "value", float)
-        if math.isfinite(value):
-            frames.append(csv_number(path, line, row, "frame", int))
-            values.append(value)
-    order = np.argsort(np.asarray(frames, dtype=np.int64), kind="stable")
-    return np.asarray(frames, dtype=np.int64)[order], np.asarray(values, dtype=np.float64)[order]
+    empty = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float64))
+    return read_collapse_metrics(path, (tag,)).get(tag, empty)
 
 
 def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
