@@ -31,6 +31,7 @@ from sb3_collapse.protocol import (
     FINISHED,
     LOCK_FILE,
     RESULT_JSON,
+    SEED_FOLDER,
     failed_before_training,
 )
 
@@ -288,6 +289,29 @@ def read_collapse_events(path: Path) -> list[tuple[int, str]]:
     for line, row in csv_rows(path, ("frame", "event")):
         events.append((csv_number(path, line, row, "frame", int), row["event"]))
     return events
+
+
+def trial_folders(sweep: str | os.PathLike) -> list[tuple[str, str, int, Path]]:
+    """
+    :param sweep: a sweep folder
+    :return: its trial folders ``<sweep>/<task>/<variant>/seed_<k>/`` as ``(task, variant, seed, path)``, sorted;
+        hidden folders (``.name``) and folders of another shape (``<sweep>/report/``) are skipped; empty when
+        ``sweep`` is not a folder
+    """
+
+    def folders(parent: Path) -> list[Path]:
+        if not parent.is_dir():
+            return []
+        return sorted(path for path in parent.iterdir() if path.is_dir() and not path.name.startswith("."))
+
+    found = [
+        (task.name, variant.name, int(match.group(1)), seed)
+        for task in folders(Path(sweep))
+        for variant in folders(task)
+        for seed in folders(variant)
+        if (match := SEED_FOLDER.match(seed.name))
+    ]
+    return sorted(found, key=lambda item: item[:3])
 
 
 def final_return(folder: str | os.PathLike) -> float | None:

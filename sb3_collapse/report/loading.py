@@ -17,8 +17,15 @@ from tqdm.auto import tqdm
 
 from sb3_collapse.errors import InputError, ReportError
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON, SEED_FOLDER
-from sb3_collapse.runfolder import NOT_A_RUN, read_collapse_metric, read_evaluations, read_result, run_status
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
+from sb3_collapse.runfolder import (
+    NOT_A_RUN,
+    read_collapse_metric,
+    read_evaluations,
+    read_result,
+    run_status,
+    trial_folders,
+)
 
 DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
 """The collapse metric that decides "stuck in action collapse" (the paper's reset rule reads the same one)."""
@@ -128,11 +135,9 @@ def variant_order(variants: Iterable[str]) -> list[str]:
 
 def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
     """
-    The trial folders ``<sweep>/<task>/<variant>/seed_<k>/`` of a sweep folder. Hidden folders (``.name``) are
-    skipped; so is any folder that does not have this three-level shape (e.g. ``<sweep>/report/``).
-
     :param sweep: the sweep folder
-    :return: ``(task, variant, seed, path)`` sorted by task, variant (:func:`variant_order`) and seed
+    :return: its trial folders (:func:`~sb3_collapse.runfolder.trial_folders`) sorted by task, variant
+        (:func:`variant_order`) and seed
     :raises ReportError: when the folder does not exist or holds no trial folder
     """
     root = Path(sweep)
@@ -140,15 +145,7 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
         raise ReportError(f"sweep folder {root} does not exist; give the out folder of a sweep.", parameter="sweep")
     if not root.is_dir():
         raise ReportError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
-    found = []
-    for task_dir in sorted(path for path in root.iterdir() if path.is_dir() and not path.name.startswith(".")):
-        for variant_dir in sorted(
-            path for path in task_dir.iterdir() if path.is_dir() and not path.name.startswith(".")
-        ):
-            for seed_dir in variant_dir.iterdir():
-                match = SEED_FOLDER.match(seed_dir.name)
-                if match and seed_dir.is_dir():
-                    found.append((task_dir.name, variant_dir.name, int(match.group(1)), seed_dir))
+    found = trial_folders(root)
     if not found:
         raise ReportError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
     variants = variant_order(item[1] for item in found)

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import FINAL_MODEL, SEED_FOLDER
-from sb3_collapse.runfolder import final_return
+from sb3_collapse.protocol import FINAL_MODEL
+from sb3_collapse.runfolder import final_return, trial_folders
 from sb3_collapse.sweep.trials import SweepError, canonical_task, donor_key
 
 DONOR_PARTS = ("cnn", "mlp")
@@ -70,13 +70,9 @@ def donor_candidates(
     :param failure_return: a final return below this is a poorly performing agent
     :return: ``{"good": [...], "bad": [...]}``, each by seed; the seeds in between are in neither
     """
-    folder = Path(sweep) / canonical_task(task) / variant
+    task = canonical_task(task)
     classes: dict[str, list[Donor]] = {"good": [], "bad": []}
-    if not folder.is_dir():
-        return classes
-    seeds = sorted(
-        (int(match.group(1)), child) for child in folder.iterdir() if (match := SEED_FOLDER.match(child.name))
-    )
+    seeds = [(seed, path) for *names, seed, path in trial_folders(sweep) if names == [task, variant]]
     for seed, child in seeds:
         value = final_return(child)
         if value is None or not (child / FINAL_MODEL).is_file():
