@@ -203,7 +203,7 @@ def _run_trial(
     """:func:`run_trial` once the stop requests are watched."""
     folder = trial_dir(out, trial)
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)  # resolved
-    if run_status(folder) in RESUMABLE:
+    if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
         try:
             differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
         except (OSError, ValueError):
