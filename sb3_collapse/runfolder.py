@@ -1,9 +1,9 @@
 """
-Reading a run folder (a sweep's trial folder is one): its status (:func:`run_status`), its result file
+Reading run folders: a folder's status (:func:`run_status`, the words in docs/sweeps.md), its result file
 (:func:`read_result`), its scheduled evaluations (:func:`read_evaluations`) and final return (:func:`final_return`),
-its collapse metrics and events (:func:`read_collapse_metrics`, :func:`read_collapse_events`). ``train``, the sweep,
-the report and the probe read run folders through this module only; the file names and the writers are in
-:mod:`sb3_collapse.protocol`.
+its collapse metrics and events (:func:`read_collapse_metrics`, :func:`read_collapse_events`), and a sweep's trial
+folders (:func:`trial_folders`). ``train``, the sweep, the report and the probe read run folders through this module
+only; the file names and the writers are in :mod:`sb3_collapse.protocol`.
 """
 
 from __future__ import annotations
