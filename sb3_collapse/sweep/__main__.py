@@ -23,7 +23,7 @@ from sb3_collapse.protocol import CHECKPOINTS_DIR, EXIT_INTERRUPTED
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
-from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
+from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
@@ -281,7 +281,7 @@ def dry_run(
                 print(f"donor {task} {key}: seed {donor['seed']} (final return {final:.1f}) {donor['path']}")
     settings = sweep_settings(trials, training, checkpoints, resources={}, donors=donors)
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
-    statuses = {trial: str(run_status(trial_dir(out, trial)) or "not a run") for trial in trials}
+    statuses = {trial: str(run_status(trial_dir(out, trial)) or NOT_A_RUN) for trial in trials}
     for trial, status in statuses.items():
         folder = trial_dir(out, trial)
         total = int(trial_config(trial, out, training, checkpoints).frames)  # type: ignore[arg-type]
@@ -292,7 +292,7 @@ def dry_run(
     counts = Counter(statuses.values())
     print(
         f"{len(trials)} trials: "
-        + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, "not a run") if counts[status])
+        + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
         + f"; {sum(status != RunStatus.FINISHED for status in statuses.values())} would run (frames done: the newest "
         "checkpoint of an unfinished trial)."
     )
