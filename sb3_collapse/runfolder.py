@@ -23,7 +23,6 @@ from typing import Any
 import numpy as np
 
 from sb3_collapse.errors import InputError
-from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import (
     CONFIG_JSON,
     ERROR_TXT,
@@ -235,19 +234,6 @@ def read_evaluations(folder: str | os.PathLike, partial: bool = False) -> tuple[
     if "saved_model_eval" not in result and len(frames) > 1 and int(frames[-1]) == result.get("frames"):
         return frames[:-1], returns[:-1]
     return frames, returns
-
-
-def read_collapse_metric(path: Path, tag: str = PAPER.collapse_tag) -> tuple[np.ndarray, np.ndarray]:
-    """
-    One metric's values from a long-format collapse metrics file (columns ``frame, step, tag, value``).
-
-    :param path: the file
-    :param tag: the TensorBoard tag to read, e.g. ``PAPER.collapse_tag``
-    :return: ``(frames, values)`` sorted by frame; rows whose value is not finite (nan, inf) are dropped
-    :raises InputError: when the file is malformed or a value is not a number
-    """
-    empty = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float64))
-    return read_collapse_metrics(path, (tag,)).get(tag, empty)
 
 
 def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:

@@ -20,7 +20,7 @@ from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
 from sb3_collapse.runfolder import (
     NOT_A_RUN,
-    read_collapse_metric,
+    read_collapse_metrics,
     read_evaluations,
     read_result,
     run_status,
@@ -202,7 +202,8 @@ def load_trial(
                 raise ReportError(f"{path}: no evaluation rows although the trial finished.")
             metrics_path = path / COLLAPSE_METRICS_CSV
             if metrics_path.exists():
-                trial.collapse_frames, trial.collapse_values = read_collapse_metric(metrics_path, collapse_tag)
+                metric = read_collapse_metrics(metrics_path, (collapse_tag,)).get(collapse_tag)
+                trial.collapse_frames, trial.collapse_values = metric or (trial.collapse_frames, trial.collapse_values)
         elif partial:
             try:
                 trial.frames, trial.returns = read_evaluations(path, partial=True)
