@@ -40,8 +40,9 @@ from sb3_collapse.protocol import (
     snapshot_files,
 )
 from sb3_collapse.report.headline import BASELINE_VARIANT
-from sb3_collapse.report.loading import Trial, load_trial, read_collapse_events, read_collapse_metrics, read_json
+from sb3_collapse.report.loading import Trial, load_trial
 from sb3_collapse.report.style import ESCAPE_COLOR, RESET_COLOR, RETURN_COLOR, frames_axis, layer_style
+from sb3_collapse.runfolder import read_collapse_events, read_collapse_metrics, read_json
 
 FIGURE4_METRICS: tuple[tuple[str, str], ...] = (
     ("numerical_rank", "numerical rank"),
@@ -87,13 +88,8 @@ class AgentMetrics:
 
     @property
     def final_return(self) -> float:
-        """The return of the last evaluation (nan for a row without an agent)."""
-        return float("nan") if self.trial is None else float(self.trial.returns[-1])
-
-
-def final_return(trial: Trial) -> float:
-    """:return: the return of the trial's last evaluation (nan without one)"""
-    return float(trial.returns[-1]) if len(trial.returns) else float("nan")
+        """The trial's final return (nan for a row without an agent)."""
+        return float("nan") if self.trial is None else self.trial.final_return
 
 
 def pick_agents(trials: Sequence[Trial]) -> list[tuple[str, Trial]]:
@@ -105,7 +101,7 @@ def pick_agents(trials: Sequence[Trial]) -> list[tuple[str, Trial]]:
     :param trials: the trials of one task and variant
     :return: ``(role, trial)`` for ``best``, ``middle``, ``worst``, each trial once
     """
-    ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-final_return(t), t.seed))
+    ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.final_return, t.seed))
     if not ranked:
         return []
     picks = {"best": ranked[0], "middle": ranked[(len(ranked) - 1) // 2], "worst": ranked[-1]}
@@ -174,9 +170,9 @@ def pick_paper_agents(
     The three agents of Figures 4, 8, 9 (Figure 4's caption: "a randomly picked well-performing agent achieving
     larger than [``PAPER.success_return``] rewards", "a middle agent between goodness and badness", "a randomly
     picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards"): the finished trials
-    with an evaluation, split by :func:`agent_class` of their :func:`final_return`, one trial per class picked
-    uniformly at random with ``numpy.random.default_rng([pick_seed, k])`` for the k-th class, over its seeds in
-    increasing order. See docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents.
+    with an evaluation, split by :func:`agent_class` of their final return (:attr:`Trial.final_return`), one trial
+    per class picked uniformly at random with ``numpy.random.default_rng([pick_seed, k])`` for the k-th class, over
+    its seeds in increasing order. See docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents.
 
     :param trials: the trials of one task and variant
     :param pick_seed: seed of the random picks (recorded in the figure's title and rows)
@@ -190,7 +186,7 @@ def pick_paper_agents(
     finished = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: t.seed)
     picks = []
     for k, role in enumerate(PAPER_ROLES):
-        members = [t for t in finished if agent_class(final_return(t), success_return, failure_return) == role]
+        members = [t for t in finished if agent_class(t.final_return, success_return, failure_return) == role]
         trial = None
         if members:
             trial = members[int(np.random.default_rng([pick_seed, k]).integers(len(members)))]
@@ -239,7 +235,7 @@ def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYER
     :param role: its row's name
     :param layers: the layers whose Figure 4 metrics are read
     :return: its row
-    :raises ReportError: on a malformed file
+    :raises InputError: on a malformed file
     """
     tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
     tags += [metric_tag(layer, "dead_fraction") for layer in layers]
@@ -403,7 +399,7 @@ def paper_figure_title(task: str, variant: str, picks: Sequence[AgentPick], inpu
     :return: the title, two lines
     """
     rows = "; ".join(
-        pick.absent if pick.trial is None else f"{pick.role}: seed {pick.trial.seed} ({final_return(pick.trial):.0f})"
+        pick.absent if pick.trial is None else f"{pick.role}: seed {pick.trial.seed} ({pick.trial.final_return:.0f})"
         for pick in picks
     )
     pick_seed = picks[0].pick_seed if picks else 0
@@ -586,7 +582,7 @@ def write_fixed_metrics_csv(path: Path, picks: Sequence[AgentPick], computed: di
             if pick.trial is None or pick.trial.seed not in computed:
                 continue
             fixed = computed[pick.trial.seed]
-            final = float(pick.trial.returns[-1])
+            final = pick.trial.final_return
             for tag, (frames, values) in fixed.metrics.items():
                 for checkpoint, frame, value in zip(fixed.checkpoints, frames, values):
                     writer.writerow(

@@ -269,8 +269,8 @@ def split_agents(
     :param failure_return: a final return ``<`` this is poorly performing
     :return: ``(well, poor)`` (:func:`agent_class` of their final return), each by decreasing final return
     """
-    ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.returns[-1], t.seed))
-    classes = [agent_class(t.returns[-1], success_return, failure_return) for t in ranked]
+    ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.final_return, t.seed))
+    classes = [agent_class(t.final_return, success_return, failure_return) for t in ranked]
     return [t for t, c in zip(ranked, classes) if c == ROWS[0]], [t for t, c in zip(ranked, classes) if c == ROWS[1]]
 
 
@@ -339,7 +339,7 @@ def probe_sweep(
         )
         for (trial, which, _), result_rows in zip(work, per_checkpoint):
             for row in result_rows:
-                row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=float(trial.returns[-1]))
+                row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=trial.final_return)
         rows = [row for result_rows in per_checkpoint for row in result_rows]
         columns = _write_figure2(rows, rollouts, agents, task, variant, staged)
         summary = {
@@ -352,11 +352,11 @@ def probe_sweep(
             "success_return": success_return,
             "failure_return": failure_return,
             "agents": [
-                {"seed": t.seed, "row": which, "final_return": float(t.returns[-1]), "checkpoints": len(files[t.seed])}
+                {"seed": t.seed, "row": which, "final_return": t.final_return, "checkpoints": len(files[t.seed])}
                 for t, which in agents
             ],
             "not_probed": [
-                {"seed": t.seed, "final_return": float(t.returns[-1])} for t in sweep.finished if t.seed not in files
+                {"seed": t.seed, "final_return": t.final_return} for t in sweep.finished if t.seed not in files
             ],
             "unfinished": [t.seed for t in sweep.unfinished],
             "rollouts": {"recorded_from": recorded_from, "samples": len(rollouts), "episodes": rollouts.n_episodes},
@@ -405,7 +405,7 @@ def _sweep_agents(
         ) from error
     well, poor = split_agents(sweep.finished, success_return, failure_return)
     if not well and not poor:
-        finals = ", ".join(f"seed {t.seed}: {t.returns[-1]:.0f}" for t in sweep.finished) or "no finished trial"
+        finals = ", ".join(f"seed {t.seed}: {t.final_return:.0f}" for t in sweep.finished) or "no finished trial"
         raise ProbeError(
             f"{task} / {variant} has no well-performing (final return >= {success_return:g}) nor poorly performing "
             f"(< {failure_return:g}) finished trial ({finals}); lower success_return or raise failure_return.",

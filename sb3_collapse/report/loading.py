@@ -1,20 +1,12 @@
 """
 Read a sweep folder (the trial-folder contract of ``python -m sb3_collapse.sweep``) into one :class:`Trial` per
-``<sweep>/<task>/<variant>/seed_<k>/`` folder.
-
-A trial is **finished** when its result file (``protocol.RESULT_JSON``) exists and says ``"status": "finished"``;
-every other trial folder
-(no result file (``protocol.RESULT_JSON``) yet, or another status) is **unfinished**: it is counted and reported,
-never mixed into the
-statistics. Files are read with :mod:`csv` and :mod:`json` only; a malformed file raises :class:`ReportError`
-naming the file.
+``<sweep>/<task>/<variant>/seed_<k>/`` folder, through :mod:`sb3_collapse.runfolder`. Only finished trials
+(:class:`~sb3_collapse.runfolder.RunStatus`) enter the statistics; the others are counted and reported. A malformed
+file raises :class:`ReportError` naming the file.
 """
 
 from __future__ import annotations
 
-import csv
-import json
-import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,14 +15,19 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from sb3_collapse.errors import ReportError
+from sb3_collapse.errors import InputError, ReportError
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, RESULT_JSON, SEED_FOLDER
-from sb3_collapse.run.lock import run_folder_owner
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
+from sb3_collapse.runfolder import (
+    NOT_A_RUN,
+    read_collapse_metrics,
+    read_evaluations,
+    read_result,
+    run_status,
+    trial_folders,
+)
 
 DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
-RUNNING, UNFINISHED = "running", "unfinished"
-"""Statuses of a trial without a result file: a process holds its run folder's lock (it trains now), or none does."""
 """The collapse metric that decides "stuck in action collapse" (the paper's reset rule reads the same one)."""
 
 
@@ -43,11 +40,9 @@ class Trial:
     :param variant: the variant folder name, e.g. ``"drqv2+reset"``
     :param seed: the seed of the ``seed_<k>`` folder
     :param path: the trial folder
-    :param status: ``"finished"``, :data:`RUNNING` (no result file yet, and a process trains into the folder),
-        :data:`UNFINISHED` (no result file, and no process: stopped, killed or failed; a sweep resumes it) or the
-        ``status`` of the result file
+    :param status: its :class:`~sb3_collapse.runfolder.RunStatus` (``"finished"``, ``"running"``...)
     :param result: the parsed result file (``None`` without one)
-    :param frames: evaluation frames (agent steps x action repeat), increasing, from evaluation file
+    :param frames: the scheduled evaluations' frames (agent steps x action repeat), increasing
     :param returns: mean evaluation return at each of ``frames``
     :param collapse_frames: frames of the checks that logged the collapse tag, increasing
     :param collapse_values: the tag's value at each of ``collapse_frames`` (non-finite values dropped)
@@ -70,6 +65,11 @@ class Trial:
     def finished(self) -> bool:
         """Whether result file says the trial finished."""
         return self.status == FINISHED
+
+    @property
+    def final_return(self) -> float:
+        """The mean return of its last scheduled evaluation, nan unless finished: the paper's final return."""
+        return float(self.returns[-1]) if self.finished and len(self.returns) else float("nan")
 
     @property
     def resets(self) -> int:
@@ -135,11 +135,9 @@ def variant_order(variants: Iterable[str]) -> list[str]:
 
 def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
     """
-    The trial folders ``<sweep>/<task>/<variant>/seed_<k>/`` of a sweep folder. Hidden folders (``.name``) are
-    skipped; so is any folder that does not have this three-level shape (e.g. ``<sweep>/report/``).
-
     :param sweep: the sweep folder
-    :return: ``(task, variant, seed, path)`` sorted by task, variant (:func:`variant_order`) and seed
+    :return: its trial folders (:func:`~sb3_collapse.runfolder.trial_folders`) sorted by task, variant
+        (:func:`variant_order`) and seed
     :raises ReportError: when the folder does not exist or holds no trial folder
     """
     root = Path(sweep)
@@ -147,203 +145,24 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
         raise ReportError(f"sweep folder {root} does not exist; give the out folder of a sweep.", parameter="sweep")
     if not root.is_dir():
         raise ReportError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
-    found = []
-    for task_dir in sorted(path for path in root.iterdir() if path.is_dir() and not path.name.startswith(".")):
-        for variant_dir in sorted(
-            path for path in task_dir.iterdir() if path.is_dir() and not path.name.startswith(".")
-        ):
-            for seed_dir in variant_dir.iterdir():
-                match = SEED_FOLDER.match(seed_dir.name)
-                if match and seed_dir.is_dir():
-                    found.append((task_dir.name, variant_dir.name, int(match.group(1)), seed_dir))
+    found = trial_folders(root)
     if not found:
         raise ReportError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
     variants = variant_order(item[1] for item in found)
     return sorted(found, key=lambda item: (item[0], variants.index(item[1]), item[2]))
 
 
-def read_json(path: Path) -> dict[str, Any]:
+def check_result(path: Path, result: dict[str, Any]) -> None:
     """
-    :param path: a JSON file holding an object
-    :return: the object
-    :raises ReportError: when the file is not a valid JSON object
+    :param path: a finished trial's folder
+    :param result: its result file
+    :raises ReportError: when ``resets`` is not an integer >= 0 or ``escaped`` not a bool or null
     """
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ReportError(f"{path}: not a readable JSON file ({error}).") from error
-    if not isinstance(data, dict):
-        raise ReportError(f"{path}: expected a JSON object, got {type(data).__name__}.")
-    return data
-
-
-def read_result(path: Path) -> dict[str, Any]:
-    """
-    Read and check a trial's result file: ``status`` (str); for a finished trial also ``resets`` (int >= 0)
-    and ``escaped`` (bool or null, may be absent).
-
-    :param path: the result file file
-    :return: the parsed object
-    :raises ReportError: when the file is malformed
-    """
-    result = read_json(path)
-    if not isinstance(result.get("status"), str):
-        raise ReportError(f"{path}: 'status' must be a string such as \"finished\", got {result.get('status')!r}.")
-    if result["status"] == FINISHED:
-        resets = result.get("resets")
-        if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
-            raise ReportError(f"{path}: 'resets' must be an integer >= 0, got {resets!r}.")
-        if result.get("escaped") not in (None, True, False):
-            raise ReportError(f"{path}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
-    return result
-
-
-def _rows(path: Path, columns: tuple[str, ...]) -> Iterable[tuple[int, dict[str, str]]]:
-    """The rows of a CSV file with at least ``columns``, with their line numbers."""
-    try:
-        with path.open(newline="") as file:
-            reader = csv.DictReader(file)
-            missing = [c for c in columns if c not in (reader.fieldnames or [])]
-            if missing:
-                raise ReportError(
-                    f"{path}: missing column(s) {', '.join(missing)} (header: {reader.fieldnames}); "
-                    f"expected {', '.join(columns)}."
-                )
-            for row in reader:
-                yield reader.line_num, row
-    except (OSError, UnicodeDecodeError, csv.Error) as error:
-        raise ReportError(f"{path}: not a readable CSV file ({error}).") from error
-
-
-def _number(path: Path, line: int, row: dict[str, str], column: str, kind: type) -> Any:
-    """``row[column]`` as a float, or as an int (``"1000"`` or ``"1000.0"``) for ``kind=int``."""
-    text = row.get(column)
-    try:
-        value = float(text)  # type: ignore[arg-type]
-        if kind is int:
-            if not value.is_integer():
-                raise ValueError
-            return int(value)
-        return value
-    except (TypeError, ValueError) as error:
-        what = "an integer" if kind is int else "a number"
-        raise ReportError(f"{path}, line {line}: column {column!r} is {text!r}, not {what}.") from error
-
-
-def read_eval_curve(path: Path, partial: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Read an evaluation file (columns ``frame, step, mean_reward, ...``; one row per evaluation).
-
-    :param path: the file
-    :param partial: the file may still be written: a last row with fewer fields than the header is dropped
-    :return: ``(frames, returns)``: frames (int, increasing) and the mean evaluation return at each
-    :raises ReportError: when the file is malformed (a row with a wrong number of fields, a value that is not a
-        number, frames that repeat or decrease)
-    """
-    rows = list(_rows(path, ("frame", "mean_reward")))
-    if partial and rows and None in rows[-1][1].values():
-        rows = rows[:-1]
-    frames, returns = [], []
-    for line, row in rows:
-        if None in row.values() or None in row:
-            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
-        frames.append(_number(path, line, row, "frame", int))
-        returns.append(_number(path, line, row, "mean_reward", float))
-    frames_array = np.asarray(frames, dtype=np.int64)
-    if np.any(np.diff(frames_array) <= 0):
-        where = int(np.argmax(np.diff(frames_array) <= 0))
-        raise ReportError(
-            f"{path}: frames must increase row by row, but frame {frames[where + 1]} follows {frames[where]}; "
-            "was the trial folder written twice? Delete it and run the trial again."
-        )
-    return frames_array, np.asarray(returns, dtype=np.float64)
-
-
-def read_collapse_metric(path: Path, tag: str = DEFAULT_COLLAPSE_TAG) -> tuple[np.ndarray, np.ndarray]:
-    """
-    One metric's values from a long-format collapse metrics file (columns ``frame, step, tag, value``).
-
-    :param path: the file
-    :param tag: the TensorBoard tag to read, e.g. ``PAPER.collapse_tag``
-    :return: ``(frames, values)`` sorted by frame; rows whose value is not finite (nan, inf) are dropped
-    :raises ReportError: when the file is malformed or a value is not a number
-    """
-    frames, values = [], []
-    for line, row in _rows(path, ("frame", "tag", "value")):
-        if None in row.values() or None in row:
-            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
-        if row["tag"] != tag:
-            continue
-        value = _number(path, line, row, "value", float)
-        if math.isfinite(value):
-            frames.append(_number(path, line, row, "frame", int))
-            values.append(value)
-    order = np.argsort(np.asarray(frames, dtype=np.int64), kind="stable")
-    return np.asarray(frames, dtype=np.int64)[order], np.asarray(values, dtype=np.float64)[order]
-
-
-def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """
-    Every metric (or the ``tags``) of a long-format collapse metrics file, in one pass.
-
-    :param path: the file (columns ``frame, step, tag, value``)
-    :param tags: the tags to keep (``None``: all)
-    :return: tag -> ``(frames, values)`` sorted by frame, non-finite values dropped (tags in file order)
-    :raises ReportError: when the file is malformed or a value is not a number
-    """
-    wanted = None if tags is None else set(tags)
-    columns: dict[str, tuple[list[int], list[float]]] = {}
-    for line, row in _rows(path, ("frame", "tag", "value")):
-        if None in row.values() or None in row:
-            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
-        if wanted is not None and row["tag"] not in wanted:
-            continue
-        value = _number(path, line, row, "value", float)
-        if math.isfinite(value):
-            frames, values = columns.setdefault(row["tag"], ([], []))
-            frames.append(_number(path, line, row, "frame", int))
-            values.append(value)
-    metrics = {}
-    for tag, (frames, values) in columns.items():
-        order = np.argsort(np.asarray(frames, dtype=np.int64), kind="stable")
-        metrics[tag] = (np.asarray(frames, dtype=np.int64)[order], np.asarray(values, dtype=np.float64)[order])
-    return metrics
-
-
-def read_collapse_events(path: Path) -> list[tuple[int, str]]:
-    """
-    The events of a collapse events file (``protocol.COLLAPSE_EVENTS_CSV``; files of earlier versions with the
-    first four columns too).
-
-    :param path: the file
-    :return: ``(frame, event)`` in file order, ``event`` being ``"reset"`` (any intervention) or ``"escape"``
-    :raises ReportError: when the file is malformed
-    """
-    events = []
-    for line, row in _rows(path, ("frame", "event")):
-        if row.get("frame") is None or row.get("event") is None:
-            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
-        events.append((_number(path, line, row, "frame", int), row["event"]))
-    return events
-
-
-def scheduled_evaluations(
-    frames: np.ndarray, returns: np.ndarray, result: dict[str, Any]
-) -> tuple[np.ndarray, np.ndarray]:
-    """
-    The scheduled evaluations of a finished run (:func:`sb3_collapse.paper.evaluation_schedule`), where the
-    paper's statistics come from: run folders of earlier versions end their evaluation file with the saved final
-    model's evaluation, at the run's last frame (the result file's ``frames``; such files have no
-    ``saved_model_eval``), which is left out here. Files of this version hold the scheduled evaluations only.
-
-    :param frames: the evaluation file's frames, increasing
-    :param returns: the return at each
-    :param result: the run's result file
-    :return: ``(frames, returns)`` without the final model's evaluation
-    """
-    if "saved_model_eval" not in result and len(frames) > 1 and int(frames[-1]) == result.get("frames"):
-        return frames[:-1], returns[:-1]
-    return frames, returns
+    resets = result.get("resets")
+    if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
+        raise ReportError(f"{path / RESULT_JSON}: 'resets' must be an integer >= 0, got {resets!r}.")
+    if result.get("escaped") not in (None, True, False):
+        raise ReportError(f"{path / RESULT_JSON}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
 
 
 def load_trial(
@@ -366,39 +185,34 @@ def load_trial(
     :return: the trial
     :raises ReportError: when a file of a finished trial is malformed
     """
-    result_path = path / RESULT_JSON
-    result = read_result(result_path) if result_path.exists() else None
-    if result is not None:
-        status = result["status"]
-    else:  # no result: running only while a process holds the folder's lock, else stopped before its end
-        status = RUNNING if run_folder_owner(path) is not None else UNFINISHED
-    trial = Trial(task=task, variant=variant, seed=seed, path=path, status=status, result=result)
-    eval_path = path / EVAL_CSV
-    if trial.finished:
-        for key, expected in (("task", task), ("variant", variant), ("seed", seed)):
-            if key in result and result[key] != expected:  # type: ignore[index]
-                trial.notes.append(
-                    f"{result_path}: {key} is {result[key]!r} but the folder says {expected!r}; "  # type: ignore[index]
-                    "the folder names are used"
-                )
-        if not eval_path.exists():
-            raise ReportError(f"{eval_path} is missing although {result_path} says the trial finished.")
-        trial.frames, trial.returns = read_eval_curve(eval_path)
-        frames, returns = trial.frames, trial.returns
-        trial.frames, trial.returns = scheduled_evaluations(frames, returns, result)  # type: ignore[arg-type]
-        if len(trial.frames) == 0:
-            raise ReportError(f"{eval_path} has no evaluation rows although {result_path} says the trial finished.")
-        metrics_path = path / COLLAPSE_METRICS_CSV
-        if metrics_path.exists():
-            trial.collapse_frames, trial.collapse_values = read_collapse_metric(metrics_path, collapse_tag)
-    elif partial:
-        if not eval_path.exists():
-            trial.notes.append(f"{eval_path}: no evaluation yet")
-        else:
+    try:
+        result = read_result(path, strict=True)
+        status = run_status(path)
+        trial = Trial(task, variant, seed, path, str(status or NOT_A_RUN), result)
+        if trial.finished:
+            check_result(path, result)  # type: ignore[arg-type]
+            for key, expected in (("task", task), ("variant", variant), ("seed", seed)):
+                if result.get(key, expected) != expected:  # type: ignore[union-attr]
+                    trial.notes.append(
+                        f"{path / RESULT_JSON}: {key} is {result[key]!r} but the folder says {expected!r}; "  # type: ignore[index]
+                        "the folder names are used"
+                    )
+            trial.frames, trial.returns = read_evaluations(path)
+            if len(trial.frames) == 0:
+                raise ReportError(f"{path}: no evaluation rows although the trial finished.")
+            metrics_path = path / COLLAPSE_METRICS_CSV
+            if metrics_path.exists():
+                metric = read_collapse_metrics(metrics_path, (collapse_tag,)).get(collapse_tag)
+                trial.collapse_frames, trial.collapse_values = metric or (trial.collapse_frames, trial.collapse_values)
+        elif partial:
             try:
-                trial.frames, trial.returns = read_eval_curve(eval_path, partial=True)
-            except ReportError as error:
+                trial.frames, trial.returns = read_evaluations(path, partial=True)
+            except InputError as error:
                 trial.notes.append(f"partial curve not shown: {error}")
+    except ReportError:
+        raise
+    except InputError as error:
+        raise ReportError(str(error)) from None
     return trial
 
 

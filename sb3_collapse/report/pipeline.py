@@ -55,7 +55,7 @@ from sb3_collapse.report.headline import (
     proposition1_rows,
     proposition1_table,
 )
-from sb3_collapse.report.loading import Sweep, Trial, load_sweep, read_json
+from sb3_collapse.report.loading import Sweep, Trial, load_sweep
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
 from sb3_collapse.report.statistics import (
@@ -82,6 +82,7 @@ from sb3_collapse.report.tables import (
     table7_rows,
     write_csv,
 )
+from sb3_collapse.runfolder import read_json
 from sb3_collapse.staged_outputs import StagedOutputs
 
 FIGURE5_PNG = "figure5.png"
@@ -337,7 +338,7 @@ def agents_rows(report: Report) -> list[dict[str, object]]:
                     "variant": variant,
                     "row": pick.role,
                     "seed": "" if pick.trial is None else pick.trial.seed,
-                    "final_return": "" if pick.trial is None else float(pick.trial.returns[-1]),
+                    "final_return": "" if pick.trial is None else pick.trial.final_return,
                     "class_seeds": " ".join(map(str, pick.candidates)),
                     "seeds": pick.seeds,
                     "pick_seed": pick.pick_seed,

@@ -1,9 +1,9 @@
 """
-The run folder of one training run, as :func:`sb3_collapse.run.runner.train` takes it: what a folder holds
-(:func:`run_folder_state`), whether an unfinished run there has the same settings (:func:`settings_differences`),
-which folder a new run takes (:func:`new_run_dir`) and how it is opened (:func:`open_run_dir`: the settings of a
-new run, or the checkpoint an unfinished one resumes from). The folder's files are those of
-:mod:`sb3_collapse.protocol`; the lock that keeps a second process out is
+The run folder of one training run, as :func:`sb3_collapse.run.runner.train` takes it: whether a folder can take
+the run (its :func:`~sb3_collapse.runfolder.run_status`), whether an unfinished run there has the same settings
+(:func:`settings_differences`), which folder a new run takes (:func:`new_run_dir`) and how it is opened
+(:func:`open_run_dir`: the settings of a new run, or the checkpoint an unfinished one resumes from). The folder's
+files are those of :mod:`sb3_collapse.protocol`; the lock that keeps a second process out is
 :class:`~sb3_collapse.run.lock.RunLock`.
 """
 
@@ -26,7 +26,6 @@ from sb3_collapse.protocol import (
     LOCK_FILE,
     RESULT_JSON,
     blocking_file,
-    failed_before_training,
     read_settings,
     write_json_atomically,
 )
@@ -39,27 +38,7 @@ from sb3_collapse.run.checkpoints import (
 )
 from sb3_collapse.run.config import RESUME_FREE_SETTINGS, TrainConfig
 from sb3_collapse.run.lock import RunFolderLocked, RunLock
-
-NEW_RUN, UNFINISHED_RUN, FINISHED_RUN, FOREIGN = "new", "unfinished", "finished", "foreign"
-"""What a folder holds, for a run that wants it (:func:`run_folder_state`)."""
-
-
-def run_folder_state(path: Path) -> str:
-    """
-    :param path: a run folder (or where one would go)
-    :return: :data:`NEW_RUN` (missing, empty, or a run that failed before training: a new run may take it),
-        :data:`UNFINISHED_RUN` (the settings file and no result: a run to resume from its checkpoints),
-        :data:`FINISHED_RUN` (a result file) or :data:`FOREIGN` (anything else: not for a run)
-    """
-    if not path.exists():
-        return NEW_RUN
-    if not path.is_dir():
-        return FOREIGN
-    if not any(entry.name != LOCK_FILE for entry in path.iterdir()) or failed_before_training(path):
-        return NEW_RUN
-    if (path / RESULT_JSON).exists():
-        return FINISHED_RUN
-    return UNFINISHED_RUN if (path / CONFIG_JSON).is_file() else FOREIGN
+from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
 
 
 def check_run_folder(config: TrainConfig) -> None:
@@ -71,14 +50,14 @@ def check_run_folder(config: TrainConfig) -> None:
     :raises ParameterError: naming ``run_dir`` or ``logdir``
     """
     if config.run_dir is not None:
-        state = run_folder_state(Path(config.run_dir))
-        if state == FOREIGN:
+        state = run_status(config.run_dir, check_lock=False)  # a held lock refuses the run later, naming its owner
+        if state is None:
             raise ParameterError(
                 "run_dir",
                 f"run_dir {config.run_dir} exists and is not an empty folder (nor the folder of a run): remove it "
                 "or choose another.",
             )
-        if state == FINISHED_RUN:
+        if state == RunStatus.FINISHED:
             tidy_finished_run(Path(config.run_dir))
             raise ParameterError(
                 "run_dir", f"run_dir {config.run_dir} holds a finished run ({RESULT_JSON}): choose another folder."
@@ -143,12 +122,12 @@ def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
     """
     run_dir, index = logdir / name, 1
     while True:
-        state = run_folder_state(run_dir)
-        if state == NEW_RUN:
+        state = run_status(run_dir, check_lock=False)
+        if state == RunStatus.NEW:
             return run_dir
-        if state == FINISHED_RUN:
+        if state == RunStatus.FINISHED:
             tidy_finished_run(run_dir)
-        if state == UNFINISHED_RUN:
+        if state in RESUMABLE:
             differences = settings_differences(saved_settings(run_dir), config)
             if not differences:
                 return run_dir
@@ -263,12 +242,12 @@ def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
     :return: the checkpoint to resume from, ``None`` for a run from frame 0
     :raises ParameterError: for a folder with a finished run, another run's settings or other content
     """
-    state = run_folder_state(run_dir)
-    if state in (FINISHED_RUN, FOREIGN):
+    state = run_status(run_dir, check_lock=False)  # this process holds the lock
+    if state is None or state == RunStatus.FINISHED:
         raise ParameterError(
             "run_dir", f"run_dir {run_dir} holds a finished run or other files: choose another folder."
         )
-    if state == UNFINISHED_RUN:
+    if state in RESUMABLE:
         differences = settings_differences(saved_settings(run_dir), config)
         if differences:
             raise ParameterError(

@@ -1,13 +1,12 @@
 """
-The run folder's lock: one process trains into a run folder at a time (:class:`RunLock`), and whether one does now
-(:func:`run_folder_owner`, for the report's listing of unfinished runs).
+The run folder's lock: one process trains into a run folder at a time (:class:`RunLock`); whether one does now is
+:func:`sb3_collapse.runfolder.run_folder_owner`.
 """
 
 from __future__ import annotations
 
 import errno
 import os
-import re
 import socket
 import time
 from pathlib import Path
@@ -81,42 +80,3 @@ class RunLock:
             self._file.close()  # releases the flock; the file stays (deleting it would race with a new owner; train()
             # deletes it, still locked, once the run has finished and no process may take the folder)
             self._file = None
-
-
-def run_folder_owner(run_dir: str | os.PathLike) -> str | None:
-    """
-    Whether a process trains into a run folder now: its lock (:class:`RunLock`) is held. An owner on this host whose
-    pid is gone does not (the lock is not touched); otherwise the lock is tried for an instant (``flock``, shared, as
-    far as the file system passes it on to other hosts).
-
-    :param run_dir: a run folder
-    :return: the owner, as the lock file says it (``"pid 1234 on host h since ..."``), or ``None`` when no process
-        holds the lock (a finished run, or an unfinished one whose process ended: killed, stopped, failed)
-    """
-    import fcntl
-
-    path = Path(run_dir) / LOCK_FILE
-    try:
-        owner = path.read_text().strip()
-    except OSError:
-        return None
-    match = re.match(r"pid (\d+) on host (\S+)", owner)
-    if match is not None and match.group(2) == socket.gethostname():
-        try:
-            os.kill(int(match.group(1)), 0)
-        except ProcessLookupError:
-            return None
-        except PermissionError:  # another user's process: alive
-            pass
-    try:
-        with open(path) as file:
-            try:
-                fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except OSError as error:
-                if error.errno in (errno.EAGAIN, errno.EACCES):
-                    return owner or "another process"
-                raise
-            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
-    except OSError:
-        return None
-    return None

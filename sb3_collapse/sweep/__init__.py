@@ -12,11 +12,7 @@ from sb3_collapse.sweep.runner import (
     sweep_settings,
 )
 from sb3_collapse.sweep.trials import (
-    FAILED,
-    FINISHED,
     GRID_VARIANTS,
-    PARTIAL,
-    PENDING,
     PLAIN_VARIANTS,
     TRANSPLANT_SOURCES,
     SweepError,
@@ -28,18 +24,13 @@ from sb3_collapse.sweep.trials import (
     transplant_of,
     trial_config,
     trial_dir,
-    trial_status,
     variant_settings,
 )
 
 __all__ = [
     "CONNECT_TIMEOUT_S",
     "DONOR_KEYS",
-    "FAILED",
-    "FINISHED",
     "GRID_VARIANTS",
-    "PARTIAL",
-    "PENDING",
     "PLAIN_VARIANTS",
     "TRANSPLANT_SOURCES",
     "ClusterUnreachable",
@@ -65,6 +56,5 @@ __all__ = [
     "transplant_of",
     "trial_config",
     "trial_dir",
-    "trial_status",
     "variant_settings",
 ]

@@ -23,6 +23,7 @@ from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
+from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
@@ -45,7 +46,6 @@ from sb3_collapse.sweep.trials import (
     transplant_of,
     trial_config,
     trial_dir,
-    trial_status,
     variant_settings,
 )
 
@@ -302,19 +302,19 @@ def dry_run(
                 print(f"donor {task} {key}: seed {donor['seed']} (final return {final:.1f}) {donor['path']}")
     settings = sweep_settings(trials, training, checkpoints, resources={}, donors=donors)
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
-    statuses = {trial: trial_status(trial_dir(out, trial)) for trial in trials}
+    statuses = {trial: str(run_status(trial_dir(out, trial)) or NOT_A_RUN) for trial in trials}
     for trial, status in statuses.items():
         folder = trial_dir(out, trial)
         total = int(trial_config(trial, out, training, checkpoints).frames)  # type: ignore[arg-type]
-        done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in ("failed", "partial") else None
-        action = "skip" if status == "finished" else "resume" if done is not None else "run"
-        frames = total if status == "finished" else done or 0
-        print(f"{status:<9} {action:<6} {frames:>10,} of {total:,} frames  {folder}")
+        done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
+        action = "skip" if status == RunStatus.FINISHED else "resume" if done is not None else "run"
+        frames = total if status == RunStatus.FINISHED else done or 0
+        print(f"{status:<10} {action:<6} {frames:>10,} of {total:,} frames  {folder}")
     counts = Counter(statuses.values())
     print(
         f"{len(trials)} trials: "
-        + ", ".join(f"{counts[s]} {s}" for s in ("finished", "failed", "partial", "pending") if counts[s])
-        + f"; {sum(status != 'finished' for status in statuses.values())} would run (frames done: the newest "
+        + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
+        + f"; {sum(status != RunStatus.FINISHED for status in statuses.values())} would run (frames done: the newest "
         "checkpoint of an unfinished trial)."
     )
     return 0

@@ -10,13 +10,12 @@ recorded seed, among the finished seeds of a sweep (``--donors-from``): well-per
 those whose final return is at least :attr:`~sb3_collapse.paper.PaperProtocol.success_return`, poorly performing
 ones below :attr:`~sb3_collapse.paper.PaperProtocol.failure_return` ("less than 30 rewards"). A seed's final
 return is its last scheduled evaluation (:func:`~sb3_collapse.paper.evaluation_schedule`), the one the paper's
-classes read. The sweep's settings file records the donors (:func:`donors_record`).
+classes read (:func:`~sb3_collapse.runfolder.final_return`). The sweep's settings file records the donors
+(:func:`donors_record`).
 """
 
 from __future__ import annotations
 
-import csv
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import EVAL_CSV, FINAL_MODEL, FINISHED, RESULT_JSON, SEED_FOLDER
+from sb3_collapse.protocol import FINAL_MODEL
+from sb3_collapse.runfolder import final_return, trial_folders
 from sb3_collapse.sweep.trials import SweepError, canonical_task, donor_key
 
 DONOR_PARTS = ("cnn", "mlp")
@@ -53,27 +53,6 @@ class Donor:
     path: str
 
 
-def final_return(folder: str | Path) -> float | None:
-    """
-    :param folder: a trial folder
-    :return: the mean return of its last scheduled evaluation, ``None`` when the trial is not finished or has no
-        evaluation; the final model's evaluation of earlier versions (the evaluation file's row at the result's
-        ``frames``) is not a scheduled one and is skipped
-    """
-    folder = Path(folder)
-    try:
-        result = json.loads((folder / RESULT_JSON).read_text())
-        with (folder / EVAL_CSV).open(newline="") as file:
-            rows = [(int(row["frame"]), float(row["mean_reward"])) for row in csv.DictReader(file)]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    if not isinstance(result, dict) or result.get("status") != FINISHED:
-        return None
-    if "saved_model_eval" not in result and len(rows) > 1 and rows[-1][0] == result.get("frames"):
-        rows = rows[:-1]
-    return rows[-1][1] if rows else None
-
-
 def donor_candidates(
     sweep: str | Path,
     task: str,
@@ -91,13 +70,9 @@ def donor_candidates(
     :param failure_return: a final return below this is a poorly performing agent
     :return: ``{"good": [...], "bad": [...]}``, each by seed; the seeds in between are in neither
     """
-    folder = Path(sweep) / canonical_task(task) / variant
+    task = canonical_task(task)
     classes: dict[str, list[Donor]] = {"good": [], "bad": []}
-    if not folder.is_dir():
-        return classes
-    seeds = sorted(
-        (int(match.group(1)), child) for child in folder.iterdir() if (match := SEED_FOLDER.match(child.name))
-    )
+    seeds = [(seed, path) for *names, seed, path in trial_folders(sweep) if names == [task, variant]]
     for seed, child in seeds:
         value = final_return(child)
         if value is None or not (child / FINAL_MODEL).is_file():

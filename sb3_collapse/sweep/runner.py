@@ -29,6 +29,7 @@ from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CONFIG_JSON,
     ERROR_TXT,
+    FINISHED,
     SWEEP_JSON,
     SWEEP_LOCK,
     SWEEP_STOP,
@@ -39,7 +40,7 @@ from sb3_collapse.protocol import (
 )
 from sb3_collapse.run.checkpoints import CheckpointError
 from sb3_collapse.run.config import TrainConfig
-from sb3_collapse.run.folder import UNFINISHED_RUN, run_folder_state, settings_differences, tidy_finished_run
+from sb3_collapse.run.folder import settings_differences, tidy_finished_run
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import (
@@ -48,16 +49,9 @@ from sb3_collapse.run.signals import (
     request_training_stop,
     stop_signal_handlers,
 )
+from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
-from sb3_collapse.sweep.trials import (
-    FINISHED,
-    SweepError,
-    Trial,
-    check_checkpoints,
-    trial_config,
-    trial_dir,
-    trial_status,
-)
+from sb3_collapse.sweep.trials import SweepError, Trial, check_checkpoints, trial_config, trial_dir
 
 
 def check_sweep_arguments(
@@ -214,7 +208,7 @@ def _run_trial(
     """:func:`run_trial` once the stop requests are watched."""
     folder = trial_dir(out, trial)
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)  # resolved
-    if run_folder_state(folder) == UNFINISHED_RUN:
+    if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
         try:
             differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
         except (OSError, ValueError):
@@ -555,7 +549,7 @@ def _run_locked_sweep(
     connect_timeout_s: float,
 ) -> SweepSummary:
     """:func:`run_sweep` once the arguments are checked and the sweep folder is locked."""
-    skipped = [trial for trial in trials if trial_status(trial_dir(out, trial)) == FINISHED]
+    skipped = [trial for trial in trials if run_status(trial_dir(out, trial)) == RunStatus.FINISHED]
     for trial in skipped:  # a trial killed after its result file left its checkpoints and lock behind
         tidy_finished_run(trial_dir(out, trial))
     to_run = [trial for trial in trials if trial not in set(skipped)]

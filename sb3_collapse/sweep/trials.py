@@ -23,7 +23,6 @@ Variants:
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +33,7 @@ from sb3_collapse.envs import parse_task
 from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
-from sb3_collapse.protocol import ERROR_TXT, FINISHED, RESULT_JSON, trial_path
+from sb3_collapse.protocol import trial_path
 from sb3_collapse.run.config import ALGORITHMS, TrainConfig
 
 LEAKY = "-leaky"
@@ -55,6 +54,7 @@ TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
 """The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
 
+
 def donor_key(source: str, part: str) -> str:
     """
     :param source: ``"good"`` or ``"bad"``
@@ -63,10 +63,6 @@ def donor_key(source: str, part: str) -> str:
         ``--good-cnn``
     """
     return f"{source}_{part}"
-
-
-FAILED, PARTIAL, PENDING = "failed", "partial", "pending"
-"""Trial statuses besides :data:`~sb3_collapse.protocol.FINISHED`, see :func:`trial_status`."""
 
 
 class SweepError(InputError):
@@ -186,33 +182,6 @@ def trial_dir(out: str | Path, trial: Trial) -> Path:
     :return: its folder, ``<out>/<task>/<variant>/seed_<seed>``
     """
     return trial_path(out, trial.task, trial.variant, trial.seed)
-
-
-def trial_status(folder: str | Path) -> str:
-    """
-    The state of a trial folder:
-
-    - ``"finished"``: the result file holds ``"status": "finished"`` (train writes it last, atomically);
-    - ``"failed"``: no result, and the error file (the traceback of the failure) is there;
-    - ``"partial"``: the folder exists without a result (interrupted);
-    - ``"pending"``: no folder.
-
-    A sweep reruns every trial that is not finished, deleting its folder first.
-
-    :param folder: the trial folder
-    :return: one of :data:`FINISHED`, :data:`FAILED`, :data:`PARTIAL`, :data:`PENDING`
-    """
-    folder = Path(folder)
-    if not folder.exists():
-        return PENDING
-    result = folder / RESULT_JSON
-    if result.is_file():
-        try:
-            if json.loads(result.read_text()).get("status") == FINISHED:
-                return FINISHED
-        except (json.JSONDecodeError, AttributeError):
-            pass
-    return FAILED if (folder / ERROR_TXT).is_file() else PARTIAL
 
 
 def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], flag: str) -> dict[str, str]:

@@ -22,7 +22,7 @@ from sb3_collapse.report.collapse_figure import (
     pick_paper_agents,
 )
 from sb3_collapse.report.figure2 import PanelCurve, stage_table_rows
-from sb3_collapse.report.loading import Sweep, Trial, read_collapse_metrics
+from sb3_collapse.report.loading import Sweep, Trial
 from sb3_collapse.report.pipeline import (
     COLLAPSE_AGENTS_CSV,
     COLLAPSE_ONLINE_PNG,
@@ -34,6 +34,7 @@ from sb3_collapse.report.pipeline import (
     write_run_report,
 )
 from sb3_collapse.report.statistics import stage_indices, transplant_curves
+from sb3_collapse.runfolder import read_collapse_metrics
 
 
 @pytest.fixture(scope="module")

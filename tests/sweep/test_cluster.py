@@ -20,7 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from sb3_collapse.sweep import ClusterUnreachable, trial_status
+from sb3_collapse.runfolder import run_status
+from sb3_collapse.sweep import ClusterUnreachable
 from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.cluster import check_cluster
 
@@ -153,7 +154,7 @@ def test_sigterm_to_a_sweep_on_a_ray_start_cluster_stops_at_a_checkpoint_and_the
     stopped, info = newest_checkpoint(folder)
     assert info["agent_steps"] > periodic_step and info["frames"] < 1200  # the checkpoint written at the signal
     assert (stopped / "checkpoint.json").stat().st_mtime >= signal_time
-    assert trial_status(folder) == "partial" and not (out / ".stop_requested").exists()
+    assert run_status(folder) == "unfinished" and not (out / ".stop_requested").exists()
     assert json.loads((out / "sweep.json").read_text())["resources"]["address"] == ray_cluster["address"]
 
     rerun = subprocess.run(argv, check=False, env=ray_cluster["env"], capture_output=True, text=True, timeout=240)

@@ -16,6 +16,7 @@ from sb3_collapse import DrQv2
 from sb3_collapse.report.collapse_figure import agent_class
 from sb3_collapse.run.checkpoints import checkpoint_folders, checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.runfolder import run_status
 from sb3_collapse.sweep import (
     GRID_VARIANTS,
     SweepError,
@@ -28,7 +29,6 @@ from sb3_collapse.sweep import (
     transplant_of,
     trial_config,
     trial_dir,
-    trial_status,
     variant_settings,
 )
 from sb3_collapse.sweep.__main__ import main
@@ -126,7 +126,7 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
         assert result["final_eval"]["mean_reward"] == float(evaluations[-1]["mean_reward"])
         assert result["saved_model_eval"]["frame"] == 1000 and result["saved_model_eval"]["episodes"] == 1
         assert result["wall_time_s"] > 0
-        assert trial_status(folder) == "finished" and not list(folder.glob(".*.tmp"))
+        assert run_status(folder) == "finished" and not list(folder.glob(".*.tmp"))
         if variant == "drqv2":
             assert result["escaped"] is None and result["resets"] == 0 and result["reset_frames"] == []
             assert not (folder / "collapse_events.csv").exists()
@@ -152,12 +152,12 @@ def test_resume_skips_finished_trials_and_reruns_unfinished_ones(tiny_sweep, tmp
     kept = out / "walker-walk" / "drqv2+reset" / "seed_0"
     (partial / "result.json").unlink()
     (partial / "leftover.txt").write_text("from the interrupted attempt")
-    assert trial_status(partial) == "partial"
+    assert run_status(partial) == "unfinished"
     training = json.loads((out / "sweep.json").read_text())["training"]
     trials = expand_trials(["walker-walk"], ["drqv2", "drqv2+reset"], [0])
     summary = run_sweep(trials, out, training, progress_bar=False)  # the library call behind the CLI
     assert summary.finished == [Trial("walker-walk", "drqv2", 0)] and summary.skipped == [trials[1]] and summary.ok
-    assert trial_status(partial) == "finished" and not (partial / "leftover.txt").exists()
+    assert run_status(partial) == "finished" and not (partial / "leftover.txt").exists()
     assert [int(row["frame"]) for row in read_csv(partial / "eval.csv")] == [0]
     assert mtimes(kept) == {path: mtime for path, mtime in before.items() if kept in path.parents}
 
@@ -179,10 +179,16 @@ def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
     before = mtimes(tiny_sweep)
     assert main([*argv, *TINY, "--dry-run"]) == 0
     lines = own_lines(capsys.readouterr().out)
-    assert lines[0] == f"finished  skip        1,000 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_0'}"
-    assert lines[1] == f"finished  skip        1,000 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
-    assert lines[2] == f"pending   run             0 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_2'}"
-    assert lines[-1].startswith("6 trials: 4 finished, 2 pending; 2 would run")
+    assert (
+        lines[0] == f"finished   skip        1,000 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_0'}"
+    )
+    assert (
+        lines[1] == f"finished   skip        1,000 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
+    )
+    assert (
+        lines[2] == f"new        run             0 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_2'}"
+    )
+    assert lines[-1].startswith("6 trials: 2 new, 4 finished; 2 would run")
     assert mtimes(tiny_sweep) == before
 
     # Every status, on fabricated folders.
@@ -192,8 +198,9 @@ def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
         folder.mkdir(parents=True)
     (finished / "result.json").write_text(json.dumps({"status": "finished"}))
     (failed / "error.txt").write_text("Traceback ...")
-    assert [trial_status(f) for f in (finished, failed, partial, out / "nothing")] == [
-        "finished", "failed", "partial", "pending"
+    (partial / "config.json").write_text("{}")
+    assert [run_status(f) for f in (finished, failed, partial, out / "nothing")] == [
+        "finished", "failed", "unfinished", "new"
     ]  # fmt: skip
     # An unfinished trial with a checkpoint is resumed: the dry run says from which frame.
     (partial / "checkpoints" / "step_000000000100").mkdir(parents=True)
@@ -203,7 +210,7 @@ def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
         main(["--tasks", "walker-walk", "--seeds", "3", "--variants", "drqv2", "--out", str(out), *TINY, "--dry-run"])
         == 0
     )
-    assert f"partial   resume        400 of 1,000 frames  {partial}" in own_lines(capsys.readouterr().out)
+    assert f"unfinished resume        400 of 1,000 frames  {partial}" in own_lines(capsys.readouterr().out)
 
 
 def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, capsys):
@@ -227,7 +234,7 @@ def test_failing_trial_is_reported_and_the_others_finish(ray_local, tmp_path, ca
     assert "Rerun the same command" not in stdout
     error = (failed / "error.txt").read_text()
     assert error.startswith("Traceback (most recent call last)") and "is not a zip file" in error
-    assert trial_status(failed) == "failed" and trial_status(out / "walker-walk" / "drqv2" / "seed_0") == "finished"
+    assert run_status(failed) == "failed" and run_status(out / "walker-walk" / "drqv2" / "seed_0") == "finished"
     assert json.loads((out / "sweep.json").read_text())["checkpoints"] == {"good_cnn": {"walker-walk": str(broken)}}
 
 
@@ -613,7 +620,7 @@ def test_sigint_to_the_sweep_stops_every_trial_at_a_checkpoint(ray_local, tmp_pa
     stopped, info = newest_checkpoint(folder)
     assert info["agent_steps"] > record["periodic_step"] and info["frames"] < 1200  # written at the signal
     assert (stopped / "checkpoint.json").stat().st_mtime >= record["signal_time"]
-    assert not (out / ".stop_requested").exists() and trial_status(folder) == "partial"
+    assert not (out / ".stop_requested").exists() and run_status(folder) == "unfinished"
 
 
 def test_second_sweep_into_the_same_out_is_refused_before_its_ray_starts(tmp_path):

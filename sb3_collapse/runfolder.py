@@ -1,0 +1,315 @@
+"""
+Reading run folders: a folder's status (:func:`run_status`, the words in docs/sweeps.md), its result file
+(:func:`read_result`), its scheduled evaluations (:func:`read_evaluations`) and final return (:func:`final_return`),
+its collapse metrics and events (:func:`read_collapse_metrics`, :func:`read_collapse_events`), and a sweep's trial
+folders (:func:`trial_folders`). ``train``, the sweep, the report and the probe read run folders through this module
+only; the file names and the writers are in :mod:`sb3_collapse.protocol`.
+"""
+
+from __future__ import annotations
+
+import csv
+import errno
+import json
+import math
+import os
+import re
+import socket
+from collections.abc import Iterable
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sb3_collapse.errors import InputError
+from sb3_collapse.protocol import (
+    CONFIG_JSON,
+    ERROR_TXT,
+    EVAL_CSV,
+    FINISHED,
+    LOCK_FILE,
+    RESULT_JSON,
+    SEED_FOLDER,
+    failed_before_training,
+)
+
+
+class RunStatus(StrEnum):
+    """
+    What a run folder holds, the same word for ``train``, the sweep and the report (checked in this order):
+
+    - ``finished``: its result file says ``"status": "finished"`` (written last, atomically);
+    - ``running``: a process holds its lock now (:func:`run_folder_owner`);
+    - ``new``: no folder, an empty one (a free lock file aside), or a run that failed before its first agent step
+      (:func:`~sb3_collapse.protocol.failed_before_training`): a run may take it;
+    - ``failed``: its last attempt failed: an error file, or a result file that does not say finished; a run
+      with the same settings resumes it from its newest checkpoint;
+    - ``unfinished``: its settings file and nothing of the above: stopped or killed before its end, resumed the same
+      way.
+
+    Anything else (a file, a folder of other files) is not a run folder: :func:`run_status` returns ``None``
+    (:data:`NOT_A_RUN` where a word is shown).
+    """
+
+    NEW = "new"
+    RUNNING = "running"
+    UNFINISHED = "unfinished"
+    FINISHED = FINISHED
+    FAILED = "failed"
+
+
+NOT_A_RUN = "not a run"
+"""The word shown for a folder that :func:`run_status` does not take for a run folder."""
+RESUMABLE = (RunStatus.UNFINISHED, RunStatus.FAILED)
+"""The statuses of a run folder that a run with the same settings resumes (from its newest checkpoint)."""
+
+
+def run_status(folder: str | os.PathLike, check_lock: bool = True) -> RunStatus | None:
+    """
+    :param folder: a run folder (or where one would go)
+    :param check_lock: whether to tell :attr:`RunStatus.RUNNING`; ``False`` for the process that holds the lock
+    :return: its :class:`RunStatus`, ``None`` when it is not a run folder
+    """
+    folder = Path(folder)
+    if not folder.exists():
+        return RunStatus.NEW
+    if not folder.is_dir():
+        return None
+    result = read_result(folder)
+    if result is not None and result.get("status") == FINISHED:
+        return RunStatus.FINISHED
+    if check_lock and run_folder_owner(folder) is not None:
+        return RunStatus.RUNNING
+    if not any(entry.name != LOCK_FILE for entry in folder.iterdir()) or failed_before_training(folder):
+        return RunStatus.NEW
+    if (folder / ERROR_TXT).is_file() or (folder / RESULT_JSON).exists():
+        return RunStatus.FAILED
+    return RunStatus.UNFINISHED if (folder / CONFIG_JSON).is_file() else None
+
+
+def run_folder_owner(folder: str | os.PathLike) -> str | None:
+    """
+    Whether a process trains into a run folder now: its lock (:class:`~sb3_collapse.run.lock.RunLock`) is held. An
+    owner on this host whose pid is gone does not; otherwise the lock is tried for an instant (``flock``, shared, as
+    far as the file system passes it on to other hosts).
+
+    :param folder: a run folder
+    :return: the owner, as the lock file says it (``"pid 1234 on host h since ..."``), ``None`` when no process holds
+        the lock
+    """
+    import fcntl
+
+    path = Path(folder) / LOCK_FILE
+    try:
+        owner = path.read_text().strip()
+    except OSError:
+        return None
+    match = re.match(r"pid (\d+) on host (\S+)", owner)
+    if match is not None and match.group(2) == socket.gethostname():
+        try:
+            os.kill(int(match.group(1)), 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:  # another user's process: alive
+            pass
+    try:
+        with open(path) as file:
+            try:
+                fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except OSError as error:
+                if error.errno in (errno.EAGAIN, errno.EACCES):
+                    return owner or "another process"
+                raise
+            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
+    except OSError:
+        return None
+    return None
+
+
+def read_json(path: str | os.PathLike) -> dict[str, Any]:
+    """
+    :param path: a JSON file holding an object
+    :return: the object
+    :raises InputError: naming the file, when it is not a readable JSON object
+    """
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(f"{path}: not a readable JSON file ({error}).") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object, got {type(data).__name__}.")
+    return data
+
+
+def read_result(folder: str | os.PathLike, strict: bool = False) -> dict[str, Any] | None:
+    """
+    :param folder: a run folder
+    :param strict: raise for a result file that is not a readable JSON object, instead of returning ``None``
+    :return: its result file (:data:`~sb3_collapse.protocol.RESULT_JSON`, keys
+        :data:`~sb3_collapse.protocol.RESULT_KEYS`), ``None`` without one (or an unreadable one, unless ``strict``)
+    :raises InputError: naming the file, with ``strict``
+    """
+    path = Path(folder) / RESULT_JSON
+    if not path.exists():
+        return None
+    try:
+        return read_json(path)
+    except InputError:
+        if strict:
+            raise
+        return None
+
+
+def csv_rows(path: Path, columns: tuple[str, ...], partial: bool = False) -> list[tuple[int, dict[str, str]]]:
+    """
+    :param path: a CSV file of a run folder
+    :param columns: the columns it must have
+    :param partial: the file may still be written: a last row with fewer fields than the header is dropped
+    :return: ``(line number, row)`` of each row
+    :raises InputError: naming the file (and line) when it cannot be read, lacks a column or a row has another
+        number of fields than the header
+    """
+    try:
+        with path.open(newline="") as file:
+            reader = csv.DictReader(file)
+            missing = [c for c in columns if c not in (reader.fieldnames or [])]
+            if missing:
+                raise InputError(
+                    f"{path}: missing column(s) {', '.join(missing)} (header: {reader.fieldnames}); "
+                    f"expected {', '.join(columns)}."
+                )
+            rows = [(reader.line_num, row) for row in reader]
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
+        raise InputError(f"{path}: not a readable CSV file ({error}).") from None
+    if partial and rows and None in rows[-1][1].values():
+        rows = rows[:-1]
+    for line, row in rows:
+        if None in row.values() or None in row:
+            raise InputError(f"{path}, line {line}: the number of fields differs from the header's.")
+    return rows
+
+
+def csv_number(path: Path, line: int, row: dict[str, str], column: str, kind: type) -> Any:
+    """:return: ``row[column]`` as a float, or as an int (``"1000"`` or ``"1000.0"``) for ``kind=int``"""
+    text = row.get(column)
+    try:
+        value = float(text)  # type: ignore[arg-type]
+        if kind is int:
+            if not value.is_integer():
+                raise ValueError
+            return int(value)
+        return value
+    except (TypeError, ValueError):
+        what = "an integer" if kind is int else "a number"
+        raise InputError(f"{path}, line {line}: column {column!r} is {text!r}, not {what}.") from None
+
+
+def read_evaluations(folder: str | os.PathLike, partial: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """
+    The scheduled evaluations of a run (:func:`sb3_collapse.paper.evaluation_schedule`), from its evaluation file
+    (:data:`~sb3_collapse.protocol.EVAL_CSV`). Run folders of earlier versions end that file with the saved final
+    model's evaluation, at the run's last frame (their result file has ``frames`` and no ``saved_model_eval``): it is
+    left out.
+
+    :param folder: a run folder
+    :param partial: the file may still be written (an unfinished run): an incomplete last row is dropped
+    :return: ``(frames, returns)``: the frames (int, increasing) and the mean evaluation return at each
+    :raises InputError: naming the file when it is missing or malformed (a row with a wrong number of fields, a value
+        that is not a number, frames that repeat or decrease)
+    """
+    path = Path(folder) / EVAL_CSV
+    if not path.exists():
+        raise InputError(f"{path} is missing.")
+    rows = csv_rows(path, ("frame", "mean_reward"), partial=partial)
+    frames = np.asarray([csv_number(path, line, row, "frame", int) for line, row in rows], dtype=np.int64)
+    returns = np.asarray([csv_number(path, line, row, "mean_reward", float) for line, row in rows], dtype=np.float64)
+    if np.any(np.diff(frames) <= 0):
+        where = int(np.argmax(np.diff(frames) <= 0))
+        raise InputError(
+            f"{path}: frames must increase row by row, but frame {frames[where + 1]} follows {frames[where]}; "
+            "was the run folder written twice? Delete it and run the trial again."
+        )
+    result = read_result(folder) or {}
+    if "saved_model_eval" not in result and len(frames) > 1 and int(frames[-1]) == result.get("frames"):
+        return frames[:-1], returns[:-1]
+    return frames, returns
+
+
+def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """
+    Every metric (or the ``tags``) of a long-format collapse metrics file, in one pass.
+
+    :param path: the file (columns ``frame, step, tag, value``)
+    :param tags: the tags to keep (``None``: all)
+    :return: tag -> ``(frames, values)`` sorted by frame, non-finite values dropped (tags in file order)
+    :raises InputError: when the file is malformed or a value is not a number
+    """
+    wanted = None if tags is None else set(tags)
+    columns: dict[str, tuple[list[int], list[float]]] = {}
+    for line, row in csv_rows(path, ("frame", "tag", "value")):
+        if wanted is not None and row["tag"] not in wanted:
+            continue
+        value = csv_number(path, line, row, "value", float)
+        if math.isfinite(value):
+            frames, values = columns.setdefault(row["tag"], ([], []))
+            frames.append(csv_number(path, line, row, "frame", int))
+            values.append(value)
+    metrics = {}
+    for tag, (frames, values) in columns.items():
+        order = np.argsort(np.asarray(frames, dtype=np.int64), kind="stable")
+        metrics[tag] = (np.asarray(frames, dtype=np.int64)[order], np.asarray(values, dtype=np.float64)[order])
+    return metrics
+
+
+def read_collapse_events(path: Path) -> list[tuple[int, str]]:
+    """
+    The events of a collapse events file (:data:`~sb3_collapse.protocol.COLLAPSE_EVENTS_CSV`; files of earlier
+    versions with the first four columns too).
+
+    :param path: the file
+    :return: ``(frame, event)`` in file order, ``event`` being ``"reset"`` (any intervention) or ``"escape"``
+    :raises InputError: when the file is malformed
+    """
+    events = []
+    for line, row in csv_rows(path, ("frame", "event")):
+        events.append((csv_number(path, line, row, "frame", int), row["event"]))
+    return events
+
+
+def trial_folders(sweep: str | os.PathLike) -> list[tuple[str, str, int, Path]]:
+    """
+    :param sweep: a sweep folder
+    :return: its trial folders ``<sweep>/<task>/<variant>/seed_<k>/`` as ``(task, variant, seed, path)``, sorted;
+        hidden folders (``.name``) and folders of another shape (``<sweep>/report/``) are skipped; empty when
+        ``sweep`` is not a folder
+    """
+
+    def folders(parent: Path) -> list[Path]:
+        if not parent.is_dir():
+            return []
+        return sorted(path for path in parent.iterdir() if path.is_dir() and not path.name.startswith("."))
+
+    found = [
+        (task.name, variant.name, int(match.group(1)), seed)
+        for task in folders(Path(sweep))
+        for variant in folders(task)
+        for seed in folders(variant)
+        if (match := SEED_FOLDER.match(seed.name))
+    ]
+    return sorted(found, key=lambda item: item[:3])
+
+
+def final_return(folder: str | os.PathLike) -> float | None:
+    """
+    :param folder: a run folder
+    :return: the mean return of its last scheduled evaluation (:func:`read_evaluations`), the one the paper's agent
+        classes read; ``None`` when the run is not finished, or its evaluation file is missing, malformed or empty
+    """
+    if run_status(folder) != RunStatus.FINISHED:
+        return None
+    try:
+        _, returns = read_evaluations(folder)
+    except InputError:
+        return None
+    return float(returns[-1]) if len(returns) else None
