@@ -13,7 +13,6 @@ tables are :mod:`sb3_collapse.report`'s.
 - :mod:`~sb3_collapse.probe.film`: film an agent's episode.
 """
 
-from sb3_collapse.errors import ProbeError
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.omp import OMPPath, OrthogonalMatchingPursuit, omp_path, path_predictions
 from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
@@ -32,7 +31,6 @@ __all__ = [
     "Checkpoint",
     "OMPPath",
     "OrthogonalMatchingPursuit",
-    "ProbeError",
     "ProbeSettings",
     "RecordOptions",
     "Rollouts",

@@ -15,7 +15,6 @@ Reports of a sweep folder: the paper's Figure 5, the per-variant table and the l
   :func:`film_to_folder`), :mod:`~sb3_collapse.report.probe_outputs` (a probe's plots, :func:`probe_to_folder`).
 """
 
-from sb3_collapse.errors import ReportError
 from sb3_collapse.report.collapse_figure import FixedInputSettings
 from sb3_collapse.report.figure2 import probe_sweep
 from sb3_collapse.report.film import film_to_folder
@@ -42,7 +41,6 @@ __all__ = [
     "GridCell",
     "ReferenceCurves",
     "Report",
-    "ReportError",
     "ReportSettings",
     "Sweep",
     "Trial",

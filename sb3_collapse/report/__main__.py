@@ -15,7 +15,7 @@ import argparse
 import sys
 from dataclasses import dataclass
 
-from sb3_collapse.errors import ReportError, cli_message, report_unwritable_outputs
+from sb3_collapse.errors import InputError, cli_message, report_unwritable_outputs
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.collapse_figure import FixedInputSettings, is_run_folder
 from sb3_collapse.report.headline import BASELINE_VARIANT
@@ -174,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     if is_run_folder(args.sweep):
         try:
             trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
-        except ReportError as error:
+        except InputError as error:
             print(f"error: {cli_message(error, parser)}", file=sys.stderr)
             return 2
         print(f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations")
@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
             overwrite=args.overwrite,
             collapse_settings=collapse,
         )
-    except ReportError as error:
+    except InputError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
     print(report.markdown)

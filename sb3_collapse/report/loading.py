@@ -6,7 +6,7 @@ A trial is **finished** when its result file (``protocol.RESULT_JSON``) exists a
 every other trial folder
 (no result file (``protocol.RESULT_JSON``) yet, or another status) is **unfinished**: it is counted and reported,
 never mixed into the
-statistics. Files are read with :mod:`csv` and :mod:`json` only; a malformed file raises :class:`ReportError`
+statistics. Files are read with :mod:`csv` and :mod:`json` only; a malformed file raises :class:`InputError`
 naming the file.
 """
 
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from sb3_collapse.errors import ReportError
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, EVAL_CSV, FINISHED, RESULT_JSON, SEED_FOLDER
 from sb3_collapse.run.lock import run_folder_owner
@@ -140,13 +140,13 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
 
     :param sweep: the sweep folder
     :return: ``(task, variant, seed, path)`` sorted by task, variant (:func:`variant_order`) and seed
-    :raises ReportError: when the folder does not exist or holds no trial folder
+    :raises InputError: when the folder does not exist or holds no trial folder
     """
     root = Path(sweep)
     if not root.exists():
-        raise ReportError(f"sweep folder {root} does not exist; give the out folder of a sweep.", parameter="sweep")
+        raise InputError(f"sweep folder {root} does not exist; give the out folder of a sweep.", parameter="sweep")
     if not root.is_dir():
-        raise ReportError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
+        raise InputError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
     found = []
     for task_dir in sorted(path for path in root.iterdir() if path.is_dir() and not path.name.startswith(".")):
         for variant_dir in sorted(
@@ -157,7 +157,7 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
                 if match and seed_dir.is_dir():
                     found.append((task_dir.name, variant_dir.name, int(match.group(1)), seed_dir))
     if not found:
-        raise ReportError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
+        raise InputError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
     variants = variant_order(item[1] for item in found)
     return sorted(found, key=lambda item: (item[0], variants.index(item[1]), item[2]))
 
@@ -166,14 +166,14 @@ def read_json(path: Path) -> dict[str, Any]:
     """
     :param path: a JSON file holding an object
     :return: the object
-    :raises ReportError: when the file is not a valid JSON object
+    :raises InputError: when the file is not a valid JSON object
     """
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ReportError(f"{path}: not a readable JSON file ({error}).") from error
+        raise InputError(f"{path}: not a readable JSON file ({error}).") from error
     if not isinstance(data, dict):
-        raise ReportError(f"{path}: expected a JSON object, got {type(data).__name__}.")
+        raise InputError(f"{path}: expected a JSON object, got {type(data).__name__}.")
     return data
 
 
@@ -184,17 +184,17 @@ def read_result(path: Path) -> dict[str, Any]:
 
     :param path: the result file file
     :return: the parsed object
-    :raises ReportError: when the file is malformed
+    :raises InputError: when the file is malformed
     """
     result = read_json(path)
     if not isinstance(result.get("status"), str):
-        raise ReportError(f"{path}: 'status' must be a string such as \"finished\", got {result.get('status')!r}.")
+        raise InputError(f"{path}: 'status' must be a string such as \"finished\", got {result.get('status')!r}.")
     if result["status"] == FINISHED:
         resets = result.get("resets")
         if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
-            raise ReportError(f"{path}: 'resets' must be an integer >= 0, got {resets!r}.")
+            raise InputError(f"{path}: 'resets' must be an integer >= 0, got {resets!r}.")
         if result.get("escaped") not in (None, True, False):
-            raise ReportError(f"{path}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
+            raise InputError(f"{path}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
     return result
 
 
@@ -205,14 +205,14 @@ def _rows(path: Path, columns: tuple[str, ...]) -> Iterable[tuple[int, dict[str,
             reader = csv.DictReader(file)
             missing = [c for c in columns if c not in (reader.fieldnames or [])]
             if missing:
-                raise ReportError(
+                raise InputError(
                     f"{path}: missing column(s) {', '.join(missing)} (header: {reader.fieldnames}); "
                     f"expected {', '.join(columns)}."
                 )
             for row in reader:
                 yield reader.line_num, row
     except (OSError, UnicodeDecodeError, csv.Error) as error:
-        raise ReportError(f"{path}: not a readable CSV file ({error}).") from error
+        raise InputError(f"{path}: not a readable CSV file ({error}).") from error
 
 
 def _number(path: Path, line: int, row: dict[str, str], column: str, kind: type) -> Any:
@@ -227,7 +227,7 @@ def _number(path: Path, line: int, row: dict[str, str], column: str, kind: type)
         return value
     except (TypeError, ValueError) as error:
         what = "an integer" if kind is int else "a number"
-        raise ReportError(f"{path}, line {line}: column {column!r} is {text!r}, not {what}.") from error
+        raise InputError(f"{path}, line {line}: column {column!r} is {text!r}, not {what}.") from error
 
 
 def read_eval_curve(path: Path, partial: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -237,7 +237,7 @@ def read_eval_curve(path: Path, partial: bool = False) -> tuple[np.ndarray, np.n
     :param path: the file
     :param partial: the file may still be written: a last row with fewer fields than the header is dropped
     :return: ``(frames, returns)``: frames (int, increasing) and the mean evaluation return at each
-    :raises ReportError: when the file is malformed (a row with a wrong number of fields, a value that is not a
+    :raises InputError: when the file is malformed (a row with a wrong number of fields, a value that is not a
         number, frames that repeat or decrease)
     """
     rows = list(_rows(path, ("frame", "mean_reward")))
@@ -246,13 +246,13 @@ def read_eval_curve(path: Path, partial: bool = False) -> tuple[np.ndarray, np.n
     frames, returns = [], []
     for line, row in rows:
         if None in row.values() or None in row:
-            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
+            raise InputError(f"{path}, line {line}: the number of fields differs from the header's.")
         frames.append(_number(path, line, row, "frame", int))
         returns.append(_number(path, line, row, "mean_reward", float))
     frames_array = np.asarray(frames, dtype=np.int64)
     if np.any(np.diff(frames_array) <= 0):
         where = int(np.argmax(np.diff(frames_array) <= 0))
-        raise ReportError(
+        raise InputError(
             f"{path}: frames must increase row by row, but frame {frames[where + 1]} follows {frames[where]}; "
             "was the trial folder written twice? Delete it and run the trial again."
         )
@@ -266,12 +266,12 @@ def read_collapse_metric(path: Path, tag: str = DEFAULT_COLLAPSE_TAG) -> tuple[n
     :param path: the file
     :param tag: the TensorBoard tag to read, e.g. ``PAPER.collapse_tag``
     :return: ``(frames, values)`` sorted by frame; rows whose value is not finite (nan, inf) are dropped
-    :raises ReportError: when the file is malformed or a value is not a number
+    :raises InputError: when the file is malformed or a value is not a number
     """
     frames, values = [], []
     for line, row in _rows(path, ("frame", "tag", "value")):
         if None in row.values() or None in row:
-            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
+            raise InputError(f"{path}, line {line}: the number of fields differs from the header's.")
         if row["tag"] != tag:
             continue
         value = _number(path, line, row, "value", float)
@@ -289,13 +289,13 @@ def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict
     :param path: the file (columns ``frame, step, tag, value``)
     :param tags: the tags to keep (``None``: all)
     :return: tag -> ``(frames, values)`` sorted by frame, non-finite values dropped (tags in file order)
-    :raises ReportError: when the file is malformed or a value is not a number
+    :raises InputError: when the file is malformed or a value is not a number
     """
     wanted = None if tags is None else set(tags)
     columns: dict[str, tuple[list[int], list[float]]] = {}
     for line, row in _rows(path, ("frame", "tag", "value")):
         if None in row.values() or None in row:
-            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
+            raise InputError(f"{path}, line {line}: the number of fields differs from the header's.")
         if wanted is not None and row["tag"] not in wanted:
             continue
         value = _number(path, line, row, "value", float)
@@ -317,12 +317,12 @@ def read_collapse_events(path: Path) -> list[tuple[int, str]]:
 
     :param path: the file
     :return: ``(frame, event)`` in file order, ``event`` being ``"reset"`` (any intervention) or ``"escape"``
-    :raises ReportError: when the file is malformed
+    :raises InputError: when the file is malformed
     """
     events = []
     for line, row in _rows(path, ("frame", "event")):
         if row.get("frame") is None or row.get("event") is None:
-            raise ReportError(f"{path}, line {line}: the number of fields differs from the header's.")
+            raise InputError(f"{path}, line {line}: the number of fields differs from the header's.")
         events.append((_number(path, line, row, "frame", int), row["event"]))
     return events
 
@@ -364,7 +364,7 @@ def load_trial(
     :param collapse_tag: the collapse metric to read
     :param partial: read the evaluation curve of an unfinished trial too
     :return: the trial
-    :raises ReportError: when a file of a finished trial is malformed
+    :raises InputError: when a file of a finished trial is malformed
     """
     result_path = path / RESULT_JSON
     result = read_result(result_path) if result_path.exists() else None
@@ -382,12 +382,12 @@ def load_trial(
                     "the folder names are used"
                 )
         if not eval_path.exists():
-            raise ReportError(f"{eval_path} is missing although {result_path} says the trial finished.")
+            raise InputError(f"{eval_path} is missing although {result_path} says the trial finished.")
         trial.frames, trial.returns = read_eval_curve(eval_path)
         frames, returns = trial.frames, trial.returns
         trial.frames, trial.returns = scheduled_evaluations(frames, returns, result)  # type: ignore[arg-type]
         if len(trial.frames) == 0:
-            raise ReportError(f"{eval_path} has no evaluation rows although {result_path} says the trial finished.")
+            raise InputError(f"{eval_path} has no evaluation rows although {result_path} says the trial finished.")
         metrics_path = path / COLLAPSE_METRICS_CSV
         if metrics_path.exists():
             trial.collapse_frames, trial.collapse_values = read_collapse_metric(metrics_path, collapse_tag)
@@ -397,7 +397,7 @@ def load_trial(
         else:
             try:
                 trial.frames, trial.returns = read_eval_curve(eval_path, partial=True)
-            except ReportError as error:
+            except InputError as error:
                 trial.notes.append(f"partial curve not shown: {error}")
     return trial
 
@@ -420,7 +420,7 @@ def load_sweep(
     :param variants: keep only these variant folders (``None``: all)
     :param progress: show a progress bar over the trial folders
     :return: the sweep
-    :raises ReportError: when the folder is missing, holds no (selected) trial, or a finished trial's file is
+    :raises InputError: when the folder is missing, holds no (selected) trial, or a finished trial's file is
         malformed
     """
     found = find_trial_folders(sweep)
@@ -430,7 +430,7 @@ def load_sweep(
             available = sorted({item[index] for item in found})
             unknown = [w for w in wanted if w not in available]
             if unknown:
-                raise ReportError(
+                raise InputError(
                     f"{name} {' '.join(unknown)} not in {sweep}; available: {', '.join(available)}.", parameter=name
                 )
             found = [item for item in found if item[index] in wanted]

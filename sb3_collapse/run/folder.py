@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sb3_collapse.errors import ParameterError
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
@@ -38,7 +38,7 @@ from sb3_collapse.run.checkpoints import (
     set_aside,
 )
 from sb3_collapse.run.config import RESUME_FREE_SETTINGS, TrainConfig
-from sb3_collapse.run.lock import RunFolderLocked, RunLock
+from sb3_collapse.run.lock import RunLock
 
 NEW_RUN, UNFINISHED_RUN, FINISHED_RUN, FOREIGN = "new", "unfinished", "finished", "foreign"
 """What a folder holds, for a run that wants it (:func:`run_folder_state`)."""
@@ -201,7 +201,7 @@ def tidy_finished_run(run_dir: Path) -> list[str]:
             lock.unlink()  # still locked: no process may take a finished run's folder
             if lock in leftovers:
                 removed.append(LOCK_FILE)
-    except (RunFolderLocked, OSError):
+    except (InputError, OSError):
         pass
     if removed:
         listed = ", ".join(removed)

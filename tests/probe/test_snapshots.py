@@ -15,7 +15,7 @@ import torch as th
 from PIL import Image
 
 from sb3_collapse import DrQv2
-from sb3_collapse.errors import ParameterError, ProbeError, ReportError
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_metrics
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
@@ -241,10 +241,10 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
     assert {a["inputs"] for a in agents} == {inputs.describe()} and "8 of the 12 observations" in inputs.describe()
     # rollouts whose images do not fit the checkpoints: the message names the rollouts, in the probe and the report
     small = dataclasses.replace(inputs, observations=inputs.observations[:, :, :24, :24])
-    with pytest.raises(ProbeError, match="rollouts") as error:
+    with pytest.raises(InputError, match="rollouts") as error:
         fixed_metrics(snapshot_files(picks[0].trial.path), small, ("mlp1",))
     assert error.value.parameter == "rollouts"
-    with pytest.raises(ReportError, match="rollouts") as error:
+    with pytest.raises(InputError, match="rollouts") as error:
         fixed_agent_rows(picks[:1], small, settings)
     assert error.value.parameter == "rollouts"
 

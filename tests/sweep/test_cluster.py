@@ -20,7 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from sb3_collapse.sweep import ClusterUnreachable, trial_status
+from sb3_collapse.errors import ClusterUnreachable
+from sb3_collapse.sweep import trial_status
 from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.cluster import check_cluster
 

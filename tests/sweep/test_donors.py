@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from sb3_collapse.sweep import SweepError, Trial, donor_candidates, pick_donors, trial_config
+from sb3_collapse.errors import InputError
+from sb3_collapse.sweep import Trial, donor_candidates, pick_donors, trial_config
 from sb3_collapse.sweep.__main__ import build_parser, main, transplant_checkpoints
 from sb3_collapse.sweep.donors import donors_record, final_return
 from sb3_collapse.sweep.runner import sweep_settings
@@ -45,7 +46,7 @@ def test_good_cnn_and_good_mlp_come_from_two_agents_reproducibly(finished_sweep)
         assert {donors["bad_cnn"].seed, donors["bad_mlp"].seed} == {1, 3}
     assert pick_donors(finished_sweep.path, "walker-walk", seed=7) == draws[7]  # the seed gives the same donors
     assert len({(d["good_cnn"].seed, d["good_mlp"].seed) for d in draws}) > 1  # and the seed matters
-    with pytest.raises(SweepError, match="has 0 finished seed.*pass --good-cnn PATH --good-mlp PATH"):
+    with pytest.raises(InputError, match="has 0 finished seed.*pass --good-cnn PATH --good-mlp PATH"):
         pick_donors(finished_sweep.path, "walker-walk", variant="drqv2+reset", sources=["good"], success_return=2000)
 
 
