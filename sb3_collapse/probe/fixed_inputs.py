@@ -23,7 +23,7 @@ from sb3_collapse.monitoring import collect_activations, layer_metrics, unit_cou
 from sb3_collapse.paper import metric_tag
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.rollouts import Rollouts
-from sb3_collapse.protocol import LEGACY_SNAPSHOTS_DIR, SNAPSHOTS_DIR
+from sb3_collapse.protocol import SNAPSHOTS_DIR
 
 FIXED_SAMPLES = 2048
 """Observations of the fixed set by default: more than the 1024 units of ``mlp1`` and ``mlp2``, so that their
@@ -68,7 +68,7 @@ class FixedInputs:
         agent = ""
         if self.recorded_from is not None:
             checkpoint = Path(self.recorded_from)
-            snapshot = checkpoint.parent.name in (SNAPSHOTS_DIR, LEGACY_SNAPSHOTS_DIR)  # one folder deeper
+            snapshot = checkpoint.parent.name == SNAPSHOTS_DIR  # one folder deeper
             agent = f", recorded from {'/'.join(checkpoint.parts[-4 - snapshot :])}"
             agent += "" if self.recorded_frames is None else f" at {self.recorded_frames:,} frames"
         source = f"{self.source.parent.name}/{self.source.name}"

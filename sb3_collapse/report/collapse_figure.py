@@ -259,15 +259,10 @@ def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYER
     :raises InputError: on a malformed file
     """
     tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
-    tags += [metric_tag(layer, "dead_fraction") for layer in layers]
     agent = AgentMetrics(trial, role, widths=layer_widths(trial, layers))
     metrics_path = trial.path / COLLAPSE_METRICS_CSV
     if metrics_path.exists():
         agent.metrics = read_collapse_metrics(metrics_path, tags)
-        for layer in layers:  # files written before dead_units was logged: the dead fraction times the width
-            fraction, tag = agent.metrics.get(metric_tag(layer, "dead_fraction")), metric_tag(layer, "dead_units")
-            if tag not in agent.metrics and fraction is not None and layer in agent.widths:
-                agent.metrics[tag] = (fraction[0], np.rint(fraction[1] * agent.widths[layer]))
     events_path = trial.path / COLLAPSE_EVENTS_CSV
     if events_path.exists():
         events = read_collapse_events(events_path)

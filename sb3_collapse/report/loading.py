@@ -179,8 +179,8 @@ def read_json(path: Path) -> dict[str, Any]:
 
 def read_result(path: Path) -> dict[str, Any]:
     """
-    Read and check a trial's result file: ``status`` (str); for a finished trial also ``resets`` (int >= 0)
-    and ``escaped`` (bool or null, may be absent).
+    Read and check a trial's result file: ``status`` (str); for a finished trial also ``resets`` (int >= 0),
+    ``escaped`` (bool or null, may be absent) and ``saved_model_eval`` (the key of this version's files).
 
     :param path: the result file file
     :return: the parsed object
@@ -195,6 +195,8 @@ def read_result(path: Path) -> dict[str, Any]:
             raise InputError(f"{path}: 'resets' must be an integer >= 0, got {resets!r}.")
         if result.get("escaped") not in (None, True, False):
             raise InputError(f"{path}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
+        if "saved_model_eval" not in result:
+            raise InputError(f"{path} has no 'saved_model_eval': it was written by another version of sb3-collapse.")
     return result
 
 
@@ -312,8 +314,7 @@ def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict
 
 def read_collapse_events(path: Path) -> list[tuple[int, str]]:
     """
-    The events of a collapse events file (``protocol.COLLAPSE_EVENTS_CSV``; files of earlier versions with the
-    first four columns too).
+    The events of a collapse events file (``protocol.COLLAPSE_EVENTS_CSV``).
 
     :param path: the file
     :return: ``(frame, event)`` in file order, ``event`` being ``"reset"`` (any intervention) or ``"escape"``
@@ -325,25 +326,6 @@ def read_collapse_events(path: Path) -> list[tuple[int, str]]:
             raise InputError(f"{path}, line {line}: the number of fields differs from the header's.")
         events.append((_number(path, line, row, "frame", int), row["event"]))
     return events
-
-
-def scheduled_evaluations(
-    frames: np.ndarray, returns: np.ndarray, result: dict[str, Any]
-) -> tuple[np.ndarray, np.ndarray]:
-    """
-    The scheduled evaluations of a finished run (:func:`sb3_collapse.paper.evaluation_schedule`), where the
-    paper's statistics come from: run folders of earlier versions end their evaluation file with the saved final
-    model's evaluation, at the run's last frame (the result file's ``frames``; such files have no
-    ``saved_model_eval``), which is left out here. Files of this version hold the scheduled evaluations only.
-
-    :param frames: the evaluation file's frames, increasing
-    :param returns: the return at each
-    :param result: the run's result file
-    :return: ``(frames, returns)`` without the final model's evaluation
-    """
-    if "saved_model_eval" not in result and len(frames) > 1 and int(frames[-1]) == result.get("frames"):
-        return frames[:-1], returns[:-1]
-    return frames, returns
 
 
 def load_trial(
@@ -384,8 +366,6 @@ def load_trial(
         if not eval_path.exists():
             raise InputError(f"{eval_path} is missing although {result_path} says the trial finished.")
         trial.frames, trial.returns = read_eval_curve(eval_path)
-        frames, returns = trial.frames, trial.returns
-        trial.frames, trial.returns = scheduled_evaluations(frames, returns, result)  # type: ignore[arg-type]
         if len(trial.frames) == 0:
             raise InputError(f"{eval_path} has no evaluation rows although {result_path} says the trial finished.")
         metrics_path = path / COLLAPSE_METRICS_CSV

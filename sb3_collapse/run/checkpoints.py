@@ -157,13 +157,11 @@ def _cuda_rng_state(device: th.device) -> dict[str, Any] | None:
 def _restore_cuda_rng_state(saved: Any, device: th.device) -> None:
     """
     Restore the CUDA generator saved by :func:`capture_state` on the CUDA device ``device`` (the resuming model's),
-    whatever its index was; nothing off CUDA. A checkpoint written by an earlier version holds one state per visible
-    GPU: the one of the first device is taken.
+    whatever its index was; nothing off CUDA.
     """
     if saved is None or device.type != "cuda" or not th.cuda.is_available():
         return
-    state = saved["state"] if isinstance(saved, dict) else saved[0]
-    th.cuda.set_rng_state(state.cpu(), _cuda_index(device))
+    th.cuda.set_rng_state(saved["state"].cpu(), _cuda_index(device))
 
 
 def capture_state(
@@ -531,10 +529,7 @@ def restore_run(
             callback.load_state_dict(callback_state)
         except ValueError as error:  # a state written by another version
             raise CheckpointError(f"checkpoint {checkpoint.folder}: {error}") from None
-    extras = dict(state["model_extras"])
-    if "_train_stats" in extras:  # written before UpdateStats (an unfinished run of an earlier version)
-        state["update_stats"] = {"sums": extras.pop("_train_stats"), "count": extras.pop("_train_stats_count", 0)}
-    for name, value in extras.items():
+    for name, value in state["model_extras"].items():
         setattr(model, name, tensors_to(value, model.device))
     if state.get("update_stats") is not None:
         model.update_stats.load_state_dict(tensors_to(state["update_stats"], model.device))

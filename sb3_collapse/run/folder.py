@@ -10,7 +10,6 @@ new run, or the checkpoint an unfinished one resumes from). The folder's files a
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import shutil
 import time
@@ -18,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 from sb3_collapse.errors import InputError, ParameterError
-from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
     CONFIG_JSON,
@@ -97,9 +95,6 @@ def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str
         may), empty when the run can resume it
     """
     current = json.loads(json.dumps(config.record()))
-    # A setting added after the run folder was written: the run had its default.
-    defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig())))
-    saved = {**{name: defaults[name] for name in defaults if name not in saved and name not in SETTING_NAMES}, **saved}
     return [
         f"`{name}={current.get(name)}` (the run folder has {saved.get(name)!r})"
         for name in sorted(set(saved) | set(current))

@@ -58,8 +58,7 @@ def final_return(folder: str | Path) -> float | None:
     """
     :param folder: a trial folder
     :return: the mean return of its last scheduled evaluation, ``None`` when the trial is not finished or has no
-        evaluation; the final model's evaluation of earlier versions (the evaluation file's row at the result's
-        ``frames``) is not a scheduled one and is skipped
+        evaluation, or its result file is of another version (no ``saved_model_eval``)
     """
     folder = Path(folder)
     try:
@@ -68,10 +67,8 @@ def final_return(folder: str | Path) -> float | None:
             rows = [(int(row["frame"]), float(row["mean_reward"])) for row in csv.DictReader(file)]
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    if not isinstance(result, dict) or result.get("status") != FINISHED:
+    if not isinstance(result, dict) or result.get("status") != FINISHED or "saved_model_eval" not in result:
         return None
-    if "saved_model_eval" not in result and len(rows) > 1 and rows[-1][0] == result.get("frames"):
-        rows = rows[:-1]
     return rows[-1][1] if rows else None
 
 

@@ -364,7 +364,7 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
             before = previous.get("checkpoints", {}).get(source, {}).get(task)
             if before is not None and before != path:
                 changes.append(f"`{source}` checkpoint for {task}: {before} in {SWEEP_JSON}, {path} now")
-    for source in ("good", "bad"):  # earlier versions: one agent gave both parts of a source
+    for source in ("good", "bad"):  # a settings file of another version: one agent gave both parts of a source
         if source in previous.get("checkpoints", {}) and any(
             key.startswith(f"{source}_") for key in current.get("checkpoints", {})
         ):

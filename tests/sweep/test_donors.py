@@ -32,9 +32,15 @@ def test_candidates_are_the_papers_classes(finished_sweep):
     assert [d.seed for d in classes["bad"]] == [s for s, v in sorted(finals.items()) if v < 30] == [1, 3]
     for donor in classes["good"] + classes["bad"]:
         assert donor.final_return == pytest.approx(finals[donor.seed]) and Path(donor.path).is_file()
-    # The final return is the last scheduled evaluation: an earlier version's final-model row is skipped.
+    # The final return is the last scheduled evaluation; a result file of another version gives none.
     folder = finished_sweep.path / "walker-walk" / "drqv2" / "seed_0"
     assert final_return(folder) == pytest.approx(finals[0])
+    result = json.loads((folder / "result.json").read_text())
+    (folder / "result.json").write_text(json.dumps({k: v for k, v in result.items() if k != "saved_model_eval"}))
+    try:
+        assert final_return(folder) is None
+    finally:
+        (folder / "result.json").write_text(json.dumps(result))
     assert final_return(finished_sweep.path / "walker-walk" / "drqv2" / "seed_5") is None  # running
 
 
