@@ -52,7 +52,7 @@ def test_no_backend_raises_with_install_instructions(monkeypatch: pytest.MonkeyP
     monkeypatch.setattr(rendering, "_backend_works", fake_check(set(), calls))
     with pytest.raises(MissingDependencyError) as error:
         ensure_rendering_backend()
-    assert isinstance(error.value, RuntimeError)
+    assert isinstance(error.value, ImportError)  # a missing system library
     message = str(error.value)
     assert "No headless OpenGL backend" in message
     assert "libosmesa6" in message
