@@ -58,7 +58,11 @@ def test_the_paper_numbers_and_who_reads_them():
         PAPER.threshold = 0.1  # frozen
     rule = CollapseReset()
     assert (rule.window_frames, rule.check_every_frames, rule.threshold, rule.patience, rule.layer) == (
-        200_000, 10_000, 1e-3, 5, "mlp1"
+        200_000,
+        10_000,
+        1e-3,
+        5,
+        "mlp1",
     )
     assert CollapseMetrics().check_every_frames == 10_000
     report = ReportSettings()
