@@ -38,7 +38,8 @@ class SB3Model(CollapseModelBase):
 
     def _record_grad_norms(self) -> None:
         """A new :class:`GradNormRecorder` on the current optimizers (``None`` for layers that cannot be named)."""
-        from sb3_collapse.monitoring.activations import LayerMappingError, layer_parameters  # monitoring imports us
+        from sb3_collapse.errors import LayerMappingError
+        from sb3_collapse.monitoring.activations import layer_parameters  # monitoring imports us
 
         if self.grad_norm_recorder is not None:
             self.grad_norm_recorder.remove()

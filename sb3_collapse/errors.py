@@ -1,6 +1,6 @@
 """
-Errors of bad input (the library's, the probe's, the report's, the rl_zoo3 launcher's), and their translation into
-the words of a command line.
+The package's exceptions, one class per kind of error, and the translation of their messages into the words of a
+command line.
 
 Library code names Python parameters in its messages (``episodes must be >= 1, got 0``); a CLI passes the message
 through :func:`cli_message`, which names its flags instead (``--episodes must be >= 1, got 0``).
@@ -15,6 +15,7 @@ import os
 import re
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import ParamSpec
 
 P = ParamSpec("P")
@@ -22,7 +23,8 @@ P = ParamSpec("P")
 
 class InputError(ValueError):
     """
-    Bad input to a library function or class: the message says what is wrong and what to do.
+    Bad input to a library function or a command (a setting, a file, a folder, a command line): the message says what
+    is wrong and what to do. A command line prints it as ``error: ...`` with exit status 2.
 
     :param message: the message, in Python's words (parameter names, not flags)
     :param parameter: the Python name of the parameter at fault, when there is one
@@ -57,38 +59,71 @@ class AssertedParameterError(ParameterError, AssertionError):
 
 class SpaceError(AssertedParameterError, TypeError):
     """
-    An observation or action space the algorithm or policy cannot take; the message says what to use instead.
-
-    Also a ``TypeError`` (what these checks raised before) and an ``AssertionError``: what Stable-Baselines3 raises for
-    an unsupported space (its ``supported_action_spaces`` assertion), so that code written for SB3 catches it.
+    An observation or action space the algorithm or policy cannot take; the message says what to use instead. Also an
+    ``AssertionError`` (what Stable-Baselines3 raises for an unsupported space) and a ``TypeError``.
 
     :param parameter: the parameter that brought the space (``"env"``, ``"policy"``)
     :param message: what is wrong and what to do
     """
 
 
-
-class ProbeError(InputError):
-    """Bad input to the probe (a file, a model, rollouts or a setting); the message says what to do."""
-
-
-class ReportError(InputError):
-    """Bad input to the report (a sweep folder, a trial file or a setting); the message says what to do."""
+class LayerMappingError(ValueError):
+    """The policy's modules cannot be mapped to the named layers (:func:`~sb3_collapse.monitoring.layer_taps`)."""
 
 
-class ZooNotInstalledError(ImportError):
-    """rl_zoo3 (an optional dependency) or one of its own dependencies cannot be imported."""
-
-
-class ZooConfigError(ValueError):
+class CheckpointError(InputError):
     """
-    A configuration rl_zoo3 would run wrongly or fail on deep inside; the message says what to change. The rl_zoo3
-    launcher's command line prints it as ``error: ...`` with exit status 2.
+    A checkpoint (a run's, or its replay store's) that cannot be used: damaged, or written by another version or for
+    another run; the message names it and says what to do.
+
+    :param message: what is wrong and what to do
+    :param damaged: whether its files are damaged (missing, truncated, another checksum): a run then falls back to
+        the checkpoint before; otherwise it is refused
     """
 
+    def __init__(self, message: str, damaged: bool = False) -> None:
+        super().__init__(message)
+        self.damaged = damaged
 
-class LauncherError(ValueError):
-    """A bad rl_zoo3 launcher command line; the message says what to pass (printed as ``error: ...``, status 2)."""
+
+class OutputError(RuntimeError):
+    """A run's output (a checkpoint, a log, the final model) could not be written (a full or read-only disk); the
+    message names the folder, what is intact and what to do."""
+
+
+class DivergenceError(FloatingPointError):
+    """Training produced a loss or a weight that is not finite; the message names the update and the frame."""
+
+
+class TrainingInterrupted(Exception):
+    """
+    ``learn()`` stopped at a signal after writing a checkpoint.
+
+    :param checkpoint: the checkpoint's folder
+    :param signal_name: the signal (``"SIGTERM"``, ``"SIGINT"``)
+    """
+
+    def __init__(self, checkpoint: Path, signal_name: str) -> None:
+        super().__init__(f"stopped by {signal_name} after writing the checkpoint {checkpoint}")
+        self.checkpoint = checkpoint
+        self.signal_name = signal_name
+
+
+class MissingDependencyError(ImportError):
+    """An optional package (rl_zoo3, Ray) or a system library (OpenGL) is not installed; the message says what to
+    install."""
+
+
+class ClusterUnreachable(RuntimeError):
+    """
+    No Ray cluster answered at the sweep's address in time (nothing listens there, a firewall, a head still
+    starting): a fault to retry once the cluster is up. Nothing was written.
+
+    :param message: what happened and what to do, naming the parameter (``address``)
+    """
+
+    parameter = "address"
+
 
 READ_ONLY_ERRNOS = (errno.EROFS, errno.EACCES, errno.EPERM)
 """``OSError`` numbers of a folder or file that cannot be written: read-only file system, no permission."""

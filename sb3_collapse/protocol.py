@@ -1,8 +1,7 @@
 """
 The run-folder format, in one place: what ``python -m sb3_collapse.train`` writes into one run's folder (and a sweep
-into each ``<out>/<task>/<variant>/seed_<k>/``): the file names, the CSV columns, the keys of the result file, the
-names of settings and files that earlier versions wrote (read as the current ones), and the atomic writers every
-module uses. The report, the probe and the sweep read the same names from here.
+into each ``<out>/<task>/<variant>/seed_<k>/``): the file names, the CSV columns, the keys of the result file, and the
+atomic writers every module uses. The report, the probe and the sweep read the same names from here.
 
 The paper's numbers are in :mod:`sb3_collapse.paper`; DrQ-v2's own per-task hyperparameters (budgets, schedules,
 batch sizes...) in :mod:`sb3_collapse.presets`.
@@ -17,7 +16,7 @@ import os
 import re
 import tempfile
 import traceback
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +28,7 @@ RESULT_JSON = "result.json"
 EVAL_CSV = "eval.csv"
 """One row per scheduled evaluation (columns :data:`EVAL_FIELDS`, frames
 :func:`~sb3_collapse.paper.evaluation_schedule`); the saved final model's evaluation is in the result file
-(``saved_model_eval``), not here. Files of earlier versions end with that evaluation, at the run's last frame: the
-report leaves it out."""
+(``saved_model_eval``), not here."""
 COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
 """One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
 COLLAPSE_EVENTS_CSV = "collapse_events.csv"
@@ -64,9 +62,6 @@ SNAPSHOTS_DIR = "snapshots"
 weights the probe and the report's fixed-set figures read (:mod:`sb3_collapse.run.snapshots`)."""
 SNAPSHOT_FILE = "snapshot_{frames:010d}_frames.zip"
 """A snapshot's file name in :data:`SNAPSHOTS_DIR`: the training frames, 10 digits (sorts by time)."""
-LEGACY_SNAPSHOTS_DIR = "probe_checkpoints"
-"""The folder of the snapshots in run folders of earlier versions (files ``probe_<frames, 10 digits>_frames.zip``),
-read as :data:`SNAPSHOTS_DIR` (:func:`snapshot_files`)."""
 ERROR_TXT = "error.txt"
 """The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
 SWEEP_JSON = "sweep.json"
@@ -87,7 +82,7 @@ EVAL_FIELDS = ("frame", "step", "mean_reward", "std_reward", "episodes", "wall_t
 COLLAPSE_METRICS_FIELDS = ("frame", "step", "tag", "value")
 COLLAPSE_EVENT_FIELDS = ("frame", "step", "event", "resets", "intervention", "detail")
 """``event``: ``reset`` (any intervention) or ``escape``; ``intervention``: the rule's (``reset``, ``redo``...);
-``detail``: what the intervention did, one line. Files of earlier versions have the first four columns only."""
+``detail``: what the intervention did, one line."""
 RESULT_KEYS = (
     "status",
     "task",
@@ -125,54 +120,25 @@ def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Pa
     return Path(out) / task / variant / f"{SEED_FOLDER_PREFIX}{seed}"
 
 
-LEGACY_SETTING_NAMES = {"probe_checkpoints": "snapshots", "collapse_probe_batch": "collapse_metrics_batch"}
-"""Settings renamed since earlier versions wrote them into a settings file: old name -> current name
-(:func:`read_settings`)."""
-
-
-def current_setting_names(settings: Mapping[str, Any]) -> dict[str, Any]:
-    """
-    :param settings: settings as a settings file of any version holds them (name -> value)
-    :return: the same settings under their current names (:data:`LEGACY_SETTING_NAMES`); a current name wins over
-        its old one
-    """
-    renamed = {LEGACY_SETTING_NAMES.get(name, name): value for name, value in settings.items()}
-    renamed.update({name: settings[name] for name in LEGACY_SETTING_NAMES.values() if name in settings})
-    return renamed
-
-
 def read_settings(path: str | os.PathLike) -> dict[str, Any]:
     """
     Read a run's settings file (:data:`CONFIG_JSON`) or a sweep's (:data:`SWEEP_JSON`, whose training settings are
-    under ``training``), with the settings of earlier versions under their current names
-    (:func:`current_setting_names`).
+    under ``training``).
 
     :param path: the settings file
     :return: its content
     :raises OSError: when it cannot be read
     :raises ValueError: when it is not JSON
     """
-    content = json.loads(Path(path).read_text())
-    if not isinstance(content, dict):
-        return content
-    content = current_setting_names(content)
-    if isinstance(content.get("training"), dict):
-        content["training"] = current_setting_names(content["training"])
-    return content
+    return json.loads(Path(path).read_text())
 
 
 def snapshot_files(run_dir: str | os.PathLike) -> list[Path]:
     """
     :param run_dir: a run folder
-    :return: its snapshots, in training order: the zips of :data:`SNAPSHOTS_DIR` and, for a run started by an
-        earlier version, of :data:`LEGACY_SNAPSHOTS_DIR`
+    :return: its snapshots (the zips of :data:`SNAPSHOTS_DIR`), in training order
     """
-    files = [
-        path
-        for folder in (LEGACY_SNAPSHOTS_DIR, SNAPSHOTS_DIR)
-        for path in sorted((Path(run_dir) / folder).glob("*.zip"))
-    ]
-    return sorted(files, key=_snapshot_frames)
+    return sorted((Path(run_dir) / SNAPSHOTS_DIR).glob("*.zip"), key=_snapshot_frames)
 
 
 def _snapshot_frames(path: Path) -> int:
@@ -286,7 +252,7 @@ def append_csv_rows(path: str | os.PathLike, fieldnames: Sequence[str], rows: It
     :param path: the CSV file (its folder must exist)
     :param fieldnames: the columns, in order
     :param rows: one dict per row, keyed by column
-    :raises ValueError: when the file has another header (e.g. written by an older version): nothing is appended
+    :raises ValueError: when the file has another header (written by another version): nothing is appended
     """
     path = Path(path)
     new_file = not path.exists() or path.stat().st_size == 0

@@ -16,7 +16,7 @@ import os
 import re
 import socket
 from collections.abc import Iterable
-from enum import StrEnum
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +35,7 @@ from sb3_collapse.protocol import (
 )
 
 
-class RunStatus(StrEnum):
+class RunStatus(str, Enum):
     """
     What a run folder holds, the same word for ``train``, the sweep and the report (checked in this order):
 
@@ -57,6 +57,11 @@ class RunStatus(StrEnum):
     UNFINISHED = "unfinished"
     FINISHED = FINISHED
     FAILED = "failed"
+
+    def __str__(self) -> str:
+        return self.value
+
+    __format__ = str.__format__
 
 
 NOT_A_RUN = "not a run"
@@ -208,9 +213,7 @@ def csv_number(path: Path, line: int, row: dict[str, str], column: str, kind: ty
 def read_evaluations(folder: str | os.PathLike, partial: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """
     The scheduled evaluations of a run (:func:`sb3_collapse.paper.evaluation_schedule`), from its evaluation file
-    (:data:`~sb3_collapse.protocol.EVAL_CSV`). Run folders of earlier versions end that file with the saved final
-    model's evaluation, at the run's last frame (their result file has ``frames`` and no ``saved_model_eval``): it is
-    left out.
+    (:data:`~sb3_collapse.protocol.EVAL_CSV`).
 
     :param folder: a run folder
     :param partial: the file may still be written (an unfinished run): an incomplete last row is dropped
@@ -230,10 +233,21 @@ def read_evaluations(folder: str | os.PathLike, partial: bool = False) -> tuple[
             f"{path}: frames must increase row by row, but frame {frames[where + 1]} follows {frames[where]}; "
             "was the run folder written twice? Delete it and run the trial again."
         )
-    result = read_result(folder) or {}
-    if "saved_model_eval" not in result and len(frames) > 1 and int(frames[-1]) == result.get("frames"):
-        return frames[:-1], returns[:-1]
     return frames, returns
+
+
+def check_result_version(folder: str | os.PathLike, result: dict[str, Any]) -> None:
+    """
+    :param folder: a run folder
+    :param result: its result file's content
+    :raises InputError: naming the file, when a finished run's result has no ``saved_model_eval`` (a file of
+        another version, whose evaluation file also holds the saved model's evaluation)
+    """
+    if result.get("status") == FINISHED and "saved_model_eval" not in result:
+        raise InputError(
+            f"{Path(folder) / RESULT_JSON} has no 'saved_model_eval': it was written by another version of "
+            "sb3-collapse."
+        )
 
 
 def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -304,11 +318,13 @@ def final_return(folder: str | os.PathLike) -> float | None:
     """
     :param folder: a run folder
     :return: the mean return of its last scheduled evaluation (:func:`read_evaluations`), the one the paper's agent
-        classes read; ``None`` when the run is not finished, or its evaluation file is missing, malformed or empty
+        classes read; ``None`` when the run is not finished, its result file is of another version
+        (:func:`check_result_version`), or its evaluation file is missing, malformed or empty
     """
     if run_status(folder) != RunStatus.FINISHED:
         return None
     try:
+        check_result_version(folder, read_result(folder) or {})
         _, returns = read_evaluations(folder)
     except InputError:
         return None

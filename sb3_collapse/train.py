@@ -17,15 +17,19 @@ import argparse
 import re
 import sys
 
-from sb3_collapse.drqv2.divergence import DivergenceError
-from sb3_collapse.errors import InputError, cli_message, report_unwritable_outputs
+from sb3_collapse.errors import (
+    DivergenceError,
+    InputError,
+    OutputError,
+    TrainingInterrupted,
+    cli_message,
+    report_unwritable_outputs,
+)
 from sb3_collapse.protocol import CONFIG_JSON, EXIT_INTERRUPTED
-from sb3_collapse.run.checkpoints import CheckpointError
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import check_run_folder
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.settings import add_run_arguments, prog_name, show_settings, training_arguments
-from sb3_collapse.run.signals import TrainingInterrupted
 
 CLI_ONLY_FLAGS = ("--show-settings",)
 """The flags of this command line that are not settings of :class:`TrainConfig`."""
@@ -70,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         train(config)
     except InputError as error:  # raised before training: nothing was written
         parser.error(re.sub(r"init_from\['(\w+)'\]", r"--init-\1", cli_message(error, parser)))
-    except (CheckpointError, DivergenceError) as error:
+    except (OutputError, DivergenceError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
     except TrainingInterrupted as error:

@@ -28,6 +28,7 @@ from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_collapse import CollapseReset, DrQv2, make_dmc_env
 from sb3_collapse.envs.replay import EpisodeReplay
+from sb3_collapse.errors import CheckpointError, InputError, OutputError
 from sb3_collapse.protocol import (
     CHECKPOINT_JSON,
     CHECKPOINT_MODEL,
@@ -43,14 +44,8 @@ from sb3_collapse.protocol import (
     SNAPSHOT_FILE,
     SNAPSHOTS_DIR,
 )
-from sb3_collapse.run.checkpoints import (
-    CheckpointError,
-    CheckpointMismatch,
-    ResumableCheckpoints,
-    checkpoint_folders,
-    load_checkpoint,
-)
-from sb3_collapse.run.lock import RunFolderLocked, RunLock
+from sb3_collapse.run.checkpoints import ResumableCheckpoints, checkpoint_folders, load_checkpoint
+from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.signals import stop_signals
 from sb3_collapse.train import main
 
@@ -139,7 +134,7 @@ def test_killed_stopped_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path, 
     # 1. Another process trains into the folder: a second one is refused; then SIGKILL, after its second checkpoint.
     process = _start(resumed)
     _wait_for_checkpoint(process, resumed, 20)
-    with pytest.raises(RunFolderLocked, match=rf"in use by pid {process.pid} on host"):
+    with pytest.raises(InputError, match=rf"in use by pid {process.pid} on host"):
         with RunLock(resumed):
             pass
     process.kill()
@@ -191,15 +186,18 @@ def test_killed_stopped_and_resumed_run_ends_as_the_uninterrupted_one(tmp_path, 
     result = json.loads((resumed / RESULT_JSON).read_text())
     assert result["resumes"] == 2 and result["resets"] == 2  # the lineage of the final weights: two resumptions
     assert {k: v for k, v in result.items() if k not in ("wall_time_s", "timings", "resumes")} == {
-        k: v for k, v in json.loads((reference / RESULT_JSON).read_text()).items()
+        k: v
+        for k, v in json.loads((reference / RESULT_JSON).read_text()).items()
         if k not in ("wall_time_s", "timings", "resumes")
     }
     assert not (resumed / CHECKPOINTS_DIR).exists() and not (resumed / LOCK_FILE).exists()  # deleted once finished
     # The snapshots' schedule resumed with the run: the same files, the same encoder and actor weights.
     snapshots = [sorted((run / SNAPSHOTS_DIR).iterdir()) for run in (reference, resumed)]
-    assert [p.name for p in snapshots[0]] == [p.name for p in snapshots[1]] == [
-        SNAPSHOT_FILE.format(frames=frames) for frames in (0, 1000, 2000)
-    ]
+    assert (
+        [p.name for p in snapshots[0]]
+        == [p.name for p in snapshots[1]]
+        == [SNAPSHOT_FILE.format(frames=frames) for frames in (0, 1000, 2000)]
+    )
     for a_zip, b_zip in zip(*snapshots):
         a, b = load_from_zip_file(a_zip)[1]["policy"], load_from_zip_file(b_zip)[1]["policy"]
         assert a.keys() == b.keys() and all(th.equal(a[name], b[name]) for name in a)
@@ -236,8 +234,11 @@ def test_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr("sb3_collapse.run.checkpoints.pickle.dump", full)
-    with pytest.raises(CheckpointError, match=rf"into {tmp_path / CHECKPOINTS_DIR} \(No space left on device\); the "
-                       r"previous checkpoint step_000000000010 is intact"):
+    with pytest.raises(
+        OutputError,
+        match=rf"into {tmp_path / CHECKPOINTS_DIR} \(No space left on device\); the "
+        r"previous checkpoint step_000000000010 is intact",
+    ):
         model.learn(12, callback=checkpoints, reset_num_timesteps=False)
     monkeypatch.undo()
     assert checkpoint_folders(tmp_path / CHECKPOINTS_DIR) == first  # no partial folder listed, the old one whole
@@ -251,7 +252,7 @@ def test_checkpoint_of_another_version_is_refused(tmp_path):
     info_path = checkpoint_folders(tmp_path)[0] / CHECKPOINT_JSON
     info = json.loads(info_path.read_text())
     info_path.write_text(json.dumps({**info, "version": "0.0.1"}))
-    with pytest.raises(CheckpointMismatch, match="written by sb3-collapse 0.0.1, this is .*resume with the version"):
+    with pytest.raises(CheckpointError, match="written by sb3-collapse 0.0.1, this is .*resume with the version"):
         load_checkpoint(tmp_path)
 
 

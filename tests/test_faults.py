@@ -17,8 +17,8 @@ import torch as th
 from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_collapse import DrQv2
-from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
-from sb3_collapse.errors import report_unwritable_outputs, unwritable_message
+from sb3_collapse.drqv2.divergence import DivergenceGuard, all_finite
+from sb3_collapse.errors import DivergenceError, report_unwritable_outputs, unwritable_message
 from sb3_collapse.protocol import (
     CHECKPOINT_MODEL,
     CHECKPOINTS_DIR,

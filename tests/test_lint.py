@@ -1,10 +1,12 @@
 """ruff (pyproject.toml's rules, line length included) passes on the package, the tests, the benchmarks and scripts;
 the package holds no module that only tests or benchmarks use (those live in tests/); outside the models' own code, no
-``getattr(model, "_...")`` on a model's private attributes; ``DrQv2`` in at most 450 lines."""
+``getattr(model, "_...")`` on a model's private attributes; ``DrQv2`` in at most 450 lines; at most 12 exception
+classes, no two of one name."""
 
 from __future__ import annotations
 
 import ast
+import builtins
 import re
 import shutil
 import subprocess
@@ -184,3 +186,48 @@ replay memory live beside it in ``sb3_collapse/drqv2/``."""
 def test_the_drqv2_algorithm_module_is_at_most_450_lines():
     lines = len((PACKAGE / "drqv2" / "drqv2.py").read_text().splitlines())
     assert lines <= DRQV2_MAX_LINES, f"sb3_collapse/drqv2/drqv2.py has {lines} lines (at most {DRQV2_MAX_LINES})"
+
+
+MAX_EXCEPTION_CLASSES = 12
+"""Exception classes the package may define: one per kind of error (``sb3_collapse/errors.py``)."""
+
+
+def _exception_classes(sources: dict[str, str]) -> list[tuple[str, str]]:
+    """
+    :param sources: label (a file) -> Python source
+    :return: (name, ``label:line``) of every class deriving, directly or through another class, from a built-in
+        exception
+    """
+    exceptions = {
+        name for name, value in vars(builtins).items() if isinstance(value, type) and issubclass(value, BaseException)
+    }
+    classes = [
+        (node.name, {ast.unparse(base).rsplit(".", 1)[-1] for base in node.bases}, f"{label}:{node.lineno}")
+        for label, source in sources.items()
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.ClassDef)
+    ]
+    found: list[tuple[str, str]] = []
+    while True:
+        new = [(name, where) for name, bases, where in classes if bases & exceptions and (name, where) not in found]
+        if not new:
+            return sorted(found, key=lambda item: item[1])
+        found += new
+        exceptions |= {name for name, _ in new}
+
+
+def test_the_package_has_one_exception_class_per_kind_of_error():
+    sources = {str(path.relative_to(ROOT)): path.read_text() for path in sorted(PACKAGE.rglob("*.py"))}
+    classes = _exception_classes(sources)
+    listed = "\n".join(f"{where}: {name}" for name, where in classes)
+    assert len(classes) <= MAX_EXCEPTION_CLASSES, f"{len(classes)} exception classes, reuse one:\n{listed}"
+    names = [name for name, _ in classes]
+    assert len(set(names)) == len(names), f"two exception classes share a name:\n{listed}"
+
+
+def test_the_exception_finder_finds_what_it_looks_for():
+    sources = {
+        "a.py": "class A(ValueError):\n    pass\nclass Plain:\n    pass\n",
+        "b.py": "class B(errors.A, KeyError):\n    pass\nclass C(B):\n    pass\nclass D(Plain):\n    pass\n",
+    }
+    assert _exception_classes(sources) == [("A", "a.py:1"), ("B", "b.py:1"), ("C", "b.py:3")]

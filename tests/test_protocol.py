@@ -13,8 +13,6 @@ from sb3_collapse.errors import ParameterError, cli_message
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import (
     CONFIG_JSON,
-    LEGACY_SETTING_NAMES,
-    SWEEP_JSON,
     read_settings,
     write_json_atomically,
 )
@@ -28,7 +26,7 @@ NUMBERS = re.compile(r"\b(200_000|200000|200,000|1e-3|0\.001|900(\.0)?)\b")
 FILE_NAME_OWNERS = {"protocol.py"}
 FILE_NAMES = re.compile(
     r"(result\.json|eval\.csv|collapse_metrics\.csv|collapse_events\.csv|config\.json|final_model|error\.txt|"
-    r"sweep\.json|probe_checkpoints)"
+    r"sweep\.json)"
 )
 
 
@@ -60,7 +58,11 @@ def test_the_paper_numbers_and_who_reads_them():
         PAPER.threshold = 0.1  # frozen
     rule = CollapseReset()
     assert (rule.window_frames, rule.check_every_frames, rule.threshold, rule.patience, rule.layer) == (
-        200_000, 10_000, 1e-3, 5, "mlp1"
+        200_000,
+        10_000,
+        1e-3,
+        5,
+        "mlp1",
     )
     assert CollapseMetrics().check_every_frames == 10_000
     report = ReportSettings()
@@ -96,18 +98,17 @@ def test_library_errors_name_parameters_and_clis_translate():
     )
 
 
-def test_settings_files_of_earlier_versions_are_read_under_the_current_names(tmp_path):
+def test_a_settings_file_of_another_version_is_not_resumed(tmp_path):
     from sb3_collapse.run.config import TrainConfig
     from sb3_collapse.run.folder import settings_differences
 
     config = TrainConfig(env="walker-walk", frames=800, snapshots=True, collapse_metrics_batch=16)
     saved = json.loads(json.dumps(config.record()))
-    for old, new in LEGACY_SETTING_NAMES.items():  # the settings file of a run started by an earlier version
-        saved[old] = saved.pop(new)
     write_json_atomically(tmp_path / CONFIG_JSON, saved)
-    raw = json.loads((tmp_path / CONFIG_JSON).read_text())
-    assert settings_differences(raw, config) != []
-    # read as a resumed run reads it: the same settings, the run is resumed
     assert settings_differences(read_settings(tmp_path / CONFIG_JSON), config) == []
-    write_json_atomically(tmp_path / SWEEP_JSON, {"training": {"collapse_probe_batch": 8, "probe_checkpoints": True}})
-    assert read_settings(tmp_path / SWEEP_JSON)["training"] == {"collapse_metrics_batch": 8, "snapshots": True}
+    saved["probe_checkpoints"] = saved.pop("snapshots")  # a name this version does not have, one it has missing
+    write_json_atomically(tmp_path / CONFIG_JSON, saved)
+    assert settings_differences(read_settings(tmp_path / CONFIG_JSON), config) == [
+        "`probe_checkpoints=None` (the run folder has True)",
+        "`snapshots=True` (the run folder has None)",
+    ]

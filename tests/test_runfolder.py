@@ -52,14 +52,14 @@ CASES = {
     "failed in the sweep": ({"error.txt": "Traceback (most recent call last)"}, RunStatus.FAILED, None),
     "a result that is not finished": ({"config.json": "{}", "result.json": '{"status": '}, RunStatus.FAILED, None),
     "finished": (FINISHED_FILES, RunStatus.FINISHED, 20.0),
-    "finished, the final model's row of earlier versions": (
+    "finished, a result file of another version": (
         {
             **FINISHED_FILES,
             "eval.csv": EVAL_HEADER + EVAL_ROWS + "3000,1500,999.0,0.0,10,4.0\n",
-            "result.json": json.dumps({"status": "finished", "frames": 3000, "resets": 0}),
+            "result.json": json.dumps({"status": "finished", "frames": 3000, "resets": 0}),  # no saved_model_eval
         },
         RunStatus.FINISHED,
-        20.0,
+        None,
     ),
     "finished without an evaluation file": ({**FINISHED_FILES, "eval.csv": ""}, RunStatus.FINISHED, None),
     "other files": ({"notes.txt": "mine"}, None, None),
@@ -119,27 +119,29 @@ def test_sweep_report_and_probe_read_the_same_status_and_final_return(tmp_path):
         with pytest.raises(ValueError, match=rf"{file}: (not a readable JSON file|missing column)"):
             load_trial("walker-walk", "drqv2", 0, folders[name])
         shutil.rmtree(folders.pop(name))
+    with pytest.raises(ValueError, match=r"result\.json has no 'saved_model_eval': it was written by another version"):
+        load_trial("walker-walk", "drqv2", 0, folders["finished, a result file of another version"])
+    shutil.rmtree(folders.pop("finished, a result file of another version"))
     by_seed = {int(folder.name.removeprefix("seed_")): name for name, folder in folders.items()}
     # The report's trials (and the probe's: python -m sb3_collapse.probe sweep reads the sweep with load_sweep).
     sweep = load_sweep(tmp_path, include_unfinished=True, progress=False)
     assert {by_seed[t.seed]: t.status for t in sweep.trials} == {
         name: str(run_status(folder) or NOT_A_RUN) for name, folder in folders.items()
     }
-    for name in ("finished", "finished, the final model's row of earlier versions"):
+    for name in ("finished",):
         trial = load_trial("walker-walk", "drqv2", 0, folders[name])
         assert trial.final_return == final_return(folders[name]) == CASES[name][2]
         assert trial.frames.tolist() == [0, 1000, 2000]
     assert math.isnan(next(t for t in sweep.trials if by_seed[t.seed] == "stopped").final_return)
     # The sweep's donors: the finished seeds with a final model, by the same final return.
-    for name in ("finished", "finished, the final model's row of earlier versions"):
+    for name in ("finished",):
         (folders[name] / "final_model.zip").write_bytes(b"")
     (folders["stopped"] / "final_model.zip").write_bytes(b"")
     classes = donor_candidates(tmp_path, "walker-walk", success_return=15.0, failure_return=30.0)
     assert [(by_seed[d.seed], d.final_return) for d in classes["good"]] == [
         ("finished", 20.0),
-        ("finished, the final model's row of earlier versions", 20.0),
     ]
-    assert np.isclose(sorted(t.final_return for t in sweep.finished if len(t.returns)), [20.0, 20.0]).all()
+    assert np.isclose(sorted(t.final_return for t in sweep.finished if len(t.returns)), [20.0]).all()
 
 
 READ_CALLS = {"open", "read_text", "read_bytes", "loads", "load", "DictReader", "reader", "read_json", "read_csv"}

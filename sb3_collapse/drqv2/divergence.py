@@ -20,6 +20,8 @@ from typing import Any
 
 import torch as th
 
+from sb3_collapse.errors import DivergenceError
+
 GROWTH_FACTOR = 1e4
 """How many times its starting scale a loss may grow before a warning (four orders of magnitude)."""
 
@@ -28,10 +30,6 @@ REFERENCE_DUMPS = 10
 
 VALUE_BOUND_FACTOR = 100.0
 """How many times the bound its rewards allow a loss may reach before a warning."""
-
-
-class DivergenceError(FloatingPointError):
-    """Training produced a loss or a weight that is not finite; the message names the update and the frame."""
 
 
 def all_finite(tensors: Iterable[th.Tensor]) -> th.Tensor:

@@ -22,7 +22,7 @@ from sb3_collapse.drqv2.checks import (
     compile_losses,
     uses_cuda_graphs,
 )
-from sb3_collapse.drqv2.divergence import DivergenceError, DivergenceGuard, all_finite
+from sb3_collapse.drqv2.divergence import DivergenceGuard, all_finite
 from sb3_collapse.drqv2.encoders import PixelEncoder, StateEncoder
 from sb3_collapse.drqv2.policies import (
     Actor,
@@ -45,6 +45,7 @@ from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, action_noise_act
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
 from sb3_collapse.drqv2.transplant import TransplantSpec, check_init_from, describe_init_from, load_sources, transplant
 from sb3_collapse.drqv2.update_stats import UpdateStats
+from sb3_collapse.errors import DivergenceError
 
 SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
 

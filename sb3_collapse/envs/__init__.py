@@ -8,12 +8,11 @@ dm_control. Code that imports dm_control itself calls :func:`ensure_rendering_ba
 
 from sb3_collapse.envs.dmc import DMCEnv, make_dmc_env, parse_task
 from sb3_collapse.envs.registration import DMC_TASKS, register_dmc_envs
-from sb3_collapse.envs.rendering import RenderingBackendError, ensure_rendering_backend
+from sb3_collapse.envs.rendering import ensure_rendering_backend
 
 __all__ = [
     "DMC_TASKS",
     "DMCEnv",
-    "RenderingBackendError",
     "ensure_rendering_backend",
     "make_dmc_env",
     "parse_task",

@@ -14,6 +14,8 @@ import subprocess
 import sys
 import warnings
 
+from sb3_collapse.errors import MissingDependencyError
+
 # Backends tried, in order, when ``MUJOCO_GL`` is not set. EGL uses the GPU when there is one
 # (and Mesa's software rasterizer otherwise); OSMesa is software only.
 HEADLESS_BACKENDS: tuple[str, ...] = ("egl", "osmesa")
@@ -29,10 +31,6 @@ _chosen_backend: str | None = None
 _failure_report: str | None = None
 
 
-class RenderingBackendError(RuntimeError):
-    """No headless OpenGL backend could create a rendering context."""
-
-
 def ensure_rendering_backend(required: bool = True) -> str | None:
     """
     Make sure MuJoCo can render off-screen, choosing the OpenGL backend if needed: a ``MUJOCO_GL`` already set is
@@ -42,9 +40,9 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
     docs/environments.md.
 
     :param required: Whether rendering is needed (pixel observations). If True and no backend works,
-        raise :class:`RenderingBackendError`; if False (state observations), return None instead.
+        raise :class:`MissingDependencyError`; if False (state observations), return None instead.
     :return: The backend in use (value of ``MUJOCO_GL``), or None if none works and ``required`` is False.
-    :raises RenderingBackendError: if no backend works and ``required`` is True.
+    :raises MissingDependencyError: if no backend works and ``required`` is True.
     """
     global _chosen_backend, _failure_report
 
@@ -68,7 +66,7 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
         _failure_report = "\n".join(failures)
 
     if required:
-        raise RenderingBackendError(_no_backend_message(_failure_report))
+        raise MissingDependencyError(_no_backend_message(_failure_report))
     return None
 
 
@@ -124,7 +122,7 @@ def _warn_if_dm_control_imported() -> None:
 def _no_backend_message(failure_report: str) -> str:
     """
     :param failure_report: stderr tails of the failed checks.
-    :return: The message of the :class:`RenderingBackendError` raised when no backend works.
+    :return: The message of the :class:`MissingDependencyError` raised when no backend works.
     """
     return (
         "No headless OpenGL backend works for MuJoCo rendering (tried MUJOCO_GL="

@@ -1,13 +1,7 @@
 """Collapse monitoring: named activations of an actor, collapse metrics, and the callbacks built on them (and the
 run's periodic evaluation)."""
 
-from sb3_collapse.monitoring.activations import (
-    LayerMappingError,
-    LayerTap,
-    collect_activations,
-    layer_parameters,
-    layer_taps,
-)
+from sb3_collapse.monitoring.activations import LayerTap, collect_activations, layer_parameters, layer_taps
 from sb3_collapse.monitoring.callbacks import (
     ActivationLogger,
     CollapseMetrics,
@@ -56,7 +50,6 @@ __all__ = [
     "CollapseReset",
     "FrameScheduleCallback",
     "InterventionResult",
-    "LayerMappingError",
     "LayerTap",
     "MetricsBatchSampler",
     "PeriodicEvaluation",

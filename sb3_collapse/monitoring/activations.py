@@ -18,9 +18,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.torch_layers import FlattenExtractor, NatureCNN
 from torch import nn
 
-
-class LayerMappingError(ValueError):
-    """The policy's modules cannot be mapped to the named layers."""
+from sb3_collapse.errors import LayerMappingError
 
 
 @dataclass(frozen=True)

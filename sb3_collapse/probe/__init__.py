@@ -5,7 +5,6 @@ figures and tables are :mod:`sb3_collapse.report`'s. ``python -m sb3_collapse.pr
 each module's part: docs/layout.md.
 """
 
-from sb3_collapse.errors import ProbeError
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.omp import OMPPath, OrthogonalMatchingPursuit, omp_path, path_predictions
 from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
@@ -24,7 +23,6 @@ __all__ = [
     "Checkpoint",
     "OMPPath",
     "OrthogonalMatchingPursuit",
-    "ProbeError",
     "ProbeSettings",
     "RecordOptions",
     "Rollouts",

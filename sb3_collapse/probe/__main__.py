@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from sb3_collapse.errors import ProbeError, cli_message, report_unwritable_outputs
+from sb3_collapse.errors import InputError, cli_message, report_unwritable_outputs
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
 from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
@@ -302,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with _sigterm_as_interrupt():
             _run(args, [parser.prog, *argv])
-    except ProbeError as error:
+    except InputError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as stop:

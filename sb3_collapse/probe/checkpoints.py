@@ -13,8 +13,8 @@ from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2 import DrQv2
-from sb3_collapse.errors import ProbeError
-from sb3_collapse.monitoring import LayerMappingError, layer_taps
+from sb3_collapse.errors import InputError, LayerMappingError
+from sb3_collapse.monitoring import layer_taps
 from sb3_collapse.monitoring.callbacks import action_repeat_of
 from sb3_collapse.run.snapshots import is_snapshot, load_snapshot
 
@@ -68,22 +68,22 @@ def read_saved_data(path: str | Path) -> dict[str, Any]:
 
     :param path: the file
     :return: the parsed JSON
-    :raises ProbeError: for a missing file, a file that is not a zip, or a zip without SB3's files
+    :raises InputError: for a missing file, a file that is not a zip, or a zip without SB3's files
     """
     path = Path(path)
     if not path.is_file():
-        raise ProbeError(f"Checkpoint {path} does not exist.")
+        raise InputError(f"Checkpoint {path} does not exist.")
     if not zipfile.is_zipfile(path):
-        raise ProbeError(f"{path} is not a zip file; expected an SB3 checkpoint saved with `model.save(...)`.")
+        raise InputError(f"{path} is not a zip file; expected an SB3 checkpoint saved with `model.save(...)`.")
     with zipfile.ZipFile(path) as archive:
         names = set(archive.namelist())
         missing = {"data", "policy.pth"} - names
         if missing:
-            raise ProbeError(f"{path} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
+            raise InputError(f"{path} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
         try:
             return json.loads(archive.read("data"))
         except (json.JSONDecodeError, UnicodeDecodeError) as error:
-            raise ProbeError(f"{path}: SB3's `data` entry is not valid JSON ({error}).") from error
+            raise InputError(f"{path}: SB3's `data` entry is not valid JSON ({error}).") from error
 
 
 def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgorithm]:
@@ -91,11 +91,11 @@ def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgor
     :param data: the ``data`` JSON of an SB3 zip
     :param path: the file (for messages)
     :return: the algorithm class that loads it
-    :raises ProbeError: for an algorithm whose actor has no named layers
+    :raises InputError: for an algorithm whose actor has no named layers
     """
     module = (data.get("policy_class") or {}).get("__module__")
     if module not in ALGORITHMS:
-        raise ProbeError(
+        raise InputError(
             f"{path}: cannot probe a model whose policy comes from {module!r}; named layers are defined for "
             "DrQv2 (sb3_collapse) and SB3's TD3, DDPG and SAC."
         )
@@ -114,7 +114,7 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
         :mod:`sb3_collapse.run.snapshots`)
     :param device: where the networks go
     :return: the loaded checkpoint
-    :raises ProbeError: for a missing file, a non-zip, a zip that is not an SB3 model, an unknown algorithm,
+    :raises InputError: for a missing file, a non-zip, a zip that is not an SB3 model, an unknown algorithm,
         a model that fails to load, or layers that cannot be mapped
     """
     path = Path(path)
@@ -127,11 +127,11 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
         else:
             model = algorithm.load(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
     except Exception as error:
-        raise ProbeError(f"{path}: {algorithm.__name__}.load failed ({type(error).__name__}: {error}).") from error
+        raise InputError(f"{path}: {algorithm.__name__}.load failed ({type(error).__name__}: {error}).") from error
     try:
         layer_taps(model)
     except LayerMappingError as error:
-        raise ProbeError(f"{path}: {error}") from error
+        raise InputError(f"{path}: {error}") from error
     return Checkpoint(path, model, algorithm.__name__, int(model.num_timesteps), action_repeat_of(model))
 
 
@@ -140,11 +140,11 @@ def checkpoint_labels(paths: list[str | Path]) -> list[str]:
     Names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as it
     takes to tell them apart (``run1/model`` and ``run2/model``).
 
-    :raises ProbeError: when the same file is given twice
+    :raises InputError: when the same file is given twice
     """
     resolved = [Path(path).resolve() for path in paths]
     if len(set(resolved)) != len(resolved):
-        raise ProbeError("The same checkpoint is given twice.")
+        raise InputError("The same checkpoint is given twice.")
     depth = 1
     while True:
         labels = [

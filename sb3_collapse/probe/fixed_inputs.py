@@ -18,12 +18,12 @@ import numpy as np
 import torch as th
 from tqdm.auto import tqdm
 
-from sb3_collapse.errors import ProbeError
+from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring import collect_activations, layer_metrics, unit_count
 from sb3_collapse.paper import metric_tag
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.rollouts import Rollouts
-from sb3_collapse.protocol import LEGACY_SNAPSHOTS_DIR, SNAPSHOTS_DIR
+from sb3_collapse.protocol import SNAPSHOTS_DIR
 
 FIXED_SAMPLES = 2048
 """Observations of the fixed set by default: more than the 1024 units of ``mlp1`` and ``mlp2``, so that their
@@ -68,7 +68,7 @@ class FixedInputs:
         agent = ""
         if self.recorded_from is not None:
             checkpoint = Path(self.recorded_from)
-            snapshot = checkpoint.parent.name in (SNAPSHOTS_DIR, LEGACY_SNAPSHOTS_DIR)  # one folder deeper
+            snapshot = checkpoint.parent.name == SNAPSHOTS_DIR  # one folder deeper
             agent = f", recorded from {'/'.join(checkpoint.parts[-4 - snapshot :])}"
             agent += "" if self.recorded_frames is None else f" at {self.recorded_frames:,} frames"
         source = f"{self.source.parent.name}/{self.source.name}"
@@ -84,7 +84,7 @@ def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, see
     :param samples: how many (``None`` or more than the file holds: all)
     :param seed: seed of the draw
     :return: the set
-    :raises ProbeError: for a file that is missing or not a rollouts file
+    :raises InputError: for a file that is missing or not a rollouts file
     """
     path = Path(path)
     rollouts = Rollouts.load(path)
@@ -162,7 +162,7 @@ def fixed_metrics(
     :param progress: a progress bar over the checkpoints
     :param desc: its label
     :return: the metrics (empty without checkpoints)
-    :raises ProbeError: for a checkpoint that cannot be loaded or whose observations differ from the set's
+    :raises InputError: for a checkpoint that cannot be loaded or whose observations differ from the set's
     """
     columns: dict[str, tuple[list[int], list[float]]] = {}
     result = FixedMetrics(checkpoints=list(paths))
@@ -170,7 +170,7 @@ def fixed_metrics(
         checkpoint = load_checkpoint(path, device=device)
         shape = tuple(checkpoint.model.observation_space.shape or ())
         if tuple(inputs.observations.shape[1:]) != shape:
-            raise ProbeError(
+            raise InputError(
                 f"{inputs.source} holds observations of shape {tuple(inputs.observations.shape[1:])} but {path} "
                 f"takes {shape}: give `rollouts` recorded with the checkpoints' image size and frame stack.",
                 parameter="rollouts",

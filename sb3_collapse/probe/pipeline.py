@@ -9,7 +9,7 @@ from pathlib import Path
 from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.drqv2.checks import check_device
-from sb3_collapse.errors import ProbeError
+from sb3_collapse.errors import InputError
 from sb3_collapse.probe.checkpoints import Checkpoint, identify_algorithm, load_checkpoint, read_saved_data
 from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
 
@@ -45,7 +45,7 @@ class RecordOptions:
     camera_id: int | None = None
 
     def check(self) -> None:
-        """:raises ProbeError: for a bad option, before anything is loaded or recorded"""
+        """:raises InputError: for a bad option, before anything is loaded or recorded"""
         check_record_arguments(self.episodes, self.max_steps, self.noise_std)
 
 
@@ -97,13 +97,13 @@ def record_to_file(
     :param device: where the networks run
     :param progress: show a progress bar
     :return: the file written
-    :raises ProbeError: for bad input
+    :raises InputError: for bad input
     """
     out = Path(out)
     if out.is_dir():
-        raise ProbeError(f"out {out} is a folder; give the path of the .npz file to write.", parameter="out")
+        raise InputError(f"out {out} is a folder; give the path of the .npz file to write.", parameter="out")
     if out.exists() and not overwrite:
-        raise ProbeError(f"{out} exists: pass `overwrite=True` or another `out`.", parameter="out")
+        raise InputError(f"{out} exists: pass `overwrite=True` or another `out`.", parameter="out")
     options.check()
     check_device(device)
     checkpoint = load_checkpoint(checkpoint_path, device=get_device(device))
@@ -124,10 +124,10 @@ def check_checkpoint_files(paths: Sequence[str | Path], same_observations: bool 
 
     :param paths: the checkpoints
     :param same_observations: check that they all take observations of one shape
-    :raises ProbeError: naming the first bad file, or two checkpoints whose observations differ
+    :raises InputError: naming the first bad file, or two checkpoints whose observations differ
     """
     if not paths:
-        raise ProbeError("Give at least one checkpoint (.zip).")
+        raise InputError("Give at least one checkpoint (.zip).")
     shapes: dict[tuple, str | Path] = {}
     for path in paths:
         data = read_saved_data(path)
@@ -137,7 +137,7 @@ def check_checkpoint_files(paths: Sequence[str | Path], same_observations: bool 
             shapes.setdefault(tuple(shape), path)
     if same_observations and len(shapes) > 1:
         (first, first_path), (other, other_path) = list(shapes.items())[:2]
-        raise ProbeError(
+        raise InputError(
             f"{first_path} takes observations of shape {first} and {other_path} of shape {other}: the probe feeds "
             "every checkpoint the same rollouts, so probe checkpoints of another image size or frame stack in a run "
             "of their own.",

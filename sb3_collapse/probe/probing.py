@@ -31,7 +31,7 @@ from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
 from sb3_collapse.drqv2.checks import check_device
-from sb3_collapse.errors import ProbeError
+from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring import collect_activations, layer_taps
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.omp import omp_path, path_predictions
@@ -66,10 +66,10 @@ class EpisodeSplit:
 def check_fractions(fractions: Sequence[float]) -> None:
     """
     :param fractions: train, validation, test fractions of the episodes
-    :raises ProbeError: unless they are 3 positive fractions summing to 1
+    :raises InputError: unless they are 3 positive fractions summing to 1
     """
     if len(fractions) != 3 or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
-        raise ProbeError(
+        raise InputError(
             f"fractions must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}.",
             parameter="fractions",
         )
@@ -86,12 +86,12 @@ def split_by_episode(
     :param fractions: train, validation, test fractions of the episodes (summing to 1)
     :param seed: seed of the shuffle
     :return: the split
-    :raises ProbeError: with fewer than 3 episodes, or fractions that leave a set empty
+    :raises InputError: with fewer than 3 episodes, or fractions that leave a set empty
     """
     check_fractions(fractions)
     episodes = np.unique(episode_ids)
     if len(episodes) < MIN_EPISODES:
-        raise ProbeError(
+        raise InputError(
             f"Probing needs at least {MIN_EPISODES} episodes (train, validation, test), the rollouts have "
             f"{len(episodes)}."
         )
@@ -100,7 +100,7 @@ def split_by_episode(
     n_test = max(1, round(fractions[2] * len(episodes)))
     n_train = len(episodes) - n_val - n_test
     if n_train < 1:
-        raise ProbeError(f"The split {list(fractions)} of {len(episodes)} episodes leaves none for training.")
+        raise InputError(f"The split {list(fractions)} of {len(episodes)} episodes leaves none for training.")
     sets = {
         "train": np.sort(shuffled[:n_train]),
         "validation": np.sort(shuffled[n_train : n_train + n_val]),
@@ -350,18 +350,18 @@ class ProbeSettings:
     progress: bool = True
 
     def validate(self) -> None:
-        """:raises ProbeError: naming the bad setting"""
+        """:raises InputError: naming the bad setting"""
         if self.max_tau < 1:
-            raise ProbeError(f"max_tau must be >= 1, got {self.max_tau}.", parameter="max_tau")
+            raise InputError(f"max_tau must be >= 1, got {self.max_tau}.", parameter="max_tau")
         if self.batch_size < 1:
-            raise ProbeError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
+            raise InputError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
         if self.memory_gb <= 0:
-            raise ProbeError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
+            raise InputError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
         check_fractions(self.fractions)
         try:
             check_device(self.device)
         except ValueError as error:
-            raise ProbeError(str(error), parameter="device") from None
+            raise InputError(str(error), parameter="device") from None
 
 
 @dataclass
@@ -386,17 +386,17 @@ def select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[
     :param checkpoint: the checkpoint
     :param layers: requested names, ``None`` for the paper's layers the model has
     :return: the names, in the model's order
-    :raises ProbeError: for a requested name the model lacks
+    :raises InputError: for a requested name the model lacks
     """
     available = list(layer_taps(checkpoint.model))
     if layers is None:
         names = [name for name in available if name in PROBE_LAYERS]
         if not names:
-            raise ProbeError(f"{checkpoint.path}: none of the layers {list(PROBE_LAYERS)}; it has {available}.")
+            raise InputError(f"{checkpoint.path}: none of the layers {list(PROBE_LAYERS)}; it has {available}.")
         return names
     missing = [name for name in layers if name not in available]
     if missing:
-        raise ProbeError(f"{checkpoint.path}: no layer(s) {missing}; this {checkpoint.algorithm} has {available}.")
+        raise InputError(f"{checkpoint.path}: no layer(s) {missing}; this {checkpoint.algorithm} has {available}.")
     return [name for name in available if name in layers]
 
 
@@ -427,12 +427,12 @@ def probe_checkpoint(
         ``num_timesteps`` (agent steps), ``frames``, ``layer``, ``component``, ``group``, ``tau``, ``max_tau``,
         ``validation_mse``, ``test_mse`` (standardized), ``validation_mse_raw``, ``test_mse_raw`` (state units
         squared), ``target_std``, ``n_train``, ``n_validation``, ``n_test``, ``n_features``, ``n_features_kept``
-    :raises ProbeError: when the rollouts' observations do not fit the model
+    :raises InputError: when the rollouts' observations do not fit the model
     """
     model = checkpoint.model
     model_shape = tuple(model.observation_space.shape or ())
     if tuple(rollouts.observations.shape[1:]) != model_shape:
-        raise ProbeError(
+        raise InputError(
             f"{checkpoint.path} takes observations of shape {model_shape}, the rollouts hold "
             f"{tuple(rollouts.observations.shape[1:])}: record rollouts with this model's env settings "
             "(size, frame stack)."
@@ -517,7 +517,7 @@ def probe_each_checkpoint(
         The first checkpoint is probed alone, so that the others reuse its ``cnn0`` probe. The results do not
         depend on ``jobs``
     :return: each checkpoint's rows, in the order of ``paths``
-    :raises ProbeError: for a checkpoint that cannot be loaded or does not fit the rollouts
+    :raises InputError: for a checkpoint that cannot be loaded or does not fit the rollouts
     """
     device = get_device(settings.device)
     quiet = dataclasses.replace(settings, progress=False, memory_gb=settings.memory_gb / jobs)

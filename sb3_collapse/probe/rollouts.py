@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import reward_inputs_of
-from sb3_collapse.errors import ProbeError
+from sb3_collapse.errors import InputError
 
 FORMAT_VERSION = 2
 """Version 2 added the reward inputs (files of version 1 load with none)."""
@@ -76,7 +76,7 @@ class Rollouts:
         arrays.update({f"reward input {name!r}": value for name, value in self.reward_inputs.items()})
         wrong = {name: len(value) for name, value in arrays.items() if len(value) != n}
         if wrong:
-            raise ProbeError(f"Rollouts arrays must all have {n} rows (one per observation); got {wrong}.")
+            raise InputError(f"Rollouts arrays must all have {n} rows (one per observation); got {wrong}.")
 
     def __len__(self) -> int:
         return len(self.observations)
@@ -106,7 +106,7 @@ class Rollouts:
                     groups.append(prefix + component)
                     columns.append(values[:, i])
         if not columns:
-            raise ProbeError("The rollouts hold no state components to probe.")
+            raise InputError("The rollouts hold no state components to probe.")
         return names, groups, np.stack(columns, axis=1).astype(np.float32)
 
     def save(self, path: str | Path) -> Path:
@@ -150,11 +150,11 @@ class Rollouts:
         :param path: a file written by :meth:`save`
         :return: the rollouts, with the recorded reward inputs that the task's reward reads
             (:data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`; any other recorded quantity is left out)
-        :raises ProbeError: for a missing file or one that is not a rollouts file
+        :raises InputError: for a missing file or one that is not a rollouts file
         """
         path = Path(path)
         if not path.is_file():
-            raise ProbeError(
+            raise InputError(
                 f"Rollouts file {path} does not exist; record one with `python -m sb3_collapse.probe record`."
             )
         try:
@@ -168,7 +168,7 @@ class Rollouts:
                 }
                 arrays = {key: data[key] for key in ("observations", "actions", "rewards", "episode_ids", "steps")}
         except (OSError, ValueError, KeyError, json.JSONDecodeError) as error:
-            raise ProbeError(
+            raise InputError(
                 f"{path} is not a rollouts file of sb3_collapse.probe ({type(error).__name__}: {error}); "
                 "record one with `python -m sb3_collapse.probe record`."
             ) from error
@@ -189,7 +189,7 @@ def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any
     :param model_env_config: ``model.env_config`` of a DrQv2 checkpoint, or ``None``
     :param overrides: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``, ``camera_id``
     :return: a complete settings dict
-    :raises ProbeError: when no task is known
+    :raises InputError: when no task is known
     """
     defaults = {"task_id": None, "action_repeat": 2, "frame_stack": 3, "size": 84, "camera_id": None}
     saved = {key: value for key, value in (model_env_config or {}).items() if key in defaults and value is not None}
@@ -199,11 +199,11 @@ def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any
         raise ValueError(f"Unknown env settings {sorted(unknown)}; expected {list(defaults)}.")
     config = {**defaults, **saved, **given}
     if config["task_id"] is None:
-        raise ProbeError(
+        raise InputError(
             "The checkpoint does not say which environment it was trained on: pass `env`, e.g. walker-walk."
         )
     if (model_env_config or {}).get("obs_type") not in (None, "pixels"):
-        raise ProbeError(
+        raise InputError(
             f"The checkpoint was trained on {model_env_config['obs_type']!r} observations; probing needs pixels."
         )
     return config
@@ -222,14 +222,14 @@ def check_record_arguments(episodes: int, max_steps: int | None, noise_std: floa
     """
     Check :func:`record_rollouts`' arguments before anything is built.
 
-    :raises ProbeError: naming the bad argument
+    :raises InputError: naming the bad argument
     """
     if episodes < 1:
-        raise ProbeError(f"episodes must be >= 1, got {episodes}.", parameter="episodes")
+        raise InputError(f"episodes must be >= 1, got {episodes}.", parameter="episodes")
     if max_steps is not None and max_steps < 1:
-        raise ProbeError(f"max_steps must be >= 1 agent step, got {max_steps}.", parameter="max_steps")
+        raise InputError(f"max_steps must be >= 1 agent step, got {max_steps}.", parameter="max_steps")
     if not noise_std >= 0:  # nan too
-        raise ProbeError(f"noise_std must be >= 0, got {noise_std}.", parameter="noise_std")
+        raise InputError(f"noise_std must be >= 0, got {noise_std}.", parameter="noise_std")
 
 
 def record_rollouts(
@@ -257,7 +257,7 @@ def record_rollouts(
     :param progress: show a progress bar over agent steps
     :param metadata: extra entries of :attr:`Rollouts.metadata`
     :return: the rollouts
-    :raises ProbeError: when the env's observations do not fit the model
+    :raises InputError: when the env's observations do not fit the model
     """
     check_record_arguments(episodes, max_steps, noise_std)
     try:
@@ -265,11 +265,11 @@ def record_rollouts(
             env_config["task_id"], seed=seed, obs_type="pixels", **{k: env_config[k] for k in ENV_SETTINGS[1:]}
         )
     except ValueError as error:
-        raise ProbeError(str(error)) from error
+        raise InputError(str(error)) from error
     model_shape = tuple(model.observation_space.shape or ())
     if env.observation_space.shape != model_shape:
         env.close()
-        raise ProbeError(
+        raise InputError(
             f"The env gives observations of shape {env.observation_space.shape} but the model takes {model_shape}: "
             "pass the `size` and `frame_stack` the model was trained with."
         )

@@ -5,7 +5,6 @@ Every figure and table of the paper from a sweep or run folder: Figure 5 and its
 ``python -m sb3_collapse.report --help`` for the command line; each module's part: docs/layout.md.
 """
 
-from sb3_collapse.errors import ReportError
 from sb3_collapse.report.collapse_figure import FixedInputSettings
 from sb3_collapse.report.figure2 import probe_sweep
 from sb3_collapse.report.film import film_to_folder
@@ -32,7 +31,6 @@ __all__ = [
     "GridCell",
     "ReferenceCurves",
     "Report",
-    "ReportError",
     "ReportSettings",
     "Sweep",
     "Trial",

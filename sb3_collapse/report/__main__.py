@@ -174,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     if is_run_folder(args.sweep):
         try:
             trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
-        except InputError as error:  # ReportError, or a run-folder file the report cannot read
+        except InputError as error:
             print(f"error: {cli_message(error, parser)}", file=sys.stderr)
             return 2
         print(f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations")
@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
             overwrite=args.overwrite,
             collapse_settings=collapse,
         )
-    except InputError as error:  # ReportError, or a run-folder file the report cannot read
+    except InputError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
     print(report.markdown)

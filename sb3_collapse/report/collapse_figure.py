@@ -27,7 +27,7 @@ from matplotlib.ticker import LogLocator, NullLocator
 from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.drqv2.checks import check_device
-from sb3_collapse.errors import ParameterError, ProbeError, ReportError
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.probe.fixed_inputs import FIXED_SAMPLES, FixedInputs, FixedMetrics, fixed_metrics, load_fixed_inputs
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
@@ -238,15 +238,10 @@ def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYER
     :raises InputError: on a malformed file
     """
     tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
-    tags += [metric_tag(layer, "dead_fraction") for layer in layers]
     agent = AgentMetrics(trial, role, widths=layer_widths(trial, layers))
     metrics_path = trial.path / COLLAPSE_METRICS_CSV
     if metrics_path.exists():
         agent.metrics = read_collapse_metrics(metrics_path, tags)
-        for layer in layers:  # files written before dead_units was logged: the dead fraction times the width
-            fraction, tag = agent.metrics.get(metric_tag(layer, "dead_fraction")), metric_tag(layer, "dead_units")
-            if tag not in agent.metrics and fraction is not None and layer in agent.widths:
-                agent.metrics[tag] = (fraction[0], np.rint(fraction[1] * agent.widths[layer]))
     events_path = trial.path / COLLAPSE_EVENTS_CSV
     if events_path.exists():
         events = read_collapse_events(events_path)
@@ -416,12 +411,12 @@ def run_folder_trial(run_dir: str | Path) -> Trial:
 
     :param run_dir: the run folder
     :return: the trial (finished or not; an unfinished run's partial evaluation curve is read)
-    :raises ReportError: when the folder lacks the settings or the evaluation file
+    :raises InputError: when the folder lacks the settings or the evaluation file
     """
     run_dir = Path(run_dir)
     config_path = run_dir / CONFIG_JSON
     if not (run_dir / EVAL_CSV).exists() or not config_path.exists():
-        raise ReportError(
+        raise InputError(
             f"{run_dir} is not a run folder of python -m sb3_collapse.train: it needs {CONFIG_JSON} and {EVAL_CSV}.",
             parameter="sweep",
         )
@@ -430,7 +425,7 @@ def run_folder_trial(run_dir: str | Path) -> Trial:
     variant = str(config.get("variant") or config.get("algorithm") or "drqv2")
     trial = load_trial(task, variant, int(config.get("seed", 0)), run_dir, partial=True)
     if not len(trial.frames):
-        raise ReportError(f"{run_dir / EVAL_CSV} has no evaluation yet; nothing to plot.", parameter="sweep")
+        raise InputError(f"{run_dir / EVAL_CSV} has no evaluation yet; nothing to plot.", parameter="sweep")
     return trial
 
 
@@ -479,34 +474,31 @@ class FixedInputSettings:
     layers: tuple[str, ...] = FIGURE4_LAYERS
 
     def validate(self) -> None:
-        """:raises ReportError: on a setting out of range, or a rollouts file that does not exist"""
+        """:raises InputError: on a setting out of range, or a rollouts file that does not exist"""
         if self.fixed_samples is not None and self.fixed_samples < 2:
-            raise ReportError(
+            raise InputError(
                 f"fixed_samples must be >= 2 observations, got {self.fixed_samples}.", parameter="fixed_samples"
             )
         if self.batch_size < 1:
-            raise ReportError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
+            raise InputError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
         if self.rollouts is not None and not Path(self.rollouts).is_file():
-            raise ReportError(
+            raise InputError(
                 f"rollouts {self.rollouts} is not a file; give the rollouts.npz of python -m sb3_collapse.probe sweep "
                 "(or of probe record).",
                 parameter="rollouts",
             )
-        try:
-            check_device(self.device)
-        except ParameterError as error:
-            raise ReportError(str(error), parameter="device") from error
+        check_device(self.device)
 
     def load(self, path: str | Path) -> FixedInputs:
         """
         :param path: a rollouts file
         :return: its fixed set (:func:`~sb3_collapse.probe.fixed_inputs.load_fixed_inputs` with these settings)
-        :raises ReportError: for a file that is missing or not a rollouts file
+        :raises InputError: for a file that is missing or not a rollouts file
         """
         try:
             return load_fixed_inputs(path, self.fixed_samples, self.sample_seed)
-        except ProbeError as error:
-            raise ReportError(str(error), parameter="rollouts") from error
+        except InputError as error:
+            raise InputError(str(error), parameter="rollouts") from error
 
 
 def default_rollouts(sweep_dir: str | Path, task: str, variant: str) -> Path:
@@ -539,18 +531,15 @@ def fixed_agent_rows(
             rows.append(AgentMetrics(None, pick.role, absent=pick.absent))
             continue
         online = agent_metrics(pick.trial, pick.role, settings.layers)
-        try:
-            fixed = fixed_metrics(
-                snapshot_files(pick.trial.path),
-                inputs,
-                settings.layers,
-                get_device(settings.device),
-                settings.batch_size,
-                progress,
-                f"seed {pick.trial.seed} checkpoints",
-            )
-        except ProbeError as error:
-            raise ReportError(str(error), parameter=error.parameter) from error
+        fixed = fixed_metrics(
+            snapshot_files(pick.trial.path),
+            inputs,
+            settings.layers,
+            get_device(settings.device),
+            settings.batch_size,
+            progress,
+            f"seed {pick.trial.seed} checkpoints",
+        )
         computed[pick.trial.seed] = fixed
         online.metrics = {tag: value for tag, value in online.metrics.items() if tag.endswith("/grad_norm")} | {
             metric_tag(layer, metric): fixed.metrics[metric_tag(layer, metric)]

@@ -28,7 +28,7 @@ import numpy as np
 from matplotlib.lines import Line2D
 from stable_baselines3.common.utils import get_device
 
-from sb3_collapse.errors import ProbeError, ReportError
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, record
@@ -305,7 +305,7 @@ def probe_sweep(
     :param command: the command line, for the summary
     :param jobs: checkpoints probed at once (:func:`~sb3_collapse.probe.probing.probe_each_checkpoint`)
     :return: the summary (as written to ``summary.json``)
-    :raises ProbeError: for bad input (nothing written then)
+    :raises InputError: for bad input (nothing written then)
     """
     started = time.perf_counter()
     settings = settings or ProbeSettings()
@@ -314,7 +314,7 @@ def probe_sweep(
         sweep_dir, task, variant, settings, rollouts_path, record_options, success_return, failure_return, jobs
     )
     out = Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) if out is None else Path(out)
-    with StagedOutputs(out, OUTPUT_FILES, SUMMARY_JSON, overwrite=overwrite, error=ProbeError) as staged:
+    with StagedOutputs(out, OUTPUT_FILES, SUMMARY_JSON, overwrite=overwrite, error=InputError) as staged:
         if rollouts_path is None:
             well = agents[0][0]
             source = well.path / FINAL_MODEL
@@ -387,26 +387,26 @@ def _sweep_agents(
 
     :return: the sweep, its agents with their row of Figure 2 (:data:`ROWS`), the well-performing ones first, and
         seed -> the agent's snapshots
-    :raises ProbeError: naming the bad argument
+    :raises InputError: naming the bad argument
     """
     settings.validate()
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise ProbeError(f"jobs must be an integer >= 1, got {jobs!r}.", parameter="jobs")
+        raise InputError(f"jobs must be an integer >= 1, got {jobs!r}.", parameter="jobs")
     if not failure_return <= success_return:
-        raise ProbeError(
+        raise InputError(
             f"failure_return must be <= success_return, got {failure_return:g} and {success_return:g}.",
             parameter="failure_return",
         )
     try:
         sweep = load_sweep(sweep_dir, tasks=[task], variants=[variant], progress=False)
-    except ReportError as error:
-        raise ProbeError(
+    except InputError as error:
+        raise InputError(
             str(error), parameter=error.parameter if error.parameter != "sweep" else "sweep_dir"
         ) from error
     well, poor = split_agents(sweep.finished, success_return, failure_return)
     if not well and not poor:
         finals = ", ".join(f"seed {t.seed}: {t.final_return:.0f}" for t in sweep.finished) or "no finished trial"
-        raise ProbeError(
+        raise InputError(
             f"{task} / {variant} has no well-performing (final return >= {success_return:g}) nor poorly performing "
             f"(< {failure_return:g}) finished trial ({finals}); lower success_return or raise failure_return.",
             parameter="success_return",
@@ -415,20 +415,20 @@ def _sweep_agents(
     files = {trial.seed: snapshot_files(trial.path) for trial, _ in agents}
     lacking = [t for t, _ in agents if not files[t.seed]]
     if lacking:
-        raise ProbeError(
+        raise InputError(
             f"no {SNAPSHOTS_DIR}/*.zip in {', '.join(str(t.path) for t in lacking)}: train the trials with "
             "--snapshots (TrainConfig.snapshots) to probe them over training."
         )
     if rollouts_path is None:
         if not well:
-            raise ProbeError(
+            raise InputError(
                 f"{task} / {variant} has no well-performing trial (final return >= {success_return:g}) to record "
                 "rollouts from: pass rollouts_path (python -m sb3_collapse.probe record GOOD.zip).",
                 parameter="rollouts_path",
             )
         record_options.check()
         if record_options.episodes < MIN_EPISODES:
-            raise ProbeError(
+            raise InputError(
                 f"episodes must be >= {MIN_EPISODES}, got {record_options.episodes}.", parameter="episodes"
             )
     return sweep, agents, files

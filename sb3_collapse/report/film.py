@@ -21,7 +21,7 @@ from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
 from sb3_collapse.drqv2.checks import check_device
-from sb3_collapse.errors import ProbeError
+from sb3_collapse.errors import InputError
 from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, Film, film_episode
 from sb3_collapse.probe.pipeline import check_checkpoint_files
@@ -34,10 +34,10 @@ STRIP_EVERY_FRAMES = 30
 
 
 def check_film_arguments(frames: int, size: int, every_frames: int) -> None:
-    """:raises ProbeError: naming the bad argument"""
+    """:raises InputError: naming the bad argument"""
     for name, value, low in (("frames", frames, 1), ("size", size, 16), ("every_frames", every_frames, 1)):
         if value < low:
-            raise ProbeError(f"{name} must be >= {low}, got {value}.", parameter=name)
+            raise InputError(f"{name} must be >= {low}, got {value}.", parameter=name)
 
 
 def plot_filmstrip(films: Sequence[Film], path: Path, every_frames: int = STRIP_EVERY_FRAMES, title: str = "") -> None:
@@ -164,16 +164,16 @@ def film_to_folder(
     :param overwrite: replace a previous film in ``out``
     :param progress: show a progress bar
     :return: the written files
-    :raises ProbeError: for bad input
+    :raises InputError: for bad input
     """
     check_film_arguments(frames, size, every_frames)
     if not seeds:
-        raise ProbeError("seeds must hold at least one episode seed.", parameter="seeds")
+        raise InputError("seeds must hold at least one episode seed.", parameter="seeds")
     check_checkpoint_files(checkpoint_paths, same_observations=False)  # each films in its own env
     check_device(device)
     labels = checkpoint_labels(list(checkpoint_paths))
     films = []
-    with StagedOutputs(out, OUTPUT_FILES, ACTIONS_CSV, overwrite=overwrite, error=ProbeError) as staged:
+    with StagedOutputs(out, OUTPUT_FILES, ACTIONS_CSV, overwrite=overwrite, error=InputError) as staged:
         bar = tqdm(total=len(labels) * len(seeds), desc="filming", unit="episode", disable=not progress)
         for path, label in zip(checkpoint_paths, labels):
             checkpoint = load_checkpoint(path, device=get_device(device))

@@ -2,7 +2,7 @@
 Read a sweep folder (the trial-folder contract of ``python -m sb3_collapse.sweep``) into one :class:`Trial` per
 ``<sweep>/<task>/<variant>/seed_<k>/`` folder, through :mod:`sb3_collapse.runfolder`. Only finished trials
 (:class:`~sb3_collapse.runfolder.RunStatus`) enter the statistics; the others are counted and reported. A malformed
-file raises :class:`ReportError` naming the file.
+file raises :class:`InputError` naming the file.
 """
 
 from __future__ import annotations
@@ -15,11 +15,12 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from sb3_collapse.errors import InputError, ReportError
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
 from sb3_collapse.runfolder import (
     NOT_A_RUN,
+    check_result_version,
     read_collapse_metrics,
     read_evaluations,
     read_result,
@@ -138,16 +139,16 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
     :param sweep: the sweep folder
     :return: its trial folders (:func:`~sb3_collapse.runfolder.trial_folders`) sorted by task, variant
         (:func:`variant_order`) and seed
-    :raises ReportError: when the folder does not exist or holds no trial folder
+    :raises InputError: when the folder does not exist or holds no trial folder
     """
     root = Path(sweep)
     if not root.exists():
-        raise ReportError(f"sweep folder {root} does not exist; give the out folder of a sweep.", parameter="sweep")
+        raise InputError(f"sweep folder {root} does not exist; give the out folder of a sweep.", parameter="sweep")
     if not root.is_dir():
-        raise ReportError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
+        raise InputError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
     found = trial_folders(root)
     if not found:
-        raise ReportError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
+        raise InputError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
     variants = variant_order(item[1] for item in found)
     return sorted(found, key=lambda item: (item[0], variants.index(item[1]), item[2]))
 
@@ -156,13 +157,15 @@ def check_result(path: Path, result: dict[str, Any]) -> None:
     """
     :param path: a finished trial's folder
     :param result: its result file
-    :raises ReportError: when ``resets`` is not an integer >= 0 or ``escaped`` not a bool or null
+    :raises InputError: when ``resets`` is not an integer >= 0, ``escaped`` not a bool or null, or the file is of
+        another version (:func:`~sb3_collapse.runfolder.check_result_version`)
     """
+    check_result_version(path, result)
     resets = result.get("resets")
     if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
-        raise ReportError(f"{path / RESULT_JSON}: 'resets' must be an integer >= 0, got {resets!r}.")
+        raise InputError(f"{path / RESULT_JSON}: 'resets' must be an integer >= 0, got {resets!r}.")
     if result.get("escaped") not in (None, True, False):
-        raise ReportError(f"{path / RESULT_JSON}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
+        raise InputError(f"{path / RESULT_JSON}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
 
 
 def load_trial(
@@ -183,36 +186,31 @@ def load_trial(
     :param collapse_tag: the collapse metric to read
     :param partial: read the evaluation curve of an unfinished trial too
     :return: the trial
-    :raises ReportError: when a file of a finished trial is malformed
+    :raises InputError: when a file of a finished trial is malformed
     """
-    try:
-        result = read_result(path, strict=True)
-        status = run_status(path)
-        trial = Trial(task, variant, seed, path, str(status or NOT_A_RUN), result)
-        if trial.finished:
-            check_result(path, result)  # type: ignore[arg-type]
-            for key, expected in (("task", task), ("variant", variant), ("seed", seed)):
-                if result.get(key, expected) != expected:  # type: ignore[union-attr]
-                    trial.notes.append(
-                        f"{path / RESULT_JSON}: {key} is {result[key]!r} but the folder says {expected!r}; "  # type: ignore[index]
-                        "the folder names are used"
-                    )
-            trial.frames, trial.returns = read_evaluations(path)
-            if len(trial.frames) == 0:
-                raise ReportError(f"{path}: no evaluation rows although the trial finished.")
-            metrics_path = path / COLLAPSE_METRICS_CSV
-            if metrics_path.exists():
-                metric = read_collapse_metrics(metrics_path, (collapse_tag,)).get(collapse_tag)
-                trial.collapse_frames, trial.collapse_values = metric or (trial.collapse_frames, trial.collapse_values)
-        elif partial:
-            try:
-                trial.frames, trial.returns = read_evaluations(path, partial=True)
-            except InputError as error:
-                trial.notes.append(f"partial curve not shown: {error}")
-    except ReportError:
-        raise
-    except InputError as error:
-        raise ReportError(str(error)) from None
+    result = read_result(path, strict=True)
+    status = run_status(path)
+    trial = Trial(task, variant, seed, path, str(status or NOT_A_RUN), result)
+    if trial.finished:
+        check_result(path, result)  # type: ignore[arg-type]
+        for key, expected in (("task", task), ("variant", variant), ("seed", seed)):
+            if result.get(key, expected) != expected:  # type: ignore[union-attr]
+                trial.notes.append(
+                    f"{path / RESULT_JSON}: {key} is {result[key]!r} but the folder says {expected!r}; "  # type: ignore[index]
+                    "the folder names are used"
+                )
+        trial.frames, trial.returns = read_evaluations(path)
+        if len(trial.frames) == 0:
+            raise InputError(f"{path}: no evaluation rows although the trial finished.")
+        metrics_path = path / COLLAPSE_METRICS_CSV
+        if metrics_path.exists():
+            metric = read_collapse_metrics(metrics_path, (collapse_tag,)).get(collapse_tag)
+            trial.collapse_frames, trial.collapse_values = metric or (trial.collapse_frames, trial.collapse_values)
+    elif partial:
+        try:
+            trial.frames, trial.returns = read_evaluations(path, partial=True)
+        except InputError as error:
+            trial.notes.append(f"partial curve not shown: {error}")
     return trial
 
 
@@ -234,7 +232,7 @@ def load_sweep(
     :param variants: keep only these variant folders (``None``: all)
     :param progress: show a progress bar over the trial folders
     :return: the sweep
-    :raises ReportError: when the folder is missing, holds no (selected) trial, or a finished trial's file is
+    :raises InputError: when the folder is missing, holds no (selected) trial, or a finished trial's file is
         malformed
     """
     found = find_trial_folders(sweep)
@@ -244,7 +242,7 @@ def load_sweep(
             available = sorted({item[index] for item in found})
             unknown = [w for w in wanted if w not in available]
             if unknown:
-                raise ReportError(
+                raise InputError(
                     f"{name} {' '.join(unknown)} not in {sweep}; available: {', '.join(available)}.", parameter=name
                 )
             found = [item for item in found if item[index] in wanted]

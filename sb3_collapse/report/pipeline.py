@@ -10,7 +10,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from sb3_collapse.errors import ReportError
+from sb3_collapse.errors import InputError
 from sb3_collapse.presets import preset
 from sb3_collapse.probe.fixed_inputs import FixedInputs, FixedMetrics
 from sb3_collapse.protocol import (
@@ -213,13 +213,13 @@ def build_report(
     :param collapse_settings: Figures 4, 8, 9: the pick's seed, the fixed observation set, the device
         (:class:`FixedInputSettings` defaults when ``None``)
     :return: the report (``files`` empty)
-    :raises ReportError: on a bad folder, file or setting
+    :raises InputError: on a bad folder, file or setting
     """
     settings = settings or ReportSettings()
     try:
         settings.validate()
     except ValueError as error:
-        raise ReportError(str(error)) from error
+        raise InputError(str(error)) from error
     collapse_settings = collapse_settings or FixedInputSettings()
     collapse_settings.validate()
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
@@ -266,7 +266,7 @@ def collapse_figures(
     :param settings: the report's definitions (``success_return``)
     :param collapse_settings: the pick's seed, the fixed set and where the checkpoints run
     :param progress: progress bars over the checkpoints
-    :raises ReportError: for a bad setting, a given rollouts file that cannot be read, or a checkpoint that does not
+    :raises InputError: for a bad setting, a given rollouts file that cannot be read, or a checkpoint that does not
         fit the rollouts
     """
     collapse_settings.validate()
@@ -288,7 +288,7 @@ def collapse_figures(
                     collapse_settings.failure_return,
                 )
             except ValueError as error:
-                raise ReportError(str(error), parameter="failure_return") from error
+                raise InputError(str(error), parameter="failure_return") from error
             if not any(pick.trial is not None for pick in picks):
                 continue
             report.collapse_picks[key] = picks
@@ -385,11 +385,11 @@ def write_report(
         (checked before the sweep is read)
     :param collapse_settings: Figures 4, 8, 9 (:class:`FixedInputSettings` defaults when ``None``)
     :return: the report, with ``files`` the written paths
-    :raises ReportError: on a bad folder, file or setting; nothing is written then
+    :raises InputError: on a bad folder, file or setting; nothing is written then
     """
     settings = settings or ReportSettings()
     out_dir = Path(sweep_dir) / REPORT_FOLDER if out is None else Path(out)
-    staged_outputs = StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, overwrite=overwrite, error=ReportError)
+    staged_outputs = StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, overwrite=overwrite, error=InputError)
     report = build_report(
         sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
     )
@@ -656,10 +656,10 @@ def write_run_report(
     :param overwrite: replace the outputs of a previous report
     :param layers: the layers drawn
     :return: the run (as a trial) and the written files
-    :raises ReportError: when the folder is not a run folder or a file is malformed
+    :raises InputError: when the folder is not a run folder or a file is malformed
     """
     out_dir = Path(run_dir) / REPORT_FOLDER if out is None else Path(out)
-    staged_outputs = StagedOutputs(out_dir, RUN_OUTPUT_FILES, html.INDEX_HTML, overwrite=overwrite, error=ReportError)
+    staged_outputs = StagedOutputs(out_dir, RUN_OUTPUT_FILES, html.INDEX_HTML, overwrite=overwrite, error=InputError)
     trial = run_folder_trial(run_dir)
     agent = agent_metrics(trial, "run", layers)
     with staged_outputs as staged:

@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from stable_baselines3.common.utils import get_device
 
-from sb3_collapse.errors import ProbeError
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, check_checkpoint_files, record
@@ -52,9 +52,9 @@ def staged_output(out: str | Path, overwrite: bool = False) -> StagedOutputs:
 
     :param out: the output folder (created if needed)
     :param overwrite: replace the outputs of a previous run; otherwise their presence is an error
-    :raises ProbeError: when ``out`` is a file, or holds a previous run's outputs and ``overwrite`` is false
+    :raises InputError: when ``out`` is a file, or holds a previous run's outputs and ``overwrite`` is false
     """
-    return StagedOutputs(out, OUTPUT_FILES, SUMMARY_NAME, overwrite=overwrite, error=ProbeError)
+    return StagedOutputs(out, OUTPUT_FILES, SUMMARY_NAME, overwrite=overwrite, error=InputError)
 
 
 def group_means(rows: list[dict[str, Any]], key: str = "test_mse") -> dict[tuple[str, str, str], float]:
@@ -209,7 +209,7 @@ def probe_to_folder(
     :param overwrite: replace a previous run's outputs in ``out``
     :param command: the command line, stored in the summary
     :return: the summary (as written to ``summary.json``)
-    :raises ProbeError: for bad input
+    :raises InputError: for bad input
     """
     started = time.perf_counter()
     settings.validate()
@@ -221,13 +221,13 @@ def probe_to_folder(
         record_options = record_options or RecordOptions()
         record_options.check()
         if record_options.episodes < MIN_EPISODES:  # checked before recording: the split needs them
-            raise ProbeError(
+            raise InputError(
                 f"episodes must be >= {MIN_EPISODES} to split them into training, validation and test episodes, "
                 f"got {record_options.episodes}.",
                 parameter="episodes",
             )
         if (out / ROLLOUTS_NAME).exists() and not overwrite:
-            raise ProbeError(
+            raise InputError(
                 f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
             )
     self_recorded = rollouts_path is None

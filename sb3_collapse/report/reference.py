@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sb3_collapse.errors import ReportError
+from sb3_collapse.errors import InputError
 
 REFERENCE_FILE = Path(__file__).resolve().parent / "data" / "drqv2_curves.csv.gz"
 REFERENCE_LABEL = "DrQ-v2 published"
@@ -61,7 +61,7 @@ class ReferenceCurves:
 def _reference_rows(path: Path = REFERENCE_FILE) -> dict[str, dict[int, dict[int, float]]]:
     """task -> seed -> frame -> return, read once."""
     if not path.exists():
-        raise ReportError(f"the reference curves {path} are missing; reinstall sb3-collapse with its package data.")
+        raise InputError(f"the reference curves {path} are missing; reinstall sb3-collapse with its package data.")
     table: dict[str, dict[int, dict[int, float]]] = defaultdict(lambda: defaultdict(dict))
     with gzip.open(path, "rt", newline="") as file:
         for row in csv.DictReader(file):
@@ -101,11 +101,11 @@ def pack_reference_curves(folder: str | Path, path: str | Path, decimals: int = 
     :param path: the ``.csv.gz`` file to write
     :param decimals: decimals kept of ``episode_reward``
     :return: the number of rows written
-    :raises ReportError: when the folder holds no ``dmc_*.csv``
+    :raises InputError: when the folder holds no ``dmc_*.csv``
     """
     files = sorted(Path(folder).glob("dmc_*.csv"))
     if not files:
-        raise ReportError(f"no dmc_*.csv files in {folder}; give DrQ-v2's curves/ folder.")
+        raise InputError(f"no dmc_*.csv files in {folder}; give DrQ-v2's curves/ folder.")
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(["task", "seed", "frame", "episode_reward"])

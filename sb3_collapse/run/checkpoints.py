@@ -65,11 +65,11 @@ from stable_baselines3.common.save_util import load_from_zip_file, recursive_set
 
 from sb3_collapse import __version__
 from sb3_collapse.common.saved_callbacks import callback_states, load_callback_states
-from sb3_collapse.drqv2.divergence import DivergenceError, all_finite
+from sb3_collapse.drqv2.divergence import all_finite
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.envs.replay import episode_records, replay_episodes
-from sb3_collapse.errors import READ_ONLY_ERRNOS, InputError
+from sb3_collapse.errors import READ_ONLY_ERRNOS, CheckpointError, DivergenceError, OutputError, TrainingInterrupted
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, frames_of
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.protocol import (
@@ -81,9 +81,7 @@ from sb3_collapse.protocol import (
     REPLAY_DIR,
     write_json_atomically,
 )
-from sb3_collapse.run.replay_checkpoint import CheckpointError as ReplayCheckpointError
 from sb3_collapse.run.replay_checkpoint import ReplayStore
-from sb3_collapse.run.signals import TrainingInterrupted
 
 CHECKPOINT_FORMAT = 1
 """Version of the checkpoint layout; a checkpoint of another format is refused."""
@@ -91,22 +89,6 @@ CHECKPOINT_FORMAT = 1
 MODEL_EXTRAS = ("_warned_replay_not_ready",)
 """Attributes that ``DrQv2.save`` leaves out and the resumed run needs (with ``DrQv2.update_stats``: the statistics of
 the updates not logged yet)."""
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint could not be written (a full disk...); the message names the folder and says what to do."""
-
-
-class CheckpointsDamaged(CheckpointError):
-    """Every checkpoint of a run turned out damaged as it was read; each is set aside (:func:`set_aside`)."""
-
-
-class CheckpointMismatch(InputError):
-    """The run folder's checkpoints cannot be used by this run (another package version or format, other spaces)."""
-
-
-class _Damaged(Exception):
-    """A checkpoint that cannot be read (internal: the loader falls back to the previous one)."""
 
 
 # ---------------------------------------------------------------------------------------------- writing and reading
@@ -177,13 +159,11 @@ def _cuda_rng_state(device: th.device) -> dict[str, Any] | None:
 def _restore_cuda_rng_state(saved: Any, device: th.device) -> None:
     """
     Restore the CUDA generator saved by :func:`capture_state` on the CUDA device ``device`` (the resuming model's),
-    whatever its index was; nothing off CUDA. A checkpoint written by an earlier version holds one state per visible
-    GPU: the one of the first device is taken.
+    whatever its index was; nothing off CUDA.
     """
     if saved is None or device.type != "cuda" or not th.cuda.is_available():
         return
-    state = saved["state"] if isinstance(saved, dict) else saved[0]
-    th.cuda.set_rng_state(state.cpu(), _cuda_index(device))
+    th.cuda.set_rng_state(saved["state"].cpu(), _cuda_index(device))
 
 
 def capture_state(
@@ -267,7 +247,7 @@ def save_checkpoint(
     :param state: what :func:`capture_state` returned
     :param keep: complete checkpoints to keep (at least 1; 2 lets a damaged newest one fall back to the previous)
     :return: the checkpoint's folder
-    :raises CheckpointError: when it cannot be written (e.g. a full disk): the previous checkpoints are intact
+    :raises OutputError: when it cannot be written (e.g. a full disk): the previous checkpoints are intact
     """
     directory = Path(directory)
     name = CHECKPOINT_FOLDER.format(step=model.num_timesteps)
@@ -305,7 +285,7 @@ def save_checkpoint(
         previous = checkpoint_folders(directory)
         kept = f"the previous checkpoint {previous[0].name} is intact" if previous else "there is no earlier checkpoint"
         fix = "Make the folder writable again" if error.errno in READ_ONLY_ERRNOS else "Free space (or fix the folder)"
-        raise CheckpointError(
+        raise OutputError(
             f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. {fix}, then run the "
             "same command again to resume."
         ) from error
@@ -362,37 +342,36 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     try:
         info = json.loads((folder / CHECKPOINT_JSON).read_text())
     except (OSError, ValueError) as error:
-        raise _Damaged(f"no readable {CHECKPOINT_JSON}: {error}") from None
+        raise CheckpointError(f"no readable {CHECKPOINT_JSON}: {error}", damaged=True) from None
     if info.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointMismatch(
+        raise CheckpointError(
             f"checkpoint {folder} has format {info.get('format')!r}, this version of sb3-collapse ({__version__}) "
             f"reads format {CHECKPOINT_FORMAT}: resume with the version that wrote it ({info.get('version')}), or "
             "train into a new folder."
         )
     if info.get("version") != __version__:
-        raise CheckpointMismatch(
+        raise CheckpointError(
             f"checkpoint {folder} was written by sb3-collapse {info.get('version')}, this is {__version__}: resume "
             "with the version that wrote it, or train into a new folder."
         )
     for name, expected in info["files"].items():
         path = folder / name
         if not path.is_file():
-            raise _Damaged(f"{name} is missing")
+            raise CheckpointError(f"{name} is missing", damaged=True)
         if path.stat().st_size != expected["bytes"]:
-            raise _Damaged(f"{name} has {path.stat().st_size} bytes, {expected['bytes']} were written")
+            raise CheckpointError(
+                f"{name} has {path.stat().st_size} bytes, {expected['bytes']} were written", damaged=True
+            )
         if _digest(path)["sha256"] != expected["sha256"]:
-            raise _Damaged(f"{name} does not have the checksum it was written with")
+            raise CheckpointError(f"{name} does not have the checksum it was written with", damaged=True)
     try:
         with (folder / CHECKPOINT_STATE).open("rb") as file:
             state = pickle.load(file)
     except Exception as error:  # noqa: BLE001 - any unpickling failure means a damaged file
-        raise _Damaged(f"{CHECKPOINT_STATE} cannot be read: {error}") from None
+        raise CheckpointError(f"{CHECKPOINT_STATE} cannot be read: {error}", damaged=True) from None
     store_manifest = info["replay"].get("store")
     if store_manifest is not None:  # their checksums are verified as the replay store reads them
-        try:
-            ReplayStore(folder.parent / REPLAY_DIR).check_files(store_manifest)
-        except ReplayCheckpointError as error:
-            raise _Damaged(str(error)) from None
+        ReplayStore(folder.parent / REPLAY_DIR).check_files(store_manifest)
     return info, state
 
 
@@ -447,13 +426,15 @@ def read_checkpoints(directory: str | os.PathLike) -> tuple[LoadedCheckpoint | N
     :param directory: the run's checkpoints folder
     :return: the checkpoint (``None`` when there is no readable one), and the damaged newer ones passed over, with
         the reason (all of them when none is readable)
-    :raises CheckpointMismatch: for a checkpoint of another format or package version
+    :raises CheckpointError: for a checkpoint of another format or package version
     """
     skipped: list[tuple[Path, str]] = []
     for folder in checkpoint_folders(directory):
         try:
             info, state = _read_checkpoint(folder)
-        except _Damaged as error:
+        except CheckpointError as error:
+            if not error.damaged:
+                raise
             skipped.append((folder, str(error)))
             continue
         return LoadedCheckpoint(folder=folder, info=info, state=state, skipped=skipped), skipped
@@ -465,7 +446,7 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
     :param directory: the run's checkpoints folder
     :return: the newest readable checkpoint (:func:`read_checkpoints`; the damaged newer ones in ``skipped``),
         ``None`` when there is none
-    :raises CheckpointMismatch: for a checkpoint of another format or package version
+    :raises CheckpointError: for a checkpoint of another format or package version
     """
     return read_checkpoints(directory)[0]
 
@@ -479,14 +460,14 @@ def restore_model(model: BaseAlgorithm, path: str | os.PathLike) -> None:
 
     :param model: the model to restore into
     :param path: the zip
-    :raises CheckpointMismatch: when the saved spaces are not the model's
+    :raises CheckpointError: when the saved spaces are not the model's
     """
     data, params, variables = load_from_zip_file(path, device=model.device, print_system_info=False)
     assert data is not None and params is not None
     for name in ("observation_space", "action_space"):
         saved, current = data[name], getattr(model, name)
         if getattr(saved, "shape", None) != getattr(current, "shape", None):
-            raise CheckpointMismatch(f"the checkpoint's {name} is {saved}, the run's is {current}.")
+            raise CheckpointError(f"the checkpoint's {name} is {saved}, the run's is {current}.")
     model.__dict__.update(data)
     model.set_parameters(params, exact_match=True, device=model.device)
     for name, value in (variables or {}).items():
@@ -536,11 +517,8 @@ def restore_run(
     try:
         load_callback_states(callbacks, state["callbacks"])
     except ValueError as error:  # other callbacks than the run that wrote it, or a state written by another version
-        raise CheckpointMismatch(f"checkpoint {checkpoint.folder}: {error}") from None
-    extras = dict(state["model_extras"])
-    if "_train_stats" in extras:  # written before UpdateStats (an unfinished run of an earlier version)
-        state["update_stats"] = {"sums": extras.pop("_train_stats"), "count": extras.pop("_train_stats_count", 0)}
-    for name, value in extras.items():
+        raise CheckpointError(f"checkpoint {checkpoint.folder}: {error}") from None
+    for name, value in state["model_extras"].items():
         setattr(model, name, tensors_to(value, model.device))
     if state.get("update_stats") is not None:
         model.update_stats.load_state_dict(tensors_to(state["update_stats"], model.device))
@@ -621,21 +599,24 @@ class ResumableCheckpoints(FrameScheduleCallback):
         before.
 
         :return: the checkpoint resumed from, and notes for the user (damaged checkpoints, see :func:`restore_run`)
-        :raises CheckpointsDamaged: when no checkpoint is left (``train`` then restarts the run from frame 0)
+        :raises CheckpointError: (``damaged``) when no checkpoint is left (``train`` restarts the run from frame 0)
         """
         notes: list[str] = []
         while True:
             try:
                 notes += restore_run(self.model, checkpoint, self.store, self.callbacks, self.eval_env)
                 break
-            except ReplayCheckpointError as error:
+            except CheckpointError as error:
+                if not error.damaged:
+                    raise
                 notes.append(f"checkpoint {checkpoint.folder} is damaged ({error}): falling back to the one before.")
                 set_aside(checkpoint.folder, str(error))
                 older = load_checkpoint(self.directory)
                 if older is None:
-                    raise CheckpointsDamaged(
+                    raise CheckpointError(
                         f"no readable checkpoint is left in {self.directory} (each is set aside as damaged_step_...): "
-                        "the run restarts from frame 0."
+                        "the run restarts from frame 0.",
+                        damaged=True,
                     ) from error
                 notes += [f"checkpoint {folder} is damaged ({reason})." for folder, reason in older.skipped]
                 checkpoint = older

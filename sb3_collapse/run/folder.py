@@ -10,15 +10,13 @@ files are those of :mod:`sb3_collapse.protocol`; the lock that keeps a second pr
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import shutil
 import time
 from pathlib import Path
 from typing import Any
 
-from sb3_collapse.errors import ParameterError
-from sb3_collapse.presets import SETTING_NAMES
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
     CONFIG_JSON,
@@ -37,7 +35,7 @@ from sb3_collapse.run.checkpoints import (
     set_aside,
 )
 from sb3_collapse.run.config import RESUME_FREE_SETTINGS, TrainConfig
-from sb3_collapse.run.lock import RunFolderLocked, RunLock
+from sb3_collapse.run.lock import RunLock
 from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
 
 
@@ -76,9 +74,6 @@ def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str
         may), empty when the run can resume it
     """
     current = json.loads(json.dumps(config.record()))
-    # A setting added after the run folder was written: the run had its default.
-    defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig())))
-    saved = {**{name: defaults[name] for name in defaults if name not in saved and name not in SETTING_NAMES}, **saved}
     return [
         f"`{name}={current.get(name)}` (the run folder has {saved.get(name)!r})"
         for name in sorted(set(saved) | set(current))
@@ -180,7 +175,7 @@ def tidy_finished_run(run_dir: Path) -> list[str]:
             lock.unlink()  # still locked: no process may take a finished run's folder
             if lock in leftovers:
                 removed.append(LOCK_FILE)
-    except (RunFolderLocked, OSError):
+    except (InputError, OSError):
         pass
     if removed:
         listed = ", ".join(removed)

@@ -16,10 +16,6 @@ from sb3_collapse.errors import InputError
 from sb3_collapse.protocol import LOCK_FILE
 
 
-class RunFolderLocked(InputError):
-    """Another process trains into the run folder."""
-
-
 class RunLock:
     """
     An exclusive lock on a run folder (``flock`` on its lock file, released by the system if the process dies), with
@@ -57,7 +53,7 @@ class RunLock:
                 file.close()
                 if error.errno not in (errno.EAGAIN, errno.EACCES):
                     raise
-                raise RunFolderLocked(
+                raise InputError(
                     f"{self.folder} {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or "
                     f"{self.instead}."
                 ) from None

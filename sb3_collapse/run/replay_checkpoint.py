@@ -41,7 +41,7 @@ written since its last ``reset``), and ``sample`` with the same ``np.random`` st
 **Writes never modify an existing file**: each chunk goes to a temporary name (``.chunk-....bin.tmp``), is flushed
 and ``fsync``'d, renamed, and the folder is ``fsync``'d. A process killed during a save leaves at most a temporary
 file or an unlisted chunk (which :meth:`ReplayStore.collect_garbage` deletes); a failed write (full disk) deletes
-what this save wrote and raises :class:`CheckpointWriteError` naming the folder: every older chunk is intact.
+what this save wrote and raises an ``OSError`` naming the folder: every older chunk is intact.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import CheckpointError, InputError
 
 FORMAT = "sb3_collapse.replay_store/1"
 """``manifest["format"]``: the manifest and chunk layout this module writes and reads."""
@@ -85,35 +85,6 @@ TRANSITION_ARRAYS = ("frame_starts", "actions", "rewards", "dones", "timeouts")
 
 TRANSITIONS = "transitions"
 FRAMES = "frames"
-
-
-class CheckpointError(InputError):
-    """
-    A replay checkpoint cannot be used: a chunk file is missing, truncated or corrupt, the manifest is malformed, or
-    the buffer does not match it.
-
-    :param message: what is wrong and what to do
-    :param path: the file or folder at fault, when there is one
-    """
-
-    def __init__(self, message: str, path: str | os.PathLike | None = None) -> None:
-        super().__init__(message)
-        self.path = None if path is None else Path(path)
-
-
-class CheckpointWriteError(OSError):
-    """
-    Writing a replay checkpoint failed (a full disk, an I/O error): what the failed save wrote is deleted, every
-    older chunk is intact. ``errno`` is the original error's (``errno.ENOSPC`` for a full disk).
-
-    :param error_number: the ``errno`` of the failure
-    :param message: what failed, naming the folder, and what to do
-    :param folder: the store's folder
-    """
-
-    def __init__(self, error_number: int | None, message: str, folder: Path) -> None:
-        super().__init__(error_number, message)
-        self.folder = folder
 
 
 @dataclass
@@ -160,7 +131,7 @@ class ReplayStore:
         :param buffer: the buffer
         :return: the JSON-serialisable manifest of the buffer's state: the chunk files it needs, in order, with their
             sizes and CRC-32s, the buffer's counters and its layout. Store it in the run's checkpoint.
-        :raises CheckpointWriteError: when a write fails (full disk): nothing this call wrote remains, older chunks
+        :raises OSError: when a write fails (full disk): nothing this call wrote remains, older chunks
             are intact, the store's base for the next save is unchanged
         :raises CheckpointError: when the buffer's ``pos``/``full`` disagree with ``transitions_added`` (changed
             outside ``add``/``reset``)
@@ -218,7 +189,7 @@ class ReplayStore:
         )
 
     def _write_chunks(self, buffer: FrameStackReplayBuffer, plans: list[list[dict[str, Any]]]) -> list[dict]:
-        """Write one chunk file per plan; on failure delete them all and raise :class:`CheckpointWriteError`."""
+        """Write one chunk file per plan; on failure delete them all and raise an ``OSError``."""
         written: list[dict[str, Any]] = []
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
@@ -231,13 +202,13 @@ class ReplayStore:
             for chunk in written:
                 (self.directory / chunk["file"]).unlink(missing_ok=True)
             needed = sum(_plan_bytes(plan, _row_bytes(buffer)) for plan in plans)
-            raise CheckpointWriteError(
+            raise OSError(
                 error.errno,
                 f"Could not write the replay buffer checkpoint in {self.directory}: "
                 f"{error.strerror or error} ({needed:,} bytes to write). Nothing of this checkpoint was kept and every "
                 f"earlier one is intact; free space in {self.directory} (or move the run) and resume from the last "
                 "checkpoint.",
-                self.directory,
+                str(self.directory),
             ) from error
         return written
 
@@ -293,14 +264,14 @@ class ReplayStore:
                 raise CheckpointError(
                     f"The replay checkpoint manifest is inconsistent: chunk {path} lists segments outside this "
                     "buffer's environments or rings. Resume from another checkpoint.",
-                    path,
+                    damaged=True,
                 )
             expected = _plan_bytes(chunk["segments"], row_bytes)
             if expected != chunk["bytes"]:
                 raise CheckpointError(
                     f"The replay checkpoint manifest is inconsistent: chunk {path} is listed with {chunk['bytes']:,} "
                     f"bytes but its segments hold {expected:,}. Resume from another checkpoint.",
-                    path,
+                    damaged=True,
                 )
         self.check_files(manifest)
         try:
@@ -335,7 +306,7 @@ class ReplayStore:
                 raise CheckpointError(
                     f"The replay checkpoint chunk {path} is missing. Resume from another checkpoint (an earlier one "
                     "may still have all its chunks).",
-                    path,
+                    damaged=True,
                 )
             size = path.stat().st_size
             if size != chunk["bytes"]:
@@ -343,7 +314,7 @@ class ReplayStore:
                     f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
                     f"{chunk['bytes']:,} ({'truncated' if size < chunk['bytes'] else 'changed'}). Resume from "
                     "another checkpoint.",
-                    path,
+                    damaged=True,
                 )
 
     # ------------------------------------------------------------------ disk
@@ -514,18 +485,18 @@ def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any
                             raise CheckpointError(
                                 f"The replay checkpoint chunk {path} ended early (truncated). Resume from another "
                                 "checkpoint.",
-                                path,
+                                damaged=True,
                             )
                         crc = zlib.crc32(data, crc)
                         if target is not block:
                             block[...] = target
     except OSError as error:
-        raise CheckpointError(f"Could not read the replay checkpoint chunk {path}: {error}.", path) from error
+        raise CheckpointError(f"Could not read the replay checkpoint chunk {path}: {error}.", damaged=True) from error
     if crc != chunk["crc32"]:
         raise CheckpointError(
             f"The replay checkpoint chunk {path} is corrupt (CRC-32 {crc:#010x}, the checkpoint expects "
             f"{chunk['crc32']:#010x}). Resume from another checkpoint.",
-            path,
+            damaged=True,
         )
 
 
@@ -575,11 +546,14 @@ def _check_manifest(manifest: Any) -> None:
         found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
         raise CheckpointError(
             f"Not a replay checkpoint manifest of format {FORMAT!r} (found {found!r}): it was written by another "
-            "version of sb3-collapse, or is damaged."
+            "version of sb3-collapse, or is damaged.",
+            damaged=True,
         )
     missing = [key for key in ("layout", "state", "chunks") if key not in manifest]
     if missing:
-        raise CheckpointError(f"The replay checkpoint manifest lacks {', '.join(missing)}: it is damaged.")
+        raise CheckpointError(
+            f"The replay checkpoint manifest lacks {', '.join(missing)}: it is damaged.", damaged=True
+        )
     state, chunks = manifest["state"], manifest["chunks"]
     problems = []
     if not isinstance(manifest["layout"], dict):
@@ -594,7 +568,7 @@ def _check_manifest(manifest: Any) -> None:
                 problems.append(f"chunk entry {str(chunk)[:120]} is malformed")
                 break
     if problems:
-        raise CheckpointError(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.")
+        raise CheckpointError(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.", damaged=True)
 
 
 STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
@@ -634,7 +608,8 @@ def _check_state(buffer: FrameStackReplayBuffer, state: dict[str, Any]) -> None:
     if not consistent:
         raise CheckpointError(
             f"The replay checkpoint manifest is damaged: its state {str(state)[:200]} does not describe a buffer of "
-            f"{buffer.n_envs} environments and {buffer.buffer_size} transitions each. Resume from another checkpoint."
+            f"{buffer.n_envs} environments and {buffer.buffer_size} transitions each. Resume from another checkpoint.",
+            damaged=True,
         )
 
 
@@ -642,7 +617,9 @@ def _check_layout(buffer: FrameStackReplayBuffer, saved: dict[str, Any]) -> None
     """Raise :class:`CheckpointError` when the buffer's sizes, shapes or dtypes differ from the saved ones."""
     current = _layout(buffer)
     if not isinstance(saved.get("arrays"), dict):
-        raise CheckpointError("The replay checkpoint manifest is damaged: its layout lacks the arrays' shapes.")
+        raise CheckpointError(
+            "The replay checkpoint manifest is damaged: its layout lacks the arrays' shapes.", damaged=True
+        )
     differences = []
     for key in ("n_envs", "buffer_size", "frame_capacity", "frame_stack"):
         if saved.get(key) != current[key]:
@@ -654,5 +631,6 @@ def _check_layout(buffer: FrameStackReplayBuffer, saved: dict[str, Any]) -> None
         raise CheckpointError(
             "The replay buffer does not match the checkpoint: "
             + "; ".join(differences)
-            + ". Build it with the run's buffer_size, n_envs, frame_stack, min_episode_length and spaces."
+            + ". Build it with the run's buffer_size, n_envs, frame_stack, min_episode_length and spaces.",
+            damaged=True,
         )

@@ -20,8 +20,8 @@ from stable_baselines3.common.logger import (
 )
 from torch.utils.tensorboard import SummaryWriter
 
+from sb3_collapse.errors import CheckpointError
 from sb3_collapse.protocol import PROGRESS_CSV
-from sb3_collapse.run.checkpoints import CheckpointMismatch
 
 if TYPE_CHECKING:
     from sb3_collapse.run.checkpoints import LoadedCheckpoint
@@ -60,7 +60,7 @@ def keep_lines(path: Path, lines: int) -> None:
         content = file.read()
     kept = content.splitlines(keepends=True)[:lines]
     if len(kept) < lines:
-        raise CheckpointMismatch(f"{path} has fewer lines ({len(kept)}) than when the checkpoint was taken ({lines}).")
+        raise CheckpointError(f"{path} has fewer lines ({len(kept)}) than when the checkpoint was taken ({lines}).")
     data = b"".join(kept)
     if data != content:
         with path.open("r+b") as file:

@@ -39,11 +39,18 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 from sb3_collapse.backends import configure_backends
 from sb3_collapse.baselines import DRQV2_ONLY_SETTINGS, build_baseline
 from sb3_collapse.drqv2 import DrQv2
-from sb3_collapse.drqv2.divergence import DivergenceError
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.envs.replay import EpisodeReplay
-from sb3_collapse.errors import FULL_DISK_ERRNOS, InputError, unwritable_message
+from sb3_collapse.errors import (
+    FULL_DISK_ERRNOS,
+    CheckpointError,
+    DivergenceError,
+    InputError,
+    OutputError,
+    TrainingInterrupted,
+    unwritable_message,
+)
 from sb3_collapse.monitoring import CollapseMetrics, CollapseReset, PeriodicEvaluation, frames_of
 from sb3_collapse.monitoring.redo import PeriodicReDo
 from sb3_collapse.paper import PAPER
@@ -62,13 +69,13 @@ from sb3_collapse.protocol import (
     write_failure,
     write_json_atomically,
 )
-from sb3_collapse.run.checkpoints import CheckpointError, CheckpointsDamaged, LoadedCheckpoint, ResumableCheckpoints
+from sb3_collapse.run.checkpoints import LoadedCheckpoint, ResumableCheckpoints
 from sb3_collapse.run.config import USER, TrainConfig, baseline_kwargs, drqv2_kwargs, env_kwargs
 from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
 from sb3_collapse.run.folder import check_run_folder, new_run_dir, open_run_dir
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.resumed_logger import resumed_logger
-from sb3_collapse.run.signals import TrainingInterrupted, stop_signals
+from sb3_collapse.run.signals import stop_signals
 from sb3_collapse.run.snapshots import Snapshots
 from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
 
@@ -183,9 +190,9 @@ def train(config: TrainConfig) -> TrainResult:
     :param config: the run's settings
     :return: where things were written, and the evaluations
     :raises InputError: for bad input (a ``ParameterError`` for a bad setting), before anything is written; a
-        ``RunFolderLocked`` when another process trains into the folder
+        also when another process trains into the folder
     :raises TrainingInterrupted: after a SIGTERM or SIGINT, once the checkpoint is written
-    :raises CheckpointError: when a checkpoint cannot be written (a full disk): the previous one is intact
+    :raises OutputError: when a checkpoint cannot be written (a full disk): the previous one is intact
     """
     start_time = time.time()
     config = config.resolve()
@@ -223,7 +230,9 @@ def train(config: TrainConfig) -> TrainResult:
                 result = _train_into(
                     config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint
                 )
-            except CheckpointsDamaged:  # found as their replay chunks were read: each one is set aside
+            except CheckpointError as error:  # damaged: found as their replay chunks were read, each one set aside
+                if not error.damaged:
+                    raise
                 env.close()
                 if eval_env is not None:
                     eval_env.close()
@@ -452,7 +461,7 @@ def _train_into(
         with contextlib.suppress(OSError):  # closing flushes, into the same folder
             model.logger.close()
         env.close()
-        raise CheckpointError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
+        raise OutputError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
     model_path = run_dir / FINAL_MODEL
     try:
         with atomic_output(model_path) as temporary:
@@ -488,7 +497,7 @@ def _train_into(
         env.close()
         kept = checkpoints.last_checkpoint
         resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
-        raise CheckpointError(f"{message} The run's final outputs are not written; {resume}.") from None
+        raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
     return TrainResult(

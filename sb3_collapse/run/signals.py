@@ -11,7 +11,6 @@ import contextlib
 import signal
 import threading
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -19,20 +18,6 @@ if TYPE_CHECKING:
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 """The signals that stop a run (or a sweep) after a checkpoint."""
-
-
-class TrainingInterrupted(Exception):
-    """
-    ``learn()`` stopped at a signal after writing a checkpoint.
-
-    :param checkpoint: the checkpoint's folder
-    :param signal_name: the signal (``"SIGTERM"``, ``"SIGINT"``)
-    """
-
-    def __init__(self, checkpoint: Path, signal_name: str) -> None:
-        super().__init__(f"stopped by {signal_name} after writing the checkpoint {checkpoint}")
-        self.checkpoint = checkpoint
-        self.signal_name = signal_name
 
 
 _stop_requests: list[str] = []

@@ -6,7 +6,7 @@ weights the offline probe (the paper's Figure 2, probing MSE over training) and 
 A snapshot is an SB3 zip like ``DrQv2.save`` writes (``data``, ``policy.pth``), whose ``policy.pth`` holds
 the encoder and actor entries only: no critic, no target critic, no optimizer state, no replay buffer. With
 DrQ-v2's sizes it is a fraction of a ``DrQv2.save`` zip (both measured: benchmarks/README.md#checkpoint-sizes). A
-member :data:`MARKER` marks it (:data:`LEGACY_MARKER` in the files of earlier versions);
+member :data:`MARKER` marks it;
 :func:`load_snapshot` (and ``sb3_collapse.probe``'s checkpoint loader) reads it into a DrQv2 model whose
 critic keeps its random initialization (never used by the probe).
 """
@@ -34,8 +34,6 @@ SNAPSHOT_PREFIXES = tuple(prefix for group in SNAPSHOT_GROUPS for prefix in TRAN
 """Their ``state_dict`` prefixes (``encoder.``, ``actor.``)."""
 MARKER = "snapshot.json"
 """The zip member that marks a snapshot: ``{"groups", "layers", "num_timesteps", "frames"}``."""
-LEGACY_MARKER = "probe_checkpoint.json"
-"""The marker of the snapshots that earlier versions wrote (then named probe checkpoints); read as :data:`MARKER`."""
 
 
 def save_snapshot(model: Any, path: str | os.PathLike) -> Path:
@@ -83,10 +81,10 @@ def save_snapshot(model: Any, path: str | os.PathLike) -> Path:
 
 
 def is_snapshot(path: str | os.PathLike) -> bool:
-    """:return: whether ``path`` is a zip with a snapshot's marker (:data:`MARKER`, or :data:`LEGACY_MARKER`)"""
+    """:return: whether ``path`` is a zip with a snapshot's marker (:data:`MARKER`)"""
     try:
         with zipfile.ZipFile(path) as archive:
-            return not {MARKER, LEGACY_MARKER}.isdisjoint(archive.namelist())
+            return MARKER in archive.namelist()
     except (OSError, zipfile.BadZipFile):
         return False
 

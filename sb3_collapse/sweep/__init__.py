@@ -1,6 +1,6 @@
 """Multi-seed sweeps on Ray: every (task, variant, seed) trains as an independent trial into its own folder."""
 
-from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError, import_ray, ray_session
+from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, import_ray, ray_session
 from sb3_collapse.sweep.donors import DONOR_KEYS, Donor, donor_candidates, pick_donors
 from sb3_collapse.sweep.runner import (
     SweepSummary,
@@ -15,7 +15,6 @@ from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
     PLAIN_VARIANTS,
     TRANSPLANT_SOURCES,
-    SweepError,
     Trial,
     canonical_task,
     donor_key,
@@ -33,10 +32,7 @@ __all__ = [
     "GRID_VARIANTS",
     "PLAIN_VARIANTS",
     "TRANSPLANT_SOURCES",
-    "ClusterUnreachable",
     "Donor",
-    "RayMissingError",
-    "SweepError",
     "SweepSummary",
     "Trial",
     "canonical_task",

@@ -15,7 +15,13 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from sb3_collapse.errors import cli_message, report_unwritable_outputs
+from sb3_collapse.errors import (
+    ClusterUnreachable,
+    InputError,
+    MissingDependencyError,
+    cli_message,
+    report_unwritable_outputs,
+)
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.paper import PAPER
@@ -24,7 +30,7 @@ from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
 from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status
-from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, ClusterUnreachable, RayMissingError
+from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
     DONOR_PARTS,
@@ -38,7 +44,6 @@ from sb3_collapse.sweep.trials import (
     BASE_VARIANTS,
     GRID_VARIANTS,
     TRANSPLANT_SOURCES,
-    SweepError,
     check_checkpoints,
     donor_key,
     expand_trials,
@@ -187,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             donors=donors,
             connect_timeout_s=args.connect_timeout_s,
         )
-    except (SweepError, RayMissingError, ValueError) as error:
+    except (MissingDependencyError, ValueError) as error:
         parser.error(cli_message(error, parser))
     except ClusterUnreachable as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
@@ -251,12 +256,12 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
     :param trials: the sweep's trials
     :return: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> path, and the record of the pick (``None``
         for given checkpoints)
-    :raises SweepError: for the old ``--good-checkpoint`` / ``--bad-checkpoint``, both forms at once, or one
+    :raises InputError: for the old ``--good-checkpoint`` / ``--bad-checkpoint``, both forms at once, or one
         agent giving both parts of a source
     """
     for source in DONOR_SOURCES:
         if getattr(args, f"{source}_checkpoint") is not None:
-            raise SweepError(
+            raise InputError(
                 f"--{source}-checkpoint gave one agent both the CNN and the MLP (the paper takes them from two "
                 f"different agents): pass --{source}-cnn PATH --{source}-mlp PATH, or --donors-from SWEEP.",
                 parameter=f"{source}_checkpoint",
@@ -271,7 +276,7 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
         return checkpoints, None
     if given:
         flags = ", ".join(f"--{key.replace('_', '-')}" for key in given)
-        raise SweepError(f"--donors-from picks every donor: leave out {flags}.", parameter="donors_from")
+        raise InputError(f"--donors-from picks every donor: leave out {flags}.", parameter="donors_from")
     needed = {source for trial in trials for source in (transplant_of(trial.variant) or {}).values()} - {"blank"}
     grid_tasks = list(dict.fromkeys(trial.task for trial in trials if transplant_of(trial.variant)))
     picked = {
@@ -292,7 +297,7 @@ def dry_run(
     Print each trial's status and folder, and the counts; check the settings against the sweep's settings file.
 
     :return: exit status 0
-    :raises SweepError: when the training settings differ from those of the sweep's settings file (and that is not
+    :raises InputError: when the training settings differ from those of the sweep's settings file (and that is not
     allowed)
     """
     if donors is not None:

@@ -16,24 +16,20 @@ import time
 from collections.abc import Iterator, Mapping
 from typing import Any
 
-from sb3_collapse.sweep.trials import SweepError
+from sb3_collapse.errors import ClusterUnreachable, InputError, MissingDependencyError
 
 INSTALL_HINT = "pip install -e '.[sweep]'"
-
-
-class RayMissingError(ImportError):
-    """Ray is not installed."""
 
 
 def import_ray() -> Any:
     """
     :return: the ``ray`` module
-    :raises RayMissingError: with the command that installs it
+    :raises MissingDependencyError: with the command that installs it
     """
     try:
         import ray
     except ImportError as error:
-        raise RayMissingError(f"Sweeps run on Ray, which is not installed: {INSTALL_HINT} ({error}).") from None
+        raise MissingDependencyError(f"Sweeps run on Ray, which is not installed: {INSTALL_HINT} ({error}).") from None
     return ray
 
 
@@ -41,26 +37,15 @@ CONNECT_TIMEOUT_S = 30.0
 """Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
 
 
-class ClusterUnreachable(RuntimeError):
-    """
-    No Ray cluster answered at the sweep's address in time (nothing listens there, a firewall, a head still
-    starting): a fault to retry once the cluster is up. Nothing was written.
-
-    :param message: what happened and what to do, naming the parameter (``address``)
-    """
-
-    parameter = "address"
-
-
 def split_address(address: str) -> tuple[str, int]:
     """
     :param address: a Ray address, ``host:port`` or ``ray://host:port``
     :return: the host and the port
-    :raises SweepError: for an address without a port
+    :raises InputError: for an address without a port
     """
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
-        raise SweepError(f"address {address!r} is not 'auto', 'host:port' or 'ray://host:port'.", parameter="address")
+        raise InputError(f"address {address!r} is not 'auto', 'host:port' or 'ray://host:port'.", parameter="address")
     return host.strip("[]"), int(port)
 
 
@@ -72,7 +57,7 @@ def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
     :param host: the host
     :param port: the port
     :param timeout_s: seconds to wait at most
-    :raises SweepError: for a host that does not resolve
+    :raises InputError: for a host that does not resolve
     :raises ClusterUnreachable: when nothing accepted a connection in time
     """
     deadline = time.monotonic() + timeout_s
@@ -81,7 +66,7 @@ def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
             with socket.create_connection((host, port), timeout=max(0.1, min(5.0, deadline - time.monotonic()))):
                 return
         except socket.gaierror as error:
-            raise SweepError(f"address {address}: no host {host!r} ({error.strerror}).", parameter="address") from None
+            raise InputError(f"address {address}: no host {host!r} ({error.strerror}).", parameter="address") from None
         except OSError as error:
             reason = error.strerror or type(error).__name__
         if time.monotonic() + 0.5 >= deadline:
@@ -100,7 +85,7 @@ def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
 
     :param address: ``"auto"``, ``"host:port"`` (the GCS) or ``"ray://host:port"`` (Ray client: only reachability)
     :param timeout_s: seconds to wait for the cluster at most
-    :raises SweepError: for an address that cannot be right, or a cluster that wants an authentication token this
+    :raises InputError: for an address that cannot be right, or a cluster that wants an authentication token this
         process does not have (``ray start`` turns token authentication on by default)
     :raises ClusterUnreachable: when no cluster answered in time
     """
@@ -153,7 +138,7 @@ def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
         return
     if type(error).__name__ == "AuthenticationError":
         token_mode = os.environ.get("RAY_AUTH_MODE", "").lower() == "token"
-        raise SweepError(
+        raise InputError(
             f"address {address}: the Ray cluster there wants an authentication token and "
             + (
                 "the token of this process (RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token) is not its own"
@@ -204,7 +189,7 @@ def ray_session(
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer
     :return: the ``ray`` module
     :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time
-    :raises SweepError: for an address that cannot be right, or a cluster that wants a token this process lacks
+    :raises InputError: for an address that cannot be right, or a cluster that wants a token this process lacks
     """
     ray = import_ray()
     if ray.is_initialized():
@@ -250,20 +235,20 @@ def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_
     :param resources: the cluster's resources (``ray.cluster_resources()``)
     :param cpus_per_trial: CPUs each trial asks for
     :param gpus_per_trial: GPUs each trial asks for
-    :raises SweepError: when no trial could ever be scheduled
+    :raises InputError: when no trial could ever be scheduled
     """
     gpus, cpus = resources.get("GPU", 0.0), resources.get("CPU", 0.0)
     if gpus_per_trial > 0 and gpus == 0:
-        raise SweepError(
+        raise InputError(
             f"gpus_per_trial={gpus_per_trial} asks for GPUs, but Ray sees none in this cluster (resources: "
             f"{dict(resources)}). Set gpus_per_trial=0 to train on CPU, or run on machines with GPUs.",
             parameter="gpus_per_trial",
         )
     if gpus_per_trial > gpus:
-        raise SweepError(
+        raise InputError(
             f"gpus_per_trial={gpus_per_trial} is more than the {gpus:g} GPUs Ray sees.", parameter="gpus_per_trial"
         )
     if cpus_per_trial > cpus:
-        raise SweepError(
+        raise InputError(
             f"cpus_per_trial={cpus_per_trial} is more than the {cpus:g} CPUs Ray sees.", parameter="cpus_per_trial"
         )

@@ -23,10 +23,11 @@ from typing import Any
 
 import numpy as np
 
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import FINAL_MODEL
 from sb3_collapse.runfolder import final_return, trial_folders
-from sb3_collapse.sweep.trials import SweepError, canonical_task, donor_key
+from sb3_collapse.sweep.trials import canonical_task, donor_key
 
 DONOR_PARTS = ("cnn", "mlp")
 """The transplanted parts, in the order a pick assigns them (the first agent drawn gives the CNN)."""
@@ -107,7 +108,7 @@ def pick_donors(
     :param success_return: a final return at least this is a well-performing agent
     :param failure_return: a final return below this is a poorly performing agent
     :return: :func:`donor_key` -> donor, for each source and part
-    :raises SweepError: when a class has fewer than two agents (saying how many and what to pass instead)
+    :raises InputError: when a class has fewer than two agents (saying how many and what to pass instead)
     """
     candidates = donor_candidates(sweep, task, variant, success_return, failure_return)
     rng = np.random.default_rng(seed)
@@ -118,7 +119,7 @@ def pick_donors(
         pool = candidates[source]
         if len(pool) < 2:
             what = f"final return >= {success_return:g}" if source == "good" else f"final return < {failure_return:g}"
-            raise SweepError(
+            raise InputError(
                 f"--donors-from {sweep}: {canonical_task(task)}/{variant} has {len(pool)} finished seed(s) with a "
                 f"{what} and a {FINAL_MODEL}; the {source} CNN and MLP need two different agents: pass "
                 f"--{source}-cnn PATH --{source}-mlp PATH instead.",
@@ -133,13 +134,13 @@ def pick_donors(
 def check_distinct_donors(checkpoints: Mapping[str, Mapping[str, str]]) -> None:
     """
     :param checkpoints: :func:`donor_key` -> task -> path
-    :raises SweepError: when a source's CNN and MLP come from the same file for a task (one agent, not two)
+    :raises InputError: when a source's CNN and MLP come from the same file for a task (one agent, not two)
     """
     for source in DONOR_SOURCES:
         cnn, mlp = checkpoints.get(donor_key(source, "cnn"), {}), checkpoints.get(donor_key(source, "mlp"), {})
         for task in sorted(set(cnn) & set(mlp)):
             if Path(cnn[task]).resolve() == Path(mlp[task]).resolve():
-                raise SweepError(
+                raise InputError(
                     f"--{source}-cnn and --{source}-mlp give the same checkpoint {cnn[task]} for {task}: the paper "
                     f"takes the {source} CNN and MLP from two different agents; pass another agent's checkpoint to "
                     "one of them.",

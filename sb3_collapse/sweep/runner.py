@@ -24,7 +24,7 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import InputError, OutputError, TrainingInterrupted
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CONFIG_JSON,
@@ -38,20 +38,14 @@ from sb3_collapse.protocol import (
     write_json_atomically,
     write_text_atomically,
 )
-from sb3_collapse.run.checkpoints import CheckpointError
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import settings_differences, tidy_finished_run
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.runner import train
-from sb3_collapse.run.signals import (
-    TrainingInterrupted,
-    clear_training_stop,
-    request_training_stop,
-    stop_signal_handlers,
-)
+from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
 from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
-from sb3_collapse.sweep.trials import SweepError, Trial, check_checkpoints, trial_config, trial_dir
+from sb3_collapse.sweep.trials import Trial, check_checkpoints, trial_config, trial_dir
 
 
 def check_sweep_arguments(
@@ -70,29 +64,29 @@ def check_sweep_arguments(
     :param cpus_per_trial: CPUs per trial, > 0
     :param gpus_per_trial: GPUs per trial, a fraction in [0, 1] or a whole number
     :param connect_timeout_s: seconds to wait for a cluster to answer, > 0
-    :raises SweepError: naming the parameter
+    :raises InputError: naming the parameter
     """
     if not connect_timeout_s > 0 or connect_timeout_s == float("inf"):
-        raise SweepError(
+        raise InputError(
             f"connect_timeout_s must be a finite number of seconds > 0, got {connect_timeout_s}.",
             parameter="connect_timeout_s",
         )
     if cpus_per_trial <= 0:
-        raise SweepError(f"cpus_per_trial must be > 0, got {cpus_per_trial}.", parameter="cpus_per_trial")
+        raise InputError(f"cpus_per_trial must be > 0, got {cpus_per_trial}.", parameter="cpus_per_trial")
     if gpus_per_trial < 0 or (gpus_per_trial > 1 and gpus_per_trial != int(gpus_per_trial)):
-        raise SweepError(
+        raise InputError(
             f"gpus_per_trial must be a fraction in [0, 1] or a whole number, got {gpus_per_trial}.",
             parameter="gpus_per_trial",
         )
     if training.get("eval_every_frames") == 0:
-        raise SweepError(
+        raise InputError(
             "eval_every_frames=0 turns the evaluations off, and a sweep's report compares evaluation returns: "
             "leave it to the presets or give a period in frames.",
             parameter="eval_every_frames",
         )
     blocking = blocking_file(out)
     if blocking is not None:
-        raise SweepError(f"out {out}: {blocking} is a file, not a folder.", parameter="out")
+        raise InputError(f"out {out}: {blocking} is a file, not a folder.", parameter="out")
 
 
 def check_writable(folder: Path) -> None:
@@ -254,7 +248,7 @@ def retryable(error: BaseException) -> bool:
     """
     import torch as th
 
-    transient = (OSError, MemoryError, CheckpointError, th.cuda.OutOfMemoryError)
+    transient = (OSError, MemoryError, OutputError, th.cuda.OutOfMemoryError)
     return isinstance(error, transient) and not isinstance(error, InputError)
 
 
@@ -372,7 +366,7 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
             before = previous.get("checkpoints", {}).get(source, {}).get(task)
             if before is not None and before != path:
                 changes.append(f"`{source}` checkpoint for {task}: {before} in {SWEEP_JSON}, {path} now")
-    for source in ("good", "bad"):  # earlier versions: one agent gave both parts of a source
+    for source in ("good", "bad"):  # a settings file of another version: one agent gave both parts of a source
         if source in previous.get("checkpoints", {}) and any(
             key.startswith(f"{source}_") for key in current.get("checkpoints", {})
         ):
@@ -419,7 +413,7 @@ def prepare_sweep_folder(
     :param allow_changed_settings: accept training settings that differ from those in the sweep's settings file (the
         finished trials keep the old ones)
     :param write: write the sweep's settings file; ``False`` only checks (dry run)
-    :raises SweepError: when the training settings changed and that is not allowed
+    :raises InputError: when the training settings changed and that is not allowed
     """
     out = Path(out)
     path = out / SWEEP_JSON
@@ -428,7 +422,7 @@ def prepare_sweep_folder(
         previous = read_settings(path)
         changes = settings_changes(previous, settings)
         if changes and not allow_changed_settings:
-            raise SweepError(
+            raise InputError(
                 f"{out} holds a sweep with other training settings:\n  "
                 + "\n  ".join(changes)
                 + "\nUse another `out`, the same settings, or `allow_changed_settings=True` to mix them "
@@ -486,17 +480,17 @@ def run_sweep(
         recorded in the settings file; ``None`` when they were given as checkpoints (or there are none)
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer (:func:`ray_session`)
     :return: what was skipped, finished, failed and interrupted
-    :raises SweepError: for settings that cannot run (missing checkpoints, changed settings, resources, a cluster
+    :raises InputError: for settings that cannot run (missing checkpoints, changed settings, resources, a cluster
         that wants an authentication token)
-    :raises RayMissingError: when there are trials to run and Ray is not installed
+    :raises MissingDependencyError: when there are trials to run and Ray is not installed
     :raises ClusterUnreachable: when the cluster at ``address`` did not answer within ``connect_timeout_s``;
         nothing was written
-    :raises RunFolderLocked: when another sweep runs into ``out``; nothing was written
+    :raises InputError: when another sweep runs into ``out``; nothing was written
     """
     check_sweep_arguments(out, training, cpus_per_trial, gpus_per_trial, connect_timeout_s)
     unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
     if unknown:
-        raise SweepError(f"Unknown training settings {unknown}: use TrainConfig field names.")
+        raise InputError(f"Unknown training settings {unknown}: use TrainConfig field names.")
     checkpoints = {source: dict(paths) for source, paths in (checkpoints or {}).items()}
     check_checkpoints(trials, checkpoints)
     out = Path(out).resolve()
@@ -519,7 +513,7 @@ def sweep_folder_locked(out: Path) -> Iterator[None]:
     deleted at the end, and the folders created for it when nothing else was written into them.
 
     :param out: the sweep folder (created if needed)
-    :raises RunFolderLocked: naming the process that runs a sweep into the folder
+    :raises InputError: naming the process that runs a sweep into the folder
     """
     created = [path for path in (out, *out.parents) if not path.exists()]
     out.mkdir(parents=True, exist_ok=True)

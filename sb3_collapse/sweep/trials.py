@@ -65,8 +65,6 @@ def donor_key(source: str, part: str) -> str:
     return f"{source}_{part}"
 
 
-class SweepError(InputError):
-    """A sweep that cannot run as asked; the message says what to do (``parameter``: the parameter at fault)."""
 
 
 @dataclass(frozen=True, order=True)
@@ -91,12 +89,12 @@ def canonical_task(name: str) -> str:
     """
     :param name: a task name in any form :func:`~sb3_collapse.envs.parse_task` accepts (``"walker_walk"``)
     :return: its ``<domain>-<task>`` form (``"walker-walk"``)
-    :raises SweepError: for an unknown task, with close names
+    :raises InputError: for an unknown task, with close names
     """
     try:
         domain, task = parse_task(name)
     except ValueError as error:
-        raise SweepError(str(error)) from None
+        raise InputError(str(error)) from None
     return f"{domain}-{task}"
 
 
@@ -104,14 +102,14 @@ def transplant_of(variant: str) -> dict[str, str] | None:
     """
     :param variant: a variant name
     :return: ``{"cnn": src, "mlp": src}`` for a transplant-grid cell, ``None`` for a plain variant
-    :raises SweepError: for an unknown variant, listing the valid ones
+    :raises InputError: for an unknown variant, listing the valid ones
     """
     if variant in PLAIN_VARIANTS:
         return None
     if variant in GRID_VARIANTS:
         cnn, mlp = variant.split("_")
         return {"cnn": cnn.removeprefix("cnn-"), "mlp": mlp.removeprefix("mlp-")}
-    raise SweepError(
+    raise InputError(
         f"Unknown variant {variant!r}: use <algorithm> or <algorithm>+<intervention> with <algorithm> in "
         f"{', '.join(BASE_VARIANTS)} and <intervention> in {', '.join(INTERVENTIONS)} or {PERIODIC_REDO} (e.g. "
         "drqv2+reset, td3+redo, drqv2-leaky+redo_periodic), "
@@ -128,7 +126,7 @@ def variant_settings(variant: str) -> dict[str, Any]:
     :return: ``algorithm``, ``reset_rule``, ``intervention`` (``None`` without the rule), ``activation``
         (``"leaky_relu"`` for ``drqv2-leaky...``) and ``redo_every_updates`` (for ``+redo_periodic``, else 0);
         transplant-grid cells are plain DrQ-v2
-    :raises SweepError: for an unknown variant
+    :raises InputError: for an unknown variant
     """
     settings: dict[str, Any] = {
         "algorithm": "drqv2", "reset_rule": False, "intervention": None, "activation": "relu", "redo_every_updates": 0
@@ -154,7 +152,7 @@ def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable
     :param variants: variant names
     :param seeds: seeds (>= 0)
     :return: the trials
-    :raises SweepError: for an unknown task or variant, a negative seed, an empty list or a value listed twice
+    :raises InputError: for an unknown task or variant, a negative seed, an empty list or a value listed twice
         (``walker-walk`` and ``walker_walk`` are the same task)
     """
     tasks = [canonical_task(task) for task in tasks]
@@ -162,16 +160,16 @@ def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable
     for name, values in (("tasks", tasks), ("variants", variants), ("seeds", seeds)):
         repeated = sorted({str(value) for value in values if values.count(value) > 1})
         if repeated:
-            raise SweepError(
+            raise InputError(
                 f"{name} lists {', '.join(repeated)} more than once: each (task, variant, seed) is one trial.",
                 parameter=name,
             )
     for variant in variants:
         transplant_of(variant)
     if any(seed < 0 for seed in seeds):
-        raise SweepError(f"Seeds must be >= 0, got {min(seeds)}.")
+        raise InputError(f"Seeds must be >= 0, got {min(seeds)}.")
     if not (tasks and variants and seeds):
-        raise SweepError("A sweep needs at least one task, one variant and one seed.")
+        raise InputError("A sweep needs at least one task, one variant and one seed.")
     return [Trial(task, variant, seed) for task in tasks for variant in variants for seed in seeds]
 
 
@@ -195,7 +193,7 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
     :param tasks: the sweep's tasks, ``<domain>-<task>``
     :param flag: the command-line flag, for the messages (``"--good-cnn"``)
     :return: task -> absolute checkpoint path, for the tasks that have one
-    :raises SweepError: for two plain paths, a task that is not in the sweep, or a path that is not a file
+    :raises InputError: for two plain paths, a task that is not in the sweep, or a path that is not a file
     """
     default: str | None = None
     by_task: dict[str, str] = {}
@@ -205,14 +203,14 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
         if separator:
             try:
                 task = canonical_task(name)
-            except SweepError:
+            except InputError:
                 task = None
         if task is None:
             if default is not None:
-                raise SweepError(f"{flag}: two checkpoints for every task ({default}, {item}); use TASK=PATH per task.")
+                raise InputError(f"{flag}: two checkpoints for every task ({default}, {item}); use TASK=PATH per task.")
             default = item
         elif task not in tasks:
-            raise SweepError(f"{flag} {item}: {task} is not a task of this sweep ({', '.join(tasks)}).")
+            raise InputError(f"{flag} {item}: {task} is not a task of this sweep ({', '.join(tasks)}).")
         else:
             by_task[task] = path
     checkpoints = {task: by_task.get(task, default) for task in tasks}
@@ -223,7 +221,7 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
         try:
             resolved[task] = str(resolve_source_path(flag, path))
         except FileNotFoundError:
-            raise SweepError(
+            raise InputError(
                 f"{flag}: {path} (for {task}) is not a file; give a checkpoint saved by DrQv2.save."
             ) from None
     return resolved
@@ -233,12 +231,12 @@ def check_checkpoints(trials: Iterable[Trial], checkpoints: Mapping[str, Mapping
     """
     :param trials: the sweep's trials
     :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> path
-    :raises SweepError: naming the first transplant-grid trial whose checkpoint is missing and the flag to add
+    :raises InputError: naming the first transplant-grid trial whose checkpoint is missing and the flag to add
     """
     for trial in trials:
         for part, source in (transplant_of(trial.variant) or {}).items():
             if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
-                raise SweepError(
+                raise InputError(
                     f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-{part} "
                     f"PATH (or {trial.task}=PATH) for {trial.task}, or --donors-from a finished sweep."
                 )

@@ -8,8 +8,7 @@ the evaluation env the training env's pixel settings and refuses settings that w
 Importing this package does not import rl_zoo3 (an optional dependency: ``pip install -e '.[zoo]'`` in a clone).
 """
 
-from sb3_collapse.errors import LauncherError, ZooConfigError, ZooNotInstalledError
 from sb3_collapse.zoo.launcher import main
 from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 
-__all__ = ["ALGO_NAME", "LauncherError", "ZooConfigError", "ZooNotInstalledError", "main", "register_with_zoo"]
+__all__ = ["ALGO_NAME", "main", "register_with_zoo"]

@@ -14,7 +14,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecTransposeImage, is_vecen
 from sb3_collapse.drqv2 import StddevSchedule
 from sb3_collapse.envs.dmc import DMCEnv
 from sb3_collapse.envs.registration import ENTRY_POINT
-from sb3_collapse.errors import ZooConfigError
+from sb3_collapse.errors import InputError
 from sb3_collapse.zoo.registration import ALGO_NAME
 
 CallbackSpec = dict[str, dict[str, Any]]
@@ -51,13 +51,13 @@ def check_same_pixels(train_kwargs: dict[str, Any] | None, eval_kwargs: dict[str
     """
     :param train_kwargs: ``env_kwargs`` of the training env
     :param eval_kwargs: ``env_kwargs`` of the evaluation env
-    :raises ZooConfigError: if they give different :data:`PIXEL_SETTINGS` (missing ones count as the defaults)
+    :raises InputError: if they give different :data:`PIXEL_SETTINGS` (missing ones count as the defaults)
     """
     train, evaluation = pixel_settings(train_kwargs), pixel_settings(eval_kwargs)
     differing = {name: (train[name], evaluation[name]) for name in PIXEL_SETTINGS if train[name] != evaluation[name]}
     if differing:
         details = ", ".join(f"{name}: {a!r} in training, {b!r} in evaluation" for name, (a, b) in differing.items())
-        raise ZooConfigError(
+        raise InputError(
             f"The evaluation env must see the same pixels as the training env ({details}). "
             "Drop these keys from --eval-env-kwargs (it defaults to the training env_kwargs)."
         )
@@ -68,17 +68,17 @@ def check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
     Refuse the rl_zoo3 hyperparameters that break DrQv2 on pixels, before any env is built.
 
     :param hyperparams: one entry of the config file, after the ``-params`` overrides
-    :raises ZooConfigError: for ``frame_stack`` (rl_zoo3's ``VecFrameStack``: the DMC envs stack frames themselves,
+    :raises InputError: for ``frame_stack`` (rl_zoo3's ``VecFrameStack``: the DMC envs stack frames themselves,
         and DrQv2's replay buffer relies on their layout), ``normalize`` (``VecNormalize`` would turn the uint8
         pixels into floats; DrQv2 scales them itself, layer ``cnn0``) and a malformed ``stddev_schedule``
     """
     if "frame_stack" in hyperparams:
-        raise ZooConfigError(
+        raise InputError(
             f"frame_stack: {hyperparams['frame_stack']!r} makes rl_zoo3 stack observations with VecFrameStack; "
             "the DeepMind Control envs stack frames themselves: set env_kwargs: {frame_stack: ...} instead."
         )
     if hyperparams.get("normalize"):
-        raise ZooConfigError(
+        raise InputError(
             "normalize makes rl_zoo3 wrap the env in VecNormalize, which would turn the uint8 pixels into "
             "normalized floats; DrQv2 scales the pixels itself (layer cnn0): remove normalize."
         )
@@ -86,7 +86,7 @@ def check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
         try:
             StddevSchedule(hyperparams["stddev_schedule"])
         except ValueError as error:
-            raise ZooConfigError(f"stddev_schedule: {error}") from None
+            raise InputError(f"stddev_schedule: {error}") from None
 
 
 def merge_callbacks(configured: Any, extra: list[CallbackSpec]) -> list[Any]:
@@ -113,7 +113,7 @@ class ZooExperimentManager(ExperimentManager):
       (:data:`PIXEL_SETTINGS`) must then agree;
     - for DrQv2: ``frame_stack``, ``normalize`` and malformed ``stddev_schedule`` refused with a clear message
       (:func:`check_drqv2_hyperparams`);
-    - a missing config file, or one without the ``--env``, reported as a :class:`ZooConfigError`;
+    - a missing config file, or one without the ``--env``, reported as a :class:`InputError`;
     - :attr:`extra_callbacks` appended to the config's ``callback`` list (and saved with it in ``config.yml``);
     - a DeepMind Control pixel env wrapped in ``VecTransposeImage`` refused: its observations are channel first
       already; SB3 guesses the channel axis as the smallest one, so this happens only when
@@ -134,13 +134,13 @@ class ZooExperimentManager(ExperimentManager):
     def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
         if self.config.endswith((".yml", ".yaml", ".py")) and not os.path.isfile(self.config):
             hint = " (pass -conf zoo_configs/drqv2.yml)" if self.algo == ALGO_NAME else ""
-            raise ZooConfigError(f"Config file {self.config} not found{hint}.")
+            raise InputError(f"Config file {self.config} not found{hint}.")
         try:
             hyperparams, saved_hyperparams = super().read_hyperparameters()
         except yaml.YAMLError as error:
-            raise ZooConfigError(f"Cannot parse {self.config}: {error}") from None
+            raise InputError(f"Cannot parse {self.config}: {error}") from None
         except ValueError as error:  # rl_zoo3: "Hyperparameters not found for <algo>-<env> in <config>"
-            raise ZooConfigError(f"{error}: add an entry for {self.env_name.gym_id} to it.") from None
+            raise InputError(f"{error}: add an entry for {self.env_name.gym_id} to it.") from None
         if self.algo == ALGO_NAME:
             check_drqv2_hyperparams(hyperparams)
         if self.extra_callbacks:
@@ -162,7 +162,7 @@ class ZooExperimentManager(ExperimentManager):
         if is_dmc_env_id(self.env_name.gym_id) and is_vecenv_wrapped(env, VecTransposeImage):
             shape = env.get_attr("observation_space", indices=[0])[0].shape
             env.close()
-            raise ZooConfigError(
+            raise InputError(
                 f"rl_zoo3 took the channel-first {shape} pixel observations for channel-last images (SB3 takes the "
                 "smallest axis for the channels) and would transpose them: use size >= 3 * frame_stack in env_kwargs."
             )

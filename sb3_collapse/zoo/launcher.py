@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_collapse.envs.rendering import ensure_rendering_backend
-from sb3_collapse.errors import LauncherError, ZooConfigError, ZooNotInstalledError
+from sb3_collapse.errors import InputError, MissingDependencyError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import PRESETS
 from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
@@ -115,15 +115,15 @@ def train_arguments(zoo_args: list[str]) -> list[str]:
     """
     :param zoo_args: the rl_zoo3 ``train`` options of the command line
     :return: them, plus DrQ-v2's evaluation period and episodes for ``--algo drqv2`` when not given
-    :raises LauncherError: for ``--algo drqv2`` without ``-conf``, or with ``-optimize``
+    :raises InputError: for ``--algo drqv2`` without ``-conf``, or with ``-optimize``
     """
     peek, _ = _peek_parser().parse_known_args(zoo_args)
     if peek.algo != ALGO_NAME or "-h" in zoo_args or "--help" in zoo_args:
         return list(zoo_args)
     if peek.conf_file is None:
-        raise LauncherError("--algo drqv2 needs a config file: pass -conf zoo_configs/drqv2.yml (or your own).")
+        raise InputError("--algo drqv2 needs a config file: pass -conf zoo_configs/drqv2.yml (or your own).")
     if peek.optimize:
-        raise LauncherError("-optimize is not available for drqv2: rl_zoo3 has no hyperparameter sampler for it.")
+        raise InputError("-optimize is not available for drqv2: rl_zoo3 has no hyperparameter sampler for it.")
     check_env_and_config(peek.env, peek.conf_file)
     args = list(zoo_args)
     if peek.eval_freq is None:
@@ -140,7 +140,7 @@ def check_env_and_config(env_id: str | None, conf_file: str) -> None:
 
     :param env_id: the ``--env`` of the command line (``None``: rl_zoo3's default, not checked)
     :param conf_file: the ``-conf`` file
-    :raises LauncherError: saying what is wrong and what to pass
+    :raises InputError: saying what is wrong and what to pass
     """
     import gymnasium as gym
     import yaml
@@ -150,21 +150,21 @@ def check_env_and_config(env_id: str | None, conf_file: str) -> None:
     if env_id is not None and env_id not in gym.registry:
         close = difflib.get_close_matches(env_id, list(gym.registry), n=3, cutoff=0.6)
         hint = f" Did you mean {', '.join(close)}?" if close else ""
-        raise LauncherError(
+        raise InputError(
             f"--env {env_id} is not a registered Gymnasium id.{hint} The DeepMind Control ids are "
             "sb3_collapse/<domain>-<task>-v0, e.g. sb3_collapse/walker-walk-v0."
         )
     path = Path(conf_file)
     if not path.is_file():
-        raise LauncherError(f"-conf {conf_file} is not a file; pass zoo_configs/drqv2.yml or your own YAML file.")
+        raise InputError(f"-conf {conf_file} is not a file; pass zoo_configs/drqv2.yml or your own YAML file.")
     try:
         config = yaml.safe_load(path.read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as error:
-        raise LauncherError(f"-conf {conf_file} is not a YAML file ({str(error).splitlines()[0]}).") from None
+        raise InputError(f"-conf {conf_file} is not a YAML file ({str(error).splitlines()[0]}).") from None
     if not isinstance(config, dict):
-        raise LauncherError(f"-conf {conf_file} must map env ids to hyperparameters (rl_zoo3's format).")
+        raise InputError(f"-conf {conf_file} must map env ids to hyperparameters (rl_zoo3's format).")
     if env_id is not None and env_id not in config:
-        raise LauncherError(f"-conf {conf_file} has no entry for {env_id}; add one or choose another --env.")
+        raise InputError(f"-conf {conf_file} has no entry for {env_id}; add one or choose another --env.")
 
 
 def enjoy_arguments(zoo_args: list[str]) -> list[str]:
@@ -261,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
             "enjoy": lambda: run_enjoy(enjoy_arguments(zoo_args)),
         }
         runners[command]()
-    except (LauncherError, ZooConfigError, ZooNotInstalledError) as error:
+    except (InputError, MissingDependencyError) as error:
         return _error(str(error))
     except SystemExit as exit_:  # rl_zoo3's argparse: --help, or a bad option (it printed why)
         return exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 2)

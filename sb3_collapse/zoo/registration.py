@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from sb3_collapse.errors import ZooNotInstalledError
+from sb3_collapse.errors import MissingDependencyError
 
 ALGO_NAME = "drqv2"
 """Name of DrQv2 in rl_zoo3's algorithm table (``--algo drqv2``)."""
@@ -15,7 +15,7 @@ INSTALL_HINT = "pip install -e '.[zoo]' in a clone of sb3-collapse"
 def import_rl_zoo3() -> ModuleType:
     """
     :return: the ``rl_zoo3`` package
-    :raises ZooNotInstalledError: if it (or a package it needs) cannot be imported; the message says how to
+    :raises MissingDependencyError: if it (or a package it needs) cannot be imported; the message says how to
         install it
     """
     try:
@@ -23,7 +23,7 @@ def import_rl_zoo3() -> ModuleType:
         import rl_zoo3.utils  # the algorithm table
     except ImportError as error:
         missing = f" (missing module: {error.name})" if error.name else ""
-        raise ZooNotInstalledError(f"rl_zoo3 cannot be imported{missing}: {INSTALL_HINT}") from error
+        raise MissingDependencyError(f"rl_zoo3 cannot be imported{missing}: {INSTALL_HINT}") from error
     return rl_zoo3
 
 
@@ -38,7 +38,7 @@ def register_with_zoo() -> None:
     models with ``buffer_size=1``, which DrQv2's n-step buffer refuses (``n_steps`` > capacity): DrQv2 stays off
     them and is loaded with its saved buffer size, whose arrays are reserved lazily (no memory is written).
 
-    :raises ZooNotInstalledError: if rl_zoo3 is not installed
+    :raises MissingDependencyError: if rl_zoo3 is not installed
     """
     import_rl_zoo3()
     from rl_zoo3.utils import ALGOS

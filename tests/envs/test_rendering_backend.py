@@ -8,7 +8,8 @@ import types
 
 import pytest
 
-from sb3_collapse.envs import RenderingBackendError, ensure_rendering_backend, rendering
+from sb3_collapse.envs import ensure_rendering_backend, rendering
+from sb3_collapse.errors import MissingDependencyError
 
 
 @pytest.fixture
@@ -49,9 +50,9 @@ def test_preset_mujoco_gl_is_respected(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_no_backend_raises_with_install_instructions(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[str] = []
     monkeypatch.setattr(rendering, "_backend_works", fake_check(set(), calls))
-    with pytest.raises(RenderingBackendError) as error:
+    with pytest.raises(MissingDependencyError) as error:
         ensure_rendering_backend()
-    assert isinstance(error.value, RuntimeError)
+    assert isinstance(error.value, ImportError)  # a missing system library
     message = str(error.value)
     assert "No headless OpenGL backend" in message
     assert "libosmesa6" in message
@@ -70,7 +71,7 @@ def test_no_backend_not_required_returns_none(monkeypatch: pytest.MonkeyPatch) -
     assert "MUJOCO_GL" not in os.environ
     # The failure is cached: no second probing, but a later required call still raises.
     assert ensure_rendering_backend(required=False) is None
-    with pytest.raises(RenderingBackendError, match="libosmesa6"):
+    with pytest.raises(MissingDependencyError, match="libosmesa6"):
         ensure_rendering_backend(required=True)
     assert calls == ["egl", "osmesa"]
 

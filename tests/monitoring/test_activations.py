@@ -5,7 +5,8 @@ import torch as th
 from stable_baselines3 import DDPG, PPO, SAC, TD3
 
 from sb3_collapse import DrQv2
-from sb3_collapse.monitoring import LayerMappingError, collect_activations, layer_parameters, layer_taps
+from sb3_collapse.errors import LayerMappingError
+from sb3_collapse.monitoring import collect_activations, layer_parameters, layer_taps
 from tests.random_env import RandomObservationEnv
 
 PIXELS = gym.spaces.Box(0, 255, (9, 84, 84), np.uint8)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_collapse.probe import ProbeError
+from sb3_collapse.errors import InputError
 from sb3_collapse.probe.probing import (
     plan_passes,
     probe_layer,
@@ -27,9 +27,9 @@ def test_split_never_cuts_an_episode():
     assert [sorted(e) for e in episodes] == [split.episodes[k] for k in ("train", "validation", "test")]
     assert not (episodes[0] & episodes[1] or episodes[0] & episodes[2] or episodes[1] & episodes[2])
     assert split_by_episode(episode_ids, seed=3).episodes == split.episodes  # seeded
-    with pytest.raises(ProbeError, match="at least 3 episodes"):
+    with pytest.raises(InputError, match="at least 3 episodes"):
         split_by_episode(np.array([0, 0, 1, 1]))
-    with pytest.raises(ProbeError, match="fractions"):
+    with pytest.raises(InputError, match="fractions"):
         split_by_episode(episode_ids, (0.5, 0.2, 0.2))
 
 
@@ -103,7 +103,7 @@ def test_staged_outputs_appear_only_on_commit(tmp_path):
     out.mkdir()
     (out / "summary.json").write_text("old run")
     (out / "mse_over_training.png").write_text("old plot")
-    with pytest.raises(ProbeError, match="overwrite=True"):
+    with pytest.raises(InputError, match="overwrite=True"):
         staged_output(out)
     with staged_output(out, overwrite=True) as staged:
         staged.path("probe.csv").write_text("new")

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from sb3_collapse import DrQv2, make_dmc_env
-from sb3_collapse.probe import ProbeError, Rollouts, record_rollouts
+from sb3_collapse.errors import InputError
+from sb3_collapse.probe import Rollouts, record_rollouts
 from sb3_collapse.probe.rollouts import resolve_env_config
 
 ENV = {"action_repeat": 8, "frame_stack": 3, "size": 32}
@@ -94,19 +95,19 @@ def test_save_load_roundtrip_and_bad_files(rollouts, tmp_path):
     stand = Rollouts.load(tmp_path / "stand.npz")
     assert list(stand.reward_inputs) == ["torso_height", "torso_upright"]
     assert stand.targets()[0][24:] == ["reward:torso_height", "reward:torso_upright"]
-    with pytest.raises(ProbeError, match="does not exist"):
+    with pytest.raises(InputError, match="does not exist"):
         Rollouts.load(tmp_path / "missing.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a numpy file")
-    with pytest.raises(ProbeError, match="not a rollouts file"):
+    with pytest.raises(InputError, match="not a rollouts file"):
         Rollouts.load(tmp_path / "junk.npz")
 
 
 def test_noise_and_env_settings(model):
-    with pytest.raises(ProbeError, match="pass `env`"):
+    with pytest.raises(InputError, match="pass `env`"):
         resolve_env_config(None)
     config = resolve_env_config(None, task_id="walker-walk", size=40)
     assert config == {"task_id": "walker-walk", "action_repeat": 2, "frame_stack": 3, "size": 40, "camera_id": None}
-    with pytest.raises(ProbeError, match="`size` and `frame_stack` the model was trained with"):
+    with pytest.raises(InputError, match="`size` and `frame_stack` the model was trained with"):
         record_rollouts(model, config, episodes=1, max_steps=1, progress=False)
     config = resolve_env_config(model.env_config)
     noisy = record_rollouts(model, config, episodes=1, seed=5, noise_std=0.5, max_steps=3, progress=False)

@@ -3,6 +3,7 @@
 import csv
 import dataclasses
 import json
+import re
 import shutil
 import sys
 import zipfile
@@ -15,7 +16,7 @@ import torch as th
 from PIL import Image
 
 from sb3_collapse import DrQv2
-from sb3_collapse.errors import ParameterError, ProbeError, ReportError
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_metrics
 from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
@@ -25,7 +26,6 @@ from sb3_collapse.probe.pipeline import RecordOptions, record
 from sb3_collapse.probe.rollouts import record_rollouts, resolve_env_config
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
-    LEGACY_SNAPSHOTS_DIR,
     SNAPSHOT_FILE,
     SNAPSHOTS_DIR,
     SWEEP_PROBE_DIR,
@@ -37,7 +37,7 @@ from sb3_collapse.report.collapse_figure import FixedInputSettings, fixed_agent_
 from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
-from sb3_collapse.run.snapshots import LEGACY_MARKER, MARKER, is_snapshot, load_snapshot, save_snapshot
+from sb3_collapse.run.snapshots import MARKER, is_snapshot, load_snapshot, save_snapshot
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "report"))
 from fabricated_sweep import write_probe_sweep
@@ -74,27 +74,22 @@ def test_one_snapshot_per_evaluation(run):
     assert not is_snapshot(run.model_path)
 
 
-def test_snapshots_of_earlier_versions_are_read(run, tmp_path):
-    """A run folder of an earlier version (``probe_checkpoints/probe_*.zip``, marker ``probe_checkpoint.json``),
-    resumed by this one (``snapshots/``): both folders are read, in training order, and loaded."""
-    names = [SNAPSHOT_FILE.format(frames=frames) for frames in (0, 400, 800)]
-    legacy = tmp_path / LEGACY_SNAPSHOTS_DIR
-    legacy.mkdir()
-    for name in names[:2]:  # the marker renamed, as an earlier version wrote it
-        with (
-            zipfile.ZipFile(run.run_dir / SNAPSHOTS_DIR / name) as source,
-            zipfile.ZipFile(legacy / name.replace("snapshot_", "probe_"), "w") as target,
-        ):
-            for member in source.namelist():
-                target.writestr(LEGACY_MARKER if member == MARKER else member, source.read(member))
+def test_a_snapshot_of_another_version_is_refused(run, tmp_path):
+    """A zip whose marker is not :data:`MARKER` (another version's) is not a snapshot: loading it is refused in one
+    line naming the file, and only the snapshots folder of this version is listed."""
+    names = [SNAPSHOT_FILE.format(frames=frames) for frames in (0, 400)]
     (tmp_path / SNAPSHOTS_DIR).mkdir()
-    shutil.copy(run.run_dir / SNAPSHOTS_DIR / names[2], tmp_path / SNAPSHOTS_DIR / names[2])
-    files = snapshot_files(tmp_path)
-    assert [path.name for path in files] == [
-        "probe_0000000000_frames.zip", "probe_0000000400_frames.zip", "snapshot_0000000800_frames.zip"
-    ]  # fmt: skip
-    assert all(is_snapshot(path) for path in files)
-    assert load_checkpoint(files[0]).model.num_timesteps == 0
+    other = tmp_path / SNAPSHOTS_DIR / names[0]
+    with zipfile.ZipFile(run.run_dir / SNAPSHOTS_DIR / names[0]) as source, zipfile.ZipFile(other, "w") as target:
+        for member in source.namelist():
+            target.writestr("probe_checkpoint.json" if member == MARKER else member, source.read(member))
+    shutil.copy(run.run_dir / SNAPSHOTS_DIR / names[1], tmp_path / SNAPSHOTS_DIR / names[1])
+    (tmp_path / "probe_checkpoints").mkdir()
+    shutil.copy(run.run_dir / SNAPSHOTS_DIR / names[1], tmp_path / "probe_checkpoints" / names[1])
+    assert [path.name for path in snapshot_files(tmp_path)] == names
+    assert not is_snapshot(other) and is_snapshot(tmp_path / SNAPSHOTS_DIR / names[1])
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(other))} is not a snapshot \(no {MARKER}\)"):
+        load_snapshot(other)
 
 
 def test_snapshot_holds_the_final_encoder_and_actor(run):
@@ -241,10 +236,10 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
     assert {a["inputs"] for a in agents} == {inputs.describe()} and "8 of the 12 observations" in inputs.describe()
     # rollouts whose images do not fit the checkpoints: the message names the rollouts, in the probe and the report
     small = dataclasses.replace(inputs, observations=inputs.observations[:, :, :24, :24])
-    with pytest.raises(ProbeError, match="rollouts") as error:
+    with pytest.raises(InputError, match="rollouts") as error:
         fixed_metrics(snapshot_files(picks[0].trial.path), small, ("mlp1",))
     assert error.value.parameter == "rollouts"
-    with pytest.raises(ReportError, match="rollouts") as error:
+    with pytest.raises(InputError, match="rollouts") as error:
         fixed_agent_rows(picks[:1], small, settings)
     assert error.value.parameter == "rollouts"
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from fabricated_sweep import FRAMES, write_fake_sweep
 
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1
 from sb3_collapse.report import pipeline
 from sb3_collapse.report.headline import (
@@ -147,18 +148,15 @@ def test_figure5_has_no_transplant_series(fake, monkeypatch, tmp_path):
     assert only_grid.curves == {} and only_grid.grid
 
 
-def test_an_earlier_versions_final_model_row_is_left_out(fake):
-    # Earlier versions appended the saved model's evaluation, at the run's last frame, to eval.csv (no
-    # saved_model_eval in result.json): it is not a scheduled evaluation.
+def test_a_result_file_of_another_version_is_refused(fake):
     folder = fake.path / "walker-walk" / "drqv2" / "seed_0"
     result = json.loads((folder / "result.json").read_text())
     assert load_trial("walker-walk", "drqv2", 0, folder).frames[-1] == result["frames"] == FRAMES
     old = {key: value for key, value in result.items() if key != "saved_model_eval"}
     (folder / "result.json").write_text(json.dumps(old))
     try:
-        trial = load_trial("walker-walk", "drqv2", 0, folder)
-        written = fake.select("walker-walk", "drqv2")[0].frames
-        assert trial.frames[-1] == FRAMES - 10_000 and len(trial.frames) == len(written) - 1
+        with pytest.raises(InputError, match=r"result\.json has no 'saved_model_eval': it was written by another"):
+            load_trial("walker-walk", "drqv2", 0, folder)
     finally:
         (folder / "result.json").write_text(json.dumps(result))
 

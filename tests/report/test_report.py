@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from fabricated_sweep import FakeSweep, FakeTrial, write_fake_sweep
 
+from sb3_collapse.errors import InputError
 from sb3_collapse.report import (
-    ReportError,
     ReportSettings,
     build_report,
     load_reference_curves,
@@ -347,7 +347,7 @@ def test_cli_errors(fake_sweep, tmp_path, capsys, case, message):
     assert err.startswith("error: ") and message in err
     assert not (root / "report").exists()  # nothing written, not even an empty folder
     if case == "missing":
-        with pytest.raises(ReportError, match="does not exist"):
+        with pytest.raises(InputError, match="does not exist"):
             write_report(root, progress=False)
 
 
@@ -370,7 +370,7 @@ def test_stale_outputs_removed(fake_sweep, tmp_path):
     write_report(root, progress=False)
     assert (root / "report" / "transplant_grid.png").exists()
     # A second report into the same folder is refused without overwrite, before the sweep is read.
-    with pytest.raises(ReportError, match="already holds outputs .* pass `overwrite=True`"):
+    with pytest.raises(InputError, match="already holds outputs .* pass `overwrite=True`"):
         write_report(root, progress=False)
     report = write_report(root, variants=["drqv2"], progress=False, overwrite=True)
     assert sorted(p.name for p in (root / "report").iterdir()) == [  # the collapse figures of drqv2+reset too

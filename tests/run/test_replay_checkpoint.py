@@ -13,9 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import CheckpointError, InputError
 from sb3_collapse.run import replay_checkpoint
-from sb3_collapse.run.replay_checkpoint import CheckpointError, CheckpointWriteError, ReplayStore
+from sb3_collapse.run.replay_checkpoint import ReplayStore
 
 FRAME = (3, 8, 8)
 FRAME_STACK = 3
@@ -283,7 +283,7 @@ def test_damaged_chunk_is_a_clear_error(tmp_path, damage):
         match={"missing": "is missing", "truncated": "truncated", "corrupt": "corrupt", "longer": "changed"}[damage],
     ) as info:
         ReplayStore(tmp_path).restore(restored, manifest)
-    assert info.value.path == path and str(path) in str(info.value)
+    assert str(path) in str(info.value) and info.value.damaged
     assert isinstance(info.value, InputError)
     if damage == "corrupt":  # found while reading: the buffer is emptied, nothing half-restored is left as data
         assert restored.size() == 0 and not restored.frame_heads.any()
@@ -346,9 +346,9 @@ def test_full_disk_keeps_every_earlier_chunk(tmp_path, monkeypatch):
         file.write(data)
 
     monkeypatch.setattr(replay_checkpoint, "_write", full_disk)
-    with pytest.raises(CheckpointWriteError, match=str(tmp_path)) as info:
+    with pytest.raises(OSError, match=str(tmp_path)) as info:
         store.save(buffer)
-    assert info.value.errno == errno.ENOSPC and info.value.folder == tmp_path
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(tmp_path)
     assert {name: (tmp_path / name).read_bytes() for name in chunk_files(tmp_path)} == before
     assert sorted(os.listdir(tmp_path)) == sorted(before)  # no temporary file left either
     monkeypatch.undo()

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from sb3_collapse.errors import ClusterUnreachable
 from sb3_collapse.runfolder import run_status
-from sb3_collapse.sweep import ClusterUnreachable
 from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.cluster import check_cluster
 

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from sb3_collapse.sweep import SweepError, Trial, donor_candidates, pick_donors, trial_config
+from sb3_collapse.errors import InputError
+from sb3_collapse.sweep import Trial, donor_candidates, pick_donors, trial_config
 from sb3_collapse.sweep.__main__ import build_parser, main, transplant_checkpoints
 from sb3_collapse.sweep.donors import donors_record, final_return
 from sb3_collapse.sweep.runner import sweep_settings
@@ -31,9 +32,15 @@ def test_candidates_are_the_papers_classes(finished_sweep):
     assert [d.seed for d in classes["bad"]] == [s for s, v in sorted(finals.items()) if v < 30] == [1, 3]
     for donor in classes["good"] + classes["bad"]:
         assert donor.final_return == pytest.approx(finals[donor.seed]) and Path(donor.path).is_file()
-    # The final return is the last scheduled evaluation: an earlier version's final-model row is skipped.
+    # The final return is the last scheduled evaluation; a result file of another version gives none.
     folder = finished_sweep.path / "walker-walk" / "drqv2" / "seed_0"
     assert final_return(folder) == pytest.approx(finals[0])
+    result = json.loads((folder / "result.json").read_text())
+    (folder / "result.json").write_text(json.dumps({k: v for k, v in result.items() if k != "saved_model_eval"}))
+    try:
+        assert final_return(folder) is None
+    finally:
+        (folder / "result.json").write_text(json.dumps(result))
     assert final_return(finished_sweep.path / "walker-walk" / "drqv2" / "seed_5") is None  # running
 
 
@@ -45,7 +52,7 @@ def test_good_cnn_and_good_mlp_come_from_two_agents_reproducibly(finished_sweep)
         assert {donors["bad_cnn"].seed, donors["bad_mlp"].seed} == {1, 3}
     assert pick_donors(finished_sweep.path, "walker-walk", seed=7) == draws[7]  # the seed gives the same donors
     assert len({(d["good_cnn"].seed, d["good_mlp"].seed) for d in draws}) > 1  # and the seed matters
-    with pytest.raises(SweepError, match="has 0 finished seed.*pass --good-cnn PATH --good-mlp PATH"):
+    with pytest.raises(InputError, match="has 0 finished seed.*pass --good-cnn PATH --good-mlp PATH"):
         pick_donors(finished_sweep.path, "walker-walk", variant="drqv2+reset", sources=["good"], success_return=2000)
 
 

@@ -13,13 +13,13 @@ import zipfile
 import pytest
 
 from sb3_collapse import DrQv2
+from sb3_collapse.errors import InputError
 from sb3_collapse.report.collapse_figure import agent_class
 from sb3_collapse.run.checkpoints import checkpoint_folders, checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.runfolder import run_status
 from sb3_collapse.sweep import (
     GRID_VARIANTS,
-    SweepError,
     Trial,
     expand_trials,
     parse_checkpoint_specs,
@@ -270,16 +270,16 @@ def test_trials_variants_and_checkpoints(tmp_path):
                           Trial("walker-walk", "drqv2+reset", 1)]  # fmt: skip
     assert len(trials) == 8 and trials[-1] == Trial("ball_in_cup-catch", "drqv2+reset", 0)
     # The same trial twice is refused, naming what repeats (walker_walk is walker-walk).
-    with pytest.raises(SweepError, match="seeds lists 1 more than once"):
+    with pytest.raises(InputError, match="seeds lists 1 more than once"):
         expand_trials(["walker-walk"], ["drqv2"], [1, 0, 1])
-    with pytest.raises(SweepError, match="tasks lists walker-walk more than once"):
+    with pytest.raises(InputError, match="tasks lists walker-walk more than once"):
         expand_trials(["walker_walk", "walker-walk"], ["drqv2"], [0])
     assert trial_dir("runs", trials[2]).as_posix() == "runs/walker-walk/drqv2+reset/seed_1"
     assert len(GRID_VARIANTS) == 9 and transplant_of("cnn-bad_mlp-good") == {"cnn": "bad", "mlp": "good"}
     assert transplant_of("drqv2") is None
-    with pytest.raises(SweepError, match="cnn-<src>_mlp-<src>"):
+    with pytest.raises(InputError, match="cnn-<src>_mlp-<src>"):
         expand_trials(["walker-walk"], ["cnn-good_mlp-ugly"], [0])
-    with pytest.raises(SweepError, match="walker-walk"):
+    with pytest.raises(InputError, match="walker-walk"):
         expand_trials(["walker-wlak"], ["drqv2"], [0])
 
     good, walker_good = tmp_path / "good.zip", tmp_path / "walker=good.zip"
@@ -290,9 +290,9 @@ def test_trials_variants_and_checkpoints(tmp_path):
     by_task = parse_checkpoint_specs([str(good), f"walker_walk={walker_good}"], tasks, "--good-checkpoint")
     assert by_task == {"walker-walk": str(walker_good), "hopper-stand": str(good)}  # a task name before '='
     assert parse_checkpoint_specs([str(walker_good)], tasks[:1], "--bad-checkpoint") == {tasks[0]: str(walker_good)}
-    with pytest.raises(SweepError, match="not a file"):
+    with pytest.raises(InputError, match="not a file"):
         parse_checkpoint_specs([f"hopper-stand={tmp_path / 'missing.zip'}"], tasks, "--bad-checkpoint")
-    with pytest.raises(SweepError, match="not a task of this sweep"):
+    with pytest.raises(InputError, match="not a task of this sweep"):
         parse_checkpoint_specs([f"finger-spin={good}"], tasks, "--bad-checkpoint")
 
     plain = {"algorithm": "drqv2", "reset_rule": False, "intervention": None, "activation": "relu",
@@ -310,7 +310,7 @@ def test_trials_variants_and_checkpoints(tmp_path):
     assert variant_settings("drqv2-leaky+redo_periodic")["activation"] == "leaky_relu"
     for unknown in ("td4", "drqv2+restart", "drqv2+", "+redo", "td3-leaky", "drqv2-leaky+redo_periodic+reset"):
         expected = "<algorithm>\\+<intervention> with <algorithm> in drqv2, drqv2-leaky, td3, sac"
-        with pytest.raises(SweepError, match=expected):
+        with pytest.raises(InputError, match=expected):
             expand_trials(["walker-walk"], [unknown], [0])
     redo = trial_config(Trial("walker-walk", "sac+redo", 0), tmp_path, {"frames": 800})
     assert (redo.algorithm, redo.reset_rule, redo.intervention, redo.variant_name) == ("sac", True, "redo", "sac+redo")
@@ -365,9 +365,9 @@ def test_command_line_errors(tmp_path, capsys):
 
 
 def test_resources_and_settings_checks():
-    with pytest.raises(SweepError, match="Ray sees none"):
+    with pytest.raises(InputError, match="Ray sees none"):
         check_resources({"CPU": 16.0}, cpus_per_trial=1, gpus_per_trial=0.25)
-    with pytest.raises(SweepError, match="more than the 2 CPUs"):
+    with pytest.raises(InputError, match="more than the 2 CPUs"):
         check_resources({"CPU": 2.0}, cpus_per_trial=4, gpus_per_trial=0)
     check_resources({"CPU": 2.0, "GPU": 1.0}, cpus_per_trial=1, gpus_per_trial=0.25)
     previous = {"training": {"frames": 1000}, "checkpoints": {"good_cnn": {"walker-walk": "/a.zip"}}}
@@ -649,8 +649,7 @@ def test_failed_trial_keeps_trains_error_header_and_is_called_retryable_only_if_
     error of the training code is not retryable; a full disk is."""
     import errno
 
-    from sb3_collapse.errors import ParameterError
-    from sb3_collapse.run.checkpoints import CheckpointError
+    from sb3_collapse.errors import OutputError, ParameterError
     from sb3_collapse.sweep.__main__ import failure_advice
     from sb3_collapse.sweep.runner import retryable, run_trial
 
@@ -676,7 +675,7 @@ def test_failed_trial_keeps_trains_error_header_and_is_called_retryable_only_if_
     assert run_trial(trial, str(tmp_path), training, torch_threads=1)["status"] == "finished"
     assert "The previous attempt failed at agent step 40 (frame 800); resuming." in capsys.readouterr().out
 
-    assert retryable(OSError(errno.ENOSPC, "No space left on device")) and retryable(CheckpointError("full"))
+    assert retryable(OSError(errno.ENOSPC, "No space left on device")) and retryable(OutputError("full"))
     assert retryable(MemoryError()) and not retryable(ParameterError("lr", "bad")) and not retryable(ValueError())
     assert failure_advice(2, 0) == "Rerun the same command to retry the failed trials."
     assert failure_advice(1, 1).startswith("A rerun would fail this trial the same way: fix the cause first")

@@ -17,7 +17,8 @@ from stable_baselines3.common.vec_env import VecTransposeImage, is_vecenv_wrappe
 
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
-from sb3_collapse.zoo import ZooConfigError, main, register_with_zoo
+from sb3_collapse.errors import InputError
+from sb3_collapse.zoo import main, register_with_zoo
 from sb3_collapse.zoo.experiment import ZooExperimentManager
 from sb3_collapse.zoo.launcher import collapse_callbacks
 
@@ -166,14 +167,14 @@ def test_eval_env_gets_the_training_pixels(tmp_path):
         env.close()
 
     different = experiment(tmp_path, tiny_config(tmp_path), eval_freq=10, eval_env_kwargs={"size": 64})
-    with pytest.raises(ZooConfigError, match="size: 32 in training, 64 in evaluation"):
+    with pytest.raises(InputError, match="size: 32 in training, 64 in evaluation"):
         different.setup_experiment()
 
 
 def test_transposed_pixels_are_refused(tmp_path):
     # 3 * frame_stack > size: SB3 takes the smallest axis (the 8 pixels) for the channels.
     manager = experiment(tmp_path, tiny_config(tmp_path, env_kwargs={**TINY_ENV, "size": 8}))
-    with pytest.warns(UserWarning, match="channels-last"), pytest.raises(ZooConfigError, match=r"size >= 3 \* frame"):
+    with pytest.warns(UserWarning, match="channels-last"), pytest.raises(InputError, match=r"size >= 3 \* frame"):
         manager.setup_experiment()
 
 
