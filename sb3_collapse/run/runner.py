@@ -26,6 +26,7 @@ import os
 import shutil
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -432,22 +433,70 @@ def _train_into(
     model.set_logger(resumed_logger(run_dir, formats, checkpoint))
 
     _announce(config, task_id, run_dir, model, steps)
+    with contextlib.ExitStack() as open_files:  # closed on every way out: the environment, then the logger's files
+        open_files.callback(env.close)
+        open_files.push(_logger_closer(model))
+        _learn(config, model, [*callbacks, timer], checkpoints, steps, resumed=checkpoint is not None)
+        model_path = run_dir / FINAL_MODEL
+        try:
+            with atomic_output(model_path) as temporary:
+                model.save(temporary)
+            saved_model_eval = None
+            if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the eval file)
+                saved_model_eval = evaluation.evaluate_saved_model()  # and its snapshot
+            open_files.close()  # the logs complete before result.json marks the run as finished
+            evaluations = evaluation.rows if evaluation is not None else []
+            _print_last_evaluations(evaluations, saved_model_eval)
+            wall_time_s = earlier_s + time.time() - start_time
+            timings = timer.timings if isinstance(model, DrQv2) else None
+            summary = run_summary(
+                config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
+            )
+            write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
+        except OSError as error:
+            message = unwritable_message(error)
+            if message is None:
+                raise
+            kept = checkpoints.last_checkpoint
+            resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
+            raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
+    shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
+    print(f"Saved {model_path}")
+    return TrainResult(
+        run_dir=run_dir,
+        model_path=model_path,
+        evaluations=evaluations,
+        summary=summary,
+        saved_model_evaluation=saved_model_eval,
+    )
+
+
+def _learn(
+    config: TrainConfig,
+    model: BaseAlgorithm,
+    callbacks: list[BaseCallback],
+    checkpoints: ResumableCheckpoints,
+    steps: int,
+    resumed: bool,
+) -> None:
+    """
+    ``model.learn`` up to ``steps`` agent steps in total; SIGINT/SIGTERM stop it with a checkpoint.
+
+    :param callbacks: the run's callbacks, the learn timer last (the rest counts as overhead)
+    :param resumed: whether the model comes from a checkpoint (its step count then continues)
+    :raises DivergenceError: the losses diverged; the message names the last checkpoint
+    :raises OutputError: the run folder became unwritable (read-only or full) while training
+    """
     try:
         with stop_signals(checkpoints):
             model.learn(
                 steps - model.num_timesteps,
-                callback=CallbackList([*callbacks, timer]),  # the timer last: the rest counts as overhead
+                callback=CallbackList(callbacks),
                 log_interval=1,
                 progress_bar=config.progress_bar,
-                reset_num_timesteps=checkpoint is None,
+                reset_num_timesteps=not resumed,
             )
-    except TrainingInterrupted:
-        model.logger.close()
-        env.close()
-        raise
     except DivergenceError as error:
-        model.logger.close()
-        env.close()
         kept = checkpoints.last_checkpoint
         where = (
             f"its last checkpoint, {kept}, holds the weights before it"
@@ -458,55 +507,40 @@ def _train_into(
     except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
         if unwritable_message(error) is None:
             raise
-        with contextlib.suppress(OSError):  # closing flushes, into the same folder
-            model.logger.close()
-        env.close()
         raise OutputError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
-    model_path = run_dir / FINAL_MODEL
-    try:
-        with atomic_output(model_path) as temporary:
-            model.save(temporary)
-        saved_model_eval = None
-        if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the evaluation file)
-            saved_model_eval = evaluation.evaluate_saved_model()  # and its snapshot
-        model.logger.close()
-        env.close()
-        evaluations = evaluation.rows if evaluation is not None else []
-        if evaluations:
-            last = evaluations[-1]
-            print(
-                f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- "
-                f"{last['std_reward']:.1f}"
-            )
-        if saved_model_eval is not None:
-            print(
-                f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
-                f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
-            )
-        wall_time_s = earlier_s + time.time() - start_time
-        timings = timer.timings if isinstance(model, DrQv2) else None
-        summary = run_summary(
-            config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
+
+
+def _logger_closer(model: BaseAlgorithm) -> Callable[..., bool]:
+    """
+    An exit callback for :class:`contextlib.ExitStack` that closes ``model.logger`` (flushing its CSV and
+    TensorBoard files). On the way out of an error its own ``OSError`` is dropped: closing writes into the same
+    folder, and the first error is the one to report.
+    """
+
+    def close(exc_type: type[BaseException] | None, *_: object) -> bool:
+        if exc_type is None:
+            model.logger.close()
+        else:
+            with contextlib.suppress(OSError):
+                model.logger.close()
+        return False
+
+    return close
+
+
+def _print_last_evaluations(evaluations: list[dict[str, Any]], saved_model_eval: dict[str, Any] | None) -> None:
+    """Print the last scheduled evaluation and that of the saved final model (frames, mean +- std return)."""
+    if evaluations:
+        last = evaluations[-1]
+        print(
+            f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- "
+            f"{last['std_reward']:.1f}"
         )
-        write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
-    except OSError as error:
-        message = unwritable_message(error)
-        if message is None:
-            raise
-        model.logger.close()  # closing again is harmless where the failure came after these
-        env.close()
-        kept = checkpoints.last_checkpoint
-        resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
-        raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
-    shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
-    print(f"Saved {model_path}")
-    return TrainResult(
-        run_dir=run_dir,
-        model_path=model_path,
-        evaluations=evaluations,
-        summary=summary,
-        saved_model_evaluation=saved_model_eval,
-    )
+    if saved_model_eval is not None:
+        print(
+            f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
+            f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
+        )
 
 
 def stopped_writing_message(error: OSError, frame: int, kept: Path | None) -> str:
