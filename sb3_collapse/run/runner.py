@@ -1,20 +1,11 @@
 """
 Train DrQ-v2 (or SB3's TD3 or SAC) on a DeepMind Control task from pixels, as a
-:class:`~sb3_collapse.run.config.TrainConfig` says: :func:`train`,
-behind ``python -m sb3_collapse.train`` and every sweep trial.
-
-Everything a run writes goes to one folder, ``<logdir>/<task>_s<seed>`` (``_2``, ``_3``... if it holds another run),
-or exactly ``run_dir``, in the run-folder format of :mod:`sb3_collapse.protocol`: the settings (written first),
-TensorBoard events and the SB3 logger's CSV, the evaluations, the collapse checks, the reset rule's events, the final
-model (load it with ``DrQv2.load``) and the result (written last: a folder without it is an unfinished run). A run
-writes checkpoints (``checkpoint_every_frames``, and at SIGTERM or SIGINT); the same settings again resume an
-unfinished run from its newest one, bit for bit (:mod:`sb3_collapse.run.checkpoints`, :mod:`sb3_collapse.run.folder`).
-
-``algorithm="td3"`` or ``"sac"`` trains SB3's own TD3 or SAC from the same pixels instead (built by
-:func:`sb3_collapse.baselines.build_baseline`; the DrQ-v2-only settings are reported unused); ``reset_rule``
-applies the paper's rule, ``intervention`` chooses what it does (:mod:`sb3_collapse.monitoring.interventions`).
-``init_cnn``, ``init_mlp`` and ``init_critic`` start the encoder, the actor or the critic from the weights of a
-saved DrQv2 (the paper's layer transplants, ``DrQv2(init_from=...)``).
+:class:`~sb3_collapse.run.config.TrainConfig` says: :func:`train`, behind ``python -m sb3_collapse.train`` and every
+sweep trial. Everything a run writes goes to one run folder (:mod:`sb3_collapse.protocol`; the files:
+docs/sweeps.md#multi-seed-sweeps-on-ray-python--m-sb3_collapsesweep), with checkpoints it resumes from bit for bit
+(docs/checkpoints.md). ``algorithm="td3"`` or ``"sac"`` trains SB3's own TD3 or SAC
+(:func:`sb3_collapse.baselines.build_baseline`); ``reset_rule`` applies the paper's rule; ``init_cnn``, ``init_mlp``
+and ``init_critic`` are the paper's layer transplants (``DrQv2(init_from=...)``).
 """
 
 from __future__ import annotations
@@ -111,18 +102,9 @@ def run_summary(
     timings: LearnTimings | None = None,
 ) -> dict[str, Any]:
     """
-    The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`): ``status``
-    (:data:`~sb3_collapse.protocol.FINISHED`), ``task``, ``variant``, ``seed``, ``frames`` (frames
-    trained, action repeat included), ``agent_steps``, ``final_eval`` (``frame``, ``mean_reward``, ``std_reward``
-    of the last scheduled evaluation, the one the paper's success/failure classes read; ``None`` without evaluation),
-    ``saved_model_eval`` (the same keys and ``episodes`` for the evaluation of the saved final model, at the run's
-    last frame, outside the schedule and the statistics; ``None`` without it), ``resets`` (resets of the reset rule),
-    ``reset_frames`` (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without
-    the rule),
-    ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run, over all its processes),
-    ``timings`` (where the time of ``learn()`` went: ``LearnTimings.as_dict()``, see :mod:`sb3_collapse.run.timing`,
-    of the last process only when the run was resumed; ``None`` for SB3's TD3 and SAC) and ``resumes`` (times the run
-    was resumed from a checkpoint).
+    The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`; each key:
+    docs/sweeps.md#multi-seed-sweeps-on-ray-python--m-sb3_collapsesweep): frames include the action repeat,
+    ``final_eval`` is the last scheduled evaluation (``None`` without one), ``timings`` ``None`` for SB3's TD3 and SAC.
 
     :param config: the run's settings
     :param task_id: the task, ``<domain>-<task>``
@@ -167,26 +149,12 @@ def train(config: TrainConfig) -> TrainResult:
     Train DrQ-v2 as ``config`` says (preset settings left at ``None`` come from the task's preset), evaluating and
     logging on the way, and save the final model.
 
-    Everything that can fail on bad input (the settings, the initial weights of ``init_*``, the environments, the
-    model and its replay buffer) is checked or built **before** the run folder is created. A failure after it
-    marks the folder as failed (the error file, with the agent step it failed at; see
-    :func:`~sb3_collapse.protocol.write_failure`) and is raised again; a folder that failed before its first agent
-    step holds no training and is reused by the next run.
-
-    **Resuming.** The folder of an unfinished run with the same settings (but those of
-    :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`)
-    is resumed from its newest readable checkpoint (:mod:`sb3_collapse.run.checkpoints`), or restarted from frame 0
-    without one (damaged ones are set aside, never deleted, and the screen says why the run restarts); a temporary
-    file that a killed process left is removed, and so are the checkpoints and the lock that a process killed after
-    it finished left in a finished run's folder (:func:`~sb3_collapse.run.folder.tidy_finished_run`); with other
-    settings it is refused (an explicit ``run_dir``) or passed over for ``<name>_2``... The
-    folder is locked while the run trains into it (a second process is refused). A SIGTERM or SIGINT writes a
-    checkpoint and raises :class:`~sb3_collapse.run.signals.TrainingInterrupted`; the checkpoints are deleted once
-    the run has finished.
-
-    The model that is saved is the model of the last evaluation: the reset rule never resets at the budget's end
-    (see :class:`~sb3_collapse.CollapseReset`), and the budget's last frames are evaluated after ``learn()`` when
-    the periodic evaluation did not fall on them.
+    Everything that can fail on bad input is checked **before** the run folder is created; a failure after it marks
+    the folder as failed and is raised again (docs/reliability.md#inputs-tried-and-what-happens). The folder of an
+    unfinished run with the same settings is resumed from its newest readable checkpoint, or restarted without one
+    (docs/checkpoints.md#using-them); a SIGTERM or SIGINT writes a checkpoint and raises
+    :class:`~sb3_collapse.run.signals.TrainingInterrupted`. The model saved is that of the last evaluation (the
+    reset rule never resets at the budget's end, and the budget's last frames are evaluated after ``learn()``).
 
     :param config: the run's settings
     :return: where things were written, and the evaluations
