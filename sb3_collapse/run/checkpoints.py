@@ -510,10 +510,8 @@ class ResumableCheckpoints(FrameScheduleCallback):
     :func:`~sb3_collapse.run.signals.stop_signals`), after which ``learn()`` stops with
     :class:`~sb3_collapse.run.signals.TrainingInterrupted`.
 
-    Checkpoints are taken at the start of the first rollout at or after their frame, where nothing is in flight. With
-    ``DrQv2(step_envs_during_updates=True)``, the round before a checkpoint does not step the environments during its
-    updates (so that none is in flight); an uninterrupted run with the same ``every_frames`` does the same, so it is
-    still the run a resumed one reproduces (a signal adds one such round).
+    Checkpoints are taken at the start of the first rollout at or after their frame, where nothing is in flight
+    (with ``step_envs_during_updates``: docs/checkpoints.md#using-them).
 
     :param directory: the run's checkpoints folder
     :param every_frames: frames between two checkpoints (``0``: only at a stop request)
