@@ -1,10 +1,7 @@
-"""A replay buffer for frame-stacked pixel observations that stores each frame once.
+"""A replay buffer for frame-stacked pixel observations that stores each frame once (:class:`FrameStackReplayBuffer`).
 
-SB3's ``ReplayBuffer`` and ``NStepReplayBuffer`` store the whole stacked observation twice per transition
-(``obs`` and ``next_obs``): 2 x 9x84x84 bytes, 127 KB, for 3 stacked RGB frames. Consecutive stacks of an
-episode share all but one frame, so :class:`FrameStackReplayBuffer` keeps one copy of each frame (21 KB for
-3x84x84) and rebuilds the stacks by index when it samples, returning exactly what ``NStepReplayBuffer``
-returns. It samples either as SB3 does or as DrQ-v2's reference does (``sampling``).
+It returns exactly what SB3's ``NStepReplayBuffer`` returns, sampling either as SB3 does or as DrQ-v2's reference
+does (``sampling``); see docs/algorithm.md#replay-buffer-each-frame-stored-once.
 """
 
 from __future__ import annotations
