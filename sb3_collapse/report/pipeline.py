@@ -411,29 +411,39 @@ def write_report(
             plot_figure3b(report.transplant, staged.path(FIGURE3B_PNG), settings.success_return)
             write_csv(table7_rows(report.transplant), TABLE7_COLUMNS, staged.path(TABLE7_CSV))
             staged.path(TABLE7_MD).write_text(table7_markdown(report.transplant, settings.success_return))
-        layers = (collapse_settings or FixedInputSettings()).layers
-        for (task, variant), picks in tqdm(
-            report.collapse_picks.items(), desc="collapse figures", unit="figure", disable=not progress
-        ):
-            path = staged.path(COLLAPSE_ONLINE_PNG.format(task=task, variant=variant))
-            title = paper_figure_title(task, variant, picks, ONLINE_INPUTS)
-            plot_collapse_metrics(report.collapse_online[(task, variant)], path, title, layers)
-            if (task, variant) in report.collapse:
-                inputs = report.collapse_inputs[(task, variant)]
-                path = staged.path(COLLAPSE_PNG.format(task=task, variant=variant))
-                title = paper_figure_title(task, variant, picks, inputs.describe())
-                plot_collapse_metrics(report.collapse[(task, variant)], path, title, layers, "snapshots")
-                write_fixed_metrics_csv(
-                    staged.path(COLLAPSE_FIXED_CSV.format(task=task, variant=variant)),
-                    picks,
-                    report.collapse_fixed[(task, variant)],
-                )
+        _write_collapse_figures(report, staged, (collapse_settings or FixedInputSettings()).layers, progress)
         if report.collapse_picks:
             write_csv(agents_rows(report), AGENTS_COLUMNS, staged.path(COLLAPSE_AGENTS_CSV))
         staged.path(html.INDEX_HTML).write_text(sweep_page(report, settings, staged.path))
         staged.path(SUMMARY_MD).write_text(report.markdown)
         report.files = staged.commit()
     return report
+
+
+def _write_collapse_figures(report: Report, staged: StagedOutputs, layers: Sequence[str], progress: bool) -> None:
+    """
+    Write Figures 4, 8, 9 of each picked task and variant into ``staged``: the online metrics' figure, and, where
+    the snapshots were run on fixed inputs, their figure and their CSV file.
+
+    :param layers: the layers drawn
+    :param progress: show a progress bar
+    """
+    for (task, variant), picks in tqdm(
+        report.collapse_picks.items(), desc="collapse figures", unit="figure", disable=not progress
+    ):
+        path = staged.path(COLLAPSE_ONLINE_PNG.format(task=task, variant=variant))
+        title = paper_figure_title(task, variant, picks, ONLINE_INPUTS)
+        plot_collapse_metrics(report.collapse_online[(task, variant)], path, title, layers)
+        if (task, variant) in report.collapse:
+            inputs = report.collapse_inputs[(task, variant)]
+            path = staged.path(COLLAPSE_PNG.format(task=task, variant=variant))
+            title = paper_figure_title(task, variant, picks, inputs.describe())
+            plot_collapse_metrics(report.collapse[(task, variant)], path, title, layers, "snapshots")
+            write_fixed_metrics_csv(
+                staged.path(COLLAPSE_FIXED_CSV.format(task=task, variant=variant)),
+                picks,
+                report.collapse_fixed[(task, variant)],
+            )
 
 
 PRESET_COLUMNS = (

@@ -96,7 +96,8 @@ class LearnTimings:
 
 class UpdateClock:
     """
-    The device time of the rounds of updates on CUDA (see the module docstring); nothing on other devices.
+    The device time of the rounds of updates on CUDA (docs/throughput.md#where-the-time-goes-learntimer-resultjson);
+    nothing on other devices.
 
     Both events of a round are recorded on the current stream of the model's device, with that device made current
     (``torch.cuda.device``): a model on ``cuda:1`` while ``cuda:0`` is the current device is timed on ``cuda:1``
