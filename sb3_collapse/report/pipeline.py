@@ -293,27 +293,12 @@ def collapse_figures(
                 continue
             report.collapse_picks[key] = picks
             report.collapse_online[key] = online_agent_rows(picks, collapse_settings.layers)
-            online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
             inputs = given if given is not None and given.fits(task) else None
             source = collapse_settings.rollouts_variant or variant
             rollouts = default_rollouts(sweep.path, task, source)
-            if inputs is None and not rollouts.is_file():
-                other = "" if given is None else f" ({given.source} was recorded on {given.task})"
-                report.notes.append(
-                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
-                    f"python -m sb3_collapse.probe sweep {sweep.path} --task {task} --variant {source}, or pass "
-                    f"--rollouts); {online} shows the online metrics"
-                )
-                continue
-            lacking = [
-                pick.trial.seed for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)
-            ]
-            if lacking:
-                report.notes.append(
-                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
-                    f"{', '.join(map(str, lacking))} have no snapshots (train with --snapshots); "
-                    f"{online} shows the online metrics"
-                )
+            missing = _fixed_inputs_missing(sweep.path, task, variant, picks, inputs is None, rollouts, source, given)
+            if missing is not None:
+                report.notes.append(missing)
                 continue
             if inputs is None:
                 if rollouts not in loaded:
@@ -321,6 +306,42 @@ def collapse_figures(
                 inputs = loaded[rollouts]
             rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, progress)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
+
+
+def _fixed_inputs_missing(
+    sweep_path: Path,
+    task: str,
+    variant: str,
+    picks: Sequence[AgentPick],
+    needs_rollouts: bool,
+    rollouts: Path,
+    source: str,
+    given: FixedInputs | None,
+) -> str | None:
+    """
+    Why Figure 4 on the probing samples cannot be drawn for a task and variant, as a note of the report.
+
+    :param needs_rollouts: whether the sweep's rollouts file ``rollouts`` is needed (no given file fits the task)
+    :param source: the variant whose rollouts are read
+    :param given: the rollouts file given by the user, if any
+    :return: the note, or ``None`` when the rollouts and every picked agent's snapshots are there
+    """
+    online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
+    if needs_rollouts and not rollouts.is_file():
+        other = "" if given is None else f" ({given.source} was recorded on {given.task})"
+        return (
+            f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
+            f"python -m sb3_collapse.probe sweep {sweep_path} --task {task} --variant {source}, or pass "
+            f"--rollouts); {online} shows the online metrics"
+        )
+    lacking = [pick.trial.seed for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)]
+    if lacking:
+        return (
+            f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
+            f"{', '.join(map(str, lacking))} have no snapshots (train with --snapshots); "
+            f"{online} shows the online metrics"
+        )
+    return None
 
 
 AGENTS_COLUMNS = ("task", "variant", "row", "seed", "final_return", "class_seeds", "seeds", "pick_seed", "inputs")
