@@ -377,24 +377,11 @@ def _train_into(
     run_callbacks = _run_callbacks(config, run_dir, eval_env)
     callbacks, evaluation, reset_rule = run_callbacks.callbacks, run_callbacks.evaluation, run_callbacks.reset_rule
 
-    earlier_s, resumes = 0.0, 0  # seconds and resumptions of the earlier processes of this run
-    checkpoints = ResumableCheckpoints(
-        run_dir / CHECKPOINTS_DIR,
-        config.checkpoint_every_frames,
-        callbacks=callbacks,
-        eval_env=eval_env,
-        csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
-        extra_state=lambda: {"elapsed_s": earlier_s + time.time() - start_time, "resumes": resumes},
-        verbose=1,
+    checkpoints, checkpoint, earlier = _resumed_checkpoints(
+        config, run_dir, model, callbacks, eval_env, checkpoint, start_time
     )
-    checkpoints.init_callback(model)
-    if checkpoint is not None:
-        checkpoint, notes = checkpoints.resume(checkpoint)
-        for note in notes:
-            print(f"Note: {note}")
-        earlier_s, resumes = checkpoint.state["extra"]["elapsed_s"], checkpoint.state["extra"]["resumes"] + 1
-        if evaluation is not None:
-            evaluation.start_time = start_time - earlier_s
+    if checkpoint is not None and evaluation is not None:
+        evaluation.start_time = start_time - earlier.elapsed_s
     callbacks.append(checkpoints)
     timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
     formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
@@ -415,10 +402,10 @@ def _train_into(
             open_files.close()  # the logs complete before result.json marks the run as finished
             evaluations = evaluation.rows if evaluation is not None else []
             _print_last_evaluations(evaluations, saved_model_eval)
-            wall_time_s = earlier_s + time.time() - start_time
+            wall_time_s = earlier.elapsed_s + time.time() - start_time
             timings = timer.timings if isinstance(model, DrQv2) else None
             summary = run_summary(
-                config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
+                config, task_id, model, evaluations, reset_rule, wall_time_s, earlier.resumes, saved_model_eval, timings
             )
             write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
         except OSError as error:
@@ -437,6 +424,52 @@ def _train_into(
         summary=summary,
         saved_model_evaluation=saved_model_eval,
     )
+
+
+@dataclass
+class _EarlierProcesses:
+    """What the earlier processes of a resumed run did: seconds they ran, and times the run was resumed."""
+
+    elapsed_s: float = 0.0
+    resumes: int = 0
+
+
+def _resumed_checkpoints(
+    config: TrainConfig,
+    run_dir: Path,
+    model: BaseAlgorithm,
+    callbacks: list[BaseCallback],
+    eval_env: EpisodeReplay | None,
+    checkpoint: LoadedCheckpoint | None,
+    start_time: float,
+) -> tuple[ResumableCheckpoints, LoadedCheckpoint | None, _EarlierProcesses]:
+    """
+    The run's checkpoints callback, with the model and ``callbacks`` resumed from ``checkpoint`` when one is given
+    (its notes printed).
+
+    :param start_time: when this process started (``time.time()``, seconds), for the elapsed time it records
+    :return: the callback, the checkpoint resumed from (``None`` for a new run) and the earlier processes' record
+    """
+    earlier = _EarlierProcesses()
+    checkpoints = ResumableCheckpoints(
+        run_dir / CHECKPOINTS_DIR,
+        config.checkpoint_every_frames,
+        callbacks=callbacks,
+        eval_env=eval_env,
+        csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
+        extra_state=lambda: {"elapsed_s": earlier.elapsed_s + time.time() - start_time, "resumes": earlier.resumes},
+        verbose=1,
+    )
+    checkpoints.init_callback(model)
+    if checkpoint is not None:
+        checkpoint, notes = checkpoints.resume(checkpoint)
+        for note in notes:
+            print(f"Note: {note}")
+        earlier.elapsed_s, earlier.resumes = (
+            checkpoint.state["extra"]["elapsed_s"],
+            checkpoint.state["extra"]["resumes"] + 1,
+        )
+    return checkpoints, checkpoint, earlier
 
 
 def _learn(
