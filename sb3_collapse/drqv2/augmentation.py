@@ -25,13 +25,9 @@ def random_shift(
     Random shift of DrQ-v2: replicate-pad every image by ``pad`` pixels, then crop it back to its size
     at an integer offset drawn uniformly in ``[0, 2 * pad]`` per sample and per axis.
 
-    The reference implementation does this with bilinear ``grid_sample`` on a grid whose points fall
-    exactly on pixel centres, so every output pixel is one input pixel. Here the same pixels are gathered
-    directly (padding becomes clamped indices), in the input's dtype: no padded copy, no interpolation,
-    and it works on ``uint8`` before the conversion to float. The result equals the reference one up to
-    the float rounding of ``grid_sample`` (tested). Each output pixel's channels are copied as one row of the
-    images' ``(height, width, channels)`` view, so ``channels_last`` output (what the encoder's convolutions
-    take) costs no transposition beyond the input's own.
+    The pixels are gathered directly (padding becomes clamped indices) in the input's dtype, where the reference
+    uses bilinear ``grid_sample`` at pixel centres; the result is the same (see
+    docs/algorithm.md#the-algorithm-sb3_collapsedrqv2).
 
     :param obs: images, shape ``(batch, channels, height, width)``, any dtype
     :param pad: padding in pixels; ``0`` returns ``obs`` unchanged

@@ -132,10 +132,8 @@ class ConvReLU(nn.Sequential):
     ``Conv2d`` then ``ReLU`` (or Leaky-ReLU): one named layer (``cnn1``..``cnn4``), whose output is the activation
     after the ReLU.
 
-    On the CPU, for float32 inputs, the two run as one oneDNN kernel (the convolution with a fused ReLU): the same
-    values as running them one after the other (tested), without a second pass over the activation. Elsewhere
-    (CUDA, other dtypes, under ``torch.compile``, which fuses by itself) it is the plain ``Sequential``; with
-    a Leaky-ReLU (the fused kernel is ReLU only) too.
+    On the CPU, for float32 inputs and a ReLU, the two run as one oneDNN kernel, with the values of the two in turn;
+    elsewhere it is the plain ``Sequential`` (see docs/algorithm.md#the-algorithm-sb3_collapsedrqv2).
 
     :param in_channels: input channels
     :param out_channels: filters
@@ -172,11 +170,9 @@ class PixelEncoder(nn.Module):
     (stride 2, then 1, 1, 1), no padding, ReLU after each; the output is flattened.
     Initialized with :func:`weight_init` at construction.
 
-    With ``channels_last`` (the default) the convolutions run in ``channels_last`` memory format, faster on
-    CPU (oneDNN) and GPU (cuDNN), and the output is flattened in (H, W, C) order, which is free in that format;
-    otherwise in DrQ-v2's (C, H, W) order. The order only permutes the inputs of the trunks' first Linear
-    layers, whose orthogonal initialization is invariant to it: the learning dynamics are the same.
-    The ``cnnK`` activations (module outputs) are the same tensors either way.
+    With ``channels_last`` (the default) the convolutions run in ``channels_last`` memory format and the output is
+    flattened in (H, W, C) order, otherwise in DrQ-v2's (C, H, W) order; the ``cnnK`` activations are the same
+    tensors either way (why the order does not matter: docs/algorithm.md#the-algorithm-sb3_collapsedrqv2).
 
     :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
     :param channels: number of filters of every convolution

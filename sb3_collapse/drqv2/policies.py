@@ -1,22 +1,10 @@
-"""Networks of DrQ-v2: pixel encoder, actor and twin critic, wrapped as an SB3 policy.
+"""Networks of DrQ-v2: pixel encoder, actor and twin critic, wrapped as an SB3 policy (:class:`DrQv2Policy`).
 
 The layers are named as in :data:`sb3_collapse.common.layers.LAYER_NAMES` (``cnn0``..``cnn4``, ``mlp0``..``mlp2``,
-``action``; the table is there), the vocabulary shared by the callbacks, the probe and the plots.
-
-``activation="leaky_relu"`` (policy keyword argument) replaces every ReLU of the encoder, the actor and the critic
-(``cnn1``..``cnn4``, ``mlp1``, ``mlp2``, the Q heads) with a Leaky-ReLU of negative slope ``leaky_relu_slope``
-(PyTorch's default 0.01): the ablation of the paper's footnote 1, "We tried substituting all the ReLU with
-Leaky-ReLU (Maas et al., 2013) where the neurons cannot die, but it did not resolve action collapse." The layers keep
-their names.
-
-:meth:`DrQv2Policy.named_layers` returns, for each name, the module whose forward output *is* that
-activation and whose parameters are that layer's weights (``cnn0`` has none). ``MlpPolicy`` has no
-``cnnK`` layers.
-
-With SB3's ``net_arch`` (``policy_kwargs=dict(net_arch=[...])``), the actor's hidden layers are ``mlp1``..``mlpK``, one
-per entry (``mlp1`` and ``mlp2`` stay the first two hidden ReLU outputs; ``net_arch=[]`` has none). ``MultiInputPolicy``
-names its image key's encoder ``cnn0``..``cnn4`` (``cnn1.<key>``... with several image keys); a user's
-``features_extractor_class`` has no named layers. SB3's other policy keywords: see :class:`DrQv2Policy`.
+``action``), the vocabulary shared by the callbacks, the probe and the plots: :meth:`DrQv2Policy.named_layers`.
+The names under ``net_arch``, ``MultiInputPolicy`` and a user's features extractor (*Named layers*):
+docs/algorithm.md#the-algorithm-sb3_collapsedrqv2; ``activation="leaky_relu"``:
+docs/interventions.md#the-leaky-relu-ablation.
 """
 
 from __future__ import annotations
@@ -320,7 +308,8 @@ class DrQv2Policy(BasePolicy):
     The encoder is trained by the critic loss only; the target critic (trunk and heads) is a soft copy of
     the critic; there is no target encoder and no target actor.
 
-    SB3's policy keywords (those of TD3's ``TD3Policy``) mean what they mean there; see ``docs/algorithm.md``.
+    SB3's policy keywords (those of TD3's ``TD3Policy``) mean what they mean there; what DrQ-v2 makes of each:
+    docs/algorithm.md#sb3s-keywords-code-written-for-td3-runs-with-drqv2.
 
     :param observation_space: observation space
     :param action_space: action space, a bounded ``Box``
@@ -343,18 +332,14 @@ class DrQv2Policy(BasePolicy):
         The actor's hidden layers are named ``mlp1``..``mlpK`` (``K = len(pi)``)
     :param activation_fn: SB3's: ``nn.ReLU`` (DrQ-v2's) or ``nn.LeakyReLU`` (``activation="leaky_relu"``); ``None``
         leaves ``activation`` as given
-    :param features_extractor_class: SB3's: a ``BaseFeaturesExtractor`` subclass used in place of DrQ-v2's
-        encoder (:class:`FeaturesExtractorEncoder`), shared by the actor and the critic and trained by the critic
-        loss; ``None``: DrQ-v2's encoder (``encoder_class``)
+    :param features_extractor_class: SB3's: a ``BaseFeaturesExtractor`` subclass in place of DrQ-v2's encoder
+        (:class:`FeaturesExtractorEncoder`); ``None``: DrQ-v2's encoder (``encoder_class``)
     :param features_extractor_kwargs: its keyword arguments; without ``features_extractor_class``, those of DrQ-v2's
-        encoder (as ``encoder_kwargs``), except SB3's sizes of the features ``features_dim`` (``NatureCNN``'s) and
-        ``cnn_output_dim`` (``CombinedExtractor``'s, ``MultiInputPolicy``), which set ``feature_dim``: the features
-        the actor's and the critic's hidden layers read are the outputs of their trunks (DrQ-v2's encoder has no
-        projection of its own; :data:`SB3_FEATURE_SIZES`)
+        encoder, but ``features_dim`` and ``cnn_output_dim`` set ``feature_dim`` (:data:`SB3_FEATURE_SIZES`)
     :param normalize_images: SB3's: ``True`` divides ``uint8`` images by 255 (DrQ-v2's encoder: ``obs / 255 - 0.5``);
         ``False`` takes images already normalized (float ``Box`` observations) as they are
-    :param share_features_extractor: SB3's: ``True``, DrQ-v2's only setting (one encoder for the actor and the
-        critic, trained by the critic loss only, as TD3's ``share_features_extractor=True``); ``False`` is refused
+    :param share_features_extractor: SB3's: ``True`` only (one encoder, trained by the critic loss); ``False`` is
+        refused
     :param n_critics: SB3's: number of Q heads (DrQ-v2's 2); the targets and the actor loss take their minimum
     """
 

@@ -1,63 +1,8 @@
 """
 Replay batches prepared one update ahead, while the update before runs, and handed to a CUDA device on a side
-stream.
-
-Without it, each update samples its batch on the training thread: ``FrameStackReplayBuffer.sample`` gathers the
-frame stacks with NumPy into new (pageable) arrays (65 MB of uint8 at batch 512 for 9x84x84 observations), then the
-tensors go to the device with blocking copies, and the update waits for all of it. ``DrQv2.train`` takes its
-batches from :meth:`ReplayPrefetcher.batches` instead.
-
-**When a batch is drawn.** The batch of update ``k + 1`` is drawn (``replay_buffer.sample``'s draws from NumPy's
-global generator, in the same order) and gathered while update ``k`` runs, also when ``k`` is the last update of a
-``train`` call: with DrQ-v2's ratio (one environment, ``train_freq=2``, ``gradient_steps=1``, one update per
-round) the batch of the next round's update is drawn during this round's update, before the transitions of the
-next round are collected. So a batch sees the transitions added up to the round before its update, not those
-collected between update ``k`` and update ``k + 1`` (one round, ``train_freq`` transitions). The batches are
-those of a serial sampler calling ``replay_buffer.sample`` at these points (``tests/drqv2/test_prefetch.py``).
-DrQ-v2's reference lags further behind: its ``DataLoader`` keeps ``num_workers x prefetch_factor`` batches
-prepared (4 x 2 with its settings: up to 8 updates, 16 agent steps ahead), and each worker reads the newly
-finished episodes only once every ``fetch_every=1000`` samples it draws. ``enabled=False`` draws each batch when
-its update is due instead (``replay_buffer.sample`` per update: it sees every transition added before it).
-
-**Same draws, whatever the thread.** Nothing else draws from NumPy's global generator while an update runs
-(augmentation shifts and action noise come from torch's generators; callbacks run between rounds, not during
-updates), and the buffer does not change during a ``train`` call, so drawing in the worker thread gives the draws
-of the training thread. The worker has finished before ``train`` returns (also when an update raises), so the
-buffer is never read while transitions are added; an exception in the worker is raised in the training thread,
-with its message, when its batch is due. A prepared batch is dropped (not used) when the next call samples
-another buffer, batch size or ``VecNormalize`` env, and by ``DrQv2.reset_from_scratch`` (:meth:`discard`: the
-emptied buffer's old transitions are not trained on).
-
-**Saved, and prepared again after a load.** The prefetcher pickles as its settings and, for a batch prepared and
-not yet used, NumPy's generator state before its draw, its batch size and the buffer's counters then (not the
-batch). ``DrQv2.learn`` calls :meth:`restore` first: when the replay buffer's counters are those of the draw (a run
-checkpoint, taken between rounds, restores both), the batch is drawn again from that state, which gives the same
-batch and leaves the generator where the checkpoint left it; so a resumed run draws the batches of the
-uninterrupted one. Otherwise (the buffer was not restored, or changed since) the draw is dropped and the next
-update draws afresh.
-
-**Where the work runs.** ``worker=None`` (default): in one worker thread on CUDA, on the training thread on the
-CPU. On the CPU the batch of update ``k + 1`` is then made just before update ``k`` (a reordering: the same
-batches, no concurrency): the update already runs on every core torch has (``torch.get_num_threads()``), and the
-gather is memory-bound NumPy work that a second thread would run on one of those cores, stalling the update's
-parallel regions rather than filling idle time. ``worker=True`` uses the thread on the CPU too (e.g. when torch
-is given fewer threads than there are cores), ``False`` nowhere. The worker is one thread of a
-``ThreadPoolExecutor``, made at its first use; it ends with the prefetcher (garbage collection of the model) or
-:meth:`ReplayPrefetcher.close`.
-
-**On CUDA** the batch is made on a side stream (:meth:`ReplayPrefetcher.batches`), so its transfer overlaps the
-update's kernels queued on the training thread's stream. For ``FrameStackReplayBuffer`` (without ``VecNormalize``)
-it is gathered straight into page-locked (``pin_memory``) host buffers (:class:`HostStaging`: the frame stacks with
-``np.take(..., out=)``, no intermediate array) and copied with ``non_blocking=True``: two copies per batch, the
-uint8 frames (``obs`` and ``next_obs``: uint8 on the bus; the float conversion, crop and normalization stay on the
-device) and the float32 rest (actions, dones, n-step returns, discounts), each a contiguous view of its device
-copy. Other buffers (SB3's, for state or dict observations) run their own ``sample`` on the side stream. An event
-recorded on the side stream after the copies is waited for by the update's stream (``wait_event``: on the device,
-the host does not wait) before the batch is used, and each tensor of the batch is marked used by that stream
-(``record_stream``), so that the caching allocator does not give its memory to a later batch on the side stream
-while the update may still read it. Two sets of host buffers alternate (double buffering): a set is written again
-only after the event recorded after the copy out of it has completed (the copy of two batches back). The staging
-buffers cost twice a batch of page-locked host memory (about 65 MB per set at batch 512 for 9x84x84 observations).
+stream: :class:`ReplayPrefetcher`, from which ``DrQv2.train`` takes its batches. The batches are those a serial
+sampler calling ``replay_buffer.sample`` would draw. Which transitions a batch sees, resumed runs, the worker
+thread and the CUDA staging: see docs/throughput.md#replay-batches-drawn-ahead-modelreplay_prefetcher.
 """
 
 from __future__ import annotations

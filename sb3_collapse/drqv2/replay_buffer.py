@@ -1,10 +1,7 @@
-"""A replay buffer for frame-stacked pixel observations that stores each frame once.
+"""A replay buffer for frame-stacked pixel observations that stores each frame once (:class:`FrameStackReplayBuffer`).
 
-SB3's ``ReplayBuffer`` and ``NStepReplayBuffer`` store the whole stacked observation twice per transition
-(``obs`` and ``next_obs``): 2 x 9x84x84 bytes, 127 KB, for 3 stacked RGB frames. Consecutive stacks of an
-episode share all but one frame, so :class:`FrameStackReplayBuffer` keeps one copy of each frame (21 KB for
-3x84x84) and rebuilds the stacks by index when it samples, returning exactly what ``NStepReplayBuffer``
-returns. It samples either as SB3 does or as DrQ-v2's reference does (``sampling``).
+It returns exactly what SB3's ``NStepReplayBuffer`` returns, sampling either as SB3 does or as DrQ-v2's reference
+does (``sampling``); see docs/algorithm.md#replay-buffer-each-frame-stored-once.
 """
 
 from __future__ import annotations
@@ -87,62 +84,13 @@ class FrameStackReplayBuffer(ReplayBuffer):
     """
     N-step replay buffer for frame-stacked observations that stores each frame once.
 
-    Observations must be channel-first stacks of ``frame_stack`` frames, oldest first:
-    ``(channels * frame_stack, height, width)``, such as ``make_dmc_env``'s 9x84x84 (3 RGB frames), and each
-    ``next_obs`` must be its ``obs`` shifted by one frame, the new frame last. ``add`` checks this for every
-    transition and raises a ``ValueError`` otherwise (nothing is stored then).
-
-    **Storage.** Per environment, a ring of frames (``frames``, shape ``(frame_capacity, n_envs, channels,
-    height, width)``) receives, for each transition, the last frame of ``next_obs`` (the terminal frame too,
-    from ``infos[i]["terminal_observation"]`` as SB3's off-policy algorithms pass it), and, when ``obs`` is not
-    the previous transition's ``next_obs`` (a reset, or the first transition), the ``frame_stack`` frames of
-    ``obs`` first: ``make_dmc_env``'s first observation is copies of the first render, SB3's ``VecFrameStack``
-    pads with zeros; both work, as any padding does. ``frame_starts[pos, env]`` is the number (counted from the
-    first frame the environment wrote) of the first frame of the transition's ``obs``: ``obs`` is frames
-    ``frame_starts .. frame_starts + frame_stack - 1`` and ``next_obs`` frames ``frame_starts + 1 ..
-    frame_starts + frame_stack``. Actions, rewards, dones and timeouts are stored per transition as in SB3.
-
-    **Sampling** returns exactly what SB3's ``NStepReplayBuffer`` returns for the same ``(pos, env)`` indices:
-    ``rewards`` the n-step discounted return, summed up to the first termination or time limit (included)
-    and never past the last transition written; ``discounts`` ``gamma ** k`` for the ``k`` rewards summed;
-    ``next_observations`` the ``next_obs`` of the last transition summed; ``dones`` its termination, 0 after a
-    time limit (bootstrapped). ``sample`` draws indices as SB3 does, with the same calls to ``np.random``, so
-    the same seed gives the same batch while every transition is sampleable (see below). It is two steps:
-    :meth:`sample_indices` draws the indices (the only random draws), :meth:`sample_arrays` gathers the
-    transitions on the host (``sb3_collapse.drqv2.prefetch`` gathers there ahead of the update, into pinned
-    buffers on CUDA), and ``_get_samples`` turns them into tensors on ``device``.
-
-    **Which transitions are sampled** (``sampling``):
-
-    - ``"sb3"`` (the default, SB3's semantics): every stored transition, the episode in progress included; an
-      n-step return is truncated at the episode's end (and bootstraps after a time limit) and at the newest
-      transition.
-    - ``"drqv2"`` (the semantics of DrQ-v2's reference replay buffer, ``replay_buffer.py`` of
-      facebookresearch/drqv2): only transitions of **finished** episodes (the reference stores an episode when it
-      ends), and never one that starts an n-step return in an episode's last ``n_steps - 1`` transitions (its
-      ``idx`` is drawn in ``[1, len - nstep + 1]``): every sampled return sums exactly ``n_steps`` rewards, and
-      its ``dones`` is 1 only when the episode terminated at its last step. Transitions are drawn uniformly among
-      those (the reference draws an episode, then a step: the same distribution when, as on DeepMind Control,
-      every episode has the same length). Two differences remain: the reference evicts whole episodes when full
-      where this ring overwrites the oldest transitions (the remaining transitions of a partly overwritten
-      episode stay sampleable), and its loader workers see new episodes with a delay (``fetch_every``), which
-      is not reproduced. Until an episode of at least ``n_steps`` transitions has finished (since the last
-      :meth:`reset`: a reset near an episode's end leaves only its last few transitions) nothing is sampleable:
-      :attr:`ready_to_sample` says so, and ``DrQv2`` skips its updates until then.
-
-    **Wrap-around.** Transitions and frames are overwritten oldest first, in separate rings. The frame ring
-    holds ``buffer_size // n_envs + frame_stack * (1 + ceil(buffer_size // n_envs / min_episode_length))``
-    frames per environment: the frames of every transition in the buffer as long as its episodes are at least
-    ``min_episode_length`` agent steps long. With shorter episodes, the first-observation frames of the extra
-    episodes overwrite the frames of the oldest transitions before the transitions themselves are
-    overwritten: those transitions are never sampled (``sample`` draws again; ``_get_samples`` refuses them),
-    so the buffer holds slightly fewer than ``buffer_size`` sampleable transitions, and never a stack mixing
-    frames of two episodes. ``frames_stored`` says which are.
-
-    **Counters.** ``transitions_added`` (``add`` calls, i.e. transitions per environment) and ``frame_heads``
-    (frames written per environment) only grow until ``reset``, which sets them to 0 and adds one to ``resets``;
-    ``pos == transitions_added % buffer_size`` and ``full == (transitions_added >= buffer_size)``. They tell
-    :class:`~sb3_collapse.run.replay_checkpoint.ReplayStore` which data is new since its last checkpoint.
+    Observations are channel-first stacks of ``frame_stack`` frames, oldest first (``(channels * frame_stack,
+    height, width)``); each ``next_obs`` must be its ``obs`` shifted by one frame, else ``add`` raises a
+    ``ValueError`` and stores nothing. Sampling returns exactly what SB3's ``NStepReplayBuffer`` returns for the
+    same indices, with the same ``np.random`` calls: :meth:`sample_indices` draws, :meth:`sample_arrays` gathers
+    on the host, ``_get_samples`` makes the tensors. See docs/algorithm.md#replay-buffer-each-frame-stored-once
+    (which transitions each ``sampling`` draws) and docs/algorithm.md#inside-the-frame-store (storage,
+    wrap-around, counters).
 
     :param buffer_size: capacity in transitions (all environments together, as in SB3)
     :param observation_space: ``Box`` of shape ``(channels * frame_stack, height, width)``
@@ -155,8 +103,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
     :param gamma: discount factor of the n-step returns
     :param frame_stack: frames per observation (``make_dmc_env``'s ``frame_stack``; DrQv2 reads it from the env)
     :param min_episode_length: shortest episode, in agent steps, for which all ``buffer_size`` transitions stay
-        sampleable; it sizes the frame ring (the default costs 1.2% more frames for ``frame_stack=3``;
-        ``make_dmc_env`` episodes are 1000 frames, 500 agent steps at action repeat 2)
+        sampleable; it sizes the frame ring
     :param sampling: ``"sb3"`` or ``"drqv2"``, which transitions are sampled (see above)
     """
 

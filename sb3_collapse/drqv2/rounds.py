@@ -4,7 +4,8 @@ The loop of ``DrQv2.learn()``: rounds of environment steps up to the next update
 environments) on any number of environments; SB3's ``train_freq`` (``n`` or ``(n, "step")``: ``n`` steps of every
 environment; ``(n, "episode")``) makes SB3's rounds. It restarts the warm-up after a reset from scratch
 (``reset_step``), and can step the environments while the learner updates (``step_envs_during_updates``).
-``docs/throughput.md`` explains the ratio and the overlap.
+The ratio and the overlap: docs/throughput.md#drq-v2s-update-ratio-on-several-environments and
+docs/throughput.md#environment-steps-overlapped-with-the-updates-step_envs_during_updates.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ What makes code written for SB3's TD3 run with :class:`~sb3_collapse.drqv2.DrQv2
 - :func:`check_optimize_memory_usage`: SB3's ``optimize_memory_usage`` where it applies, a warning where it does not;
 - :func:`action_noise_actions`: SB3's exploration with an ``ActionNoise`` (``action_noise=``).
 
-See ``docs/algorithm.md`` (SB3's keywords in DrQv2).
+See docs/algorithm.md#sb3s-keywords-code-written-for-td3-runs-with-drqv2.
 """
 
 from __future__ import annotations

@@ -1,27 +1,7 @@
 """
-Layer transplants (the action-collapse paper's Study 2): start a new DrQv2 from parts of saved ones.
-
-A transplant copies the weights of named *groups* of a source model's policy into a freshly built model; every
-other weight keeps the model's own (seeded) random initialization, "the rest blank". The groups and the entries
-of ``DrQv2Policy.state_dict()`` (parameters **and** buffers) that each one replaces:
-
-==========  ===========================================================  ==============================
-group       what it is                                                   state_dict prefixes
-==========  ===========================================================  ==============================
-``cnn``     the encoder: conv layers ``cnn1``..``cnn4``, shared by the   ``encoder.``
-            actor and the critic (trained by the critic loss only)
-``mlp``     the actor: trunk ``mlp0`` (Linear, LayerNorm, Tanh), the     ``actor.``
-            hidden layers ``mlp1``, ``mlp2`` and the ``action`` head
-``critic``  the critic trunk and its two Q heads, and the target critic  ``critic.``, ``critic_target.``
-==========  ===========================================================  ==============================
-
-The target critic gets a copy of the **source's critic** (not the source's target critic): DrQ-v2 starts
-every run with a target equal to its critic, and a transplant is such a start.
-
-Nothing else is copied: not the optimizers' state (Adam moments), not the replay buffer, not the step
-counters or schedules. Sources are read on the CPU without their replay buffer and without building a
-model, so reading them touches no random generator. Every source and every entry is checked before the
-first one is copied: a failed transplant leaves the model as it was.
+Layer transplants (the action-collapse paper's Study 2): start a new DrQv2 from parts of saved ones, "the rest
+blank". The groups (``cnn``, ``mlp``, ``critic``), the ``state_dict`` entries each one replaces, what is not copied
+and the checks: docs/algorithm.md#layer-transplants-drqv2init_from.
 """
 
 from __future__ import annotations

@@ -315,32 +315,8 @@ def probe_sweep(
     )
     out = Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) if out is None else Path(out)
     with StagedOutputs(out, OUTPUT_FILES, SUMMARY_JSON, overwrite=overwrite, error=InputError) as staged:
-        if rollouts_path is None:
-            well = agents[0][0]
-            source = well.path / FINAL_MODEL
-            source = source if source.exists() else files[well.seed][-1]
-            recorder = load_checkpoint(source, device=get_device(settings.device))
-            rollouts = record(recorder, record_options, settings.progress)
-            del recorder
-            rollouts.save(staged.path(ROLLOUTS_NAME))
-            recorded_from = str(source)
-        else:
-            rollouts = Rollouts.load(rollouts_path)
-            recorded_from = str(rollouts_path)
-        split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
-        work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
-        per_checkpoint = probe_each_checkpoint(
-            [path for _, _, path in work],
-            [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work],
-            rollouts,
-            split,
-            settings,
-            jobs,
-        )
-        for (trial, which, _), result_rows in zip(work, per_checkpoint):
-            for row in result_rows:
-                row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=trial.final_return)
-        rows = [row for result_rows in per_checkpoint for row in result_rows]
+        rollouts, recorded_from = _sweep_rollouts(agents, files, rollouts_path, record_options, settings, staged)
+        rows = _probe_agents(agents, files, rollouts, settings, jobs)
         columns = _write_figure2(rows, rollouts, agents, task, variant, staged)
         summary = {
             "complete": True,
@@ -369,6 +345,60 @@ def probe_sweep(
         written = staged.commit()
     print("Wrote " + ", ".join(str(f) for f in written))
     return summary
+
+
+def _sweep_rollouts(
+    agents: list[tuple[Trial, str]],
+    files: dict[int, list[Path]],
+    rollouts_path: str | Path | None,
+    record_options: RecordOptions,
+    settings: ProbeSettings,
+    staged: StagedOutputs,
+) -> tuple[Rollouts, str]:
+    """
+    The rollouts to probe on: loaded from ``rollouts_path``, or recorded from the first well-performing agent's final
+    model (its last checkpoint where the model is missing) and saved into ``staged``.
+
+    :return: ``(rollouts, where they come from)``
+    """
+    if rollouts_path is not None:
+        return Rollouts.load(rollouts_path), str(rollouts_path)
+    well = agents[0][0]
+    source = well.path / FINAL_MODEL
+    source = source if source.exists() else files[well.seed][-1]
+    recorder = load_checkpoint(source, device=get_device(settings.device))
+    rollouts = record(recorder, record_options, settings.progress)
+    del recorder
+    rollouts.save(staged.path(ROLLOUTS_NAME))
+    return rollouts, str(source)
+
+
+def _probe_agents(
+    agents: list[tuple[Trial, str]],
+    files: dict[int, list[Path]],
+    rollouts: Rollouts,
+    settings: ProbeSettings,
+    jobs: int,
+) -> list[dict[str, Any]]:
+    """
+    Probe every checkpoint of every agent on ``rollouts``.
+
+    :return: the result rows of every checkpoint, agent by agent, each with its agent, its row and its final return
+    """
+    split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
+    work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
+    per_checkpoint = probe_each_checkpoint(
+        [path for _, _, path in work],
+        [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work],
+        rollouts,
+        split,
+        settings,
+        jobs,
+    )
+    for (trial, which, _), result_rows in zip(work, per_checkpoint):
+        for row in result_rows:
+            row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=trial.final_return)
+    return [row for result_rows in per_checkpoint for row in result_rows]
 
 
 def _sweep_agents(

@@ -293,27 +293,12 @@ def collapse_figures(
                 continue
             report.collapse_picks[key] = picks
             report.collapse_online[key] = online_agent_rows(picks, collapse_settings.layers)
-            online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
             inputs = given if given is not None and given.fits(task) else None
             source = collapse_settings.rollouts_variant or variant
             rollouts = default_rollouts(sweep.path, task, source)
-            if inputs is None and not rollouts.is_file():
-                other = "" if given is None else f" ({given.source} was recorded on {given.task})"
-                report.notes.append(
-                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
-                    f"python -m sb3_collapse.probe sweep {sweep.path} --task {task} --variant {source}, or pass "
-                    f"--rollouts); {online} shows the online metrics"
-                )
-                continue
-            lacking = [
-                pick.trial.seed for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)
-            ]
-            if lacking:
-                report.notes.append(
-                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
-                    f"{', '.join(map(str, lacking))} have no snapshots (train with --snapshots); "
-                    f"{online} shows the online metrics"
-                )
+            missing = _fixed_inputs_missing(sweep.path, task, variant, picks, inputs is None, rollouts, source, given)
+            if missing is not None:
+                report.notes.append(missing)
                 continue
             if inputs is None:
                 if rollouts not in loaded:
@@ -321,6 +306,42 @@ def collapse_figures(
                 inputs = loaded[rollouts]
             rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, progress)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
+
+
+def _fixed_inputs_missing(
+    sweep_path: Path,
+    task: str,
+    variant: str,
+    picks: Sequence[AgentPick],
+    needs_rollouts: bool,
+    rollouts: Path,
+    source: str,
+    given: FixedInputs | None,
+) -> str | None:
+    """
+    Why Figure 4 on the probing samples cannot be drawn for a task and variant, as a note of the report.
+
+    :param needs_rollouts: whether the sweep's rollouts file ``rollouts`` is needed (no given file fits the task)
+    :param source: the variant whose rollouts are read
+    :param given: the rollouts file given by the user, if any
+    :return: the note, or ``None`` when the rollouts and every picked agent's snapshots are there
+    """
+    online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
+    if needs_rollouts and not rollouts.is_file():
+        other = "" if given is None else f" ({given.source} was recorded on {given.task})"
+        return (
+            f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
+            f"python -m sb3_collapse.probe sweep {sweep_path} --task {task} --variant {source}, or pass "
+            f"--rollouts); {online} shows the online metrics"
+        )
+    lacking = [pick.trial.seed for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)]
+    if lacking:
+        return (
+            f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
+            f"{', '.join(map(str, lacking))} have no snapshots (train with --snapshots); "
+            f"{online} shows the online metrics"
+        )
+    return None
 
 
 AGENTS_COLUMNS = ("task", "variant", "row", "seed", "final_return", "class_seeds", "seeds", "pick_seed", "inputs")
@@ -411,29 +432,39 @@ def write_report(
             plot_figure3b(report.transplant, staged.path(FIGURE3B_PNG), settings.success_return)
             write_csv(table7_rows(report.transplant), TABLE7_COLUMNS, staged.path(TABLE7_CSV))
             staged.path(TABLE7_MD).write_text(table7_markdown(report.transplant, settings.success_return))
-        layers = (collapse_settings or FixedInputSettings()).layers
-        for (task, variant), picks in tqdm(
-            report.collapse_picks.items(), desc="collapse figures", unit="figure", disable=not progress
-        ):
-            path = staged.path(COLLAPSE_ONLINE_PNG.format(task=task, variant=variant))
-            title = paper_figure_title(task, variant, picks, ONLINE_INPUTS)
-            plot_collapse_metrics(report.collapse_online[(task, variant)], path, title, layers)
-            if (task, variant) in report.collapse:
-                inputs = report.collapse_inputs[(task, variant)]
-                path = staged.path(COLLAPSE_PNG.format(task=task, variant=variant))
-                title = paper_figure_title(task, variant, picks, inputs.describe())
-                plot_collapse_metrics(report.collapse[(task, variant)], path, title, layers, "snapshots")
-                write_fixed_metrics_csv(
-                    staged.path(COLLAPSE_FIXED_CSV.format(task=task, variant=variant)),
-                    picks,
-                    report.collapse_fixed[(task, variant)],
-                )
+        _write_collapse_figures(report, staged, (collapse_settings or FixedInputSettings()).layers, progress)
         if report.collapse_picks:
             write_csv(agents_rows(report), AGENTS_COLUMNS, staged.path(COLLAPSE_AGENTS_CSV))
         staged.path(html.INDEX_HTML).write_text(sweep_page(report, settings, staged.path))
         staged.path(SUMMARY_MD).write_text(report.markdown)
         report.files = staged.commit()
     return report
+
+
+def _write_collapse_figures(report: Report, staged: StagedOutputs, layers: Sequence[str], progress: bool) -> None:
+    """
+    Write Figures 4, 8, 9 of each picked task and variant into ``staged``: the online metrics' figure, and, where
+    the snapshots were run on fixed inputs, their figure and their CSV file.
+
+    :param layers: the layers drawn
+    :param progress: show a progress bar
+    """
+    for (task, variant), picks in tqdm(
+        report.collapse_picks.items(), desc="collapse figures", unit="figure", disable=not progress
+    ):
+        path = staged.path(COLLAPSE_ONLINE_PNG.format(task=task, variant=variant))
+        title = paper_figure_title(task, variant, picks, ONLINE_INPUTS)
+        plot_collapse_metrics(report.collapse_online[(task, variant)], path, title, layers)
+        if (task, variant) in report.collapse:
+            inputs = report.collapse_inputs[(task, variant)]
+            path = staged.path(COLLAPSE_PNG.format(task=task, variant=variant))
+            title = paper_figure_title(task, variant, picks, inputs.describe())
+            plot_collapse_metrics(report.collapse[(task, variant)], path, title, layers, "snapshots")
+            write_fixed_metrics_csv(
+                staged.path(COLLAPSE_FIXED_CSV.format(task=task, variant=variant)),
+                picks,
+                report.collapse_fixed[(task, variant)],
+            )
 
 
 PRESET_COLUMNS = (
@@ -521,7 +552,26 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
     :return: the HTML text
     """
     sweep = report.sweep
-    sections = []
+    sections = [
+        _headline_section(report, settings),
+        _settings_section(sweep, settings),
+        _summary_section(report, settings),
+        _unfinished_section(sweep),
+        _curves_section(report, settings, png),
+    ]
+    if report.collapse_picks:
+        sections.append(_collapse_section(report, png))
+    probing = _probing_section(sweep)
+    if probing.parts:
+        sections.append(probing)
+    if report.grid:
+        sections.append(_transplant_section(report, settings, png))
+    title = f"Sweep report: {sweep.path}"
+    return html.html_page(title, sections, f"{len(sweep.finished)} finished, {len(sweep.unfinished)} unfinished trials")
+
+
+def _headline_section(report: Report, settings: ReportSettings) -> html.Section:
+    """The paper's headline numbers and Proposition 1 beside this sweep's."""
     headline = html.Section("The paper's headline beside this sweep's")
     headline.parts.append(html.table(HEADLINE_HEADER, headline_table(report.headline)))
     headline.parts.append(html.heading("Proposition 1"))
@@ -531,7 +581,11 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
     else:
         headline.parts.append(html.paragraph("No rule variant with its baseline in this sweep.", "note"))
     headline.parts.append(html.paragraph(headline_definitions(settings), "note"))
-    sections.append(headline)
+    return headline
+
+
+def _settings_section(sweep: Sweep, settings: ReportSettings) -> html.Section:
+    """The sweep's settings, the DrQ-v2 presets of its tasks and the report's definitions."""
     about = html.Section("Settings")
     sweep_json = sweep.path / SWEEP_JSON
     if sweep_json.exists():
@@ -540,16 +594,22 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
         about.parts.append(html.paragraph(f"{sweep_json} is missing: the sweep's settings are unknown.", "note"))
     about.parts.append(html.table(("task", *PRESET_COLUMNS), _preset_rows(sweep.tasks()), "DrQ-v2 presets per task"))
     about.parts.append(html.settings_table(dataclasses.asdict(settings), caption="the report's definitions"))
-    sections.append(about)
+    return about
 
+
+def _summary_section(report: Report, settings: ReportSettings) -> html.Section:
+    """The summary table, its column definitions and the report's notes."""
     summary = html.Section("Summary table")
     summary.parts.append(html.dict_table(summary_rows(report.rows), SUMMARY_COLUMNS))
     definitions = summary_markdown(report.rows, settings).split("\n\n", 2)[-1].split("\nNotes:")[0].strip()
     summary.parts.append(html.preformatted(definitions))
     if report.notes:
         summary.parts += [html.heading("Notes"), html.bullet_list(report.notes)]
-    sections.append(summary)
+    return summary
 
+
+def _unfinished_section(sweep: Sweep) -> html.Section:
+    """The trial folders that did not finish, or a line saying every one did."""
     unfinished = html.Section("Unfinished trials")
     if sweep.unfinished:
         unfinished.parts.append(
@@ -560,8 +620,11 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
         )
     else:
         unfinished.parts.append(html.paragraph("Every trial folder is finished."))
-    sections.append(unfinished)
+    return unfinished
 
+
+def _curves_section(report: Report, settings: ReportSettings, png: Callable[[str], Path]) -> html.Section:
+    """Figure 5 (evaluation return over frames) and the published DrQ-v2 reference beside it."""
     curves = html.Section("Figure 5: evaluation return")
     low, high = settings.percentiles
     curves.parts.append(
@@ -579,36 +642,41 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
             f"{REFERENCE_LABEL} (facebookresearch/drqv2 curves)",
         )
     )
-    sections.append(curves)
+    return curves
 
-    if report.collapse_picks:
-        collapse = html.Section("Figures 4, 8, 9: collapse metrics of three agents")
-        for (task, variant), picks in report.collapse_picks.items():
-            events = "vertical lines: resets and escapes of the reset rule."
-            if (task, variant) in report.collapse:
-                inputs = report.collapse_inputs[(task, variant)].describe()
-                collapse.parts.append(
-                    html.figure(
-                        png(COLLAPSE_PNG.format(task=task, variant=variant)),
-                        paper_figure_title(task, variant, picks, inputs).replace("\n", "; ")
-                        + f"; every snapshot run on the same observations; {events}",
-                    )
-                )
+
+def _collapse_section(report: Report, png: Callable[[str], Path]) -> html.Section:
+    """Figures 4, 8, 9 (fixed-input and online collapse metrics) and the picked agents, per task and variant."""
+    collapse = html.Section("Figures 4, 8, 9: collapse metrics of three agents")
+    for (task, variant), picks in report.collapse_picks.items():
+        events = "vertical lines: resets and escapes of the reset rule."
+        if (task, variant) in report.collapse:
+            inputs = report.collapse_inputs[(task, variant)].describe()
             collapse.parts.append(
                 html.figure(
-                    png(COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)),
-                    "Online metrics (not the paper's inputs): "
-                    + paper_figure_title(task, variant, picks, ONLINE_INPUTS).replace("\n", "; ")
-                    + f"; {events}",
+                    png(COLLAPSE_PNG.format(task=task, variant=variant)),
+                    paper_figure_title(task, variant, picks, inputs).replace("\n", "; ")
+                    + f"; every snapshot run on the same observations; {events}",
                 )
             )
-            collapse.parts.append(
-                html.dict_table(
-                    [r for r in agents_rows(report) if (r["task"], r["variant"]) == (task, variant)], AGENTS_COLUMNS
-                )
+        collapse.parts.append(
+            html.figure(
+                png(COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)),
+                "Online metrics (not the paper's inputs): "
+                + paper_figure_title(task, variant, picks, ONLINE_INPUTS).replace("\n", "; ")
+                + f"; {events}",
             )
-        sections.append(collapse)
+        )
+        collapse.parts.append(
+            html.dict_table(
+                [r for r in agents_rows(report) if (r["task"], r["variant"]) == (task, variant)], AGENTS_COLUMNS
+            )
+        )
+    return collapse
 
+
+def _probing_section(sweep: Sweep) -> html.Section:
+    """Figure 2 and Tables 1-6 of every probe folder of the sweep; no parts when none was written."""
     probing = html.Section("Figure 2 and Tables 1-6: probing over training")
     for task in sweep.tasks():
         for variant in sweep.variants(task):
@@ -616,26 +684,25 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
             if (folder / FIGURE2_PNG).exists():
                 probing.parts.append(html.figure(folder / FIGURE2_PNG, f"Figure 2, {task} / {variant} ({folder})."))
                 probing.parts += _tables_1_6(folder / TABLES_1_6_CSV)
-    if probing.parts:
-        sections.append(probing)
+    return probing
 
-    if report.grid:
-        transplant = html.Section("Figure 3 and Table 7: layer transplants")
+
+def _transplant_section(report: Report, settings: ReportSettings, png: Callable[[str], Path]) -> html.Section:
+    """Figure 3(a) (the transplant grid), Figure 3(b) and Table 7."""
+    transplant = html.Section("Figure 3 and Table 7: layer transplants")
+    transplant.parts.append(
+        html.figure(png(GRID_PNG), f"Figure 3(a): successful seeds (final return >= {settings.success_return:g}).")
+    )
+    transplant.parts.append(html.dict_table(grid_rows(report.grid), GRID_COLUMNS))
+    if report.transplant:
         transplant.parts.append(
-            html.figure(png(GRID_PNG), f"Figure 3(a): successful seeds (final return >= {settings.success_return:g}).")
+            html.figure(png(FIGURE3B_PNG), "Figure 3(b): the successful seeds' curves per transplant cell.")
         )
-        transplant.parts.append(html.dict_table(grid_rows(report.grid), GRID_COLUMNS))
-        if report.transplant:
-            transplant.parts.append(
-                html.figure(png(FIGURE3B_PNG), "Figure 3(b): the successful seeds' curves per transplant cell.")
-            )
-            for task, cells in report.transplant.items():
-                header = ["combination", "successful seeds"] + [f"std at {f:,} frames" for f in cells[0].stage_frames]
-                rows = [[c.label, len(c.returns), *c.stage_std] for c in cells]
-                transplant.parts.append(html.table(header, rows, f"Table 7, {task}"))
-        sections.append(transplant)
-    title = f"Sweep report: {sweep.path}"
-    return html.html_page(title, sections, f"{len(sweep.finished)} finished, {len(sweep.unfinished)} unfinished trials")
+        for task, cells in report.transplant.items():
+            header = ["combination", "successful seeds"] + [f"std at {f:,} frames" for f in cells[0].stage_frames]
+            rows = [[c.label, len(c.returns), *c.stage_std] for c in cells]
+            transplant.parts.append(html.table(header, rows, f"Table 7, {task}"))
+    return transplant
 
 
 RUN_OUTPUT_FILES = (RUN_COLLAPSE_PNG, html.INDEX_HTML)

@@ -18,13 +18,21 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+import torch as th
 from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, check_checkpoint_files, record
-from sb3_collapse.probe.probing import MIN_EPISODES, CheckpointProbe, ProbeSettings, probe_checkpoint, split_by_episode
+from sb3_collapse.probe.probing import (
+    MIN_EPISODES,
+    CheckpointProbe,
+    EpisodeSplit,
+    ProbeSettings,
+    probe_checkpoint,
+    split_by_episode,
+)
 from sb3_collapse.probe.rollouts import Rollouts
 from sb3_collapse.protocol import write_json_atomically
 from sb3_collapse.report.tables import write_csv
@@ -218,47 +226,16 @@ def probe_to_folder(
     device = get_device(settings.device)
     out = Path(out)
     if rollouts_path is None:
-        record_options = record_options or RecordOptions()
-        record_options.check()
-        if record_options.episodes < MIN_EPISODES:  # checked before recording: the split needs them
-            raise InputError(
-                f"episodes must be >= {MIN_EPISODES} to split them into training, validation and test episodes, "
-                f"got {record_options.episodes}.",
-                parameter="episodes",
-            )
-        if (out / ROLLOUTS_NAME).exists() and not overwrite:
-            raise InputError(
-                f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
-            )
+        record_options = _checked_record_options(record_options, out, overwrite)
     self_recorded = rollouts_path is None
     with staged_output(out, overwrite=overwrite) as staged:
         if rollouts_path is None:
-            first = load_checkpoint(checkpoint_paths[0], device=device)
-            rollouts = record(first, record_options, settings.progress)
-            rollouts.save(staged.path(ROLLOUTS_NAME))  # moved into out with the other files, only on success
+            rollouts = _record_first(checkpoint_paths[0], device, record_options, settings, staged, out)
             rollouts_path = out / ROLLOUTS_NAME
-            print(
-                f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {rollouts_path}", flush=True
-            )
-            print(f"Note: {SELF_RECORDED_NOTE.format(success=PAPER.success_return)}.", flush=True)
-            del first
         else:
             rollouts = Rollouts.load(rollouts_path)
         split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
-        results: list[CheckpointProbe] = []
-        reuse: dict = {}  # cnn0 (the normalized pixels) is probed once for checkpoints that normalize alike
-        for path, label in zip(checkpoint_paths, labels):
-            checkpoint = load_checkpoint(path, device=device)
-            checkpoint.label = label
-            print(
-                f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)",
-                flush=True,
-            )
-            result = probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
-            result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
-            results.append(result)
-            print(format_table(result.rows), flush=True)
-
+        results = _probe_checkpoints(checkpoint_paths, labels, device, rollouts, split, settings)
         rows = [row for result in results for row in result.rows]
         write_csv(rows, list(rows[0]), staged.path(CSV_NAME))
         plot_mse_by_layer(rows, staged.path(BY_LAYER_PLOT))
@@ -273,12 +250,78 @@ def probe_to_folder(
     return summary
 
 
+def _checked_record_options(record_options: RecordOptions | None, out: Path, overwrite: bool) -> RecordOptions:
+    """
+    The recording options, checked before anything is recorded (the split needs :data:`MIN_EPISODES` episodes).
+
+    :raises InputError: bad options, or ``<out>/rollouts.npz`` exists without ``overwrite``
+    """
+    record_options = record_options or RecordOptions()
+    record_options.check()
+    if record_options.episodes < MIN_EPISODES:  # checked before recording: the split needs them
+        raise InputError(
+            f"episodes must be >= {MIN_EPISODES} to split them into training, validation and test episodes, "
+            f"got {record_options.episodes}.",
+            parameter="episodes",
+        )
+    if (out / ROLLOUTS_NAME).exists() and not overwrite:
+        raise InputError(
+            f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
+        )
+    return record_options
+
+
+def _record_first(
+    checkpoint_path: str | Path,
+    device: th.device,
+    record_options: RecordOptions,
+    settings: ProbeSettings,
+    staged: StagedOutputs,
+    out: Path,
+) -> Rollouts:
+    """Record rollouts of the first checkpoint and save them into ``staged`` (moved into ``out`` on success)."""
+    first = load_checkpoint(checkpoint_path, device=device)
+    rollouts = record(first, record_options, settings.progress)
+    rollouts.save(staged.path(ROLLOUTS_NAME))  # moved into out with the other files, only on success
+    print(
+        f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {out / ROLLOUTS_NAME}", flush=True
+    )
+    print(f"Note: {SELF_RECORDED_NOTE.format(success=PAPER.success_return)}.", flush=True)
+    del first
+    return rollouts
+
+
+def _probe_checkpoints(
+    checkpoint_paths: Sequence[str | Path],
+    labels: Sequence[str],
+    device: th.device,
+    rollouts: Rollouts,
+    split: EpisodeSplit,
+    settings: ProbeSettings,
+) -> list[CheckpointProbe]:
+    """Probe each checkpoint in turn on ``rollouts``, printing its table; the networks are freed after each."""
+    results: list[CheckpointProbe] = []
+    reuse: dict = {}  # cnn0 (the normalized pixels) is probed once for checkpoints that normalize alike
+    for path, label in zip(checkpoint_paths, labels):
+        checkpoint = load_checkpoint(path, device=device)
+        checkpoint.label = label
+        print(
+            f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)",
+            flush=True,
+        )
+        result = probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
+        result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
+        results.append(result)
+        print(format_table(result.rows), flush=True)
+    return results
+
+
 def _summary(
     results: list[CheckpointProbe],
     rows: list[dict[str, Any]],
     rollouts: Rollouts,
     rollouts_path: str | Path,
-    split: Any,
+    split: EpisodeSplit,
     settings: ProbeSettings,
     over_training: bool,
     command: Sequence[str] | None,

@@ -1,45 +1,10 @@
 """
-Run checkpoints: what a training run needs to continue in another process exactly as if it had not stopped.
-
-A checkpoint is taken **between two rounds** of ``learn()`` (at the start of a rollout: after the previous round's
-updates, before the next environment step), where nothing is in flight, and holds:
-
-- the model (SB3's ``save``: weights, optimizers, ``num_timesteps``, the last observation, episode statistics,
-  schedules' progress), and what ``save`` leaves out that the next updates use (``DrQv2``'s pending training
-  statistics, the last gradient norms of every layer);
-- the replay buffer, **incrementally**: only the frames and transitions added since the previous checkpoint go to
-  disk (:class:`~sb3_collapse.run.replay_checkpoint.ReplayStore`, shared by the checkpoints);
-- every random generator: Python's, NumPy's global one, torch's (the CPU's, and that of the CUDA device the model
-  is on), the action space's, each environment's (through its episode in progress, see below), each callback's
-  metrics batch sampler;
-- each environment's episode in progress: the random state or seed it was reset with and the actions since
-  (:class:`~sb3_collapse.envs.replay.EpisodeReplay`); a resume replays them, so checkpoints may fall anywhere in an
-  episode;
-- the state of every callback that has one (:func:`~sb3_collapse.common.saved_callbacks.callback_states`, as
-  ``DrQv2.save`` keeps its constructor's callbacks; :class:`~sb3_collapse.monitoring.callbacks.ResumableCallback`: the
-  reset rule's window, streak, escape and resets, the collapse checks' schedule, the next evaluation), the
-  logger's pending values and the number of lines of each CSV file of the run folder, so that a resumed run
-  continues them without a duplicated or a missing row (TensorBoard events after the checkpoint are purged with
-  ``purge_step``).
-
-On disk (:mod:`sb3_collapse.protocol`): ``checkpoints/step_<agent step>/`` with the model, the state and, written
-last, ``checkpoint.json`` (format, package version, sizes and SHA-256 of the two files, the replay manifest), and
-``checkpoints/replay/``. A checkpoint is written into a hidden folder, flushed to disk and renamed; the older ones
-are deleted only then (the newest ``keep`` stay, so a damaged newest one falls back to the one before).
-
-Devices: every tensor of the state is moved to the CPU when it is written (:func:`tensors_to`), and the model's
-tensors to the model's device when it is read (a pickled replay buffer, of a state-observation or dict run, samples
-onto the resuming model's device), so a checkpoint written on a GPU resumes on another GPU, or on a
-host without one. The CUDA generator saved is that of the model's device, restored on the resuming model's device
-(another index, or fewer visible GPUs, are fine).
-
-Exactness: on one machine, with the same device and number of torch threads, a run resumed from any checkpoint
-ends with the same weights, evaluations and reset-rule events as the run that was not stopped (tested on the CPU).
-A resume on another device type (CUDA to CPU, say) continues correctly but not bit for bit, and says so. Timings
-(wall-clock columns, SB3's ``time/`` keys) differ, as they do between two uninterrupted runs.
-
-Beside this module: the run folder's lock (:mod:`sb3_collapse.run.lock`), the resumed run's logger
-(:mod:`sb3_collapse.run.resumed_logger`) and the stop at SIGTERM or SIGINT (:mod:`sb3_collapse.run.signals`).
+Run checkpoints: what a training run needs to continue in another process exactly as if it had not stopped,
+taken between two rounds of ``learn()`` (:class:`ResumableCheckpoints`), and read back (newest intact first).
+What a checkpoint holds, how it is written and read, devices and exactness: docs/checkpoints.md#what-is-in-one and
+docs/checkpoints.md#devices. Beside this module: the run folder's lock (:mod:`sb3_collapse.run.lock`), the resumed
+run's logger (:mod:`sb3_collapse.run.resumed_logger`) and the stop at SIGTERM or SIGINT
+(:mod:`sb3_collapse.run.signals`).
 """
 
 from __future__ import annotations
@@ -545,10 +510,8 @@ class ResumableCheckpoints(FrameScheduleCallback):
     :func:`~sb3_collapse.run.signals.stop_signals`), after which ``learn()`` stops with
     :class:`~sb3_collapse.run.signals.TrainingInterrupted`.
 
-    Checkpoints are taken at the start of the first rollout at or after their frame, where nothing is in flight. With
-    ``DrQv2(step_envs_during_updates=True)``, the round before a checkpoint does not step the environments during its
-    updates (so that none is in flight); an uninterrupted run with the same ``every_frames`` does the same, so it is
-    still the run a resumed one reproduces (a signal adds one such round).
+    Checkpoints are taken at the start of the first rollout at or after their frame, where nothing is in flight
+    (with ``step_envs_during_updates``: docs/checkpoints.md#using-them).
 
     :param directory: the run's checkpoints folder
     :param every_frames: frames between two checkpoints (``0``: only at a stop request)

@@ -2,17 +2,9 @@
 The settings of one training run, :class:`TrainConfig`, each declared once with :func:`setting`: its default, its
 help text, its unit and whether the task's preset fills it. The command lines' flags, ``--show-settings`` and the
 settings tables of ``docs/presets.md`` are generated from these declarations (:mod:`sb3_collapse.run.settings`),
-and the model's keyword arguments from the config by :func:`drqv2_kwargs` and :func:`baseline_kwargs`.
-
-**Per-task defaults.** Every DrQ-v2 hyperparameter left out (budget, batch size, n-step, learning rate, exploration
-schedule...) comes from the task's preset, :func:`sb3_collapse.presets.preset`; a value given explicitly overrides
-it, and the run's settings file records every value and where it came from.
-
-**Units.** Budgets are in frames, as in DrQ-v2 and the paper (frames = agent steps x action repeat); the exploration
-schedule is in agent steps, as in DrQ-v2's configs. With ``n_envs=N`` (N environments in subprocesses), agent steps
-are summed over the environments (transitions) everywhere: the budget, the seed frames, the schedule, ``train_freq``,
-the evaluation and collapse-check periods and DrQ-v2's one update per 2 transitions mean the same as with one
-environment (``docs/throughput.md``).
+and the model's keyword arguments from the config by :func:`drqv2_kwargs` and :func:`baseline_kwargs`. Per-task
+defaults and units (budgets in frames, the exploration schedule in agent steps, transitions summed over ``n_envs``):
+docs/presets.md#drq-v2s-presets-sb3_collapsepresets and docs/throughput.md#units.
 
 :meth:`TrainConfig.validate` checks what needs no file system; the run folder's checks are
 :func:`sb3_collapse.run.folder.check_run_folder`.

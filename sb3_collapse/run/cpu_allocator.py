@@ -1,9 +1,9 @@
 """Keep large freed CPU buffers in the process, so that DrQ-v2 updates on the CPU do not page-fault.
 
-Every DrQ-v2 update allocates and frees activations and gradients of tens of MB (256 x 32 x 41 x 41 floats
-is 55 MB). glibc's ``malloc`` serves blocks over 32 MB with a fresh ``mmap`` and returns them with ``munmap``
-when freed, so each update touches hundreds of MB of new pages: the kernel zero-fills them on first write.
-Measured on a 2-core CPU, this page faulting made a batch-256 update about 40% slower (1.77 s against 1.28 s).
+Every DrQ-v2 update allocates and frees activations and gradients of tens of MB (``256 x 32 x 41 x 41`` floats).
+glibc's ``malloc`` serves blocks over 32 MB with a fresh ``mmap`` and returns them with ``munmap`` when freed, so
+each update touches hundreds of MB of new pages, which the kernel zero-fills on first write (what this costs:
+benchmarks/README.md#notes-on-what-each-measures).
 
 :func:`tune_cpu_allocator` raises glibc's mmap threshold to 1 GiB and stops heap trimming, so freed blocks
 are reused. The cost: the process keeps its peak heap instead of returning it to the system. Blocks over

@@ -1,47 +1,8 @@
 """
-Incremental checkpoints of a :class:`~sb3_collapse.drqv2.replay_buffer.FrameStackReplayBuffer`.
-
-A paper-scale buffer holds 550,000 transitions, 11.8 GB of 84x84 RGB frames. Rewriting it at every run checkpoint
-would cost minutes and, while the new copy is written, twice the disk. :class:`ReplayStore` instead writes, at each
-:meth:`ReplayStore.save`, only what was added since its previous save, as new append-only **chunk files** in one
-folder, and returns a small JSON **manifest** that lists the chunk files the saved state needs, in order; the run
-stores the manifest inside its own checkpoint file (written atomically by the run). A checkpoint's cost therefore
-grows with the new data (10,000 frames: ~212 MB), not with the buffer.
-
-**What is new.** The buffer's counters only grow until ``reset()``: ``transitions_added`` (``add`` calls),
-``frame_heads`` (frames written, per environment) and ``resets`` (``reset`` calls). Transition number ``t`` lives at
-ring position ``t % buffer_size``, frame number ``f`` of environment ``e`` at ``frames[f % frame_capacity, e]``. The
-**live** data are the last ``buffer_size`` transitions and the last ``frame_capacity`` frames of each environment:
-everything sampling (and the next ``add``) can read. A save writes the transitions ``[previous, now)`` and each
-environment's frames ``[previous head, head)``, clipped to the live windows (when more was added than the rings
-hold, only the newest ring's worth is written). The first save of a buffer, a save after ``buffer.reset()``, and a
-save after the store's chunks were deleted behind its back write all the live data.
-
-**Chunk files** (``chunk-<number>-<random>.bin``, the number one more than the largest in the folder, so no two
-saves share a name) are raw bytes without compression (speed): for each **segment** of the chunk, a counter range
-``[start, stop)`` of one ring, the rows of the ring positions it covers (transitions: ``frame_starts``,
-``actions``, ``rewards``, ``dones``, ``timeouts``, each array's rows in turn, per contiguous piece of the ring;
-frames: the frames of one environment). A save's new data are split into files of at most ``max_file_bytes``
-(default: 1/32 of the buffer's arrays, at least 1 MiB), so that the ring's oldest live data never keep more than
-about 1/32 of the buffer of dead bytes on disk per ring: the folder stays within ~1.07x the buffer's RAM size
-(``benchmarks/replay_checkpoint.py`` measures it). Whole-chunk compaction (rewriting a partly overwritten chunk's
-live part) is therefore not done: with files that small it would save little and cost writes.
-
-**Manifest**: ``format``; ``layout`` (``n_envs``, ``buffer_size``, ``frame_capacity``, ``frame_stack``, each
-array's shape and dtype); ``state`` (``pos``, ``full``, ``transitions_added``, ``resets``, ``frame_heads``,
-``steps_since_done``, ``episodes_done``); ``chunks``: the files the state needs, oldest first, each with its
-``bytes``, ``crc32`` and ``segments``. A chunk is listed while any of its segments holds live data; a chunk whose
-data were all overwritten is dropped from the manifest (and deleted by :meth:`ReplayStore.collect_garbage`).
-
-**Restore** replays the chunks in order into a freshly built buffer (later chunks overwrite earlier positions, so a
-partly overwritten chunk's dead rows are overwritten again), checking each file's size and CRC-32 first and while
-reading, then sets the counters: the buffer's arrays equal the saved buffer's (byte for byte, wherever data were
-written since its last ``reset``), and ``sample`` with the same ``np.random`` state returns the same batch.
-
-**Writes never modify an existing file**: each chunk goes to a temporary name (``.chunk-....bin.tmp``), is flushed
-and ``fsync``'d, renamed, and the folder is ``fsync``'d. A process killed during a save leaves at most a temporary
-file or an unlisted chunk (which :meth:`ReplayStore.collect_garbage` deletes); a failed write (full disk) deletes
-what this save wrote and raises an ``OSError`` naming the folder: every older chunk is intact.
+Incremental checkpoints of a :class:`~sb3_collapse.drqv2.replay_buffer.FrameStackReplayBuffer`: :class:`ReplayStore`
+writes, at each save, only what was added since its previous save, as append-only chunk files, and returns the
+manifest that the run keeps inside its own checkpoint. See docs/checkpoints.md#the-replay-buffer-incremental-chunks
+(use, safety) and docs/checkpoints.md#chunk-files-and-manifest (what is new, the file format, restore).
 """
 
 from __future__ import annotations

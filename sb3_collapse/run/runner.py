@@ -1,20 +1,11 @@
 """
 Train DrQ-v2 (or SB3's TD3 or SAC) on a DeepMind Control task from pixels, as a
-:class:`~sb3_collapse.run.config.TrainConfig` says: :func:`train`,
-behind ``python -m sb3_collapse.train`` and every sweep trial.
-
-Everything a run writes goes to one folder, ``<logdir>/<task>_s<seed>`` (``_2``, ``_3``... if it holds another run),
-or exactly ``run_dir``, in the run-folder format of :mod:`sb3_collapse.protocol`: the settings (written first),
-TensorBoard events and the SB3 logger's CSV, the evaluations, the collapse checks, the reset rule's events, the final
-model (load it with ``DrQv2.load``) and the result (written last: a folder without it is an unfinished run). A run
-writes checkpoints (``checkpoint_every_frames``, and at SIGTERM or SIGINT); the same settings again resume an
-unfinished run from its newest one, bit for bit (:mod:`sb3_collapse.run.checkpoints`, :mod:`sb3_collapse.run.folder`).
-
-``algorithm="td3"`` or ``"sac"`` trains SB3's own TD3 or SAC from the same pixels instead (built by
-:func:`sb3_collapse.baselines.build_baseline`; the DrQ-v2-only settings are reported unused); ``reset_rule``
-applies the paper's rule, ``intervention`` chooses what it does (:mod:`sb3_collapse.monitoring.interventions`).
-``init_cnn``, ``init_mlp`` and ``init_critic`` start the encoder, the actor or the critic from the weights of a
-saved DrQv2 (the paper's layer transplants, ``DrQv2(init_from=...)``).
+:class:`~sb3_collapse.run.config.TrainConfig` says: :func:`train`, behind ``python -m sb3_collapse.train`` and every
+sweep trial. Everything a run writes goes to one run folder (:mod:`sb3_collapse.protocol`; the files:
+docs/sweeps.md#multi-seed-sweeps-on-ray-python--m-sb3_collapsesweep), with checkpoints it resumes from bit for bit
+(docs/checkpoints.md). ``algorithm="td3"`` or ``"sac"`` trains SB3's own TD3 or SAC
+(:func:`sb3_collapse.baselines.build_baseline`); ``reset_rule`` applies the paper's rule; ``init_cnn``, ``init_mlp``
+and ``init_critic`` are the paper's layer transplants (``DrQv2(init_from=...)``).
 """
 
 from __future__ import annotations
@@ -26,6 +17,7 @@ import os
 import shutil
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -110,18 +102,9 @@ def run_summary(
     timings: LearnTimings | None = None,
 ) -> dict[str, Any]:
     """
-    The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`): ``status``
-    (:data:`~sb3_collapse.protocol.FINISHED`), ``task``, ``variant``, ``seed``, ``frames`` (frames
-    trained, action repeat included), ``agent_steps``, ``final_eval`` (``frame``, ``mean_reward``, ``std_reward``
-    of the last scheduled evaluation, the one the paper's success/failure classes read; ``None`` without evaluation),
-    ``saved_model_eval`` (the same keys and ``episodes`` for the evaluation of the saved final model, at the run's
-    last frame, outside the schedule and the statistics; ``None`` without it), ``resets`` (resets of the reset rule),
-    ``reset_frames`` (their frames), ``escaped`` (whether the rule saw an escape from action collapse; ``None`` without
-    the rule),
-    ``escape_frame`` (``None`` without escape), ``wall_time_s`` (seconds of the whole run, over all its processes),
-    ``timings`` (where the time of ``learn()`` went: ``LearnTimings.as_dict()``, see :mod:`sb3_collapse.run.timing`,
-    of the last process only when the run was resumed; ``None`` for SB3's TD3 and SAC) and ``resumes`` (times the run
-    was resumed from a checkpoint).
+    The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`; each key:
+    docs/sweeps.md#multi-seed-sweeps-on-ray-python--m-sb3_collapsesweep): frames include the action repeat,
+    ``final_eval`` is the last scheduled evaluation (``None`` without one), ``timings`` ``None`` for SB3's TD3 and SAC.
 
     :param config: the run's settings
     :param task_id: the task, ``<domain>-<task>``
@@ -166,26 +149,12 @@ def train(config: TrainConfig) -> TrainResult:
     Train DrQ-v2 as ``config`` says (preset settings left at ``None`` come from the task's preset), evaluating and
     logging on the way, and save the final model.
 
-    Everything that can fail on bad input (the settings, the initial weights of ``init_*``, the environments, the
-    model and its replay buffer) is checked or built **before** the run folder is created. A failure after it
-    marks the folder as failed (the error file, with the agent step it failed at; see
-    :func:`~sb3_collapse.protocol.write_failure`) and is raised again; a folder that failed before its first agent
-    step holds no training and is reused by the next run.
-
-    **Resuming.** The folder of an unfinished run with the same settings (but those of
-    :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`)
-    is resumed from its newest readable checkpoint (:mod:`sb3_collapse.run.checkpoints`), or restarted from frame 0
-    without one (damaged ones are set aside, never deleted, and the screen says why the run restarts); a temporary
-    file that a killed process left is removed, and so are the checkpoints and the lock that a process killed after
-    it finished left in a finished run's folder (:func:`~sb3_collapse.run.folder.tidy_finished_run`); with other
-    settings it is refused (an explicit ``run_dir``) or passed over for ``<name>_2``... The
-    folder is locked while the run trains into it (a second process is refused). A SIGTERM or SIGINT writes a
-    checkpoint and raises :class:`~sb3_collapse.run.signals.TrainingInterrupted`; the checkpoints are deleted once
-    the run has finished.
-
-    The model that is saved is the model of the last evaluation: the reset rule never resets at the budget's end
-    (see :class:`~sb3_collapse.CollapseReset`), and the budget's last frames are evaluated after ``learn()`` when
-    the periodic evaluation did not fall on them.
+    Everything that can fail on bad input is checked **before** the run folder is created; a failure after it marks
+    the folder as failed and is raised again (docs/reliability.md#inputs-tried-and-what-happens). The folder of an
+    unfinished run with the same settings is resumed from its newest readable checkpoint, or restarted without one
+    (docs/checkpoints.md#using-them); a SIGTERM or SIGINT writes a checkpoint and raises
+    :class:`~sb3_collapse.run.signals.TrainingInterrupted`. The model saved is that of the last evaluation (the
+    reset rule never resets at the budget's end, and the budget's last frames are evaluated after ``learn()``).
 
     :param config: the run's settings
     :return: where things were written, and the evaluations
@@ -408,14 +377,87 @@ def _train_into(
     run_callbacks = _run_callbacks(config, run_dir, eval_env)
     callbacks, evaluation, reset_rule = run_callbacks.callbacks, run_callbacks.evaluation, run_callbacks.reset_rule
 
-    earlier_s, resumes = 0.0, 0  # seconds and resumptions of the earlier processes of this run
+    checkpoints, checkpoint, earlier = _resumed_checkpoints(
+        config, run_dir, model, callbacks, eval_env, checkpoint, start_time
+    )
+    if checkpoint is not None and evaluation is not None:
+        evaluation.start_time = start_time - earlier.elapsed_s
+    callbacks.append(checkpoints)
+    timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
+    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
+    model.set_logger(resumed_logger(run_dir, formats, checkpoint))
+
+    _announce(config, task_id, run_dir, model, steps)
+    with contextlib.ExitStack() as open_files:  # closed on every way out: the environment, then the logger's files
+        open_files.callback(env.close)
+        open_files.push(_logger_closer(model))
+        _learn(config, model, [*callbacks, timer], checkpoints, steps, resumed=checkpoint is not None)
+        model_path = run_dir / FINAL_MODEL
+        try:
+            with atomic_output(model_path) as temporary:
+                model.save(temporary)
+            saved_model_eval = None
+            if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the eval file)
+                saved_model_eval = evaluation.evaluate_saved_model()  # and its snapshot
+            open_files.close()  # the logs complete before result.json marks the run as finished
+            evaluations = evaluation.rows if evaluation is not None else []
+            _print_last_evaluations(evaluations, saved_model_eval)
+            wall_time_s = earlier.elapsed_s + time.time() - start_time
+            timings = timer.timings if isinstance(model, DrQv2) else None
+            summary = run_summary(
+                config, task_id, model, evaluations, reset_rule, wall_time_s, earlier.resumes, saved_model_eval, timings
+            )
+            write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
+        except OSError as error:
+            message = unwritable_message(error)
+            if message is None:
+                raise
+            kept = checkpoints.last_checkpoint
+            resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
+            raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
+    shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
+    print(f"Saved {model_path}")
+    return TrainResult(
+        run_dir=run_dir,
+        model_path=model_path,
+        evaluations=evaluations,
+        summary=summary,
+        saved_model_evaluation=saved_model_eval,
+    )
+
+
+@dataclass
+class _EarlierProcesses:
+    """What the earlier processes of a resumed run did: seconds they ran, and times the run was resumed."""
+
+    elapsed_s: float = 0.0
+    resumes: int = 0
+
+
+def _resumed_checkpoints(
+    config: TrainConfig,
+    run_dir: Path,
+    model: BaseAlgorithm,
+    callbacks: list[BaseCallback],
+    eval_env: EpisodeReplay | None,
+    checkpoint: LoadedCheckpoint | None,
+    start_time: float,
+) -> tuple[ResumableCheckpoints, LoadedCheckpoint | None, _EarlierProcesses]:
+    """
+    The run's checkpoints callback, with the model and ``callbacks`` resumed from ``checkpoint`` when one is given
+    (its notes printed).
+
+    :param start_time: when this process started (``time.time()``, seconds), for the elapsed time it records
+    :return: the callback, the checkpoint resumed from (``None`` for a new run) and the earlier processes' record
+    """
+    earlier = _EarlierProcesses()
     checkpoints = ResumableCheckpoints(
         run_dir / CHECKPOINTS_DIR,
         config.checkpoint_every_frames,
         callbacks=callbacks,
         eval_env=eval_env,
         csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
-        extra_state=lambda: {"elapsed_s": earlier_s + time.time() - start_time, "resumes": resumes},
+        extra_state=lambda: {"elapsed_s": earlier.elapsed_s + time.time() - start_time, "resumes": earlier.resumes},
         verbose=1,
     )
     checkpoints.init_callback(model)
@@ -423,31 +465,39 @@ def _train_into(
         checkpoint, notes = checkpoints.resume(checkpoint)
         for note in notes:
             print(f"Note: {note}")
-        earlier_s, resumes = checkpoint.state["extra"]["elapsed_s"], checkpoint.state["extra"]["resumes"] + 1
-        if evaluation is not None:
-            evaluation.start_time = start_time - earlier_s
-    callbacks.append(checkpoints)
-    timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
-    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
-    model.set_logger(resumed_logger(run_dir, formats, checkpoint))
+        earlier.elapsed_s, earlier.resumes = (
+            checkpoint.state["extra"]["elapsed_s"],
+            checkpoint.state["extra"]["resumes"] + 1,
+        )
+    return checkpoints, checkpoint, earlier
 
-    _announce(config, task_id, run_dir, model, steps)
+
+def _learn(
+    config: TrainConfig,
+    model: BaseAlgorithm,
+    callbacks: list[BaseCallback],
+    checkpoints: ResumableCheckpoints,
+    steps: int,
+    resumed: bool,
+) -> None:
+    """
+    ``model.learn`` up to ``steps`` agent steps in total; SIGINT/SIGTERM stop it with a checkpoint.
+
+    :param callbacks: the run's callbacks, the learn timer last (the rest counts as overhead)
+    :param resumed: whether the model comes from a checkpoint (its step count then continues)
+    :raises DivergenceError: the losses diverged; the message names the last checkpoint
+    :raises OutputError: the run folder became unwritable (read-only or full) while training
+    """
     try:
         with stop_signals(checkpoints):
             model.learn(
                 steps - model.num_timesteps,
-                callback=CallbackList([*callbacks, timer]),  # the timer last: the rest counts as overhead
+                callback=CallbackList(callbacks),
                 log_interval=1,
                 progress_bar=config.progress_bar,
-                reset_num_timesteps=checkpoint is None,
+                reset_num_timesteps=not resumed,
             )
-    except TrainingInterrupted:
-        model.logger.close()
-        env.close()
-        raise
     except DivergenceError as error:
-        model.logger.close()
-        env.close()
         kept = checkpoints.last_checkpoint
         where = (
             f"its last checkpoint, {kept}, holds the weights before it"
@@ -458,55 +508,40 @@ def _train_into(
     except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
         if unwritable_message(error) is None:
             raise
-        with contextlib.suppress(OSError):  # closing flushes, into the same folder
-            model.logger.close()
-        env.close()
         raise OutputError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
-    model_path = run_dir / FINAL_MODEL
-    try:
-        with atomic_output(model_path) as temporary:
-            model.save(temporary)
-        saved_model_eval = None
-        if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the evaluation file)
-            saved_model_eval = evaluation.evaluate_saved_model()  # and its snapshot
-        model.logger.close()
-        env.close()
-        evaluations = evaluation.rows if evaluation is not None else []
-        if evaluations:
-            last = evaluations[-1]
-            print(
-                f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- "
-                f"{last['std_reward']:.1f}"
-            )
-        if saved_model_eval is not None:
-            print(
-                f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
-                f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
-            )
-        wall_time_s = earlier_s + time.time() - start_time
-        timings = timer.timings if isinstance(model, DrQv2) else None
-        summary = run_summary(
-            config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
+
+
+def _logger_closer(model: BaseAlgorithm) -> Callable[..., bool]:
+    """
+    An exit callback for :class:`contextlib.ExitStack` that closes ``model.logger`` (flushing its CSV and
+    TensorBoard files). On the way out of an error its own ``OSError`` is dropped: closing writes into the same
+    folder, and the first error is the one to report.
+    """
+
+    def close(exc_type: type[BaseException] | None, *_: object) -> bool:
+        if exc_type is None:
+            model.logger.close()
+        else:
+            with contextlib.suppress(OSError):
+                model.logger.close()
+        return False
+
+    return close
+
+
+def _print_last_evaluations(evaluations: list[dict[str, Any]], saved_model_eval: dict[str, Any] | None) -> None:
+    """Print the last scheduled evaluation and that of the saved final model (frames, mean +- std return)."""
+    if evaluations:
+        last = evaluations[-1]
+        print(
+            f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- "
+            f"{last['std_reward']:.1f}"
         )
-        write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
-    except OSError as error:
-        message = unwritable_message(error)
-        if message is None:
-            raise
-        model.logger.close()  # closing again is harmless where the failure came after these
-        env.close()
-        kept = checkpoints.last_checkpoint
-        resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
-        raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
-    shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
-    print(f"Saved {model_path}")
-    return TrainResult(
-        run_dir=run_dir,
-        model_path=model_path,
-        evaluations=evaluations,
-        summary=summary,
-        saved_model_evaluation=saved_model_eval,
-    )
+    if saved_model_eval is not None:
+        print(
+            f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
+            f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
+        )
 
 
 def stopped_writing_message(error: OSError, frame: int, kept: Path | None) -> str:

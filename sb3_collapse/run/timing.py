@@ -1,31 +1,9 @@
 """Where the wall-clock time of ``learn()`` goes: waiting for the environments, updating, and the rest.
 
-A :class:`LearnTimer` callback fills a :class:`LearnTimings` during every ``learn()`` call it is given to
-(``timer.timings``, reset at the start of the call); the environments' time comes from a :class:`TimedVecEnv` around
-the model's ``VecEnv``. The train CLI uses both and writes the timings into the run's result file. Each round of the
-loop (the environment steps up to the next update, then that round of updates: ``sb3_collapse.drqv2.rounds``) is
-counted in one of two phases:
-
-- ``warmup``: rounds whose actions were all uniformly random and that made no update (the first
-  ``learning_starts`` transitions, and again after each reset from scratch): the environments alone;
-- ``learning``: every other round (actions of the policy, updates).
-
-In each phase, ``env_s`` is the time spent in the environments' ``step_async`` and ``step_wait`` (the waits for a
-step sent before the updates included, see ``DrQv2``'s ``step_envs_during_updates``), ``update_s`` the time from the
-end of a round's environment steps to the start of the next round's (the updates, replay sampling included, and the
-sending of an overlapped step), ``total_s`` the wall-clock time of the phase's rounds, and ``overhead_s`` the rest:
-action selection, storing transitions, callbacks (evaluations and collapse checks run in callbacks: they count
-here), logging.
-
-On CUDA the kernels of an update are still running when ``train`` returns; whatever needs their result next (the next
-action's copy to the host) waits for them. :class:`UpdateClock` times each round's updates on the device as well,
-with a pair of CUDA events, and counts the update as ``max(host time, device time)``: the device time beyond the host
-time moves from ``overhead_s`` (where the wait fell) to ``update_s``. The events are read when they have completed
-(``Event.query``, no synchronization) and, for the last ones, once at the end of ``learn()``.
-
-The first round of updates of a ``learn()`` call also includes one-time costs: ``torch.compile``'s compilation
-(``compile_update``), cuDNN's autotuning, the allocators' first requests. ``first_round_s`` and
-``first_round_updates`` record it, so that :meth:`LearnTimings.steady_learning_s` can leave it out.
+A :class:`LearnTimer` callback fills a :class:`LearnTimings` (seconds per phase) during every ``learn()`` call it is
+given to; the environments' time comes from a :class:`TimedVecEnv` around the model's ``VecEnv``, the device time of
+the updates on CUDA from :class:`UpdateClock`. What each phase and key counts:
+docs/throughput.md#where-the-time-goes-learntimer-resultjson.
 """
 
 from __future__ import annotations
@@ -118,7 +96,8 @@ class LearnTimings:
 
 class UpdateClock:
     """
-    The device time of the rounds of updates on CUDA (see the module docstring); nothing on other devices.
+    The device time of the rounds of updates on CUDA (docs/throughput.md#where-the-time-goes-learntimer-resultjson);
+    nothing on other devices.
 
     Both events of a round are recorded on the current stream of the model's device, with that device made current
     (``torch.cuda.device``): a model on ``cuda:1`` while ``cuda:0`` is the current device is timed on ``cuda:1``
