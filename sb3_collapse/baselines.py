@@ -20,7 +20,9 @@ from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_collapse.common.grad_norms import GradNormRecorder
+from sb3_collapse.common.layers import layer_parameters
 from sb3_collapse.common.model import CollapseModel, CollapseModelBase
+from sb3_collapse.errors import LayerMappingError
 
 ModelT = TypeVar("ModelT", bound=BaseAlgorithm)
 
@@ -38,9 +40,6 @@ class SB3Model(CollapseModelBase):
 
     def _record_grad_norms(self) -> None:
         """A new :class:`GradNormRecorder` on the current optimizers (``None`` for layers that cannot be named)."""
-        from sb3_collapse.errors import LayerMappingError
-        from sb3_collapse.monitoring.activations import layer_parameters  # monitoring imports us
-
         if self.grad_norm_recorder is not None:
             self.grad_norm_recorder.remove()
         try:

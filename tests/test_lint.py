@@ -231,3 +231,38 @@ def test_the_exception_finder_finds_what_it_looks_for():
         "b.py": "class B(errors.A, KeyError):\n    pass\nclass C(B):\n    pass\nclass D(Plain):\n    pass\n",
     }
     assert _exception_classes(sources) == [("A", "a.py:1"), ("B", "b.py:1"), ("C", "b.py:3")]
+
+
+def _package_imports() -> dict[str, set[str]]:
+    """Top-level part of the package (``drqv2``, ``run``, ``paper``...) -> the other parts it imports, at the top or
+    inside a function; the command lines (``__main__.py``, ``train.py``), the top layer, are left out."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(PACKAGE).parts
+        if path.name == "__main__.py" or parts == ("train.py",) or parts == ("__init__.py",):
+            continue
+        part = parts[0].removesuffix(".py")
+        names = _imports(path.read_text(), _module_name(path))
+        graph.setdefault(part, set()).update(
+            name.split(".")[1] for name in names if name.startswith("sb3_collapse.") and name.split(".")[1] != part
+        )
+    return graph
+
+
+def test_no_part_of_the_package_imports_one_that_imports_it_back():
+    graph = _package_imports()
+    assert graph["probe"] and "report" not in graph["probe"]  # the walk sees the imports
+
+    def reachable(start: str) -> set[str]:
+        seen, todo = set(), [start]
+        while todo:
+            for name in graph.get(todo.pop(), ()):
+                if name not in seen:
+                    seen.add(name)
+                    todo.append(name)
+        return seen
+
+    cycles = sorted(f"{a} -> {b}" for a in graph for b in graph[a] if a in reachable(b))
+    assert not cycles, "parts of the package that import each other (docs/layout.md shows the layers): " + ", ".join(
+        cycles
+    )

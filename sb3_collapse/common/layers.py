@@ -6,16 +6,24 @@ normalized pixels (``obs / 255 - 0.5``), ``cnn1``..``cnn4`` after each conv + Re
 (Linear to 50, LayerNorm, Tanh), ``mlp1`` and ``mlp2`` after each 1024-unit Linear + ReLU, ``action`` the
 deterministic action (Linear + Tanh); per algorithm: docs/monitoring.md. :class:`LayerParts` describes a hidden
 layer whose units ReDo may recycle; :func:`sequential_hidden_parts` finds them in a flat list of modules, and
-:func:`reinitialize` draws new initial values for a module's parameters.
+:func:`reinitialize` draws new initial values for a module's parameters. :func:`layer_taps` maps each name to the
+module that produces it in a DrQv2, TD3, DDPG or SAC actor, :func:`layer_parameters` to the parameters that compute
+it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.torch_layers import FlattenExtractor, NatureCNN
 from torch import nn
+
+from sb3_collapse.errors import LayerMappingError
 
 LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
 """Every named layer, input to output."""
@@ -107,3 +115,105 @@ def reinitialize(module: nn.Module, initializer: Callable[[nn.Module], None] | N
             sub.reset_parameters()  # type: ignore[operator]
         else:
             raise TypeError(f"Cannot draw new initial values for the parameters of {type(sub).__name__}.")
+
+
+@dataclass(frozen=True)
+class LayerTap:
+    """
+    Where a named activation is read.
+
+    :param module: the module whose forward call produces (or, for ``source="input"``, receives) it
+    :param parameters: the parameters of the layer that computes it (empty for ``cnn0``)
+    :param source: ``"output"``: the module's output; ``"input"``: its first positional input
+    :param transform: applied to what is read (e.g. ``tanh`` for SAC's action), ``None`` for none
+    """
+
+    module: nn.Module
+    parameters: tuple[nn.Parameter, ...]
+    source: str = "output"
+    transform: Callable[[th.Tensor], th.Tensor] | None = None
+
+
+def policy_of(model: BaseAlgorithm | BasePolicy) -> BasePolicy:
+    policy = model.policy if isinstance(model, BaseAlgorithm) else model
+    if not isinstance(policy, BasePolicy):
+        raise LayerMappingError(f"Expected an SB3 algorithm or policy, got {type(model).__name__}.")
+    return policy
+
+
+def layer_taps(model: BaseAlgorithm | BasePolicy) -> dict[str, LayerTap]:
+    """
+    The named layers of a DrQv2, TD3, DDPG or SAC actor, input to output (the mapping: docs/monitoring.md).
+
+    :param model: an algorithm or its policy
+    :return: ordered mapping name -> :class:`LayerTap`
+    :raises LayerMappingError: for a policy whose modules do not follow a known layout
+    """
+    policy = policy_of(model)
+    named_layers = getattr(policy, "named_layers", None)
+    if callable(named_layers):  # DrQv2Policy names its own layers
+        return {name: LayerTap(module, tuple(module.parameters())) for name, module in named_layers().items()}
+    actor = getattr(policy, "actor", None)
+    if actor is None or not hasattr(actor, "features_extractor"):
+        raise LayerMappingError(
+            f"Cannot map the layers of {type(policy).__name__}: named layers are defined for DrQv2 and for "
+            "SB3's TD3, DDPG and SAC policies (an `actor` with a features extractor)."
+        )
+    taps = _extractor_taps(actor.features_extractor)
+    if hasattr(actor, "latent_pi"):  # SAC: latent_pi = hidden layers, mu = mean action before the tanh squash
+        if getattr(actor, "use_sde", False):
+            raise LayerMappingError("SAC with gSDE (use_sde=True) has no deterministic tanh(mu) action to name.")
+        taps.update(_hidden_taps(actor.latent_pi))
+        taps["action"] = LayerTap(actor.mu, tuple(actor.mu.parameters()), transform=th.tanh)
+    elif isinstance(getattr(actor, "mu", None), nn.Sequential):  # TD3 / DDPG: mu = hidden layers, Linear, Tanh
+        linears = [i for i, m in enumerate(actor.mu) if isinstance(m, nn.Linear)]
+        if not linears or linears[-1] + 1 >= len(actor.mu):
+            raise LayerMappingError(
+                f"Cannot map the layers of {type(policy).__name__}: unexpected actor.mu {actor.mu}."
+            )
+        last = linears[-1]
+        taps.update(_hidden_taps(actor.mu[:last]))
+        taps["action"] = LayerTap(actor.mu[last + 1], tuple(actor.mu[last].parameters()))
+    else:
+        raise LayerMappingError(f"Cannot map the layers of {type(policy).__name__}: its actor has no `mu` network.")
+    return taps
+
+
+def _extractor_taps(extractor: nn.Module) -> dict[str, LayerTap]:
+    """``cnn0``..``cnnK`` and ``mlp0`` of SB3's ``NatureCNN`` or ``FlattenExtractor``."""
+    if isinstance(extractor, NatureCNN):
+        taps = {"cnn0": LayerTap(extractor.cnn, (), source="input")}
+        modules = list(extractor.cnn)
+        for k, index in enumerate((i for i, m in enumerate(modules) if isinstance(m, nn.Conv2d)), start=1):
+            if index + 1 >= len(modules) or isinstance(modules[index + 1], (nn.Conv2d, nn.Flatten)):
+                raise LayerMappingError(f"NatureCNN conv {k} has no activation after it.")
+            taps[f"cnn{k}"] = LayerTap(modules[index + 1], tuple(modules[index].parameters()))
+        taps["mlp0"] = LayerTap(extractor.linear, tuple(extractor.linear.parameters()))
+        return taps
+    if isinstance(extractor, FlattenExtractor):
+        return {"mlp0": LayerTap(extractor, ())}
+    raise LayerMappingError(
+        f"Cannot map the layers of the features extractor {type(extractor).__name__}: "
+        "NatureCNN (CnnPolicy) and FlattenExtractor (MlpPolicy) are supported."
+    )
+
+
+def _hidden_taps(layers: Iterable[nn.Module]) -> dict[str, LayerTap]:
+    """``mlp1``..``mlpK`` of a ``Linear, activation, Linear, activation, ...`` sequence."""
+    modules = list(layers)
+    taps: dict[str, LayerTap] = {}
+    for k, index in enumerate((i for i, m in enumerate(modules) if isinstance(m, nn.Linear)), start=1):
+        if index + 1 >= len(modules) or isinstance(modules[index + 1], nn.Linear):
+            raise LayerMappingError(f"Hidden layer {k} of the actor has no activation after it.")
+        taps[f"mlp{k}"] = LayerTap(modules[index + 1], tuple(modules[index].parameters()))
+    return taps
+
+
+def layer_parameters(model: BaseAlgorithm | BasePolicy) -> dict[str, tuple[nn.Parameter, ...]]:
+    """
+    The parameters of the layer that computes each named activation (``cnn0`` excluded: it has none).
+
+    :param model: an algorithm or its policy
+    :return: ordered mapping name -> parameters
+    """
+    return {name: tap.parameters for name, tap in layer_taps(model).items() if tap.parameters}

@@ -1,7 +1,8 @@
 """Collapse monitoring: named activations of an actor, collapse metrics, and the callbacks built on them (and the
 run's periodic evaluation)."""
 
-from sb3_collapse.monitoring.activations import LayerTap, collect_activations, layer_parameters, layer_taps
+from sb3_collapse.common.layers import LayerTap, layer_parameters, layer_taps
+from sb3_collapse.monitoring.activations import collect_activations
 from sb3_collapse.monitoring.callbacks import (
     ActivationLogger,
     CollapseMetrics,

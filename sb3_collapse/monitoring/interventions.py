@@ -22,9 +22,8 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from torch import nn
 
 from sb3_collapse.baselines import collapse_model
-from sb3_collapse.common.layers import LayerParts, reinitialize, sequential_hidden_parts
+from sb3_collapse.common.layers import LayerParts, layer_taps, reinitialize, sequential_hidden_parts
 from sb3_collapse.common.model import CollapseModel
-from sb3_collapse.monitoring.activations import layer_taps
 from sb3_collapse.monitoring.callbacks import MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.monitoring.metrics import DORMANT_TAU, dormant_units
@@ -366,7 +365,7 @@ def hidden_layers(model: BaseAlgorithm) -> list[LayerParts]:
     """
     The hidden layers of the actor and the critic that :func:`redo` considers
     (:meth:`InterventionParts.hidden_layer_parts`): the actor's ``mlp1``, ``mlp2``... (as named by
-    :func:`~sb3_collapse.monitoring.activations.layer_taps`) and each Q network's ``q<k>.mlp1``... The encoder (or
+    :func:`~sb3_collapse.common.layers.layer_taps`) and each Q network's ``q<k>.mlp1``... The encoder (or
     features extractor), DrQ-v2's trunks (Linear, LayerNorm, Tanh) and the target networks are not.
 
     :param model: a DrQv2, TD3, DDPG or SAC model

@@ -14,10 +14,10 @@ from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from sb3_collapse.common.layers import LAYER_NAMES
+from sb3_collapse.common.layers import LAYER_NAMES, layer_parameters
 from sb3_collapse.common.model import CollapseModel
 from sb3_collapse.errors import ParameterError
-from sb3_collapse.monitoring.activations import collect_activations, layer_parameters
+from sb3_collapse.monitoring.activations import collect_activations
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norms_of
 from sb3_collapse.monitoring.interventions import (

@@ -7,6 +7,7 @@ import torch as th
 from stable_baselines3 import TD3
 
 from sb3_collapse import DrQv2
+from sb3_collapse.common.layers import layer_parameters
 from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.drqv2.transplant import (
     GROUP_LAYERS,
@@ -18,7 +19,6 @@ from sb3_collapse.drqv2.transplant import (
     source_key,
     transplant,
 )
-from sb3_collapse.monitoring.activations import layer_parameters
 from tests.random_env import RandomObservationEnv
 
 POLICY_KWARGS = {"hidden_dim": 32, "feature_dim": 16}
