@@ -288,7 +288,7 @@ def test_cuda_generator_of_the_models_device_is_saved_and_restored_on_the_resumi
     saved = _cuda_rng_state(th.device("cuda:3"))  # written by a model on the fourth GPU
     assert saved["device"] == 3 and saved["state"].tolist() == [3, 3, 3, 3]
     _restore_cuda_rng_state(saved, th.device("cuda"))  # resumed where one GPU is visible
-    _restore_cuda_rng_state([th.full((4,), 7, dtype=th.uint8)] * 8, th.device("cuda:1"))  # an earlier format
+    _restore_cuda_rng_state({"device": 0, "state": th.full((4,), 7, dtype=th.uint8)}, th.device("cuda:1"))
     _restore_cuda_rng_state(saved, th.device("cpu"))  # resumed on the CPU: nothing to restore
     assert calls == [([3, 3, 3, 3], 0), ([7, 7, 7, 7], 1)]
     assert _cuda_rng_state(th.device("cpu")) is None

@@ -399,7 +399,7 @@ def _train_into(
             saved_model_eval = None
             if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the eval file)
                 saved_model_eval = evaluation.evaluate_saved_model()  # and its snapshot
-            open_files.close()  # the logs complete before result.json marks the run as finished
+            open_files.close()  # the logs complete before the result file marks the run as finished
             evaluations = evaluation.rows if evaluation is not None else []
             _print_last_evaluations(evaluations, saved_model_eval)
             wall_time_s = earlier.elapsed_s + time.time() - start_time
