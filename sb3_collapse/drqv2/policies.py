@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -24,6 +24,13 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_collapse.common.layers import LayerParts, reinitialize, sequential_hidden_parts
+from sb3_collapse.drqv2.checks import (
+    ACTIVATION_FNS,
+    actor_critic_arch,
+    check_action_space,
+    check_policy_kwargs,
+    split_sb3_feature_size,
+)
 from sb3_collapse.drqv2.encoders import (
     LEAKY_RELU_SLOPE,
     ConvReLU,
@@ -35,7 +42,6 @@ from sb3_collapse.drqv2.encoders import (
     hidden_activation,
     weight_init,
 )
-from sb3_collapse.errors import ParameterError, SpaceError
 
 ACTION_EPS = 1e-6
 """Sampled actions are clamped to ``[-1 + eps, 1 - eps]`` as in DrQ-v2's ``TruncatedNormal``."""
@@ -335,7 +341,7 @@ class DrQv2Policy(BasePolicy):
     :param features_extractor_class: SB3's: a ``BaseFeaturesExtractor`` subclass in place of DrQ-v2's encoder
         (:class:`FeaturesExtractorEncoder`); ``None``: DrQ-v2's encoder (``encoder_class``)
     :param features_extractor_kwargs: its keyword arguments; without ``features_extractor_class``, those of DrQ-v2's
-        encoder, but ``features_dim`` and ``cnn_output_dim`` set ``feature_dim`` (:data:`SB3_FEATURE_SIZES`)
+        encoder, but ``features_dim`` and ``cnn_output_dim`` set ``feature_dim`` (``checks.SB3_FEATURE_SIZES``)
     :param normalize_images: SB3's: ``True`` divides ``uint8`` images by 255 (DrQ-v2's encoder: ``obs / 255 - 0.5``);
         ``False`` takes images already normalized (float ``Box`` observations) as they are
     :param share_features_extractor: SB3's: ``True`` only (one encoder, trained by the critic loss); ``False`` is
@@ -685,167 +691,3 @@ class MultiInputPolicy(DrQv2Policy):
 
     def __init__(self, *args: Any, encoder_class: type[nn.Module] = DictEncoder, **kwargs: Any):
         super().__init__(*args, encoder_class=encoder_class, **kwargs)
-
-
-SB3_FEATURE_SIZES = ("features_dim", "cnn_output_dim")
-"""
-The keys of SB3's ``features_extractor_kwargs`` that size the features its networks' hidden layers read: ``NatureCNN``'s
-``features_dim`` (its last Linear layer, ``CnnPolicy``) and ``CombinedExtractor``'s ``cnn_output_dim`` (that of each
-image key, ``MultiInputPolicy``). With DrQ-v2's encoder both set ``feature_dim``, the output of the actor's and the
-critic's trunks (Linear, LayerNorm, Tanh), which is where DrQ-v2 projects its convolutional features; with a dict,
-the trunks read the image and the other keys together.
-"""
-
-
-def split_sb3_feature_size(
-    features_extractor_kwargs: Mapping[str, Any] | None, features_extractor_class: type | None = None
-) -> tuple[int | None, dict[str, Any]]:
-    """
-    :param features_extractor_kwargs: SB3's ``policy_kwargs['features_extractor_kwargs']``
-    :param features_extractor_class: SB3's ``features_extractor_class``; with one, the kwargs are all its own
-    :return: the size of the features given by :data:`SB3_FEATURE_SIZES` (``None`` when none), and the other
-        keyword arguments, for DrQ-v2's encoder (``{}`` with a ``features_extractor_class``)
-    """
-    kwargs = dict(features_extractor_kwargs or {})
-    if features_extractor_class is not None:
-        return None, {}
-    sizes = [kwargs.pop(key) for key in SB3_FEATURE_SIZES if key in kwargs]
-    return (sizes[0] if sizes else None), kwargs
-
-
-ACTIVATION_FNS: dict[type[nn.Module], str] = {nn.ReLU: "relu", nn.LeakyReLU: "leaky_relu"}
-"""SB3's ``activation_fn`` values DrQv2 takes, and the ``activation`` each means."""
-
-
-def actor_critic_arch(
-    net_arch: list[int] | dict[str, list[int]] | None, hidden_dim: int
-) -> tuple[list[int], list[int]]:
-    """
-    SB3's ``get_actor_critic_arch`` with DrQ-v2's default.
-
-    :param net_arch: a list of units (actor and each Q head), ``dict(pi=[...], qf=[...])``, or ``None``
-    :param hidden_dim: the units of DrQ-v2's two hidden layers, for ``None``
-    :return: the hidden layers of the actor and of each Q head
-    """
-    if net_arch is None:
-        return [hidden_dim, hidden_dim], [hidden_dim, hidden_dim]
-    if isinstance(net_arch, Mapping):
-        return [int(units) for units in net_arch["pi"]], [int(units) for units in net_arch["qf"]]
-    return [int(units) for units in net_arch], [int(units) for units in net_arch]
-
-
-def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
-    """
-    Check the SB3 keywords of ``policy_kwargs`` (``DrQv2``'s constructor and ``check_hyperparameters`` call it, before
-    anything is built).
-
-    :param policy_kwargs: the ``policy_kwargs`` of ``DrQv2``
-    :raises ParameterError: naming the first bad keyword (``policy_kwargs['net_arch']``), what it must be and what
-        to pass instead
-    """
-    kwargs = dict(policy_kwargs or {})
-
-    def name(key: str) -> str:
-        return f"policy_kwargs['{key}']"
-
-    def units(key: str, value: Any) -> None:
-        if not isinstance(value, (list, tuple)) or any(
-            isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1 for n in value
-        ):
-            raise ParameterError(
-                name("net_arch"),
-                f"{key} must be a list of layer sizes (integers >= 1), e.g. [1024, 1024] (DrQ-v2's), got {value!r}.",
-            )
-
-    net_arch = kwargs.get("net_arch")
-    if isinstance(net_arch, Mapping):
-        if set(net_arch) != {"pi", "qf"}:
-            raise ParameterError(
-                name("net_arch"),
-                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as "
-                "SB3's "
-                f"TD3; got {sorted(net_arch)}. Pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for both.",
-            )
-        for key in ("pi", "qf"):
-            units(f"policy_kwargs['net_arch']['{key}']", net_arch[key])
-    elif net_arch is not None:
-        units("policy_kwargs['net_arch']", net_arch)
-    if net_arch is not None and kwargs.get("hidden_dim", 1024) != 1024:
-        raise ParameterError(
-            name("net_arch"),
-            f"policy_kwargs gives both net_arch={net_arch!r} and hidden_dim={kwargs['hidden_dim']!r}: pass one "
-            "(hidden_dim=h is net_arch=[h, h]).",
-        )
-    n_critics = kwargs.get("n_critics", 2)
-    if isinstance(n_critics, bool) or not isinstance(n_critics, (int, np.integer)) or n_critics < 1:
-        raise ParameterError(
-            name("n_critics"), f"policy_kwargs['n_critics'] must be an integer >= 1, got {n_critics!r}."
-        )
-    if kwargs.get("share_features_extractor", True) is not True:
-        raise ParameterError(
-            name("share_features_extractor"),
-            "DrQ-v2 has one encoder, shared by the actor and the critic and trained by the critic loss only (SB3's "
-            "share_features_extractor=True); a separate actor encoder trained by the actor loss "
-            "(share_features_extractor=False, TD3's default) is another algorithm. Leave share_features_extractor out "
-            f"or pass True; got {kwargs['share_features_extractor']!r}.",
-        )
-    activation_fn = kwargs.get("activation_fn")
-    if activation_fn is not None:
-        if activation_fn not in ACTIVATION_FNS:
-            raise ParameterError(
-                name("activation_fn"),
-                f"policy_kwargs['activation_fn'] must be torch.nn.ReLU (DrQ-v2's) or torch.nn.LeakyReLU (with "
-                f"leaky_relu_slope), got {activation_fn!r}.",
-            )
-        if kwargs.get("activation", "relu") not in ("relu", ACTIVATION_FNS[activation_fn]):
-            raise ParameterError(
-                name("activation_fn"),
-                f"policy_kwargs gives activation_fn={activation_fn.__name__} and activation={kwargs['activation']!r}: "
-                "pass one.",
-            )
-    extractor = kwargs.get("features_extractor_class")
-    if extractor is not None and not (isinstance(extractor, type) and issubclass(extractor, BaseFeaturesExtractor)):
-        raise ParameterError(
-            name("features_extractor_class"),
-            "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
-            f"(stable_baselines3.common.torch_layers), got {extractor!r}.",
-        )
-    extractor_kwargs = kwargs.get("features_extractor_kwargs") or {}
-    sizes = {key: extractor_kwargs[key] for key in SB3_FEATURE_SIZES if key in extractor_kwargs}
-    if extractor is None and sizes:
-        for key, value in sizes.items():
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ParameterError(
-                    name("features_extractor_kwargs"),
-                    f"policy_kwargs['features_extractor_kwargs']['{key}'] must be an integer >= 1, got {value!r}.",
-                )
-        given = {**sizes, **({"feature_dim": kwargs["feature_dim"]} if kwargs.get("feature_dim", 50) != 50 else {})}
-        if len(set(given.values())) > 1:
-            raise ParameterError(
-                name("features_extractor_kwargs"),
-                f"policy_kwargs gives {', '.join(f'{key}={value!r}' for key, value in given.items())}: with DrQ-v2's "
-                "encoder they are all the output size of the actor's and the critic's trunks (feature_dim): pass one.",
-            )
-    if extractor is None and split_sb3_feature_size(extractor_kwargs)[1] and kwargs.get("encoder_kwargs"):
-        raise ParameterError(
-            name("features_extractor_kwargs"),
-            "without features_extractor_class, features_extractor_kwargs (but features_dim and cnn_output_dim, "
-            "the trunks' feature_dim) are the keyword arguments of DrQ-v2's encoder, as encoder_kwargs: pass one of "
-            "them.",
-        )
-
-
-def check_action_space(action_space: spaces.Space) -> None:
-    """
-    :param action_space: space to check
-    :raises SpaceError: unless it is a ``Box`` with finite bounds (DrQ-v2 is for continuous control); also a
-        ``TypeError`` and an ``AssertionError`` (what SB3 raises for an unsupported action space)
-    """
-    if not isinstance(action_space, spaces.Box):
-        raise SpaceError(
-            "env",
-            f"DrQv2 is for continuous actions (gymnasium.spaces.Box), got {type(action_space).__name__}: "
-            f"{action_space}.",
-        )
-    if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
-        raise SpaceError("env", f"DrQv2 needs finite action bounds to rescale its tanh actions, got {action_space}.")

@@ -20,8 +20,9 @@ import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
 
+from sb3_collapse.drqv2.checks import split_sb3_feature_size
 from sb3_collapse.drqv2.encoders import PixelEncoder
-from sb3_collapse.drqv2.policies import DrQv2Policy, split_sb3_feature_size
+from sb3_collapse.drqv2.policies import DrQv2Policy
 
 TRANSPLANT_GROUPS: dict[str, tuple[str, ...]] = {
     "cnn": ("encoder.",),
