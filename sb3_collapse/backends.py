@@ -1,18 +1,7 @@
 """
-Process-wide settings of torch's CUDA backends for a training run: TensorFloat-32 and reproducibility.
-
-``python -m sb3_collapse.train`` (and every sweep trial) calls :func:`configure_backends` before it builds the model,
-with the run's ``tf32`` and ``deterministic`` settings, which the run's settings file records. These flags belong to
-the process: building a ``DrQv2`` changes none of them (with ``cudnn_benchmark=True`` it turns cuDNN's autotuner on
-for a CUDA model, unless torch's deterministic algorithms are on). Library users call :func:`configure_backends`
-themselves, or set torch's flags directly.
-
-What is exact where (see docs/checkpoints.md): on the CPU, a seeded run is bit-for-bit repeatable on one machine with
-one number of threads. On a GPU, only with ``deterministic=True`` (cuDNN's autotuner off, its deterministic
-convolution algorithms, deterministic cuBLAS workspaces, and torch's deterministic implementations where it has
-them; ``warn_only``, so an operation without one warns instead of stopping a run), and only on the same GPU model,
-driver and library versions. With the defaults (autotuner on), two GPU runs of one seed differ from the first
-updates on, in the last bits at first; a resumed GPU run is not bit-identical to an uninterrupted one.
+Process-wide settings of torch's CUDA backends for a training run: TensorFloat-32 and reproducibility. The train CLI
+and every sweep trial call :func:`configure_backends` before building the model; building a ``DrQv2`` changes none of
+them. What is exact where: docs/checkpoints.md.
 """
 
 from __future__ import annotations
@@ -22,15 +11,13 @@ from dataclasses import dataclass
 
 import torch as th
 
-CUBLAS_WORKSPACE_CONFIG = ":4096:8"
-"""cuBLAS's workspace setting that makes its results deterministic (CUDA's documentation: "Results reproducibility")."""
+CUBLAS_WORKSPACE_CONFIG = ":4096:8"  # deterministic cuBLAS (CUDA's documentation: "Results reproducibility")
 
 
 @dataclass(frozen=True)
 class BackendSettings:
     """
-    :param tf32: whether float32 matmuls and convolutions on CUDA may use TensorFloat-32 (10-bit mantissa inputs,
-        float32 accumulation) on GPUs that have it (Ampere and later)
+    :param tf32: whether float32 matmuls and convolutions on CUDA may use TensorFloat-32 (Ampere and later)
     :param deterministic: whether CUDA kernels are chosen for reproducibility rather than speed
     """
 
@@ -40,19 +27,11 @@ class BackendSettings:
 
 def configure_backends(tf32: bool = True, deterministic: bool = False) -> BackendSettings:
     """
-    Set torch's process-wide CUDA flags for training. They are plain flags: setting them needs no GPU, and they
-    change nothing on the CPU.
+    Set torch's process-wide CUDA flags (no GPU needed; nothing changes on the CPU).
 
-    - ``tf32``: TensorFloat-32 for float32 matmuls and cuDNN convolutions (``fp32_precision = "tf32"``), or IEEE
-      float32 for both (``"ieee"``).
-    - ``deterministic``: ``torch.use_deterministic_algorithms(True, warn_only=True)``, cuDNN's deterministic
-      algorithms without its autotuner, and ``CUBLAS_WORKSPACE_CONFIG`` (unless already set; it must be set before
-      the first cuBLAS call of the process, so it holds only when this runs before any CUDA work). ``False`` turns
-      torch's deterministic algorithms off again and cuDNN's autotuner on (``cudnn.benchmark``: DrQ-v2's fixed input
-      shapes, the kernels picked by timing them, as DrQ-v2's reference does).
-
-    :param tf32: allow TensorFloat-32 on CUDA
-    :param deterministic: ask for reproducible CUDA kernels
+    :param tf32: TensorFloat-32 for float32 matmuls and cuDNN convolutions, else IEEE float32
+    :param deterministic: torch's deterministic algorithms (``warn_only``), cuDNN's deterministic kernels without its
+        autotuner, ``CUBLAS_WORKSPACE_CONFIG`` (unless set; before any CUDA work); ``False``: cuDNN's autotuner on
     :return: the settings applied
     :raises TypeError: naming the parameter, for a value that is not a bool
     """

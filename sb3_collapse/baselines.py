@@ -1,10 +1,7 @@
 """
 SB3's own TD3, SAC and DDPG with the package's model interface (:class:`SB3Model`, :func:`collapse_model`), and
-:func:`build_baseline`: SB3's TD3 or SAC on DeepMind Control pixels, sized like DrQ-v2, to be compared with it
-(``python -m sb3_collapse.train --algorithm td3``, sweep variants ``td3``, ``sac``, ``td3+reset``...). Observations,
-MLP widths, replay and the shared settings are DrQ-v2's; the encoders, the updates and the rest are SB3's defaults
-(TD3 with Gaussian exploration noise :data:`TD3_ACTION_NOISE`); DrQ-v2's own settings
-(:data:`DRQV2_ONLY_SETTINGS`) are unused. What is whose: docs/interventions.md#sb3s-td3-and-sac-on-pixels.
+:func:`build_baseline`: SB3's TD3 or SAC on DeepMind Control pixels, sized like DrQ-v2. What is whose:
+docs/interventions.md#sb3s-td3-and-sac-on-pixels.
 """
 
 from __future__ import annotations
@@ -28,18 +25,13 @@ ModelT = TypeVar("ModelT", bound=BaseAlgorithm)
 
 
 class SB3Model(CollapseModelBase):
-    """
-    :class:`~sb3_collapse.common.model.CollapseModel` for SB3's TD3, DDPG and SAC (mixed in before them): the
-    gradient norms of the named layers recorded when the actor's and the critic's optimizers step, and a reset from
-    scratch by SB3's own ``_setup_model()``.
-    """
+    """:class:`~sb3_collapse.common.model.CollapseModel` for SB3's TD3, DDPG and SAC (mixed in before them)."""
 
     def _setup_model(self) -> None:
         super()._setup_model()  # type: ignore[misc]
         self._record_grad_norms()
 
     def _record_grad_norms(self) -> None:
-        """A new :class:`GradNormRecorder` on the current optimizers (``None`` for layers that cannot be named)."""
         if self.grad_norm_recorder is not None:
             self.grad_norm_recorder.remove()
         try:
@@ -51,12 +43,7 @@ class SB3Model(CollapseModelBase):
         self.grad_norm_recorder = GradNormRecorder(layers, [policy.actor.optimizer, policy.critic.optimizer])
 
     def reset_from_scratch(self) -> None:
-        """
-        The action-collapse paper's rule in the middle of ``learn()``: SB3's ``_setup_model()`` again (new policy,
-        optimizers and SAC's learned entropy coefficient, drawn from the global generators as they are now, not
-        re-seeded), the replay buffer emptied in place, the action noise reset, ``reset_step = num_timesteps`` and
-        ``learning_starts`` moved so that the warm-up starts again. ``docs/interventions.md`` explains each choice.
-        """
+        """The paper's rule: SB3's ``_setup_model()`` again (not re-seeded), the buffer emptied, the warm-up again."""
         model: Any = self
         warmup = model.learning_starts - self.reset_step
         was_training = model.policy.training
@@ -106,13 +93,9 @@ _WRAPPERS: dict[type, type] = {sb3.TD3: TD3, sb3.SAC: SAC, sb3.DDPG: DDPG}
 
 def collapse_model(model: ModelT) -> ModelT:
     """
-    The model itself with the :class:`~sb3_collapse.common.model.CollapseModel` interface: a ``DrQv2`` or a wrapper
-    as it is; a model of SB3's own ``TD3``, ``DDPG`` or ``SAC`` class (or a subclass) becomes an instance of the
-    matching wrapper class (the same object: its attributes, optimizers and buffer are kept); any other model is
-    returned as it is.
-
     :param model: an SB3 algorithm
-    :return: the same object
+    :return: the same object, of the matching wrapper class when it is an SB3 ``TD3``, ``DDPG`` or ``SAC`` (or a
+        subclass), with its attributes, optimizers and buffer; any other model as it is
     """
     cls = type(model)
     if isinstance(model, CollapseModel) or not any(base in _WRAPPERS for base in cls.__mro__):
@@ -125,24 +108,12 @@ def collapse_model(model: ModelT) -> ModelT:
 
 
 BASELINES: dict[str, type[TD3 | SAC]] = {"td3": TD3, "sac": SAC}
-"""SB3's algorithms that :func:`build_baseline` builds, by name."""
-
 DRQV2_ONLY_SETTINGS = (
-    "n_steps",
-    "stddev_schedule",
-    "stddev_clip",
-    "tau",
-    "train_freq",
-    "augmentation_pad",
-    "replay_sampling",
-)
+    "n_steps", "stddev_schedule", "stddev_clip", "tau", "train_freq", "augmentation_pad", "replay_sampling"
+)  # fmt: skip
 """Settings of ``TrainConfig`` that only DrQ-v2 uses: the baselines keep SB3's own values for them."""
-
-NATURE_CNN_MIN_SIZE = 36
-"""Smallest image side ``NatureCNN`` takes (8x8 stride 4, 4x4 stride 2, 3x3 stride 1, no padding)."""
-
-TD3_ACTION_NOISE = 0.1
-"""Standard deviation of TD3's Gaussian exploration noise, on actions scaled to [-1, 1]."""
+NATURE_CNN_MIN_SIZE = 36  # smallest image side of NatureCNN (8x8 stride 4, 4x4 stride 2, 3x3 stride 1)
+TD3_ACTION_NOISE = 0.1  # std of TD3's Gaussian exploration noise, on actions in [-1, 1]
 
 
 def build_baseline(
@@ -162,7 +133,7 @@ def build_baseline(
     verbose: int = 0,
 ) -> TD3 | SAC:
     """
-    SB3's TD3 or SAC from pixels, sized like DrQ-v2 (what is whose: docs/interventions.md#sb3s-td3-and-sac-on-pixels).
+    SB3's TD3 or SAC from pixels, sized like DrQ-v2.
 
     :param algorithm: ``"td3"`` or ``"sac"``
     :param env: a pixel environment, e.g. ``make_dmc_env(...)`` (channel-first uint8 images)
@@ -173,8 +144,7 @@ def build_baseline(
     :param feature_dim: output size of the ``NatureCNN`` features extractors (``mlp0``)
     :param hidden_dim: units of each of the two hidden layers of the actor and of each Q network
     :param gamma: discount factor
-    :param frame_stack: frames per observation (``make_dmc_env``'s): ``> 1`` stores each frame once
-        (``FrameStackReplayBuffer``); ``None`` or 1: SB3's ``ReplayBuffer``
+    :param frame_stack: frames per observation: ``> 1`` stores each frame once (``FrameStackReplayBuffer``)
     :param seed: random seed
     :param device: ``"auto"``, ``"cpu"``, ``"cuda"``...
     :param verbose: SB3 verbosity

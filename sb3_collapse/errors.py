@@ -1,10 +1,5 @@
-"""
-The package's exceptions, one class per kind of error, and the translation of their messages into the words of a
-command line.
-
-Library code names Python parameters in its messages (``episodes must be >= 1, got 0``); a CLI passes the message
-through :func:`cli_message`, which names its flags instead (``--episodes must be >= 1, got 0``).
-"""
+"""The package's exceptions, one class per kind of error, and :func:`cli_message`, which says a library message
+(``episodes must be >= 1``) in a command line's words (``--episodes must be >= 1``)."""
 
 from __future__ import annotations
 
@@ -23,8 +18,7 @@ P = ParamSpec("P")
 
 class InputError(ValueError):
     """
-    Bad input to a library function or a command (a setting, a file, a folder, a command line): the message says what
-    is wrong and what to do. A command line prints it as ``error: ...`` with exit status 2.
+    Bad input (a setting, a file, a folder, a command line); a command line prints ``error: ...``, exit status 2.
 
     :param message: the message, in Python's words (parameter names, not flags)
     :param parameter: the Python name of the parameter at fault, when there is one
@@ -37,7 +31,7 @@ class InputError(ValueError):
 
 class ParameterError(InputError):
     """
-    A bad value of a parameter; the message starts with the parameter's name.
+    A bad value of a parameter; the message starts with its name.
 
     :param parameter: the parameter's Python name (``"batch_size"``)
     :param message: what is wrong and what to do
@@ -48,23 +42,11 @@ class ParameterError(InputError):
 
 
 class AssertedParameterError(ParameterError, AssertionError):
-    """
-    A bad value where Stable-Baselines3 raises an ``AssertionError``: also one, so that code written for SB3 catches
-    it, with a message that says what to do.
-
-    :param parameter: the parameter's Python name
-    :param message: what is wrong and what to do
-    """
+    """A bad value where Stable-Baselines3 raises an ``AssertionError``: also one, so that SB3 code catches it."""
 
 
 class SpaceError(AssertedParameterError, TypeError):
-    """
-    An observation or action space the algorithm or policy cannot take; the message says what to use instead. Also an
-    ``AssertionError`` (what Stable-Baselines3 raises for an unsupported space) and a ``TypeError``.
-
-    :param parameter: the parameter that brought the space (``"env"``, ``"policy"``)
-    :param message: what is wrong and what to do
-    """
+    """An observation or action space the algorithm or policy cannot take (an ``AssertionError`` as in SB3)."""
 
 
 class LayerMappingError(ValueError):
@@ -73,12 +55,10 @@ class LayerMappingError(ValueError):
 
 class CheckpointError(InputError):
     """
-    A checkpoint (a run's, or its replay store's) that cannot be used: damaged, or written by another version or for
-    another run; the message names it and says what to do.
+    A checkpoint (a run's or its replay store's) that cannot be used: damaged, another version or another run.
 
     :param message: what is wrong and what to do
-    :param damaged: whether its files are damaged (missing, truncated, another checksum): a run then falls back to
-        the checkpoint before; otherwise it is refused
+    :param damaged: its files are damaged (missing, truncated, bad checksum): a run falls back to the one before
     """
 
     def __init__(self, message: str, damaged: bool = False) -> None:
@@ -87,8 +67,7 @@ class CheckpointError(InputError):
 
 
 class OutputError(RuntimeError):
-    """A run's output (a checkpoint, a log, the final model) could not be written (a full or read-only disk); the
-    message names the folder, what is intact and what to do."""
+    """A run's output (a checkpoint, a log, the final model) could not be written (a full or read-only disk)."""
 
 
 class DivergenceError(FloatingPointError):
@@ -110,34 +89,23 @@ class TrainingInterrupted(Exception):
 
 
 class MissingDependencyError(ImportError):
-    """An optional package (rl_zoo3, Ray) or a system library (OpenGL) is not installed; the message says what to
-    install."""
+    """An optional package (rl_zoo3, Ray) or a system library (OpenGL) is not installed."""
 
 
 class ClusterUnreachable(RuntimeError):
-    """
-    No Ray cluster answered at the sweep's address in time (nothing listens there, a firewall, a head still
-    starting): a fault to retry once the cluster is up. Nothing was written.
-
-    :param message: what happened and what to do, naming the parameter (``address``)
-    """
+    """No Ray cluster answered at the sweep's ``address`` in time: retry once it is up. Nothing was written."""
 
     parameter = "address"
 
 
 READ_ONLY_ERRNOS = (errno.EROFS, errno.EACCES, errno.EPERM)
-"""``OSError`` numbers of a folder or file that cannot be written: read-only file system, no permission."""
-
 FULL_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
-"""``OSError`` numbers of a full disk or quota."""
 
 
 def unwritable_message(error: BaseException) -> str | None:
     """
-    One line for an output that could not be written (a read-only or full disk, no permission), saying what to do.
-
     :param error: any exception
-    :return: the message, ``None`` for an error of another kind
+    :return: one line for an output that could not be written (read-only, full disk), ``None`` for another error
     """
     if not isinstance(error, OSError) or error.errno not in (*READ_ONLY_ERRNOS, *FULL_DISK_ERRNOS):
         return None
@@ -150,9 +118,8 @@ def unwritable_message(error: BaseException) -> str | None:
 
 def report_unwritable_outputs(main: Callable[P, int]) -> Callable[P, int]:
     """
-    Decorate a command line's ``main``: an output it could not write (:func:`unwritable_message`) ends it with one
-    line, ``error: ...``, on stderr and exit status 2 for a read-only folder or no permission (fix the input), 1 for a
-    full disk (try again), instead of a traceback. Other errors pass through.
+    Decorate a command line's ``main``: an output it could not write ends it with ``error: ...``
+    (:func:`unwritable_message`) and exit status 2 (read-only, no permission) or 1 (full disk), not a traceback.
 
     :param main: the command's ``main(argv) -> exit status``
     :return: the decorated ``main``
@@ -191,11 +158,9 @@ def parameter_flags(parser: argparse.ArgumentParser) -> dict[str, str]:
 
 def cli_message(error: BaseException, parser: argparse.ArgumentParser) -> str:
     """
-    The message of a library error as a command line says it: the Python names of the parser's settings become
-    their flags (``learning_rate`` -> ``--lr``). Names with an underscore are replaced wherever they stand as a
-    word; a one-word name when it is the error's :attr:`ParameterError.parameter` and starts the message
-    (``episodes`` is also an ordinary word), or when it stands in backticks: `` `overwrite=True` `` becomes
-    ``--overwrite``, `` `episodes=3` `` ``--episodes 3`` and `` `out` `` ``--out``.
+    A library error's message with the parser's flags for Python names (``learning_rate`` -> ``--lr``): names with an
+    underscore anywhere as a word; a one-word name when it is the error's ``parameter`` and starts the message, or in
+    backticks (`` `overwrite=True` `` -> ``--overwrite``, `` `episodes=3` `` -> ``--episodes 3``).
 
     :param error: the error
     :param parser: the command line whose flags name the settings

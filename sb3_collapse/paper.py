@@ -1,16 +1,8 @@
 """
-The action-collapse paper's numbers, each with the passage it comes from: Chen, Zhu & Perrault, *Understanding
-Learned Representations and Action Collapse in Visual Reinforcement Learning*.
-
-- :data:`PAPER` (a frozen :class:`PaperProtocol`): the protocol. :class:`~sb3_collapse.CollapseReset`,
-  :class:`~sb3_collapse.CollapseMetrics`, the train CLI, the sweep, the rl_zoo3 launcher, the probe and the report
-  take their defaults from it.
-- :data:`PAPER_RESULTS` and :data:`PROPOSITION_1`: the results the report sets beside a sweep's.
-- :func:`evaluation_schedule` (the frames of a run's evaluations, the paper's x axis) and :func:`metric_tag` (the
-  name of a collapse metric).
-
-The run-folder format (file names, columns, writers) is in :mod:`sb3_collapse.protocol`; DrQ-v2's own per-task
-hyperparameters (budgets, schedules, batch sizes...) in :mod:`sb3_collapse.presets`.
+The action-collapse paper's numbers, each with the passage it comes from (Chen, Zhu & Perrault, *Understanding
+Learned Representations and Action Collapse in Visual Reinforcement Learning*): :data:`PAPER` (the protocol, the
+defaults of the callbacks, CLIs, sweep, probe and report), :data:`PAPER_RESULTS` and :data:`PROPOSITION_1`.
+DrQ-v2's per-task hyperparameters are in :mod:`sb3_collapse.presets`.
 """
 
 from __future__ import annotations
@@ -21,7 +13,7 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class PaperProtocol:
     """
-    The paper's protocol numbers. Frames count environment frames (agent steps x action repeat).
+    The paper's protocol numbers, in frames (agent steps x action repeat).
 
     :param check_every_frames: frames between two evaluations and two computations of the collapse metrics
         (Section 4.1: "there is an evaluation every 1e4 frames"; the rule's "computations" of Section 5.2)
@@ -41,8 +33,7 @@ class PaperProtocol:
     :param figure5_tasks: the tasks of Figure 5 (walker_walk, hopper_stand, finger_spin)
     :param train_frames: frames of a run in Sections 4 and 5 (Section 4.1: "The total number of training frames is
         1.1e6")
-    :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110"), in frames;
-        :meth:`stages` gives those of a run of another budget
+    :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110"), in frames
     """
 
     check_every_frames: int = 10_000
@@ -61,10 +52,7 @@ class PaperProtocol:
 
     def stages(self, budget_frames: int | None = None) -> tuple[int, ...]:
         """
-        The training stages of Tables 1-7 for a run of ``budget_frames`` frames: :attr:`stage_frames` at the
-        paper's budget (:attr:`train_frames`), the same fractions of another budget (rounded to whole frames).
-        A table reads each at the evaluation nearest to it, clipped to the run's last evaluation
-        (:func:`~sb3_collapse.report.statistics.stage_indices`).
+        The training stages of Tables 1-7: :attr:`stage_frames`, scaled to another budget (rounded to whole frames).
 
         :param budget_frames: the run's budget, in frames (``None``: the paper's)
         :return: the stages, in frames, increasing
@@ -76,24 +64,22 @@ class PaperProtocol:
 
     @property
     def evaluations(self) -> int:
-        """The evaluations of a run, the paper's x in [0, 109]: 110 (:func:`evaluation_schedule` of its budget)."""
+        """The evaluations of a run, the paper's x in [0, 109]: 110."""
         return len(evaluation_schedule(self.train_frames, self.check_every_frames))
 
     @property
     def collapse_tag(self) -> str:
-        """The collapse-metrics file's / TensorBoard tag of the rule's metric (``collapse/mlp1/grad_norm``)."""
+        """The tag of the rule's metric (``collapse/mlp1/grad_norm``)."""
         return metric_tag(self.layer, "grad_norm")
 
 
 PAPER = PaperProtocol()
-"""The paper's protocol."""
 
 
 @dataclass(frozen=True)
 class PaperResult:
     """
-    The paper's headline numbers of one task of Figure 5 (Section 5.2, "Results"), DrQ-v2 against DrQ-v2 plus the
-    rule, 40 seeds each.
+    The paper's headline numbers of one task of Figure 5 (Section 5.2, "Results"): DrQ-v2 against DrQ-v2 + the rule.
 
     :param task: the task, ``<domain>-<task>``
     :param seeds: seeds per variant ("The performance comparison of 40 seeds", Figure 5)
@@ -119,7 +105,7 @@ PAPER_RESULTS: tuple[PaperResult, ...] = (
     PaperResult("hopper-stand", 40, 8, 0, 359.5, 93.8),
     PaperResult("finger-spin", 40, 7, 0, 362.7, 116.2),
 )
-"""The paper's headline numbers, in the order of its tasks (walker_walk, hopper_stand, finger_spin: Section 5.2)."""
+"""In the order of the paper's tasks (walker_walk, hopper_stand, finger_spin: Section 5.2)."""
 
 PROPOSITION_1 = (
     "Supposing the number of training frames is n · m (m is the frames where the exploration decreases to the "
@@ -131,12 +117,9 @@ PROPOSITION_1 = (
 
 def evaluation_schedule(frames: int, every_frames: int, frames_per_step: int = 1) -> list[int]:
     """
-    The frames of a run's scheduled evaluations, as the reference (facebookresearch/drqv2's ``train.py``) has them:
-    one before the first agent step (frame 0), then one every ``every_frames`` frames while the run still has agent
-    steps to take, never at the budget's end (the reference's loop stops there). For the paper's budget of 1.1e6
-    frames and an evaluation every 1e4 frames: 0, 1e4, ..., 1.09e6, 110 evaluations ("x in [0, 109]", Section
-    4.1). The paper's statistics (the last ten evaluations, the 900/30 classes) come from these; the evaluation of
-    the saved final model (at ``frames``) is not one of them.
+    The frames of a run's scheduled evaluations, as facebookresearch/drqv2's ``train.py`` has them: frame 0, then
+    every ``every_frames`` frames, never at the budget's end; the paper's budget gives 0, 1e4, ..., 1.09e6 ("x in
+    [0, 109]", Section 4.1). The final model's evaluation is not one of them.
 
     :param frames: the run's budget, in frames
     :param every_frames: frames between two evaluations (> 0)

@@ -1,15 +1,7 @@
 """
-DrQ-v2's published per-task hyperparameters for the DeepMind Control pixel tasks, as one table
-(facebookresearch/drqv2, MIT: ``cfgs/config.yaml`` and ``cfgs/task/*.yaml``), the defaults of the train CLI, every
-sweep trial and ``zoo_configs/drqv2.yml``.
-
-    >>> from sb3_collapse.presets import preset
-    >>> preset("walker-walk").batch_size, preset("walker-walk").n_steps
-    (512, 1)
-
-Units: ``frames``, ``seed_frames`` and ``eval_every_frames`` in frames (agent steps x ``action_repeat``);
-``buffer_size`` in transitions; ``n_steps``, ``train_freq`` and ``stddev_schedule``'s durations in agent steps. See
-docs/presets.md#drq-v2s-presets-sb3_collapsepresets.
+DrQ-v2's published per-task hyperparameters for the DeepMind Control pixel tasks (facebookresearch/drqv2, MIT:
+``cfgs/config.yaml``, ``cfgs/task/*.yaml``), the defaults of the train CLI, the sweep and ``zoo_configs/drqv2.yml``.
+Units and the table: docs/presets.md.
 """
 
 from __future__ import annotations
@@ -30,8 +22,7 @@ class TaskPreset:
 
     :param task: the task, ``<domain>-<task>``
     :param tier: DrQ-v2's difficulty tier, ``"easy"``, ``"medium"`` or ``"hard"``
-    :param from_drqv2: whether DrQ-v2 published a config for this task (``False``: a suite task DrQ-v2 did not
-        run, given the easy tier's settings)
+    :param from_drqv2: whether DrQ-v2 published a config for this task (``False``: the easy tier's settings)
     :param frames: training budget, in frames (``num_train_frames``)
     :param action_repeat: frames per agent step
     :param frame_stack: stacked RGB frames per observation
@@ -50,9 +41,7 @@ class TaskPreset:
     :param augmentation_pad: random-shift padding, in pixels (``RandomShiftsAug(pad=4)``)
     :param eval_every_frames: frames between two evaluations
     :param eval_episodes: episodes per evaluation (``num_eval_episodes``)
-    :param replay_sampling: ``"drqv2"``: DrQ-v2's replay sampling (transitions of finished episodes only, no n-step
-        return started in an episode's last ``n_steps - 1`` steps), see
-        :class:`~sb3_collapse.drqv2.FrameStackReplayBuffer`
+    :param replay_sampling: ``"drqv2"``: DrQ-v2's replay sampling (:class:`~sb3_collapse.drqv2.FrameStackReplayBuffer`)
     """
 
     task: str
@@ -101,33 +90,15 @@ WALKER = {"n_steps": 1, "batch_size": 512}
 HUMANOID = {"learning_rate": 8e-5, "feature_dim": 100}
 
 _DRQV2_TASKS: dict[str, tuple[str, dict[str, Any]]] = {
-    # easy: 1.1M frames
-    "walker-walk": ("easy", WALKER),
-    "walker-stand": ("easy", WALKER),
-    "hopper-stand": ("easy", {}),
-    "finger-spin": ("easy", {}),
-    "cartpole-balance": ("easy", {}),
-    "cartpole-balance_sparse": ("easy", {}),
-    "cartpole-swingup": ("easy", {}),
-    "ball_in_cup-catch": ("easy", {}),
-    "pendulum-swingup": ("easy", {}),
-    # medium: 3.1M frames
-    "walker-run": ("medium", WALKER),
-    "hopper-hop": ("medium", {}),
-    "cheetah-run": ("medium", {}),
-    "quadruped-walk": ("medium", {}),
-    "quadruped-run": ("medium", {"buffer_size": 100_000}),
-    "acrobot-swingup": ("medium", {}),
-    "cartpole-swingup_sparse": ("medium", {}),
-    "finger-turn_easy": ("medium", {}),
-    "finger-turn_hard": ("medium", {}),
-    "reacher-easy": ("medium", {}),
-    "reacher-hard": ("medium", {}),
-    # hard: 30.1M frames
-    "humanoid-stand": ("hard", HUMANOID),
-    "humanoid-walk": ("hard", HUMANOID),
-    "humanoid-run": ("hard", HUMANOID),
-}
+    "walker-walk": ("easy", WALKER), "walker-stand": ("easy", WALKER), "hopper-stand": ("easy", {}),
+    "finger-spin": ("easy", {}), "cartpole-balance": ("easy", {}), "cartpole-balance_sparse": ("easy", {}),
+    "cartpole-swingup": ("easy", {}), "ball_in_cup-catch": ("easy", {}), "pendulum-swingup": ("easy", {}),
+    "walker-run": ("medium", WALKER), "hopper-hop": ("medium", {}), "cheetah-run": ("medium", {}),
+    "quadruped-walk": ("medium", {}), "quadruped-run": ("medium", {"buffer_size": 100_000}),
+    "acrobot-swingup": ("medium", {}), "cartpole-swingup_sparse": ("medium", {}), "finger-turn_easy": ("medium", {}),
+    "finger-turn_hard": ("medium", {}), "reacher-easy": ("medium", {}), "reacher-hard": ("medium", {}),
+    "humanoid-stand": ("hard", HUMANOID), "humanoid-walk": ("hard", HUMANOID), "humanoid-run": ("hard", HUMANOID),
+}  # fmt: skip
 
 FALLBACK_TIER = "easy"
 """The tier of a suite task that DrQ-v2 published no config for."""
@@ -138,18 +109,13 @@ PRESETS: Mapping[str, TaskPreset] = MappingProxyType(
         for task, (tier, overrides) in _DRQV2_TASKS.items()
     }
 )
-"""Task (``<domain>-<task>``) -> DrQ-v2's preset, for the 23 tasks of DrQ-v2's ``cfgs/task/`` (its
-``reach_duplo`` is a manipulation task, not a suite task)."""
+"""Task (``<domain>-<task>``) -> DrQ-v2's preset, for the 23 suite tasks of DrQ-v2's ``cfgs/task/``."""
 
 
 def preset(task: str) -> TaskPreset:
     """
-    DrQ-v2's settings for a task.
-
     :param task: a DeepMind Control suite task, in any form :func:`~sb3_collapse.envs.parse_task` accepts
-        (``"walker-walk"``, ``"walker_walk"``, ``"cup-catch"``)
-    :return: its preset; a suite task that DrQ-v2 did not run gets the easy tier's settings, with
-        ``from_drqv2=False``
+    :return: DrQ-v2's preset; for a task DrQ-v2 did not run, the easy tier's settings with ``from_drqv2=False``
     :raises ValueError: for a name that is not a suite task
     """
     domain, name = parse_task(task)
