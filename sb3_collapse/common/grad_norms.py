@@ -1,11 +1,7 @@
 """
-The gradient norm of each named layer at each update, recorded when the optimizers step: no extra backward pass.
-
-A :class:`GradNormRecorder` hooks the optimizers that train the named layers (``Optimizer.register_step_pre_hook``).
-Just before an optimizer steps, the ``.grad`` that the update's own backward pass left on the parameters is the
-gradient of that update; the hook stores the L2 norm of each named layer it trains, on the device (no host transfer
-per update, one when the values are read). ``DrQv2`` builds one with its networks; ``sb3_collapse.monitoring``
-attaches one to SB3's TD3, DDPG and SAC (``track_grad_norms``).
+The gradient norm of each named layer at each update, recorded by a hook when its optimizer steps (the ``.grad`` of
+the update's own backward pass): no extra backward pass, no host transfer per update. See
+docs/interventions.md#the-health-value-gradient-norms-recorded-at-each-update.
 """
 
 from __future__ import annotations
@@ -19,11 +15,7 @@ from torch import nn
 
 class GradNormRecorder:
     """
-    Records the L2 gradient norm of named layers each time the optimizer that trains them steps.
-
-    Each layer belongs to the first of ``optimizers`` that holds its parameters; a layer that none holds is never
-    recorded (it is not trained). The norms are kept in one device tensor, in the order of ``layers``
-    (:attr:`norms`), and read on the host with :meth:`last`.
+    Records the L2 gradient norm of named layers each time the (first) optimizer that holds their parameters steps.
 
     :param layers: layer name -> parameters, input to output
     :param optimizers: the optimizers that train them (``None`` entries are skipped)
@@ -52,8 +44,7 @@ class GradNormRecorder:
         cls, modules: Mapping[str, nn.Module], optimizers: Iterable[th.optim.Optimizer | None]
     ) -> GradNormRecorder:
         """
-        :param modules: layer name -> the module holding its parameters (e.g. ``policy.named_layers()``); modules
-            without parameters are left out
+        :param modules: layer name -> the module holding its parameters; modules without parameters are left out
         :param optimizers: the optimizers that train them
         :return: a recorder of those layers
         """
@@ -62,7 +53,6 @@ class GradNormRecorder:
 
     def _hook(self, layers: list[list[nn.Parameter]], slots: list[int]) -> Callable[..., None]:
         params = [parameter for layer in layers for parameter in layer]
-        # Slot (in self.names) of each parameter, made once on the device: a hook call transfers nothing.
         segment = th.tensor([slot for slot, layer in zip(slots, layers) for _ in layer], device=self.device)
         index = th.tensor(slots, device=self.device)
 
@@ -74,9 +64,7 @@ class GradNormRecorder:
 
     def _record(self, params: list[nn.Parameter], segment: th.Tensor, index: th.Tensor) -> None:
         """
-        The norm of each layer's gradient, ``sqrt(sum over its parameters of ||g||^2)``, with one ``_foreach_norm``
-        over every parameter and one segment sum (a handful of kernel launches per optimizer step, whatever the
-        number of layers; no host synchronization). A missing gradient counts as zero.
+        Each layer's ``sqrt(sum over its parameters of ||g||^2)`` (a missing gradient is zero), without host sync.
 
         :param params: the parameters of the layers this optimizer trains, layer after layer
         :param segment: ``(len(params),)``: the slot (index in :attr:`names`) of each parameter
@@ -91,24 +79,18 @@ class GradNormRecorder:
 
     @property
     def norms(self) -> th.Tensor | None:
-        """
-        The last recorded norm of every layer, in the order of :attr:`names` (0 for a layer not recorded yet), as
-        one detached device tensor; ``None`` before the first recording.
-        """
+        """``(len(names),)``: the last norm of every layer (0 before its first), on the device; ``None`` before any."""
         return self._norms
 
     def last(self) -> dict[str, float]:
-        """
-        :return: layer name -> norm at its optimizer's last step, for the layers recorded since the creation or
-            :meth:`clear` (one host transfer); empty before
-        """
+        """:return: layer name -> norm at its optimizer's last step, for the layers recorded since :meth:`clear`"""
         if self._norms is None:
             return {}
         values = self._norms.tolist()
         return {name: values[i] for i, name in enumerate(self.names) if i in self._recorded}
 
     def state_dict(self) -> dict[str, Any]:
-        """:return: the recorded norms (on the CPU) and which layers were recorded, for a run checkpoint"""
+        """:return: the recorded norms (on the CPU) and which layers were recorded"""
         return {
             "names": list(self.names),
             "norms": None if self._norms is None else self._norms.detach().cpu().clone(),

@@ -1,14 +1,6 @@
 """
-Layer names, and the layer structure that the DrQ-v2 policy and the interventions both read.
-
-The names (:data:`LAYER_NAMES`) are the vocabulary shared by the callbacks, the probe and the plots: ``cnn0`` the
-normalized pixels (``obs / 255 - 0.5``), ``cnn1``..``cnn4`` after each conv + ReLU, ``mlp0`` the actor trunk
-(Linear to 50, LayerNorm, Tanh), ``mlp1`` and ``mlp2`` after each 1024-unit Linear + ReLU, ``action`` the
-deterministic action (Linear + Tanh); per algorithm: docs/monitoring.md. :class:`LayerParts` describes a hidden
-layer whose units ReDo may recycle; :func:`sequential_hidden_parts` finds them in a flat list of modules, and
-:func:`reinitialize` draws new initial values for a module's parameters. :func:`layer_taps` maps each name to the
-module that produces it in a DrQv2, TD3, DDPG or SAC actor, :func:`layer_parameters` to the parameters that compute
-it.
+The layer names (:data:`LAYER_NAMES`, what each is: docs/monitoring.md), where each is read in a DrQv2, TD3, DDPG or
+SAC actor (:func:`layer_taps`), and the hidden layers whose units ReDo may recycle (:class:`LayerParts`).
 """
 
 from __future__ import annotations
@@ -31,19 +23,15 @@ LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "
 
 class LayerParts(NamedTuple):
     """
-    The parts of a hidden layer, ``activation(linear(x))`` read by the ``consumers``: a unit is an output feature of
-    a Linear, or an output channel of a convolution.
+    A hidden layer, ``activation(linear(x))`` read by the ``consumers``; a unit is an output feature or channel.
 
     :param name: ``mlp1``, ``mlp2`` (actor), ``q1.mlp1``... (critic's Q networks), ``cnn1``..``cnn4`` (encoder)
     :param linear: the layer's Linear or Conv2d (incoming weights: its rows, or output channels, and bias)
     :param activation: the module whose output is the layer's activation
-    :param consumers: every Linear or Conv2d that reads it, in every network, target networks included (outgoing
-        weights: their input columns or channels); ReDo zeroes these alone, so a missing one changes that network's
-        output at recycling
-    :param positions: spatial positions per channel in the consumers' flattened input (a last convolution read by
-        Linear layers: ``height x width``); 1 otherwise
-    :param channels_last: the consumers' flattened input is in (height, width, channel) order, else (channel,
-        height, width)
+    :param consumers: every Linear or Conv2d that reads it, in every network, target networks included
+    :param positions: spatial positions per channel in the consumers' flattened input (``height x width`` for a last
+        convolution read by Linear layers); 1 otherwise
+    :param channels_last: the consumers' flattened input is (height, width, channel), else (channel, height, width)
     """
 
     name: str
@@ -75,9 +63,7 @@ def sequential_hidden_parts(
     prefix: str, modules: Sequence[nn.Module], tail: tuple[nn.Linear, ...] = (), first: int = 1
 ) -> list[LayerParts]:
     """
-    The hidden layers of a flat list of modules run one after the other: ``Linear, activation`` pairs, each one's
-    consumer the next Linear of the list, or ``tail`` for the last. A Linear followed by a module with parameters
-    (LayerNorm) or by nothing, and the output Linear (no consumer), are not hidden layers.
+    The hidden layers (``Linear, activation`` pairs; the activation has no parameters) of modules run in sequence.
 
     :param prefix: put before each name (``"q1."``)
     :param modules: the modules, in the order of the forward pass
@@ -98,9 +84,8 @@ def sequential_hidden_parts(
 
 def reinitialize(module: nn.Module, initializer: Callable[[nn.Module], None] | None = None) -> None:
     """
-    Draw new initial values for every parameter of ``module``, in place, submodule by submodule (in the order of
-    ``module.modules()``, from torch's global generator): ``initializer`` on each Linear and Conv2d when given,
-    ``reset_parameters()`` (PyTorch's default) on the others and on all without ``initializer``.
+    Draw new initial values for every parameter of ``module`` in place, from torch's global generator, in the order of
+    ``module.modules()``: ``initializer`` on each Linear and Conv2d when given, else ``reset_parameters()``.
 
     :param module: the module to initialize
     :param initializer: an in-place initializer of one Linear or Conv2d (e.g. DrQ-v2's ``weight_init``)
@@ -135,6 +120,7 @@ class LayerTap:
 
 
 def policy_of(model: BaseAlgorithm | BasePolicy) -> BasePolicy:
+    """:return: the policy of an algorithm, or the policy itself"""
     policy = model.policy if isinstance(model, BaseAlgorithm) else model
     if not isinstance(policy, BasePolicy):
         raise LayerMappingError(f"Expected an SB3 algorithm or policy, got {type(model).__name__}.")

@@ -1,8 +1,5 @@
-"""
-What the callbacks and the run checkpoints need of a model: :class:`CollapseModel`. ``DrQv2`` implements it; SB3's
-TD3, DDPG and SAC through the thin wrappers of :mod:`sb3_collapse.baselines` (``collapse_model`` wraps a model built
-with SB3's own classes).
-"""
+"""What the callbacks and the run checkpoints need of a model: :class:`CollapseModel`, implemented by ``DrQv2`` and
+by the wrappers of SB3's TD3, DDPG and SAC in :mod:`sb3_collapse.baselines`."""
 
 from __future__ import annotations
 
@@ -16,11 +13,7 @@ from sb3_collapse.common.grad_norms import GradNormRecorder
 
 @runtime_checkable
 class CollapseModel(Protocol):
-    """
-    A model the frame schedules, the interventions and the run checkpoints work on (besides SB3's
-    ``BaseAlgorithm``): counters in the paper's units, the gradient-norm recorder, a reset from scratch and a safe
-    point to checkpoint.
-    """
+    """An SB3 model with counters in the paper's units, gradient norms, a reset from scratch and safe points."""
 
     num_timesteps: int
     """Agent steps (transitions summed over the environments) so far: SB3's counter."""
@@ -54,31 +47,26 @@ class CollapseModel(Protocol):
 
 class CollapseModelBase(ABC):
     """
-    The parts of :class:`CollapseModel` that an SB3 off-policy algorithm has as it is (mixed in before it): the
-    counters, the action repeat of its environment, a safe point at every round. An ``ABC`` as SB3's
-    ``BaseAlgorithm``: a class that mixes it in has the instance layout of SB3's, so that ``collapse_model`` can
-    change the class of a model built with SB3's own.
+    The parts of :class:`CollapseModel` an SB3 off-policy algorithm has as it is (mixed in before it). An ``ABC`` as
+    ``BaseAlgorithm``, so that ``collapse_model`` can change the class of a model built with SB3's own.
     """
 
     reset_step: int = 0
-    """``num_timesteps`` at the last reset from scratch, 0 when none."""
     grad_norm_recorder: GradNormRecorder | None = None
     num_timesteps: int
     _n_updates: int
 
     @property
     def action_repeat(self) -> int:
-        """The ``action_repeat`` of the environment (:func:`env_action_repeat`)."""
+        """The ``action_repeat`` of the environment."""
         return env_action_repeat(self.get_env())  # type: ignore[attr-defined]  # BaseAlgorithm's
 
     @property
     def num_frames(self) -> int:
-        """Environment frames so far: ``num_timesteps x action_repeat``."""
         return self.num_timesteps * self.action_repeat
 
     @property
     def n_updates(self) -> int:
-        """Gradient updates so far."""
         return self._n_updates
 
     @property
@@ -103,8 +91,7 @@ def env_action_repeat(env: VecEnv | None) -> int:
         return 1
 
 
-ENV_CONFIG_KEYS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id", "obs_type")
-"""Settings read from a ``make_dmc_env`` environment and saved with a ``DrQv2`` model (``model.env_config``)."""
+ENV_CONFIG_KEYS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id", "obs_type")  # saved with a DrQv2
 
 
 def read_env_config(env: VecEnv) -> dict[str, Any] | None:
@@ -115,7 +102,6 @@ def read_env_config(env: VecEnv) -> dict[str, Any] | None:
     """
     config = {}
     for key in ENV_CONFIG_KEYS:
-        # has_attr first: a SubprocVecEnv's worker dies on get_attr of a missing attribute.
         config[key] = env.get_attr(key, indices=[0])[0] if env.has_attr(key) else None
     if config["task_id"] is None and config["action_repeat"] is None:
         return None

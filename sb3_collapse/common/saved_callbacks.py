@@ -1,12 +1,7 @@
 """
-The state a callback carries, saved and put back by one pair of functions (:func:`callback_states`,
-:func:`load_callback_states`) for run checkpoints (``sb3_collapse.run.checkpoints``) and for the constructor's callbacks
-that ``DrQv2.save`` keeps and ``DrQv2.load`` builds again (:func:`saved_callbacks`, :func:`restore_callbacks`).
-
-A callback carries a state when it has ``state_dict()`` and ``load_state_dict(state)`` (:class:`StatefulCallback`), as
-``sb3_collapse.monitoring``'s resumable callbacks (``CollapseReset``, ``CollapseMetrics``...) do; a model saves one
-that ``get_config()`` can also build again (:class:`SavableCallback`). Any other constructor callback is recorded by
-its class name only, so that ``load`` can say which ones the user must pass again.
+A callback's state, saved and put back by one pair of functions (:func:`callback_states`,
+:func:`load_callback_states`), for run checkpoints and for the constructor's callbacks that ``DrQv2.save`` keeps and
+``DrQv2.load`` builds again (:func:`saved_callbacks`, :func:`restore_callbacks`). See docs/checkpoints.md.
 """
 
 from __future__ import annotations
@@ -56,13 +51,11 @@ def callback_states(callbacks: Iterable[BaseCallback]) -> CallbackStates:
 
 def load_callback_states(callbacks: Iterable[BaseCallback], states: CallbackStates) -> None:
     """
-    Give each :class:`StatefulCallback` among ``callbacks`` its saved state (``load_state_dict``: taken at the start of
-    its next ``learn()``).
+    Give each :class:`StatefulCallback` among ``callbacks`` its saved state (taken at its next ``learn()``).
 
     :param callbacks: callbacks, in the order they run
     :param states: :func:`callback_states` of the same callbacks
-    :raises ValueError: when the callbacks are not those saved (their classes, in order), or for a state that lacks
-        an entry (written by another version)
+    :raises ValueError: when the callbacks are not those saved (their classes, in order)
     """
     stateful = [callback for callback in callbacks if isinstance(callback, StatefulCallback)]
     names, saved_names = [type(callback).__name__ for callback in stateful], [name for name, _ in states]
@@ -76,9 +69,8 @@ def load_callback_states(callbacks: Iterable[BaseCallback], states: CallbackStat
 def saved_callbacks(callback: BaseCallback | list[BaseCallback] | None) -> dict[str, Any]:
     """
     :param callback: a model's constructor callback(s)
-    :return: what ``DrQv2.save`` keeps of them: ``specs``, the class (``"module:QualName"``) of each and, for a
-        :class:`SavableCallback`, its constructor's arguments (``config``, ``None`` for another callback); ``states``,
-        the :func:`callback_states` of those that have a ``config``
+    :return: what ``DrQv2.save`` keeps: ``specs``, each one's class (``"module:QualName"``) and ``config`` (a
+        :class:`SavableCallback`'s ``get_config()``, else ``None``); ``states``, those with a ``config``'s states
     """
     callbacks = callback if isinstance(callback, list) else [callback] if callback is not None else []
     specs = [{"class": f"{type(item).__module__}:{type(item).__qualname__}", "config": None} for item in callbacks]
@@ -94,7 +86,7 @@ def saved_callbacks(callback: BaseCallback | list[BaseCallback] | None) -> dict[
 
 def restore_callbacks(saved: dict[str, Any], caller: str) -> BaseCallback | list[BaseCallback] | None:
     """
-    The callbacks of a loaded model, built again with their states; a warning names those that could not be saved.
+    The callbacks of a loaded model, built again with their states; a warning names those that were not saved.
 
     :param saved: :func:`saved_callbacks` of the saved model
     :param caller: what loads the model, for the warning (``"DrQv2.load"``)

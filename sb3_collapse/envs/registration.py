@@ -1,8 +1,5 @@
-"""Gymnasium ids for the DeepMind Control Suite tasks: ``sb3_collapse/<domain>-<task>-v0``.
-
-The task list is hard-coded so that registering the ids does not import dm_control (slow, and it
-must come after the OpenGL backend is chosen, see :mod:`sb3_collapse.envs.rendering`).
-"""
+"""Gymnasium ids ``sb3_collapse/<domain>-<task>-v0`` for the DeepMind Control Suite tasks, from a hard-coded task
+list: registering imports no dm_control (which must come after the OpenGL backend is chosen)."""
 
 from __future__ import annotations
 
@@ -35,68 +32,40 @@ DMC_TASKS: tuple[tuple[str, str], ...] = (
     ("walker", "stand"), ("walker", "walk"), ("walker", "run"),
 )  # fmt: skip
 
-# Short domain names accepted in task names, as in DrQ-v2 ("cup_catch").
-DOMAIN_ALIASES: dict[str, str] = {"cup": "ball_in_cup"}
+DOMAIN_ALIASES: dict[str, str] = {"cup": "ball_in_cup"}  # short domain names, as in DrQ-v2 ("cup_catch")
+DOMAIN_NAMES: dict[str, str] = {**{domain: domain for domain, _ in DMC_TASKS}, **DOMAIN_ALIASES}  # name -> domain
 
 ENV_NAMESPACE = "sb3_collapse"
 ENTRY_POINT = "sb3_collapse.envs.dmc:DMCEnv"
-# Module that registers the ids, preloaded by the forkserver (see ``_preload_in_forkserver``).
-_REGISTERING_MODULE = "sb3_collapse.envs"
 
 
 def dmc_env_id(task_id: str) -> str:
     """
-    :param task_id: Task name in the ``<domain>-<task>`` form, e.g. "walker-walk".
-    :return: Its Gymnasium id, e.g. "sb3_collapse/walker-walk-v0".
+    :param task_id: task name in the ``<domain>-<task>`` form, e.g. "walker-walk"
+    :return: its Gymnasium id, e.g. "sb3_collapse/walker-walk-v0"
     """
     return f"{ENV_NAMESPACE}/{task_id}-v0"
 
 
 def register_dmc_envs() -> list[str]:
     """
-    Register a Gymnasium id for every DeepMind Control Suite task (idempotent).
+    Register a Gymnasium id for every suite task and alias (``sb3_collapse/cup-catch-v0``), idempotent; no
+    ``TimeLimit`` (the env truncates itself). The forkserver then imports ``sb3_collapse.envs``, so that
+    ``SubprocVecEnv`` workers know the ids (when it starts after this call).
 
-    Ids are ``sb3_collapse/<domain>-<task>-v0`` (e.g. ``sb3_collapse/walker-walk-v0``,
-    ``sb3_collapse/ball_in_cup-catch-v0``), plus aliases such as ``sb3_collapse/cup-catch-v0``.
-    They build a :class:`sb3_collapse.envs.dmc.DMCEnv`; keyword arguments of ``gymnasium.make``
-    (``seed``, ``action_repeat``, ``frame_stack``, ``size``, ``camera_id``, ``obs_type``) go to it.
-    No ``TimeLimit`` is added: the environment truncates episodes itself at dm_control's time limit.
-
-    Also makes the multiprocessing forkserver import ``sb3_collapse.envs``, so that
-    ``SubprocVecEnv`` workers started with the (default) forkserver method know the ids.
-
-    :return: The ids registered by this call (empty if they were all already registered).
+    :return: the ids registered by this call (empty if they were all already registered)
     """
-    task_ids = [f"{domain}-{task}" for domain, task in DMC_TASKS]
-    aliases = [
-        (f"{alias}-{task}", f"{domain}-{task}")
-        for alias, domain in DOMAIN_ALIASES.items()
-        for task_domain, task in DMC_TASKS
-        if task_domain == domain
-    ]
     registered = []
-    for name, task_id in [(task_id, task_id) for task_id in task_ids] + aliases:
-        env_id = dmc_env_id(name)
+    for name, domain, task in [
+        (name, d, task) for name, d in DOMAIN_NAMES.items() for d2, task in DMC_TASKS if d2 == d
+    ]:
+        env_id, task_id = dmc_env_id(f"{name}-{task}"), f"{domain}-{task}"
         if env_id in gym.registry:
             continue
         gym.register(id=env_id, entry_point=ENTRY_POINT, kwargs={"task": task_id}, max_episode_steps=None)
         registered.append(env_id)
-    _preload_in_forkserver(_REGISTERING_MODULE)
-    return registered
-
-
-def _preload_in_forkserver(module: str) -> None:
-    """
-    Add a module to those the multiprocessing forkserver imports when it starts.
-
-    ``SubprocVecEnv`` starts its workers with the forkserver method by default; they are forked from
-    a fresh server process where only ``__main__`` is imported, so ``gymnasium.make("sb3_collapse/...")``
-    in a worker would not find the ids unless the server imports the registering module too.
-    This has no effect if the forkserver is already running (then use the ``"sb3_collapse.envs:<id>"``
-    form of the id, or pass a callable building the env).
-
-    :param module: Name of the module to import in the forkserver.
-    """
+    # SubprocVecEnv's forkserver workers import only __main__: the server must import the module that registers.
     current = list(getattr(forkserver._forkserver, "_preload_modules", None) or ["__main__"])
-    if module not in current:
-        forkserver.set_forkserver_preload([*current, module])
+    if "sb3_collapse.envs" not in current:
+        forkserver.set_forkserver_preload([*current, "sb3_collapse.envs"])
+    return registered

@@ -1,12 +1,6 @@
 """
-Rebuild an environment's episode in progress in a new process, bit for bit: what resuming a run from a checkpoint
-needs (:mod:`sb3_collapse.run.checkpoints`).
-
-:class:`EpisodeReplay` (the outermost wrapper of each environment) records the task's random state at the reset and
-the actions taken since; :meth:`EpisodeReplay.replay_episode` puts the random state back, resets and takes the same
-actions again through every wrapper below it, one render per agent step of the episode so far. The environment
-under the wrappers must have ``get_rng_state()`` and ``set_rng_state(state)`` (:class:`~sb3_collapse.envs.DMCEnv`
-has them). See docs/checkpoints.md#what-is-in-one.
+Rebuild an environment's episode in progress in a new process, bit for bit, to resume a run from a checkpoint: the
+random state at the reset and the actions since, taken again. See docs/checkpoints.md#what-is-in-one.
 """
 
 from __future__ import annotations
@@ -20,8 +14,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 class EpisodeReplay(gym.Wrapper):
     """
-    Records, for the episode in progress, the seed or the random state it was reset with and the actions taken since,
-    so that :meth:`replay_episode` rebuilds it in another process.
+    Records the episode in progress (the reset's seed or random state, the actions since) for :meth:`replay_episode`.
 
     :param env: the environment; ``env.unwrapped`` must have ``get_rng_state`` and ``set_rng_state``
     """
@@ -47,22 +40,18 @@ class EpisodeReplay(gym.Wrapper):
         return self.env.step(action)
 
     def episode_record(self) -> dict[str, Any] | None:
-        """
-        :return: what :meth:`replay_episode` needs to rebuild the episode in progress (picklable): the reset's seed or
-            random state and the actions since; ``None`` before the first reset
-        """
+        """:return: a picklable record of the episode in progress (:meth:`replay_episode`); ``None`` before a reset"""
         if self._record is None:
             return None
         return {**self._record, "actions": [action.copy() for action in self._actions]}
 
     def replay_episode(self, record: dict[str, Any] | None) -> Any:
         """
-        Rebuild the episode of ``record`` (of :meth:`episode_record`, possibly in another process): reset as it was
-        reset, then take its actions again.
+        Reset as the recorded episode was reset, then take its actions again.
 
-        :param record: the record; ``None`` (never reset) does nothing
-        :return: the observation after the last action (after the reset without actions); ``None`` for ``None``
-        :raises RuntimeError: if the episode ends during the replay (it did not when it was recorded)
+        :param record: an :meth:`episode_record`; ``None`` (never reset) does nothing
+        :return: the observation after the last action; ``None`` for ``None``
+        :raises RuntimeError: if the episode ends during the replay
         """
         if record is None:
             return None
@@ -86,12 +75,9 @@ def episode_records(venv: VecEnv) -> list[dict[str, Any] | None]:
 
 def replay_episodes(venv: VecEnv, records: list[dict[str, Any] | None]) -> list[Any]:
     """
-    Rebuild each environment's episode (:meth:`EpisodeReplay.replay_episode`), in another process than the one that
-    recorded them.
-
     :param venv: environments built as those that were recorded, each wrapped (outermost) in :class:`EpisodeReplay`
     :param records: :func:`episode_records` of the recorded ones
-    :return: each environment's observation after the replay
+    :return: each environment's observation after its :meth:`EpisodeReplay.replay_episode`
     """
     if len(records) != venv.num_envs:
         raise ValueError(f"{len(records)} episode records for {venv.num_envs} environments.")
