@@ -13,27 +13,17 @@ if TYPE_CHECKING:
 
 __version__ = "0.1.0"
 
-_LAZY = {
-    "DrQv2": "sb3_collapse.drqv2",
-    "ActivationLogger": "sb3_collapse.monitoring",
-    "CollapseMetrics": "sb3_collapse.monitoring",
-    "CollapseReset": "sb3_collapse.monitoring",
-    "PeriodicReDo": "sb3_collapse.monitoring",
+# Imported at first use: the algorithm and the monitoring callbacks do not import each other.
+_LAZY = {"DrQv2": "sb3_collapse.drqv2"} | {
+    name: "sb3_collapse.monitoring" for name in ("ActivationLogger", "CollapseMetrics", "CollapseReset", "PeriodicReDo")
 }
-"""Names imported from their package at their first use: importing the algorithm does not import the monitoring
-callbacks, nor the other way round."""
-
 __all__ = [
     "ActivationLogger", "CollapseMetrics", "CollapseReset", "DrQv2", "PeriodicReDo", "__version__", "make_dmc_env"
-]
+]  # fmt: skip
 
 
 def __getattr__(name: str) -> Any:
-    """
-    :param name: one of the package's names
-    :return: its value, imported from its package at its first use
-    :raises AttributeError: for a name that is not one
-    """
+    """:return: one of the :data:`_LAZY` names, imported from its package at its first use"""
     if name in _LAZY:
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value

@@ -159,20 +159,9 @@ def build_baseline(
             f"SB3's NatureCNN needs images of at least {NATURE_CNN_MIN_SIZE}x{NATURE_CNN_MIN_SIZE} pixels, got "
             f"{height}x{width}: render larger images (make_dmc_env(size=...))."
         )
-    policy_kwargs: dict[str, Any] = dict(
-        net_arch=[hidden_dim, hidden_dim], features_extractor_kwargs=dict(features_dim=feature_dim)
-    )
-    params: dict[str, Any] = dict(
-        learning_rate=learning_rate,
-        buffer_size=buffer_size,
-        learning_starts=learning_starts,
-        batch_size=batch_size,
-        gamma=gamma,
-        policy_kwargs=policy_kwargs,
-        seed=seed,
-        device=device,
-        verbose=verbose,
-    )
+    policy_kwargs = dict(net_arch=[hidden_dim, hidden_dim], features_extractor_kwargs=dict(features_dim=feature_dim))
+    params: dict[str, Any] = dict(learning_rate=learning_rate, buffer_size=buffer_size, batch_size=batch_size)
+    params.update(gamma=gamma, learning_starts=learning_starts, policy_kwargs=policy_kwargs, seed=seed, device=device)
     if frame_stack is not None and frame_stack > 1:
         from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer  # monitoring imports this module, not drqv2
 
@@ -181,4 +170,4 @@ def build_baseline(
     if algorithm == "td3":
         action_dim = int(np.prod(env.action_space.shape))  # type: ignore[union-attr]
         params["action_noise"] = NormalActionNoise(np.zeros(action_dim), TD3_ACTION_NOISE * np.ones(action_dim))
-    return BASELINES[algorithm]("CnnPolicy", env, **params)
+    return BASELINES[algorithm]("CnnPolicy", env, verbose=verbose, **params)

@@ -17,22 +17,19 @@ class PaperProtocol:
 
     :param check_every_frames: frames between two evaluations and two computations of the collapse metrics
         (Section 4.1: "there is an evaluation every 1e4 frames"; the rule's "computations" of Section 5.2)
-    :param window_frames: the reset rule's window (Section 5.2: "reset the training from scratch every 2e5
-        frames")
+    :param window_frames: the rule's window (Section 5.2: "reset the training from scratch every 2e5 frames")
     :param threshold: a gradient norm above it is healthy (Section 5.2: "a gradient norm larger than 0.001")
-    :param patience: consecutive healthy computations that mean an escape (Section 5.2: "of consecutive five
-        computations")
+    :param patience: consecutive healthy computations, an escape (Section 5.2: "of consecutive five computations")
     :param layer: the layer whose gradient norm the rule reads (Section 5.2: "the gradient norm of mlp1")
     :param success_return: final return of a well-performing agent, at least (Section 4.1: "more than 900
         rewards"; Figure 3: "successful (rewards >= 900)")
     :param failure_return: final return of a poorly performing agent, below (Section 4.1: "less than 30 rewards")
-    :param last_evals: evaluations averaged for the across-seed standard deviation (Section 5.2: "the average
-        standard deviation over the last ten evaluations")
+    :param last_evals: evaluations of the across-seed std (5.2: "the average standard deviation over the last ten
+        evaluations")
     :param percentiles: the band of Figure 5, in percent ("the 5th percentile and the 95th percentile")
     :param figure5_seeds: seeds per task and variant of Figure 5 ("40 seeds")
     :param figure5_tasks: the tasks of Figure 5 (walker_walk, hopper_stand, finger_spin)
-    :param train_frames: frames of a run in Sections 4 and 5 (Section 4.1: "The total number of training frames is
-        1.1e6")
+    :param train_frames: frames of a run (Section 4.1: "The total number of training frames is 1.1e6")
     :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110"), in frames
     """
 

@@ -18,54 +18,36 @@ from sb3_collapse.envs.dmc import parse_task
 @dataclass(frozen=True)
 class TaskPreset:
     """
-    DrQ-v2's settings for one task.
+    DrQ-v2's settings for one task. Each hyperparameter is the ``TrainConfig`` setting of the same name (meaning and
+    units: docs/presets.md); the comments name DrQ-v2's config keys.
 
     :param task: the task, ``<domain>-<task>``
     :param tier: DrQ-v2's difficulty tier, ``"easy"``, ``"medium"`` or ``"hard"``
     :param from_drqv2: whether DrQ-v2 published a config for this task (``False``: the easy tier's settings)
-    :param frames: training budget, in frames (``num_train_frames``)
-    :param action_repeat: frames per agent step
-    :param frame_stack: stacked RGB frames per observation
-    :param seed_frames: frames of uniform random actions before the first update (``num_seed_frames``)
-    :param batch_size: minibatch size
-    :param buffer_size: replay capacity, in transitions (``replay_buffer_size``)
-    :param learning_rate: Adam learning rate (``lr``)
-    :param n_steps: n-step return length, in agent steps (``nstep``)
-    :param feature_dim: trunk size of the actor and the critic
-    :param hidden_dim: hidden units of the actor's ``mlp1``, ``mlp2`` and of the Q heads
-    :param stddev_schedule: exploration std schedule, durations in agent steps
-    :param stddev_clip: clip of the exploration noise in the updates
-    :param tau: soft-update coefficient of the target critic (``critic_target_tau``)
-    :param gamma: discount factor (``discount``)
-    :param train_freq: agent steps between two updates (``update_every_steps``)
-    :param augmentation_pad: random-shift padding, in pixels (``RandomShiftsAug(pad=4)``)
-    :param eval_every_frames: frames between two evaluations
-    :param eval_episodes: episodes per evaluation (``num_eval_episodes``)
-    :param replay_sampling: ``"drqv2"``: DrQ-v2's replay sampling (:class:`~sb3_collapse.drqv2.FrameStackReplayBuffer`)
     """
 
     task: str
     tier: str
     from_drqv2: bool
-    frames: int
+    frames: int  # num_train_frames
     action_repeat: int = 2
     frame_stack: int = 3
-    seed_frames: int = 4000
+    seed_frames: int = 4000  # num_seed_frames
     batch_size: int = 256
-    buffer_size: int = 1_000_000
-    learning_rate: float = 1e-4
-    n_steps: int = 3
+    buffer_size: int = 1_000_000  # replay_buffer_size, in transitions
+    learning_rate: float = 1e-4  # lr
+    n_steps: int = 3  # nstep, in agent steps
     feature_dim: int = 50
     hidden_dim: int = 1024
-    stddev_schedule: str = "linear(1.0,0.1,100000)"
+    stddev_schedule: str = "linear(1.0,0.1,100000)"  # durations in agent steps
     stddev_clip: float = 0.3
-    tau: float = 0.01
-    gamma: float = 0.99
-    train_freq: int = 2
-    augmentation_pad: int = 4
+    tau: float = 0.01  # critic_target_tau
+    gamma: float = 0.99  # discount
+    train_freq: int = 2  # update_every_steps
+    augmentation_pad: int = 4  # RandomShiftsAug(pad=4)
     eval_every_frames: int = 10_000
-    eval_episodes: int = 10
-    replay_sampling: str = "drqv2"
+    eval_episodes: int = 10  # num_eval_episodes
+    replay_sampling: str = "drqv2"  # finished episodes only (sb3_collapse.drqv2.FrameStackReplayBuffer)
 
     def settings(self) -> dict[str, Any]:
         """The hyperparameters, by name (every field but ``task``, ``tier`` and ``from_drqv2``)."""
@@ -100,8 +82,7 @@ _DRQV2_TASKS: dict[str, tuple[str, dict[str, Any]]] = {
     "humanoid-stand": ("hard", HUMANOID), "humanoid-walk": ("hard", HUMANOID), "humanoid-run": ("hard", HUMANOID),
 }  # fmt: skip
 
-FALLBACK_TIER = "easy"
-"""The tier of a suite task that DrQ-v2 published no config for."""
+FALLBACK_TIER = "easy"  # of a suite task DrQ-v2 published no config for
 
 PRESETS: Mapping[str, TaskPreset] = MappingProxyType(
     {

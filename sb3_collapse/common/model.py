@@ -100,9 +100,8 @@ def read_env_config(env: VecEnv) -> dict[str, Any] | None:
     :return: the :data:`ENV_CONFIG_KEYS` of its first environment, ``None`` for an environment not made by
         ``make_dmc_env``
     """
-    config = {}
-    for key in ENV_CONFIG_KEYS:
-        config[key] = env.get_attr(key, indices=[0])[0] if env.has_attr(key) else None
+    # has_attr first: a SubprocVecEnv's worker dies on get_attr of a missing attribute.
+    config = {key: env.get_attr(key, indices=[0])[0] if env.has_attr(key) else None for key in ENV_CONFIG_KEYS}
     if config["task_id"] is None and config["action_repeat"] is None:
         return None
     return config

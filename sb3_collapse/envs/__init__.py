@@ -5,13 +5,6 @@ from sb3_collapse.envs.dmc import DMCEnv, make_dmc_env, parse_task
 from sb3_collapse.envs.registration import DMC_TASKS, register_dmc_envs
 from sb3_collapse.envs.rendering import ensure_rendering_backend
 
-__all__ = [
-    "DMC_TASKS",
-    "DMCEnv",
-    "ensure_rendering_backend",
-    "make_dmc_env",
-    "parse_task",
-    "register_dmc_envs",
-]
+__all__ = ["DMC_TASKS", "DMCEnv", "ensure_rendering_backend", "make_dmc_env", "parse_task", "register_dmc_envs"]
 
 register_dmc_envs()

@@ -169,8 +169,7 @@ def reward_inputs_of(domain: str, task: str) -> tuple[RewardInput, ...]:
     """
     :param domain: the domain (``"walker"``)
     :param task: the task (``"walk"``)
-    :return: every quantity that the task's reward reads (:data:`REWARD_INPUTS`), the control included; empty for a
-        task not in the suite
+    :return: every quantity the task's reward reads (:data:`REWARD_INPUTS`), the control included; empty if none
     """
     return REWARD_INPUTS.get(f"{domain}-{task}", ())
 
@@ -189,16 +188,12 @@ def parse_task(name: str) -> tuple[str, str]:
             return domain, task
     elif name in _UNDERSCORE_NAMES:
         return _UNDERSCORE_NAMES[name]
-    raise ValueError(_unknown_task_message(name))
-
-
-def _unknown_task_message(name: str) -> str:
     canonical = {f"{domain}-{task}": f"{domain}-{task}" for domain, task in DMC_TASKS}
     canonical.update({underscored: f"{domain}-{task}" for underscored, (domain, task) in _UNDERSCORE_NAMES.items()})
     matches = difflib.get_close_matches(name, list(canonical), n=6, cutoff=0.6)
     suggestions = list(dict.fromkeys(canonical[match] for match in matches))[:3]
     hint = f" Did you mean {', '.join(repr(s) for s in suggestions)}?" if suggestions else ""
-    return (
+    raise ValueError(
         f"Unknown DeepMind Control task {name!r}.{hint} Tasks are named '<domain>-<task>', e.g. 'walker-walk' "
         "(DrQ-v2's 'walker_walk' also works); list them with `sb3_collapse.envs.DMC_TASKS`."
     )
@@ -214,27 +209,16 @@ def scale_action(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.nd
     :return: the rescaled action, float64 (bounds of [-1, 1] leave it unchanged, bit for bit)
     """
     action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
-    scale = (high - low) / 2.0
-    offset = (high + low) / 2.0
-    return scale * action + offset
+    return (high - low) / 2.0 * action + (high + low) / 2.0
 
 
 class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
     """
     A DeepMind Control Suite task with DrQ-v2 preprocessing: observations ``uint8`` ``(3 * frame_stack, size,
-    size)``, the last ``frame_stack`` renders, channel-first, oldest first (``obs_type="state"``: the float32 state
-    vector, nothing rendered); actions in [-1, 1] rescaled to the task's bounds and repeated ``action_repeat``
-    frames, rewards summed; the time limit gives ``truncated=True``; ``info["frames"]`` counts frames since the
-    reset; :meth:`get_state` the true state. See docs/environments.md.
+    size)``, the last renders, oldest first; actions in [-1, 1]; ``info["frames"]``. See docs/environments.md.
 
-    :param task: task name, e.g. "walker-walk" (see :func:`parse_task`)
-    :param seed: seed of the task's random initial states and of the action space; None for a random one
-    :param action_repeat: frames (simulator control steps) per agent step, each with the same action
-    :param frame_stack: renders (one per agent step) stacked in a pixel observation; ignored for states
-    :param size: height and width of the renders, in pixels
-    :param camera_id: camera of the renders; None for DrQ-v2's choice (2 for quadruped, 0 otherwise)
-    :param obs_type: "pixels" for stacked renders, "state" for the vectorized true state
-    :param render_mode: "rgb_array" (:meth:`render` returns the last render) or None
+    :param render_mode: "rgb_array" (:meth:`render` returns the last render) or None; the other parameters are
+        :func:`make_dmc_env`'s
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
@@ -323,9 +307,8 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         ``(size,)`` float32"""
         if self._dmc_observation is None:
             raise RuntimeError("reward_inputs() needs a current timestep: call reset() first.")
-        physics = self.physics
         inputs = reward_inputs_of(self.domain, self.task_name)
-        return {item.name: item.value(physics).astype(np.float32) for item in inputs if item.state}
+        return {item.name: item.value(self.physics).astype(np.float32) for item in inputs if item.state}
 
     def get_rng_state(self) -> dict[str, Any]:
         """:return: the state of the task's and the action space's random generators (picklable), for a checkpoint"""
@@ -352,9 +335,7 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         self._dmc_observation, _ = self._dmc.reset()
         self._elapsed_frames = 0
         if self.obs_type == "pixels":
-            frame = self._render_frame()
-            for _ in range(self.frame_stack):
-                self._frames.append(frame)
+            self._frames.extend([self._render_frame()] * self.frame_stack)
         return self._observation(), {"frames": 0}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:

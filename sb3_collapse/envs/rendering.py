@@ -82,14 +82,9 @@ def _backend_works(backend: str, timeout: float = CONTEXT_CHECK_TIMEOUT_S) -> tu
     """
     env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
     try:
+        command = [sys.executable, "-c", CONTEXT_CHECK_CODE]
         result = subprocess.run(
-            [sys.executable, "-c", CONTEXT_CHECK_CODE],
-            check=False,
-            env=env,
-            stdin=subprocess.DEVNULL,
-            capture_output=True,
-            text=True,
-            timeout=timeout,
+            command, check=False, env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout
         )
     except subprocess.TimeoutExpired:
         return False, f"the check timed out after {timeout:.0f} s"
