@@ -17,8 +17,7 @@ from torch import nn
 
 from sb3_collapse.errors import LayerMappingError
 
-LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")
-"""Every named layer, input to output."""
+LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "action")  # input to output
 
 
 class LayerParts(NamedTuple):
@@ -149,7 +148,7 @@ def layer_taps(model: BaseAlgorithm | BasePolicy) -> dict[str, LayerTap]:
     if hasattr(actor, "latent_pi"):  # SAC: latent_pi = hidden layers, mu = mean action before the tanh squash
         if getattr(actor, "use_sde", False):
             raise LayerMappingError("SAC with gSDE (use_sde=True) has no deterministic tanh(mu) action to name.")
-        taps.update(_hidden_taps(actor.latent_pi))
+        taps.update(_activation_taps(actor.latent_pi, nn.Linear, "mlp"))
         taps["action"] = LayerTap(actor.mu, tuple(actor.mu.parameters()), transform=th.tanh)
     elif isinstance(getattr(actor, "mu", None), nn.Sequential):  # TD3 / DDPG: mu = hidden layers, Linear, Tanh
         linears = [i for i, m in enumerate(actor.mu) if isinstance(m, nn.Linear)]
@@ -158,7 +157,7 @@ def layer_taps(model: BaseAlgorithm | BasePolicy) -> dict[str, LayerTap]:
                 f"Cannot map the layers of {type(policy).__name__}: unexpected actor.mu {actor.mu}."
             )
         last = linears[-1]
-        taps.update(_hidden_taps(actor.mu[:last]))
+        taps.update(_activation_taps(actor.mu[:last], nn.Linear, "mlp"))
         taps["action"] = LayerTap(actor.mu[last + 1], tuple(actor.mu[last].parameters()))
     else:
         raise LayerMappingError(f"Cannot map the layers of {type(policy).__name__}: its actor has no `mu` network.")
@@ -169,11 +168,7 @@ def _extractor_taps(extractor: nn.Module) -> dict[str, LayerTap]:
     """``cnn0``..``cnnK`` and ``mlp0`` of SB3's ``NatureCNN`` or ``FlattenExtractor``."""
     if isinstance(extractor, NatureCNN):
         taps = {"cnn0": LayerTap(extractor.cnn, (), source="input")}
-        modules = list(extractor.cnn)
-        for k, index in enumerate((i for i, m in enumerate(modules) if isinstance(m, nn.Conv2d)), start=1):
-            if index + 1 >= len(modules) or isinstance(modules[index + 1], (nn.Conv2d, nn.Flatten)):
-                raise LayerMappingError(f"NatureCNN conv {k} has no activation after it.")
-            taps[f"cnn{k}"] = LayerTap(modules[index + 1], tuple(modules[index].parameters()))
+        taps.update(_activation_taps(extractor.cnn, nn.Conv2d, "cnn"))
         taps["mlp0"] = LayerTap(extractor.linear, tuple(extractor.linear.parameters()))
         return taps
     if isinstance(extractor, FlattenExtractor):
@@ -184,14 +179,14 @@ def _extractor_taps(extractor: nn.Module) -> dict[str, LayerTap]:
     )
 
 
-def _hidden_taps(layers: Iterable[nn.Module]) -> dict[str, LayerTap]:
-    """``mlp1``..``mlpK`` of a ``Linear, activation, Linear, activation, ...`` sequence."""
+def _activation_taps(layers: Iterable[nn.Module], kind: type[nn.Module], prefix: str) -> dict[str, LayerTap]:
+    """``<prefix>1``..``<prefix>K``: the activation after each ``kind`` module of a ``kind, activation, ...`` list."""
     modules = list(layers)
     taps: dict[str, LayerTap] = {}
-    for k, index in enumerate((i for i, m in enumerate(modules) if isinstance(m, nn.Linear)), start=1):
-        if index + 1 >= len(modules) or isinstance(modules[index + 1], nn.Linear):
-            raise LayerMappingError(f"Hidden layer {k} of the actor has no activation after it.")
-        taps[f"mlp{k}"] = LayerTap(modules[index + 1], tuple(modules[index].parameters()))
+    for k, index in enumerate((i for i, m in enumerate(modules) if isinstance(m, kind)), start=1):
+        if index + 1 >= len(modules) or isinstance(modules[index + 1], (nn.Linear, nn.Conv2d, nn.Flatten)):
+            raise LayerMappingError(f"{kind.__name__} {k} of the actor ({prefix}{k}) has no activation after it.")
+        taps[f"{prefix}{k}"] = LayerTap(modules[index + 1], tuple(modules[index].parameters()))
     return taps
 
 

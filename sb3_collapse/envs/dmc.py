@@ -78,11 +78,8 @@ _CARTPOLE_SPARSE = (
     _read("cart_position", "the cart's position on the rail (centred term)"),
     _read("pole_angle_cosine", "cosine of each pole's angle (upright term)"),
 )
-_CARTPOLE_SMOOTH = (
-    *_CARTPOLE_SPARSE,
-    CONTROL,
-    _read("angular_vel", "each pole's angular velocity (small-velocity term)"),
-)
+_ANGULAR_VEL = _read("angular_vel", "each pole's angular velocity (small-velocity term)")
+_CARTPOLE_SMOOTH = (*_CARTPOLE_SPARSE, CONTROL, _ANGULAR_VEL)
 _HUMANOID = (
     _read("head_height", "height of the head (standing term)"),
     _read("torso_upright", "zz entry of the torso's rotation matrix (upright term)"),
@@ -238,11 +235,8 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         check_env_arguments(action_repeat, frame_stack, size, obs_type, render_mode)
         self.domain, self.task_name = parse_task(task)
         self.task_id = f"{self.domain}-{self.task_name}"
-        self.action_repeat = action_repeat
-        self.frame_stack = frame_stack
-        self.size = size
-        self.obs_type = obs_type
-        self.render_mode = render_mode
+        self.action_repeat, self.frame_stack, self.size = action_repeat, frame_stack, size
+        self.obs_type, self.render_mode = obs_type, render_mode
         self.camera_id = DEFAULT_CAMERA_IDS.get(self.domain, 0) if camera_id is None else camera_id
 
         self._dmc = self._load(seed)

@@ -34,14 +34,9 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
     """
     global _chosen_backend, _failure_report
 
-    preset = os.environ.get("MUJOCO_GL")
-    if preset:
-        return preset
-    if _chosen_backend is not None:
-        _export_backend(_chosen_backend)
-        return _chosen_backend
-
-    if _failure_report is None:
+    if os.environ.get("MUJOCO_GL"):
+        return os.environ["MUJOCO_GL"]
+    if _chosen_backend is None and _failure_report is None:
         if "dm_control.mujoco" in sys.modules or "dm_control._render" in sys.modules:
             warnings.warn(
                 "dm_control was imported before MUJOCO_GL was set, so it has already picked its OpenGL backend "
@@ -56,11 +51,13 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
             works, stderr = _backend_works(backend)
             if works:
                 _chosen_backend = backend
-                _export_backend(backend)
-                return backend
+                break
             failures.append(f"--- MUJOCO_GL={backend} ---\n{stderr.strip()[-_STDERR_TAIL_CHARS:]}")
-        _failure_report = "\n".join(failures)
-
+        else:
+            _failure_report = "\n".join(failures)
+    if _chosen_backend is not None:  # exported again, for the subprocesses started from now on
+        os.environ["MUJOCO_GL"] = os.environ["PYOPENGL_PLATFORM"] = _chosen_backend
+        return _chosen_backend
     if required:
         raise MissingDependencyError(
             f"No headless OpenGL backend works for MuJoCo rendering (tried MUJOCO_GL={', '.join(HEADLESS_BACKENDS)}), "
@@ -91,9 +88,3 @@ def _backend_works(backend: str, timeout: float = CONTEXT_CHECK_TIMEOUT_S) -> tu
     except OSError as error:
         return False, f"could not start the check: {error}"
     return result.returncode == 0, result.stderr
-
-
-def _export_backend(backend: str) -> None:
-    """Select a backend for this process and the subprocesses it starts from now on."""
-    os.environ["MUJOCO_GL"] = backend
-    os.environ["PYOPENGL_PLATFORM"] = backend
