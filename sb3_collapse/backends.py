@@ -1,8 +1,5 @@
-"""
-Process-wide settings of torch's CUDA backends for a training run: TensorFloat-32 and reproducibility. The train CLI
-and every sweep trial call :func:`configure_backends` before building the model; building a ``DrQv2`` changes none of
-them. What is exact where: docs/checkpoints.md.
-"""
+"""Process-wide settings of torch's CUDA backends for training (TensorFloat-32, reproducibility), set by the train CLI
+and every sweep trial, never by building a model. What is exact where: docs/checkpoints.md."""
 
 from __future__ import annotations
 

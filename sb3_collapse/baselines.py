@@ -1,8 +1,5 @@
-"""
-SB3's own TD3, SAC and DDPG with the package's model interface (:class:`SB3Model`, :func:`collapse_model`), and
-:func:`build_baseline`: SB3's TD3 or SAC on DeepMind Control pixels, sized like DrQ-v2. What is whose:
-docs/interventions.md#sb3s-td3-and-sac-on-pixels.
-"""
+"""SB3's TD3, SAC and DDPG with the package's model interface, and :func:`build_baseline`: SB3's TD3 or SAC on
+DeepMind Control pixels, sized like DrQ-v2 (docs/interventions.md#sb3s-td3-and-sac-on-pixels)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
-"""
-The action-collapse paper's numbers, each with the passage it comes from (Chen, Zhu & Perrault, *Understanding
-Learned Representations and Action Collapse in Visual Reinforcement Learning*): :data:`PAPER` (the protocol, the
-defaults of the callbacks, CLIs, sweep, probe and report), :data:`PAPER_RESULTS` and :data:`PROPOSITION_1`.
-DrQ-v2's per-task hyperparameters are in :mod:`sb3_collapse.presets`.
-"""
+"""The action-collapse paper's numbers, each with the passage it comes from (Chen, Zhu & Perrault, *Understanding
+Learned Representations and Action Collapse in Visual Reinforcement Learning*): :data:`PAPER`, the protocol every
+default comes from, :data:`PAPER_RESULTS` and :data:`PROPOSITION_1`."""
 
 from __future__ import annotations
 

@@ -1,8 +1,5 @@
-"""
-DrQ-v2's published per-task hyperparameters for the DeepMind Control pixel tasks (facebookresearch/drqv2, MIT:
-``cfgs/config.yaml``, ``cfgs/task/*.yaml``), the defaults of the train CLI, the sweep and ``zoo_configs/drqv2.yml``.
-Units and the table: docs/presets.md.
-"""
+"""DrQ-v2's per-task hyperparameters on DeepMind Control pixels (facebookresearch/drqv2, MIT: ``cfgs/config.yaml``,
+``cfgs/task/*.yaml``): the defaults of the train CLI, the sweep and ``zoo_configs/drqv2.yml``. See docs/presets.md."""
 
 from __future__ import annotations
 

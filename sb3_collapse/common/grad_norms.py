@@ -1,8 +1,5 @@
-"""
-The gradient norm of each named layer at each update, recorded by a hook when its optimizer steps (the ``.grad`` of
-the update's own backward pass): no extra backward pass, no host transfer per update. See
-docs/interventions.md#the-health-value-gradient-norms-recorded-at-each-update.
-"""
+"""The gradient norm of each named layer at each update, recorded when its optimizer steps: no extra backward pass,
+no host transfer per update. See docs/interventions.md#the-health-value-gradient-norms-recorded-at-each-update."""
 
 from __future__ import annotations
 
@@ -103,9 +100,7 @@ class GradNormRecorder:
         :raises ValueError: for another list of layers
         """
         if list(state["names"]) != self.names:
-            raise ValueError(
-                f"GradNormRecorder: saved norms of layers {state['names']}, this one records {self.names}."
-            )
+            raise ValueError(f"GradNormRecorder: saved norms of {state['names']}, this one records {self.names}.")
         self._norms = None if state["norms"] is None else state["norms"].to(self.device)
         self._recorded = set(state["recorded"])
 

@@ -1,7 +1,5 @@
-"""
-The layer names (:data:`LAYER_NAMES`, what each is: docs/monitoring.md), where each is read in a DrQv2, TD3, DDPG or
-SAC actor (:func:`layer_taps`), and the hidden layers whose units ReDo may recycle (:class:`LayerParts`).
-"""
+"""The layer names (what each is: docs/monitoring.md), where each is read in a DrQv2, TD3, DDPG or SAC actor
+(:func:`layer_taps`), and the hidden layers whose units ReDo may recycle (:class:`LayerParts`)."""
 
 from __future__ import annotations
 
@@ -83,11 +81,11 @@ def sequential_hidden_parts(
 
 def reinitialize(module: nn.Module, initializer: Callable[[nn.Module], None] | None = None) -> None:
     """
-    Draw new initial values for every parameter of ``module`` in place, from torch's global generator, in the order of
-    ``module.modules()``: ``initializer`` on each Linear and Conv2d when given, else ``reset_parameters()``.
+    New initial values for every parameter of ``module``, in place, in the order of ``module.modules()``.
 
     :param module: the module to initialize
-    :param initializer: an in-place initializer of one Linear or Conv2d (e.g. DrQ-v2's ``weight_init``)
+    :param initializer: an in-place initializer of each Linear and Conv2d (e.g. DrQ-v2's ``weight_init``); the
+        others, and all without it, get ``reset_parameters()``
     :raises TypeError: for a submodule with parameters that has no known initializer
     """
     for sub in module.modules():
@@ -192,9 +190,7 @@ def _activation_taps(layers: Iterable[nn.Module], kind: type[nn.Module], prefix:
 
 def layer_parameters(model: BaseAlgorithm | BasePolicy) -> dict[str, tuple[nn.Parameter, ...]]:
     """
-    The parameters of the layer that computes each named activation (``cnn0`` excluded: it has none).
-
     :param model: an algorithm or its policy
-    :return: ordered mapping name -> parameters
+    :return: ordered mapping name -> the parameters of the layer that computes it (``cnn0``, which has none, left out)
     """
     return {name: tap.parameters for name, tap in layer_taps(model).items() if tap.parameters}

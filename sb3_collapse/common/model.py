@@ -97,8 +97,7 @@ ENV_CONFIG_KEYS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id
 def read_env_config(env: VecEnv) -> dict[str, Any] | None:
     """
     :param env: a vectorized environment
-    :return: the :data:`ENV_CONFIG_KEYS` of its first environment, ``None`` for an environment not made by
-        ``make_dmc_env``
+    :return: the :data:`ENV_CONFIG_KEYS` of its first environment, ``None`` for one not made by ``make_dmc_env``
     """
     # has_attr first: a SubprocVecEnv's worker dies on get_attr of a missing attribute.
     config = {key: env.get_attr(key, indices=[0])[0] if env.has_attr(key) else None for key in ENV_CONFIG_KEYS}

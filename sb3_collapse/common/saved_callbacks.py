@@ -1,8 +1,5 @@
-"""
-A callback's state, saved and put back by one pair of functions (:func:`callback_states`,
-:func:`load_callback_states`), for run checkpoints and for the constructor's callbacks that ``DrQv2.save`` keeps and
-``DrQv2.load`` builds again (:func:`saved_callbacks`, :func:`restore_callbacks`). See docs/checkpoints.md.
-"""
+"""A callback's state, saved and put back by one pair of functions for run checkpoints and for the constructor's
+callbacks that ``DrQv2.save`` keeps and ``DrQv2.load`` builds again. See docs/checkpoints.md."""
 
 from __future__ import annotations
 

@@ -1,7 +1,5 @@
-"""
-Rebuild an environment's episode in progress in a new process, bit for bit, to resume a run from a checkpoint: the
-random state at the reset and the actions since, taken again. See docs/checkpoints.md#what-is-in-one.
-"""
+"""An environment's episode in progress rebuilt bit for bit in a new process (its reset's random state and its
+actions, taken again), to resume a run from a checkpoint. See docs/checkpoints.md#what-is-in-one."""
 
 from __future__ import annotations
 
@@ -23,9 +21,7 @@ class EpisodeReplay(gym.Wrapper):
         super().__init__(env)
         for name in ("get_rng_state", "set_rng_state"):
             if not callable(getattr(env.unwrapped, name, None)):
-                raise TypeError(
-                    f"EpisodeReplay needs an environment with {name}(), which {env.unwrapped} does not have."
-                )
+                raise TypeError(f"EpisodeReplay needs an environment with {name}(); {env.unwrapped} has none.")
         self._record: dict[str, Any] | None = None  # None before the first reset
         self._actions: list[np.ndarray] = []
 
