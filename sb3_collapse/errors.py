@@ -118,11 +118,9 @@ def unwritable_message(error: BaseException) -> str | None:
 
 def report_unwritable_outputs(main: Callable[P, int]) -> Callable[P, int]:
     """
-    Decorate a command line's ``main``: an output it could not write ends it with ``error: ...``
-    (:func:`unwritable_message`) and exit status 2 (read-only, no permission) or 1 (full disk), not a traceback.
-
-    :param main: the command's ``main(argv) -> exit status``
-    :return: the decorated ``main``
+    :param main: a command line's ``main(argv) -> exit status``
+    :return: ``main`` ended by an unwritable output with ``error: ...`` (:func:`unwritable_message`) and exit status
+        2 (read-only, no permission) or 1 (full disk), not a traceback
     """
 
     @functools.wraps(main)
