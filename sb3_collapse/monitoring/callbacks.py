@@ -1,11 +1,6 @@
 """
-Callbacks that watch for action collapse during ``learn()``: collapse metrics to TensorBoard, activations to disk;
-and the schedule every periodic callback of the package runs on (:class:`FrameScheduleCallback`, with the state it
-carries into checkpoints and ``DrQv2.save``: :class:`ResumableCallback`).
-
-Both run on a schedule of **frames** (agent steps x the environment's action repeat, the unit of the paper) and
-read a metrics batch of observations from the model's replay buffer. They are SB3 ``BaseCallback``s: pass them to
-``learn(callback=...)`` or to ``DrQv2(..., callback=...)``, alone or in a list with SB3's own callbacks.
+The frame schedule of every periodic callback (:class:`FrameScheduleCallback`, resumable: :class:`ResumableCallback`)
+and the callbacks that watch for action collapse: metrics to TensorBoard, activations to disk. See docs/monitoring.md.
 """
 
 from __future__ import annotations
@@ -41,38 +36,26 @@ from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows
 
 def action_repeat_of(model: BaseAlgorithm) -> int:
     """
-    Frames per agent step of a model's environment: ``model.action_repeat`` (a
-    :class:`~sb3_collapse.common.model.CollapseModel`), else the ``action_repeat`` attribute of its (first)
-    environment when it has one (``make_dmc_env``), else 1.
-
     :param model: an SB3 algorithm
-    :return: the action repeat
+    :return: frames per agent step: ``model.action_repeat`` (a ``CollapseModel``), else its environment's, else 1
     """
     return model.action_repeat if isinstance(model, CollapseModel) else env_action_repeat(model.get_env())
 
 
 def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
     """
-    Frames so far: ``num_timesteps x action_repeat``.
-
     :param model: an SB3 algorithm
     :param action_repeat: frames per agent step, ``None`` to read it with :func:`action_repeat_of`
-    :return: the frame count
+    :return: frames so far, ``num_timesteps x action_repeat``
     """
     return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
 
 
 class MetricsBatchSampler:
     """
-    Draws a metrics batch of observations from a replay buffer without touching the training's random streams.
-
-    Indices are drawn, without replacement, from the valid stored positions with this object's own
-    ``np.random.Generator``; the observations are then read through the buffer's ``_get_samples(indices, env)``,
-    the path SB3's ``sample()`` uses, so that any buffer class following SB3's interface works (including
-    buffers that do not store an ``observations`` array). SB3's ``_get_samples`` draws the environment index of
-    each sample from the global ``np.random``: its state is saved before the call and restored after it, so
-    the training's replay sampling is the same with or without the metrics. Observations are the stored ones
-    (stacked pixels), not augmented.
+    Draws a metrics batch from a replay buffer without touching the training's random streams: stored positions
+    without replacement from its own generator, read through the buffer's ``_get_samples`` with NumPy's global state
+    restored after it; the stored observations, not augmented.
 
     :param seed: seed of the index generator (``None``: fresh entropy)
     """
@@ -101,12 +84,9 @@ class MetricsBatchSampler:
 
     def sample_transitions(self, model: BaseAlgorithm, batch_size: int) -> tuple[Any, np.ndarray] | None:
         """
-        Like :meth:`sample`, with the whole stored transitions (observations, actions as stored, rewards...).
-
         :param model: an off-policy model with a ``replay_buffer``
         :param batch_size: transitions to draw
-        :return: ``(ReplayBufferSamples, buffer indices)``, or ``None`` while the buffer holds fewer than
-            ``batch_size`` transitions
+        :return: ``(ReplayBufferSamples, buffer indices)``, or ``None`` while the buffer holds fewer transitions
         """
         buffer = getattr(model, "replay_buffer", None)
         if buffer is None:
@@ -128,10 +108,7 @@ class MetricsBatchSampler:
     def _sample_where_sampleable(
         self, buffer: Any, positions: np.ndarray, batch_size: int, env: Any
     ) -> tuple[Any, np.ndarray] | None:
-        """
-        Draw ``(position, env)`` pairs among those whose frames ``buffer.frames_stored``; ``None`` if too few. Any
-        stored observation will do for the metrics, whatever the buffer's sampling rule for updates.
-        """
+        """Draw ``(position, env)`` pairs among those whose frames ``buffer.frames_stored``; ``None`` if too few."""
         pairs = np.stack(np.meshgrid(positions, np.arange(buffer.n_envs), indexing="ij"), -1).reshape(-1, 2)
         pairs = pairs[buffer.frames_stored(pairs[:, 0], pairs[:, 1])]
         if len(pairs) < batch_size:
@@ -143,17 +120,9 @@ class MetricsBatchSampler:
 
 class ResumableCallback(BaseCallback):
     """
-    A callback whose state can be saved in a run checkpoint and put back in another process
-    (:mod:`sb3_collapse.run.checkpoints`), or saved with ``DrQv2.save``.
-
-    :meth:`state_dict` returns the attributes named by :attr:`state_attributes` (deep copies), the state of the
-    random generator of its ``sampler``, if it has one, and the model's agent steps when it was taken.
-    :meth:`load_state_dict` keeps a state until the next ``learn()`` starts: the callback is then initialized as usual
-    (``_init_callback``) and, instead of starting afresh (``_on_training_start``), takes the saved state, so the
-    resumed ``learn()`` continues where the saved one was. A ``learn()`` that restarted the step count at 0
-    (``reset_num_timesteps=True``) from a state taken later is a new run: it starts afresh. A state taken at step 0
-    (a run stopped during its first evaluation) is continued at step 0: what the callback did at the start is not
-    done twice.
+    A callback whose state (:attr:`state_attributes`, its sampler's generator, the agent step) is saved in run
+    checkpoints and with ``DrQv2.save``, and taken instead of a fresh start by the next ``learn()`` (unless that
+    restarts the step count from a later state). See docs/monitoring.md#one-schedule.
     """
 
     state_attributes: tuple[str, ...] = ()
@@ -162,7 +131,7 @@ class ResumableCallback(BaseCallback):
     _pending_state: dict[str, Any] | None = None
 
     def init_callback(self, model: BaseAlgorithm) -> None:
-        """SB3's, with a model of SB3's own TD3, DDPG or SAC class given the model interface (``collapse_model``)."""
+        """SB3's, on ``collapse_model(model)``."""
         super().init_callback(collapse_model(model))
 
     def state_dict(self) -> dict[str, Any]:
@@ -178,8 +147,7 @@ class ResumableCallback(BaseCallback):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """
-        :param state: a :meth:`state_dict` taken while attached to a model, taken at the start of the next
-            ``learn()`` instead of a fresh start
+        :param state: a :meth:`state_dict` taken while attached to a model, taken when the next ``learn()`` starts
         :raises ValueError: for a state that lacks one of its entries (one written by another version)
         """
         missing = [name for name in (*self.state_attributes, "num_timesteps") if name not in state]
@@ -191,10 +159,7 @@ class ResumableCallback(BaseCallback):
         self._pending_state = state
 
     def get_config(self) -> dict[str, Any]:
-        """
-        :return: the constructor's arguments (read from the attributes of the same names), to build this callback
-            again (:func:`sb3_collapse.common.saved_callbacks.restore_callbacks`)
-        """
+        """:return: the constructor's arguments (the attributes of the same names), to build this callback again"""
         parameters = [name for name in inspect.signature(type(self).__init__).parameters if name != "self"]
         config = {name: copy.deepcopy(getattr(self, name)) for name in parameters}
         kwargs = config.get("intervention_kwargs")
@@ -220,18 +185,11 @@ class ResumableCallback(BaseCallback):
 
 class FrameScheduleCallback(ResumableCallback):
     """
-    The schedule of every periodic callback: calls :meth:`_on_check` at the first step where the count reaches each
-    multiple of the period. The count is the frames (agent steps x action repeat, see :func:`frames_of`), or what
-    :meth:`_count` counts instead (:class:`~sb3_collapse.monitoring.redo.PeriodicReDo`: updates). A step that crosses
-    several multiples at once (several environments, an action repeat that does not divide the period) gives one
-    check. The next check and the checks so far are part of the state: a resumed run checks at the same counts.
+    The schedule of every periodic callback: :meth:`_on_check` at the first step where the frames (or what
+    :meth:`_count` counts) reach each multiple of the period, once for a step that crosses several; resumable.
+    See docs/monitoring.md#one-schedule.
 
-    With :attr:`check_at_start`, a ``learn()`` that starts at a multiple (frame 0) checks at its start too, and the
-    last step of ``learn()`` is not checked (SB3 calls the callbacks before that step's updates: the model ``learn()``
-    returns is the caller's to check, as :func:`~sb3_collapse.run.runner.train` evaluates the saved model).
-
-    :param check_every_frames: frames between two checks (a subclass may name it otherwise:
-        :attr:`period_parameter`)
+    :param check_every_frames: frames between two checks (a subclass may name it :attr:`period_parameter`)
     :param verbose: 0 silent, 1 info
     """
 
@@ -241,17 +199,15 @@ class FrameScheduleCallback(ResumableCallback):
     min_period = 1
     """The smallest period allowed (0: no scheduled check, for a callback that also acts on demand)."""
     check_at_start = False
-    """Check at the start of ``learn()`` (at a multiple of the period), not at its last step."""
+    """Check at the start of ``learn()`` (at a multiple of the period), not at its last step (before its updates)."""
 
     def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
         super().__init__(verbose)
         if check_every_frames < self.min_period:
             raise ValueError(f"{self.period_parameter} must be >= {self.min_period}, got {check_every_frames}.")
         setattr(self, self.period_parameter, check_every_frames)
-        self.next_check = 0
-        """The count of the next check (set when ``learn()`` starts)."""
-        self.n_checks = 0
-        """Checks run so far (all ``learn()`` calls)."""
+        self.next_check = 0  # the count of the next check, set when learn() starts
+        self.n_checks = 0  # checks so far, all learn() calls
         self.action_repeat = 1
 
     @property
@@ -303,25 +259,18 @@ class FrameScheduleCallback(ResumableCallback):
 
 class CollapseMetrics(FrameScheduleCallback):
     """
-    Logs the collapse metrics of every named layer to the SB3 logger (TensorBoard) every ``check_every_frames``,
-    on a metrics batch of ``batch_size`` replay observations (:class:`MetricsBatchSampler`; a check is skipped
-    while the buffer holds fewer).
+    Logs the collapse metrics of every named layer (tags: docs/monitoring.md) every ``check_every_frames`` on a
+    metrics batch of replay observations (skipped while fewer are stored); the last values in :attr:`last_metrics`.
 
-    Tags: ``collapse/<layer>/{numerical_rank,srank,correlation,input_correlation,zero_fraction,dead_fraction,
-    dead_units,dormant_ratio,grad_norm}`` (definitions in :mod:`sb3_collapse.monitoring.metrics`; ``grad_norm`` at
-    the last update before the check), ``collapse/action_std``, ``collapse/action_saturation`` and
-    ``time/frames``, written at the check's agent step; the last values are in :attr:`last_metrics`. With
-    ``csv_path`` each check also appends one row per tag, columns :attr:`CSV_FIELDS`. See docs/monitoring.md.
-
-    :param check_every_frames: frames between two checks (the paper's ``PAPER.check_every_frames``)
-    :param batch_size: observations of the metrics batch (512)
+    :param check_every_frames: frames between two checks
+    :param batch_size: observations of the metrics batch
     :param layers: the named layers to measure, ``None`` for all (``cnn0`` .. ``action``)
     :param tau: threshold of the dormant ratio
     :param delta: threshold of the effective rank
     :param saturation_limit: ``|a|`` above which an action component counts as saturated
     :param forward_batch_size: observations per forward pass
     :param seed: seed of the batch's indices; ``None``: derived from the model's seed
-    :param csv_path: CSV file that each check appends its rows to (``None``: TensorBoard only)
+    :param csv_path: CSV file that each check appends one row per tag to, columns :attr:`CSV_FIELDS` (``None``: none)
     :param verbose: 0 silent, 1 prints a line per check
     """
 
@@ -362,11 +311,7 @@ class CollapseMetrics(FrameScheduleCallback):
             append_csv_rows(self.csv_path, self.CSV_FIELDS, [])
 
     def compute(self) -> dict[str, float] | None:
-        """
-        Every metric on a new metrics batch, without logging.
-
-        :return: tag -> value, or ``None`` while the buffer holds fewer than ``batch_size`` transitions
-        """
+        """:return: every metric on a new metrics batch, not logged: tag -> value (``None`` while too few are stored)"""
         assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
         batch = self.sampler.sample(self.model, self.batch_size)
         if batch is None:
@@ -416,17 +361,14 @@ class CollapseMetrics(FrameScheduleCallback):
 
 class ActivationLogger(FrameScheduleCallback):
     """
-    Saves the named activations of a metrics batch (drawn as in :class:`CollapseMetrics`) every ``every_frames``,
-    for offline analysis: one compressed ``<path>/activations_<agent step, 10 digits>.npz`` per save, with one
-    float32 ``(batch_size, *shape)`` array per layer, ``step`` (agent steps), ``frames``, ``indices`` (replay-buffer
-    positions) and ``layers``. Skipped while the buffer holds fewer than ``batch_size`` transitions; once a file
-    would take the total over ``max_bytes`` it is deleted with a warning and nothing more is saved.
+    Saves the named activations of a metrics batch every ``every_frames``: ``<path>/activations_<agent step, 10
+    digits>.npz``, one float32 ``(batch_size, *shape)`` array per layer, ``step``, ``frames``, ``indices`` (buffer
+    positions) and ``layers``; a file that would take the total over ``max_bytes`` stops the saves, with a warning.
 
     :param every_frames: frames between two saves
     :param path: folder of the files (created if needed)
     :param batch_size: observations of the metrics batch
-    :param layers: names to save; ``None``: ``mlp0``, ``mlp1``, ``mlp2``, ``action`` (ask for the larger
-        convolutional activations by name)
+    :param layers: names to save; ``None``: ``mlp0``, ``mlp1``, ``mlp2``, ``action``
     :param max_bytes: the most bytes all the files of this callback may take
     :param seed: seed of the batch's indices; ``None``: derived from the model's seed
     :param verbose: 0 silent, 1 prints a line per file
