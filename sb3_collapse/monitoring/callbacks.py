@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import copy
 import inspect
+import io
 import os
-import tempfile
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
@@ -31,7 +31,7 @@ from sb3_collapse.monitoring.metrics import (
     saturated_fraction,
 )
 from sb3_collapse.paper import PAPER, metric_tag
-from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows
+from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows, atomic_output
 
 
 def action_repeat_of(model: BaseAlgorithm) -> int:
@@ -416,15 +416,11 @@ class ActivationLogger(FrameScheduleCallback):
         observations, indices = batch
         activations = collect_activations(self.model, observations, layers=self.layers)
         arrays = {name: value.numpy() for name, value in activations.items()}
-        target = self.path / f"activations_{self.num_timesteps:010d}.npz"
-        handle, temporary = tempfile.mkstemp(suffix=".npz", dir=self.path)
-        os.close(handle)
-        np.savez_compressed(
-            temporary, **arrays, step=self.num_timesteps, frames=frames, indices=indices, layers=np.array(list(arrays))
-        )
-        size = os.path.getsize(temporary)
+        content = io.BytesIO()
+        layers = np.array(list(arrays))
+        np.savez_compressed(content, **arrays, step=self.num_timesteps, frames=frames, indices=indices, layers=layers)
+        size = content.getbuffer().nbytes
         if self.bytes_written + size > self.max_bytes:
-            os.remove(temporary)
             self.stopped = True
             warnings.warn(
                 f"ActivationLogger: the activations at frame {frames} ({size / 1e6:.1f} MB) would take {self.path} "
@@ -433,7 +429,9 @@ class ActivationLogger(FrameScheduleCallback):
                 stacklevel=2,
             )
             return
-        os.replace(temporary, target)
+        target = self.path / f"activations_{self.num_timesteps:010d}.npz"
+        with atomic_output(target) as temporary:
+            temporary.write_bytes(content.getvalue())
         self.bytes_written += size
         self.saved.append(target)
         if self.verbose >= 1:

@@ -17,8 +17,9 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from torch import nn
 
 from sb3_collapse.baselines import collapse_model
-from sb3_collapse.common.layers import LayerParts, layer_taps, reinitialize, sequential_hidden_parts
+from sb3_collapse.common.layers import LayerParts, LayerTap, layer_taps, reinitialize, sequential_hidden_parts
 from sb3_collapse.common.model import CollapseModel
+from sb3_collapse.monitoring.activations import reading
 from sb3_collapse.monitoring.callbacks import MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.monitoring.metrics import DORMANT_TAU, dormant_units
@@ -47,42 +48,22 @@ class InterventionResult:
 
 @runtime_checkable
 class InterventionParts(Protocol):
-    """What a policy provides for the interventions to act on it (``DrQv2Policy`` by duck typing; SB3's TD3, DDPG and
-    SAC policies through an adapter, :func:`intervention_parts`). See docs/interventions.md#the-interventions."""
+    """
+    What a policy provides for the interventions to act on it, ``DrQv2Policy`` by duck typing, SB3's TD3, DDPG and
+    SAC policies through an adapter (:func:`intervention_parts`); each method: docs/interventions.md#the-interventions.
+    """
 
     @property
-    def optimizers(self) -> list[th.optim.Optimizer]:
-        """The optimizers of the policy's networks (an entropy coefficient's excluded)."""
-
-    def named_layers(self) -> dict[str, nn.Module]:
-        """The module producing each named activation (``cnn0``..``action``), input to output."""
-
-    def initialize_weights(self, module: nn.Module) -> None:
-        """New initial values, in place, for every parameter of ``module`` with the algorithm's initializer, from
-        torch's global generator in ``module.modules()`` order; a ``TypeError`` for a submodule it cannot initialize."""
-
-    def online_networks(self) -> dict[str, nn.Module]:
-        """The trained networks by name (``encoder``, ``actor``, ``critic``): what shrink and perturb changes."""
-
-    def target_networks(self) -> dict[str, nn.Module]:
-        """The target networks by name (``target critic``; a ``target actor`` is kept a copy of ``actor``)."""
-
-    def actor_modules(self) -> list[nn.Module]:
-        """What ``reset_actor`` renews: the actor, with a features extractor of its own."""
-
-    def actor_mlp_modules(self) -> list[nn.Module]:
-        """What ``reset_mlp`` renews: the actor's layers after the encoder or features extractor."""
-
-    def hidden_layer_parts(self) -> list[LayerParts]:
-        """The actor's then the critic's hidden layers that ReDo may recycle, each with every consumer of its units."""
-
-    def encoder_channel_parts(self) -> list[LayerParts]:
-        """The encoder's convolutions as layers of channels that ReDo may recycle, input to output, each with every
-        consumer (in any network, targets included); ``[]`` when there are none."""
-
-    def forward_hidden(self, observations: Any, actions: th.Tensor) -> None:
-        """Run the layers of the two methods above on ``(n, ...)`` observations and ``(n, action_dim)`` actions, for
-        forward hooks to read (the caller sets the mode and the gradient)."""
+    def optimizers(self) -> list[th.optim.Optimizer]: ...  # of the networks (an entropy coefficient's excluded)
+    def named_layers(self) -> dict[str, nn.Module]: ...  # the module making each named activation, input to output
+    def initialize_weights(self, module: nn.Module) -> None: ...  # new initial values in place, the algorithm's way
+    def online_networks(self) -> dict[str, nn.Module]: ...  # the trained networks by name: what shrink-perturb changes
+    def target_networks(self) -> dict[str, nn.Module]: ...  # by name; a "target actor" is kept a copy of "actor"
+    def actor_modules(self) -> list[nn.Module]: ...  # what reset_actor renews
+    def actor_mlp_modules(self) -> list[nn.Module]: ...  # what reset_mlp renews: the actor after the encoder
+    def hidden_layer_parts(self) -> list[LayerParts]: ...  # the actor's, then the critic's, that ReDo may recycle
+    def encoder_channel_parts(self) -> list[LayerParts]: ...  # the encoder's convolutions ReDo may recycle, or []
+    def forward_hidden(self, observations: Any, actions: th.Tensor) -> None: ...  # run the layers of the two above
 
 
 class _SB3Parts:
@@ -290,8 +271,7 @@ def encoder_channels(model: BaseAlgorithm) -> list[LayerParts]:
 
 def hidden_activations(model: BaseAlgorithm, layers: Sequence[LayerParts], samples: Any) -> dict[str, th.Tensor]:
     """
-    The activations of hidden layers on a batch of stored transitions, in eval mode, without gradient (the mode is
-    restored afterwards).
+    The activations of hidden layers on a batch of stored transitions, in eval mode, without gradient.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param layers: from :func:`hidden_layers` or :func:`encoder_channels`
@@ -299,26 +279,10 @@ def hidden_activations(model: BaseAlgorithm, layers: Sequence[LayerParts], sampl
     :return: layer name -> ``(n, units)`` float tensor (``(n, channels, height, width)`` for a convolution)
     """
     parts = intervention_parts(model)
-    policy = model.policy
-    outputs: dict[str, th.Tensor] = {}
-
-    def hook(name: str) -> Callable[..., None]:
-        def store(_module: nn.Module, _args: Any, output: th.Tensor) -> None:
-            outputs[name] = output.detach().float().clone()
-
-        return store
-
-    handles = [layer.activation.register_forward_hook(hook(layer.name)) for layer in layers]
-    was_training = policy.training
-    policy.set_training_mode(False)
-    try:
-        with th.no_grad():
-            parts.forward_hidden(samples.observations, samples.actions)
-    finally:
-        for handle in handles:
-            handle.remove()
-        policy.set_training_mode(was_training)
-    return outputs
+    taps = {layer.name: LayerTap(layer.activation, ()) for layer in layers}
+    with reading(model.policy, taps, device=None) as outputs:  # each on its own device
+        parts.forward_hidden(samples.observations, samples.actions)
+    return {name: chunks[-1] for name, chunks in outputs.items()}
 
 
 def redo(

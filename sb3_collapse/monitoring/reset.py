@@ -1,8 +1,4 @@
-"""
-The action-collapse paper's rule (Section 5.2): reset the training from scratch when the agent has not escaped
-action collapse within a window of frames, or apply another intervention
-(:mod:`~sb3_collapse.monitoring.interventions`).
-"""
+"""The action-collapse paper's reset rule (Section 5.2), with a choice of intervention: :class:`CollapseReset`."""
 
 from __future__ import annotations
 
@@ -34,17 +30,10 @@ Trigger = str | Callable[[BaseAlgorithm], "float | None"]
 
 class CollapseReset(FrameScheduleCallback):
     """
-    Resets the training from scratch while the agent is stuck in action collapse (the paper's rule), or applies
-    another ``intervention``, on a DrQv2, TD3, DDPG or SAC model. The defaults are the paper's
-    (:data:`sb3_collapse.paper.PAPER`, Section 5.2: "if we do not see a gradient norm larger than [``threshold``]
-    of consecutive five computations every 2e5 frames, the training would be reset").
-
-    Every ``check_every_frames`` frames it reads a health value (by default the gradient L2 norm of ``layer`` at
-    the last update); ``patience`` consecutive values ``> threshold`` are an escape, after which the rule never
-    fires again. A window of ``window_frames`` since the start or the last intervention that ends without an
-    escape applies the intervention, except at or after the last frame of the ``learn()`` call. The state carries
-    over to a ``learn(reset_num_timesteps=False)``. What it logs (TensorBoard and ``events_path``, columns
-    :attr:`EVENT_FIELDS`) and why: docs/monitoring.md and docs/interventions.md#what-is-logged.
+    The paper's rule (Section 5.2, defaults :data:`sb3_collapse.paper.PAPER`): "if we do not see a gradient norm
+    larger than [``threshold``] of consecutive five computations every 2e5 frames, the training would be reset", or
+    another ``intervention``, on a DrQv2, TD3, DDPG or SAC model; no intervention at or after the last frame of
+    ``learn()``. Rule and logs: docs/monitoring.md#the-rule, docs/interventions.md#what-is-logged.
 
     :param window_frames: frames after the start or the last reset within which the agent must escape
     :param check_every_frames: frames between two checks of the metric
@@ -55,9 +44,9 @@ class CollapseReset(FrameScheduleCallback):
     :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"``
         (:func:`~sb3_collapse.monitoring.metrics.action_spread` on a metrics batch), or a callable
         ``model -> float | None`` (``None``: no value at this check); above ``threshold`` is healthy
-    :param batch_size: metrics batch of replay observations for ``metric="action_std"`` and for
-        ``intervention="redo"`` (the batch its dormant units are measured on)
-    :param events_path: CSV file that each intervention and the escape append a row to (``None``: no file)
+    :param batch_size: replay observations of the batch of ``metric="action_std"`` and ``intervention="redo"``
+    :param events_path: CSV file that each intervention and the escape append a row to, columns :attr:`EVENT_FIELDS`
+        (``None``: no file)
     :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's) or another
         intervention of :mod:`~sb3_collapse.monitoring.interventions`
     :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"`` or
@@ -156,15 +145,8 @@ class CollapseReset(FrameScheduleCallback):
 
     def _write_event(self, frames: int, event: str, detail: str = "") -> None:
         if self.events_path is not None:
-            row = {
-                "frame": frames,
-                "step": self.num_timesteps,
-                "event": event,
-                "resets": self.resets,
-                "intervention": self.intervention,
-                "detail": detail,
-            }
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [row])
+            values = (frames, self.num_timesteps, event, self.resets, self.intervention, detail)
+            append_csv_rows(self.events_path, self.EVENT_FIELDS, [dict(zip(self.EVENT_FIELDS, values, strict=True))])
 
     def _on_training_start(self) -> None:
         super()._on_training_start()
@@ -176,11 +158,7 @@ class CollapseReset(FrameScheduleCallback):
             self.window_start_frame = reset_step * self.action_repeat
 
     def read_metric(self) -> float | None:
-        """
-        The health value of the model now (see ``metric``).
-
-        :return: the value, or ``None`` when there is none at this point
-        """
+        """:return: the health value of the model now (see ``metric``), ``None`` when there is none"""
         if callable(self.metric):
             value = self.metric(self.model)
             return None if value is None else float(value)
@@ -198,7 +176,7 @@ class CollapseReset(FrameScheduleCallback):
         frames = self.frames
         if not self.escaped and frames - self.window_start_frame >= self.window_frames:
             if frames >= self._budget_end_frame():
-                pass  # the window ends with the budget: nothing trains after it, so no reset (see the class doc)
+                pass  # the window ends with the budget: nothing trains after it, so no reset
             elif self.max_resets is None or self.resets < self.max_resets:
                 self._reset(frames)
             else:
