@@ -10,7 +10,7 @@ import inspect
 import io
 import os
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -63,21 +63,11 @@ class MetricsBatchSampler:
     def __init__(self, seed: int | None = None) -> None:
         self.rng = np.random.default_rng(seed)
 
-    @staticmethod
-    def valid_positions(buffer: Any) -> np.ndarray:
-        """Stored positions of a buffer (``optimize_memory_usage`` excludes the one at ``pos``)."""
-        upper = buffer.buffer_size if buffer.full else buffer.pos
-        positions = np.arange(upper)
-        if getattr(buffer, "optimize_memory_usage", False) and buffer.full:
-            positions = positions[positions != buffer.pos]
-        return positions
-
     def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[Observations, np.ndarray] | None:
         """
         :param model: an off-policy model with a ``replay_buffer``
         :param batch_size: observations to draw
-        :return: ``(observations, buffer indices)``: a tensor ``(batch_size, ...)``, or a dict of them for dict
-            observations (``MultiInputPolicy``); ``None`` while the buffer holds fewer than ``batch_size`` transitions
+        :return: ``(observations (batch_size, ...) or a dict of them, buffer indices)``, ``None`` while fewer are stored
         """
         drawn = self.sample_transitions(model, batch_size)
         return None if drawn is None else (drawn[0].observations, drawn[1])
@@ -91,7 +81,9 @@ class MetricsBatchSampler:
         buffer = getattr(model, "replay_buffer", None)
         if buffer is None:
             raise TypeError(f"{type(model).__name__} has no replay buffer to draw a metrics batch from.")
-        positions = self.valid_positions(buffer)
+        positions = np.arange(buffer.buffer_size if buffer.full else buffer.pos)
+        if getattr(buffer, "optimize_memory_usage", False) and buffer.full:  # the position at pos is not stored
+            positions = positions[positions != buffer.pos]
         if len(positions) < batch_size:
             return None
         env = model.get_vec_normalize_env()
@@ -161,11 +153,7 @@ class ResumableCallback(BaseCallback):
     def get_config(self) -> dict[str, Any]:
         """:return: the constructor's arguments (the attributes of the same names), to build this callback again"""
         parameters = [name for name in inspect.signature(type(self).__init__).parameters if name != "self"]
-        config = {name: copy.deepcopy(getattr(self, name)) for name in parameters}
-        kwargs = config.get("intervention_kwargs")
-        if isinstance(kwargs, dict):  # objects the callback added itself (its metrics batch sampler) are not arguments
-            config["intervention_kwargs"] = {k: v for k, v in kwargs.items() if not isinstance(v, MetricsBatchSampler)}
-        return config
+        return {name: copy.deepcopy(getattr(self, name)) for name in parameters}
 
     def on_training_start(self, locals_: dict[str, Any], globals_: dict[str, Any]) -> None:
         state, self._pending_state = self._pending_state, None
@@ -253,8 +241,17 @@ class FrameScheduleCallback(ResumableCallback):
         """A check at ``count`` (frames, or what :meth:`_count` counts); ``False`` stops ``learn()``."""
         raise NotImplementedError
 
-    def _seed(self) -> int | None:
-        return None if self.model.seed is None else int(self.model.seed) + 1_000_003
+    @staticmethod
+    def _append_rows(path: Path | None, fields: Sequence[str], *rows: Sequence[Any]) -> None:
+        """Append ``rows`` (values in the order of ``fields``) to the CSV file ``path``, if any, its header first."""
+        if path is not None:
+            append_csv_rows(path, fields, [dict(zip(fields, row, strict=True)) for row in rows])
+
+    def _new_sampler(self, seed: int | None = None, offset: int = 1_000_003) -> MetricsBatchSampler:
+        """A metrics batch sampler seeded with ``seed``, else with the model's seed plus ``offset``."""
+        if seed is None and self.model.seed is not None:
+            seed = int(self.model.seed) + offset
+        return MetricsBatchSampler(seed)
 
 
 class CollapseMetrics(FrameScheduleCallback):
@@ -270,11 +267,10 @@ class CollapseMetrics(FrameScheduleCallback):
     :param saturation_limit: ``|a|`` above which an action component counts as saturated
     :param forward_batch_size: observations per forward pass
     :param seed: seed of the batch's indices; ``None``: derived from the model's seed
-    :param csv_path: CSV file that each check appends one row per tag to, columns :attr:`CSV_FIELDS` (``None``: none)
+    :param csv_path: CSV file that each check appends a row per tag to (``None``: none)
     :param verbose: 0 silent, 1 prints a line per check
     """
 
-    CSV_FIELDS = COLLAPSE_METRICS_FIELDS
     state_attributes = (*FrameScheduleCallback.state_attributes, "last_metrics")
 
     def __init__(
@@ -306,9 +302,8 @@ class CollapseMetrics(FrameScheduleCallback):
 
     def _init_callback(self) -> None:
         super()._init_callback()
-        self.sampler = MetricsBatchSampler(self.seed if self.seed is not None else self._seed())
-        if self.csv_path is not None:
-            append_csv_rows(self.csv_path, self.CSV_FIELDS, [])
+        self.sampler = self._new_sampler(self.seed)
+        self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS)
 
     def compute(self) -> dict[str, float] | None:
         """:return: every metric on a new metrics batch, not logged: tag -> value (``None`` while too few are stored)"""
@@ -316,15 +311,14 @@ class CollapseMetrics(FrameScheduleCallback):
         batch = self.sampler.sample(self.model, self.batch_size)
         if batch is None:
             return None
-        observations, _ = batch
-        device = self.model.device
         activations = collect_activations(
-            self.model, observations, layers=self.layers, batch_size=self.forward_batch_size, device=device
+            self.model, batch[0], layers=self.layers, batch_size=self.forward_batch_size, device=self.model.device
         )
-        values: dict[str, float] = {}
-        for layer, acts in activations.items():
-            for name, value in layer_metrics(acts, self.tau, self.delta).items():
-                values[f"collapse/{layer}/{name}"] = value
+        values = {
+            f"collapse/{layer}/{name}": value
+            for layer, acts in activations.items()
+            for name, value in layer_metrics(acts, self.tau, self.delta).items()
+        }
         for layer, norm in grad_norms_of(self.model).items():
             if self.layers is None or layer in self.layers:
                 values[f"collapse/{layer}/grad_norm"] = norm
@@ -337,25 +331,18 @@ class CollapseMetrics(FrameScheduleCallback):
         values = self.compute()
         if values is None:
             if self.verbose >= 1:
-                print(
-                    f"CollapseMetrics: check at frame {frames} skipped, fewer than {self.batch_size} transitions stored"
-                )
+                print(f"CollapseMetrics: frame {frames} skipped, fewer than {self.batch_size} transitions stored")
             return
         self.last_metrics = values
         for tag, value in values.items():
             self.logger.record(tag, value)
         self.logger.record("time/frames", frames)
         self.logger.dump(self.num_timesteps)
-        if self.csv_path is not None:
-            step = self.num_timesteps
-            rows = [{"frame": frames, "step": step, "tag": tag, "value": value} for tag, value in values.items()]
-            append_csv_rows(self.csv_path, self.CSV_FIELDS, rows)
+        rows = [(frames, self.num_timesteps, tag, value) for tag, value in values.items()]
+        self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS, *rows)
         if self.verbose >= 1:
-            summary = ", ".join(
-                f"{k}={v:.4g}"
-                for k, v in values.items()
-                if k.startswith((metric_tag(PAPER.layer, ""), "collapse/action_std"))
-            )
+            shown = (metric_tag(PAPER.layer, ""), "collapse/action_std")
+            summary = ", ".join(f"{k}={v:.4g}" for k, v in values.items() if k.startswith(shown))
             print(f"CollapseMetrics at frame {frames}: {summary}")
 
 
@@ -374,7 +361,6 @@ class ActivationLogger(FrameScheduleCallback):
     :param verbose: 0 silent, 1 prints a line per file
     """
 
-    DEFAULT_LAYERS = ("mlp0", "mlp1", "mlp2", "action")
     period_parameter = "every_frames"
     state_attributes = (*FrameScheduleCallback.state_attributes, "bytes_written", "stopped")
 
@@ -393,7 +379,7 @@ class ActivationLogger(FrameScheduleCallback):
             raise ValueError(f"max_bytes must be > 0, got {max_bytes}.")
         self.path = Path(path)
         self.batch_size = batch_size
-        self.layers = list(self.DEFAULT_LAYERS if layers is None else layers)
+        self.layers = list(("mlp0", "mlp1", "mlp2", "action") if layers is None else layers)
         self.max_bytes = max_bytes
         self.seed = seed
         self.sampler: MetricsBatchSampler | None = None
@@ -404,7 +390,7 @@ class ActivationLogger(FrameScheduleCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         self.path.mkdir(parents=True, exist_ok=True)
-        self.sampler = MetricsBatchSampler(self.seed if self.seed is not None else self._seed())
+        self.sampler = self._new_sampler(self.seed)
 
     def _on_check(self, frames: int) -> None:
         if self.stopped:

@@ -1,7 +1,7 @@
 """
-Interventions on an actor-critic stuck in action collapse, what :class:`~sb3_collapse.monitoring.reset.CollapseReset`
-applies at the end of a window without escape: each a function ``model -> InterventionResult`` acting on the
-:class:`InterventionParts` of the model's policy. What each resets and keeps: docs/interventions.md#the-interventions.
+The interventions that :class:`~sb3_collapse.monitoring.reset.CollapseReset` applies at the end of a window without
+escape, each ``model -> InterventionResult`` on the :class:`InterventionParts` of the model's policy (what each resets
+and keeps: docs/interventions.md#the-interventions).
 """
 
 from __future__ import annotations
@@ -68,9 +68,8 @@ class InterventionParts(Protocol):
 
 class _SB3Parts:
     """
-    :class:`InterventionParts` of SB3's TD3 and DDPG (``kind="td3"``) or SAC (``kind="sac"``) policies: the layers
-    named by :func:`~sb3_collapse.common.layers.layer_taps`, found by ``sequential_hidden_parts``, initialized by
-    ``reinitialize`` (PyTorch's defaults).
+    :class:`InterventionParts` of an SB3 TD3 or DDPG (``kind="td3"``) or SAC (``kind="sac"``) policy, from the layers
+    of :mod:`sb3_collapse.common.layers`.
 
     :param policy: the model's policy
     :param kind: ``"td3"`` or ``"sac"``
@@ -255,7 +254,7 @@ def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
 def hidden_layers(model: BaseAlgorithm) -> list[LayerParts]:
     """
     :param model: a DrQv2, TD3, DDPG or SAC model
-    :return: the hidden layers :func:`redo` considers, actor first (:meth:`InterventionParts.hidden_layer_parts`)
+    :return: the actor's then the critic's hidden layers that :func:`redo` may recycle
     """
     return intervention_parts(model).hidden_layer_parts()
 
@@ -263,26 +262,9 @@ def hidden_layers(model: BaseAlgorithm) -> list[LayerParts]:
 def encoder_channels(model: BaseAlgorithm) -> list[LayerParts]:
     """
     :param model: a DrQv2 model (``CnnPolicy``); another model or ``MlpPolicy`` has none
-    :return: ``cnn1``..``cnn4`` as layers of channels that :func:`redo` may recycle
-        (:meth:`InterventionParts.encoder_channel_parts`), input to output
+    :return: ``cnn1``..``cnn4`` as layers of channels that :func:`redo` may recycle, input to output
     """
     return intervention_parts(model).encoder_channel_parts()
-
-
-def hidden_activations(model: BaseAlgorithm, layers: Sequence[LayerParts], samples: Any) -> dict[str, th.Tensor]:
-    """
-    The activations of hidden layers on a batch of stored transitions, in eval mode, without gradient.
-
-    :param model: a DrQv2, TD3, DDPG or SAC model
-    :param layers: from :func:`hidden_layers` or :func:`encoder_channels`
-    :param samples: replay samples (``observations``, ``actions``)
-    :return: layer name -> ``(n, units)`` float tensor (``(n, channels, height, width)`` for a convolution)
-    """
-    parts = intervention_parts(model)
-    taps = {layer.name: LayerTap(layer.activation, ()) for layer in layers}
-    with reading(model.policy, taps, device=None) as outputs:  # each on its own device
-        parts.forward_hidden(samples.observations, samples.actions)
-    return {name: chunks[-1] for name, chunks in outputs.items()}
 
 
 def redo(
@@ -297,8 +279,8 @@ def redo(
     ReDo, "Recycling Dormant neurons" (Sokar et al., ICML 2023), once: each dormant unit
     (:func:`~sb3_collapse.monitoring.metrics.dormant_units`) of :func:`hidden_layers` (and with ``conv_channels`` of
     :func:`encoder_channels`) gets new incoming weights, zero outgoing weights in every network that reads it and
-    zero Adam moments for those entries, so no network's output changes. The periodic form is
-    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`. See docs/interventions.md#the-interventions.
+    zero Adam moments for those entries, so no network's output changes (periodic form:
+    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`).
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param tau: the dormancy threshold, relative to the layer's mean
@@ -306,8 +288,7 @@ def redo(
     :param sampler: draws that batch (``None``: a new :class:`MetricsBatchSampler` seeded from the model's seed)
     :param samples: the batch itself (``observations``, ``actions``), instead of drawing one
     :param conv_channels: recycle the dormant channels of DrQ-v2's ``cnn1``..``cnn4`` too
-    :return: what was done; with fewer than ``batch_size`` stored transitions nothing is recycled and the detail
-        says so
+    :return: what was done (nothing, and the detail says so, with fewer than ``batch_size`` stored transitions)
     """
     parts = intervention_parts(model)
     layers = (encoder_channels(model) if conv_channels else []) + hidden_layers(model)
@@ -320,9 +301,11 @@ def redo(
             scalars = {"weights_changed": 0.0, "units_recycled": 0.0, "units_total": float(total)}
             return InterventionResult("redo", detail, scalars, {layer.name: () for layer in layers})
         samples = drawn[0]
-    activations = hidden_activations(model, layers, samples)
+    taps = {layer.name: LayerTap(layer.activation, ()) for layer in layers}
+    with reading(model.policy, taps, device=None) as outputs:  # eval mode, no gradient; each on its own device
+        parts.forward_hidden(samples.observations, samples.actions)
     indices = {
-        layer.name: dormant_units(activations[layer.name], tau).nonzero().flatten().to(layer.linear.weight.device)
+        layer.name: dormant_units(outputs[layer.name][-1], tau).nonzero().flatten().to(layer.linear.weight.device)
         for layer in layers
     }
     units = {name: tuple(int(i) for i in index.tolist()) for name, index in indices.items()}
@@ -377,10 +360,8 @@ def _zero_moments(optimizer: th.optim.Optimizer, param: nn.Parameter, dim: int, 
 
 def shrink_perturb(model: BaseAlgorithm, shrink: float = 0.8, perturb: float = 0.2) -> InterventionResult:
     """
-    Shrink and perturb as an interpolation toward a fresh initialization ``theta_0`` (the algorithm's initializer,
-    drawn now): ``theta <- shrink * theta + perturb * theta_0`` on every parameter of the online networks; the
-    targets, the optimizer state, SAC's entropy coefficient, the buffer and the counters kept. Ash and Adams' own
-    form is :func:`shrink_perturb_noise`.
+    Shrink and perturb toward a fresh initialization ``theta_0``: ``theta <- shrink * theta + perturb * theta_0`` on
+    every parameter of the online networks; the targets, the optimizer state, the buffer and the counters kept.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param shrink: lambda, in ``(0, 1]``
@@ -393,9 +374,8 @@ def shrink_perturb(model: BaseAlgorithm, shrink: float = 0.8, perturb: float = 0
 
 def shrink_perturb_noise(model: BaseAlgorithm, shrink: float = 0.8, noise: float = 0.01) -> InterventionResult:
     """
-    Shrink and perturb in Ash and Adams' form ("On Warm-Starting Neural Network Training", NeurIPS 2020):
-    ``theta <- lambda * theta + sigma * noise`` on every parameter of the online networks, the noise at each layer's
-    initial scale (:func:`perturbation_noise`); the rest kept as by :func:`shrink_perturb`.
+    Ash and Adams' shrink and perturb ("On Warm-Starting Neural Network Training", NeurIPS 2020): ``theta <- lambda *
+    theta + sigma * noise`` on every parameter of the online networks (:func:`perturbation_noise`), the rest kept.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param shrink: lambda, in ``(0, 1]``
@@ -415,16 +395,8 @@ def _shrink_and_add(
     draw: Callable[[nn.Module, nn.Module], Iterable[tuple[nn.Parameter, th.Tensor]]],
     what: str,
 ) -> InterventionResult:
-    """
-    ``theta <- shrink * theta + scale * value`` on every parameter of the online networks, the values drawn network
-    by network from torch's global generator.
-
-    :param name: the intervention
-    :param scale_name: the Python parameter that ``scale`` is, for the error message
-    :param draw: ``(network, a fresh initialization of it) -> (parameter, value)`` pairs
-    :param what: the values, for the detail
-    :return: what was done
-    """
+    """``theta <- shrink * theta + scale * value`` on the online networks, ``draw(network, fresh copy)`` giving
+    ``(parameter, value)`` pairs; ``scale_name`` names ``scale`` in errors, ``what`` the values in the detail."""
     if not 0.0 < shrink <= 1.0:
         raise ValueError(f"shrink must be in (0, 1], got {shrink}.")
     if not scale >= 0.0:
@@ -450,13 +422,12 @@ def _fresh_values(module: nn.Module, fresh: nn.Module) -> Iterable[tuple[nn.Para
 
 def perturbation_noise(module: nn.Module, fresh: nn.Module) -> list[tuple[nn.Parameter, th.Tensor]]:
     """
-    The noise of :func:`shrink_perturb_noise`, on each parameter's device and dtype: the weight of a Linear or a
-    convolution is ``fresh``'s; any other parameter is drawn from ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, ``fan_in``
-    the inputs of one unit (else the parameter's entries: a LayerNorm's features).
+    The noise of :func:`shrink_perturb_noise`: ``fresh``'s weight for a Linear or a convolution, else
+    ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, ``fan_in`` the inputs of a unit (a LayerNorm's: its features).
 
     :param module: the module whose parameters get the noise
     :param fresh: a copy of ``module`` with new initial values
-    :return: ``(parameter, noise)`` pairs in ``module.modules()`` order
+    :return: ``(parameter, noise)`` pairs in ``module.modules()`` order, each on its parameter's device and dtype
     """
     noise = []
     for sub, fresh_sub in zip(module.modules(), fresh.modules()):

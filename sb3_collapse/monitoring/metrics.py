@@ -166,8 +166,7 @@ def unit_activations(activations: th.Tensor) -> th.Tensor:
 def zero_fraction(activations: th.Tensor) -> float:
     """
     :param activations: ``(n, *unit_shape)`` activations
-    :return: the fraction of the entries of ``H`` that are exactly zero, in ``[0, 1]`` (entries, not units: the
-        paper's dead neurons are :func:`dead_units`)
+    :return: the fraction of the entries that are zero (not units: the paper's dead neurons are :func:`dead_units`)
     """
     return float((activations == 0).double().mean())
 
@@ -259,7 +258,7 @@ def gradient_norm(gradients: Iterable[th.Tensor | None]) -> float:
 
 def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float = SRANK_DELTA) -> dict[str, float]:
     """
-    Every activation metric of one layer, the ranks and the input correlation from one Gram matrix (float64).
+    Every activation metric of one layer (float64; the ranks and the input correlation from one Gram matrix).
 
     :param activations: ``(n, *unit_shape)`` activations
     :param tau: threshold of :func:`dormant_ratio`

@@ -8,7 +8,6 @@ from pathlib import Path
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatchSampler, frames_of
 from sb3_collapse.monitoring.interventions import REDO_EVERY_UPDATES, InterventionResult, intervention_parts, redo
 from sb3_collapse.monitoring.metrics import DORMANT_TAU
-from sb3_collapse.protocol import append_csv_rows
 
 __all__ = ["REDO_EVERY_UPDATES", "PeriodicReDo"]
 
@@ -64,10 +63,8 @@ class PeriodicReDo(FrameScheduleCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         intervention_parts(self.model)  # a TypeError for a model the interventions do not support
-        seed = None if self.model.seed is None else int(self.model.seed) + 2_000_003
-        self.sampler = MetricsBatchSampler(seed)
-        if self.events_path is not None:
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
+        self.sampler = self._new_sampler(offset=2_000_003)
+        self._append_rows(self.events_path, self.EVENT_FIELDS)
 
     def _on_training_start(self) -> None:
         super()._on_training_start()
@@ -93,16 +90,8 @@ class PeriodicReDo(FrameScheduleCallback):
         recycled = int(result.scalars["units_recycled"])
         self.results.append(result)
         self.history.append((updates, frames, recycled))
-        if self.events_path is not None:
-            values = (
-                frames,
-                self.model.num_timesteps,
-                updates,
-                recycled,
-                int(result.scalars["units_total"]),
-                result.detail,
-            )
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [dict(zip(self.EVENT_FIELDS, values, strict=True))])
+        row = (frames, self.model.num_timesteps, updates, recycled, int(result.scalars["units_total"]), result.detail)
+        self._append_rows(self.events_path, self.EVENT_FIELDS, row)
         if self.verbose >= 1:
             print(f"PeriodicReDo: update {updates}, frame {frames}: {result.detail}")
         self.logger.record("redo/units_recycled", recycled)

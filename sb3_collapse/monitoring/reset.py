@@ -23,7 +23,7 @@ from sb3_collapse.monitoring.interventions import (
 )
 from sb3_collapse.monitoring.metrics import action_spread
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, append_csv_rows
+from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS
 
 Trigger = str | Callable[[BaseAlgorithm], "float | None"]
 
@@ -104,8 +104,6 @@ class CollapseReset(FrameScheduleCallback):
         check_intervention(intervention)
         self.intervention = intervention
         self.intervention_kwargs = dict(intervention_kwargs or {})
-        if intervention == "redo":
-            self.intervention_kwargs.setdefault("batch_size", batch_size)
         self.window_frames = window_frames
         self.threshold = threshold
         self.patience = patience
@@ -137,16 +135,12 @@ class CollapseReset(FrameScheduleCallback):
             names = list(layer_parameters(self.model))
             if self.layer not in names:
                 raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
-        self.sampler = MetricsBatchSampler(self._seed())
-        if self.intervention == "redo":
-            self.intervention_kwargs.setdefault("sampler", self.sampler)
-        if self.events_path is not None:
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
+        self.sampler = self._new_sampler()
+        self._append_rows(self.events_path, self.EVENT_FIELDS)
 
     def _write_event(self, frames: int, event: str, detail: str = "") -> None:
-        if self.events_path is not None:
-            values = (frames, self.num_timesteps, event, self.resets, self.intervention, detail)
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [dict(zip(self.EVENT_FIELDS, values, strict=True))])
+        row = (frames, self.num_timesteps, event, self.resets, self.intervention, detail)
+        self._append_rows(self.events_path, self.EVENT_FIELDS, row)
 
     def _on_training_start(self) -> None:
         super()._on_training_start()
@@ -206,7 +200,10 @@ class CollapseReset(FrameScheduleCallback):
         self._record(frames)
 
     def _reset(self, frames: int) -> None:
-        result = apply_intervention(self.model, self.intervention, **self.intervention_kwargs)
+        kwargs = self.intervention_kwargs
+        if self.intervention == "redo":  # on the rule's metrics batch
+            kwargs = {"batch_size": self.batch_size, "sampler": self.sampler, **kwargs}
+        result = apply_intervention(self.model, self.intervention, **kwargs)
         self.interventions.append(result)
         self.resets += 1
         self.reset_frames.append(frames)
