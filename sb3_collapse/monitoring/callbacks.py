@@ -225,9 +225,13 @@ class FrameScheduleCallback(ResumableCallback):
         return self.frames
 
     def _on_step(self) -> bool:
-        if self.check_at_start and self.num_timesteps >= self.locals.get("total_timesteps", float("inf")):
+        if self.check_at_start and self._at_budget_end():
             return True  # the last step of learn(), before its updates
         return self._check_if_due()
+
+    def _at_budget_end(self) -> bool:
+        """Whether this step is the last of the ``learn()`` call (its ``total_timesteps``), or after it."""
+        return self.num_timesteps >= (self.locals.get("total_timesteps") or float("inf"))
 
     def _check_if_due(self) -> bool:
         count = self._count()

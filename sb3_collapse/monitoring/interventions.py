@@ -31,10 +31,8 @@ REDO_EVERY_UPDATES = 1000
 @dataclass(frozen=True)
 class InterventionResult:
     """
-    What an intervention did.
-
     :param name: the intervention (``"reset"``, ``"redo"``...)
-    :param detail: one short line of what was reset or recycled (for people and the rule's events file)
+    :param detail: one short line of what it did (for people and the rule's events file)
     :param scalars: logged as ``collapse/intervention/<key>``: ``weights_changed`` always, ``transitions_dropped``
         for ``reset``, ``units_recycled`` and ``units_total`` for ``redo``
     :param units: for ``redo``, hidden layer -> indices of its recycled units (every hidden layer listed)

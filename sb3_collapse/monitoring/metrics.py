@@ -20,9 +20,6 @@ SRANK_DELTA = 0.01
 SATURATION_LIMIT = 0.99
 """An action component is saturated when its absolute value exceeds this."""
 
-CONSTANT_UNIT_RTOL = 1e-6
-"""A unit whose standard deviation over the inputs is at most this times its largest absolute value is constant."""
-
 
 def flatten_batch(activations: th.Tensor) -> th.Tensor:
     """
@@ -129,8 +126,8 @@ def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
     """
     The paper's correlation (Section 5.1): "the average correlation among every two non-zero activations", the
     activations being the units: the mean over ``a != b`` of Pearson's correlation over the inputs (and positions)
-    of units ``a`` and ``b`` (:func:`unit_activations`), dead and constant units (:data:`CONSTANT_UNIT_RTOL`) left
-    out; float64 on the activations' device.
+    of units ``a`` and ``b`` (:func:`unit_activations`), dead and constant units (std at most ``1e-6`` times the largest
+    absolute value) left out; float64 on the activations' device.
 
     :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
     :param absolute: average the absolute values of the correlations
@@ -142,7 +139,7 @@ def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
     centered = units - units.mean(1, keepdim=True)
     del units  # at most two (units, N) float64 copies alive at once
     norms = th.linalg.vector_norm(centered, dim=1)  # sqrt(N) x the standard deviation over the inputs
-    varies = norms > CONSTANT_UNIT_RTOL * largest * math.sqrt(centered.shape[1])
+    varies = norms > 1e-6 * largest * math.sqrt(centered.shape[1])
     m = int(varies.sum())
     if m < 2:
         return math.nan

@@ -169,18 +169,13 @@ class CollapseReset(FrameScheduleCallback):
         super()._on_step()  # runs _on_check at check frames
         frames = self.frames
         if not self.escaped and frames - self.window_start_frame >= self.window_frames:
-            if frames >= self._budget_end_frame():
+            if self._at_budget_end():
                 pass  # the window ends with the budget: nothing trains after it, so no reset
             elif self.max_resets is None or self.resets < self.max_resets:
                 self._reset(frames)
             else:
                 self.window_start_frame = frames  # no reset left: the next window only re-arms the test
         return True
-
-    def _budget_end_frame(self) -> float:
-        """The frame at which the current ``learn()`` call ends (its ``total_timesteps``), inf when unknown."""
-        total = self.locals.get("total_timesteps")  # learn()'s, passed to on_training_start
-        return float("inf") if not total else int(total) * self.action_repeat
 
     def _on_check(self, frames: int) -> None:
         if self.escaped:
