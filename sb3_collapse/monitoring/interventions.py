@@ -116,10 +116,7 @@ class _SB3Parts:
         return []
 
     def forward_hidden(self, observations: Any, actions: th.Tensor) -> None:
-        if self.kind == "td3":
-            self.policy.actor(observations)
-        else:
-            self.policy.actor.get_action_dist_params(observations)
+        self.policy._predict(observations, deterministic=True)  # the actor, without noise
         self.policy.critic(observations, actions)
 
 
