@@ -41,16 +41,13 @@ class CollapseReset(FrameScheduleCallback):
     :param patience: consecutive healthy checks that mean an escape
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
-    :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"``
-        (:func:`~sb3_collapse.monitoring.metrics.action_spread` on a metrics batch), or a callable
-        ``model -> float | None`` (``None``: no value at this check); above ``threshold`` is healthy
+    :param metric: ``"grad_norm"`` (the paper's), ``"action_std"`` (the spread of the actions of a metrics batch) or
+        a callable ``model -> float | None``; above ``threshold`` is healthy
     :param batch_size: replay observations of the batch of ``metric="action_std"`` and ``intervention="redo"``
-    :param events_path: CSV file that each intervention and the escape append a row to, columns :attr:`EVENT_FIELDS`
-        (``None``: no file)
-    :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's) or another
-        intervention of :mod:`~sb3_collapse.monitoring.interventions`
-    :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"`` or
-        ``{"shrink": 0.5, "perturb": 0.1}`` for ``"shrink_perturb"`` (``None``: its defaults)
+    :param events_path: CSV file that each intervention and the escape append a row to (``None``: none)
+    :param intervention: what to do at the end of a window without escape, a key of
+        :data:`~sb3_collapse.monitoring.interventions.INTERVENTIONS` (``"reset"``: the paper's)
+    :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"``
     :param verbose: 0 silent, 1 prints each intervention and the escape
     """
 
