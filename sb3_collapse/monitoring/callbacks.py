@@ -87,8 +87,13 @@ class MetricsBatchSampler:
         if len(positions) < batch_size:
             return None
         env = model.get_vec_normalize_env()
-        if hasattr(buffer, "frames_stored"):  # FrameStackReplayBuffer: (position, env) pairs whose frames remain
-            return self._sample_where_sampleable(buffer, positions, batch_size, env)
+        if hasattr(buffer, "frames_stored"):  # FrameStackReplayBuffer: the (position, env) pairs whose frames remain
+            pairs = np.stack(np.meshgrid(positions, np.arange(buffer.n_envs), indexing="ij"), -1).reshape(-1, 2)
+            pairs = pairs[buffer.frames_stored(pairs[:, 0], pairs[:, 1])]
+            if len(pairs) < batch_size:
+                return None
+            chosen = pairs[np.sort(self.rng.choice(len(pairs), size=batch_size, replace=False))]
+            return buffer._get_samples(chosen[:, 0], env=env, env_indices=chosen[:, 1]), chosen[:, 0]
         indices = np.sort(self.rng.choice(positions, size=batch_size, replace=False))
         state = np.random.get_state()
         try:
@@ -96,18 +101,6 @@ class MetricsBatchSampler:
         finally:
             np.random.set_state(state)
         return samples, indices
-
-    def _sample_where_sampleable(
-        self, buffer: Any, positions: np.ndarray, batch_size: int, env: Any
-    ) -> tuple[Any, np.ndarray] | None:
-        """Draw ``(position, env)`` pairs among those whose frames ``buffer.frames_stored``; ``None`` if too few."""
-        pairs = np.stack(np.meshgrid(positions, np.arange(buffer.n_envs), indexing="ij"), -1).reshape(-1, 2)
-        pairs = pairs[buffer.frames_stored(pairs[:, 0], pairs[:, 1])]
-        if len(pairs) < batch_size:
-            return None
-        chosen = pairs[np.sort(self.rng.choice(len(pairs), size=batch_size, replace=False))]
-        samples = buffer._get_samples(chosen[:, 0], env=env, env_indices=chosen[:, 1])
-        return samples, chosen[:, 0]
 
 
 class ResumableCallback(BaseCallback):

@@ -201,11 +201,11 @@ def _reset_modules(model: BaseAlgorithm, modules: Sequence[nn.Module], name: str
     changed = _count(params)
     target = parts.target_networks().get("target actor")
     if target is not None:  # TD3 and DDPG build their target actor as a copy of the actor
-        renewed = {id(module) for module in modules}
-        for online, copied in zip(parts.online_networks()["actor"].modules(), target.modules()):
-            if id(online) in renewed:
-                copied.load_state_dict(online.state_dict())
-                changed += _count(copied.parameters())
+        with th.no_grad():
+            for online, copied in zip(parts.online_networks()["actor"].parameters(), target.parameters()):
+                if id(online) in ids:
+                    copied.copy_(online)
+                    changed += copied.numel()
     _forget_grad_norms(model)
     also = " and target actor" if target is not None else ""
     detail = f"new {what} ({_span(parts, modules)}){also}, its optimizer state"
