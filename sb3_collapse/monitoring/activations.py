@@ -76,8 +76,7 @@ def reading(
     policy: BasePolicy, taps: Mapping[str, LayerTap], device: th.device | str | None
 ) -> Iterator[dict[str, list[th.Tensor]]]:
     """
-    Hooks on ``taps`` for the forward passes of the block, run in eval mode without gradient; afterwards the hooks
-    are removed and the policy's mode restored, even on error.
+    Read ``taps`` in the forward passes of the block, run in eval mode without gradient (restored after, even on error).
 
     :param policy: the policy the block runs
     :param taps: where to read, by name

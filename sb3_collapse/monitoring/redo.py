@@ -9,8 +9,6 @@ from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatc
 from sb3_collapse.monitoring.interventions import REDO_EVERY_UPDATES, InterventionResult, intervention_parts, redo
 from sb3_collapse.monitoring.metrics import DORMANT_TAU
 
-__all__ = ["REDO_EVERY_UPDATES", "PeriodicReDo"]
-
 
 class PeriodicReDo(FrameScheduleCallback):
     """

@@ -25,8 +25,6 @@ from sb3_collapse.monitoring.metrics import action_spread
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS
 
-Trigger = str | Callable[[BaseAlgorithm], "float | None"]
-
 
 class CollapseReset(FrameScheduleCallback):
     """
@@ -72,7 +70,7 @@ class CollapseReset(FrameScheduleCallback):
         patience: int = PAPER.patience,
         layer: str = PAPER.layer,
         max_resets: int | None = None,
-        metric: Trigger = "grad_norm",
+        metric: str | Callable[[BaseAlgorithm], float | None] = "grad_norm",
         batch_size: int = 512,
         events_path: str | os.PathLike | None = None,
         intervention: str = "reset",
