@@ -1,12 +1,12 @@
 """
-Named activations of an actor: ``cnn0`` .. ``cnn4``, ``mlp0`` .. ``mlp2`` and ``action``, read with forward hooks,
-on DrQv2 and SB3's TD3, DDPG and SAC, at the modules that :func:`sb3_collapse.common.layers.layer_taps` names (the
-mapping for SB3's policies: docs/monitoring.md).
+Named activations of an actor (``cnn0`` .. ``cnn4``, ``mlp0`` .. ``mlp2``, ``action``) read with forward hooks at the
+modules that :func:`sb3_collapse.common.layers.layer_taps` names, on DrQv2 and SB3's TD3, DDPG and SAC.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+import contextlib
+from collections.abc import Iterable, Iterator, Mapping
 from typing import TypeAlias
 
 import numpy as np
@@ -21,11 +21,7 @@ Observations: TypeAlias = np.ndarray | th.Tensor | Mapping[str, np.ndarray | th.
 
 
 def _batch_length(observations: Observations) -> int:
-    """
-    :param observations: a batch of observations, an array or tensor, or a dict of them (``MultiInputPolicy``)
-    :return: the number ``n`` of observations
-    :raises ValueError: for a dict whose keys hold different numbers of observations, or no key
-    """
+    """The number ``n`` of observations; a ``ValueError`` for a dict whose keys hold different numbers, or none."""
     if not isinstance(observations, Mapping):
         return len(observations)
     lengths = {key: len(value) for key, value in observations.items()}
@@ -34,16 +30,8 @@ def _batch_length(observations: Observations) -> int:
     return next(iter(lengths.values()))
 
 
-def _batch_slice(
-    observations: Observations, start: int, stop: int, device: th.device | str
-) -> th.Tensor | dict[str, th.Tensor]:
-    """
-    :param observations: a batch of observations, an array or tensor, or a dict of them (``MultiInputPolicy``)
-    :param start: first observation
-    :param stop: one past the last observation
-    :param device: where the returned tensors live
-    :return: observations ``start:stop`` as a tensor, or a dict of tensors (each key sliced) for a dict
-    """
+def _batch_slice(observations: Observations, start: int, stop: int, device: th.device | str) -> th.Tensor | dict:
+    """Observations ``start:stop`` as a tensor on ``device``, or a dict of them (each key sliced)."""
     if isinstance(observations, Mapping):
         return {key: th.as_tensor(value[start:stop], device=device) for key, value in observations.items()}
     return th.as_tensor(observations[start:stop], device=device)
@@ -57,14 +45,11 @@ def collect_activations(
     device: th.device | str = "cpu",
 ) -> dict[str, th.Tensor]:
     """
-    Run observations through the actor and return the named activations, without changing training state.
-
-    The forward passes run under ``torch.no_grad()`` in eval mode; the policy's previous mode is restored and
-    the hooks are removed afterwards, even on error.
+    Run observations through the actor and return the named activations, in eval mode without gradient; the
+    policy's mode is restored and the hooks removed afterwards, even on error.
 
     :param model: a DrQv2, TD3, DDPG or SAC model, or its policy
-    :param observations: a batch of observations as stored by the env (e.g. uint8 ``(n, 9, 84, 84)``), or a dict
-        of such batches, one per key, for dict observation spaces (``MultiInputPolicy``)
+    :param observations: a batch as stored by the env (e.g. uint8 ``(n, 9, 84, 84)``), or a dict of them, one per key
     :param layers: the names to return, ``None`` for all of :func:`layer_taps`
     :param batch_size: observations per forward pass
     :param device: where the returned activations live
@@ -77,27 +62,41 @@ def collect_activations(
     unknown = [name for name in wanted if name not in taps]
     if unknown:
         raise KeyError(f"Unknown layer(s) {unknown}; this model has {list(taps)}.")
-    outputs: dict[str, list[th.Tensor]] = {name: [] for name in taps if name in wanted}
-    handles = [_register(taps[name], sink, device) for name, sink in outputs.items()]
-    was_training = policy.training
-    policy.set_training_mode(False)
-    try:
-        with th.no_grad():
-            for start in range(0, _batch_length(observations), batch_size):
-                policy._predict(
-                    _batch_slice(observations, start, start + batch_size, policy.device), deterministic=True
-                )
-    finally:
-        for handle in handles:
-            handle.remove()
-        policy.set_training_mode(was_training)
+    with reading(policy, {name: tap for name, tap in taps.items() if name in wanted}, device) as outputs:
+        for start in range(0, _batch_length(observations), batch_size):
+            policy._predict(_batch_slice(observations, start, start + batch_size, policy.device), deterministic=True)
     return {
         name: th.cat(chunks) if chunks else th.empty(0, device=device, dtype=th.float32)
         for name, chunks in outputs.items()
     }
 
 
-def _register(tap: LayerTap, sink: list[th.Tensor], device: th.device | str) -> th.utils.hooks.RemovableHandle:
+@contextlib.contextmanager
+def reading(
+    policy: BasePolicy, taps: Mapping[str, LayerTap], device: th.device | str | None
+) -> Iterator[dict[str, list[th.Tensor]]]:
+    """
+    Read ``taps`` in the forward passes of the block, run in eval mode without gradient (restored after, even on error).
+
+    :param policy: the policy the block runs
+    :param taps: where to read, by name
+    :param device: where the activations are stored (float32), ``None`` for where they are made
+    :return: name -> the activations of each forward pass through its tap, in order
+    """
+    outputs: dict[str, list[th.Tensor]] = {name: [] for name in taps}
+    handles = [_register(tap, outputs[name], device) for name, tap in taps.items()]
+    was_training = policy.training
+    policy.set_training_mode(False)
+    try:
+        with th.no_grad():
+            yield outputs
+    finally:
+        for handle in handles:
+            handle.remove()
+        policy.set_training_mode(was_training)
+
+
+def _register(tap: LayerTap, sink: list[th.Tensor], device: th.device | str | None) -> th.utils.hooks.RemovableHandle:
     def store(value: th.Tensor) -> None:
         if tap.transform is not None:
             value = tap.transform(value)

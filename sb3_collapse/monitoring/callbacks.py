@@ -1,21 +1,16 @@
 """
-Callbacks that watch for action collapse during ``learn()``: collapse metrics to TensorBoard, activations to disk;
-and the schedule every periodic callback of the package runs on (:class:`FrameScheduleCallback`, with the state it
-carries into checkpoints and ``DrQv2.save``: :class:`ResumableCallback`).
-
-Both run on a schedule of **frames** (agent steps x the environment's action repeat, the unit of the paper) and
-read a metrics batch of observations from the model's replay buffer. They are SB3 ``BaseCallback``s: pass them to
-``learn(callback=...)`` or to ``DrQv2(..., callback=...)``, alone or in a list with SB3's own callbacks.
+The frame schedule of every periodic callback (:class:`FrameScheduleCallback`, resumable: :class:`ResumableCallback`)
+and the callbacks that watch for action collapse: metrics to TensorBoard, activations to disk. See docs/monitoring.md.
 """
 
 from __future__ import annotations
 
 import copy
 import inspect
+import io
 import os
-import tempfile
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,43 +31,31 @@ from sb3_collapse.monitoring.metrics import (
     saturated_fraction,
 )
 from sb3_collapse.paper import PAPER, metric_tag
-from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows
+from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows, atomic_output
 
 
 def action_repeat_of(model: BaseAlgorithm) -> int:
     """
-    Frames per agent step of a model's environment: ``model.action_repeat`` (a
-    :class:`~sb3_collapse.common.model.CollapseModel`), else the ``action_repeat`` attribute of its (first)
-    environment when it has one (``make_dmc_env``), else 1.
-
     :param model: an SB3 algorithm
-    :return: the action repeat
+    :return: frames per agent step: ``model.action_repeat`` (a ``CollapseModel``), else its environment's, else 1
     """
     return model.action_repeat if isinstance(model, CollapseModel) else env_action_repeat(model.get_env())
 
 
 def frames_of(model: BaseAlgorithm, action_repeat: int | None = None) -> int:
     """
-    Frames so far: ``num_timesteps x action_repeat``.
-
     :param model: an SB3 algorithm
     :param action_repeat: frames per agent step, ``None`` to read it with :func:`action_repeat_of`
-    :return: the frame count
+    :return: frames so far, ``num_timesteps x action_repeat``
     """
     return model.num_timesteps * (action_repeat_of(model) if action_repeat is None else action_repeat)
 
 
 class MetricsBatchSampler:
     """
-    Draws a metrics batch of observations from a replay buffer without touching the training's random streams.
-
-    Indices are drawn, without replacement, from the valid stored positions with this object's own
-    ``np.random.Generator``; the observations are then read through the buffer's ``_get_samples(indices, env)``,
-    the path SB3's ``sample()`` uses, so that any buffer class following SB3's interface works (including
-    buffers that do not store an ``observations`` array). SB3's ``_get_samples`` draws the environment index of
-    each sample from the global ``np.random``: its state is saved before the call and restored after it, so
-    the training's replay sampling is the same with or without the metrics. Observations are the stored ones
-    (stacked pixels), not augmented.
+    Draws a metrics batch from a replay buffer without touching the training's random streams: stored positions
+    without replacement from its own generator, read through the buffer's ``_get_samples`` with NumPy's global state
+    restored after it; the stored observations, not augmented.
 
     :param seed: seed of the index generator (``None``: fresh entropy)
     """
@@ -80,43 +63,37 @@ class MetricsBatchSampler:
     def __init__(self, seed: int | None = None) -> None:
         self.rng = np.random.default_rng(seed)
 
-    @staticmethod
-    def valid_positions(buffer: Any) -> np.ndarray:
-        """Stored positions of a buffer (``optimize_memory_usage`` excludes the one at ``pos``)."""
-        upper = buffer.buffer_size if buffer.full else buffer.pos
-        positions = np.arange(upper)
-        if getattr(buffer, "optimize_memory_usage", False) and buffer.full:
-            positions = positions[positions != buffer.pos]
-        return positions
-
     def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[Observations, np.ndarray] | None:
         """
         :param model: an off-policy model with a ``replay_buffer``
         :param batch_size: observations to draw
-        :return: ``(observations, buffer indices)``: a tensor ``(batch_size, ...)``, or a dict of them for dict
-            observations (``MultiInputPolicy``); ``None`` while the buffer holds fewer than ``batch_size`` transitions
+        :return: ``(observations (batch_size, ...) or a dict of them, buffer indices)``, ``None`` while fewer are stored
         """
         drawn = self.sample_transitions(model, batch_size)
         return None if drawn is None else (drawn[0].observations, drawn[1])
 
     def sample_transitions(self, model: BaseAlgorithm, batch_size: int) -> tuple[Any, np.ndarray] | None:
         """
-        Like :meth:`sample`, with the whole stored transitions (observations, actions as stored, rewards...).
-
         :param model: an off-policy model with a ``replay_buffer``
         :param batch_size: transitions to draw
-        :return: ``(ReplayBufferSamples, buffer indices)``, or ``None`` while the buffer holds fewer than
-            ``batch_size`` transitions
+        :return: ``(ReplayBufferSamples, buffer indices)``, or ``None`` while the buffer holds fewer transitions
         """
         buffer = getattr(model, "replay_buffer", None)
         if buffer is None:
             raise TypeError(f"{type(model).__name__} has no replay buffer to draw a metrics batch from.")
-        positions = self.valid_positions(buffer)
+        positions = np.arange(buffer.buffer_size if buffer.full else buffer.pos)
+        if getattr(buffer, "optimize_memory_usage", False) and buffer.full:  # the position at pos is not stored
+            positions = positions[positions != buffer.pos]
         if len(positions) < batch_size:
             return None
         env = model.get_vec_normalize_env()
-        if hasattr(buffer, "frames_stored"):  # FrameStackReplayBuffer: (position, env) pairs whose frames remain
-            return self._sample_where_sampleable(buffer, positions, batch_size, env)
+        if hasattr(buffer, "frames_stored"):  # FrameStackReplayBuffer: the (position, env) pairs whose frames remain
+            pairs = np.stack(np.meshgrid(positions, np.arange(buffer.n_envs), indexing="ij"), -1).reshape(-1, 2)
+            pairs = pairs[buffer.frames_stored(pairs[:, 0], pairs[:, 1])]
+            if len(pairs) < batch_size:
+                return None
+            chosen = pairs[np.sort(self.rng.choice(len(pairs), size=batch_size, replace=False))]
+            return buffer._get_samples(chosen[:, 0], env=env, env_indices=chosen[:, 1]), chosen[:, 0]
         indices = np.sort(self.rng.choice(positions, size=batch_size, replace=False))
         state = np.random.get_state()
         try:
@@ -125,35 +102,12 @@ class MetricsBatchSampler:
             np.random.set_state(state)
         return samples, indices
 
-    def _sample_where_sampleable(
-        self, buffer: Any, positions: np.ndarray, batch_size: int, env: Any
-    ) -> tuple[Any, np.ndarray] | None:
-        """
-        Draw ``(position, env)`` pairs among those whose frames ``buffer.frames_stored``; ``None`` if too few. Any
-        stored observation will do for the metrics, whatever the buffer's sampling rule for updates.
-        """
-        pairs = np.stack(np.meshgrid(positions, np.arange(buffer.n_envs), indexing="ij"), -1).reshape(-1, 2)
-        pairs = pairs[buffer.frames_stored(pairs[:, 0], pairs[:, 1])]
-        if len(pairs) < batch_size:
-            return None
-        chosen = pairs[np.sort(self.rng.choice(len(pairs), size=batch_size, replace=False))]
-        samples = buffer._get_samples(chosen[:, 0], env=env, env_indices=chosen[:, 1])
-        return samples, chosen[:, 0]
-
 
 class ResumableCallback(BaseCallback):
     """
-    A callback whose state can be saved in a run checkpoint and put back in another process
-    (:mod:`sb3_collapse.run.checkpoints`), or saved with ``DrQv2.save``.
-
-    :meth:`state_dict` returns the attributes named by :attr:`state_attributes` (deep copies), the state of the
-    random generator of its ``sampler``, if it has one, and the model's agent steps when it was taken.
-    :meth:`load_state_dict` keeps a state until the next ``learn()`` starts: the callback is then initialized as usual
-    (``_init_callback``) and, instead of starting afresh (``_on_training_start``), takes the saved state, so the
-    resumed ``learn()`` continues where the saved one was. A ``learn()`` that restarted the step count at 0
-    (``reset_num_timesteps=True``) from a state taken later is a new run: it starts afresh. A state taken at step 0
-    (a run stopped during its first evaluation) is continued at step 0: what the callback did at the start is not
-    done twice.
+    A callback whose state (:attr:`state_attributes`, its sampler's generator, the agent step) is saved in run
+    checkpoints and with ``DrQv2.save``, and taken instead of a fresh start by the next ``learn()`` (unless that
+    restarts the step count from a later state). See docs/monitoring.md#one-schedule.
     """
 
     state_attributes: tuple[str, ...] = ()
@@ -162,7 +116,7 @@ class ResumableCallback(BaseCallback):
     _pending_state: dict[str, Any] | None = None
 
     def init_callback(self, model: BaseAlgorithm) -> None:
-        """SB3's, with a model of SB3's own TD3, DDPG or SAC class given the model interface (``collapse_model``)."""
+        """SB3's, on ``collapse_model(model)``."""
         super().init_callback(collapse_model(model))
 
     def state_dict(self) -> dict[str, Any]:
@@ -178,8 +132,7 @@ class ResumableCallback(BaseCallback):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """
-        :param state: a :meth:`state_dict` taken while attached to a model, taken at the start of the next
-            ``learn()`` instead of a fresh start
+        :param state: a :meth:`state_dict` taken while attached to a model, taken when the next ``learn()`` starts
         :raises ValueError: for a state that lacks one of its entries (one written by another version)
         """
         missing = [name for name in (*self.state_attributes, "num_timesteps") if name not in state]
@@ -191,16 +144,9 @@ class ResumableCallback(BaseCallback):
         self._pending_state = state
 
     def get_config(self) -> dict[str, Any]:
-        """
-        :return: the constructor's arguments (read from the attributes of the same names), to build this callback
-            again (:func:`sb3_collapse.common.saved_callbacks.restore_callbacks`)
-        """
+        """:return: the constructor's arguments (the attributes of the same names), to build this callback again"""
         parameters = [name for name in inspect.signature(type(self).__init__).parameters if name != "self"]
-        config = {name: copy.deepcopy(getattr(self, name)) for name in parameters}
-        kwargs = config.get("intervention_kwargs")
-        if isinstance(kwargs, dict):  # objects the callback added itself (its metrics batch sampler) are not arguments
-            config["intervention_kwargs"] = {k: v for k, v in kwargs.items() if not isinstance(v, MetricsBatchSampler)}
-        return config
+        return {name: copy.deepcopy(getattr(self, name)) for name in parameters}
 
     def on_training_start(self, locals_: dict[str, Any], globals_: dict[str, Any]) -> None:
         state, self._pending_state = self._pending_state, None
@@ -220,18 +166,11 @@ class ResumableCallback(BaseCallback):
 
 class FrameScheduleCallback(ResumableCallback):
     """
-    The schedule of every periodic callback: calls :meth:`_on_check` at the first step where the count reaches each
-    multiple of the period. The count is the frames (agent steps x action repeat, see :func:`frames_of`), or what
-    :meth:`_count` counts instead (:class:`~sb3_collapse.monitoring.redo.PeriodicReDo`: updates). A step that crosses
-    several multiples at once (several environments, an action repeat that does not divide the period) gives one
-    check. The next check and the checks so far are part of the state: a resumed run checks at the same counts.
+    The schedule of every periodic callback: :meth:`_on_check` at the first step where the frames (or what
+    :meth:`_count` counts) reach each multiple of the period, once for a step that crosses several; resumable.
+    See docs/monitoring.md#one-schedule.
 
-    With :attr:`check_at_start`, a ``learn()`` that starts at a multiple (frame 0) checks at its start too, and the
-    last step of ``learn()`` is not checked (SB3 calls the callbacks before that step's updates: the model ``learn()``
-    returns is the caller's to check, as :func:`~sb3_collapse.run.runner.train` evaluates the saved model).
-
-    :param check_every_frames: frames between two checks (a subclass may name it otherwise:
-        :attr:`period_parameter`)
+    :param check_every_frames: frames between two checks (a subclass may name it :attr:`period_parameter`)
     :param verbose: 0 silent, 1 info
     """
 
@@ -241,17 +180,15 @@ class FrameScheduleCallback(ResumableCallback):
     min_period = 1
     """The smallest period allowed (0: no scheduled check, for a callback that also acts on demand)."""
     check_at_start = False
-    """Check at the start of ``learn()`` (at a multiple of the period), not at its last step."""
+    """Check at the start of ``learn()`` (at a multiple of the period), not at its last step (before its updates)."""
 
     def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
         super().__init__(verbose)
         if check_every_frames < self.min_period:
             raise ValueError(f"{self.period_parameter} must be >= {self.min_period}, got {check_every_frames}.")
         setattr(self, self.period_parameter, check_every_frames)
-        self.next_check = 0
-        """The count of the next check (set when ``learn()`` starts)."""
-        self.n_checks = 0
-        """Checks run so far (all ``learn()`` calls)."""
+        self.next_check = 0  # the count of the next check, set when learn() starts
+        self.n_checks = 0  # checks so far, all learn() calls
         self.action_repeat = 1
 
     @property
@@ -281,9 +218,13 @@ class FrameScheduleCallback(ResumableCallback):
         return self.frames
 
     def _on_step(self) -> bool:
-        if self.check_at_start and self.num_timesteps >= self.locals.get("total_timesteps", float("inf")):
+        if self.check_at_start and self._at_budget_end():
             return True  # the last step of learn(), before its updates
         return self._check_if_due()
+
+    def _at_budget_end(self) -> bool:
+        """Whether this step is the last of the ``learn()`` call (its ``total_timesteps``), or after it."""
+        return self.num_timesteps >= (self.locals.get("total_timesteps") or float("inf"))
 
     def _check_if_due(self) -> bool:
         count = self._count()
@@ -297,35 +238,36 @@ class FrameScheduleCallback(ResumableCallback):
         """A check at ``count`` (frames, or what :meth:`_count` counts); ``False`` stops ``learn()``."""
         raise NotImplementedError
 
-    def _seed(self) -> int | None:
-        return None if self.model.seed is None else int(self.model.seed) + 1_000_003
+    @staticmethod
+    def _append_rows(path: Path | None, fields: Sequence[str], *rows: Sequence[Any]) -> None:
+        """Append ``rows`` (values in the order of ``fields``) to the CSV file ``path``, if any, its header first."""
+        if path is not None:
+            append_csv_rows(path, fields, [dict(zip(fields, row, strict=True)) for row in rows])
+
+    def _new_sampler(self, seed: int | None = None, offset: int = 1_000_003) -> MetricsBatchSampler:
+        """A metrics batch sampler seeded with ``seed``, else with the model's seed plus ``offset``."""
+        if seed is None and self.model.seed is not None:
+            seed = int(self.model.seed) + offset
+        return MetricsBatchSampler(seed)
 
 
 class CollapseMetrics(FrameScheduleCallback):
     """
-    Logs the collapse metrics of every named layer to the SB3 logger (TensorBoard) every ``check_every_frames``,
-    on a metrics batch of ``batch_size`` replay observations (:class:`MetricsBatchSampler`; a check is skipped
-    while the buffer holds fewer).
+    Logs the collapse metrics of every named layer (tags: docs/monitoring.md) every ``check_every_frames`` on a
+    metrics batch of replay observations (skipped while fewer are stored); the last values in :attr:`last_metrics`.
 
-    Tags: ``collapse/<layer>/{numerical_rank,srank,correlation,input_correlation,zero_fraction,dead_fraction,
-    dead_units,dormant_ratio,grad_norm}`` (definitions in :mod:`sb3_collapse.monitoring.metrics`; ``grad_norm`` at
-    the last update before the check), ``collapse/action_std``, ``collapse/action_saturation`` and
-    ``time/frames``, written at the check's agent step; the last values are in :attr:`last_metrics`. With
-    ``csv_path`` each check also appends one row per tag, columns :attr:`CSV_FIELDS`. See docs/monitoring.md.
-
-    :param check_every_frames: frames between two checks (the paper's ``PAPER.check_every_frames``)
-    :param batch_size: observations of the metrics batch (512)
+    :param check_every_frames: frames between two checks
+    :param batch_size: observations of the metrics batch
     :param layers: the named layers to measure, ``None`` for all (``cnn0`` .. ``action``)
     :param tau: threshold of the dormant ratio
     :param delta: threshold of the effective rank
     :param saturation_limit: ``|a|`` above which an action component counts as saturated
     :param forward_batch_size: observations per forward pass
     :param seed: seed of the batch's indices; ``None``: derived from the model's seed
-    :param csv_path: CSV file that each check appends its rows to (``None``: TensorBoard only)
+    :param csv_path: CSV file that each check appends a row per tag to (``None``: none)
     :param verbose: 0 silent, 1 prints a line per check
     """
 
-    CSV_FIELDS = COLLAPSE_METRICS_FIELDS
     state_attributes = (*FrameScheduleCallback.state_attributes, "last_metrics")
 
     def __init__(
@@ -357,29 +299,23 @@ class CollapseMetrics(FrameScheduleCallback):
 
     def _init_callback(self) -> None:
         super()._init_callback()
-        self.sampler = MetricsBatchSampler(self.seed if self.seed is not None else self._seed())
-        if self.csv_path is not None:
-            append_csv_rows(self.csv_path, self.CSV_FIELDS, [])
+        self.sampler = self._new_sampler(self.seed)
+        self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS)
 
     def compute(self) -> dict[str, float] | None:
-        """
-        Every metric on a new metrics batch, without logging.
-
-        :return: tag -> value, or ``None`` while the buffer holds fewer than ``batch_size`` transitions
-        """
+        """:return: every metric on a new metrics batch, not logged: tag -> value (``None`` while too few are stored)"""
         assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
         batch = self.sampler.sample(self.model, self.batch_size)
         if batch is None:
             return None
-        observations, _ = batch
-        device = self.model.device
         activations = collect_activations(
-            self.model, observations, layers=self.layers, batch_size=self.forward_batch_size, device=device
+            self.model, batch[0], layers=self.layers, batch_size=self.forward_batch_size, device=self.model.device
         )
-        values: dict[str, float] = {}
-        for layer, acts in activations.items():
-            for name, value in layer_metrics(acts, self.tau, self.delta).items():
-                values[f"collapse/{layer}/{name}"] = value
+        values = {
+            f"collapse/{layer}/{name}": value
+            for layer, acts in activations.items()
+            for name, value in layer_metrics(acts, self.tau, self.delta).items()
+        }
         for layer, norm in grad_norms_of(self.model).items():
             if self.layers is None or layer in self.layers:
                 values[f"collapse/{layer}/grad_norm"] = norm
@@ -392,47 +328,36 @@ class CollapseMetrics(FrameScheduleCallback):
         values = self.compute()
         if values is None:
             if self.verbose >= 1:
-                print(
-                    f"CollapseMetrics: check at frame {frames} skipped, fewer than {self.batch_size} transitions stored"
-                )
+                print(f"CollapseMetrics: frame {frames} skipped, fewer than {self.batch_size} transitions stored")
             return
         self.last_metrics = values
         for tag, value in values.items():
             self.logger.record(tag, value)
         self.logger.record("time/frames", frames)
         self.logger.dump(self.num_timesteps)
-        if self.csv_path is not None:
-            step = self.num_timesteps
-            rows = [{"frame": frames, "step": step, "tag": tag, "value": value} for tag, value in values.items()]
-            append_csv_rows(self.csv_path, self.CSV_FIELDS, rows)
+        rows = [(frames, self.num_timesteps, tag, value) for tag, value in values.items()]
+        self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS, *rows)
         if self.verbose >= 1:
-            summary = ", ".join(
-                f"{k}={v:.4g}"
-                for k, v in values.items()
-                if k.startswith((metric_tag(PAPER.layer, ""), "collapse/action_std"))
-            )
+            shown = (metric_tag(PAPER.layer, ""), "collapse/action_std")
+            summary = ", ".join(f"{k}={v:.4g}" for k, v in values.items() if k.startswith(shown))
             print(f"CollapseMetrics at frame {frames}: {summary}")
 
 
 class ActivationLogger(FrameScheduleCallback):
     """
-    Saves the named activations of a metrics batch (drawn as in :class:`CollapseMetrics`) every ``every_frames``,
-    for offline analysis: one compressed ``<path>/activations_<agent step, 10 digits>.npz`` per save, with one
-    float32 ``(batch_size, *shape)`` array per layer, ``step`` (agent steps), ``frames``, ``indices`` (replay-buffer
-    positions) and ``layers``. Skipped while the buffer holds fewer than ``batch_size`` transitions; once a file
-    would take the total over ``max_bytes`` it is deleted with a warning and nothing more is saved.
+    Saves the named activations of a metrics batch every ``every_frames``: ``<path>/activations_<agent step, 10
+    digits>.npz``, one float32 ``(batch_size, *shape)`` array per layer, ``step``, ``frames``, ``indices`` (buffer
+    positions) and ``layers``; a file that would take the total over ``max_bytes`` stops the saves, with a warning.
 
     :param every_frames: frames between two saves
     :param path: folder of the files (created if needed)
     :param batch_size: observations of the metrics batch
-    :param layers: names to save; ``None``: ``mlp0``, ``mlp1``, ``mlp2``, ``action`` (ask for the larger
-        convolutional activations by name)
+    :param layers: names to save; ``None``: ``mlp0``, ``mlp1``, ``mlp2``, ``action``
     :param max_bytes: the most bytes all the files of this callback may take
     :param seed: seed of the batch's indices; ``None``: derived from the model's seed
     :param verbose: 0 silent, 1 prints a line per file
     """
 
-    DEFAULT_LAYERS = ("mlp0", "mlp1", "mlp2", "action")
     period_parameter = "every_frames"
     state_attributes = (*FrameScheduleCallback.state_attributes, "bytes_written", "stopped")
 
@@ -451,7 +376,7 @@ class ActivationLogger(FrameScheduleCallback):
             raise ValueError(f"max_bytes must be > 0, got {max_bytes}.")
         self.path = Path(path)
         self.batch_size = batch_size
-        self.layers = list(self.DEFAULT_LAYERS if layers is None else layers)
+        self.layers = list(("mlp0", "mlp1", "mlp2", "action") if layers is None else layers)
         self.max_bytes = max_bytes
         self.seed = seed
         self.sampler: MetricsBatchSampler | None = None
@@ -462,7 +387,7 @@ class ActivationLogger(FrameScheduleCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         self.path.mkdir(parents=True, exist_ok=True)
-        self.sampler = MetricsBatchSampler(self.seed if self.seed is not None else self._seed())
+        self.sampler = self._new_sampler(self.seed)
 
     def _on_check(self, frames: int) -> None:
         if self.stopped:
@@ -474,15 +399,11 @@ class ActivationLogger(FrameScheduleCallback):
         observations, indices = batch
         activations = collect_activations(self.model, observations, layers=self.layers)
         arrays = {name: value.numpy() for name, value in activations.items()}
-        target = self.path / f"activations_{self.num_timesteps:010d}.npz"
-        handle, temporary = tempfile.mkstemp(suffix=".npz", dir=self.path)
-        os.close(handle)
-        np.savez_compressed(
-            temporary, **arrays, step=self.num_timesteps, frames=frames, indices=indices, layers=np.array(list(arrays))
-        )
-        size = os.path.getsize(temporary)
+        content = io.BytesIO()
+        layers = np.array(list(arrays))
+        np.savez_compressed(content, **arrays, step=self.num_timesteps, frames=frames, indices=indices, layers=layers)
+        size = content.getbuffer().nbytes
         if self.bytes_written + size > self.max_bytes:
-            os.remove(temporary)
             self.stopped = True
             warnings.warn(
                 f"ActivationLogger: the activations at frame {frames} ({size / 1e6:.1f} MB) would take {self.path} "
@@ -491,7 +412,9 @@ class ActivationLogger(FrameScheduleCallback):
                 stacklevel=2,
             )
             return
-        os.replace(temporary, target)
+        target = self.path / f"activations_{self.num_timesteps:010d}.npz"
+        with atomic_output(target) as temporary:
+            temporary.write_bytes(content.getvalue())
         self.bytes_written += size
         self.saved.append(target)
         if self.verbose >= 1:

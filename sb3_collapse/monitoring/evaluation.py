@@ -16,12 +16,9 @@ from sb3_collapse.protocol import EVAL_FIELDS, append_csv_rows
 
 class PeriodicEvaluation(FrameScheduleCallback):
     """
-    Deterministic evaluation at frame 0 and every ``every_frames`` frames (not at the last step of ``learn()``),
-    the scheduled evaluations of :func:`~sb3_collapse.paper.evaluation_schedule`: logged to TensorBoard
-    (``eval/mean_reward``, ``eval/std_reward``), appended to ``csv_path`` and kept in :attr:`rows`. The final model's
-    evaluation (:meth:`evaluate_saved_model`) is labelled apart (``eval_saved_model/...``). After each evaluation
-    ``callback_after_eval`` is called, as in SB3's ``EvalCallback``; its ``False`` stops ``learn()``. See
-    docs/monitoring.md.
+    Deterministic evaluation at frame 0 and every ``every_frames`` frames (not at the last step of ``learn()``):
+    logged as ``eval/{mean_reward,std_reward,frames}``, appended to ``csv_path`` and kept in :attr:`rows`; then
+    ``callback_after_eval``, as in SB3's ``EvalCallback`` (its ``False`` stops ``learn()``). See docs/monitoring.md.
 
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations
@@ -92,8 +89,8 @@ class PeriodicEvaluation(FrameScheduleCallback):
 
     def evaluate_saved_model(self) -> dict[str, float]:
         """
-        Evaluate the final model (after ``learn()``), logged as ``eval_saved_model/...``, then call
-        ``callback_after_eval``; not a scheduled evaluation: not in the CSV, not in :attr:`rows`.
+        Evaluate the final model, logged as ``eval_saved_model/...`` (not in the CSV nor :attr:`rows`), then call
+        ``callback_after_eval``.
 
         :return: the row (keys :data:`~sb3_collapse.protocol.EVAL_FIELDS`)
         """

@@ -1,17 +1,7 @@
 """
-Collapse metrics of a batch of activations (Section 5.1 of the action-collapse paper), as pure functions.
-
-Every function takes the activations of one named layer for a batch of ``n`` inputs, a tensor of shape
-``(n, *unit_shape)``, and returns a Python float. Notation:
-
-- ``H`` is the ``n x d`` matrix of the flattened activations (one row per input, ``d = prod(unit_shape)``);
-- a **unit** is a feature of a dense layer (shape ``(n, d)``), or a channel of a convolutional layer (shape
-  ``(n, C, height, width)``: its activations over every input and every position), as in ReDo;
-- ``s_1 >= s_2 >= ... >= s_min(n, d)`` are the singular values of ``H``, computed in float64 (for ``d > n``
-  as the square roots of the eigenvalues of the ``n x n`` Gram matrix ``H H^T``, which is exact to about
-  ``1e-8 s_1`` and much faster than an SVD of a wide matrix).
-
-:func:`layer_metrics` computes every metric of a layer at once.
+Collapse metrics of one layer's activations for a batch of ``n`` inputs, a ``(n, *unit_shape)`` tensor (Section 5.1
+of the action-collapse paper), as pure functions returning Python floats. ``H`` is the ``n x d`` matrix of the
+flattened activations, a unit a feature or a conv channel; notation: docs/monitoring.md#metrics.
 """
 
 from __future__ import annotations
@@ -35,33 +25,32 @@ def flatten_batch(activations: th.Tensor) -> th.Tensor:
     """
     :param activations: ``(n, *unit_shape)`` activations of ``n`` inputs
     :return: the ``n x d`` matrix ``H``, float64
-    :raises ValueError: for a tensor without a batch dimension
+    :raises ValueError: for a tensor without a feature dimension
     """
+    _check_batch(activations)
+    return activations.reshape(activations.shape[0], -1).double()
+
+
+def _check_batch(activations: th.Tensor) -> None:
     if activations.dim() < 2:
         raise ValueError(
             f"Expected activations of shape (n, ...) with a feature dimension, got {tuple(activations.shape)}."
         )
-    return activations.reshape(activations.shape[0], -1).double()
-
-
-def _gram(h: th.Tensor) -> th.Tensor:
-    return h @ h.T
 
 
 def _singular_values_from(h: th.Tensor, gram: th.Tensor | None) -> th.Tensor:
+    """Those of ``h``; for ``d > n`` the square roots of the eigenvalues of ``h h^T`` (exact to about ``1e-8 s_1``)."""
     n_inputs, n_units = h.shape
     if n_units <= n_inputs:
         return th.linalg.svdvals(h)
-    gram = _gram(h) if gram is None else gram
+    gram = h @ h.T if gram is None else gram
     return th.linalg.eigvalsh(gram).flip(0).clamp(min=0.0).sqrt()
 
 
 def singular_values(activations: th.Tensor) -> th.Tensor:
     """
-    Singular values of ``H``, in decreasing order, float64.
-
     :param activations: ``(n, *unit_shape)`` activations
-    :return: ``min(n, d)`` singular values
+    :return: the ``min(n, d)`` singular values of ``H``, in decreasing order, float64
     """
     return _singular_values_from(flatten_batch(activations), None)
 
@@ -73,10 +62,9 @@ def _numerical_rank(s: th.Tensor) -> float:
 
 def numerical_rank(activations: th.Tensor) -> float:
     """
-    Numerical rank (Zhou et al., 2022) of ``H``: ``(sum_i s_i)^2 / sum_i s_i^2``.
-
-    It is ``k`` for a matrix with ``k`` equal nonzero singular values (``n`` for the ``n x n`` identity, 1 for
-    a rank-1 matrix) and discounts small singular values; 0 for an all-zero matrix.
+    The paper's numerical rank (Section 5.1): "we compute the numerical rank (Zhou et al., 2022) of the matrix of MLP
+    activations H", ``(sum_i s_i)^2 / sum_i s_i^2`` with ``s_i`` the singular values of ``H``; 0 for an all-zero
+    matrix.
 
     :param activations: ``(n, *unit_shape)`` activations
     :return: the numerical rank, in ``[0, min(n, d)]``
@@ -88,15 +76,13 @@ def _effective_rank(s: th.Tensor, delta: float) -> float:
     total = float(s.sum())
     if total <= 0:
         return 0.0
-    cumulative = th.cumsum(s, 0) / total
-    # The smallest k with cumulative[k - 1] >= 1 - delta: one more than the count of partial sums below it (they
-    # increase). A reduction on the singular values' own device: no tensor is made on another one.
-    return float(int((cumulative < 1.0 - delta).sum()) + 1)
+    # The smallest k whose partial sum reaches 1 - delta: one more than the partial sums below it, on s's device.
+    return float(int((th.cumsum(s, 0) / total < 1.0 - delta).sum()) + 1)
 
 
 def effective_rank(activations: th.Tensor, delta: float = SRANK_DELTA) -> float:
     """
-    Effective rank ``srank_delta`` (Kumar et al., 2021) of ``H``: the smallest ``k`` such that
+    Effective rank ``srank_delta`` (Kumar et al., 2021) of ``H``: the smallest ``k`` with
     ``(s_1 + ... + s_k) / (s_1 + ... + s_min(n,d)) >= 1 - delta``; 0 for an all-zero matrix.
 
     :param activations: ``(n, *unit_shape)`` activations
@@ -108,14 +94,13 @@ def effective_rank(activations: th.Tensor, delta: float = SRANK_DELTA) -> float:
     return _effective_rank(singular_values(activations), delta)
 
 
-def _input_correlation(gram: th.Tensor, row_sums: th.Tensor, row_max_abs: th.Tensor, n_units: int) -> float:
-    # Centered Gram matrix: sum_k (h_ik - m_i)(h_jk - m_j) = (H H^T)_ij - r_i r_j / n_units, with r the row sums.
-    centered = gram - th.outer(row_sums, row_sums) / n_units
+def _input_correlation(h: th.Tensor, gram: th.Tensor) -> float:
+    n_units = h.shape[1]
+    row_sums, row_max_abs = h.sum(1), h.abs().amax(1)
+    centered = gram - th.outer(row_sums, row_sums) / n_units  # sum_k (h_ik - m_i)(h_jk - m_j)
     variance = centered.diagonal()
-    # Inputs with an all-zero vector are left out (the definition); so are those with a constant vector, whose
-    # Pearson correlation is undefined (zero variance, up to rounding).
-    scale = (row_max_abs**2) * n_units
-    valid = (row_max_abs > 0) & (variance > 1e-12 * scale)
+    # All-zero rows are left out, and constant ones (zero variance up to rounding: Pearson's correlation undefined).
+    valid = (row_max_abs > 0) & (variance > 1e-12 * (row_max_abs**2) * n_units)
     m = int(valid.sum())
     if m < 2:
         return math.nan
@@ -126,34 +111,23 @@ def _input_correlation(gram: th.Tensor, row_sums: th.Tensor, row_max_abs: th.Ten
 
 def input_correlation(activations: th.Tensor) -> float:
     """
-    Mean Pearson correlation between the activation vectors of two different inputs:
-    ``mean over i != j of corr(H_i, H_j)``, where ``corr`` is Pearson's correlation of the ``d`` entries of the
-    two rows, over the inputs whose activation vector is not all zero (and not constant, where Pearson's
-    correlation is undefined). 1.0 means that every input maps to the same point (up to an affine map).
-
-    This is the pairs-of-inputs reading of the paper's correlation; its value follows the units' mean profile
-    (units with large biases make every two inputs alike, however well the layer separates them). Figures 4, 8,
-    9 show :func:`unit_correlation`, the reading of the paper's words.
+    Mean Pearson correlation between the activation vectors of two different inputs (rows of ``H``), over the
+    inputs whose vector is neither all zero nor constant: the pairs-of-inputs reading of the paper's correlation
+    (Figures 4, 8, 9 show :func:`unit_correlation`; docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents).
 
     :param activations: ``(n, *unit_shape)`` activations
     :return: the mean correlation, in ``[-1, 1]``; NaN when fewer than two inputs qualify
     """
     h = flatten_batch(activations)
-    return _input_correlation(_gram(h), h.sum(1), h.abs().amax(1), h.shape[1])
-
-
-CONSTANT_UNIT_RTOL = 1e-6
-"""A unit whose standard deviation over the inputs is at most this times its largest absolute value is constant."""
+    return _input_correlation(h, h @ h.T)
 
 
 def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
     """
     The paper's correlation (Section 5.1): "the average correlation among every two non-zero activations", the
-    activations being the units: ``mean over a != b of corr(u_a, u_b)``, Pearson's correlation over the inputs of
-    the vectors ``u_a`` of the units that vary (a column of ``H``; a channel of a conv layer, over the inputs and
-    positions, as :func:`unit_activations`). Dead units and constant units (std at most
-    :data:`CONSTANT_UNIT_RTOL` times the largest absolute value) are left out. Computed in float64 on the
-    activations' device. The reading: docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents.
+    activations being the units: the mean over ``a != b`` of Pearson's correlation over the inputs (and positions)
+    of units ``a`` and ``b`` (:func:`unit_activations`), dead and constant units (std at most ``1e-6`` times the largest
+    absolute value) left out; float64 on the activations' device.
 
     :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
     :param absolute: average the absolute values of the correlations
@@ -165,7 +139,7 @@ def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
     centered = units - units.mean(1, keepdim=True)
     del units  # at most two (units, N) float64 copies alive at once
     norms = th.linalg.vector_norm(centered, dim=1)  # sqrt(N) x the standard deviation over the inputs
-    varies = norms > CONSTANT_UNIT_RTOL * largest * math.sqrt(centered.shape[1])
+    varies = norms > 1e-6 * largest * math.sqrt(centered.shape[1])
     m = int(varies.sum())
     if m < 2:
         return math.nan
@@ -182,32 +156,22 @@ def unit_activations(activations: th.Tensor) -> th.Tensor:
     :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
     :return: ``(units, n x positions)``: every value of each unit (feature, or channel) in one row
     """
-    if activations.dim() < 2:
-        raise ValueError(
-            f"Expected activations of shape (n, ...) with a feature dimension, got {tuple(activations.shape)}."
-        )
-    units = activations.shape[1]
-    return activations.transpose(0, 1).reshape(units, -1)
+    _check_batch(activations)
+    return activations.transpose(0, 1).reshape(activations.shape[1], -1)
 
 
 def zero_fraction(activations: th.Tensor) -> float:
     """
-    Fraction of the entries of ``H`` that are exactly zero (entry level: a unit that is zero for some inputs
-    counts for those; the paper's "number of zero activations, also called dead neurons" is :func:`dead_units`).
-
     :param activations: ``(n, *unit_shape)`` activations
-    :return: a fraction in ``[0, 1]``
+    :return: the fraction of the entries that are zero (not units: the paper's dead neurons are :func:`dead_units`)
     """
     return float((activations == 0).double().mean())
 
 
 def dead_fraction(activations: th.Tensor) -> float:
     """
-    Fraction of the units that are zero for every input of the batch (dead ReLU units; a channel of a
-    convolutional layer is dead when it is zero at every position too).
-
     :param activations: ``(n, d)`` or ``(n, C, height, width)`` activations
-    :return: a fraction in ``[0, 1]``
+    :return: the fraction of the units that are dead (:func:`dead_units`), in ``[0, 1]``
     """
     return float((unit_activations(activations) == 0).all(1).double().mean())
 
@@ -222,10 +186,8 @@ def unit_count(activations: th.Tensor) -> int:
 
 def dead_units(activations: th.Tensor) -> int:
     """
-    The number of dead units: units that are zero for every input of the batch (a channel of a convolutional
-    layer counts when it is zero at every position too). The paper's "zeros" (Section 5.1): "the number of zero
-    activations, also called dead neurons (Lu et al., 2019)". Unlike :func:`zero_fraction` (entries that are
-    zero), a unit that is zero for some inputs only does not count.
+    The paper's zeros (Section 5.1): "the number of zero activations, also called dead neurons (Lu et al., 2019)":
+    the units zero for every input of the batch (a channel: at every position too).
 
     :param activations: ``(n, d)`` or ``(n, C, height, width)`` activations
     :return: a count in ``[0, units]`` (:func:`unit_count`)
@@ -235,12 +197,11 @@ def dead_units(activations: th.Tensor) -> int:
 
 def dormant_ratio(activations: th.Tensor, tau: float = DORMANT_TAU) -> float:
     """
-    Dormant ratio of ReDo (Sokar et al., 2023): with ``a_u`` the mean absolute activation of unit ``u`` over
-    the batch (and the positions of a channel), the fraction of units with ``a_u / (mean_v a_v + 1e-9) <= tau``
-    (every unit is dormant in an all-zero layer).
+    Dormant ratio of ReDo (Sokar et al., 2023): the fraction of units ``u`` with ``a_u / (mean_v a_v + 1e-9) <= tau``,
+    ``a_u`` the mean absolute activation of ``u`` over the batch (and a channel's positions).
 
     :param activations: ``(n, d)`` or ``(n, C, height, width)`` activations
-    :param tau: threshold, relative to the layer's mean (``0.025`` in ReDo's reinforcement-learning experiments)
+    :param tau: threshold, relative to the layer's mean
     :return: a fraction in ``[0, 1]``
     """
     return float(dormant_units(activations, tau).double().mean())
@@ -248,11 +209,9 @@ def dormant_ratio(activations: th.Tensor, tau: float = DORMANT_TAU) -> float:
 
 def dormant_units(activations: th.Tensor, tau: float = DORMANT_TAU) -> th.Tensor:
     """
-    Which units are dormant in the sense of :func:`dormant_ratio` (the units that ReDo recycles).
-
     :param activations: ``(n, d)`` or ``(n, C, height, width)`` activations
     :param tau: threshold, relative to the layer's mean
-    :return: boolean mask of shape ``(units,)``
+    :return: ``(units,)`` boolean mask of the dormant units (:func:`dormant_ratio`), those that ReDo recycles
     """
     if tau < 0:
         raise ValueError(f"tau must be >= 0, got {tau}.")
@@ -262,9 +221,8 @@ def dormant_units(activations: th.Tensor, tau: float = DORMANT_TAU) -> th.Tensor
 
 def action_spread(actions: th.Tensor) -> float:
     """
-    Spread of the actor's deterministic actions across the batch: the standard deviation over the inputs
-    (population std, divisor ``n``) of each action dimension, averaged over the dimensions. 0 means that every
-    input gets the same action (action collapse).
+    The spread of the deterministic actions over the batch: the population standard deviation of each action
+    dimension, averaged over the dimensions (0: every input gets the same action, action collapse).
 
     :param actions: ``(n, action_dim)`` actions in ``[-1, 1]``
     :return: the mean standard deviation
@@ -276,19 +234,17 @@ def action_spread(actions: th.Tensor) -> float:
 
 def saturated_fraction(actions: th.Tensor, limit: float = SATURATION_LIMIT) -> float:
     """
-    Fraction of the action components with ``|a| > limit``.
-
     :param actions: ``(n, action_dim)`` actions in ``[-1, 1]``
     :param limit: saturation threshold
-    :return: a fraction in ``[0, 1]``
+    :return: the fraction of the action components with ``|a| > limit``
     """
     return float((actions.abs() > limit).double().mean())
 
 
 def gradient_norm(gradients: Iterable[th.Tensor | None]) -> float:
     """
-    L2 norm of the concatenation of gradients: ``sqrt(sum over tensors and entries of g^2)`` (missing
-    gradients, ``None``, count as zero).
+    The paper's gradient norm (Section 5.1: "we check the gradient norm of MLP layers"): the L2 norm of the
+    concatenated gradients of a layer's parameters (``None`` counts as zero).
 
     :param gradients: the ``.grad`` of a layer's parameters
     :return: the norm
@@ -299,24 +255,22 @@ def gradient_norm(gradients: Iterable[th.Tensor | None]) -> float:
 
 def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float = SRANK_DELTA) -> dict[str, float]:
     """
-    Every activation metric of one layer; the ranks and the input correlation share one Gram matrix ``H H^T``
-    (float64).
+    Every activation metric of one layer (float64; the ranks and the input correlation from one Gram matrix).
 
     :param activations: ``(n, *unit_shape)`` activations
     :param tau: threshold of :func:`dormant_ratio`
     :param delta: threshold of :func:`effective_rank`
-    :return: ``numerical_rank`` (:func:`numerical_rank`), ``srank`` (:func:`effective_rank`), ``correlation``
-        (:func:`unit_correlation`, the paper's), ``input_correlation`` (:func:`input_correlation`),
-        ``zero_fraction``, ``dead_fraction``, ``dead_units`` (a count, as a float), ``dormant_ratio``
+    :return: ``numerical_rank``, ``srank`` (:func:`effective_rank`), ``correlation`` (:func:`unit_correlation`),
+        ``input_correlation``, ``zero_fraction``, ``dead_fraction``, ``dead_units`` (as a float), ``dormant_ratio``
     """
     h = flatten_batch(activations)
-    gram = _gram(h)
+    gram = h @ h.T
     s = _singular_values_from(h, gram)
     return {
         "numerical_rank": _numerical_rank(s),
         "srank": _effective_rank(s, delta),
         "correlation": unit_correlation(activations),
-        "input_correlation": _input_correlation(gram, h.sum(1), h.abs().amax(1), h.shape[1]),
+        "input_correlation": _input_correlation(h, gram),
         "zero_fraction": zero_fraction(activations),
         "dead_fraction": dead_fraction(activations),
         "dead_units": float(dead_units(activations)),

@@ -1,8 +1,4 @@
-"""
-ReDo as Sokar et al. run it: recycle the dormant units every ``F`` updates, for the whole run
-(:class:`PeriodicReDo`). The reset rule's ``intervention="redo"`` is the one-shot form: the same recycling
-(:func:`~sb3_collapse.monitoring.interventions.redo`), once at the end of each window without escape.
-"""
+"""ReDo as Sokar et al. run it, every ``F`` updates for the whole run: :class:`PeriodicReDo`."""
 
 from __future__ import annotations
 
@@ -12,28 +8,20 @@ from pathlib import Path
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatchSampler, frames_of
 from sb3_collapse.monitoring.interventions import REDO_EVERY_UPDATES, InterventionResult, intervention_parts, redo
 from sb3_collapse.monitoring.metrics import DORMANT_TAU
-from sb3_collapse.protocol import append_csv_rows
-
-__all__ = ["REDO_EVERY_UPDATES", "PeriodicReDo"]
 
 
 class PeriodicReDo(FrameScheduleCallback):
     """
-    ReDo, "Recycling Dormant neurons" (Sokar et al., "The Dormant Neuron Phenomenon in Deep Reinforcement
-    Learning", ICML 2023), as its authors run it: every ``every_updates`` updates (``F``), for the whole run, the
-    dormant units are recycled by :func:`~sb3_collapse.monitoring.interventions.redo` (with ``conv_channels``, the
-    channels of DrQ-v2's ``cnn1``..``cnn4`` too), at the first agent step after ``model.n_updates`` reaches each
-    multiple. Logs ``redo/units_recycled``, ``redo/units_total`` and ``redo/recycles``; :attr:`history` holds
-    ``(updates, frame, units_recycled)`` per recycling; the schedule is resumable. Models: DrQv2 and SB3's TD3, DDPG
-    and SAC (their convolutions are not recycled). See docs/interventions.md#redo-every-f-updates-periodicredo.
+    ReDo (Sokar et al., "The Dormant Neuron Phenomenon in Deep Reinforcement Learning", ICML 2023) as its authors run
+    it: :func:`~sb3_collapse.monitoring.interventions.redo` at the first agent step after ``model.n_updates`` reaches
+    each multiple of ``every_updates``, for the whole run; :attr:`history` holds ``(updates, frame,
+    units_recycled)`` per recycling. See docs/interventions.md#redo-every-f-updates-periodicredo.
 
-    :param every_updates: ``F``, the updates between two recyclings (:data:`REDO_EVERY_UPDATES`)
-    :param tau: the dormancy threshold, relative to the layer's mean (0.025)
-    :param batch_size: stored transitions of the batch the activations are measured on; with fewer stored,
-        nothing is recycled at that multiple
+    :param every_updates: ``F``, the updates between two recyclings
+    :param tau: the dormancy threshold, relative to the layer's mean
+    :param batch_size: stored transitions of the batch the activations are measured on (fewer: nothing recycled)
     :param conv_channels: recycle the channels of DrQ-v2's convolutions too
-    :param events_path: CSV file that each recycling appends a row to, columns :attr:`EVENT_FIELDS` (``None``: no
-        file)
+    :param events_path: CSV file that each recycling appends a row to, columns :attr:`EVENT_FIELDS` (``None``: none)
     :param verbose: 0 silent, 1 prints each recycling
     """
 
@@ -63,21 +51,18 @@ class PeriodicReDo(FrameScheduleCallback):
         self.events_path = None if events_path is None else Path(events_path)
         self.sampler: MetricsBatchSampler | None = None
         self.history: list[tuple[int, int, int]] = []
-        self.results: list[InterventionResult] = []
-        """What each recycling of this process did (units by layer), in order; not saved with the state."""
+        self.results: list[InterventionResult] = []  # each recycling of this process, not saved with the state
 
     @property
     def recycles(self) -> int:
-        """Recyclings so far."""
+        """Recyclings so far (all ``learn()`` calls)."""
         return len(self.history)
 
     def _init_callback(self) -> None:
         super()._init_callback()
         intervention_parts(self.model)  # a TypeError for a model the interventions do not support
-        seed = None if self.model.seed is None else int(self.model.seed) + 2_000_003
-        self.sampler = MetricsBatchSampler(seed)
-        if self.events_path is not None:
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
+        self.sampler = self._new_sampler(offset=2_000_003)
+        self._append_rows(self.events_path, self.EVENT_FIELDS)
 
     def _on_training_start(self) -> None:
         super()._on_training_start()
@@ -92,7 +77,7 @@ class PeriodicReDo(FrameScheduleCallback):
 
     def recycle(self, updates: int) -> None:
         """
-        Recycle the dormant units now (what each multiple of ``every_updates`` does).
+        Recycle the dormant units now.
 
         :param updates: the model's update count, for the record
         """
@@ -103,16 +88,8 @@ class PeriodicReDo(FrameScheduleCallback):
         recycled = int(result.scalars["units_recycled"])
         self.results.append(result)
         self.history.append((updates, frames, recycled))
-        if self.events_path is not None:
-            row = {
-                "frame": frames,
-                "step": self.model.num_timesteps,
-                "updates": updates,
-                "units_recycled": recycled,
-                "units_total": int(result.scalars["units_total"]),
-                "detail": result.detail,
-            }
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [row])
+        row = (frames, self.model.num_timesteps, updates, recycled, int(result.scalars["units_total"]), result.detail)
+        self._append_rows(self.events_path, self.EVENT_FIELDS, row)
         if self.verbose >= 1:
             print(f"PeriodicReDo: update {updates}, frame {frames}: {result.detail}")
         self.logger.record("redo/units_recycled", recycled)

@@ -1,8 +1,4 @@
-"""
-The action-collapse paper's rule (Section 5.2): reset the training from scratch when the agent has not escaped
-action collapse within a window of frames, or apply another intervention
-(:mod:`~sb3_collapse.monitoring.interventions`).
-"""
+"""The action-collapse paper's reset rule (Section 5.2), with a choice of intervention: :class:`CollapseReset`."""
 
 from __future__ import annotations
 
@@ -27,24 +23,15 @@ from sb3_collapse.monitoring.interventions import (
 )
 from sb3_collapse.monitoring.metrics import action_spread
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS, append_csv_rows
-
-Trigger = str | Callable[[BaseAlgorithm], "float | None"]
+from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS
 
 
 class CollapseReset(FrameScheduleCallback):
     """
-    Resets the training from scratch while the agent is stuck in action collapse (the paper's rule), or applies
-    another ``intervention``, on a DrQv2, TD3, DDPG or SAC model. The defaults are the paper's
-    (:data:`sb3_collapse.paper.PAPER`, Section 5.2: "if we do not see a gradient norm larger than [``threshold``]
-    of consecutive five computations every 2e5 frames, the training would be reset").
-
-    Every ``check_every_frames`` frames it reads a health value (by default the gradient L2 norm of ``layer`` at
-    the last update); ``patience`` consecutive values ``> threshold`` are an escape, after which the rule never
-    fires again. A window of ``window_frames`` since the start or the last intervention that ends without an
-    escape applies the intervention, except at or after the last frame of the ``learn()`` call. The state carries
-    over to a ``learn(reset_num_timesteps=False)``. What it logs (TensorBoard and ``events_path``, columns
-    :attr:`EVENT_FIELDS`) and why: docs/monitoring.md and docs/interventions.md#what-is-logged.
+    The paper's rule (Section 5.2, defaults :data:`sb3_collapse.paper.PAPER`): "if we do not see a gradient norm
+    larger than [``threshold``] of consecutive five computations every 2e5 frames, the training would be reset", or
+    another ``intervention``, on a DrQv2, TD3, DDPG or SAC model; no intervention at or after the last frame of
+    ``learn()``. Rule and logs: docs/monitoring.md#the-rule, docs/interventions.md#what-is-logged.
 
     :param window_frames: frames after the start or the last reset within which the agent must escape
     :param check_every_frames: frames between two checks of the metric
@@ -52,16 +39,13 @@ class CollapseReset(FrameScheduleCallback):
     :param patience: consecutive healthy checks that mean an escape
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
-    :param metric: ``"grad_norm"`` (the paper's rule), ``"action_std"``
-        (:func:`~sb3_collapse.monitoring.metrics.action_spread` on a metrics batch), or a callable
-        ``model -> float | None`` (``None``: no value at this check); above ``threshold`` is healthy
-    :param batch_size: metrics batch of replay observations for ``metric="action_std"`` and for
-        ``intervention="redo"`` (the batch its dormant units are measured on)
-    :param events_path: CSV file that each intervention and the escape append a row to (``None``: no file)
-    :param intervention: what to do at the end of a window without escape: ``"reset"`` (the paper's) or another
-        intervention of :mod:`~sb3_collapse.monitoring.interventions`
-    :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"`` or
-        ``{"shrink": 0.5, "perturb": 0.1}`` for ``"shrink_perturb"`` (``None``: its defaults)
+    :param metric: ``"grad_norm"`` (the paper's), ``"action_std"`` (the spread of the actions of a metrics batch) or
+        a callable ``model -> float | None``; above ``threshold`` is healthy
+    :param batch_size: replay observations of the batch of ``metric="action_std"`` and ``intervention="redo"``
+    :param events_path: CSV file that each intervention and the escape append a row to (``None``: none)
+    :param intervention: what to do at the end of a window without escape, a key of
+        :data:`~sb3_collapse.monitoring.interventions.INTERVENTIONS` (``"reset"``: the paper's)
+    :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"``
     :param verbose: 0 silent, 1 prints each intervention and the escape
     """
 
@@ -86,7 +70,7 @@ class CollapseReset(FrameScheduleCallback):
         patience: int = PAPER.patience,
         layer: str = PAPER.layer,
         max_resets: int | None = None,
-        metric: Trigger = "grad_norm",
+        metric: str | Callable[[BaseAlgorithm], float | None] = "grad_norm",
         batch_size: int = 512,
         events_path: str | os.PathLike | None = None,
         intervention: str = "reset",
@@ -115,8 +99,6 @@ class CollapseReset(FrameScheduleCallback):
         check_intervention(intervention)
         self.intervention = intervention
         self.intervention_kwargs = dict(intervention_kwargs or {})
-        if intervention == "redo":
-            self.intervention_kwargs.setdefault("batch_size", batch_size)
         self.window_frames = window_frames
         self.threshold = threshold
         self.patience = patience
@@ -148,23 +130,12 @@ class CollapseReset(FrameScheduleCallback):
             names = list(layer_parameters(self.model))
             if self.layer not in names:
                 raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
-        self.sampler = MetricsBatchSampler(self._seed())
-        if self.intervention == "redo":
-            self.intervention_kwargs.setdefault("sampler", self.sampler)
-        if self.events_path is not None:
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [])
+        self.sampler = self._new_sampler()
+        self._append_rows(self.events_path, self.EVENT_FIELDS)
 
     def _write_event(self, frames: int, event: str, detail: str = "") -> None:
-        if self.events_path is not None:
-            row = {
-                "frame": frames,
-                "step": self.num_timesteps,
-                "event": event,
-                "resets": self.resets,
-                "intervention": self.intervention,
-                "detail": detail,
-            }
-            append_csv_rows(self.events_path, self.EVENT_FIELDS, [row])
+        row = (frames, self.num_timesteps, event, self.resets, self.intervention, detail)
+        self._append_rows(self.events_path, self.EVENT_FIELDS, row)
 
     def _on_training_start(self) -> None:
         super()._on_training_start()
@@ -176,11 +147,7 @@ class CollapseReset(FrameScheduleCallback):
             self.window_start_frame = reset_step * self.action_repeat
 
     def read_metric(self) -> float | None:
-        """
-        The health value of the model now (see ``metric``).
-
-        :return: the value, or ``None`` when there is none at this point
-        """
+        """:return: the health value of the model now (see ``metric``), ``None`` when there is none"""
         if callable(self.metric):
             value = self.metric(self.model)
             return None if value is None else float(value)
@@ -197,18 +164,13 @@ class CollapseReset(FrameScheduleCallback):
         super()._on_step()  # runs _on_check at check frames
         frames = self.frames
         if not self.escaped and frames - self.window_start_frame >= self.window_frames:
-            if frames >= self._budget_end_frame():
-                pass  # the window ends with the budget: nothing trains after it, so no reset (see the class doc)
+            if self._at_budget_end():
+                pass  # the window ends with the budget: nothing trains after it, so no reset
             elif self.max_resets is None or self.resets < self.max_resets:
                 self._reset(frames)
             else:
                 self.window_start_frame = frames  # no reset left: the next window only re-arms the test
         return True
-
-    def _budget_end_frame(self) -> float:
-        """The frame at which the current ``learn()`` call ends (its ``total_timesteps``), inf when unknown."""
-        total = self.locals.get("total_timesteps")  # learn()'s, passed to on_training_start
-        return float("inf") if not total else int(total) * self.action_repeat
 
     def _on_check(self, frames: int) -> None:
         if self.escaped:
@@ -228,7 +190,10 @@ class CollapseReset(FrameScheduleCallback):
         self._record(frames)
 
     def _reset(self, frames: int) -> None:
-        result = apply_intervention(self.model, self.intervention, **self.intervention_kwargs)
+        kwargs = self.intervention_kwargs
+        if self.intervention == "redo":  # on the rule's metrics batch
+            kwargs = {"batch_size": self.batch_size, "sampler": self.sampler, **kwargs}
+        result = apply_intervention(self.model, self.intervention, **kwargs)
         self.interventions.append(result)
         self.resets += 1
         self.reset_frames.append(frames)

@@ -188,13 +188,44 @@ def test_sb3_models_get_an_adapter_and_other_models_a_type_error():
     from stable_baselines3 import TD3
 
     env = gym.make("Pendulum-v1")
-    parts = intervention_parts(TD3("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]), buffer_size=10))
+    model = TD3("MlpPolicy", env, policy_kwargs=dict(net_arch=[8]), buffer_size=10)
+    parts = intervention_parts(model)
     assert isinstance(parts, InterventionParts)
     assert list(parts.online_networks()) == ["actor", "critic"]
     assert list(parts.target_networks()) == ["target actor", "target critic"]
+    # the details name what the adapter gives: the layers of layer_taps, the networks by name
+    result = apply_intervention(model, "reset_mlp")
+    assert result.detail == "new actor MLP (mlp1..action) and target actor, its optimizer state"
+    result = apply_intervention(model, "reset")
+    assert result.detail.startswith("new actor, critic, target actor, target critic and their optimizers; replay")
 
     class Other:
         policy = nn.Linear(1, 1)
 
     with pytest.raises(TypeError, match="The interventions work on DrQv2 and on SB3's TD3, DDPG and SAC; Other"):
         intervention_parts(Other())
+
+
+class ToyPolicyWithTargetActor(ToyPolicy):
+    """A target actor: the interventions keep it a copy of what they renew in the actor."""
+
+    def __init__(self):
+        super().__init__()
+        self.actor_target = nn.Sequential(*(nn.Linear(4, 8), nn.ReLU(), nn.Linear(8, 8), nn.ReLU()))
+        self.actor_target.append(nn.Linear(8, 2)).append(nn.Tanh())
+        nn.init.constant_(self.actor_target[0].weight, 7.0)
+
+    def target_networks(self):
+        return {"target actor": self.actor_target}
+
+
+def test_a_target_actor_gets_a_copy_of_the_renewed_actor_modules():
+    th.manual_seed(0)
+    model = ToyModel()
+    model.policy = policy = ToyPolicyWithTargetActor()
+    result = apply_intervention(model, "reset_mlp")  # renews actor[2:]: the target's copies follow, its first stays
+    assert result.detail == "new actor MLP (mlp2..action) and target actor, its optimizer state"
+    for online, copied in zip(policy.actor[2:].parameters(), policy.actor_target[2:].parameters()):
+        assert th.equal(online, copied)
+    assert th.equal(policy.actor_target[0].weight, th.full((8, 4), 7.0))
+    assert result.scalars["weights_changed"] == 2 * (8 * 8 + 8 + 8 * 2 + 2)

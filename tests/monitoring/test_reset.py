@@ -289,7 +289,12 @@ def test_rule_applies_the_chosen_intervention(intervention, tmp_path):
     model = tiny_model(tensorboard_log=str(tmp_path))
     collapse(model)
     rule = CollapseReset(
-        window_frames=200, check_every_frames=20, patience=3, max_resets=1, batch_size=16, intervention=intervention,
+        window_frames=200,
+        check_every_frames=20,
+        patience=3,
+        max_resets=1,
+        batch_size=16,
+        intervention=intervention,
         events_path=tmp_path / "events.csv",
     )
     model.learn(110, callback=rule)  # the window ends at frame 200, agent step 100
@@ -302,7 +307,8 @@ def test_rule_applies_the_chosen_intervention(intervention, tmp_path):
     if intervention == "redo":  # every mlp1 unit of the collapsed actor is dormant
         assert len(rule.interventions[0].units["mlp1"]) == 32 and "mlp1 32/32" in row["detail"]
         assert model.actor.mlp1[0].bias.max() > -1.0
+        # the rule's batch and sampler are given at each call: its config holds the constructor's arguments only
+        assert rule.get_config()["intervention_kwargs"] == {} and "sampler" not in rule.get_config()
     accumulator = EventAccumulator(glob.glob(str(tmp_path / "DrQv2_1" / "events.out.tfevents.*"))[0])
     accumulator.Reload()
     assert accumulator.Scalars("collapse/intervention/weights_changed")[0].value > 0
-
