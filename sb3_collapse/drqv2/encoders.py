@@ -1,7 +1,5 @@
-"""The encoders of DrQ-v2's policies and their pieces: DrQ-v2's convolutional encoder of pixels (``cnn0``..``cnn4``),
-the state encoder of ``MlpPolicy``, the encoder of dict observations (``MultiInputPolicy``), a user's SB3 features
-extractor in its place, the hidden activation and DrQ-v2's weight initialization; the checks of observation spaces
-and image sizes."""
+"""The encoders of DrQ-v2's policies (pixels, state vectors, dict observations, a user's SB3 features extractor),
+the hidden activation, DrQ-v2's weight initialization and the checks of observation spaces."""
 
 from __future__ import annotations
 
@@ -19,12 +17,8 @@ from torch import nn
 from sb3_collapse.drqv2.augmentation import random_shift
 from sb3_collapse.errors import ParameterError, SpaceError
 
-ACTIVATIONS = ("relu", "leaky_relu")
-"""The hidden activations of the networks: ReLU (DrQ-v2's) or Leaky-ReLU (the paper's footnote 1 ablation)."""
-
-LEAKY_RELU_SLOPE = 0.01
-"""Negative slope of the Leaky-ReLU: PyTorch's default (the paper does not give one; Maas et al., 2013 used 0.01)."""
-
+ACTIVATIONS = ("relu", "leaky_relu")  # ReLU (DrQ-v2's) or Leaky-ReLU (the paper's footnote 1 ablation)
+LEAKY_RELU_SLOPE = 0.01  # PyTorch's default: the paper gives none (docs/interventions.md)
 
 
 def check_activation(activation: str, leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> None:
@@ -42,11 +36,7 @@ def check_activation(activation: str, leaky_relu_slope: float = LEAKY_RELU_SLOPE
 
 
 def hidden_activation(activation: str = "relu", leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> nn.Module:
-    """
-    :param activation: ``"relu"`` or ``"leaky_relu"``
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :return: a new in-place activation module: ``nn.ReLU`` or ``nn.LeakyReLU(leaky_relu_slope)``
-    """
+    """:return: a new in-place ``nn.ReLU`` or ``nn.LeakyReLU(leaky_relu_slope)`` for ``activation``"""
     check_activation(activation, leaky_relu_slope)
     if activation == "leaky_relu":
         return nn.LeakyReLU(leaky_relu_slope, inplace=True)
@@ -54,12 +44,8 @@ def hidden_activation(activation: str = "relu", leaky_relu_slope: float = LEAKY_
 
 
 def weight_init(module: nn.Module) -> None:
-    """
-    DrQ-v2's initialization: orthogonal weights (gain 1 for Linear, sqrt(2) for Conv), zero biases.
-    LayerNorm keeps PyTorch's default (unit scale, zero shift).
-
-    :param module: module to initialize in place (use with ``Module.apply``)
-    """
+    """DrQ-v2's initialization of ``module`` in place (``Module.apply``): orthogonal weights (gain 1 for Linear,
+    sqrt(2) for Conv), zero biases."""
     if isinstance(module, nn.Linear):
         nn.init.orthogonal_(module.weight.data)
         if module.bias is not None:
@@ -74,9 +60,8 @@ class PixelNormalization(nn.Module):
     """
     ``cnn0``: uint8 pixels to floats in [-0.5, 0.5] (DrQ-v2's ``obs / 255 - 0.5``).
 
-    :param channels_last: return the images in ``channels_last`` memory format (faster convolutions)
-    :param normalize_images: ``False``: the images are already normalized (SB3's ``normalize_images=False``), they
-        are only converted to float
+    :param channels_last: return the images in ``channels_last`` memory format
+    :param normalize_images: ``False``: the images are already normalized, only converted to float
     """
 
     def __init__(self, channels_last: bool = True, normalize_images: bool = True) -> None:
@@ -100,8 +85,7 @@ def _fused_conv_relu_available() -> bool:
         return False
 
 
-FUSED_CONV_RELU = _fused_conv_relu_available()
-"""Whether :class:`ConvReLU` runs its convolution and ReLU as one oneDNN kernel on the CPU."""
+FUSED_CONV_RELU = _fused_conv_relu_available()  # ConvReLU runs as one oneDNN kernel on the CPU
 
 
 class _FusedConvReLU(th.autograd.Function):
@@ -123,23 +107,20 @@ class _FusedConvReLU(th.autograd.Function):
         grads = th.ops.aten.convolution_backward(
             grad_z, x, weight, [weight.shape[0]], stride, padding, dilation, False, [0, 0], groups,
             list(ctx.needs_input_grad[:3]),
-        )
+        )  # fmt: skip
         return (*grads, None)
 
 
 class ConvReLU(nn.Sequential):
     """
-    ``Conv2d`` then ``ReLU`` (or Leaky-ReLU): one named layer (``cnn1``..``cnn4``), whose output is the activation
-    after the ReLU.
-
-    On the CPU, for float32 inputs and a ReLU, the two run as one oneDNN kernel, with the values of the two in turn;
-    elsewhere it is the plain ``Sequential`` (see docs/algorithm.md#the-algorithm-sb3_collapsedrqv2).
+    ``Conv2d`` then ``ReLU`` (or Leaky-ReLU), one named layer (``cnn1``..``cnn4``); on the CPU one oneDNN kernel with
+    the same values (docs/algorithm.md).
 
     :param in_channels: input channels
     :param out_channels: filters
     :param stride: stride of the 3x3 convolution (no padding)
-    :param fused: run the two as one kernel where possible; ``False`` runs them one after the other everywhere
-    :param activation: ``"relu"`` or ``"leaky_relu"`` (:func:`hidden_activation`)
+    :param fused: run the two as one kernel where possible
+    :param activation: ``"relu"`` or ``"leaky_relu"``
     :param leaky_relu_slope: negative slope of the Leaky-ReLU
     """
 
@@ -166,28 +147,19 @@ class ConvReLU(nn.Sequential):
 
 class PixelEncoder(nn.Module):
     """
-    DrQ-v2's convolutional encoder: ``cnn0`` normalization, then four 3x3 convolutions with 32 channels
-    (stride 2, then 1, 1, 1), no padding, ReLU after each; the output is flattened.
-    Initialized with :func:`weight_init` at construction.
-
-    With ``channels_last`` (the default) the convolutions run in ``channels_last`` memory format and the output is
-    flattened in (H, W, C) order, otherwise in DrQ-v2's (C, H, W) order; the ``cnnK`` activations are the same
-    tensors either way (why the order does not matter: docs/algorithm.md#the-algorithm-sb3_collapsedrqv2).
+    DrQ-v2's convolutional encoder: ``cnn0`` normalization, four 3x3 convolutions of 32 channels (stride 2, 1, 1, 1),
+    no padding, ReLU after each, flattened ((H, W, C) order with ``channels_last``: docs/algorithm.md).
 
     :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
     :param channels: number of filters of every convolution
     :param channels_last: run the convolutions in ``channels_last`` memory format
-    :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`, same values;
-        ignored with a Leaky-ReLU)
+    :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`)
     :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` after each convolution
     :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :param normalize_images: ``True``: ``uint8`` images, ``cnn0`` computes ``obs / 255 - 0.5``; ``False`` (SB3's
-        keyword): images already normalized, any float ``Box`` of shape ``(channels, height, width)``, taken as they
-        are
+    :param normalize_images: ``False`` (SB3's keyword): float images already normalized, taken as they are
     """
 
-    has_cnn = True
-    """Random-shift augmentation applies to the observations (they are images)."""
+    has_cnn = True  # random-shift augmentation applies
 
     def __init__(
         self,
@@ -218,8 +190,7 @@ class PixelEncoder(nn.Module):
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
         h = self.cnn4(self.cnn3(self.cnn2(self.cnn1(self.cnn0(obs)))))
-        if self.channels_last:
-            # (H, W, C) order: a free view of channels_last memory, where (C, H, W) order needs a copy.
+        if self.channels_last:  # (H, W, C) order: a free view of channels_last memory
             return h.permute(0, 2, 3, 1).flatten(1)
         return h.flatten(1)
 
@@ -227,27 +198,19 @@ class PixelEncoder(nn.Module):
         return {"cnn0": self.cnn0, "cnn1": self.cnn1, "cnn2": self.cnn2, "cnn3": self.cnn3, "cnn4": self.cnn4}
 
     def augment(self, obs: th.Tensor, pad: int, shifts: th.Tensor) -> th.Tensor:
-        """
-        :param obs: a batch of images
-        :param pad: random-shift padding in pixels
-        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`
-        :return: the shifted images, in the memory format the convolutions take (no copy in ``cnn0``)
-        """
+        """:return: ``obs`` shifted by ``shifts`` (:func:`draw_shifts`'s) after padding ``pad`` pixels, in the
+        memory format the convolutions take"""
         return random_shift(obs, pad, shifts, self.channels_last)
 
 
 class StateEncoder(nn.Module):
     """
-    Identity encoder for state vectors (``MlpPolicy``): the actor and critic trunks read the state directly.
+    Identity encoder of ``MlpPolicy``: SB3's ``preprocess_obs``, flattened (as SB3's ``FlattenExtractor``).
 
-    Observations go through SB3's ``preprocess_obs`` and are flattened, as SB3's ``FlattenExtractor`` does: a
-    ``Box`` as floats, ``Discrete`` and ``MultiDiscrete`` one-hot encoded, ``MultiBinary`` as floats.
-
-    :param observation_space: a ``Box`` that is not an image (any shape, flattened), ``Discrete``, ``MultiDiscrete``
-        or ``MultiBinary``
-    :param activation: unused (no layer), accepted so that every encoder takes the policy's activation
+    :param observation_space: a ``Box`` that is not an image, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
+    :param activation: unused, accepted as every encoder takes it
     :param leaky_relu_slope: unused
-    :param normalize_images: unused (no image), accepted as SB3's policies accept it
+    :param normalize_images: unused
     """
 
     has_cnn = False
@@ -275,8 +238,7 @@ class StateEncoder(nn.Module):
 
 
 def _image_keys(observation_space: spaces.Dict, normalize_images: bool) -> list[str]:
-    """The keys of a ``Dict`` space whose spaces are channel-first images (uint8, or any float with
-    ``normalize_images=False``)."""
+    """The keys of a ``Dict`` space whose spaces are channel-first images."""
     return [
         key
         for key, space in observation_space.spaces.items()
@@ -294,22 +256,15 @@ def _shift_images(obs: Any, pad: int, shifts: th.Tensor, image_keys: Sequence[st
 
 class DictEncoder(nn.Module):
     """
-    Encoder of ``spaces.Dict`` observations (``MultiInputPolicy``), as visual RL with proprioception does: DrQ-v2's
-    :class:`PixelEncoder` on each image key (a channel-first ``uint8`` ``Box``; any float ``Box`` of 3 dimensions
-    with ``normalize_images=False``), every other key through SB3's ``preprocess_obs`` (one-hot for discrete
-    spaces), flattened; all concatenated, the image features first (in the space's key order), then the others.
-
-    Random-shift augmentation applies to the image keys only; a sample's image keys share one shift.
-
-    Named layers: with one image key, its encoder's ``cnn0``..``cnn4``; with several, ``cnn0.<key>``..
-    ``cnn4.<key>`` for each key; none without an image key.
+    Encoder of ``spaces.Dict`` observations (``MultiInputPolicy``): a :class:`PixelEncoder` on each image key, the
+    other keys through SB3's ``preprocess_obs``, flattened; concatenated, images first. Named layers:
+    docs/algorithm.md.
 
     :param observation_space: a ``spaces.Dict`` of ``Box``, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
     :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in the pixel encoders
     :param leaky_relu_slope: negative slope of the Leaky-ReLU
     :param normalize_images: as :class:`PixelEncoder`'s
-    :param encoder_kwargs: keyword arguments of each :class:`PixelEncoder` (``channels``, ``channels_last``,
-        ``fused_relu``)
+    :param encoder_kwargs: keyword arguments of each :class:`PixelEncoder`
     """
 
     def __init__(
@@ -348,12 +303,7 @@ class DictEncoder(nn.Module):
         return th.cat(features, dim=1)
 
     def augment(self, obs: dict[str, th.Tensor], pad: int, shifts: th.Tensor) -> dict[str, th.Tensor]:
-        """
-        :param obs: a batch of dict observations
-        :param pad: random-shift padding in pixels
-        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`, one per sample
-        :return: the observations, their image keys shifted
-        """
+        """:return: ``obs`` with its image keys shifted (:meth:`PixelEncoder.augment`)"""
         return {
             key: self.pixel_encoders[key].augment(value, pad, shifts) if key in self.image_keys else value
             for key, value in obs.items()
@@ -371,13 +321,8 @@ class DictEncoder(nn.Module):
 
 class FeaturesExtractorEncoder(nn.Module):
     """
-    A user's SB3 features extractor (``policy_kwargs=dict(features_extractor_class=...)``) in place of DrQ-v2's
-    encoder: the observations go through SB3's ``preprocess_obs`` (images divided by 255 unless
-    ``normalize_images=False``, discrete spaces one-hot encoded), then the extractor, as in SB3's policies. It is
-    shared by the actor and the critic and trained by the critic loss only, as DrQ-v2's encoder.
-
-    Random-shift augmentation applies to image observations (a channel-first image ``Box``, or the image keys of a
-    ``Dict``), before the extractor. The extractor keeps its own initialization; it has no named layers.
+    A user's SB3 features extractor in place of DrQ-v2's encoder, after SB3's ``preprocess_obs``; trained by the
+    critic loss only; the images are shifted before it; no named layers.
 
     :param observation_space: the observation space
     :param features_extractor_class: a ``BaseFeaturesExtractor`` subclass
@@ -418,12 +363,7 @@ class FeaturesExtractorEncoder(nn.Module):
         return self.extractor(preprocess_obs(obs, self.observation_space, self.normalize_images))
 
     def augment(self, obs: PyTorchObs, pad: int, shifts: th.Tensor) -> PyTorchObs:
-        """
-        :param obs: a batch of observations
-        :param pad: random-shift padding in pixels
-        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`, one per sample
-        :return: the observations, their images shifted
-        """
+        """:return: ``obs`` with its images shifted (:meth:`PixelEncoder.augment`)"""
         return _shift_images(obs, pad, shifts, self.image_keys)
 
     def named_layers(self) -> dict[str, nn.Module]:
@@ -431,12 +371,8 @@ class FeaturesExtractorEncoder(nn.Module):
 
 
 def check_pixel_space(observation_space: spaces.Space, normalize_images: bool = True) -> None:
-    """
-    :param observation_space: space to check
-    :param normalize_images: ``False``: any float ``Box`` of 3 dimensions is an image (already normalized)
-    :raises SpaceError: unless it is a channel-first image ``Box`` (``(C, H, W)``, ``C < H, W``), ``uint8`` in
-        [0, 255] unless ``normalize_images=False``
-    """
+    """:raises SpaceError: unless ``observation_space`` is a channel-first image ``Box`` (``uint8`` unless
+    ``normalize_images=False``)"""
     if not (
         isinstance(observation_space, spaces.Box)
         and is_image_space(observation_space, check_channels=False, normalized_image=not normalize_images)
@@ -456,17 +392,12 @@ def check_pixel_space(observation_space: spaces.Space, normalize_images: bool = 
         )
 
 
-STATE_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
-"""The observation spaces of ``MlpPolicy`` (and of the non-image keys of ``MultiInputPolicy``)."""
+STATE_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)  # MlpPolicy's
 
 
 def check_state_space(observation_space: spaces.Space, where: str = "MlpPolicy") -> None:
-    """
-    :param observation_space: space to check
-    :param where: who takes it, for the message
-    :raises SpaceError: unless it is a ``Box`` that is not an image (flattened), ``Discrete``, ``MultiDiscrete`` or
-        ``MultiBinary``
-    """
+    """:raises SpaceError: unless ``observation_space`` is one of :data:`STATE_SPACES` and no image (``where``
+    takes it)"""
     if isinstance(observation_space, spaces.Box) and is_image_space(observation_space, check_channels=False):
         raise SpaceError(
             "policy",
@@ -491,16 +422,11 @@ def _conv_output_size(image_size: tuple[int, ...]) -> tuple[int, ...]:
     return tuple((size - 3) // 2 + 1 - 6 for size in image_size)
 
 
-MIN_IMAGE_SIZE = 15
-"""The smallest image height and width, in pixels, that the encoder's convolutions leave at least 1x1 of."""
+MIN_IMAGE_SIZE = 15  # pixels: the smallest height and width the convolutions leave 1x1 of
 
 
 def check_image_size(size: int, name: str = "size") -> None:
-    """
-    :param size: an image height or width, in pixels
-    :param name: the parameter's name, for the message
-    :raises ParameterError: when the encoder's convolutions would leave nothing of it
-    """
+    """:raises ParameterError: when the convolutions would leave nothing of an image ``size`` pixels high or wide"""
     if size < MIN_IMAGE_SIZE:
         raise ParameterError(
             name,
