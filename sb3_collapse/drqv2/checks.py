@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
+import re
+import zipfile
 from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+import stable_baselines3
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -36,9 +40,7 @@ def check_hyperparameters(
     device: th.device | str = "auto",
     cudnn_benchmark: bool = False,
 ) -> None:
-    """
-    Check :class:`DrQv2`'s hyperparameters (the constructor calls it; ``TrainConfig.validate`` too, before a run
-    folder is created), so that a bad value fails before anything is built, with its name.
+    """Check :class:`DrQv2`'s hyperparameters before anything is built.
 
     :raises ParameterError: naming the first bad parameter, what it must be and what it got
     """
@@ -85,12 +87,7 @@ def check_hyperparameters(
 
 
 def check_device(device: th.device | str, name: str = "device") -> None:
-    """
-    :param device: a torch device, or ``"auto"``
-    :param name: the parameter's name, for the message
-    :raises ParameterError: for a device torch does not know, or CUDA without a GPU (instead of SB3's silent
-        fallback to the CPU)
-    """
+    """:raises ParameterError: for a ``device`` torch does not know, or CUDA without a GPU (``name``: the parameter)"""
     if device == "auto":
         return
     try:
@@ -107,17 +104,11 @@ def check_device(device: th.device | str, name: str = "device") -> None:
 
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
-"""The ``torch.compile`` modes that ``compile_update`` takes."""
-
-CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
-"""The modes among them that replay CUDA graphs on a CUDA device."""
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")  # replay CUDA graphs on a CUDA device
 
 
 def check_compile_update(compile_update: bool | str) -> None:
-    """
-    :param compile_update: the ``compile_update`` argument of ``DrQv2``
-    :raises ParameterError: unless it is a bool or one of :data:`COMPILE_MODES`
-    """
+    """:raises ParameterError: unless ``compile_update`` is a bool or one of :data:`COMPILE_MODES`"""
     if isinstance(compile_update, bool) or compile_update in COMPILE_MODES:
         return
     raise ParameterError(
@@ -127,12 +118,8 @@ def check_compile_update(compile_update: bool | str) -> None:
 
 
 def compile_mode(compile_update: bool | str, device: th.device) -> str:
-    """
-    :param compile_update: ``True`` or a mode (see ``DrQv2``)
-    :param device: the model's device
-    :return: the ``torch.compile`` mode: the given one, or for ``True`` ``"reduce-overhead"`` (CUDA graphs) on CUDA
-        and ``"default"`` elsewhere
-    """
+    """:return: the ``torch.compile`` mode of ``compile_update``: for ``True``, ``"reduce-overhead"`` on CUDA and
+    ``"default"`` elsewhere"""
     if isinstance(compile_update, str):
         return compile_update
     return "reduce-overhead" if device.type == "cuda" else "default"
@@ -144,8 +131,8 @@ def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv
     :param kwargs: the attributes it overrides
     :param name: the caller, for the messages
     :raises TypeError: for ``init_from``: loading restores the saved weights, it does not transplant
-    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given (SB3 would
-        name ``path.zip``)
+    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
+    :raises ParameterError: for a zip saved by one of SB3's algorithms, naming it and what loads it
     """
     if "init_from" in kwargs:
         raise TypeError(
@@ -158,17 +145,42 @@ def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv
         if not given.is_file() and not (given.suffix != ".zip" and zipped.is_file()):
             tried = f"{os.fspath(path)!r}" + ("" if given.suffix == ".zip" else f" (nor {os.fspath(zipped)!r})")
             raise FileNotFoundError(f"{name}: no model file {tried}; give the path of a zip saved by DrQv2.save.")
+        saved = saved_sb3_algorithm(given if given.is_file() else zipped)
+        if saved is not None:
+            algorithm, policy = saved
+            loader = f"stable_baselines3.{algorithm}.load" if algorithm else "the SB3 algorithm that saved it"
+            raise ParameterError(
+                "path",
+                f"path {os.fspath(path)!r} holds a {algorithm or 'Stable-Baselines3'} checkpoint (policy {policy}), "
+                f"not a DrQv2 one: load it with {loader}.",
+            )
+
+
+def saved_sb3_algorithm(path: pathlib.Path) -> tuple[str | None, str] | None:
+    """
+    :param path: a zip saved by an SB3 algorithm's ``save``
+    :return: ``(algorithm, policy class)`` read from its ``data`` (the algorithm ``None`` when SB3 has none of the
+        policy's package, as PPO's), when its policy is one of SB3's; ``None`` otherwise or for an unreadable file
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json.loads(archive.read("data"))
+        module = str(data["policy_class"]["__module__"])
+        init = re.search(r"<function (\w+)\.__init__", str(data["policy_class"].get("__init__", "")))
+    except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile):
+        return None
+    if not module.startswith("stable_baselines3."):
+        return None
+    policy = f"{module}.{init.group(1) if init else '?'}"
+    algorithm = module.split(".")[1].upper()
+    if algorithm == "TD3" and data.get("policy_delay") == 1 and data.get("target_noise_clip") == 0.0:
+        algorithm = "DDPG"  # SB3's DDPG is TD3 with these settings, and saves TD3's policies
+    return (algorithm if hasattr(stable_baselines3, algorithm) else None), policy
 
 
 def compile_losses(critic_loss: Callable, actor_loss: Callable, compile_update: bool | str, device: th.device) -> tuple:
-    """
-    :param critic_loss: ``DrQv2._critic_loss``
-    :param actor_loss: ``DrQv2._actor_loss``
-    :param compile_update: ``DrQv2``'s argument (``False``: the functions as they are)
-    :param device: the model's device
-    :return: the two functions, ``torch.compile``-d in :func:`compile_mode` with static shapes (the batch size is fixed
-        during training: another batch size compiles its own code)
-    """
+    """:return: ``DrQv2``'s two loss functions, ``torch.compile``-d in :func:`compile_mode` with static shapes (as
+    they are for ``compile_update=False``)"""
     if not compile_update:
         return critic_loss, actor_loss
     mode = compile_mode(compile_update, device)
@@ -180,25 +192,14 @@ def uses_cuda_graphs(compile_update: bool | str, device: th.device) -> bool:
     return bool(compile_update) and device.type == "cuda" and compile_mode(compile_update, device) in CUDA_GRAPH_MODES
 
 
-SB3_FEATURE_SIZES = ("features_dim", "cnn_output_dim")
-"""
-The keys of SB3's ``features_extractor_kwargs`` that size the features its networks' hidden layers read: ``NatureCNN``'s
-``features_dim`` (its last Linear layer, ``CnnPolicy``) and ``CombinedExtractor``'s ``cnn_output_dim`` (that of each
-image key, ``MultiInputPolicy``). With DrQ-v2's encoder both set ``feature_dim``, the output of the actor's and the
-critic's trunks (Linear, LayerNorm, Tanh), which is where DrQ-v2 projects its convolutional features; with a dict,
-the trunks read the image and the other keys together.
-"""
+SB3_FEATURE_SIZES = ("features_dim", "cnn_output_dim")  # SB3's features_extractor_kwargs that set feature_dim
 
 
 def split_sb3_feature_size(
     features_extractor_kwargs: Mapping[str, Any] | None, features_extractor_class: type | None = None
 ) -> tuple[int | None, dict[str, Any]]:
-    """
-    :param features_extractor_kwargs: SB3's ``policy_kwargs['features_extractor_kwargs']``
-    :param features_extractor_class: SB3's ``features_extractor_class``; with one, the kwargs are all its own
-    :return: the size of the features given by :data:`SB3_FEATURE_SIZES` (``None`` when none), and the other
-        keyword arguments, for DrQ-v2's encoder (``{}`` with a ``features_extractor_class``)
-    """
+    """:return: the ``feature_dim`` given by :data:`SB3_FEATURE_SIZES` (or ``None``) and the other keyword arguments,
+    for DrQ-v2's encoder (``None, {}`` with a ``features_extractor_class``)"""
     kwargs = dict(features_extractor_kwargs or {})
     if features_extractor_class is not None:
         return None, {}
@@ -206,20 +207,13 @@ def split_sb3_feature_size(
     return (sizes[0] if sizes else None), kwargs
 
 
-ACTIVATION_FNS: dict[type[nn.Module], str] = {nn.ReLU: "relu", nn.LeakyReLU: "leaky_relu"}
-"""SB3's ``activation_fn`` values DrQv2 takes, and the ``activation`` each means."""
+ACTIVATION_FNS: dict[type[nn.Module], str] = {nn.ReLU: "relu", nn.LeakyReLU: "leaky_relu"}  # SB3's -> activation
 
 
 def actor_critic_arch(
     net_arch: list[int] | dict[str, list[int]] | None, hidden_dim: int
 ) -> tuple[list[int], list[int]]:
-    """
-    SB3's ``get_actor_critic_arch`` with DrQ-v2's default.
-
-    :param net_arch: a list of units (actor and each Q head), ``dict(pi=[...], qf=[...])``, or ``None``
-    :param hidden_dim: the units of DrQ-v2's two hidden layers, for ``None``
-    :return: the hidden layers of the actor and of each Q head
-    """
+    """SB3's ``get_actor_critic_arch`` of ``net_arch``, DrQ-v2's two layers of ``hidden_dim`` for ``None``."""
     if net_arch is None:
         return [hidden_dim, hidden_dim], [hidden_dim, hidden_dim]
     if isinstance(net_arch, Mapping):
@@ -228,14 +222,7 @@ def actor_critic_arch(
 
 
 def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
-    """
-    Check the SB3 keywords of ``policy_kwargs`` (``DrQv2``'s constructor and ``check_hyperparameters`` call it, before
-    anything is built).
-
-    :param policy_kwargs: the ``policy_kwargs`` of ``DrQv2``
-    :raises ParameterError: naming the first bad keyword (``policy_kwargs['net_arch']``), what it must be and what
-        to pass instead
-    """
+    """:raises ParameterError: naming the first bad SB3 keyword of ``policy_kwargs`` and what to pass instead"""
     kwargs = dict(policy_kwargs or {})
 
     def name(key: str) -> str:
@@ -329,11 +316,7 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
 
 
 def check_action_space(action_space: spaces.Space) -> None:
-    """
-    :param action_space: space to check
-    :raises SpaceError: unless it is a ``Box`` with finite bounds (DrQ-v2 is for continuous control); also a
-        ``TypeError`` and an ``AssertionError`` (what SB3 raises for an unsupported action space)
-    """
+    """:raises SpaceError: unless ``action_space`` is a ``Box`` with finite bounds"""
     if not isinstance(action_space, spaces.Box):
         raise SpaceError(
             "env",

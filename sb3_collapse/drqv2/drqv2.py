@@ -52,12 +52,10 @@ SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
 
 class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     """
-    DrQ-v2: Mastering Visual Continuous Control (https://arxiv.org/abs/2107.09645; reference code
-    https://github.com/facebookresearch/drqv2): DDPG with a twin critic, n-step returns, random-shift augmentation
-    and a scheduled exploration noise; the encoder is trained by the critic loss only. ``docs/algorithm.md``.
+    DrQ-v2: Mastering Visual Continuous Control (https://arxiv.org/abs/2107.09645): DDPG with a twin critic, n-step
+    returns, random-shift augmentation and a scheduled exploration noise. ``docs/algorithm.md``.
 
-    Step counts are transitions summed over the environments (SB3's ``num_timesteps``); the paper counts frames,
-    transitions x action repeat (``model.num_frames``). ``docs/throughput.md`` (Units).
+    Step counts are transitions summed over the environments (SB3's ``num_timesteps``), not frames.
 
     :param policy: ``"CnnPolicy"`` (pixels), ``"MlpPolicy"`` (vectors, no encoder), ``"MultiInputPolicy"``
         (``spaces.Dict``) or a ``DrQv2Policy`` subclass
@@ -79,7 +77,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     :param step_envs_during_updates: step the environments while the learner updates (a policy lag of one round)
     :param compile_update: ``torch.compile`` the losses: ``True`` or a ``torch.compile`` mode
     :param callback: callback(s) run at every ``learn()`` before its own, saved with the model when they can be
-        built again (:class:`~sb3_collapse.drqv2.sb3_compat.ConstructorCallbacks`)
+        built again
     :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` for ``CnnPolicy`` on a frame-stacked env,
         SB3's otherwise
     :param replay_buffer_kwargs: its keyword arguments (``dict(sampling="drqv2")``: finished episodes only)
@@ -90,7 +88,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``; CUDA without a GPU is refused
     :param init_from: the paper's layer transplant: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a saved DrQv2
-        zip or model, copied once when the model is built (``sb3_collapse.drqv2.transplant``)
+        zip or model, copied once when the model is built
     :param action_noise: an SB3 ``ActionNoise`` in place of the ``stddev_schedule``'s Gaussian when acting
     :param optimize_memory_usage: SB3's, where SB3's ``ReplayBuffer`` is used with ``n_steps=1`` (else a warning)
     :param cudnn_benchmark: turn cuDNN's autotuner on when built on CUDA (a process-wide flag); saved with the model
@@ -164,22 +162,19 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         self.compile_update = compile_update
         self.cudnn_benchmark = cudnn_benchmark
         self.callback = callback
-        self.replay_prefetcher = ReplayPrefetcher()  # train()'s batches, drawn ahead: sb3_collapse.drqv2.prefetch
+        self.replay_prefetcher = ReplayPrefetcher()  # train()'s batches, drawn ahead
         self._compiled_losses: tuple[Any, Any] | None = None
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
         self.no_env_step_this_round = False
         self.env_config = read_env_config(self.env) if self.env is not None else None
-        self.grad_norm_recorder: GradNormRecorder | None = None
-        """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
+        self.grad_norm_recorder: GradNormRecorder | None = None  # the gradient norm of each named layer
         self.update_stats = UpdateStats()
-        self.divergence_guard = DivergenceGuard()  # read at each log dump: sb3_collapse.drqv2.divergence
+        self.divergence_guard = DivergenceGuard()  # read at each log dump
         self._warned_replay_not_ready = False
         self.reset_step = 0
         self.init_from = describe_init_from(transplant_specs)  # group -> source, saved with the model
         if _init_setup_model:
-            # Read the sources first (a file that is no DrQv2 zip fails before the replay buffer is allocated);
-            # reading them builds no model and touches no random generator.
-            sources = load_sources(transplant_specs)
+            sources = load_sources(transplant_specs)  # before the replay buffer; no random generator touched
             self._setup_model()
             if sources:
                 transplant(self.policy, sources, verbose=self.verbose)
@@ -201,20 +196,19 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         self.critic_target = self.policy.critic_target
 
     def _index_grad_layers(self) -> None:
-        """A new gradient-norm recorder on the current optimizers (``cnn1``..``cnn4`` recorded when the encoder's
-        optimizer steps, ``mlp0``..``action`` when the actor's does), the previous one removed."""
+        """A new gradient-norm recorder on the current optimizers, the previous one removed."""
         if self.grad_norm_recorder is not None:
             self.grad_norm_recorder.remove()
         self.grad_norm_recorder = GradNormRecorder.of_modules(self.policy.named_layers(), self.policy.optimizers)
 
     @property
     def current_stddev(self) -> float:
-        """Exploration standard deviation now: the schedule at ``num_timesteps - reset_step`` transitions."""
+        """Exploration standard deviation: the schedule at ``num_timesteps - reset_step`` transitions."""
         return self.stddev_schedule(self.num_timesteps - self.reset_step)
 
     @property
     def action_repeat(self) -> int:
-        """Frames per agent step, read from the environment (1 when it does not report an action repeat)."""
+        """Frames per agent step, read from the environment (1 when it reports none)."""
         return int((self.env_config or {}).get("action_repeat") or 1)
 
     @property
@@ -243,11 +237,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         return self.policy.unscale_action(buffer_action), buffer_action
 
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
-        """
-        ``gradient_steps`` updates on minibatches of ``batch_size`` transitions, each drawn by
-        ``self.replay_prefetcher`` while the update before it runs (``sb3_collapse.drqv2.prefetch``). None in the
-        ``learning_starts`` transitions after a :meth:`reset_from_scratch`.
-        """
+        """``gradient_steps`` updates on minibatches of ``batch_size`` transitions (none in the ``learning_starts``
+        transitions after a :meth:`reset_from_scratch`)."""
         if self.reset_step > 0 and self.num_timesteps - self.reset_step <= self.learning_starts:
             if self.verbose >= 2:
                 print(f"DrQv2: warm-up after the reset at transition {self.reset_step}, no update")
@@ -274,11 +265,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
 
     def _update(self, data: ReplayBufferSamples, discounts: th.Tensor | float, std: float) -> None:
-        """
-        One DrQ-v2 update (the reference's ``update``): the critic and the encoder on the augmented batch, the actor
-        on the detached features, then the target critic. The random draws (shifts, target noise, actor noise) come
-        first, in the reference's order, so that the losses are functions of their inputs, compiled or not.
-        """
+        """One DrQ-v2 update (the reference's ``update``); the random draws come first, in the reference's order, so
+        that the losses are pure functions, compiled or not."""
         batch_size, action_dim = data.actions.shape
         shifts = next_shifts = None
         if self.augmentation_pad > 0 and self.encoder.has_cnn:
@@ -328,12 +316,11 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
         """
         ``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')`` at the actor's next action plus
-        ``next_noise``; ``shifts``: :func:`draw_shifts`'s (``None``: no augmentation). No random draw, no side effect.
+        ``next_noise``; ``shifts``: :func:`draw_shifts`'s (``None``: no augmentation).
 
-        :return: the loss, the encoder features of ``obs`` (with their graph), ``Q1``, ``Q2`` and ``y`` (``(batch, 1)``)
+        :return: the loss, the features of ``obs`` (with their graph), ``Q1``, ``Q2`` and ``y`` (``(batch, 1)``)
         """
         if shifts is not None and next_shifts is not None:
-            # Images only (the image keys of dict observations), in the layout the convolutions take.
             obs = self.encoder.augment(obs, self.augmentation_pad, shifts)
             next_obs = self.encoder.augment(next_obs, self.augmentation_pad, next_shifts)
         features = self.encoder(obs)
@@ -346,8 +333,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         return critic_loss, features, q_values[0], q_values[min(1, len(q_values) - 1)], target_q
 
     def _actor_loss(self, features: th.Tensor, noise: th.Tensor) -> th.Tensor:
-        """``-min(Q1, Q2)`` at the actor's action plus ``noise`` on detached ``features``. No random draw, no side
-        effect."""
+        """``-min(Q1, Q2)`` at the actor's action plus ``noise`` on detached ``features``."""
         action = noisy_action(self.actor(features), noise)
         return -min_q(self.critic(features, action)).mean()
 
@@ -392,11 +378,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfDrQv2:
-        """
-        SB3's ``learn`` for ``total_timesteps`` transitions, in rounds (``sb3_collapse.drqv2.rounds``), with the
-        constructor's callbacks before ``callback``. ``reset_num_timesteps=True`` also restarts the exploration
-        schedule and the warm-up; a loaded model first draws again the batch it had drawn ahead.
-        """
+        """SB3's ``learn`` for ``total_timesteps`` transitions, the constructor's callbacks before ``callback``
+        (``reset_num_timesteps=True`` also restarts the exploration schedule and the warm-up)."""
         self._warned_replay_not_ready = False
         if self.replay_buffer is not None:  # a loaded model's batch drawn ahead, from its restored replay buffer
             self.replay_prefetcher.restore(self.replay_buffer, self._vec_normalize_env)
@@ -411,11 +394,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         return super().learn(total_timesteps, callbacks, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
     def reset_from_scratch(self) -> None:
-        """
-        The paper's reset in the middle of ``learn()``: new weights copied into the existing parameters (a compiled
-        update stays valid), empty optimizers and replay buffer, the schedule and the warm-up from ``num_timesteps``;
-        the step counts, the callbacks and ``init_from`` untouched. ``docs/interventions.md``.
-        """
+        """The paper's reset in the middle of ``learn()``: new weights, empty optimizers and replay buffer, the
+        schedule and the warm-up from ``num_timesteps`` (``docs/interventions.md``)."""
         self.policy.renew_networks(self.lr_schedule)
         self._create_aliases()
         self._index_grad_layers()  # a new recorder, on the new optimizers: no norm until the next update
