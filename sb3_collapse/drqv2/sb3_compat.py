@@ -1,30 +1,17 @@
-"""
-What makes code written for SB3's TD3 run with :class:`~sb3_collapse.drqv2.DrQv2` in its place.
-
-- :func:`combine_callbacks`: the constructor's ``callback=`` and ``learn()``'s, each converted as SB3 converts a
-  callback (a function becomes a ``ConvertCallback``, a list a ``CallbackList``);
-- :class:`ConstructorCallbacks`: the constructor's ``callback=``, saved by ``save`` and built again by ``load``;
-- :class:`DictNStepReplayBuffer`: n-step returns on ``spaces.Dict`` observations (``MultiInputPolicy``), which SB3's
-  ``DictReplayBuffer`` lacks (SB3 asserts ``n_steps == 1`` for dict observations);
-- :func:`dict_replay_buffer_class`: the replay buffer of dict observations;
-- :func:`check_optimize_memory_usage`: SB3's ``optimize_memory_usage`` where it applies, a warning where it does not;
-- :func:`action_noise_actions`: SB3's exploration with an ``ActionNoise`` (``action_noise=``).
-
-See docs/algorithm.md#sb3s-keywords-code-written-for-td3-runs-with-drqv2.
-"""
+"""What makes code written for SB3's TD3 run with ``DrQv2`` in its place: the constructor's callbacks (saved and
+loaded), n-step returns on dict observations, ``optimize_memory_usage`` and ``action_noise``. See
+docs/algorithm.md#sb3s-keywords-code-written-for-td3-runs-with-drqv2."""
 
 from __future__ import annotations
 
 import io
 import pathlib
-import warnings
 from collections.abc import Callable, Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
-from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
+from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, GymEnv, MaybeCallback
@@ -50,13 +37,7 @@ def _as_callback(item: BaseCallback | Callable[[dict[str, Any], dict[str, Any]],
 
 def combine_callbacks(*callbacks: MaybeCallback) -> BaseCallback | None:
     """
-    The callbacks of a ``learn()`` call: the constructor's then ``learn()``'s, in that order.
-
-    Each is what SB3's ``learn(callback=...)`` takes: ``None``, a ``BaseCallback`` (a ``CallbackList`` included), a
-    function ``(locals, globals) -> bool`` (SB3 wraps it in a ``ConvertCallback``) or a list of these (SB3 makes a
-    ``CallbackList``).
-
-    :param callbacks: the callbacks, in the order they run
+    :param callbacks: what SB3's ``learn(callback=...)`` takes, each, in the order they run
     :return: ``None`` without any; the callback itself when there is one; otherwise a ``CallbackList``
     :raises TypeError: for anything else
     """
@@ -72,16 +53,11 @@ def combine_callbacks(*callbacks: MaybeCallback) -> BaseCallback | None:
 
 
 class ConstructorCallbacks:
-    """
-    SB3's ``save`` and ``load`` with the constructor's ``callback=`` (an SB3 algorithm's mixin, before it): ``save``
-    keeps those that can be built again, with their settings and their state (``sb3_collapse.common.saved_callbacks``:
-    ``CollapseReset``, ``CollapseMetrics``...), ``load`` builds them again (a warning names the others). ``learn()``
-    runs them before its own (:func:`combine_callbacks`).
-    """
+    """SB3's ``save`` and ``load`` with the constructor's ``callback=`` (a mixin before an SB3 algorithm): those that
+    can be built again are saved with their state (``sb3_collapse.common.saved_callbacks``)."""
 
     callback: MaybeCallback = None
-    load_parsers: ClassVar[dict[str, Callable[[Any], Any]]] = {}
-    """``load(**kwargs)`` entries given as the constructor takes them, with the function that parses them."""
+    load_parsers: ClassVar[dict[str, Callable[[Any], Any]]] = {}  # load(**kwargs) entries -> their parser
 
     @classmethod
     def load(  # type: ignore[misc]
@@ -95,12 +71,12 @@ class ConstructorCallbacks:
         **kwargs: Any,
     ) -> SelfConstructorCallbacks:
         """
-        SB3's ``load``, with the constructor's callbacks built again unless ``callback=`` is given. A model built with
-        ``init_from`` comes back with the weights it was saved with: the transplant is not done again.
+        SB3's ``load``, with the constructor's callbacks built again unless ``callback=`` is given.
 
-        :param kwargs: saved attributes to override, as in SB3 (``stddev_schedule="linear(1.0,0.1,500000)"``...)
+        :param kwargs: saved attributes to override, as in SB3
         :raises TypeError: for ``init_from``: build a new model with it instead
         :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
+        :raises ParameterError: for a zip saved by another SB3 algorithm, naming it and what loads it
         """
         check_load_arguments(path, kwargs, f"{cls.__name__}.load")
         kwargs = {name: cls.load_parsers.get(name, lambda value: value)(value) for name, value in kwargs.items()}
@@ -129,14 +105,10 @@ class ConstructorCallbacks:
 
 class DictNStepReplayBuffer(DictReplayBuffer):
     """
-    SB3's ``DictReplayBuffer`` with the n-step returns of SB3's ``NStepReplayBuffer`` (the same rule: rewards summed
-    up to the first termination or time limit and the newest transition, ``discounts = gamma ** k``, time limits
-    bootstrapped), for dict observations.
+    SB3's ``DictReplayBuffer`` with the n-step returns of SB3's ``NStepReplayBuffer``.
 
-    :param args: those of ``DictReplayBuffer``
     :param n_steps: length of the returns, in steps of one environment
     :param gamma: discount factor
-    :param kwargs: those of ``DictReplayBuffer``
     """
 
     def __init__(self, *args: Any, n_steps: int = 3, gamma: float = 0.99, **kwargs: Any) -> None:
@@ -187,53 +159,7 @@ class DictNStepReplayBuffer(DictReplayBuffer):
         )
 
 
-def dict_replay_buffer_class(observation_space: spaces.Space, n_steps: int) -> type[ReplayBuffer] | None:
-    """
-    :param observation_space: the model's observation space
-    :param n_steps: the model's ``n_steps``
-    :return: for dict observations, ``DictNStepReplayBuffer`` when ``n_steps > 1``, else SB3's ``DictReplayBuffer``;
-        ``None`` for other observations (the algorithm's default choice applies)
-    """
-    if not isinstance(observation_space, spaces.Dict):
-        return None
-    return DictNStepReplayBuffer if n_steps > 1 else DictReplayBuffer
-
-
-def check_optimize_memory_usage(
-    optimize_memory_usage: bool, replay_buffer_class: type[ReplayBuffer] | None, frame_stack_buffer: bool, n_steps: int
-) -> bool:
-    """
-    SB3's ``optimize_memory_usage=True`` (next observations not stored, read from the next slot) where the replay
-    buffer supports it: SB3's plain ``ReplayBuffer`` (``n_steps=1``, not dict observations). Elsewhere it is ignored
-    with a warning that says why: ``FrameStackReplayBuffer`` stores each frame once already (it saves more than
-    SB3's option); SB3's ``NStepReplayBuffer`` and ``DictReplayBuffer`` (and the n-step dict buffer) do not support it.
-
-    :param optimize_memory_usage: the keyword as given
-    :param replay_buffer_class: the replay buffer class DrQv2 will use (``None``: SB3's choice, ``ReplayBuffer`` or
-        ``NStepReplayBuffer`` by ``n_steps``)
-    :param frame_stack_buffer: whether it is a ``FrameStackReplayBuffer``
-    :param n_steps: the model's ``n_steps`` (SB3 picks its ``NStepReplayBuffer`` when > 1)
-    :return: the value to hand to SB3's replay buffer
-    """
-    plain = replay_buffer_class is ReplayBuffer or (replay_buffer_class is None and n_steps == 1)
-    if not optimize_memory_usage or plain:
-        return bool(optimize_memory_usage)
-    if frame_stack_buffer:
-        reason = "FrameStackReplayBuffer already stores each frame once (less memory than SB3's option)"
-    else:
-        name = "NStepReplayBuffer" if replay_buffer_class is None else replay_buffer_class.__name__
-        reason = f"the replay buffer ({name}) does not support it; n_steps=1 uses SB3's ReplayBuffer, which does"
-    warnings.warn(f"DrQv2: optimize_memory_usage=True is ignored: {reason}.", stacklevel=4)
-    return False
-
-
 def action_noise_actions(mean_actions: np.ndarray, action_noise: ActionNoise) -> np.ndarray:
-    """
-    SB3's exploration with an action noise (TD3's ``_sample_action``): the deterministic action, rescaled to [-1, 1],
-    plus a draw of the noise, clipped to [-1, 1].
-
-    :param mean_actions: the actor's deterministic actions, rescaled to [-1, 1] (``policy.scale_action``)
-    :param action_noise: the noise
-    :return: the actions, in [-1, 1] (the replay buffer's actions)
-    """
+    """:return: TD3's exploration: ``mean_actions`` (rescaled to [-1, 1]) plus a draw of ``action_noise``, clipped to
+    [-1, 1]"""
     return np.clip(mean_actions + action_noise(), -1, 1)
