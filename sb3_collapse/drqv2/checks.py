@@ -22,6 +22,11 @@ from sb3_collapse.drqv2.rounds import TRAIN_FREQ_UNITS
 from sb3_collapse.errors import ParameterError, SpaceError
 
 
+def _integer(name: str, value: Any, minimum: int, parameter: str | None = None) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ParameterError(parameter or name, f"{name} must be an integer >= {minimum}, got {value!r}.")
+
+
 def check_hyperparameters(
     *,
     learning_rate: float | Schedule = 1e-4,
@@ -45,9 +50,7 @@ def check_hyperparameters(
     :raises ParameterError: naming the first bad parameter, what it must be and what it got
     """
 
-    def integer(name: str, value: Any, minimum: int) -> None:
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-            raise ParameterError(name, f"{name} must be an integer >= {minimum}, got {value!r}.")
+    integer = _integer
 
     def number(name: str, value: Any, low: float, high: float = np.inf, low_open: bool = False) -> None:
         valid = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value)
@@ -225,68 +228,60 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
     """:raises ParameterError: naming the first bad SB3 keyword of ``policy_kwargs`` and what to pass instead"""
     kwargs = dict(policy_kwargs or {})
 
-    def name(key: str) -> str:
-        return f"policy_kwargs['{key}']"
+    def fail(key: str, message: str) -> None:
+        raise ParameterError(f"policy_kwargs['{key}']", message)
 
     def units(key: str, value: Any) -> None:
         if not isinstance(value, (list, tuple)) or any(
             isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1 for n in value
         ):
-            raise ParameterError(
-                name("net_arch"),
-                f"{key} must be a list of layer sizes (integers >= 1), e.g. [1024, 1024] (DrQ-v2's), got {value!r}.",
-            )
+            fail("net_arch", f"{key} must be a list of layer sizes (integers >= 1), e.g. [1024, 1024], got {value!r}.")
 
     net_arch = kwargs.get("net_arch")
     if isinstance(net_arch, Mapping):
         if set(net_arch) != {"pi", "qf"}:
-            raise ParameterError(
-                name("net_arch"),
-                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as "
-                "SB3's "
-                f"TD3; got {sorted(net_arch)}. Pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for both.",
+            fail(
+                "net_arch",
+                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as SB3's"
+                f" TD3; got {sorted(net_arch)}. Pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for "
+                "both.",
             )
         for key in ("pi", "qf"):
             units(f"policy_kwargs['net_arch']['{key}']", net_arch[key])
     elif net_arch is not None:
         units("policy_kwargs['net_arch']", net_arch)
     if net_arch is not None and kwargs.get("hidden_dim", 1024) != 1024:
-        raise ParameterError(
-            name("net_arch"),
+        fail(
+            "net_arch",
             f"policy_kwargs gives both net_arch={net_arch!r} and hidden_dim={kwargs['hidden_dim']!r}: pass one "
             "(hidden_dim=h is net_arch=[h, h]).",
         )
-    n_critics = kwargs.get("n_critics", 2)
-    if isinstance(n_critics, bool) or not isinstance(n_critics, (int, np.integer)) or n_critics < 1:
-        raise ParameterError(
-            name("n_critics"), f"policy_kwargs['n_critics'] must be an integer >= 1, got {n_critics!r}."
-        )
+    _integer("policy_kwargs['n_critics']", kwargs.get("n_critics", 2), 1)
     if kwargs.get("share_features_extractor", True) is not True:
-        raise ParameterError(
-            name("share_features_extractor"),
+        fail(
+            "share_features_extractor",
             "DrQ-v2 has one encoder, shared by the actor and the critic and trained by the critic loss only (SB3's "
             "share_features_extractor=True); a separate actor encoder trained by the actor loss "
             "(share_features_extractor=False, TD3's default) is another algorithm. Leave share_features_extractor out "
             f"or pass True; got {kwargs['share_features_extractor']!r}.",
         )
     activation_fn = kwargs.get("activation_fn")
-    if activation_fn is not None:
-        if activation_fn not in ACTIVATION_FNS:
-            raise ParameterError(
-                name("activation_fn"),
-                f"policy_kwargs['activation_fn'] must be torch.nn.ReLU (DrQ-v2's) or torch.nn.LeakyReLU (with "
-                f"leaky_relu_slope), got {activation_fn!r}.",
-            )
-        if kwargs.get("activation", "relu") not in ("relu", ACTIVATION_FNS[activation_fn]):
-            raise ParameterError(
-                name("activation_fn"),
-                f"policy_kwargs gives activation_fn={activation_fn.__name__} and activation={kwargs['activation']!r}: "
-                "pass one.",
-            )
+    if activation_fn is not None and activation_fn not in ACTIVATION_FNS:
+        fail(
+            "activation_fn",
+            "policy_kwargs['activation_fn'] must be torch.nn.ReLU (DrQ-v2's) or torch.nn.LeakyReLU (with "
+            f"leaky_relu_slope), got {activation_fn!r}.",
+        )
+    if activation_fn is not None and kwargs.get("activation", "relu") not in ("relu", ACTIVATION_FNS[activation_fn]):
+        fail(
+            "activation_fn",
+            f"policy_kwargs gives activation_fn={activation_fn.__name__} and activation={kwargs['activation']!r}: "
+            "pass one.",
+        )
     extractor = kwargs.get("features_extractor_class")
     if extractor is not None and not (isinstance(extractor, type) and issubclass(extractor, BaseFeaturesExtractor)):
-        raise ParameterError(
-            name("features_extractor_class"),
+        fail(
+            "features_extractor_class",
             "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
             f"(stable_baselines3.common.torch_layers), got {extractor!r}.",
         )
@@ -294,21 +289,18 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
     sizes = {key: extractor_kwargs[key] for key in SB3_FEATURE_SIZES if key in extractor_kwargs}
     if extractor is None and sizes:
         for key, value in sizes.items():
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ParameterError(
-                    name("features_extractor_kwargs"),
-                    f"policy_kwargs['features_extractor_kwargs']['{key}'] must be an integer >= 1, got {value!r}.",
-                )
+            name = f"policy_kwargs['features_extractor_kwargs']['{key}']"
+            _integer(name, value, 1, "policy_kwargs['features_extractor_kwargs']")
         given = {**sizes, **({"feature_dim": kwargs["feature_dim"]} if kwargs.get("feature_dim", 50) != 50 else {})}
         if len(set(given.values())) > 1:
-            raise ParameterError(
-                name("features_extractor_kwargs"),
+            fail(
+                "features_extractor_kwargs",
                 f"policy_kwargs gives {', '.join(f'{key}={value!r}' for key, value in given.items())}: with DrQ-v2's "
                 "encoder they are all the output size of the actor's and the critic's trunks (feature_dim): pass one.",
             )
     if extractor is None and split_sb3_feature_size(extractor_kwargs)[1] and kwargs.get("encoder_kwargs"):
-        raise ParameterError(
-            name("features_extractor_kwargs"),
+        fail(
+            "features_extractor_kwargs",
             "without features_extractor_class, features_extractor_kwargs (but features_dim and cnn_output_dim, "
             "the trunks' feature_dim) are the keyword arguments of DrQ-v2's encoder, as encoder_kwargs: pass one of "
             "them.",

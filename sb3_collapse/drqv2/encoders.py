@@ -3,7 +3,7 @@ the hidden activation, DrQ-v2's weight initialization and the checks of observat
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -247,13 +247,6 @@ def _image_keys(observation_space: spaces.Dict, normalize_images: bool) -> list[
     ]
 
 
-def _shift_images(obs: Any, pad: int, shifts: th.Tensor, image_keys: Sequence[str] | None) -> Any:
-    """Random shift of the images of ``obs``: the tensor itself (``image_keys=None``) or its ``image_keys``."""
-    if image_keys is None:
-        return random_shift(obs, pad, shifts)
-    return {key: random_shift(value, pad, shifts) if key in image_keys else value for key, value in obs.items()}
-
-
 class DictEncoder(nn.Module):
     """
     Encoder of ``spaces.Dict`` observations (``MultiInputPolicy``): a :class:`PixelEncoder` on each image key, the
@@ -337,15 +330,7 @@ class FeaturesExtractorEncoder(nn.Module):
         features_extractor_kwargs: Mapping[str, Any] | None = None,
         normalize_images: bool = True,
     ) -> None:
-        super().__init__()
-        if not (
-            isinstance(features_extractor_class, type) and issubclass(features_extractor_class, BaseFeaturesExtractor)
-        ):
-            raise ParameterError(
-                "policy_kwargs['features_extractor_class']",
-                "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
-                f"(stable_baselines3.common.torch_layers), got {features_extractor_class!r}.",
-            )
+        super().__init__()  # features_extractor_class checked by checks.check_policy_kwargs
         self.observation_space = observation_space
         self.normalize_images = normalize_images
         self.extractor = features_extractor_class(observation_space, **(features_extractor_kwargs or {}))
@@ -364,7 +349,9 @@ class FeaturesExtractorEncoder(nn.Module):
 
     def augment(self, obs: PyTorchObs, pad: int, shifts: th.Tensor) -> PyTorchObs:
         """:return: ``obs`` with its images shifted (:meth:`PixelEncoder.augment`)"""
-        return _shift_images(obs, pad, shifts, self.image_keys)
+        if self.image_keys is None:
+            return random_shift(obs, pad, shifts)  # type: ignore[arg-type]
+        return {k: random_shift(v, pad, shifts) if k in self.image_keys else v for k, v in obs.items()}  # type: ignore[union-attr]
 
     def named_layers(self) -> dict[str, nn.Module]:
         return {}

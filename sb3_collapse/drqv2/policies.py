@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
+import operator
 from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
@@ -189,18 +191,12 @@ class Critic(nn.Module):
 
 def min_q(q_values: Sequence[th.Tensor]) -> th.Tensor:
     """:return: the element-wise minimum of the critic's ``(Q1, ..., QN)``"""
-    minimum = q_values[0]
-    for q in q_values[1:]:
-        minimum = th.min(minimum, q)
-    return minimum
+    return functools.reduce(th.min, q_values)
 
 
 def critic_mse(q_values: Sequence[th.Tensor], target_q: th.Tensor) -> th.Tensor:
     """:return: ``MSE(Q1, y) + ... + MSE(QN, y)`` of the critic's ``q_values`` and the target ``y``"""
-    loss = F.mse_loss(q_values[0], target_q)
-    for q in q_values[1:]:
-        loss = loss + F.mse_loss(q, target_q)
-    return loss
+    return functools.reduce(operator.add, [F.mse_loss(q, target_q) for q in q_values])
 
 
 def soft_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:

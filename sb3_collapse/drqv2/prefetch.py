@@ -9,8 +9,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass, field
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 import torch as th
@@ -232,7 +231,7 @@ class ReplayPrefetcher:
 
     def batches(
         self, replay_buffer: ReplayBuffer, gradient_steps: int, batch_size: int, env: VecNormalize | None = None
-    ) -> ReplayBatches:
+    ) -> contextlib.closing[Iterator[Any]]:
         """
         The ``gradient_steps`` batches of a ``train`` call, to use as a context manager (the worker has finished when
         the block ends).
@@ -244,8 +243,8 @@ class ReplayPrefetcher:
         :return: an iterable of ``gradient_steps`` samples of ``replay_buffer`` on its device
         """
         if not self.enabled:
-            return ReplayBatches(replay_buffer.sample(batch_size, env=env) for _ in range(gradient_steps))
-        return ReplayBatches(self._ahead(replay_buffer, gradient_steps, batch_size, env))
+            return contextlib.closing(replay_buffer.sample(batch_size, env=env) for _ in range(gradient_steps))
+        return contextlib.closing(self._ahead(replay_buffer, gradient_steps, batch_size, env))
 
     def _ahead(
         self, buffer: ReplayBuffer, gradient_steps: int, batch_size: int, env: VecNormalize | None
@@ -371,23 +370,3 @@ class ReplayPrefetcher:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__init__(state["enabled"], state["worker"])  # type: ignore[misc]
         self._prepared = state["prepared"]
-
-
-class ReplayBatches:
-    """The batches of one ``train`` call: an iterator and a context manager."""
-
-    def __init__(self, batches: Iterator[Any]) -> None:
-        self._batches = batches
-
-    def __iter__(self) -> Iterator[Any]:
-        return self._batches
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, kind: type[BaseException] | None, error: BaseException | None, traceback: TracebackType | None
-    ) -> None:
-        close = getattr(self._batches, "close", None)
-        if close is not None:
-            close()  # a generator's finally: waits for the batch in the worker
