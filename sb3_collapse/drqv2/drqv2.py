@@ -57,8 +57,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
 
     Step counts are transitions summed over the environments (SB3's ``num_timesteps``), not frames.
 
-    :param policy: ``"CnnPolicy"`` (pixels), ``"MlpPolicy"`` (vectors, no encoder), ``"MultiInputPolicy"``
-        (``spaces.Dict``) or a ``DrQv2Policy`` subclass
+    :param policy: ``"CnnPolicy"``, ``"MlpPolicy"``, ``"MultiInputPolicy"`` or a ``DrQv2Policy`` subclass
     :param env: the environment (a ``VecEnv``, a gymnasium env or a registered id)
     :param learning_rate: Adam learning rate of the encoder, actor and critic, or an SB3 schedule
     :param buffer_size: replay capacity, in transitions (a warning when it cannot fit in RAM)
@@ -66,20 +65,16 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     :param batch_size: minibatch size of each update
     :param tau: soft update coefficient of the target critic
     :param gamma: discount factor
-    :param train_freq: ``(n, "transition")``: ``gradient_steps`` updates every ``n`` transitions summed over the
-        environments (DrQ-v2's ratio); SB3's ``n``, ``(n, "step")`` or ``(n, "episode")`` as in TD3
+    :param train_freq: ``(n, "transition")``: updates every ``n`` transitions summed over the environments; or SB3's
     :param gradient_steps: updates per ``train_freq`` (``-1``: one per transition; ``0``: none)
     :param n_steps: length of the n-step returns, in agent steps
-    :param stddev_schedule: exploration std as a function of the transitions since the last reset: a float,
-        ``"linear(init,final,duration)"``, ``"step_linear(init,final1,duration1,final2,duration2)"`` or a callable
+    :param stddev_schedule: exploration std of the transitions since the last reset (:class:`StddevSchedule`)
     :param stddev_clip: clip of the exploration noise in the updates (target action, actor loss)
     :param augmentation_pad: random-shift padding in pixels; ``0``: no augmentation
     :param step_envs_during_updates: step the environments while the learner updates (a policy lag of one round)
     :param compile_update: ``torch.compile`` the losses: ``True`` or a ``torch.compile`` mode
-    :param callback: callback(s) run at every ``learn()`` before its own, saved with the model when they can be
-        built again
-    :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` for ``CnnPolicy`` on a frame-stacked env,
-        SB3's otherwise
+    :param callback: callback(s) run at every ``learn()`` before its own, saved with the model where possible
+    :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` on a frame-stacked env, SB3's otherwise
     :param replay_buffer_kwargs: its keyword arguments (``dict(sampling="drqv2")``: finished episodes only)
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
@@ -87,8 +82,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``; CUDA without a GPU is refused
-    :param init_from: the paper's layer transplant: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a saved DrQv2
-        zip or model, copied once when the model is built
+    :param init_from: the paper's layer transplant: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a DrQv2 zip or model
     :param action_noise: an SB3 ``ActionNoise`` in place of the ``stddev_schedule``'s Gaussian when acting
     :param optimize_memory_usage: SB3's, where SB3's ``ReplayBuffer`` is used with ``n_steps=1`` (else a warning)
     :param cudnn_benchmark: turn cuDNN's autotuner on when built on CUDA (a process-wide flag); saved with the model

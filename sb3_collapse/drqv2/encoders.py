@@ -172,9 +172,7 @@ class PixelEncoder(nn.Module):
         normalize_images: bool = True,
     ) -> None:
         super().__init__()
-        check_pixel_space(observation_space, normalize_images)
-        for name, size in zip(("height", "width"), observation_space.shape[1:]):
-            check_image_size(size, f"observation {name}")
+        check_pixel_space(observation_space, normalize_images)  # images of at least MIN_IMAGE_SIZE pixels
         in_channels = observation_space.shape[0]
         self.cnn0 = PixelNormalization(channels_last, normalize_images)
         act = dict(fused=fused_relu, activation=activation, leaky_relu_slope=leaky_relu_slope)

@@ -331,21 +331,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
             )
         if frames_out is not None and env is not None:
             raise ValueError("sample_arrays: frames_out takes the stored frames, not normalized ones: pass env=None.")
-        steps = np.arange(self.n_steps)
-        window = (batch_inds[:, None] + steps) % self.buffer_size  # [batch, n_steps]
-        envs = env_indices[:, None]
-        newest = (self.pos - 1) % self.buffer_size
-        # A window ends at the first termination or time limit, or at the newest transition.
-        ends = (self.dones[window, envs] != 0) | (self.timeouts[window, envs] != 0) | (window == newest)
-        used = np.where(ends.any(axis=1), ends.argmax(axis=1), self.n_steps - 1)  # index of the last step summed
-        mask = steps[None, :] <= used[:, None]
-        rewards = self._normalize_reward(self.rewards[window, envs], env)
-        powers = self.gamma ** np.arange(self.n_steps, dtype=np.float32)
-        returns = (rewards * powers[None, :] * mask).sum(axis=1, keepdims=True)
-        discounts = self.gamma ** mask.sum(axis=1, keepdims=True).astype(np.float32)
-
-        last = (batch_inds + used) % self.buffer_size
-        dones = (self.dones[last, env_indices] * (1.0 - self.timeouts[last, env_indices]))[:, None]
+        returns, discounts, dones, last = n_step_returns(self, batch_inds, env_indices, env)
         out = (None, None) if frames_out is None else (frames_out[0], frames_out[1])
         obs = self._stacks(self.frame_starts[batch_inds, env_indices], env_indices, out=out[0])
         next_obs = self._stacks(self.frame_starts[last, env_indices] + 1, env_indices, out=out[1])
@@ -353,7 +339,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
             "observations": self._normalize_obs(obs, env),  # type: ignore[dict-item]
             "actions": self.actions[batch_inds, env_indices],
             "next_observations": self._normalize_obs(next_obs, env),  # type: ignore[dict-item]
-            "dones": dones.astype(np.float32),
+            "dones": dones,
             "rewards": returns,
             "discounts": discounts,
         }
@@ -375,6 +361,33 @@ class FrameStackReplayBuffer(ReplayBuffer):
         # mode="clip" writes straight into out (the default mode="raise" buffers it); every row is in range.
         np.take(flat_frames, rows, axis=0, out=out.reshape(len(rows), -1), mode="clip")
         return out
+
+
+def n_step_returns(
+    buffer: ReplayBuffer, batch_inds: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """
+    SB3's ``NStepReplayBuffer`` rule on ``buffer``'s ``rewards``, ``dones`` and ``timeouts`` (its ``n_steps`` and
+    ``gamma``): rewards summed up to the first termination or time limit or the newest transition.
+
+    :return: the returns, their discounts ``gamma ** k`` and the dones (time limits bootstrapped), each ``(batch, 1)``,
+        and the positions ``(batch,)`` of the last transitions summed
+    """
+    n_steps, gamma, size = buffer.n_steps, buffer.gamma, buffer.buffer_size  # type: ignore[attr-defined]
+    steps = np.arange(n_steps)
+    window = (batch_inds[:, None] + steps) % size  # [batch, n_steps]
+    envs = env_indices[:, None]
+    newest = (buffer.pos - 1) % size
+    ends = (buffer.dones[window, envs] != 0) | (buffer.timeouts[window, envs] != 0) | (window == newest)
+    used = np.where(ends.any(axis=1), ends.argmax(axis=1), n_steps - 1)  # index of the last step summed
+    mask = steps[None, :] <= used[:, None]
+    rewards = buffer._normalize_reward(buffer.rewards[window, envs], env)
+    powers = gamma ** np.arange(n_steps, dtype=np.float32)
+    returns = (rewards * powers[None, :] * mask).sum(axis=1, keepdims=True)
+    discounts = gamma ** mask.sum(axis=1, keepdims=True).astype(np.float32)
+    last = (batch_inds + used) % size
+    dones = (buffer.dones[last, env_indices] * (1.0 - buffer.timeouts[last, env_indices]))[:, None]
+    return returns, discounts, dones.astype(np.float32), last
 
 
 def _check_layout(observation_space: spaces.Space, frame_stack: int | None) -> int:

@@ -19,6 +19,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_collapse.common.saved_callbacks import restore_callbacks, saved_callbacks
 from sb3_collapse.drqv2.checks import check_load_arguments
+from sb3_collapse.drqv2.replay_buffer import n_step_returns
 
 SelfConstructorCallbacks = TypeVar("SelfConstructorCallbacks", bound="ConstructorCallbacks")
 
@@ -120,28 +121,7 @@ class DictNStepReplayBuffer(DictReplayBuffer):
         self, batch_inds: np.ndarray, env: VecNormalize | None = None
     ) -> DictReplayBufferSamples:
         env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
-        # The newest transition ends every return (as in NStepReplayBuffer): it is marked as a time limit meanwhile.
-        last_valid_index = self.pos - 1
-        original_timeouts = self.timeouts[last_valid_index].copy()
-        self.timeouts[last_valid_index] = np.logical_or(original_timeouts, np.logical_not(self.dones[last_valid_index]))
-        try:
-            steps = np.arange(self.n_steps).reshape(1, -1)
-            indices = (batch_inds[:, None] + steps) % self.buffer_size
-            rewards_seq = self._normalize_reward(self.rewards[indices, env_indices[:, None]], env)
-            dones_seq = self.dones[indices, env_indices[:, None]]
-            truncated_seq = self.timeouts[indices, env_indices[:, None]]
-            done_or_truncated = np.logical_or(dones_seq, truncated_seq)
-            done_idx = np.where(done_or_truncated.any(axis=1), done_or_truncated.argmax(axis=1), self.n_steps - 1)
-            mask = steps <= done_idx[:, None]
-            target_q_discounts = self.gamma ** mask.sum(axis=1, keepdims=True).astype(np.float32)
-            discounts = self.gamma ** np.arange(self.n_steps, dtype=np.float32).reshape(1, -1)
-            n_step_returns = (rewards_seq * discounts * mask).sum(axis=1, keepdims=True)
-            last_indices = (batch_inds + done_idx) % self.buffer_size
-            next_dones = self.dones[last_indices, env_indices][:, None].astype(np.float32)
-            next_timeouts = self.timeouts[last_indices, env_indices][:, None].astype(np.float32)
-            final_dones = next_dones * (1.0 - next_timeouts)
-        finally:
-            self.timeouts[last_valid_index] = original_timeouts
+        returns, discounts, dones, last_indices = n_step_returns(self, batch_inds, env_indices, env)
         obs = self._normalize_obs(
             {key: value[batch_inds, env_indices] for key, value in self.observations.items()}, env
         )
@@ -153,9 +133,9 @@ class DictNStepReplayBuffer(DictReplayBuffer):
             observations={key: self.to_torch(value) for key, value in obs.items()},
             actions=self.to_torch(self.actions[batch_inds, env_indices]),
             next_observations={key: self.to_torch(value) for key, value in next_obs.items()},
-            dones=self.to_torch(final_dones),
-            rewards=self.to_torch(n_step_returns.astype(np.float32)),
-            discounts=self.to_torch(target_q_discounts),
+            dones=self.to_torch(dones),
+            rewards=self.to_torch(returns.astype(np.float32)),
+            discounts=self.to_torch(discounts),
         )
 
 
