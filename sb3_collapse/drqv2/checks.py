@@ -129,10 +129,8 @@ def compile_mode(compile_update: bool | str, device: th.device) -> str:
 
 
 def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv2.load") -> None:
-    """
-    :param path: the path given to ``load`` (a file object is not checked)
-    :param kwargs: the attributes it overrides
-    :param name: the caller, for the messages
+    """Check ``load``'s ``path`` and ``kwargs`` before SB3 reads anything (``name``: the caller).
+
     :raises TypeError: for ``init_from``: loading restores the saved weights, it does not transplant
     :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
     :raises ParameterError: for a zip saved by one of SB3's algorithms, naming it and what loads it
@@ -160,11 +158,8 @@ def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv
 
 
 def saved_sb3_algorithm(path: pathlib.Path) -> tuple[str | None, str] | None:
-    """
-    :param path: a zip saved by an SB3 algorithm's ``save``
-    :return: ``(algorithm, policy class)`` read from its ``data`` (the algorithm ``None`` when SB3 has none of the
-        policy's package, as PPO's), when its policy is one of SB3's; ``None`` otherwise or for an unreadable file
-    """
+    """:return: ``(algorithm or None, policy class)`` read from the ``data`` of a zip saved by one of SB3's algorithms;
+    ``None`` for another policy or an unreadable file"""
     try:
         with zipfile.ZipFile(path) as archive:
             data = json.loads(archive.read("data"))

@@ -26,12 +26,8 @@ def all_finite(tensors: Iterable[th.Tensor]) -> th.Tensor:
 
 
 class DivergenceGuard:
-    """
-    Checks the mean losses of each log dump.
-
-    :param growth: :data:`GROWTH_FACTOR`
-    :param reference_dumps: :data:`REFERENCE_DUMPS`
-    """
+    """Checks the mean losses of each log dump; ``growth``: :data:`GROWTH_FACTOR`, ``reference_dumps``:
+    :data:`REFERENCE_DUMPS`."""
 
     def __init__(self, growth: float = GROWTH_FACTOR, reference_dumps: int = REFERENCE_DUMPS) -> None:
         self.growth = growth
@@ -61,8 +57,7 @@ class DivergenceGuard:
         gamma: float | None = None,
     ) -> None:
         """
-        :param losses: name -> mean since the last dump: ``critic_loss``, ``actor_loss`` and ``batch_reward`` (for
-            the bound on the values)
+        :param losses: name -> mean since the last dump: ``critic_loss``, ``actor_loss``, ``batch_reward``
         :param weights_finite: whether every weight is finite (:func:`all_finite`)
         :param update: the number of updates so far
         :param frame: the frame count

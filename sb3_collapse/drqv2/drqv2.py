@@ -308,12 +308,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         next_shifts: th.Tensor | None,
         next_noise: th.Tensor,
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
-        """
-        ``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')`` at the actor's next action plus
-        ``next_noise``; ``shifts``: :func:`draw_shifts`'s (``None``: no augmentation).
-
-        :return: the loss, the features of ``obs`` (with their graph), ``Q1``, ``Q2`` and ``y`` (``(batch, 1)``)
-        """
+        """``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')`` at the actor's next action
+        plus ``next_noise``. :return: the loss, the features of ``obs`` (with graph), ``Q1``, ``Q2``, ``y``"""
         if shifts is not None and next_shifts is not None:
             obs = self.encoder.augment(obs, self.augmentation_pad, shifts)
             next_obs = self.encoder.augment(next_obs, self.augmentation_pad, next_shifts)

@@ -22,11 +22,7 @@ LEAKY_RELU_SLOPE = 0.01  # PyTorch's default: the paper gives none (docs/interve
 
 
 def check_activation(activation: str, leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> None:
-    """
-    :param activation: one of :data:`ACTIVATIONS`
-    :param leaky_relu_slope: the Leaky-ReLU's negative slope, in (0, 1)
-    :raises ParameterError: for another activation or slope
-    """
+    """:raises ParameterError: unless ``activation`` is one of :data:`ACTIVATIONS` and ``leaky_relu_slope`` in (0, 1)"""
     if activation not in ACTIVATIONS:
         raise ParameterError("activation", f"activation must be one of {', '.join(ACTIVATIONS)}, got {activation!r}.")
     if isinstance(leaky_relu_slope, bool) or not 0.0 < leaky_relu_slope < 1.0:
@@ -57,12 +53,8 @@ def weight_init(module: nn.Module) -> None:
 
 
 class PixelNormalization(nn.Module):
-    """
-    ``cnn0``: uint8 pixels to floats in [-0.5, 0.5] (DrQ-v2's ``obs / 255 - 0.5``).
-
-    :param channels_last: return the images in ``channels_last`` memory format
-    :param normalize_images: ``False``: the images are already normalized, only converted to float
-    """
+    """``cnn0``: uint8 pixels to floats in [-0.5, 0.5] (DrQ-v2's ``obs / 255 - 0.5``), in ``channels_last`` memory
+    format; with ``normalize_images=False`` only converted to float."""
 
     def __init__(self, channels_last: bool = True, normalize_images: bool = True) -> None:
         super().__init__()
@@ -206,9 +198,7 @@ class StateEncoder(nn.Module):
     Identity encoder of ``MlpPolicy``: SB3's ``preprocess_obs``, flattened (as SB3's ``FlattenExtractor``).
 
     :param observation_space: a ``Box`` that is not an image, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
-    :param activation: unused, accepted as every encoder takes it
-    :param leaky_relu_slope: unused
-    :param normalize_images: unused
+    :param activation: unused, as ``leaky_relu_slope`` and ``normalize_images``: every encoder takes them
     """
 
     has_cnn = False

@@ -96,14 +96,7 @@ class Actor(nn.Module):
 
 
 def sample_action(mean: th.Tensor, std: float, clip: float | None = None) -> th.Tensor:
-    """
-    A sample of DrQ-v2's ``TruncatedNormal(mean, std)`` (:func:`noisy_action` of :func:`exploration_noise`).
-
-    :param mean: mean action, in [-1, 1]
-    :param std: standard deviation of the noise
-    :param clip: noise clip, ``None`` for none
-    :return: the sampled action, of ``mean``'s shape
-    """
+    """:return: a sample ``(batch, action_dim)`` of DrQ-v2's ``TruncatedNormal(mean, std)``, noise clip ``clip``"""
     return noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device, mean.dtype))
 
 
@@ -114,14 +107,8 @@ def exploration_noise(
     device: th.device | str | None = None,
     dtype: th.dtype = th.float32,
 ) -> th.Tensor:
-    """
-    :param shape: shape of the actions
-    :param std: standard deviation
-    :param clip: noise clip, ``None`` for none
-    :param device: where the noise goes
-    :param dtype: its dtype (the actions')
-    :return: ``N(0, std)`` noise of that shape from torch's global generator, clipped to ``[-clip, clip]``
-    """
+    """:return: ``N(0, std)`` noise of ``shape`` from torch's global generator on ``device``, clipped to
+    ``[-clip, clip]`` unless ``clip`` is ``None``"""
     eps = th.randn(shape, device=device, dtype=dtype) * std
     if clip is not None:
         eps = eps.clamp(-clip, clip)
@@ -129,11 +116,7 @@ def exploration_noise(
 
 
 def noisy_action(mean: th.Tensor, eps: th.Tensor) -> th.Tensor:
-    """
-    :param mean: mean action, in [-1, 1]
-    :param eps: noise, e.g. from :func:`exploration_noise`
-    :return: ``mean + eps`` clamped to ``[-1 + 1e-6, 1 - 1e-6]`` with a straight-through gradient (DrQ-v2's)
-    """
+    """:return: ``mean + eps`` clamped to ``[-1 + 1e-6, 1 - 1e-6]`` with a straight-through gradient (DrQ-v2's)"""
     action = mean + eps
     clamped = action.clamp(-1.0 + ACTION_EPS, 1.0 - ACTION_EPS)
     return action - action.detach() + clamped.detach()
@@ -200,13 +183,7 @@ def critic_mse(q_values: Sequence[th.Tensor], target_q: th.Tensor) -> th.Tensor:
 
 
 def soft_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
-    """
-    SB3's ``polyak_update`` (``target = target * (1 - tau) + tau * param``, in place) in two ``torch._foreach`` calls.
-
-    :param params: parameters of the trained network
-    :param target_params: parameters of its target network, updated in place
-    :param tau: soft update coefficient
-    """
+    """SB3's ``polyak_update`` of ``target_params`` towards ``params`` by ``tau``, in two ``torch._foreach`` calls."""
     targets = list(target_params)
     with th.no_grad():
         th._foreach_mul_(targets, 1 - tau)
@@ -389,13 +366,8 @@ class DrQv2Policy(BasePolicy):
     def extract_features(  # type: ignore[override]
         self, obs: PyTorchObs, features_extractor: nn.Module | None = None
     ) -> th.Tensor:
-        """
-        SB3's: the ``(n, repr_dim)`` features of the one encoder that the actor and the critic share.
-
-        :param obs: observations
-        :param features_extractor: ``None``, or a network's ``features_extractor`` (all are this encoder)
-        :raises ValueError: for another module
-        """
+        """SB3's: the ``(n, repr_dim)`` features of the one encoder (every network's ``features_extractor``; another
+        module raises ``ValueError``)."""
         if features_extractor is not None and features_extractor is not self.actor.features_extractor:
             raise ValueError(
                 "DrQv2Policy has one encoder, model.actor.features_extractor (the critic's and the target critic's "
@@ -419,12 +391,8 @@ class DrQv2Policy(BasePolicy):
         self.training = mode
 
     def renew_networks(self, lr_schedule: Schedule) -> None:
-        """
-        New random weights (as :meth:`_build` draws them) copied into the existing parameters, so that compiled code
-        and CUDA graphs stay valid, and new optimizers over them.
-
-        :param lr_schedule: the learning-rate schedule of the new optimizers
-        """
+        """New random weights (as :meth:`_build` draws them) copied into the existing parameters, so that compiled code
+        stays valid, and new optimizers over them with ``lr_schedule``."""
         was_training = self.training
         kept = {name: getattr(self, name) for name in ("encoder", "actor", "critic", "critic_target")}
         self._build(lr_schedule)
@@ -501,12 +469,8 @@ class DrQv2Policy(BasePolicy):
         return parts
 
     def forward_hidden(self, observations: PyTorchObs, actions: th.Tensor) -> None:
-        """
-        Run the encoder, the actor and the critic on a batch, for hooks on their activations to read.
-
-        :param observations: ``(n, *obs_shape)`` observations
-        :param actions: ``(n, action_dim)`` actions in [-1, 1]
-        """
+        """Run the encoder, the actor and the critic on ``(n, *obs_shape)`` observations and ``(n, action_dim)``
+        actions, for hooks on their activations to read."""
         features = self.encoder(observations)  # type: ignore[arg-type]
         self.actor(features)
         self.critic(features, actions)

@@ -48,8 +48,7 @@ class _Slot:
 
 class HostStaging:
     """
-    Host staging buffers of replay batches and their copy to the device; a set is written only after the copy out
-    of it has completed.
+    Host staging buffers of replay batches and their copy to the device.
 
     :param device: where the batches go
     :param pin_memory: page-lock the host buffers (CUDA)
@@ -233,14 +232,8 @@ class ReplayPrefetcher:
         self, replay_buffer: ReplayBuffer, gradient_steps: int, batch_size: int, env: VecNormalize | None = None
     ) -> contextlib.closing[Iterator[Any]]:
         """
-        The ``gradient_steps`` batches of a ``train`` call, to use as a context manager (the worker has finished when
-        the block ends).
-
-        :param replay_buffer: the replay buffer (not changed until the block ends)
-        :param gradient_steps: number of batches
-        :param batch_size: transitions per batch
-        :param env: ``VecNormalize`` env to normalize the samples with, as in SB3
-        :return: an iterable of ``gradient_steps`` samples of ``replay_buffer`` on its device
+        :return: the ``gradient_steps`` samples of ``batch_size`` transitions of ``replay_buffer`` on its device
+            (normalized by ``env``), to use as a context manager: the worker has finished when the block ends
         """
         if not self.enabled:
             return contextlib.closing(replay_buffer.sample(batch_size, env=env) for _ in range(gradient_steps))
@@ -327,14 +320,8 @@ class ReplayPrefetcher:
         return self._executor
 
     def restore(self, replay_buffer: ReplayBuffer, env: VecNormalize | None = None) -> bool:
-        """
-        Make again the batch prepared when the prefetcher was pickled, if ``replay_buffer`` is the one it was drawn
-        from (else drop it).
-
-        :param replay_buffer: the restored replay buffer
-        :param env: ``VecNormalize`` env to normalize the samples with, as in SB3
-        :return: whether a batch was made again
-        """
+        """Make again the batch prepared when the prefetcher was pickled, if ``replay_buffer`` is the one it was drawn
+        from (else drop it). :return: whether a batch was made again"""
         prepared = self._prepared
         if prepared is None or prepared.batch is not None:
             return False

@@ -26,13 +26,8 @@ PER_TRANSITION_ARRAYS_BYTES = 8 + 4 + 4 + 4  # frame index (int64), reward, done
 
 
 def frame_capacity(transitions: int, frame_stack: int, min_episode_length: int) -> int:
-    """
-    :param transitions: transitions per environment (``buffer_size // n_envs``)
-    :param frame_stack: frames per observation
-    :param min_episode_length: shortest episode, in agent steps, that keeps all transitions sampleable
-    :return: frames one environment's column holds: ``transitions + frame_stack * (1 + ceil(transitions /
-        min_episode_length))`` (docs/algorithm.md#inside-the-frame-store)
-    """
+    """:return: frames one environment's column holds, ``transitions + frame_stack * (1 + ceil(transitions /
+    min_episode_length))`` (docs/algorithm.md#inside-the-frame-store)"""
     return transitions + frame_stack * (1 + math.ceil(transitions / min_episode_length))
 
 
@@ -167,12 +162,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
         done: np.ndarray,
         infos: list[dict[str, Any]],
     ) -> None:
-        """
-        Store one transition per environment, as SB3's ``add``.
-
-        :param obs: stacked observations, ``(n_envs, channels * frame_stack, height, width)``
-        :raises ValueError: if a ``next_obs`` is not its ``obs`` shifted by one frame (nothing is stored)
-        """
+        """SB3's ``add``, ``obs`` ``(n_envs, channels * frame_stack, height, width)``; a ``next_obs`` that is not its
+        ``obs`` shifted by one frame raises ``ValueError`` (nothing stored)."""
         k, frame_shape = self.frame_stack, self.frame_shape
         obs_frames = np.asarray(obs).reshape(self.n_envs, k, *frame_shape)
         next_frames = np.asarray(next_obs).reshape(self.n_envs, k, *frame_shape)
@@ -254,12 +245,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
         return self._get_samples(batch_inds, env=env, env_indices=env_indices)
 
     def sample_indices(self, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
-        """
-        The ``(pos, env)`` that :meth:`sample` draws, as SB3 draws them, drawing again those not sampleable.
-
-        :return: positions ``(batch_size,)`` and environments ``(batch_size,)``
-        :raises ValueError: when no transition is sampleable
-        """
+        """:return: the positions and environments, each ``(batch_size,)``, that :meth:`sample` draws as SB3 does,
+        drawing again those not sampleable (``ValueError`` when none is)"""
         upper_bound = self.buffer_size if self.full else self.pos
         if upper_bound == 0:
             raise ValueError("The replay buffer is empty: add transitions before sampling.")
@@ -315,14 +302,11 @@ class FrameStackReplayBuffer(ReplayBuffer):
         frames_out: np.ndarray | None = None,
     ) -> dict[str, np.ndarray]:
         """
-        The n-step transitions at ``(batch_inds, env_indices)`` as host arrays, as ``NStepReplayBuffer`` computes them.
+        The n-step transitions at ``(batch_inds, env_indices)`` as host arrays (``ValueError`` if overwritten).
 
         :param env: ``VecNormalize`` env to normalize with, as in SB3
-        :param frames_out: ``(2, batch, *obs_shape)`` C-contiguous array to gather ``observations`` and
-            ``next_observations`` into (only without ``env``); ``None``: new arrays
-        :return: the fields of ``ReplayBufferSamples`` by name, ``(batch, *obs_shape)``, ``(batch, action_dim)`` or
-            ``(batch, 1)``
-        :raises ValueError: if a transition's frames have been overwritten
+        :param frames_out: ``(2, batch, *obs_shape)`` array to gather the observations into (only without ``env``)
+        :return: the fields of ``ReplayBufferSamples`` by name
         """
         if not self.frames_stored(batch_inds, env_indices).all():
             raise ValueError(
@@ -366,13 +350,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
 def n_step_returns(
     buffer: ReplayBuffer, batch_inds: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """
-    SB3's ``NStepReplayBuffer`` rule on ``buffer``'s ``rewards``, ``dones`` and ``timeouts`` (its ``n_steps`` and
-    ``gamma``): rewards summed up to the first termination or time limit or the newest transition.
-
-    :return: the returns, their discounts ``gamma ** k`` and the dones (time limits bootstrapped), each ``(batch, 1)``,
-        and the positions ``(batch,)`` of the last transitions summed
-    """
+    """SB3's ``NStepReplayBuffer`` rule on ``buffer``'s arrays. :return: the returns, their discounts
+    ``gamma ** k`` and the dones, each ``(batch, 1)``, and the positions ``(batch,)`` of the last transitions summed"""
     n_steps, gamma, size = buffer.n_steps, buffer.gamma, buffer.buffer_size  # type: ignore[attr-defined]
     steps = np.arange(n_steps)
     window = (batch_inds[:, None] + steps) % size  # [batch, n_steps]

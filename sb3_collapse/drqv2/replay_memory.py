@@ -32,14 +32,8 @@ def default_replay_buffer(
     n_steps: int,
     gamma: float,
 ) -> type[ReplayBuffer] | None:
-    """
-    The replay buffer class (``None``: SB3's default) unless one was given: ``FrameStackReplayBuffer`` for a pixel
-    policy on an env reporting ``frame_stack > 1``, SB3's dict buffers (n-step when ``n_steps > 1``) for dict
-    observations. Fills in ``replay_buffer_kwargs``' ``n_steps``, ``gamma`` and ``frame_stack`` where not given.
-
-    :param pixel_policy: whether the policy encodes pixels with DrQ-v2's encoder
-    :param env_config: the ``make_dmc_env`` settings of the env (``None`` for another env)
-    """
+    """The replay buffer class unless one was given (``FrameStackReplayBuffer`` for a ``pixel_policy`` on a
+    frame-stacked env, SB3's dict buffers for dict observations); fills in ``replay_buffer_kwargs``' defaults."""
     config = env_config or {}
     frame_stack = config.get("frame_stack")
     if replay_buffer_class is None and isinstance(observation_space, spaces.Dict):
@@ -152,11 +146,8 @@ def warn_not_ready(num_timesteps: int) -> None:
 
 @contextlib.contextmanager
 def replay_buffer_setup(model: Any) -> Iterator[None]:
-    """
-    Around SB3's ``_setup_model`` of a ``DrQv2`` (its networks not built yet), which allocates the buffer: choose
-    the buffer and complete its kwargs, check ``optimize_memory_usage``, warn when the full buffer cannot fit in
-    RAM; in the block, a ``MemoryError`` says what size would fit.
-    """
+    """Around SB3's ``_setup_model`` of a ``DrQv2``: choose the buffer, check ``optimize_memory_usage``, warn when
+    it cannot fit in RAM; in the block, a ``MemoryError`` says what size would fit."""
     encoder_class = model.policy_kwargs.get("encoder_class", PixelEncoder)
     model.replay_buffer_class = default_replay_buffer(
         model.replay_buffer_class, model.replay_buffer_kwargs,

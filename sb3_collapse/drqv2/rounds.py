@@ -202,11 +202,8 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         return TrainFreq(-(-(stop - self.num_timesteps) // self.n_envs), TrainFrequencyUnit.STEP)
 
     def updates_due(self, start: int, end: int) -> int:
-        """
-        :return: the updates due when ``num_timesteps`` goes from ``start`` to ``end``: with ``(n, "transition")``,
-            ``gradient_steps`` for each multiple ``m`` of ``n`` in ``(start, end]`` past ``reset_step +
-            learning_starts``; with SB3's ``train_freq``, SB3's ``gradient_steps`` (``-1``: ``end - start``)
-        """
+        """:return: the updates due when ``num_timesteps`` goes from ``start`` to ``end`` (with ``(n, "transition")``,
+        ``gradient_steps`` per multiple of ``n`` past ``reset_step + learning_starts``; SB3's otherwise)"""
         first = self.reset_step + self.learning_starts  # no update at or before this transition count
         if self.train_freq.unit != TRANSITION:
             if end <= first:

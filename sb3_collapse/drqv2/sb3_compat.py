@@ -37,11 +37,7 @@ def _as_callback(item: BaseCallback | Callable[[dict[str, Any], dict[str, Any]],
 
 
 def combine_callbacks(*callbacks: MaybeCallback) -> BaseCallback | None:
-    """
-    :param callbacks: what SB3's ``learn(callback=...)`` takes, each, in the order they run
-    :return: ``None`` without any; the callback itself when there is one; otherwise a ``CallbackList``
-    :raises TypeError: for anything else
-    """
+    """:return: ``callbacks`` (each what SB3's ``learn(callback=...)`` takes) as one callback, in order, or ``None``"""
     flat: list[BaseCallback] = []
     for item in callbacks:
         if item is None:
@@ -75,9 +71,7 @@ class ConstructorCallbacks:
         SB3's ``load``, with the constructor's callbacks built again unless ``callback=`` is given.
 
         :param kwargs: saved attributes to override, as in SB3
-        :raises TypeError: for ``init_from``: build a new model with it instead
-        :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
-        :raises ParameterError: for a zip saved by another SB3 algorithm, naming it and what loads it
+        :raises: as :func:`~sb3_collapse.drqv2.checks.check_load_arguments`
         """
         check_load_arguments(path, kwargs, f"{cls.__name__}.load")
         kwargs = {name: cls.load_parsers.get(name, lambda value: value)(value) for name, value in kwargs.items()}
@@ -105,12 +99,7 @@ class ConstructorCallbacks:
 
 
 class DictNStepReplayBuffer(DictReplayBuffer):
-    """
-    SB3's ``DictReplayBuffer`` with the n-step returns of SB3's ``NStepReplayBuffer``.
-
-    :param n_steps: length of the returns, in steps of one environment
-    :param gamma: discount factor
-    """
+    """SB3's ``DictReplayBuffer`` with the n-step returns of SB3's ``NStepReplayBuffer`` (``n_steps``, ``gamma``)."""
 
     def __init__(self, *args: Any, n_steps: int = 3, gamma: float = 0.99, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)

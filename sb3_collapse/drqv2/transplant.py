@@ -48,11 +48,10 @@ class TransplantSource:
 
 def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str, TransplantSpec]:
     """
-    Check ``DrQv2``'s ``init_from`` and resolve its paths (reads no file).
+    Check ``DrQv2``'s ``init_from`` (group -> source) and resolve its paths (reads no file).
 
-    :param init_from: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> source, or ``None``
     :return: group -> an absolute ``Path`` or the model, in ``TRANSPLANT_GROUPS`` order
-    :raises TypeError: for a non-mapping, or a source that is neither a path nor a DrQv2 model
+    :raises TypeError: for a non-mapping or a source that is neither a path nor a DrQv2 model
     :raises ValueError: for an unknown group
     :raises FileNotFoundError: for a path that does not exist (with or without ``.zip``)
     """
@@ -92,12 +91,8 @@ def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str,
 
 
 def resolve_source_path(key: str, path: str | os.PathLike[str]) -> Path:
-    """
-    :param key: the group (for messages)
-    :param path: a zip saved by ``DrQv2.save``; ``.zip`` may be left out
-    :return: the absolute path of the existing file
-    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file
-    """
+    """:return: the absolute path of ``path`` or ``path.zip`` (``FileNotFoundError`` naming ``init_from[key]`` if
+    neither is a file)"""
     candidate = Path(path)
     zipped = candidate.with_name(candidate.name + ".zip")
     if not candidate.is_file() and candidate.suffix != ".zip" and zipped.is_file():
@@ -125,11 +120,8 @@ def describe_source(source: TransplantSpec) -> str:
 
 
 def load_sources(resolved: Mapping[str, TransplantSpec]) -> dict[str, TransplantSource]:
-    """
-    :param resolved: the output of :func:`check_init_from`
-    :return: group -> its source, each file read once
-    :raises ValueError: for a file that is not a zip saved by ``DrQv2.save``
-    """
+    """:return: group -> source of :func:`check_init_from`'s ``resolved``, each file read once (``ValueError`` for a
+    file that is no DrQv2 zip)"""
     cache: dict[str, TransplantSource] = {}
     sources: dict[str, TransplantSource] = {}
     for key, spec in resolved.items():
@@ -154,14 +146,8 @@ def source_from_model(model: BaseAlgorithm) -> TransplantSource:
 
 
 def read_source_zip(key: str, path: Path) -> TransplantSource:
-    """
-    Read the policy weights and settings of a zip saved by ``DrQv2.save`` without building a model (only the policy
-    class, its keyword arguments and the spaces are unpickled, once the class is known to be DrQv2's).
-
-    :param key: the group (for messages)
-    :param path: the zip
-    :raises ValueError: for a file that is not a zip saved by ``DrQv2.save``, or unreadable contents
-    """
+    """The policy weights and settings of a zip saved by ``DrQv2.save``, without building a model (``ValueError``
+    for anything else, naming ``init_from[key]``)."""
     where = f"init_from[{key!r}] = {os.fspath(path)!r}"
     if not zipfile.is_zipfile(path):
         raise ValueError(f"{where} is not a zip file (corrupt or truncated?); expected a zip saved by DrQv2.save.")
@@ -315,10 +301,8 @@ def source_key(target_key: str) -> str:
 
 def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]) -> dict[str, th.Tensor]:
     """
-    Check a transplant and list what it copies; changes nothing.
+    Check a transplant of ``sources`` into ``policy``; changes nothing.
 
-    :param policy: the freshly built policy to copy into
-    :param sources: group -> source (:func:`load_sources`)
     :return: target ``state_dict`` key -> the source tensor to copy into it
     :raises ValueError: for a group this model or a source lacks, keys, shapes or dtypes that differ, or trunks
         that would read the encoder's output in another order (``channels_last``)
@@ -376,15 +360,8 @@ def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]
 
 
 def transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource], verbose: int = 0) -> list[str]:
-    """
-    Check everything (:func:`plan_transplant`), then copy the groups' weights into ``policy``'s tensors in place.
-
-    :param policy: the freshly built policy to copy into
-    :param sources: group -> source
-    :param verbose: 1 or more: print which groups came from where
-    :return: the ``state_dict`` keys that were replaced
-    :raises ValueError: see :func:`plan_transplant`; nothing is copied then
-    """
+    """Check everything (:func:`plan_transplant`), then copy the groups' weights into ``policy``'s tensors in place
+    (``verbose >= 1``: say which). :return: the ``state_dict`` keys replaced"""
     plan = plan_transplant(policy, sources)
     target_state = policy.state_dict()  # tensors share storage with the parameters
     with th.no_grad():

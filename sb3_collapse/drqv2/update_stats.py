@@ -26,12 +26,8 @@ class UpdateStats:
         self.count += 1
 
     def dump(self, logger: Logger, layer_names: Sequence[str]) -> dict[str, float] | None:
-        """
-        Write the means since the last dump to ``logger`` and start new sums.
-
-        :param layer_names: the layers of ``grad_norms``, in order
-        :return: name -> mean of every statistic but ``grad_norms``; ``None`` when no update was added
-        """
+        """Write the means since the last dump to ``logger`` (``layer_names`` of ``grad_norms``) and start new sums.
+        :return: name -> mean of every statistic but ``grad_norms``; ``None`` when no update was added"""
         if self.count == 0:
             return None
         n, sums = self.count, {name: value.cpu() for name, value in self.sums.items()}
