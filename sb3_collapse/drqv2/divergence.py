@@ -49,12 +49,7 @@ class DivergenceGuard:
             logger.record("train/divergence_warnings", len(self.warnings))
 
     def check(
-        self,
-        losses: Mapping[str, float],
-        weights_finite: bool,
-        update: int,
-        frame: int,
-        gamma: float | None = None,
+        self, losses: Mapping[str, float], weights_finite: bool, update: int, frame: int, gamma: float | None = None
     ) -> None:
         """
         :param losses: name -> mean since the last dump: ``critic_loss``, ``actor_loss``, ``batch_reward``

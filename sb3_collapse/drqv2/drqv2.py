@@ -16,12 +16,7 @@ from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.common.model import read_env_config
 from sb3_collapse.drqv2 import replay_memory
 from sb3_collapse.drqv2.augmentation import draw_shifts
-from sb3_collapse.drqv2.checks import (
-    check_compile_update,
-    check_hyperparameters,
-    compile_losses,
-    uses_cuda_graphs,
-)
+from sb3_collapse.drqv2.checks import check_compile_update, check_hyperparameters, compile_losses, uses_cuda_graphs
 from sb3_collapse.drqv2.divergence import DivergenceGuard, all_finite
 from sb3_collapse.drqv2.encoders import PixelEncoder, StateEncoder
 from sb3_collapse.drqv2.policies import (
@@ -41,7 +36,7 @@ from sb3_collapse.drqv2.policies import (
 )
 from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
 from sb3_collapse.drqv2.rounds import RoundsAlgorithm
-from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, action_noise_actions, combine_callbacks
+from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, combine_callbacks
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
 from sb3_collapse.drqv2.transplant import TransplantSpec, check_init_from, describe_init_from, load_sources, transplant
 from sb3_collapse.drqv2.update_stats import UpdateStats
@@ -227,7 +222,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
                 )
         buffer_action = self.policy.scale_action(unscaled_action)
         if action_noise is not None and not self.in_warmup(learning_starts):
-            buffer_action = action_noise_actions(buffer_action, action_noise)
+            buffer_action = np.clip(buffer_action + action_noise(), -1, 1)  # TD3's exploration
         return self.policy.unscale_action(buffer_action), buffer_action
 
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:

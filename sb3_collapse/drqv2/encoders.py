@@ -42,12 +42,9 @@ def hidden_activation(activation: str = "relu", leaky_relu_slope: float = LEAKY_
 def weight_init(module: nn.Module) -> None:
     """DrQ-v2's initialization of ``module`` in place (``Module.apply``): orthogonal weights (gain 1 for Linear,
     sqrt(2) for Conv), zero biases."""
-    if isinstance(module, nn.Linear):
-        nn.init.orthogonal_(module.weight.data)
-        if module.bias is not None:
-            module.bias.data.fill_(0.0)
-    elif isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
-        nn.init.orthogonal_(module.weight.data, nn.init.calculate_gain("relu"))
+    if isinstance(module, (nn.Linear, nn.Conv2d, nn.ConvTranspose2d)):
+        gain = 1.0 if isinstance(module, nn.Linear) else nn.init.calculate_gain("relu")
+        nn.init.orthogonal_(module.weight.data, gain)
         if module.bias is not None:
             module.bias.data.fill_(0.0)
 
@@ -214,7 +211,6 @@ class StateEncoder(nn.Module):
         check_state_space(observation_space)
         self.observation_space = observation_space
         self.repr_dim = int(get_flattened_obs_dim(observation_space))
-        self.apply(weight_init)
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
         if isinstance(self.observation_space, spaces.Box):

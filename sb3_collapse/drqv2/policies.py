@@ -125,15 +125,9 @@ def noisy_action(mean: th.Tensor, eps: th.Tensor) -> th.Tensor:
 class Critic(nn.Module):
     """
     DrQ-v2 twin critic: its own trunk ``Linear -> LayerNorm -> Tanh`` shared by the Q heads ``q1``..``qN``, each
-    ``Linear -> ReLU`` per hidden layer then ``Linear(hidden -> 1)``.
+    ``Linear -> ReLU`` per hidden layer then ``Linear(hidden -> 1)``. The parameters are :class:`Actor`'s (the hidden
+    layers those of each head), and:
 
-    :param repr_dim: size of the encoder output
-    :param action_dim: number of action dimensions
-    :param feature_dim: size of the trunk output
-    :param hidden_dim: units of the hidden layers (when ``net_arch`` is ``None``)
-    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in the Q heads
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :param net_arch: units of each hidden layer of a head; ``None``: ``[hidden_dim, hidden_dim]`` (DrQ-v2's)
     :param n_critics: number of Q heads (DrQ-v2's 2)
     """
 
@@ -438,16 +432,11 @@ class DrQv2Policy(BasePolicy):
         """The modules of ``module`` without children, in registration order (the forward order here)."""
         return [sub for sub in module.modules() if next(sub.children(), None) is None]
 
-    def _q_heads(self) -> list[nn.Module]:
-        """The critic's Q networks: its children but the trunk (the members of a ``ModuleList`` one by one)."""
-        children = [child for name, child in self.critic.named_children() if name != "trunk"]
-        return [head for child in children for head in (child if isinstance(child, nn.ModuleList) else [child])]
-
     def hidden_layer_parts(self) -> list[LayerParts]:
         """:return: the hidden layers whose units ReDo may recycle: the actor's ``mlp1``.. (not the trunk ``mlp0``),
         then each Q network's ``q<k>.mlp1``.."""
         parts = sequential_hidden_parts("", self._leaf_modules(self.actor), first=0)
-        for k, head in enumerate(self._q_heads(), start=1):
+        for k, head in enumerate(self.critic.q_networks, start=1):
             parts += sequential_hidden_parts(f"q{k}.", self._leaf_modules(head))
         return parts
 

@@ -276,10 +276,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
         return bool(self.is_sampleable(positions, envs).any())
 
     def _get_samples(  # type: ignore[override]
-        self,
-        batch_inds: np.ndarray,
-        env: VecNormalize | None = None,
-        env_indices: np.ndarray | None = None,
+        self, batch_inds: np.ndarray, env: VecNormalize | None = None, env_indices: np.ndarray | None = None
     ) -> ReplayBufferSamples:
         """SB3's ``_get_samples`` (:meth:`sample_arrays` as tensors); ``env_indices=None`` draws them as SB3 does."""
         if env_indices is None:

@@ -13,7 +13,6 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
-from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
@@ -126,9 +125,3 @@ class DictNStepReplayBuffer(DictReplayBuffer):
             rewards=self.to_torch(returns.astype(np.float32)),
             discounts=self.to_torch(discounts),
         )
-
-
-def action_noise_actions(mean_actions: np.ndarray, action_noise: ActionNoise) -> np.ndarray:
-    """:return: TD3's exploration: ``mean_actions`` (rescaled to [-1, 1]) plus a draw of ``action_noise``, clipped to
-    [-1, 1]"""
-    return np.clip(mean_actions + action_noise(), -1, 1)

@@ -3,7 +3,9 @@ docs/algorithm.md#layer-transplants-drqv2init_from."""
 
 from __future__ import annotations
 
+import functools
 import inspect
+import io
 import json
 import os
 import zipfile
@@ -106,10 +108,8 @@ def resolve_source_path(key: str, path: str | os.PathLike[str]) -> Path:
 
 
 def describe_init_from(resolved: Mapping[str, TransplantSpec]) -> dict[str, str] | None:
-    """:return: group -> :func:`describe_source` of :func:`check_init_from`'s sources (``None`` for none)"""
-    if not resolved:
-        return None
-    return {key: describe_source(source) for key, source in resolved.items()}
+    """:return: group -> a string naming each of :func:`check_init_from`'s sources (``None`` for none)"""
+    return {key: describe_source(source) for key, source in resolved.items()} or None
 
 
 def describe_source(source: TransplantSpec) -> str:
@@ -137,9 +137,7 @@ def load_sources(resolved: Mapping[str, TransplantSpec]) -> dict[str, Transplant
 
 def source_from_model(model: BaseAlgorithm) -> TransplantSource:
     """:return: a copy of a DrQv2 ``model``'s policy weights on the CPU and its settings"""
-    policy = model.policy
-    if not isinstance(policy, DrQv2Policy):
-        raise TypeError(f"A {type(model).__name__} model cannot be transplanted: its policy is not a DrQv2Policy.")
+    policy = model.policy  # a DrQv2Policy (check_init_from)
     state_dict = {name: value.detach().to("cpu", copy=True) for name, value in policy.state_dict().items()}
     settings = policy_settings(type(policy), model.policy_kwargs, policy.observation_space, policy.action_space)
     return TransplantSource(describe_source(model), state_dict, settings)
@@ -164,7 +162,8 @@ def read_source_zip(key: str, path: Path) -> TransplantSource:
             )
         needed = ("policy_class", "policy_kwargs", "observation_space", "action_space")
         data = _read_member(where, "data", lambda: json_to_data(json.dumps({name: raw[name] for name in needed})))
-        state_dict = _read_member(where, "policy.pth", lambda: _load_tensors(archive))
+        load = functools.partial(th.load, map_location="cpu", weights_only=True)
+        state_dict = _read_member(where, "policy.pth", lambda: load(io.BytesIO(archive.read("policy.pth"))))
     policy_class = data.get("policy_class")
     restored = isinstance(policy_class, type) and issubclass(policy_class, DrQv2Policy)
     if not restored:
@@ -176,11 +175,6 @@ def read_source_zip(key: str, path: Path) -> TransplantSource:
         policy_class, data.get("policy_kwargs") or {}, data.get("observation_space"), data.get("action_space")
     )
     return TransplantSource(os.fspath(path), state_dict, settings)
-
-
-def _load_tensors(archive: zipfile.ZipFile) -> Any:
-    with archive.open("policy.pth") as file:
-        return th.load(file, map_location="cpu", weights_only=True)
 
 
 def _read_member(where: str, member: str, read: Callable[[], Any]) -> Any:
