@@ -141,12 +141,12 @@ def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv
             "model with DrQv2(policy, env, init_from={...}) to start from the layers of saved models."
         )
     if isinstance(path, (str, os.PathLike)):
-        given = pathlib.Path(path)
-        zipped = given.with_name(given.name + ".zip")
-        if not given.is_file() and not (given.suffix != ".zip" and zipped.is_file()):
-            tried = f"{os.fspath(path)!r}" + ("" if given.suffix == ".zip" else f" (nor {os.fspath(zipped)!r})")
+        found = zip_file(path)
+        if found is None:
+            suffix = pathlib.Path(path).suffix
+            tried = f"{os.fspath(path)!r}" + ("" if suffix == ".zip" else f" (nor {os.fspath(path) + '.zip'!r})")
             raise FileNotFoundError(f"{name}: no model file {tried}; give the path of a zip saved by DrQv2.save.")
-        saved = saved_sb3_algorithm(given if given.is_file() else zipped)
+        saved = saved_sb3_algorithm(found)
         if saved is not None:
             algorithm, policy = saved
             loader = f"stable_baselines3.{algorithm}.load" if algorithm else "the SB3 algorithm that saved it"
@@ -155,6 +155,13 @@ def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv
                 f"path {os.fspath(path)!r} holds a {algorithm or 'Stable-Baselines3'} checkpoint (policy {policy}), "
                 f"not a DrQv2 one: load it with {loader}.",
             )
+
+
+def zip_file(path: str | os.PathLike[str]) -> pathlib.Path | None:
+    """:return: ``path``, or ``path.zip`` where ``path`` has no ``.zip`` suffix (as SB3's ``load``), if a file"""
+    given = pathlib.Path(path)
+    zipped = given.with_name(given.name + ".zip")
+    return given if given.is_file() else zipped if given.suffix != ".zip" and zipped.is_file() else None
 
 
 def saved_sb3_algorithm(path: pathlib.Path) -> tuple[str | None, str] | None:

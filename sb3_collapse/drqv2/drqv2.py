@@ -282,14 +282,9 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         soft_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
 
         self.update_stats.add(
-            critic_loss=critic_loss,
-            q1_mean=q1.mean(),
-            q2_mean=q2.mean(),
-            target_q_mean=target_q.mean(),
-            actor_loss=actor_loss,
-            batch_reward=data.rewards.mean(),
-            grad_norms=self.grad_norm_recorder.norms,  # type: ignore[union-attr]
-        )
+            critic_loss=critic_loss, q1_mean=q1.mean(), q2_mean=q2.mean(), target_q_mean=target_q.mean(),
+            actor_loss=actor_loss, batch_reward=data.rewards.mean(), grad_norms=self.grad_norm_recorder.norms,  # type: ignore[union-attr]
+        )  # fmt: skip
 
     def _critic_loss(
         self,

@@ -101,17 +101,8 @@ class _FusedConvReLU(th.autograd.Function):
 
 
 class ConvReLU(nn.Sequential):
-    """
-    ``Conv2d`` then ``ReLU`` (or Leaky-ReLU), one named layer (``cnn1``..``cnn4``); on the CPU one oneDNN kernel with
-    the same values (docs/algorithm.md).
-
-    :param in_channels: input channels
-    :param out_channels: filters
-    :param stride: stride of the 3x3 convolution (no padding)
-    :param fused: run the two as one kernel where possible
-    :param activation: ``"relu"`` or ``"leaky_relu"``
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    """
+    """``Conv2d(in_channels, out_channels, 3, stride)`` then the ``activation``, one named layer (``cnn1``..``cnn4``);
+    with ``fused``, one oneDNN kernel on the CPU with the same values (docs/algorithm.md)."""
 
     def __init__(
         self,
@@ -238,10 +229,7 @@ class DictEncoder(nn.Module):
     docs/algorithm.md.
 
     :param observation_space: a ``spaces.Dict`` of ``Box``, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
-    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in the pixel encoders
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :param normalize_images: as :class:`PixelEncoder`'s
-    :param encoder_kwargs: keyword arguments of each :class:`PixelEncoder`
+    :param encoder_kwargs: the other keyword arguments of each :class:`PixelEncoder` (``activation``...)
     """
 
     def __init__(

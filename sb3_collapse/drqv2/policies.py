@@ -153,11 +153,7 @@ class Critic(nn.Module):
 
     def forward(self, features: th.Tensor, action: th.Tensor) -> tuple[th.Tensor, ...]:
         """:return: ``(Q1, .., QN)``, each ``(batch, 1)``, of the encoder's features and actions in [-1, 1]"""
-        return self.heads(self.trunk(features), action)
-
-    def heads(self, trunk_features: th.Tensor, action: th.Tensor) -> tuple[th.Tensor, ...]:
-        """:return: ``(Q1, .., QN)`` of the :attr:`trunk`'s output and actions in [-1, 1]"""
-        h_action = th.cat([trunk_features, action], dim=-1)
+        h_action = th.cat([self.trunk(features), action], dim=-1)
         return tuple(getattr(self, name)(h_action) for name in self.q_names)
 
     @property
@@ -293,9 +289,7 @@ class DrQv2Policy(BasePolicy):
         self.features_extractor_class = features_extractor_class
         self.features_extractor_kwargs = features_extractor_kwargs or {}
         self.encoder_class = encoder_class
-        self.encoder_kwargs = encoder_kwargs or {}
-        if drqv2_encoder_kwargs:
-            self.encoder_kwargs = {**self.encoder_kwargs, **drqv2_encoder_kwargs}  # DrQ-v2's encoder's
+        self.encoder_kwargs = {**(encoder_kwargs or {}), **drqv2_encoder_kwargs}  # and SB3's for DrQ-v2's encoder
         self.activation = activation
         self.leaky_relu_slope = leaky_relu_slope
         if optimizer_class is th.optim.Adam and "fused" not in self.optimizer_kwargs:

@@ -298,12 +298,11 @@ class ReplayPrefetcher:
                 tensor.record_stream(stream)
         return prepared.batch
 
-    def _on_stream(self) -> contextlib.AbstractContextManager[Any]:
-        if self._stream is None:
-            return contextlib.nullcontext()
+    def _on_stream(self) -> contextlib.ExitStack:
         stack = contextlib.ExitStack()
-        stack.enter_context(th.cuda.device(self._device))
-        stack.enter_context(th.cuda.stream(self._stream))
+        if self._stream is not None:
+            stack.enter_context(th.cuda.device(self._device))
+            stack.enter_context(th.cuda.stream(self._stream))
         return stack
 
     def _setup(self, device: th.device) -> None:

@@ -281,15 +281,9 @@ class FrameStackReplayBuffer(ReplayBuffer):
         """SB3's ``_get_samples`` (:meth:`sample_arrays` as tensors); ``env_indices=None`` draws them as SB3 does."""
         if env_indices is None:
             env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
-        arrays = self.sample_arrays(batch_inds, env_indices, env=env)
-        return ReplayBufferSamples(
-            observations=self.to_torch(arrays["observations"], copy=False),
-            actions=self.to_torch(arrays["actions"]),
-            next_observations=self.to_torch(arrays["next_observations"], copy=False),
-            dones=self.to_torch(arrays["dones"]),
-            rewards=self.to_torch(arrays["rewards"]),
-            discounts=self.to_torch(arrays["discounts"]),
-        )
+        arrays = self.sample_arrays(batch_inds, env_indices, env=env)  # the stacks are new arrays: not copied again
+        stacks = ("observations", "next_observations")
+        return ReplayBufferSamples(**{name: self.to_torch(a, copy=name not in stacks) for name, a in arrays.items()})
 
     def sample_arrays(
         self,

@@ -84,14 +84,9 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         """One round of environment steps then updates; :return: whether to go on (a callback may stop it)"""
         start = self.num_timesteps
         rollout = self.collect_rollouts(
-            self.env,  # type: ignore[arg-type]
-            callback=callback,
-            train_freq=self._round_train_freq(),
-            replay_buffer=self.replay_buffer,  # type: ignore[arg-type]
-            action_noise=self.action_noise,
-            learning_starts=self.learning_starts,
-            log_interval=log_interval,
-        )
+            self.env, callback, self._round_train_freq(), self.replay_buffer,  # type: ignore[arg-type]
+            self.action_noise, self.learning_starts, log_interval,
+        )  # fmt: skip
         updates = self.updates_due(start, self.num_timesteps) if rollout.continue_training else 0
         if updates > 0:
             stepping = self.step_envs_during_updates and not self.no_env_step_this_round

@@ -1,6 +1,5 @@
 """What makes code written for SB3's TD3 run with ``DrQv2`` in its place: the constructor's callbacks (saved and
-loaded), n-step returns on dict observations, ``optimize_memory_usage`` and ``action_noise``. See
-docs/algorithm.md#sb3s-keywords-code-written-for-td3-runs-with-drqv2."""
+loaded) and n-step returns on dict observations (docs/algorithm.md, *SB3's keywords*)."""
 
 from __future__ import annotations
 
@@ -37,15 +36,9 @@ def _as_callback(item: BaseCallback | Callable[[dict[str, Any], dict[str, Any]],
 
 def combine_callbacks(*callbacks: MaybeCallback) -> BaseCallback | None:
     """:return: ``callbacks`` (each what SB3's ``learn(callback=...)`` takes) as one callback, in order, or ``None``"""
-    flat: list[BaseCallback] = []
-    for item in callbacks:
-        if item is None:
-            continue
-        items = item if isinstance(item, list) else [item]
-        flat.extend(_as_callback(callback) for callback in items)  # type: ignore[arg-type]
-    if not flat:
-        return None
-    return flat[0] if len(flat) == 1 else CallbackList(flat)
+    items = [one for item in callbacks if item is not None for one in (item if isinstance(item, list) else [item])]
+    flat = [_as_callback(item) for item in items]  # type: ignore[arg-type]
+    return None if not flat else flat[0] if len(flat) == 1 else CallbackList(flat)
 
 
 class ConstructorCallbacks:

@@ -47,7 +47,12 @@ class StddevSchedule:
     def __init__(self, spec: ScheduleSpec) -> None:
         self.spec = spec
         self._fn = self._parse(spec)
-        self._check_value(self(0), step=0)  # a callable that fails or returns garbage fails now
+        value = self(0)  # a callable that fails or returns garbage fails now
+        if not isinstance(value, (int, float, np.floating)) or not math.isfinite(value) or value < 0:
+            raise ValueError(
+                f"The stddev schedule {spec!r} gave {value!r} at agent step 0: a standard deviation must be a finite "
+                "float >= 0."
+            )
 
     @staticmethod
     def _parse(spec: ScheduleSpec) -> Callable[[int], float]:
@@ -74,13 +79,6 @@ class StddevSchedule:
         if match.group(1) == "linear":
             return lambda step: linear_schedule(*args, step)  # type: ignore[call-arg]
         return lambda step: step_linear_schedule(*args, step)  # type: ignore[call-arg]
-
-    def _check_value(self, value: float, step: int) -> None:
-        if not isinstance(value, (int, float, np.floating)) or not math.isfinite(value) or value < 0:
-            raise ValueError(
-                f"The stddev schedule {self.spec!r} gave {value!r} at agent step {step}: "
-                "a standard deviation must be a finite float >= 0."
-            )
 
     def __call__(self, step: int) -> float:
         """:return: the exploration standard deviation at agent ``step``"""

@@ -19,7 +19,7 @@ import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
 
-from sb3_collapse.drqv2.checks import split_sb3_feature_size
+from sb3_collapse.drqv2.checks import split_sb3_feature_size, zip_file
 from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.drqv2.policies import DrQv2Policy
 
@@ -95,11 +95,8 @@ def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str,
 def resolve_source_path(key: str, path: str | os.PathLike[str]) -> Path:
     """:return: the absolute path of ``path`` or ``path.zip`` (``FileNotFoundError`` naming ``init_from[key]`` if
     neither is a file)"""
-    candidate = Path(path)
-    zipped = candidate.with_name(candidate.name + ".zip")
-    if not candidate.is_file() and candidate.suffix != ".zip" and zipped.is_file():
-        candidate = zipped
-    if not candidate.is_file():
+    candidate = zip_file(path)
+    if candidate is None:
         raise FileNotFoundError(
             f"init_from[{key!r}]: checkpoint {os.fspath(path)!r} does not exist; give the path of a zip saved by "
             "DrQv2.save (e.g. a run's final model)."
@@ -242,12 +239,8 @@ def target_settings(policy: DrQv2Policy) -> dict[str, Any]:
     encoder_kwargs = {**policy.encoder_kwargs}
     if isinstance(policy.encoder, PixelEncoder):
         encoder_kwargs.setdefault("channels_last", policy.encoder.channels_last)
-    kwargs = {
-        "feature_dim": policy.feature_dim,
-        "hidden_dim": policy.hidden_dim,
-        "encoder_class": policy.encoder_class,
-        "encoder_kwargs": encoder_kwargs,
-    }
+    kwargs = {name: getattr(policy, name) for name in ("feature_dim", "hidden_dim", "encoder_class")}
+    kwargs["encoder_kwargs"] = encoder_kwargs
     return policy_settings(type(policy), kwargs, policy.observation_space, policy.action_space)
 
 
