@@ -212,14 +212,15 @@ class StateEncoder(nn.Module):
         return {}
 
 
+def _channel_first_image(space: spaces.Space, normalize_images: bool, check_channels: bool = False) -> bool:
+    """Whether ``space`` is an image ``Box`` ``(C, H, W)`` with ``C < H, W`` (``uint8`` unless ``normalize_images``)."""
+    image = is_image_space(space, check_channels=check_channels, normalized_image=not normalize_images)
+    return image and space.shape[0] < min(space.shape[1:])  # type: ignore[index]
+
+
 def _image_keys(observation_space: spaces.Dict, normalize_images: bool) -> list[str]:
     """The keys of a ``Dict`` space whose spaces are channel-first images."""
-    return [
-        key
-        for key, space in observation_space.spaces.items()
-        if is_image_space(space, check_channels=False, normalized_image=not normalize_images)
-        and space.shape[0] < min(space.shape[1:])
-    ]
+    return [key for key, space in observation_space.spaces.items() if _channel_first_image(space, normalize_images)]
 
 
 class DictEncoder(nn.Module):
@@ -312,9 +313,7 @@ class FeaturesExtractorEncoder(nn.Module):
             self.image_keys = _image_keys(observation_space, normalize_images)
             self.has_cnn = bool(self.image_keys)
         else:
-            self.has_cnn = is_image_space(observation_space, normalized_image=not normalize_images) and (
-                observation_space.shape[0] < min(observation_space.shape[1:])  # channel-first
-            )
+            self.has_cnn = _channel_first_image(observation_space, normalize_images, check_channels=True)
 
     def forward(self, obs: PyTorchObs) -> th.Tensor:
         return self.extractor(preprocess_obs(obs, self.observation_space, self.normalize_images))
@@ -332,11 +331,7 @@ class FeaturesExtractorEncoder(nn.Module):
 def check_pixel_space(observation_space: spaces.Space, normalize_images: bool = True) -> None:
     """:raises SpaceError: unless ``observation_space`` is a channel-first image ``Box`` (``uint8`` unless
     ``normalize_images=False``)"""
-    if not (
-        isinstance(observation_space, spaces.Box)
-        and is_image_space(observation_space, check_channels=False, normalized_image=not normalize_images)
-        and observation_space.shape[0] < min(observation_space.shape[1:])
-    ):
+    if not _channel_first_image(observation_space, normalize_images):
         raise SpaceError(
             "policy",
             f"CnnPolicy needs channel-first uint8 image observations of shape (channels, height, width), "

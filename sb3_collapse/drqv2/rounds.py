@@ -134,9 +134,7 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
 
             callback.update_locals(locals())
             if not callback.on_step():
-                return RolloutReturn(
-                    num_collected_steps * env.num_envs, num_collected_episodes, continue_training=False
-                )
+                return RolloutReturn(num_collected_steps * env.num_envs, num_collected_episodes, False)
             self._update_info_buffer(infos, dones)
             self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
             self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
@@ -176,13 +174,9 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
 
     def _convert_train_freq(self) -> None:
         """SB3's conversion of ``train_freq``, and of ``(n, "transition")`` to ``TrainFreq(n, TRANSITION)``."""
-        train_freq = self.train_freq
-        if (
-            isinstance(train_freq, (tuple, list))
-            and len(train_freq) == 2
-            and train_freq[1] in (TRANSITION, "transition")
-        ):
-            self.train_freq = TrainFreq(train_freq[0], TRANSITION)  # type: ignore[arg-type]
+        freq = self.train_freq
+        if isinstance(freq, (tuple, list)) and len(freq) == 2 and freq[1] in (TRANSITION, "transition"):
+            self.train_freq = TrainFreq(freq[0], TRANSITION)  # type: ignore[arg-type]
         else:
             super()._convert_train_freq()
 
@@ -201,13 +195,8 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         ``gradient_steps`` per multiple of ``n`` past ``reset_step + learning_starts``; SB3's otherwise)"""
         first = self.reset_step + self.learning_starts  # no update at or before this transition count
         if self.train_freq.unit != TRANSITION:
-            if end <= first:
-                return 0
-            return self.gradient_steps if self.gradient_steps >= 0 else end - start
-        low = max(start, first)
+            return 0 if end <= first else self.gradient_steps if self.gradient_steps >= 0 else end - start
+        low, frequency = max(start, first), self.train_freq.frequency
         if end <= low:
             return 0
-        if self.gradient_steps < 0:
-            return end - low
-        frequency = self.train_freq.frequency
-        return self.gradient_steps * (end // frequency - low // frequency)
+        return end - low if self.gradient_steps < 0 else self.gradient_steps * (end // frequency - low // frequency)

@@ -71,9 +71,7 @@ def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str,
             "('cnn': the encoder, 'mlp': the actor, 'critic': the critic and its target)."
         )
     resolved: dict[str, TransplantSpec] = {}
-    for key in TRANSPLANT_GROUPS:
-        if key not in init_from:
-            continue
+    for key in (key for key in TRANSPLANT_GROUPS if key in init_from):
         source = init_from[key]
         if isinstance(source, BaseAlgorithm):
             if not isinstance(source.policy, DrQv2Policy):
