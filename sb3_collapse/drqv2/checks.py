@@ -27,6 +27,13 @@ def _integer(name: str, value: Any, minimum: int, parameter: str | None = None) 
         raise ParameterError(parameter or name, f"{name} must be an integer >= {minimum}, got {value!r}.")
 
 
+def _number(name: str, value: Any, low: float, high: float = np.inf, low_open: bool = False) -> None:
+    valid = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value)
+    if not valid or value < low or (low_open and value == low) or value > high:
+        bounds = f"{'>' if low_open else '>='} {low:g}" + ("" if high == np.inf else f" and <= {high:g}")
+        raise ParameterError(name, f"{name} must be a finite number {bounds}, got {value!r}.")
+
+
 def check_hyperparameters(
     *,
     learning_rate: float | Schedule = 1e-4,
@@ -45,28 +52,16 @@ def check_hyperparameters(
     device: th.device | str = "auto",
     cudnn_benchmark: bool = False,
 ) -> None:
-    """Check :class:`DrQv2`'s hyperparameters before anything is built.
-
-    :raises ParameterError: naming the first bad parameter, what it must be and what it got
-    """
-
-    integer = _integer
-
-    def number(name: str, value: Any, low: float, high: float = np.inf, low_open: bool = False) -> None:
-        valid = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value)
-        if not valid or value < low or (low_open and value == low) or value > high:
-            bounds = f"{'>' if low_open else '>='} {low:g}" + ("" if high == np.inf else f" and <= {high:g}")
-            raise ParameterError(name, f"{name} must be a finite number {bounds}, got {value!r}.")
-
+    """:raises ParameterError: naming the first bad hyperparameter of ``DrQv2``, what it must be and what it got"""
     if not callable(learning_rate):
-        number("learning_rate", learning_rate, 0.0, low_open=True)
-    integer("buffer_size", buffer_size, 1)
-    integer("learning_starts", learning_starts, 0)
-    integer("batch_size", batch_size, 1)
-    number("tau", tau, 0.0, 1.0)
-    number("gamma", gamma, 0.0, 1.0)
+        _number("learning_rate", learning_rate, 0.0, low_open=True)
+    _integer("buffer_size", buffer_size, 1)
+    _integer("learning_starts", learning_starts, 0)
+    _integer("batch_size", batch_size, 1)
+    _number("tau", tau, 0.0, 1.0)
+    _number("gamma", gamma, 0.0, 1.0)
     pair = list(train_freq) if isinstance(train_freq, (tuple, list)) else None  # a list from rl_zoo3's YAML
-    integer("train_freq", pair[0] if pair else train_freq, 1)
+    _integer("train_freq", pair[0] if pair else train_freq, 1)
     if pair is not None and (len(pair) != 2 or getattr(pair[1], "value", pair[1]) not in TRAIN_FREQ_UNITS):
         raise ParameterError(
             "train_freq",
@@ -74,16 +69,16 @@ def check_hyperparameters(
             f"(n, 'transition') (n transitions summed over the environments, DrQ-v2's ratio), got {train_freq!r}.",
         )
     if gradient_steps != -1:
-        integer("gradient_steps", gradient_steps, 0)  # 0: collect without updating, as SB3 allows
-    integer("n_steps", n_steps, 1)
-    number("stddev_clip", stddev_clip, 0.0)
-    integer("augmentation_pad", augmentation_pad, 0)
+        _integer("gradient_steps", gradient_steps, 0)  # 0: collect without updating, as SB3 allows
+    _integer("n_steps", n_steps, 1)
+    _number("stddev_clip", stddev_clip, 0.0)
+    _integer("augmentation_pad", augmentation_pad, 0)
     for name in ("feature_dim", "hidden_dim"):
         if name in (policy_kwargs or {}):
-            integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
+            _integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
     check_policy_kwargs(policy_kwargs)  # SB3's keywords: net_arch, n_critics, share_features_extractor...
     if seed is not None:
-        integer("seed", seed, 0)
+        _integer("seed", seed, 0)
     check_device(device)
     if not isinstance(cudnn_benchmark, bool):
         raise ParameterError("cudnn_benchmark", f"cudnn_benchmark must be True or False, got {cudnn_benchmark!r}.")
@@ -123,9 +118,8 @@ def check_compile_update(compile_update: bool | str) -> None:
 def compile_mode(compile_update: bool | str, device: th.device) -> str:
     """:return: the ``torch.compile`` mode of ``compile_update``: for ``True``, ``"reduce-overhead"`` on CUDA and
     ``"default"`` elsewhere"""
-    if isinstance(compile_update, str):
-        return compile_update
-    return "reduce-overhead" if device.type == "cuda" else "default"
+    default = "reduce-overhead" if device.type == "cuda" else "default"
+    return compile_update if isinstance(compile_update, str) else default
 
 
 def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv2.load") -> None:

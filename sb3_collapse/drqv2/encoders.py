@@ -34,9 +34,7 @@ def check_activation(activation: str, leaky_relu_slope: float = LEAKY_RELU_SLOPE
 def hidden_activation(activation: str = "relu", leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> nn.Module:
     """:return: a new in-place ``nn.ReLU`` or ``nn.LeakyReLU(leaky_relu_slope)`` for ``activation``"""
     check_activation(activation, leaky_relu_slope)
-    if activation == "leaky_relu":
-        return nn.LeakyReLU(leaky_relu_slope, inplace=True)
-    return nn.ReLU(inplace=True)
+    return nn.LeakyReLU(leaky_relu_slope, inplace=True) if activation == "leaky_relu" else nn.ReLU(inplace=True)
 
 
 def weight_init(module: nn.Module) -> None:
@@ -168,9 +166,7 @@ class PixelEncoder(nn.Module):
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
         h = self.cnn4(self.cnn3(self.cnn2(self.cnn1(self.cnn0(obs)))))
-        if self.channels_last:  # (H, W, C) order: a free view of channels_last memory
-            return h.permute(0, 2, 3, 1).flatten(1)
-        return h.flatten(1)
+        return h.permute(0, 2, 3, 1).flatten(1) if self.channels_last else h.flatten(1)  # (H, W, C): a free view
 
     def named_layers(self) -> dict[str, nn.Module]:
         return {"cnn0": self.cnn0, "cnn1": self.cnn1, "cnn2": self.cnn2, "cnn3": self.cnn3, "cnn4": self.cnn4}
@@ -204,9 +200,8 @@ class StateEncoder(nn.Module):
         self.repr_dim = int(get_flattened_obs_dim(observation_space))
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
-        if isinstance(self.observation_space, spaces.Box):
-            return obs.float().flatten(1)
-        return preprocess_obs(obs, self.observation_space).flatten(1)  # type: ignore[union-attr]
+        box = isinstance(self.observation_space, spaces.Box)
+        return obs.float().flatten(1) if box else preprocess_obs(obs, self.observation_space).flatten(1)  # type: ignore[union-attr]
 
     def named_layers(self) -> dict[str, nn.Module]:
         return {}
@@ -263,10 +258,9 @@ class DictEncoder(nn.Module):
         )
 
     def forward(self, obs: dict[str, th.Tensor]) -> th.Tensor:
-        features = [self.pixel_encoders[key](obs[key]) for key in self.image_keys]
-        for key in self.vector_keys:
-            features.append(preprocess_obs(obs[key], self.observation_space[key]).float().flatten(1))  # type: ignore[union-attr]
-        return th.cat(features, dim=1)
+        images = [self.pixel_encoders[key](obs[key]) for key in self.image_keys]
+        vectors = [preprocess_obs(obs[key], self.observation_space[key]).float().flatten(1) for key in self.vector_keys]  # type: ignore[union-attr]
+        return th.cat(images + vectors, dim=1)
 
     def augment(self, obs: dict[str, th.Tensor], pad: int, shifts: th.Tensor) -> dict[str, th.Tensor]:
         """:return: ``obs`` with its image keys shifted (:meth:`PixelEncoder.augment`)"""

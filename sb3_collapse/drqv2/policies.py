@@ -368,9 +368,7 @@ class DrQv2Policy(BasePolicy):
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         mean = self.actor(self.encoder(observation))  # type: ignore[arg-type]
-        if deterministic:
-            return mean
-        return sample_action(mean, self.exploration_std, clip=None)
+        return mean if deterministic else sample_action(mean, self.exploration_std, clip=None)
 
     def set_training_mode(self, mode: bool) -> None:
         self.encoder.train(mode)
@@ -442,14 +440,12 @@ class DrQv2Policy(BasePolicy):
         blocks = [(name, block) for name, block in self.encoder.named_layers().items() if isinstance(block, ConvReLU)]
         trunks = tuple(next(m for m in net.modules() if isinstance(m, nn.Linear)) for net in self.feature_readers())
         positions = self.encoder.repr_dim // blocks[-1][1][0].out_channels
-        parts = []
-        for k, (name, block) in enumerate(blocks):
-            last = k == len(blocks) - 1
-            consumers = trunks if last else (blocks[k + 1][1][0],)
-            parts.append(
-                LayerParts(name, block[0], block, consumers, positions if last else 1, self.encoder.channels_last)
-            )
-        return parts
+        channels_last, last = self.encoder.channels_last, len(blocks) - 1
+        return [
+            LayerParts(name, block[0], block, trunks if k == last else (blocks[k + 1][1][0],),
+                       positions if k == last else 1, channels_last)
+            for k, (name, block) in enumerate(blocks)
+        ]  # fmt: skip
 
     def forward_hidden(self, observations: PyTorchObs, actions: th.Tensor) -> None:
         """Run the encoder, the actor and the critic on ``(n, *obs_shape)`` observations and ``(n, action_dim)``

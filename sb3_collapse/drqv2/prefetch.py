@@ -148,9 +148,7 @@ class HostStaging:
 
 def staging_for(device: th.device) -> HostStaging | None:
     """:return: pinned staging with CUDA events for a CUDA ``device``; ``None`` elsewhere"""
-    if device.type != "cuda":
-        return None
-    return HostStaging(device, pin_memory=True, event_factory=th.cuda.Event)
+    return HostStaging(device, pin_memory=True, event_factory=th.cuda.Event) if device.type == "cuda" else None
 
 
 def buffer_counters(buffer: ReplayBuffer) -> tuple[Any, ...]:

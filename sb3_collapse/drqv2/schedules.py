@@ -76,9 +76,8 @@ class StddevSchedule:
             raise ValueError(f"Invalid stddev schedule string {spec!r}: expected {_FORMS}.")
         if not all(map(math.isfinite, args)) or not all(duration > 0 for duration in args[2::2]):
             raise ValueError(f"Invalid stddev schedule string {spec!r}: finite numbers, durations > 0 agent steps.")
-        if match.group(1) == "linear":
-            return lambda step: linear_schedule(*args, step)  # type: ignore[call-arg]
-        return lambda step: step_linear_schedule(*args, step)  # type: ignore[call-arg]
+        schedule = linear_schedule if match.group(1) == "linear" else step_linear_schedule
+        return lambda step: schedule(*args, step)  # type: ignore[operator]
 
     def __call__(self, step: int) -> float:
         """:return: the exploration standard deviation at agent ``step``"""

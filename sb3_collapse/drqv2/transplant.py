@@ -260,9 +260,7 @@ def likely_cause(source: Mapping[str, Any], target: Mapping[str, Any]) -> str:
         for name in SETTING_HINTS
         if source.get(name) != target.get(name)
     ]
-    if not differences:
-        return "the networks were built differently although their recorded settings agree"
-    return "; ".join(differences)
+    return "; ".join(differences) or "the networks were built differently although their recorded settings agree"
 
 
 def group_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
