@@ -213,11 +213,8 @@ def actor_critic_arch(
     net_arch: list[int] | dict[str, list[int]] | None, hidden_dim: int
 ) -> tuple[list[int], list[int]]:
     """SB3's ``get_actor_critic_arch`` of ``net_arch``, DrQ-v2's two layers of ``hidden_dim`` for ``None``."""
-    if net_arch is None:
-        return [hidden_dim, hidden_dim], [hidden_dim, hidden_dim]
-    if isinstance(net_arch, Mapping):
-        return [int(units) for units in net_arch["pi"]], [int(units) for units in net_arch["qf"]]
-    return [int(units) for units in net_arch], [int(units) for units in net_arch]
+    pi, qf = (net_arch["pi"], net_arch["qf"]) if isinstance(net_arch, Mapping) else (net_arch, net_arch)
+    return tuple([hidden_dim, hidden_dim] if arch is None else [int(units) for units in arch] for arch in (pi, qf))  # type: ignore[return-value]
 
 
 def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:

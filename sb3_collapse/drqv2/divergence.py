@@ -20,9 +20,7 @@ VALUE_BOUND_FACTOR = 100.0  # times the bound its rewards allow a loss may reach
 def all_finite(tensors: Iterable[th.Tensor]) -> th.Tensor:
     """:return: a 0-d boolean tensor on the ``tensors``' device: whether every entry of every tensor is finite"""
     tensors = list(tensors)
-    if not tensors:
-        return th.tensor(True, device="cpu")
-    return th.stack(th._foreach_norm(tensors)).isfinite().all()
+    return th.stack(th._foreach_norm(tensors)).isfinite().all() if tensors else th.tensor(True, device="cpu")
 
 
 class DivergenceGuard:

@@ -38,7 +38,7 @@ from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
 from sb3_collapse.drqv2.rounds import RoundsAlgorithm
 from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, combine_callbacks
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
-from sb3_collapse.drqv2.transplant import TransplantSpec, check_init_from, describe_init_from, load_sources, transplant
+from sb3_collapse.drqv2.transplant import TransplantSpec, check_init_from, describe_source, load_sources, transplant
 from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.errors import DivergenceError
 
@@ -161,7 +161,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         self.divergence_guard = DivergenceGuard()  # read at each log dump
         self._warned_replay_not_ready = False
         self.reset_step = 0
-        self.init_from = describe_init_from(transplant_specs)  # group -> source, saved with the model
+        self.init_from = {key: describe_source(spec) for key, spec in transplant_specs.items()} or None  # saved
         if _init_setup_model:
             sources = load_sources(transplant_specs)  # before the replay buffer; no random generator touched
             self._setup_model()
@@ -395,7 +395,5 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         ]  # fmt: skip
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
-        if self.policy.encoder.optimizer is not None:
-            state_dicts.append("encoder.optimizer")
-        return state_dicts, []
+        encoder = ["encoder.optimizer"] if self.policy.encoder.optimizer is not None else []
+        return ["policy", "actor.optimizer", "critic.optimizer", *encoder], []

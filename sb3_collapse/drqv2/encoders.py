@@ -118,9 +118,8 @@ class ConvReLU(nn.Sequential):
     def forward(self, x: th.Tensor) -> th.Tensor:
         conv = self[0]
         fusable = self.fused and x.device.type == "cpu" and x.dtype == conv.weight.dtype == th.float32
-        if FUSED_CONV_RELU and fusable and not th.compiler.is_compiling():
-            return _FusedConvReLU.apply(x, conv.weight, conv.bias, conv)
-        return super().forward(x)
+        fused = FUSED_CONV_RELU and fusable and not th.compiler.is_compiling()
+        return _FusedConvReLU.apply(x, conv.weight, conv.bias, conv) if fused else super().forward(x)
 
 
 class PixelEncoder(nn.Module):
@@ -270,13 +269,10 @@ class DictEncoder(nn.Module):
         }
 
     def named_layers(self) -> dict[str, nn.Module]:
-        if len(self.image_keys) == 1:
-            return self.pixel_encoders[self.image_keys[0]].named_layers()
-        return {
-            f"{name}.{key}": module
-            for key in self.image_keys
-            for name, module in self.pixel_encoders[key].named_layers().items()
-        }
+        layers = {key: self.pixel_encoders[key].named_layers() for key in self.image_keys}
+        if len(layers) == 1:
+            return next(iter(layers.values()))
+        return {f"{name}.{key}": module for key, named in layers.items() for name, module in named.items()}
 
 
 class FeaturesExtractorEncoder(nn.Module):

@@ -328,8 +328,8 @@ class DrQv2Policy(BasePolicy):
         lr = lr_schedule(1)
         params = list(self.encoder.parameters())
         self.encoder.optimizer = self.optimizer_class(params, lr=lr, **self.optimizer_kwargs) if params else None
-        self.actor.optimizer = self.optimizer_class(self.actor.parameters(), lr=lr, **self.optimizer_kwargs)
-        self.critic.optimizer = self.optimizer_class(self.critic.parameters(), lr=lr, **self.optimizer_kwargs)
+        for module in (self.actor, self.critic):
+            module.optimizer = self.optimizer_class(module.parameters(), lr=lr, **self.optimizer_kwargs)
 
     @property
     def optimizers(self) -> list[th.optim.Optimizer]:
@@ -371,9 +371,8 @@ class DrQv2Policy(BasePolicy):
         return mean if deterministic else sample_action(mean, self.exploration_std, clip=None)
 
     def set_training_mode(self, mode: bool) -> None:
-        self.encoder.train(mode)
-        self.actor.train(mode)
-        self.critic.train(mode)
+        for module in (self.encoder, self.actor, self.critic):
+            module.train(mode)
         self.training = mode
 
     def renew_networks(self, lr_schedule: Schedule) -> None:

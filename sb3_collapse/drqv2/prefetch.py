@@ -184,9 +184,8 @@ class PreparedBatch:
 
     def drawn_from(self, buffer: ReplayBuffer, batch_size: int, env: VecNormalize | None) -> bool:
         """Whether this batch is one of ``buffer.sample(batch_size, env)`` in this process, since its last reset."""
-        if self.batch is None or not self.source or batch_size != self.batch_size:
-            return False
-        if buffer_counters(buffer)[-1] != self.counters[-1]:
+        resets = buffer_counters(buffer)[-1]
+        if self.batch is None or not self.source or batch_size != self.batch_size or resets != self.counters[-1]:
             return False
         buffer_ref, env_ref, device = self.source
         same_env = env is None if env_ref is None else env_ref() is env

@@ -116,9 +116,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.frame_heads = np.zeros(n_envs, dtype=np.int64)  # frames written per env, since the last reset
         action_dtype = self._maybe_cast_dtype(action_space.dtype)
         self.actions = np.zeros((self.buffer_size, n_envs, self.action_dim), dtype=action_dtype)
-        self.rewards = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
-        self.dones = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
-        self.timeouts = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
+        self.rewards, self.dones, self.timeouts = (np.zeros((self.buffer_size, n_envs), np.float32) for _ in range(3))
         self.steps_since_done = np.zeros(n_envs, dtype=np.int64)  # transitions of each env's episode in progress
         self.episodes_done = np.zeros(n_envs, dtype=np.int64)  # episodes ended per env, since the last reset
         self.transitions_added = 0  # add() calls (transitions per env) since the last reset
@@ -141,9 +139,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
     def reset(self) -> None:
         """Empty the buffer: no transition and no frame remain sampleable (the arrays are not zeroed)."""
         super().reset()
-        self.frame_heads[:] = 0
-        self.steps_since_done[:] = 0
-        self.episodes_done[:] = 0
+        for counts in (self.frame_heads, self.steps_since_done, self.episodes_done):
+            counts[:] = 0
         self.transitions_added = 0
         self.resets += 1
 

@@ -84,11 +84,9 @@ def memory_advice(replay_buffer_class: type[ReplayBuffer] | None, buffer_size: i
     """:return: what the buffer takes and which ``buffer_size`` would fit in 70% of this machine's RAM"""
     ram = physical_memory_bytes()
     fitting = int(0.7 * ram / per_transition)
-    storage = (
-        "FrameStackReplayBuffer stores each frame once"
-        if uses_frame_stack_buffer(replay_buffer_class)
-        else "SB3's buffer stores obs and next_obs separately"
-    )
+    storage = "SB3's buffer stores obs and next_obs separately"
+    if uses_frame_stack_buffer(replay_buffer_class):
+        storage = "FrameStackReplayBuffer stores each frame once"
     return (
         f"{storage}: {per_transition / 1e3:,.0f} KB per transition, "
         f"{buffer_size * per_transition / 1e9:,.1f} GB in all, and this machine has "
@@ -99,9 +97,8 @@ def memory_advice(replay_buffer_class: type[ReplayBuffer] | None, buffer_size: i
 
 def warn_if_too_large(replay_buffer_class: type[ReplayBuffer] | None, buffer_size: int, per_transition: float) -> None:
     """Warn when the full replay buffer (SB3's or ``FrameStackReplayBuffer``) cannot fit in RAM."""
-    known = replay_buffer_class in (None, ReplayBuffer, NStepReplayBuffer) or uses_frame_stack_buffer(
-        replay_buffer_class
-    )
+    sb3 = replay_buffer_class in (None, ReplayBuffer, NStepReplayBuffer)
+    known = sb3 or uses_frame_stack_buffer(replay_buffer_class)
     if known and buffer_size * per_transition > physical_memory_bytes():
         warnings.warn(
             f"The replay buffer of {buffer_size:,} transitions will not fit in memory once full. "

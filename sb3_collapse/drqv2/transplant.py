@@ -102,11 +102,6 @@ def resolve_source_path(key: str, path: str | os.PathLike[str]) -> Path:
     return candidate.resolve()
 
 
-def describe_init_from(resolved: Mapping[str, TransplantSpec]) -> dict[str, str] | None:
-    """:return: group -> a string naming each of :func:`check_init_from`'s sources (``None`` for none)"""
-    return {key: describe_source(source) for key, source in resolved.items()} or None
-
-
 def describe_source(source: TransplantSpec) -> str:
     """A plain string naming a resolved source: the path itself, or ``<in-memory DrQv2, seed 0, 120 agent steps>``."""
     if isinstance(source, BaseAlgorithm):
@@ -117,17 +112,14 @@ def describe_source(source: TransplantSpec) -> str:
 def load_sources(resolved: Mapping[str, TransplantSpec]) -> dict[str, TransplantSource]:
     """:return: group -> source of :func:`check_init_from`'s ``resolved``, each file read once (``ValueError`` for a
     file that is no DrQv2 zip)"""
-    cache: dict[str, TransplantSource] = {}
-    sources: dict[str, TransplantSource] = {}
+    files: dict[str, TransplantSource] = {}
     for key, spec in resolved.items():
-        if isinstance(spec, BaseAlgorithm):
-            sources[key] = source_from_model(spec)
-            continue
-        name = os.fspath(spec)
-        if name not in cache:
-            cache[name] = read_source_zip(key, spec)
-        sources[key] = cache[name]
-    return sources
+        if not isinstance(spec, BaseAlgorithm) and os.fspath(spec) not in files:
+            files[os.fspath(spec)] = read_source_zip(key, spec)  # type: ignore[arg-type]
+    return {
+        key: source_from_model(spec) if isinstance(spec, BaseAlgorithm) else files[os.fspath(spec)]
+        for key, spec in resolved.items()
+    }
 
 
 def source_from_model(model: BaseAlgorithm) -> TransplantSource:
@@ -186,10 +178,7 @@ def _read_member(where: str, member: str, read: Callable[[], Any]) -> Any:
 
 def _constructor_default(cls: type, name: str) -> Any:
     """The default of keyword ``name`` of ``cls.__init__``, looked up along the class hierarchy."""
-    for klass in cls.__mro__:
-        init = klass.__dict__.get("__init__")
-        if init is None:
-            continue
+    for init in (klass.__dict__["__init__"] for klass in cls.__mro__ if "__init__" in klass.__dict__):
         parameter = inspect.signature(init).parameters.get(name)
         if parameter is not None and parameter.default is not inspect.Parameter.empty:
             return parameter.default

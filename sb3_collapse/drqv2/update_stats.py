@@ -19,10 +19,8 @@ class UpdateStats:
 
     def add(self, **values: th.Tensor | None) -> None:
         """Add one update's statistics, name -> tensor on the model's device (``None`` skipped)."""
-        for name, value in values.items():
-            if value is not None:
-                value = value.detach()
-                self.sums[name] = self.sums[name] + value if name in self.sums else value.clone()
+        for name, value in ((name, value.detach()) for name, value in values.items() if value is not None):
+            self.sums[name] = self.sums[name] + value if name in self.sums else value.clone()
         self.count += 1
 
     def dump(self, logger: Logger, layer_names: Sequence[str]) -> dict[str, float] | None:
