@@ -60,7 +60,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     :param batch_size: minibatch size of each update
     :param tau: soft update coefficient of the target critic
     :param gamma: discount factor
-    :param train_freq: ``(n, "transition")``: updates every ``n`` transitions summed over the environments; or SB3's
+    :param train_freq: ``(n, "transition")``: updates every ``n`` transitions summed over the envs; or SB3's forms
     :param gradient_steps: updates per ``train_freq`` (``-1``: one per transition; ``0``: none)
     :param n_steps: length of the n-step returns, in agent steps
     :param stddev_schedule: exploration std of the transitions since the last reset (:class:`StddevSchedule`)
