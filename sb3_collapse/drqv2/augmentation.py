@@ -6,15 +6,8 @@ import torch as th
 
 
 def draw_shifts(batch_size: int, pad: int, device: th.device | str | None = None) -> th.Tensor:
-    """
-    The random offsets of :func:`random_shift`, drawn from torch's global generator as :func:`random_shift` draws
-    them when it is given none (so drawing them first, then shifting, gives the same images).
-
-    :param batch_size: number of images
-    :param pad: padding in pixels
-    :param device: where the offsets go
-    :return: integer offsets ``(batch_size, 2)`` in ``[0, 2 * pad]``, as ``(x, y)``
-    """
+    """:return: :func:`random_shift`'s integer offsets ``(batch_size, 2)`` in ``[0, 2 * pad]``, as ``(x, y)``, from
+    torch's global generator, on ``device``"""
     return th.randint(0, 2 * pad + 1, (batch_size, 2), device=device)
 
 
@@ -22,17 +15,12 @@ def random_shift(
     obs: th.Tensor, pad: int = 4, shifts: th.Tensor | None = None, channels_last: bool = False
 ) -> th.Tensor:
     """
-    Random shift of DrQ-v2: replicate-pad every image by ``pad`` pixels, then crop it back to its size
-    at an integer offset drawn uniformly in ``[0, 2 * pad]`` per sample and per axis.
+    DrQ-v2's random shift: replicate-pad every image by ``pad`` pixels, crop it back at an integer offset per sample
+    and axis (gathered directly, the same as the reference's ``grid_sample``: docs/algorithm.md).
 
-    The pixels are gathered directly (padding becomes clamped indices) in the input's dtype, where the reference
-    uses bilinear ``grid_sample`` at pixel centres; the result is the same (see
-    docs/algorithm.md#the-algorithm-sb3_collapsedrqv2).
-
-    :param obs: images, shape ``(batch, channels, height, width)``, any dtype
+    :param obs: images ``(batch, channels, height, width)``, any dtype
     :param pad: padding in pixels; ``0`` returns ``obs`` unchanged
-    :param shifts: optional integer offsets ``(batch, 2)`` in ``[0, 2 * pad]``, as ``(x, y)``;
-        drawn at random when ``None``
+    :param shifts: :func:`draw_shifts`' offsets; ``None``: drawn now
     :param channels_last: return the images in ``channels_last`` memory format (else contiguous)
     :return: shifted images, same shape, dtype and device as ``obs``
     """

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
+import re
+import zipfile
 from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+import stable_baselines3
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -16,6 +20,18 @@ from torch import nn
 
 from sb3_collapse.drqv2.rounds import TRAIN_FREQ_UNITS
 from sb3_collapse.errors import ParameterError, SpaceError
+
+
+def _integer(name: str, value: Any, minimum: int, parameter: str | None = None) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ParameterError(parameter or name, f"{name} must be an integer >= {minimum}, got {value!r}.")
+
+
+def _number(name: str, value: Any, low: float, high: float = np.inf, low_open: bool = False) -> None:
+    valid = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value)
+    if not valid or value < low or (low_open and value == low) or value > high:
+        bounds = f"{'>' if low_open else '>='} {low:g}" + ("" if high == np.inf else f" and <= {high:g}")
+        raise ParameterError(name, f"{name} must be a finite number {bounds}, got {value!r}.")
 
 
 def check_hyperparameters(
@@ -36,32 +52,16 @@ def check_hyperparameters(
     device: th.device | str = "auto",
     cudnn_benchmark: bool = False,
 ) -> None:
-    """
-    Check :class:`DrQv2`'s hyperparameters (the constructor calls it; ``TrainConfig.validate`` too, before a run
-    folder is created), so that a bad value fails before anything is built, with its name.
-
-    :raises ParameterError: naming the first bad parameter, what it must be and what it got
-    """
-
-    def integer(name: str, value: Any, minimum: int) -> None:
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-            raise ParameterError(name, f"{name} must be an integer >= {minimum}, got {value!r}.")
-
-    def number(name: str, value: Any, low: float, high: float = np.inf, low_open: bool = False) -> None:
-        valid = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value)
-        if not valid or value < low or (low_open and value == low) or value > high:
-            bounds = f"{'>' if low_open else '>='} {low:g}" + ("" if high == np.inf else f" and <= {high:g}")
-            raise ParameterError(name, f"{name} must be a finite number {bounds}, got {value!r}.")
-
+    """:raises ParameterError: naming the first bad hyperparameter of ``DrQv2``, what it must be and what it got"""
     if not callable(learning_rate):
-        number("learning_rate", learning_rate, 0.0, low_open=True)
-    integer("buffer_size", buffer_size, 1)
-    integer("learning_starts", learning_starts, 0)
-    integer("batch_size", batch_size, 1)
-    number("tau", tau, 0.0, 1.0)
-    number("gamma", gamma, 0.0, 1.0)
+        _number("learning_rate", learning_rate, 0.0, low_open=True)
+    _integer("buffer_size", buffer_size, 1)
+    _integer("learning_starts", learning_starts, 0)
+    _integer("batch_size", batch_size, 1)
+    _number("tau", tau, 0.0, 1.0)
+    _number("gamma", gamma, 0.0, 1.0)
     pair = list(train_freq) if isinstance(train_freq, (tuple, list)) else None  # a list from rl_zoo3's YAML
-    integer("train_freq", pair[0] if pair else train_freq, 1)
+    _integer("train_freq", pair[0] if pair else train_freq, 1)
     if pair is not None and (len(pair) != 2 or getattr(pair[1], "value", pair[1]) not in TRAIN_FREQ_UNITS):
         raise ParameterError(
             "train_freq",
@@ -69,28 +69,23 @@ def check_hyperparameters(
             f"(n, 'transition') (n transitions summed over the environments, DrQ-v2's ratio), got {train_freq!r}.",
         )
     if gradient_steps != -1:
-        integer("gradient_steps", gradient_steps, 0)  # 0: collect without updating, as SB3 allows
-    integer("n_steps", n_steps, 1)
-    number("stddev_clip", stddev_clip, 0.0)
-    integer("augmentation_pad", augmentation_pad, 0)
+        _integer("gradient_steps", gradient_steps, 0)  # 0: collect without updating, as SB3 allows
+    _integer("n_steps", n_steps, 1)
+    _number("stddev_clip", stddev_clip, 0.0)
+    _integer("augmentation_pad", augmentation_pad, 0)
     for name in ("feature_dim", "hidden_dim"):
         if name in (policy_kwargs or {}):
-            integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
+            _integer(f"policy_kwargs['{name}']", policy_kwargs[name], 1)  # type: ignore[index]
     check_policy_kwargs(policy_kwargs)  # SB3's keywords: net_arch, n_critics, share_features_extractor...
     if seed is not None:
-        integer("seed", seed, 0)
+        _integer("seed", seed, 0)
     check_device(device)
     if not isinstance(cudnn_benchmark, bool):
         raise ParameterError("cudnn_benchmark", f"cudnn_benchmark must be True or False, got {cudnn_benchmark!r}.")
 
 
 def check_device(device: th.device | str, name: str = "device") -> None:
-    """
-    :param device: a torch device, or ``"auto"``
-    :param name: the parameter's name, for the message
-    :raises ParameterError: for a device torch does not know, or CUDA without a GPU (instead of SB3's silent
-        fallback to the CPU)
-    """
+    """:raises ParameterError: for a ``device`` torch does not know, or CUDA without a GPU (``name``: the parameter)"""
     if device == "auto":
         return
     try:
@@ -107,17 +102,11 @@ def check_device(device: th.device | str, name: str = "device") -> None:
 
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
-"""The ``torch.compile`` modes that ``compile_update`` takes."""
-
-CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
-"""The modes among them that replay CUDA graphs on a CUDA device."""
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")  # replay CUDA graphs on a CUDA device
 
 
 def check_compile_update(compile_update: bool | str) -> None:
-    """
-    :param compile_update: the ``compile_update`` argument of ``DrQv2``
-    :raises ParameterError: unless it is a bool or one of :data:`COMPILE_MODES`
-    """
+    """:raises ParameterError: unless ``compile_update`` is a bool or one of :data:`COMPILE_MODES`"""
     if isinstance(compile_update, bool) or compile_update in COMPILE_MODES:
         return
     raise ParameterError(
@@ -127,25 +116,18 @@ def check_compile_update(compile_update: bool | str) -> None:
 
 
 def compile_mode(compile_update: bool | str, device: th.device) -> str:
-    """
-    :param compile_update: ``True`` or a mode (see ``DrQv2``)
-    :param device: the model's device
-    :return: the ``torch.compile`` mode: the given one, or for ``True`` ``"reduce-overhead"`` (CUDA graphs) on CUDA
-        and ``"default"`` elsewhere
-    """
-    if isinstance(compile_update, str):
-        return compile_update
-    return "reduce-overhead" if device.type == "cuda" else "default"
+    """:return: the ``torch.compile`` mode of ``compile_update``: for ``True``, ``"reduce-overhead"`` on CUDA and
+    ``"default"`` elsewhere"""
+    default = "reduce-overhead" if device.type == "cuda" else "default"
+    return compile_update if isinstance(compile_update, str) else default
 
 
 def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv2.load") -> None:
-    """
-    :param path: the path given to ``load`` (a file object is not checked)
-    :param kwargs: the attributes it overrides
-    :param name: the caller, for the messages
+    """Check ``load``'s ``path`` and ``kwargs`` before SB3 reads anything (``name``: the caller).
+
     :raises TypeError: for ``init_from``: loading restores the saved weights, it does not transplant
-    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given (SB3 would
-        name ``path.zip``)
+    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
+    :raises ParameterError: for a zip saved by one of SB3's algorithms, naming it and what loads it
     """
     if "init_from" in kwargs:
         raise TypeError(
@@ -153,22 +135,51 @@ def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv
             "model with DrQv2(policy, env, init_from={...}) to start from the layers of saved models."
         )
     if isinstance(path, (str, os.PathLike)):
-        given = pathlib.Path(path)
-        zipped = given.with_name(given.name + ".zip")
-        if not given.is_file() and not (given.suffix != ".zip" and zipped.is_file()):
-            tried = f"{os.fspath(path)!r}" + ("" if given.suffix == ".zip" else f" (nor {os.fspath(zipped)!r})")
+        found = zip_file(path)
+        if found is None:
+            suffix = pathlib.Path(path).suffix
+            tried = f"{os.fspath(path)!r}" + ("" if suffix == ".zip" else f" (nor {os.fspath(path) + '.zip'!r})")
             raise FileNotFoundError(f"{name}: no model file {tried}; give the path of a zip saved by DrQv2.save.")
+        saved = saved_sb3_algorithm(found)
+        if saved is not None:
+            algorithm, policy = saved
+            loader = f"stable_baselines3.{algorithm}.load" if algorithm else "the SB3 algorithm that saved it"
+            raise ParameterError(
+                "path",
+                f"path {os.fspath(path)!r} holds a {algorithm or 'Stable-Baselines3'} checkpoint (policy {policy}), "
+                f"not a DrQv2 one: load it with {loader}.",
+            )
+
+
+def zip_file(path: str | os.PathLike[str]) -> pathlib.Path | None:
+    """:return: ``path``, or ``path.zip`` where ``path`` has no ``.zip`` suffix (as SB3's ``load``), if a file"""
+    given = pathlib.Path(path)
+    zipped = given.with_name(given.name + ".zip")
+    return given if given.is_file() else zipped if given.suffix != ".zip" and zipped.is_file() else None
+
+
+def saved_sb3_algorithm(path: pathlib.Path) -> tuple[str | None, str] | None:
+    """:return: ``(algorithm or None, policy class)`` read from the ``data`` of a zip saved by one of SB3's algorithms;
+    ``None`` for another policy or an unreadable file"""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json.loads(archive.read("data"))
+        module = str(data["policy_class"]["__module__"])
+        init = re.search(r"<function (\w+)\.__init__", str(data["policy_class"].get("__init__", "")))
+    except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile):
+        return None
+    if not module.startswith("stable_baselines3."):
+        return None
+    policy = f"{module}.{init.group(1) if init else '?'}"
+    algorithm = module.split(".")[1].upper()
+    if algorithm == "TD3" and data.get("policy_delay") == 1 and data.get("target_noise_clip") == 0.0:
+        algorithm = "DDPG"  # SB3's DDPG is TD3 with these settings, and saves TD3's policies
+    return (algorithm if hasattr(stable_baselines3, algorithm) else None), policy
 
 
 def compile_losses(critic_loss: Callable, actor_loss: Callable, compile_update: bool | str, device: th.device) -> tuple:
-    """
-    :param critic_loss: ``DrQv2._critic_loss``
-    :param actor_loss: ``DrQv2._actor_loss``
-    :param compile_update: ``DrQv2``'s argument (``False``: the functions as they are)
-    :param device: the model's device
-    :return: the two functions, ``torch.compile``-d in :func:`compile_mode` with static shapes (the batch size is fixed
-        during training: another batch size compiles its own code)
-    """
+    """:return: ``DrQv2``'s two loss functions, ``torch.compile``-d in :func:`compile_mode` with static shapes (as
+    they are for ``compile_update=False``)"""
     if not compile_update:
         return critic_loss, actor_loss
     mode = compile_mode(compile_update, device)
@@ -180,25 +191,14 @@ def uses_cuda_graphs(compile_update: bool | str, device: th.device) -> bool:
     return bool(compile_update) and device.type == "cuda" and compile_mode(compile_update, device) in CUDA_GRAPH_MODES
 
 
-SB3_FEATURE_SIZES = ("features_dim", "cnn_output_dim")
-"""
-The keys of SB3's ``features_extractor_kwargs`` that size the features its networks' hidden layers read: ``NatureCNN``'s
-``features_dim`` (its last Linear layer, ``CnnPolicy``) and ``CombinedExtractor``'s ``cnn_output_dim`` (that of each
-image key, ``MultiInputPolicy``). With DrQ-v2's encoder both set ``feature_dim``, the output of the actor's and the
-critic's trunks (Linear, LayerNorm, Tanh), which is where DrQ-v2 projects its convolutional features; with a dict,
-the trunks read the image and the other keys together.
-"""
+SB3_FEATURE_SIZES = ("features_dim", "cnn_output_dim")  # SB3's features_extractor_kwargs that set feature_dim
 
 
 def split_sb3_feature_size(
     features_extractor_kwargs: Mapping[str, Any] | None, features_extractor_class: type | None = None
 ) -> tuple[int | None, dict[str, Any]]:
-    """
-    :param features_extractor_kwargs: SB3's ``policy_kwargs['features_extractor_kwargs']``
-    :param features_extractor_class: SB3's ``features_extractor_class``; with one, the kwargs are all its own
-    :return: the size of the features given by :data:`SB3_FEATURE_SIZES` (``None`` when none), and the other
-        keyword arguments, for DrQ-v2's encoder (``{}`` with a ``features_extractor_class``)
-    """
+    """:return: the ``feature_dim`` given by :data:`SB3_FEATURE_SIZES` (or ``None``) and the other keyword arguments,
+    for DrQ-v2's encoder (``None, {}`` with a ``features_extractor_class``)"""
     kwargs = dict(features_extractor_kwargs or {})
     if features_extractor_class is not None:
         return None, {}
@@ -206,100 +206,75 @@ def split_sb3_feature_size(
     return (sizes[0] if sizes else None), kwargs
 
 
-ACTIVATION_FNS: dict[type[nn.Module], str] = {nn.ReLU: "relu", nn.LeakyReLU: "leaky_relu"}
-"""SB3's ``activation_fn`` values DrQv2 takes, and the ``activation`` each means."""
+ACTIVATION_FNS: dict[type[nn.Module], str] = {nn.ReLU: "relu", nn.LeakyReLU: "leaky_relu"}  # SB3's -> activation
 
 
 def actor_critic_arch(
     net_arch: list[int] | dict[str, list[int]] | None, hidden_dim: int
 ) -> tuple[list[int], list[int]]:
-    """
-    SB3's ``get_actor_critic_arch`` with DrQ-v2's default.
-
-    :param net_arch: a list of units (actor and each Q head), ``dict(pi=[...], qf=[...])``, or ``None``
-    :param hidden_dim: the units of DrQ-v2's two hidden layers, for ``None``
-    :return: the hidden layers of the actor and of each Q head
-    """
-    if net_arch is None:
-        return [hidden_dim, hidden_dim], [hidden_dim, hidden_dim]
-    if isinstance(net_arch, Mapping):
-        return [int(units) for units in net_arch["pi"]], [int(units) for units in net_arch["qf"]]
-    return [int(units) for units in net_arch], [int(units) for units in net_arch]
+    """SB3's ``get_actor_critic_arch`` of ``net_arch``, DrQ-v2's two layers of ``hidden_dim`` for ``None``."""
+    pi, qf = (net_arch["pi"], net_arch["qf"]) if isinstance(net_arch, Mapping) else (net_arch, net_arch)
+    return tuple([hidden_dim, hidden_dim] if arch is None else [int(units) for units in arch] for arch in (pi, qf))  # type: ignore[return-value]
 
 
 def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
-    """
-    Check the SB3 keywords of ``policy_kwargs`` (``DrQv2``'s constructor and ``check_hyperparameters`` call it, before
-    anything is built).
-
-    :param policy_kwargs: the ``policy_kwargs`` of ``DrQv2``
-    :raises ParameterError: naming the first bad keyword (``policy_kwargs['net_arch']``), what it must be and what
-        to pass instead
-    """
+    """:raises ParameterError: naming the first bad SB3 keyword of ``policy_kwargs`` and what to pass instead"""
     kwargs = dict(policy_kwargs or {})
 
-    def name(key: str) -> str:
-        return f"policy_kwargs['{key}']"
+    def fail(key: str, message: str) -> None:
+        raise ParameterError(f"policy_kwargs['{key}']", message)
 
     def units(key: str, value: Any) -> None:
         if not isinstance(value, (list, tuple)) or any(
             isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1 for n in value
         ):
-            raise ParameterError(
-                name("net_arch"),
-                f"{key} must be a list of layer sizes (integers >= 1), e.g. [1024, 1024] (DrQ-v2's), got {value!r}.",
-            )
+            fail("net_arch", f"{key} must be a list of layer sizes (integers >= 1), e.g. [1024, 1024], got {value!r}.")
 
     net_arch = kwargs.get("net_arch")
     if isinstance(net_arch, Mapping):
         if set(net_arch) != {"pi", "qf"}:
-            raise ParameterError(
-                name("net_arch"),
-                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as "
-                "SB3's "
-                f"TD3; got {sorted(net_arch)}. Pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for both.",
+            fail(
+                "net_arch",
+                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as SB3's"
+                f" TD3; got {sorted(net_arch)}. Pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for "
+                "both.",
             )
         for key in ("pi", "qf"):
             units(f"policy_kwargs['net_arch']['{key}']", net_arch[key])
     elif net_arch is not None:
         units("policy_kwargs['net_arch']", net_arch)
     if net_arch is not None and kwargs.get("hidden_dim", 1024) != 1024:
-        raise ParameterError(
-            name("net_arch"),
+        fail(
+            "net_arch",
             f"policy_kwargs gives both net_arch={net_arch!r} and hidden_dim={kwargs['hidden_dim']!r}: pass one "
             "(hidden_dim=h is net_arch=[h, h]).",
         )
-    n_critics = kwargs.get("n_critics", 2)
-    if isinstance(n_critics, bool) or not isinstance(n_critics, (int, np.integer)) or n_critics < 1:
-        raise ParameterError(
-            name("n_critics"), f"policy_kwargs['n_critics'] must be an integer >= 1, got {n_critics!r}."
-        )
+    _integer("policy_kwargs['n_critics']", kwargs.get("n_critics", 2), 1)
     if kwargs.get("share_features_extractor", True) is not True:
-        raise ParameterError(
-            name("share_features_extractor"),
+        fail(
+            "share_features_extractor",
             "DrQ-v2 has one encoder, shared by the actor and the critic and trained by the critic loss only (SB3's "
             "share_features_extractor=True); a separate actor encoder trained by the actor loss "
             "(share_features_extractor=False, TD3's default) is another algorithm. Leave share_features_extractor out "
             f"or pass True; got {kwargs['share_features_extractor']!r}.",
         )
     activation_fn = kwargs.get("activation_fn")
-    if activation_fn is not None:
-        if activation_fn not in ACTIVATION_FNS:
-            raise ParameterError(
-                name("activation_fn"),
-                f"policy_kwargs['activation_fn'] must be torch.nn.ReLU (DrQ-v2's) or torch.nn.LeakyReLU (with "
-                f"leaky_relu_slope), got {activation_fn!r}.",
-            )
-        if kwargs.get("activation", "relu") not in ("relu", ACTIVATION_FNS[activation_fn]):
-            raise ParameterError(
-                name("activation_fn"),
-                f"policy_kwargs gives activation_fn={activation_fn.__name__} and activation={kwargs['activation']!r}: "
-                "pass one.",
-            )
+    if activation_fn is not None and activation_fn not in ACTIVATION_FNS:
+        fail(
+            "activation_fn",
+            "policy_kwargs['activation_fn'] must be torch.nn.ReLU (DrQ-v2's) or torch.nn.LeakyReLU (with "
+            f"leaky_relu_slope), got {activation_fn!r}.",
+        )
+    if activation_fn is not None and kwargs.get("activation", "relu") not in ("relu", ACTIVATION_FNS[activation_fn]):
+        fail(
+            "activation_fn",
+            f"policy_kwargs gives activation_fn={activation_fn.__name__} and activation={kwargs['activation']!r}: "
+            "pass one.",
+        )
     extractor = kwargs.get("features_extractor_class")
     if extractor is not None and not (isinstance(extractor, type) and issubclass(extractor, BaseFeaturesExtractor)):
-        raise ParameterError(
-            name("features_extractor_class"),
+        fail(
+            "features_extractor_class",
             "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
             f"(stable_baselines3.common.torch_layers), got {extractor!r}.",
         )
@@ -307,21 +282,18 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
     sizes = {key: extractor_kwargs[key] for key in SB3_FEATURE_SIZES if key in extractor_kwargs}
     if extractor is None and sizes:
         for key, value in sizes.items():
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ParameterError(
-                    name("features_extractor_kwargs"),
-                    f"policy_kwargs['features_extractor_kwargs']['{key}'] must be an integer >= 1, got {value!r}.",
-                )
+            name = f"policy_kwargs['features_extractor_kwargs']['{key}']"
+            _integer(name, value, 1, "policy_kwargs['features_extractor_kwargs']")
         given = {**sizes, **({"feature_dim": kwargs["feature_dim"]} if kwargs.get("feature_dim", 50) != 50 else {})}
         if len(set(given.values())) > 1:
-            raise ParameterError(
-                name("features_extractor_kwargs"),
+            fail(
+                "features_extractor_kwargs",
                 f"policy_kwargs gives {', '.join(f'{key}={value!r}' for key, value in given.items())}: with DrQ-v2's "
                 "encoder they are all the output size of the actor's and the critic's trunks (feature_dim): pass one.",
             )
     if extractor is None and split_sb3_feature_size(extractor_kwargs)[1] and kwargs.get("encoder_kwargs"):
-        raise ParameterError(
-            name("features_extractor_kwargs"),
+        fail(
+            "features_extractor_kwargs",
             "without features_extractor_class, features_extractor_kwargs (but features_dim and cnn_output_dim, "
             "the trunks' feature_dim) are the keyword arguments of DrQ-v2's encoder, as encoder_kwargs: pass one of "
             "them.",
@@ -329,11 +301,7 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
 
 
 def check_action_space(action_space: spaces.Space) -> None:
-    """
-    :param action_space: space to check
-    :raises SpaceError: unless it is a ``Box`` with finite bounds (DrQ-v2 is for continuous control); also a
-        ``TypeError`` and an ``AssertionError`` (what SB3 raises for an unsupported action space)
-    """
+    """:raises SpaceError: unless ``action_space`` is a ``Box`` with finite bounds"""
     if not isinstance(action_space, spaces.Box):
         raise SpaceError(
             "env",

@@ -1,15 +1,5 @@
-"""
-A guard against diverging training, read where the losses are read anyway (at each log dump: no host
-synchronization per update).
-
-- A loss, or a weight, that is not finite stops training: :class:`DivergenceError` names the update and the frame.
-  So does an action of the actor that is not finite (``DrQv2`` checks it on the host, before the environment gets it).
-- A loss that grows by orders of magnitude warns once (per loss): its absolute value above :data:`GROWTH_FACTOR`
-  times the largest of the first :data:`REFERENCE_DUMPS` dumps (at least 1), or, for a run that diverges from its
-  first updates, above :data:`VALUE_BOUND_FACTOR` times what its rewards allow: with ``r`` the largest mean batch
-  reward seen (n-step rewards, at least 1) and ``Q = r / (1 - gamma)`` the largest plausible value, ``Q^2`` for the
-  critic loss (a squared error of values) and ``Q`` for the actor loss (minus a value).
-"""
+"""A guard against diverging training, read at each log dump (no host synchronization per update):
+docs/algorithm.md#divergence-guard."""
 
 from __future__ import annotations
 
@@ -22,34 +12,20 @@ import torch as th
 
 from sb3_collapse.errors import DivergenceError
 
-GROWTH_FACTOR = 1e4
-"""How many times its starting scale a loss may grow before a warning (four orders of magnitude)."""
-
-REFERENCE_DUMPS = 10
-"""Log dumps whose losses set the starting scale."""
-
-VALUE_BOUND_FACTOR = 100.0
-"""How many times the bound its rewards allow a loss may reach before a warning."""
+GROWTH_FACTOR = 1e4  # times its starting scale a loss may grow before a warning
+REFERENCE_DUMPS = 10  # log dumps whose losses set the starting scale
+VALUE_BOUND_FACTOR = 100.0  # times the bound its rewards allow a loss may reach before a warning
 
 
 def all_finite(tensors: Iterable[th.Tensor]) -> th.Tensor:
-    """
-    :param tensors: e.g. a model's parameters (on one device)
-    :return: a 0-d boolean tensor on their device: whether every entry of every tensor is finite (no host read)
-    """
+    """:return: a 0-d boolean tensor on the ``tensors``' device: whether every entry of every tensor is finite"""
     tensors = list(tensors)
-    if not tensors:
-        return th.tensor(True, device="cpu")
-    return th.stack(th._foreach_norm(tensors)).isfinite().all()
+    return th.stack(th._foreach_norm(tensors)).isfinite().all() if tensors else th.tensor(True, device="cpu")
 
 
 class DivergenceGuard:
-    """
-    Checks the mean losses of each log dump (see the module docstring).
-
-    :param growth: :data:`GROWTH_FACTOR`
-    :param reference_dumps: :data:`REFERENCE_DUMPS`
-    """
+    """Checks the mean losses of each log dump; ``growth``: :data:`GROWTH_FACTOR`, ``reference_dumps``:
+    :data:`REFERENCE_DUMPS`."""
 
     def __init__(self, growth: float = GROWTH_FACTOR, reference_dumps: int = REFERENCE_DUMPS) -> None:
         self.growth = growth
@@ -57,18 +33,13 @@ class DivergenceGuard:
         self.scale: dict[str, float] = {}
         self.max_reward = 1.0
         self.dumps = 0
-        self.warnings: list[str] = []
-        """The warnings given, at most one per loss (for the run's summary)."""
+        self.warnings: list[str] = []  # at most one per loss, for the run's summary
 
     def check_dump(
         self, means: Mapping[str, float], weights_finite: bool, update: int, frame: int, gamma: float, logger: Any
     ) -> None:
-        """
-        :meth:`check` the means of a log dump (``UpdateStats.dump``: the losses and the batch reward are read), and
-        record the number of warnings in ``logger`` (``train/divergence_warnings``) when this dump gave a new one.
-
-        :raises DivergenceError: as :meth:`check`
-        """
+        """:meth:`check` the means of a log dump (``UpdateStats.dump``'s), and log ``train/divergence_warnings`` when
+        this dump gave a new warning."""
         given = len(self.warnings)
         losses = {name: means[name] for name in ("critic_loss", "actor_loss", "batch_reward") if name in means}
         self.check(losses, weights_finite, update, frame, gamma=gamma)
@@ -76,16 +47,10 @@ class DivergenceGuard:
             logger.record("train/divergence_warnings", len(self.warnings))
 
     def check(
-        self,
-        losses: Mapping[str, float],
-        weights_finite: bool,
-        update: int,
-        frame: int,
-        gamma: float | None = None,
+        self, losses: Mapping[str, float], weights_finite: bool, update: int, frame: int, gamma: float | None = None
     ) -> None:
         """
-        :param losses: name -> mean since the last dump: ``critic_loss``, ``actor_loss`` and ``batch_reward`` (the
-            mean reward of the sampled transitions, not checked, kept for the bound on the values)
+        :param losses: name -> mean since the last dump: ``critic_loss``, ``actor_loss``, ``batch_reward``
         :param weights_finite: whether every weight is finite (:func:`all_finite`)
         :param update: the number of updates so far
         :param frame: the frame count

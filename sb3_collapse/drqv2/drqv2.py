@@ -16,12 +16,7 @@ from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.common.model import read_env_config
 from sb3_collapse.drqv2 import replay_memory
 from sb3_collapse.drqv2.augmentation import draw_shifts
-from sb3_collapse.drqv2.checks import (
-    check_compile_update,
-    check_hyperparameters,
-    compile_losses,
-    uses_cuda_graphs,
-)
+from sb3_collapse.drqv2.checks import check_compile_update, check_hyperparameters, compile_losses, uses_cuda_graphs
 from sb3_collapse.drqv2.divergence import DivergenceGuard, all_finite
 from sb3_collapse.drqv2.encoders import PixelEncoder, StateEncoder
 from sb3_collapse.drqv2.policies import (
@@ -41,9 +36,9 @@ from sb3_collapse.drqv2.policies import (
 )
 from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
 from sb3_collapse.drqv2.rounds import RoundsAlgorithm
-from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, action_noise_actions, combine_callbacks
+from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, combine_callbacks
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
-from sb3_collapse.drqv2.transplant import TransplantSpec, check_init_from, describe_init_from, load_sources, transplant
+from sb3_collapse.drqv2.transplant import TransplantSpec, check_init_from, describe_source, load_sources, transplant
 from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.errors import DivergenceError
 
@@ -52,15 +47,12 @@ SelfDrQv2 = TypeVar("SelfDrQv2", bound="DrQv2")
 
 class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     """
-    DrQ-v2: Mastering Visual Continuous Control (https://arxiv.org/abs/2107.09645; reference code
-    https://github.com/facebookresearch/drqv2): DDPG with a twin critic, n-step returns, random-shift augmentation
-    and a scheduled exploration noise; the encoder is trained by the critic loss only. ``docs/algorithm.md``.
+    DrQ-v2: Mastering Visual Continuous Control (https://arxiv.org/abs/2107.09645): DDPG with a twin critic, n-step
+    returns, random-shift augmentation and a scheduled exploration noise. ``docs/algorithm.md``.
 
-    Step counts are transitions summed over the environments (SB3's ``num_timesteps``); the paper counts frames,
-    transitions x action repeat (``model.num_frames``). ``docs/throughput.md`` (Units).
+    Step counts are transitions summed over the environments (SB3's ``num_timesteps``), not frames.
 
-    :param policy: ``"CnnPolicy"`` (pixels), ``"MlpPolicy"`` (vectors, no encoder), ``"MultiInputPolicy"``
-        (``spaces.Dict``) or a ``DrQv2Policy`` subclass
+    :param policy: ``"CnnPolicy"``, ``"MlpPolicy"``, ``"MultiInputPolicy"`` or a ``DrQv2Policy`` subclass
     :param env: the environment (a ``VecEnv``, a gymnasium env or a registered id)
     :param learning_rate: Adam learning rate of the encoder, actor and critic, or an SB3 schedule
     :param buffer_size: replay capacity, in transitions (a warning when it cannot fit in RAM)
@@ -68,20 +60,16 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     :param batch_size: minibatch size of each update
     :param tau: soft update coefficient of the target critic
     :param gamma: discount factor
-    :param train_freq: ``(n, "transition")``: ``gradient_steps`` updates every ``n`` transitions summed over the
-        environments (DrQ-v2's ratio); SB3's ``n``, ``(n, "step")`` or ``(n, "episode")`` as in TD3
+    :param train_freq: ``(n, "transition")``: updates every ``n`` transitions summed over the envs; or SB3's forms
     :param gradient_steps: updates per ``train_freq`` (``-1``: one per transition; ``0``: none)
     :param n_steps: length of the n-step returns, in agent steps
-    :param stddev_schedule: exploration std as a function of the transitions since the last reset: a float,
-        ``"linear(init,final,duration)"``, ``"step_linear(init,final1,duration1,final2,duration2)"`` or a callable
+    :param stddev_schedule: exploration std of the transitions since the last reset (:class:`StddevSchedule`)
     :param stddev_clip: clip of the exploration noise in the updates (target action, actor loss)
     :param augmentation_pad: random-shift padding in pixels; ``0``: no augmentation
     :param step_envs_during_updates: step the environments while the learner updates (a policy lag of one round)
     :param compile_update: ``torch.compile`` the losses: ``True`` or a ``torch.compile`` mode
-    :param callback: callback(s) run at every ``learn()`` before its own, saved with the model when they can be
-        built again (:class:`~sb3_collapse.drqv2.sb3_compat.ConstructorCallbacks`)
-    :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` for ``CnnPolicy`` on a frame-stacked env,
-        SB3's otherwise
+    :param callback: callback(s) run at every ``learn()`` before its own, saved with the model where possible
+    :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` on a frame-stacked env, SB3's otherwise
     :param replay_buffer_kwargs: its keyword arguments (``dict(sampling="drqv2")``: finished episodes only)
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
@@ -89,8 +77,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: seed of the random generators
     :param device: ``"cpu"``, ``"cuda"``, ... or ``"auto"``; CUDA without a GPU is refused
-    :param init_from: the paper's layer transplant: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a saved DrQv2
-        zip or model, copied once when the model is built (``sb3_collapse.drqv2.transplant``)
+    :param init_from: the paper's layer transplant: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> a DrQv2 zip or model
     :param action_noise: an SB3 ``ActionNoise`` in place of the ``stddev_schedule``'s Gaussian when acting
     :param optimize_memory_usage: SB3's, where SB3's ``ReplayBuffer`` is used with ``n_steps=1`` (else a warning)
     :param cudnn_benchmark: turn cuDNN's autotuner on when built on CUDA (a process-wide flag); saved with the model
@@ -164,22 +151,19 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         self.compile_update = compile_update
         self.cudnn_benchmark = cudnn_benchmark
         self.callback = callback
-        self.replay_prefetcher = ReplayPrefetcher()  # train()'s batches, drawn ahead: sb3_collapse.drqv2.prefetch
+        self.replay_prefetcher = ReplayPrefetcher()  # train()'s batches, drawn ahead
         self._compiled_losses: tuple[Any, Any] | None = None
         self._pending_step: tuple[np.ndarray, np.ndarray] | None = None
         self.no_env_step_this_round = False
         self.env_config = read_env_config(self.env) if self.env is not None else None
-        self.grad_norm_recorder: GradNormRecorder | None = None
-        """Records the gradient norm of each named layer at each update (see :attr:`last_grad_norms`)."""
+        self.grad_norm_recorder: GradNormRecorder | None = None  # the gradient norm of each named layer
         self.update_stats = UpdateStats()
-        self.divergence_guard = DivergenceGuard()  # read at each log dump: sb3_collapse.drqv2.divergence
+        self.divergence_guard = DivergenceGuard()  # read at each log dump
         self._warned_replay_not_ready = False
         self.reset_step = 0
-        self.init_from = describe_init_from(transplant_specs)  # group -> source, saved with the model
+        self.init_from = {key: describe_source(spec) for key, spec in transplant_specs.items()} or None  # saved
         if _init_setup_model:
-            # Read the sources first (a file that is no DrQv2 zip fails before the replay buffer is allocated);
-            # reading them builds no model and touches no random generator.
-            sources = load_sources(transplant_specs)
+            sources = load_sources(transplant_specs)  # before the replay buffer; no random generator touched
             self._setup_model()
             if sources:
                 transplant(self.policy, sources, verbose=self.verbose)
@@ -201,20 +185,19 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         self.critic_target = self.policy.critic_target
 
     def _index_grad_layers(self) -> None:
-        """A new gradient-norm recorder on the current optimizers (``cnn1``..``cnn4`` recorded when the encoder's
-        optimizer steps, ``mlp0``..``action`` when the actor's does), the previous one removed."""
+        """A new gradient-norm recorder on the current optimizers, the previous one removed."""
         if self.grad_norm_recorder is not None:
             self.grad_norm_recorder.remove()
         self.grad_norm_recorder = GradNormRecorder.of_modules(self.policy.named_layers(), self.policy.optimizers)
 
     @property
     def current_stddev(self) -> float:
-        """Exploration standard deviation now: the schedule at ``num_timesteps - reset_step`` transitions."""
+        """Exploration standard deviation: the schedule at ``num_timesteps - reset_step`` transitions."""
         return self.stddev_schedule(self.num_timesteps - self.reset_step)
 
     @property
     def action_repeat(self) -> int:
-        """Frames per agent step, read from the environment (1 when it does not report an action repeat)."""
+        """Frames per agent step, read from the environment (1 when it reports none)."""
         return int((self.env_config or {}).get("action_repeat") or 1)
 
     @property
@@ -239,15 +222,12 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
                 )
         buffer_action = self.policy.scale_action(unscaled_action)
         if action_noise is not None and not self.in_warmup(learning_starts):
-            buffer_action = action_noise_actions(buffer_action, action_noise)
+            buffer_action = np.clip(buffer_action + action_noise(), -1, 1)  # TD3's exploration
         return self.policy.unscale_action(buffer_action), buffer_action
 
     def train(self, gradient_steps: int, batch_size: int = 256) -> None:
-        """
-        ``gradient_steps`` updates on minibatches of ``batch_size`` transitions, each drawn by
-        ``self.replay_prefetcher`` while the update before it runs (``sb3_collapse.drqv2.prefetch``). None in the
-        ``learning_starts`` transitions after a :meth:`reset_from_scratch`.
-        """
+        """``gradient_steps`` updates on minibatches of ``batch_size`` transitions (none in the ``learning_starts``
+        transitions after a :meth:`reset_from_scratch`)."""
         if self.reset_step > 0 and self.num_timesteps - self.reset_step <= self.learning_starts:
             if self.verbose >= 2:
                 print(f"DrQv2: warm-up after the reset at transition {self.reset_step}, no update")
@@ -274,11 +254,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
 
     def _update(self, data: ReplayBufferSamples, discounts: th.Tensor | float, std: float) -> None:
-        """
-        One DrQ-v2 update (the reference's ``update``): the critic and the encoder on the augmented batch, the actor
-        on the detached features, then the target critic. The random draws (shifts, target noise, actor noise) come
-        first, in the reference's order, so that the losses are functions of their inputs, compiled or not.
-        """
+        """One DrQ-v2 update (the reference's ``update``); the random draws come first, in the reference's order, so
+        that the losses are pure functions, compiled or not."""
         batch_size, action_dim = data.actions.shape
         shifts = next_shifts = None
         if self.augmentation_pad > 0 and self.encoder.has_cnn:
@@ -305,14 +282,9 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         soft_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
 
         self.update_stats.add(
-            critic_loss=critic_loss,
-            q1_mean=q1.mean(),
-            q2_mean=q2.mean(),
-            target_q_mean=target_q.mean(),
-            actor_loss=actor_loss,
-            batch_reward=data.rewards.mean(),
-            grad_norms=self.grad_norm_recorder.norms,  # type: ignore[union-attr]
-        )
+            critic_loss=critic_loss, q1_mean=q1.mean(), q2_mean=q2.mean(), target_q_mean=target_q.mean(),
+            actor_loss=actor_loss, batch_reward=data.rewards.mean(), grad_norms=self.grad_norm_recorder.norms,  # type: ignore[union-attr]
+        )  # fmt: skip
 
     def _critic_loss(
         self,
@@ -326,14 +298,9 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         next_shifts: th.Tensor | None,
         next_noise: th.Tensor,
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
-        """
-        ``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')`` at the actor's next action plus
-        ``next_noise``; ``shifts``: :func:`draw_shifts`'s (``None``: no augmentation). No random draw, no side effect.
-
-        :return: the loss, the encoder features of ``obs`` (with their graph), ``Q1``, ``Q2`` and ``y`` (``(batch, 1)``)
-        """
+        """``MSE(Q1, y) + MSE(Q2, y)``, ``y = r + (1 - done) * discount * min(Q1', Q2')`` at the actor's next action
+        plus ``next_noise``. :return: the loss, the features of ``obs`` (with graph), ``Q1``, ``Q2``, ``y``"""
         if shifts is not None and next_shifts is not None:
-            # Images only (the image keys of dict observations), in the layout the convolutions take.
             obs = self.encoder.augment(obs, self.augmentation_pad, shifts)
             next_obs = self.encoder.augment(next_obs, self.augmentation_pad, next_shifts)
         features = self.encoder(obs)
@@ -346,8 +313,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         return critic_loss, features, q_values[0], q_values[min(1, len(q_values) - 1)], target_q
 
     def _actor_loss(self, features: th.Tensor, noise: th.Tensor) -> th.Tensor:
-        """``-min(Q1, Q2)`` at the actor's action plus ``noise`` on detached ``features``. No random draw, no side
-        effect."""
+        """``-min(Q1, Q2)`` at the actor's action plus ``noise`` on detached ``features``."""
         action = noisy_action(self.actor(features), noise)
         return -min_q(self.critic(features, action)).mean()
 
@@ -392,11 +358,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfDrQv2:
-        """
-        SB3's ``learn`` for ``total_timesteps`` transitions, in rounds (``sb3_collapse.drqv2.rounds``), with the
-        constructor's callbacks before ``callback``. ``reset_num_timesteps=True`` also restarts the exploration
-        schedule and the warm-up; a loaded model first draws again the batch it had drawn ahead.
-        """
+        """SB3's ``learn`` for ``total_timesteps`` transitions, the constructor's callbacks before ``callback``
+        (``reset_num_timesteps=True`` also restarts the exploration schedule and the warm-up)."""
         self._warned_replay_not_ready = False
         if self.replay_buffer is not None:  # a loaded model's batch drawn ahead, from its restored replay buffer
             self.replay_prefetcher.restore(self.replay_buffer, self._vec_normalize_env)
@@ -411,11 +374,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         return super().learn(total_timesteps, callbacks, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
     def reset_from_scratch(self) -> None:
-        """
-        The paper's reset in the middle of ``learn()``: new weights copied into the existing parameters (a compiled
-        update stays valid), empty optimizers and replay buffer, the schedule and the warm-up from ``num_timesteps``;
-        the step counts, the callbacks and ``init_from`` untouched. ``docs/interventions.md``.
-        """
+        """The paper's reset in the middle of ``learn()``: new weights, empty optimizers and replay buffer, the
+        schedule and the warm-up from ``num_timesteps`` (``docs/interventions.md``)."""
         self.policy.renew_networks(self.lr_schedule)
         self._create_aliases()
         self._index_grad_layers()  # a new recorder, on the new optimizers: no norm until the next update
@@ -435,7 +395,5 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
         ]  # fmt: skip
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
-        if self.policy.encoder.optimizer is not None:
-            state_dicts.append("encoder.optimizer")
-        return state_dicts, []
+        encoder = ["encoder.optimizer"] if self.policy.encoder.optimizer is not None else []
+        return ["policy", "actor.optimizer", "critic.optimizer", *encoder], []

@@ -1,11 +1,9 @@
-"""The encoders of DrQ-v2's policies and their pieces: DrQ-v2's convolutional encoder of pixels (``cnn0``..``cnn4``),
-the state encoder of ``MlpPolicy``, the encoder of dict observations (``MultiInputPolicy``), a user's SB3 features
-extractor in its place, the hidden activation and DrQ-v2's weight initialization; the checks of observation spaces
-and image sizes."""
+"""The encoders of DrQ-v2's policies (pixels, state vectors, dict observations, a user's SB3 features extractor),
+the hidden activation, DrQ-v2's weight initialization and the checks of observation spaces."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -19,20 +17,12 @@ from torch import nn
 from sb3_collapse.drqv2.augmentation import random_shift
 from sb3_collapse.errors import ParameterError, SpaceError
 
-ACTIVATIONS = ("relu", "leaky_relu")
-"""The hidden activations of the networks: ReLU (DrQ-v2's) or Leaky-ReLU (the paper's footnote 1 ablation)."""
-
-LEAKY_RELU_SLOPE = 0.01
-"""Negative slope of the Leaky-ReLU: PyTorch's default (the paper does not give one; Maas et al., 2013 used 0.01)."""
-
+ACTIVATIONS = ("relu", "leaky_relu")  # ReLU (DrQ-v2's) or Leaky-ReLU (the paper's footnote 1 ablation)
+LEAKY_RELU_SLOPE = 0.01  # PyTorch's default: the paper gives none (docs/interventions.md)
 
 
 def check_activation(activation: str, leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> None:
-    """
-    :param activation: one of :data:`ACTIVATIONS`
-    :param leaky_relu_slope: the Leaky-ReLU's negative slope, in (0, 1)
-    :raises ParameterError: for another activation or slope
-    """
+    """:raises ParameterError: unless ``activation`` is one of :data:`ACTIVATIONS` and ``leaky_relu_slope`` in (0, 1)"""
     if activation not in ACTIVATIONS:
         raise ParameterError("activation", f"activation must be one of {', '.join(ACTIVATIONS)}, got {activation!r}.")
     if isinstance(leaky_relu_slope, bool) or not 0.0 < leaky_relu_slope < 1.0:
@@ -42,42 +32,24 @@ def check_activation(activation: str, leaky_relu_slope: float = LEAKY_RELU_SLOPE
 
 
 def hidden_activation(activation: str = "relu", leaky_relu_slope: float = LEAKY_RELU_SLOPE) -> nn.Module:
-    """
-    :param activation: ``"relu"`` or ``"leaky_relu"``
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :return: a new in-place activation module: ``nn.ReLU`` or ``nn.LeakyReLU(leaky_relu_slope)``
-    """
+    """:return: a new in-place ``nn.ReLU`` or ``nn.LeakyReLU(leaky_relu_slope)`` for ``activation``"""
     check_activation(activation, leaky_relu_slope)
-    if activation == "leaky_relu":
-        return nn.LeakyReLU(leaky_relu_slope, inplace=True)
-    return nn.ReLU(inplace=True)
+    return nn.LeakyReLU(leaky_relu_slope, inplace=True) if activation == "leaky_relu" else nn.ReLU(inplace=True)
 
 
 def weight_init(module: nn.Module) -> None:
-    """
-    DrQ-v2's initialization: orthogonal weights (gain 1 for Linear, sqrt(2) for Conv), zero biases.
-    LayerNorm keeps PyTorch's default (unit scale, zero shift).
-
-    :param module: module to initialize in place (use with ``Module.apply``)
-    """
-    if isinstance(module, nn.Linear):
-        nn.init.orthogonal_(module.weight.data)
-        if module.bias is not None:
-            module.bias.data.fill_(0.0)
-    elif isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
-        nn.init.orthogonal_(module.weight.data, nn.init.calculate_gain("relu"))
+    """DrQ-v2's initialization of ``module`` in place (``Module.apply``): orthogonal weights (gain 1 for Linear,
+    sqrt(2) for Conv), zero biases."""
+    if isinstance(module, (nn.Linear, nn.Conv2d, nn.ConvTranspose2d)):
+        gain = 1.0 if isinstance(module, nn.Linear) else nn.init.calculate_gain("relu")
+        nn.init.orthogonal_(module.weight.data, gain)
         if module.bias is not None:
             module.bias.data.fill_(0.0)
 
 
 class PixelNormalization(nn.Module):
-    """
-    ``cnn0``: uint8 pixels to floats in [-0.5, 0.5] (DrQ-v2's ``obs / 255 - 0.5``).
-
-    :param channels_last: return the images in ``channels_last`` memory format (faster convolutions)
-    :param normalize_images: ``False``: the images are already normalized (SB3's ``normalize_images=False``), they
-        are only converted to float
-    """
+    """``cnn0``: uint8 pixels to floats in [-0.5, 0.5] (DrQ-v2's ``obs / 255 - 0.5``), in ``channels_last`` memory
+    format; with ``normalize_images=False`` only converted to float."""
 
     def __init__(self, channels_last: bool = True, normalize_images: bool = True) -> None:
         super().__init__()
@@ -100,8 +72,7 @@ def _fused_conv_relu_available() -> bool:
         return False
 
 
-FUSED_CONV_RELU = _fused_conv_relu_available()
-"""Whether :class:`ConvReLU` runs its convolution and ReLU as one oneDNN kernel on the CPU."""
+FUSED_CONV_RELU = _fused_conv_relu_available()  # ConvReLU runs as one oneDNN kernel on the CPU
 
 
 class _FusedConvReLU(th.autograd.Function):
@@ -123,25 +94,13 @@ class _FusedConvReLU(th.autograd.Function):
         grads = th.ops.aten.convolution_backward(
             grad_z, x, weight, [weight.shape[0]], stride, padding, dilation, False, [0, 0], groups,
             list(ctx.needs_input_grad[:3]),
-        )
+        )  # fmt: skip
         return (*grads, None)
 
 
 class ConvReLU(nn.Sequential):
-    """
-    ``Conv2d`` then ``ReLU`` (or Leaky-ReLU): one named layer (``cnn1``..``cnn4``), whose output is the activation
-    after the ReLU.
-
-    On the CPU, for float32 inputs and a ReLU, the two run as one oneDNN kernel, with the values of the two in turn;
-    elsewhere it is the plain ``Sequential`` (see docs/algorithm.md#the-algorithm-sb3_collapsedrqv2).
-
-    :param in_channels: input channels
-    :param out_channels: filters
-    :param stride: stride of the 3x3 convolution (no padding)
-    :param fused: run the two as one kernel where possible; ``False`` runs them one after the other everywhere
-    :param activation: ``"relu"`` or ``"leaky_relu"`` (:func:`hidden_activation`)
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    """
+    """``Conv2d(in_channels, out_channels, 3, stride)`` then the ``activation``, one named layer (``cnn1``..``cnn4``);
+    with ``fused``, one oneDNN kernel on the CPU with the same values (docs/algorithm.md)."""
 
     def __init__(
         self,
@@ -159,35 +118,25 @@ class ConvReLU(nn.Sequential):
     def forward(self, x: th.Tensor) -> th.Tensor:
         conv = self[0]
         fusable = self.fused and x.device.type == "cpu" and x.dtype == conv.weight.dtype == th.float32
-        if FUSED_CONV_RELU and fusable and not th.compiler.is_compiling():
-            return _FusedConvReLU.apply(x, conv.weight, conv.bias, conv)
-        return super().forward(x)
+        fused = FUSED_CONV_RELU and fusable and not th.compiler.is_compiling()
+        return _FusedConvReLU.apply(x, conv.weight, conv.bias, conv) if fused else super().forward(x)
 
 
 class PixelEncoder(nn.Module):
     """
-    DrQ-v2's convolutional encoder: ``cnn0`` normalization, then four 3x3 convolutions with 32 channels
-    (stride 2, then 1, 1, 1), no padding, ReLU after each; the output is flattened.
-    Initialized with :func:`weight_init` at construction.
-
-    With ``channels_last`` (the default) the convolutions run in ``channels_last`` memory format and the output is
-    flattened in (H, W, C) order, otherwise in DrQ-v2's (C, H, W) order; the ``cnnK`` activations are the same
-    tensors either way (why the order does not matter: docs/algorithm.md#the-algorithm-sb3_collapsedrqv2).
+    DrQ-v2's convolutional encoder: ``cnn0`` normalization, four 3x3 convolutions of 32 channels (stride 2, 1, 1, 1),
+    no padding, ReLU after each, flattened ((H, W, C) order with ``channels_last``: docs/algorithm.md).
 
     :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
     :param channels: number of filters of every convolution
     :param channels_last: run the convolutions in ``channels_last`` memory format
-    :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`, same values;
-        ignored with a Leaky-ReLU)
+    :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`)
     :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` after each convolution
     :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :param normalize_images: ``True``: ``uint8`` images, ``cnn0`` computes ``obs / 255 - 0.5``; ``False`` (SB3's
-        keyword): images already normalized, any float ``Box`` of shape ``(channels, height, width)``, taken as they
-        are
+    :param normalize_images: ``False`` (SB3's keyword): float images already normalized, taken as they are
     """
 
-    has_cnn = True
-    """Random-shift augmentation applies to the observations (they are images)."""
+    has_cnn = True  # random-shift augmentation applies
 
     def __init__(
         self,
@@ -200,9 +149,7 @@ class PixelEncoder(nn.Module):
         normalize_images: bool = True,
     ) -> None:
         super().__init__()
-        check_pixel_space(observation_space, normalize_images)
-        for name, size in zip(("height", "width"), observation_space.shape[1:]):
-            check_image_size(size, f"observation {name}")
+        check_pixel_space(observation_space, normalize_images)  # images of at least MIN_IMAGE_SIZE pixels
         in_channels = observation_space.shape[0]
         self.cnn0 = PixelNormalization(channels_last, normalize_images)
         act = dict(fused=fused_relu, activation=activation, leaky_relu_slope=leaky_relu_slope)
@@ -218,36 +165,23 @@ class PixelEncoder(nn.Module):
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
         h = self.cnn4(self.cnn3(self.cnn2(self.cnn1(self.cnn0(obs)))))
-        if self.channels_last:
-            # (H, W, C) order: a free view of channels_last memory, where (C, H, W) order needs a copy.
-            return h.permute(0, 2, 3, 1).flatten(1)
-        return h.flatten(1)
+        return h.permute(0, 2, 3, 1).flatten(1) if self.channels_last else h.flatten(1)  # (H, W, C): a free view
 
     def named_layers(self) -> dict[str, nn.Module]:
         return {"cnn0": self.cnn0, "cnn1": self.cnn1, "cnn2": self.cnn2, "cnn3": self.cnn3, "cnn4": self.cnn4}
 
     def augment(self, obs: th.Tensor, pad: int, shifts: th.Tensor) -> th.Tensor:
-        """
-        :param obs: a batch of images
-        :param pad: random-shift padding in pixels
-        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`
-        :return: the shifted images, in the memory format the convolutions take (no copy in ``cnn0``)
-        """
+        """:return: ``obs`` shifted by ``shifts`` (:func:`draw_shifts`'s) after padding ``pad`` pixels, in the
+        memory format the convolutions take"""
         return random_shift(obs, pad, shifts, self.channels_last)
 
 
 class StateEncoder(nn.Module):
     """
-    Identity encoder for state vectors (``MlpPolicy``): the actor and critic trunks read the state directly.
+    Identity encoder of ``MlpPolicy``: SB3's ``preprocess_obs``, flattened (as SB3's ``FlattenExtractor``).
 
-    Observations go through SB3's ``preprocess_obs`` and are flattened, as SB3's ``FlattenExtractor`` does: a
-    ``Box`` as floats, ``Discrete`` and ``MultiDiscrete`` one-hot encoded, ``MultiBinary`` as floats.
-
-    :param observation_space: a ``Box`` that is not an image (any shape, flattened), ``Discrete``, ``MultiDiscrete``
-        or ``MultiBinary``
-    :param activation: unused (no layer), accepted so that every encoder takes the policy's activation
-    :param leaky_relu_slope: unused
-    :param normalize_images: unused (no image), accepted as SB3's policies accept it
+    :param observation_space: a ``Box`` that is not an image, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
+    :param activation: unused, as ``leaky_relu_slope`` and ``normalize_images``: every encoder takes them
     """
 
     has_cnn = False
@@ -263,53 +197,34 @@ class StateEncoder(nn.Module):
         check_state_space(observation_space)
         self.observation_space = observation_space
         self.repr_dim = int(get_flattened_obs_dim(observation_space))
-        self.apply(weight_init)
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
-        if isinstance(self.observation_space, spaces.Box):
-            return obs.float().flatten(1)
-        return preprocess_obs(obs, self.observation_space).flatten(1)  # type: ignore[union-attr]
+        box = isinstance(self.observation_space, spaces.Box)
+        return obs.float().flatten(1) if box else preprocess_obs(obs, self.observation_space).flatten(1)  # type: ignore[union-attr]
 
     def named_layers(self) -> dict[str, nn.Module]:
         return {}
 
 
+def _channel_first_image(space: spaces.Space, normalize_images: bool, check_channels: bool = False) -> bool:
+    """Whether ``space`` is an image ``Box`` ``(C, H, W)`` with ``C < H, W`` (``uint8`` unless ``normalize_images``)."""
+    image = is_image_space(space, check_channels=check_channels, normalized_image=not normalize_images)
+    return image and space.shape[0] < min(space.shape[1:])  # type: ignore[index]
+
+
 def _image_keys(observation_space: spaces.Dict, normalize_images: bool) -> list[str]:
-    """The keys of a ``Dict`` space whose spaces are channel-first images (uint8, or any float with
-    ``normalize_images=False``)."""
-    return [
-        key
-        for key, space in observation_space.spaces.items()
-        if is_image_space(space, check_channels=False, normalized_image=not normalize_images)
-        and space.shape[0] < min(space.shape[1:])
-    ]
-
-
-def _shift_images(obs: Any, pad: int, shifts: th.Tensor, image_keys: Sequence[str] | None) -> Any:
-    """Random shift of the images of ``obs``: the tensor itself (``image_keys=None``) or its ``image_keys``."""
-    if image_keys is None:
-        return random_shift(obs, pad, shifts)
-    return {key: random_shift(value, pad, shifts) if key in image_keys else value for key, value in obs.items()}
+    """The keys of a ``Dict`` space whose spaces are channel-first images."""
+    return [key for key, space in observation_space.spaces.items() if _channel_first_image(space, normalize_images)]
 
 
 class DictEncoder(nn.Module):
     """
-    Encoder of ``spaces.Dict`` observations (``MultiInputPolicy``), as visual RL with proprioception does: DrQ-v2's
-    :class:`PixelEncoder` on each image key (a channel-first ``uint8`` ``Box``; any float ``Box`` of 3 dimensions
-    with ``normalize_images=False``), every other key through SB3's ``preprocess_obs`` (one-hot for discrete
-    spaces), flattened; all concatenated, the image features first (in the space's key order), then the others.
-
-    Random-shift augmentation applies to the image keys only; a sample's image keys share one shift.
-
-    Named layers: with one image key, its encoder's ``cnn0``..``cnn4``; with several, ``cnn0.<key>``..
-    ``cnn4.<key>`` for each key; none without an image key.
+    Encoder of ``spaces.Dict`` observations (``MultiInputPolicy``): a :class:`PixelEncoder` on each image key, the
+    other keys through SB3's ``preprocess_obs``, flattened; concatenated, images first. Named layers:
+    docs/algorithm.md.
 
     :param observation_space: a ``spaces.Dict`` of ``Box``, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
-    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in the pixel encoders
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :param normalize_images: as :class:`PixelEncoder`'s
-    :param encoder_kwargs: keyword arguments of each :class:`PixelEncoder` (``channels``, ``channels_last``,
-        ``fused_relu``)
+    :param encoder_kwargs: the other keyword arguments of each :class:`PixelEncoder` (``activation``...)
     """
 
     def __init__(
@@ -342,42 +257,28 @@ class DictEncoder(nn.Module):
         )
 
     def forward(self, obs: dict[str, th.Tensor]) -> th.Tensor:
-        features = [self.pixel_encoders[key](obs[key]) for key in self.image_keys]
-        for key in self.vector_keys:
-            features.append(preprocess_obs(obs[key], self.observation_space[key]).float().flatten(1))  # type: ignore[union-attr]
-        return th.cat(features, dim=1)
+        images = [self.pixel_encoders[key](obs[key]) for key in self.image_keys]
+        vectors = [preprocess_obs(obs[key], self.observation_space[key]).float().flatten(1) for key in self.vector_keys]  # type: ignore[union-attr]
+        return th.cat(images + vectors, dim=1)
 
     def augment(self, obs: dict[str, th.Tensor], pad: int, shifts: th.Tensor) -> dict[str, th.Tensor]:
-        """
-        :param obs: a batch of dict observations
-        :param pad: random-shift padding in pixels
-        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`, one per sample
-        :return: the observations, their image keys shifted
-        """
+        """:return: ``obs`` with its image keys shifted (:meth:`PixelEncoder.augment`)"""
         return {
             key: self.pixel_encoders[key].augment(value, pad, shifts) if key in self.image_keys else value
             for key, value in obs.items()
         }
 
     def named_layers(self) -> dict[str, nn.Module]:
-        if len(self.image_keys) == 1:
-            return self.pixel_encoders[self.image_keys[0]].named_layers()
-        return {
-            f"{name}.{key}": module
-            for key in self.image_keys
-            for name, module in self.pixel_encoders[key].named_layers().items()
-        }
+        layers = {key: self.pixel_encoders[key].named_layers() for key in self.image_keys}
+        if len(layers) == 1:
+            return next(iter(layers.values()))
+        return {f"{name}.{key}": module for key, named in layers.items() for name, module in named.items()}
 
 
 class FeaturesExtractorEncoder(nn.Module):
     """
-    A user's SB3 features extractor (``policy_kwargs=dict(features_extractor_class=...)``) in place of DrQ-v2's
-    encoder: the observations go through SB3's ``preprocess_obs`` (images divided by 255 unless
-    ``normalize_images=False``, discrete spaces one-hot encoded), then the extractor, as in SB3's policies. It is
-    shared by the actor and the critic and trained by the critic loss only, as DrQ-v2's encoder.
-
-    Random-shift augmentation applies to image observations (a channel-first image ``Box``, or the image keys of a
-    ``Dict``), before the extractor. The extractor keeps its own initialization; it has no named layers.
+    A user's SB3 features extractor in place of DrQ-v2's encoder, after SB3's ``preprocess_obs``; trained by the
+    critic loss only; the images are shifted before it; no named layers.
 
     :param observation_space: the observation space
     :param features_extractor_class: a ``BaseFeaturesExtractor`` subclass
@@ -392,15 +293,7 @@ class FeaturesExtractorEncoder(nn.Module):
         features_extractor_kwargs: Mapping[str, Any] | None = None,
         normalize_images: bool = True,
     ) -> None:
-        super().__init__()
-        if not (
-            isinstance(features_extractor_class, type) and issubclass(features_extractor_class, BaseFeaturesExtractor)
-        ):
-            raise ParameterError(
-                "policy_kwargs['features_extractor_class']",
-                "policy_kwargs['features_extractor_class'] must be a subclass of SB3's BaseFeaturesExtractor "
-                f"(stable_baselines3.common.torch_layers), got {features_extractor_class!r}.",
-            )
+        super().__init__()  # features_extractor_class checked by checks.check_policy_kwargs
         self.observation_space = observation_space
         self.normalize_images = normalize_images
         self.extractor = features_extractor_class(observation_space, **(features_extractor_kwargs or {}))
@@ -410,38 +303,25 @@ class FeaturesExtractorEncoder(nn.Module):
             self.image_keys = _image_keys(observation_space, normalize_images)
             self.has_cnn = bool(self.image_keys)
         else:
-            self.has_cnn = is_image_space(observation_space, normalized_image=not normalize_images) and (
-                observation_space.shape[0] < min(observation_space.shape[1:])  # channel-first
-            )
+            self.has_cnn = _channel_first_image(observation_space, normalize_images, check_channels=True)
 
     def forward(self, obs: PyTorchObs) -> th.Tensor:
         return self.extractor(preprocess_obs(obs, self.observation_space, self.normalize_images))
 
     def augment(self, obs: PyTorchObs, pad: int, shifts: th.Tensor) -> PyTorchObs:
-        """
-        :param obs: a batch of observations
-        :param pad: random-shift padding in pixels
-        :param shifts: the offsets of :func:`~sb3_collapse.drqv2.augmentation.draw_shifts`, one per sample
-        :return: the observations, their images shifted
-        """
-        return _shift_images(obs, pad, shifts, self.image_keys)
+        """:return: ``obs`` with its images shifted (:meth:`PixelEncoder.augment`)"""
+        if self.image_keys is None:
+            return random_shift(obs, pad, shifts)  # type: ignore[arg-type]
+        return {k: random_shift(v, pad, shifts) if k in self.image_keys else v for k, v in obs.items()}  # type: ignore[union-attr]
 
     def named_layers(self) -> dict[str, nn.Module]:
         return {}
 
 
 def check_pixel_space(observation_space: spaces.Space, normalize_images: bool = True) -> None:
-    """
-    :param observation_space: space to check
-    :param normalize_images: ``False``: any float ``Box`` of 3 dimensions is an image (already normalized)
-    :raises SpaceError: unless it is a channel-first image ``Box`` (``(C, H, W)``, ``C < H, W``), ``uint8`` in
-        [0, 255] unless ``normalize_images=False``
-    """
-    if not (
-        isinstance(observation_space, spaces.Box)
-        and is_image_space(observation_space, check_channels=False, normalized_image=not normalize_images)
-        and observation_space.shape[0] < min(observation_space.shape[1:])
-    ):
+    """:raises SpaceError: unless ``observation_space`` is a channel-first image ``Box`` (``uint8`` unless
+    ``normalize_images=False``)"""
+    if not _channel_first_image(observation_space, normalize_images):
         raise SpaceError(
             "policy",
             f"CnnPolicy needs channel-first uint8 image observations of shape (channels, height, width), "
@@ -456,17 +336,12 @@ def check_pixel_space(observation_space: spaces.Space, normalize_images: bool = 
         )
 
 
-STATE_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
-"""The observation spaces of ``MlpPolicy`` (and of the non-image keys of ``MultiInputPolicy``)."""
+STATE_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)  # MlpPolicy's
 
 
 def check_state_space(observation_space: spaces.Space, where: str = "MlpPolicy") -> None:
-    """
-    :param observation_space: space to check
-    :param where: who takes it, for the message
-    :raises SpaceError: unless it is a ``Box`` that is not an image (flattened), ``Discrete``, ``MultiDiscrete`` or
-        ``MultiBinary``
-    """
+    """:raises SpaceError: unless ``observation_space`` is one of :data:`STATE_SPACES` and no image (``where``
+    takes it)"""
     if isinstance(observation_space, spaces.Box) and is_image_space(observation_space, check_channels=False):
         raise SpaceError(
             "policy",
@@ -491,16 +366,11 @@ def _conv_output_size(image_size: tuple[int, ...]) -> tuple[int, ...]:
     return tuple((size - 3) // 2 + 1 - 6 for size in image_size)
 
 
-MIN_IMAGE_SIZE = 15
-"""The smallest image height and width, in pixels, that the encoder's convolutions leave at least 1x1 of."""
+MIN_IMAGE_SIZE = 15  # pixels: the smallest height and width the convolutions leave 1x1 of
 
 
 def check_image_size(size: int, name: str = "size") -> None:
-    """
-    :param size: an image height or width, in pixels
-    :param name: the parameter's name, for the message
-    :raises ParameterError: when the encoder's convolutions would leave nothing of it
-    """
+    """:raises ParameterError: when the convolutions would leave nothing of an image ``size`` pixels high or wide"""
     if size < MIN_IMAGE_SIZE:
         raise ParameterError(
             name,

@@ -1,16 +1,12 @@
-"""Networks of DrQ-v2: pixel encoder, actor and twin critic, wrapped as an SB3 policy (:class:`DrQv2Policy`).
-
-The layers are named as in :data:`sb3_collapse.common.layers.LAYER_NAMES` (``cnn0``..``cnn4``, ``mlp0``..``mlp2``,
-``action``), the vocabulary shared by the callbacks, the probe and the plots: :meth:`DrQv2Policy.named_layers`.
-The names under ``net_arch``, ``MultiInputPolicy`` and a user's features extractor (*Named layers*):
-docs/algorithm.md#the-algorithm-sb3_collapsedrqv2; ``activation="leaky_relu"``:
-docs/interventions.md#the-leaky-relu-ablation.
-"""
+"""DrQ-v2's actor and twin critic with its encoder, as an SB3 policy (:class:`DrQv2Policy`); named layers:
+docs/algorithm.md (*Named layers*)."""
 
 from __future__ import annotations
 
 import contextlib
 import copy
+import functools
+import operator
 from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
@@ -43,26 +39,18 @@ from sb3_collapse.drqv2.encoders import (
     weight_init,
 )
 
-ACTION_EPS = 1e-6
-"""Sampled actions are clamped to ``[-1 + eps, 1 - eps]`` as in DrQ-v2's ``TruncatedNormal``."""
+ACTION_EPS = 1e-6  # sampled actions are clamped to [-1 + eps, 1 - eps], as DrQ-v2's TruncatedNormal
 
 
 def hidden_layers(net_arch: Sequence[int] | None, hidden_dim: int) -> list[int]:
-    """
-    :param net_arch: SB3's ``net_arch`` of a network (units of each hidden layer), ``None`` for DrQ-v2's
-    :param hidden_dim: the units of DrQ-v2's two hidden layers, used when ``net_arch`` is ``None``
-    :return: the units of each hidden layer
-    """
+    """:return: the units of each hidden layer: ``net_arch``, or DrQ-v2's two of ``hidden_dim`` for ``None``"""
     return [hidden_dim, hidden_dim] if net_arch is None else [int(units) for units in net_arch]
 
 
 class Actor(nn.Module):
     """
-    DrQ-v2 actor: trunk ``Linear -> LayerNorm -> Tanh`` (``mlp0``), two ``Linear -> ReLU`` layers of
-    ``hidden_dim`` units (``mlp1``, ``mlp2``) and ``Linear -> Tanh`` (``action``), the mean action.
-
-    With SB3's ``net_arch`` (a list of units), one ``Linear -> ReLU`` layer per entry, named ``mlp1``, ``mlp2``, ...
-    ``mlpK`` in order (``net_arch=[]``: the ``action`` head reads the trunk directly).
+    DrQ-v2 actor: trunk ``Linear -> LayerNorm -> Tanh`` (``mlp0``), ``Linear -> ReLU`` layers ``mlp1``..``mlpK``
+    and ``Linear -> Tanh`` (``action``), the mean action.
 
     :param repr_dim: size of the encoder output
     :param action_dim: number of action dimensions
@@ -73,9 +61,7 @@ class Actor(nn.Module):
     :param net_arch: units of each hidden layer; ``None``: ``[hidden_dim, hidden_dim]`` (DrQ-v2's)
     """
 
-    features_extractor: nn.Module | None = None
-    """SB3's name for the encoder whose features this network reads (:func:`expose_encoder`): the policy's, shared,
-    not a submodule of this network; ``None`` for a network built alone."""
+    features_extractor: nn.Module | None = None  # the policy's encoder, not a submodule (expose_encoder)
 
     def __init__(
         self,
@@ -92,19 +78,14 @@ class Actor(nn.Module):
         self.hidden_names: list[str] = []
         in_dim = feature_dim
         for index, units in enumerate(hidden_layers(net_arch, hidden_dim), start=1):
-            name = f"mlp{index}"
-            setattr(
-                self, name, nn.Sequential(nn.Linear(in_dim, units), hidden_activation(activation, leaky_relu_slope))
-            )
-            self.hidden_names.append(name)
+            self.hidden_names.append(f"mlp{index}")
+            layer = nn.Sequential(nn.Linear(in_dim, units), hidden_activation(activation, leaky_relu_slope))
+            setattr(self, f"mlp{index}", layer)
             in_dim = units
         self.action = nn.Sequential(nn.Linear(in_dim, action_dim), nn.Tanh())
 
     def forward(self, features: th.Tensor) -> th.Tensor:
-        """
-        :param features: encoder output
-        :return: the mean action, in [-1, 1]
-        """
+        """:return: the mean action ``(batch, action_dim)`` in [-1, 1] of the encoder's ``(batch, repr_dim)``"""
         h = self.trunk(features)
         for name in self.hidden_names:
             h = getattr(self, name)(h)
@@ -115,17 +96,7 @@ class Actor(nn.Module):
 
 
 def sample_action(mean: th.Tensor, std: float, clip: float | None = None) -> th.Tensor:
-    """
-    Sample of DrQ-v2's ``TruncatedNormal(mean, std)``: ``mean + eps`` with ``eps ~ N(0, std)``, ``eps``
-    clipped to ``[-clip, clip]`` when ``clip`` is given, the action clamped to ``[-1 + 1e-6, 1 - 1e-6]``
-    with a straight-through gradient (the gradient reaches ``mean`` even where the clamp is active).
-    Equal to ``noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device, mean.dtype))``.
-
-    :param mean: mean action, in [-1, 1]
-    :param std: standard deviation of the noise
-    :param clip: noise clip, ``None`` for none
-    :return: the sampled action
-    """
+    """:return: a sample ``(batch, action_dim)`` of DrQ-v2's ``TruncatedNormal(mean, std)``, noise clip ``clip``"""
     return noisy_action(mean, exploration_noise(mean.shape, std, clip, mean.device, mean.dtype))
 
 
@@ -136,17 +107,8 @@ def exploration_noise(
     device: th.device | str | None = None,
     dtype: th.dtype = th.float32,
 ) -> th.Tensor:
-    """
-    The noise ``eps`` of :func:`sample_action`, drawn from torch's global generator: ``N(0, std)``, clipped to
-    ``[-clip, clip]`` when ``clip`` is given.
-
-    :param shape: shape of the actions
-    :param std: standard deviation
-    :param clip: noise clip, ``None`` for none
-    :param device: where the noise goes
-    :param dtype: its dtype (the actions'; float32 whatever torch's default dtype)
-    :return: noise of that shape
-    """
+    """:return: ``N(0, std)`` noise of ``shape`` from torch's global generator on ``device``, clipped to
+    ``[-clip, clip]`` unless ``clip`` is ``None``"""
     eps = th.randn(shape, device=device, dtype=dtype) * std
     if clip is not None:
         eps = eps.clamp(-clip, clip)
@@ -154,14 +116,7 @@ def exploration_noise(
 
 
 def noisy_action(mean: th.Tensor, eps: th.Tensor) -> th.Tensor:
-    """
-    ``mean + eps`` clamped to ``[-1 + 1e-6, 1 - 1e-6]`` with a straight-through gradient (the gradient reaches
-    ``mean`` even where the clamp is active), as DrQ-v2's ``TruncatedNormal.sample``.
-
-    :param mean: mean action, in [-1, 1]
-    :param eps: noise, e.g. from :func:`exploration_noise`
-    :return: the action
-    """
+    """:return: ``mean + eps`` clamped to ``[-1 + 1e-6, 1 - 1e-6]`` with a straight-through gradient (DrQ-v2's)"""
     action = mean + eps
     clamped = action.clamp(-1.0 + ACTION_EPS, 1.0 - ACTION_EPS)
     return action - action.detach() + clamped.detach()
@@ -169,25 +124,14 @@ def noisy_action(mean: th.Tensor, eps: th.Tensor) -> th.Tensor:
 
 class Critic(nn.Module):
     """
-    DrQ-v2 twin critic: its own trunk ``Linear -> LayerNorm -> Tanh`` shared by two Q heads, each
-    ``Linear(feature + A -> hidden) -> ReLU -> Linear(hidden -> hidden) -> ReLU -> Linear(hidden -> 1)``.
+    DrQ-v2 twin critic: its own trunk ``Linear -> LayerNorm -> Tanh`` shared by the Q heads ``q1``..``qN``, each
+    ``Linear -> ReLU`` per hidden layer then ``Linear(hidden -> 1)``. The parameters are :class:`Actor`'s (the hidden
+    layers those of each head), and:
 
-    With SB3's ``n_critics``, ``n_critics`` heads ``q1``..``qN``; with its ``net_arch`` (a list of units), one
-    ``Linear -> ReLU`` per entry in each head.
-
-    :param repr_dim: size of the encoder output
-    :param action_dim: number of action dimensions
-    :param feature_dim: size of the trunk output
-    :param hidden_dim: units of the hidden layers (when ``net_arch`` is ``None``)
-    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in the Q heads
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :param net_arch: units of each hidden layer of a head; ``None``: ``[hidden_dim, hidden_dim]`` (DrQ-v2's)
     :param n_critics: number of Q heads (DrQ-v2's 2)
     """
 
-    features_extractor: nn.Module | None = None
-    """SB3's name for the encoder whose features this network reads (:func:`expose_encoder`): the policy's, shared,
-    not a submodule of this network; ``None`` for a network built alone."""
+    features_extractor: nn.Module | None = None  # the policy's encoder, not a submodule (expose_encoder)
 
     def __init__(
         self,
@@ -208,20 +152,8 @@ class Critic(nn.Module):
             setattr(self, name, _q_head(feature_dim + action_dim, arch, activation, leaky_relu_slope))
 
     def forward(self, features: th.Tensor, action: th.Tensor) -> tuple[th.Tensor, ...]:
-        """
-        :param features: encoder output
-        :param action: actions in [-1, 1]
-        :return: ``(Q1, Q2)`` (``n_critics`` values), each of shape ``(batch, 1)``
-        """
-        return self.heads(self.trunk(features), action)
-
-    def heads(self, trunk_features: th.Tensor, action: th.Tensor) -> tuple[th.Tensor, ...]:
-        """
-        :param trunk_features: output of :attr:`trunk`
-        :param action: actions in [-1, 1]
-        :return: ``(Q1, Q2)`` (``n_critics`` values)
-        """
-        h_action = th.cat([trunk_features, action], dim=-1)
+        """:return: ``(Q1, .., QN)``, each ``(batch, 1)``, of the encoder's features and actions in [-1, 1]"""
+        h_action = th.cat([self.trunk(features), action], dim=-1)
         return tuple(getattr(self, name)(h_action) for name in self.q_names)
 
     @property
@@ -231,37 +163,17 @@ class Critic(nn.Module):
 
 
 def min_q(q_values: Sequence[th.Tensor]) -> th.Tensor:
-    """
-    :param q_values: the critic's ``(Q1, ..., QN)``
-    :return: their element-wise minimum (``th.min(Q1, Q2)`` for DrQ-v2's two, ``Q1`` for one)
-    """
-    minimum = q_values[0]
-    for q in q_values[1:]:
-        minimum = th.min(minimum, q)
-    return minimum
+    """:return: the element-wise minimum of the critic's ``(Q1, ..., QN)``"""
+    return functools.reduce(th.min, q_values)
 
 
 def critic_mse(q_values: Sequence[th.Tensor], target_q: th.Tensor) -> th.Tensor:
-    """
-    :param q_values: the critic's ``(Q1, ..., QN)``
-    :param target_q: the target
-    :return: ``MSE(Q1, y) + ... + MSE(QN, y)``
-    """
-    loss = F.mse_loss(q_values[0], target_q)
-    for q in q_values[1:]:
-        loss = loss + F.mse_loss(q, target_q)
-    return loss
+    """:return: ``MSE(Q1, y) + ... + MSE(QN, y)`` of the critic's ``q_values`` and the target ``y``"""
+    return functools.reduce(operator.add, [F.mse_loss(q, target_q) for q in q_values])
 
 
 def soft_update(params: Iterable[th.Tensor], target_params: Iterable[th.Tensor], tau: float) -> None:
-    """
-    SB3's ``polyak_update`` (``target = target * (1 - tau) + tau * param``, in place, the same values) in two
-    ``torch._foreach`` calls instead of two per tensor.
-
-    :param params: parameters of the trained network
-    :param target_params: parameters of its target network, updated in place
-    :param tau: soft update coefficient
-    """
+    """SB3's ``polyak_update`` of ``target_params`` towards ``params`` by ``tau``, in two ``torch._foreach`` calls."""
     targets = list(target_params)
     with th.no_grad():
         th._foreach_mul_(targets, 1 - tau)
@@ -293,14 +205,8 @@ def _q_head(
 
 def expose_encoder(encoder: nn.Module, *networks: nn.Module) -> None:
     """
-    SB3's ``features_extractor`` on each network (``model.actor.features_extractor``, the critic's, the target
-    critic's, which DrQ-v2 runs on the online encoder's features): the policy's encoder, or a user's
-    ``BaseFeaturesExtractor`` itself (the ``extractor`` of :class:`FeaturesExtractorEncoder`). A reference, not a
-    submodule: the encoder's parameters are in ``state_dict()``, the optimizers and the saved zip once, under
-    ``encoder.``, and ``networks``' ``parameters()``, ``apply()`` and ``train()`` do not reach them.
-
-    :param encoder: the policy's encoder
-    :param networks: the networks that read its features
+    Set SB3's ``features_extractor`` of each of ``networks`` to ``encoder`` (a user's extractor itself) as a
+    reference, not a submodule: the encoder's parameters stay once in ``state_dict()``, under ``encoder.``.
     """
     extractor = encoder.extractor if isinstance(encoder, FeaturesExtractorEncoder) else encoder
     for network in networks:
@@ -309,44 +215,27 @@ def expose_encoder(encoder: nn.Module, *networks: nn.Module) -> None:
 
 class DrQv2Policy(BasePolicy):
     """
-    Encoder, actor, critic and target critic of DrQ-v2, with one Adam optimizer for each trained part.
-
-    The encoder is trained by the critic loss only; the target critic (trunk and heads) is a soft copy of
-    the critic; there is no target encoder and no target actor.
-
-    SB3's policy keywords (those of TD3's ``TD3Policy``) mean what they mean there; what DrQ-v2 makes of each:
-    docs/algorithm.md#sb3s-keywords-code-written-for-td3-runs-with-drqv2.
+    Encoder, actor, critic and target critic of DrQ-v2, one Adam optimizer for each trained part; the encoder is
+    trained by the critic loss only. SB3's keywords: docs/algorithm.md (*SB3's keywords*).
 
     :param observation_space: observation space
     :param action_space: action space, a bounded ``Box``
-    :param lr_schedule: learning rate schedule (constant 1e-4 in DrQ-v2)
-    :param feature_dim: size of the actor and critic trunk outputs (50; 100 for humanoid in DrQ-v2); SB3's
-        ``features_extractor_kwargs=dict(features_dim=...)`` (or ``cnn_output_dim``) sets it too
-    :param hidden_dim: units of the two hidden layers of the actor and of each Q head (when ``net_arch`` is
-        ``None``)
-    :param encoder_class: ``PixelEncoder`` (``CnnPolicy``), ``StateEncoder`` (``MlpPolicy``) or ``DictEncoder``
-        (``MultiInputPolicy``)
+    :param lr_schedule: learning rate schedule
+    :param feature_dim: size of the actor and critic trunk outputs (DrQ-v2's 50)
+    :param hidden_dim: units of the two hidden layers of the actor and of each Q head (when ``net_arch`` is ``None``)
+    :param encoder_class: ``PixelEncoder``, ``StateEncoder`` or ``DictEncoder``
     :param encoder_kwargs: keyword arguments of the encoder (``channels``, ``channels_last``, ``fused_relu``)
     :param optimizer_class: optimizer of the encoder, actor and critic
-    :param optimizer_kwargs: its keyword arguments, learning rate excluded (Adam gets ``fused=True`` unless
-        given otherwise)
-    :param activation: the hidden activation of the encoder, the actor and the critic: ``"relu"`` (DrQ-v2's) or
-        ``"leaky_relu"`` (the paper's footnote 1 ablation); saved with the model (``policy_kwargs``)
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU (:data:`LEAKY_RELU_SLOPE`, PyTorch's default 0.01)
-    :param net_arch: SB3's: the hidden layers of the actor and of each Q head, a list of units for both or
-        ``dict(pi=[...], qf=[...])``; ``None``: ``[hidden_dim, hidden_dim]`` for both (DrQ-v2's ``[1024, 1024]``).
-        The actor's hidden layers are named ``mlp1``..``mlpK`` (``K = len(pi)``)
-    :param activation_fn: SB3's: ``nn.ReLU`` (DrQ-v2's) or ``nn.LeakyReLU`` (``activation="leaky_relu"``); ``None``
-        leaves ``activation`` as given
+    :param optimizer_kwargs: its keyword arguments, learning rate excluded (Adam gets ``fused=True`` by default)
+    :param activation: hidden activation of all networks: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"``
+    :param leaky_relu_slope: negative slope of the Leaky-ReLU
+    :param net_arch: SB3's: hidden layers of the actor and each Q head, a list or ``dict(pi=[...], qf=[...])``
+    :param activation_fn: SB3's: ``nn.ReLU`` or ``nn.LeakyReLU``; ``None`` leaves ``activation`` as given
     :param features_extractor_class: SB3's: a ``BaseFeaturesExtractor`` subclass in place of DrQ-v2's encoder
-        (:class:`FeaturesExtractorEncoder`); ``None``: DrQ-v2's encoder (``encoder_class``)
-    :param features_extractor_kwargs: its keyword arguments; without ``features_extractor_class``, those of DrQ-v2's
-        encoder, but ``features_dim`` and ``cnn_output_dim`` set ``feature_dim`` (``checks.SB3_FEATURE_SIZES``)
-    :param normalize_images: SB3's: ``True`` divides ``uint8`` images by 255 (DrQ-v2's encoder: ``obs / 255 - 0.5``);
-        ``False`` takes images already normalized (float ``Box`` observations) as they are
-    :param share_features_extractor: SB3's: ``True`` only (one encoder, trained by the critic loss); ``False`` is
-        refused
-    :param n_critics: SB3's: number of Q heads (DrQ-v2's 2); the targets and the actor loss take their minimum
+    :param features_extractor_kwargs: its keyword arguments (``features_dim``/``cnn_output_dim``: ``feature_dim``)
+    :param normalize_images: SB3's: ``False`` takes float images already normalized
+    :param share_features_extractor: SB3's: ``True`` only (one encoder)
+    :param n_critics: SB3's: number of Q heads (DrQ-v2's 2)
     """
 
     encoder: PixelEncoder | StateEncoder | DictEncoder | FeaturesExtractorEncoder
@@ -375,31 +264,19 @@ class DrQv2Policy(BasePolicy):
         share_features_extractor: bool = True,
         n_critics: int = 2,
     ) -> None:
-        check_policy_kwargs(
-            dict(
-                feature_dim=feature_dim,
-                hidden_dim=hidden_dim,
-                net_arch=net_arch,
-                activation=activation,
-                activation_fn=activation_fn,
-                features_extractor_class=features_extractor_class,
-                encoder_kwargs=encoder_kwargs,
-                features_extractor_kwargs=features_extractor_kwargs,
-                share_features_extractor=share_features_extractor,
-                n_critics=n_critics,
-            )
-        )
+        check_policy_kwargs(dict(
+            feature_dim=feature_dim, hidden_dim=hidden_dim, net_arch=net_arch, activation=activation,
+            activation_fn=activation_fn, features_extractor_class=features_extractor_class,
+            encoder_kwargs=encoder_kwargs, features_extractor_kwargs=features_extractor_kwargs,
+            share_features_extractor=share_features_extractor, n_critics=n_critics,
+        ))  # fmt: skip
         if activation_fn is not None:
             activation = ACTIVATION_FNS[activation_fn]
         check_activation(activation, leaky_relu_slope)
         super().__init__(
-            observation_space,
-            action_space,
-            optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
-            squash_output=True,
-            normalize_images=normalize_images,
-        )
+            observation_space, action_space, optimizer_class=optimizer_class, optimizer_kwargs=optimizer_kwargs,
+            squash_output=True, normalize_images=normalize_images,
+        )  # fmt: skip
         check_action_space(action_space)
         sb3_size, drqv2_encoder_kwargs = split_sb3_feature_size(features_extractor_kwargs, features_extractor_class)
         self.feature_dim = feature_dim if sb3_size is None else sb3_size
@@ -412,17 +289,12 @@ class DrQv2Policy(BasePolicy):
         self.features_extractor_class = features_extractor_class
         self.features_extractor_kwargs = features_extractor_kwargs or {}
         self.encoder_class = encoder_class
-        self.encoder_kwargs = encoder_kwargs or {}
-        if drqv2_encoder_kwargs:
-            self.encoder_kwargs = {**self.encoder_kwargs, **drqv2_encoder_kwargs}  # DrQ-v2's encoder's
+        self.encoder_kwargs = {**(encoder_kwargs or {}), **drqv2_encoder_kwargs}  # and SB3's for DrQ-v2's encoder
         self.activation = activation
         self.leaky_relu_slope = leaky_relu_slope
         if optimizer_class is th.optim.Adam and "fused" not in self.optimizer_kwargs:
-            # One fused kernel per step instead of a dozen per tensor: the same update (speed: benchmarks/README.md).
-            self.optimizer_kwargs["fused"] = True
-        self.exploration_std = 1.0
-        """Standard deviation of the exploration noise of ``predict(deterministic=False)``; the algorithm
-        sets it from its schedule before every action it takes."""
+            self.optimizer_kwargs["fused"] = True  # one kernel per step, the same update
+        self.exploration_std = 1.0  # of predict(deterministic=False); the algorithm sets it from its schedule
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -431,11 +303,9 @@ class DrQv2Policy(BasePolicy):
         act = {"activation": self.activation, "leaky_relu_slope": self.leaky_relu_slope}
         if self.features_extractor_class is not None:
             self.encoder = FeaturesExtractorEncoder(
-                self.observation_space,
-                self.features_extractor_class,
-                self.features_extractor_kwargs,
+                self.observation_space, self.features_extractor_class, self.features_extractor_kwargs,
                 self.normalize_images,
-            )
+            )  # fmt: skip
         else:
             # An encoder class of its own may not take these: passed only when they differ from the defaults.
             encoder_act = act if self.activation != "relu" else {}
@@ -445,18 +315,10 @@ class DrQv2Policy(BasePolicy):
             )
         repr_dim = self.encoder.repr_dim
         self.actor = Actor(repr_dim, action_dim, self.feature_dim, self.hidden_dim, **act, net_arch=self.actor_arch)
-        self.critic = Critic(
-            repr_dim,
-            action_dim,
-            self.feature_dim,
-            self.hidden_dim,
-            **act,
-            net_arch=self.critic_arch,
-            n_critics=self.n_critics,
-        )
-        # The encoder initializes itself (before switching to channels_last).
+        arch = dict(net_arch=self.critic_arch, n_critics=self.n_critics)
+        self.critic = Critic(repr_dim, action_dim, self.feature_dim, self.hidden_dim, **act, **arch)  # type: ignore[arg-type]
         for module in (self.actor, self.critic):
-            module.apply(weight_init)
+            module.apply(weight_init)  # the encoder initializes itself (before switching to channels_last)
         for module in (self.encoder, self.actor, self.critic):
             module.float()  # SB3's observations and replay samples are float32, whatever torch's default dtype
         self.critic_target = copy.deepcopy(self.critic)
@@ -466,8 +328,8 @@ class DrQv2Policy(BasePolicy):
         lr = lr_schedule(1)
         params = list(self.encoder.parameters())
         self.encoder.optimizer = self.optimizer_class(params, lr=lr, **self.optimizer_kwargs) if params else None
-        self.actor.optimizer = self.optimizer_class(self.actor.parameters(), lr=lr, **self.optimizer_kwargs)
-        self.critic.optimizer = self.optimizer_class(self.critic.parameters(), lr=lr, **self.optimizer_kwargs)
+        for module in (self.actor, self.critic):
+            module.optimizer = self.optimizer_class(module.parameters(), lr=lr, **self.optimizer_kwargs)
 
     @property
     def optimizers(self) -> list[th.optim.Optimizer]:
@@ -476,53 +338,24 @@ class DrQv2Policy(BasePolicy):
         return [optimizer for optimizer in optimizers if optimizer is not None]
 
     def named_layers(self) -> dict[str, nn.Module]:
-        """
-        The modules that produce each named activation, input to output.
-
-        For each name in ``cnn0``..``cnn4`` (pixel policies only), ``mlp0``, ``mlp1``, ``mlp2`` and
-        ``action``, the module whose forward output is that activation (register a forward hook on it)
-        and whose parameters are that layer's weights (read their gradients for the layer's gradient norm).
-        ``cnn0`` is the normalization and has no parameters. Activations are those of ``encoder`` then
-        ``actor``; the critic's layers are not named.
-
-        :return: ordered mapping name -> module
-        """
+        """:return: name (``cnn0``..``cnn4``, ``mlp0``..``action``) -> the module whose output is that activation and
+        whose parameters are that layer's, input to output (the encoder's, then the actor's)"""
         return {**self.encoder.named_layers(), **self.actor.named_layers()}
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
-        return dict(
-            observation_space=self.observation_space,
-            action_space=self.action_space,
-            feature_dim=self.feature_dim,
-            hidden_dim=self.hidden_dim,
-            encoder_class=self.encoder_class,
-            encoder_kwargs=self.encoder_kwargs,
-            optimizer_class=self.optimizer_class,
-            optimizer_kwargs=self.optimizer_kwargs,
-            activation=self.activation,
-            leaky_relu_slope=self.leaky_relu_slope,
-            net_arch=self.net_arch,
-            features_extractor_class=self.features_extractor_class,
-            features_extractor_kwargs=self.features_extractor_kwargs,
-            normalize_images=self.normalize_images,
-            share_features_extractor=self.share_features_extractor,
-            n_critics=self.n_critics,
-            lr_schedule=self._dummy_schedule,
-        )
+        names = (
+            "observation_space", "action_space", "feature_dim", "hidden_dim", "encoder_class", "encoder_kwargs",
+            "optimizer_class", "optimizer_kwargs", "activation", "leaky_relu_slope", "net_arch",
+            "features_extractor_class", "features_extractor_kwargs", "normalize_images", "share_features_extractor",
+            "n_critics",
+        )  # fmt: skip
+        return {**{name: getattr(self, name) for name in names}, "lr_schedule": self._dummy_schedule}
 
     def extract_features(  # type: ignore[override]
         self, obs: PyTorchObs, features_extractor: nn.Module | None = None
     ) -> th.Tensor:
-        """
-        SB3's: the features that the actor and the critic read, from the one encoder they share (DrQ-v2's normalizes
-        the pixels itself in ``cnn0``; a user's extractor gets SB3's ``preprocess_obs`` first).
-
-        :param obs: observations
-        :param features_extractor: ``None``, or a network's ``features_extractor`` (the actor's, the critic's and the
-            target critic's are this encoder)
-        :return: ``(n, repr_dim)`` features
-        :raises ValueError: for another module
-        """
+        """SB3's: the ``(n, repr_dim)`` features of the one encoder (every network's ``features_extractor``; another
+        module raises ``ValueError``)."""
         if features_extractor is not None and features_extractor is not self.actor.features_extractor:
             raise ValueError(
                 "DrQv2Policy has one encoder, model.actor.features_extractor (the critic's and the target critic's "
@@ -535,24 +368,16 @@ class DrQv2Policy(BasePolicy):
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         mean = self.actor(self.encoder(observation))  # type: ignore[arg-type]
-        if deterministic:
-            return mean
-        return sample_action(mean, self.exploration_std, clip=None)
+        return mean if deterministic else sample_action(mean, self.exploration_std, clip=None)
 
     def set_training_mode(self, mode: bool) -> None:
-        self.encoder.train(mode)
-        self.actor.train(mode)
-        self.critic.train(mode)
+        for module in (self.encoder, self.actor, self.critic):
+            module.train(mode)
         self.training = mode
 
     def renew_networks(self, lr_schedule: Schedule) -> None:
-        """
-        New random weights for the encoder, actor, critic and target critic (drawn as :meth:`_build` draws them, from
-        torch's global generator as it is now), copied into the existing parameter tensors, so that compiled code
-        and CUDA graphs that hold them stay valid; new optimizers (empty state) over them.
-
-        :param lr_schedule: the learning-rate schedule of the new optimizers
-        """
+        """New random weights (as :meth:`_build` draws them) copied into the existing parameters, so that compiled code
+        stays valid, and new optimizers over them with ``lr_schedule``."""
         was_training = self.training
         kept = {name: getattr(self, name) for name in ("encoder", "actor", "critic", "critic_target")}
         self._build(lr_schedule)
@@ -566,23 +391,13 @@ class DrQv2Policy(BasePolicy):
                 setattr(self, name, module)
         self.set_training_mode(was_training)
 
-    # ---------------------------------------------------------------------------- the parts the interventions act on
-    # The protocol sb3_collapse.monitoring.interventions.InterventionParts (duck typed), with named_layers and
-    # optimizers.
+    # The parts the interventions act on: sb3_collapse.monitoring.interventions.InterventionParts (duck typed).
     def initialize_weights(self, module: nn.Module) -> None:
-        """
-        New initial values for every parameter of ``module`` (a part of this policy), in place, from torch's global
-        generator: :func:`weight_init` on Linear and Conv2d, ``reset_parameters()`` otherwise (LayerNorm: unit scale,
-        zero shift).
-
-        :param module: the module to initialize
-        :raises TypeError: for a submodule with parameters and no known initializer
-        """
+        """New initial values for every parameter of ``module`` (a part of this policy), in place."""
         reinitialize(module, weight_init)
 
     def online_networks(self) -> dict[str, nn.Module]:
-        """:return: the trained networks by name, ``encoder``, ``actor`` and ``critic`` (the encoder even without
-        parameters)"""
+        """:return: the trained networks by name: ``encoder``, ``actor`` and ``critic``"""
         return {"encoder": self.encoder, "actor": self.actor, "critic": self.critic}
 
     def target_networks(self) -> dict[str, nn.Module]:
@@ -590,14 +405,8 @@ class DrQv2Policy(BasePolicy):
         return {"target critic": self.critic_target}
 
     def feature_readers(self) -> list[nn.Module]:
-        """
-        The networks that read the encoder's features: every network of :meth:`online_networks` and
-        :meth:`target_networks` but the encoder (the actor, the critic, and the target critic, which DrQ-v2 runs on
-        the online encoder's features). The consumers of the encoder's last layer are read from this list, so a
-        network added to either is not missed when ReDo recycles a channel.
-
-        :return: the networks, in the order of those two methods
-        """
+        """:return: the networks that read the encoder's features: those of :meth:`online_networks` and
+        :meth:`target_networks` but the encoder"""
         networks = {**self.online_networks(), **self.target_networks()}
         return [network for network in networks.values() if network is not self.encoder]
 
@@ -606,7 +415,7 @@ class DrQv2Policy(BasePolicy):
         return [self.actor]
 
     def actor_mlp_modules(self) -> list[nn.Module]:
-        """:return: the actor's layers after the encoder: the whole actor, as :meth:`actor_modules`"""
+        """:return: the actor's layers after the encoder: the whole actor"""
         return [self.actor]
 
     @staticmethod
@@ -614,56 +423,32 @@ class DrQv2Policy(BasePolicy):
         """The modules of ``module`` without children, in registration order (the forward order here)."""
         return [sub for sub in module.modules() if next(sub.children(), None) is None]
 
-    def _q_heads(self) -> list[nn.Module]:
-        """The critic's Q networks: its children but the trunk (the members of a ``ModuleList`` one by one)."""
-        children = [child for name, child in self.critic.named_children() if name != "trunk"]
-        return [head for child in children for head in (child if isinstance(child, nn.ModuleList) else [child])]
-
     def hidden_layer_parts(self) -> list[LayerParts]:
-        """
-        The hidden layers whose units ReDo may recycle: the actor's ``mlp1``, ``mlp2``... (a ``Linear`` and its
-        activation, read by the next Linear; the trunk ``mlp0`` ends with LayerNorm and Tanh, it is not one), then
-        each Q network's ``q<k>.mlp1``, ``q<k>.mlp2``...
-
-        :return: the layers' parts, actor first
-        """
+        """:return: the hidden layers whose units ReDo may recycle: the actor's ``mlp1``.. (not the trunk ``mlp0``),
+        then each Q network's ``q<k>.mlp1``.."""
         parts = sequential_hidden_parts("", self._leaf_modules(self.actor), first=0)
-        for k, head in enumerate(self._q_heads(), start=1):
+        for k, head in enumerate(self.critic.q_networks, start=1):
             parts += sequential_hidden_parts(f"q{k}.", self._leaf_modules(head))
         return parts
 
     def encoder_channel_parts(self) -> list[LayerParts]:
-        """
-        The convolutions of the pixel encoder as layers of channels that ReDo may recycle, ``cnn1``..``cnn4``: a
-        channel's consumers are the next convolution, or for the last one the first Linear of each network of
-        :meth:`feature_readers` (actor, critic, target critic), which read it at every position (in the encoder's
-        flattening order).
-
-        :return: the layers' parts, input to output; ``[]`` for an encoder without convolutions (``MlpPolicy``)
-        """
+        """:return: ``cnn1``..``cnn4`` as layers of channels ReDo may recycle, read by the next convolution or, for the
+        last, by the first Linear of each of :meth:`feature_readers`; ``[]`` without convolutions"""
         if not isinstance(self.encoder, PixelEncoder):
             return []
         blocks = [(name, block) for name, block in self.encoder.named_layers().items() if isinstance(block, ConvReLU)]
         trunks = tuple(next(m for m in net.modules() if isinstance(m, nn.Linear)) for net in self.feature_readers())
         positions = self.encoder.repr_dim // blocks[-1][1][0].out_channels
-        parts = []
-        for k, (name, block) in enumerate(blocks):
-            last = k == len(blocks) - 1
-            consumers = trunks if last else (blocks[k + 1][1][0],)
-            parts.append(
-                LayerParts(name, block[0], block, consumers, positions if last else 1, self.encoder.channels_last)
-            )
-        return parts
+        channels_last, last = self.encoder.channels_last, len(blocks) - 1
+        return [
+            LayerParts(name, block[0], block, trunks if k == last else (blocks[k + 1][1][0],),
+                       positions if k == last else 1, channels_last)
+            for k, (name, block) in enumerate(blocks)
+        ]  # fmt: skip
 
     def forward_hidden(self, observations: PyTorchObs, actions: th.Tensor) -> None:
-        """
-        Run the layers of :meth:`hidden_layer_parts` and :meth:`encoder_channel_parts` on a batch, for hooks on their
-        activations to read: the encoder, the actor on its features, the critic on its features and the actions
-        (the caller sets the mode and the gradient).
-
-        :param observations: ``(n, *obs_shape)`` observations
-        :param actions: ``(n, action_dim)`` actions in [-1, 1]
-        """
+        """Run the encoder, the actor and the critic on ``(n, *obs_shape)`` observations and ``(n, action_dim)``
+        actions, for hooks on their activations to read."""
         features = self.encoder(observations)  # type: ignore[arg-type]
         self.actor(features)
         self.critic(features, actions)
@@ -684,10 +469,7 @@ class MlpPolicy(DrQv2Policy):
 
 
 class MultiInputPolicy(DrQv2Policy):
-    """
-    DrQ-v2 from dict observations (:class:`DictEncoder`): DrQ-v2's encoder on the image keys, the other keys (e.g.
-    proprioception) flattened and concatenated to the image features; the augmentation shifts the images only.
-    """
+    """DrQ-v2 from dict observations (:class:`DictEncoder`): the image keys encoded, the others concatenated."""
 
     def __init__(self, *args: Any, encoder_class: type[nn.Module] = DictEncoder, **kwargs: Any):
         super().__init__(*args, encoder_class=encoder_class, **kwargs)

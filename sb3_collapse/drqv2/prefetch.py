@@ -1,9 +1,5 @@
-"""
-Replay batches prepared one update ahead, while the update before runs, and handed to a CUDA device on a side
-stream: :class:`ReplayPrefetcher`, from which ``DrQv2.train`` takes its batches. The batches are those a serial
-sampler calling ``replay_buffer.sample`` would draw. Which transitions a batch sees, resumed runs, the worker
-thread and the CUDA staging: see docs/throughput.md#replay-batches-drawn-ahead-modelreplay_prefetcher.
-"""
+"""Replay batches drawn one update ahead (:class:`ReplayPrefetcher`), the batches ``replay_buffer.sample`` would draw:
+docs/throughput.md#replay-batches-drawn-ahead-modelreplay_prefetcher."""
 
 from __future__ import annotations
 
@@ -13,8 +9,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass, field
-from types import TracebackType
-from typing import Any, Protocol, Self
+from typing import Any
 
 import numpy as np
 import torch as th
@@ -24,25 +19,10 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 
-HOST_SLOTS = 2
-"""Sets of staging buffers that alternate (double buffering)."""
-
-ALIGNMENT_BYTES = 64
-"""Alignment of each field in the staging buffers of its dtype."""
-
-FRAME_FIELDS = ("observations", "next_observations")
-"""The fields gathered into the uint8 frames buffer; the others go into one buffer per dtype."""
-
+HOST_SLOTS = 2  # sets of staging buffers that alternate (double buffering)
+ALIGNMENT_BYTES = 64  # of each field in the staging buffer of its dtype
+FRAME_FIELDS = ("observations", "next_observations")  # gathered into the frames buffer, the rest one per dtype
 WORKER_NAME = "sb3-collapse-replay-prefetch"
-"""Name prefix of the worker thread."""
-
-
-class CopyEvent(Protocol):
-    """What :class:`HostStaging` needs of an event: ``torch.cuda.Event``'s ``record`` and ``synchronize``."""
-
-    def record(self, stream: Any = None) -> None: ...
-
-    def synchronize(self) -> None: ...
 
 
 def _host_empty(shape: tuple[int, ...], dtype: th.dtype, pin_memory: bool) -> th.Tensor:
@@ -68,26 +48,19 @@ class _Slot:
 
 class HostStaging:
     """
-    Host staging buffers of replay batches and their copy to the device (see the module docstring).
-
-    One thread at a time calls :meth:`claim` (which set the next batch goes to), :meth:`gather` and
-    :meth:`to_device` (the worker, or the training thread). A set is written only after the event recorded after
-    the last copy out of it has completed.
+    Host staging buffers of replay batches and their copy to the device.
 
     :param device: where the batches go
     :param pin_memory: page-lock the host buffers (CUDA)
-    :param event_factory: makes the event recorded after each copy (``torch.cuda.Event``); ``None``: none (the
-        copies are synchronous, as on the CPU)
+    :param event_factory: makes the event recorded after each copy (``torch.cuda.Event``); ``None``: none
     """
 
-    def __init__(
-        self, device: th.device, pin_memory: bool, event_factory: Callable[[], CopyEvent] | None = None
-    ) -> None:
+    def __init__(self, device: th.device, pin_memory: bool, event_factory: Callable[[], Any] | None = None) -> None:
         self.device = device
         self.pin_memory = pin_memory
         self.event_factory = event_factory
         self.slots = [_Slot() for _ in range(HOST_SLOTS)]
-        self.events: list[CopyEvent | None] = [None] * HOST_SLOTS  # made at the first copy out of each set
+        self.events: list[Any] = [None] * HOST_SLOTS  # made at the first copy out of each set
         self._next = 0
 
     def claim(self) -> int:
@@ -98,15 +71,7 @@ class HostStaging:
     def gather(
         self, slot: int, buffer: FrameStackReplayBuffer, batch_inds: np.ndarray, env_indices: np.ndarray
     ) -> None:
-        """
-        Gather the transitions ``(batch_inds, env_indices)`` into the buffers of ``slot``, after the copy out of
-        them has completed.
-
-        :param slot: from :meth:`claim`
-        :param buffer: the replay buffer
-        :param batch_inds: positions ``(batch,)``
-        :param env_indices: environments ``(batch,)``
-        """
+        """Gather the transitions ``(batch_inds, env_indices)``, each ``(batch,)``, into the buffers of ``slot``."""
         event = self.events[slot]
         if event is not None:
             event.synchronize()  # the copy of two batches back, out of these buffers, has completed
@@ -160,12 +125,8 @@ class HostStaging:
         }
 
     def to_device(self, slot: int) -> ReplayBufferSamples:
-        """
-        Copy the batch in ``slot`` to the device (``non_blocking``, on the current stream: the prefetcher's side
-        stream) and record the slot's event after the copies, after :meth:`gather` of that slot has returned.
-
-        :return: the batch on the device: contiguous views of one copy of the frames and one per dtype of the rest
-        """
+        """:return: the batch in ``slot`` copied to the device (``non_blocking``, on the current stream), the slot's
+        event recorded after the copies"""
         target = self.slots[slot]
         assert target.frames is not None
         frames = self._copy(target.frames)
@@ -186,21 +147,12 @@ class HostStaging:
 
 
 def staging_for(device: th.device) -> HostStaging | None:
-    """
-    :param device: the replay buffer's device
-    :return: pinned staging with CUDA events on CUDA; ``None`` elsewhere (the batches are ``_get_samples``')
-    """
-    if device.type != "cuda":
-        return None
-    return HostStaging(device, pin_memory=True, event_factory=th.cuda.Event)
+    """:return: pinned staging with CUDA events for a CUDA ``device``; ``None`` elsewhere"""
+    return HostStaging(device, pin_memory=True, event_factory=th.cuda.Event) if device.type == "cuda" else None
 
 
 def buffer_counters(buffer: ReplayBuffer) -> tuple[Any, ...]:
-    """
-    :param buffer: a replay buffer
-    :return: what identifies its contents between two ``add`` calls: its class, ``pos`` and ``full``, and
-        ``FrameStackReplayBuffer``'s ``transitions_added`` and ``resets``
-    """
+    """:return: what identifies ``buffer``'s contents between two ``add`` calls"""
     counters = (getattr(buffer, "transitions_added", None), getattr(buffer, "resets", None))
     return (type(buffer).__name__, int(buffer.pos), bool(buffer.full), *counters)
 
@@ -221,26 +173,19 @@ def _tensors(batch: Any) -> Iterator[th.Tensor]:
 
 @dataclass(repr=False)
 class PreparedBatch:
-    """A batch drawn ahead of its update, and what draws it again after a load (see the module docstring)."""
+    """A batch drawn ahead of its update, and what draws it again after a load."""
 
     batch_size: int
-    generator_state: tuple[Any, ...]
-    """``np.random.get_state()`` before the draw."""
-    counters: tuple[Any, ...]
-    """:func:`buffer_counters` of the replay buffer at the draw."""
-    batch: Any = None
-    """The batch on the device (``None`` once pickled: :meth:`ReplayPrefetcher.restore` makes it again)."""
-    ready: Any = None
-    """CUDA event recorded on the side stream after the batch's copies (``None`` on the CPU)."""
-    source: tuple[Any, ...] = ()
-    """Weak references to the buffer and the ``VecNormalize`` env it was drawn with, and its device."""
+    generator_state: tuple[Any, ...]  # np.random.get_state() before the draw
+    counters: tuple[Any, ...]  # buffer_counters() at the draw
+    batch: Any = None  # on the device; None once pickled (ReplayPrefetcher.restore makes it again)
+    ready: Any = None  # CUDA event after the batch's copies on the side stream
+    source: tuple[Any, ...] = ()  # weak references to the buffer and VecNormalize env, and the device
 
     def drawn_from(self, buffer: ReplayBuffer, batch_size: int, env: VecNormalize | None) -> bool:
-        """Whether this batch is one of ``buffer.sample(batch_size, env)`` in this process, since its last reset
-        (``FrameStackReplayBuffer.resets``)."""
-        if self.batch is None or not self.source or batch_size != self.batch_size:
-            return False
-        if buffer_counters(buffer)[-1] != self.counters[-1]:
+        """Whether this batch is one of ``buffer.sample(batch_size, env)`` in this process, since its last reset."""
+        resets = buffer_counters(buffer)[-1]
+        if self.batch is None or not self.source or batch_size != self.batch_size or resets != self.counters[-1]:
             return False
         buffer_ref, env_ref, device = self.source
         same_env = env is None if env_ref is None else env_ref() is env
@@ -256,14 +201,10 @@ class PreparedBatch:
 
 class ReplayPrefetcher:
     """
-    Where ``DrQv2.train`` takes its replay batches from (see the module docstring): the batches of
-    ``replay_buffer.sample``, each drawn while the update before it runs (also across ``train`` calls), in a worker
-    thread on CUDA with pinned host buffers and a side stream.
+    ``DrQv2.train``'s replay batches, each drawn while the update before it runs (docs/throughput.md).
 
-    :param enabled: ``True`` (default): draw each batch one update ahead; ``False``: call ``replay_buffer.sample``
-        when each update is due (it sees every transition added before it; nothing runs concurrently)
-    :param worker: where batches are made: ``None`` (default) in a worker thread on CUDA and on the training thread
-        on the CPU (see the module docstring); ``True`` in the worker thread; ``False`` on the training thread
+    :param enabled: ``False``: call ``replay_buffer.sample`` when each update is due
+    :param worker: make batches in a worker thread (``None``: on CUDA only)
     """
 
     def __init__(self, enabled: bool = True, worker: bool | None = None) -> None:
@@ -281,33 +222,19 @@ class ReplayPrefetcher:
 
     @property
     def prepared(self) -> PreparedBatch | None:
-        """The batch drawn for the next update, if any (drawn during the last update of the last call)."""
+        """The batch drawn for the next update, if any."""
         return self._prepared
 
     def batches(
         self, replay_buffer: ReplayBuffer, gradient_steps: int, batch_size: int, env: VecNormalize | None = None
-    ) -> ReplayBatches:
+    ) -> contextlib.closing[Iterator[Any]]:
         """
-        The ``gradient_steps`` batches of a ``train`` call. Use it as a context manager, so that the worker has
-        finished when the block ends, also on an exception::
-
-            with prefetcher.batches(buffer, gradient_steps, batch_size) as batches:
-                for replay_data in batches:
-                    ...
-
-        The first is the batch prepared during the last call's last update when it was drawn from this buffer with
-        this batch size and env (else it is drawn now); during each update the next one is drawn, the one after
-        the last kept for the next call.
-
-        :param replay_buffer: the replay buffer (not changed until the block ends)
-        :param gradient_steps: number of batches
-        :param batch_size: transitions per batch
-        :param env: ``VecNormalize`` env to normalize the samples with, as in SB3
-        :return: an iterable of ``gradient_steps`` samples of ``replay_buffer`` on its device
+        :return: the ``gradient_steps`` samples of ``batch_size`` transitions of ``replay_buffer`` on its device
+            (normalized by ``env``), to use as a context manager: the worker has finished when the block ends
         """
         if not self.enabled:
-            return ReplayBatches(replay_buffer.sample(batch_size, env=env) for _ in range(gradient_steps))
-        return ReplayBatches(self._ahead(replay_buffer, gradient_steps, batch_size, env))
+            return contextlib.closing(replay_buffer.sample(batch_size, env=env) for _ in range(gradient_steps))
+        return contextlib.closing(self._ahead(replay_buffer, gradient_steps, batch_size, env))
 
     def _ahead(
         self, buffer: ReplayBuffer, gradient_steps: int, batch_size: int, env: VecNormalize | None
@@ -337,11 +264,7 @@ class ReplayPrefetcher:
     def _prepare(
         self, buffer: ReplayBuffer, batch_size: int, env: VecNormalize | None, reserve: bool = False
     ) -> PreparedBatch:
-        """
-        Draw and make a batch (on either thread; on the side stream on CUDA).
-
-        :param reserve: allocate the other staging sets now (on the training thread, not in the worker)
-        """
+        """Draw and make a batch; ``reserve``: allocate the other staging sets now (on the training thread)."""
         generator_state, counters = np.random.get_state(), buffer_counters(buffer)
         staging = self._staging if isinstance(buffer, FrameStackReplayBuffer) and env is None else None
         ready = None
@@ -372,12 +295,11 @@ class ReplayPrefetcher:
                 tensor.record_stream(stream)
         return prepared.batch
 
-    def _on_stream(self) -> contextlib.AbstractContextManager[Any]:
-        if self._stream is None:
-            return contextlib.nullcontext()
+    def _on_stream(self) -> contextlib.ExitStack:
         stack = contextlib.ExitStack()
-        stack.enter_context(th.cuda.device(self._device))
-        stack.enter_context(th.cuda.stream(self._stream))
+        if self._stream is not None:
+            stack.enter_context(th.cuda.device(self._device))
+            stack.enter_context(th.cuda.stream(self._stream))
         return stack
 
     def _setup(self, device: th.device) -> None:
@@ -394,15 +316,8 @@ class ReplayPrefetcher:
         return self._executor
 
     def restore(self, replay_buffer: ReplayBuffer, env: VecNormalize | None = None) -> bool:
-        """
-        Make again the batch that was prepared when the prefetcher was pickled (``DrQv2.learn`` calls it first), if
-        the replay buffer's counters are those of its draw: drawn from NumPy's generator state of then, which must
-        come back to its state now. Otherwise the draw is dropped.
-
-        :param replay_buffer: the (restored) replay buffer
-        :param env: ``VecNormalize`` env to normalize the samples with, as in SB3
-        :return: whether a batch was made again
-        """
+        """Make again the batch prepared when the prefetcher was pickled, if ``replay_buffer`` is the one it was drawn
+        from (else drop it). :return: whether a batch was made again"""
         prepared = self._prepared
         if prepared is None or prepared.batch is not None:
             return False
@@ -436,26 +351,5 @@ class ReplayPrefetcher:
         return {"enabled": self.enabled, "worker": self.worker, "prepared": self._prepared}  # no thread, no buffers
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["enabled"], state.get("worker"))  # type: ignore[misc]
-        prepared = state.get("prepared")
-        self._prepared = prepared if isinstance(prepared, PreparedBatch) else None
-
-
-class ReplayBatches:
-    """The batches of one ``train`` call (:meth:`ReplayPrefetcher.batches`): an iterator and a context manager."""
-
-    def __init__(self, batches: Iterator[Any]) -> None:
-        self._batches = batches
-
-    def __iter__(self) -> Iterator[Any]:
-        return self._batches
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, kind: type[BaseException] | None, error: BaseException | None, traceback: TracebackType | None
-    ) -> None:
-        close = getattr(self._batches, "close", None)
-        if close is not None:
-            close()  # a generator's finally: waits for the batch in the worker
+        self.__init__(state["enabled"], state["worker"])  # type: ignore[misc]
+        self._prepared = state["prepared"]

@@ -1,8 +1,4 @@
-"""A replay buffer for frame-stacked pixel observations that stores each frame once (:class:`FrameStackReplayBuffer`).
-
-It returns exactly what SB3's ``NStepReplayBuffer`` returns, sampling either as SB3 does or as DrQ-v2's reference
-does (``sampling``); see docs/algorithm.md#replay-buffer-each-frame-stored-once.
-"""
+"""A replay buffer of frame-stacked pixels that stores each frame once (docs/algorithm.md, *Replay buffer*)."""
 
 from __future__ import annotations
 
@@ -21,35 +17,17 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_collapse.errors import ParameterError
 
 REPLAY_SAMPLINGS = ("sb3", "drqv2")
-"""The replay sampling rules of :class:`FrameStackReplayBuffer`."""
-
 FALLBACK_ADVICE = (
     "If the observations are not stacked frames, pass replay_buffer_class=NStepReplayBuffer (n-step returns) "
     "or ReplayBuffer (from stable_baselines3.common.buffers), which store whole observations."
 )
-"""What to do when :class:`FrameStackReplayBuffer` cannot de-duplicate the observations."""
-
-DEFAULT_MIN_EPISODE_LENGTH = 250
-"""Default ``min_episode_length`` of :class:`FrameStackReplayBuffer`, in agent steps."""
-
-PER_TRANSITION_ARRAYS_BYTES = 8 + 4 + 4 + 4
-"""Bytes per transition besides the frame and the action: frame index (int64), reward, done, timeout (float32)."""
+DEFAULT_MIN_EPISODE_LENGTH = 250  # agent steps
+PER_TRANSITION_ARRAYS_BYTES = 8 + 4 + 4 + 4  # frame index (int64), reward, done, timeout (float32)
 
 
 def frame_capacity(transitions: int, frame_stack: int, min_episode_length: int) -> int:
-    """
-    Frames one environment's column of the frame store holds.
-
-    ``transitions`` transitions whose episodes (more exactly: runs of consecutive stacks, see
-    :class:`FrameStackReplayBuffer`) are at least ``min_episode_length`` long span at most
-    ``ceil(transitions / min_episode_length) + 1`` episodes, each with ``frame_stack`` frames of its first
-    observation, plus one new frame per transition.
-
-    :param transitions: transitions per environment (``buffer_size // n_envs``)
-    :param frame_stack: frames per observation
-    :param min_episode_length: shortest episode, in agent steps, that keeps all transitions sampleable
-    :return: ``transitions + frame_stack * (1 + ceil(transitions / min_episode_length))``
-    """
+    """:return: frames one environment's column holds, ``transitions + frame_stack * (1 + ceil(transitions /
+    min_episode_length))`` (docs/algorithm.md#inside-the-frame-store)"""
     return transitions + frame_stack * (1 + math.ceil(transitions / min_episode_length))
 
 
@@ -61,17 +39,7 @@ def frame_stack_storage_bytes(
     n_envs: int = 1,
     min_episode_length: int = DEFAULT_MIN_EPISODE_LENGTH,
 ) -> int:
-    """
-    Bytes of the arrays of a :class:`FrameStackReplayBuffer` built with these arguments, without building it.
-
-    :param buffer_size: capacity in transitions (all environments together, as SB3 counts it)
-    :param observation_space: the stacked observation space, ``(channels * frame_stack, height, width)``
-    :param action_space: the action space
-    :param frame_stack: frames per observation
-    :param n_envs: number of environments
-    :param min_episode_length: see :class:`FrameStackReplayBuffer`
-    :return: the sum of the ``nbytes`` of the frame store and of the per-transition arrays
-    """
+    """:return: bytes of the arrays of a :class:`FrameStackReplayBuffer` built with these arguments"""
     transitions = max(buffer_size // n_envs, 1)
     frame_bytes = int(np.prod(observation_space.shape)) // frame_stack * np.dtype(observation_space.dtype).itemsize
     action_dtype = ReplayBuffer._maybe_cast_dtype(action_space.dtype)
@@ -82,15 +50,8 @@ def frame_stack_storage_bytes(
 
 class FrameStackReplayBuffer(ReplayBuffer):
     """
-    N-step replay buffer for frame-stacked observations that stores each frame once.
-
-    Observations are channel-first stacks of ``frame_stack`` frames, oldest first (``(channels * frame_stack,
-    height, width)``); each ``next_obs`` must be its ``obs`` shifted by one frame, else ``add`` raises a
-    ``ValueError`` and stores nothing. Sampling returns exactly what SB3's ``NStepReplayBuffer`` returns for the
-    same indices, with the same ``np.random`` calls: :meth:`sample_indices` draws, :meth:`sample_arrays` gathers
-    on the host, ``_get_samples`` makes the tensors. See docs/algorithm.md#replay-buffer-each-frame-stored-once
-    (which transitions each ``sampling`` draws) and docs/algorithm.md#inside-the-frame-store (storage,
-    wrap-around, counters).
+    N-step replay buffer of channel-first stacks of ``frame_stack`` frames, oldest first, storing each frame once;
+    it samples what SB3's ``NStepReplayBuffer`` samples, with the same ``np.random`` calls (docs/algorithm.md).
 
     :param buffer_size: capacity in transitions (all environments together, as in SB3)
     :param observation_space: ``Box`` of shape ``(channels * frame_stack, height, width)``
@@ -102,9 +63,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
     :param n_steps: length of the n-step returns, in agent steps (1: one-step returns, with ``discounts``)
     :param gamma: discount factor of the n-step returns
     :param frame_stack: frames per observation (``make_dmc_env``'s ``frame_stack``; DrQv2 reads it from the env)
-    :param min_episode_length: shortest episode, in agent steps, for which all ``buffer_size`` transitions stay
-        sampleable; it sizes the frame ring
-    :param sampling: ``"sb3"`` or ``"drqv2"``, which transitions are sampled (see above)
+    :param min_episode_length: shortest episode, in agent steps, for which all transitions stay sampleable
+    :param sampling: ``"sb3"`` or ``"drqv2"`` (finished episodes only, as DrQ-v2's reference)
     """
 
     frames: np.ndarray
@@ -137,7 +97,6 @@ class FrameStackReplayBuffer(ReplayBuffer):
             raise ValueError(f"n_steps must be >= 1 agent step, got {n_steps}.")
         if min_episode_length < 1:
             raise ValueError(f"min_episode_length must be >= 1 agent step, got {min_episode_length}.")
-        # BaseBuffer's __init__ only: ReplayBuffer's would allocate obs and next_obs arrays.
         super(ReplayBuffer, self).__init__(buffer_size, observation_space, action_space, device, n_envs=n_envs)
         self.buffer_size = max(buffer_size // n_envs, 1)
         if n_steps > self.buffer_size:
@@ -157,9 +116,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.frame_heads = np.zeros(n_envs, dtype=np.int64)  # frames written per env, since the last reset
         action_dtype = self._maybe_cast_dtype(action_space.dtype)
         self.actions = np.zeros((self.buffer_size, n_envs, self.action_dim), dtype=action_dtype)
-        self.rewards = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
-        self.dones = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
-        self.timeouts = np.zeros((self.buffer_size, n_envs), dtype=np.float32)
+        self.rewards, self.dones, self.timeouts = (np.zeros((self.buffer_size, n_envs), np.float32) for _ in range(3))
         self.steps_since_done = np.zeros(n_envs, dtype=np.int64)  # transitions of each env's episode in progress
         self.episodes_done = np.zeros(n_envs, dtype=np.int64)  # episodes ended per env, since the last reset
         self.transitions_added = 0  # add() calls (transitions per env) since the last reset
@@ -168,7 +125,6 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self._frame_offsets = np.arange(self.frame_stack)
         _warn_if_larger_than_available_memory(self.nbytes)
 
-    # ------------------------------------------------------------------ memory
     @property
     def storage_arrays(self) -> dict[str, np.ndarray]:
         """The arrays holding the data, by name."""
@@ -180,23 +136,19 @@ class FrameStackReplayBuffer(ReplayBuffer):
         """Bytes of the storage arrays once filled (``np.zeros`` reserves them lazily)."""
         return sum(array.nbytes for array in self.storage_arrays.values())
 
-    # ------------------------------------------------------------------ writing
     def reset(self) -> None:
         """Empty the buffer: no transition and no frame remain sampleable (the arrays are not zeroed)."""
         super().reset()
-        self.frame_heads[:] = 0
-        self.steps_since_done[:] = 0
-        self.episodes_done[:] = 0
+        for counts in (self.frame_heads, self.steps_since_done, self.episodes_done):
+            counts[:] = 0
         self.transitions_added = 0
         self.resets += 1
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        """Unpickle, giving a buffer pickled before the counters existed the values its ``pos`` and ``full`` imply."""
+        """Unpickle, giving a buffer pickled without the counters the values its ``pos`` and ``full`` imply."""
         self.__dict__.update(state)
-        if "transitions_added" not in state:
-            self.transitions_added = self.pos + (self.buffer_size if self.full else 0)
-        if "resets" not in state:
-            self.resets = 0
+        self.__dict__.setdefault("transitions_added", self.pos + (self.buffer_size if self.full else 0))
+        self.__dict__.setdefault("resets", 0)
 
     def add(
         self,
@@ -207,17 +159,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
         done: np.ndarray,
         infos: list[dict[str, Any]],
     ) -> None:
-        """
-        Store one transition per environment.
-
-        :param obs: stacked observations before the action, ``(n_envs, channels * frame_stack, height, width)``
-        :param next_obs: stacked observations after it (the terminal one for a finished episode)
-        :param action: actions, as SB3 stores them (scaled to [-1, 1] for Box actions)
-        :param reward: rewards
-        :param done: episode ends (termination or time limit)
-        :param infos: the environments' infos (``"TimeLimit.truncated"`` marks time limits)
-        :raises ValueError: if a ``next_obs`` is not its ``obs`` shifted by one frame (nothing is stored)
-        """
+        """SB3's ``add``, ``obs`` ``(n_envs, channels * frame_stack, height, width)``; a ``next_obs`` that is not its
+        ``obs`` shifted by one frame raises ``ValueError`` (nothing stored)."""
         k, frame_shape = self.frame_stack, self.frame_shape
         obs_frames = np.asarray(obs).reshape(self.n_envs, k, *frame_shape)
         next_frames = np.asarray(next_obs).reshape(self.n_envs, k, *frame_shape)
@@ -258,24 +201,17 @@ class FrameStackReplayBuffer(ReplayBuffer):
         last = self.frames[(head - self.frame_stack + self._frame_offsets) % self.frame_capacity, env_index]
         return bool(np.array_equal(last, obs_frames))
 
-    # ------------------------------------------------------------------ sampling
     @property
     def ready_to_sample(self) -> bool:
-        """
-        Whether :meth:`sample` has transitions to draw from: any stored one (``sampling="sb3"``), or one of a
-        finished episode with at least ``n_steps`` transitions in the buffer (``"drqv2"``: the episode that a
-        :meth:`reset` cut to its last few transitions, or episodes shorter than ``n_steps``, give none).
-
-        With ``"drqv2"`` the buffer is scanned (:meth:`is_sampleable`) only when an episode has ended since a scan that
-        found nothing, after a :meth:`reset`, and once per pass of the ring over the buffer.
-        """
+        """Whether :meth:`sample` has a transition to draw (``"drqv2"``: of a finished episode with at least
+        ``n_steps`` transitions; the buffer scanned only when that may have changed)."""
         if self.sampling != "drqv2":
             return self.size() > 0
         episodes = int(self.episodes_done.sum())
         if episodes == 0:
             return False
         laps = self.transitions_added // self.buffer_size
-        checked = getattr(self, "_sampleable_checked", None)  # absent in a buffer pickled before it existed
+        checked = self._sampleable_checked
         if checked is not None and checked[:2] == (self.resets, laps) and (checked[3] or checked[2] == episodes):
             return checked[3]  # more finished episodes only add sampleable transitions until the ring wraps
         ready = self._any_sampleable(self.buffer_size if self.full else self.pos)
@@ -283,21 +219,13 @@ class FrameStackReplayBuffer(ReplayBuffer):
         return ready
 
     def frames_stored(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
-        """
-        :param batch_inds: positions in the buffer (``0 <= pos < size()``)
-        :param env_indices: environment of each position
-        :return: for each ``(pos, env)``, whether all frames of its ``obs`` and ``next_obs`` are still stored
-        """
+        """:return: for each ``(pos, env)``, whether all frames of its ``obs`` and ``next_obs`` are still stored"""
         starts = self.frame_starts[batch_inds, env_indices]
         return starts >= self.frame_heads[env_indices] - self.frame_capacity
 
     def is_sampleable(self, batch_inds: np.ndarray, env_indices: np.ndarray) -> np.ndarray:
-        """
-        :param batch_inds: positions in the buffer (``0 <= pos < size()``)
-        :param env_indices: environment of each position
-        :return: for each ``(pos, env)``, whether :meth:`sample` may draw it: its frames are stored and, with
-            ``sampling="drqv2"``, its episode has finished and has at least ``n_steps`` transitions from it on
-        """
+        """:return: for each ``(pos, env)``, whether :meth:`sample` may draw it: its frames stored and, with
+        ``sampling="drqv2"``, its episode finished with at least ``n_steps`` transitions from it on"""
         sampleable = self.frames_stored(batch_inds, env_indices)
         if self.sampling == "drqv2":
             newest = (self.pos - 1) % self.buffer_size
@@ -309,30 +237,13 @@ class FrameStackReplayBuffer(ReplayBuffer):
         return sampleable
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
-        """
-        Sample transitions uniformly among the sampleable ones (:meth:`is_sampleable`), drawing ``(pos, env)`` as
-        SB3 does and drawing again those that are not.
-
-        :param batch_size: number of transitions
-        :param env: VecNormalize env to normalize the observations and rewards with, as in SB3
-        :return: the n-step samples (see the class docstring)
-        :raises ValueError: when no transition is sampleable (``sampling="drqv2"`` before any episode with at
-            least ``n_steps`` transitions has finished)
-        """
+        """SB3's ``sample``, uniform among the sampleable transitions (:meth:`sample_indices`)."""
         batch_inds, env_indices = self.sample_indices(batch_size)
         return self._get_samples(batch_inds, env=env, env_indices=env_indices)
 
     def sample_indices(self, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
-        """
-        The ``(pos, env)`` indices that :meth:`sample` draws (the same calls to ``np.random``, in the same order):
-        ``sample(batch_size, env)`` is ``_get_samples(*sample_indices(batch_size)...)``. Drawing depends on the
-        buffer's state, not on the samples: indices drawn ahead for several batches, with nothing else drawing from
-        ``np.random`` in between and nothing added to the buffer, are those of as many :meth:`sample` calls.
-
-        :param batch_size: number of transitions
-        :return: positions ``(batch_size,)`` and environments ``(batch_size,)``, all sampleable
-        :raises ValueError: as :meth:`sample`
-        """
+        """:return: the positions and environments, each ``(batch_size,)``, that :meth:`sample` draws as SB3 does,
+        drawing again those not sampleable (``ValueError`` when none is)"""
         upper_bound = self.buffer_size if self.full else self.pos
         if upper_bound == 0:
             raise ValueError("The replay buffer is empty: add transitions before sampling.")
@@ -362,31 +273,14 @@ class FrameStackReplayBuffer(ReplayBuffer):
         return bool(self.is_sampleable(positions, envs).any())
 
     def _get_samples(  # type: ignore[override]
-        self,
-        batch_inds: np.ndarray,
-        env: VecNormalize | None = None,
-        env_indices: np.ndarray | None = None,
+        self, batch_inds: np.ndarray, env: VecNormalize | None = None, env_indices: np.ndarray | None = None
     ) -> ReplayBufferSamples:
-        """
-        The n-step transitions starting at ``(batch_inds, env_indices)``, as ``NStepReplayBuffer`` computes them.
-
-        :param batch_inds: positions of the first transitions
-        :param env: VecNormalize env to normalize the observations and rewards with, as in SB3
-        :param env_indices: their environments; ``None``: drawn uniformly with ``np.random.randint``, as SB3 does
-        :return: observations, actions, next observations, dones, n-step returns and their discounts
-        :raises ValueError: if a transition's frames have been overwritten (see :meth:`frames_stored`)
-        """
+        """SB3's ``_get_samples`` (:meth:`sample_arrays` as tensors); ``env_indices=None`` draws them as SB3 does."""
         if env_indices is None:
             env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
-        arrays = self.sample_arrays(batch_inds, env_indices, env=env)
-        return ReplayBufferSamples(
-            observations=self.to_torch(arrays["observations"], copy=False),
-            actions=self.to_torch(arrays["actions"]),
-            next_observations=self.to_torch(arrays["next_observations"], copy=False),
-            dones=self.to_torch(arrays["dones"]),
-            rewards=self.to_torch(arrays["rewards"]),
-            discounts=self.to_torch(arrays["discounts"]),
-        )
+        arrays = self.sample_arrays(batch_inds, env_indices, env=env)  # the stacks are new arrays: not copied again
+        stacks = ("observations", "next_observations")
+        return ReplayBufferSamples(**{name: self.to_torch(a, copy=name not in stacks) for name, a in arrays.items()})
 
     def sample_arrays(
         self,
@@ -396,20 +290,11 @@ class FrameStackReplayBuffer(ReplayBuffer):
         frames_out: np.ndarray | None = None,
     ) -> dict[str, np.ndarray]:
         """
-        What :meth:`_get_samples` returns, as NumPy arrays on the host (it converts them with ``to_torch``); the
-        stacks can be gathered straight into a given array (e.g. a pinned staging buffer, see
-        ``sb3_collapse.drqv2.prefetch``). Reads the buffer, draws no random number.
+        The n-step transitions at ``(batch_inds, env_indices)`` as host arrays (``ValueError`` if overwritten).
 
-        :param batch_inds: positions of the first transitions
-        :param env_indices: their environments
-        :param env: VecNormalize env to normalize the observations and rewards with, as in SB3
-        :param frames_out: where to gather ``observations`` and ``next_observations`` (``frames_out[0]`` and
-            ``frames_out[1]``): a C-contiguous array ``(2, batch, channels * frame_stack, height, width)`` of the
-            frames' dtype; only without ``env`` (normalized observations are float). ``None``: new arrays
-        :return: the fields of ``ReplayBufferSamples`` by name: ``observations`` and ``next_observations``
-            ``(batch, channels * frame_stack, height, width)``, ``actions`` ``(batch, action_dim)``, ``dones``,
-            ``rewards`` (n-step returns) and ``discounts`` ``(batch, 1)``
-        :raises ValueError: if a transition's frames have been overwritten (see :meth:`frames_stored`)
+        :param env: ``VecNormalize`` env to normalize with, as in SB3
+        :param frames_out: ``(2, batch, *obs_shape)`` array to gather the observations into (only without ``env``)
+        :return: the fields of ``ReplayBufferSamples`` by name
         """
         if not self.frames_stored(batch_inds, env_indices).all():
             raise ValueError(
@@ -418,22 +303,7 @@ class FrameStackReplayBuffer(ReplayBuffer):
             )
         if frames_out is not None and env is not None:
             raise ValueError("sample_arrays: frames_out takes the stored frames, not normalized ones: pass env=None.")
-        steps = np.arange(self.n_steps)
-        window = (batch_inds[:, None] + steps) % self.buffer_size  # [batch, n_steps]
-        envs = env_indices[:, None]
-        newest = (self.pos - 1) % self.buffer_size
-        # A window ends at the first termination or time limit, or at the newest transition (what follows it
-        # in the ring is older data, or nothing).
-        ends = (self.dones[window, envs] != 0) | (self.timeouts[window, envs] != 0) | (window == newest)
-        used = np.where(ends.any(axis=1), ends.argmax(axis=1), self.n_steps - 1)  # index of the last step summed
-        mask = steps[None, :] <= used[:, None]
-        rewards = self._normalize_reward(self.rewards[window, envs], env)
-        powers = self.gamma ** np.arange(self.n_steps, dtype=np.float32)
-        returns = (rewards * powers[None, :] * mask).sum(axis=1, keepdims=True)
-        discounts = self.gamma ** mask.sum(axis=1, keepdims=True).astype(np.float32)
-
-        last = (batch_inds + used) % self.buffer_size
-        dones = (self.dones[last, env_indices] * (1.0 - self.timeouts[last, env_indices]))[:, None]
+        returns, discounts, dones, last = n_step_returns(self, batch_inds, env_indices, env)
         out = (None, None) if frames_out is None else (frames_out[0], frames_out[1])
         obs = self._stacks(self.frame_starts[batch_inds, env_indices], env_indices, out=out[0])
         next_obs = self._stacks(self.frame_starts[last, env_indices] + 1, env_indices, out=out[1])
@@ -441,19 +311,13 @@ class FrameStackReplayBuffer(ReplayBuffer):
             "observations": self._normalize_obs(obs, env),  # type: ignore[dict-item]
             "actions": self.actions[batch_inds, env_indices],
             "next_observations": self._normalize_obs(next_obs, env),  # type: ignore[dict-item]
-            "dones": dones.astype(np.float32),
+            "dones": dones,
             "rewards": returns,
             "discounts": discounts,
         }
 
     def _stacks(self, first_frames: np.ndarray, env_indices: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """
-        :param first_frames: frame number of the first (oldest) frame of each stack
-        :param env_indices: environment of each stack
-        :param out: a C-contiguous array ``(batch, channels * frame_stack, height, width)`` of the frames' dtype
-            to gather into; ``None``: a new array
-        :return: the stacks, ``(batch, channels * frame_stack, height, width)`` (``out`` when given)
-        """
+        """:return: the ``(batch, *obs_shape)`` stacks whose oldest frames are ``first_frames`` (into ``out``)"""
         slots = (first_frames[:, None] + self._frame_offsets) % self.frame_capacity  # [batch, frame_stack]
         flat_frames = self.frames.reshape(self.frame_capacity * self.n_envs, -1)
         rows = (slots * self.n_envs + env_indices[:, None]).ravel()
@@ -471,13 +335,30 @@ class FrameStackReplayBuffer(ReplayBuffer):
         return out
 
 
+def n_step_returns(
+    buffer: ReplayBuffer, batch_inds: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """SB3's ``NStepReplayBuffer`` rule on ``buffer``'s arrays. :return: the returns, their discounts
+    ``gamma ** k`` and the dones, each ``(batch, 1)``, and the positions ``(batch,)`` of the last transitions summed"""
+    n_steps, gamma, size = buffer.n_steps, buffer.gamma, buffer.buffer_size  # type: ignore[attr-defined]
+    steps = np.arange(n_steps)
+    window = (batch_inds[:, None] + steps) % size  # [batch, n_steps]
+    envs = env_indices[:, None]
+    newest = (buffer.pos - 1) % size
+    ends = (buffer.dones[window, envs] != 0) | (buffer.timeouts[window, envs] != 0) | (window == newest)
+    used = np.where(ends.any(axis=1), ends.argmax(axis=1), n_steps - 1)  # index of the last step summed
+    mask = steps[None, :] <= used[:, None]
+    rewards = buffer._normalize_reward(buffer.rewards[window, envs], env)
+    powers = gamma ** np.arange(n_steps, dtype=np.float32)
+    returns = (rewards * powers[None, :] * mask).sum(axis=1, keepdims=True)
+    discounts = gamma ** mask.sum(axis=1, keepdims=True).astype(np.float32)
+    last = (batch_inds + used) % size
+    dones = (buffer.dones[last, env_indices] * (1.0 - buffer.timeouts[last, env_indices]))[:, None]
+    return returns, discounts, dones.astype(np.float32), last
+
+
 def _check_layout(observation_space: spaces.Space, frame_stack: int | None) -> int:
-    """
-    :param observation_space: the stacked observation space
-    :param frame_stack: frames per observation
-    :return: ``frame_stack``
-    :raises ValueError: unless the space is a ``(channels * frame_stack, height, width)`` Box
-    """
+    """:return: ``frame_stack``, checked against the ``(channels * frame_stack, height, width)`` Box"""
     if frame_stack is None:
         raise ValueError(
             "FrameStackReplayBuffer needs frame_stack, the number of frames per observation: pass "

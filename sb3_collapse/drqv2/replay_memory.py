@@ -1,8 +1,5 @@
-"""
-The replay buffer ``DrQv2`` picks, and its memory: which class stores the transitions, how many bytes each takes,
-and the advice given when the full buffer would not fit in RAM (a warning when the model is built, rather than the
-process killed hours later) or cannot even be reserved (a ``MemoryError`` that suggests a size).
-"""
+"""The replay buffer ``DrQv2`` picks and its memory: a warning when the full buffer would not fit in RAM, a
+``MemoryError`` that suggests a size when it cannot be reserved."""
 
 from __future__ import annotations
 
@@ -14,7 +11,7 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
+from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer, ReplayBuffer
 
 from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.drqv2.policies import CnnPolicy
@@ -23,7 +20,7 @@ from sb3_collapse.drqv2.replay_buffer import (
     FrameStackReplayBuffer,
     frame_stack_storage_bytes,
 )
-from sb3_collapse.drqv2.sb3_compat import DictNStepReplayBuffer, check_optimize_memory_usage, dict_replay_buffer_class
+from sb3_collapse.drqv2.sb3_compat import DictNStepReplayBuffer
 
 
 def default_replay_buffer(
@@ -35,26 +32,12 @@ def default_replay_buffer(
     n_steps: int,
     gamma: float,
 ) -> type[ReplayBuffer] | None:
-    """
-    ``FrameStackReplayBuffer`` for a pixel policy on an env reporting ``frame_stack > 1`` (``make_dmc_env``), unless
-    the user gave a class (or the model was saved with one). Fills in, in place, the kwargs of a
-    ``FrameStackReplayBuffer`` or ``NStepReplayBuffer`` that the user did not give: ``n_steps``, ``gamma`` and the
-    env's ``frame_stack``.
-
-    :param replay_buffer_class: the class given (``None``: choose)
-    :param replay_buffer_kwargs: its keyword arguments, completed in place
-    :param pixel_policy: whether the policy encodes pixels with DrQ-v2's encoder
-    :param observation_space: the observations (``spaces.Dict``: SB3's ``DictReplayBuffer``, or
-        ``DictNStepReplayBuffer`` for n-step returns)
-    :param env_config: the ``make_dmc_env`` settings of the env (``None`` for another env)
-    :param n_steps: the algorithm's n-step return length
-    :param gamma: the algorithm's discount
-    :return: the replay buffer class (``None``: SB3's default)
-    """
+    """The replay buffer class unless one was given (``FrameStackReplayBuffer`` for a ``pixel_policy`` on a
+    frame-stacked env, SB3's dict buffers for dict observations); fills in ``replay_buffer_kwargs``' defaults."""
     config = env_config or {}
     frame_stack = config.get("frame_stack")
-    if replay_buffer_class is None:  # dict observations: SB3's DictReplayBuffer, n-step when n_steps > 1
-        replay_buffer_class = dict_replay_buffer_class(observation_space, n_steps)
+    if replay_buffer_class is None and isinstance(observation_space, spaces.Dict):
+        replay_buffer_class = DictNStepReplayBuffer if n_steps > 1 else DictReplayBuffer
     stacked = isinstance(frame_stack, (int, np.integer)) and frame_stack > 1
     if replay_buffer_class is None and pixel_policy and config.get("obs_type") in (None, "pixels") and stacked:
         replay_buffer_class = FrameStackReplayBuffer
@@ -72,7 +55,6 @@ def default_replay_buffer(
 
 
 def uses_frame_stack_buffer(replay_buffer_class: type[ReplayBuffer] | None) -> bool:
-    """:return: whether the class is (a subclass of) ``FrameStackReplayBuffer``"""
     return replay_buffer_class is not None and issubclass(replay_buffer_class, FrameStackReplayBuffer)
 
 
@@ -84,45 +66,27 @@ def bytes_per_transition(
     action_space: spaces.Space,
     n_envs: int,
 ) -> float:
-    """
-    :return: bytes per transition of the replay buffer: for SB3's, obs and next_obs, action, reward, done, timeout;
-        for ``FrameStackReplayBuffer``, its arrays' bytes divided by ``buffer_size``
-    """
+    """:return: bytes per transition of the replay buffer (SB3's stores obs and next_obs)"""
     if uses_frame_stack_buffer(replay_buffer_class) and replay_buffer_kwargs.get("frame_stack") is not None:
         total = frame_stack_storage_bytes(
-            buffer_size,
-            observation_space,  # type: ignore[arg-type]
-            action_space,
-            replay_buffer_kwargs["frame_stack"],
-            n_envs,
+            buffer_size, observation_space, action_space, replay_buffer_kwargs["frame_stack"], n_envs,  # type: ignore[arg-type]
             replay_buffer_kwargs.get("min_episode_length", DEFAULT_MIN_EPISODE_LENGTH),
-        )
+        )  # fmt: skip
         return total / buffer_size
-    if isinstance(observation_space, spaces.Dict):
-        obs_bytes = sum(_space_bytes(space) for space in observation_space.spaces.values())
-    else:
-        obs_bytes = _space_bytes(observation_space)
+    subspaces = observation_space.spaces.values() if isinstance(observation_space, spaces.Dict) else [observation_space]
+    obs_bytes = sum(
+        int(np.prod(space.shape or (1,))) * np.dtype(space.dtype or np.float32).itemsize for space in subspaces
+    )
     return 2 * obs_bytes + int(np.prod(action_space.shape or (1,))) * 4 + 12
 
 
-def _space_bytes(space: spaces.Space) -> int:
-    return int(np.prod(space.shape or (1,))) * np.dtype(space.dtype or np.float32).itemsize
-
-
 def memory_advice(replay_buffer_class: type[ReplayBuffer] | None, buffer_size: int, per_transition: float) -> str:
-    """
-    :param replay_buffer_class: the replay buffer class
-    :param buffer_size: its capacity, in transitions
-    :param per_transition: its bytes per transition (:func:`bytes_per_transition`)
-    :return: what the buffer takes and which ``buffer_size`` would fit in 70% of this machine's RAM
-    """
+    """:return: what the buffer takes and which ``buffer_size`` would fit in 70% of this machine's RAM"""
     ram = physical_memory_bytes()
     fitting = int(0.7 * ram / per_transition)
-    storage = (
-        "FrameStackReplayBuffer stores each frame once"
-        if uses_frame_stack_buffer(replay_buffer_class)
-        else "SB3's buffer stores obs and next_obs separately"
-    )
+    storage = "SB3's buffer stores obs and next_obs separately"
+    if uses_frame_stack_buffer(replay_buffer_class):
+        storage = "FrameStackReplayBuffer stores each frame once"
     return (
         f"{storage}: {per_transition / 1e3:,.0f} KB per transition, "
         f"{buffer_size * per_transition / 1e9:,.1f} GB in all, and this machine has "
@@ -132,13 +96,9 @@ def memory_advice(replay_buffer_class: type[ReplayBuffer] | None, buffer_size: i
 
 
 def warn_if_too_large(replay_buffer_class: type[ReplayBuffer] | None, buffer_size: int, per_transition: float) -> None:
-    """
-    Warn when the full replay buffer cannot fit in RAM (for the buffers whose size is known: SB3's and
-    ``FrameStackReplayBuffer``).
-    """
-    known = replay_buffer_class in (None, ReplayBuffer, NStepReplayBuffer) or uses_frame_stack_buffer(
-        replay_buffer_class
-    )
+    """Warn when the full replay buffer (SB3's or ``FrameStackReplayBuffer``) cannot fit in RAM."""
+    sb3 = replay_buffer_class in (None, ReplayBuffer, NStepReplayBuffer)
+    known = sb3 or uses_frame_stack_buffer(replay_buffer_class)
     if known and buffer_size * per_transition > physical_memory_bytes():
         warnings.warn(
             f"The replay buffer of {buffer_size:,} transitions will not fit in memory once full. "
@@ -150,6 +110,23 @@ def warn_if_too_large(replay_buffer_class: type[ReplayBuffer] | None, buffer_siz
 def physical_memory_bytes() -> int:
     """Total RAM of this machine, in bytes."""
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_optimize_memory_usage(
+    optimize_memory_usage: bool, replay_buffer_class: type[ReplayBuffer] | None, frame_stack_buffer: bool, n_steps: int
+) -> bool:
+    """:return: ``optimize_memory_usage`` where SB3's plain ``ReplayBuffer`` (``None`` and ``n_steps=1``) takes it,
+    else ``False`` with a warning that says why"""
+    plain = replay_buffer_class is ReplayBuffer or (replay_buffer_class is None and n_steps == 1)
+    if not optimize_memory_usage or plain:
+        return bool(optimize_memory_usage)
+    if frame_stack_buffer:
+        reason = "FrameStackReplayBuffer already stores each frame once (less memory than SB3's option)"
+    else:
+        name = "NStepReplayBuffer" if replay_buffer_class is None else replay_buffer_class.__name__
+        reason = f"the replay buffer ({name}) does not support it; n_steps=1 uses SB3's ReplayBuffer, which does"
+    warnings.warn(f"DrQv2: optimize_memory_usage=True is ignored: {reason}.", stacklevel=4)
+    return False
 
 
 def warn_not_ready(num_timesteps: int) -> None:
@@ -166,32 +143,19 @@ def warn_not_ready(num_timesteps: int) -> None:
 
 @contextlib.contextmanager
 def replay_buffer_setup(model: Any) -> Iterator[None]:
-    """
-    Around SB3's ``_setup_model`` of a ``DrQv2``, which allocates the buffer: first set its ``replay_buffer_class``
-    and complete its ``replay_buffer_kwargs`` (:func:`default_replay_buffer`), check its ``optimize_memory_usage``
-    for that buffer (``sb3_compat.check_optimize_memory_usage``) and warn when the full buffer cannot fit in RAM
-    (:func:`warn_if_too_large`); in the block, a ``MemoryError`` says what size would fit (:func:`memory_advice`).
-
-    :param model: the model, its networks not built yet
-    """
+    """Around SB3's ``_setup_model`` of a ``DrQv2``: choose the buffer, check ``optimize_memory_usage``, warn when
+    it cannot fit in RAM; in the block, a ``MemoryError`` says what size would fit."""
     encoder_class = model.policy_kwargs.get("encoder_class", PixelEncoder)
     model.replay_buffer_class = default_replay_buffer(
-        model.replay_buffer_class,
-        model.replay_buffer_kwargs,
+        model.replay_buffer_class, model.replay_buffer_kwargs,
         pixel_policy=issubclass(model.policy_class, CnnPolicy) and issubclass(encoder_class, PixelEncoder),
-        observation_space=model.observation_space,
-        env_config=model.env_config,
-        n_steps=model.n_steps,
+        observation_space=model.observation_space, env_config=model.env_config, n_steps=model.n_steps,
         gamma=model.gamma,
-    )
+    )  # fmt: skip
     per_transition = bytes_per_transition(
-        model.replay_buffer_class,
-        model.replay_buffer_kwargs,
-        model.buffer_size,
-        model.observation_space,
-        model.action_space,
-        model.n_envs,
-    )
+        model.replay_buffer_class, model.replay_buffer_kwargs, model.buffer_size, model.observation_space,
+        model.action_space, model.n_envs,
+    )  # fmt: skip
     model.optimize_memory_usage = check_optimize_memory_usage(
         model.optimize_memory_usage, model.replay_buffer_class, uses_frame_stack_buffer(model.replay_buffer_class),
         model.n_steps,
@@ -199,9 +163,7 @@ def replay_buffer_setup(model: Any) -> Iterator[None]:
     warn_if_too_large(model.replay_buffer_class, model.buffer_size, per_transition)
     try:
         with warnings.catch_warnings():
-            if "n_steps" in model.replay_buffer_kwargs:
-                # A loaded model has its n-step buffer class and kwargs set already: SB3's warning that
-                # `n_steps` is ignored for a custom buffer class does not apply.
+            if "n_steps" in model.replay_buffer_kwargs:  # a loaded model's n-step buffer: SB3's warning is wrong
                 warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored")
             yield
     except MemoryError as error:

@@ -1,12 +1,6 @@
-"""
-The loop of ``DrQv2.learn()``: rounds of environment steps up to the next update due, then the updates due. With
-``train_freq=(n, "transition")`` it keeps DrQ-v2's update ratio (one update per ``n`` transitions, summed over the
-environments) on any number of environments; SB3's ``train_freq`` (``n`` or ``(n, "step")``: ``n`` steps of every
-environment; ``(n, "episode")``) makes SB3's rounds. It restarts the warm-up after a reset from scratch
-(``reset_step``), and can step the environments while the learner updates (``step_envs_during_updates``).
-The ratio and the overlap: docs/throughput.md#drq-v2s-update-ratio-on-several-environments and
-docs/throughput.md#environment-steps-overlapped-with-the-updates-step_envs_during_updates.
-"""
+"""The loop of ``DrQv2.learn()`` in rounds: DrQ-v2's update ratio on any number of environments
+(``train_freq=(n, "transition")``), SB3's ``train_freq`` otherwise, and environments stepped during the updates:
+docs/throughput.md."""
 
 from __future__ import annotations
 
@@ -29,40 +23,22 @@ SelfRoundsAlgorithm = TypeVar("SelfRoundsAlgorithm", bound="RoundsAlgorithm")
 
 
 class TransitionUnit(Enum):
-    """
-    The unit of ``train_freq=(n, "transition")``: transitions summed over the environments (DrQ-v2's
-    ``update_every_steps`` with any number of environments), beside SB3's ``TrainFrequencyUnit`` (``"step"``: steps of
-    every environment, ``"episode"``). An ``Enum`` as SB3's, so that a saved ``TrainFreq`` comes back as one.
-    """
+    """The unit of ``train_freq=(n, "transition")``: transitions summed over the environments (beside SB3's
+    ``TrainFrequencyUnit``, an ``Enum`` as it so that a saved ``TrainFreq`` comes back as one)."""
 
     TRANSITION = "transition"
 
 
 TRANSITION = TransitionUnit.TRANSITION
-"""``train_freq=(n, "transition")`` is kept as ``TrainFreq(n, TRANSITION)``."""
-
 TRAIN_FREQ_UNITS = ("step", "episode", TRANSITION.value)
-"""The units ``train_freq=(n, unit)`` takes: SB3's two and :data:`TRANSITION`."""
 
 
 class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
-    """
-    SB3's off-policy loop, in rounds whose updates are counted in transitions summed over the environments
-    (``train_freq=(n, "transition")``), or SB3's rounds (``train_freq=n``, ``(n, "step")``: ``n`` steps of every
-    environment, then ``gradient_steps`` updates once ``learning_starts`` transitions are passed; ``(n, "episode")``).
-
-    With ``(train_freq, "transition")``, after ``T`` transitions a model has made exactly
-    ``gradient_steps * (T // train_freq - (reset_step + learning_starts) // train_freq)`` updates (``T`` beyond
-    ``reset_step + learning_starts``): the updates of a round are made at the end of the ``env.step`` in which they
-    become due (:meth:`updates_due`). With ``step_envs_during_updates``, the next actions are sent to the environments
-    (``VecEnv.step_async``) before a round of updates and collected after it (``step_wait``): a policy lag of one
-    round, which saves time where the environments run in other processes.
-    """
+    """SB3's off-policy loop in rounds: the environment steps up to the next update due (:meth:`updates_due`), then
+    the updates due, with the next step sent to the environments first (``step_envs_during_updates``)."""
 
     step_envs_during_updates: bool = False
-    """Step the environments while the learner updates (see the class docstring)."""
-    no_env_step_this_round: bool = False
-    """Set during a round: this round's updates do not step the environments (e.g. a checkpoint follows it)."""
+    no_env_step_this_round: bool = False  # set during a round: its updates step no environment
     _pending_step: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
@@ -105,22 +81,12 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         return self
 
     def _learning_round(self, callback: BaseCallback, total_timesteps: int, log_interval: int) -> bool:
-        """
-        One round: the environment steps up to the next update due, then the updates due (with
-        ``step_envs_during_updates``, the next step is sent to the environments first).
-
-        :return: whether to go on (``False`` when a callback stopped the training)
-        """
+        """One round of environment steps then updates; :return: whether to go on (a callback may stop it)"""
         start = self.num_timesteps
         rollout = self.collect_rollouts(
-            self.env,  # type: ignore[arg-type]
-            callback=callback,
-            train_freq=self._round_train_freq(),
-            replay_buffer=self.replay_buffer,  # type: ignore[arg-type]
-            action_noise=self.action_noise,
-            learning_starts=self.learning_starts,
-            log_interval=log_interval,
-        )
+            self.env, callback, self._round_train_freq(), self.replay_buffer,  # type: ignore[arg-type]
+            self.action_noise, self.learning_starts, log_interval,
+        )  # fmt: skip
         updates = self.updates_due(start, self.num_timesteps) if rollout.continue_training else 0
         if updates > 0:
             stepping = self.step_envs_during_updates and not self.no_env_step_this_round
@@ -131,11 +97,8 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         return rollout.continue_training
 
     def in_warmup(self, learning_starts: int | None = None) -> bool:
-        """
-        :param learning_starts: warm-up length in transitions (``None``: the model's)
-        :return: whether the next actions are uniformly random (the first ``learning_starts`` transitions since the
-            last reset)
-        """
+        """:return: whether the next actions are uniformly random (in the ``learning_starts`` transitions, ``None``:
+        the model's, since the last reset)"""
         warmup = self.learning_starts if learning_starts is None else learning_starts
         return self.num_timesteps - self.reset_step < warmup
 
@@ -149,10 +112,7 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         learning_starts: int = 0,
         log_interval: int | None = None,
     ) -> RolloutReturn:
-        """
-        SB3's ``collect_rollouts``, except that the first step completes the step sent before the last round of
-        updates, if there is one (``step_envs_during_updates``), instead of choosing new actions.
-        """
+        """SB3's ``collect_rollouts``; the first step completes the step sent before the updates, if any."""
         self.policy.set_training_mode(False)
         if env.num_envs > 1 and train_freq.unit == TrainFrequencyUnit.EPISODE:
             raise ValueError(
@@ -174,9 +134,7 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
 
             callback.update_locals(locals())
             if not callback.on_step():
-                return RolloutReturn(
-                    num_collected_steps * env.num_envs, num_collected_episodes, continue_training=False
-                )
+                return RolloutReturn(num_collected_steps * env.num_envs, num_collected_episodes, False)
             self._update_info_buffer(infos, dones)
             self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
             self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
@@ -200,11 +158,8 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         self._pending_step = (actions, buffer_actions)
 
     def _finish_pending_step(self) -> None:
-        """
-        After an exception between :meth:`_send_next_step` and the next rollout: wait for the step in flight and
-        store its transition, so that the model's last observation is the environments' again. A step that cannot
-        be completed (the environments died) is dropped.
-        """
+        """After an exception: wait for the step in flight and store its transition (dropped if the environments
+        died)."""
         if self._pending_step is None or self.env is None:
             return
         _, buffer_actions = self._pending_step
@@ -218,26 +173,16 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         self._store_transition(self.replay_buffer, buffer_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
 
     def _convert_train_freq(self) -> None:
-        """SB3's conversion of ``train_freq`` to a ``TrainFreq``, and of ``(n, "transition")`` (or a list, as
-        rl_zoo3's YAML gives it) to ``TrainFreq(n, TRANSITION)``."""
-        train_freq = self.train_freq
-        if (
-            isinstance(train_freq, (tuple, list))
-            and len(train_freq) == 2
-            and train_freq[1] in (TRANSITION, "transition")
-        ):
-            self.train_freq = TrainFreq(train_freq[0], TRANSITION)  # type: ignore[arg-type]
+        """SB3's conversion of ``train_freq``, and of ``(n, "transition")`` to ``TrainFreq(n, TRANSITION)``."""
+        freq = self.train_freq
+        if isinstance(freq, (tuple, list)) and len(freq) == 2 and freq[1] in (TRANSITION, "transition"):
+            self.train_freq = TrainFreq(freq[0], TRANSITION)  # type: ignore[arg-type]
         else:
             super()._convert_train_freq()
 
     def _round_train_freq(self) -> TrainFreq:
-        """
-        ``env.step`` calls of the next rollout: with ``(n, "transition")``, up to the step in which the transition
-        count reaches the next multiple of ``n`` (``n`` steps with one environment, one step when ``n_envs >= n``) or
-        the budget of ``learn()``, whichever comes first (SB3 completes a round past the budget: a budget of 375
-        transitions would train 376 with ``n=2``; here it trains 375, or the next multiple of ``n_envs``, as every
-        environment steps at once); SB3's ``train_freq`` (steps of every environment, or episodes) as is.
-        """
+        """``env.step`` calls of the next rollout: with ``(n, "transition")``, up to the step in which the transition
+        count reaches the next multiple of ``n`` or the budget of ``learn()``; SB3's ``train_freq`` as is."""
         if self.train_freq.unit != TRANSITION:
             return self.train_freq
         frequency = self.train_freq.frequency
@@ -246,26 +191,12 @@ class RoundsAlgorithm(CollapseModelBase, OffPolicyAlgorithm):
         return TrainFreq(-(-(stop - self.num_timesteps) // self.n_envs), TrainFrequencyUnit.STEP)
 
     def updates_due(self, start: int, end: int) -> int:
-        """
-        Updates due when the transition count goes from ``start`` to ``end``. With ``(n, "transition")``, DrQ-v2's
-        ratio: ``gradient_steps`` for each multiple ``m`` of ``n`` with ``start < m <= end`` and
-        ``m > reset_step + learning_starts`` (one per transition ``t`` in that range with ``gradient_steps=-1``).
-        With SB3's ``train_freq`` (the rollout of ``n`` steps of every environment, or of ``n`` episodes), SB3's:
-        ``gradient_steps`` (``-1``: ``end - start``) when ``end > reset_step + learning_starts``, else 0.
-
-        :param start: ``num_timesteps`` before the steps
-        :param end: ``num_timesteps`` after them
-        :return: the number of updates
-        """
+        """:return: the updates due when ``num_timesteps`` goes from ``start`` to ``end`` (with ``(n, "transition")``,
+        ``gradient_steps`` per multiple of ``n`` past ``reset_step + learning_starts``; SB3's otherwise)"""
         first = self.reset_step + self.learning_starts  # no update at or before this transition count
         if self.train_freq.unit != TRANSITION:
-            if end <= first:
-                return 0
-            return self.gradient_steps if self.gradient_steps >= 0 else end - start
-        low = max(start, first)
+            return 0 if end <= first else self.gradient_steps if self.gradient_steps >= 0 else end - start
+        low, frequency = max(start, first), self.train_freq.frequency
         if end <= low:
             return 0
-        if self.gradient_steps < 0:
-            return end - low
-        frequency = self.train_freq.frequency
-        return self.gradient_steps * (end // frequency - low // frequency)
+        return end - low if self.gradient_steps < 0 else self.gradient_steps * (end // frequency - low // frequency)

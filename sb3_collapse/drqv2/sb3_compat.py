@@ -1,37 +1,23 @@
-"""
-What makes code written for SB3's TD3 run with :class:`~sb3_collapse.drqv2.DrQv2` in its place.
-
-- :func:`combine_callbacks`: the constructor's ``callback=`` and ``learn()``'s, each converted as SB3 converts a
-  callback (a function becomes a ``ConvertCallback``, a list a ``CallbackList``);
-- :class:`ConstructorCallbacks`: the constructor's ``callback=``, saved by ``save`` and built again by ``load``;
-- :class:`DictNStepReplayBuffer`: n-step returns on ``spaces.Dict`` observations (``MultiInputPolicy``), which SB3's
-  ``DictReplayBuffer`` lacks (SB3 asserts ``n_steps == 1`` for dict observations);
-- :func:`dict_replay_buffer_class`: the replay buffer of dict observations;
-- :func:`check_optimize_memory_usage`: SB3's ``optimize_memory_usage`` where it applies, a warning where it does not;
-- :func:`action_noise_actions`: SB3's exploration with an ``ActionNoise`` (``action_noise=``).
-
-See docs/algorithm.md#sb3s-keywords-code-written-for-td3-runs-with-drqv2.
-"""
+"""What makes code written for SB3's TD3 run with ``DrQv2`` in its place: the constructor's callbacks (saved and
+loaded) and n-step returns on dict observations (docs/algorithm.md, *SB3's keywords*)."""
 
 from __future__ import annotations
 
 import io
 import pathlib
-import warnings
 from collections.abc import Callable, Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
-from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
+from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
-from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_collapse.common.saved_callbacks import restore_callbacks, saved_callbacks
 from sb3_collapse.drqv2.checks import check_load_arguments
+from sb3_collapse.drqv2.replay_buffer import n_step_returns
 
 SelfConstructorCallbacks = TypeVar("SelfConstructorCallbacks", bound="ConstructorCallbacks")
 
@@ -49,39 +35,18 @@ def _as_callback(item: BaseCallback | Callable[[dict[str, Any], dict[str, Any]],
 
 
 def combine_callbacks(*callbacks: MaybeCallback) -> BaseCallback | None:
-    """
-    The callbacks of a ``learn()`` call: the constructor's then ``learn()``'s, in that order.
-
-    Each is what SB3's ``learn(callback=...)`` takes: ``None``, a ``BaseCallback`` (a ``CallbackList`` included), a
-    function ``(locals, globals) -> bool`` (SB3 wraps it in a ``ConvertCallback``) or a list of these (SB3 makes a
-    ``CallbackList``).
-
-    :param callbacks: the callbacks, in the order they run
-    :return: ``None`` without any; the callback itself when there is one; otherwise a ``CallbackList``
-    :raises TypeError: for anything else
-    """
-    flat: list[BaseCallback] = []
-    for item in callbacks:
-        if item is None:
-            continue
-        items = item if isinstance(item, list) else [item]
-        flat.extend(_as_callback(callback) for callback in items)  # type: ignore[arg-type]
-    if not flat:
-        return None
-    return flat[0] if len(flat) == 1 else CallbackList(flat)
+    """:return: ``callbacks`` (each what SB3's ``learn(callback=...)`` takes) as one callback, in order, or ``None``"""
+    items = [one for item in callbacks if item is not None for one in (item if isinstance(item, list) else [item])]
+    flat = [_as_callback(item) for item in items]  # type: ignore[arg-type]
+    return None if not flat else flat[0] if len(flat) == 1 else CallbackList(flat)
 
 
 class ConstructorCallbacks:
-    """
-    SB3's ``save`` and ``load`` with the constructor's ``callback=`` (an SB3 algorithm's mixin, before it): ``save``
-    keeps those that can be built again, with their settings and their state (``sb3_collapse.common.saved_callbacks``:
-    ``CollapseReset``, ``CollapseMetrics``...), ``load`` builds them again (a warning names the others). ``learn()``
-    runs them before its own (:func:`combine_callbacks`).
-    """
+    """SB3's ``save`` and ``load`` with the constructor's ``callback=`` (a mixin before an SB3 algorithm): those that
+    can be built again are saved with their state (``sb3_collapse.common.saved_callbacks``)."""
 
     callback: MaybeCallback = None
-    load_parsers: ClassVar[dict[str, Callable[[Any], Any]]] = {}
-    """``load(**kwargs)`` entries given as the constructor takes them, with the function that parses them."""
+    load_parsers: ClassVar[dict[str, Callable[[Any], Any]]] = {}  # load(**kwargs) entries -> their parser
 
     @classmethod
     def load(  # type: ignore[misc]
@@ -95,12 +60,10 @@ class ConstructorCallbacks:
         **kwargs: Any,
     ) -> SelfConstructorCallbacks:
         """
-        SB3's ``load``, with the constructor's callbacks built again unless ``callback=`` is given. A model built with
-        ``init_from`` comes back with the weights it was saved with: the transplant is not done again.
+        SB3's ``load``, with the constructor's callbacks built again unless ``callback=`` is given.
 
-        :param kwargs: saved attributes to override, as in SB3 (``stddev_schedule="linear(1.0,0.1,500000)"``...)
-        :raises TypeError: for ``init_from``: build a new model with it instead
-        :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
+        :param kwargs: saved attributes to override, as in SB3
+        :raises: as :func:`~sb3_collapse.drqv2.checks.check_load_arguments`
         """
         check_load_arguments(path, kwargs, f"{cls.__name__}.load")
         kwargs = {name: cls.load_parsers.get(name, lambda value: value)(value) for name, value in kwargs.items()}
@@ -128,16 +91,7 @@ class ConstructorCallbacks:
 
 
 class DictNStepReplayBuffer(DictReplayBuffer):
-    """
-    SB3's ``DictReplayBuffer`` with the n-step returns of SB3's ``NStepReplayBuffer`` (the same rule: rewards summed
-    up to the first termination or time limit and the newest transition, ``discounts = gamma ** k``, time limits
-    bootstrapped), for dict observations.
-
-    :param args: those of ``DictReplayBuffer``
-    :param n_steps: length of the returns, in steps of one environment
-    :param gamma: discount factor
-    :param kwargs: those of ``DictReplayBuffer``
-    """
+    """SB3's ``DictReplayBuffer`` with the n-step returns of SB3's ``NStepReplayBuffer`` (``n_steps``, ``gamma``)."""
 
     def __init__(self, *args: Any, n_steps: int = 3, gamma: float = 0.99, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -148,28 +102,7 @@ class DictNStepReplayBuffer(DictReplayBuffer):
         self, batch_inds: np.ndarray, env: VecNormalize | None = None
     ) -> DictReplayBufferSamples:
         env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
-        # The newest transition ends every return (as in NStepReplayBuffer): it is marked as a time limit meanwhile.
-        last_valid_index = self.pos - 1
-        original_timeouts = self.timeouts[last_valid_index].copy()
-        self.timeouts[last_valid_index] = np.logical_or(original_timeouts, np.logical_not(self.dones[last_valid_index]))
-        try:
-            steps = np.arange(self.n_steps).reshape(1, -1)
-            indices = (batch_inds[:, None] + steps) % self.buffer_size
-            rewards_seq = self._normalize_reward(self.rewards[indices, env_indices[:, None]], env)
-            dones_seq = self.dones[indices, env_indices[:, None]]
-            truncated_seq = self.timeouts[indices, env_indices[:, None]]
-            done_or_truncated = np.logical_or(dones_seq, truncated_seq)
-            done_idx = np.where(done_or_truncated.any(axis=1), done_or_truncated.argmax(axis=1), self.n_steps - 1)
-            mask = steps <= done_idx[:, None]
-            target_q_discounts = self.gamma ** mask.sum(axis=1, keepdims=True).astype(np.float32)
-            discounts = self.gamma ** np.arange(self.n_steps, dtype=np.float32).reshape(1, -1)
-            n_step_returns = (rewards_seq * discounts * mask).sum(axis=1, keepdims=True)
-            last_indices = (batch_inds + done_idx) % self.buffer_size
-            next_dones = self.dones[last_indices, env_indices][:, None].astype(np.float32)
-            next_timeouts = self.timeouts[last_indices, env_indices][:, None].astype(np.float32)
-            final_dones = next_dones * (1.0 - next_timeouts)
-        finally:
-            self.timeouts[last_valid_index] = original_timeouts
+        returns, discounts, dones, last_indices = n_step_returns(self, batch_inds, env_indices, env)
         obs = self._normalize_obs(
             {key: value[batch_inds, env_indices] for key, value in self.observations.items()}, env
         )
@@ -181,59 +114,7 @@ class DictNStepReplayBuffer(DictReplayBuffer):
             observations={key: self.to_torch(value) for key, value in obs.items()},
             actions=self.to_torch(self.actions[batch_inds, env_indices]),
             next_observations={key: self.to_torch(value) for key, value in next_obs.items()},
-            dones=self.to_torch(final_dones),
-            rewards=self.to_torch(n_step_returns.astype(np.float32)),
-            discounts=self.to_torch(target_q_discounts),
+            dones=self.to_torch(dones),
+            rewards=self.to_torch(returns.astype(np.float32)),
+            discounts=self.to_torch(discounts),
         )
-
-
-def dict_replay_buffer_class(observation_space: spaces.Space, n_steps: int) -> type[ReplayBuffer] | None:
-    """
-    :param observation_space: the model's observation space
-    :param n_steps: the model's ``n_steps``
-    :return: for dict observations, ``DictNStepReplayBuffer`` when ``n_steps > 1``, else SB3's ``DictReplayBuffer``;
-        ``None`` for other observations (the algorithm's default choice applies)
-    """
-    if not isinstance(observation_space, spaces.Dict):
-        return None
-    return DictNStepReplayBuffer if n_steps > 1 else DictReplayBuffer
-
-
-def check_optimize_memory_usage(
-    optimize_memory_usage: bool, replay_buffer_class: type[ReplayBuffer] | None, frame_stack_buffer: bool, n_steps: int
-) -> bool:
-    """
-    SB3's ``optimize_memory_usage=True`` (next observations not stored, read from the next slot) where the replay
-    buffer supports it: SB3's plain ``ReplayBuffer`` (``n_steps=1``, not dict observations). Elsewhere it is ignored
-    with a warning that says why: ``FrameStackReplayBuffer`` stores each frame once already (it saves more than
-    SB3's option); SB3's ``NStepReplayBuffer`` and ``DictReplayBuffer`` (and the n-step dict buffer) do not support it.
-
-    :param optimize_memory_usage: the keyword as given
-    :param replay_buffer_class: the replay buffer class DrQv2 will use (``None``: SB3's choice, ``ReplayBuffer`` or
-        ``NStepReplayBuffer`` by ``n_steps``)
-    :param frame_stack_buffer: whether it is a ``FrameStackReplayBuffer``
-    :param n_steps: the model's ``n_steps`` (SB3 picks its ``NStepReplayBuffer`` when > 1)
-    :return: the value to hand to SB3's replay buffer
-    """
-    plain = replay_buffer_class is ReplayBuffer or (replay_buffer_class is None and n_steps == 1)
-    if not optimize_memory_usage or plain:
-        return bool(optimize_memory_usage)
-    if frame_stack_buffer:
-        reason = "FrameStackReplayBuffer already stores each frame once (less memory than SB3's option)"
-    else:
-        name = "NStepReplayBuffer" if replay_buffer_class is None else replay_buffer_class.__name__
-        reason = f"the replay buffer ({name}) does not support it; n_steps=1 uses SB3's ReplayBuffer, which does"
-    warnings.warn(f"DrQv2: optimize_memory_usage=True is ignored: {reason}.", stacklevel=4)
-    return False
-
-
-def action_noise_actions(mean_actions: np.ndarray, action_noise: ActionNoise) -> np.ndarray:
-    """
-    SB3's exploration with an action noise (TD3's ``_sample_action``): the deterministic action, rescaled to [-1, 1],
-    plus a draw of the noise, clipped to [-1, 1].
-
-    :param mean_actions: the actor's deterministic actions, rescaled to [-1, 1] (``policy.scale_action``)
-    :param action_noise: the noise
-    :return: the actions, in [-1, 1] (the replay buffer's actions)
-    """
-    return np.clip(mean_actions + action_noise(), -1, 1)

@@ -1,12 +1,11 @@
-"""
-Layer transplants (the action-collapse paper's Study 2): start a new DrQv2 from parts of saved ones, "the rest
-blank". The groups (``cnn``, ``mlp``, ``critic``), the ``state_dict`` entries each one replaces, what is not copied
-and the checks: docs/algorithm.md#layer-transplants-drqv2init_from.
-"""
+"""Layer transplants (the paper's Study 2): a new DrQv2 started from parts of saved ones, "the rest blank":
+docs/algorithm.md#layer-transplants-drqv2init_from."""
 
 from __future__ import annotations
 
+import functools
 import inspect
+import io
 import json
 import os
 import zipfile
@@ -20,43 +19,29 @@ import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
 
-from sb3_collapse.drqv2.checks import split_sb3_feature_size
+from sb3_collapse.drqv2.checks import split_sb3_feature_size, zip_file
 from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.drqv2.policies import DrQv2Policy
 
+# Group -> prefixes of the policy state_dict keys it replaces, and -> the named layers whose weights it holds.
 TRANSPLANT_GROUPS: dict[str, tuple[str, ...]] = {
     "cnn": ("encoder.",),
     "mlp": ("actor.",),
     "critic": ("critic.", "critic_target."),
 }
-"""Group name -> prefixes of the policy ``state_dict`` keys it replaces."""
-
 GROUP_LAYERS: dict[str, tuple[str, ...]] = {
     "cnn": ("cnn1", "cnn2", "cnn3", "cnn4"),
     "mlp": ("mlp0", "mlp1", "mlp2", "action"),
     "critic": (),
 }
-"""Group name -> the named layers (``DrQv2Policy.named_layers``) whose weights it holds; the critic's are unnamed."""
-
-SOURCE_PREFIXES: dict[str, str] = {"critic_target.": "critic."}
-"""Target prefix -> the source prefix it is copied from, where they differ: the target critic from the critic."""
-
-DRQV2_POLICY_MODULE = "sb3_collapse.drqv2.policies"
-"""Module of the ``policy_class`` saved in every DrQv2 zip."""
-
-TransplantSpec = str | os.PathLike | BaseAlgorithm
-"""A source: the path of a zip saved by ``DrQv2.save`` (``.zip`` may be left out), or a DrQv2 model."""
+SOURCE_PREFIXES: dict[str, str] = {"critic_target.": "critic."}  # target prefix -> source prefix, where they differ
+DRQV2_POLICY_MODULE = "sb3_collapse.drqv2.policies"  # of the policy_class saved in every DrQv2 zip
+TransplantSpec = str | os.PathLike | BaseAlgorithm  # a zip saved by DrQv2.save (".zip" may be left out), or a model
 
 
 @dataclass(frozen=True)
 class TransplantSource:
-    """
-    The policy weights of a source model and the settings that shape them.
-
-    :param description: where they come from: the zip's absolute path, or a description of an in-memory model
-    :param state_dict: the source policy's ``state_dict()``, on the CPU
-    :param settings: :func:`policy_settings` of the source
-    """
+    """A source's policy ``state_dict`` on the CPU, its :func:`policy_settings` and where it comes from."""
 
     description: str
     state_dict: dict[str, th.Tensor]
@@ -65,12 +50,10 @@ class TransplantSource:
 
 def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str, TransplantSpec]:
     """
-    Check the ``init_from`` argument of ``DrQv2`` and resolve its paths (reads no file).
+    Check ``DrQv2``'s ``init_from`` (group -> source) and resolve its paths (reads no file).
 
-    :param init_from: group (``"cnn"``, ``"mlp"``, ``"critic"``) -> source, or ``None``
-    :return: group -> resolved source (an absolute ``Path`` or the model), in ``TRANSPLANT_GROUPS`` order;
-        empty for ``None`` or an empty mapping
-    :raises TypeError: for a non-mapping, or a source that is neither a path nor a DrQv2 model
+    :return: group -> an absolute ``Path`` or the model, in ``TRANSPLANT_GROUPS`` order
+    :raises TypeError: for a non-mapping or a source that is neither a path nor a DrQv2 model
     :raises ValueError: for an unknown group
     :raises FileNotFoundError: for a path that does not exist (with or without ``.zip``)
     """
@@ -88,9 +71,7 @@ def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str,
             "('cnn': the encoder, 'mlp': the actor, 'critic': the critic and its target)."
         )
     resolved: dict[str, TransplantSpec] = {}
-    for key in TRANSPLANT_GROUPS:
-        if key not in init_from:
-            continue
+    for key in (key for key in TRANSPLANT_GROUPS if key in init_from):
         source = init_from[key]
         if isinstance(source, BaseAlgorithm):
             if not isinstance(source.policy, DrQv2Policy):
@@ -110,33 +91,15 @@ def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str,
 
 
 def resolve_source_path(key: str, path: str | os.PathLike[str]) -> Path:
-    """
-    :param key: the group (for messages)
-    :param path: a zip saved by ``DrQv2.save``; as in ``DrQv2.load``, ``.zip`` may be left out
-    :return: the absolute path of the existing file
-    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file
-    """
-    candidate = Path(path)
-    zipped = candidate.with_name(candidate.name + ".zip")
-    if not candidate.is_file() and candidate.suffix != ".zip" and zipped.is_file():
-        candidate = zipped
-    if not candidate.is_file():
+    """:return: the absolute path of ``path`` or ``path.zip`` (``FileNotFoundError`` naming ``init_from[key]`` if
+    neither is a file)"""
+    candidate = zip_file(path)
+    if candidate is None:
         raise FileNotFoundError(
             f"init_from[{key!r}]: checkpoint {os.fspath(path)!r} does not exist; give the path of a zip saved by "
             "DrQv2.save (e.g. a run's final model)."
         )
     return candidate.resolve()
-
-
-def describe_init_from(resolved: Mapping[str, TransplantSpec]) -> dict[str, str] | None:
-    """
-    :param resolved: the output of :func:`check_init_from`
-    :return: group -> a plain string naming the source (the absolute path of a zip, or a description of an
-        in-memory model), what ``DrQv2`` stores and saves as ``init_from``; ``None`` when there is no source
-    """
-    if not resolved:
-        return None
-    return {key: describe_source(source) for key, source in resolved.items()}
 
 
 def describe_source(source: TransplantSpec) -> str:
@@ -147,51 +110,29 @@ def describe_source(source: TransplantSpec) -> str:
 
 
 def load_sources(resolved: Mapping[str, TransplantSpec]) -> dict[str, TransplantSource]:
-    """
-    Read every source (each file once, on the CPU).
-
-    :param resolved: the output of :func:`check_init_from`
-    :return: group -> its source
-    :raises ValueError: for a file that is not a zip saved by ``DrQv2.save``
-    """
-    cache: dict[str, TransplantSource] = {}
-    sources: dict[str, TransplantSource] = {}
+    """:return: group -> source of :func:`check_init_from`'s ``resolved``, each file read once (``ValueError`` for a
+    file that is no DrQv2 zip)"""
+    files: dict[str, TransplantSource] = {}
     for key, spec in resolved.items():
-        if isinstance(spec, BaseAlgorithm):
-            sources[key] = source_from_model(spec)
-            continue
-        name = os.fspath(spec)
-        if name not in cache:
-            cache[name] = read_source_zip(key, spec)
-        sources[key] = cache[name]
-    return sources
+        if not isinstance(spec, BaseAlgorithm) and os.fspath(spec) not in files:
+            files[os.fspath(spec)] = read_source_zip(key, spec)  # type: ignore[arg-type]
+    return {
+        key: source_from_model(spec) if isinstance(spec, BaseAlgorithm) else files[os.fspath(spec)]
+        for key, spec in resolved.items()
+    }
 
 
 def source_from_model(model: BaseAlgorithm) -> TransplantSource:
-    """
-    :param model: a DrQv2 model
-    :return: a copy of its policy weights on the CPU and its settings
-    """
-    policy = model.policy
-    if not isinstance(policy, DrQv2Policy):
-        raise TypeError(f"A {type(model).__name__} model cannot be transplanted: its policy is not a DrQv2Policy.")
+    """:return: a copy of a DrQv2 ``model``'s policy weights on the CPU and its settings"""
+    policy = model.policy  # a DrQv2Policy (check_init_from)
     state_dict = {name: value.detach().to("cpu", copy=True) for name, value in policy.state_dict().items()}
     settings = policy_settings(type(policy), model.policy_kwargs, policy.observation_space, policy.action_space)
     return TransplantSource(describe_source(model), state_dict, settings)
 
 
 def read_source_zip(key: str, path: Path) -> TransplantSource:
-    """
-    Read the policy weights and settings of a zip saved by ``DrQv2.save``, without building a model: no replay
-    buffer, no optimizer, no random generator touched. Only the policy class, its keyword arguments and the
-    spaces are unpickled, and only once the class is known to be DrQv2's.
-
-    :param key: the group (for messages)
-    :param path: the zip
-    :return: its weights on the CPU and its settings
-    :raises ValueError: for a file that is not a zip, a zip that is not an SB3 model, a model of another
-        algorithm, or unreadable contents
-    """
+    """The policy weights and settings of a zip saved by ``DrQv2.save``, without building a model (``ValueError``
+    for anything else, naming ``init_from[key]``)."""
     where = f"init_from[{key!r}] = {os.fspath(path)!r}"
     if not zipfile.is_zipfile(path):
         raise ValueError(f"{where} is not a zip file (corrupt or truncated?); expected a zip saved by DrQv2.save.")
@@ -208,7 +149,8 @@ def read_source_zip(key: str, path: Path) -> TransplantSource:
             )
         needed = ("policy_class", "policy_kwargs", "observation_space", "action_space")
         data = _read_member(where, "data", lambda: json_to_data(json.dumps({name: raw[name] for name in needed})))
-        state_dict = _read_member(where, "policy.pth", lambda: _load_tensors(archive))
+        load = functools.partial(th.load, map_location="cpu", weights_only=True)
+        state_dict = _read_member(where, "policy.pth", lambda: load(io.BytesIO(archive.read("policy.pth"))))
     policy_class = data.get("policy_class")
     restored = isinstance(policy_class, type) and issubclass(policy_class, DrQv2Policy)
     if not restored:
@@ -220,11 +162,6 @@ def read_source_zip(key: str, path: Path) -> TransplantSource:
         policy_class, data.get("policy_kwargs") or {}, data.get("observation_space"), data.get("action_space")
     )
     return TransplantSource(os.fspath(path), state_dict, settings)
-
-
-def _load_tensors(archive: zipfile.ZipFile) -> Any:
-    with archive.open("policy.pth") as file:
-        return th.load(file, map_location="cpu", weights_only=True)
 
 
 def _read_member(where: str, member: str, read: Callable[[], Any]) -> Any:
@@ -241,10 +178,7 @@ def _read_member(where: str, member: str, read: Callable[[], Any]) -> Any:
 
 def _constructor_default(cls: type, name: str) -> Any:
     """The default of keyword ``name`` of ``cls.__init__``, looked up along the class hierarchy."""
-    for klass in cls.__mro__:
-        init = klass.__dict__.get("__init__")
-        if init is None:
-            continue
+    for init in (klass.__dict__["__init__"] for klass in cls.__mro__ if "__init__" in klass.__dict__):
         parameter = inspect.signature(init).parameters.get(name)
         if parameter is not None and parameter.default is not inspect.Parameter.empty:
             return parameter.default
@@ -255,22 +189,14 @@ def policy_settings(
     policy_class: type[DrQv2Policy], policy_kwargs: Mapping[str, Any], observation_space: Any, action_space: Any
 ) -> dict[str, Any]:
     """
-    The settings that shape a DrQv2 policy's weights, with the defaults filled in; used to explain a shape
-    mismatch and to check that a transplanted trunk reads the encoder's output in the same order.
-
-    :param policy_class: ``CnnPolicy``, ``MlpPolicy`` or another ``DrQv2Policy`` subclass
-    :param policy_kwargs: the ``policy_kwargs`` the model was built with
-    :param observation_space: its observation space
-    :param action_space: its action space
-    :return: ``{"policy", "observation shape", "action dimensions", "feature_dim", "hidden_dim",
-        "encoder channels", "channels_last"}`` (the last two ``None`` without a pixel encoder)
+    :return: the settings that shape a DrQv2 policy's weights, defaults filled in: ``{"policy", "observation shape",
+        "action dimensions", "feature_dim", "hidden_dim", "encoder channels", "channels_last"}``
     """
 
     def kwarg(name: str) -> Any:
         return policy_kwargs[name] if name in policy_kwargs else _constructor_default(policy_class, name)
 
     encoder_class = kwarg("encoder_class")
-    # SB3's features_extractor_kwargs: features_dim / cnn_output_dim is feature_dim, the rest DrQ-v2's encoder's
     sb3_size, sb3_encoder_kwargs = split_sb3_feature_size(
         policy_kwargs.get("features_extractor_kwargs"), policy_kwargs.get("features_extractor_class")
     )
@@ -300,16 +226,12 @@ def target_settings(policy: DrQv2Policy) -> dict[str, Any]:
     encoder_kwargs = {**policy.encoder_kwargs}
     if isinstance(policy.encoder, PixelEncoder):
         encoder_kwargs.setdefault("channels_last", policy.encoder.channels_last)
-    kwargs = {
-        "feature_dim": policy.feature_dim,
-        "hidden_dim": policy.hidden_dim,
-        "encoder_class": policy.encoder_class,
-        "encoder_kwargs": encoder_kwargs,
-    }
+    kwargs = {name: getattr(policy, name) for name in ("feature_dim", "hidden_dim", "encoder_class")}
+    kwargs["encoder_kwargs"] = encoder_kwargs
     return policy_settings(type(policy), kwargs, policy.observation_space, policy.action_space)
 
 
-SETTING_HINTS: dict[str, str] = {
+SETTING_HINTS: dict[str, str] = {  # setting -> how it is set
     "policy": "CnnPolicy reads pixels, MlpPolicy state vectors",
     "observation shape": "a different frame_stack (3 channels per frame) or image size",
     "action dimensions": "a different task (action space)",
@@ -317,43 +239,26 @@ SETTING_HINTS: dict[str, str] = {
     "hidden_dim": "policy_kwargs=dict(hidden_dim=...)",
     "encoder channels": "policy_kwargs=dict(encoder_kwargs=dict(channels=...))",
 }
-"""Setting -> how it is set, appended to the explanation of a mismatch."""
 
 
 def likely_cause(source: Mapping[str, Any], target: Mapping[str, Any]) -> str:
-    """
-    :param source: :func:`policy_settings` of the source
-    :param target: those of the model being built
-    :return: a sentence naming the settings that differ, e.g. "the source was trained with feature_dim=100,
-        this model has feature_dim=50 (policy_kwargs=dict(feature_dim=...))"
-    """
+    """:return: a sentence naming the :func:`policy_settings` that differ between ``source`` and ``target``"""
     differences = [
         f"the source was trained with {name}={source[name]!r}, this model has {name}={target[name]!r}"
         + (f" ({SETTING_HINTS[name]})" if name in SETTING_HINTS else "")
         for name in SETTING_HINTS
         if source.get(name) != target.get(name)
     ]
-    if not differences:
-        return "the networks were built differently although their recorded settings agree"
-    return "; ".join(differences)
+    return "; ".join(differences) or "the networks were built differently although their recorded settings agree"
 
 
 def group_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
-    """
-    :param keys: ``state_dict`` keys (or the ``state_dict``)
-    :param group: ``"cnn"``, ``"mlp"`` or ``"critic"``
-    :return: the keys the group replaces, in the given order
-    """
-    prefixes = TRANSPLANT_GROUPS[group]
-    return [key for key in keys if key.startswith(prefixes)]
+    """:return: the ``state_dict`` keys among ``keys`` that ``group`` replaces, in order"""
+    return [key for key in keys if key.startswith(TRANSPLANT_GROUPS[group])]
 
 
 def group_source_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
-    """
-    :param keys: a source's ``state_dict`` keys (or the ``state_dict``)
-    :param group: ``"cnn"``, ``"mlp"`` or ``"critic"``
-    :return: the keys the group copies from (the critic's only, for ``"critic"``), in the given order
-    """
+    """:return: the source ``state_dict`` keys among ``keys`` that ``group`` copies from, in order"""
     prefixes = tuple(dict.fromkeys(SOURCE_PREFIXES.get(prefix, prefix) for prefix in TRANSPLANT_GROUPS[group]))
     return [key for key in keys if key.startswith(prefixes)]
 
@@ -368,14 +273,11 @@ def source_key(target_key: str) -> str:
 
 def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]) -> dict[str, th.Tensor]:
     """
-    Check a transplant and list what it copies; changes nothing.
+    Check a transplant of ``sources`` into ``policy``; changes nothing.
 
-    :param policy: the freshly built policy to copy into
-    :param sources: group -> source (e.g. :func:`load_sources`)
-    :return: target ``state_dict`` key -> the source tensor to copy into it, for every key of the groups
-    :raises ValueError: for an unknown group, a group this model or a source lacks (``cnn`` with
-        ``MlpPolicy``), keys that differ, a shape or dtype mismatch (naming the key, both shapes and the
-        settings that differ), or trunks that would read the encoder's output in another order (``channels_last``)
+    :return: target ``state_dict`` key -> the source tensor to copy into it
+    :raises ValueError: for a group this model or a source lacks, keys, shapes or dtypes that differ, or trunks
+        that would read the encoder's output in another order (``channels_last``)
     """
     target_state = policy.state_dict()
     settings = target_settings(policy)
@@ -429,32 +331,14 @@ def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]
     return plan
 
 
-def apply_transplant(policy: DrQv2Policy, plan: Mapping[str, th.Tensor]) -> None:
-    """
-    Copy in place, so the optimizers keep referencing the same (still fresh) parameters and each tensor keeps
-    its device and memory format.
-
-    :param policy: the policy to copy into
-    :param plan: the output of :func:`plan_transplant` for this policy
-    """
-    target_state = policy.state_dict()  # tensors share storage with the parameters and buffers
+def transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource], verbose: int = 0) -> list[str]:
+    """Check everything (:func:`plan_transplant`), then copy the groups' weights into ``policy``'s tensors in place
+    (``verbose >= 1``: say which). :return: the ``state_dict`` keys replaced"""
+    plan = plan_transplant(policy, sources)
+    target_state = policy.state_dict()  # tensors share storage with the parameters
     with th.no_grad():
         for key, value in plan.items():
             target_state[key].copy_(value)
-
-
-def transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource], verbose: int = 0) -> list[str]:
-    """
-    Check everything (:func:`plan_transplant`), then copy the groups' weights into ``policy``.
-
-    :param policy: the freshly built policy to copy into
-    :param sources: group -> source
-    :param verbose: 1 or more: print which groups came from where
-    :return: the ``state_dict`` keys that were replaced
-    :raises ValueError: see :func:`plan_transplant`; nothing is copied then
-    """
-    plan = plan_transplant(policy, sources)
-    apply_transplant(policy, plan)
     if verbose >= 1:
         groups = ", ".join(f"{group} from {source.description}" for group, source in sources.items())
         print(f"DrQv2: transplanted {groups} ({len(plan)} tensors)")

@@ -1,5 +1,4 @@
-"""The statistics of the updates (losses, Q values, gradient norms), summed on the device at each update and averaged
-into the logger at each log dump: one host transfer per dump, none per update."""
+"""The statistics of the updates, summed on the device and averaged into the logger at each log dump."""
 
 from __future__ import annotations
 
@@ -11,38 +10,22 @@ from stable_baselines3.common.logger import Logger
 
 
 class UpdateStats:
-    """
-    Sums of per-update statistics since the last :meth:`dump`.
-
-    ``grad_norms`` (a ``(layers,)`` tensor of the gradient norm of each named layer) is logged as
-    ``train/grad_norm/<layer>``; every other statistic (a 0-d tensor) as ``train/<name>``.
-    """
+    """Sums of per-update statistics since the last :meth:`dump`: ``grad_norms`` (``(layers,)``) logged as
+    ``train/grad_norm/<layer>``, every other (0-d) as ``train/<name>``."""
 
     def __init__(self) -> None:
         self.sums: dict[str, th.Tensor] = {}
-        self.count = 0
-        """Updates added since the last dump."""
+        self.count = 0  # updates added since the last dump
 
     def add(self, **values: th.Tensor | None) -> None:
-        """
-        Add one update's statistics (detached tensors on the model's device; ``None`` entries are skipped).
-
-        :param values: name -> value
-        """
-        for name, value in values.items():
-            if value is not None:
-                value = value.detach()
-                self.sums[name] = self.sums[name] + value if name in self.sums else value.clone()
+        """Add one update's statistics, name -> tensor on the model's device (``None`` skipped)."""
+        for name, value in ((name, value.detach()) for name, value in values.items() if value is not None):
+            self.sums[name] = self.sums[name] + value if name in self.sums else value.clone()
         self.count += 1
 
     def dump(self, logger: Logger, layer_names: Sequence[str]) -> dict[str, float] | None:
-        """
-        Write the means since the last dump to ``logger`` and start new sums.
-
-        :param logger: the model's logger
-        :param layer_names: the layers of ``grad_norms``, in order
-        :return: name -> mean of every statistic but ``grad_norms``; ``None`` when no update was added
-        """
+        """Write the means since the last dump to ``logger`` (``layer_names`` of ``grad_norms``) and start new sums.
+        :return: name -> mean of every statistic but ``grad_norms``; ``None`` when no update was added"""
         if self.count == 0:
             return None
         n, sums = self.count, {name: value.cpu() for name, value in self.sums.items()}

@@ -807,3 +807,28 @@ def test_sb3_identity_warmup_is_visible(policy, capsys):
     quiet = DrQv2(policy, make_env(policy), **SMALL, policy_kwargs=tiny(policy))
     quiet.learn(20)
     assert quiet._n_updates > 0 and capsys.readouterr().out == ""
+
+
+@pytest.mark.parametrize(
+    ("algorithm", "kwargs", "policy"),
+    [
+        ("TD3", {}, "td3.policies.TD3Policy"),
+        ("SAC", {}, "sac.policies.SACPolicy"),
+        ("DDPG", {}, "td3.policies.TD3Policy"),  # SB3's DDPG saves TD3's policy: told apart by its settings
+        ("TD3", {"policy_delay": 1, "target_noise_clip": 0.1}, "td3.policies.TD3Policy"),
+    ],
+)
+def test_loading_another_sb3_algorithms_zip_names_it_and_what_loads_it(tmp_path, algorithm, kwargs, policy):
+    import stable_baselines3 as sb3
+
+    env = RandomObservationEnv(spaces.Box(-1.0, 1.0, (4,), np.float32), ACTIONS)
+    model = getattr(sb3, algorithm)("MlpPolicy", env, buffer_size=10, policy_kwargs=dict(net_arch=[4]), **kwargs)
+    model.save(tmp_path / "other.zip")
+    with pytest.raises(ParameterError) as raised:
+        DrQv2.load(tmp_path / "other")  # no AttributeError from SB3's load on another policy
+    message = str(raised.value)
+    assert isinstance(raised.value, ValueError) and raised.value.parameter == "path" and "\n" not in message
+    assert message == (
+        f"path {str(tmp_path / 'other')!r} holds a {algorithm} checkpoint (policy stable_baselines3.{policy}), "
+        f"not a DrQv2 one: load it with stable_baselines3.{algorithm}.load."
+    )
