@@ -1,12 +1,4 @@
-"""
-Multi-seed sweeps on Ray: ``python -m sb3_collapse.sweep --help``.
-
-    python -m sb3_collapse.sweep --tasks walker-walk hopper-stand finger-spin --seeds 40 \\
-        --variants drqv2 drqv2+reset --out runs/sweep
-
-Every (task, variant, seed) trains as an independent Ray task into ``<out>/<task>/<variant>/seed_<k>``; rerun the
-same command to resume (finished trials are skipped, unfinished ones restart).
-"""
+"""Multi-seed sweeps on Ray: ``python -m sb3_collapse.sweep --help``, docs/sweeps.md."""
 
 from __future__ import annotations
 
@@ -25,7 +17,7 @@ from sb3_collapse.errors import (
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED
+from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
@@ -45,6 +37,7 @@ from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
     TRANSPLANT_SOURCES,
     check_checkpoints,
+    damaged_result,
     donor_key,
     expand_trials,
     parse_checkpoint_specs,
@@ -61,11 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags and every training flag of train."""
     p = argparse.ArgumentParser(
         prog=prog_name("sb3_collapse.sweep"),
-        description="Run every (task, variant, seed) as an independent DrQ-v2 trial on Ray, each into "
-        "<out>/<task>/<variant>/seed_<k> (the run folder of python -m sb3_collapse.train). Each task trains with "
-        "its own DrQ-v2 preset (sb3_collapse.presets, docs/presets.md); a DrQ-v2 flag given here overrides it for "
-        "every task and is recorded. Rerun the same command to resume: finished trials are skipped, unfinished "
-        "ones restart. Frames = agent steps x action repeat.",
+        description="Run every (task, variant, seed) as an independent trial on Ray (DrQ-v2, or the TD3/SAC "
+        "baselines that --variants names), each into <out>/<task>/<variant>/seed_<k> (the run folder of python -m "
+        "sb3_collapse.train). Each task trains with its own DrQ-v2 preset (docs/presets.md); a DrQ-v2 flag given "
+        "here overrides it for every task and is recorded. Rerun the same command to resume: finished trials are "
+        "skipped, unfinished ones resume from their newest checkpoint. Frames = agent steps x action repeat.",
         parents=[training_arguments()],
     )
     g = p.add_argument_group("sweep")
@@ -215,9 +208,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     for trial, error_path in summary.failed.items():
         again = ", and would again at a rerun" if trial in summary.repeating else ""
-        print(f"  failed{again}: {trial} (see {error_path})")
+        print(
+            f"  failed: {trial}: {summary.damaged[trial]}"
+            if trial in summary.damaged
+            else f"  failed{again}: {trial} (see {error_path})"
+        )
+    others = len(summary.failed) - len(summary.damaged)  # a damaged trial's line says what to do
+    if others:
+        print(failure_advice(others, len(summary.repeating) - len(summary.damaged)))
     if summary.failed:
-        print(failure_advice(len(summary.failed), len(summary.repeating)))
         return 1
     if summary.interrupted:
         print(
@@ -235,8 +234,7 @@ def failure_advice(failed: int, repeating: int) -> str:
     :return: one line: what to do about them
     """
     fix = (
-        f"fix the cause first (their {ERROR_TXT} says it: bad settings, a diverging run, an error of the training "
-        "code)"
+        f"fix the cause first (their {ERROR_TXT} says it: bad settings, a diverging run, an error of the training code)"
     )
     if repeating == 0:
         return "Rerun the same command to retry the failed trials."
@@ -254,10 +252,9 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
 
     :param args: the parsed command line
     :param trials: the sweep's trials
-    :return: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> path, and the record of the pick (``None``
-        for given checkpoints)
-    :raises InputError: for the old ``--good-checkpoint`` / ``--bad-checkpoint``, both forms at once, or one
-        agent giving both parts of a source
+    :return: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> path, and the record of a pick (else ``None``)
+    :raises InputError: for ``--good-checkpoint`` / ``--bad-checkpoint``, both forms at once, or one agent giving both
+        parts of a source
     """
     for source in DONOR_SOURCES:
         if getattr(args, f"{source}_checkpoint") is not None:
@@ -297,8 +294,7 @@ def dry_run(
     Print each trial's status and folder, and the counts; check the settings against the sweep's settings file.
 
     :return: exit status 0
-    :raises InputError: when the training settings differ from those of the sweep's settings file (and that is not
-    allowed)
+    :raises InputError: when the training settings differ from the sweep's settings file's (and that is not allowed)
     """
     if donors is not None:
         for task, picked in donors["tasks"].items():
@@ -308,19 +304,26 @@ def dry_run(
     settings = sweep_settings(trials, training, checkpoints, resources={}, donors=donors)
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
     statuses = {trial: str(run_status(trial_dir(out, trial)) or NOT_A_RUN) for trial in trials}
+    runs = kept = 0
     for trial, status in statuses.items():
         folder = trial_dir(out, trial)
+        reason = None if status == RunStatus.FINISHED else damaged_result(folder)
+        if reason is not None:  # not run: a rerun would not repair it
+            kept += 1
+            print(f"{status:<10} keep   {folder}: {reason}")
+            continue
         total = int(trial_config(trial, out, training, checkpoints).frames)  # type: ignore[arg-type]
         done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
         action = "skip" if status == RunStatus.FINISHED else "resume" if done is not None else "run"
+        runs += action != "skip"
         frames = total if status == RunStatus.FINISHED else done or 0
         print(f"{status:<10} {action:<6} {frames:>10,} of {total:,} frames  {folder}")
     counts = Counter(statuses.values())
     print(
         f"{len(trials)} trials: "
         + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
-        + f"; {sum(status != RunStatus.FINISHED for status in statuses.values())} would run (frames done: the newest "
-        "checkpoint of an unfinished trial)."
+        + f"; {runs} would run (frames done: the newest checkpoint of an unfinished trial)"
+        + (f"; {kept} kept as they are (an unreadable {RESULT_JSON})." if kept else ".")
     )
     return 0
 
