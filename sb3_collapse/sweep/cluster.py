@@ -1,8 +1,4 @@
-"""
-The Ray cluster of a sweep: Ray's import (:func:`import_ray`), the check that a cluster answers at the sweep's
-address before anything is written (:func:`check_cluster`), the session (:func:`ray_session`: a local instance,
-watched so that it never outlives the driver, or a cluster) and the check of its resources (:func:`check_resources`).
-"""
+"""The Ray cluster of a sweep: Ray's import, the check that a cluster answers, the session and its resources."""
 
 from __future__ import annotations
 
@@ -18,7 +14,8 @@ from typing import Any
 
 from sb3_collapse.errors import ClusterUnreachable, InputError, MissingDependencyError
 
-INSTALL_HINT = "pip install -e '.[sweep]'"
+CONNECT_TIMEOUT_S = 30.0
+"""Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
 
 
 def import_ray() -> Any:
@@ -29,12 +26,10 @@ def import_ray() -> Any:
     try:
         import ray
     except ImportError as error:
-        raise MissingDependencyError(f"Sweeps run on Ray, which is not installed: {INSTALL_HINT} ({error}).") from None
+        raise MissingDependencyError(
+            f"Sweeps run on Ray, which is not installed: pip install -e '.[sweep]' ({error})."
+        ) from None
     return ray
-
-
-CONNECT_TIMEOUT_S = 30.0
-"""Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
 
 
 def split_address(address: str) -> tuple[str, int]:
@@ -51,7 +46,7 @@ def split_address(address: str) -> tuple[str, int]:
 
 def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
     """
-    Wait until something accepts TCP connections at ``host:port`` (a cluster still starting gets ``timeout_s``).
+    Wait until something accepts TCP connections at ``host:port``.
 
     :param address: the address as given, for the messages
     :param host: the host
@@ -79,14 +74,12 @@ def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
 
 def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     """
-    Check that the Ray cluster at ``address`` answers and accepts this process, within ``timeout_s`` (``ray.init``
-    alone retries an unreachable address for minutes, and fails a cluster that wants a token after many seconds).
-    Ray's own log lines of a failed check are kept off the terminal.
+    Check that the Ray cluster at ``address`` answers and accepts this process within ``timeout_s`` (``ray.init``
+    alone retries for minutes), keeping Ray's own log lines off the terminal.
 
     :param address: ``"auto"``, ``"host:port"`` (the GCS) or ``"ray://host:port"`` (Ray client: only reachability)
     :param timeout_s: seconds to wait for the cluster at most
-    :raises InputError: for an address that cannot be right, or a cluster that wants an authentication token this
-        process does not have (``ray start`` turns token authentication on by default)
+    :raises InputError: for an address that cannot be right, or a cluster that wants a token this process lacks
     :raises ClusterUnreachable: when no cluster answered in time
     """
     deadline = time.monotonic() + timeout_s
@@ -176,13 +169,9 @@ def ray_session(
     address: str | None = None, num_cpus: int | None = None, connect_timeout_s: float = CONNECT_TIMEOUT_S
 ) -> Iterator[Any]:
     """
-    Connect to Ray for the duration of the block: an already initialized Ray is used as it is; otherwise
-    ``ray.init`` starts a local instance (``address=None``, no dashboard) or connects to the cluster at
-    ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects. A cluster
-    is checked first (:func:`check_cluster`): one that does not answer within ``connect_timeout_s``, or refuses this
-    process, ends the session before it starts. A local instance never outlives this process: a watchdog
-    (:mod:`sb3_collapse.sweep.watchdog`) ends its processes if the process dies without shutting it down (SIGKILL,
-    out of memory).
+    Ray for the duration of the block: an already initialized Ray as it is, else a new local instance (ended with
+    this process, even by SIGKILL: :mod:`sb3_collapse.sweep.watchdog`) or the cluster at ``address``, checked first
+    (:func:`check_cluster`).
 
     :param address: Ray cluster address, ``None`` for a new local instance
     :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``
@@ -217,10 +206,7 @@ def ray_session(
 
 
 def _start_watchdog() -> subprocess.Popen:
-    """
-    Start :mod:`sb3_collapse.sweep.watchdog` for the local Ray instance just started, so that its processes do not
-    outlive this driver when it is killed (SIGKILL skips Ray's clean-up).
-    """
+    """Start :mod:`sb3_collapse.sweep.watchdog` for the local Ray instance just started."""
     return subprocess.Popen(
         [sys.executable, "-m", "sb3_collapse.sweep.watchdog", str(os.getpid())],
         stdin=subprocess.DEVNULL,

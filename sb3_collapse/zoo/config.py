@@ -1,11 +1,4 @@
-"""
-``zoo_configs/drqv2.yml``, generated from the preset table (:mod:`sb3_collapse.presets`) so that the two cannot drift:
-
-    python -m sb3_collapse.zoo.config zoo_configs/drqv2.yml   # rewrite the file
-    python -m sb3_collapse.zoo.config --check zoo_configs/drqv2.yml   # exit 1 if it is not up to date
-
-A test checks that the file in the repository is :func:`render_zoo_config`'s output.
-"""
+"""``zoo_configs/drqv2.yml``, generated from the preset table: ``python -m sb3_collapse.zoo.config [--check] PATH``."""
 
 from __future__ import annotations
 
@@ -25,29 +18,10 @@ HEADER = """\
 #
 #   python -m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf zoo_configs/drqv2.yml
 #
-# GENERATED from the preset table sb3_collapse/presets.py (DrQ-v2's cfgs/config.yaml and cfgs/task/*.yaml,
-# facebookresearch/drqv2, MIT) by `python -m sb3_collapse.zoo.config zoo_configs/drqv2.yml`: do not edit it by
-# hand, a test checks that it is up to date.
-#
-# Units. SB3 and rl_zoo3 count AGENT STEPS (one env.step, i.e. `action_repeat` simulator frames); DrQ-v2 and the
-# action-collapse paper count FRAMES = agent steps x action_repeat. So:
-#   n_timesteps      agent steps: DrQ-v2's num_train_frames / action_repeat (1.1M frames -> 550,000)
-#   learning_starts  agent steps of uniform random actions: num_seed_frames / action_repeat
-#   buffer_size      transitions (one per agent step): DrQ-v2's replay_buffer_size, capped at n_timesteps (a larger
-#                    buffer is never filled). DrQv2's FrameStackReplayBuffer stores each 3x84x84 frame once,
-#                    ~21.5 KB per transition (reserved lazily, filled as training goes)
-#   train_freq       agent steps between two updates (update_every_steps), one gradient step each
-#   n_steps          n-step return length, in agent steps (nstep)
-#   stddev_schedule  exploration std, durations in AGENT STEPS, exactly DrQ-v2's string
-#   replay_buffer_kwargs.sampling  drqv2: DrQ-v2's replay sampling (finished episodes only, no n-step return
-#                    started in an episode's last n-1 steps)
-#   rl_zoo3's --eval-freq is in agent steps too: the launcher's default is DrQ-v2's eval_every_frames / 2, with
-#   DrQ-v2's num_eval_episodes.
-#
-# env_kwargs go to the training env AND to the evaluation env (the launcher makes rl_zoo3 pass them to both).
-# Never use rl_zoo3's `frame_stack` hyperparameter (VecFrameStack) nor `normalize` with DrQv2: the env stacks the
-# frames itself and the launcher refuses both. The collapse callbacks and the paper's reset rule are the launcher's
-# --collapse-metrics and --reset-rule switches.
+# GENERATED from the preset table sb3_collapse/presets.py by `python -m sb3_collapse.zoo.config
+# zoo_configs/drqv2.yml`: do not edit it by hand, a test checks that it is up to date.
+# Counts are in AGENT STEPS (frames / action_repeat); each key's unit: zoo_configs/README.md. Never use rl_zoo3's
+# `frame_stack` hyperparameter nor `normalize` with DrQv2 (the launcher refuses both): docs/zoo.md.
 """
 
 

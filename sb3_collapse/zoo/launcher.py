@@ -1,13 +1,4 @@
-"""
-The rl_zoo3 launcher: rl_zoo3's ``train`` and ``enjoy`` scripts with DrQv2 registered.
-
-    python -m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf zoo_configs/drqv2.yml
-    python -m sb3_collapse.zoo enjoy --algo drqv2 --env sb3_collapse/walker-walk-v0 -f logs/ -n 1000
-
-Every rl_zoo3 flag works as in ``python -m rl_zoo3.train`` / ``enjoy``; counts (``-n``, ``--eval-freq``,
-``--save-freq``) are in agent steps (frames / action repeat). With ``--algo drqv2`` it evaluates as DrQ-v2 does by
-default, requires ``-conf``, refuses ``-optimize``, and ``enjoy`` runs with ``--no-render``: docs/zoo.md.
-"""
+"""The rl_zoo3 launcher: rl_zoo3's ``train`` and ``enjoy`` scripts with DrQv2 registered (docs/zoo.md)."""
 
 from __future__ import annotations
 
@@ -27,26 +18,17 @@ from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 
 PROG = "python -m sb3_collapse.zoo"
 COMMANDS = ("train", "enjoy")
-SWITCHES = ("--collapse-metrics", "--reset-rule")
-"""The launcher's own options; every other one goes to rl_zoo3."""
 _DRQV2 = PRESETS["walker-walk"]  # the evaluation protocol is the same for every task
 DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat
 """DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` / action repeat."""
-DRQV2_EVAL_EPISODES = _DRQV2.eval_episodes
-"""DrQ-v2's ``num_eval_episodes``."""
-
-COLLAPSE_METRICS_CALLBACK = {
-    "sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}
-}
-"""``--collapse-metrics``: the collapse metrics of every named layer at the paper's period."""
-RESET_RULE_CALLBACK = {
-    "sb3_collapse.monitoring.CollapseReset": {
-        "window_frames": PAPER.window_frames,
-        "check_every_frames": PAPER.check_every_frames,
-        "verbose": 1,
-    }
-}
-"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (:data:`sb3_collapse.paper.PAPER`)."""
+SWITCHES = {  # the launcher's own options (every other one goes to rl_zoo3) and the callbacks they add
+    "--collapse-metrics": {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}},
+    "--reset-rule": {
+        "sb3_collapse.monitoring.CollapseReset": {
+            "window_frames": PAPER.window_frames, "check_every_frames": PAPER.check_every_frames, "verbose": 1
+        }
+    },
+}  # fmt: skip
 
 USAGE = f"{PROG} {{train,enjoy}} [--collapse-metrics] [--reset-rule] [rl_zoo3 options]"
 DESCRIPTION = (
@@ -56,10 +38,9 @@ DESCRIPTION = (
 )
 EPILOG = (
     f"With --algo drqv2: train needs -conf (e.g. zoo_configs/drqv2.yml), evaluates every {DRQV2_EVAL_FREQ} agent "
-    f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's "
+    f"steps on {_DRQV2.eval_episodes} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's "
     f"{_DRQV2.eval_every_frames:,} frames at action repeat {_DRQV2.action_repeat}), and refuses -optimize; enjoy "
-    "runs with --no-render (the DeepMind Control envs "
-    "render off-screen only)."
+    "runs with --no-render (the DeepMind Control envs render off-screen only)."
 )
 
 
@@ -100,15 +81,10 @@ def _peek_parser() -> argparse.ArgumentParser:
 def collapse_callbacks(collapse_metrics: bool, reset_rule: bool) -> list[dict[str, dict[str, Any]]]:
     """
     :param collapse_metrics: add ``CollapseMetrics``
-    :param reset_rule: add ``CollapseReset``
+    :param reset_rule: add ``CollapseReset`` (the paper's rule, its defaults)
     :return: the callbacks, in the format of rl_zoo3's ``callback`` hyperparameter
     """
-    callbacks = []
-    if collapse_metrics:
-        callbacks.append(COLLAPSE_METRICS_CALLBACK)
-    if reset_rule:
-        callbacks.append(RESET_RULE_CALLBACK)
-    return callbacks
+    return [callback for wanted, callback in zip((collapse_metrics, reset_rule), SWITCHES.values()) if wanted]
 
 
 def train_arguments(zoo_args: list[str]) -> list[str]:
@@ -129,14 +105,13 @@ def train_arguments(zoo_args: list[str]) -> list[str]:
     if peek.eval_freq is None:
         args += ["--eval-freq", str(DRQV2_EVAL_FREQ)]
     if peek.eval_episodes is None:
-        args += ["--eval-episodes", str(DRQV2_EVAL_EPISODES)]
+        args += ["--eval-episodes", str(_DRQV2.eval_episodes)]
     return args
 
 
 def check_env_and_config(env_id: str | None, conf_file: str) -> None:
     """
-    Check, before rl_zoo3 starts, what it would only report with a traceback: the env id is registered, and the
-    config file is a YAML mapping with an entry for it.
+    Check, before rl_zoo3 starts, that the env id is registered and the config file is a YAML mapping with its entry.
 
     :param env_id: the ``--env`` of the command line (``None``: rl_zoo3's default, not checked)
     :param conf_file: the ``-conf`` file
@@ -191,9 +166,8 @@ def _replaced(owner: Any, name: str, value: Any) -> Iterator[None]:
 
 def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -> None:
     """
-    Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`, after setting
-    torch's process-wide CUDA flags as ``python -m sb3_collapse.train`` does by default
-    (:func:`~sb3_collapse.backends.configure_backends`).
+    Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`, with torch's
+    CUDA flags set as ``python -m sb3_collapse.train`` sets them (:func:`~sb3_collapse.backends.configure_backends`).
 
     :param zoo_args: rl_zoo3 ``train`` options (after :func:`train_arguments`)
     :param callbacks: callbacks appended to those of the config file
@@ -211,11 +185,7 @@ def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -
 
 
 def run_enjoy(zoo_args: list[str]) -> None:
-    """
-    Run rl_zoo3's ``enjoy`` script.
-
-    :param zoo_args: rl_zoo3 ``enjoy`` options (after :func:`enjoy_arguments`)
-    """
+    """:param zoo_args: rl_zoo3 ``enjoy`` options (after :func:`enjoy_arguments`)"""
     import rl_zoo3.enjoy
 
     with _replaced(sys, "argv", [f"{PROG} enjoy", *zoo_args]):

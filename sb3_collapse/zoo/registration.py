@@ -15,8 +15,7 @@ INSTALL_HINT = "pip install -e '.[zoo]' in a clone of sb3-collapse"
 def import_rl_zoo3() -> ModuleType:
     """
     :return: the ``rl_zoo3`` package
-    :raises MissingDependencyError: if it (or a package it needs) cannot be imported; the message says how to
-        install it
+    :raises MissingDependencyError: if it (or a package it needs) cannot be imported, saying how to install it
     """
     try:
         import rl_zoo3
@@ -29,14 +28,8 @@ def import_rl_zoo3() -> ModuleType:
 
 def register_with_zoo() -> None:
     """
-    Add DrQv2 to rl_zoo3's algorithm table as ``"drqv2"`` and register the ``sb3_collapse/<domain>-<task>-v0``
-    Gymnasium ids (idempotent).
-
-    rl_zoo3's scripts (``train``, ``enjoy``, ``record_video``, ...) and its ``ExperimentManager`` all read the
-    same dict, ``rl_zoo3.utils.ALGOS``, and build their ``--algo`` choices from it when they run, so one entry
-    there is enough. Their off-policy lists (local to ``enjoy()`` and ``record_video()``) only make them load
-    models with ``buffer_size=1``, which DrQv2's n-step buffer refuses (``n_steps`` > capacity): DrQv2 stays off
-    them and is loaded with its saved buffer size, whose arrays are reserved lazily (no memory is written).
+    Add DrQv2 to rl_zoo3's algorithm table (``rl_zoo3.utils.ALGOS``) as ``"drqv2"`` and register the
+    ``sb3_collapse/<domain>-<task>-v0`` Gymnasium ids (idempotent; docs/zoo.md).
 
     :raises MissingDependencyError: if rl_zoo3 is not installed
     """
