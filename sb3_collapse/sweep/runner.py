@@ -253,7 +253,8 @@ def sweep_settings(
 ) -> dict[str, Any]:
     """
     The content of the sweep's settings file: ``training`` (as given, ``None``: the presets), ``task_settings``
-    (what each task's trials use), ``checkpoints``, ``tasks``, ``variants``, ``seeds``, ``resources``, ``donors``.
+    (the DrQ-v2 settings each task's trials use), ``checkpoints``, ``tasks``, ``variants``, ``seeds``,
+    ``resources`` and ``donors``.
 
     :param trials: the sweep's trials
     :param training: the shared training settings
@@ -263,47 +264,34 @@ def sweep_settings(
     :return: the settings, JSON-serializable
     """
     tasks = list(dict.fromkeys(trial.task for trial in trials))
-    extra = {} if donors is None else {"donors": dict(donors)}
+    configs = {task: TrainConfig(**{**training, "env": task}).resolve() for task in tasks}
     return {
         "training": dict(training),
-        "task_settings": {task: task_settings(task, training) for task in tasks},
+        "task_settings": {task: {name: getattr(configs[task], name) for name in SETTING_NAMES} for task in tasks},
         "checkpoints": {source: dict(paths) for source, paths in checkpoints.items() if paths},
         "tasks": tasks,
         "variants": list(dict.fromkeys(trial.variant for trial in trials)),
         "seeds": sorted({trial.seed for trial in trials}),
         "resources": dict(resources),
-        **extra,
+        **({} if donors is None else {"donors": dict(donors)}),
     }
-
-
-def task_settings(task: str, training: Mapping[str, Any]) -> dict[str, Any]:
-    """
-    :param task: a task
-    :param training: the sweep's shared training settings (``None``: the task's preset)
-    :return: the DrQ-v2 settings (:data:`~sb3_collapse.presets.SETTING_NAMES`) the task's trials use, by name
-    """
-    config = TrainConfig(**{**training, "env": task}).resolve()
-    return {name: getattr(config, name) for name in SETTING_NAMES}
 
 
 def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) -> list[str]:
     """
-    What differs between the training settings of two contents of the sweep's settings file (new tasks, seeds,
-    variants and donors may be added).
-
     :param previous: the settings in the sweep's settings file
     :param current: the settings of this run
-    :return: one line per difference, empty when the trials would train the same way
+    :return: one line per training setting that differs (new tasks, seeds, variants and donors may be added), empty
+        when the trials would train the same way
     """
     changes = []
     old, new = previous.get("training", {}), current.get("training", {})
     for name in sorted(set(old) | set(new)):
         if old.get(name) != new.get(name):
-            changes.append(f"`{name}`: {_setting(old.get(name))} in {SWEEP_JSON}, {_setting(new.get(name))} now")
+            before, now = ("the presets'" if value is None else repr(value) for value in (old.get(name), new.get(name)))
+            changes.append(f"`{name}`: {before} in {SWEEP_JSON}, {now} now")
     for task, settings in current.get("task_settings", {}).items():
-        before_settings = previous.get("task_settings", {}).get(task)
-        if before_settings is None:
-            continue
+        before_settings = previous.get("task_settings", {}).get(task, settings)
         for name in sorted(set(before_settings) | set(settings)):
             if old.get(name) == new.get(name) and before_settings.get(name) != settings.get(name):
                 changes.append(
@@ -312,9 +300,9 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
     for source, paths in current.get("checkpoints", {}).items():
         for task, path in paths.items():
             before = previous.get("checkpoints", {}).get(source, {}).get(task)
-            if before is not None and before != path:
+            if before not in (None, path):
                 changes.append(f"`{source}` checkpoint for {task}: {before} in {SWEEP_JSON}, {path} now")
-    for source in ("good", "bad"):  # a settings file of another version: one agent gave both parts of a source
+    for source in ("good", "bad"):  # a settings file where one agent gave both parts of a source
         if source in previous.get("checkpoints", {}) and any(
             key.startswith(f"{source}_") for key in current.get("checkpoints", {})
         ):
@@ -325,35 +313,12 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
     return changes
 
 
-def _setting(value: Any) -> str:
-    """A training setting in a message: ``None`` is the task presets'."""
-    return "the presets'" if value is None else repr(value)
-
-
-def merge_settings(previous: Mapping[str, Any], current: Mapping[str, Any]) -> dict[str, Any]:
-    """
-    :param previous: the settings in the sweep's settings file
-    :param current: the settings of this run
-    :return: the current settings with the tasks, variants, seeds and checkpoints of both (a sweep folder
-        accumulates trials)
-    """
-    merged = dict(current)
-    merged["task_settings"] = {**previous.get("task_settings", {}), **current.get("task_settings", {})}
-    for key in ("tasks", "variants"):
-        merged[key] = list(dict.fromkeys([*previous.get(key, []), *current.get(key, [])]))
-    merged["seeds"] = sorted({*previous.get("seeds", []), *current.get("seeds", [])})
-    checkpoints: dict[str, dict[str, str]] = {s: dict(p) for s, p in previous.get("checkpoints", {}).items()}
-    for source, paths in current.get("checkpoints", {}).items():
-        checkpoints.setdefault(source, {}).update(paths)
-    merged["checkpoints"] = checkpoints
-    return merged
-
-
 def prepare_sweep_folder(
     out: str | Path, settings: Mapping[str, Any], allow_changed_settings: bool = False, write: bool = True
 ) -> None:
     """
-    Check this run's settings against the sweep's settings file and write the merged settings there.
+    Check this run's settings against the sweep's settings file and write the merged settings there (the tasks,
+    variants, seeds and checkpoints of both: a sweep folder accumulates trials).
 
     :param out: the sweep folder (created if needed)
     :param settings: this run's :func:`sweep_settings`
@@ -361,23 +326,28 @@ def prepare_sweep_folder(
     :param write: write the sweep's settings file; ``False`` only checks (dry run)
     :raises InputError: when the training settings changed and that is not allowed
     """
-    out = Path(out)
-    path = out / SWEEP_JSON
-    previous: dict[str, Any] = {}
-    if path.is_file():
-        previous = read_settings(path)
-        changes = settings_changes(previous, settings)
-        if changes and not allow_changed_settings:
-            raise InputError(
-                f"{out} holds a sweep with other training settings:\n  "
-                + "\n  ".join(changes)
-                + "\nUse another `out`, the same settings, or `allow_changed_settings=True` to mix them "
-                "(finished trials are not rerun)."
-            )
+    path = Path(out) / SWEEP_JSON
+    previous: dict[str, Any] = read_settings(path) if path.is_file() else {}
+    changes = settings_changes(previous, settings) if path.is_file() else []
+    if changes and not allow_changed_settings:
+        raise InputError(
+            f"{out} holds a sweep with other training settings:\n  "
+            + "\n  ".join(changes)
+            + "\nUse another `out`, the same settings, or `allow_changed_settings=True` to mix them "
+            "(finished trials are not rerun)."
+        )
     if not write:
         return
-    out.mkdir(parents=True, exist_ok=True)
-    write_json_atomically(path, merge_settings(previous, settings))
+    merged = dict(settings)
+    merged["task_settings"] = {**previous.get("task_settings", {}), **settings.get("task_settings", {})}
+    for key in ("tasks", "variants"):
+        merged[key] = list(dict.fromkeys([*previous.get(key, []), *settings.get(key, [])]))
+    merged["seeds"] = sorted({*previous.get("seeds", []), *settings.get("seeds", [])})
+    merged["checkpoints"] = {source: dict(paths) for source, paths in previous.get("checkpoints", {}).items()}
+    for source, paths in settings.get("checkpoints", {}).items():
+        merged["checkpoints"].setdefault(source, {}).update(paths)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomically(path, merged)
 
 
 def run_sweep(
@@ -427,10 +397,35 @@ def run_sweep(
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
     check_writable(out)  # before starting Ray: a read-only folder is said at once
     with sweep_folder_locked(out):  # a second sweep into the folder is refused, before its Ray starts
-        return _run_locked_sweep(
-            trials, out, training, checkpoints, settings, cpus_per_trial, gpus_per_trial, address,
-            allow_changed_settings, progress_bar, connect_timeout_s,
-        )  # fmt: skip
+        summary = SweepSummary(trials=list(trials), skipped=[], finished=[], failed={})
+        for trial in trials:
+            folder = trial_dir(out, trial)
+            if run_status(folder) == RunStatus.FINISHED:
+                summary.skipped.append(trial)
+                tidy_finished_run(folder)  # a trial killed after its result file left its checkpoints behind
+            elif (reason := damaged_result(folder)) is not None:  # not repaired: neither run nor retryable
+                summary.damaged[trial], summary.failed[trial] = reason, folder / RESULT_JSON
+                summary.repeating.append(trial)
+        to_run = [trial for trial in trials if trial not in {*summary.skipped, *summary.damaged}]
+        if not to_run:
+            prepare_sweep_folder(out, settings, allow_changed_settings)
+            return summary
+        import_ray()  # before writing anything: a missing Ray leaves the folder as it was
+        with ray_session(address, connect_timeout_s=connect_timeout_s) as ray:
+            check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
+            prepare_sweep_folder(out, settings, allow_changed_settings)  # the cluster answered: now the folder
+            (out / SWEEP_STOP).unlink(missing_ok=True)  # the request of an earlier run that did not end cleanly
+            # max_calls=1: every trial in a fresh worker process (nothing a trial leaves in its process reaches the
+            # next); max_retries: Ray runs the task again when its worker dies (not when the trial raises): it resumes.
+            remote = ray.remote(max_calls=1)(run_trial).options(
+                num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=TRIAL_RETRIES
+            )
+            device, threads = ("cuda" if gpus_per_trial > 0 else "cpu"), max(1, int(cpus_per_trial))
+            pending = {
+                remote.remote(trial, str(out), dict(training), checkpoints, device, threads): trial for trial in to_run
+            }
+            _wait_for_trials(ray, pending, out, summary, progress_bar)
+    return summary
 
 
 @contextlib.contextmanager
@@ -452,61 +447,19 @@ def sweep_folder_locked(out: Path) -> Iterator[None]:
             lock.path.unlink(missing_ok=True)  # still held: a sweep that locked the deleted file takes a new one
 
 
-def _run_locked_sweep(
-    trials: Sequence[Trial],
-    out: Path,
-    training: Mapping[str, Any],
-    checkpoints: dict[str, dict[str, str]],
-    settings: dict[str, Any],
-    cpus_per_trial: float,
-    gpus_per_trial: float,
-    address: str | None,
-    allow_changed_settings: bool,
-    progress_bar: bool,
-    connect_timeout_s: float,
-) -> SweepSummary:
-    """:func:`run_sweep` once the arguments are checked and the sweep folder is locked."""
-    skipped = [trial for trial in trials if run_status(trial_dir(out, trial)) == RunStatus.FINISHED]
-    for trial in skipped:  # a trial killed after its result file left its checkpoints and lock behind
-        tidy_finished_run(trial_dir(out, trial))
-    summary = SweepSummary(trials=list(trials), skipped=skipped, finished=[], failed={})
-    for trial in trials:  # an unreadable result file is not repaired: the trial is not run, nor retryable
-        reason = None if trial in skipped else damaged_result(trial_dir(out, trial))
-        if reason is not None:
-            summary.damaged[trial] = reason
-            summary.failed[trial] = trial_dir(out, trial) / RESULT_JSON
-            summary.repeating.append(trial)
-    to_run = [trial for trial in trials if trial not in {*skipped, *summary.damaged}]
-    if not to_run:
-        prepare_sweep_folder(out, settings, allow_changed_settings)
-        return summary
-    import_ray()  # before writing anything: a missing Ray leaves the folder as it was
-    with ray_session(address, connect_timeout_s=connect_timeout_s) as ray:
-        check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
-        prepare_sweep_folder(out, settings, allow_changed_settings)  # the cluster answered: now the folder
-        (out / SWEEP_STOP).unlink(missing_ok=True)  # the request of an earlier run that did not end cleanly
-        # max_calls=1: every trial in a fresh worker process (nothing a trial leaves in its process reaches the next);
-        # max_retries: Ray runs the task again when its worker dies (not when the trial raises): it resumes.
-        remote = ray.remote(max_calls=1)(run_trial).options(
-            num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=TRIAL_RETRIES
-        )
-        device = "cuda" if gpus_per_trial > 0 else "cpu"
-        threads = max(1, int(cpus_per_trial))
-        pending = {
-            remote.remote(trial, str(out), dict(training), checkpoints, device, threads): trial for trial in to_run
-        }
-        with tqdm(total=len(to_run), desc="trials", unit="trial", disable=not progress_bar) as bar:
-            try:
-                with _stop_on_signals(out, summary, bar):
-                    while pending:
-                        done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)  # signals run between waits
-                        if done:
-                            _collect(ray, done[0], pending.pop(done[0]), out, summary, bar)
-            finally:
-                for ref in pending:  # stopped at once (a second signal): the trials rerun from their checkpoints
-                    ray.cancel(ref, force=True)
-                (out / SWEEP_STOP).unlink(missing_ok=True)
-    return summary
+def _wait_for_trials(ray: Any, pending: dict[Any, Trial], out: Path, summary: SweepSummary, progress_bar: bool) -> None:
+    """Collect the outcome of each trial's Ray task into ``summary``, stopping the trials at a signal."""
+    with tqdm(total=len(pending), desc="trials", unit="trial", disable=not progress_bar) as bar:
+        try:
+            with _stop_on_signals(out, summary, bar):
+                while pending:
+                    done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)  # signals run between waits
+                    if done:
+                        _collect(ray, done[0], pending.pop(done[0]), out, summary, bar)
+        finally:
+            for ref in pending:  # stopped at once (a second signal): the trials rerun from their checkpoints
+                ray.cancel(ref, force=True)
+            (out / SWEEP_STOP).unlink(missing_ok=True)
 
 
 def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary, bar: Any) -> None:

@@ -1,15 +1,12 @@
 """
-Ends a sweep's local Ray instance when the sweep's driver process dies, even by SIGKILL, which skips Ray's own
-clean-up and leaves Ray's agents (``ray::DashboardAgent``, ``ray::RuntimeEnvAgent``) and workers running:
-``python -m sb3_collapse.sweep.watchdog DRIVER_PID``.
-
-While the driver lives, the watchdog keeps the list of its descendants (GCS, raylet, monitors, agents, workers);
-once it has died, it ends those that still run. :func:`sb3_collapse.sweep.ray_session` starts it, in a session of
-its own, for every local Ray instance it starts, and stops it when the instance shuts down normally.
+Ends a sweep's local Ray instance when the sweep's driver dies, even by SIGKILL (which skips Ray's clean-up):
+``python -m sb3_collapse.sweep.watchdog DRIVER_PID``. It keeps the list of the driver's descendants while the driver
+lives, then ends those still running. :func:`sb3_collapse.sweep.cluster.ray_session` starts and stops it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -22,7 +19,7 @@ POLL_SECONDS = 0.5
 def descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
     """
     :param pid: a process
-    :return: its descendants, keyed by (pid, creation time) so that a reused pid is never mistaken for one of them
+    :return: its descendants but this process, keyed by (pid, creation time) so that a reused pid is never taken
     """
     try:
         children = psutil.Process(pid).children(recursive=True)
@@ -30,33 +27,20 @@ def descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
         return {}
     found = {}
     for child in children:
-        if child.pid == os.getpid():  # the watchdog is the driver's child too
-            continue
-        try:
-            found[(child.pid, child.create_time())] = child
-        except psutil.NoSuchProcess:
-            continue
+        with contextlib.suppress(psutil.NoSuchProcess):
+            if child.pid != os.getpid():  # the watchdog is the driver's child too
+                found[(child.pid, child.create_time())] = child
     return found
 
 
 def end_processes(processes: list[psutil.Process], grace_seconds: float = 5.0) -> None:
-    """
-    Terminate the processes, then kill those still alive after ``grace_seconds``.
-
-    :param processes: the processes
-    :param grace_seconds: time given to SIGTERM
-    """
+    """Terminate the processes, then kill those still alive after ``grace_seconds``."""
     for process in processes:
-        try:
+        with contextlib.suppress(psutil.NoSuchProcess):
             process.terminate()
-        except psutil.NoSuchProcess:
-            pass
-    _, alive = psutil.wait_procs(processes, timeout=grace_seconds)
-    for process in alive:
-        try:
+    for process in psutil.wait_procs(processes, timeout=grace_seconds)[1]:
+        with contextlib.suppress(psutil.NoSuchProcess):
             process.kill()
-        except psutil.NoSuchProcess:
-            pass
 
 
 def driver_alive(process: psutil.Process) -> bool:
@@ -89,10 +73,7 @@ def watch(driver_pid: int, poll_seconds: float = POLL_SECONDS) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: ``DRIVER_PID``
-    :return: 0 once the driver has died and what it left was ended
-    """
+    """:return: 0 once the driver (``argv``: ``DRIVER_PID``) has died and what it left was ended; 2 for bad usage"""
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 1 or not argv[0].isdigit():
         print("usage: python -m sb3_collapse.sweep.watchdog DRIVER_PID", file=sys.stderr)
