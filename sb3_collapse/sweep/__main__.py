@@ -72,10 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"<algorithm> or <algorithm>+<intervention> (the paper's rule doing that intervention), <algorithm> in "
         f"{'/'.join(BASE_VARIANTS)} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations), "
         f"<intervention> in {'/'.join(INTERVENTIONS)}, or <algorithm>+redo_periodic (ReDo every {REDO_EVERY_UPDATES} "
-        "updates, no rule) (e.g. drqv2+reset, drqv2+redo, drqv2-leaky+reset; docs/interventions.md), or "
-        "transplant-grid cells "
-        f"cnn-<src>_mlp-<src>, <src> in {'/'.join(TRANSPLANT_SOURCES)}; default: {' '.join(DEFAULT_VARIANTS)} (only "
-        "the grid with --transplant-grid)",
+        "updates, no rule) (e.g. drqv2+reset, drqv2+redo, drqv2-leaky+reset; docs/interventions.md), or transplant-"
+        f"grid cells cnn-<src>_mlp-<src>, <src> in {'/'.join(TRANSPLANT_SOURCES)}; default: "
+        f"{' '.join(DEFAULT_VARIANTS)} (only the grid with --transplant-grid)",
     )
     g.add_argument("--transplant-grid", action="store_true", help="add the 9 cells of the CNN x MLP transplant grid")
     donors = p.add_argument_group(
@@ -84,13 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     for source in DONOR_SOURCES:
         for part in DONOR_PARTS:
             donors.add_argument(
-                f"--{source}-{part}",
-                dest=donor_key(source, part),
-                nargs="+",
-                metavar="[TASK=]PATH",
+                f"--{source}-{part}", dest=donor_key(source, part), nargs="+", metavar="[TASK=]PATH",
                 help=f"DrQv2 checkpoint(s) of the {'well' if source == 'good' else 'poorly'} performing agent that "
                 f"gives the {source} {part.upper()}: PATH for every task, TASK=PATH per task",
-            )
+            )  # fmt: skip
         donors.add_argument(f"--{source}-checkpoint", nargs="+", help=argparse.SUPPRESS)  # refused: see main
     donors.add_argument(
         "--donors-from",
@@ -99,12 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
         f"return >= {PAPER.success_return:g} (good CNN, good MLP) and two < {PAPER.failure_return:g} (bad ones)",
     )
     donors.add_argument(
-        "--donor-variant",
-        default="drqv2",
-        help="the variant of --donors-from whose seeds give parts (default: %(default)s)",
+        "--donor-variant", default="drqv2", help="the variant of --donors-from giving parts (default: %(default)s)"
     )
     donors.add_argument(
-        "--donor-seed", type=int, default=0, help="seed of the random pick of --donors-from (default: %(default)s)"
+        "--donor-seed", type=int, default=0, help="seed of the pick of --donors-from (default: %(default)s)"
     )
     g.add_argument("--out", required=True, help="the sweep folder (with --address: on storage every node sees)")
     g.add_argument(
@@ -113,32 +107,21 @@ def build_parser() -> argparse.ArgumentParser:
         "sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees",
     )
     g.add_argument(
-        "--connect-timeout",
-        dest="connect_timeout_s",
-        type=float,
-        default=CONNECT_TIMEOUT_S,
-        metavar="SECONDS",
+        "--connect-timeout", dest="connect_timeout_s", type=float, default=CONNECT_TIMEOUT_S, metavar="SECONDS",
         help="with --address: give up, writing nothing, when the cluster does not answer within this time "
         "(exit status 1; default: %(default)g)",
+    )  # fmt: skip
+    g.add_argument(
+        "--cpus-per-trial", type=float, default=1, help="CPUs per trial; also its torch threads (default: %(default)s)"
     )
     g.add_argument(
-        "--cpus-per-trial",
-        type=float,
-        default=1,
-        help="CPUs Ray reserves per trial; also its torch threads (default: %(default)s)",
-    )
+        "--gpus-per-trial", type=float, default=0, help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 "
+        "trials per GPU); > 0 trains on cuda, 0 on cpu (default: %(default)s)",
+    )  # fmt: skip
     g.add_argument(
-        "--gpus-per-trial",
-        type=float,
-        default=0,
-        help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 trials per GPU); > 0 trains on cuda, 0 on cpu "
-        "(default: %(default)s)",
-    )
-    g.add_argument(
-        "--allow-changed-settings",
-        action="store_true",
-        help="run even if --out holds a sweep with other training settings (finished trials keep theirs)",
-    )
+        "--allow-changed-settings", action="store_true", help="run even if --out holds a sweep with other training "
+        "settings (finished trials keep theirs)",
+    )  # fmt: skip
     g.add_argument("--dry-run", action="store_true", help="list the trials and their status, run nothing")
     g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
     return p
@@ -149,8 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
     :return: exit status: 0 when every trial finished, 1 when some failed (or the cluster did not answer), 2 for
-        bad arguments, {EXIT_INTERRUPTED} when a SIGTERM or SIGINT stopped the sweep (the trials wrote a checkpoint:
-        run the same command again)
+        bad arguments, :data:`~sb3_collapse.protocol.EXIT_INTERRUPTED` when a signal stopped the sweep
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -173,18 +155,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.dry_run:
             return dry_run(trials, args.out, training, checkpoints, args.allow_changed_settings, donors)
         summary = run_sweep(
-            trials,
-            args.out,
-            training,
-            checkpoints,
-            cpus_per_trial=args.cpus_per_trial,
-            gpus_per_trial=args.gpus_per_trial,
-            address=args.address,
-            allow_changed_settings=args.allow_changed_settings,
-            progress_bar=args.progress_bar,
-            donors=donors,
-            connect_timeout_s=args.connect_timeout_s,
-        )
+            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.address,
+            args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s,
+        )  # fmt: skip
     except (MissingDependencyError, ValueError) as error:
         parser.error(cli_message(error, parser))
     except ClusterUnreachable as error:

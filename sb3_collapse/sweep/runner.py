@@ -107,12 +107,6 @@ def check_writable(folder: Path) -> None:
         raise OSError(error.errno, error.strerror, str(folder)) from None
 
 
-def write_error(folder: Path, text: str) -> None:
-    """Write ``text`` (a traceback) to the error file of the trial folder ``folder``, created if needed."""
-    folder.mkdir(parents=True, exist_ok=True)
-    write_text_atomically(folder / ERROR_TXT, text)
-
-
 def run_trial(
     trial: Trial,
     out: str,
@@ -128,8 +122,7 @@ def run_trial(
     :param trial: the trial
     :param out: the sweep folder
     :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials
-    :param checkpoints: donor (``"good_cnn"``, ``"good_mlp"``, ``"bad_cnn"``, ``"bad_mlp"``) -> task -> checkpoint
-        path, for transplant-grid cells (:mod:`sb3_collapse.sweep.donors`)
+    :param checkpoints: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> checkpoint path, for grid cells
     :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
     :param torch_threads: threads of torch's CPU operations
     :return: ``{"trial", "status": "finished" | "failed" | "interrupted", "error": the error's line or None,
@@ -155,7 +148,8 @@ def run_trial(
         return {"trial": str(trial), "status": "interrupted", "error": str(error), "checkpoint": str(error.checkpoint)}
     except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary
         if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
-            write_error(folder, traceback.format_exc())
+            folder.mkdir(parents=True, exist_ok=True)
+            write_text_atomically(folder / ERROR_TXT, traceback.format_exc())
         error_line = f"{type(error).__name__}: {error}"
         return {"trial": str(trial), "status": "failed", "error": error_line, "retryable": retryable(error)}
     return {"trial": str(trial), "status": FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
@@ -448,10 +442,24 @@ def sweep_folder_locked(out: Path) -> Iterator[None]:
 
 
 def _wait_for_trials(ray: Any, pending: dict[Any, Trial], out: Path, summary: SweepSummary, progress_bar: bool) -> None:
-    """Collect the outcome of each trial's Ray task into ``summary``, stopping the trials at a signal."""
+    """
+    Collect the outcome of each trial's Ray task into ``summary``. A SIGTERM or SIGINT (in the main thread) writes
+    the stop file that the trials watch and sets ``summary.stopped_by``; a second one raises ``KeyboardInterrupt``.
+    """
+
+    def handler(signum: int, _frame: Any) -> None:
+        if summary.stopped_by is not None:
+            raise KeyboardInterrupt
+        summary.stopped_by = signal.Signals(signum).name
+        write_text_atomically(out / SWEEP_STOP, summary.stopped_by + "\n")
+        bar.write(
+            f"\n{summary.stopped_by}: asking the running trials to write a checkpoint and stop (a second signal: stop "
+            "now, each trial resuming from its last checkpoint)."
+        )
+
     with tqdm(total=len(pending), desc="trials", unit="trial", disable=not progress_bar) as bar:
         try:
-            with _stop_on_signals(out, summary, bar):
+            with stop_signal_handlers(handler):
                 while pending:
                     done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)  # signals run between waits
                     if done:
@@ -469,7 +477,8 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
     except Exception as error:  # noqa: BLE001  the Ray task itself died (worker crash, out of memory...)
         outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}".splitlines()[0]}
         # The first line reads on in the rerun's "The previous attempt failed: ...; resuming."
-        write_error(trial_dir(out, trial), f"failed: the Ray task of {trial} died\n{error}\n")
+        trial_dir(out, trial).mkdir(parents=True, exist_ok=True)
+        write_text_atomically(trial_dir(out, trial) / ERROR_TXT, f"failed: the Ray task of {trial} died\n{error}\n")
     if outcome["status"] == FINISHED:
         summary.finished.append(trial)
         if outcome.get("resumes"):
@@ -486,23 +495,3 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
         bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")
     bar.set_postfix(failed=len(summary.failed))
     bar.update()
-
-
-def _stop_on_signals(out: Path, summary: SweepSummary, bar: Any) -> contextlib.AbstractContextManager[None]:
-    """
-    While inside (in the main thread), a SIGTERM or SIGINT writes the stop file the trials watch and sets
-    ``summary.stopped_by``; a second signal raises ``KeyboardInterrupt``.
-    """
-
-    def handler(signum: int, _frame: Any) -> None:
-        name = signal.Signals(signum).name
-        if summary.stopped_by is not None:
-            raise KeyboardInterrupt
-        summary.stopped_by = name
-        write_text_atomically(out / SWEEP_STOP, name + "\n")
-        bar.write(
-            f"\n{name}: asking the running trials to write a checkpoint and stop (a second signal: stop now, each "
-            "trial resuming from its last checkpoint)."
-        )
-
-    return stop_signal_handlers(handler)
