@@ -32,29 +32,19 @@ def import_ray() -> Any:
     return ray
 
 
-def split_address(address: str) -> tuple[str, int]:
+def wait_for_port(address: str, timeout_s: float) -> None:
     """
+    Wait until something accepts TCP connections at ``address``.
+
     :param address: a Ray address, ``host:port`` or ``ray://host:port``
-    :return: the host and the port
-    :raises InputError: for an address without a port
+    :param timeout_s: seconds to wait at most
+    :raises InputError: for an address without a port, or a host that does not resolve
+    :raises ClusterUnreachable: when nothing accepted a connection in time
     """
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
         raise InputError(f"address {address!r} is not 'auto', 'host:port' or 'ray://host:port'.", parameter="address")
-    return host.strip("[]"), int(port)
-
-
-def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
-    """
-    Wait until something accepts TCP connections at ``host:port``.
-
-    :param address: the address as given, for the messages
-    :param host: the host
-    :param port: the port
-    :param timeout_s: seconds to wait at most
-    :raises InputError: for a host that does not resolve
-    :raises ClusterUnreachable: when nothing accepted a connection in time
-    """
+    host, port = host.strip("[]"), int(port)
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -99,8 +89,7 @@ def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
                 f"address auto: {error} Start a cluster on this machine (ray start --head) or give its address, then "
                 "run the same command again; nothing was written."
             ) from None
-    host, port = split_address(address)
-    wait_for_port(address, host, port, timeout_s)
+    wait_for_port(address, timeout_s)
     try:
         from ray._raylet import GcsClient
     except ImportError:  # another Ray version: reachability is all that is checked
@@ -187,7 +176,10 @@ def ray_session(
     watchdog = None
     if address is None:
         ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
-        watchdog = _start_watchdog()
+        watchdog = subprocess.Popen(  # not in the driver's process group: a Ctrl-C or a group kill does not reach it
+            [sys.executable, "-m", "sb3_collapse.sweep.watchdog", str(os.getpid())], stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        )  # fmt: skip
     else:
         check_cluster(address, connect_timeout_s)
         try:
@@ -205,17 +197,6 @@ def ray_session(
             watchdog.wait()
 
 
-def _start_watchdog() -> subprocess.Popen:
-    """Start :mod:`sb3_collapse.sweep.watchdog` for the local Ray instance just started."""
-    return subprocess.Popen(
-        [sys.executable, "-m", "sb3_collapse.sweep.watchdog", str(os.getpid())],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,  # not in the driver's process group: a Ctrl-C or a group kill does not reach it
-    )
-
-
 def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_per_trial: float) -> None:
     """
     :param resources: the cluster's resources (``ray.cluster_resources()``)
@@ -230,11 +211,9 @@ def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_
             f"{dict(resources)}). Set gpus_per_trial=0 to train on CPU, or run on machines with GPUs.",
             parameter="gpus_per_trial",
         )
-    if gpus_per_trial > gpus:
-        raise InputError(
-            f"gpus_per_trial={gpus_per_trial} is more than the {gpus:g} GPUs Ray sees.", parameter="gpus_per_trial"
-        )
-    if cpus_per_trial > cpus:
-        raise InputError(
-            f"cpus_per_trial={cpus_per_trial} is more than the {cpus:g} CPUs Ray sees.", parameter="cpus_per_trial"
-        )
+    for name, unit, asked, seen in (
+        ("gpus_per_trial", "GPUs", gpus_per_trial, gpus),
+        ("cpus_per_trial", "CPUs", cpus_per_trial, cpus),
+    ):
+        if asked > seen:
+            raise InputError(f"{name}={asked} is more than the {seen:g} {unit} Ray sees.", parameter=name)

@@ -5,6 +5,7 @@ The variants (``drqv2``, ``td3+reset``, ``drqv2-leaky+redo_periodic``, ``cnn-goo
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -98,10 +99,9 @@ def transplant_of(variant: str) -> dict[str, str] | None:
 
 def variant_settings(variant: str) -> dict[str, Any]:
     """
-    The :class:`~sb3_collapse.run.config.TrainConfig` settings a variant fixes.
-
     :param variant: a variant name
-    :return: ``algorithm``, ``reset_rule``, ``intervention``, ``activation`` and ``redo_every_updates``
+    :return: the :class:`~sb3_collapse.run.config.TrainConfig` settings it fixes: ``algorithm``, ``reset_rule``,
+        ``intervention``, ``activation`` and ``redo_every_updates``
     :raises InputError: for an unknown variant
     """
     settings: dict[str, Any] = {
@@ -149,11 +149,7 @@ def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable
 
 
 def trial_dir(out: str | Path, trial: Trial) -> Path:
-    """
-    :param out: the sweep folder
-    :param trial: a trial
-    :return: its folder, ``<out>/<task>/<variant>/seed_<seed>``
-    """
+    """:return: the folder of ``trial`` in the sweep folder ``out``: ``<out>/<task>/<variant>/seed_<seed>``"""
     return trial_path(out, trial.task, trial.variant, trial.seed)
 
 
@@ -174,10 +170,8 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
         name, separator, path = item.partition("=")
         task = None
         if separator:
-            try:
+            with contextlib.suppress(InputError):  # not a task name: the whole item is a path
                 task = canonical_task(name)
-            except InputError:
-                task = None
         if task is None:
             if default is not None:
                 raise InputError(f"{flag}: two checkpoints for every task ({default}, {item}); use TASK=PATH per task.")
@@ -237,21 +231,13 @@ def trial_config(
     """
     transplant = transplant_of(trial.variant)
     per_trial: dict[str, Any] = {
-        "env": trial.task,
-        "seed": trial.seed,
-        "run_dir": str(trial_dir(out, trial)),
-        **variant_settings(trial.variant),
-        "variant": trial.variant,
-        "transplant": transplant,
-        "device": device,
-        "torch_threads": torch_threads,
+        "env": trial.task, "seed": trial.seed, "run_dir": str(trial_dir(out, trial)), **variant_settings(trial.variant),
+        "variant": trial.variant, "transplant": transplant, "device": device, "torch_threads": torch_threads,
         "progress_bar": False,
-    }
-    if transplant is not None:
-        checkpoints = checkpoints or {}
-        for part, source in transplant.items():
-            if source != "blank":
-                per_trial[f"init_{part}"] = checkpoints[donor_key(source, part)][trial.task]
+    }  # fmt: skip
+    for part, source in (transplant or {}).items():
+        if source != "blank":
+            per_trial[f"init_{part}"] = (checkpoints or {})[donor_key(source, part)][trial.task]
     return TrainConfig(**{**training, **per_trial}).resolve()
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -148,9 +148,7 @@ def enjoy_arguments(zoo_args: list[str]) -> list[str]:
     :return: them, with ``--no-render`` (the DeepMind Control envs cannot open a window) for ``--algo drqv2``
     """
     peek, _ = _peek_parser().parse_known_args(zoo_args)
-    if peek.algo == ALGO_NAME and not peek.no_render:
-        return [*zoo_args, "--no-render"]
-    return list(zoo_args)
+    return [*zoo_args, *(["--no-render"] if peek.algo == ALGO_NAME and not peek.no_render else [])]
 
 
 @contextmanager
@@ -193,6 +191,7 @@ def run_enjoy(zoo_args: list[str]) -> None:
 
 
 def _error(message: str) -> int:
+    """Print ``message`` as argparse prints an error; :return: exit status 2"""
     print(f"usage: {USAGE}\n{PROG}: error: {message}", file=sys.stderr)
     return 2
 
@@ -223,14 +222,10 @@ def main(argv: list[str] | None = None) -> int:
     ensure_rendering_backend(required=False)
     try:
         register_with_zoo()
-        runners: dict[str, Callable[[], None]] = {
-            "train": lambda: run_train(
-                train_arguments(zoo_args),
-                collapse_callbacks(switches["--collapse-metrics"], switches["--reset-rule"]),
-            ),
-            "enjoy": lambda: run_enjoy(enjoy_arguments(zoo_args)),
-        }
-        runners[command]()
+        if command == "train":
+            run_train(train_arguments(zoo_args), collapse_callbacks(*switches.values()))
+        else:
+            run_enjoy(enjoy_arguments(zoo_args))
     except (InputError, MissingDependencyError) as error:
         return _error(str(error))
     except SystemExit as exit_:  # rl_zoo3's argparse: --help, or a bad option (it printed why)
