@@ -31,7 +31,13 @@ from sb3_collapse.sweep.donors import (
     donors_record,
     pick_donors,
 )
-from sb3_collapse.sweep.runner import check_sweep_arguments, prepare_sweep_folder, run_sweep, sweep_settings
+from sb3_collapse.sweep.runner import (
+    SweepSummary,
+    check_sweep_arguments,
+    prepare_sweep_folder,
+    run_sweep,
+    sweep_settings,
+)
 from sb3_collapse.sweep.trials import (
     BASE_VARIANTS,
     GRID_VARIANTS,
@@ -170,24 +176,29 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
+    return print_summary(summary, args.out)
+
+
+def print_summary(summary: SweepSummary, out: str) -> int:
+    """
+    :param summary: what a sweep did
+    :param out: the sweep folder
+    :return: the exit status: 0 when every trial finished, 1 when some failed, EXIT_INTERRUPTED when stopped
+    """
     stopped = sum(checkpoint is not None for checkpoint in summary.interrupted.values())
     print(
-        f"{len(summary.trials)} trials in {args.out}: {len(summary.finished)} finished now "
+        f"{len(summary.trials)} trials in {out}: {len(summary.finished)} finished now "
         f"({len(summary.resumed)} resumed from a checkpoint), {len(summary.skipped)} finished before, "
         f"{len(summary.failed)} failed"
         + (f", {stopped} stopped at a checkpoint" if stopped else "")
         + (f", {len(summary.interrupted) - stopped} not started" if len(summary.interrupted) > stopped else "")
         + "."
     )
-    for trial, error_path in summary.failed.items():
-        again = ", and would again at a rerun" if trial in summary.repeating else ""
-        print(
-            f"  failed: {trial}: {summary.damaged[trial]}"
-            if trial in summary.damaged
-            else f"  failed{again}: {trial} (see {error_path})"
-        )
-    others = len(summary.failed) - len(summary.damaged)  # a damaged trial's line says what to do
-    if others:
+    for trial, error_path in summary.failed.items():  # a damaged trial's line says the way out
+        again = ", and would again at a rerun" if trial in summary.repeating and trial not in summary.damaged else ""
+        why = f": {summary.damaged[trial]}" if trial in summary.damaged else f" (see {error_path})"
+        print(f"  failed{again}: {trial}{why}")
+    if others := len(summary.failed) - len(summary.damaged):
         print(failure_advice(others, len(summary.repeating) - len(summary.damaged)))
     if summary.failed:
         return 1

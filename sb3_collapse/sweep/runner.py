@@ -116,8 +116,8 @@ def run_trial(
     torch_threads: int | None = None,
 ) -> dict[str, Any]:
     """
-    Run one trial into its folder: an unfinished attempt resumes from its newest checkpoint (one with other settings,
-    allowed by ``allow_changed_settings``, is deleted first). A failure goes to the trial's error file, not up.
+    Run one trial into its folder: an unfinished attempt resumes (one with other settings is deleted first); a
+    failure goes to the trial's error file, not up.
 
     :param trial: the trial
     :param out: the sweep folder
@@ -234,8 +234,7 @@ class SweepSummary:
         return not self.failed
 
 
-TRIAL_RETRIES = 3
-"""Times Ray runs a trial's task again after its worker died; each run resumes from the trial's checkpoint."""
+TRIAL_RETRIES = 3  # times Ray runs a trial's task again after its worker died; each run resumes from its checkpoint
 
 
 def sweep_settings(
@@ -246,16 +245,13 @@ def sweep_settings(
     donors: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """
-    The content of the sweep's settings file: ``training`` (as given, ``None``: the presets), ``task_settings``
-    (the DrQ-v2 settings each task's trials use), ``checkpoints``, ``tasks``, ``variants``, ``seeds``,
-    ``resources`` and ``donors``.
-
     :param trials: the sweep's trials
-    :param training: the shared training settings
+    :param training: the shared training settings (``None``: the presets)
     :param checkpoints: the transplant checkpoints
     :param resources: how trials ran: CPUs and GPUs per trial, the Ray address
     :param donors: how the donors were picked, ``None`` when they were given
-    :return: the settings, JSON-serializable
+    :return: the content of the sweep's settings file, JSON-serializable (``task_settings``: the DrQ-v2 settings
+        each task's trials use)
     """
     tasks = list(dict.fromkeys(trial.task for trial in trials))
     configs = {task: TrainConfig(**{**training, "env": task}).resolve() for task in tasks}
@@ -297,13 +293,10 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
             if before not in (None, path):
                 changes.append(f"`{source}` checkpoint for {task}: {before} in {SWEEP_JSON}, {path} now")
     for source in ("good", "bad"):  # a settings file where one agent gave both parts of a source
-        if source in previous.get("checkpoints", {}) and any(
-            key.startswith(f"{source}_") for key in current.get("checkpoints", {})
-        ):
-            changes.append(
-                f"`{source}` checkpoint: one agent for the CNN and the MLP in {SWEEP_JSON}, two agents now "
-                f"(--{source}-cnn, --{source}-mlp)"
-            )
+        parts = {f"{source}_cnn", f"{source}_mlp"} & set(current.get("checkpoints", {}))
+        if source in previous.get("checkpoints", {}) and parts:
+            changes.append(f"`{source}` checkpoint: one agent for the CNN and the MLP in {SWEEP_JSON}, two agents now "
+                           f"(--{source}-cnn, --{source}-mlp)")  # fmt: skip
     return changes
 
 

@@ -20,16 +20,14 @@ from sb3_collapse.protocol import trial_path
 from sb3_collapse.run.config import ALGORITHMS, TrainConfig
 from sb3_collapse.runfolder import read_result
 
-LEAKY = "-leaky"
-"""Suffix of the DrQ-v2 variants with Leaky-ReLU activations (``drqv2-leaky``)."""
-PERIODIC_REDO = "redo_periodic"
-"""``<algorithm>+redo_periodic``: ReDo every :data:`~sb3_collapse.monitoring.redo.REDO_EVERY_UPDATES` updates."""
+LEAKY = "-leaky"  # suffix of the DrQ-v2 variants with Leaky-ReLU activations (drqv2-leaky)
+PERIODIC_REDO = "redo_periodic"  # <algorithm>+redo_periodic: ReDo every REDO_EVERY_UPDATES updates, no rule
 BASE_VARIANTS = ("drqv2", f"drqv2{LEAKY}", *(algorithm for algorithm in ALGORITHMS if algorithm != "drqv2"))
 """The algorithms of the variants: ``drqv2``, ``drqv2-leaky``, ``td3``, ``sac``."""
 PLAIN_VARIANTS = tuple(
     f"{base}{suffix}"
     for base in BASE_VARIANTS
-    for suffix in ("", *(f"+{name}" for name in INTERVENTIONS), f"+{PERIODIC_REDO}")
+    for suffix in ("", *(f"+{i}" for i in INTERVENTIONS), f"+{PERIODIC_REDO}")
 )
 """``<algorithm>``, ``<algorithm>+<intervention>`` and ``<algorithm>+redo_periodic``."""
 TRANSPLANT_SOURCES = ("blank", "good", "bad")

@@ -702,8 +702,10 @@ def test_unreadable_result_file_is_failed_with_its_reason_and_neither_run_nor_ca
     assert main([*argv, "--dry-run"]) == 0
     assert own_lines(capsys.readouterr().out) == [
         f"failed     keep   {folder}: {line}",
-        "1 trials: 1 failed; 0 would run (frames done: the newest checkpoint of an unfinished trial); 1 kept as they "
-        "are (an unreadable result.json).",
+        (
+            "1 trials: 1 failed; 0 would run (frames done: the newest checkpoint of an unfinished trial); 1 kept as "
+            "they are (an unreadable result.json)."
+        ),
     ]
 
     assert main([*argv, "--no-progress-bar"]) == 1
