@@ -351,9 +351,7 @@ def test_command_line_errors(tmp_path, capsys):
             "--bad-mlp", str(other)]  # fmt: skip
     assert main(["--tasks", "walker-walk", "--seeds", "2", *grid, "--out", out, "--dry-run"]) == 0
     lines = own_lines(capsys.readouterr().out)
-    assert lines[-1].startswith("18 trials: 18 new; 18 would run") and lines[0].endswith(
-        "cnn-blank_mlp-blank/seed_0"
-    )
+    assert lines[-1].startswith("18 trials: 18 new; 18 would run") and lines[0].endswith("cnn-blank_mlp-blank/seed_0")
     assert not (tmp_path / "sweep").exists()  # a dry run writes nothing
     with pytest.raises(SystemExit):
         main(["--help"])
