@@ -31,30 +31,17 @@ def zoo_hyperparameters(task_preset: TaskPreset, size: int = 84) -> dict[str, An
     :param size: image height and width, in pixels (DrQ-v2's 84)
     :return: the rl_zoo3 hyperparameters of DrQv2 for the task, counts in agent steps
     """
-    steps = task_preset.frames // task_preset.action_repeat
+    p, steps = task_preset, task_preset.frames // task_preset.action_repeat
     return {
         "policy": "CnnPolicy",
-        "env_kwargs": {
-            "action_repeat": task_preset.action_repeat,
-            "frame_stack": task_preset.frame_stack,
-            "size": size,
-        },
-        "n_timesteps": steps,
-        "learning_starts": task_preset.seed_frames // task_preset.action_repeat,
-        "buffer_size": min(task_preset.buffer_size, steps),
-        "batch_size": task_preset.batch_size,
-        "learning_rate": task_preset.learning_rate,
-        "n_steps": task_preset.n_steps,
-        "gamma": task_preset.gamma,
-        "tau": task_preset.tau,
-        "train_freq": task_preset.train_freq,
-        "gradient_steps": 1,
-        "stddev_schedule": task_preset.stddev_schedule,
-        "stddev_clip": task_preset.stddev_clip,
-        "augmentation_pad": task_preset.augmentation_pad,
-        "replay_buffer_kwargs": {"sampling": task_preset.replay_sampling},
-        "policy_kwargs": f"dict(feature_dim={task_preset.feature_dim}, hidden_dim={task_preset.hidden_dim})",
-    }
+        "env_kwargs": {"action_repeat": p.action_repeat, "frame_stack": p.frame_stack, "size": size},
+        "n_timesteps": steps, "learning_starts": p.seed_frames // p.action_repeat,
+        "buffer_size": min(p.buffer_size, steps), "batch_size": p.batch_size, "learning_rate": p.learning_rate,
+        "n_steps": p.n_steps, "gamma": p.gamma, "tau": p.tau, "train_freq": p.train_freq, "gradient_steps": 1,
+        "stddev_schedule": p.stddev_schedule, "stddev_clip": p.stddev_clip, "augmentation_pad": p.augmentation_pad,
+        "replay_buffer_kwargs": {"sampling": p.replay_sampling},
+        "policy_kwargs": f"dict(feature_dim={p.feature_dim}, hidden_dim={p.hidden_dim})",
+    }  # fmt: skip
 
 
 def zoo_env_ids(task: str) -> list[str]:
