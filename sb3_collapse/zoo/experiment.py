@@ -42,11 +42,9 @@ def check_same_pixels(train_kwargs: dict[str, Any] | None, eval_kwargs: dict[str
     :raises InputError: if they give different :data:`PIXEL_SETTINGS` (missing ones: ``DMCEnv``'s defaults)
     """
     train, evaluation = train_kwargs or {}, eval_kwargs or {}
-    differing = [
-        (name, train.get(name, default), evaluation.get(name, default)) for name, default in _DMC_DEFAULTS.items()
-    ]
-    if any(a != b for _, a, b in differing):
-        details = ", ".join(f"{name}: {a!r} in training, {b!r} in evaluation" for name, a, b in differing if a != b)
+    pairs = {name: (train.get(name, default), evaluation.get(name, default)) for name, default in _DMC_DEFAULTS.items()}
+    details = ", ".join(f"{name}: {a!r} in training, {b!r} in evaluation" for name, (a, b) in pairs.items() if a != b)
+    if details:
         raise InputError(
             f"The evaluation env must see the same pixels as the training env ({details}). "
             "Drop these keys from --eval-env-kwargs (it defaults to the training env_kwargs)."

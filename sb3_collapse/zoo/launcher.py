@@ -65,17 +65,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _peek_parser() -> argparse.ArgumentParser:
-    """The few rl_zoo3 options the launcher reads (they still go to rl_zoo3)."""
+def _peek(zoo_args: list[str]) -> argparse.Namespace:
+    """:return: the few rl_zoo3 options of ``zoo_args`` that the launcher reads (they still go to rl_zoo3)"""
     parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     parser.add_argument("--algo", default="ppo")
     parser.add_argument("--env")
-    parser.add_argument("-conf", "--conf-file", dest="conf_file")
+    parser.add_argument("-conf", "--conf-file")
     parser.add_argument("-optimize", "--optimize-hyperparameters", dest="optimize", action="store_true")
-    parser.add_argument("--eval-freq", dest="eval_freq")
-    parser.add_argument("--eval-episodes", dest="eval_episodes")
-    parser.add_argument("--no-render", dest="no_render", action="store_true")
-    return parser
+    parser.add_argument("--eval-freq")
+    parser.add_argument("--eval-episodes")
+    parser.add_argument("--no-render", action="store_true")
+    return parser.parse_known_args(zoo_args)[0]
 
 
 def collapse_callbacks(collapse_metrics: bool, reset_rule: bool) -> list[dict[str, dict[str, Any]]]:
@@ -93,7 +93,7 @@ def train_arguments(zoo_args: list[str]) -> list[str]:
     :return: them, plus DrQ-v2's evaluation period and episodes for ``--algo drqv2`` when not given
     :raises InputError: for ``--algo drqv2`` without ``-conf``, or with ``-optimize``
     """
-    peek, _ = _peek_parser().parse_known_args(zoo_args)
+    peek = _peek(zoo_args)
     if peek.algo != ALGO_NAME or "-h" in zoo_args or "--help" in zoo_args:
         return list(zoo_args)
     if peek.conf_file is None:
@@ -147,7 +147,7 @@ def enjoy_arguments(zoo_args: list[str]) -> list[str]:
     :param zoo_args: the rl_zoo3 ``enjoy`` options of the command line
     :return: them, with ``--no-render`` (the DeepMind Control envs cannot open a window) for ``--algo drqv2``
     """
-    peek, _ = _peek_parser().parse_known_args(zoo_args)
+    peek = _peek(zoo_args)
     return [*zoo_args, *(["--no-render"] if peek.algo == ALGO_NAME and not peek.no_render else [])]
 
 
