@@ -32,15 +32,8 @@ def import_ray() -> Any:
     return ray
 
 
-def wait_for_port(address: str, timeout_s: float) -> None:
-    """
-    Wait until something accepts TCP connections at ``address``.
-
-    :param address: a Ray address, ``host:port`` or ``ray://host:port``
-    :param timeout_s: seconds to wait at most
-    :raises InputError: for an address without a port, or a host that does not resolve
-    :raises ClusterUnreachable: when nothing accepted a connection in time
-    """
+def _wait_for_port(address: str, timeout_s: float) -> None:
+    """Wait until something accepts TCP connections at ``address`` (``host:port`` or ``ray://host:port``)."""
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
         raise InputError(f"address {address!r} is not 'auto', 'host:port' or 'ray://host:port'.", parameter="address")
@@ -89,7 +82,7 @@ def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
                 f"address auto: {error} Start a cluster on this machine (ray start --head) or give its address, then "
                 "run the same command again; nothing was written."
             ) from None
-    wait_for_port(address, timeout_s)
+    _wait_for_port(address, timeout_s)
     try:
         from ray._raylet import GcsClient
     except ImportError:  # another Ray version: reachability is all that is checked

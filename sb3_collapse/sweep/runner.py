@@ -82,7 +82,7 @@ def check_sweep_arguments(
 
 
 @contextlib.contextmanager
-def created_folder(folder: Path) -> Iterator[None]:
+def _created_folder(folder: Path) -> Iterator[None]:
     """While inside, ``folder`` exists; the folders this created are removed at the end where left empty."""
     created = [path for path in (folder, *folder.parents) if not path.exists()]
     try:
@@ -94,13 +94,10 @@ def created_folder(folder: Path) -> Iterator[None]:
                 path.rmdir()
 
 
-def check_writable(folder: Path) -> None:
-    """
-    :param folder: a folder to write into (created and removed again if it did not exist)
-    :raises OSError: naming ``folder``, when it cannot be written (a read-only file system, no permission, a full disk)
-    """
+def _check_writable(folder: Path) -> None:
+    """Raise ``OSError`` naming ``folder`` when it cannot be created and written into; leave nothing behind."""
     try:
-        with created_folder(folder):
+        with _created_folder(folder):
             (folder / f".write_check_{os.getpid()}").mkdir()
             (folder / f".write_check_{os.getpid()}").rmdir()
     except OSError as error:
@@ -382,7 +379,7 @@ def run_sweep(
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
     settings = sweep_settings(trials, training, checkpoints, resources, donors)
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
-    check_writable(out)  # before starting Ray: a read-only folder is said at once
+    _check_writable(out)  # before starting Ray: a read-only folder is said at once
     with sweep_folder_locked(out):  # a second sweep into the folder is refused, before its Ray starts
         summary = SweepSummary(trials=list(trials), skipped=[], finished=[], failed={})
         for trial in trials:
@@ -425,7 +422,7 @@ def sweep_folder_locked(out: Path) -> Iterator[None]:
     :raises InputError: naming the process that runs a sweep into the folder
     """
     with (
-        created_folder(out),
+        _created_folder(out),
         RunLock(out, SWEEP_LOCK, folder="sweep folder", instead="give this sweep another `out`") as lock,
     ):
         try:

@@ -16,11 +16,8 @@ import psutil
 POLL_SECONDS = 0.5
 
 
-def descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
-    """
-    :param pid: a process
-    :return: its descendants but this process, keyed by (pid, creation time) so that a reused pid is never taken
-    """
+def _descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
+    """The descendants of ``pid`` but this process, by (pid, creation time): a reused pid is never taken."""
     try:
         children = psutil.Process(pid).children(recursive=True)
     except psutil.NoSuchProcess:
@@ -33,7 +30,7 @@ def descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
     return found
 
 
-def end_processes(processes: list[psutil.Process], grace_seconds: float = 5.0) -> None:
+def _end_processes(processes: list[psutil.Process], grace_seconds: float = 5.0) -> None:
     """Terminate the processes, then kill those still alive after ``grace_seconds``."""
     for process in processes:
         with contextlib.suppress(psutil.NoSuchProcess):
@@ -43,7 +40,7 @@ def end_processes(processes: list[psutil.Process], grace_seconds: float = 5.0) -
             process.kill()
 
 
-def driver_alive(process: psutil.Process) -> bool:
+def _driver_alive(process: psutil.Process) -> bool:
     """Whether the driver process still runs (a zombie has died)."""
     try:
         return process.is_running() and process.status() != psutil.STATUS_ZOMBIE
@@ -53,9 +50,7 @@ def driver_alive(process: psutil.Process) -> bool:
 
 def watch(driver_pid: int, poll_seconds: float = POLL_SECONDS) -> int:
     """
-    Follow the driver's descendants until it dies, then end those still running.
-
-    :param driver_pid: the sweep's driver
+    :param driver_pid: the sweep's driver: its descendants are followed until it dies, then those still running ended
     :param poll_seconds: time between two looks at the process tree
     :return: how many processes were ended
     """
@@ -64,11 +59,11 @@ def watch(driver_pid: int, poll_seconds: float = POLL_SECONDS) -> int:
     except psutil.NoSuchProcess:
         return 0
     known: dict[tuple[int, float], psutil.Process] = {}
-    while driver_alive(driver):
-        known.update(descendants(driver_pid))
+    while _driver_alive(driver):
+        known.update(_descendants(driver_pid))
         time.sleep(poll_seconds)
     remaining = [process for process in known.values() if process.is_running()]  # checks the creation time too
-    end_processes(remaining)
+    _end_processes(remaining)
     return len(remaining)
 
 

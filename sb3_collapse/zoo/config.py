@@ -25,7 +25,7 @@ HEADER = """\
 """
 
 
-def zoo_hyperparameters(task_preset: TaskPreset, size: int = 84) -> dict[str, Any]:
+def _zoo_hyperparameters(task_preset: TaskPreset, size: int = 84) -> dict[str, Any]:
     """
     :param task_preset: a task's preset
     :param size: image height and width, in pixels (DrQ-v2's 84)
@@ -44,11 +44,8 @@ def zoo_hyperparameters(task_preset: TaskPreset, size: int = 84) -> dict[str, An
     }  # fmt: skip
 
 
-def zoo_env_ids(task: str) -> list[str]:
-    """
-    :param task: a task, ``<domain>-<task>``
-    :return: its Gymnasium ids: the registered one, and DrQ-v2's alias where there is one (``cup-catch``)
-    """
+def _zoo_env_ids(task: str) -> list[str]:
+    """The Gymnasium ids of ``task``: the registered one, and DrQ-v2's alias where there is one (``cup-catch``)."""
     domain, name = task.split("-", 1)
     aliases = [alias for alias, target in DOMAIN_ALIASES.items() if target == domain]
     return [dmc_env_id(task)] + [dmc_env_id(f"{alias}-{name}") for alias in aliases]
@@ -65,7 +62,7 @@ def render_zoo_config() -> str:
         frames = presets[0].frames
         parts.append(f"\n# {tier} tasks: {frames:,} frames\n")
         for task_preset in presets:
-            entries = {env_id: zoo_hyperparameters(task_preset) for env_id in zoo_env_ids(task_preset.task)}
+            entries = {env_id: _zoo_hyperparameters(task_preset) for env_id in _zoo_env_ids(task_preset.task)}
             parts.append(yaml.safe_dump(entries, sort_keys=False, default_flow_style=None, width=120))
     return "".join(parts)
 

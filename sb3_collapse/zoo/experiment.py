@@ -30,17 +30,13 @@ _DMC_DEFAULTS = {
 }
 
 
-def is_dmc_env_id(env_id: str) -> bool:
+def _is_dmc_env_id(env_id: str) -> bool:
     """:return: whether the registered Gymnasium id ``env_id`` builds a :class:`~sb3_collapse.envs.dmc.DMCEnv`"""
     return env_id in gym.registry and gym.registry[env_id].entry_point == ENTRY_POINT
 
 
-def check_same_pixels(train_kwargs: dict[str, Any] | None, eval_kwargs: dict[str, Any] | None) -> None:
-    """
-    :param train_kwargs: ``env_kwargs`` of the training env
-    :param eval_kwargs: ``env_kwargs`` of the evaluation env
-    :raises InputError: if they give different :data:`PIXEL_SETTINGS` (missing ones: ``DMCEnv``'s defaults)
-    """
+def _check_same_pixels(train_kwargs: dict[str, Any] | None, eval_kwargs: dict[str, Any] | None) -> None:
+    """Refuse training and evaluation ``env_kwargs`` whose :data:`PIXEL_SETTINGS` differ (missing: the defaults)."""
     train, evaluation = train_kwargs or {}, eval_kwargs or {}
     pairs = {name: (train.get(name, default), evaluation.get(name, default)) for name, default in _DMC_DEFAULTS.items()}
     details = ", ".join(f"{name}: {a!r} in training, {b!r} in evaluation" for name, (a, b) in pairs.items() if a != b)
@@ -51,12 +47,8 @@ def check_same_pixels(train_kwargs: dict[str, Any] | None, eval_kwargs: dict[str
         )
 
 
-def check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
-    """
-    :param hyperparams: one entry of the config file, after the ``-params`` overrides
-    :raises InputError: for ``frame_stack`` (rl_zoo3's ``VecFrameStack``: the env stacks frames itself),
-        ``normalize`` (DrQv2 scales the uint8 pixels itself) and a malformed ``stddev_schedule``
-    """
+def _check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
+    """Refuse ``frame_stack``, ``normalize`` and a malformed ``stddev_schedule`` in a config entry."""
     if "frame_stack" in hyperparams:
         raise InputError(
             f"frame_stack: {hyperparams['frame_stack']!r} makes rl_zoo3 stack observations with VecFrameStack; "
@@ -100,7 +92,7 @@ class ZooExperimentManager(ExperimentManager):
         except ValueError as error:  # rl_zoo3: "Hyperparameters not found for <algo>-<env> in <config>"
             raise InputError(f"{error}: add an entry for {self.env_name.gym_id} to it.") from None
         if self.algo == ALGO_NAME:
-            check_drqv2_hyperparams(hyperparams)
+            _check_drqv2_hyperparams(hyperparams)
         if self.extra_callbacks:  # after the config's (None, a dotted name, a {name: kwargs} dict or a list)
             configured = hyperparams.get("callback")
             configured = [] if configured is None else configured if isinstance(configured, list) else [configured]
@@ -112,13 +104,13 @@ class ZooExperimentManager(ExperimentManager):
         processed = super()._preprocess_hyperparams(hyperparams)
         # rl_zoo3 bound eval_env_kwargs to the command line's env_kwargs before reading the config file.
         self.eval_env_kwargs = {**self.env_kwargs, **(self._eval_env_kwargs_args or {})}
-        if is_dmc_env_id(self.env_name.gym_id):
-            check_same_pixels(self.env_kwargs, self.eval_env_kwargs)
+        if _is_dmc_env_id(self.env_name.gym_id):
+            _check_same_pixels(self.env_kwargs, self.eval_env_kwargs)
         return processed
 
     def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
         env = super().create_envs(n_envs, eval_env=eval_env, no_log=no_log)
-        if is_dmc_env_id(self.env_name.gym_id) and is_vecenv_wrapped(env, VecTransposeImage):
+        if _is_dmc_env_id(self.env_name.gym_id) and is_vecenv_wrapped(env, VecTransposeImage):
             shape = env.get_attr("observation_space", indices=[0])[0].shape
             env.close()
             raise InputError(

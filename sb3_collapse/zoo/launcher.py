@@ -87,12 +87,8 @@ def collapse_callbacks(collapse_metrics: bool, reset_rule: bool) -> list[dict[st
     return [callback for wanted, callback in zip((collapse_metrics, reset_rule), SWITCHES.values()) if wanted]
 
 
-def train_arguments(zoo_args: list[str]) -> list[str]:
-    """
-    :param zoo_args: the rl_zoo3 ``train`` options of the command line
-    :return: them, plus DrQ-v2's evaluation period and episodes for ``--algo drqv2`` when not given
-    :raises InputError: for ``--algo drqv2`` without ``-conf``, or with ``-optimize``
-    """
+def _train_arguments(zoo_args: list[str]) -> list[str]:
+    """``zoo_args`` and, for ``--algo drqv2``, DrQ-v2's evaluation period and episodes; checks first."""
     peek = _peek(zoo_args)
     if peek.algo != ALGO_NAME or "-h" in zoo_args or "--help" in zoo_args:
         return list(zoo_args)
@@ -100,7 +96,7 @@ def train_arguments(zoo_args: list[str]) -> list[str]:
         raise InputError("--algo drqv2 needs a config file: pass -conf zoo_configs/drqv2.yml (or your own).")
     if peek.optimize:
         raise InputError("-optimize is not available for drqv2: rl_zoo3 has no hyperparameter sampler for it.")
-    check_env_and_config(peek.env, peek.conf_file)
+    _check_env_and_config(peek.env, peek.conf_file)
     args = list(zoo_args)
     if peek.eval_freq is None:
         args += ["--eval-freq", str(DRQV2_EVAL_FREQ)]
@@ -109,14 +105,8 @@ def train_arguments(zoo_args: list[str]) -> list[str]:
     return args
 
 
-def check_env_and_config(env_id: str | None, conf_file: str) -> None:
-    """
-    Check, before rl_zoo3 starts, that the env id is registered and the config file is a YAML mapping with its entry.
-
-    :param env_id: the ``--env`` of the command line (``None``: rl_zoo3's default, not checked)
-    :param conf_file: the ``-conf`` file
-    :raises InputError: saying what is wrong and what to pass
-    """
+def _check_env_and_config(env_id: str | None, conf_file: str) -> None:
+    """Before rl_zoo3 starts: ``env_id`` is registered (or ``None``), ``conf_file`` a YAML mapping with its entry."""
     import gymnasium as gym
     import yaml
 
@@ -142,11 +132,8 @@ def check_env_and_config(env_id: str | None, conf_file: str) -> None:
         raise InputError(f"-conf {conf_file} has no entry for {env_id}; add one or choose another --env.")
 
 
-def enjoy_arguments(zoo_args: list[str]) -> list[str]:
-    """
-    :param zoo_args: the rl_zoo3 ``enjoy`` options of the command line
-    :return: them, with ``--no-render`` (the DeepMind Control envs cannot open a window) for ``--algo drqv2``
-    """
+def _enjoy_arguments(zoo_args: list[str]) -> list[str]:
+    """``zoo_args`` with ``--no-render`` for ``--algo drqv2`` (the DeepMind Control envs cannot open a window)."""
     peek = _peek(zoo_args)
     return [*zoo_args, *(["--no-render"] if peek.algo == ALGO_NAME and not peek.no_render else [])]
 
@@ -167,7 +154,7 @@ def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -
     Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`, with torch's
     CUDA flags set as ``python -m sb3_collapse.train`` sets them (:func:`~sb3_collapse.backends.configure_backends`).
 
-    :param zoo_args: rl_zoo3 ``train`` options (after :func:`train_arguments`)
+    :param zoo_args: rl_zoo3 ``train`` options (after :func:`_train_arguments`)
     :param callbacks: callbacks appended to those of the config file
     """
     import rl_zoo3.train
@@ -182,8 +169,8 @@ def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -
         rl_zoo3.train.train()
 
 
-def run_enjoy(zoo_args: list[str]) -> None:
-    """:param zoo_args: rl_zoo3 ``enjoy`` options (after :func:`enjoy_arguments`)"""
+def _run_enjoy(zoo_args: list[str]) -> None:
+    """Run rl_zoo3's ``enjoy`` script with ``zoo_args``."""
     import rl_zoo3.enjoy
 
     with _replaced(sys, "argv", [f"{PROG} enjoy", *zoo_args]):
@@ -223,9 +210,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         register_with_zoo()
         if command == "train":
-            run_train(train_arguments(zoo_args), collapse_callbacks(*switches.values()))
+            run_train(_train_arguments(zoo_args), collapse_callbacks(*switches.values()))
         else:
-            run_enjoy(enjoy_arguments(zoo_args))
+            _run_enjoy(_enjoy_arguments(zoo_args))
     except (InputError, MissingDependencyError) as error:
         return _error(str(error))
     except SystemExit as exit_:  # rl_zoo3's argparse: --help, or a bad option (it printed why)
