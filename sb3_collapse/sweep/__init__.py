@@ -15,19 +15,7 @@ from sb3_collapse.sweep.trials import (
 )
 
 __all__ = [
-    "GRID_VARIANTS",
-    "SweepSummary",
-    "Trial",
-    "donor_candidates",
-    "expand_trials",
-    "parse_checkpoint_specs",
-    "pick_donors",
-    "ray_session",
-    "run_sweep",
-    "run_trial",
-    "settings_changes",
-    "transplant_of",
-    "trial_config",
-    "trial_dir",
-    "variant_settings",
-]
+    "GRID_VARIANTS", "SweepSummary", "Trial", "donor_candidates", "expand_trials", "parse_checkpoint_specs",
+    "pick_donors", "ray_session", "run_sweep", "run_trial", "settings_changes", "transplant_of", "trial_config",
+    "trial_dir", "variant_settings",
+]  # fmt: skip
