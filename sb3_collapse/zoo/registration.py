@@ -16,6 +16,7 @@ def register_with_zoo() -> None:
     :raises MissingDependencyError: if rl_zoo3 (or a package it needs) cannot be imported, saying how to install it
     """
     try:
+        import rl_zoo3  # noqa: F401  (the package first: its submodule may be imported already)
         from rl_zoo3.utils import ALGOS
     except ImportError as error:
         missing = f" (missing module: {error.name})" if error.name else ""
