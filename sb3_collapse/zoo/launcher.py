@@ -169,14 +169,6 @@ def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -
         rl_zoo3.train.train()
 
 
-def _run_enjoy(zoo_args: list[str]) -> None:
-    """Run rl_zoo3's ``enjoy`` script with ``zoo_args``."""
-    import rl_zoo3.enjoy
-
-    with _replaced(sys, "argv", [f"{PROG} enjoy", *zoo_args]):
-        rl_zoo3.enjoy.enjoy()
-
-
 def _error(message: str) -> int:
     """Print ``message`` as argparse prints an error; :return: exit status 2"""
     print(f"usage: {USAGE}\n{PROG}: error: {message}", file=sys.stderr)
@@ -212,7 +204,10 @@ def main(argv: list[str] | None = None) -> int:
         if command == "train":
             run_train(_train_arguments(zoo_args), collapse_callbacks(*switches.values()))
         else:
-            _run_enjoy(_enjoy_arguments(zoo_args))
+            import rl_zoo3.enjoy
+
+            with _replaced(sys, "argv", [f"{PROG} enjoy", *_enjoy_arguments(zoo_args)]):
+                rl_zoo3.enjoy.enjoy()
     except (InputError, MissingDependencyError) as error:
         return _error(str(error))
     except SystemExit as exit_:  # rl_zoo3's argparse: --help, or a bad option (it printed why)
