@@ -160,10 +160,9 @@ def _stop_requests_watched(stop_file: Path, every_s: float = 0.25) -> Iterator[N
     def watch() -> None:
         while not done.wait(every_s):
             if stop_file.exists():
-                try:
-                    name = stop_file.read_text().strip() or "SIGTERM"
-                except OSError:
-                    name = "SIGTERM"
+                name = "SIGTERM"
+                with contextlib.suppress(OSError):
+                    name = stop_file.read_text().strip() or name
                 print(f"The sweep was stopped by {name}: writing a checkpoint at the end of this round.", flush=True)
                 request_training_stop(name)
                 return
@@ -180,11 +179,10 @@ def _stop_requests_watched(stop_file: Path, every_s: float = 0.25) -> Iterator[N
 
 def _error_file_stamp(folder: Path) -> tuple[int, int] | None:
     """The inode and modification time of a trial's error file, ``None`` without one."""
-    try:
+    with contextlib.suppress(OSError):
         stat = (folder / ERROR_TXT).stat()
-    except OSError:
-        return None
-    return stat.st_ino, stat.st_mtime_ns
+        return stat.st_ino, stat.st_mtime_ns
+    return None
 
 
 def retryable(error: BaseException) -> bool:
