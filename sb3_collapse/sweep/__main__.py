@@ -1,12 +1,4 @@
-"""
-Multi-seed sweeps on Ray: ``python -m sb3_collapse.sweep --help``.
-
-    python -m sb3_collapse.sweep --tasks walker-walk hopper-stand finger-spin --seeds 40 \\
-        --variants drqv2 drqv2+reset --out runs/sweep
-
-Every (task, variant, seed) trains as an independent Ray task into ``<out>/<task>/<variant>/seed_<k>``; rerun the
-same command to resume (finished trials are skipped, unfinished ones restart).
-"""
+"""Multi-seed sweeps on Ray: ``python -m sb3_collapse.sweep --help``, docs/sweeps.md."""
 
 from __future__ import annotations
 
@@ -25,7 +17,7 @@ from sb3_collapse.errors import (
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED
+from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
@@ -39,12 +31,19 @@ from sb3_collapse.sweep.donors import (
     donors_record,
     pick_donors,
 )
-from sb3_collapse.sweep.runner import check_sweep_arguments, prepare_sweep_folder, run_sweep, sweep_settings
+from sb3_collapse.sweep.runner import (
+    SweepSummary,
+    check_sweep_arguments,
+    prepare_sweep_folder,
+    run_sweep,
+    sweep_settings,
+)
 from sb3_collapse.sweep.trials import (
     BASE_VARIANTS,
     GRID_VARIANTS,
     TRANSPLANT_SOURCES,
     check_checkpoints,
+    damaged_result,
     donor_key,
     expand_trials,
     parse_checkpoint_specs,
@@ -61,11 +60,11 @@ def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags and every training flag of train."""
     p = argparse.ArgumentParser(
         prog=prog_name("sb3_collapse.sweep"),
-        description="Run every (task, variant, seed) as an independent DrQ-v2 trial on Ray, each into "
-        "<out>/<task>/<variant>/seed_<k> (the run folder of python -m sb3_collapse.train). Each task trains with "
-        "its own DrQ-v2 preset (sb3_collapse.presets, docs/presets.md); a DrQ-v2 flag given here overrides it for "
-        "every task and is recorded. Rerun the same command to resume: finished trials are skipped, unfinished "
-        "ones restart. Frames = agent steps x action repeat.",
+        description="Run every (task, variant, seed) as an independent trial on Ray (DrQ-v2, or the TD3/SAC "
+        "baselines that --variants names), each into <out>/<task>/<variant>/seed_<k> (the run folder of python -m "
+        "sb3_collapse.train). Each task trains with its own DrQ-v2 preset (docs/presets.md); a DrQ-v2 flag given "
+        "here overrides it for every task and is recorded. Rerun the same command to resume: finished trials are "
+        "skipped, unfinished ones resume from their newest checkpoint. Frames = agent steps x action repeat.",
         parents=[training_arguments()],
     )
     g = p.add_argument_group("sweep")
@@ -79,10 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"<algorithm> or <algorithm>+<intervention> (the paper's rule doing that intervention), <algorithm> in "
         f"{'/'.join(BASE_VARIANTS)} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations), "
         f"<intervention> in {'/'.join(INTERVENTIONS)}, or <algorithm>+redo_periodic (ReDo every {REDO_EVERY_UPDATES} "
-        "updates, no rule) (e.g. drqv2+reset, drqv2+redo, drqv2-leaky+reset; docs/interventions.md), or "
-        "transplant-grid cells "
-        f"cnn-<src>_mlp-<src>, <src> in {'/'.join(TRANSPLANT_SOURCES)}; default: {' '.join(DEFAULT_VARIANTS)} (only "
-        "the grid with --transplant-grid)",
+        "updates, no rule) (e.g. drqv2+reset, drqv2+redo, drqv2-leaky+reset; docs/interventions.md), or transplant-"
+        f"grid cells cnn-<src>_mlp-<src>, <src> in {'/'.join(TRANSPLANT_SOURCES)}; default: "
+        f"{' '.join(DEFAULT_VARIANTS)} (only the grid with --transplant-grid)",
     )
     g.add_argument("--transplant-grid", action="store_true", help="add the 9 cells of the CNN x MLP transplant grid")
     donors = p.add_argument_group(
@@ -91,13 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
     for source in DONOR_SOURCES:
         for part in DONOR_PARTS:
             donors.add_argument(
-                f"--{source}-{part}",
-                dest=donor_key(source, part),
-                nargs="+",
-                metavar="[TASK=]PATH",
+                f"--{source}-{part}", dest=donor_key(source, part), nargs="+", metavar="[TASK=]PATH",
                 help=f"DrQv2 checkpoint(s) of the {'well' if source == 'good' else 'poorly'} performing agent that "
                 f"gives the {source} {part.upper()}: PATH for every task, TASK=PATH per task",
-            )
+            )  # fmt: skip
         donors.add_argument(f"--{source}-checkpoint", nargs="+", help=argparse.SUPPRESS)  # refused: see main
     donors.add_argument(
         "--donors-from",
@@ -106,12 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
         f"return >= {PAPER.success_return:g} (good CNN, good MLP) and two < {PAPER.failure_return:g} (bad ones)",
     )
     donors.add_argument(
-        "--donor-variant",
-        default="drqv2",
-        help="the variant of --donors-from whose seeds give parts (default: %(default)s)",
+        "--donor-variant", default="drqv2", help="the variant of --donors-from giving parts (default: %(default)s)"
     )
     donors.add_argument(
-        "--donor-seed", type=int, default=0, help="seed of the random pick of --donors-from (default: %(default)s)"
+        "--donor-seed", type=int, default=0, help="seed of the pick of --donors-from (default: %(default)s)"
     )
     g.add_argument("--out", required=True, help="the sweep folder (with --address: on storage every node sees)")
     g.add_argument(
@@ -120,32 +113,21 @@ def build_parser() -> argparse.ArgumentParser:
         "sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees",
     )
     g.add_argument(
-        "--connect-timeout",
-        dest="connect_timeout_s",
-        type=float,
-        default=CONNECT_TIMEOUT_S,
-        metavar="SECONDS",
+        "--connect-timeout", dest="connect_timeout_s", type=float, default=CONNECT_TIMEOUT_S, metavar="SECONDS",
         help="with --address: give up, writing nothing, when the cluster does not answer within this time "
         "(exit status 1; default: %(default)g)",
+    )  # fmt: skip
+    g.add_argument(
+        "--cpus-per-trial", type=float, default=1, help="CPUs per trial; also its torch threads (default: %(default)s)"
     )
     g.add_argument(
-        "--cpus-per-trial",
-        type=float,
-        default=1,
-        help="CPUs Ray reserves per trial; also its torch threads (default: %(default)s)",
-    )
+        "--gpus-per-trial", type=float, default=0, help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 "
+        "trials per GPU); > 0 trains on cuda, 0 on cpu (default: %(default)s)",
+    )  # fmt: skip
     g.add_argument(
-        "--gpus-per-trial",
-        type=float,
-        default=0,
-        help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 trials per GPU); > 0 trains on cuda, 0 on cpu "
-        "(default: %(default)s)",
-    )
-    g.add_argument(
-        "--allow-changed-settings",
-        action="store_true",
-        help="run even if --out holds a sweep with other training settings (finished trials keep theirs)",
-    )
+        "--allow-changed-settings", action="store_true", help="run even if --out holds a sweep with other training "
+        "settings (finished trials keep theirs)",
+    )  # fmt: skip
     g.add_argument("--dry-run", action="store_true", help="list the trials and their status, run nothing")
     g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
     return p
@@ -156,8 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
     :return: exit status: 0 when every trial finished, 1 when some failed (or the cluster did not answer), 2 for
-        bad arguments, {EXIT_INTERRUPTED} when a SIGTERM or SIGINT stopped the sweep (the trials wrote a checkpoint:
-        run the same command again)
+        bad arguments, :data:`~sb3_collapse.protocol.EXIT_INTERRUPTED` when a signal stopped the sweep
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -180,18 +161,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.dry_run:
             return dry_run(trials, args.out, training, checkpoints, args.allow_changed_settings, donors)
         summary = run_sweep(
-            trials,
-            args.out,
-            training,
-            checkpoints,
-            cpus_per_trial=args.cpus_per_trial,
-            gpus_per_trial=args.gpus_per_trial,
-            address=args.address,
-            allow_changed_settings=args.allow_changed_settings,
-            progress_bar=args.progress_bar,
-            donors=donors,
-            connect_timeout_s=args.connect_timeout_s,
-        )
+            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.address,
+            args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s,
+        )  # fmt: skip
     except (MissingDependencyError, ValueError) as error:
         parser.error(cli_message(error, parser))
     except ClusterUnreachable as error:
@@ -204,20 +176,31 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
+    return print_summary(summary, args.out)
+
+
+def print_summary(summary: SweepSummary, out: str) -> int:
+    """
+    :param summary: what a sweep did
+    :param out: the sweep folder
+    :return: the exit status: 0 when every trial finished, 1 when some failed, EXIT_INTERRUPTED when stopped
+    """
     stopped = sum(checkpoint is not None for checkpoint in summary.interrupted.values())
     print(
-        f"{len(summary.trials)} trials in {args.out}: {len(summary.finished)} finished now "
+        f"{len(summary.trials)} trials in {out}: {len(summary.finished)} finished now "
         f"({len(summary.resumed)} resumed from a checkpoint), {len(summary.skipped)} finished before, "
         f"{len(summary.failed)} failed"
         + (f", {stopped} stopped at a checkpoint" if stopped else "")
         + (f", {len(summary.interrupted) - stopped} not started" if len(summary.interrupted) > stopped else "")
         + "."
     )
-    for trial, error_path in summary.failed.items():
-        again = ", and would again at a rerun" if trial in summary.repeating else ""
-        print(f"  failed{again}: {trial} (see {error_path})")
+    for trial, error_path in summary.failed.items():  # a damaged trial's line says the way out
+        again = ", and would again at a rerun" if trial in summary.repeating and trial not in summary.damaged else ""
+        why = f": {summary.damaged[trial]}" if trial in summary.damaged else f" (see {error_path})"
+        print(f"  failed{again}: {trial}{why}")
+    if others := len(summary.failed) - len(summary.damaged):
+        print(failure_advice(others, len(summary.repeating) - len(summary.damaged)))
     if summary.failed:
-        print(failure_advice(len(summary.failed), len(summary.repeating)))
         return 1
     if summary.interrupted:
         print(
@@ -235,8 +218,7 @@ def failure_advice(failed: int, repeating: int) -> str:
     :return: one line: what to do about them
     """
     fix = (
-        f"fix the cause first (their {ERROR_TXT} says it: bad settings, a diverging run, an error of the training "
-        "code)"
+        f"fix the cause first (their {ERROR_TXT} says it: bad settings, a diverging run, an error of the training code)"
     )
     if repeating == 0:
         return "Rerun the same command to retry the failed trials."
@@ -254,10 +236,9 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
 
     :param args: the parsed command line
     :param trials: the sweep's trials
-    :return: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> path, and the record of the pick (``None``
-        for given checkpoints)
-    :raises InputError: for the old ``--good-checkpoint`` / ``--bad-checkpoint``, both forms at once, or one
-        agent giving both parts of a source
+    :return: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> path, and the record of a pick (else ``None``)
+    :raises InputError: for ``--good-checkpoint`` / ``--bad-checkpoint``, both forms at once, or one agent giving both
+        parts of a source
     """
     for source in DONOR_SOURCES:
         if getattr(args, f"{source}_checkpoint") is not None:
@@ -297,8 +278,7 @@ def dry_run(
     Print each trial's status and folder, and the counts; check the settings against the sweep's settings file.
 
     :return: exit status 0
-    :raises InputError: when the training settings differ from those of the sweep's settings file (and that is not
-    allowed)
+    :raises InputError: when the training settings differ from the sweep's settings file's (and that is not allowed)
     """
     if donors is not None:
         for task, picked in donors["tasks"].items():
@@ -308,19 +288,26 @@ def dry_run(
     settings = sweep_settings(trials, training, checkpoints, resources={}, donors=donors)
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
     statuses = {trial: str(run_status(trial_dir(out, trial)) or NOT_A_RUN) for trial in trials}
+    runs = kept = 0
     for trial, status in statuses.items():
         folder = trial_dir(out, trial)
+        reason = None if status == RunStatus.FINISHED else damaged_result(folder)
+        if reason is not None:  # not run: a rerun would not repair it
+            kept += 1
+            print(f"{status:<10} keep   {folder}: {reason}")
+            continue
         total = int(trial_config(trial, out, training, checkpoints).frames)  # type: ignore[arg-type]
         done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
         action = "skip" if status == RunStatus.FINISHED else "resume" if done is not None else "run"
+        runs += action != "skip"
         frames = total if status == RunStatus.FINISHED else done or 0
         print(f"{status:<10} {action:<6} {frames:>10,} of {total:,} frames  {folder}")
     counts = Counter(statuses.values())
     print(
         f"{len(trials)} trials: "
         + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
-        + f"; {sum(status != RunStatus.FINISHED for status in statuses.values())} would run (frames done: the newest "
-        "checkpoint of an unfinished trial)."
+        + f"; {runs} would run (frames done: the newest checkpoint of an unfinished trial)"
+        + (f"; {kept} kept as they are (an unreadable {RESULT_JSON})." if kept else ".")
     )
     return 0
 

@@ -1,8 +1,4 @@
-"""
-The Ray cluster of a sweep: Ray's import (:func:`import_ray`), the check that a cluster answers at the sweep's
-address before anything is written (:func:`check_cluster`), the session (:func:`ray_session`: a local instance,
-watched so that it never outlives the driver, or a cluster) and the check of its resources (:func:`check_resources`).
-"""
+"""The Ray cluster of a sweep: Ray's import, the check that a cluster answers, the session and its resources."""
 
 from __future__ import annotations
 
@@ -18,7 +14,8 @@ from typing import Any
 
 from sb3_collapse.errors import ClusterUnreachable, InputError, MissingDependencyError
 
-INSTALL_HINT = "pip install -e '.[sweep]'"
+CONNECT_TIMEOUT_S = 30.0
+"""Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
 
 
 def import_ray() -> Any:
@@ -29,37 +26,18 @@ def import_ray() -> Any:
     try:
         import ray
     except ImportError as error:
-        raise MissingDependencyError(f"Sweeps run on Ray, which is not installed: {INSTALL_HINT} ({error}).") from None
+        raise MissingDependencyError(
+            f"Sweeps run on Ray, which is not installed: pip install -e '.[sweep]' ({error})."
+        ) from None
     return ray
 
 
-CONNECT_TIMEOUT_S = 30.0
-"""Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
-
-
-def split_address(address: str) -> tuple[str, int]:
-    """
-    :param address: a Ray address, ``host:port`` or ``ray://host:port``
-    :return: the host and the port
-    :raises InputError: for an address without a port
-    """
+def _wait_for_port(address: str, timeout_s: float) -> None:
+    """Wait until something accepts TCP connections at ``address`` (``host:port`` or ``ray://host:port``)."""
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
         raise InputError(f"address {address!r} is not 'auto', 'host:port' or 'ray://host:port'.", parameter="address")
-    return host.strip("[]"), int(port)
-
-
-def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
-    """
-    Wait until something accepts TCP connections at ``host:port`` (a cluster still starting gets ``timeout_s``).
-
-    :param address: the address as given, for the messages
-    :param host: the host
-    :param port: the port
-    :param timeout_s: seconds to wait at most
-    :raises InputError: for a host that does not resolve
-    :raises ClusterUnreachable: when nothing accepted a connection in time
-    """
+    host, port = host.strip("[]"), int(port)
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -79,14 +57,12 @@ def wait_for_port(address: str, host: str, port: int, timeout_s: float) -> None:
 
 def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     """
-    Check that the Ray cluster at ``address`` answers and accepts this process, within ``timeout_s`` (``ray.init``
-    alone retries an unreachable address for minutes, and fails a cluster that wants a token after many seconds).
-    Ray's own log lines of a failed check are kept off the terminal.
+    Check that the Ray cluster at ``address`` answers and accepts this process within ``timeout_s`` (``ray.init``
+    alone retries for minutes), keeping Ray's own log lines off the terminal.
 
     :param address: ``"auto"``, ``"host:port"`` (the GCS) or ``"ray://host:port"`` (Ray client: only reachability)
     :param timeout_s: seconds to wait for the cluster at most
-    :raises InputError: for an address that cannot be right, or a cluster that wants an authentication token this
-        process does not have (``ray start`` turns token authentication on by default)
+    :raises InputError: for an address that cannot be right, or a cluster that wants a token this process lacks
     :raises ClusterUnreachable: when no cluster answered in time
     """
     deadline = time.monotonic() + timeout_s
@@ -106,8 +82,7 @@ def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
                 f"address auto: {error} Start a cluster on this machine (ray start --head) or give its address, then "
                 "run the same command again; nothing was written."
             ) from None
-    host, port = split_address(address)
-    wait_for_port(address, host, port, timeout_s)
+    _wait_for_port(address, timeout_s)
     try:
         from ray._raylet import GcsClient
     except ImportError:  # another Ray version: reachability is all that is checked
@@ -176,13 +151,9 @@ def ray_session(
     address: str | None = None, num_cpus: int | None = None, connect_timeout_s: float = CONNECT_TIMEOUT_S
 ) -> Iterator[Any]:
     """
-    Connect to Ray for the duration of the block: an already initialized Ray is used as it is; otherwise
-    ``ray.init`` starts a local instance (``address=None``, no dashboard) or connects to the cluster at
-    ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``), and the block's end disconnects. A cluster
-    is checked first (:func:`check_cluster`): one that does not answer within ``connect_timeout_s``, or refuses this
-    process, ends the session before it starts. A local instance never outlives this process: a watchdog
-    (:mod:`sb3_collapse.sweep.watchdog`) ends its processes if the process dies without shutting it down (SIGKILL,
-    out of memory).
+    Ray for the duration of the block: an already initialized Ray as it is, else a new local instance (ended with
+    this process, even by SIGKILL: :mod:`sb3_collapse.sweep.watchdog`) or the cluster at ``address``, checked first
+    (:func:`check_cluster`).
 
     :param address: Ray cluster address, ``None`` for a new local instance
     :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``
@@ -198,7 +169,10 @@ def ray_session(
     watchdog = None
     if address is None:
         ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
-        watchdog = _start_watchdog()
+        watchdog = subprocess.Popen(  # not in the driver's process group: a Ctrl-C or a group kill does not reach it
+            [sys.executable, "-m", "sb3_collapse.sweep.watchdog", str(os.getpid())], stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        )  # fmt: skip
     else:
         check_cluster(address, connect_timeout_s)
         try:
@@ -216,20 +190,6 @@ def ray_session(
             watchdog.wait()
 
 
-def _start_watchdog() -> subprocess.Popen:
-    """
-    Start :mod:`sb3_collapse.sweep.watchdog` for the local Ray instance just started, so that its processes do not
-    outlive this driver when it is killed (SIGKILL skips Ray's clean-up).
-    """
-    return subprocess.Popen(
-        [sys.executable, "-m", "sb3_collapse.sweep.watchdog", str(os.getpid())],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,  # not in the driver's process group: a Ctrl-C or a group kill does not reach it
-    )
-
-
 def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_per_trial: float) -> None:
     """
     :param resources: the cluster's resources (``ray.cluster_resources()``)
@@ -244,11 +204,9 @@ def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_
             f"{dict(resources)}). Set gpus_per_trial=0 to train on CPU, or run on machines with GPUs.",
             parameter="gpus_per_trial",
         )
-    if gpus_per_trial > gpus:
-        raise InputError(
-            f"gpus_per_trial={gpus_per_trial} is more than the {gpus:g} GPUs Ray sees.", parameter="gpus_per_trial"
-        )
-    if cpus_per_trial > cpus:
-        raise InputError(
-            f"cpus_per_trial={cpus_per_trial} is more than the {cpus:g} CPUs Ray sees.", parameter="cpus_per_trial"
-        )
+    for name, unit, asked, seen in (
+        ("gpus_per_trial", "GPUs", gpus_per_trial, gpus),
+        ("cpus_per_trial", "CPUs", cpus_per_trial, cpus),
+    ):
+        if asked > seen:
+            raise InputError(f"{name}={asked} is more than the {seen:g} {unit} Ray sees.", parameter=name)

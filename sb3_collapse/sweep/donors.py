@@ -1,23 +1,13 @@
 """
 The donors of the transplant grid (the paper's Study 2, Section 4.2): "We extract the CNN and MLP from two random
 well-performing agents, which we regard as "good" CNN and MLP. We also extract "bad" CNN and MLP from two poorly
-performing agents."
-
-So the good CNN and the good MLP come from **two different** agents (and the bad ones likewise): the cell
-``cnn-good_mlp-good`` is then a new combination, not one agent reloaded. The donors are either given (two
-checkpoints per source: ``--good-cnn``, ``--good-mlp``, ``--bad-cnn``, ``--bad-mlp``) or picked at random, with a
-recorded seed, among the finished seeds of a sweep (``--donors-from``): well-performing agents (Section 4.1) are
-those whose final return is at least :attr:`~sb3_collapse.paper.PaperProtocol.success_return`, poorly performing
-ones below :attr:`~sb3_collapse.paper.PaperProtocol.failure_return` ("less than 30 rewards"). A seed's final
-return is its last scheduled evaluation (:func:`~sb3_collapse.paper.evaluation_schedule`), the one the paper's
-classes read (:func:`~sb3_collapse.runfolder.final_return`). The sweep's settings file records the donors
-(:func:`donors_record`).
+performing agents." Given as checkpoints or picked from a finished sweep: docs/sweeps.md.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +23,6 @@ DONOR_PARTS = ("cnn", "mlp")
 """The transplanted parts, in the order a pick assigns them (the first agent drawn gives the CNN)."""
 DONOR_SOURCES = ("good", "bad")
 """The classes of donors (rows and columns of Figure 3(a) besides ``blank``)."""
-
-
 DONOR_KEYS = tuple(donor_key(source, part) for source in DONOR_SOURCES for part in DONOR_PARTS)
 """``good_cnn``, ``good_mlp``, ``bad_cnn``, ``bad_mlp``."""
 
@@ -44,8 +32,8 @@ class Donor:
     """
     An agent of a finished sweep that gives a transplanted part.
 
-    :param seed: its seed (``seed_<k>`` folder)
-    :param final_return: its last scheduled evaluation's mean return
+    :param seed: its seed
+    :param final_return: its last scheduled evaluation's mean return (:func:`~sb3_collapse.runfolder.final_return`)
     :param path: its saved model (:data:`~sb3_collapse.protocol.FINAL_MODEL`), absolute
     """
 
@@ -73,9 +61,8 @@ def donor_candidates(
     """
     task = canonical_task(task)
     classes: dict[str, list[Donor]] = {"good": [], "bad": []}
-    seeds = [(seed, path) for *names, seed, path in trial_folders(sweep) if names == [task, variant]]
-    for seed, child in seeds:
-        value = final_return(child)
+    for *names, seed, child in trial_folders(sweep):
+        value = final_return(child) if names == [task, variant] else None
         if value is None or not (child / FINAL_MODEL).is_file():
             continue
         donor = Donor(seed=seed, final_return=value, path=str((child / FINAL_MODEL).resolve()))
@@ -96,9 +83,8 @@ def pick_donors(
     failure_return: float = PAPER.failure_return,
 ) -> dict[str, Donor]:
     """
-    Pick the donors of one task at random: for each source, two different agents of its class (Section 4.2: "from
-    two random well-performing agents", "from two poorly performing agents"), the first for the CNN, the second for
-    the MLP. The same ``seed`` (and the same sweep) gives the same donors.
+    Pick the donors of one task at random: for each source, two different agents of its class ("from two random
+    well-performing agents"), the first for the CNN, the second for the MLP; the same ``seed`` gives the same donors.
 
     :param sweep: a finished sweep folder
     :param task: the task
@@ -113,9 +99,7 @@ def pick_donors(
     candidates = donor_candidates(sweep, task, variant, success_return, failure_return)
     rng = np.random.default_rng(seed)
     picked: dict[str, Donor] = {}
-    for source in DONOR_SOURCES:
-        if source not in sources:
-            continue
+    for source in (source for source in DONOR_SOURCES if source in sources):
         pool = candidates[source]
         if len(pool) < 2:
             what = f"final return >= {success_return:g}" if source == "good" else f"final return < {failure_return:g}"
@@ -157,16 +141,13 @@ def donors_record(
     failure_return: float = PAPER.failure_return,
 ) -> dict[str, Any]:
     """
-    What the sweep's settings file records of a draw (key ``donors``).
-
     :param sweep: the sweep the donors come from
     :param seed: the seed of the draw
     :param variant: the variant they come from
     :param picked: task -> :func:`pick_donors`
     :param success_return: the threshold of the draw's well-performing agents
     :param failure_return: the threshold of its poorly performing agents
-    :return: ``{"from": sweep, "seed": seed, "variant": variant, "success_return", "failure_return", "tasks": {task:
-        {key: {"seed", "final_return", "path"}}}}``, JSON-serializable
+    :return: what the sweep's settings file records of the draw (key ``donors``), JSON-serializable
     """
     return {
         "from": str(Path(sweep).resolve()),
@@ -174,11 +155,5 @@ def donors_record(
         "variant": variant,
         "success_return": success_return,
         "failure_return": failure_return,
-        "tasks": {
-            task: {
-                key: {"seed": donor.seed, "final_return": donor.final_return, "path": donor.path}
-                for key, donor in donors.items()
-            }
-            for task, donors in picked.items()
-        },
+        "tasks": {task: {key: asdict(donor) for key, donor in donors.items()} for task, donors in picked.items()},
     }

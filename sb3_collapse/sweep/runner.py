@@ -1,12 +1,4 @@
-"""
-Run the trials of a sweep on Ray: each trial is an independent Ray task (Ray core, ``ray.remote``) that asks for
-``cpus_per_trial`` CPUs and ``gpus_per_trial`` GPUs (fractions allowed) and calls :func:`sb3_collapse.run.runner.train`
-into the trial's folder, in a worker process of its own.
-
-Ray core rather than Ray Tune: the trials are fixed (no search, no scheduler, no early stopping) and each one
-writes its own folder with the contract that the report reads; a task per trial is all the engine has to do, with
-Ray's resource accounting, placement on a cluster and fractional GPUs.
-"""
+"""Run the trials of a sweep on Ray: each trial is one Ray task that trains into its own folder (docs/sweeps.md)."""
 
 from __future__ import annotations
 
@@ -30,6 +22,7 @@ from sb3_collapse.protocol import (
     CONFIG_JSON,
     ERROR_TXT,
     FINISHED,
+    RESULT_JSON,
     SWEEP_JSON,
     SWEEP_LOCK,
     SWEEP_STOP,
@@ -45,7 +38,7 @@ from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
 from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
-from sb3_collapse.sweep.trials import Trial, check_checkpoints, trial_config, trial_dir
+from sb3_collapse.sweep.trials import Trial, check_checkpoints, damaged_result, trial_config, trial_dir
 
 
 def check_sweep_arguments(
@@ -59,8 +52,7 @@ def check_sweep_arguments(
     Check what a sweep can check before it writes anything or starts Ray.
 
     :param out: the sweep folder: a folder or nothing yet, not a file
-    :param training: the shared training settings: evaluations on (``eval_every_frames`` 0 would leave the report
-        without returns)
+    :param training: the shared training settings: evaluations on (the report compares their returns)
     :param cpus_per_trial: CPUs per trial, > 0
     :param gpus_per_trial: GPUs per trial, a fraction in [0, 1] or a whole number
     :param connect_timeout_s: seconds to wait for a cluster to answer, > 0
@@ -89,35 +81,27 @@ def check_sweep_arguments(
         raise InputError(f"out {out}: {blocking} is a file, not a folder.", parameter="out")
 
 
-def check_writable(folder: Path) -> None:
-    """
-    Check that ``folder`` can be created and written into, leaving nothing behind (what this created is removed).
-
-    :param folder: a folder to write into
-    :raises OSError: naming ``folder``, when it cannot be written (a read-only file system, no permission, a full
-        disk)
-    """
+@contextlib.contextmanager
+def _created_folder(folder: Path) -> Iterator[None]:
+    """While inside, ``folder`` exists; the folders this created are removed at the end where left empty."""
     created = [path for path in (folder, *folder.parents) if not path.exists()]
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        write_check = folder / f".write_check_{os.getpid()}"
-        write_check.mkdir()
-        write_check.rmdir()
-    except OSError as error:
-        raise OSError(error.errno, error.strerror, str(folder)) from None
+        yield
     finally:
         for path in created:  # the deepest first
             with contextlib.suppress(OSError):
                 path.rmdir()
 
 
-def write_error(folder: Path, text: str) -> None:
-    """
-    :param folder: a trial folder (created if needed)
-    :param text: the traceback, written to the trial's error file (temporary file, then rename)
-    """
-    folder.mkdir(parents=True, exist_ok=True)
-    write_text_atomically(folder / ERROR_TXT, text)
+def _check_writable(folder: Path) -> None:
+    """Raise ``OSError`` naming ``folder`` when it cannot be created and written into; leave nothing behind."""
+    try:
+        with _created_folder(folder):
+            (folder / f".write_check_{os.getpid()}").mkdir()
+            (folder / f".write_check_{os.getpid()}").rmdir()
+    except OSError as error:
+        raise OSError(error.errno, error.strerror, str(folder)) from None
 
 
 def run_trial(
@@ -129,54 +113,56 @@ def run_trial(
     torch_threads: int | None = None,
 ) -> dict[str, Any]:
     """
-    Run one trial into its folder (``train`` writes its result file last). An earlier, unfinished attempt is resumed
-    from its newest checkpoint, or restarted from frame 0 without one (see :func:`~sb3_collapse.run.runner.train`); one
-    with
-    other training settings (a sweep run with ``allow_changed_settings``) is deleted first. A failure does not
-    propagate: its traceback goes to the trial's error file (where ``train`` did not write it already, with the agent
-    step it failed at first: :func:`~sb3_collapse.protocol.write_failure`).
+    Run one trial into its folder: an unfinished attempt resumes (one with other settings is deleted first); a
+    failure goes to the trial's error file, not up.
 
     :param trial: the trial
     :param out: the sweep folder
     :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials
-    :param checkpoints: donor (``"good_cnn"``, ``"good_mlp"``, ``"bad_cnn"``, ``"bad_mlp"``) -> task -> checkpoint
-        path, for transplant-grid cells (:mod:`sb3_collapse.sweep.donors`)
+    :param checkpoints: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> checkpoint path, for grid cells
     :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
     :param torch_threads: threads of torch's CPU operations
-    :return: ``{"trial": str, "status": "finished" | "failed" | "interrupted", "error": last line of the traceback or
-        None, "resumes": times the finished run was resumed from a checkpoint}``; ``"interrupted"``: the trial wrote
-        a checkpoint and stopped, at a SIGTERM or SIGINT to its worker or at the driver's stop request (the sweep
-        folder's :data:`~sb3_collapse.protocol.SWEEP_STOP` file, which the trial watches while it trains)
+    :return: ``{"trial", "status": "finished" | "failed" | "interrupted", "error": the error's line or None,
+        "resumes"}``, with ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or the driver
     """
     stop_file = Path(out) / SWEEP_STOP
     if stop_file.exists():  # the driver is stopping: a trial that had not started stays as it is
-        return {
-            "trial": str(trial),
-            "status": "interrupted",
-            "error": "not started: the sweep was stopping",
-            "resumes": 0,
-        }
-    with _stop_requests_watched(stop_file):
-        return _run_trial(trial, out, training, checkpoints, device, torch_threads)
+        return {"trial": str(trial), "status": "interrupted", "error": "not started: the sweep was stopping"}
+    folder = trial_dir(out, trial)
+    config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)
+    if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
+        try:
+            differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
+        except (OSError, ValueError):
+            differences = ["unreadable settings"]
+        if differences:  # the sweep's settings changed (allowed): this attempt cannot continue
+            shutil.rmtree(folder)
+    before = _error_file_stamp(folder)
+    try:
+        with _stop_requests_watched(stop_file):
+            result = train(config)
+    except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
+        return {"trial": str(trial), "status": "interrupted", "error": str(error), "checkpoint": str(error.checkpoint)}
+    except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary
+        if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
+            folder.mkdir(parents=True, exist_ok=True)
+            write_text_atomically(folder / ERROR_TXT, traceback.format_exc())
+        error_line = f"{type(error).__name__}: {error}"
+        return {"trial": str(trial), "status": "failed", "error": error_line, "retryable": retryable(error)}
+    return {"trial": str(trial), "status": FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
 
 
 @contextlib.contextmanager
 def _stop_requests_watched(stop_file: Path, every_s: float = 0.25) -> Iterator[None]:
-    """
-    While inside, a thread checks every ``every_s`` seconds for the driver's stop request (``stop_file``, holding
-    the signal's name) and passes it to the training of this process
-    (:func:`~sb3_collapse.run.signals.request_training_stop`: a checkpoint, then
-    :class:`~sb3_collapse.run.signals.TrainingInterrupted`).
-    """
+    """While inside, a thread passes the driver's stop request (``stop_file``) to this process's training."""
     done = threading.Event()
 
     def watch() -> None:
         while not done.wait(every_s):
             if stop_file.exists():
-                try:
-                    name = stop_file.read_text().strip() or "SIGTERM"
-                except OSError:
-                    name = "SIGTERM"
+                name = "SIGTERM"
+                with contextlib.suppress(OSError):
+                    name = stop_file.read_text().strip() or name
                 print(f"The sweep was stopped by {name}: writing a checkpoint at the end of this round.", flush=True)
                 request_training_stop(name)
                 return
@@ -191,60 +177,19 @@ def _stop_requests_watched(stop_file: Path, every_s: float = 0.25) -> Iterator[N
         clear_training_stop()
 
 
-def _run_trial(
-    trial: Trial,
-    out: str,
-    training: Mapping[str, Any],
-    checkpoints: Mapping[str, Mapping[str, str]] | None,
-    device: str,
-    torch_threads: int | None,
-) -> dict[str, Any]:
-    """:func:`run_trial` once the stop requests are watched."""
-    folder = trial_dir(out, trial)
-    config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)  # resolved
-    if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
-        try:
-            differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
-        except (OSError, ValueError):
-            differences = ["unreadable settings"]
-        if differences:  # the sweep's settings changed (allowed): this attempt cannot continue
-            shutil.rmtree(folder)
-    before = _error_file_stamp(folder)
-    try:
-        result = train(config)
-    except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
-        return {
-            "trial": str(trial), "status": "interrupted", "error": str(error), "resumes": 0,
-            "checkpoint": str(error.checkpoint),
-        }  # fmt: skip
-    except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary, the other trials go on
-        if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
-            write_error(folder, traceback.format_exc())
-        return {
-            "trial": str(trial), "status": "failed", "error": f"{type(error).__name__}: {error}", "resumes": 0,
-            "retryable": retryable(error),
-        }  # fmt: skip
-    return {"trial": str(trial), "status": FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
-
-
 def _error_file_stamp(folder: Path) -> tuple[int, int] | None:
-    """The inode and modification time of a trial's error file (a new file at each write), ``None`` without one."""
-    try:
+    """The inode and modification time of a trial's error file, ``None`` without one."""
+    with contextlib.suppress(OSError):
         stat = (folder / ERROR_TXT).stat()
-    except OSError:
-        return None
-    return stat.st_ino, stat.st_mtime_ns
+        return stat.st_ino, stat.st_mtime_ns
+    return None
 
 
 def retryable(error: BaseException) -> bool:
     """
-    Whether running a failed trial again may finish it: a fault of what it ran on (a full or read-only disk, a
-    checkpoint that could not be written, memory) may be gone at the next run. Anything else (bad settings, a
-    diverging run, an error of the training code) comes back: the trial resumes from its checkpoint bit for bit and
-    meets it again.
-
     :param error: what the trial raised
-    :return: whether a rerun may succeed
+    :return: whether a rerun may succeed: a fault of what it ran on (disk, memory) may be gone; anything else comes
+        back, as the trial resumes bit for bit
     """
     import torch as th
 
@@ -258,14 +203,14 @@ class SweepSummary:
     :param trials: every trial of the sweep
     :param skipped: trials already finished before this run
     :param finished: trials finished in this run
-    :param failed: trial -> path of its error file, for the trials that failed in this run
-    :param repeating: the failed trials that a rerun would fail the same way (:func:`retryable`: bad settings, a
-        diverging run, an error of the training code)
-    :param resumed: the trials finished in this run that continued from a checkpoint (of an earlier sweep run, or of
-        their own Ray task that died and was run again)
-    :param interrupted: trial -> the checkpoint it wrote as it stopped (``None``: it had not started), for the
-        trials stopped by a signal (to the driver, or to their worker); the next run resumes them
+    :param failed: trial -> the file that says why, for the trials that failed (its error file, or its unreadable
+        result file: see ``damaged``)
+    :param repeating: the failed trials that a rerun would fail the same way (:func:`retryable`)
+    :param resumed: the trials finished in this run that continued from a checkpoint
+    :param interrupted: trial -> the checkpoint it wrote as it stopped by a signal (``None``: it had not started)
     :param stopped_by: the signal that stopped the sweep's driver (``"SIGTERM"``, ``"SIGINT"``), ``None`` if none
+    :param damaged: trial -> one line (why its result file is unreadable, and the way out), for the trials not run
+        for that reason (also in ``failed`` and ``repeating``)
     """
 
     trials: list[Trial]
@@ -276,6 +221,7 @@ class SweepSummary:
     resumed: list[Trial] = dataclasses.field(default_factory=list)
     interrupted: dict[Trial, Path | None] = dataclasses.field(default_factory=dict)
     stopped_by: str | None = None
+    damaged: dict[Trial, str] = dataclasses.field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -283,11 +229,7 @@ class SweepSummary:
         return not self.failed
 
 
-TRIAL_RETRIES = 3
-"""Times Ray runs a trial's task again after its worker died; each run resumes from the trial's checkpoint."""
-
-TRAINING_KEYS = ("training", "checkpoints")
-"""Entries of the sweep's settings file that change what a trial trains; a resumed sweep must keep them."""
+TRIAL_RETRIES = 3  # times Ray runs a trial's task again after its worker died; each run resumes from its checkpoint
 
 
 def sweep_settings(
@@ -298,64 +240,43 @@ def sweep_settings(
     donors: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """
-    The content of the sweep's settings file: ``training`` (the shared :class:`~sb3_collapse.run.config.TrainConfig`
-    fields as given: ``None`` for a DrQ-v2 setting left to the presets), ``task_settings`` (task -> the DrQ-v2
-    settings its trials use: its preset, with the sweep's explicit settings over it), ``checkpoints`` (donor,
-    ``good_cnn``... -> task -> path), ``tasks``, ``variants``, ``seeds``, ``resources`` (how trials ran: CPUs and
-    GPUs per trial, the Ray address) and, when the donors were picked from a finished sweep, ``donors``
-    (:func:`~sb3_collapse.sweep.donors.donors_record`: the sweep, the seed of the draw, each donor's seed and final
-    return).
-
     :param trials: the sweep's trials
-    :param training: the shared training settings
+    :param training: the shared training settings (``None``: the presets)
     :param checkpoints: the transplant checkpoints
-    :param resources: informational settings of the run
+    :param resources: how trials ran: CPUs and GPUs per trial, the Ray address
     :param donors: how the donors were picked, ``None`` when they were given
-    :return: the settings, JSON-serializable
+    :return: the content of the sweep's settings file, JSON-serializable (``task_settings``: the DrQ-v2 settings
+        each task's trials use)
     """
     tasks = list(dict.fromkeys(trial.task for trial in trials))
-    extra = {} if donors is None else {"donors": dict(donors)}
+    configs = {task: TrainConfig(**{**training, "env": task}).resolve() for task in tasks}
     return {
         "training": dict(training),
-        "task_settings": {task: task_settings(task, training) for task in tasks},
+        "task_settings": {task: {name: getattr(configs[task], name) for name in SETTING_NAMES} for task in tasks},
         "checkpoints": {source: dict(paths) for source, paths in checkpoints.items() if paths},
         "tasks": tasks,
         "variants": list(dict.fromkeys(trial.variant for trial in trials)),
         "seeds": sorted({trial.seed for trial in trials}),
         "resources": dict(resources),
-        **extra,
+        **({} if donors is None else {"donors": dict(donors)}),
     }
-
-
-def task_settings(task: str, training: Mapping[str, Any]) -> dict[str, Any]:
-    """
-    :param task: a task
-    :param training: the sweep's shared training settings (``None``: the task's preset)
-    :return: the DrQ-v2 settings (:data:`~sb3_collapse.presets.SETTING_NAMES`) the task's trials use, by name
-    """
-    config = TrainConfig(**{**training, "env": task}).resolve()
-    return {name: getattr(config, name) for name in SETTING_NAMES}
 
 
 def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) -> list[str]:
     """
-    What differs between the training settings of two contents of the sweep's settings file: every ``training``
-    field, every preset-derived setting of a task that both have (the presets of another package version), and
-    the checkpoint of every (source, task) that both name (a new task or source may be added to a sweep).
-
     :param previous: the settings in the sweep's settings file
     :param current: the settings of this run
-    :return: one line per difference, empty when the trials would train the same way
+    :return: one line per training setting that differs (new tasks, seeds, variants and donors may be added), empty
+        when the trials would train the same way
     """
     changes = []
     old, new = previous.get("training", {}), current.get("training", {})
     for name in sorted(set(old) | set(new)):
         if old.get(name) != new.get(name):
-            changes.append(f"`{name}`: {_setting(old.get(name))} in {SWEEP_JSON}, {_setting(new.get(name))} now")
+            before, now = ("the presets'" if value is None else repr(value) for value in (old.get(name), new.get(name)))
+            changes.append(f"`{name}`: {before} in {SWEEP_JSON}, {now} now")
     for task, settings in current.get("task_settings", {}).items():
-        before_settings = previous.get("task_settings", {}).get(task)
-        if before_settings is None:
-            continue
+        before_settings = previous.get("task_settings", {}).get(task, settings)
         for name in sorted(set(before_settings) | set(settings)):
             if old.get(name) == new.get(name) and before_settings.get(name) != settings.get(name):
                 changes.append(
@@ -364,74 +285,51 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
     for source, paths in current.get("checkpoints", {}).items():
         for task, path in paths.items():
             before = previous.get("checkpoints", {}).get(source, {}).get(task)
-            if before is not None and before != path:
+            if before not in (None, path):
                 changes.append(f"`{source}` checkpoint for {task}: {before} in {SWEEP_JSON}, {path} now")
-    for source in ("good", "bad"):  # a settings file of another version: one agent gave both parts of a source
-        if source in previous.get("checkpoints", {}) and any(
-            key.startswith(f"{source}_") for key in current.get("checkpoints", {})
-        ):
-            changes.append(
-                f"`{source}` checkpoint: one agent for the CNN and the MLP in {SWEEP_JSON}, two agents now "
-                f"(--{source}-cnn, --{source}-mlp)"
-            )
+    for source in ("good", "bad"):  # a settings file where one agent gave both parts of a source
+        parts = {f"{source}_cnn", f"{source}_mlp"} & set(current.get("checkpoints", {}))
+        if source in previous.get("checkpoints", {}) and parts:
+            changes.append(f"`{source}` checkpoint: one agent for the CNN and the MLP in {SWEEP_JSON}, two agents now "
+                           f"(--{source}-cnn, --{source}-mlp)")  # fmt: skip
     return changes
-
-
-def _setting(value: Any) -> str:
-    """A training setting in a message: ``None`` is the task presets'."""
-    return "the presets'" if value is None else repr(value)
-
-
-def merge_settings(previous: Mapping[str, Any], current: Mapping[str, Any]) -> dict[str, Any]:
-    """
-    :param previous: the settings in the sweep's settings file
-    :param current: the settings of this run
-    :return: the current settings with the tasks, variants, seeds and checkpoints of both (a sweep folder
-        accumulates trials)
-    """
-    merged = dict(current)
-    merged["task_settings"] = {**previous.get("task_settings", {}), **current.get("task_settings", {})}
-    for key in ("tasks", "variants"):
-        merged[key] = list(dict.fromkeys([*previous.get(key, []), *current.get(key, [])]))
-    merged["seeds"] = sorted({*previous.get("seeds", []), *current.get("seeds", [])})
-    checkpoints: dict[str, dict[str, str]] = {s: dict(p) for s, p in previous.get("checkpoints", {}).items()}
-    for source, paths in current.get("checkpoints", {}).items():
-        checkpoints.setdefault(source, {}).update(paths)
-    merged["checkpoints"] = checkpoints
-    return merged
 
 
 def prepare_sweep_folder(
     out: str | Path, settings: Mapping[str, Any], allow_changed_settings: bool = False, write: bool = True
 ) -> None:
     """
-    Check this run's settings against the sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`)
-    and write the merged settings there (atomically).
+    Check this run's settings against the sweep's settings file and write the merged settings there (the tasks,
+    variants, seeds and checkpoints of both: a sweep folder accumulates trials).
 
     :param out: the sweep folder (created if needed)
     :param settings: this run's :func:`sweep_settings`
-    :param allow_changed_settings: accept training settings that differ from those in the sweep's settings file (the
-        finished trials keep the old ones)
+    :param allow_changed_settings: accept other training settings than the file's (finished trials keep theirs)
     :param write: write the sweep's settings file; ``False`` only checks (dry run)
     :raises InputError: when the training settings changed and that is not allowed
     """
-    out = Path(out)
-    path = out / SWEEP_JSON
-    previous: dict[str, Any] = {}
-    if path.is_file():
-        previous = read_settings(path)
-        changes = settings_changes(previous, settings)
-        if changes and not allow_changed_settings:
-            raise InputError(
-                f"{out} holds a sweep with other training settings:\n  "
-                + "\n  ".join(changes)
-                + "\nUse another `out`, the same settings, or `allow_changed_settings=True` to mix them "
-                "(finished trials are not rerun)."
-            )
+    path = Path(out) / SWEEP_JSON
+    previous: dict[str, Any] = read_settings(path) if path.is_file() else {}
+    changes = settings_changes(previous, settings) if path.is_file() else []
+    if changes and not allow_changed_settings:
+        raise InputError(
+            f"{out} holds a sweep with other training settings:\n  "
+            + "\n  ".join(changes)
+            + "\nUse another `out`, the same settings, or `allow_changed_settings=True` to mix them "
+            "(finished trials are not rerun)."
+        )
     if not write:
         return
-    out.mkdir(parents=True, exist_ok=True)
-    write_json_atomically(path, merge_settings(previous, settings))
+    merged = dict(settings)
+    merged["task_settings"] = {**previous.get("task_settings", {}), **settings.get("task_settings", {})}
+    for key in ("tasks", "variants"):
+        merged[key] = list(dict.fromkeys([*previous.get(key, []), *settings.get(key, [])]))
+    merged["seeds"] = sorted({*previous.get("seeds", []), *settings.get("seeds", [])})
+    merged["checkpoints"] = {source: dict(paths) for source, paths in previous.get("checkpoints", {}).items()}
+    for source, paths in settings.get("checkpoints", {}).items():
+        merged["checkpoints"].setdefault(source, {}).update(paths)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomically(path, merged)
 
 
 def run_sweep(
@@ -448,44 +346,26 @@ def run_sweep(
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
 ) -> SweepSummary:
     """
-    Run every trial that is not finished, each as an independent Ray task, and wait for all of them.
-
-    Resumable: a trial whose result file is there is skipped; any other trial (interrupted or failed) continues
-    from its newest checkpoint, or runs again from frame 0 without one. A trial whose Ray worker dies (killed, out of
-    memory, a lost node) is run again by Ray (up to :data:`TRIAL_RETRIES` times) and so continues from its
-    checkpoint too. The sweep's settings file (``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_JSON`) records the
-    settings (see
-    :func:`prepare_sweep_folder`). A failing trial writes its traceback to the trial's error file and the others
-    go on. Ray starts only when there is a trial to run, and the settings file is written once Ray answered (a
-    cluster that does not answer leaves the folder as it was). One sweep at a time runs into ``out``
-    (:func:`sweep_folder_locked`): a second one is refused before its Ray starts.
-
-    **Signals.** A SIGTERM or SIGINT to this process (in the main thread) asks every running trial to write a
-    checkpoint and stop, waits for them, and returns with ``stopped_by`` set and the trials in ``interrupted``:
-    the same call again resumes them. A second signal stops at once (``KeyboardInterrupt``).
+    Run every trial that is not finished, each as an independent Ray task, and wait for all of them: finished trials
+    are skipped, the others resume from their newest checkpoint; a failing trial writes its error file and the
+    others go on. A SIGTERM or SIGINT stops every trial at a checkpoint (a second one at once). See docs/sweeps.md.
 
     :param trials: the trials (:func:`~sb3_collapse.sweep.trials.expand_trials`)
     :param out: the sweep folder; with ``address`` it must be on storage that every node sees at the same path
-    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (not ``env``, ``seed``,
-        ``logdir``, ``run_name``, ``run_dir``, ``reset_rule``, ``device``, ``progress_bar``...)
-    :param checkpoints: donor (``"good_cnn"``, ``"good_mlp"``, ``"bad_cnn"``, ``"bad_mlp"``) -> task -> checkpoint
-        path, for transplant-grid cells (:mod:`sb3_collapse.sweep.donors`)
+    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (not ``env``,
+        ``seed``, folders, ``device``...)
+    :param checkpoints: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> checkpoint path, for grid cells
     :param cpus_per_trial: CPUs Ray reserves per trial; also the trial's torch threads (at least 1)
-    :param gpus_per_trial: GPUs Ray reserves per trial (``0.25``: four trials share a GPU); the trial trains on
-        ``cuda`` when it is > 0, else on ``cpu``
+    :param gpus_per_trial: GPUs Ray reserves per trial (``0.25``: four trials share a GPU); > 0 trains on ``cuda``
     :param address: Ray cluster address, ``None`` for a local instance (or the Ray already initialized)
     :param allow_changed_settings: run even if the sweep's settings file has other training settings
     :param progress_bar: show a progress bar over the trials
-    :param donors: how the transplant donors were picked (:func:`~sb3_collapse.sweep.donors.donors_record`),
-        recorded in the settings file; ``None`` when they were given as checkpoints (or there are none)
+    :param donors: how the donors were picked (:func:`~sb3_collapse.sweep.donors.donors_record`), ``None`` if given
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer (:func:`ray_session`)
     :return: what was skipped, finished, failed and interrupted
-    :raises InputError: for settings that cannot run (missing checkpoints, changed settings, resources, a cluster
-        that wants an authentication token)
+    :raises InputError: for settings that cannot run, or another sweep running into ``out``; nothing was written
     :raises MissingDependencyError: when there are trials to run and Ray is not installed
-    :raises ClusterUnreachable: when the cluster at ``address`` did not answer within ``connect_timeout_s``;
-        nothing was written
-    :raises InputError: when another sweep runs into ``out``; nothing was written
+    :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time; nothing was written
     """
     check_sweep_arguments(out, training, cpus_per_trial, gpus_per_trial, connect_timeout_s)
     unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
@@ -497,88 +377,85 @@ def run_sweep(
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
     settings = sweep_settings(trials, training, checkpoints, resources, donors)
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
-    check_writable(out)  # before starting Ray: a read-only folder is said at once
+    _check_writable(out)  # before starting Ray: a read-only folder is said at once
     with sweep_folder_locked(out):  # a second sweep into the folder is refused, before its Ray starts
-        return _run_locked_sweep(
-            trials, out, training, checkpoints, settings, cpus_per_trial, gpus_per_trial, address,
-            allow_changed_settings, progress_bar, connect_timeout_s,
-        )  # fmt: skip
+        summary = SweepSummary(trials=list(trials), skipped=[], finished=[], failed={})
+        for trial in trials:
+            folder = trial_dir(out, trial)
+            if run_status(folder) == RunStatus.FINISHED:
+                summary.skipped.append(trial)
+                tidy_finished_run(folder)  # a trial killed after its result file left its checkpoints behind
+            elif (reason := damaged_result(folder)) is not None:  # not repaired: neither run nor retryable
+                summary.damaged[trial], summary.failed[trial] = reason, folder / RESULT_JSON
+                summary.repeating.append(trial)
+        to_run = [trial for trial in trials if trial not in {*summary.skipped, *summary.damaged}]
+        if not to_run:
+            prepare_sweep_folder(out, settings, allow_changed_settings)
+            return summary
+        import_ray()  # before writing anything: a missing Ray leaves the folder as it was
+        with ray_session(address, connect_timeout_s=connect_timeout_s) as ray:
+            check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
+            prepare_sweep_folder(out, settings, allow_changed_settings)  # the cluster answered: now the folder
+            (out / SWEEP_STOP).unlink(missing_ok=True)  # the request of an earlier run that did not end cleanly
+            # max_calls=1: every trial in a fresh worker process (nothing a trial leaves in its process reaches the
+            # next); max_retries: Ray runs the task again when its worker dies (not when the trial raises): it resumes.
+            remote = ray.remote(max_calls=1)(run_trial).options(
+                num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=TRIAL_RETRIES
+            )
+            device, threads = ("cuda" if gpus_per_trial > 0 else "cpu"), max(1, int(cpus_per_trial))
+            pending = {
+                remote.remote(trial, str(out), dict(training), checkpoints, device, threads): trial for trial in to_run
+            }
+            _wait_for_trials(ray, pending, out, summary, progress_bar)
+    return summary
 
 
 @contextlib.contextmanager
 def sweep_folder_locked(out: Path) -> Iterator[None]:
     """
-    While inside, this process holds the sweep folder's lock (:class:`~sb3_collapse.run.lock.RunLock` on
-    ``<out>/`` :data:`~sb3_collapse.protocol.SWEEP_LOCK`): a second sweep into the folder is refused. The lock file is
-    deleted at the end, and the folders created for it when nothing else was written into them.
+    While inside, this process holds the sweep folder's lock: a second sweep into it is refused. The lock file is
+    deleted at the end, and the folders created for it where left empty.
 
     :param out: the sweep folder (created if needed)
     :raises InputError: naming the process that runs a sweep into the folder
     """
-    created = [path for path in (out, *out.parents) if not path.exists()]
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        with RunLock(out, SWEEP_LOCK, folder="sweep folder", instead="give this sweep another `out`") as lock:
-            try:
-                yield
-            finally:
-                lock.path.unlink(missing_ok=True)  # still held: a sweep that locked the deleted file takes a new one
-    finally:
-        for path in created:  # the deepest first; only those left empty
-            with contextlib.suppress(OSError):
-                path.rmdir()
+    with (
+        _created_folder(out),
+        RunLock(out, SWEEP_LOCK, folder="sweep folder", instead="give this sweep another `out`") as lock,
+    ):
+        try:
+            yield
+        finally:
+            lock.path.unlink(missing_ok=True)  # still held: a sweep that locked the deleted file takes a new one
 
 
-def _run_locked_sweep(
-    trials: Sequence[Trial],
-    out: Path,
-    training: Mapping[str, Any],
-    checkpoints: dict[str, dict[str, str]],
-    settings: dict[str, Any],
-    cpus_per_trial: float,
-    gpus_per_trial: float,
-    address: str | None,
-    allow_changed_settings: bool,
-    progress_bar: bool,
-    connect_timeout_s: float,
-) -> SweepSummary:
-    """:func:`run_sweep` once the arguments are checked and the sweep folder is locked."""
-    skipped = [trial for trial in trials if run_status(trial_dir(out, trial)) == RunStatus.FINISHED]
-    for trial in skipped:  # a trial killed after its result file left its checkpoints and lock behind
-        tidy_finished_run(trial_dir(out, trial))
-    to_run = [trial for trial in trials if trial not in set(skipped)]
-    summary = SweepSummary(trials=list(trials), skipped=skipped, finished=[], failed={})
-    if not to_run:
-        prepare_sweep_folder(out, settings, allow_changed_settings)
-        return summary
-    import_ray()  # before writing anything: a missing Ray leaves the folder as it was
-    with ray_session(address, connect_timeout_s=connect_timeout_s) as ray:
-        check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
-        prepare_sweep_folder(out, settings, allow_changed_settings)  # the cluster answered: now the folder
-        (out / SWEEP_STOP).unlink(missing_ok=True)  # the request of an earlier run that did not end cleanly
-        # max_calls=1: every trial in a fresh worker process, so that nothing a trial leaves in its process (freed
-        # replay memory kept by the tuned allocator, CUDA caches, torch threads, GL contexts) reaches the next one.
-        # max_retries: Ray runs the task again when its worker dies (not when the trial raises): it resumes.
-        remote = ray.remote(max_calls=1)(run_trial).options(
-            num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=TRIAL_RETRIES
+def _wait_for_trials(ray: Any, pending: dict[Any, Trial], out: Path, summary: SweepSummary, progress_bar: bool) -> None:
+    """
+    Collect the outcome of each trial's Ray task into ``summary``. A SIGTERM or SIGINT (in the main thread) writes
+    the stop file that the trials watch and sets ``summary.stopped_by``; a second one raises ``KeyboardInterrupt``.
+    """
+
+    def handler(signum: int, _frame: Any) -> None:
+        if summary.stopped_by is not None:
+            raise KeyboardInterrupt
+        summary.stopped_by = signal.Signals(signum).name
+        write_text_atomically(out / SWEEP_STOP, summary.stopped_by + "\n")
+        bar.write(
+            f"\n{summary.stopped_by}: asking the running trials to write a checkpoint and stop (a second signal: stop "
+            "now, each trial resuming from its last checkpoint)."
         )
-        device = "cuda" if gpus_per_trial > 0 else "cpu"
-        threads = max(1, int(cpus_per_trial))
-        pending = {
-            remote.remote(trial, str(out), dict(training), checkpoints, device, threads): trial for trial in to_run
-        }
-        with tqdm(total=len(to_run), desc="trials", unit="trial", disable=not progress_bar) as bar:
-            try:
-                with _stop_on_signals(out, summary, bar):
-                    while pending:
-                        done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)  # signals run between waits
-                        if done:
-                            _collect(ray, done[0], pending.pop(done[0]), out, summary, bar)
-            finally:
-                for ref in pending:  # stopped at once (a second signal): the trials rerun from their checkpoints
-                    ray.cancel(ref, force=True)
-                (out / SWEEP_STOP).unlink(missing_ok=True)
-    return summary
+
+    with tqdm(total=len(pending), desc="trials", unit="trial", disable=not progress_bar) as bar:
+        try:
+            with stop_signal_handlers(handler):
+                while pending:
+                    done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)  # signals run between waits
+                    if done:
+                        _collect(ray, done[0], pending.pop(done[0]), out, summary, bar)
+        finally:
+            for ref in pending:  # stopped at once (a second signal): the trials rerun from their checkpoints
+                ray.cancel(ref, force=True)
+            (out / SWEEP_STOP).unlink(missing_ok=True)
 
 
 def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary, bar: Any) -> None:
@@ -588,7 +465,8 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
     except Exception as error:  # noqa: BLE001  the Ray task itself died (worker crash, out of memory...)
         outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}".splitlines()[0]}
         # The first line reads on in the rerun's "The previous attempt failed: ...; resuming."
-        write_error(trial_dir(out, trial), f"failed: the Ray task of {trial} died\n{error}\n")
+        trial_dir(out, trial).mkdir(parents=True, exist_ok=True)
+        write_text_atomically(trial_dir(out, trial) / ERROR_TXT, f"failed: the Ray task of {trial} died\n{error}\n")
     if outcome["status"] == FINISHED:
         summary.finished.append(trial)
         if outcome.get("resumes"):
@@ -605,27 +483,3 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
         bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")
     bar.set_postfix(failed=len(summary.failed))
     bar.update()
-
-
-def _stop_on_signals(out: Path, summary: SweepSummary, bar: Any) -> contextlib.AbstractContextManager[None]:
-    """
-    While inside (in the main thread), a SIGTERM or SIGINT asks every trial to write a checkpoint and stop: the
-    driver writes the sweep folder's :data:`~sb3_collapse.protocol.SWEEP_STOP` file, which the trials watch
-    (:func:`run_trial`), and goes on collecting their outcomes; ``summary.stopped_by`` records the signal. A second
-    signal stops at once (``KeyboardInterrupt``): the trials are cancelled and resume from their last checkpoints.
-
-    :return: the context manager (:func:`~sb3_collapse.run.signals.stop_signal_handlers`)
-    """
-
-    def handler(signum: int, _frame: Any) -> None:
-        name = signal.Signals(signum).name
-        if summary.stopped_by is not None:
-            raise KeyboardInterrupt
-        summary.stopped_by = name
-        write_text_atomically(out / SWEEP_STOP, name + "\n")
-        bar.write(
-            f"\n{name}: asking the running trials to write a checkpoint and stop (a second signal: stop now, each "
-            "trial resuming from its last checkpoint)."
-        )
-
-    return stop_signal_handlers(handler)

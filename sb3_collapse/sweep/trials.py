@@ -1,28 +1,11 @@
 """
 The trials of a sweep: one per (task, variant, seed), each in its own folder ``<out>/<task>/<variant>/seed_<k>``.
-
-Variants:
-
-- ``drqv2``: plain DrQ-v2; ``td3``, ``sac``: SB3's TD3 or SAC from the same pixels, with DrQ-v2's network sizes
-  (:mod:`sb3_collapse.baselines`);
-- ``<algorithm>+<intervention>``: the algorithm with the paper's rule (:class:`~sb3_collapse.CollapseReset`) doing
-  the intervention at the end of each window without escape: ``drqv2+reset`` (the paper's reset from scratch),
-  ``drqv2+redo`` (ReDo once at each trigger), ``td3+reset``, ``sac+shrink_perturb``... (interventions:
-  :mod:`sb3_collapse.monitoring.interventions`);
-- ``<algorithm>+redo_periodic``: the algorithm with ReDo as Sokar et al. run it, every
-  :data:`~sb3_collapse.monitoring.redo.REDO_EVERY_UPDATES` updates for the whole run, no rule
-  (:class:`~sb3_collapse.monitoring.redo.PeriodicReDo`, DrQ-v2's convolution channels included);
-- ``drqv2-leaky``, ``drqv2-leaky+<intervention>``, ``drqv2-leaky+redo_periodic``: the same with every ReLU of
-  DrQ-v2's encoder, actor and critic replaced by a Leaky-ReLU (negative slope 0.01, the paper's footnote 1);
-- ``cnn-<src>_mlp-<src>`` with ``<src>`` in ``blank``, ``good``, ``bad``: a cell of the paper's transplant grid
-  (Study 2, Figure 3a), plain DrQ-v2 whose encoder (CNN) and actor (MLP) start from the weights of a "good" or a
-  "bad" agent of the same task, or blank (the usual random initialization); the critic starts blank. The CNN and
-  the MLP of a source come from two different agents (:mod:`sb3_collapse.sweep.donors`): the checkpoints are keyed
-  by :func:`donor_key` (``good_cnn``, ``good_mlp``, ``bad_cnn``, ``bad_mlp``).
+The variants (``drqv2``, ``td3+reset``, ``drqv2-leaky+redo_periodic``, ``cnn-good_mlp-bad``...): docs/sweeps.md.
 """
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,21 +18,18 @@ from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import trial_path
 from sb3_collapse.run.config import ALGORITHMS, TrainConfig
+from sb3_collapse.runfolder import read_result
 
-LEAKY = "-leaky"
-"""Suffix of the DrQ-v2 variants with Leaky-ReLU activations (``drqv2-leaky``)."""
-PERIODIC_REDO = "redo_periodic"
-"""``<algorithm>+redo_periodic``: ReDo every :data:`~sb3_collapse.monitoring.redo.REDO_EVERY_UPDATES` updates."""
+LEAKY = "-leaky"  # suffix of the DrQ-v2 variants with Leaky-ReLU activations (drqv2-leaky)
+PERIODIC_REDO = "redo_periodic"  # <algorithm>+redo_periodic: ReDo every REDO_EVERY_UPDATES updates, no rule
 BASE_VARIANTS = ("drqv2", f"drqv2{LEAKY}", *(algorithm for algorithm in ALGORITHMS if algorithm != "drqv2"))
 """The algorithms of the variants: ``drqv2``, ``drqv2-leaky``, ``td3``, ``sac``."""
 PLAIN_VARIANTS = tuple(
     f"{base}{suffix}"
     for base in BASE_VARIANTS
-    for suffix in ("", *(f"+{name}" for name in INTERVENTIONS), f"+{PERIODIC_REDO}")
+    for suffix in ("", *(f"+{i}" for i in INTERVENTIONS), f"+{PERIODIC_REDO}")
 )
-"""``<algorithm>``, ``<algorithm>+<intervention>`` and ``<algorithm>+redo_periodic``: ``drqv2``, ``drqv2+reset``,
-``drqv2+reset_actor``..., ``drqv2+redo_periodic``, ``drqv2-leaky``, ``drqv2-leaky+reset``..., ``td3``, ``td3+reset``...,
-``sac``..."""
+"""``<algorithm>``, ``<algorithm>+<intervention>`` and ``<algorithm>+redo_periodic``."""
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
 """The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
@@ -59,12 +39,9 @@ def donor_key(source: str, part: str) -> str:
     """
     :param source: ``"good"`` or ``"bad"``
     :param part: ``"cnn"`` or ``"mlp"``
-    :return: the key of that donor's checkpoints in a sweep's checkpoints (``"good_cnn"``); the flag is
-        ``--good-cnn``
+    :return: the key of that donor's checkpoints in a sweep's checkpoints (``"good_cnn"``; flag ``--good-cnn``)
     """
     return f"{source}_{part}"
-
-
 
 
 @dataclass(frozen=True, order=True)
@@ -73,7 +50,7 @@ class Trial:
     One training run of a sweep.
 
     :param task: the task, ``<domain>-<task>`` (``"walker-walk"``)
-    :param variant: the variant name (see the module docstring)
+    :param variant: the variant name (docs/sweeps.md)
     :param seed: the random seed
     """
 
@@ -120,12 +97,9 @@ def transplant_of(variant: str) -> dict[str, str] | None:
 
 def variant_settings(variant: str) -> dict[str, Any]:
     """
-    The :class:`~sb3_collapse.run.config.TrainConfig` settings a variant fixes.
-
     :param variant: a variant name
-    :return: ``algorithm``, ``reset_rule``, ``intervention`` (``None`` without the rule), ``activation``
-        (``"leaky_relu"`` for ``drqv2-leaky...``) and ``redo_every_updates`` (for ``+redo_periodic``, else 0);
-        transplant-grid cells are plain DrQ-v2
+    :return: the :class:`~sb3_collapse.run.config.TrainConfig` settings it fixes: ``algorithm``, ``reset_rule``,
+        ``intervention``, ``activation`` and ``redo_every_updates``
     :raises InputError: for an unknown variant
     """
     settings: dict[str, Any] = {
@@ -153,7 +127,6 @@ def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable
     :param seeds: seeds (>= 0)
     :return: the trials
     :raises InputError: for an unknown task or variant, a negative seed, an empty list or a value listed twice
-        (``walker-walk`` and ``walker_walk`` are the same task)
     """
     tasks = [canonical_task(task) for task in tasks]
     variants, seeds = list(variants), [int(seed) for seed in seeds]
@@ -174,20 +147,14 @@ def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable
 
 
 def trial_dir(out: str | Path, trial: Trial) -> Path:
-    """
-    :param out: the sweep folder
-    :param trial: a trial
-    :return: its folder, ``<out>/<task>/<variant>/seed_<seed>``
-    """
+    """:return: the folder of ``trial`` in the sweep folder ``out``: ``<out>/<task>/<variant>/seed_<seed>``"""
     return trial_path(out, trial.task, trial.variant, trial.seed)
 
 
 def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], flag: str) -> dict[str, str]:
     """
-    Checkpoints of one source (good or bad) per task, from ``PATH`` (every task) and ``TASK=PATH`` items (that
-    task; it overrides a plain ``PATH``). An item is ``TASK=PATH`` when the text before its first ``=`` is a task
-    name; otherwise the whole item is a path. As in ``DrQv2.load``, ``.zip`` may be left out. Paths are made
-    absolute (trials may run in another folder).
+    Checkpoints of one donor per task, from ``PATH`` (every task) and ``TASK=PATH`` items (that task, over a plain
+    ``PATH``); ``.zip`` may be left out, as in ``DrQv2.load``.
 
     :param specs: the items, ``None`` for none
     :param tasks: the sweep's tasks, ``<domain>-<task>``
@@ -201,10 +168,8 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
         name, separator, path = item.partition("=")
         task = None
         if separator:
-            try:
+            with contextlib.suppress(InputError):  # not a task name: the whole item is a path
                 task = canonical_task(name)
-            except InputError:
-                task = None
         if task is None:
             if default is not None:
                 raise InputError(f"{flag}: two checkpoints for every task ({default}, {item}); use TASK=PATH per task.")
@@ -213,9 +178,9 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
             raise InputError(f"{flag} {item}: {task} is not a task of this sweep ({', '.join(tasks)}).")
         else:
             by_task[task] = path
-    checkpoints = {task: by_task.get(task, default) for task in tasks}
     resolved = {}
-    for task, path in checkpoints.items():
+    for task in tasks:
+        path = by_task.get(task, default)
         if path is None:
             continue
         try:
@@ -251,16 +216,12 @@ def trial_config(
     torch_threads: int | None = None,
 ) -> TrainConfig:
     """
-    The settings of one trial: the sweep's training settings, the trial's task and seed, its exact folder,
-    the variant's algorithm, reset rule and intervention (:func:`variant_settings`) and initial weights, no
-    progress bar. The DrQ-v2 settings the sweep leaves at
-    ``None`` come from the trial's task preset (:func:`sb3_collapse.presets.preset`), so each task trains with its
-    own; one given to the sweep overrides every task's preset. The config is resolved (:meth:`TrainConfig.resolve`).
+    The resolved settings of one trial: the sweep's, the trial's task, seed, folder and variant
+    (:func:`variant_settings`), the donors' weights; the settings left at ``None`` come from the task's preset.
 
     :param trial: the trial
     :param out: the sweep folder
-    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (``None``: the task's
-        preset)
+    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials
     :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> checkpoint path, for transplant-grid cells
     :param device: the torch device of the trial
     :param torch_threads: threads of torch's CPU operations in the trial
@@ -268,19 +229,23 @@ def trial_config(
     """
     transplant = transplant_of(trial.variant)
     per_trial: dict[str, Any] = {
-        "env": trial.task,
-        "seed": trial.seed,
-        "run_dir": str(trial_dir(out, trial)),
-        **variant_settings(trial.variant),
-        "variant": trial.variant,
-        "transplant": transplant,
-        "device": device,
-        "torch_threads": torch_threads,
+        "env": trial.task, "seed": trial.seed, "run_dir": str(trial_dir(out, trial)), **variant_settings(trial.variant),
+        "variant": trial.variant, "transplant": transplant, "device": device, "torch_threads": torch_threads,
         "progress_bar": False,
-    }
-    if transplant is not None:
-        checkpoints = checkpoints or {}
-        for part, source in transplant.items():
-            if source != "blank":
-                per_trial[f"init_{part}"] = checkpoints[donor_key(source, part)][trial.task]
+    }  # fmt: skip
+    for part, source in (transplant or {}).items():
+        if source != "blank":
+            per_trial[f"init_{part}"] = (checkpoints or {})[donor_key(source, part)][trial.task]
     return TrainConfig(**{**training, **per_trial}).resolve()
+
+
+def damaged_result(folder: Path) -> str | None:
+    """
+    :param folder: a trial folder
+    :return: one line for a result file that cannot be read (why, and the way out); ``None`` for a readable one or none
+    """
+    try:
+        read_result(folder, strict=True)
+    except InputError as error:
+        return f"{str(error).rstrip('.')}; move the folder aside to train this seed again."
+    return None

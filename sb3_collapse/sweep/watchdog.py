@@ -1,15 +1,12 @@
 """
-Ends a sweep's local Ray instance when the sweep's driver process dies, even by SIGKILL, which skips Ray's own
-clean-up and leaves Ray's agents (``ray::DashboardAgent``, ``ray::RuntimeEnvAgent``) and workers running:
-``python -m sb3_collapse.sweep.watchdog DRIVER_PID``.
-
-While the driver lives, the watchdog keeps the list of its descendants (GCS, raylet, monitors, agents, workers);
-once it has died, it ends those that still run. :func:`sb3_collapse.sweep.ray_session` starts it, in a session of
-its own, for every local Ray instance it starts, and stops it when the instance shuts down normally.
+Ends a sweep's local Ray instance when the sweep's driver dies, even by SIGKILL (which skips Ray's clean-up):
+``python -m sb3_collapse.sweep.watchdog DRIVER_PID``. It keeps the list of the driver's descendants while the driver
+lives, then ends those still running. :func:`sb3_collapse.sweep.cluster.ray_session` starts and stops it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -19,47 +16,31 @@ import psutil
 POLL_SECONDS = 0.5
 
 
-def descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
-    """
-    :param pid: a process
-    :return: its descendants, keyed by (pid, creation time) so that a reused pid is never mistaken for one of them
-    """
+def _descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
+    """The descendants of ``pid`` but this process, by (pid, creation time): a reused pid is never taken."""
     try:
         children = psutil.Process(pid).children(recursive=True)
     except psutil.NoSuchProcess:
         return {}
     found = {}
     for child in children:
-        if child.pid == os.getpid():  # the watchdog is the driver's child too
-            continue
-        try:
-            found[(child.pid, child.create_time())] = child
-        except psutil.NoSuchProcess:
-            continue
+        with contextlib.suppress(psutil.NoSuchProcess):
+            if child.pid != os.getpid():  # the watchdog is the driver's child too
+                found[(child.pid, child.create_time())] = child
     return found
 
 
-def end_processes(processes: list[psutil.Process], grace_seconds: float = 5.0) -> None:
-    """
-    Terminate the processes, then kill those still alive after ``grace_seconds``.
-
-    :param processes: the processes
-    :param grace_seconds: time given to SIGTERM
-    """
+def _end_processes(processes: list[psutil.Process], grace_seconds: float = 5.0) -> None:
+    """Terminate the processes, then kill those still alive after ``grace_seconds``."""
     for process in processes:
-        try:
+        with contextlib.suppress(psutil.NoSuchProcess):
             process.terminate()
-        except psutil.NoSuchProcess:
-            pass
-    _, alive = psutil.wait_procs(processes, timeout=grace_seconds)
-    for process in alive:
-        try:
+    for process in psutil.wait_procs(processes, timeout=grace_seconds)[1]:
+        with contextlib.suppress(psutil.NoSuchProcess):
             process.kill()
-        except psutil.NoSuchProcess:
-            pass
 
 
-def driver_alive(process: psutil.Process) -> bool:
+def _driver_alive(process: psutil.Process) -> bool:
     """Whether the driver process still runs (a zombie has died)."""
     try:
         return process.is_running() and process.status() != psutil.STATUS_ZOMBIE
@@ -69,9 +50,7 @@ def driver_alive(process: psutil.Process) -> bool:
 
 def watch(driver_pid: int, poll_seconds: float = POLL_SECONDS) -> int:
     """
-    Follow the driver's descendants until it dies, then end those still running.
-
-    :param driver_pid: the sweep's driver
+    :param driver_pid: the sweep's driver: its descendants are followed until it dies, then those still running ended
     :param poll_seconds: time between two looks at the process tree
     :return: how many processes were ended
     """
@@ -80,19 +59,16 @@ def watch(driver_pid: int, poll_seconds: float = POLL_SECONDS) -> int:
     except psutil.NoSuchProcess:
         return 0
     known: dict[tuple[int, float], psutil.Process] = {}
-    while driver_alive(driver):
-        known.update(descendants(driver_pid))
+    while _driver_alive(driver):
+        known.update(_descendants(driver_pid))
         time.sleep(poll_seconds)
     remaining = [process for process in known.values() if process.is_running()]  # checks the creation time too
-    end_processes(remaining)
+    _end_processes(remaining)
     return len(remaining)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: ``DRIVER_PID``
-    :return: 0 once the driver has died and what it left was ended
-    """
+    """:return: 0 once the driver (``argv``: ``DRIVER_PID``) has died and what it left was ended; 2 for bad usage"""
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 1 or not argv[0].isdigit():
         print("usage: python -m sb3_collapse.sweep.watchdog DRIVER_PID", file=sys.stderr)

@@ -30,48 +30,25 @@ _DMC_DEFAULTS = {
 }
 
 
-def is_dmc_env_id(env_id: str) -> bool:
-    """
-    :param env_id: a registered Gymnasium id
-    :return: whether it builds a :class:`~sb3_collapse.envs.dmc.DMCEnv` (``sb3_collapse/<domain>-<task>-v0``)
-    """
+def _is_dmc_env_id(env_id: str) -> bool:
+    """:return: whether the registered Gymnasium id ``env_id`` builds a :class:`~sb3_collapse.envs.dmc.DMCEnv`"""
     return env_id in gym.registry and gym.registry[env_id].entry_point == ENTRY_POINT
 
 
-def pixel_settings(env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
-    """
-    :param env_kwargs: keyword arguments of a ``DMCEnv`` (``gymnasium.make``'s ``**kwargs``)
-    :return: the value of each of :data:`PIXEL_SETTINGS` they give, ``DMCEnv``'s default for the others
-    """
-    env_kwargs = env_kwargs or {}
-    return {name: env_kwargs.get(name, default) for name, default in _DMC_DEFAULTS.items()}
-
-
-def check_same_pixels(train_kwargs: dict[str, Any] | None, eval_kwargs: dict[str, Any] | None) -> None:
-    """
-    :param train_kwargs: ``env_kwargs`` of the training env
-    :param eval_kwargs: ``env_kwargs`` of the evaluation env
-    :raises InputError: if they give different :data:`PIXEL_SETTINGS` (missing ones count as the defaults)
-    """
-    train, evaluation = pixel_settings(train_kwargs), pixel_settings(eval_kwargs)
-    differing = {name: (train[name], evaluation[name]) for name in PIXEL_SETTINGS if train[name] != evaluation[name]}
-    if differing:
-        details = ", ".join(f"{name}: {a!r} in training, {b!r} in evaluation" for name, (a, b) in differing.items())
+def _check_same_pixels(train_kwargs: dict[str, Any] | None, eval_kwargs: dict[str, Any] | None) -> None:
+    """Refuse training and evaluation ``env_kwargs`` whose :data:`PIXEL_SETTINGS` differ (missing: the defaults)."""
+    train, evaluation = train_kwargs or {}, eval_kwargs or {}
+    pairs = {name: (train.get(name, default), evaluation.get(name, default)) for name, default in _DMC_DEFAULTS.items()}
+    details = ", ".join(f"{name}: {a!r} in training, {b!r} in evaluation" for name, (a, b) in pairs.items() if a != b)
+    if details:
         raise InputError(
             f"The evaluation env must see the same pixels as the training env ({details}). "
             "Drop these keys from --eval-env-kwargs (it defaults to the training env_kwargs)."
         )
 
 
-def check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
-    """
-    Refuse the rl_zoo3 hyperparameters that break DrQv2 on pixels, before any env is built.
-
-    :param hyperparams: one entry of the config file, after the ``-params`` overrides
-    :raises InputError: for ``frame_stack`` (rl_zoo3's ``VecFrameStack``: the DMC envs stack frames themselves,
-        and DrQv2's replay buffer relies on their layout), ``normalize`` (``VecNormalize`` would turn the uint8
-        pixels into floats; DrQv2 scales them itself, layer ``cnn0``) and a malformed ``stddev_schedule``
-    """
+def _check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
+    """Refuse ``frame_stack``, ``normalize`` and a malformed ``stddev_schedule`` in a config entry."""
     if "frame_stack" in hyperparams:
         raise InputError(
             f"frame_stack: {hyperparams['frame_stack']!r} makes rl_zoo3 stack observations with VecFrameStack; "
@@ -89,35 +66,11 @@ def check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
             raise InputError(f"stddev_schedule: {error}") from None
 
 
-def merge_callbacks(configured: Any, extra: list[CallbackSpec]) -> list[Any]:
-    """
-    :param configured: the ``callback`` hyperparameter of the config file (``None``, a dotted name, a
-        ``{name: kwargs}`` dict or a list of those)
-    :param extra: callbacks to run after them
-    :return: one list with both, in that order
-    """
-    if configured is None:
-        configured = []
-    elif not isinstance(configured, list):
-        configured = [configured]
-    return [*configured, *extra]
-
-
 class ZooExperimentManager(ExperimentManager):
     """
-    rl_zoo3's ``ExperimentManager`` (the launcher's ``train`` uses it in place of the original), with:
-
-    - the evaluation env built with the **training** ``env_kwargs`` (rl_zoo3 2.9 gives its ``EvalCallback`` env
-      the ``--env-kwargs`` of the command line only, so the ``env_kwargs`` of a config file did not reach it),
-      updated key by key by ``--eval-env-kwargs``; for the DeepMind Control ids, the pixel settings
-      (:data:`PIXEL_SETTINGS`) must then agree;
-    - for DrQv2: ``frame_stack``, ``normalize`` and malformed ``stddev_schedule`` refused with a clear message
-      (:func:`check_drqv2_hyperparams`);
-    - a missing config file, or one without the ``--env``, reported as a :class:`InputError`;
-    - :attr:`extra_callbacks` appended to the config's ``callback`` list (and saved with it in ``config.yml``);
-    - a DeepMind Control pixel env wrapped in ``VecTransposeImage`` refused: its observations are channel first
-      already; SB3 guesses the channel axis as the smallest one, so this happens only when
-      ``3 * frame_stack > size``.
+    rl_zoo3's ``ExperimentManager`` for the launcher's ``train``: the evaluation env gets the training
+    ``env_kwargs``, :attr:`extra_callbacks` join the config's, and what breaks DrQv2 on pixels is refused in one
+    line (docs/zoo.md).
     """
 
     extra_callbacks: ClassVar[list[CallbackSpec]] = []
@@ -125,10 +78,7 @@ class ZooExperimentManager(ExperimentManager):
 
     @classmethod
     def with_callbacks(cls, callbacks: list[CallbackSpec]) -> type[ZooExperimentManager]:
-        """
-        :param callbacks: callbacks in the format of rl_zoo3's ``callback`` hyperparameter
-        :return: a subclass that appends them to the callbacks of the config file
-        """
+        """:return: a subclass that appends ``callbacks`` (rl_zoo3's ``callback`` format) to the config's"""
         return type(cls.__name__, (cls,), {"extra_callbacks": [*cls.extra_callbacks, *callbacks]})
 
     def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -142,10 +92,11 @@ class ZooExperimentManager(ExperimentManager):
         except ValueError as error:  # rl_zoo3: "Hyperparameters not found for <algo>-<env> in <config>"
             raise InputError(f"{error}: add an entry for {self.env_name.gym_id} to it.") from None
         if self.algo == ALGO_NAME:
-            check_drqv2_hyperparams(hyperparams)
-        if self.extra_callbacks:
-            callbacks = merge_callbacks(hyperparams.get("callback"), self.extra_callbacks)
-            hyperparams["callback"] = saved_hyperparams["callback"] = callbacks
+            _check_drqv2_hyperparams(hyperparams)
+        if self.extra_callbacks:  # after the config's (None, a dotted name, a {name: kwargs} dict or a list)
+            configured = hyperparams.get("callback")
+            configured = [] if configured is None else configured if isinstance(configured, list) else [configured]
+            hyperparams["callback"] = saved_hyperparams["callback"] = [*configured, *self.extra_callbacks]
             print(f"Callbacks added to the config's: {[next(iter(spec)) for spec in self.extra_callbacks]}")
         return hyperparams, saved_hyperparams
 
@@ -153,13 +104,13 @@ class ZooExperimentManager(ExperimentManager):
         processed = super()._preprocess_hyperparams(hyperparams)
         # rl_zoo3 bound eval_env_kwargs to the command line's env_kwargs before reading the config file.
         self.eval_env_kwargs = {**self.env_kwargs, **(self._eval_env_kwargs_args or {})}
-        if is_dmc_env_id(self.env_name.gym_id):
-            check_same_pixels(self.env_kwargs, self.eval_env_kwargs)
+        if _is_dmc_env_id(self.env_name.gym_id):
+            _check_same_pixels(self.env_kwargs, self.eval_env_kwargs)
         return processed
 
     def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
         env = super().create_envs(n_envs, eval_env=eval_env, no_log=no_log)
-        if is_dmc_env_id(self.env_name.gym_id) and is_vecenv_wrapped(env, VecTransposeImage):
+        if _is_dmc_env_id(self.env_name.gym_id) and is_vecenv_wrapped(env, VecTransposeImage):
             shape = env.get_attr("observation_space", indices=[0])[0].shape
             env.close()
             raise InputError(

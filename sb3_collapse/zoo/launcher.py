@@ -1,20 +1,11 @@
-"""
-The rl_zoo3 launcher: rl_zoo3's ``train`` and ``enjoy`` scripts with DrQv2 registered.
-
-    python -m sb3_collapse.zoo train --algo drqv2 --env sb3_collapse/walker-walk-v0 -conf zoo_configs/drqv2.yml
-    python -m sb3_collapse.zoo enjoy --algo drqv2 --env sb3_collapse/walker-walk-v0 -f logs/ -n 1000
-
-Every rl_zoo3 flag works as in ``python -m rl_zoo3.train`` / ``enjoy``; counts (``-n``, ``--eval-freq``,
-``--save-freq``) are in agent steps (frames / action repeat). With ``--algo drqv2`` it evaluates as DrQ-v2 does by
-default, requires ``-conf``, refuses ``-optimize``, and ``enjoy`` runs with ``--no-render``: docs/zoo.md.
-"""
+"""The rl_zoo3 launcher: rl_zoo3's ``train`` and ``enjoy`` scripts with DrQv2 registered (docs/zoo.md)."""
 
 from __future__ import annotations
 
 import argparse
 import difflib
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -27,26 +18,17 @@ from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 
 PROG = "python -m sb3_collapse.zoo"
 COMMANDS = ("train", "enjoy")
-SWITCHES = ("--collapse-metrics", "--reset-rule")
-"""The launcher's own options; every other one goes to rl_zoo3."""
 _DRQV2 = PRESETS["walker-walk"]  # the evaluation protocol is the same for every task
 DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat
 """DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` / action repeat."""
-DRQV2_EVAL_EPISODES = _DRQV2.eval_episodes
-"""DrQ-v2's ``num_eval_episodes``."""
-
-COLLAPSE_METRICS_CALLBACK = {
-    "sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}
-}
-"""``--collapse-metrics``: the collapse metrics of every named layer at the paper's period."""
-RESET_RULE_CALLBACK = {
-    "sb3_collapse.monitoring.CollapseReset": {
-        "window_frames": PAPER.window_frames,
-        "check_every_frames": PAPER.check_every_frames,
-        "verbose": 1,
-    }
-}
-"""``--reset-rule``: the paper's rule, ``CollapseReset``'s defaults (:data:`sb3_collapse.paper.PAPER`)."""
+SWITCHES = {  # the launcher's own options (every other one goes to rl_zoo3) and the callbacks they add
+    "--collapse-metrics": {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}},
+    "--reset-rule": {
+        "sb3_collapse.monitoring.CollapseReset": {
+            "window_frames": PAPER.window_frames, "check_every_frames": PAPER.check_every_frames, "verbose": 1
+        }
+    },
+}  # fmt: skip
 
 USAGE = f"{PROG} {{train,enjoy}} [--collapse-metrics] [--reset-rule] [rl_zoo3 options]"
 DESCRIPTION = (
@@ -56,10 +38,9 @@ DESCRIPTION = (
 )
 EPILOG = (
     f"With --algo drqv2: train needs -conf (e.g. zoo_configs/drqv2.yml), evaluates every {DRQV2_EVAL_FREQ} agent "
-    f"steps on {DRQV2_EVAL_EPISODES} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's "
+    f"steps on {_DRQV2.eval_episodes} episodes unless --eval-freq / --eval-episodes say otherwise (DrQ-v2's "
     f"{_DRQV2.eval_every_frames:,} frames at action repeat {_DRQV2.action_repeat}), and refuses -optimize; enjoy "
-    "runs with --no-render (the DeepMind Control envs "
-    "render off-screen only)."
+    "runs with --no-render (the DeepMind Control envs render off-screen only)."
 )
 
 
@@ -84,64 +65,48 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _peek_parser() -> argparse.ArgumentParser:
-    """The few rl_zoo3 options the launcher reads (they still go to rl_zoo3)."""
+def _peek(zoo_args: list[str]) -> argparse.Namespace:
+    """:return: the few rl_zoo3 options of ``zoo_args`` that the launcher reads (they still go to rl_zoo3)"""
     parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     parser.add_argument("--algo", default="ppo")
     parser.add_argument("--env")
-    parser.add_argument("-conf", "--conf-file", dest="conf_file")
+    parser.add_argument("-conf", "--conf-file")
     parser.add_argument("-optimize", "--optimize-hyperparameters", dest="optimize", action="store_true")
-    parser.add_argument("--eval-freq", dest="eval_freq")
-    parser.add_argument("--eval-episodes", dest="eval_episodes")
-    parser.add_argument("--no-render", dest="no_render", action="store_true")
-    return parser
+    parser.add_argument("--eval-freq")
+    parser.add_argument("--eval-episodes")
+    parser.add_argument("--no-render", action="store_true")
+    return parser.parse_known_args(zoo_args)[0]
 
 
 def collapse_callbacks(collapse_metrics: bool, reset_rule: bool) -> list[dict[str, dict[str, Any]]]:
     """
     :param collapse_metrics: add ``CollapseMetrics``
-    :param reset_rule: add ``CollapseReset``
+    :param reset_rule: add ``CollapseReset`` (the paper's rule, its defaults)
     :return: the callbacks, in the format of rl_zoo3's ``callback`` hyperparameter
     """
-    callbacks = []
-    if collapse_metrics:
-        callbacks.append(COLLAPSE_METRICS_CALLBACK)
-    if reset_rule:
-        callbacks.append(RESET_RULE_CALLBACK)
-    return callbacks
+    return [callback for wanted, callback in zip((collapse_metrics, reset_rule), SWITCHES.values()) if wanted]
 
 
-def train_arguments(zoo_args: list[str]) -> list[str]:
-    """
-    :param zoo_args: the rl_zoo3 ``train`` options of the command line
-    :return: them, plus DrQ-v2's evaluation period and episodes for ``--algo drqv2`` when not given
-    :raises InputError: for ``--algo drqv2`` without ``-conf``, or with ``-optimize``
-    """
-    peek, _ = _peek_parser().parse_known_args(zoo_args)
+def _train_arguments(zoo_args: list[str]) -> list[str]:
+    """``zoo_args`` and, for ``--algo drqv2``, DrQ-v2's evaluation period and episodes; checks first."""
+    peek = _peek(zoo_args)
     if peek.algo != ALGO_NAME or "-h" in zoo_args or "--help" in zoo_args:
         return list(zoo_args)
     if peek.conf_file is None:
         raise InputError("--algo drqv2 needs a config file: pass -conf zoo_configs/drqv2.yml (or your own).")
     if peek.optimize:
         raise InputError("-optimize is not available for drqv2: rl_zoo3 has no hyperparameter sampler for it.")
-    check_env_and_config(peek.env, peek.conf_file)
+    _check_env_and_config(peek.env, peek.conf_file)
     args = list(zoo_args)
     if peek.eval_freq is None:
         args += ["--eval-freq", str(DRQV2_EVAL_FREQ)]
     if peek.eval_episodes is None:
-        args += ["--eval-episodes", str(DRQV2_EVAL_EPISODES)]
+        args += ["--eval-episodes", str(_DRQV2.eval_episodes)]
     return args
 
 
-def check_env_and_config(env_id: str | None, conf_file: str) -> None:
-    """
-    Check, before rl_zoo3 starts, what it would only report with a traceback: the env id is registered, and the
-    config file is a YAML mapping with an entry for it.
-
-    :param env_id: the ``--env`` of the command line (``None``: rl_zoo3's default, not checked)
-    :param conf_file: the ``-conf`` file
-    :raises InputError: saying what is wrong and what to pass
-    """
+def _check_env_and_config(env_id: str | None, conf_file: str) -> None:
+    """Before rl_zoo3 starts: ``env_id`` is registered (or ``None``), ``conf_file`` a YAML mapping with its entry."""
     import gymnasium as gym
     import yaml
 
@@ -167,15 +132,10 @@ def check_env_and_config(env_id: str | None, conf_file: str) -> None:
         raise InputError(f"-conf {conf_file} has no entry for {env_id}; add one or choose another --env.")
 
 
-def enjoy_arguments(zoo_args: list[str]) -> list[str]:
-    """
-    :param zoo_args: the rl_zoo3 ``enjoy`` options of the command line
-    :return: them, with ``--no-render`` (the DeepMind Control envs cannot open a window) for ``--algo drqv2``
-    """
-    peek, _ = _peek_parser().parse_known_args(zoo_args)
-    if peek.algo == ALGO_NAME and not peek.no_render:
-        return [*zoo_args, "--no-render"]
-    return list(zoo_args)
+def _enjoy_arguments(zoo_args: list[str]) -> list[str]:
+    """``zoo_args`` with ``--no-render`` for ``--algo drqv2`` (the DeepMind Control envs cannot open a window)."""
+    peek = _peek(zoo_args)
+    return [*zoo_args, *(["--no-render"] if peek.algo == ALGO_NAME and not peek.no_render else [])]
 
 
 @contextmanager
@@ -191,11 +151,10 @@ def _replaced(owner: Any, name: str, value: Any) -> Iterator[None]:
 
 def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -> None:
     """
-    Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`, after setting
-    torch's process-wide CUDA flags as ``python -m sb3_collapse.train`` does by default
-    (:func:`~sb3_collapse.backends.configure_backends`).
+    Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`, with torch's
+    CUDA flags set as ``python -m sb3_collapse.train`` sets them (:func:`~sb3_collapse.backends.configure_backends`).
 
-    :param zoo_args: rl_zoo3 ``train`` options (after :func:`train_arguments`)
+    :param zoo_args: rl_zoo3 ``train`` options (after :func:`_train_arguments`)
     :param callbacks: callbacks appended to those of the config file
     """
     import rl_zoo3.train
@@ -210,19 +169,8 @@ def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -
         rl_zoo3.train.train()
 
 
-def run_enjoy(zoo_args: list[str]) -> None:
-    """
-    Run rl_zoo3's ``enjoy`` script.
-
-    :param zoo_args: rl_zoo3 ``enjoy`` options (after :func:`enjoy_arguments`)
-    """
-    import rl_zoo3.enjoy
-
-    with _replaced(sys, "argv", [f"{PROG} enjoy", *zoo_args]):
-        rl_zoo3.enjoy.enjoy()
-
-
 def _error(message: str) -> int:
+    """Print ``message`` as argparse prints an error; :return: exit status 2"""
     print(f"usage: {USAGE}\n{PROG}: error: {message}", file=sys.stderr)
     return 2
 
@@ -253,14 +201,13 @@ def main(argv: list[str] | None = None) -> int:
     ensure_rendering_backend(required=False)
     try:
         register_with_zoo()
-        runners: dict[str, Callable[[], None]] = {
-            "train": lambda: run_train(
-                train_arguments(zoo_args),
-                collapse_callbacks(switches["--collapse-metrics"], switches["--reset-rule"]),
-            ),
-            "enjoy": lambda: run_enjoy(enjoy_arguments(zoo_args)),
-        }
-        runners[command]()
+        if command == "train":
+            run_train(_train_arguments(zoo_args), collapse_callbacks(*switches.values()))
+        else:
+            import rl_zoo3.enjoy
+
+            with _replaced(sys, "argv", [f"{PROG} enjoy", *_enjoy_arguments(zoo_args)]):
+                rl_zoo3.enjoy.enjoy()
     except (InputError, MissingDependencyError) as error:
         return _error(str(error))
     except SystemExit as exit_:  # rl_zoo3's argparse: --help, or a bad option (it printed why)

@@ -351,9 +351,7 @@ def test_command_line_errors(tmp_path, capsys):
             "--bad-mlp", str(other)]  # fmt: skip
     assert main(["--tasks", "walker-walk", "--seeds", "2", *grid, "--out", out, "--dry-run"]) == 0
     lines = own_lines(capsys.readouterr().out)
-    assert lines[-1].startswith("18 trials: 18 new; 18 would run") and lines[0].endswith(
-        "cnn-blank_mlp-blank/seed_0"
-    )
+    assert lines[-1].startswith("18 trials: 18 new; 18 would run") and lines[0].endswith("cnn-blank_mlp-blank/seed_0")
     assert not (tmp_path / "sweep").exists()  # a dry run writes nothing
     with pytest.raises(SystemExit):
         main(["--help"])
@@ -680,3 +678,38 @@ def test_failed_trial_keeps_trains_error_header_and_is_called_retryable_only_if_
     assert failure_advice(2, 0) == "Rerun the same command to retry the failed trials."
     assert failure_advice(1, 1).startswith("A rerun would fail this trial the same way: fix the cause first")
     assert failure_advice(3, 1).startswith("Rerun the same command to retry the other 2 failed trials; the 1 marked")
+
+
+def test_unreadable_result_file_is_failed_with_its_reason_and_neither_run_nor_called_retryable(tmp_path, capsys):
+    """A trial whose result file was cut short is not repaired: the dry run shows it failed with the reason and the
+    way out (not "would run"); the sweep does not train it (nor start Ray for it), says why in one line and does not
+    call it retryable."""
+    from sb3_collapse.runfolder import read_result
+
+    out = tmp_path / "sweep"
+    folder = trial_dir(out, Trial("walker-walk", "drqv2", 0))
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text("{}")
+    (folder / "result.json").write_text('{"status": "fini')
+    with pytest.raises(InputError) as caught:
+        read_result(folder, strict=True)
+    line = f"{str(caught.value).rstrip('.')}; move the folder aside to train this seed again."
+    argv = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "--out", str(out), *TINY]
+    before = mtimes(out)
+
+    assert main([*argv, "--dry-run"]) == 0
+    assert own_lines(capsys.readouterr().out) == [
+        f"failed     keep   {folder}: {line}",
+        (
+            "1 trials: 1 failed; 0 would run (frames done: the newest checkpoint of an unfinished trial); 1 kept as "
+            "they are (an unreadable result.json)."
+        ),
+    ]
+
+    assert main([*argv, "--no-progress-bar"]) == 1
+    stdout = capsys.readouterr().out
+    assert "1 trials in" in stdout and "0 finished before, 1 failed." in stdout
+    assert f"  failed: walker-walk/drqv2/seed_0: {line}" in stdout.splitlines()
+    assert "retry" not in stdout.lower() and "choose another folder" not in stdout
+    assert mtimes(folder) == {path: mtime for path, mtime in before.items() if folder in path.parents}
+    assert run_status(folder) == "failed"
