@@ -18,7 +18,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 from PIL import Image
 from stable_baselines3.common.utils import get_device
-from tqdm.auto import tqdm
 
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
@@ -26,6 +25,7 @@ from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, Film, film_episode
 from sb3_collapse.probe.pipeline import check_checkpoint_files
 from sb3_collapse.probe.rollouts import resolve_env_config
+from sb3_collapse.report.loading import progress_bar
 from sb3_collapse.report.style import OKABE_ITO, frames_axis
 from sb3_collapse.staged_outputs import StagedOutputs
 
@@ -174,16 +174,13 @@ def film_to_folder(
     labels = checkpoint_labels(list(checkpoint_paths))
     films = []
     with StagedOutputs(out, OUTPUT_FILES, ACTIONS_CSV, overwrite=overwrite, error=InputError) as staged:
-        bar = tqdm(total=len(labels) * len(seeds), desc="filming", unit="episode", disable=not progress)
-        for path, label in zip(checkpoint_paths, labels):
+        for path, label in progress_bar(zip(checkpoint_paths, labels), "filming", "checkpoint", progress):
             checkpoint = load_checkpoint(path, device=get_device(device))
             env_config = resolve_env_config(checkpoint.env_config, task_id=env)
             for seed in seeds:
                 name = f"{label} ({checkpoint.frames:,} training frames), episode seed {seed}"
                 films.append(film_episode(checkpoint.model, env_config, name, frames, size, seed))
                 write_gif(films[-1], staged.path(f"{label.replace('/', '_')}_seed{seed}.gif"))
-                bar.update()
-        bar.close()
         task = films[0].task
         plot_filmstrip(
             films,

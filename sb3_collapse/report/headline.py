@@ -27,6 +27,7 @@ from sb3_collapse.report.statistics import (
     transplant_sources,
     variant_curves,
 )
+from sb3_collapse.report.tables import markdown_table
 
 CONFIDENCE = 0.95
 """The confidence of every interval of the headline and of Proposition 1."""
@@ -444,16 +445,11 @@ def headline_markdown(
     :return: the Markdown text (ends with a blank line)
     """
     lines = ["## The paper's headline beside this sweep's", ""]
-    lines += _markdown(HEADLINE_HEADER, headline_table(headline))
+    lines += markdown_table(HEADLINE_HEADER, headline_table(headline))
     lines += ["", "## Proposition 1", "", f"> {PROPOSITION_1}", ""]
     if proposition:
-        lines += _markdown(PROPOSITION1_HEADER, proposition1_table(proposition))
+        lines += markdown_table(PROPOSITION1_HEADER, proposition1_table(proposition))
     else:
         lines.append("No rule variant with its baseline in this sweep.")
     lines += ["", headline_definitions(settings), ""]
     return "\n".join(lines) + "\n"
-
-
-def _markdown(header: Sequence[str], body: Sequence[Sequence[str]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    return lines + ["| " + " | ".join(cells) + " |" for cells in body]

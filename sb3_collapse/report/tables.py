@@ -72,7 +72,8 @@ def _number(value: float, digits: int = 1) -> str:
     return "-" if value is None or math.isnan(value) else f"{value:.{digits}f}"
 
 
-def _markdown_table(header: Sequence[str], body: Sequence[Sequence[str]]) -> list[str]:
+def markdown_table(header: Sequence[str], body: Sequence[Sequence[str]]) -> list[str]:
+    """:return: the lines of a Markdown table"""
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(cells) + " |" for cells in body]
     return lines
@@ -121,7 +122,7 @@ def summary_markdown(rows: Sequence[VariantSummary], settings: ReportSettings, n
             ]
         )
     low, high = settings.percentiles
-    lines = ["# Sweep report", ""] + _markdown_table(header, body)
+    lines = ["# Sweep report", ""] + markdown_table(header, body)
     lines += [
         "",
         (
@@ -169,7 +170,7 @@ def grid_markdown(grid: dict[str, list[GridCell]], success_return: float) -> str
                 ]
             )
         lines += ["", f"## {task}", ""]
-        lines += _markdown_table([""] + [f"{mlp} MLP" for mlp in TRANSPLANT_SOURCES], body)
+        lines += markdown_table([""] + [f"{mlp} MLP" for mlp in TRANSPLANT_SOURCES], body)
         unfinished = sum(c.unfinished for c in cells)
         if unfinished:
             lines += ["", f"{unfinished} unfinished trial(s) not counted."]
@@ -203,7 +204,7 @@ def table7_markdown(curves: dict[str, list[TransplantCurves]], success_return: f
     for task, cells in curves.items():
         header = ["combination", "successful seeds"] + [f"{frame:,} frames" for frame in cells[0].stage_frames]
         body = [[c.label, str(len(c.returns))] + [_number(std) for std in c.stage_std] for c in cells]
-        lines += [f"## {task}", ""] + _markdown_table(header, body) + [""]
+        lines += [f"## {task}", ""] + markdown_table(header, body) + [""]
     lines.append(
         stages_caption("cell's aligned evaluations") + " Std across successful seeds, ddof=1 (- with one seed)."
     )
