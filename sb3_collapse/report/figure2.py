@@ -335,6 +335,7 @@ def probe_sweep(
                 {"seed": t.seed, "final_return": t.final_return} for t in sweep.finished if t.seed not in files
             ],
             "unfinished": [t.seed for t in sweep.unfinished],
+            "damaged": [{"seed": t.seed, "reason": t.reason} for t in sweep.unfinished if t.reason],
             "rollouts": {"recorded_from": recorded_from, "samples": len(rollouts), "episodes": rollouts.n_episodes},
             "columns": {title: list(targets) for title, targets in columns},
             "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
@@ -343,6 +344,8 @@ def probe_sweep(
         }
         write_json_atomically(staged.path(SUMMARY_JSON), summary)
         written = staged.commit()
+    for damaged in summary["damaged"]:
+        print(f"Not probed: seed {damaged['seed']}: {damaged['reason']}")
     print("Wrote " + ", ".join(str(f) for f in written))
     return summary
 
