@@ -46,9 +46,7 @@ class ReportFlags:
     tasks: tuple[str, ...] | None = setting(help="only these task folders; default: all", unit=None, nargs="+")
     variants: tuple[str, ...] | None = setting(help="only these variant folders; default: all", unit=None, nargs="+")
     collapse_tag: str = setting(
-        _REPORT.collapse_tag,
-        help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse'",
-        unit=None,
+        _REPORT.collapse_tag, help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse'", unit=None
     )
     collapse_threshold: float = setting(
         _REPORT.collapse_threshold,
@@ -56,10 +54,7 @@ class ReportFlags:
         unit=None,
     )
     collapse_checks: int = setting(
-        _REPORT.collapse_checks,
-        help="number of last collapse checks whose median is tested",
-        unit=None,
-        minimum=1,
+        _REPORT.collapse_checks, help="number of last collapse checks whose median is tested", unit=None, minimum=1
     )
     last_evals: int = setting(
         _REPORT.last_evals,
@@ -68,9 +63,7 @@ class ReportFlags:
         minimum=1,
     )
     success_return: float = setting(
-        _REPORT.success_return,
-        help="transplant grid: a seed succeeds when its final return is >= this",
-        unit=None,
+        _REPORT.success_return, help="transplant grid: a seed succeeds when its final return is >= this", unit=None
     )
     percentiles: tuple[float, float] = setting(
         tuple(_REPORT.percentiles),

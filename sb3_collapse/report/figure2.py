@@ -259,9 +259,7 @@ OUTPUT_FILES = (FIGURE2_PNG, TABLES_1_6_CSV, TABLES_MD, PROBE_CSV, ROLLOUTS_NAME
 
 
 def split_agents(
-    trials: Sequence[Trial],
-    success_return: float = PAPER.success_return,
-    failure_return: float = PAPER.failure_return,
+    trials: Sequence[Trial], success_return: float = PAPER.success_return, failure_return: float = PAPER.failure_return
 ) -> tuple[list[Trial], list[Trial]]:
     """
     :param trials: finished trials

@@ -1,10 +1,5 @@
-"""
-The top of the report: the paper's headline numbers beside the sweep's (Section 5.2, "Results",
-:func:`headline_rows`), Proposition 1's predicted escape probability beside what the rule did
-(:func:`proposition1_rows`), and what Figure 5 compares (:func:`figure5_curves`). Proportions get a Wilson score
-interval, the mean std a percentile bootstrap over seeds (fixed seed). The readings:
-docs/figures.md#figure-5-the-headline-numbers-and-proposition-1.
-"""
+"""The top of the report: the paper's headline numbers and Proposition 1 beside the sweep's, and Figure 5's curves.
+The readings: docs/figures.md#figure-5-the-headline-numbers-and-proposition-1."""
 
 from __future__ import annotations
 
@@ -32,22 +27,18 @@ from sb3_collapse.report.tables import markdown_table
 CONFIDENCE = 0.95
 """The confidence of every interval of the headline and of Proposition 1."""
 BOOTSTRAP_RESAMPLES = 2000
-"""Resamples of the bootstrap interval of the mean std."""
-BASELINE_VARIANT = "drqv2"
-RULE_VARIANT = "drqv2+reset"
-"""The variants of the paper's Figure 5: DrQ-v2, and DrQ-v2 plus the rule (reset from scratch)."""
+BASELINE_VARIANT, RULE_VARIANT = "drqv2", "drqv2+reset"
+"""The variants of the paper's Figure 5: DrQ-v2, and DrQ-v2 plus the rule."""
 
 Interval = tuple[float, float]
 
 
 def wilson_interval(successes: int, trials: int, confidence: float = CONFIDENCE) -> Interval:
     """
-    The Wilson score interval of a proportion.
-
     :param successes: the count, ``0 <= successes <= trials``
     :param trials: the number of trials
     :param confidence: the confidence level, in (0, 1)
-    :return: ``(low, high)`` in [0, 1]; ``(nan, nan)`` without trials
+    :return: the Wilson score interval ``(low, high)``; ``(nan, nan)`` without trials
     """
     if not 0 <= successes <= trials:
         raise ValueError(f"successes must be in [0, trials], got {successes} of {trials}.")
@@ -65,21 +56,15 @@ def wilson_interval(successes: int, trials: int, confidence: float = CONFIDENCE)
 
 def escape_probability(stuck_probability: float, windows: int) -> float:
     """
-    Proposition 1's escape probability with the rule, ``1 - p^n``.
-
     :param stuck_probability: p, the probability of getting stuck in action collapse (one window)
     :param windows: n, the windows of the budget
-    :return: ``1 - stuck_probability ** windows``
+    :return: Proposition 1's escape probability ``1 - p^n``
     """
     return 1.0 - stuck_probability**windows
 
 
 def escape_interval(p_interval: Interval, windows: int) -> Interval:
-    """
-    :param p_interval: an interval of p
-    :param windows: n
-    :return: the interval of ``1 - p^n``: ``(1 - high^n, 1 - low^n)`` (``1 - p^n`` decreases with p)
-    """
+    """:return: the interval of ``1 - p^n`` from ``p_interval``: ``(1 - high^n, 1 - low^n)``"""
     low, high = p_interval
     return (escape_probability(high, windows), escape_probability(low, windows))
 
@@ -92,14 +77,12 @@ def bootstrap_std_interval(
     seed: int = 0,
 ) -> Interval:
     """
-    Percentile bootstrap interval of :func:`~sb3_collapse.report.statistics.last_evals_std_mean` over seeds.
-
     :param returns: ``(seeds, frames)`` aligned returns
     :param last_evals: the last evaluations averaged
     :param confidence: the confidence level
     :param resamples: bootstrap resamples
     :param seed: seed of the resampling
-    :return: ``(low, high)``; ``(nan, nan)`` with fewer than 2 seeds
+    :return: percentile bootstrap interval of :func:`last_evals_std_mean` over seeds; nan with fewer than 2 seeds
     """
     seeds = returns.shape[0]
     if seeds < 2 or returns.shape[1] == 0:
@@ -114,15 +97,8 @@ def bootstrap_std_interval(
 
 
 def figure5_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = PAPER.percentiles) -> list[BandCurve]:
-    """
-    Figure 5's curves of a task: "The performance comparison of 40 seeds between DrQ-v2 and DrQ-v2 plus our rule"
-    (and the other interventions and algorithms), without the transplant-grid cells, which are Figure 3's.
-
-    :param sweep: the loaded sweep
-    :param task: the task
-    :param percentiles: the band
-    :return: :func:`~sb3_collapse.report.statistics.variant_curves` without ``cnn-<src>_mlp-<src>`` variants
-    """
+    """Figure 5's curves of ``task`` ("The performance comparison ... between DrQ-v2 and DrQ-v2 plus our rule", and
+    the other variants), without the transplant cells (Figure 3's)."""
     return [curve for curve in variant_curves(sweep, task, percentiles) if transplant_sources(curve.name) is None]
 
 
@@ -133,13 +109,7 @@ def figure5_unfinished(sweep: Sweep, task: str) -> list[Trial]:
 
 @dataclass
 class Proportion:
-    """
-    A count of seeds out of a number, with its Wilson interval.
-
-    :param count: the seeds counted
-    :param total: out of these
-    :param interval: the Wilson interval of ``count / total``
-    """
+    """``count`` seeds of ``total``, with the Wilson ``interval`` of the fraction."""
 
     count: int
     total: int
@@ -166,17 +136,15 @@ class Estimate:
 @dataclass
 class HeadlineRow:
     """
-    One task of the headline: the paper's numbers and the sweep's, DrQ-v2 against DrQ-v2 plus the rule.
+    One task of the headline: the paper's numbers and the sweep's (``None``: not in the paper / the sweep).
 
     :param task: the task
-    :param paper: the paper's numbers (``None`` for a task the paper does not report)
-    :param baseline: the sweep's baseline row (``None`` when the sweep lacks it)
-    :param rule: the sweep's rule row (``None`` when the sweep lacks it)
-    :param stuck_baseline: baseline seeds stuck in action collapse at the end of training, of those whose collapse
-        state is known (:func:`~sb3_collapse.report.statistics.stuck_in_collapse`)
+    :param paper: the paper's numbers
+    :param baseline: the sweep's baseline row
+    :param rule: the sweep's rule row
+    :param stuck_baseline: baseline seeds stuck at the end of training, of those whose collapse state is known
     :param stuck_rule: the same for the rule
-    :param never_escaped_rule: the rule's seeds that never escaped (the result file's ``escaped`` false), of those
-        that ran the rule: the paper's count for the rule ("all 40 seeds of ours escape action collapse")
+    :param never_escaped_rule: the rule's seeds that never escaped, of those that ran the rule
     :param std_baseline: the baseline's mean std over the last evaluations, with a bootstrap interval
     :param std_rule: the same for the rule
     """
@@ -219,14 +187,11 @@ def headline_rows(
     rule: str = RULE_VARIANT,
 ) -> list[HeadlineRow]:
     """
-    The headline: one row per task of the sweep (those of the paper's Figure 5 first, in its order,
-    :data:`~sb3_collapse.paper.PAPER_RESULTS`; the others when they have the baseline or the rule): the baseline's
-    seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2"), the rule's
-    seeds that never escaped ("all 40 seeds of ours escape action collapse") and "the average standard deviation
-    over the last ten evaluations", each beside the paper's.
+    The headline, one row per task (the paper's first, in its order): the baseline's stuck seeds, the rule's seeds
+    that never escaped and "the average standard deviation over the last ten evaluations", beside the paper's.
 
     :param sweep: the loaded sweep
-    :param rows: the summary rows (:func:`~sb3_collapse.report.statistics.summarize`)
+    :param rows: the summary rows
     :param settings: the report's definitions
     :param baseline: the baseline variant
     :param rule: the rule's variant
@@ -240,18 +205,9 @@ def headline_rows(
         base, ruled = by_key.get((task, baseline)), by_key.get((task, rule))
         if task not in papers and base is None and ruled is None:
             continue
+        stds = _std(sweep, base, settings), _std(sweep, ruled, settings)
         headline.append(
-            HeadlineRow(
-                task,
-                papers.get(task),
-                base,
-                ruled,
-                _stuck(base),
-                _stuck(ruled),
-                _never_escaped(ruled),
-                _std(sweep, base, settings),
-                _std(sweep, ruled, settings),
-            )
+            HeadlineRow(task, papers.get(task), base, ruled, _stuck(base), _stuck(ruled), _never_escaped(ruled), *stds)
         )
     return headline
 
@@ -262,12 +218,12 @@ class Proposition1Row:
     Proposition 1 for one task and rule variant.
 
     :param task: the task
-    :param baseline: the variant whose stuck fraction is p (the algorithm without the rule)
+    :param baseline: the variant whose stuck fraction is p
     :param rule: the variant with the rule
-    :param stuck: the baseline's stuck seeds, p = ``stuck.fraction`` with its Wilson interval
+    :param stuck: the baseline's stuck seeds (p)
     :param windows: n, the rule's whole windows in the budget (``None`` when unknown)
     :param predicted: ``1 - p^n`` and its interval (``None`` without p or n)
-    :param escaped: the rule's seeds that escaped (the rule saw an escape), with its Wilson interval
+    :param escaped: the rule's seeds that escaped
     :param window_frames: m, the rule's window, in frames (``None`` when unknown)
     """
 
@@ -283,11 +239,9 @@ class Proposition1Row:
 
 def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
     """
-    n and m of Proposition 1 for the trials of a rule variant, from their settings files: m the rule's window
-    (``reset_window_frames``, the paper's 2e5 by default), n the whole windows in the budget (``frames // m``).
-
-    :param trials: finished trials of the rule's variant
-    :return: ``(n, m)``, ``(None, None)`` when no settings file says, or the trials disagree
+    :param trials: finished trials of a rule variant
+    :return: Proposition 1's ``(n, m)`` from their settings files: m the rule's window in frames, n ``frames // m``;
+        ``(None, None)`` when no settings file says, or they disagree
     """
     found = set()
     for trial in trials:
@@ -304,9 +258,7 @@ def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
 def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Proposition1Row]:
     """
     Proposition 1 ("the probability of escaping action collapse when applying our proposed rule is 1 - p^n") per
-    task and rule variant (``<algorithm>+<intervention>``) whose algorithm's plain variant is in the sweep: p from
-    the plain variant's stuck seeds, n the rule's whole windows in the budget, the prediction 1 - p^n beside the
-    rule's observed escapes.
+    task and ``<algorithm>+<intervention>`` variant whose plain algorithm is in the sweep.
 
     :param sweep: the loaded sweep
     :param rows: the summary rows
@@ -436,14 +388,7 @@ def headline_definitions(settings: ReportSettings) -> str:
 def headline_markdown(
     headline: Sequence[HeadlineRow], proposition: Sequence[Proposition1Row], settings: ReportSettings
 ) -> str:
-    """
-    The headline and Proposition 1 as Markdown, for the top of ``summary.md``.
-
-    :param headline: :func:`headline_rows`
-    :param proposition: :func:`proposition1_rows`
-    :param settings: the report's definitions
-    :return: the Markdown text (ends with a blank line)
-    """
+    """:return: the headline and Proposition 1 as Markdown, for the top of ``summary.md``"""
     lines = ["## The paper's headline beside this sweep's", ""]
     lines += markdown_table(HEADLINE_HEADER, headline_table(headline))
     lines += ["", "## Proposition 1", "", f"> {PROPOSITION_1}", ""]

@@ -306,8 +306,7 @@ def _probe_checkpoints(
         checkpoint = load_checkpoint(path, device=device)
         checkpoint.label = label
         print(
-            f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)",
-            flush=True,
+            f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)", flush=True
         )
         result = probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
         result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
