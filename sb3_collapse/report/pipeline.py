@@ -21,68 +21,11 @@ from sb3_collapse.protocol import (
     TABLES_1_6_CSV,
     snapshot_files,
 )
-from sb3_collapse.report import html
-from sb3_collapse.report.collapse_figure import (
-    FIGURE4_LAYERS,
-    ONLINE_INPUTS,
-    AgentMetrics,
-    AgentPick,
-    FixedInputSettings,
-    agent_metrics,
-    default_rollouts,
-    fixed_agent_rows,
-    online_agent_rows,
-    paper_figure_title,
-    pick_paper_agents,
-    plot_collapse_metrics,
-    run_folder_trial,
-    run_title,
-    write_fixed_metrics_csv,
-)
-from sb3_collapse.report.headline import (
-    HEADLINE_HEADER,
-    PROPOSITION1_HEADER,
-    PROPOSITION_1,
-    HeadlineRow,
-    Proposition1Row,
-    figure5_curves,
-    figure5_unfinished,
-    headline_definitions,
-    headline_markdown,
-    headline_rows,
-    headline_table,
-    proposition1_rows,
-    proposition1_table,
-)
+from sb3_collapse.report import collapse_figure, headline, html, tables
+from sb3_collapse.report import statistics as stats
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep, progress_bar
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
-from sb3_collapse.report.statistics import (
-    TRANSPLANT_SOURCES,
-    BandCurve,
-    GridCell,
-    ReportSettings,
-    TransplantCurves,
-    VariantSummary,
-    band_curve,
-    summarize,
-    transplant_curves,
-    transplant_grid,
-    transplant_sources,
-)
-from sb3_collapse.report.tables import (
-    GRID_COLUMNS,
-    SUMMARY_COLUMNS,
-    TABLE7_COLUMNS,
-    grid_markdown,
-    grid_rows,
-    markdown_table,
-    summary_markdown,
-    summary_rows,
-    table7_markdown,
-    table7_rows,
-    write_csv,
-)
 from sb3_collapse.runfolder import read_json
 from sb3_collapse.staged_outputs import StagedOutputs
 
@@ -105,48 +48,27 @@ COLLAPSE_AGENTS_CSV = "collapse_agents.csv"
 """The agents of Figures 4, 8, 9 (:data:`AGENTS_COLUMNS`)."""
 RUN_COLLAPSE_PNG = "collapse_metrics.png"
 """Figure 4 of a single run folder."""
-OUTPUT_FILES = (
-    FIGURE5_PNG,
-    SUMMARY_CSV,
-    GRID_CSV,
-    GRID_MD,
-    GRID_PNG,
-    FIGURE3B_PNG,
-    TABLE7_CSV,
-    TABLE7_MD,
-    COLLAPSE_PNG.format(task="*", variant="*"),
-    COLLAPSE_FIXED_CSV.format(task="*", variant="*"),
-    COLLAPSE_ONLINE_PNG.format(task="*", variant="*"),
-    COLLAPSE_AGENTS_CSV,
-    html.INDEX_HTML,
-    SUMMARY_MD,
+_PATTERNS = tuple(
+    name.format(task="*", variant="*") for name in (COLLAPSE_PNG, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG)
 )
+OUTPUT_FILES = (FIGURE5_PNG, SUMMARY_CSV, GRID_CSV, GRID_MD, GRID_PNG, FIGURE3B_PNG, TABLE7_CSV, TABLE7_MD)
+OUTPUT_FILES += (*_PATTERNS, COLLAPSE_AGENTS_CSV, html.INDEX_HTML, SUMMARY_MD)
 """Every file a report may write; ``summary.md`` is moved in last, so its presence marks a complete report."""
 RUN_OUTPUT_FILES = (RUN_COLLAPSE_PNG, html.INDEX_HTML)
 """The files of a single run folder's report (``index.html`` last)."""
 REPORT_FOLDER = "report"
 """The default output folder inside the sweep folder."""
 AGENTS_COLUMNS = ("task", "variant", "row", "seed", "final_return", "class_seeds", "seeds", "pick_seed", "inputs")
+"""The columns of ``collapse_agents.csv``."""
 UNFINISHED_HEADER = ("task", "variant", "seed", "status", "reason", "folder")
 TRANSPLANT_NOTE = (
     "{what} not drawn: {why}; the layer-transplant variants cnn-<src>_mlp-<src> with <src> in "
-    + ", ".join(TRANSPLANT_SOURCES)
+    + ", ".join(stats.TRANSPLANT_SOURCES)
     + " produce {them} (python -m sb3_collapse.sweep --transplant-grid runs all nine)"
 )
 """The note of a report without Figure 3 and Table 7."""
-PRESET_COLUMNS = (
-    "tier",
-    "from_drqv2",
-    "frames",
-    "action_repeat",
-    "frame_stack",
-    "batch_size",
-    "learning_rate",
-    "n_steps",
-    "feature_dim",
-    "hidden_dim",
-    "stddev_schedule",
-    "eval_every_frames",
+PRESET_COLUMNS = tuple(
+    ["tier", "from_drqv2", "frames", "action_repeat", "frame_stack", "batch_size", "learning_rate", "n_steps", "feature_dim", "hidden_dim", "stddev_schedule", "eval_every_frames"]
 )
 """The preset settings shown on the page, per task."""
 
@@ -154,45 +76,45 @@ PRESET_COLUMNS = (
 @dataclass
 class Report:
     """
-    What a report computed and wrote.
+    What a report computed and wrote (``collapse*``: Figures 4, 8, 9 by ``(task, variant)``).
 
     :param sweep: the loaded sweep
     :param rows: the table, one row per task and variant
-    :param grid: task -> Figure 3(a)'s cells (empty without transplant variants)
-    :param curves: task -> Figure 5's curves (no transplant cells)
-    :param references: task -> the published DrQ-v2 curve (with ``reference=True``)
-    :param notes: what the report noticed (unfinished trials, dropped frames, figures not drawn)
+    :param grid: task -> Figure 3(a)'s cells
+    :param curves: task -> Figure 5's curves
+    :param references: task -> the published DrQ-v2 curve
+    :param notes: what the report noticed
     :param markdown: the text of ``summary.md``
     :param transplant: task -> Figure 3(b)'s curves and Table 7's rows
-    :param collapse: ``(task, variant)`` -> Figure 4's rows on the fixed probing set, where computed
+    :param collapse: the rows on the fixed probing set, where computed
     :param files: the written files
-    :param collapse_picks: ``(task, variant)`` -> the picked agents (not for transplant cells)
-    :param collapse_online: ``(task, variant)`` -> their rows with the online metrics
-    :param collapse_inputs: ``(task, variant)`` -> the fixed set of ``collapse``'s rows
-    :param collapse_fixed: ``(task, variant)`` -> seed -> every fixed-set metric of its snapshots
+    :param collapse_picks: the picked agents
+    :param collapse_online: their rows with the online metrics
+    :param collapse_inputs: the fixed set of ``collapse``'s rows
+    :param collapse_fixed: seed -> every fixed-set metric of its snapshots
     :param headline: the paper's headline numbers beside the sweep's
     :param proposition: Proposition 1's prediction beside the rule's escapes
     """
 
     sweep: Sweep
-    rows: list[VariantSummary]
-    grid: dict[str, list[GridCell]]
-    curves: dict[str, list[BandCurve]]
-    references: dict[str, BandCurve]
+    rows: list[stats.VariantSummary]
+    grid: dict[str, list[stats.GridCell]]
+    curves: dict[str, list[stats.BandCurve]]
+    references: dict[str, stats.BandCurve]
     notes: list[str]
     markdown: str
-    transplant: dict[str, list[TransplantCurves]] = field(default_factory=dict)
-    collapse: dict[tuple[str, str], list[AgentMetrics]] = field(default_factory=dict)
+    transplant: dict[str, list[stats.TransplantCurves]] = field(default_factory=dict)
+    collapse: dict[tuple[str, str], list[collapse_figure.AgentMetrics]] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
-    collapse_picks: dict[tuple[str, str], list[AgentPick]] = field(default_factory=dict)
-    collapse_online: dict[tuple[str, str], list[AgentMetrics]] = field(default_factory=dict)
+    collapse_picks: dict[tuple[str, str], list[collapse_figure.AgentPick]] = field(default_factory=dict)
+    collapse_online: dict[tuple[str, str], list[collapse_figure.AgentMetrics]] = field(default_factory=dict)
     collapse_inputs: dict[tuple[str, str], FixedInputs] = field(default_factory=dict)
     collapse_fixed: dict[tuple[str, str], dict[int, FixedMetrics]] = field(default_factory=dict)
-    headline: list[HeadlineRow] = field(default_factory=list)
-    proposition: list[Proposition1Row] = field(default_factory=list)
+    headline: list[headline.HeadlineRow] = field(default_factory=list)
+    proposition: list[headline.Proposition1Row] = field(default_factory=list)
 
 
-def _notes(sweep: Sweep, rows: Sequence[VariantSummary], include_unfinished: bool) -> list[str]:
+def _notes(sweep: Sweep, rows: Sequence[stats.VariantSummary], include_unfinished: bool) -> list[str]:
     notes = [] if sweep.finished else ["no finished trial yet: the table and figure have no statistics"]
     for row in rows:
         name = f"{row.task} / {row.variant}"
@@ -230,45 +152,45 @@ def unfinished_rows(sweep: Sweep) -> list[tuple[object, ...]]:
 def unfinished_markdown(sweep: Sweep) -> str:
     """:return: the ``Unfinished trials`` section of ``summary.md``"""
     rows = [[str(cell) for cell in row] for row in unfinished_rows(sweep)]
-    body = markdown_table(UNFINISHED_HEADER, rows) if rows else ["Every trial folder is finished."]
+    body = tables.markdown_table(UNFINISHED_HEADER, rows) if rows else ["Every trial folder is finished."]
     return "\n".join(["", "## Unfinished trials", "", *body]) + "\n"
 
 
 def build_report(
     sweep_dir: str | Path,
-    settings: ReportSettings | None = None,
+    settings: stats.ReportSettings | None = None,
     reference: bool = False,
     include_unfinished: bool = False,
     tasks: Sequence[str] | None = None,
     variants: Sequence[str] | None = None,
     progress: bool = True,
-    collapse_settings: FixedInputSettings | None = None,
+    collapse_settings: collapse_figure.FixedInputSettings | None = None,
 ) -> Report:
     """
     Read a sweep and compute everything the report shows, without writing.
 
     :param sweep_dir: the sweep folder
-    :param settings: the definitions (:class:`ReportSettings` defaults when ``None``)
+    :param settings: the definitions (:class:`stats.ReportSettings` defaults when ``None``)
     :param reference: add the published DrQ-v2 curves of the tasks that the reference data has
     :param include_unfinished: read the partial curves of unfinished trials (drawn dotted; never in the table)
     :param tasks: only these tasks (``None``: all)
     :param variants: only these variants (``None``: all)
     :param progress: show the progress of the long stages
-    :param collapse_settings: Figures 4, 8, 9 (:class:`FixedInputSettings` defaults when ``None``)
+    :param collapse_settings: Figures 4, 8, 9 (:class:`collapse_figure.FixedInputSettings` defaults when ``None``)
     :return: the report (``files`` empty)
     :raises InputError: on a bad folder or setting, or a sweep none of whose trials can be read
     """
-    settings = settings or ReportSettings()
+    settings = settings or stats.ReportSettings()
     try:
         settings.validate()
     except ValueError as error:
         raise InputError(str(error)) from error
-    collapse_settings = collapse_settings or FixedInputSettings()
+    collapse_settings = collapse_settings or collapse_figure.FixedInputSettings()
     collapse_settings.validate()
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
-    rows = summarize(sweep, settings)
+    rows = stats.summarize(sweep, settings)
     notes = _notes(sweep, rows, include_unfinished)
-    curves = {task: figure5_curves(sweep, task, settings.percentiles) for task in sweep.tasks()}
+    curves = {task: headline.figure5_curves(sweep, task, settings.percentiles) for task in sweep.tasks()}
     curves = {task: found for task, found in curves.items() if found or _plain_variants(sweep, task)}
     references = {}
     for task in sweep.tasks() if reference else ():
@@ -276,22 +198,25 @@ def build_report(
         if data is None:
             notes.append(f"{task}: no published DrQ-v2 curve for this task; no reference overlay")
         else:
-            references[task] = band_curve(REFERENCE_LABEL, data.frames, data.returns, settings.percentiles)
-    report = Report(sweep, rows, transplant_grid(rows, settings.success_return), curves, references, notes, "")
-    report.transplant = transplant_curves(sweep, settings.success_return)
+            references[task] = stats.band_curve(REFERENCE_LABEL, data.frames, data.returns, settings.percentiles)
+    report = Report(sweep, rows, stats.transplant_grid(rows, settings.success_return), curves, references, notes, "")
+    report.transplant = stats.transplant_curves(sweep, settings.success_return)
     report.notes += _transplant_notes(report)
     collapse_figures(report, settings, collapse_settings, progress)
-    report.headline = headline_rows(sweep, rows, settings)
-    report.proposition = proposition1_rows(sweep, rows)
+    report.headline = headline.headline_rows(sweep, rows, settings)
+    report.proposition = headline.proposition1_rows(sweep, rows)
     title = "# Sweep report\n\n"
-    summary = summary_markdown(rows, settings, report.notes).removeprefix(title)
-    headline = headline_markdown(report.headline, report.proposition, settings)
-    report.markdown = title + headline + "\n" + summary + unfinished_markdown(sweep)
+    summary = tables.summary_markdown(rows, settings, report.notes).removeprefix(title)
+    top = headline.headline_markdown(report.headline, report.proposition, settings)
+    report.markdown = title + top + "\n" + summary + unfinished_markdown(sweep)
     return report
 
 
 def collapse_figures(
-    report: Report, settings: ReportSettings, collapse_settings: FixedInputSettings, progress: bool = False
+    report: Report,
+    settings: stats.ReportSettings,
+    collapse_settings: collapse_figure.FixedInputSettings,
+    progress: bool = False,
 ) -> None:
     """
     Fill the report's Figures 4, 8, 9 per task and variant that is not a transplant cell: the picked agents, their
@@ -311,11 +236,11 @@ def collapse_figures(
     loaded: dict[Path, FixedInputs] = {}  # each rollouts file read once
     for task in sweep.tasks():
         for variant in sweep.variants(task):
-            if transplant_sources(variant) is not None:
+            if stats.transplant_sources(variant) is not None:
                 continue
             key = (task, variant)
             try:
-                picks = pick_paper_agents(
+                picks = collapse_figure.pick_paper_agents(
                     sweep.select(task, variant),
                     collapse_settings.pick_seed,
                     settings.success_return,
@@ -326,10 +251,10 @@ def collapse_figures(
             if not any(pick.trial is not None for pick in picks):
                 continue
             report.collapse_picks[key] = picks
-            report.collapse_online[key] = online_agent_rows(picks, collapse_settings.layers)
+            report.collapse_online[key] = collapse_figure.online_agent_rows(picks, collapse_settings.layers)
             inputs = given if given is not None and given.fits(task) else None
             source = collapse_settings.rollouts_variant or variant
-            rollouts = default_rollouts(sweep.path, task, source)
+            rollouts = collapse_figure.default_rollouts(sweep.path, task, source)
             missing = _fixed_inputs_missing(sweep.path, key, picks, inputs is None, rollouts, source, given)
             if missing is not None:
                 report.notes.append(missing)
@@ -338,14 +263,14 @@ def collapse_figures(
                 if rollouts not in loaded:
                     loaded[rollouts] = collapse_settings.load(rollouts)
                 inputs = loaded[rollouts]
-            rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, progress)
+            rows, computed = collapse_figure.fixed_agent_rows(picks, inputs, collapse_settings, progress)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
 
 
 def _fixed_inputs_missing(
     sweep_path: Path,
     key: tuple[str, str],
-    picks: Sequence[AgentPick],
+    picks: Sequence[collapse_figure.AgentPick],
     needs_rollouts: bool,
     rollouts: Path,
     source: str,
@@ -395,20 +320,20 @@ def agents_rows(report: Report) -> list[dict[str, object]]:
 
 def _plain_variants(sweep: Sweep, task: str) -> bool:
     """Whether ``task`` has a variant that is not a transplant cell (it gets a Figure 5 panel)."""
-    return any(transplant_sources(variant) is None for variant in sweep.variants(task))
+    return any(stats.transplant_sources(variant) is None for variant in sweep.variants(task))
 
 
 def write_report(
     sweep_dir: str | Path,
     out: str | Path | None = None,
-    settings: ReportSettings | None = None,
+    settings: stats.ReportSettings | None = None,
     reference: bool = False,
     include_unfinished: bool = False,
     tasks: Sequence[str] | None = None,
     variants: Sequence[str] | None = None,
     progress: bool = True,
     overwrite: bool = False,
-    collapse_settings: FixedInputSettings | None = None,
+    collapse_settings: collapse_figure.FixedInputSettings | None = None,
 ) -> Report:
     """
     The report of a sweep folder (:func:`build_report`), written to ``out``: staged, moved in only when every file
@@ -417,58 +342,64 @@ def write_report(
 
     :param sweep_dir: the sweep folder
     :param out: the output folder (``<sweep_dir>/report`` when ``None``)
-    :param settings: the definitions (:class:`ReportSettings` defaults when ``None``)
+    :param settings: the definitions (:class:`stats.ReportSettings` defaults when ``None``)
     :param reference: overlay the published DrQ-v2 curves
     :param include_unfinished: draw the partial curves of unfinished trials
     :param tasks: only these tasks
     :param variants: only these variants
     :param progress: show the progress of the long stages
     :param overwrite: replace the outputs of a previous report in ``out`` (else an error, before the sweep is read)
-    :param collapse_settings: Figures 4, 8, 9 (:class:`FixedInputSettings` defaults when ``None``)
+    :param collapse_settings: Figures 4, 8, 9 (:class:`collapse_figure.FixedInputSettings` defaults when ``None``)
     :return: the report, with ``files`` the written paths
     :raises InputError: on a bad folder or setting; nothing is written then
     """
-    settings = settings or ReportSettings()
-    layers = (collapse_settings or FixedInputSettings()).layers
+    settings = settings or stats.ReportSettings()
+    layers = (collapse_settings or collapse_figure.FixedInputSettings()).layers
     out_dir = Path(sweep_dir) / REPORT_FOLDER if out is None else Path(out)
     staged_outputs = StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, overwrite=overwrite, error=InputError)
     report = build_report(
         sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
     )
-    partial = {task: figure5_unfinished(report.sweep, task) for task in report.curves} if include_unfinished else None
+    partial = (
+        {task: headline.figure5_unfinished(report.sweep, task) for task in report.curves}
+        if include_unfinished
+        else None
+    )
     with staged_outputs as staged:
         plot_figure5(report.curves, staged.path(FIGURE5_PNG), report.references, partial, settings.percentiles)
-        write_csv(summary_rows(report.rows), SUMMARY_COLUMNS, staged.path(SUMMARY_CSV))
+        tables.write_csv(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS, staged.path(SUMMARY_CSV))
         if report.grid:
-            write_csv(grid_rows(report.grid), GRID_COLUMNS, staged.path(GRID_CSV))
-            staged.path(GRID_MD).write_text(grid_markdown(report.grid, settings.success_return))
+            tables.write_csv(tables.grid_rows(report.grid), tables.GRID_COLUMNS, staged.path(GRID_CSV))
+            staged.path(GRID_MD).write_text(tables.grid_markdown(report.grid, settings.success_return))
             plot_transplant_grid(report.grid, staged.path(GRID_PNG), settings.success_return)
         if report.transplant:
             plot_figure3b(report.transplant, staged.path(FIGURE3B_PNG), settings.success_return)
-            write_csv(table7_rows(report.transplant), TABLE7_COLUMNS, staged.path(TABLE7_CSV))
-            staged.path(TABLE7_MD).write_text(table7_markdown(report.transplant, settings.success_return))
+            tables.write_csv(tables.table7_rows(report.transplant), tables.TABLE7_COLUMNS, staged.path(TABLE7_CSV))
+            staged.path(TABLE7_MD).write_text(tables.table7_markdown(report.transplant, settings.success_return))
         for (task, variant), picks in progress_bar(
             report.collapse_picks.items(), "collapse figures", "figure", progress
         ):
             names = {"task": task, "variant": variant}
-            title = paper_figure_title(task, variant, picks, ONLINE_INPUTS)
-            plot_collapse_metrics(
+            title = collapse_figure.paper_figure_title(task, variant, picks, collapse_figure.ONLINE_INPUTS)
+            collapse_figure.plot_collapse_metrics(
                 report.collapse_online[(task, variant)], staged.path(COLLAPSE_ONLINE_PNG.format(**names)), title, layers
             )
             if (task, variant) in report.collapse:
-                title = paper_figure_title(task, variant, picks, report.collapse_inputs[(task, variant)].describe())
-                plot_collapse_metrics(
+                title = collapse_figure.paper_figure_title(
+                    task, variant, picks, report.collapse_inputs[(task, variant)].describe()
+                )
+                collapse_figure.plot_collapse_metrics(
                     report.collapse[(task, variant)],
                     staged.path(COLLAPSE_PNG.format(**names)),
                     title,
                     layers,
                     "snapshots",
                 )
-                write_fixed_metrics_csv(
+                collapse_figure.write_fixed_metrics_csv(
                     staged.path(COLLAPSE_FIXED_CSV.format(**names)), picks, report.collapse_fixed[(task, variant)]
                 )
         if report.collapse_picks:
-            write_csv(agents_rows(report), AGENTS_COLUMNS, staged.path(COLLAPSE_AGENTS_CSV))
+            tables.write_csv(agents_rows(report), AGENTS_COLUMNS, staged.path(COLLAPSE_AGENTS_CSV))
         staged.path(html.INDEX_HTML).write_text(sweep_page(report, settings, staged.path))
         staged.path(SUMMARY_MD).write_text(report.markdown)
         report.files = staged.commit()
@@ -525,7 +456,7 @@ def _tables_1_6(path: Path) -> list[str]:
     return parts
 
 
-def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Path]) -> str:
+def sweep_page(report: Report, settings: stats.ReportSettings, png: Callable[[str], Path]) -> str:
     """
     The report's ``index.html``: the headline, the settings, the table, the unfinished trials, Figure 5 and the
     published reference, Figures 4/8/9, Figure 2 and Tables 1-6, Figure 3 and Table 7.
@@ -536,15 +467,15 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
     :return: the HTML text
     """
     sweep, low, high = report.sweep, *settings.percentiles
-    headline = html.Section("The paper's headline beside this sweep's")
-    headline.parts += [
-        html.table(HEADLINE_HEADER, headline_table(report.headline)),
+    top = html.Section("The paper's headline beside this sweep's")
+    top.parts += [
+        html.table(headline.HEADLINE_HEADER, headline.headline_table(report.headline)),
         html.paragraph("Proposition 1", tag="h3"),
-        html.paragraph(f"“{PROPOSITION_1}” (Section 5.2)"),
-        html.table(PROPOSITION1_HEADER, proposition1_table(report.proposition))
+        html.paragraph(f"“{headline.PROPOSITION_1}” (Section 5.2)"),
+        html.table(headline.PROPOSITION1_HEADER, headline.proposition1_table(report.proposition))
         if report.proposition
         else html.paragraph("No rule variant with its baseline in this sweep.", "note"),
-        html.paragraph(headline_definitions(settings), "note"),
+        html.paragraph(headline.headline_definitions(settings), "note"),
     ]
     about = html.Section("Settings")
     if (sweep.path / SWEEP_JSON).exists():
@@ -554,9 +485,9 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
     about.parts.append(html.table(("task", *PRESET_COLUMNS), _preset_rows(sweep.tasks()), "DrQ-v2 presets per task"))
     about.parts.append(html.settings_table(dataclasses.asdict(settings), "the report's definitions"))
     summary = html.Section("Summary table")
-    definitions = summary_markdown(report.rows, settings).split("\n\n", 2)[-1].split("\nNotes:")[0].strip()
+    definitions = tables.summary_markdown(report.rows, settings).split("\n\n", 2)[-1].split("\nNotes:")[0].strip()
     summary.parts += [
-        html.dict_table(summary_rows(report.rows), SUMMARY_COLUMNS),
+        html.dict_table(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS),
         html.paragraph(definitions, tag="pre"),
     ]
     if report.notes:
@@ -577,7 +508,7 @@ def sweep_page(report: Report, settings: ReportSettings, png: Callable[[str], Pa
         html.figure(png(FIGURE5_PNG), caption),
         html.table(("task", "frame", "return (mean ± std)", "seeds", "which"), _reference_rows(report), reference),
     ]
-    sections = [headline, about, summary, unfinished, curves]
+    sections = [top, about, summary, unfinished, curves]
     if report.collapse_picks:
         sections.append(_collapse_section(report, png))
     probing = html.Section("Figure 2 and Tables 1-6: probing over training")
@@ -601,10 +532,14 @@ def _collapse_section(report: Report, png: Callable[[str], Path]) -> html.Sectio
     for (task, variant), picks in report.collapse_picks.items():
         names = {"task": task, "variant": variant}
         if (task, variant) in report.collapse:
-            title = paper_figure_title(task, variant, picks, report.collapse_inputs[(task, variant)].describe())
+            title = collapse_figure.paper_figure_title(
+                task, variant, picks, report.collapse_inputs[(task, variant)].describe()
+            )
             caption = title.replace("\n", "; ") + f"; every snapshot run on the same observations; {events}"
             collapse.parts.append(html.figure(png(COLLAPSE_PNG.format(**names)), caption))
-        title = paper_figure_title(task, variant, picks, ONLINE_INPUTS).replace("\n", "; ")
+        title = collapse_figure.paper_figure_title(task, variant, picks, collapse_figure.ONLINE_INPUTS).replace(
+            "\n", "; "
+        )
         caption = f"Online metrics (not the paper's inputs): {title}; {events}"
         collapse.parts.append(html.figure(png(COLLAPSE_ONLINE_PNG.format(**names)), caption))
         rows = [r for r in agents if (r["task"], r["variant"]) == (task, variant)]
@@ -612,13 +547,16 @@ def _collapse_section(report: Report, png: Callable[[str], Path]) -> html.Sectio
     return collapse
 
 
-def _transplant_section(report: Report, settings: ReportSettings, png: Callable[[str], Path]) -> html.Section:
+def _transplant_section(report: Report, settings: stats.ReportSettings, png: Callable[[str], Path]) -> html.Section:
     """Figure 3(a) (the transplant grid), Figure 3(b) and Table 7, or the note that says why they are missing."""
     transplant = html.Section("Figure 3 and Table 7: layer transplants")
     transplant.parts += [html.paragraph(note, "note") for note in _transplant_notes(report)]
     if report.grid:
         caption = f"Figure 3(a): successful seeds (final return >= {settings.success_return:g})."
-        transplant.parts += [html.figure(png(GRID_PNG), caption), html.dict_table(grid_rows(report.grid), GRID_COLUMNS)]
+        transplant.parts += [
+            html.figure(png(GRID_PNG), caption),
+            html.dict_table(tables.grid_rows(report.grid), tables.GRID_COLUMNS),
+        ]
     if report.transplant:
         caption = "Figure 3(b): the successful seeds' curves per transplant cell."
         transplant.parts.append(html.figure(png(FIGURE3B_PNG), caption))
@@ -630,7 +568,10 @@ def _transplant_section(report: Report, settings: ReportSettings, png: Callable[
 
 
 def write_run_report(
-    run_dir: str | Path, out: str | Path | None = None, overwrite: bool = False, layers: Sequence[str] = FIGURE4_LAYERS
+    run_dir: str | Path,
+    out: str | Path | None = None,
+    overwrite: bool = False,
+    layers: Sequence[str] = collapse_figure.FIGURE4_LAYERS,
 ) -> tuple[Trial, list[Path]]:
     """
     The report of one run folder of ``python -m sb3_collapse.train``: its Figure 4 (``collapse_metrics.png``, the
@@ -646,11 +587,11 @@ def write_run_report(
     """
     out_dir = Path(run_dir) / REPORT_FOLDER if out is None else Path(out)
     staged_outputs = StagedOutputs(out_dir, RUN_OUTPUT_FILES, html.INDEX_HTML, overwrite=overwrite, error=InputError)
-    trial = run_folder_trial(run_dir)
-    agent = agent_metrics(trial, "run", layers)
+    trial = collapse_figure.run_folder_trial(run_dir)
+    agent = collapse_figure.agent_metrics(trial, "run", layers)
     with staged_outputs as staged:
-        title = run_title(trial)
-        plot_collapse_metrics([agent], staged.path(RUN_COLLAPSE_PNG), title, layers)
+        title = collapse_figure.run_title(trial)
+        collapse_figure.plot_collapse_metrics([agent], staged.path(RUN_COLLAPSE_PNG), title, layers)
         section = html.Section("Figure 4: collapse metrics over training")
         section.parts.append(html.figure(staged.path(RUN_COLLAPSE_PNG), title))
         config = html.Section("Settings")
