@@ -12,6 +12,7 @@ docs/figures.md#figure-2-and-tables-1-6-probing-over-training.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
@@ -47,7 +48,7 @@ from sb3_collapse.report.collapse_figure import PAPER_ROLES, agent_class
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
 from sb3_collapse.report.statistics import across_seed_std, budget_frames, stage_indices, stages_caption
 from sb3_collapse.report.style import frames_axis, layer_style
-from sb3_collapse.report.tables import write_csv
+from sb3_collapse.report.tables import markdown_table, write_csv
 from sb3_collapse.staged_outputs import StagedOutputs
 
 ORIENTATION = "orientation (torso upright)"
@@ -226,27 +227,34 @@ def stage_table_rows(curves: Sequence[PanelCurve], budget_frames: int | None = N
     return table_rows
 
 
-def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
-    """Tables 1-6 as Markdown: one table per panel, a row per layer, a column per stage."""
-    lines = ["# Tables 1-6: std of the probe's test MSE across agents at four training stages", ""]
-    panels: dict[tuple, list[Mapping[str, Any]]] = defaultdict(list)
+def stage_panels(table_rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, list[str], list[list[Any]]]]:
+    """
+    :param table_rows: :func:`stage_table_rows`, or the rows of its CSV file
+    :return: Tables 1-6, numbered ones first: ``(title, header, rows)``, a row per layer with its std per stage
+    """
+    panels: dict[tuple[str, str, str], list[Mapping[str, Any]]] = defaultdict(list)
     for r in table_rows:
-        panels[(r["table"], r["row"], r["column"])].append(r)
-    numbered_first = sorted(panels.items(), key=lambda item: (item[0][0] == "", str(item[0][0]).zfill(3)))
-    for (number, row, column), entries in numbered_first:
-        frames = list(dict.fromkeys(e["frame"] for e in entries))
-        label = f"Table {number}" if number != "" else "Table"
-        agents = entries[0]["agents"]
-        lines += [f"## {label}: {row} agents ({agents}), {column}", ""]
-        lines.append("| layer | " + " | ".join(f"{f:,} frames" for f in frames) + " |")
-        lines.append("|---|" + "---|" * len(frames))
-        by_layer: dict[str, dict[int, float]] = defaultdict(dict)
+        panels[(str(r["table"]), r["row"], r["column"])].append(r)
+    tables = []
+    for (number, row, column), entries in sorted(
+        panels.items(), key=lambda item: (not item[0][0], item[0][0].zfill(3))
+    ):
+        frames = list(dict.fromkeys(int(e["frame"]) for e in entries))
+        stds: dict[str, dict[int, float]] = defaultdict(dict)
         for e in entries:
-            by_layer[e["layer"]][e["frame"]] = e["std"]
-        for layer, stds in by_layer.items():
-            cells = ["-" if np.isnan(stds[f]) else f"{stds[f]:.3f}" for f in frames]
-            lines.append(f"| {layer} | " + " | ".join(cells) + " |")
-        lines.append("")
+            stds[e["layer"]][int(e["frame"])] = float(e["std"] or "nan")
+        title = f"Table {number}".rstrip() + f": {row} agents ({entries[0]['agents']}), {column}"
+        header = ["layer", *(f"std at {f:,} frames" for f in frames)]
+        tables.append((title, header, [[layer, *(by.get(f, math.nan) for f in frames)] for layer, by in stds.items()]))
+    return tables
+
+
+def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
+    """:return: Tables 1-6 as Markdown (:func:`stage_panels`)"""
+    lines = ["# Tables 1-6: std of the probe's test MSE across agents at four training stages", ""]
+    for title, header, rows in stage_panels(table_rows):
+        body = [[row[0], *("-" if math.isnan(v) else f"{v:.3f}" for v in row[1:])] for row in rows]
+        lines += [f"## {title}", "", *markdown_table(header, body), ""]
     lines.append(stages_caption("shared snapshots") + " Std across agents, ddof=1 (- with one agent).")
     return "\n".join(lines) + "\n"
 

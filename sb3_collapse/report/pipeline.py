@@ -23,6 +23,7 @@ from sb3_collapse.protocol import (
 )
 from sb3_collapse.report import collapse_figure, headline, html, tables
 from sb3_collapse.report import statistics as stats
+from sb3_collapse.report.figure2 import stage_panels
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep, progress_bar
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
@@ -67,8 +68,19 @@ TRANSPLANT_NOTE = (
     + " produce {them} (python -m sb3_collapse.sweep --transplant-grid runs all nine)"
 )
 """The note of a report without Figure 3 and Table 7."""
-PRESET_COLUMNS = tuple(
-    ["tier", "from_drqv2", "frames", "action_repeat", "frame_stack", "batch_size", "learning_rate", "n_steps", "feature_dim", "hidden_dim", "stddev_schedule", "eval_every_frames"]
+PRESET_COLUMNS = (
+    "tier",
+    "from_drqv2",
+    "frames",
+    "action_repeat",
+    "frame_stack",
+    "batch_size",
+    "learning_rate",
+    "n_steps",
+    "feature_dim",
+    "hidden_dim",
+    "stddev_schedule",
+    "eval_every_frames",
 )
 """The preset settings shown on the page, per task."""
 
@@ -442,18 +454,7 @@ def _tables_1_6(path: Path) -> list[str]:
     if not path.exists() or not path.stat().st_size:
         return [html.paragraph(f"{path}: no tables (no agent in a row).", "note")]
     with path.open(newline="") as file:
-        entries = list(csv.DictReader(file))
-    panels: dict[tuple[str, str, str, str], dict[str, dict[str, str]]] = {}
-    for e in entries:
-        key = (e["table"], e["row"], e["column"], e["agents"])
-        panels.setdefault(key, {}).setdefault(e["layer"], {})[e["frame"]] = e["std"]
-    parts = []
-    for (number, row, column, agents), layers in panels.items():
-        frames = list(dict.fromkeys(frame for stds in layers.values() for frame in stds))
-        rows = [[layer, *(float(stds[f]) if stds.get(f) else None for f in frames)] for layer, stds in layers.items()]
-        header = ["layer", *(f"std at {int(f):,} frames" for f in frames)]
-        parts.append(html.table(header, rows, f"Table {number}: {row} agents ({agents}), {column}"))
-    return parts
+        return [html.table(header, rows, title) for title, header, rows in stage_panels(list(csv.DictReader(file)))]
 
 
 def sweep_page(report: Report, settings: stats.ReportSettings, png: Callable[[str], Path]) -> str:
