@@ -49,10 +49,11 @@ def variant_label(variant: str) -> str:
     return variant if label is None else f"{variant}: {label}"
 
 
-def _panels(count: int, columns: int = 3) -> tuple[plt.Figure, np.ndarray]:
+def panels(count: int, columns: int = 3, size: tuple[float, float] = (5.0, 3.8)) -> tuple[plt.Figure, np.ndarray]:
+    """:return: a figure of ``count`` panels (``size`` inches each), ``columns`` a row, the spare ones hidden"""
     ncols = min(columns, max(count, 1))
     nrows = -(-max(count, 1) // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(5.0 * ncols, 3.8 * nrows), squeeze=False)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(size[0] * ncols, size[1] * nrows), squeeze=False)
     for ax in axes.flat[count:]:
         ax.set_visible(False)
     return fig, axes
@@ -105,7 +106,7 @@ def plot_figure5(
     )
     colors = variant_colors(variants)
     low, high = percentiles
-    fig, axes = _panels(len(tasks))
+    fig, axes = panels(len(tasks))
     for ax, task in zip(axes.flat, tasks):
         last_frame = max((int(c.frames[-1]) for c in curves[task]), default=None)
         reference = references.get(task)
@@ -182,7 +183,7 @@ def plot_transplant_grid(
     :param success_return: the success threshold (for the title)
     """
     tasks = list(grid)
-    fig, axes = _panels(len(tasks))
+    fig, axes = panels(len(tasks))
     cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
     size = len(TRANSPLANT_SOURCES)
     for ax, task in zip(axes.flat, tasks):
@@ -226,7 +227,7 @@ def plot_figure3b(
     :param success_return: the success threshold (for the title)
     """
     tasks = list(curves)
-    fig, axes = _panels(len(tasks), columns=2)
+    fig, axes = panels(len(tasks), columns=2)
     for ax, task in zip(axes.flat, tasks):
         for cell in curves[task]:
             mean = cell.returns.mean(axis=0)
