@@ -336,21 +336,12 @@ def headline_table(headline: Sequence[HeadlineRow]) -> list[list[str]]:
     """:return: the headline's cells, one list per row (:data:`HEADLINE_HEADER`)"""
     table = []
     for row in headline:
-        paper = row.paper
-        table.append(
-            [
-                row.task,
-                "-" if paper is None else f"{paper.stuck_baseline}/{paper.seeds}",
-                _proportion(row.stuck_baseline),
-                "-" if paper is None else f"{paper.never_escaped_rule}/{paper.seeds}",
-                _proportion(row.never_escaped_rule),
-                _proportion(row.stuck_rule),
-                "-" if paper is None else f"{paper.std_baseline:.1f}",
-                _estimate(row.std_baseline),
-                "-" if paper is None else f"{paper.std_rule:.1f}",
-                _estimate(row.std_rule),
-            ]
-        )
+        p = row.paper
+        papers = ("-",) * 4 if p is None else (f"{p.stuck_baseline}/{p.seeds}", f"{p.never_escaped_rule}/{p.seeds}")
+        papers += () if p is None else (f"{p.std_baseline:.1f}", f"{p.std_rule:.1f}")
+        stuck, never, rule_stuck = map(_proportion, (row.stuck_baseline, row.never_escaped_rule, row.stuck_rule))
+        stds = _estimate(row.std_baseline), _estimate(row.std_rule)
+        table.append([row.task, papers[0], stuck, papers[1], never, rule_stuck, papers[2], stds[0], papers[3], stds[1]])
     return table
 
 
@@ -358,13 +349,9 @@ def proposition1_table(rows: Sequence[Proposition1Row]) -> list[list[str]]:
     """:return: Proposition 1's cells, one list per row (:data:`PROPOSITION1_HEADER`)"""
     table = []
     for row in rows:
-        predicted = (
-            "-"
-            if row.predicted is None
-            else (f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})")
-        )
+        predicted = row.predicted and f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})"
         windows = "unknown" if row.windows is None else f"{row.windows} ({row.window_frames:,})"
-        table.append([row.task, row.rule, _proportion(row.stuck), windows, predicted, _proportion(row.escaped)])
+        table.append([row.task, row.rule, _proportion(row.stuck), windows, predicted or "-", _proportion(row.escaped)])
     return table
 
 

@@ -34,16 +34,8 @@ Item = TypeVar("Item")
 
 
 def progress_bar(items: Iterable[Item], desc: str, unit: str, progress: bool = True) -> Iterable[Item]:
-    """
-    A progress bar on a terminal; on any other stderr one line ``desc: N units`` (no bar frames), nothing when
-    ``progress`` is false.
-
-    :param items: what is iterated over
-    :param desc: the stage's name
-    :param unit: what one item is
-    :param progress: show the progress at all
-    :return: the items, wrapped
-    """
+    """:return: ``items`` behind a progress bar on a terminal; on another stderr one line ``desc: N units`` instead
+    (nothing without ``progress``)"""
     items = list(items)
     if progress and sys.stderr.isatty():
         return tqdm(items, desc=desc, unit=unit)
@@ -57,18 +49,18 @@ class Trial:
     """
     One trial folder of a sweep.
 
-    :param task: the task folder name, e.g. ``"walker-walk"``
-    :param variant: the variant folder name, e.g. ``"drqv2+reset"``
+    :param task: the task folder name
+    :param variant: the variant folder name
     :param seed: the seed of the ``seed_<k>`` folder
     :param path: the trial folder
-    :param status: its :class:`~sb3_collapse.runfolder.RunStatus` (``"finished"``, ``"running"``...)
+    :param status: its :class:`~sb3_collapse.runfolder.RunStatus`
     :param result: the parsed result file (``None`` without one)
-    :param frames: the scheduled evaluations' frames (agent steps x action repeat), increasing
+    :param frames: the scheduled evaluations' frames, increasing
     :param returns: mean evaluation return at each of ``frames``
-    :param collapse_frames: frames of the checks that logged the collapse tag, increasing
-    :param collapse_values: the tag's value at each of ``collapse_frames`` (non-finite values dropped)
-    :param notes: what the reader noticed and worked around (shown in the report's notes)
-    :param reason: why a damaged trial cannot be read (empty otherwise; its status is ``failed``)
+    :param collapse_frames: frames of the checks that logged the collapse tag
+    :param collapse_values: the tag's finite values at ``collapse_frames``
+    :param notes: what the reader noticed and worked around
+    :param reason: why a damaged trial cannot be read (its status is then ``failed``)
     """
 
     task: str
@@ -164,12 +156,8 @@ def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
 
 
 def check_result(path: Path, result: dict[str, Any]) -> None:
-    """
-    :param path: a finished trial's folder
-    :param result: its result file
-    :raises InputError: when ``resets`` is not an integer >= 0, ``escaped`` not a bool or null, or the file is of
-        another version
-    """
+    """:raises InputError: when the result file of the finished trial ``path`` is of another version or its ``resets``
+    or ``escaped`` is not what it should be"""
     check_result_version(path, result)
     resets = result.get("resets")
     if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
@@ -182,8 +170,7 @@ def load_trial(
     task: str, variant: str, seed: int, path: Path, collapse_tag: str = DEFAULT_COLLAPSE_TAG, partial: bool = False
 ) -> Trial:
     """
-    Read one trial folder: a finished trial's evaluation file (at least one row) and collapse metrics (optional);
-    an unfinished trial's partial evaluation curve with ``partial`` (unreadable: noted, not raised).
+    Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted, not raised).
 
     :param task: task folder name
     :param variant: variant folder name
