@@ -1,9 +1,5 @@
-"""
-Every figure and table of the paper from a sweep or run folder: Figure 5 and its table, the layer-transplant grid
-(Figure 3), Figures 4, 8, 9 (:func:`write_report`), and the drawing of the probe's outputs: Figure 2 and Tables 1-6
-(:func:`probe_sweep`), Figures 6-7 (:func:`film_to_folder`), a probe's plots (:func:`probe_to_folder`).
-``python -m sb3_collapse.report --help`` for the command line; each module's part: docs/layout.md.
-"""
+"""Every figure and table of the paper from a sweep or run folder (:func:`write_report`, :func:`probe_sweep`,
+:func:`film_to_folder`, :func:`probe_to_folder`); each module's part: docs/layout.md."""
 
 from sb3_collapse.report.collapse_figure import FixedInputSettings
 from sb3_collapse.report.figure2 import probe_sweep

@@ -22,13 +22,7 @@ REFERENCE_COLOR = "0.15"
 
 
 def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str]:
-    """
-    One colour per variant, the same in every panel: the colour-blind-safe Okabe-Ito colours (black left to the
-    published reference), then Paul Tol's muted ones (16 variants in all), then ``tab20``.
-
-    :param variants: variant names in display order
-    :return: variant -> colour
-    """
+    """:return: variant -> its colour in every panel (Okabe-Ito but black, then Paul Tol's muted, then ``tab20``)"""
     palette = [color for color in OKABE_ITO if color != "#000000"] + list(TOL_MUTED)
     if len(variants) <= len(palette):
         return {variant: palette[i] for i, variant in enumerate(variants)}
@@ -37,13 +31,7 @@ def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str
 
 
 def variant_label(variant: str) -> str:
-    """
-    The legend's name of a variant: a variant ``<algorithm>+<intervention>`` of the sweep gets the intervention's
-    name (``"drqv2+redo"`` -> ``"drqv2+redo: ReDo"``); any other name is kept.
-
-    :param variant: a variant name
-    :return: its label
-    """
+    """:return: the legend's name of a variant: ``<algorithm>+<intervention>`` gets the intervention's name"""
     _, plus, intervention = variant.partition("+")
     label = INTERVENTION_LABELS.get(intervention) if plus else None
     return variant if label is None else f"{variant}: {label}"
@@ -60,12 +48,7 @@ def panels(count: int, columns: int = 3, size: tuple[float, float] = (5.0, 3.8))
 
 
 def _clip_reference(reference: BandCurve, last_frame: int | None) -> tuple[np.ndarray, ...]:
-    """
-    :param reference: a published curve (increasing frames)
-    :param last_frame: the last frame of the sweep's own curves (``None``: keep it all)
-    :return: ``frames, mean, low, high`` up to ``last_frame``, ending with the curve linearly interpolated at
-        ``last_frame`` when the published frames go beyond it (so that the line spans the sweep's whole x range)
-    """
+    """:return: ``frames, mean, low, high`` of ``reference`` up to ``last_frame`` (``None``: all), interpolated there"""
     frames = np.asarray(reference.frames, dtype=float)
     columns = [np.asarray(c, dtype=float) for c in (reference.mean, reference.low, reference.high)]
     if last_frame is None or frames[-1] <= last_frame:
@@ -83,16 +66,12 @@ def plot_figure5(
     percentiles: tuple[float, float] = (5.0, 95.0),
 ) -> None:
     """
-    The paper's Figure 5: one panel per task, per variant the mean evaluation return over frames (solid) and the
-    percentile band across seeds (shaded), one colour per variant in every panel; the legend names each variant's
-    intervention (:func:`variant_label`) and gives the seed counts.
+    The paper's Figure 5: a panel per task; per variant the mean evaluation return (solid) and the percentile band.
 
     :param curves: task -> the variants' curves
     :param path: the PNG file to write
-    :param references: task -> published DrQ-v2 curve, drawn dashed with a hatched band, up to the last frame
-        of the task's own curves (interpolated there; whole when the task has none)
-    :param partial: task -> unfinished trials whose partial curves are drawn as thin dotted lines, labelled
-        "unfinished, partial"
+    :param references: task -> published DrQ-v2 curve, drawn dashed with a hatched band
+    :param partial: task -> unfinished trials whose partial curves are drawn dotted
     :param percentiles: the band's percentiles (for the labels)
     """
     references = references or {}
@@ -112,47 +91,23 @@ def plot_figure5(
         reference = references.get(task)
         if reference is not None:
             frames, mean, low_band, high_band = _clip_reference(reference, last_frame)
-            ax.plot(
-                frames,
-                mean,
-                "--",
-                marker="o" if len(frames) == 1 else None,
-                color=REFERENCE_COLOR,
-                lw=1.5,
-                label=f"{reference.name} (n={reference.seeds})",
-            )
-            ax.fill_between(
-                frames,
-                low_band,
-                high_band,
-                facecolor="none",
-                edgecolor=REFERENCE_COLOR,
-                hatch="///",
-                lw=0.0,
-                alpha=0.35,
-            )
+            marker, label = "o" if len(frames) == 1 else None, f"{reference.name} (n={reference.seeds})"
+            ax.plot(frames, mean, "--", marker=marker, color=REFERENCE_COLOR, lw=1.5, label=label)
+            hatched = {"facecolor": "none", "edgecolor": REFERENCE_COLOR, "hatch": "///", "lw": 0.0, "alpha": 0.35}
+            ax.fill_between(frames, low_band, high_band, **hatched)
         for curve in curves[task]:
             color = colors[curve.name]
             marker = "o" if len(curve.frames) == 1 else None  # a single evaluation is a point, not a line
-            ax.plot(
-                curve.frames,
-                curve.mean,
-                color=color,
-                lw=2.0,
-                marker=marker,
-                label=f"{variant_label(curve.name)} (n={curve.seeds})",
-            )
+            label = f"{variant_label(curve.name)} (n={curve.seeds})"
+            ax.plot(curve.frames, curve.mean, color=color, lw=2.0, marker=marker, label=label)
             ax.fill_between(curve.frames, curve.low, curve.high, color=color, alpha=0.2, lw=0.0)
         labelled: set[str] = set()
         for trial in partial.get(task, []):
             if len(trial.frames) == 0:
                 continue
             count = sum(t.variant == trial.variant and len(t.frames) > 0 for t in partial[task])
-            label = (
-                None
-                if trial.variant in labelled
-                else f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
-            )
+            label = f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
+            label = None if trial.variant in labelled else label
             labelled.add(trial.variant)
             ax.plot(trial.frames, trial.returns, ":", color=colors[trial.variant], lw=1.0, label=label)
         ax.set_title(task)
@@ -175,10 +130,9 @@ def plot_transplant_grid(
     grid: Mapping[str, Sequence[GridCell]], path: Path, success_return: float = PAPER.success_return
 ) -> None:
     """
-    The paper's Figure 3(a) as heatmaps: one per task, CNN source (rows) x MLP source (columns), coloured by the
-    fraction of successful seeds, with ``successes/seeds`` written in each cell (``-`` and grey without seeds).
+    The paper's Figure 3(a): a heatmap per task, CNN (rows) x MLP source, of the fraction of successful seeds.
 
-    :param grid: task -> 9 cells (:func:`~sb3_collapse.report.statistics.transplant_grid`)
+    :param grid: task -> 9 cells
     :param path: the PNG file to write
     :param success_return: the success threshold (for the title)
     """
@@ -218,11 +172,10 @@ def plot_figure3b(
     curves: Mapping[str, Sequence[TransplantCurves]], path: Path, success_return: float = PAPER.success_return
 ) -> None:
     """
-    The paper's Figure 3(b): per task, the mean evaluation return of the successful seeds of each transplant cell
-    (shaded: +- one std across them), colour by the CNN's source, line style by the MLP's source; the legend
-    (beside the panels) gives the number of successful seeds.
+    The paper's Figure 3(b): per task, the mean return (+- one std) of each cell's successful seeds, colour by the
+    CNN's source, line style by the MLP's.
 
-    :param curves: task -> cells with successful seeds (:func:`~sb3_collapse.report.statistics.transplant_curves`)
+    :param curves: task -> cells with successful seeds
     :param path: the PNG file to write
     :param success_return: the success threshold (for the title)
     """
