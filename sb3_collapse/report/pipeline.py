@@ -252,11 +252,9 @@ def collapse_figures(
                 continue
             key = (task, variant)
             try:
+                bounds = settings.success_return, collapse_settings.failure_return
                 picks = collapse_figure.pick_paper_agents(
-                    sweep.select(task, variant),
-                    collapse_settings.pick_seed,
-                    settings.success_return,
-                    collapse_settings.failure_return,
+                    sweep.select(task, variant), collapse_settings.pick_seed, *bounds
                 )
             except ValueError as error:
                 raise InputError(str(error), parameter="failure_return") from error
@@ -313,20 +311,11 @@ def agents_rows(report: Report) -> list[dict[str, object]]:
     for (task, variant), picks in report.collapse_picks.items():
         inputs = report.collapse_inputs.get((task, variant))
         for pick in picks:
-            trial = pick.trial
-            rows.append(
-                {
-                    "task": task,
-                    "variant": variant,
-                    "row": pick.role,
-                    "seed": "" if trial is None else trial.seed,
-                    "final_return": "" if trial is None else trial.final_return,
-                    "class_seeds": " ".join(map(str, pick.candidates)),
-                    "seeds": pick.seeds,
-                    "pick_seed": pick.pick_seed,
-                    "inputs": "online only" if inputs is None else inputs.describe(),
-                }
-            )
+            seed, final = ("", "") if pick.trial is None else (pick.trial.seed, pick.trial.final_return)
+            classes = " ".join(map(str, pick.candidates))
+            described = "online only" if inputs is None else inputs.describe()
+            values = (task, variant, pick.role, seed, final, classes, pick.seeds, pick.pick_seed, described)
+            rows.append(dict(zip(AGENTS_COLUMNS, values)))
     return rows
 
 

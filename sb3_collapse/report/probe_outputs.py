@@ -307,12 +307,7 @@ def _summary(
             "env_config": rollouts.env_config,
             "metadata": rollouts.metadata,
         },
-        "split": {
-            "n_train": split.n_train,
-            "n_validation": split.n_validation,
-            "n_test": split.n_test,
-            "episodes": split.episodes,
-        },
+        "split": {key: getattr(split, key) for key in ("n_train", "n_validation", "n_test", "episodes")},
         "targets": {"names": names, "groups": groups},
         "checkpoints": [
             {
@@ -338,8 +333,6 @@ def _summary(
             }
             for r in results
         ],
-        "mse_over_training": "written"
-        if over_training
-        else "skipped: needs >= 2 checkpoints with distinct training steps",
+        "mse_over_training": "written" if over_training else "skipped: needs >= 2 checkpoints with distinct steps",
         "files": files,
     }
