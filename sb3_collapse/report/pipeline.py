@@ -23,6 +23,7 @@ from sb3_collapse.protocol import (
 )
 from sb3_collapse.report import collapse_figure, headline, html, tables
 from sb3_collapse.report import statistics as stats
+from sb3_collapse.report.collapse_figure import ONLINE_INPUTS, paper_figure_title, plot_collapse_metrics
 from sb3_collapse.report.figure2 import stage_panels
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep, progress_bar
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
@@ -361,13 +362,10 @@ def write_report(
     report = build_report(
         sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
     )
-    partial = (
-        {task: headline.figure5_unfinished(report.sweep, task) for task in report.curves}
-        if include_unfinished
-        else None
-    )
+    partial = {task: headline.figure5_unfinished(report.sweep, task) for task in report.curves}
     with staged_outputs as staged:
-        plot_figure5(report.curves, staged.path(FIGURE5_PNG), report.references, partial, settings.percentiles)
+        drawn = partial if include_unfinished else None
+        plot_figure5(report.curves, staged.path(FIGURE5_PNG), report.references, drawn, settings.percentiles)
         tables.write_csv(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS, staged.path(SUMMARY_CSV))
         if report.grid:
             tables.write_csv(tables.grid_rows(report.grid), tables.GRID_COLUMNS, staged.path(GRID_CSV))
@@ -377,28 +375,16 @@ def write_report(
             plot_figure3b(report.transplant, staged.path(FIGURE3B_PNG), settings.success_return)
             tables.write_csv(tables.table7_rows(report.transplant), tables.TABLE7_COLUMNS, staged.path(TABLE7_CSV))
             staged.path(TABLE7_MD).write_text(tables.table7_markdown(report.transplant, settings.success_return))
-        for (task, variant), picks in progress_bar(
-            report.collapse_picks.items(), "collapse figures", "figure", progress
-        ):
-            names = {"task": task, "variant": variant}
-            title = collapse_figure.paper_figure_title(task, variant, picks, collapse_figure.ONLINE_INPUTS)
-            collapse_figure.plot_collapse_metrics(
-                report.collapse_online[(task, variant)], staged.path(COLLAPSE_ONLINE_PNG.format(**names)), title, layers
-            )
-            if (task, variant) in report.collapse:
-                title = collapse_figure.paper_figure_title(
-                    task, variant, picks, report.collapse_inputs[(task, variant)].describe()
-                )
-                collapse_figure.plot_collapse_metrics(
-                    report.collapse[(task, variant)],
-                    staged.path(COLLAPSE_PNG.format(**names)),
-                    title,
-                    layers,
-                    "snapshots",
-                )
-                collapse_figure.write_fixed_metrics_csv(
-                    staged.path(COLLAPSE_FIXED_CSV.format(**names)), picks, report.collapse_fixed[(task, variant)]
-                )
+        for key, picks in progress_bar(report.collapse_picks.items(), "collapse figures", "figure", progress):
+            path = staged.path(COLLAPSE_ONLINE_PNG.format(task=key[0], variant=key[1]))
+            title = paper_figure_title(*key, picks, ONLINE_INPUTS)
+            plot_collapse_metrics(report.collapse_online[key], path, title, layers)
+            if key in report.collapse:
+                path = staged.path(COLLAPSE_PNG.format(task=key[0], variant=key[1]))
+                title = paper_figure_title(*key, picks, report.collapse_inputs[key].describe())
+                plot_collapse_metrics(report.collapse[key], path, title, layers, "snapshots")
+                path = staged.path(COLLAPSE_FIXED_CSV.format(task=key[0], variant=key[1]))
+                collapse_figure.write_fixed_metrics_csv(path, picks, report.collapse_fixed[key])
         if report.collapse_picks:
             tables.write_csv(agents_rows(report), AGENTS_COLUMNS, staged.path(COLLAPSE_AGENTS_CSV))
         staged.path(html.INDEX_HTML).write_text(sweep_page(report, settings, staged.path))
@@ -475,11 +461,8 @@ def sweep_page(report: Report, settings: stats.ReportSettings, png: Callable[[st
     about.parts.append(html.table(("task", *PRESET_COLUMNS), _preset_rows(sweep.tasks()), "DrQ-v2 presets per task"))
     about.parts.append(html.settings_table(dataclasses.asdict(settings), "the report's definitions"))
     summary = html.Section("Summary table")
-    definitions = tables.summary_markdown(report.rows, settings).split("\n\n", 2)[-1].split("\nNotes:")[0].strip()
-    summary.parts += [
-        html.dict_table(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS),
-        html.paragraph(definitions, tag="pre"),
-    ]
+    summary.parts.append(html.dict_table(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS))
+    summary.parts.append(html.paragraph(tables.summary_definitions(settings), tag="pre"))
     if report.notes:
         summary.parts += [html.paragraph("Notes", tag="h3"), html.bullet_list(report.notes)]
     unfinished = html.Section("Unfinished trials")
@@ -519,21 +502,16 @@ def _collapse_section(report: Report, png: Callable[[str], Path]) -> html.Sectio
     collapse = html.Section("Figures 4, 8, 9: collapse metrics of three agents")
     events = "vertical lines: resets and escapes of the reset rule."
     agents = agents_rows(report)
-    for (task, variant), picks in report.collapse_picks.items():
-        names = {"task": task, "variant": variant}
-        if (task, variant) in report.collapse:
-            title = collapse_figure.paper_figure_title(
-                task, variant, picks, report.collapse_inputs[(task, variant)].describe()
-            )
-            caption = title.replace("\n", "; ") + f"; every snapshot run on the same observations; {events}"
+    for key, picks in report.collapse_picks.items():
+        names = {"task": key[0], "variant": key[1]}
+        if key in report.collapse:
+            title = paper_figure_title(*key, picks, report.collapse_inputs[key].describe()).replace("\n", "; ")
+            caption = f"{title}; every snapshot run on the same observations; {events}"
             collapse.parts.append(html.figure(png(COLLAPSE_PNG.format(**names)), caption))
-        title = collapse_figure.paper_figure_title(task, variant, picks, collapse_figure.ONLINE_INPUTS).replace(
-            "\n", "; "
-        )
+        title = paper_figure_title(*key, picks, ONLINE_INPUTS).replace("\n", "; ")
         caption = f"Online metrics (not the paper's inputs): {title}; {events}"
         collapse.parts.append(html.figure(png(COLLAPSE_ONLINE_PNG.format(**names)), caption))
-        rows = [r for r in agents if (r["task"], r["variant"]) == (task, variant)]
-        collapse.parts.append(html.dict_table(rows, AGENTS_COLUMNS))
+        collapse.parts.append(html.dict_table([r for r in agents if (r["task"], r["variant"]) == key], AGENTS_COLUMNS))
     return collapse
 
 
@@ -581,7 +559,7 @@ def write_run_report(
     agent = collapse_figure.agent_metrics(trial, "run", layers)
     with staged_outputs as staged:
         title = collapse_figure.run_title(trial)
-        collapse_figure.plot_collapse_metrics([agent], staged.path(RUN_COLLAPSE_PNG), title, layers)
+        plot_collapse_metrics([agent], staged.path(RUN_COLLAPSE_PNG), title, layers)
         section = html.Section("Figure 4: collapse metrics over training")
         section.parts.append(html.figure(staged.path(RUN_COLLAPSE_PNG), title))
         config = html.Section("Settings")

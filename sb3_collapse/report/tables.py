@@ -82,28 +82,28 @@ def summary_markdown(rows: Sequence[VariantSummary], settings: ReportSettings, n
         + [f"{row.escaped}/{row.reset_rule_seeds}" if row.reset_rule_seeds else "-", _number(row.last_evals_std_mean)]
         for row in rows
     ]
-    low, high = settings.percentiles
-    lines = ["# Sweep report", ""] + markdown_table(header, body)
-    lines += [
-        "",
-        (
-            f"Definitions: only finished trials (`{RESULT_JSON}` status `{FINISHED}`) enter the statistics; "
-            "*unfinished* "
-            "counts the other trial folders. Returns are compared on the evaluation frames that every finished seed of "
-            "a variant has; *final return* is each seed's return at the last of them (*final frame*, environment "
-            "frames, action repeat included). Standard deviations are across seeds (ddof=1). A seed is *stuck in "
-            f"collapse* when the median of its last {settings.collapse_checks} values of `{settings.collapse_tag}` in "
-            f"`{COLLAPSE_METRICS_CSV}` is <= {settings.collapse_threshold:g}; *collapse unknown* seeds logged no such "
-            f"value. *Resets* sums `{RESULT_JSON}`'s `resets`; *seeds reset* counts seeds with at least one; *escaped* "
-            "counts seeds whose reset rule saw an escape, over the seeds that ran the rule. "
-            f"*Std over last {settings.last_evals} evals*: the across-seed std at each of the last "
-            f"{settings.last_evals} aligned frames, averaged. Figure 5's band: {low:g}th to {high:g}th percentile "
-            "across seeds."
-        ),
-    ]
+    lines = ["# Sweep report", "", *markdown_table(header, body), "", summary_definitions(settings)]
     if notes:
         lines += ["", "Notes:", ""] + [f"- {note}" for note in notes]
     return "\n".join(lines) + "\n"
+
+
+def summary_definitions(settings: ReportSettings) -> str:
+    """:return: what the table's columns mean with ``settings``, one paragraph"""
+    low, high = settings.percentiles
+    return (
+        f"Definitions: only finished trials (`{RESULT_JSON}` status `{FINISHED}`) enter the statistics; *unfinished* "
+        "counts the other trial folders. Returns are compared on the evaluation frames that every finished seed of "
+        "a variant has; *final return* is each seed's return at the last of them (*final frame*, environment "
+        "frames, action repeat included). Standard deviations are across seeds (ddof=1). A seed is *stuck in "
+        f"collapse* when the median of its last {settings.collapse_checks} values of `{settings.collapse_tag}` in "
+        f"`{COLLAPSE_METRICS_CSV}` is <= {settings.collapse_threshold:g}; *collapse unknown* seeds logged no such "
+        f"value. *Resets* sums `{RESULT_JSON}`'s `resets`; *seeds reset* counts seeds with at least one; *escaped* "
+        "counts seeds whose reset rule saw an escape, over the seeds that ran the rule. "
+        f"*Std over last {settings.last_evals} evals*: the across-seed std at each of the last "
+        f"{settings.last_evals} aligned frames, averaged. Figure 5's band: {low:g}th to {high:g}th percentile "
+        "across seeds."
+    )
 
 
 def grid_markdown(grid: dict[str, list[GridCell]], success_return: float) -> str:
