@@ -342,13 +342,12 @@ def run_folder_trial(run_dir: str | Path) -> Trial:
     :raises InputError: when the folder lacks the settings or the evaluation file
     """
     run_dir = Path(run_dir)
-    config_path = run_dir / CONFIG_JSON
-    if not (run_dir / EVAL_CSV).exists() or not config_path.exists():
+    if not is_run_folder(run_dir):
         raise InputError(
             f"{run_dir} is not a run folder of python -m sb3_collapse.train: it needs {CONFIG_JSON} and {EVAL_CSV}.",
             parameter="sweep",
         )
-    config = read_json(config_path)
+    config = read_json(run_dir / CONFIG_JSON)
     task = str(config.get("env", run_dir.name))
     variant = str(config.get("variant") or config.get("algorithm") or "drqv2")
     trial = load_trial(task, variant, int(config.get("seed", 0)), run_dir, partial=True)
@@ -452,22 +451,12 @@ def fixed_agent_rows(
             rows.append(AgentMetrics(None, pick.role, absent=pick.absent))
             continue
         online = agent_metrics(pick.trial, pick.role, settings.layers)
-        fixed = fixed_metrics(
-            snapshot_files(pick.trial.path),
-            inputs,
-            settings.layers,
-            get_device(settings.device),
-            settings.batch_size,
-            progress,
-            f"seed {pick.trial.seed} checkpoints",
-        )
+        how = (inputs, settings.layers, get_device(settings.device), settings.batch_size, progress)
+        fixed = fixed_metrics(snapshot_files(pick.trial.path), *how, f"seed {pick.trial.seed} checkpoints")
         computed[pick.trial.seed] = fixed
-        online.metrics = {tag: value for tag, value in online.metrics.items() if tag.endswith("/grad_norm")} | {
-            metric_tag(layer, metric): fixed.metrics[metric_tag(layer, metric)]
-            for layer in settings.layers
-            for metric in FIXED_METRICS
-            if metric_tag(layer, metric) in fixed.metrics
-        }
+        tags = [metric_tag(layer, metric) for layer in settings.layers for metric in FIXED_METRICS]
+        online.metrics = {tag: value for tag, value in online.metrics.items() if tag.endswith("/grad_norm")}
+        online.metrics |= {tag: fixed.metrics[tag] for tag in tags if tag in fixed.metrics}
         online.widths = fixed.widths or online.widths
         rows.append(online)
     return rows, computed

@@ -18,9 +18,9 @@ from sb3_collapse.report.statistics import (
     ReportSettings,
     VariantSummary,
     aligned_returns,
+    band_curve,
     last_evals_std_mean,
     transplant_sources,
-    variant_curves,
 )
 from sb3_collapse.report.tables import markdown_table
 
@@ -99,7 +99,12 @@ def bootstrap_std_interval(
 def figure5_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = PAPER.percentiles) -> list[BandCurve]:
     """Figure 5's curves of ``task`` ("The performance comparison ... between DrQ-v2 and DrQ-v2 plus our rule", and
     the other variants), without the transplant cells (Figure 3's)."""
-    return [curve for curve in variant_curves(sweep, task, percentiles) if transplant_sources(curve.name) is None]
+    curves = []
+    for variant in sweep.variants(task):
+        frames, returns = aligned_returns(sweep.select(task, variant))
+        if len(frames) and transplant_sources(variant) is None:
+            curves.append(band_curve(variant, frames, returns, percentiles))
+    return curves
 
 
 def figure5_unfinished(sweep: Sweep, task: str) -> list[Trial]:

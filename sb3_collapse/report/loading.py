@@ -138,34 +138,6 @@ def variant_order(variants: Iterable[str]) -> list[str]:
     return sorted(set(variants), key=lambda name: (first.get(name, 2), name))
 
 
-def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
-    """
-    :param sweep: the sweep folder
-    :return: its trial folders ``(task, variant, seed, path)``, by task, :func:`variant_order` and seed
-    :raises InputError: when the folder does not exist or holds no trial folder
-    """
-    root = Path(sweep)
-    if not root.is_dir():
-        what = "does not exist" if not root.exists() else "is not a folder"
-        raise InputError(f"sweep folder {root} {what}; give the out folder of a sweep.", parameter="sweep")
-    found = trial_folders(root)
-    if not found:
-        raise InputError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
-    variants = variant_order(item[1] for item in found)
-    return sorted(found, key=lambda item: (item[0], variants.index(item[1]), item[2]))
-
-
-def check_result(path: Path, result: dict[str, Any]) -> None:
-    """:raises InputError: when the result file of the finished trial ``path`` is of another version or its ``resets``
-    or ``escaped`` is not what it should be"""
-    check_result_version(path, result)
-    resets = result.get("resets")
-    if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
-        raise InputError(f"{path / RESULT_JSON}: 'resets' must be an integer >= 0, got {resets!r}.")
-    if result.get("escaped") not in (None, True, False):
-        raise InputError(f"{path / RESULT_JSON}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
-
-
 def load_trial(
     task: str, variant: str, seed: int, path: Path, collapse_tag: str = DEFAULT_COLLAPSE_TAG, partial: bool = False
 ) -> Trial:
@@ -179,14 +151,21 @@ def load_trial(
     :param collapse_tag: the collapse metric to read
     :param partial: read the evaluation curve of an unfinished trial too
     :return: the trial
-    :raises InputError: naming the file, when a file of a finished trial (or any result file) is malformed
+    :raises InputError: naming the file, when a file of a finished trial (or any result file) is malformed: its
+        ``resets`` not an integer >= 0, ``escaped`` not a bool or null, another version
     """
     result = read_result(path, strict=True)
     finished = result is not None and result.get("status") == FINISHED
     status = RunStatus.FINISHED if finished else run_status(path)
     trial = Trial(task, variant, seed, path, str(status or NOT_A_RUN), result)
     if trial.finished:
-        check_result(path, result)  # type: ignore[arg-type]
+        check_result_version(path, result)  # type: ignore[arg-type]
+        resets = result.get("resets")  # type: ignore[union-attr]
+        if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
+            raise InputError(f"{path / RESULT_JSON}: 'resets' must be an integer >= 0, got {resets!r}.")
+        if result.get("escaped") not in (None, True, False):  # type: ignore[union-attr]
+            escaped = result["escaped"]  # type: ignore[index]
+            raise InputError(f"{path / RESULT_JSON}: 'escaped' must be true, false or null, got {escaped!r}.")
         for key, expected in (("task", task), ("variant", variant), ("seed", seed)):
             if result.get(key, expected) != expected:  # type: ignore[union-attr]
                 trial.notes.append(
@@ -228,7 +207,15 @@ def load_sweep(
     :return: the sweep
     :raises InputError: when the folder is missing, holds no (selected) trial, or no trial can be read
     """
-    found = find_trial_folders(sweep)
+    root = Path(sweep)
+    if not root.is_dir():
+        what = "does not exist" if not root.exists() else "is not a folder"
+        raise InputError(f"sweep folder {root} {what}; give the out folder of a sweep.", parameter="sweep")
+    found = trial_folders(root)
+    if not found:
+        raise InputError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
+    order = variant_order(item[1] for item in found)
+    found = sorted(found, key=lambda item: (item[0], order.index(item[1]), item[2]))
     for name, wanted, index in (("tasks", tasks, 0), ("variants", variants, 1)):
         if wanted is not None:
             wanted = list(wanted)

@@ -64,18 +64,6 @@ def aligned_returns(trials: Sequence[Trial]) -> tuple[np.ndarray, np.ndarray]:
     return frames, returns.reshape(len(trials), len(frames))
 
 
-def percentile_band(
-    returns: np.ndarray, percentiles: tuple[float, float] = (5.0, 95.0)
-) -> tuple[np.ndarray, np.ndarray]:
-    """
-    :param returns: ``(seeds, frames)`` returns
-    :param percentiles: low and high percentiles, in percent
-    :return: ``(low, high)`` across seeds at each frame (``np.percentile``, linear interpolation)
-    """
-    low, high = np.percentile(returns, percentiles, axis=0)
-    return low, high
-
-
 @dataclass
 class BandCurve:
     """
@@ -100,19 +88,9 @@ class BandCurve:
 def band_curve(
     name: str, frames: np.ndarray, returns: np.ndarray, percentiles: tuple[float, float] = (5.0, 95.0)
 ) -> BandCurve:
-    """:return: the curve ``name`` of ``(seeds, frames)`` aligned ``returns``: mean and :func:`percentile_band`"""
-    low, high = percentile_band(returns, percentiles)
+    """:return: the curve ``name`` of ``(seeds, frames)`` aligned ``returns``: mean and percentile band across seeds"""
+    low, high = np.percentile(returns, percentiles, axis=0)
     return BandCurve(name, frames, returns.mean(axis=0), low, high, returns.shape[0])
-
-
-def variant_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = (5.0, 95.0)) -> list[BandCurve]:
-    """:return: one :class:`BandCurve` per variant of ``task`` whose finished seeds share a frame, in display order"""
-    curves = []
-    for variant in sweep.variants(task):
-        frames, returns = aligned_returns(sweep.select(task, variant))
-        if len(frames):
-            curves.append(band_curve(variant, frames, returns, percentiles))
-    return curves
 
 
 def across_seed_std(values: np.ndarray, axis: int = 0) -> np.ndarray | float:
