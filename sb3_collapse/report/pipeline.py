@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -274,7 +275,10 @@ def collapse_figures(
                 if rollouts not in loaded:
                     loaded[rollouts] = collapse_settings.load(rollouts)
                 inputs = loaded[rollouts]
-            rows, computed = collapse_figure.fixed_agent_rows(picks, inputs, collapse_settings, progress)
+            bar = progress and sys.stderr.isatty()  # elsewhere one line, no bar frames
+            if progress and not bar:
+                print(f"fixed-set metrics: {task} / {variant}", file=sys.stderr, flush=True)
+            rows, computed = collapse_figure.fixed_agent_rows(picks, inputs, collapse_settings, bar)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
 
 

@@ -169,7 +169,10 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     assert {t["std"] for t in tables if t["layer"] == "cnn0"} == {"0.0"}  # the pixels are the same for every agent
     assert any(float(t["std"]) > 0 for t in tables if t["layer"] == "mlp1")  # the noisy actors differ
     # the HTML report of the sweep shows Figure 2 and the tables
-    report = write_report(root, progress=False)
+    capsys.readouterr()
+    report = write_report(root)  # the progress on, stderr captured: one line per stage, no bar frames
+    err = capsys.readouterr().err
+    assert "fixed-set metrics: walker-walk / drqv2\n" in err and "\r" not in err
     page = (root / "report" / "index.html").read_text()
     assert "Figure 2" in page and "Table 1" in page
     # Figure 4 on the rollouts probe sweep recorded (all 20 observations: fewer than the 2048 drawn by default)
