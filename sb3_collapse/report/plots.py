@@ -77,13 +77,9 @@ def plot_figure5(
     references = references or {}
     partial = partial or {}
     tasks = list(curves)
-    variants = list(
-        dict.fromkeys(
-            [c.name for task in tasks for c in curves[task]]
-            + [t.variant for task in tasks for t in partial.get(task, [])]
-        )
-    )
-    colors = variant_colors(variants)
+    names = [c.name for task in tasks for c in curves[task]]
+    names += [t.variant for task in tasks for t in partial.get(task, [])]
+    colors = variant_colors(list(dict.fromkeys(names)))
     low, high = percentiles
     fig, axes = panels(len(tasks))
     for ax, task in zip(axes.flat, tasks):

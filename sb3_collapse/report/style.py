@@ -10,17 +10,9 @@ from matplotlib.ticker import EngFormatter
 
 from sb3_collapse.common.layers import LAYER_NAMES
 
-OKABE_ITO = (
-    "#E69F00",  # orange
-    "#56B4E9",  # sky blue
-    "#009E73",  # bluish green
-    "#0072B2",  # blue
-    "#D55E00",  # vermillion
-    "#CC79A7",  # reddish purple
-    "#F0E442",  # yellow
-    "#000000",  # black
-)
-"""The eight colours of Okabe & Ito, distinguishable with the common colour-vision deficiencies."""
+OKABE_ITO = ("#E69F00", "#56B4E9", "#009E73", "#0072B2", "#D55E00", "#CC79A7", "#F0E442", "#000000")
+"""The eight colours of Okabe & Ito (orange, sky blue, bluish green, blue, vermillion, reddish purple, yellow, black),
+distinguishable with the common colour-vision deficiencies."""
 TOL_MUTED = ("#332288", "#88CCEE", "#44AA99", "#117733", "#999933", "#DDCC77", "#CC6677", "#882255", "#AA4499")
 """Paul Tol's colour-blind-safe "muted" scheme: more colours once Okabe-Ito's are used."""
 
