@@ -171,7 +171,11 @@ def pick_paper_agents(
 
 
 def layer_widths(trial: Trial, layers: Sequence[str]) -> dict[str, int]:
-    """:return: layer -> units of ``layers`` from the settings (``feature_dim``: mlp0, ``hidden_dim``: mlp1, 2)"""
+    """
+    :param trial: the trial
+    :param layers: the layers wanted
+    :return: layer -> units, from the trial's settings (``feature_dim``: mlp0, ``hidden_dim``: mlp1, mlp2)
+    """
     config_path = trial.path / CONFIG_JSON
     config = read_json(config_path) if config_path.is_file() else {}
     sizes = {"mlp0": config.get("feature_dim"), "mlp1": config.get("hidden_dim"), "mlp2": config.get("hidden_dim")}
@@ -179,7 +183,11 @@ def layer_widths(trial: Trial, layers: Sequence[str]) -> dict[str, int]:
 
 
 def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS) -> list[AgentMetrics]:
-    """:return: one row of the online figure per pick (:func:`agent_metrics` of its trial)"""
+    """
+    :param picks: :func:`pick_paper_agents`' picks
+    :param layers: the layers read
+    :return: one row of the online figure per pick (:func:`agent_metrics` of its trial)
+    """
     return [
         AgentMetrics(None, p.role, absent=p.absent) if p.trial is None else agent_metrics(p.trial, p.role, layers)
         for p in picks
@@ -466,7 +474,13 @@ FIXED_CSV_COLUMNS = ("role", "seed", "final_return", "checkpoint", "frame", "tag
 
 
 def write_fixed_metrics_csv(path: Path, picks: Sequence[AgentPick], computed: dict[int, FixedMetrics]) -> None:
-    """Write every fixed-set metric of the picks (``computed``: :func:`fixed_agent_rows`) to ``path``, long format."""
+    """
+    Write every fixed-set metric of the picked agents, long format.
+
+    :param path: the CSV file
+    :param picks: the picks
+    :param computed: seed -> its metrics (:func:`fixed_agent_rows`)
+    """
     with path.open("w", newline="") as file:
         writer = csv.writer(file)
         writer.writerow(FIXED_CSV_COLUMNS)

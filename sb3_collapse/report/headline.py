@@ -64,7 +64,11 @@ def escape_probability(stuck_probability: float, windows: int) -> float:
 
 
 def escape_interval(p_interval: Interval, windows: int) -> Interval:
-    """:return: the interval of ``1 - p^n`` from ``p_interval``: ``(1 - high^n, 1 - low^n)``"""
+    """
+    :param p_interval: an interval of p
+    :param windows: n
+    :return: the interval of ``1 - p^n``: ``(1 - high^n, 1 - low^n)``
+    """
     low, high = p_interval
     return (escape_probability(high, windows), escape_probability(low, windows))
 
@@ -97,8 +101,14 @@ def bootstrap_std_interval(
 
 
 def figure5_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = PAPER.percentiles) -> list[BandCurve]:
-    """Figure 5's curves of ``task`` ("The performance comparison ... between DrQ-v2 and DrQ-v2 plus our rule", and
-    the other variants), without the transplant cells (Figure 3's)."""
+    """
+    Figure 5's curves ("The performance comparison ... between DrQ-v2 and DrQ-v2 plus our rule").
+
+    :param sweep: the loaded sweep
+    :param task: the task
+    :param percentiles: the band, in percent
+    :return: a curve per variant whose finished seeds share a frame, without the transplant cells (Figure 3's)
+    """
     curves = []
     for variant in sweep.variants(task):
         frames, returns = aligned_returns(sweep.select(task, variant))
@@ -380,7 +390,12 @@ def headline_definitions(settings: ReportSettings) -> str:
 def headline_markdown(
     headline: Sequence[HeadlineRow], proposition: Sequence[Proposition1Row], settings: ReportSettings
 ) -> str:
-    """:return: the headline and Proposition 1 as Markdown, for the top of ``summary.md``"""
+    """
+    :param headline: :func:`headline_rows`
+    :param proposition: :func:`proposition1_rows`
+    :param settings: the report's definitions
+    :return: the headline and Proposition 1 as Markdown, for the top of ``summary.md``
+    """
     lines = ["## The paper's headline beside this sweep's", ""]
     lines += markdown_table(HEADLINE_HEADER, headline_table(headline))
     lines += ["", "## Proposition 1", "", f"> {PROPOSITION_1}", ""]

@@ -64,7 +64,11 @@ def bullet_list(items: Iterable[str]) -> str:
 
 
 def figure(png: str | Path, caption: str) -> str:
-    """:return: ``<figure>`` with the PNG file ``png`` embedded as base64 and ``caption`` (also its alt text)"""
+    """
+    :param png: a PNG file, embedded as base64
+    :param caption: what the figure shows (also its alt text)
+    :return: ``<figure>`` with the image and caption
+    """
     data = base64.b64encode(Path(png).read_bytes()).decode("ascii")
     alt = html.escape(caption, quote=True)
     return (
@@ -115,7 +119,12 @@ def settings_table(settings: Mapping[str, Any], caption: str | None = None) -> s
 
 
 def html_page(title: str, sections: Sequence[Section], subtitle: str | None = None) -> str:
-    """:return: the HTML document: ``title``, a ``subtitle`` line, a table of contents, the ``sections``"""
+    """
+    :param title: the page title
+    :param sections: its sections, with a table of contents at the top
+    :param subtitle: a line under the title
+    :return: the HTML document
+    """
     created = datetime.now(timezone.utc).isoformat(timespec="seconds")
     contents = "".join(f'<li><a href="#{s.anchor}">{html.escape(s.title)}</a></li>' for s in sections)
     body = "".join(

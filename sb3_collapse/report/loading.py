@@ -34,8 +34,15 @@ Item = TypeVar("Item")
 
 
 def progress_bar(items: Iterable[Item], desc: str, unit: str, progress: bool = True) -> Iterable[Item]:
-    """:return: ``items`` behind a progress bar on a terminal; on another stderr one line ``desc: N units`` instead
-    (nothing without ``progress``)"""
+    """
+    A progress bar on a terminal; on any other stderr one line ``desc: N units`` instead (no bar frames).
+
+    :param items: what is iterated over
+    :param desc: the stage's name
+    :param unit: what one item is
+    :param progress: show the progress at all
+    :return: the items
+    """
     items = list(items)
     if progress and sys.stderr.isatty():
         return tqdm(items, desc=desc, unit=unit)
@@ -128,12 +135,20 @@ class Sweep:
         return variant_order({trial.variant for trial in self.trials if trial.task == task})
 
     def select(self, task: str, variant: str, finished: bool = True) -> list[Trial]:
-        """:return: the finished (or, with ``finished=False``, the other) trials of ``(task, variant)``, by seed"""
+        """
+        :param task: task name
+        :param variant: variant name
+        :param finished: the finished trials (``True``) or the others
+        :return: those trials, by seed
+        """
         return [t for t in self.trials if t.task == task and t.variant == variant and t.finished == finished]
 
 
 def variant_order(variants: Iterable[str]) -> list[str]:
-    """:return: the variant names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted"""
+    """
+    :param variants: variant names
+    :return: the names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted
+    """
     first = {"drqv2": 0, "drqv2+reset": 1}
     return sorted(set(variants), key=lambda name: (first.get(name, 2), name))
 

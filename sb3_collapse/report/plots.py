@@ -22,7 +22,10 @@ REFERENCE_COLOR = "0.15"
 
 
 def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str]:
-    """:return: variant -> its colour in every panel (Okabe-Ito but black, then Paul Tol's muted, then ``tab20``)"""
+    """
+    :param variants: variant names in display order
+    :return: variant -> its colour in every panel (Okabe-Ito but black, then Paul Tol's muted, then ``tab20``)
+    """
     palette = [color for color in OKABE_ITO if color != "#000000"] + list(TOL_MUTED)
     if len(variants) <= len(palette):
         return {variant: palette[i] for i, variant in enumerate(variants)}
@@ -31,14 +34,22 @@ def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str
 
 
 def variant_label(variant: str) -> str:
-    """:return: the legend's name of a variant: ``<algorithm>+<intervention>`` gets the intervention's name"""
+    """
+    :param variant: a variant name
+    :return: its legend name: ``<algorithm>+<intervention>`` gets the intervention's name
+    """
     _, plus, intervention = variant.partition("+")
     label = INTERVENTION_LABELS.get(intervention) if plus else None
     return variant if label is None else f"{variant}: {label}"
 
 
 def panels(count: int, columns: int = 3, size: tuple[float, float] = (5.0, 3.8)) -> tuple[plt.Figure, np.ndarray]:
-    """:return: a figure of ``count`` panels (``size`` inches each), ``columns`` a row, the spare ones hidden"""
+    """
+    :param count: the panels
+    :param columns: panels per row
+    :param size: inches per panel, width and height
+    :return: the figure and its axes (spare ones hidden)
+    """
     ncols = min(columns, max(count, 1))
     nrows = -(-max(count, 1) // ncols)
     fig, axes = plt.subplots(nrows, ncols, figsize=(size[0] * ncols, size[1] * nrows), squeeze=False)

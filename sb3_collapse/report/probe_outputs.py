@@ -62,7 +62,11 @@ def staged_output(out: str | Path, overwrite: bool = False) -> StagedOutputs:
 
 
 def group_means(rows: list[dict[str, Any]], key: str = "test_mse") -> dict[tuple[str, str, str], float]:
-    """:return: ``(checkpoint, layer, group)`` -> mean of the column ``key`` of ``rows`` over the group's components"""
+    """
+    :param rows: probe rows
+    :param key: the column averaged
+    :return: ``(checkpoint, layer, group)`` -> mean of ``key`` over the group's components
+    """
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     for row in rows:
         values[(row["checkpoint"], row["layer"], row["group"])].append(row[key])
@@ -231,7 +235,11 @@ def probe_to_folder(
 
 
 def checked_record_options(record_options: RecordOptions | None) -> RecordOptions:
-    """:return: the recording options, checked before anything is recorded (:raises InputError: when bad)"""
+    """
+    :param record_options: how to record (``None``: the defaults)
+    :return: them, checked before anything is recorded
+    :raises InputError: naming the bad option
+    """
     record_options = record_options or RecordOptions()
     record_options.check()
     if record_options.episodes < MIN_EPISODES:  # the split needs them
@@ -246,7 +254,14 @@ def checked_record_options(record_options: RecordOptions | None) -> RecordOption
 def record_rollouts(
     source: str | Path, device: th.device, record_options: RecordOptions, settings: ProbeSettings, staged: StagedOutputs
 ) -> Rollouts:
-    """:return: rollouts of the checkpoint ``source``, saved into ``staged`` (moved in only on success)"""
+    """
+    :param source: the checkpoint that records
+    :param device: where it runs
+    :param record_options: how to record
+    :param settings: the probe's settings (``progress``)
+    :param staged: the staged outputs the rollouts are saved into (moved in only on success)
+    :return: the rollouts
+    """
     recorder = load_checkpoint(source, device=device)
     rollouts = record(recorder, record_options, settings.progress)
     del recorder

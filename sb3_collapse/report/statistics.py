@@ -88,7 +88,13 @@ class BandCurve:
 def band_curve(
     name: str, frames: np.ndarray, returns: np.ndarray, percentiles: tuple[float, float] = (5.0, 95.0)
 ) -> BandCurve:
-    """:return: the curve ``name`` of ``(seeds, frames)`` aligned ``returns``: mean and percentile band across seeds"""
+    """
+    :param name: the curve's name
+    :param frames: the aligned frames
+    :param returns: ``(seeds, frames)`` aligned returns
+    :param percentiles: the band, in percent
+    :return: mean and percentile band across seeds at each frame
+    """
     low, high = np.percentile(returns, percentiles, axis=0)
     return BandCurve(name, frames, returns.mean(axis=0), low, high, returns.shape[0])
 
@@ -221,7 +227,11 @@ def summarize_variant(
 
 
 def summarize(sweep: Sweep, settings: ReportSettings) -> list[VariantSummary]:
-    """:return: one :func:`summarize_variant` row per task and variant of ``sweep``"""
+    """
+    :param sweep: the loaded sweep
+    :param settings: the definitions
+    :return: one row per task and variant (:func:`summarize_variant`)
+    """
     return [
         summarize_variant(task, variant, sweep.select(task, variant), len(sweep.select(task, variant, False)), settings)
         for task in sweep.tasks()
@@ -230,7 +240,10 @@ def summarize(sweep: Sweep, settings: ReportSettings) -> list[VariantSummary]:
 
 
 def transplant_sources(variant: str) -> tuple[str, str] | None:
-    """:return: ``(cnn source, mlp source)`` of a ``cnn-<src>_mlp-<src>`` variant, else ``None``"""
+    """
+    :param variant: a variant name
+    :return: ``(cnn source, mlp source)`` for ``cnn-<src>_mlp-<src>``, else ``None``
+    """
     match = TRANSPLANT_VARIANT.match(variant)
     return (match.group(1), match.group(2)) if match else None
 
@@ -301,7 +314,10 @@ def stage_indices(frames: np.ndarray, budget_frames: int | None = None) -> list[
 
 
 def stages_caption(reading: str) -> str:
-    """:return: the sentence that says which stages a table of Tables 1-7 reads, of ``reading`` (plural)"""
+    """
+    :param reading: what the table reads, in the plural
+    :return: the sentence that says which stages a table of Tables 1-7 reads
+    """
     frames = ", ".join(f"{frame:,}" for frame in PAPER.stages())
     return (
         f"Stages: the paper's x = 0, 35, 70, 110 (frames {frames} of its {PAPER.train_frames:,}; the same fractions "
@@ -310,7 +326,10 @@ def stages_caption(reading: str) -> str:
 
 
 def budget_frames(trials: Sequence[Trial]) -> int | None:
-    """:return: the frames the finished ``trials`` trained (the smallest of their result files'), ``None`` unknown"""
+    """
+    :param trials: finished trials
+    :return: the frames they trained (the smallest of their result files'), ``None`` when none says
+    """
     budgets = [int(t.result["frames"]) for t in trials if t.result is not None and t.result.get("frames")]
     return min(budgets) if budgets else None
 
