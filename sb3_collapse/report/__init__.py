@@ -1,9 +1,5 @@
-"""
-Every figure and table of the paper from a sweep or run folder: Figure 5 and its table, the layer-transplant grid
-(Figure 3), Figures 4, 8, 9 (:func:`write_report`), and the drawing of the probe's outputs: Figure 2 and Tables 1-6
-(:func:`probe_sweep`), Figures 6-7 (:func:`film_to_folder`), a probe's plots (:func:`probe_to_folder`).
-``python -m sb3_collapse.report --help`` for the command line; each module's part: docs/layout.md.
-"""
+"""Every figure and table of the paper from a sweep or run folder (:func:`write_report`, :func:`probe_sweep`,
+:func:`film_to_folder`, :func:`probe_to_folder`); each module's part: docs/layout.md."""
 
 from sb3_collapse.report.collapse_figure import FixedInputSettings
 from sb3_collapse.report.figure2 import probe_sweep
@@ -11,42 +7,22 @@ from sb3_collapse.report.film import film_to_folder
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
 from sb3_collapse.report.pipeline import Report, build_report, write_report
 from sb3_collapse.report.probe_outputs import probe_to_folder
-from sb3_collapse.report.reference import ReferenceCurves, load_reference_curves, reference_task_name
-from sb3_collapse.report.statistics import (
-    BandCurve,
-    GridCell,
-    ReportSettings,
-    VariantSummary,
-    aligned_returns,
-    last_evals_std_mean,
-    percentile_band,
-    stuck_in_collapse,
-    summarize,
-    transplant_grid,
-)
+from sb3_collapse.report.reference import load_reference_curves, reference_task_name
+from sb3_collapse.report.statistics import ReportSettings, stuck_in_collapse
 
 __all__ = [
-    "BandCurve",
     "FixedInputSettings",
-    "GridCell",
-    "ReferenceCurves",
     "Report",
     "ReportSettings",
     "Sweep",
     "Trial",
-    "VariantSummary",
-    "aligned_returns",
     "build_report",
     "film_to_folder",
-    "last_evals_std_mean",
     "load_reference_curves",
     "load_sweep",
-    "percentile_band",
     "probe_sweep",
     "probe_to_folder",
     "reference_task_name",
     "stuck_in_collapse",
-    "summarize",
-    "transplant_grid",
     "write_report",
 ]

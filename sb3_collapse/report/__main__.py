@@ -1,19 +1,11 @@
-"""
-Reports of a sweep folder (the paper's Figure 5, the table, the transplant grid): ``python -m sb3_collapse.report
---help``.
-
-    python -m sb3_collapse.report runs/                          # writes runs/report/, prints the table
-    python -m sb3_collapse.report runs/ --reference --out figs/  # with the published DrQ-v2 curves
-    python -m sb3_collapse.report runs/walker-walk_s0            # one run folder: its Figure 4
-
-Errors in the input print ``error: ...`` and exit with status 2.
-"""
+"""``python -m sb3_collapse.report``: the report of a sweep folder or of one run folder (``--help``); errors in the
+input print ``error: ...`` and exit with status 2."""
 
 from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from sb3_collapse.errors import InputError, cli_message, report_unwritable_outputs
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
@@ -46,9 +38,7 @@ class ReportFlags:
     tasks: tuple[str, ...] | None = setting(help="only these task folders; default: all", unit=None, nargs="+")
     variants: tuple[str, ...] | None = setting(help="only these variant folders; default: all", unit=None, nargs="+")
     collapse_tag: str = setting(
-        _REPORT.collapse_tag,
-        help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse'",
-        unit=None,
+        _REPORT.collapse_tag, help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse'", unit=None
     )
     collapse_threshold: float = setting(
         _REPORT.collapse_threshold,
@@ -56,10 +46,7 @@ class ReportFlags:
         unit=None,
     )
     collapse_checks: int = setting(
-        _REPORT.collapse_checks,
-        help="number of last collapse checks whose median is tested",
-        unit=None,
-        minimum=1,
+        _REPORT.collapse_checks, help="number of last collapse checks whose median is tested", unit=None, minimum=1
     )
     last_evals: int = setting(
         _REPORT.last_evals,
@@ -68,9 +55,7 @@ class ReportFlags:
         minimum=1,
     )
     success_return: float = setting(
-        _REPORT.success_return,
-        help="transplant grid: a seed succeeds when its final return is >= this",
-        unit=None,
+        _REPORT.success_return, help="transplant grid: a seed succeeds when its final return is >= this", unit=None
     )
     percentiles: tuple[float, float] = setting(
         tuple(_REPORT.percentiles),
@@ -155,14 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     check_arguments(parser, args, ReportFlags)
     if args.rollouts_per_variant and args.rollouts_variant is not None:
         parser.error("argument --rollouts-per-variant: not allowed with argument --rollouts-variant")
-    settings = ReportSettings(
-        collapse_tag=args.collapse_tag,
-        collapse_threshold=args.collapse_threshold,
-        collapse_checks=args.collapse_checks,
-        last_evals=args.last_evals,
-        success_return=args.success_return,
-        percentiles=(args.percentiles[0], args.percentiles[1]),
-    )
+    settings = ReportSettings(**{f.name: getattr(args, f.name) for f in fields(ReportSettings)})
+    settings.percentiles = (args.percentiles[0], args.percentiles[1])
     collapse = FixedInputSettings(
         pick_seed=args.pick_seed,
         failure_return=args.failure_return,
@@ -171,35 +150,23 @@ def main(argv: list[str] | None = None) -> int:
         fixed_samples=args.fixed_samples or None,
         device=args.device,
     )
-    if is_run_folder(args.sweep):
-        try:
-            trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
-        except InputError as error:
-            print(f"error: {cli_message(error, parser)}", file=sys.stderr)
-            return 2
-        print(f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations")
-        print("wrote " + ", ".join(str(path) for path in files))
-        return 0
     try:
-        report = write_report(
-            args.sweep,
-            out=args.out,
-            settings=settings,
-            reference=args.reference,
-            include_unfinished=args.include_unfinished,
-            tasks=args.tasks,
-            variants=args.variants,
-            progress=args.progress,
-            overwrite=args.overwrite,
-            collapse_settings=collapse,
-        )
+        if is_run_folder(args.sweep):
+            trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
+            print(
+                f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations"
+            )
+        else:
+            flags = (args.reference, args.include_unfinished, args.tasks, args.variants, args.progress, args.overwrite)
+            report = write_report(args.sweep, args.out, settings, *flags, collapse_settings=collapse)
+            print(report.markdown)
+            if report.grid:
+                print(grid_markdown(report.grid, settings.success_return))
+            files = report.files
     except InputError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
-    print(report.markdown)
-    if report.grid:
-        print(grid_markdown(report.grid, settings.success_return))
-    print("wrote " + ", ".join(str(path) for path in report.files))
+    print("wrote " + ", ".join(str(path) for path in files))
     return 0
 
 

@@ -1,14 +1,5 @@
-"""
-The paper's Figure 4 (walker-walk) and its appendix versions, Figures 8 (hopper-stand) and 9 (finger-spin): the
-collapse metrics of three agents over training, next to the evaluation return.
-
-Figure 4's caption: "The first row is a randomly picked well-performing agent achieving larger than
-[``PAPER.success_return``] rewards. The second row is a middle agent between goodness and badness. The third row is
-a randomly picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards."
-(:func:`pick_paper_agents`; :func:`pick_agents` is the other reading). The metrics are computed on one fixed
-observation set per task (:mod:`sb3_collapse.probe.fixed_inputs`), and the online metrics of the collapse metrics
-file in a figure of their own. The readings chosen: docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents.
-"""
+"""The paper's Figures 4, 8 and 9: the collapse metrics of three agents over training, beside the evaluation return.
+The readings: docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents."""
 
 from __future__ import annotations
 
@@ -50,17 +41,17 @@ FIGURE4_METRICS: tuple[tuple[str, str], ...] = (
     ("dead_units", "dead units"),
     ("grad_norm", "gradient norm"),
 )
-"""The metric columns of Figure 4, in order: collapse metric (``collapse/<layer>/<metric>``) -> axis label. The
-paper's "zeros" are "the number of zero activations, also called dead neurons": the dead units
-(:func:`~sb3_collapse.monitoring.metrics.dead_units`), a count, the layer's width in the axis label."""
+"""Figure 4's metric columns: metric -> axis label (the paper's "zeros", "the number of zero activations, also called
+dead neurons", are the dead units)."""
 FIGURE4_LAYERS = ("mlp1", "mlp2")
 """The layers of Figure 4 ("we only visualize the metrics of mlp1 and mlp2"; ``mlp0`` on request)."""
 BOUNDED_METRICS = ("correlation", "zero_fraction", "dead_fraction")
 """Metrics in [0, 1], drawn on that range."""
+_CENTRED = {"ha": "center", "va": "center", "fontsize": 8}
 ROLES = ("best", "middle", "worst")
-"""The rows of :func:`pick_agents`: highest, median and lowest final return."""
+"""The rows of :func:`pick_agents`."""
 PAPER_ROLES = ("well-performing", "middle", "poorly performing")
-"""The rows of Figures 4, 8, 9 (:func:`pick_paper_agents`), top to bottom."""
+"""The rows of Figures 4, 8, 9 (:func:`pick_paper_agents`)."""
 
 
 @dataclass
@@ -68,14 +59,13 @@ class AgentMetrics:
     """
     One row of Figure 4.
 
-    :param trial: the trial (evaluation curve, result)
-    :param role: ``"best"``, ``"middle"`` or ``"worst"`` (or ``"run"`` for a single run folder)
-    :param metrics: tag -> ``(frames, values)`` of its collapse metrics file (empty without one)
+    :param trial: the trial (``None``: a row without an agent)
+    :param role: the row's name (a role, or ``"run"`` for a single run folder)
+    :param metrics: tag -> ``(frames, values)``
     :param resets: frames of the reset rule's interventions
     :param escapes: frames of its escapes
-    :param absent: for a row without an agent (``trial`` is ``None``): what it says, e.g. "no middle agent among
-        20 seeds"
-    :param widths: layer -> its width in units (the axis label of the dead units), where known
+    :param absent: what a row without an agent says
+    :param widths: layer -> its width in units, where known
     """
 
     trial: Trial | None
@@ -94,24 +84,17 @@ class AgentMetrics:
 
 def pick_agents(trials: Sequence[Trial]) -> list[tuple[str, Trial]]:
     """
-    The agents of Figure 4 among finished trials with an evaluation: the highest final return, the median one
-    (the upper median of an even count), the lowest; ties go to the smaller seed. With fewer than three trials
-    the rows that would repeat a trial are left out.
+    The other reading of Figure 4's agents: the highest, the (upper) median and the lowest final return, ties to
+    the smaller seed, each trial once.
 
     :param trials: the trials of one task and variant
-    :return: ``(role, trial)`` for ``best``, ``middle``, ``worst``, each trial once
+    :return: ``(role, trial)`` pairs
     """
     ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.final_return, t.seed))
     if not ranked:
         return []
     picks = {"best": ranked[0], "middle": ranked[(len(ranked) - 1) // 2], "worst": ranked[-1]}
-    chosen, seen = [], set()
-    for role in ROLES:
-        trial = picks[role]
-        if id(trial) not in seen:
-            chosen.append((role, trial))
-            seen.add(id(trial))
-    return chosen
+    return [(role, picks[role]) for i, role in enumerate(ROLES) if picks[role] not in [picks[r] for r in ROLES[:i]]]
 
 
 @dataclass
@@ -121,8 +104,8 @@ class AgentPick:
 
     :param role: one of :data:`PAPER_ROLES`
     :param trial: the picked trial, ``None`` when its class is empty
-    :param candidates: the seeds of its class (the finished seeds whose final return falls in it)
-    :param seeds: the finished seeds with an evaluation among which it was picked
+    :param candidates: the seeds of its class
+    :param seeds: the number of seeds it was picked among
     :param pick_seed: the seed of the random pick
     """
 
@@ -142,11 +125,8 @@ def agent_class(
     final: float, success_return: float = PAPER.success_return, failure_return: float = PAPER.failure_return
 ) -> str:
     """
-    The class of an agent by its final return (Section 4.1: "well-performing agents achieving more than
-    [``PAPER.success_return``] rewards or poorly performing agents achieving less than [``PAPER.failure_return``]
-    rewards, and only a few are middle agents between them"). The bounds are those of ``probe sweep`` and the
-    transplant grid: well-performing ``>= success_return`` (Figure 3:
-    "successful (rewards >= [``PAPER.success_return``])"), poorly performing ``< failure_return``, middle in between.
+    The class of an agent (Section 4.1: "well-performing agents achieving more than [success_return] rewards or
+    poorly performing agents achieving less than [failure_return] rewards, and only a few are middle agents").
 
     :param final: the final return
     :param success_return: well-performing at least
@@ -167,19 +147,15 @@ def pick_paper_agents(
     failure_return: float = PAPER.failure_return,
 ) -> list[AgentPick]:
     """
-    The three agents of Figures 4, 8, 9 (Figure 4's caption: "a randomly picked well-performing agent achieving
-    larger than [``PAPER.success_return``] rewards", "a middle agent between goodness and badness", "a randomly
-    picked poorly performing agent achieving lower than [``PAPER.failure_return``] rewards"): the finished trials
-    with an evaluation, split by :func:`agent_class` of their final return (:attr:`Trial.final_return`), one trial
-    per class picked uniformly at random with ``numpy.random.default_rng([pick_seed, k])`` for the k-th class, over
-    its seeds in increasing order. See docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents.
+    The agents of Figures 4, 8, 9 (Figure 4's caption: "a randomly picked well-performing agent", "a middle agent
+    between goodness and badness", "a randomly picked poorly performing agent"): one finished trial per
+    :func:`agent_class`, picked with ``numpy.random.default_rng([pick_seed, k])`` for the k-th class.
 
     :param trials: the trials of one task and variant
-    :param pick_seed: seed of the random picks (recorded in the figure's title and rows)
+    :param pick_seed: seed of the random picks
     :param success_return: well-performing at least
     :param failure_return: poorly performing below
-    :return: one :class:`AgentPick` per class of :data:`PAPER_ROLES`, in that order; ``trial`` is ``None`` for an
-        empty class
+    :return: one :class:`AgentPick` per class of :data:`PAPER_ROLES` (``trial`` ``None`` for an empty class)
     """
     if not failure_return <= success_return:
         raise ValueError(f"failure_return must be <= success_return, got {failure_return:g} and {success_return:g}.")
@@ -196,12 +172,9 @@ def pick_paper_agents(
 
 def layer_widths(trial: Trial, layers: Sequence[str]) -> dict[str, int]:
     """
-    The widths of DrQ-v2's actor layers from a trial's settings file: ``mlp0`` its ``feature_dim`` (the 50-d
-    trunk), ``mlp1``, ``mlp2`` its ``hidden_dim`` (1024-unit ReLUs).
-
     :param trial: the trial
     :param layers: the layers wanted
-    :return: layer -> units, for the layers whose width the settings give
+    :return: layer -> units, from the trial's settings (``feature_dim``: mlp0, ``hidden_dim``: mlp1, mlp2)
     """
     config_path = trial.path / CONFIG_JSON
     config = read_json(config_path) if config_path.is_file() else {}
@@ -211,30 +184,22 @@ def layer_widths(trial: Trial, layers: Sequence[str]) -> dict[str, int]:
 
 def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS) -> list[AgentMetrics]:
     """
-    The rows of the online figure: each picked trial's collapse metrics file (its own replay batches at training
-    time, :func:`agent_metrics`), and a row that says so for an empty class.
-
     :param picks: :func:`pick_paper_agents`' picks
     :param layers: the layers read
-    :return: one row per pick
+    :return: one row of the online figure per pick (:func:`agent_metrics` of its trial)
     """
-    rows = []
-    for pick in picks:
-        if pick.trial is None:
-            rows.append(AgentMetrics(None, pick.role, absent=pick.absent))
-        else:
-            rows.append(agent_metrics(pick.trial, pick.role, layers))
-    return rows
+    return [
+        AgentMetrics(None, p.role, absent=p.absent) if p.trial is None else agent_metrics(p.trial, p.role, layers)
+        for p in picks
+    ]
 
 
 def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYERS) -> AgentMetrics:
     """
-    Read the collapse metrics and events of a trial.
-
     :param trial: the trial
     :param role: its row's name
     :param layers: the layers whose Figure 4 metrics are read
-    :return: its row
+    :return: its row: the collapse metrics and events of the trial
     :raises InputError: on a malformed file
     """
     tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
@@ -258,10 +223,7 @@ def _row_label(agent: AgentMetrics) -> str:
 
 
 def dead_units_label(widths: dict[str, int], layers: Sequence[str]) -> str:
-    """
-    The axis label of the dead units: ``"dead units (of 1024)"`` when the layers share a width,
-    ``"dead units (mlp0 of 50, mlp1 of 1024)"`` otherwise, ``"dead units"`` when no width is known.
-    """
+    """:return: the dead units' axis label: ``"dead units (of 1024)"``, ``"dead units (mlp0 of 50, mlp1 of 1024)"``"""
     known = {layer: widths[layer] for layer in layers if layer in widths}
     if not known:
         return "dead units"
@@ -285,18 +247,14 @@ def plot_collapse_metrics(
     source: str = COLLAPSE_METRICS_CSV,
 ) -> None:
     """
-    The paper's Figure 4: one row per agent, columns evaluation return, then each metric of
-    :data:`FIGURE4_METRICS` with one line per layer (dead units as a count, the layers' width in the axis label;
-    gradient norm on a log axis), the reset rule's resets and escapes as vertical lines. A row without an agent
-    (``trial`` ``None``) says why in its first panel. A figure-wide legend under the panels names the layers and
-    the event lines.
+    The paper's Figure 4: one row per agent; the evaluation return, then one panel per metric of
+    :data:`FIGURE4_METRICS`, a line per layer; resets and escapes as vertical lines.
 
     :param agents: the rows
     :param path: the PNG file to write
-    :param title: the figure's title (task, variant, which seeds, which inputs)
+    :param title: the figure's title
     :param layers: the layers drawn
-    :param source: where a missing metric other than the gradient norm would come from (in the panel's "no ... in"
-        text; the gradient norms come from the collapse metrics file)
+    :param source: where a missing metric other than the gradient norm would come from
     """
     if not agents:
         raise ValueError("agents must hold at least one agent to plot.")
@@ -314,7 +272,7 @@ def plot_collapse_metrics(
     for row, agent in zip(axes, agents):
         ax = row[0]
         if agent.trial is None:
-            ax.text(0.5, 0.5, agent.absent, ha="center", va="center", transform=ax.transAxes, fontsize=8, wrap=True)
+            ax.text(0.5, 0.5, agent.absent, transform=ax.transAxes, wrap=True, **_CENTRED)
             ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
         else:
             ax.plot(agent.trial.frames, agent.trial.returns, color=RETURN_COLOR, lw=1.4)
@@ -340,16 +298,7 @@ def plot_collapse_metrics(
                     ax.set_ylim(-0.02 * full_scale, 1.02 * full_scale)
             if not drawn and agent.trial is not None:
                 where = COLLAPSE_METRICS_CSV if metric == "grad_norm" else source  # gradient norms: training time
-                ax.text(
-                    0.5,
-                    0.5,
-                    f"no {metric} in\n{where}",
-                    ha="center",
-                    va="center",
-                    transform=ax.transAxes,
-                    fontsize=8,
-                    color="0.4",
-                )
+                ax.text(0.5, 0.5, f"no {metric} in\n{where}", transform=ax.transAxes, color="0.4", **_CENTRED)
             ax.set_ylabel(label, fontsize=8)
         for ax in row:
             _mark_events(ax, agent)
@@ -371,27 +320,17 @@ def plot_collapse_metrics(
     plt.close(fig)
 
 
-def figure_title(task: str, variant: str, agents: Sequence[AgentMetrics]) -> str:
-    """The title of a Figure 4 of :func:`pick_agents`' rows: task, variant and the seeds of each row with their final
-    return."""
-    rows = ", ".join(f"{a.role} seed {a.trial.seed} ({a.final_return:.0f})" for a in agents if a.trial is not None)
-    return f"{task} / {variant}: collapse metrics over training, {rows} (final return)"
-
-
 ONLINE_INPUTS = "each agent's own replay batch at training time (online metrics)"
 """What the online figure's metrics are computed on."""
 
 
 def paper_figure_title(task: str, variant: str, picks: Sequence[AgentPick], inputs: str) -> str:
     """
-    The title of Figures 4, 8, 9: task, variant, each row's seed and final return (or that its class is empty),
-    the seed of the random pick, and which inputs the metrics are computed on.
-
     :param task: the task
     :param variant: the variant
     :param picks: :func:`pick_paper_agents`' picks
-    :param inputs: what the metrics are computed on (:data:`ONLINE_INPUTS`, or the fixed observation set)
-    :return: the title, two lines
+    :param inputs: what the metrics are computed on
+    :return: the two-line title of Figures 4, 8, 9: each row's seed and final return, the pick seed, the inputs
     """
     rows = "; ".join(
         pick.absent if pick.trial is None else f"{pick.role}: seed {pick.trial.seed} ({pick.trial.final_return:.0f})"
@@ -406,21 +345,17 @@ def paper_figure_title(task: str, variant: str, picks: Sequence[AgentPick], inpu
 
 def run_folder_trial(run_dir: str | Path) -> Trial:
     """
-    Read a single run folder of ``python -m sb3_collapse.train`` (``runs/walker-walk_s0``) as a trial: task,
-    variant and seed from its settings file.
-
-    :param run_dir: the run folder
-    :return: the trial (finished or not; an unfinished run's partial evaluation curve is read)
+    :param run_dir: a run folder of ``python -m sb3_collapse.train``
+    :return: it as a trial (task, variant and seed from its settings; a partial curve when unfinished)
     :raises InputError: when the folder lacks the settings or the evaluation file
     """
     run_dir = Path(run_dir)
-    config_path = run_dir / CONFIG_JSON
-    if not (run_dir / EVAL_CSV).exists() or not config_path.exists():
+    if not is_run_folder(run_dir):
         raise InputError(
             f"{run_dir} is not a run folder of python -m sb3_collapse.train: it needs {CONFIG_JSON} and {EVAL_CSV}.",
             parameter="sweep",
         )
-    config = read_json(config_path)
+    config = read_json(run_dir / CONFIG_JSON)
     task = str(config.get("env", run_dir.name))
     variant = str(config.get("variant") or config.get("algorithm") or "drqv2")
     trial = load_trial(task, variant, int(config.get("seed", 0)), run_dir, partial=True)
@@ -446,19 +381,16 @@ def run_title(trial: Trial) -> str:
 @dataclass
 class FixedInputSettings:
     """
-    How Figures 4, 8, 9 are computed on the fixed observation set, and how their agents are picked.
+    How Figures 4, 8, 9 pick their agents and compute on the fixed observation set.
 
-    :param pick_seed: seed of the random pick of the three agents (:func:`pick_paper_agents`)
-    :param failure_return: a final return below it is poorly performing (``PAPER.failure_return``; the
-        well-performing bound is the report's ``success_return``)
-    :param rollouts: the rollouts file of the observations, for the tasks it was recorded on (``None``: those of
-        ``rollouts_variant``)
-    :param rollouts_variant: the variant whose rollouts (``<sweep>/probe/<task>_<variant>/rollouts.npz``) are the
-        fixed set of every variant of the task (the baseline, ``drqv2``); ``None``: each variant's own rollouts
-    :param fixed_samples: observations drawn from the rollouts (without replacement, with ``sample_seed``;
-        ``None``: all)
+    :param pick_seed: seed of the random pick of the three agents
+    :param failure_return: a final return below it is poorly performing
+    :param rollouts: the rollouts file of the observations, for the tasks it was recorded on
+    :param rollouts_variant: the variant whose ``probe sweep`` rollouts are every variant's fixed set (``None``: each
+        variant's own)
+    :param fixed_samples: observations drawn from the rollouts (``None``: all)
     :param sample_seed: seed of that draw
-    :param device: where the checkpoints run (``"auto"``: CUDA when available)
+    :param device: where the checkpoints run
     :param batch_size: observations per forward pass
     :param layers: the layers measured and drawn
     """
@@ -492,7 +424,7 @@ class FixedInputSettings:
     def load(self, path: str | Path) -> FixedInputs:
         """
         :param path: a rollouts file
-        :return: its fixed set (:func:`~sb3_collapse.probe.fixed_inputs.load_fixed_inputs` with these settings)
+        :return: its fixed set with these settings
         :raises InputError: for a file that is missing or not a rollouts file
         """
         try:
@@ -502,28 +434,24 @@ class FixedInputSettings:
 
 
 def default_rollouts(sweep_dir: str | Path, task: str, variant: str) -> Path:
-    """:return: the rollouts file of ``probe sweep`` for a task and variant of a sweep (the fixed set of every variant
-    of the task when ``variant`` is :attr:`FixedInputSettings.rollouts_variant`)"""
+    """:return: the rollouts file of ``probe sweep`` for a task and variant of a sweep"""
     return Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) / ROLLOUTS_NAME
 
 
 FIXED_METRICS = ("numerical_rank", "correlation", "dead_units")
-"""The columns of Figure 4 taken from the fixed set (the gradient norm stays the training-time one)."""
+"""The columns of Figure 4 taken from the fixed set (the gradient norm is the training-time one)."""
 
 
 def fixed_agent_rows(
     picks: Sequence[AgentPick], inputs: FixedInputs, settings: FixedInputSettings, progress: bool = False
 ) -> tuple[list[AgentMetrics], dict[int, FixedMetrics]]:
     """
-    The rows of Figures 4, 8, 9: for each picked agent, rank, correlation and dead units of its snapshots
-    on the fixed set, its training-time gradient norms, return curve, resets and escapes; a row that says so for
-    an empty class.
-
-    :param picks: :func:`~sb3_collapse.report.collapse_figure.pick_paper_agents`' picks
+    :param picks: :func:`pick_paper_agents`' picks
     :param inputs: the fixed set
     :param settings: how to compute
     :param progress: progress bars over the checkpoints
-    :return: the rows, and seed -> its fixed-set metrics (every metric of :func:`layer_metrics`)
+    :return: the rows of Figures 4, 8, 9 (:data:`FIXED_METRICS` of each snapshot on ``inputs``, the training-time
+        gradient norms), and seed -> its fixed-set metrics
     """
     rows, computed = [], {}
     for pick in picks:
@@ -531,22 +459,12 @@ def fixed_agent_rows(
             rows.append(AgentMetrics(None, pick.role, absent=pick.absent))
             continue
         online = agent_metrics(pick.trial, pick.role, settings.layers)
-        fixed = fixed_metrics(
-            snapshot_files(pick.trial.path),
-            inputs,
-            settings.layers,
-            get_device(settings.device),
-            settings.batch_size,
-            progress,
-            f"seed {pick.trial.seed} checkpoints",
-        )
+        how = (inputs, settings.layers, get_device(settings.device), settings.batch_size, progress)
+        fixed = fixed_metrics(snapshot_files(pick.trial.path), *how, f"seed {pick.trial.seed} checkpoints")
         computed[pick.trial.seed] = fixed
-        online.metrics = {tag: value for tag, value in online.metrics.items() if tag.endswith("/grad_norm")} | {
-            metric_tag(layer, metric): fixed.metrics[metric_tag(layer, metric)]
-            for layer in settings.layers
-            for metric in FIXED_METRICS
-            if metric_tag(layer, metric) in fixed.metrics
-        }
+        tags = [metric_tag(layer, metric) for layer in settings.layers for metric in FIXED_METRICS]
+        online.metrics = {tag: value for tag, value in online.metrics.items() if tag.endswith("/grad_norm")}
+        online.metrics |= {tag: fixed.metrics[tag] for tag in tags if tag in fixed.metrics}
         online.widths = fixed.widths or online.widths
         rows.append(online)
     return rows, computed
@@ -557,8 +475,7 @@ FIXED_CSV_COLUMNS = ("role", "seed", "final_return", "checkpoint", "frame", "tag
 
 def write_fixed_metrics_csv(path: Path, picks: Sequence[AgentPick], computed: dict[int, FixedMetrics]) -> None:
     """
-    Write every fixed-set metric of the picked agents, long format: role, seed, final return, checkpoint file,
-    frame, tag, value.
+    Write every fixed-set metric of the picked agents, long format.
 
     :param path: the CSV file
     :param picks: the picks

@@ -1,17 +1,11 @@
-"""
-The paper's Figure 2 and Tables 1-6 for one task and variant of a sweep folder whose trials saved snapshots
-(``python -m sb3_collapse.probe sweep``): the probe's test MSE of each layer against training frames, for
-well- and poorly performing agents.
-
-The paper: "we plot the probing MSE for three environment state components: torso velocity, joint orientation, and
-torso height". The columns (:data:`FIGURE2_COLUMNS`) are the reward's inputs of those names, then state-vector
-readings as extra columns; the steps, the columns of each domain and the reading chosen for "joint orientation":
-docs/figures.md#figure-2-and-tables-1-6-probing-over-training.
-"""
+"""The paper's Figure 2 and Tables 1-6 of a sweep's task and variant (``python -m sb3_collapse.probe sweep``): "we
+plot the probing MSE for three environment state components: torso velocity, joint orientation, and torso height".
+The columns and readings: docs/figures.md#figure-2-and-tables-1-6-probing-over-training."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
@@ -30,9 +24,8 @@ from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
-from sb3_collapse.probe.checkpoints import load_checkpoint
-from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, record
-from sb3_collapse.probe.probing import MIN_EPISODES, ProbeSettings, probe_each_checkpoint, split_by_episode
+from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions
+from sb3_collapse.probe.probing import ProbeSettings, probe_each_checkpoint, split_by_episode
 from sb3_collapse.probe.rollouts import REWARD_PREFIX, Rollouts
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
@@ -45,9 +38,10 @@ from sb3_collapse.protocol import (
 )
 from sb3_collapse.report.collapse_figure import PAPER_ROLES, agent_class
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
+from sb3_collapse.report.probe_outputs import checked_record_options, record_rollouts
 from sb3_collapse.report.statistics import across_seed_std, budget_frames, stage_indices, stages_caption
 from sb3_collapse.report.style import frames_axis, layer_style
-from sb3_collapse.report.tables import write_csv
+from sb3_collapse.report.tables import markdown_table, write_csv
 from sb3_collapse.staged_outputs import StagedOutputs
 
 ORIENTATION = "orientation (torso upright)"
@@ -70,7 +64,7 @@ FIGURE2_COLUMNS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
         ("rootz (state)", ("position_0",)),
     ),
 }
-"""Domain -> the columns of Figure 2: title and the probe targets (``probe.csv`` ``component``) it averages."""
+"""Domain -> the columns of Figure 2: title and the probe targets it averages."""
 ROWS = (PAPER_ROLES[0], PAPER_ROLES[2])
 """The rows of Figure 2: well-performing and poorly performing agents (:func:`agent_class`)."""
 
@@ -78,10 +72,9 @@ ROWS = (PAPER_ROLES[0], PAPER_ROLES[2])
 def figure2_columns(task: str, components: Sequence[str], groups: Sequence[str]) -> list[tuple[str, tuple[str, ...]]]:
     """
     :param task: the task, ``<domain>-<task>``
-    :param components: the probe targets (``probe.csv`` ``component``)
+    :param components: the probe targets
     :param groups: the state component of each target
-    :return: the columns whose targets all exist; for a domain without :data:`FIGURE2_COLUMNS`, one column per
-        reward input (``reward:`` groups), then one per state component
+    :return: the columns whose targets all exist (another domain: one per reward input, then per state component)
     """
     domain = task.split("-")[0]
     available = set(components)
@@ -97,14 +90,14 @@ def figure2_columns(task: str, components: Sequence[str], groups: Sequence[str])
 @dataclass
 class PanelCurve:
     """
-    One line of Figure 2: a layer in one panel (row, column).
+    One line of Figure 2: a layer in one panel.
 
-    :param row: ``"well-performing"`` or ``"poorly performing"``
+    :param row: one of :data:`ROWS`
     :param column: the column's title
     :param layer: the layer
     :param frames: the training frames shared by every agent of the row
     :param values: ``(agents, frames)`` each agent's mean test MSE over the column's targets
-    :param agents: the agents' labels (e.g. ``seed 3``)
+    :param agents: the agents' labels
     """
 
     row: str
@@ -142,26 +135,19 @@ def panel_curves(
         frames = np.array(sorted(set.intersection(*frame_sets)), dtype=np.int64)
         for title, names in columns:
             for layer in layers:
-                matrix = np.array(
-                    [
-                        [np.mean([values[(agent, layer, int(f), name)] for name in names]) for f in frames]
-                        for agent in members
-                    ],
-                    dtype=np.float64,
-                ).reshape(len(members), len(frames))
+                matrix = [[np.mean([values[(a, layer, int(f), n)] for n in names]) for f in frames] for a in members]
+                matrix = np.array(matrix, dtype=np.float64).reshape(len(members), len(frames))
                 curves.append(PanelCurve(row, title, layer, frames, matrix, members))
     return curves
 
 
 def plot_figure2(curves: Sequence[PanelCurve], path: Path, title: str) -> None:
     """
-    The paper's Figure 2: rows well / poorly performing agents, one column per state column, one line per layer
-    (mean over the row's agents; colours and line styles of :mod:`sb3_collapse.report.style`), a shared legend
-    under the panels.
+    The paper's Figure 2: a row per class of agents, a column per state column, a line per layer (mean over agents).
 
     :param curves: :func:`panel_curves`
     :param path: the PNG file to write
-    :param title: the figure's title (task, variant, agents)
+    :param title: the figure's title
     """
     rows = list(dict.fromkeys(c.row for c in curves))
     columns = list(dict.fromkeys(c.column for c in curves))
@@ -191,18 +177,19 @@ def plot_figure2(curves: Sequence[PanelCurve], path: Path, title: str) -> None:
 
 
 TABLE_NUMBERS = {(row, column): 1 + 2 * column + row for row in range(2) for column in range(3)}
-"""(row, column) of the paper's Figure 2 -> its table in the paper: Table 1 is subplot (1, 1), Table 2 (2, 1), Table 3
-(1, 2)... Columns are those of :data:`PAPER_COLUMNS`; the other columns' tables have no number."""
+"""(row, column of :data:`PAPER_COLUMNS`) of Figure 2 -> its table in the paper (Table 1: subplot (1, 1))."""
+
+
+TABLE_COLUMNS = ("table", "row", "column", "layer", "agents", "stage", "frame", "std")
+"""The columns of ``tables_1_6.csv``."""
 
 
 def stage_table_rows(curves: Sequence[PanelCurve], budget_frames: int | None = None) -> list[dict]:
     """
-    Tables 1-6: per panel and layer, the std across the row's agents (ddof=1; nan with one agent) at the four
-    training stages (:func:`~sb3_collapse.report.statistics.stage_indices`).
-
     :param curves: :func:`panel_curves`
     :param budget_frames: the agents' budget, in frames (``None``: the paper's)
-    :return: rows ``table, row, column, layer, agents, stage, frame, std``
+    :return: Tables 1-6: per panel, layer and stage, the std across the row's agents (rows ``table, row, column,
+        layer, agents, stage, frame, std``)
     """
     table_rows = []
     for curve in curves:
@@ -211,42 +198,38 @@ def stage_table_rows(curves: Sequence[PanelCurve], budget_frames: int | None = N
         stages = stage_indices(curve.frames, budget_frames) if len(curve.frames) else []
         stds = across_seed_std(curve.values[:, stages], axis=0) if stages else []
         for stage, (index, std) in enumerate(zip(stages, stds)):
-            table_rows.append(
-                {
-                    "table": number,
-                    "row": curve.row,
-                    "column": curve.column,
-                    "layer": curve.layer,
-                    "agents": len(curve.agents),
-                    "stage": stage,
-                    "frame": int(curve.frames[index]),
-                    "std": float(std),
-                }
-            )
+            values = (number, curve.row, curve.column, curve.layer, len(curve.agents), stage, int(curve.frames[index]))
+            table_rows.append(dict(zip(TABLE_COLUMNS, (*values, float(std)))))
     return table_rows
 
 
-def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
-    """Tables 1-6 as Markdown: one table per panel, a row per layer, a column per stage."""
-    lines = ["# Tables 1-6: std of the probe's test MSE across agents at four training stages", ""]
-    panels: dict[tuple, list[Mapping[str, Any]]] = defaultdict(list)
+def stage_panels(table_rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, list[str], list[list[Any]]]]:
+    """
+    :param table_rows: :func:`stage_table_rows`, or the rows of its CSV file
+    :return: Tables 1-6, numbered ones first: ``(title, header, rows)``, a row per layer with its std per stage
+    """
+    panels: dict[tuple[str, str, str], list[Mapping[str, Any]]] = defaultdict(list)
     for r in table_rows:
-        panels[(r["table"], r["row"], r["column"])].append(r)
-    numbered_first = sorted(panels.items(), key=lambda item: (item[0][0] == "", str(item[0][0]).zfill(3)))
+        panels[(str(r["table"]), r["row"], r["column"])].append(r)
+    tables = []
+    numbered_first = sorted(panels.items(), key=lambda item: (not item[0][0], item[0][0].zfill(3)))
     for (number, row, column), entries in numbered_first:
-        frames = list(dict.fromkeys(e["frame"] for e in entries))
-        label = f"Table {number}" if number != "" else "Table"
-        agents = entries[0]["agents"]
-        lines += [f"## {label}: {row} agents ({agents}), {column}", ""]
-        lines.append("| layer | " + " | ".join(f"{f:,} frames" for f in frames) + " |")
-        lines.append("|---|" + "---|" * len(frames))
-        by_layer: dict[str, dict[int, float]] = defaultdict(dict)
+        frames = list(dict.fromkeys(int(e["frame"]) for e in entries))
+        stds: dict[str, dict[int, float]] = defaultdict(dict)
         for e in entries:
-            by_layer[e["layer"]][e["frame"]] = e["std"]
-        for layer, stds in by_layer.items():
-            cells = ["-" if np.isnan(stds[f]) else f"{stds[f]:.3f}" for f in frames]
-            lines.append(f"| {layer} | " + " | ".join(cells) + " |")
-        lines.append("")
+            stds[e["layer"]][int(e["frame"])] = float(e["std"] or "nan")
+        title = f"Table {number}".rstrip() + f": {row} agents ({entries[0]['agents']}), {column}"
+        header = ["layer", *(f"std at {f:,} frames" for f in frames)]
+        tables.append((title, header, [[layer, *(by.get(f, math.nan) for f in frames)] for layer, by in stds.items()]))
+    return tables
+
+
+def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
+    """:return: Tables 1-6 as Markdown (:func:`stage_panels`)"""
+    lines = ["# Tables 1-6: std of the probe's test MSE across agents at four training stages", ""]
+    for title, header, rows in stage_panels(table_rows):
+        body = [[row[0], *("-" if math.isnan(v) else f"{v:.3f}" for v in row[1:])] for row in rows]
+        lines += [f"## {title}", "", *markdown_table(header, body), ""]
     lines.append(stages_caption("shared snapshots") + " Std across agents, ddof=1 (- with one agent).")
     return "\n".join(lines) + "\n"
 
@@ -259,9 +242,7 @@ OUTPUT_FILES = (FIGURE2_PNG, TABLES_1_6_CSV, TABLES_MD, PROBE_CSV, ROLLOUTS_NAME
 
 
 def split_agents(
-    trials: Sequence[Trial],
-    success_return: float = PAPER.success_return,
-    failure_return: float = PAPER.failure_return,
+    trials: Sequence[Trial], success_return: float = PAPER.success_return, failure_return: float = PAPER.failure_return
 ) -> tuple[list[Trial], list[Trial]]:
     """
     :param trials: finished trials
@@ -289,8 +270,8 @@ def probe_sweep(
     jobs: int = 1,
 ) -> dict[str, Any]:
     """
-    Figure 2 and Tables 1-6 of one task and variant of a sweep, written into ``out`` only when everything succeeded
-    (the steps: docs/figures.md#figure-2-and-tables-1-6-probing-over-training).
+    Figure 2 and Tables 1-6 of one task and variant of a sweep, written into ``out`` only when everything succeeded;
+    a damaged trial is listed (``damaged``), not probed. The steps: docs/figures.md.
 
     :param sweep_dir: the sweep folder
     :param task: its task folder, e.g. ``"walker-walk"``
@@ -298,12 +279,12 @@ def probe_sweep(
     :param out: the output folder (default ``<sweep>/probe/<task>_<variant>``)
     :param settings: the probe's settings
     :param rollouts_path: rollouts to probe on (``None``: record them from the best well-performing seed)
-    :param record_options: how to record (``env`` and the pixel settings come from the recording checkpoint)
+    :param record_options: how to record
     :param success_return: final return of a well-performing agent, at least
     :param failure_return: final return of a poorly performing agent, below
     :param overwrite: replace a previous run's outputs in ``out``
     :param command: the command line, for the summary
-    :param jobs: checkpoints probed at once (:func:`~sb3_collapse.probe.probing.probe_each_checkpoint`)
+    :param jobs: checkpoints probed at once
     :return: the summary (as written to ``summary.json``)
     :raises InputError: for bad input (nothing written then)
     """
@@ -335,6 +316,7 @@ def probe_sweep(
                 {"seed": t.seed, "final_return": t.final_return} for t in sweep.finished if t.seed not in files
             ],
             "unfinished": [t.seed for t in sweep.unfinished],
+            "damaged": [{"seed": t.seed, "reason": t.reason} for t in sweep.unfinished if t.reason],
             "rollouts": {"recorded_from": recorded_from, "samples": len(rollouts), "episodes": rollouts.n_episodes},
             "columns": {title: list(targets) for title, targets in columns},
             "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
@@ -343,6 +325,8 @@ def probe_sweep(
         }
         write_json_atomically(staged.path(SUMMARY_JSON), summary)
         written = staged.commit()
+    for damaged in summary["damaged"]:
+        print(f"Not probed: seed {damaged['seed']}: {damaged['reason']}")
     print("Wrote " + ", ".join(str(f) for f in written))
     return summary
 
@@ -355,22 +339,13 @@ def _sweep_rollouts(
     settings: ProbeSettings,
     staged: StagedOutputs,
 ) -> tuple[Rollouts, str]:
-    """
-    The rollouts to probe on: loaded from ``rollouts_path``, or recorded from the first well-performing agent's final
-    model (its last checkpoint where the model is missing) and saved into ``staged``.
-
-    :return: ``(rollouts, where they come from)``
-    """
+    """:return: the rollouts to probe on (``rollouts_path``, or recorded from the best agent's final model or last
+    checkpoint), and where they come from"""
     if rollouts_path is not None:
         return Rollouts.load(rollouts_path), str(rollouts_path)
     well = agents[0][0]
-    source = well.path / FINAL_MODEL
-    source = source if source.exists() else files[well.seed][-1]
-    recorder = load_checkpoint(source, device=get_device(settings.device))
-    rollouts = record(recorder, record_options, settings.progress)
-    del recorder
-    rollouts.save(staged.path(ROLLOUTS_NAME))
-    return rollouts, str(source)
+    source = well.path / FINAL_MODEL if (well.path / FINAL_MODEL).exists() else files[well.seed][-1]
+    return record_rollouts(source, get_device(settings.device), record_options, settings, staged), str(source)
 
 
 def _probe_agents(
@@ -380,21 +355,11 @@ def _probe_agents(
     settings: ProbeSettings,
     jobs: int,
 ) -> list[dict[str, Any]]:
-    """
-    Probe every checkpoint of every agent on ``rollouts``.
-
-    :return: the result rows of every checkpoint, agent by agent, each with its agent, its row and its final return
-    """
+    """:return: the probe's rows of every checkpoint of every agent, with its agent, row and final return"""
     split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
     work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
-    per_checkpoint = probe_each_checkpoint(
-        [path for _, _, path in work],
-        [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work],
-        rollouts,
-        split,
-        settings,
-        jobs,
-    )
+    labels = [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work]
+    per_checkpoint = probe_each_checkpoint([path for _, _, path in work], labels, rollouts, split, settings, jobs)
     for (trial, which, _), result_rows in zip(work, per_checkpoint):
         for row in result_rows:
             row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=trial.final_return)
@@ -412,13 +377,8 @@ def _sweep_agents(
     failure_return: float,
     jobs: int,
 ) -> tuple[Sweep, list[tuple[Trial, str]], dict[int, list[Path]]]:
-    """
-    Check :func:`probe_sweep`'s arguments and the sweep before any work.
-
-    :return: the sweep, its agents with their row of Figure 2 (:data:`ROWS`), the well-performing ones first, and
-        seed -> the agent's snapshots
-    :raises InputError: naming the bad argument
-    """
+    """:return: the sweep, its agents with their row of Figure 2 (the well-performing first) and seed -> snapshots,
+    :func:`probe_sweep`'s arguments checked before any work (:raises InputError: naming the bad one)"""
     settings.validate()
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise InputError(f"jobs must be an integer >= 1, got {jobs!r}.", parameter="jobs")
@@ -456,11 +416,7 @@ def _sweep_agents(
                 "rollouts from: pass rollouts_path (python -m sb3_collapse.probe record GOOD.zip).",
                 parameter="rollouts_path",
             )
-        record_options.check()
-        if record_options.episodes < MIN_EPISODES:
-            raise InputError(
-                f"episodes must be >= {MIN_EPISODES}, got {record_options.episodes}.", parameter="episodes"
-            )
+        checked_record_options(record_options)
     return sweep, agents, files
 
 
@@ -472,11 +428,7 @@ def _write_figure2(
     variant: str,
     staged: StagedOutputs,
 ) -> list[tuple[str, tuple[str, ...]]]:
-    """
-    Write Figure 2, Tables 1-6 and ``probe.csv`` into the staged folder.
-
-    :return: Figure 2's columns (:func:`figure2_columns`)
-    """
+    """Write Figure 2, Tables 1-6 and ``probe.csv`` into ``staged``; :return: Figure 2's columns"""
     names, groups, _ = rollouts.targets()
     columns = figure2_columns(task, names, groups)
     curves = panel_curves(rows, {f"seed {t.seed}": which for t, which in agents}, columns)

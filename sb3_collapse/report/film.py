@@ -1,9 +1,5 @@
-"""
-The paper's Figures 6 and 7 (``python -m sb3_collapse.probe film``): a filmstrip PNG (one row per checkpoint and
-episode seed, every ``every_frames``-th frame, with the action values plotted under each strip, so that a collapsed
-agent's constant action shows), an animated GIF per row, and the actions as CSV, from the films of
-:mod:`sb3_collapse.probe.film`.
-"""
+"""The paper's Figures 6 and 7 (``python -m sb3_collapse.probe film``): a filmstrip PNG with the actions under each
+strip, an animated GIF per film and the actions as CSV. See docs/figures.md."""
 
 from __future__ import annotations
 
@@ -18,7 +14,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 from PIL import Image
 from stable_baselines3.common.utils import get_device
-from tqdm.auto import tqdm
 
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
@@ -26,6 +21,7 @@ from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, Film, film_episode
 from sb3_collapse.probe.pipeline import check_checkpoint_files
 from sb3_collapse.probe.rollouts import resolve_env_config
+from sb3_collapse.report.loading import progress_bar
 from sb3_collapse.report.style import OKABE_ITO, frames_axis
 from sb3_collapse.staged_outputs import StagedOutputs
 
@@ -42,8 +38,7 @@ def check_film_arguments(frames: int, size: int, every_frames: int) -> None:
 
 def plot_filmstrip(films: Sequence[Film], path: Path, every_frames: int = STRIP_EVERY_FRAMES, title: str = "") -> None:
     """
-    The filmstrip: per film, a row of pictures every ``every_frames`` frames (frame number under each) and, under
-    it on the same frame axis, each action dimension against frames (one colour per dimension).
+    The filmstrip: per film, a picture every ``every_frames`` frames and, under it, each action dimension.
 
     :param films: the films (one row each)
     :param path: the PNG file to write
@@ -74,13 +69,9 @@ def plot_filmstrip(films: Sequence[Film], path: Path, every_frames: int = STRIP_
         strip_ax.tick_params(labelsize=7, length=2)
         strip_ax.set_title(film.label, fontsize=9, loc="left")
         for dimension in range(film.actions.shape[1]):
+            color = OKABE_ITO[dimension % len(OKABE_ITO)]
             action_ax.step(
-                film.frames,
-                film.actions[:, dimension],
-                where="post",
-                lw=1.1,
-                color=OKABE_ITO[dimension % len(OKABE_ITO)],
-                label=f"{dimension}",
+                film.frames, film.actions[:, dimension], where="post", lw=1.1, color=color, label=f"{dimension}"
             )
         action_ax.set_xlim(*limits)
         action_ax.set_ylim(-1.1, 1.1)
@@ -121,14 +112,8 @@ def write_actions_csv(films: Sequence[Film], path: Path) -> None:
         writer.writerow(["film", "frame", "reward", *(f"action_{dimension}" for dimension in range(dims))])
         for film in films:
             for frame, reward, action in zip(film.frames, film.rewards, film.actions):
-                writer.writerow(
-                    [
-                        film.label,
-                        int(frame),
-                        "" if np.isnan(reward) else float(reward),
-                        *("" if np.isnan(a) else float(a) for a in action),
-                    ]
-                )
+                values = ("" if np.isnan(v) else float(v) for v in (reward, *action))
+                writer.writerow([film.label, int(frame), *values])
 
 
 FILMSTRIP_PNG = "filmstrip.png"
@@ -150,8 +135,7 @@ def film_to_folder(
     progress: bool = True,
 ) -> list[Path]:
     """
-    ``python -m sb3_collapse.probe film``: film every checkpoint from each episode seed and write ``filmstrip.png``,
-    ``<checkpoint>_seed<k>.gif`` per film and ``actions.csv`` into ``out`` (staged: all or nothing).
+    ``python -m sb3_collapse.probe film``: film every checkpoint from each episode seed into ``out`` (all or nothing).
 
     :param checkpoint_paths: the agents (full models or snapshots)
     :param out: the output folder
@@ -174,16 +158,13 @@ def film_to_folder(
     labels = checkpoint_labels(list(checkpoint_paths))
     films = []
     with StagedOutputs(out, OUTPUT_FILES, ACTIONS_CSV, overwrite=overwrite, error=InputError) as staged:
-        bar = tqdm(total=len(labels) * len(seeds), desc="filming", unit="episode", disable=not progress)
-        for path, label in zip(checkpoint_paths, labels):
+        for path, label in progress_bar(zip(checkpoint_paths, labels), "filming", "checkpoint", progress):
             checkpoint = load_checkpoint(path, device=get_device(device))
             env_config = resolve_env_config(checkpoint.env_config, task_id=env)
             for seed in seeds:
                 name = f"{label} ({checkpoint.frames:,} training frames), episode seed {seed}"
                 films.append(film_episode(checkpoint.model, env_config, name, frames, size, seed))
                 write_gif(films[-1], staged.path(f"{label.replace('/', '_')}_seed{seed}.gif"))
-                bar.update()
-        bar.close()
         task = films[0].task
         plot_filmstrip(
             films,

@@ -1,10 +1,5 @@
-"""
-The top of the report: the paper's headline numbers beside the sweep's (Section 5.2, "Results",
-:func:`headline_rows`), Proposition 1's predicted escape probability beside what the rule did
-(:func:`proposition1_rows`), and what Figure 5 compares (:func:`figure5_curves`). Proportions get a Wilson score
-interval, the mean std a percentile bootstrap over seeds (fixed seed). The readings:
-docs/figures.md#figure-5-the-headline-numbers-and-proposition-1.
-"""
+"""The top of the report: the paper's headline numbers and Proposition 1 beside the sweep's, and Figure 5's curves.
+The readings: docs/figures.md#figure-5-the-headline-numbers-and-proposition-1."""
 
 from __future__ import annotations
 
@@ -23,30 +18,27 @@ from sb3_collapse.report.statistics import (
     ReportSettings,
     VariantSummary,
     aligned_returns,
+    band_curve,
     last_evals_std_mean,
     transplant_sources,
-    variant_curves,
 )
+from sb3_collapse.report.tables import markdown_table
 
 CONFIDENCE = 0.95
 """The confidence of every interval of the headline and of Proposition 1."""
 BOOTSTRAP_RESAMPLES = 2000
-"""Resamples of the bootstrap interval of the mean std."""
-BASELINE_VARIANT = "drqv2"
-RULE_VARIANT = "drqv2+reset"
-"""The variants of the paper's Figure 5: DrQ-v2, and DrQ-v2 plus the rule (reset from scratch)."""
+BASELINE_VARIANT, RULE_VARIANT = "drqv2", "drqv2+reset"
+"""The variants of the paper's Figure 5: DrQ-v2, and DrQ-v2 plus the rule."""
 
 Interval = tuple[float, float]
 
 
 def wilson_interval(successes: int, trials: int, confidence: float = CONFIDENCE) -> Interval:
     """
-    The Wilson score interval of a proportion.
-
     :param successes: the count, ``0 <= successes <= trials``
     :param trials: the number of trials
     :param confidence: the confidence level, in (0, 1)
-    :return: ``(low, high)`` in [0, 1]; ``(nan, nan)`` without trials
+    :return: the Wilson score interval ``(low, high)``; ``(nan, nan)`` without trials
     """
     if not 0 <= successes <= trials:
         raise ValueError(f"successes must be in [0, trials], got {successes} of {trials}.")
@@ -64,11 +56,9 @@ def wilson_interval(successes: int, trials: int, confidence: float = CONFIDENCE)
 
 def escape_probability(stuck_probability: float, windows: int) -> float:
     """
-    Proposition 1's escape probability with the rule, ``1 - p^n``.
-
     :param stuck_probability: p, the probability of getting stuck in action collapse (one window)
     :param windows: n, the windows of the budget
-    :return: ``1 - stuck_probability ** windows``
+    :return: Proposition 1's escape probability ``1 - p^n``
     """
     return 1.0 - stuck_probability**windows
 
@@ -77,7 +67,7 @@ def escape_interval(p_interval: Interval, windows: int) -> Interval:
     """
     :param p_interval: an interval of p
     :param windows: n
-    :return: the interval of ``1 - p^n``: ``(1 - high^n, 1 - low^n)`` (``1 - p^n`` decreases with p)
+    :return: the interval of ``1 - p^n``: ``(1 - high^n, 1 - low^n)``
     """
     low, high = p_interval
     return (escape_probability(high, windows), escape_probability(low, windows))
@@ -91,14 +81,12 @@ def bootstrap_std_interval(
     seed: int = 0,
 ) -> Interval:
     """
-    Percentile bootstrap interval of :func:`~sb3_collapse.report.statistics.last_evals_std_mean` over seeds.
-
     :param returns: ``(seeds, frames)`` aligned returns
     :param last_evals: the last evaluations averaged
     :param confidence: the confidence level
     :param resamples: bootstrap resamples
     :param seed: seed of the resampling
-    :return: ``(low, high)``; ``(nan, nan)`` with fewer than 2 seeds
+    :return: percentile bootstrap interval of :func:`last_evals_std_mean` over seeds; nan with fewer than 2 seeds
     """
     seeds = returns.shape[0]
     if seeds < 2 or returns.shape[1] == 0:
@@ -114,15 +102,19 @@ def bootstrap_std_interval(
 
 def figure5_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = PAPER.percentiles) -> list[BandCurve]:
     """
-    Figure 5's curves of a task: "The performance comparison of 40 seeds between DrQ-v2 and DrQ-v2 plus our rule"
-    (and the other interventions and algorithms), without the transplant-grid cells, which are Figure 3's.
+    Figure 5's curves ("The performance comparison ... between DrQ-v2 and DrQ-v2 plus our rule").
 
     :param sweep: the loaded sweep
     :param task: the task
-    :param percentiles: the band
-    :return: :func:`~sb3_collapse.report.statistics.variant_curves` without ``cnn-<src>_mlp-<src>`` variants
+    :param percentiles: the band, in percent
+    :return: a curve per variant whose finished seeds share a frame, without the transplant cells (Figure 3's)
     """
-    return [curve for curve in variant_curves(sweep, task, percentiles) if transplant_sources(curve.name) is None]
+    curves = []
+    for variant in sweep.variants(task):
+        frames, returns = aligned_returns(sweep.select(task, variant))
+        if len(frames) and transplant_sources(variant) is None:
+            curves.append(band_curve(variant, frames, returns, percentiles))
+    return curves
 
 
 def figure5_unfinished(sweep: Sweep, task: str) -> list[Trial]:
@@ -132,13 +124,7 @@ def figure5_unfinished(sweep: Sweep, task: str) -> list[Trial]:
 
 @dataclass
 class Proportion:
-    """
-    A count of seeds out of a number, with its Wilson interval.
-
-    :param count: the seeds counted
-    :param total: out of these
-    :param interval: the Wilson interval of ``count / total``
-    """
+    """``count`` seeds of ``total``, with the Wilson ``interval`` of the fraction."""
 
     count: int
     total: int
@@ -165,17 +151,15 @@ class Estimate:
 @dataclass
 class HeadlineRow:
     """
-    One task of the headline: the paper's numbers and the sweep's, DrQ-v2 against DrQ-v2 plus the rule.
+    One task of the headline: the paper's numbers and the sweep's (``None``: not in the paper / the sweep).
 
     :param task: the task
-    :param paper: the paper's numbers (``None`` for a task the paper does not report)
-    :param baseline: the sweep's baseline row (``None`` when the sweep lacks it)
-    :param rule: the sweep's rule row (``None`` when the sweep lacks it)
-    :param stuck_baseline: baseline seeds stuck in action collapse at the end of training, of those whose collapse
-        state is known (:func:`~sb3_collapse.report.statistics.stuck_in_collapse`)
+    :param paper: the paper's numbers
+    :param baseline: the sweep's baseline row
+    :param rule: the sweep's rule row
+    :param stuck_baseline: baseline seeds stuck at the end of training, of those whose collapse state is known
     :param stuck_rule: the same for the rule
-    :param never_escaped_rule: the rule's seeds that never escaped (the result file's ``escaped`` false), of those
-        that ran the rule: the paper's count for the rule ("all 40 seeds of ours escape action collapse")
+    :param never_escaped_rule: the rule's seeds that never escaped, of those that ran the rule
     :param std_baseline: the baseline's mean std over the last evaluations, with a bootstrap interval
     :param std_rule: the same for the rule
     """
@@ -218,14 +202,11 @@ def headline_rows(
     rule: str = RULE_VARIANT,
 ) -> list[HeadlineRow]:
     """
-    The headline: one row per task of the sweep (those of the paper's Figure 5 first, in its order,
-    :data:`~sb3_collapse.paper.PAPER_RESULTS`; the others when they have the baseline or the rule): the baseline's
-    seeds stuck in action collapse ("There are 13, 8, and 7 seeds out of 40 respectively for DrQ-v2"), the rule's
-    seeds that never escaped ("all 40 seeds of ours escape action collapse") and "the average standard deviation
-    over the last ten evaluations", each beside the paper's.
+    The headline, one row per task (the paper's first, in its order): the baseline's stuck seeds, the rule's seeds
+    that never escaped and "the average standard deviation over the last ten evaluations", beside the paper's.
 
     :param sweep: the loaded sweep
-    :param rows: the summary rows (:func:`~sb3_collapse.report.statistics.summarize`)
+    :param rows: the summary rows
     :param settings: the report's definitions
     :param baseline: the baseline variant
     :param rule: the rule's variant
@@ -239,18 +220,9 @@ def headline_rows(
         base, ruled = by_key.get((task, baseline)), by_key.get((task, rule))
         if task not in papers and base is None and ruled is None:
             continue
+        stds = _std(sweep, base, settings), _std(sweep, ruled, settings)
         headline.append(
-            HeadlineRow(
-                task,
-                papers.get(task),
-                base,
-                ruled,
-                _stuck(base),
-                _stuck(ruled),
-                _never_escaped(ruled),
-                _std(sweep, base, settings),
-                _std(sweep, ruled, settings),
-            )
+            HeadlineRow(task, papers.get(task), base, ruled, _stuck(base), _stuck(ruled), _never_escaped(ruled), *stds)
         )
     return headline
 
@@ -261,12 +233,12 @@ class Proposition1Row:
     Proposition 1 for one task and rule variant.
 
     :param task: the task
-    :param baseline: the variant whose stuck fraction is p (the algorithm without the rule)
+    :param baseline: the variant whose stuck fraction is p
     :param rule: the variant with the rule
-    :param stuck: the baseline's stuck seeds, p = ``stuck.fraction`` with its Wilson interval
+    :param stuck: the baseline's stuck seeds (p)
     :param windows: n, the rule's whole windows in the budget (``None`` when unknown)
     :param predicted: ``1 - p^n`` and its interval (``None`` without p or n)
-    :param escaped: the rule's seeds that escaped (the rule saw an escape), with its Wilson interval
+    :param escaped: the rule's seeds that escaped
     :param window_frames: m, the rule's window, in frames (``None`` when unknown)
     """
 
@@ -282,11 +254,9 @@ class Proposition1Row:
 
 def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
     """
-    n and m of Proposition 1 for the trials of a rule variant, from their settings files: m the rule's window
-    (``reset_window_frames``, the paper's 2e5 by default), n the whole windows in the budget (``frames // m``).
-
-    :param trials: finished trials of the rule's variant
-    :return: ``(n, m)``, ``(None, None)`` when no settings file says, or the trials disagree
+    :param trials: finished trials of a rule variant
+    :return: Proposition 1's ``(n, m)`` from their settings files: m the rule's window in frames, n ``frames // m``;
+        ``(None, None)`` when no settings file says, or they disagree
     """
     found = set()
     for trial in trials:
@@ -303,9 +273,7 @@ def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
 def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Proposition1Row]:
     """
     Proposition 1 ("the probability of escaping action collapse when applying our proposed rule is 1 - p^n") per
-    task and rule variant (``<algorithm>+<intervention>``) whose algorithm's plain variant is in the sweep: p from
-    the plain variant's stuck seeds, n the rule's whole windows in the budget, the prediction 1 - p^n beside the
-    rule's observed escapes.
+    task and ``<algorithm>+<intervention>`` variant whose plain algorithm is in the sweep.
 
     :param sweep: the loaded sweep
     :param rows: the summary rows
@@ -383,21 +351,12 @@ def headline_table(headline: Sequence[HeadlineRow]) -> list[list[str]]:
     """:return: the headline's cells, one list per row (:data:`HEADLINE_HEADER`)"""
     table = []
     for row in headline:
-        paper = row.paper
-        table.append(
-            [
-                row.task,
-                "-" if paper is None else f"{paper.stuck_baseline}/{paper.seeds}",
-                _proportion(row.stuck_baseline),
-                "-" if paper is None else f"{paper.never_escaped_rule}/{paper.seeds}",
-                _proportion(row.never_escaped_rule),
-                _proportion(row.stuck_rule),
-                "-" if paper is None else f"{paper.std_baseline:.1f}",
-                _estimate(row.std_baseline),
-                "-" if paper is None else f"{paper.std_rule:.1f}",
-                _estimate(row.std_rule),
-            ]
-        )
+        p = row.paper
+        papers = ("-",) * 4 if p is None else (f"{p.stuck_baseline}/{p.seeds}", f"{p.never_escaped_rule}/{p.seeds}")
+        papers += () if p is None else (f"{p.std_baseline:.1f}", f"{p.std_rule:.1f}")
+        stuck, never, rule_stuck = map(_proportion, (row.stuck_baseline, row.never_escaped_rule, row.stuck_rule))
+        stds = _estimate(row.std_baseline), _estimate(row.std_rule)
+        table.append([row.task, papers[0], stuck, papers[1], never, rule_stuck, papers[2], stds[0], papers[3], stds[1]])
     return table
 
 
@@ -405,13 +364,9 @@ def proposition1_table(rows: Sequence[Proposition1Row]) -> list[list[str]]:
     """:return: Proposition 1's cells, one list per row (:data:`PROPOSITION1_HEADER`)"""
     table = []
     for row in rows:
-        predicted = (
-            "-"
-            if row.predicted is None
-            else (f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})")
-        )
+        predicted = row.predicted and f"{_percent(row.predicted.value)} (CI {_interval(row.predicted.interval)})"
         windows = "unknown" if row.windows is None else f"{row.windows} ({row.window_frames:,})"
-        table.append([row.task, row.rule, _proportion(row.stuck), windows, predicted, _proportion(row.escaped)])
+        table.append([row.task, row.rule, _proportion(row.stuck), windows, predicted or "-", _proportion(row.escaped)])
     return table
 
 
@@ -436,24 +391,17 @@ def headline_markdown(
     headline: Sequence[HeadlineRow], proposition: Sequence[Proposition1Row], settings: ReportSettings
 ) -> str:
     """
-    The headline and Proposition 1 as Markdown, for the top of ``summary.md``.
-
     :param headline: :func:`headline_rows`
     :param proposition: :func:`proposition1_rows`
     :param settings: the report's definitions
-    :return: the Markdown text (ends with a blank line)
+    :return: the headline and Proposition 1 as Markdown, for the top of ``summary.md``
     """
     lines = ["## The paper's headline beside this sweep's", ""]
-    lines += _markdown(HEADLINE_HEADER, headline_table(headline))
+    lines += markdown_table(HEADLINE_HEADER, headline_table(headline))
     lines += ["", "## Proposition 1", "", f"> {PROPOSITION_1}", ""]
     if proposition:
-        lines += _markdown(PROPOSITION1_HEADER, proposition1_table(proposition))
+        lines += markdown_table(PROPOSITION1_HEADER, proposition1_table(proposition))
     else:
         lines.append("No rule variant with its baseline in this sweep.")
     lines += ["", headline_definitions(settings), ""]
     return "\n".join(lines) + "\n"
-
-
-def _markdown(header: Sequence[str], body: Sequence[Sequence[str]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    return lines + ["| " + " | ".join(cells) + " |" for cells in body]

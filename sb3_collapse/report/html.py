@@ -1,14 +1,12 @@
-"""
-The report as one self-contained HTML page (``index.html``): every figure embedded as a base64 PNG, every table as
-an HTML table, no script, no stylesheet or font from the network; it opens from a file, a mail attachment or a
-cluster's file browser alike.
-"""
+"""The report as one self-contained HTML page (``index.html``): figures embedded as base64 PNGs, tables as HTML
+tables, nothing from the network."""
 
 from __future__ import annotations
 
 import base64
 import html
 import json
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -26,6 +24,8 @@ h3 { font-size: 1.05em; margin-top: 1.5em; }
 table { border-collapse: collapse; margin: 0.6em 0 1em 0; font-size: 0.85em; }
 th, td { border: 1px solid #bbb; padding: 0.25em 0.6em; text-align: right; }
 th { background: #f0f0f0; } td:first-child, th:first-child { text-align: left; } td { white-space: nowrap; }
+table.settings td { text-align: left; white-space: normal; overflow-wrap: anywhere; }
+table.settings td:first-child { white-space: nowrap; } table.settings { max-width: 100%; }
 .scroll { overflow-x: auto; max-width: 100%; }
 figure { margin: 1em 0; } figure img { max-width: 100%; height: auto; border: 1px solid #eee; }
 figcaption { font-size: 0.85em; color: #444; max-width: 1100px; }
@@ -40,7 +40,7 @@ class Section:
     One section of the page.
 
     :param title: its heading (and entry in the table of contents)
-    :param parts: its HTML fragments, in order (from :func:`figure`, :func:`table`, :func:`paragraph`...)
+    :param parts: its HTML fragments, in order
     """
 
     title: str
@@ -52,15 +52,10 @@ class Section:
         return "".join(c if c.isalnum() else "-" for c in self.title.lower()).strip("-")
 
 
-def paragraph(text: str, css_class: str | None = None) -> str:
-    """:return: ``<p>`` with the escaped text"""
+def paragraph(text: str, css_class: str | None = None, tag: str = "p") -> str:
+    """:return: the escaped text in ``<tag>`` (``p``, ``h3``, ``pre``...)"""
     attribute = f' class="{css_class}"' if css_class else ""
-    return f"<p{attribute}>{html.escape(text)}</p>"
-
-
-def heading(text: str) -> str:
-    """:return: a sub-heading (``<h3>``)"""
-    return f"<h3>{html.escape(text)}</h3>"
+    return f"<{tag}{attribute}>{html.escape(text)}</{tag}>"
 
 
 def bullet_list(items: Iterable[str]) -> str:
@@ -68,14 +63,9 @@ def bullet_list(items: Iterable[str]) -> str:
     return "<ul>" + "".join(f"<li>{html.escape(item)}</li>" for item in items) + "</ul>"
 
 
-def preformatted(text: str) -> str:
-    """:return: ``<pre>`` with the escaped text"""
-    return f"<pre>{html.escape(text)}</pre>"
-
-
 def figure(png: str | Path, caption: str) -> str:
     """
-    :param png: a PNG file, embedded into the page as base64 (the page stays valid when the file moves)
+    :param png: a PNG file, embedded as base64
     :param caption: what the figure shows (also its alt text)
     :return: ``<figure>`` with the image and caption
     """
@@ -88,7 +78,7 @@ def figure(png: str | Path, caption: str) -> str:
 
 
 def _cell(value: Any) -> str:
-    if value is None or value == "":
+    if value is None or value == "" or (isinstance(value, float) and math.isnan(value)):
         return "-"
     if isinstance(value, float):
         return f"{value:.4g}"
@@ -97,33 +87,35 @@ def _cell(value: Any) -> str:
     return str(value)
 
 
-def table(header: Sequence[str], rows: Iterable[Sequence[Any]], caption: str | None = None) -> str:
+def table(
+    header: Sequence[str], rows: Iterable[Sequence[Any]], caption: str | None = None, css_class: str | None = None
+) -> str:
     """
     :param header: column names
-    :param rows: cells (``None`` and ``""`` shown as ``-``, floats with 4 significant digits)
+    :param rows: cells (``None``, ``""`` and nan shown as ``-``, floats with 4 significant digits)
     :param caption: the table's caption
-    :return: ``<table>``
+    :param css_class: the table's class
+    :return: ``<table>`` in a horizontally scrolling ``<div>``
     """
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(_cell(c))}</td>" for c in row) + "</tr>" for row in rows)
     title = f"<caption>{html.escape(caption)}</caption>" if caption else ""
-    return f'<div class="scroll"><table>{title}<thead><tr>{head}</tr></thead><tbody>{body}</tbody></table></div>'
+    attribute = f' class="{css_class}"' if css_class else ""
+    table_ = f"<table{attribute}>{title}<thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    return f'<div class="scroll">{table_}</div>'
 
 
-def dict_table(
-    rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None, caption: str | None = None
-) -> str:
-    """:return: :func:`table` of dict rows (columns: ``columns``, or the first row's keys)"""
-    columns = list(columns or (rows[0] if rows else []))
-    return table(columns, ([row.get(c) for c in columns] for row in rows), caption)
+def dict_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
+    """:return: :func:`table` of dict rows"""
+    return table(columns, [[row.get(c) for c in columns] for row in rows])
 
 
 def settings_table(settings: Mapping[str, Any], caption: str | None = None) -> str:
-    """:return: a two-column table ``setting | value`` (nested values as compact JSON)"""
+    """:return: a two-column table ``setting | value`` (nested values as compact JSON, long values wrapped)"""
     rows = [
         (key, value if isinstance(value, (str, int, float)) else json.dumps(value)) for key, value in settings.items()
     ]
-    return table(("setting", "value"), rows, caption)
+    return table(("setting", "value"), rows, caption, "settings")
 
 
 def html_page(title: str, sections: Sequence[Section], subtitle: str | None = None) -> str:

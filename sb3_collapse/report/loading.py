@@ -1,16 +1,13 @@
-"""
-Read a sweep folder (the trial-folder contract of ``python -m sb3_collapse.sweep``) into one :class:`Trial` per
-``<sweep>/<task>/<variant>/seed_<k>/`` folder, through :mod:`sb3_collapse.runfolder`. Only finished trials
-(:class:`~sb3_collapse.runfolder.RunStatus`) enter the statistics; the others are counted and reported. A malformed
-file raises :class:`InputError` naming the file.
-"""
+"""Read a sweep folder into one :class:`Trial` per ``<sweep>/<task>/<variant>/seed_<k>/``, through
+:mod:`sb3_collapse.runfolder`; a trial whose files cannot be read is kept as damaged, with its reason."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -20,6 +17,7 @@ from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
 from sb3_collapse.runfolder import (
     NOT_A_RUN,
+    RunStatus,
     check_result_version,
     read_collapse_metrics,
     read_evaluations,
@@ -29,7 +27,28 @@ from sb3_collapse.runfolder import (
 )
 
 DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
-"""The collapse metric that decides "stuck in action collapse" (the paper's reset rule reads the same one)."""
+"""The collapse metric that decides "stuck in action collapse" (the reset rule's)."""
+WAY_OUT = "move the folder aside to train this seed again"
+"""What a damaged trial's reason ends with."""
+Item = TypeVar("Item")
+
+
+def progress_bar(items: Iterable[Item], desc: str, unit: str, progress: bool = True) -> Iterable[Item]:
+    """
+    A progress bar on a terminal; on any other stderr one line ``desc: N units`` instead (no bar frames).
+
+    :param items: what is iterated over
+    :param desc: the stage's name
+    :param unit: what one item is
+    :param progress: show the progress at all
+    :return: the items
+    """
+    items = list(items)
+    if progress and sys.stderr.isatty():
+        return tqdm(items, desc=desc, unit=unit)
+    if progress:
+        print(f"{desc}: {len(items)} {unit}s", file=sys.stderr, flush=True)
+    return items
 
 
 @dataclass
@@ -37,17 +56,18 @@ class Trial:
     """
     One trial folder of a sweep.
 
-    :param task: the task folder name, e.g. ``"walker-walk"``
-    :param variant: the variant folder name, e.g. ``"drqv2+reset"``
+    :param task: the task folder name
+    :param variant: the variant folder name
     :param seed: the seed of the ``seed_<k>`` folder
     :param path: the trial folder
-    :param status: its :class:`~sb3_collapse.runfolder.RunStatus` (``"finished"``, ``"running"``...)
+    :param status: its :class:`~sb3_collapse.runfolder.RunStatus`
     :param result: the parsed result file (``None`` without one)
-    :param frames: the scheduled evaluations' frames (agent steps x action repeat), increasing
+    :param frames: the scheduled evaluations' frames, increasing
     :param returns: mean evaluation return at each of ``frames``
-    :param collapse_frames: frames of the checks that logged the collapse tag, increasing
-    :param collapse_values: the tag's value at each of ``collapse_frames`` (non-finite values dropped)
-    :param notes: what the reader noticed and worked around (shown in the report's notes)
+    :param collapse_frames: frames of the checks that logged the collapse tag
+    :param collapse_values: the tag's finite values at ``collapse_frames``
+    :param notes: what the reader noticed and worked around
+    :param reason: why a damaged trial cannot be read (its status is then ``failed``)
     """
 
     task: str
@@ -61,25 +81,26 @@ class Trial:
     collapse_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     collapse_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
     notes: list[str] = field(default_factory=list)
+    reason: str = ""
 
     @property
     def finished(self) -> bool:
-        """Whether result file says the trial finished."""
+        """Whether its result file says finished."""
         return self.status == FINISHED
 
     @property
     def final_return(self) -> float:
-        """The mean return of its last scheduled evaluation, nan unless finished: the paper's final return."""
+        """The mean return of its last scheduled evaluation (nan unless finished): the paper's final return."""
         return float(self.returns[-1]) if self.finished and len(self.returns) else float("nan")
 
     @property
     def resets(self) -> int:
-        """Resets of the reset rule in this trial (result file's ``resets``; 0 for an unfinished trial)."""
+        """The result file's ``resets`` (0 without one)."""
         return int(self.result["resets"]) if self.result is not None else 0
 
     @property
     def escaped(self) -> bool | None:
-        """result file's ``escaped``: ``None`` when the trial ran without the reset rule."""
+        """The result file's ``escaped``: ``None`` when the trial ran without the reset rule."""
         return None if self.result is None else self.result.get("escaped")
 
 
@@ -89,7 +110,7 @@ class Sweep:
     The trials of a sweep folder.
 
     :param path: the sweep folder
-    :param trials: every trial folder, sorted by task, variant and seed (finished and unfinished)
+    :param trials: every trial folder, sorted by task, variant and seed (finished, unfinished and damaged)
     """
 
     path: Path
@@ -102,11 +123,11 @@ class Sweep:
 
     @property
     def unfinished(self) -> list[Trial]:
-        """The trials that are not finished."""
+        """The trials that are not finished (damaged ones included)."""
         return [trial for trial in self.trials if not trial.finished]
 
     def tasks(self) -> list[str]:
-        """Task names in sorted order."""
+        """Task names, sorted."""
         return sorted({trial.task for trial in self.trials})
 
     def variants(self, task: str) -> list[str]:
@@ -117,67 +138,26 @@ class Sweep:
         """
         :param task: task name
         :param variant: variant name
-        :param finished: the finished trials (``True``) or the unfinished ones (``False``)
-        :return: those trials of ``(task, variant)``, by seed
+        :param finished: the finished trials (``True``) or the others
+        :return: those trials, by seed
         """
         return [t for t in self.trials if t.task == task and t.variant == variant and t.finished == finished]
 
 
 def variant_order(variants: Iterable[str]) -> list[str]:
     """
-    The order in which variants are shown: ``drqv2``, ``drqv2+reset``, then the others alphabetically.
-
     :param variants: variant names
-    :return: the names, sorted
+    :return: the names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted
     """
     first = {"drqv2": 0, "drqv2+reset": 1}
     return sorted(set(variants), key=lambda name: (first.get(name, 2), name))
-
-
-def find_trial_folders(sweep: str | Path) -> list[tuple[str, str, int, Path]]:
-    """
-    :param sweep: the sweep folder
-    :return: its trial folders (:func:`~sb3_collapse.runfolder.trial_folders`) sorted by task, variant
-        (:func:`variant_order`) and seed
-    :raises InputError: when the folder does not exist or holds no trial folder
-    """
-    root = Path(sweep)
-    if not root.exists():
-        raise InputError(f"sweep folder {root} does not exist; give the out folder of a sweep.", parameter="sweep")
-    if not root.is_dir():
-        raise InputError(f"sweep {root} is not a folder; give the out folder of a sweep.", parameter="sweep")
-    found = trial_folders(root)
-    if not found:
-        raise InputError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
-    variants = variant_order(item[1] for item in found)
-    return sorted(found, key=lambda item: (item[0], variants.index(item[1]), item[2]))
-
-
-def check_result(path: Path, result: dict[str, Any]) -> None:
-    """
-    :param path: a finished trial's folder
-    :param result: its result file
-    :raises InputError: when ``resets`` is not an integer >= 0, ``escaped`` not a bool or null, or the file is of
-        another version (:func:`~sb3_collapse.runfolder.check_result_version`)
-    """
-    check_result_version(path, result)
-    resets = result.get("resets")
-    if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
-        raise InputError(f"{path / RESULT_JSON}: 'resets' must be an integer >= 0, got {resets!r}.")
-    if result.get("escaped") not in (None, True, False):
-        raise InputError(f"{path / RESULT_JSON}: 'escaped' must be true, false or null, got {result['escaped']!r}.")
 
 
 def load_trial(
     task: str, variant: str, seed: int, path: Path, collapse_tag: str = DEFAULT_COLLAPSE_TAG, partial: bool = False
 ) -> Trial:
     """
-    Read one trial folder.
-
-    A finished trial must have a well-formed evaluation file with at least one row; its collapse metrics file is
-    optional (without it, or without rows of ``collapse_tag``, the trial's collapse state is unknown). An
-    unfinished trial's files are read only when ``partial`` is true (to plot partial curves), and a malformed or
-    missing evaluation file there (a file being written) is noted, not raised.
+    Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted, not raised).
 
     :param task: task folder name
     :param variant: variant folder name
@@ -186,13 +166,21 @@ def load_trial(
     :param collapse_tag: the collapse metric to read
     :param partial: read the evaluation curve of an unfinished trial too
     :return: the trial
-    :raises InputError: when a file of a finished trial is malformed
+    :raises InputError: naming the file, when a file of a finished trial (or any result file) is malformed: its
+        ``resets`` not an integer >= 0, ``escaped`` not a bool or null, another version
     """
     result = read_result(path, strict=True)
-    status = run_status(path)
+    finished = result is not None and result.get("status") == FINISHED
+    status = RunStatus.FINISHED if finished else run_status(path)
     trial = Trial(task, variant, seed, path, str(status or NOT_A_RUN), result)
     if trial.finished:
-        check_result(path, result)  # type: ignore[arg-type]
+        check_result_version(path, result)  # type: ignore[arg-type]
+        resets = result.get("resets")  # type: ignore[union-attr]
+        if isinstance(resets, bool) or not isinstance(resets, int) or resets < 0:
+            raise InputError(f"{path / RESULT_JSON}: 'resets' must be an integer >= 0, got {resets!r}.")
+        if result.get("escaped") not in (None, True, False):  # type: ignore[union-attr]
+            escaped = result["escaped"]  # type: ignore[index]
+            raise InputError(f"{path / RESULT_JSON}: 'escaped' must be true, false or null, got {escaped!r}.")
         for key, expected in (("task", task), ("variant", variant), ("seed", seed)):
             if result.get(key, expected) != expected:  # type: ignore[union-attr]
                 trial.notes.append(
@@ -202,9 +190,8 @@ def load_trial(
         trial.frames, trial.returns = read_evaluations(path)
         if len(trial.frames) == 0:
             raise InputError(f"{path}: no evaluation rows although the trial finished.")
-        metrics_path = path / COLLAPSE_METRICS_CSV
-        if metrics_path.exists():
-            metric = read_collapse_metrics(metrics_path, (collapse_tag,)).get(collapse_tag)
+        if (path / COLLAPSE_METRICS_CSV).exists():
+            metric = read_collapse_metrics(path / COLLAPSE_METRICS_CSV, (collapse_tag,)).get(collapse_tag)
             trial.collapse_frames, trial.collapse_values = metric or (trial.collapse_frames, trial.collapse_values)
     elif partial:
         try:
@@ -223,19 +210,27 @@ def load_sweep(
     progress: bool = True,
 ) -> Sweep:
     """
-    Read every trial folder of a sweep.
+    Read every trial folder of a sweep; a trial whose files :func:`load_trial` refuses is kept with status
+    ``failed`` and its :attr:`Trial.reason`.
 
     :param sweep: the sweep folder (``--out`` of ``python -m sb3_collapse.sweep``)
-    :param collapse_tag: the collapse metric read from collapse metrics file
+    :param collapse_tag: the collapse metric to read
     :param include_unfinished: also read the (partial) evaluation curves of unfinished trials
     :param tasks: keep only these task folders (``None``: all)
     :param variants: keep only these variant folders (``None``: all)
-    :param progress: show a progress bar over the trial folders
+    :param progress: show the progress (:func:`progress_bar`)
     :return: the sweep
-    :raises InputError: when the folder is missing, holds no (selected) trial, or a finished trial's file is
-        malformed
+    :raises InputError: when the folder is missing, holds no (selected) trial, or no trial can be read
     """
-    found = find_trial_folders(sweep)
+    root = Path(sweep)
+    if not root.is_dir():
+        what = "does not exist" if not root.exists() else "is not a folder"
+        raise InputError(f"sweep folder {root} {what}; give the out folder of a sweep.", parameter="sweep")
+    found = trial_folders(root)
+    if not found:
+        raise InputError(f"no trial folders <task>/<variant>/seed_<k>/ under {root}; is it the out folder of a sweep?")
+    order = variant_order(item[1] for item in found)
+    found = sorted(found, key=lambda item: (item[0], order.index(item[1]), item[2]))
     for name, wanted, index in (("tasks", tasks, 0), ("variants", variants, 1)):
         if wanted is not None:
             wanted = list(wanted)
@@ -246,8 +241,13 @@ def load_sweep(
                     f"{name} {' '.join(unknown)} not in {sweep}; available: {', '.join(available)}.", parameter=name
                 )
             found = [item for item in found if item[index] in wanted]
-    trials = [
-        load_trial(task, variant, seed, path, collapse_tag, partial=include_unfinished)
-        for task, variant, seed, path in tqdm(found, desc="reading trials", unit="trial", disable=not progress)
-    ]
+    trials = []
+    for task, variant, seed, path in progress_bar(found, "reading trials", "trial", progress):
+        try:
+            trials.append(load_trial(task, variant, seed, path, collapse_tag, partial=include_unfinished))
+        except InputError as error:
+            reason = f"{str(error).rstrip('.')}: {WAY_OUT}."
+            trials.append(Trial(task, variant, seed, path, str(RunStatus.FAILED), None, reason=reason))
+    if all(trial.reason for trial in trials):
+        raise InputError(f"no trial of {sweep} can be read; the first: {trials[0].reason}")
     return Sweep(path=Path(sweep), trials=trials)

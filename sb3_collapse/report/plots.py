@@ -23,11 +23,8 @@ REFERENCE_COLOR = "0.15"
 
 def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str]:
     """
-    One colour per variant, the same in every panel: the colour-blind-safe Okabe-Ito colours (black left to the
-    published reference), then Paul Tol's muted ones (16 variants in all), then ``tab20``.
-
     :param variants: variant names in display order
-    :return: variant -> colour
+    :return: variant -> its colour in every panel (Okabe-Ito but black, then Paul Tol's muted, then ``tab20``)
     """
     palette = [color for color in OKABE_ITO if color != "#000000"] + list(TOL_MUTED)
     if len(variants) <= len(palette):
@@ -38,33 +35,31 @@ def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str
 
 def variant_label(variant: str) -> str:
     """
-    The legend's name of a variant: a variant ``<algorithm>+<intervention>`` of the sweep gets the intervention's
-    name (``"drqv2+redo"`` -> ``"drqv2+redo: ReDo"``); any other name is kept.
-
     :param variant: a variant name
-    :return: its label
+    :return: its legend name: ``<algorithm>+<intervention>`` gets the intervention's name
     """
     _, plus, intervention = variant.partition("+")
     label = INTERVENTION_LABELS.get(intervention) if plus else None
     return variant if label is None else f"{variant}: {label}"
 
 
-def _panels(count: int, columns: int = 3) -> tuple[plt.Figure, np.ndarray]:
+def panels(count: int, columns: int = 3, size: tuple[float, float] = (5.0, 3.8)) -> tuple[plt.Figure, np.ndarray]:
+    """
+    :param count: the panels
+    :param columns: panels per row
+    :param size: inches per panel, width and height
+    :return: the figure and its axes (spare ones hidden)
+    """
     ncols = min(columns, max(count, 1))
     nrows = -(-max(count, 1) // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(5.0 * ncols, 3.8 * nrows), squeeze=False)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(size[0] * ncols, size[1] * nrows), squeeze=False)
     for ax in axes.flat[count:]:
         ax.set_visible(False)
     return fig, axes
 
 
 def _clip_reference(reference: BandCurve, last_frame: int | None) -> tuple[np.ndarray, ...]:
-    """
-    :param reference: a published curve (increasing frames)
-    :param last_frame: the last frame of the sweep's own curves (``None``: keep it all)
-    :return: ``frames, mean, low, high`` up to ``last_frame``, ending with the curve linearly interpolated at
-        ``last_frame`` when the published frames go beyond it (so that the line spans the sweep's whole x range)
-    """
+    """:return: ``frames, mean, low, high`` of ``reference`` up to ``last_frame`` (``None``: all), interpolated there"""
     frames = np.asarray(reference.frames, dtype=float)
     columns = [np.asarray(c, dtype=float) for c in (reference.mean, reference.low, reference.high)]
     if last_frame is None or frames[-1] <= last_frame:
@@ -82,76 +77,44 @@ def plot_figure5(
     percentiles: tuple[float, float] = (5.0, 95.0),
 ) -> None:
     """
-    The paper's Figure 5: one panel per task, per variant the mean evaluation return over frames (solid) and the
-    percentile band across seeds (shaded), one colour per variant in every panel; the legend names each variant's
-    intervention (:func:`variant_label`) and gives the seed counts.
+    The paper's Figure 5: a panel per task; per variant the mean evaluation return (solid) and the percentile band.
 
     :param curves: task -> the variants' curves
     :param path: the PNG file to write
-    :param references: task -> published DrQ-v2 curve, drawn dashed with a hatched band, up to the last frame
-        of the task's own curves (interpolated there; whole when the task has none)
-    :param partial: task -> unfinished trials whose partial curves are drawn as thin dotted lines, labelled
-        "unfinished, partial"
+    :param references: task -> published DrQ-v2 curve, drawn dashed with a hatched band
+    :param partial: task -> unfinished trials whose partial curves are drawn dotted
     :param percentiles: the band's percentiles (for the labels)
     """
     references = references or {}
     partial = partial or {}
     tasks = list(curves)
-    variants = list(
-        dict.fromkeys(
-            [c.name for task in tasks for c in curves[task]]
-            + [t.variant for task in tasks for t in partial.get(task, [])]
-        )
-    )
-    colors = variant_colors(variants)
+    names = [c.name for task in tasks for c in curves[task]]
+    names += [t.variant for task in tasks for t in partial.get(task, [])]
+    colors = variant_colors(list(dict.fromkeys(names)))
     low, high = percentiles
-    fig, axes = _panels(len(tasks))
+    fig, axes = panels(len(tasks))
     for ax, task in zip(axes.flat, tasks):
         last_frame = max((int(c.frames[-1]) for c in curves[task]), default=None)
         reference = references.get(task)
         if reference is not None:
             frames, mean, low_band, high_band = _clip_reference(reference, last_frame)
-            ax.plot(
-                frames,
-                mean,
-                "--",
-                marker="o" if len(frames) == 1 else None,
-                color=REFERENCE_COLOR,
-                lw=1.5,
-                label=f"{reference.name} (n={reference.seeds})",
-            )
-            ax.fill_between(
-                frames,
-                low_band,
-                high_band,
-                facecolor="none",
-                edgecolor=REFERENCE_COLOR,
-                hatch="///",
-                lw=0.0,
-                alpha=0.35,
-            )
+            marker, label = "o" if len(frames) == 1 else None, f"{reference.name} (n={reference.seeds})"
+            ax.plot(frames, mean, "--", marker=marker, color=REFERENCE_COLOR, lw=1.5, label=label)
+            hatched = {"facecolor": "none", "edgecolor": REFERENCE_COLOR, "hatch": "///", "lw": 0.0, "alpha": 0.35}
+            ax.fill_between(frames, low_band, high_band, **hatched)
         for curve in curves[task]:
             color = colors[curve.name]
             marker = "o" if len(curve.frames) == 1 else None  # a single evaluation is a point, not a line
-            ax.plot(
-                curve.frames,
-                curve.mean,
-                color=color,
-                lw=2.0,
-                marker=marker,
-                label=f"{variant_label(curve.name)} (n={curve.seeds})",
-            )
+            label = f"{variant_label(curve.name)} (n={curve.seeds})"
+            ax.plot(curve.frames, curve.mean, color=color, lw=2.0, marker=marker, label=label)
             ax.fill_between(curve.frames, curve.low, curve.high, color=color, alpha=0.2, lw=0.0)
         labelled: set[str] = set()
         for trial in partial.get(task, []):
             if len(trial.frames) == 0:
                 continue
             count = sum(t.variant == trial.variant and len(t.frames) > 0 for t in partial[task])
-            label = (
-                None
-                if trial.variant in labelled
-                else f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
-            )
+            label = f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
+            label = None if trial.variant in labelled else label
             labelled.add(trial.variant)
             ax.plot(trial.frames, trial.returns, ":", color=colors[trial.variant], lw=1.0, label=label)
         ax.set_title(task)
@@ -174,15 +137,14 @@ def plot_transplant_grid(
     grid: Mapping[str, Sequence[GridCell]], path: Path, success_return: float = PAPER.success_return
 ) -> None:
     """
-    The paper's Figure 3(a) as heatmaps: one per task, CNN source (rows) x MLP source (columns), coloured by the
-    fraction of successful seeds, with ``successes/seeds`` written in each cell (``-`` and grey without seeds).
+    The paper's Figure 3(a): a heatmap per task, CNN (rows) x MLP source, of the fraction of successful seeds.
 
-    :param grid: task -> 9 cells (:func:`~sb3_collapse.report.statistics.transplant_grid`)
+    :param grid: task -> 9 cells
     :param path: the PNG file to write
     :param success_return: the success threshold (for the title)
     """
     tasks = list(grid)
-    fig, axes = _panels(len(tasks))
+    fig, axes = panels(len(tasks))
     cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
     size = len(TRANSPLANT_SOURCES)
     for ax, task in zip(axes.flat, tasks):
@@ -217,16 +179,15 @@ def plot_figure3b(
     curves: Mapping[str, Sequence[TransplantCurves]], path: Path, success_return: float = PAPER.success_return
 ) -> None:
     """
-    The paper's Figure 3(b): per task, the mean evaluation return of the successful seeds of each transplant cell
-    (shaded: +- one std across them), colour by the CNN's source, line style by the MLP's source; the legend
-    (beside the panels) gives the number of successful seeds.
+    The paper's Figure 3(b): per task, the mean return (+- one std) of each cell's successful seeds, colour by the
+    CNN's source, line style by the MLP's.
 
-    :param curves: task -> cells with successful seeds (:func:`~sb3_collapse.report.statistics.transplant_curves`)
+    :param curves: task -> cells with successful seeds
     :param path: the PNG file to write
     :param success_return: the success threshold (for the title)
     """
     tasks = list(curves)
-    fig, axes = _panels(len(tasks), columns=2)
+    fig, axes = panels(len(tasks), columns=2)
     for ax, task in zip(axes.flat, tasks):
         for cell in curves[task]:
             mean = cell.returns.mean(axis=0)

@@ -1,7 +1,5 @@
-"""
-``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and PNG plots, so that
-a failed run leaves none.
-"""
+"""``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and PNG plots (all or
+none)."""
 
 from __future__ import annotations
 
@@ -35,6 +33,7 @@ from sb3_collapse.probe.probing import (
 )
 from sb3_collapse.probe.rollouts import Rollouts
 from sb3_collapse.protocol import write_json_atomically
+from sb3_collapse.report.plots import panels
 from sb3_collapse.report.tables import write_csv
 from sb3_collapse.staged_outputs import StagedOutputs
 
@@ -50,17 +49,14 @@ SELF_RECORDED_NOTE = (
     "record with `python -m sb3_collapse.probe record GOOD.zip --out rollouts.npz` and pass `--rollouts "
     "rollouts.npz` (library: `rollouts_path`), or use `python -m sb3_collapse.probe sweep` on a sweep folder"
 )
-"""What the probe says when it records its rollouts from the checkpoint it probes (the default)."""
+"""What the probe says when it records its rollouts from the checkpoint it probes."""
 
 
 def staged_output(out: str | Path, overwrite: bool = False) -> StagedOutputs:
     """
-    The probe's output folder, staged (see :class:`~sb3_collapse.staged_outputs.StagedOutputs`): files are moved
-    into ``out`` only when the whole run succeeded, ``summary.json`` last.
-
     :param out: the output folder (created if needed)
     :param overwrite: replace the outputs of a previous run; otherwise their presence is an error
-    :raises InputError: when ``out`` is a file, or holds a previous run's outputs and ``overwrite`` is false
+    :return: the probe's staged output folder (files moved in when the run succeeded, ``summary.json`` last)
     """
     return StagedOutputs(out, OUTPUT_FILES, SUMMARY_NAME, overwrite=overwrite, error=InputError)
 
@@ -81,15 +77,6 @@ def _unique(values: list[Any]) -> list[Any]:
     return list(dict.fromkeys(values))
 
 
-def _grid(count: int, columns: int) -> tuple[plt.Figure, np.ndarray]:
-    ncols = min(columns, count)
-    nrows = -(-count // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(3.2 * ncols, 2.6 * nrows), squeeze=False)
-    for ax in axes.flat[count:]:
-        ax.set_visible(False)
-    return fig, axes
-
-
 def _checkpoint_colors(checkpoints: list[str]) -> list[Any]:
     if len(checkpoints) <= 10:
         return [f"C{i}" for i in range(len(checkpoints))]
@@ -97,15 +84,12 @@ def _checkpoint_colors(checkpoints: list[str]) -> list[Any]:
 
 
 def plot_mse_by_layer(rows: list[dict[str, Any]], path: Path) -> None:
-    """
-    One subplot per component: test MSE (standardized) by layer, one line per checkpoint (in the given order;
-    a colour map from first to last when there are more than 10).
-    """
+    """Write to ``path`` a panel per component: test MSE by layer, a line per checkpoint (a colour map beyond 10)."""
     layers = _unique([r["layer"] for r in rows])
     components = _unique([r["component"] for r in rows])
     checkpoints = _unique([r["checkpoint"] for r in rows])
     mse = {(r["checkpoint"], r["component"], r["layer"]): r["test_mse"] for r in rows}
-    fig, axes = _grid(len(components), 6)
+    fig, axes = panels(len(components), 6, (3.2, 2.6))
     colors = _checkpoint_colors(checkpoints)
     for ax, component in zip(axes.flat, components):
         for checkpoint, color in zip(checkpoints, colors):
@@ -132,10 +116,7 @@ def plot_mse_by_layer(rows: list[dict[str, Any]], path: Path) -> None:
 
 
 def training_order(rows: list[dict[str, Any]]) -> list[str] | None:
-    """
-    :return: the checkpoints sorted by training step when there are at least 2 and their steps are distinct,
-        else ``None``
-    """
+    """:return: the checkpoints by training step when there are 2 or more with distinct steps, else ``None``"""
     steps = {r["checkpoint"]: r["num_timesteps"] for r in rows}
     if len(steps) < 2 or len(set(steps.values())) != len(steps):
         return None
@@ -144,11 +125,9 @@ def training_order(rows: list[dict[str, Any]]) -> list[str] | None:
 
 def plot_mse_over_training(rows: list[dict[str, Any]], path: Path) -> bool:
     """
-    The paper's Figure 2: one subplot per state component group, test MSE (standardized, mean over the group's
-    components) against training frames, one line per layer.
+    Write to ``path`` a panel per state component group: mean test MSE against training frames, a line per layer.
 
-    :return: False (nothing written) unless the checkpoints are ordered by training step
-        (:func:`training_order`)
+    :return: False (nothing written) unless the checkpoints are ordered by training step (:func:`training_order`)
     """
     order = training_order(rows)
     if order is None:
@@ -157,7 +136,7 @@ def plot_mse_over_training(rows: list[dict[str, Any]], path: Path) -> bool:
     layers = _unique([r["layer"] for r in rows])
     groups = _unique([r["group"] for r in rows])
     means = group_means(rows)
-    fig, axes = _grid(len(groups), 4)
+    fig, axes = panels(len(groups), 4, (3.2, 2.6))
     xs = [frames[c] for c in order]
     for ax, group in zip(axes.flat, groups):
         for i, layer in enumerate(layers):
@@ -205,9 +184,8 @@ def probe_to_folder(
     command: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """
-    ``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and the plots
-    into ``out``, only when every checkpoint succeeded (:func:`staged_output`). Without ``rollouts_path``, rollouts
-    of the first checkpoint are recorded first (``record_options``) and saved to ``<out>/rollouts.npz``.
+    ``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and the plots into
+    ``out`` when every checkpoint succeeded. Without ``rollouts_path``, the first checkpoint's are recorded first.
 
     :param checkpoint_paths: the checkpoints
     :param out: the output folder
@@ -226,11 +204,17 @@ def probe_to_folder(
     device = get_device(settings.device)
     out = Path(out)
     if rollouts_path is None:
-        record_options = _checked_record_options(record_options, out, overwrite)
+        record_options = checked_record_options(record_options)
+        if (out / ROLLOUTS_NAME).exists() and not overwrite:
+            raise InputError(
+                f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
+            )
     self_recorded = rollouts_path is None
     with staged_output(out, overwrite=overwrite) as staged:
         if rollouts_path is None:
-            rollouts = _record_first(checkpoint_paths[0], device, record_options, settings, staged, out)
+            rollouts = record_rollouts(checkpoint_paths[0], device, record_options, settings, staged)
+            print(f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {out / ROLLOUTS_NAME}")
+            print(f"Note: {SELF_RECORDED_NOTE.format(success=PAPER.success_return)}.", flush=True)
             rollouts_path = out / ROLLOUTS_NAME
         else:
             rollouts = Rollouts.load(rollouts_path)
@@ -250,44 +234,38 @@ def probe_to_folder(
     return summary
 
 
-def _checked_record_options(record_options: RecordOptions | None, out: Path, overwrite: bool) -> RecordOptions:
+def checked_record_options(record_options: RecordOptions | None) -> RecordOptions:
     """
-    The recording options, checked before anything is recorded (the split needs :data:`MIN_EPISODES` episodes).
-
-    :raises InputError: bad options, or ``<out>/rollouts.npz`` exists without ``overwrite``
+    :param record_options: how to record (``None``: the defaults)
+    :return: them, checked before anything is recorded
+    :raises InputError: naming the bad option
     """
     record_options = record_options or RecordOptions()
     record_options.check()
-    if record_options.episodes < MIN_EPISODES:  # checked before recording: the split needs them
+    if record_options.episodes < MIN_EPISODES:  # the split needs them
         raise InputError(
             f"episodes must be >= {MIN_EPISODES} to split them into training, validation and test episodes, "
             f"got {record_options.episodes}.",
             parameter="episodes",
         )
-    if (out / ROLLOUTS_NAME).exists() and not overwrite:
-        raise InputError(
-            f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
-        )
     return record_options
 
 
-def _record_first(
-    checkpoint_path: str | Path,
-    device: th.device,
-    record_options: RecordOptions,
-    settings: ProbeSettings,
-    staged: StagedOutputs,
-    out: Path,
+def record_rollouts(
+    source: str | Path, device: th.device, record_options: RecordOptions, settings: ProbeSettings, staged: StagedOutputs
 ) -> Rollouts:
-    """Record rollouts of the first checkpoint and save them into ``staged`` (moved into ``out`` on success)."""
-    first = load_checkpoint(checkpoint_path, device=device)
-    rollouts = record(first, record_options, settings.progress)
-    rollouts.save(staged.path(ROLLOUTS_NAME))  # moved into out with the other files, only on success
-    print(
-        f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {out / ROLLOUTS_NAME}", flush=True
-    )
-    print(f"Note: {SELF_RECORDED_NOTE.format(success=PAPER.success_return)}.", flush=True)
-    del first
+    """
+    :param source: the checkpoint that records
+    :param device: where it runs
+    :param record_options: how to record
+    :param settings: the probe's settings (``progress``)
+    :param staged: the staged outputs the rollouts are saved into (moved in only on success)
+    :return: the rollouts
+    """
+    recorder = load_checkpoint(source, device=device)
+    rollouts = record(recorder, record_options, settings.progress)
+    del recorder
+    rollouts.save(staged.path(ROLLOUTS_NAME))
     return rollouts
 
 
@@ -306,8 +284,7 @@ def _probe_checkpoints(
         checkpoint = load_checkpoint(path, device=device)
         checkpoint.label = label
         print(
-            f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)",
-            flush=True,
+            f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)", flush=True
         )
         result = probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
         result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
@@ -345,12 +322,7 @@ def _summary(
             "env_config": rollouts.env_config,
             "metadata": rollouts.metadata,
         },
-        "split": {
-            "n_train": split.n_train,
-            "n_validation": split.n_validation,
-            "n_test": split.n_test,
-            "episodes": split.episodes,
-        },
+        "split": {key: getattr(split, key) for key in ("n_train", "n_validation", "n_test", "episodes")},
         "targets": {"names": names, "groups": groups},
         "checkpoints": [
             {
@@ -376,8 +348,6 @@ def _summary(
             }
             for r in results
         ],
-        "mse_over_training": "written"
-        if over_training
-        else "skipped: needs >= 2 checkpoints with distinct training steps",
+        "mse_over_training": "written" if over_training else "skipped: needs >= 2 checkpoints with distinct steps",
         "files": files,
     }

@@ -1,9 +1,5 @@
-"""
-The published DrQ-v2 evaluation curves (facebookresearch/drqv2, folder ``curves/``, MIT licence), shipped in
-``sb3_collapse/report/data/drqv2_curves.csv.gz``: columns ``task, seed, frame, episode_reward``, one row per
-(task, seed, evaluation), 24 DMC tasks, returns rounded to 0.01. ``frame`` counts environment frames (action
-repeat included), the unit of our evaluation files. See ``data/README.md`` for the origin.
-"""
+"""The published DrQ-v2 evaluation curves (facebookresearch/drqv2, MIT), shipped in ``data/drqv2_curves.csv.gz``
+(``task, seed, frame, episode_reward``; frames include the action repeat). Origin: ``data/README.md``."""
 
 from __future__ import annotations
 
@@ -28,26 +24,21 @@ _REFERENCE_ALIASES = {"ball_in_cup_catch": "cup_catch"}
 
 def reference_task_name(task: str) -> str:
     """
-    The reference data's name of one of our tasks: ``walker-walk`` -> ``walker_walk``, ``cup-catch`` and
-    ``ball_in_cup-catch`` -> ``cup_catch``. Registered env ids (``sb3_collapse/walker-walk-v0``) are accepted.
-
     :param task: our task name (``<domain>-<task>``) or env id
-    :return: the name in the reference data (``<domain>_<task>``)
+    :return: the reference data's name (``walker-walk`` -> ``walker_walk``, ``ball_in_cup-catch`` -> ``cup_catch``)
     """
-    name = task.strip().lower()
-    name = name.removeprefix("sb3_collapse/").removesuffix("-v0")
-    name = name.replace("-", "_")
+    name = task.strip().lower().removeprefix("sb3_collapse/").removesuffix("-v0").replace("-", "_")
     return _REFERENCE_ALIASES.get(name, name)
 
 
 @dataclass
 class ReferenceCurves:
     """
-    The published curves of one task, aligned on the frames that every seed has.
+    The published curves of one task, on the frames that every seed has.
 
-    :param task: the reference task name, e.g. ``walker_walk``
+    :param task: the reference task name
     :param seeds: the seeds, sorted
-    :param frames: the evaluation frames (action repeat included)
+    :param frames: the evaluation frames
     :param returns: ``(len(seeds), len(frames))`` evaluation returns
     """
 
@@ -69,17 +60,10 @@ def _reference_rows(path: Path = REFERENCE_FILE) -> dict[str, dict[int, dict[int
     return {task: dict(seeds) for task, seeds in table.items()}
 
 
-def reference_tasks() -> list[str]:
-    """The reference data's task names, sorted."""
-    return sorted(_reference_rows())
-
-
 def load_reference_curves(task: str) -> ReferenceCurves | None:
     """
-    The published DrQ-v2 curves of a task, on the frames that every seed of the task has.
-
-    :param task: our task name (``walker-walk``, ``cup-catch``, ...) or the reference name (``walker_walk``)
-    :return: the curves, or ``None`` when the reference data has no such task
+    :param task: our task name or the reference name
+    :return: the published DrQ-v2 curves of the task, ``None`` when the data has no such task
     """
     name = reference_task_name(task)
     seeds = _reference_rows().get(name)
@@ -93,9 +77,7 @@ def load_reference_curves(task: str) -> ReferenceCurves | None:
 
 def pack_reference_curves(folder: str | Path, path: str | Path, decimals: int = 2) -> int:
     """
-    Build the shipped data file from the ``dmc_<task>.csv`` files of DrQ-v2's ``curves/`` folder (columns
-    ``agent, task, seed, frame, episode_reward, hour``): keep ``task, seed, frame, episode_reward``, round the
-    return to ``decimals`` and gzip.
+    Build the shipped data file from the ``dmc_<task>.csv`` files of DrQ-v2's ``curves/`` folder.
 
     :param folder: the folder of ``dmc_*.csv`` files
     :param path: the ``.csv.gz`` file to write

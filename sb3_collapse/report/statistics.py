@@ -1,15 +1,10 @@
-"""
-The numbers of the report, from loaded trials: aligned curves, percentile bands, the per-variant table and the
-layer-transplant grid. Pure functions of numpy arrays and :class:`~sb3_collapse.report.loading.Trial` lists.
-
-A variant's seeds are compared on the evaluation frames that every finished seed has (the aligned grid; the
-report notes the frames dropped); a seed's **final return** is its return at the last frame of that grid; standard
-deviations across seeds use ``ddof=1`` (nan with fewer than 2 seeds). See
-docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
-"""
+"""The report's numbers from loaded trials: aligned curves, percentile bands, the table and the transplant grid.
+See docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep."""
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 import re
 from collections.abc import Sequence
@@ -21,23 +16,18 @@ from sb3_collapse.paper import PAPER
 from sb3_collapse.report.loading import Sweep, Trial
 
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
-"""Where a transplanted CNN or MLP comes from (rows and columns of the paper's Figure 3(a), in this order)."""
+"""Where a transplanted CNN or MLP comes from (Figure 3(a)'s rows and columns)."""
 TRANSPLANT_VARIANT = re.compile(r"^cnn-(blank|good|bad)_mlp-(blank|good|bad)$")
 
 
 @dataclass
 class ReportSettings:
     """
-    The definitions of the report's numbers.
+    The definitions of the report's numbers (defaults: the paper's, :data:`sb3_collapse.paper.PAPER`).
 
-    The defaults are the paper's protocol, :data:`sb3_collapse.paper.PAPER`.
-
-    :param collapse_tag: the collapse metric whose recent values decide "stuck" (collapse metrics file tag; the
-        reset rule's metric)
-    :param collapse_threshold: a seed is stuck when the median of its last ``collapse_checks`` values of
-        ``collapse_tag`` is ``<=`` this (the reset rule's threshold)
-    :param collapse_checks: number of last checks whose median is compared with the threshold (the reset rule's
-        patience)
+    :param collapse_tag: the collapse metric that decides "stuck" (the reset rule's)
+    :param collapse_threshold: stuck when the median of the last ``collapse_checks`` values is ``<=`` this
+    :param collapse_checks: number of last checks whose median is compared with the threshold
     :param last_evals: the across-seed std is averaged over this many last frames of the aligned grid
     :param success_return: a seed whose final return is ``>=`` this succeeds (transplant grid)
     :param percentiles: the band of Figure 5, in percent
@@ -63,55 +53,27 @@ class ReportSettings:
             raise ValueError(f"percentiles must satisfy 0 <= low < high <= 100, got {low} and {high}.")
 
 
-def common_frames(frame_lists: Sequence[np.ndarray]) -> np.ndarray:
-    """
-    :param frame_lists: the evaluation frames of each seed
-    :return: the frames that every list has, increasing (empty for no list)
-    """
-    if not frame_lists:
-        return np.zeros(0, dtype=np.int64)
-    common = frame_lists[0]
-    for frames in frame_lists[1:]:
-        common = np.intersect1d(common, frames)
-    return np.unique(common).astype(np.int64)
-
-
 def aligned_returns(trials: Sequence[Trial]) -> tuple[np.ndarray, np.ndarray]:
     """
-    The evaluation returns of several seeds on their aligned grid (:func:`common_frames`).
-
-    :param trials: trials with evaluation curves (``frames`` increasing, no repeats)
-    :return: ``(frames, returns)`` with ``returns[i, j]`` the return of ``trials[i]`` at ``frames[j]``
+    :param trials: trials with evaluation curves (``frames`` increasing)
+    :return: ``(frames, returns)`` on the frames every trial has, ``returns[i, j]`` of ``trials[i]`` at ``frames[j]``
     """
-    frames = common_frames([trial.frames for trial in trials])
+    frames = functools.reduce(np.intersect1d, [t.frames for t in trials]) if trials else np.zeros(0)
+    frames = np.unique(frames).astype(np.int64)
     returns = np.array([trial.returns[np.searchsorted(trial.frames, frames)] for trial in trials], dtype=np.float64)
     return frames, returns.reshape(len(trials), len(frames))
-
-
-def percentile_band(
-    returns: np.ndarray, percentiles: tuple[float, float] = (5.0, 95.0)
-) -> tuple[np.ndarray, np.ndarray]:
-    """
-    The band across seeds at each frame: ``np.percentile`` with linear interpolation between order statistics.
-
-    :param returns: ``(seeds, frames)`` returns
-    :param percentiles: low and high percentiles, in percent
-    :return: ``(low, high)``, one value per frame
-    """
-    low, high = np.percentile(returns, percentiles, axis=0)
-    return low, high
 
 
 @dataclass
 class BandCurve:
     """
-    A curve of Figure 5: the mean across seeds and a percentile band, at each aligned frame.
+    A curve of Figure 5 at each aligned frame.
 
     :param name: the variant (or the reference's label)
-    :param frames: the aligned frames (action repeat included)
-    :param mean: mean return across seeds at each frame
-    :param low: low percentile at each frame
-    :param high: high percentile at each frame
+    :param frames: the aligned frames
+    :param mean: mean return across seeds
+    :param low: low percentile
+    :param high: high percentile
     :param seeds: number of seeds
     """
 
@@ -129,38 +91,19 @@ def band_curve(
     """
     :param name: the curve's name
     :param frames: the aligned frames
-    :param returns: ``(seeds, frames)`` aligned returns (at least one seed)
+    :param returns: ``(seeds, frames)`` aligned returns
     :param percentiles: the band, in percent
-    :return: mean and :func:`percentile_band` at each frame
+    :return: mean and percentile band across seeds at each frame
     """
-    low, high = percentile_band(returns, percentiles)
+    low, high = np.percentile(returns, percentiles, axis=0)
     return BandCurve(name, frames, returns.mean(axis=0), low, high, returns.shape[0])
-
-
-def variant_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = (5.0, 95.0)) -> list[BandCurve]:
-    """
-    :param sweep: the loaded sweep
-    :param task: a task
-    :param percentiles: the band, in percent
-    :return: one curve per variant of ``task`` with finished seeds sharing at least one frame, in display order
-    """
-    curves = []
-    for variant in sweep.variants(task):
-        finished = sweep.select(task, variant)
-        if finished:
-            frames, returns = aligned_returns(finished)
-            if len(frames):
-                curves.append(band_curve(variant, frames, returns, percentiles))
-    return curves
 
 
 def across_seed_std(values: np.ndarray, axis: int = 0) -> np.ndarray | float:
     """
-    Sample standard deviation (``ddof=1``) across seeds; nan with fewer than 2 seeds.
-
     :param values: values with the seeds along ``axis``
     :param axis: the seed axis
-    :return: the std (an array without ``axis``, or a float for 1-d input)
+    :return: the std across seeds (``ddof=1``; nan with fewer than 2 seeds), a float for 1-d input
     """
     values = np.asarray(values, dtype=np.float64)
     if values.shape[axis] < 2:
@@ -172,9 +115,8 @@ def across_seed_std(values: np.ndarray, axis: int = 0) -> np.ndarray | float:
 
 def last_evals_std_mean(returns: np.ndarray, last_evals: int = 10) -> float:
     """
-    The paper's "average standard deviation over the last ten evaluations": at each of the last ``last_evals``
-    frames of the aligned grid (all frames when there are fewer), the across-seed std (:func:`across_seed_std`),
-    then the mean of these stds.
+    The paper's "average standard deviation over the last ten evaluations": the across-seed std at each of the last
+    ``last_evals`` frames, averaged.
 
     :param returns: ``(seeds, frames)`` aligned returns
     :param last_evals: how many last frames
@@ -189,16 +131,13 @@ def stuck_in_collapse(
     values: np.ndarray, threshold: float = PAPER.threshold, checks: int = PAPER.patience
 ) -> bool | None:
     """
-    Whether a seed ends its training stuck in action collapse: the **median of its last** ``checks`` **values**
-    of the collapse metric (``PAPER.collapse_tag`` by default, in frame order; all values when there are
-    fewer) is ``<= threshold``. With the defaults this is the reset rule's own test (the paper's threshold and
-    patience, :data:`sb3_collapse.paper.PAPER`) applied to the end of the run; the median tolerates one or two
-    isolated spikes on either side.
+    Whether a seed ends stuck in action collapse: the median of its last ``checks`` values of the collapse metric
+    is ``<= threshold`` (the reset rule's test at the end of the run).
 
     :param values: the metric's finite values of one seed, in frame order
     :param threshold: the value at or below which the metric means collapse
     :param checks: how many last values
-    :return: ``True`` (stuck), ``False`` (not stuck) or ``None`` (unknown: no value logged)
+    :return: ``True`` (stuck), ``False`` or ``None`` (no value logged)
     """
     if len(values) == 0:
         return None
@@ -208,25 +147,25 @@ def stuck_in_collapse(
 @dataclass
 class VariantSummary:
     """
-    One row of the table: a task and a variant.
+    One row of the table (docs/sweeps.md: its columns).
 
     :param task: task name
     :param variant: variant name
     :param seeds: finished seeds (the statistics use only these)
-    :param unfinished: trial folders of this task and variant that are not finished (not in the statistics)
+    :param unfinished: its trial folders that are not finished
     :param final_frame: last frame of the aligned grid (``None`` without finished seeds)
-    :param final_mean: mean across seeds of the final return
-    :param final_std: across-seed std of the final return (``ddof=1``)
-    :param stuck: finished seeds stuck in action collapse (:func:`stuck_in_collapse`)
-    :param collapse_unknown: finished seeds without any value of the collapse metric
-    :param resets_total: resets summed over finished seeds (result files)
-    :param seeds_reset: finished seeds with at least one reset
-    :param escaped: finished seeds whose reset rule saw an escape (result file's ``escaped`` true)
-    :param reset_rule_seeds: finished seeds that ran the reset rule (``escaped`` not null)
-    :param last_evals: frames averaged in ``last_evals_std_mean`` (at most the setting)
+    :param final_mean: mean of the final return
+    :param final_std: across-seed std of the final return
+    :param stuck: seeds stuck in action collapse (:func:`stuck_in_collapse`)
+    :param collapse_unknown: seeds without any value of the collapse metric
+    :param resets_total: resets summed over the seeds
+    :param seeds_reset: seeds with at least one reset
+    :param escaped: seeds whose reset rule saw an escape
+    :param reset_rule_seeds: seeds that ran the reset rule
+    :param last_evals: frames averaged in ``last_evals_std_mean``
     :param last_evals_std_mean: :func:`last_evals_std_mean` of the aligned returns
-    :param dropped_frames: evaluation frames of some but not all finished seeds (not on the aligned grid)
-    :param finals: the final return of each finished seed, by seed
+    :param dropped_frames: evaluation frames of some but not all seeds
+    :param finals: the final return of each seed, by seed
     :param seed_ids: the finished seeds
     """
 
@@ -254,14 +193,12 @@ def summarize_variant(
     task: str, variant: str, finished: Sequence[Trial], unfinished: int, settings: ReportSettings
 ) -> VariantSummary:
     """
-    The table row of one task and variant.
-
     :param task: task name
     :param variant: variant name
     :param finished: its finished trials
     :param unfinished: the number of its unfinished trial folders
     :param settings: the definitions
-    :return: the row (statistics nan / 0 without finished trials)
+    :return: the table row (statistics nan / 0 without finished trials)
     """
     row = VariantSummary(task=task, variant=variant, seeds=len(finished), unfinished=unfinished)
     if not finished:
@@ -293,7 +230,7 @@ def summarize(sweep: Sweep, settings: ReportSettings) -> list[VariantSummary]:
     """
     :param sweep: the loaded sweep
     :param settings: the definitions
-    :return: one row per task and variant (tasks sorted, variants in display order)
+    :return: one row per task and variant (:func:`summarize_variant`)
     """
     return [
         summarize_variant(task, variant, sweep.select(task, variant), len(sweep.select(task, variant, False)), settings)
@@ -320,8 +257,8 @@ class GridCell:
     :param cnn: the CNN's source (blank, good, bad)
     :param mlp: the MLP's source
     :param successes: finished seeds whose final return is ``>= success_return``
-    :param seeds: finished seeds (0: no such variant, or none finished)
-    :param unfinished: unfinished trial folders of the cell
+    :param seeds: finished seeds
+    :param unfinished: unfinished trial folders
     """
 
     task: str
@@ -336,13 +273,12 @@ def transplant_grid(
     rows: Sequence[VariantSummary], success_return: float = PAPER.success_return
 ) -> dict[str, list[GridCell]]:
     """
-    The paper's Figure 3(a): per task that has ``cnn-<src>_mlp-<src>`` variants, the 3 x 3 cells (CNN source x
-    MLP source, in :data:`TRANSPLANT_SOURCES` order, row-major) with the number of successful seeds: final
-    return (last frame of the cell's aligned grid) ``>= success_return``.
+    The paper's Figure 3(a): per task with ``cnn-<src>_mlp-<src>`` variants, 9 cells (CNN x MLP source, row-major)
+    counting the seeds whose final return is ``>= success_return``.
 
     :param rows: the table rows (:func:`summarize`)
-    :param success_return: the success threshold (the paper's)
-    :return: task -> 9 cells; tasks without transplant variants are absent
+    :param success_return: the success threshold
+    :return: task -> 9 cells
     """
     by_task: dict[str, dict[tuple[str, str], VariantSummary]] = {}
     for row in rows:
@@ -352,32 +288,22 @@ def transplant_grid(
     grid = {}
     for task, cells in sorted(by_task.items()):
         grid[task] = []
-        for cnn in TRANSPLANT_SOURCES:
-            for mlp in TRANSPLANT_SOURCES:
-                row = cells.get((cnn, mlp))
-                grid[task].append(
-                    GridCell(
-                        task=task,
-                        cnn=cnn,
-                        mlp=mlp,
-                        successes=0 if row is None else sum(v >= success_return for v in row.finals),
-                        seeds=0 if row is None else row.seeds,
-                        unfinished=0 if row is None else row.unfinished,
-                    )
-                )
+        for cnn, mlp in itertools.product(TRANSPLANT_SOURCES, TRANSPLANT_SOURCES):
+            row = cells.get((cnn, mlp)) or VariantSummary(task, "", 0, 0)
+            grid[task].append(
+                GridCell(task, cnn, mlp, sum(v >= success_return for v in row.finals), row.seeds, row.unfinished)
+            )
     return grid
 
 
 def stage_indices(frames: np.ndarray, budget_frames: int | None = None) -> list[int]:
     """
-    The evaluations of the training stages of the paper's Tables 1-7 (``x = 0, 35, 70, 110``): for each of the
-    paper's stage frames (:meth:`PaperProtocol.stages <sb3_collapse.paper.PaperProtocol.stages>` of the run's
-    budget: 0, 350,000, 700,000 and 1,100,000 frames at the paper's budget of 1.1e6), clipped to the last
-    evaluation, the nearest evaluation. On the paper's grid of evaluations (0, 1e4, ..., 1.09e6) they are 0,
-    350,000, 700,000 and 1,090,000; on snapshots, which add one at the budget, 0, 350,000, 700,000 and 1,100,000.
+    The training stages of the paper's Tables 1-7 (``x = 0, 35, 70, 110``): for each stage frame
+    (:meth:`PaperProtocol.stages <sb3_collapse.paper.PaperProtocol.stages>` of the budget), clipped to the last
+    evaluation, the nearest evaluation. See docs/figures.md.
 
     :param frames: increasing evaluation frames (at least one)
-    :param budget_frames: the run's budget, in frames (:func:`budget_frames`; ``None``: the paper's, 1.1e6)
+    :param budget_frames: the run's budget, in frames (``None``: the paper's)
     :return: one index into ``frames`` per stage (the earlier one on ties)
     """
     frames = np.asarray(frames, dtype=np.float64)
@@ -389,8 +315,8 @@ def stage_indices(frames: np.ndarray, budget_frames: int | None = None) -> list[
 
 def stages_caption(reading: str) -> str:
     """
-    :param reading: what a table reads, in the plural (``"evaluations"``, ``"snapshots"``)
-    :return: the sentence that says which stages a table of Tables 1-7 reads (:func:`stage_indices`)
+    :param reading: what the table reads, in the plural
+    :return: the sentence that says which stages a table of Tables 1-7 reads
     """
     frames = ", ".join(f"{frame:,}" for frame in PAPER.stages())
     return (
@@ -402,7 +328,7 @@ def stages_caption(reading: str) -> str:
 def budget_frames(trials: Sequence[Trial]) -> int | None:
     """
     :param trials: finished trials
-    :return: the frames they trained (the smallest ``frames`` of their result files), ``None`` when none says
+    :return: the frames they trained (the smallest of their result files'), ``None`` when none says
     """
     budgets = [int(t.result["frames"]) for t in trials if t.result is not None and t.result.get("frames")]
     return min(budgets) if budgets else None
@@ -416,10 +342,10 @@ class TransplantCurves:
     :param task: task name
     :param cnn: the CNN's source
     :param mlp: the MLP's source
-    :param frames: the aligned frames of the successful seeds
-    :param returns: ``(successes, frames)`` their returns
-    :param stage_frames: the frames of the four stages (:func:`stage_indices` of the cell's budget)
-    :param stage_std: the across-seed std (ddof=1) at each stage (nan with fewer than 2 successful seeds)
+    :param frames: the aligned frames
+    :param returns: ``(successes, frames)`` returns of the successful seeds
+    :param stage_frames: the frames of the four stages (:func:`stage_indices`)
+    :param stage_std: the across-seed std at each stage
     """
 
     task: str
@@ -438,33 +364,21 @@ class TransplantCurves:
 
 def transplant_curves(sweep: Sweep, success_return: float = PAPER.success_return) -> dict[str, list[TransplantCurves]]:
     """
-    The paper's Figure 3(b) and Table 7: per task with transplant variants, for each cell with successful seeds
-    (final return ``>= success_return``, as in :func:`transplant_grid`), their evaluation curves on their aligned
-    grid and the across-seed std at the four training stages (:func:`stage_indices` of the cell's
-    :func:`budget_frames`).
+    The paper's Figure 3(b) and Table 7: per transplant cell with successful seeds, their curves and the
+    across-seed std at the four training stages.
 
     :param sweep: the loaded sweep
     :param success_return: the success threshold
-    :return: task -> cells with at least one successful seed, in grid order; tasks without any are absent
+    :return: task -> cells with at least one successful seed, in grid order
     """
     curves: dict[str, list[TransplantCurves]] = {}
-    for task in sweep.tasks():
-        for cnn in TRANSPLANT_SOURCES:
-            for mlp in TRANSPLANT_SOURCES:
-                finished = sweep.select(task, f"cnn-{cnn}_mlp-{mlp}")
-                if not finished:
-                    continue
-                frames, returns = aligned_returns(finished)
-                if not len(frames):
-                    continue
-                successful = returns[returns[:, -1] >= success_return]
-                if not len(successful):
-                    continue
-                stages = stage_indices(frames, budget_frames(finished))
-                stds = across_seed_std(successful[:, stages], axis=0)
-                curves.setdefault(task, []).append(
-                    TransplantCurves(
-                        task, cnn, mlp, frames, successful, [int(frames[i]) for i in stages], [float(s) for s in stds]
-                    )
-                )
+    for task, cnn, mlp in itertools.product(sweep.tasks(), TRANSPLANT_SOURCES, TRANSPLANT_SOURCES):
+        finished = sweep.select(task, f"cnn-{cnn}_mlp-{mlp}")
+        frames, returns = aligned_returns(finished)
+        successful = returns[returns[:, -1] >= success_return] if len(frames) else returns[:0]
+        if len(successful):
+            stages = stage_indices(frames, budget_frames(finished))
+            stds = [float(s) for s in across_seed_std(successful[:, stages], axis=0)]
+            cell = TransplantCurves(task, cnn, mlp, frames, successful, [int(frames[i]) for i in stages], stds)
+            curves.setdefault(task, []).append(cell)
     return curves

@@ -1,7 +1,4 @@
-"""
-One look for every figure of the report and the probe: a colour-blind-safe palette (Okabe & Ito, *Color
-Universal Design*) with one colour per layer, the same in every figure, and frame axes in engineering notation.
-"""
+"""One look for every figure: colour-blind-safe palettes, one colour per layer, frame axes in engineering notation."""
 
 from __future__ import annotations
 
@@ -13,25 +10,15 @@ from matplotlib.ticker import EngFormatter
 
 from sb3_collapse.common.layers import LAYER_NAMES
 
-OKABE_ITO = (
-    "#E69F00",  # orange
-    "#56B4E9",  # sky blue
-    "#009E73",  # bluish green
-    "#0072B2",  # blue
-    "#D55E00",  # vermillion
-    "#CC79A7",  # reddish purple
-    "#F0E442",  # yellow
-    "#000000",  # black
-)
-"""The eight colours of Okabe & Ito, distinguishable with the common colour-vision deficiencies."""
+OKABE_ITO = ("#E69F00", "#56B4E9", "#009E73", "#0072B2", "#D55E00", "#CC79A7", "#F0E442", "#000000")
+"""The eight colours of Okabe & Ito (orange, sky blue, bluish green, blue, vermillion, reddish purple, yellow, black),
+distinguishable with the common colour-vision deficiencies."""
 TOL_MUTED = ("#332288", "#88CCEE", "#44AA99", "#117733", "#999933", "#DDCC77", "#CC6677", "#882255", "#AA4499")
 """Paul Tol's colour-blind-safe "muted" scheme: more colours once Okabe-Ito's are used."""
 
 _LAYER_COLOR_LIST = ("#000000", "#56B4E9", "#009E73", "#F0E442", "#D55E00", "#CC79A7", "#0072B2", "#E69F00", "#777777")
 LAYER_COLORS: dict[str, str] = dict(zip(LAYER_NAMES, _LAYER_COLOR_LIST))
-"""Layer (``cnn0`` .. ``action``) -> its colour in every figure: ``cnn0`` (the pixels, the probe's baseline) black,
-``cnn1`` sky blue, ``cnn2`` green, ``cnn3`` yellow, ``cnn4`` vermillion (solid lines); ``mlp0`` purple, ``mlp1``
-blue, ``mlp2`` orange (dashed lines)."""
+"""Layer -> its colour in every figure (``cnn0``, the pixels, black)."""
 
 RETURN_COLOR = "#000000"
 """The evaluation return's colour."""
@@ -44,7 +31,7 @@ ESCAPE_COLOR = "#009E73"
 def layer_style(layer: str) -> dict[str, object]:
     """
     :param layer: a layer name
-    :return: ``plot`` keywords: the layer's colour, solid for CNN layers and dashed for the MLP
+    :return: ``plot`` keywords: its colour, solid for CNN layers and dashed for the MLP
     """
     return {"color": LAYER_COLORS.get(layer, "#777777"), "linestyle": "--" if layer.startswith("mlp") else "-"}
 

@@ -123,10 +123,15 @@ def test_snapshots_need_drqv2_and_evaluations(tmp_path):
 
 def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 1: 920.0, 2: 20.0, 3: 10.0, 4: 500.0})
+    damaged = root / "walker-walk" / "drqv2" / "seed_5"  # a truncated result file: listed, the rest probed
+    shutil.copytree(root / "walker-walk" / "drqv2" / "seed_4", damaged, ignore=shutil.ignore_patterns(SNAPSHOTS_DIR))
+    (damaged / "result.json").write_text((damaged / "result.json").read_text()[:40])
     argv = ["sweep", str(root), "--task", "walker-walk", "--episodes", "5", "--max-steps", "4", "--max-tau", "4"]
     assert probe_main([*argv, "--layers", "cnn0", "cnn4", "mlp1", "--no-progress"]) == 0
+    assert "Not probed: seed 5: " in capsys.readouterr().out
     out = root / SWEEP_PROBE_DIR.format(task="walker-walk", variant="drqv2")
     summary = json.loads((out / "summary.json").read_text())
+    assert [d["seed"] for d in summary["damaged"]] == [5] and "result.json: not a readable JSON" in str(summary)
     assert [(a["seed"], a["row"], a["checkpoints"]) for a in summary["agents"]] == [
         (0, "well-performing", 3), (1, "well-performing", 3), (2, "poorly performing", 3), (3, "poorly performing", 3)
     ]  # fmt: skip
@@ -164,7 +169,10 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     assert {t["std"] for t in tables if t["layer"] == "cnn0"} == {"0.0"}  # the pixels are the same for every agent
     assert any(float(t["std"]) > 0 for t in tables if t["layer"] == "mlp1")  # the noisy actors differ
     # the HTML report of the sweep shows Figure 2 and the tables
-    report = write_report(root, progress=False)
+    capsys.readouterr()
+    report = write_report(root)  # the progress on, stderr captured: one line per stage, no bar frames
+    err = capsys.readouterr().err
+    assert "fixed-set metrics: walker-walk / drqv2\n" in err and "\r" not in err
     page = (root / "report" / "index.html").read_text()
     assert "Figure 2" in page and "Table 1" in page
     # Figure 4 on the rollouts probe sweep recorded (all 20 observations: fewer than the 2048 drawn by default)

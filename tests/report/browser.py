@@ -37,10 +37,13 @@ window.addEventListener("load", () => {{
   const tables = Array.from(document.querySelectorAll("table")).map(t => ({{
     caption: t.caption ? t.caption.textContent.slice(0, 80) : "",
     body_rows: t.tBodies.length ? t.tBodies[0].rows.length : 0,
-    columns: t.rows.length ? t.rows[0].cells.length : 0}}));
+    columns: t.rows.length ? t.rows[0].cells.length : 0,
+    right: Math.max(...Array.from(t.querySelectorAll("td")).map(td => td.getBoundingClientRect().right), 0),
+    css_class: t.className}}));
   const pre = document.createElement("pre");
   pre.id = "{RESULT_ID}";
-  pre.textContent = JSON.stringify({{images, tables, title: document.title}});
+  const width = document.documentElement.clientWidth;
+  pre.textContent = JSON.stringify({{images, tables, width, title: document.title}});
   document.body.appendChild(pre);
 }});
 </script>
@@ -99,7 +102,9 @@ def check_page(page: Path, workdir: Path, binary: str | None = None, timeout: fl
     :param workdir: a scratch folder (Chromium's profile and the page copy)
     :param binary: the Chromium binary (default: :func:`chromium`)
     :param timeout: seconds before Chromium is stopped
-    :return: ``{"images": [{alt, complete, width, height}], "tables": [{caption, body_rows, columns}], "title"}``
+    :return: ``{"images": [{alt, complete, width, height}], "tables": [{caption, body_rows, columns, right,
+        css_class}], "width", "title"}`` (``right``: the right edge of a table's rightmost cell, ``width``: the
+        page's, in CSS pixels)
     """
     binary = binary or chromium()
     text = page.read_text()

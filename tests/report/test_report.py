@@ -1,6 +1,7 @@
 import csv
 import fcntl
 import gzip
+import html
 import json
 import shutil
 
@@ -305,22 +306,54 @@ def _copy(sweep: FakeSweep, tmp_path):
     [
         ("missing", "does not exist"),
         ("empty", "no trial folders"),
-        ("eval_number", "walker-walk/drqv2/seed_0/eval.csv, line 3: column 'mean_reward' is 'abc'"),
-        ("eval_column", "walker-walk/drqv2/seed_0/eval.csv: missing column(s) mean_reward"),
-        ("eval_missing", "walker-walk/drqv2/seed_0/eval.csv is missing"),
-        ("result_json", "walker-walk/drqv2/seed_0/result.json: not a readable JSON file"),
-        ("result_resets", "walker-walk/drqv2/seed_0/result.json: 'resets' must be an integer"),
-        ("metrics_number", "walker-walk/drqv2/seed_0/collapse_metrics.csv, line 2: column 'value' is 'x'"),
         ("unknown_task", "--tasks cheetah-run not in"),
         ("bad_setting", "--collapse-threshold must be a finite number"),
+        ("all_damaged", "no trial of"),
     ],
 )
 def test_cli_errors(fake_sweep, tmp_path, capsys, case, message):
     root = _copy(fake_sweep, tmp_path) if case not in ("missing", "empty") else tmp_path / "runs"
-    trial = root / "walker-walk" / "drqv2" / "seed_0"
     extra = []
     if case == "empty":
         (root / "walker-walk" / "drqv2").mkdir(parents=True)
+    elif case == "unknown_task":
+        extra = ["--tasks", "cheetah-run"]
+    elif case == "bad_setting":
+        extra = ["--collapse-threshold", "nan"]
+    elif case == "all_damaged":
+        extra = ["--tasks", "hopper-stand"]
+        for result in root.glob("hopper-stand/*/seed_*/result.json"):
+            result.write_text('{"status": "finished", ')
+    assert main([str(root), "--no-progress", *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err
+    assert not (root / "report").exists()  # nothing written, not even an empty folder
+    if case == "missing":
+        with pytest.raises(InputError, match="does not exist"):
+            write_report(root, progress=False)
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("result_truncated", "walker-walk/drqv2/seed_0/result.json: not a readable JSON file"),
+        ("eval_cut_mid_row", "walker-walk/drqv2/seed_0/eval.csv, line 22: the number of fields differs"),
+        ("eval_number", "walker-walk/drqv2/seed_0/eval.csv, line 3: column 'mean_reward' is 'abc'"),
+        ("eval_column", "walker-walk/drqv2/seed_0/eval.csv: missing column(s) mean_reward"),
+        ("eval_missing", "walker-walk/drqv2/seed_0/eval.csv is missing"),
+        ("result_resets", "walker-walk/drqv2/seed_0/result.json: 'resets' must be an integer"),
+        ("metrics_number", "walker-walk/drqv2/seed_0/collapse_metrics.csv, line 2: column 'value' is 'x'"),
+    ],
+)
+def test_a_damaged_trial_is_listed_and_the_rest_drawn(fake_sweep, tmp_path, capsys, case, message):
+    root = _copy(fake_sweep, tmp_path)
+    trial = root / "walker-walk" / "drqv2" / "seed_0"
+    if case == "result_truncated":
+        text = (trial / "result.json").read_text()
+        (trial / "result.json").write_text(text[: len(text) // 2])
+    elif case == "eval_cut_mid_row":
+        text = (trial / "eval.csv").read_text()
+        (trial / "eval.csv").write_text(text[: text.rindex(",", 0, len(text) - 1)])
     elif case == "eval_number":
         lines = (trial / "eval.csv").read_text().splitlines()
         lines[2] = "10000,5000,abc,1.0,10,1.0"
@@ -329,8 +362,6 @@ def test_cli_errors(fake_sweep, tmp_path, capsys, case, message):
         (trial / "eval.csv").write_text("frame,step,reward\n0,0,1.0\n")
     elif case == "eval_missing":
         (trial / "eval.csv").unlink()
-    elif case == "result_json":
-        (trial / "result.json").write_text('{"status": "finished", ')
     elif case == "result_resets":
         result = json.loads((trial / "result.json").read_text())
         (trial / "result.json").write_text(json.dumps({**result, "resets": "two"}))
@@ -338,17 +369,30 @@ def test_cli_errors(fake_sweep, tmp_path, capsys, case, message):
         lines = (trial / "collapse_metrics.csv").read_text().splitlines()
         lines[1] = "10000,5000,collapse/mlp1/grad_norm,x"
         (trial / "collapse_metrics.csv").write_text("\n".join(lines) + "\n")
-    elif case == "unknown_task":
-        extra = ["--tasks", "cheetah-run"]
-    elif case == "bad_setting":
-        extra = ["--collapse-threshold", "nan"]
-    assert main([str(root), "--no-progress", *extra]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("error: ") and message in err
-    assert not (root / "report").exists()  # nothing written, not even an empty folder
-    if case == "missing":
-        with pytest.raises(InputError, match="does not exist"):
-            write_report(root, progress=False)
+    assert main([str(root), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    reason = f"{message}"
+    markdown = (root / "report" / "summary.md").read_text()
+    unfinished = markdown[markdown.index("## Unfinished trials") :]
+    line = next(line for line in unfinished.splitlines() if line.startswith("| walker-walk | drqv2 | 0 | failed |"))
+    assert reason in line and line.count("move the folder aside to train this seed again") == 1
+    assert unfinished in printed
+    page = (root / "report" / "index.html").read_text()
+    section = page[page.index('<section id="unfinished-trials">') :]
+    section = section[: section.index("</section>")]
+    assert html.escape(reason) in section and "move the folder aside to train this seed again" in section
+    summary = {(r["task"], r["variant"]): r for r in _read_csv(root / "report" / "summary.csv")}
+    assert summary[("walker-walk", "drqv2")]["seeds"] == "4" and summary[("walker-walk", "drqv2")]["unfinished"] == "3"
+    assert summary[("hopper-stand", "drqv2")]["seeds"] == "5"  # the rest is drawn as before
+    _assert_png(root / "report" / "figure5.png")
+
+
+def test_progress_writes_no_bar_frames_into_a_captured_stderr(fake_sweep, tmp_path, capfd):
+    root = _copy(fake_sweep, tmp_path)
+    assert main([str(root), "--variants", "drqv2"]) == 0  # the progress is on, stderr is not a terminal
+    err = capfd.readouterr().err
+    assert "\r" not in err and "it/s" not in err and "%|" not in err
+    assert err.splitlines() == ["reading trials: 12 trials", "collapse figures: 2 figures"]
 
 
 def test_failed_report_keeps_the_previous_one(fake_sweep, tmp_path, monkeypatch):
@@ -383,6 +427,11 @@ def test_stale_outputs_removed(fake_sweep, tmp_path):
         "summary.md",
     ]
     assert report.grid == {} and report.transplant == {} and len(report.collapse_online) == 2
+    # Figure 3 and Table 7 are missing with a note that says which variants would produce them.
+    note = "Figure 3 and Table 7 not drawn: no transplant variant in this sweep; the layer-transplant variants"
+    page = (root / "report" / "index.html").read_text()
+    assert note in report.markdown and note in page and "cnn-&lt;src&gt;_mlp-&lt;src&gt;" in page
+    assert "--transplant-grid" in report.markdown
     # A fresh sweep with nothing finished yet still reports, with the counts of unfinished trials.
     for result in root.glob("*/*/seed_*/result.json"):
         result.unlink()
@@ -451,3 +500,30 @@ def test_a_trial_without_a_result_is_running_only_while_its_lock_is_held(tmp_pat
     with open(lock) as held:
         fcntl.flock(held.fileno(), fcntl.LOCK_EX)
         assert status() == "running"
+
+
+def test_html_tables_show_a_dash_for_a_missing_std(tmp_path):
+    path = tmp_path / "tables_1_6.csv"
+    path.write_text(
+        "table,row,column,layer,agents,stage,frame,std\n"
+        "1,well-performing,torso velocity,cnn1,1,0,0,nan\n"
+        "1,well-performing,torso velocity,cnn1,1,1,350000,\n"
+        "2,poorly performing,torso velocity,cnn1,2,0,0,0.25\n"
+    )
+    one, two = report_pipeline._tables_1_6(path)
+    assert "nan" not in one and one.count("<td>-</td>") == 2 and "<td>0.25</td>" in two
+
+
+def test_settings_values_stay_on_screen_in_chromium(tmp_path):
+    from browser import check_page
+
+    from sb3_collapse.report import html as report_html
+
+    settings = {"env": "walker-walk", "policy_kwargs": {"net_arch": list(range(400))}, "seed": 3}
+    section = report_html.Section("Settings", [report_html.settings_table(settings, "config.json")])
+    page = tmp_path / "index.html"
+    page.write_text(report_html.html_page("settings", [section]))
+    result = check_page(page, tmp_path)
+    (table,) = result["tables"]
+    assert table["css_class"] == "settings" and table["body_rows"] == 3
+    assert 0 < table["right"] <= result["width"]  # every value, the long one wrapped, within the page
