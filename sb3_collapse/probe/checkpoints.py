@@ -16,7 +16,9 @@ from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.errors import InputError, LayerMappingError
 from sb3_collapse.monitoring import layer_taps
 from sb3_collapse.monitoring.callbacks import action_repeat_of
+from sb3_collapse.protocol import FINAL_MODEL, SNAPSHOTS_DIR, snapshot_files
 from sb3_collapse.run.snapshots import is_snapshot, load_snapshot
+from sb3_collapse.runfolder import RunStatus, run_status, trial_folders
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "sb3_collapse.drqv2.policies": DrQv2,
@@ -71,6 +73,8 @@ def read_saved_data(path: str | Path) -> dict[str, Any]:
     :raises InputError: for a missing file, a file that is not a zip, or a zip without SB3's files
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(_folder_message(path))
     if not path.is_file():
         raise InputError(f"Checkpoint {path} does not exist.")
     if not zipfile.is_zipfile(path):
@@ -84,6 +88,23 @@ def read_saved_data(path: str | Path) -> dict[str, Any]:
             return json.loads(archive.read("data"))
         except (json.JSONDecodeError, UnicodeDecodeError) as error:
             raise InputError(f"{path}: SB3's `data` entry is not valid JSON ({error}).") from error
+
+
+def _folder_message(path: Path) -> str:
+    """What to give instead of a folder where a checkpoint file is expected (a sweep or run folder, or another)."""
+    trials = trial_folders(path)
+    if trials:
+        return (
+            f"{path} is a sweep folder, not a checkpoint: probe its trials with `python -m sb3_collapse.probe sweep "
+            f"{path} --task {trials[0][0]}`, or give a trial's model, e.g. {trials[0][3] / FINAL_MODEL}."
+        )
+    models = [str(p) for p in (path / FINAL_MODEL,) if p.is_file()]
+    models += [f"{path / SNAPSHOTS_DIR}/*.zip"] if snapshot_files(path) else []
+    if models or run_status(path) not in (None, RunStatus.NEW):
+        give = f"its model, {' or '.join(models)}." if models else "a model file (it has none yet)."
+        return f"{path} is a run folder, not a checkpoint: give {give}"
+    zips = sorted(path.glob("*.zip"))
+    return f"{path} is a folder, not a checkpoint: give an SB3 .zip" + (f", e.g. {zips[0]}." if zips else ".")
 
 
 def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgorithm]:
