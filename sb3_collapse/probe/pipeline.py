@@ -12,37 +12,38 @@ from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.probe.checkpoints import Checkpoint, identify_algorithm, load_checkpoint, read_saved_data
 from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
+from sb3_collapse.run.config import setting
 
 ROLLOUTS_NAME = "rollouts.npz"
 
 
 @dataclass
 class RecordOptions:
-    """
-    How to record rollouts (``None`` settings come from the checkpoint, else ``make_dmc_env``'s defaults).
+    """How to record rollouts, each option declared with its flag of ``python -m sb3_collapse.probe``
+    (:func:`setting`); ``None`` ones come from the checkpoint, else ``make_dmc_env``'s defaults."""
 
-    :param env: dm_control task, e.g. ``"walker-walk"``
-    :param episodes: episodes to record
-    :param max_steps: cap on agent steps per episode (``None``: the task's time limit)
-    :param seed: seed of the env and of the action noise
-    :param deterministic: the policy's deterministic action (else its own exploration)
-    :param noise_std: std of Gaussian noise added to the actions
-    :param action_repeat: frames per agent step
-    :param frame_stack: stacked frames per observation
-    :param size: image size in pixels
-    :param camera_id: camera of the renders
-    """
-
-    env: str | None = None
-    episodes: int = 20
-    max_steps: int | None = None
-    seed: int = 0
-    deterministic: bool = True
-    noise_std: float = 0.0
-    action_repeat: int | None = None
-    frame_stack: int | None = None
-    size: int | None = None
-    camera_id: int | None = None
+    env: str | None = setting(help="dm_control task, e.g. walker-walk; default: the checkpoint's", unit=None)
+    episodes: int = setting(20, help="episodes to record", unit="episodes", minimum=1)
+    max_steps: int | None = setting(
+        help="cap on agent steps per episode; default: the task's time limit (500 agent steps for walker at action "
+        "repeat 2)",
+        unit="agent steps",
+        minimum=1,
+    )
+    seed: int = setting(0, help="seed of the env's initial states and the action noise", unit=None)
+    deterministic: bool = setting(
+        True,
+        help="act deterministically (the policy's own exploration is sampled when off)",
+        unit=None,
+        flag="--stochastic",
+    )
+    noise_std: float = setting(
+        0.0, help="std of Gaussian noise added to each action (actions in [-1, 1])", unit=None, minimum=0
+    )
+    action_repeat: int | None = setting(help="frames per agent step", unit="frames", minimum=1)
+    frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, minimum=1)
+    size: int | None = setting(help="image height and width", unit="pixels", minimum=1)
+    camera_id: int | None = setting(help="camera of the renders", unit=None)
 
     def check(self) -> None:
         """:raises InputError: for a bad option, before anything is loaded or recorded"""
