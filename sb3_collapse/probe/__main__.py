@@ -7,11 +7,9 @@ package's computation and :mod:`sb3_collapse.report`'s drawing: docs/probe.md.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import signal
 import sys
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,6 +24,7 @@ from sb3_collapse.report.film import STRIP_EVERY_FRAMES, film_to_folder
 from sb3_collapse.report.probe_outputs import probe_to_folder
 from sb3_collapse.run.config import setting
 from sb3_collapse.run.settings import add_setting_arguments, check_arguments, prog_name
+from sb3_collapse.run.signals import stop_signal_handlers
 
 
 @dataclass
@@ -107,42 +106,27 @@ SUBCOMMANDS = tuple(COMMANDS)
 
 RECORDING_TITLE = "recording (settings left out come from the checkpoint, else make_dmc_env's)"
 
+HELP = {
+    "run": "probe checkpoints (the default)",
+    "sweep": "Figure 2 and Tables 1-6 of a sweep's task and variant",
+    "film": "frames of an episode and the actions taken (Figures 6-7)",
+    "record": "record rollouts of an agent",
+}
 DESCRIPTIONS = {
-    "run": (
-        "probe checkpoints (the default)",
-        (
-            "Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json, "
-            "mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only "
-            "when the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and "
-            "saved to <out>/rollouts.npz."
-        ),
-    ),
-    "sweep": (
-        "Figure 2 and Tables 1-6 of a sweep's task and variant",
-        (
-            "Split the finished trials of one task and variant by final return (well-performing >= --success-return, "
-            "poorly performing < --failure-return), record rollouts once from the best well-performing seed (or read "
-            f"--rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with --snapshots) and write "
-            "figure2.png (rows well/poor, columns the reward inputs torso velocity, torso orientation and torso "
-            "height, then state columns), tables_1_6.csv/.md (std across agents at four training stages), probe.csv "
-            "and summary.json."
-        ),
-    ),
-    "film": (
-        "frames of an episode and the actions taken (Figures 6-7)",
-        (
-            "Run each agent from a reset (on its own observations) and render a larger view after each agent step: "
-            "filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values "
-            "plotted under each strip), one animated GIF per row and actions.csv, into --out."
-        ),
-    ),
-    "record": (
-        "record rollouts of an agent",
-        (
-            "Run an agent in its DeepMind Control pixel env and save observations, the named true-state components, "
-            "actions, rewards and episode ids to a compressed .npz."
-        ),
-    ),
+    "run": "Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json, "
+    "mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only when "
+    "the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and saved to "
+    "<out>/rollouts.npz.",
+    "sweep": "Split the finished trials of one task and variant by final return (well-performing >= --success-return, "
+    "poorly performing < --failure-return), record rollouts once from the best well-performing seed (or read "
+    f"--rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with --snapshots) and write figure2.png "
+    "(rows well/poor, columns the reward inputs torso velocity, torso orientation and torso height, then state "
+    "columns), tables_1_6.csv/.md (std across agents at four training stages), probe.csv and summary.json.",
+    "film": "Run each agent from a reset (on its own observations) and render a larger view after each agent step: "
+    "filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values plotted "
+    "under each strip), one animated GIF per row and actions.csv, into --out.",
+    "record": "Run an agent in its DeepMind Control pixel env and save observations, the named true-state "
+    "components, actions, rewards and episode ids to a compressed .npz.",
 }
 """Each sub-command's help line and description."""
 
@@ -177,8 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="{" + ",".join(COMMANDS) + "}")
     for command, declarations in COMMANDS.items():
-        help_line, description = DESCRIPTIONS[command]
-        subparser = sub.add_parser(command, help=help_line, description=description)
+        subparser = sub.add_parser(command, help=HELP[command], description=DESCRIPTIONS[command])
         for declaration in declarations:
             group = subparser.add_argument_group(RECORDING_TITLE) if declaration is RecordOptions else subparser
             add_setting_arguments(group, declaration=declaration)
@@ -203,36 +186,25 @@ def main(argv: list[str] | None = None) -> int:
     subparsers = next(action for action in parser._actions if isinstance(action, argparse._SubParsersAction))
     check_arguments(subparsers.choices[args.command], args, *COMMANDS[args.command])
     try:
-        with _sigterm_as_interrupt():
+        with stop_signal_handlers(_interrupt):  # the staged outputs are removed on the way out
             _run(args, [parser.prog, *argv])
     except InputError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as stop:
-        name = stop.args[0] if stop.args else "SIGINT"
+        name, out = stop.args[0] if stop.args else "SIGINT", args.out or "the output folder"
         print(
-            f"\nStopped by {name}: nothing was written under {args.out or 'the output folder'} (the outputs are "
-            "staged and "
-            f"moved there only when complete); run the same command again (exit status {EXIT_INTERRUPTED}).",
+            f"\nStopped by {name}: nothing was written under {out} (the outputs are staged and moved there only when "
+            f"complete); run the same command again (exit status {EXIT_INTERRUPTED}).",
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
     return 0
 
 
-@contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """While inside, a SIGTERM stops the command as a Ctrl-C does (``KeyboardInterrupt("SIGTERM")``): the staged
-    outputs are removed on the way out instead of being left by a process killed where it stood."""
-
-    def stop(_signum: int, _frame: Any) -> None:
-        raise KeyboardInterrupt("SIGTERM")
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+def _interrupt(signum: int, _frame: Any) -> None:
+    """A SIGTERM or SIGINT stops the command as a Ctrl-C does (``KeyboardInterrupt("SIGTERM")``)."""
+    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 def _run(args: argparse.Namespace, command: list[str]) -> None:

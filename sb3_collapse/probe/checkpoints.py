@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import zipfile
 from dataclasses import dataclass
@@ -34,10 +35,10 @@ class Checkpoint:
     A loaded checkpoint.
 
     :param path: the zip file
-    :param model: the algorithm, on the requested device, with a ``PROBE_BUFFER_SIZE``-transition replay buffer
+    :param model: the algorithm, on the requested device, with a tiny replay buffer
     :param algorithm: its class name
     :param num_timesteps: training progress, in agent steps
-    :param action_repeat: frames per agent step (:func:`~sb3_collapse.monitoring.callbacks.action_repeat_of`)
+    :param action_repeat: frames per agent step
     :param label: its name in the outputs (``None``: the file name without ``.zip``)
     """
 
@@ -66,11 +67,9 @@ class Checkpoint:
 
 def read_saved_data(path: str | Path) -> dict[str, Any]:
     """
-    The ``data`` JSON of an SB3 zip, checked to come from an SB3 model.
-
-    :param path: the file
-    :return: the parsed JSON
-    :raises InputError: for a missing file, a file that is not a zip, or a zip without SB3's files
+    :param path: an SB3 zip
+    :return: its ``data`` JSON
+    :raises InputError: for a folder, a missing file, a file that is not a zip, or a zip without SB3's files
     """
     path = Path(path)
     if path.is_dir():
@@ -123,30 +122,20 @@ def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgor
     return ALGORITHMS[module]
 
 
-PROBE_BUFFER_SIZE = 64
-"""Replay buffer capacity (transitions) of a model loaded for probing: it is never filled."""
-
-
 def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkpoint:
     """
     Load a checkpoint for probing and check that its layers can be named.
 
-    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC, or a DrQv2 snapshot (encoder and actor only,
-        :mod:`sb3_collapse.run.snapshots`)
+    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC, or a DrQv2 snapshot (encoder and actor only)
     :param device: where the networks go
     :return: the loaded checkpoint
-    :raises InputError: for a missing file, a non-zip, a zip that is not an SB3 model, an unknown algorithm,
-        a model that fails to load, or layers that cannot be mapped
+    :raises InputError: for a file that is not an SB3 model of these, fails to load or whose layers cannot be named
     """
     path = Path(path)
-    data = read_saved_data(path)
-    algorithm = identify_algorithm(data, path)
-    try:
-        # A small buffer (room for any n-step window): loading must not reserve the replay memory of training.
-        if is_snapshot(path):  # encoder and actor only (train's snapshots)
-            model = load_snapshot(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
-        else:
-            model = algorithm.load(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
+    algorithm = identify_algorithm(read_saved_data(path), path)
+    try:  # a small replay buffer (room for any n-step window), never filled
+        load = load_snapshot if is_snapshot(path) else algorithm.load
+        model = load(path, device=device, buffer_size=64)
     except Exception as error:
         raise InputError(f"{path}: {algorithm.__name__}.load failed ({type(error).__name__}: {error}).") from error
     try:
@@ -158,20 +147,16 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
 
 def checkpoint_labels(paths: list[str | Path]) -> list[str]:
     """
-    Names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as it
-    takes to tell them apart (``run1/model`` and ``run2/model``).
-
+    :return: the names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as
+        it takes to tell them apart (``run1/model`` and ``run2/model``)
     :raises InputError: when the same file is given twice
     """
     resolved = [Path(path).resolve() for path in paths]
     if len(set(resolved)) != len(resolved):
         raise InputError("The same checkpoint is given twice.")
-    depth = 1
-    while True:
+    for depth in itertools.count(1):
         labels = [
-            "/".join(path.with_suffix("").parts[-depth:]) if path.suffix == ".zip" else "/".join(path.parts[-depth:])
-            for path in resolved
+            "/".join((path.with_suffix("") if path.suffix == ".zip" else path).parts[-depth:]) for path in resolved
         ]
         if len(set(labels)) == len(labels):
             return labels
-        depth += 1
