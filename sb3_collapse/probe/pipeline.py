@@ -11,7 +11,13 @@ from stable_baselines3.common.utils import get_device
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.probe.checkpoints import Checkpoint, identify_algorithm, load_checkpoint, read_saved_data
-from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
+from sb3_collapse.probe.rollouts import (
+    ENV_SETTINGS,
+    Rollouts,
+    check_record_arguments,
+    record_rollouts,
+    resolve_env_config,
+)
 from sb3_collapse.run.config import setting
 
 ROLLOUTS_NAME = "rollouts.npz"
@@ -59,25 +65,11 @@ def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True
     :param progress: show a progress bar
     :return: the rollouts
     """
-    env_config = resolve_env_config(
-        checkpoint.env_config,
-        task_id=options.env,
-        action_repeat=options.action_repeat,
-        frame_stack=options.frame_stack,
-        size=options.size,
-        camera_id=options.camera_id,
-    )
-    return record_rollouts(
-        checkpoint.model,
-        env_config,
-        episodes=options.episodes,
-        seed=options.seed,
-        deterministic=options.deterministic,
-        noise_std=options.noise_std,
-        max_steps=options.max_steps,
-        progress=progress,
-        metadata={"checkpoint": str(checkpoint.path), "checkpoint_num_timesteps": checkpoint.num_timesteps},
-    )
+    env = {key: getattr(options, key) for key in ENV_SETTINGS[1:]}
+    env_config = resolve_env_config(checkpoint.env_config, task_id=options.env, **env)
+    how = {key: getattr(options, key) for key in ("episodes", "seed", "deterministic", "noise_std", "max_steps")}
+    metadata = {"checkpoint": str(checkpoint.path), "checkpoint_num_timesteps": checkpoint.num_timesteps}
+    return record_rollouts(checkpoint.model, env_config, progress=progress, metadata=metadata, **how)
 
 
 def record_to_file(
@@ -119,9 +111,8 @@ def record_to_file(
 
 def check_checkpoint_files(paths: Sequence[str | Path], same_observations: bool = True) -> None:
     """
-    Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm, and that they all
-    take observations of one shape (the same rollouts feed them all: another image size or frame stack cannot be
-    probed with them).
+    Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm, and (the same
+    rollouts feed them all) that they all take observations of one shape.
 
     :param paths: the checkpoints
     :param same_observations: check that they all take observations of one shape

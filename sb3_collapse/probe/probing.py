@@ -88,19 +88,10 @@ def split_by_episode(
     n_train = len(episodes) - n_val - n_test
     if n_train < 1:
         raise InputError(f"The split {list(fractions)} of {len(episodes)} episodes leaves none for training.")
-    sets = {
-        "train": np.sort(shuffled[:n_train]),
-        "validation": np.sort(shuffled[n_train : n_train + n_val]),
-        "test": np.sort(shuffled[n_train + n_val :]),
-    }
+    bounds = {"train": (0, n_train), "validation": (n_train, n_train + n_val), "test": (n_train + n_val, None)}
+    sets = {name: np.sort(shuffled[start:stop]) for name, (start, stop) in bounds.items()}
     parts = [np.flatnonzero(np.isin(episode_ids, ids)) for ids in sets.values()]
-    return EpisodeSplit(
-        order=np.concatenate(parts),
-        n_train=len(parts[0]),
-        n_validation=len(parts[1]),
-        n_test=len(parts[2]),
-        episodes={name: ids.tolist() for name, ids in sets.items()},
-    )
+    return EpisodeSplit(np.concatenate(parts), *map(len, parts), {name: ids.tolist() for name, ids in sets.items()})
 
 
 def standardize_features_(
@@ -119,13 +110,10 @@ def standardize_features_(
     if not features.is_contiguous():
         raise ValueError("standardize_features_ needs a contiguous tensor.")
     n_rows, n_columns = features.shape
-    total = th.zeros(n_columns, dtype=th.float64, device=features.device)
-    for start in range(0, n_train, chunk_rows):
-        total += features[start : min(start + chunk_rows, n_train)].sum(0, dtype=th.float64)
-    mean = total / n_train
-    squares = th.zeros_like(total)
-    for start in range(0, n_train, chunk_rows):
-        squares += ((features[start : min(start + chunk_rows, n_train)].to(th.float64) - mean) ** 2).sum(0)
+    train = [features[start : min(start + chunk_rows, n_train)] for start in range(0, n_train, chunk_rows)]  # views
+    zeros = th.zeros(n_columns, dtype=th.float64, device=features.device)  # sum's start, not changed by it
+    mean = sum((block.sum(0, dtype=th.float64) for block in train), zeros) / n_train
+    squares = sum((((block.to(th.float64) - mean) ** 2).sum(0) for block in train), zeros)
     std = (squares / n_train).sqrt()
     keep = std > min_std
     columns = th.nonzero(keep).flatten()
@@ -180,7 +168,7 @@ def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float)
     return sorted(passes, key=lambda layers: order.index(layers[0]))
 
 
-def extract_activations(
+def _extract_activations(
     model: object,
     observations: np.ndarray,
     order: np.ndarray,
@@ -190,19 +178,8 @@ def extract_activations(
     device: th.device | str = "cpu",
     progress: bool = True,
 ) -> dict[str, th.Tensor]:
-    """
-    The flattened activations of ``observations[order]``, written batch by batch into preallocated tensors.
-
-    :param model: the algorithm
-    :param observations: ``(N, *obs_shape)``
-    :param order: the sample indices, in the order of the returned rows
-    :param layers: names to extract
-    :param dimensions: name -> flattened size
-    :param batch_size: observations per forward pass
-    :param device: where the activations are stored
-    :param progress: show a progress bar
-    :return: name -> ``(len(order), dimension)`` float32
-    """
+    """:return: layer -> the ``(len(order), dimensions[layer])`` float32 flattened activations of
+    ``observations[order]`` (``(N, *obs_shape)``) on ``device``, written batch by batch into preallocated tensors"""
     out = {name: th.empty(len(order), dimensions[name], dtype=th.float32, device=device) for name in layers}
     starts = range(0, len(order), batch_size)
     for start in tqdm(starts, desc=f"extracting {'+'.join(layers)}", disable=not progress, leave=False):
@@ -283,17 +260,12 @@ def probe_layer(
     best = curve.argmin(1)  # first minimum: the smallest tau on ties
     rows = th.arange(k, device=curve.device)
     test_pred = path_predictions(features[n_train + n_val :], path)[:, rows, best]
+    tau, validation_mse = (best + 1).cpu().numpy(), curve[rows, best].cpu().numpy()
+    test_mse = ((test_pred - y_test) ** 2).mean(0).cpu().numpy()
+    elapsed = time.perf_counter() - start_time
+    n_active = path.n_active.cpu().numpy()
     return LayerProbe(
-        layer=layer,
-        n_features=n_features,
-        n_features_kept=n_kept,
-        max_tau=tau_max,
-        tau=(best + 1).cpu().numpy(),
-        n_active=path.n_active.cpu().numpy(),
-        validation_curve=curve.cpu().numpy(),
-        validation_mse=curve[rows, best].cpu().numpy(),
-        test_mse=((test_pred - y_test) ** 2).mean(0).cpu().numpy(),
-        fit_seconds=time.perf_counter() - start_time,
+        layer, n_features, n_kept, tau_max, tau, n_active, curve.cpu().numpy(), validation_mse, test_mse, elapsed
     )
 
 
@@ -371,13 +343,9 @@ ROW_COLUMNS = (
 state's units squared."""
 
 
-def select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[str]:
-    """
-    :param checkpoint: the checkpoint
-    :param layers: requested names, ``None`` for the paper's layers the model has
-    :return: the names, in the model's order
-    :raises InputError: for a requested name the model lacks
-    """
+def _select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[str]:
+    """:return: ``layers`` (``None``: the paper's that the model has) in the model's order; :raises InputError: for
+    a requested name the model lacks"""
     available = list(layer_taps(checkpoint.model))
     if layers is None:
         names = [name for name in available if name in PROBE_LAYERS]
@@ -416,7 +384,7 @@ def probe_checkpoint(
             f"{checkpoint.path} takes observations of shape {model_shape}, the rollouts hold "
             f"{tuple(observations.shape[1:])}: record rollouts with this model's env settings (size, frame stack)."
         )
-    layers = select_layers(checkpoint, settings.layers)
+    layers = _select_layers(checkpoint, settings.layers)
     names, groups, raw_targets = rollouts.targets()
     targets, _, target_scale = standardize_targets(raw_targets[split.order], split.n_train)
     train_std = raw_targets[split.order[: split.n_train]].std(0, dtype=np.float64)
@@ -430,7 +398,7 @@ def probe_checkpoint(
     wanted = {name: dim for name, dim in dims.items() if name not in probes}
     for layer_pass in plan_passes(wanted, len(split.order), settings.memory_gb * 1e9):
         start = time.perf_counter()
-        activations = extract_activations(
+        activations = _extract_activations(
             model, observations, split.order, layer_pass, dims, settings.batch_size, device, settings.progress
         )
         result.extract_seconds += time.perf_counter() - start

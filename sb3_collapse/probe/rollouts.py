@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +19,7 @@ from tqdm.auto import tqdm
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import reward_inputs_of
 from sb3_collapse.errors import InputError
+from sb3_collapse.protocol import atomic_output
 
 FORMAT_VERSION = 2
 """Version 2 added the reward inputs (files of version 1 load with none)."""
@@ -98,11 +98,9 @@ class Rollouts:
 
     def save(self, path: str | Path) -> Path:
         """
-        :param path: the compressed ``.npz`` to write atomically (``<path>.partial``, renamed when complete)
+        :param path: the compressed ``.npz`` to write (atomically: :func:`~sb3_collapse.protocol.atomic_output`)
         :return: the path written
         """
-        path = Path(path)
-        partial = path.with_name(path.name + ".partial")
         meta = {
             "format_version": FORMAT_VERSION,
             "env_config": self.env_config,
@@ -113,14 +111,10 @@ class Rollouts:
         arrays = {name: getattr(self, name) for name in ARRAYS} | {"meta": np.array(json.dumps(meta))}
         arrays.update({f"state/{name}": value for name, value in self.states.items()})
         arrays.update({f"reward_input/{name}": value for name, value in self.reward_inputs.items()})
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            with partial.open("wb") as file:
-                np.savez_compressed(file, **arrays)
-            os.replace(partial, path)
-        finally:
-            partial.unlink(missing_ok=True)
-        return path
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        with atomic_output(path) as temporary, temporary.open("wb") as file:
+            np.savez_compressed(file, **arrays)
+        return Path(path)
 
     @classmethod
     def load(cls, path: str | Path) -> Rollouts:
