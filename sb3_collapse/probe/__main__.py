@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import signal
 import sys
 from dataclasses import dataclass
@@ -18,7 +19,7 @@ from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
 from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
 from sb3_collapse.probe.probing import ProbeSettings
-from sb3_collapse.protocol import EXIT_INTERRUPTED, SNAPSHOTS_DIR, SWEEP_PROBE_DIR
+from sb3_collapse.protocol import EXIT_INTERRUPTED, SWEEP_PROBE_DIR
 from sb3_collapse.report.figure2 import probe_sweep
 from sb3_collapse.report.film import STRIP_EVERY_FRAMES, film_to_folder
 from sb3_collapse.report.probe_outputs import probe_to_folder
@@ -29,7 +30,14 @@ from sb3_collapse.run.signals import stop_signal_handlers
 
 @dataclass
 class RunFlags:
-    """The flags of ``run``, besides :class:`ProbeSettings` and :class:`RecordOptions`."""
+    """
+    probe checkpoints (the default)
+
+    Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json,
+    mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only when the
+    whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and saved to
+    <out>/rollouts.npz.
+    """
 
     checkpoints: tuple[str, ...] | None = setting(
         help="SB3 zips of DrQv2, TD3, DDPG or SAC", unit=None, flag="checkpoints", nargs="+"
@@ -43,7 +51,15 @@ class RunFlags:
 
 @dataclass
 class SweepFlags:
-    """The flags of ``sweep``, besides :class:`ProbeSettings` and :class:`RecordOptions`."""
+    """
+    Figure 2 and Tables 1-6 of a sweep's task and variant
+
+    Split the finished trials of one task and variant by final return (well-performing >= --success-return, poorly
+    performing < --failure-return), record rollouts once from the best well-performing seed (or read --rollouts),
+    probe every snapshot of those trials (train with --snapshots) and write figure2.png (rows well/poor, columns the
+    reward inputs torso velocity, torso orientation and torso height, then state columns), tables_1_6.csv/.md (std
+    across agents at four training stages), probe.csv and summary.json.
+    """
 
     sweep: str | None = setting(
         help="the sweep folder (--out of python -m sb3_collapse.sweep)", unit=None, flag="sweep"
@@ -62,7 +78,13 @@ class SweepFlags:
 
 @dataclass
 class FilmFlags:
-    """The flags of ``film``."""
+    """
+    frames of an episode and the actions taken (Figures 6-7)
+
+    Run each agent from a reset (on its own observations) and render a larger view after each agent step:
+    filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values plotted
+    under each strip), one animated GIF per row and actions.csv, into --out.
+    """
 
     checkpoints: tuple[str, ...] | None = setting(
         help="SB3 zips (full models or snapshots)", unit=None, flag="checkpoints", nargs="+"
@@ -82,7 +104,12 @@ class FilmFlags:
 
 @dataclass
 class RecordFlags:
-    """The flags of ``record``, besides :class:`RecordOptions`."""
+    """
+    record rollouts of an agent
+
+    Run an agent in its DeepMind Control pixel env and save observations, the named true-state components, actions,
+    rewards and episode ids to a compressed .npz.
+    """
 
     checkpoint: str | None = setting(
         help="SB3 zip of the agent (usually a well-performing one)", unit=None, flag="checkpoint"
@@ -100,35 +127,11 @@ COMMANDS: dict[str, tuple[type, ...]] = {
     "film": (FilmFlags,),
 }
 """Each sub-command's flags, by the dataclasses that declare them (its parser, its help, its range checks and its
-table in ``docs/probe.md`` are generated from them)."""
+table in ``docs/probe.md`` are generated from them); the first one's docstring is its help line and description."""
 
 SUBCOMMANDS = tuple(COMMANDS)
 
 RECORDING_TITLE = "recording (settings left out come from the checkpoint, else make_dmc_env's)"
-
-HELP = {
-    "run": "probe checkpoints (the default)",
-    "sweep": "Figure 2 and Tables 1-6 of a sweep's task and variant",
-    "film": "frames of an episode and the actions taken (Figures 6-7)",
-    "record": "record rollouts of an agent",
-}
-DESCRIPTIONS = {
-    "run": "Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json, "
-    "mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only when "
-    "the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and saved to "
-    "<out>/rollouts.npz.",
-    "sweep": "Split the finished trials of one task and variant by final return (well-performing >= --success-return, "
-    "poorly performing < --failure-return), record rollouts once from the best well-performing seed (or read "
-    f"--rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with --snapshots) and write figure2.png "
-    "(rows well/poor, columns the reward inputs torso velocity, torso orientation and torso height, then state "
-    "columns), tables_1_6.csv/.md (std across agents at four training stages), probe.csv and summary.json.",
-    "film": "Run each agent from a reset (on its own observations) and render a larger view after each agent step: "
-    "filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values plotted "
-    "under each strip), one animated GIF per row and actions.csv, into --out.",
-    "record": "Run an agent in its DeepMind Control pixel env and save observations, the named true-state "
-    "components, actions, rewards and episode ids to a compressed .npz.",
-}
-"""Each sub-command's help line and description."""
 
 
 def _values(args: argparse.Namespace, declaration: type, *skip: str) -> dict[str, Any]:
@@ -161,7 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="{" + ",".join(COMMANDS) + "}")
     for command, declarations in COMMANDS.items():
-        subparser = sub.add_parser(command, help=HELP[command], description=DESCRIPTIONS[command])
+        help_line, description = inspect.getdoc(declarations[0]).split("\n\n", 1)
+        subparser = sub.add_parser(command, help=help_line, description=description)
         for declaration in declarations:
             group = subparser.add_argument_group(RECORDING_TITLE) if declaration is RecordOptions else subparser
             add_setting_arguments(group, declaration=declaration)

@@ -19,6 +19,7 @@ import torch as th
 from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
+from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring import collect_activations, layer_taps
@@ -30,8 +31,8 @@ from sb3_collapse.run.config import setting
 MIN_EPISODES = 3
 """Episodes a probe needs at least: one each for training, validation and test."""
 
-PROBE_LAYERS = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2")
-"""The layers of Figure 1 of the paper."""
+PROBE_LAYERS = LAYER_NAMES[: LAYER_NAMES.index("action")]
+"""The layers of Figure 1 of the paper: every named layer before the action."""
 
 
 @dataclass
@@ -152,20 +153,16 @@ def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float)
     :param memory_bytes: budget of activations held at once
     :return: the passes, each a list of layer names in the order of ``dimensions``, ordered by their first layer
     """
-    order = list(dimensions)
-    passes: list[list[str]] = []
-    used: list[float] = []
+    order, passes = list(dimensions), []  # [bytes used, layers] of each pass
     for name in sorted(order, key=lambda layer: -dimensions[layer]):
         size = 4.0 * dimensions[name] * n_samples
-        fits = [i for i, total in enumerate(used) if total + size <= memory_bytes]
-        if fits:
-            passes[fits[0]].append(name)
-            used[fits[0]] += size
-        else:
-            passes.append([name])
-            used.append(size)
-    passes = [sorted(layers, key=order.index) for layers in passes]
-    return sorted(passes, key=lambda layers: order.index(layers[0]))
+        fit = next((fit for fit in passes if fit[0] + size <= memory_bytes), None)  # first fit
+        if fit is None:
+            passes.append(fit := [0.0, []])
+        fit[0] += size
+        fit[1].append(name)
+    layer_passes = [sorted(layers, key=order.index) for _, layers in passes]
+    return sorted(layer_passes, key=lambda layers: order.index(layers[0]))
 
 
 def _extract_activations(
