@@ -129,8 +129,6 @@ COMMANDS: dict[str, tuple[type, ...]] = {
 """Each sub-command's flags, by the dataclasses that declare them (its parser, its help, its range checks and its
 table in ``docs/probe.md`` are generated from them); the first one's docstring is its help line and description."""
 
-SUBCOMMANDS = tuple(COMMANDS)
-
 RECORDING_TITLE = "recording (settings left out come from the checkpoint, else make_dmc_env's)"
 
 
@@ -184,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     if not argv:
         parser.print_help(sys.stderr)
         return 2
-    if argv[0] not in (*SUBCOMMANDS, "-h", "--help"):
+    if argv[0] not in (*COMMANDS, "-h", "--help"):
         argv = ["run", *argv]
     args = parser.parse_args(argv)
     subparsers = next(action for action in parser._actions if isinstance(action, argparse._SubParsersAction))

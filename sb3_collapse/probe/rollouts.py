@@ -131,25 +131,19 @@ class Rollouts:
         try:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
-                states = {name: data[f"state/{name}"] for name in meta["state_components"]}
-                task = parse_task(meta["env_config"]["task_id"])
-                read = {item.name for item in reward_inputs_of(*task) if item.state}
-                reward_inputs = {
-                    name: data[f"reward_input/{name}"] for name in meta.get("reward_inputs", []) if name in read
+                read = {
+                    item.name for item in reward_inputs_of(*parse_task(meta["env_config"]["task_id"])) if item.state
                 }
                 arrays = {key: data[key] for key in ARRAYS}
+                arrays["states"] = {name: data[f"state/{name}"] for name in meta["state_components"]}
+                inputs = [name for name in meta.get("reward_inputs", []) if name in read]  # format 1: none
+                arrays["reward_inputs"] = {name: data[f"reward_input/{name}"] for name in inputs}
         except (OSError, ValueError, KeyError, json.JSONDecodeError) as error:
             raise InputError(
                 f"{path} is not a rollouts file of sb3_collapse.probe ({type(error).__name__}: {error}); "
                 "record one with `python -m sb3_collapse.probe record`."
             ) from error
-        return cls(
-            states=states,
-            reward_inputs=reward_inputs,
-            env_config=meta["env_config"],
-            metadata=meta.get("metadata", {}),
-            **arrays,
-        )
+        return cls(env_config=meta["env_config"], metadata=meta.get("metadata", {}), **arrays)
 
 
 def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any) -> dict[str, Any]:
