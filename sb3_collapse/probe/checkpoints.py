@@ -79,8 +79,7 @@ def read_saved_data(path: str | Path) -> dict[str, Any]:
     if not zipfile.is_zipfile(path):
         raise InputError(f"{path} is not a zip file; expected an SB3 checkpoint saved with `model.save(...)`.")
     with zipfile.ZipFile(path) as archive:
-        names = set(archive.namelist())
-        missing = {"data", "policy.pth"} - names
+        missing = {"data", "policy.pth"} - set(archive.namelist())
         if missing:
             raise InputError(f"{path} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
         try:

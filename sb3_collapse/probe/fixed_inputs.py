@@ -87,17 +87,8 @@ def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, see
     meta, env = rollouts.metadata, rollouts.env_config
     steps, repeat = meta.get("checkpoint_num_timesteps"), env.get("action_repeat")
     frames = int(steps) * int(repeat) if steps is not None and repeat is not None else None
-    observations = rollouts.observations[indices]
-    return FixedInputs(
-        observations,
-        indices,
-        Path(path),
-        total,
-        rollouts.n_episodes,
-        meta.get("checkpoint"),
-        env.get("task_id"),
-        frames,
-    )
+    recorded = (meta.get("checkpoint"), env.get("task_id"), frames)
+    return FixedInputs(rollouts.observations[indices], indices, Path(path), total, rollouts.n_episodes, *recorded)
 
 
 @dataclass

@@ -308,10 +308,7 @@ class ProbeSettings:
         if self.memory_gb <= 0:
             raise InputError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
         check_fractions(self.fractions)
-        try:
-            check_device(self.device)
-        except ValueError as error:
-            raise InputError(str(error), parameter="device") from None
+        check_device(self.device)
 
 
 @dataclass
