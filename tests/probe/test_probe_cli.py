@@ -203,9 +203,8 @@ def test_bad_layers_and_split_are_refused_before_any_rollout(files, tmp_path, mo
     def never(*args, **kwargs):
         raise AssertionError("called before the flags were checked")
 
-    import sb3_collapse.probe.pipeline as pipeline
-    import sb3_collapse.report.figure2 as figure2
-    import sb3_collapse.report.probe_outputs as probe_outputs
+    from sb3_collapse.probe import pipeline
+    from sb3_collapse.report import figure2, probe_outputs
 
     for module in (pipeline, probe_outputs, figure2):
         for name in ("record_rollouts", "record", "load_checkpoint", "load_sweep"):
