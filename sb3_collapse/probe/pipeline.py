@@ -39,7 +39,7 @@ class RecordOptions:
     seed: int = setting(0, help="seed of the env's initial states and the action noise", unit=None)
     deterministic: bool = setting(
         True,
-        help="act deterministically (the policy's own exploration is sampled when off)",
+        help="use the policy's deterministic action (off: sample its own exploration)",
         unit=None,
         flag="--stochastic",
     )
