@@ -101,11 +101,8 @@ def record_to_file(
     check_device(device)
     checkpoint = load_checkpoint(checkpoint_path, device=get_device(device))
     rollouts = record(checkpoint, options, progress)
-    path = rollouts.save(out)
-    print(
-        f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {rollouts.env_config['task_id']} "
-        f"to {path}"
-    )
+    path, task = rollouts.save(out), rollouts.env_config["task_id"]
+    print(f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {task} to {path}")
     return path
 
 
