@@ -1,8 +1,4 @@
-"""
-Offline linear probing of an actor's layers with OMP (Section 4.1 of the paper), and the other computations on fixed
-inputs: rollouts, films and the collapse metrics of snapshots. It draws nothing (:mod:`sb3_collapse.report` does):
-docs/probe.md.
-"""
+"""Offline OMP probing of an actor's layers (Section 4.1) and the other computations on fixed inputs: docs/probe.md."""
 
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.omp import OrthogonalMatchingPursuit, omp_path

@@ -1,8 +1,4 @@
-"""
-Offline OMP probing of checkpoints: ``python -m sb3_collapse.probe --help``. Sub-commands ``run`` (the default),
-``record``, ``sweep`` and ``film``; errors in the input print ``error: ...`` and exit with status 2. It runs this
-package's computation and :mod:`sb3_collapse.report`'s drawing: docs/probe.md.
-"""
+"""The command line ``python -m sb3_collapse.probe`` (``run``, ``record``, ``sweep``, ``film``): docs/probe.md."""
 
 from __future__ import annotations
 

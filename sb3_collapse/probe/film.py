@@ -1,7 +1,4 @@
-"""
-Films of the paper's Figures 6 and 7 (drawn by :mod:`sb3_collapse.report.film`): the first frames of an episode,
-rendered larger than the agent's own observations after every agent step.
-"""
+"""Films of Figures 6-7 (drawn by :mod:`sb3_collapse.report.film`): an episode's first frames, rendered larger."""
 
 from __future__ import annotations
 

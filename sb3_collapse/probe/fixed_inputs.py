@@ -1,7 +1,6 @@
 """
-The collapse metrics of a run's snapshots on one fixed observation set (Figures 4, 8, 9; the report draws them).
-Section 5.1 computes them on "the matrix of MLP activations H, as defined in Figure 1": the probing samples, so every
-snapshot runs on the same observations (a seeded subset of a rollouts file; the choice: docs/figures.md).
+The collapse metrics of a run's snapshots on one fixed observation set, "the matrix of MLP activations H, as defined in
+Figure 1" of Section 5.1 (Figures 4, 8, 9; the report draws them; the set: docs/figures.md).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """
-Linear probing with a sparsity constraint (Section 4.1 of the paper): how well each layer's activations predict each
-true-state component, by OMP with the sparsity chosen on validation episodes. The steps: docs/probe.md.
+Linear probing with a sparsity constraint (Section 4.1): how well each layer's activations predict each true-state
+component, by OMP with the sparsity chosen on validation episodes (the steps: docs/probe.md).
 """
 
 from __future__ import annotations

@@ -1,7 +1,6 @@
 """
-Rollouts for probing: observations of an agent in a DeepMind Control pixel env, with the true state behind each and
-the quantities the task's reward reads (the paper probes components "because all of them are the input to the
-reward function"), saved as compressed ``.npz`` files that probe many checkpoints: docs/probe.md.
+Rollouts: an agent's pixel observations with the true state behind each and what the task's reward reads ("all of
+them are the input to the reward function"), saved as compressed ``.npz`` files: docs/probe.md.
 """
 
 from __future__ import annotations
