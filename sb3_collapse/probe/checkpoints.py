@@ -32,8 +32,6 @@ ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
 @dataclass
 class Checkpoint:
     """
-    A loaded checkpoint.
-
     :param path: the zip file
     :param model: the algorithm, on the requested device, with a tiny replay buffer
     :param algorithm: its class name

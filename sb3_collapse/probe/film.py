@@ -18,8 +18,6 @@ FILM_SIZE = 256
 @dataclass
 class Film:
     """
-    One filmed episode.
-
     :param label: its name (checkpoint and episode seed)
     :param frames: ``(T,)`` the environment frame of each picture (0, action repeat, 2 x action repeat, ...)
     :param images: ``(T, size, size, 3)`` uint8 renders

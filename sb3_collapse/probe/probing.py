@@ -38,8 +38,6 @@ PROBE_LAYERS = LAYER_NAMES[: LAYER_NAMES.index("action")]
 @dataclass
 class EpisodeSplit:
     """
-    Samples split by episode.
-
     :param order: sample indices, train, then validation, then test (each in recording order)
     :param n_train: train samples (``order[:n_train]``)
     :param n_validation: validation samples (the next ones)
@@ -166,23 +164,19 @@ def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float)
 
 
 def _extract_activations(
-    model: object,
-    observations: np.ndarray,
-    order: np.ndarray,
-    layers: Sequence[str],
-    dimensions: dict[str, int],
-    batch_size: int = 256,
-    device: th.device | str = "cpu",
-    progress: bool = True,
+    model: object, observations: np.ndarray, order: np.ndarray, layers: Sequence[str], settings: ProbeSettings
 ) -> dict[str, th.Tensor]:
-    """:return: layer -> the ``(len(order), dimensions[layer])`` float32 flattened activations of
-    ``observations[order]`` (``(N, *obs_shape)``) on ``device``, written batch by batch into preallocated tensors"""
-    out = {name: th.empty(len(order), dimensions[name], dtype=th.float32, device=device) for name in layers}
-    starts = range(0, len(order), batch_size)
-    for start in tqdm(starts, desc=f"extracting {'+'.join(layers)}", disable=not progress, leave=False):
-        batch = observations[order[start : start + batch_size]]
-        activations = collect_activations(model, batch, layers=layers, batch_size=batch_size, device=device)
-        for name, value in activations.items():
+    """:return: layer -> the ``(len(order), d)`` float32 flattened activations of ``observations[order]``
+    (``(N, *obs_shape)``), written batch by batch into preallocated tensors"""
+    out: dict[str, th.Tensor] = {}
+    device, size = get_device(settings.device), settings.batch_size
+    for start in tqdm(
+        range(0, len(order), size), f"extracting {'+'.join(layers)}", disable=not settings.progress, leave=False
+    ):
+        batch = observations[order[start : start + size]]
+        for name, value in collect_activations(model, batch, layers, size, device).items():
+            if name not in out:
+                out[name] = th.empty(len(order), value[0].numel(), dtype=th.float32, device=device)
             out[name][start : start + len(batch)] = value.reshape(len(batch), -1)
     return out
 
@@ -314,8 +308,6 @@ class ProbeSettings:
 @dataclass
 class CheckpointProbe:
     """
-    Results of one checkpoint.
-
     :param checkpoint: the checkpoint
     :param layers: one :class:`LayerProbe` per layer
     :param rows: one dict per (layer, target), the rows of ``probe.csv`` (:data:`ROW_COLUMNS`)
@@ -383,7 +375,7 @@ def probe_checkpoint(
     targets, _, target_scale = standardize_targets(raw_targets[split.order], split.n_train)
     train_std = raw_targets[split.order[: split.n_train]].std(0, dtype=np.float64)
     dims = {name: value[0].numel() for name, value in collect_activations(model, observations[:1], layers).items()}
-    result, probes, pixel_key, device = CheckpointProbe(checkpoint), {}, None, get_device(settings.device)
+    result, probes, pixel_key = CheckpointProbe(checkpoint), {}, None
     if reuse is not None and "cnn0" in layers:  # the exact values of cnn0 on a few observations
         pixels = collect_activations(model, observations[split.order[:16]], layers=["cnn0"])["cnn0"]
         pixel_key = hashlib.sha1(pixels.cpu().numpy().tobytes()).hexdigest()
@@ -392,9 +384,7 @@ def probe_checkpoint(
     wanted = {name: dim for name, dim in dims.items() if name not in probes}
     for layer_pass in plan_passes(wanted, len(split.order), settings.memory_gb * 1e9):
         start = time.perf_counter()
-        activations = _extract_activations(
-            model, observations, split.order, layer_pass, dims, settings.batch_size, device, settings.progress
-        )
+        activations = _extract_activations(model, observations, split.order, layer_pass, settings)
         result.extract_seconds += time.perf_counter() - start
         for layer in layer_pass:  # each layer's activations freed once probed
             probes[layer] = probe_layer(
