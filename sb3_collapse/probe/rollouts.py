@@ -5,6 +5,7 @@ them are the input to the reward function"), saved as compressed ``.npz`` files:
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 from dataclasses import dataclass, field
@@ -147,15 +148,15 @@ class Rollouts:
 
 def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any) -> dict[str, Any]:
     """
-    The env settings for recording: those given (not ``None``), else the checkpoint's, else ``make_dmc_env``'s
-    defaults (action repeat 2, 3 stacked frames, 84 pixels, the domain's default camera).
+    The env settings for recording: those given (not ``None``), else the checkpoint's, else ``make_dmc_env``'s.
 
     :param model_env_config: ``model.env_config`` of a DrQv2 checkpoint, or ``None``
     :param overrides: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``, ``camera_id``
     :return: a complete settings dict
     :raises InputError: when no task is known
     """
-    defaults = {"task_id": None, "action_repeat": 2, "frame_stack": 3, "size": 84, "camera_id": None}
+    parameters = inspect.signature(make_dmc_env).parameters
+    defaults = {"task_id": None} | {key: parameters[key].default for key in ENV_SETTINGS[1:]}
     saved = {key: value for key, value in (model_env_config or {}).items() if key in defaults and value is not None}
     given = {key: value for key, value in overrides.items() if value is not None}
     unknown = set(given) - set(defaults)
