@@ -1,20 +1,33 @@
 """Offline OMP probing of an actor's layers (Section 4.1) and the other computations on fixed inputs: docs/probe.md."""
 
-from sb3_collapse.probe.checkpoints import load_checkpoint
-from sb3_collapse.probe.omp import OrthogonalMatchingPursuit, omp_path
-from sb3_collapse.probe.pipeline import RecordOptions
-from sb3_collapse.probe.probing import ProbeSettings, probe_checkpoint, probe_each_checkpoint, split_by_episode
+from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
+from sb3_collapse.probe.omp import OMPPath, OrthogonalMatchingPursuit, omp_path, path_predictions
+from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
+from sb3_collapse.probe.probing import (
+    PROBE_LAYERS,
+    ProbeSettings,
+    probe_checkpoint,
+    probe_each_checkpoint,
+    probe_layer,
+    split_by_episode,
+)
 from sb3_collapse.probe.rollouts import Rollouts, record_rollouts
 
 __all__ = [
+    "PROBE_LAYERS",
+    "Checkpoint",
+    "OMPPath",
     "OrthogonalMatchingPursuit",
     "ProbeSettings",
     "RecordOptions",
     "Rollouts",
     "load_checkpoint",
     "omp_path",
+    "path_predictions",
     "probe_checkpoint",
     "probe_each_checkpoint",
+    "probe_layer",
     "record_rollouts",
+    "record_to_file",
     "split_by_episode",
 ]
