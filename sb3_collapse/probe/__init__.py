@@ -1,9 +1,4 @@
-"""
-Offline linear probing of an actor's layers with Orthogonal Matching Pursuit (Section 4.1 of the paper), and the
-other computations on fixed inputs: rollouts, films and the collapse metrics of snapshots. It draws nothing: the
-figures and tables are :mod:`sb3_collapse.report`'s. ``python -m sb3_collapse.probe --help`` for the command line;
-each module's part: docs/layout.md.
-"""
+"""Offline OMP probing of an actor's layers (Section 4.1) and the other computations on fixed inputs: docs/probe.md."""
 
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.omp import OMPPath, OrthogonalMatchingPursuit, omp_path, path_predictions

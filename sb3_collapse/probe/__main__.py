@@ -1,25 +1,12 @@
-"""
-Offline OMP probing of checkpoints: ``python -m sb3_collapse.probe --help``.
-
-    python -m sb3_collapse.probe ckpt.zip                                      # record rollouts, then probe
-    python -m sb3_collapse.probe good.zip bad.zip ckpt_*.zip --rollouts walker.npz --out probe/
-    python -m sb3_collapse.probe record good.zip --env walker-walk --episodes 20 --out walker.npz
-    python -m sb3_collapse.probe sweep runs/sweep --task walker-walk           # Figure 2 and Tables 1-6
-    python -m sb3_collapse.probe film good.zip bad.zip --seeds 0 1 --out film/ # Figures 6-7: frames and actions
-
-``run`` (the default when the first argument is not a sub-command) probes; ``record`` records rollouts; ``sweep``
-probes the snapshots of a sweep's well- and poorly performing seeds. Errors in the input print ``error: ...`` and
-exit with status 2. The command line runs this package's computation and :mod:`sb3_collapse.report`'s drawing:
-docs/probe.md.
-"""
+"""The command line ``python -m sb3_collapse.probe`` (``run``, ``record``, ``sweep``, ``film``): docs/probe.md."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
+import dataclasses
+import inspect
 import signal
 import sys
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,92 +14,26 @@ from sb3_collapse.errors import InputError, cli_message, report_unwritable_outpu
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
 from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
-from sb3_collapse.probe.probing import PROBE_LAYERS, ProbeSettings
-from sb3_collapse.protocol import EXIT_INTERRUPTED, SNAPSHOTS_DIR, SWEEP_PROBE_DIR
+from sb3_collapse.probe.probing import ProbeSettings
+from sb3_collapse.protocol import EXIT_INTERRUPTED, SWEEP_PROBE_DIR
 from sb3_collapse.report.figure2 import probe_sweep
 from sb3_collapse.report.film import STRIP_EVERY_FRAMES, film_to_folder
 from sb3_collapse.report.probe_outputs import probe_to_folder
 from sb3_collapse.run.config import setting
 from sb3_collapse.run.settings import add_setting_arguments, check_arguments, prog_name
-
-_RECORD, _PROBE = RecordOptions(), ProbeSettings()
-
-
-@dataclass
-class RecordingFlags:
-    """The flags of recording rollouts (``run``, ``sweep``, ``record``): :class:`RecordOptions`."""
-
-    env: str | None = setting(
-        _RECORD.env, help="dm_control task, e.g. walker-walk; default: the checkpoint's", unit=None
-    )
-    episodes: int = setting(_RECORD.episodes, help="episodes to record", unit="episodes", minimum=1)
-    max_steps: int | None = setting(
-        _RECORD.max_steps,
-        help="cap on agent steps per episode; default: the task's time limit (500 agent steps for walker at action "
-        "repeat 2)",
-        unit="agent steps",
-        minimum=1,
-    )
-    seed: int = setting(_RECORD.seed, help="seed of the env's initial states and the action noise", unit=None)
-    stochastic: bool = setting(
-        not _RECORD.deterministic,
-        help="sample the policy's own exploration instead of its deterministic action",
-        unit=None,
-    )
-    noise_std: float = setting(
-        _RECORD.noise_std, help="std of Gaussian noise added to each action (actions in [-1, 1])", unit=None, minimum=0
-    )
-    action_repeat: int | None = setting(_RECORD.action_repeat, help="frames per agent step", unit="frames", minimum=1)
-    frame_stack: int | None = setting(
-        _RECORD.frame_stack, help="stacked RGB frames per observation", unit=None, minimum=1
-    )
-    size: int | None = setting(_RECORD.size, help="image height and width", unit="pixels", minimum=1)
-    camera_id: int | None = setting(_RECORD.camera_id, help="camera of the renders", unit=None)
-
-
-@dataclass
-class ProbeFlags:
-    """The flags of probing (``run``, ``sweep``): :class:`ProbeSettings`."""
-
-    layers: tuple[str, ...] | None = setting(
-        _PROBE.layers,
-        help=f"layers to probe; default: those of {' '.join(PROBE_LAYERS)} the model has",
-        unit=None,
-        choices=PROBE_LAYERS,
-        nargs="+",
-        metavar="LAYER",
-    )
-    max_tau: int = setting(
-        _PROBE.max_tau, help="largest sparsity; every tau in 1..--max-tau is validated", unit=None, minimum=1
-    )
-    fractions: tuple[float, float, float] = setting(
-        tuple(_PROBE.fractions),
-        help="fractions of the episodes for training, validation and test, summing to 1",
-        unit=None,
-        flag="--split",
-        nargs=3,
-        metavar=("TRAIN", "VAL", "TEST"),
-        above=0,
-        maximum=1,
-    )
-    split_seed: int = setting(_PROBE.split_seed, help="seed of the episode shuffle", unit=None)
-    batch_size: int = setting(_PROBE.batch_size, help="observations per forward pass", unit="observations", minimum=1)
-    memory_gb: float = setting(
-        _PROBE.memory_gb,
-        help="activations held at once, in GB; layers share a forward pass while they fit",
-        unit="GB",
-        above=0,
-    )
-    min_std: float = setting(
-        _PROBE.min_std, help="feature columns of a smaller train std are dropped as constant", unit=None, minimum=0
-    )
-    device: str = setting(_PROBE.device, help="auto (CUDA when available), cpu, cuda, ...", unit=None)
-    progress: bool = setting(_PROBE.progress, help="show the progress bars", unit=None)
+from sb3_collapse.run.signals import stop_signal_handlers
 
 
 @dataclass
 class RunFlags:
-    """The flags of ``run``, besides :class:`ProbeFlags` and :class:`RecordingFlags`."""
+    """
+    probe checkpoints (the default)
+
+    Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json,
+    mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only when the
+    whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and saved to
+    <out>/rollouts.npz.
+    """
 
     checkpoints: tuple[str, ...] | None = setting(
         help="SB3 zips of DrQv2, TD3, DDPG or SAC", unit=None, flag="checkpoints", nargs="+"
@@ -126,7 +47,15 @@ class RunFlags:
 
 @dataclass
 class SweepFlags:
-    """The flags of ``sweep``, besides :class:`ProbeFlags` and :class:`RecordingFlags`."""
+    """
+    Figure 2 and Tables 1-6 of a sweep's task and variant
+
+    Split the finished trials of one task and variant by final return (well-performing >= --success-return, poorly
+    performing < --failure-return), record rollouts once from the best well-performing seed (or read --rollouts),
+    probe every snapshot of those trials (train with --snapshots) and write figure2.png (rows well/poor, columns the
+    reward inputs torso velocity, torso orientation and torso height, then state columns), tables_1_6.csv/.md (std
+    across agents at four training stages), probe.csv and summary.json.
+    """
 
     sweep: str | None = setting(
         help="the sweep folder (--out of python -m sb3_collapse.sweep)", unit=None, flag="sweep"
@@ -145,7 +74,13 @@ class SweepFlags:
 
 @dataclass
 class FilmFlags:
-    """The flags of ``film``."""
+    """
+    frames of an episode and the actions taken (Figures 6-7)
+
+    Run each agent from a reset (on its own observations) and render a larger view after each agent step:
+    filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values plotted
+    under each strip), one animated GIF per row and actions.csv, into --out.
+    """
 
     checkpoints: tuple[str, ...] | None = setting(
         help="SB3 zips (full models or snapshots)", unit=None, flag="checkpoints", nargs="+"
@@ -165,7 +100,12 @@ class FilmFlags:
 
 @dataclass
 class RecordFlags:
-    """The flags of ``record``, besides :class:`RecordingFlags`."""
+    """
+    record rollouts of an agent
+
+    Run an agent in its DeepMind Control pixel env and save observations, the named true-state components, actions,
+    rewards and episode ids to a compressed .npz.
+    """
 
     checkpoint: str | None = setting(
         help="SB3 zip of the agent (usually a well-performing one)", unit=None, flag="checkpoint"
@@ -177,71 +117,29 @@ class RecordFlags:
 
 
 COMMANDS: dict[str, tuple[type, ...]] = {
-    "run": (RunFlags, ProbeFlags, RecordingFlags),
-    "record": (RecordFlags, RecordingFlags),
-    "sweep": (SweepFlags, ProbeFlags, RecordingFlags),
+    "run": (RunFlags, ProbeSettings, RecordOptions),
+    "record": (RecordFlags, RecordOptions),
+    "sweep": (SweepFlags, ProbeSettings, RecordOptions),
     "film": (FilmFlags,),
 }
 """Each sub-command's flags, by the dataclasses that declare them (its parser, its help, its range checks and its
-table in ``docs/probe.md`` are generated from them)."""
-
-SUBCOMMANDS = tuple(COMMANDS)
+table in ``docs/probe.md`` are generated from them); the first one's docstring is its help line and description."""
 
 RECORDING_TITLE = "recording (settings left out come from the checkpoint, else make_dmc_env's)"
 
-DESCRIPTIONS = {
-    "run": (
-        "probe checkpoints (the default)",
-        (
-            "Probe each checkpoint's layers for every state component with OMP; write probe.csv, summary.json, "
-            "mse_by_layer.png and (for checkpoints of distinct training steps) mse_over_training.png into --out, only "
-            "when the whole run succeeds. Without --rollouts, rollouts of the first checkpoint are recorded first and "
-            "saved to <out>/rollouts.npz."
-        ),
-    ),
-    "sweep": (
-        "Figure 2 and Tables 1-6 of a sweep's task and variant",
-        (
-            "Split the finished trials of one task and variant by final return (well-performing >= --success-return, "
-            "poorly performing < --failure-return), record rollouts once from the best well-performing seed (or read "
-            f"--rollouts), probe every {SNAPSHOTS_DIR}/*.zip of those trials (train with --snapshots) and write "
-            "figure2.png (rows well/poor, columns the reward inputs torso velocity, torso orientation and torso "
-            "height, then state columns), tables_1_6.csv/.md (std across agents at four training stages), probe.csv "
-            "and summary.json."
-        ),
-    ),
-    "film": (
-        "frames of an episode and the actions taken (Figures 6-7)",
-        (
-            "Run each agent from a reset (on its own observations) and render a larger view after each agent step: "
-            "filmstrip.png (one row per checkpoint and episode seed, every --every-frames frames, the action values "
-            "plotted under each strip), one animated GIF per row and actions.csv, into --out."
-        ),
-    ),
-    "record": (
-        "record rollouts of an agent",
-        (
-            "Run an agent in its DeepMind Control pixel env and save observations, the named true-state components, "
-            "actions, rewards and episode ids to a compressed .npz."
-        ),
-    ),
-}
-"""Each sub-command's help line and description."""
+
+def _values(args: argparse.Namespace, declaration: type, *skip: str) -> dict[str, Any]:
+    """The parsed values of ``declaration``'s fields (lists as tuples), but ``skip``."""
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(declaration) if f.name not in skip}
+    return {name: tuple(value) if isinstance(value, list) else value for name, value in values.items()}
+
+
+def _settings(args: argparse.Namespace) -> ProbeSettings:
+    return ProbeSettings(**_values(args, ProbeSettings))
 
 
 def _record_options(args: argparse.Namespace) -> RecordOptions:
-    return RecordOptions(
-        env=args.env,
-        episodes=args.episodes,
-        max_steps=args.max_steps,
-        seed=args.seed,
-        deterministic=not args.stochastic,
-        noise_std=args.noise_std,
-        action_repeat=args.action_repeat,
-        frame_stack=args.frame_stack,
-        size=args.size,
-        camera_id=args.camera_id,
-    )
+    return RecordOptions(**_values(args, RecordOptions))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -260,26 +158,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="{" + ",".join(COMMANDS) + "}")
     for command, declarations in COMMANDS.items():
-        help_line, description = DESCRIPTIONS[command]
+        help_line, description = inspect.getdoc(declarations[0]).split("\n\n", 1)
         subparser = sub.add_parser(command, help=help_line, description=description)
         for declaration in declarations:
-            group = subparser.add_argument_group(RECORDING_TITLE) if declaration is RecordingFlags else subparser
+            group = subparser.add_argument_group(RECORDING_TITLE) if declaration is RecordOptions else subparser
             add_setting_arguments(group, declaration=declaration)
     return parser
-
-
-def _settings(args: argparse.Namespace) -> ProbeSettings:
-    return ProbeSettings(
-        layers=args.layers,
-        max_tau=args.max_tau,
-        fractions=tuple(args.fractions),
-        split_seed=args.split_seed,
-        batch_size=args.batch_size,
-        memory_gb=args.memory_gb,
-        min_std=args.min_std,
-        device=args.device,
-        progress=args.progress,
-    )
 
 
 @report_unwritable_outputs
@@ -294,42 +178,31 @@ def main(argv: list[str] | None = None) -> int:
     if not argv:
         parser.print_help(sys.stderr)
         return 2
-    if argv[0] not in (*SUBCOMMANDS, "-h", "--help"):
+    if argv[0] not in (*COMMANDS, "-h", "--help"):
         argv = ["run", *argv]
     args = parser.parse_args(argv)
     subparsers = next(action for action in parser._actions if isinstance(action, argparse._SubParsersAction))
     check_arguments(subparsers.choices[args.command], args, *COMMANDS[args.command])
     try:
-        with _sigterm_as_interrupt():
+        with stop_signal_handlers(_interrupt):  # the staged outputs are removed on the way out
             _run(args, [parser.prog, *argv])
     except InputError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as stop:
-        name = stop.args[0] if stop.args else "SIGINT"
+        name, out = stop.args[0] if stop.args else "SIGINT", args.out or "the output folder"
         print(
-            f"\nStopped by {name}: nothing was written under {args.out or 'the output folder'} (the outputs are "
-            "staged and "
-            f"moved there only when complete); run the same command again (exit status {EXIT_INTERRUPTED}).",
+            f"\nStopped by {name}: nothing was written under {out} (the outputs are staged and moved there only when "
+            f"complete); run the same command again (exit status {EXIT_INTERRUPTED}).",
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
     return 0
 
 
-@contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """While inside, a SIGTERM stops the command as a Ctrl-C does (``KeyboardInterrupt("SIGTERM")``): the staged
-    outputs are removed on the way out instead of being left by a process killed where it stood."""
-
-    def stop(_signum: int, _frame: Any) -> None:
-        raise KeyboardInterrupt("SIGTERM")
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+def _interrupt(signum: int, _frame: Any) -> None:
+    """A SIGTERM or SIGINT stops the command as a Ctrl-C does (``KeyboardInterrupt("SIGTERM")``)."""
+    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 def _run(args: argparse.Namespace, command: list[str]) -> None:
@@ -337,43 +210,15 @@ def _run(args: argparse.Namespace, command: list[str]) -> None:
     if args.command == "record":
         record_to_file(args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, args.progress)
     elif args.command == "film":
-        film_to_folder(
-            args.checkpoints,
-            args.out,
-            frames=args.frames,
-            size=args.size,
-            every_frames=args.every_frames,
-            seeds=list(args.seeds),
-            env=args.env,
-            device=args.device,
-            overwrite=args.overwrite,
-            progress=args.progress,
-        )
-    elif args.command == "sweep":
-        probe_sweep(
-            args.sweep,
-            args.task,
-            args.variant,
-            out=args.out,
-            settings=_settings(args),
-            rollouts_path=args.rollouts,
-            record_options=_record_options(args),
-            success_return=args.success_return,
-            failure_return=args.failure_return,
-            overwrite=args.overwrite,
-            command=command,
-            jobs=args.jobs,
-        )
+        film_to_folder(args.checkpoints, **_values(args, FilmFlags, "checkpoints"))
     else:
-        probe_to_folder(
-            args.checkpoints,
-            args.out,
-            _settings(args),
-            rollouts_path=args.rollouts,
-            record_options=_record_options(args),
-            overwrite=args.overwrite,
-            command=command,
-        )
+        probe = dict(settings=_settings(args), record_options=_record_options(args), command=command)
+        if args.command == "sweep":
+            probe_sweep(
+                args.sweep, rollouts_path=args.rollouts, **probe, **_values(args, SweepFlags, "sweep", "rollouts")
+            )
+        else:
+            probe_to_folder(args.checkpoints, args.out, rollouts_path=args.rollouts, overwrite=args.overwrite, **probe)
 
 
 if __name__ == "__main__":

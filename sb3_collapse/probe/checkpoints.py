@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import zipfile
 from dataclasses import dataclass
@@ -16,7 +17,9 @@ from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.errors import InputError, LayerMappingError
 from sb3_collapse.monitoring import layer_taps
 from sb3_collapse.monitoring.callbacks import action_repeat_of
+from sb3_collapse.protocol import FINAL_MODEL, SNAPSHOTS_DIR, snapshot_files
 from sb3_collapse.run.snapshots import is_snapshot, load_snapshot
+from sb3_collapse.runfolder import RunStatus, run_status, trial_folders
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "sb3_collapse.drqv2.policies": DrQv2,
@@ -29,13 +32,11 @@ ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
 @dataclass
 class Checkpoint:
     """
-    A loaded checkpoint.
-
     :param path: the zip file
-    :param model: the algorithm, on the requested device, with a ``PROBE_BUFFER_SIZE``-transition replay buffer
+    :param model: the algorithm, on the requested device, with a tiny replay buffer
     :param algorithm: its class name
     :param num_timesteps: training progress, in agent steps
-    :param action_repeat: frames per agent step (:func:`~sb3_collapse.monitoring.callbacks.action_repeat_of`)
+    :param action_repeat: frames per agent step
     :param label: its name in the outputs (``None``: the file name without ``.zip``)
     """
 
@@ -64,26 +65,42 @@ class Checkpoint:
 
 def read_saved_data(path: str | Path) -> dict[str, Any]:
     """
-    The ``data`` JSON of an SB3 zip, checked to come from an SB3 model.
-
-    :param path: the file
-    :return: the parsed JSON
-    :raises InputError: for a missing file, a file that is not a zip, or a zip without SB3's files
+    :param path: an SB3 zip
+    :return: its ``data`` JSON
+    :raises InputError: for a folder, a missing file, a file that is not a zip, or a zip without SB3's files
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(_folder_message(path))
     if not path.is_file():
         raise InputError(f"Checkpoint {path} does not exist.")
     if not zipfile.is_zipfile(path):
         raise InputError(f"{path} is not a zip file; expected an SB3 checkpoint saved with `model.save(...)`.")
     with zipfile.ZipFile(path) as archive:
-        names = set(archive.namelist())
-        missing = {"data", "policy.pth"} - names
+        missing = {"data", "policy.pth"} - set(archive.namelist())
         if missing:
             raise InputError(f"{path} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
         try:
             return json.loads(archive.read("data"))
         except (json.JSONDecodeError, UnicodeDecodeError) as error:
             raise InputError(f"{path}: SB3's `data` entry is not valid JSON ({error}).") from error
+
+
+def _folder_message(path: Path) -> str:
+    """What to give instead of a folder where a checkpoint file is expected (a sweep or run folder, or another)."""
+    trials = trial_folders(path)
+    if trials:
+        return (
+            f"{path} is a sweep folder, not a checkpoint: probe its trials with `python -m sb3_collapse.probe sweep "
+            f"{path} --task {trials[0][0]}`, or give a trial's model, e.g. {trials[0][3] / FINAL_MODEL}."
+        )
+    models = [str(p) for p in (path / FINAL_MODEL,) if p.is_file()]
+    models += [f"{path / SNAPSHOTS_DIR}/*.zip"] if snapshot_files(path) else []
+    if models or run_status(path) not in (None, RunStatus.NEW):
+        give = f"its model, {' or '.join(models)}." if models else "a model file (it has none yet)."
+        return f"{path} is a run folder, not a checkpoint: give {give}"
+    zips = sorted(path.glob("*.zip"))
+    return f"{path} is a folder, not a checkpoint: give an SB3 .zip" + (f", e.g. {zips[0]}." if zips else ".")
 
 
 def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgorithm]:
@@ -102,30 +119,20 @@ def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgor
     return ALGORITHMS[module]
 
 
-PROBE_BUFFER_SIZE = 64
-"""Replay buffer capacity (transitions) of a model loaded for probing: it is never filled."""
-
-
 def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkpoint:
     """
     Load a checkpoint for probing and check that its layers can be named.
 
-    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC, or a DrQv2 snapshot (encoder and actor only,
-        :mod:`sb3_collapse.run.snapshots`)
+    :param path: an SB3 zip of DrQv2, TD3, DDPG or SAC, or a DrQv2 snapshot (encoder and actor only)
     :param device: where the networks go
     :return: the loaded checkpoint
-    :raises InputError: for a missing file, a non-zip, a zip that is not an SB3 model, an unknown algorithm,
-        a model that fails to load, or layers that cannot be mapped
+    :raises InputError: for a file that is not an SB3 model of these, fails to load or whose layers cannot be named
     """
     path = Path(path)
-    data = read_saved_data(path)
-    algorithm = identify_algorithm(data, path)
-    try:
-        # A small buffer (room for any n-step window): loading must not reserve the replay memory of training.
-        if is_snapshot(path):  # encoder and actor only (train's snapshots)
-            model = load_snapshot(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
-        else:
-            model = algorithm.load(path, device=device, buffer_size=PROBE_BUFFER_SIZE)
+    algorithm = identify_algorithm(read_saved_data(path), path)
+    try:  # a small replay buffer (room for any n-step window), never filled
+        load = load_snapshot if is_snapshot(path) else algorithm.load
+        model = load(path, device=device, buffer_size=64)
     except Exception as error:
         raise InputError(f"{path}: {algorithm.__name__}.load failed ({type(error).__name__}: {error}).") from error
     try:
@@ -137,20 +144,16 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
 
 def checkpoint_labels(paths: list[str | Path]) -> list[str]:
     """
-    Names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as it
-    takes to tell them apart (``run1/model`` and ``run2/model``).
-
+    :return: the names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as
+        it takes to tell them apart (``run1/model`` and ``run2/model``)
     :raises InputError: when the same file is given twice
     """
     resolved = [Path(path).resolve() for path in paths]
     if len(set(resolved)) != len(resolved):
         raise InputError("The same checkpoint is given twice.")
-    depth = 1
-    while True:
+    for depth in itertools.count(1):
         labels = [
-            "/".join(path.with_suffix("").parts[-depth:]) if path.suffix == ".zip" else "/".join(path.parts[-depth:])
-            for path in resolved
+            "/".join((path.with_suffix("") if path.suffix == ".zip" else path).parts[-depth:]) for path in resolved
         ]
         if len(set(labels)) == len(labels):
             return labels
-        depth += 1

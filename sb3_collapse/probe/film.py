@@ -1,10 +1,4 @@
-"""
-Films of the paper's Figures 6 and 7 (drawn by :mod:`sb3_collapse.report.film`): what an agent does in the first
-frames of an episode.
-
-The agent acts on its own observations (its ``make_dmc_env`` settings, e.g. 84x84 stacks); after every agent
-step, a larger view of the same simulator state (``size`` pixels, same camera) is rendered for the film.
-"""
+"""Films of Figures 6-7 (drawn by :mod:`sb3_collapse.report.film`): an episode's first frames, rendered larger."""
 
 from __future__ import annotations
 
@@ -24,8 +18,6 @@ FILM_SIZE = 256
 @dataclass
 class Film:
     """
-    One filmed episode.
-
     :param label: its name (checkpoint and episode seed)
     :param frames: ``(T,)`` the environment frame of each picture (0, action repeat, 2 x action repeat, ...)
     :param images: ``(T, size, size, 3)`` uint8 renders
@@ -54,9 +46,8 @@ def film_episode(
     """
     Run the agent from a reset for ``frames`` environment frames and render each agent step at ``size`` pixels.
 
-    :param model: the agent
-    :param env_config: its ``make_dmc_env`` settings (``task_id``, ``action_repeat``, ``frame_stack``, ``size``,
-        ``camera_id``)
+    :param model: the agent, acting on its own observations
+    :param env_config: its ``make_dmc_env`` settings
     :param label: the film's name
     :param frames: environment frames to film (rounded up to whole agent steps; fewer if the episode ends)
     :param size: the film's render size, in pixels
@@ -66,15 +57,13 @@ def film_episode(
     """
     env = make_dmc_env(env_config["task_id"], seed=seed, **{k: v for k, v in env_config.items() if k != "task_id"})
     try:
-        physics = env._dmc._env.physics
-        camera_id = env.camera_id
+        physics, camera_id = env._dmc._env.physics, env.camera_id
 
         def render() -> np.ndarray:
             return np.asarray(physics.render(height=size, width=size, camera_id=camera_id), dtype=np.uint8)
 
         observation, _ = env.reset(seed=seed)
-        pictures, frame_numbers, actions, rewards = [render()], [0], [], []
-        elapsed = 0
+        pictures, frame_numbers, actions, rewards, elapsed = [render()], [0], [], [], 0
         while elapsed < frames:
             action, _ = model.predict(observation, deterministic=deterministic)
             observation, reward, terminated, truncated, info = env.step(action)
@@ -87,14 +76,8 @@ def film_episode(
                 break
     finally:
         env.close()
-    action_dim = actions[0].shape[0]
-    padded = np.full((len(pictures), action_dim), np.nan, dtype=np.float32)
+    padded = np.full((len(pictures), actions[0].shape[0]), np.nan, dtype=np.float32)
     padded[: len(actions)] = actions
-    return Film(
-        label=label,
-        frames=np.asarray(frame_numbers, dtype=np.int64),
-        images=np.stack(pictures),
-        actions=padded,
-        rewards=np.append(np.asarray(rewards, dtype=np.float32), np.nan),
-        task=str(env_config["task_id"]),
-    )
+    rewards = np.append(np.asarray(rewards, dtype=np.float32), np.nan)
+    frame_numbers = np.asarray(frame_numbers, dtype=np.int64)
+    return Film(label, frame_numbers, np.stack(pictures), padded, rewards, str(env_config["task_id"]))

@@ -1,11 +1,6 @@
 """
-The collapse metrics of a run's snapshots on one fixed observation set (Figures 4, 8, 9; the report draws them).
-
-Section 5.1 of the paper computes the numerical rank "of the matrix of MLP activations H, as defined in Figure
-1", and the correlation and zeros of the same activations; Figure 1's H holds the activations of the probing
-samples ("All the samples in three sets are collected from well-performing agents", Section 4.1). So every snapshot
-is run on the same observations: a seeded subset of a rollouts file (which file:
-:class:`~sb3_collapse.report.collapse_figure.FixedInputSettings`).
+The collapse metrics of a run's snapshots on one fixed observation set, "the matrix of MLP activations H, as defined in
+Figure 1" of Section 5.1 (Figures 4, 8, 9; the report draws them; the set: docs/figures.md).
 """
 
 from __future__ import annotations
@@ -26,8 +21,8 @@ from sb3_collapse.probe.rollouts import Rollouts
 from sb3_collapse.protocol import SNAPSHOTS_DIR
 
 FIXED_SAMPLES = 2048
-"""Observations of the fixed set by default: more than the 1024 units of ``mlp1`` and ``mlp2``, so that their
-numerical rank is not bounded by the number of inputs (the online batch of 512 bounds it at 512)."""
+"""Observations of the fixed set by default: more than the 1024 units of ``mlp1`` and ``mlp2``, so that the inputs
+do not bound their numerical rank."""
 
 
 @dataclass
@@ -40,10 +35,9 @@ class FixedInputs:
     :param source: the rollouts file
     :param total: observations in the file
     :param episodes: episodes in the file
-    :param recorded_from: the checkpoint the rollouts were recorded from (their metadata), ``None`` if unknown
-    :param task: the task the rollouts were recorded on (``env_config["task_id"]``), ``None`` if unknown
-    :param recorded_frames: the training frames of that checkpoint (its agent steps x the action repeat), ``None``
-        if unknown
+    :param recorded_from: the checkpoint the rollouts were recorded from, ``None`` if unknown
+    :param task: the task the rollouts were recorded on, ``None`` if unknown
+    :param recorded_frames: the training frames of that checkpoint, ``None`` if unknown
     """
 
     observations: np.ndarray
@@ -60,10 +54,7 @@ class FixedInputs:
         return self.task is None or self.task.replace("_", "-") == task.replace("_", "-")
 
     def describe(self) -> str:
-        """
-        :return: what the metrics are computed on, for titles and captions: the rollouts file (its folder and name)
-            and the trial (``<task>/<variant>/seed_<k>`` of a sweep), checkpoint and frame they were recorded from
-        """
+        """:return: what the metrics are computed on, for captions: the rollouts file and what recorded it"""
         subset = f"{len(self.indices)} of the {self.total}" if len(self.indices) < self.total else f"all {self.total}"
         agent = ""
         if self.recorded_from is not None:
@@ -77,53 +68,26 @@ class FixedInputs:
 
 def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, seed: int = 0) -> FixedInputs:
     """
-    Read the fixed observation set: ``samples`` observations of a rollouts file drawn without replacement by
+    The fixed observation set: ``samples`` observations of a rollouts file drawn without replacement by
     ``numpy.random.default_rng(seed)`` (kept in file order), or all of them.
 
-    :param path: a rollouts file (:class:`~sb3_collapse.probe.rollouts.Rollouts`)
+    :param path: a rollouts file
     :param samples: how many (``None`` or more than the file holds: all)
     :param seed: seed of the draw
     :return: the set
     :raises InputError: for a file that is missing or not a rollouts file
     """
-    path = Path(path)
     rollouts = Rollouts.load(path)
     total = len(rollouts)
     if samples is None or samples >= total:
         indices = np.arange(total)
     else:
         indices = np.sort(np.random.default_rng(seed).choice(total, size=samples, replace=False))
-    recorded_from = rollouts.metadata.get("checkpoint")
-    task = rollouts.env_config.get("task_id")
-    steps, repeat = rollouts.metadata.get("checkpoint_num_timesteps"), rollouts.env_config.get("action_repeat")
+    meta, env = rollouts.metadata, rollouts.env_config
+    steps, repeat = meta.get("checkpoint_num_timesteps"), env.get("action_repeat")
     frames = int(steps) * int(repeat) if steps is not None and repeat is not None else None
-    return FixedInputs(
-        rollouts.observations[indices], indices, path, total, rollouts.n_episodes, recorded_from, task, frames
-    )
-
-
-def snapshot_metrics(
-    model: object,
-    observations: np.ndarray,
-    layers: Sequence[str],
-    device: th.device | str = "cpu",
-    batch_size: int = 256,
-) -> tuple[dict[str, dict[str, float]], dict[str, int]]:
-    """
-    :func:`~sb3_collapse.monitoring.metrics.layer_metrics` of a snapshot's activations of the observations.
-
-    :param model: a loaded DrQv2 (or TD3, DDPG, SAC) model
-    :param observations: ``(n, *obs_shape)`` observations
-    :param layers: the named layers
-    :param device: where the activations are gathered (float64 metrics are computed there)
-    :param batch_size: observations per forward pass
-    :return: layer -> metric -> value, and layer -> width in units
-    """
-    activations = collect_activations(model, observations, layers, batch_size=batch_size, device=device)
-    return (
-        {layer: layer_metrics(values) for layer, values in activations.items()},
-        {layer: unit_count(values) for layer, values in activations.items()},
-    )
+    recorded = (meta.get("checkpoint"), env.get("task_id"), frames)
+    return FixedInputs(rollouts.observations[indices], indices, Path(path), total, rollouts.n_episodes, *recorded)
 
 
 @dataclass
@@ -151,10 +115,9 @@ def fixed_metrics(
     desc: str = "checkpoints",
 ) -> FixedMetrics:
     """
-    Every checkpoint run on the fixed set (:func:`snapshot_metrics`).
+    :func:`~sb3_collapse.monitoring.metrics.layer_metrics` of every checkpoint's activations of the fixed set.
 
-    :param paths: the checkpoints (a trial's snapshots, :func:`~sb3_collapse.protocol.snapshot_files`), in
-        training order
+    :param paths: the checkpoints (a trial's snapshots), in training order
     :param inputs: the fixed set
     :param layers: the named layers
     :param device: where the checkpoints run
@@ -175,9 +138,10 @@ def fixed_metrics(
                 f"takes {shape}: give `rollouts` recorded with the checkpoints' image size and frame stack.",
                 parameter="rollouts",
             )
-        values, result.widths = snapshot_metrics(checkpoint.model, inputs.observations, layers, device, batch_size)
-        for layer, metrics in values.items():
-            for name, value in metrics.items():
+        activations = collect_activations(checkpoint.model, inputs.observations, layers, batch_size, device=device)
+        result.widths = {layer: unit_count(values) for layer, values in activations.items()}
+        for layer, values in activations.items():
+            for name, value in layer_metrics(values).items():
                 frames, column = columns.setdefault(metric_tag(layer, name), ([], []))
                 frames.append(checkpoint.frames)
                 column.append(value)

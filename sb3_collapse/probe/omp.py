@@ -11,9 +11,8 @@ correlated with the current residual and refits least squares on the selected at
         w_k = argmin_w ||y - X[:, S_k] w||^2        # least squares on the selected atoms
         r_k = y - X[:, S_k] w_k
 
-The path is nested: one run up to ``max_atoms`` gives the solution for every sparsity ``tau <= max_atoms``
-(:func:`omp_path`). It matches scikit-learn's ``OrthogonalMatchingPursuit(precompute=False)``, early stops and ties
-included: docs/probe.md#omp.
+The path is nested: one run gives the solution for every sparsity ``tau <= max_atoms``. It matches
+scikit-learn's ``OrthogonalMatchingPursuit(precompute=False)``, early stops and ties included: docs/probe.md#omp.
 """
 
 from __future__ import annotations
@@ -50,11 +49,9 @@ class OMPPath:
 
     def coefficients(self, n_atoms: int | th.Tensor, n_features: int) -> th.Tensor:
         """
-        Dense coefficients of the solutions with ``n_atoms`` atoms.
-
         :param n_atoms: the sparsity ``tau`` (``1..max_atoms``), one for all targets or one per target ``(m,)``
         :param n_features: ``d``, the number of columns of ``X``
-        :return: ``(m, d)`` float64, zero outside the selected atoms
+        :return: ``(m, d)`` float64 dense coefficients of those solutions, zero outside the selected atoms
         """
         m = self.indices.shape[0]
         taus = th.as_tensor(n_atoms, device=self.indices.device).expand(m).long()
@@ -77,10 +74,8 @@ def omp_path(
     desc: str = "OMP",
 ) -> OMPPath:
     """
-    OMP of every column of ``Y`` on the columns of ``X``, up to ``max_atoms`` atoms (see the module docstring).
-
-    The correlations ``X^T R`` are computed in ``X``'s dtype on ``X``'s device (float32 for activations;
-    float64 reproduces scikit-learn on float64 data); the least squares in float64.
+    OMP of every column of ``Y`` on the columns of ``X``, up to ``max_atoms`` atoms. The correlations ``X^T R`` are
+    computed in ``X``'s dtype on ``X``'s device (float64 reproduces scikit-learn); the least squares in float64.
 
     :param X: ``(n, d)`` features (float32 or float64), not modified
     :param Y: ``(n,)`` or ``(n, m)`` targets
@@ -174,9 +169,8 @@ def _selector(running: th.Tensor, m: int) -> th.Tensor | slice:
 
 def path_predictions(X: th.Tensor, path: OMPPath, x_offset: th.Tensor | None = None) -> th.Tensor:
     """
-    Predictions of every solution of a path: ``pred[i, j, t - 1] = (X[i] - x_offset) @ w_{j,t}``.
-
-    Only the selected columns of ``X`` are read (``n x m max_atoms`` values).
+    Predictions of every solution of a path: ``pred[i, j, t - 1] = (X[i] - x_offset) @ w_{j,t}``, reading only the
+    selected columns of ``X``.
 
     :param X: ``(n, d)`` features, as given to :func:`omp_path`
     :param path: the path
@@ -193,10 +187,8 @@ def path_predictions(X: th.Tensor, path: OMPPath, x_offset: th.Tensor | None = N
 
 class OrthogonalMatchingPursuit:
     """
-    A scikit-learn-like OMP estimator on :func:`omp_path` (all targets fitted together).
-
-    Equivalent to ``sklearn.linear_model.OrthogonalMatchingPursuit(n_nonzero_coefs=..., fit_intercept=...,
-    precompute=False)`` (same atoms, same coefficients up to rounding).
+    scikit-learn's ``OrthogonalMatchingPursuit(precompute=False)`` on :func:`omp_path`, all targets fitted together
+    (same atoms, same coefficients up to rounding).
 
     :param n_nonzero_coefs: the sparsity ``tau``: atoms per target
     :param fit_intercept: fit on centred ``X`` and ``y`` and set ``intercept_`` (``X`` is not copied)

@@ -11,38 +11,45 @@ from stable_baselines3.common.utils import get_device
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.probe.checkpoints import Checkpoint, identify_algorithm, load_checkpoint, read_saved_data
-from sb3_collapse.probe.rollouts import Rollouts, check_record_arguments, record_rollouts, resolve_env_config
+from sb3_collapse.probe.rollouts import (
+    ENV_SETTINGS,
+    Rollouts,
+    check_record_arguments,
+    record_rollouts,
+    resolve_env_config,
+)
+from sb3_collapse.run.config import setting
 
 ROLLOUTS_NAME = "rollouts.npz"
 
 
 @dataclass
 class RecordOptions:
-    """
-    How to record rollouts (``None`` settings come from the checkpoint, else ``make_dmc_env``'s defaults).
+    """How to record rollouts, each option declared with its flag of ``python -m sb3_collapse.probe``
+    (:func:`setting`); ``None`` ones come from the checkpoint, else ``make_dmc_env``'s defaults."""
 
-    :param env: dm_control task, e.g. ``"walker-walk"``
-    :param episodes: episodes to record
-    :param max_steps: cap on agent steps per episode (``None``: the task's time limit)
-    :param seed: seed of the env and of the action noise
-    :param deterministic: the policy's deterministic action (else its own exploration)
-    :param noise_std: std of Gaussian noise added to the actions
-    :param action_repeat: frames per agent step
-    :param frame_stack: stacked frames per observation
-    :param size: image size in pixels
-    :param camera_id: camera of the renders
-    """
-
-    env: str | None = None
-    episodes: int = 20
-    max_steps: int | None = None
-    seed: int = 0
-    deterministic: bool = True
-    noise_std: float = 0.0
-    action_repeat: int | None = None
-    frame_stack: int | None = None
-    size: int | None = None
-    camera_id: int | None = None
+    env: str | None = setting(help="dm_control task, e.g. walker-walk; default: the checkpoint's", unit=None)
+    episodes: int = setting(20, help="episodes to record", unit="episodes", minimum=1)
+    max_steps: int | None = setting(
+        help="cap on agent steps per episode; default: the task's time limit (500 agent steps for walker at action "
+        "repeat 2)",
+        unit="agent steps",
+        minimum=1,
+    )
+    seed: int = setting(0, help="seed of the env's initial states and the action noise", unit=None)
+    deterministic: bool = setting(
+        True,
+        help="use the policy's deterministic action (off: sample its own exploration)",
+        unit=None,
+        flag="--stochastic",
+    )
+    noise_std: float = setting(
+        0.0, help="std of Gaussian noise added to each action (actions in [-1, 1])", unit=None, minimum=0
+    )
+    action_repeat: int | None = setting(help="frames per agent step", unit="frames", minimum=1)
+    frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, minimum=1)
+    size: int | None = setting(help="image height and width", unit="pixels", minimum=1)
+    camera_id: int | None = setting(help="camera of the renders", unit=None)
 
     def check(self) -> None:
         """:raises InputError: for a bad option, before anything is loaded or recorded"""
@@ -58,25 +65,11 @@ def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True
     :param progress: show a progress bar
     :return: the rollouts
     """
-    env_config = resolve_env_config(
-        checkpoint.env_config,
-        task_id=options.env,
-        action_repeat=options.action_repeat,
-        frame_stack=options.frame_stack,
-        size=options.size,
-        camera_id=options.camera_id,
-    )
-    return record_rollouts(
-        checkpoint.model,
-        env_config,
-        episodes=options.episodes,
-        seed=options.seed,
-        deterministic=options.deterministic,
-        noise_std=options.noise_std,
-        max_steps=options.max_steps,
-        progress=progress,
-        metadata={"checkpoint": str(checkpoint.path), "checkpoint_num_timesteps": checkpoint.num_timesteps},
-    )
+    env = {key: getattr(options, key) for key in ENV_SETTINGS[1:]}
+    env_config = resolve_env_config(checkpoint.env_config, task_id=options.env, **env)
+    how = {key: getattr(options, key) for key in ("episodes", "seed", "deterministic", "noise_std", "max_steps")}
+    metadata = {"checkpoint": str(checkpoint.path), "checkpoint_num_timesteps": checkpoint.num_timesteps}
+    return record_rollouts(checkpoint.model, env_config, progress=progress, metadata=metadata, **how)
 
 
 def record_to_file(
@@ -108,19 +101,15 @@ def record_to_file(
     check_device(device)
     checkpoint = load_checkpoint(checkpoint_path, device=get_device(device))
     rollouts = record(checkpoint, options, progress)
-    path = rollouts.save(out)
-    print(
-        f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {rollouts.env_config['task_id']} "
-        f"to {path}"
-    )
+    path, task = rollouts.save(out), rollouts.env_config["task_id"]
+    print(f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {task} to {path}")
     return path
 
 
 def check_checkpoint_files(paths: Sequence[str | Path], same_observations: bool = True) -> None:
     """
-    Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm, and that they all
-    take observations of one shape (the same rollouts feed them all: another image size or frame stack cannot be
-    probed with them).
+    Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm, and (the same
+    rollouts feed them all) that they all take observations of one shape.
 
     :param paths: the checkpoints
     :param same_observations: check that they all take observations of one shape

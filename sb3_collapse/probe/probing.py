@@ -1,17 +1,6 @@
 """
-Linear probing with a sparsity constraint (Section 4.1 of the paper): how well each layer's activations
-predict each true-state component, by OMP.
-
-For a checkpoint, a layer ``l`` and a scalar state component ``k``:
-
-1. the recorded samples are split by episode into train / validation / test (60/20/20 of the episodes by
-   default; an episode is never split);
-2. the layer's activations ``h`` (flattened) are standardized with the train mean and std; columns constant on
-   the train set (std ``<= min_std``) are dropped; the target is standardized with its train mean and std;
-3. OMP (:func:`sb3_collapse.probe.omp.omp_path`, no intercept since both are centred on the train set) is fitted
-   on train up to ``max_tau`` atoms, which gives the solution for every sparsity ``tau = 1..max_tau``;
-4. ``tau`` is the one of lowest validation MSE (the smallest on ties); the test MSE of that solution is reported,
-   in standardized units (``mean((s - s_hat)^2) / std_train(s)^2``) and in the state's units.
+Linear probing with a sparsity constraint (Section 4.1): how well each layer's activations predict each true-state
+component, by OMP with the sparsity chosen on validation episodes (the steps: docs/probe.md).
 """
 
 from __future__ import annotations
@@ -30,28 +19,28 @@ import torch as th
 from stable_baselines3.common.utils import get_device
 from tqdm.auto import tqdm
 
+from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring import collect_activations, layer_taps
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.omp import omp_path, path_predictions
 from sb3_collapse.probe.rollouts import Rollouts
+from sb3_collapse.run.config import setting
 
 MIN_EPISODES = 3
 """Episodes a probe needs at least: one each for training, validation and test."""
 
-PROBE_LAYERS = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2")
-"""The layers of Figure 1 of the paper."""
+PROBE_LAYERS = LAYER_NAMES[: LAYER_NAMES.index("action")]
+"""The layers of Figure 1 of the paper: every named layer before the action."""
 
 
 @dataclass
 class EpisodeSplit:
     """
-    Samples split by episode.
-
-    :param order: sample indices, train first, then validation, then test (each in recording order)
+    :param order: sample indices, train, then validation, then test (each in recording order)
     :param n_train: train samples (``order[:n_train]``)
-    :param n_validation: validation samples (next ``n_validation``)
+    :param n_validation: validation samples (the next ones)
     :param n_test: test samples (the rest)
     :param episodes: ``"train"``, ``"validation"``, ``"test"`` -> sorted episode ids
     """
@@ -64,10 +53,7 @@ class EpisodeSplit:
 
 
 def check_fractions(fractions: Sequence[float]) -> None:
-    """
-    :param fractions: train, validation, test fractions of the episodes
-    :raises InputError: unless they are 3 positive fractions summing to 1
-    """
+    """:raises InputError: unless ``fractions`` are 3 positive fractions (train, validation, test) summing to 1"""
     if len(fractions) != 3 or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
         raise InputError(
             f"fractions must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}.",
@@ -79,8 +65,8 @@ def split_by_episode(
     episode_ids: np.ndarray, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int = 0
 ) -> EpisodeSplit:
     """
-    Shuffle the episodes (with ``seed``) and give ``round(fraction x episodes)`` of them to validation and to
-    test (at least one each), the rest to train.
+    Shuffle the episodes and give ``round(fraction x episodes)`` of them to validation and to test (at least one
+    each), the rest to train.
 
     :param episode_ids: ``(N,)`` episode of each sample
     :param fractions: train, validation, test fractions of the episodes (summing to 1)
@@ -101,44 +87,32 @@ def split_by_episode(
     n_train = len(episodes) - n_val - n_test
     if n_train < 1:
         raise InputError(f"The split {list(fractions)} of {len(episodes)} episodes leaves none for training.")
-    sets = {
-        "train": np.sort(shuffled[:n_train]),
-        "validation": np.sort(shuffled[n_train : n_train + n_val]),
-        "test": np.sort(shuffled[n_train + n_val :]),
-    }
+    bounds = {"train": (0, n_train), "validation": (n_train, n_train + n_val), "test": (n_train + n_val, None)}
+    sets = {name: np.sort(shuffled[start:stop]) for name, (start, stop) in bounds.items()}
     parts = [np.flatnonzero(np.isin(episode_ids, ids)) for ids in sets.values()]
-    return EpisodeSplit(
-        order=np.concatenate(parts),
-        n_train=len(parts[0]),
-        n_validation=len(parts[1]),
-        n_test=len(parts[2]),
-        episodes={name: ids.tolist() for name, ids in sets.items()},
-    )
+    return EpisodeSplit(np.concatenate(parts), *map(len, parts), {name: ids.tolist() for name, ids in sets.items()})
 
 
 def standardize_features_(
     features: th.Tensor, n_train: int, min_std: float = 1e-6, chunk_rows: int = 256
 ) -> tuple[th.Tensor, th.Tensor]:
     """
-    Standardize the columns with the mean and std of the first ``n_train`` rows and drop the columns whose
-    train std is ``<= min_std``, in place: the result is a view of ``features``' memory, which is overwritten.
+    Standardize the columns with the mean and std of the first ``n_train`` rows and drop those of train std
+    ``<= min_std``, in place: the result is a view of ``features``' memory.
 
     :param features: ``(N, d)`` contiguous float tensor, train rows first
     :param n_train: rows that give the statistics
-    :param min_std: columns of a smaller train std are constant and dropped
+    :param min_std: columns of a smaller train std are dropped
     :param chunk_rows: rows processed at once (bounds the temporary memory)
     :return: the ``(N, d_kept)`` standardized features and the ``(d,)`` bool mask of the kept columns
     """
     if not features.is_contiguous():
         raise ValueError("standardize_features_ needs a contiguous tensor.")
     n_rows, n_columns = features.shape
-    total = th.zeros(n_columns, dtype=th.float64, device=features.device)
-    for start in range(0, n_train, chunk_rows):
-        total += features[start : min(start + chunk_rows, n_train)].sum(0, dtype=th.float64)
-    mean = total / n_train
-    squares = th.zeros_like(total)
-    for start in range(0, n_train, chunk_rows):
-        squares += ((features[start : min(start + chunk_rows, n_train)].to(th.float64) - mean) ** 2).sum(0)
+    train = [features[start : min(start + chunk_rows, n_train)] for start in range(0, n_train, chunk_rows)]  # views
+    zeros = th.zeros(n_columns, dtype=th.float64, device=features.device)  # sum's start, not changed by it
+    mean = sum((block.sum(0, dtype=th.float64) for block in train), zeros) / n_train
+    squares = sum((((block.to(th.float64) - mean) ** 2).sum(0) for block in train), zeros)
     std = (squares / n_train).sqrt()
     keep = std > min_std
     columns = th.nonzero(keep).flatten()
@@ -167,73 +141,42 @@ def standardize_targets(targets: np.ndarray, n_train: int) -> tuple[np.ndarray, 
     return (targets.astype(np.float64) - mean) / scale, mean, scale
 
 
-def layer_dimensions(model: object, observation: np.ndarray, layers: Sequence[str]) -> dict[str, int]:
-    """
-    :param model: the checkpoint's algorithm
-    :param observation: one observation, ``(1, *obs_shape)``
-    :param layers: layer names
-    :return: name -> flattened activation size
-    """
-    activations = collect_activations(model, observation, layers=layers, batch_size=1)
-    return {name: int(np.prod(value.shape[1:])) for name, value in activations.items()}
-
-
 def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float) -> list[list[str]]:
     """
-    Group layers into forward passes over the rollouts so that the float32 activations of a pass take at most
-    ``memory_bytes`` (first fit, largest layer first; a layer larger than the budget gets a pass of its own).
+    Group layers into forward passes whose float32 activations take at most ``memory_bytes`` (first fit, largest
+    layer first; a layer larger than the budget gets a pass of its own).
 
     :param dimensions: name -> flattened activation size
     :param n_samples: observations per pass
     :param memory_bytes: budget of activations held at once
     :return: the passes, each a list of layer names in the order of ``dimensions``, ordered by their first layer
     """
-    order = list(dimensions)
-    passes: list[list[str]] = []
-    used: list[float] = []
+    order, passes = list(dimensions), []  # [bytes used, layers] of each pass
     for name in sorted(order, key=lambda layer: -dimensions[layer]):
         size = 4.0 * dimensions[name] * n_samples
-        fits = [i for i, total in enumerate(used) if total + size <= memory_bytes]
-        if fits:
-            passes[fits[0]].append(name)
-            used[fits[0]] += size
-        else:
-            passes.append([name])
-            used.append(size)
-    passes = [sorted(layers, key=order.index) for layers in passes]
-    return sorted(passes, key=lambda layers: order.index(layers[0]))
+        fit = next((fit for fit in passes if fit[0] + size <= memory_bytes), None)  # first fit
+        if fit is None:
+            passes.append(fit := [0.0, []])
+        fit[0] += size
+        fit[1].append(name)
+    layer_passes = [sorted(layers, key=order.index) for _, layers in passes]
+    return sorted(layer_passes, key=lambda layers: order.index(layers[0]))
 
 
-def extract_activations(
-    model: object,
-    observations: np.ndarray,
-    order: np.ndarray,
-    layers: Sequence[str],
-    dimensions: dict[str, int],
-    batch_size: int = 256,
-    device: th.device | str = "cpu",
-    progress: bool = True,
+def _extract_activations(
+    model: object, observations: np.ndarray, order: np.ndarray, layers: Sequence[str], settings: ProbeSettings
 ) -> dict[str, th.Tensor]:
-    """
-    The flattened activations of ``observations[order]``, written batch by batch into preallocated tensors
-    (through :func:`sb3_collapse.monitoring.collect_activations`).
-
-    :param model: the algorithm
-    :param observations: ``(N, *obs_shape)``
-    :param order: the sample indices, in the order of the returned rows
-    :param layers: names to extract
-    :param dimensions: name -> flattened size (:func:`layer_dimensions`)
-    :param batch_size: observations per forward pass
-    :param device: where the activations are stored
-    :param progress: show a progress bar
-    :return: name -> ``(len(order), dimension)`` float32
-    """
-    out = {name: th.empty(len(order), dimensions[name], dtype=th.float32, device=device) for name in layers}
-    starts = range(0, len(order), batch_size)
-    for start in tqdm(starts, desc=f"extracting {'+'.join(layers)}", disable=not progress, leave=False):
-        batch = observations[order[start : start + batch_size]]
-        activations = collect_activations(model, batch, layers=layers, batch_size=batch_size, device=device)
-        for name, value in activations.items():
+    """:return: layer -> the ``(len(order), d)`` float32 flattened activations of ``observations[order]``
+    (``(N, *obs_shape)``), written batch by batch into preallocated tensors"""
+    out: dict[str, th.Tensor] = {}
+    device, size = get_device(settings.device), settings.batch_size
+    for start in tqdm(
+        range(0, len(order), size), f"extracting {'+'.join(layers)}", disable=not settings.progress, leave=False
+    ):
+        batch = observations[order[start : start + size]]
+        for name, value in collect_activations(model, batch, layers, size, device).items():
+            if name not in out:
+                out[name] = th.empty(len(order), value[0].numel(), dtype=th.float32, device=device)
             out[name][start : start + len(batch)] = value.reshape(len(batch), -1)
     return out
 
@@ -279,7 +222,7 @@ def probe_layer(
     progress: bool = False,
 ) -> LayerProbe:
     """
-    Probe one layer (steps 2 to 4 of the module docstring). ``features`` is standardized in place.
+    Probe one layer (docs/probe.md, steps 2 to 4); ``features`` is standardized in place.
 
     :param layer: its name (for the result and the progress bar)
     :param features: ``(N, d)`` float32 activations, rows in ``split.order``
@@ -299,55 +242,56 @@ def probe_layer(
     y_val, y_test = Y[n_train : n_train + n_val], Y[n_train + n_val :]
     tau_max = min(max_tau, n_kept)
     if tau_max == 0:  # nothing varies: the prediction is the train mean, 0 in standardized units
-        val_mse = (y_val**2).mean(0).cpu().numpy()
-        test_mse = (y_test**2).mean(0).cpu().numpy()
-        zeros = np.zeros(k, dtype=np.int64)
-        return LayerProbe(
-            layer, n_features, 0, 0, zeros, zeros, np.empty((k, 0)), val_mse, test_mse, time.perf_counter() - start_time
-        )
+        val_mse, test_mse, zeros = (y_val**2).mean(0).cpu().numpy(), (y_test**2).mean(0).cpu().numpy(), np.zeros(k, int)
+        elapsed = time.perf_counter() - start_time
+        return LayerProbe(layer, n_features, 0, 0, zeros, zeros, np.empty((k, 0)), val_mse, test_mse, elapsed)
     path = omp_path(features[:n_train], Y[:n_train], tau_max, progress=progress, desc=f"fitting {layer}")
     val_pred = path_predictions(features[n_train : n_train + n_val], path)  # (n_val, K, tau_max)
     curve = ((val_pred - y_val[:, :, None]) ** 2).mean(0)  # (K, tau_max)
     best = curve.argmin(1)  # first minimum: the smallest tau on ties
     rows = th.arange(k, device=curve.device)
     test_pred = path_predictions(features[n_train + n_val :], path)[:, rows, best]
+    tau, validation_mse = (best + 1).cpu().numpy(), curve[rows, best].cpu().numpy()
+    test_mse = ((test_pred - y_test) ** 2).mean(0).cpu().numpy()
+    elapsed = time.perf_counter() - start_time
+    n_active = path.n_active.cpu().numpy()
     return LayerProbe(
-        layer=layer,
-        n_features=n_features,
-        n_features_kept=n_kept,
-        max_tau=tau_max,
-        tau=(best + 1).cpu().numpy(),
-        n_active=path.n_active.cpu().numpy(),
-        validation_curve=curve.cpu().numpy(),
-        validation_mse=curve[rows, best].cpu().numpy(),
-        test_mse=((test_pred - y_test) ** 2).mean(0).cpu().numpy(),
-        fit_seconds=time.perf_counter() - start_time,
+        layer, n_features, n_kept, tau_max, tau, n_active, curve.cpu().numpy(), validation_mse, test_mse, elapsed
     )
 
 
 @dataclass
 class ProbeSettings:
-    """
-    :param layers: layers to probe (``None``: those of :data:`PROBE_LAYERS` the model has)
-    :param max_tau: largest sparsity; every ``tau`` in ``1..max_tau`` is validated
-    :param fractions: train, validation, test fractions of the episodes
-    :param split_seed: seed of the episode shuffle
-    :param batch_size: observations per forward pass
-    :param memory_gb: activations held at once, in GB (layers share a forward pass while they fit)
-    :param min_std: train std at or below which a feature column is dropped
-    :param device: ``"auto"`` (CUDA when available), ``"cpu"``, ``"cuda"``...: networks and OMP
-    :param progress: progress bars
-    """
+    """The probe's settings, each declared with its flag of ``python -m sb3_collapse.probe`` (:func:`setting`)."""
 
-    layers: Sequence[str] | None = None
-    max_tau: int = 64
-    fractions: Sequence[float] = (0.6, 0.2, 0.2)
-    split_seed: int = 0
-    batch_size: int = 256
-    memory_gb: float = 4.0
-    min_std: float = 1e-6
-    device: str = "auto"
-    progress: bool = True
+    layers: Sequence[str] | None = setting(
+        help=f"layers to probe; default: those of {' '.join(PROBE_LAYERS)} the model has",
+        unit=None,
+        choices=PROBE_LAYERS,
+        nargs="+",
+        metavar="LAYER",
+    )
+    max_tau: int = setting(64, help="largest sparsity; every tau in 1..`max_tau` is validated", unit=None, minimum=1)
+    fractions: Sequence[float] = setting(
+        (0.6, 0.2, 0.2),
+        help="fractions of the episodes for training, validation and test, summing to 1",
+        unit=None,
+        flag="--split",
+        nargs=3,
+        metavar=("TRAIN", "VAL", "TEST"),
+        above=0,
+        maximum=1,
+    )
+    split_seed: int = setting(0, help="seed of the episode shuffle", unit=None)
+    batch_size: int = setting(256, help="observations per forward pass", unit="observations", minimum=1)
+    memory_gb: float = setting(
+        4.0, help="activations held at once, in GB; layers share a forward pass while they fit", unit="GB", above=0
+    )
+    min_std: float = setting(
+        1e-6, help="feature columns of a smaller train std are dropped as constant", unit=None, minimum=0
+    )
+    device: str = setting("auto", help="auto (CUDA when available), cpu, cuda, ...", unit=None)
+    progress: bool = setting(True, help="show the progress bars", unit=None)
 
     def validate(self) -> None:
         """:raises InputError: naming the bad setting"""
@@ -358,20 +302,15 @@ class ProbeSettings:
         if self.memory_gb <= 0:
             raise InputError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
         check_fractions(self.fractions)
-        try:
-            check_device(self.device)
-        except ValueError as error:
-            raise InputError(str(error), parameter="device") from None
+        check_device(self.device)
 
 
 @dataclass
 class CheckpointProbe:
     """
-    Results of one checkpoint.
-
     :param checkpoint: the checkpoint
     :param layers: one :class:`LayerProbe` per layer
-    :param rows: one dict per (layer, target), the rows of ``probe.csv``
+    :param rows: one dict per (layer, target), the rows of ``probe.csv`` (:data:`ROW_COLUMNS`)
     :param extract_seconds: wall time of the forward passes
     """
 
@@ -381,13 +320,18 @@ class CheckpointProbe:
     extract_seconds: float = 0.0
 
 
-def select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[str]:
-    """
-    :param checkpoint: the checkpoint
-    :param layers: requested names, ``None`` for the paper's layers the model has
-    :return: the names, in the model's order
-    :raises InputError: for a requested name the model lacks
-    """
+ROW_COLUMNS = (
+    "checkpoint", "algorithm", "num_timesteps", "frames", "layer", "component", "group", "tau", "max_tau",
+    "validation_mse", "test_mse", "validation_mse_raw", "test_mse_raw", "target_std", "n_train", "n_validation",
+    "n_test", "n_features", "n_features_kept",
+)  # fmt: skip
+"""The columns of a probe's rows: ``num_timesteps`` in agent steps, ``*_mse`` standardized, ``*_mse_raw`` in the
+state's units squared."""
+
+
+def _select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[str]:
+    """:return: ``layers`` (``None``: the paper's that the model has) in the model's order; :raises InputError: for
+    a requested name the model lacks"""
     available = list(layer_taps(checkpoint.model))
     if layers is None:
         names = [name for name in available if name in PROBE_LAYERS]
@@ -398,12 +342,6 @@ def select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[
     if missing:
         raise InputError(f"{checkpoint.path}: no layer(s) {missing}; this {checkpoint.algorithm} has {available}.")
     return [name for name in available if name in layers]
-
-
-def _pixel_layer_key(model: object, observations: np.ndarray) -> str:
-    """A fingerprint of ``cnn0`` (the normalized pixels): its exact values on a few observations."""
-    pixels = collect_activations(model, observations, layers=["cnn0"])["cnn0"]
-    return hashlib.sha1(pixels.cpu().numpy().tobytes()).hexdigest()
 
 
 def probe_checkpoint(
@@ -420,79 +358,50 @@ def probe_checkpoint(
     :param rollouts: the recorded observations and states
     :param split: the episode split of the rollouts
     :param settings: the probe's settings
-    :param reuse: probes of ``cnn0`` (the normalized image) from earlier checkpoints on the same rollouts and
-        split, keyed by the values of ``cnn0`` on the first 16 samples (updated here), reused instead of fitted
-        again; ``None``: no reuse
-    :return: the results; ``rows`` holds, per (layer, target): ``checkpoint``, ``algorithm``,
-        ``num_timesteps`` (agent steps), ``frames``, ``layer``, ``component``, ``group``, ``tau``, ``max_tau``,
-        ``validation_mse``, ``test_mse`` (standardized), ``validation_mse_raw``, ``test_mse_raw`` (state units
-        squared), ``target_std``, ``n_train``, ``n_validation``, ``n_test``, ``n_features``, ``n_features_kept``
+    :param reuse: probes of ``cnn0`` (the normalized image) of earlier checkpoints on the same rollouts and split,
+        keyed by its values on 16 samples (updated here), reused instead of fitted again; ``None``: no reuse
+    :return: the results, one row per (layer, target)
     :raises InputError: when the rollouts' observations do not fit the model
     """
-    model = checkpoint.model
+    model, observations = checkpoint.model, rollouts.observations
     model_shape = tuple(model.observation_space.shape or ())
-    if tuple(rollouts.observations.shape[1:]) != model_shape:
+    if tuple(observations.shape[1:]) != model_shape:
         raise InputError(
             f"{checkpoint.path} takes observations of shape {model_shape}, the rollouts hold "
-            f"{tuple(rollouts.observations.shape[1:])}: record rollouts with this model's env settings "
-            "(size, frame stack)."
+            f"{tuple(observations.shape[1:])}: record rollouts with this model's env settings (size, frame stack)."
         )
-    layers = select_layers(checkpoint, settings.layers)
+    layers = _select_layers(checkpoint, settings.layers)
     names, groups, raw_targets = rollouts.targets()
     targets, _, target_scale = standardize_targets(raw_targets[split.order], split.n_train)
     train_std = raw_targets[split.order[: split.n_train]].std(0, dtype=np.float64)
-    device = get_device(settings.device)
-    dims = layer_dimensions(model, rollouts.observations[:1], layers)
-    result = CheckpointProbe(checkpoint)
-    probes: dict[str, LayerProbe] = {}
-    pixel_key = None
-    if reuse is not None and "cnn0" in layers:
-        pixel_key = _pixel_layer_key(model, rollouts.observations[split.order[:16]])
+    dims = {name: value[0].numel() for name, value in collect_activations(model, observations[:1], layers).items()}
+    result, probes, pixel_key = CheckpointProbe(checkpoint), {}, None
+    if reuse is not None and "cnn0" in layers:  # the exact values of cnn0 on a few observations
+        pixels = collect_activations(model, observations[split.order[:16]], layers=["cnn0"])["cnn0"]
+        pixel_key = hashlib.sha1(pixels.cpu().numpy().tobytes()).hexdigest()
         if pixel_key in reuse:
             probes["cnn0"] = dataclasses.replace(reuse[pixel_key], fit_seconds=0.0, reused=True)
     wanted = {name: dim for name, dim in dims.items() if name not in probes}
     for layer_pass in plan_passes(wanted, len(split.order), settings.memory_gb * 1e9):
         start = time.perf_counter()
-        activations = extract_activations(
-            model, rollouts.observations, split.order, layer_pass, dims, settings.batch_size, device, settings.progress
-        )
+        activations = _extract_activations(model, observations, split.order, layer_pass, settings)
         result.extract_seconds += time.perf_counter() - start
-        for layer in layer_pass:
-            features = activations.pop(layer)
+        for layer in layer_pass:  # each layer's activations freed once probed
             probes[layer] = probe_layer(
-                layer, features, targets, split, settings.max_tau, settings.min_std, settings.progress
+                layer, activations.pop(layer), targets, split, settings.max_tau, settings.min_std, settings.progress
             )
-            del features
     if pixel_key is not None:
         reuse.setdefault(pixel_key, probes["cnn0"])
+    sizes = (split.n_train, split.n_validation, split.n_test)
     for layer in layers:
         probe = probes[layer]
         result.layers.append(probe)
         for j, (name, group) in enumerate(zip(names, groups)):
-            scale = float(target_scale[j]) ** 2
-            result.rows.append(
-                {
-                    "checkpoint": checkpoint.name,
-                    "algorithm": checkpoint.algorithm,
-                    "num_timesteps": checkpoint.num_timesteps,
-                    "frames": checkpoint.frames,
-                    "layer": layer,
-                    "component": name,
-                    "group": group,
-                    "tau": int(probe.tau[j]),
-                    "max_tau": probe.max_tau,
-                    "validation_mse": float(probe.validation_mse[j]),
-                    "test_mse": float(probe.test_mse[j]),
-                    "validation_mse_raw": float(probe.validation_mse[j]) * scale,
-                    "test_mse_raw": float(probe.test_mse[j]) * scale,
-                    "target_std": float(train_std[j]),
-                    "n_train": split.n_train,
-                    "n_validation": split.n_validation,
-                    "n_test": split.n_test,
-                    "n_features": probe.n_features,
-                    "n_features_kept": probe.n_features_kept,
-                }
-            )
+            mse = (float(probe.validation_mse[j]), float(probe.test_mse[j]))
+            values = (checkpoint.name, checkpoint.algorithm, checkpoint.num_timesteps, checkpoint.frames, layer, name)
+            values += (group, int(probe.tau[j]), probe.max_tau, *mse, *(m * float(target_scale[j]) ** 2 for m in mse))
+            values += (float(train_std[j]), *sizes, probe.n_features, probe.n_features_kept)
+            result.rows.append(dict(zip(ROW_COLUMNS, values)))
     return result
 
 
@@ -505,17 +414,15 @@ def probe_each_checkpoint(
     jobs: int = 1,
 ) -> list[list[dict[str, Any]]]:
     """
-    Probe many checkpoints on the same rollouts (:func:`probe_checkpoint`), ``jobs`` at once.
+    Probe many checkpoints on the same rollouts (:func:`probe_checkpoint`), ``jobs`` at once; the first alone, so
+    that the others reuse its ``cnn0`` probe. The results do not depend on ``jobs``.
 
     :param paths: the checkpoints
     :param labels: their names in the rows (``checkpoint``)
     :param rollouts: the recorded observations and states
     :param split: the episode split of the rollouts
     :param settings: the probe's settings; ``settings.progress`` shows one bar over the checkpoints
-    :param jobs: checkpoints probed at once (threads: the forward passes and OMP fits run in torch, outside Python's
-        lock). ``settings.memory_gb`` bounds them all together: each gets ``memory_gb / jobs`` for its activations.
-        The first checkpoint is probed alone, so that the others reuse its ``cnn0`` probe. The results do not
-        depend on ``jobs``
+    :param jobs: checkpoints probed at once (threads), each with ``settings.memory_gb / jobs`` for its activations
     :return: each checkpoint's rows, in the order of ``paths``
     :raises InputError: for a checkpoint that cannot be loaded or does not fit the rollouts
     """
@@ -529,9 +436,8 @@ def probe_each_checkpoint(
         return probe_checkpoint(checkpoint, rollouts, split, quiet, reuse).rows
 
     work = list(zip(paths, labels))
-    results: list[list[dict[str, Any]]] = []
     with tqdm(total=len(work), desc="probing checkpoints", unit="checkpoint", disable=not settings.progress) as bar:
-        results.append(probe_one(work[0]))  # alone: the others reuse its cnn0 probe
+        results = [probe_one(work[0])]  # alone: the others reuse its cnn0 probe
         bar.update()
         with ThreadPoolExecutor(max_workers=jobs) as pool:
             for rows in pool.map(probe_one, work[1:]):  # in the order of work, whatever finishes first

@@ -1,20 +1,13 @@
 """
-Rollouts for probing: observations of an agent in a DeepMind Control pixel env, with the true state behind each.
-
-A :class:`Rollouts` holds, for every recorded agent step ``t`` of every episode: the observation the agent acted
-on, the named true-state components at the time that observation was rendered (``DMCEnv.get_state``), the
-quantities of that state that the task's reward function reads (``DMCEnv.reward_inputs``: the paper's Figure 2
-probes components chosen "because all of them are the input to the reward function"), the action taken, the reward it
-received, the episode id and the step index. The final observation of an episode
-(on which no action is taken) is not recorded. Files are compressed ``.npz`` (no pickles) that also store the
-environment settings, so a file recorded from one agent can probe many checkpoints.
+Rollouts: an agent's pixel observations with the true state behind each and what the task's reward reads ("all of
+them are the input to the reward function"), saved as compressed ``.npz`` files: docs/probe.md.
 """
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +19,7 @@ from tqdm.auto import tqdm
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import reward_inputs_of
 from sb3_collapse.errors import InputError
+from sb3_collapse.protocol import atomic_output
 
 FORMAT_VERSION = 2
 """Version 2 added the reward inputs (files of version 1 load with none)."""
@@ -33,22 +27,24 @@ REWARD_PREFIX = "reward:"
 """Prefix of the probing targets (and groups) that are reward inputs, e.g. ``reward:torso_height``."""
 ENV_SETTINGS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id")
 """``make_dmc_env`` settings stored with the rollouts (``obs_type`` is always ``"pixels"``)."""
+ARRAYS = ("observations", "actions", "rewards", "episode_ids", "steps")
+"""The arrays of every recorded step, besides the states and reward inputs."""
 
 
 @dataclass
 class Rollouts:
     """
-    Recorded agent steps, ``N`` in all.
+    Recorded agent steps, ``N`` in all (the final observation of an episode, on which no action is taken, is not
+    recorded).
 
     :param observations: ``(N, *obs_shape)`` observations as the env gives them (``uint8`` ``(N, 9, 84, 84)``)
-    :param states: true-state component name -> ``(N, size)`` float32, in dm_control's order (walker:
-        ``orientations`` (14), ``height`` (1), ``velocity`` (9))
+    :param states: true-state component name -> ``(N, size)`` float32 when each observation was rendered, in
+        dm_control's order (walker: ``orientations`` (14), ``height`` (1), ``velocity`` (9))
     :param actions: ``(N, action_dim)`` float32 actions taken, in [-1, 1]
     :param rewards: ``(N,)`` float32 reward received for each action (summed over the action repeat)
     :param episode_ids: ``(N,)`` int64 episode of each step, ``0..episodes - 1``
     :param steps: ``(N,)`` int64 agent step of each observation within its episode (0: the reset observation)
-    :param env_config: ``make_dmc_env`` settings: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``,
-        ``camera_id``
+    :param env_config: ``make_dmc_env`` settings (:data:`ENV_SETTINGS`)
     :param metadata: how they were recorded (``checkpoint``, ``deterministic``, ``noise_std``, ``seed``, ...)
     :param reward_inputs: reward input name -> ``(N, size)`` float32, what the task's reward function reads at
         each observation (:data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`); empty when not recorded
@@ -66,12 +62,7 @@ class Rollouts:
 
     def __post_init__(self) -> None:
         n = len(self.observations)
-        arrays = {
-            "actions": self.actions,
-            "rewards": self.rewards,
-            "episode_ids": self.episode_ids,
-            "steps": self.steps,
-        }
+        arrays = {name: getattr(self, name) for name in ARRAYS[1:]}
         arrays.update({f"state {name!r}": value for name, value in self.states.items()})
         arrays.update({f"reward input {name!r}": value for name, value in self.reward_inputs.items()})
         wrong = {name: len(value) for name, value in arrays.items() if len(value) != n}
@@ -88,17 +79,13 @@ class Rollouts:
 
     def targets(self) -> tuple[list[str], list[str], np.ndarray]:
         """
-        The scalar probing targets: one per dimension of each state component, then one per dimension of each
-        reward input.
+        The scalar probing targets: one per dimension of each state component, then of each reward input.
 
-        :return: ``names`` (``"orientations_0"``.. for a multi-dimensional component, the component's own name
-            for a 1-d one such as ``"height"``; reward inputs prefixed with :data:`REWARD_PREFIX`:
-            ``"reward:torso_height"``), ``groups`` (the component or reward input of each target, prefixed the same
-            way) and the ``(N, K)`` float32 matrix of their values
+        :return: ``names`` (``"orientations_0"``.., ``"height"`` for a 1-d component, ``"reward:torso_height"`` for
+            a reward input), ``groups`` (the component or reward input of each) and the ``(N, K)`` float32 values
         """
         names, groups, columns = [], [], []
-        sources = [("", self.states), (REWARD_PREFIX, self.reward_inputs)]
-        for prefix, components in sources:
+        for prefix, components in (("", self.states), (REWARD_PREFIX, self.reward_inputs)):
             for component, values in components.items():
                 values = values.reshape(len(values), -1)
                 for i in range(values.shape[1]):
@@ -111,13 +98,9 @@ class Rollouts:
 
     def save(self, path: str | Path) -> Path:
         """
-        Write a compressed ``.npz`` atomically (to ``<path>.partial``, renamed when complete).
-
-        :param path: the file
+        :param path: the compressed ``.npz`` to write (atomically: :func:`~sb3_collapse.protocol.atomic_output`)
         :return: the path written
         """
-        path = Path(path)
-        partial = path.with_name(path.name + ".partial")
         meta = {
             "format_version": FORMAT_VERSION,
             "env_config": self.env_config,
@@ -125,31 +108,19 @@ class Rollouts:
             "state_components": list(self.states),
             "reward_inputs": list(self.reward_inputs),
         }
-        arrays = {
-            "observations": self.observations,
-            "actions": self.actions,
-            "rewards": self.rewards,
-            "episode_ids": self.episode_ids,
-            "steps": self.steps,
-            "meta": np.array(json.dumps(meta)),
-        }
+        arrays = {name: getattr(self, name) for name in ARRAYS} | {"meta": np.array(json.dumps(meta))}
         arrays.update({f"state/{name}": value for name, value in self.states.items()})
         arrays.update({f"reward_input/{name}": value for name, value in self.reward_inputs.items()})
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            with partial.open("wb") as file:
-                np.savez_compressed(file, **arrays)
-            os.replace(partial, path)
-        finally:
-            partial.unlink(missing_ok=True)
-        return path
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        with atomic_output(path) as temporary, temporary.open("wb") as file:
+            np.savez_compressed(file, **arrays)
+        return Path(path)
 
     @classmethod
     def load(cls, path: str | Path) -> Rollouts:
         """
         :param path: a file written by :meth:`save`
-        :return: the rollouts, with the recorded reward inputs that the task's reward reads
-            (:data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`; any other recorded quantity is left out)
+        :return: the rollouts, with the recorded reward inputs that the task's reward reads (others left out)
         :raises InputError: for a missing file or one that is not a rollouts file
         """
         path = Path(path)
@@ -160,38 +131,32 @@ class Rollouts:
         try:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
-                states = {name: data[f"state/{name}"] for name in meta["state_components"]}
-                task = parse_task(meta["env_config"]["task_id"])
-                read = {item.name for item in reward_inputs_of(*task) if item.state}
-                reward_inputs = {
-                    name: data[f"reward_input/{name}"] for name in meta.get("reward_inputs", []) if name in read
+                read = {
+                    item.name for item in reward_inputs_of(*parse_task(meta["env_config"]["task_id"])) if item.state
                 }
-                arrays = {key: data[key] for key in ("observations", "actions", "rewards", "episode_ids", "steps")}
+                arrays = {key: data[key] for key in ARRAYS}
+                arrays["states"] = {name: data[f"state/{name}"] for name in meta["state_components"]}
+                inputs = [name for name in meta.get("reward_inputs", []) if name in read]  # format 1: none
+                arrays["reward_inputs"] = {name: data[f"reward_input/{name}"] for name in inputs}
         except (OSError, ValueError, KeyError, json.JSONDecodeError) as error:
             raise InputError(
                 f"{path} is not a rollouts file of sb3_collapse.probe ({type(error).__name__}: {error}); "
                 "record one with `python -m sb3_collapse.probe record`."
             ) from error
-        return cls(
-            states=states,
-            reward_inputs=reward_inputs,
-            env_config=meta["env_config"],
-            metadata=meta.get("metadata", {}),
-            **arrays,
-        )
+        return cls(env_config=meta["env_config"], metadata=meta.get("metadata", {}), **arrays)
 
 
 def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any) -> dict[str, Any]:
     """
-    The env settings for recording: those given (not ``None``), else the checkpoint's, else ``make_dmc_env``'s
-    defaults (action repeat 2, 3 stacked frames, 84 pixels, the domain's default camera).
+    The env settings for recording: those given (not ``None``), else the checkpoint's, else ``make_dmc_env``'s.
 
     :param model_env_config: ``model.env_config`` of a DrQv2 checkpoint, or ``None``
     :param overrides: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``, ``camera_id``
     :return: a complete settings dict
     :raises InputError: when no task is known
     """
-    defaults = {"task_id": None, "action_repeat": 2, "frame_stack": 3, "size": 84, "camera_id": None}
+    parameters = inspect.signature(make_dmc_env).parameters
+    defaults = {"task_id": None} | {key: parameters[key].default for key in ENV_SETTINGS[1:]}
     saved = {key: value for key, value in (model_env_config or {}).items() if key in defaults and value is not None}
     given = {key: value for key, value in overrides.items() if value is not None}
     unknown = set(given) - set(defaults)
@@ -209,21 +174,8 @@ def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any
     return config
 
 
-def episode_length(env: Any, max_steps: int | None) -> int | None:
-    """Agent steps per episode of a ``DMCEnv`` (its time limit), at most ``max_steps``; ``None`` if unknown."""
-    limit = getattr(getattr(getattr(env, "_dmc", None), "_env", None), "_step_limit", None)
-    steps = None if limit is None or not math.isfinite(limit) else math.ceil(limit / env.action_repeat)
-    if max_steps is not None:
-        steps = max_steps if steps is None else min(steps, max_steps)
-    return steps
-
-
 def check_record_arguments(episodes: int, max_steps: int | None, noise_std: float) -> None:
-    """
-    Check :func:`record_rollouts`' arguments before anything is built.
-
-    :raises InputError: naming the bad argument
-    """
+    """:raises InputError: naming the bad argument of :func:`record_rollouts`, before anything is built"""
     if episodes < 1:
         raise InputError(f"episodes must be >= 1, got {episodes}.", parameter="episodes")
     if max_steps is not None and max_steps < 1:
@@ -274,16 +226,14 @@ def record_rollouts(
             "pass the `size` and `frame_stack` the model was trained with."
         )
     rng = np.random.default_rng(seed)
-    observations, actions, rewards, episode_ids, steps = [], [], [], [], []
-    states: dict[str, list[np.ndarray]] = {name: [] for name in env.state_shapes}
-    reward_inputs: dict[str, list[np.ndarray]] = {}
-    per_episode = episode_length(env, max_steps)
-    bar = tqdm(
-        total=None if per_episode is None else episodes * per_episode,
-        desc="recording",
-        unit="step",
-        disable=not progress,
-    )
+    recorded: dict[str, list] = {name: [] for name in ARRAYS}
+    states: dict[str, list] = {name: [] for name in env.state_shapes}
+    reward_inputs: dict[str, list] = {}
+    limit = getattr(getattr(getattr(env, "_dmc", None), "_env", None), "_step_limit", None)  # the time limit
+    caps = [max_steps, math.ceil(limit / env.action_repeat) if limit is not None and math.isfinite(limit) else None]
+    per_episode = min((cap for cap in caps if cap is not None), default=None)
+    total = None if per_episode is None else episodes * per_episode
+    bar = tqdm(total=total, desc="recording", unit="step", disable=not progress)
     try:
         for episode in range(episodes):
             obs, _ = env.reset(seed=seed if episode == 0 else None)
@@ -293,37 +243,25 @@ def record_rollouts(
                 action = np.asarray(action, dtype=np.float32).reshape(env.action_space.shape)
                 if noise_std > 0:
                     action = np.clip(action + rng.normal(0.0, noise_std, action.shape), -1.0, 1.0).astype(np.float32)
-                observations.append(obs)
                 for name, value in env.get_state().items():
                     states[name].append(value)
                 for name, value in env.reward_inputs().items():
                     reward_inputs.setdefault(name, []).append(value)
-                obs, reward, terminated, truncated, _ = env.step(action)
-                actions.append(action)
-                rewards.append(reward)
-                episode_ids.append(episode)
-                steps.append(step)
-                step += 1
-                done = terminated or truncated
+                next_obs, reward, terminated, truncated, _ = env.step(action)
+                for name, value in zip(ARRAYS, (obs, action, reward, episode, step)):
+                    recorded[name].append(value)
+                obs, step, done = next_obs, step + 1, terminated or truncated
                 bar.update(1)
     finally:
         bar.close()
         env.close()
+    dtypes = (None, np.float32, np.float32, np.int64, np.int64)
+    arrays = {name: np.asarray(values, dtype) for (name, values), dtype in zip(recorded.items(), dtypes)}
+    info = dict(seed=seed, episodes=episodes, deterministic=deterministic, noise_std=noise_std, max_steps=max_steps)
     return Rollouts(
-        observations=np.stack(observations),
         states={name: np.stack(values).astype(np.float32) for name, values in states.items()},
         reward_inputs={name: np.stack(values).astype(np.float32) for name, values in reward_inputs.items()},
-        actions=np.stack(actions).astype(np.float32),
-        rewards=np.asarray(rewards, dtype=np.float32),
-        episode_ids=np.asarray(episode_ids, dtype=np.int64),
-        steps=np.asarray(steps, dtype=np.int64),
         env_config={key: env_config[key] for key in ENV_SETTINGS},
-        metadata={
-            "seed": seed,
-            "episodes": episodes,
-            "deterministic": deterministic,
-            "noise_std": noise_std,
-            "max_steps": max_steps,
-            **(metadata or {}),
-        },
+        metadata={**info, **(metadata or {})},
+        **arrays,
     )

@@ -1,5 +1,6 @@
 import csv
 import json
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -193,3 +194,57 @@ def test_cnn0_probe_is_reused_across_checkpoints(files):
             assert [(r["layer"], r["component"], r["tau"], r["test_mse"]) for r in rows] == [
                 (r["layer"], r["component"], r["tau"], r["test_mse"]) for r in expected.rows
             ]
+
+
+def test_bad_layers_and_split_are_refused_before_any_rollout(files, tmp_path, monkeypatch, capsys):
+    """--layers mlp9 and --split 0.5 0.5 0.5 are refused before a checkpoint is loaded or a rollout recorded: both
+    would fail the test here if called."""
+
+    def never(*args, **kwargs):
+        raise AssertionError("called before the flags were checked")
+
+    from sb3_collapse.probe import pipeline
+    from sb3_collapse.report import figure2, probe_outputs
+
+    for module in (pipeline, probe_outputs, figure2):
+        for name in ("record_rollouts", "record", "load_checkpoint", "load_sweep"):
+            if hasattr(module, name):
+                monkeypatch.setattr(module, name, never)
+    out = tmp_path / "out"
+    for command in ([str(files["early"])], ["sweep", str(tmp_path), "--task", "walker-walk"]):
+        with pytest.raises(SystemExit) as exit_info:
+            main([*command, "--layers", "mlp9", "--out", str(out)])
+        assert exit_info.value.code == 2 and "invalid choice: 'mlp9'" in capsys.readouterr().err
+        assert main([*command, "--split", "0.5", "0.5", "0.5", "--out", str(out), "--no-progress"]) == 2
+        assert "--split must be 3 positive fractions summing to 1" in capsys.readouterr().err
+        assert_no_outputs(out)
+
+
+def test_a_folder_given_as_a_checkpoint_is_named_for_what_it_is(files, tmp_path, capsys):
+    """A folder where a checkpoint is expected: a sweep folder points at `probe sweep`, a run folder at its model
+    files, any other folder at a .zip in it."""
+    from sb3_collapse.protocol import CONFIG_JSON, FINAL_MODEL, SNAPSHOTS_DIR
+
+    run = tmp_path / "sweep" / "walker-walk" / "drqv2" / "seed_0"
+    (run / SNAPSHOTS_DIR).mkdir(parents=True)
+    (run / CONFIG_JSON).write_text("{}")
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    expected = {
+        tmp_path / "sweep": f"is a sweep folder, not a checkpoint: probe its trials with `python -m sb3_collapse.probe "
+        f"sweep {tmp_path / 'sweep'} --task walker-walk`, or give a trial's model, e.g. {run / FINAL_MODEL}.",
+        run: "is a run folder, not a checkpoint: give a model file (it has none yet).",
+        bare: "is a folder, not a checkpoint: give an SB3 .zip.",
+        files["folder"]: f"is a folder, not a checkpoint: give an SB3 .zip, e.g. {files['early']}.",
+    }
+    for folder, message in expected.items():
+        for command in ([str(folder)], ["record", str(folder)], ["film", str(folder)]):
+            assert main([*command, "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+            assert capsys.readouterr().err == f"error: {folder} {message}\n", command
+    shutil.copy(files["early"], run / FINAL_MODEL)
+    shutil.copy(files["late"], run / SNAPSHOTS_DIR / "snapshot_0000000200_frames.zip")
+    assert main([str(run), "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == (
+        f"error: {run} is a run folder, not a checkpoint: give its model, {run / FINAL_MODEL} or "
+        f"{run / SNAPSHOTS_DIR}/*.zip.\n"
+    )
