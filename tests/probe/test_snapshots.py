@@ -340,3 +340,26 @@ def test_film_of_checkpoints(run, tmp_path):
         probe_main(["film", str(final), "--frames", "0", "--out", str(tmp_path / "x"), "--no-progress"])
     assert exit_status.value.code == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_probe_sweep_probes_around_an_evaluation_file_cut_mid_row(run, tmp_path, capsys):
+    """A finished trial whose evaluation file ends in half a row is damaged: named with the file, the line and the
+    way out on the terminal and in the summary; the readable trials are probed (exit 0)."""
+    from sb3_collapse.protocol import EVAL_CSV
+
+    root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 1: 940.0, 2: 20.0, 3: 10.0})
+    evaluations = root / "walker-walk" / "drqv2" / "seed_3" / EVAL_CSV
+    evaluations.write_text(evaluations.read_text().rstrip("\n").rsplit(",", 1)[0] + "\n")
+    argv = ["sweep", str(root), "--task", "walker-walk", "--episodes", "3", "--max-steps", "3", "--max-tau", "2"]
+    assert probe_main([*argv, "--layers", "mlp1", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    summary = json.loads(
+        (root / SWEEP_PROBE_DIR.format(task="walker-walk", variant="drqv2") / "summary.json").read_text()
+    )
+    assert [(a["seed"], a["row"]) for a in summary["agents"]] == [
+        (0, "well-performing"), (1, "well-performing"), (2, "poorly performing")
+    ]  # fmt: skip
+    (damaged,) = summary["damaged"]
+    assert damaged["seed"] == 3 and damaged["reason"].startswith(f"{evaluations}, line ")
+    assert damaged["reason"].endswith("move the folder aside to train this seed again.")
+    assert f"Not probed: seed 3: {damaged['reason']}" in out
