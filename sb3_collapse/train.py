@@ -29,7 +29,7 @@ from sb3_collapse.protocol import CONFIG_JSON, EXIT_INTERRUPTED
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import check_run_folder
 from sb3_collapse.run.runner import train
-from sb3_collapse.run.settings import add_run_arguments, prog_name, show_settings, training_arguments
+from sb3_collapse.run.settings import CommandLine, add_run_arguments, prog_name, show_settings, training_arguments
 
 CLI_ONLY_FLAGS = ("--show-settings",)
 """The flags of this command line that are not settings of :class:`TrainConfig`."""
@@ -37,7 +37,7 @@ CLI_ONLY_FLAGS = ("--show-settings",)
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python -m sb3_collapse.train``, one flag per :class:`TrainConfig` field."""
-    parser = argparse.ArgumentParser(
+    parser = CommandLine(
         prog=prog_name("sb3_collapse.train"),
         description="Train DrQ-v2 from pixels on a DeepMind Control task, with periodic evaluation, "
         "TensorBoard logs and a final checkpoint. Frames = agent steps x action repeat. The DrQ-v2 settings "

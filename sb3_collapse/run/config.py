@@ -25,7 +25,7 @@ from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.errors import ParameterError
-from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset
+from sb3_collapse.monitoring import INTERVENTIONS, CollapseReset
 from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import SNAPSHOTS_DIR
@@ -248,7 +248,10 @@ class TrainConfig:
         zero_means="no checks",
     )
     collapse_metrics_batch: int = setting(
-        512, help="replay observations per collapse-metrics check", unit="observations"
+        512,
+        help="replay observations per collapse-metrics check (correlations need pairs)",
+        unit="observations",
+        minimum=2,
     )
     algorithm: str = setting(
         "drqv2",
@@ -421,6 +424,17 @@ class TrainConfig:
         config = self if self.resolved else self.resolve()
         for field in dataclasses.fields(config):
             _check_declared(field, getattr(config, field.name))
+        # A budget counts whole agent steps (frames // action_repeat); the preset's replay buffer is capped there.
+        steps, needed = config.frames // config.action_repeat, 1  # type: ignore[operator]
+        if config.algorithm == "drqv2" and config.sources.get("buffer_size") == PRESET:
+            needed = config.n_steps * config.n_envs  # type: ignore[operator]
+        if steps < needed:
+            why = f"; the replay buffer they cap needs n_steps={config.n_steps} per environment" if needed > 1 else ""
+            raise ParameterError(
+                "frames",
+                f"frames must be >= {needed * config.action_repeat}: a budget counts whole agent steps of "  # type: ignore[operator]
+                f"action_repeat={config.action_repeat} frames{why}; got {config.frames}.",
+            )
         if config.intervention is not None and not config.reset_rule:
             raise ParameterError(
                 "intervention", f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
@@ -440,7 +454,6 @@ class TrainConfig:
             )
         owners = (
             ("stddev_schedule", lambda: StddevSchedule(config.stddev_schedule)),
-            ("collapse_metrics_batch", lambda: CollapseMetrics(batch_size=config.collapse_metrics_batch)),
             ("reset_window_frames", lambda: CollapseReset(config.reset_window_frames)),
         )
         for name, build in owners:

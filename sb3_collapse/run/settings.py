@@ -178,6 +178,14 @@ def check_arguments(parser: argparse.ArgumentParser, parsed: argparse.Namespace,
                     parser.error(f"{flags[field.name]} {problem}")
 
 
+class CommandLine(argparse.ArgumentParser):
+    """An ``argparse`` parser whose errors are one line, ``<prog>: error: ...`` and a pointer to ``--help``, without
+    the usage (exit status 2); its sub-commands' parsers are too."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def prog_name(module: str) -> str:
     """
     The name a command line gives itself in its usage and errors: the console script's (``sb3-collapse-probe``)

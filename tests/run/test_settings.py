@@ -20,6 +20,7 @@ from sb3_collapse.run.settings import (
     FLAGS_END,
     MARKDOWN_BEGIN,
     MARKDOWN_END,
+    CommandLine,
     fields,
     flag_of,
     main,
@@ -260,3 +261,17 @@ def test_probe_help_shows_each_default_once_as_typed(capsys):
     assert "(default: 0.6 0.2 0.2)" in text and "[0.6, 0.2, 0.2]" not in text and "(0.6, 0.2, 0.2)" not in text
     assert text.count("(default: 64)") == 1 and "(default: 64) (default" not in text
     assert "--no-progress do not show the progress bars" in text
+
+
+def test_command_line_errors_are_one_line_with_a_pointer_to_help(capsys):
+    parser = CommandLine(prog="tool")
+    parser.add_argument("--n", type=int)
+    sub = parser.add_subparsers(dest="command").add_parser("go")  # a sub-command's parser is one too
+    sub.add_argument("--m", type=int, required=True)
+    for argv, expected in (
+        (["--n", "x"], "tool: error: argument --n: invalid int value: 'x' (see tool --help)"),
+        (["go"], "tool go: error: the following arguments are required: --m (see tool go --help)"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            parser.parse_args(argv)
+        assert exit_info.value.code == 2 and capsys.readouterr().err == expected + "\n"
