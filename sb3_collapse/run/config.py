@@ -1,19 +1,11 @@
-"""
-The settings of one training run, :class:`TrainConfig`, each declared once with :func:`setting`: its default, its
-help text, its unit and whether the task's preset fills it. The command lines' flags, ``--show-settings`` and the
-settings tables of ``docs/presets.md`` are generated from these declarations (:mod:`sb3_collapse.run.settings`),
-and the model's keyword arguments from the config by :func:`drqv2_kwargs` and :func:`baseline_kwargs`. Per-task
-defaults and units (budgets in frames, the exploration schedule in agent steps, transitions summed over ``n_envs``):
-docs/presets.md#drq-v2s-presets-sb3_collapsepresets and docs/throughput.md#units.
-
-:meth:`TrainConfig.validate` checks what needs no file system; the run folder's checks are
-:func:`sb3_collapse.run.folder.check_run_folder`.
-"""
+"""The settings of one training run, :class:`TrainConfig`, each declared once with :func:`setting`; the flags, help
+and docs tables generated from them: :mod:`sb3_collapse.run.settings`. Units: docs/throughput.md#units."""
 
 from __future__ import annotations
 
 import dataclasses
 import inspect
+import operator
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,45 +25,18 @@ from sb3_collapse.protocol import SNAPSHOTS_DIR
 ALGORITHMS = ("drqv2", *BASELINES)
 """What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
 
-DEFAULT_CHECKPOINT_EVERY_FRAMES = 100_000
-"""Frames between two checkpoints by default: each checkpoint writes the model with its optimizers and the replay data
-since the previous one; what a stop loses and what each checkpoint costs: docs/checkpoints.md and the checkpoint rows
-of benchmarks/README.md."""
-
-RESUME_FREE_SETTINGS = (
-    "logdir",
-    "run_name",
-    "run_dir",
-    "progress_bar",
-    "verbose",
-    "torch_threads",
-    "device",
-    "checkpoint_every_frames",
-    "sources",
-)
-"""Settings that may differ between a run and its resumption (where and how it is shown, how often checkpoints are
-taken; a resumption on another device or number of threads is not bit-identical, see docs/checkpoints.md)."""
+RESUME_FREE_SETTINGS = ("logdir", "run_name", "run_dir", "progress_bar", "verbose", "torch_threads", "device")
+RESUME_FREE_SETTINGS += ("checkpoint_every_frames", "sources")
+"""Settings that may differ between a run and its resumption (docs/checkpoints.md)."""
 
 PRESET, USER = "preset", "user"
 """Where a preset setting's value came from, in the run's settings file."""
 
 TRAINING, RUN = "training", "run"
-"""Which command lines have a setting's flag (:func:`setting`'s ``cli``): ``TRAINING``, the train CLI and the sweep
-(the same for every run of a sweep); ``RUN``, the train CLI only (the sweep sets it per trial)."""
+"""A setting's flag (``cli``): ``TRAINING``, of the train CLI and the sweep; ``RUN``, of the train CLI only."""
 
-UNITS = (
-    "frames",
-    "agent steps",
-    "transitions",
-    "pixels",
-    "episodes",
-    "updates",
-    "observations",
-    "evaluations",
-    "GB",
-    "percent",
-    None,
-)
+UNITS = ("frames", "agent steps", "transitions", "pixels", "episodes", "updates", "observations", "evaluations", "GB")
+UNITS += ("percent", None)
 """The units a setting may count in (``None``: not a count)."""
 
 
@@ -94,21 +59,16 @@ def setting(
     default_factory: Any = dataclasses.MISSING,
 ) -> Any:
     """
-    A setting of a command line, declared once as a dataclass field (:class:`TrainConfig`'s, the probe's and the
-    report's flags): the parser, the help, the range checks, ``--show-settings`` and the docs' tables read it
-    (:mod:`sb3_collapse.run.settings`).
+    A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.run.settings`).
 
     :param default: the default value (``None`` for a preset setting: the task's preset fills it)
-    :param help: what the setting is, one sentence; other settings are named in backticks (`` `reset_rule` ``),
-        which a command line shows as their flags
-    :param unit: what it counts in, one of :data:`UNITS` (``None``: not a count)
+    :param help: one sentence; other settings named in backticks (`` `reset_rule` ``) show as their flags
+    :param unit: what it counts in, one of :data:`UNITS`
     :param preset: whether the task's preset fills it (one of :data:`~sb3_collapse.presets.SETTING_NAMES`)
-    :param cli: :data:`TRAINING` (a flag of the train CLI and the sweep), :data:`RUN` (the train CLI only) or
-        ``None`` (no flag); the probe's and the report's settings keep the default: a flag
-    :param flag: the flag, when not ``--<name-with-dashes>`` (``--no-<name>`` for a setting on by default); a
-        name without dashes is a positional argument
-    :param choices: the values it takes (each value, with ``nargs``), when there are few
-    :param minimum: the smallest value it takes (an integer for an integer setting)
+    :param cli: :data:`TRAINING`, :data:`RUN` or ``None`` (no flag)
+    :param flag: the flag, when not ``--<name>`` (``--no-<name>`` when on by default); no dashes: a positional
+    :param choices: the values it takes (each value, with ``nargs``)
+    :param minimum: the smallest value it takes
     :param maximum: the largest value it takes
     :param above: a bound its values must exceed
     :param zero_means: what ``0`` means, for a setting with ``minimum=0``
@@ -120,21 +80,7 @@ def setting(
     """
     if unit not in UNITS:
         raise ParameterError("unit", f"unit must be one of {UNITS}, got {unit!r}.")
-    metadata = dict(
-        help=help,
-        unit=unit,
-        preset=preset,
-        cli=cli,
-        flag=flag,
-        choices=choices,
-        minimum=minimum,
-        maximum=maximum,
-        above=above,
-        zero_means=zero_means,
-        nargs=nargs,
-        metavar=metavar,
-        required=required,
-    )
+    metadata = {key: value for key, value in locals().items() if key not in ("default", "default_factory")}
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
@@ -143,18 +89,11 @@ def setting(
 @dataclass
 class TrainConfig:
     """
-    Settings of one training run (:func:`sb3_collapse.run.runner.train`). Each field's meaning, unit and flag are
-    declared with it (:func:`setting`), listed in ``docs/presets.md`` and by ``python -m sb3_collapse.train --help``.
-
-    **Per-task defaults.** Every DrQ-v2 hyperparameter (the fields of :class:`~sb3_collapse.presets.TaskPreset`)
-    defaults to ``None``: :meth:`resolve` takes it from ``preset(env)``. A value given explicitly overrides the
-    preset; :attr:`sources` says, for each of them, ``"preset"`` or ``"user"``. The preset's ``buffer_size`` is
-    capped at the run's agent steps (a larger buffer is never filled).
+    Settings of one training run (:func:`sb3_collapse.run.runner.train`), listed in ``docs/presets.md``. The DrQ-v2
+    hyperparameters default to ``None``: :meth:`resolve` takes them from ``preset(env)``.
     """
 
-    env: str = setting(
-        "walker-walk", help="dm_control task: walker-walk, cartpole-swingup, quadruped-run, ...", unit=None, cli=RUN
-    )
+    env: str = setting("walker-walk", help="dm_control task: walker-walk, cartpole-swingup, ...", unit=None, cli=RUN)
     frames: int | None = setting(
         help="training budget, in frames (easy tasks 1.1M, medium 3.1M, hard 30.1M)",
         unit="frames",
@@ -165,8 +104,7 @@ class TrainConfig:
     logdir: str = setting("runs", help="parent folder of the run folder <task>_s<seed>", unit=None, cli=RUN)
     run_name: str | None = setting(help="name of the run folder instead of <task>_s<seed>", unit=None, cli=RUN)
     run_dir: str | None = setting(
-        help="the exact run folder (created; new or empty, or an unfinished run to resume) instead of "
-        "`logdir`/`run_name`",
+        help="the exact run folder (new, or an unfinished run to resume) instead of `logdir`/`run_name`",
         unit=None,
         cli=RUN,
     )
@@ -174,24 +112,21 @@ class TrainConfig:
     frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, preset=True)
     size: int = setting(84, help="image height and width, in pixels", unit="pixels")
     eval_every_frames: int | None = setting(
-        help="frames between evaluations of the deterministic policy, and one at frame 0, none at the budget's end "
-        "(sb3_collapse.paper.evaluation_schedule; the saved final model is evaluated apart)",
+        help="frames between evaluations of the deterministic policy, from frame 0, none at the budget's end",
         unit="frames",
         preset=True,
         minimum=0,
         zero_means="no evaluation",
     )
     eval_episodes: int | None = setting(
-        help="episodes per evaluation (deterministic policy), on an evaluation environment seeded with `seed`, as "
-        "the reference seeds its own",
+        help="episodes per evaluation, on an evaluation environment seeded with `seed`",
         unit="episodes",
         preset=True,
         minimum=0,
     )
     checkpoint_every_frames: int = setting(
-        DEFAULT_CHECKPOINT_EVERY_FRAMES,
-        help="frames between two checkpoints of the run, to resume it (a SIGTERM "
-        "or SIGINT writes one too; deleted when the run finishes)",
+        100_000,
+        help="frames between two checkpoints, to resume the run (a SIGTERM or SIGINT writes one too)",
         unit="frames",
         minimum=0,
         zero_means="only at a signal",
@@ -203,22 +138,20 @@ class TrainConfig:
         help="minibatch size of each update (walker tasks 512, others 256)", unit=None, preset=True
     )
     buffer_size: int | None = setting(
-        help="replay capacity, in transitions (agent steps); the preset's is capped at the run's agent steps",
-        unit="transitions",
-        preset=True,
+        help="replay capacity; the preset's is capped at the run's agent steps", unit="transitions", preset=True
     )
     learning_rate: float | None = setting(
         help="Adam learning rate (humanoid 8e-5, others 1e-4)", unit=None, preset=True, flag="--lr"
     )
     n_steps: int | None = setting(
-        help="n-step return length, in agent steps (walker tasks 1, others 3)", unit="agent steps", preset=True
+        help="n-step return length (walker tasks 1, others 3)", unit="agent steps", preset=True
     )
     feature_dim: int | None = setting(
         help="actor and critic trunk size (humanoid 100, others 50)", unit=None, preset=True
     )
     hidden_dim: int | None = setting(help="hidden units of the actor and the Q heads", unit=None, preset=True)
     stddev_schedule: str | None = setting(
-        help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps",
+        help="exploration std: a float, linear(init,final,duration) or step_linear(...)",
         unit="agent steps",
         preset=True,
     )
@@ -233,45 +166,36 @@ class TrainConfig:
     )
     replay_sampling: str | None = setting(
         help="drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); "
-        "sb3: the episode in progress too, returns truncated at the time limit (SB3's); see "
-        "sb3_collapse.drqv2.FrameStackReplayBuffer",
+        "sb3: the episode in progress too, returns truncated at the time limit (SB3's)",
         unit=None,
         preset=True,
         choices=REPLAY_SAMPLINGS,
     )
     collapse_metrics_every_frames: int = setting(
         PAPER.check_every_frames,
-        help="frames between two checks of the collapse metrics of every named layer "
-        "(TensorBoard collapse/..., the collapse metrics CSV); the paper's by default",
+        help="frames between two checks of the collapse metrics of every named layer (the paper's)",
         unit="frames",
         minimum=0,
         zero_means="no checks",
     )
     collapse_metrics_batch: int = setting(
-        512,
-        help="replay observations per collapse-metrics check (correlations need pairs)",
-        unit="observations",
-        minimum=2,
+        512, help="replay observations per collapse-metrics check", unit="observations", minimum=2
     )
     algorithm: str = setting(
         "drqv2",
-        help="drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes "
-        "(sb3_collapse.baselines; they use neither the DrQ-v2-only settings nor layer transplants; "
-        "docs/interventions.md)",
+        help="drqv2, or SB3's td3 or sac with DrQ-v2's network sizes (docs/interventions.md)",
         unit=None,
         cli=RUN,
         choices=ALGORITHMS,
     )
     reset_rule: bool = setting(
         False,
-        help="reset training from scratch when the agent has not escaped action collapse within each window "
-        "(the paper's rule, CollapseReset)",
+        help="reset from scratch when the agent has not escaped action collapse within each window (the paper's rule)",
         unit=None,
         cli=RUN,
     )
     intervention: str | None = setting(
-        help="what the reset rule does at the end of a window without escape instead of a reset from scratch (needs "
-        "`reset_rule`; sb3_collapse.monitoring.interventions, docs/interventions.md); default: reset, the paper's",
+        help="what the reset rule does instead of a reset from scratch (needs `reset_rule`; docs/interventions.md)",
         unit=None,
         cli=RUN,
         choices=tuple(INTERVENTIONS),
@@ -281,24 +205,22 @@ class TrainConfig:
     )
     activation: str = setting(
         "relu",
-        help="hidden activation of DrQ-v2's encoder, actor and critic: relu, or leaky_relu with negative "
-        "slope 0.01 (the paper's footnote 1 ablation); DrQ-v2 only",
+        help="hidden activation of DrQ-v2's networks: relu, or leaky_relu of slope 0.01 (the paper's footnote 1)",
         unit=None,
         cli=RUN,
         choices=ACTIVATIONS,
     )
     redo_every_updates: int = setting(
         0,
-        help="recycle the dormant units (convolution channels included) every this many updates for the whole "
-        "run, as ReDo does (Sokar et al., 2023; PeriodicReDo, docs/interventions.md)",
+        help="recycle the dormant units every this many updates, as ReDo does (PeriodicReDo, docs/interventions.md)",
         unit="updates",
         cli=RUN,
         minimum=0,
         zero_means="no ReDo",
     )
     init_cnn: str | None = setting(
-        help="start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; DrQv2's init_from, the paper's layer "
-        "transplants); default: random",
+        help="start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; the paper's layer transplants); "
+        "default: random",
         unit=None,
         cli=RUN,
     )
@@ -306,72 +228,51 @@ class TrainConfig:
         help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random", unit=None, cli=RUN
     )
     init_critic: str | None = setting(
-        help="start the critic (and target critic) from this DrQv2 checkpoint (zip); default: random",
-        unit=None,
-        cli=RUN,
+        help="start the critic and its target from this DrQv2 checkpoint (zip); default: random", unit=None, cli=RUN
     )
     n_envs: int = setting(
         1,
-        help="training environments, in subprocesses when more than 1 (seeds seed, seed + 1...); frames and "
-        "agent steps are summed over them, with one update per `train_freq` transitions as with one; the "
-        "evaluation environment stays single",
+        help="training environments (subprocesses when > 1; frames summed over them; docs/throughput.md)",
         unit=None,
         minimum=1,
     )
     step_envs_during_updates: bool = setting(
-        False,
-        help="step the environments (in subprocesses) while the learner updates: the actions of that step "
-        "come from the weights before the updates (DrQ-v2's reference order)",
-        unit=None,
+        False, help="step the environments while the learner updates (DrQ-v2's reference order)", unit=None
     )
     compile_update: bool = setting(
         False,
-        help="compile the update with torch.compile (CUDA graphs on CUDA); compilation takes about a minute "
-        "at the first update on a CPU",
+        help="compile the update with torch.compile (CUDA graphs on CUDA); about a minute at the first update",
         unit=None,
     )
-    tf32: bool = setting(
-        True,
-        help="let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it (no effect on the "
-        "CPU; sb3_collapse.backends)",
-        unit=None,
-    )
+    tf32: bool = setting(True, help="let float32 matmuls use TensorFloat-32 on CUDA GPUs that have it", unit=None)
     deterministic: bool = setting(
         False,
-        help="reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has them "
-        "(slower on a GPU; the CPU is deterministic anyway)",
+        help="reproducible CUDA kernels: no cuDNN autotuner, deterministic algorithms (slower on a GPU)",
         unit=None,
     )
     snapshots: bool = setting(
         False,
-        help="save the encoder and actor (sizes: benchmarks/README.md#checkpoint-sizes) at every evaluation and at the "
-        f"end into <run>/{SNAPSHOTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only, needs "
-        "evaluations",
+        help=f"save the encoder and actor at every evaluation and at the end into <run>/{SNAPSHOTS_DIR}/ (Figure 2)",
         unit=None,
     )
     device: str = setting("auto", help="auto, cpu, cuda, cuda:1, ...", unit=None, cli=RUN)
     torch_threads: int | None = setting(
-        help="threads of torch's CPU operations (torch.set_num_threads); default: torch's",
-        unit=None,
-        cli=RUN,
-        minimum=1,
+        help="threads of torch's CPU operations; default: torch's", unit=None, cli=RUN, minimum=1
     )
     progress_bar: bool = setting(True, help="show a progress bar", unit=None, cli=RUN)
     verbose: int = setting(0, help="SB3 verbosity (0: silent, 1: SB3's log tables)", unit=None)
     variant: str | None = setting(
-        help="name of the variant in the settings and the result; default: <algorithm>+<intervention> with the reset "
-        "rule (drqv2+reset), else <algorithm> (drqv2)",
+        help="name of the variant; default: <algorithm>[+<intervention>] (drqv2+reset with the reset rule)",
         unit=None,
         cli=None,
     )
     transplant: dict[str, str] | None = setting(  # noqa: RUF009 - setting() returns a dataclass field
-        help="the sources of the initial weights, as the sweep's transplant grid names them ({cnn: blank | good | "
-        "bad, mlp: ...}), recorded in the settings; default: not a grid cell",
+        help="the sweep's names of the initial weights ({cnn: blank | good | bad, ...}); default: none",
         unit=None,
         cli=None,
     )
     sources: dict[str, str] = setting(  # noqa: RUF009 - setting() returns a dataclass field
-        help='for each preset setting, "preset" or "user" (where its value came from); filled by resolve()',
+        help='for each preset setting, "preset" or "user"; filled by resolve()',
         unit=None,
         cli=None,
         default_factory=dict,
@@ -389,10 +290,8 @@ class TrainConfig:
 
     def resolve(self) -> TrainConfig:
         """
-        These settings with every preset setting left at ``None`` taken from the task's preset, and
-        :attr:`sources` filled in.
-
-        :return: a new, resolved config (this one is not changed)
+        :return: a new config with every preset setting left at ``None`` taken from the task's preset, and
+            :attr:`sources` filled in; the preset's ``buffer_size`` is capped at the run's agent steps
         :raises ParameterError: for an unknown task (``env``)
         """
         try:
@@ -412,18 +311,16 @@ class TrainConfig:
 
     def validate(self) -> None:
         """
-        Check every setting that can be checked before anything is built or written, without the file system's
-        state (preset settings are checked as resolved; the run folder:
+        Check every setting before anything is built or written, each by the code that owns it (the run folder:
         :func:`~sb3_collapse.run.folder.check_run_folder`).
-        Each value is checked where it is owned: the env's settings by ``make_dmc_env``'s check, the algorithm's by
-        ``DrQv2``'s, the callbacks' by their constructors; the run's own here, the choices and minimums of the
-        fields' declarations first.
 
         :raises ParameterError: with a message naming the bad setting
         """
         config = self if self.resolved else self.resolve()
         for field in dataclasses.fields(config):
-            _check_declared(field, getattr(config, field.name))
+            problem = declared_problem(field, getattr(config, field.name), integer=True)
+            if problem is not None:
+                raise ParameterError(field.name, f"{field.name} {problem}")
         # A budget counts whole agent steps (frames // action_repeat); the preset's replay buffer is capped there.
         steps, needed = config.frames // config.action_repeat, 1  # type: ignore[operator]
         if config.algorithm == "drqv2" and config.sources.get("buffer_size") == PRESET:
@@ -439,26 +336,23 @@ class TrainConfig:
             raise ParameterError(
                 "intervention", f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
             )
-        if config.algorithm != "drqv2":
-            _check_drqv2_only(config)
-        if config.snapshots and config.eval_every_frames == 0:
+        if config.snapshots and (config.algorithm != "drqv2" or config.eval_every_frames == 0):
             raise ParameterError(
                 "snapshots",
                 "snapshots are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
                 f"eval_every_frames > 0 (got algorithm={config.algorithm!r}, "
                 f"eval_every_frames={config.eval_every_frames}).",
             )
+        if config.algorithm != "drqv2":
+            _check_drqv2_only(config)
         if config.eval_every_frames > 0 and config.eval_episodes < 1:  # type: ignore[operator]
             raise ParameterError(
                 "eval_episodes", "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
             )
-        owners = (
-            ("stddev_schedule", lambda: StddevSchedule(config.stddev_schedule)),
-            ("reset_window_frames", lambda: CollapseReset(config.reset_window_frames)),
-        )
-        for name, build in owners:
+        owners = (("stddev_schedule", StddevSchedule), ("reset_window_frames", CollapseReset))
+        for name, owner in owners:
             try:
-                build()
+                owner(getattr(config, name))
             except ValueError as error:
                 raise ParameterError(name, f"{name}: {error}") from None
         check_env_arguments(**env_kwargs(config))
@@ -494,17 +388,11 @@ class TrainConfig:
         return f"{base}+redo_periodic" if self.redo_every_updates > 0 else base
 
     def record(self) -> dict[str, Any]:
-        """
-        The content of the run's settings file: every setting (resolved), ``variant``, ``preset`` (the task's
-        preset: ``task``, ``tier``, ``from_drqv2``) and ``sources`` (preset setting -> ``"preset"`` or ``"user"``).
-        """
+        """:return: the run's settings file: every setting (resolved), ``variant``, ``preset`` and ``sources``"""
         config = self if self.resolved else self.resolve()
-        task_preset = config.preset
-        return {
-            **dataclasses.asdict(config),
-            "variant": config.variant_name,
-            "preset": {"task": task_preset.task, "tier": task_preset.tier, "from_drqv2": task_preset.from_drqv2},
-        }
+        task = config.preset
+        preset_record = {"task": task.task, "tier": task.tier, "from_drqv2": task.from_drqv2}
+        return {**dataclasses.asdict(config), "variant": config.variant_name, "preset": preset_record}
 
 
 def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str | None:
@@ -520,26 +408,19 @@ def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str
         return None
     if metadata["choices"] is not None and value not in metadata["choices"]:
         return f"must be one of {', '.join(metadata['choices'])}, got {value!r}."
-    bounds = [(f">= {metadata['minimum']}", metadata["minimum"], lambda v, b: v >= b)]
-    bounds += [(f"<= {metadata['maximum']}", metadata["maximum"], lambda v, b: v <= b)]
-    bounds += [(f"> {metadata['above']}", metadata["above"], lambda v, b: v > b)]
     zero = f" (0: {metadata['zero_means']})" if metadata["zero_means"] else ""
-    for text, bound, holds in bounds:
-        if bound is None:
+    for key, sign, holds in (
+        ("minimum", ">=", operator.ge),
+        ("maximum", "<=", operator.le),
+        ("above", ">", operator.gt),
+    ):
+        if metadata[key] is None:
             continue
-        kind = int if integer else (int, float)
-        if isinstance(value, bool) or not isinstance(value, kind):
-            return f"must be {'an integer' if integer else 'a number'} {text}{zero}, got {value!r}."
-        if not holds(value, bound):
-            return f"must be {text}{zero}, got {value}."
+        if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)):
+            return f"must be {'an integer' if integer else 'a number'} {sign} {metadata[key]}{zero}, got {value!r}."
+        if not holds(value, metadata[key]):
+            return f"must be {sign} {metadata[key]}{zero}, got {value}."
     return None
-
-
-def _check_declared(field: dataclasses.Field, value: Any) -> None:
-    """Check ``value`` against its :class:`TrainConfig` field's declared ``choices`` and bounds."""
-    problem = declared_problem(field, value, integer=True)
-    if problem is not None:
-        raise ParameterError(field.name, f"{field.name} {problem}")
 
 
 def _check_drqv2_only(config: TrainConfig) -> None:
@@ -563,12 +444,6 @@ def _check_drqv2_only(config: TrainConfig) -> None:
                 f"{name}={getattr(config, name)!r} is a DrQv2 option (docs/throughput.md); algorithm="
                 f"{algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}.",
             )
-    if config.snapshots:
-        raise ParameterError(
-            "snapshots",
-            "snapshots are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
-            f"eval_every_frames > 0 (got algorithm={algorithm!r}, eval_every_frames={config.eval_every_frames}).",
-        )
     if config.init_from:
         group = next(iter(config.init_from))
         raise ParameterError(
@@ -579,25 +454,25 @@ def _check_drqv2_only(config: TrainConfig) -> None:
 
 
 def env_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """
-    :param config: resolved settings
-    :return: the pixel settings of ``make_dmc_env`` (``action_repeat``, ``frame_stack``, ``size``)
-    """
+    """:return: the pixel settings of ``make_dmc_env`` (``action_repeat``, ``frame_stack``, ``size``) of ``config``"""
     return dict(action_repeat=config.action_repeat, frame_stack=config.frame_stack, size=config.size)
 
 
-def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """
-    :param config: resolved settings
-    :return: the keyword arguments of ``DrQv2(policy, env, ...)`` for these settings
-    """
+def _model_kwargs(config: TrainConfig) -> dict[str, Any]:
+    """The keyword arguments that ``DrQv2`` and SB3's TD3 and SAC share, of resolved settings."""
+    learning_starts = config.seed_frames // config.action_repeat  # type: ignore[operator]
     return dict(
-        learning_rate=config.learning_rate,
-        buffer_size=config.buffer_size,
-        learning_starts=config.seed_frames // config.action_repeat,  # type: ignore[operator]
-        batch_size=config.batch_size,
+        learning_rate=config.learning_rate, buffer_size=config.buffer_size, learning_starts=learning_starts,
+        batch_size=config.batch_size, gamma=config.gamma, seed=config.seed, device=config.device,
+        verbose=config.verbose,
+    )  # fmt: skip
+
+
+def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
+    """:return: the keyword arguments of ``DrQv2(policy, env, ...)`` for these resolved settings"""
+    return dict(
+        _model_kwargs(config),
         tau=config.tau,
-        gamma=config.gamma,
         train_freq=(config.train_freq, "transition"),  # DrQ-v2's ratio with any number of environments
         n_steps=config.n_steps,
         stddev_schedule=config.stddev_schedule,
@@ -605,9 +480,6 @@ def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
         augmentation_pad=config.augmentation_pad,
         replay_buffer_kwargs=dict(sampling=config.replay_sampling),
         policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
-        seed=config.seed,
-        device=config.device,
-        verbose=config.verbose,
         init_from=config.init_from or None,
         step_envs_during_updates=config.step_envs_during_updates,
         compile_update=config.compile_update,
@@ -615,21 +487,7 @@ def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
 
 
 def baseline_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """
-    :param config: resolved settings (``algorithm`` one of :data:`~sb3_collapse.baselines.BASELINES`)
-    :return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` (after the algorithm and the
-        env) for these settings; the DrQ-v2-only settings are not among them
-    """
-    return dict(
-        learning_rate=config.learning_rate,
-        buffer_size=config.buffer_size,
-        learning_starts=config.seed_frames // config.action_repeat,  # type: ignore[operator]
-        batch_size=config.batch_size,
-        feature_dim=config.feature_dim,
-        hidden_dim=config.hidden_dim,
-        gamma=config.gamma,
-        frame_stack=config.frame_stack,
-        seed=config.seed,
-        device=config.device,
-        verbose=config.verbose,
-    )
+    """:return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` after the algorithm and the
+    env, for these resolved settings (``algorithm`` one of :data:`~sb3_collapse.baselines.BASELINES`)"""
+    sizes = dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, frame_stack=config.frame_stack)
+    return dict(_model_kwargs(config), **sizes)
