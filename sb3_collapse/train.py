@@ -1,15 +1,5 @@
-"""Train DrQ-v2 on a DeepMind Control task from pixels: ``python -m sb3_collapse.train --help``.
-
-    python -m sb3_collapse.train --env walker-walk --frames 100000 --seed 0 --logdir runs/
-
-The command line of :func:`sb3_collapse.run.runner.train`; its flags are generated from the fields of
-:class:`sb3_collapse.run.config.TrainConfig` (:mod:`sb3_collapse.run.settings`, one flag per setting). The DrQ-v2
-settings left out come from the task's preset; ``--show-settings`` prints them all, resolved, and where each came
-from. Everything a run writes goes to one run folder (:mod:`sb3_collapse.run.runner`); stopped by SIGTERM or SIGINT,
-it writes a checkpoint and exits with status 75, and the same command again resumes it bit for bit.
-``--init-cnn``, ``--init-mlp`` and ``--init-critic`` start layers from a saved DrQv2 (the paper's transplants);
-sweeps of many such runs on Ray: ``python -m sb3_collapse.sweep --help``.
-"""
+"""Train DrQ-v2 on a DeepMind Control task from pixels: ``python -m sb3_collapse.train --help`` (docs/training.md).
+The command line of :func:`sb3_collapse.run.runner.train`, its flags generated from :class:`TrainConfig`'s settings."""
 
 from __future__ import annotations
 
@@ -36,7 +26,7 @@ CLI_ONLY_FLAGS = ("--show-settings",)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m sb3_collapse.train``, one flag per :class:`TrainConfig` field."""
+    """:return: the command line of ``python -m sb3_collapse.train``, one flag per :class:`TrainConfig` setting"""
     parser = CommandLine(
         prog=prog_name("sb3_collapse.train"),
         description="Train DrQ-v2 from pixels on a DeepMind Control task, with periodic evaluation, "
@@ -54,10 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 @report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
-    :return: exit status
-    """
+    """:return: the exit status of the command line, given its arguments ``argv`` (``None``: ``sys.argv[1:]``)"""
     parser = build_parser()
     arguments = vars(parser.parse_args(argv))
     show = arguments.pop("show_settings")

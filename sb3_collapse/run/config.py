@@ -3,9 +3,13 @@ and docs tables generated from them: :mod:`sb3_collapse.run.settings`. Units: do
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import inspect
+import itertools
 import operator
+import textwrap
+import types
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,8 +47,8 @@ UNITS += ("percent", None)
 def setting(
     default: Any = None,
     *,
-    help: str,
-    unit: str | None,
+    help: str | None = None,
+    unit: str | None = None,
     preset: bool = False,
     cli: str | None = TRAINING,
     flag: str | None = None,
@@ -62,8 +66,9 @@ def setting(
     A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.run.settings`).
 
     :param default: the default value (``None`` for a preset setting: the task's preset fills it)
-    :param help: one sentence; other settings named in backticks (`` `reset_rule` ``) show as their flags
-    :param unit: what it counts in, one of :data:`UNITS`
+    :param help: one sentence (default: the docstring under the field, :func:`declared`); other settings named in
+        backticks (`` `reset_rule` ``) show as their flags
+    :param unit: what it counts in, one of :data:`UNITS` (``None``: not a count)
     :param preset: whether the task's preset fills it (one of :data:`~sb3_collapse.presets.SETTING_NAMES`)
     :param cli: :data:`TRAINING`, :data:`RUN` or ``None`` (no flag)
     :param flag: the flag, when not ``--<name>`` (``--no-<name>`` when on by default); no dashes: a positional
@@ -86,6 +91,30 @@ def setting(
     return dataclasses.field(default=default, metadata=metadata)
 
 
+def declared(cls: type) -> type:
+    """
+    Give each field of a dataclass declared with :func:`setting` without ``help`` the docstring under it (CleanRL's
+    style), its lines joined.
+
+    :param cls: the dataclass
+    :return: the same class
+    :raises ParameterError: for a field with neither
+    """
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body  # type: ignore[attr-defined]
+    docs = {
+        node.target.id: " ".join(doc.value.value.split())
+        for node, doc in itertools.pairwise(body)
+        if isinstance(node, ast.AnnAssign) and isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant)
+    }
+    for field in dataclasses.fields(cls):  # type: ignore[arg-type]
+        if field.metadata["help"] is None:
+            if field.name not in docs:
+                raise ParameterError("help", f"{cls.__name__}.{field.name} has no help: write a docstring under it.")
+            field.metadata = types.MappingProxyType({**field.metadata, "help": docs[field.name]})
+    return cls
+
+
+@declared
 @dataclass
 class TrainConfig:
     """
@@ -93,190 +122,132 @@ class TrainConfig:
     hyperparameters default to ``None``: :meth:`resolve` takes them from ``preset(env)``.
     """
 
-    env: str = setting("walker-walk", help="dm_control task: walker-walk, cartpole-swingup, ...", unit=None, cli=RUN)
-    frames: int | None = setting(
-        help="training budget, in frames (easy tasks 1.1M, medium 3.1M, hard 30.1M)",
-        unit="frames",
-        preset=True,
-        minimum=1,
-    )
-    seed: int = setting(0, help="random seed (environment, networks, exploration)", unit=None, cli=RUN)
-    logdir: str = setting("runs", help="parent folder of the run folder <task>_s<seed>", unit=None, cli=RUN)
-    run_name: str | None = setting(help="name of the run folder instead of <task>_s<seed>", unit=None, cli=RUN)
-    run_dir: str | None = setting(
-        help="the exact run folder (new, or an unfinished run to resume) instead of `logdir`/`run_name`",
-        unit=None,
-        cli=RUN,
-    )
-    action_repeat: int | None = setting(help="frames per agent step", unit="frames", preset=True)
-    frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, preset=True)
-    size: int = setting(84, help="image height and width, in pixels", unit="pixels")
-    eval_every_frames: int | None = setting(
-        help="frames between evaluations of the deterministic policy, from frame 0, none at the budget's end",
-        unit="frames",
-        preset=True,
-        minimum=0,
-        zero_means="no evaluation",
-    )
-    eval_episodes: int | None = setting(
-        help="episodes per evaluation, on an evaluation environment seeded with `seed`",
-        unit="episodes",
-        preset=True,
-        minimum=0,
-    )
-    checkpoint_every_frames: int = setting(
-        100_000,
-        help="frames between two checkpoints, to resume the run (a SIGTERM or SIGINT writes one too)",
-        unit="frames",
-        minimum=0,
-        zero_means="only at a signal",
-    )
-    seed_frames: int | None = setting(
-        help="frames of uniformly random actions before the first update", unit="frames", preset=True, minimum=0
-    )
-    batch_size: int | None = setting(
-        help="minibatch size of each update (walker tasks 512, others 256)", unit=None, preset=True
-    )
-    buffer_size: int | None = setting(
-        help="replay capacity; the preset's is capped at the run's agent steps", unit="transitions", preset=True
-    )
-    learning_rate: float | None = setting(
-        help="Adam learning rate (humanoid 8e-5, others 1e-4)", unit=None, preset=True, flag="--lr"
-    )
-    n_steps: int | None = setting(
-        help="n-step return length (walker tasks 1, others 3)", unit="agent steps", preset=True
-    )
-    feature_dim: int | None = setting(
-        help="actor and critic trunk size (humanoid 100, others 50)", unit=None, preset=True
-    )
-    hidden_dim: int | None = setting(help="hidden units of the actor and the Q heads", unit=None, preset=True)
-    stddev_schedule: str | None = setting(
-        help="exploration std: a float, linear(init,final,duration) or step_linear(...)",
-        unit="agent steps",
-        preset=True,
-    )
-    stddev_clip: float | None = setting(help="clip of the exploration noise in the updates", unit=None, preset=True)
-    tau: float | None = setting(help="soft-update coefficient of the target critic", unit=None, preset=True)
-    gamma: float | None = setting(help="discount factor", unit=None, preset=True)
-    train_freq: int | None = setting(
-        help="agent steps (summed over the environments) per update", unit="agent steps", preset=True
-    )
-    augmentation_pad: int | None = setting(
-        help="random-shift padding, in pixels (0: no augmentation)", unit="pixels", preset=True
-    )
-    replay_sampling: str | None = setting(
-        help="drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); "
-        "sb3: the episode in progress too, returns truncated at the time limit (SB3's)",
-        unit=None,
-        preset=True,
-        choices=REPLAY_SAMPLINGS,
-    )
+    env: str = setting("walker-walk", cli=RUN)
+    """dm_control task: walker-walk, cartpole-swingup, quadruped-run, ..."""
+    frames: int | None = setting(unit="frames", preset=True, minimum=1)
+    """training budget, in frames (easy tasks 1.1M, medium 3.1M, hard 30.1M)"""
+    seed: int = setting(0, cli=RUN)
+    """random seed (environment, networks, exploration)"""
+    logdir: str = setting("runs", cli=RUN)
+    """parent folder of the run folder <task>_s<seed>"""
+    run_name: str | None = setting(cli=RUN)
+    """name of the run folder instead of <task>_s<seed>"""
+    run_dir: str | None = setting(cli=RUN)
+    """the exact run folder (created; new or empty, or an unfinished run to resume) instead of `logdir`/`run_name`"""
+    action_repeat: int | None = setting(unit="frames", preset=True)
+    """frames per agent step"""
+    frame_stack: int | None = setting(preset=True)
+    """stacked RGB frames per observation"""
+    size: int = setting(84, unit="pixels")
+    """image height and width, in pixels"""
+    eval_every_frames: int | None = setting(unit="frames", preset=True, minimum=0, zero_means="no evaluation")
+    """frames between evaluations of the deterministic policy, and one at frame 0, none at the budget's end
+    (sb3_collapse.paper.evaluation_schedule; the saved final model is evaluated apart)"""
+    eval_episodes: int | None = setting(unit="episodes", preset=True, minimum=0)
+    """episodes per evaluation (deterministic policy), on an evaluation environment seeded with `seed`, as the
+    reference seeds its own"""
+    checkpoint_every_frames: int = setting(100_000, unit="frames", minimum=0, zero_means="only at a signal")
+    """frames between two checkpoints of the run, to resume it (a SIGTERM or SIGINT writes one too; deleted when the
+    run finishes)"""
+    seed_frames: int | None = setting(unit="frames", preset=True, minimum=0)
+    """frames of uniformly random actions before the first update"""
+    batch_size: int | None = setting(preset=True)
+    """minibatch size of each update (walker tasks 512, others 256)"""
+    buffer_size: int | None = setting(unit="transitions", preset=True)
+    """replay capacity, in transitions (agent steps); the preset's is capped at the run's agent steps"""
+    learning_rate: float | None = setting(preset=True, flag="--lr")
+    """Adam learning rate (humanoid 8e-5, others 1e-4)"""
+    n_steps: int | None = setting(unit="agent steps", preset=True)
+    """n-step return length, in agent steps (walker tasks 1, others 3)"""
+    feature_dim: int | None = setting(preset=True)
+    """actor and critic trunk size (humanoid 100, others 50)"""
+    hidden_dim: int | None = setting(preset=True)
+    """hidden units of the actor and the Q heads"""
+    stddev_schedule: str | None = setting(unit="agent steps", preset=True)
+    """exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps"""
+    stddev_clip: float | None = setting(preset=True)
+    """clip of the exploration noise in the updates"""
+    tau: float | None = setting(preset=True)
+    """soft-update coefficient of the target critic"""
+    gamma: float | None = setting(preset=True)
+    """discount factor"""
+    train_freq: int | None = setting(unit="agent steps", preset=True)
+    """agent steps (summed over the environments) per update"""
+    augmentation_pad: int | None = setting(unit="pixels", preset=True)
+    """random-shift padding, in pixels (0: no augmentation)"""
+    replay_sampling: str | None = setting(preset=True, choices=REPLAY_SAMPLINGS)
+    """drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); sb3: the
+    episode in progress too, returns truncated at the time limit (SB3's); see
+    sb3_collapse.drqv2.FrameStackReplayBuffer"""
     collapse_metrics_every_frames: int = setting(
-        PAPER.check_every_frames,
-        help="frames between two checks of the collapse metrics of every named layer (the paper's)",
-        unit="frames",
-        minimum=0,
-        zero_means="no checks",
+        PAPER.check_every_frames, unit="frames", minimum=0, zero_means="no checks"
     )
-    collapse_metrics_batch: int = setting(
-        512, help="replay observations per collapse-metrics check", unit="observations", minimum=2
-    )
-    algorithm: str = setting(
-        "drqv2",
-        help="drqv2, or SB3's td3 or sac with DrQ-v2's network sizes (docs/interventions.md)",
-        unit=None,
-        cli=RUN,
-        choices=ALGORITHMS,
-    )
-    reset_rule: bool = setting(
-        False,
-        help="reset from scratch when the agent has not escaped action collapse within each window (the paper's rule)",
-        unit=None,
-        cli=RUN,
-    )
-    intervention: str | None = setting(
-        help="what the reset rule does instead of a reset from scratch (needs `reset_rule`; docs/interventions.md)",
-        unit=None,
-        cli=RUN,
-        choices=tuple(INTERVENTIONS),
-    )
-    reset_window_frames: int = setting(
-        PAPER.window_frames, help="the reset rule's window, in frames (the paper's by default)", unit="frames"
-    )
-    activation: str = setting(
-        "relu",
-        help="hidden activation of DrQ-v2's networks: relu, or leaky_relu of slope 0.01 (the paper's footnote 1)",
-        unit=None,
-        cli=RUN,
-        choices=ACTIVATIONS,
-    )
-    redo_every_updates: int = setting(
-        0,
-        help="recycle the dormant units every this many updates, as ReDo does (PeriodicReDo, docs/interventions.md)",
-        unit="updates",
-        cli=RUN,
-        minimum=0,
-        zero_means="no ReDo",
-    )
-    init_cnn: str | None = setting(
-        help="start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; the paper's layer transplants); "
-        "default: random",
-        unit=None,
-        cli=RUN,
-    )
-    init_mlp: str | None = setting(
-        help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random", unit=None, cli=RUN
-    )
-    init_critic: str | None = setting(
-        help="start the critic and its target from this DrQv2 checkpoint (zip); default: random", unit=None, cli=RUN
-    )
-    n_envs: int = setting(
-        1,
-        help="training environments (subprocesses when > 1; frames summed over them; docs/throughput.md)",
-        unit=None,
-        minimum=1,
-    )
-    step_envs_during_updates: bool = setting(
-        False, help="step the environments while the learner updates (DrQ-v2's reference order)", unit=None
-    )
-    compile_update: bool = setting(
-        False,
-        help="compile the update with torch.compile (CUDA graphs on CUDA); about a minute at the first update",
-        unit=None,
-    )
-    tf32: bool = setting(True, help="let float32 matmuls use TensorFloat-32 on CUDA GPUs that have it", unit=None)
-    deterministic: bool = setting(
-        False,
-        help="reproducible CUDA kernels: no cuDNN autotuner, deterministic algorithms (slower on a GPU)",
-        unit=None,
-    )
+    """frames between two checks of the collapse metrics of every named layer (TensorBoard collapse/..., the collapse
+    metrics CSV); the paper's by default"""
+    collapse_metrics_batch: int = setting(512, unit="observations", minimum=2)
+    """replay observations per collapse-metrics check (correlations need pairs)"""
+    algorithm: str = setting("drqv2", cli=RUN, choices=ALGORITHMS)
+    """drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes (sb3_collapse.baselines; they use
+    neither the DrQ-v2-only settings nor layer transplants; docs/interventions.md)"""
+    reset_rule: bool = setting(False, cli=RUN)
+    """reset training from scratch when the agent has not escaped action collapse within each window (the paper's
+    rule, CollapseReset)"""
+    intervention: str | None = setting(cli=RUN, choices=tuple(INTERVENTIONS))
+    """what the reset rule does at the end of a window without escape instead of a reset from scratch (needs
+    `reset_rule`; sb3_collapse.monitoring.interventions, docs/interventions.md); default: reset, the paper's"""
+    reset_window_frames: int = setting(PAPER.window_frames, unit="frames")
+    """the reset rule's window, in frames (the paper's by default)"""
+    activation: str = setting("relu", cli=RUN, choices=ACTIVATIONS)
+    """hidden activation of DrQ-v2's encoder, actor and critic: relu, or leaky_relu with negative slope 0.01 (the
+    paper's footnote 1 ablation); DrQ-v2 only"""
+    redo_every_updates: int = setting(0, unit="updates", cli=RUN, minimum=0, zero_means="no ReDo")
+    """recycle the dormant units (convolution channels included) every this many updates for the whole run, as ReDo
+    does (Sokar et al., 2023; PeriodicReDo, docs/interventions.md)"""
+    init_cnn: str | None = setting(cli=RUN)
+    """start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; DrQv2's init_from, the paper's layer
+    transplants); default: random"""
+    init_mlp: str | None = setting(cli=RUN)
+    """start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random"""
+    init_critic: str | None = setting(cli=RUN)
+    """start the critic (and target critic) from this DrQv2 checkpoint (zip); default: random"""
+    n_envs: int = setting(1, minimum=1)
+    """training environments, in subprocesses when more than 1 (seeds seed, seed + 1...); frames and agent steps are
+    summed over them, with one update per `train_freq` transitions as with one; the evaluation environment stays
+    single"""
+    step_envs_during_updates: bool = setting(False)
+    """step the environments (in subprocesses) while the learner updates: the actions of that step come from the
+    weights before the updates (DrQ-v2's reference order)"""
+    compile_update: bool = setting(False)
+    """compile the update with torch.compile (CUDA graphs on CUDA); compilation takes about a minute at the first
+    update on a CPU"""
+    tf32: bool = setting(True)
+    """let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it (no effect on the CPU;
+    sb3_collapse.backends)"""
+    deterministic: bool = setting(False)
+    """reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has them (slower on a
+    GPU; the CPU is deterministic anyway)"""
     snapshots: bool = setting(
         False,
-        help=f"save the encoder and actor at every evaluation and at the end into <run>/{SNAPSHOTS_DIR}/ (Figure 2)",
-        unit=None,
+        help="save the encoder and actor (sizes: benchmarks/README.md#checkpoint-sizes) at every evaluation and at the "
+        f"end into <run>/{SNAPSHOTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only, needs "
+        "evaluations",
     )
-    device: str = setting("auto", help="auto, cpu, cuda, cuda:1, ...", unit=None, cli=RUN)
-    torch_threads: int | None = setting(
-        help="threads of torch's CPU operations; default: torch's", unit=None, cli=RUN, minimum=1
-    )
-    progress_bar: bool = setting(True, help="show a progress bar", unit=None, cli=RUN)
-    verbose: int = setting(0, help="SB3 verbosity (0: silent, 1: SB3's log tables)", unit=None)
-    variant: str | None = setting(
-        help="name of the variant; default: <algorithm>[+<intervention>] (drqv2+reset with the reset rule)",
-        unit=None,
-        cli=None,
-    )
-    transplant: dict[str, str] | None = setting(  # noqa: RUF009 - setting() returns a dataclass field
-        help="the sweep's names of the initial weights ({cnn: blank | good | bad, ...}); default: none",
-        unit=None,
-        cli=None,
-    )
-    sources: dict[str, str] = setting(  # noqa: RUF009 - setting() returns a dataclass field
-        help='for each preset setting, "preset" or "user"; filled by resolve()',
-        unit=None,
-        cli=None,
-        default_factory=dict,
-    )
+    device: str = setting("auto", cli=RUN)
+    """auto, cpu, cuda, cuda:1, ..."""
+    torch_threads: int | None = setting(cli=RUN, minimum=1)
+    """threads of torch's CPU operations (torch.set_num_threads); default: torch's"""
+    progress_bar: bool = setting(True, cli=RUN)
+    """show a progress bar"""
+    verbose: int = setting(0)
+    """SB3 verbosity (0: silent, 1: SB3's log tables)"""
+    variant: str | None = setting(cli=None)
+    """name of the variant in the settings and the result; default: <algorithm>+<intervention> with the reset rule
+    (drqv2+reset), else <algorithm> (drqv2)"""
+    transplant: dict[str, str] | None = setting(cli=None)  # noqa: RUF009 - setting() returns a dataclass field
+    """the sources of the initial weights, as the sweep's transplant grid names them ({cnn: blank | good | bad, mlp:
+    ...}), recorded in the settings; default: not a grid cell"""
+    sources: dict[str, str] = setting(cli=None, default_factory=dict)  # noqa: RUF009 - a dataclass field
+    """for each preset setting, "preset" or "user" (where its value came from); filled by resolve()"""
 
     @property
     def preset(self) -> TaskPreset:

@@ -15,7 +15,7 @@ from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.probe import ProbeSettings
 from sb3_collapse.probe.pipeline import RecordOptions
 from sb3_collapse.report import probe_outputs
-from sb3_collapse.run.config import RUN, TRAINING, UNITS, TrainConfig, setting
+from sb3_collapse.run.config import RUN, TRAINING, UNITS, TrainConfig, declared, setting
 from sb3_collapse.run.settings import (
     FLAGS_END,
     MARKDOWN_BEGIN,
@@ -275,3 +275,25 @@ def test_command_line_errors_are_one_line_with_a_pointer_to_help(capsys):
         with pytest.raises(SystemExit) as exit_info:
             parser.parse_args(argv)
         assert exit_info.value.code == 2 and capsys.readouterr().err == expected + "\n"
+
+
+def test_a_settings_help_is_the_docstring_under_it_unless_given():
+    @declared
+    @dataclasses.dataclass
+    class Flags:
+        first: int = setting(1, unit="frames")
+        """frames to skip,
+        then more words"""
+        second: int = setting(2, help="given")
+        """not this one"""
+
+    helps = {field.name: field.metadata["help"] for field in dataclasses.fields(Flags)}
+    assert helps == {"first": "frames to skip, then more words", "second": "given"}
+    assert FIELDS["frames"].metadata["help"].startswith("training budget, in frames")
+
+    with pytest.raises(ValueError, match="Undocumented.third has no help"):
+
+        @declared
+        @dataclasses.dataclass
+        class Undocumented:
+            third: int = setting(3)
