@@ -34,24 +34,22 @@ FLAGS_END = "<!-- end of the generated flags tables -->"
 """The markers of the generated regions of a docs page: the settings tables, and the flags tables of the command
 line whose package the begin marker names (its ``__main__`` declares ``COMMANDS``, :func:`flags_markdown`)."""
 
-_FIELD_NAME = re.compile(r"`(\w+)`")
-
-
-def fields(declaration: type = TrainConfig) -> tuple[dataclasses.Field, ...]:
-    """:return: the fields of ``declaration`` (a dataclass declared with ``setting()``), in declaration order"""
-    return dataclasses.fields(declaration)
-
 
 def group_of(field: dataclasses.Field) -> str:
-    """:return: the key in :data:`GROUPS` of the group of ``field``, a field of :class:`TrainConfig`"""
-    cli = field.metadata["cli"]
-    if cli == TRAINING:
+    """
+    :param field: a field of :class:`TrainConfig`
+    :return: the key of its group in :data:`GROUPS`
+    """
+    if field.metadata["cli"] == TRAINING:
         return "preset" if field.metadata["preset"] else "training"
-    return "run" if cli == RUN else "library"
+    return "run" if field.metadata["cli"] == RUN else "library"
 
 
 def flag_of(field: dataclasses.Field) -> str | None:
-    """:return: the flag of ``field`` (``--no-<name>`` when on by default; no dashes: a positional), or ``None``"""
+    """
+    :param field: a field declared with :func:`~sb3_collapse.run.config.setting`
+    :return: its flag (``--no-<name>`` when on by default; without dashes: a positional), ``None`` for none
+    """
     if field.metadata["cli"] is None:
         return None
     if field.metadata["flag"] is not None:
@@ -61,18 +59,18 @@ def flag_of(field: dataclasses.Field) -> str | None:
 
 
 def setting_flags(declaration: type = TrainConfig) -> dict[str, str]:
-    """:return: setting name -> flag, for every setting of ``declaration`` that has one"""
-    return {field.name: flag for field in fields(declaration) if (flag := flag_of(field)) is not None}
+    """
+    :param declaration: a dataclass declared with :func:`~sb3_collapse.run.config.setting`
+    :return: setting name -> flag, for every setting that has one
+    """
+    return {field.name: flag for field in dataclasses.fields(declaration) if (flag := flag_of(field)) is not None}
 
 
 def _value_type(field: dataclasses.Field, declaration: type = TrainConfig) -> Any:
-    """The type of the field's values, ``None`` left out (``int | None`` -> ``int``, ``tuple[float, ...]`` ->
-    ``float``)."""
+    """The type of the field's values (``int | None`` -> ``int``, ``tuple[float, ...]`` -> ``float``)."""
     hint = typing.get_type_hints(declaration)[field.name]
     hint = next((arg for arg in typing.get_args(hint) if arg is not type(None)), hint)
-    if typing.get_origin(hint) in (list, tuple, collections.abc.Sequence):
-        return typing.get_args(hint)[0]
-    return hint
+    return typing.get_args(hint)[0] if typing.get_origin(hint) in (list, tuple, collections.abc.Sequence) else hint
 
 
 def _shown(value: Any) -> str:
@@ -83,25 +81,13 @@ def _shown(value: Any) -> str:
 def _description(field: dataclasses.Field) -> str:
     """The field's help, with its unit (unless the help says it) and what ``0`` means."""
     text, unit, zero = field.metadata["help"], field.metadata["unit"], field.metadata["zero_means"]
-    if unit is not None and unit not in text:
-        text += f", in {unit}"
-    return text + (f"; 0: {zero}" if zero else "")
+    return text + (f", in {unit}" if unit is not None and unit not in text else "") + (f"; 0: {zero}" if zero else "")
 
 
 def _flag_text(field: dataclasses.Field, flags: dict[str, str]) -> str:
-    """The field's description as a command line says it: settings named by their flags; a flag that turns a
-    setting off (``--no-progress``) says so."""
-    text = _FIELD_NAME.sub(lambda match: flags.get(match.group(1), match.group(1)), _description(field))
+    """The field's description with the settings in backticks named by their flags; ``do not`` for a ``--no-``."""
+    text = re.sub(r"`(\w+)`", lambda match: flags.get(match.group(1), match.group(1)), _description(field))
     return f"do not {text}" if field.default is True else text
-
-
-def _cli_help(field: dataclasses.Field, flags: dict[str, str]) -> str:
-    """The field's help in ``--help``: :func:`_flag_text` and the default."""
-    text = _flag_text(field, flags)
-    shown = not isinstance(field.default, bool) and field.default not in (None, dataclasses.MISSING)
-    if shown and not field.metadata["preset"]:
-        text += f" (default: {_shown(field.default)})"
-    return text.replace("%", "%%")
 
 
 def add_setting_arguments(group: Any, names: list[str] | None = None, declaration: type = TrainConfig) -> None:
@@ -113,13 +99,16 @@ def add_setting_arguments(group: Any, names: list[str] | None = None, declaratio
     :param declaration: a dataclass declared with :func:`~sb3_collapse.run.config.setting`
     """
     flags = setting_flags(declaration)
-    by_name = {field.name: field for field in fields(declaration)}
+    by_name = {field.name: field for field in dataclasses.fields(declaration)}
     for name in flags if names is None else names:
         field, metadata = by_name[name], by_name[name].metadata
-        options: dict[str, Any] = dict(help=_cli_help(field, flags))
+        help, default = _flag_text(field, flags), field.default
+        if default not in (None, dataclasses.MISSING) and not isinstance(default, bool) and not metadata["preset"]:
+            help += f" (default: {_shown(default)})"
+        options: dict[str, Any] = dict(help=help.replace("%", "%%"))
         if flags[name].startswith("-"):
             options["dest"] = name
-        if field.default is True or field.default is False:
+        if isinstance(field.default, bool):
             options["action"] = "store_false" if field.default else "store_true"
         else:
             options.update(type=_value_type(field, declaration), default=field.default)
@@ -138,14 +127,10 @@ def check_arguments(parser: argparse.ArgumentParser, parsed: argparse.Namespace,
     """
     for declaration in declarations:
         flags = setting_flags(declaration)
-        for field in fields(declaration):
-            if field.name not in flags:
-                continue
-            value = getattr(parsed, field.name)
-            integer = _value_type(field, declaration) is int
+        for field in (field for field in dataclasses.fields(declaration) if field.name in flags):
+            value, integer = getattr(parsed, field.name), _value_type(field, declaration) is int
             for item in value if field.metadata["nargs"] is not None and value is not None else [value]:
-                problem = declared_problem(field, item, integer)
-                if problem is not None:
+                if (problem := declared_problem(field, item, integer)) is not None:
                     parser.error(f"{flags[field.name]} {problem}")
 
 
@@ -160,24 +145,23 @@ class CommandLine(argparse.ArgumentParser):
 def prog_name(module: str) -> str:
     """
     :param module: the module that ``python -m`` runs, e.g. ``"sb3_collapse.probe"``
-    :return: the name of the command line in its usage and errors: the console script's (``sb3-collapse-probe``)
-        when run as one, else ``python -m <module>``
+    :return: the command line's name in its usage and errors: the console script's (``sb3-collapse-probe``) when run
+        as one, else ``python -m <module>``
     """
     script = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
     return script if script.startswith("sb3-collapse-") else f"python -m {module}"
 
 
-def _names(group: str) -> list[str]:
-    return [field.name for field in fields() if group_of(field) == group]
+def _names(*groups: str) -> list[str]:
+    return [field.name for field in dataclasses.fields(TrainConfig) if group_of(field) in groups]
 
 
 def training_arguments() -> argparse.ArgumentParser:
     """:return: an ``argparse`` parent (without ``--help``) with the flags of the settings declared
     ``cli=TRAINING``, shared by ``python -m sb3_collapse.train`` and the sweep"""
     parser = argparse.ArgumentParser(add_help=False)
-    titles = {key: title for key, title, _ in GROUPS}
-    for key in ("preset", "training"):
-        add_setting_arguments(parser.add_argument_group(titles[key]), _names(key))
+    for key, title, _ in GROUPS[:2]:
+        add_setting_arguments(parser.add_argument_group(title), _names(key))
     return parser
 
 
@@ -186,30 +170,32 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> Any:
     :param parser: the train CLI's parser, to which the flags of the settings declared ``cli=RUN`` are added
     :return: their argument group, for the command line's own flags
     """
-    group = parser.add_argument_group(next(title for key, title, _ in GROUPS if key == "run"))
+    group = parser.add_argument_group(GROUPS[2][1])
     add_setting_arguments(group, _names("run"))
     return group
 
 
 def training_settings(parsed: argparse.Namespace) -> dict[str, Any]:
-    """:return: the settings of :func:`training_arguments` in ``parsed``, by name (``None``: the preset's)"""
-    return {name: getattr(parsed, name) for name in (*_names("preset"), *_names("training"))}
+    """
+    :param parsed: arguments parsed by a parser with :func:`training_arguments` as a parent
+    :return: the settings of :func:`training_arguments`, by name (``None`` for a preset setting not given)
+    """
+    return {name: getattr(parsed, name) for name in _names("preset", "training")}
 
 
 def show_settings(config: TrainConfig) -> list[str]:
-    """:return: what ``--show-settings`` prints: one line per setting of ``config`` (resolved) by flag or name, with
-    its value, where a preset setting's value came from and its unit; then the task's preset"""
-    record = config.record()
-    lines = []
-    for field in fields():
-        if field.name == "sources":  # shown on the line of each preset setting
-            continue
+    """
+    :param config: resolved settings
+    :return: what ``--show-settings`` prints: one line per setting, by flag or name, with its value, where a preset
+        setting's value came from and its unit; then the task's preset
+    """
+    record, lines = config.record(), []
+    for field in (field for field in dataclasses.fields(TrainConfig) if field.name != "sources"):  # shown on each line
         source, unit, flag = config.sources.get(field.name), field.metadata["unit"], flag_of(field)
         label = field.name if flag is None or flag.startswith("--no-") else flag  # --no-tf32 would read as tf32=False
         line = f"{label:<32} {record[field.name]!r}"
         lines.append(line + (f"  ({source})" if source else "") + (f"  [{unit}]" if unit else ""))
-    lines.append(f"{'preset':<32} {record['preset']!r}")
-    return lines
+    return [*lines, f"{'preset':<32} {record['preset']!r}"]
 
 
 def _markdown_text(text: str) -> str:
@@ -224,11 +210,9 @@ def settings_markdown() -> str:
     """:return: the tables of the :class:`TrainConfig` settings, one per group, for ``docs/presets.md``"""
     lines: list[str] = []
     for key, _, title in GROUPS:
-        lines += [f"**{_markdown_text(title)}**", "", "| setting | flag | unit | default | meaning |"]
+        lines += [f"**{_markdown_text(title)}**", "", _row("setting", "flag", "unit", "default", "meaning")]
         lines.append("|---|---|---|---|---|")
-        for field in fields():
-            if group_of(field) != key:
-                continue
+        for field in (field for field in dataclasses.fields(TrainConfig) if group_of(field) == key):
             flag, default = flag_of(field), field.default
             default = "" if default in (dataclasses.MISSING, None) else f"`{default!r}`"
             default = "preset" if field.metadata["preset"] else default
@@ -244,16 +228,13 @@ def flags_markdown(package: str) -> str:
         none) -> the dataclasses that declare its flags
     :return: one table of flags per sub-command, for its docs page
     """
-    commands = importlib.import_module(f"{package}.__main__").COMMANDS
     lines: list[str] = []
-    for command, declarations in commands.items():
+    for command, declarations in importlib.import_module(f"{package}.__main__").COMMANDS.items():
         lines += [f"**`python -m {package}{' ' + command if command else ''}`**", ""]
-        lines += ["| flag | unit | default | meaning |", "|---|---|---|---|"]
+        lines += [_row("flag", "unit", "default", "meaning"), "|---|---|---|---|"]
         for declaration in declarations:
             flags = setting_flags(declaration)
-            for field in fields(declaration):
-                if field.name not in flags:
-                    continue
+            for field in (field for field in dataclasses.fields(declaration) if field.name in flags):
                 flag, default = flags[field.name], field.default
                 if field.metadata["required"] or not flag.startswith("-"):
                     shown = "required"
@@ -266,33 +247,30 @@ def flags_markdown(package: str) -> str:
     return "\n".join(lines)
 
 
-def _region(text: str, begin: int, begin_marker: str, end_marker: str, content: str) -> str:
-    end = text.find(end_marker, begin)
-    if end < 0:
-        raise ValueError(f"the region after {begin_marker!r} has no {end_marker!r}.")
-    return text[: begin + len(begin_marker)] + "\n\n" + content + "\n" + text[end:]
-
-
 def with_markdown(text: str) -> str:
     """
     :param text: the content of a docs page with generated tables
     :return: the same with its regions (between the markers) generated anew
     :raises ValueError: when the file has no region, or a region has no end marker
     """
-    begin = text.find(MARKDOWN_BEGIN)
-    if begin < 0 and FLAGS_BEGIN.search(text) is None:
+    regions = [(match, FLAGS_END, lambda m=match: flags_markdown(m.group(1))) for match in FLAGS_BEGIN.finditer(text)]
+    if (begin := re.search(re.escape(MARKDOWN_BEGIN), text)) is not None:
+        regions.append((begin, MARKDOWN_END, settings_markdown))
+    if not regions:
         raise ValueError(f"the file has no region between {MARKDOWN_BEGIN!r} and {MARKDOWN_END!r}.")
-    if begin >= 0:
-        text = _region(text, begin, MARKDOWN_BEGIN, MARKDOWN_END, settings_markdown())
-    position = 0
-    while (match := FLAGS_BEGIN.search(text, position)) is not None:
-        text = _region(text, match.start(), match.group(0), FLAGS_END, flags_markdown(match.group(1)))
-        position = match.end()
+    for match, end_marker, content in sorted(regions, key=lambda region: -region[0].start()):  # from the end
+        end = text.find(end_marker, match.end())
+        if end < 0:
+            raise ValueError(f"the region after {match.group(0)!r} has no {end_marker!r}.")
+        text = text[: match.end()] + "\n\n" + content() + "\n" + text[end:]
     return text
 
 
 def main(argv: list[str] | None = None) -> int:
-    """:return: the exit status of the command line, given its arguments ``argv`` (``None``: ``sys.argv[1:]``)"""
+    """
+    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
+    :return: exit status
+    """
     description = "Generate the tables of the settings and flags in a docs page."
     parser = CommandLine(prog="python -m sb3_collapse.run.settings", description=description)
     help = "rewrite the generated regions of FILE (docs/presets.md, docs/probe.md...), or print docs/presets.md's"
@@ -301,11 +279,10 @@ def main(argv: list[str] | None = None) -> int:
     if markdown == "-":
         print(settings_markdown())
         return 0
-    path = Path(markdown)
     try:
-        path.write_text(with_markdown(path.read_text()))
+        Path(markdown).write_text(with_markdown(Path(markdown).read_text()))
     except (OSError, ValueError) as error:
-        parser.error(f"{path}: {error}")
+        parser.error(f"{markdown}: {error}")
     return 0
 
 

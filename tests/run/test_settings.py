@@ -21,7 +21,6 @@ from sb3_collapse.run.settings import (
     MARKDOWN_BEGIN,
     MARKDOWN_END,
     CommandLine,
-    fields,
     flag_of,
     main,
     prog_name,
@@ -145,7 +144,9 @@ def _subparsers(cli):
 def test_every_probe_and_report_flag_is_declared_with_help_and_unit(package):
     cli = CLIS[package]
     for command, (parser, needed) in _subparsers(cli).items():
-        declared = {field.name: field for declaration in cli.COMMANDS[command] for field in fields(declaration)}
+        declared = {
+            field.name: field for declaration in cli.COMMANDS[command] for field in dataclasses.fields(declaration)
+        }
         actions = [action for action in parser._actions if action.dest != "help"]
         assert {action.dest for action in actions} == set(declared), command
         for action in actions:
@@ -183,7 +184,7 @@ def test_flag_tables_of_the_docs_are_fresh(page, tmp_path):
     package = "sb3_collapse.probe" if page == "probe.md" else "sb3_collapse.report"
     cli = CLIS[package]
     for declarations in cli.COMMANDS.values():
-        for field in (field for declaration in declarations for field in fields(declaration)):
+        for field in (field for declaration in declarations for field in dataclasses.fields(declaration)):
             assert f"| `{flag_of(field)}`" in doc, field.name
     begin = doc.index("<!-- flags of")
     region = doc[doc.index("\n", begin) + 1 : doc.index(FLAGS_END)]
