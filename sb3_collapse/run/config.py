@@ -141,14 +141,11 @@ class TrainConfig:
     size: int = setting(84, unit="pixels")
     """image height and width, in pixels"""
     eval_every_frames: int | None = setting(unit="frames", preset=True, minimum=0, zero_means="no evaluation")
-    """frames between evaluations of the deterministic policy, and one at frame 0, none at the budget's end
-    (sb3_collapse.paper.evaluation_schedule; the saved final model is evaluated apart)"""
+    """frames between evaluations of the deterministic policy, from frame 0, none at the budget's end"""
     eval_episodes: int | None = setting(unit="episodes", preset=True, minimum=0)
-    """episodes per evaluation (deterministic policy), on an evaluation environment seeded with `seed`, as the
-    reference seeds its own"""
+    """episodes per evaluation, on an evaluation environment seeded with `seed` as the reference's"""
     checkpoint_every_frames: int = setting(100_000, unit="frames", minimum=0, zero_means="only at a signal")
-    """frames between two checkpoints of the run, to resume it (a SIGTERM or SIGINT writes one too; deleted when the
-    run finishes)"""
+    """frames between two checkpoints, to resume the run (SIGTERM or SIGINT write one too; deleted at the end)"""
     seed_frames: int | None = setting(unit="frames", preset=True, minimum=0)
     """frames of uniformly random actions before the first update"""
     batch_size: int | None = setting(preset=True)
@@ -176,61 +173,43 @@ class TrainConfig:
     augmentation_pad: int | None = setting(unit="pixels", preset=True)
     """random-shift padding, in pixels (0: no augmentation)"""
     replay_sampling: str | None = setting(preset=True, choices=REPLAY_SAMPLINGS)
-    """drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); sb3: the
-    episode in progress too, returns truncated at the time limit (SB3's); see
-    sb3_collapse.drqv2.FrameStackReplayBuffer"""
+    """drqv2: DrQ-v2's (finished episodes, no return from their last n-1 steps); sb3: SB3's (docs/algorithm.md)"""
     collapse_metrics_every_frames: int = setting(
         PAPER.check_every_frames, unit="frames", minimum=0, zero_means="no checks"
     )
-    """frames between two checks of the collapse metrics of every named layer (TensorBoard collapse/..., the collapse
-    metrics CSV); the paper's by default"""
+    """frames between two checks of the collapse metrics of every named layer; the paper's by default"""
     collapse_metrics_batch: int = setting(512, unit="observations", minimum=2)
     """replay observations per collapse-metrics check (correlations need pairs)"""
     algorithm: str = setting("drqv2", cli=RUN, choices=ALGORITHMS)
-    """drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes (sb3_collapse.baselines; they use
-    neither the DrQ-v2-only settings nor layer transplants; docs/interventions.md)"""
+    """drqv2, or SB3's td3 or sac with DrQ-v2's network sizes, without transplants (docs/interventions.md)"""
     reset_rule: bool = setting(False, cli=RUN)
-    """reset training from scratch when the agent has not escaped action collapse within each window (the paper's
-    rule, CollapseReset)"""
+    """reset from scratch when the agent has not escaped action collapse within a window (the paper's rule)"""
     intervention: str | None = setting(cli=RUN, choices=tuple(INTERVENTIONS))
-    """what the reset rule does at the end of a window without escape instead of a reset from scratch (needs
-    `reset_rule`; sb3_collapse.monitoring.interventions, docs/interventions.md); default: reset, the paper's"""
+    """what the reset rule does instead of the paper's reset from scratch (needs `reset_rule`; docs/interventions.md)"""
     reset_window_frames: int = setting(PAPER.window_frames, unit="frames")
     """the reset rule's window, in frames (the paper's by default)"""
     activation: str = setting("relu", cli=RUN, choices=ACTIVATIONS)
-    """hidden activation of DrQ-v2's encoder, actor and critic: relu, or leaky_relu with negative slope 0.01 (the
-    paper's footnote 1 ablation); DrQ-v2 only"""
+    """hidden activation of DrQ-v2's networks: relu, or leaky_relu of slope 0.01 (the paper's footnote 1)"""
     redo_every_updates: int = setting(0, unit="updates", cli=RUN, minimum=0, zero_means="no ReDo")
-    """recycle the dormant units (convolution channels included) every this many updates for the whole run, as ReDo
-    does (Sokar et al., 2023; PeriodicReDo, docs/interventions.md)"""
+    """recycle the dormant units (convolutions' too) every this many updates, as ReDo (docs/interventions.md)"""
     init_cnn: str | None = setting(cli=RUN)
-    """start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; DrQv2's init_from, the paper's layer
-    transplants); default: random"""
+    """start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; a layer transplant); default: random"""
     init_mlp: str | None = setting(cli=RUN)
     """start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random"""
     init_critic: str | None = setting(cli=RUN)
     """start the critic (and target critic) from this DrQv2 checkpoint (zip); default: random"""
     n_envs: int = setting(1, minimum=1)
-    """training environments, in subprocesses when more than 1 (seeds seed, seed + 1...); frames and agent steps are
-    summed over them, with one update per `train_freq` transitions as with one; the evaluation environment stays
-    single"""
+    """training environments, in subprocesses when > 1; frames summed over them (docs/throughput.md)"""
     step_envs_during_updates: bool = setting(False)
-    """step the environments (in subprocesses) while the learner updates: the actions of that step come from the
-    weights before the updates (DrQ-v2's reference order)"""
+    """step the environments while the learner updates, with the weights before them (DrQ-v2's order)"""
     compile_update: bool = setting(False)
-    """compile the update with torch.compile (CUDA graphs on CUDA); compilation takes about a minute at the first
-    update on a CPU"""
+    """compile the update with torch.compile (CUDA graphs on CUDA; about a minute at the first update on a CPU)"""
     tf32: bool = setting(True)
-    """let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it (no effect on the CPU;
-    sb3_collapse.backends)"""
+    """let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it (sb3_collapse.backends)"""
     deterministic: bool = setting(False)
-    """reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has them (slower on a
-    GPU; the CPU is deterministic anyway)"""
+    """reproducible CUDA kernels: no cuDNN autotuner, deterministic algorithms (slower on a GPU)"""
     snapshots: bool = setting(
-        False,
-        help="save the encoder and actor (sizes: benchmarks/README.md#checkpoint-sizes) at every evaluation and at the "
-        f"end into <run>/{SNAPSHOTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only, needs "
-        "evaluations",
+        False, help=f"save the encoder and actor at every evaluation and the end into <run>/{SNAPSHOTS_DIR}/ (Figure 2)"
     )
     device: str = setting("auto", cli=RUN)
     """auto, cpu, cuda, cuda:1, ..."""
@@ -241,11 +220,9 @@ class TrainConfig:
     verbose: int = setting(0)
     """SB3 verbosity (0: silent, 1: SB3's log tables)"""
     variant: str | None = setting(cli=None)
-    """name of the variant in the settings and the result; default: <algorithm>+<intervention> with the reset rule
-    (drqv2+reset), else <algorithm> (drqv2)"""
+    """name of the variant; default: <algorithm>+<intervention> with the reset rule (drqv2+reset), else <algorithm>"""
     transplant: dict[str, str] | None = setting(cli=None)  # noqa: RUF009 - setting() returns a dataclass field
-    """the sources of the initial weights, as the sweep's transplant grid names them ({cnn: blank | good | bad, mlp:
-    ...}), recorded in the settings; default: not a grid cell"""
+    """the sources of the initial weights in the sweep's transplant grid ({cnn: blank | good | bad, ...}), if any"""
     sources: dict[str, str] = setting(cli=None, default_factory=dict)  # noqa: RUF009 - a dataclass field
     """for each preset setting, "preset" or "user" (where its value came from); filled by resolve()"""
 
@@ -269,12 +246,9 @@ class TrainConfig:
             task_preset = self.preset
         except ValueError as error:
             raise ParameterError("env", f"env: {error}") from None
-        values: dict[str, Any] = {}
-        sources: dict[str, str] = {}
-        for name in SETTING_NAMES:
-            value = getattr(self, name)
-            sources[name] = self.sources.get(name, USER if value is not None else PRESET)
-            values[name] = getattr(task_preset, name) if value is None else value
+        given = {name: getattr(self, name) for name in SETTING_NAMES}
+        sources = {name: self.sources.get(name, PRESET if value is None else USER) for name, value in given.items()}
+        values = {name: getattr(task_preset, name) if value is None else value for name, value in given.items()}
         if sources["buffer_size"] == PRESET:  # a larger buffer is never filled
             steps = max(1, values["frames"] // max(1, values["action_repeat"]))
             values["buffer_size"] = min(values["buffer_size"], steps)
@@ -289,8 +263,7 @@ class TrainConfig:
         """
         config = self if self.resolved else self.resolve()
         for field in dataclasses.fields(config):
-            problem = declared_problem(field, getattr(config, field.name), integer=True)
-            if problem is not None:
+            if (problem := declared_problem(field, getattr(config, field.name), integer=True)) is not None:
                 raise ParameterError(field.name, f"{field.name} {problem}")
         # A budget counts whole agent steps (frames // action_repeat); the preset's replay buffer is capped there.
         steps, needed = config.frames // config.action_repeat, 1  # type: ignore[operator]
@@ -366,6 +339,9 @@ class TrainConfig:
         return {**dataclasses.asdict(config), "variant": config.variant_name, "preset": preset_record}
 
 
+_BOUNDS = (("minimum", ">=", operator.ge), ("maximum", "<=", operator.le), ("above", ">", operator.gt))
+
+
 def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str | None:
     """
     :param field: a field declared with :func:`setting`
@@ -380,11 +356,7 @@ def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str
     if metadata["choices"] is not None and value not in metadata["choices"]:
         return f"must be one of {', '.join(metadata['choices'])}, got {value!r}."
     zero = f" (0: {metadata['zero_means']})" if metadata["zero_means"] else ""
-    for key, sign, holds in (
-        ("minimum", ">=", operator.ge),
-        ("maximum", "<=", operator.le),
-        ("above", ">", operator.gt),
-    ):
+    for key, sign, holds in _BOUNDS:
         if metadata[key] is None:
             continue
         if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)):
@@ -398,67 +370,54 @@ def _check_drqv2_only(config: TrainConfig) -> None:
     """Refuse DrQ-v2's own options for SB3's TD3 or SAC (``config.algorithm``)."""
     algorithm = config.algorithm
     if config.activation != "relu":
-        raise ParameterError(
-            "activation",
-            f"activation={config.activation!r} is a DrQ-v2 option; algorithm={algorithm!r} keeps SB3's ReLU networks.",
-        )
+        message = f"is a DrQ-v2 option; algorithm={algorithm!r} keeps SB3's ReLU networks."
+        raise ParameterError("activation", f"activation={config.activation!r} {message}")
     if config.size < NATURE_CNN_MIN_SIZE:
-        raise ParameterError(
-            "size",
-            f"size must be >= {NATURE_CNN_MIN_SIZE} pixels for algorithm={algorithm!r} (SB3's NatureCNN), "
-            f"got {config.size}.",
-        )
+        message = f"pixels for algorithm={algorithm!r} (SB3's NatureCNN), got {config.size}."
+        raise ParameterError("size", f"size must be >= {NATURE_CNN_MIN_SIZE} {message}")
     for name, default in (("n_envs", 1), ("step_envs_during_updates", False), ("compile_update", False)):
-        if getattr(config, name) != default:
-            raise ParameterError(
-                name,
-                f"{name}={getattr(config, name)!r} is a DrQv2 option (docs/throughput.md); algorithm="
-                f"{algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}.",
-            )
+        if (value := getattr(config, name)) != default:
+            message = f"algorithm={algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}."
+            raise ParameterError(name, f"{name}={value!r} is a DrQv2 option (docs/throughput.md); {message}")
     if config.init_from:
         group = next(iter(config.init_from))
-        raise ParameterError(
-            f"init_{group}",
-            f"init_{group}: layer transplants are for DrQ-v2 checkpoints; algorithm={algorithm!r} cannot start "
-            "from them.",
-        )
+        message = f"layer transplants are for DrQ-v2 checkpoints; algorithm={algorithm!r} cannot start from them."
+        raise ParameterError(f"init_{group}", f"init_{group}: {message}")
 
 
 def env_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """:return: the pixel settings of ``make_dmc_env`` (``action_repeat``, ``frame_stack``, ``size``) of ``config``"""
+    """
+    :param config: resolved settings
+    :return: the pixel settings of ``make_dmc_env`` (``action_repeat``, ``frame_stack``, ``size``)
+    """
     return dict(action_repeat=config.action_repeat, frame_stack=config.frame_stack, size=config.size)
 
 
-def _model_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """The keyword arguments that ``DrQv2`` and SB3's TD3 and SAC share, of resolved settings."""
+def _model_kwargs(config: TrainConfig, *names: str) -> dict[str, Any]:
+    """The keyword arguments that ``DrQv2`` and SB3's TD3 and SAC share, and the settings ``names``."""
+    shared = ("learning_rate", "buffer_size", "batch_size", "gamma", "seed", "device", "verbose", *names)
     learning_starts = config.seed_frames // config.action_repeat  # type: ignore[operator]
-    return dict(
-        learning_rate=config.learning_rate, buffer_size=config.buffer_size, learning_starts=learning_starts,
-        batch_size=config.batch_size, gamma=config.gamma, seed=config.seed, device=config.device,
-        verbose=config.verbose,
-    )  # fmt: skip
+    return {name: getattr(config, name) for name in shared} | {"learning_starts": learning_starts}
 
 
 def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """:return: the keyword arguments of ``DrQv2(policy, env, ...)`` for these resolved settings"""
+    """
+    :param config: resolved settings
+    :return: the keyword arguments of ``DrQv2(policy, env, ...)``
+    """
+    same = ("tau", "n_steps", "stddev_schedule", "stddev_clip", "augmentation_pad", "step_envs_during_updates")
     return dict(
-        _model_kwargs(config),
-        tau=config.tau,
+        _model_kwargs(config, *same, "compile_update"),
         train_freq=(config.train_freq, "transition"),  # DrQ-v2's ratio with any number of environments
-        n_steps=config.n_steps,
-        stddev_schedule=config.stddev_schedule,
-        stddev_clip=config.stddev_clip,
-        augmentation_pad=config.augmentation_pad,
         replay_buffer_kwargs=dict(sampling=config.replay_sampling),
         policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
         init_from=config.init_from or None,
-        step_envs_during_updates=config.step_envs_during_updates,
-        compile_update=config.compile_update,
     )
 
 
 def baseline_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """:return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` after the algorithm and the
-    env, for these resolved settings (``algorithm`` one of :data:`~sb3_collapse.baselines.BASELINES`)"""
-    sizes = dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, frame_stack=config.frame_stack)
-    return dict(_model_kwargs(config), **sizes)
+    """
+    :param config: resolved settings (``algorithm`` one of :data:`~sb3_collapse.baselines.BASELINES`)
+    :return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` after the algorithm and the env
+    """
+    return _model_kwargs(config, "feature_dim", "hidden_dim", "frame_stack")
