@@ -93,8 +93,7 @@ def setting(
 
 def declared(cls: type) -> type:
     """
-    Give each field of a dataclass declared with :func:`setting` without ``help`` the docstring under it (CleanRL's
-    style), its lines joined.
+    Give each field of a dataclass declared with :func:`setting` without ``help`` the docstring under it (CleanRL).
 
     :param cls: the dataclass
     :return: the same class
@@ -117,10 +116,8 @@ def declared(cls: type) -> type:
 @declared
 @dataclass
 class TrainConfig:
-    """
-    Settings of one training run (:func:`sb3_collapse.run.runner.train`), listed in ``docs/presets.md``. The DrQ-v2
-    hyperparameters default to ``None``: :meth:`resolve` takes them from ``preset(env)``.
-    """
+    """Settings of one training run (:func:`sb3_collapse.run.runner.train`), listed in ``docs/presets.md``; the
+    DrQ-v2 hyperparameters default to ``None``: :meth:`resolve` takes them from ``preset(env)``."""
 
     env: str = setting("walker-walk", cli=RUN)
     """dm_control task: walker-walk, cartpole-swingup, quadruped-run, ..."""
@@ -271,30 +268,23 @@ class TrainConfig:
             needed = config.n_steps * config.n_envs  # type: ignore[operator]
         if steps < needed:
             why = f"; the replay buffer they cap needs n_steps={config.n_steps} per environment" if needed > 1 else ""
-            raise ParameterError(
-                "frames",
-                f"frames must be >= {needed * config.action_repeat}: a budget counts whole agent steps of "  # type: ignore[operator]
-                f"action_repeat={config.action_repeat} frames{why}; got {config.frames}.",
-            )
+            steps_of = f"a budget counts whole agent steps of action_repeat={config.action_repeat} frames{why}"
+            message = f"frames must be >= {needed * config.action_repeat}: {steps_of}; got {config.frames}."
+            raise ParameterError("frames", message)
         if config.intervention is not None and not config.reset_rule:
-            raise ParameterError(
-                "intervention", f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
-            )
+            message = f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
+            raise ParameterError("intervention", message)
         if config.snapshots and (config.algorithm != "drqv2" or config.eval_every_frames == 0):
-            raise ParameterError(
-                "snapshots",
-                "snapshots are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
-                f"eval_every_frames > 0 (got algorithm={config.algorithm!r}, "
-                f"eval_every_frames={config.eval_every_frames}).",
-            )
+            got = f"got algorithm={config.algorithm!r}, eval_every_frames={config.eval_every_frames}"
+            need = f"they need algorithm='drqv2' and eval_every_frames > 0 ({got})"
+            raise ParameterError("snapshots", f"snapshots are saved at every evaluation of a DrQ-v2 run: {need}.")
         if config.algorithm != "drqv2":
             _check_drqv2_only(config)
         if config.eval_every_frames > 0 and config.eval_episodes < 1:  # type: ignore[operator]
             raise ParameterError(
                 "eval_episodes", "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
             )
-        owners = (("stddev_schedule", StddevSchedule), ("reset_window_frames", CollapseReset))
-        for name, owner in owners:
+        for name, owner in (("stddev_schedule", StddevSchedule), ("reset_window_frames", CollapseReset)):
             try:
                 owner(getattr(config, name))
             except ValueError as error:

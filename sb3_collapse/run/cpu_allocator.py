@@ -10,8 +10,7 @@ import os
 MMAP_THRESHOLD_BYTES = 1 << 30
 """Blocks below this size come from the heap and are reused after being freed."""
 
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt's options (glibc's malloc.h)
 _tuned = False
 
 
@@ -37,7 +36,5 @@ def tune_cpu_allocator() -> bool:
     except (OSError, AttributeError):  # not glibc (musl, macOS, Windows)
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    _tuned = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
-        mallopt(_M_TRIM_THRESHOLD, MMAP_THRESHOLD_BYTES)
-    )
+    _tuned = all(mallopt(option, MMAP_THRESHOLD_BYTES) for option in (_M_MMAP_THRESHOLD, _M_TRIM_THRESHOLD))
     return _tuned

@@ -31,8 +31,7 @@ class _ResumedCSVOutputFormat(CSVOutputFormat):
         header = self.file.readline().strip()
         self.keys = header.split(",") if header else []
         self.file.seek(0, os.SEEK_END)
-        self.separator = ","
-        self.quotechar = '"'
+        self.separator, self.quotechar = ",", '"'
 
 
 class _ResumedTensorBoardOutputFormat(TensorBoardOutputFormat):

@@ -145,8 +145,7 @@ class CommandLine(argparse.ArgumentParser):
 def prog_name(module: str) -> str:
     """
     :param module: the module that ``python -m`` runs, e.g. ``"sb3_collapse.probe"``
-    :return: the command line's name in its usage and errors: the console script's (``sb3-collapse-probe``) when run
-        as one, else ``python -m <module>``
+    :return: its name in usage and errors: the console script's (``sb3-collapse-probe``), else ``python -m <module>``
     """
     script = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
     return script if script.startswith("sb3-collapse-") else f"python -m {module}"

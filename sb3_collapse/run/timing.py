@@ -91,16 +91,14 @@ class UpdateClock:
 
     @staticmethod
     def _record(device: th.device) -> Any:
-        with th.cuda.device(device):
+        with th.cuda.device(device):  # that device's events, though another one is current
             event = th.cuda.Event(enable_timing=True)
             event.record(th.cuda.current_stream(device))
         return event
 
     def start(self, device: th.device) -> tuple[th.device, Any] | None:
         """:return: ``device`` and a CUDA event recorded on its current stream, ``None`` off CUDA"""
-        if device.type != "cuda":
-            return None
-        return device, self._record(device)
+        return (device, self._record(device)) if device.type == "cuda" else None
 
     def stop(self, start: tuple[th.device, Any] | None, phase: PhaseTime, host_s: float) -> None:
         """
@@ -108,10 +106,8 @@ class UpdateClock:
         :param phase: the phase the round was added to
         :param host_s: the round's ``update_s`` measured on the host, already in ``phase``
         """
-        if start is None:
-            return
-        device, event = start
-        self._pending.append((event, self._record(device), phase, host_s))
+        if start is not None:
+            self._pending.append((start[1], self._record(start[0]), phase, host_s))
 
     def collect(self, wait: bool = False) -> None:
         """
@@ -132,7 +128,7 @@ class UpdateClock:
 
 class TimedVecEnv(VecEnvWrapper):
     """
-    A ``VecEnv`` that adds the seconds spent in its ``step_async`` and ``step_wait`` to :attr:`env_s`.
+    A ``VecEnv`` that adds the seconds spent in its ``step_async`` and ``step_wait`` to ``env_s``.
 
     :param venv: the environments
     """
@@ -140,7 +136,6 @@ class TimedVecEnv(VecEnvWrapper):
     def __init__(self, venv: VecEnv) -> None:
         super().__init__(venv)
         self.env_s = 0.0
-        """Seconds in ``step_async`` and ``step_wait`` since the wrapper was made."""
 
     def reset(self) -> Any:
         return self.venv.reset()
@@ -170,17 +165,14 @@ class LearnTimer(BaseCallback):
     def __init__(self, env: TimedVecEnv | None = None) -> None:
         super().__init__()
         self.env = env
-        self.timings = LearnTimings()
-        """The time split of the current (or last) ``learn()`` call."""
-        self.clock = UpdateClock()
-        self._round: PhaseTime | None = None
-        self._used_policy = False
+        self._on_training_start()  # timings: the time split of the current (or last) learn() call
+        self._used_policy, self._updates_at_steps_end = False, 0
         self._start = self._steps_end = self._env_start = 0.0
-        self._updates_at_steps_end = 0
         self._device_start: Any = None
 
     def _on_training_start(self) -> None:
-        self.timings, self.clock, self._round = LearnTimings(), UpdateClock(), None
+        self.timings, self.clock = LearnTimings(), UpdateClock()
+        self._round: PhaseTime | None = None
 
     def _on_rollout_start(self) -> None:
         self._close_round()

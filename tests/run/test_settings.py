@@ -31,10 +31,11 @@ from sb3_collapse.run.settings import (
     with_markdown,
 )
 from sb3_collapse.sweep.__main__ import build_parser as sweep_parser
-from sb3_collapse.train import CLI_ONLY_FLAGS, build_parser
+from sb3_collapse.train import build_parser
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 FIELDS = {field.name: field for field in dataclasses.fields(TrainConfig)}
+CLI_ONLY_FLAGS = ("--show-settings",)  # the train CLI's flags that are no setting
 
 
 def test_every_field_declares_help_unit_and_preset():
