@@ -135,11 +135,11 @@ def check_arguments(parser: argparse.ArgumentParser, parsed: argparse.Namespace,
 
 
 class CommandLine(argparse.ArgumentParser):
-    """An ``argparse`` parser whose errors are one line, ``<prog>: error: ...`` and a pointer to ``--help``, without
+    """An ``argparse`` parser whose errors are a pointer to ``--help`` then one line, ``<prog>: error: ...``, without
     the usage (exit status 2); its sub-commands' parsers are too."""
 
     def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        self.exit(2, f"{self.prog} --help lists the flags.\n{self.prog}: error: {message}\n")
 
 
 def prog_name(module: str) -> str:

@@ -271,8 +271,8 @@ def test_command_line_errors_are_one_line_with_a_pointer_to_help(capsys):
     sub = parser.add_subparsers(dest="command").add_parser("go")  # a sub-command's parser is one too
     sub.add_argument("--m", type=int, required=True)
     for argv, expected in (
-        (["--n", "x"], "tool: error: argument --n: invalid int value: 'x' (see tool --help)"),
-        (["go"], "tool go: error: the following arguments are required: --m (see tool go --help)"),
+        (["--n", "x"], "tool --help lists the flags.\ntool: error: argument --n: invalid int value: 'x'"),
+        (["go"], "tool go --help lists the flags.\ntool go: error: the following arguments are required: --m"),
     ):
         with pytest.raises(SystemExit) as exit_info:
             parser.parse_args(argv)
