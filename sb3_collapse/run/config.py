@@ -140,7 +140,7 @@ class TrainConfig:
     eval_every_frames: int | None = setting(unit="frames", preset=True, minimum=0, zero_means="no evaluation")
     """frames between evaluations of the deterministic policy, from frame 0, none at the budget's end"""
     eval_episodes: int | None = setting(unit="episodes", preset=True, minimum=0)
-    """episodes per evaluation, on an evaluation environment seeded with `seed` as the reference's"""
+    """episodes per evaluation, on an evaluation environment seeded with `seed`, as the reference seeds its own"""
     checkpoint_every_frames: int = setting(100_000, unit="frames", minimum=0, zero_means="only at a signal")
     """frames between two checkpoints, to resume the run (SIGTERM or SIGINT write one too; deleted at the end)"""
     seed_frames: int | None = setting(unit="frames", preset=True, minimum=0)
