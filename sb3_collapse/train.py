@@ -1,15 +1,5 @@
-"""Train DrQ-v2 on a DeepMind Control task from pixels: ``python -m sb3_collapse.train --help``.
-
-    python -m sb3_collapse.train --env walker-walk --frames 100000 --seed 0 --logdir runs/
-
-The command line of :func:`sb3_collapse.run.runner.train`; its flags are generated from the fields of
-:class:`sb3_collapse.run.config.TrainConfig` (:mod:`sb3_collapse.run.settings`, one flag per setting). The DrQ-v2
-settings left out come from the task's preset; ``--show-settings`` prints them all, resolved, and where each came
-from. Everything a run writes goes to one run folder (:mod:`sb3_collapse.run.runner`); stopped by SIGTERM or SIGINT,
-it writes a checkpoint and exits with status 75, and the same command again resumes it bit for bit.
-``--init-cnn``, ``--init-mlp`` and ``--init-critic`` start layers from a saved DrQv2 (the paper's transplants);
-sweeps of many such runs on Ray: ``python -m sb3_collapse.sweep --help``.
-"""
+"""Train DrQ-v2 on a DeepMind Control task from pixels: ``python -m sb3_collapse.train --help`` (docs/training.md).
+The command line of :func:`sb3_collapse.run.runner.train`, its flags generated from :class:`TrainConfig`'s settings."""
 
 from __future__ import annotations
 
@@ -17,32 +7,21 @@ import argparse
 import re
 import sys
 
-from sb3_collapse.errors import (
-    DivergenceError,
-    InputError,
-    OutputError,
-    TrainingInterrupted,
-    cli_message,
-    report_unwritable_outputs,
-)
+from sb3_collapse import errors
 from sb3_collapse.protocol import CONFIG_JSON, EXIT_INTERRUPTED
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import check_run_folder
 from sb3_collapse.run.runner import train
-from sb3_collapse.run.settings import add_run_arguments, prog_name, show_settings, training_arguments
-
-CLI_ONLY_FLAGS = ("--show-settings",)
-"""The flags of this command line that are not settings of :class:`TrainConfig`."""
+from sb3_collapse.run.settings import CommandLine, add_run_arguments, prog_name, show_settings, training_arguments
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m sb3_collapse.train``, one flag per :class:`TrainConfig` field."""
-    parser = argparse.ArgumentParser(
+    """:return: the command line of ``python -m sb3_collapse.train``, one flag per :class:`TrainConfig` setting"""
+    parser = CommandLine(
         prog=prog_name("sb3_collapse.train"),
-        description="Train DrQ-v2 from pixels on a DeepMind Control task, with periodic evaluation, "
-        "TensorBoard logs and a final checkpoint. Frames = agent steps x action repeat. The DrQ-v2 settings "
-        "default to the task's preset (DrQ-v2's published per-task config: sb3_collapse.presets.preset(TASK), "
-        f"docs/presets.md); a flag overrides it, and {CONFIG_JSON} records every value and where it came from.",
+        description="Train DrQ-v2 from pixels on a DeepMind Control task (frames = agent steps x action repeat). "
+        "The DrQ-v2 settings default to the task's preset (DrQ-v2's published config, docs/presets.md); a flag "
+        f"overrides it, and {CONFIG_JSON} records every value and where it came from.",
         parents=[training_arguments()],
     )
     run = add_run_arguments(parser)
@@ -52,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-@report_unwritable_outputs
+@errors.report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
     """
     :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
@@ -66,23 +45,20 @@ def main(argv: list[str] | None = None) -> int:
         config.validate()
         check_run_folder(config)
     except ValueError as error:
-        parser.error(cli_message(error, parser))
+        parser.error(errors.cli_message(error, parser))
     if show:
         print("\n".join(show_settings(config)))
         return 0
     try:
         train(config)
-    except InputError as error:  # raised before training: nothing was written
-        parser.error(re.sub(r"init_from\['(\w+)'\]", r"--init-\1", cli_message(error, parser)))
-    except (OutputError, DivergenceError) as error:
+    except errors.InputError as error:  # raised before training: nothing was written
+        parser.error(re.sub(r"init_from\['(\w+)'\]", r"--init-\1", errors.cli_message(error, parser)))
+    except (errors.OutputError, errors.DivergenceError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
-    except TrainingInterrupted as error:
-        print(
-            f"Stopped by {error.signal_name} after the checkpoint {error.checkpoint}: run the same command again to "
-            f"resume (exit status {EXIT_INTERRUPTED}).",
-            file=sys.stderr,
-        )
+    except errors.TrainingInterrupted as error:
+        resume = f"run the same command again to resume (exit status {EXIT_INTERRUPTED})"
+        print(f"Stopped by {error.signal_name} after the checkpoint {error.checkpoint}: {resume}.", file=sys.stderr)
         return EXIT_INTERRUPTED
     return 0
 

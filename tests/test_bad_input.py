@@ -303,3 +303,30 @@ def test_a_signal_during_a_probe_leaves_nothing_and_exits_75(tmp_path, signum):
         "there only when complete); run the same command again (exit status 75)."
     )
     assert not out.exists()  # the staging folder removed, and the folder the probe created
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        # 7 frames are no agent step of 8 frames: blamed on --frames, not on the replay buffer's --n-steps.
+        (["--env", "cartpole-swingup", "--frames", "7", "--action-repeat", "8"], "--frames must be >= 24: a budget"),
+        (["--env", "walker-walk", "--frames", "7", "--action-repeat", "8"], "--frames must be >= 8: a budget"),
+        (["--collapse-metrics-batch", "0"], "--collapse-metrics-batch must be >= 2, got 0."),
+    ],
+)
+def test_train_names_the_flag_the_user_gave(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        train_main(argv)
+    assert exit_info.value.code == 2
+    line = one_line_error(capsys)
+    assert message in line and "--batch-size" not in line and "--n-steps must" not in line
+
+
+@pytest.mark.parametrize("argv", [["--frames", "0"], ["--no-such-flag"], ["--algorithm", "ppo"]])
+def test_train_errors_are_one_line_with_a_pointer_to_help_and_no_usage(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        train_main(argv)
+    assert exit_info.value.code == 2
+    prog = "python -m sb3_collapse.train"
+    pointer, line = capsys.readouterr().err.splitlines()  # the error last, where the eye lands
+    assert pointer == f"{prog} --help lists the flags." and line.startswith(f"{prog}: error: ")

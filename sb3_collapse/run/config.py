@@ -1,19 +1,15 @@
-"""
-The settings of one training run, :class:`TrainConfig`, each declared once with :func:`setting`: its default, its
-help text, its unit and whether the task's preset fills it. The command lines' flags, ``--show-settings`` and the
-settings tables of ``docs/presets.md`` are generated from these declarations (:mod:`sb3_collapse.run.settings`),
-and the model's keyword arguments from the config by :func:`drqv2_kwargs` and :func:`baseline_kwargs`. Per-task
-defaults and units (budgets in frames, the exploration schedule in agent steps, transitions summed over ``n_envs``):
-docs/presets.md#drq-v2s-presets-sb3_collapsepresets and docs/throughput.md#units.
-
-:meth:`TrainConfig.validate` checks what needs no file system; the run folder's checks are
-:func:`sb3_collapse.run.folder.check_run_folder`.
-"""
+"""The settings of one training run, :class:`TrainConfig`, each declared once with :func:`setting`; the flags, help
+and docs tables generated from them: :mod:`sb3_collapse.run.settings`. Units: docs/throughput.md#units."""
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import inspect
+import itertools
+import operator
+import textwrap
+import types
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,7 +21,7 @@ from sb3_collapse.drqv2.replay_buffer import REPLAY_SAMPLINGS
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.errors import ParameterError
-from sb3_collapse.monitoring import INTERVENTIONS, CollapseMetrics, CollapseReset
+from sb3_collapse.monitoring import INTERVENTIONS, CollapseReset
 from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import SNAPSHOTS_DIR
@@ -33,53 +29,26 @@ from sb3_collapse.protocol import SNAPSHOTS_DIR
 ALGORITHMS = ("drqv2", *BASELINES)
 """What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
 
-DEFAULT_CHECKPOINT_EVERY_FRAMES = 100_000
-"""Frames between two checkpoints by default: each checkpoint writes the model with its optimizers and the replay data
-since the previous one; what a stop loses and what each checkpoint costs: docs/checkpoints.md and the checkpoint rows
-of benchmarks/README.md."""
-
-RESUME_FREE_SETTINGS = (
-    "logdir",
-    "run_name",
-    "run_dir",
-    "progress_bar",
-    "verbose",
-    "torch_threads",
-    "device",
-    "checkpoint_every_frames",
-    "sources",
-)
-"""Settings that may differ between a run and its resumption (where and how it is shown, how often checkpoints are
-taken; a resumption on another device or number of threads is not bit-identical, see docs/checkpoints.md)."""
+RESUME_FREE_SETTINGS = ("logdir", "run_name", "run_dir", "progress_bar", "verbose", "torch_threads", "device")
+RESUME_FREE_SETTINGS += ("checkpoint_every_frames", "sources")
+"""Settings that may differ between a run and its resumption (docs/checkpoints.md)."""
 
 PRESET, USER = "preset", "user"
 """Where a preset setting's value came from, in the run's settings file."""
 
 TRAINING, RUN = "training", "run"
-"""Which command lines have a setting's flag (:func:`setting`'s ``cli``): ``TRAINING``, the train CLI and the sweep
-(the same for every run of a sweep); ``RUN``, the train CLI only (the sweep sets it per trial)."""
+"""A setting's flag (``cli``): ``TRAINING``, of the train CLI and the sweep; ``RUN``, of the train CLI only."""
 
-UNITS = (
-    "frames",
-    "agent steps",
-    "transitions",
-    "pixels",
-    "episodes",
-    "updates",
-    "observations",
-    "evaluations",
-    "GB",
-    "percent",
-    None,
-)
+UNITS = ("frames", "agent steps", "transitions", "pixels", "episodes", "updates", "observations", "evaluations", "GB")
+UNITS += ("percent", None)
 """The units a setting may count in (``None``: not a count)."""
 
 
 def setting(
     default: Any = None,
     *,
-    help: str,
-    unit: str | None,
+    help: str | None = None,
+    unit: str | None = None,
     preset: bool = False,
     cli: str | None = TRAINING,
     flag: str | None = None,
@@ -94,21 +63,17 @@ def setting(
     default_factory: Any = dataclasses.MISSING,
 ) -> Any:
     """
-    A setting of a command line, declared once as a dataclass field (:class:`TrainConfig`'s, the probe's and the
-    report's flags): the parser, the help, the range checks, ``--show-settings`` and the docs' tables read it
-    (:mod:`sb3_collapse.run.settings`).
+    A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.run.settings`).
 
     :param default: the default value (``None`` for a preset setting: the task's preset fills it)
-    :param help: what the setting is, one sentence; other settings are named in backticks (`` `reset_rule` ``),
-        which a command line shows as their flags
+    :param help: one sentence (default: the docstring under the field, :func:`declared`); other settings named in
+        backticks (`` `reset_rule` ``) show as their flags
     :param unit: what it counts in, one of :data:`UNITS` (``None``: not a count)
     :param preset: whether the task's preset fills it (one of :data:`~sb3_collapse.presets.SETTING_NAMES`)
-    :param cli: :data:`TRAINING` (a flag of the train CLI and the sweep), :data:`RUN` (the train CLI only) or
-        ``None`` (no flag); the probe's and the report's settings keep the default: a flag
-    :param flag: the flag, when not ``--<name-with-dashes>`` (``--no-<name>`` for a setting on by default); a
-        name without dashes is a positional argument
-    :param choices: the values it takes (each value, with ``nargs``), when there are few
-    :param minimum: the smallest value it takes (an integer for an integer setting)
+    :param cli: :data:`TRAINING`, :data:`RUN` or ``None`` (no flag)
+    :param flag: the flag, when not ``--<name>`` (``--no-<name>`` when on by default); no dashes: a positional
+    :param choices: the values it takes (each value, with ``nargs``)
+    :param minimum: the smallest value it takes
     :param maximum: the largest value it takes
     :param above: a bound its values must exceed
     :param zero_means: what ``0`` means, for a setting with ``minimum=0``
@@ -120,259 +85,143 @@ def setting(
     """
     if unit not in UNITS:
         raise ParameterError("unit", f"unit must be one of {UNITS}, got {unit!r}.")
-    metadata = dict(
-        help=help,
-        unit=unit,
-        preset=preset,
-        cli=cli,
-        flag=flag,
-        choices=choices,
-        minimum=minimum,
-        maximum=maximum,
-        above=above,
-        zero_means=zero_means,
-        nargs=nargs,
-        metavar=metavar,
-        required=required,
-    )
+    metadata = {key: value for key, value in locals().items() if key not in ("default", "default_factory")}
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
 
 
+def declared(cls: type) -> type:
+    """
+    Give each field of a dataclass declared with :func:`setting` without ``help`` the docstring under it (CleanRL).
+
+    :param cls: the dataclass
+    :return: the same class
+    :raises ParameterError: for a field with neither
+    """
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body  # type: ignore[attr-defined]
+    docs = {
+        node.target.id: " ".join(doc.value.value.split())
+        for node, doc in itertools.pairwise(body)
+        if isinstance(node, ast.AnnAssign) and isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant)
+    }
+    for field in dataclasses.fields(cls):  # type: ignore[arg-type]
+        if field.metadata["help"] is None:
+            if field.name not in docs:
+                raise ParameterError("help", f"{cls.__name__}.{field.name} has no help: write a docstring under it.")
+            field.metadata = types.MappingProxyType({**field.metadata, "help": docs[field.name]})
+    return cls
+
+
+@declared
 @dataclass
 class TrainConfig:
-    """
-    Settings of one training run (:func:`sb3_collapse.run.runner.train`). Each field's meaning, unit and flag are
-    declared with it (:func:`setting`), listed in ``docs/presets.md`` and by ``python -m sb3_collapse.train --help``.
+    """Settings of one training run (:func:`sb3_collapse.run.runner.train`), listed in ``docs/presets.md``; the
+    DrQ-v2 hyperparameters default to ``None``: :meth:`resolve` takes them from ``preset(env)``."""
 
-    **Per-task defaults.** Every DrQ-v2 hyperparameter (the fields of :class:`~sb3_collapse.presets.TaskPreset`)
-    defaults to ``None``: :meth:`resolve` takes it from ``preset(env)``. A value given explicitly overrides the
-    preset; :attr:`sources` says, for each of them, ``"preset"`` or ``"user"``. The preset's ``buffer_size`` is
-    capped at the run's agent steps (a larger buffer is never filled).
-    """
-
-    env: str = setting(
-        "walker-walk", help="dm_control task: walker-walk, cartpole-swingup, quadruped-run, ...", unit=None, cli=RUN
-    )
-    frames: int | None = setting(
-        help="training budget, in frames (easy tasks 1.1M, medium 3.1M, hard 30.1M)",
-        unit="frames",
-        preset=True,
-        minimum=1,
-    )
-    seed: int = setting(0, help="random seed (environment, networks, exploration)", unit=None, cli=RUN)
-    logdir: str = setting("runs", help="parent folder of the run folder <task>_s<seed>", unit=None, cli=RUN)
-    run_name: str | None = setting(help="name of the run folder instead of <task>_s<seed>", unit=None, cli=RUN)
-    run_dir: str | None = setting(
-        help="the exact run folder (created; new or empty, or an unfinished run to resume) instead of "
-        "`logdir`/`run_name`",
-        unit=None,
-        cli=RUN,
-    )
-    action_repeat: int | None = setting(help="frames per agent step", unit="frames", preset=True)
-    frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, preset=True)
-    size: int = setting(84, help="image height and width, in pixels", unit="pixels")
-    eval_every_frames: int | None = setting(
-        help="frames between evaluations of the deterministic policy, and one at frame 0, none at the budget's end "
-        "(sb3_collapse.paper.evaluation_schedule; the saved final model is evaluated apart)",
-        unit="frames",
-        preset=True,
-        minimum=0,
-        zero_means="no evaluation",
-    )
-    eval_episodes: int | None = setting(
-        help="episodes per evaluation (deterministic policy), on an evaluation environment seeded with `seed`, as "
-        "the reference seeds its own",
-        unit="episodes",
-        preset=True,
-        minimum=0,
-    )
-    checkpoint_every_frames: int = setting(
-        DEFAULT_CHECKPOINT_EVERY_FRAMES,
-        help="frames between two checkpoints of the run, to resume it (a SIGTERM "
-        "or SIGINT writes one too; deleted when the run finishes)",
-        unit="frames",
-        minimum=0,
-        zero_means="only at a signal",
-    )
-    seed_frames: int | None = setting(
-        help="frames of uniformly random actions before the first update", unit="frames", preset=True, minimum=0
-    )
-    batch_size: int | None = setting(
-        help="minibatch size of each update (walker tasks 512, others 256)", unit=None, preset=True
-    )
-    buffer_size: int | None = setting(
-        help="replay capacity, in transitions (agent steps); the preset's is capped at the run's agent steps",
-        unit="transitions",
-        preset=True,
-    )
-    learning_rate: float | None = setting(
-        help="Adam learning rate (humanoid 8e-5, others 1e-4)", unit=None, preset=True, flag="--lr"
-    )
-    n_steps: int | None = setting(
-        help="n-step return length, in agent steps (walker tasks 1, others 3)", unit="agent steps", preset=True
-    )
-    feature_dim: int | None = setting(
-        help="actor and critic trunk size (humanoid 100, others 50)", unit=None, preset=True
-    )
-    hidden_dim: int | None = setting(help="hidden units of the actor and the Q heads", unit=None, preset=True)
-    stddev_schedule: str | None = setting(
-        help="exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps",
-        unit="agent steps",
-        preset=True,
-    )
-    stddev_clip: float | None = setting(help="clip of the exploration noise in the updates", unit=None, preset=True)
-    tau: float | None = setting(help="soft-update coefficient of the target critic", unit=None, preset=True)
-    gamma: float | None = setting(help="discount factor", unit=None, preset=True)
-    train_freq: int | None = setting(
-        help="agent steps (summed over the environments) per update", unit="agent steps", preset=True
-    )
-    augmentation_pad: int | None = setting(
-        help="random-shift padding, in pixels (0: no augmentation)", unit="pixels", preset=True
-    )
-    replay_sampling: str | None = setting(
-        help="drqv2: finished episodes only, no n-step return started in an episode's last n-1 steps (DrQ-v2's); "
-        "sb3: the episode in progress too, returns truncated at the time limit (SB3's); see "
-        "sb3_collapse.drqv2.FrameStackReplayBuffer",
-        unit=None,
-        preset=True,
-        choices=REPLAY_SAMPLINGS,
-    )
+    env: str = setting("walker-walk", cli=RUN)
+    """dm_control task: walker-walk, cartpole-swingup, quadruped-run, ..."""
+    frames: int | None = setting(unit="frames", preset=True, minimum=1)
+    """training budget, in frames (easy tasks 1.1M, medium 3.1M, hard 30.1M)"""
+    seed: int = setting(0, cli=RUN)
+    """random seed (environment, networks, exploration)"""
+    logdir: str = setting("runs", cli=RUN)
+    """parent folder of the run folder <task>_s<seed>"""
+    run_name: str | None = setting(cli=RUN)
+    """name of the run folder instead of <task>_s<seed>"""
+    run_dir: str | None = setting(cli=RUN)
+    """the exact run folder (created; new or empty, or an unfinished run to resume) instead of `logdir`/`run_name`"""
+    action_repeat: int | None = setting(unit="frames", preset=True)
+    """frames per agent step"""
+    frame_stack: int | None = setting(preset=True)
+    """stacked RGB frames per observation"""
+    size: int = setting(84, unit="pixels")
+    """image height and width, in pixels"""
+    eval_every_frames: int | None = setting(unit="frames", preset=True, minimum=0, zero_means="no evaluation")
+    """frames between evaluations of the deterministic policy, from frame 0, none at the budget's end"""
+    eval_episodes: int | None = setting(unit="episodes", preset=True, minimum=0)
+    """episodes per evaluation, on an evaluation environment seeded with `seed`, as the reference seeds its own"""
+    checkpoint_every_frames: int = setting(100_000, unit="frames", minimum=0, zero_means="only at a signal")
+    """frames between two checkpoints, to resume the run (SIGTERM or SIGINT write one too; deleted at the end)"""
+    seed_frames: int | None = setting(unit="frames", preset=True, minimum=0)
+    """frames of uniformly random actions before the first update"""
+    batch_size: int | None = setting(preset=True)
+    """minibatch size of each update (walker tasks 512, others 256)"""
+    buffer_size: int | None = setting(unit="transitions", preset=True)
+    """replay capacity, in transitions (agent steps); the preset's is capped at the run's agent steps"""
+    learning_rate: float | None = setting(preset=True, flag="--lr")
+    """Adam learning rate (humanoid 8e-5, others 1e-4)"""
+    n_steps: int | None = setting(unit="agent steps", preset=True)
+    """n-step return length, in agent steps (walker tasks 1, others 3)"""
+    feature_dim: int | None = setting(preset=True)
+    """actor and critic trunk size (humanoid 100, others 50)"""
+    hidden_dim: int | None = setting(preset=True)
+    """hidden units of the actor and the Q heads"""
+    stddev_schedule: str | None = setting(unit="agent steps", preset=True)
+    """exploration std: a float, linear(init,final,duration) or step_linear(...), durations in agent steps"""
+    stddev_clip: float | None = setting(preset=True)
+    """clip of the exploration noise in the updates"""
+    tau: float | None = setting(preset=True)
+    """soft-update coefficient of the target critic"""
+    gamma: float | None = setting(preset=True)
+    """discount factor"""
+    train_freq: int | None = setting(unit="agent steps", preset=True)
+    """agent steps (summed over the environments) per update"""
+    augmentation_pad: int | None = setting(unit="pixels", preset=True)
+    """random-shift padding, in pixels (0: no augmentation)"""
+    replay_sampling: str | None = setting(preset=True, choices=REPLAY_SAMPLINGS)
+    """drqv2: DrQ-v2's (finished episodes, no return from their last n-1 steps); sb3: SB3's (docs/algorithm.md)"""
     collapse_metrics_every_frames: int = setting(
-        PAPER.check_every_frames,
-        help="frames between two checks of the collapse metrics of every named layer "
-        "(TensorBoard collapse/..., the collapse metrics CSV); the paper's by default",
-        unit="frames",
-        minimum=0,
-        zero_means="no checks",
+        PAPER.check_every_frames, unit="frames", minimum=0, zero_means="no checks"
     )
-    collapse_metrics_batch: int = setting(
-        512, help="replay observations per collapse-metrics check", unit="observations"
-    )
-    algorithm: str = setting(
-        "drqv2",
-        help="drqv2, or SB3's td3 or sac from the same pixels with DrQ-v2's network sizes "
-        "(sb3_collapse.baselines; they use neither the DrQ-v2-only settings nor layer transplants; "
-        "docs/interventions.md)",
-        unit=None,
-        cli=RUN,
-        choices=ALGORITHMS,
-    )
-    reset_rule: bool = setting(
-        False,
-        help="reset training from scratch when the agent has not escaped action collapse within each window "
-        "(the paper's rule, CollapseReset)",
-        unit=None,
-        cli=RUN,
-    )
-    intervention: str | None = setting(
-        help="what the reset rule does at the end of a window without escape instead of a reset from scratch (needs "
-        "`reset_rule`; sb3_collapse.monitoring.interventions, docs/interventions.md); default: reset, the paper's",
-        unit=None,
-        cli=RUN,
-        choices=tuple(INTERVENTIONS),
-    )
-    reset_window_frames: int = setting(
-        PAPER.window_frames, help="the reset rule's window, in frames (the paper's by default)", unit="frames"
-    )
-    activation: str = setting(
-        "relu",
-        help="hidden activation of DrQ-v2's encoder, actor and critic: relu, or leaky_relu with negative "
-        "slope 0.01 (the paper's footnote 1 ablation); DrQ-v2 only",
-        unit=None,
-        cli=RUN,
-        choices=ACTIVATIONS,
-    )
-    redo_every_updates: int = setting(
-        0,
-        help="recycle the dormant units (convolution channels included) every this many updates for the whole "
-        "run, as ReDo does (Sokar et al., 2023; PeriodicReDo, docs/interventions.md)",
-        unit="updates",
-        cli=RUN,
-        minimum=0,
-        zero_means="no ReDo",
-    )
-    init_cnn: str | None = setting(
-        help="start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; DrQv2's init_from, the paper's layer "
-        "transplants); default: random",
-        unit=None,
-        cli=RUN,
-    )
-    init_mlp: str | None = setting(
-        help="start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random", unit=None, cli=RUN
-    )
-    init_critic: str | None = setting(
-        help="start the critic (and target critic) from this DrQv2 checkpoint (zip); default: random",
-        unit=None,
-        cli=RUN,
-    )
-    n_envs: int = setting(
-        1,
-        help="training environments, in subprocesses when more than 1 (seeds seed, seed + 1...); frames and "
-        "agent steps are summed over them, with one update per `train_freq` transitions as with one; the "
-        "evaluation environment stays single",
-        unit=None,
-        minimum=1,
-    )
-    step_envs_during_updates: bool = setting(
-        False,
-        help="step the environments (in subprocesses) while the learner updates: the actions of that step "
-        "come from the weights before the updates (DrQ-v2's reference order)",
-        unit=None,
-    )
-    compile_update: bool = setting(
-        False,
-        help="compile the update with torch.compile (CUDA graphs on CUDA); compilation takes about a minute "
-        "at the first update on a CPU",
-        unit=None,
-    )
-    tf32: bool = setting(
-        True,
-        help="let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it (no effect on the "
-        "CPU; sb3_collapse.backends)",
-        unit=None,
-    )
-    deterministic: bool = setting(
-        False,
-        help="reproducible CUDA kernels: cuDNN's autotuner off, deterministic algorithms where torch has them "
-        "(slower on a GPU; the CPU is deterministic anyway)",
-        unit=None,
-    )
+    """frames between two checks of the collapse metrics of every named layer; the paper's by default"""
+    collapse_metrics_batch: int = setting(512, unit="observations", minimum=2)
+    """replay observations per collapse-metrics check (correlations need pairs)"""
+    algorithm: str = setting("drqv2", cli=RUN, choices=ALGORITHMS)
+    """drqv2, or SB3's td3 or sac with DrQ-v2's network sizes, without transplants (docs/interventions.md)"""
+    reset_rule: bool = setting(False, cli=RUN)
+    """reset from scratch when the agent has not escaped action collapse within a window (the paper's rule)"""
+    intervention: str | None = setting(cli=RUN, choices=tuple(INTERVENTIONS))
+    """what the reset rule does instead of the paper's reset from scratch (needs `reset_rule`; docs/interventions.md)"""
+    reset_window_frames: int = setting(PAPER.window_frames, unit="frames")
+    """the reset rule's window, in frames (the paper's by default)"""
+    activation: str = setting("relu", cli=RUN, choices=ACTIVATIONS)
+    """hidden activation of DrQ-v2's networks: relu, or leaky_relu of slope 0.01 (the paper's footnote 1)"""
+    redo_every_updates: int = setting(0, unit="updates", cli=RUN, minimum=0, zero_means="no ReDo")
+    """recycle the dormant units (convolutions' too) every this many updates, as ReDo (docs/interventions.md)"""
+    init_cnn: str | None = setting(cli=RUN)
+    """start the encoder (cnn1..cnn4) from this DrQv2 checkpoint (zip; a layer transplant); default: random"""
+    init_mlp: str | None = setting(cli=RUN)
+    """start the actor (mlp0..action) from this DrQv2 checkpoint (zip); default: random"""
+    init_critic: str | None = setting(cli=RUN)
+    """start the critic (and target critic) from this DrQv2 checkpoint (zip); default: random"""
+    n_envs: int = setting(1, minimum=1)
+    """training environments, in subprocesses when > 1; frames summed over them (docs/throughput.md)"""
+    step_envs_during_updates: bool = setting(False)
+    """step the environments while the learner updates, with the weights before them (DrQ-v2's order)"""
+    compile_update: bool = setting(False)
+    """compile the update with torch.compile (CUDA graphs on CUDA; about a minute at the first update on a CPU)"""
+    tf32: bool = setting(True)
+    """let float32 matmuls and convolutions use TensorFloat-32 on CUDA GPUs that have it (sb3_collapse.backends)"""
+    deterministic: bool = setting(False)
+    """reproducible CUDA kernels: no cuDNN autotuner, deterministic algorithms (slower on a GPU)"""
     snapshots: bool = setting(
-        False,
-        help="save the encoder and actor (sizes: benchmarks/README.md#checkpoint-sizes) at every evaluation and at the "
-        f"end into <run>/{SNAPSHOTS_DIR}/, for python -m sb3_collapse.probe sweep (Figure 2); DrQ-v2 only, needs "
-        "evaluations",
-        unit=None,
+        False, help=f"save the encoder and actor at every evaluation and the end into <run>/{SNAPSHOTS_DIR}/ (Figure 2)"
     )
-    device: str = setting("auto", help="auto, cpu, cuda, cuda:1, ...", unit=None, cli=RUN)
-    torch_threads: int | None = setting(
-        help="threads of torch's CPU operations (torch.set_num_threads); default: torch's",
-        unit=None,
-        cli=RUN,
-        minimum=1,
-    )
-    progress_bar: bool = setting(True, help="show a progress bar", unit=None, cli=RUN)
-    verbose: int = setting(0, help="SB3 verbosity (0: silent, 1: SB3's log tables)", unit=None)
-    variant: str | None = setting(
-        help="name of the variant in the settings and the result; default: <algorithm>+<intervention> with the reset "
-        "rule (drqv2+reset), else <algorithm> (drqv2)",
-        unit=None,
-        cli=None,
-    )
-    transplant: dict[str, str] | None = setting(  # noqa: RUF009 - setting() returns a dataclass field
-        help="the sources of the initial weights, as the sweep's transplant grid names them ({cnn: blank | good | "
-        "bad, mlp: ...}), recorded in the settings; default: not a grid cell",
-        unit=None,
-        cli=None,
-    )
-    sources: dict[str, str] = setting(  # noqa: RUF009 - setting() returns a dataclass field
-        help='for each preset setting, "preset" or "user" (where its value came from); filled by resolve()',
-        unit=None,
-        cli=None,
-        default_factory=dict,
-    )
+    device: str = setting("auto", cli=RUN)
+    """auto, cpu, cuda, cuda:1, ..."""
+    torch_threads: int | None = setting(cli=RUN, minimum=1)
+    """threads of torch's CPU operations (torch.set_num_threads); default: torch's"""
+    progress_bar: bool = setting(True, cli=RUN)
+    """show a progress bar"""
+    verbose: int = setting(0)
+    """SB3 verbosity (0: silent, 1: SB3's log tables)"""
+    variant: str | None = setting(cli=None)
+    """name of the variant; default: <algorithm>+<intervention> with the reset rule (drqv2+reset), else <algorithm>"""
+    transplant: dict[str, str] | None = setting(cli=None)  # noqa: RUF009 - setting() returns a dataclass field
+    """the sources of the initial weights in the sweep's transplant grid ({cnn: blank | good | bad, ...}), if any"""
+    sources: dict[str, str] = setting(cli=None, default_factory=dict)  # noqa: RUF009 - a dataclass field
+    """for each preset setting, "preset" or "user" (where its value came from); filled by resolve()"""
 
     @property
     def preset(self) -> TaskPreset:
@@ -386,22 +235,17 @@ class TrainConfig:
 
     def resolve(self) -> TrainConfig:
         """
-        These settings with every preset setting left at ``None`` taken from the task's preset, and
-        :attr:`sources` filled in.
-
-        :return: a new, resolved config (this one is not changed)
+        :return: a new config with every preset setting left at ``None`` taken from the task's preset, and
+            :attr:`sources` filled in; the preset's ``buffer_size`` is capped at the run's agent steps
         :raises ParameterError: for an unknown task (``env``)
         """
         try:
             task_preset = self.preset
         except ValueError as error:
             raise ParameterError("env", f"env: {error}") from None
-        values: dict[str, Any] = {}
-        sources: dict[str, str] = {}
-        for name in SETTING_NAMES:
-            value = getattr(self, name)
-            sources[name] = self.sources.get(name, USER if value is not None else PRESET)
-            values[name] = getattr(task_preset, name) if value is None else value
+        given = {name: getattr(self, name) for name in SETTING_NAMES}
+        sources = {name: self.sources.get(name, PRESET if value is None else USER) for name, value in given.items()}
+        values = {name: getattr(task_preset, name) if value is None else value for name, value in given.items()}
         if sources["buffer_size"] == PRESET:  # a larger buffer is never filled
             steps = max(1, values["frames"] // max(1, values["action_repeat"]))
             values["buffer_size"] = min(values["buffer_size"], steps)
@@ -409,43 +253,40 @@ class TrainConfig:
 
     def validate(self) -> None:
         """
-        Check every setting that can be checked before anything is built or written, without the file system's
-        state (preset settings are checked as resolved; the run folder:
+        Check every setting before anything is built or written, each by the code that owns it (the run folder:
         :func:`~sb3_collapse.run.folder.check_run_folder`).
-        Each value is checked where it is owned: the env's settings by ``make_dmc_env``'s check, the algorithm's by
-        ``DrQv2``'s, the callbacks' by their constructors; the run's own here, the choices and minimums of the
-        fields' declarations first.
 
         :raises ParameterError: with a message naming the bad setting
         """
         config = self if self.resolved else self.resolve()
         for field in dataclasses.fields(config):
-            _check_declared(field, getattr(config, field.name))
+            if (problem := declared_problem(field, getattr(config, field.name), integer=True)) is not None:
+                raise ParameterError(field.name, f"{field.name} {problem}")
+        # A budget counts whole agent steps (frames // action_repeat); the preset's replay buffer is capped there.
+        steps, needed = config.frames // config.action_repeat, 1  # type: ignore[operator]
+        if config.algorithm == "drqv2" and config.sources.get("buffer_size") == PRESET:
+            needed = config.n_steps * config.n_envs  # type: ignore[operator]
+        if steps < needed:
+            why = f"; the replay buffer they cap needs n_steps={config.n_steps} per environment" if needed > 1 else ""
+            steps_of = f"a budget counts whole agent steps of action_repeat={config.action_repeat} frames{why}"
+            message = f"frames must be >= {needed * config.action_repeat}: {steps_of}; got {config.frames}."
+            raise ParameterError("frames", message)
         if config.intervention is not None and not config.reset_rule:
-            raise ParameterError(
-                "intervention", f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
-            )
+            message = f"intervention={config.intervention!r} is what the reset rule does: set reset_rule."
+            raise ParameterError("intervention", message)
+        if config.snapshots and (config.algorithm != "drqv2" or config.eval_every_frames == 0):
+            got = f"got algorithm={config.algorithm!r}, eval_every_frames={config.eval_every_frames}"
+            need = f"they need algorithm='drqv2' and eval_every_frames > 0 ({got})"
+            raise ParameterError("snapshots", f"snapshots are saved at every evaluation of a DrQ-v2 run: {need}.")
         if config.algorithm != "drqv2":
             _check_drqv2_only(config)
-        if config.snapshots and config.eval_every_frames == 0:
-            raise ParameterError(
-                "snapshots",
-                "snapshots are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
-                f"eval_every_frames > 0 (got algorithm={config.algorithm!r}, "
-                f"eval_every_frames={config.eval_every_frames}).",
-            )
         if config.eval_every_frames > 0 and config.eval_episodes < 1:  # type: ignore[operator]
             raise ParameterError(
                 "eval_episodes", "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
             )
-        owners = (
-            ("stddev_schedule", lambda: StddevSchedule(config.stddev_schedule)),
-            ("collapse_metrics_batch", lambda: CollapseMetrics(batch_size=config.collapse_metrics_batch)),
-            ("reset_window_frames", lambda: CollapseReset(config.reset_window_frames)),
-        )
-        for name, build in owners:
+        for name, owner in (("stddev_schedule", StddevSchedule), ("reset_window_frames", CollapseReset)):
             try:
-                build()
+                owner(getattr(config, name))
             except ValueError as error:
                 raise ParameterError(name, f"{name}: {error}") from None
         check_env_arguments(**env_kwargs(config))
@@ -481,17 +322,14 @@ class TrainConfig:
         return f"{base}+redo_periodic" if self.redo_every_updates > 0 else base
 
     def record(self) -> dict[str, Any]:
-        """
-        The content of the run's settings file: every setting (resolved), ``variant``, ``preset`` (the task's
-        preset: ``task``, ``tier``, ``from_drqv2``) and ``sources`` (preset setting -> ``"preset"`` or ``"user"``).
-        """
+        """:return: the run's settings file: every setting (resolved), ``variant``, ``preset`` and ``sources``"""
         config = self if self.resolved else self.resolve()
-        task_preset = config.preset
-        return {
-            **dataclasses.asdict(config),
-            "variant": config.variant_name,
-            "preset": {"task": task_preset.task, "tier": task_preset.tier, "from_drqv2": task_preset.from_drqv2},
-        }
+        task = config.preset
+        preset_record = {"task": task.task, "tier": task.tier, "from_drqv2": task.from_drqv2}
+        return {**dataclasses.asdict(config), "variant": config.variant_name, "preset": preset_record}
+
+
+_BOUNDS = (("minimum", ">=", operator.ge), ("maximum", "<=", operator.le), ("above", ">", operator.gt))
 
 
 def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str | None:
@@ -507,62 +345,34 @@ def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str
         return None
     if metadata["choices"] is not None and value not in metadata["choices"]:
         return f"must be one of {', '.join(metadata['choices'])}, got {value!r}."
-    bounds = [(f">= {metadata['minimum']}", metadata["minimum"], lambda v, b: v >= b)]
-    bounds += [(f"<= {metadata['maximum']}", metadata["maximum"], lambda v, b: v <= b)]
-    bounds += [(f"> {metadata['above']}", metadata["above"], lambda v, b: v > b)]
     zero = f" (0: {metadata['zero_means']})" if metadata["zero_means"] else ""
-    for text, bound, holds in bounds:
-        if bound is None:
+    for key, sign, holds in _BOUNDS:
+        if metadata[key] is None:
             continue
-        kind = int if integer else (int, float)
-        if isinstance(value, bool) or not isinstance(value, kind):
-            return f"must be {'an integer' if integer else 'a number'} {text}{zero}, got {value!r}."
-        if not holds(value, bound):
-            return f"must be {text}{zero}, got {value}."
+        if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)):
+            return f"must be {'an integer' if integer else 'a number'} {sign} {metadata[key]}{zero}, got {value!r}."
+        if not holds(value, metadata[key]):
+            return f"must be {sign} {metadata[key]}{zero}, got {value}."
     return None
-
-
-def _check_declared(field: dataclasses.Field, value: Any) -> None:
-    """Check ``value`` against its :class:`TrainConfig` field's declared ``choices`` and bounds."""
-    problem = declared_problem(field, value, integer=True)
-    if problem is not None:
-        raise ParameterError(field.name, f"{field.name} {problem}")
 
 
 def _check_drqv2_only(config: TrainConfig) -> None:
     """Refuse DrQ-v2's own options for SB3's TD3 or SAC (``config.algorithm``)."""
     algorithm = config.algorithm
     if config.activation != "relu":
-        raise ParameterError(
-            "activation",
-            f"activation={config.activation!r} is a DrQ-v2 option; algorithm={algorithm!r} keeps SB3's ReLU networks.",
-        )
+        message = f"is a DrQ-v2 option; algorithm={algorithm!r} keeps SB3's ReLU networks."
+        raise ParameterError("activation", f"activation={config.activation!r} {message}")
     if config.size < NATURE_CNN_MIN_SIZE:
-        raise ParameterError(
-            "size",
-            f"size must be >= {NATURE_CNN_MIN_SIZE} pixels for algorithm={algorithm!r} (SB3's NatureCNN), "
-            f"got {config.size}.",
-        )
+        message = f"pixels for algorithm={algorithm!r} (SB3's NatureCNN), got {config.size}."
+        raise ParameterError("size", f"size must be >= {NATURE_CNN_MIN_SIZE} {message}")
     for name, default in (("n_envs", 1), ("step_envs_during_updates", False), ("compile_update", False)):
-        if getattr(config, name) != default:
-            raise ParameterError(
-                name,
-                f"{name}={getattr(config, name)!r} is a DrQv2 option (docs/throughput.md); algorithm="
-                f"{algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}.",
-            )
-    if config.snapshots:
-        raise ParameterError(
-            "snapshots",
-            "snapshots are saved at every evaluation of a DrQ-v2 run: they need algorithm='drqv2' and "
-            f"eval_every_frames > 0 (got algorithm={algorithm!r}, eval_every_frames={config.eval_every_frames}).",
-        )
+        if (value := getattr(config, name)) != default:
+            message = f"algorithm={algorithm!r} trains with one environment and SB3's loop: leave it at {default!r}."
+            raise ParameterError(name, f"{name}={value!r} is a DrQv2 option (docs/throughput.md); {message}")
     if config.init_from:
         group = next(iter(config.init_from))
-        raise ParameterError(
-            f"init_{group}",
-            f"init_{group}: layer transplants are for DrQ-v2 checkpoints; algorithm={algorithm!r} cannot start "
-            "from them.",
-        )
+        message = f"layer transplants are for DrQ-v2 checkpoints; algorithm={algorithm!r} cannot start from them."
+        raise ParameterError(f"init_{group}", f"init_{group}: {message}")
 
 
 def env_kwargs(config: TrainConfig) -> dict[str, Any]:
@@ -573,50 +383,31 @@ def env_kwargs(config: TrainConfig) -> dict[str, Any]:
     return dict(action_repeat=config.action_repeat, frame_stack=config.frame_stack, size=config.size)
 
 
+def _model_kwargs(config: TrainConfig, *names: str) -> dict[str, Any]:
+    """The keyword arguments that ``DrQv2`` and SB3's TD3 and SAC share, and the settings ``names``."""
+    shared = ("learning_rate", "buffer_size", "batch_size", "gamma", "seed", "device", "verbose", *names)
+    learning_starts = config.seed_frames // config.action_repeat  # type: ignore[operator]
+    return {name: getattr(config, name) for name in shared} | {"learning_starts": learning_starts}
+
+
 def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
     """
     :param config: resolved settings
-    :return: the keyword arguments of ``DrQv2(policy, env, ...)`` for these settings
+    :return: the keyword arguments of ``DrQv2(policy, env, ...)``
     """
+    same = ("tau", "n_steps", "stddev_schedule", "stddev_clip", "augmentation_pad", "step_envs_during_updates")
     return dict(
-        learning_rate=config.learning_rate,
-        buffer_size=config.buffer_size,
-        learning_starts=config.seed_frames // config.action_repeat,  # type: ignore[operator]
-        batch_size=config.batch_size,
-        tau=config.tau,
-        gamma=config.gamma,
+        _model_kwargs(config, *same, "compile_update"),
         train_freq=(config.train_freq, "transition"),  # DrQ-v2's ratio with any number of environments
-        n_steps=config.n_steps,
-        stddev_schedule=config.stddev_schedule,
-        stddev_clip=config.stddev_clip,
-        augmentation_pad=config.augmentation_pad,
         replay_buffer_kwargs=dict(sampling=config.replay_sampling),
         policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
-        seed=config.seed,
-        device=config.device,
-        verbose=config.verbose,
         init_from=config.init_from or None,
-        step_envs_during_updates=config.step_envs_during_updates,
-        compile_update=config.compile_update,
     )
 
 
 def baseline_kwargs(config: TrainConfig) -> dict[str, Any]:
     """
     :param config: resolved settings (``algorithm`` one of :data:`~sb3_collapse.baselines.BASELINES`)
-    :return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` (after the algorithm and the
-        env) for these settings; the DrQ-v2-only settings are not among them
+    :return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` after the algorithm and the env
     """
-    return dict(
-        learning_rate=config.learning_rate,
-        buffer_size=config.buffer_size,
-        learning_starts=config.seed_frames // config.action_repeat,  # type: ignore[operator]
-        batch_size=config.batch_size,
-        feature_dim=config.feature_dim,
-        hidden_dim=config.hidden_dim,
-        gamma=config.gamma,
-        frame_stack=config.frame_stack,
-        seed=config.seed,
-        device=config.device,
-        verbose=config.verbose,
-    )
+    return _model_kwargs(config, "feature_dim", "hidden_dim", "frame_stack")

@@ -1,15 +1,5 @@
-"""Keep large freed CPU buffers in the process, so that DrQ-v2 updates on the CPU do not page-fault.
-
-Every DrQ-v2 update allocates and frees activations and gradients of tens of MB (``256 x 32 x 41 x 41`` floats).
-glibc's ``malloc`` serves blocks over 32 MB with a fresh ``mmap`` and returns them with ``munmap`` when freed, so
-each update touches hundreds of MB of new pages, which the kernel zero-fills on first write (what this costs:
-benchmarks/README.md#notes-on-what-each-measures).
-
-:func:`tune_cpu_allocator` raises glibc's mmap threshold to 1 GiB and stops heap trimming, so freed blocks
-are reused. The cost: the process keeps its peak heap instead of returning it to the system. Blocks over
-1 GiB (replay buffers, say) are still mapped lazily. It only affects CPU tensors; CUDA memory has its own
-caching allocator. Set ``SB3_COLLAPSE_TUNE_MALLOC=0`` to leave the allocator alone.
-"""
+"""Keep large freed CPU buffers in the process, so that DrQ-v2 updates on the CPU do not page-fault (glibc serves
+blocks over 32 MB with a fresh ``mmap``, zero-filled at every update; docs/algorithm.md)."""
 
 from __future__ import annotations
 
@@ -20,14 +10,14 @@ import os
 MMAP_THRESHOLD_BYTES = 1 << 30
 """Blocks below this size come from the heap and are reused after being freed."""
 
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt's options (glibc's malloc.h)
 _tuned = False
 
 
 def tune_cpu_allocator() -> bool:
     """
-    Raise glibc's mmap threshold and trim threshold (see the module docstring), once per process.
+    Raise glibc's mmap and trim thresholds to :data:`MMAP_THRESHOLD_BYTES`, once per process: freed blocks below it
+    are reused (the process keeps its peak heap). CPU tensors only; ``SB3_COLLAPSE_TUNE_MALLOC=0`` leaves it alone.
 
     :return: whether the allocator is tuned: ``False`` where the C library is not glibc, or when the
         environment variable ``SB3_COLLAPSE_TUNE_MALLOC`` is ``0``
@@ -46,7 +36,5 @@ def tune_cpu_allocator() -> bool:
     except (OSError, AttributeError):  # not glibc (musl, macOS, Windows)
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    _tuned = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
-        mallopt(_M_TRIM_THRESHOLD, MMAP_THRESHOLD_BYTES)
-    )
+    _tuned = all(mallopt(option, MMAP_THRESHOLD_BYTES) for option in (_M_MMAP_THRESHOLD, _M_TRIM_THRESHOLD))
     return _tuned

@@ -1,8 +1,4 @@
-"""
-The SB3 logger of a run resumed from a checkpoint (:func:`resumed_logger`): ``progress.csv`` and the TensorBoard
-events continue after the checkpoint, the other CSV files are cut back to their lines at that time
-(:func:`keep_lines`), and the values recorded but not dumped yet come back.
-"""
+"""The SB3 logger of a run resumed from a checkpoint: its logs continue after the checkpoint (docs/checkpoints.md)."""
 
 from __future__ import annotations
 
@@ -35,8 +31,7 @@ class _ResumedCSVOutputFormat(CSVOutputFormat):
         header = self.file.readline().strip()
         self.keys = header.split(",") if header else []
         self.file.seek(0, os.SEEK_END)
-        self.separator = ","
-        self.quotechar = '"'
+        self.separator, self.quotechar = ",", '"'
 
 
 class _ResumedTensorBoardOutputFormat(TensorBoardOutputFormat):
@@ -53,11 +48,11 @@ def keep_lines(path: Path, lines: int) -> None:
 
     :param path: the file (nothing happens if it does not exist)
     :param lines: lines to keep
+    :raises CheckpointError: when the file has fewer lines
     """
     if not path.is_file():
         return
-    with path.open("rb") as file:
-        content = file.read()
+    content = path.read_bytes()
     kept = content.splitlines(keepends=True)[:lines]
     if len(kept) < lines:
         raise CheckpointError(f"{path} has fewer lines ({len(kept)}) than when the checkpoint was taken ({lines}).")
@@ -71,9 +66,8 @@ def keep_lines(path: Path, lines: int) -> None:
 
 def resumed_logger(run_dir: Path, formats: Sequence[str], checkpoint: LoadedCheckpoint | None) -> Logger:
     """
-    The run's SB3 logger: a new one (``configure``), or, resuming, one that continues ``progress.csv`` and the
-    TensorBoard events after the checkpoint, with the values recorded but not dumped yet when it was taken. The
-    other CSV files the checkpoint counted are cut back to their lines at that time.
+    The run's SB3 logger: a new one, or one that continues ``progress.csv`` and the TensorBoard events after the
+    checkpoint with the values not dumped yet; the other CSV files it counted are cut back to their lines then.
 
     :param run_dir: the run folder
     :param formats: SB3 output formats (``"stdout"``, ``"csv"``, ``"tensorboard"``)

@@ -1,10 +1,5 @@
-"""Where the wall-clock time of ``learn()`` goes: waiting for the environments, updating, and the rest.
-
-A :class:`LearnTimer` callback fills a :class:`LearnTimings` (seconds per phase) during every ``learn()`` call it is
-given to; the environments' time comes from a :class:`TimedVecEnv` around the model's ``VecEnv``, the device time of
-the updates on CUDA from :class:`UpdateClock`. What each phase and key counts:
-docs/throughput.md#where-the-time-goes-learntimer-resultjson.
-"""
+"""Where the wall-clock time of ``learn()`` goes: waiting for the environments, updating, and the rest
+(docs/throughput.md#where-the-time-goes-learntimer-resultjson)."""
 
 from __future__ import annotations
 
@@ -23,7 +18,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 @dataclass
 class PhaseTime:
     """
-    Seconds and counts of one phase of ``learn()`` (see the module docstring).
+    Seconds and counts of one phase of ``learn()``.
 
     :param rounds: rounds of the loop (environment steps up to an update, then the updates)
     :param transitions: transitions collected, summed over the environments (agent steps x ``n_envs``)
@@ -58,8 +53,7 @@ class LearnTimings:
 
     :param warmup: rounds of uniformly random actions without updates
     :param learning: the other rounds
-    :param first_round_s: seconds of the first round of updates of the call (one-time costs included); ``None``
-        before any update
+    :param first_round_s: seconds of the call's first round of updates (one-time costs included); ``None`` before
     :param first_round_updates: updates in that round
     """
 
@@ -69,11 +63,8 @@ class LearnTimings:
     first_round_updates: int = 0
 
     def steady_learning_s(self) -> float:
-        """
-        Seconds of the ``learning`` phase with the first round of updates replaced by the mean time of the same
-        number of later updates: the phase's duration without the one-time costs (compilation, autotuning).
-        Equal to ``learning.total_s`` before the second round of updates.
-        """
+        """Seconds of the ``learning`` phase with its first round of updates counted at the mean time of the later
+        updates (without one-time costs); ``learning.total_s`` before the second round of updates."""
         phase = self.learning
         if self.first_round_s is None or phase.updates <= self.first_round_updates:
             return phase.total_s
@@ -82,29 +73,17 @@ class LearnTimings:
 
     def as_dict(self) -> dict[str, Any]:
         """The timings as plain JSON types, with ``overhead_s`` of each phase."""
-        phases = {
-            name: {**dataclasses.asdict(getattr(self, name)), "overhead_s": getattr(self, name).overhead_s}
-            for name in ("warmup", "learning")
-        }
-        return {
-            **phases,
-            "first_round_s": self.first_round_s,
-            "first_round_updates": self.first_round_updates,
-            "steady_learning_s": self.steady_learning_s(),
-        }
+        timings = dataclasses.asdict(self)
+        for name in ("warmup", "learning"):
+            timings[name]["overhead_s"] = getattr(self, name).overhead_s
+        return {**timings, "steady_learning_s": self.steady_learning_s()}
 
 
 class UpdateClock:
     """
-    The device time of the rounds of updates on CUDA (docs/throughput.md#where-the-time-goes-learntimer-resultjson);
-    nothing on other devices.
-
-    Both events of a round are recorded on the current stream of the model's device, with that device made current
-    (``torch.cuda.device``): a model on ``cuda:1`` while ``cuda:0`` is the current device is timed on ``cuda:1``
-    (``Event.elapsed_time`` needs two events of one device).
-
-    Use: ``start = clock.start(device)`` before ``train``, ``clock.stop(start, phase, host_s)`` once the round is added
-    to ``phase``, :meth:`collect` now and then, ``collect(wait=True)`` at the end.
+    The device time of the rounds of updates on CUDA, from two events per round on the model's device's current
+    stream; nothing on other devices. ``start = clock.start(device)`` before the updates, ``clock.stop(start, phase,
+    host_s)`` once the round is added to ``phase``, :meth:`collect` now and then, ``collect(wait=True)`` at the end.
     """
 
     def __init__(self) -> None:
@@ -112,29 +91,23 @@ class UpdateClock:
 
     @staticmethod
     def _record(device: th.device) -> Any:
-        """:return: a timing CUDA event recorded on ``device``'s current stream, with ``device`` current"""
-        with th.cuda.device(device):
+        with th.cuda.device(device):  # that device's events, though another one is current
             event = th.cuda.Event(enable_timing=True)
             event.record(th.cuda.current_stream(device))
         return event
 
     def start(self, device: th.device) -> tuple[th.device, Any] | None:
         """:return: ``device`` and a CUDA event recorded on its current stream, ``None`` off CUDA"""
-        if device.type != "cuda":
-            return None
-        return device, self._record(device)
+        return (device, self._record(device)) if device.type == "cuda" else None
 
     def stop(self, start: tuple[th.device, Any] | None, phase: PhaseTime, host_s: float) -> None:
         """
-        :param start: what :meth:`start` returned (nothing happens for ``None``); the end event is recorded on the
-            same device's current stream
+        :param start: what :meth:`start` returned (nothing happens for ``None``)
         :param phase: the phase the round was added to
         :param host_s: the round's ``update_s`` measured on the host, already in ``phase``
         """
-        if start is None:
-            return
-        device, event = start
-        self._pending.append((event, self._record(device), phase, host_s))
+        if start is not None:
+            self._pending.append((start[1], self._record(start[0]), phase, host_s))
 
     def collect(self, wait: bool = False) -> None:
         """
@@ -155,7 +128,7 @@ class UpdateClock:
 
 class TimedVecEnv(VecEnvWrapper):
     """
-    A ``VecEnv`` that adds the seconds spent in its ``step_async`` and ``step_wait`` to :attr:`env_s`.
+    A ``VecEnv`` that adds the seconds spent in its ``step_async`` and ``step_wait`` to ``env_s``.
 
     :param venv: the environments
     """
@@ -163,7 +136,6 @@ class TimedVecEnv(VecEnvWrapper):
     def __init__(self, venv: VecEnv) -> None:
         super().__init__(venv)
         self.env_s = 0.0
-        """Seconds in ``step_async`` and ``step_wait`` since the wrapper was made."""
 
     def reset(self) -> Any:
         return self.venv.reset()
@@ -183,10 +155,9 @@ class TimedVecEnv(VecEnvWrapper):
 
 class LearnTimer(BaseCallback):
     """
-    Fills :attr:`timings` during each ``learn()`` of a model whose loop runs in rounds (``DrQv2``): a round starts
-    at ``on_rollout_start``; its environment steps end at ``on_rollout_end``; its updates last until the next
-    round starts (or the training ends). Give it last in the callback list, so that the other callbacks' rollout
-    hooks count as overhead.
+    Fills :attr:`timings` during each ``learn()`` of a model whose loop runs in rounds (``DrQv2``): a round's
+    environment steps run from ``on_rollout_start`` to ``on_rollout_end``, its updates until the next round. Give it
+    last in the callback list, so that the other callbacks' hooks count as overhead.
 
     :param env: the model's environments wrapped in a :class:`TimedVecEnv`, for ``env_s``; ``None``: ``env_s`` is 0
     """
@@ -194,25 +165,20 @@ class LearnTimer(BaseCallback):
     def __init__(self, env: TimedVecEnv | None = None) -> None:
         super().__init__()
         self.env = env
-        self.timings = LearnTimings()
-        """The time split of the current (or last) ``learn()`` call."""
-        self.clock = UpdateClock()
-        self._round: PhaseTime | None = None
-        self._used_policy = False
-        self._start = self._steps_end = 0.0
-        self._env_start = 0.0
-        self._updates_at_steps_end = 0
+        self._on_training_start()  # timings: the time split of the current (or last) learn() call
+        self._used_policy, self._updates_at_steps_end = False, 0
+        self._start = self._steps_end = self._env_start = 0.0
         self._device_start: Any = None
 
     def _on_training_start(self) -> None:
-        self.timings, self.clock, self._round = LearnTimings(), UpdateClock(), None
+        self.timings, self.clock = LearnTimings(), UpdateClock()
+        self._round: PhaseTime | None = None
 
     def _on_rollout_start(self) -> None:
         self._close_round()
         self.clock.collect()  # the device time of earlier rounds that has completed
         self._round, self._used_policy = PhaseTime(rounds=1, transitions=-self.model.num_timesteps), False
-        self._start, self._env_start = time.perf_counter(), self._env_s()
-        self._steps_end = 0.0
+        self._start, self._env_start, self._steps_end = time.perf_counter(), self._env_s(), 0.0
 
     def _on_step(self) -> bool:
         # The step's actions were chosen before it: from the policy unless the model was in its warm-up then.
@@ -222,12 +188,16 @@ class LearnTimer(BaseCallback):
         return True
 
     def _on_rollout_end(self) -> None:
+        self._end_steps()
+        self._device_start = self.clock.start(self.model.device)
+
+    def _end_steps(self) -> None:
+        """End the environment steps of the round in progress."""
         assert self._round is not None
         self._steps_end = time.perf_counter()
         self._round.transitions += self.model.num_timesteps
         self._round.env_s = self._env_s() - self._env_start
         self._updates_at_steps_end = self.model.n_updates
-        self._device_start = self.clock.start(self.model.device)
 
     def _on_training_end(self) -> None:
         self._close_round()
@@ -235,14 +205,12 @@ class LearnTimer(BaseCallback):
 
     def _close_round(self) -> None:
         """Add the round in progress to its phase (a round stopped by a callback before its updates included)."""
-        round_, self._round = self._round, None
-        if round_ is None:
+        if self._round is None:
             return
-        now = time.perf_counter()
         if self._steps_end == 0.0:  # stopped during its environment steps
-            round_.transitions += self.model.num_timesteps
-            round_.env_s = self._env_s() - self._env_start
-            self._steps_end, self._updates_at_steps_end, self._device_start = now, self.model.n_updates, None
+            self._end_steps()
+            self._device_start = None
+        round_, self._round, now = self._round, None, time.perf_counter()
         round_.updates = self.model.n_updates - self._updates_at_steps_end
         round_.update_s = now - self._steps_end if round_.updates > 0 else 0.0
         round_.total_s = now - self._start

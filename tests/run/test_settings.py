@@ -15,12 +15,12 @@ from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.probe import ProbeSettings
 from sb3_collapse.probe.pipeline import RecordOptions
 from sb3_collapse.report import probe_outputs
-from sb3_collapse.run.config import RUN, TRAINING, UNITS, TrainConfig, setting
+from sb3_collapse.run.config import RUN, TRAINING, UNITS, TrainConfig, declared, setting
 from sb3_collapse.run.settings import (
     FLAGS_END,
     MARKDOWN_BEGIN,
     MARKDOWN_END,
-    fields,
+    CommandLine,
     flag_of,
     main,
     prog_name,
@@ -31,10 +31,11 @@ from sb3_collapse.run.settings import (
     with_markdown,
 )
 from sb3_collapse.sweep.__main__ import build_parser as sweep_parser
-from sb3_collapse.train import CLI_ONLY_FLAGS, build_parser
+from sb3_collapse.train import build_parser
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 FIELDS = {field.name: field for field in dataclasses.fields(TrainConfig)}
+CLI_ONLY_FLAGS = ("--show-settings",)  # the train CLI's flags that are no setting
 
 
 def test_every_field_declares_help_unit_and_preset():
@@ -144,7 +145,9 @@ def _subparsers(cli):
 def test_every_probe_and_report_flag_is_declared_with_help_and_unit(package):
     cli = CLIS[package]
     for command, (parser, needed) in _subparsers(cli).items():
-        declared = {field.name: field for declaration in cli.COMMANDS[command] for field in fields(declaration)}
+        declared = {
+            field.name: field for declaration in cli.COMMANDS[command] for field in dataclasses.fields(declaration)
+        }
         actions = [action for action in parser._actions if action.dest != "help"]
         assert {action.dest for action in actions} == set(declared), command
         for action in actions:
@@ -182,7 +185,7 @@ def test_flag_tables_of_the_docs_are_fresh(page, tmp_path):
     package = "sb3_collapse.probe" if page == "probe.md" else "sb3_collapse.report"
     cli = CLIS[package]
     for declarations in cli.COMMANDS.values():
-        for field in (field for declaration in declarations for field in fields(declaration)):
+        for field in (field for declaration in declarations for field in dataclasses.fields(declaration)):
             assert f"| `{flag_of(field)}`" in doc, field.name
     begin = doc.index("<!-- flags of")
     region = doc[doc.index("\n", begin) + 1 : doc.index(FLAGS_END)]
@@ -260,3 +263,39 @@ def test_probe_help_shows_each_default_once_as_typed(capsys):
     assert "(default: 0.6 0.2 0.2)" in text and "[0.6, 0.2, 0.2]" not in text and "(0.6, 0.2, 0.2)" not in text
     assert text.count("(default: 64)") == 1 and "(default: 64) (default" not in text
     assert "--no-progress do not show the progress bars" in text
+
+
+def test_command_line_errors_are_one_line_with_a_pointer_to_help(capsys):
+    parser = CommandLine(prog="tool")
+    parser.add_argument("--n", type=int)
+    sub = parser.add_subparsers(dest="command").add_parser("go")  # a sub-command's parser is one too
+    sub.add_argument("--m", type=int, required=True)
+    for argv, expected in (
+        (["--n", "x"], "tool --help lists the flags.\ntool: error: argument --n: invalid int value: 'x'"),
+        (["go"], "tool go --help lists the flags.\ntool go: error: the following arguments are required: --m"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            parser.parse_args(argv)
+        assert exit_info.value.code == 2 and capsys.readouterr().err == expected + "\n"
+
+
+def test_a_settings_help_is_the_docstring_under_it_unless_given():
+    @declared
+    @dataclasses.dataclass
+    class Flags:
+        first: int = setting(1, unit="frames")
+        """frames to skip,
+        then more words"""
+        second: int = setting(2, help="given")
+        """not this one"""
+
+    helps = {field.name: field.metadata["help"] for field in dataclasses.fields(Flags)}
+    assert helps == {"first": "frames to skip, then more words", "second": "given"}
+    assert FIELDS["frames"].metadata["help"].startswith("training budget, in frames")
+
+    with pytest.raises(ValueError, match="Undocumented.third has no help"):
+
+        @declared
+        @dataclasses.dataclass
+        class Undocumented:
+            third: int = setting(3)
