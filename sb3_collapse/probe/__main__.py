@@ -20,7 +20,7 @@ from sb3_collapse.report.figure2 import probe_sweep
 from sb3_collapse.report.film import STRIP_EVERY_FRAMES, film_to_folder
 from sb3_collapse.report.probe_outputs import probe_to_folder
 from sb3_collapse.run.config import setting
-from sb3_collapse.run.settings import add_setting_arguments, check_arguments, prog_name
+from sb3_collapse.run.settings import CommandLine, add_setting_arguments, check_arguments, prog_name
 from sb3_collapse.run.signals import stop_signal_handlers
 
 
@@ -146,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The command line: sub-commands ``run`` (the default), ``sweep``, ``film`` and ``record``, their flags
     generated from :data:`COMMANDS`."""
     prog = prog_name("sb3_collapse.probe")
-    parser = argparse.ArgumentParser(
+    parser = CommandLine(
         prog=prog,
         description="Linear probing with a sparsity constraint (OMP) of an actor's layers cnn0..cnn4, mlp0..mlp2 "
         "for the true state of DeepMind Control tasks (Section 4.1 of the action-collapse paper). Without a "
