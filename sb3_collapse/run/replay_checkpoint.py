@@ -1,8 +1,7 @@
 """
-Incremental checkpoints of a :class:`~sb3_collapse.drqv2.replay_buffer.FrameStackReplayBuffer`: :class:`ReplayStore`
-writes, at each save, only what was added since its previous save, as append-only chunk files, and returns the
-manifest that the run keeps inside its own checkpoint. See docs/checkpoints.md#the-replay-buffer-incremental-chunks
-(use, safety) and docs/checkpoints.md#chunk-files-and-manifest (what is new, the file format, restore).
+Incremental checkpoints of a ``FrameStackReplayBuffer`` (:class:`ReplayStore`): each save writes what was added since
+the previous one as append-only chunk files and returns the manifest the run's checkpoint keeps. See
+docs/checkpoints.md#the-replay-buffer-incremental-chunks.
 """
 
 from __future__ import annotations
@@ -26,26 +25,19 @@ from sb3_collapse.errors import CheckpointError, InputError
 
 FORMAT = "sb3_collapse.replay_store/1"
 """``manifest["format"]``: the manifest and chunk layout this module writes and reads."""
-
 CHUNK_PREFIX = "chunk-"
 CHUNK_SUFFIX = ".bin"
 TEMP_SUFFIX = ".tmp"
 CHUNK_NAME = re.compile(rf"^{CHUNK_PREFIX}(\d+)-[0-9a-f]+{re.escape(CHUNK_SUFFIX)}$")
-
 FILES_PER_BUFFER = 32
-"""The default ``max_file_bytes`` is the buffer's array bytes divided by this (dead bytes kept on disk: ~1/32)."""
-
+"""The default ``max_file_bytes`` is the buffer's array bytes divided by this, at least ``MIN_FILE_BYTES``."""
 MIN_FILE_BYTES = 1 << 20
-"""The smallest default ``max_file_bytes``."""
-
 BLOCK_BYTES = 32 << 20
 """Bytes copied, checksummed and written (or read) at once."""
-
 TRANSITION_ARRAYS = ("frame_starts", "actions", "rewards", "dones", "timeouts")
 """The per-transition arrays of the buffer, in the order a transitions segment stores them."""
-
-TRANSITIONS = "transitions"
-FRAMES = "frames"
+TRANSITIONS, FRAMES = "transitions", "frames"
+STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
 
 
 @dataclass
@@ -66,8 +58,7 @@ def _write(file: BinaryIO, data: np.ndarray) -> None:
 
 class ReplayStore:
     """
-    Append-only chunk store of a :class:`FrameStackReplayBuffer`'s data in one folder (e.g.
-    ``<run>/checkpoints/replay/``). See the module docstring for the format and its guarantees.
+    Append-only chunk store of a :class:`FrameStackReplayBuffer`'s data in one folder (``<run>/checkpoints/replay/``).
 
     :param directory: the folder (created at the first save)
     :param max_file_bytes: largest chunk file; ``None``: the buffer's array bytes / 32, at least 1 MiB
@@ -82,46 +73,36 @@ class ReplayStore:
         self.max_file_bytes = max_file_bytes
         self._tracked: _Tracked | None = None
 
-    # ------------------------------------------------------------------ saving
     def save(self, buffer: FrameStackReplayBuffer) -> dict[str, Any]:
         """
-        Write, as new ``fsync``'d files (nothing existing is modified), the frames and transitions added since the
-        last :meth:`save` or :meth:`restore` of this store for this buffer (all live data the first time, after
-        ``buffer.reset()``, or when this store's earlier chunks are gone).
+        Write, as new ``fsync``'d files, the frames and transitions added since this store's last :meth:`save` or
+        :meth:`restore` of this buffer (all live data the first time, after ``buffer.reset()``, or when its earlier
+        chunks are gone).
 
         :param buffer: the buffer
-        :return: the JSON-serialisable manifest of the buffer's state: the chunk files it needs, in order, with their
-            sizes and CRC-32s, the buffer's counters and its layout. Store it in the run's checkpoint.
-        :raises OSError: when a write fails (full disk): nothing this call wrote remains, older chunks
-            are intact, the store's base for the next save is unchanged
-        :raises CheckpointError: when the buffer's ``pos``/``full`` disagree with ``transitions_added`` (changed
-            outside ``add``/``reset``)
+        :return: the JSON-serialisable manifest: the chunk files it needs, in order, with sizes and CRC-32s, the
+            buffer's counters and layout
+        :raises OSError: when a write fails (full disk): nothing this call wrote remains, older chunks are intact
+        :raises CheckpointError: when ``pos``/``full`` disagree with ``transitions_added`` (changed outside ``add``)
         """
         _check_counters(buffer)
         live = _live_windows(buffer)
         base = self._base(buffer)
-        if base is None:
-            chain: list[dict[str, Any]] = []
-            new = live
-        else:
-            chain = list(base.chunks)
+        chain: list[dict[str, Any]] = [] if base is None else list(base.chunks)
+        new = live
+        if base is not None:
             previous = {TRANSITIONS: base.transitions_added}
             previous.update({_frames_key(env): int(head) for env, head in enumerate(base.frame_heads)})
             new = {key: (max(previous[key], low), high) for key, (low, high) in live.items()}
         segments = [_segment(key, low, high) for key, (low, high) in new.items() if high > low]
-        plans = _plan_files(segments, _row_bytes(buffer), self._max_file_bytes(buffer))
+        max_bytes = self.max_file_bytes or max(MIN_FILE_BYTES, buffer.nbytes // FILES_PER_BUFFER)
+        plans = _plan_files(segments, _row_bytes(buffer), max_bytes)
         if plans:
-            written = self._write_chunks(buffer, plans)
-            chain = chain + written
+            chain += self._write_chunks(buffer, plans)
         chain = [chunk for chunk in chain if _is_live(chunk, live)]
         manifest = {"format": FORMAT, "layout": _layout(buffer), "state": _state(buffer), "chunks": chain}
         self._track(buffer, manifest)
         return manifest
-
-    def _max_file_bytes(self, buffer: FrameStackReplayBuffer) -> int:
-        if self.max_file_bytes is not None:
-            return self.max_file_bytes
-        return max(MIN_FILE_BYTES, buffer.nbytes // FILES_PER_BUFFER)
 
     def _base(self, buffer: FrameStackReplayBuffer) -> _Tracked | None:
         """The last saved or restored state of this buffer when the next save can be incremental to it."""
@@ -154,11 +135,10 @@ class ReplayStore:
         written: list[dict[str, Any]] = []
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            number = self._next_number()
-            for plan in plans:
+            names = [int(match.group(1)) for name in os.listdir(self.directory) if (match := CHUNK_NAME.match(name))]
+            for number, plan in enumerate(plans, start=max(names, default=0) + 1):  # no save reuses a name
                 written.append(self._write_chunk(buffer, plan, number))
-                number += 1
-            _fsync_folder(self.directory)
+            fsync_path(self.directory)
         except OSError as error:
             for chunk in written:
                 (self.directory / chunk["file"]).unlink(missing_ok=True)
@@ -172,11 +152,6 @@ class ReplayStore:
                 str(self.directory),
             ) from error
         return written
-
-    def _next_number(self) -> int:
-        """One more than the largest chunk number in the folder (so no save reuses a name)."""
-        numbers = [int(match.group(1)) for name in os.listdir(self.directory) if (match := CHUNK_NAME.match(name))]
-        return max(numbers, default=0) + 1
 
     def _write_chunk(self, buffer: FrameStackReplayBuffer, plan: list[dict[str, Any]], number: int) -> dict:
         name = f"{CHUNK_PREFIX}{number:06d}-{secrets.token_hex(4)}{CHUNK_SUFFIX}"
@@ -199,17 +174,15 @@ class ReplayStore:
             raise
         return {"file": name, "bytes": size, "crc32": crc, "segments": plan}
 
-    # ------------------------------------------------------------------ restoring
     def restore(self, buffer: FrameStackReplayBuffer, manifest: dict[str, Any]) -> None:
         """
-        Make ``buffer`` (freshly built with the saved buffer's arguments) hold the saved state: the chunks' rows
-        replayed in order, then the counters. The next :meth:`save` of this store is incremental to it.
+        Make ``buffer`` (freshly built with the saved buffer's arguments) hold the saved state; the next :meth:`save`
+        is incremental to it.
 
         :param buffer: the buffer to fill
         :param manifest: what :meth:`save` returned (possibly through JSON)
-        :raises CheckpointError: when the manifest is malformed or the buffer's layout differs from it, or a chunk
-            is missing or has the wrong size (all found before anything is read: the buffer is unchanged), or a
-            chunk fails its CRC-32 or cannot be read (found while reading: the buffer is ``reset()``, empty)
+        :raises CheckpointError: for a malformed manifest, another layout, a missing chunk or one of another size
+            (the buffer unchanged), or a chunk that fails its CRC-32 or cannot be read (the buffer ``reset()``)
         """
         _check_manifest(manifest)
         _check_layout(buffer, manifest["layout"])
@@ -242,10 +215,8 @@ class ReplayStore:
             buffer.reset()
             raise
         state = manifest["state"]
-        buffer.pos = int(state["pos"])
-        buffer.full = bool(state["full"])
-        buffer.transitions_added = int(state["transitions_added"])
-        buffer.resets = int(state["resets"])
+        buffer.pos, buffer.full = int(state["pos"]), bool(state["full"])
+        buffer.transitions_added, buffer.resets = int(state["transitions_added"]), int(state["resets"])
         buffer.frame_heads[:] = state["frame_heads"]
         buffer.steps_since_done[:] = state["steps_since_done"]
         buffer.episodes_done[:] = state["episodes_done"]
@@ -254,11 +225,9 @@ class ReplayStore:
 
     def check_files(self, manifest: dict[str, Any]) -> None:
         """
-        Check, without reading them, that the chunks of a manifest are in the folder with the sizes they were written
-        with (what :meth:`restore` checks before it reads anything; their CRC-32 is checked as they are read).
-
         :param manifest: what :meth:`save` returned
-        :raises CheckpointError: for a malformed manifest, a missing chunk or one of another size, naming the file
+        :raises CheckpointError: for a malformed manifest, a missing chunk or one of another size (not read: CRC-32s
+            are checked by :meth:`restore`), naming the file
         """
         _check_manifest(manifest)
         for chunk in manifest["chunks"]:
@@ -278,11 +247,10 @@ class ReplayStore:
                     damaged=True,
                 )
 
-    # ------------------------------------------------------------------ disk
     def collect_garbage(self, keep: list[dict[str, Any]]) -> int:
         """
-        Delete the chunk files that none of the ``keep`` manifests lists, nor the state this store last saved or
-        restored (the base of its next save), and stray temporary files of interrupted saves.
+        Delete the chunk files that neither a ``keep`` manifest nor this store's last save or restore needs, and the
+        temporary files of interrupted saves.
 
         :param keep: the manifests of the checkpoints to keep
         :return: bytes freed
@@ -310,10 +278,7 @@ class ReplayStore:
 
     @staticmethod
     def bytes_needed(manifest: dict[str, Any]) -> int:
-        """
-        :param manifest: a manifest returned by :meth:`save`
-        :return: bytes of the chunk files it lists
-        """
+        """:return: bytes of the chunk files ``manifest`` (of :meth:`save`) lists"""
         return sum(int(chunk["bytes"]) for chunk in manifest["chunks"])
 
     def disk_bytes(self) -> int:
@@ -327,7 +292,6 @@ class ReplayStore:
         )
 
 
-# ---------------------------------------------------------------------- pure helpers
 def _frames_key(env: int) -> str:
     return f"{FRAMES}/{env}"
 
@@ -363,11 +327,7 @@ def _live_windows(buffer: FrameStackReplayBuffer) -> dict[str, tuple[int, int]]:
 
 def _is_live(chunk: dict[str, Any], live: dict[str, tuple[int, int]]) -> bool:
     """Whether any segment of ``chunk`` holds data the rings still hold."""
-    for segment in chunk["segments"]:
-        low, high = live[_key(segment)]
-        if segment["start"] < high and segment["stop"] > low:
-            return True
-    return False
+    return any(live[_key(s)][0] < s["stop"] and s["start"] < live[_key(s)][1] for s in chunk["segments"])
 
 
 def _row_bytes(buffer: FrameStackReplayBuffer) -> dict[str, int]:
@@ -461,12 +421,14 @@ def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any
         )
 
 
-def _fsync_folder(folder: Path) -> None:
-    """Flush a folder's entries (the renames) to disk, where the system allows opening a folder."""
+def fsync_path(path: Path) -> None:
+    """Flush a file, or a folder's entries (the renames), to disk, where the system allows opening a folder."""
     try:
-        handle = os.open(folder, os.O_RDONLY)
-    except OSError:  # e.g. Windows
-        return
+        handle = os.open(path, os.O_RDONLY)
+    except OSError:
+        if path.is_dir():  # e.g. Windows
+            return
+        raise
     try:
         os.fsync(handle)
     except OSError as error:
@@ -490,15 +452,10 @@ def _layout(buffer: FrameStackReplayBuffer) -> dict[str, Any]:
 
 
 def _state(buffer: FrameStackReplayBuffer) -> dict[str, Any]:
-    return {
-        "pos": int(buffer.pos),
-        "full": bool(buffer.full),
-        "transitions_added": int(buffer.transitions_added),
-        "resets": int(buffer.resets),
-        "frame_heads": [int(value) for value in buffer.frame_heads],
-        "steps_since_done": [int(value) for value in buffer.steps_since_done],
-        "episodes_done": [int(value) for value in buffer.episodes_done],
-    }
+    state = {key: int(getattr(buffer, key)) for key in ("pos", "transitions_added", "resets")}
+    state["full"] = bool(buffer.full)
+    state.update({key: [int(value) for value in getattr(buffer, key)] for key in STATE_KEYS[4:]})
+    return state
 
 
 def _check_manifest(manifest: Any) -> None:
@@ -530,9 +487,6 @@ def _check_manifest(manifest: Any) -> None:
                 break
     if problems:
         raise CheckpointError(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.", damaged=True)
-
-
-STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
 
 
 def _valid_chunk(chunk: Any) -> bool:
