@@ -475,3 +475,35 @@ def test_eval_csv_out_of_step_with_the_checkpoint_is_rewritten_from_it_on_resume
     assert [row[:3] for row in rows] == uninterrupted
     assert {len(row) for row in rows} == {6}
     assert json.loads((run_dir / RESULT_JSON).read_text())["resumes"] == 1
+
+
+def test_a_run_folder_whose_result_file_is_unreadable_is_refused_in_one_line_with_the_way_out(tmp_path, capsys):
+    """A truncated result.json is not repaired: the folder stays failed, `train` refuses it in one line that names
+    the file, the reason and the way out (not "choose another folder"), and a sweep would not call it retryable."""
+    from sb3_collapse.run.config import TrainConfig
+    from sb3_collapse.run.folder import check_run_folder
+    from sb3_collapse.runfolder import read_result, run_status
+    from sb3_collapse.sweep.runner import retryable
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / CONFIG_JSON).write_text("{}")
+    (run_dir / RESULT_JSON).write_text('{"status": "fini')  # truncated
+    reason = (
+        f"{run_dir / RESULT_JSON}: not a readable JSON file (Unterminated string starting at: line 1 column 12 "
+        "(char 11))."
+    )
+    with pytest.raises(ValueError) as strict:
+        read_result(run_dir, strict=True)
+    assert str(strict.value) == reason
+    before = sorted(path.name for path in run_dir.iterdir())
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(_flags(run_dir))
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error[-1].endswith(f"error: --run-dir {run_dir}: {reason} Move the folder aside to train this seed again.")
+    assert run_status(run_dir) == "failed" and sorted(path.name for path in run_dir.iterdir()) == before
+    with pytest.raises(ValueError) as refused:
+        check_run_folder(TrainConfig(env="cartpole-balance", run_dir=str(run_dir)))
+    assert not retryable(refused.value)
