@@ -1,14 +1,6 @@
 """
-Snapshots: a run's encoder (``cnn1``..``cnn4``) and actor (``mlp0``..``action``) saved at every evaluation, the
-weights the offline probe (the paper's Figure 2, probing MSE over training) and the report's fixed-set metrics
-(Figures 4, 8, 9) read.
-
-A snapshot is an SB3 zip like ``DrQv2.save`` writes (``data``, ``policy.pth``), whose ``policy.pth`` holds
-the encoder and actor entries only: no critic, no target critic, no optimizer state, no replay buffer. With
-DrQ-v2's sizes it is a fraction of a ``DrQv2.save`` zip (both measured: benchmarks/README.md#checkpoint-sizes). A
-member :data:`MARKER` marks it;
-:func:`load_snapshot` (and ``sb3_collapse.probe``'s checkpoint loader) reads it into a DrQv2 model whose
-critic keeps its random initialization (never used by the probe).
+Snapshots: a run's encoder and actor saved at every evaluation (an SB3 zip without critic, optimizers or replay
+buffer), the weights the probe and the report's fixed-set figures read. See docs/figures.md.
 """
 
 from __future__ import annotations
@@ -31,15 +23,13 @@ from sb3_collapse.protocol import SNAPSHOT_FILE
 SNAPSHOT_GROUPS = ("cnn", "mlp")
 """The transplant groups a snapshot holds: the encoder and the actor."""
 SNAPSHOT_PREFIXES = tuple(prefix for group in SNAPSHOT_GROUPS for prefix in TRANSPLANT_GROUPS[group])
-"""Their ``state_dict`` prefixes (``encoder.``, ``actor.``)."""
 MARKER = "snapshot.json"
 """The zip member that marks a snapshot: ``{"groups", "layers", "num_timesteps", "frames"}``."""
 
 
 def save_snapshot(model: Any, path: str | os.PathLike) -> Path:
     """
-    Save the encoder and actor of a DrQv2 model with the settings SB3 saves (atomically: a temporary file next to
-    ``path``, renamed).
+    Save the encoder and actor of a DrQv2 model with the settings SB3 saves, atomically.
 
     :param model: a DrQv2 model
     :param path: the zip to write (its folder is created)
@@ -91,8 +81,7 @@ def is_snapshot(path: str | os.PathLike) -> bool:
 
 def load_snapshot(path: str | os.PathLike, device: th.device | str = "cpu", **kwargs: Any) -> Any:
     """
-    Load a snapshot into a DrQv2 model (without environment) for inference: the encoder and actor
-    are the saved ones, the critic is freshly initialized and must not be used.
+    Load a snapshot into a DrQv2 model (without environment) for inference; its critic is random, not to be used.
 
     :param path: the zip
     :param device: where the networks go
@@ -122,12 +111,8 @@ def load_snapshot(path: str | os.PathLike, device: th.device | str = "cpu", **kw
 
 class Snapshots(BaseCallback):
     """
-    Save a snapshot (:func:`save_snapshot`) each time it is called: the after-evaluation hook of
-    :class:`~sb3_collapse.monitoring.evaluation.PeriodicEvaluation` (``callback_after_eval=Snapshots(folder)``), so a
-    snapshot is taken at every scheduled evaluation (frame 0 and every ``every_frames`` frames, resumed with the
-    evaluations' schedule) and at the evaluation of the saved final model.
-
-    Files: ``<folder>/`` :data:`~sb3_collapse.protocol.SNAPSHOT_FILE` (``snapshot_<frames, 10 digits>_frames.zip``).
+    Save a snapshot (:func:`save_snapshot`, ``<folder>/snapshot_<frames, 10 digits>_frames.zip``) each time it is
+    called: ``PeriodicEvaluation(callback_after_eval=Snapshots(folder))`` takes one at every evaluation.
 
     :param folder: where the zips go
     :param verbose: 0 silent, 1 a line per snapshot
@@ -136,15 +121,14 @@ class Snapshots(BaseCallback):
     def __init__(self, folder: str | os.PathLike, verbose: int = 0) -> None:
         super().__init__(verbose)
         self.folder = Path(folder)
-        self.saved: list[Path] = []
-        """The zips written by this process, in order."""
+        self.saved: list[Path] = []  # the zips written by this process, in order
 
     def _on_step(self) -> bool:
         self.save()
         return True
 
     def save(self) -> Path:
-        """Save the model's encoder and actor now; :return: the zip"""
+        """:return: the zip of the model's encoder and actor, saved now"""
         path = save_snapshot(self.model, self.folder / SNAPSHOT_FILE.format(frames=frames_of(self.model)))
         self.saved.append(path)
         if self.verbose >= 1:
