@@ -54,10 +54,7 @@ DAMAGED_NOTE = "damaged.txt"
 
 
 def checkpoint_folders(directory: str | os.PathLike) -> list[Path]:
-    """
-    :param directory: a run's checkpoints folder
-    :return: its checkpoint folders, the newest (largest agent step) first; folders being written are not listed
-    """
+    """:return: the checkpoint folders of a run's checkpoints folder, newest first (not those being written)"""
     directory = Path(directory)
     if not directory.is_dir():
         return []
@@ -116,9 +113,9 @@ def capture_state(
     Everything of a run between two rounds of ``learn()`` that the model's ``save`` and the replay store do not hold.
 
     :param model: the model, between two rounds
-    :param callbacks: the run's callbacks; the states of those that carry one are saved (:func:`callback_states`)
+    :param callbacks: the run's callbacks (the states of those that carry one are kept)
     :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
-    :param csv_files: the run's CSV files, whose content to keep (a resume writes them back: :func:`restore_csv_files`)
+    :param csv_files: the run's CSV files, whose content to keep
     :param extra: anything else to keep (picklable)
     :return: the state (picklable, CPU tensors only)
     """
@@ -230,10 +227,7 @@ def save_checkpoint(
 
 
 def checkpoint_frames(directory: str | os.PathLike) -> int | None:
-    """
-    :param directory: a run's checkpoints folder
-    :return: the frames of its newest checkpoint as it says (not verified: for listings), ``None`` without one
-    """
+    """:return: the frames of the newest checkpoint in ``directory`` as it says (not verified), ``None`` without one"""
     for folder in checkpoint_folders(directory):
         with contextlib.suppress(OSError, ValueError, KeyError):
             return int(json.loads((folder / CHECKPOINT_JSON).read_text())["frames"])
@@ -290,11 +284,8 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def checkpoint_learning_rates(folder: str | os.PathLike) -> dict[str, list[float]]:
-    """
-    :param folder: a checkpoint's folder
-    :return: optimizer (``"actor.optimizer"``...) -> the learning rate of each of its parameter groups, read from the
-        model zip without loading the weights
-    """
+    """:return: optimizer (``"actor.optimizer"``...) -> the learning rate of each parameter group, in a checkpoint
+    ``folder`` (without loading the weights)"""
     rates = {}
     with zipfile.ZipFile(Path(folder) / CHECKPOINT_MODEL) as archive:
         for name in archive.namelist():
@@ -325,9 +316,8 @@ def set_aside(folder: Path, reason: str | None = None) -> Path:
 
 def read_checkpoints(directory: str | os.PathLike) -> tuple[LoadedCheckpoint | None, list[tuple[Path, str]]]:
     """
-    :param directory: the run's checkpoints folder
-    :return: its newest checkpoint whose files have their sizes and checksums (``None`` without one), and the damaged
-        newer ones passed over, with the reason
+    :return: the newest checkpoint in ``directory`` whose files have their sizes and checksums (``None`` without one),
+        and the damaged newer ones passed over, with the reason
     :raises CheckpointError: for a checkpoint of another format or package version
     """
     skipped: list[tuple[Path, str]] = []
@@ -377,15 +367,10 @@ def restore_run(
     eval_env: Any = None,
 ) -> list[str]:
     """
-    Make ``model`` (built with the run's settings, on environments wrapped in ``EpisodeReplay``) and ``callbacks``
-    continue from ``checkpoint``: the next ``learn(remaining, reset_num_timesteps=False)`` goes on as the run that
-    wrote it would have.
+    Make ``model`` (built with the run's settings, on environments wrapped in ``EpisodeReplay``), ``callbacks`` (in
+    the order saved) and ``eval_env`` continue from ``checkpoint``, restored from ``store``: the next
+    ``learn(remaining, reset_num_timesteps=False)`` goes on as the run that wrote it would have.
 
-    :param model: the model
-    :param checkpoint: what :func:`load_checkpoint` returned
-    :param store: the run's replay store
-    :param callbacks: the run's callbacks, in the order they were saved
-    :param eval_env: the evaluation environment, if any
     :return: warnings for the user (empty when everything is as it was)
     """
     state = checkpoint.state
@@ -429,12 +414,9 @@ def restore_run(
 
 def restore_csv_files(paths: Sequence[Path], saved: dict[str, bytes], frame: int) -> str | None:
     """
-    Write the run's CSV files back as the checkpoint holds them (atomically): rows written after it go, and a file
-    that does not start with what the checkpoint holds (shorter, cut mid-row, changed) is rewritten from it.
+    Write the run's CSV files ``paths`` back as the checkpoint at ``frame`` holds them (``saved``), atomically: rows
+    written after it go; a file that does not start with what it holds (shorter, cut mid-row, changed) is rewritten.
 
-    :param paths: the run's CSV files
-    :param saved: their content at the checkpoint (``state["csv"]``)
-    :param frame: the checkpoint's frame, for the note
     :return: one line naming the files rewritten and why, ``None`` when none was damaged
     """
     rewritten, newline = [], b"\n"
@@ -475,7 +457,7 @@ class ResumableCheckpoints(FrameScheduleCallback):
     :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
     :param csv_files: the run's CSV files, written back as the checkpoint holds them on resume
     :param extra_state: called at each checkpoint for more picklable state (e.g. the run's elapsed time)
-    :param keep: complete checkpoints kept (see :func:`save_checkpoint`)
+    :param keep: complete checkpoints kept
     :param verbose: 1 prints a line per checkpoint
     """
 
@@ -506,15 +488,12 @@ class ResumableCheckpoints(FrameScheduleCallback):
         self.due = False
         self.stop_signal: str | None = None
         self.last_checkpoint: Path | None = None
-        self.written = 0
-        self.seconds = 0.0
         self._grad_norms: dict[str, Any] | None = None
 
     def resume(self, checkpoint: LoadedCheckpoint) -> tuple[LoadedCheckpoint, list[str]]:
         """
-        Put the model, the environments, the callbacks and the run's CSV files back in the state of ``checkpoint``
-        (:func:`restore_run`, :func:`restore_csv_files`), before ``learn(remaining, reset_num_timesteps=False)``. A
-        checkpoint whose replay chunks turn out damaged as they are read is set aside for the one before.
+        Put the model, environments, callbacks and CSV files back as ``checkpoint`` holds them (a checkpoint whose
+        replay chunks turn out damaged is set aside for the one before).
 
         :return: the checkpoint resumed from, and notes for the user
         :raises CheckpointError: (``damaged``) when no checkpoint is left (``train`` restarts the run from frame 0)
@@ -585,8 +564,6 @@ class ResumableCheckpoints(FrameScheduleCallback):
         extra = self.extra_state() if self.extra_state is not None else None
         state = capture_state(self.model, self.callbacks, self.eval_env, self.csv_files, extra)
         self.last_checkpoint = save_checkpoint(self.model, self.directory, self.store, state, keep=self.keep)
-        self.written += 1
-        self.seconds += time.perf_counter() - start
         if self.verbose >= 1:
             print(
                 f"Checkpoint at frame {self.frames:,}: {self.last_checkpoint} ({time.perf_counter() - start:.1f} s)",

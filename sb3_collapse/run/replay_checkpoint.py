@@ -51,6 +51,11 @@ class _Tracked:
     chunks: list[dict[str, Any]]
 
 
+def _damaged(message: str) -> CheckpointError:
+    """The error of a damaged replay checkpoint: ``message`` and the way out."""
+    return CheckpointError(f"{message} Resume from another checkpoint.", damaged=True)
+
+
 def _write(file: BinaryIO, data: np.ndarray) -> None:
     """Write ``data``'s bytes (one function, so tests can make it fail as a full disk would)."""
     file.write(data)
@@ -195,18 +200,12 @@ class ReplayStore:
                 _key(segment) not in row_bytes or segment["stop"] - segment["start"] > rings[segment["ring"]]
                 for segment in chunk["segments"]
             ):
-                raise CheckpointError(
-                    f"The replay checkpoint manifest is inconsistent: chunk {path} lists segments outside this "
-                    "buffer's environments or rings. Resume from another checkpoint.",
-                    damaged=True,
-                )
+                raise _damaged(f"The replay checkpoint manifest is inconsistent: chunk {path} lists segments outside "
+                               "this buffer's environments or rings.")  # fmt: skip
             expected = _plan_bytes(chunk["segments"], row_bytes)
             if expected != chunk["bytes"]:
-                raise CheckpointError(
-                    f"The replay checkpoint manifest is inconsistent: chunk {path} is listed with {chunk['bytes']:,} "
-                    f"bytes but its segments hold {expected:,}. Resume from another checkpoint.",
-                    damaged=True,
-                )
+                raise _damaged(f"The replay checkpoint manifest is inconsistent: chunk {path} is listed with "
+                               f"{chunk['bytes']:,} bytes but its segments hold {expected:,}.")  # fmt: skip
         self.check_files(manifest)
         try:
             for chunk in manifest["chunks"]:
@@ -233,19 +232,12 @@ class ReplayStore:
         for chunk in manifest["chunks"]:
             path = self.directory / chunk["file"]
             if not path.is_file():
-                raise CheckpointError(
-                    f"The replay checkpoint chunk {path} is missing. Resume from another checkpoint (an earlier one "
-                    "may still have all its chunks).",
-                    damaged=True,
-                )
-            size = path.stat().st_size
-            if size != chunk["bytes"]:
-                raise CheckpointError(
-                    f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
-                    f"{chunk['bytes']:,} ({'truncated' if size < chunk['bytes'] else 'changed'}). Resume from "
-                    "another checkpoint.",
-                    damaged=True,
-                )
+                raise _damaged(f"The replay checkpoint chunk {path} is missing.")
+            size, expected = path.stat().st_size, chunk["bytes"]
+            if size != expected:
+                how = "truncated" if size < expected else "changed"
+                raise _damaged(f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
+                               f"{expected:,} ({how}).")  # fmt: skip
 
     def collect_garbage(self, keep: list[dict[str, Any]]) -> int:
         """
@@ -403,22 +395,15 @@ def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any
                         target = block if block.flags.c_contiguous else np.empty_like(block)
                         data = target.reshape(-1).view(np.uint8)
                         if file.readinto(data) != data.nbytes:
-                            raise CheckpointError(
-                                f"The replay checkpoint chunk {path} ended early (truncated). Resume from another "
-                                "checkpoint.",
-                                damaged=True,
-                            )
+                            raise _damaged(f"The replay checkpoint chunk {path} ended early (truncated).")
                         crc = zlib.crc32(data, crc)
                         if target is not block:
                             block[...] = target
     except OSError as error:
         raise CheckpointError(f"Could not read the replay checkpoint chunk {path}: {error}.", damaged=True) from error
     if crc != chunk["crc32"]:
-        raise CheckpointError(
-            f"The replay checkpoint chunk {path} is corrupt (CRC-32 {crc:#010x}, the checkpoint expects "
-            f"{chunk['crc32']:#010x}). Resume from another checkpoint.",
-            damaged=True,
-        )
+        raise _damaged(f"The replay checkpoint chunk {path} is corrupt (CRC-32 {crc:#010x}, the checkpoint expects "
+                       f"{chunk['crc32']:#010x}).")  # fmt: skip
 
 
 def fsync_path(path: Path) -> None:
@@ -462,31 +447,18 @@ def _check_manifest(manifest: Any) -> None:
     """Raise :class:`CheckpointError` unless ``manifest`` looks like one :meth:`ReplayStore.save` returned."""
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
-        raise CheckpointError(
-            f"Not a replay checkpoint manifest of format {FORMAT!r} (found {found!r}): it was written by another "
-            "version of sb3-collapse, or is damaged.",
-            damaged=True,
-        )
-    missing = [key for key in ("layout", "state", "chunks") if key not in manifest]
-    if missing:
-        raise CheckpointError(
-            f"The replay checkpoint manifest lacks {', '.join(missing)}: it is damaged.", damaged=True
-        )
-    state, chunks = manifest["state"], manifest["chunks"]
-    problems = []
-    if not isinstance(manifest["layout"], dict):
-        problems.append("layout is not a mapping")
+        raise _damaged(f"Not a replay checkpoint manifest of format {FORMAT!r} (found {found!r}): it was written by "
+                       "another version of sb3-collapse, or is damaged.")  # fmt: skip
+    layout, state, chunks = (manifest.get(key) for key in ("layout", "state", "chunks"))
+    problems = [] if isinstance(layout, dict) else ["layout is not a mapping"]
     if not isinstance(state, dict) or any(key not in state for key in STATE_KEYS):
         problems.append(f"state lacks some of {', '.join(STATE_KEYS)}")
     if not isinstance(chunks, list):
         problems.append("chunks is not a list")
     else:
-        for chunk in chunks:
-            if not _valid_chunk(chunk):
-                problems.append(f"chunk entry {str(chunk)[:120]} is malformed")
-                break
+        problems += [f"chunk entry {str(chunk)[:120]} is malformed" for chunk in chunks if not _valid_chunk(chunk)][:1]
     if problems:
-        raise CheckpointError(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.", damaged=True)
+        raise _damaged(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.")
 
 
 def _valid_chunk(chunk: Any) -> bool:
@@ -496,17 +468,15 @@ def _valid_chunk(chunk: Any) -> bool:
     if not all(isinstance(chunk.get(key), int) and chunk[key] >= 0 for key in ("bytes", "crc32")):
         return False
     segments = chunk.get("segments")
-    if not isinstance(segments, list):
-        return False
-    for segment in segments:
-        if not isinstance(segment, dict) or segment.get("ring") not in (TRANSITIONS, FRAMES):
-            return False
-        if segment["ring"] == FRAMES and not isinstance(segment.get("env"), int):
-            return False
-        start, stop = segment.get("start"), segment.get("stop")
-        if not (isinstance(start, int) and isinstance(stop, int) and 0 <= start <= stop):
-            return False
-    return True
+    return isinstance(segments, list) and all(
+        isinstance(segment, dict)
+        and segment.get("ring") in (TRANSITIONS, FRAMES)
+        and (segment["ring"] == TRANSITIONS or isinstance(segment.get("env"), int))
+        and isinstance(segment.get("start"), int)
+        and isinstance(segment.get("stop"), int)
+        and 0 <= segment["start"] <= segment["stop"]
+        for segment in segments
+    )
 
 
 def _check_state(buffer: FrameStackReplayBuffer, state: dict[str, Any]) -> None:
@@ -521,27 +491,26 @@ def _check_state(buffer: FrameStackReplayBuffer, state: dict[str, Any]) -> None:
     except (TypeError, ValueError):
         consistent = False
     if not consistent:
-        raise CheckpointError(
-            f"The replay checkpoint manifest is damaged: its state {str(state)[:200]} does not describe a buffer of "
-            f"{buffer.n_envs} environments and {buffer.buffer_size} transitions each. Resume from another checkpoint.",
-            damaged=True,
-        )
+        buffer_text = f"{buffer.n_envs} environments and {buffer.buffer_size} transitions each"
+        raise _damaged(f"The replay checkpoint manifest is damaged: its state {str(state)[:200]} does not describe a "
+                       f"buffer of {buffer_text}.")  # fmt: skip
 
 
 def _check_layout(buffer: FrameStackReplayBuffer, saved: dict[str, Any]) -> None:
     """Raise :class:`CheckpointError` when the buffer's sizes, shapes or dtypes differ from the saved ones."""
     current = _layout(buffer)
     if not isinstance(saved.get("arrays"), dict):
-        raise CheckpointError(
-            "The replay checkpoint manifest is damaged: its layout lacks the arrays' shapes.", damaged=True
-        )
-    differences = []
-    for key in ("n_envs", "buffer_size", "frame_capacity", "frame_stack"):
-        if saved.get(key) != current[key]:
-            differences.append(f"{key} is {saved.get(key)} in the checkpoint and {current[key]} in this buffer")
-    for name, spec in current["arrays"].items():
-        if saved.get("arrays", {}).get(name) != spec:
-            differences.append(f"{name} is {saved['arrays'].get(name)} in the checkpoint and {spec} here")
+        raise _damaged("The replay checkpoint manifest is damaged: its layout lacks the arrays' shapes.")
+    differences = [
+        f"{key} is {saved.get(key)} in the checkpoint and {current[key]} in this buffer"
+        for key in ("n_envs", "buffer_size", "frame_capacity", "frame_stack")
+        if saved.get(key) != current[key]
+    ]
+    differences += [
+        f"{name} is {saved['arrays'].get(name)} in the checkpoint and {spec} here"
+        for name, spec in current["arrays"].items()
+        if saved["arrays"].get(name) != spec
+    ]
     if differences:
         raise CheckpointError(
             "The replay buffer does not match the checkpoint: "
