@@ -152,7 +152,7 @@ def read_result(folder: str | os.PathLike, strict: bool = False) -> dict[str, An
         return None
 
 
-DAMAGED_RESULT_WAY_OUT = "move the folder aside to train this seed again"
+DAMAGED_RESULT_WAY_OUT = "Move the folder aside to train this seed again."
 """What to do with a run folder whose result file is unreadable (its status stays ``failed``; nothing repairs it)."""
 
 
@@ -165,7 +165,7 @@ def unreadable_result(folder: str | os.PathLike) -> str | None:
     try:
         read_result(folder, strict=True)
     except InputError as error:
-        return f"{error} {DAMAGED_RESULT_WAY_OUT[0].upper()}{DAMAGED_RESULT_WAY_OUT[1:]}."
+        return f"{error} {DAMAGED_RESULT_WAY_OUT}"
     return None
 
 

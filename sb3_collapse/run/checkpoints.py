@@ -7,14 +7,12 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import io
 import json
 import os
 import pickle
 import random
 import shutil
 import time
-import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -281,18 +279,6 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     if "store" in info["replay"]:  # their checksums are verified as the replay store reads them
         ReplayStore(folder.parent / REPLAY_DIR).check_files(info["replay"]["store"])
     return info, state
-
-
-def checkpoint_learning_rates(folder: str | os.PathLike) -> dict[str, list[float]]:
-    """:return: optimizer (``"actor.optimizer"``...) -> the learning rate of each parameter group, in a checkpoint
-    ``folder`` (without loading the weights)"""
-    rates = {}
-    with zipfile.ZipFile(Path(folder) / CHECKPOINT_MODEL) as archive:
-        for name in archive.namelist():
-            if name.endswith("optimizer.pth"):
-                state = th.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
-                rates[name.removesuffix(".pth")] = [float(group["lr"]) for group in state["param_groups"]]
-    return rates
 
 
 def set_aside(folder: Path, reason: str | None = None) -> Path:

@@ -7,14 +7,19 @@ settings, or the checkpoint an unfinished one resumes from).
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import shutil
 import time
+import zipfile
 from pathlib import Path
 from typing import Any
 
+import torch as th
+
 from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.protocol import (
+    CHECKPOINT_MODEL,
     CHECKPOINTS_DIR,
     CONFIG_JSON,
     ERROR_TXT,
@@ -24,13 +29,7 @@ from sb3_collapse.protocol import (
     read_settings,
     write_json_atomically,
 )
-from sb3_collapse.run.checkpoints import (
-    DAMAGED_NOTE,
-    LoadedCheckpoint,
-    checkpoint_learning_rates,
-    read_checkpoints,
-    set_aside,
-)
+from sb3_collapse.run.checkpoints import DAMAGED_NOTE, LoadedCheckpoint, read_checkpoints, set_aside
 from sb3_collapse.run.config import RESUME_FREE_SETTINGS, TrainConfig
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status, unreadable_result
@@ -102,10 +101,15 @@ def _resume_differences(run_dir: Path, config: TrainConfig, checkpoint: Path | N
             return settings_differences(read_settings(run_dir / CONFIG_JSON), config)
         except (OSError, ValueError) as error:
             raise ParameterError("run_dir", f"run_dir {run_dir}: its {CONFIG_JSON} cannot be read ({error}).") from None
-    rates = sorted({rate for group in checkpoint_learning_rates(checkpoint).values() for rate in group})
-    if not rates or rates == [config.learning_rate]:
+    rates: set[float] = set()
+    with zipfile.ZipFile(checkpoint / CHECKPOINT_MODEL) as archive:  # the optimizers' states, not the weights
+        for name in archive.namelist():
+            if name.endswith("optimizer.pth"):
+                state = th.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
+                rates.update(float(group["lr"]) for group in state["param_groups"])
+    if not rates or rates == {config.learning_rate}:
         return []
-    trained = ", ".join(f"{rate:g}" for rate in rates)
+    trained = ", ".join(f"{rate:g}" for rate in sorted(rates))
     return [f"`learning_rate={config.learning_rate}` (its checkpoint {checkpoint.name} trained with {trained})"]
 
 

@@ -72,11 +72,10 @@ from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
 class TrainResult:
     """
     :param run_dir: folder of the run
-    :param model_path: the final checkpoint
+    :param model_path: the final model
     :param evaluations: one dict per scheduled evaluation (``frame``, ``step``, ``mean_reward``, ...)
-    :param summary: the content of the result file (see :func:`run_summary`)
-    :param saved_model_evaluation: the evaluation of the saved final model (same keys; ``None`` without
-        evaluations), not one of ``evaluations``
+    :param summary: the content of the result file (:func:`run_summary`)
+    :param saved_model_evaluation: the evaluation of the saved final model (same keys), ``None`` without evaluations
     """
 
     run_dir: Path
@@ -107,15 +106,14 @@ def run_summary(
     :param reset_rule: the run's reset-rule callback, ``None`` without the rule
     :param wall_time_s: seconds the run took
     :param resumes: times the run was resumed from a checkpoint
-    :param saved_model_eval: the evaluation of the saved final model (``PeriodicEvaluation.evaluate_saved_model``)
-    :param timings: the time split of the run's ``learn()`` (:class:`~sb3_collapse.run.timing.LearnTimer`)
+    :param saved_model_eval: the evaluation of the saved final model
+    :param timings: the time split of the run's ``learn()``
     :return: the summary, JSON-serializable
     """
-    last = evaluations[-1] if evaluations else None
-    saved = None
-    if saved_model_eval is not None:
-        saved = {key: saved_model_eval[key] for key in ("mean_reward", "std_reward")}
-        saved.update({key: int(saved_model_eval[key]) for key in ("frame", "episodes")})
+    last, saved = (evaluations[-1] if evaluations else None), saved_model_eval
+    if saved is not None:
+        saved = {"frame": int(saved["frame"]), "mean_reward": saved["mean_reward"], "std_reward": saved["std_reward"],
+                 "episodes": int(saved["episodes"])}  # fmt: skip
     return {
         "status": FINISHED,
         "task": task_id,
@@ -123,9 +121,8 @@ def run_summary(
         "seed": config.seed,
         "frames": int(frames_of(model)),
         "agent_steps": int(model.num_timesteps),
-        "final_eval": None
-        if last is None
-        else {"frame": int(last["frame"]), "mean_reward": last["mean_reward"], "std_reward": last["std_reward"]},
+        "final_eval": last
+        and {"frame": int(last["frame"]), **{key: last[key] for key in ("mean_reward", "std_reward")}},
         "saved_model_eval": saved,
         "resets": 0 if reset_rule is None else reset_rule.resets,
         "reset_frames": [] if reset_rule is None else [int(frame) for frame in reset_rule.reset_frames],
@@ -184,9 +181,7 @@ def train(config: TrainConfig) -> TrainResult:
         checkpoint = open_run_dir(run_dir, config)
         try:
             try:
-                result = _train_into(
-                    config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint
-                )
+                result = _train_into(config, task_id, run_dir, model, env, eval_env, start_time, checkpoint)
             except CheckpointError as error:  # damaged: found as their replay chunks were read, each one set aside
                 if not error.damaged:
                     raise
@@ -194,10 +189,8 @@ def train(config: TrainConfig) -> TrainResult:
                 if eval_env is not None:
                     eval_env.close()
                 env, eval_env, model = build_envs_and_model(config, task_id)  # from frame 0, as a new run
-                result = _train_into(
-                    config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time,
-                    open_run_dir(run_dir, config),  # sets the checkpoints aside, and says why the run restarts
-                )  # fmt: skip
+                checkpoint = open_run_dir(run_dir, config)  # sets the checkpoints aside, and says why it restarts
+                result = _train_into(config, task_id, run_dir, model, env, eval_env, start_time, checkpoint)
             (run_dir / LOCK_FILE).unlink(missing_ok=True)  # finished: no process may take the folder any more
             return result
         except TrainingInterrupted:
@@ -304,7 +297,7 @@ def budget_note(config: TrainConfig) -> str | None:
     )
 
 
-def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgorithm, steps: int) -> None:
+def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgorithm) -> None:
     """Print what the run trains, with which settings (and where they came from), and where it writes."""
     user = sorted(name for name, source in config.sources.items() if source == USER)
     tier = config.preset.tier
@@ -314,10 +307,8 @@ def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgor
         else f"the {tier} tier (DrQ-v2 published no config for {task_id})"
     )
     if config.algorithm == "drqv2":
-        algorithm = "DrQ-v2"
-        details = (
-            f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {config.replay_sampling} replay sampling"
-        )
+        algorithm, sampling = "DrQ-v2", config.replay_sampling
+        details = f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {sampling} replay sampling"
     else:
         algorithm = f"SB3's {type(model).__name__}"
         details = f"lr {config.learning_rate:g}; DrQ-v2-only settings not used: {', '.join(DRQV2_ONLY_SETTINGS)}"
@@ -326,7 +317,7 @@ def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgor
     if note is not None:
         print(note, flush=True)
     print(
-        f"{algorithm} on {task_id} from pixels{rule}: {config.frames:,} frames = {steps:,} agent steps "
+        f"{algorithm} on {task_id} from pixels{rule}: {config.frames:,} frames = {config.agent_steps:,} agent steps "
         f"(action repeat {config.action_repeat}{f', summed over {config.n_envs} envs' if config.n_envs > 1 else ''}), "
         f"seed {config.seed}, device {model.device}.\n"
         f"Settings: {origin}" + (f", overridden: {', '.join(user)}" if user else "") + f" (batch {config.batch_size}, "
@@ -343,7 +334,6 @@ def _train_into(
     model: BaseAlgorithm,
     env: EpisodeReplay | VecEnv,
     eval_env: EpisodeReplay | None,
-    steps: int,
     start_time: float,
     checkpoint: LoadedCheckpoint | None = None,
 ) -> TrainResult:
@@ -372,11 +362,11 @@ def _train_into(
     formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
     model.set_logger(resumed_logger(run_dir, formats, checkpoint))
 
-    _announce(config, task_id, run_dir, model, steps)
+    _announce(config, task_id, run_dir, model)
     with contextlib.ExitStack() as open_files:  # closed on every way out: the environment, then the logger's files
         open_files.callback(env.close)
         open_files.push(_logger_closer(model))
-        _learn(config, model, [*callbacks, timer], checkpoints, steps, resumed=checkpoint is not None)
+        _learn(config, model, [*callbacks, timer], checkpoints, resumed=checkpoint is not None)
         model_path = run_dir / FINAL_MODEL
         try:
             with atomic_output(model_path) as temporary:
@@ -387,18 +377,10 @@ def _train_into(
             open_files.close()  # the logs complete before the result file marks the run as finished
             evaluations = evaluation.rows if evaluation is not None else []
             _print_last_evaluations(evaluations, saved_model_eval)
-            wall_time_s = earlier["elapsed_s"] + time.time() - start_time
+            wall_time_s, resumes = earlier["elapsed_s"] + time.time() - start_time, earlier["resumes"]
             timings = timer.timings if isinstance(model, DrQv2) else None
             summary = run_summary(
-                config,
-                task_id,
-                model,
-                evaluations,
-                reset_rule,
-                wall_time_s,
-                earlier["resumes"],
-                saved_model_eval,
-                timings,
+                config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
             )
             write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
         except OSError as error:
@@ -410,13 +392,7 @@ def _train_into(
             raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
-    return TrainResult(
-        run_dir=run_dir,
-        model_path=model_path,
-        evaluations=evaluations,
-        summary=summary,
-        saved_model_evaluation=saved_model_eval,
-    )
+    return TrainResult(run_dir, model_path, evaluations, summary, saved_model_evaluation=saved_model_eval)
 
 
 def _learn(
@@ -424,11 +400,10 @@ def _learn(
     model: BaseAlgorithm,
     callbacks: list[BaseCallback],
     checkpoints: ResumableCheckpoints,
-    steps: int,
     resumed: bool,
 ) -> None:
     """
-    ``model.learn`` up to ``steps`` agent steps in total (the learn timer last in ``callbacks``); SIGINT/SIGTERM stop
+    ``model.learn`` up to the run's agent steps in total (the learn timer last in ``callbacks``); SIGINT/SIGTERM stop
     it with a checkpoint.
 
     :raises DivergenceError: the losses diverged; the message names the last checkpoint
@@ -437,7 +412,7 @@ def _learn(
     try:
         with stop_signals(checkpoints):
             model.learn(
-                steps - model.num_timesteps,
+                config.agent_steps - model.num_timesteps,
                 callback=CallbackList(callbacks),
                 log_interval=1,
                 progress_bar=config.progress_bar,
