@@ -26,8 +26,7 @@ COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
 """One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
 COLLAPSE_EVENTS_CSV = "collapse_events.csv"
 """One row per intervention (reset...) or escape of the reset rule (columns :data:`COLLAPSE_EVENT_FIELDS`)."""
-FINAL_MODEL = "final_model.zip"
-"""The final model, ``DrQv2.save``."""
+FINAL_MODEL = "final_model.zip"  # the final model, ``DrQv2.save``
 CHECKPOINTS_DIR = "checkpoints"
 """The run's checkpoints (:mod:`sb3_collapse.run.checkpoints`): one folder each, and the replay store."""
 CHECKPOINT_FOLDER = "step_{step:012d}"
@@ -35,36 +34,28 @@ CHECKPOINT_FOLDER = "step_{step:012d}"
 CHECKPOINT_FOLDER_PATTERN = re.compile(r"^step_(\d{12})$")
 CHECKPOINT_JSON = "checkpoint.json"
 """Written last into a checkpoint's folder (checksums of the others): a folder without it is not a checkpoint."""
-CHECKPOINT_MODEL = "model.zip"
-"""The model in a checkpoint (SB3's ``save``: weights, optimizers, counters)."""
+CHECKPOINT_MODEL = "model.zip"  # the model in a checkpoint (SB3's ``save``: weights, optimizers, counters)
 CHECKPOINT_STATE = "state.pt"
 """Everything else in a checkpoint: random generators, environments' episodes, callbacks, logger."""
-REPLAY_DIR = "replay"
-"""The replay buffer's chunks, in :data:`CHECKPOINTS_DIR`, shared by the checkpoints."""
-LOCK_FILE = "run.lock"
-"""The owner (pid, host) of a run folder while a process trains into it."""
-PROGRESS_CSV = "progress.csv"
-"""SB3's CSV log (one row per log dump)."""
+REPLAY_DIR = "replay"  # the replay buffer's chunks, in :data:`CHECKPOINTS_DIR`, shared by the checkpoints
+LOCK_FILE = "run.lock"  # the owner (pid, host) of a run folder while a process trains into it
+PROGRESS_CSV = "progress.csv"  # SB3's CSV log (one row per log dump)
 EXIT_INTERRUPTED = 75
 """Exit status (``EX_TEMPFAIL``) of a command stopped by SIGTERM or SIGINT: run the same command again to resume."""
 SNAPSHOTS_DIR = "snapshots"
 """The run's snapshots (:mod:`sb3_collapse.run.snapshots`): its encoder and actor at every evaluation."""
 SNAPSHOT_FILE = "snapshot_{frames:010d}_frames.zip"
 """A snapshot's file name in :data:`SNAPSHOTS_DIR`: the training frames, 10 digits (sorts by time)."""
-ERROR_TXT = "error.txt"
-"""The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
-SWEEP_JSON = "sweep.json"
-"""A sweep folder's settings."""
+ERROR_TXT = "error.txt"  # the traceback of a run that failed (:func:`write_failure`; a sweep's trial too)
+SWEEP_JSON = "sweep.json"  # a sweep folder's settings
 SWEEP_LOCK = "sweep.lock"
 """In a sweep folder while a sweep runs into it: the owner (pid, host) of the lock that refuses a second sweep."""
 SWEEP_STOP = ".stop_requested"
 """In a sweep folder while its driver stops at a signal (its name): each running trial checkpoints and stops."""
 SWEEP_PROBE_DIR = "probe/{task}_{variant}"
 """Inside a sweep folder: the outputs of ``python -m sb3_collapse.probe sweep`` for one task and variant (Figure 2)."""
-FIGURE2_PNG = "figure2.png"
-"""Figure 2 in :data:`SWEEP_PROBE_DIR`."""
-TABLES_1_6_CSV = "tables_1_6.csv"
-"""Tables 1-6 in :data:`SWEEP_PROBE_DIR`."""
+FIGURE2_PNG = "figure2.png"  # Figure 2 in :data:`SWEEP_PROBE_DIR`
+TABLES_1_6_CSV = "tables_1_6.csv"  # Tables 1-6 in :data:`SWEEP_PROBE_DIR`
 
 EVAL_FIELDS = ("frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s")
 COLLAPSE_METRICS_FIELDS = ("frame", "step", "tag", "value")
@@ -76,8 +67,7 @@ RESULT_KEYS = (
     "reset_frames", "escaped", "escape_frame", "wall_time_s", "timings", "resumes",
 )  # fmt: skip
 """The keys of the result file, see :func:`sb3_collapse.run.runner.run_summary`."""
-FINISHED = "finished"
-"""``status`` of a finished run."""
+FINISHED = "finished"  # ``status`` of a finished run
 
 SEED_FOLDER_PREFIX = "seed_"
 SEED_FOLDER = re.compile(rf"^{SEED_FOLDER_PREFIX}(\d+)$")

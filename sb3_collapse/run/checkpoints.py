@@ -153,11 +153,7 @@ def capture_state(
 
 
 def save_checkpoint(
-    model: BaseAlgorithm,
-    directory: str | os.PathLike,
-    store: ReplayStore,
-    state: dict[str, Any],
-    keep: int = 2,
+    model: BaseAlgorithm, directory: str | os.PathLike, store: ReplayStore, state: dict[str, Any], keep: int = 2
 ) -> Path:
     """
     Write a checkpoint of ``model`` and ``state`` (:func:`capture_state`) into ``directory/step_<agent step>``, then

@@ -164,13 +164,11 @@ class ReplayStore:
         crc, size = 0, 0
         try:
             with open(temporary, "xb") as file:
-                for segment in plan:
-                    for view in _views(buffer, segment):
-                        for block in _blocks(view):
-                            data = np.ascontiguousarray(block).reshape(-1).view(np.uint8)
-                            crc = zlib.crc32(data, crc)
-                            _write(file, data)
-                            size += data.nbytes
+                for block in _chunk_blocks(buffer, plan):
+                    data = np.ascontiguousarray(block).reshape(-1).view(np.uint8)
+                    crc = zlib.crc32(data, crc)
+                    _write(file, data)
+                    size += data.nbytes
                 file.flush()
                 os.fsync(file.fileno())
             os.rename(temporary, self.directory / name)
@@ -293,9 +291,8 @@ def _key(segment: dict[str, Any]) -> str:
 
 
 def _segment(key: str, start: int, stop: int) -> dict[str, Any]:
-    if key == TRANSITIONS:
-        return {"ring": TRANSITIONS, "start": int(start), "stop": int(stop)}
-    return {"ring": FRAMES, "env": int(key.split("/")[1]), "start": int(start), "stop": int(stop)}
+    ring = {"ring": TRANSITIONS} if key == TRANSITIONS else {"ring": FRAMES, "env": int(key.split("/")[1])}
+    return {**ring, "start": int(start), "stop": int(stop)}
 
 
 def _check_counters(buffer: FrameStackReplayBuffer) -> None:
@@ -366,22 +363,20 @@ def _pieces(start: int, stop: int, size: int) -> Iterator[tuple[int, int]]:
         yield 0, count - head
 
 
-def _views(buffer: FrameStackReplayBuffer, segment: dict[str, Any]) -> Iterator[np.ndarray]:
-    """The buffer's array views a segment covers, in the order its bytes are stored."""
-    if segment["ring"] == TRANSITIONS:
-        for low, high in _pieces(segment["start"], segment["stop"], buffer.buffer_size):
-            for name in TRANSITION_ARRAYS:
-                yield getattr(buffer, name)[low:high]
-    else:
-        for low, high in _pieces(segment["start"], segment["stop"], buffer.frame_capacity):
-            yield buffer.frames[low:high, segment["env"]]
-
-
-def _blocks(view: np.ndarray) -> Iterator[np.ndarray]:
-    """``view`` in slices of about :data:`BLOCK_BYTES` along its first axis."""
-    rows = max(1, BLOCK_BYTES // max(1, view[0].nbytes)) if len(view) else 1
-    for start in range(0, len(view), rows):
-        yield view[start : start + rows]
+def _chunk_blocks(buffer: FrameStackReplayBuffer, segments: list[dict[str, Any]]) -> Iterator[np.ndarray]:
+    """The buffer's array slices (of about :data:`BLOCK_BYTES`) that ``segments`` cover, in their chunk's order."""
+    for segment in segments:
+        transitions = segment["ring"] == TRANSITIONS
+        size = buffer.buffer_size if transitions else buffer.frame_capacity
+        for low, high in _pieces(segment["start"], segment["stop"], size):
+            if transitions:
+                views = [getattr(buffer, name)[low:high] for name in TRANSITION_ARRAYS]
+            else:
+                views = [buffer.frames[low:high, segment["env"]]]
+            for view in views:
+                rows = max(1, BLOCK_BYTES // max(1, view[0].nbytes)) if len(view) else 1
+                for start in range(0, len(view), rows):
+                    yield view[start : start + rows]
 
 
 def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any]) -> None:
@@ -389,16 +384,14 @@ def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any
     crc = 0
     try:
         with open(path, "rb") as file:
-            for segment in chunk["segments"]:
-                for view in _views(buffer, segment):
-                    for block in _blocks(view):
-                        target = block if block.flags.c_contiguous else np.empty_like(block)
-                        data = target.reshape(-1).view(np.uint8)
-                        if file.readinto(data) != data.nbytes:
-                            raise _damaged(f"The replay checkpoint chunk {path} ended early (truncated).")
-                        crc = zlib.crc32(data, crc)
-                        if target is not block:
-                            block[...] = target
+            for block in _chunk_blocks(buffer, chunk["segments"]):
+                target = block if block.flags.c_contiguous else np.empty_like(block)
+                data = target.reshape(-1).view(np.uint8)
+                if file.readinto(data) != data.nbytes:
+                    raise _damaged(f"The replay checkpoint chunk {path} ended early (truncated).")
+                crc = zlib.crc32(data, crc)
+                if target is not block:
+                    block[...] = target
     except OSError as error:
         raise CheckpointError(f"Could not read the replay checkpoint chunk {path}: {error}.", damaged=True) from error
     if crc != chunk["crc32"]:
