@@ -113,6 +113,16 @@ def _resume_differences(run_dir: Path, config: TrainConfig, checkpoint: Path | N
     return [f"`learning_rate={config.learning_rate}` (its checkpoint {checkpoint.name} trained with {trained})"]
 
 
+def _refuse_other_settings(run_dir: Path, differences: list[str], settings: str) -> None:
+    """:raises ParameterError: naming ``run_dir`` and the ``differences``, when there are any"""
+    if differences:
+        raise ParameterError(
+            "run_dir",
+            f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run it with "
+            f"{settings} to resume it, or train into another folder.",
+        )
+
+
 def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
     """
     :param logdir: the parent folder of the run folders
@@ -225,13 +235,7 @@ def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
     :raises ParameterError: for a folder with a finished run, another run's settings or other content
     """
     if _check_run_dir(run_dir) in RESUMABLE:
-        differences = _resume_differences(run_dir, config)
-        if differences:
-            raise ParameterError(
-                "run_dir",
-                f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run it "
-                "with its own settings to resume it, or train into another folder.",
-            )
+        _refuse_other_settings(run_dir, _resume_differences(run_dir, config), "its own settings")
         for partial in partial_outputs(run_dir):  # a write of a killed process: written again as the run goes on
             partial.unlink()
         checkpoint, skipped = read_checkpoints(run_dir / CHECKPOINTS_DIR)
@@ -239,14 +243,11 @@ def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
             for folder, reason in skipped:  # kept aside under another name, never read again
                 print(f"Checkpoint {folder} is damaged ({reason}): falling back to the one before.")
                 set_aside(folder, reason)
-            differences = _resume_differences(run_dir, config, checkpoint.folder)
-            if differences:  # the settings file was edited: the run would change its settings mid-run
-                raise ParameterError(
-                    "run_dir",
-                    f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run "
-                    f"it with the settings it trained with (and its {CONFIG_JSON} as it wrote it) to resume it, or "
-                    "train into another folder.",
-                )
+            _refuse_other_settings(  # the settings file was edited: the run would change its settings mid-run
+                run_dir,
+                _resume_differences(run_dir, config, checkpoint.folder),
+                f"the settings it trained with (and its {CONFIG_JSON} as it wrote it)",
+            )
             error_file = run_dir / ERROR_TXT
             if error_file.is_file():  # kept with the checkpoints, out of the way of the sweep's status
                 first = error_file.read_text().splitlines()[:1]

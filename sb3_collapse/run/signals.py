@@ -44,18 +44,6 @@ def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
 
     :param checkpoints: the run's checkpoint callback
     """
-    _training.append(checkpoints)
-    if _stop_requests:
-        checkpoints.request_stop(_stop_requests[0])
-    try:
-        with stop_signal_handlers(_stop_handler(checkpoints)):
-            yield
-    finally:
-        _training.remove(checkpoints)
-
-
-def _stop_handler(checkpoints: ResumableCheckpoints) -> Callable[[int, Any], None]:
-    """The handler of :func:`stop_signals`: a first signal asks for a checkpoint, a second SIGINT stops at once."""
     received: list[str] = []  # signals, not requests: a sweep's request and a Ctrl-C are one stop, not two
 
     def handler(signum: int, _frame: Any) -> None:
@@ -64,12 +52,17 @@ def _stop_handler(checkpoints: ResumableCheckpoints) -> Callable[[int, Any], Non
             raise KeyboardInterrupt
         received.append(name)
         checkpoints.request_stop(name)
-        print(
-            f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
-            flush=True,
-        )
+        print(f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
+              flush=True)  # fmt: skip
 
-    return handler
+    _training.append(checkpoints)
+    if _stop_requests:
+        checkpoints.request_stop(_stop_requests[0])
+    try:
+        with stop_signal_handlers(handler):
+            yield
+    finally:
+        _training.remove(checkpoints)
 
 
 @contextlib.contextmanager

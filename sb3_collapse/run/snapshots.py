@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -18,7 +17,7 @@ from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_f
 
 from sb3_collapse.drqv2.transplant import GROUP_LAYERS, TRANSPLANT_GROUPS
 from sb3_collapse.monitoring.callbacks import frames_of
-from sb3_collapse.protocol import SNAPSHOT_FILE
+from sb3_collapse.protocol import SNAPSHOT_FILE, atomic_output
 
 SNAPSHOT_GROUPS = ("cnn", "mlp")
 """The transplant groups a snapshot holds: the encoder and the actor."""
@@ -49,24 +48,18 @@ def save_snapshot(model: Any, path: str | os.PathLike) -> Path:
     excluded.update(name.split(".")[0] for name in state_dicts + torch_variables)
     for name in excluded:
         data.pop(name, None)
+    marker = {
+        "groups": list(SNAPSHOT_GROUPS),
+        "layers": [layer for group in SNAPSHOT_GROUPS for layer in GROUP_LAYERS[group]],
+        "num_timesteps": int(model.num_timesteps),
+        "frames": frames_of(model),
+    }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(handle)
-    try:
+    with atomic_output(path) as temporary:
         save_to_zip_file(temporary, data=data, params={"policy": kept})
-        marker = {
-            "groups": list(SNAPSHOT_GROUPS),
-            "layers": [layer for group in SNAPSHOT_GROUPS for layer in GROUP_LAYERS[group]],
-            "num_timesteps": int(model.num_timesteps),
-            "frames": frames_of(model),
-        }
         with zipfile.ZipFile(temporary, "a") as archive:
             archive.writestr(MARKER, json.dumps(marker))
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
     return path
 
 
