@@ -152,6 +152,19 @@ def read_result(folder: str | os.PathLike, strict: bool = False) -> dict[str, An
         return None
 
 
+def check_result_version(folder: str | os.PathLike, result: dict[str, Any]) -> None:
+    """
+    :param folder: a run folder
+    :param result: its result file's content
+    :raises InputError: naming the file, when a finished run's result has no ``saved_model_eval`` (another version's)
+    """
+    if result.get("status") == FINISHED and "saved_model_eval" not in result:
+        raise InputError(
+            f"{Path(folder) / RESULT_JSON} has no 'saved_model_eval': it was written by another version of "
+            "sb3-collapse."
+        )
+
+
 DAMAGED_RESULT_WAY_OUT = "Move the folder aside to train this seed again."
 """What to do with a run folder whose result file is unreadable (its status stays ``failed``; nothing repairs it)."""
 
@@ -234,19 +247,6 @@ def read_evaluations(folder: str | os.PathLike, partial: bool = False) -> tuple[
             "was the run folder written twice? Delete it and run the trial again."
         )
     return frames, returns
-
-
-def check_result_version(folder: str | os.PathLike, result: dict[str, Any]) -> None:
-    """
-    :param folder: a run folder
-    :param result: its result file's content
-    :raises InputError: naming the file, when a finished run's result has no ``saved_model_eval`` (another version's)
-    """
-    if result.get("status") == FINISHED and "saved_model_eval" not in result:
-        raise InputError(
-            f"{Path(folder) / RESULT_JSON} has no 'saved_model_eval': it was written by another version of "
-            "sb3-collapse."
-        )
 
 
 def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
