@@ -468,8 +468,10 @@ def test_eval_csv_out_of_step_with_the_checkpoint_is_rewritten_from_it_on_resume
     notes = [line for line in capsys.readouterr().out.splitlines() if "rewritten from it" in line]
     why = "3 line(s) short" if damage == "short" else "cut mid-row"
     assert notes == [
-        f"Note: eval.csv ({why}) did not hold what the checkpoint at frame 600 recorded: rewritten from it (the rows "
-        "after it are written again as the run goes on)."
+        (
+            f"Note: eval.csv ({why}) did not hold what the checkpoint at frame 600 recorded: rewritten from it (the "
+            "rows after it are written again as the run goes on)."
+        )
     ]
     rows = [line.split(",") for line in eval_csv.read_text().splitlines()]
     assert [row[:3] for row in rows] == uninterrupted
