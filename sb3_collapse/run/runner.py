@@ -425,7 +425,14 @@ def _learn(
     except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
         if unwritable_message(error) is None:
             raise
-        raise OutputError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
+        where = error.filename if error.filename is not None else "a file of the run folder"
+        fix = "Free space" if error.errno in FULL_DISK_ERRNOS else "Make the folder writable again"
+        kept = checkpoints.last_checkpoint
+        resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
+        raise OutputError(
+            f"could not write {where} ({os.strerror(error.errno)}) at frame {frames_of(model):,}: the run stops. "
+            f"{fix}, then run the same command again: {resume}."
+        ) from None
 
 
 def _logger_closer(model: BaseAlgorithm) -> Callable[..., bool]:
@@ -453,15 +460,3 @@ def _print_last_evaluations(evaluations: list[dict[str, Any]], saved_model_eval:
             f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
             f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
         )
-
-
-def stopped_writing_message(error: OSError, frame: int, kept: Path | None) -> str:
-    """:return: one line: what ``error`` (a write while training, at ``frame``) could not write and why, and how the run
-    continues (from ``kept``, its last checkpoint)"""
-    where = error.filename if error.filename is not None else "a file of the run folder"
-    fix = "free space" if error.errno in FULL_DISK_ERRNOS else "make the folder writable again"
-    resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
-    return (
-        f"could not write {where} ({os.strerror(error.errno)}) at frame {frame:,}: the run stops. {fix.capitalize()}, "
-        f"then run the same command again: {resume}."
-    )
