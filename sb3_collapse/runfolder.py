@@ -119,11 +119,8 @@ def run_folder_owner(folder: str | os.PathLike) -> str | None:
 
 
 def read_json(path: str | os.PathLike) -> dict[str, Any]:
-    """
-    :param path: a JSON file holding an object
-    :return: the object
-    :raises InputError: naming the file, when it is not a readable JSON object
-    """
+    """:return: the object of a JSON file
+    :raises InputError: naming the file, when it is not a readable JSON object"""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -170,11 +167,8 @@ DAMAGED_RESULT_WAY_OUT = "Move the folder aside to train this seed again."
 
 
 def unreadable_result(folder: str | os.PathLike) -> str | None:
-    """
-    :param folder: a run folder
-    :return: for a result file that exists and cannot be read, one line: :func:`read_result`'s reason and
-        :data:`DAMAGED_RESULT_WAY_OUT`; ``None`` otherwise
-    """
+    """:return: for a run folder whose result file exists and cannot be read, one line: :func:`read_result`'s reason
+    and :data:`DAMAGED_RESULT_WAY_OUT`; ``None`` otherwise"""
     try:
         read_result(folder, strict=True)
     except InputError as error:
@@ -285,12 +279,8 @@ def read_collapse_events(path: Path) -> list[tuple[int, str]]:
 
 
 def trial_folders(sweep: str | os.PathLike) -> list[tuple[str, str, int, Path]]:
-    """
-    :param sweep: a sweep folder
-    :return: its trial folders ``<sweep>/<task>/<variant>/seed_<k>/`` as ``(task, variant, seed, path)``, sorted;
-        hidden folders (``.name``) and folders of another shape (``<sweep>/report/``) are skipped; empty when
-        ``sweep`` is not a folder
-    """
+    """:return: the trial folders ``<sweep>/<task>/<variant>/seed_<k>/`` as ``(task, variant, seed, path)``, sorted
+    (hidden folders and folders of another shape skipped; empty when ``sweep`` is not a folder)"""
 
     def folders(parent: Path) -> list[Path]:
         if not parent.is_dir():

@@ -69,12 +69,8 @@ def _digest(path: Path) -> dict[str, Any]:
 
 
 def tensors_to(value: Any, device: th.device | str) -> Any:
-    """
-    :param value: e.g. a checkpoint's state
-    :param device: where the tensors go
-    :return: a copy with every tensor detached and moved to ``device``, through dicts, lists and tuples; other values
-        kept as they are (not copied)
-    """
+    """:return: a copy of ``value`` (e.g. a checkpoint's state) with every tensor detached and moved to ``device``,
+    through dicts, lists and tuples; other values kept as they are (not copied)"""
     if isinstance(value, th.Tensor):
         return value.detach().to(device, copy=True)
     if isinstance(value, dict):
@@ -279,11 +275,9 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
 
 def set_aside(folder: Path, reason: str | None = None) -> Path:
     """
-    Rename a damaged checkpoint's folder (or a run's checkpoints folder) to ``damaged_<name>`` (``-2``... when taken):
-    never read again, never lost.
+    Rename a damaged checkpoint's (or checkpoints) ``folder`` to ``damaged_<name>`` (``-2``... when taken): never
+    read again, never lost; ``reason`` is written into it (:data:`DAMAGED_NOTE`, best effort).
 
-    :param folder: the folder
-    :param reason: why, written into it (:data:`DAMAGED_NOTE`; best effort)
     :return: its new path
     """
     target, number = folder.with_name(f"damaged_{folder.name}"), 2
@@ -322,11 +316,9 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
 
 def restore_model(model: BaseAlgorithm, path: str | os.PathLike) -> None:
     """
-    Put a model saved by SB3's ``save`` back into ``model`` (built with the same settings), as ``BaseAlgorithm.load``
-    does, without building a new model and replay buffer.
+    Put the zip of SB3's ``save`` at ``path`` back into ``model`` (built with the same settings) as
+    ``BaseAlgorithm.load`` does, without building a new model and replay buffer.
 
-    :param model: the model to restore into
-    :param path: the zip
     :raises CheckpointError: when the saved spaces are not the model's
     """
     data, params, variables = load_from_zip_file(path, device=model.device, print_system_info=False)

@@ -36,12 +36,8 @@ from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status, unreadable_
 
 
 def _check_run_dir(run_dir: Path) -> RunStatus:
-    """
-    :param run_dir: an explicit run folder
-    :return: its status, when a run may take it: new, unfinished, or failed with a readable (or no) result file
-    :raises ParameterError: naming ``run_dir``, for a finished run (whose leftovers are removed), a damaged result
-        file or a folder of other files
-    """
+    """:return: the status of an explicit ``run_dir`` that a run may take (new, unfinished, failed)
+    :raises ParameterError: naming ``run_dir``: a finished run (its leftovers removed), an unreadable result, no run"""
     state = run_status(run_dir, check_lock=False)  # a held lock refuses the run later, naming its owner
     if state is None:
         raise ParameterError(
@@ -151,11 +147,7 @@ def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
 
 
 def partial_outputs(run_dir: Path) -> list[Path]:
-    """
-    :param run_dir: a run folder
-    :return: the temporary files of its atomic writes (:func:`~sb3_collapse.protocol.atomic_output`) that a killed
-        process left, but those of the checkpoints (the next checkpoint removes them)
-    """
+    """:return: the temporary files of atomic writes a killed process left in ``run_dir`` (but the checkpoints')"""
     return [
         path
         for path in run_dir.rglob(".*.partial*")
@@ -166,10 +158,10 @@ def partial_outputs(run_dir: Path) -> list[Path]:
 def tidy_finished_run(run_dir: Path) -> list[str]:
     """
     Remove what a finished run's process, killed after it wrote its result file, left: the checkpoints, the temporary
-    files of atomic writes and the lock file; nothing while a process holds the lock or where the folder is read-only.
+    files of atomic writes and the lock file (nothing while a process holds the lock, or in a read-only folder).
 
-    :param run_dir: a folder holding a finished run (its result file)
-    :return: what was removed, for the user (empty when nothing was)
+    :param run_dir: a folder holding a finished run
+    :return: what was removed, for the user
     """
     checkpoints, lock = run_dir / CHECKPOINTS_DIR, run_dir / LOCK_FILE
     leftovers = [path for path in (checkpoints, lock) if path.exists()] + partial_outputs(run_dir)
@@ -195,12 +187,10 @@ def tidy_finished_run(run_dir: Path) -> list[str]:
 
 def set_aside_damaged_checkpoints(run_dir: Path, skipped: list[tuple[Path, str]]) -> Path | None:
     """
-    When no checkpoint of an unfinished run can be read and some are damaged (``skipped``, or set aside earlier), set
-    the whole checkpoints folder aside (``damaged_checkpoints``) and say in one line, printed and written into it,
-    that the run restarts from frame 0 and why.
+    When no checkpoint of ``run_dir`` (locked) can be read and some are damaged (``skipped``, or set aside earlier),
+    set the checkpoints folder aside (``damaged_checkpoints``) and say in one line (printed, and in it) why the run
+    restarts from frame 0.
 
-    :param run_dir: the run folder, locked by this process
-    :param skipped: the damaged checkpoints and why (:func:`~sb3_collapse.run.checkpoints.read_checkpoints`)
     :return: where the checkpoints went, ``None`` when none was damaged
     """
     checkpoints = run_dir / CHECKPOINTS_DIR
@@ -226,11 +216,9 @@ def set_aside_damaged_checkpoints(run_dir: Path, skipped: list[tuple[Path, str]]
 
 def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
     """
-    With the run folder locked: a new run writes its settings; an unfinished run with the same settings is resumed
-    from its newest readable checkpoint (damaged newer ones are reported and set aside), or restarted without one.
+    With ``run_dir`` locked: a new run writes its settings (``config``); an unfinished run with the same settings is
+    resumed from its newest readable checkpoint (damaged newer ones set aside), or restarted without one.
 
-    :param run_dir: the run folder, locked by this process
-    :param config: the run's settings
     :return: the checkpoint to resume from, ``None`` for a run from frame 0
     :raises ParameterError: for a folder with a finished run, another run's settings or other content
     """
