@@ -94,9 +94,10 @@ def _resume_differences(run_dir: Path, config: TrainConfig, checkpoint: Path | N
     """
     if checkpoint is None:
         try:
-            return settings_differences(read_settings(run_dir / CONFIG_JSON), config)
+            saved = read_settings(run_dir / CONFIG_JSON)
         except (OSError, ValueError) as error:
             raise ParameterError("run_dir", f"run_dir {run_dir}: its {CONFIG_JSON} cannot be read ({error}).") from None
+        return settings_differences(saved, config)
     rates: set[float] = set()
     with zipfile.ZipFile(checkpoint / CHECKPOINT_MODEL) as archive:  # the optimizers' states, not the weights
         for name in archive.namelist():
