@@ -5,6 +5,7 @@ metrics and events, and a sweep's trial folders. The file names and the writers 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import errno
 import json
@@ -104,17 +105,13 @@ def run_folder_owner(folder: str | os.PathLike) -> str | None:
             return None
         except PermissionError:  # another user's process: alive
             pass
-    try:
-        with open(path) as file:
-            try:
-                fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except OSError as error:
-                if error.errno in (errno.EAGAIN, errno.EACCES):
-                    return owner or "another process"
-                raise
-            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
-    except OSError:
-        pass
+    with contextlib.suppress(OSError), open(path) as file:  # the shared lock goes with the file
+        try:
+            fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as error:
+            if error.errno in (errno.EAGAIN, errno.EACCES):
+                return owner or "another process"
+            raise
     return None
 
 

@@ -257,10 +257,8 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         path = folder / name
         if not path.is_file():
             raise CheckpointError(f"{name} is missing", damaged=True)
-        if path.stat().st_size != expected["bytes"]:
-            raise CheckpointError(
-                f"{name} has {path.stat().st_size} bytes, {expected['bytes']} were written", damaged=True
-            )
+        if (size := path.stat().st_size) != expected["bytes"]:
+            raise CheckpointError(f"{name} has {size} bytes, {expected['bytes']} were written", damaged=True)
         if _digest(path)["sha256"] != expected["sha256"]:
             raise CheckpointError(f"{name} does not have the checksum it was written with", damaged=True)
     try:
