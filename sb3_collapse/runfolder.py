@@ -159,7 +159,7 @@ def check_result_version(folder: str | os.PathLike, result: dict[str, Any]) -> N
         )
 
 
-DAMAGED_RESULT_WAY_OUT = "Move the folder aside to train this seed again."
+DAMAGED_RESULT_WAY_OUT = "move the folder aside to train this seed again"
 """What to do with a run folder whose result file is unreadable (its status stays ``failed``; nothing repairs it)."""
 
 
@@ -169,7 +169,7 @@ def unreadable_result(folder: str | os.PathLike) -> str | None:
     try:
         read_result(folder, strict=True)
     except InputError as error:
-        return f"{error} {DAMAGED_RESULT_WAY_OUT}"
+        return f"{str(error).rstrip('.')}; {DAMAGED_RESULT_WAY_OUT}."
     return None
 
 

@@ -493,18 +493,18 @@ def test_a_run_folder_whose_result_file_is_unreadable_is_refused_in_one_line_wit
     (run_dir / RESULT_JSON).write_text('{"status": "fini')  # truncated
     reason = (
         f"{run_dir / RESULT_JSON}: not a readable JSON file (Unterminated string starting at: line 1 column 12 "
-        "(char 11))."
+        "(char 11))"
     )
     with pytest.raises(ValueError) as strict:
         read_result(run_dir, strict=True)
-    assert str(strict.value) == reason
+    assert str(strict.value) == reason + "."
     before = sorted(path.name for path in run_dir.iterdir())
 
     with pytest.raises(SystemExit) as exit_info:
         main(_flags(run_dir))
     assert exit_info.value.code == 2
     error = capsys.readouterr().err.strip().splitlines()
-    assert error[-1].endswith(f"error: --run-dir {run_dir}: {reason} Move the folder aside to train this seed again.")
+    assert error[-1].endswith(f"error: --run-dir {run_dir}: {reason}; move the folder aside to train this seed again.")
     assert run_status(run_dir) == "failed" and sorted(path.name for path in run_dir.iterdir()) == before
     with pytest.raises(ValueError) as refused:
         check_run_folder(TrainConfig(env="cartpole-balance", run_dir=str(run_dir)))

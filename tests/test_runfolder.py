@@ -207,12 +207,12 @@ def test_an_unreadable_result_file_stays_failed_and_names_the_file_the_reason_an
     assert run_status(folder) == RunStatus.FAILED and read_result(folder) is None and final_return(folder) is None
     reason = unreadable_result(folder)
     assert reason == (
-        f"{folder / 'result.json'}: not a readable JSON file (Expecting ',' delimiter: line 1 column 6 (char 5)). "
-        f"{DAMAGED_RESULT_WAY_OUT}"
+        f"{folder / 'result.json'}: not a readable JSON file (Expecting ',' delimiter: line 1 column 6 (char 5)); "
+        f"{DAMAGED_RESULT_WAY_OUT}."
     )
-    assert "\n" not in reason and DAMAGED_RESULT_WAY_OUT == "Move the folder aside to train this seed again."
+    assert "\n" not in reason and DAMAGED_RESULT_WAY_OUT == "move the folder aside to train this seed again"
     _write(folder, {"result.json": "[1, 2]"})  # readable, but not an object
-    assert unreadable_result(folder).startswith(f"{folder / 'result.json'}: expected a JSON object, got list.")
+    assert unreadable_result(folder).startswith(f"{folder / 'result.json'}: expected a JSON object, got list; move")
     assert unreadable_result(tmp_path / "nothing") is None
 
     config = TrainConfig(env="cartpole-balance").resolve()
