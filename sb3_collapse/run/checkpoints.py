@@ -399,12 +399,9 @@ def restore_csv_files(paths: Sequence[Path], saved: dict[str, bytes], frame: int
         if current == content:
             continue
         if not current.startswith(content):  # not only rows written after the checkpoint: damaged
-            if not content.startswith(current):
-                why = "changed"
-            elif current.endswith(newline) or not current:
-                why = f"{content.count(newline) - current.count(newline)} line(s) short"
-            else:
-                why = "cut mid-row"
+            short = f"{content.count(newline) - current.count(newline)} line(s) short"
+            cut = current and not current.endswith(newline)
+            why = "changed" if not content.startswith(current) else "cut mid-row" if cut else short
             rewritten.append(f"{path.name} ({why})")
         with atomic_output(path) as temporary:
             temporary.write_bytes(content)
