@@ -1,10 +1,6 @@
 """
-The run-folder format, in one place: what ``python -m sb3_collapse.train`` writes into one run's folder (and a sweep
-into each ``<out>/<task>/<variant>/seed_<k>/``): the file names, the CSV columns, the keys of the result file, and the
-atomic writers every module uses. The report, the probe and the sweep read the same names from here.
-
-The paper's numbers are in :mod:`sb3_collapse.paper`; DrQ-v2's own per-task hyperparameters (budgets, schedules,
-batch sizes...) in :mod:`sb3_collapse.presets`.
+The run-folder format in one place: the file names a run (and a sweep) writes, the CSV columns, the result file's keys,
+and the atomic writers every module uses.
 """
 
 from __future__ import annotations
@@ -20,63 +16,46 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-# ---------------------------------------------------------------------------------------------- the run folder
 CONFIG_JSON = "config.json"
 """The run's settings, written first (every value, and for preset settings whether it came from the preset)."""
 RESULT_JSON = "result.json"
 """The outcome, written last and atomically: a folder without it is an unfinished run (keys: :data:`RESULT_KEYS`)."""
 EVAL_CSV = "eval.csv"
-"""One row per scheduled evaluation (columns :data:`EVAL_FIELDS`, frames
-:func:`~sb3_collapse.paper.evaluation_schedule`); the saved final model's evaluation is in the result file
-(``saved_model_eval``), not here."""
+"""One row per scheduled evaluation (columns :data:`EVAL_FIELDS`); the saved final model's is in the result file."""
 COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
 """One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
 COLLAPSE_EVENTS_CSV = "collapse_events.csv"
 """One row per intervention (reset...) or escape of the reset rule (columns :data:`COLLAPSE_EVENT_FIELDS`)."""
-FINAL_MODEL = "final_model.zip"
-"""The final model, ``DrQv2.save``."""
+FINAL_MODEL = "final_model.zip"  # the final model, ``DrQv2.save``
 CHECKPOINTS_DIR = "checkpoints"
-"""The run's checkpoints, to resume it (:mod:`sb3_collapse.run.checkpoints`): one folder each, and the replay
-store."""
+"""The run's checkpoints (:mod:`sb3_collapse.run.checkpoints`): one folder each, and the replay store."""
 CHECKPOINT_FOLDER = "step_{step:012d}"
 """One checkpoint's folder in :data:`CHECKPOINTS_DIR`, named by the agent step (transitions) it was taken at."""
 CHECKPOINT_FOLDER_PATTERN = re.compile(r"^step_(\d{12})$")
 CHECKPOINT_JSON = "checkpoint.json"
 """Written last into a checkpoint's folder (checksums of the others): a folder without it is not a checkpoint."""
-CHECKPOINT_MODEL = "model.zip"
-"""The model in a checkpoint (SB3's ``save``: weights, optimizers, counters)."""
+CHECKPOINT_MODEL = "model.zip"  # the model in a checkpoint (SB3's ``save``: weights, optimizers, counters)
 CHECKPOINT_STATE = "state.pt"
 """Everything else in a checkpoint: random generators, environments' episodes, callbacks, logger."""
-REPLAY_DIR = "replay"
-"""The replay buffer's chunks, in :data:`CHECKPOINTS_DIR`, shared by the checkpoints."""
-LOCK_FILE = "run.lock"
-"""The owner (pid, host) of a run folder while a process trains into it."""
-PROGRESS_CSV = "progress.csv"
-"""SB3's CSV log (one row per log dump)."""
+REPLAY_DIR = "replay"  # the replay buffer's chunks, in :data:`CHECKPOINTS_DIR`, shared by the checkpoints
+LOCK_FILE = "run.lock"  # the owner (pid, host) of a run folder while a process trains into it
+PROGRESS_CSV = "progress.csv"  # SB3's CSV log (one row per log dump)
 EXIT_INTERRUPTED = 75
-"""Exit status of ``python -m sb3_collapse.train`` stopped by SIGTERM or SIGINT after writing a checkpoint, of the
-sweep whose trials did so, and of the probe stopped before writing anything (``EX_TEMPFAIL``: run the same command
-again to resume)."""
+"""Exit status (``EX_TEMPFAIL``) of a command stopped by SIGTERM or SIGINT: run the same command again to resume."""
 SNAPSHOTS_DIR = "snapshots"
-"""The run's snapshots: its encoder and actor at every evaluation, one zip each (:data:`SNAPSHOT_FILE`), the
-weights the probe and the report's fixed-set figures read (:mod:`sb3_collapse.run.snapshots`)."""
+"""The run's snapshots (:mod:`sb3_collapse.run.snapshots`): its encoder and actor at every evaluation."""
 SNAPSHOT_FILE = "snapshot_{frames:010d}_frames.zip"
 """A snapshot's file name in :data:`SNAPSHOTS_DIR`: the training frames, 10 digits (sorts by time)."""
-ERROR_TXT = "error.txt"
-"""The traceback of a run that failed (:func:`write_failure`; a sweep's trial too)."""
-SWEEP_JSON = "sweep.json"
-"""A sweep folder's settings."""
+ERROR_TXT = "error.txt"  # the traceback of a run that failed (:func:`write_failure`; a sweep's trial too)
+SWEEP_JSON = "sweep.json"  # a sweep folder's settings
 SWEEP_LOCK = "sweep.lock"
 """In a sweep folder while a sweep runs into it: the owner (pid, host) of the lock that refuses a second sweep."""
 SWEEP_STOP = ".stop_requested"
-"""In a sweep folder while its driver stops at a SIGTERM or SIGINT: the signal's name. Each running trial, on any
-node, writes a checkpoint and stops when it sees the file; the driver deletes it before it exits."""
+"""In a sweep folder while its driver stops at a signal (its name): each running trial checkpoints and stops."""
 SWEEP_PROBE_DIR = "probe/{task}_{variant}"
 """Inside a sweep folder: the outputs of ``python -m sb3_collapse.probe sweep`` for one task and variant (Figure 2)."""
-FIGURE2_PNG = "figure2.png"
-"""Figure 2 in :data:`SWEEP_PROBE_DIR`."""
-TABLES_1_6_CSV = "tables_1_6.csv"
-"""Tables 1-6 in :data:`SWEEP_PROBE_DIR`."""
+FIGURE2_PNG = "figure2.png"  # Figure 2 in :data:`SWEEP_PROBE_DIR`
+TABLES_1_6_CSV = "tables_1_6.csv"  # Tables 1-6 in :data:`SWEEP_PROBE_DIR`
 
 EVAL_FIELDS = ("frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s")
 COLLAPSE_METRICS_FIELDS = ("frame", "step", "tag", "value")
@@ -84,25 +63,11 @@ COLLAPSE_EVENT_FIELDS = ("frame", "step", "event", "resets", "intervention", "de
 """``event``: ``reset`` (any intervention) or ``escape``; ``intervention``: the rule's (``reset``, ``redo``...);
 ``detail``: what the intervention did, one line."""
 RESULT_KEYS = (
-    "status",
-    "task",
-    "variant",
-    "seed",
-    "frames",
-    "agent_steps",
-    "final_eval",
-    "saved_model_eval",
-    "resets",
-    "reset_frames",
-    "escaped",
-    "escape_frame",
-    "wall_time_s",
-    "timings",
-    "resumes",
-)
+    "status", "task", "variant", "seed", "frames", "agent_steps", "final_eval", "saved_model_eval", "resets",
+    "reset_frames", "escaped", "escape_frame", "wall_time_s", "timings", "resumes",
+)  # fmt: skip
 """The keys of the result file, see :func:`sb3_collapse.run.runner.run_summary`."""
-FINISHED = "finished"
-"""``status`` of a finished run."""
+FINISHED = "finished"  # ``status`` of a finished run
 
 SEED_FOLDER_PREFIX = "seed_"
 SEED_FOLDER = re.compile(rf"^{SEED_FOLDER_PREFIX}(\d+)$")
@@ -110,41 +75,27 @@ SEED_FOLDER = re.compile(rf"^{SEED_FOLDER_PREFIX}(\d+)$")
 
 
 def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Path:
-    """
-    :param out: a sweep folder
-    :param task: the task, ``<domain>-<task>``
-    :param variant: the variant name
-    :param seed: the seed
-    :return: the trial's folder, ``<out>/<task>/<variant>/seed_<seed>``
-    """
+    """:return: the folder of a sweep's trial, ``<out>/<task>/<variant>/seed_<seed>``"""
     return Path(out) / task / variant / f"{SEED_FOLDER_PREFIX}{seed}"
 
 
 def read_settings(path: str | os.PathLike) -> dict[str, Any]:
     """
-    Read a run's settings file (:data:`CONFIG_JSON`) or a sweep's (:data:`SWEEP_JSON`, whose training settings are
-    under ``training``).
-
-    :param path: the settings file
+    :param path: a run's settings file (:data:`CONFIG_JSON`) or a sweep's (:data:`SWEEP_JSON`)
     :return: its content
-    :raises OSError: when it cannot be read
-    :raises ValueError: when it is not JSON
+    :raises OSError: when it cannot be read; ``ValueError`` when it is not JSON
     """
     return json.loads(Path(path).read_text())
 
 
 def snapshot_files(run_dir: str | os.PathLike) -> list[Path]:
-    """
-    :param run_dir: a run folder
-    :return: its snapshots (the zips of :data:`SNAPSHOTS_DIR`), in training order
-    """
-    return sorted((Path(run_dir) / SNAPSHOTS_DIR).glob("*.zip"), key=_snapshot_frames)
+    """:return: the snapshots of a run folder, in training order (another zip's name first)"""
 
+    def frames(path: Path) -> int:
+        match = re.search(r"_(\d+)_frames\.zip$", path.name)
+        return int(match.group(1)) if match else -1
 
-def _snapshot_frames(path: Path) -> int:
-    """:return: the training frames in a snapshot's file name (-1 for another name: first)"""
-    match = re.search(r"_(\d+)_frames\.zip$", path.name)
-    return int(match.group(1)) if match else -1
+    return sorted((Path(run_dir) / SNAPSHOTS_DIR).glob("*.zip"), key=frames)
 
 
 FAILURE_HEADER = "failed at agent step {step} (frame {frame})"
@@ -153,9 +104,8 @@ FAILURE_HEADER = "failed at agent step {step} (frame {frame})"
 
 def write_failure(run_dir: str | os.PathLike, step: int, frame: int, error: BaseException) -> None:
     """
-    Mark a run folder as failed: its error file (:data:`ERROR_TXT`) gets :data:`FAILURE_HEADER` and the traceback.
-    Best effort: where the folder cannot be written (a full or read-only disk) nothing is written, and the caller's
-    error, which says so, is what the user sees.
+    Mark a run folder as failed: its error file gets :data:`FAILURE_HEADER` and the traceback (best effort: nothing
+    on a full or read-only disk, where the caller's error says so).
 
     :param run_dir: the run folder
     :param step: the agent step the run had reached
@@ -169,11 +119,8 @@ def write_failure(run_dir: str | os.PathLike, step: int, frame: int, error: Base
 
 
 def failed_before_training(run_dir: str | os.PathLike) -> bool:
-    """
-    :param run_dir: a run folder
-    :return: whether it holds a run that failed before its first agent step (no result, an error file whose first
-        line says step 0): nothing of value, a new run may take the folder
-    """
+    """:return: whether a run folder holds a run that failed before its first agent step (no result, an error file
+    whose first line says step 0): a new run may take it"""
     run_dir = Path(run_dir)
     error_file = run_dir / ERROR_TXT
     if (run_dir / RESULT_JSON).exists() or not error_file.is_file():
@@ -184,11 +131,8 @@ def failed_before_training(run_dir: str | os.PathLike) -> bool:
 
 
 def blocking_file(folder: str | os.PathLike) -> Path | None:
-    """
-    :param folder: a folder to create (or that exists)
-    :return: the file that stands where ``folder`` or its nearest existing parent should be a folder, ``None`` when
-        ``folder`` can be created (or is a folder)
-    """
+    """:return: the file standing where ``folder`` or its nearest existing parent should be a folder, ``None`` when
+    ``folder`` is one or can be created"""
     folder = Path(folder)
     for parent in (folder, *folder.parents):
         if parent.exists():
@@ -199,9 +143,8 @@ def blocking_file(folder: str | os.PathLike) -> Path | None:
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     """
-    A temporary path next to ``path`` to write into; when the block ends without an error, the file is flushed to disk
-    and renamed to ``path`` (readers see the previous file, or none, or the complete new one); after an error it is
-    removed, and ``path`` is left as it was. The file gets the permissions of a new file under the process's umask.
+    A temporary path next to ``path`` to write into, flushed to disk and renamed to ``path`` when the block ends
+    without an error (removed after one), with the permissions of a new file under the umask.
 
     :param path: the final file; the temporary one ends with the same suffix (``.zip`` for SB3's ``save``)
     :return: the temporary path
@@ -223,25 +166,13 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def write_text_atomically(path: str | os.PathLike, text: str) -> None:
-    """
-    Write ``text`` to a temporary file next to ``path``, flush it to disk, then rename it to ``path``: readers see
-    either the previous file (or none) or the complete new one. The file gets the permissions of a new file under
-    the process's umask.
-
-    :param path: the file
-    :param text: its content
-    """
+    """Write ``text`` into ``path`` atomically (:func:`atomic_output`): readers see the previous file or the new one."""
     with atomic_output(path) as temporary:
         temporary.write_text(text)
 
 
 def write_json_atomically(path: str | os.PathLike, content: Any) -> None:
-    """
-    Write ``content`` as indented JSON with :func:`write_text_atomically`.
-
-    :param path: the JSON file
-    :param content: anything ``json.dumps`` accepts
-    """
+    """Write ``content`` (anything ``json.dumps`` takes) into ``path`` as indented JSON, atomically."""
     write_text_atomically(path, json.dumps(content, indent=2) + "\n")
 
 
@@ -252,7 +183,7 @@ def append_csv_rows(path: str | os.PathLike, fieldnames: Sequence[str], rows: It
     :param path: the CSV file (its folder must exist)
     :param fieldnames: the columns, in order
     :param rows: one dict per row, keyed by column
-    :raises ValueError: when the file has another header (written by another version): nothing is appended
+    :raises ValueError: when the file has another header: nothing is appended
     """
     path = Path(path)
     new_file = not path.exists() or path.stat().st_size == 0

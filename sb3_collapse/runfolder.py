@@ -1,13 +1,11 @@
 """
-Reading run folders: a folder's status (:func:`run_status`, the words in docs/sweeps.md), its result file
-(:func:`read_result`), its scheduled evaluations (:func:`read_evaluations`) and final return (:func:`final_return`),
-its collapse metrics and events (:func:`read_collapse_metrics`, :func:`read_collapse_events`), and a sweep's trial
-folders (:func:`trial_folders`). ``train``, the sweep, the report and the probe read run folders through this module
-only; the file names and the writers are in :mod:`sb3_collapse.protocol`.
+Reading run folders, the only module that does: a folder's status, result file, evaluations, final return, collapse
+metrics and events, and a sweep's trial folders. The file names and the writers are in :mod:`sb3_collapse.protocol`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import errno
 import json
@@ -37,19 +35,9 @@ from sb3_collapse.protocol import (
 
 class RunStatus(str, Enum):
     """
-    What a run folder holds, the same word for ``train``, the sweep and the report (checked in this order):
-
-    - ``finished``: its result file says ``"status": "finished"`` (written last, atomically);
-    - ``running``: a process holds its lock now (:func:`run_folder_owner`);
-    - ``new``: no folder, an empty one (a free lock file aside), or a run that failed before its first agent step
-      (:func:`~sb3_collapse.protocol.failed_before_training`): a run may take it;
-    - ``failed``: its last attempt failed: an error file, or a result file that does not say finished; a run
-      with the same settings resumes it from its newest checkpoint;
-    - ``unfinished``: its settings file and nothing of the above: stopped or killed before its end, resumed the same
-      way.
-
-    Anything else (a file, a folder of other files) is not a run folder: :func:`run_status` returns ``None``
-    (:data:`NOT_A_RUN` where a word is shown).
+    What a run folder holds, the same word for ``train``, the sweep and the report (checked in this order: finished,
+    running, new, failed, unfinished): see docs/sweeps.md. Anything else is not a run folder
+    (:data:`NOT_A_RUN`).
     """
 
     NEW = "new"
@@ -70,10 +58,13 @@ RESUMABLE = (RunStatus.UNFINISHED, RunStatus.FAILED)
 """The statuses of a run folder that a run with the same settings resumes (from its newest checkpoint)."""
 
 
-def run_status(folder: str | os.PathLike, check_lock: bool = True) -> RunStatus | None:
+def run_status(
+    folder: str | os.PathLike, check_lock: bool = True, result: dict[str, Any] | None = None
+) -> RunStatus | None:
     """
     :param folder: a run folder (or where one would go)
     :param check_lock: whether to tell :attr:`RunStatus.RUNNING`; ``False`` for the process that holds the lock
+    :param result: its result file as :func:`read_result` read it, if the caller has (not read again)
     :return: its :class:`RunStatus`, ``None`` when it is not a run folder
     """
     folder = Path(folder)
@@ -81,7 +72,7 @@ def run_status(folder: str | os.PathLike, check_lock: bool = True) -> RunStatus 
         return RunStatus.NEW
     if not folder.is_dir():
         return None
-    result = read_result(folder)
+    result = read_result(folder) if result is None else result
     if result is not None and result.get("status") == FINISHED:
         return RunStatus.FINISHED
     if check_lock and run_folder_owner(folder) is not None:
@@ -95,13 +86,9 @@ def run_status(folder: str | os.PathLike, check_lock: bool = True) -> RunStatus 
 
 def run_folder_owner(folder: str | os.PathLike) -> str | None:
     """
-    Whether a process trains into a run folder now: its lock (:class:`~sb3_collapse.run.lock.RunLock`) is held. An
-    owner on this host whose pid is gone does not; otherwise the lock is tried for an instant (``flock``, shared, as
-    far as the file system passes it on to other hosts).
-
     :param folder: a run folder
-    :return: the owner, as the lock file says it (``"pid 1234 on host h since ..."``), ``None`` when no process holds
-        the lock
+    :return: the owner of its lock (:class:`~sb3_collapse.run.lock.RunLock`) as the lock file says it, ``None`` when no
+        process holds it (an owner on this host whose pid is gone does not; else the lock is tried for an instant)
     """
     import fcntl
 
@@ -118,26 +105,19 @@ def run_folder_owner(folder: str | os.PathLike) -> str | None:
             return None
         except PermissionError:  # another user's process: alive
             pass
-    try:
-        with open(path) as file:
-            try:
-                fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except OSError as error:
-                if error.errno in (errno.EAGAIN, errno.EACCES):
-                    return owner or "another process"
-                raise
-            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
-    except OSError:
-        return None
+    with contextlib.suppress(OSError), open(path) as file:  # the shared lock goes with the file
+        try:
+            fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as error:
+            if error.errno in (errno.EAGAIN, errno.EACCES):
+                return owner or "another process"
+            raise
     return None
 
 
 def read_json(path: str | os.PathLike) -> dict[str, Any]:
-    """
-    :param path: a JSON file holding an object
-    :return: the object
-    :raises InputError: naming the file, when it is not a readable JSON object
-    """
+    """:return: the object of a JSON file
+    :raises InputError: naming the file, when it is not a readable JSON object"""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -151,9 +131,9 @@ def read_result(folder: str | os.PathLike, strict: bool = False) -> dict[str, An
     """
     :param folder: a run folder
     :param strict: raise for a result file that is not a readable JSON object, instead of returning ``None``
-    :return: its result file (:data:`~sb3_collapse.protocol.RESULT_JSON`, keys
-        :data:`~sb3_collapse.protocol.RESULT_KEYS`), ``None`` without one (or an unreadable one, unless ``strict``)
-    :raises InputError: naming the file, with ``strict``
+    :return: its result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`), ``None`` without one (or an unreadable
+        one, unless ``strict``)
+    :raises InputError: with ``strict``, one line naming the file and the reason
     """
     path = Path(folder) / RESULT_JSON
     if not path.exists():
@@ -164,6 +144,33 @@ def read_result(folder: str | os.PathLike, strict: bool = False) -> dict[str, An
         if strict:
             raise
         return None
+
+
+def check_result_version(folder: str | os.PathLike, result: dict[str, Any]) -> None:
+    """
+    :param folder: a run folder
+    :param result: its result file's content
+    :raises InputError: naming the file, when a finished run's result has no ``saved_model_eval`` (another version's)
+    """
+    if result.get("status") == FINISHED and "saved_model_eval" not in result:
+        raise InputError(
+            f"{Path(folder) / RESULT_JSON} has no 'saved_model_eval': it was written by another version of "
+            "sb3-collapse."
+        )
+
+
+DAMAGED_RESULT_WAY_OUT = "move the folder aside to train this seed again"
+"""What to do with a run folder whose result file is unreadable (its status stays ``failed``; nothing repairs it)."""
+
+
+def unreadable_result(folder: str | os.PathLike) -> str | None:
+    """:return: for a run folder whose result file exists and cannot be read, one line: :func:`read_result`'s reason
+    and :data:`DAMAGED_RESULT_WAY_OUT`; ``None`` otherwise"""
+    try:
+        read_result(folder, strict=True)
+    except InputError as error:
+        return f"{str(error).rstrip('.')}; {DAMAGED_RESULT_WAY_OUT}."
+    return None
 
 
 def csv_rows(path: Path, columns: tuple[str, ...], partial: bool = False) -> list[tuple[int, dict[str, str]]]:
@@ -200,11 +207,9 @@ def csv_number(path: Path, line: int, row: dict[str, str], column: str, kind: ty
     text = row.get(column)
     try:
         value = float(text)  # type: ignore[arg-type]
-        if kind is int:
-            if not value.is_integer():
-                raise ValueError
-            return int(value)
-        return value
+        if kind is int and not value.is_integer():
+            raise ValueError
+        return int(value) if kind is int else value
     except (TypeError, ValueError):
         what = "an integer" if kind is int else "a number"
         raise InputError(f"{path}, line {line}: column {column!r} is {text!r}, not {what}.") from None
@@ -212,14 +217,13 @@ def csv_number(path: Path, line: int, row: dict[str, str], column: str, kind: ty
 
 def read_evaluations(folder: str | os.PathLike, partial: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """
-    The scheduled evaluations of a run (:func:`sb3_collapse.paper.evaluation_schedule`), from its evaluation file
-    (:data:`~sb3_collapse.protocol.EVAL_CSV`).
+    The scheduled evaluations of a run, from its evaluation file.
 
     :param folder: a run folder
     :param partial: the file may still be written (an unfinished run): an incomplete last row is dropped
     :return: ``(frames, returns)``: the frames (int, increasing) and the mean evaluation return at each
-    :raises InputError: naming the file when it is missing or malformed (a row with a wrong number of fields, a value
-        that is not a number, frames that repeat or decrease)
+    :raises InputError: naming the file when it is missing or malformed (a row of another length, a value not a
+        number, frames that do not increase)
     """
     path = Path(folder) / EVAL_CSV
     if not path.exists():
@@ -236,27 +240,11 @@ def read_evaluations(folder: str | os.PathLike, partial: bool = False) -> tuple[
     return frames, returns
 
 
-def check_result_version(folder: str | os.PathLike, result: dict[str, Any]) -> None:
-    """
-    :param folder: a run folder
-    :param result: its result file's content
-    :raises InputError: naming the file, when a finished run's result has no ``saved_model_eval`` (a file of
-        another version, whose evaluation file also holds the saved model's evaluation)
-    """
-    if result.get("status") == FINISHED and "saved_model_eval" not in result:
-        raise InputError(
-            f"{Path(folder) / RESULT_JSON} has no 'saved_model_eval': it was written by another version of "
-            "sb3-collapse."
-        )
-
-
 def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """
-    Every metric (or the ``tags``) of a long-format collapse metrics file, in one pass.
-
     :param path: the file (columns ``frame, step, tag, value``)
     :param tags: the tags to keep (``None``: all)
-    :return: tag -> ``(frames, values)`` sorted by frame, non-finite values dropped (tags in file order)
+    :return: tag -> ``(frames, values)`` sorted by frame, non-finite values dropped (tags in file order), in one pass
     :raises InputError: when the file is malformed or a value is not a number
     """
     wanted = None if tags is None else set(tags)
@@ -278,26 +266,18 @@ def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict
 
 def read_collapse_events(path: Path) -> list[tuple[int, str]]:
     """
-    The events of a collapse events file (:data:`~sb3_collapse.protocol.COLLAPSE_EVENTS_CSV`; files of earlier
-    versions with the first four columns too).
-
-    :param path: the file
+    :param path: a collapse events file
     :return: ``(frame, event)`` in file order, ``event`` being ``"reset"`` (any intervention) or ``"escape"``
     :raises InputError: when the file is malformed
     """
-    events = []
-    for line, row in csv_rows(path, ("frame", "event")):
-        events.append((csv_number(path, line, row, "frame", int), row["event"]))
-    return events
+    return [
+        (csv_number(path, line, row, "frame", int), row["event"]) for line, row in csv_rows(path, ("frame", "event"))
+    ]
 
 
 def trial_folders(sweep: str | os.PathLike) -> list[tuple[str, str, int, Path]]:
-    """
-    :param sweep: a sweep folder
-    :return: its trial folders ``<sweep>/<task>/<variant>/seed_<k>/`` as ``(task, variant, seed, path)``, sorted;
-        hidden folders (``.name``) and folders of another shape (``<sweep>/report/``) are skipped; empty when
-        ``sweep`` is not a folder
-    """
+    """:return: the trial folders ``<sweep>/<task>/<variant>/seed_<k>/`` as ``(task, variant, seed, path)``, sorted
+    (hidden folders and folders of another shape skipped; empty when ``sweep`` is not a folder)"""
 
     def folders(parent: Path) -> list[Path]:
         if not parent.is_dir():
@@ -317,14 +297,15 @@ def trial_folders(sweep: str | os.PathLike) -> list[tuple[str, str, int, Path]]:
 def final_return(folder: str | os.PathLike) -> float | None:
     """
     :param folder: a run folder
-    :return: the mean return of its last scheduled evaluation (:func:`read_evaluations`), the one the paper's agent
-        classes read; ``None`` when the run is not finished, its result file is of another version
-        (:func:`check_result_version`), or its evaluation file is missing, malformed or empty
+    :return: the mean return of its last scheduled evaluation (the one the paper's agent classes read); ``None`` when
+        the run is not finished, its result file is of another version, or its evaluation file is missing, malformed
+        or empty
     """
-    if run_status(folder) != RunStatus.FINISHED:
+    result = read_result(folder)
+    if result is None or run_status(folder, result=result) != RunStatus.FINISHED:
         return None
     try:
-        check_result_version(folder, read_result(folder) or {})
+        check_result_version(folder, result)
         _, returns = read_evaluations(folder)
     except InputError:
         return None

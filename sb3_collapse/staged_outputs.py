@@ -11,11 +11,9 @@ from types import TracebackType
 
 class StagedOutputs:
     """
-    Write files into ``<out>/.partial-<pid>/`` and move them into ``out`` only on :meth:`commit`; on an error (or
-    without a commit) the staging folder is removed, and ``out`` too if this created it and it is empty.
-
-    The commit first removes the previous ``marker`` file and every previous output (of ``outputs``) that this run
-    did not write, then moves the new files in, ``marker`` last: its presence marks a complete set.
+    Write files into ``<out>/.partial-<pid>/`` and move them into ``out`` on :meth:`commit` (``marker`` last, after
+    removing the previous outputs this run did not write); without a commit the staging folder (and ``out`` if this
+    created it and it is empty) is removed.
 
     :param out: the output folder (created if needed)
     :param outputs: the names of every file a run may write; a name may be a glob pattern
@@ -53,8 +51,6 @@ class StagedOutputs:
 
     def existing(self) -> list[str]:
         """:return: the names in ``out`` of outputs (or matches of output patterns) of a previous run"""
-        if not self.out.is_dir():
-            return []
         return sorted({path.name for pattern in self.outputs for path in self.out.glob(pattern) if path.is_file()})
 
     def __enter__(self) -> StagedOutputs:  # noqa: PYI034  not subclassed
@@ -66,11 +62,7 @@ class StagedOutputs:
         return self.staging / name
 
     def commit(self) -> list[Path]:
-        """
-        Move the staged files into ``out`` (the marker last) and remove the stale outputs of a previous run.
-
-        :return: the final paths, in the order they were moved in
-        """
+        """:return: the final paths of the staged files, moved into ``out`` in this order (the marker last)"""
         staged = sorted((path.name for path in self.staging.iterdir()), key=lambda name: name == self.marker)
         (self.out / self.marker).unlink(missing_ok=True)
         for name in self.existing():

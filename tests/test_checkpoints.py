@@ -362,3 +362,30 @@ def test_drqv2_load_warns_about_a_callback_it_cannot_rebuild(tmp_path):
     with pytest.warns(UserWarning, match=r"callback\(s\) EveryNTimesteps could not be saved .* pass them again"):
         loaded = DrQv2.load(tmp_path / "model.zip")
     assert isinstance(loaded.callback, CollapseReset)
+
+
+def test_csv_files_are_written_back_as_the_checkpoint_holds_them(tmp_path):
+    """Rows written after the checkpoint go without a word; a file shorter, cut mid-row or changed is rewritten from
+    the checkpoint and named in one line; a file the checkpoint does not know is left alone."""
+    from sb3_collapse.run.checkpoints import restore_csv_files
+
+    saved = {"cut.csv": b"h\n1\n2\n", "short.csv": b"h\n1\n2\n", "changed.csv": b"h\n1\n", "after.csv": b"h\n1\n"}
+    saved["new.csv"] = b""  # not written yet at the checkpoint
+    found = {
+        "cut.csv": b"h\n1",
+        "short.csv": b"h\n",
+        "changed.csv": b"h\n9\n",
+        "after.csv": b"h\n1\n2\n3",
+        "new.csv": b"x\n",
+    }
+    for name, content in {**found, "other.csv": b"kept"}.items():
+        (tmp_path / name).write_bytes(content)
+    paths = [tmp_path / name for name in (*found, "other.csv", "missing.csv")]
+    assert restore_csv_files(paths, saved, 600) == (
+        "cut.csv (cut mid-row), short.csv (2 line(s) short), changed.csv (changed) did not hold what the checkpoint "
+        "at frame 600 recorded: rewritten from it (the rows after it are written again as the run goes on)."
+    )
+    assert {name: (tmp_path / name).read_bytes() for name in saved} == saved
+    assert (tmp_path / "other.csv").read_bytes() == b"kept" and not (tmp_path / "missing.csv").exists()
+    assert restore_csv_files(paths, saved, 600) is None  # all as the checkpoint holds them
+    assert sorted(path.name for path in tmp_path.iterdir() if path.name.startswith(".")) == []  # nothing partial

@@ -438,3 +438,74 @@ def test_the_run_trains_exactly_its_budget_or_says_why_not():
         "Note: the budget of 401 frames is not a multiple of the action repeat 2: the run trains 400 frames (200 "
         "agent steps)."
     )
+
+
+@pytest.mark.parametrize("damage", ["short", "cut mid-row"])
+def test_eval_csv_out_of_step_with_the_checkpoint_is_rewritten_from_it_on_resume(tmp_path, monkeypatch, capsys, damage):
+    """eval.csv shorter than the checkpoint expects (was: unresumable), or cut mid-row (was: the next row appended to
+    the cut one): the resume writes it back from the checkpoint, says so in one line, and every evaluation ends as
+    the uninterrupted run wrote it (frame and return), once each."""
+    run_dir = tmp_path / "run"
+    evaluations = ["--eval-every-frames", "200", "--eval-episodes", "1"]
+    original = DrQv2.save
+
+    def full_disk(self, path, *args, **kwargs):  # stopped at its final save: checkpoints at frames 400 and 600
+        if "final_model" not in str(path):
+            return original(self, path, *args, **kwargs)
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(DrQv2, "save", full_disk)
+    assert main([*_flags(run_dir), *evaluations]) == 1
+    monkeypatch.setattr(DrQv2, "save", original)
+    eval_csv = run_dir / "eval.csv"
+    uninterrupted = [line.split(",")[:3] for line in eval_csv.read_text().splitlines()]
+    assert [row[0] for row in uninterrupted] == ["frame", "0", "200", "400", "600"]
+    lines = eval_csv.read_bytes().splitlines(keepends=True)
+    eval_csv.write_bytes(b"".join(lines[:2]) if damage == "short" else b"".join(lines[:2]) + lines[2][:5])
+    capsys.readouterr()
+
+    assert main([*_flags(run_dir), *evaluations]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "rewritten from it" in line]
+    why = "3 line(s) short" if damage == "short" else "cut mid-row"
+    assert notes == [
+        (
+            f"Note: eval.csv ({why}) did not hold what the checkpoint at frame 600 recorded: rewritten from it (the "
+            "rows after it are written again as the run goes on)."
+        )
+    ]
+    rows = [line.split(",") for line in eval_csv.read_text().splitlines()]
+    assert [row[:3] for row in rows] == uninterrupted
+    assert {len(row) for row in rows} == {6}
+    assert json.loads((run_dir / RESULT_JSON).read_text())["resumes"] == 1
+
+
+def test_a_run_folder_whose_result_file_is_unreadable_is_refused_in_one_line_with_the_way_out(tmp_path, capsys):
+    """A truncated result.json is not repaired: the folder stays failed, `train` refuses it in one line that names
+    the file, the reason and the way out (not "choose another folder"), and a sweep would not call it retryable."""
+    from sb3_collapse.run.config import TrainConfig
+    from sb3_collapse.run.folder import check_run_folder
+    from sb3_collapse.runfolder import read_result, run_status
+    from sb3_collapse.sweep.runner import retryable
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / CONFIG_JSON).write_text("{}")
+    (run_dir / RESULT_JSON).write_text('{"status": "fini')  # truncated
+    reason = (
+        f"{run_dir / RESULT_JSON}: not a readable JSON file (Unterminated string starting at: line 1 column 12 "
+        "(char 11))"
+    )
+    with pytest.raises(ValueError) as strict:
+        read_result(run_dir, strict=True)
+    assert str(strict.value) == reason + "."
+    before = sorted(path.name for path in run_dir.iterdir())
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(_flags(run_dir))
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error[-1].endswith(f"error: --run-dir {run_dir}: {reason}; move the folder aside to train this seed again.")
+    assert run_status(run_dir) == "failed" and sorted(path.name for path in run_dir.iterdir()) == before
+    with pytest.raises(ValueError) as refused:
+        check_run_folder(TrainConfig(env="cartpole-balance", run_dir=str(run_dir)))
+    assert not retryable(refused.value)

@@ -194,3 +194,27 @@ def test_only_the_run_folder_layer_reads_the_evaluation_and_result_files():
         if path.name not in LAYER and (lines := run_file_reads(path.read_text()))
     }
     assert offenders == {}
+
+
+def test_an_unreadable_result_file_stays_failed_and_names_the_file_the_reason_and_the_way_out(tmp_path, capsys):
+    """run_status says failed (not repaired); unreadable_result is one line; a run named by --logdir passes it over."""
+    from sb3_collapse.run.config import TrainConfig
+    from sb3_collapse.run.folder import new_run_dir
+    from sb3_collapse.runfolder import DAMAGED_RESULT_WAY_OUT, read_result, unreadable_result
+
+    folder = tmp_path / "run"
+    _write(folder, {"config.json": "{}", "result.json": "[1, 2"})
+    assert run_status(folder) == RunStatus.FAILED and read_result(folder) is None and final_return(folder) is None
+    reason = unreadable_result(folder)
+    assert reason == (
+        f"{folder / 'result.json'}: not a readable JSON file (Expecting ',' delimiter: line 1 column 6 (char 5)); "
+        f"{DAMAGED_RESULT_WAY_OUT}."
+    )
+    assert "\n" not in reason and DAMAGED_RESULT_WAY_OUT == "move the folder aside to train this seed again"
+    _write(folder, {"result.json": "[1, 2]"})  # readable, but not an object
+    assert unreadable_result(folder).startswith(f"{folder / 'result.json'}: expected a JSON object, got list; move")
+    assert unreadable_result(tmp_path / "nothing") is None
+
+    config = TrainConfig(env="cartpole-balance").resolve()
+    assert new_run_dir(tmp_path, "run", config) == tmp_path / "run_2"
+    assert capsys.readouterr().out == f"{folder}: {unreadable_result(folder)} Not resuming it.\n"

@@ -1,10 +1,6 @@
 """
-Run checkpoints: what a training run needs to continue in another process exactly as if it had not stopped,
-taken between two rounds of ``learn()`` (:class:`ResumableCheckpoints`), and read back (newest intact first).
-What a checkpoint holds, how it is written and read, devices and exactness: docs/checkpoints.md#what-is-in-one and
-docs/checkpoints.md#devices. Beside this module: the run folder's lock (:mod:`sb3_collapse.run.lock`), the resumed
-run's logger (:mod:`sb3_collapse.run.resumed_logger`) and the stop at SIGTERM or SIGINT
-(:mod:`sb3_collapse.run.signals`).
+Run checkpoints: what a run needs to continue in another process exactly as if it had not stopped, written between
+two rounds of ``learn()`` (:class:`ResumableCheckpoints`) and read back newest intact first. See docs/checkpoints.md.
 """
 
 from __future__ import annotations
@@ -44,37 +40,24 @@ from sb3_collapse.protocol import (
     CHECKPOINT_MODEL,
     CHECKPOINT_STATE,
     REPLAY_DIR,
+    atomic_output,
     write_json_atomically,
 )
-from sb3_collapse.run.replay_checkpoint import ReplayStore
+from sb3_collapse.run.replay_checkpoint import ReplayStore, fsync_path
 
 CHECKPOINT_FORMAT = 1
 """Version of the checkpoint layout; a checkpoint of another format is refused."""
-
-MODEL_EXTRAS = ("_warned_replay_not_ready",)
-"""Attributes that ``DrQv2.save`` leaves out and the resumed run needs (with ``DrQv2.update_stats``: the statistics of
-the updates not logged yet)."""
+DAMAGED_NOTE = "damaged.txt"
+"""In a folder set aside as damaged (:func:`set_aside`): why."""
 
 
-# ---------------------------------------------------------------------------------------------- writing and reading
 def checkpoint_folders(directory: str | os.PathLike) -> list[Path]:
-    """
-    :param directory: a run's checkpoints folder
-    :return: its checkpoint folders, the newest (largest agent step) first; folders being written are not listed
-    """
+    """:return: the checkpoint folders of a run's checkpoints folder, newest first (not those being written)"""
     directory = Path(directory)
     if not directory.is_dir():
         return []
     folders = [path for path in directory.iterdir() if CHECKPOINT_FOLDER_PATTERN.match(path.name) and path.is_dir()]
     return sorted(folders, key=lambda path: path.name, reverse=True)
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _digest(path: Path) -> dict[str, Any]:
@@ -85,20 +68,9 @@ def _digest(path: Path) -> dict[str, Any]:
     return {"bytes": path.stat().st_size, "sha256": sha.hexdigest()}
 
 
-def _line_count(path: Path) -> int:
-    with path.open("rb") as file:
-        return sum(block.count(b"\n") for block in iter(lambda: file.read(1 << 20), b""))
-
-
 def tensors_to(value: Any, device: th.device | str) -> Any:
-    """
-    A copy of ``value`` with every tensor moved to ``device`` (detached), through dicts, lists and tuples; other
-    values are kept as they are (not copied).
-
-    :param value: e.g. a checkpoint's state
-    :param device: where the tensors go (``"cpu"`` when a checkpoint is written)
-    :return: the moved copy
-    """
+    """:return: a copy of ``value`` (e.g. a checkpoint's state) with every tensor detached and moved to ``device``,
+    through dicts, lists and tuples; other values kept as they are (not copied)"""
     if isinstance(value, th.Tensor):
         return value.detach().to(device, copy=True)
     if isinstance(value, dict):
@@ -108,27 +80,20 @@ def tensors_to(value: Any, device: th.device | str) -> Any:
     return value
 
 
-def _cuda_index(device: th.device) -> int:
-    """The index of a CUDA device (``"cuda"`` alone: the current one)."""
-    return device.index if device.index is not None else th.cuda.current_device()
-
-
 def _cuda_rng_state(device: th.device) -> dict[str, Any] | None:
     """The CUDA generator of ``device`` (the model's), ``None`` off CUDA."""
     if device.type != "cuda" or not th.cuda.is_available():
         return None
-    index = _cuda_index(device)
+    index = device.index if device.index is not None else th.cuda.current_device()
     return {"device": index, "state": th.cuda.get_rng_state(index)}
 
 
-def _restore_cuda_rng_state(saved: Any, device: th.device) -> None:
-    """
-    Restore the CUDA generator saved by :func:`capture_state` on the CUDA device ``device`` (the resuming model's),
-    whatever its index was; nothing off CUDA.
-    """
-    if saved is None or device.type != "cuda" or not th.cuda.is_available():
-        return
-    th.cuda.set_rng_state(saved["state"].cpu(), _cuda_index(device))
+def _restore_cuda_rng_state(saved: dict[str, Any] | None, device: th.device) -> None:
+    """Restore a :func:`_cuda_rng_state` on the CUDA device ``device`` (the resuming model's), whatever its index."""
+    if saved is not None and device.type == "cuda" and th.cuda.is_available():
+        th.cuda.set_rng_state(
+            saved["state"].cpu(), device.index if device.index is not None else th.cuda.current_device()
+        )
 
 
 def capture_state(
@@ -139,21 +104,22 @@ def capture_state(
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """
-    Everything of a run between two rounds of ``learn()`` that the model's ``save`` and the replay store do not hold
-    (see the module docstring).
+    Everything of a run between two rounds of ``learn()`` that the model's ``save`` and the replay store do not hold.
 
     :param model: the model, between two rounds
-    :param callbacks: the run's callbacks; the states of those that carry one are saved (:func:`callback_states`)
+    :param callbacks: the run's callbacks (the states of those that carry one are kept)
     :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
-    :param csv_files: CSV files whose number of lines to record
+    :param csv_files: the run's CSV files, whose content to keep
     :param extra: anything else to keep (picklable)
-    :return: the state (picklable)
+    :return: the state (picklable, CPU tensors only)
     """
     env = model.get_env()
     if env is None:
         raise ValueError("capture_state needs the model's environment.")
     recorder = grad_norm_recorder(model)
     logger = model.logger
+    stats = getattr(model, "update_stats", None)  # DrQv2's statistics of the updates not logged yet
+    csv = {path.name: path.read_bytes() if path.is_file() else b"" for path in csv_files}
     state = {
         "format": CHECKPOINT_FORMAT,
         "num_timesteps": int(model.num_timesteps),
@@ -174,77 +140,61 @@ def capture_state(
             "counts": dict(logger.name_to_count),
             "excluded": dict(logger.name_to_excluded),
         },
-        "csv_lines": {path.name: _line_count(path) if path.is_file() else 0 for path in csv_files},
-        "model_extras": {name: getattr(model, name) for name in MODEL_EXTRAS if hasattr(model, name)},
-        "update_stats": _update_stats_state(model),
+        "csv": csv,
+        "csv_lines": {name: content.count(b"\n") for name, content in csv.items()},
+        "update_stats": stats.state_dict() if isinstance(stats, UpdateStats) else None,
         "extra": dict(extra or {}),
     }
     return tensors_to(state, "cpu")  # unpickled where it was written: a GPU's tensors would need that GPU
 
 
-def _update_stats_state(model: BaseAlgorithm) -> dict[str, Any] | None:
-    """The statistics of the updates not logged yet (``DrQv2.update_stats``), ``None`` for another model."""
-    stats = getattr(model, "update_stats", None)
-    return stats.state_dict() if isinstance(stats, UpdateStats) else None
-
-
-def _replay_manifest(store: ReplayStore, buffer: Any) -> dict[str, Any]:
-    if isinstance(buffer, FrameStackReplayBuffer):
-        return {"store": store.save(buffer)}
-    return {"pickle": True}  # another buffer class: pickled whole into the state (its full size at each checkpoint)
-
-
 def save_checkpoint(
-    model: BaseAlgorithm,
-    directory: str | os.PathLike,
-    store: ReplayStore,
-    state: dict[str, Any],
-    keep: int = 2,
+    model: BaseAlgorithm, directory: str | os.PathLike, store: ReplayStore, state: dict[str, Any], keep: int = 2
 ) -> Path:
     """
-    Write a checkpoint of ``model`` (between two rounds of ``learn()``) and ``state`` (:func:`capture_state`) into
-    ``directory/step_<agent step>``, then delete the checkpoints older than the newest ``keep`` and the replay
-    chunks that none of them needs.
+    Write a checkpoint of ``model`` and ``state`` (:func:`capture_state`) into ``directory/step_<agent step>``, then
+    delete the checkpoints older than the newest ``keep`` and the replay chunks none of them needs.
 
-    :param model: the model
+    :param model: the model, between two rounds of ``learn()``
     :param directory: the run's checkpoints folder
-    :param store: the replay store of the run (in ``directory/replay``)
+    :param store: the run's replay store (in ``directory/replay``)
     :param state: what :func:`capture_state` returned
-    :param keep: complete checkpoints to keep (at least 1; 2 lets a damaged newest one fall back to the previous)
+    :param keep: complete checkpoints to keep (at least 1)
     :return: the checkpoint's folder
     :raises OutputError: when it cannot be written (e.g. a full disk): the previous checkpoints are intact
     """
     directory = Path(directory)
     name = CHECKPOINT_FOLDER.format(step=model.num_timesteps)
-    final = directory / name
-    partial = directory / f".{name}.partial"
+    final, partial = directory / name, directory / f".{name}.partial"
     try:
         directory.mkdir(parents=True, exist_ok=True)
         for stale in directory.glob(".step_*.partial"):  # left by a process killed while writing (the run is locked)
             shutil.rmtree(stale)
         partial.mkdir()
-        replay = _replay_manifest(store, model.replay_buffer)
-        if "pickle" in replay:
-            state = {**state, "replay_buffer": model.replay_buffer}
+        if isinstance(model.replay_buffer, FrameStackReplayBuffer):
+            replay: dict[str, Any] = {"store": store.save(model.replay_buffer)}
+        else:  # another buffer class: pickled whole into the state
+            replay, state = {"pickle": True}, {**state, "replay_buffer": model.replay_buffer}
         model.save(partial / CHECKPOINT_MODEL)
         with (partial / CHECKPOINT_STATE).open("wb") as file:
             pickle.dump(state, file, protocol=pickle.HIGHEST_PROTOCOL)
-        for path in (partial / CHECKPOINT_MODEL, partial / CHECKPOINT_STATE):
-            _fsync(path)
+        files = (partial / CHECKPOINT_MODEL, partial / CHECKPOINT_STATE)
+        for path in files:
+            fsync_path(path)
         info = {
             "format": CHECKPOINT_FORMAT,
             "version": __version__,
             "agent_steps": int(model.num_timesteps),
             "frames": int(frames_of(model)),
             "written": time.strftime("%Y-%m-%d %H:%M:%S"),
-            "files": {path.name: _digest(path) for path in (partial / CHECKPOINT_MODEL, partial / CHECKPOINT_STATE)},
+            "files": {path.name: _digest(path) for path in files},
             "replay": replay,
         }
         write_json_atomically(partial / CHECKPOINT_JSON, info)
         if final.exists():  # a stale one of an earlier process at this step (resumed from an older checkpoint)
             shutil.rmtree(final)
         os.replace(partial, final)
-        _fsync(directory)
+        fsync_path(directory)
     except OSError as error:
         shutil.rmtree(partial, ignore_errors=True)
         previous = checkpoint_folders(directory)
@@ -255,25 +205,19 @@ def save_checkpoint(
             "same command again to resume."
         ) from error
     complete = checkpoint_folders(directory)
-    kept_folders = complete[: max(1, keep)]
     for folder in complete[max(1, keep) :]:
         shutil.rmtree(folder, ignore_errors=True)
     manifests = []
-    for folder in kept_folders:
+    for folder in complete[: max(1, keep)]:
         with contextlib.suppress(OSError, ValueError, KeyError):
-            replay_info = json.loads((folder / CHECKPOINT_JSON).read_text())["replay"]
-            if "store" in replay_info:
-                manifests.append(replay_info["store"])
-    if len(manifests) == len(kept_folders):  # never collect with an unreadable manifest: its chunks would go
+            manifests.append(json.loads((folder / CHECKPOINT_JSON).read_text())["replay"].get("store"))
+    if len(manifests) == len(complete[: max(1, keep)]) and None not in manifests:  # else a manifest's chunks would go
         store.collect_garbage(manifests)
     return final
 
 
 def checkpoint_frames(directory: str | os.PathLike) -> int | None:
-    """
-    :param directory: a run's checkpoints folder
-    :return: the frames of its newest checkpoint as it says (not verified: for listings), ``None`` without one
-    """
+    """:return: the frames of the newest checkpoint in ``directory`` as it says (not verified), ``None`` without one"""
     for folder in checkpoint_folders(directory):
         with contextlib.suppress(OSError, ValueError, KeyError):
             return int(json.loads((folder / CHECKPOINT_JSON).read_text())["frames"])
@@ -295,10 +239,6 @@ class LoadedCheckpoint:
     skipped: list[tuple[Path, str]]
 
     @property
-    def agent_steps(self) -> int:
-        return int(self.info["agent_steps"])
-
-    @property
     def frames(self) -> int:
         return int(self.info["frames"])
 
@@ -308,13 +248,7 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         info = json.loads((folder / CHECKPOINT_JSON).read_text())
     except (OSError, ValueError) as error:
         raise CheckpointError(f"no readable {CHECKPOINT_JSON}: {error}", damaged=True) from None
-    if info.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(
-            f"checkpoint {folder} has format {info.get('format')!r}, this version of sb3-collapse ({__version__}) "
-            f"reads format {CHECKPOINT_FORMAT}: resume with the version that wrote it ({info.get('version')}), or "
-            "train into a new folder."
-        )
-    if info.get("version") != __version__:
+    if info.get("format") != CHECKPOINT_FORMAT or info.get("version") != __version__:
         raise CheckpointError(
             f"checkpoint {folder} was written by sb3-collapse {info.get('version')}, this is {__version__}: resume "
             "with the version that wrote it, or train into a new folder."
@@ -323,10 +257,8 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         path = folder / name
         if not path.is_file():
             raise CheckpointError(f"{name} is missing", damaged=True)
-        if path.stat().st_size != expected["bytes"]:
-            raise CheckpointError(
-                f"{name} has {path.stat().st_size} bytes, {expected['bytes']} were written", damaged=True
-            )
+        if (size := path.stat().st_size) != expected["bytes"]:
+            raise CheckpointError(f"{name} has {size} bytes, {expected['bytes']} were written", damaged=True)
         if _digest(path)["sha256"] != expected["sha256"]:
             raise CheckpointError(f"{name} does not have the checksum it was written with", damaged=True)
     try:
@@ -334,43 +266,16 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
             state = pickle.load(file)
     except Exception as error:  # noqa: BLE001 - any unpickling failure means a damaged file
         raise CheckpointError(f"{CHECKPOINT_STATE} cannot be read: {error}", damaged=True) from None
-    store_manifest = info["replay"].get("store")
-    if store_manifest is not None:  # their checksums are verified as the replay store reads them
-        ReplayStore(folder.parent / REPLAY_DIR).check_files(store_manifest)
+    if "store" in info["replay"]:  # their checksums are verified as the replay store reads them
+        ReplayStore(folder.parent / REPLAY_DIR).check_files(info["replay"]["store"])
     return info, state
-
-
-def checkpoint_learning_rates(folder: str | os.PathLike) -> dict[str, list[float]]:
-    """
-    The learning rates a checkpoint's optimizers were stepping with (their ``param_groups``), read from its model
-    zip without loading the weights.
-
-    :param folder: a checkpoint's folder
-    :return: optimizer (``"actor.optimizer"``...) -> the learning rate of each of its parameter groups
-    """
-    import io
-    import zipfile
-
-    rates = {}
-    with zipfile.ZipFile(Path(folder) / CHECKPOINT_MODEL) as archive:
-        for name in archive.namelist():
-            if name.endswith("optimizer.pth"):
-                state = th.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
-                rates[name.removesuffix(".pth")] = [float(group["lr"]) for group in state["param_groups"]]
-    return rates
-
-
-DAMAGED_NOTE = "damaged.txt"
-"""In a folder set aside as damaged (:func:`set_aside`): why."""
 
 
 def set_aside(folder: Path, reason: str | None = None) -> Path:
     """
-    Rename a damaged checkpoint's folder (or a run's checkpoints folder) so that it is never read again, and not
-    lost: ``damaged_<name>`` (``damaged_<name>-2``... when that is taken: nothing set aside before is overwritten).
+    Rename a damaged checkpoint's (or checkpoints) ``folder`` to ``damaged_<name>`` (``-2``... when taken): never
+    read again, never lost; ``reason`` is written into it (:data:`DAMAGED_NOTE`, best effort).
 
-    :param folder: the folder
-    :param reason: why, written into it (:data:`DAMAGED_NOTE`; best effort)
     :return: its new path
     """
     target, number = folder.with_name(f"damaged_{folder.name}"), 2
@@ -385,12 +290,8 @@ def set_aside(folder: Path, reason: str | None = None) -> Path:
 
 def read_checkpoints(directory: str | os.PathLike) -> tuple[LoadedCheckpoint | None, list[tuple[Path, str]]]:
     """
-    The newest checkpoint of a run that can be read, verified (sizes and checksums); a damaged one (truncated, a
-    missing file, a bad checksum) is passed over for the one before.
-
-    :param directory: the run's checkpoints folder
-    :return: the checkpoint (``None`` when there is no readable one), and the damaged newer ones passed over, with
-        the reason (all of them when none is readable)
+    :return: the newest checkpoint in ``directory`` whose files have their sizes and checksums (``None`` without one),
+        and the damaged newer ones passed over, with the reason
     :raises CheckpointError: for a checkpoint of another format or package version
     """
     skipped: list[tuple[Path, str]] = []
@@ -407,24 +308,15 @@ def read_checkpoints(directory: str | os.PathLike) -> tuple[LoadedCheckpoint | N
 
 
 def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
-    """
-    :param directory: the run's checkpoints folder
-    :return: the newest readable checkpoint (:func:`read_checkpoints`; the damaged newer ones in ``skipped``),
-        ``None`` when there is none
-    :raises CheckpointError: for a checkpoint of another format or package version
-    """
+    """:return: the newest readable checkpoint in ``directory`` (:func:`read_checkpoints`), ``None`` without one"""
     return read_checkpoints(directory)[0]
 
 
-# ---------------------------------------------------------------------------------------------------------- restoring
 def restore_model(model: BaseAlgorithm, path: str | os.PathLike) -> None:
     """
-    Put a model saved by SB3's ``save`` back into ``model``, built with the same settings: its saved attributes
-    (counters, last observation, episode statistics, schedules) and parameters (weights, optimizers), as
-    ``BaseAlgorithm.load`` does, without building a new model and its replay buffer.
+    Put the zip of SB3's ``save`` at ``path`` back into ``model`` (built with the same settings) as
+    ``BaseAlgorithm.load`` does, without building a new model and replay buffer.
 
-    :param model: the model to restore into
-    :param path: the zip
     :raises CheckpointError: when the saved spaces are not the model's
     """
     data, params, variables = load_from_zip_file(path, device=model.device, print_system_info=False)
@@ -447,17 +339,10 @@ def restore_run(
     eval_env: Any = None,
 ) -> list[str]:
     """
-    Make ``model`` (built with the run's settings, on the run's environments wrapped in ``EpisodeReplay``) and
-    ``callbacks`` continue from ``checkpoint``: the next ``learn(remaining, reset_num_timesteps=False)`` goes on as
-    the run that wrote it would have. The logger is restored by
-    :func:`~sb3_collapse.run.resumed_logger.resumed_logger`.
+    Make ``model`` (built with the run's settings, on environments wrapped in ``EpisodeReplay``), ``callbacks`` (in
+    the order saved) and ``eval_env`` continue from ``checkpoint``, restored from ``store``: the next
+    ``learn(remaining, reset_num_timesteps=False)`` goes on as the run that wrote it would have.
 
-    :param model: the model
-    :param checkpoint: what :func:`load_checkpoint` returned
-    :param store: the run's replay store
-    :param callbacks: the run's callbacks, in the order they were saved (those that carry a state get theirs at the
-        start of the next ``learn()``: :func:`load_callback_states`)
-    :param eval_env: the evaluation environment, if any
     :return: warnings for the user (empty when everything is as it was)
     """
     state = checkpoint.state
@@ -483,43 +368,65 @@ def restore_run(
         load_callback_states(callbacks, state["callbacks"])
     except ValueError as error:  # other callbacks than the run that wrote it, or a state written by another version
         raise CheckpointError(f"checkpoint {checkpoint.folder}: {error}") from None
-    for name, value in state["model_extras"].items():
-        setattr(model, name, tensors_to(value, model.device))
-    if state.get("update_stats") is not None:
-        model.update_stats.load_state_dict(tensors_to(state["update_stats"], model.device))
+    if state["update_stats"] is not None:
+        model.update_stats.load_state_dict(tensors_to(state["update_stats"], model.device))  # type: ignore[attr-defined]
     model.action_space.np_random.bit_generator.state = state["action_space"]
     rng = state["rng"]
     random.setstate(rng["python"])
     np.random.set_state(rng["numpy"])
     th.set_rng_state(rng["torch"])
     _restore_cuda_rng_state(rng["cuda"], model.device)
-    written_on = state.get("device")
-    if written_on is not None and th.device(written_on).type != model.device.type:
+    if th.device(state["device"]).type != model.device.type:
         notes.append(
-            f"the checkpoint was written on {written_on} and the run resumes on {model.device}: it continues, but "
-            "not bit for bit as an uninterrupted run would (other kernels, other random generators)."
+            f"the checkpoint was written on {state['device']} and the run resumes on {model.device}: it continues, "
+            "but not bit for bit as an uninterrupted run would (other kernels, other random generators)."
         )
     return notes
 
 
-# ---------------------------------------------------------------------------------------------------------- callback
+def restore_csv_files(paths: Sequence[Path], saved: dict[str, bytes], frame: int) -> str | None:
+    """
+    Write the run's CSV files ``paths`` back as the checkpoint at ``frame`` holds them (``saved``), atomically: rows
+    written after it go; a file that does not start with what it holds (shorter, cut mid-row, changed) is rewritten.
+
+    :return: one line naming the files rewritten and why, ``None`` when none was damaged
+    """
+    rewritten, newline = [], b"\n"
+    for path in paths:
+        if path.name not in saved:
+            continue
+        content, current = saved[path.name], path.read_bytes() if path.is_file() else b""
+        if current == content:
+            continue
+        if not current.startswith(content):  # not only rows written after the checkpoint: damaged
+            short = f"{content.count(newline) - current.count(newline)} line(s) short"
+            cut = current and not current.endswith(newline)
+            why = "changed" if not content.startswith(current) else "cut mid-row" if cut else short
+            rewritten.append(f"{path.name} ({why})")
+        with atomic_output(path) as temporary:
+            temporary.write_bytes(content)
+    if not rewritten:
+        return None
+    return (
+        f"{', '.join(rewritten)} did not hold what the checkpoint at frame {frame:,} recorded: rewritten from it (the "
+        "rows after it are written again as the run goes on)."
+    )
+
+
 class ResumableCheckpoints(FrameScheduleCallback):
     """
-    Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, and one when
-    :meth:`request_stop` was called (by a SIGTERM or SIGINT handler, see
-    :func:`~sb3_collapse.run.signals.stop_signals`), after which ``learn()`` stops with
-    :class:`~sb3_collapse.run.signals.TrainingInterrupted`.
-
-    Checkpoints are taken at the start of the first rollout at or after their frame, where nothing is in flight
-    (with ``step_envs_during_updates``: docs/checkpoints.md#using-them).
+    Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, and one when :meth:`request_stop`
+    was called (by :func:`~sb3_collapse.run.signals.stop_signals`), after which ``learn()`` stops with
+    :class:`~sb3_collapse.errors.TrainingInterrupted`. Checkpoints are taken at the start of the first rollout at or
+    after their frame, where nothing is in flight (docs/checkpoints.md#using-them).
 
     :param directory: the run's checkpoints folder
     :param every_frames: frames between two checkpoints (``0``: only at a stop request)
     :param callbacks: the run's other callbacks, whose states the checkpoints hold (in this order)
     :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
-    :param csv_files: the run's CSV files, cut back to their checkpoint lines on resume
+    :param csv_files: the run's CSV files, written back as the checkpoint holds them on resume
     :param extra_state: called at each checkpoint for more picklable state (e.g. the run's elapsed time)
-    :param keep: complete checkpoints kept (see :func:`save_checkpoint`)
+    :param keep: complete checkpoints kept
     :param verbose: 1 prints a line per checkpoint
     """
 
@@ -550,18 +457,14 @@ class ResumableCheckpoints(FrameScheduleCallback):
         self.due = False
         self.stop_signal: str | None = None
         self.last_checkpoint: Path | None = None
-        self.written = 0
-        self.seconds = 0.0
         self._grad_norms: dict[str, Any] | None = None
 
     def resume(self, checkpoint: LoadedCheckpoint) -> tuple[LoadedCheckpoint, list[str]]:
         """
-        Put the model, the environments and the callbacks back in the state of ``checkpoint``
-        (:func:`restore_run`), before ``learn(remaining, reset_num_timesteps=False)``. A checkpoint whose replay
-        chunks turn out damaged as they are read (a wrong checksum) is set aside (:func:`set_aside`) for the one
-        before.
+        Put the model, environments, callbacks and CSV files back as ``checkpoint`` holds them (a checkpoint whose
+        replay chunks turn out damaged is set aside for the one before).
 
-        :return: the checkpoint resumed from, and notes for the user (damaged checkpoints, see :func:`restore_run`)
+        :return: the checkpoint resumed from, and notes for the user
         :raises CheckpointError: (``damaged``) when no checkpoint is left (``train`` restarts the run from frame 0)
         """
         notes: list[str] = []
@@ -583,9 +486,10 @@ class ResumableCheckpoints(FrameScheduleCallback):
                     ) from error
                 notes += [f"checkpoint {folder} is damaged ({reason})." for folder, reason in older.skipped]
                 checkpoint = older
+        rewritten = restore_csv_files(self.csv_files, checkpoint.state["csv"], checkpoint.frames)
         self._grad_norms = checkpoint.state["grad_norms"]
         self.last_checkpoint = checkpoint.folder
-        return checkpoint, notes
+        return checkpoint, notes + ([rewritten] if rewritten else [])
 
     def request_stop(self, signal_name: str) -> None:
         """Write a checkpoint at the next round and stop ``learn()`` (safe to call from a signal handler)."""
@@ -609,10 +513,8 @@ class ResumableCheckpoints(FrameScheduleCallback):
         return True
 
     def _on_rollout_start(self) -> None:
-        if not (self.due or self.stop_signal):
-            return
-        if not self.model.at_safe_point:  # type: ignore[attr-defined]
-            return  # a step is in flight: _on_step holds the next one back, the checkpoint comes one round later
+        if not (self.due or self.stop_signal) or not self.model.at_safe_point:  # type: ignore[attr-defined]
+            return  # a step in flight: _on_step holds the next one back, the checkpoint comes one round later
         self.save()
         self.due = False
         if self.stop_signal:
@@ -620,25 +522,17 @@ class ResumableCheckpoints(FrameScheduleCallback):
 
     def save(self) -> Path:
         """Write a checkpoint now (between two rounds of ``learn()``); return its folder."""
-        if self.last_checkpoint is not None and self.last_checkpoint.name == CHECKPOINT_FOLDER.format(
-            step=self.model.num_timesteps
-        ):
+        name = CHECKPOINT_FOLDER.format(step=self.model.num_timesteps)
+        if self.last_checkpoint is not None and self.last_checkpoint.name == name:
             return self.last_checkpoint  # taken at this step already (a signal right after a scheduled checkpoint)
         start = time.perf_counter()
         if not bool(all_finite(self.model.policy.parameters())):  # never a checkpoint of diverged weights
             raise DivergenceError(
                 f"training diverged: a weight is not finite at frame {self.frames:,}; no checkpoint was written."
             )
-        state = capture_state(
-            self.model,
-            self.callbacks,
-            self.eval_env,
-            self.csv_files,
-            self.extra_state() if self.extra_state is not None else None,
-        )
+        extra = self.extra_state() if self.extra_state is not None else None
+        state = capture_state(self.model, self.callbacks, self.eval_env, self.csv_files, extra)
         self.last_checkpoint = save_checkpoint(self.model, self.directory, self.store, state, keep=self.keep)
-        self.written += 1
-        self.seconds += time.perf_counter() - start
         if self.verbose >= 1:
             print(
                 f"Checkpoint at frame {self.frames:,}: {self.last_checkpoint} ({time.perf_counter() - start:.1f} s)",

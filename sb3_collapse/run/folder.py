@@ -1,23 +1,25 @@
 """
-The run folder of one training run, as :func:`sb3_collapse.run.runner.train` takes it: whether a folder can take
-the run (its :func:`~sb3_collapse.runfolder.run_status`), whether an unfinished run there has the same settings
-(:func:`settings_differences`), which folder a new run takes (:func:`new_run_dir`) and how it is opened
-(:func:`open_run_dir`: the settings of a new run, or the checkpoint an unfinished one resumes from). The folder's
-files are those of :mod:`sb3_collapse.protocol`; the lock that keeps a second process out is
-:class:`~sb3_collapse.run.lock.RunLock`.
+The run folder of one training run as :func:`sb3_collapse.run.runner.train` takes it: whether a folder can take the
+run, which folder a new run takes (:func:`new_run_dir`) and how it is opened (:func:`open_run_dir`: a new run's
+settings, or the checkpoint an unfinished one resumes from).
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import shutil
 import time
+import zipfile
 from pathlib import Path
 from typing import Any
 
+import torch as th
+
 from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.protocol import (
+    CHECKPOINT_MODEL,
     CHECKPOINTS_DIR,
     CONFIG_JSON,
     ERROR_TXT,
@@ -27,51 +29,54 @@ from sb3_collapse.protocol import (
     read_settings,
     write_json_atomically,
 )
-from sb3_collapse.run.checkpoints import (
-    DAMAGED_NOTE,
-    LoadedCheckpoint,
-    checkpoint_learning_rates,
-    read_checkpoints,
-    set_aside,
-)
+from sb3_collapse.run.checkpoints import DAMAGED_NOTE, LoadedCheckpoint, read_checkpoints, set_aside
 from sb3_collapse.run.config import RESUME_FREE_SETTINGS, TrainConfig
 from sb3_collapse.run.lock import RunLock
-from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
+from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status, unreadable_result
+
+
+def _check_run_dir(run_dir: Path) -> RunStatus:
+    """:return: the status of an explicit ``run_dir`` that a run may take (new, unfinished, failed)
+    :raises ParameterError: naming ``run_dir``: a finished run (its leftovers removed), an unreadable result, no run"""
+    state = run_status(run_dir, check_lock=False)  # a held lock refuses the run later, naming its owner
+    if state is None:
+        raise ParameterError(
+            "run_dir",
+            f"run_dir {run_dir} exists and is not an empty folder (nor the folder of a run): remove it or choose "
+            "another.",
+        )
+    if state == RunStatus.FINISHED:
+        tidy_finished_run(run_dir)
+        raise ParameterError(
+            "run_dir", f"run_dir {run_dir} holds a finished run ({RESULT_JSON}): choose another folder."
+        )
+    damaged = unreadable_result(run_dir)
+    if damaged is not None:
+        raise ParameterError("run_dir", f"run_dir {run_dir}: {damaged}")
+    return state
 
 
 def check_run_folder(config: TrainConfig) -> None:
     """
-    The checks of :meth:`TrainConfig.validate` that read the file system: an explicit ``run_dir`` must be new,
-    empty or an unfinished run; ``logdir`` must not be (under) a file. Called before anything is written.
+    The checks of :meth:`TrainConfig.validate` that read the file system, before anything is written: an explicit
+    ``run_dir`` must be new, empty or an unfinished run; ``logdir`` must not be (under) a file.
 
     :param config: the run's settings
     :raises ParameterError: naming ``run_dir`` or ``logdir``
     """
     if config.run_dir is not None:
-        state = run_status(config.run_dir, check_lock=False)  # a held lock refuses the run later, naming its owner
-        if state is None:
-            raise ParameterError(
-                "run_dir",
-                f"run_dir {config.run_dir} exists and is not an empty folder (nor the folder of a run): remove it "
-                "or choose another.",
-            )
-        if state == RunStatus.FINISHED:
-            tidy_finished_run(Path(config.run_dir))
-            raise ParameterError(
-                "run_dir", f"run_dir {config.run_dir} holds a finished run ({RESULT_JSON}): choose another folder."
-            )
-    logdir = Path(config.logdir)
-    blocking = blocking_file(logdir)
+        _check_run_dir(Path(config.run_dir))
+    blocking = blocking_file(config.logdir)
     if blocking is not None:
-        raise ParameterError("logdir", f"logdir {logdir}: {blocking} is a file, not a folder.")
+        raise ParameterError("logdir", f"logdir {config.logdir}: {blocking} is a file, not a folder.")
 
 
 def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str]:
     """
     :param saved: the settings file of a run folder
     :param config: the settings of a run that wants to resume it
-    :return: one line per setting that differs (those of :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`
-        may), empty when the run can resume it
+    :return: one line per setting that differs (but :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`), empty
+        when the run can resume it
     """
     current = json.loads(json.dumps(config.record()))
     return [
@@ -81,30 +86,38 @@ def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str
     ]
 
 
-def optimizer_differences(checkpoint: Path, config: TrainConfig) -> list[str]:
+def _resume_differences(run_dir: Path, config: TrainConfig, checkpoint: Path | None = None) -> list[str]:
     """
-    :param checkpoint: the folder of the checkpoint a run would resume from
-    :param config: the settings of the run
-    :return: one line per optimizer setting of the checkpoint (the learning rate of each optimizer) that is not the
-        run's: a settings file edited after the checkpoint was written would change the run mid-run
+    :return: one line per setting of ``run_dir``'s settings file, or learning rate its ``checkpoint`` trained with
+        (a settings file edited after it was written), that is not ``config``'s
+    :raises ParameterError: naming ``run_dir`` when the settings file cannot be read
     """
-    rates = sorted({rate for group in checkpoint_learning_rates(checkpoint).values() for rate in group})
-    if not rates or rates == [config.learning_rate]:
+    if checkpoint is None:
+        try:
+            saved = read_settings(run_dir / CONFIG_JSON)
+        except (OSError, ValueError) as error:
+            raise ParameterError("run_dir", f"run_dir {run_dir}: its {CONFIG_JSON} cannot be read ({error}).") from None
+        return settings_differences(saved, config)
+    rates: set[float] = set()
+    with zipfile.ZipFile(checkpoint / CHECKPOINT_MODEL) as archive:  # the optimizers' states, not the weights
+        for name in archive.namelist():
+            if name.endswith("optimizer.pth"):
+                state = th.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
+                rates.update(float(group["lr"]) for group in state["param_groups"])
+    if not rates or rates == {config.learning_rate}:
         return []
-    trained = ", ".join(f"{rate:g}" for rate in rates)
+    trained = ", ".join(f"{rate:g}" for rate in sorted(rates))
     return [f"`learning_rate={config.learning_rate}` (its checkpoint {checkpoint.name} trained with {trained})"]
 
 
-def saved_settings(run_dir: Path) -> dict[str, Any]:
-    """
-    :param run_dir: the folder of a run
-    :return: its settings file
-    :raises ParameterError: naming ``run_dir`` when the file cannot be read
-    """
-    try:
-        return read_settings(run_dir / CONFIG_JSON)
-    except (OSError, ValueError) as error:
-        raise ParameterError("run_dir", f"run_dir {run_dir}: its {CONFIG_JSON} cannot be read ({error}).") from None
+def _refuse_other_settings(run_dir: Path, differences: list[str], settings: str) -> None:
+    """:raises ParameterError: naming ``run_dir`` and the ``differences``, when there are any"""
+    if differences:
+        raise ParameterError(
+            "run_dir",
+            f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run it with "
+            f"{settings} to resume it, or train into another folder.",
+        )
 
 
 def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
@@ -112,8 +125,8 @@ def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
     :param logdir: the parent folder of the run folders
     :param name: the run folder's name
     :param config: the run's settings
-    :return: the first of ``<logdir>/<name>``, ``<name>_2``, ``<name>_3``... that can take this run: a new folder,
-        or the folder of an unfinished run with the same settings (resumed)
+    :return: the first of ``<logdir>/<name>``, ``<name>_2``... that can take this run: a new folder, or an unfinished
+        run with the same settings (resumed)
     """
     run_dir, index = logdir / name, 1
     while True:
@@ -122,8 +135,11 @@ def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
             return run_dir
         if state == RunStatus.FINISHED:
             tidy_finished_run(run_dir)
-        if state in RESUMABLE:
-            differences = settings_differences(saved_settings(run_dir), config)
+        damaged = unreadable_result(run_dir) if state == RunStatus.FAILED else None
+        if damaged is not None:
+            print(f"{run_dir}: {damaged} Not resuming it.")
+        elif state in RESUMABLE:
+            differences = _resume_differences(run_dir, config)
             if not differences:
                 return run_dir
             print(f"{run_dir} holds an unfinished run with other settings ({'; '.join(differences)}): not resuming it.")
@@ -132,12 +148,7 @@ def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
 
 
 def partial_outputs(run_dir: Path) -> list[Path]:
-    """
-    :param run_dir: a run folder
-    :return: the temporary files of its atomic writes (``.<name>.*.partial<suffix>``,
-        :func:`~sb3_collapse.protocol.atomic_output`) that a process killed while writing left behind, but those of
-        the checkpoints (the next checkpoint removes them)
-    """
+    """:return: the temporary files of atomic writes a killed process left in ``run_dir`` (but the checkpoints')"""
     return [
         path
         for path in run_dir.rglob(".*.partial*")
@@ -147,63 +158,40 @@ def partial_outputs(run_dir: Path) -> list[Path]:
 
 def tidy_finished_run(run_dir: Path) -> list[str]:
     """
-    Remove what a finished run's process, killed after it wrote its result file, left behind: the checkpoints (of
-    no use once the run has finished), the temporary files of atomic writes (:func:`partial_outputs`) and the lock
-    file. Nothing happens while a process holds the folder's lock (it is finishing, and removes them itself), or
-    where the folder cannot be written.
+    Remove what a finished run's process, killed after it wrote its result file, left: the checkpoints, the temporary
+    files of atomic writes and the lock file (nothing while a process holds the lock, or in a read-only folder).
 
-    :param run_dir: a folder holding a finished run (its result file)
-    :return: what was removed, for the user (empty when nothing was)
+    :param run_dir: a folder holding a finished run
+    :return: what was removed, for the user
     """
     checkpoints, lock = run_dir / CHECKPOINTS_DIR, run_dir / LOCK_FILE
     leftovers = [path for path in (checkpoints, lock) if path.exists()] + partial_outputs(run_dir)
     if not leftovers or not (run_dir / RESULT_JSON).is_file():
         return []
     removed = []
-    try:
-        with RunLock(run_dir):
-            for path in leftovers:
-                if path == lock:
-                    continue
-                if path.is_dir():
-                    size = sum(file.stat().st_size for file in path.rglob("*") if file.is_file())
-                    shutil.rmtree(path)
-                    removed.append(f"{path.name}/ ({size / 1e6:.1f} MB)")
-                else:
-                    path.unlink()
-                    removed.append(path.name)
-            lock.unlink()  # still locked: no process may take a finished run's folder
-            if lock in leftovers:
-                removed.append(LOCK_FILE)
-    except (InputError, OSError):
-        pass
+    with contextlib.suppress(InputError, OSError), RunLock(run_dir):
+        for path in leftovers:
+            if path.is_dir():
+                size = sum(file.stat().st_size for file in path.rglob("*") if file.is_file())
+                shutil.rmtree(path)
+                removed.append(f"{path.name}/ ({size / 1e6:.1f} MB)")
+            elif path != lock:
+                path.unlink()
+                removed.append(path.name)
+        lock.unlink()  # still locked: no process may take a finished run's folder
+        removed += [LOCK_FILE] if lock in leftovers else []
     if removed:
         listed = ", ".join(removed)
         print(f"Removed what the finished run in {run_dir} left behind (killed after it finished): {listed}.")
     return removed
 
 
-def empty_run_dir(run_dir: Path) -> None:
-    """
-    Delete what a run folder holds, but the lock file (held by this process) and what was set aside as damaged
-    (``damaged_*``, :func:`~sb3_collapse.run.checkpoints.set_aside`: never deleted, it cannot be rebuilt).
-
-    :param run_dir: the run folder
-    """
-    for path in run_dir.iterdir():
-        if path.name != LOCK_FILE and not path.name.startswith("damaged_"):
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
-
-
 def set_aside_damaged_checkpoints(run_dir: Path, skipped: list[tuple[Path, str]]) -> Path | None:
     """
-    When no checkpoint of an unfinished run can be read and some are damaged (``skipped``, or set aside earlier as
-    ``damaged_step_*``), set the whole checkpoints folder aside (``damaged_checkpoints``, replay chunks included) and
-    say in one line, printed and written into it (:data:`~sb3_collapse.run.checkpoints.DAMAGED_NOTE`), that the run
-    restarts from frame 0 and why.
+    When no checkpoint of ``run_dir`` (locked) can be read and some are damaged (``skipped``, or set aside earlier),
+    set the checkpoints folder aside (``damaged_checkpoints``) and say in one line (printed, and in it) why the run
+    restarts from frame 0.
 
-    :param run_dir: the run folder, locked by this process
-    :param skipped: the damaged checkpoints and why (:func:`~sb3_collapse.run.checkpoints.read_checkpoints`)
     :return: where the checkpoints went, ``None`` when none was damaged
     """
     checkpoints = run_dir / CHECKPOINTS_DIR
@@ -229,27 +217,14 @@ def set_aside_damaged_checkpoints(run_dir: Path, skipped: list[tuple[Path, str]]
 
 def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
     """
-    With the run folder locked: a new run writes its settings; an unfinished run with the same settings is resumed
-    from its newest readable checkpoint (damaged newer ones are reported and set aside), or restarted without one.
+    With ``run_dir`` locked: a new run writes its settings (``config``); an unfinished run with the same settings is
+    resumed from its newest readable checkpoint (damaged newer ones set aside), or restarted without one.
 
-    :param run_dir: the run folder, locked by this process
-    :param config: the run's settings
     :return: the checkpoint to resume from, ``None`` for a run from frame 0
     :raises ParameterError: for a folder with a finished run, another run's settings or other content
     """
-    state = run_status(run_dir, check_lock=False)  # this process holds the lock
-    if state is None or state == RunStatus.FINISHED:
-        raise ParameterError(
-            "run_dir", f"run_dir {run_dir} holds a finished run or other files: choose another folder."
-        )
-    if state in RESUMABLE:
-        differences = settings_differences(saved_settings(run_dir), config)
-        if differences:
-            raise ParameterError(
-                "run_dir",
-                f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run it "
-                "with its own settings to resume it, or train into another folder.",
-            )
+    if _check_run_dir(run_dir) in RESUMABLE:
+        _refuse_other_settings(run_dir, _resume_differences(run_dir, config), "its own settings")
         for partial in partial_outputs(run_dir):  # a write of a killed process: written again as the run goes on
             partial.unlink()
         checkpoint, skipped = read_checkpoints(run_dir / CHECKPOINTS_DIR)
@@ -257,14 +232,11 @@ def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
             for folder, reason in skipped:  # kept aside under another name, never read again
                 print(f"Checkpoint {folder} is damaged ({reason}): falling back to the one before.")
                 set_aside(folder, reason)
-            differences = optimizer_differences(checkpoint.folder, config)
-            if differences:  # the settings file was edited: the run would change its settings mid-run
-                raise ParameterError(
-                    "run_dir",
-                    f"run_dir {run_dir} holds an unfinished run with other settings: {'; '.join(differences)}. Run "
-                    f"it with the settings it trained with (and its {CONFIG_JSON} as it wrote it) to resume it, or "
-                    "train into another folder.",
-                )
+            _refuse_other_settings(  # the settings file was edited: the run would change its settings mid-run
+                run_dir,
+                _resume_differences(run_dir, config, checkpoint.folder),
+                f"the settings it trained with (and its {CONFIG_JSON} as it wrote it)",
+            )
             error_file = run_dir / ERROR_TXT
             if error_file.is_file():  # kept with the checkpoints, out of the way of the sweep's status
                 first = error_file.read_text().splitlines()[:1]
@@ -274,6 +246,8 @@ def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
             return checkpoint
         if set_aside_damaged_checkpoints(run_dir, skipped) is None:
             print(f"{run_dir} holds an unfinished run without a checkpoint: restarting it from frame 0.")
-    empty_run_dir(run_dir)
+    for path in run_dir.iterdir():  # but the lock (held) and what was set aside as damaged (it cannot be rebuilt)
+        if path.name != LOCK_FILE and not path.name.startswith("damaged_"):
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
     write_json_atomically(run_dir / CONFIG_JSON, config.record())
     return None

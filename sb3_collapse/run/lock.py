@@ -1,10 +1,8 @@
-"""
-The run folder's lock: one process trains into a run folder at a time (:class:`RunLock`); whether one does now is
-:func:`sb3_collapse.runfolder.run_folder_owner`.
-"""
+"""The run folder's lock: one process trains into a run folder at a time (:class:`RunLock`)."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import socket
@@ -18,9 +16,8 @@ from sb3_collapse.protocol import LOCK_FILE
 
 class RunLock:
     """
-    An exclusive lock on a run folder (``flock`` on its lock file, released by the system if the process dies), with
-    the owner's pid, host and start time in the file for the message of a process that finds it taken. The owner may
-    delete the lock file while it holds it: a process that locked the deleted file takes the new one instead.
+    An exclusive ``flock`` on a run folder's lock file (released if the process dies), which holds the owner's pid,
+    host and start time for the message of a process that finds it taken.
 
     :param run_dir: the run folder (it must exist)
     :param lock_file: the lock file's name in it (a sweep's folder: :data:`~sb3_collapse.protocol.SWEEP_LOCK`)
@@ -57,12 +54,9 @@ class RunLock:
                     f"{self.folder} {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or "
                     f"{self.instead}."
                 ) from None
-            try:
-                current = os.stat(self.path).st_ino
-            except FileNotFoundError:
-                current = None
-            if current == os.fstat(file.fileno()).st_ino:
-                break
+            with contextlib.suppress(FileNotFoundError):
+                if os.stat(self.path).st_ino == os.fstat(file.fileno()).st_ino:
+                    break
             file.close()  # its owner deleted the file we locked: lock the one at the path now
         file.seek(0)
         file.truncate()
@@ -73,6 +67,5 @@ class RunLock:
 
     def __exit__(self, *exc: object) -> None:
         if self._file is not None:
-            self._file.close()  # releases the flock; the file stays (deleting it would race with a new owner; train()
-            # deletes it, still locked, once the run has finished and no process may take the folder)
+            self._file.close()  # releases the flock; the file stays (train() deletes it, locked, once the run finished)
             self._file = None

@@ -1,8 +1,7 @@
 """
-Incremental checkpoints of a :class:`~sb3_collapse.drqv2.replay_buffer.FrameStackReplayBuffer`: :class:`ReplayStore`
-writes, at each save, only what was added since its previous save, as append-only chunk files, and returns the
-manifest that the run keeps inside its own checkpoint. See docs/checkpoints.md#the-replay-buffer-incremental-chunks
-(use, safety) and docs/checkpoints.md#chunk-files-and-manifest (what is new, the file format, restore).
+Incremental checkpoints of a ``FrameStackReplayBuffer`` (:class:`ReplayStore`): each save writes what was added since
+the previous one as append-only chunk files and returns the manifest the run's checkpoint keeps. See
+docs/checkpoints.md#the-replay-buffer-incremental-chunks.
 """
 
 from __future__ import annotations
@@ -26,26 +25,19 @@ from sb3_collapse.errors import CheckpointError, InputError
 
 FORMAT = "sb3_collapse.replay_store/1"
 """``manifest["format"]``: the manifest and chunk layout this module writes and reads."""
-
 CHUNK_PREFIX = "chunk-"
 CHUNK_SUFFIX = ".bin"
 TEMP_SUFFIX = ".tmp"
 CHUNK_NAME = re.compile(rf"^{CHUNK_PREFIX}(\d+)-[0-9a-f]+{re.escape(CHUNK_SUFFIX)}$")
-
 FILES_PER_BUFFER = 32
-"""The default ``max_file_bytes`` is the buffer's array bytes divided by this (dead bytes kept on disk: ~1/32)."""
-
+"""The default ``max_file_bytes`` is the buffer's array bytes divided by this, at least ``MIN_FILE_BYTES``."""
 MIN_FILE_BYTES = 1 << 20
-"""The smallest default ``max_file_bytes``."""
-
 BLOCK_BYTES = 32 << 20
 """Bytes copied, checksummed and written (or read) at once."""
-
 TRANSITION_ARRAYS = ("frame_starts", "actions", "rewards", "dones", "timeouts")
 """The per-transition arrays of the buffer, in the order a transitions segment stores them."""
-
-TRANSITIONS = "transitions"
-FRAMES = "frames"
+TRANSITIONS, FRAMES = "transitions", "frames"
+STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
 
 
 @dataclass
@@ -59,6 +51,11 @@ class _Tracked:
     chunks: list[dict[str, Any]]
 
 
+def _damaged(message: str) -> CheckpointError:
+    """The error of a damaged replay checkpoint: ``message`` and the way out."""
+    return CheckpointError(f"{message} Resume from another checkpoint.", damaged=True)
+
+
 def _write(file: BinaryIO, data: np.ndarray) -> None:
     """Write ``data``'s bytes (one function, so tests can make it fail as a full disk would)."""
     file.write(data)
@@ -66,8 +63,7 @@ def _write(file: BinaryIO, data: np.ndarray) -> None:
 
 class ReplayStore:
     """
-    Append-only chunk store of a :class:`FrameStackReplayBuffer`'s data in one folder (e.g.
-    ``<run>/checkpoints/replay/``). See the module docstring for the format and its guarantees.
+    Append-only chunk store of a :class:`FrameStackReplayBuffer`'s data in one folder (``<run>/checkpoints/replay/``).
 
     :param directory: the folder (created at the first save)
     :param max_file_bytes: largest chunk file; ``None``: the buffer's array bytes / 32, at least 1 MiB
@@ -82,46 +78,36 @@ class ReplayStore:
         self.max_file_bytes = max_file_bytes
         self._tracked: _Tracked | None = None
 
-    # ------------------------------------------------------------------ saving
     def save(self, buffer: FrameStackReplayBuffer) -> dict[str, Any]:
         """
-        Write, as new ``fsync``'d files (nothing existing is modified), the frames and transitions added since the
-        last :meth:`save` or :meth:`restore` of this store for this buffer (all live data the first time, after
-        ``buffer.reset()``, or when this store's earlier chunks are gone).
+        Write, as new ``fsync``'d files, the frames and transitions added since this store's last :meth:`save` or
+        :meth:`restore` of this buffer (all live data the first time, after ``buffer.reset()``, or when its earlier
+        chunks are gone).
 
         :param buffer: the buffer
-        :return: the JSON-serialisable manifest of the buffer's state: the chunk files it needs, in order, with their
-            sizes and CRC-32s, the buffer's counters and its layout. Store it in the run's checkpoint.
-        :raises OSError: when a write fails (full disk): nothing this call wrote remains, older chunks
-            are intact, the store's base for the next save is unchanged
-        :raises CheckpointError: when the buffer's ``pos``/``full`` disagree with ``transitions_added`` (changed
-            outside ``add``/``reset``)
+        :return: the JSON-serialisable manifest: the chunk files it needs, in order, with sizes and CRC-32s, the
+            buffer's counters and layout
+        :raises OSError: when a write fails (full disk): nothing this call wrote remains, older chunks are intact
+        :raises CheckpointError: when ``pos``/``full`` disagree with ``transitions_added`` (changed outside ``add``)
         """
         _check_counters(buffer)
         live = _live_windows(buffer)
         base = self._base(buffer)
-        if base is None:
-            chain: list[dict[str, Any]] = []
-            new = live
-        else:
-            chain = list(base.chunks)
+        chain: list[dict[str, Any]] = [] if base is None else list(base.chunks)
+        new = live
+        if base is not None:
             previous = {TRANSITIONS: base.transitions_added}
             previous.update({_frames_key(env): int(head) for env, head in enumerate(base.frame_heads)})
             new = {key: (max(previous[key], low), high) for key, (low, high) in live.items()}
         segments = [_segment(key, low, high) for key, (low, high) in new.items() if high > low]
-        plans = _plan_files(segments, _row_bytes(buffer), self._max_file_bytes(buffer))
+        max_bytes = self.max_file_bytes or max(MIN_FILE_BYTES, buffer.nbytes // FILES_PER_BUFFER)
+        plans = _plan_files(segments, _row_bytes(buffer), max_bytes)
         if plans:
-            written = self._write_chunks(buffer, plans)
-            chain = chain + written
+            chain += self._write_chunks(buffer, plans)
         chain = [chunk for chunk in chain if _is_live(chunk, live)]
         manifest = {"format": FORMAT, "layout": _layout(buffer), "state": _state(buffer), "chunks": chain}
         self._track(buffer, manifest)
         return manifest
-
-    def _max_file_bytes(self, buffer: FrameStackReplayBuffer) -> int:
-        if self.max_file_bytes is not None:
-            return self.max_file_bytes
-        return max(MIN_FILE_BYTES, buffer.nbytes // FILES_PER_BUFFER)
 
     def _base(self, buffer: FrameStackReplayBuffer) -> _Tracked | None:
         """The last saved or restored state of this buffer when the next save can be incremental to it."""
@@ -154,11 +140,10 @@ class ReplayStore:
         written: list[dict[str, Any]] = []
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            number = self._next_number()
-            for plan in plans:
+            names = [int(match.group(1)) for name in os.listdir(self.directory) if (match := CHUNK_NAME.match(name))]
+            for number, plan in enumerate(plans, start=max(names, default=0) + 1):  # no save reuses a name
                 written.append(self._write_chunk(buffer, plan, number))
-                number += 1
-            _fsync_folder(self.directory)
+            fsync_path(self.directory)
         except OSError as error:
             for chunk in written:
                 (self.directory / chunk["file"]).unlink(missing_ok=True)
@@ -173,24 +158,17 @@ class ReplayStore:
             ) from error
         return written
 
-    def _next_number(self) -> int:
-        """One more than the largest chunk number in the folder (so no save reuses a name)."""
-        numbers = [int(match.group(1)) for name in os.listdir(self.directory) if (match := CHUNK_NAME.match(name))]
-        return max(numbers, default=0) + 1
-
     def _write_chunk(self, buffer: FrameStackReplayBuffer, plan: list[dict[str, Any]], number: int) -> dict:
         name = f"{CHUNK_PREFIX}{number:06d}-{secrets.token_hex(4)}{CHUNK_SUFFIX}"
         temporary = self.directory / f".{name}{TEMP_SUFFIX}"
         crc, size = 0, 0
         try:
             with open(temporary, "xb") as file:
-                for segment in plan:
-                    for view in _views(buffer, segment):
-                        for block in _blocks(view):
-                            data = np.ascontiguousarray(block).reshape(-1).view(np.uint8)
-                            crc = zlib.crc32(data, crc)
-                            _write(file, data)
-                            size += data.nbytes
+                for block in _chunk_blocks(buffer, plan):
+                    data = np.ascontiguousarray(block).reshape(-1).view(np.uint8)
+                    crc = zlib.crc32(data, crc)
+                    _write(file, data)
+                    size += data.nbytes
                 file.flush()
                 os.fsync(file.fileno())
             os.rename(temporary, self.directory / name)
@@ -199,17 +177,15 @@ class ReplayStore:
             raise
         return {"file": name, "bytes": size, "crc32": crc, "segments": plan}
 
-    # ------------------------------------------------------------------ restoring
     def restore(self, buffer: FrameStackReplayBuffer, manifest: dict[str, Any]) -> None:
         """
-        Make ``buffer`` (freshly built with the saved buffer's arguments) hold the saved state: the chunks' rows
-        replayed in order, then the counters. The next :meth:`save` of this store is incremental to it.
+        Make ``buffer`` (freshly built with the saved buffer's arguments) hold the saved state; the next :meth:`save`
+        is incremental to it.
 
         :param buffer: the buffer to fill
         :param manifest: what :meth:`save` returned (possibly through JSON)
-        :raises CheckpointError: when the manifest is malformed or the buffer's layout differs from it, or a chunk
-            is missing or has the wrong size (all found before anything is read: the buffer is unchanged), or a
-            chunk fails its CRC-32 or cannot be read (found while reading: the buffer is ``reset()``, empty)
+        :raises CheckpointError: for a malformed manifest, another layout, a missing chunk or one of another size
+            (the buffer unchanged), or a chunk that fails its CRC-32 or cannot be read (the buffer ``reset()``)
         """
         _check_manifest(manifest)
         _check_layout(buffer, manifest["layout"])
@@ -222,18 +198,12 @@ class ReplayStore:
                 _key(segment) not in row_bytes or segment["stop"] - segment["start"] > rings[segment["ring"]]
                 for segment in chunk["segments"]
             ):
-                raise CheckpointError(
-                    f"The replay checkpoint manifest is inconsistent: chunk {path} lists segments outside this "
-                    "buffer's environments or rings. Resume from another checkpoint.",
-                    damaged=True,
-                )
+                raise _damaged(f"The replay checkpoint manifest is inconsistent: chunk {path} lists segments outside "
+                               "this buffer's environments or rings.")  # fmt: skip
             expected = _plan_bytes(chunk["segments"], row_bytes)
             if expected != chunk["bytes"]:
-                raise CheckpointError(
-                    f"The replay checkpoint manifest is inconsistent: chunk {path} is listed with {chunk['bytes']:,} "
-                    f"bytes but its segments hold {expected:,}. Resume from another checkpoint.",
-                    damaged=True,
-                )
+                raise _damaged(f"The replay checkpoint manifest is inconsistent: chunk {path} is listed with "
+                               f"{chunk['bytes']:,} bytes but its segments hold {expected:,}.")  # fmt: skip
         self.check_files(manifest)
         try:
             for chunk in manifest["chunks"]:
@@ -242,10 +212,8 @@ class ReplayStore:
             buffer.reset()
             raise
         state = manifest["state"]
-        buffer.pos = int(state["pos"])
-        buffer.full = bool(state["full"])
-        buffer.transitions_added = int(state["transitions_added"])
-        buffer.resets = int(state["resets"])
+        buffer.pos, buffer.full = int(state["pos"]), bool(state["full"])
+        buffer.transitions_added, buffer.resets = int(state["transitions_added"]), int(state["resets"])
         buffer.frame_heads[:] = state["frame_heads"]
         buffer.steps_since_done[:] = state["steps_since_done"]
         buffer.episodes_done[:] = state["episodes_done"]
@@ -254,35 +222,25 @@ class ReplayStore:
 
     def check_files(self, manifest: dict[str, Any]) -> None:
         """
-        Check, without reading them, that the chunks of a manifest are in the folder with the sizes they were written
-        with (what :meth:`restore` checks before it reads anything; their CRC-32 is checked as they are read).
-
         :param manifest: what :meth:`save` returned
-        :raises CheckpointError: for a malformed manifest, a missing chunk or one of another size, naming the file
+        :raises CheckpointError: for a malformed manifest, a missing chunk or one of another size (not read: CRC-32s
+            are checked by :meth:`restore`), naming the file
         """
         _check_manifest(manifest)
         for chunk in manifest["chunks"]:
             path = self.directory / chunk["file"]
             if not path.is_file():
-                raise CheckpointError(
-                    f"The replay checkpoint chunk {path} is missing. Resume from another checkpoint (an earlier one "
-                    "may still have all its chunks).",
-                    damaged=True,
-                )
-            size = path.stat().st_size
-            if size != chunk["bytes"]:
-                raise CheckpointError(
-                    f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
-                    f"{chunk['bytes']:,} ({'truncated' if size < chunk['bytes'] else 'changed'}). Resume from "
-                    "another checkpoint.",
-                    damaged=True,
-                )
+                raise _damaged(f"The replay checkpoint chunk {path} is missing.")
+            size, expected = path.stat().st_size, chunk["bytes"]
+            if size != expected:
+                how = "truncated" if size < expected else "changed"
+                raise _damaged(f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
+                               f"{expected:,} ({how}).")  # fmt: skip
 
-    # ------------------------------------------------------------------ disk
     def collect_garbage(self, keep: list[dict[str, Any]]) -> int:
         """
-        Delete the chunk files that none of the ``keep`` manifests lists, nor the state this store last saved or
-        restored (the base of its next save), and stray temporary files of interrupted saves.
+        Delete the chunk files that neither a ``keep`` manifest nor this store's last save or restore needs, and the
+        temporary files of interrupted saves.
 
         :param keep: the manifests of the checkpoints to keep
         :return: bytes freed
@@ -310,10 +268,7 @@ class ReplayStore:
 
     @staticmethod
     def bytes_needed(manifest: dict[str, Any]) -> int:
-        """
-        :param manifest: a manifest returned by :meth:`save`
-        :return: bytes of the chunk files it lists
-        """
+        """:return: bytes of the chunk files ``manifest`` (of :meth:`save`) lists"""
         return sum(int(chunk["bytes"]) for chunk in manifest["chunks"])
 
     def disk_bytes(self) -> int:
@@ -327,7 +282,6 @@ class ReplayStore:
         )
 
 
-# ---------------------------------------------------------------------- pure helpers
 def _frames_key(env: int) -> str:
     return f"{FRAMES}/{env}"
 
@@ -337,9 +291,8 @@ def _key(segment: dict[str, Any]) -> str:
 
 
 def _segment(key: str, start: int, stop: int) -> dict[str, Any]:
-    if key == TRANSITIONS:
-        return {"ring": TRANSITIONS, "start": int(start), "stop": int(stop)}
-    return {"ring": FRAMES, "env": int(key.split("/")[1]), "start": int(start), "stop": int(stop)}
+    ring = {"ring": TRANSITIONS} if key == TRANSITIONS else {"ring": FRAMES, "env": int(key.split("/")[1])}
+    return {**ring, "start": int(start), "stop": int(stop)}
 
 
 def _check_counters(buffer: FrameStackReplayBuffer) -> None:
@@ -363,11 +316,7 @@ def _live_windows(buffer: FrameStackReplayBuffer) -> dict[str, tuple[int, int]]:
 
 def _is_live(chunk: dict[str, Any], live: dict[str, tuple[int, int]]) -> bool:
     """Whether any segment of ``chunk`` holds data the rings still hold."""
-    for segment in chunk["segments"]:
-        low, high = live[_key(segment)]
-        if segment["start"] < high and segment["stop"] > low:
-            return True
-    return False
+    return any(live[_key(s)][0] < s["stop"] and s["start"] < live[_key(s)][1] for s in chunk["segments"])
 
 
 def _row_bytes(buffer: FrameStackReplayBuffer) -> dict[str, int]:
@@ -414,22 +363,20 @@ def _pieces(start: int, stop: int, size: int) -> Iterator[tuple[int, int]]:
         yield 0, count - head
 
 
-def _views(buffer: FrameStackReplayBuffer, segment: dict[str, Any]) -> Iterator[np.ndarray]:
-    """The buffer's array views a segment covers, in the order its bytes are stored."""
-    if segment["ring"] == TRANSITIONS:
-        for low, high in _pieces(segment["start"], segment["stop"], buffer.buffer_size):
-            for name in TRANSITION_ARRAYS:
-                yield getattr(buffer, name)[low:high]
-    else:
-        for low, high in _pieces(segment["start"], segment["stop"], buffer.frame_capacity):
-            yield buffer.frames[low:high, segment["env"]]
-
-
-def _blocks(view: np.ndarray) -> Iterator[np.ndarray]:
-    """``view`` in slices of about :data:`BLOCK_BYTES` along its first axis."""
-    rows = max(1, BLOCK_BYTES // max(1, view[0].nbytes)) if len(view) else 1
-    for start in range(0, len(view), rows):
-        yield view[start : start + rows]
+def _chunk_blocks(buffer: FrameStackReplayBuffer, segments: list[dict[str, Any]]) -> Iterator[np.ndarray]:
+    """The buffer's array slices (of about :data:`BLOCK_BYTES`) that ``segments`` cover, in their chunk's order."""
+    for segment in segments:
+        transitions = segment["ring"] == TRANSITIONS
+        size = buffer.buffer_size if transitions else buffer.frame_capacity
+        for low, high in _pieces(segment["start"], segment["stop"], size):
+            if transitions:
+                views = [getattr(buffer, name)[low:high] for name in TRANSITION_ARRAYS]
+            else:
+                views = [buffer.frames[low:high, segment["env"]]]
+            for view in views:
+                rows = max(1, BLOCK_BYTES // max(1, view[0].nbytes)) if len(view) else 1
+                for start in range(0, len(view), rows):
+                    yield view[start : start + rows]
 
 
 def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any]) -> None:
@@ -437,36 +384,29 @@ def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any
     crc = 0
     try:
         with open(path, "rb") as file:
-            for segment in chunk["segments"]:
-                for view in _views(buffer, segment):
-                    for block in _blocks(view):
-                        target = block if block.flags.c_contiguous else np.empty_like(block)
-                        data = target.reshape(-1).view(np.uint8)
-                        if file.readinto(data) != data.nbytes:
-                            raise CheckpointError(
-                                f"The replay checkpoint chunk {path} ended early (truncated). Resume from another "
-                                "checkpoint.",
-                                damaged=True,
-                            )
-                        crc = zlib.crc32(data, crc)
-                        if target is not block:
-                            block[...] = target
+            for block in _chunk_blocks(buffer, chunk["segments"]):
+                target = block if block.flags.c_contiguous else np.empty_like(block)
+                data = target.reshape(-1).view(np.uint8)
+                if file.readinto(data) != data.nbytes:
+                    raise _damaged(f"The replay checkpoint chunk {path} ended early (truncated).")
+                crc = zlib.crc32(data, crc)
+                if target is not block:
+                    block[...] = target
     except OSError as error:
         raise CheckpointError(f"Could not read the replay checkpoint chunk {path}: {error}.", damaged=True) from error
     if crc != chunk["crc32"]:
-        raise CheckpointError(
-            f"The replay checkpoint chunk {path} is corrupt (CRC-32 {crc:#010x}, the checkpoint expects "
-            f"{chunk['crc32']:#010x}). Resume from another checkpoint.",
-            damaged=True,
-        )
+        raise _damaged(f"The replay checkpoint chunk {path} is corrupt (CRC-32 {crc:#010x}, the checkpoint expects "
+                       f"{chunk['crc32']:#010x}).")  # fmt: skip
 
 
-def _fsync_folder(folder: Path) -> None:
-    """Flush a folder's entries (the renames) to disk, where the system allows opening a folder."""
+def fsync_path(path: Path) -> None:
+    """Flush a file, or a folder's entries (the renames), to disk, where the system allows opening a folder."""
     try:
-        handle = os.open(folder, os.O_RDONLY)
-    except OSError:  # e.g. Windows
-        return
+        handle = os.open(path, os.O_RDONLY)
+    except OSError:
+        if path.is_dir():  # e.g. Windows
+            return
+        raise
     try:
         os.fsync(handle)
     except OSError as error:
@@ -490,49 +430,28 @@ def _layout(buffer: FrameStackReplayBuffer) -> dict[str, Any]:
 
 
 def _state(buffer: FrameStackReplayBuffer) -> dict[str, Any]:
-    return {
-        "pos": int(buffer.pos),
-        "full": bool(buffer.full),
-        "transitions_added": int(buffer.transitions_added),
-        "resets": int(buffer.resets),
-        "frame_heads": [int(value) for value in buffer.frame_heads],
-        "steps_since_done": [int(value) for value in buffer.steps_since_done],
-        "episodes_done": [int(value) for value in buffer.episodes_done],
-    }
+    state = {key: int(getattr(buffer, key)) for key in ("pos", "transitions_added", "resets")}
+    state["full"] = bool(buffer.full)
+    state.update({key: [int(value) for value in getattr(buffer, key)] for key in STATE_KEYS[4:]})
+    return state
 
 
 def _check_manifest(manifest: Any) -> None:
     """Raise :class:`CheckpointError` unless ``manifest`` looks like one :meth:`ReplayStore.save` returned."""
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
-        raise CheckpointError(
-            f"Not a replay checkpoint manifest of format {FORMAT!r} (found {found!r}): it was written by another "
-            "version of sb3-collapse, or is damaged.",
-            damaged=True,
-        )
-    missing = [key for key in ("layout", "state", "chunks") if key not in manifest]
-    if missing:
-        raise CheckpointError(
-            f"The replay checkpoint manifest lacks {', '.join(missing)}: it is damaged.", damaged=True
-        )
-    state, chunks = manifest["state"], manifest["chunks"]
-    problems = []
-    if not isinstance(manifest["layout"], dict):
-        problems.append("layout is not a mapping")
+        raise _damaged(f"Not a replay checkpoint manifest of format {FORMAT!r} (found {found!r}): it was written by "
+                       "another version of sb3-collapse, or is damaged.")  # fmt: skip
+    layout, state, chunks = (manifest.get(key) for key in ("layout", "state", "chunks"))
+    problems = [] if isinstance(layout, dict) else ["layout is not a mapping"]
     if not isinstance(state, dict) or any(key not in state for key in STATE_KEYS):
         problems.append(f"state lacks some of {', '.join(STATE_KEYS)}")
     if not isinstance(chunks, list):
         problems.append("chunks is not a list")
     else:
-        for chunk in chunks:
-            if not _valid_chunk(chunk):
-                problems.append(f"chunk entry {str(chunk)[:120]} is malformed")
-                break
+        problems += [f"chunk entry {str(chunk)[:120]} is malformed" for chunk in chunks if not _valid_chunk(chunk)][:1]
     if problems:
-        raise CheckpointError(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.", damaged=True)
-
-
-STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
+        raise _damaged(f"The replay checkpoint manifest is damaged: {'; '.join(problems)}.")
 
 
 def _valid_chunk(chunk: Any) -> bool:
@@ -542,17 +461,15 @@ def _valid_chunk(chunk: Any) -> bool:
     if not all(isinstance(chunk.get(key), int) and chunk[key] >= 0 for key in ("bytes", "crc32")):
         return False
     segments = chunk.get("segments")
-    if not isinstance(segments, list):
-        return False
-    for segment in segments:
-        if not isinstance(segment, dict) or segment.get("ring") not in (TRANSITIONS, FRAMES):
-            return False
-        if segment["ring"] == FRAMES and not isinstance(segment.get("env"), int):
-            return False
-        start, stop = segment.get("start"), segment.get("stop")
-        if not (isinstance(start, int) and isinstance(stop, int) and 0 <= start <= stop):
-            return False
-    return True
+    return isinstance(segments, list) and all(
+        isinstance(segment, dict)
+        and segment.get("ring") in (TRANSITIONS, FRAMES)
+        and (segment["ring"] == TRANSITIONS or isinstance(segment.get("env"), int))
+        and isinstance(segment.get("start"), int)
+        and isinstance(segment.get("stop"), int)
+        and 0 <= segment["start"] <= segment["stop"]
+        for segment in segments
+    )
 
 
 def _check_state(buffer: FrameStackReplayBuffer, state: dict[str, Any]) -> None:
@@ -567,27 +484,26 @@ def _check_state(buffer: FrameStackReplayBuffer, state: dict[str, Any]) -> None:
     except (TypeError, ValueError):
         consistent = False
     if not consistent:
-        raise CheckpointError(
-            f"The replay checkpoint manifest is damaged: its state {str(state)[:200]} does not describe a buffer of "
-            f"{buffer.n_envs} environments and {buffer.buffer_size} transitions each. Resume from another checkpoint.",
-            damaged=True,
-        )
+        buffer_text = f"{buffer.n_envs} environments and {buffer.buffer_size} transitions each"
+        raise _damaged(f"The replay checkpoint manifest is damaged: its state {str(state)[:200]} does not describe a "
+                       f"buffer of {buffer_text}.")  # fmt: skip
 
 
 def _check_layout(buffer: FrameStackReplayBuffer, saved: dict[str, Any]) -> None:
     """Raise :class:`CheckpointError` when the buffer's sizes, shapes or dtypes differ from the saved ones."""
     current = _layout(buffer)
     if not isinstance(saved.get("arrays"), dict):
-        raise CheckpointError(
-            "The replay checkpoint manifest is damaged: its layout lacks the arrays' shapes.", damaged=True
-        )
-    differences = []
-    for key in ("n_envs", "buffer_size", "frame_capacity", "frame_stack"):
-        if saved.get(key) != current[key]:
-            differences.append(f"{key} is {saved.get(key)} in the checkpoint and {current[key]} in this buffer")
-    for name, spec in current["arrays"].items():
-        if saved.get("arrays", {}).get(name) != spec:
-            differences.append(f"{name} is {saved['arrays'].get(name)} in the checkpoint and {spec} here")
+        raise _damaged("The replay checkpoint manifest is damaged: its layout lacks the arrays' shapes.")
+    differences = [
+        f"{key} is {saved.get(key)} in the checkpoint and {current[key]} in this buffer"
+        for key in ("n_envs", "buffer_size", "frame_capacity", "frame_stack")
+        if saved.get(key) != current[key]
+    ]
+    differences += [
+        f"{name} is {saved['arrays'].get(name)} in the checkpoint and {spec} here"
+        for name, spec in current["arrays"].items()
+        if saved["arrays"].get(name) != spec
+    ]
     if differences:
         raise CheckpointError(
             "The replay buffer does not match the checkpoint: "

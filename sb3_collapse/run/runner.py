@@ -1,11 +1,7 @@
 """
-Train DrQ-v2 (or SB3's TD3 or SAC) on a DeepMind Control task from pixels, as a
-:class:`~sb3_collapse.run.config.TrainConfig` says: :func:`train`, behind ``python -m sb3_collapse.train`` and every
-sweep trial. Everything a run writes goes to one run folder (:mod:`sb3_collapse.protocol`; the files:
-docs/sweeps.md#multi-seed-sweeps-on-ray-python--m-sb3_collapsesweep), with checkpoints it resumes from bit for bit
-(docs/checkpoints.md). ``algorithm="td3"`` or ``"sac"`` trains SB3's own TD3 or SAC
-(:func:`sb3_collapse.baselines.build_baseline`); ``reset_rule`` applies the paper's rule; ``init_cnn``, ``init_mlp``
-and ``init_critic`` are the paper's layer transplants (``DrQv2(init_from=...)``).
+Train DrQ-v2 (or SB3's TD3 or SAC) on a DeepMind Control task from pixels as a
+:class:`~sb3_collapse.run.config.TrainConfig` says (:func:`train`, behind ``python -m sb3_collapse.train`` and every
+sweep trial), into one run folder it resumes from bit for bit. See docs/training.md and docs/checkpoints.md.
 """
 
 from __future__ import annotations
@@ -76,11 +72,10 @@ from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
 class TrainResult:
     """
     :param run_dir: folder of the run
-    :param model_path: the final checkpoint
+    :param model_path: the final model
     :param evaluations: one dict per scheduled evaluation (``frame``, ``step``, ``mean_reward``, ...)
-    :param summary: the content of the result file (see :func:`run_summary`)
-    :param saved_model_evaluation: the evaluation of the saved final model (same keys; ``None`` without
-        evaluations), not one of ``evaluations``
+    :param summary: the content of the result file (:func:`run_summary`)
+    :param saved_model_evaluation: the evaluation of the saved final model (same keys), ``None`` without evaluations
     """
 
     run_dir: Path
@@ -102,9 +97,7 @@ def run_summary(
     timings: LearnTimings | None = None,
 ) -> dict[str, Any]:
     """
-    The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`; each key:
-    docs/sweeps.md#multi-seed-sweeps-on-ray-python--m-sb3_collapsesweep): frames include the action repeat,
-    ``final_eval`` is the last scheduled evaluation (``None`` without one), ``timings`` ``None`` for SB3's TD3 and SAC.
+    The content of the run's result file (keys :data:`~sb3_collapse.protocol.RESULT_KEYS`, each in docs/sweeps.md).
 
     :param config: the run's settings
     :param task_id: the task, ``<domain>-<task>``
@@ -113,15 +106,14 @@ def run_summary(
     :param reset_rule: the run's reset-rule callback, ``None`` without the rule
     :param wall_time_s: seconds the run took
     :param resumes: times the run was resumed from a checkpoint
-    :param saved_model_eval: the evaluation of the saved final model (``PeriodicEvaluation.evaluate_saved_model``)
-    :param timings: the time split of the run's ``learn()`` (:class:`~sb3_collapse.run.timing.LearnTimer`)
+    :param saved_model_eval: the evaluation of the saved final model
+    :param timings: the time split of the run's ``learn()``
     :return: the summary, JSON-serializable
     """
-    last = evaluations[-1] if evaluations else None
-    saved = None
-    if saved_model_eval is not None:
-        saved = {key: saved_model_eval[key] for key in ("frame", "mean_reward", "std_reward", "episodes")}
-        saved["frame"], saved["episodes"] = int(saved["frame"]), int(saved["episodes"])
+    last, saved = (evaluations[-1] if evaluations else None), saved_model_eval
+    if saved is not None:
+        saved = {"frame": int(saved["frame"]), "mean_reward": saved["mean_reward"], "std_reward": saved["std_reward"],
+                 "episodes": int(saved["episodes"])}  # fmt: skip
     return {
         "status": FINISHED,
         "task": task_id,
@@ -129,9 +121,8 @@ def run_summary(
         "seed": config.seed,
         "frames": int(frames_of(model)),
         "agent_steps": int(model.num_timesteps),
-        "final_eval": None
-        if last is None
-        else {"frame": int(last["frame"]), "mean_reward": last["mean_reward"], "std_reward": last["std_reward"]},
+        "final_eval": last
+        and {"frame": int(last["frame"]), **{key: last[key] for key in ("mean_reward", "std_reward")}},
         "saved_model_eval": saved,
         "resets": 0 if reset_rule is None else reset_rule.resets,
         "reset_frames": [] if reset_rule is None else [int(frame) for frame in reset_rule.reset_frames],
@@ -146,22 +137,16 @@ def run_summary(
 
 def train(config: TrainConfig) -> TrainResult:
     """
-    Train DrQ-v2 as ``config`` says (preset settings left at ``None`` come from the task's preset), evaluating and
-    logging on the way, and save the final model.
-
-    Everything that can fail on bad input is checked **before** the run folder is created; a failure after it marks
-    the folder as failed and is raised again (docs/reliability.md#inputs-tried-and-what-happens). The folder of an
-    unfinished run with the same settings is resumed from its newest readable checkpoint, or restarted without one
-    (docs/checkpoints.md#using-them); a SIGTERM or SIGINT writes a checkpoint and raises
-    :class:`~sb3_collapse.run.signals.TrainingInterrupted`. The model saved is that of the last evaluation (the
-    reset rule never resets at the budget's end, and the budget's last frames are evaluated after ``learn()``).
+    Train as ``config`` says (preset settings left at ``None`` from the task's preset), evaluating and logging on the
+    way, and save the final model. Bad input is refused before the run folder is created; a later failure marks the
+    folder as failed. An unfinished run with the same settings is resumed (docs/checkpoints.md#using-them).
 
     :param config: the run's settings
     :return: where things were written, and the evaluations
-    :raises InputError: for bad input (a ``ParameterError`` for a bad setting), before anything is written; a
-        also when another process trains into the folder
+    :raises InputError: for bad input (a ``ParameterError`` for a bad setting), before anything is written, or when
+        another process trains into the folder
     :raises TrainingInterrupted: after a SIGTERM or SIGINT, once the checkpoint is written
-    :raises OutputError: when a checkpoint cannot be written (a full disk): the previous one is intact
+    :raises OutputError: when an output cannot be written (a full disk): the previous checkpoint is intact
     """
     start_time = time.time()
     config = config.resolve()
@@ -196,9 +181,7 @@ def train(config: TrainConfig) -> TrainResult:
         checkpoint = open_run_dir(run_dir, config)
         try:
             try:
-                result = _train_into(
-                    config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time, checkpoint
-                )
+                result = _train_into(config, task_id, run_dir, model, env, eval_env, start_time, checkpoint)
             except CheckpointError as error:  # damaged: found as their replay chunks were read, each one set aside
                 if not error.damaged:
                     raise
@@ -206,10 +189,8 @@ def train(config: TrainConfig) -> TrainResult:
                 if eval_env is not None:
                     eval_env.close()
                 env, eval_env, model = build_envs_and_model(config, task_id)  # from frame 0, as a new run
-                result = _train_into(
-                    config, task_id, run_dir, model, env, eval_env, config.agent_steps, start_time,
-                    open_run_dir(run_dir, config),  # sets the checkpoints aside, and says why the run restarts
-                )  # fmt: skip
+                checkpoint = open_run_dir(run_dir, config)  # sets the checkpoints aside, and says why it restarts
+                result = _train_into(config, task_id, run_dir, model, env, eval_env, start_time, checkpoint)
             (run_dir / LOCK_FILE).unlink(missing_ok=True)  # finished: no process may take the folder any more
             return result
         except TrainingInterrupted:
@@ -219,27 +200,15 @@ def train(config: TrainConfig) -> TrainResult:
             raise
 
 
-def _monitored_dmc_env(task_id: str, seed: int, pixels: dict[str, Any]) -> EpisodeReplay:
-    """The env of a run: ``Monitor``-ed, and recording its episode for the checkpoints (``EpisodeReplay``)."""
+def _monitored_dmc_env(task_id: str, seed: int, pixels: dict[str, Any], worker: bool = False) -> EpisodeReplay:
+    """
+    The env of a run: ``Monitor``-ed, and recording its episode for the checkpoints (``EpisodeReplay``). A worker of
+    ``SubprocVecEnv`` is deaf to SIGINT and SIGTERM: the main process answers them with a checkpoint, which needs it.
+    """
+    if worker:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     return EpisodeReplay(Monitor(make_dmc_env(task_id, seed=seed, **pixels)))
-
-
-def _subprocess_env(task_id: str, seed: int, pixels: dict[str, Any]) -> EpisodeReplay:
-    """:func:`_monitored_dmc_env` in a worker of ``SubprocVecEnv``, deaf to SIGINT and SIGTERM: the main process
-    answers them with a checkpoint, which needs its workers alive."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    return _monitored_dmc_env(task_id, seed, pixels)
-
-
-def _training_env(config: TrainConfig, task_id: str, pixels: dict[str, Any]) -> EpisodeReplay | SubprocVecEnv:
-    """One ``Monitor``-ed env in this process, or ``n_envs`` of them in subprocesses (seeds ``seed``, ``seed +
-    1``...)."""
-    if config.n_envs == 1 and not config.step_envs_during_updates:
-        return _monitored_dmc_env(task_id, config.seed, pixels)
-    ensure_rendering_backend()  # checked once here, inherited by the subprocesses
-    factories = [functools.partial(_subprocess_env, task_id, config.seed + i, pixels) for i in range(config.n_envs)]
-    return SubprocVecEnv(factories)
 
 
 def build_envs_and_model(
@@ -248,10 +217,21 @@ def build_envs_and_model(
     """
     :param config: the run's resolved settings
     :param task_id: the task, ``<domain>-<task>``
-    :return: the training env(s), the evaluation env (``None`` without evaluations) and the model of :func:`train`
+    :return: the training env(s) (``n_envs`` in subprocesses, seeds ``seed``, ``seed + 1``...), the evaluation env
+        (``None`` without evaluations) and the model of :func:`train`
     """
     pixels = env_kwargs(config)
-    env = _training_env(config, task_id, pixels)
+    env: EpisodeReplay | VecEnv
+    if config.n_envs == 1 and not config.step_envs_during_updates:
+        env = _monitored_dmc_env(task_id, config.seed, pixels)
+    else:
+        ensure_rendering_backend()  # checked once here, inherited by the subprocesses
+        env = SubprocVecEnv(
+            [
+                functools.partial(_monitored_dmc_env, task_id, config.seed + i, pixels, True)
+                for i in range(config.n_envs)
+            ]
+        )
     eval_env = None
     if config.eval_every_frames > 0:  # seeded as the reference's (dmc.make(..., cfg.seed), as the training env)
         eval_env = _monitored_dmc_env(task_id, config.seed, pixels)
@@ -267,17 +247,11 @@ def build_envs_and_model(
     return env, eval_env, model
 
 
-@dataclass
-class _RunCallbacks:
-    """The callbacks of a run, as :func:`_run_callbacks` builds them from its settings."""
-
-    callbacks: list[BaseCallback]
-    evaluation: PeriodicEvaluation | None
-    reset_rule: CollapseReset | None
-
-
-def _run_callbacks(config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay | None) -> _RunCallbacks:
-    """The evaluation (with its snapshots), collapse metrics, reset rule and ReDo of a run, as its settings ask."""
+def _run_callbacks(
+    config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay | None
+) -> tuple[list[BaseCallback], PeriodicEvaluation | None, CollapseReset | None]:
+    """:return: the run's callbacks (evaluation with its snapshots, collapse metrics, reset rule, ReDo), the
+    evaluation and the reset rule, as its settings ask"""
     callbacks: list[BaseCallback] = []
     evaluation = None
     if eval_env is not None:
@@ -287,12 +261,8 @@ def _run_callbacks(config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay |
         )
         callbacks.append(evaluation)
     if config.collapse_metrics_every_frames > 0:
-        metrics = CollapseMetrics(
-            config.collapse_metrics_every_frames,
-            batch_size=config.collapse_metrics_batch,
-            csv_path=run_dir / COLLAPSE_METRICS_CSV,
-        )
-        callbacks.append(metrics)
+        every, batch = config.collapse_metrics_every_frames, config.collapse_metrics_batch
+        callbacks.append(CollapseMetrics(every, batch_size=batch, csv_path=run_dir / COLLAPSE_METRICS_CSV))
     reset_rule = None
     if config.reset_rule:
         reset_rule = CollapseReset(
@@ -306,17 +276,14 @@ def _run_callbacks(config: TrainConfig, run_dir: Path, eval_env: EpisodeReplay |
         callbacks.append(reset_rule)
     if config.redo_every_updates > 0:
         callbacks.append(PeriodicReDo(config.redo_every_updates, batch_size=config.collapse_metrics_batch))
-    return _RunCallbacks(callbacks, evaluation, reset_rule)
+    return callbacks, evaluation, reset_rule
 
 
 def budget_note(config: TrainConfig) -> str | None:
     """
-    The frames a run trains: exactly its budget (``frames``) when that is a multiple of the action repeat times the
-    number of environments (they all step at once); otherwise the nearest multiple that the environments reach (the
-    budget's agent steps, ``frames // action_repeat``, rounded up to a multiple of ``n_envs``), said in one line.
-
     :param config: the run's resolved settings
-    :return: ``"Note: ..."``, ``None`` when the run trains its budget exactly
+    :return: ``"Note: ..."`` when the run does not train exactly its budget (``frames``, a multiple of the action repeat
+        times ``n_envs``, which all step at once: the budget's agent steps round up to a multiple of it), else ``None``
     """
     trained = -(-config.agent_steps // config.n_envs) * config.n_envs
     if trained * config.action_repeat == config.frames:
@@ -330,20 +297,18 @@ def budget_note(config: TrainConfig) -> str | None:
     )
 
 
-def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgorithm, steps: int) -> None:
+def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgorithm) -> None:
     """Print what the run trains, with which settings (and where they came from), and where it writes."""
     user = sorted(name for name, source in config.sources.items() if source == USER)
-    task_preset = config.preset
+    tier = config.preset.tier
     origin = (
-        f"DrQ-v2's {task_preset.tier} preset"
-        if task_preset.from_drqv2
-        else (f"the {task_preset.tier} tier (DrQ-v2 published no config for {task_id})")
+        f"DrQ-v2's {tier} preset"
+        if config.preset.from_drqv2
+        else f"the {tier} tier (DrQ-v2 published no config for {task_id})"
     )
     if config.algorithm == "drqv2":
-        algorithm = "DrQ-v2"
-        details = (
-            f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {config.replay_sampling} replay sampling"
-        )
+        algorithm, sampling = "DrQ-v2", config.replay_sampling
+        details = f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {sampling} replay sampling"
     else:
         algorithm = f"SB3's {type(model).__name__}"
         details = f"lr {config.learning_rate:g}; DrQ-v2-only settings not used: {', '.join(DRQV2_ONLY_SETTINGS)}"
@@ -352,7 +317,7 @@ def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgor
     if note is not None:
         print(note, flush=True)
     print(
-        f"{algorithm} on {task_id} from pixels{rule}: {config.frames:,} frames = {steps:,} agent steps "
+        f"{algorithm} on {task_id} from pixels{rule}: {config.frames:,} frames = {config.agent_steps:,} agent steps "
         f"(action repeat {config.action_repeat}{f', summed over {config.n_envs} envs' if config.n_envs > 1 else ''}), "
         f"seed {config.seed}, device {model.device}.\n"
         f"Settings: {origin}" + (f", overridden: {', '.join(user)}" if user else "") + f" (batch {config.batch_size}, "
@@ -369,29 +334,39 @@ def _train_into(
     model: BaseAlgorithm,
     env: EpisodeReplay | VecEnv,
     eval_env: EpisodeReplay | None,
-    steps: int,
     start_time: float,
     checkpoint: LoadedCheckpoint | None = None,
 ) -> TrainResult:
     """:func:`train` once the model is built and the run folder holds the settings (or a checkpoint to resume)."""
-    run_callbacks = _run_callbacks(config, run_dir, eval_env)
-    callbacks, evaluation, reset_rule = run_callbacks.callbacks, run_callbacks.evaluation, run_callbacks.reset_rule
-
-    checkpoints, checkpoint, earlier = _resumed_checkpoints(
-        config, run_dir, model, callbacks, eval_env, checkpoint, start_time
+    callbacks, evaluation, reset_rule = _run_callbacks(config, run_dir, eval_env)
+    earlier = {"elapsed_s": 0.0, "resumes": 0}  # what the earlier processes of a resumed run did
+    checkpoints = ResumableCheckpoints(
+        run_dir / CHECKPOINTS_DIR,
+        config.checkpoint_every_frames,
+        callbacks=callbacks,
+        eval_env=eval_env,
+        csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
+        extra_state=lambda: {**earlier, "elapsed_s": earlier["elapsed_s"] + time.time() - start_time},
+        verbose=1,
     )
-    if checkpoint is not None and evaluation is not None:
-        evaluation.start_time = start_time - earlier.elapsed_s
+    checkpoints.init_callback(model)
+    if checkpoint is not None:
+        checkpoint, notes = checkpoints.resume(checkpoint)
+        for note in notes:
+            print(f"Note: {note}")
+        earlier = {**checkpoint.state["extra"], "resumes": checkpoint.state["extra"]["resumes"] + 1}
+        if evaluation is not None:
+            evaluation.start_time = start_time - earlier["elapsed_s"]
     callbacks.append(checkpoints)
     timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
     formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
     model.set_logger(resumed_logger(run_dir, formats, checkpoint))
 
-    _announce(config, task_id, run_dir, model, steps)
+    _announce(config, task_id, run_dir, model)
     with contextlib.ExitStack() as open_files:  # closed on every way out: the environment, then the logger's files
         open_files.callback(env.close)
         open_files.push(_logger_closer(model))
-        _learn(config, model, [*callbacks, timer], checkpoints, steps, resumed=checkpoint is not None)
+        _learn(config, model, [*callbacks, timer], checkpoints, resumed=checkpoint is not None)
         model_path = run_dir / FINAL_MODEL
         try:
             with atomic_output(model_path) as temporary:
@@ -402,10 +377,10 @@ def _train_into(
             open_files.close()  # the logs complete before the result file marks the run as finished
             evaluations = evaluation.rows if evaluation is not None else []
             _print_last_evaluations(evaluations, saved_model_eval)
-            wall_time_s = earlier.elapsed_s + time.time() - start_time
+            wall_time_s, resumes = earlier["elapsed_s"] + time.time() - start_time, earlier["resumes"]
             timings = timer.timings if isinstance(model, DrQv2) else None
             summary = run_summary(
-                config, task_id, model, evaluations, reset_rule, wall_time_s, earlier.resumes, saved_model_eval, timings
+                config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
             )
             write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
         except OSError as error:
@@ -417,59 +392,7 @@ def _train_into(
             raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
-    return TrainResult(
-        run_dir=run_dir,
-        model_path=model_path,
-        evaluations=evaluations,
-        summary=summary,
-        saved_model_evaluation=saved_model_eval,
-    )
-
-
-@dataclass
-class _EarlierProcesses:
-    """What the earlier processes of a resumed run did: seconds they ran, and times the run was resumed."""
-
-    elapsed_s: float = 0.0
-    resumes: int = 0
-
-
-def _resumed_checkpoints(
-    config: TrainConfig,
-    run_dir: Path,
-    model: BaseAlgorithm,
-    callbacks: list[BaseCallback],
-    eval_env: EpisodeReplay | None,
-    checkpoint: LoadedCheckpoint | None,
-    start_time: float,
-) -> tuple[ResumableCheckpoints, LoadedCheckpoint | None, _EarlierProcesses]:
-    """
-    The run's checkpoints callback, with the model and ``callbacks`` resumed from ``checkpoint`` when one is given
-    (its notes printed).
-
-    :param start_time: when this process started (``time.time()``, seconds), for the elapsed time it records
-    :return: the callback, the checkpoint resumed from (``None`` for a new run) and the earlier processes' record
-    """
-    earlier = _EarlierProcesses()
-    checkpoints = ResumableCheckpoints(
-        run_dir / CHECKPOINTS_DIR,
-        config.checkpoint_every_frames,
-        callbacks=callbacks,
-        eval_env=eval_env,
-        csv_files=[run_dir / name for name in (PROGRESS_CSV, EVAL_CSV, COLLAPSE_METRICS_CSV, COLLAPSE_EVENTS_CSV)],
-        extra_state=lambda: {"elapsed_s": earlier.elapsed_s + time.time() - start_time, "resumes": earlier.resumes},
-        verbose=1,
-    )
-    checkpoints.init_callback(model)
-    if checkpoint is not None:
-        checkpoint, notes = checkpoints.resume(checkpoint)
-        for note in notes:
-            print(f"Note: {note}")
-        earlier.elapsed_s, earlier.resumes = (
-            checkpoint.state["extra"]["elapsed_s"],
-            checkpoint.state["extra"]["resumes"] + 1,
-        )
-    return checkpoints, checkpoint, earlier
+    return TrainResult(run_dir, model_path, evaluations, summary, saved_model_evaluation=saved_model_eval)
 
 
 def _learn(
@@ -477,21 +400,19 @@ def _learn(
     model: BaseAlgorithm,
     callbacks: list[BaseCallback],
     checkpoints: ResumableCheckpoints,
-    steps: int,
     resumed: bool,
 ) -> None:
     """
-    ``model.learn`` up to ``steps`` agent steps in total; SIGINT/SIGTERM stop it with a checkpoint.
+    ``model.learn`` up to the run's agent steps in total (the learn timer last in ``callbacks``); SIGINT/SIGTERM stop
+    it with a checkpoint.
 
-    :param callbacks: the run's callbacks, the learn timer last (the rest counts as overhead)
-    :param resumed: whether the model comes from a checkpoint (its step count then continues)
     :raises DivergenceError: the losses diverged; the message names the last checkpoint
     :raises OutputError: the run folder became unwritable (read-only or full) while training
     """
     try:
         with stop_signals(checkpoints):
             model.learn(
-                steps - model.num_timesteps,
+                config.agent_steps - model.num_timesteps,
                 callback=CallbackList(callbacks),
                 log_interval=1,
                 progress_bar=config.progress_bar,
@@ -499,31 +420,28 @@ def _learn(
             )
     except DivergenceError as error:
         kept = checkpoints.last_checkpoint
-        where = (
-            f"its last checkpoint, {kept}, holds the weights before it"
-            if kept is not None
-            else "no checkpoint was written"
-        )
+        where = f"its last checkpoint, {kept}, holds the weights before it" if kept else "no checkpoint was written"
         raise DivergenceError(f"{error} The run stops; {where}. Try a smaller --lr in another run folder.") from None
     except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
         if unwritable_message(error) is None:
             raise
-        raise OutputError(stopped_writing_message(error, frames_of(model), checkpoints.last_checkpoint)) from None
+        where = error.filename if error.filename is not None else "a file of the run folder"
+        fix = "Free space" if error.errno in FULL_DISK_ERRNOS else "Make the folder writable again"
+        kept = checkpoints.last_checkpoint
+        resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
+        raise OutputError(
+            f"could not write {where} ({os.strerror(error.errno)}) at frame {frames_of(model):,}: the run stops. "
+            f"{fix}, then run the same command again: {resume}."
+        ) from None
 
 
 def _logger_closer(model: BaseAlgorithm) -> Callable[..., bool]:
-    """
-    An exit callback for :class:`contextlib.ExitStack` that closes ``model.logger`` (flushing its CSV and
-    TensorBoard files). On the way out of an error its own ``OSError`` is dropped: closing writes into the same
-    folder, and the first error is the one to report.
-    """
+    """An exit callback for :class:`contextlib.ExitStack` that closes ``model.logger``; on the way out of an error, its
+    own ``OSError`` is dropped (the first error is the one to report)."""
 
     def close(exc_type: type[BaseException] | None, *_: object) -> bool:
-        if exc_type is None:
+        with contextlib.suppress(*(() if exc_type is None else (OSError,))):
             model.logger.close()
-        else:
-            with contextlib.suppress(OSError):
-                model.logger.close()
         return False
 
     return close
@@ -542,19 +460,3 @@ def _print_last_evaluations(evaluations: list[dict[str, Any]], saved_model_eval:
             f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
             f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
         )
-
-
-def stopped_writing_message(error: OSError, frame: int, kept: Path | None) -> str:
-    """
-    :param error: a write that failed while the run trained (:func:`~sb3_collapse.errors.unwritable_message`)
-    :param frame: the frame the run had reached
-    :param kept: its last checkpoint, ``None`` without one
-    :return: one line: what could not be written and why, and how the run continues
-    """
-    where = error.filename if error.filename is not None else "a file of the run folder"
-    fix = "free space" if error.errno in FULL_DISK_ERRNOS else "make the folder writable again"
-    resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
-    return (
-        f"could not write {where} ({os.strerror(error.errno)}) at frame {frame:,}: the run stops. {fix.capitalize()}, "
-        f"then run the same command again: {resume}."
-    )

@@ -1,8 +1,6 @@
 """
-Stopping a training run at a signal: while a run is inside :func:`stop_signals`, SIGTERM and SIGINT ask its
-checkpoint callback (:class:`~sb3_collapse.run.checkpoints.ResumableCheckpoints`) to write a checkpoint and stop,
-and :func:`request_training_stop` asks the same from any thread (a sweep's trial, at its driver's request). The
-handlers' installation (:func:`stop_signal_handlers`) is shared with the sweep's driver.
+Stopping a training run at a signal (:func:`stop_signals`) or at a request from any thread
+(:func:`request_training_stop`): its checkpoint callback writes a checkpoint, then ``learn()`` stops.
 """
 
 from __future__ import annotations
@@ -17,20 +15,14 @@ if TYPE_CHECKING:
     from sb3_collapse.run.checkpoints import ResumableCheckpoints
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
-"""The signals that stop a run (or a sweep) after a checkpoint."""
-
-
-_stop_requests: list[str] = []
-"""Signal names of :func:`request_training_stop` calls not yet cleared (this process's training stops at them)."""
-_training: list[ResumableCheckpoints] = []
-"""The checkpoint callbacks of the runs training in this process (inside :func:`stop_signals`)."""
+_stop_requests: list[str] = []  # signal names of request_training_stop calls not yet cleared
+_training: list[ResumableCheckpoints] = []  # the checkpoint callbacks of the runs inside stop_signals
 
 
 def request_training_stop(signal_name: str) -> None:
     """
-    Ask the training of this process to write a checkpoint and stop, as a SIGTERM would: at once for a run inside
-    :func:`stop_signals`, at its start for a run that has not got there yet. Safe from any thread (a sweep's trial
-    calls it when its driver asks the trials to stop).
+    Ask the training of this process to write a checkpoint and stop, as a SIGTERM would (a run not started yet: at its
+    start), from any thread.
 
     :param signal_name: the signal the stop stands for (``"SIGTERM"``), named by :class:`TrainingInterrupted`
     """
@@ -47,26 +39,11 @@ def clear_training_stop() -> None:
 @contextlib.contextmanager
 def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
     """
-    While inside, SIGTERM and SIGINT ask ``checkpoints`` to write a checkpoint and stop (the run ends with
-    :class:`TrainingInterrupted`); a second SIGINT stops at once (``KeyboardInterrupt``). Outside the main thread,
-    no signal handler is installed. A :func:`request_training_stop` (before or while inside) does what a SIGTERM
-    does, in any thread.
+    While inside, SIGTERM, SIGINT and :func:`request_training_stop` ask ``checkpoints`` to write a checkpoint and stop
+    (``TrainingInterrupted``); a second SIGINT stops at once (``KeyboardInterrupt``).
 
     :param checkpoints: the run's checkpoint callback
     """
-    _training.append(checkpoints)
-    if _stop_requests:
-        checkpoints.request_stop(_stop_requests[0])
-    try:
-        with stop_signal_handlers(_stop_handler(checkpoints)):
-            yield
-    finally:
-        _training.remove(checkpoints)
-
-
-def _stop_handler(checkpoints: ResumableCheckpoints) -> Callable[[int, Any], None]:
-    """The SIGTERM and SIGINT handler of :func:`stop_signals`: a first one asks for a checkpoint, a second SIGINT stops
-    at once."""
     received: list[str] = []  # signals, not requests: a sweep's request and a Ctrl-C are one stop, not two
 
     def handler(signum: int, _frame: Any) -> None:
@@ -75,21 +52,26 @@ def _stop_handler(checkpoints: ResumableCheckpoints) -> Callable[[int, Any], Non
             raise KeyboardInterrupt
         received.append(name)
         checkpoints.request_stop(name)
-        print(
-            f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
-            flush=True,
-        )
+        print(f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
+              flush=True)  # fmt: skip
 
-    return handler
+    _training.append(checkpoints)
+    if _stop_requests:
+        checkpoints.request_stop(_stop_requests[0])
+    try:
+        with stop_signal_handlers(handler):
+            yield
+    finally:
+        _training.remove(checkpoints)
 
 
 @contextlib.contextmanager
 def stop_signal_handlers(handler: Callable[[int, Any], None]) -> Iterator[None]:
     """
-    While inside, ``handler`` handles SIGTERM and SIGINT (:data:`STOP_SIGNALS`); the previous handlers come back at
-    the exit. Outside the main thread, where Python cannot install signal handlers, nothing is installed.
+    While inside, ``handler`` (:func:`signal.signal`'s) handles SIGTERM and SIGINT; nothing is installed outside the
+    main thread.
 
-    :param handler: a signal handler (:func:`signal.signal`'s: the signal's number and the interrupted frame)
+    :param handler: a signal handler
     """
     if threading.current_thread() is not threading.main_thread():
         yield

@@ -1,21 +1,12 @@
 """
-Snapshots: a run's encoder (``cnn1``..``cnn4``) and actor (``mlp0``..``action``) saved at every evaluation, the
-weights the offline probe (the paper's Figure 2, probing MSE over training) and the report's fixed-set metrics
-(Figures 4, 8, 9) read.
-
-A snapshot is an SB3 zip like ``DrQv2.save`` writes (``data``, ``policy.pth``), whose ``policy.pth`` holds
-the encoder and actor entries only: no critic, no target critic, no optimizer state, no replay buffer. With
-DrQ-v2's sizes it is a fraction of a ``DrQv2.save`` zip (both measured: benchmarks/README.md#checkpoint-sizes). A
-member :data:`MARKER` marks it;
-:func:`load_snapshot` (and ``sb3_collapse.probe``'s checkpoint loader) reads it into a DrQv2 model whose
-critic keeps its random initialization (never used by the probe).
+Snapshots: a run's encoder and actor saved at every evaluation (an SB3 zip without critic, optimizers or replay
+buffer), the weights the probe and the report's fixed-set figures read. See docs/figures.md.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -26,20 +17,18 @@ from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_f
 
 from sb3_collapse.drqv2.transplant import GROUP_LAYERS, TRANSPLANT_GROUPS
 from sb3_collapse.monitoring.callbacks import frames_of
-from sb3_collapse.protocol import SNAPSHOT_FILE
+from sb3_collapse.protocol import SNAPSHOT_FILE, atomic_output
 
 SNAPSHOT_GROUPS = ("cnn", "mlp")
 """The transplant groups a snapshot holds: the encoder and the actor."""
 SNAPSHOT_PREFIXES = tuple(prefix for group in SNAPSHOT_GROUPS for prefix in TRANSPLANT_GROUPS[group])
-"""Their ``state_dict`` prefixes (``encoder.``, ``actor.``)."""
 MARKER = "snapshot.json"
 """The zip member that marks a snapshot: ``{"groups", "layers", "num_timesteps", "frames"}``."""
 
 
 def save_snapshot(model: Any, path: str | os.PathLike) -> Path:
     """
-    Save the encoder and actor of a DrQv2 model with the settings SB3 saves (atomically: a temporary file next to
-    ``path``, renamed).
+    Save the encoder and actor of a DrQv2 model with the settings SB3 saves, atomically.
 
     :param model: a DrQv2 model
     :param path: the zip to write (its folder is created)
@@ -59,24 +48,18 @@ def save_snapshot(model: Any, path: str | os.PathLike) -> Path:
     excluded.update(name.split(".")[0] for name in state_dicts + torch_variables)
     for name in excluded:
         data.pop(name, None)
+    marker = {
+        "groups": list(SNAPSHOT_GROUPS),
+        "layers": [layer for group in SNAPSHOT_GROUPS for layer in GROUP_LAYERS[group]],
+        "num_timesteps": int(model.num_timesteps),
+        "frames": frames_of(model),
+    }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(handle)
-    try:
+    with atomic_output(path) as temporary:
         save_to_zip_file(temporary, data=data, params={"policy": kept})
-        marker = {
-            "groups": list(SNAPSHOT_GROUPS),
-            "layers": [layer for group in SNAPSHOT_GROUPS for layer in GROUP_LAYERS[group]],
-            "num_timesteps": int(model.num_timesteps),
-            "frames": frames_of(model),
-        }
         with zipfile.ZipFile(temporary, "a") as archive:
             archive.writestr(MARKER, json.dumps(marker))
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
     return path
 
 
@@ -91,8 +74,7 @@ def is_snapshot(path: str | os.PathLike) -> bool:
 
 def load_snapshot(path: str | os.PathLike, device: th.device | str = "cpu", **kwargs: Any) -> Any:
     """
-    Load a snapshot into a DrQv2 model (without environment) for inference: the encoder and actor
-    are the saved ones, the critic is freshly initialized and must not be used.
+    Load a snapshot into a DrQv2 model (without environment) for inference; its critic is random, not to be used.
 
     :param path: the zip
     :param device: where the networks go
@@ -122,12 +104,8 @@ def load_snapshot(path: str | os.PathLike, device: th.device | str = "cpu", **kw
 
 class Snapshots(BaseCallback):
     """
-    Save a snapshot (:func:`save_snapshot`) each time it is called: the after-evaluation hook of
-    :class:`~sb3_collapse.monitoring.evaluation.PeriodicEvaluation` (``callback_after_eval=Snapshots(folder)``), so a
-    snapshot is taken at every scheduled evaluation (frame 0 and every ``every_frames`` frames, resumed with the
-    evaluations' schedule) and at the evaluation of the saved final model.
-
-    Files: ``<folder>/`` :data:`~sb3_collapse.protocol.SNAPSHOT_FILE` (``snapshot_<frames, 10 digits>_frames.zip``).
+    Save a snapshot (:func:`save_snapshot`, ``<folder>/snapshot_<frames, 10 digits>_frames.zip``) each time it is
+    called: ``PeriodicEvaluation(callback_after_eval=Snapshots(folder))`` takes one at every evaluation.
 
     :param folder: where the zips go
     :param verbose: 0 silent, 1 a line per snapshot
@@ -136,15 +114,14 @@ class Snapshots(BaseCallback):
     def __init__(self, folder: str | os.PathLike, verbose: int = 0) -> None:
         super().__init__(verbose)
         self.folder = Path(folder)
-        self.saved: list[Path] = []
-        """The zips written by this process, in order."""
+        self.saved: list[Path] = []  # the zips written by this process, in order
 
     def _on_step(self) -> bool:
         self.save()
         return True
 
     def save(self) -> Path:
-        """Save the model's encoder and actor now; :return: the zip"""
+        """:return: the zip of the model's encoder and actor, saved now"""
         path = save_snapshot(self.model, self.folder / SNAPSHOT_FILE.format(frames=frames_of(self.model)))
         self.saved.append(path)
         if self.verbose >= 1:
