@@ -141,7 +141,6 @@ def capture_state(
             "excluded": dict(logger.name_to_excluded),
         },
         "csv": csv,
-        "csv_lines": {name: content.count(b"\n") for name, content in csv.items()},
         "update_stats": stats.state_dict() if isinstance(stats, UpdateStats) else None,
         "extra": dict(extra or {}),
     }

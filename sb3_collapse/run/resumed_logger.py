@@ -16,7 +16,6 @@ from stable_baselines3.common.logger import (
 )
 from torch.utils.tensorboard import SummaryWriter
 
-from sb3_collapse.errors import CheckpointError
 from sb3_collapse.protocol import PROGRESS_CSV
 
 if TYPE_CHECKING:
@@ -42,32 +41,10 @@ class _ResumedTensorBoardOutputFormat(TensorBoardOutputFormat):
         self._is_closed = False
 
 
-def keep_lines(path: Path, lines: int) -> None:
-    """
-    Cut a text file after its first ``lines`` lines (rows written after a checkpoint, before the run stopped).
-
-    :param path: the file (nothing happens if it does not exist)
-    :param lines: lines to keep
-    :raises CheckpointError: when the file has fewer lines
-    """
-    if not path.is_file():
-        return
-    content = path.read_bytes()
-    kept = content.splitlines(keepends=True)[:lines]
-    if len(kept) < lines:
-        raise CheckpointError(f"{path} has fewer lines ({len(kept)}) than when the checkpoint was taken ({lines}).")
-    data = b"".join(kept)
-    if data != content:
-        with path.open("r+b") as file:
-            file.truncate(len(data))
-            file.flush()
-            os.fsync(file.fileno())
-
-
 def resumed_logger(run_dir: Path, formats: Sequence[str], checkpoint: LoadedCheckpoint | None) -> Logger:
     """
     The run's SB3 logger: a new one, or one that continues ``progress.csv`` and the TensorBoard events after the
-    checkpoint with the values not dumped yet; the other CSV files it counted are cut back to their lines then.
+    checkpoint with the values not dumped yet (the checkpoint's resume has written the CSV files back as they were).
 
     :param run_dir: the run folder
     :param formats: SB3 output formats (``"stdout"``, ``"csv"``, ``"tensorboard"``)
@@ -77,8 +54,6 @@ def resumed_logger(run_dir: Path, formats: Sequence[str], checkpoint: LoadedChec
     if checkpoint is None:
         return configure(str(run_dir), list(formats))
     state = checkpoint.state
-    for name, lines in state["csv_lines"].items():
-        keep_lines(run_dir / name, lines)
     outputs = []
     for kind in formats:
         if kind == "csv" and (run_dir / PROGRESS_CSV).is_file():
