@@ -144,12 +144,6 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.transitions_added = 0
         self.resets += 1
 
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        """Unpickle, giving a buffer pickled without the counters the values its ``pos`` and ``full`` imply."""
-        self.__dict__.update(state)
-        self.__dict__.setdefault("transitions_added", self.pos + (self.buffer_size if self.full else 0))
-        self.__dict__.setdefault("resets", 0)
-
     def add(
         self,
         obs: np.ndarray,
