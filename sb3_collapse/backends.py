@@ -23,8 +23,7 @@ class BackendSettings:
 
 
 def configure_backends(tf32: bool = True, deterministic: bool = False) -> BackendSettings:
-    """
-    Set torch's process-wide CUDA flags (no GPU needed; nothing changes on the CPU).
+    """Set torch's process-wide CUDA flags (no GPU needed; nothing changes on the CPU).
 
     :param tf32: TensorFloat-32 for float32 matmuls and cuDNN convolutions, else IEEE float32
     :param deterministic: torch's deterministic algorithms (``warn_only``), cuDNN's deterministic kernels without its

@@ -91,11 +91,8 @@ PRESETS: Mapping[str, TaskPreset] = MappingProxyType(
 
 
 def preset(task: str) -> TaskPreset:
-    """
-    :param task: a DeepMind Control suite task, in any form :func:`~sb3_collapse.envs.parse_task` accepts
-    :return: DrQ-v2's preset; for a task DrQ-v2 did not run, the easy tier's settings with ``from_drqv2=False``
-    :raises ValueError: for a name that is not a suite task
-    """
+    """:return: DrQ-v2's preset of a suite ``task`` (any form ``parse_task`` takes; ``ValueError`` for another); for a
+    task DrQ-v2 did not run, the easy tier's settings with ``from_drqv2=False``"""
     domain, name = parse_task(task)
     task_id = f"{domain}-{name}"
     if task_id in PRESETS:

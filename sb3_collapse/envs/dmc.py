@@ -47,10 +47,7 @@ class RewardInput:
     doc: str = ""
 
     def value(self, physics: Any) -> np.ndarray:
-        """
-        :param physics: the task's ``Physics``
-        :return: ``(size,)`` float64, what the reward function reads (a copy)
-        """
+        """:return: ``(size,)`` float64, what the reward function reads of ``physics`` (a copy)"""
         value = np.array(getattr(physics, self.method)(*self.args), dtype=np.float64).reshape(-1)
         return value[[self.index]] if self.index is not None else value
 
@@ -64,7 +61,7 @@ def _read(name: str, doc: str, method: str | None = None, index: int | None = No
 
 
 def _site_distance(site1: str, site2: str) -> RewardInput:
-    """:return: the distance between two sites (``Physics.site_distance(site1, site2)``)."""
+    """:return: ``Physics.site_distance(site1, site2)``"""
     return RewardInput(f"{site1}_to_{site2}", "site_distance", args=(site1, site2), doc=f"{site1} to {site2} distance")
 
 
@@ -163,11 +160,7 @@ REWARD_INPUTS: dict[str, tuple[RewardInput, ...]] = {
 
 
 def reward_inputs_of(domain: str, task: str) -> tuple[RewardInput, ...]:
-    """
-    :param domain: the domain (``"walker"``)
-    :param task: the task (``"walk"``)
-    :return: every quantity the task's reward reads (:data:`REWARD_INPUTS`), the control included; empty if none
-    """
+    """:return: every quantity the reward of ``domain``-``task`` reads (:data:`REWARD_INPUTS`), control included"""
     return REWARD_INPUTS.get(f"{domain}-{task}", ())
 
 
@@ -197,14 +190,8 @@ def parse_task(name: str) -> tuple[str, str]:
 
 
 def scale_action(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """
-    Clip an action to [-1, 1] and map it linearly onto [low, high] (as dm_control's ``action_scale`` wrapper).
-
-    :param action: action with components in [-1, 1] (values outside are clipped)
-    :param low: lower bounds of the task's actions
-    :param high: upper bounds of the task's actions
-    :return: the rescaled action, float64 (bounds of [-1, 1] leave it unchanged, bit for bit)
-    """
+    """:return: ``action`` clipped to [-1, 1] and mapped linearly onto [``low``, ``high``], float64 (as dm_control's
+    ``action_scale`` wrapper; bounds of [-1, 1] leave it unchanged, bit for bit)"""
     action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
     return (high - low) / 2.0 * action + (high + low) / 2.0
 
@@ -317,11 +304,7 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         self.action_space.np_random.bit_generator.state = state["action_space"]
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """
-        :param seed: if given, reseed the task's random initial states and the action space with it
-        :param options: unused
-        :return: the first observation, and info with ``frames`` = 0
-        """
+        """:return: the first observation and info with ``frames`` = 0; a ``seed`` reseeds the task and action space"""
         super().reset(seed=seed)
         if seed is not None:
             self._dmc._env.task._random = np.random.RandomState(seed)
@@ -333,11 +316,8 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         return self._observation(), {"frames": 0}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        """
-        :param action: action in [-1, 1] (clipped), applied for ``action_repeat`` frames (fewer if the episode ends)
-        :return: observation, reward (summed over the frames, discounted by dm_control's discounts), terminated,
-            truncated, and info with ``frames``: frames since the reset
-        """
+        """Apply ``action`` (in [-1, 1], clipped) for ``action_repeat`` frames (fewer if the episode ends); the reward
+        is summed over them with dm_control's discounts, info's ``frames`` counts frames since the reset."""
         if self._dmc_observation is None:
             raise RuntimeError("Call reset() before step().")
         action = np.asarray(action)
@@ -388,7 +368,7 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
 def check_env_arguments(
     action_repeat: int, frame_stack: int, size: int, obs_type: str = "pixels", render_mode: str | None = None
 ) -> None:
-    """Raise a ``ParameterError`` for invalid :class:`DMCEnv` arguments (its docstring), before building one."""
+    """Raise a ``ParameterError`` for invalid :class:`DMCEnv` arguments, before building one."""
     for name, value in (("action_repeat", action_repeat), ("frame_stack", frame_stack), ("size", size)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ParameterError(name, f"{name} must be an integer >= 1, got {value!r}.")

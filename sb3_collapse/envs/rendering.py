@@ -72,11 +72,8 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
 
 
 def _backend_works(backend: str, timeout: float = CONTEXT_CHECK_TIMEOUT_S) -> tuple[bool, str]:
-    """
-    :param backend: value tried for ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` ("egl" or "osmesa")
-    :param timeout: seconds to wait for the subprocess that creates an OpenGL context
-    :return: whether the backend works, and the subprocess' stderr
-    """
+    """:return: whether an OpenGL context is made in a subprocess with ``backend`` as ``MUJOCO_GL`` (within
+    ``timeout`` seconds), and its stderr"""
     env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
     try:
         command = [sys.executable, "-c", CONTEXT_CHECK_CODE]
