@@ -123,12 +123,8 @@ def compile_mode(compile_update: bool | str, device: th.device) -> str:
 
 
 def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv2.load") -> None:
-    """Check ``load``'s ``path`` and ``kwargs`` before SB3 reads anything (``name``: the caller).
-
-    :raises TypeError: for ``init_from``: loading restores the saved weights, it does not transplant
-    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
-    :raises ParameterError: for a zip saved by one of SB3's algorithms, naming it and what loads it
-    """
+    """Check ``load``'s ``path`` and ``kwargs`` before SB3 reads anything (``name``: the caller): ``TypeError`` for
+    ``init_from``, ``FileNotFoundError`` without the file, ``ParameterError`` for a zip of one of SB3's algorithms."""
     if "init_from" in kwargs:
         raise TypeError(
             f"{name} does not transplant layers (init_from): it restores the saved weights. Build a new "

@@ -49,14 +49,8 @@ class TransplantSource:
 
 
 def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str, TransplantSpec]:
-    """
-    Check ``DrQv2``'s ``init_from`` (group -> source) and resolve its paths (reads no file).
-
-    :return: group -> an absolute ``Path`` or the model, in ``TRANSPLANT_GROUPS`` order
-    :raises TypeError: for a non-mapping or a source that is neither a path nor a DrQv2 model
-    :raises ValueError: for an unknown group
-    :raises FileNotFoundError: for a path that does not exist (with or without ``.zip``)
-    """
+    """:return: ``DrQv2``'s ``init_from`` checked, group -> an absolute ``Path`` or the model, in
+    ``TRANSPLANT_GROUPS`` order (reads no file; ``TypeError``, ``ValueError`` or ``FileNotFoundError`` naming it)"""
     if init_from is None:
         return {}
     if not isinstance(init_from, Mapping):
@@ -188,10 +182,8 @@ def _constructor_default(cls: type, name: str) -> Any:
 def policy_settings(
     policy_class: type[DrQv2Policy], policy_kwargs: Mapping[str, Any], observation_space: Any, action_space: Any
 ) -> dict[str, Any]:
-    """
-    :return: the settings that shape a DrQv2 policy's weights, defaults filled in: ``{"policy", "observation shape",
-        "action dimensions", "feature_dim", "hidden_dim", "encoder channels", "channels_last"}``
-    """
+    """:return: the settings that shape a DrQv2 policy's weights (``"policy"``, ``"feature_dim"``...), defaults
+    filled in"""
 
     def kwarg(name: str) -> Any:
         return policy_kwargs[name] if name in policy_kwargs else _constructor_default(policy_class, name)
@@ -272,13 +264,8 @@ def source_key(target_key: str) -> str:
 
 
 def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]) -> dict[str, th.Tensor]:
-    """
-    Check a transplant of ``sources`` into ``policy``; changes nothing.
-
-    :return: target ``state_dict`` key -> the source tensor to copy into it
-    :raises ValueError: for a group this model or a source lacks, keys, shapes or dtypes that differ, or trunks
-        that would read the encoder's output in another order (``channels_last``)
-    """
+    """:return: target ``state_dict`` key -> the source tensor to copy into it, a transplant of ``sources`` into
+    ``policy`` checked (``ValueError`` for a group either lacks, other keys, shapes, dtypes or ``channels_last``)"""
     target_state = policy.state_dict()
     settings = target_settings(policy)
     plan: dict[str, th.Tensor] = {}
