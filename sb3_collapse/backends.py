@@ -13,10 +13,8 @@ CUBLAS_WORKSPACE_CONFIG = ":4096:8"  # deterministic cuBLAS (CUDA's documentatio
 
 @dataclass(frozen=True)
 class BackendSettings:
-    """
-    :param tf32: whether float32 matmuls and convolutions on CUDA may use TensorFloat-32 (Ampere and later)
-    :param deterministic: whether CUDA kernels are chosen for reproducibility rather than speed
-    """
+    """Torch's CUDA flags: ``tf32``, float32 matmuls and convolutions may use TensorFloat-32 (Ampere and later);
+    ``deterministic``, kernels are chosen for reproducibility rather than speed."""
 
     tf32: bool
     deterministic: bool

@@ -11,12 +11,8 @@ from torch import nn
 
 
 class GradNormRecorder:
-    """
-    Records the L2 gradient norm of named layers each time the (first) optimizer that holds their parameters steps.
-
-    :param layers: layer name -> parameters, input to output
-    :param optimizers: the optimizers that train them (``None`` entries are skipped)
-    """
+    """Records the L2 gradient norm of the named ``layers`` (name -> parameters, input to output) each time the first
+    of the ``optimizers`` (``None`` skipped) that holds their parameters steps."""
 
     def __init__(
         self, layers: Mapping[str, Sequence[nn.Parameter]], optimizers: Iterable[th.optim.Optimizer | None]

@@ -85,14 +85,8 @@ def reinitialize(module: nn.Module, initializer: Callable[[nn.Module], None] | N
 
 @dataclass(frozen=True)
 class LayerTap:
-    """
-    Where a named activation is read.
-
-    :param module: the module whose forward call produces (or, for ``source="input"``, receives) it
-    :param parameters: the parameters of the layer that computes it (empty for ``cnn0``)
-    :param source: ``"output"``: the module's output; ``"input"``: its first positional input
-    :param transform: applied to what is read (e.g. ``tanh`` for SAC's action), ``None`` for none
-    """
+    """Where a named activation is read: the output (``source="input"``: the first input) of ``module``, computed
+    with ``parameters`` (none for ``cnn0``), then ``transform``-ed unless ``None`` (``tanh`` for SAC's action)."""
 
     module: nn.Module
     parameters: tuple[nn.Parameter, ...]

@@ -250,9 +250,8 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
         fail(
             "share_features_extractor",
             "DrQ-v2 has one encoder, shared by the actor and the critic and trained by the critic loss only (SB3's "
-            "share_features_extractor=True); a separate actor encoder trained by the actor loss "
-            "(share_features_extractor=False, TD3's default) is another algorithm. Leave share_features_extractor out "
-            f"or pass True; got {kwargs['share_features_extractor']!r}.",
+            "share_features_extractor=True; False, TD3's default, is another algorithm): leave it out or pass True, "
+            f"got {kwargs['share_features_extractor']!r}.",
         )
     activation_fn = kwargs.get("activation_fn")
     if activation_fn is not None and activation_fn not in ACTIVATION_FNS:

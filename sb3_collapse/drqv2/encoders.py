@@ -64,15 +64,10 @@ class PixelNormalization(nn.Module):
         return obs.float().div_(255.0).sub_(0.5) if obs.dtype == th.uint8 else obs.float() / 255.0 - 0.5
 
 
-def _fused_conv_relu_available() -> bool:
-    """Whether this torch build has oneDNN's convolution with a fused ReLU (``torch.ops.mkldnn``, CPU)."""
-    try:
-        return th.backends.mkldnn.is_available() and hasattr(th.ops.mkldnn, "_convolution_pointwise")
-    except (AttributeError, RuntimeError):
-        return False
-
-
-FUSED_CONV_RELU = _fused_conv_relu_available()  # ConvReLU runs as one oneDNN kernel on the CPU
+try:  # whether this torch has oneDNN's convolution with a fused ReLU: ConvReLU runs as one kernel on the CPU
+    FUSED_CONV_RELU = th.backends.mkldnn.is_available() and hasattr(th.ops.mkldnn, "_convolution_pointwise")
+except (AttributeError, RuntimeError):
+    FUSED_CONV_RELU = False
 
 
 class _FusedConvReLU(th.autograd.Function):

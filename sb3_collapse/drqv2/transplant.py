@@ -146,11 +146,9 @@ def read_source_zip(key: str, path: Path) -> TransplantSource:
         load = functools.partial(th.load, map_location="cpu", weights_only=True)
         state_dict = _read_member(where, "policy.pth", lambda: load(io.BytesIO(archive.read("policy.pth"))))
     policy_class = data.get("policy_class")
-    restored = isinstance(policy_class, type) and issubclass(policy_class, DrQv2Policy)
-    if not restored:
+    if not (isinstance(policy_class, type) and issubclass(policy_class, DrQv2Policy)):
         raise ValueError(f"{where}: its policy class could not be restored as a DrQv2Policy (got {policy_class!r}).")
-    tensors = isinstance(state_dict, dict) and all(isinstance(v, th.Tensor) for v in state_dict.values())
-    if not tensors:
+    if not (isinstance(state_dict, dict) and all(isinstance(v, th.Tensor) for v in state_dict.values())):
         raise ValueError(f"{where}: policy.pth is not a state_dict of tensors; is the file corrupt?")
     settings = policy_settings(
         policy_class, data.get("policy_kwargs") or {}, data.get("observation_space"), data.get("action_space")
@@ -249,12 +247,6 @@ def group_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
     return [key for key in keys if key.startswith(TRANSPLANT_GROUPS[group])]
 
 
-def group_source_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
-    """:return: the source ``state_dict`` keys among ``keys`` that ``group`` copies from, in order"""
-    prefixes = tuple(dict.fromkeys(SOURCE_PREFIXES.get(prefix, prefix) for prefix in TRANSPLANT_GROUPS[group]))
-    return [key for key in keys if key.startswith(prefixes)]
-
-
 def source_key(target_key: str) -> str:
     """The source ``state_dict`` key copied into ``target_key`` (``critic_target.X`` <- ``critic.X``)."""
     for target_prefix, source_prefix in SOURCE_PREFIXES.items():
@@ -280,7 +272,8 @@ def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]
                 + (" (MlpPolicy has no CNN encoder)." if group == "cnn" else ".")
             )
         wanted = {source_key(key) for key in targets}
-        offered = set(group_source_keys(source.state_dict, group))
+        source_prefixes = tuple({source_key(prefix) for prefix in TRANSPLANT_GROUPS[group]})
+        offered = {key for key in source.state_dict if key.startswith(source_prefixes)}
         if not offered:
             raise ValueError(
                 f"{where}: the source ({source.settings['policy']}) has no {group!r} weights"

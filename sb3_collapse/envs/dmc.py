@@ -28,16 +28,8 @@ _UNDERSCORE_NAMES: dict[str, tuple[str, str]] = {  # DrQ-v2's names ("walker_wal
 
 @dataclass(frozen=True)
 class RewardInput:
-    """
-    A quantity that a task's reward function (``Task.get_reward``) reads: a ``Physics`` method's value, or one element.
-
-    :param name: the quantity's name (``"torso_height"``)
-    :param method: the ``Physics`` method that the reward function calls (``"torso_height"``)
-    :param index: the element of the method's output that the reward reads; ``None``: all of it, flattened
-    :param args: the method's arguments (stacker's ``site_distance("grasp", "target")``)
-    :param state: whether it is a state component (a probing target); ``False`` for the control (the action)
-    :param doc: what it is
-    """
+    """A quantity ``name`` that a task's reward function reads: the value of the ``Physics`` method ``method`` called
+    with ``args``, or its element ``index``; ``state``: a state component (a probing target), not the control."""
 
     name: str
     method: str

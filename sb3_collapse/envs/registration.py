@@ -35,13 +35,12 @@ DMC_TASKS: tuple[tuple[str, str], ...] = (
 DOMAIN_ALIASES: dict[str, str] = {"cup": "ball_in_cup"}  # short domain names, as in DrQ-v2 ("cup_catch")
 DOMAIN_NAMES: dict[str, str] = {**{domain: domain for domain, _ in DMC_TASKS}, **DOMAIN_ALIASES}  # name -> domain
 
-ENV_NAMESPACE = "sb3_collapse"
 ENTRY_POINT = "sb3_collapse.envs.dmc:DMCEnv"
 
 
 def dmc_env_id(task_id: str) -> str:
     """:return: the Gymnasium id of a ``<domain>-<task>`` name, e.g. ``sb3_collapse/walker-walk-v0``"""
-    return f"{ENV_NAMESPACE}/{task_id}-v0"
+    return f"sb3_collapse/{task_id}-v0"
 
 
 def register_dmc_envs() -> list[str]:

@@ -1,7 +1,5 @@
-"""The headless OpenGL backend of MuJoCo / dm_control rendering, chosen by an explicit call,
-:func:`ensure_rendering_backend`, before dm_control is imported (it reads ``MUJOCO_GL`` once). See
-docs/environments.md.
-"""
+"""The headless OpenGL backend of MuJoCo rendering, chosen by :func:`ensure_rendering_backend` before dm_control is
+imported (it reads ``MUJOCO_GL`` once). See docs/environments.md."""
 
 from __future__ import annotations
 
