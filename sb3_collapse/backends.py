@@ -26,8 +26,7 @@ def configure_backends(tf32: bool = True, deterministic: bool = False) -> Backen
     :param tf32: TensorFloat-32 for float32 matmuls and cuDNN convolutions, else IEEE float32
     :param deterministic: torch's deterministic algorithms (``warn_only``), cuDNN's deterministic kernels without its
         autotuner, ``CUBLAS_WORKSPACE_CONFIG`` (unless set; before any CUDA work); ``False``: cuDNN's autotuner on
-    :return: the settings applied
-    :raises TypeError: naming the parameter, for a value that is not a bool
+    :return: the settings applied (``TypeError`` naming a parameter that is not a bool)
     """
     for name, value in (("tf32", tf32), ("deterministic", deterministic)):
         if not isinstance(value, bool):

@@ -14,9 +14,8 @@ from sb3_collapse.envs.dmc import parse_task
 
 @dataclass(frozen=True)
 class TaskPreset:
-    """
-    DrQ-v2's settings for one task. Each hyperparameter is the ``TrainConfig`` setting of the same name (meaning and
-    units: docs/presets.md); the comments name DrQ-v2's config keys.
+    """DrQ-v2's settings for one task: each hyperparameter is the ``TrainConfig`` setting of the same name
+    (docs/presets.md); the comments name DrQ-v2's config keys.
 
     :param task: the task, ``<domain>-<task>``
     :param tier: DrQ-v2's difficulty tier, ``"easy"``, ``"medium"`` or ``"hard"``

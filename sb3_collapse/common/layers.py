@@ -20,12 +20,9 @@ LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "
 
 class LayerParts(NamedTuple):
     """
-    A hidden layer, ``activation(linear(x))`` read by the ``consumers``; a unit is an output feature or channel.
+    A hidden layer ``name`` (``mlp1``, ``q1.mlp1``, ``cnn1``...), ``activation(linear(x))`` read by the ``consumers``
+    (every Linear or Conv2d that reads it, target networks included); a unit is an output feature or channel.
 
-    :param name: ``mlp1``, ``mlp2`` (actor), ``q1.mlp1``... (critic's Q networks), ``cnn1``..``cnn4`` (encoder)
-    :param linear: the layer's Linear or Conv2d (incoming weights: its rows, or output channels, and bias)
-    :param activation: the module whose output is the layer's activation
-    :param consumers: every Linear or Conv2d that reads it, in every network, target networks included
     :param positions: spatial positions per channel in the consumers' flattened input (``height x width`` for a last
         convolution read by Linear layers); 1 otherwise
     :param channels_last: the consumers' flattened input is (height, width, channel), else (channel, height, width)

@@ -93,8 +93,7 @@ def exploration_noise(
     device: th.device | str | None = None,
     dtype: th.dtype = th.float32,
 ) -> th.Tensor:
-    """:return: ``N(0, std)`` noise of ``shape`` from torch's global generator on ``device``, clipped to
-    ``[-clip, clip]`` unless ``clip`` is ``None``"""
+    """:return: ``N(0, std)`` noise of ``shape`` on ``device`` (torch's generator), clipped to ``[-clip, clip]``"""
     eps = th.randn(shape, device=device, dtype=dtype) * std
     if clip is not None:
         eps = eps.clamp(-clip, clip)

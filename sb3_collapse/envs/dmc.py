@@ -189,13 +189,9 @@ def scale_action(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.nd
 
 
 class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
-    """
-    A DeepMind Control Suite task with DrQ-v2 preprocessing: observations ``uint8`` ``(3 * frame_stack, size,
-    size)``, the last renders, oldest first; actions in [-1, 1]; ``info["frames"]``. See docs/environments.md.
-
-    :param render_mode: "rgb_array" (:meth:`render` returns the last render) or None; the other parameters are
-        :func:`make_dmc_env`'s
-    """
+    """A DeepMind Control Suite task with DrQ-v2 preprocessing (docs/environments.md): observations ``uint8``
+    ``(3 * frame_stack, size, size)``, the last renders, oldest first; actions in [-1, 1]; ``info["frames"]``.
+    The parameters are :func:`make_dmc_env`'s, and ``render_mode``: "rgb_array" (:meth:`render`) or None."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
@@ -379,8 +375,7 @@ def make_dmc_env(
     camera_id: int | None = None,
     obs_type: str = "pixels",
 ) -> DMCEnv:
-    """
-    A DeepMind Control Suite task with DrQ-v2 preprocessing.
+    """A DeepMind Control Suite task with DrQ-v2 preprocessing, a :class:`DMCEnv`.
 
     :param task: task name, e.g. "walker-walk", "walker_walk" or "cup-catch" (see :func:`parse_task`)
     :param seed: seed of the task's random initial states and of the action space; None for a random one
@@ -389,6 +384,5 @@ def make_dmc_env(
     :param size: height and width of the renders, in pixels
     :param camera_id: camera of the renders; None for DrQ-v2's choice (2 for quadruped, 0 otherwise)
     :param obs_type: "pixels" for stacked renders, "state" for the vectorized true state
-    :return: the :class:`DMCEnv`
     """
     return DMCEnv(task, seed, action_repeat, frame_stack, size, camera_id, obs_type)

@@ -26,9 +26,9 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
     are tried, each in a subprocess, once per process, and the first that works is exported as ``MUJOCO_GL`` and
     ``PYOPENGL_PLATFORM``. Call it before ``dm_control`` or ``mujoco`` is imported.
 
-    :param required: whether rendering is needed (pixel observations); if False, return None when no backend works
-    :return: the backend in use (``MUJOCO_GL``), or None if none works and ``required`` is False
-    :raises MissingDependencyError: if no backend works and ``required`` is True
+    :param required: whether rendering is needed (pixel observations): if no backend works, ``MissingDependencyError``
+        if True, else None is returned
+    :return: the backend in use (``MUJOCO_GL``)
     """
     global _chosen_backend, _failure_report
 
