@@ -231,9 +231,8 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
         if set(net_arch) != {"pi", "qf"}:
             fail(
                 "net_arch",
-                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as SB3's"
-                f" TD3; got {sorted(net_arch)}. Pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for "
-                "both.",
+                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), as SB3's TD3, "
+                f"got {sorted(net_arch)}: pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for both.",
             )
         for key in ("pi", "qf"):
             units(f"policy_kwargs['net_arch']['{key}']", net_arch[key])
