@@ -13,24 +13,20 @@ CUBLAS_WORKSPACE_CONFIG = ":4096:8"  # deterministic cuBLAS (CUDA's documentatio
 
 @dataclass(frozen=True)
 class BackendSettings:
-    """
-    :param tf32: whether float32 matmuls and convolutions on CUDA may use TensorFloat-32 (Ampere and later)
-    :param deterministic: whether CUDA kernels are chosen for reproducibility rather than speed
-    """
+    """Torch's CUDA flags: ``tf32``, float32 matmuls and convolutions may use TensorFloat-32 (Ampere and later);
+    ``deterministic``, kernels are chosen for reproducibility rather than speed."""
 
     tf32: bool
     deterministic: bool
 
 
 def configure_backends(tf32: bool = True, deterministic: bool = False) -> BackendSettings:
-    """
-    Set torch's process-wide CUDA flags (no GPU needed; nothing changes on the CPU).
+    """Set torch's process-wide CUDA flags (no GPU needed; nothing changes on the CPU).
 
     :param tf32: TensorFloat-32 for float32 matmuls and cuDNN convolutions, else IEEE float32
     :param deterministic: torch's deterministic algorithms (``warn_only``), cuDNN's deterministic kernels without its
         autotuner, ``CUBLAS_WORKSPACE_CONFIG`` (unless set; before any CUDA work); ``False``: cuDNN's autotuner on
-    :return: the settings applied
-    :raises TypeError: naming the parameter, for a value that is not a bool
+    :return: the settings applied (``TypeError`` naming a parameter that is not a bool)
     """
     for name, value in (("tf32", tf32), ("deterministic", deterministic)):
         if not isinstance(value, bool):

@@ -89,11 +89,8 @@ _WRAPPERS: dict[type, type] = {sb3.TD3: TD3, sb3.SAC: SAC, sb3.DDPG: DDPG}
 
 
 def collapse_model(model: ModelT) -> ModelT:
-    """
-    :param model: an SB3 algorithm
-    :return: the same object, of the matching wrapper class when it is an SB3 ``TD3``, ``DDPG`` or ``SAC`` (or a
-        subclass), with its attributes, optimizers and buffer; any other model as it is
-    """
+    """:return: ``model`` itself, its class made the wrapper's when it is an SB3 ``TD3``, ``DDPG`` or ``SAC`` (or a
+    subclass), attributes, optimizers and buffer kept; any other model as it is"""
     cls = type(model)
     if isinstance(model, CollapseModel) or not any(base in _WRAPPERS for base in cls.__mro__):
         return model

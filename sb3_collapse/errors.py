@@ -17,12 +17,8 @@ P = ParamSpec("P")
 
 
 class InputError(ValueError):
-    """
-    Bad input (a setting, a file, a folder, a command line); a command line prints ``error: ...``, exit status 2.
-
-    :param message: the message, in Python's words (parameter names, not flags)
-    :param parameter: the Python name of the parameter at fault, when there is one
-    """
+    """Bad input (a setting, a file, a folder, a command line): a command line prints ``error: ...``, exit status 2;
+    ``parameter``: the Python name of the parameter at fault, when there is one."""
 
     def __init__(self, message: str, parameter: str | None = None) -> None:
         super().__init__(message)
@@ -30,12 +26,7 @@ class InputError(ValueError):
 
 
 class ParameterError(InputError):
-    """
-    A bad value of a parameter; the message starts with its name.
-
-    :param parameter: the parameter's Python name (``"batch_size"``)
-    :param message: what is wrong and what to do
-    """
+    """A bad value of the parameter ``parameter`` (its Python name); the message starts with that name."""
 
     def __init__(self, parameter: str, message: str) -> None:
         super().__init__(message, parameter)
@@ -54,12 +45,8 @@ class LayerMappingError(ValueError):
 
 
 class CheckpointError(InputError):
-    """
-    A checkpoint (a run's or its replay store's) that cannot be used: damaged, another version or another run.
-
-    :param message: what is wrong and what to do
-    :param damaged: its files are damaged (missing, truncated, bad checksum): a run falls back to the one before
-    """
+    """A checkpoint (a run's or its replay store's) that cannot be used; ``damaged``: its files are damaged (missing,
+    truncated, bad checksum), so a run falls back to the one before."""
 
     def __init__(self, message: str, damaged: bool = False) -> None:
         super().__init__(message)
@@ -75,12 +62,7 @@ class DivergenceError(FloatingPointError):
 
 
 class TrainingInterrupted(Exception):
-    """
-    ``learn()`` stopped at a signal after writing a checkpoint.
-
-    :param checkpoint: the checkpoint's folder
-    :param signal_name: the signal (``"SIGTERM"``, ``"SIGINT"``)
-    """
+    """``learn()`` stopped at the signal ``signal_name`` (``"SIGTERM"``) after writing the ``checkpoint`` folder."""
 
     def __init__(self, checkpoint: Path, signal_name: str) -> None:
         super().__init__(f"stopped by {signal_name} after writing the checkpoint {checkpoint}")
@@ -103,10 +85,7 @@ FULL_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 
 
 def unwritable_message(error: BaseException) -> str | None:
-    """
-    :param error: any exception
-    :return: one line for an output that could not be written (read-only, full disk), ``None`` for another error
-    """
+    """:return: one line for an output that could not be written (read-only, full disk), ``None`` for another error"""
     if not isinstance(error, OSError) or error.errno not in (*READ_ONLY_ERRNOS, *FULL_DISK_ERRNOS):
         return None
     where = error.filename if error.filename is not None else "an output file"
@@ -117,11 +96,8 @@ def unwritable_message(error: BaseException) -> str | None:
 
 
 def report_unwritable_outputs(main: Callable[P, int]) -> Callable[P, int]:
-    """
-    :param main: a command line's ``main(argv) -> exit status``
-    :return: ``main`` ended by an unwritable output with ``error: ...`` (:func:`unwritable_message`) and exit status
-        2 (read-only, no permission) or 1 (full disk), not a traceback
-    """
+    """:return: a command line's ``main``, ended by an unwritable output with ``error: ...`` and exit status 2
+    (read-only) or 1 (full disk), not a traceback"""
 
     @functools.wraps(main)
     def wrapped(*args: P.args, **kwargs: P.kwargs) -> int:
@@ -138,10 +114,7 @@ def report_unwritable_outputs(main: Callable[P, int]) -> Callable[P, int]:
 
 
 def parameter_flags(parser: argparse.ArgumentParser) -> dict[str, str]:
-    """
-    :param parser: a command line (with its sub-commands' flags)
-    :return: destination (Python name) -> its long flag (``{"learning_rate": "--lr", "batch_size": "--batch-size"}``)
-    """
+    """:return: each destination (Python name) of ``parser`` and its sub-commands -> its long flag (``"--lr"``)"""
     flags = {}
     for action in parser._actions:
         long_flags = [flag for flag in action.option_strings if flag.startswith("--")]
@@ -155,15 +128,9 @@ def parameter_flags(parser: argparse.ArgumentParser) -> dict[str, str]:
 
 
 def cli_message(error: BaseException, parser: argparse.ArgumentParser) -> str:
-    """
-    A library error's message with the parser's flags for Python names (``learning_rate`` -> ``--lr``): names with an
-    underscore anywhere as a word; a one-word name when it is the error's ``parameter`` and starts the message, or in
-    backticks (`` `overwrite=True` `` -> ``--overwrite``, `` `episodes=3` `` -> ``--episodes 3``).
-
-    :param error: the error
-    :param parser: the command line whose flags name the settings
-    :return: the message
-    """
+    """:return: ``error``'s message with ``parser``'s flags for Python names (``learning_rate`` -> ``--lr``): names
+    with an underscore anywhere; a one-word name when it is the error's ``parameter`` and starts the message, or in
+    backticks (`` `episodes=3` `` -> ``--episodes 3``)"""
     message = str(error)
     flags = parameter_flags(parser)
 

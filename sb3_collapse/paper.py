@@ -45,12 +45,8 @@ class PaperProtocol:
     stage_frames: tuple[int, ...] = (0, 350_000, 700_000, 1_100_000)
 
     def stages(self, budget_frames: int | None = None) -> tuple[int, ...]:
-        """
-        The training stages of Tables 1-7: :attr:`stage_frames`, scaled to another budget (rounded to whole frames).
-
-        :param budget_frames: the run's budget, in frames (``None``: the paper's)
-        :return: the stages, in frames, increasing
-        """
+        """:return: the training stages of Tables 1-7, :attr:`stage_frames` scaled to ``budget_frames`` (``None``: the
+        paper's), rounded to whole frames"""
         budget = self.train_frames if budget_frames is None else budget_frames
         if budget <= 0:
             raise ValueError(f"budget_frames must be > 0, got {budget}.")
@@ -111,15 +107,13 @@ PROPOSITION_1 = (
 
 def evaluation_schedule(frames: int, every_frames: int, frames_per_step: int = 1) -> list[int]:
     """
-    The frames of a run's scheduled evaluations, as facebookresearch/drqv2's ``train.py`` has them: frame 0, then
-    every ``every_frames`` frames, never at the budget's end; the paper's budget gives 0, 1e4, ..., 1.09e6 ("x in
-    [0, 109]", Section 4.1). The final model's evaluation is not one of them.
+    The frames of a run's scheduled evaluations, as facebookresearch/drqv2's ``train.py``: frame 0, then every
+    ``every_frames`` frames, never at the budget's end ("x in [0, 109]", Section 4.1); not the final model's.
 
     :param frames: the run's budget, in frames
     :param every_frames: frames between two evaluations (> 0)
-    :param frames_per_step: frames an agent step adds (action repeat x environments): an evaluation falls on the
-        first agent step at or after its frame
-    :return: the frames, increasing
+    :param frames_per_step: frames an agent step adds (action repeat x environments)
+    :return: the frames, increasing, each the first agent step's at or after its target
     """
     if every_frames <= 0 or frames_per_step <= 0:
         raise ValueError(f"every_frames and frames_per_step must be > 0, got {every_frames} and {frames_per_step}.")
@@ -132,9 +126,5 @@ def evaluation_schedule(frames: int, every_frames: int, frames_per_step: int = 1
 
 
 def metric_tag(layer: str, metric: str) -> str:
-    """
-    :param layer: a named layer (``"mlp1"``)
-    :param metric: a metric name (``"grad_norm"``, ``"numerical_rank"``...)
-    :return: its TensorBoard and collapse-metrics file's tag, ``collapse/<layer>/<metric>``
-    """
+    """:return: the TensorBoard and collapse-metrics tag of ``metric`` of ``layer``, ``collapse/<layer>/<metric>``"""
     return f"collapse/{layer}/{metric}"

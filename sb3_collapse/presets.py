@@ -14,9 +14,8 @@ from sb3_collapse.envs.dmc import parse_task
 
 @dataclass(frozen=True)
 class TaskPreset:
-    """
-    DrQ-v2's settings for one task. Each hyperparameter is the ``TrainConfig`` setting of the same name (meaning and
-    units: docs/presets.md); the comments name DrQ-v2's config keys.
+    """DrQ-v2's settings for one task: each hyperparameter is the ``TrainConfig`` setting of the same name
+    (docs/presets.md); the comments name DrQ-v2's config keys.
 
     :param task: the task, ``<domain>-<task>``
     :param tier: DrQ-v2's difficulty tier, ``"easy"``, ``"medium"`` or ``"hard"``
@@ -91,11 +90,8 @@ PRESETS: Mapping[str, TaskPreset] = MappingProxyType(
 
 
 def preset(task: str) -> TaskPreset:
-    """
-    :param task: a DeepMind Control suite task, in any form :func:`~sb3_collapse.envs.parse_task` accepts
-    :return: DrQ-v2's preset; for a task DrQ-v2 did not run, the easy tier's settings with ``from_drqv2=False``
-    :raises ValueError: for a name that is not a suite task
-    """
+    """:return: DrQ-v2's preset of a suite ``task`` (any form ``parse_task`` takes; ``ValueError`` for another); for a
+    task DrQ-v2 did not run, the easy tier's settings with ``from_drqv2=False``"""
     domain, name = parse_task(task)
     task_id = f"{domain}-{name}"
     if task_id in PRESETS:

@@ -11,12 +11,8 @@ from torch import nn
 
 
 class GradNormRecorder:
-    """
-    Records the L2 gradient norm of named layers each time the (first) optimizer that holds their parameters steps.
-
-    :param layers: layer name -> parameters, input to output
-    :param optimizers: the optimizers that train them (``None`` entries are skipped)
-    """
+    """Records the L2 gradient norm of the named ``layers`` (name -> parameters, input to output) each time the first
+    of the ``optimizers`` (``None`` skipped) that holds their parameters steps."""
 
     def __init__(
         self, layers: Mapping[str, Sequence[nn.Parameter]], optimizers: Iterable[th.optim.Optimizer | None]
@@ -40,11 +36,7 @@ class GradNormRecorder:
     def of_modules(
         cls, modules: Mapping[str, nn.Module], optimizers: Iterable[th.optim.Optimizer | None]
     ) -> GradNormRecorder:
-        """
-        :param modules: layer name -> the module holding its parameters; modules without parameters are left out
-        :param optimizers: the optimizers that train them
-        :return: a recorder of those layers
-        """
+        """:return: a recorder of ``modules`` (layer name -> module; those without parameters left out)"""
         layers = {name: list(module.parameters()) for name, module in modules.items()}
         return cls({name: params for name, params in layers.items() if params}, optimizers)
 
@@ -60,13 +52,8 @@ class GradNormRecorder:
         return record
 
     def _record(self, params: list[nn.Parameter], segment: th.Tensor, index: th.Tensor) -> None:
-        """
-        Each layer's ``sqrt(sum over its parameters of ||g||^2)`` (a missing gradient is zero), without host sync.
-
-        :param params: the parameters of the layers this optimizer trains, layer after layer
-        :param segment: ``(len(params),)``: the slot (index in :attr:`names`) of each parameter
-        :param index: ``(layers,)``: the slots of those layers, sorted as ``segment`` meets them
-        """
+        """Each layer's ``sqrt(sum over its parameters of ||g||^2)`` (no gradient: 0), without host sync; ``segment``
+        ``(len(params),)``: each parameter's slot in :attr:`names`; ``index`` ``(layers,)``: the layers' slots."""
         grads = [param.grad if param.grad is not None else param.new_zeros(()) for param in params]
         squares = th.stack(th._foreach_norm(grads)).detach().float().square()
         per_slot = squares.new_zeros(len(self.names)).index_add_(0, segment, squares)
@@ -95,10 +82,7 @@ class GradNormRecorder:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """
-        :param state: a :meth:`state_dict` of a recorder of the same layers
-        :raises ValueError: for another list of layers
-        """
+        """:param state: a :meth:`state_dict` of a recorder of the same layers (``ValueError`` for others)"""
         if list(state["names"]) != self.names:
             raise ValueError(f"GradNormRecorder: saved norms of {state['names']}, this one records {self.names}.")
         self._norms = None if state["norms"] is None else state["norms"].to(self.device)

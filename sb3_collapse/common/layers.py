@@ -20,12 +20,9 @@ LAYER_NAMES = ("cnn0", "cnn1", "cnn2", "cnn3", "cnn4", "mlp0", "mlp1", "mlp2", "
 
 class LayerParts(NamedTuple):
     """
-    A hidden layer, ``activation(linear(x))`` read by the ``consumers``; a unit is an output feature or channel.
+    A hidden layer ``name`` (``mlp1``, ``q1.mlp1``, ``cnn1``...), ``activation(linear(x))`` read by the ``consumers``
+    (every Linear or Conv2d that reads it, target networks included); a unit is an output feature or channel.
 
-    :param name: ``mlp1``, ``mlp2`` (actor), ``q1.mlp1``... (critic's Q networks), ``cnn1``..``cnn4`` (encoder)
-    :param linear: the layer's Linear or Conv2d (incoming weights: its rows, or output channels, and bias)
-    :param activation: the module whose output is the layer's activation
-    :param consumers: every Linear or Conv2d that reads it, in every network, target networks included
     :param positions: spatial positions per channel in the consumers' flattened input (``height x width`` for a last
         convolution read by Linear layers); 1 otherwise
     :param channels_last: the consumers' flattened input is (height, width, channel), else (channel, height, width)
@@ -44,10 +41,7 @@ class LayerParts(NamedTuple):
         return int(self.linear.weight.shape[0])
 
     def consumer_columns(self, index: th.Tensor) -> th.Tensor:
-        """
-        :param index: ``(k,)`` indices of units
-        :return: the indices of the consumers' weight columns (dim 1) that read them, on ``index``'s device
-        """
+        """:return: the consumers' weight columns (dim 1) that read the units ``index`` ``(k,)``, on its device"""
         if self.positions == 1:
             return index
         where = th.arange(self.positions, device=index.device)
@@ -59,15 +53,8 @@ class LayerParts(NamedTuple):
 def sequential_hidden_parts(
     prefix: str, modules: Sequence[nn.Module], tail: tuple[nn.Linear, ...] = (), first: int = 1
 ) -> list[LayerParts]:
-    """
-    The hidden layers (``Linear, activation`` pairs; the activation has no parameters) of modules run in sequence.
-
-    :param prefix: put before each name (``"q1."``)
-    :param modules: the modules, in the order of the forward pass
-    :param tail: the consumers of the last Linear's activation (modules outside the list)
-    :param first: the number in the name of the list's first Linear: names are ``<prefix>mlp<k>``
-    :return: the hidden layers, input to output
-    """
+    """:return: the hidden layers (``Linear, activation`` pairs) of ``modules`` run in sequence, named
+    ``<prefix>mlp<k>`` from ``k = first``; ``tail``: the consumers of the last Linear's activation"""
     modules = list(modules)
     linears = [i for i, module in enumerate(modules) if isinstance(module, nn.Linear)]
     hidden = []
@@ -80,14 +67,8 @@ def sequential_hidden_parts(
 
 
 def reinitialize(module: nn.Module, initializer: Callable[[nn.Module], None] | None = None) -> None:
-    """
-    New initial values for every parameter of ``module``, in place, in the order of ``module.modules()``.
-
-    :param module: the module to initialize
-    :param initializer: an in-place initializer of each Linear and Conv2d (e.g. DrQ-v2's ``weight_init``); the
-        others, and all without it, get ``reset_parameters()``
-    :raises TypeError: for a submodule with parameters that has no known initializer
-    """
+    """New initial values for every parameter of ``module``, in place, in ``module.modules()`` order: ``initializer``
+    for each Linear and Conv2d, ``reset_parameters()`` for the others (``TypeError`` for a module without one)."""
     for sub in module.modules():
         if next(sub.parameters(recurse=False), None) is None:
             continue
@@ -101,14 +82,8 @@ def reinitialize(module: nn.Module, initializer: Callable[[nn.Module], None] | N
 
 @dataclass(frozen=True)
 class LayerTap:
-    """
-    Where a named activation is read.
-
-    :param module: the module whose forward call produces (or, for ``source="input"``, receives) it
-    :param parameters: the parameters of the layer that computes it (empty for ``cnn0``)
-    :param source: ``"output"``: the module's output; ``"input"``: its first positional input
-    :param transform: applied to what is read (e.g. ``tanh`` for SAC's action), ``None`` for none
-    """
+    """Where a named activation is read: the output (``source="input"``: the first input) of ``module``, computed
+    with ``parameters`` (none for ``cnn0``), then ``transform``-ed unless ``None`` (``tanh`` for SAC's action)."""
 
     module: nn.Module
     parameters: tuple[nn.Parameter, ...]
@@ -125,13 +100,8 @@ def policy_of(model: BaseAlgorithm | BasePolicy) -> BasePolicy:
 
 
 def layer_taps(model: BaseAlgorithm | BasePolicy) -> dict[str, LayerTap]:
-    """
-    The named layers of a DrQv2, TD3, DDPG or SAC actor, input to output (the mapping: docs/monitoring.md).
-
-    :param model: an algorithm or its policy
-    :return: ordered mapping name -> :class:`LayerTap`
-    :raises LayerMappingError: for a policy whose modules do not follow a known layout
-    """
+    """:return: name -> :class:`LayerTap` of the named layers of a DrQv2, TD3, DDPG or SAC actor (algorithm or
+    policy), input to output (docs/monitoring.md); ``LayerMappingError`` for an unknown layout"""
     policy = policy_of(model)
     named_layers = getattr(policy, "named_layers", None)
     if callable(named_layers):  # DrQv2Policy names its own layers
@@ -189,8 +159,5 @@ def _activation_taps(layers: Iterable[nn.Module], kind: type[nn.Module], prefix:
 
 
 def layer_parameters(model: BaseAlgorithm | BasePolicy) -> dict[str, tuple[nn.Parameter, ...]]:
-    """
-    :param model: an algorithm or its policy
-    :return: ordered mapping name -> the parameters of the layer that computes it (``cnn0``, which has none, left out)
-    """
+    """:return: name -> the parameters of the layer that computes it, input to output (``cnn0`` left out)"""
     return {name: tap.parameters for name, tap in layer_taps(model).items() if tap.parameters}

@@ -46,10 +46,8 @@ class CollapseModel(Protocol):
 
 
 class CollapseModelBase(ABC):
-    """
-    The parts of :class:`CollapseModel` an SB3 off-policy algorithm has as it is (mixed in before it). An ``ABC`` as
-    ``BaseAlgorithm``, so that ``collapse_model`` can change the class of a model built with SB3's own.
-    """
+    """The parts of :class:`CollapseModel` an SB3 off-policy algorithm has as it is (mixed in before it); an ``ABC``
+    as ``BaseAlgorithm``, so that ``collapse_model`` can change the class of a model built with SB3's own."""
 
     reset_step: int = 0
     grad_norm_recorder: GradNormRecorder | None = None
@@ -79,10 +77,7 @@ class CollapseModelBase(ABC):
 
 
 def env_action_repeat(env: VecEnv | None) -> int:
-    """
-    :param env: a vectorized environment, or ``None``
-    :return: the ``action_repeat`` attribute of its first environment (``make_dmc_env``), 1 when it has none
-    """
+    """:return: the ``action_repeat`` of the first environment of ``env`` (``make_dmc_env``), 1 when none"""
     if env is None:
         return 1
     try:
@@ -95,10 +90,7 @@ ENV_CONFIG_KEYS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id
 
 
 def read_env_config(env: VecEnv) -> dict[str, Any] | None:
-    """
-    :param env: a vectorized environment
-    :return: the :data:`ENV_CONFIG_KEYS` of its first environment, ``None`` for one not made by ``make_dmc_env``
-    """
+    """:return: the :data:`ENV_CONFIG_KEYS` of ``env``'s first environment, ``None`` for one not made by make_dmc_env"""
     # has_attr first: a SubprocVecEnv's worker dies on get_attr of a missing attribute.
     config = {key: env.get_attr(key, indices=[0])[0] if env.has_attr(key) else None for key in ENV_CONFIG_KEYS}
     if config["task_id"] is None and config["action_repeat"] is None:

@@ -34,11 +34,8 @@ class SavableCallback(StatefulCallback, Protocol):
 
 
 def callback_states(callbacks: Iterable[BaseCallback]) -> CallbackStates:
-    """
-    :param callbacks: callbacks, in the order they run
-    :return: the class name and the ``state_dict()`` of each :class:`StatefulCallback` among them (the state ``None``
-        for one never attached to a model: it has nothing to continue)
-    """
+    """:return: the class name and ``state_dict()`` of each :class:`StatefulCallback` among ``callbacks``, in order
+    (``None`` for one never attached to a model)"""
     return [
         (type(callback).__name__, callback.state_dict() if getattr(callback, "model", None) is not None else None)
         for callback in callbacks
@@ -47,13 +44,8 @@ def callback_states(callbacks: Iterable[BaseCallback]) -> CallbackStates:
 
 
 def load_callback_states(callbacks: Iterable[BaseCallback], states: CallbackStates) -> None:
-    """
-    Give each :class:`StatefulCallback` among ``callbacks`` its saved state (taken at its next ``learn()``).
-
-    :param callbacks: callbacks, in the order they run
-    :param states: :func:`callback_states` of the same callbacks
-    :raises ValueError: when the callbacks are not those saved (their classes, in order)
-    """
+    """Give each :class:`StatefulCallback` among ``callbacks`` its state in ``states`` (:func:`callback_states`'s),
+    taken at its next ``learn()``; ``ValueError`` when the callbacks are not those saved."""
     stateful = [callback for callback in callbacks if isinstance(callback, StatefulCallback)]
     names, saved_names = [type(callback).__name__ for callback in stateful], [name for name, _ in states]
     if names != saved_names:
@@ -64,11 +56,8 @@ def load_callback_states(callbacks: Iterable[BaseCallback], states: CallbackStat
 
 
 def saved_callbacks(callback: BaseCallback | list[BaseCallback] | None) -> dict[str, Any]:
-    """
-    :param callback: a model's constructor callback(s)
-    :return: what ``DrQv2.save`` keeps: ``specs``, each one's class (``"module:QualName"``) and ``config`` (a
-        :class:`SavableCallback`'s ``get_config()``, else ``None``); ``states``, those with a ``config``'s states
-    """
+    """:return: what ``DrQv2.save`` keeps of a constructor's ``callback``: ``specs``, each one's class
+    (``"module:QualName"``) and ``config`` (``get_config()`` or ``None``), and the ``states`` of those with one"""
     callbacks = callback if isinstance(callback, list) else [callback] if callback is not None else []
     specs = [{"class": f"{type(item).__module__}:{type(item).__qualname__}", "config": None} for item in callbacks]
     for item, spec in zip(callbacks, specs):
@@ -82,13 +71,8 @@ def saved_callbacks(callback: BaseCallback | list[BaseCallback] | None) -> dict[
 
 
 def restore_callbacks(saved: dict[str, Any], caller: str) -> BaseCallback | list[BaseCallback] | None:
-    """
-    The callbacks of a loaded model, built again with their states; a warning names those that were not saved.
-
-    :param saved: :func:`saved_callbacks` of the saved model
-    :param caller: what loads the model, for the warning (``"DrQv2.load"``)
-    :return: the callbacks (one, a list, or ``None``, as a constructor takes them)
-    """
+    """:return: the callbacks of :func:`saved_callbacks`'s ``saved``, built again with their states (one, a list or
+    ``None``); a warning from ``caller`` (``"DrQv2.load"``) names those that were not saved"""
     built, lost = [], []
     for spec in saved["specs"]:
         module, _, name = spec["class"].partition(":")

@@ -123,12 +123,8 @@ def compile_mode(compile_update: bool | str, device: th.device) -> str:
 
 
 def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv2.load") -> None:
-    """Check ``load``'s ``path`` and ``kwargs`` before SB3 reads anything (``name``: the caller).
-
-    :raises TypeError: for ``init_from``: loading restores the saved weights, it does not transplant
-    :raises FileNotFoundError: when neither ``path`` nor ``path.zip`` is a file, naming the path given
-    :raises ParameterError: for a zip saved by one of SB3's algorithms, naming it and what loads it
-    """
+    """Check ``load``'s ``path`` and ``kwargs`` before SB3 reads anything (``name``: the caller): ``TypeError`` for
+    ``init_from``, ``FileNotFoundError`` without the file, ``ParameterError`` for a zip of one of SB3's algorithms."""
     if "init_from" in kwargs:
         raise TypeError(
             f"{name} does not transplant layers (init_from): it restores the saved weights. Build a new "
@@ -235,9 +231,8 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
         if set(net_arch) != {"pi", "qf"}:
             fail(
                 "net_arch",
-                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), both, as SB3's"
-                f" TD3; got {sorted(net_arch)}. Pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for "
-                "both.",
+                "policy_kwargs['net_arch'] as a dict takes the keys 'pi' (actor) and 'qf' (each Q head), as SB3's TD3, "
+                f"got {sorted(net_arch)}: pass e.g. dict(pi=[1024, 1024], qf=[1024, 1024]), or one list for both.",
             )
         for key in ("pi", "qf"):
             units(f"policy_kwargs['net_arch']['{key}']", net_arch[key])
@@ -254,9 +249,8 @@ def check_policy_kwargs(policy_kwargs: Mapping[str, Any] | None) -> None:
         fail(
             "share_features_extractor",
             "DrQ-v2 has one encoder, shared by the actor and the critic and trained by the critic loss only (SB3's "
-            "share_features_extractor=True); a separate actor encoder trained by the actor loss "
-            "(share_features_extractor=False, TD3's default) is another algorithm. Leave share_features_extractor out "
-            f"or pass True; got {kwargs['share_features_extractor']!r}.",
+            "share_features_extractor=True; False, TD3's default, is another algorithm): leave it out or pass True, "
+            f"got {kwargs['share_features_extractor']!r}.",
         )
     activation_fn = kwargs.get("activation_fn")
     if activation_fn is not None and activation_fn not in ACTIVATION_FNS:

@@ -49,14 +49,9 @@ class DivergenceGuard:
     def check(
         self, losses: Mapping[str, float], weights_finite: bool, update: int, frame: int, gamma: float | None = None
     ) -> None:
-        """
-        :param losses: name -> mean since the last dump: ``critic_loss``, ``actor_loss``, ``batch_reward``
-        :param weights_finite: whether every weight is finite (:func:`all_finite`)
-        :param update: the number of updates so far
-        :param frame: the frame count
-        :param gamma: the discount, for the bound on the values; ``None``: no such bound
-        :raises DivergenceError: for a loss or a weight that is not finite
-        """
+        """Check the ``losses`` (mean since the last dump: ``critic_loss``, ``actor_loss``, ``batch_reward``) at
+        ``update`` and ``frame``: ``DivergenceError`` for a loss or a weight that is not finite, a warning for a loss
+        far over its scale at the start or over what the rewards and ``gamma`` allow (``None``: no such bound)."""
         losses = dict(losses)
         reward = losses.pop("batch_reward", None)
         if reward is not None and math.isfinite(reward):

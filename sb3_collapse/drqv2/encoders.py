@@ -64,15 +64,10 @@ class PixelNormalization(nn.Module):
         return obs.float().div_(255.0).sub_(0.5) if obs.dtype == th.uint8 else obs.float() / 255.0 - 0.5
 
 
-def _fused_conv_relu_available() -> bool:
-    """Whether this torch build has oneDNN's convolution with a fused ReLU (``torch.ops.mkldnn``, CPU)."""
-    try:
-        return th.backends.mkldnn.is_available() and hasattr(th.ops.mkldnn, "_convolution_pointwise")
-    except (AttributeError, RuntimeError):
-        return False
-
-
-FUSED_CONV_RELU = _fused_conv_relu_available()  # ConvReLU runs as one oneDNN kernel on the CPU
+try:  # whether this torch has oneDNN's convolution with a fused ReLU: ConvReLU runs as one kernel on the CPU
+    FUSED_CONV_RELU = th.backends.mkldnn.is_available() and hasattr(th.ops.mkldnn, "_convolution_pointwise")
+except (AttributeError, RuntimeError):
+    FUSED_CONV_RELU = False
 
 
 class _FusedConvReLU(th.autograd.Function):
@@ -124,15 +119,12 @@ class ConvReLU(nn.Sequential):
 
 class PixelEncoder(nn.Module):
     """
-    DrQ-v2's convolutional encoder: ``cnn0`` normalization, four 3x3 convolutions of 32 channels (stride 2, 1, 1, 1),
-    no padding, ReLU after each, flattened ((H, W, C) order with ``channels_last``: docs/algorithm.md).
+    DrQ-v2's convolutional encoder of channel-first ``uint8`` images: ``cnn0`` normalization, four 3x3 convolutions
+    (stride 2, 1, 1, 1), no padding, the ``activation`` after each, flattened ((H, W, C) with ``channels_last``).
 
-    :param observation_space: channel-first ``uint8`` image space, e.g. ``Box(0, 255, (9, 84, 84), uint8)``
     :param channels: number of filters of every convolution
     :param channels_last: run the convolutions in ``channels_last`` memory format
     :param fused_relu: on the CPU, run each convolution and its ReLU as one kernel (:class:`ConvReLU`)
-    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` after each convolution
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
     :param normalize_images: ``False`` (SB3's keyword): float images already normalized, taken as they are
     """
 
@@ -177,12 +169,8 @@ class PixelEncoder(nn.Module):
 
 
 class StateEncoder(nn.Module):
-    """
-    Identity encoder of ``MlpPolicy``: SB3's ``preprocess_obs``, flattened (as SB3's ``FlattenExtractor``).
-
-    :param observation_space: a ``Box`` that is not an image, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
-    :param activation: unused, as ``leaky_relu_slope`` and ``normalize_images``: every encoder takes them
-    """
+    """Identity encoder of ``MlpPolicy``: SB3's ``preprocess_obs``, flattened (as SB3's ``FlattenExtractor``); it
+    takes the other encoders' ``activation``, ``leaky_relu_slope`` and ``normalize_images`` and ignores them."""
 
     has_cnn = False
 
@@ -218,14 +206,8 @@ def _image_keys(observation_space: spaces.Dict, normalize_images: bool) -> list[
 
 
 class DictEncoder(nn.Module):
-    """
-    Encoder of ``spaces.Dict`` observations (``MultiInputPolicy``): a :class:`PixelEncoder` on each image key, the
-    other keys through SB3's ``preprocess_obs``, flattened; concatenated, images first. Named layers:
-    docs/algorithm.md.
-
-    :param observation_space: a ``spaces.Dict`` of ``Box``, ``Discrete``, ``MultiDiscrete`` or ``MultiBinary``
-    :param encoder_kwargs: the other keyword arguments of each :class:`PixelEncoder` (``activation``...)
-    """
+    """Encoder of ``spaces.Dict`` observations (``MultiInputPolicy``): a :class:`PixelEncoder` (``encoder_kwargs``)
+    on each image key, the other keys through SB3's ``preprocess_obs``, flattened; concatenated, images first."""
 
     def __init__(
         self,
@@ -276,15 +258,8 @@ class DictEncoder(nn.Module):
 
 
 class FeaturesExtractorEncoder(nn.Module):
-    """
-    A user's SB3 features extractor in place of DrQ-v2's encoder, after SB3's ``preprocess_obs``; trained by the
-    critic loss only; the images are shifted before it; no named layers.
-
-    :param observation_space: the observation space
-    :param features_extractor_class: a ``BaseFeaturesExtractor`` subclass
-    :param features_extractor_kwargs: its keyword arguments
-    :param normalize_images: SB3's: divide images by 255
-    """
+    """A user's SB3 ``features_extractor_class`` (with ``features_extractor_kwargs``) in place of DrQ-v2's encoder,
+    after SB3's ``preprocess_obs``; trained by the critic loss only, on shifted images; no named layers."""
 
     def __init__(
         self,
@@ -293,7 +268,7 @@ class FeaturesExtractorEncoder(nn.Module):
         features_extractor_kwargs: Mapping[str, Any] | None = None,
         normalize_images: bool = True,
     ) -> None:
-        super().__init__()  # features_extractor_class checked by checks.check_policy_kwargs
+        super().__init__()
         self.observation_space = observation_space
         self.normalize_images = normalize_images
         self.extractor = features_extractor_class(observation_space, **(features_extractor_kwargs or {}))
@@ -332,7 +307,9 @@ def check_pixel_space(observation_space: spaces.Space, normalize_images: bool = 
     height, width = observation_space.shape[1:]
     if min(_conv_output_size((height, width))) < 1:
         raise SpaceError(
-            "env", f"Images of {height}x{width} pixels are too small for the DrQ-v2 encoder (at least 15x15)."
+            "env",
+            f"Images of {height}x{width} pixels are too small for the DrQ-v2 encoder (at least "
+            f"{MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE}).",
         )
 
 

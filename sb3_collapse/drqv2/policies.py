@@ -42,24 +42,10 @@ from sb3_collapse.drqv2.encoders import (
 ACTION_EPS = 1e-6  # sampled actions are clamped to [-1 + eps, 1 - eps], as DrQ-v2's TruncatedNormal
 
 
-def hidden_layers(net_arch: Sequence[int] | None, hidden_dim: int) -> list[int]:
-    """:return: the units of each hidden layer: ``net_arch``, or DrQ-v2's two of ``hidden_dim`` for ``None``"""
-    return [hidden_dim, hidden_dim] if net_arch is None else [int(units) for units in net_arch]
-
-
 class Actor(nn.Module):
-    """
-    DrQ-v2 actor: trunk ``Linear -> LayerNorm -> Tanh`` (``mlp0``), ``Linear -> ReLU`` layers ``mlp1``..``mlpK``
-    and ``Linear -> Tanh`` (``action``), the mean action.
-
-    :param repr_dim: size of the encoder output
-    :param action_dim: number of action dimensions
-    :param feature_dim: size of the trunk output
-    :param hidden_dim: units of the two hidden layers (when ``net_arch`` is ``None``)
-    :param activation: ``"relu"`` (DrQ-v2's) or ``"leaky_relu"`` in the hidden layers
-    :param leaky_relu_slope: negative slope of the Leaky-ReLU
-    :param net_arch: units of each hidden layer; ``None``: ``[hidden_dim, hidden_dim]`` (DrQ-v2's)
-    """
+    """DrQ-v2 actor on the encoder's ``repr_dim`` features: trunk ``Linear -> LayerNorm -> Tanh`` (``mlp0``, of
+    ``feature_dim``), ``Linear -> activation`` layers ``mlp1``..``mlpK`` (``net_arch``; ``None``: two of
+    ``hidden_dim``) and ``Linear -> Tanh`` (``action``), the mean action; the parameters are :class:`DrQv2Policy`'s."""
 
     features_extractor: nn.Module | None = None  # the policy's encoder, not a submodule (expose_encoder)
 
@@ -77,7 +63,7 @@ class Actor(nn.Module):
         self.trunk = nn.Sequential(nn.Linear(repr_dim, feature_dim), nn.LayerNorm(feature_dim), nn.Tanh())
         self.hidden_names: list[str] = []
         in_dim = feature_dim
-        for index, units in enumerate(hidden_layers(net_arch, hidden_dim), start=1):
+        for index, units in enumerate(actor_critic_arch(net_arch, hidden_dim)[0], start=1):
             self.hidden_names.append(f"mlp{index}")
             layer = nn.Sequential(nn.Linear(in_dim, units), hidden_activation(activation, leaky_relu_slope))
             setattr(self, f"mlp{index}", layer)
@@ -107,8 +93,7 @@ def exploration_noise(
     device: th.device | str | None = None,
     dtype: th.dtype = th.float32,
 ) -> th.Tensor:
-    """:return: ``N(0, std)`` noise of ``shape`` from torch's global generator on ``device``, clipped to
-    ``[-clip, clip]`` unless ``clip`` is ``None``"""
+    """:return: ``N(0, std)`` noise of ``shape`` on ``device`` (torch's generator), clipped to ``[-clip, clip]``"""
     eps = th.randn(shape, device=device, dtype=dtype) * std
     if clip is not None:
         eps = eps.clamp(-clip, clip)
@@ -123,13 +108,8 @@ def noisy_action(mean: th.Tensor, eps: th.Tensor) -> th.Tensor:
 
 
 class Critic(nn.Module):
-    """
-    DrQ-v2 twin critic: its own trunk ``Linear -> LayerNorm -> Tanh`` shared by the Q heads ``q1``..``qN``, each
-    ``Linear -> ReLU`` per hidden layer then ``Linear(hidden -> 1)``. The parameters are :class:`Actor`'s (the hidden
-    layers those of each head), and:
-
-    :param n_critics: number of Q heads (DrQ-v2's 2)
-    """
+    """DrQ-v2 twin critic: its own trunk ``Linear -> LayerNorm -> Tanh`` shared by the ``n_critics`` Q heads
+    ``q1``..``qN``, each ``Linear -> activation`` per hidden layer then ``Linear(hidden -> 1)``; else :class:`Actor`."""
 
     features_extractor: nn.Module | None = None  # the policy's encoder, not a submodule (expose_encoder)
 
@@ -146,7 +126,7 @@ class Critic(nn.Module):
     ) -> None:
         super().__init__()
         self.trunk = nn.Sequential(nn.Linear(repr_dim, feature_dim), nn.LayerNorm(feature_dim), nn.Tanh())
-        arch = hidden_layers(net_arch, hidden_dim)
+        arch = actor_critic_arch(net_arch, hidden_dim)[1]
         self.q_names = [f"q{index}" for index in range(1, n_critics + 1)]
         for name in self.q_names:
             setattr(self, name, _q_head(feature_dim + action_dim, arch, activation, leaky_relu_slope))
@@ -204,10 +184,8 @@ def _q_head(
 
 
 def expose_encoder(encoder: nn.Module, *networks: nn.Module) -> None:
-    """
-    Set SB3's ``features_extractor`` of each of ``networks`` to ``encoder`` (a user's extractor itself) as a
-    reference, not a submodule: the encoder's parameters stay once in ``state_dict()``, under ``encoder.``.
-    """
+    """Set SB3's ``features_extractor`` of each of ``networks`` to ``encoder`` (a user's extractor itself), not as a
+    submodule: the encoder's parameters stay once in ``state_dict()``."""
     extractor = encoder.extractor if isinstance(encoder, FeaturesExtractorEncoder) else encoder
     for network in networks:
         network.__dict__["features_extractor"] = extractor  # nn.Module.__setattr__ would register it
@@ -418,17 +396,16 @@ class DrQv2Policy(BasePolicy):
         """:return: the actor's layers after the encoder: the whole actor"""
         return [self.actor]
 
-    @staticmethod
-    def _leaf_modules(module: nn.Module) -> list[nn.Module]:
-        """The modules of ``module`` without children, in registration order (the forward order here)."""
-        return [sub for sub in module.modules() if next(sub.children(), None) is None]
-
     def hidden_layer_parts(self) -> list[LayerParts]:
         """:return: the hidden layers whose units ReDo may recycle: the actor's ``mlp1``.. (not the trunk ``mlp0``),
         then each Q network's ``q<k>.mlp1``.."""
-        parts = sequential_hidden_parts("", self._leaf_modules(self.actor), first=0)
+
+        def leaves(module: nn.Module) -> list[nn.Module]:  # in registration order, the forward order here
+            return [sub for sub in module.modules() if next(sub.children(), None) is None]
+
+        parts = sequential_hidden_parts("", leaves(self.actor), first=0)
         for k, head in enumerate(self.critic.q_networks, start=1):
-            parts += sequential_hidden_parts(f"q{k}.", self._leaf_modules(head))
+            parts += sequential_hidden_parts(f"q{k}.", leaves(head))
         return parts
 
     def encoder_channel_parts(self) -> list[LayerParts]:

@@ -47,13 +47,8 @@ class _Slot:
 
 
 class HostStaging:
-    """
-    Host staging buffers of replay batches and their copy to the device.
-
-    :param device: where the batches go
-    :param pin_memory: page-lock the host buffers (CUDA)
-    :param event_factory: makes the event recorded after each copy (``torch.cuda.Event``); ``None``: none
-    """
+    """Host staging buffers of replay batches (page-locked with ``pin_memory``) and their copy to ``device``, an
+    ``event_factory()`` event (``torch.cuda.Event``) recorded after each copy unless ``None``."""
 
     def __init__(self, device: th.device, pin_memory: bool, event_factory: Callable[[], Any] | None = None) -> None:
         self.device = device
@@ -228,10 +223,8 @@ class ReplayPrefetcher:
     def batches(
         self, replay_buffer: ReplayBuffer, gradient_steps: int, batch_size: int, env: VecNormalize | None = None
     ) -> contextlib.closing[Iterator[Any]]:
-        """
-        :return: the ``gradient_steps`` samples of ``batch_size`` transitions of ``replay_buffer`` on its device
-            (normalized by ``env``), to use as a context manager: the worker has finished when the block ends
-        """
+        """:return: the ``gradient_steps`` samples of ``batch_size`` transitions of ``replay_buffer`` (normalized by
+        ``env``), a context manager: the worker has finished when the block ends"""
         if not self.enabled:
             return contextlib.closing(replay_buffer.sample(batch_size, env=env) for _ in range(gradient_steps))
         return contextlib.closing(self._ahead(replay_buffer, gradient_steps, batch_size, env))

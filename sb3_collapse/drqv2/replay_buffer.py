@@ -144,12 +144,6 @@ class FrameStackReplayBuffer(ReplayBuffer):
         self.transitions_added = 0
         self.resets += 1
 
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        """Unpickle, giving a buffer pickled without the counters the values its ``pos`` and ``full`` imply."""
-        self.__dict__.update(state)
-        self.__dict__.setdefault("transitions_added", self.pos + (self.buffer_size if self.full else 0))
-        self.__dict__.setdefault("resets", 0)
-
     def add(
         self,
         obs: np.ndarray,
@@ -289,13 +283,8 @@ class FrameStackReplayBuffer(ReplayBuffer):
         env: VecNormalize | None = None,
         frames_out: np.ndarray | None = None,
     ) -> dict[str, np.ndarray]:
-        """
-        The n-step transitions at ``(batch_inds, env_indices)`` as host arrays (``ValueError`` if overwritten).
-
-        :param env: ``VecNormalize`` env to normalize with, as in SB3
-        :param frames_out: ``(2, batch, *obs_shape)`` array to gather the observations into (only without ``env``)
-        :return: the fields of ``ReplayBufferSamples`` by name
-        """
+        """:return: the fields of ``ReplayBufferSamples`` by name, host arrays of the n-step transitions at
+        ``(batch_inds, env_indices)``, normalized by ``env`` or gathered into ``frames_out`` (``(2, batch, *obs)``)"""
         if not self.frames_stored(batch_inds, env_indices).all():
             raise ValueError(
                 "Some requested transitions have had their frames overwritten by newer episodes: sample them "

@@ -41,16 +41,12 @@ def default_replay_buffer(
     stacked = isinstance(frame_stack, (int, np.integer)) and frame_stack > 1
     if replay_buffer_class is None and pixel_policy and config.get("obs_type") in (None, "pixels") and stacked:
         replay_buffer_class = FrameStackReplayBuffer
-    defaults: dict[str, Any] = {}
-    if uses_frame_stack_buffer(replay_buffer_class):
-        defaults = {"n_steps": n_steps, "gamma": gamma, "frame_stack": frame_stack}
-    elif replay_buffer_class is not None and issubclass(
-        replay_buffer_class, (NStepReplayBuffer, DictNStepReplayBuffer)
-    ):
-        defaults = {"n_steps": n_steps, "gamma": gamma}
-    for key, value in defaults.items():
-        if key not in replay_buffer_kwargs and value is not None:
-            replay_buffer_kwargs[key] = value
+    n_step_buffers = (FrameStackReplayBuffer, NStepReplayBuffer, DictNStepReplayBuffer)
+    if replay_buffer_class is not None and issubclass(replay_buffer_class, n_step_buffers):
+        replay_buffer_kwargs.setdefault("n_steps", n_steps)
+        replay_buffer_kwargs.setdefault("gamma", gamma)
+        if uses_frame_stack_buffer(replay_buffer_class) and frame_stack is not None:
+            replay_buffer_kwargs.setdefault("frame_stack", frame_stack)
     return replay_buffer_class
 
 

@@ -59,12 +59,8 @@ class ConstructorCallbacks:
         force_reset: bool = True,
         **kwargs: Any,
     ) -> SelfConstructorCallbacks:
-        """
-        SB3's ``load``, with the constructor's callbacks built again unless ``callback=`` is given.
-
-        :param kwargs: saved attributes to override, as in SB3
-        :raises: as :func:`~sb3_collapse.drqv2.checks.check_load_arguments`
-        """
+        """SB3's ``load`` (``kwargs``: saved attributes to override), the constructor's callbacks built again unless
+        ``callback=`` is given; checked first by :func:`~sb3_collapse.drqv2.checks.check_load_arguments`."""
         check_load_arguments(path, kwargs, f"{cls.__name__}.load")
         kwargs = {name: cls.load_parsers.get(name, lambda value: value)(value) for name, value in kwargs.items()}
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[misc]

@@ -49,14 +49,8 @@ class TransplantSource:
 
 
 def check_init_from(init_from: Mapping[str, TransplantSpec] | None) -> dict[str, TransplantSpec]:
-    """
-    Check ``DrQv2``'s ``init_from`` (group -> source) and resolve its paths (reads no file).
-
-    :return: group -> an absolute ``Path`` or the model, in ``TRANSPLANT_GROUPS`` order
-    :raises TypeError: for a non-mapping or a source that is neither a path nor a DrQv2 model
-    :raises ValueError: for an unknown group
-    :raises FileNotFoundError: for a path that does not exist (with or without ``.zip``)
-    """
+    """:return: ``DrQv2``'s ``init_from`` checked, group -> an absolute ``Path`` or the model, in
+    ``TRANSPLANT_GROUPS`` order (reads no file; ``TypeError``, ``ValueError`` or ``FileNotFoundError`` naming it)"""
     if init_from is None:
         return {}
     if not isinstance(init_from, Mapping):
@@ -152,11 +146,9 @@ def read_source_zip(key: str, path: Path) -> TransplantSource:
         load = functools.partial(th.load, map_location="cpu", weights_only=True)
         state_dict = _read_member(where, "policy.pth", lambda: load(io.BytesIO(archive.read("policy.pth"))))
     policy_class = data.get("policy_class")
-    restored = isinstance(policy_class, type) and issubclass(policy_class, DrQv2Policy)
-    if not restored:
+    if not (isinstance(policy_class, type) and issubclass(policy_class, DrQv2Policy)):
         raise ValueError(f"{where}: its policy class could not be restored as a DrQv2Policy (got {policy_class!r}).")
-    tensors = isinstance(state_dict, dict) and all(isinstance(v, th.Tensor) for v in state_dict.values())
-    if not tensors:
+    if not (isinstance(state_dict, dict) and all(isinstance(v, th.Tensor) for v in state_dict.values())):
         raise ValueError(f"{where}: policy.pth is not a state_dict of tensors; is the file corrupt?")
     settings = policy_settings(
         policy_class, data.get("policy_kwargs") or {}, data.get("observation_space"), data.get("action_space")
@@ -188,10 +180,8 @@ def _constructor_default(cls: type, name: str) -> Any:
 def policy_settings(
     policy_class: type[DrQv2Policy], policy_kwargs: Mapping[str, Any], observation_space: Any, action_space: Any
 ) -> dict[str, Any]:
-    """
-    :return: the settings that shape a DrQv2 policy's weights, defaults filled in: ``{"policy", "observation shape",
-        "action dimensions", "feature_dim", "hidden_dim", "encoder channels", "channels_last"}``
-    """
+    """:return: the settings that shape a DrQv2 policy's weights (``"policy"``, ``"feature_dim"``...), defaults
+    filled in"""
 
     def kwarg(name: str) -> Any:
         return policy_kwargs[name] if name in policy_kwargs else _constructor_default(policy_class, name)
@@ -257,12 +247,6 @@ def group_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
     return [key for key in keys if key.startswith(TRANSPLANT_GROUPS[group])]
 
 
-def group_source_keys(keys: list[str] | Mapping[str, Any], group: str) -> list[str]:
-    """:return: the source ``state_dict`` keys among ``keys`` that ``group`` copies from, in order"""
-    prefixes = tuple(dict.fromkeys(SOURCE_PREFIXES.get(prefix, prefix) for prefix in TRANSPLANT_GROUPS[group]))
-    return [key for key in keys if key.startswith(prefixes)]
-
-
 def source_key(target_key: str) -> str:
     """The source ``state_dict`` key copied into ``target_key`` (``critic_target.X`` <- ``critic.X``)."""
     for target_prefix, source_prefix in SOURCE_PREFIXES.items():
@@ -272,13 +256,8 @@ def source_key(target_key: str) -> str:
 
 
 def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]) -> dict[str, th.Tensor]:
-    """
-    Check a transplant of ``sources`` into ``policy``; changes nothing.
-
-    :return: target ``state_dict`` key -> the source tensor to copy into it
-    :raises ValueError: for a group this model or a source lacks, keys, shapes or dtypes that differ, or trunks
-        that would read the encoder's output in another order (``channels_last``)
-    """
+    """:return: target ``state_dict`` key -> the source tensor to copy into it, a transplant of ``sources`` into
+    ``policy`` checked (``ValueError`` for a group either lacks, other keys, shapes, dtypes or ``channels_last``)"""
     target_state = policy.state_dict()
     settings = target_settings(policy)
     plan: dict[str, th.Tensor] = {}
@@ -293,7 +272,8 @@ def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]
                 + (" (MlpPolicy has no CNN encoder)." if group == "cnn" else ".")
             )
         wanted = {source_key(key) for key in targets}
-        offered = set(group_source_keys(source.state_dict, group))
+        source_prefixes = tuple({source_key(prefix) for prefix in TRANSPLANT_GROUPS[group]})
+        offered = {key for key in source.state_dict if key.startswith(source_prefixes)}
         if not offered:
             raise ValueError(
                 f"{where}: the source ({source.settings['policy']}) has no {group!r} weights"

@@ -28,16 +28,8 @@ _UNDERSCORE_NAMES: dict[str, tuple[str, str]] = {  # DrQ-v2's names ("walker_wal
 
 @dataclass(frozen=True)
 class RewardInput:
-    """
-    A quantity that a task's reward function (``Task.get_reward``) reads: a ``Physics`` method's value, or one element.
-
-    :param name: the quantity's name (``"torso_height"``)
-    :param method: the ``Physics`` method that the reward function calls (``"torso_height"``)
-    :param index: the element of the method's output that the reward reads; ``None``: all of it, flattened
-    :param args: the method's arguments (stacker's ``site_distance("grasp", "target")``)
-    :param state: whether it is a state component (a probing target); ``False`` for the control (the action)
-    :param doc: what it is
-    """
+    """A quantity ``name`` that a task's reward function reads: the value of the ``Physics`` method ``method`` called
+    with ``args``, or its element ``index``; ``state``: a state component (a probing target), not the control."""
 
     name: str
     method: str
@@ -47,10 +39,7 @@ class RewardInput:
     doc: str = ""
 
     def value(self, physics: Any) -> np.ndarray:
-        """
-        :param physics: the task's ``Physics``
-        :return: ``(size,)`` float64, what the reward function reads (a copy)
-        """
+        """:return: ``(size,)`` float64, what the reward function reads of ``physics`` (a copy)"""
         value = np.array(getattr(physics, self.method)(*self.args), dtype=np.float64).reshape(-1)
         return value[[self.index]] if self.index is not None else value
 
@@ -64,7 +53,7 @@ def _read(name: str, doc: str, method: str | None = None, index: int | None = No
 
 
 def _site_distance(site1: str, site2: str) -> RewardInput:
-    """:return: the distance between two sites (``Physics.site_distance(site1, site2)``)."""
+    """:return: ``Physics.site_distance(site1, site2)``"""
     return RewardInput(f"{site1}_to_{site2}", "site_distance", args=(site1, site2), doc=f"{site1} to {site2} distance")
 
 
@@ -163,11 +152,7 @@ REWARD_INPUTS: dict[str, tuple[RewardInput, ...]] = {
 
 
 def reward_inputs_of(domain: str, task: str) -> tuple[RewardInput, ...]:
-    """
-    :param domain: the domain (``"walker"``)
-    :param task: the task (``"walk"``)
-    :return: every quantity the task's reward reads (:data:`REWARD_INPUTS`), the control included; empty if none
-    """
+    """:return: every quantity the reward of ``domain``-``task`` reads (:data:`REWARD_INPUTS`), control included"""
     return REWARD_INPUTS.get(f"{domain}-{task}", ())
 
 
@@ -197,26 +182,16 @@ def parse_task(name: str) -> tuple[str, str]:
 
 
 def scale_action(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """
-    Clip an action to [-1, 1] and map it linearly onto [low, high] (as dm_control's ``action_scale`` wrapper).
-
-    :param action: action with components in [-1, 1] (values outside are clipped)
-    :param low: lower bounds of the task's actions
-    :param high: upper bounds of the task's actions
-    :return: the rescaled action, float64 (bounds of [-1, 1] leave it unchanged, bit for bit)
-    """
+    """:return: ``action`` clipped to [-1, 1] and mapped linearly onto [``low``, ``high``], float64 (as dm_control's
+    ``action_scale`` wrapper; bounds of [-1, 1] leave it unchanged, bit for bit)"""
     action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
     return (high - low) / 2.0 * action + (high + low) / 2.0
 
 
 class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
-    """
-    A DeepMind Control Suite task with DrQ-v2 preprocessing: observations ``uint8`` ``(3 * frame_stack, size,
-    size)``, the last renders, oldest first; actions in [-1, 1]; ``info["frames"]``. See docs/environments.md.
-
-    :param render_mode: "rgb_array" (:meth:`render` returns the last render) or None; the other parameters are
-        :func:`make_dmc_env`'s
-    """
+    """A DeepMind Control Suite task with DrQ-v2 preprocessing (docs/environments.md): observations ``uint8``
+    ``(3 * frame_stack, size, size)``, the last renders, oldest first; actions in [-1, 1]; ``info["frames"]``.
+    The parameters are :func:`make_dmc_env`'s, and ``render_mode``: "rgb_array" (:meth:`render`) or None."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
@@ -317,11 +292,7 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         self.action_space.np_random.bit_generator.state = state["action_space"]
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """
-        :param seed: if given, reseed the task's random initial states and the action space with it
-        :param options: unused
-        :return: the first observation, and info with ``frames`` = 0
-        """
+        """:return: the first observation and info with ``frames`` = 0; a ``seed`` reseeds the task and action space"""
         super().reset(seed=seed)
         if seed is not None:
             self._dmc._env.task._random = np.random.RandomState(seed)
@@ -333,11 +304,8 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         return self._observation(), {"frames": 0}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        """
-        :param action: action in [-1, 1] (clipped), applied for ``action_repeat`` frames (fewer if the episode ends)
-        :return: observation, reward (summed over the frames, discounted by dm_control's discounts), terminated,
-            truncated, and info with ``frames``: frames since the reset
-        """
+        """Apply ``action`` (in [-1, 1], clipped) for ``action_repeat`` frames (fewer if the episode ends); the reward
+        is summed over them with dm_control's discounts, info's ``frames`` counts frames since the reset."""
         if self._dmc_observation is None:
             raise RuntimeError("Call reset() before step().")
         action = np.asarray(action)
@@ -388,7 +356,7 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
 def check_env_arguments(
     action_repeat: int, frame_stack: int, size: int, obs_type: str = "pixels", render_mode: str | None = None
 ) -> None:
-    """Raise a ``ParameterError`` for invalid :class:`DMCEnv` arguments (its docstring), before building one."""
+    """Raise a ``ParameterError`` for invalid :class:`DMCEnv` arguments, before building one."""
     for name, value in (("action_repeat", action_repeat), ("frame_stack", frame_stack), ("size", size)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ParameterError(name, f"{name} must be an integer >= 1, got {value!r}.")
@@ -407,8 +375,7 @@ def make_dmc_env(
     camera_id: int | None = None,
     obs_type: str = "pixels",
 ) -> DMCEnv:
-    """
-    A DeepMind Control Suite task with DrQ-v2 preprocessing.
+    """A DeepMind Control Suite task with DrQ-v2 preprocessing, a :class:`DMCEnv`.
 
     :param task: task name, e.g. "walker-walk", "walker_walk" or "cup-catch" (see :func:`parse_task`)
     :param seed: seed of the task's random initial states and of the action space; None for a random one
@@ -417,6 +384,5 @@ def make_dmc_env(
     :param size: height and width of the renders, in pixels
     :param camera_id: camera of the renders; None for DrQ-v2's choice (2 for quadruped, 0 otherwise)
     :param obs_type: "pixels" for stacked renders, "state" for the vectorized true state
-    :return: the :class:`DMCEnv`
     """
     return DMCEnv(task, seed, action_repeat, frame_stack, size, camera_id, obs_type)

@@ -35,26 +35,17 @@ DMC_TASKS: tuple[tuple[str, str], ...] = (
 DOMAIN_ALIASES: dict[str, str] = {"cup": "ball_in_cup"}  # short domain names, as in DrQ-v2 ("cup_catch")
 DOMAIN_NAMES: dict[str, str] = {**{domain: domain for domain, _ in DMC_TASKS}, **DOMAIN_ALIASES}  # name -> domain
 
-ENV_NAMESPACE = "sb3_collapse"
 ENTRY_POINT = "sb3_collapse.envs.dmc:DMCEnv"
 
 
 def dmc_env_id(task_id: str) -> str:
-    """
-    :param task_id: task name in the ``<domain>-<task>`` form, e.g. "walker-walk"
-    :return: its Gymnasium id, e.g. "sb3_collapse/walker-walk-v0"
-    """
-    return f"{ENV_NAMESPACE}/{task_id}-v0"
+    """:return: the Gymnasium id of a ``<domain>-<task>`` name, e.g. ``sb3_collapse/walker-walk-v0``"""
+    return f"sb3_collapse/{task_id}-v0"
 
 
 def register_dmc_envs() -> list[str]:
-    """
-    Register a Gymnasium id for every suite task and alias (``sb3_collapse/cup-catch-v0``), idempotent; no
-    ``TimeLimit`` (the env truncates itself). The forkserver then imports ``sb3_collapse.envs``, so that
-    ``SubprocVecEnv`` workers know the ids (when it starts after this call).
-
-    :return: the ids registered by this call (empty if they were all already registered)
-    """
+    """Register a Gymnasium id (no ``TimeLimit``: the env truncates itself) for every suite task and alias, and
+    have the forkserver import ``sb3_collapse.envs`` for ``SubprocVecEnv``. :return: the ids new to this call"""
     registered = []
     for name, domain, task in [
         (name, d, task) for name, d in DOMAIN_NAMES.items() for d2, task in DMC_TASKS if d2 == d

@@ -1,7 +1,5 @@
-"""The headless OpenGL backend of MuJoCo / dm_control rendering, chosen by an explicit call,
-:func:`ensure_rendering_backend`, before dm_control is imported (it reads ``MUJOCO_GL`` once). See
-docs/environments.md.
-"""
+"""The headless OpenGL backend of MuJoCo rendering, chosen by :func:`ensure_rendering_backend` before dm_control is
+imported (it reads ``MUJOCO_GL`` once). See docs/environments.md."""
 
 from __future__ import annotations
 
@@ -28,9 +26,9 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
     are tried, each in a subprocess, once per process, and the first that works is exported as ``MUJOCO_GL`` and
     ``PYOPENGL_PLATFORM``. Call it before ``dm_control`` or ``mujoco`` is imported.
 
-    :param required: whether rendering is needed (pixel observations); if False, return None when no backend works
-    :return: the backend in use (``MUJOCO_GL``), or None if none works and ``required`` is False
-    :raises MissingDependencyError: if no backend works and ``required`` is True
+    :param required: whether rendering is needed (pixel observations): if no backend works, ``MissingDependencyError``
+        if True, else None is returned
+    :return: the backend in use (``MUJOCO_GL``)
     """
     global _chosen_backend, _failure_report
 
@@ -72,11 +70,8 @@ def ensure_rendering_backend(required: bool = True) -> str | None:
 
 
 def _backend_works(backend: str, timeout: float = CONTEXT_CHECK_TIMEOUT_S) -> tuple[bool, str]:
-    """
-    :param backend: value tried for ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` ("egl" or "osmesa")
-    :param timeout: seconds to wait for the subprocess that creates an OpenGL context
-    :return: whether the backend works, and the subprocess' stderr
-    """
+    """:return: whether an OpenGL context is made in a subprocess with ``backend`` as ``MUJOCO_GL`` (within
+    ``timeout`` seconds), and its stderr"""
     env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
     try:
         command = [sys.executable, "-c", CONTEXT_CHECK_CODE]

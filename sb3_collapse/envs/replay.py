@@ -11,11 +11,8 @@ from stable_baselines3.common.vec_env import VecEnv
 
 
 class EpisodeReplay(gym.Wrapper):
-    """
-    Records the episode in progress (the reset's seed or random state, the actions since) for :meth:`replay_episode`.
-
-    :param env: the environment; ``env.unwrapped`` must have ``get_rng_state`` and ``set_rng_state``
-    """
+    """Records the episode in progress (the reset's seed or random state, the actions since) for
+    :meth:`replay_episode`; ``env.unwrapped`` must have ``get_rng_state`` and ``set_rng_state``."""
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
@@ -42,13 +39,8 @@ class EpisodeReplay(gym.Wrapper):
         return {**self._record, "actions": [action.copy() for action in self._actions]}
 
     def replay_episode(self, record: dict[str, Any] | None) -> Any:
-        """
-        Reset as the recorded episode was reset, then take its actions again.
-
-        :param record: an :meth:`episode_record`; ``None`` (never reset) does nothing
-        :return: the observation after the last action; ``None`` for ``None``
-        :raises RuntimeError: if the episode ends during the replay
-        """
+        """Reset as the :meth:`episode_record` ``record`` was, then take its actions again (``RuntimeError`` if the
+        episode ends before). :return: the observation after the last action; ``None`` for a ``None`` record"""
         if record is None:
             return None
         if record["seed"] is None:
@@ -62,19 +54,12 @@ class EpisodeReplay(gym.Wrapper):
 
 
 def episode_records(venv: VecEnv) -> list[dict[str, Any] | None]:
-    """
-    :param venv: environments each wrapped (outermost) in :class:`EpisodeReplay`
-    :return: each environment's :meth:`EpisodeReplay.episode_record`
-    """
+    """:return: the :meth:`EpisodeReplay.episode_record` of each environment of ``venv``"""
     return list(venv.env_method("episode_record"))
 
 
 def replay_episodes(venv: VecEnv, records: list[dict[str, Any] | None]) -> list[Any]:
-    """
-    :param venv: environments built as those that were recorded, each wrapped (outermost) in :class:`EpisodeReplay`
-    :param records: :func:`episode_records` of the recorded ones
-    :return: each environment's observation after its :meth:`EpisodeReplay.replay_episode`
-    """
+    """:return: each environment's observation after replaying its record of :func:`episode_records`' ``records``"""
     if len(records) != venv.num_envs:
         raise ValueError(f"{len(records)} episode records for {venv.num_envs} environments.")
     return [venv.env_method("replay_episode", record, indices=[index])[0] for index, record in enumerate(records)]

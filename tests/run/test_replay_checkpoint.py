@@ -1,7 +1,6 @@
 import errno
 import json
 import os
-import pickle
 import subprocess
 import sys
 
@@ -368,16 +367,6 @@ def test_chunk_names_are_never_reused(tmp_path):
     first = ReplayStore(tmp_path).save(buffer)
     second = ReplayStore(tmp_path).save(buffer)  # another store: a full save, new names
     assert not {chunk["file"] for chunk in first["chunks"]} & {chunk["file"] for chunk in second["chunks"]}
-
-
-def test_unpickled_old_buffer_gets_consistent_counters():
-    buffer = make_buffer(buffer_size=20)
-    Stream(1, seed=10).add([buffer], 27)
-    state = pickle.loads(pickle.dumps(buffer)).__dict__
-    del state["transitions_added"], state["resets"]
-    old = FrameStackReplayBuffer.__new__(FrameStackReplayBuffer)
-    old.__setstate__(state)
-    assert old.transitions_added == 20 + 7 and old.resets == 0  # pos 7, full: one ring earlier
 
 
 @settings(max_examples=25, deadline=None)
