@@ -37,14 +37,8 @@ def check_film_arguments(frames: int, size: int, every_frames: int) -> None:
 
 
 def plot_filmstrip(films: Sequence[Film], path: Path, every_frames: int = STRIP_EVERY_FRAMES, title: str = "") -> None:
-    """
-    The filmstrip: per film, a picture every ``every_frames`` frames and, under it, each action dimension.
-
-    :param films: the films (one row each)
-    :param path: the PNG file to write
-    :param every_frames: frames between two pictures
-    :param title: the figure's title
-    """
+    """The filmstrip to ``path``: a row per film, a picture every ``every_frames`` frames and, under it, each action
+    dimension."""
     picks = [_one_per_period(f.frames, every_frames) for f in films]
     columns = max(len(pick) for pick in picks)
     thumb = 1.15  # inches per picture: the strip's frame axis spans columns x every_frames frames

@@ -36,12 +36,7 @@ pre { background: #f6f6f6; padding: 0.6em; white-space: pre-wrap; font-size: 0.8
 
 @dataclass
 class Section:
-    """
-    One section of the page.
-
-    :param title: its heading (and entry in the table of contents)
-    :param parts: its HTML fragments, in order
-    """
+    """One section of the page: its heading (and entry in the table of contents) and its HTML fragments."""
 
     title: str
     parts: list[str] = field(default_factory=list)
@@ -119,12 +114,7 @@ def settings_table(settings: Mapping[str, Any], caption: str | None = None) -> s
 
 
 def html_page(title: str, sections: Sequence[Section], subtitle: str | None = None) -> str:
-    """
-    :param title: the page title
-    :param sections: its sections, with a table of contents at the top
-    :param subtitle: a line under the title
-    :return: the HTML document
-    """
+    """:return: the HTML document: ``title``, ``subtitle``, a table of contents, then the ``sections``"""
     created = datetime.now(timezone.utc).isoformat(timespec="seconds")
     contents = "".join(f'<li><a href="#{s.anchor}">{html.escape(s.title)}</a></li>' for s in sections)
     body = "".join(

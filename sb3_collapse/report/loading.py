@@ -145,10 +145,7 @@ class Sweep:
 
 
 def variant_order(variants: Iterable[str]) -> list[str]:
-    """
-    :param variants: variant names
-    :return: the names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted
-    """
+    """:return: the variant names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted"""
     first = {"drqv2": 0, "drqv2+reset": 1}
     return sorted(set(variants), key=lambda name: (first.get(name, 2), name))
 
@@ -156,19 +153,8 @@ def variant_order(variants: Iterable[str]) -> list[str]:
 def load_trial(
     task: str, variant: str, seed: int, path: Path, collapse_tag: str = DEFAULT_COLLAPSE_TAG, partial: bool = False
 ) -> Trial:
-    """
-    Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted, not raised).
-
-    :param task: task folder name
-    :param variant: variant folder name
-    :param seed: seed of the folder
-    :param path: the trial folder
-    :param collapse_tag: the collapse metric to read
-    :param partial: read the evaluation curve of an unfinished trial too
-    :return: the trial
-    :raises InputError: naming the file, when a file of a finished trial (or any result file) is malformed: its
-        ``resets`` not an integer >= 0, ``escaped`` not a bool or null, another version
-    """
+    """Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted).
+    :raises InputError: naming the file, when a finished trial's file (or any result file) is malformed."""
     result = read_result(path, strict=True)
     finished = result is not None and result.get("status") == FINISHED
     status = RunStatus.FINISHED if finished else run_status(path)
