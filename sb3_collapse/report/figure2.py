@@ -177,10 +177,8 @@ def stage_table_rows(curves: Sequence[PanelCurve], budget_frames: int | None = N
 
 
 def stage_panels(table_rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, list[str], list[list[Any]]]]:
-    """
-    :param table_rows: :func:`stage_table_rows`, or the rows of its CSV file
-    :return: Tables 1-6, numbered ones first: ``(title, header, rows)``, a row per layer with its std per stage
-    """
+    """:return: Tables 1-6 of :func:`stage_table_rows` (or its CSV), numbered first: ``(title, header, rows)``, a row
+    per layer with its std per stage"""
     panels: dict[tuple[str, str, str], list[Mapping[str, Any]]] = defaultdict(list)
     for r in table_rows:
         panels[(str(r["table"]), r["row"], r["column"])].append(r)

@@ -59,11 +59,7 @@ def bullet_list(items: Iterable[str]) -> str:
 
 
 def figure(png: str | Path, caption: str) -> str:
-    """
-    :param png: a PNG file, embedded as base64
-    :param caption: what the figure shows (also its alt text)
-    :return: ``<figure>`` with the image and caption
-    """
+    """:return: ``<figure>`` with the PNG file ``png`` embedded as base64 and ``caption`` (also its alt text)"""
     data = base64.b64encode(Path(png).read_bytes()).decode("ascii")
     alt = html.escape(caption, quote=True)
     return (
@@ -85,13 +81,8 @@ def _cell(value: Any) -> str:
 def table(
     header: Sequence[str], rows: Iterable[Sequence[Any]], caption: str | None = None, css_class: str | None = None
 ) -> str:
-    """
-    :param header: column names
-    :param rows: cells (``None``, ``""`` and nan shown as ``-``, floats with 4 significant digits)
-    :param caption: the table's caption
-    :param css_class: the table's class
-    :return: ``<table>`` in a horizontally scrolling ``<div>``
-    """
+    """:return: ``<table>`` in a horizontally scrolling ``<div>`` (cells ``None``, ``""`` and nan shown as ``-``,
+    floats with 4 significant digits)"""
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(_cell(c))}</td>" for c in row) + "</tr>" for row in rows)
     title = f"<caption>{html.escape(caption)}</caption>" if caption else ""

@@ -34,15 +34,8 @@ Item = TypeVar("Item")
 
 
 def progress_bar(items: Iterable[Item], desc: str, unit: str, progress: bool = True) -> Iterable[Item]:
-    """
-    A progress bar on a terminal; on any other stderr one line ``desc: N units`` instead (no bar frames).
-
-    :param items: what is iterated over
-    :param desc: the stage's name
-    :param unit: what one item is
-    :param progress: show the progress at all
-    :return: the items
-    """
+    """:return: ``items`` behind a progress bar on a terminal; on another stderr one line ``desc: N units`` instead
+    (nothing without ``progress``)"""
     items = list(items)
     if progress and sys.stderr.isatty():
         return tqdm(items, desc=desc, unit=unit)

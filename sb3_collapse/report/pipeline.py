@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sb3_collapse.errors import InputError
-from sb3_collapse.presets import preset
+from sb3_collapse.presets import TaskPreset, preset
 from sb3_collapse.probe.fixed_inputs import FixedInputs, FixedMetrics
 from sb3_collapse.protocol import (
     CONFIG_JSON,
@@ -41,16 +41,11 @@ GRID_PNG = "transplant_grid.png"
 FIGURE3B_PNG = "figure3b.png"
 TABLE7_CSV = "table7.csv"
 TABLE7_MD = "table7.md"
-COLLAPSE_PNG = "collapse_metrics_{task}_{variant}.png"
-"""Figures 4, 8, 9 of one task and variant on the fixed probing set."""
-COLLAPSE_FIXED_CSV = "collapse_metrics_{task}_{variant}.csv"
-"""The values of :data:`COLLAPSE_PNG`."""
-COLLAPSE_ONLINE_PNG = "collapse_metrics_online_{task}_{variant}.png"
-"""The same agents' online metrics (their own replay batches)."""
-COLLAPSE_AGENTS_CSV = "collapse_agents.csv"
-"""The agents of Figures 4, 8, 9 (:data:`AGENTS_COLUMNS`)."""
-RUN_COLLAPSE_PNG = "collapse_metrics.png"
-"""Figure 4 of a single run folder."""
+COLLAPSE_PNG = "collapse_metrics_{task}_{variant}.png"  # Figures 4, 8, 9 on the fixed probing set
+COLLAPSE_FIXED_CSV = "collapse_metrics_{task}_{variant}.csv"  # their values
+COLLAPSE_ONLINE_PNG = "collapse_metrics_online_{task}_{variant}.png"  # on the agents' own replay batches
+COLLAPSE_AGENTS_CSV = "collapse_agents.csv"  # the agents of Figures 4, 8, 9 (AGENTS_COLUMNS)
+RUN_COLLAPSE_PNG = "collapse_metrics.png"  # Figure 4 of a single run folder
 _PATTERNS = tuple(
     name.format(task="*", variant="*") for name in (COLLAPSE_PNG, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG)
 )
@@ -70,20 +65,7 @@ TRANSPLANT_NOTE = (
     + " produce {them} (python -m sb3_collapse.sweep --transplant-grid runs all nine)"
 )
 """The note of a report without Figure 3 and Table 7."""
-PRESET_COLUMNS = (
-    "tier",
-    "from_drqv2",
-    "frames",
-    "action_repeat",
-    "frame_stack",
-    "batch_size",
-    "learning_rate",
-    "n_steps",
-    "feature_dim",
-    "hidden_dim",
-    "stddev_schedule",
-    "eval_every_frames",
-)
+PRESET_COLUMNS = tuple(f.name for f in dataclasses.fields(TaskPreset) if f.name != "task")
 """The preset settings shown on the page, per task."""
 
 
@@ -232,18 +214,9 @@ def collapse_figures(
     collapse_settings: collapse_figure.FixedInputSettings,
     progress: bool = False,
 ) -> None:
-    """
-    Fill the report's Figures 4, 8, 9 per task and variant that is not a transplant cell: the picked agents, their
-    online rows, and their rows on the fixed probing set where the rollouts and snapshots are there (else a note).
-    A given rollouts file serves the tasks it was recorded on; the others read ``probe sweep``'s rollouts of
-    ``collapse_settings.rollouts_variant`` (each variant's own when ``None``). See docs/figures.md.
-
-    :param report: the report being built (``collapse*`` fields and ``notes`` are filled)
-    :param settings: the report's definitions (``success_return``)
-    :param collapse_settings: the pick's seed, the fixed set and where the checkpoints run
-    :param progress: progress bars over the checkpoints
-    :raises InputError: for a bad setting, an unreadable given rollouts file, or a checkpoint that does not fit
-    """
+    """Fill the report's ``collapse*`` fields (Figures 4, 8, 9) per task and variant that is not a transplant cell:
+    the picked agents, their online rows, and their rows on the fixed probing set where the rollouts and snapshots
+    are there (else a note in ``notes``). See docs/figures.md."""
     collapse_settings.validate()
     sweep = report.sweep
     given = None if collapse_settings.rollouts is None else collapse_settings.load(collapse_settings.rollouts)
@@ -437,15 +410,8 @@ def _tables_1_6(path: Path) -> list[str]:
 
 
 def sweep_page(report: Report, settings: stats.ReportSettings, png: Callable[[str], Path]) -> str:
-    """
-    The report's ``index.html``: the headline, the settings, the table, the unfinished trials, Figure 5 and the
-    published reference, Figures 4/8/9, Figure 2 and Tables 1-6, Figure 3 and Table 7.
-
-    :param report: the computed report
-    :param settings: its definitions
-    :param png: name of a written figure -> its path
-    :return: the HTML text
-    """
+    """:return: the report's ``index.html`` (``png``: name of a written figure -> its path): the headline, settings,
+    table, unfinished trials, Figure 5 and the reference, Figures 4/8/9, 2, Tables 1-6, Figure 3 and Table 7"""
     sweep, low, high = report.sweep, *settings.percentiles
     top = html.Section("The paper's headline beside this sweep's")
     top.parts += [
@@ -545,18 +511,9 @@ def write_run_report(
     overwrite: bool = False,
     layers: Sequence[str] = collapse_figure.FIGURE4_LAYERS,
 ) -> tuple[Trial, list[Path]]:
-    """
-    The report of one run folder of ``python -m sb3_collapse.train``: its Figure 4 (``collapse_metrics.png``, the
-    online metrics, resets marked) and ``index.html`` with it and the run's settings; an unfinished run is drawn
-    as far as its files go.
-
-    :param run_dir: the run folder
-    :param out: the output folder (``<run_dir>/report`` when ``None``)
-    :param overwrite: replace the outputs of a previous report
-    :param layers: the layers drawn
-    :return: the run (as a trial) and the written files
-    :raises InputError: when the folder is not a run folder or a file is malformed
-    """
+    """The report of one run folder of the train CLI into ``out`` (``<run_dir>/report`` when ``None``): its online
+    Figure 4 (``collapse_metrics.png``) and ``index.html`` with the run's settings, as far as its files go.
+    :return: the run (as a trial) and the written files (:raises InputError: not a run folder, a malformed file)"""
     out_dir = Path(run_dir) / REPORT_FOLDER if out is None else Path(out)
     staged_outputs = StagedOutputs(out_dir, RUN_OUTPUT_FILES, html.INDEX_HTML, overwrite=overwrite, error=InputError)
     trial = collapse_figure.run_folder_trial(run_dir)
