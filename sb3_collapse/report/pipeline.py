@@ -315,20 +315,12 @@ def write_report(
     collapse_settings: collapse_figure.FixedInputSettings | None = None,
 ) -> Report:
     """
-    The report of a sweep folder (:func:`build_report`), written to ``out``: staged, moved in only when every file
-    is written; outputs of a previous report that this one does not write are removed. Every file:
-    docs/figures.md and docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
+    The report of a sweep folder (:func:`build_report`, whose parameters it shares), written to ``out``: staged,
+    moved in only when every file is written; outputs of a previous report that this one does not write are removed.
+    Every file: docs/figures.md and docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
 
-    :param sweep_dir: the sweep folder
     :param out: the output folder (``<sweep_dir>/report`` when ``None``)
-    :param settings: the definitions (:class:`stats.ReportSettings` defaults when ``None``)
-    :param reference: overlay the published DrQ-v2 curves
-    :param include_unfinished: draw the partial curves of unfinished trials
-    :param tasks: only these tasks
-    :param variants: only these variants
-    :param progress: show the progress of the long stages
     :param overwrite: replace the outputs of a previous report in ``out`` (else an error, before the sweep is read)
-    :param collapse_settings: Figures 4, 8, 9 (:class:`collapse_figure.FixedInputSettings` defaults when ``None``)
     :return: the report, with ``files`` the written paths
     :raises InputError: on a bad folder or setting; nothing is written then
     """
