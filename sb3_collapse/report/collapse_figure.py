@@ -21,13 +21,11 @@ from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.probe.fixed_inputs import FIXED_SAMPLES, FixedInputs, FixedMetrics, fixed_metrics, load_fixed_inputs
-from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
 from sb3_collapse.protocol import (
     COLLAPSE_EVENTS_CSV,
     COLLAPSE_METRICS_CSV,
     CONFIG_JSON,
     EVAL_CSV,
-    SWEEP_PROBE_DIR,
     snapshot_files,
 )
 from sb3_collapse.report.headline import BASELINE_VARIANT
@@ -149,14 +147,6 @@ def pick_paper_agents(
     return picks
 
 
-def layer_widths(trial: Trial, layers: Sequence[str]) -> dict[str, int]:
-    """:return: layer -> units of ``layers``, from the settings (``feature_dim``: mlp0, ``hidden_dim``: mlp1, 2)"""
-    config_path = trial.path / CONFIG_JSON
-    config = read_json(config_path) if config_path.is_file() else {}
-    sizes = {"mlp0": config.get("feature_dim"), "mlp1": config.get("hidden_dim"), "mlp2": config.get("hidden_dim")}
-    return {layer: int(sizes[layer]) for layer in layers if isinstance(sizes.get(layer), int)}
-
-
 def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS) -> list[AgentMetrics]:
     """:return: one row of the online figure per pick (:func:`agent_metrics` of its trial)"""
     return [
@@ -168,7 +158,10 @@ def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE
 def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYERS) -> AgentMetrics:
     """:return: the row of ``trial``: its collapse metrics of ``layers`` and events (:raises InputError: malformed)"""
     tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
-    agent = AgentMetrics(trial, role, widths=layer_widths(trial, layers))
+    config = read_json(trial.path / CONFIG_JSON) if (trial.path / CONFIG_JSON).is_file() else {}
+    sizes = {"mlp0": config.get("feature_dim"), "mlp1": config.get("hidden_dim"), "mlp2": config.get("hidden_dim")}
+    widths = {layer: int(sizes[layer]) for layer in layers if isinstance(sizes.get(layer), int)}
+    agent = AgentMetrics(trial, role, widths=widths)
     metrics_path = trial.path / COLLAPSE_METRICS_CSV
     if metrics_path.exists():
         agent.metrics = read_collapse_metrics(metrics_path, tags)
@@ -317,14 +310,6 @@ def is_run_folder(path: str | Path) -> bool:
     return (path / CONFIG_JSON).is_file() and (path / EVAL_CSV).is_file()
 
 
-def run_title(trial: Trial) -> str:
-    """The title of a single run's Figure 4 (online metrics: its replay batches)."""
-    return (
-        f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})\n"
-        f"on {ONLINE_INPUTS}"
-    )
-
-
 @dataclass
 class FixedInputSettings:
     """
@@ -374,11 +359,6 @@ class FixedInputSettings:
             return load_fixed_inputs(path, self.fixed_samples, self.sample_seed)
         except InputError as error:
             raise InputError(str(error), parameter="rollouts") from error
-
-
-def default_rollouts(sweep_dir: str | Path, task: str, variant: str) -> Path:
-    """:return: the rollouts file of ``probe sweep`` for a task and variant of a sweep"""
-    return Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) / ROLLOUTS_NAME
 
 
 FIXED_METRICS = ("numerical_rank", "correlation", "dead_units")

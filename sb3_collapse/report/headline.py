@@ -96,11 +96,6 @@ def figure5_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = P
     return curves
 
 
-def figure5_unfinished(sweep: Sweep, task: str) -> list[Trial]:
-    """:return: the unfinished trials of ``task`` that Figure 5 may draw (no transplant-grid cells)"""
-    return [t for t in sweep.unfinished if t.task == task and transplant_sources(t.variant) is None]
-
-
 @dataclass
 class Proportion:
     """``count`` seeds of ``total``, with the Wilson ``interval`` of the fraction."""

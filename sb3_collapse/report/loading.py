@@ -26,8 +26,6 @@ from sb3_collapse.runfolder import (
     trial_folders,
 )
 
-DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
-"""The collapse metric that decides "stuck in action collapse" (the reset rule's)."""
 WAY_OUT = "move the folder aside to train this seed again"
 """What a damaged trial's reason ends with."""
 Item = TypeVar("Item")
@@ -144,7 +142,7 @@ def variant_order(variants: Iterable[str]) -> list[str]:
 
 
 def load_trial(
-    task: str, variant: str, seed: int, path: Path, collapse_tag: str = DEFAULT_COLLAPSE_TAG, partial: bool = False
+    task: str, variant: str, seed: int, path: Path, collapse_tag: str = PAPER.collapse_tag, partial: bool = False
 ) -> Trial:
     """Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted).
     :raises InputError: naming the file, when a finished trial's file (or any result file) is malformed."""
@@ -182,7 +180,7 @@ def load_trial(
 
 def load_sweep(
     sweep: str | Path,
-    collapse_tag: str = DEFAULT_COLLAPSE_TAG,
+    collapse_tag: str = PAPER.collapse_tag,
     include_unfinished: bool = False,
     tasks: Iterable[str] | None = None,
     variants: Iterable[str] | None = None,

@@ -13,6 +13,7 @@ from pathlib import Path
 from sb3_collapse.errors import InputError
 from sb3_collapse.presets import TaskPreset, preset
 from sb3_collapse.probe.fixed_inputs import FixedInputs, FixedMetrics
+from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
 from sb3_collapse.protocol import (
     CONFIG_JSON,
     FIGURE2_PNG,
@@ -52,8 +53,6 @@ _PATTERNS = tuple(
 OUTPUT_FILES = (FIGURE5_PNG, SUMMARY_CSV, GRID_CSV, GRID_MD, GRID_PNG, FIGURE3B_PNG, TABLE7_CSV, TABLE7_MD)
 OUTPUT_FILES += (*_PATTERNS, COLLAPSE_AGENTS_CSV, html.INDEX_HTML, SUMMARY_MD)
 """Every file a report may write; ``summary.md`` is moved in last, so its presence marks a complete report."""
-RUN_OUTPUT_FILES = (RUN_COLLAPSE_PNG, html.INDEX_HTML)
-"""The files of a single run folder's report (``index.html`` last)."""
 REPORT_FOLDER = "report"
 """The default output folder inside the sweep folder."""
 AGENTS_COLUMNS = ("task", "variant", "row", "seed", "final_return", "class_seeds", "seeds", "pick_seed", "inputs")
@@ -186,8 +185,8 @@ def build_report(
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
     rows = stats.summarize(sweep, settings)
     notes = _notes(sweep, rows, include_unfinished)
-    curves = {task: headline.figure5_curves(sweep, task, settings.percentiles) for task in sweep.tasks()}
-    curves = {task: found for task, found in curves.items() if found or _plain_variants(sweep, task)}
+    plain = sorted({t.task for t in sweep.trials if stats.transplant_sources(t.variant) is None})  # Figure 5's panels
+    curves = {task: headline.figure5_curves(sweep, task, settings.percentiles) for task in plain}
     references = {}
     for task in sweep.tasks() if reference else ():
         data = load_reference_curves(task)
@@ -239,7 +238,7 @@ def collapse_figures(
             report.collapse_online[key] = collapse_figure.online_agent_rows(picks, collapse_settings.layers)
             inputs = given if given is not None and given.fits(task) else None
             source = collapse_settings.rollouts_variant or variant
-            rollouts = collapse_figure.default_rollouts(sweep.path, task, source)
+            rollouts = sweep.path / SWEEP_PROBE_DIR.format(task=task, variant=source) / ROLLOUTS_NAME
             missing = _fixed_inputs_missing(sweep.path, key, picks, inputs is None, rollouts, source, given)
             if missing is not None:
                 report.notes.append(missing)
@@ -297,11 +296,6 @@ def agents_rows(report: Report) -> list[dict[str, object]]:
     return rows
 
 
-def _plain_variants(sweep: Sweep, task: str) -> bool:
-    """Whether ``task`` has a variant that is not a transplant cell (it gets a Figure 5 panel)."""
-    return any(stats.transplant_sources(variant) is None for variant in sweep.variants(task))
-
-
 def write_report(
     sweep_dir: str | Path,
     out: str | Path | None = None,
@@ -331,10 +325,12 @@ def write_report(
     report = build_report(
         sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
     )
-    partial = {task: headline.figure5_unfinished(report.sweep, task) for task in report.curves}
+    partial = None
+    if include_unfinished:  # the unfinished trials of Figure 5's variants, drawn dotted
+        plain = [t for t in report.sweep.unfinished if stats.transplant_sources(t.variant) is None]
+        partial = {task: [t for t in plain if t.task == task] for task in report.curves}
     with staged_outputs as staged:
-        drawn = partial if include_unfinished else None
-        plot_figure5(report.curves, staged.path(FIGURE5_PNG), report.references, drawn, settings.percentiles)
+        plot_figure5(report.curves, staged.path(FIGURE5_PNG), report.references, partial, settings.percentiles)
         tables.write_csv(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS, staged.path(SUMMARY_CSV))
         if report.grid:
             tables.write_csv(tables.grid_rows(report.grid), tables.GRID_COLUMNS, staged.path(GRID_CSV))
@@ -507,11 +503,13 @@ def write_run_report(
     Figure 4 (``collapse_metrics.png``) and ``index.html`` with the run's settings, as far as its files go.
     :return: the run (as a trial) and the written files (:raises InputError: not a run folder, a malformed file)"""
     out_dir = Path(run_dir) / REPORT_FOLDER if out is None else Path(out)
-    staged_outputs = StagedOutputs(out_dir, RUN_OUTPUT_FILES, html.INDEX_HTML, overwrite=overwrite, error=InputError)
+    run_files = (RUN_COLLAPSE_PNG, html.INDEX_HTML)
+    staged_outputs = StagedOutputs(out_dir, run_files, html.INDEX_HTML, overwrite=overwrite, error=InputError)
     trial = collapse_figure.run_folder_trial(run_dir)
     agent = collapse_figure.agent_metrics(trial, "run", layers)
     with staged_outputs as staged:
-        title = collapse_figure.run_title(trial)
+        title = f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})"
+        title += f"\non {ONLINE_INPUTS}"
         plot_collapse_metrics([agent], staged.path(RUN_COLLAPSE_PNG), title, layers)
         section = html.Section("Figure 4: collapse metrics over training")
         section.parts.append(html.figure(staged.path(RUN_COLLAPSE_PNG), title))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -95,14 +96,11 @@ def plot_figure5(
             label = f"{variant_label(curve.name)} (n={curve.seeds})"
             ax.plot(curve.frames, curve.mean, color=color, lw=2.0, marker=marker, label=label)
             ax.fill_between(curve.frames, curve.low, curve.high, color=color, alpha=0.2, lw=0.0)
-        labelled: set[str] = set()
-        for trial in partial.get(task, []):
-            if len(trial.frames) == 0:
-                continue
-            count = sum(t.variant == trial.variant and len(t.frames) > 0 for t in partial[task])
-            label = f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
-            label = None if trial.variant in labelled else label
-            labelled.add(trial.variant)
+        drawn = [trial for trial in partial.get(task, []) if len(trial.frames)]
+        counts = Counter(trial.variant for trial in drawn)  # popped: one legend entry per variant
+        for trial in drawn:
+            count = counts.pop(trial.variant, None)
+            label = None if count is None else f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
             ax.plot(trial.frames, trial.returns, ":", color=colors[trial.variant], lw=1.0, label=label)
         ax.set_title(task)
         ax.set_xlabel("frames")
