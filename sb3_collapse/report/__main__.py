@@ -126,10 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 @report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: the arguments (``sys.argv[1:]`` when ``None``)
-    :return: 0 on success, 2 on bad input (after ``error: ...`` on stderr)
-    """
+    """:return: 0 on success, 2 on bad input (after ``error: ...`` on stderr); ``argv``: ``sys.argv[1:]`` when None"""
     parser = build_parser()
     args = parser.parse_args(argv)
     check_arguments(parser, args, ReportFlags)

@@ -46,6 +46,8 @@ FIGURE4_LAYERS = ("mlp1", "mlp2")
 BOUNDED_METRICS = ("correlation", "zero_fraction", "dead_fraction")
 """Metrics in [0, 1], drawn on that range."""
 _CENTRED = {"ha": "center", "va": "center", "fontsize": 8}
+_EVENTS = (("resets", "reset", RESET_COLOR, "-.", 0.8), ("escapes", "escape (reset rule)", ESCAPE_COLOR, ":", 0.9))
+"""The vertical lines of Figure 4: :class:`AgentMetrics` field, legend label, colour, line style, alpha."""
 ROLES = ("best", "middle", "worst")
 """The rows of :func:`pick_agents`."""
 PAPER_ROLES = ("well-performing", "middle", "poorly performing")
@@ -190,13 +192,6 @@ def dead_units_label(widths: dict[str, int], layers: Sequence[str]) -> str:
     return "dead units (" + ", ".join(f"{layer} of {width}" for layer, width in known.items()) + ")"
 
 
-def _mark_events(ax: plt.Axes, agent: AgentMetrics) -> None:
-    for frame in agent.resets:
-        ax.axvline(frame, color=RESET_COLOR, lw=1.0, ls="-.", alpha=0.8)
-    for frame in agent.escapes:
-        ax.axvline(frame, color=ESCAPE_COLOR, lw=1.0, ls=":", alpha=0.9)
-
-
 def plot_collapse_metrics(
     agents: Sequence[AgentMetrics],
     path: Path,
@@ -251,19 +246,19 @@ def plot_collapse_metrics(
                 ax.text(0.5, 0.5, f"no {metric} in\n{where}", transform=ax.transAxes, color="0.4", **_CENTRED)
             ax.set_ylabel(label, fontsize=8)
         for ax in row:
-            _mark_events(ax, agent)
+            for events, _, color, style, alpha in _EVENTS:
+                for frame in getattr(agent, events):
+                    ax.axvline(frame, color=color, lw=1.0, ls=style, alpha=alpha)
             ax.grid(alpha=0.3)
             ax.tick_params(labelsize=7)
     for ax in axes[-1]:
         frames_axis(ax)
     handles = [Line2D([], [], lw=1.2, **layer_style(layer)) for layer in layers]
     labels = list(layers)
-    if any(a.resets for a in agents):
-        handles.append(Line2D([], [], color=RESET_COLOR, ls="-.", lw=1.0))
-        labels.append("reset")
-    if any(a.escapes for a in agents):
-        handles.append(Line2D([], [], color=ESCAPE_COLOR, ls=":", lw=1.0))
-        labels.append("escape (reset rule)")
+    for events, label, color, style, _ in _EVENTS:
+        if any(getattr(agent, events) for agent in agents):
+            handles.append(Line2D([], [], color=color, ls=style, lw=1.0))
+            labels.append(label)
     fig.suptitle(title, fontsize=9)
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
     fig.savefig(path, dpi=90)

@@ -176,10 +176,7 @@ def build_report(
     :raises InputError: on a bad folder or setting, or a sweep none of whose trials can be read
     """
     settings = settings or stats.ReportSettings()
-    try:
-        settings.validate()
-    except ValueError as error:
-        raise InputError(str(error)) from error
+    settings.validate()
     collapse_settings = collapse_settings or collapse_figure.FixedInputSettings()
     collapse_settings.validate()
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
@@ -216,20 +213,17 @@ def collapse_figures(
     """Fill the report's ``collapse*`` fields (Figures 4, 8, 9) per task and variant that is not a transplant cell:
     the picked agents, their online rows, and their rows on the fixed probing set where the rollouts and snapshots
     are there (else a note in ``notes``). See docs/figures.md."""
-    collapse_settings.validate()
     sweep = report.sweep
     given = None if collapse_settings.rollouts is None else collapse_settings.load(collapse_settings.rollouts)
     loaded: dict[Path, FixedInputs] = {}  # each rollouts file read once
+    bounds = collapse_settings.pick_seed, settings.success_return, collapse_settings.failure_return
     for task in sweep.tasks():
         for variant in sweep.variants(task):
             if stats.transplant_sources(variant) is not None:
                 continue
             key = (task, variant)
             try:
-                bounds = settings.success_return, collapse_settings.failure_return
-                picks = collapse_figure.pick_paper_agents(
-                    sweep.select(task, variant), collapse_settings.pick_seed, *bounds
-                )
+                picks = collapse_figure.pick_paper_agents(sweep.select(task, variant), *bounds)
             except ValueError as error:
                 raise InputError(str(error), parameter="failure_return") from error
             if not any(pick.trial is not None for pick in picks):
@@ -239,9 +233,13 @@ def collapse_figures(
             inputs = given if given is not None and given.fits(task) else None
             source = collapse_settings.rollouts_variant or variant
             rollouts = sweep.path / SWEEP_PROBE_DIR.format(task=task, variant=source) / ROLLOUTS_NAME
-            missing = _fixed_inputs_missing(sweep.path, key, picks, inputs is None, rollouts, source, given)
-            if missing is not None:
-                report.notes.append(missing)
+            why = _why_no_fixed_inputs(sweep.path, task, source, picks, rollouts if inputs is None else None, given)
+            if why is not None:
+                online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
+                report.notes.append(
+                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: {why}; {online} shows the online "
+                    "metrics"
+                )
                 continue
             if inputs is None:
                 if rollouts not in loaded:
@@ -254,32 +252,23 @@ def collapse_figures(
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
 
 
-def _fixed_inputs_missing(
+def _why_no_fixed_inputs(
     sweep_path: Path,
-    key: tuple[str, str],
-    picks: Sequence[collapse_figure.AgentPick],
-    needs_rollouts: bool,
-    rollouts: Path,
+    task: str,
     source: str,
+    picks: Sequence[collapse_figure.AgentPick],
+    rollouts: Path | None,
     given: FixedInputs | None,
 ) -> str | None:
-    """:return: the note that says why Figure 4 on the probing samples is not drawn, ``None`` when it can be"""
-    task, variant = key
-    online = f"{COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)} shows the online metrics"
-    if needs_rollouts and not rollouts.is_file():
+    """:return: why Figure 4 on the probing samples cannot be drawn (``rollouts``: the file needed), else ``None``"""
+    if rollouts is not None and not rollouts.is_file():
         other = "" if given is None else f" ({given.source} was recorded on {given.task})"
         return (
-            f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
-            f"python -m sb3_collapse.probe sweep {sweep_path} --task {task} --variant {source}, or pass "
-            f"--rollouts); {online}"
+            f"no {rollouts}{other} (run python -m sb3_collapse.probe sweep {sweep_path} --task {task} --variant "
+            f"{source}, or pass --rollouts)"
         )
-    lacking = [pick.trial.seed for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)]
-    if lacking:
-        return (
-            f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
-            f"{', '.join(map(str, lacking))} have no snapshots (train with --snapshots); {online}"
-        )
-    return None
+    lacking = [str(pick.trial.seed) for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)]
+    return f"seed(s) {', '.join(lacking)} have no snapshots (train with --snapshots)" if lacking else None
 
 
 def agents_rows(report: Report) -> list[dict[str, object]]:

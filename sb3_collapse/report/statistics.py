@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.report.loading import Sweep, Trial
 
@@ -41,16 +42,16 @@ class ReportSettings:
     percentiles: tuple[float, float] = PAPER.percentiles
 
     def validate(self) -> None:
-        """:raises ValueError: on a setting out of range (the message names it)"""
+        """:raises InputError: on a setting out of range (the message names it)"""
         if self.collapse_checks < 1:
-            raise ValueError(f"collapse_checks must be >= 1, got {self.collapse_checks}.")
+            raise InputError(f"collapse_checks must be >= 1, got {self.collapse_checks}.")
         if self.last_evals < 1:
-            raise ValueError(f"last_evals must be >= 1 evaluation, got {self.last_evals}.")
+            raise InputError(f"last_evals must be >= 1 evaluation, got {self.last_evals}.")
         if not math.isfinite(self.collapse_threshold):
-            raise ValueError(f"collapse_threshold must be a finite number, got {self.collapse_threshold}.")
+            raise InputError(f"collapse_threshold must be a finite number, got {self.collapse_threshold}.")
         low, high = self.percentiles
         if not 0 <= low < high <= 100:
-            raise ValueError(f"percentiles must satisfy 0 <= low < high <= 100, got {low} and {high}.")
+            raise InputError(f"percentiles must satisfy 0 <= low < high <= 100, got {low} and {high}.")
 
 
 def aligned_returns(trials: Sequence[Trial]) -> tuple[np.ndarray, np.ndarray]:
