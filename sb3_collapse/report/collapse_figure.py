@@ -158,7 +158,7 @@ def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE
 
 
 def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYERS) -> AgentMetrics:
-    """:return: the row of ``trial``: its collapse metrics of ``layers`` and events (:raises InputError: malformed)"""
+    """:return: the row of ``trial``: its collapse metrics of ``layers`` and events (InputError: a malformed file)"""
     tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
     config = read_json(trial.path / CONFIG_JSON) if (trial.path / CONFIG_JSON).is_file() else {}
     sizes = {"mlp0": config.get("feature_dim"), "mlp1": config.get("hidden_dim"), "mlp2": config.get("hidden_dim")}
@@ -283,7 +283,7 @@ def paper_figure_title(task: str, variant: str, picks: Sequence[AgentPick], inpu
 
 
 def run_folder_trial(run_dir: str | Path) -> Trial:
-    """:return: a run folder of the train CLI as a trial (a partial curve when unfinished; :raises InputError:)"""
+    """:return: a run folder of the train CLI as a trial (a partial curve when unfinished; InputError: no run files)"""
     run_dir = Path(run_dir)
     if not is_run_folder(run_dir):
         raise InputError(
@@ -349,7 +349,7 @@ class FixedInputSettings:
         check_device(self.device)
 
     def load(self, path: str | Path) -> FixedInputs:
-        """:return: the fixed set of the rollouts file ``path`` (:raises InputError: not a rollouts file)"""
+        """:return: the fixed set of the rollouts file ``path`` (InputError: not a rollouts file)"""
         try:
             return load_fixed_inputs(path, self.fixed_samples, self.sample_seed)
         except InputError as error:

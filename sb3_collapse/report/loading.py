@@ -144,8 +144,8 @@ def variant_order(variants: Iterable[str]) -> list[str]:
 def load_trial(
     task: str, variant: str, seed: int, path: Path, collapse_tag: str = PAPER.collapse_tag, partial: bool = False
 ) -> Trial:
-    """Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted).
-    :raises InputError: naming the file, when a finished trial's file (or any result file) is malformed."""
+    """Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted); an
+    InputError names the file when a finished trial's file (or any result file) is malformed."""
     result = read_result(path, strict=True)
     finished = result is not None and result.get("status") == FINISHED
     status = RunStatus.FINISHED if finished else run_status(path)

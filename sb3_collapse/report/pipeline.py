@@ -216,14 +216,14 @@ def collapse_figures(
     sweep = report.sweep
     given = None if collapse_settings.rollouts is None else collapse_settings.load(collapse_settings.rollouts)
     loaded: dict[Path, FixedInputs] = {}  # each rollouts file read once
-    bounds = collapse_settings.pick_seed, settings.success_return, collapse_settings.failure_return
+    pick = collapse_settings.pick_seed, settings.success_return, collapse_settings.failure_return
     for task in sweep.tasks():
         for variant in sweep.variants(task):
             if stats.transplant_sources(variant) is not None:
                 continue
             key = (task, variant)
             try:
-                picks = collapse_figure.pick_paper_agents(sweep.select(task, variant), *bounds)
+                picks = collapse_figure.pick_paper_agents(sweep.select(task, variant), *pick)
             except ValueError as error:
                 raise InputError(str(error), parameter="failure_return") from error
             if not any(pick.trial is not None for pick in picks):
@@ -489,8 +489,8 @@ def write_run_report(
     layers: Sequence[str] = collapse_figure.FIGURE4_LAYERS,
 ) -> tuple[Trial, list[Path]]:
     """The report of one run folder of the train CLI into ``out`` (``<run_dir>/report`` when ``None``): its online
-    Figure 4 (``collapse_metrics.png``) and ``index.html`` with the run's settings, as far as its files go.
-    :return: the run (as a trial) and the written files (:raises InputError: not a run folder, a malformed file)"""
+    Figure 4 (``collapse_metrics.png``) and ``index.html`` with the run's settings, as far as its files go. Returns
+    the run (as a trial) and the written files; an InputError when it is not a run folder or a file is malformed."""
     out_dir = Path(run_dir) / REPORT_FOLDER if out is None else Path(out)
     run_files = (RUN_COLLAPSE_PNG, html.INDEX_HTML)
     staged_outputs = StagedOutputs(out_dir, run_files, html.INDEX_HTML, overwrite=overwrite, error=InputError)

@@ -116,8 +116,8 @@ def training_order(rows: list[dict[str, Any]]) -> list[str] | None:
 
 
 def plot_mse_over_training(rows: list[dict[str, Any]], path: Path) -> bool:
-    """Write to ``path`` a panel per state component group: mean test MSE over training frames, a line per layer.
-    :return: False (nothing written) unless the checkpoints are ordered by training step (:func:`training_order`)"""
+    """Write to ``path`` a panel per state component group: mean test MSE over training frames, a line per layer;
+    return False (nothing written) unless the checkpoints are ordered by training step (:func:`training_order`)."""
     order = training_order(rows)
     if order is None:
         return False
@@ -224,7 +224,7 @@ def probe_to_folder(
 
 
 def checked_record_options(record_options: RecordOptions | None) -> RecordOptions:
-    """:return: ``record_options`` (``None``: the defaults), checked (:raises InputError: naming the bad option)"""
+    """:return: ``record_options`` (``None``: the defaults), checked (InputError: naming the bad option)"""
     record_options = record_options or RecordOptions()
     record_options.check()
     if record_options.episodes < MIN_EPISODES:  # the split needs them

@@ -69,8 +69,8 @@ def load_reference_curves(task: str) -> ReferenceCurves | None:
 
 
 def pack_reference_curves(folder: str | Path, path: str | Path, decimals: int = 2) -> int:
-    """Write the shipped ``.csv.gz`` ``path`` from the ``dmc_*.csv`` files of DrQ-v2's ``curves/`` ``folder``.
-    :return: the rows written (:raises InputError: no ``dmc_*.csv``)"""
+    """Write the shipped ``.csv.gz`` ``path`` from the ``dmc_*.csv`` files of DrQ-v2's ``curves/`` ``folder``; return
+    the rows written (an InputError without ``dmc_*.csv``)."""
     files = sorted(Path(folder).glob("dmc_*.csv"))
     if not files:
         raise InputError(f"no dmc_*.csv files in {folder}; give DrQ-v2's curves/ folder.")
