@@ -114,15 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=prog_name("sb3_collapse.report"),
         description=(
-            "Figure 5 (mean evaluation return and percentile band across seeds, per task and variant), the table "
-            "(final return, seeds stuck in action collapse, resets, std over the last evaluations) and, when "
-            "cnn-<src>_mlp-<src> variants exist, the transplant grid of a sweep folder "
-            f"<sweep>/<task>/<variant>/seed_<k>/, the collapse metrics of a randomly picked well-performing, middle "
-            "and poorly performing seed (Figures 4, 8, 9: on the fixed probing set of python -m sb3_collapse.probe "
-            "sweep, and online on their replay batches), Figure 3(b) and Table 7, and report/index.html with all of "
-            "them. Only finished "
-            f"trials ({RESULT_JSON}) enter the statistics. Given a single run folder of python -m sb3_collapse.train "
-            "instead, it draws that run's collapse metrics (Figure 4) and its index.html."
+            "The figures and tables of a sweep folder <sweep>/<task>/<variant>/seed_<k>/: Figure 5 and the table, "
+            "Figures 4, 8, 9 (collapse metrics of a picked well-performing, middle and poorly performing seed), "
+            f"Figure 3 and Table 7 (cnn-<src>_mlp-<src> variants), and report/index.html; only finished trials "
+            f"({RESULT_JSON}) enter the statistics. Given one run folder of the train CLI: its Figure 4 and index.html."
         ),
     )
     add_setting_arguments(parser, declaration=ReportFlags)
@@ -131,10 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 @report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: the arguments (``sys.argv[1:]`` when ``None``)
-    :return: 0 on success, 2 on bad input (after ``error: ...`` on stderr)
-    """
+    """:return: 0 on success, 2 on bad input (after ``error: ...`` on stderr); ``argv``: ``sys.argv[1:]`` when None"""
     parser = build_parser()
     args = parser.parse_args(argv)
     check_arguments(parser, args, ReportFlags)

@@ -21,13 +21,11 @@ from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.probe.fixed_inputs import FIXED_SAMPLES, FixedInputs, FixedMetrics, fixed_metrics, load_fixed_inputs
-from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
 from sb3_collapse.protocol import (
     COLLAPSE_EVENTS_CSV,
     COLLAPSE_METRICS_CSV,
     CONFIG_JSON,
     EVAL_CSV,
-    SWEEP_PROBE_DIR,
     snapshot_files,
 )
 from sb3_collapse.report.headline import BASELINE_VARIANT
@@ -48,6 +46,8 @@ FIGURE4_LAYERS = ("mlp1", "mlp2")
 BOUNDED_METRICS = ("correlation", "zero_fraction", "dead_fraction")
 """Metrics in [0, 1], drawn on that range."""
 _CENTRED = {"ha": "center", "va": "center", "fontsize": 8}
+_EVENTS = (("resets", "reset", RESET_COLOR, "-.", 0.8), ("escapes", "escape (reset rule)", ESCAPE_COLOR, ":", 0.9))
+"""The vertical lines of Figure 4: :class:`AgentMetrics` field, legend label, colour, line style, alpha."""
 ROLES = ("best", "middle", "worst")
 """The rows of :func:`pick_agents`."""
 PAPER_ROLES = ("well-performing", "middle", "poorly performing")
@@ -56,17 +56,8 @@ PAPER_ROLES = ("well-performing", "middle", "poorly performing")
 
 @dataclass
 class AgentMetrics:
-    """
-    One row of Figure 4.
-
-    :param trial: the trial (``None``: a row without an agent)
-    :param role: the row's name (a role, or ``"run"`` for a single run folder)
-    :param metrics: tag -> ``(frames, values)``
-    :param resets: frames of the reset rule's interventions
-    :param escapes: frames of its escapes
-    :param absent: what a row without an agent says
-    :param widths: layer -> its width in units, where known
-    """
+    """One row of Figure 4: a trial's (``None``: ``absent`` says why) metrics, tag -> ``(frames, values)``, the frames
+    of its resets and escapes, and layer -> width in units where known (``role``: ``"run"`` for one run folder)."""
 
     trial: Trial | None
     role: str
@@ -99,15 +90,8 @@ def pick_agents(trials: Sequence[Trial]) -> list[tuple[str, Trial]]:
 
 @dataclass
 class AgentPick:
-    """
-    One row of Figures 4, 8, 9 as :func:`pick_paper_agents` picked it.
-
-    :param role: one of :data:`PAPER_ROLES`
-    :param trial: the picked trial, ``None`` when its class is empty
-    :param candidates: the seeds of its class
-    :param seeds: the number of seeds it was picked among
-    :param pick_seed: the seed of the random pick
-    """
+    """One row of Figures 4, 8, 9 (:func:`pick_paper_agents`): the trial of class ``role`` (``None``: none) picked
+    with ``pick_seed`` among the ``candidates`` seeds of the class, of ``seeds`` finished seeds."""
 
     role: str
     trial: Trial | None
@@ -125,13 +109,8 @@ def agent_class(
     final: float, success_return: float = PAPER.success_return, failure_return: float = PAPER.failure_return
 ) -> str:
     """
-    The class of an agent (Section 4.1: "well-performing agents achieving more than [success_return] rewards or
-    poorly performing agents achieving less than [failure_return] rewards, and only a few are middle agents").
-
-    :param final: the final return
-    :param success_return: well-performing at least
-    :param failure_return: poorly performing below
-    :return: one of :data:`PAPER_ROLES`
+    The class of an agent, one of :data:`PAPER_ROLES` (Section 4.1: "well-performing agents achieving more than
+    [success_return] rewards or poorly performing agents achieving less than [failure_return] rewards").
     """
     if final >= success_return:
         return PAPER_ROLES[0]
@@ -170,24 +149,8 @@ def pick_paper_agents(
     return picks
 
 
-def layer_widths(trial: Trial, layers: Sequence[str]) -> dict[str, int]:
-    """
-    :param trial: the trial
-    :param layers: the layers wanted
-    :return: layer -> units, from the trial's settings (``feature_dim``: mlp0, ``hidden_dim``: mlp1, mlp2)
-    """
-    config_path = trial.path / CONFIG_JSON
-    config = read_json(config_path) if config_path.is_file() else {}
-    sizes = {"mlp0": config.get("feature_dim"), "mlp1": config.get("hidden_dim"), "mlp2": config.get("hidden_dim")}
-    return {layer: int(sizes[layer]) for layer in layers if isinstance(sizes.get(layer), int)}
-
-
 def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS) -> list[AgentMetrics]:
-    """
-    :param picks: :func:`pick_paper_agents`' picks
-    :param layers: the layers read
-    :return: one row of the online figure per pick (:func:`agent_metrics` of its trial)
-    """
+    """:return: one row of the online figure per pick (:func:`agent_metrics` of its trial)"""
     return [
         AgentMetrics(None, p.role, absent=p.absent) if p.trial is None else agent_metrics(p.trial, p.role, layers)
         for p in picks
@@ -195,15 +158,12 @@ def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE
 
 
 def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYERS) -> AgentMetrics:
-    """
-    :param trial: the trial
-    :param role: its row's name
-    :param layers: the layers whose Figure 4 metrics are read
-    :return: its row: the collapse metrics and events of the trial
-    :raises InputError: on a malformed file
-    """
+    """:return: the row of ``trial``: its collapse metrics of ``layers`` and events (InputError: a malformed file)"""
     tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
-    agent = AgentMetrics(trial, role, widths=layer_widths(trial, layers))
+    config = read_json(trial.path / CONFIG_JSON) if (trial.path / CONFIG_JSON).is_file() else {}
+    sizes = {"mlp0": config.get("feature_dim"), "mlp1": config.get("hidden_dim"), "mlp2": config.get("hidden_dim")}
+    widths = {layer: int(sizes[layer]) for layer in layers if isinstance(sizes.get(layer), int)}
+    agent = AgentMetrics(trial, role, widths=widths)
     metrics_path = trial.path / COLLAPSE_METRICS_CSV
     if metrics_path.exists():
         agent.metrics = read_collapse_metrics(metrics_path, tags)
@@ -232,13 +192,6 @@ def dead_units_label(widths: dict[str, int], layers: Sequence[str]) -> str:
     return "dead units (" + ", ".join(f"{layer} of {width}" for layer, width in known.items()) + ")"
 
 
-def _mark_events(ax: plt.Axes, agent: AgentMetrics) -> None:
-    for frame in agent.resets:
-        ax.axvline(frame, color=RESET_COLOR, lw=1.0, ls="-.", alpha=0.8)
-    for frame in agent.escapes:
-        ax.axvline(frame, color=ESCAPE_COLOR, lw=1.0, ls=":", alpha=0.9)
-
-
 def plot_collapse_metrics(
     agents: Sequence[AgentMetrics],
     path: Path,
@@ -246,16 +199,9 @@ def plot_collapse_metrics(
     layers: Sequence[str] = FIGURE4_LAYERS,
     source: str = COLLAPSE_METRICS_CSV,
 ) -> None:
-    """
-    The paper's Figure 4: one row per agent; the evaluation return, then one panel per metric of
-    :data:`FIGURE4_METRICS`, a line per layer; resets and escapes as vertical lines.
-
-    :param agents: the rows
-    :param path: the PNG file to write
-    :param title: the figure's title
-    :param layers: the layers drawn
-    :param source: where a missing metric other than the gradient norm would come from
-    """
+    """The paper's Figure 4 to the PNG ``path``: a row per agent; its evaluation return, then a panel per metric of
+    :data:`FIGURE4_METRICS`, a line per layer; resets and escapes as vertical lines (``source``: where a missing
+    metric other than the gradient norm would come from)."""
     if not agents:
         raise ValueError("agents must hold at least one agent to plot.")
     columns, rows = 1 + len(FIGURE4_METRICS), len(agents)
@@ -271,12 +217,11 @@ def plot_collapse_metrics(
     fig.subplots_adjust(left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - 0.6 / height, bottom=0.75 / height)
     for row, agent in zip(axes, agents):
         ax = row[0]
+        ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
         if agent.trial is None:
             ax.text(0.5, 0.5, agent.absent, transform=ax.transAxes, wrap=True, **_CENTRED)
-            ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
         else:
             ax.plot(agent.trial.frames, agent.trial.returns, color=RETURN_COLOR, lw=1.4)
-            ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
             ax.set_ylim(bottom=min(0.0, float(np.min(agent.trial.returns))))
         for ax, (metric, label) in zip(row[1:], FIGURE4_METRICS):
             drawn = False
@@ -301,19 +246,19 @@ def plot_collapse_metrics(
                 ax.text(0.5, 0.5, f"no {metric} in\n{where}", transform=ax.transAxes, color="0.4", **_CENTRED)
             ax.set_ylabel(label, fontsize=8)
         for ax in row:
-            _mark_events(ax, agent)
+            for events, _, color, style, alpha in _EVENTS:
+                for frame in getattr(agent, events):
+                    ax.axvline(frame, color=color, lw=1.0, ls=style, alpha=alpha)
             ax.grid(alpha=0.3)
             ax.tick_params(labelsize=7)
     for ax in axes[-1]:
         frames_axis(ax)
     handles = [Line2D([], [], lw=1.2, **layer_style(layer)) for layer in layers]
     labels = list(layers)
-    if any(a.resets for a in agents):
-        handles.append(Line2D([], [], color=RESET_COLOR, ls="-.", lw=1.0))
-        labels.append("reset")
-    if any(a.escapes for a in agents):
-        handles.append(Line2D([], [], color=ESCAPE_COLOR, ls=":", lw=1.0))
-        labels.append("escape (reset rule)")
+    for events, label, color, style, _ in _EVENTS:
+        if any(getattr(agent, events) for agent in agents):
+            handles.append(Line2D([], [], color=color, ls=style, lw=1.0))
+            labels.append(label)
     fig.suptitle(title, fontsize=9)
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
     fig.savefig(path, dpi=90)
@@ -325,13 +270,7 @@ ONLINE_INPUTS = "each agent's own replay batch at training time (online metrics)
 
 
 def paper_figure_title(task: str, variant: str, picks: Sequence[AgentPick], inputs: str) -> str:
-    """
-    :param task: the task
-    :param variant: the variant
-    :param picks: :func:`pick_paper_agents`' picks
-    :param inputs: what the metrics are computed on
-    :return: the two-line title of Figures 4, 8, 9: each row's seed and final return, the pick seed, the inputs
-    """
+    """:return: the two-line title of Figures 4, 8, 9: each row's seed and final return, pick seed, ``inputs``"""
     rows = "; ".join(
         pick.absent if pick.trial is None else f"{pick.role}: seed {pick.trial.seed} ({pick.trial.final_return:.0f})"
         for pick in picks
@@ -344,11 +283,7 @@ def paper_figure_title(task: str, variant: str, picks: Sequence[AgentPick], inpu
 
 
 def run_folder_trial(run_dir: str | Path) -> Trial:
-    """
-    :param run_dir: a run folder of ``python -m sb3_collapse.train``
-    :return: it as a trial (task, variant and seed from its settings; a partial curve when unfinished)
-    :raises InputError: when the folder lacks the settings or the evaluation file
-    """
+    """:return: a run folder of the train CLI as a trial (a partial curve when unfinished; InputError: no run files)"""
     run_dir = Path(run_dir)
     if not is_run_folder(run_dir):
         raise InputError(
@@ -368,14 +303,6 @@ def is_run_folder(path: str | Path) -> bool:
     """:return: whether ``path`` is a single run folder (its own settings and evaluation files), not a sweep"""
     path = Path(path)
     return (path / CONFIG_JSON).is_file() and (path / EVAL_CSV).is_file()
-
-
-def run_title(trial: Trial) -> str:
-    """The title of a single run's Figure 4 (online metrics: its replay batches)."""
-    return (
-        f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})\n"
-        f"on {ONLINE_INPUTS}"
-    )
 
 
 @dataclass
@@ -422,20 +349,11 @@ class FixedInputSettings:
         check_device(self.device)
 
     def load(self, path: str | Path) -> FixedInputs:
-        """
-        :param path: a rollouts file
-        :return: its fixed set with these settings
-        :raises InputError: for a file that is missing or not a rollouts file
-        """
+        """:return: the fixed set of the rollouts file ``path`` (InputError: not a rollouts file)"""
         try:
             return load_fixed_inputs(path, self.fixed_samples, self.sample_seed)
         except InputError as error:
             raise InputError(str(error), parameter="rollouts") from error
-
-
-def default_rollouts(sweep_dir: str | Path, task: str, variant: str) -> Path:
-    """:return: the rollouts file of ``probe sweep`` for a task and variant of a sweep"""
-    return Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) / ROLLOUTS_NAME
 
 
 FIXED_METRICS = ("numerical_rank", "correlation", "dead_units")
@@ -445,28 +363,19 @@ FIXED_METRICS = ("numerical_rank", "correlation", "dead_units")
 def fixed_agent_rows(
     picks: Sequence[AgentPick], inputs: FixedInputs, settings: FixedInputSettings, progress: bool = False
 ) -> tuple[list[AgentMetrics], dict[int, FixedMetrics]]:
-    """
-    :param picks: :func:`pick_paper_agents`' picks
-    :param inputs: the fixed set
-    :param settings: how to compute
-    :param progress: progress bars over the checkpoints
-    :return: the rows of Figures 4, 8, 9 (:data:`FIXED_METRICS` of each snapshot on ``inputs``, the training-time
-        gradient norms), and seed -> its fixed-set metrics
-    """
-    rows, computed = [], {}
-    for pick in picks:
-        if pick.trial is None:
-            rows.append(AgentMetrics(None, pick.role, absent=pick.absent))
+    """:return: the rows of Figures 4, 8, 9 (:data:`FIXED_METRICS` of each snapshot on ``inputs``, the training-time
+    gradient norms), and seed -> its fixed-set metrics"""
+    rows, computed = online_agent_rows(picks, settings.layers), {}
+    tags = [metric_tag(layer, metric) for layer in settings.layers for metric in FIXED_METRICS]
+    how = (inputs, settings.layers, get_device(settings.device), settings.batch_size, progress)
+    for row in rows:
+        if row.trial is None:
             continue
-        online = agent_metrics(pick.trial, pick.role, settings.layers)
-        how = (inputs, settings.layers, get_device(settings.device), settings.batch_size, progress)
-        fixed = fixed_metrics(snapshot_files(pick.trial.path), *how, f"seed {pick.trial.seed} checkpoints")
-        computed[pick.trial.seed] = fixed
-        tags = [metric_tag(layer, metric) for layer in settings.layers for metric in FIXED_METRICS]
-        online.metrics = {tag: value for tag, value in online.metrics.items() if tag.endswith("/grad_norm")}
-        online.metrics |= {tag: fixed.metrics[tag] for tag in tags if tag in fixed.metrics}
-        online.widths = fixed.widths or online.widths
-        rows.append(online)
+        fixed = fixed_metrics(snapshot_files(row.trial.path), *how, f"seed {row.trial.seed} checkpoints")
+        computed[row.trial.seed] = fixed
+        row.metrics = {tag: value for tag, value in row.metrics.items() if tag.endswith("/grad_norm")}
+        row.metrics |= {tag: fixed.metrics[tag] for tag in tags if tag in fixed.metrics}
+        row.widths = fixed.widths or row.widths
     return rows, computed
 
 
@@ -474,13 +383,7 @@ FIXED_CSV_COLUMNS = ("role", "seed", "final_return", "checkpoint", "frame", "tag
 
 
 def write_fixed_metrics_csv(path: Path, picks: Sequence[AgentPick], computed: dict[int, FixedMetrics]) -> None:
-    """
-    Write every fixed-set metric of the picked agents, long format.
-
-    :param path: the CSV file
-    :param picks: the picks
-    :param computed: seed -> its metrics (:func:`fixed_agent_rows`)
-    """
+    """Write every fixed-set metric of the picked agents (``computed``: :func:`fixed_agent_rows`), long format."""
     with path.open("w", newline="") as file:
         writer = csv.writer(file)
         writer.writerow(FIXED_CSV_COLUMNS)

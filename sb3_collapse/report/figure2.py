@@ -70,12 +70,8 @@ ROWS = (PAPER_ROLES[0], PAPER_ROLES[2])
 
 
 def figure2_columns(task: str, components: Sequence[str], groups: Sequence[str]) -> list[tuple[str, tuple[str, ...]]]:
-    """
-    :param task: the task, ``<domain>-<task>``
-    :param components: the probe targets
-    :param groups: the state component of each target
-    :return: the columns whose targets all exist (another domain: one per reward input, then per state component)
-    """
+    """:return: Figure 2's columns of ``task`` whose probe targets all exist (another domain than
+    :data:`FIGURE2_COLUMNS`': one per reward input, then per state component of ``groups``)"""
     domain = task.split("-")[0]
     available = set(components)
     if domain in FIGURE2_COLUMNS:
@@ -89,16 +85,8 @@ def figure2_columns(task: str, components: Sequence[str], groups: Sequence[str])
 
 @dataclass
 class PanelCurve:
-    """
-    One line of Figure 2: a layer in one panel.
-
-    :param row: one of :data:`ROWS`
-    :param column: the column's title
-    :param layer: the layer
-    :param frames: the training frames shared by every agent of the row
-    :param values: ``(agents, frames)`` each agent's mean test MSE over the column's targets
-    :param agents: the agents' labels
-    """
+    """One line of Figure 2, a layer in the panel of a row of :data:`ROWS` and a column: ``(agents, frames)`` each
+    agent's mean test MSE over the column's targets, on the training frames every agent of the row has."""
 
     row: str
     column: str
@@ -116,12 +104,7 @@ class PanelCurve:
 def panel_curves(
     rows: Sequence[Mapping[str, Any]], agents: Mapping[str, str], columns: Sequence[tuple[str, tuple[str, ...]]]
 ) -> list[PanelCurve]:
-    """
-    :param rows: probe rows with ``checkpoint``, ``frames``, ``layer``, ``component``, ``test_mse`` and ``agent``
-    :param agents: agent label -> its row (:data:`ROWS`)
-    :param columns: the panels' columns (:func:`figure2_columns`)
-    :return: one curve per (row, column, layer) with at least one agent, on the frames every agent of the row has
-    """
+    """:return: a curve per (row, column, layer) with an agent, from probe ``rows`` (``agents``: label -> its row)"""
     values: dict[tuple[str, str, int, str], dict[str, float]] = defaultdict(dict)
     for r in rows:
         values[(r["agent"], r["layer"], int(r["frames"]), r["component"])] = r["test_mse"]  # type: ignore[index]
@@ -142,13 +125,7 @@ def panel_curves(
 
 
 def plot_figure2(curves: Sequence[PanelCurve], path: Path, title: str) -> None:
-    """
-    The paper's Figure 2: a row per class of agents, a column per state column, a line per layer (mean over agents).
-
-    :param curves: :func:`panel_curves`
-    :param path: the PNG file to write
-    :param title: the figure's title
-    """
+    """The paper's Figure 2 to ``path``: a row per class of agents, a column per state column, a line per layer."""
     rows = list(dict.fromkeys(c.row for c in curves))
     columns = list(dict.fromkeys(c.column for c in curves))
     layers = list(dict.fromkeys(c.layer for c in curves))
@@ -185,12 +162,8 @@ TABLE_COLUMNS = ("table", "row", "column", "layer", "agents", "stage", "frame", 
 
 
 def stage_table_rows(curves: Sequence[PanelCurve], budget_frames: int | None = None) -> list[dict]:
-    """
-    :param curves: :func:`panel_curves`
-    :param budget_frames: the agents' budget, in frames (``None``: the paper's)
-    :return: Tables 1-6: per panel, layer and stage, the std across the row's agents (rows ``table, row, column,
-        layer, agents, stage, frame, std``)
-    """
+    """:return: Tables 1-6 (:data:`TABLE_COLUMNS`): per panel, layer and stage of ``budget_frames`` (``None``: the
+    paper's), the std across the row's agents"""
     table_rows = []
     for curve in curves:
         in_paper = curve.row in ROWS and curve.column in PAPER_COLUMNS
@@ -204,10 +177,8 @@ def stage_table_rows(curves: Sequence[PanelCurve], budget_frames: int | None = N
 
 
 def stage_panels(table_rows: Sequence[Mapping[str, Any]]) -> list[tuple[str, list[str], list[list[Any]]]]:
-    """
-    :param table_rows: :func:`stage_table_rows`, or the rows of its CSV file
-    :return: Tables 1-6, numbered ones first: ``(title, header, rows)``, a row per layer with its std per stage
-    """
+    """:return: Tables 1-6 of :func:`stage_table_rows` (or its CSV), numbered first: ``(title, header, rows)``, a row
+    per layer with its std per stage"""
     panels: dict[tuple[str, str, str], list[Mapping[str, Any]]] = defaultdict(list)
     for r in table_rows:
         panels[(str(r["table"]), r["row"], r["column"])].append(r)
@@ -244,12 +215,7 @@ OUTPUT_FILES = (FIGURE2_PNG, TABLES_1_6_CSV, TABLES_MD, PROBE_CSV, ROLLOUTS_NAME
 def split_agents(
     trials: Sequence[Trial], success_return: float = PAPER.success_return, failure_return: float = PAPER.failure_return
 ) -> tuple[list[Trial], list[Trial]]:
-    """
-    :param trials: finished trials
-    :param success_return: a final return ``>=`` this is well-performing
-    :param failure_return: a final return ``<`` this is poorly performing
-    :return: ``(well, poor)`` (:func:`agent_class` of their final return), each by decreasing final return
-    """
+    """:return: ``(well, poor)`` finished trials (:func:`agent_class`), each by decreasing final return"""
     ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.final_return, t.seed))
     classes = [agent_class(t.final_return, success_return, failure_return) for t in ranked]
     return [t for t, c in zip(ranked, classes) if c == ROWS[0]], [t for t, c in zip(ranked, classes) if c == ROWS[1]]

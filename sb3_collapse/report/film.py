@@ -29,22 +29,9 @@ STRIP_EVERY_FRAMES = 30
 """Frames between two pictures of the filmstrip."""
 
 
-def check_film_arguments(frames: int, size: int, every_frames: int) -> None:
-    """:raises InputError: naming the bad argument"""
-    for name, value, low in (("frames", frames, 1), ("size", size, 16), ("every_frames", every_frames, 1)):
-        if value < low:
-            raise InputError(f"{name} must be >= {low}, got {value}.", parameter=name)
-
-
 def plot_filmstrip(films: Sequence[Film], path: Path, every_frames: int = STRIP_EVERY_FRAMES, title: str = "") -> None:
-    """
-    The filmstrip: per film, a picture every ``every_frames`` frames and, under it, each action dimension.
-
-    :param films: the films (one row each)
-    :param path: the PNG file to write
-    :param every_frames: frames between two pictures
-    :param title: the figure's title
-    """
+    """The filmstrip to ``path``: a row per film, a picture every ``every_frames`` frames and, under it, each action
+    dimension."""
     picks = [_one_per_period(f.frames, every_frames) for f in films]
     columns = max(len(pick) for pick in picks)
     thumb = 1.15  # inches per picture: the strip's frame axis spans columns x every_frames frames
@@ -150,7 +137,9 @@ def film_to_folder(
     :return: the written files
     :raises InputError: for bad input
     """
-    check_film_arguments(frames, size, every_frames)
+    for name, value, low in (("frames", frames, 1), ("size", size, 16), ("every_frames", every_frames, 1)):
+        if value < low:
+            raise InputError(f"{name} must be >= {low}, got {value}.", parameter=name)
     if not seeds:
         raise InputError("seeds must hold at least one episode seed.", parameter="seeds")
     check_checkpoint_files(checkpoint_paths, same_observations=False)  # each films in its own env

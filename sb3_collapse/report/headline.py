@@ -34,12 +34,7 @@ Interval = tuple[float, float]
 
 
 def wilson_interval(successes: int, trials: int, confidence: float = CONFIDENCE) -> Interval:
-    """
-    :param successes: the count, ``0 <= successes <= trials``
-    :param trials: the number of trials
-    :param confidence: the confidence level, in (0, 1)
-    :return: the Wilson score interval ``(low, high)``; ``(nan, nan)`` without trials
-    """
+    """:return: the Wilson score interval ``(low, high)`` of ``successes`` of ``trials`` (nan without trials)"""
     if not 0 <= successes <= trials:
         raise ValueError(f"successes must be in [0, trials], got {successes} of {trials}.")
     if trials == 0:
@@ -64,11 +59,7 @@ def escape_probability(stuck_probability: float, windows: int) -> float:
 
 
 def escape_interval(p_interval: Interval, windows: int) -> Interval:
-    """
-    :param p_interval: an interval of p
-    :param windows: n
-    :return: the interval of ``1 - p^n``: ``(1 - high^n, 1 - low^n)``
-    """
+    """:return: the interval of ``1 - p^n`` from ``p_interval`` of p: ``(1 - high^n, 1 - low^n)``"""
     low, high = p_interval
     return (escape_probability(high, windows), escape_probability(low, windows))
 
@@ -80,14 +71,8 @@ def bootstrap_std_interval(
     resamples: int = BOOTSTRAP_RESAMPLES,
     seed: int = 0,
 ) -> Interval:
-    """
-    :param returns: ``(seeds, frames)`` aligned returns
-    :param last_evals: the last evaluations averaged
-    :param confidence: the confidence level
-    :param resamples: bootstrap resamples
-    :param seed: seed of the resampling
-    :return: percentile bootstrap interval of :func:`last_evals_std_mean` over seeds; nan with fewer than 2 seeds
-    """
+    """:return: the percentile bootstrap interval over seeds of :func:`last_evals_std_mean` of ``(seeds, frames)``
+    aligned ``returns`` (nan with fewer than 2 seeds)"""
     seeds = returns.shape[0]
     if seeds < 2 or returns.shape[1] == 0:
         return (math.nan, math.nan)
@@ -101,25 +86,14 @@ def bootstrap_std_interval(
 
 
 def figure5_curves(sweep: Sweep, task: str, percentiles: tuple[float, float] = PAPER.percentiles) -> list[BandCurve]:
-    """
-    Figure 5's curves ("The performance comparison ... between DrQ-v2 and DrQ-v2 plus our rule").
-
-    :param sweep: the loaded sweep
-    :param task: the task
-    :param percentiles: the band, in percent
-    :return: a curve per variant whose finished seeds share a frame, without the transplant cells (Figure 3's)
-    """
+    """Figure 5's curves of ``task`` ("The performance comparison ... between DrQ-v2 and DrQ-v2 plus our rule"): a
+    curve per variant whose finished seeds share a frame, without the transplant cells (Figure 3's)."""
     curves = []
     for variant in sweep.variants(task):
         frames, returns = aligned_returns(sweep.select(task, variant))
         if len(frames) and transplant_sources(variant) is None:
             curves.append(band_curve(variant, frames, returns, percentiles))
     return curves
-
-
-def figure5_unfinished(sweep: Sweep, task: str) -> list[Trial]:
-    """:return: the unfinished trials of ``task`` that Figure 5 may draw (no transplant-grid cells)"""
-    return [t for t in sweep.unfinished if t.task == task and transplant_sources(t.variant) is None]
 
 
 @dataclass
@@ -150,19 +124,8 @@ class Estimate:
 
 @dataclass
 class HeadlineRow:
-    """
-    One task of the headline: the paper's numbers and the sweep's (``None``: not in the paper / the sweep).
-
-    :param task: the task
-    :param paper: the paper's numbers
-    :param baseline: the sweep's baseline row
-    :param rule: the sweep's rule row
-    :param stuck_baseline: baseline seeds stuck at the end of training, of those whose collapse state is known
-    :param stuck_rule: the same for the rule
-    :param never_escaped_rule: the rule's seeds that never escaped, of those that ran the rule
-    :param std_baseline: the baseline's mean std over the last evaluations, with a bootstrap interval
-    :param std_rule: the same for the rule
-    """
+    """One task of the headline: the paper's numbers and the sweep's (``None``: not in the paper / the sweep); the
+    cells' definitions: :func:`headline_definitions`."""
 
     task: str
     paper: PaperResult | None
@@ -201,17 +164,9 @@ def headline_rows(
     baseline: str = BASELINE_VARIANT,
     rule: str = RULE_VARIANT,
 ) -> list[HeadlineRow]:
-    """
-    The headline, one row per task (the paper's first, in its order): the baseline's stuck seeds, the rule's seeds
-    that never escaped and "the average standard deviation over the last ten evaluations", beside the paper's.
-
-    :param sweep: the loaded sweep
-    :param rows: the summary rows
-    :param settings: the report's definitions
-    :param baseline: the baseline variant
-    :param rule: the rule's variant
-    :return: the rows
-    """
+    """The headline, a row per task (the paper's first, in its order): the ``baseline`` variant's stuck seeds, the
+    ``rule`` variant's seeds that never escaped and "the average standard deviation over the last ten evaluations",
+    beside the paper's."""
     by_key = {(row.task, row.variant): row for row in rows}
     papers = {result.task: result for result in PAPER_RESULTS}
     tasks = [task for task in papers if task in sweep.tasks()] + [t for t in sweep.tasks() if t not in papers]
@@ -229,18 +184,8 @@ def headline_rows(
 
 @dataclass
 class Proposition1Row:
-    """
-    Proposition 1 for one task and rule variant.
-
-    :param task: the task
-    :param baseline: the variant whose stuck fraction is p
-    :param rule: the variant with the rule
-    :param stuck: the baseline's stuck seeds (p)
-    :param windows: n, the rule's whole windows in the budget (``None`` when unknown)
-    :param predicted: ``1 - p^n`` and its interval (``None`` without p or n)
-    :param escaped: the rule's seeds that escaped
-    :param window_frames: m, the rule's window, in frames (``None`` when unknown)
-    """
+    """Proposition 1 for one task and ``rule`` variant: p the ``baseline``'s ``stuck`` fraction, n the rule's whole
+    ``windows`` of m ``window_frames`` in the budget (``None``: unknown), the ``predicted`` ``1 - p^n``."""
 
     task: str
     baseline: str
@@ -253,11 +198,8 @@ class Proposition1Row:
 
 
 def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
-    """
-    :param trials: finished trials of a rule variant
-    :return: Proposition 1's ``(n, m)`` from their settings files: m the rule's window in frames, n ``frames // m``;
-        ``(None, None)`` when no settings file says, or they disagree
-    """
+    """:return: Proposition 1's ``(n, m)`` from the settings of a rule variant's ``trials``: m the rule's window in
+    frames, n ``frames // m``; ``(None, None)`` when no settings file says, or they disagree"""
     found = set()
     for trial in trials:
         try:
@@ -271,14 +213,8 @@ def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
 
 
 def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Proposition1Row]:
-    """
-    Proposition 1 ("the probability of escaping action collapse when applying our proposed rule is 1 - p^n") per
-    task and ``<algorithm>+<intervention>`` variant whose plain algorithm is in the sweep.
-
-    :param sweep: the loaded sweep
-    :param rows: the summary rows
-    :return: the rows, by task then variant
-    """
+    """Proposition 1 ("the probability of escaping action collapse when applying our proposed rule is 1 - p^n") per
+    task and ``<algorithm>+<intervention>`` variant whose plain algorithm is in the sweep."""
     by_key = {(row.task, row.variant): row for row in rows}
     result = []
     for row in rows:
@@ -286,7 +222,7 @@ def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Prop
         base = by_key.get((row.task, algorithm))
         if not plus or base is None or base.seeds == 0 or row.reset_rule_seeds == 0:
             continue
-        stuck = Proportion.of(base.stuck, base.seeds - base.collapse_unknown)
+        stuck = _stuck(base)
         windows, window_frames = rule_windows(sweep.select(row.task, row.variant))
         predicted = None
         if windows is not None and stuck.total:
@@ -390,12 +326,7 @@ def headline_definitions(settings: ReportSettings) -> str:
 def headline_markdown(
     headline: Sequence[HeadlineRow], proposition: Sequence[Proposition1Row], settings: ReportSettings
 ) -> str:
-    """
-    :param headline: :func:`headline_rows`
-    :param proposition: :func:`proposition1_rows`
-    :param settings: the report's definitions
-    :return: the headline and Proposition 1 as Markdown, for the top of ``summary.md``
-    """
+    """:return: the headline and Proposition 1 as Markdown, for the top of ``summary.md``"""
     lines = ["## The paper's headline beside this sweep's", ""]
     lines += markdown_table(HEADLINE_HEADER, headline_table(headline))
     lines += ["", "## Proposition 1", "", f"> {PROPOSITION_1}", ""]

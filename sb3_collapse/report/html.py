@@ -36,12 +36,7 @@ pre { background: #f6f6f6; padding: 0.6em; white-space: pre-wrap; font-size: 0.8
 
 @dataclass
 class Section:
-    """
-    One section of the page.
-
-    :param title: its heading (and entry in the table of contents)
-    :param parts: its HTML fragments, in order
-    """
+    """One section of the page: its heading (and entry in the table of contents) and its HTML fragments."""
 
     title: str
     parts: list[str] = field(default_factory=list)
@@ -64,11 +59,7 @@ def bullet_list(items: Iterable[str]) -> str:
 
 
 def figure(png: str | Path, caption: str) -> str:
-    """
-    :param png: a PNG file, embedded as base64
-    :param caption: what the figure shows (also its alt text)
-    :return: ``<figure>`` with the image and caption
-    """
+    """:return: ``<figure>`` with the PNG file ``png`` embedded as base64 and ``caption`` (also its alt text)"""
     data = base64.b64encode(Path(png).read_bytes()).decode("ascii")
     alt = html.escape(caption, quote=True)
     return (
@@ -90,13 +81,8 @@ def _cell(value: Any) -> str:
 def table(
     header: Sequence[str], rows: Iterable[Sequence[Any]], caption: str | None = None, css_class: str | None = None
 ) -> str:
-    """
-    :param header: column names
-    :param rows: cells (``None``, ``""`` and nan shown as ``-``, floats with 4 significant digits)
-    :param caption: the table's caption
-    :param css_class: the table's class
-    :return: ``<table>`` in a horizontally scrolling ``<div>``
-    """
+    """:return: ``<table>`` in a horizontally scrolling ``<div>`` (cells ``None``, ``""`` and nan shown as ``-``,
+    floats with 4 significant digits)"""
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(_cell(c))}</td>" for c in row) + "</tr>" for row in rows)
     title = f"<caption>{html.escape(caption)}</caption>" if caption else ""
@@ -119,12 +105,7 @@ def settings_table(settings: Mapping[str, Any], caption: str | None = None) -> s
 
 
 def html_page(title: str, sections: Sequence[Section], subtitle: str | None = None) -> str:
-    """
-    :param title: the page title
-    :param sections: its sections, with a table of contents at the top
-    :param subtitle: a line under the title
-    :return: the HTML document
-    """
+    """:return: the HTML document: ``title``, ``subtitle``, a table of contents, then the ``sections``"""
     created = datetime.now(timezone.utc).isoformat(timespec="seconds")
     contents = "".join(f'<li><a href="#{s.anchor}">{html.escape(s.title)}</a></li>' for s in sections)
     body = "".join(

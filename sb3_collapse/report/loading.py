@@ -26,23 +26,14 @@ from sb3_collapse.runfolder import (
     trial_folders,
 )
 
-DEFAULT_COLLAPSE_TAG = PAPER.collapse_tag
-"""The collapse metric that decides "stuck in action collapse" (the reset rule's)."""
 WAY_OUT = "move the folder aside to train this seed again"
 """What a damaged trial's reason ends with."""
 Item = TypeVar("Item")
 
 
 def progress_bar(items: Iterable[Item], desc: str, unit: str, progress: bool = True) -> Iterable[Item]:
-    """
-    A progress bar on a terminal; on any other stderr one line ``desc: N units`` instead (no bar frames).
-
-    :param items: what is iterated over
-    :param desc: the stage's name
-    :param unit: what one item is
-    :param progress: show the progress at all
-    :return: the items
-    """
+    """:return: ``items`` behind a progress bar on a terminal; on another stderr one line ``desc: N units`` instead
+    (nothing without ``progress``)"""
     items = list(items)
     if progress and sys.stderr.isatty():
         return tqdm(items, desc=desc, unit=unit)
@@ -145,30 +136,16 @@ class Sweep:
 
 
 def variant_order(variants: Iterable[str]) -> list[str]:
-    """
-    :param variants: variant names
-    :return: the names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted
-    """
+    """:return: the variant names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted"""
     first = {"drqv2": 0, "drqv2+reset": 1}
     return sorted(set(variants), key=lambda name: (first.get(name, 2), name))
 
 
 def load_trial(
-    task: str, variant: str, seed: int, path: Path, collapse_tag: str = DEFAULT_COLLAPSE_TAG, partial: bool = False
+    task: str, variant: str, seed: int, path: Path, collapse_tag: str = PAPER.collapse_tag, partial: bool = False
 ) -> Trial:
-    """
-    Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted, not raised).
-
-    :param task: task folder name
-    :param variant: variant folder name
-    :param seed: seed of the folder
-    :param path: the trial folder
-    :param collapse_tag: the collapse metric to read
-    :param partial: read the evaluation curve of an unfinished trial too
-    :return: the trial
-    :raises InputError: naming the file, when a file of a finished trial (or any result file) is malformed: its
-        ``resets`` not an integer >= 0, ``escaped`` not a bool or null, another version
-    """
+    """Read one trial folder (an unfinished trial's partial curve with ``partial``: unreadable, it is noted); an
+    InputError names the file when a finished trial's file (or any result file) is malformed."""
     result = read_result(path, strict=True)
     finished = result is not None and result.get("status") == FINISHED
     status = RunStatus.FINISHED if finished else run_status(path)
@@ -203,7 +180,7 @@ def load_trial(
 
 def load_sweep(
     sweep: str | Path,
-    collapse_tag: str = DEFAULT_COLLAPSE_TAG,
+    collapse_tag: str = PAPER.collapse_tag,
     include_unfinished: bool = False,
     tasks: Iterable[str] | None = None,
     variants: Iterable[str] | None = None,

@@ -11,8 +11,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sb3_collapse.errors import InputError
-from sb3_collapse.presets import preset
+from sb3_collapse.presets import TaskPreset, preset
 from sb3_collapse.probe.fixed_inputs import FixedInputs, FixedMetrics
+from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
 from sb3_collapse.protocol import (
     CONFIG_JSON,
     FIGURE2_PNG,
@@ -41,24 +42,17 @@ GRID_PNG = "transplant_grid.png"
 FIGURE3B_PNG = "figure3b.png"
 TABLE7_CSV = "table7.csv"
 TABLE7_MD = "table7.md"
-COLLAPSE_PNG = "collapse_metrics_{task}_{variant}.png"
-"""Figures 4, 8, 9 of one task and variant on the fixed probing set."""
-COLLAPSE_FIXED_CSV = "collapse_metrics_{task}_{variant}.csv"
-"""The values of :data:`COLLAPSE_PNG`."""
-COLLAPSE_ONLINE_PNG = "collapse_metrics_online_{task}_{variant}.png"
-"""The same agents' online metrics (their own replay batches)."""
-COLLAPSE_AGENTS_CSV = "collapse_agents.csv"
-"""The agents of Figures 4, 8, 9 (:data:`AGENTS_COLUMNS`)."""
-RUN_COLLAPSE_PNG = "collapse_metrics.png"
-"""Figure 4 of a single run folder."""
+COLLAPSE_PNG = "collapse_metrics_{task}_{variant}.png"  # Figures 4, 8, 9 on the fixed probing set
+COLLAPSE_FIXED_CSV = "collapse_metrics_{task}_{variant}.csv"  # their values
+COLLAPSE_ONLINE_PNG = "collapse_metrics_online_{task}_{variant}.png"  # on the agents' own replay batches
+COLLAPSE_AGENTS_CSV = "collapse_agents.csv"  # the agents of Figures 4, 8, 9 (AGENTS_COLUMNS)
+RUN_COLLAPSE_PNG = "collapse_metrics.png"  # Figure 4 of a single run folder
 _PATTERNS = tuple(
     name.format(task="*", variant="*") for name in (COLLAPSE_PNG, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG)
 )
 OUTPUT_FILES = (FIGURE5_PNG, SUMMARY_CSV, GRID_CSV, GRID_MD, GRID_PNG, FIGURE3B_PNG, TABLE7_CSV, TABLE7_MD)
 OUTPUT_FILES += (*_PATTERNS, COLLAPSE_AGENTS_CSV, html.INDEX_HTML, SUMMARY_MD)
 """Every file a report may write; ``summary.md`` is moved in last, so its presence marks a complete report."""
-RUN_OUTPUT_FILES = (RUN_COLLAPSE_PNG, html.INDEX_HTML)
-"""The files of a single run folder's report (``index.html`` last)."""
 REPORT_FOLDER = "report"
 """The default output folder inside the sweep folder."""
 AGENTS_COLUMNS = ("task", "variant", "row", "seed", "final_return", "class_seeds", "seeds", "pick_seed", "inputs")
@@ -70,20 +64,7 @@ TRANSPLANT_NOTE = (
     + " produce {them} (python -m sb3_collapse.sweep --transplant-grid runs all nine)"
 )
 """The note of a report without Figure 3 and Table 7."""
-PRESET_COLUMNS = (
-    "tier",
-    "from_drqv2",
-    "frames",
-    "action_repeat",
-    "frame_stack",
-    "batch_size",
-    "learning_rate",
-    "n_steps",
-    "feature_dim",
-    "hidden_dim",
-    "stddev_schedule",
-    "eval_every_frames",
-)
+PRESET_COLUMNS = tuple(f.name for f in dataclasses.fields(TaskPreset) if f.name != "task")
 """The preset settings shown on the page, per task."""
 
 
@@ -195,17 +176,14 @@ def build_report(
     :raises InputError: on a bad folder or setting, or a sweep none of whose trials can be read
     """
     settings = settings or stats.ReportSettings()
-    try:
-        settings.validate()
-    except ValueError as error:
-        raise InputError(str(error)) from error
+    settings.validate()
     collapse_settings = collapse_settings or collapse_figure.FixedInputSettings()
     collapse_settings.validate()
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
     rows = stats.summarize(sweep, settings)
     notes = _notes(sweep, rows, include_unfinished)
-    curves = {task: headline.figure5_curves(sweep, task, settings.percentiles) for task in sweep.tasks()}
-    curves = {task: found for task, found in curves.items() if found or _plain_variants(sweep, task)}
+    plain = sorted({t.task for t in sweep.trials if stats.transplant_sources(t.variant) is None})  # Figure 5's panels
+    curves = {task: headline.figure5_curves(sweep, task, settings.percentiles) for task in plain}
     references = {}
     for task in sweep.tasks() if reference else ():
         data = load_reference_curves(task)
@@ -232,32 +210,20 @@ def collapse_figures(
     collapse_settings: collapse_figure.FixedInputSettings,
     progress: bool = False,
 ) -> None:
-    """
-    Fill the report's Figures 4, 8, 9 per task and variant that is not a transplant cell: the picked agents, their
-    online rows, and their rows on the fixed probing set where the rollouts and snapshots are there (else a note).
-    A given rollouts file serves the tasks it was recorded on; the others read ``probe sweep``'s rollouts of
-    ``collapse_settings.rollouts_variant`` (each variant's own when ``None``). See docs/figures.md.
-
-    :param report: the report being built (``collapse*`` fields and ``notes`` are filled)
-    :param settings: the report's definitions (``success_return``)
-    :param collapse_settings: the pick's seed, the fixed set and where the checkpoints run
-    :param progress: progress bars over the checkpoints
-    :raises InputError: for a bad setting, an unreadable given rollouts file, or a checkpoint that does not fit
-    """
-    collapse_settings.validate()
+    """Fill the report's ``collapse*`` fields (Figures 4, 8, 9) per task and variant that is not a transplant cell:
+    the picked agents, their online rows, and their rows on the fixed probing set where the rollouts and snapshots
+    are there (else a note in ``notes``). See docs/figures.md."""
     sweep = report.sweep
     given = None if collapse_settings.rollouts is None else collapse_settings.load(collapse_settings.rollouts)
     loaded: dict[Path, FixedInputs] = {}  # each rollouts file read once
+    pick = collapse_settings.pick_seed, settings.success_return, collapse_settings.failure_return
     for task in sweep.tasks():
         for variant in sweep.variants(task):
             if stats.transplant_sources(variant) is not None:
                 continue
             key = (task, variant)
             try:
-                bounds = settings.success_return, collapse_settings.failure_return
-                picks = collapse_figure.pick_paper_agents(
-                    sweep.select(task, variant), collapse_settings.pick_seed, *bounds
-                )
+                picks = collapse_figure.pick_paper_agents(sweep.select(task, variant), *pick)
             except ValueError as error:
                 raise InputError(str(error), parameter="failure_return") from error
             if not any(pick.trial is not None for pick in picks):
@@ -266,10 +232,14 @@ def collapse_figures(
             report.collapse_online[key] = collapse_figure.online_agent_rows(picks, collapse_settings.layers)
             inputs = given if given is not None and given.fits(task) else None
             source = collapse_settings.rollouts_variant or variant
-            rollouts = collapse_figure.default_rollouts(sweep.path, task, source)
-            missing = _fixed_inputs_missing(sweep.path, key, picks, inputs is None, rollouts, source, given)
-            if missing is not None:
-                report.notes.append(missing)
+            rollouts = sweep.path / SWEEP_PROBE_DIR.format(task=task, variant=source) / ROLLOUTS_NAME
+            why = _why_no_fixed_inputs(sweep.path, task, source, picks, rollouts if inputs is None else None, given)
+            if why is not None:
+                online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
+                report.notes.append(
+                    f"{task} / {variant}: Figure 4 on the probing samples not drawn: {why}; {online} shows the online "
+                    "metrics"
+                )
                 continue
             if inputs is None:
                 if rollouts not in loaded:
@@ -282,32 +252,23 @@ def collapse_figures(
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
 
 
-def _fixed_inputs_missing(
+def _why_no_fixed_inputs(
     sweep_path: Path,
-    key: tuple[str, str],
-    picks: Sequence[collapse_figure.AgentPick],
-    needs_rollouts: bool,
-    rollouts: Path,
+    task: str,
     source: str,
+    picks: Sequence[collapse_figure.AgentPick],
+    rollouts: Path | None,
     given: FixedInputs | None,
 ) -> str | None:
-    """:return: the note that says why Figure 4 on the probing samples is not drawn, ``None`` when it can be"""
-    task, variant = key
-    online = f"{COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)} shows the online metrics"
-    if needs_rollouts and not rollouts.is_file():
+    """:return: why Figure 4 on the probing samples cannot be drawn (``rollouts``: the file needed), else ``None``"""
+    if rollouts is not None and not rollouts.is_file():
         other = "" if given is None else f" ({given.source} was recorded on {given.task})"
         return (
-            f"{task} / {variant}: Figure 4 on the probing samples not drawn: no {rollouts}{other} (run "
-            f"python -m sb3_collapse.probe sweep {sweep_path} --task {task} --variant {source}, or pass "
-            f"--rollouts); {online}"
+            f"no {rollouts}{other} (run python -m sb3_collapse.probe sweep {sweep_path} --task {task} --variant "
+            f"{source}, or pass --rollouts)"
         )
-    lacking = [pick.trial.seed for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)]
-    if lacking:
-        return (
-            f"{task} / {variant}: Figure 4 on the probing samples not drawn: seed(s) "
-            f"{', '.join(map(str, lacking))} have no snapshots (train with --snapshots); {online}"
-        )
-    return None
+    lacking = [str(pick.trial.seed) for pick in picks if pick.trial is not None and not snapshot_files(pick.trial.path)]
+    return f"seed(s) {', '.join(lacking)} have no snapshots (train with --snapshots)" if lacking else None
 
 
 def agents_rows(report: Report) -> list[dict[str, object]]:
@@ -324,11 +285,6 @@ def agents_rows(report: Report) -> list[dict[str, object]]:
     return rows
 
 
-def _plain_variants(sweep: Sweep, task: str) -> bool:
-    """Whether ``task`` has a variant that is not a transplant cell (it gets a Figure 5 panel)."""
-    return any(stats.transplant_sources(variant) is None for variant in sweep.variants(task))
-
-
 def write_report(
     sweep_dir: str | Path,
     out: str | Path | None = None,
@@ -342,20 +298,12 @@ def write_report(
     collapse_settings: collapse_figure.FixedInputSettings | None = None,
 ) -> Report:
     """
-    The report of a sweep folder (:func:`build_report`), written to ``out``: staged, moved in only when every file
-    is written; outputs of a previous report that this one does not write are removed. Every file:
-    docs/figures.md and docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
+    The report of a sweep folder (:func:`build_report`, whose parameters it shares), written to ``out``: staged,
+    moved in only when every file is written; outputs of a previous report that this one does not write are removed.
+    Every file: docs/figures.md and docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
 
-    :param sweep_dir: the sweep folder
     :param out: the output folder (``<sweep_dir>/report`` when ``None``)
-    :param settings: the definitions (:class:`stats.ReportSettings` defaults when ``None``)
-    :param reference: overlay the published DrQ-v2 curves
-    :param include_unfinished: draw the partial curves of unfinished trials
-    :param tasks: only these tasks
-    :param variants: only these variants
-    :param progress: show the progress of the long stages
     :param overwrite: replace the outputs of a previous report in ``out`` (else an error, before the sweep is read)
-    :param collapse_settings: Figures 4, 8, 9 (:class:`collapse_figure.FixedInputSettings` defaults when ``None``)
     :return: the report, with ``files`` the written paths
     :raises InputError: on a bad folder or setting; nothing is written then
     """
@@ -366,10 +314,12 @@ def write_report(
     report = build_report(
         sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
     )
-    partial = {task: headline.figure5_unfinished(report.sweep, task) for task in report.curves}
+    partial = None
+    if include_unfinished:  # the unfinished trials of Figure 5's variants, drawn dotted
+        plain = [t for t in report.sweep.unfinished if stats.transplant_sources(t.variant) is None]
+        partial = {task: [t for t in plain if t.task == task] for task in report.curves}
     with staged_outputs as staged:
-        drawn = partial if include_unfinished else None
-        plot_figure5(report.curves, staged.path(FIGURE5_PNG), report.references, drawn, settings.percentiles)
+        plot_figure5(report.curves, staged.path(FIGURE5_PNG), report.references, partial, settings.percentiles)
         tables.write_csv(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS, staged.path(SUMMARY_CSV))
         if report.grid:
             tables.write_csv(tables.grid_rows(report.grid), tables.GRID_COLUMNS, staged.path(GRID_CSV))
@@ -437,15 +387,8 @@ def _tables_1_6(path: Path) -> list[str]:
 
 
 def sweep_page(report: Report, settings: stats.ReportSettings, png: Callable[[str], Path]) -> str:
-    """
-    The report's ``index.html``: the headline, the settings, the table, the unfinished trials, Figure 5 and the
-    published reference, Figures 4/8/9, Figure 2 and Tables 1-6, Figure 3 and Table 7.
-
-    :param report: the computed report
-    :param settings: its definitions
-    :param png: name of a written figure -> its path
-    :return: the HTML text
-    """
+    """:return: the report's ``index.html`` (``png``: name of a written figure -> its path): the headline, settings,
+    table, unfinished trials, Figure 5 and the reference, Figures 4/8/9, 2, Tables 1-6, Figure 3 and Table 7"""
     sweep, low, high = report.sweep, *settings.percentiles
     top = html.Section("The paper's headline beside this sweep's")
     top.parts += [
@@ -545,24 +488,17 @@ def write_run_report(
     overwrite: bool = False,
     layers: Sequence[str] = collapse_figure.FIGURE4_LAYERS,
 ) -> tuple[Trial, list[Path]]:
-    """
-    The report of one run folder of ``python -m sb3_collapse.train``: its Figure 4 (``collapse_metrics.png``, the
-    online metrics, resets marked) and ``index.html`` with it and the run's settings; an unfinished run is drawn
-    as far as its files go.
-
-    :param run_dir: the run folder
-    :param out: the output folder (``<run_dir>/report`` when ``None``)
-    :param overwrite: replace the outputs of a previous report
-    :param layers: the layers drawn
-    :return: the run (as a trial) and the written files
-    :raises InputError: when the folder is not a run folder or a file is malformed
-    """
+    """The report of one run folder of the train CLI into ``out`` (``<run_dir>/report`` when ``None``): its online
+    Figure 4 (``collapse_metrics.png``) and ``index.html`` with the run's settings, as far as its files go. Returns
+    the run (as a trial) and the written files; an InputError when it is not a run folder or a file is malformed."""
     out_dir = Path(run_dir) / REPORT_FOLDER if out is None else Path(out)
-    staged_outputs = StagedOutputs(out_dir, RUN_OUTPUT_FILES, html.INDEX_HTML, overwrite=overwrite, error=InputError)
+    run_files = (RUN_COLLAPSE_PNG, html.INDEX_HTML)
+    staged_outputs = StagedOutputs(out_dir, run_files, html.INDEX_HTML, overwrite=overwrite, error=InputError)
     trial = collapse_figure.run_folder_trial(run_dir)
     agent = collapse_figure.agent_metrics(trial, "run", layers)
     with staged_outputs as staged:
-        title = collapse_figure.run_title(trial)
+        title = f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})"
+        title += f"\non {ONLINE_INPUTS}"
         plot_collapse_metrics([agent], staged.path(RUN_COLLAPSE_PNG), title, layers)
         section = html.Section("Figure 4: collapse metrics over training")
         section.parts.append(html.figure(staged.path(RUN_COLLAPSE_PNG), title))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -22,10 +23,7 @@ REFERENCE_COLOR = "0.15"
 
 
 def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str]:
-    """
-    :param variants: variant names in display order
-    :return: variant -> its colour in every panel (Okabe-Ito but black, then Paul Tol's muted, then ``tab20``)
-    """
+    """:return: variant -> its colour in every panel (Okabe-Ito but black, then Paul Tol's muted, then ``tab20``)"""
     palette = [color for color in OKABE_ITO if color != "#000000"] + list(TOL_MUTED)
     if len(variants) <= len(palette):
         return {variant: palette[i] for i, variant in enumerate(variants)}
@@ -34,10 +32,7 @@ def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str
 
 
 def variant_label(variant: str) -> str:
-    """
-    :param variant: a variant name
-    :return: its legend name: ``<algorithm>+<intervention>`` gets the intervention's name
-    """
+    """:return: the legend name of ``variant``: ``<algorithm>+<intervention>`` gets the intervention's name"""
     _, plus, intervention = variant.partition("+")
     label = INTERVENTION_LABELS.get(intervention) if plus else None
     return variant if label is None else f"{variant}: {label}"
@@ -76,15 +71,8 @@ def plot_figure5(
     partial: Mapping[str, Sequence[Trial]] | None = None,
     percentiles: tuple[float, float] = (5.0, 95.0),
 ) -> None:
-    """
-    The paper's Figure 5: a panel per task; per variant the mean evaluation return (solid) and the percentile band.
-
-    :param curves: task -> the variants' curves
-    :param path: the PNG file to write
-    :param references: task -> published DrQ-v2 curve, drawn dashed with a hatched band
-    :param partial: task -> unfinished trials whose partial curves are drawn dotted
-    :param percentiles: the band's percentiles (for the labels)
-    """
+    """The paper's Figure 5 to ``path``: a panel per task; per variant the mean evaluation return (solid) and the
+    percentile band; the published DrQ-v2 ``references`` dashed, hatched band; ``partial`` unfinished curves dotted."""
     references = references or {}
     partial = partial or {}
     tasks = list(curves)
@@ -108,14 +96,11 @@ def plot_figure5(
             label = f"{variant_label(curve.name)} (n={curve.seeds})"
             ax.plot(curve.frames, curve.mean, color=color, lw=2.0, marker=marker, label=label)
             ax.fill_between(curve.frames, curve.low, curve.high, color=color, alpha=0.2, lw=0.0)
-        labelled: set[str] = set()
-        for trial in partial.get(task, []):
-            if len(trial.frames) == 0:
-                continue
-            count = sum(t.variant == trial.variant and len(t.frames) > 0 for t in partial[task])
-            label = f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
-            label = None if trial.variant in labelled else label
-            labelled.add(trial.variant)
+        drawn = [trial for trial in partial.get(task, []) if len(trial.frames)]
+        counts = Counter(trial.variant for trial in drawn)  # popped: one legend entry per variant
+        for trial in drawn:
+            count = counts.pop(trial.variant, None)
+            label = None if count is None else f"{variant_label(trial.variant)}, unfinished, partial (n={count})"
             ax.plot(trial.frames, trial.returns, ":", color=colors[trial.variant], lw=1.0, label=label)
         ax.set_title(task)
         ax.set_xlabel("frames")
@@ -136,13 +121,7 @@ def plot_figure5(
 def plot_transplant_grid(
     grid: Mapping[str, Sequence[GridCell]], path: Path, success_return: float = PAPER.success_return
 ) -> None:
-    """
-    The paper's Figure 3(a): a heatmap per task, CNN (rows) x MLP source, of the fraction of successful seeds.
-
-    :param grid: task -> 9 cells
-    :param path: the PNG file to write
-    :param success_return: the success threshold (for the title)
-    """
+    """The paper's Figure 3(a) to ``path``: a heatmap per task, CNN (rows) x MLP source, of the successful seeds."""
     tasks = list(grid)
     fig, axes = panels(len(tasks))
     cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
@@ -178,14 +157,8 @@ SOURCE_LINESTYLES = dict(zip(TRANSPLANT_SOURCES, (":", "-", "--")))
 def plot_figure3b(
     curves: Mapping[str, Sequence[TransplantCurves]], path: Path, success_return: float = PAPER.success_return
 ) -> None:
-    """
-    The paper's Figure 3(b): per task, the mean return (+- one std) of each cell's successful seeds, colour by the
-    CNN's source, line style by the MLP's.
-
-    :param curves: task -> cells with successful seeds
-    :param path: the PNG file to write
-    :param success_return: the success threshold (for the title)
-    """
+    """The paper's Figure 3(b) to ``path``: per task, the mean return (+- one std) of each cell's successful seeds,
+    colour by the CNN's source, line style by the MLP's."""
     tasks = list(curves)
     fig, axes = panels(len(tasks), columns=2)
     for ax, task in zip(axes.flat, tasks):

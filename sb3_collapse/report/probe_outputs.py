@@ -53,20 +53,12 @@ SELF_RECORDED_NOTE = (
 
 
 def staged_output(out: str | Path, overwrite: bool = False) -> StagedOutputs:
-    """
-    :param out: the output folder (created if needed)
-    :param overwrite: replace the outputs of a previous run; otherwise their presence is an error
-    :return: the probe's staged output folder (files moved in when the run succeeded, ``summary.json`` last)
-    """
+    """:return: the probe's staged output folder ``out`` (moved in on success, ``summary.json`` last)"""
     return StagedOutputs(out, OUTPUT_FILES, SUMMARY_NAME, overwrite=overwrite, error=InputError)
 
 
 def group_means(rows: list[dict[str, Any]], key: str = "test_mse") -> dict[tuple[str, str, str], float]:
-    """
-    :param rows: probe rows
-    :param key: the column averaged
-    :return: ``(checkpoint, layer, group)`` -> mean of ``key`` over the group's components
-    """
+    """:return: ``(checkpoint, layer, group)`` -> mean of the column ``key`` of ``rows`` over the group's components"""
     values: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     for row in rows:
         values[(row["checkpoint"], row["layer"], row["group"])].append(row[key])
@@ -124,11 +116,8 @@ def training_order(rows: list[dict[str, Any]]) -> list[str] | None:
 
 
 def plot_mse_over_training(rows: list[dict[str, Any]], path: Path) -> bool:
-    """
-    Write to ``path`` a panel per state component group: mean test MSE against training frames, a line per layer.
-
-    :return: False (nothing written) unless the checkpoints are ordered by training step (:func:`training_order`)
-    """
+    """Write to ``path`` a panel per state component group: mean test MSE over training frames, a line per layer;
+    return False (nothing written) unless the checkpoints are ordered by training step (:func:`training_order`)."""
     order = training_order(rows)
     if order is None:
         return False
@@ -235,11 +224,7 @@ def probe_to_folder(
 
 
 def checked_record_options(record_options: RecordOptions | None) -> RecordOptions:
-    """
-    :param record_options: how to record (``None``: the defaults)
-    :return: them, checked before anything is recorded
-    :raises InputError: naming the bad option
-    """
+    """:return: ``record_options`` (``None``: the defaults), checked (InputError: naming the bad option)"""
     record_options = record_options or RecordOptions()
     record_options.check()
     if record_options.episodes < MIN_EPISODES:  # the split needs them
@@ -254,14 +239,7 @@ def checked_record_options(record_options: RecordOptions | None) -> RecordOption
 def record_rollouts(
     source: str | Path, device: th.device, record_options: RecordOptions, settings: ProbeSettings, staged: StagedOutputs
 ) -> Rollouts:
-    """
-    :param source: the checkpoint that records
-    :param device: where it runs
-    :param record_options: how to record
-    :param settings: the probe's settings (``progress``)
-    :param staged: the staged outputs the rollouts are saved into (moved in only on success)
-    :return: the rollouts
-    """
+    """:return: the rollouts recorded by the checkpoint ``source``, saved into ``staged`` (moved in on success)"""
     recorder = load_checkpoint(source, device=device)
     rollouts = record(recorder, record_options, settings.progress)
     del recorder

@@ -33,14 +33,7 @@ def reference_task_name(task: str) -> str:
 
 @dataclass
 class ReferenceCurves:
-    """
-    The published curves of one task, on the frames that every seed has.
-
-    :param task: the reference task name
-    :param seeds: the seeds, sorted
-    :param frames: the evaluation frames
-    :param returns: ``(len(seeds), len(frames))`` evaluation returns
-    """
+    """The published curves of one task on the frames every seed has: ``(len(seeds), len(frames))`` ``returns``."""
 
     task: str
     seeds: np.ndarray
@@ -76,15 +69,8 @@ def load_reference_curves(task: str) -> ReferenceCurves | None:
 
 
 def pack_reference_curves(folder: str | Path, path: str | Path, decimals: int = 2) -> int:
-    """
-    Build the shipped data file from the ``dmc_<task>.csv`` files of DrQ-v2's ``curves/`` folder.
-
-    :param folder: the folder of ``dmc_*.csv`` files
-    :param path: the ``.csv.gz`` file to write
-    :param decimals: decimals kept of ``episode_reward``
-    :return: the number of rows written
-    :raises InputError: when the folder holds no ``dmc_*.csv``
-    """
+    """Write the shipped ``.csv.gz`` ``path`` from the ``dmc_*.csv`` files of DrQ-v2's ``curves/`` ``folder``; return
+    the rows written (an InputError without ``dmc_*.csv``)."""
     files = sorted(Path(folder).glob("dmc_*.csv"))
     if not files:
         raise InputError(f"no dmc_*.csv files in {folder}; give DrQ-v2's curves/ folder.")

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.report.loading import Sweep, Trial
 
@@ -41,23 +42,20 @@ class ReportSettings:
     percentiles: tuple[float, float] = PAPER.percentiles
 
     def validate(self) -> None:
-        """:raises ValueError: on a setting out of range (the message names it)"""
+        """:raises InputError: on a setting out of range (the message names it)"""
         if self.collapse_checks < 1:
-            raise ValueError(f"collapse_checks must be >= 1, got {self.collapse_checks}.")
+            raise InputError(f"collapse_checks must be >= 1, got {self.collapse_checks}.")
         if self.last_evals < 1:
-            raise ValueError(f"last_evals must be >= 1 evaluation, got {self.last_evals}.")
+            raise InputError(f"last_evals must be >= 1 evaluation, got {self.last_evals}.")
         if not math.isfinite(self.collapse_threshold):
-            raise ValueError(f"collapse_threshold must be a finite number, got {self.collapse_threshold}.")
+            raise InputError(f"collapse_threshold must be a finite number, got {self.collapse_threshold}.")
         low, high = self.percentiles
         if not 0 <= low < high <= 100:
-            raise ValueError(f"percentiles must satisfy 0 <= low < high <= 100, got {low} and {high}.")
+            raise InputError(f"percentiles must satisfy 0 <= low < high <= 100, got {low} and {high}.")
 
 
 def aligned_returns(trials: Sequence[Trial]) -> tuple[np.ndarray, np.ndarray]:
-    """
-    :param trials: trials with evaluation curves (``frames`` increasing)
-    :return: ``(frames, returns)`` on the frames every trial has, ``returns[i, j]`` of ``trials[i]`` at ``frames[j]``
-    """
+    """:return: ``(frames, returns)``, frames all trials share; ``returns[i, j]``: ``trials[i]`` at ``frames[j]``"""
     frames = functools.reduce(np.intersect1d, [t.frames for t in trials]) if trials else np.zeros(0)
     frames = np.unique(frames).astype(np.int64)
     returns = np.array([trial.returns[np.searchsorted(trial.frames, frames)] for trial in trials], dtype=np.float64)
@@ -66,16 +64,7 @@ def aligned_returns(trials: Sequence[Trial]) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class BandCurve:
-    """
-    A curve of Figure 5 at each aligned frame.
-
-    :param name: the variant (or the reference's label)
-    :param frames: the aligned frames
-    :param mean: mean return across seeds
-    :param low: low percentile
-    :param high: high percentile
-    :param seeds: number of seeds
-    """
+    """A curve of Figure 5 (a variant, or the reference): mean return and percentile band across seeds per frame."""
 
     name: str
     frames: np.ndarray
@@ -88,23 +77,13 @@ class BandCurve:
 def band_curve(
     name: str, frames: np.ndarray, returns: np.ndarray, percentiles: tuple[float, float] = (5.0, 95.0)
 ) -> BandCurve:
-    """
-    :param name: the curve's name
-    :param frames: the aligned frames
-    :param returns: ``(seeds, frames)`` aligned returns
-    :param percentiles: the band, in percent
-    :return: mean and percentile band across seeds at each frame
-    """
+    """:return: the curve of ``(seeds, frames)`` aligned ``returns``: mean and ``percentiles`` band across seeds"""
     low, high = np.percentile(returns, percentiles, axis=0)
     return BandCurve(name, frames, returns.mean(axis=0), low, high, returns.shape[0])
 
 
 def across_seed_std(values: np.ndarray, axis: int = 0) -> np.ndarray | float:
-    """
-    :param values: values with the seeds along ``axis``
-    :param axis: the seed axis
-    :return: the std across seeds (``ddof=1``; nan with fewer than 2 seeds), a float for 1-d input
-    """
+    """:return: the std across the seeds on ``axis`` of ``values`` (``ddof=1``; nan with < 2 seeds), a float for 1-d"""
     values = np.asarray(values, dtype=np.float64)
     if values.shape[axis] < 2:
         shape = values.shape[:axis] + values.shape[axis + 1 :]
@@ -146,28 +125,8 @@ def stuck_in_collapse(
 
 @dataclass
 class VariantSummary:
-    """
-    One row of the table (docs/sweeps.md: its columns).
-
-    :param task: task name
-    :param variant: variant name
-    :param seeds: finished seeds (the statistics use only these)
-    :param unfinished: its trial folders that are not finished
-    :param final_frame: last frame of the aligned grid (``None`` without finished seeds)
-    :param final_mean: mean of the final return
-    :param final_std: across-seed std of the final return
-    :param stuck: seeds stuck in action collapse (:func:`stuck_in_collapse`)
-    :param collapse_unknown: seeds without any value of the collapse metric
-    :param resets_total: resets summed over the seeds
-    :param seeds_reset: seeds with at least one reset
-    :param escaped: seeds whose reset rule saw an escape
-    :param reset_rule_seeds: seeds that ran the reset rule
-    :param last_evals: frames averaged in ``last_evals_std_mean``
-    :param last_evals_std_mean: :func:`last_evals_std_mean` of the aligned returns
-    :param dropped_frames: evaluation frames of some but not all seeds
-    :param finals: the final return of each seed, by seed
-    :param seed_ids: the finished seeds
-    """
+    """One row of the table (its columns: docs/sweeps.md); ``dropped_frames``: evaluation frames of some but not all
+    finished seeds; ``finals``: each finished seed's final return, of ``seed_ids``."""
 
     task: str
     variant: str
@@ -192,14 +151,7 @@ class VariantSummary:
 def summarize_variant(
     task: str, variant: str, finished: Sequence[Trial], unfinished: int, settings: ReportSettings
 ) -> VariantSummary:
-    """
-    :param task: task name
-    :param variant: variant name
-    :param finished: its finished trials
-    :param unfinished: the number of its unfinished trial folders
-    :param settings: the definitions
-    :return: the table row (statistics nan / 0 without finished trials)
-    """
+    """:return: the table's row of ``finished`` trials and ``unfinished`` others (statistics nan / 0 without any)"""
     row = VariantSummary(task=task, variant=variant, seeds=len(finished), unfinished=unfinished)
     if not finished:
         return row
@@ -227,11 +179,7 @@ def summarize_variant(
 
 
 def summarize(sweep: Sweep, settings: ReportSettings) -> list[VariantSummary]:
-    """
-    :param sweep: the loaded sweep
-    :param settings: the definitions
-    :return: one row per task and variant (:func:`summarize_variant`)
-    """
+    """:return: one row of the table per task and variant of ``sweep`` (:func:`summarize_variant`)"""
     return [
         summarize_variant(task, variant, sweep.select(task, variant), len(sweep.select(task, variant, False)), settings)
         for task in sweep.tasks()
@@ -240,26 +188,14 @@ def summarize(sweep: Sweep, settings: ReportSettings) -> list[VariantSummary]:
 
 
 def transplant_sources(variant: str) -> tuple[str, str] | None:
-    """
-    :param variant: a variant name
-    :return: ``(cnn source, mlp source)`` for ``cnn-<src>_mlp-<src>``, else ``None``
-    """
+    """:return: ``(cnn source, mlp source)`` of a ``cnn-<src>_mlp-<src>`` variant, else ``None``"""
     match = TRANSPLANT_VARIANT.match(variant)
     return (match.group(1), match.group(2)) if match else None
 
 
 @dataclass
 class GridCell:
-    """
-    One cell of the transplant grid.
-
-    :param task: task name
-    :param cnn: the CNN's source (blank, good, bad)
-    :param mlp: the MLP's source
-    :param successes: finished seeds whose final return is ``>= success_return``
-    :param seeds: finished seeds
-    :param unfinished: unfinished trial folders
-    """
+    """One cell of the transplant grid: of ``seeds`` finished seeds, ``successes`` with final return >= success."""
 
     task: str
     cnn: str
@@ -298,13 +234,9 @@ def transplant_grid(
 
 def stage_indices(frames: np.ndarray, budget_frames: int | None = None) -> list[int]:
     """
-    The training stages of the paper's Tables 1-7 (``x = 0, 35, 70, 110``): for each stage frame
-    (:meth:`PaperProtocol.stages <sb3_collapse.paper.PaperProtocol.stages>` of the budget), clipped to the last
-    evaluation, the nearest evaluation. See docs/figures.md.
-
-    :param frames: increasing evaluation frames (at least one)
-    :param budget_frames: the run's budget, in frames (``None``: the paper's)
-    :return: one index into ``frames`` per stage (the earlier one on ties)
+    The training stages of the paper's Tables 1-7 (``x = 0, 35, 70, 110``): per stage frame of ``budget_frames``
+    (:meth:`~sb3_collapse.paper.PaperProtocol.stages`; ``None``: the paper's), clipped to the last evaluation, the
+    index of the nearest of the increasing ``frames`` (the earlier on ties). See docs/figures.md.
     """
     frames = np.asarray(frames, dtype=np.float64)
     if len(frames) == 0:
@@ -314,10 +246,7 @@ def stage_indices(frames: np.ndarray, budget_frames: int | None = None) -> list[
 
 
 def stages_caption(reading: str) -> str:
-    """
-    :param reading: what the table reads, in the plural
-    :return: the sentence that says which stages a table of Tables 1-7 reads
-    """
+    """:return: the sentence that says which stages a table of Tables 1-7 reads, of ``reading`` (plural)"""
     frames = ", ".join(f"{frame:,}" for frame in PAPER.stages())
     return (
         f"Stages: the paper's x = 0, 35, 70, 110 (frames {frames} of its {PAPER.train_frames:,}; the same fractions "
@@ -336,17 +265,8 @@ def budget_frames(trials: Sequence[Trial]) -> int | None:
 
 @dataclass
 class TransplantCurves:
-    """
-    A curve of the paper's Figure 3(b) and a row of its Table 7: the successful seeds of one transplant cell.
-
-    :param task: task name
-    :param cnn: the CNN's source
-    :param mlp: the MLP's source
-    :param frames: the aligned frames
-    :param returns: ``(successes, frames)`` returns of the successful seeds
-    :param stage_frames: the frames of the four stages (:func:`stage_indices`)
-    :param stage_std: the across-seed std at each stage
-    """
+    """A curve of Figure 3(b) and a row of Table 7: the ``(successes, frames)`` returns of one transplant cell's
+    successful seeds, and their across-seed std at the frames of the four stages (:func:`stage_indices`)."""
 
     task: str
     cnn: str
@@ -363,14 +283,7 @@ class TransplantCurves:
 
 
 def transplant_curves(sweep: Sweep, success_return: float = PAPER.success_return) -> dict[str, list[TransplantCurves]]:
-    """
-    The paper's Figure 3(b) and Table 7: per transplant cell with successful seeds, their curves and the
-    across-seed std at the four training stages.
-
-    :param sweep: the loaded sweep
-    :param success_return: the success threshold
-    :return: task -> cells with at least one successful seed, in grid order
-    """
+    """The paper's Figure 3(b) and Table 7: task -> its transplant cells with a successful seed, in grid order."""
     curves: dict[str, list[TransplantCurves]] = {}
     for task, cnn, mlp in itertools.product(sweep.tasks(), TRANSPLANT_SOURCES, TRANSPLANT_SOURCES):
         finished = sweep.select(task, f"cnn-{cnn}_mlp-{mlp}")

@@ -29,10 +29,7 @@ ESCAPE_COLOR = "#009E73"
 
 
 def layer_style(layer: str) -> dict[str, object]:
-    """
-    :param layer: a layer name
-    :return: ``plot`` keywords: its colour, solid for CNN layers and dashed for the MLP
-    """
+    """:return: ``plot`` keywords of ``layer``: its colour, solid for CNN layers and dashed for the MLP"""
     return {"color": LAYER_COLORS.get(layer, "#777777"), "linestyle": "--" if layer.startswith("mlp") else "-"}
 
 

@@ -66,12 +66,7 @@ def markdown_table(header: Sequence[str], body: Sequence[Sequence[str]]) -> list
 
 
 def summary_markdown(rows: Sequence[VariantSummary], settings: ReportSettings, notes: Sequence[str] = ()) -> str:
-    """
-    :param rows: the table rows
-    :param settings: the definitions used
-    :param notes: lines listed under "Notes"
-    :return: the table as Markdown, its definitions and the notes under it
-    """
+    """:return: the table as Markdown, its definitions and the ``notes`` under it"""
     names = "task|variant|seeds|unfinished|final frame|final return (mean ± std)|stuck in collapse|collapse unknown"
     header = [*names.split("|"), "resets", "seeds reset", "escaped", f"std over last {settings.last_evals} evals"]
     body = [
@@ -107,11 +102,7 @@ def summary_definitions(settings: ReportSettings) -> str:
 
 
 def grid_markdown(grid: dict[str, list[GridCell]], success_return: float) -> str:
-    """
-    :param grid: :func:`~sb3_collapse.report.statistics.transplant_grid`
-    :param success_return: the success threshold (for the caption)
-    :return: the grids as Markdown: per task, CNN (rows) x MLP source, cells ``successes/seeds``
-    """
+    """:return: the transplant grids as Markdown: per task, CNN (rows) x MLP source, cells ``successes/seeds``"""
     lines = ["# Layer transplants (Figure 3(a))", ""]
     lines.append(f"Successful seeds (final evaluation return >= {success_return:g}) over finished seeds.")
     for task, cells in grid.items():

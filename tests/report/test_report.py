@@ -1,4 +1,5 @@
 import csv
+import dataclasses
 import fcntl
 import gzip
 import html
@@ -527,3 +528,26 @@ def test_settings_values_stay_on_screen_in_chromium(tmp_path):
     (table,) = result["tables"]
     assert table["css_class"] == "settings" and table["body_rows"] == 3
     assert 0 < table["right"] <= result["width"]  # every value, the long one wrapped, within the page
+
+
+@pytest.mark.parametrize(
+    "changes, name",
+    [
+        ({"collapse_checks": 0}, "collapse_checks"),
+        ({"last_evals": 0}, "last_evals"),
+        ({"collapse_threshold": float("nan")}, "collapse_threshold"),
+        ({"percentiles": (50.0, 50.0)}, "percentiles"),
+    ],
+)
+def test_report_settings_refuse_a_value_out_of_range_with_an_input_error(changes, name):
+    with pytest.raises(InputError, match=f"^{name} must"):
+        ReportSettings(**changes).validate()
+
+
+def test_the_preset_table_shows_every_setting_of_a_task_preset():
+    from sb3_collapse.presets import preset
+    from sb3_collapse.report.pipeline import PRESET_COLUMNS, _preset_rows
+
+    walker, other = _preset_rows(["walker-walk", "not_a_task"])
+    assert walker == list(dataclasses.astuple(preset("walker-walk")))  # the task, then every setting in order
+    assert other[:2] == ["not_a_task", "(not a DeepMind Control suite task)"] and len(other) == 1 + len(PRESET_COLUMNS)
