@@ -15,7 +15,7 @@ from sb3_collapse.report.pipeline import REPORT_FOLDER, write_report, write_run_
 from sb3_collapse.report.statistics import ReportSettings
 from sb3_collapse.report.tables import grid_markdown
 from sb3_collapse.run.config import setting
-from sb3_collapse.run.settings import add_setting_arguments, check_arguments, prog_name
+from sb3_collapse.run.settings import CommandLine, add_setting_arguments, check_arguments, prog_name
 
 _REPORT, _FIXED = ReportSettings(), FixedInputSettings()
 
@@ -111,7 +111,7 @@ COMMANDS: dict[str, tuple[type, ...]] = {"": (ReportFlags,)}
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line, its flags generated from :class:`ReportFlags`."""
-    parser = argparse.ArgumentParser(
+    parser = CommandLine(
         prog=prog_name("sb3_collapse.report"),
         description=(
             "The figures and tables of a sweep folder <sweep>/<task>/<variant>/seed_<k>/: Figure 5 and the table, "
