@@ -64,11 +64,7 @@ class Checkpoint:
 
 
 def read_saved_data(path: str | Path) -> dict[str, Any]:
-    """
-    :param path: an SB3 zip
-    :return: its ``data`` JSON
-    :raises InputError: for a folder, a missing file, a file that is not a zip, or a zip without SB3's files
-    """
+    """:return: the ``data`` JSON of an SB3 zip; :raises InputError: for anything else (a folder, a missing file)"""
     path = Path(path)
     if path.is_dir():
         raise InputError(_folder_message(path))
@@ -104,12 +100,7 @@ def _folder_message(path: Path) -> str:
 
 
 def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgorithm]:
-    """
-    :param data: the ``data`` JSON of an SB3 zip
-    :param path: the file (for messages)
-    :return: the algorithm class that loads it
-    :raises InputError: for an algorithm whose actor has no named layers
-    """
+    """:return: the algorithm class that loads the SB3 zip ``path`` of ``data`` JSON, if its actor has named layers"""
     module = (data.get("policy_class") or {}).get("__module__")
     if module not in ALGORITHMS:
         raise InputError(
@@ -143,11 +134,8 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
 
 
 def checkpoint_labels(paths: list[str | Path]) -> list[str]:
-    """
-    :return: the names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as
-        it takes to tell them apart (``run1/model`` and ``run2/model``)
-    :raises InputError: when the same file is given twice
-    """
+    """:return: the checkpoints' names in the outputs: the file name without ``.zip``, with as many parent folders as
+    it takes to tell them apart (``run1/model`` and ``run2/model``); :raises InputError: for a file given twice"""
     resolved = [Path(path).resolve() for path in paths]
     if len(set(resolved)) != len(resolved):
         raise InputError("The same checkpoint is given twice.")

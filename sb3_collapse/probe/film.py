@@ -17,14 +17,9 @@ FILM_SIZE = 256
 
 @dataclass
 class Film:
-    """
-    :param label: its name (checkpoint and episode seed)
-    :param frames: ``(T,)`` the environment frame of each picture (0, action repeat, 2 x action repeat, ...)
-    :param images: ``(T, size, size, 3)`` uint8 renders
-    :param actions: ``(T, action_dim)`` the action taken from each picture's state (nan after the last one)
-    :param rewards: ``(T,)`` the reward of that action (nan after the last one)
-    :param task: the task
-    """
+    """A film named ``label`` (checkpoint and episode seed): ``(T, size, size, 3)`` uint8 ``images`` rendered at
+    environment ``frames`` ``(T,)``, the ``(T, action_dim)`` ``actions`` taken from each and their ``(T,)``
+    ``rewards`` (nan after the last picture)."""
 
     label: str
     frames: np.ndarray

@@ -1,7 +1,5 @@
-"""
-Linear probing with a sparsity constraint (Section 4.1): how well each layer's activations predict each true-state
-component, by OMP with the sparsity chosen on validation episodes (the steps: docs/probe.md).
-"""
+"""Linear probing with a sparsity constraint (Section 4.1): how well each layer's activations predict each true-state
+component, by OMP with the sparsity chosen on validation episodes (the steps: docs/probe.md)."""
 
 from __future__ import annotations
 
@@ -96,15 +94,11 @@ def split_by_episode(
 def standardize_features_(
     features: th.Tensor, n_train: int, min_std: float = 1e-6, chunk_rows: int = 256
 ) -> tuple[th.Tensor, th.Tensor]:
-    """
-    Standardize the columns with the mean and std of the first ``n_train`` rows and drop those of train std
-    ``<= min_std``, in place: the result is a view of ``features``' memory.
+    """Standardize the ``(N, d)`` contiguous ``features`` with the mean and std of the first ``n_train`` rows, in
+    place, ``chunk_rows`` rows at a time, and drop the columns of train std ``<= min_std``.
 
-    :param features: ``(N, d)`` contiguous float tensor, train rows first
-    :param n_train: rows that give the statistics
-    :param min_std: columns of a smaller train std are dropped
-    :param chunk_rows: rows processed at once (bounds the temporary memory)
-    :return: the ``(N, d_kept)`` standardized features and the ``(d,)`` bool mask of the kept columns
+    :return: the ``(N, d_kept)`` standardized features (a view of ``features``' memory) and the ``(d,)`` bool mask
+        of the kept columns
     """
     if not features.is_contiguous():
         raise ValueError("standardize_features_ needs a contiguous tensor.")
@@ -129,12 +123,8 @@ def standardize_features_(
 
 
 def standardize_targets(targets: np.ndarray, n_train: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """
-    :param targets: ``(N, K)`` state components, train rows first
-    :param n_train: rows that give the statistics
-    :return: ``(targets - mean) / scale`` (float64), the train ``mean`` and the ``scale``: the train std, or 1
-        for a target constant on the train set (which is then only centred)
-    """
+    """:return: the ``(N, K)`` ``targets`` standardized (float64) with the mean and std of the first ``n_train`` rows,
+    the ``mean`` and the ``scale`` (the std, or 1 for a target constant on those rows: then only centred)"""
     train = targets[:n_train].astype(np.float64)
     mean, std = train.mean(0), train.std(0)
     scale = np.where(std > 0, std, 1.0)
@@ -142,15 +132,9 @@ def standardize_targets(targets: np.ndarray, n_train: int) -> tuple[np.ndarray, 
 
 
 def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float) -> list[list[str]]:
-    """
-    Group layers into forward passes whose float32 activations take at most ``memory_bytes`` (first fit, largest
-    layer first; a layer larger than the budget gets a pass of its own).
-
-    :param dimensions: name -> flattened activation size
-    :param n_samples: observations per pass
-    :param memory_bytes: budget of activations held at once
-    :return: the passes, each a list of layer names in the order of ``dimensions``, ordered by their first layer
-    """
+    """Group layers (name -> flattened activation size) into forward passes of ``n_samples`` observations whose
+    float32 activations take at most ``memory_bytes`` each (first fit, largest layer first; a layer larger than the
+    budget gets a pass of its own); each pass lists its layers in the order of ``dimensions``."""
     order, passes = list(dimensions), []  # [bytes used, layers] of each pass
     for name in sorted(order, key=lambda layer: -dimensions[layer]):
         size = 4.0 * dimensions[name] * n_samples
