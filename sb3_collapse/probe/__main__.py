@@ -134,6 +134,14 @@ def _values(args: argparse.Namespace, declaration: type, *skip: str) -> dict[str
     return {name: tuple(value) if isinstance(value, list) else value for name, value in values.items()}
 
 
+def _settings(args: argparse.Namespace) -> ProbeSettings:
+    return ProbeSettings(**_values(args, ProbeSettings))
+
+
+def _record_options(args: argparse.Namespace) -> RecordOptions:
+    return RecordOptions(**_values(args, RecordOptions))
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command line: sub-commands ``run`` (the default), ``sweep``, ``film`` and ``record``, their flags
     generated from :data:`COMMANDS`."""
@@ -161,8 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
 @report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
     """
-    :param argv: the arguments (``sys.argv[1:]`` when ``None``); a first argument that is not a sub-command
-        (nor ``-h``/``--help``) means ``run``
+    :param argv: the arguments (``sys.argv[1:]`` when ``None``; without a sub-command: ``run``)
     :return: the exit status: 0, 2 for bad input, 75 when a SIGINT or SIGTERM stopped it (nothing written)
     """
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -200,13 +207,11 @@ def _interrupt(signum: int, _frame: Any) -> None:
 def _run(args: argparse.Namespace, command: list[str]) -> None:
     """Run the sub-command of ``args`` (``command``: the command line, recorded in the summary)."""
     if args.command == "record":
-        options = RecordOptions(**_values(args, RecordOptions))
-        record_to_file(args.checkpoint, args.out, options, args.overwrite, args.device, args.progress)
+        record_to_file(args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, args.progress)
     elif args.command == "film":
         film_to_folder(args.checkpoints, **_values(args, FilmFlags, "checkpoints"))
     else:
-        settings, options = ProbeSettings(**_values(args, ProbeSettings)), RecordOptions(**_values(args, RecordOptions))
-        probe = dict(settings=settings, record_options=options, command=command)
+        probe = dict(settings=_settings(args), record_options=_record_options(args), command=command)
         if args.command == "sweep":
             probe_sweep(
                 args.sweep, rollouts_path=args.rollouts, **probe, **_values(args, SweepFlags, "sweep", "rollouts")

@@ -35,13 +35,8 @@ PROBE_LAYERS = LAYER_NAMES[: LAYER_NAMES.index("action")]
 
 @dataclass
 class EpisodeSplit:
-    """
-    :param order: sample indices, train, then validation, then test (each in recording order)
-    :param n_train: train samples (``order[:n_train]``)
-    :param n_validation: validation samples (the next ones)
-    :param n_test: test samples (the rest)
-    :param episodes: ``"train"``, ``"validation"``, ``"test"`` -> sorted episode ids
-    """
+    """The sample indices ``order``: ``n_train`` train, then ``n_validation`` validation, then ``n_test`` test samples
+    (each in recording order); ``episodes``: ``"train"``, ``"validation"``, ``"test"`` -> sorted episode ids."""
 
     order: np.ndarray
     n_train: int
@@ -63,8 +58,7 @@ def split_by_episode(
     episode_ids: np.ndarray, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int = 0
 ) -> EpisodeSplit:
     """
-    Shuffle the episodes and give ``round(fraction x episodes)`` of them to validation and to test (at least one
-    each), the rest to train.
+    Shuffle the episodes: ``round(fraction x episodes)`` (at least one) go to validation and to test, the rest to train.
 
     :param episode_ids: ``(N,)`` episode of each sample
     :param fractions: train, validation, test fractions of the episodes (summing to 1)
@@ -168,19 +162,10 @@ def _extract_activations(
 @dataclass
 class LayerProbe:
     """
-    OMP probe of one layer for every target (standardized units).
-
-    :param layer: the layer name
-    :param n_features: flattened activation size
-    :param n_features_kept: columns not constant on the train set
-    :param max_tau: the largest sparsity fitted (``min(max_tau, n_features_kept)``; 0 without features)
-    :param tau: ``(K,)`` sparsity chosen on the validation set
-    :param n_active: ``(K,)`` atoms OMP selected before an early stop (``max_tau`` without one)
-    :param validation_curve: ``(K, max_tau)`` validation MSE of every sparsity ``1..max_tau``
-    :param validation_mse: ``(K,)`` validation MSE at ``tau``
-    :param test_mse: ``(K,)`` test MSE at ``tau``
-    :param fit_seconds: wall time of standardization, OMP and evaluation
-    :param reused: copied from an earlier checkpoint with identical activations (``cnn0``)
+    OMP probe of one layer for the ``K`` targets, MSE in standardized units: ``max_tau`` is the largest sparsity fitted
+    (at most ``n_features_kept``, the columns not constant on the train set), ``tau`` ``(K,)`` the one chosen on the
+    validation set, ``n_active`` ``(K,)`` the atoms selected before an early stop, ``validation_curve``
+    ``(K, max_tau)`` the validation MSE of each sparsity; ``reused``: copied from an earlier checkpoint (``cnn0``).
     """
 
     layer: str
@@ -291,12 +276,7 @@ class ProbeSettings:
 
 @dataclass
 class CheckpointProbe:
-    """
-    :param checkpoint: the checkpoint
-    :param layers: one :class:`LayerProbe` per layer
-    :param rows: one dict per (layer, target), the rows of ``probe.csv`` (:data:`ROW_COLUMNS`)
-    :param extract_seconds: wall time of the forward passes
-    """
+    """A checkpoint's probe: one :class:`LayerProbe` per layer, one row of :data:`ROW_COLUMNS` per (layer, target)."""
 
     checkpoint: Checkpoint
     layers: list[LayerProbe] = field(default_factory=list)
@@ -342,8 +322,7 @@ def probe_checkpoint(
     :param rollouts: the recorded observations and states
     :param split: the episode split of the rollouts
     :param settings: the probe's settings
-    :param reuse: probes of ``cnn0`` (the normalized image) of earlier checkpoints on the same rollouts and split,
-        keyed by its values on 16 samples (updated here), reused instead of fitted again; ``None``: no reuse
+    :param reuse: probes of ``cnn0`` of earlier checkpoints on the same rollouts and split, reused (updated here)
     :return: the results, one row per (layer, target)
     :raises InputError: when the rollouts' observations do not fit the model
     """
@@ -398,15 +377,15 @@ def probe_each_checkpoint(
     jobs: int = 1,
 ) -> list[list[dict[str, Any]]]:
     """
-    Probe many checkpoints on the same rollouts (:func:`probe_checkpoint`), ``jobs`` at once; the first alone, so
-    that the others reuse its ``cnn0`` probe. The results do not depend on ``jobs``.
+    :func:`probe_checkpoint` of many checkpoints on the same rollouts, the first alone (the others reuse its ``cnn0``).
 
     :param paths: the checkpoints
     :param labels: their names in the rows (``checkpoint``)
     :param rollouts: the recorded observations and states
     :param split: the episode split of the rollouts
     :param settings: the probe's settings; ``settings.progress`` shows one bar over the checkpoints
-    :param jobs: checkpoints probed at once (threads), each with ``settings.memory_gb / jobs`` for its activations
+    :param jobs: checkpoints probed at once (threads, each with ``settings.memory_gb / jobs``); the results do not
+        depend on it
     :return: each checkpoint's rows, in the order of ``paths``
     :raises InputError: for a checkpoint that cannot be loaded or does not fit the rollouts
     """

@@ -202,15 +202,14 @@ def record_rollouts(
     metadata: dict[str, Any] | None = None,
 ) -> Rollouts:
     """
-    Run an agent in a DeepMind Control pixel env and record what probing needs. Actions are
-    ``model.predict(obs, deterministic)``, plus Gaussian noise of std ``noise_std`` when > 0, clipped to [-1, 1].
+    Run an agent in a DeepMind Control pixel env and record what probing needs.
 
     :param model: the agent (its observation space must be the env's)
     :param env_config: ``make_dmc_env`` settings (:data:`ENV_SETTINGS`)
     :param episodes: episodes to record
     :param seed: seed of the env's initial states and of the action noise
     :param deterministic: the policy's deterministic action (else the model's own exploration)
-    :param noise_std: std of the Gaussian noise added to each action (in action units, [-1, 1])
+    :param noise_std: std of the Gaussian noise added to each action (in action units), then clipped to [-1, 1]
     :param max_steps: cap on agent steps per episode (``None``: the task's time limit)
     :param progress: show a progress bar over agent steps
     :param metadata: extra entries of :attr:`Rollouts.metadata`
