@@ -9,7 +9,7 @@ from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
-from sb3_collapse.probe.checkpoints import Checkpoint, identify_algorithm, load_checkpoint, read_saved_data
+from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint, read_saved_data
 from sb3_collapse.probe.rollouts import ENV_SETTINGS, RecordOptions, Rollouts, record_rollouts, resolve_env_config
 
 ROLLOUTS_NAME = "rollouts.npz"
@@ -65,8 +65,7 @@ def check_checkpoint_files(paths: Sequence[str | Path], same_observations: bool 
         raise InputError("Give at least one checkpoint (.zip).")
     shapes: dict[tuple, str | Path] = {}
     for path in paths:
-        data = read_saved_data(path)
-        identify_algorithm(data, path)
+        _, data = read_saved_data(path)
         shape = (data.get("observation_space") or {}).get("_shape")
         if shape is not None:
             shapes.setdefault(tuple(shape), path)

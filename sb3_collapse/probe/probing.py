@@ -8,7 +8,7 @@ import hashlib
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -19,12 +19,12 @@ from tqdm.auto import tqdm
 
 from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2.checks import check_device
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_taps
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.omp import omp_path, path_predictions
 from sb3_collapse.probe.rollouts import Rollouts
-from sb3_collapse.run.config import setting
+from sb3_collapse.run.config import declared_problem, setting
 
 MIN_EPISODES = 3
 """Episodes a probe needs at least: one each for training, validation and test."""
@@ -263,13 +263,10 @@ class ProbeSettings:
     progress: bool = setting(True, help="show the progress bars", unit=None)
 
     def validate(self) -> None:
-        """:raises InputError: naming the bad setting"""
-        if self.max_tau < 1:
-            raise InputError(f"max_tau must be >= 1, got {self.max_tau}.", parameter="max_tau")
-        if self.batch_size < 1:
-            raise InputError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
-        if self.memory_gb <= 0:
-            raise InputError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
+        """:raises InputError: naming the bad setting (out of its declared range, for those of one value)"""
+        for option in (option for option in fields(self) if option.metadata["nargs"] is None):
+            if (problem := declared_problem(option, getattr(self, option.name), integer=False)) is not None:
+                raise ParameterError(option.name, f"{option.name} {problem}")
         check_fractions(self.fractions)
         check_device(self.device)
 

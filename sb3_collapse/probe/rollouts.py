@@ -234,10 +234,8 @@ def record_rollouts(
     recorded: dict[str, list] = {name: [] for name in ARRAYS}
     states: dict[str, list] = {name: [] for name in env.state_shapes}
     reward_inputs: dict[str, list] = {}
-    limit = getattr(getattr(getattr(env, "_dmc", None), "_env", None), "_step_limit", None)  # the time limit
-    caps = [max_steps, math.ceil(limit / env.action_repeat) if limit is not None and math.isfinite(limit) else None]
-    per_episode = min((cap for cap in caps if cap is not None), default=None)
-    total = None if per_episode is None else episodes * per_episode
+    per_episode = min(env._dmc._env._step_limit / env.action_repeat, max_steps or math.inf)  # the time limit's cap
+    total = episodes * math.ceil(per_episode) if math.isfinite(per_episode) else None
     bar = tqdm(total=total, desc="recording", unit="step", disable=not progress)
     try:
         for episode in range(episodes):
