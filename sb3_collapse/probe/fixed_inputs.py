@@ -60,9 +60,8 @@ def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, see
     ``numpy.random.default_rng(seed)``, kept in file order."""
     rollouts = Rollouts.load(path)
     total = len(rollouts)
-    if samples is None or samples >= total:
-        indices = np.arange(total)
-    else:
+    indices = np.arange(total)
+    if samples is not None and samples < total:
         indices = np.sort(np.random.default_rng(seed).choice(total, size=samples, replace=False))
     meta, env = rollouts.metadata, rollouts.env_config
     steps, repeat = meta.get("checkpoint_num_timesteps"), env.get("action_repeat")

@@ -88,12 +88,9 @@ def split_by_episode(
 def standardize_features_(
     features: th.Tensor, n_train: int, min_std: float = 1e-6, chunk_rows: int = 256
 ) -> tuple[th.Tensor, th.Tensor]:
-    """Standardize the ``(N, d)`` contiguous ``features`` with the mean and std of the first ``n_train`` rows, in
-    place, ``chunk_rows`` rows at a time, and drop the columns of train std ``<= min_std``.
-
-    :return: the ``(N, d_kept)`` standardized features (a view of ``features``' memory) and the ``(d,)`` bool mask
-        of the kept columns
-    """
+    """Standardize the ``(N, d)`` contiguous ``features`` in place with the mean and std of their first ``n_train``
+    rows, ``chunk_rows`` at a time; :return: the ``(N, d_kept)`` result (a view of ``features``' memory), without the
+    columns of train std ``<= min_std``, and the ``(d,)`` bool mask of the kept columns"""
     if not features.is_contiguous():
         raise ValueError("standardize_features_ needs a contiguous tensor.")
     n_rows, n_columns = features.shape
@@ -144,8 +141,7 @@ def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float)
 def _extract_activations(
     model: object, observations: np.ndarray, order: np.ndarray, layers: Sequence[str], settings: ProbeSettings
 ) -> dict[str, th.Tensor]:
-    """:return: layer -> the ``(len(order), d)`` float32 flattened activations of ``observations[order]``
-    (``(N, *obs_shape)``), written batch by batch into preallocated tensors"""
+    """:return: layer -> the ``(len(order), d)`` float32 flattened activations of ``observations[order]``"""
     out: dict[str, th.Tensor] = {}
     device, size = get_device(settings.device), settings.batch_size
     for start in tqdm(
@@ -222,8 +218,7 @@ def probe_layer(
     test_pred = path_predictions(features[n_train + n_val :], path)[:, rows, best]
     tau, validation_mse = (best + 1).cpu().numpy(), curve[rows, best].cpu().numpy()
     test_mse = ((test_pred - y_test) ** 2).mean(0).cpu().numpy()
-    elapsed = time.perf_counter() - start_time
-    n_active = path.n_active.cpu().numpy()
+    n_active, elapsed = path.n_active.cpu().numpy(), time.perf_counter() - start_time
     return LayerProbe(
         layer, n_features, n_kept, tau_max, tau, n_active, curve.cpu().numpy(), validation_mse, test_mse, elapsed
     )
@@ -286,23 +281,20 @@ ROW_COLUMNS = (
     "validation_mse", "test_mse", "validation_mse_raw", "test_mse_raw", "target_std", "n_train", "n_validation",
     "n_test", "n_features", "n_features_kept",
 )  # fmt: skip
-"""The columns of a probe's rows: ``num_timesteps`` in agent steps, ``*_mse`` standardized, ``*_mse_raw`` in the
-state's units squared."""
+"""The rows' columns: ``num_timesteps`` in agent steps, ``*_mse`` standardized, ``*_mse_raw`` in state units squared."""
 
 
 def _select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[str]:
     """:return: ``layers`` (``None``: the paper's that the model has) in the model's order; :raises InputError: for
     a requested name the model lacks"""
     available = list(layer_taps(checkpoint.model))
-    if layers is None:
-        names = [name for name in available if name in PROBE_LAYERS]
-        if not names:
-            raise InputError(f"{checkpoint.path}: none of the layers {list(PROBE_LAYERS)}; it has {available}.")
-        return names
-    missing = [name for name in layers if name not in available]
+    missing = [name for name in layers or () if name not in available]
     if missing:
         raise InputError(f"{checkpoint.path}: no layer(s) {missing}; this {checkpoint.algorithm} has {available}.")
-    return [name for name in available if name in layers]
+    names = [name for name in available if name in (PROBE_LAYERS if layers is None else layers)]
+    if layers is None and not names:
+        raise InputError(f"{checkpoint.path}: none of the layers {list(PROBE_LAYERS)}; it has {available}.")
+    return names
 
 
 def probe_checkpoint(

@@ -90,13 +90,8 @@ class Rollouts:
 
     def save(self, path: str | Path) -> Path:
         """:param path: the compressed ``.npz`` to write (atomically); :return: the path written"""
-        meta = {
-            "format_version": FORMAT_VERSION,
-            "env_config": self.env_config,
-            "metadata": self.metadata,
-            "state_components": list(self.states),
-            "reward_inputs": list(self.reward_inputs),
-        }
+        meta = {"format_version": FORMAT_VERSION, "env_config": self.env_config, "metadata": self.metadata}
+        meta |= {"state_components": list(self.states), "reward_inputs": list(self.reward_inputs)}
         arrays = {name: getattr(self, name) for name in ARRAYS} | {"meta": np.array(json.dumps(meta))}
         arrays.update({f"state/{name}": value for name, value in self.states.items()})
         arrays.update({f"reward_input/{name}": value for name, value in self.reward_inputs.items()})
