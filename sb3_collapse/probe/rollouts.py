@@ -116,7 +116,7 @@ class Rollouts:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
                 if meta["format_version"] != FORMAT_VERSION:
-                    raise ValueError(f"format {meta['format_version']}, this version reads {FORMAT_VERSION}")
+                    raise ValueError(f"format {meta['format_version']}, not {FORMAT_VERSION}")
                 task = parse_task(meta["env_config"]["task_id"])
                 read = {item.name for item in reward_inputs_of(*task) if item.state}
                 arrays = {key: data[key] for key in ARRAYS}
@@ -125,8 +125,8 @@ class Rollouts:
                 arrays["reward_inputs"] = {name: data[f"reward_input/{name}"] for name in inputs}
         except (OSError, ValueError, KeyError, json.JSONDecodeError) as error:
             raise InputError(
-                f"{path} is not a rollouts file of sb3_collapse.probe ({type(error).__name__}: {error}); "
-                "record one with `python -m sb3_collapse.probe record`."
+                f"{path} is not a rollouts file this version of sb3_collapse.probe reads ({type(error).__name__}: "
+                f"{error}); record one with `python -m sb3_collapse.probe record`."
             ) from error
         return cls(env_config=meta["env_config"], metadata=meta.get("metadata", {}), **arrays)
 
