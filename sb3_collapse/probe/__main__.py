@@ -169,8 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
 @report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
     """
-    :param argv: the arguments (``sys.argv[1:]`` when ``None``); a first argument that is not a sub-command
-        (nor ``-h``/``--help``) means ``run``
+    :param argv: the arguments (``sys.argv[1:]`` when ``None``; without a sub-command: ``run``)
     :return: the exit status: 0, 2 for bad input, 75 when a SIGINT or SIGTERM stopped it (nothing written)
     """
     argv = list(sys.argv[1:] if argv is None else argv)

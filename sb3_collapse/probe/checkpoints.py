@@ -63,12 +63,9 @@ class Checkpoint:
         return getattr(self.model, "env_config", None)
 
 
-def read_saved_data(path: str | Path) -> dict[str, Any]:
-    """
-    :param path: an SB3 zip
-    :return: its ``data`` JSON
-    :raises InputError: for a folder, a missing file, a file that is not a zip, or a zip without SB3's files
-    """
+def read_saved_data(path: str | Path) -> tuple[type[BaseAlgorithm], dict[str, Any]]:
+    """:return: the algorithm class that loads the SB3 zip ``path`` and its ``data`` JSON; :raises InputError: for
+    anything else (a folder, a missing file, an algorithm whose actor has no named layers)"""
     path = Path(path)
     if path.is_dir():
         raise InputError(_folder_message(path))
@@ -81,9 +78,16 @@ def read_saved_data(path: str | Path) -> dict[str, Any]:
         if missing:
             raise InputError(f"{path} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
         try:
-            return json.loads(archive.read("data"))
+            data = json.loads(archive.read("data"))
         except (json.JSONDecodeError, UnicodeDecodeError) as error:
             raise InputError(f"{path}: SB3's `data` entry is not valid JSON ({error}).") from error
+    module = (data.get("policy_class") or {}).get("__module__")
+    if module not in ALGORITHMS:
+        raise InputError(
+            f"{path}: cannot probe a model whose policy comes from {module!r}; named layers are defined for "
+            "DrQv2 (sb3_collapse) and SB3's TD3, DDPG and SAC."
+        )
+    return ALGORITHMS[module], data
 
 
 def _folder_message(path: Path) -> str:
@@ -103,22 +107,6 @@ def _folder_message(path: Path) -> str:
     return f"{path} is a folder, not a checkpoint: give an SB3 .zip" + (f", e.g. {zips[0]}." if zips else ".")
 
 
-def identify_algorithm(data: dict[str, Any], path: str | Path) -> type[BaseAlgorithm]:
-    """
-    :param data: the ``data`` JSON of an SB3 zip
-    :param path: the file (for messages)
-    :return: the algorithm class that loads it
-    :raises InputError: for an algorithm whose actor has no named layers
-    """
-    module = (data.get("policy_class") or {}).get("__module__")
-    if module not in ALGORITHMS:
-        raise InputError(
-            f"{path}: cannot probe a model whose policy comes from {module!r}; named layers are defined for "
-            "DrQv2 (sb3_collapse) and SB3's TD3, DDPG and SAC."
-        )
-    return ALGORITHMS[module]
-
-
 def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkpoint:
     """
     Load a checkpoint for probing and check that its layers can be named.
@@ -129,7 +117,7 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
     :raises InputError: for a file that is not an SB3 model of these, fails to load or whose layers cannot be named
     """
     path = Path(path)
-    algorithm = identify_algorithm(read_saved_data(path), path)
+    algorithm, _ = read_saved_data(path)
     try:  # a small replay buffer (room for any n-step window), never filled
         load = load_snapshot if is_snapshot(path) else algorithm.load
         model = load(path, device=device, buffer_size=64)
@@ -143,11 +131,8 @@ def load_checkpoint(path: str | Path, device: th.device | str = "cpu") -> Checkp
 
 
 def checkpoint_labels(paths: list[str | Path]) -> list[str]:
-    """
-    :return: the names of checkpoints in the outputs: the file name without ``.zip``, with as many parent folders as
-        it takes to tell them apart (``run1/model`` and ``run2/model``)
-    :raises InputError: when the same file is given twice
-    """
+    """:return: the checkpoints' names in the outputs: the file name without ``.zip``, with as many parent folders as
+    it takes to tell them apart (``run1/model`` and ``run2/model``); :raises InputError: for a file given twice"""
     resolved = [Path(path).resolve() for path in paths]
     if len(set(resolved)) != len(resolved):
         raise InputError("The same checkpoint is given twice.")

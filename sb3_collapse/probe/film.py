@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,14 +18,9 @@ FILM_SIZE = 256
 
 @dataclass
 class Film:
-    """
-    :param label: its name (checkpoint and episode seed)
-    :param frames: ``(T,)`` the environment frame of each picture (0, action repeat, 2 x action repeat, ...)
-    :param images: ``(T, size, size, 3)`` uint8 renders
-    :param actions: ``(T, action_dim)`` the action taken from each picture's state (nan after the last one)
-    :param rewards: ``(T,)`` the reward of that action (nan after the last one)
-    :param task: the task
-    """
+    """A film named ``label`` (checkpoint and episode seed): ``(T, size, size, 3)`` uint8 ``images`` rendered at
+    environment ``frames`` ``(T,)``, the ``(T, action_dim)`` ``actions`` taken from each and their ``(T,)``
+    ``rewards`` (nan after the last picture)."""
 
     label: str
     frames: np.ndarray
@@ -57,11 +53,7 @@ def film_episode(
     """
     env = make_dmc_env(env_config["task_id"], seed=seed, **{k: v for k, v in env_config.items() if k != "task_id"})
     try:
-        physics, camera_id = env._dmc._env.physics, env.camera_id
-
-        def render() -> np.ndarray:
-            return np.asarray(physics.render(height=size, width=size, camera_id=camera_id), dtype=np.uint8)
-
+        render = functools.partial(env.physics.render, height=size, width=size, camera_id=env.camera_id)
         observation, _ = env.reset(seed=seed)
         pictures, frame_numbers, actions, rewards, elapsed = [render()], [0], [], [], 0
         while elapsed < frames:
@@ -80,4 +72,4 @@ def film_episode(
     padded[: len(actions)] = actions
     rewards = np.append(np.asarray(rewards, dtype=np.float32), np.nan)
     frame_numbers = np.asarray(frame_numbers, dtype=np.int64)
-    return Film(label, frame_numbers, np.stack(pictures), padded, rewards, str(env_config["task_id"]))
+    return Film(label, frame_numbers, np.stack(pictures).astype(np.uint8), padded, rewards, str(env_config["task_id"]))

@@ -1,7 +1,5 @@
-"""
-The collapse metrics of a run's snapshots on one fixed observation set, "the matrix of MLP activations H, as defined in
-Figure 1" of Section 5.1 (Figures 4, 8, 9; the report draws them; the set: docs/figures.md).
-"""
+"""The collapse metrics of a run's snapshots on one fixed observation set, "the matrix of MLP activations H, as defined
+in Figure 1" of Section 5.1 (Figures 4, 8, 9; the report draws them; the set: docs/figures.md)."""
 
 from __future__ import annotations
 
@@ -27,18 +25,9 @@ do not bound their numerical rank."""
 
 @dataclass
 class FixedInputs:
-    """
-    The fixed observation set.
-
-    :param observations: ``(n, *obs_shape)`` observations as the env gives them (uint8)
-    :param indices: ``(n,)`` their rows in the rollouts file, increasing
-    :param source: the rollouts file
-    :param total: observations in the file
-    :param episodes: episodes in the file
-    :param recorded_from: the checkpoint the rollouts were recorded from, ``None`` if unknown
-    :param task: the task the rollouts were recorded on, ``None`` if unknown
-    :param recorded_frames: the training frames of that checkpoint, ``None`` if unknown
-    """
+    """The fixed observation set: ``(n, *obs_shape)`` uint8 ``observations``, their increasing ``(n,)`` rows
+    ``indices`` in the rollouts file ``source`` of ``total`` observations, and what recorded that file (``None``:
+    unknown); ``recorded_frames`` are the training frames of the checkpoint ``recorded_from``."""
 
     observations: np.ndarray
     indices: np.ndarray
@@ -67,21 +56,12 @@ class FixedInputs:
 
 
 def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, seed: int = 0) -> FixedInputs:
-    """
-    The fixed observation set: ``samples`` observations of a rollouts file drawn without replacement by
-    ``numpy.random.default_rng(seed)`` (kept in file order), or all of them.
-
-    :param path: a rollouts file
-    :param samples: how many (``None`` or more than the file holds: all)
-    :param seed: seed of the draw
-    :return: the set
-    :raises InputError: for a file that is missing or not a rollouts file
-    """
+    """The fixed set: ``samples`` observations (``None``: all) of a rollouts file drawn without replacement by
+    ``numpy.random.default_rng(seed)``, kept in file order."""
     rollouts = Rollouts.load(path)
     total = len(rollouts)
-    if samples is None or samples >= total:
-        indices = np.arange(total)
-    else:
+    indices = np.arange(total)
+    if samples is not None and samples < total:
         indices = np.sort(np.random.default_rng(seed).choice(total, size=samples, replace=False))
     meta, env = rollouts.metadata, rollouts.env_config
     steps, repeat = meta.get("checkpoint_num_timesteps"), env.get("action_repeat")
@@ -92,13 +72,8 @@ def load_fixed_inputs(path: str | Path, samples: int | None = FIXED_SAMPLES, see
 
 @dataclass
 class FixedMetrics:
-    """
-    The metrics of one trial's snapshots on the fixed set.
-
-    :param metrics: ``collapse/<layer>/<metric>`` -> ``(frames, values)``, one value per checkpoint
-    :param widths: layer -> units
-    :param checkpoints: the checkpoints read, in training order
-    """
+    """One trial's ``metrics`` on the fixed set, ``collapse/<layer>/<metric>`` -> ``(frames, values)`` of its
+    ``checkpoints`` (in training order), and each layer's width in units."""
 
     metrics: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     widths: dict[str, int] = field(default_factory=dict)
@@ -114,19 +89,9 @@ def fixed_metrics(
     progress: bool = False,
     desc: str = "checkpoints",
 ) -> FixedMetrics:
-    """
-    :func:`~sb3_collapse.monitoring.metrics.layer_metrics` of every checkpoint's activations of the fixed set.
-
-    :param paths: the checkpoints (a trial's snapshots), in training order
-    :param inputs: the fixed set
-    :param layers: the named layers
-    :param device: where the checkpoints run
-    :param batch_size: observations per forward pass
-    :param progress: a progress bar over the checkpoints
-    :param desc: its label
-    :return: the metrics (empty without checkpoints)
-    :raises InputError: for a checkpoint that cannot be loaded or whose observations differ from the set's
-    """
+    """:func:`~sb3_collapse.monitoring.metrics.layer_metrics` of the ``layers`` of each checkpoint (a trial's
+    snapshots, in training order) on the fixed set, ``batch_size`` observations per forward pass (``progress``: a bar
+    labelled ``desc``)."""
     columns: dict[str, tuple[list[int], list[float]]] = {}
     result = FixedMetrics(checkpoints=list(paths))
     for path in tqdm(paths, desc=desc, unit="checkpoint", disable=not progress):

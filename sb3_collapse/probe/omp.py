@@ -1,18 +1,7 @@
 """
-Orthogonal Matching Pursuit in torch, batched over targets, without the feature Gram matrix.
-
-For each target ``y`` (a column of ``Y``), OMP (Pati et al., 1993) greedily selects the feature ("atom") most
-correlated with the current residual and refits least squares on the selected atoms::
-
-    r_0 = y, S_0 = {}
-    for k = 1..max_atoms:
-        a_k = argmax_i |x_i^T r_{k-1}|              # x_i: column i of X
-        S_k = S_{k-1} + [a_k]
-        w_k = argmin_w ||y - X[:, S_k] w||^2        # least squares on the selected atoms
-        r_k = y - X[:, S_k] w_k
-
-The path is nested: one run gives the solution for every sparsity ``tau <= max_atoms``. It matches
-scikit-learn's ``OrthogonalMatchingPursuit(precompute=False)``, early stops and ties included: docs/probe.md#omp.
+Orthogonal Matching Pursuit (Pati et al., 1993) in torch, batched over targets, without the feature Gram matrix. The
+path is nested: one run gives the solution for every sparsity ``tau <= max_atoms``. It matches scikit-learn's
+``OrthogonalMatchingPursuit(precompute=False)``, early stops and ties included: docs/probe.md#omp.
 """
 
 from __future__ import annotations

@@ -3,68 +3,20 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
-from sb3_collapse.probe.checkpoints import Checkpoint, identify_algorithm, load_checkpoint, read_saved_data
-from sb3_collapse.probe.rollouts import (
-    ENV_SETTINGS,
-    Rollouts,
-    check_record_arguments,
-    record_rollouts,
-    resolve_env_config,
-)
-from sb3_collapse.run.config import setting
+from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint, read_saved_data
+from sb3_collapse.probe.rollouts import ENV_SETTINGS, RecordOptions, Rollouts, record_rollouts, resolve_env_config
 
 ROLLOUTS_NAME = "rollouts.npz"
 
 
-@dataclass
-class RecordOptions:
-    """How to record rollouts, each option declared with its flag of ``python -m sb3_collapse.probe``
-    (:func:`setting`); ``None`` ones come from the checkpoint, else ``make_dmc_env``'s defaults."""
-
-    env: str | None = setting(help="dm_control task, e.g. walker-walk; default: the checkpoint's", unit=None)
-    episodes: int = setting(20, help="episodes to record", unit="episodes", minimum=1)
-    max_steps: int | None = setting(
-        help="cap on agent steps per episode; default: the task's time limit (500 agent steps for walker at action "
-        "repeat 2)",
-        unit="agent steps",
-        minimum=1,
-    )
-    seed: int = setting(0, help="seed of the env's initial states and the action noise", unit=None)
-    deterministic: bool = setting(
-        True,
-        help="use the policy's deterministic action (off: sample its own exploration)",
-        unit=None,
-        flag="--stochastic",
-    )
-    noise_std: float = setting(
-        0.0, help="std of Gaussian noise added to each action (actions in [-1, 1])", unit=None, minimum=0
-    )
-    action_repeat: int | None = setting(help="frames per agent step", unit="frames", minimum=1)
-    frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, minimum=1)
-    size: int | None = setting(help="image height and width", unit="pixels", minimum=1)
-    camera_id: int | None = setting(help="camera of the renders", unit=None)
-
-    def check(self) -> None:
-        """:raises InputError: for a bad option, before anything is loaded or recorded"""
-        check_record_arguments(self.episodes, self.max_steps, self.noise_std)
-
-
 def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True) -> Rollouts:
-    """
-    Record rollouts of a checkpoint's agent.
-
-    :param checkpoint: the agent
-    :param options: what to record
-    :param progress: show a progress bar
-    :return: the rollouts
-    """
+    """Record rollouts of a checkpoint's agent (``progress``: show a progress bar)."""
     env = {key: getattr(options, key) for key in ENV_SETTINGS[1:]}
     env_config = resolve_env_config(checkpoint.env_config, task_id=options.env, **env)
     how = {key: getattr(options, key) for key in ("episodes", "seed", "deterministic", "noise_std", "max_steps")}
@@ -107,20 +59,13 @@ def record_to_file(
 
 
 def check_checkpoint_files(paths: Sequence[str | Path], same_observations: bool = True) -> None:
-    """
-    Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm, and (the same
-    rollouts feed them all) that they all take observations of one shape.
-
-    :param paths: the checkpoints
-    :param same_observations: check that they all take observations of one shape
-    :raises InputError: naming the first bad file, or two checkpoints whose observations differ
-    """
+    """Check, before any long work, that every path is an SB3 checkpoint of a probe-able algorithm and (with
+    ``same_observations``: the same rollouts feed them all) that they take observations of one shape."""
     if not paths:
         raise InputError("Give at least one checkpoint (.zip).")
     shapes: dict[tuple, str | Path] = {}
     for path in paths:
-        data = read_saved_data(path)
-        identify_algorithm(data, path)
+        _, data = read_saved_data(path)
         shape = (data.get("observation_space") or {}).get("_shape")
         if shape is not None:
             shapes.setdefault(tuple(shape), path)

@@ -1,7 +1,5 @@
-"""
-Linear probing with a sparsity constraint (Section 4.1): how well each layer's activations predict each true-state
-component, by OMP with the sparsity chosen on validation episodes (the steps: docs/probe.md).
-"""
+"""Linear probing with a sparsity constraint (Section 4.1): how well each layer's activations predict each true-state
+component, by OMP with the sparsity chosen on validation episodes (the steps: docs/probe.md)."""
 
 from __future__ import annotations
 
@@ -10,7 +8,7 @@ import hashlib
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -21,12 +19,12 @@ from tqdm.auto import tqdm
 
 from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2.checks import check_device
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_taps
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.omp import omp_path, path_predictions
 from sb3_collapse.probe.rollouts import Rollouts
-from sb3_collapse.run.config import setting
+from sb3_collapse.run.config import declared_problem, setting
 
 MIN_EPISODES = 3
 """Episodes a probe needs at least: one each for training, validation and test."""
@@ -37,13 +35,8 @@ PROBE_LAYERS = LAYER_NAMES[: LAYER_NAMES.index("action")]
 
 @dataclass
 class EpisodeSplit:
-    """
-    :param order: sample indices, train, then validation, then test (each in recording order)
-    :param n_train: train samples (``order[:n_train]``)
-    :param n_validation: validation samples (the next ones)
-    :param n_test: test samples (the rest)
-    :param episodes: ``"train"``, ``"validation"``, ``"test"`` -> sorted episode ids
-    """
+    """The sample indices ``order``: ``n_train`` train, then ``n_validation`` validation, then ``n_test`` test samples
+    (each in recording order); ``episodes``: ``"train"``, ``"validation"``, ``"test"`` -> sorted episode ids."""
 
     order: np.ndarray
     n_train: int
@@ -65,8 +58,7 @@ def split_by_episode(
     episode_ids: np.ndarray, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int = 0
 ) -> EpisodeSplit:
     """
-    Shuffle the episodes and give ``round(fraction x episodes)`` of them to validation and to test (at least one
-    each), the rest to train.
+    Shuffle the episodes: ``round(fraction x episodes)`` (at least one) go to validation and to test, the rest to train.
 
     :param episode_ids: ``(N,)`` episode of each sample
     :param fractions: train, validation, test fractions of the episodes (summing to 1)
@@ -96,16 +88,9 @@ def split_by_episode(
 def standardize_features_(
     features: th.Tensor, n_train: int, min_std: float = 1e-6, chunk_rows: int = 256
 ) -> tuple[th.Tensor, th.Tensor]:
-    """
-    Standardize the columns with the mean and std of the first ``n_train`` rows and drop those of train std
-    ``<= min_std``, in place: the result is a view of ``features``' memory.
-
-    :param features: ``(N, d)`` contiguous float tensor, train rows first
-    :param n_train: rows that give the statistics
-    :param min_std: columns of a smaller train std are dropped
-    :param chunk_rows: rows processed at once (bounds the temporary memory)
-    :return: the ``(N, d_kept)`` standardized features and the ``(d,)`` bool mask of the kept columns
-    """
+    """Standardize the ``(N, d)`` contiguous ``features`` in place with the mean and std of their first ``n_train``
+    rows, ``chunk_rows`` at a time; :return: the ``(N, d_kept)`` result (a view of ``features``' memory), without the
+    columns of train std ``<= min_std``, and the ``(d,)`` bool mask of the kept columns"""
     if not features.is_contiguous():
         raise ValueError("standardize_features_ needs a contiguous tensor.")
     n_rows, n_columns = features.shape
@@ -129,12 +114,8 @@ def standardize_features_(
 
 
 def standardize_targets(targets: np.ndarray, n_train: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """
-    :param targets: ``(N, K)`` state components, train rows first
-    :param n_train: rows that give the statistics
-    :return: ``(targets - mean) / scale`` (float64), the train ``mean`` and the ``scale``: the train std, or 1
-        for a target constant on the train set (which is then only centred)
-    """
+    """:return: the ``(N, K)`` ``targets`` standardized (float64) with the mean and std of the first ``n_train`` rows,
+    the ``mean`` and the ``scale`` (the std, or 1 for a target constant on those rows: then only centred)"""
     train = targets[:n_train].astype(np.float64)
     mean, std = train.mean(0), train.std(0)
     scale = np.where(std > 0, std, 1.0)
@@ -142,15 +123,9 @@ def standardize_targets(targets: np.ndarray, n_train: int) -> tuple[np.ndarray, 
 
 
 def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float) -> list[list[str]]:
-    """
-    Group layers into forward passes whose float32 activations take at most ``memory_bytes`` (first fit, largest
-    layer first; a layer larger than the budget gets a pass of its own).
-
-    :param dimensions: name -> flattened activation size
-    :param n_samples: observations per pass
-    :param memory_bytes: budget of activations held at once
-    :return: the passes, each a list of layer names in the order of ``dimensions``, ordered by their first layer
-    """
+    """Group layers (name -> flattened activation size) into forward passes of ``n_samples`` observations whose
+    float32 activations take at most ``memory_bytes`` each (first fit, largest layer first; a layer larger than the
+    budget gets a pass of its own); each pass lists its layers in the order of ``dimensions``."""
     order, passes = list(dimensions), []  # [bytes used, layers] of each pass
     for name in sorted(order, key=lambda layer: -dimensions[layer]):
         size = 4.0 * dimensions[name] * n_samples
@@ -166,8 +141,7 @@ def plan_passes(dimensions: dict[str, int], n_samples: int, memory_bytes: float)
 def _extract_activations(
     model: object, observations: np.ndarray, order: np.ndarray, layers: Sequence[str], settings: ProbeSettings
 ) -> dict[str, th.Tensor]:
-    """:return: layer -> the ``(len(order), d)`` float32 flattened activations of ``observations[order]``
-    (``(N, *obs_shape)``), written batch by batch into preallocated tensors"""
+    """:return: layer -> the ``(len(order), d)`` float32 flattened activations of ``observations[order]``"""
     out: dict[str, th.Tensor] = {}
     device, size = get_device(settings.device), settings.batch_size
     for start in tqdm(
@@ -184,19 +158,10 @@ def _extract_activations(
 @dataclass
 class LayerProbe:
     """
-    OMP probe of one layer for every target (standardized units).
-
-    :param layer: the layer name
-    :param n_features: flattened activation size
-    :param n_features_kept: columns not constant on the train set
-    :param max_tau: the largest sparsity fitted (``min(max_tau, n_features_kept)``; 0 without features)
-    :param tau: ``(K,)`` sparsity chosen on the validation set
-    :param n_active: ``(K,)`` atoms OMP selected before an early stop (``max_tau`` without one)
-    :param validation_curve: ``(K, max_tau)`` validation MSE of every sparsity ``1..max_tau``
-    :param validation_mse: ``(K,)`` validation MSE at ``tau``
-    :param test_mse: ``(K,)`` test MSE at ``tau``
-    :param fit_seconds: wall time of standardization, OMP and evaluation
-    :param reused: copied from an earlier checkpoint with identical activations (``cnn0``)
+    OMP probe of one layer for the ``K`` targets, MSE in standardized units: ``max_tau`` is the largest sparsity fitted
+    (at most ``n_features_kept``, the columns not constant on the train set), ``tau`` ``(K,)`` the one chosen on the
+    validation set, ``n_active`` ``(K,)`` the atoms selected before an early stop, ``validation_curve``
+    ``(K, max_tau)`` the validation MSE of each sparsity; ``reused``: copied from an earlier checkpoint (``cnn0``).
     """
 
     layer: str
@@ -253,8 +218,7 @@ def probe_layer(
     test_pred = path_predictions(features[n_train + n_val :], path)[:, rows, best]
     tau, validation_mse = (best + 1).cpu().numpy(), curve[rows, best].cpu().numpy()
     test_mse = ((test_pred - y_test) ** 2).mean(0).cpu().numpy()
-    elapsed = time.perf_counter() - start_time
-    n_active = path.n_active.cpu().numpy()
+    n_active, elapsed = path.n_active.cpu().numpy(), time.perf_counter() - start_time
     return LayerProbe(
         layer, n_features, n_kept, tau_max, tau, n_active, curve.cpu().numpy(), validation_mse, test_mse, elapsed
     )
@@ -294,25 +258,17 @@ class ProbeSettings:
     progress: bool = setting(True, help="show the progress bars", unit=None)
 
     def validate(self) -> None:
-        """:raises InputError: naming the bad setting"""
-        if self.max_tau < 1:
-            raise InputError(f"max_tau must be >= 1, got {self.max_tau}.", parameter="max_tau")
-        if self.batch_size < 1:
-            raise InputError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
-        if self.memory_gb <= 0:
-            raise InputError(f"memory_gb must be > 0, got {self.memory_gb}.", parameter="memory_gb")
+        """:raises InputError: naming the bad setting (out of its declared range, for those of one value)"""
+        for option in (option for option in fields(self) if option.metadata["nargs"] is None):
+            if (problem := declared_problem(option, getattr(self, option.name), integer=False)) is not None:
+                raise ParameterError(option.name, f"{option.name} {problem}")
         check_fractions(self.fractions)
         check_device(self.device)
 
 
 @dataclass
 class CheckpointProbe:
-    """
-    :param checkpoint: the checkpoint
-    :param layers: one :class:`LayerProbe` per layer
-    :param rows: one dict per (layer, target), the rows of ``probe.csv`` (:data:`ROW_COLUMNS`)
-    :param extract_seconds: wall time of the forward passes
-    """
+    """A checkpoint's probe: one :class:`LayerProbe` per layer, one row of :data:`ROW_COLUMNS` per (layer, target)."""
 
     checkpoint: Checkpoint
     layers: list[LayerProbe] = field(default_factory=list)
@@ -325,23 +281,20 @@ ROW_COLUMNS = (
     "validation_mse", "test_mse", "validation_mse_raw", "test_mse_raw", "target_std", "n_train", "n_validation",
     "n_test", "n_features", "n_features_kept",
 )  # fmt: skip
-"""The columns of a probe's rows: ``num_timesteps`` in agent steps, ``*_mse`` standardized, ``*_mse_raw`` in the
-state's units squared."""
+"""The rows' columns: ``num_timesteps`` in agent steps, ``*_mse`` standardized, ``*_mse_raw`` in state units squared."""
 
 
 def _select_layers(checkpoint: Checkpoint, layers: Sequence[str] | None) -> list[str]:
     """:return: ``layers`` (``None``: the paper's that the model has) in the model's order; :raises InputError: for
     a requested name the model lacks"""
     available = list(layer_taps(checkpoint.model))
-    if layers is None:
-        names = [name for name in available if name in PROBE_LAYERS]
-        if not names:
-            raise InputError(f"{checkpoint.path}: none of the layers {list(PROBE_LAYERS)}; it has {available}.")
-        return names
-    missing = [name for name in layers if name not in available]
+    missing = [name for name in layers or () if name not in available]
     if missing:
         raise InputError(f"{checkpoint.path}: no layer(s) {missing}; this {checkpoint.algorithm} has {available}.")
-    return [name for name in available if name in layers]
+    names = [name for name in available if name in (PROBE_LAYERS if layers is None else layers)]
+    if layers is None and not names:
+        raise InputError(f"{checkpoint.path}: none of the layers {list(PROBE_LAYERS)}; it has {available}.")
+    return names
 
 
 def probe_checkpoint(
@@ -358,8 +311,7 @@ def probe_checkpoint(
     :param rollouts: the recorded observations and states
     :param split: the episode split of the rollouts
     :param settings: the probe's settings
-    :param reuse: probes of ``cnn0`` (the normalized image) of earlier checkpoints on the same rollouts and split,
-        keyed by its values on 16 samples (updated here), reused instead of fitted again; ``None``: no reuse
+    :param reuse: probes of ``cnn0`` of earlier checkpoints on the same rollouts and split, reused (updated here)
     :return: the results, one row per (layer, target)
     :raises InputError: when the rollouts' observations do not fit the model
     """
@@ -414,15 +366,15 @@ def probe_each_checkpoint(
     jobs: int = 1,
 ) -> list[list[dict[str, Any]]]:
     """
-    Probe many checkpoints on the same rollouts (:func:`probe_checkpoint`), ``jobs`` at once; the first alone, so
-    that the others reuse its ``cnn0`` probe. The results do not depend on ``jobs``.
+    :func:`probe_checkpoint` of many checkpoints on the same rollouts, the first alone (the others reuse its ``cnn0``).
 
     :param paths: the checkpoints
     :param labels: their names in the rows (``checkpoint``)
     :param rollouts: the recorded observations and states
     :param split: the episode split of the rollouts
     :param settings: the probe's settings; ``settings.progress`` shows one bar over the checkpoints
-    :param jobs: checkpoints probed at once (threads), each with ``settings.memory_gb / jobs`` for its activations
+    :param jobs: checkpoints probed at once (threads, each with ``settings.memory_gb / jobs``); the results do not
+        depend on it
     :return: each checkpoint's rows, in the order of ``paths``
     :raises InputError: for a checkpoint that cannot be loaded or does not fit the rollouts
     """

@@ -1,14 +1,12 @@
-"""
-Rollouts: an agent's pixel observations with the true state behind each and what the task's reward reads ("all of
-them are the input to the reward function"), saved as compressed ``.npz`` files: docs/probe.md.
-"""
+"""Rollouts: an agent's pixel observations with the true state and the reward's inputs behind each ("all of them are
+the input to the reward function"), saved as compressed ``.npz`` files: docs/probe.md."""
 
 from __future__ import annotations
 
 import inspect
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -18,11 +16,12 @@ from tqdm.auto import tqdm
 
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import reward_inputs_of
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.protocol import atomic_output
+from sb3_collapse.run.config import declared_problem, setting
 
 FORMAT_VERSION = 2
-"""Version 2 added the reward inputs (files of version 1 load with none)."""
+"""The format of the rollouts files written and read (a file of another is refused)."""
 REWARD_PREFIX = "reward:"
 """Prefix of the probing targets (and groups) that are reward inputs, e.g. ``reward:torso_height``."""
 ENV_SETTINGS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id")
@@ -34,20 +33,17 @@ ARRAYS = ("observations", "actions", "rewards", "episode_ids", "steps")
 @dataclass
 class Rollouts:
     """
-    Recorded agent steps, ``N`` in all (the final observation of an episode, on which no action is taken, is not
-    recorded).
+    Recorded agent steps, ``N`` in all (not the final observation of an episode, on which no action is taken).
 
     :param observations: ``(N, *obs_shape)`` observations as the env gives them (``uint8`` ``(N, 9, 84, 84)``)
-    :param states: true-state component name -> ``(N, size)`` float32 when each observation was rendered, in
-        dm_control's order (walker: ``orientations`` (14), ``height`` (1), ``velocity`` (9))
+    :param states: true-state component name -> ``(N, size)`` float32 at each observation, in dm_control's order
     :param actions: ``(N, action_dim)`` float32 actions taken, in [-1, 1]
     :param rewards: ``(N,)`` float32 reward received for each action (summed over the action repeat)
     :param episode_ids: ``(N,)`` int64 episode of each step, ``0..episodes - 1``
     :param steps: ``(N,)`` int64 agent step of each observation within its episode (0: the reset observation)
     :param env_config: ``make_dmc_env`` settings (:data:`ENV_SETTINGS`)
     :param metadata: how they were recorded (``checkpoint``, ``deterministic``, ``noise_std``, ``seed``, ...)
-    :param reward_inputs: reward input name -> ``(N, size)`` float32, what the task's reward function reads at
-        each observation (:data:`~sb3_collapse.envs.dmc.REWARD_INPUTS`); empty when not recorded
+    :param reward_inputs: reward input name -> ``(N, size)`` float32 that the task's reward reads at each observation
     """
 
     observations: np.ndarray
@@ -78,12 +74,8 @@ class Rollouts:
         return len(np.unique(self.episode_ids))
 
     def targets(self) -> tuple[list[str], list[str], np.ndarray]:
-        """
-        The scalar probing targets: one per dimension of each state component, then of each reward input.
-
-        :return: ``names`` (``"orientations_0"``.., ``"height"`` for a 1-d component, ``"reward:torso_height"`` for
-            a reward input), ``groups`` (the component or reward input of each) and the ``(N, K)`` float32 values
-        """
+        """:return: the scalar probing targets, one per dimension of each state component then reward input: ``names``
+        (``"orientations_0"``, ``"height"``, ``"reward:torso_height"``), ``groups`` and the ``(N, K)`` float32 values"""
         names, groups, columns = [], [], []
         for prefix, components in (("", self.states), (REWARD_PREFIX, self.reward_inputs)):
             for component, values in components.items():
@@ -97,17 +89,9 @@ class Rollouts:
         return names, groups, np.stack(columns, axis=1).astype(np.float32)
 
     def save(self, path: str | Path) -> Path:
-        """
-        :param path: the compressed ``.npz`` to write (atomically: :func:`~sb3_collapse.protocol.atomic_output`)
-        :return: the path written
-        """
-        meta = {
-            "format_version": FORMAT_VERSION,
-            "env_config": self.env_config,
-            "metadata": self.metadata,
-            "state_components": list(self.states),
-            "reward_inputs": list(self.reward_inputs),
-        }
+        """:param path: the compressed ``.npz`` to write (atomically); :return: the path written"""
+        meta = {"format_version": FORMAT_VERSION, "env_config": self.env_config, "metadata": self.metadata}
+        meta |= {"state_components": list(self.states), "reward_inputs": list(self.reward_inputs)}
         arrays = {name: getattr(self, name) for name in ARRAYS} | {"meta": np.array(json.dumps(meta))}
         arrays.update({f"state/{name}": value for name, value in self.states.items()})
         arrays.update({f"reward_input/{name}": value for name, value in self.reward_inputs.items()})
@@ -121,7 +105,7 @@ class Rollouts:
         """
         :param path: a file written by :meth:`save`
         :return: the rollouts, with the recorded reward inputs that the task's reward reads (others left out)
-        :raises InputError: for a missing file or one that is not a rollouts file
+        :raises InputError: for a missing file, one that is not a rollouts file or one of another format
         """
         path = Path(path)
         if not path.is_file():
@@ -131,37 +115,29 @@ class Rollouts:
         try:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
-                read = {
-                    item.name for item in reward_inputs_of(*parse_task(meta["env_config"]["task_id"])) if item.state
-                }
+                if meta["format_version"] != FORMAT_VERSION:
+                    raise ValueError(f"format {meta['format_version']}, not {FORMAT_VERSION}")
+                task = parse_task(meta["env_config"]["task_id"])
+                read = {item.name for item in reward_inputs_of(*task) if item.state}
                 arrays = {key: data[key] for key in ARRAYS}
                 arrays["states"] = {name: data[f"state/{name}"] for name in meta["state_components"]}
-                inputs = [name for name in meta.get("reward_inputs", []) if name in read]  # format 1: none
+                inputs = [name for name in meta["reward_inputs"] if name in read]
                 arrays["reward_inputs"] = {name: data[f"reward_input/{name}"] for name in inputs}
         except (OSError, ValueError, KeyError, json.JSONDecodeError) as error:
             raise InputError(
-                f"{path} is not a rollouts file of sb3_collapse.probe ({type(error).__name__}: {error}); "
-                "record one with `python -m sb3_collapse.probe record`."
+                f"{path} is not a rollouts file this version of sb3_collapse.probe reads ({type(error).__name__}: "
+                f"{error}); record one with `python -m sb3_collapse.probe record`."
             ) from error
         return cls(env_config=meta["env_config"], metadata=meta.get("metadata", {}), **arrays)
 
 
 def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any) -> dict[str, Any]:
-    """
-    The env settings for recording: those given (not ``None``), else the checkpoint's, else ``make_dmc_env``'s.
-
-    :param model_env_config: ``model.env_config`` of a DrQv2 checkpoint, or ``None``
-    :param overrides: ``task_id``, ``action_repeat``, ``frame_stack``, ``size``, ``camera_id``
-    :return: a complete settings dict
-    :raises InputError: when no task is known
-    """
+    """The :data:`ENV_SETTINGS` for recording: ``overrides`` not ``None``, else a DrQv2 checkpoint's
+    ``model_env_config``, else ``make_dmc_env``'s defaults."""
     parameters = inspect.signature(make_dmc_env).parameters
     defaults = {"task_id": None} | {key: parameters[key].default for key in ENV_SETTINGS[1:]}
     saved = {key: value for key, value in (model_env_config or {}).items() if key in defaults and value is not None}
     given = {key: value for key, value in overrides.items() if value is not None}
-    unknown = set(given) - set(defaults)
-    if unknown:
-        raise ValueError(f"Unknown env settings {sorted(unknown)}; expected {list(defaults)}.")
     config = {**defaults, **saved, **given}
     if config["task_id"] is None:
         raise InputError(
@@ -174,14 +150,39 @@ def resolve_env_config(model_env_config: dict[str, Any] | None, **overrides: Any
     return config
 
 
-def check_record_arguments(episodes: int, max_steps: int | None, noise_std: float) -> None:
-    """:raises InputError: naming the bad argument of :func:`record_rollouts`, before anything is built"""
-    if episodes < 1:
-        raise InputError(f"episodes must be >= 1, got {episodes}.", parameter="episodes")
-    if max_steps is not None and max_steps < 1:
-        raise InputError(f"max_steps must be >= 1 agent step, got {max_steps}.", parameter="max_steps")
-    if not noise_std >= 0:  # nan too
-        raise InputError(f"noise_std must be >= 0, got {noise_std}.", parameter="noise_std")
+@dataclass
+class RecordOptions:
+    """How to record rollouts, each option declared with its flag of ``python -m sb3_collapse.probe``
+    (:func:`setting`); ``None`` ones come from the checkpoint, else ``make_dmc_env``'s defaults."""
+
+    env: str | None = setting(help="dm_control task, e.g. walker-walk; default: the checkpoint's", unit=None)
+    episodes: int = setting(20, help="episodes to record", unit="episodes", minimum=1)
+    max_steps: int | None = setting(
+        help="cap on agent steps per episode; default: the task's time limit (500 agent steps for walker at action "
+        "repeat 2)",
+        unit="agent steps",
+        minimum=1,
+    )
+    seed: int = setting(0, help="seed of the env's initial states and the action noise", unit=None)
+    deterministic: bool = setting(
+        True,
+        help="use the policy's deterministic action (off: sample its own exploration)",
+        unit=None,
+        flag="--stochastic",
+    )
+    noise_std: float = setting(
+        0.0, help="std of Gaussian noise added to each action (actions in [-1, 1])", unit=None, minimum=0
+    )
+    action_repeat: int | None = setting(help="frames per agent step", unit="frames", minimum=1)
+    frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, minimum=1)
+    size: int | None = setting(help="image height and width", unit="pixels", minimum=1)
+    camera_id: int | None = setting(help="camera of the renders", unit=None)
+
+    def check(self) -> None:
+        """:raises ParameterError: for an option out of its declared range, before anything is loaded or recorded"""
+        for option in fields(self):
+            if (problem := declared_problem(option, getattr(self, option.name), integer=False)) is not None:
+                raise ParameterError(option.name, f"{option.name} {problem}")
 
 
 def record_rollouts(
@@ -196,22 +197,21 @@ def record_rollouts(
     metadata: dict[str, Any] | None = None,
 ) -> Rollouts:
     """
-    Run an agent in a DeepMind Control pixel env and record what probing needs. Actions are
-    ``model.predict(obs, deterministic)``, plus Gaussian noise of std ``noise_std`` when > 0, clipped to [-1, 1].
+    Run an agent in a DeepMind Control pixel env and record what probing needs.
 
     :param model: the agent (its observation space must be the env's)
-    :param env_config: ``make_dmc_env`` settings (see :func:`resolve_env_config`)
+    :param env_config: ``make_dmc_env`` settings (:data:`ENV_SETTINGS`)
     :param episodes: episodes to record
     :param seed: seed of the env's initial states and of the action noise
     :param deterministic: the policy's deterministic action (else the model's own exploration)
-    :param noise_std: std of the Gaussian noise added to each action (in action units, [-1, 1])
+    :param noise_std: std of the Gaussian noise added to each action (in action units), then clipped to [-1, 1]
     :param max_steps: cap on agent steps per episode (``None``: the task's time limit)
     :param progress: show a progress bar over agent steps
     :param metadata: extra entries of :attr:`Rollouts.metadata`
     :return: the rollouts
     :raises InputError: when the env's observations do not fit the model
     """
-    check_record_arguments(episodes, max_steps, noise_std)
+    RecordOptions(episodes=episodes, max_steps=max_steps, noise_std=noise_std).check()
     try:
         env = make_dmc_env(
             env_config["task_id"], seed=seed, obs_type="pixels", **{k: env_config[k] for k in ENV_SETTINGS[1:]}
@@ -229,10 +229,8 @@ def record_rollouts(
     recorded: dict[str, list] = {name: [] for name in ARRAYS}
     states: dict[str, list] = {name: [] for name in env.state_shapes}
     reward_inputs: dict[str, list] = {}
-    limit = getattr(getattr(getattr(env, "_dmc", None), "_env", None), "_step_limit", None)  # the time limit
-    caps = [max_steps, math.ceil(limit / env.action_repeat) if limit is not None and math.isfinite(limit) else None]
-    per_episode = min((cap for cap in caps if cap is not None), default=None)
-    total = None if per_episode is None else episodes * per_episode
+    per_episode = min(env._dmc._env._step_limit / env.action_repeat, max_steps or math.inf)  # the time limit's cap
+    total = episodes * math.ceil(per_episode) if math.isfinite(per_episode) else None
     bar = tqdm(total=total, desc="recording", unit="step", disable=not progress)
     try:
         for episode in range(episodes):

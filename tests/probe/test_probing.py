@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_collapse.errors import InputError
+from sb3_collapse.errors import InputError, ParameterError
+from sb3_collapse.probe import ProbeSettings
+from sb3_collapse.probe.pipeline import RecordOptions
 from sb3_collapse.probe.probing import (
     plan_passes,
     probe_layer,
@@ -112,3 +114,23 @@ def test_staged_outputs_appear_only_on_commit(tmp_path):
         staged.commit()
     assert sorted(p.name for p in out.iterdir()) == ["probe.csv", "summary.json"]  # the stale plot is gone
     assert (out / "summary.json").read_text() == "new run"
+
+
+def test_settings_and_record_options_are_checked_against_their_declared_ranges():
+    ProbeSettings().validate()
+    RecordOptions().check()
+    for settings, message in [
+        (ProbeSettings(max_tau=0), "max_tau must be >= 1, got 0."),
+        (ProbeSettings(memory_gb=0.0), "memory_gb must be > 0, got 0.0."),
+        (ProbeSettings(min_std=-1.0), "min_std must be >= 0, got -1.0."),
+        (ProbeSettings(fractions=(0.5, 0.5, 0.5)), "fractions must be 3 positive fractions summing to 1"),
+    ]:
+        with pytest.raises(InputError, match=message):
+            settings.validate()
+    for options, message in [
+        (RecordOptions(episodes=0), "episodes must be >= 1, got 0."),
+        (RecordOptions(max_steps=0), "max_steps must be >= 1, got 0."),
+        (RecordOptions(noise_std=float("nan")), "noise_std must be >= 0, got nan."),
+    ]:
+        with pytest.raises(ParameterError, match=message):
+            options.check()
