@@ -60,6 +60,11 @@ def checkpoint_folders(directory: str | os.PathLike) -> list[Path]:
     return sorted(folders, key=lambda path: path.name, reverse=True)
 
 
+def _read_info(folder: Path) -> dict[str, Any]:
+    """:return: a checkpoint folder's ``checkpoint.json`` (not verified); raises ``OSError`` or ``ValueError``"""
+    return json.loads((folder / CHECKPOINT_JSON).read_text())
+
+
 def _digest(path: Path) -> dict[str, Any]:
     sha = hashlib.sha256()
     with path.open("rb") as file:
@@ -103,16 +108,8 @@ def capture_state(
     csv_files: Sequence[Path] = (),
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """
-    Everything of a run between two rounds of ``learn()`` that the model's ``save`` and the replay store do not hold.
-
-    :param model: the model, between two rounds
-    :param callbacks: the run's callbacks (the states of those that carry one are kept)
-    :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
-    :param csv_files: the run's CSV files, whose content to keep
-    :param extra: anything else to keep (picklable)
-    :return: the state (picklable, CPU tensors only)
-    """
+    """:return: what a run between two rounds of ``learn()`` needs beyond the model's ``save`` and the replay store:
+    random generators, episodes, the ``callbacks``' states, logger, the ``csv_files``' content, ``extra`` (CPU only)"""
     env = model.get_env()
     if env is None:
         raise ValueError("capture_state needs the model's environment.")
@@ -152,14 +149,8 @@ def save_checkpoint(
 ) -> Path:
     """
     Write a checkpoint of ``model`` and ``state`` (:func:`capture_state`) into ``directory/step_<agent step>``, then
-    delete the checkpoints older than the newest ``keep`` and the replay chunks none of them needs.
+    delete the checkpoints older than the newest ``keep`` and the replay chunks none of them needs; return its folder.
 
-    :param model: the model, between two rounds of ``learn()``
-    :param directory: the run's checkpoints folder
-    :param store: the run's replay store (in ``directory/replay``)
-    :param state: what :func:`capture_state` returned
-    :param keep: complete checkpoints to keep (at least 1)
-    :return: the checkpoint's folder
     :raises OutputError: when it cannot be written (e.g. a full disk): the previous checkpoints are intact
     """
     directory = Path(directory)
@@ -203,14 +194,14 @@ def save_checkpoint(
             f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. {fix}, then run the "
             "same command again to resume."
         ) from error
-    complete = checkpoint_folders(directory)
-    for folder in complete[max(1, keep) :]:
+    kept = checkpoint_folders(directory)
+    for folder in kept[max(1, keep) :]:
         shutil.rmtree(folder, ignore_errors=True)
-    manifests = []
-    for folder in complete[: max(1, keep)]:
+    kept, manifests = kept[: max(1, keep)], []
+    for folder in kept:
         with contextlib.suppress(OSError, ValueError, KeyError):
-            manifests.append(json.loads((folder / CHECKPOINT_JSON).read_text())["replay"].get("store"))
-    if len(manifests) == len(complete[: max(1, keep)]) and None not in manifests:  # else a manifest's chunks would go
+            manifests.append(_read_info(folder)["replay"].get("store"))
+    if len(manifests) == len(kept) and None not in manifests:  # else a manifest's chunks would go
         store.collect_garbage(manifests)
     return final
 
@@ -219,18 +210,14 @@ def checkpoint_frames(directory: str | os.PathLike) -> int | None:
     """:return: the frames of the newest checkpoint in ``directory`` as it says (not verified), ``None`` without one"""
     for folder in checkpoint_folders(directory):
         with contextlib.suppress(OSError, ValueError, KeyError):
-            return int(json.loads((folder / CHECKPOINT_JSON).read_text())["frames"])
+            return int(_read_info(folder)["frames"])
     return None
 
 
 @dataclass
 class LoadedCheckpoint:
-    """
-    :param folder: the checkpoint's folder
-    :param info: its ``checkpoint.json``
-    :param state: its state (:func:`capture_state`)
-    :param skipped: damaged newer checkpoints passed over, with the reason
-    """
+    """A checkpoint's ``folder``, its ``checkpoint.json`` (``info``), its :func:`capture_state` and the damaged newer
+    checkpoints passed over (``skipped``: folder and reason)."""
 
     folder: Path
     info: dict[str, Any]
@@ -244,7 +231,7 @@ class LoadedCheckpoint:
 
 def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     try:
-        info = json.loads((folder / CHECKPOINT_JSON).read_text())
+        info = _read_info(folder)
     except (OSError, ValueError) as error:
         raise CheckpointError(f"no readable {CHECKPOINT_JSON}: {error}", damaged=True) from None
     if info.get("format") != CHECKPOINT_FORMAT or info.get("version") != __version__:
@@ -271,12 +258,8 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def set_aside(folder: Path, reason: str | None = None) -> Path:
-    """
-    Rename a damaged checkpoint's (or checkpoints) ``folder`` to ``damaged_<name>`` (``-2``... when taken): never
-    read again, never lost; ``reason`` is written into it (:data:`DAMAGED_NOTE`, best effort).
-
-    :return: its new path
-    """
+    """Rename a damaged checkpoint's (or checkpoints) ``folder`` to ``damaged_<name>`` (``-2``... when taken), with
+    ``reason`` in it (:data:`DAMAGED_NOTE`, best effort); return its new path."""
     target, number = folder.with_name(f"damaged_{folder.name}"), 2
     while target.exists():
         target, number = folder.with_name(f"damaged_{folder.name}-{number}"), number + 1
@@ -312,12 +295,8 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
 
 
 def restore_model(model: BaseAlgorithm, path: str | os.PathLike) -> None:
-    """
-    Put the zip of SB3's ``save`` at ``path`` back into ``model`` (built with the same settings) as
-    ``BaseAlgorithm.load`` does, without building a new model and replay buffer.
-
-    :raises CheckpointError: when the saved spaces are not the model's
-    """
+    """Put the zip of SB3's ``save`` at ``path`` back into ``model`` (built with the same settings) as
+    ``BaseAlgorithm.load`` does, without a new model and replay buffer; :raises CheckpointError: for other spaces."""
     data, params, variables = load_from_zip_file(path, device=model.device, print_system_info=False)
     assert data is not None and params is not None
     for name in ("observation_space", "action_space"):
@@ -337,13 +316,9 @@ def restore_run(
     callbacks: Sequence[BaseCallback] = (),
     eval_env: Any = None,
 ) -> list[str]:
-    """
-    Make ``model`` (built with the run's settings, on environments wrapped in ``EpisodeReplay``), ``callbacks`` (in
-    the order saved) and ``eval_env`` continue from ``checkpoint``, restored from ``store``: the next
-    ``learn(remaining, reset_num_timesteps=False)`` goes on as the run that wrote it would have.
-
-    :return: warnings for the user (empty when everything is as it was)
-    """
+    """Make ``model`` (built with the run's settings, on ``EpisodeReplay`` environments), ``callbacks`` (in the order
+    saved) and ``eval_env`` continue from ``checkpoint`` and ``store``, as the run that wrote it would have; return
+    warnings for the user (empty when everything is as it was)."""
     state = checkpoint.state
     notes: list[str] = []
     restore_model(model, checkpoint.folder / CHECKPOINT_MODEL)
@@ -384,12 +359,8 @@ def restore_run(
 
 
 def restore_csv_files(paths: Sequence[Path], saved: dict[str, bytes], frame: int) -> str | None:
-    """
-    Write the run's CSV files ``paths`` back as the checkpoint at ``frame`` holds them (``saved``), atomically: rows
-    written after it go; a file that does not start with what it holds (shorter, cut mid-row, changed) is rewritten.
-
-    :return: one line naming the files rewritten and why, ``None`` when none was damaged
-    """
+    """Write the run's CSV files ``paths`` back atomically as the checkpoint at ``frame`` holds them (``saved``): rows
+    after it go; return one line naming those that did not start with it (shorter, cut mid-row, changed), or None."""
     rewritten, newline = [], b"\n"
     for path in paths:
         if path.name not in saved:
@@ -459,13 +430,12 @@ class ResumableCheckpoints(FrameScheduleCallback):
         self._grad_norms: dict[str, Any] | None = None
 
     def resume(self, checkpoint: LoadedCheckpoint) -> tuple[LoadedCheckpoint, list[str]]:
-        """
-        Put the model, environments, callbacks and CSV files back as ``checkpoint`` holds them (a checkpoint whose
-        replay chunks turn out damaged is set aside for the one before).
+        """Put the model, environments, callbacks and CSV files back as ``checkpoint`` holds them (one whose replay
+        chunks are damaged is set aside for the one before); return the checkpoint resumed from and notes for the user.
 
-        :return: the checkpoint resumed from, and notes for the user
         :raises CheckpointError: (``damaged``) when no checkpoint is left (``train`` restarts the run from frame 0)
         """
+
         notes: list[str] = []
         while True:
             try:

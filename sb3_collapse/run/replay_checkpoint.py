@@ -80,13 +80,10 @@ class ReplayStore:
 
     def save(self, buffer: FrameStackReplayBuffer) -> dict[str, Any]:
         """
-        Write, as new ``fsync``'d files, the frames and transitions added since this store's last :meth:`save` or
-        :meth:`restore` of this buffer (all live data the first time, after ``buffer.reset()``, or when its earlier
-        chunks are gone).
+        Write, as new ``fsync``'d files, what ``buffer`` gained since this store's last :meth:`save` or :meth:`restore`
+        of it (all live data the first time, after ``buffer.reset()``, or when its earlier chunks are gone).
 
-        :param buffer: the buffer
-        :return: the JSON-serialisable manifest: the chunk files it needs, in order, with sizes and CRC-32s, the
-            buffer's counters and layout
+        :return: the JSON-serialisable manifest: the chunk files needed, with sizes and CRC-32s, counters and layout
         :raises OSError: when a write fails (full disk): nothing this call wrote remains, older chunks are intact
         :raises CheckpointError: when ``pos``/``full`` disagree with ``transitions_added`` (changed outside ``add``)
         """
@@ -179,11 +176,9 @@ class ReplayStore:
 
     def restore(self, buffer: FrameStackReplayBuffer, manifest: dict[str, Any]) -> None:
         """
-        Make ``buffer`` (freshly built with the saved buffer's arguments) hold the saved state; the next :meth:`save`
-        is incremental to it.
+        Make ``buffer`` (built with the saved buffer's arguments) hold the state of ``manifest`` (of :meth:`save`);
+        the next :meth:`save` is incremental to it.
 
-        :param buffer: the buffer to fill
-        :param manifest: what :meth:`save` returned (possibly through JSON)
         :raises CheckpointError: for a malformed manifest, another layout, a missing chunk or one of another size
             (the buffer unchanged), or a chunk that fails its CRC-32 or cannot be read (the buffer ``reset()``)
         """
@@ -221,11 +216,8 @@ class ReplayStore:
         self._track(buffer, manifest)
 
     def check_files(self, manifest: dict[str, Any]) -> None:
-        """
-        :param manifest: what :meth:`save` returned
-        :raises CheckpointError: for a malformed manifest, a missing chunk or one of another size (not read: CRC-32s
-            are checked by :meth:`restore`), naming the file
-        """
+        """:raises CheckpointError: for a malformed ``manifest`` (of :meth:`save`), a missing chunk or one of another
+        size (not read: :meth:`restore` checks the CRC-32s), naming the file"""
         _check_manifest(manifest)
         for chunk in manifest["chunks"]:
             path = self.directory / chunk["file"]
@@ -238,13 +230,9 @@ class ReplayStore:
                                f"{expected:,} ({how}).")  # fmt: skip
 
     def collect_garbage(self, keep: list[dict[str, Any]]) -> int:
-        """
-        Delete the chunk files that neither a ``keep`` manifest nor this store's last save or restore needs, and the
-        temporary files of interrupted saves.
+        """Delete the chunk files that neither a ``keep`` manifest nor this store's last save or restore needs, and the
+        temporary files of interrupted saves; return the bytes freed."""
 
-        :param keep: the manifests of the checkpoints to keep
-        :return: bytes freed
-        """
         needed = set()
         for manifest in keep:
             _check_manifest(manifest)

@@ -185,9 +185,9 @@ def train(config: TrainConfig) -> TrainResult:
             except CheckpointError as error:  # damaged: found as their replay chunks were read, each one set aside
                 if not error.damaged:
                     raise
-                env.close()
-                if eval_env is not None:
-                    eval_env.close()
+                for closing in (env, eval_env):
+                    if closing is not None:
+                        closing.close()
                 env, eval_env, model = build_envs_and_model(config, task_id)  # from frame 0, as a new run
                 checkpoint = open_run_dir(run_dir, config)  # sets the checkpoints aside, and says why it restarts
                 result = _train_into(config, task_id, run_dir, model, env, eval_env, start_time, checkpoint)
@@ -201,10 +201,8 @@ def train(config: TrainConfig) -> TrainResult:
 
 
 def _monitored_dmc_env(task_id: str, seed: int, pixels: dict[str, Any], worker: bool = False) -> EpisodeReplay:
-    """
-    The env of a run: ``Monitor``-ed, and recording its episode for the checkpoints (``EpisodeReplay``). A worker of
-    ``SubprocVecEnv`` is deaf to SIGINT and SIGTERM: the main process answers them with a checkpoint, which needs it.
-    """
+    """The env of a run, ``Monitor``-ed and ``EpisodeReplay``-ed; a ``SubprocVecEnv`` ``worker`` ignores SIGINT and
+    SIGTERM (the main process answers them with a checkpoint, which needs it)."""
     if worker:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -214,12 +212,8 @@ def _monitored_dmc_env(task_id: str, seed: int, pixels: dict[str, Any], worker: 
 def build_envs_and_model(
     config: TrainConfig, task_id: str
 ) -> tuple[EpisodeReplay | VecEnv, EpisodeReplay | None, BaseAlgorithm]:
-    """
-    :param config: the run's resolved settings
-    :param task_id: the task, ``<domain>-<task>``
-    :return: the training env(s) (``n_envs`` in subprocesses, seeds ``seed``, ``seed + 1``...), the evaluation env
-        (``None`` without evaluations) and the model of :func:`train`
-    """
+    """:return: the training env(s) (``n_envs`` in subprocesses, seeds ``seed``, ``seed + 1``...), the evaluation env
+    (``None`` without evaluations) and the model of :func:`train` for the resolved ``config``"""
     pixels = env_kwargs(config)
     env: EpisodeReplay | VecEnv
     if config.n_envs == 1 and not config.step_envs_during_updates:
@@ -280,11 +274,8 @@ def _run_callbacks(
 
 
 def budget_note(config: TrainConfig) -> str | None:
-    """
-    :param config: the run's resolved settings
-    :return: ``"Note: ..."`` when the run does not train exactly its budget (``frames``, a multiple of the action repeat
-        times ``n_envs``, which all step at once: the budget's agent steps round up to a multiple of it), else ``None``
-    """
+    """:return: ``"Note: ..."`` when the resolved ``config`` does not train exactly ``frames`` (not a multiple of the
+    action repeat times ``n_envs``, which step at once: the agent steps round up), else ``None``"""
     trained = -(-config.agent_steps // config.n_envs) * config.n_envs
     if trained * config.action_repeat == config.frames:
         return None
@@ -387,12 +378,16 @@ def _train_into(
             message = unwritable_message(error)
             if message is None:
                 raise
-            kept = checkpoints.last_checkpoint
-            resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
-            raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
+            raise OutputError(f"{message} The run's final outputs are not written; {_resumes(checkpoints)}.") from None
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
     return TrainResult(run_dir, model_path, evaluations, summary, saved_model_evaluation=saved_model_eval)
+
+
+def _resumes(checkpoints: ResumableCheckpoints) -> str:
+    """How the same command continues the run: from its last checkpoint, or from frame 0."""
+    kept = checkpoints.last_checkpoint
+    return f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts the run"
 
 
 def _learn(
@@ -402,13 +397,8 @@ def _learn(
     checkpoints: ResumableCheckpoints,
     resumed: bool,
 ) -> None:
-    """
-    ``model.learn`` up to the run's agent steps in total (the learn timer last in ``callbacks``); SIGINT/SIGTERM stop
-    it with a checkpoint.
-
-    :raises DivergenceError: the losses diverged; the message names the last checkpoint
-    :raises OutputError: the run folder became unwritable (read-only or full) while training
-    """
+    """``model.learn`` up to the run's agent steps (the learn timer last in ``callbacks``); SIGINT/SIGTERM stop it with
+    a checkpoint; :raises DivergenceError:, :raises OutputError: (an unwritable run folder) naming the checkpoint."""
     try:
         with stop_signals(checkpoints):
             model.learn(
@@ -427,17 +417,14 @@ def _learn(
             raise
         where = error.filename if error.filename is not None else "a file of the run folder"
         fix = "Free space" if error.errno in FULL_DISK_ERRNOS else "Make the folder writable again"
-        kept = checkpoints.last_checkpoint
-        resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
         raise OutputError(
             f"could not write {where} ({os.strerror(error.errno)}) at frame {frames_of(model):,}: the run stops. "
-            f"{fix}, then run the same command again: {resume}."
+            f"{fix}, then run the same command again: {_resumes(checkpoints)}."
         ) from None
 
 
 def _logger_closer(model: BaseAlgorithm) -> Callable[..., bool]:
-    """An exit callback for :class:`contextlib.ExitStack` that closes ``model.logger``; on the way out of an error, its
-    own ``OSError`` is dropped (the first error is the one to report)."""
+    """An ``ExitStack`` exit callback closing ``model.logger`` (its ``OSError`` dropped after another error)."""
 
     def close(exc_type: type[BaseException] | None, *_: object) -> bool:
         with contextlib.suppress(*(() if exc_type is None else (OSError,))):
