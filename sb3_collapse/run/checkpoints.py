@@ -271,11 +271,8 @@ def set_aside(folder: Path, reason: str | None = None) -> Path:
 
 
 def read_checkpoints(directory: str | os.PathLike) -> tuple[LoadedCheckpoint | None, list[tuple[Path, str]]]:
-    """
-    :return: the newest checkpoint in ``directory`` whose files have their sizes and checksums (``None`` without one),
-        and the damaged newer ones passed over, with the reason
-    :raises CheckpointError: for a checkpoint of another format or package version
-    """
+    """:return: the newest checkpoint in ``directory`` whose files have their sizes and checksums (``None`` without one)
+    and the damaged newer ones passed over, with the reason; :raises CheckpointError: for another format or version"""
     skipped: list[tuple[Path, str]] = []
     for folder in checkpoint_folders(directory):
         try:
@@ -385,10 +382,9 @@ def restore_csv_files(paths: Sequence[Path], saved: dict[str, bytes], frame: int
 
 class ResumableCheckpoints(FrameScheduleCallback):
     """
-    Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, and one when :meth:`request_stop`
-    was called (by :func:`~sb3_collapse.run.signals.stop_signals`), after which ``learn()`` stops with
-    :class:`~sb3_collapse.errors.TrainingInterrupted`. Checkpoints are taken at the start of the first rollout at or
-    after their frame, where nothing is in flight (docs/checkpoints.md#using-them).
+    Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, at the first safe point after
+    (docs/checkpoints.md#using-them), and one at a :meth:`request_stop`, then stops with ``TrainingInterrupted``.
+
 
     :param directory: the run's checkpoints folder
     :param every_frames: frames between two checkpoints (``0``: only at a stop request)

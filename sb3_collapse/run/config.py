@@ -63,7 +63,8 @@ def setting(
     default_factory: Any = dataclasses.MISSING,
 ) -> Any:
     """
-    A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.run.settings`).
+    A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.run.settings`);
+    ``choices``, ``minimum``, ``maximum``, ``above`` (exclusive), ``metavar`` and ``required`` as ``argparse`` would.
 
     :param default: the default value (``None`` for a preset setting: the task's preset fills it)
     :param help: one sentence (default: the docstring under the field, :func:`declared`); other settings named in
@@ -72,14 +73,8 @@ def setting(
     :param preset: whether the task's preset fills it (one of :data:`~sb3_collapse.presets.SETTING_NAMES`)
     :param cli: :data:`TRAINING`, :data:`RUN` or ``None`` (no flag)
     :param flag: the flag, when not ``--<name>`` (``--no-<name>`` when on by default); no dashes: a positional
-    :param choices: the values it takes (each value, with ``nargs``)
-    :param minimum: the smallest value it takes
-    :param maximum: the largest value it takes
-    :param above: a bound its values must exceed
     :param zero_means: what ``0`` means, for a setting with ``minimum=0``
-    :param nargs: how many values the flag takes (``argparse``'s ``nargs``; the bounds hold for each)
-    :param metavar: the names of its values in the help
-    :param required: whether the command line needs it
+    :param nargs: how many values the flag takes (``argparse``'s; choices and bounds hold for each)
     :param default_factory: instead of ``default``, for a mutable default
     :return: the dataclass field
     """
@@ -92,13 +87,8 @@ def setting(
 
 
 def declared(cls: type) -> type:
-    """
-    Give each field of a dataclass declared with :func:`setting` without ``help`` the docstring under it (CleanRL).
-
-    :param cls: the dataclass
-    :return: the same class
-    :raises ParameterError: for a field with neither
-    """
+    """Give each field of the dataclass ``cls`` declared with :func:`setting` without ``help`` the docstring under it
+    (CleanRL); :raises ParameterError: for a field with neither."""
     body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body  # type: ignore[attr-defined]
     docs = {
         node.target.id: " ".join(doc.value.value.split())
@@ -333,13 +323,8 @@ _BOUNDS = (("minimum", ">=", operator.ge), ("maximum", "<=", operator.le), ("abo
 
 
 def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str | None:
-    """
-    :param field: a field declared with :func:`setting`
-    :param value: one of its values (``None`` passes)
-    :param integer: whether the field holds integers
-    :return: what is wrong with the value against the field's ``choices`` and bounds (``"must be >= 1, got 0."``),
-        ``None`` when nothing is
-    """
+    """:return: what is wrong with ``value`` (``None`` passes) against the ``choices`` and bounds of a ``field``
+    declared with :func:`setting` (``"must be >= 1, got 0."``), ``None`` when nothing is"""
     metadata = field.metadata
     if value is None:
         return None
@@ -391,10 +376,7 @@ def _model_kwargs(config: TrainConfig, *names: str) -> dict[str, Any]:
 
 
 def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """
-    :param config: resolved settings
-    :return: the keyword arguments of ``DrQv2(policy, env, ...)``
-    """
+    """:return: the keyword arguments of ``DrQv2(policy, env, ...)`` for the resolved ``config``"""
     same = ("tau", "n_steps", "stddev_schedule", "stddev_clip", "augmentation_pad", "step_envs_during_updates")
     return dict(
         _model_kwargs(config, *same, "compile_update"),
@@ -406,8 +388,7 @@ def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
 
 
 def baseline_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """
-    :param config: resolved settings (``algorithm`` one of :data:`~sb3_collapse.baselines.BASELINES`)
-    :return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` after the algorithm and the env
-    """
+    """:return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` after the algorithm and the env,
+    for the resolved ``config``"""
+
     return _model_kwargs(config, "feature_dim", "hidden_dim", "frame_stack")

@@ -15,13 +15,10 @@ _tuned = False
 
 
 def tune_cpu_allocator() -> bool:
-    """
-    Raise glibc's mmap and trim thresholds to :data:`MMAP_THRESHOLD_BYTES`, once per process: freed blocks below it
-    are reused (the process keeps its peak heap). CPU tensors only; ``SB3_COLLAPSE_TUNE_MALLOC=0`` leaves it alone.
+    """Raise glibc's mmap and trim thresholds to :data:`MMAP_THRESHOLD_BYTES`, once per process: freed blocks below it
+    are reused (the process keeps its peak heap). Return whether it is tuned: ``False`` where the C library is not
+    glibc, or with the environment variable ``SB3_COLLAPSE_TUNE_MALLOC=0``."""
 
-    :return: whether the allocator is tuned: ``False`` where the C library is not glibc, or when the
-        environment variable ``SB3_COLLAPSE_TUNE_MALLOC`` is ``0``
-    """
     global _tuned
     if _tuned:
         return True

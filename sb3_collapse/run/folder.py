@@ -36,30 +36,22 @@ def _check_run_dir(run_dir: Path) -> RunStatus:
     """:return: the status of an explicit ``run_dir`` that a run may take (new, unfinished, failed)
     :raises ParameterError: naming ``run_dir``: a finished run (its leftovers removed), an unreadable result, no run"""
     state = run_status(run_dir, check_lock=False)  # a held lock refuses the run later, naming its owner
+    problem = None
     if state is None:
-        raise ParameterError(
-            "run_dir",
-            f"run_dir {run_dir} exists and is not an empty folder (nor the folder of a run): remove it or choose "
-            "another.",
-        )
-    if state == RunStatus.FINISHED:
+        problem = " exists and is not an empty folder (nor the folder of a run): remove it or choose another."
+    elif state == RunStatus.FINISHED:
         tidy_finished_run(run_dir)
-        raise ParameterError(
-            "run_dir", f"run_dir {run_dir} holds a finished run ({RESULT_JSON}): choose another folder."
-        )
-    damaged = unreadable_result(run_dir)
-    if damaged is not None:
-        raise ParameterError("run_dir", f"run_dir {run_dir}: {damaged}")
+        problem = f" holds a finished run ({RESULT_JSON}): choose another folder."
+    elif (damaged := unreadable_result(run_dir)) is not None:
+        problem = f": {damaged}"
+    if problem is not None or state is None:
+        raise ParameterError("run_dir", f"run_dir {run_dir}{problem}")
     return state
 
 
 def check_run_folder(config: TrainConfig) -> None:
-    """
-    The checks of :meth:`TrainConfig.validate` that read the file system, before anything is written: an explicit
-    ``run_dir`` must be new, empty or an unfinished run; ``logdir`` must not be (under) a file.
-
-    :raises ParameterError: naming ``run_dir`` or ``logdir``
-    """
+    """The checks of ``config`` that read the file system, before anything is written: an explicit ``run_dir`` must be
+    new, empty or an unfinished run; ``logdir`` must not be (under) a file. :raises ParameterError: naming either."""
     if config.run_dir is not None:
         _check_run_dir(Path(config.run_dir))
     blocking = blocking_file(config.logdir)
@@ -68,12 +60,9 @@ def check_run_folder(config: TrainConfig) -> None:
 
 
 def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str]:
-    """
-    :param saved: the settings file of a run folder
-    :param config: the settings of a run that wants to resume it
-    :return: one line per setting that differs (but :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`), empty
-        when the run can resume it
-    """
+    """:return: one line per setting of a run folder's settings file (``saved``) that is not ``config``'s (but
+    :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`), empty when the run of ``config`` can resume it"""
+
     current = json.loads(json.dumps(config.record()))
     return [
         f"`{name}={current.get(name)}` (the run folder has {saved.get(name)!r})"

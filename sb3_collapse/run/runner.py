@@ -436,14 +436,8 @@ def _logger_closer(model: BaseAlgorithm) -> Callable[..., bool]:
 
 def _print_last_evaluations(evaluations: list[dict[str, Any]], saved_model_eval: dict[str, Any] | None) -> None:
     """Print the last scheduled evaluation and that of the saved final model (frames, mean +- std return)."""
-    if evaluations:
-        last = evaluations[-1]
-        print(
-            f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- "
-            f"{last['std_reward']:.1f}"
-        )
-    if saved_model_eval is not None:
-        print(
-            f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
-            f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
-        )
+    last = evaluations[-1] if evaluations else None
+    for label, row in (("Last scheduled evaluation", last), ("Saved final model", saved_model_eval)):
+        if row is not None:
+            outside = " (outside the schedule)" if row is saved_model_eval else ""
+            print(f"{label} at frame {row['frame']:,}{outside}: {row['mean_reward']:.1f} +- {row['std_reward']:.1f}")
