@@ -47,10 +47,8 @@ class RunStatus(str, Enum):
     __format__ = str.__format__
 
 
-NOT_A_RUN = "not a run"
-"""The word shown for a folder that :func:`run_status` does not take for a run folder."""
-RESUMABLE = (RunStatus.UNFINISHED, RunStatus.FAILED)
-"""The statuses of a run folder that a run with the same settings resumes (from its newest checkpoint)."""
+NOT_A_RUN = "not a run"  # the word shown for a folder that run_status does not take for a run folder
+RESUMABLE = (RunStatus.UNFINISHED, RunStatus.FAILED)  # what a run with the same settings resumes (newest checkpoint)
 
 
 def run_status(
@@ -171,10 +169,8 @@ def csv_rows(path: Path, columns: tuple[str, ...], partial: bool = False) -> lis
             reader = csv.DictReader(file)
             missing = [c for c in columns if c not in (reader.fieldnames or [])]
             if missing:
-                raise InputError(
-                    f"{path}: missing column(s) {', '.join(missing)} (header: {reader.fieldnames}); "
-                    f"expected {', '.join(columns)}."
-                )
+                header = f"(header: {reader.fieldnames}); expected {', '.join(columns)}"
+                raise InputError(f"{path}: missing column(s) {', '.join(missing)} {header}.")
             rows = [(reader.line_num, row) for row in reader]
     except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise InputError(f"{path}: not a readable CSV file ({error}).") from None

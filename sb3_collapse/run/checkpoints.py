@@ -45,10 +45,8 @@ from sb3_collapse.protocol import (
 )
 from sb3_collapse.run.replay_checkpoint import ReplayStore, fsync_path
 
-CHECKPOINT_FORMAT = 1
-"""Version of the checkpoint layout; a checkpoint of another format is refused."""
-DAMAGED_NOTE = "damaged.txt"
-"""In a folder set aside as damaged (:func:`set_aside`): why."""
+CHECKPOINT_FORMAT = 1  # version of the checkpoint layout; a checkpoint of another format is refused
+DAMAGED_NOTE = "damaged.txt"  # in a folder set aside as damaged (set_aside): why
 
 
 def checkpoint_folders(directory: str | os.PathLike) -> list[Path]:
@@ -111,8 +109,7 @@ def capture_state(
     """:return: what a run between two rounds of ``learn()`` needs beyond the model's ``save`` and the replay store:
     random generators, episodes, the ``callbacks``' states, logger, the ``csv_files``' content, ``extra`` (CPU only)"""
     env = model.get_env()
-    if env is None:
-        raise ValueError("capture_state needs the model's environment.")
+    assert env is not None
     recorder = grad_norm_recorder(model)
     logger = model.logger
     stats = getattr(model, "update_stats", None)  # DrQv2's statistics of the updates not logged yet
@@ -499,8 +496,6 @@ class ResumableCheckpoints(FrameScheduleCallback):
         state = capture_state(self.model, self.callbacks, self.eval_env, self.csv_files, extra)
         self.last_checkpoint = save_checkpoint(self.model, self.directory, self.store, state, keep=self.keep)
         if self.verbose >= 1:
-            print(
-                f"Checkpoint at frame {self.frames:,}: {self.last_checkpoint} ({time.perf_counter() - start:.1f} s)",
-                flush=True,
-            )
+            took = time.perf_counter() - start
+            print(f"Checkpoint at frame {self.frames:,}: {self.last_checkpoint} ({took:.1f} s)", flush=True)
         return self.last_checkpoint

@@ -26,18 +26,15 @@ from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import SNAPSHOTS_DIR
 
-ALGORITHMS = ("drqv2", *BASELINES)
-"""What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
+ALGORITHMS = ("drqv2", *BASELINES)  # what ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (baselines.py)
 
 RESUME_FREE_SETTINGS = ("logdir", "run_name", "run_dir", "progress_bar", "verbose", "torch_threads", "device")
 RESUME_FREE_SETTINGS += ("checkpoint_every_frames", "sources")
 """Settings that may differ between a run and its resumption (docs/checkpoints.md)."""
 
-PRESET, USER = "preset", "user"
-"""Where a preset setting's value came from, in the run's settings file."""
+PRESET, USER = "preset", "user"  # where a preset setting's value came from, in the run's settings file
 
-TRAINING, RUN = "training", "run"
-"""A setting's flag (``cli``): ``TRAINING``, of the train CLI and the sweep; ``RUN``, of the train CLI only."""
+TRAINING, RUN = "training", "run"  # a setting's ``cli``: flag of the train CLI and the sweep, or of the train CLI only
 
 UNITS = ("frames", "agent steps", "transitions", "pixels", "episodes", "updates", "observations", "evaluations", "GB")
 UNITS += ("percent", None)
@@ -271,9 +268,8 @@ class TrainConfig:
         if config.algorithm != "drqv2":
             _check_drqv2_only(config)
         if config.eval_every_frames > 0 and config.eval_episodes < 1:  # type: ignore[operator]
-            raise ParameterError(
-                "eval_episodes", "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
-            )
+            message = "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
+            raise ParameterError("eval_episodes", message)
         for name, owner in (("stddev_schedule", StddevSchedule), ("reset_window_frames", CollapseReset)):
             try:
                 owner(getattr(config, name))

@@ -7,8 +7,7 @@ import ctypes
 import ctypes.util
 import os
 
-MMAP_THRESHOLD_BYTES = 1 << 30
-"""Blocks below this size come from the heap and are reused after being freed."""
+MMAP_THRESHOLD_BYTES = 1 << 30  # blocks below this size come from the heap and are reused after being freed
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt's options (glibc's malloc.h)
 _tuned = False

@@ -32,10 +32,8 @@ CHUNK_NAME = re.compile(rf"^{CHUNK_PREFIX}(\d+)-[0-9a-f]+{re.escape(CHUNK_SUFFIX
 FILES_PER_BUFFER = 32
 """The default ``max_file_bytes`` is the buffer's array bytes divided by this, at least ``MIN_FILE_BYTES``."""
 MIN_FILE_BYTES = 1 << 20
-BLOCK_BYTES = 32 << 20
-"""Bytes copied, checksummed and written (or read) at once."""
-TRANSITION_ARRAYS = ("frame_starts", "actions", "rewards", "dones", "timeouts")
-"""The per-transition arrays of the buffer, in the order a transitions segment stores them."""
+BLOCK_BYTES = 32 << 20  # bytes copied, checksummed and written (or read) at once
+TRANSITION_ARRAYS = ("frame_starts", "actions", "rewards", "dones", "timeouts")  # in a transitions segment's order
 TRANSITIONS, FRAMES = "transitions", "frames"
 STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
 
@@ -124,13 +122,8 @@ class ReplayStore:
         return tracked
 
     def _track(self, buffer: FrameStackReplayBuffer, manifest: dict[str, Any]) -> None:
-        self._tracked = _Tracked(
-            buffer=weakref.ref(buffer),
-            resets=int(buffer.resets),
-            transitions_added=int(buffer.transitions_added),
-            frame_heads=buffer.frame_heads.copy(),
-            chunks=list(manifest["chunks"]),
-        )
+        added, heads = int(buffer.transitions_added), buffer.frame_heads.copy()
+        self._tracked = _Tracked(weakref.ref(buffer), int(buffer.resets), added, heads, list(manifest["chunks"]))
 
     def _write_chunks(self, buffer: FrameStackReplayBuffer, plans: list[list[dict[str, Any]]]) -> list[dict]:
         """Write one chunk file per plan; on failure delete them all and raise an ``OSError``."""
@@ -284,12 +277,11 @@ def _segment(key: str, start: int, stop: int) -> dict[str, Any]:
 
 
 def _check_counters(buffer: FrameStackReplayBuffer) -> None:
-    added = buffer.transitions_added
-    if buffer.pos != added % buffer.buffer_size or buffer.full != (added >= buffer.buffer_size):
+    added, size = buffer.transitions_added, buffer.buffer_size
+    if buffer.pos != added % size or buffer.full != (added >= size):
         raise CheckpointError(
             f"The replay buffer's pos={buffer.pos} and full={buffer.full} disagree with transitions_added={added} "
-            f"(buffer_size {buffer.buffer_size}): they were changed outside add() and reset(), so what is new since "
-            "the last checkpoint is unknown."
+            f"(buffer_size {size}): changed outside add() and reset(), so what is new since the last save is unknown."
         )
 
 

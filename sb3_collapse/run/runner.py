@@ -152,8 +152,7 @@ def train(config: TrainConfig) -> TrainResult:
     config = config.resolve()
     config.validate()
     check_run_folder(config)
-    domain, task = parse_task(config.env)
-    task_id = f"{domain}-{task}"
+    task_id = "-".join(parse_task(config.env))  # <domain>-<task>
     if config.torch_threads is not None:
         th.set_num_threads(config.torch_threads)
     configure_backends(tf32=config.tf32, deterministic=config.deterministic)
@@ -220,12 +219,8 @@ def build_envs_and_model(
         env = _monitored_dmc_env(task_id, config.seed, pixels)
     else:
         ensure_rendering_backend()  # checked once here, inherited by the subprocesses
-        env = SubprocVecEnv(
-            [
-                functools.partial(_monitored_dmc_env, task_id, config.seed + i, pixels, True)
-                for i in range(config.n_envs)
-            ]
-        )
+        seeds = range(config.seed, config.seed + config.n_envs)
+        env = SubprocVecEnv([functools.partial(_monitored_dmc_env, task_id, seed, pixels, True) for seed in seeds])
     eval_env = None
     if config.eval_every_frames > 0:  # seeded as the reference's (dmc.make(..., cfg.seed), as the training env)
         eval_env = _monitored_dmc_env(task_id, config.seed, pixels)
@@ -292,11 +287,9 @@ def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgor
     """Print what the run trains, with which settings (and where they came from), and where it writes."""
     user = sorted(name for name, source in config.sources.items() if source == USER)
     tier = config.preset.tier
-    origin = (
-        f"DrQ-v2's {tier} preset"
-        if config.preset.from_drqv2
-        else f"the {tier} tier (DrQ-v2 published no config for {task_id})"
-    )
+    origin = f"DrQ-v2's {tier} preset"
+    if not config.preset.from_drqv2:
+        origin = f"the {tier} tier (DrQ-v2 published no config for {task_id})"
     if config.algorithm == "drqv2":
         algorithm, sampling = "DrQ-v2", config.replay_sampling
         details = f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {sampling} replay sampling"

@@ -17,8 +17,7 @@ from sb3_collapse.drqv2.transplant import GROUP_LAYERS, TRANSPLANT_GROUPS
 from sb3_collapse.monitoring.callbacks import frames_of
 from sb3_collapse.protocol import SNAPSHOT_FILE, atomic_output
 
-SNAPSHOT_GROUPS = ("cnn", "mlp")
-"""The transplant groups a snapshot holds: the encoder and the actor."""
+SNAPSHOT_GROUPS = ("cnn", "mlp")  # the transplant groups a snapshot holds: the encoder and the actor
 SNAPSHOT_PREFIXES = tuple(prefix for group in SNAPSHOT_GROUPS for prefix in TRANSPLANT_GROUPS[group])
 MARKER = "snapshot.json"
 """The zip member that marks a snapshot: ``{"groups", "layers", "num_timesteps", "frames"}``."""
