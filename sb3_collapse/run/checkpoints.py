@@ -43,7 +43,7 @@ from sb3_collapse.protocol import (
     atomic_output,
     write_json_atomically,
 )
-from sb3_collapse.run.replay_checkpoint import ReplayStore, fsync_path
+from sb3_collapse.run.replay_checkpoint import ReplayStore, check_file_size, fsync_path
 
 CHECKPOINT_FORMAT = 1  # version of the checkpoint layout; a checkpoint of another format is refused
 DAMAGED_NOTE = "damaged.txt"  # in a folder set aside as damaged (set_aside): why
@@ -237,12 +237,8 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
             "with the version that wrote it, or train into a new folder."
         )
     for name, expected in info["files"].items():
-        path = folder / name
-        if not path.is_file():
-            raise CheckpointError(f"{name} is missing", damaged=True)
-        if (size := path.stat().st_size) != expected["bytes"]:
-            raise CheckpointError(f"{name} has {size} bytes, {expected['bytes']} were written", damaged=True)
-        if _digest(path)["sha256"] != expected["sha256"]:
+        check_file_size(folder / name, expected["bytes"])
+        if _digest(folder / name)["sha256"] != expected["sha256"]:
             raise CheckpointError(f"{name} does not have the checksum it was written with", damaged=True)
     try:
         with (folder / CHECKPOINT_STATE).open("rb") as file:

@@ -54,6 +54,15 @@ def _damaged(message: str) -> CheckpointError:
     return CheckpointError(f"{message} Resume from another checkpoint.", damaged=True)
 
 
+def check_file_size(path: Path, expected: int) -> None:
+    """:raises CheckpointError: (damaged) naming ``path`` when it is missing or not ``expected`` bytes long"""
+    if not path.is_file():
+        raise _damaged(f"The checkpoint file {path} is missing.")
+    if (size := path.stat().st_size) != expected:
+        how = "truncated" if size < expected else "changed"
+        raise _damaged(f"The checkpoint file {path} has {size:,} bytes, {expected:,} were written ({how}).")
+
+
 def _write(file: BinaryIO, data: np.ndarray) -> None:
     """Write ``data``'s bytes (one function, so tests can make it fail as a full disk would)."""
     file.write(data)
@@ -213,14 +222,7 @@ class ReplayStore:
         size (not read: :meth:`restore` checks the CRC-32s), naming the file"""
         _check_manifest(manifest)
         for chunk in manifest["chunks"]:
-            path = self.directory / chunk["file"]
-            if not path.is_file():
-                raise _damaged(f"The replay checkpoint chunk {path} is missing.")
-            size, expected = path.stat().st_size, chunk["bytes"]
-            if size != expected:
-                how = "truncated" if size < expected else "changed"
-                raise _damaged(f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
-                               f"{expected:,} ({how}).")  # fmt: skip
+            check_file_size(self.directory / chunk["file"], chunk["bytes"])
 
     def collect_garbage(self, keep: list[dict[str, Any]]) -> int:
         """Delete the chunk files that neither a ``keep`` manifest nor this store's last save or restore needs, and the

@@ -66,11 +66,8 @@ class LearnTimings:
 
 
 class UpdateClock:
-    """
-    The device time of the rounds of updates on CUDA, from two events per round on the model's device's current
-    stream; nothing on other devices. ``start = clock.start(device)`` before the updates, ``clock.stop(start, phase,
-    host_s)`` once the round is added to ``phase``, :meth:`collect` now and then, ``collect(wait=True)`` at the end.
-    """
+    """The device time of the rounds of updates on CUDA (nothing on other devices), from two events per round on the
+    device's current stream: :meth:`start` before the updates, :meth:`stop` after, :meth:`collect` now and then."""
 
     def __init__(self) -> None:
         self._pending: list[tuple[Any, Any, PhaseTime, float]] = []
