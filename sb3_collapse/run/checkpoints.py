@@ -237,7 +237,7 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
             "with the version that wrote it, or train into a new folder."
         )
     for name, expected in info["files"].items():
-        check_file_size(folder / name, expected["bytes"])
+        check_file_size(folder / name, expected["bytes"], name)
         if _digest(folder / name)["sha256"] != expected["sha256"]:
             raise CheckpointError(f"{name} does not have the checksum it was written with", damaged=True)
     try:

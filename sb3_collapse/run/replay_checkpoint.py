@@ -54,13 +54,15 @@ def _damaged(message: str) -> CheckpointError:
     return CheckpointError(f"{message} Resume from another checkpoint.", damaged=True)
 
 
-def check_file_size(path: Path, expected: int) -> None:
-    """:raises CheckpointError: (damaged) naming ``path`` when it is missing or not ``expected`` bytes long"""
+def check_file_size(path: Path, expected: int, name: str | None = None) -> None:
+    """:raises CheckpointError: (damaged) naming the file (``name``, default ``path``) when it is missing or not
+    ``expected`` bytes long"""
+    name = name or str(path)
     if not path.is_file():
-        raise _damaged(f"The checkpoint file {path} is missing.")
+        raise CheckpointError(f"{name} is missing", damaged=True)
     if (size := path.stat().st_size) != expected:
         how = "truncated" if size < expected else "changed"
-        raise _damaged(f"The checkpoint file {path} has {size:,} bytes, {expected:,} were written ({how}).")
+        raise CheckpointError(f"{name} has {size} bytes, {expected} were written ({how})", damaged=True)
 
 
 def _write(file: BinaryIO, data: np.ndarray) -> None:
