@@ -1,7 +1,5 @@
-"""
-The run-folder format in one place: the file names a run (and a sweep) writes, the CSV columns, the result file's keys,
-and the atomic writers every module uses.
-"""
+"""The run-folder format in one place: the file names a run (and a sweep) writes, the CSV columns, the result file's
+keys, and the atomic writers every module uses."""
 
 from __future__ import annotations
 
@@ -16,44 +14,29 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-CONFIG_JSON = "config.json"
-"""The run's settings, written first (every value, and for preset settings whether it came from the preset)."""
-RESULT_JSON = "result.json"
-"""The outcome, written last and atomically: a folder without it is an unfinished run (keys: :data:`RESULT_KEYS`)."""
-EVAL_CSV = "eval.csv"
-"""One row per scheduled evaluation (columns :data:`EVAL_FIELDS`); the saved final model's is in the result file."""
-COLLAPSE_METRICS_CSV = "collapse_metrics.csv"
-"""One row per (collapse check, tag), long format (columns :data:`COLLAPSE_METRICS_FIELDS`)."""
-COLLAPSE_EVENTS_CSV = "collapse_events.csv"
-"""One row per intervention (reset...) or escape of the reset rule (columns :data:`COLLAPSE_EVENT_FIELDS`)."""
+CONFIG_JSON = "config.json"  # the run's settings, written first (every value, and where preset ones came from)
+RESULT_JSON = "result.json"  # the outcome, written last: a folder without it is unfinished (keys: RESULT_KEYS)
+EVAL_CSV = "eval.csv"  # one row per scheduled evaluation (EVAL_FIELDS); the saved final model's is in the result
+COLLAPSE_METRICS_CSV = "collapse_metrics.csv"  # one row per (collapse check, tag) (COLLAPSE_METRICS_FIELDS)
+COLLAPSE_EVENTS_CSV = "collapse_events.csv"  # one row per intervention or escape of the reset rule
 FINAL_MODEL = "final_model.zip"  # the final model, ``DrQv2.save``
-CHECKPOINTS_DIR = "checkpoints"
-"""The run's checkpoints (:mod:`sb3_collapse.run.checkpoints`): one folder each, and the replay store."""
-CHECKPOINT_FOLDER = "step_{step:012d}"
-"""One checkpoint's folder in :data:`CHECKPOINTS_DIR`, named by the agent step (transitions) it was taken at."""
+CHECKPOINTS_DIR = "checkpoints"  # the run's checkpoints (run/checkpoints.py): one folder each, and the replay store
+CHECKPOINT_FOLDER = "step_{step:012d}"  # a checkpoint's folder, named by the agent step it was taken at
 CHECKPOINT_FOLDER_PATTERN = re.compile(r"^step_(\d{12})$")
-CHECKPOINT_JSON = "checkpoint.json"
-"""Written last into a checkpoint's folder (checksums of the others): a folder without it is not a checkpoint."""
+CHECKPOINT_JSON = "checkpoint.json"  # written last into a checkpoint's folder, with the others' checksums
 CHECKPOINT_MODEL = "model.zip"  # the model in a checkpoint (SB3's ``save``: weights, optimizers, counters)
-CHECKPOINT_STATE = "state.pt"
-"""Everything else in a checkpoint: random generators, environments' episodes, callbacks, logger."""
+CHECKPOINT_STATE = "state.pt"  # the rest of a checkpoint: random generators, episodes, callbacks, logger
 REPLAY_DIR = "replay"  # the replay buffer's chunks, in :data:`CHECKPOINTS_DIR`, shared by the checkpoints
 LOCK_FILE = "run.lock"  # the owner (pid, host) of a run folder while a process trains into it
 PROGRESS_CSV = "progress.csv"  # SB3's CSV log (one row per log dump)
-EXIT_INTERRUPTED = 75
-"""Exit status (``EX_TEMPFAIL``) of a command stopped by SIGTERM or SIGINT: run the same command again to resume."""
-SNAPSHOTS_DIR = "snapshots"
-"""The run's snapshots (:mod:`sb3_collapse.run.snapshots`): its encoder and actor at every evaluation."""
-SNAPSHOT_FILE = "snapshot_{frames:010d}_frames.zip"
-"""A snapshot's file name in :data:`SNAPSHOTS_DIR`: the training frames, 10 digits (sorts by time)."""
+EXIT_INTERRUPTED = 75  # EX_TEMPFAIL: stopped by SIGTERM or SIGINT; run the same command again to resume
+SNAPSHOTS_DIR = "snapshots"  # the run's snapshots (run/snapshots.py): encoder and actor at every evaluation
+SNAPSHOT_FILE = "snapshot_{frames:010d}_frames.zip"  # a snapshot, named by its training frames (sorts by time)
 ERROR_TXT = "error.txt"  # the traceback of a run that failed (:func:`write_failure`; a sweep's trial too)
 SWEEP_JSON = "sweep.json"  # a sweep folder's settings
-SWEEP_LOCK = "sweep.lock"
-"""In a sweep folder while a sweep runs into it: the owner (pid, host) of the lock that refuses a second sweep."""
-SWEEP_STOP = ".stop_requested"
-"""In a sweep folder while its driver stops at a signal (its name): each running trial checkpoints and stops."""
-SWEEP_PROBE_DIR = "probe/{task}_{variant}"
-"""Inside a sweep folder: the outputs of ``python -m sb3_collapse.probe sweep`` for one task and variant (Figure 2)."""
+SWEEP_LOCK = "sweep.lock"  # while a sweep runs into its folder: the lock's owner (pid, host)
+SWEEP_STOP = ".stop_requested"  # while a sweep's driver stops at a signal (its name): each trial checkpoints, stops
+SWEEP_PROBE_DIR = "probe/{task}_{variant}"  # in a sweep folder: ``probe sweep``'s outputs per task and variant
 FIGURE2_PNG = "figure2.png"  # Figure 2 in :data:`SWEEP_PROBE_DIR`
 TABLES_1_6_CSV = "tables_1_6.csv"  # Tables 1-6 in :data:`SWEEP_PROBE_DIR`
 
@@ -70,8 +53,7 @@ RESULT_KEYS = (
 FINISHED = "finished"  # ``status`` of a finished run
 
 SEED_FOLDER_PREFIX = "seed_"
-SEED_FOLDER = re.compile(rf"^{SEED_FOLDER_PREFIX}(\d+)$")
-"""The name of a sweep's trial folder: ``seed_<k>`` with ``<k>`` the seed."""
+SEED_FOLDER = re.compile(rf"^{SEED_FOLDER_PREFIX}(\d+)$")  # a sweep's trial folder: seed_<k>, <k> the seed
 
 
 def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Path:
@@ -80,11 +62,8 @@ def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Pa
 
 
 def read_settings(path: str | os.PathLike) -> dict[str, Any]:
-    """
-    :param path: a run's settings file (:data:`CONFIG_JSON`) or a sweep's (:data:`SWEEP_JSON`)
-    :return: its content
-    :raises OSError: when it cannot be read; ``ValueError`` when it is not JSON
-    """
+    """:return: a run's (:data:`CONFIG_JSON`) or a sweep's settings file (:data:`SWEEP_JSON`) at ``path``; :raises
+    OSError: when it cannot be read, ``ValueError`` when it is not JSON"""
     return json.loads(Path(path).read_text())
 
 
@@ -98,20 +77,12 @@ def snapshot_files(run_dir: str | os.PathLike) -> list[Path]:
     return sorted((Path(run_dir) / SNAPSHOTS_DIR).glob("*.zip"), key=frames)
 
 
-FAILURE_HEADER = "failed at agent step {step} (frame {frame})"
-"""First line of the error file that a run writes into its folder when it fails."""
+FAILURE_HEADER = "failed at agent step {step} (frame {frame})"  # first line of a failed run's error file
 
 
 def write_failure(run_dir: str | os.PathLike, step: int, frame: int, error: BaseException) -> None:
-    """
-    Mark a run folder as failed: its error file gets :data:`FAILURE_HEADER` and the traceback (best effort: nothing
-    on a full or read-only disk, where the caller's error says so).
-
-    :param run_dir: the run folder
-    :param step: the agent step the run had reached
-    :param frame: the frame it had reached
-    :param error: the exception
-    """
+    """Mark ``run_dir`` as failed at agent ``step`` and ``frame``: its error file gets :data:`FAILURE_HEADER` and
+    ``error``'s traceback (best effort: nothing on a full or read-only disk, where the caller's error says so)."""
     lines = traceback.format_exception(type(error), error, error.__traceback__)
     header = FAILURE_HEADER.format(step=step, frame=frame)
     with contextlib.suppress(OSError):  # best effort: on a full or read-only disk, the error itself says so
@@ -142,13 +113,8 @@ def blocking_file(folder: str | os.PathLike) -> Path | None:
 
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
-    """
-    A temporary path next to ``path`` to write into, flushed to disk and renamed to ``path`` when the block ends
-    without an error (removed after one), with the permissions of a new file under the umask.
-
-    :param path: the final file; the temporary one ends with the same suffix (``.zip`` for SB3's ``save``)
-    :return: the temporary path
-    """
+    """A temporary path next to ``path`` (with its suffix: ``.zip`` for SB3's ``save``) to write into, flushed and
+    renamed to ``path`` when the block ends without an error (removed after one), with a new file's permissions."""
     path = Path(path)
     handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".partial{path.suffix}", dir=path.parent)
     os.close(handle)
@@ -185,6 +151,7 @@ def append_csv_rows(path: str | os.PathLike, fieldnames: Sequence[str], rows: It
     :param rows: one dict per row, keyed by column
     :raises ValueError: when the file has another header: nothing is appended
     """
+
     path = Path(path)
     new_file = not path.exists() or path.stat().st_size == 0
     if not new_file:

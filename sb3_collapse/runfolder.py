@@ -1,7 +1,5 @@
-"""
-Reading run folders, the only module that does: a folder's status, result file, evaluations, final return, collapse
-metrics and events, and a sweep's trial folders. The file names and the writers are in :mod:`sb3_collapse.protocol`.
-"""
+"""Reading run folders, the only module that does: status, result, evaluations, final return, collapse metrics and
+events, a sweep's trial folders. The file names and the writers are in :mod:`sb3_collapse.protocol`."""
 
 from __future__ import annotations
 
@@ -34,11 +32,8 @@ from sb3_collapse.protocol import (
 
 
 class RunStatus(str, Enum):
-    """
-    What a run folder holds, the same word for ``train``, the sweep and the report (checked in this order: finished,
-    running, new, failed, unfinished): see docs/sweeps.md. Anything else is not a run folder
-    (:data:`NOT_A_RUN`).
-    """
+    """What a run folder holds, one word for ``train``, the sweep and the report (checked in this order: finished,
+    running, new, failed, unfinished; docs/sweeps.md). Anything else is :data:`NOT_A_RUN`."""
 
     NEW = "new"
     RUNNING = "running"
@@ -52,10 +47,8 @@ class RunStatus(str, Enum):
     __format__ = str.__format__
 
 
-NOT_A_RUN = "not a run"
-"""The word shown for a folder that :func:`run_status` does not take for a run folder."""
-RESUMABLE = (RunStatus.UNFINISHED, RunStatus.FAILED)
-"""The statuses of a run folder that a run with the same settings resumes (from its newest checkpoint)."""
+NOT_A_RUN = "not a run"  # the word shown for a folder that run_status does not take for a run folder
+RESUMABLE = (RunStatus.UNFINISHED, RunStatus.FAILED)  # what a run with the same settings resumes (newest checkpoint)
 
 
 def run_status(
@@ -85,11 +78,8 @@ def run_status(
 
 
 def run_folder_owner(folder: str | os.PathLike) -> str | None:
-    """
-    :param folder: a run folder
-    :return: the owner of its lock (:class:`~sb3_collapse.run.lock.RunLock`) as the lock file says it, ``None`` when no
-        process holds it (an owner on this host whose pid is gone does not; else the lock is tried for an instant)
-    """
+    """:return: the owner of ``folder``'s lock (:class:`~sb3_collapse.run.lock.RunLock`) as its file says, ``None`` when
+    no process holds it (an owner on this host whose pid is gone does not; else the lock is tried for an instant)"""
     import fcntl
 
     path = Path(folder) / LOCK_FILE
@@ -147,11 +137,8 @@ def read_result(folder: str | os.PathLike, strict: bool = False) -> dict[str, An
 
 
 def check_result_version(folder: str | os.PathLike, result: dict[str, Any]) -> None:
-    """
-    :param folder: a run folder
-    :param result: its result file's content
-    :raises InputError: naming the file, when a finished run's result has no ``saved_model_eval`` (another version's)
-    """
+    """:raises InputError: naming the file, when the ``result`` of a finished run in ``folder`` has no
+    ``saved_model_eval`` (another version's)"""
     if result.get("status") == FINISHED and "saved_model_eval" not in result:
         raise InputError(
             f"{Path(folder) / RESULT_JSON} has no 'saved_model_eval': it was written by another version of "
@@ -174,23 +161,16 @@ def unreadable_result(folder: str | os.PathLike) -> str | None:
 
 
 def csv_rows(path: Path, columns: tuple[str, ...], partial: bool = False) -> list[tuple[int, dict[str, str]]]:
-    """
-    :param path: a CSV file of a run folder
-    :param columns: the columns it must have
-    :param partial: the file may still be written: a last row with fewer fields than the header is dropped
-    :return: ``(line number, row)`` of each row
-    :raises InputError: naming the file (and line) when it cannot be read, lacks a column or a row has another
-        number of fields than the header
-    """
+    """:return: ``(line number, row)`` of each row of the CSV file ``path`` (with ``partial``, one still written: a
+    short last row dropped); :raises InputError: naming the file (and line): unreadable, a column of ``columns``
+    missing, a row of another length"""
     try:
         with path.open(newline="") as file:
             reader = csv.DictReader(file)
             missing = [c for c in columns if c not in (reader.fieldnames or [])]
             if missing:
-                raise InputError(
-                    f"{path}: missing column(s) {', '.join(missing)} (header: {reader.fieldnames}); "
-                    f"expected {', '.join(columns)}."
-                )
+                header = f"(header: {reader.fieldnames}); expected {', '.join(columns)}"
+                raise InputError(f"{path}: missing column(s) {', '.join(missing)} {header}.")
             rows = [(reader.line_num, row) for row in reader]
     except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise InputError(f"{path}: not a readable CSV file ({error}).") from None
@@ -242,11 +222,12 @@ def read_evaluations(folder: str | os.PathLike, partial: bool = False) -> tuple[
 
 def read_collapse_metrics(path: Path, tags: Iterable[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """
-    :param path: the file (columns ``frame, step, tag, value``)
+    :param path: a collapse metrics file (columns ``frame, step, tag, value``)
     :param tags: the tags to keep (``None``: all)
-    :return: tag -> ``(frames, values)`` sorted by frame, non-finite values dropped (tags in file order), in one pass
+    :return: tag -> ``(frames, values)`` sorted by frame, non-finite values dropped (tags in file order)
     :raises InputError: when the file is malformed or a value is not a number
     """
+
     wanted = None if tags is None else set(tags)
     columns: dict[str, tuple[list[int], list[float]]] = {}
     for line, row in csv_rows(path, ("frame", "tag", "value")):

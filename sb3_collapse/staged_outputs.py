@@ -13,14 +13,8 @@ class StagedOutputs:
     """
     Write files into ``<out>/.partial-<pid>/`` and move them into ``out`` on :meth:`commit` (``marker`` last, after
     removing the previous outputs this run did not write); without a commit the staging folder (and ``out`` if this
-    created it and it is empty) is removed.
+    created it and it is empty) is removed. ``outputs``: every file name a run may write (or glob pattern).
 
-    :param out: the output folder (created if needed)
-    :param outputs: the names of every file a run may write; a name may be a glob pattern
-        (``collapse_metrics_*.png``) for files whose names depend on the input
-    :param marker: the one of ``outputs`` moved in last
-    :param overwrite: replace the outputs of a previous run; otherwise their presence is an error
-    :param error: the exception class raised on a bad ``out``
     :raises error: when ``out`` is a file, or holds a previous run's outputs and ``overwrite`` is false
     """
 

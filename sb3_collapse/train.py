@@ -33,10 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 @errors.report_unwritable_outputs
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
-    :return: exit status
-    """
+    """Run the command line with ``argv`` (``sys.argv[1:]`` when ``None``); return the exit status."""
+
     parser = build_parser()
     arguments = vars(parser.parse_args(argv))
     show = arguments.pop("show_settings")

@@ -43,12 +43,10 @@ from sb3_collapse.protocol import (
     atomic_output,
     write_json_atomically,
 )
-from sb3_collapse.run.replay_checkpoint import ReplayStore, fsync_path
+from sb3_collapse.run.replay_checkpoint import ReplayStore, check_file_size, fsync_path
 
-CHECKPOINT_FORMAT = 1
-"""Version of the checkpoint layout; a checkpoint of another format is refused."""
-DAMAGED_NOTE = "damaged.txt"
-"""In a folder set aside as damaged (:func:`set_aside`): why."""
+CHECKPOINT_FORMAT = 1  # version of the checkpoint layout; a checkpoint of another format is refused
+DAMAGED_NOTE = "damaged.txt"  # in a folder set aside as damaged (set_aside): why
 
 
 def checkpoint_folders(directory: str | os.PathLike) -> list[Path]:
@@ -58,6 +56,11 @@ def checkpoint_folders(directory: str | os.PathLike) -> list[Path]:
         return []
     folders = [path for path in directory.iterdir() if CHECKPOINT_FOLDER_PATTERN.match(path.name) and path.is_dir()]
     return sorted(folders, key=lambda path: path.name, reverse=True)
+
+
+def _read_info(folder: Path) -> dict[str, Any]:
+    """:return: a checkpoint folder's ``checkpoint.json`` (not verified); raises ``OSError`` or ``ValueError``"""
+    return json.loads((folder / CHECKPOINT_JSON).read_text())
 
 
 def _digest(path: Path) -> dict[str, Any]:
@@ -103,19 +106,10 @@ def capture_state(
     csv_files: Sequence[Path] = (),
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """
-    Everything of a run between two rounds of ``learn()`` that the model's ``save`` and the replay store do not hold.
-
-    :param model: the model, between two rounds
-    :param callbacks: the run's callbacks (the states of those that carry one are kept)
-    :param eval_env: the evaluation environment (wrapped in ``EpisodeReplay``), if any
-    :param csv_files: the run's CSV files, whose content to keep
-    :param extra: anything else to keep (picklable)
-    :return: the state (picklable, CPU tensors only)
-    """
+    """:return: what a run between two rounds of ``learn()`` needs beyond the model's ``save`` and the replay store:
+    random generators, episodes, the ``callbacks``' states, logger, the ``csv_files``' content, ``extra`` (CPU only)"""
     env = model.get_env()
-    if env is None:
-        raise ValueError("capture_state needs the model's environment.")
+    assert env is not None
     recorder = grad_norm_recorder(model)
     logger = model.logger
     stats = getattr(model, "update_stats", None)  # DrQv2's statistics of the updates not logged yet
@@ -152,14 +146,8 @@ def save_checkpoint(
 ) -> Path:
     """
     Write a checkpoint of ``model`` and ``state`` (:func:`capture_state`) into ``directory/step_<agent step>``, then
-    delete the checkpoints older than the newest ``keep`` and the replay chunks none of them needs.
+    delete the checkpoints older than the newest ``keep`` and the replay chunks none of them needs; return its folder.
 
-    :param model: the model, between two rounds of ``learn()``
-    :param directory: the run's checkpoints folder
-    :param store: the run's replay store (in ``directory/replay``)
-    :param state: what :func:`capture_state` returned
-    :param keep: complete checkpoints to keep (at least 1)
-    :return: the checkpoint's folder
     :raises OutputError: when it cannot be written (e.g. a full disk): the previous checkpoints are intact
     """
     directory = Path(directory)
@@ -203,14 +191,14 @@ def save_checkpoint(
             f"could not write a checkpoint into {directory} ({error.strerror or error}); {kept}. {fix}, then run the "
             "same command again to resume."
         ) from error
-    complete = checkpoint_folders(directory)
-    for folder in complete[max(1, keep) :]:
+    kept = checkpoint_folders(directory)
+    for folder in kept[max(1, keep) :]:
         shutil.rmtree(folder, ignore_errors=True)
-    manifests = []
-    for folder in complete[: max(1, keep)]:
+    kept, manifests = kept[: max(1, keep)], []
+    for folder in kept:
         with contextlib.suppress(OSError, ValueError, KeyError):
-            manifests.append(json.loads((folder / CHECKPOINT_JSON).read_text())["replay"].get("store"))
-    if len(manifests) == len(complete[: max(1, keep)]) and None not in manifests:  # else a manifest's chunks would go
+            manifests.append(_read_info(folder)["replay"].get("store"))
+    if len(manifests) == len(kept) and None not in manifests:  # else a manifest's chunks would go
         store.collect_garbage(manifests)
     return final
 
@@ -219,18 +207,14 @@ def checkpoint_frames(directory: str | os.PathLike) -> int | None:
     """:return: the frames of the newest checkpoint in ``directory`` as it says (not verified), ``None`` without one"""
     for folder in checkpoint_folders(directory):
         with contextlib.suppress(OSError, ValueError, KeyError):
-            return int(json.loads((folder / CHECKPOINT_JSON).read_text())["frames"])
+            return int(_read_info(folder)["frames"])
     return None
 
 
 @dataclass
 class LoadedCheckpoint:
-    """
-    :param folder: the checkpoint's folder
-    :param info: its ``checkpoint.json``
-    :param state: its state (:func:`capture_state`)
-    :param skipped: damaged newer checkpoints passed over, with the reason
-    """
+    """A checkpoint's ``folder``, its ``checkpoint.json`` (``info``), its :func:`capture_state` and the damaged newer
+    checkpoints passed over (``skipped``: folder and reason)."""
 
     folder: Path
     info: dict[str, Any]
@@ -244,7 +228,7 @@ class LoadedCheckpoint:
 
 def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     try:
-        info = json.loads((folder / CHECKPOINT_JSON).read_text())
+        info = _read_info(folder)
     except (OSError, ValueError) as error:
         raise CheckpointError(f"no readable {CHECKPOINT_JSON}: {error}", damaged=True) from None
     if info.get("format") != CHECKPOINT_FORMAT or info.get("version") != __version__:
@@ -253,12 +237,8 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
             "with the version that wrote it, or train into a new folder."
         )
     for name, expected in info["files"].items():
-        path = folder / name
-        if not path.is_file():
-            raise CheckpointError(f"{name} is missing", damaged=True)
-        if (size := path.stat().st_size) != expected["bytes"]:
-            raise CheckpointError(f"{name} has {size} bytes, {expected['bytes']} were written", damaged=True)
-        if _digest(path)["sha256"] != expected["sha256"]:
+        check_file_size(folder / name, expected["bytes"], name)
+        if _digest(folder / name)["sha256"] != expected["sha256"]:
             raise CheckpointError(f"{name} does not have the checksum it was written with", damaged=True)
     try:
         with (folder / CHECKPOINT_STATE).open("rb") as file:
@@ -271,12 +251,8 @@ def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def set_aside(folder: Path, reason: str | None = None) -> Path:
-    """
-    Rename a damaged checkpoint's (or checkpoints) ``folder`` to ``damaged_<name>`` (``-2``... when taken): never
-    read again, never lost; ``reason`` is written into it (:data:`DAMAGED_NOTE`, best effort).
-
-    :return: its new path
-    """
+    """Rename a damaged checkpoint's (or checkpoints) ``folder`` to ``damaged_<name>`` (``-2``... when taken), with
+    ``reason`` in it (:data:`DAMAGED_NOTE`, best effort); return its new path."""
     target, number = folder.with_name(f"damaged_{folder.name}"), 2
     while target.exists():
         target, number = folder.with_name(f"damaged_{folder.name}-{number}"), number + 1
@@ -288,11 +264,8 @@ def set_aside(folder: Path, reason: str | None = None) -> Path:
 
 
 def read_checkpoints(directory: str | os.PathLike) -> tuple[LoadedCheckpoint | None, list[tuple[Path, str]]]:
-    """
-    :return: the newest checkpoint in ``directory`` whose files have their sizes and checksums (``None`` without one),
-        and the damaged newer ones passed over, with the reason
-    :raises CheckpointError: for a checkpoint of another format or package version
-    """
+    """:return: the newest checkpoint in ``directory`` whose files have their sizes and checksums (``None`` without one)
+    and the damaged newer ones passed over, with the reason; :raises CheckpointError: for another format or version"""
     skipped: list[tuple[Path, str]] = []
     for folder in checkpoint_folders(directory):
         try:
@@ -312,12 +285,8 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
 
 
 def restore_model(model: BaseAlgorithm, path: str | os.PathLike) -> None:
-    """
-    Put the zip of SB3's ``save`` at ``path`` back into ``model`` (built with the same settings) as
-    ``BaseAlgorithm.load`` does, without building a new model and replay buffer.
-
-    :raises CheckpointError: when the saved spaces are not the model's
-    """
+    """Put the zip of SB3's ``save`` at ``path`` back into ``model`` (built with the same settings) as
+    ``BaseAlgorithm.load`` does, without a new model and replay buffer; :raises CheckpointError: for other spaces."""
     data, params, variables = load_from_zip_file(path, device=model.device, print_system_info=False)
     assert data is not None and params is not None
     for name in ("observation_space", "action_space"):
@@ -337,13 +306,9 @@ def restore_run(
     callbacks: Sequence[BaseCallback] = (),
     eval_env: Any = None,
 ) -> list[str]:
-    """
-    Make ``model`` (built with the run's settings, on environments wrapped in ``EpisodeReplay``), ``callbacks`` (in
-    the order saved) and ``eval_env`` continue from ``checkpoint``, restored from ``store``: the next
-    ``learn(remaining, reset_num_timesteps=False)`` goes on as the run that wrote it would have.
-
-    :return: warnings for the user (empty when everything is as it was)
-    """
+    """Make ``model`` (built with the run's settings, on ``EpisodeReplay`` environments), ``callbacks`` (in the order
+    saved) and ``eval_env`` continue from ``checkpoint`` and ``store``, as the run that wrote it would have; return
+    warnings for the user (empty when everything is as it was)."""
     state = checkpoint.state
     notes: list[str] = []
     restore_model(model, checkpoint.folder / CHECKPOINT_MODEL)
@@ -384,12 +349,8 @@ def restore_run(
 
 
 def restore_csv_files(paths: Sequence[Path], saved: dict[str, bytes], frame: int) -> str | None:
-    """
-    Write the run's CSV files ``paths`` back as the checkpoint at ``frame`` holds them (``saved``), atomically: rows
-    written after it go; a file that does not start with what it holds (shorter, cut mid-row, changed) is rewritten.
-
-    :return: one line naming the files rewritten and why, ``None`` when none was damaged
-    """
+    """Write the run's CSV files ``paths`` back atomically as the checkpoint at ``frame`` holds them (``saved``): rows
+    after it go; return one line naming those that did not start with it (shorter, cut mid-row, changed), or None."""
     rewritten, newline = [], b"\n"
     for path in paths:
         if path.name not in saved:
@@ -414,10 +375,9 @@ def restore_csv_files(paths: Sequence[Path], saved: dict[str, bytes], frame: int
 
 class ResumableCheckpoints(FrameScheduleCallback):
     """
-    Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, and one when :meth:`request_stop`
-    was called (by :func:`~sb3_collapse.run.signals.stop_signals`), after which ``learn()`` stops with
-    :class:`~sb3_collapse.errors.TrainingInterrupted`. Checkpoints are taken at the start of the first rollout at or
-    after their frame, where nothing is in flight (docs/checkpoints.md#using-them).
+    Writes a run checkpoint (:func:`save_checkpoint`) every ``every_frames`` frames, at the first safe point after
+    (docs/checkpoints.md#using-them), and one at a :meth:`request_stop`, then stops with ``TrainingInterrupted``.
+
 
     :param directory: the run's checkpoints folder
     :param every_frames: frames between two checkpoints (``0``: only at a stop request)
@@ -459,13 +419,12 @@ class ResumableCheckpoints(FrameScheduleCallback):
         self._grad_norms: dict[str, Any] | None = None
 
     def resume(self, checkpoint: LoadedCheckpoint) -> tuple[LoadedCheckpoint, list[str]]:
-        """
-        Put the model, environments, callbacks and CSV files back as ``checkpoint`` holds them (a checkpoint whose
-        replay chunks turn out damaged is set aside for the one before).
+        """Put the model, environments, callbacks and CSV files back as ``checkpoint`` holds them (one whose replay
+        chunks are damaged is set aside for the one before); return the checkpoint resumed from and notes for the user.
 
-        :return: the checkpoint resumed from, and notes for the user
         :raises CheckpointError: (``damaged``) when no checkpoint is left (``train`` restarts the run from frame 0)
         """
+
         notes: list[str] = []
         while True:
             try:
@@ -533,8 +492,6 @@ class ResumableCheckpoints(FrameScheduleCallback):
         state = capture_state(self.model, self.callbacks, self.eval_env, self.csv_files, extra)
         self.last_checkpoint = save_checkpoint(self.model, self.directory, self.store, state, keep=self.keep)
         if self.verbose >= 1:
-            print(
-                f"Checkpoint at frame {self.frames:,}: {self.last_checkpoint} ({time.perf_counter() - start:.1f} s)",
-                flush=True,
-            )
+            took = time.perf_counter() - start
+            print(f"Checkpoint at frame {self.frames:,}: {self.last_checkpoint} ({took:.1f} s)", flush=True)
         return self.last_checkpoint

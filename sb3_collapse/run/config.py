@@ -26,18 +26,15 @@ from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import SNAPSHOTS_DIR
 
-ALGORITHMS = ("drqv2", *BASELINES)
-"""What ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (:mod:`sb3_collapse.baselines`)."""
+ALGORITHMS = ("drqv2", *BASELINES)  # what ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (baselines.py)
 
 RESUME_FREE_SETTINGS = ("logdir", "run_name", "run_dir", "progress_bar", "verbose", "torch_threads", "device")
 RESUME_FREE_SETTINGS += ("checkpoint_every_frames", "sources")
 """Settings that may differ between a run and its resumption (docs/checkpoints.md)."""
 
-PRESET, USER = "preset", "user"
-"""Where a preset setting's value came from, in the run's settings file."""
+PRESET, USER = "preset", "user"  # where a preset setting's value came from, in the run's settings file
 
-TRAINING, RUN = "training", "run"
-"""A setting's flag (``cli``): ``TRAINING``, of the train CLI and the sweep; ``RUN``, of the train CLI only."""
+TRAINING, RUN = "training", "run"  # a setting's ``cli``: flag of the train CLI and the sweep, or of the train CLI only
 
 UNITS = ("frames", "agent steps", "transitions", "pixels", "episodes", "updates", "observations", "evaluations", "GB")
 UNITS += ("percent", None)
@@ -63,7 +60,8 @@ def setting(
     default_factory: Any = dataclasses.MISSING,
 ) -> Any:
     """
-    A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.run.settings`).
+    A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.run.settings`);
+    ``choices``, ``minimum``, ``maximum``, ``above`` (exclusive), ``metavar`` and ``required`` as ``argparse`` would.
 
     :param default: the default value (``None`` for a preset setting: the task's preset fills it)
     :param help: one sentence (default: the docstring under the field, :func:`declared`); other settings named in
@@ -72,14 +70,8 @@ def setting(
     :param preset: whether the task's preset fills it (one of :data:`~sb3_collapse.presets.SETTING_NAMES`)
     :param cli: :data:`TRAINING`, :data:`RUN` or ``None`` (no flag)
     :param flag: the flag, when not ``--<name>`` (``--no-<name>`` when on by default); no dashes: a positional
-    :param choices: the values it takes (each value, with ``nargs``)
-    :param minimum: the smallest value it takes
-    :param maximum: the largest value it takes
-    :param above: a bound its values must exceed
     :param zero_means: what ``0`` means, for a setting with ``minimum=0``
-    :param nargs: how many values the flag takes (``argparse``'s ``nargs``; the bounds hold for each)
-    :param metavar: the names of its values in the help
-    :param required: whether the command line needs it
+    :param nargs: how many values the flag takes (``argparse``'s; choices and bounds hold for each)
     :param default_factory: instead of ``default``, for a mutable default
     :return: the dataclass field
     """
@@ -92,13 +84,8 @@ def setting(
 
 
 def declared(cls: type) -> type:
-    """
-    Give each field of a dataclass declared with :func:`setting` without ``help`` the docstring under it (CleanRL).
-
-    :param cls: the dataclass
-    :return: the same class
-    :raises ParameterError: for a field with neither
-    """
+    """Give each field of the dataclass ``cls`` declared with :func:`setting` without ``help`` the docstring under it
+    (CleanRL); :raises ParameterError: for a field with neither."""
     body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body  # type: ignore[attr-defined]
     docs = {
         node.target.id: " ".join(doc.value.value.split())
@@ -281,9 +268,8 @@ class TrainConfig:
         if config.algorithm != "drqv2":
             _check_drqv2_only(config)
         if config.eval_every_frames > 0 and config.eval_episodes < 1:  # type: ignore[operator]
-            raise ParameterError(
-                "eval_episodes", "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
-            )
+            message = "eval_episodes must be >= 1 when evaluating (or set eval_every_frames=0)."
+            raise ParameterError("eval_episodes", message)
         for name, owner in (("stddev_schedule", StddevSchedule), ("reset_window_frames", CollapseReset)):
             try:
                 owner(getattr(config, name))
@@ -333,13 +319,8 @@ _BOUNDS = (("minimum", ">=", operator.ge), ("maximum", "<=", operator.le), ("abo
 
 
 def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str | None:
-    """
-    :param field: a field declared with :func:`setting`
-    :param value: one of its values (``None`` passes)
-    :param integer: whether the field holds integers
-    :return: what is wrong with the value against the field's ``choices`` and bounds (``"must be >= 1, got 0."``),
-        ``None`` when nothing is
-    """
+    """:return: what is wrong with ``value`` (``None`` passes) against the ``choices`` and bounds of a ``field``
+    declared with :func:`setting` (``"must be >= 1, got 0."``), ``None`` when nothing is"""
     metadata = field.metadata
     if value is None:
         return None
@@ -391,10 +372,7 @@ def _model_kwargs(config: TrainConfig, *names: str) -> dict[str, Any]:
 
 
 def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """
-    :param config: resolved settings
-    :return: the keyword arguments of ``DrQv2(policy, env, ...)``
-    """
+    """:return: the keyword arguments of ``DrQv2(policy, env, ...)`` for the resolved ``config``"""
     same = ("tau", "n_steps", "stddev_schedule", "stddev_clip", "augmentation_pad", "step_envs_during_updates")
     return dict(
         _model_kwargs(config, *same, "compile_update"),
@@ -406,8 +384,7 @@ def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
 
 
 def baseline_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """
-    :param config: resolved settings (``algorithm`` one of :data:`~sb3_collapse.baselines.BASELINES`)
-    :return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` after the algorithm and the env
-    """
+    """:return: the keyword arguments of :func:`~sb3_collapse.baselines.build_baseline` after the algorithm and the env,
+    for the resolved ``config``"""
+
     return _model_kwargs(config, "feature_dim", "hidden_dim", "frame_stack")

@@ -7,21 +7,17 @@ import ctypes
 import ctypes.util
 import os
 
-MMAP_THRESHOLD_BYTES = 1 << 30
-"""Blocks below this size come from the heap and are reused after being freed."""
+MMAP_THRESHOLD_BYTES = 1 << 30  # blocks below this size come from the heap and are reused after being freed
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt's options (glibc's malloc.h)
 _tuned = False
 
 
 def tune_cpu_allocator() -> bool:
-    """
-    Raise glibc's mmap and trim thresholds to :data:`MMAP_THRESHOLD_BYTES`, once per process: freed blocks below it
-    are reused (the process keeps its peak heap). CPU tensors only; ``SB3_COLLAPSE_TUNE_MALLOC=0`` leaves it alone.
+    """Raise glibc's mmap and trim thresholds to :data:`MMAP_THRESHOLD_BYTES`, once per process: freed blocks below it
+    are reused (the process keeps its peak heap). Return whether it is tuned: ``False`` where the C library is not
+    glibc, or with the environment variable ``SB3_COLLAPSE_TUNE_MALLOC=0``."""
 
-    :return: whether the allocator is tuned: ``False`` where the C library is not glibc, or when the
-        environment variable ``SB3_COLLAPSE_TUNE_MALLOC`` is ``0``
-    """
     global _tuned
     if _tuned:
         return True

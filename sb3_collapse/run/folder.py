@@ -1,8 +1,5 @@
-"""
-The run folder of one training run as :func:`sb3_collapse.run.runner.train` takes it: whether a folder can take the
-run, which folder a new run takes (:func:`new_run_dir`) and how it is opened (:func:`open_run_dir`: a new run's
-settings, or the checkpoint an unfinished one resumes from).
-"""
+"""The run folder of one training run as :func:`~sb3_collapse.run.runner.train` takes it: whether it may, which one
+(:func:`new_run_dir`) and how it is opened (:func:`open_run_dir`: new settings, or the checkpoint to resume)."""
 
 from __future__ import annotations
 
@@ -39,31 +36,22 @@ def _check_run_dir(run_dir: Path) -> RunStatus:
     """:return: the status of an explicit ``run_dir`` that a run may take (new, unfinished, failed)
     :raises ParameterError: naming ``run_dir``: a finished run (its leftovers removed), an unreadable result, no run"""
     state = run_status(run_dir, check_lock=False)  # a held lock refuses the run later, naming its owner
+    problem = None
     if state is None:
-        raise ParameterError(
-            "run_dir",
-            f"run_dir {run_dir} exists and is not an empty folder (nor the folder of a run): remove it or choose "
-            "another.",
-        )
-    if state == RunStatus.FINISHED:
+        problem = " exists and is not an empty folder (nor the folder of a run): remove it or choose another."
+    elif state == RunStatus.FINISHED:
         tidy_finished_run(run_dir)
-        raise ParameterError(
-            "run_dir", f"run_dir {run_dir} holds a finished run ({RESULT_JSON}): choose another folder."
-        )
-    damaged = unreadable_result(run_dir)
-    if damaged is not None:
-        raise ParameterError("run_dir", f"run_dir {run_dir}: {damaged}")
+        problem = f" holds a finished run ({RESULT_JSON}): choose another folder."
+    elif (damaged := unreadable_result(run_dir)) is not None:
+        problem = f": {damaged}"
+    if problem is not None or state is None:
+        raise ParameterError("run_dir", f"run_dir {run_dir}{problem}")
     return state
 
 
 def check_run_folder(config: TrainConfig) -> None:
-    """
-    The checks of :meth:`TrainConfig.validate` that read the file system, before anything is written: an explicit
-    ``run_dir`` must be new, empty or an unfinished run; ``logdir`` must not be (under) a file.
-
-    :param config: the run's settings
-    :raises ParameterError: naming ``run_dir`` or ``logdir``
-    """
+    """The checks of ``config`` that read the file system, before anything is written: an explicit ``run_dir`` must be
+    new, empty or an unfinished run; ``logdir`` must not be (under) a file. :raises ParameterError: naming either."""
     if config.run_dir is not None:
         _check_run_dir(Path(config.run_dir))
     blocking = blocking_file(config.logdir)
@@ -72,12 +60,9 @@ def check_run_folder(config: TrainConfig) -> None:
 
 
 def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str]:
-    """
-    :param saved: the settings file of a run folder
-    :param config: the settings of a run that wants to resume it
-    :return: one line per setting that differs (but :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`), empty
-        when the run can resume it
-    """
+    """:return: one line per setting of a run folder's settings file (``saved``) that is not ``config``'s (but
+    :data:`~sb3_collapse.run.config.RESUME_FREE_SETTINGS`), empty when the run of ``config`` can resume it"""
+
     current = json.loads(json.dumps(config.record()))
     return [
         f"`{name}={current.get(name)}` (the run folder has {saved.get(name)!r})"
@@ -87,11 +72,8 @@ def settings_differences(saved: dict[str, Any], config: TrainConfig) -> list[str
 
 
 def _resume_differences(run_dir: Path, config: TrainConfig, checkpoint: Path | None = None) -> list[str]:
-    """
-    :return: one line per setting of ``run_dir``'s settings file, or learning rate its ``checkpoint`` trained with
-        (a settings file edited after it was written), that is not ``config``'s
-    :raises ParameterError: naming ``run_dir`` when the settings file cannot be read
-    """
+    """:return: one line per setting of ``run_dir``'s settings file (or learning rate its ``checkpoint`` trained with:
+    a settings file edited later) that is not ``config``'s; :raises ParameterError: for an unreadable settings file"""
     if checkpoint is None:
         try:
             saved = read_settings(run_dir / CONFIG_JSON)
@@ -121,13 +103,8 @@ def _refuse_other_settings(run_dir: Path, differences: list[str], settings: str)
 
 
 def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
-    """
-    :param logdir: the parent folder of the run folders
-    :param name: the run folder's name
-    :param config: the run's settings
-    :return: the first of ``<logdir>/<name>``, ``<name>_2``... that can take this run: a new folder, or an unfinished
-        run with the same settings (resumed)
-    """
+    """:return: the first of ``<logdir>/<name>``, ``<name>_2``... that can take the run of ``config``: a new folder, or
+    an unfinished run with the same settings (resumed)"""
     run_dir, index = logdir / name, 1
     while True:
         state = run_status(run_dir, check_lock=False)
@@ -157,13 +134,8 @@ def partial_outputs(run_dir: Path) -> list[Path]:
 
 
 def tidy_finished_run(run_dir: Path) -> list[str]:
-    """
-    Remove what a finished run's process, killed after it wrote its result file, left: the checkpoints, the temporary
-    files of atomic writes and the lock file (nothing while a process holds the lock, or in a read-only folder).
-
-    :param run_dir: a folder holding a finished run
-    :return: what was removed, for the user
-    """
+    """Remove what the process of the finished run in ``run_dir``, killed after its result file, left: checkpoints,
+    temporary files and the lock file (not while a process holds the lock); return what was removed, for the user."""
     checkpoints, lock = run_dir / CHECKPOINTS_DIR, run_dir / LOCK_FILE
     leftovers = [path for path in (checkpoints, lock) if path.exists()] + partial_outputs(run_dir)
     if not leftovers or not (run_dir / RESULT_JSON).is_file():
@@ -187,13 +159,9 @@ def tidy_finished_run(run_dir: Path) -> list[str]:
 
 
 def set_aside_damaged_checkpoints(run_dir: Path, skipped: list[tuple[Path, str]]) -> Path | None:
-    """
-    When no checkpoint of ``run_dir`` (locked) can be read and some are damaged (``skipped``, or set aside earlier),
-    set the checkpoints folder aside (``damaged_checkpoints``) and say in one line (printed, and in it) why the run
-    restarts from frame 0.
-
-    :return: where the checkpoints went, ``None`` when none was damaged
-    """
+    """When no checkpoint of ``run_dir`` (locked) can be read and some are damaged (``skipped``, or set aside earlier),
+    set the checkpoints folder aside with one line (printed, and in it) on why the run restarts from frame 0; return
+    where it went, ``None`` when none was damaged."""
     checkpoints = run_dir / CHECKPOINTS_DIR
     damaged = [f"{folder.name}: {reason}" for folder, reason in skipped]
     for folder in sorted(checkpoints.glob("damaged_*")):  # set aside by an earlier process, with the reason
@@ -216,13 +184,12 @@ def set_aside_damaged_checkpoints(run_dir: Path, skipped: list[tuple[Path, str]]
 
 
 def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
-    """
-    With ``run_dir`` locked: a new run writes its settings (``config``); an unfinished run with the same settings is
-    resumed from its newest readable checkpoint (damaged newer ones set aside), or restarted without one.
+    """With ``run_dir`` locked: a new run writes its settings (``config``); an unfinished run with the same settings is
+    resumed from its newest readable checkpoint (returned; damaged newer ones set aside), or restarted (``None``).
 
-    :return: the checkpoint to resume from, ``None`` for a run from frame 0
     :raises ParameterError: for a folder with a finished run, another run's settings or other content
     """
+
     if _check_run_dir(run_dir) in RESUMABLE:
         _refuse_other_settings(run_dir, _resume_differences(run_dir, config), "its own settings")
         for partial in partial_outputs(run_dir):  # a write of a killed process: written again as the run goes on

@@ -15,15 +15,9 @@ from sb3_collapse.protocol import LOCK_FILE
 
 
 class RunLock:
-    """
-    An exclusive ``flock`` on a run folder's lock file (released if the process dies), which holds the owner's pid,
-    host and start time for the message of a process that finds it taken.
-
-    :param run_dir: the run folder (it must exist)
-    :param lock_file: the lock file's name in it (a sweep's folder: :data:`~sb3_collapse.protocol.SWEEP_LOCK`)
-    :param folder: what the folder is, for the message (``"sweep folder"``)
-    :param instead: what to do instead of waiting, for the message
-    """
+    """An exclusive ``flock`` on the ``lock_file`` of ``run_dir`` (which must exist; released if the process dies),
+    holding the owner's pid, host and start time; a process that finds it taken gets a message naming the ``folder``
+    (``"sweep folder"``) and what to do ``instead``."""
 
     def __init__(
         self,

@@ -32,10 +32,8 @@ CHUNK_NAME = re.compile(rf"^{CHUNK_PREFIX}(\d+)-[0-9a-f]+{re.escape(CHUNK_SUFFIX
 FILES_PER_BUFFER = 32
 """The default ``max_file_bytes`` is the buffer's array bytes divided by this, at least ``MIN_FILE_BYTES``."""
 MIN_FILE_BYTES = 1 << 20
-BLOCK_BYTES = 32 << 20
-"""Bytes copied, checksummed and written (or read) at once."""
-TRANSITION_ARRAYS = ("frame_starts", "actions", "rewards", "dones", "timeouts")
-"""The per-transition arrays of the buffer, in the order a transitions segment stores them."""
+BLOCK_BYTES = 32 << 20  # bytes copied, checksummed and written (or read) at once
+TRANSITION_ARRAYS = ("frame_starts", "actions", "rewards", "dones", "timeouts")  # in a transitions segment's order
 TRANSITIONS, FRAMES = "transitions", "frames"
 STATE_KEYS = ("pos", "full", "transitions_added", "resets", "frame_heads", "steps_since_done", "episodes_done")
 
@@ -54,6 +52,17 @@ class _Tracked:
 def _damaged(message: str) -> CheckpointError:
     """The error of a damaged replay checkpoint: ``message`` and the way out."""
     return CheckpointError(f"{message} Resume from another checkpoint.", damaged=True)
+
+
+def check_file_size(path: Path, expected: int, name: str | None = None) -> None:
+    """:raises CheckpointError: (damaged) naming the file (``name``, default ``path``) when it is missing or not
+    ``expected`` bytes long"""
+    name = name or str(path)
+    if not path.is_file():
+        raise CheckpointError(f"{name} is missing", damaged=True)
+    if (size := path.stat().st_size) != expected:
+        how = "truncated" if size < expected else "changed"
+        raise CheckpointError(f"{name} has {size} bytes, {expected} were written ({how})", damaged=True)
 
 
 def _write(file: BinaryIO, data: np.ndarray) -> None:
@@ -80,13 +89,10 @@ class ReplayStore:
 
     def save(self, buffer: FrameStackReplayBuffer) -> dict[str, Any]:
         """
-        Write, as new ``fsync``'d files, the frames and transitions added since this store's last :meth:`save` or
-        :meth:`restore` of this buffer (all live data the first time, after ``buffer.reset()``, or when its earlier
-        chunks are gone).
+        Write, as new ``fsync``'d files, what ``buffer`` gained since this store's last :meth:`save` or :meth:`restore`
+        of it (all live data the first time, after ``buffer.reset()``, or when its earlier chunks are gone).
 
-        :param buffer: the buffer
-        :return: the JSON-serialisable manifest: the chunk files it needs, in order, with sizes and CRC-32s, the
-            buffer's counters and layout
+        :return: the JSON-serialisable manifest: the chunk files needed, with sizes and CRC-32s, counters and layout
         :raises OSError: when a write fails (full disk): nothing this call wrote remains, older chunks are intact
         :raises CheckpointError: when ``pos``/``full`` disagree with ``transitions_added`` (changed outside ``add``)
         """
@@ -127,13 +133,8 @@ class ReplayStore:
         return tracked
 
     def _track(self, buffer: FrameStackReplayBuffer, manifest: dict[str, Any]) -> None:
-        self._tracked = _Tracked(
-            buffer=weakref.ref(buffer),
-            resets=int(buffer.resets),
-            transitions_added=int(buffer.transitions_added),
-            frame_heads=buffer.frame_heads.copy(),
-            chunks=list(manifest["chunks"]),
-        )
+        added, heads = int(buffer.transitions_added), buffer.frame_heads.copy()
+        self._tracked = _Tracked(weakref.ref(buffer), int(buffer.resets), added, heads, list(manifest["chunks"]))
 
     def _write_chunks(self, buffer: FrameStackReplayBuffer, plans: list[list[dict[str, Any]]]) -> list[dict]:
         """Write one chunk file per plan; on failure delete them all and raise an ``OSError``."""
@@ -179,11 +180,9 @@ class ReplayStore:
 
     def restore(self, buffer: FrameStackReplayBuffer, manifest: dict[str, Any]) -> None:
         """
-        Make ``buffer`` (freshly built with the saved buffer's arguments) hold the saved state; the next :meth:`save`
-        is incremental to it.
+        Make ``buffer`` (built with the saved buffer's arguments) hold the state of ``manifest`` (of :meth:`save`);
+        the next :meth:`save` is incremental to it.
 
-        :param buffer: the buffer to fill
-        :param manifest: what :meth:`save` returned (possibly through JSON)
         :raises CheckpointError: for a malformed manifest, another layout, a missing chunk or one of another size
             (the buffer unchanged), or a chunk that fails its CRC-32 or cannot be read (the buffer ``reset()``)
         """
@@ -221,30 +220,16 @@ class ReplayStore:
         self._track(buffer, manifest)
 
     def check_files(self, manifest: dict[str, Any]) -> None:
-        """
-        :param manifest: what :meth:`save` returned
-        :raises CheckpointError: for a malformed manifest, a missing chunk or one of another size (not read: CRC-32s
-            are checked by :meth:`restore`), naming the file
-        """
+        """:raises CheckpointError: for a malformed ``manifest`` (of :meth:`save`), a missing chunk or one of another
+        size (not read: :meth:`restore` checks the CRC-32s), naming the file"""
         _check_manifest(manifest)
         for chunk in manifest["chunks"]:
-            path = self.directory / chunk["file"]
-            if not path.is_file():
-                raise _damaged(f"The replay checkpoint chunk {path} is missing.")
-            size, expected = path.stat().st_size, chunk["bytes"]
-            if size != expected:
-                how = "truncated" if size < expected else "changed"
-                raise _damaged(f"The replay checkpoint chunk {path} has {size:,} bytes, the checkpoint expects "
-                               f"{expected:,} ({how}).")  # fmt: skip
+            check_file_size(self.directory / chunk["file"], chunk["bytes"])
 
     def collect_garbage(self, keep: list[dict[str, Any]]) -> int:
-        """
-        Delete the chunk files that neither a ``keep`` manifest nor this store's last save or restore needs, and the
-        temporary files of interrupted saves.
+        """Delete the chunk files that neither a ``keep`` manifest nor this store's last save or restore needs, and the
+        temporary files of interrupted saves; return the bytes freed."""
 
-        :param keep: the manifests of the checkpoints to keep
-        :return: bytes freed
-        """
         needed = set()
         for manifest in keep:
             _check_manifest(manifest)
@@ -296,12 +281,11 @@ def _segment(key: str, start: int, stop: int) -> dict[str, Any]:
 
 
 def _check_counters(buffer: FrameStackReplayBuffer) -> None:
-    added = buffer.transitions_added
-    if buffer.pos != added % buffer.buffer_size or buffer.full != (added >= buffer.buffer_size):
+    added, size = buffer.transitions_added, buffer.buffer_size
+    if buffer.pos != added % size or buffer.full != (added >= size):
         raise CheckpointError(
             f"The replay buffer's pos={buffer.pos} and full={buffer.full} disagree with transitions_added={added} "
-            f"(buffer_size {buffer.buffer_size}): they were changed outside add() and reset(), so what is new since "
-            "the last checkpoint is unknown."
+            f"(buffer_size {size}): changed outside add() and reset(), so what is new since the last save is unknown."
         )
 
 

@@ -42,15 +42,9 @@ class _ResumedTensorBoardOutputFormat(TensorBoardOutputFormat):
 
 
 def resumed_logger(run_dir: Path, formats: Sequence[str], checkpoint: LoadedCheckpoint | None) -> Logger:
-    """
-    The run's SB3 logger: a new one, or one that continues ``progress.csv`` and the TensorBoard events after the
-    checkpoint with the values not dumped yet (the checkpoint's resume has written the CSV files back as they were).
+    """The run's SB3 logger in ``formats``: a new one (``checkpoint`` ``None``), or one that continues the CSV log and
+    the TensorBoard events after ``checkpoint`` with the values not dumped yet (its resume wrote the CSV files back)."""
 
-    :param run_dir: the run folder
-    :param formats: SB3 output formats (``"stdout"``, ``"csv"``, ``"tensorboard"``)
-    :param checkpoint: the checkpoint resumed from, ``None`` for a new run
-    :return: the logger
-    """
     if checkpoint is None:
         return configure(str(run_dir), list(formats))
     state = checkpoint.state

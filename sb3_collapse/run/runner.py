@@ -152,8 +152,7 @@ def train(config: TrainConfig) -> TrainResult:
     config = config.resolve()
     config.validate()
     check_run_folder(config)
-    domain, task = parse_task(config.env)
-    task_id = f"{domain}-{task}"
+    task_id = "-".join(parse_task(config.env))  # <domain>-<task>
     if config.torch_threads is not None:
         th.set_num_threads(config.torch_threads)
     configure_backends(tf32=config.tf32, deterministic=config.deterministic)
@@ -185,9 +184,9 @@ def train(config: TrainConfig) -> TrainResult:
             except CheckpointError as error:  # damaged: found as their replay chunks were read, each one set aside
                 if not error.damaged:
                     raise
-                env.close()
-                if eval_env is not None:
-                    eval_env.close()
+                for closing in (env, eval_env):
+                    if closing is not None:
+                        closing.close()
                 env, eval_env, model = build_envs_and_model(config, task_id)  # from frame 0, as a new run
                 checkpoint = open_run_dir(run_dir, config)  # sets the checkpoints aside, and says why it restarts
                 result = _train_into(config, task_id, run_dir, model, env, eval_env, start_time, checkpoint)
@@ -201,10 +200,8 @@ def train(config: TrainConfig) -> TrainResult:
 
 
 def _monitored_dmc_env(task_id: str, seed: int, pixels: dict[str, Any], worker: bool = False) -> EpisodeReplay:
-    """
-    The env of a run: ``Monitor``-ed, and recording its episode for the checkpoints (``EpisodeReplay``). A worker of
-    ``SubprocVecEnv`` is deaf to SIGINT and SIGTERM: the main process answers them with a checkpoint, which needs it.
-    """
+    """The env of a run, ``Monitor``-ed and ``EpisodeReplay``-ed; a ``SubprocVecEnv`` ``worker`` ignores SIGINT and
+    SIGTERM (the main process answers them with a checkpoint, which needs it)."""
     if worker:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -214,24 +211,16 @@ def _monitored_dmc_env(task_id: str, seed: int, pixels: dict[str, Any], worker: 
 def build_envs_and_model(
     config: TrainConfig, task_id: str
 ) -> tuple[EpisodeReplay | VecEnv, EpisodeReplay | None, BaseAlgorithm]:
-    """
-    :param config: the run's resolved settings
-    :param task_id: the task, ``<domain>-<task>``
-    :return: the training env(s) (``n_envs`` in subprocesses, seeds ``seed``, ``seed + 1``...), the evaluation env
-        (``None`` without evaluations) and the model of :func:`train`
-    """
+    """:return: the training env(s) (``n_envs`` in subprocesses, seeds ``seed``, ``seed + 1``...), the evaluation env
+    (``None`` without evaluations) and the model of :func:`train` for the resolved ``config``"""
     pixels = env_kwargs(config)
     env: EpisodeReplay | VecEnv
     if config.n_envs == 1 and not config.step_envs_during_updates:
         env = _monitored_dmc_env(task_id, config.seed, pixels)
     else:
         ensure_rendering_backend()  # checked once here, inherited by the subprocesses
-        env = SubprocVecEnv(
-            [
-                functools.partial(_monitored_dmc_env, task_id, config.seed + i, pixels, True)
-                for i in range(config.n_envs)
-            ]
-        )
+        seeds = range(config.seed, config.seed + config.n_envs)
+        env = SubprocVecEnv([functools.partial(_monitored_dmc_env, task_id, seed, pixels, True) for seed in seeds])
     eval_env = None
     if config.eval_every_frames > 0:  # seeded as the reference's (dmc.make(..., cfg.seed), as the training env)
         eval_env = _monitored_dmc_env(task_id, config.seed, pixels)
@@ -280,11 +269,8 @@ def _run_callbacks(
 
 
 def budget_note(config: TrainConfig) -> str | None:
-    """
-    :param config: the run's resolved settings
-    :return: ``"Note: ..."`` when the run does not train exactly its budget (``frames``, a multiple of the action repeat
-        times ``n_envs``, which all step at once: the budget's agent steps round up to a multiple of it), else ``None``
-    """
+    """:return: ``"Note: ..."`` when the resolved ``config`` does not train exactly ``frames`` (not a multiple of the
+    action repeat times ``n_envs``, which step at once: the agent steps round up), else ``None``"""
     trained = -(-config.agent_steps // config.n_envs) * config.n_envs
     if trained * config.action_repeat == config.frames:
         return None
@@ -301,11 +287,9 @@ def _announce(config: TrainConfig, task_id: str, run_dir: Path, model: BaseAlgor
     """Print what the run trains, with which settings (and where they came from), and where it writes."""
     user = sorted(name for name, source in config.sources.items() if source == USER)
     tier = config.preset.tier
-    origin = (
-        f"DrQ-v2's {tier} preset"
-        if config.preset.from_drqv2
-        else f"the {tier} tier (DrQ-v2 published no config for {task_id})"
-    )
+    origin = f"DrQ-v2's {tier} preset"
+    if not config.preset.from_drqv2:
+        origin = f"the {tier} tier (DrQ-v2 published no config for {task_id})"
     if config.algorithm == "drqv2":
         algorithm, sampling = "DrQ-v2", config.replay_sampling
         details = f"{config.n_steps}-step returns, lr {config.learning_rate:g}, {sampling} replay sampling"
@@ -387,12 +371,16 @@ def _train_into(
             message = unwritable_message(error)
             if message is None:
                 raise
-            kept = checkpoints.last_checkpoint
-            resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept else "it restarts the run"
-            raise OutputError(f"{message} The run's final outputs are not written; {resume}.") from None
+            raise OutputError(f"{message} The run's final outputs are not written; {_resumes(checkpoints)}.") from None
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
     return TrainResult(run_dir, model_path, evaluations, summary, saved_model_evaluation=saved_model_eval)
+
+
+def _resumes(checkpoints: ResumableCheckpoints) -> str:
+    """How the same command continues the run: from its last checkpoint, or from frame 0."""
+    kept = checkpoints.last_checkpoint
+    return f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts the run"
 
 
 def _learn(
@@ -402,13 +390,8 @@ def _learn(
     checkpoints: ResumableCheckpoints,
     resumed: bool,
 ) -> None:
-    """
-    ``model.learn`` up to the run's agent steps in total (the learn timer last in ``callbacks``); SIGINT/SIGTERM stop
-    it with a checkpoint.
-
-    :raises DivergenceError: the losses diverged; the message names the last checkpoint
-    :raises OutputError: the run folder became unwritable (read-only or full) while training
-    """
+    """``model.learn`` up to the run's agent steps (the learn timer last in ``callbacks``); SIGINT/SIGTERM stop it with
+    a checkpoint; :raises DivergenceError:, :raises OutputError: (an unwritable run folder) naming the checkpoint."""
     try:
         with stop_signals(checkpoints):
             model.learn(
@@ -427,17 +410,14 @@ def _learn(
             raise
         where = error.filename if error.filename is not None else "a file of the run folder"
         fix = "Free space" if error.errno in FULL_DISK_ERRNOS else "Make the folder writable again"
-        kept = checkpoints.last_checkpoint
-        resume = f"it resumes from the checkpoint {kept.name}, which is intact" if kept is not None else "it restarts"
         raise OutputError(
             f"could not write {where} ({os.strerror(error.errno)}) at frame {frames_of(model):,}: the run stops. "
-            f"{fix}, then run the same command again: {resume}."
+            f"{fix}, then run the same command again: {_resumes(checkpoints)}."
         ) from None
 
 
 def _logger_closer(model: BaseAlgorithm) -> Callable[..., bool]:
-    """An exit callback for :class:`contextlib.ExitStack` that closes ``model.logger``; on the way out of an error, its
-    own ``OSError`` is dropped (the first error is the one to report)."""
+    """An ``ExitStack`` exit callback closing ``model.logger`` (its ``OSError`` dropped after another error)."""
 
     def close(exc_type: type[BaseException] | None, *_: object) -> bool:
         with contextlib.suppress(*(() if exc_type is None else (OSError,))):
@@ -449,14 +429,8 @@ def _logger_closer(model: BaseAlgorithm) -> Callable[..., bool]:
 
 def _print_last_evaluations(evaluations: list[dict[str, Any]], saved_model_eval: dict[str, Any] | None) -> None:
     """Print the last scheduled evaluation and that of the saved final model (frames, mean +- std return)."""
-    if evaluations:
-        last = evaluations[-1]
-        print(
-            f"Last scheduled evaluation at frame {last['frame']:,}: {last['mean_reward']:.1f} +- "
-            f"{last['std_reward']:.1f}"
-        )
-    if saved_model_eval is not None:
-        print(
-            f"Saved final model at frame {saved_model_eval['frame']:,} (outside the schedule): "
-            f"{saved_model_eval['mean_reward']:.1f} +- {saved_model_eval['std_reward']:.1f}"
-        )
+    last = evaluations[-1] if evaluations else None
+    for label, row in (("Last scheduled evaluation", last), ("Saved final model", saved_model_eval)):
+        if row is not None:
+            outside = " (outside the schedule)" if row is saved_model_eval else ""
+            print(f"{label} at frame {row['frame']:,}{outside}: {row['mean_reward']:.1f} +- {row['std_reward']:.1f}")

@@ -36,20 +36,14 @@ line whose package the begin marker names (its ``__main__`` declares ``COMMANDS`
 
 
 def group_of(field: dataclasses.Field) -> str:
-    """
-    :param field: a field of :class:`TrainConfig`
-    :return: the key of its group in :data:`GROUPS`
-    """
+    """:return: the key in :data:`GROUPS` of the group of a :class:`TrainConfig` field"""
     if field.metadata["cli"] == TRAINING:
         return "preset" if field.metadata["preset"] else "training"
     return "run" if field.metadata["cli"] == RUN else "library"
 
 
 def flag_of(field: dataclasses.Field) -> str | None:
-    """
-    :param field: a field declared with :func:`~sb3_collapse.run.config.setting`
-    :return: its flag (``--no-<name>`` when on by default; without dashes: a positional), ``None`` for none
-    """
+    """:return: a declared field's flag (``--no-<name>`` when on by default; no dashes: a positional), or ``None``"""
     if field.metadata["cli"] is None:
         return None
     if field.metadata["flag"] is not None:
@@ -59,10 +53,7 @@ def flag_of(field: dataclasses.Field) -> str | None:
 
 
 def setting_flags(declaration: type = TrainConfig) -> dict[str, str]:
-    """
-    :param declaration: a dataclass declared with :func:`~sb3_collapse.run.config.setting`
-    :return: setting name -> flag, for every setting that has one
-    """
+    """:return: setting name -> flag, for every setting of ``declaration`` (declared with ``setting``) with one"""
     return {field.name: flag for field in dataclasses.fields(declaration) if (flag := flag_of(field)) is not None}
 
 
@@ -91,13 +82,8 @@ def _flag_text(field: dataclasses.Field, flags: dict[str, str]) -> str:
 
 
 def add_setting_arguments(group: Any, names: list[str] | None = None, declaration: type = TrainConfig) -> None:
-    """
-    Add the flags of these settings to a parser or an argument group, as their fields declare them.
-
-    :param group: an ``argparse`` parser or argument group
-    :param names: names of fields of ``declaration`` with a flag (``None``: all of them)
-    :param declaration: a dataclass declared with :func:`~sb3_collapse.run.config.setting`
-    """
+    """Add to ``group`` (a parser or argument group) the flags of the settings ``names`` of ``declaration`` (``None``:
+    all with a flag), as their fields declare them."""
     flags = setting_flags(declaration)
     by_name = {field.name: field for field in dataclasses.fields(declaration)}
     for name in flags if names is None else names:
@@ -118,13 +104,8 @@ def add_setting_arguments(group: Any, names: list[str] | None = None, declaratio
 
 
 def check_arguments(parser: argparse.ArgumentParser, parsed: argparse.Namespace, *declarations: type) -> None:
-    """
-    Refuse a parsed value out of its declared choices or range with ``parser.error`` (one line naming the flag).
-
-    :param parser: the command line that parsed them
-    :param parsed: the parsed arguments
-    :param declarations: the dataclasses that declare them
-    """
+    """Refuse a ``parsed`` value out of the choices or range its ``declarations`` give with ``parser.error`` (one line
+    naming the flag)."""
     for declaration in declarations:
         flags = setting_flags(declaration)
         for field in (field for field in dataclasses.fields(declaration) if field.name in flags):
@@ -143,10 +124,8 @@ class CommandLine(argparse.ArgumentParser):
 
 
 def prog_name(module: str) -> str:
-    """
-    :param module: the module that ``python -m`` runs, e.g. ``"sb3_collapse.probe"``
-    :return: its name in usage and errors: the console script's (``sb3-collapse-probe``), else ``python -m <module>``
-    """
+    """:return: the name in usage and errors of the command line of ``module`` (``"sb3_collapse.probe"``): the console
+    script's (``sb3-collapse-probe``), else ``python -m <module>``"""
     script = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
     return script if script.startswith("sb3-collapse-") else f"python -m {module}"
 
@@ -165,29 +144,20 @@ def training_arguments() -> argparse.ArgumentParser:
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> Any:
-    """
-    :param parser: the train CLI's parser, to which the flags of the settings declared ``cli=RUN`` are added
-    :return: their argument group, for the command line's own flags
-    """
+    """Add the flags of the settings declared ``cli=RUN`` to the train CLI's ``parser``; return their group."""
     group = parser.add_argument_group(GROUPS[2][1])
     add_setting_arguments(group, _names("run"))
     return group
 
 
 def training_settings(parsed: argparse.Namespace) -> dict[str, Any]:
-    """
-    :param parsed: arguments parsed by a parser with :func:`training_arguments` as a parent
-    :return: the settings of :func:`training_arguments`, by name (``None`` for a preset setting not given)
-    """
+    """:return: the settings of :func:`training_arguments` in ``parsed``, by name (``None``: a preset one not given)"""
     return {name: getattr(parsed, name) for name in _names("preset", "training")}
 
 
 def show_settings(config: TrainConfig) -> list[str]:
-    """
-    :param config: resolved settings
-    :return: what ``--show-settings`` prints: one line per setting, by flag or name, with its value, where a preset
-        setting's value came from and its unit; then the task's preset
-    """
+    """:return: what ``--show-settings`` prints for the resolved ``config``: one line per setting (flag or name, value,
+    where a preset setting's value came from, unit), then the task's preset"""
     record, lines = config.record(), []
     for field in (field for field in dataclasses.fields(TrainConfig) if field.name != "sources"):  # shown on each line
         source, unit, flag = config.sources.get(field.name), field.metadata["unit"], flag_of(field)
@@ -222,11 +192,8 @@ def settings_markdown() -> str:
 
 
 def flags_markdown(package: str) -> str:
-    """
-    :param package: a command line's package, whose ``__main__`` declares ``COMMANDS``: sub-command (``""`` for
-        none) -> the dataclasses that declare its flags
-    :return: one table of flags per sub-command, for its docs page
-    """
+    """:return: one table of flags per sub-command of ``package``, whose ``__main__`` declares ``COMMANDS``
+    (sub-command, ``""`` for none -> the dataclasses that declare its flags), for its docs page"""
     lines: list[str] = []
     for command, declarations in importlib.import_module(f"{package}.__main__").COMMANDS.items():
         lines += [f"**`python -m {package}{' ' + command if command else ''}`**", ""]
@@ -247,11 +214,8 @@ def flags_markdown(package: str) -> str:
 
 
 def with_markdown(text: str) -> str:
-    """
-    :param text: the content of a docs page with generated tables
-    :return: the same with its regions (between the markers) generated anew
-    :raises ValueError: when the file has no region, or a region has no end marker
-    """
+    """:return: the docs page ``text`` with its regions (between the markers) generated anew; :raises ValueError: when
+    it has no region, or a region has no end marker"""
     regions = [(match, FLAGS_END, lambda m=match: flags_markdown(m.group(1))) for match in FLAGS_BEGIN.finditer(text)]
     if (begin := re.search(re.escape(MARKDOWN_BEGIN), text)) is not None:
         regions.append((begin, MARKDOWN_END, settings_markdown))
@@ -266,10 +230,8 @@ def with_markdown(text: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
-    :return: exit status
-    """
+    """Generate the settings and flags tables (``argv``: ``sys.argv[1:]`` when ``None``); return the exit status."""
+
     description = "Generate the tables of the settings and flags in a docs page."
     parser = CommandLine(prog="python -m sb3_collapse.run.settings", description=description)
     help = "rewrite the generated regions of FILE (docs/presets.md, docs/probe.md...), or print docs/presets.md's"

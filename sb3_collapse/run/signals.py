@@ -1,7 +1,5 @@
-"""
-Stopping a training run at a signal (:func:`stop_signals`) or at a request from any thread
-(:func:`request_training_stop`): its checkpoint callback writes a checkpoint, then ``learn()`` stops.
-"""
+"""Stopping a training run at a signal (:func:`stop_signals`) or a request from any thread
+(:func:`request_training_stop`): its checkpoint callback writes a checkpoint, then ``learn()`` stops."""
 
 from __future__ import annotations
 
@@ -20,12 +18,8 @@ _training: list[ResumableCheckpoints] = []  # the checkpoint callbacks of the ru
 
 
 def request_training_stop(signal_name: str) -> None:
-    """
-    Ask the training of this process to write a checkpoint and stop, as a SIGTERM would (a run not started yet: at its
-    start), from any thread.
-
-    :param signal_name: the signal the stop stands for (``"SIGTERM"``), named by :class:`TrainingInterrupted`
-    """
+    """Ask the training of this process, from any thread, to write a checkpoint and stop as the signal ``signal_name``
+    (``"SIGTERM"``) would (a run not started yet: at its start)."""
     _stop_requests.append(signal_name)
     for checkpoints in _training.copy():  # a copy: a run may end in another thread meanwhile
         checkpoints.request_stop(signal_name)
@@ -38,12 +32,8 @@ def clear_training_stop() -> None:
 
 @contextlib.contextmanager
 def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
-    """
-    While inside, SIGTERM, SIGINT and :func:`request_training_stop` ask ``checkpoints`` to write a checkpoint and stop
-    (``TrainingInterrupted``); a second SIGINT stops at once (``KeyboardInterrupt``).
-
-    :param checkpoints: the run's checkpoint callback
-    """
+    """While inside, SIGTERM, SIGINT and :func:`request_training_stop` ask ``checkpoints`` (the run's callback) to write
+    a checkpoint and stop (``TrainingInterrupted``); a second SIGINT stops at once (``KeyboardInterrupt``)."""
     received: list[str] = []  # signals, not requests: a sweep's request and a Ctrl-C are one stop, not two
 
     def handler(signum: int, _frame: Any) -> None:
@@ -67,12 +57,8 @@ def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
 
 @contextlib.contextmanager
 def stop_signal_handlers(handler: Callable[[int, Any], None]) -> Iterator[None]:
-    """
-    While inside, ``handler`` (:func:`signal.signal`'s) handles SIGTERM and SIGINT; nothing is installed outside the
-    main thread.
+    """While inside, ``handler`` (``signal.signal``'s) handles SIGTERM and SIGINT (nothing outside the main thread)."""
 
-    :param handler: a signal handler
-    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return

@@ -1,7 +1,5 @@
-"""
-Snapshots: a run's encoder and actor saved at every evaluation (an SB3 zip without critic, optimizers or replay
-buffer), the weights the probe and the report's fixed-set figures read. See docs/figures.md.
-"""
+"""Snapshots: a run's encoder and actor saved at every evaluation (an SB3 zip without critic, optimizers or replay
+buffer), the weights the probe and the report's fixed-set figures read. See docs/figures.md."""
 
 from __future__ import annotations
 
@@ -19,22 +17,15 @@ from sb3_collapse.drqv2.transplant import GROUP_LAYERS, TRANSPLANT_GROUPS
 from sb3_collapse.monitoring.callbacks import frames_of
 from sb3_collapse.protocol import SNAPSHOT_FILE, atomic_output
 
-SNAPSHOT_GROUPS = ("cnn", "mlp")
-"""The transplant groups a snapshot holds: the encoder and the actor."""
+SNAPSHOT_GROUPS = ("cnn", "mlp")  # the transplant groups a snapshot holds: the encoder and the actor
 SNAPSHOT_PREFIXES = tuple(prefix for group in SNAPSHOT_GROUPS for prefix in TRANSPLANT_GROUPS[group])
 MARKER = "snapshot.json"
 """The zip member that marks a snapshot: ``{"groups", "layers", "num_timesteps", "frames"}``."""
 
 
 def save_snapshot(model: Any, path: str | os.PathLike) -> Path:
-    """
-    Save the encoder and actor of a DrQv2 model with the settings SB3 saves, atomically.
-
-    :param model: a DrQv2 model
-    :param path: the zip to write (its folder is created)
-    :return: the path written
-    :raises TypeError: for a model without a DrQ-v2 encoder and actor
-    """
+    """Save the encoder and actor of a DrQv2 ``model`` with the settings SB3 saves, atomically, into the zip ``path``
+    (its folder created); return it. :raises TypeError: for a model without a DrQ-v2 encoder and actor."""
     state_dict = model.policy.state_dict()
     kept = {key: value.detach().cpu() for key, value in state_dict.items() if key.startswith(SNAPSHOT_PREFIXES)}
     if not all(any(key.startswith(prefix) for key in kept) for prefix in SNAPSHOT_PREFIXES):

@@ -17,16 +17,8 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
 @dataclass
 class PhaseTime:
-    """
-    Seconds and counts of one phase of ``learn()``.
-
-    :param rounds: rounds of the loop (environment steps up to an update, then the updates)
-    :param transitions: transitions collected, summed over the environments (agent steps x ``n_envs``)
-    :param updates: gradient updates
-    :param env_s: seconds waiting for the environments
-    :param update_s: seconds of the updates (from the end of a round's environment steps to the next round)
-    :param total_s: wall-clock seconds of the phase's rounds
-    """
+    """Rounds, transitions (agent steps x ``n_envs``), updates and seconds of one phase of ``learn()``, each field as
+    docs/throughput.md#where-the-time-goes-learntimer-resultjson says."""
 
     rounds: int = 0
     transitions: int = 0
@@ -48,14 +40,8 @@ class PhaseTime:
 
 @dataclass
 class LearnTimings:
-    """
-    Time split of one ``learn()`` call (``LearnTimer.timings``).
-
-    :param warmup: rounds of uniformly random actions without updates
-    :param learning: the other rounds
-    :param first_round_s: seconds of the call's first round of updates (one-time costs included); ``None`` before
-    :param first_round_updates: updates in that round
-    """
+    """Time split of one ``learn()`` call (``LearnTimer.timings``): the ``warmup`` rounds (random actions, no updates),
+    the ``learning`` ones, and the first round of updates (seconds, one-time costs included; updates)."""
 
     warmup: PhaseTime = field(default_factory=PhaseTime)
     learning: PhaseTime = field(default_factory=PhaseTime)
@@ -80,11 +66,8 @@ class LearnTimings:
 
 
 class UpdateClock:
-    """
-    The device time of the rounds of updates on CUDA, from two events per round on the model's device's current
-    stream; nothing on other devices. ``start = clock.start(device)`` before the updates, ``clock.stop(start, phase,
-    host_s)`` once the round is added to ``phase``, :meth:`collect` now and then, ``collect(wait=True)`` at the end.
-    """
+    """The device time of the rounds of updates on CUDA (nothing on other devices), from two events per round on the
+    device's current stream: :meth:`start` before the updates, :meth:`stop` after, :meth:`collect` now and then."""
 
     def __init__(self) -> None:
         self._pending: list[tuple[Any, Any, PhaseTime, float]] = []
@@ -101,20 +84,14 @@ class UpdateClock:
         return (device, self._record(device)) if device.type == "cuda" else None
 
     def stop(self, start: tuple[th.device, Any] | None, phase: PhaseTime, host_s: float) -> None:
-        """
-        :param start: what :meth:`start` returned (nothing happens for ``None``)
-        :param phase: the phase the round was added to
-        :param host_s: the round's ``update_s`` measured on the host, already in ``phase``
-        """
+        """Record the end of the round begun at ``start`` (of :meth:`start`; ``None``: nothing), added to ``phase``
+        with ``host_s`` of ``update_s`` measured on the host."""
         if start is not None:
             self._pending.append((start[1], self._record(start[0]), phase, host_s))
 
     def collect(self, wait: bool = False) -> None:
-        """
-        Add the device time beyond the host time of each completed round to its phase's ``update_s``.
-
-        :param wait: wait for the rounds still running (a synchronization; for the end of ``learn()``)
-        """
+        """Add the device time beyond the host time of each completed round to its phase's ``update_s`` (``wait``: for
+        the rounds still running too, a synchronization for the end of ``learn()``)."""
         pending = []
         for start, end, phase, host_s in self._pending:
             if wait:
@@ -127,11 +104,7 @@ class UpdateClock:
 
 
 class TimedVecEnv(VecEnvWrapper):
-    """
-    A ``VecEnv`` that adds the seconds spent in its ``step_async`` and ``step_wait`` to ``env_s``.
-
-    :param venv: the environments
-    """
+    """A ``VecEnv`` wrapper adding the seconds spent in ``venv``'s ``step_async`` and ``step_wait`` to ``env_s``."""
 
     def __init__(self, venv: VecEnv) -> None:
         super().__init__(venv)
