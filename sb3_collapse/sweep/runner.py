@@ -48,16 +48,7 @@ def check_sweep_arguments(
     gpus_per_trial: float = 0,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
 ) -> None:
-    """
-    Check what a sweep can check before it writes anything or starts Ray.
-
-    :param out: the sweep folder: a folder or nothing yet, not a file
-    :param training: the shared training settings: evaluations on (the report compares their returns)
-    :param cpus_per_trial: CPUs per trial, > 0
-    :param gpus_per_trial: GPUs per trial, a fraction in [0, 1] or a whole number
-    :param connect_timeout_s: seconds to wait for a cluster to answer, > 0
-    :raises InputError: naming the parameter
-    """
+    """Check what a sweep can check before it writes anything or starts Ray (an ``InputError`` names the parameter)."""
     if not connect_timeout_s > 0 or connect_timeout_s == float("inf"):
         raise InputError(
             f"connect_timeout_s must be a finite number of seconds > 0, got {connect_timeout_s}.",
@@ -186,11 +177,7 @@ def _error_file_stamp(folder: Path) -> tuple[int, int] | None:
 
 
 def retryable(error: BaseException) -> bool:
-    """
-    :param error: what the trial raised
-    :return: whether a rerun may succeed: a fault of what it ran on (disk, memory) may be gone; anything else comes
-        back, as the trial resumes bit for bit
-    """
+    """Whether a rerun may succeed: only a fault of what the trial ran on (disk, memory); it resumes bit for bit."""
     import torch as th
 
     transient = (OSError, MemoryError, OutputError, th.cuda.OutOfMemoryError)
@@ -239,15 +226,7 @@ def sweep_settings(
     resources: Mapping[str, Any],
     donors: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """
-    :param trials: the sweep's trials
-    :param training: the shared training settings (``None``: the presets)
-    :param checkpoints: the transplant checkpoints
-    :param resources: how trials ran: CPUs and GPUs per trial, the Ray address
-    :param donors: how the donors were picked, ``None`` when they were given
-    :return: the content of the sweep's settings file, JSON-serializable (``task_settings``: the DrQ-v2 settings
-        each task's trials use)
-    """
+    """The content of the sweep's settings file (``task_settings``: the DrQ-v2 settings each task's trials use)."""
     tasks = list(dict.fromkeys(trial.task for trial in trials))
     configs = {task: TrainConfig(**{**training, "env": task}).resolve() for task in tasks}
     return {
@@ -287,11 +266,6 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
             before = previous.get("checkpoints", {}).get(source, {}).get(task)
             if before not in (None, path):
                 changes.append(f"`{source}` checkpoint for {task}: {before} in {SWEEP_JSON}, {path} now")
-    for source in ("good", "bad"):  # a settings file where one agent gave both parts of a source
-        parts = {f"{source}_cnn", f"{source}_mlp"} & set(current.get("checkpoints", {}))
-        if source in previous.get("checkpoints", {}) and parts:
-            changes.append(f"`{source}` checkpoint: one agent for the CNN and the MLP in {SWEEP_JSON}, two agents now "
-                           f"(--{source}-cnn, --{source}-mlp)")  # fmt: skip
     return changes
 
 
@@ -299,14 +273,8 @@ def prepare_sweep_folder(
     out: str | Path, settings: Mapping[str, Any], allow_changed_settings: bool = False, write: bool = True
 ) -> None:
     """
-    Check this run's settings against the sweep's settings file and write the merged settings there (the tasks,
-    variants, seeds and checkpoints of both: a sweep folder accumulates trials).
-
-    :param out: the sweep folder (created if needed)
-    :param settings: this run's :func:`sweep_settings`
-    :param allow_changed_settings: accept other training settings than the file's (finished trials keep theirs)
-    :param write: write the sweep's settings file; ``False`` only checks (dry run)
-    :raises InputError: when the training settings changed and that is not allowed
+    Check this run's :func:`sweep_settings` against the sweep's settings file (an ``InputError`` when they changed
+    and that is not allowed), then, with ``write``, write there the tasks, variants, seeds and checkpoints of both.
     """
     path = Path(out) / SWEEP_JSON
     previous: dict[str, Any] = read_settings(path) if path.is_file() else {}
@@ -412,13 +380,7 @@ def run_sweep(
 
 @contextlib.contextmanager
 def sweep_folder_locked(out: Path) -> Iterator[None]:
-    """
-    While inside, this process holds the sweep folder's lock: a second sweep into it is refused. The lock file is
-    deleted at the end, and the folders created for it where left empty.
-
-    :param out: the sweep folder (created if needed)
-    :raises InputError: naming the process that runs a sweep into the folder
-    """
+    """While inside, this process holds the sweep folder's lock (a second sweep: ``InputError``); removed at the end."""
     with (
         _created_folder(out),
         RunLock(out, SWEEP_LOCK, folder="sweep folder", instead="give this sweep another `out`") as lock,
@@ -430,10 +392,7 @@ def sweep_folder_locked(out: Path) -> Iterator[None]:
 
 
 def _wait_for_trials(ray: Any, pending: dict[Any, Trial], out: Path, summary: SweepSummary, progress_bar: bool) -> None:
-    """
-    Collect the outcome of each trial's Ray task into ``summary``. A SIGTERM or SIGINT (in the main thread) writes
-    the stop file that the trials watch and sets ``summary.stopped_by``; a second one raises ``KeyboardInterrupt``.
-    """
+    """Collect each trial's outcome into ``summary``; a signal writes the stop file, a second one stops at once."""
 
     def handler(signum: int, _frame: Any) -> None:
         if summary.stopped_by is not None:

@@ -33,14 +33,17 @@ PLAIN_VARIANTS = tuple(
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
 """The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
+VARIANT_FORMS = (
+    f"<algorithm>, <algorithm>+<intervention> with <algorithm> in {', '.join(BASE_VARIANTS)} and <intervention> in "
+    f"{', '.join(INTERVENTIONS)} (the paper's rule doing it) or {PERIODIC_REDO} (ReDo every {REDO_EVERY_UPDATES} "
+    "updates, no rule), e.g. drqv2+reset, td3+redo, drqv2-leaky+redo_periodic; or a transplant-grid cell "
+    f"cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} (e.g. cnn-good_mlp-bad)"
+)
+"""The variant names, for help and error messages."""
 
 
 def donor_key(source: str, part: str) -> str:
-    """
-    :param source: ``"good"`` or ``"bad"``
-    :param part: ``"cnn"`` or ``"mlp"``
-    :return: the key of that donor's checkpoints in a sweep's checkpoints (``"good_cnn"``; flag ``--good-cnn``)
-    """
+    """The key of a donor's checkpoints, ``source`` good/bad, ``part`` cnn/mlp: ``"good_cnn"`` (flag ``--good-cnn``)."""
     return f"{source}_{part}"
 
 
@@ -63,11 +66,7 @@ class Trial:
 
 
 def canonical_task(name: str) -> str:
-    """
-    :param name: a task name in any form :func:`~sb3_collapse.envs.parse_task` accepts (``"walker_walk"``)
-    :return: its ``<domain>-<task>`` form (``"walker-walk"``)
-    :raises InputError: for an unknown task, with close names
-    """
+    """The ``<domain>-<task>`` form of a task name (``"walker_walk"``: ``"walker-walk"``); ``InputError`` if unknown."""
     try:
         domain, task = parse_task(name)
     except ValueError as error:
@@ -86,13 +85,7 @@ def transplant_of(variant: str) -> dict[str, str] | None:
     if variant in GRID_VARIANTS:
         cnn, mlp = variant.split("_")
         return {"cnn": cnn.removeprefix("cnn-"), "mlp": mlp.removeprefix("mlp-")}
-    raise InputError(
-        f"Unknown variant {variant!r}: use <algorithm> or <algorithm>+<intervention> with <algorithm> in "
-        f"{', '.join(BASE_VARIANTS)} and <intervention> in {', '.join(INTERVENTIONS)} or {PERIODIC_REDO} (e.g. "
-        "drqv2+reset, td3+redo, drqv2-leaky+redo_periodic), "
-        f"or a transplant-grid cell cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} "
-        "(e.g. cnn-good_mlp-bad)."
-    )
+    raise InputError(f"Unknown variant {variant!r}: use {VARIANT_FORMS}.")
 
 
 def variant_settings(variant: str) -> dict[str, Any]:
@@ -193,11 +186,7 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
 
 
 def check_checkpoints(trials: Iterable[Trial], checkpoints: Mapping[str, Mapping[str, str]]) -> None:
-    """
-    :param trials: the sweep's trials
-    :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> path
-    :raises InputError: naming the first transplant-grid trial whose checkpoint is missing and the flag to add
-    """
+    """An ``InputError`` naming the first grid trial without its donor's checkpoint (key -> task -> path)."""
     for trial in trials:
         for part, source in (transplant_of(trial.variant) or {}).items():
             if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
@@ -240,10 +229,7 @@ def trial_config(
 
 
 def damaged_result(folder: Path) -> str | None:
-    """
-    :param folder: a trial folder
-    :return: one line for a result file that cannot be read (why, and the way out); ``None`` for a readable one or none
-    """
+    """One line for a trial's result file that cannot be read (why, and the way out); ``None`` otherwise."""
     try:
         read_result(folder, strict=True)
     except InputError as error:
