@@ -63,6 +63,11 @@ class MetricsBatchSampler:
     def __init__(self, seed: int | None = None) -> None:
         self.rng = np.random.default_rng(seed)
 
+    @classmethod
+    def for_model(cls, model: BaseAlgorithm, seed: int | None = None, offset: int = 1_000_003) -> MetricsBatchSampler:
+        """A sampler seeded with ``seed``, else with the model's seed plus ``offset`` (neither: fresh entropy)."""
+        return cls(int(model.seed) + offset if seed is None and model.seed is not None else seed)
+
     def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[Observations, np.ndarray] | None:
         """
         :param model: an off-policy model with a ``replay_buffer``
@@ -110,8 +115,7 @@ class ResumableCallback(BaseCallback):
     restarts the step count from a later state). See docs/monitoring.md#one-schedule.
     """
 
-    state_attributes: tuple[str, ...] = ()
-    """The attributes that make up the state."""
+    state_attributes: tuple[str, ...] = ()  # the attributes that make up the state
 
     _pending_state: dict[str, Any] | None = None
 
@@ -175,12 +179,9 @@ class FrameScheduleCallback(ResumableCallback):
     """
 
     state_attributes = ("next_check", "n_checks")
-    period_parameter = "check_every_frames"
-    """The constructor parameter, and attribute, that holds the period."""
-    min_period = 1
-    """The smallest period allowed (0: no scheduled check, for a callback that also acts on demand)."""
-    check_at_start = False
-    """Check at the start of ``learn()`` (at a multiple of the period), not at its last step (before its updates)."""
+    period_parameter = "check_every_frames"  # the constructor parameter, and attribute, that holds the period
+    min_period = 1  # the smallest period allowed (0: no scheduled check, for a callback that also acts on demand)
+    check_at_start = False  # check at the start of learn() (at a multiple of the period), not at its last step
 
     def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
         super().__init__(verbose)
@@ -244,12 +245,6 @@ class FrameScheduleCallback(ResumableCallback):
         if path is not None:
             append_csv_rows(path, fields, [dict(zip(fields, row, strict=True)) for row in rows])
 
-    def _new_sampler(self, seed: int | None = None, offset: int = 1_000_003) -> MetricsBatchSampler:
-        """A metrics batch sampler seeded with ``seed``, else with the model's seed plus ``offset``."""
-        if seed is None and self.model.seed is not None:
-            seed = int(self.model.seed) + offset
-        return MetricsBatchSampler(seed)
-
 
 class CollapseMetrics(FrameScheduleCallback):
     """
@@ -299,7 +294,7 @@ class CollapseMetrics(FrameScheduleCallback):
 
     def _init_callback(self) -> None:
         super()._init_callback()
-        self.sampler = self._new_sampler(self.seed)
+        self.sampler = MetricsBatchSampler.for_model(self.model, self.seed)
         self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS)
 
     def compute(self) -> dict[str, float] | None:
@@ -387,7 +382,7 @@ class ActivationLogger(FrameScheduleCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         self.path.mkdir(parents=True, exist_ok=True)
-        self.sampler = self._new_sampler(self.seed)
+        self.sampler = MetricsBatchSampler.for_model(self.model, self.seed)
 
     def _on_check(self, frames: int) -> None:
         if self.stopped:

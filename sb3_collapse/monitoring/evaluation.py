@@ -62,7 +62,7 @@ class PeriodicEvaluation(FrameScheduleCallback):
         return self.callback_after_eval is None or self.callback_after_eval.on_step()
 
     def _run_episodes(self, prefix: str) -> dict[str, float]:
-        """Evaluate now and log the result under ``<prefix>/...``; return the row (keys :data:`EVAL_FIELDS`)."""
+        """Evaluate now and log the result under ``<prefix>/...``; return the row."""
         rewards, _ = evaluate_policy(
             self.model, self.eval_env, n_eval_episodes=self.episodes, deterministic=True, return_episode_rewards=True
         )
@@ -88,12 +88,7 @@ class PeriodicEvaluation(FrameScheduleCallback):
         return row
 
     def evaluate_saved_model(self) -> dict[str, float]:
-        """
-        Evaluate the final model, logged as ``eval_saved_model/...`` (not in the CSV nor :attr:`rows`), then call
-        ``callback_after_eval``.
-
-        :return: the row (keys :data:`~sb3_collapse.protocol.EVAL_FIELDS`)
-        """
+        """Evaluate the final model as ``eval_saved_model/...`` (not in the CSV), then ``callback_after_eval``."""
         row = self._run_episodes("eval_saved_model")
         self._after_eval()
         return row

@@ -1,8 +1,4 @@
-"""
-Gradient norms of the named layers at each update, recorded by the model's
-:class:`~sb3_collapse.common.grad_norms.GradNormRecorder` when an optimizer steps (no extra backward pass):
-docs/interventions.md#the-health-value-gradient-norms-recorded-at-each-update.
-"""
+"""Gradient norms of the named layers, recorded at each update by the model's recorder (docs/interventions.md)."""
 
 from __future__ import annotations
 

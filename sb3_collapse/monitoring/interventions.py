@@ -121,11 +121,7 @@ class _SB3Parts:
 
 
 def intervention_parts(model: BaseAlgorithm) -> InterventionParts:
-    """
-    :param model: a model
-    :return: its policy when that provides :class:`InterventionParts` (DrQv2), an adapter for SB3's TD3, DDPG, SAC
-    :raises TypeError: for any other model, and for SAC with gSDE
-    """
+    """The policy's :class:`InterventionParts` (DrQv2), or an adapter for SB3's TD3, DDPG, SAC; else ``TypeError``."""
     if isinstance(model.policy, InterventionParts):
         return model.policy
     if isinstance(model, TD3):
@@ -247,18 +243,12 @@ def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
 
 
 def hidden_layers(model: BaseAlgorithm) -> list[LayerParts]:
-    """
-    :param model: a DrQv2, TD3, DDPG or SAC model
-    :return: the actor's then the critic's hidden layers that :func:`redo` may recycle
-    """
+    """The actor's then the critic's hidden layers of a DrQv2, TD3, DDPG or SAC model that :func:`redo` may recycle."""
     return intervention_parts(model).hidden_layer_parts()
 
 
 def encoder_channels(model: BaseAlgorithm) -> list[LayerParts]:
-    """
-    :param model: a DrQv2 model (``CnnPolicy``); another model or ``MlpPolicy`` has none
-    :return: ``cnn1``..``cnn4`` as layers of channels that :func:`redo` may recycle, input to output
-    """
+    """A DrQv2 ``CnnPolicy``'s ``cnn1``..``cnn4`` as layers of channels :func:`redo` may recycle (else none)."""
     return intervention_parts(model).encoder_channel_parts()
 
 
@@ -289,7 +279,7 @@ def redo(
     layers = (encoder_channels(model) if conv_channels else []) + hidden_layers(model)
     total = sum(layer.units for layer in layers)
     if samples is None:
-        sampler = sampler or MetricsBatchSampler(None if model.seed is None else int(model.seed) + 1_000_003)
+        sampler = sampler or MetricsBatchSampler.for_model(model)
         drawn = sampler.sample_transitions(model, batch_size)
         if drawn is None:
             detail = f"nothing recycled: fewer than {batch_size} transitions in the replay buffer"
@@ -417,12 +407,9 @@ def _fresh_values(module: nn.Module, fresh: nn.Module) -> Iterable[tuple[nn.Para
 
 def perturbation_noise(module: nn.Module, fresh: nn.Module) -> list[tuple[nn.Parameter, th.Tensor]]:
     """
-    The noise of :func:`shrink_perturb_noise`: ``fresh``'s weight for a Linear or a convolution, else
-    ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, ``fan_in`` the inputs of a unit (a LayerNorm's: its features).
-
-    :param module: the module whose parameters get the noise
-    :param fresh: a copy of ``module`` with new initial values
-    :return: ``(parameter, noise)`` pairs in ``module.modules()`` order, each on its parameter's device and dtype
+    ``(parameter, noise)`` pairs of :func:`shrink_perturb_noise`: ``fresh``'s (a new copy of ``module``) weight for a
+    Linear or a convolution, else ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, ``fan_in`` a unit's inputs (LayerNorm: its
+    features); each on its parameter's device and dtype.
     """
     noise = []
     for sub, fresh_sub in zip(module.modules(), fresh.modules()):
@@ -460,12 +447,7 @@ INTERVENTION_LABELS = {
 
 
 def check_intervention(name: str, model: BaseAlgorithm | None = None) -> None:
-    """
-    :param name: an intervention name
-    :param model: the model it will be applied to (``None``: check the name only)
-    :raises ValueError: for an unknown name, or a model the intervention cannot change as it says
-    :raises TypeError: for a model that no intervention supports
-    """
+    """A ``ValueError`` for an unknown name or a ``model`` it cannot change as it says; ``TypeError``: no support."""
     if name not in INTERVENTIONS:
         raise ValueError(f"intervention must be one of {', '.join(INTERVENTIONS)}; got {name!r}.")
     if model is not None:

@@ -61,7 +61,7 @@ class PeriodicReDo(FrameScheduleCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         intervention_parts(self.model)  # a TypeError for a model the interventions do not support
-        self.sampler = self._new_sampler(offset=2_000_003)
+        self.sampler = MetricsBatchSampler.for_model(self.model, offset=2_000_003)
         self._append_rows(self.events_path, self.EVENT_FIELDS)
 
     def _on_training_start(self) -> None:

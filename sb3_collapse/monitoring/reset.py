@@ -130,7 +130,7 @@ class CollapseReset(FrameScheduleCallback):
             names = list(layer_parameters(self.model))
             if self.layer not in names:
                 raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
-        self.sampler = self._new_sampler()
+        self.sampler = MetricsBatchSampler.for_model(self.model)
         self._append_rows(self.events_path, self.EVENT_FIELDS)
 
     def _write_event(self, frames: int, event: str, detail: str = "") -> None:
