@@ -17,7 +17,6 @@ from sb3_collapse.errors import (
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import checkpoint_frames
-from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
 from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
@@ -31,7 +30,7 @@ from sb3_collapse.sweep.donors import (
 )
 from sb3_collapse.sweep.runner import (
     SweepSummary,
-    check_sweep_arguments,
+    check_sweep,
     prepare_sweep_folder,
     run_sweep,
     sweep_settings,
@@ -39,7 +38,6 @@ from sb3_collapse.sweep.runner import (
 from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
     VARIANT_FORMS,
-    check_checkpoints,
     damaged_result,
     donor_key,
     expand_trials,
@@ -47,7 +45,6 @@ from sb3_collapse.sweep.trials import (
     transplant_of,
     trial_config,
     trial_dir,
-    variant_settings,
 )
 
 DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
@@ -142,12 +139,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.transplant_grid:
         variants += GRID_VARIANTS
     try:
-        check_sweep_arguments(args.out, training, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s)
         trials = expand_trials(args.tasks, variants, seeds)
-        for task, variant in dict.fromkeys((trial.task, trial.variant) for trial in trials):  # its preset, its rule
-            TrainConfig(**training, env=task, **variant_settings(variant)).validate()
         checkpoints, donors = transplant_checkpoints(args, trials)
-        check_checkpoints(trials, checkpoints)
+        check_sweep(
+            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
+        )
         if args.dry_run:
             return dry_run(trials, args.out, training, checkpoints, args.allow_changed_settings, donors)
         summary = run_sweep(

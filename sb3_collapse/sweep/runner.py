@@ -38,12 +38,22 @@ from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
 from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
-from sb3_collapse.sweep.trials import Trial, check_checkpoints, damaged_result, trial_config, trial_dir
+from sb3_collapse.sweep.trials import (
+    Trial,
+    damaged_result,
+    donor_key,
+    transplant_of,
+    trial_config,
+    trial_dir,
+    variant_settings,
+)
 
 
-def check_sweep_arguments(
+def check_sweep(
+    trials: Sequence[Trial],
     out: str | Path,
     training: Mapping[str, Any],
+    checkpoints: Mapping[str, Mapping[str, str]],
     cpus_per_trial: float = 1,
     gpus_per_trial: float = 0,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
@@ -70,6 +80,18 @@ def check_sweep_arguments(
     blocking = blocking_file(out)
     if blocking is not None:
         raise InputError(f"out {out}: {blocking} is a file, not a folder.", parameter="out")
+    unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
+    if unknown:
+        raise InputError(f"Unknown training settings {unknown}: use TrainConfig field names.")
+    for task, variant in dict.fromkeys((trial.task, trial.variant) for trial in trials):  # its preset, its rule
+        TrainConfig(**{**training, "env": task, **variant_settings(variant)}).validate()
+    for trial in trials:
+        for part, source in (transplant_of(trial.variant) or {}).items():
+            if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
+                raise InputError(
+                    f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-{part} "
+                    f"PATH (or {trial.task}=PATH) for {trial.task}, or --donors-from a finished sweep."
+                )
 
 
 @contextlib.contextmanager
@@ -335,12 +357,8 @@ def run_sweep(
     :raises MissingDependencyError: when there are trials to run and Ray is not installed
     :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time; nothing was written
     """
-    check_sweep_arguments(out, training, cpus_per_trial, gpus_per_trial, connect_timeout_s)
-    unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
-    if unknown:
-        raise InputError(f"Unknown training settings {unknown}: use TrainConfig field names.")
     checkpoints = {source: dict(paths) for source, paths in (checkpoints or {}).items()}
-    check_checkpoints(trials, checkpoints)
+    check_sweep(trials, out, training, checkpoints, cpus_per_trial, gpus_per_trial, connect_timeout_s)
     out = Path(out).resolve()
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
     settings = sweep_settings(trials, training, checkpoints, resources, donors)

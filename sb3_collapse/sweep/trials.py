@@ -185,17 +185,6 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
     return resolved
 
 
-def check_checkpoints(trials: Iterable[Trial], checkpoints: Mapping[str, Mapping[str, str]]) -> None:
-    """An ``InputError`` naming the first grid trial without its donor's checkpoint (key -> task -> path)."""
-    for trial in trials:
-        for part, source in (transplant_of(trial.variant) or {}).items():
-            if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
-                raise InputError(
-                    f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-{part} "
-                    f"PATH (or {trial.task}=PATH) for {trial.task}, or --donors-from a finished sweep."
-                )
-
-
 def trial_config(
     trial: Trial,
     out: str | Path,
