@@ -42,8 +42,7 @@ def collect_activations(
     device: th.device | str = "cpu",
 ) -> dict[str, th.Tensor]:
     """
-    Run observations through the actor and return the named activations, in eval mode without gradient; the
-    policy's mode is restored and the hooks removed afterwards, even on error.
+    The named activations of the actor on ``observations``, in eval mode without gradient (then restored).
 
     :param model: a DrQv2, TD3, DDPG or SAC model, or its policy
     :param observations: a batch as stored by the env (e.g. uint8 ``(n, 9, 84, 84)``), or a dict of them, one per key

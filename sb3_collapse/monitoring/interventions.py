@@ -1,7 +1,6 @@
 """
-The interventions that :class:`~sb3_collapse.monitoring.reset.CollapseReset` applies at the end of a window without
-escape, each ``model -> InterventionResult`` on the :class:`InterventionParts` of the model's policy (what each resets
-and keeps: docs/interventions.md#the-interventions).
+The interventions that ``CollapseReset`` applies at the end of a window without escape, each ``model ->
+InterventionResult`` on the model policy's :class:`InterventionParts` (docs/interventions.md#the-interventions).
 """
 
 from __future__ import annotations
@@ -24,8 +23,7 @@ from sb3_collapse.monitoring.callbacks import MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.monitoring.metrics import DORMANT_TAU, dormant_units
 
-REDO_EVERY_UPDATES = 1000
-"""ReDo's recycling period ``F`` by default, in updates, for :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`."""
+REDO_EVERY_UPDATES = 1000  # ReDo's recycling period F by default, in updates (PeriodicReDo)
 
 
 @dataclass(frozen=True)
@@ -65,13 +63,7 @@ class InterventionParts(Protocol):
 
 
 class _SB3Parts:
-    """
-    :class:`InterventionParts` of an SB3 TD3 or DDPG (``kind="td3"``) or SAC (``kind="sac"``) policy, from the layers
-    of :mod:`sb3_collapse.common.layers`.
-
-    :param policy: the model's policy
-    :param kind: ``"td3"`` or ``"sac"``
-    """
+    """:class:`InterventionParts` of an SB3 TD3 or DDPG (``kind="td3"``) or SAC (``kind="sac"``) policy."""
 
     def __init__(self, policy: Any, kind: str) -> None:
         self.policy = policy
@@ -261,11 +253,9 @@ def redo(
     conv_channels: bool = False,
 ) -> InterventionResult:
     """
-    ReDo, "Recycling Dormant neurons" (Sokar et al., ICML 2023), once: each dormant unit
-    (:func:`~sb3_collapse.monitoring.metrics.dormant_units`) of :func:`hidden_layers` (and with ``conv_channels`` of
-    :func:`encoder_channels`) gets new incoming weights, zero outgoing weights in every network that reads it and
-    zero Adam moments for those entries, so no network's output changes (periodic form:
-    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`).
+    ReDo, "Recycling Dormant neurons" (Sokar et al., ICML 2023), once: each dormant unit of :func:`hidden_layers`
+    (and :func:`encoder_channels`) gets new incoming weights, zero outgoing weights in every network that reads it
+    and zero Adam moments for those entries, so no network's output changes.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param tau: the dormancy threshold, relative to the layer's mean
@@ -354,7 +344,7 @@ def shrink_perturb(model: BaseAlgorithm, shrink: float = 0.8, perturb: float = 0
     :return: what was done
     """
     fresh = "theta_0 (toward a fresh init)"
-    return _shrink_and_add(model, "shrink_perturb", shrink, perturb, "perturb", _fresh_values, fresh)
+    return _shrink_and_add(model, "shrink_perturb", shrink, perturb, "perturb", None, fresh)
 
 
 def shrink_perturb_noise(model: BaseAlgorithm, shrink: float = 0.8, noise: float = 0.01) -> InterventionResult:
@@ -377,11 +367,11 @@ def _shrink_and_add(
     shrink: float,
     scale: float,
     scale_name: str,
-    draw: Callable[[nn.Module, nn.Module], Iterable[tuple[nn.Parameter, th.Tensor]]],
+    draw: Callable[[nn.Module, nn.Module], Iterable[tuple[nn.Parameter, th.Tensor]]] | None,
     what: str,
 ) -> InterventionResult:
     """``theta <- shrink * theta + scale * value`` on the online networks, ``draw(network, fresh copy)`` giving
-    ``(parameter, value)`` pairs; ``scale_name`` names ``scale`` in errors, ``what`` the values in the detail."""
+    ``(parameter, value)`` pairs (``None``: the fresh copy's values); ``what`` names the values in the detail."""
     if not 0.0 < shrink <= 1.0:
         raise ValueError(f"shrink must be in (0, 1], got {shrink}.")
     if not scale >= 0.0:
@@ -390,8 +380,9 @@ def _shrink_and_add(
     networks = parts.online_networks()
     seen: set[int] = set()
     for module in networks.values():
+        fresh = _fresh_copy(module, parts)
         with th.no_grad():
-            for param, new in draw(module, _fresh_copy(module, parts)):
+            for param, new in zip(module.parameters(), fresh.parameters()) if draw is None else draw(module, fresh):
                 if id(param) not in seen:  # a features extractor shared by the actor and the critic: once
                     seen.add(id(param))
                     param.mul_(shrink).add_(new, alpha=scale)
@@ -399,10 +390,6 @@ def _shrink_and_add(
     changed = _count(param for module in networks.values() for param in module.parameters())
     detail = f"theta <- {shrink:g} theta + {scale:g} {what} on the {', '.join(networks)}; optimizer state kept"
     return InterventionResult(name, detail, {"weights_changed": float(changed)})
-
-
-def _fresh_values(module: nn.Module, fresh: nn.Module) -> Iterable[tuple[nn.Parameter, th.Tensor]]:
-    return zip(module.parameters(), fresh.parameters())
 
 
 def perturbation_noise(module: nn.Module, fresh: nn.Module) -> list[tuple[nn.Parameter, th.Tensor]]:

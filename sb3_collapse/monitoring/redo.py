@@ -12,10 +12,9 @@ from sb3_collapse.monitoring.metrics import DORMANT_TAU
 
 class PeriodicReDo(FrameScheduleCallback):
     """
-    ReDo (Sokar et al., "The Dormant Neuron Phenomenon in Deep Reinforcement Learning", ICML 2023) as its authors run
-    it: :func:`~sb3_collapse.monitoring.interventions.redo` at the first agent step after ``model.n_updates`` reaches
-    each multiple of ``every_updates``, for the whole run; :attr:`history` holds ``(updates, frame,
-    units_recycled)`` per recycling. See docs/interventions.md#redo-every-f-updates-periodicredo.
+    ReDo (Sokar et al., ICML 2023) as its authors run it: :func:`~sb3_collapse.monitoring.interventions.redo` each
+    time ``model.n_updates`` reaches a multiple of ``every_updates``, the whole run; :attr:`history` holds ``(updates,
+    frame, units_recycled)`` per recycling. See docs/interventions.md#redo-every-f-updates-periodicredo.
 
     :param every_updates: ``F``, the updates between two recyclings
     :param tau: the dormancy threshold, relative to the layer's mean

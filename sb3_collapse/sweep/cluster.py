@@ -143,9 +143,8 @@ def ray_session(
     address: str | None = None, num_cpus: int | None = None, connect_timeout_s: float = CONNECT_TIMEOUT_S
 ) -> Iterator[Any]:
     """
-    Ray for the duration of the block: an already initialized Ray as it is, else a new local instance (ended with
-    this process, even by SIGKILL: :mod:`sb3_collapse.sweep.watchdog`) or the cluster at ``address``, checked first
-    (:func:`check_cluster`).
+    Ray for the block: an initialized Ray as it is, else a new local instance (ended with this process, even by
+    SIGKILL) or the cluster at ``address``, checked first (:func:`check_cluster`).
 
     :param address: Ray cluster address, ``None`` for a new local instance
     :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``

@@ -126,17 +126,11 @@ def run_trial(
     torch_threads: int | None = None,
 ) -> dict[str, Any]:
     """
-    Run one trial into its folder: an unfinished attempt resumes (one with other settings is deleted first); a
-    failure goes to the trial's error file, not up.
+    Run one trial into its folder (an unfinished attempt resumes; with other settings it is deleted first); a failure
+    goes to the trial's error file. The parameters are :func:`~sb3_collapse.sweep.trials.trial_config`'s.
 
-    :param trial: the trial
-    :param out: the sweep folder
-    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials
-    :param checkpoints: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> checkpoint path, for grid cells
-    :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
-    :param torch_threads: threads of torch's CPU operations
-    :return: ``{"trial", "status": "finished" | "failed" | "interrupted", "error": the error's line or None,
-        "resumes"}``, with ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or the driver
+    :return: ``{"trial", "status": "finished" | "failed" | "interrupted", "error": its line or None, "resumes"}``,
+        ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or the driver
     """
     stop_file = Path(out) / SWEEP_STOP
     if stop_file.exists():  # the driver is stopping: a trial that had not started stays as it is
@@ -267,8 +261,7 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
     """
     :param previous: the settings in the sweep's settings file
     :param current: the settings of this run
-    :return: one line per training setting that differs (new tasks, seeds, variants and donors may be added), empty
-        when the trials would train the same way
+    :return: one line per training setting that differs (tasks, seeds, variants and donors may be added)
     """
     changes = []
     old, new = previous.get("training", {}), current.get("training", {})
@@ -336,14 +329,12 @@ def run_sweep(
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
 ) -> SweepSummary:
     """
-    Run every trial that is not finished, each as an independent Ray task, and wait for all of them: finished trials
-    are skipped, the others resume from their newest checkpoint; a failing trial writes its error file and the
-    others go on. A SIGTERM or SIGINT stops every trial at a checkpoint (a second one at once). See docs/sweeps.md.
+    Run every unfinished trial as an independent Ray task (resuming from its newest checkpoint) and wait for all of
+    them; a SIGTERM or SIGINT stops every trial at a checkpoint (a second one at once). See docs/sweeps.md.
 
     :param trials: the trials (:func:`~sb3_collapse.sweep.trials.expand_trials`)
     :param out: the sweep folder; with ``address`` it must be on storage that every node sees at the same path
-    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (not ``env``,
-        ``seed``, folders, ``device``...)
+    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (not ``env``, ``seed``)
     :param checkpoints: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> checkpoint path, for grid cells
     :param cpus_per_trial: CPUs Ray reserves per trial; also the trial's torch threads (at least 1)
     :param gpus_per_trial: GPUs Ray reserves per trial (``0.25``: four trials share a GPU); > 0 trains on ``cuda``
@@ -353,9 +344,9 @@ def run_sweep(
     :param donors: how the donors were picked (:func:`~sb3_collapse.sweep.donors.donors_record`), ``None`` if given
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer (:func:`ray_session`)
     :return: what was skipped, finished, failed and interrupted
-    :raises InputError: for settings that cannot run, or another sweep running into ``out``; nothing was written
+    :raises InputError: for settings that cannot run, or another sweep running into ``out`` (nothing written)
     :raises MissingDependencyError: when there are trials to run and Ray is not installed
-    :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time; nothing was written
+    :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time (nothing written)
     """
     checkpoints = {source: dict(paths) for source, paths in (checkpoints or {}).items()}
     check_sweep(trials, out, training, checkpoints, cpus_per_trial, gpus_per_trial, connect_timeout_s)

@@ -90,10 +90,8 @@ def transplant_of(variant: str) -> dict[str, str] | None:
 
 def variant_settings(variant: str) -> dict[str, Any]:
     """
-    :param variant: a variant name
-    :return: the :class:`~sb3_collapse.run.config.TrainConfig` settings it fixes: ``algorithm``, ``reset_rule``,
-        ``intervention``, ``activation`` and ``redo_every_updates``
-    :raises InputError: for an unknown variant
+    :param variant: a variant name (an unknown one: ``InputError``)
+    :return: the ``TrainConfig`` settings it fixes: algorithm, reset_rule, intervention, activation, redo_every_updates
     """
     settings: dict[str, Any] = {
         "algorithm": "drqv2", "reset_rule": False, "intervention": None, "activation": "relu", "redo_every_updates": 0
@@ -113,13 +111,12 @@ def variant_settings(variant: str) -> dict[str, Any]:
 
 def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable[int]) -> list[Trial]:
     """
-    Every (task, variant, seed) combination, in that nesting order.
+    Every (task, variant, seed) combination, in that nesting order; an ``InputError`` for an unknown task or variant,
+    a negative seed, an empty list or a value listed twice.
 
     :param tasks: task names (any form of :func:`canonical_task`)
     :param variants: variant names
     :param seeds: seeds (>= 0)
-    :return: the trials
-    :raises InputError: for an unknown task or variant, a negative seed, an empty list or a value listed twice
     """
     tasks = [canonical_task(task) for task in tasks]
     variants, seeds = list(variants), [int(seed) for seed in seeds]
@@ -194,8 +191,8 @@ def trial_config(
     torch_threads: int | None = None,
 ) -> TrainConfig:
     """
-    The resolved settings of one trial: the sweep's, the trial's task, seed, folder and variant
-    (:func:`variant_settings`), the donors' weights; the settings left at ``None`` come from the task's preset.
+    The resolved ``TrainConfig`` of one trial: the sweep's settings, its task, seed, folder, variant and donors; the
+    settings left at ``None`` come from the task's preset.
 
     :param trial: the trial
     :param out: the sweep folder
@@ -203,7 +200,6 @@ def trial_config(
     :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> checkpoint path, for transplant-grid cells
     :param device: the torch device of the trial
     :param torch_threads: threads of torch's CPU operations in the trial
-    :return: the trial's :class:`~sb3_collapse.run.config.TrainConfig`
     """
     transplant = transplant_of(trial.variant)
     per_trial: dict[str, Any] = {
