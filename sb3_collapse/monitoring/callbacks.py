@@ -170,9 +170,8 @@ class ResumableCallback(BaseCallback):
 
 class FrameScheduleCallback(ResumableCallback):
     """
-    The schedule of every periodic callback: :meth:`_on_check` at the first step where the frames (or what
-    :meth:`_count` counts) reach each multiple of the period, once for a step that crosses several; resumable.
-    See docs/monitoring.md#one-schedule.
+    The schedule of every periodic callback: :meth:`_on_check` at the first step where the frames (or :meth:`_count`)
+    reach each multiple of the period, once for a step that crosses several. See docs/monitoring.md#one-schedule.
 
     :param check_every_frames: frames between two checks (a subclass may name it :attr:`period_parameter`)
     :param verbose: 0 silent, 1 info
@@ -248,8 +247,8 @@ class FrameScheduleCallback(ResumableCallback):
 
 class CollapseMetrics(FrameScheduleCallback):
     """
-    Logs the collapse metrics of every named layer (tags: docs/monitoring.md) every ``check_every_frames`` on a
-    metrics batch of replay observations (skipped while fewer are stored); the last values in :attr:`last_metrics`.
+    Logs the collapse metrics of every named layer (tags: docs/monitoring.md) on a metrics batch of replay
+    observations every ``check_every_frames`` (while enough are stored); the last values in :attr:`last_metrics`.
 
     :param check_every_frames: frames between two checks
     :param batch_size: observations of the metrics batch

@@ -16,9 +16,8 @@ from sb3_collapse.protocol import EVAL_FIELDS, append_csv_rows
 
 class PeriodicEvaluation(FrameScheduleCallback):
     """
-    Deterministic evaluation at frame 0 and every ``every_frames`` frames (not at the last step of ``learn()``):
-    logged as ``eval/{mean_reward,std_reward,frames}``, appended to ``csv_path`` and kept in :attr:`rows`; then
-    ``callback_after_eval``, as in SB3's ``EvalCallback`` (its ``False`` stops ``learn()``). See docs/monitoring.md.
+    Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged as ``eval/...``, appended to
+    ``csv_path``, kept in :attr:`rows`; then ``callback_after_eval``, as SB3's ``EvalCallback``. See docs/monitoring.md.
 
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations

@@ -211,9 +211,8 @@ def _span(parts: InterventionParts, modules: Sequence[nn.Module]) -> str:
 
 def reset_actor(model: BaseAlgorithm) -> InterventionResult:
     """
-    Reset the actor (after Nikishin et al., "The Primacy Bias in Deep Reinforcement Learning", ICML 2022): new
-    weights for :meth:`InterventionParts.actor_modules` (and TD3's target actor), their optimizer state forgotten;
-    the critic, the encoder, the buffer and the counters kept. SAC with ``share_features_extractor=True`` is refused.
+    Reset the actor (Nikishin et al., ICML 2022): new weights for :meth:`InterventionParts.actor_modules` (and TD3's
+    target actor), their optimizer state forgotten, the rest kept; SAC with ``share_features_extractor`` refused.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
@@ -224,9 +223,8 @@ def reset_actor(model: BaseAlgorithm) -> InterventionResult:
 
 def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
     """
-    Reset the actor's MLP after the encoder, where the paper's Figure 3 locates collapse
-    (:meth:`InterventionParts.actor_mlp_modules`; after Nikishin et al., ICML 2022): new weights, their optimizer state
-    forgotten; the encoder or features extractor, the critic, the buffer and the counters kept.
+    Reset the actor's MLP after the encoder, where the paper's Figure 3 locates collapse (after Nikishin et al., ICML
+    2022): new weights, their optimizer state forgotten; the encoder, the critic, the buffer and the counters kept.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
@@ -349,8 +347,8 @@ def shrink_perturb(model: BaseAlgorithm, shrink: float = 0.8, perturb: float = 0
 
 def shrink_perturb_noise(model: BaseAlgorithm, shrink: float = 0.8, noise: float = 0.01) -> InterventionResult:
     """
-    Ash and Adams' shrink and perturb ("On Warm-Starting Neural Network Training", NeurIPS 2020): ``theta <- lambda *
-    theta + sigma * noise`` on every parameter of the online networks (:func:`perturbation_noise`), the rest kept.
+    Ash and Adams' shrink and perturb (NeurIPS 2020): ``theta <- lambda * theta + sigma * noise`` on every parameter
+    of the online networks (:func:`perturbation_noise`), the rest kept.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param shrink: lambda, in ``(0, 1]``

@@ -39,12 +39,10 @@ class CollapseReset(FrameScheduleCallback):
     :param patience: consecutive healthy checks that mean an escape
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
-    :param metric: ``"grad_norm"`` (the paper's), ``"action_std"`` (the spread of the actions of a metrics batch) or
-        a callable ``model -> float | None``; above ``threshold`` is healthy
+    :param metric: ``"grad_norm"`` (the paper's), ``"action_std"`` (a metrics batch's action spread), ``model -> float``
     :param batch_size: replay observations of the batch of ``metric="action_std"`` and ``intervention="redo"``
     :param events_path: CSV file that each intervention and the escape append a row to (``None``: none)
-    :param intervention: what to do at the end of a window without escape, a key of
-        :data:`~sb3_collapse.monitoring.interventions.INTERVENTIONS` (``"reset"``: the paper's)
+    :param intervention: what a window without escape ends with, a key of ``INTERVENTIONS`` (``"reset"``: the paper's)
     :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"``
     :param verbose: 0 silent, 1 prints each intervention and the escape
     """
