@@ -14,8 +14,7 @@ from typing import Any
 
 from sb3_collapse.errors import ClusterUnreachable, InputError, MissingDependencyError
 
-CONNECT_TIMEOUT_S = 30.0
-"""Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
+CONNECT_TIMEOUT_S = 30.0  # seconds a sweep waits for the Ray cluster at its address to answer
 
 
 def import_ray() -> Any:

@@ -23,23 +23,19 @@ from sb3_collapse.runfolder import read_result
 LEAKY = "-leaky"  # suffix of the DrQ-v2 variants with Leaky-ReLU activations (drqv2-leaky)
 PERIODIC_REDO = "redo_periodic"  # <algorithm>+redo_periodic: ReDo every REDO_EVERY_UPDATES updates, no rule
 BASE_VARIANTS = ("drqv2", f"drqv2{LEAKY}", *(algorithm for algorithm in ALGORITHMS if algorithm != "drqv2"))
-"""The algorithms of the variants: ``drqv2``, ``drqv2-leaky``, ``td3``, ``sac``."""
 PLAIN_VARIANTS = tuple(
     f"{base}{suffix}"
     for base in BASE_VARIANTS
     for suffix in ("", *(f"+{i}" for i in INTERVENTIONS), f"+{PERIODIC_REDO}")
 )
-"""``<algorithm>``, ``<algorithm>+<intervention>`` and ``<algorithm>+redo_periodic``."""
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
-"""The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
 VARIANT_FORMS = (
     f"<algorithm>, <algorithm>+<intervention> with <algorithm> in {', '.join(BASE_VARIANTS)} and <intervention> in "
     f"{', '.join(INTERVENTIONS)} (the paper's rule doing it) or {PERIODIC_REDO} (ReDo every {REDO_EVERY_UPDATES} "
     "updates, no rule), e.g. drqv2+reset, td3+redo, drqv2-leaky+redo_periodic; or a transplant-grid cell "
     f"cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} (e.g. cnn-good_mlp-bad)"
 )
-"""The variant names, for help and error messages."""
 
 
 def donor_key(source: str, part: str) -> str:

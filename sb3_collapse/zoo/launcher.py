@@ -19,8 +19,7 @@ from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 PROG = "python -m sb3_collapse.zoo"
 COMMANDS = ("train", "enjoy")
 _DRQV2 = PRESETS["walker-walk"]  # the evaluation protocol is the same for every task
-DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat
-"""DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` / action repeat."""
+DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat  # DrQ-v2's evaluation period, in agent steps
 SWITCHES = {  # the launcher's own options (every other one goes to rl_zoo3) and the callbacks they add
     "--collapse-metrics": {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}},
     "--reset-rule": {
