@@ -238,6 +238,12 @@ class FrameScheduleCallback(ResumableCallback):
         """A check at ``count`` (frames, or what :meth:`_count` counts); ``False`` stops ``learn()``."""
         raise NotImplementedError
 
+    def _batch_activations(self, layers: Iterable[str] | None, **kwargs: Any) -> tuple[dict, np.ndarray] | None:
+        """``layers``' activations on a new metrics batch of ``self.batch_size``, its indices; ``None`` while fewer."""
+        assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
+        batch = self.sampler.sample(self.model, self.batch_size)
+        return None if batch is None else (collect_activations(self.model, batch[0], layers=layers, **kwargs), batch[1])
+
     @staticmethod
     def _append_rows(path: Path | None, fields: Sequence[str], *rows: Sequence[Any]) -> None:
         """Append ``rows`` (values in the order of ``fields``) to the CSV file ``path``, if any, its header first."""
@@ -298,13 +304,10 @@ class CollapseMetrics(FrameScheduleCallback):
 
     def compute(self) -> dict[str, float] | None:
         """:return: every metric on a new metrics batch, not logged: tag -> value (``None`` while too few are stored)"""
-        assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
-        batch = self.sampler.sample(self.model, self.batch_size)
-        if batch is None:
+        drawn = self._batch_activations(self.layers, batch_size=self.forward_batch_size, device=self.model.device)
+        if drawn is None:
             return None
-        activations = collect_activations(
-            self.model, batch[0], layers=self.layers, batch_size=self.forward_batch_size, device=self.model.device
-        )
+        activations = drawn[0]
         values = {
             f"collapse/{layer}/{name}": value
             for layer, acts in activations.items()
@@ -386,12 +389,10 @@ class ActivationLogger(FrameScheduleCallback):
     def _on_check(self, frames: int) -> None:
         if self.stopped:
             return
-        assert self.sampler is not None
-        batch = self.sampler.sample(self.model, self.batch_size)
-        if batch is None:
+        drawn = self._batch_activations(self.layers)
+        if drawn is None:
             return
-        observations, indices = batch
-        activations = collect_activations(self.model, observations, layers=self.layers)
+        activations, indices = drawn
         arrays = {name: value.numpy() for name, value in activations.items()}
         content = io.BytesIO()
         layers = np.array(list(arrays))

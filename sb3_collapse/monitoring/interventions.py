@@ -62,12 +62,12 @@ class InterventionParts(Protocol):
     def forward_hidden(self, observations: Any, actions: th.Tensor) -> None: ...  # run the layers of the two above
 
 
+@dataclass
 class _SB3Parts:
     """:class:`InterventionParts` of an SB3 TD3 or DDPG (``kind="td3"``) or SAC (``kind="sac"``) policy."""
 
-    def __init__(self, policy: Any, kind: str) -> None:
-        self.policy = policy
-        self.kind = kind
+    policy: Any
+    kind: str
 
     @property
     def optimizers(self) -> list[th.optim.Optimizer]:

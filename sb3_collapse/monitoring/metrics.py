@@ -53,8 +53,7 @@ def _numerical_rank(s: th.Tensor) -> float:
 def numerical_rank(activations: th.Tensor) -> float:
     """
     The paper's numerical rank (Section 5.1): "we compute the numerical rank (Zhou et al., 2022) of the matrix of MLP
-    activations H", ``(sum_i s_i)^2 / sum_i s_i^2`` with ``s_i`` the singular values of ``H``; 0 for an all-zero
-    matrix.
+    activations H": ``(sum_i s_i)^2 / sum_i s_i^2``, ``s_i`` the singular values of ``H`` (0 if all zero).
 
     :param activations: ``(n, *unit_shape)`` activations
     :return: the numerical rank, in ``[0, min(n, d)]``
@@ -121,8 +120,7 @@ def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
 
     :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
     :param absolute: average the absolute values of the correlations
-    :return: the mean correlation, in ``[-1 / (m - 1), 1]`` for ``m`` varying units (in ``[0, 1]`` with
-        ``absolute``); NaN when fewer than two units vary over the inputs
+    :return: the mean correlation (``[-1/(m-1), 1]`` for ``m`` varying units), NaN when fewer than two units vary
     """
     units = unit_activations(activations).double()  # (units, N): N = n x positions
     largest = th.maximum(units.amax(1), -units.amin(1))

@@ -13,7 +13,6 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_collapse.common.layers import LAYER_NAMES, layer_parameters
 from sb3_collapse.common.model import CollapseModel
 from sb3_collapse.errors import ParameterError
-from sb3_collapse.monitoring.activations import collect_activations
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norms_of
 from sb3_collapse.monitoring.interventions import (
@@ -151,12 +150,8 @@ class CollapseReset(FrameScheduleCallback):
             return None if value is None else float(value)
         if self.metric == "grad_norm":
             return grad_norms_of(self.model).get(self.layer)
-        assert self.sampler is not None
-        batch = self.sampler.sample(self.model, self.batch_size)
-        if batch is None:
-            return None
-        actions = collect_activations(self.model, batch[0], layers=["action"], device=self.model.device)["action"]
-        return action_spread(actions)
+        drawn = self._batch_activations(["action"], device=self.model.device)
+        return None if drawn is None else action_spread(drawn[0]["action"])
 
     def _on_step(self) -> bool:
         super()._on_step()  # runs _on_check at check frames

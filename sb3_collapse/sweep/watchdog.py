@@ -9,8 +9,6 @@ import time
 
 import psutil
 
-POLL_SECONDS = 0.5
-
 
 def _descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
     """The descendants of ``pid`` but this process, by (pid, creation time): a reused pid is never taken."""
@@ -44,7 +42,7 @@ def _driver_alive(process: psutil.Process) -> bool:
         return False
 
 
-def watch(driver_pid: int, poll_seconds: float = POLL_SECONDS) -> int:
+def watch(driver_pid: int, poll_seconds: float = 0.5) -> int:
     """Follow the descendants of ``driver_pid`` until it dies, then end those still running; return how many."""
     try:
         driver = psutil.Process(driver_pid)
