@@ -206,14 +206,12 @@ class SweepSummary:
     :param trials: every trial of the sweep
     :param skipped: trials already finished before this run
     :param finished: trials finished in this run
-    :param failed: trial -> the file that says why, for the trials that failed (its error file, or its unreadable
-        result file: see ``damaged``)
+    :param failed: trial -> the file that says why it failed (its error file, or its unreadable result file)
     :param repeating: the failed trials that a rerun would fail the same way (:func:`retryable`)
     :param resumed: the trials finished in this run that continued from a checkpoint
     :param interrupted: trial -> the checkpoint it wrote as it stopped by a signal (``None``: it had not started)
     :param stopped_by: the signal that stopped the sweep's driver (``"SIGTERM"``, ``"SIGINT"``), ``None`` if none
-    :param damaged: trial -> one line (why its result file is unreadable, and the way out), for the trials not run
-        for that reason (also in ``failed`` and ``repeating``)
+    :param damaged: trial -> why its result file is unreadable and the way out (not run; in ``failed``, ``repeating``)
     """
 
     trials: list[Trial]
