@@ -10,7 +10,7 @@ import inspect
 import io
 import os
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -244,6 +244,12 @@ class FrameScheduleCallback(ResumableCallback):
         batch = self.sampler.sample(self.model, self.batch_size)
         return None if batch is None else (collect_activations(self.model, batch[0], layers=layers, **kwargs), batch[1])
 
+    def _log(self, frames: int, values: Mapping[str, float]) -> None:
+        """Record ``values`` (tag -> value) and ``time/frames``, then dump them at the model's agent step."""
+        for tag, value in {**values, "time/frames": frames}.items():
+            self.logger.record(tag, value)
+        self.logger.dump(self.model.num_timesteps)
+
     @staticmethod
     def _append_rows(path: Path | None, fields: Sequence[str], *rows: Sequence[Any]) -> None:
         """Append ``rows`` (values in the order of ``fields``) to the CSV file ``path``, if any, its header first."""
@@ -328,10 +334,7 @@ class CollapseMetrics(FrameScheduleCallback):
                 print(f"CollapseMetrics: frame {frames} skipped, fewer than {self.batch_size} transitions stored")
             return
         self.last_metrics = values
-        for tag, value in values.items():
-            self.logger.record(tag, value)
-        self.logger.record("time/frames", frames)
-        self.logger.dump(self.num_timesteps)
+        self._log(frames, values)
         rows = [(frames, self.num_timesteps, tag, value) for tag, value in values.items()]
         self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS, *rows)
         if self.verbose >= 1:

@@ -91,8 +91,5 @@ class PeriodicReDo(FrameScheduleCallback):
         self._append_rows(self.events_path, self.EVENT_FIELDS, row)
         if self.verbose >= 1:
             print(f"PeriodicReDo: update {updates}, frame {frames}: {result.detail}")
-        self.logger.record("redo/units_recycled", recycled)
-        self.logger.record("redo/units_total", result.scalars["units_total"])
-        self.logger.record("redo/recycles", self.recycles)
-        self.logger.record("time/frames", frames)
-        self.logger.dump(self.model.num_timesteps)
+        scalars = {"redo/units_recycled": recycled, "redo/units_total": result.scalars["units_total"]}
+        self._log(frames, {**scalars, "redo/recycles": self.recycles})

@@ -204,8 +204,5 @@ class CollapseReset(FrameScheduleCallback):
         self._record(frames)
 
     def _record(self, frames: int) -> None:
-        self.logger.record("collapse/reset_rule/streak", self.streak)
-        self.logger.record("collapse/resets", self.resets)
-        self.logger.record("collapse/escaped", int(self.escaped))
-        self.logger.record("time/frames", frames)
-        self.logger.dump(self.num_timesteps)
+        rule = {"collapse/reset_rule/streak": self.streak, "collapse/resets": self.resets}
+        self._log(frames, {**rule, "collapse/escaped": int(self.escaped)})
