@@ -245,8 +245,8 @@ def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float
     :param activations: ``(n, *unit_shape)`` activations
     :param tau: threshold of :func:`dormant_ratio`
     :param delta: threshold of :func:`effective_rank`
-    :return: ``numerical_rank``, ``srank`` (:func:`effective_rank`), ``correlation`` (:func:`unit_correlation`),
-        ``input_correlation``, ``zero_fraction``, ``dead_fraction``, ``dead_units`` (as a float), ``dormant_ratio``
+    :return: ``numerical_rank``, ``srank``, ``correlation`` (:func:`unit_correlation`), ``input_correlation``,
+        ``zero_fraction``, ``dead_fraction``, ``dead_units`` (as a float), ``dormant_ratio``
     """
     h = flatten_batch(activations)
     gram = h @ h.T
