@@ -150,7 +150,7 @@ def ray_session(
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer
     :return: the ``ray`` module
     :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time
-    :raises InputError: for an address that cannot be right, or a cluster that wants a token this process lacks
+    :raises InputError: for a wrong address, or a cluster that wants a token this process lacks
     """
     ray = import_ray()
     if ray.is_initialized():

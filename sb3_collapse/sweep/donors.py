@@ -90,8 +90,7 @@ def pick_donors(
     :param sources: the classes to pick (``"good"``, ``"bad"``)
     :param success_return: a final return at least this is a well-performing agent
     :param failure_return: a final return below this is a poorly performing agent
-    :return: :func:`donor_key` -> donor, for each source and part
-    :raises InputError: when a class has fewer than two agents (saying how many and what to pass instead)
+    :return: :func:`donor_key` -> donor, for each source and part (``InputError``: a class of fewer than two agents)
     """
     candidates = donor_candidates(sweep, task, variant, success_return, failure_return)
     rng = np.random.default_rng(seed)

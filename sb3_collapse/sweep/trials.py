@@ -139,14 +139,13 @@ def trial_dir(out: str | Path, trial: Trial) -> Path:
 
 def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], flag: str) -> dict[str, str]:
     """
-    Checkpoints of one donor per task, from ``PATH`` (every task) and ``TASK=PATH`` items (that task, over a plain
-    ``PATH``); ``.zip`` may be left out, as in ``DrQv2.load``.
+    Checkpoints of one donor per task, from ``PATH`` (every task) and ``TASK=PATH`` items (that task); ``.zip`` may be
+    left out. An ``InputError`` for two plain paths, a task not in the sweep, or a path that is not a file.
 
     :param specs: the items, ``None`` for none
     :param tasks: the sweep's tasks, ``<domain>-<task>``
     :param flag: the command-line flag, for the messages (``"--good-cnn"``)
     :return: task -> absolute checkpoint path, for the tasks that have one
-    :raises InputError: for two plain paths, a task that is not in the sweep, or a path that is not a file
     """
     default: str | None = None
     by_task: dict[str, str] = {}
