@@ -1,5 +1,4 @@
-"""Collapse monitoring: named activations of an actor, collapse metrics, and the callbacks built on them (and the
-run's periodic evaluation)."""
+"""Collapse monitoring: named activations, collapse metrics, the callbacks built on them, the interventions."""
 
 from sb3_collapse.common.layers import LayerTap, layer_parameters, layer_taps
 from sb3_collapse.monitoring.activations import collect_activations

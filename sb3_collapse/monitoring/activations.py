@@ -1,7 +1,4 @@
-"""
-Named activations of an actor (``cnn0`` .. ``cnn4``, ``mlp0`` .. ``mlp2``, ``action``) read with forward hooks at the
-modules that :func:`sb3_collapse.common.layers.layer_taps` names, on DrQv2 and SB3's TD3, DDPG and SAC.
-"""
+"""Named activations of an actor (``cnn0`` .. ``action``) read with forward hooks at :func:`layer_taps`' modules."""
 
 from __future__ import annotations
 
@@ -45,8 +42,7 @@ def collect_activations(
     device: th.device | str = "cpu",
 ) -> dict[str, th.Tensor]:
     """
-    Run observations through the actor and return the named activations, in eval mode without gradient; the
-    policy's mode is restored and the hooks removed afterwards, even on error.
+    The named activations of the actor on ``observations``, in eval mode without gradient (then restored).
 
     :param model: a DrQv2, TD3, DDPG or SAC model, or its policy
     :param observations: a batch as stored by the env (e.g. uint8 ``(n, 9, 84, 84)``), or a dict of them, one per key
@@ -76,12 +72,8 @@ def reading(
     policy: BasePolicy, taps: Mapping[str, LayerTap], device: th.device | str | None
 ) -> Iterator[dict[str, list[th.Tensor]]]:
     """
-    Read ``taps`` in the forward passes of the block, run in eval mode without gradient (restored after, even on error).
-
-    :param policy: the policy the block runs
-    :param taps: where to read, by name
-    :param device: where the activations are stored (float32), ``None`` for where they are made
-    :return: name -> the activations of each forward pass through its tap, in order
+    Name -> the float32 activations read at ``taps`` in each forward pass of the block, on ``device`` (``None``: where
+    made); the block runs in eval mode without gradient (restored after, even on error).
     """
     outputs: dict[str, list[th.Tensor]] = {name: [] for name in taps}
     handles = [_register(tap, outputs[name], device) for name, tap in taps.items()]

@@ -10,7 +10,7 @@ import inspect
 import io
 import os
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -63,6 +63,11 @@ class MetricsBatchSampler:
     def __init__(self, seed: int | None = None) -> None:
         self.rng = np.random.default_rng(seed)
 
+    @classmethod
+    def for_model(cls, model: BaseAlgorithm, seed: int | None = None, offset: int = 1_000_003) -> MetricsBatchSampler:
+        """A sampler seeded with ``seed``, else with the model's seed plus ``offset`` (neither: fresh entropy)."""
+        return cls(int(model.seed) + offset if seed is None and model.seed is not None else seed)
+
     def sample(self, model: BaseAlgorithm, batch_size: int) -> tuple[Observations, np.ndarray] | None:
         """
         :param model: an off-policy model with a ``replay_buffer``
@@ -110,8 +115,7 @@ class ResumableCallback(BaseCallback):
     restarts the step count from a later state). See docs/monitoring.md#one-schedule.
     """
 
-    state_attributes: tuple[str, ...] = ()
-    """The attributes that make up the state."""
+    state_attributes: tuple[str, ...] = ()  # the attributes that make up the state
 
     _pending_state: dict[str, Any] | None = None
 
@@ -166,21 +170,17 @@ class ResumableCallback(BaseCallback):
 
 class FrameScheduleCallback(ResumableCallback):
     """
-    The schedule of every periodic callback: :meth:`_on_check` at the first step where the frames (or what
-    :meth:`_count` counts) reach each multiple of the period, once for a step that crosses several; resumable.
-    See docs/monitoring.md#one-schedule.
+    The schedule of every periodic callback: :meth:`_on_check` at the first step where the frames (or :meth:`_count`)
+    reach each multiple of the period, once for a step that crosses several. See docs/monitoring.md#one-schedule.
 
     :param check_every_frames: frames between two checks (a subclass may name it :attr:`period_parameter`)
     :param verbose: 0 silent, 1 info
     """
 
     state_attributes = ("next_check", "n_checks")
-    period_parameter = "check_every_frames"
-    """The constructor parameter, and attribute, that holds the period."""
-    min_period = 1
-    """The smallest period allowed (0: no scheduled check, for a callback that also acts on demand)."""
-    check_at_start = False
-    """Check at the start of ``learn()`` (at a multiple of the period), not at its last step (before its updates)."""
+    period_parameter = "check_every_frames"  # the constructor parameter, and attribute, that holds the period
+    min_period = 1  # the smallest period allowed (0: no scheduled check, for a callback that also acts on demand)
+    check_at_start = False  # check at the start of learn() (at a multiple of the period), not at its last step
 
     def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
         super().__init__(verbose)
@@ -238,23 +238,29 @@ class FrameScheduleCallback(ResumableCallback):
         """A check at ``count`` (frames, or what :meth:`_count` counts); ``False`` stops ``learn()``."""
         raise NotImplementedError
 
+    def _batch_activations(self, layers: Iterable[str] | None, **kwargs: Any) -> tuple[dict, np.ndarray] | None:
+        """``layers``' activations on a new metrics batch of ``self.batch_size``, its indices; ``None`` while fewer."""
+        assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
+        batch = self.sampler.sample(self.model, self.batch_size)
+        return None if batch is None else (collect_activations(self.model, batch[0], layers=layers, **kwargs), batch[1])
+
+    def _log(self, frames: int, values: Mapping[str, float]) -> None:
+        """Record ``values`` (tag -> value) and ``time/frames``, then dump them at the model's agent step."""
+        for tag, value in {**values, "time/frames": frames}.items():
+            self.logger.record(tag, value)
+        self.logger.dump(self.model.num_timesteps)
+
     @staticmethod
     def _append_rows(path: Path | None, fields: Sequence[str], *rows: Sequence[Any]) -> None:
         """Append ``rows`` (values in the order of ``fields``) to the CSV file ``path``, if any, its header first."""
         if path is not None:
             append_csv_rows(path, fields, [dict(zip(fields, row, strict=True)) for row in rows])
 
-    def _new_sampler(self, seed: int | None = None, offset: int = 1_000_003) -> MetricsBatchSampler:
-        """A metrics batch sampler seeded with ``seed``, else with the model's seed plus ``offset``."""
-        if seed is None and self.model.seed is not None:
-            seed = int(self.model.seed) + offset
-        return MetricsBatchSampler(seed)
-
 
 class CollapseMetrics(FrameScheduleCallback):
     """
-    Logs the collapse metrics of every named layer (tags: docs/monitoring.md) every ``check_every_frames`` on a
-    metrics batch of replay observations (skipped while fewer are stored); the last values in :attr:`last_metrics`.
+    Logs the collapse metrics of every named layer (tags: docs/monitoring.md) on a metrics batch of replay
+    observations every ``check_every_frames`` (while enough are stored); the last values in :attr:`last_metrics`.
 
     :param check_every_frames: frames between two checks
     :param batch_size: observations of the metrics batch
@@ -299,18 +305,15 @@ class CollapseMetrics(FrameScheduleCallback):
 
     def _init_callback(self) -> None:
         super()._init_callback()
-        self.sampler = self._new_sampler(self.seed)
+        self.sampler = MetricsBatchSampler.for_model(self.model, self.seed)
         self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS)
 
     def compute(self) -> dict[str, float] | None:
         """:return: every metric on a new metrics batch, not logged: tag -> value (``None`` while too few are stored)"""
-        assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
-        batch = self.sampler.sample(self.model, self.batch_size)
-        if batch is None:
+        drawn = self._batch_activations(self.layers, batch_size=self.forward_batch_size, device=self.model.device)
+        if drawn is None:
             return None
-        activations = collect_activations(
-            self.model, batch[0], layers=self.layers, batch_size=self.forward_batch_size, device=self.model.device
-        )
+        activations = drawn[0]
         values = {
             f"collapse/{layer}/{name}": value
             for layer, acts in activations.items()
@@ -331,10 +334,7 @@ class CollapseMetrics(FrameScheduleCallback):
                 print(f"CollapseMetrics: frame {frames} skipped, fewer than {self.batch_size} transitions stored")
             return
         self.last_metrics = values
-        for tag, value in values.items():
-            self.logger.record(tag, value)
-        self.logger.record("time/frames", frames)
-        self.logger.dump(self.num_timesteps)
+        self._log(frames, values)
         rows = [(frames, self.num_timesteps, tag, value) for tag, value in values.items()]
         self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS, *rows)
         if self.verbose >= 1:
@@ -387,17 +387,15 @@ class ActivationLogger(FrameScheduleCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         self.path.mkdir(parents=True, exist_ok=True)
-        self.sampler = self._new_sampler(self.seed)
+        self.sampler = MetricsBatchSampler.for_model(self.model, self.seed)
 
     def _on_check(self, frames: int) -> None:
         if self.stopped:
             return
-        assert self.sampler is not None
-        batch = self.sampler.sample(self.model, self.batch_size)
-        if batch is None:
+        drawn = self._batch_activations(self.layers)
+        if drawn is None:
             return
-        observations, indices = batch
-        activations = collect_activations(self.model, observations, layers=self.layers)
+        activations, indices = drawn
         arrays = {name: value.numpy() for name, value in activations.items()}
         content = io.BytesIO()
         layers = np.array(list(arrays))

@@ -16,9 +16,8 @@ from sb3_collapse.protocol import EVAL_FIELDS, append_csv_rows
 
 class PeriodicEvaluation(FrameScheduleCallback):
     """
-    Deterministic evaluation at frame 0 and every ``every_frames`` frames (not at the last step of ``learn()``):
-    logged as ``eval/{mean_reward,std_reward,frames}``, appended to ``csv_path`` and kept in :attr:`rows`; then
-    ``callback_after_eval``, as in SB3's ``EvalCallback`` (its ``False`` stops ``learn()``). See docs/monitoring.md.
+    Deterministic evaluation at frame 0 and every ``every_frames`` frames, logged as ``eval/...``, appended to
+    ``csv_path``, kept in :attr:`rows`; then ``callback_after_eval``, as SB3's ``EvalCallback``. See docs/monitoring.md.
 
     :param eval_env: evaluation environment (same pixel settings as the training one)
     :param every_frames: frames between evaluations
@@ -62,7 +61,7 @@ class PeriodicEvaluation(FrameScheduleCallback):
         return self.callback_after_eval is None or self.callback_after_eval.on_step()
 
     def _run_episodes(self, prefix: str) -> dict[str, float]:
-        """Evaluate now and log the result under ``<prefix>/...``; return the row (keys :data:`EVAL_FIELDS`)."""
+        """Evaluate now and log the result under ``<prefix>/...``; return the row."""
         rewards, _ = evaluate_policy(
             self.model, self.eval_env, n_eval_episodes=self.episodes, deterministic=True, return_episode_rewards=True
         )
@@ -88,12 +87,7 @@ class PeriodicEvaluation(FrameScheduleCallback):
         return row
 
     def evaluate_saved_model(self) -> dict[str, float]:
-        """
-        Evaluate the final model, logged as ``eval_saved_model/...`` (not in the CSV nor :attr:`rows`), then call
-        ``callback_after_eval``.
-
-        :return: the row (keys :data:`~sb3_collapse.protocol.EVAL_FIELDS`)
-        """
+        """Evaluate the final model as ``eval_saved_model/...`` (not in the CSV), then ``callback_after_eval``."""
         row = self._run_episodes("eval_saved_model")
         self._after_eval()
         return row

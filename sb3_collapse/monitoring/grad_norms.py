@@ -1,8 +1,4 @@
-"""
-Gradient norms of the named layers at each update, recorded by the model's
-:class:`~sb3_collapse.common.grad_norms.GradNormRecorder` when an optimizer steps (no extra backward pass):
-docs/interventions.md#the-health-value-gradient-norms-recorded-at-each-update.
-"""
+"""Gradient norms of the named layers, recorded at each update by the model's recorder (docs/interventions.md)."""
 
 from __future__ import annotations
 
@@ -23,8 +19,7 @@ def grad_norm_recorder(model: BaseAlgorithm) -> GradNormRecorder | None:
 
 def track_grad_norms(model: BaseAlgorithm) -> GradNormRecorder | None:
     """
-    Record the gradient norms of the model's named layers at each update: a model of SB3's own TD3, DDPG or SAC
-    class becomes a wrapper (:func:`~sb3_collapse.baselines.collapse_model`) that records them.
+    Record the gradient norms of the model's named layers at each update (SB3's TD3, DDPG, SAC: ``collapse_model``).
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: the recorder, ``None`` for a model whose layers cannot be named (e.g. PPO)
@@ -35,8 +30,7 @@ def track_grad_norms(model: BaseAlgorithm) -> GradNormRecorder | None:
 def grad_norms_of(model: BaseAlgorithm) -> dict[str, float]:
     """
     :param model: a DrQv2, TD3, DDPG or SAC model
-    :return: layer name -> L2 gradient norm at the model's last update; empty before the first update (or the first
-        after a reset) and for a model whose norms are not recorded (:func:`track_grad_norms`)
+    :return: layer name -> L2 gradient norm at the last update; empty before one and for an untracked model
     """
     recorder = grad_norm_recorder(model)
     return {} if recorder is None else recorder.last()

@@ -1,7 +1,6 @@
 """
-The interventions that :class:`~sb3_collapse.monitoring.reset.CollapseReset` applies at the end of a window without
-escape, each ``model -> InterventionResult`` on the :class:`InterventionParts` of the model's policy (what each resets
-and keeps: docs/interventions.md#the-interventions).
+The interventions that ``CollapseReset`` applies at the end of a window without escape, each ``model ->
+InterventionResult`` on the model policy's :class:`InterventionParts` (docs/interventions.md#the-interventions).
 """
 
 from __future__ import annotations
@@ -24,8 +23,7 @@ from sb3_collapse.monitoring.callbacks import MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder
 from sb3_collapse.monitoring.metrics import DORMANT_TAU, dormant_units
 
-REDO_EVERY_UPDATES = 1000
-"""ReDo's recycling period ``F`` by default, in updates, for :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`."""
+REDO_EVERY_UPDATES = 1000  # ReDo's recycling period F by default, in updates (PeriodicReDo)
 
 
 @dataclass(frozen=True)
@@ -64,18 +62,12 @@ class InterventionParts(Protocol):
     def forward_hidden(self, observations: Any, actions: th.Tensor) -> None: ...  # run the layers of the two above
 
 
+@dataclass
 class _SB3Parts:
-    """
-    :class:`InterventionParts` of an SB3 TD3 or DDPG (``kind="td3"``) or SAC (``kind="sac"``) policy, from the layers
-    of :mod:`sb3_collapse.common.layers`.
+    """:class:`InterventionParts` of an SB3 TD3 or DDPG (``kind="td3"``) or SAC (``kind="sac"``) policy."""
 
-    :param policy: the model's policy
-    :param kind: ``"td3"`` or ``"sac"``
-    """
-
-    def __init__(self, policy: Any, kind: str) -> None:
-        self.policy = policy
-        self.kind = kind
+    policy: Any
+    kind: str
 
     @property
     def optimizers(self) -> list[th.optim.Optimizer]:
@@ -121,11 +113,7 @@ class _SB3Parts:
 
 
 def intervention_parts(model: BaseAlgorithm) -> InterventionParts:
-    """
-    :param model: a model
-    :return: its policy when that provides :class:`InterventionParts` (DrQv2), an adapter for SB3's TD3, DDPG, SAC
-    :raises TypeError: for any other model, and for SAC with gSDE
-    """
+    """The policy's :class:`InterventionParts` (DrQv2), or an adapter for SB3's TD3, DDPG, SAC; else ``TypeError``."""
     if isinstance(model.policy, InterventionParts):
         return model.policy
     if isinstance(model, TD3):
@@ -223,9 +211,8 @@ def _span(parts: InterventionParts, modules: Sequence[nn.Module]) -> str:
 
 def reset_actor(model: BaseAlgorithm) -> InterventionResult:
     """
-    Reset the actor (after Nikishin et al., "The Primacy Bias in Deep Reinforcement Learning", ICML 2022): new
-    weights for :meth:`InterventionParts.actor_modules` (and TD3's target actor), their optimizer state forgotten;
-    the critic, the encoder, the buffer and the counters kept. SAC with ``share_features_extractor=True`` is refused.
+    Reset the actor (Nikishin et al., ICML 2022): new weights for :meth:`InterventionParts.actor_modules` (and TD3's
+    target actor), their optimizer state forgotten, the rest kept; SAC with ``share_features_extractor`` refused.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
@@ -236,9 +223,8 @@ def reset_actor(model: BaseAlgorithm) -> InterventionResult:
 
 def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
     """
-    Reset the actor's MLP after the encoder, where the paper's Figure 3 locates collapse
-    (:meth:`InterventionParts.actor_mlp_modules`; after Nikishin et al., ICML 2022): new weights, their optimizer state
-    forgotten; the encoder or features extractor, the critic, the buffer and the counters kept.
+    Reset the actor's MLP after the encoder, where the paper's Figure 3 locates collapse (after Nikishin et al., ICML
+    2022): new weights, their optimizer state forgotten; the encoder, the critic, the buffer and the counters kept.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :return: what was done
@@ -247,18 +233,12 @@ def reset_mlp(model: BaseAlgorithm) -> InterventionResult:
 
 
 def hidden_layers(model: BaseAlgorithm) -> list[LayerParts]:
-    """
-    :param model: a DrQv2, TD3, DDPG or SAC model
-    :return: the actor's then the critic's hidden layers that :func:`redo` may recycle
-    """
+    """The actor's then the critic's hidden layers of a DrQv2, TD3, DDPG or SAC model that :func:`redo` may recycle."""
     return intervention_parts(model).hidden_layer_parts()
 
 
 def encoder_channels(model: BaseAlgorithm) -> list[LayerParts]:
-    """
-    :param model: a DrQv2 model (``CnnPolicy``); another model or ``MlpPolicy`` has none
-    :return: ``cnn1``..``cnn4`` as layers of channels that :func:`redo` may recycle, input to output
-    """
+    """A DrQv2 ``CnnPolicy``'s ``cnn1``..``cnn4`` as layers of channels :func:`redo` may recycle (else none)."""
     return intervention_parts(model).encoder_channel_parts()
 
 
@@ -271,11 +251,9 @@ def redo(
     conv_channels: bool = False,
 ) -> InterventionResult:
     """
-    ReDo, "Recycling Dormant neurons" (Sokar et al., ICML 2023), once: each dormant unit
-    (:func:`~sb3_collapse.monitoring.metrics.dormant_units`) of :func:`hidden_layers` (and with ``conv_channels`` of
-    :func:`encoder_channels`) gets new incoming weights, zero outgoing weights in every network that reads it and
-    zero Adam moments for those entries, so no network's output changes (periodic form:
-    :class:`~sb3_collapse.monitoring.redo.PeriodicReDo`).
+    ReDo, "Recycling Dormant neurons" (Sokar et al., ICML 2023), once: each dormant unit of :func:`hidden_layers`
+    (and :func:`encoder_channels`) gets new incoming weights, zero outgoing weights in every network that reads it
+    and zero Adam moments for those entries, so no network's output changes.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param tau: the dormancy threshold, relative to the layer's mean
@@ -289,7 +267,7 @@ def redo(
     layers = (encoder_channels(model) if conv_channels else []) + hidden_layers(model)
     total = sum(layer.units for layer in layers)
     if samples is None:
-        sampler = sampler or MetricsBatchSampler(None if model.seed is None else int(model.seed) + 1_000_003)
+        sampler = sampler or MetricsBatchSampler.for_model(model)
         drawn = sampler.sample_transitions(model, batch_size)
         if drawn is None:
             detail = f"nothing recycled: fewer than {batch_size} transitions in the replay buffer"
@@ -364,13 +342,13 @@ def shrink_perturb(model: BaseAlgorithm, shrink: float = 0.8, perturb: float = 0
     :return: what was done
     """
     fresh = "theta_0 (toward a fresh init)"
-    return _shrink_and_add(model, "shrink_perturb", shrink, perturb, "perturb", _fresh_values, fresh)
+    return _shrink_and_add(model, "shrink_perturb", shrink, perturb, "perturb", None, fresh)
 
 
 def shrink_perturb_noise(model: BaseAlgorithm, shrink: float = 0.8, noise: float = 0.01) -> InterventionResult:
     """
-    Ash and Adams' shrink and perturb ("On Warm-Starting Neural Network Training", NeurIPS 2020): ``theta <- lambda *
-    theta + sigma * noise`` on every parameter of the online networks (:func:`perturbation_noise`), the rest kept.
+    Ash and Adams' shrink and perturb (NeurIPS 2020): ``theta <- lambda * theta + sigma * noise`` on every parameter
+    of the online networks (:func:`perturbation_noise`), the rest kept.
 
     :param model: a DrQv2, TD3, DDPG or SAC model
     :param shrink: lambda, in ``(0, 1]``
@@ -387,11 +365,11 @@ def _shrink_and_add(
     shrink: float,
     scale: float,
     scale_name: str,
-    draw: Callable[[nn.Module, nn.Module], Iterable[tuple[nn.Parameter, th.Tensor]]],
+    draw: Callable[[nn.Module, nn.Module], Iterable[tuple[nn.Parameter, th.Tensor]]] | None,
     what: str,
 ) -> InterventionResult:
     """``theta <- shrink * theta + scale * value`` on the online networks, ``draw(network, fresh copy)`` giving
-    ``(parameter, value)`` pairs; ``scale_name`` names ``scale`` in errors, ``what`` the values in the detail."""
+    ``(parameter, value)`` pairs (``None``: the fresh copy's values); ``what`` names the values in the detail."""
     if not 0.0 < shrink <= 1.0:
         raise ValueError(f"shrink must be in (0, 1], got {shrink}.")
     if not scale >= 0.0:
@@ -400,8 +378,9 @@ def _shrink_and_add(
     networks = parts.online_networks()
     seen: set[int] = set()
     for module in networks.values():
+        fresh = _fresh_copy(module, parts)
         with th.no_grad():
-            for param, new in draw(module, _fresh_copy(module, parts)):
+            for param, new in zip(module.parameters(), fresh.parameters()) if draw is None else draw(module, fresh):
                 if id(param) not in seen:  # a features extractor shared by the actor and the critic: once
                     seen.add(id(param))
                     param.mul_(shrink).add_(new, alpha=scale)
@@ -411,18 +390,11 @@ def _shrink_and_add(
     return InterventionResult(name, detail, {"weights_changed": float(changed)})
 
 
-def _fresh_values(module: nn.Module, fresh: nn.Module) -> Iterable[tuple[nn.Parameter, th.Tensor]]:
-    return zip(module.parameters(), fresh.parameters())
-
-
 def perturbation_noise(module: nn.Module, fresh: nn.Module) -> list[tuple[nn.Parameter, th.Tensor]]:
     """
-    The noise of :func:`shrink_perturb_noise`: ``fresh``'s weight for a Linear or a convolution, else
-    ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, ``fan_in`` the inputs of a unit (a LayerNorm's: its features).
-
-    :param module: the module whose parameters get the noise
-    :param fresh: a copy of ``module`` with new initial values
-    :return: ``(parameter, noise)`` pairs in ``module.modules()`` order, each on its parameter's device and dtype
+    ``(parameter, noise)`` pairs of :func:`shrink_perturb_noise`: ``fresh``'s (a new copy of ``module``) weight for a
+    Linear or a convolution, else ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, ``fan_in`` a unit's inputs (LayerNorm: its
+    features); each on its parameter's device and dtype.
     """
     noise = []
     for sub, fresh_sub in zip(module.modules(), fresh.modules()):
@@ -460,12 +432,7 @@ INTERVENTION_LABELS = {
 
 
 def check_intervention(name: str, model: BaseAlgorithm | None = None) -> None:
-    """
-    :param name: an intervention name
-    :param model: the model it will be applied to (``None``: check the name only)
-    :raises ValueError: for an unknown name, or a model the intervention cannot change as it says
-    :raises TypeError: for a model that no intervention supports
-    """
+    """A ``ValueError`` for an unknown name or a ``model`` it cannot change as it says; ``TypeError``: no support."""
     if name not in INTERVENTIONS:
         raise ValueError(f"intervention must be one of {', '.join(INTERVENTIONS)}; got {name!r}.")
     if model is not None:

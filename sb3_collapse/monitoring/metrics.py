@@ -1,7 +1,6 @@
 """
-Collapse metrics of one layer's activations for a batch of ``n`` inputs, a ``(n, *unit_shape)`` tensor (Section 5.1
-of the action-collapse paper), as pure functions returning Python floats. ``H`` is the ``n x d`` matrix of the
-flattened activations, a unit a feature or a conv channel; notation: docs/monitoring.md#metrics.
+The paper's collapse metrics (Section 5.1) of a ``(n, *unit_shape)`` batch of one layer's activations, as Python
+floats; ``H`` the ``n x d`` matrix of the flattened activations, a unit a feature or a channel (docs/monitoring.md).
 """
 
 from __future__ import annotations
@@ -11,22 +10,13 @@ from collections.abc import Iterable
 
 import torch as th
 
-DORMANT_TAU = 0.025
-"""ReDo's threshold of the dormant ratio (Sokar et al., 2023)."""
-
-SRANK_DELTA = 0.01
-"""Kumar et al.'s (2021) threshold of the effective rank."""
-
-SATURATION_LIMIT = 0.99
-"""An action component is saturated when its absolute value exceeds this."""
+DORMANT_TAU = 0.025  # ReDo's threshold of the dormant ratio (Sokar et al., 2023)
+SRANK_DELTA = 0.01  # Kumar et al.'s (2021) threshold of the effective rank
+SATURATION_LIMIT = 0.99  # an action component is saturated when its absolute value exceeds this
 
 
 def flatten_batch(activations: th.Tensor) -> th.Tensor:
-    """
-    :param activations: ``(n, *unit_shape)`` activations of ``n`` inputs
-    :return: the ``n x d`` matrix ``H``, float64
-    :raises ValueError: for a tensor without a feature dimension
-    """
+    """The ``n x d`` matrix ``H`` of ``(n, *unit_shape)`` activations, float64."""
     _check_batch(activations)
     return activations.reshape(activations.shape[0], -1).double()
 
@@ -63,8 +53,7 @@ def _numerical_rank(s: th.Tensor) -> float:
 def numerical_rank(activations: th.Tensor) -> float:
     """
     The paper's numerical rank (Section 5.1): "we compute the numerical rank (Zhou et al., 2022) of the matrix of MLP
-    activations H", ``(sum_i s_i)^2 / sum_i s_i^2`` with ``s_i`` the singular values of ``H``; 0 for an all-zero
-    matrix.
+    activations H": ``(sum_i s_i)^2 / sum_i s_i^2``, ``s_i`` the singular values of ``H`` (0 if all zero).
 
     :param activations: ``(n, *unit_shape)`` activations
     :return: the numerical rank, in ``[0, min(n, d)]``
@@ -131,8 +120,7 @@ def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
 
     :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
     :param absolute: average the absolute values of the correlations
-    :return: the mean correlation, in ``[-1 / (m - 1), 1]`` for ``m`` varying units (in ``[0, 1]`` with
-        ``absolute``); NaN when fewer than two units vary over the inputs
+    :return: the mean correlation (``[-1/(m-1), 1]`` for ``m`` varying units), NaN when fewer than two units vary
     """
     units = unit_activations(activations).double()  # (units, N): N = n x positions
     largest = th.maximum(units.amax(1), -units.amin(1))
@@ -152,10 +140,7 @@ def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
 
 
 def unit_activations(activations: th.Tensor) -> th.Tensor:
-    """
-    :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
-    :return: ``(units, n x positions)``: every value of each unit (feature, or channel) in one row
-    """
+    """``(units, n x positions)`` of ``(n, d)`` or ``(n, C, height, width)`` activations: a unit's values a row."""
     _check_batch(activations)
     return activations.transpose(0, 1).reshape(activations.shape[1], -1)
 
@@ -260,8 +245,8 @@ def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float
     :param activations: ``(n, *unit_shape)`` activations
     :param tau: threshold of :func:`dormant_ratio`
     :param delta: threshold of :func:`effective_rank`
-    :return: ``numerical_rank``, ``srank`` (:func:`effective_rank`), ``correlation`` (:func:`unit_correlation`),
-        ``input_correlation``, ``zero_fraction``, ``dead_fraction``, ``dead_units`` (as a float), ``dormant_ratio``
+    :return: ``numerical_rank``, ``srank``, ``correlation`` (:func:`unit_correlation`), ``input_correlation``,
+        ``zero_fraction``, ``dead_fraction``, ``dead_units`` (as a float), ``dormant_ratio``
     """
     h = flatten_batch(activations)
     gram = h @ h.T

@@ -12,10 +12,9 @@ from sb3_collapse.monitoring.metrics import DORMANT_TAU
 
 class PeriodicReDo(FrameScheduleCallback):
     """
-    ReDo (Sokar et al., "The Dormant Neuron Phenomenon in Deep Reinforcement Learning", ICML 2023) as its authors run
-    it: :func:`~sb3_collapse.monitoring.interventions.redo` at the first agent step after ``model.n_updates`` reaches
-    each multiple of ``every_updates``, for the whole run; :attr:`history` holds ``(updates, frame,
-    units_recycled)`` per recycling. See docs/interventions.md#redo-every-f-updates-periodicredo.
+    ReDo (Sokar et al., ICML 2023) as its authors run it: :func:`~sb3_collapse.monitoring.interventions.redo` each
+    time ``model.n_updates`` reaches a multiple of ``every_updates``, the whole run; :attr:`history` holds ``(updates,
+    frame, units_recycled)`` per recycling. See docs/interventions.md#redo-every-f-updates-periodicredo.
 
     :param every_updates: ``F``, the updates between two recyclings
     :param tau: the dormancy threshold, relative to the layer's mean
@@ -61,7 +60,7 @@ class PeriodicReDo(FrameScheduleCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         intervention_parts(self.model)  # a TypeError for a model the interventions do not support
-        self.sampler = self._new_sampler(offset=2_000_003)
+        self.sampler = MetricsBatchSampler.for_model(self.model, offset=2_000_003)
         self._append_rows(self.events_path, self.EVENT_FIELDS)
 
     def _on_training_start(self) -> None:
@@ -92,8 +91,5 @@ class PeriodicReDo(FrameScheduleCallback):
         self._append_rows(self.events_path, self.EVENT_FIELDS, row)
         if self.verbose >= 1:
             print(f"PeriodicReDo: update {updates}, frame {frames}: {result.detail}")
-        self.logger.record("redo/units_recycled", recycled)
-        self.logger.record("redo/units_total", result.scalars["units_total"])
-        self.logger.record("redo/recycles", self.recycles)
-        self.logger.record("time/frames", frames)
-        self.logger.dump(self.model.num_timesteps)
+        scalars = {"redo/units_recycled": recycled, "redo/units_total": result.scalars["units_total"]}
+        self._log(frames, {**scalars, "redo/recycles": self.recycles})

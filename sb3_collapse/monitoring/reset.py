@@ -13,7 +13,6 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_collapse.common.layers import LAYER_NAMES, layer_parameters
 from sb3_collapse.common.model import CollapseModel
 from sb3_collapse.errors import ParameterError
-from sb3_collapse.monitoring.activations import collect_activations
 from sb3_collapse.monitoring.callbacks import FrameScheduleCallback, MetricsBatchSampler
 from sb3_collapse.monitoring.grad_norms import grad_norms_of
 from sb3_collapse.monitoring.interventions import (
@@ -39,12 +38,10 @@ class CollapseReset(FrameScheduleCallback):
     :param patience: consecutive healthy checks that mean an escape
     :param layer: the named layer whose gradient norm is read, for ``metric="grad_norm"``
     :param max_resets: the most resets in one run, ``None`` for no limit
-    :param metric: ``"grad_norm"`` (the paper's), ``"action_std"`` (the spread of the actions of a metrics batch) or
-        a callable ``model -> float | None``; above ``threshold`` is healthy
+    :param metric: ``"grad_norm"`` (the paper's), ``"action_std"`` (a metrics batch's action spread), ``model -> float``
     :param batch_size: replay observations of the batch of ``metric="action_std"`` and ``intervention="redo"``
     :param events_path: CSV file that each intervention and the escape append a row to (``None``: none)
-    :param intervention: what to do at the end of a window without escape, a key of
-        :data:`~sb3_collapse.monitoring.interventions.INTERVENTIONS` (``"reset"``: the paper's)
+    :param intervention: what a window without escape ends with, a key of ``INTERVENTIONS`` (``"reset"``: the paper's)
     :param intervention_kwargs: the intervention's own parameters, e.g. ``{"tau": 0.1}`` for ``"redo"``
     :param verbose: 0 silent, 1 prints each intervention and the escape
     """
@@ -130,7 +127,7 @@ class CollapseReset(FrameScheduleCallback):
             names = list(layer_parameters(self.model))
             if self.layer not in names:
                 raise ValueError(f"layer={self.layer!r} has no parameters in this model; choose one of {names}.")
-        self.sampler = self._new_sampler()
+        self.sampler = MetricsBatchSampler.for_model(self.model)
         self._append_rows(self.events_path, self.EVENT_FIELDS)
 
     def _write_event(self, frames: int, event: str, detail: str = "") -> None:
@@ -153,12 +150,8 @@ class CollapseReset(FrameScheduleCallback):
             return None if value is None else float(value)
         if self.metric == "grad_norm":
             return grad_norms_of(self.model).get(self.layer)
-        assert self.sampler is not None
-        batch = self.sampler.sample(self.model, self.batch_size)
-        if batch is None:
-            return None
-        actions = collect_activations(self.model, batch[0], layers=["action"], device=self.model.device)["action"]
-        return action_spread(actions)
+        drawn = self._batch_activations(["action"], device=self.model.device)
+        return None if drawn is None else action_spread(drawn[0]["action"])
 
     def _on_step(self) -> bool:
         super()._on_step()  # runs _on_check at check frames
@@ -211,8 +204,5 @@ class CollapseReset(FrameScheduleCallback):
         self._record(frames)
 
     def _record(self, frames: int) -> None:
-        self.logger.record("collapse/reset_rule/streak", self.streak)
-        self.logger.record("collapse/resets", self.resets)
-        self.logger.record("collapse/escaped", int(self.escaped))
-        self.logger.record("time/frames", frames)
-        self.logger.dump(self.num_timesteps)
+        rule = {"collapse/reset_rule/streak": self.streak, "collapse/resets": self.resets}
+        self._log(frames, {**rule, "collapse/escaped": int(self.escaped)})

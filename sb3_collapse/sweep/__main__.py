@@ -14,12 +14,9 @@ from sb3_collapse.errors import (
     cli_message,
     report_unwritable_outputs,
 )
-from sb3_collapse.monitoring.interventions import INTERVENTIONS
-from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import checkpoint_frames
-from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
 from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
@@ -33,16 +30,14 @@ from sb3_collapse.sweep.donors import (
 )
 from sb3_collapse.sweep.runner import (
     SweepSummary,
-    check_sweep_arguments,
+    check_sweep,
     prepare_sweep_folder,
     run_sweep,
     sweep_settings,
 )
 from sb3_collapse.sweep.trials import (
-    BASE_VARIANTS,
     GRID_VARIANTS,
-    TRANSPLANT_SOURCES,
-    check_checkpoints,
+    VARIANT_FORMS,
     damaged_result,
     donor_key,
     expand_trials,
@@ -50,7 +45,6 @@ from sb3_collapse.sweep.trials import (
     transplant_of,
     trial_config,
     trial_dir,
-    variant_settings,
 )
 
 DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
@@ -75,12 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument(
         "--variants",
         nargs="+",
-        help=f"<algorithm> or <algorithm>+<intervention> (the paper's rule doing that intervention), <algorithm> in "
-        f"{'/'.join(BASE_VARIANTS)} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations), "
-        f"<intervention> in {'/'.join(INTERVENTIONS)}, or <algorithm>+redo_periodic (ReDo every {REDO_EVERY_UPDATES} "
-        "updates, no rule) (e.g. drqv2+reset, drqv2+redo, drqv2-leaky+reset; docs/interventions.md), or transplant-"
-        f"grid cells cnn-<src>_mlp-<src>, <src> in {'/'.join(TRANSPLANT_SOURCES)}; default: "
-        f"{' '.join(DEFAULT_VARIANTS)} (only the grid with --transplant-grid)",
+        help=f"{VARIANT_FORMS} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations; "
+        f"docs/interventions.md); default: {' '.join(DEFAULT_VARIANTS)} (only the grid with --transplant-grid)",
     )
     g.add_argument("--transplant-grid", action="store_true", help="add the 9 cells of the CNN x MLP transplant grid")
     donors = p.add_argument_group(
@@ -93,7 +83,6 @@ def build_parser() -> argparse.ArgumentParser:
                 help=f"DrQv2 checkpoint(s) of the {'well' if source == 'good' else 'poorly'} performing agent that "
                 f"gives the {source} {part.upper()}: PATH for every task, TASK=PATH per task",
             )  # fmt: skip
-        donors.add_argument(f"--{source}-checkpoint", nargs="+", help=argparse.SUPPRESS)  # refused: see main
     donors.add_argument(
         "--donors-from",
         metavar="SWEEP",
@@ -150,14 +139,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.transplant_grid:
         variants += GRID_VARIANTS
     try:
-        check_sweep_arguments(args.out, training, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s)
         trials = expand_trials(args.tasks, variants, seeds)
-        tasks = list(dict.fromkeys(trial.task for trial in trials))
-        for task in tasks:  # each task with its own preset, each variant with its algorithm and rule
-            for variant in dict.fromkeys(trial.variant for trial in trials):
-                TrainConfig(**training, env=task, **variant_settings(variant)).validate()
         checkpoints, donors = transplant_checkpoints(args, trials)
-        check_checkpoints(trials, checkpoints)
+        check_sweep(
+            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
+        )
         if args.dry_run:
             return dry_run(trials, args.out, training, checkpoints, args.allow_changed_settings, donors)
         summary = run_sweep(
@@ -180,11 +166,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def print_summary(summary: SweepSummary, out: str) -> int:
-    """
-    :param summary: what a sweep did
-    :param out: the sweep folder
-    :return: the exit status: 0 when every trial finished, 1 when some failed, EXIT_INTERRUPTED when stopped
-    """
+    """Print what the sweep did; return the exit status (0 all finished, 1 some failed, EXIT_INTERRUPTED stopped)."""
     stopped = sum(checkpoint is not None for checkpoint in summary.interrupted.values())
     print(
         f"{len(summary.trials)} trials in {out}: {len(summary.finished)} finished now "
@@ -212,11 +194,7 @@ def print_summary(summary: SweepSummary, out: str) -> int:
 
 
 def failure_advice(failed: int, repeating: int) -> str:
-    """
-    :param failed: trials that failed
-    :param repeating: those of them that a rerun would fail the same way (``SweepSummary.repeating``)
-    :return: one line: what to do about them
-    """
+    """One line: what to do about ``failed`` trials, ``repeating`` of them failing the same way at a rerun."""
     fix = (
         f"fix the cause first (their {ERROR_TXT} says it: bad settings, a diverging run, an error of the training code)"
     )
@@ -231,22 +209,7 @@ def failure_advice(failed: int, repeating: int) -> str:
 
 
 def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict[str, dict[str, str]], dict | None]:
-    """
-    The donors' checkpoints of the transplant-grid cells, given (``--good-cnn``...) or picked (``--donors-from``).
-
-    :param args: the parsed command line
-    :param trials: the sweep's trials
-    :return: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> path, and the record of a pick (else ``None``)
-    :raises InputError: for ``--good-checkpoint`` / ``--bad-checkpoint``, both forms at once, or one agent giving both
-        parts of a source
-    """
-    for source in DONOR_SOURCES:
-        if getattr(args, f"{source}_checkpoint") is not None:
-            raise InputError(
-                f"--{source}-checkpoint gave one agent both the CNN and the MLP (the paper takes them from two "
-                f"different agents): pass --{source}-cnn PATH --{source}-mlp PATH, or --donors-from SWEEP.",
-                parameter=f"{source}_checkpoint",
-            )
+    """The grid cells' donors, given (``--good-cnn``...) or picked (``--donors-from``): key -> task -> path, record."""
     tasks = list(dict.fromkeys(trial.task for trial in trials))
     given = {key: getattr(args, key) for key in DONOR_KEYS if getattr(args, key) is not None}
     if args.donors_from is None:
@@ -274,12 +237,7 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
 def dry_run(
     trials: list, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool, donors: dict | None = None
 ) -> int:
-    """
-    Print each trial's status and folder, and the counts; check the settings against the sweep's settings file.
-
-    :return: exit status 0
-    :raises InputError: when the training settings differ from the sweep's settings file's (and that is not allowed)
-    """
+    """Print each trial's status and folder, and the counts, after checking the sweep's settings file; return 0."""
     if donors is not None:
         for task, picked in donors["tasks"].items():
             for key, donor in picked.items():

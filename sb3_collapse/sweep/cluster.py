@@ -14,15 +14,11 @@ from typing import Any
 
 from sb3_collapse.errors import ClusterUnreachable, InputError, MissingDependencyError
 
-CONNECT_TIMEOUT_S = 30.0
-"""Seconds a sweep waits for the Ray cluster at its ``address`` to answer before it gives up."""
+CONNECT_TIMEOUT_S = 30.0  # seconds a sweep waits for the Ray cluster at its address to answer
 
 
 def import_ray() -> Any:
-    """
-    :return: the ``ray`` module
-    :raises MissingDependencyError: with the command that installs it
-    """
+    """The ``ray`` module; ``MissingDependencyError`` with the command that installs it."""
     try:
         import ray
     except ImportError as error:
@@ -57,13 +53,8 @@ def _wait_for_port(address: str, timeout_s: float) -> None:
 
 def check_cluster(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     """
-    Check that the Ray cluster at ``address`` answers and accepts this process within ``timeout_s`` (``ray.init``
-    alone retries for minutes), keeping Ray's own log lines off the terminal.
-
-    :param address: ``"auto"``, ``"host:port"`` (the GCS) or ``"ray://host:port"`` (Ray client: only reachability)
-    :param timeout_s: seconds to wait for the cluster at most
-    :raises InputError: for an address that cannot be right, or a cluster that wants a token this process lacks
-    :raises ClusterUnreachable: when no cluster answered in time
+    Check that the Ray cluster at ``address`` (``"auto"``, ``"host:port"``, ``"ray://host:port"``: reachability only)
+    accepts this process within ``timeout_s`` seconds (``ray.init`` alone retries for minutes), Ray's log lines muted.
     """
     deadline = time.monotonic() + timeout_s
     if address == "auto":
@@ -151,16 +142,15 @@ def ray_session(
     address: str | None = None, num_cpus: int | None = None, connect_timeout_s: float = CONNECT_TIMEOUT_S
 ) -> Iterator[Any]:
     """
-    Ray for the duration of the block: an already initialized Ray as it is, else a new local instance (ended with
-    this process, even by SIGKILL: :mod:`sb3_collapse.sweep.watchdog`) or the cluster at ``address``, checked first
-    (:func:`check_cluster`).
+    Ray for the block: an initialized Ray as it is, else a new local instance (ended with this process, even by
+    SIGKILL) or the cluster at ``address``, checked first (:func:`check_cluster`).
 
     :param address: Ray cluster address, ``None`` for a new local instance
     :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer
     :return: the ``ray`` module
     :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time
-    :raises InputError: for an address that cannot be right, or a cluster that wants a token this process lacks
+    :raises InputError: for a wrong address, or a cluster that wants a token this process lacks
     """
     ray = import_ray()
     if ray.is_initialized():
@@ -191,12 +181,7 @@ def ray_session(
 
 
 def check_resources(resources: Mapping[str, float], cpus_per_trial: float, gpus_per_trial: float) -> None:
-    """
-    :param resources: the cluster's resources (``ray.cluster_resources()``)
-    :param cpus_per_trial: CPUs each trial asks for
-    :param gpus_per_trial: GPUs each trial asks for
-    :raises InputError: when no trial could ever be scheduled
-    """
+    """An ``InputError`` when no trial could ever be scheduled on the cluster's ``resources``."""
     gpus, cpus = resources.get("GPU", 0.0), resources.get("CPU", 0.0)
     if gpus_per_trial > 0 and gpus == 0:
         raise InputError(

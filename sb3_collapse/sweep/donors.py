@@ -19,12 +19,9 @@ from sb3_collapse.protocol import FINAL_MODEL
 from sb3_collapse.runfolder import final_return, trial_folders
 from sb3_collapse.sweep.trials import canonical_task, donor_key
 
-DONOR_PARTS = ("cnn", "mlp")
-"""The transplanted parts, in the order a pick assigns them (the first agent drawn gives the CNN)."""
-DONOR_SOURCES = ("good", "bad")
-"""The classes of donors (rows and columns of Figure 3(a) besides ``blank``)."""
-DONOR_KEYS = tuple(donor_key(source, part) for source in DONOR_SOURCES for part in DONOR_PARTS)
-"""``good_cnn``, ``good_mlp``, ``bad_cnn``, ``bad_mlp``."""
+DONOR_PARTS = ("cnn", "mlp")  # in the order a pick assigns them: the first agent drawn gives the CNN
+DONOR_SOURCES = ("good", "bad")  # the classes of donors (Figure 3(a)'s rows and columns besides blank)
+DONOR_KEYS = tuple(donor_key(source, part) for source in DONOR_SOURCES for part in DONOR_PARTS)  # good_cnn...
 
 
 @dataclass(frozen=True)
@@ -93,8 +90,7 @@ def pick_donors(
     :param sources: the classes to pick (``"good"``, ``"bad"``)
     :param success_return: a final return at least this is a well-performing agent
     :param failure_return: a final return below this is a poorly performing agent
-    :return: :func:`donor_key` -> donor, for each source and part
-    :raises InputError: when a class has fewer than two agents (saying how many and what to pass instead)
+    :return: :func:`donor_key` -> donor, for each source and part (``InputError``: a class of fewer than two agents)
     """
     candidates = donor_candidates(sweep, task, variant, success_return, failure_return)
     rng = np.random.default_rng(seed)
@@ -116,10 +112,7 @@ def pick_donors(
 
 
 def check_distinct_donors(checkpoints: Mapping[str, Mapping[str, str]]) -> None:
-    """
-    :param checkpoints: :func:`donor_key` -> task -> path
-    :raises InputError: when a source's CNN and MLP come from the same file for a task (one agent, not two)
-    """
+    """An ``InputError`` when a source's CNN and MLP come from the same file for a task (one agent, not two)."""
     for source in DONOR_SOURCES:
         cnn, mlp = checkpoints.get(donor_key(source, "cnn"), {}), checkpoints.get(donor_key(source, "mlp"), {})
         for task in sorted(set(cnn) & set(mlp)):
@@ -133,27 +126,14 @@ def check_distinct_donors(checkpoints: Mapping[str, Mapping[str, str]]) -> None:
 
 
 def donors_record(
-    sweep: str | Path,
-    seed: int,
-    variant: str,
-    picked: Mapping[str, Mapping[str, Donor]],
-    success_return: float = PAPER.success_return,
-    failure_return: float = PAPER.failure_return,
+    sweep: str | Path, seed: int, variant: str, picked: Mapping[str, Mapping[str, Donor]]
 ) -> dict[str, Any]:
-    """
-    :param sweep: the sweep the donors come from
-    :param seed: the seed of the draw
-    :param variant: the variant they come from
-    :param picked: task -> :func:`pick_donors`
-    :param success_return: the threshold of the draw's well-performing agents
-    :param failure_return: the threshold of its poorly performing agents
-    :return: what the sweep's settings file records of the draw (key ``donors``), JSON-serializable
-    """
+    """What the sweep's settings file records of a draw (key ``donors``), ``picked``: task -> :func:`pick_donors`."""
     return {
         "from": str(Path(sweep).resolve()),
         "seed": int(seed),
         "variant": variant,
-        "success_return": success_return,
-        "failure_return": failure_return,
+        "success_return": PAPER.success_return,
+        "failure_return": PAPER.failure_return,
         "tasks": {task: {key: asdict(donor) for key, donor in donors.items()} for task, donors in picked.items()},
     }

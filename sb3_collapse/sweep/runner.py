@@ -38,26 +38,27 @@ from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
 from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
-from sb3_collapse.sweep.trials import Trial, check_checkpoints, damaged_result, trial_config, trial_dir
+from sb3_collapse.sweep.trials import (
+    Trial,
+    damaged_result,
+    donor_key,
+    transplant_of,
+    trial_config,
+    trial_dir,
+    variant_settings,
+)
 
 
-def check_sweep_arguments(
+def check_sweep(
+    trials: Sequence[Trial],
     out: str | Path,
     training: Mapping[str, Any],
+    checkpoints: Mapping[str, Mapping[str, str]],
     cpus_per_trial: float = 1,
     gpus_per_trial: float = 0,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
 ) -> None:
-    """
-    Check what a sweep can check before it writes anything or starts Ray.
-
-    :param out: the sweep folder: a folder or nothing yet, not a file
-    :param training: the shared training settings: evaluations on (the report compares their returns)
-    :param cpus_per_trial: CPUs per trial, > 0
-    :param gpus_per_trial: GPUs per trial, a fraction in [0, 1] or a whole number
-    :param connect_timeout_s: seconds to wait for a cluster to answer, > 0
-    :raises InputError: naming the parameter
-    """
+    """Check what a sweep can check before it writes anything or starts Ray (an ``InputError`` names the parameter)."""
     if not connect_timeout_s > 0 or connect_timeout_s == float("inf"):
         raise InputError(
             f"connect_timeout_s must be a finite number of seconds > 0, got {connect_timeout_s}.",
@@ -79,6 +80,18 @@ def check_sweep_arguments(
     blocking = blocking_file(out)
     if blocking is not None:
         raise InputError(f"out {out}: {blocking} is a file, not a folder.", parameter="out")
+    unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
+    if unknown:
+        raise InputError(f"Unknown training settings {unknown}: use TrainConfig field names.")
+    for task, variant in dict.fromkeys((trial.task, trial.variant) for trial in trials):  # its preset, its rule
+        TrainConfig(**{**training, "env": task, **variant_settings(variant)}).validate()
+    for trial in trials:
+        for part, source in (transplant_of(trial.variant) or {}).items():
+            if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
+                raise InputError(
+                    f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-{part} "
+                    f"PATH (or {trial.task}=PATH) for {trial.task}, or --donors-from a finished sweep."
+                )
 
 
 @contextlib.contextmanager
@@ -113,17 +126,11 @@ def run_trial(
     torch_threads: int | None = None,
 ) -> dict[str, Any]:
     """
-    Run one trial into its folder: an unfinished attempt resumes (one with other settings is deleted first); a
-    failure goes to the trial's error file, not up.
+    Run one trial into its folder (an unfinished attempt resumes; with other settings it is deleted first); a failure
+    goes to the trial's error file. The parameters are :func:`~sb3_collapse.sweep.trials.trial_config`'s.
 
-    :param trial: the trial
-    :param out: the sweep folder
-    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials
-    :param checkpoints: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> checkpoint path, for grid cells
-    :param device: torch device of the trial (``"cuda"`` when Ray gave it a GPU)
-    :param torch_threads: threads of torch's CPU operations
-    :return: ``{"trial", "status": "finished" | "failed" | "interrupted", "error": the error's line or None,
-        "resumes"}``, with ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or the driver
+    :return: ``{"trial", "status": "finished" | "failed" | "interrupted", "error": its line or None, "resumes"}``,
+        ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or the driver
     """
     stop_file = Path(out) / SWEEP_STOP
     if stop_file.exists():  # the driver is stopping: a trial that had not started stays as it is
@@ -186,11 +193,7 @@ def _error_file_stamp(folder: Path) -> tuple[int, int] | None:
 
 
 def retryable(error: BaseException) -> bool:
-    """
-    :param error: what the trial raised
-    :return: whether a rerun may succeed: a fault of what it ran on (disk, memory) may be gone; anything else comes
-        back, as the trial resumes bit for bit
-    """
+    """Whether a rerun may succeed: only a fault of what the trial ran on (disk, memory); it resumes bit for bit."""
     import torch as th
 
     transient = (OSError, MemoryError, OutputError, th.cuda.OutOfMemoryError)
@@ -203,14 +206,12 @@ class SweepSummary:
     :param trials: every trial of the sweep
     :param skipped: trials already finished before this run
     :param finished: trials finished in this run
-    :param failed: trial -> the file that says why, for the trials that failed (its error file, or its unreadable
-        result file: see ``damaged``)
+    :param failed: trial -> the file that says why it failed (its error file, or its unreadable result file)
     :param repeating: the failed trials that a rerun would fail the same way (:func:`retryable`)
     :param resumed: the trials finished in this run that continued from a checkpoint
     :param interrupted: trial -> the checkpoint it wrote as it stopped by a signal (``None``: it had not started)
     :param stopped_by: the signal that stopped the sweep's driver (``"SIGTERM"``, ``"SIGINT"``), ``None`` if none
-    :param damaged: trial -> one line (why its result file is unreadable, and the way out), for the trials not run
-        for that reason (also in ``failed`` and ``repeating``)
+    :param damaged: trial -> why its result file is unreadable and the way out (not run; in ``failed``, ``repeating``)
     """
 
     trials: list[Trial]
@@ -239,15 +240,7 @@ def sweep_settings(
     resources: Mapping[str, Any],
     donors: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """
-    :param trials: the sweep's trials
-    :param training: the shared training settings (``None``: the presets)
-    :param checkpoints: the transplant checkpoints
-    :param resources: how trials ran: CPUs and GPUs per trial, the Ray address
-    :param donors: how the donors were picked, ``None`` when they were given
-    :return: the content of the sweep's settings file, JSON-serializable (``task_settings``: the DrQ-v2 settings
-        each task's trials use)
-    """
+    """The content of the sweep's settings file (``task_settings``: the DrQ-v2 settings each task's trials use)."""
     tasks = list(dict.fromkeys(trial.task for trial in trials))
     configs = {task: TrainConfig(**{**training, "env": task}).resolve() for task in tasks}
     return {
@@ -266,8 +259,7 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
     """
     :param previous: the settings in the sweep's settings file
     :param current: the settings of this run
-    :return: one line per training setting that differs (new tasks, seeds, variants and donors may be added), empty
-        when the trials would train the same way
+    :return: one line per training setting that differs (tasks, seeds, variants and donors may be added)
     """
     changes = []
     old, new = previous.get("training", {}), current.get("training", {})
@@ -287,11 +279,6 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
             before = previous.get("checkpoints", {}).get(source, {}).get(task)
             if before not in (None, path):
                 changes.append(f"`{source}` checkpoint for {task}: {before} in {SWEEP_JSON}, {path} now")
-    for source in ("good", "bad"):  # a settings file where one agent gave both parts of a source
-        parts = {f"{source}_cnn", f"{source}_mlp"} & set(current.get("checkpoints", {}))
-        if source in previous.get("checkpoints", {}) and parts:
-            changes.append(f"`{source}` checkpoint: one agent for the CNN and the MLP in {SWEEP_JSON}, two agents now "
-                           f"(--{source}-cnn, --{source}-mlp)")  # fmt: skip
     return changes
 
 
@@ -299,14 +286,8 @@ def prepare_sweep_folder(
     out: str | Path, settings: Mapping[str, Any], allow_changed_settings: bool = False, write: bool = True
 ) -> None:
     """
-    Check this run's settings against the sweep's settings file and write the merged settings there (the tasks,
-    variants, seeds and checkpoints of both: a sweep folder accumulates trials).
-
-    :param out: the sweep folder (created if needed)
-    :param settings: this run's :func:`sweep_settings`
-    :param allow_changed_settings: accept other training settings than the file's (finished trials keep theirs)
-    :param write: write the sweep's settings file; ``False`` only checks (dry run)
-    :raises InputError: when the training settings changed and that is not allowed
+    Check this run's :func:`sweep_settings` against the sweep's settings file (an ``InputError`` when they changed
+    and that is not allowed), then, with ``write``, write there the tasks, variants, seeds and checkpoints of both.
     """
     path = Path(out) / SWEEP_JSON
     previous: dict[str, Any] = read_settings(path) if path.is_file() else {}
@@ -346,14 +327,12 @@ def run_sweep(
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
 ) -> SweepSummary:
     """
-    Run every trial that is not finished, each as an independent Ray task, and wait for all of them: finished trials
-    are skipped, the others resume from their newest checkpoint; a failing trial writes its error file and the
-    others go on. A SIGTERM or SIGINT stops every trial at a checkpoint (a second one at once). See docs/sweeps.md.
+    Run every unfinished trial as an independent Ray task (resuming from its newest checkpoint) and wait for all of
+    them; a SIGTERM or SIGINT stops every trial at a checkpoint (a second one at once). See docs/sweeps.md.
 
     :param trials: the trials (:func:`~sb3_collapse.sweep.trials.expand_trials`)
     :param out: the sweep folder; with ``address`` it must be on storage that every node sees at the same path
-    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (not ``env``,
-        ``seed``, folders, ``device``...)
+    :param training: :class:`~sb3_collapse.run.config.TrainConfig` fields shared by all trials (not ``env``, ``seed``)
     :param checkpoints: :func:`~sb3_collapse.sweep.trials.donor_key` -> task -> checkpoint path, for grid cells
     :param cpus_per_trial: CPUs Ray reserves per trial; also the trial's torch threads (at least 1)
     :param gpus_per_trial: GPUs Ray reserves per trial (``0.25``: four trials share a GPU); > 0 trains on ``cuda``
@@ -363,16 +342,12 @@ def run_sweep(
     :param donors: how the donors were picked (:func:`~sb3_collapse.sweep.donors.donors_record`), ``None`` if given
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer (:func:`ray_session`)
     :return: what was skipped, finished, failed and interrupted
-    :raises InputError: for settings that cannot run, or another sweep running into ``out``; nothing was written
+    :raises InputError: for settings that cannot run, or another sweep running into ``out`` (nothing written)
     :raises MissingDependencyError: when there are trials to run and Ray is not installed
-    :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time; nothing was written
+    :raises ClusterUnreachable: when the cluster at ``address`` did not answer in time (nothing written)
     """
-    check_sweep_arguments(out, training, cpus_per_trial, gpus_per_trial, connect_timeout_s)
-    unknown = sorted(set(training) - {field.name for field in dataclasses.fields(TrainConfig)})
-    if unknown:
-        raise InputError(f"Unknown training settings {unknown}: use TrainConfig field names.")
     checkpoints = {source: dict(paths) for source, paths in (checkpoints or {}).items()}
-    check_checkpoints(trials, checkpoints)
+    check_sweep(trials, out, training, checkpoints, cpus_per_trial, gpus_per_trial, connect_timeout_s)
     out = Path(out).resolve()
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
     settings = sweep_settings(trials, training, checkpoints, resources, donors)
@@ -412,13 +387,7 @@ def run_sweep(
 
 @contextlib.contextmanager
 def sweep_folder_locked(out: Path) -> Iterator[None]:
-    """
-    While inside, this process holds the sweep folder's lock: a second sweep into it is refused. The lock file is
-    deleted at the end, and the folders created for it where left empty.
-
-    :param out: the sweep folder (created if needed)
-    :raises InputError: naming the process that runs a sweep into the folder
-    """
+    """While inside, this process holds the sweep folder's lock (a second sweep: ``InputError``); removed at the end."""
     with (
         _created_folder(out),
         RunLock(out, SWEEP_LOCK, folder="sweep folder", instead="give this sweep another `out`") as lock,
@@ -430,10 +399,7 @@ def sweep_folder_locked(out: Path) -> Iterator[None]:
 
 
 def _wait_for_trials(ray: Any, pending: dict[Any, Trial], out: Path, summary: SweepSummary, progress_bar: bool) -> None:
-    """
-    Collect the outcome of each trial's Ray task into ``summary``. A SIGTERM or SIGINT (in the main thread) writes
-    the stop file that the trials watch and sets ``summary.stopped_by``; a second one raises ``KeyboardInterrupt``.
-    """
+    """Collect each trial's outcome into ``summary``; a signal writes the stop file, a second one stops at once."""
 
     def handler(signum: int, _frame: Any) -> None:
         if summary.stopped_by is not None:

@@ -23,24 +23,23 @@ from sb3_collapse.runfolder import read_result
 LEAKY = "-leaky"  # suffix of the DrQ-v2 variants with Leaky-ReLU activations (drqv2-leaky)
 PERIODIC_REDO = "redo_periodic"  # <algorithm>+redo_periodic: ReDo every REDO_EVERY_UPDATES updates, no rule
 BASE_VARIANTS = ("drqv2", f"drqv2{LEAKY}", *(algorithm for algorithm in ALGORITHMS if algorithm != "drqv2"))
-"""The algorithms of the variants: ``drqv2``, ``drqv2-leaky``, ``td3``, ``sac``."""
 PLAIN_VARIANTS = tuple(
     f"{base}{suffix}"
     for base in BASE_VARIANTS
     for suffix in ("", *(f"+{i}" for i in INTERVENTIONS), f"+{PERIODIC_REDO}")
 )
-"""``<algorithm>``, ``<algorithm>+<intervention>`` and ``<algorithm>+redo_periodic``."""
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
 GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
-"""The nine cells of the transplant grid, CNN source major: ``cnn-blank_mlp-blank``, ``cnn-blank_mlp-good``..."""
+VARIANT_FORMS = (
+    f"<algorithm>, <algorithm>+<intervention> with <algorithm> in {', '.join(BASE_VARIANTS)} and <intervention> in "
+    f"{', '.join(INTERVENTIONS)} (the paper's rule doing it) or {PERIODIC_REDO} (ReDo every {REDO_EVERY_UPDATES} "
+    "updates, no rule), e.g. drqv2+reset, td3+redo, drqv2-leaky+redo_periodic; or a transplant-grid cell "
+    f"cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} (e.g. cnn-good_mlp-bad)"
+)
 
 
 def donor_key(source: str, part: str) -> str:
-    """
-    :param source: ``"good"`` or ``"bad"``
-    :param part: ``"cnn"`` or ``"mlp"``
-    :return: the key of that donor's checkpoints in a sweep's checkpoints (``"good_cnn"``; flag ``--good-cnn``)
-    """
+    """The key of a donor's checkpoints, ``source`` good/bad, ``part`` cnn/mlp: ``"good_cnn"`` (flag ``--good-cnn``)."""
     return f"{source}_{part}"
 
 
@@ -63,11 +62,7 @@ class Trial:
 
 
 def canonical_task(name: str) -> str:
-    """
-    :param name: a task name in any form :func:`~sb3_collapse.envs.parse_task` accepts (``"walker_walk"``)
-    :return: its ``<domain>-<task>`` form (``"walker-walk"``)
-    :raises InputError: for an unknown task, with close names
-    """
+    """The ``<domain>-<task>`` form of a task name (``"walker_walk"``: ``"walker-walk"``); ``InputError`` if unknown."""
     try:
         domain, task = parse_task(name)
     except ValueError as error:
@@ -86,21 +81,13 @@ def transplant_of(variant: str) -> dict[str, str] | None:
     if variant in GRID_VARIANTS:
         cnn, mlp = variant.split("_")
         return {"cnn": cnn.removeprefix("cnn-"), "mlp": mlp.removeprefix("mlp-")}
-    raise InputError(
-        f"Unknown variant {variant!r}: use <algorithm> or <algorithm>+<intervention> with <algorithm> in "
-        f"{', '.join(BASE_VARIANTS)} and <intervention> in {', '.join(INTERVENTIONS)} or {PERIODIC_REDO} (e.g. "
-        "drqv2+reset, td3+redo, drqv2-leaky+redo_periodic), "
-        f"or a transplant-grid cell cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} "
-        "(e.g. cnn-good_mlp-bad)."
-    )
+    raise InputError(f"Unknown variant {variant!r}: use {VARIANT_FORMS}.")
 
 
 def variant_settings(variant: str) -> dict[str, Any]:
     """
-    :param variant: a variant name
-    :return: the :class:`~sb3_collapse.run.config.TrainConfig` settings it fixes: ``algorithm``, ``reset_rule``,
-        ``intervention``, ``activation`` and ``redo_every_updates``
-    :raises InputError: for an unknown variant
+    :param variant: a variant name (an unknown one: ``InputError``)
+    :return: the ``TrainConfig`` settings it fixes: algorithm, reset_rule, intervention, activation, redo_every_updates
     """
     settings: dict[str, Any] = {
         "algorithm": "drqv2", "reset_rule": False, "intervention": None, "activation": "relu", "redo_every_updates": 0
@@ -120,13 +107,12 @@ def variant_settings(variant: str) -> dict[str, Any]:
 
 def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable[int]) -> list[Trial]:
     """
-    Every (task, variant, seed) combination, in that nesting order.
+    Every (task, variant, seed) combination, in that nesting order; an ``InputError`` for an unknown task or variant,
+    a negative seed, an empty list or a value listed twice.
 
     :param tasks: task names (any form of :func:`canonical_task`)
     :param variants: variant names
     :param seeds: seeds (>= 0)
-    :return: the trials
-    :raises InputError: for an unknown task or variant, a negative seed, an empty list or a value listed twice
     """
     tasks = [canonical_task(task) for task in tasks]
     variants, seeds = list(variants), [int(seed) for seed in seeds]
@@ -153,14 +139,13 @@ def trial_dir(out: str | Path, trial: Trial) -> Path:
 
 def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], flag: str) -> dict[str, str]:
     """
-    Checkpoints of one donor per task, from ``PATH`` (every task) and ``TASK=PATH`` items (that task, over a plain
-    ``PATH``); ``.zip`` may be left out, as in ``DrQv2.load``.
+    Checkpoints of one donor per task, from ``PATH`` (every task) and ``TASK=PATH`` items (that task); ``.zip`` may be
+    left out. An ``InputError`` for two plain paths, a task not in the sweep, or a path that is not a file.
 
     :param specs: the items, ``None`` for none
     :param tasks: the sweep's tasks, ``<domain>-<task>``
     :param flag: the command-line flag, for the messages (``"--good-cnn"``)
     :return: task -> absolute checkpoint path, for the tasks that have one
-    :raises InputError: for two plain paths, a task that is not in the sweep, or a path that is not a file
     """
     default: str | None = None
     by_task: dict[str, str] = {}
@@ -192,21 +177,6 @@ def parse_checkpoint_specs(specs: Sequence[str] | None, tasks: Sequence[str], fl
     return resolved
 
 
-def check_checkpoints(trials: Iterable[Trial], checkpoints: Mapping[str, Mapping[str, str]]) -> None:
-    """
-    :param trials: the sweep's trials
-    :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> path
-    :raises InputError: naming the first transplant-grid trial whose checkpoint is missing and the flag to add
-    """
-    for trial in trials:
-        for part, source in (transplant_of(trial.variant) or {}).items():
-            if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
-                raise InputError(
-                    f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-{part} "
-                    f"PATH (or {trial.task}=PATH) for {trial.task}, or --donors-from a finished sweep."
-                )
-
-
 def trial_config(
     trial: Trial,
     out: str | Path,
@@ -216,8 +186,8 @@ def trial_config(
     torch_threads: int | None = None,
 ) -> TrainConfig:
     """
-    The resolved settings of one trial: the sweep's, the trial's task, seed, folder and variant
-    (:func:`variant_settings`), the donors' weights; the settings left at ``None`` come from the task's preset.
+    The resolved ``TrainConfig`` of one trial: the sweep's settings, its task, seed, folder, variant and donors; the
+    settings left at ``None`` come from the task's preset.
 
     :param trial: the trial
     :param out: the sweep folder
@@ -225,7 +195,6 @@ def trial_config(
     :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> checkpoint path, for transplant-grid cells
     :param device: the torch device of the trial
     :param torch_threads: threads of torch's CPU operations in the trial
-    :return: the trial's :class:`~sb3_collapse.run.config.TrainConfig`
     """
     transplant = transplant_of(trial.variant)
     per_trial: dict[str, Any] = {
@@ -240,10 +209,7 @@ def trial_config(
 
 
 def damaged_result(folder: Path) -> str | None:
-    """
-    :param folder: a trial folder
-    :return: one line for a result file that cannot be read (why, and the way out); ``None`` for a readable one or none
-    """
+    """One line for a trial's result file that cannot be read (why, and the way out); ``None`` otherwise."""
     try:
         read_result(folder, strict=True)
     except InputError as error:

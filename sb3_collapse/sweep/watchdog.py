@@ -1,8 +1,4 @@
-"""
-Ends a sweep's local Ray instance when the sweep's driver dies, even by SIGKILL (which skips Ray's clean-up):
-``python -m sb3_collapse.sweep.watchdog DRIVER_PID``. It keeps the list of the driver's descendants while the driver
-lives, then ends those still running. :func:`sb3_collapse.sweep.cluster.ray_session` starts and stops it.
-"""
+"""Ends a sweep's local Ray instance and its workers when the driver dies, even by SIGKILL (see ``ray_session``)."""
 
 from __future__ import annotations
 
@@ -12,8 +8,6 @@ import sys
 import time
 
 import psutil
-
-POLL_SECONDS = 0.5
 
 
 def _descendants(pid: int) -> dict[tuple[int, float], psutil.Process]:
@@ -48,12 +42,8 @@ def _driver_alive(process: psutil.Process) -> bool:
         return False
 
 
-def watch(driver_pid: int, poll_seconds: float = POLL_SECONDS) -> int:
-    """
-    :param driver_pid: the sweep's driver: its descendants are followed until it dies, then those still running ended
-    :param poll_seconds: time between two looks at the process tree
-    :return: how many processes were ended
-    """
+def watch(driver_pid: int, poll_seconds: float = 0.5) -> int:
+    """Follow the descendants of ``driver_pid`` until it dies, then end those still running; return how many."""
     try:
         driver = psutil.Process(driver_pid)
     except psutil.NoSuchProcess:

@@ -26,11 +26,7 @@ HEADER = """\
 
 
 def _zoo_hyperparameters(task_preset: TaskPreset, size: int = 84) -> dict[str, Any]:
-    """
-    :param task_preset: a task's preset
-    :param size: image height and width, in pixels (DrQ-v2's 84)
-    :return: the rl_zoo3 hyperparameters of DrQv2 for the task, counts in agent steps
-    """
+    """The rl_zoo3 hyperparameters of DrQv2 for a task's preset, counts in agent steps, ``size`` in pixels."""
     p, steps = task_preset, task_preset.frames // task_preset.action_repeat
     return {
         "policy": "CnnPolicy",
@@ -52,10 +48,7 @@ def _zoo_env_ids(task: str) -> list[str]:
 
 
 def render_zoo_config() -> str:
-    """
-    :return: the text of ``zoo_configs/drqv2.yml``: one entry per preset of :data:`~sb3_collapse.presets.PRESETS`
-        (and per alias id), by tier
-    """
+    """The text of ``zoo_configs/drqv2.yml``: an entry per preset (and per alias id), by tier."""
     parts = [HEADER]
     for tier in ("easy", "medium", "hard"):
         presets = [task_preset for task_preset in PRESETS.values() if task_preset.tier == tier]
@@ -68,10 +61,7 @@ def render_zoo_config() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
-    :return: 0, or 1 when ``--check`` finds the file out of date
-    """
+    """:return: 0, or 1 when ``--check`` finds the file out of date"""
     parser = argparse.ArgumentParser(
         prog="python -m sb3_collapse.zoo.config", description="Write zoo_configs/drqv2.yml from the preset table."
     )

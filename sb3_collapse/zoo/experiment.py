@@ -17,11 +17,8 @@ from sb3_collapse.envs.registration import ENTRY_POINT
 from sb3_collapse.errors import InputError
 from sb3_collapse.zoo.registration import ALGO_NAME
 
-CallbackSpec = dict[str, dict[str, Any]]
-"""A callback as rl_zoo3's ``callback:`` hyperparameter lists it: ``{"dotted.path.Class": {kwarg: value}}``."""
-
-PIXEL_SETTINGS = ("action_repeat", "frame_stack", "size", "camera_id", "obs_type")
-"""``DMCEnv`` arguments that shape the observations (and the agent step): the same in training and evaluation."""
+CallbackSpec = dict[str, dict[str, Any]]  # rl_zoo3's `callback:` format: {"dotted.path.Class": {kwarg: value}}
+PIXEL_SETTINGS = ("action_repeat", "frame_stack", "size", "camera_id", "obs_type")  # same in training and evaluation
 
 _DMC_DEFAULTS = {
     name: parameter.default
@@ -68,13 +65,11 @@ def _check_drqv2_hyperparams(hyperparams: dict[str, Any]) -> None:
 
 class ZooExperimentManager(ExperimentManager):
     """
-    rl_zoo3's ``ExperimentManager`` for the launcher's ``train``: the evaluation env gets the training
-    ``env_kwargs``, :attr:`extra_callbacks` join the config's, and what breaks DrQv2 on pixels is refused in one
-    line (docs/zoo.md).
+    rl_zoo3's ``ExperimentManager`` for the launcher's ``train``: the evaluation env gets the training ``env_kwargs``,
+    :attr:`extra_callbacks` join the config's, and what breaks DrQv2 on pixels is refused in one line (docs/zoo.md).
     """
 
-    extra_callbacks: ClassVar[list[CallbackSpec]] = []
-    """Callbacks added to every experiment of this class (see :meth:`with_callbacks`)."""
+    extra_callbacks: ClassVar[list[CallbackSpec]] = []  # added to every experiment of this class (with_callbacks)
 
     @classmethod
     def with_callbacks(cls, callbacks: list[CallbackSpec]) -> type[ZooExperimentManager]:

@@ -19,8 +19,7 @@ from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 PROG = "python -m sb3_collapse.zoo"
 COMMANDS = ("train", "enjoy")
 _DRQV2 = PRESETS["walker-walk"]  # the evaluation protocol is the same for every task
-DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat
-"""DrQ-v2's evaluation period, in agent steps: ``eval_every_frames`` / action repeat."""
+DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat  # DrQ-v2's evaluation period, in agent steps
 SWITCHES = {  # the launcher's own options (every other one goes to rl_zoo3) and the callbacks they add
     "--collapse-metrics": {"sb3_collapse.monitoring.CollapseMetrics": {"check_every_frames": PAPER.check_every_frames}},
     "--reset-rule": {
@@ -79,11 +78,7 @@ def _peek(zoo_args: list[str]) -> argparse.Namespace:
 
 
 def collapse_callbacks(collapse_metrics: bool, reset_rule: bool) -> list[dict[str, dict[str, Any]]]:
-    """
-    :param collapse_metrics: add ``CollapseMetrics``
-    :param reset_rule: add ``CollapseReset`` (the paper's rule, its defaults)
-    :return: the callbacks, in the format of rl_zoo3's ``callback`` hyperparameter
-    """
+    """``CollapseMetrics`` and ``CollapseReset`` (the paper's rule) as wanted, in rl_zoo3's ``callback`` format."""
     return [callback for wanted, callback in zip((collapse_metrics, reset_rule), SWITCHES.values()) if wanted]
 
 
@@ -150,13 +145,7 @@ def _replaced(owner: Any, name: str, value: Any) -> Iterator[None]:
 
 
 def run_train(zoo_args: list[str], callbacks: list[dict[str, dict[str, Any]]]) -> None:
-    """
-    Run rl_zoo3's ``train`` script with :class:`~sb3_collapse.zoo.experiment.ZooExperimentManager`, with torch's
-    CUDA flags set as ``python -m sb3_collapse.train`` sets them (:func:`~sb3_collapse.backends.configure_backends`).
-
-    :param zoo_args: rl_zoo3 ``train`` options (after :func:`_train_arguments`)
-    :param callbacks: callbacks appended to those of the config file
-    """
+    """rl_zoo3's ``train`` with ``zoo_args``, ``callbacks`` after the config's, CUDA flags as the train command's."""
     import rl_zoo3.train
 
     from sb3_collapse.backends import configure_backends
@@ -176,10 +165,7 @@ def _error(message: str) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """
-    :param argv: the command line without the program name (``sys.argv[1:]`` when ``None``)
-    :return: exit status (2 for a bad command line or config, rl_zoo3's own status when its parser exits)
-    """
+    """:return: exit status (2 for a bad command line or config, rl_zoo3's own status when its parser exits)"""
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
     if not argv:

@@ -4,16 +4,13 @@ from __future__ import annotations
 
 from sb3_collapse.errors import MissingDependencyError
 
-ALGO_NAME = "drqv2"
-"""Name of DrQv2 in rl_zoo3's algorithm table (``--algo drqv2``)."""
+ALGO_NAME = "drqv2"  # DrQv2's name in rl_zoo3's algorithm table (--algo drqv2)
 
 
 def register_with_zoo() -> None:
     """
-    Add DrQv2 to rl_zoo3's algorithm table (``rl_zoo3.utils.ALGOS``) as ``"drqv2"`` and register the
-    ``sb3_collapse/<domain>-<task>-v0`` Gymnasium ids (idempotent; docs/zoo.md).
-
-    :raises MissingDependencyError: if rl_zoo3 (or a package it needs) cannot be imported, saying how to install it
+    Add DrQv2 to rl_zoo3's algorithm table as ``"drqv2"`` and register the ``sb3_collapse/<domain>-<task>-v0`` ids
+    (idempotent); a ``MissingDependencyError`` saying how to install rl_zoo3 when it cannot be imported.
     """
     try:
         import rl_zoo3  # noqa: F401  (the package first: its submodule may be imported already)

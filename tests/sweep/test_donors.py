@@ -84,7 +84,6 @@ def test_one_agent_for_both_parts_is_refused(finished_sweep, tmp_path, capsys):
     common = ["--tasks", "walker-walk", "--seeds", "1", "--variants", "cnn-good_mlp-good", "--out", str(tmp_path)]
     cases = [
         (["--good-cnn", str(model), "--good-mlp", str(model)], "--good-cnn and --good-mlp give the same checkpoint"),
-        (["--good-checkpoint", str(model)], "--good-checkpoint gave one agent both the CNN and the MLP"),
         (["--donors-from", str(finished_sweep.path), "--good-cnn", str(model)], "leave out --good-cnn"),
     ]
     for extra, message in cases:

@@ -286,14 +286,14 @@ def test_trials_variants_and_checkpoints(tmp_path):
     good.write_bytes(b"")
     walker_good.write_bytes(b"")
     tasks = ["walker-walk", "hopper-stand"]
-    assert parse_checkpoint_specs([str(good)], tasks, "--good-checkpoint") == dict.fromkeys(tasks, str(good))
-    by_task = parse_checkpoint_specs([str(good), f"walker_walk={walker_good}"], tasks, "--good-checkpoint")
+    assert parse_checkpoint_specs([str(good)], tasks, "--good-cnn") == dict.fromkeys(tasks, str(good))
+    by_task = parse_checkpoint_specs([str(good), f"walker_walk={walker_good}"], tasks, "--good-cnn")
     assert by_task == {"walker-walk": str(walker_good), "hopper-stand": str(good)}  # a task name before '='
-    assert parse_checkpoint_specs([str(walker_good)], tasks[:1], "--bad-checkpoint") == {tasks[0]: str(walker_good)}
+    assert parse_checkpoint_specs([str(walker_good)], tasks[:1], "--bad-cnn") == {tasks[0]: str(walker_good)}
     with pytest.raises(InputError, match="not a file"):
-        parse_checkpoint_specs([f"hopper-stand={tmp_path / 'missing.zip'}"], tasks, "--bad-checkpoint")
+        parse_checkpoint_specs([f"hopper-stand={tmp_path / 'missing.zip'}"], tasks, "--bad-cnn")
     with pytest.raises(InputError, match="not a task of this sweep"):
-        parse_checkpoint_specs([f"finger-spin={good}"], tasks, "--bad-checkpoint")
+        parse_checkpoint_specs([f"finger-spin={good}"], tasks, "--bad-cnn")
 
     plain = {"algorithm": "drqv2", "reset_rule": False, "intervention": None, "activation": "relu",
              "redo_every_updates": 0}  # fmt: skip
@@ -328,10 +328,6 @@ def test_command_line_errors(tmp_path, capsys):
     out = str(tmp_path / "sweep")
     cases = [
         (["--tasks", "walker-walk", "--seeds", "2", "--transplant-grid"], "--good-mlp PATH"),
-        (
-            ["--tasks", "walker-walk", "--seeds", "1", "--variants", "cnn-good_mlp-good", "--good-checkpoint", "a.zip"],
-            "pass --good-cnn PATH --good-mlp PATH, or --donors-from SWEEP",
-        ),
         (["--tasks", "walker-walk", "--seeds", "0"], "--seeds must be >= 1"),
         (["--tasks", "walker-walk", "--seed-list", "1", "--variants", "drqv2++"], "Unknown variant 'drqv2++'"),
         (["--tasks", "walker-walk", "--seeds", "1", "--frames", "0"], "--frames must be >= 1"),
@@ -374,11 +370,6 @@ def test_resources_and_settings_checks():
     moved = {"training": {"frames": 1000}, "checkpoints": {"good_cnn": {"walker-walk": "/c.zip"}}}
     assert settings_changes(previous, moved) == [
         "`good_cnn` checkpoint for walker-walk: /a.zip in sweep.json, /c.zip now"
-    ]
-    # A sweep of an earlier version took both good parts from one agent: continuing it with two agents is a change.
-    old_form = {"training": {"frames": 1000}, "checkpoints": {"good": {"walker-walk": "/a.zip"}}}
-    assert settings_changes(old_form, moved) == [
-        "`good` checkpoint: one agent for the CNN and the MLP in sweep.json, two agents now (--good-cnn, --good-mlp)"
     ]
 
 
