@@ -322,11 +322,20 @@ def test_train_names_the_flag_the_user_gave(argv, message, capsys):
     assert message in line and "--batch-size" not in line and "--n-steps must" not in line
 
 
-@pytest.mark.parametrize("argv", [["--frames", "0"], ["--no-such-flag"], ["--algorithm", "ppo"]])
-def test_train_errors_are_one_line_with_a_pointer_to_help_and_no_usage(argv, capsys):
+@pytest.mark.parametrize(
+    "main, prog, argv",
+    [
+        (train_main, "python -m sb3_collapse.train", ["--frames", "0"]),
+        (train_main, "python -m sb3_collapse.train", ["--no-such-flag"]),
+        (train_main, "python -m sb3_collapse.train", ["--algorithm", "ppo"]),
+        (sweep_main, "python -m sb3_collapse.sweep", ["--tasks", "walker-walk", "--seeds", "1", "--no-such-flag"]),
+        (probe_main, "python -m sb3_collapse.probe run", ["x.zip", "--layers", "mlp9"]),
+        (report_main, "python -m sb3_collapse.report", ["sweep", "--no-such-flag"]),
+    ],
+)
+def test_command_line_errors_are_one_line_with_a_pointer_to_help_and_no_usage(main, prog, argv, capsys):
     with pytest.raises(SystemExit) as exit_info:
-        train_main(argv)
+        main(argv)
     assert exit_info.value.code == 2
-    prog = "python -m sb3_collapse.train"
     pointer, line = capsys.readouterr().err.splitlines()  # the error last, where the eye lands
     assert pointer == f"{prog} --help lists the flags." and line.startswith(f"{prog}: error: ")

@@ -16,6 +16,7 @@ from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
 from sb3_collapse.runfolder import (
+    DAMAGED_RESULT_WAY_OUT,
     NOT_A_RUN,
     RunStatus,
     check_result_version,
@@ -26,8 +27,6 @@ from sb3_collapse.runfolder import (
     trial_folders,
 )
 
-WAY_OUT = "move the folder aside to train this seed again"
-"""What a damaged trial's reason ends with."""
 Item = TypeVar("Item")
 
 
@@ -223,7 +222,7 @@ def load_sweep(
         try:
             trials.append(load_trial(task, variant, seed, path, collapse_tag, partial=include_unfinished))
         except InputError as error:
-            reason = f"{str(error).rstrip('.')}: {WAY_OUT}."
+            reason = f"{str(error).rstrip('.')}; {DAMAGED_RESULT_WAY_OUT}."
             trials.append(Trial(task, variant, seed, path, str(RunStatus.FAILED), None, reason=reason))
     if all(trial.reason for trial in trials):
         raise InputError(f"no trial of {sweep} can be read; the first: {trials[0].reason}")

@@ -17,8 +17,8 @@ from sb3_collapse.errors import (
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import checkpoint_frames
-from sb3_collapse.run.settings import prog_name, training_arguments, training_settings
-from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status
+from sb3_collapse.run.settings import CommandLine, prog_name, training_arguments, training_settings
+from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status, unreadable_result
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
@@ -38,7 +38,6 @@ from sb3_collapse.sweep.runner import (
 from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
     VARIANT_FORMS,
-    damaged_result,
     donor_key,
     expand_trials,
     parse_checkpoint_specs,
@@ -52,7 +51,7 @@ DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags and every training flag of train."""
-    p = argparse.ArgumentParser(
+    p = CommandLine(
         prog=prog_name("sb3_collapse.sweep"),
         description="Run every (task, variant, seed) as an independent trial on Ray (DrQ-v2, or the TD3/SAC "
         "baselines that --variants names), each into <out>/<task>/<variant>/seed_<k> (the run folder of python -m "
@@ -249,7 +248,7 @@ def dry_run(
     runs = kept = 0
     for trial, status in statuses.items():
         folder = trial_dir(out, trial)
-        reason = None if status == RunStatus.FINISHED else damaged_result(folder)
+        reason = None if status == RunStatus.FINISHED else unreadable_result(folder)
         if reason is not None:  # not run: a rerun would not repair it
             kept += 1
             print(f"{status:<10} keep   {folder}: {reason}")

@@ -36,11 +36,10 @@ from sb3_collapse.run.folder import settings_differences, tidy_finished_run
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
-from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status
+from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status, unreadable_result
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
 from sb3_collapse.sweep.trials import (
     Trial,
-    damaged_result,
     donor_key,
     transplant_of,
     trial_config,
@@ -360,7 +359,7 @@ def run_sweep(
             if run_status(folder) == RunStatus.FINISHED:
                 summary.skipped.append(trial)
                 tidy_finished_run(folder)  # a trial killed after its result file left its checkpoints behind
-            elif (reason := damaged_result(folder)) is not None:  # not repaired: neither run nor retryable
+            elif (reason := unreadable_result(folder)) is not None:  # not repaired: neither run nor retryable
                 summary.damaged[trial], summary.failed[trial] = reason, folder / RESULT_JSON
                 summary.repeating.append(trial)
         to_run = [trial for trial in trials if trial not in {*summary.skipped, *summary.damaged}]

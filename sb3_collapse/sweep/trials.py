@@ -18,7 +18,6 @@ from sb3_collapse.monitoring.interventions import INTERVENTIONS
 from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import trial_path
 from sb3_collapse.run.config import ALGORITHMS, TrainConfig
-from sb3_collapse.runfolder import read_result
 
 LEAKY = "-leaky"  # suffix of the DrQ-v2 variants with Leaky-ReLU activations (drqv2-leaky)
 PERIODIC_REDO = "redo_periodic"  # <algorithm>+redo_periodic: ReDo every REDO_EVERY_UPDATES updates, no rule
@@ -206,12 +205,3 @@ def trial_config(
         if source != "blank":
             per_trial[f"init_{part}"] = (checkpoints or {})[donor_key(source, part)][trial.task]
     return TrainConfig(**{**training, **per_trial}).resolve()
-
-
-def damaged_result(folder: Path) -> str | None:
-    """One line for a trial's result file that cannot be read (why, and the way out); ``None`` otherwise."""
-    try:
-        read_result(folder, strict=True)
-    except InputError as error:
-        return f"{str(error).rstrip('.')}; move the folder aside to train this seed again."
-    return None
