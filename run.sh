@@ -2,7 +2,7 @@
 # sb3-collapse: set up and run.   bash run.sh demo   |   bash run.sh test   |   bash run.sh setup
 #
 # setup: headless OpenGL (Debian packages, when missing and apt-get can install them), a virtual
-#        environment in .venv (Python >= 3.10), PyTorch (CPU build 2.13.0 unless TORCH_SPEC says otherwise,
+#        environment in .venv (Python >= 3.11; PYTHON=python3.12 picks one), PyTorch (CPU build 2.13.0 unless TORCH_SPEC says otherwise,
 #        or the one already there), then this package in editable mode (with its test, zoo, sweep and dev extras
 #        for `setup` and `test`).
 # demo:  setup, then a short DrQ-v2 run on walker-walk from pixels; writes runs/walker-walk_s0/.
@@ -38,14 +38,26 @@ install_rendering_packages() {
 }
 
 find_python() {
-    if [[ -n $PYTHON ]]; then echo "$PYTHON"; return; fi
-    for candidate in python3.11 python3.12 python3.10 python3; do
-        if command -v "$candidate" >/dev/null && "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 10))'; then
+    local candidate
+    for candidate in ${PYTHON:-python3.11 python3.12 python3}; do
+        if "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
             echo "$candidate"; return
         fi
     done
-    echo "Python >= 3.10 is required (set PYTHON=/path/to/python)." >&2
+    echo "Python >= 3.11 is required; ${PYTHON:-python3.11, python3.12, python3}: none here (set PYTHON=/path/to/python)." >&2
     exit 1
+}
+
+check_venv_python() {
+    # A venv made by another Python is kept only when PYTHON does not ask for a different version.
+    [[ -n $PYTHON ]] || return 0
+    local wanted have
+    wanted=$("$(find_python)" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
+    have=$("$VENV/bin/python" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
+    if [[ $wanted != "$have" ]]; then
+        echo "$VENV holds Python $have, not $PYTHON's $wanted: set VENV=.venv-$wanted (or remove $VENV) and rerun." >&2
+        exit 1
+    fi
 }
 
 setup() {
@@ -57,6 +69,7 @@ setup() {
         log "Creating the virtual environment $VENV"
         "$(find_python)" -m venv "$VENV"
     fi
+    check_venv_python
     if ! "$VENV/bin/python" -c 'import torch' 2>/dev/null; then
         log "Installing PyTorch ($TORCH_SPEC)"
         pip_install "$TORCH_SPEC"
