@@ -10,7 +10,7 @@ import time
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -267,7 +267,7 @@ def probe_sweep(
         columns = _write_figure2(rows, rollouts, agents, task, variant, staged)
         summary = {
             "complete": True,
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "command": list(command) if command is not None else None,
             "sweep": str(sweep_dir),
             "task": task,

@@ -7,7 +7,7 @@ import dataclasses
 import time
 from collections import defaultdict
 from collections.abc import Sequence
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -286,7 +286,7 @@ def _summary(
     files = [CSV_NAME, BY_LAYER_PLOT] + ([OVER_TRAINING_PLOT] if over_training else []) + [SUMMARY_NAME]
     return {
         "complete": True,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "command": list(command) if command is not None else None,
         "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
         "method": "OMP per (layer, component) on features standardized with train statistics (constant columns "
