@@ -2,8 +2,9 @@
 # sb3-collapse: set up and run.   bash run.sh demo   |   bash run.sh test   |   bash run.sh setup
 #
 # setup: headless OpenGL (Debian packages, when missing and apt-get can install them), a virtual
-#        environment in .venv (Python >= 3.11; PYTHON=python3.12 picks one), PyTorch (CPU build 2.13.0 unless TORCH_SPEC says otherwise,
-#        or the one already there), then this package in editable mode (with its test, zoo, sweep and dev extras
+#        environment in .venv (Python >= 3.11; PYTHON=python3.12 picks one), PyTorch (the one already there, else
+#        `pip install $TORCH_SPEC`, torch==2.13.0 by default: from PyPI on Linux that is the CUDA build; see
+#        README.md#requirements), then this package in editable mode (with its test, zoo, sweep and dev extras
 #        for `setup` and `test`).
 # demo:  setup, then a short DrQ-v2 run on walker-walk from pixels; writes runs/walker-walk_s0/.
 # test:  setup, then the test suite (pytest). Extra arguments go to pytest.
@@ -44,7 +45,7 @@ find_python() {
             echo "$candidate"; return
         fi
     done
-    echo "Python >= 3.11 is required; ${PYTHON:-python3.11, python3.12, python3}: none here (set PYTHON=/path/to/python)." >&2
+    echo "Python >= 3.11 is required; ${PYTHON:-python3.11, python3.12, python3}: none here (set PYTHON=...)." >&2
     exit 1
 }
 
@@ -72,7 +73,8 @@ setup() {
     check_venv_python
     if ! "$VENV/bin/python" -c 'import torch' 2>/dev/null; then
         log "Installing PyTorch ($TORCH_SPEC)"
-        pip_install "$TORCH_SPEC"
+        # shellcheck disable=SC2086  # TORCH_SPEC's words: a requirement and pip's options (--index-url ...)
+        pip_install $TORCH_SPEC
     fi
     log "Installing sb3-collapse and its dependencies"
     pip_install -e ".${extras:+[$extras]}"
