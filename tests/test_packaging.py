@@ -147,3 +147,23 @@ def test_wheel_writes_the_zoo_config_outside_a_clone(wheel, tmp_path):
     env = {"PATH": "", "PYTHONPATH": str(tmp_path / "site"), "OMP_NUM_THREADS": "1"}
     subprocess.run(command, cwd=tmp_path, env=env, check=True, capture_output=True, timeout=300)
     assert (tmp_path / "drqv2.yml").read_text() == (ROOT / "zoo_configs" / "drqv2.yml").read_text()
+
+
+@pytest.mark.parametrize(
+    ("module", "name"),
+    [
+        ("run/checkpoints.py", "CHECKPOINT_FORMAT"),
+        ("run/replay_checkpoint.py", "FORMAT"),
+        ("probe/rollouts.py", "FORMAT_VERSION"),
+        ("runfolder.py", "check_result_version"),
+        ("monitoring/callbacks.py", None),
+    ],
+)
+def test_changelog_names_the_format_checks_that_exist(module, name):
+    """The versioning policy names the module (and the constant or function) that refuses another version's files."""
+    changelog = (ROOT / "CHANGELOG.md").read_text()
+    source = (ROOT / "sb3_collapse" / module).read_text()
+    assert f"`{module}`" in changelog or f"`{module.removesuffix('.py').replace('/', '.')}." in changelog
+    if name is not None:
+        assert f"`{name}`" in changelog or f".{name}`" in changelog
+        assert re.search(rf"^(?:{name} = |def {name}\()", source, re.MULTILINE)
