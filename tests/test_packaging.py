@@ -56,12 +56,6 @@ def test_one_version_string():
     assert f"\n## [{version}]" in (ROOT / "CHANGELOG.md").read_text()
 
 
-def test_one_repository_address():
-    url = PROJECT["urls"]["Homepage"]
-    assert re.search(r"^repository-code: \"(.+)\"$", CITATION, re.MULTILINE).group(1) == url
-    assert re.search(r"^  url     = \{(.+)\},$", README, re.MULTILINE).group(1) == url
-
-
 def test_requires_python_is_the_lowest_declared_version():
     assert PROJECT["requires-python"] == f">={min(DECLARED, key=Version)}"
 
@@ -137,7 +131,7 @@ def test_wheel_holds_the_typing_marker_the_licenses_and_the_metadata(wheel):
     assert not [name for name in names if name.startswith(("tests/", "benchmarks/"))]
     assert f"\nVersion: {version}\n" in metadata
     assert "\nRequires-Python: >=3.11\n" in metadata
-    assert f"\nProject-URL: Homepage, {PROJECT['urls']['Homepage']}\n" in metadata
+    assert "\nProject-URL: Stable-Baselines3, https://github.com/DLR-RM/stable-baselines3\n" in metadata
 
 
 def test_wheel_writes_the_zoo_config_outside_a_clone(wheel, tmp_path):
