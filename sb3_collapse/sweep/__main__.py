@@ -29,7 +29,7 @@ from sb3_collapse.sweep.donors import (
     donors_record,
     pick_donors,
 )
-from sb3_collapse.sweep.plan import THROUGHPUT_ROWS, check_node, plan_lines, sweep_plan
+from sb3_collapse.sweep.plan import check_node, sweep_plan
 from sb3_collapse.sweep.runner import (
     SweepSummary,
     check_sweep,
@@ -50,6 +50,7 @@ from sb3_collapse.sweep.trials import (
 )
 
 DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
+THROUGHPUT_ROWS = "benchmarks/README.md#train-throughput-gpu (cuda), #train-throughput-cpu (cpu)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -281,7 +282,7 @@ def dry_run(
     states: dict, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool, donors: dict | None,
     plan: dict, list_limit: int | None = None,
 ) -> int:  # fmt: skip
-    """Print the first ``list_limit`` trials' status and folder (all: ``None``), the counts and the ``plan``, after
+    """Print the first ``list_limit`` trials' status and folder (all: ``None``), the ``plan`` and the counts, after
     checking the sweep's settings file; return 0."""
     if donors is not None:
         for task, picked in donors["tasks"].items():
@@ -300,16 +301,51 @@ def dry_run(
         print(f"{status:<10} {action:<6} {done:>10,} of {config.frames:,} frames  {folder}")
     if len(listed) < len(states):
         print(f"... {len(states) - len(listed)} more trials (--list)")
+    if plan["trials_pending"]:
+        print("\n".join(plan_lines(plan)))
     counts = Counter(status for status, *_ in states.values())
     kept = sum(reason is not None for _, reason, *_ in states.values())
     print(
         f"{len(states)} trials: "
         + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
-        + f"; {plan['trials_pending']} would run"
+        + f"; {plan['trials_pending']} would run (frames done: the newest checkpoint of an unfinished trial)"
         + (f"; {kept} kept as they are (an unreadable {RESULT_JSON})." if kept else ".")
     )
-    print("\n".join(plan_lines(plan)))
     return 0
+
+
+def _size(nbytes: float | None) -> str:
+    if nbytes is None:
+        return "-"
+    return f"{nbytes / 1e9:,.2f} GB" if nbytes >= 1e9 else f"{nbytes / 1e6:,.1f} MB"
+
+
+def plan_lines(plan: dict) -> list[str]:
+    """:return: the plan as the dry run prints it (a short table)"""
+    columns = ("replay_ram", "checkpoints_peak", "snapshots", "model")
+    row = "  {:<32} {:>12} {:>17} {:>12} {:>12}".format
+    total = f"{plan['frames']:,} frames ({plan['agent_steps']:,} agent steps), {plan['updates']:,} updates in all"
+    lines = [
+        f"plan of the {plan['trials_pending']} trials to train: {total}",
+        row("per trial", "replay RAM", "checkpoints peak", "snapshots", "final model"),
+    ]
+    lines += [row(group, *(_size(sizes[name]) for name in columns)) for group, sizes in plan["bytes"].items()]
+    node, limits = plan["node"], plan["limits"]
+    lines.append(f"  disk at the end: {_size(plan['disk_at_end_bytes'])} (final models and snapshots)")
+    lines.append(
+        f"  at once on this machine: {plan['trials_at_once']} trials (by RAM {limits['ram']:,} of "
+        f"{node['ram_bytes'] / 1e9:,.1f} GB; by CPUs {limits['cpus']} of {node['cpus']}"
+        + (f"; by GPUs {limits['gpus']} of {node['gpus']}" if "gpus" in limits else "")
+        + ")"
+    )
+    if plan["hours"] is None:
+        lines.append(f"  time: no estimate: pass --frames-per-second (one trial's, measured: {THROUGHPUT_ROWS})")
+    else:
+        lines.append(
+            f"  time (estimate): {plan['hours']:,.1f} h at {plan['frames_per_second']:g} frames/s per trial "
+            f"(--frames-per-second), {plan['trials_at_once']} at once"
+        )
+    return lines
 
 
 if __name__ == "__main__":

@@ -25,7 +25,6 @@ from sb3_collapse.run.snapshots import SNAPSHOT_PREFIXES
 from sb3_collapse.sweep.trials import Trial
 
 KEEP = inspect.signature(ResumableCheckpoints).parameters["keep"].default  # complete checkpoints a run keeps
-THROUGHPUT_ROWS = "benchmarks/README.md#train-throughput-gpu (cuda), #train-throughput-cpu (cpu)"
 
 
 @functools.cache
@@ -65,14 +64,8 @@ def trial_bytes(config: TrainConfig) -> dict[str, int | None]:
     obs = spaces.Box(0, 255, (3 * config.frame_stack, config.size, config.size), np.uint8)  # type: ignore[operator]
     action = _action_space(config.env)
     stacked = FrameStackReplayBuffer if config.frame_stack > 1 else None  # type: ignore[operator]
-    per_transition = bytes_per_transition(
-        stacked,
-        {"frame_stack": config.frame_stack},
-        config.buffer_size,
-        obs,
-        action,
-        config.n_envs,  # type: ignore[arg-type]
-    )
+    buffer = (stacked, {"frame_stack": config.frame_stack}, config.buffer_size, obs, action, config.n_envs)
+    per_transition = bytes_per_transition(*buffer)  # type: ignore[arg-type]
     between = config.checkpoint_every_frames // config.action_repeat  # type: ignore[operator]  # agent steps
     chunks = per_transition * min(config.buffer_size + KEEP * between, config.agent_steps)  # type: ignore[operator]
     model = snapshot = None
@@ -147,37 +140,3 @@ def check_node(plan: Mapping[str, Any]) -> None:
             "GB once full): pass a smaller `buffer_size` or run on a larger machine; nothing was written.",
             parameter="buffer_size",
         )
-
-
-def _size(nbytes: float | None) -> str:
-    if nbytes is None:
-        return "-"
-    return f"{nbytes / 1e9:,.2f} GB" if nbytes >= 1e9 else f"{nbytes / 1e6:,.1f} MB"
-
-
-def plan_lines(plan: Mapping[str, Any]) -> list[str]:
-    """:return: the plan as the dry run prints it (a short table)"""
-    columns = ("replay_ram", "checkpoints_peak", "snapshots", "model")
-    row = "  {:<32} {:>12} {:>17} {:>12} {:>12}".format
-    total = f"{plan['frames']:,} frames ({plan['agent_steps']:,} agent steps), {plan['updates']:,} updates in all"
-    lines = [
-        f"plan: {plan['trials_pending']} trials to train: {total}",
-        row("per trial", "replay RAM", "checkpoints peak", "snapshots", "final model"),
-    ]
-    lines += [row(group, *(_size(sizes[name]) for name in columns)) for group, sizes in plan["bytes"].items()]
-    node, limits = plan["node"], plan["limits"]
-    lines.append(f"  disk at the end: {_size(plan['disk_at_end_bytes'])} (final models and snapshots)")
-    lines.append(
-        f"  at once on this machine: {plan['trials_at_once']} trials (by RAM {limits['ram']:,} of "
-        f"{node['ram_bytes'] / 1e9:,.1f} GB; by CPUs {limits['cpus']} of {node['cpus']}"
-        + (f"; by GPUs {limits['gpus']} of {node['gpus']}" if "gpus" in limits else "")
-        + ")"
-    )
-    if plan["hours"] is None:
-        lines.append(f"  time: no estimate: pass --frames-per-second (one trial's, measured: {THROUGHPUT_ROWS})")
-    else:
-        lines.append(
-            f"  time (estimate): {plan['hours']:,.1f} h at {plan['frames_per_second']:g} frames/s per trial "
-            f"(--frames-per-second), {plan['trials_at_once']} at once"
-        )
-    return lines

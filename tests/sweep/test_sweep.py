@@ -775,8 +775,18 @@ def test_dry_run_refuses_a_machine_too_small_for_one_buffer(tmp_path, monkeypatc
     lines = own_lines(capsys.readouterr().out)
     assert lines[0].startswith("new        run             0 of 4,000 frames")
     assert lines[1] == "... 1 more trials (--list)"
-    assert lines[2] == "2 trials: 2 new; 2 would run."
-    assert lines[3] == "plan: 2 trials to train: 8,000 frames (2,000 agent steps), 900 updates in all"
-    assert lines[-2].startswith("  at once on this machine: 2 trials (by RAM 2,496 of 1.0 GB;")
-    assert lines[-1].startswith("  time: no estimate: pass --frames-per-second")
+    assert lines[2] == "plan of the 2 trials to train: 8,000 frames (2,000 agent steps), 900 updates in all"
+    assert lines[-3].startswith("  at once on this machine: 2 trials (by RAM 2,496 of 1.0 GB;")
+    assert lines[-2].startswith("  time: no estimate: pass --frames-per-second")
+    assert lines[-1].startswith("2 trials: 2 new; 2 would run")
     assert not out.exists()
+
+
+def test_tiny_sweep_records_its_plan_and_the_report_shows_it(tiny_sweep):
+    from sb3_collapse.report.html import settings_table
+
+    settings = json.loads((tiny_sweep / "sweep.json").read_text())
+    plan = settings["plan"]  # as the sweep planned its 4 new trials of 1,000 frames (action repeat 20: 50 agent steps)
+    assert plan["trials_pending"] == 4 and plan["frames"] == 4 * 1000 and plan["agent_steps"] == 4 * 50
+    assert set(plan["bytes"]) == {"walker-walk/drqv2", "walker-walk/drqv2+reset"}
+    assert "trials_pending" in settings_table(settings)
