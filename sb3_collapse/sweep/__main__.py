@@ -17,6 +17,7 @@ from sb3_collapse.errors import (
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import checkpoint_frames
+from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import CommandLine, prog_name, training_arguments, training_settings
 from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status, unreadable_result
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
@@ -28,6 +29,7 @@ from sb3_collapse.sweep.donors import (
     donors_record,
     pick_donors,
 )
+from sb3_collapse.sweep.plan import check_node, sweep_plan
 from sb3_collapse.sweep.runner import (
     SweepSummary,
     check_sweep,
@@ -38,6 +40,7 @@ from sb3_collapse.sweep.runner import (
 from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
     VARIANT_FORMS,
+    Trial,
     donor_key,
     expand_trials,
     parse_checkpoint_specs,
@@ -47,6 +50,7 @@ from sb3_collapse.sweep.trials import (
 )
 
 DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
+THROUGHPUT_ROWS = "benchmarks/README.md#train-throughput-gpu (cuda), #train-throughput-cpu (cpu)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -116,7 +120,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--allow-changed-settings", action="store_true", help="run even if --out holds a sweep with other training "
         "settings (finished trials keep theirs)",
     )  # fmt: skip
-    g.add_argument("--dry-run", action="store_true", help="list the trials and their status, run nothing")
+    g.add_argument(
+        "--dry-run", action="store_true", help="list the trials and their status, then the plan (what the trials to "
+        "train take: frames, updates, RAM, disk, time; docs/sweeps.md), run nothing",
+    )  # fmt: skip
+    g.add_argument(
+        "--list", dest="list_limit", type=int, metavar="N", help="with --dry-run: list only the first N trials "
+        "(0: the counts and the plan only; default: all)",
+    )  # fmt: skip
+    g.add_argument(
+        "--frames-per-second", type=float, metavar="FPS", help="one trial's training frames/s, measured on this "
+        f"device ({THROUGHPUT_ROWS}): the plan's time estimate; none without it",
+    )  # fmt: skip
     g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
     return p
 
@@ -137,17 +152,31 @@ def main(argv: list[str] | None = None) -> int:
     variants = list(args.variants or ([] if args.transplant_grid else DEFAULT_VARIANTS))
     if args.transplant_grid:
         variants += GRID_VARIANTS
+    if args.list_limit is not None and args.list_limit < 0:
+        parser.error(f"--list must be >= 0, got {args.list_limit}.")
+    if args.frames_per_second is not None and not 0 < args.frames_per_second < float("inf"):
+        parser.error(f"--frames-per-second must be a number > 0, got {args.frames_per_second}.")
     try:
         trials = expand_trials(args.tasks, variants, seeds)
         checkpoints, donors = transplant_checkpoints(args, trials)
         check_sweep(
             trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
         )
+        states = trial_states(trials, args.out, training, checkpoints)
+        configs = {trial: state[2] for trial, state in states.items() if state[1] is None}  # damaged: not trained
+        done = {
+            trial: state[3] for trial, state in states.items() if trial in configs and state[0] != RunStatus.FINISHED
+        }
+        plan = sweep_plan(configs, done, args.cpus_per_trial, args.gpus_per_trial, args.frames_per_second)
+        if args.address is None:  # this machine runs the trials: it must hold one
+            check_node(plan)
         if args.dry_run:
-            return dry_run(trials, args.out, training, checkpoints, args.allow_changed_settings, donors)
+            return dry_run(
+                states, args.out, training, checkpoints, args.allow_changed_settings, donors, plan, args.list_limit
+            )
         summary = run_sweep(
             trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.address,
-            args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s,
+            args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s, plan,
         )  # fmt: skip
     except (MissingDependencyError, ValueError) as error:
         parser.error(cli_message(error, parser))
@@ -233,40 +262,90 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
     return checkpoints, donors_record(args.donors_from, args.donor_seed, args.donor_variant, picked)
 
 
+def trial_states(
+    trials: list, out: str, training: dict, checkpoints: dict
+) -> dict[Trial, tuple[str, str | None, TrainConfig, int]]:
+    """Trial -> its status, why its result file is unreadable (``None``: readable or none), its resolved settings and
+    the frames done (the budget when finished, the newest checkpoint's when unfinished, else 0)."""
+    states = {}
+    for trial in trials:
+        folder = trial_dir(out, trial)
+        status = str(run_status(folder) or NOT_A_RUN)
+        reason = None if status == RunStatus.FINISHED else unreadable_result(folder)
+        config = trial_config(trial, out, training, checkpoints)
+        done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
+        states[trial] = (status, reason, config, config.frames if status == RunStatus.FINISHED else done or 0)
+    return states
+
+
 def dry_run(
-    trials: list, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool, donors: dict | None = None
-) -> int:
-    """Print each trial's status and folder, and the counts, after checking the sweep's settings file; return 0."""
+    states: dict, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool, donors: dict | None,
+    plan: dict, list_limit: int | None = None,
+) -> int:  # fmt: skip
+    """Print the first ``list_limit`` trials' status and folder (all: ``None``), the ``plan`` and the counts, after
+    checking the sweep's settings file; return 0."""
     if donors is not None:
         for task, picked in donors["tasks"].items():
             for key, donor in picked.items():
                 final = donor["final_return"]
                 print(f"donor {task} {key}: seed {donor['seed']} (final return {final:.1f}) {donor['path']}")
-    settings = sweep_settings(trials, training, checkpoints, resources={}, donors=donors)
+    settings = sweep_settings(list(states), training, checkpoints, resources={}, donors=donors, plan=plan)
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
-    statuses = {trial: str(run_status(trial_dir(out, trial)) or NOT_A_RUN) for trial in trials}
-    runs = kept = 0
-    for trial, status in statuses.items():
+    listed = list(states.items())[:list_limit]
+    for trial, (status, reason, config, done) in listed:
         folder = trial_dir(out, trial)
-        reason = None if status == RunStatus.FINISHED else unreadable_result(folder)
         if reason is not None:  # not run: a rerun would not repair it
-            kept += 1
             print(f"{status:<10} keep   {folder}: {reason}")
             continue
-        total = int(trial_config(trial, out, training, checkpoints).frames)  # type: ignore[arg-type]
-        done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
-        action = "skip" if status == RunStatus.FINISHED else "resume" if done is not None else "run"
-        runs += action != "skip"
-        frames = total if status == RunStatus.FINISHED else done or 0
-        print(f"{status:<10} {action:<6} {frames:>10,} of {total:,} frames  {folder}")
-    counts = Counter(statuses.values())
+        action = "skip" if status == RunStatus.FINISHED else "resume" if done else "run"
+        print(f"{status:<10} {action:<6} {done:>10,} of {config.frames:,} frames  {folder}")
+    if len(listed) < len(states):
+        print(f"... {len(states) - len(listed)} more trials (--list)")
+    if plan["trials_pending"]:
+        print("\n".join(plan_lines(plan)))
+    counts = Counter(status for status, *_ in states.values())
+    kept = sum(reason is not None for _, reason, *_ in states.values())
     print(
-        f"{len(trials)} trials: "
+        f"{len(states)} trials: "
         + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
-        + f"; {runs} would run (frames done: the newest checkpoint of an unfinished trial)"
+        + f"; {plan['trials_pending']} would run (frames done: the newest checkpoint of an unfinished trial)"
         + (f"; {kept} kept as they are (an unreadable {RESULT_JSON})." if kept else ".")
     )
     return 0
+
+
+def _size(nbytes: float | None) -> str:
+    if nbytes is None:
+        return "-"
+    return f"{nbytes / 1e9:,.2f} GB" if nbytes >= 1e9 else f"{nbytes / 1e6:,.1f} MB"
+
+
+def plan_lines(plan: dict) -> list[str]:
+    """:return: the plan as the dry run prints it (a short table)"""
+    columns = ("replay_ram", "checkpoints_peak", "snapshots", "model")
+    row = "  {:<32} {:>12} {:>17} {:>12} {:>12}".format
+    total = f"{plan['frames']:,} frames ({plan['agent_steps']:,} agent steps), {plan['updates']:,} updates in all"
+    lines = [
+        f"plan of the {plan['trials_pending']} trials to train: {total}",
+        row("per trial", "replay RAM", "checkpoints peak", "snapshots", "final model"),
+    ]
+    lines += [row(group, *(_size(sizes[name]) for name in columns)) for group, sizes in plan["bytes"].items()]
+    node, limits = plan["node"], plan["limits"]
+    lines.append(f"  disk at the end: {_size(plan['disk_at_end_bytes'])} (final models and snapshots)")
+    lines.append(
+        f"  at once on this machine: {plan['trials_at_once']} trials (by RAM {limits['ram']:,} of "
+        f"{node['ram_bytes'] / 1e9:,.1f} GB; by CPUs {limits['cpus']} of {node['cpus']}"
+        + (f"; by GPUs {limits['gpus']} of {node['gpus']}" if "gpus" in limits else "")
+        + ")"
+    )
+    if plan["hours"] is None:
+        lines.append(f"  time: no estimate: pass --frames-per-second (one trial's, measured: {THROUGHPUT_ROWS})")
+    else:
+        lines.append(
+            f"  time (estimate): {plan['hours']:,.1f} h at {plan['frames_per_second']:g} frames/s per trial "
+            f"(--frames-per-second), {plan['trials_at_once']} at once"
+        )
+    return lines
 
 
 if __name__ == "__main__":

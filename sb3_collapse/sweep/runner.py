@@ -238,8 +238,10 @@ def sweep_settings(
     checkpoints: Mapping[str, Mapping[str, str]],
     resources: Mapping[str, Any],
     donors: Mapping[str, Any] | None = None,
+    plan: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The content of the sweep's settings file (``task_settings``: the DrQ-v2 settings each task's trials use)."""
+    """The content of the sweep's settings file (``task_settings``: the DrQ-v2 settings each task's trials use;
+    ``plan``: :func:`~sb3_collapse.sweep.plan.sweep_plan`'s)."""
     tasks = list(dict.fromkeys(trial.task for trial in trials))
     configs = {task: TrainConfig(**{**training, "env": task}).resolve() for task in tasks}
     return {
@@ -251,6 +253,7 @@ def sweep_settings(
         "seeds": sorted({trial.seed for trial in trials}),
         "resources": dict(resources),
         **({} if donors is None else {"donors": dict(donors)}),
+        **({} if plan is None else {"plan": dict(plan)}),
     }
 
 
@@ -324,6 +327,7 @@ def run_sweep(
     progress_bar: bool = True,
     donors: Mapping[str, Any] | None = None,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
+    plan: Mapping[str, Any] | None = None,
 ) -> SweepSummary:
     """
     Run every unfinished trial as an independent Ray task (resuming from its newest checkpoint) and wait for all of
@@ -340,6 +344,7 @@ def run_sweep(
     :param progress_bar: show a progress bar over the trials
     :param donors: how the donors were picked (:func:`~sb3_collapse.sweep.donors.donors_record`), ``None`` if given
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer (:func:`ray_session`)
+    :param plan: the sweep's plan for its settings file (:func:`~sb3_collapse.sweep.plan.sweep_plan`), if any
     :return: what was skipped, finished, failed and interrupted
     :raises InputError: for settings that cannot run, or another sweep running into ``out`` (nothing written)
     :raises MissingDependencyError: when there are trials to run and Ray is not installed
@@ -349,7 +354,7 @@ def run_sweep(
     check_sweep(trials, out, training, checkpoints, cpus_per_trial, gpus_per_trial, connect_timeout_s)
     out = Path(out).resolve()
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
-    settings = sweep_settings(trials, training, checkpoints, resources, donors)
+    settings = sweep_settings(trials, training, checkpoints, resources, donors, plan)
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
     _check_writable(out)  # before starting Ray: a read-only folder is said at once
     with sweep_folder_locked(out):  # a second sweep into the folder is refused, before its Ray starts

@@ -704,3 +704,89 @@ def test_unreadable_result_file_is_failed_with_its_reason_and_neither_run_nor_ca
     assert "retry" not in stdout.lower() and "choose another folder" not in stdout
     assert mtimes(folder) == {path: mtime for path, mtime in before.items() if folder in path.parents}
     assert run_status(folder) == "failed"
+
+
+# A fabricated preset: cartpole-balance (1-d actions), 4,000 frames of action repeat 4 = 1,000 agent steps, 2 stacked
+# 16x16 frames, a replay buffer of 500 transitions, a checkpoint every 800 frames (200 agent steps), a warm-up of 400
+# frames (100 agent steps), an update every 2 agent steps, evaluations (and snapshots) every 1,000 frames.
+PLAN_PRESET = dict(
+    env="cartpole-balance", frames=4000, action_repeat=4, frame_stack=2, size=16, buffer_size=500,
+    checkpoint_every_frames=800, seed_frames=400, train_freq=2, eval_every_frames=1000, snapshots=True,
+    feature_dim=4, hidden_dim=8,
+)  # fmt: skip
+
+
+def test_plan_of_a_fabricated_preset_by_hand():
+    from sb3_collapse.sweep.plan import sweep_plan
+
+    config = TrainConfig(**PLAN_PRESET).resolve()
+    new, resumed = Trial("cartpole-balance", "drqv2", 0), Trial("cartpole-balance", "drqv2", 1)
+    plan = sweep_plan({new: config, resumed: config}, {new: 0, resumed: 2000}, frames_per_second=0.5)
+    # Replay RAM (FrameStackReplayBuffer): frames of 3x16x16 = 768 bytes, 500 + 2 * (1 + ceil(500 / 250)) = 506 of
+    # them; per transition a 4-byte action and 20 bytes of index, reward, done, timeout.
+    replay = 506 * 768 + 500 * (4 + 20)
+    assert replay == 400_608
+    # Parameters (float32): encoder 6*32*9+32 + 3*(32*32*9+32) = 29,504 (16x16 -> 7 -> 5 -> 3 -> 1: 32 features);
+    # actor trunk 32*4+4 + layer norm 8, then 4*8+8, 8*8+8, 8*1+1 = 261; a critic 140 + 2 heads of (5*8+8 + 8*8+8 +
+    # 8+1) = 398, and its target 398. The model file: every weight, and Adam's two moments of encoder, actor, critic.
+    model = 4 * (29_504 + 261 + 398 + 398) + 2 * 4 * (29_504 + 261 + 398)
+    assert model == 363_548
+    snapshot = 4 * (29_504 + 261)  # encoder and actor
+    # Checkpoints at their peak: the chunks of 500 + 2 * 200 transitions (2 kept checkpoints and the new one), 3 models.
+    checkpoints = round(replay / 500 * (500 + 2 * 200)) + 3 * model
+    snapshots = 5 * snapshot  # evaluations at frames 0, 1000, 2000, 3000, and the final model
+    assert plan["bytes"] == {
+        "cartpole-balance/drqv2": {
+            "replay_ram": replay, "checkpoints_peak": checkpoints, "snapshots": snapshots, "model": model
+        }
+    }  # fmt: skip
+    assert plan["trials_pending"] == 2
+    assert plan["frames"] == 4000 + 2000 and plan["agent_steps"] == 1000 + 500
+    assert plan["updates"] == (1000 - 100) // 2 + (1000 - 500) // 2  # no update in the warm-up
+    assert plan["disk_at_end_bytes"] == 2 * (model + snapshots)
+    assert plan["trials_at_once"] == min(2, plan["node"]["cpus"])
+    assert plan["hours"] == pytest.approx(6000 / (0.5 * plan["trials_at_once"]) / 3600)
+
+
+def test_dry_run_refuses_a_machine_too_small_for_one_buffer(tmp_path, monkeypatch, capsys):
+    import sb3_collapse.sweep.plan as plan_module
+
+    monkeypatch.setattr(plan_module, "physical_memory_bytes", lambda: 400_000)  # < the 400,608 bytes above
+    out = tmp_path / "sweep"
+    preset = [
+        "--frames", "4000", "--action-repeat", "4", "--frame-stack", "2", "--size", "16", "--buffer-size", "500",
+        "--hidden-dim", "8", "--feature-dim", "4", "--seed-frames", "400",
+    ]  # fmt: skip
+    argv = ["--tasks", "cartpole-balance", "--seeds", "2", "--variants", "drqv2", "--out", str(out), *preset]
+    with pytest.raises(SystemExit) as stopped:
+        main([*argv, "--dry-run"])
+    assert stopped.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "0.0 GB of RAM, less than one trial's replay buffer" in error and "--buffer-size" in error
+    assert not out.exists()
+    with pytest.raises(SystemExit):  # the sweep itself too, before Ray or the folder
+        main(argv)
+    assert not out.exists()
+
+    # A machine that holds it: the plan, and --list shortens the list.
+    monkeypatch.setattr(plan_module, "physical_memory_bytes", lambda: 10**9)
+    capsys.readouterr()
+    assert main([*argv, "--dry-run", "--list", "1"]) == 0
+    lines = own_lines(capsys.readouterr().out)
+    assert lines[0].startswith("new        run             0 of 4,000 frames")
+    assert lines[1] == "... 1 more trials (--list)"
+    assert lines[2] == "plan of the 2 trials to train: 8,000 frames (2,000 agent steps), 900 updates in all"
+    assert lines[-3].startswith("  at once on this machine: 2 trials (by RAM 2,496 of 1.0 GB;")
+    assert lines[-2].startswith("  time: no estimate: pass --frames-per-second")
+    assert lines[-1].startswith("2 trials: 2 new; 2 would run")
+    assert not out.exists()
+
+
+def test_tiny_sweep_records_its_plan_and_the_report_shows_it(tiny_sweep):
+    from sb3_collapse.report.html import settings_table
+
+    settings = json.loads((tiny_sweep / "sweep.json").read_text())
+    plan = settings["plan"]  # as the sweep planned its 4 new trials of 1,000 frames (action repeat 20: 50 agent steps)
+    assert plan["trials_pending"] == 4 and plan["frames"] == 4 * 1000 and plan["agent_steps"] == 4 * 50
+    assert set(plan["bytes"]) == {"walker-walk/drqv2", "walker-walk/drqv2+reset"}
+    assert "trials_pending" in settings_table(settings)

@@ -1,0 +1,142 @@
+"""A sweep's plan: what its pending trials will train and take (RAM, disk, time), in its dry run and settings file
+(docs/sweeps.md#the-dry-run-and-its-plan)."""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import math
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+from sb3_collapse.drqv2.policies import CnnPolicy
+from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
+from sb3_collapse.drqv2.replay_memory import bytes_per_transition, physical_memory_bytes
+from sb3_collapse.envs import ensure_rendering_backend, parse_task
+from sb3_collapse.errors import InputError
+from sb3_collapse.run.checkpoints import ResumableCheckpoints
+from sb3_collapse.run.config import TrainConfig, drqv2_kwargs
+from sb3_collapse.run.snapshots import SNAPSHOT_PREFIXES
+from sb3_collapse.sweep.trials import Trial
+
+KEEP = inspect.signature(ResumableCheckpoints).parameters["keep"].default  # complete checkpoints a run keeps
+
+
+@functools.cache
+def _action_space(task: str) -> spaces.Box:
+    """The action space of ``task`` (its dm_control action spec; no rendering)."""
+    ensure_rendering_backend(required=False)
+    from dm_control import suite
+
+    return spaces.Box(-1.0, 1.0, shape=suite.load(*parse_task(task)).action_spec().shape, dtype=np.float32)
+
+
+@functools.cache
+def _drqv2_bytes(obs_shape: tuple[int, ...], action_dim: int, policy_kwargs: tuple) -> tuple[int, int]:
+    """Bytes of a DrQ-v2 model file (weights and Adam's two moments) and of its snapshot (encoder and actor weights),
+    from its policy built on the meta device (no memory)."""
+    obs, action = spaces.Box(0, 255, obs_shape, np.uint8), spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
+    with th.device("meta"):
+        policy = CnnPolicy(obs, action, lambda _: 0.0, **dict(policy_kwargs), optimizer_kwargs={"fused": False})
+    state = policy.state_dict()
+    optimized = [p for optimizer in policy.optimizers for group in optimizer.param_groups for p in group["params"]]
+
+    def size(tensors: Any) -> int:
+        return sum(tensor.numel() * tensor.element_size() for tensor in tensors)
+
+    snapshot = size(value for key, value in state.items() if key.startswith(SNAPSHOT_PREFIXES))
+    return size(state.values()) + 2 * size(optimized), snapshot
+
+
+def trial_bytes(config: TrainConfig) -> dict[str, int | None]:
+    """
+    :param config: a trial's resolved settings
+    :return: bytes of its replay buffer in RAM once full (``replay_ram``), of its checkpoints folder at its peak
+        (``checkpoints_peak``: the replay chunks of :data:`KEEP` checkpoints and the one being written, and their
+        model files), of its snapshots (``snapshots``) and of its final model file (``model``; ``None``, and not in
+        ``checkpoints_peak``, for td3 and sac)
+    """
+    obs = spaces.Box(0, 255, (3 * config.frame_stack, config.size, config.size), np.uint8)  # type: ignore[operator]
+    action = _action_space(config.env)
+    stacked = FrameStackReplayBuffer if config.frame_stack > 1 else None  # type: ignore[operator]
+    buffer = (stacked, {"frame_stack": config.frame_stack}, config.buffer_size, obs, action, config.n_envs)
+    per_transition = bytes_per_transition(*buffer)  # type: ignore[arg-type]
+    between = config.checkpoint_every_frames // config.action_repeat  # type: ignore[operator]  # agent steps
+    chunks = per_transition * min(config.buffer_size + KEEP * between, config.agent_steps)  # type: ignore[operator]
+    model = snapshot = None
+    if config.algorithm == "drqv2":
+        policy_kwargs = tuple(sorted(drqv2_kwargs(config)["policy_kwargs"].items()))
+        model, snapshot = _drqv2_bytes(obs.shape, int(np.prod(action.shape)), policy_kwargs)
+    snapshots = 0  # one per evaluation (from frame 0, every eval_every_frames) and one of the final model
+    if config.snapshots and snapshot is not None:
+        snapshots = snapshot * (math.ceil(config.frames / config.eval_every_frames) + 1)  # type: ignore[operator]
+    return {
+        "replay_ram": round(per_transition * config.buffer_size),  # type: ignore[operator]
+        "checkpoints_peak": round(chunks) + (KEEP + 1) * (model or 0),
+        "snapshots": snapshots,
+        "model": model,
+    }
+
+
+def _group(trial: Trial) -> str:
+    """The trials of one task and variant share their settings: ``"walker-walk/drqv2"``."""
+    return f"{trial.task}/{trial.variant}"
+
+
+def sweep_plan(
+    configs: Mapping[Trial, TrainConfig],
+    done_frames: Mapping[Trial, int],
+    cpus_per_trial: float = 1,
+    gpus_per_trial: float = 0,
+    frames_per_second: float | None = None,
+) -> dict[str, Any]:
+    """
+    :param configs: the resolved settings of every trial that will hold files (finished or to train)
+    :param done_frames: the trials to train (pending) -> the frames their newest checkpoint holds (0 without one)
+    :param cpus_per_trial: CPUs per trial
+    :param gpus_per_trial: GPUs per trial
+    :param frames_per_second: one trial's training frames per second (measured), for the time estimate
+    :return: the plan (the sweep settings file's ``plan``): frames, agent steps and updates to train, bytes per (task,
+        variant), the disk the sweep holds at the end, this machine's RAM/CPUs/GPUs and the trials it runs at once
+    """
+    frames = steps = updates = 0
+    for trial, done in done_frames.items():
+        config = configs[trial]
+        repeat = config.action_repeat
+        frames += config.frames - done  # type: ignore[operator]
+        steps += config.agent_steps - done // repeat  # type: ignore[operator]
+        start = max(done // repeat, config.seed_frames // repeat)  # type: ignore[operator]  # no update in the warm-up
+        every = config.train_freq if config.algorithm == "drqv2" else 1  # agent steps per update (SB3's: 1)
+        updates += max(0, config.agent_steps - start) // every  # type: ignore[operator]
+    groups = {_group(trial): trial_bytes(config) for trial, config in configs.items()}
+    pending = [groups[_group(trial)] for trial in done_frames]
+    at_end = sum(groups[_group(trial)]["snapshots"] + (groups[_group(trial)]["model"] or 0) for trial in configs)
+    node = {"ram_bytes": physical_memory_bytes(), "cpus": os.cpu_count() or 1, "gpus": th.cuda.device_count()}
+    largest = max((sizes["replay_ram"] for sizes in pending), default=0)
+    limits = {"ram": node["ram_bytes"] // largest if largest else len(pending)}
+    limits["cpus"] = int(node["cpus"] // cpus_per_trial)
+    if gpus_per_trial > 0:
+        limits["gpus"] = int(node["gpus"] // gpus_per_trial)
+    at_once = min(len(pending), *limits.values())
+    hours = frames / (frames_per_second * at_once) / 3600 if frames_per_second and at_once else None
+    return {
+        "trials_pending": len(done_frames), "frames": frames, "agent_steps": steps, "updates": updates,
+        "bytes": groups, "disk_at_end_bytes": at_end, "node": node, "largest_replay_ram_bytes": largest,
+        "trials_at_once": at_once, "limits": limits, "frames_per_second": frames_per_second, "hours": hours,
+    }  # fmt: skip
+
+
+def check_node(plan: Mapping[str, Any]) -> None:
+    """An ``InputError`` when this machine's RAM cannot hold one pending trial's replay buffer."""
+    ram, largest = plan["node"]["ram_bytes"], plan["largest_replay_ram_bytes"]
+    if largest > ram:
+        raise InputError(
+            f"this machine has {ram / 1e9:,.1f} GB of RAM, less than one trial's replay buffer ({largest / 1e9:,.1f} "
+            "GB once full): pass a smaller `buffer_size` or run on a larger machine; nothing was written.",
+            parameter="buffer_size",
+        )
