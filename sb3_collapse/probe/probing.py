@@ -145,7 +145,7 @@ def _extract_activations(
     out: dict[str, th.Tensor] = {}
     device, size = get_device(settings.device), settings.batch_size
     for start in progress_bar(
-        range(0, len(order), size), f"extracting {'+'.join(layers)}", "batch", settings.progress, leave=False
+        range(0, len(order), size), f"extracting {'+'.join(layers)}", "block", settings.progress, leave=False
     ):
         batch = observations[order[start : start + size]]
         for name, value in collect_activations(model, batch, layers, size, device).items():

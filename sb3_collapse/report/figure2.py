@@ -147,7 +147,7 @@ def plot_figure2(
         ax.plot(curve.frames, curve.mean, marker="o", ms=2.5, lw=1.3, **layer_style(curve.layer))
         flat = " (barely varies)" if curve.column in flat_columns else ""
         ax.set_title(
-            f"{curve.row} ({len(curve.agents)}): {curve.column}{flat}", fontsize=9, color="red" if flat else None
+            f"{curve.row} ({len(curve.agents)}): {curve.column}{flat}", fontsize=9, color="red" if flat else "black"
         )
     for ax in axes.flat:
         ax.grid(alpha=0.3)

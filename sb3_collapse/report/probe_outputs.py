@@ -103,7 +103,7 @@ def plot_mse_by_layer(rows: list[dict[str, Any]], path: Path, warnings: Sequence
             ys = [mse.get((checkpoint, component, layer), np.nan) for layer in layers]
             ax.plot(range(len(layers)), ys, marker="o", ms=3, color=color, label=checkpoint)
         flat = component in targets
-        ax.set_title(component + (" (barely varies)" if flat else ""), fontsize=9, color="red" if flat else None)
+        ax.set_title(component + (" (barely varies)" if flat else ""), fontsize=9, color="red" if flat else "black")
         ax.set_xticks(range(len(layers)), [layer + "*" * (layer in few) for layer in layers], rotation=45, fontsize=7)
         for label in ax.get_xticklabels():
             label.set_color("red" if label.get_text().endswith("*") else "black")
