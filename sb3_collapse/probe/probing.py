@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -377,17 +377,9 @@ REMEDY = (
 def probe_warnings(
     rollouts: Rollouts, split: EpisodeSplit, rows: Sequence[dict[str, Any]], settings: ProbeSettings
 ) -> list[dict[str, Any]]:
-    """
-    Where the probe's numbers mean little (docs/probe.md#warnings): targets that barely vary on the train episodes
-    (train std ``<= min_std``, or ``<= target_std_ratio`` x their std over all the rollouts), and layers whose
-    largest fitted sparsity exceeds the test samples.
-
-    :param rollouts: the probed rollouts
-    :param split: their split
-    :param rows: the probe's rows (:data:`ROW_COLUMNS`)
-    :param settings: the probe's settings
-    :return: one dict per kind of warning: ``kind``, ``targets`` or ``layers``, ``message``
-    """
+    """:return: where the probe's ``rows`` mean little (docs/probe.md#warnings), one dict per kind (``kind``,
+    ``targets`` or ``layers``, ``message``): targets that barely vary on the train episodes, layers of fewer test
+    samples than ``max_tau``"""
     names, _, raw = rollouts.targets()
     train_std = raw[split.order[: split.n_train]].std(0, dtype=np.float64)
     limit = np.maximum(settings.min_std, settings.target_std_ratio * raw.std(0, dtype=np.float64))
@@ -439,12 +431,10 @@ def probe_each_checkpoint(
         checkpoint.label = item[1]
         return probe_checkpoint(checkpoint, rollouts, split, quiet, reuse).rows
 
-    work = list(zip(paths, labels))
-    with progress_bar(None, "probing checkpoints", "checkpoint", settings.progress, len(work)) as bar:
-        results = [probe_one(work[0])]  # alone: the others reuse its cnn0 probe
-        bar.update()
+    def in_order(work: list[tuple[str | Path, str]]) -> Iterator[list[dict[str, Any]]]:
+        yield probe_one(work[0])  # alone: the others reuse its cnn0 probe
         with ThreadPoolExecutor(max_workers=jobs) as pool:
-            for rows in pool.map(probe_one, work[1:]):  # in the order of work, whatever finishes first
-                results.append(rows)
-                bar.update()
-    return results
+            yield from pool.map(probe_one, work[1:])  # in the order of work, whatever finishes first
+
+    work = list(zip(paths, labels))
+    return list(progress_bar(in_order(work), "probing checkpoints", "checkpoint", settings.progress, len(work)))
