@@ -22,3 +22,22 @@ def test_a_bar_draws_on_a_terminal_only_and_elsewhere_says_one_line(monkeypatch,
     assert on_terminal() and not on_terminal(False)
     assert list(progress_bar(range(3), "reading", "trial")) == [0, 1, 2]
     assert "\r" in terminal.getvalue() and "3/3" in terminal.getvalue()  # tqdm's frames, on the terminal
+
+
+def test_the_sweeps_wait_for_its_trials_draws_no_bar_into_a_captured_stderr(tmp_path, capfd, monkeypatch):
+    from sb3_collapse.sweep import runner
+
+    class FakeRay:  # trial "a" finishes, trial "b" fails
+        def wait(self, refs, num_returns, timeout):
+            return [refs[0]], []
+
+        def get(self, ref):
+            return {"status": "finished"} if ref == "a" else {"status": "failed", "error": "boom"}
+
+    monkeypatch.setattr(runner, "trial_dir", lambda out, trial: out / trial)
+    summary = runner.SweepSummary(["a", "b"], [], [], {})
+    runner._wait_for_trials(FakeRay(), {"a": "a", "b": "b"}, tmp_path, summary, True)  # the progress on
+    assert summary.finished == ["a"] and list(summary.failed) == ["b"]
+    captured = capfd.readouterr()
+    assert captured.err == "trials: 2 trials\n"  # one line, no bar frames
+    assert "FAILED b: boom" in captured.out and "\r" not in captured.out

@@ -704,22 +704,3 @@ def test_unreadable_result_file_is_failed_with_its_reason_and_neither_run_nor_ca
     assert "retry" not in stdout.lower() and "choose another folder" not in stdout
     assert mtimes(folder) == {path: mtime for path, mtime in before.items() if folder in path.parents}
     assert run_status(folder) == "failed"
-
-
-def test_the_sweeps_wait_for_its_trials_draws_no_bar_into_a_captured_stderr(tmp_path, capfd, monkeypatch):
-    from sb3_collapse.sweep import runner
-
-    class FakeRay:  # trial "a" finishes, trial "b" fails
-        def wait(self, refs, num_returns, timeout):
-            return [refs[0]], []
-
-        def get(self, ref):
-            return {"status": "finished"} if ref == "a" else {"status": "failed", "error": "boom"}
-
-    monkeypatch.setattr(runner, "trial_dir", lambda out, trial: out / trial)
-    summary = runner.SweepSummary(["a", "b"], [], [], {})
-    runner._wait_for_trials(FakeRay(), {"a": "a", "b": "b"}, tmp_path, summary, True)  # the progress on
-    assert summary.finished == ["a"] and list(summary.failed) == ["b"]
-    captured = capfd.readouterr()
-    assert captured.err == "trials: 2 trials\n"  # one line, no bar frames
-    assert "FAILED b: boom" in captured.out and "\r" not in captured.out
