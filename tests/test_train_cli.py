@@ -258,3 +258,12 @@ def test_train_leaky_relu_with_periodic_redo(tmp_path):
     with open(result.run_dir / "progress.csv") as file:
         recycles = [row["redo/recycles"] for row in csv.DictReader(file) if row.get("redo/recycles")]
     assert recycles and int(float(recycles[-1])) >= 2  # 8 updates (from step 4, one per 2 steps): at 3 and 6
+
+
+def test_train_draws_no_progress_bar_into_a_captured_stream(tmp_path, capfd):
+    argv = ["--env", "walker-walk", "--frames", "80", "--action-repeat", "20", "--seed-frames", "40", "--batch-size",
+            "8", "--hidden-dim", "32", "--eval-every-frames", "0", "--logdir", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 0  # the progress bar is on by default; stdout and stderr are not terminals
+    captured = capfd.readouterr()
+    text = captured.out + captured.err
+    assert "\r" not in text and "━" not in text and "%|" not in text

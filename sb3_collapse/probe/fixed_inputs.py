@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import torch as th
-from tqdm.auto import tqdm
 
+from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring import collect_activations, layer_metrics, unit_count
 from sb3_collapse.paper import metric_tag
@@ -94,7 +94,7 @@ def fixed_metrics(
     labelled ``desc``)."""
     columns: dict[str, tuple[list[int], list[float]]] = {}
     result = FixedMetrics(checkpoints=list(paths))
-    for path in tqdm(paths, desc=desc, unit="checkpoint", disable=not progress):
+    for path in progress_bar(paths, desc, "checkpoint", progress):
         checkpoint = load_checkpoint(path, device=device)
         shape = tuple(checkpoint.model.observation_space.shape or ())
         if tuple(inputs.observations.shape[1:]) != shape:

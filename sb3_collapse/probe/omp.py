@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch as th
 from stable_baselines3.common.utils import get_device
-from tqdm.auto import tqdm
+
+from sb3_collapse.common.progress import progress_bar
 
 
 @dataclass
@@ -99,7 +100,7 @@ def omp_path(
     running = th.arange(m, device=device)  # targets still selecting atoms
     initial_correlations: th.Tensor | None = None  # X^T y, (d, m)
 
-    for k in tqdm(range(max_atoms), desc=desc, disable=not progress, leave=False):
+    for k in progress_bar(range(max_atoms), desc, "atom", progress, leave=False):
         if running.numel() == 0:
             break
         sel = _selector(running, m)

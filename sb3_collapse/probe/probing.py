@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import torch as th
 from stable_baselines3.common.utils import get_device
-from tqdm.auto import tqdm
 
 from sb3_collapse.common.layers import LAYER_NAMES
+from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_taps
@@ -144,8 +144,8 @@ def _extract_activations(
     """:return: layer -> the ``(len(order), d)`` float32 flattened activations of ``observations[order]``"""
     out: dict[str, th.Tensor] = {}
     device, size = get_device(settings.device), settings.batch_size
-    for start in tqdm(
-        range(0, len(order), size), f"extracting {'+'.join(layers)}", disable=not settings.progress, leave=False
+    for start in progress_bar(
+        range(0, len(order), size), f"extracting {'+'.join(layers)}", "block", settings.progress, leave=False
     ):
         batch = observations[order[start : start + size]]
         for name, value in collect_activations(model, batch, layers, size, device).items():
@@ -252,7 +252,17 @@ class ProbeSettings:
         4.0, help="activations held at once, in GB; layers share a forward pass while they fit", unit="GB", above=0
     )
     min_std: float = setting(
-        1e-6, help="feature columns of a smaller train std are dropped as constant", unit=None, minimum=0
+        1e-6,
+        help="feature columns of a smaller train std are dropped as constant; targets are warned",
+        unit=None,
+        minimum=0,
+    )
+    target_std_ratio: float = setting(
+        0.1,
+        help="warn for a target whose train std is at most this fraction of its std over all the rollouts",
+        unit=None,
+        minimum=0,
+        maximum=1,
     )
     device: str = setting("auto", help="auto (CUDA when available), cpu, cuda, ...", unit=None)
     progress: bool = setting(True, help="show the progress bars", unit=None)
@@ -357,6 +367,40 @@ def probe_checkpoint(
     return result
 
 
+REMEDY = (
+    "record rollouts from a well-performing agent, as the paper's protocol does (Section 4.1; "
+    "`python -m sb3_collapse.probe record GOOD.zip`), with enough episodes (--episodes)"
+)
+"""The way out that every probe warning names."""
+
+
+def probe_warnings(
+    rollouts: Rollouts, split: EpisodeSplit, rows: Sequence[dict[str, Any]], settings: ProbeSettings
+) -> list[dict[str, Any]]:
+    """:return: where the probe's ``rows`` mean little (docs/probe.md#warnings), one dict per kind (``kind``,
+    ``targets`` or ``layers``, ``message``): targets that barely vary on the train episodes, layers of fewer test
+    samples than ``max_tau``"""
+    names, _, raw = rollouts.targets()
+    train_std = raw[split.order[: split.n_train]].std(0, dtype=np.float64)
+    limit = np.maximum(settings.min_std, settings.target_std_ratio * raw.std(0, dtype=np.float64))
+    flat = [name for name, std, most in zip(names, train_std, limit) if std <= most]
+    layers = list(dict.fromkeys(row["layer"] for row in rows if row["n_test"] < row["max_tau"]))
+    warnings = []
+    if flat:
+        message = (
+            f"target(s) {', '.join(flat)} barely vary on the train episodes (train std <= {settings.target_std_ratio:g}"
+            " x their std over the rollouts): their standardized MSE divides by that small variance and means little"
+        )
+        warnings.append({"kind": "barely varying targets", "targets": flat, "message": f"{message}; {REMEDY}."})
+    if layers:
+        message = (
+            f"layer(s) {', '.join(layers)}: the split leaves {split.n_test} test samples, fewer than the sparsity "
+            "fitted (max_tau): their test MSE rests on fewer samples than a probe's coefficients"
+        )
+        warnings.append({"kind": "few test samples", "layers": layers, "message": f"{message}; {REMEDY}."})
+    return warnings
+
+
 def probe_each_checkpoint(
     paths: Sequence[str | Path],
     labels: Sequence[str],
@@ -387,12 +431,10 @@ def probe_each_checkpoint(
         checkpoint.label = item[1]
         return probe_checkpoint(checkpoint, rollouts, split, quiet, reuse).rows
 
-    work = list(zip(paths, labels))
-    with tqdm(total=len(work), desc="probing checkpoints", unit="checkpoint", disable=not settings.progress) as bar:
-        results = [probe_one(work[0])]  # alone: the others reuse its cnn0 probe
-        bar.update()
+    def in_order(work: list[tuple[str | Path, str]]) -> Iterator[list[dict[str, Any]]]:
+        yield probe_one(work[0])  # alone: the others reuse its cnn0 probe
         with ThreadPoolExecutor(max_workers=jobs) as pool:
-            for rows in pool.map(probe_one, work[1:]):  # in the order of work, whatever finishes first
-                results.append(rows)
-                bar.update()
-    return results
+            yield from pool.map(probe_one, work[1:])  # in the order of work, whatever finishes first
+
+    work = list(zip(paths, labels))
+    return list(progress_bar(in_order(work), "probing checkpoints", "checkpoint", settings.progress, len(work)))

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
-from tqdm.auto import tqdm
 
+from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import reward_inputs_of
 from sb3_collapse.errors import InputError, ParameterError
@@ -231,7 +231,7 @@ def record_rollouts(
     reward_inputs: dict[str, list] = {}
     per_episode = min(env._dmc._env._step_limit / env.action_repeat, max_steps or math.inf)  # the time limit's cap
     total = episodes * math.ceil(per_episode) if math.isfinite(per_episode) else None
-    bar = tqdm(total=total, desc="recording", unit="step", disable=not progress)
+    bar = progress_bar(None, "recording", "step", progress, total)
     try:
         for episode in range(episodes):
             obs, _ = env.reset(seed=seed if episode == 0 else None)

@@ -8,7 +8,7 @@ import dataclasses
 import math
 import time
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -25,7 +25,7 @@ from stable_baselines3.common.utils import get_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions
-from sb3_collapse.probe.probing import ProbeSettings, probe_each_checkpoint, split_by_episode
+from sb3_collapse.probe.probing import ProbeSettings, probe_each_checkpoint, probe_warnings, split_by_episode
 from sb3_collapse.probe.rollouts import REWARD_PREFIX, Rollouts
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
@@ -38,7 +38,7 @@ from sb3_collapse.protocol import (
 )
 from sb3_collapse.report.collapse_figure import PAPER_ROLES, agent_class
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
-from sb3_collapse.report.probe_outputs import checked_record_options, record_rollouts
+from sb3_collapse.report.probe_outputs import checked_record_options, record_rollouts, report_warnings, warned
 from sb3_collapse.report.statistics import across_seed_std, budget_frames, stage_indices, stages_caption
 from sb3_collapse.report.style import frames_axis, layer_style
 from sb3_collapse.report.tables import markdown_table, write_csv
@@ -124,8 +124,16 @@ def panel_curves(
     return curves
 
 
-def plot_figure2(curves: Sequence[PanelCurve], path: Path, title: str) -> None:
-    """The paper's Figure 2 to ``path``: a row per class of agents, a column per state column, a line per layer."""
+def plot_figure2(
+    curves: Sequence[PanelCurve],
+    path: Path,
+    title: str,
+    flat_columns: Collection[str] = (),
+    few_layers: Collection[str] = (),
+) -> None:
+    """The paper's Figure 2 to ``path``: a row per class of agents, a column per state column, a line per layer;
+    in red the columns of a barely varying target (``flat_columns``) and the layers of ``few_layers`` (fewer test
+    samples than max_tau, marked ``*``)."""
     rows = list(dict.fromkeys(c.row for c in curves))
     columns = list(dict.fromkeys(c.column for c in curves))
     layers = list(dict.fromkeys(c.layer for c in curves))
@@ -137,7 +145,10 @@ def plot_figure2(curves: Sequence[PanelCurve], path: Path, title: str) -> None:
     for curve in curves:
         ax = axes[rows.index(curve.row)][columns.index(curve.column)]
         ax.plot(curve.frames, curve.mean, marker="o", ms=2.5, lw=1.3, **layer_style(curve.layer))
-        ax.set_title(f"{curve.row} ({len(curve.agents)}): {curve.column}", fontsize=9)
+        flat = " (barely varies)" if curve.column in flat_columns else ""
+        ax.set_title(
+            f"{curve.row} ({len(curve.agents)}): {curve.column}{flat}", fontsize=9, color="red" if flat else "black"
+        )
     for ax in axes.flat:
         ax.grid(alpha=0.3)
         ax.set_ylim(bottom=0)
@@ -147,8 +158,20 @@ def plot_figure2(curves: Sequence[PanelCurve], path: Path, title: str) -> None:
     for ax in axes[-1]:
         frames_axis(ax, "training frames")
     handles = [Line2D([], [], lw=1.3, **layer_style(layer)) for layer in layers]
-    fig.legend(handles, layers, loc="lower center", ncol=len(layers), fontsize=8, frameon=False)
-    fig.suptitle(title, fontsize=10)
+    legend = fig.legend(
+        handles,
+        [layer + "*" * (layer in few_layers) for layer in layers],
+        loc="lower center",
+        ncol=len(layers),
+        fontsize=8,
+        frameon=False,
+    )
+    for text in legend.get_texts():
+        text.set_color("red" if text.get_text().endswith("*") else "black")
+    marks = (
+        "\nred: the warnings of summary.json (*: fewer test samples than max_tau)" if flat_columns or few_layers else ""
+    )
+    fig.suptitle(title + marks, fontsize=10)
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
@@ -263,8 +286,9 @@ def probe_sweep(
     out = Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) if out is None else Path(out)
     with StagedOutputs(out, OUTPUT_FILES, SUMMARY_JSON, overwrite=overwrite, error=InputError) as staged:
         rollouts, recorded_from = _sweep_rollouts(agents, files, rollouts_path, record_options, settings, staged)
-        rows = _probe_agents(agents, files, rollouts, settings, jobs)
-        columns = _write_figure2(rows, rollouts, agents, task, variant, staged)
+        rows, warnings = _probe_agents(agents, files, rollouts, settings, jobs)
+        report_warnings(warnings)
+        columns = _write_figure2(rows, rollouts, agents, task, variant, staged, warnings)
         summary = {
             "complete": True,
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -287,6 +311,7 @@ def probe_sweep(
             "columns": {title: list(targets) for title, targets in columns},
             "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
             "jobs": jobs,
+            "warnings": warnings,
             "total_seconds": round(time.perf_counter() - started, 1),
         }
         write_json_atomically(staged.path(SUMMARY_JSON), summary)
@@ -320,8 +345,9 @@ def _probe_agents(
     rollouts: Rollouts,
     settings: ProbeSettings,
     jobs: int,
-) -> list[dict[str, Any]]:
-    """:return: the probe's rows of every checkpoint of every agent, with its agent, row and final return"""
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """:return: the probe's rows of every checkpoint of every agent, with its agent, row and final return, and the
+    probe's warnings"""
     split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
     work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
     labels = [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work]
@@ -329,7 +355,8 @@ def _probe_agents(
     for (trial, which, _), result_rows in zip(work, per_checkpoint):
         for row in result_rows:
             row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=trial.final_return)
-    return [row for result_rows in per_checkpoint for row in result_rows]
+    rows = [row for result_rows in per_checkpoint for row in result_rows]
+    return rows, probe_warnings(rollouts, split, rows, settings)
 
 
 def _sweep_agents(
@@ -393,14 +420,18 @@ def _write_figure2(
     task: str,
     variant: str,
     staged: StagedOutputs,
+    warnings: Sequence[dict[str, Any]] = (),
 ) -> list[tuple[str, tuple[str, ...]]]:
-    """Write Figure 2, Tables 1-6 and ``probe.csv`` into ``staged``; :return: Figure 2's columns"""
+    """Write Figure 2 (marking what ``warnings`` name), Tables 1-6 and ``probe.csv`` into ``staged``; :return: Figure
+    2's columns"""
     names, groups, _ = rollouts.targets()
     columns = figure2_columns(task, names, groups)
     curves = panel_curves(rows, {f"seed {t.seed}": which for t, which in agents}, columns)
     well = sum(which == ROWS[0] for _, which in agents)
     described = f"well-performing: {well}, poorly performing: {len(agents) - well}"
-    plot_figure2(curves, staged.path(FIGURE2_PNG), f"{task} / {variant}: OMP probing over training ({described})")
+    flat = [title for title, targets in columns if warned(warnings, "targets") & set(targets)]
+    title = f"{task} / {variant}: OMP probing over training ({described})"
+    plot_figure2(curves, staged.path(FIGURE2_PNG), title, flat, warned(warnings, "layers"))
     table_rows = stage_table_rows(curves, budget_frames([trial for trial, _ in agents]))
     if table_rows:
         write_csv(table_rows, list(table_rows[0]), staged.path(TABLES_1_6_CSV))

@@ -15,13 +15,13 @@ import numpy as np
 from PIL import Image
 from stable_baselines3.common.utils import get_device
 
+from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, Film, film_episode
 from sb3_collapse.probe.pipeline import check_checkpoint_files
 from sb3_collapse.probe.rollouts import resolve_env_config
-from sb3_collapse.report.loading import progress_bar
 from sb3_collapse.report.style import OKABE_ITO, frames_axis
 from sb3_collapse.staged_outputs import StagedOutputs
 

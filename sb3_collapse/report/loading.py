@@ -3,15 +3,14 @@
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
+from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
@@ -26,19 +25,6 @@ from sb3_collapse.runfolder import (
     run_status,
     trial_folders,
 )
-
-Item = TypeVar("Item")
-
-
-def progress_bar(items: Iterable[Item], desc: str, unit: str, progress: bool = True) -> Iterable[Item]:
-    """:return: ``items`` behind a progress bar on a terminal; on another stderr one line ``desc: N units`` instead
-    (nothing without ``progress``)"""
-    items = list(items)
-    if progress and sys.stderr.isatty():
-        return tqdm(items, desc=desc, unit=unit)
-    if progress:
-        print(f"{desc}: {len(items)} {unit}s", file=sys.stderr, flush=True)
-    return items
 
 
 @dataclass
@@ -194,7 +180,7 @@ def load_sweep(
     :param include_unfinished: also read the (partial) evaluation curves of unfinished trials
     :param tasks: keep only these task folders (``None``: all)
     :param variants: keep only these variant folders (``None``: all)
-    :param progress: show the progress (:func:`progress_bar`)
+    :param progress: show the progress (:func:`~sb3_collapse.common.progress.progress_bar`)
     :return: the sweep
     :raises InputError: when the folder is missing, holds no (selected) trial, or no trial can be read
     """

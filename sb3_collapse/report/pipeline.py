@@ -10,6 +10,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from sb3_collapse.common.progress import on_terminal, progress_bar
 from sb3_collapse.errors import InputError
 from sb3_collapse.presets import TaskPreset, preset
 from sb3_collapse.probe.fixed_inputs import FixedInputs, FixedMetrics
@@ -27,7 +28,7 @@ from sb3_collapse.report import collapse_figure, headline, html, tables
 from sb3_collapse.report import statistics as stats
 from sb3_collapse.report.collapse_figure import ONLINE_INPUTS, paper_figure_title, plot_collapse_metrics
 from sb3_collapse.report.figure2 import stage_panels
-from sb3_collapse.report.loading import Sweep, Trial, load_sweep, progress_bar
+from sb3_collapse.report.loading import Sweep, Trial, load_sweep
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
 from sb3_collapse.runfolder import read_json
@@ -245,7 +246,7 @@ def collapse_figures(
                 if rollouts not in loaded:
                     loaded[rollouts] = collapse_settings.load(rollouts)
                 inputs = loaded[rollouts]
-            bar = progress and sys.stderr.isatty()  # elsewhere one line, no bar frames
+            bar = on_terminal(progress)  # elsewhere one line, no bar frames
             if progress and not bar:
                 print(f"fixed-set metrics: {task} / {variant}", file=sys.stderr, flush=True)
             rows, computed = collapse_figure.fixed_agent_rows(picks, inputs, collapse_settings, bar)

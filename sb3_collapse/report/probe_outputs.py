@@ -4,6 +4,7 @@ none)."""
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Sequence
@@ -29,6 +30,7 @@ from sb3_collapse.probe.probing import (
     EpisodeSplit,
     ProbeSettings,
     probe_checkpoint,
+    probe_warnings,
     split_by_episode,
 )
 from sb3_collapse.probe.rollouts import Rollouts
@@ -75,8 +77,21 @@ def _checkpoint_colors(checkpoints: list[str]) -> list[Any]:
     return list(plt.cm.viridis(np.linspace(0, 1, len(checkpoints))))
 
 
-def plot_mse_by_layer(rows: list[dict[str, Any]], path: Path) -> None:
-    """Write to ``path`` a panel per component: test MSE by layer, a line per checkpoint (a colour map beyond 10)."""
+def warned(warnings: Sequence[dict[str, Any]], key: str) -> set[str]:
+    """:return: the ``targets`` or ``layers`` (``key``) that :func:`~sb3_collapse.probe.probing.probe_warnings` names"""
+    return {name for warning in warnings for name in warning.get(key, ())}
+
+
+def report_warnings(warnings: Sequence[dict[str, Any]]) -> None:
+    """Print each warning's message to stderr."""
+    for warning in warnings:
+        print(f"Warning: {warning['message']}", file=sys.stderr, flush=True)
+
+
+def plot_mse_by_layer(rows: list[dict[str, Any]], path: Path, warnings: Sequence[dict[str, Any]] = ()) -> None:
+    """Write to ``path`` a panel per component: test MSE by layer, a line per checkpoint (a colour map beyond 10);
+    the targets and layers that ``warnings`` name are marked in red."""
+    targets, few = warned(warnings, "targets"), warned(warnings, "layers")
     layers = _unique([r["layer"] for r in rows])
     components = _unique([r["component"] for r in rows])
     checkpoints = _unique([r["checkpoint"] for r in rows])
@@ -87,13 +102,17 @@ def plot_mse_by_layer(rows: list[dict[str, Any]], path: Path) -> None:
         for checkpoint, color in zip(checkpoints, colors):
             ys = [mse.get((checkpoint, component, layer), np.nan) for layer in layers]
             ax.plot(range(len(layers)), ys, marker="o", ms=3, color=color, label=checkpoint)
-        ax.set_title(component, fontsize=9)
-        ax.set_xticks(range(len(layers)), layers, rotation=45, fontsize=7)
+        flat = component in targets
+        ax.set_title(component + (" (barely varies)" if flat else ""), fontsize=9, color="red" if flat else "black")
+        ax.set_xticks(range(len(layers)), [layer + "*" * (layer in few) for layer in layers], rotation=45, fontsize=7)
+        for label in ax.get_xticklabels():
+            label.set_color("red" if label.get_text().endswith("*") else "black")
         ax.set_ylim(bottom=0)
         ax.tick_params(axis="y", labelsize=7)
         ax.grid(alpha=0.3)
     axes.flat[0].set_ylabel("test MSE (standardized)", fontsize=8)
-    fig.suptitle("OMP probing: test MSE by layer", fontsize=11)
+    marks = "; red: the warnings of summary.json (*: fewer test samples than max_tau)" if warnings else ""
+    fig.suptitle("OMP probing: test MSE by layer" + marks, fontsize=11)
     fig.tight_layout()
     if len(checkpoints) <= 10:
         handles, labels = axes.flat[0].get_legend_handles_labels()
@@ -210,10 +229,13 @@ def probe_to_folder(
         split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
         results = _probe_checkpoints(checkpoint_paths, labels, device, rollouts, split, settings)
         rows = [row for result in results for row in result.rows]
+        warnings = probe_warnings(rollouts, split, rows, settings)
+        report_warnings(warnings)
         write_csv(rows, list(rows[0]), staged.path(CSV_NAME))
-        plot_mse_by_layer(rows, staged.path(BY_LAYER_PLOT))
+        plot_mse_by_layer(rows, staged.path(BY_LAYER_PLOT), warnings)
         over_training = plot_mse_over_training(rows, staged.path(OVER_TRAINING_PLOT))
         summary = _summary(results, rows, rollouts, rollouts_path, split, settings, over_training, command)
+        summary["warnings"] = warnings
         if self_recorded:
             summary["rollouts"]["note"] = SELF_RECORDED_NOTE.format(success=PAPER.success_return)
         summary["total_seconds"] = round(time.perf_counter() - started, 1)

@@ -26,6 +26,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 from sb3_collapse.backends import configure_backends
 from sb3_collapse.baselines import DRQV2_ONLY_SETTINGS, build_baseline
+from sb3_collapse.common.progress import on_terminal
 from sb3_collapse.drqv2 import DrQv2
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.rendering import ensure_rendering_backend
@@ -398,7 +399,7 @@ def _learn(
                 config.agent_steps - model.num_timesteps,
                 callback=CallbackList(callbacks),
                 log_interval=1,
-                progress_bar=config.progress_bar,
+                progress_bar=on_terminal(config.progress_bar),  # no bar frames in a log
                 reset_num_timesteps=not resumed,
             )
     except DivergenceError as error:

@@ -14,8 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tqdm.auto import tqdm
-
+from sb3_collapse.common import progress
 from sb3_collapse.errors import InputError, OutputError, TrainingInterrupted
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
@@ -415,7 +414,7 @@ def _wait_for_trials(ray: Any, pending: dict[Any, Trial], out: Path, summary: Sw
             "now, each trial resuming from its last checkpoint)."
         )
 
-    with tqdm(total=len(pending), desc="trials", unit="trial", disable=not progress_bar) as bar:
+    with progress.progress_bar(None, "trials", "trial", progress_bar, len(pending)) as bar:
         try:
             with stop_signal_handlers(handler):
                 while pending:

@@ -248,3 +248,31 @@ def test_a_folder_given_as_a_checkpoint_is_named_for_what_it_is(files, tmp_path,
         f"error: {run} is a run folder, not a checkpoint: give its model, {run / FINAL_MODEL} or "
         f"{run / SNAPSHOTS_DIR}/*.zip.\n"
     )
+
+
+def assert_no_bar_frames(text):
+    """No tqdm or rich redraw ('\\r') nor bar characters."""
+    assert "\r" not in text and "%|" not in text and "it/s" not in text and "━" not in text, text
+
+
+def test_commands_draw_no_progress_bar_into_a_captured_stderr_and_the_summary_holds_the_warnings(
+    files, tmp_path, capfd
+):
+    rollouts = tmp_path / "r.npz"
+    record = ["record", str(files["early"]), "--episodes", "3", "--max-steps", "3", "--out", str(rollouts)]
+    assert main(record) == 0  # the progress is on (the default), stderr is not a terminal
+    captured = capfd.readouterr()
+    assert_no_bar_frames(captured.err + captured.out)
+    assert captured.err.splitlines() == ["recording: 9 steps"]
+    out = tmp_path / "probe"
+    probe = [str(files["early"]), "--rollouts", str(rollouts), "--layers", "cnn4", "mlp2", "--max-tau", "4"]
+    assert main([*probe, "--out", str(out)]) == 0
+    captured = capfd.readouterr()
+    assert_no_bar_frames(captured.err + captured.out)
+    assert "extracting cnn4+mlp2: 1 blocks" in captured.err.splitlines()
+    assert "fitting cnn4: 4 atoms" in captured.err.splitlines()
+    # 3 episodes of 3 steps: 3 test samples, fewer than max_tau 4; said on screen and in the summary
+    warnings = json.loads((out / "summary.json").read_text())["warnings"]
+    few = next(warning for warning in warnings if warning["kind"] == "few test samples")
+    assert few["layers"] == ["cnn4", "mlp2"] and f"Warning: {few['message']}" in captured.err
+    assert "well-performing agent" in few["message"]

@@ -3,11 +3,12 @@ import pytest
 import torch as th
 
 from sb3_collapse.errors import InputError, ParameterError
-from sb3_collapse.probe import ProbeSettings
+from sb3_collapse.probe import ProbeSettings, Rollouts
 from sb3_collapse.probe.pipeline import RecordOptions
 from sb3_collapse.probe.probing import (
     plan_passes,
     probe_layer,
+    probe_warnings,
     split_by_episode,
     standardize_features_,
     standardize_targets,
@@ -134,3 +135,32 @@ def test_settings_and_record_options_are_checked_against_their_declared_ranges()
     ]:
         with pytest.raises(ParameterError, match=message):
             options.check()
+
+
+def test_probe_warns_of_barely_varying_targets_and_of_too_few_test_samples():
+    n = 50
+    episodes = np.repeat(np.arange(5), 10)
+    split = split_by_episode(episodes)  # 3 train, 1 validation, 1 test episodes
+    train = np.isin(episodes, split.episodes["train"])
+    noise = np.random.default_rng(0).normal(size=n)
+    columns = {
+        "varying": noise,
+        "constant": np.full(n, 2.5),  # std 0 everywhere
+        "near": np.where(train, 1.0 + 1e-3 * noise, 1.0 + noise),  # train std ~1e-3, ~0.6 over the rollouts
+        "tiny": 1e-9 * noise,  # below min_std on train
+    }
+    states = {name: values[:, None].astype(np.float32) for name, values in columns.items()}
+    zeros = np.zeros(n, dtype=np.int64)
+    actions, rewards = np.zeros((n, 1), np.float32), np.zeros(n, np.float32)
+    rollouts = Rollouts(np.zeros((n, 1), np.uint8), states, actions, rewards, episodes, zeros, {})
+    rows = [{"layer": "cnn1", "n_test": split.n_test, "max_tau": 64}, {"layer": "mlp0", "n_test": 10, "max_tau": 10}]
+    assert split.n_test == 10
+    flat, few = probe_warnings(rollouts, split, rows, ProbeSettings())
+    assert flat["targets"] == ["constant", "near", "tiny"]
+    assert few["layers"] == ["cnn1"]  # 10 test samples < max_tau 64; mlp0: 10 samples for 10 atoms is enough
+    for warning in (flat, few):
+        assert "well-performing agent" in warning["message"]
+    assert "constant, near, tiny barely vary" in flat["message"] and "cnn1: the split leaves 10" in few["message"]
+    # A smaller ratio keeps the near-constant target out; nothing to say when every layer has the samples it needs.
+    (flat,) = probe_warnings(rollouts, split, rows[1:], ProbeSettings(target_std_ratio=1e-4))
+    assert flat["targets"] == ["constant", "tiny"]

@@ -127,10 +127,14 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     shutil.copytree(root / "walker-walk" / "drqv2" / "seed_4", damaged, ignore=shutil.ignore_patterns(SNAPSHOTS_DIR))
     (damaged / "result.json").write_text((damaged / "result.json").read_text()[:40])
     argv = ["sweep", str(root), "--task", "walker-walk", "--episodes", "5", "--max-steps", "4", "--max-tau", "4"]
-    assert probe_main([*argv, "--layers", "cnn0", "cnn4", "mlp1", "--no-progress"]) == 0
-    assert "Not probed: seed 5: " in capsys.readouterr().out
+    assert probe_main([*argv, "--layers", "cnn0", "cnn4", "mlp1"]) == 0  # the progress on, stderr not a terminal
+    captured = capsys.readouterr()
+    assert "Not probed: seed 5: " in captured.out
+    assert "\r" not in captured.err and "%|" not in captured.err  # no bar frames: a line per stage
+    assert {"recording: 20 steps", "probing checkpoints: 12 checkpoints"} <= set(captured.err.splitlines())
     out = root / SWEEP_PROBE_DIR.format(task="walker-walk", variant="drqv2")
     summary = json.loads((out / "summary.json").read_text())
+    assert all(f"Warning: {warning['message']}" in captured.err for warning in summary["warnings"])
     assert [d["seed"] for d in summary["damaged"]] == [5] and "result.json: not a readable JSON" in str(summary)
     assert [(a["seed"], a["row"], a["checkpoints"]) for a in summary["agents"]] == [
         (0, "well-performing", 3), (1, "well-performing", 3), (2, "poorly performing", 3), (3, "poorly performing", 3)
@@ -293,7 +297,7 @@ def test_figure4_reads_one_observation_set_per_task(run, tmp_path):
         assert {(r["seed"], r["checkpoint"], r["tag"]): r["value"] for r in csv.DictReader(file)} != fixed["drqv2"]
 
 
-def test_film_of_checkpoints(run, tmp_path):
+def test_film_of_checkpoints(run, tmp_path, capfd):
     final = run.model_path
     first = run.run_dir / SNAPSHOTS_DIR / SNAPSHOT_FILE.format(frames=0)
     out = tmp_path / "film"
@@ -311,7 +315,8 @@ def test_film_of_checkpoints(run, tmp_path):
         "0",
         "1",
     ]
-    assert probe_main([*argv, "--out", str(out), "--no-progress"]) == 0
+    assert probe_main([*argv, "--out", str(out)]) == 0  # the progress on, stderr not a terminal: one line, no bar
+    assert capfd.readouterr().err == "filming: 2 checkpoints\n"
     assert sorted(p.name for p in out.iterdir()) == [
         "actions.csv",
         "filmstrip.png",

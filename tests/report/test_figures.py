@@ -11,7 +11,7 @@ from fabricated_sweep import TRANSPLANT_FRAMES, write_fake_sweep
 
 from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.probe.fixed_inputs import FixedInputs
-from sb3_collapse.report import write_report
+from sb3_collapse.report import figure2, write_report
 from sb3_collapse.report.__main__ import main
 from sb3_collapse.report.collapse_figure import (
     PAPER_ROLES,
@@ -276,3 +276,22 @@ def test_single_run_folder(reported, tmp_path, capsys):
     assert trial.status == "unfinished" and len(trial.frames) == 21 and len(files) == 2  # no process holds it
     (run / "eval.csv").unlink()
     assert main([str(run), "--no-progress", "--overwrite"]) == 2  # no longer a run folder, nor a sweep
+
+
+def test_figure2_marks_the_columns_and_layers_the_probe_warns_of(tmp_path, monkeypatch):
+    frames = np.array([0, 1000])
+    curves = [
+        PanelCurve("well-performing", column, layer, frames, np.ones((1, 2)), ["seed 1"])
+        for column in ("torso height", "torso velocity")
+        for layer in ("cnn4", "mlp1")
+    ]
+    drawn = []
+    monkeypatch.setattr(figure2.plt, "close", drawn.append)  # keep the figure to read it
+    figure2.plot_figure2(curves, tmp_path / "f.png", "t", flat_columns=["torso velocity"], few_layers=["cnn4"])
+    (fig,) = drawn
+    titles = {ax.get_title(): ax.title.get_color() for ax in fig.axes}
+    flat = "well-performing (1): torso velocity (barely varies)"
+    assert titles == {"well-performing (1): torso height": "black", flat: "red"}
+    legend = {text.get_text(): text.get_color() for text in fig.legends[0].get_texts()}
+    assert legend == {"cnn4*": "red", "mlp1": "black"}
+    assert "warnings of summary.json" in fig._suptitle.get_text()
