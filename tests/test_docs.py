@@ -380,3 +380,28 @@ def test_the_checks_of_plain_texts_find_what_they_look_for():
         "x: docs/nothing.md: no such file in the repository",
         "x: docs/training.md#no-such-heading: no heading of docs/training.md has the anchor #no-such-heading",
     ]
+
+
+def test_the_demo_says_which_preset_values_it_changes():
+    """run.sh's demo command and the README's quick start name each value the demo changes, and the preset's."""
+    from sb3_collapse.presets import preset
+
+    script = (ROOT / "run.sh").read_text()
+    command = re.search(r"-m sb3_collapse\.train (.*?)\"\$@\"", script.replace("\\\n", " "), re.DOTALL).group(1)
+    values = dict(re.findall(r"--([\w-]+) (\S+)", command))
+    walker = preset(values.pop("env"))
+    changed = {name.replace("-", "_"): value for name, value in values.items()}
+    changed = {name: int(value) for name, value in changed.items() if hasattr(walker, name)}
+    assert set(changed) == {"frames", "seed_frames", "batch_size", "eval_every_frames", "eval_episodes"}
+    readme = (ROOT / "README.md").read_text()
+    said = readme[readme.index("The demo runs") :].split("\n\n")[0].replace("\n", " ")
+    message = script[script.index("at its DrQ-v2 preset but") :].split('"')[0]
+
+    def shown(number: int) -> str:
+        return f"{number / 1e6:g}M" if number >= 1_000_000 else f"{number:,}"
+
+    for name, value in changed.items():
+        ours, theirs = shown(value), shown(getattr(walker, name))
+        assert ours != theirs, name
+        assert f"{ours} " in said and f"({theirs})" in said.replace("the preset: ", ""), (name, said)
+        assert f"{ours} " in message and f"({theirs})" in message.replace("preset: ", ""), (name, message)
