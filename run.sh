@@ -94,7 +94,7 @@ case $command in
         ;;
     demo)
         setup
-        log "Training DrQ-v2 on walker-walk from pixels: 6,000 frames, batch 32, the task's DrQ-v2 preset otherwise (minutes on a CPU: benchmarks/README.md#demo)"
+        log "Training DrQ-v2 on walker-walk from pixels at its DrQ-v2 preset but for 6,000 frames (preset: 1.1M), 2,000 seed frames (4,000), batch 32 (512), an evaluation of 1 episode (10) every 3,000 frames (10,000); minutes on a CPU: benchmarks/README.md#demo"
         "$VENV/bin/python" -m sb3_collapse.train --env walker-walk --frames 6000 --seed 0 --logdir runs \
             --seed-frames 2000 --batch-size 32 --eval-every-frames 3000 --eval-episodes 1 "$@"
         echo "See the curves with: $VENV/bin/tensorboard --logdir runs"

@@ -8,14 +8,20 @@ Checked in README.md, docs/*.md and benchmarks/README.md:
 - every ``python -m sb3_collapse.<cli> ...`` command (in code blocks and inline code) uses only flags that the
   command's ``--help`` lists (each CLI's ``main(["--help"])`` is run in-process, once per command);
 - every module of ``sb3_collapse/`` is named in docs/layout.md, in the section of its package.
+
+zoo_configs/README.md gets the same checks; the package's docstrings and the command lines' ``--help`` get those of
+commands, paths and anchors, and hold no measured figure (benchmarks/README.md holds them; a text links the row).
 """
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import importlib
 import io
 import re
+import subprocess
+import sys
 from collections.abc import Iterator
 from functools import cache
 from pathlib import Path
@@ -285,3 +291,153 @@ def test_layout_names_every_module():
         if package.name not in sections:
             missing.append(f"sb3_collapse/{package.name}/ has no entry in docs/layout.md")
     assert missing == [], "\n".join(missing)
+
+
+# Docstrings, the command lines' --help and zoo_configs/README.md: the checks above, on those texts too.
+ZOO_README = ROOT / "zoo_configs" / "README.md"
+HELPS = [("sb3_collapse.train", None), ("sb3_collapse.sweep", None), ("sb3_collapse.report", None)]
+HELPS += [("sb3_collapse.probe", name) for name in SUBCOMMANDS["sb3_collapse.probe"][0]]
+# A measured figure (a duration, a speed, a ratio, a size) belongs in benchmarks/README.md, which a text links.
+MEASURED = re.compile(
+    r"(?<![\w.,])(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?"
+    r"(?:\s?(?:ms|MB|GB|KB|MiB|GiB|frames/s|steps/s|updates/s|fps)\b|\s(?:s|min|minutes|hours)\b|x(?![\w]))"
+)
+# Sizes that are constants of the code, not measurements: (file, figure).
+NOT_MEASURED = {("sb3_collapse/run/cpu_allocator.py", "32 MB"), ("sb3_collapse/run/replay_checkpoint.py", "1 MiB")}
+TEXT_PATH = re.compile(r"(?<![\w/.-])(?:sb3_collapse|docs|benchmarks|scripts|tests|zoo_configs)/[\w./-]*\w")
+
+
+def docstrings() -> Iterator[tuple[str, str]]:
+    """Every string statement of the package (module, class, function and attribute docstrings), with its place."""
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            value = node.value if isinstance(node, ast.Expr) else None
+            if isinstance(value, ast.Constant) and isinstance(value.value, str):
+                yield f"{_relative(path)}:{node.lineno}", value.value
+
+
+def _text_problems(where: str, text: str) -> list[str]:
+    """What the checks of the markdown files find in a plain ``text`` (a docstring, a --help) at ``where``: commands'
+    flags, repository paths and ``path.md#anchor`` references, and measured figures (not allowed: link the row)."""
+    problems = []
+    for match in COMMAND.finditer(text):
+        module, rest = match.group(1), re.split(r"\s(?:&&|\|\||;|>|2>|\|)\s", match.group(2))[0]
+        subcommand = _subcommand(module, rest)
+        shown = f"{module} {subcommand}" if subcommand else module
+        problems += [
+            f"{where}: --help of `python -m {shown}` does not list {flag}"
+            for flag in FLAG.findall(rest)
+            if flag.split("=")[0] not in _known_flags(module, subcommand)
+        ]
+    for path in TEXT_PATH.findall(text):
+        if REPO_PATH.match(path) and not (ROOT / path).exists():
+            problems.append(f"{where}: {path}: no such file in the repository")
+    for file, anchor in ANCHOR_REFERENCE.findall(text):
+        if (ROOT / file).exists() and anchor not in anchors(ROOT / file):
+            problems.append(f"{where}: {file}#{anchor}: no heading of {file} has the anchor #{anchor}")
+    file = where.split(":")[0]
+    problems += [
+        f"{where}: {figure!r} is a measured figure: link its row of benchmarks/README.md instead"
+        for figure in (match.group().strip() for match in MEASURED.finditer(text))
+        if (file, figure) not in NOT_MEASURED
+    ]
+    return problems
+
+
+def test_docstrings_pass_the_documentation_checks():
+    problems = [problem for where, text in docstrings() for problem in _text_problems(where, text)]
+    assert problems == [], "\n".join(problems)
+
+
+@pytest.mark.parametrize(("module", "subcommand"), HELPS, ids=lambda value: str(value))
+def test_command_line_help_passes_the_documentation_checks(module, subcommand):
+    text = help_text(module, subcommand)
+    assert "usage:" in text
+    assert _text_problems(f"python -m {module} {subcommand or ''} --help", text) == []
+
+
+def test_zoo_configs_readme_passes_the_documentation_checks(monkeypatch):
+    test_relative_links_and_anchors_resolve(ZOO_README)
+    test_repository_paths_in_backticks_exist(ZOO_README)
+    monkeypatch.setitem(globals(), "DOCS", [ZOO_README])
+    assert {module for _, module, _ in _commands(ZOO_README)} == {"sb3_collapse.zoo", "sb3_collapse.zoo.config"}
+    test_documented_commands_use_flags_their_cli_accepts()
+
+
+def test_the_checks_of_plain_texts_find_what_they_look_for():
+    """Each check on constructed texts: a wrong flag, path, anchor and a measured figure; a clean text passes."""
+    assert ("sb3_collapse/run/folder.py:1", (PACKAGE / "run" / "folder.py").read_text()[3:].split('"""')[0]) in set(
+        docstrings()
+    )
+    assert _text_problems("x", "Run `python -m sb3_collapse.train --frames 10`, see docs/training.md.") == []
+    assert _text_problems("x", "It takes 3 minutes (1.5 s per update) and 12 GB: 2.5x the reference.") == [
+        f"x: {figure!r} is a measured figure: link its row of benchmarks/README.md instead"
+        for figure in ("3 minutes", "1.5 s", "12 GB", "2.5x")
+    ]
+    assert _text_problems("x", "9x84x84 pixels, 1,024 units, batch 256, 10,000 frames, CRC-32s, [0, min(n, d)]") == []
+    assert _text_problems("x", "python -m sb3_collapse.train --no-such-flag") == [
+        "x: --help of `python -m sb3_collapse.train` does not list --no-such-flag"
+    ]
+    assert _text_problems("x", "See docs/nothing.md and docs/training.md#no-such-heading.") == [
+        "x: docs/nothing.md: no such file in the repository",
+        "x: docs/training.md#no-such-heading: no heading of docs/training.md has the anchor #no-such-heading",
+    ]
+
+
+def test_the_demo_says_which_preset_values_it_changes():
+    """run.sh's demo command and the README's quick start name each value the demo changes, and the preset's."""
+    from sb3_collapse.presets import preset
+
+    script = (ROOT / "run.sh").read_text()
+    command = re.search(r"-m sb3_collapse\.train (.*?)\"\$@\"", script.replace("\\\n", " "), re.DOTALL).group(1)
+    values = dict(re.findall(r"--([\w-]+) (\S+)", command))
+    walker = preset(values.pop("env"))
+    changed = {name.replace("-", "_"): value for name, value in values.items()}
+    changed = {name: int(value) for name, value in changed.items() if hasattr(walker, name)}
+    assert set(changed) == {"frames", "seed_frames", "batch_size", "eval_every_frames", "eval_episodes"}
+    readme = (ROOT / "README.md").read_text()
+    said = readme[readme.index("The demo runs") :].split("\n\n")[0].replace("\n", " ")
+    message = script[script.index("at its DrQ-v2 preset but") :].split('"')[0]
+
+    def shown(number: int) -> str:
+        return f"{number / 1e6:g}M" if number >= 1_000_000 else f"{number:,}"
+
+    for name, value in changed.items():
+        ours, theirs = shown(value), shown(getattr(walker, name))
+        assert ours != theirs, name
+        assert f"{ours} " in said and f"({theirs})" in said.replace("the preset: ", ""), (name, said)
+        assert f"{ours} " in message and f"({theirs})" in message.replace("preset: ", ""), (name, message)
+
+
+API = ROOT / "docs" / "api"
+# A name of __all__ that a submodule of the same name hides (`from sb3_collapse.monitoring import redo` gives the
+# module sb3_collapse/monitoring/redo.py, not the function): the reference cannot document it until one is renamed.
+HIDDEN_BY_A_SUBMODULE = {"sb3_collapse.monitoring.redo"}
+
+
+def _public_packages() -> list[str]:
+    """The packages of ``sb3_collapse`` that declare their public names in ``__all__``."""
+    return sorted(
+        f"sb3_collapse.{init.parent.name}" for init in PACKAGE.glob("*/__init__.py") if "__all__" in init.read_text()
+    )
+
+
+def test_the_api_reference_names_every_public_package():
+    documented = set(re.findall(r"^\.\. automodule:: (\S+)", (API / "index.rst").read_text(), re.MULTILINE))
+    assert {"sb3_collapse", *_public_packages()} <= documented
+
+
+def test_the_api_reference_builds_without_warnings_and_documents_every_exported_name(tmp_path):
+    pytest.importorskip("sphinx")
+    command = [sys.executable, "-m", "sphinx", "-q", "-E", "-W", "--keep-going", "-b", "html", str(API), str(tmp_path)]
+    built = subprocess.run(command, check=False, capture_output=True, text=True, timeout=600)
+    assert built.returncode == 0, built.stdout + built.stderr
+    html = (tmp_path / "index.html").read_text()
+    shown = set(re.findall(r'<span class="sig-name descname"><span class="pre">(\w+)', html))
+    missing = [
+        f"{package}.{name}"
+        for package in _public_packages()
+        for name in importlib.import_module(package).__all__
+        if name not in shown and f"{package}.{name}" not in HIDDEN_BY_A_SUBMODULE
+    ]
+    assert missing == [], f"names of __all__ missing from the API reference (docs/api/index.rst): {missing}"

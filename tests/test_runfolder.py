@@ -217,4 +217,24 @@ def test_an_unreadable_result_file_stays_failed_and_names_the_file_the_reason_an
 
     config = TrainConfig(env="cartpole-balance").resolve()
     assert new_run_dir(tmp_path, "run", config) == tmp_path / "run_2"
-    assert capsys.readouterr().out == f"{folder}: {unreadable_result(folder)} Not resuming it.\n"
+    assert capsys.readouterr().out == (
+        f"{folder}: {unreadable_result(folder)} Not resuming it.\n"
+        f"Training into {tmp_path / 'run_2'}: run holds an unreadable result file.\n"
+    )
+
+
+def test_a_run_named_by_logdir_says_which_folder_it_takes_when_not_the_first(tmp_path, capsys):
+    """A finished run and a folder that is not a run are passed over with one line naming the new folder and why."""
+    from sb3_collapse.run.config import TrainConfig
+    from sb3_collapse.run.folder import new_run_dir
+
+    config = TrainConfig(env="cartpole-balance").resolve()
+    assert new_run_dir(tmp_path, "run", config) == tmp_path / "run"
+    assert capsys.readouterr().out == ""  # the first folder: nothing to say
+    _write(tmp_path / "run", FINISHED_FILES)
+    _write(tmp_path / "run_2", {"notes.txt": "mine"})
+    assert run_status(tmp_path / "run") == RunStatus.FINISHED and run_status(tmp_path / "run_2") is None
+    assert new_run_dir(tmp_path, "run", config) == tmp_path / "run_3"
+    assert capsys.readouterr().out == (
+        f"Training into {tmp_path / 'run_3'}: run holds a finished run (result.json); run_2 is not a run folder.\n"
+    )

@@ -104,24 +104,29 @@ def _refuse_other_settings(run_dir: Path, differences: list[str], settings: str)
 
 def new_run_dir(logdir: Path, name: str, config: TrainConfig) -> Path:
     """:return: the first of ``<logdir>/<name>``, ``<name>_2``... that can take the run of ``config``: a new folder, or
-    an unfinished run with the same settings (resumed)"""
-    run_dir, index = logdir / name, 1
-    while True:
-        state = run_status(run_dir, check_lock=False)
-        if state == RunStatus.NEW:
-            return run_dir
+    an unfinished run with the same settings (resumed); one line says why when it is not the first"""
+    run_dir, index, passed = logdir / name, 1, []
+    while (state := run_status(run_dir, check_lock=False)) != RunStatus.NEW:
         if state == RunStatus.FINISHED:
             tidy_finished_run(run_dir)
+            passed.append(f"{run_dir.name} holds a finished run ({RESULT_JSON})")
+        elif state is None:
+            passed.append(f"{run_dir.name} is not a run folder")
         damaged = unreadable_result(run_dir) if state == RunStatus.FAILED else None
         if damaged is not None:
             print(f"{run_dir}: {damaged} Not resuming it.")
+            passed.append(f"{run_dir.name} holds an unreadable result file")
         elif state in RESUMABLE:
             differences = _resume_differences(run_dir, config)
             if not differences:
-                return run_dir
+                break
             print(f"{run_dir} holds an unfinished run with other settings ({'; '.join(differences)}): not resuming it.")
+            passed.append(f"{run_dir.name} holds an unfinished run with other settings")
         index += 1
         run_dir = logdir / f"{name}_{index}"
+    if passed:
+        print(f"Training into {run_dir}: {'; '.join(passed)}.")
+    return run_dir
 
 
 def partial_outputs(run_dir: Path) -> list[Path]:
