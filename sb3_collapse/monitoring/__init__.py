@@ -40,7 +40,7 @@ from sb3_collapse.monitoring.metrics import (
     unit_count,
     zero_fraction,
 )
-from sb3_collapse.monitoring.redo import PeriodicReDo
+from sb3_collapse.monitoring.periodic_redo import PeriodicReDo
 from sb3_collapse.monitoring.reset import CollapseReset
 
 __all__ = [

@@ -41,7 +41,7 @@ from sb3_collapse.errors import (
     unwritable_message,
 )
 from sb3_collapse.monitoring import CollapseMetrics, CollapseReset, PeriodicEvaluation, frames_of
-from sb3_collapse.monitoring.redo import PeriodicReDo
+from sb3_collapse.monitoring.periodic_redo import PeriodicReDo
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,

@@ -15,7 +15,7 @@ from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import parse_task
 from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring.interventions import INTERVENTIONS
-from sb3_collapse.monitoring.redo import REDO_EVERY_UPDATES
+from sb3_collapse.monitoring.periodic_redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import trial_path
 from sb3_collapse.run.config import ALGORITHMS, TrainConfig
 

@@ -276,3 +276,12 @@ def test_leaky_relu_everywhere_and_no_unit_dead(tmp_path):
     )
     with pytest.raises(ParameterError, match="activation must be one of relu, leaky_relu"):
         tiny(activation="gelu")
+
+
+def test_the_package_exports_the_redo_function_not_a_module():
+    """``from sb3_collapse.monitoring import redo`` is the intervention of ``__all__``, not a submodule of that name."""
+    import inspect
+
+    from sb3_collapse.monitoring import interventions, redo
+
+    assert inspect.isfunction(redo) and redo is interventions.redo
