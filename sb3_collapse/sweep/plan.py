@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import functools
 import inspect
-import math
 import os
 from collections.abc import Mapping
 from typing import Any
@@ -19,6 +18,7 @@ from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.replay_memory import bytes_per_transition, physical_memory_bytes
 from sb3_collapse.envs import ensure_rendering_backend, parse_task
 from sb3_collapse.errors import InputError
+from sb3_collapse.paper import evaluation_schedule
 from sb3_collapse.run.checkpoints import ResumableCheckpoints
 from sb3_collapse.run.config import TrainConfig, drqv2_kwargs
 from sb3_collapse.run.snapshots import SNAPSHOT_PREFIXES
@@ -74,7 +74,8 @@ def trial_bytes(config: TrainConfig) -> dict[str, int | None]:
         model, snapshot = _drqv2_bytes(obs.shape, int(np.prod(action.shape)), policy_kwargs)
     snapshots = 0  # one per evaluation (from frame 0, every eval_every_frames) and one of the final model
     if config.snapshots and snapshot is not None:
-        snapshots = snapshot * (math.ceil(config.frames / config.eval_every_frames) + 1)  # type: ignore[operator]
+        steps = evaluation_schedule(config.frames, config.eval_every_frames, config.action_repeat * config.n_envs)  # type: ignore[arg-type,operator]
+        snapshots = snapshot * (len(steps) + 1)
     return {
         "replay_ram": round(per_transition * config.buffer_size),  # type: ignore[operator]
         "checkpoints_peak": round(chunks) + (KEEP + 1) * (model or 0),
