@@ -112,3 +112,65 @@ def test_real_check_exports_a_headless_backend() -> None:
         pytest.skip("no headless OpenGL backend on this machine")
     assert backend in rendering.HEADLESS_BACKENDS
     assert os.environ["MUJOCO_GL"] == os.environ["PYOPENGL_PLATFORM"] == backend
+
+
+@pytest.fixture
+def fake_triton(monkeypatch: pytest.MonkeyPatch) -> list[tuple[str, int]]:
+    """Triton "installed" and not loaded yet in this process: :func:`load_triton_before_mesa` imports a fake that
+    records ``(module, dlopen flags)`` in the list returned; no LLVM library loaded unless a test says so."""
+    loads: list[tuple[str, int]] = []
+    fake_importlib = types.SimpleNamespace(
+        util=types.SimpleNamespace(find_spec=lambda name: object() if name == "triton" else None),
+        import_module=lambda name: loads.append((name, sys.getdlopenflags())),
+    )
+    monkeypatch.setattr(rendering, "importlib", fake_importlib)
+    monkeypatch.setattr(rendering, "_triton_checked", False)
+    monkeypatch.setattr(rendering, "_loaded_llvm_libraries", list)
+    monkeypatch.delitem(sys.modules, "triton._C.libtriton", raising=False)
+    return loads
+
+
+def test_triton_is_loaded_once_before_a_preset_backend_is_kept(
+    monkeypatch: pytest.MonkeyPatch, fake_triton: list[tuple[str, int]]
+) -> None:
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")  # as in SubprocVecEnv workers and Ray trials: the early return
+    flags = sys.getdlopenflags()
+    assert ensure_rendering_backend() == "osmesa"
+    assert ensure_rendering_backend() == "osmesa"
+    assert fake_triton == [("triton._C.libtriton", flags)]  # once, loaded the ordinary way
+
+
+@pytest.mark.usefixtures("unset_backend")
+def test_triton_is_loaded_before_a_backend_is_chosen(
+    monkeypatch: pytest.MonkeyPatch, fake_triton: list[tuple[str, int]]
+) -> None:
+    calls: list[str] = []
+
+    def check(backend: str, timeout: float = 60.0) -> tuple[bool, str]:
+        calls.append(backend)
+        assert fake_triton, "the backend was checked before triton was loaded"
+        return True, ""
+
+    monkeypatch.setattr(rendering, "_backend_works", check)
+    assert ensure_rendering_backend() == "egl"
+    assert calls == ["egl"]
+    assert [name for name, _ in fake_triton] == ["triton._C.libtriton"]
+
+
+@pytest.mark.skipif(not hasattr(os, "RTLD_DEEPBIND"), reason="no RTLD_DEEPBIND on this platform")
+def test_triton_after_an_llvm_library_is_loaded_with_deepbind_and_a_warning(
+    monkeypatch: pytest.MonkeyPatch, fake_triton: list[tuple[str, int]]
+) -> None:
+    monkeypatch.setattr(rendering, "_loaded_llvm_libraries", lambda: ["libLLVM-15.so.1"])
+    flags = sys.getdlopenflags()
+    with pytest.warns(RuntimeWarning, match=r"libLLVM-15\.so\.1.*import triton before rendering"):
+        rendering.load_triton_before_mesa()
+    assert fake_triton == [("triton._C.libtriton", flags | os.RTLD_DEEPBIND)]
+    assert sys.getdlopenflags() == flags  # restored
+
+
+def test_without_triton_nothing_is_loaded(monkeypatch: pytest.MonkeyPatch, fake_triton: list[tuple[str, int]]) -> None:
+    monkeypatch.setattr(rendering.importlib.util, "find_spec", lambda name: None)
+    monkeypatch.setattr(rendering, "_loaded_llvm_libraries", lambda: pytest.fail("LLVM looked for without triton"))
+    rendering.load_triton_before_mesa()
+    assert fake_triton == []
