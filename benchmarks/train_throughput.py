@@ -24,7 +24,8 @@ the GPU's memory holds at each run's peak (``torch.cuda.max_memory_reserved``), 
 The machine's load average is printed before and after: on a shared machine, compare the rows of one run only, and
 use ``--repeats`` (the configurations take turns; the table gives medians and ranges, the CSV every run). The CSV
 gets each run's row when it ends; interrupted (Ctrl-C, ``timeout --signal=INT``), the script stops its runs and prints
-the table of the finished ones.
+the table of the finished ones. A configuration whose run fails is reported (one line: the configuration and its
+error, after the run's error output) and the others go on; the exit status is then 1.
 
     python benchmarks/train_throughput.py                                       # CPU, a few minutes: small counts
     python benchmarks/train_throughput.py --envs 1 2 --compile off --batch-size 64
@@ -37,10 +38,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import itertools
 import json
 import os
 import platform
 import resource
+import signal
 import statistics
 import subprocess
 import sys
@@ -119,7 +122,12 @@ def child(argv: list[str]) -> None:
 def measure(
     args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, folder: Path, concurrent: int = 1
 ) -> list[dict]:
-    """One configuration: run it ``concurrent`` times at once, read their result.json, return their CSV rows."""
+    """
+    One configuration: run it ``concurrent`` times at once, read their result.json, return their CSV rows.
+
+    :raise RuntimeError: one line, if a run failed (its error output is written to stderr first; the other runs are
+        stopped) or its results could not be read
+    """
     folder.mkdir(parents=True, exist_ok=True)
     rows, processes = [], []
     start = time.perf_counter()
@@ -150,8 +158,19 @@ def measure(
             if process.returncode != 0:
                 for other in processes:
                     other[2].kill()
-                raise RuntimeError(f"{' '.join(command)} failed:\n{err.read()[-3000:]}")
-            row = read_run(args, run_dir, out.read(), time.perf_counter() - start)
+                    other[2].wait()
+                errors = err.read()
+                print(f"{' '.join(command)}:\n{errors[-3000:]}", file=sys.stderr, flush=True)
+                last = next((line.strip() for line in reversed(errors.splitlines()) if line.strip()), "no error output")
+                status = process.returncode
+                how = f"killed by {signal.Signals(-status).name}" if status < 0 else f"exited with status {status}"
+                raise RuntimeError(f"run {run} {how}: {last}")
+            try:
+                row = read_run(args, run_dir, out.read(), time.perf_counter() - start)
+            except (OSError, ValueError, KeyError, StopIteration) as error:  # no PEAK line, no result.json...
+                raise RuntimeError(
+                    f"run {run}: its results could not be read ({type(error).__name__}: {error})"
+                ) from error
             rows.append(
                 {"concurrent": concurrent, "run": run, "envs": envs, "compiled": compiled, "overlap": overlap, **row}
             )
@@ -261,10 +280,11 @@ def gpu_memory_mb(device: str) -> float | None:
     return th.cuda.get_device_properties(th.device(device)).total_memory / 2**20
 
 
-def main() -> None:
+def main() -> int:
+    """:return: the exit status: 1 if a configuration failed, else 0 (interrupted too)"""
     if sys.argv[1:2] == ["--child"]:  # one configuration: the rest are the train CLI's arguments
         child(sys.argv[2:])
-        return
+        return 0
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 2, 4], help="numbers of training environments")
     parser.add_argument(
@@ -312,7 +332,7 @@ def main() -> None:
         f"{args.seed_frames} warm-up frames, then {args.frames} frames timed; {machine(args.device)}"
     )
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
-    rows = []
+    rows, failed = [], []
     Path(args.csv).parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as temporary, open(args.csv, "w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=FIELDS)
@@ -320,30 +340,35 @@ def main() -> None:
         file.flush()
         folder = Path(args.keep_runs or temporary)
         try:
-            for repeat in range(args.repeats):
-                for concurrent in args.concurrent:
-                    for envs in args.envs:
-                        for compiled in (mode == "on" for mode in args.compile):
-                            for overlap in (mode == "on" for mode in args.overlap):
-                                runs = measure(args, envs, compiled, overlap, folder / f"repeat{repeat}", concurrent)
-                                runs = [{"repeat": repeat, **row} for row in runs]
-                                rows += runs
-                                writer.writerows(runs)  # row by row: an interrupted benchmark keeps its runs
-                                file.flush()
-                                warmup = " ".join(f"{row['warmup_fps']:.1f}" for row in runs)
-                                learning = " ".join(f"{row['learning_fps']:.2f}" for row in runs)
-                                print(
-                                    f"  done: {envs} envs, compiled {compiled}, overlap {overlap}, {concurrent} at "
-                                    f"once: {warmup} frames/s in the warm-up, {learning} after it",
-                                    flush=True,
-                                )
+            configurations = itertools.product(
+                range(args.repeats), args.concurrent, args.envs, [m == "on" for m in args.compile],
+                [m == "on" for m in args.overlap],
+            )  # fmt: skip
+            for repeat, concurrent, envs, compiled, overlap in configurations:
+                label = f"{envs} envs, compiled {compiled}, overlap {overlap}, {concurrent} at once"
+                try:
+                    runs = measure(args, envs, compiled, overlap, folder / f"repeat{repeat}", concurrent)
+                except RuntimeError as error:  # reported; the other configurations go on
+                    failed.append(label)
+                    print(f"  failed: {label}: {error}", flush=True)
+                    continue
+                runs = [{"repeat": repeat, **row} for row in runs]
+                rows += runs
+                writer.writerows(runs)  # row by row: an interrupted benchmark keeps its runs
+                file.flush()
+                warmup = " ".join(f"{row['warmup_fps']:.1f}" for row in runs)
+                learning = " ".join(f"{row['learning_fps']:.2f}" for row in runs)
+                print(f"  done: {label}: {warmup} frames/s in the warm-up, {learning} after it", flush=True)
         except KeyboardInterrupt:
             print(f"interrupted: the table holds the {len(rows)} finished runs", flush=True)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if rows:
         print_table(rows, gpu_memory_mb(args.device))
     print(f"wrote {args.csv}")
+    if failed:
+        print(f"failed: {len(failed)} configuration(s), left out of the table: {'; '.join(failed)}")
+    return int(bool(failed))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
