@@ -6,12 +6,15 @@ The benchmark scripts keep what they measured when a time limit interrupts them,
 
 from __future__ import annotations
 
+import argparse
 import csv
 import os
 import signal
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_SPEED = ["--device", "cpu", "--size", "32", "--hidden-dim", "16", "--batch-sizes", "8", "4", "--rounds", "1",
@@ -102,3 +105,87 @@ def test_train_throughput_reports_a_failed_configuration_and_runs_the_next(tmp_p
     with open(table) as file:
         assert [row["envs"] for row in csv.DictReader(file)] == ["1"]
     assert "--n-envs must be >= 1, got 0." in done.stderr  # the run's own error output, kept in the log
+
+
+FAKE_DMC = """
+import numpy as np
+class Spec:
+    def __init__(self, dtype):
+        self.dtype = dtype
+    def replace(self, dtype):
+        return Spec(dtype)
+class Env:
+    def action_spec(self):
+        return Spec(np.float64)  # what dm_control 1.0's action_scale.Wrapper leaves
+def make(*args, **kwargs):
+    return Env()
+"""
+FAKE_TRAIN = """
+import os, sys
+from pathlib import Path
+
+import pytest
+import numpy as np
+import dmc, replay_buffer
+overrides = dict(argument.split("=", 1) for argument in sys.argv[1:])
+assert os.environ["MUJOCO_GL"] == "egl"
+assert dmc.make("walker_walk", 3, 2, 1).action_spec().dtype == np.float32, "actions not declared float32"
+replay_buffer._worker_init_fn(1)
+if overrides["task@_global_"] != "walker_walk":
+    sys.exit("error: no task " + overrides["task@_global_"])
+assert overrides["eval_every_frames"] == "null" and overrides["num_seed_frames"] == "4000"
+Path(overrides["hydra.run.dir"], "train.csv").write_text("frame,fps\\n5000,20.0\\n6000,100.0\\n7000,110.0\\n")
+"""
+
+
+def _fake_reference(folder: Path) -> Path:
+    """A stand-in for a facebookresearch/drqv2 checkout: its train.py checks the launcher's two changes and writes the
+    train.csv that the reference writes (frames/s per episode)."""
+    folder.mkdir()
+    (folder / "dmc.py").write_text(FAKE_DMC)
+    (folder / "replay_buffer.py").write_text("def _worker_init_fn(worker_id):\n    raise TypeError('numpy seed')\n")
+    (folder / "train.py").write_text(FAKE_TRAIN)
+    return folder
+
+
+def _throughput_module():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import train_throughput
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    return train_throughput
+
+
+def test_train_throughput_times_the_reference_loop_and_prints_the_ratios(tmp_path, capsys):
+    """``--reference``: the reference's train.py runs through the launcher (float32 actions, int seeds), its
+    learning frames/s is the median of its logged episodes after the first; a failure is one line; each configuration
+    gets its ratio to the reference."""
+    throughput = _throughput_module()
+    reference = str(_fake_reference(tmp_path / "drqv2"))
+    sizes = dict(seed_frames=4000, frames=3000, batch_size=512, n_steps=1, hidden_dim=1024)
+    args = argparse.Namespace(reference=reference, task="walker-walk", device="cpu", **sizes)
+    result = throughput.measure_reference(args, tmp_path / "runs")
+    assert result["episodes"] == [(5000, 20.0), (6000, 100.0), (7000, 110.0)]
+    assert result["learning_fps"] == 105.0
+    args.task = "cartpole-balance"
+    with pytest.raises(RuntimeError, match=r"^exited with status 1: error: no task cartpole_balance$"):
+        throughput.measure_reference(args, tmp_path / "failed")
+    rows = [
+        dict(envs=1, compiled=False, overlap=False, concurrent=1, learning_fps=315.0),
+        dict(envs=4, compiled=True, overlap=False, concurrent=1, learning_fps=420.0),
+        dict(envs=4, compiled=True, overlap=False, concurrent=3, learning_fps=1.0),  # several at once: no ratio
+    ]
+    throughput.print_reference_ratios(rows, [100.0, 110.0])
+    assert capsys.readouterr().out == (
+        "reference: 105.00 learning frames/s; ours / reference: 1 envs eager 3.00x; 4 envs compiled 4.00x\n"
+    )
+
+
+def test_train_throughput_refuses_a_reference_run_too_short_to_measure(tmp_path, monkeypatch, capsys):
+    throughput = _throughput_module()
+    reference = _fake_reference(tmp_path / "drqv2")
+    monkeypatch.setattr(sys, "argv", ["train_throughput.py", "--reference", str(reference), "--seed-frames", "2000"])
+    with pytest.raises(SystemExit):
+        throughput.main()
+    assert "--reference needs --frames >= 2000 and --seed-frames >= 4000" in capsys.readouterr().err
