@@ -26,8 +26,9 @@ the GPU's memory holds at each run's peak (``torch.cuda.max_memory_reserved``), 
 and tensorboard), first in each repeat, at the same task, warm-up and frames, batch size, n-step and hidden units,
 with one environment at 84x84 (its size), no evaluation and no videos. It logs frames/s per training episode (1,000
 frames) from its first update on, and its first such episode also counts the time since its start, so its learning
-frames/s is the median over the later episodes (``--frames`` of 2,000 or more); the script prints it and each
-configuration's ratio to it (ours / reference, learning frames/s, one run at once).
+frames/s is the median over the later episodes (``--frames`` of 2,000 or more; ``--seed-frames`` of 4,000 or more,
+an episode for each of its replay workers); the script prints it and each configuration's ratio to it (ours /
+reference, learning frames/s, one run at once).
 
 The machine's load average is printed before and after: on a shared machine, compare the rows of one run only, and
 use ``--repeats`` (the configurations take turns; the table gives medians and ranges, the CSV every run). The CSV
@@ -38,6 +39,7 @@ error, after the run's error output) and the others go on; the exit status is th
     python benchmarks/train_throughput.py                                       # CPU, a few minutes: small counts
     python benchmarks/train_throughput.py --envs 1 2 --compile off --batch-size 64
     python benchmarks/train_throughput.py --device cuda --seed-frames 4000 --frames 20000 --overlap off on
+    python benchmarks/train_throughput.py --device cuda --envs 1 --seed-frames 4000 --frames 3000 --reference ../drqv2
     python benchmarks/train_throughput.py --device cuda --envs 2 --compile off --concurrent 1 2 4 8
 """
 
