@@ -63,6 +63,8 @@ from pathlib import Path
 
 REFERENCE_EPISODE_FRAMES = 1000
 """Frames of a DeepMind Control episode (1,000 at every action repeat): the reference logs its frames/s per episode."""
+REFERENCE_SIZE = 84
+"""Image height and width of the reference's environments (fixed in its ``dmc.py``)."""
 REFERENCE_LOADER_WORKERS = 4
 """The reference's replay loader workers (its ``replay_buffer_num_workers``): worker ``i`` samples only the stored
 episodes whose index is ``i`` modulo 4, and fails while it has none."""
@@ -506,7 +508,8 @@ def main() -> int:
                         print(f"  failed: reference ({args.reference}/train.py): {error}", flush=True)
                     else:
                         episodes = ", ".join(f"{fps:.1f}" for _, fps in references[-1]["episodes"])
-                        print(f"  done: reference ({args.reference}/train.py, 1 env, 84x84): "
+                        print(f"  done: reference ({args.reference}/train.py, 1 env, "
+                              f"{REFERENCE_SIZE}x{REFERENCE_SIZE}): "
                               f"{references[-1]['learning_fps']:.2f} frames/s after the warm-up; per episode "
                               f"{episodes} (the first counts the time since its start)", flush=True)  # fmt: skip
                 label = f"{envs} envs, compiled {compiled}, overlap {overlap}, {concurrent} at once"
@@ -530,6 +533,9 @@ def main() -> int:
         print_table(rows, gpu_memory_mb(args.device))
     if references and any(row["concurrent"] == 1 for row in rows):
         print_reference_ratios(rows, [reference["learning_fps"] for reference in references])
+        if args.size != REFERENCE_SIZE:
+            reference_size = f"{REFERENCE_SIZE}x{REFERENCE_SIZE}"
+            print(f"  (ours at {args.size}x{args.size}, the reference at {reference_size}: not the same work)")
     print(f"wrote {args.csv}")
     if failed:
         print(f"failed: {len(failed)} configuration(s), left out of the table: {'; '.join(failed)}")
