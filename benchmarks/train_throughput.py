@@ -21,14 +21,25 @@ the sum of their learning frames/s: how many runs one machine (one GPU) serves a
 ``--gpus-per-trial``. Throughput stops growing where the device is full; on CUDA the table also gives how many runs
 the GPU's memory holds at each run's peak (``torch.cuda.max_memory_reserved``), leaving 10% free.
 
+``--reference DIR`` also times DrQ-v2's own training loop, ``train.py`` of a checkout of facebookresearch/drqv2 at
+``DIR`` (not part of this repository; it needs hydra-core, hydra-submitit-launcher, termcolor, OpenCV, torchvision
+and tensorboard), first in each repeat, at the same task, warm-up and frames, batch size, n-step and hidden units,
+with one environment at 84x84 (its size), no evaluation and no videos. It logs frames/s per training episode (1,000
+frames) from its first update on, and its first such episode also counts the time since its start, so its learning
+frames/s is the median over the later episodes (``--frames`` of 2,000 or more; ``--seed-frames`` of 4,000 or more,
+an episode for each of its replay workers); the script prints it and each configuration's ratio to it (ours /
+reference, learning frames/s, one run at once).
+
 The machine's load average is printed before and after: on a shared machine, compare the rows of one run only, and
 use ``--repeats`` (the configurations take turns; the table gives medians and ranges, the CSV every run). The CSV
 gets each run's row when it ends; interrupted (Ctrl-C, ``timeout --signal=INT``), the script stops its runs and prints
-the table of the finished ones.
+the table of the finished ones. A configuration whose run fails is reported (one line: the configuration and its
+error, after the run's error output) and the others go on; the exit status is then 1.
 
     python benchmarks/train_throughput.py                                       # CPU, a few minutes: small counts
     python benchmarks/train_throughput.py --envs 1 2 --compile off --batch-size 64
     python benchmarks/train_throughput.py --device cuda --seed-frames 4000 --frames 20000 --overlap off on
+    python benchmarks/train_throughput.py --device cuda --envs 1 --seed-frames 4000 --frames 3000 --reference ../drqv2
     python benchmarks/train_throughput.py --device cuda --envs 2 --compile off --concurrent 1 2 4 8
 """
 
@@ -37,16 +48,26 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import itertools
 import json
 import os
 import platform
 import resource
+import signal
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+REFERENCE_EPISODE_FRAMES = 1000
+"""Frames of a DeepMind Control episode (1,000 at every action repeat): the reference logs its frames/s per episode."""
+REFERENCE_SIZE = 84
+"""Image height and width of the reference's environments (fixed in its ``dmc.py``)."""
+REFERENCE_LOADER_WORKERS = 4
+"""The reference's replay loader workers (its ``replay_buffer_num_workers``): worker ``i`` samples only the stored
+episodes whose index is ``i`` modulo 4, and fails while it has none."""
 
 FIELDS = (
     "repeat", "concurrent", "run", "envs", "compiled", "overlap", "device", "batch_size", "warmup_frames", "warmup_fps",
@@ -119,7 +140,12 @@ def child(argv: list[str]) -> None:
 def measure(
     args: argparse.Namespace, envs: int, compiled: bool, overlap: bool, folder: Path, concurrent: int = 1
 ) -> list[dict]:
-    """One configuration: run it ``concurrent`` times at once, read their result.json, return their CSV rows."""
+    """
+    One configuration: run it ``concurrent`` times at once, read their result.json, return their CSV rows.
+
+    :raise RuntimeError: one line, if a run failed (its error output is written to stderr first; the other runs are
+        stopped) or its results could not be read
+    """
     folder.mkdir(parents=True, exist_ok=True)
     rows, processes = [], []
     start = time.perf_counter()
@@ -150,12 +176,32 @@ def measure(
             if process.returncode != 0:
                 for other in processes:
                     other[2].kill()
-                raise RuntimeError(f"{' '.join(command)} failed:\n{err.read()[-3000:]}")
-            row = read_run(args, run_dir, out.read(), time.perf_counter() - start)
+                    other[2].wait()
+                raise failure(command, process.returncode, err.read(), f"run {run} ")
+            try:
+                row = read_run(args, run_dir, out.read(), time.perf_counter() - start)
+            except (OSError, ValueError, KeyError, StopIteration) as error:  # no PEAK line, no result.json...
+                raise RuntimeError(
+                    f"run {run}: its results could not be read ({type(error).__name__}: {error})"
+                ) from error
             rows.append(
                 {"concurrent": concurrent, "run": run, "envs": envs, "compiled": compiled, "overlap": overlap, **row}
             )
     return rows
+
+
+def failure(command: list[str], status: int, errors: str, run: str = "") -> RuntimeError:
+    """
+    Write a failed run's command and the end of its error output to stderr (the log keeps its traceback).
+
+    :param status: its exit status (negative: the signal that killed it)
+    :param run: what names the run, before the status, e.g. ``"run 1 "``
+    :return: the error to raise, one line: how it ended and the last line of its error output
+    """
+    print(f"{' '.join(command)}:\n{errors[-3000:]}", file=sys.stderr, flush=True)
+    last = next((line.strip() for line in reversed(errors.splitlines()) if line.strip()), "no error output")
+    how = f"killed by {signal.Signals(-status).name}" if status < 0 else f"exited with status {status}"
+    return RuntimeError(f"{run}{how}: {last}")
 
 
 def read_run(args: argparse.Namespace, run_dir: Path, stdout: str, wall: float) -> dict:
@@ -189,6 +235,100 @@ def read_run(args: argparse.Namespace, run_dir: Path, stdout: str, wall: float) 
         "updates": learning["updates"],
         "first_round_s": first_round_s,
         **peak,
+        "wall_s": wall,
+    }
+
+
+REFERENCE_LAUNCHER = """
+import os, runpy, sys
+import numpy as np
+directory = sys.argv.pop(1)
+sys.path.insert(0, directory)
+os.environ["MUJOCO_GL"] = "egl"  # what train.py sets before it imports dm_control, imported here first
+import dmc
+make = dmc.make
+def make_with_float32_actions(*args, **kwargs):
+    env = make(*args, **kwargs)
+    spec = env.action_spec()
+    env.action_spec = lambda: spec.replace(dtype=np.float32)
+    return env
+dmc.make = make_with_float32_actions
+import random, replay_buffer
+def seed_worker(worker_id):
+    seed = int(np.random.get_state()[1][0]) + worker_id
+    np.random.seed(seed)
+    random.seed(seed)
+replay_buffer._worker_init_fn = seed_worker
+sys.argv[0] = directory + "/train.py"
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+"""Runs the reference's ``train.py`` (``python -c REFERENCE_LAUNCHER DIR overrides...``) with two changes, without
+which it stops at its first step or its first update: its environments declare the float32 actions its agent takes
+(with dm_control 1.0, what this project installs, ``dmc.make``'s action spec ends as float64, and its replay storage
+asserts that each stored action has its spec's dtype), and its replay loader's workers seed Python's ``random`` with
+an ``int`` (Python 3.11 and later refuse the numpy integer it passes)."""
+
+
+def reference_arguments(args: argparse.Namespace, run_dir: Path) -> list[str]:
+    """The hydra overrides of the reference's ``train.py`` that match our configuration: the task, the warm-up and the
+    frames (one agent step more, so that the episode ending at the last frame is logged), batch size, n-step, hidden
+    units, device; no evaluation (``eval_every_frames=null``), videos, TensorBoard or snapshot."""
+    return [
+        f"task@_global_={args.task.replace('-', '_')}",  # the config's default list puts the task there
+        f"num_seed_frames={args.seed_frames}",
+        f"num_train_frames={args.seed_frames + args.frames + 8}",  # one more agent step, at action repeats up to 8
+        "eval_every_frames=null",
+        "save_video=false",
+        "save_train_video=false",
+        "use_tb=false",
+        "save_snapshot=false",
+        f"batch_size={args.batch_size}",
+        f"nstep={args.n_steps}",
+        f"agent.hidden_dim={args.hidden_dim}",
+        f"device={args.device}",
+        f"hydra.run.dir={run_dir}",
+    ]
+
+
+def measure_reference(args: argparse.Namespace, folder: Path) -> dict:
+    """
+    Run the reference's own ``train.py`` (``args.reference``, a checkout of facebookresearch/drqv2) once, in its
+    own process, and read the frames/s it logged per training episode (``train.csv``).
+
+    :return: ``learning_fps`` (the median over the episodes after the first logged one, whose time counts everything
+        since the start), ``episodes`` (``(frame, fps)`` of each logged episode), ``wall_s``
+    :raise RuntimeError: one line, if the run failed (its error output is written to stderr first) or logged no
+        episode after its first one
+    """
+    run_dir = folder / "reference"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    command = [sys.executable, "-c", REFERENCE_LAUNCHER, str(args.reference), *reference_arguments(args, run_dir)]
+    start = time.perf_counter()
+    with open(f"{run_dir}.out", "w+") as out, open(f"{run_dir}.err", "w+") as err:
+        process = subprocess.Popen(
+            command, stdout=out, stderr=err, text=True, env=dict(os.environ, HYDRA_FULL_ERROR="1")
+        )
+        try:
+            process.wait()
+        except KeyboardInterrupt:
+            process.kill()
+            process.wait()
+            raise
+        err.seek(0)
+        errors = err.read()
+    wall = time.perf_counter() - start
+    if process.returncode != 0:
+        raise failure(command, process.returncode, errors)
+    try:
+        with open(run_dir / "train.csv") as file:
+            episodes = [(int(float(row["frame"])), float(row["fps"])) for row in csv.DictReader(file)]
+    except (OSError, ValueError, KeyError) as error:
+        raise RuntimeError(f"its train.csv could not be read ({type(error).__name__}: {error})") from error
+    if len(episodes) < 2:
+        raise RuntimeError(f"{len(episodes)} training episode(s) logged, 2 needed (the first counts its start)")
+    return {
+        "learning_fps": statistics.median(fps for _, fps in episodes[1:]),
+        "episodes": episodes,
         "wall_s": wall,
     }
 
@@ -240,6 +380,23 @@ def print_table(rows: list[dict], gpu_memory_mb: float | None = None) -> None:
         )
 
 
+def print_reference_ratios(rows: list[dict], reference_fps: list[float]) -> None:
+    """One line: the reference's learning frames/s (median over the repeats) and each configuration's median learning
+    frames/s over it (runs alone only: ``concurrent`` 1)."""
+    reference = statistics.median(reference_fps)
+    configurations = sorted({(row["envs"], row["compiled"], row["overlap"]) for row in rows if row["concurrent"] == 1})
+    ratios = []
+    for envs, compiled, overlap in configurations:
+        fps = statistics.median(
+            row["learning_fps"]
+            for row in rows
+            if (row["envs"], row["compiled"], row["overlap"], row["concurrent"]) == (envs, compiled, overlap, 1)
+        )
+        name = f"{envs} envs {'compiled' if compiled else 'eager'}{' overlap' if overlap else ''}"
+        ratios.append(f"{name} {fps / reference:.2f}x")
+    print(f"reference: {reference:.2f} learning frames/s; ours / reference: {'; '.join(ratios)}")
+
+
 def machine(device: str) -> str:
     """The device in words, with the CPU count and the load average."""
     import torch as th
@@ -261,10 +418,11 @@ def gpu_memory_mb(device: str) -> float | None:
     return th.cuda.get_device_properties(th.device(device)).total_memory / 2**20
 
 
-def main() -> None:
+def main() -> int:
+    """:return: the exit status: 1 if a configuration failed, else 0 (interrupted too)"""
     if sys.argv[1:2] == ["--child"]:  # one configuration: the rest are the train CLI's arguments
         child(sys.argv[2:])
-        return
+        return 0
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 2, 4], help="numbers of training environments")
     parser.add_argument(
@@ -304,7 +462,23 @@ def main() -> None:
     )
     parser.add_argument("--csv", default="runs/train_throughput.csv", help="where to write the table (one row per run)")
     parser.add_argument("--keep-runs", default=None, help="keep the run folders here (default: a temporary folder)")
+    parser.add_argument(
+        "--reference",
+        default=None,
+        metavar="DIR",
+        help="also time train.py of a facebookresearch/drqv2 checkout at DIR, its own loop (needs --frames >= 2000)",
+    )
     args = parser.parse_args()
+    if args.reference is not None:
+        if not (Path(args.reference) / "train.py").is_file():
+            parser.error(f"--reference: no train.py in {args.reference} (a checkout of facebookresearch/drqv2)")
+        seed_frames = REFERENCE_LOADER_WORKERS * REFERENCE_EPISODE_FRAMES
+        if args.frames < 2 * REFERENCE_EPISODE_FRAMES or args.seed_frames < seed_frames:
+            parser.error(
+                f"--reference needs --frames >= {2 * REFERENCE_EPISODE_FRAMES} and --seed-frames >= {seed_frames}: "
+                f"each of its {REFERENCE_LOADER_WORKERS} replay workers needs a finished episode of its own, and it "
+                "logs its frames/s per episode, the first one counting the time since its start"
+            )
 
     print(
         f"{args.task}, {args.size}x{args.size}, batch {args.batch_size}, {args.n_steps}-step, hidden "
@@ -312,7 +486,7 @@ def main() -> None:
         f"{args.seed_frames} warm-up frames, then {args.frames} frames timed; {machine(args.device)}"
     )
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
-    rows = []
+    rows, failed, references = [], [], []
     Path(args.csv).parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as temporary, open(args.csv, "w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=FIELDS)
@@ -320,30 +494,53 @@ def main() -> None:
         file.flush()
         folder = Path(args.keep_runs or temporary)
         try:
-            for repeat in range(args.repeats):
-                for concurrent in args.concurrent:
-                    for envs in args.envs:
-                        for compiled in (mode == "on" for mode in args.compile):
-                            for overlap in (mode == "on" for mode in args.overlap):
-                                runs = measure(args, envs, compiled, overlap, folder / f"repeat{repeat}", concurrent)
-                                runs = [{"repeat": repeat, **row} for row in runs]
-                                rows += runs
-                                writer.writerows(runs)  # row by row: an interrupted benchmark keeps its runs
-                                file.flush()
-                                warmup = " ".join(f"{row['warmup_fps']:.1f}" for row in runs)
-                                learning = " ".join(f"{row['learning_fps']:.2f}" for row in runs)
-                                print(
-                                    f"  done: {envs} envs, compiled {compiled}, overlap {overlap}, {concurrent} at "
-                                    f"once: {warmup} frames/s in the warm-up, {learning} after it",
-                                    flush=True,
-                                )
+            configurations = list(
+                itertools.product(args.concurrent, args.envs, [m == "on" for m in args.compile],
+                                  [m == "on" for m in args.overlap])
+            )  # fmt: skip
+            jobs = itertools.product(range(args.repeats), configurations)
+            for index, (repeat, (concurrent, envs, compiled, overlap)) in enumerate(jobs):
+                if args.reference is not None and index % len(configurations) == 0:  # first in each repeat
+                    try:
+                        references.append(measure_reference(args, folder / f"repeat{repeat}"))
+                    except RuntimeError as error:  # reported; the configurations go on
+                        failed.append("reference")
+                        print(f"  failed: reference ({args.reference}/train.py): {error}", flush=True)
+                    else:
+                        episodes = ", ".join(f"{fps:.1f}" for _, fps in references[-1]["episodes"])
+                        print(f"  done: reference ({args.reference}/train.py, 1 env, "
+                              f"{REFERENCE_SIZE}x{REFERENCE_SIZE}): "
+                              f"{references[-1]['learning_fps']:.2f} frames/s after the warm-up; per episode "
+                              f"{episodes} (the first counts the time since its start)", flush=True)  # fmt: skip
+                label = f"{envs} envs, compiled {compiled}, overlap {overlap}, {concurrent} at once"
+                try:
+                    runs = measure(args, envs, compiled, overlap, folder / f"repeat{repeat}", concurrent)
+                except RuntimeError as error:  # reported; the other configurations go on
+                    failed.append(label)
+                    print(f"  failed: {label}: {error}", flush=True)
+                    continue
+                runs = [{"repeat": repeat, **row} for row in runs]
+                rows += runs
+                writer.writerows(runs)  # row by row: an interrupted benchmark keeps its runs
+                file.flush()
+                warmup = " ".join(f"{row['warmup_fps']:.1f}" for row in runs)
+                learning = " ".join(f"{row['learning_fps']:.2f}" for row in runs)
+                print(f"  done: {label}: {warmup} frames/s in the warm-up, {learning} after it", flush=True)
         except KeyboardInterrupt:
             print(f"interrupted: the table holds the {len(rows)} finished runs", flush=True)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if rows:
         print_table(rows, gpu_memory_mb(args.device))
+    if references and any(row["concurrent"] == 1 for row in rows):
+        print_reference_ratios(rows, [reference["learning_fps"] for reference in references])
+        if args.size != REFERENCE_SIZE:
+            reference_size = f"{REFERENCE_SIZE}x{REFERENCE_SIZE}"
+            print(f"  (ours at {args.size}x{args.size}, the reference at {reference_size}: not the same work)")
     print(f"wrote {args.csv}")
+    if failed:
+        print(f"failed: {len(failed)} configuration(s), left out of the table: {'; '.join(failed)}")
+    return int(bool(failed))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

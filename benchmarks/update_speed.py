@@ -14,17 +14,22 @@
 - ``reference ops``: ``tests.drqv2_reference.reference_update``, the operations of facebookresearch/drqv2's
   ``DrQV2Agent.update``: ``grid_sample`` augmentation on float images, a full backward of the actor loss
   (gradients of the critic computed and discarded), here with NCHW convolutions each followed by its own ReLU,
-  non-fused Adam and the C library's default allocator, as the reference runs.
-  The batch is sampled from the same kind of buffer (the reference samples in DataLoader workers; sampling
-  is included in both timings).
+  non-fused Adam and the C library's default allocator, as the reference runs, with torch's default flags (cuDNN's
+  autotuner off). The batch is sampled from the same kind of buffer (the reference samples in DataLoader workers;
+  sampling is included in both timings);
+- ``reference-autotune``: ``reference`` with cuDNN's autotuner on (``torch.backends.cudnn.benchmark = True``), as
+  facebookresearch/drqv2's ``train.py`` sets it on import, and as ours runs (``sb3_collapse.backends``); the same as
+  ``reference`` on the CPU.
 
 Each implementation runs in its own process, on identical networks and synthetic replay data. The processes take
 turns (one times ``--updates`` updates while the others wait), ``--rounds`` times, so that the ratios compare
-updates timed under the same load on a shared machine; the table gives the median over the rounds of each round's
-median, and the median of the per-round ratios. Its rows (one per batch size) are printed as they are measured; an
-implementation whose process fails, or is not ready within ``--ready-timeout`` seconds, is reported and left out, and
-an interrupted run (Ctrl-C, ``timeout --signal=INT``) keeps the rows it printed. ``--compiled-batch-sizes`` limits
-``ours-compiled`` (a compilation per batch size) to some of the batch sizes.
+updates timed under the same load on a shared machine; a table gives the median over the rounds of each round's
+median, and the median of the per-round ratios to its first implementation. The eager implementations start at once
+and are timed first: their table's rows (one per batch size) are printed, each as soon as it is measured, before
+``ours-compiled`` starts compiling (up to a minute per batch size); then a second table times all of them again
+beside it, at ``--compiled-batch-sizes``. An implementation whose process fails, or is not ready within
+``--ready-timeout`` seconds of its start, is reported and left out (exit status 1); an interrupted run (Ctrl-C,
+``timeout --signal=INT``) keeps the rows it printed.
 
 Observations are 9x84x84 uint8 (3 stacked RGB frames; ``--size`` for smaller ones), actions 6-d (walker). No
 rendering is involved.
@@ -32,6 +37,7 @@ rendering is involved.
     python benchmarks/update_speed.py                  # batch 256 and 32 on the default device
     python benchmarks/update_speed.py --batch-sizes 256 --updates 10 --device cuda
     python benchmarks/update_speed.py --impls reference ours ours-compiled --batch-sizes 32 --rounds 5
+    python benchmarks/update_speed.py --device cuda --impls reference reference-autotune ours --batch-sizes 512
 """
 
 from __future__ import annotations
@@ -60,11 +66,14 @@ from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
 from tests.drqv2_reference import reference_update
 from tests.random_env import RandomObservationEnv
 
-IMPLS = ("reference", "ours", "ours-compiled", "ours-ieee", "ours-no-prefetch")
+IMPLS = ("reference", "ours", "ours-compiled", "ours-ieee", "ours-no-prefetch", "reference-autotune")
 """Implementations this script times (``--impls``): ``ours`` and ``ours-compiled`` with TensorFloat-32 on CUDA (the
 train command's default, ``sb3_collapse.backends``), ``ours-ieee`` without it (``--no-tf32``), ``ours-no-prefetch``
 without drawing the batches ahead (``ReplayPrefetcher(enabled=False)``: ``sb3_collapse.drqv2.prefetch``); the
-reference with torch's defaults, as it runs."""
+reference with torch's defaults, as it runs, and ``reference-autotune`` with cuDNN's autotuner on, as DrQ-v2's
+``train.py`` runs it."""
+COMPILED = "ours-compiled"
+"""The implementation that compiles (``torch.compile``): started and timed after the eager ones."""
 
 
 def build_model(
@@ -122,13 +131,16 @@ def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int, siz
     compiles a compiled update) and print their times, then answer each ``<batch> <updates>`` line of stdin with the
     milliseconds of that many updates.
     """
-    if impl != "reference":
+    reference = impl.startswith("reference")
+    if not reference:
         configure_backends(tf32=impl != "ours-ieee")
+    elif impl == "reference-autotune":
+        th.backends.cudnn.benchmark = True  # what facebookresearch/drqv2's train.py sets, and nothing else
     model = build_model(
         device,
-        reference=impl == "reference",
+        reference=reference,
         buffer_size=buffer_size,
-        compile_update=impl == "ours-compiled",
+        compile_update=impl == COMPILED,
         size=size,
         hidden_dim=hidden_dim,
     )
@@ -136,7 +148,7 @@ def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int, siz
         tune_cpu_allocator()  # as the train CLI does; SB3_COLLAPSE_TUNE_MALLOC=0 (the reference's worker) declines
     if impl == "ours-no-prefetch":
         model.replay_prefetcher.enabled = False
-    if impl == "reference":
+    if reference:
         updates = {b: (lambda b=b: reference_update(model, model.replay_buffer.sample(b))) for b in batch_sizes}
     else:
         updates = {b: (lambda b=b: model.train(gradient_steps=1, batch_size=b)) for b in batch_sizes}
@@ -147,32 +159,93 @@ def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int, siz
         print(" ".join(f"{timed_ms(updates[batch_size], model.device):.3f}" for _ in range(count)), flush=True)
 
 
-def start_worker(impl: str, args: argparse.Namespace, batch_sizes: list[int]) -> tuple[subprocess.Popen, list[float]]:
+def start_workers(
+    impls: list[str], args: argparse.Namespace, sizes: dict[str, list[int]], workers: dict[str, subprocess.Popen]
+) -> dict[str, list[float]]:
     """
-    Start the process of ``impl`` and wait until it has built its model and made its warm-up updates (at most
-    ``args.ready_timeout`` seconds).
+    Start the processes of ``impls`` at once and wait until each has built its model and made its warm-up updates,
+    at most ``args.ready_timeout`` seconds from their start. One that fails or is not ready in time is reported,
+    killed and left out.
 
-    :return: the process and its warm-up times (ms, two per batch size)
-    :raise RuntimeError: if it failed or did not get ready in time (the process is killed)
+    :param workers: the running processes by implementation: each one started is added at once (so that the caller
+        stops it whatever happens next), each one left out removed
+    :return: the warm-up times (ms, two per batch size of ``sizes[impl]``) of the implementations that are ready
     """
-    # The reference runs with the default C allocator, as it runs on its own; ours as the train CLI sets it up
-    # (sb3_collapse.run.cpu_allocator, on the CPU only).
-    env = dict(os.environ, SB3_COLLAPSE_TUNE_MALLOC="0" if impl == "reference" else "1")
-    command = [sys.executable, __file__, "--worker", impl, "--device", args.device, "--buffer-size",
-               str(args.buffer_size), "--size", str(args.size), "--hidden-dim", str(args.hidden_dim),
-               "--batch-sizes", *map(str, batch_sizes)]  # fmt: skip
-    process = subprocess.Popen(command, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    ready, _, _ = select.select([process.stdout], [], [], args.ready_timeout)
-    reply = process.stdout.readline().split() if ready else []
-    if not reply or reply[0] != "ready":
-        process.kill()
-        process.wait()
-        why = "not ready" if not ready else "failed (its error is above)"
-        raise RuntimeError(f"{why} after {args.ready_timeout:g} s" if not ready else why)
-    return process, [float(value) for value in reply[1:]]
+    for impl in impls:
+        # The reference runs with the default C allocator, as it runs on its own; ours as the train CLI sets it up
+        # (sb3_collapse.run.cpu_allocator, on the CPU only).
+        env = dict(os.environ, SB3_COLLAPSE_TUNE_MALLOC="0" if impl.startswith("reference") else "1")
+        command = [sys.executable, __file__, "--worker", impl, "--device", args.device, "--buffer-size",
+                   str(args.buffer_size), "--size", str(args.size), "--hidden-dim", str(args.hidden_dim),
+                   "--batch-sizes", *map(str, sizes[impl])]  # fmt: skip
+        # SIGINT ignored from the worker's first instruction (inherited; Python then installs no handler): the
+        # SIGINT that `timeout --signal=INT` sends to the process group is for this process, which stops the workers.
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            workers[impl] = subprocess.Popen(command, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+    deadline = None if args.ready_timeout is None else time.monotonic() + args.ready_timeout
+    waiting = {workers[impl].stdout: impl for impl in impls}
+    warmups = {}
+    while waiting:
+        left = None if deadline is None else max(0.0, deadline - time.monotonic())
+        ready, _, _ = select.select(list(waiting), [], [], left)
+        if not ready:  # the deadline passed
+            for impl in waiting.values():
+                stop_worker(workers, impl, f"not ready after {args.ready_timeout:g} s")
+            break
+        for stream in ready:
+            impl = waiting.pop(stream)
+            reply = stream.readline().split()  # the worker prints one whole line, flushed
+            if reply and reply[0] == "ready":
+                warmups[impl] = [float(value) for value in reply[1:]]
+            else:
+                stop_worker(workers, impl, "failed (its error is above)")
+    return warmups
 
 
-def main() -> None:
+def stop_worker(workers: dict[str, subprocess.Popen], impl: str, why: str) -> None:
+    """Report that ``impl`` is left out and why, kill its process and remove it from ``workers``."""
+    print(f"{impl}: {why}; skipped", flush=True)
+    process = workers.pop(impl)
+    process.kill()
+    process.wait()
+
+
+def time_table(
+    impls: list[str], batch_sizes: list[int], args: argparse.Namespace, workers: dict[str, subprocess.Popen]
+) -> dict[int, dict[str, list[float]]]:
+    """
+    Time ``impls`` taking turns, ``args.rounds`` rounds of ``args.updates`` updates per batch size, and print the
+    table: a header, then each batch size's row (flushed) as soon as it is measured. An implementation whose process
+    fails is reported and left out (removed from ``workers``).
+
+    :return: per batch size, each implementation's medians (ms, one per round)
+    """
+    print(table_header(impls), flush=True)
+    table = {}
+    for batch_size in batch_sizes:
+        medians = table[batch_size] = {impl: [] for impl in impls if impl in workers}
+        for _ in range(args.rounds):
+            for impl in list(medians):
+                try:
+                    workers[impl].stdin.write(f"{batch_size} {args.updates}\n")
+                    workers[impl].stdin.flush()
+                    times = [float(value) for value in workers[impl].stdout.readline().split()]
+                except (BrokenPipeError, ValueError):
+                    times = []
+                if not times:
+                    stop_worker(workers, impl, f"its process failed at batch {batch_size} (its error is above)")
+                    del medians[impl]
+                    continue
+                medians[impl].append(float(np.median(times)))
+        print(table_row(batch_size, impls, medians), flush=True)
+    return table
+
+
+def main() -> int:
+    """:return: the exit status: 1 if an implementation failed or was not ready in time, else 0 (interrupted too)"""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 32], help="minibatch sizes")
     parser.add_argument(
@@ -199,9 +272,8 @@ def main() -> None:
     args = parser.parse_args()
 
     if args.worker:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process stops the workers
         worker(args.worker, args.batch_sizes, args.device, args.buffer_size, args.size, args.hidden_dim)
-        return
+        return 0
 
     device = get_device(args.device)
     name = (
@@ -212,68 +284,82 @@ def main() -> None:
     print(f"device: {name}; torch {th.__version__}; obs 9x{args.size}x{args.size} uint8, 6-d actions, hidden "
           f"{args.hidden_dim}; {args.rounds} rounds of {args.updates} updates per implementation, taking turns",
           flush=True)  # fmt: skip
-    sizes = {impl: list(args.batch_sizes) for impl in args.impls}
-    if args.compiled_batch_sizes is not None and "ours-compiled" in sizes:
-        sizes["ours-compiled"] = [b for b in args.batch_sizes if b in args.compiled_batch_sizes]
-    workers, warmups = {}, {}
+    impls = list(dict.fromkeys(args.impls))
+    sizes = {impl: list(args.batch_sizes) for impl in impls}
+    if args.compiled_batch_sizes is not None and COMPILED in sizes:
+        sizes[COMPILED] = [b for b in args.batch_sizes if b in args.compiled_batch_sizes]
+    eager = [impl for impl in impls if impl != COMPILED]
+    compiled = COMPILED in impls and bool(sizes[COMPILED])
+    workers: dict[str, subprocess.Popen] = {}
+    started: set[str] = set()  # those no longer in workers failed
     try:
-        for impl in args.impls:  # one at a time: building and compiling do not overlap
-            if not sizes[impl]:
-                continue
-            try:
-                workers[impl], warmups[impl] = start_worker(impl, args, sizes[impl])
-            except RuntimeError as error:
-                print(f"{impl}: {error}; skipped", flush=True)
-        impls = list(workers)
-        baseline = impls[0] if impls else None
-        print(f"{'batch':>6} " + " ".join(f"{impl + ' (ms)':>20}" for impl in impls)
-              + "".join(f"{impl + ' / ' + baseline:>30}" for impl in impls[1:]), flush=True)  # fmt: skip
-        for batch_size in args.batch_sizes:  # one row per batch size, printed once measured
-            medians = {impl: [] for impl in workers if batch_size in sizes[impl]}
-            for _ in range(args.rounds):
-                for impl in list(medians):
-                    try:
-                        workers[impl].stdin.write(f"{batch_size} {args.updates}\n")
-                        workers[impl].stdin.flush()
-                        times = [float(value) for value in workers[impl].stdout.readline().split()]
-                    except (BrokenPipeError, ValueError):
-                        times = []
-                    if not times:
-                        print(f"{impl}: its process failed at batch {batch_size} (its error is above); skipped",
-                              flush=True)  # fmt: skip
-                        del medians[impl], workers[impl]
-                        continue
-                    medians[impl].append(float(np.median(times)))
-            print(table_row(batch_size, impls, baseline, medians), flush=True)
-            if batch_size in sizes.get("ours-compiled", []) and "ours-compiled" in medians:
-                first = warmups["ours-compiled"][2 * sizes["ours-compiled"].index(batch_size)]
-                steady = np.median(medians["ours-compiled"])
-                print(f"compilation, batch {batch_size}: first update {first / 1000:.1f} s, i.e. "
-                      f"~{(first - steady) / 1000:.1f} s more than a compiled update (each batch size is compiled "
-                      "for its own shapes)", flush=True)  # fmt: skip
+        if eager:
+            print(f"eager: {', '.join(eager)} (started at once)", flush=True)
+            started.update(eager)
+            start_workers(eager, args, sizes, workers)
+            if workers:
+                time_table([impl for impl in eager if impl in workers], args.batch_sizes, args, workers)
+        if compiled:
+            print(f"{COMPILED} (compiling at batch {', '.join(map(str, sizes[COMPILED]))}), then everything again "
+                  "beside it", flush=True)  # fmt: skip
+            started.add(COMPILED)
+            warmups = start_workers([COMPILED], args, sizes, workers)
+            if COMPILED in workers:
+                first_updates = ", ".join(
+                    f"{ms / 1000:.1f} s at batch {b}" for ms, b in zip(warmups[COMPILED][::2], sizes[COMPILED])
+                )
+                print(f"{COMPILED} ready; its first update (compiling): {first_updates}", flush=True)
+                table = time_table([impl for impl in impls if impl in workers], sizes[COMPILED], args, workers)
+                for index, batch_size in enumerate(sizes[COMPILED]):
+                    if table[batch_size].get(COMPILED):
+                        first, steady = warmups[COMPILED][2 * index], np.median(table[batch_size][COMPILED])
+                        print(f"compilation, batch {batch_size}: first update {first / 1000:.1f} s, i.e. "
+                              f"~{(first - steady) / 1000:.1f} s more than a compiled update (each batch size is "
+                              "compiled for its own shapes)", flush=True)  # fmt: skip
     except KeyboardInterrupt:
         print("interrupted: the rows above are complete", flush=True)
     finally:
         for process in workers.values():
             process.kill()
             process.wait()
+    return int(bool(started - workers.keys()))
 
 
-def table_row(batch_size: int, impls: list[str], baseline: str | None, medians: dict[str, list[float]]) -> str:
-    """One row of the table: each implementation's median milliseconds, and its median ratio to ``baseline`` per
-    round (with their range); ``-`` where an implementation did not run at this batch size."""
-    row = f"{batch_size:>6} " + " ".join(
-        f"{np.median(medians[impl]):>20.1f}" if medians.get(impl) else f"{'-':>20}" for impl in impls
+def column_widths(impls: list[str]) -> tuple[int, int]:
+    """:return: the widths of the millisecond columns and of the ratio columns of a table of ``impls``, the first
+    being the baseline (each header fits, with two spaces before it)"""
+    ms = max(len(f"{impl} (ms)") for impl in impls) + 2
+    ratio = max((len(f"{impl} / {impls[0]}") for impl in impls[1:]), default=0) + 2
+    return max(ms, 12), max(ratio, 20)
+
+
+def table_header(impls: list[str]) -> str:
+    """The header of a table of ``impls`` (:func:`table_row`), the first being the baseline."""
+    ms, ratio = column_widths(impls)
+    return (
+        f"{'batch':>6}"
+        + "".join(f"{impl + ' (ms)':>{ms}}" for impl in impls)
+        + "".join(f"{impl + ' / ' + impls[0]:>{ratio}}" for impl in impls[1:])
+    )
+
+
+def table_row(batch_size: int, impls: list[str], medians: dict[str, list[float]]) -> str:
+    """One row of a table of ``impls``: each implementation's median milliseconds, and its median ratio per round to
+    the first of ``impls`` (with their range); ``-`` where an implementation did not run at this batch size."""
+    ms, ratio = column_widths(impls)
+    baseline = impls[0]
+    row = f"{batch_size:>6}" + "".join(
+        f"{np.median(medians[impl]):>{ms}.1f}" if medians.get(impl) else f"{'-':>{ms}}" for impl in impls
     )
     for impl in impls[1:]:
         if not medians.get(impl) or not medians.get(baseline):
-            row += f"{'-':>30}"
+            row += f"{'-':>{ratio}}"
             continue
         rounds = min(len(medians[impl]), len(medians[baseline]))
         per_round = np.array(medians[impl][:rounds]) / np.array(medians[baseline][:rounds])
-        row += f"{np.median(per_round):>18.2f} ({per_round.min():.2f}-{per_round.max():.2f})"
+        row += f"{f'{np.median(per_round):.2f} ({per_round.min():.2f}-{per_round.max():.2f})':>{ratio}}"
     return row
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -316,6 +316,31 @@ def test_backend_settings_are_applied_and_checked(monkeypatch):
         configure_backends(deterministic="yes")  # type: ignore[arg-type]
 
 
+@pytest.mark.usefixtures("_restore_backends")
+def test_tf32_legacy_and_new_flags_agree_and_can_be_read():
+    """After configure_backends, torch's legacy TF32 flags (which torch's compiler reads on CUDA) and its new
+    ``fp32_precision`` ones say the same and can be read, even from a state that mixed the two APIs; the CPU's
+    (oneDNN's) flags are left alone. The flags are process-wide: no GPU needed."""
+    new_api = hasattr(th.backends.cuda.matmul, "fp32_precision")  # torch >= 2.9
+
+    def mkldnn() -> tuple:
+        return (th.backends.mkldnn.fp32_precision, th.backends.mkldnn.matmul.fp32_precision) if new_api else ()
+
+    cpu_flags = mkldnn()
+    for tf32 in (True, False, True, False):
+        if new_api:  # the new API alone, the opposite way: torch then refuses to read a legacy flag
+            th.backends.cuda.matmul.fp32_precision = "ieee" if tf32 else "tf32"
+            th.backends.cudnn.conv.fp32_precision = "ieee" if tf32 else "tf32"
+        configure_backends(tf32=tf32)
+        assert th.backends.cuda.matmul.allow_tf32 is tf32 and th.backends.cudnn.allow_tf32 is tf32
+        assert th.get_float32_matmul_precision() == ("high" if tf32 else "highest")
+        if new_api:
+            precision = "tf32" if tf32 else "ieee"
+            assert th.backends.cuda.matmul.fp32_precision == th.backends.cudnn.conv.fp32_precision == precision
+        assert current_backends().tf32 is tf32
+        assert mkldnn() == cpu_flags
+
+
 def _process_settings() -> tuple:
     """torch's process-wide flags that a training run sets (``sb3_collapse.backends``), and cuBLAS's workspace."""
     return (
