@@ -18,18 +18,19 @@
 #   3. compiled update replayed against the eager one; a --deterministic run stopped and resumed   checks.txt, <= 90 s
 #   4. the CUDA tests (pytest -m cuda; without rendering, those marked dmc are left out)   cuda_tests.log, <= 100 s
 #   5. runs per GPU: 3 runs at once, 1 env each (one run: step 2's)                    concurrent.csv, the rest
-# Everything is also in gpu.log; the script ends by about 540 s (GPU_SH_BUDGET) with at most 8 files in $OUT (default
-# benchmarks/gpu-results/, or benchmarks/gpu-results/rehearsal/). benchmarks/gpu.md says where each figure goes.
+# Everything is also in gpu.log; the script ends by about 540 s (GPU_SH_BUDGET; the rehearsal: twice every limit, see
+# SCALE) with at most 8 files in $OUT (default benchmarks/gpu-results/, or benchmarks/gpu-results/rehearsal/).
+# benchmarks/gpu.md says where each figure goes.
 set -uo pipefail
 
 elapsed() { echo $(($(date +%s) - START)); }
 step() { echo; echo "==> $1 ($(elapsed) s so far)"; }
-# limit SECONDS [AT_LEAST]: the step's time limit, SECONDS cut to what is left of BUDGET (less 10 s to write up);
-# prints nothing and fails when that is under AT_LEAST seconds (default 10), so that a step never gets a timeout of
-# 0 or less: the caller skips it with a line (too_late).
+# limit SECONDS [AT_LEAST]: the step's time limit, SECONDS (times SCALE) cut to what is left of BUDGET (less 10 s to
+# write up); prints nothing and fails when that is under AT_LEAST seconds (default 10), so that a step never gets a
+# timeout of 0 or less: the caller skips it with a line (too_late).
 limit() {
-    local left=$((BUDGET - 10 - $(elapsed))) least=${2:-10}
-    local seconds=$(($1 < left ? $1 : left))
+    local left=$((BUDGET - 10 - $(elapsed))) least=${2:-10} asked=$(($1 * ${SCALE:-1}))
+    local seconds=$((asked < left ? asked : left))
     ((seconds >= least)) || return 1
     echo "$seconds"
 }
@@ -80,7 +81,11 @@ for arg in "$@"; do
     esac
 done
 START=$(date +%s)
-BUDGET=${GPU_SH_BUDGET:-540}
+# The rehearsal's time limits are the GPU's times SCALE (GPU_SH_SCALE, default 2): on a busy 2-core machine, what
+# the GPU machine's 16 cores start in seconds (torch imported by several processes at once, compilations on the CPU)
+# takes minutes.
+SCALE=${GPU_SH_SCALE:-$( ((REHEARSE)) && echo 2 || echo 1)}
+BUDGET=${GPU_SH_BUDGET:-$((540 * SCALE))}
 if ((REHEARSE)); then
     OUT=${OUT:-benchmarks/gpu-results/rehearsal}
     mkdir -p "$OUT"
@@ -175,10 +180,12 @@ fi
 
 step "1. Update speed against the reference, on the same device"
 impls=(reference ours ours-ieee ours-no-prefetch)
+# The reference with cuDNN's autotuner on, as DrQ-v2's train.py runs it, where update_speed.py offers it.
+grep -q '"reference-autotune"' benchmarks/update_speed.py && impls=(reference reference-autotune "${impls[@]:1}")
 ((COMPILE_OK)) && impls+=(ours-compiled) || echo "without ours-compiled: $COMPILE_WHY"
 if ((!RUNS)); then skip "$RUNS_WHY"; elif ! t=$(limit 110 30); then too_late 30; else
     timeout --signal=INT --kill-after=10 "$t" "$PY" benchmarks/update_speed.py --device "$DEVICE" \
-        --impls "${impls[@]}" --ready-timeout 80 "${SPEED[@]}" 2>&1 | tee "$OUT/update_speed.txt"
+        --impls "${impls[@]}" --ready-timeout $((80 * SCALE)) "${SPEED[@]}" 2>&1 | tee "$OUT/update_speed.txt"
 fi
 
 step "2. Training frames/s, walker-walk at the paper's configuration: ${ENVS[*]} envs, eager and compiled"
