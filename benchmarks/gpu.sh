@@ -36,6 +36,20 @@ limit() {
 }
 too_late() { echo "SKIPPED: $((BUDGET - 10 - $(elapsed))) s left of the ${BUDGET} s budget, under the ${1} s this step needs"; }
 skip() { echo "SKIPPED: $1"; }
+# bounded SECONDS KILL_AFTER COMMAND...: COMMAND under timeout (SIGINT at SECONDS, so that it prints what it has;
+# SIGKILL KILL_AFTER later), then SIGKILL to whatever it left running in timeout's process group (a worker that
+# outlived its parent would hold the step's pipe open, and its tee with it, and take the next step's CPU or GPU).
+bounded() {
+    local seconds=$1 kill_after=$2 group status
+    shift 2
+    group=$(mktemp)
+    # bash -c prints its pid, then becomes timeout (same pid), which makes its own process group of that number.
+    bash -c 'echo $$ >"$0"; exec "$@"' "$group" timeout --signal=INT --kill-after="$kill_after" "$seconds" "$@"
+    status=$?
+    kill -KILL -- "-$(cat "$group")" 2>/dev/null
+    rm -f "$group"
+    return $status
+}
 # read_preflight FILE: the preflight's verdicts, each with a default for the ones it did not write (it was killed or
 # timed out before them), then whatever FILE holds.
 read_preflight() {
@@ -153,7 +167,7 @@ step "0. Preflight"
 cat "$OUT/machine.txt"
 status=$(mktemp)
 if t=$(limit 90 30); then  # each of its subprocess checks gets 15 s less than the whole
-    timeout --kill-after=10 "$t" "$PY" benchmarks/gpu_preflight.py --device "$DEVICE" --out "$OUT/machine.txt" \
+    bounded "$t" 10 "$PY" benchmarks/gpu_preflight.py --device "$DEVICE" --out "$OUT/machine.txt" \
         --status "$status" --timeout $((t - 15))
 else
     too_late 30
@@ -184,7 +198,7 @@ impls=(reference ours ours-ieee ours-no-prefetch)
 grep -q '"reference-autotune"' benchmarks/update_speed.py && impls=(reference reference-autotune "${impls[@]:1}")
 ((COMPILE_OK)) && impls+=(ours-compiled) || echo "without ours-compiled: $COMPILE_WHY"
 if ((!RUNS)); then skip "$RUNS_WHY"; elif ! t=$(limit 110 30); then too_late 30; else
-    timeout --signal=INT --kill-after=10 "$t" "$PY" benchmarks/update_speed.py --device "$DEVICE" \
+    bounded "$t" 10 "$PY" benchmarks/update_speed.py --device "$DEVICE" \
         --impls "${impls[@]}" --ready-timeout $((80 * SCALE)) "${SPEED[@]}" 2>&1 | tee "$OUT/update_speed.txt"
 fi
 
@@ -194,7 +208,7 @@ compile=(off)
 if ((!RUNS)); then skip "$RUNS_WHY"; elif ((!RENDER_OK)); then skip "$RENDER_WHY"; elif ! t=$(limit 130 40); then
     too_late 40
 else
-    timeout --signal=INT --kill-after=20 "$t" "$PY" benchmarks/train_throughput.py --device "$DEVICE" \
+    bounded "$t" 20 "$PY" benchmarks/train_throughput.py --device "$DEVICE" \
         --envs "${ENVS[@]}" --compile "${compile[@]}" "${TRAIN[@]}" --csv "$OUT/throughput.csv" 2>&1 \
         | tee "$OUT/throughput.txt"
 fi
@@ -205,7 +219,7 @@ checks=()
 ((RENDER_OK)) && checks+=(resume) || echo "without resume: $RENDER_WHY"
 if ((!RUNS)); then skip "$RUNS_WHY"; elif ((${#checks[@]} == 0)); then skip "nothing left to check"
 elif ! t=$(limit 90 30); then too_late 30; else
-    timeout --signal=INT --kill-after=10 "$t" "$PY" benchmarks/gpu_checks.py --device "$DEVICE" \
+    bounded "$t" 10 "$PY" benchmarks/gpu_checks.py --device "$DEVICE" \
         --checks "${checks[@]}" "${CHECKS[@]}" 2>&1 | tee "$OUT/checks.txt"
 fi
 
@@ -214,7 +228,7 @@ if ((!CORE_OK)); then skip "$CORE_WHY"; elif ! t=$(limit 100 30); then too_late 
     marks="cuda"
     ((RENDER_OK)) || { marks="cuda and not dmc"; echo "without the tests that render (dm_control): $RENDER_WHY"; }
     mapfile -t cuda_tests < <(grep -rl "mark.cuda" tests --include="test_*.py" | sort)  # not the others' imports (Ray)
-    timeout --signal=INT --kill-after=20 "$t" "$PY" -m pytest -m "$marks" -q -p no:cacheprovider \
+    bounded "$t" 20 "$PY" -m pytest -m "$marks" -q -p no:cacheprovider \
         --durations=15 "${cuda_tests[@]}" 2>&1 | tee "$OUT/cuda_tests.log"
 fi
 
@@ -222,7 +236,7 @@ step "5. Runs per device: ${CONCURRENT[*]} runs at once (1 env each, eager; one 
 if ((!RUNS)); then skip "$RUNS_WHY"; elif ((!RENDER_OK)); then skip "$RENDER_WHY"; elif ! t=$(limit 600 40); then
     too_late 40
 else
-    timeout --signal=INT --kill-after=20 "$t" "$PY" benchmarks/train_throughput.py --device "$DEVICE" \
+    bounded "$t" 20 "$PY" benchmarks/train_throughput.py --device "$DEVICE" \
         --envs 1 --compile off --concurrent "${CONCURRENT[@]}" "${TRAIN[@]}" --csv "$OUT/concurrent.csv" 2>&1 \
         | tee -a "$OUT/throughput.txt"
 fi

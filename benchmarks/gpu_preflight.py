@@ -101,10 +101,11 @@ def version(distribution: str, module: str | None = None) -> str:
 
 def run_python(code: str, *args: str, timeout: float, env: dict | None = None) -> str | None:
     """Run ``code`` in a fresh interpreter: ``None`` when it succeeded, else why not, in one line: the last
-    ``STAGE`` line it printed (how far it got), then how it ended (a signal, no answer in ``timeout`` seconds, the
-    end of its error)."""
+    ``STAGE`` line it printed (how far it got), then how it ended (a signal, no answer in ``timeout`` seconds), then
+    the end of its error output (for a crash, faulthandler's error and the innermost frame of its own code)."""
     with subprocess.Popen(
-        [sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        [sys.executable, "-X", "faulthandler", "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, env=env,
     ) as process:
         try:
             stdout, stderr = process.communicate(timeout=timeout)
@@ -119,6 +120,10 @@ def run_python(code: str, *args: str, timeout: float, env: dict | None = None) -
         ended = f"killed by {signal.Signals(-process.returncode).name}"
     stages = [line[6:] for line in stdout.splitlines() if line.startswith("STAGE ")]
     errors = [line.strip() for line in stderr.strip().splitlines() if line.strip()]
+    fatal = [i for i, line in enumerate(errors) if line.startswith("Fatal Python error")]
+    if fatal:  # faulthandler: the error, then the innermost frame (printed first) not in importlib
+        frames = [line for line in errors[fatal[-1] :] if line.startswith("File ") and "<frozen" not in line]
+        errors = [errors[fatal[-1]], *frames[:1]]
     why = [f"after '{stages[-1]}'" if stages else "before its first stage", ended or ""] + errors[-2:]
     return "; ".join(part for part in why if part) or f"exit status {process.returncode}"
 

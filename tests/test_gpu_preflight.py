@@ -8,6 +8,7 @@ glvnd would find none; the commit named without ``.git``.
 from __future__ import annotations
 
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -70,7 +71,9 @@ def test_a_crash_after_the_render_is_a_verdict_naming_the_signal(tmp_path):
     )
     verdicts, _, _ = preflight(tmp_path, code)
     assert verdicts["RENDER_OK"] == "0"
-    assert verdicts["RENDER_WHY"].startswith("after 'built a DrQv2'; killed by SIGSEGV"), verdicts["RENDER_WHY"]
+    why = verdicts["RENDER_WHY"]
+    assert why.startswith("after 'built a DrQv2'; killed by SIGSEGV; Fatal Python error: Segmentation fault"), why
+    assert 'File "<string>", line 4' in why  # faulthandler's innermost frame: the line that crashed
 
 
 def test_a_render_that_hangs_is_a_verdict_within_its_timeout(tmp_path):
@@ -157,3 +160,25 @@ def test_the_commit_is_named_without_git(tmp_path):
         f"abc1234, dirty: uncommitted changes when gpu_prepare.sh ran ({wheels}/COMMIT, from gpu_prepare.sh)\n"
     )
     assert gpu_sh(f"commit {wheels}", cwd=tmp_path, SB3_COLLAPSE_COMMIT="f00ba47") == "f00ba47 (SB3_COLLAPSE_COMMIT)\n"
+
+
+def test_bounded_ends_the_step_and_what_it_left_running(tmp_path):
+    """A worker that ignores SIGINT and outlives its parent would hold the step's pipe (and its tee) open."""
+    pid_file = tmp_path / "worker.pid"
+    step = (
+        "import signal, subprocess, sys\n"
+        "worker = subprocess.Popen(['bash', '-c', 'trap \"\" INT; sleep 120; echo late'])\n"
+        f"open({str(pid_file)!r}, 'w').write(str(worker.pid))\n"
+        "print('started', flush=True)\n"
+        "signal.sigwait([signal.SIGINT])\n"  # the step's own process ends at the SIGINT, leaving its worker
+    )
+    start = time.perf_counter()
+    printed = gpu_sh(f"bounded 3 2 {sys.executable} -c {shlex.quote(step)} | cat; echo \"status ${{PIPESTATUS[0]}}\"")
+    assert time.perf_counter() - start < 60  # not the worker's 120 s
+    assert printed.startswith("started\n") and "late" not in printed
+    assert printed.endswith("status 0\n") or printed.endswith("status 124\n"), printed
+    status = Path(f"/proc/{pid_file.read_text()}/status")
+    deadline = time.time() + 10
+    while status.exists() and "State:\tZ" not in status.read_text() and time.time() < deadline:
+        time.sleep(0.1)
+    assert not status.exists() or "State:\tZ" in status.read_text()  # gone, or dead and not yet reaped
