@@ -106,7 +106,7 @@ def run_python(code: str, *args: str, timeout: float, env: dict | None = None) -
     with subprocess.Popen(
         [sys.executable, "-X", "faulthandler", "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True, env=env,
-    ) as process:
+    ) as process:  # fmt: skip
         try:
             stdout, stderr = process.communicate(timeout=timeout)
             ended = None
@@ -141,7 +141,7 @@ def main() -> int:
     parser.add_argument(
         "--checks", nargs="+", choices=["CORE", "RENDER", "COMPILE"], default=["CORE", "RENDER", "COMPILE"],
         help="the subprocess checks to run (default: all three)",
-    )
+    )  # fmt: skip
     args = parser.parse_args()
     start = time.perf_counter()
     out = open(args.out, "a")  # noqa: SIM115 (appended to line by line, closed at the end)
@@ -201,8 +201,10 @@ def main() -> int:
         "RENDER": (render, f"a walker-walk frame (MUJOCO_GL={gl}), then a DrQv2 trained on {args.device}"),
         "COMPILE": (
             lambda: (device_error or run_python(COMPILE, args.device, timeout=args.timeout), ""),
-            f"torch.compile of a Linear forward and backward on {args.device}{' (Triton)' if cuda else ''}, "
-            "after configure_backends()",
+            (
+                f"torch.compile of a Linear forward and backward on {args.device}{' (Triton)' if cuda else ''}, "
+                "after configure_backends()"
+            ),
         ),
     }
     with ThreadPoolExecutor(len(args.checks)) as pool:

@@ -173,10 +173,10 @@ def test_bounded_ends_the_step_and_what_it_left_running(tmp_path):
         "signal.sigwait([signal.SIGINT])\n"  # the step's own process ends at the SIGINT, leaving its worker
     )
     start = time.perf_counter()
-    printed = gpu_sh(f"bounded 3 2 {sys.executable} -c {shlex.quote(step)} | cat; echo \"status ${{PIPESTATUS[0]}}\"")
+    printed = gpu_sh(f'bounded 3 2 {sys.executable} -c {shlex.quote(step)} | cat; echo "status ${{PIPESTATUS[0]}}"')
     assert time.perf_counter() - start < 60  # not the worker's 120 s
     assert printed.startswith("started\n") and "late" not in printed
-    assert printed.endswith("status 0\n") or printed.endswith("status 124\n"), printed
+    assert printed.endswith(("status 0\n", "status 124\n")), printed
     status = Path(f"/proc/{pid_file.read_text()}/status")
     deadline = time.time() + 10
     while status.exists() and "State:\tZ" not in status.read_text() and time.time() < deadline:
