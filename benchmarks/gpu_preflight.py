@@ -51,7 +51,13 @@ from sb3_collapse import DrQv2, make_dmc_env
 env = make_dmc_env("walker-walk", seed=0, size=32)
 obs, _ = env.reset(seed=0)
 assert obs.shape == (9, 32, 32) and obs.std() > 0, "a blank frame"
-print("STAGE rendered one walker-walk frame", flush=True)
+try:
+    from OpenGL import GL
+    with env.physics.contexts.gl.make_current() as context:
+        renderer = context.call(GL.glGetString, GL.GL_RENDERER).decode()
+except Exception as error:
+    renderer = f"not read ({type(error).__name__})"
+print(f"STAGE rendered one walker-walk frame (OpenGL renderer: {renderer})", flush=True)
 model = DrQv2("CnnPolicy", env, buffer_size=100, learning_starts=8, batch_size=8, seed=0, device=sys.argv[1],
               policy_kwargs=dict(hidden_dim=32, feature_dim=16, encoder_kwargs=dict(channels=8)))
 print("STAGE built a DrQv2 (Adam: torch._dynamo, triton)", flush=True)
@@ -99,10 +105,13 @@ def version(distribution: str, module: str | None = None) -> str:
     return f"present, no version ({spec.origin})" if spec else "MISSING"
 
 
-def run_python(code: str, *args: str, timeout: float, env: dict | None = None) -> str | None:
+def run_python(
+    code: str, *args: str, timeout: float, env: dict | None = None, stages: list[str] | None = None
+) -> str | None:
     """Run ``code`` in a fresh interpreter: ``None`` when it succeeded, else why not, in one line: the last
     ``STAGE`` line it printed (how far it got), then how it ended (a signal, no answer in ``timeout`` seconds), then
-    the end of its error output (for a crash, faulthandler's error and the innermost frame of its own code)."""
+    the end of its error output (for a crash, faulthandler's error and the innermost frame of its own code).
+    ``stages``, when given, receives the text of its ``STAGE`` lines."""
     with subprocess.Popen(
         [sys.executable, "-X", "faulthandler", "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True, env=env,
@@ -114,17 +123,19 @@ def run_python(code: str, *args: str, timeout: float, env: dict | None = None) -
             process.kill()
             stdout, stderr = process.communicate()
             ended = f"no answer in {timeout:.0f} s (killed)"
+    printed = [line[6:] for line in stdout.splitlines() if line.startswith("STAGE ")]
+    if stages is not None:
+        stages.extend(printed)
     if ended is None and process.returncode == 0:
         return None
     if ended is None and process.returncode < 0:
         ended = f"killed by {signal.Signals(-process.returncode).name}"
-    stages = [line[6:] for line in stdout.splitlines() if line.startswith("STAGE ")]
     errors = [line.strip() for line in stderr.strip().splitlines() if line.strip()]
     fatal = [i for i, line in enumerate(errors) if line.startswith("Fatal Python error")]
     if fatal:  # faulthandler: the error, then the innermost frame (printed first) not in importlib
         frames = [line for line in errors[fatal[-1] :] if line.startswith("File ") and "<frozen" not in line]
         errors = [errors[fatal[-1]], *frames[:1]]
-    why = [f"after '{stages[-1]}'" if stages else "before its first stage", ended or ""] + errors[-2:]
+    why = [f"after '{printed[-1]}'" if printed else "before its first stage", ended or ""] + errors[-2:]
     return "; ".join(part for part in why if part) or f"exit status {process.returncode}"
 
 
@@ -180,14 +191,25 @@ def main() -> int:
     log(f"C compiler: {compiler or 'none'}; Python headers: {headers if os.path.exists(headers) else 'none'}")
 
     def render() -> tuple[str | None, str]:
-        error = run_python(args.render_code, args.device, timeout=args.timeout)
+        stages: list[str] = []
+        error = run_python(args.render_code, args.device, timeout=args.timeout, stages=stages)
+        log(f"render and train: {', '.join(stages) or 'no stage reached'}")
         vendor = os.environ.get("__EGL_VENDOR_LIBRARY_FILENAMES")
-        if error and os.path.exists(NVIDIA_EGL_VENDOR) and vendor != NVIDIA_EGL_VENDOR:
-            log(f"render and train: {error}; again with __EGL_VENDOR_LIBRARY_FILENAMES={NVIDIA_EGL_VENDOR}")
+        # Software rendering (Mesa) on a GPU machine: the frames/s would be the CPU's. A hang is not retried.
+        software = "cuda" in args.device and any("llvmpipe" in stage or "softpipe" in stage for stage in stages)
+        retry_vendor = os.path.exists(NVIDIA_EGL_VENDOR) and vendor != NVIDIA_EGL_VENDOR
+        if (software or (error and "no answer in" not in error)) and retry_vendor:
+            log(f"  again with __EGL_VENDOR_LIBRARY_FILENAMES={NVIDIA_EGL_VENDOR}")
             env = dict(os.environ, __EGL_VENDOR_LIBRARY_FILENAMES=NVIDIA_EGL_VENDOR)
-            if (retry := run_python(args.render_code, args.device, timeout=args.timeout, env=env)) is None:
+            stages = []
+            retry = run_python(args.render_code, args.device, timeout=args.timeout, env=env, stages=stages)
+            log(f"render and train with the NVIDIA vendor file: {', '.join(stages) or 'no stage reached'}")
+            if retry is None:
                 return None, f"__EGL_VENDOR_LIBRARY_FILENAMES={NVIDIA_EGL_VENDOR}"
-            error = f"{error}; with the NVIDIA vendor file: {retry}"
+            if error:
+                error = f"{error}; with the NVIDIA vendor file: {retry}"
+        if software and not error:
+            log("  rendering on the CPU (Mesa): the steps' frames/s include software rendering")
         if error:
             vendors = [path for folder in EGL_VENDOR_FOLDERS for path in glob.glob(os.path.join(folder, "*.json"))]
             log(f"  EGL vendor files: {', '.join(vendors) or 'none'}; NVIDIA_DRIVER_CAPABILITIES="
