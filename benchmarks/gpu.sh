@@ -38,7 +38,9 @@ too_late() { echo "SKIPPED: $((BUDGET - 10 - $(elapsed))) s left of the ${BUDGET
 skip() { echo "SKIPPED: $1"; }
 # bounded SECONDS KILL_AFTER COMMAND...: COMMAND under timeout (SIGINT at SECONDS, so that it prints what it has;
 # SIGKILL KILL_AFTER later), then SIGKILL to whatever it left running in timeout's process group (a worker that
-# outlived its parent would hold the step's pipe open, and its tee with it, and take the next step's CPU or GPU).
+# outlived its parent would hold the step's pipe open, and its tee with it, and take the next step's CPU or GPU);
+# then the empty libraries that a compilation killed mid-way leaves in torch's inductor cache are removed (a later
+# step that compiles the same code would load one and fail: "file too short").
 bounded() {
     local seconds=$1 kill_after=$2 group status
     shift 2
@@ -48,6 +50,7 @@ bounded() {
     status=$?
     kill -KILL -- "-$(cat "$group")" 2>/dev/null
     rm -f "$group"
+    [[ -d ${TORCHINDUCTOR_CACHE_DIR:-} ]] && find "$TORCHINDUCTOR_CACHE_DIR" -name "*.so" -empty -delete
     return $status
 }
 # read_preflight FILE: the preflight's verdicts, each with a default for the ones it did not write (it was killed or
@@ -109,6 +112,8 @@ if ((REHEARSE)); then
     WHEELS=${REHEARSAL_WHEELS:-/tmp/sb3-collapse-rehearsal/wheels-$("$PY" -c 'import sys; print("cp%d%d" % sys.version_info[:2])')}
     SITE=${REHEARSAL_SITE:-/tmp/sb3-collapse-rehearsal/site-$("$PY" -c 'import sys; print("cp%d%d" % sys.version_info[:2])')}
     export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1}
+    # Its own inductor cache, kept between rehearsals (others' compilations on this machine stay out of it).
+    export TORCHINDUCTOR_CACHE_DIR=${TORCHINDUCTOR_CACHE_DIR:-/tmp/sb3-collapse-rehearsal/inductor}
 else
     OUT=${OUT:-benchmarks/gpu-results}
     PY=${PYTHON:-python3}
@@ -116,6 +121,7 @@ else
     DEVICE=cuda
     WHEELS=.whl
     SITE=/tmp/site
+    export TORCHINDUCTOR_CACHE_DIR=${TORCHINDUCTOR_CACHE_DIR:-/tmp/torchinductor_$(id -un)}  # torch's default, named
 fi
 mkdir -p "$OUT"
 rm -f "$OUT"/{machine.txt,gpu.log,cuda_tests.log,update_speed.txt,checks.txt,throughput.txt,throughput.csv,concurrent.csv}

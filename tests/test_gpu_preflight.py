@@ -88,6 +88,8 @@ def test_the_render_check_renders_then_trains_a_drqv2_in_one_process(tmp_path):
     verdicts, machine, _ = preflight(tmp_path, None, timeout=240)
     assert verdicts["RENDER_OK"] == "1", verdicts["RENDER_WHY"]
     assert "then a DrQv2 trained on cpu: ok" in machine
+    assert "render and train: rendered one walker-walk frame (OpenGL renderer: " in machine  # Mesa's, here
+    assert "built a DrQv2 (Adam: torch._dynamo, triton), trained " in machine
 
 
 def test_verdicts_written_before_the_preflight_is_killed_survive_it(tmp_path):
@@ -163,7 +165,8 @@ def test_the_commit_is_named_without_git(tmp_path):
 
 
 def test_bounded_ends_the_step_and_what_it_left_running(tmp_path):
-    """A worker that ignores SIGINT and outlives its parent would hold the step's pipe (and its tee) open."""
+    """A worker that ignores SIGINT and outlives its parent would hold the step's pipe (and its tee) open; an empty
+    library in the inductor cache would fail the next compilation of the same code."""
     pid_file = tmp_path / "worker.pid"
     step = (
         "import signal, subprocess, sys\n"
@@ -172,8 +175,15 @@ def test_bounded_ends_the_step_and_what_it_left_running(tmp_path):
         "print('started', flush=True)\n"
         "signal.sigwait([signal.SIGINT])\n"  # the step's own process ends at the SIGINT, leaving its worker
     )
+    cache = tmp_path / "inductor"  # a compilation killed mid-way leaves an empty library; a whole one stays
+    (cache / "ab").mkdir(parents=True)
+    (cache / "ab" / "killed.main.so").write_bytes(b"")
+    (cache / "ab" / "whole.main.so").write_bytes(b"\x7fELF")
     start = time.perf_counter()
-    printed = gpu_sh(f'bounded 3 2 {sys.executable} -c {shlex.quote(step)} | cat; echo "status ${{PIPESTATUS[0]}}"')
+    printed = gpu_sh(
+        f'bounded 3 2 {sys.executable} -c {shlex.quote(step)} | cat; echo "status ${{PIPESTATUS[0]}}"',
+        TORCHINDUCTOR_CACHE_DIR=str(cache),
+    )
     assert time.perf_counter() - start < 60  # not the worker's 120 s
     assert printed.startswith("started\n") and "late" not in printed
     assert printed.endswith(("status 0\n", "status 124\n")), printed
@@ -182,3 +192,4 @@ def test_bounded_ends_the_step_and_what_it_left_running(tmp_path):
     while status.exists() and "State:\tZ" not in status.read_text() and time.time() < deadline:
         time.sleep(0.1)
     assert not status.exists() or "State:\tZ" in status.read_text()  # gone, or dead and not yet reaped
+    assert sorted(path.name for path in cache.rglob("*.so")) == ["whole.main.so"]
