@@ -5,7 +5,8 @@
 #
 #   bash benchmarks/gpu_prepare.sh      # writes .whl/ (wheels for Python 3.12, x86_64) and .gl/ (EGL's Debian packages)
 #
-# Both folders are git-ignored; carry them to the GPU machine (64 MiB in all), where gpu.sh installs them. dm_control is
+# Both folders are git-ignored; carry them to the GPU machine (64 MiB in all), where gpu.sh installs them; .whl/COMMIT
+# names the commit they were made at (the copy there has no .git). benchmarks/gpu.md gives the sequence. dm_control is
 # carried without its locomotion package and the dog's assets (the suite's other tasks need neither), to fit.
 # WHEELS (default .whl) and PY_VERSION (default 3.12) choose the folder and the Python version of the wheels; --no-gl
 # leaves .gl/ out. `gpu.sh --rehearse` uses them to make the same wheels for this machine's Python.
@@ -30,6 +31,11 @@ rm -rf "$work"/dm_control/locomotion "$work"/dm_control/suite/dog_assets "$WHEEL
 (cd "$work" && "$PYTHON" -m zipfile -c dm_control.zip dm_control)
 mv "$work/dm_control.zip" "$WHEELS/dm_control.zip"
 rm -rf "$work"
+# The commit the carried copy is of (it travels without .git): gpu.sh writes it into machine.txt.
+if git rev-parse --short HEAD >/dev/null 2>&1; then
+    echo "$(git rev-parse --short HEAD)$([[ -n $(git status --porcelain --untracked-files=no) ]] && echo \
+        ', dirty: uncommitted changes when gpu_prepare.sh ran')" >"$WHEELS/COMMIT"
+fi
 
 if [[ ${1:-} != --no-gl ]] && command -v apt-get >/dev/null; then
     mkdir -p .gl /tmp/amd64/partial

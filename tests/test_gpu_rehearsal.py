@@ -39,7 +39,9 @@ def test_the_import_guard_refuses_what_the_gpu_machine_lacks_and_nothing_else(tm
 def test_the_rehearsal_installs_the_carried_wheels_and_imports_only_what_the_gpu_machine_has(tmp_path):
     """
     The wheels come from ``gpu_prepare.sh`` for this Python (kept in /tmp/sb3-collapse-rehearsal/wheels-cpXY between
-    runs), so the first run needs PyPI: without network the test is skipped, saying so.
+    runs), so the first run needs PyPI: without network the test is skipped, saying so. ``PYTHON`` is the test's own
+    interpreter: the whole rehearsal's (Python 3.12, torch 2.11, numpy 2.5: ``benchmarks/rehearsal/venv.sh``) takes
+    5 GB and minutes to make once.
     """
     env = dict(os.environ, PYTHON=sys.executable, OUT=str(tmp_path / "out"), REHEARSAL_SITE=str(tmp_path / "site"))
     done = subprocess.run(
