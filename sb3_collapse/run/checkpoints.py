@@ -478,8 +478,15 @@ class ResumableCheckpoints(FrameScheduleCallback):
         if self.stop_signal:
             raise TrainingInterrupted(self.last_checkpoint, self.stop_signal)  # type: ignore[arg-type]
 
-    def save(self) -> Path:
-        """Write a checkpoint now (between two rounds of ``learn()``); return its folder."""
+    def capture(self) -> dict[str, Any]:
+        """:return: the run's state now (:func:`capture_state`), for a :meth:`save` after a step that changes it but
+        is given up (the evaluation of the final model, stopped by a signal)"""
+        extra = self.extra_state() if self.extra_state is not None else None
+        return capture_state(self.model, self.callbacks, self.eval_env, self.csv_files, extra)
+
+    def save(self, state: dict[str, Any] | None = None) -> Path:
+        """Write a checkpoint now (between two rounds of ``learn()``, or after it), of the run's state ``state`` (of
+        :meth:`capture`; ``None``: now); return its folder."""
         name = CHECKPOINT_FOLDER.format(step=self.model.num_timesteps)
         if self.last_checkpoint is not None and self.last_checkpoint.name == name:
             return self.last_checkpoint  # taken at this step already (a signal right after a scheduled checkpoint)
@@ -488,8 +495,7 @@ class ResumableCheckpoints(FrameScheduleCallback):
             raise DivergenceError(
                 f"training diverged: a weight is not finite at frame {self.frames:,}; no checkpoint was written."
             )
-        extra = self.extra_state() if self.extra_state is not None else None
-        state = capture_state(self.model, self.callbacks, self.eval_env, self.csv_files, extra)
+        state = self.capture() if state is None else state
         self.last_checkpoint = save_checkpoint(self.model, self.directory, self.store, state, keep=self.keep)
         if self.verbose >= 1:
             took = time.perf_counter() - start
