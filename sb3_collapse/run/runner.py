@@ -36,6 +36,7 @@ from sb3_collapse.errors import (
     CheckpointError,
     DivergenceError,
     InputError,
+    NonFiniteDataError,
     OutputError,
     TrainingInterrupted,
     unwritable_message,
@@ -148,6 +149,7 @@ def train(config: TrainConfig) -> TrainResult:
         another process trains into the folder
     :raises TrainingInterrupted: after a SIGTERM or SIGINT, once the checkpoint is written
     :raises OutputError: when an output cannot be written (a full disk): the previous checkpoint is intact
+    :raises NonFiniteDataError: when the environment returns a reward or an observation that is not finite
     """
     start_time = time.time()
     config = config.resolve()
@@ -415,8 +417,8 @@ def _learn(
     resumed: bool,
 ) -> None:
     """``model.learn`` up to the run's agent steps (the learn timer last in ``callbacks``), inside ``stop_signals``:
-    SIGINT/SIGTERM stop it with a checkpoint; :raises DivergenceError:, :raises OutputError: (an unwritable run
-    folder) naming the checkpoint."""
+    SIGINT/SIGTERM stop it with a checkpoint; :raises DivergenceError:, :raises NonFiniteDataError: (an env's),
+    :raises OutputError: (an unwritable run folder) naming the checkpoint."""
     try:
         model.learn(
             config.agent_steps - model.num_timesteps,
@@ -429,6 +431,13 @@ def _learn(
         kept = checkpoints.last_checkpoint
         where = f"its last checkpoint, {kept}, holds the weights before it" if kept else "no checkpoint was written"
         raise DivergenceError(f"{error} The run stops; {where}. Try a smaller --lr in another run folder.") from None
+    except NonFiniteDataError as error:  # from an environment, refused before it was stored
+        kept = checkpoints.last_checkpoint
+        where = f"its last checkpoint, {kept}, holds none of it" if kept else "no checkpoint was written"
+        raise NonFiniteDataError(
+            f"{config.env} at agent step {model.num_timesteps:,} (frame {frames_of(model):,}): {error} The run stops; "
+            f"{where}. A rerun meets it again: fix the environment, or train another --seed in another run folder."
+        ) from None
     except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
         if unwritable_message(error) is None:
             raise
