@@ -63,7 +63,8 @@ class DivergenceError(FloatingPointError):
 
 class NonFiniteDataError(ValueError):
     """A reward or an observation that is not finite, from an environment (refused before it is stored) or read back
-    from a replay checkpoint: bad data, not a divergence of the training; the message names where it came from."""
+    from a replay checkpoint, or a simulator that could not step (MuJoCo's ``PhysicsError``): bad data, not a
+    divergence of the training; the message names where it came from."""
 
 
 class TrainingInterrupted(Exception):

@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_collapse import DrQv2
+from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.errors import NonFiniteDataError
+from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.protocol import CHECKPOINTS_DIR, RESULT_JSON
 from sb3_collapse.run import runner
 from sb3_collapse.run.checkpoints import checkpoint_folders
@@ -164,11 +165,57 @@ def test_a_replay_chunk_holding_a_nan_with_a_matching_crc_is_named_and_the_run_r
     assert result["frames"] == 800 and result["resumes"] == 0
 
 
-def _nan_weights_zip(path: Path) -> Path:
-    """A tiny DrQv2 zip whose actor's first MLP weight holds a NaN."""
-    env = RandomObservationEnv(gym.spaces.Box(0, 255, (9, 36, 36), np.uint8), action_space=gym.spaces.Box(-1, 1, (1,)))
+def _nan_weights_zip(path: Path, task: str = "walker-walk", **pixels) -> Path:
+    """A DrQv2 zip of ``task`` whose actor's first MLP weight holds a NaN (as a diverged run's would)."""
+    env = make_dmc_env(task, seed=0, **pixels)
     model = DrQv2("CnnPolicy", env, buffer_size=10, seed=0, policy_kwargs=dict(hidden_dim=16, feature_dim=8))
     with th.no_grad():
         model.actor.mlp1[0].weight[0, 0] = math.nan
     model.save(path)
+    env.close()
     return path
+
+
+@pytest.mark.parametrize("command", [[], ["record"], ["film"]])
+def test_probe_refuses_a_model_with_non_finite_weights_in_one_line(tmp_path, capsys, command):
+    model = _nan_weights_zip(tmp_path / "diverged.zip", action_repeat=8, size=32)
+    out = tmp_path / ("out.npz" if command == ["record"] else "out")
+    status = probe_main([*command, str(model), "--out", str(out), "--no-progress"])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(error) == 1, error
+    assert error[0] == (
+        f"error: {model} holds weights that are not finite: 'actor.mlp1.0.weight' has 1 NaN or infinite value(s) of "
+        "{:,} (a diverged model); give a checkpoint saved before it diverged.".format(
+            DrQv2.load(model).actor.mlp1[0].weight.numel()
+        )
+    )
+    assert not out.exists()
+
+
+def test_a_physics_error_from_a_non_finite_action_is_one_line(tmp_path, monkeypatch, capsys):
+    """The weights check off, the NaN action reaches MuJoCo while rollouts are recorded: one line, exit status 1,
+    no file."""
+    from sb3_collapse.probe import checkpoints
+
+    model = _nan_weights_zip(tmp_path / "diverged.zip", action_repeat=8, size=32)
+    monkeypatch.setattr(checkpoints, "check_finite_weights", lambda *args: None)
+    out = tmp_path / "rollouts.npz"
+    assert probe_main(["record", str(model), "--episodes", "3", "--out", str(out), "--no-progress"]) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith(
+        "error: MuJoCo could not step frame 1 of the episode with the action"
+    )
+    assert "the action is not finite (a diverged policy?) (PhysicsError: Physics state is invalid." in error[0]
+    assert not out.exists()
+
+
+def test_train_refuses_to_transplant_non_finite_weights_before_writing_anything(tmp_path, capsys):
+    source = _nan_weights_zip(tmp_path / "diverged.zip", "cartpole-balance", action_repeat=20, size=36)
+    run_dir = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_info:
+        main([*_flags(run_dir), "--init-mlp", str(source)])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2
+    assert error[-1].startswith(f"python -m sb3_collapse.train: error: --init-mlp = '{source}' holds weights that are ")
+    assert "'actor.mlp1.0.weight' has 1 NaN or infinite value(s)" in error[-1]
+    assert not run_dir.exists()

@@ -26,7 +26,7 @@ from stable_baselines3.common.save_util import load_from_zip_file, recursive_set
 
 from sb3_collapse import __version__
 from sb3_collapse.common.saved_callbacks import callback_states, load_callback_states
-from sb3_collapse.drqv2.divergence import all_finite
+from sb3_collapse.drqv2.divergence import all_finite, first_non_finite
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.envs.replay import episode_records, replay_episodes
@@ -286,9 +286,12 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
 
 def restore_model(model: BaseAlgorithm, path: str | os.PathLike) -> None:
     """Put the zip of SB3's ``save`` at ``path`` back into ``model`` (built with the same settings) as
-    ``BaseAlgorithm.load`` does, without a new model and replay buffer; :raises CheckpointError: for other spaces."""
+    ``BaseAlgorithm.load`` does, without a new model and replay buffer; :raises CheckpointError: for other spaces,
+    (damaged) for weights that are not finite."""
     data, params, variables = load_from_zip_file(path, device=model.device, print_system_info=False)
     assert data is not None and params is not None
+    if (name := first_non_finite(params["policy"])) is not None:  # never written so (save refuses): damaged
+        raise CheckpointError(f"{CHECKPOINT_MODEL}'s weight {name!r} is not finite", damaged=True)
     for name in ("observation_space", "action_space"):
         saved, current = data[name], getattr(model, name)
         if getattr(saved, "shape", None) != getattr(current, "shape", None):
