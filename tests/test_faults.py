@@ -595,3 +595,55 @@ def test_a_stop_after_learn_finishes_or_exits_75_and_the_rerun_ends_as_an_uninte
         rerun = capsys.readouterr().out
         assert "Resuming" in rerun and "Checkpoint at frame" not in rerun  # nothing trained again
     _same_end(run_dir, uninterrupted_run)
+
+
+def test_full_disk_while_writing_a_replay_chunk_is_one_line_with_one_remedy(tmp_path, monkeypatch, capsys):
+    from sb3_collapse.run import replay_checkpoint
+
+    run_dir, original, writes = tmp_path / "run", replay_checkpoint._write, []
+
+    def full_disk(file, data):
+        writes.append(1)
+        if checkpoint_folders(run_dir / CHECKPOINTS_DIR):  # the first checkpoint fits
+            raise OSError(errno.ENOSPC, "No space left on device")
+        original(file, data)
+
+    monkeypatch.setattr(replay_checkpoint, "_write", full_disk)
+    assert main(_flags(run_dir)) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1, error
+    assert error[0].startswith(f"error: could not write a checkpoint into {run_dir / CHECKPOINTS_DIR} (No space left ")
+    assert "bytes of replay chunks to write; none kept" in error[0]
+    assert error[0].endswith(
+        "the previous checkpoint step_000000000010 is intact. Free space (or fix the folder), then run the same "
+        "command again to resume."
+    )
+    assert error[0].lower().count("free space") == 1 and error[0].count("resume") == 1
+    monkeypatch.undo()
+    assert main(_flags(run_dir)) == 0
+    assert "from its checkpoint at frame 200 (step_000000000010)" in capsys.readouterr().out
+
+
+def test_a_fallback_to_an_older_checkpoint_announces_only_the_frame_it_resumes_from(tmp_path, monkeypatch, capsys):
+    """The newest checkpoint's own replay chunk has a byte changed: found as it is read (its CRC-32), after the
+    checkpoint was chosen. The run says it resumes from the one before, at its frame, and never names the newer
+    one's frame as where it resumes."""
+    run_dir = tmp_path / "run"
+    _unfinished_run(run_dir, monkeypatch, capsys)
+    newest, older = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
+    chunks = [
+        {chunk["file"] for chunk in json.loads((folder / "checkpoint.json").read_text())["replay"]["store"]["chunks"]}
+        for folder in (newest, older)
+    ]
+    (own,) = chunks[0] - chunks[1]
+    chunk = run_dir / CHECKPOINTS_DIR / "replay" / own
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    assert main(_flags(run_dir)) == 0
+    out = capsys.readouterr().out.splitlines()
+    resuming = [line for line in out if line.startswith("Resuming")]
+    assert resuming == [f"Resuming {run_dir} from its checkpoint at frame 400 ({older.name})."]
+    assert not [line for line in out[: out.index(resuming[0])] if "600" in line]  # (the resumed run writes one at 600)
+    assert any(line.startswith(f"Note: checkpoint {newest} is damaged (") for line in out)
+    assert json.loads((run_dir / RESULT_JSON).read_text())["frames"] == 800

@@ -149,12 +149,10 @@ class ReplayStore:
             for chunk in written:
                 (self.directory / chunk["file"]).unlink(missing_ok=True)
             needed = sum(_plan_bytes(plan, _row_bytes(buffer)) for plan in plans)
-            raise OSError(
+            raise OSError(  # the cause only: the caller says what to do (save_checkpoint: once, in its own words)
                 error.errno,
-                f"Could not write the replay buffer checkpoint in {self.directory}: "
-                f"{error.strerror or error} ({needed:,} bytes to write). Nothing of this checkpoint was kept and every "
-                f"earlier one is intact; free space in {self.directory} (or move the run) and resume from the last "
-                "checkpoint.",
+                f"{error.strerror or error} ({needed:,} bytes of replay chunks to write; none kept, the earlier ones "
+                "intact)",
                 str(self.directory),
             ) from error
         return written

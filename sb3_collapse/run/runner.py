@@ -339,7 +339,8 @@ def _train_into(
     checkpoints.init_callback(model)
     with stop_signals(checkpoints) as stops:  # from the resume (it may read GBs of replay) to the result file
         if checkpoint is not None:
-            checkpoint, notes = checkpoints.resume(checkpoint)
+            checkpoint, notes = checkpoints.resume(checkpoint)  # an older one when the newer's replay is damaged
+            print(f"Resuming {run_dir} from its checkpoint at frame {checkpoint.frames:,} ({checkpoint.folder.name}).")
             for note in notes:
                 print(f"Note: {note}")
             earlier = {**checkpoint.state["extra"], "resumes": checkpoint.state["extra"]["resumes"] + 1}
