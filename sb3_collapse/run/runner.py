@@ -65,7 +65,7 @@ from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
 from sb3_collapse.run.folder import check_run_folder, new_run_dir, open_run_dir
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.resumed_logger import resumed_logger
-from sb3_collapse.run.signals import StopRequested, StopSignals, stop_signals
+from sb3_collapse.run.signals import StopSignals, stop_signals
 from sb3_collapse.run.snapshots import Snapshots
 from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
 
@@ -400,8 +400,10 @@ def _evaluate_saved_model(
     try:
         with stops.abortable("stopping the evaluation of the final model, writing a checkpoint, then stopping"):
             return evaluation.evaluate_saved_model()
-    except StopRequested as stop:
-        raise TrainingInterrupted(checkpoints.save(state), checkpoints.stop_signal or stop.signal_name) from None
+    except KeyboardInterrupt:  # raised by the stop handler (abortable), which asked the checkpoints to stop
+        if checkpoints.stop_signal is None:
+            raise
+        raise TrainingInterrupted(checkpoints.save(state), checkpoints.stop_signal) from None
 
 
 def _resumes(checkpoints: ResumableCheckpoints) -> str:

@@ -30,15 +30,6 @@ def clear_training_stop() -> None:
     _stop_requests.clear()
 
 
-class StopRequested(Exception):
-    """Raised by a stop signal inside :meth:`StopSignals.abortable`: the step under way is given up (``signal_name``:
-    ``"SIGTERM"``)."""
-
-    def __init__(self, signal_name: str) -> None:
-        super().__init__(f"stopped by {signal_name}")
-        self.signal_name = signal_name
-
-
 class StopSignals:
     """What :func:`stop_signals` yields: ``doing``, what a stop signal does now, in the line it prints (the run sets
     it as it goes from training to its final outputs), and :meth:`abortable` for a long step a checkpoint replaces."""
@@ -50,12 +41,13 @@ class StopSignals:
 
     @contextlib.contextmanager
     def abortable(self, doing: str) -> Iterator[None]:
-        """While inside, a stop signal raises :class:`StopRequested` at once, as does entering after a stop was asked
-        for (a signal or :func:`request_training_stop`); ``doing``: what the run does then, in the signal's line."""
+        """While inside, a stop signal raises ``KeyboardInterrupt(<its name>)`` at once, as does entering after a stop
+        was asked for (a signal or :func:`request_training_stop`); ``doing``: what the run does then, in the signal's
+        line."""
         self.doing, self.abort = doing, True
         try:
             if self.checkpoints.stop_signal is not None:
-                raise StopRequested(self.checkpoints.stop_signal)
+                raise KeyboardInterrupt(self.checkpoints.stop_signal)
             yield
         finally:
             self.abort = False
@@ -78,7 +70,7 @@ def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[StopSignals]:
         again = " (SIGINT again: stop now)" if signum == signal.SIGINT else ""  # a second SIGTERM changes nothing
         print(f"\n{name}: {stops.doing}{again}.", flush=True)
         if stops.abort:
-            raise StopRequested(name)
+            raise KeyboardInterrupt(name)
 
     _training.append(checkpoints)
     if _stop_requests:
