@@ -589,8 +589,9 @@ def test_a_stop_after_learn_finishes_or_exits_75_and_the_rerun_ends_as_an_uninte
         assert len(error) == 1 and error[0].startswith("Stopped by SIGTERM after the checkpoint ")
         assert "(SIGINT again" not in printed.out  # a second SIGTERM does not stop at once
         assert not (run_dir / RESULT_JSON).exists()
-        kept = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
-        assert kept[0].name == "step_000000000040" if phase != "resume" else kept
+        kept = checkpoint_folders(run_dir / CHECKPOINTS_DIR)[0]  # resumed from step 30: stopped there
+        assert kept.name == ("step_000000000030" if phase == "resume" else "step_000000000040")
+        assert error[0].startswith(f"Stopped by SIGTERM after the checkpoint {kept}: run the same command again")
         assert main(flags) == 0
         rerun = capsys.readouterr().out
         assert "Resuming" in rerun and "Checkpoint at frame" not in rerun  # nothing trained again
@@ -647,3 +648,26 @@ def test_a_fallback_to_an_older_checkpoint_announces_only_the_frame_it_resumes_f
     assert not [line for line in out[: out.index(resuming[0])] if "600" in line]  # (the resumed run writes one at 600)
     assert any(line.startswith(f"Note: checkpoint {newest} is damaged (") for line in out)
     assert json.loads((run_dir / RESULT_JSON).read_text())["frames"] == 800
+
+
+def test_only_a_sigint_offers_to_stop_at_once(capsys):
+    """A SIGTERM's line does not tell a scheduler about SIGINT (a second SIGTERM changes nothing); a SIGINT's does."""
+    import signal
+
+    from sb3_collapse.run.checkpoints import ResumableCheckpoints
+    from sb3_collapse.run.signals import stop_signals
+
+    checkpoints = ResumableCheckpoints("unused", every_frames=0)
+    with stop_signals(checkpoints):
+        signal.raise_signal(signal.SIGTERM)
+        signal.raise_signal(signal.SIGTERM)  # nothing more
+        assert checkpoints.stop_signal == "SIGTERM"
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [line for line in lines if line] == [
+        "SIGTERM: writing a checkpoint at the end of this round, then stopping."
+    ] * 2
+    with stop_signals(ResumableCheckpoints("unused", every_frames=0)):
+        signal.raise_signal(signal.SIGINT)
+    assert capsys.readouterr().out.strip() == (
+        "SIGINT: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now)."
+    )
