@@ -61,6 +61,12 @@ class DivergenceError(FloatingPointError):
     """Training produced a loss or a weight that is not finite; the message names the update and the frame."""
 
 
+class NonFiniteDataError(ValueError):
+    """A reward or an observation that is not finite, from an environment (refused before it is stored) or read back
+    from a replay checkpoint, or a simulator that could not step (MuJoCo's ``PhysicsError``): bad data, not a
+    divergence of the training; the message names where it came from."""
+
+
 class TrainingInterrupted(Exception):
     """``learn()`` stopped at the signal ``signal_name`` (``"SIGTERM"``) after writing the ``checkpoint`` folder."""
 

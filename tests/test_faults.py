@@ -320,8 +320,9 @@ def test_reset_on_an_episode_end_waits_for_a_sampleable_episode_instead_of_faili
     assert updates[100] == updates[150] and model._n_updates > updates[150]  # no update until step 150's episode
 
 
-def _unfinished_run(run_dir: Path, monkeypatch, capsys) -> None:
-    """A tiny run stopped by a full disk at its final save: checkpoints at frames 400 and 600 (it trained 800)."""
+def _unfinished_run(run_dir: Path, monkeypatch, capsys, flags: list[str] | None = None) -> None:
+    """A tiny run (``flags``, default ``_flags``) stopped by a full disk at its final save: checkpoints at frames 400
+    and 600 (it trained 800)."""
     original = DrQv2.save
 
     def full_disk(self, path, *args, **kwargs):
@@ -330,7 +331,7 @@ def _unfinished_run(run_dir: Path, monkeypatch, capsys) -> None:
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
     monkeypatch.setattr(DrQv2, "save", full_disk)
-    assert main(_flags(run_dir)) == 1
+    assert main(flags or _flags(run_dir)) == 1
     monkeypatch.setattr(DrQv2, "save", original)
     capsys.readouterr()
 
@@ -509,3 +510,164 @@ def test_a_run_folder_whose_result_file_is_unreadable_is_refused_in_one_line_wit
     with pytest.raises(ValueError) as refused:
         check_run_folder(TrainConfig(env="cartpole-balance", run_dir=str(run_dir)))
     assert not retryable(refused.value)
+
+
+def _evaluated_flags(run_dir: Path) -> list[str]:
+    """A tiny run with a scheduled evaluation at frame 400 and the evaluation of its final model (one episode)."""
+    flags = _flags(run_dir)
+    flags[flags.index("--eval-every-frames") + 1] = "400"
+    return [*flags, "--eval-episodes", "1"]
+
+
+def _same_end(run_dir: Path, reference: Path) -> None:
+    """``run_dir`` finished as the uninterrupted ``reference``: the same weights, evaluations and CSV rows."""
+    result, expected = (json.loads((folder / RESULT_JSON).read_text()) for folder in (run_dir, reference))
+    for key in ("frames", "agent_steps", "final_eval", "saved_model_eval"):
+        assert result[key] == expected[key], key
+    weights, reference_weights = (
+        load_from_zip_file(folder / FINAL_MODEL)[1]["policy"] for folder in (run_dir, reference)
+    )
+    assert all(th.equal(weights[name], reference_weights[name]) for name in reference_weights)
+    rows, reference_rows = ([row.rsplit(",", 1)[0] for row in (folder / "eval.csv").read_text().splitlines()]
+                            for folder in (run_dir, reference))  # fmt: skip
+    assert rows == reference_rows  # but the wall time
+    assert not (run_dir / CHECKPOINTS_DIR).exists()
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("uninterrupted") / "run"
+    threads = th.get_num_threads()
+    assert main(_evaluated_flags(run_dir)) == 0
+    th.set_num_threads(threads)
+    return run_dir
+
+
+@pytest.mark.parametrize("phase", ["resume", "final save", "evaluation", "result file"])
+def test_a_stop_after_learn_finishes_or_exits_75_and_the_rerun_ends_as_an_uninterrupted_run(
+    tmp_path, monkeypatch, capsys, uninterrupted_run, phase
+):
+    """SIGTERM while the run resumes, saves its final model, evaluates it or writes its result file (each patched to
+    send it to this process): before the result file, a checkpoint at the last step (of the run as it was before the
+    evaluation) and exit status 75 with the usual line; while the result file is written, the run finishes. The same
+    command then ends as the uninterrupted run did, nothing trained twice."""
+    import os
+    import signal
+
+    from sb3_collapse.monitoring.evaluation import PeriodicEvaluation
+    from sb3_collapse.run import runner
+    from sb3_collapse.run.checkpoints import ResumableCheckpoints
+
+    run_dir, flags = tmp_path / "run", _evaluated_flags(tmp_path / "run")
+
+    def sigterm_then(original, when=lambda *args: True):
+        def patched(*args, **kwargs):
+            if when(*args):
+                os.kill(os.getpid(), signal.SIGTERM)
+            return original(*args, **kwargs)
+
+        return patched
+
+    if phase == "resume":
+        _unfinished_run(run_dir, monkeypatch, capsys, flags)
+        monkeypatch.setattr(ResumableCheckpoints, "resume", sigterm_then(ResumableCheckpoints.resume))
+    elif phase == "final save":
+        monkeypatch.setattr(DrQv2, "save", sigterm_then(DrQv2.save, lambda _, path: "final_model" in str(path)))
+    elif phase == "evaluation":
+        patched = sigterm_then(PeriodicEvaluation._run_episodes, lambda _, prefix: prefix == "eval_saved_model")
+        monkeypatch.setattr(PeriodicEvaluation, "_run_episodes", patched)
+    else:
+        monkeypatch.setattr(runner, "write_json_atomically", sigterm_then(runner.write_json_atomically))
+    status = main(flags)
+    printed = capsys.readouterr()
+    monkeypatch.undo()
+    if phase == "result file":
+        assert status == 0 and "SIGTERM: the training and its evaluation are done; finishing" in printed.out
+    else:
+        assert status == 75, printed.err
+        error = printed.err.strip().splitlines()
+        assert len(error) == 1 and error[0].startswith("Stopped by SIGTERM after the checkpoint ")
+        assert "(SIGINT again" not in printed.out  # a second SIGTERM does not stop at once
+        assert not (run_dir / RESULT_JSON).exists()
+        kept = checkpoint_folders(run_dir / CHECKPOINTS_DIR)[0]  # resumed from step 30: stopped there
+        assert kept.name == ("step_000000000030" if phase == "resume" else "step_000000000040")
+        assert error[0].startswith(f"Stopped by SIGTERM after the checkpoint {kept}: run the same command again")
+        assert main(flags) == 0
+        rerun = capsys.readouterr().out
+        assert "Resuming" in rerun and "Checkpoint at frame" not in rerun  # nothing trained again
+    _same_end(run_dir, uninterrupted_run)
+
+
+def test_full_disk_while_writing_a_replay_chunk_is_one_line_with_one_remedy(tmp_path, monkeypatch, capsys):
+    from sb3_collapse.run import replay_checkpoint
+
+    run_dir, original, writes = tmp_path / "run", replay_checkpoint._write, []
+
+    def full_disk(file, data):
+        writes.append(1)
+        if checkpoint_folders(run_dir / CHECKPOINTS_DIR):  # the first checkpoint fits
+            raise OSError(errno.ENOSPC, "No space left on device")
+        original(file, data)
+
+    monkeypatch.setattr(replay_checkpoint, "_write", full_disk)
+    assert main(_flags(run_dir)) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1, error
+    assert error[0].startswith(f"error: could not write a checkpoint into {run_dir / CHECKPOINTS_DIR} (No space left ")
+    assert "bytes of replay chunks to write; none kept" in error[0]
+    assert error[0].endswith(
+        "the previous checkpoint step_000000000010 is intact. Free space (or fix the folder), then run the same "
+        "command again to resume."
+    )
+    assert error[0].lower().count("free space") == 1 and error[0].count("resume") == 1
+    monkeypatch.undo()
+    assert main(_flags(run_dir)) == 0
+    assert "from its checkpoint at frame 200 (step_000000000010)" in capsys.readouterr().out
+
+
+def test_a_fallback_to_an_older_checkpoint_announces_only_the_frame_it_resumes_from(tmp_path, monkeypatch, capsys):
+    """The newest checkpoint's own replay chunk has a byte changed: found as it is read (its CRC-32), after the
+    checkpoint was chosen. The run says it resumes from the one before, at its frame, and never names the newer
+    one's frame as where it resumes."""
+    run_dir = tmp_path / "run"
+    _unfinished_run(run_dir, monkeypatch, capsys)
+    newest, older = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
+    chunks = [
+        {chunk["file"] for chunk in json.loads((folder / "checkpoint.json").read_text())["replay"]["store"]["chunks"]}
+        for folder in (newest, older)
+    ]
+    (own,) = chunks[0] - chunks[1]
+    chunk = run_dir / CHECKPOINTS_DIR / "replay" / own
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    assert main(_flags(run_dir)) == 0
+    out = capsys.readouterr().out.splitlines()
+    resuming = [line for line in out if line.startswith("Resuming")]
+    assert resuming == [f"Resuming {run_dir} from its checkpoint at frame 400 ({older.name})."]
+    assert not [line for line in out[: out.index(resuming[0])] if "600" in line]  # (the resumed run writes one at 600)
+    assert any(line.startswith(f"Note: checkpoint {newest} is damaged (") for line in out)
+    assert json.loads((run_dir / RESULT_JSON).read_text())["frames"] == 800
+
+
+def test_only_a_sigint_offers_to_stop_at_once(capsys):
+    """A SIGTERM's line does not tell a scheduler about SIGINT (a second SIGTERM changes nothing); a SIGINT's does."""
+    import signal
+
+    from sb3_collapse.run.checkpoints import ResumableCheckpoints
+    from sb3_collapse.run.signals import stop_signals
+
+    checkpoints = ResumableCheckpoints("unused", every_frames=0)
+    with stop_signals(checkpoints):
+        signal.raise_signal(signal.SIGTERM)
+        signal.raise_signal(signal.SIGTERM)  # nothing more
+        assert checkpoints.stop_signal == "SIGTERM"
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [line for line in lines if line] == [
+        "SIGTERM: writing a checkpoint at the end of this round, then stopping."
+    ] * 2
+    with stop_signals(ResumableCheckpoints("unused", every_frames=0)):
+        signal.raise_signal(signal.SIGINT)
+    assert capsys.readouterr().out.strip() == (
+        "SIGINT: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now)."
+    )

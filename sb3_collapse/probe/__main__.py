@@ -10,11 +10,11 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
-from sb3_collapse.errors import InputError, cli_message, report_unwritable_outputs
+from sb3_collapse.errors import InputError, NonFiniteDataError, cli_message, report_unwritable_outputs
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
 from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
-from sb3_collapse.probe.probing import ProbeSettings
+from sb3_collapse.probe.probing import ProbeSettings, check_fractions
 from sb3_collapse.protocol import EXIT_INTERRUPTED, SWEEP_PROBE_DIR
 from sb3_collapse.report.figure2 import probe_sweep
 from sb3_collapse.report.film import STRIP_EVERY_FRAMES, film_to_folder
@@ -170,7 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """
     :param argv: the arguments (``sys.argv[1:]`` when ``None``; without a sub-command: ``run``)
-    :return: the exit status: 0, 2 for bad input, 75 when a SIGINT or SIGTERM stopped it (nothing written)
+    :return: the exit status: 0, 1 when the simulator could not step, 2 for bad input, 75 when a SIGINT or SIGTERM
+        stopped it (nothing written)
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -181,13 +182,22 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["run", *argv]
     args = parser.parse_args(argv)
     subparsers = next(action for action in parser._actions if isinstance(action, argparse._SubParsersAction))
-    check_arguments(subparsers.choices[args.command], args, *COMMANDS[args.command])
+    command_parser = subparsers.choices[args.command]
+    if ProbeSettings in COMMANDS[args.command]:  # the split as a whole first: every --split error in the same words
+        try:
+            check_fractions(args.fractions)
+        except InputError as error:
+            command_parser.error(cli_message(error, command_parser))
+    check_arguments(command_parser, args, *COMMANDS[args.command])
     try:
         with stop_signal_handlers(_interrupt):  # the staged outputs are removed on the way out
             _run(args, [parser.prog, *argv])
     except InputError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
+    except NonFiniteDataError as error:  # the simulator could not step (nothing written: the outputs are staged)
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt as stop:
         name, out = stop.args[0] if stop.args else "SIGINT", args.out or "the output folder"
         print(
