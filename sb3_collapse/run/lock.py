@@ -14,10 +14,18 @@ from sb3_collapse.errors import InputError
 from sb3_collapse.protocol import LOCK_FILE
 
 
+class FolderInUse(InputError):
+    """The folder of a :class:`RunLock` is held by another process, ``owner`` (``"pid 1234 on host h since ..."``)."""
+
+    def __init__(self, message: str, owner: str) -> None:
+        super().__init__(message)
+        self.owner = owner
+
+
 class RunLock:
     """An exclusive ``flock`` on the ``lock_file`` of ``run_dir`` (which must exist; released if the process dies),
     holding the owner's pid, host and start time; a process that finds it taken gets a message naming the ``folder``
-    (``"sweep folder"``) and what to do ``instead``."""
+    (``"sweep folder"``) and what to do ``instead`` (a :class:`FolderInUse`)."""
 
     def __init__(
         self,
@@ -44,18 +52,24 @@ class RunLock:
                 file.close()
                 if error.errno not in (errno.EAGAIN, errno.EACCES):
                     raise
-                raise InputError(
+                raise FolderInUse(
                     f"{self.folder} {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or "
-                    f"{self.instead}."
+                    f"{self.instead}.",
+                    owner,
                 ) from None
             with contextlib.suppress(FileNotFoundError):
                 if os.stat(self.path).st_ino == os.fstat(file.fileno()).st_ino:
                     break
             file.close()  # its owner deleted the file we locked: lock the one at the path now
-        file.seek(0)
-        file.truncate()
-        file.write(f"pid {os.getpid()} on host {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
-        file.flush()
+        try:
+            file.seek(0)
+            file.truncate()
+            file.write(f"pid {os.getpid()} on host {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+            file.flush()
+        except OSError as error:  # a full disk: the message names the lock file
+            with contextlib.suppress(OSError):
+                file.close()  # its unwritten line is dropped (the file descriptor is closed all the same)
+            raise OSError(error.errno, error.strerror, str(self.path)) from None
         self._file = file
         return self
 
