@@ -14,18 +14,10 @@ from sb3_collapse.errors import InputError
 from sb3_collapse.protocol import LOCK_FILE
 
 
-class FolderInUse(InputError):
-    """The folder of a :class:`RunLock` is held by another process, ``owner`` (``"pid 1234 on host h since ..."``)."""
-
-    def __init__(self, message: str, owner: str) -> None:
-        super().__init__(message)
-        self.owner = owner
-
-
 class RunLock:
     """An exclusive ``flock`` on the ``lock_file`` of ``run_dir`` (which must exist; released if the process dies),
     holding the owner's pid, host and start time; a process that finds it taken gets a message naming the ``folder``
-    (``"sweep folder"``) and what to do ``instead`` (a :class:`FolderInUse`)."""
+    (``"sweep folder"``) and what to do ``instead``."""
 
     def __init__(
         self,
@@ -52,10 +44,9 @@ class RunLock:
                 file.close()
                 if error.errno not in (errno.EAGAIN, errno.EACCES):
                     raise
-                raise FolderInUse(
+                raise InputError(
                     f"{self.folder} {self.path.parent} is in use by {owner}: wait for it to end (or stop it), or "
-                    f"{self.instead}.",
-                    owner,
+                    f"{self.instead}."
                 ) from None
             with contextlib.suppress(FileNotFoundError):
                 if os.stat(self.path).st_ino == os.fstat(file.fileno()).st_ino:

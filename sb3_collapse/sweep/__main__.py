@@ -327,13 +327,13 @@ def dry_run(
     if plan["trials_pending"]:
         print("\n".join(plan_lines(plan)))
     counts = Counter(status for status, *_ in states.values())
-    left = Counter(reason[0] for _, reason, *_ in states.values() if reason is not None)
+    as_is = Counter(reason[0] for _, reason, *_ in states.values() if reason is not None)
     print(
         f"{len(states)} trials: "
         + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
         + f"; {plan['trials_pending']} would run (frames done: the newest checkpoint of an unfinished trial)"
-        + (f"; {left[IN_USE]} in use by another process (run once it ends)" if left[IN_USE] else "")
-        + "".join(f"; {number} kept as they are ({kind})" for kind, number in left.items() if kind != IN_USE)
+        + (f"; {as_is[IN_USE]} in use by another process (run once it ends)" if as_is[IN_USE] else "")
+        + "".join(f"; {number} kept as they are ({kind})" for kind, number in as_is.items() if kind != IN_USE)
         + "."
     )
     owner = run_folder_owner(out, SWEEP_LOCK)

@@ -37,7 +37,7 @@ from sb3_collapse.protocol import (
 from sb3_collapse.run.checkpoints import CHECKPOINT_FORMAT, checkpoint_folders
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import settings_differences, tidy_finished_run
-from sb3_collapse.run.lock import FolderInUse, RunLock
+from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
 from sb3_collapse.runfolder import (
@@ -221,9 +221,10 @@ def run_trial(
             result = train(config)
     except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
         return {"trial": str(trial), "status": "interrupted", "error": str(error), "checkpoint": str(error.checkpoint)}
-    except FolderInUse as error:  # taken since the check above: left as it is
-        return {"trial": str(trial), "status": IN_USE, "error": error.owner}
     except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary
+        owner = run_folder_owner(folder) if isinstance(error, InputError) else None
+        if owner is not None:  # taken since the check above (train's lock refused it): left as it is
+            return {"trial": str(trial), "status": IN_USE, "error": owner}
         error_line = f"{type(error).__name__}: {error}"
         if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
             error_line = write_error_file(folder, traceback.format_exc(), error_line)

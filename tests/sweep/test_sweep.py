@@ -958,6 +958,7 @@ def test_a_trial_folder_held_by_another_process_is_left_as_it_is(tmp_path, monke
     """A sweep wrote error.txt into a trial folder a live train held, called the trial permanently failed and the
     folder then failed every rerun. Now it is in use: nothing is written into it, the dry run and the summary say so,
     and the same command once the holder ended trains it."""
+    from sb3_collapse.runfolder import run_folder_owner as owner_of
     from sb3_collapse.sweep import runner
     from sb3_collapse.sweep.runner import run_trial
 
@@ -990,7 +991,8 @@ def test_a_trial_folder_held_by_another_process_is_left_as_it_is(tmp_path, monke
         # (its folder would have been deleted).
         assert run_trial(trial, str(out), {"frames": 800}) == {"trial": str(trial), "status": "in use", "error": ANY}
         # Taken between that look and train's lock: train's lock says so, and nothing is written either.
-        monkeypatch.setattr(runner, "run_folder_owner", lambda folder: None)
+        looks = [None]  # the first look misses the holder, the look after train's refusal sees it
+        monkeypatch.setattr(runner, "run_folder_owner", lambda folder: looks.pop() if looks else owner_of(folder))
         monkeypatch.setattr(runner, "settings_differences", lambda saved, config: [])
         outcome = run_trial(trial, str(out), {"frames": 800, "action_repeat": 20, "size": 36}, torch_threads=1)
         assert outcome["status"] == "in use" and outcome["error"].startswith(owner)
