@@ -193,7 +193,7 @@ def check_disk(plan: Mapping[str, Any]) -> str | None:
 
 
 def size_text(nbytes: float | None) -> str:
-    """``nbytes`` for a person: ``"1.50 GB"``, ``"12.3 MB"`` (``"-"`` for ``None``)."""
+    """``nbytes`` for a person: in GB with 2 decimals from 1e9 bytes, else in MB with 1 (``"-"`` for ``None``)."""
     if nbytes is None:
         return "-"
     return f"{nbytes / 1e9:,.2f} GB" if nbytes >= 1e9 else f"{nbytes / 1e6:,.1f} MB"

@@ -308,7 +308,8 @@ def test_a_dict_key_in_a_message_is_not_turned_into_a_flag():
     from sb3_collapse.train import build_parser
 
     error = ParameterError(
-        "policy_kwargs['hidden_dim']", "policy_kwargs['hidden_dim'] must be an integer >= 1, got 0 (or pass hidden_dim)."
+        "policy_kwargs['hidden_dim']",
+        "policy_kwargs['hidden_dim'] must be an integer >= 1, got 0 (or pass hidden_dim).",
     )
     assert cli_message(error, build_parser()) == (
         "policy_kwargs['hidden_dim'] must be an integer >= 1, got 0 (or pass --hidden-dim)."
