@@ -148,8 +148,8 @@ def cli_message(error: BaseException, parser: argparse.ArgumentParser) -> str:
 
     message = re.sub(r"`(\w+)(?:=([^`]*))?`", quoted, message)
     for name in sorted(flags, key=len, reverse=True):
-        if "_" in name:
-            message = re.sub(rf"(?<![\w\-./]){re.escape(name)}(?![\w\-/])", flags[name], message)
+        if "_" in name:  # a dict's key stays as it is: policy_kwargs['hidden_dim']
+            message = re.sub(rf"(?<![\w\-./])(?<!\[['\"]){re.escape(name)}(?![\w\-/])", flags[name], message)
     parameter = getattr(error, "parameter", None)
     if parameter in flags and "_" not in parameter and message.startswith(parameter):
         message = flags[parameter] + message[len(parameter) :]

@@ -20,6 +20,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_collapse.baselines import collapse_model
 from sb3_collapse.common.model import CollapseModel, env_action_repeat
+from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import Observations, collect_activations
 from sb3_collapse.monitoring.grad_norms import grad_norms_of
 from sb3_collapse.monitoring.metrics import (
@@ -184,8 +185,13 @@ class FrameScheduleCallback(ResumableCallback):
 
     def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
         super().__init__(verbose)
-        if check_every_frames < self.min_period:
-            raise ValueError(f"{self.period_parameter} must be >= {self.min_period}, got {check_every_frames}.")
+        whole = isinstance(check_every_frames, (int, np.integer)) and not isinstance(check_every_frames, bool)
+        if not whole or check_every_frames < self.min_period:  # a str, nan, 2.5: refused, not a check at every step
+            raise ParameterError(
+                self.period_parameter,
+                f"{self.period_parameter} must be {'' if whole else 'an integer '}>= {self.min_period}, got "
+                f"{check_every_frames!r}.",
+            )
         setattr(self, self.period_parameter, check_every_frames)
         self.next_check = 0  # the count of the next check, set when learn() starts
         self.n_checks = 0  # checks so far, all learn() calls

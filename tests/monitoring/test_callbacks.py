@@ -301,3 +301,28 @@ def test_a_state_of_another_version_is_refused_in_one_line():
         rule.load_state_dict(older)
     with pytest.raises(ValueError, match="^CollapseMetrics: the saved state lacks num_timesteps: "):
         CollapseMetrics().load_state_dict({"next_check": 10_000, "n_checks": 0, "last_metrics": {}})
+
+
+def test_every_schedule_period_is_checked_for_type_and_finiteness():
+    """CollapseMetrics(check_every_frames="1000") raised a raw TypeError and nan was accepted (then a check at every
+    step): each period of the one schedule is refused unless an integer, naming its parameter."""
+    from sb3_collapse.errors import ParameterError
+    from sb3_collapse.monitoring import PeriodicReDo
+
+    for value in ("1000", float("nan"), float("inf"), 2.5, 1000.0, True, None):
+        with pytest.raises(ParameterError, match="^check_every_frames must be an integer >= 1, got ") as caught:
+            CollapseMetrics(check_every_frames=value)
+        assert caught.value.parameter == "check_every_frames"
+        with pytest.raises(ParameterError, match="^check_every_frames must be an integer >= 1"):
+            CollapseReset(check_every_frames=value)
+        with pytest.raises(ParameterError, match="^every_frames must be an integer >= 1"):
+            ActivationLogger(every_frames=value, path="unused")
+    with pytest.raises(ParameterError, match=r"^check_every_frames must be >= 1, got 0\.$"):
+        CollapseMetrics(check_every_frames=0)
+    assert CollapseMetrics(check_every_frames=np.int64(1000)).period == 1000
+    with pytest.raises(ValueError, match="^every_updates must be an integer >= 1, got nan"):
+        PeriodicReDo(float("nan"))
+    from sb3_collapse.run.checkpoints import ResumableCheckpoints
+
+    with pytest.raises(ParameterError, match="^every_frames must be an integer >= 0, got nan"):
+        ResumableCheckpoints("unused", float("nan"))

@@ -305,3 +305,21 @@ def test_a_settings_help_is_the_docstring_under_it_unless_given():
         @dataclasses.dataclass
         class Undocumented:
             third: int = setting(3)
+
+
+def test_a_dict_key_in_a_message_is_not_turned_into_a_flag():
+    """The flag translation turned policy_kwargs['hidden_dim'] into policy_kwargs['--hidden-dim']: a key stays, the
+    bare name of a setting still becomes its flag."""
+    from sb3_collapse.errors import ParameterError, cli_message
+    from sb3_collapse.train import build_parser
+
+    error = ParameterError(
+        "policy_kwargs['hidden_dim']",
+        "policy_kwargs['hidden_dim'] must be an integer >= 1, got 0 (or pass hidden_dim).",
+    )
+    assert cli_message(error, build_parser()) == (
+        "policy_kwargs['hidden_dim'] must be an integer >= 1, got 0 (or pass --hidden-dim)."
+    )
+    assert cli_message(ParameterError("x", 'kwargs["feature_dim"] and feature_dim'), build_parser()) == (
+        'kwargs["feature_dim"] and --feature-dim'
+    )
