@@ -301,3 +301,26 @@ def test_a_state_of_another_version_is_refused_in_one_line():
         rule.load_state_dict(older)
     with pytest.raises(ValueError, match="^CollapseMetrics: the saved state lacks num_timesteps: "):
         CollapseMetrics().load_state_dict({"next_check": 10_000, "n_checks": 0, "last_metrics": {}})
+
+
+# The tags the default CollapseMetrics logs (the report's figures read them): pinned, whatever it can also measure.
+DEFAULT_TAGS_PIXELS = (
+    {f"collapse/{layer}/{metric}" for layer in LAYERS for metric in METRICS}
+    | {f"collapse/{layer}/grad_norm" for layer in LAYERS[1:]}
+    | {"collapse/action_std", "collapse/action_saturation"}
+)
+
+
+def test_default_tags_are_pinned_on_drqv2_pixels_and_td3_mlp():
+    metrics = CollapseMetrics(check_every_frames=40, batch_size=16)
+    tiny_model().learn(60, callback=metrics)
+    assert set(metrics.last_metrics) == DEFAULT_TAGS_PIXELS
+
+    env = RandomObservationEnv(gym.spaces.Box(-1, 1, (5,), np.float32))
+    model = TD3("MlpPolicy", env, learning_starts=10, batch_size=8, policy_kwargs=dict(net_arch=[16, 16]), seed=0)
+    metrics = CollapseMetrics(check_every_frames=30, batch_size=16)
+    model.learn(40, callback=metrics)
+    layers = ("mlp0", "mlp1", "mlp2", "action")
+    expected = {f"collapse/{layer}/{metric}" for layer in layers for metric in METRICS}
+    expected |= {f"collapse/{layer}/grad_norm" for layer in layers[1:]}
+    assert set(metrics.last_metrics) == expected | {"collapse/action_std", "collapse/action_saturation"}
