@@ -129,3 +129,25 @@ def test_bad_arguments_name_the_parameter():
         assert raised.value.parameter == parameter
     with pytest.raises(KeyError, match="q3.mlp1"):
         measure_health(model, obs, layers=["q3.mlp1"], networks=("actor", "critic"))
+
+
+@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
+def test_critic_of_drqv2_state_and_dict_policies(policy):
+    from tests.monitoring.test_callbacks import POLICY_SPACES
+
+    space = POLICY_SPACES[policy]
+    kwargs = dict(
+        hidden_dim=16, feature_dim=8, **({} if policy == "MlpPolicy" else dict(encoder_kwargs=dict(channels=4)))
+    )
+    env = RandomObservationEnv(space, gym.spaces.Box(-1, 1, (2,), np.float32))
+    model = DrQv2(policy, env, buffer_size=100, seed=0, policy_kwargs=kwargs)
+    space.seed(0)
+    samples = [space.sample() for _ in range(6)]
+    obs = (
+        {key: np.stack([s[key] for s in samples]) for key in space.spaces}
+        if policy != "MlpPolicy"
+        else np.stack(samples)
+    )
+    values = measure_health(model, obs, ("feature_norm", "q_mean"), ("actor", "critic"), batch_size=4)
+    assert values["collapse/q1.mlp0/feature_norm"] > 0 and "collapse/q2/q_mean" in values
+    assert values["collapse/q1.mlp0/feature_norm"] == values["collapse/q2.mlp0/feature_norm"]  # one shared trunk
