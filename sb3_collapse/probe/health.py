@@ -260,6 +260,8 @@ def checkpoint_health(
     order = sorted(range(len(paths)), key=steps.__getitem__) if series else list(range(len(paths)))
     metrics = chosen_metrics(settings.metrics, series)
     networks, note = chosen_networks(settings.networks, paths)
+    if note:
+        print(f"Note: {note}.", flush=True)
     device = get_device(settings.device)
     memory, observations, inputs = HealthMemory(), None, ""
     rows: list[dict[str, Any]] = []

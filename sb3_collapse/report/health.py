@@ -103,8 +103,9 @@ def plot_health(rows: Sequence[dict[str, Any]], network: str, path: Path, series
         handles = [Line2D([], [], color=OKABE_ITO[k % len(OKABE_ITO)], marker="o") for k in range(len(checkpoints))]
         labels = checkpoints
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout(rect=(0, 0.04 + 0.012 * (len(labels) // 8), 1, 0.97))
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=7, frameon=False)
+    per_row = 10  # legend entries per row: every layer of the actor (cnn0..action) in one
+    fig.tight_layout(rect=(0, 0.04 + 0.02 * ((len(labels) - 1) // per_row), 1, 0.97))
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), per_row), fontsize=7, frameon=False)
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
@@ -141,8 +142,6 @@ def health_to_folder(
     labels = checkpoint_labels(list(paths))
     with StagedOutputs(out, OUTPUT_FILES, HEALTH_JSON, overwrite=overwrite, error=InputError) as staged:
         rows, measured = checkpoint_health(paths, settings, rollouts_path, record_options, labels)
-        for note in measured["notes"]:
-            print(f"Note: {note}.", flush=True)
         write_csv(rows, list(HEALTH_COLUMNS), staged.path(HEALTH_CSV))
         count = len(measured["checkpoints"])
         what = (
