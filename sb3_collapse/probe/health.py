@@ -70,14 +70,14 @@ class HealthSettings:
     progress: bool = setting(True, help="show the progress bars", unit=None)
 
     def validate(self) -> None:
-        """:raises InputError: naming the bad setting"""
-        for option in (option for option in fields(self) if option.metadata["nargs"] is None):
-            if (problem := declared_problem(option, getattr(self, option.name), integer=False)) is not None:
-                raise ParameterError(option.name, f"{option.name} {problem}")
-        for name, chosen, known in (("metrics", self.metrics, OFFLINE_METRICS), ("networks", self.networks, NETWORKS)):
-            unknown = [value for value in chosen or () if value not in known]
-            if unknown or chosen is not None and not chosen:
-                raise ParameterError(name, f"{name} must be some of {list(known)}, got {list(chosen or ())}.")
+        """:raises ParameterError: naming the setting out of its declared choices or range (each value of a list)"""
+        for option in fields(self):
+            value = getattr(self, option.name)
+            if option.metadata["nargs"] is not None and value is not None and not len(value):
+                raise ParameterError(option.name, f"{option.name} must hold at least one value, or be None.")
+            for item in value if option.metadata["nargs"] is not None and value is not None else [value]:
+                if (problem := declared_problem(option, item, integer=False)) is not None:
+                    raise ParameterError(option.name, f"{option.name} {problem}")
         check_device(self.device)
 
 

@@ -11,8 +11,9 @@ import pytest
 from stable_baselines3 import PPO, TD3
 
 from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse.errors import ParameterError
 from sb3_collapse.probe.__main__ import main
-from sb3_collapse.probe.health import HEALTH_COLUMNS, OFFLINE_METRICS, SERIES_METRICS
+from sb3_collapse.probe.health import HEALTH_COLUMNS, OFFLINE_METRICS, SERIES_METRICS, HealthSettings, tag_parts
 from sb3_collapse.run.snapshots import save_snapshot
 from tests.random_env import RandomObservationEnv
 
@@ -126,8 +127,11 @@ def test_a_run_folder_is_its_snapshots_actor_only(files, tmp_path, capsys):
 def test_refusals_say_what_to_do_in_one_line_and_write_nothing(files, tmp_path, capsys):
     out = tmp_path / "health"
     rollouts = ["--rollouts", str(files / "walker.npz")]
-    cases = {  # another algorithm: what is supported
-        "named layers are defined for DrQv2 (sb3_collapse) and SB3's TD3, DDPG and SAC": [str(files / "ppo.zip")],
+    ppo = ["health", str(files / "ppo.zip"), "--out", str(out), *QUICK]
+    assert main(ppo) == 2  # another algorithm: one line that says which are supported
+    refusal = assert_nothing_written(out, capsys)
+    assert all(name in refusal for name in ("ppo.zip", "DrQv2", "TD3", "DDPG", "SAC")), refusal
+    cases = {
         "compare each checkpoint with the one before": [
             str(files / "drqv2.zip"),
             *rollouts,
@@ -145,3 +149,26 @@ def test_refusals_say_what_to_do_in_one_line_and_write_nothing(files, tmp_path, 
     with pytest.raises(SystemExit) as exited:  # refused by the parser: the gradient norm is a training-time value
         main(["health", str(files / "drqv2.zip"), "--metrics", "grad_norm", "--out", str(out)])
     assert exited.value.code == 2 and "invalid choice: 'grad_norm'" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("settings", "parameter"),
+    [
+        ({"metrics": ("grad_norm",)}, "metrics"),  # a training-time value
+        ({"networks": ()}, "networks"),
+        ({"networks": ("value",)}, "networks"),
+        ({"samples": 1}, "samples"),
+        ({"device": "tpu"}, "device"),
+    ],
+)
+def test_the_library_names_the_bad_setting(settings, parameter):
+    with pytest.raises(ParameterError) as raised:
+        HealthSettings(**settings).validate()
+    assert raised.value.parameter == parameter
+
+
+def test_tags_split_into_network_layer_and_metric():
+    assert tag_parts("collapse/q1.mlp1/srank") == ("critic", "q1.mlp1", "srank")
+    assert tag_parts("collapse/q2/q_mean") == ("critic", "q2", "q_mean")
+    assert tag_parts("collapse/mlp1/dormant_ratio_tau0.1") == ("actor", "mlp1", "dormant_ratio_tau0.1")
+    assert tag_parts("collapse/action_std") == ("actor", "action", "action_std")
