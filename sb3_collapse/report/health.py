@@ -4,6 +4,7 @@ docs/probe.md#network-health."""
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Sequence
 from datetime import UTC, datetime
@@ -37,12 +38,18 @@ FRACTION_METRICS = (*BOUNDED_METRICS, "active_fraction", "persistent_dormant_fra
 """Metrics in [0, 1], drawn on that range (the dormant ratios too: their names start with ``dormant_ratio``)."""
 
 
+def _network_head(layer: str) -> str:
+    """:return: the Q network of a critic layer (``q1.mlp0`` -> ``q1``), ``""`` for the actor's layers"""
+    head = layer.partition(".")[0]
+    return head if head[:1] == "q" and head[1:].isdigit() else ""
+
+
 def layer_line_style(layer: str) -> dict[str, Any]:
     """:return: ``plot`` keywords of ``layer`` of either network: the actor's colours of
     :data:`~sb3_collapse.report.style.LAYER_COLORS` (solid CNN, dashed MLP); a critic layer ``q<k>.mlp<i>`` coloured
     by ``i`` (``q<k>`` itself black), solid for ``q1``, dashed for ``q2``"""
-    head, _, rest = layer.partition(".")
-    if head[:1] == "q" and head[1:].isdigit():
+    head, rest = _network_head(layer), layer.partition(".")[2]
+    if head:
         palette = (*TOL_MUTED, *OKABE_ITO)
         color = "#000000" if not rest else palette[int(rest.removeprefix("mlp") or 0) % len(palette)]
         return {"color": color, "linestyle": "-" if head == "q1" else "--"}
@@ -71,6 +78,7 @@ def plot_health(rows: Sequence[dict[str, Any]], network: str, path: Path, series
     """
     rows = [row for row in rows if row["network"] == network]
     metrics, layers, checkpoints = (_unique([row[key] for row in rows]) for key in ("metric", "layer", "checkpoint"))
+    layers = sorted(layers, key=_network_head)  # each Q network's layers together, its value last (stable sort)
     value = {(row["checkpoint"], row["layer"], row["metric"]): row["value"] for row in rows}
     frames = {row["checkpoint"]: row["frames"] for row in rows}
     columns = 5
@@ -87,9 +95,11 @@ def plot_health(rows: Sequence[dict[str, Any]], network: str, path: Path, series
             frames_axis(ax)
             ax.xaxis.label.set_size(7)
         else:
-            for k, checkpoint in enumerate(checkpoints):
-                ys = [value.get((checkpoint, layer, metric), np.nan) for layer in drawn]
-                ax.plot(range(len(drawn)), ys, marker="o", ms=3, lw=1.0, color=OKABE_ITO[k % len(OKABE_ITO)])
+            for k, checkpoint in enumerate(checkpoints):  # a line through each network's layers (q1's, q2's apart)
+                for _, run in itertools.groupby(enumerate(drawn), key=lambda item: _network_head(item[1])):
+                    xs, run_layers = zip(*run)
+                    ys = [value.get((checkpoint, layer, metric), np.nan) for layer in run_layers]
+                    ax.plot(xs, ys, marker="o", ms=3, lw=1.0, color=OKABE_ITO[k % len(OKABE_ITO)])
             ax.set_xticks(range(len(drawn)), drawn, rotation=60, fontsize=6)
         if _is_fraction(metric):
             ax.set_ylim(-0.02, 1.02)
@@ -145,7 +155,7 @@ def health_to_folder(
         write_csv(rows, list(HEALTH_COLUMNS), staged.path(HEALTH_CSV))
         count = len(measured["checkpoints"])
         what = (
-            f"a run over training ({count} checkpoints)"
+            f"{count} checkpoints over training"
             if measured["series"]
             else ", ".join(c["checkpoint"] for c in measured["checkpoints"])
         )
