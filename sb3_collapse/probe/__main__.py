@@ -122,7 +122,7 @@ class RecordFlags:
 @dataclass
 class HealthFlags:
     """
-    network health of checkpoints: every metric of CollapseMetrics, offline
+    network health of checkpoints: the metrics of CollapseMetrics (but the gradient norm), offline
 
     Measure each checkpoint's actor and critic (rank, correlation, dead and dormant units, stable and effective rank,
     active fraction, feature and weight norms, Q values, action spread; docs/monitoring.md) on one observation set:
