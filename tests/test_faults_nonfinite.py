@@ -219,3 +219,42 @@ def test_train_refuses_to_transplant_non_finite_weights_before_writing_anything(
     assert error[-1].startswith(f"python -m sb3_collapse.train: error: --init-mlp = '{source}' holds weights that are ")
     assert "'actor.mlp1.0.weight' has 1 NaN or infinite value(s)" in error[-1]
     assert not run_dir.exists()
+
+
+class NaNReset(gym.Wrapper):
+    """Returns an observation holding a NaN at its ``reset``-th reset (an episode's first observation, which the actor
+    reads before anything of it is stored)."""
+
+    def __init__(self, env: gym.Env, reset: int) -> None:
+        super().__init__(env)
+        self.at, self.resets = reset, 0
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.resets += 1
+        if self.resets == self.at:
+            obs = np.array(obs, dtype=np.float32)
+            obs.flat[1] = math.nan
+        return obs, info
+
+
+def test_a_nan_first_observation_after_the_warmup_is_the_environment_s_not_a_divergence():
+    env = NaNReset(RandomObservationEnv(gym.spaces.Box(-1.0, 1.0, (5,), np.float32), episode_length=20), reset=2)
+    model = DrQv2("MlpPolicy", env, buffer_size=100, learning_starts=10, batch_size=4, seed=0,
+                  policy_kwargs=dict(hidden_dim=16))  # fmt: skip
+    with pytest.raises(NonFiniteDataError, match=r"^env 0 returned an observation that is not finite \(nan\)"):
+        model.learn(40)
+    assert model.num_timesteps == 20  # the step that would have acted on it was not taken
+
+
+def test_drqv2_load_refuses_a_zip_with_non_finite_weights(tmp_path):
+    from sb3_collapse.errors import InputError
+
+    env = RandomObservationEnv(gym.spaces.Box(-1.0, 1.0, (5,), np.float32), episode_length=20)
+    model = DrQv2("MlpPolicy", env, buffer_size=100, learning_starts=10, batch_size=4, seed=0,
+                  policy_kwargs=dict(hidden_dim=16))  # fmt: skip
+    with th.no_grad():
+        next(model.actor.parameters()).view(-1)[0] = math.nan
+    model.save(tmp_path / "diverged.zip")
+    with pytest.raises(InputError, match=r"diverged\.zip holds weights that are not finite: 'actor\."):
+        DrQv2.load(tmp_path / "diverged.zip")

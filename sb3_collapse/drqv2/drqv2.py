@@ -41,6 +41,7 @@ from sb3_collapse.drqv2.policies import (
     soft_update,
 )
 from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
+from sb3_collapse.drqv2.replay_buffer import refuse_non_finite
 from sb3_collapse.drqv2.rounds import RoundsAlgorithm
 from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, combine_callbacks
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
@@ -225,6 +226,10 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
             deterministic = action_noise is not None  # an SB3 action noise replaces the schedule's Gaussian
             unscaled_action, _ = self.predict(self._last_obs, deterministic=deterministic)  # type: ignore[arg-type]
             if not np.isfinite(unscaled_action).all():  # on the host already: checking costs nothing
+                observations = self._last_obs.values() if isinstance(self._last_obs, dict) else [self._last_obs]
+                for values in observations:  # an env's NaN (a reset's: not stored yet) is not a divergence
+                    if np.issubdtype(np.asarray(values).dtype, np.floating):
+                        refuse_non_finite(values, n_envs, "observation")
                 raise DivergenceError(
                     f"training diverged: the actor's action is not finite after update {self._n_updates} "
                     f"(frame {self.num_frames:,})."

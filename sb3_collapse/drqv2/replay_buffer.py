@@ -156,10 +156,10 @@ class FrameStackReplayBuffer(ReplayBuffer):
         """SB3's ``add``, ``obs`` ``(n_envs, channels * frame_stack, height, width)``; a ``next_obs`` that is not its
         ``obs`` shifted by one frame raises ``ValueError``, a non-finite ``reward`` or (float frames) ``next_obs``
         ``NonFiniteDataError`` (nothing stored)."""
-        _refuse_non_finite(reward, self.n_envs, "reward")
+        refuse_non_finite(reward, self.n_envs, "reward")
         if self.frames.dtype.kind == "f":  # pixels (integers) cannot hold a NaN
-            _refuse_non_finite(next_obs, self.n_envs, "observation")
-            _refuse_non_finite(obs, self.n_envs, "observation")  # an episode's first
+            refuse_non_finite(next_obs, self.n_envs, "observation")
+            refuse_non_finite(obs, self.n_envs, "observation")  # an episode's first
         k, frame_shape = self.frame_stack, self.frame_shape
         obs_frames = np.asarray(obs).reshape(self.n_envs, k, *frame_shape)
         next_frames = np.asarray(next_obs).reshape(self.n_envs, k, *frame_shape)
@@ -351,7 +351,7 @@ def n_step_returns(
     return returns, discounts, dones.astype(np.float32), last
 
 
-def _refuse_non_finite(values: np.ndarray, n_envs: int, what: str) -> None:
+def refuse_non_finite(values: np.ndarray, n_envs: int, what: str) -> None:
     """:raises NonFiniteDataError: naming the first env whose ``values`` (a ``what`` per env, ``(n_envs, ...)``) are
     not all finite"""
     rows = np.asarray(values).reshape(n_envs, -1)
