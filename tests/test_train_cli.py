@@ -1,5 +1,6 @@
 import csv
 import json
+import shutil
 import subprocess
 import sys
 
@@ -14,15 +15,14 @@ from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
 from sb3_collapse.train import main
+from tests.shared_runs import TINY_WALKER_RUN
 
 
-def test_train_end_to_end(tmp_path):
-    config = TrainConfig(
-        env="walker-walk", frames=800, action_repeat=20, seed_frames=400, batch_size=8, hidden_dim=64,
-        eval_every_frames=400, eval_episodes=1, logdir=str(tmp_path), progress_bar=False, replay_sampling="sb3",
-    )
-    result = train(config)
-    assert result.run_dir == tmp_path / "walker-walk_s0"
+def test_train_end_to_end(tiny_walker_run, tmp_path_factory, tmp_path):
+    # The session's tiny run (tests/conftest.py: walker-walk, 800 frames at action repeat 20, evaluated every 400).
+    config = TrainConfig(**TINY_WALKER_RUN, logdir=str(tmp_path_factory.getbasetemp() / "tiny_walker_run"))
+    result = tiny_walker_run
+    assert result.run_dir == tmp_path_factory.getbasetemp() / "tiny_walker_run" / "walker-walk_s0"
     with open(result.run_dir / "eval.csv") as file:
         rows = list(csv.DictReader(file))
     # The scheduled evaluations (the reference's: frame 0, then every 400 frames, none at the budget's end).
@@ -58,8 +58,10 @@ def test_train_end_to_end(tmp_path):
     assert [e.step for e in accumulator.Scalars("eval/mean_reward")] == [0, 20]
     assert [e.step for e in accumulator.Scalars("eval_saved_model/mean_reward")] == [40]
 
-    # A second run with the same name gets its own folder.
-    second = train(TrainConfig(**{**config.__dict__, "frames": 80, "eval_every_frames": 0}))
+    # A second run with the same name gets its own folder (beside a copy of the first: the session's stays as it is).
+    shutil.copytree(result.run_dir, tmp_path / "walker-walk_s0")
+    changes = {"frames": 80, "eval_every_frames": 0, "snapshots": False, "logdir": str(tmp_path), "torch_threads": None}
+    second = train(TrainConfig(**{**config.__dict__, **changes}))
     assert second.run_dir == tmp_path / "walker-walk_s0_2"
     assert second.evaluations == []
 
