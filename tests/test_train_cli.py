@@ -1,8 +1,6 @@
 import csv
 import json
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -134,10 +132,12 @@ def test_train_into_an_exact_run_dir(tmp_path):
     assert json.loads((transplanted.run_dir / "config.json").read_text())["init_mlp"] == str(run_dir / "final_model")
 
 
-def test_help_documents_units():
-    out = subprocess.run(
-        [sys.executable, "-m", "sb3_collapse.train", "--help"], capture_output=True, text=True, check=True
-    ).stdout
+def test_help_documents_units(monkeypatch, capsys):
+    monkeypatch.setenv("COLUMNS", "80")  # the width of `python -m sb3_collapse.train --help` into a pipe
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
     for flag in ("--frames", "--eval-every-frames", "--seed-frames", "--stddev-schedule", "--buffer-size", "--logdir"):
         assert flag in out
     assert "in frames" in out and "agent steps" in out
@@ -200,17 +200,20 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
     assert TrainConfig(reset_rule=True).variant_name == "drqv2+reset"
 
 
-def test_train_with_parallel_envs(tmp_path):
+def test_train_with_parallel_envs(tmp_path, capsys):
     """--n-envs 2: subprocess envs, frames summed over them, one update per 2 transitions, the timings in
-    result.json."""
-    out = subprocess.run(
-        [sys.executable, "-m", "sb3_collapse.train", "--env", "walker-walk", "--frames", "320", "--action-repeat", "20",
+    result.json. The command's main in this process: the environments' processes are the subprocesses."""
+    threads = th.get_num_threads()
+    status = main(
+        ["--env", "walker-walk", "--frames", "320", "--action-repeat", "20",
          "--size", "48", "--seed-frames", "160", "--batch-size", "8", "--hidden-dim", "32", "--n-envs", "2",
          "--eval-every-frames", "320", "--eval-episodes", "1", "--collapse-metrics-every-frames", "0",
          "--replay-sampling", "sb3",
          "--run-dir", str(tmp_path / "run"), "--torch-threads", "1", "--no-progress-bar"],
-        capture_output=True, text=True, check=True,
-    ).stdout
+    )  # fmt: skip
+    th.set_num_threads(threads)
+    assert status == 0
+    out = capsys.readouterr().out
     assert "summed over 2 envs" in out
     summary = json.loads((tmp_path / "run" / "result.json").read_text())
     assert summary["frames"] == 320 and summary["agent_steps"] == 16
