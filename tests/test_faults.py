@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import json
 import math
+import shutil
 import warnings
 from pathlib import Path
 
@@ -320,9 +321,8 @@ def test_reset_on_an_episode_end_waits_for_a_sampleable_episode_instead_of_faili
     assert updates[100] == updates[150] and model._n_updates > updates[150]  # no update until step 150's episode
 
 
-def _unfinished_run(run_dir: Path, monkeypatch, capsys, flags: list[str] | None = None) -> None:
-    """A tiny run (``flags``, default ``_flags``) stopped by a full disk at its final save: checkpoints at frames 400
-    and 600 (it trained 800)."""
+def _unfinished_run(run_dir: Path, *flags: str) -> Path:
+    """A tiny run stopped by a full disk at its final save: checkpoints at frames 400 and 600 (it trained 800)."""
     original = DrQv2.save
 
     def full_disk(self, path, *args, **kwargs):
@@ -330,22 +330,39 @@ def _unfinished_run(run_dir: Path, monkeypatch, capsys, flags: list[str] | None 
             return original(self, path, *args, **kwargs)
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(DrQv2, "save", full_disk)
-    assert main(flags or _flags(run_dir)) == 1
-    monkeypatch.setattr(DrQv2, "save", original)
-    capsys.readouterr()
+    threads = th.get_num_threads()  # a module's fixture: set up before _keep_torch_threads
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(DrQv2, "save", full_disk)
+        assert main([*_flags(run_dir), *flags]) == 1
+    th.set_num_threads(threads)
+    return run_dir
+
+
+EVALUATIONS = ("--eval-every-frames", "200", "--eval-episodes", "1")
+
+
+@pytest.fixture(scope="module")
+def unfinished_run(tmp_path_factory) -> Path:
+    """One unfinished run (no evaluation) for the tests that damage it: each damages a copy."""
+    return _unfinished_run(tmp_path_factory.mktemp("unfinished") / "run")
+
+
+@pytest.fixture(scope="module")
+def unfinished_evaluated_run(tmp_path_factory) -> Path:
+    """One unfinished run evaluated every 200 frames, for the tests that damage its eval.csv: each damages a copy."""
+    return _unfinished_run(tmp_path_factory.mktemp("unfinished_evaluated") / "run", *EVALUATIONS)
 
 
 @pytest.mark.parametrize("damage", ["truncated", "flipped"])
 def test_damaged_replay_chunk_shared_by_every_checkpoint_restarts_the_run_and_keeps_them(
-    tmp_path, monkeypatch, capsys, damage
+    unfinished_run, tmp_path, capsys, damage
 ):
     """Both checkpoints need the first replay chunk. Truncated, it is seen as the checkpoints are verified; a byte
     flipped, only as the chunk is read (its CRC), after the model was restored. Either way the run says why it
     restarts from frame 0, keeps the checkpoints aside (nothing is deleted), and finishes. A temporary file that a
     kill in the middle of the final save left is removed."""
     run_dir = tmp_path / "run"
-    _unfinished_run(run_dir, monkeypatch, capsys)
+    shutil.copytree(unfinished_run, run_dir)
     checkpoints = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
     manifests = [json.loads((folder / "checkpoint.json").read_text())["replay"]["store"] for folder in checkpoints]
     assert len(manifests) == 2
@@ -442,22 +459,15 @@ def test_the_run_trains_exactly_its_budget_or_says_why_not():
 
 
 @pytest.mark.parametrize("damage", ["short", "cut mid-row"])
-def test_eval_csv_out_of_step_with_the_checkpoint_is_rewritten_from_it_on_resume(tmp_path, monkeypatch, capsys, damage):
+def test_eval_csv_out_of_step_with_the_checkpoint_is_rewritten_from_it_on_resume(
+    unfinished_evaluated_run, tmp_path, capsys, damage
+):
     """eval.csv shorter than the checkpoint expects (was: unresumable), or cut mid-row (was: the next row appended to
     the cut one): the resume writes it back from the checkpoint, says so in one line, and every evaluation ends as
     the uninterrupted run wrote it (frame and return), once each."""
     run_dir = tmp_path / "run"
-    evaluations = ["--eval-every-frames", "200", "--eval-episodes", "1"]
-    original = DrQv2.save
-
-    def full_disk(self, path, *args, **kwargs):  # stopped at its final save: checkpoints at frames 400 and 600
-        if "final_model" not in str(path):
-            return original(self, path, *args, **kwargs)
-        raise OSError(errno.ENOSPC, "No space left on device", str(path))
-
-    monkeypatch.setattr(DrQv2, "save", full_disk)
-    assert main([*_flags(run_dir), *evaluations]) == 1
-    monkeypatch.setattr(DrQv2, "save", original)
+    evaluations = list(EVALUATIONS)
+    shutil.copytree(unfinished_evaluated_run, run_dir)  # stopped at its final save: checkpoints at frames 400 and 600
     eval_csv = run_dir / "eval.csv"
     uninterrupted = [line.split(",")[:3] for line in eval_csv.read_text().splitlines()]
     assert [row[0] for row in uninterrupted] == ["frame", "0", "200", "400", "600"]
@@ -569,7 +579,8 @@ def test_a_stop_after_learn_finishes_or_exits_75_and_the_rerun_ends_as_an_uninte
         return patched
 
     if phase == "resume":
-        _unfinished_run(run_dir, monkeypatch, capsys, flags)
+        _unfinished_run(run_dir, "--eval-every-frames", "400", "--eval-episodes", "1")  # flags' values
+        capsys.readouterr()
         monkeypatch.setattr(ResumableCheckpoints, "resume", sigterm_then(ResumableCheckpoints.resume))
     elif phase == "final save":
         monkeypatch.setattr(DrQv2, "save", sigterm_then(DrQv2.save, lambda _, path: "final_model" in str(path)))
@@ -630,7 +641,8 @@ def test_a_fallback_to_an_older_checkpoint_announces_only_the_frame_it_resumes_f
     checkpoint was chosen. The run says it resumes from the one before, at its frame, and never names the newer
     one's frame as where it resumes."""
     run_dir = tmp_path / "run"
-    _unfinished_run(run_dir, monkeypatch, capsys)
+    _unfinished_run(run_dir)
+    capsys.readouterr()
     newest, older = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
     chunks = [
         {chunk["file"] for chunk in json.loads((folder / "checkpoint.json").read_text())["replay"]["store"]["chunks"]}

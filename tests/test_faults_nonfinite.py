@@ -139,7 +139,8 @@ def test_a_replay_chunk_holding_a_nan_with_a_matching_crc_is_named_and_the_run_r
     env's NaN would have written it): each checkpoint is set aside naming the chunk and the array, the run restarts
     from frame 0 and finishes."""
     run_dir = tmp_path / "run"
-    _unfinished_run(run_dir, monkeypatch, capsys)
+    _unfinished_run(run_dir)
+    capsys.readouterr()
     checkpoints = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
     infos = [json.loads((folder / "checkpoint.json").read_text()) for folder in checkpoints]
     chunk = infos[0]["replay"]["store"]["chunks"][0]
