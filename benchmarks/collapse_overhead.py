@@ -13,12 +13,18 @@ It then times, on the trained model, one check in isolation (``CollapseMetrics.c
 batch size, and prints the overhead projected for DrQ-v2's configuration: one check per
 ``check_every_frames / action_repeat / train_freq`` updates of batch 256.
 
+With ``--sets``, it instead times, interleaved in one process (a shared machine's load falls on every item alike),
+rounds of: one gradient update at the paper's batch, one check of the default ``CollapseMetrics`` and one of the
+extended set (``HEALTH_METRICS`` of the actor and the critic), the order rotating each round, on a model whose buffer
+holds ``--fill`` random transitions; it prints the medians and each set's projected overhead at DrQ-v2's frequency.
+
 Observations are 9x84x84 uint8 from ``RandomObservationEnv`` (no rendering), actions 6-d, action repeat 2.
 The CPU default (batch 32, one update per 8 agent steps, 10,000 frames: one check, at the last step) takes
 5-20 minutes on a shared 2-core CPU; it does fewer and cheaper updates between two checks than DrQ-v2 (563 updates of
 batch 32, against 2,500 of batch 256), so its ratio is an upper bound of DrQ-v2's.
 
     python benchmarks/collapse_overhead.py                          # CPU-sized default
+    python benchmarks/collapse_overhead.py --sets --rounds 5                  # default against extended set
     python benchmarks/collapse_overhead.py --device cuda --frames 40000 --batch-size 256 --train-freq 2 --repeats 2
 """
 
@@ -42,6 +48,7 @@ from stable_baselines3.common.utils import get_device
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests/ (no install)
 
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
+from sb3_collapse.monitoring.health import HEALTH_METRICS
 from tests.random_env import RandomObservationEnv
 
 
@@ -50,7 +57,7 @@ def synchronize(device: th.device) -> None:
         th.cuda.synchronize()
 
 
-def build_model(args: argparse.Namespace, tensorboard_log: str) -> DrQv2:
+def build_model(args: argparse.Namespace, tensorboard_log: str | None) -> DrQv2:
     """The benchmark's DrQv2 on 9x84x84 random pixels with action repeat 2."""
     env = RandomObservationEnv(gym.spaces.Box(0, 255, (9, 84, 84), np.uint8), episode_length=500, action_repeat=2)
     steps = args.frames // 2
@@ -122,6 +129,43 @@ def median_seconds(function, repeats: int, device: th.device) -> float:
     return statistics.median(times)
 
 
+def compare_sets(args: argparse.Namespace, device: th.device) -> None:
+    """``--sets``: an update, a default check and an extended check, interleaved; medians and projected overheads."""
+    model = build_model(args, None)
+    model.learning_starts = args.fill + 1  # collect only: no update while the buffer fills
+    model.learn(args.fill)
+    checks = {
+        "default": CollapseMetrics(args.check_every_frames, batch_size=args.metrics_batch),
+        "extended": CollapseMetrics(
+            args.check_every_frames, batch_size=args.metrics_batch, metrics=HEALTH_METRICS, networks=("actor", "critic")
+        ),
+    }
+    for callback in checks.values():
+        callback.init_callback(model)
+        callback.memory.remember_weights(model, callback.networks)
+    model.policy.set_training_mode(True)
+    items = {
+        "update": lambda: model.train(gradient_steps=1, batch_size=args.paper_batch),
+        **{name: callback.compute for name, callback in checks.items()},
+    }
+    times: dict[str, list[float]] = {name: [] for name in items}
+    names = list(items)
+    for round_ in range(args.rounds):
+        for name in names[round_ % len(names) :] + names[: round_ % len(names)]:
+            times[name].append(median_seconds(items[name], 1, device))
+    update = statistics.median(times["update"])
+    updates_per_check = args.check_every_frames / 2 / 2  # DrQ-v2: action repeat 2, one update per 2 agent steps
+    print(f"{args.rounds} interleaved rounds; one update at batch {args.paper_batch}: {1e3 * update:.0f} ms (median)")
+    for name, callback in checks.items():
+        check = statistics.median(times[name])
+        tags = len(callback.compute() or {})
+        print(
+            f"{name} check ({tags} tags, a batch of {args.metrics_batch}): {check:.2f} s median "
+            f"({', '.join(f'{t:.2f}' for t in times[name])}); projected overhead at DrQ-v2's frequency "
+            f"({updates_per_check:,.0f} updates per check): {100 * check / (check + updates_per_check * update):.3f}%"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=10_000, help="frames per run (agent steps x 2)")
@@ -136,6 +180,9 @@ def main() -> None:
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--progress", action="store_true", help="show a progress bar per run")
+    parser.add_argument("--sets", action="store_true", help="time the default and the extended checks, interleaved")
+    parser.add_argument("--rounds", type=int, default=5, help="--sets: rounds of update, default and extended check")
+    parser.add_argument("--fill", type=int, default=2_000, help="--sets: random transitions stored first")
     args = parser.parse_args()
     if args.frames < args.check_every_frames:
         parser.error(f"--frames {args.frames} gives no check every {args.check_every_frames} frames.")
@@ -151,6 +198,9 @@ def main() -> None:
         f"batch {args.batch_size}, one update per {args.train_freq} agent steps, check every "
         f"{args.check_every_frames:,} frames"
     )
+    if args.sets:
+        compare_sets(args, device)
+        return
 
     wall: dict[bool, list[float]] = {False: [], True: []}
     cpu: dict[bool, list[float]] = {False: [], True: []}

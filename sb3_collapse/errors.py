@@ -61,6 +61,12 @@ class DivergenceError(FloatingPointError):
     """Training produced a loss or a weight that is not finite; the message names the update and the frame."""
 
 
+class NonFiniteDataError(ValueError):
+    """A reward or an observation that is not finite, from an environment (refused before it is stored) or read back
+    from a replay checkpoint, or a simulator that could not step (MuJoCo's ``PhysicsError``): bad data, not a
+    divergence of the training; the message names where it came from."""
+
+
 class TrainingInterrupted(Exception):
     """``learn()`` stopped at the signal ``signal_name`` (``"SIGTERM"``) after writing the ``checkpoint`` folder."""
 
@@ -142,8 +148,8 @@ def cli_message(error: BaseException, parser: argparse.ArgumentParser) -> str:
 
     message = re.sub(r"`(\w+)(?:=([^`]*))?`", quoted, message)
     for name in sorted(flags, key=len, reverse=True):
-        if "_" in name:
-            message = re.sub(rf"(?<![\w\-./]){re.escape(name)}(?![\w\-/])", flags[name], message)
+        if "_" in name:  # a dict's key stays as it is: policy_kwargs['hidden_dim']
+            message = re.sub(rf"(?<![\w\-./])(?<!\[['\"]){re.escape(name)}(?![\w\-/])", flags[name], message)
     parameter = getattr(error, "parameter", None)
     if parameter in flags and "_" not in parameter and message.startswith(parameter):
         message = flags[parameter] + message[len(parameter) :]

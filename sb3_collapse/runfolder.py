@@ -77,12 +77,13 @@ def run_status(
     return RunStatus.UNFINISHED if (folder / CONFIG_JSON).is_file() else None
 
 
-def run_folder_owner(folder: str | os.PathLike) -> str | None:
-    """:return: the owner of ``folder``'s lock (:class:`~sb3_collapse.run.lock.RunLock`) as its file says, ``None`` when
-    no process holds it (an owner on this host whose pid is gone does not; else the lock is tried for an instant)"""
+def run_folder_owner(folder: str | os.PathLike, lock_file: str = LOCK_FILE) -> str | None:
+    """:return: the owner of ``folder``'s lock (:class:`~sb3_collapse.run.lock.RunLock` on ``lock_file``: a sweep's
+    folder has its own) as its file says, ``None`` when no process holds it (an owner on this host whose pid is gone
+    does not; else the lock is tried for an instant)"""
     import fcntl
 
-    path = Path(folder) / LOCK_FILE
+    path = Path(folder) / lock_file
     try:
         owner = path.read_text().strip()
     except OSError:

@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         train(config)
     except errors.InputError as error:  # raised before training: nothing was written
         parser.error(re.sub(r"init_from\['(\w+)'\]", r"--init-\1", errors.cli_message(error, parser)))
-    except (errors.OutputError, errors.DivergenceError) as error:
+    except (errors.OutputError, errors.DivergenceError, errors.NonFiniteDataError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
     except errors.TrainingInterrupted as error:

@@ -36,7 +36,7 @@ LAYOUT = ROOT / "docs" / "layout.md"
 # Sub-commands of the CLIs that have them; the first is the default when the first argument is not a sub-command
 # (None: a sub-command is required).
 SUBCOMMANDS: dict[str, tuple[tuple[str, ...], str | None]] = {
-    "sb3_collapse.probe": (("run", "record", "sweep", "film"), "run"),
+    "sb3_collapse.probe": (("run", "record", "sweep", "film", "health"), "run"),
     "sb3_collapse.zoo": (("train", "enjoy"), None),
 }
 FENCE = re.compile(r"^\s*(```|~~~)")

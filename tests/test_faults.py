@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import json
 import math
+import shutil
 import warnings
 from pathlib import Path
 
@@ -320,7 +321,7 @@ def test_reset_on_an_episode_end_waits_for_a_sampleable_episode_instead_of_faili
     assert updates[100] == updates[150] and model._n_updates > updates[150]  # no update until step 150's episode
 
 
-def _unfinished_run(run_dir: Path, monkeypatch, capsys) -> None:
+def _unfinished_run(run_dir: Path, *flags: str) -> Path:
     """A tiny run stopped by a full disk at its final save: checkpoints at frames 400 and 600 (it trained 800)."""
     original = DrQv2.save
 
@@ -329,22 +330,39 @@ def _unfinished_run(run_dir: Path, monkeypatch, capsys) -> None:
             return original(self, path, *args, **kwargs)
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(DrQv2, "save", full_disk)
-    assert main(_flags(run_dir)) == 1
-    monkeypatch.setattr(DrQv2, "save", original)
-    capsys.readouterr()
+    threads = th.get_num_threads()  # a module's fixture: set up before _keep_torch_threads
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(DrQv2, "save", full_disk)
+        assert main([*_flags(run_dir), *flags]) == 1
+    th.set_num_threads(threads)
+    return run_dir
+
+
+EVALUATIONS = ("--eval-every-frames", "200", "--eval-episodes", "1")
+
+
+@pytest.fixture(scope="module")
+def unfinished_run(tmp_path_factory) -> Path:
+    """One unfinished run (no evaluation) for the tests that damage it: each damages a copy."""
+    return _unfinished_run(tmp_path_factory.mktemp("unfinished") / "run")
+
+
+@pytest.fixture(scope="module")
+def unfinished_evaluated_run(tmp_path_factory) -> Path:
+    """One unfinished run evaluated every 200 frames, for the tests that damage its eval.csv: each damages a copy."""
+    return _unfinished_run(tmp_path_factory.mktemp("unfinished_evaluated") / "run", *EVALUATIONS)
 
 
 @pytest.mark.parametrize("damage", ["truncated", "flipped"])
 def test_damaged_replay_chunk_shared_by_every_checkpoint_restarts_the_run_and_keeps_them(
-    tmp_path, monkeypatch, capsys, damage
+    unfinished_run, tmp_path, capsys, damage
 ):
     """Both checkpoints need the first replay chunk. Truncated, it is seen as the checkpoints are verified; a byte
     flipped, only as the chunk is read (its CRC), after the model was restored. Either way the run says why it
     restarts from frame 0, keeps the checkpoints aside (nothing is deleted), and finishes. A temporary file that a
     kill in the middle of the final save left is removed."""
     run_dir = tmp_path / "run"
-    _unfinished_run(run_dir, monkeypatch, capsys)
+    shutil.copytree(unfinished_run, run_dir)
     checkpoints = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
     manifests = [json.loads((folder / "checkpoint.json").read_text())["replay"]["store"] for folder in checkpoints]
     assert len(manifests) == 2
@@ -441,22 +459,15 @@ def test_the_run_trains_exactly_its_budget_or_says_why_not():
 
 
 @pytest.mark.parametrize("damage", ["short", "cut mid-row"])
-def test_eval_csv_out_of_step_with_the_checkpoint_is_rewritten_from_it_on_resume(tmp_path, monkeypatch, capsys, damage):
+def test_eval_csv_out_of_step_with_the_checkpoint_is_rewritten_from_it_on_resume(
+    unfinished_evaluated_run, tmp_path, capsys, damage
+):
     """eval.csv shorter than the checkpoint expects (was: unresumable), or cut mid-row (was: the next row appended to
     the cut one): the resume writes it back from the checkpoint, says so in one line, and every evaluation ends as
     the uninterrupted run wrote it (frame and return), once each."""
     run_dir = tmp_path / "run"
-    evaluations = ["--eval-every-frames", "200", "--eval-episodes", "1"]
-    original = DrQv2.save
-
-    def full_disk(self, path, *args, **kwargs):  # stopped at its final save: checkpoints at frames 400 and 600
-        if "final_model" not in str(path):
-            return original(self, path, *args, **kwargs)
-        raise OSError(errno.ENOSPC, "No space left on device", str(path))
-
-    monkeypatch.setattr(DrQv2, "save", full_disk)
-    assert main([*_flags(run_dir), *evaluations]) == 1
-    monkeypatch.setattr(DrQv2, "save", original)
+    evaluations = list(EVALUATIONS)
+    shutil.copytree(unfinished_evaluated_run, run_dir)  # stopped at its final save: checkpoints at frames 400 and 600
     eval_csv = run_dir / "eval.csv"
     uninterrupted = [line.split(",")[:3] for line in eval_csv.read_text().splitlines()]
     assert [row[0] for row in uninterrupted] == ["frame", "0", "200", "400", "600"]
@@ -509,3 +520,166 @@ def test_a_run_folder_whose_result_file_is_unreadable_is_refused_in_one_line_wit
     with pytest.raises(ValueError) as refused:
         check_run_folder(TrainConfig(env="cartpole-balance", run_dir=str(run_dir)))
     assert not retryable(refused.value)
+
+
+def _evaluated_flags(run_dir: Path) -> list[str]:
+    """A tiny run with a scheduled evaluation at frame 400 and the evaluation of its final model (one episode)."""
+    flags = _flags(run_dir)
+    flags[flags.index("--eval-every-frames") + 1] = "400"
+    return [*flags, "--eval-episodes", "1"]
+
+
+def _same_end(run_dir: Path, reference: Path) -> None:
+    """``run_dir`` finished as the uninterrupted ``reference``: the same weights, evaluations and CSV rows."""
+    result, expected = (json.loads((folder / RESULT_JSON).read_text()) for folder in (run_dir, reference))
+    for key in ("frames", "agent_steps", "final_eval", "saved_model_eval"):
+        assert result[key] == expected[key], key
+    weights, reference_weights = (
+        load_from_zip_file(folder / FINAL_MODEL)[1]["policy"] for folder in (run_dir, reference)
+    )
+    assert all(th.equal(weights[name], reference_weights[name]) for name in reference_weights)
+    rows, reference_rows = ([row.rsplit(",", 1)[0] for row in (folder / "eval.csv").read_text().splitlines()]
+                            for folder in (run_dir, reference))  # fmt: skip
+    assert rows == reference_rows  # but the wall time
+    assert not (run_dir / CHECKPOINTS_DIR).exists()
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("uninterrupted") / "run"
+    threads = th.get_num_threads()
+    assert main(_evaluated_flags(run_dir)) == 0
+    th.set_num_threads(threads)
+    return run_dir
+
+
+@pytest.mark.parametrize("phase", ["resume", "final save", "evaluation", "result file"])
+def test_a_stop_after_learn_finishes_or_exits_75_and_the_rerun_ends_as_an_uninterrupted_run(
+    tmp_path, monkeypatch, capsys, uninterrupted_run, phase
+):
+    """SIGTERM while the run resumes, saves its final model, evaluates it or writes its result file (each patched to
+    send it to this process): before the result file, a checkpoint at the last step (of the run as it was before the
+    evaluation) and exit status 75 with the usual line; while the result file is written, the run finishes. The same
+    command then ends as the uninterrupted run did, nothing trained twice."""
+    import os
+    import signal
+
+    from sb3_collapse.monitoring.evaluation import PeriodicEvaluation
+    from sb3_collapse.run import runner
+    from sb3_collapse.run.checkpoints import ResumableCheckpoints
+
+    run_dir, flags = tmp_path / "run", _evaluated_flags(tmp_path / "run")
+
+    def sigterm_then(original, when=lambda *args: True):
+        def patched(*args, **kwargs):
+            if when(*args):
+                os.kill(os.getpid(), signal.SIGTERM)
+            return original(*args, **kwargs)
+
+        return patched
+
+    if phase == "resume":
+        _unfinished_run(run_dir, "--eval-every-frames", "400", "--eval-episodes", "1")  # flags' values
+        capsys.readouterr()
+        monkeypatch.setattr(ResumableCheckpoints, "resume", sigterm_then(ResumableCheckpoints.resume))
+    elif phase == "final save":
+        monkeypatch.setattr(DrQv2, "save", sigterm_then(DrQv2.save, lambda _, path: "final_model" in str(path)))
+    elif phase == "evaluation":
+        patched = sigterm_then(PeriodicEvaluation._run_episodes, lambda _, prefix: prefix == "eval_saved_model")
+        monkeypatch.setattr(PeriodicEvaluation, "_run_episodes", patched)
+    else:
+        monkeypatch.setattr(runner, "write_json_atomically", sigterm_then(runner.write_json_atomically))
+    status = main(flags)
+    printed = capsys.readouterr()
+    monkeypatch.undo()
+    if phase == "result file":
+        assert status == 0 and "SIGTERM: the training and its evaluation are done; finishing" in printed.out
+    else:
+        assert status == 75, printed.err
+        error = printed.err.strip().splitlines()
+        assert len(error) == 1 and error[0].startswith("Stopped by SIGTERM after the checkpoint ")
+        assert "(SIGINT again" not in printed.out  # a second SIGTERM does not stop at once
+        assert not (run_dir / RESULT_JSON).exists()
+        kept = checkpoint_folders(run_dir / CHECKPOINTS_DIR)[0]  # resumed from step 30: stopped there
+        assert kept.name == ("step_000000000030" if phase == "resume" else "step_000000000040")
+        assert error[0].startswith(f"Stopped by SIGTERM after the checkpoint {kept}: run the same command again")
+        assert main(flags) == 0
+        rerun = capsys.readouterr().out
+        assert "Resuming" in rerun and "Checkpoint at frame" not in rerun  # nothing trained again
+    _same_end(run_dir, uninterrupted_run)
+
+
+def test_full_disk_while_writing_a_replay_chunk_is_one_line_with_one_remedy(tmp_path, monkeypatch, capsys):
+    from sb3_collapse.run import replay_checkpoint
+
+    run_dir, original, writes = tmp_path / "run", replay_checkpoint._write, []
+
+    def full_disk(file, data):
+        writes.append(1)
+        if checkpoint_folders(run_dir / CHECKPOINTS_DIR):  # the first checkpoint fits
+            raise OSError(errno.ENOSPC, "No space left on device")
+        original(file, data)
+
+    monkeypatch.setattr(replay_checkpoint, "_write", full_disk)
+    assert main(_flags(run_dir)) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1, error
+    assert error[0].startswith(f"error: could not write a checkpoint into {run_dir / CHECKPOINTS_DIR} (No space left ")
+    assert "bytes of replay chunks to write; none kept" in error[0]
+    assert error[0].endswith(
+        "the previous checkpoint step_000000000010 is intact. Free space (or fix the folder), then run the same "
+        "command again to resume."
+    )
+    assert error[0].lower().count("free space") == 1 and error[0].count("resume") == 1
+    monkeypatch.undo()
+    assert main(_flags(run_dir)) == 0
+    assert "from its checkpoint at frame 200 (step_000000000010)" in capsys.readouterr().out
+
+
+def test_a_fallback_to_an_older_checkpoint_announces_only_the_frame_it_resumes_from(tmp_path, monkeypatch, capsys):
+    """The newest checkpoint's own replay chunk has a byte changed: found as it is read (its CRC-32), after the
+    checkpoint was chosen. The run says it resumes from the one before, at its frame, and never names the newer
+    one's frame as where it resumes."""
+    run_dir = tmp_path / "run"
+    _unfinished_run(run_dir)
+    capsys.readouterr()
+    newest, older = checkpoint_folders(run_dir / CHECKPOINTS_DIR)
+    chunks = [
+        {chunk["file"] for chunk in json.loads((folder / "checkpoint.json").read_text())["replay"]["store"]["chunks"]}
+        for folder in (newest, older)
+    ]
+    (own,) = chunks[0] - chunks[1]
+    chunk = run_dir / CHECKPOINTS_DIR / "replay" / own
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    assert main(_flags(run_dir)) == 0
+    out = capsys.readouterr().out.splitlines()
+    resuming = [line for line in out if line.startswith("Resuming")]
+    assert resuming == [f"Resuming {run_dir} from its checkpoint at frame 400 ({older.name})."]
+    assert not [line for line in out[: out.index(resuming[0])] if "600" in line]  # (the resumed run writes one at 600)
+    assert any(line.startswith(f"Note: checkpoint {newest} is damaged (") for line in out)
+    assert json.loads((run_dir / RESULT_JSON).read_text())["frames"] == 800
+
+
+def test_only_a_sigint_offers_to_stop_at_once(capsys):
+    """A SIGTERM's line does not tell a scheduler about SIGINT (a second SIGTERM changes nothing); a SIGINT's does."""
+    import signal
+
+    from sb3_collapse.run.checkpoints import ResumableCheckpoints
+    from sb3_collapse.run.signals import stop_signals
+
+    checkpoints = ResumableCheckpoints("unused", every_frames=0)
+    with stop_signals(checkpoints):
+        signal.raise_signal(signal.SIGTERM)
+        signal.raise_signal(signal.SIGTERM)  # nothing more
+        assert checkpoints.stop_signal == "SIGTERM"
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [line for line in lines if line] == [
+        "SIGTERM: writing a checkpoint at the end of this round, then stopping."
+    ] * 2
+    with stop_signals(ResumableCheckpoints("unused", every_frames=0)):
+        signal.raise_signal(signal.SIGINT)
+    assert capsys.readouterr().out.strip() == (
+        "SIGINT: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now)."
+    )

@@ -1,7 +1,6 @@
 import csv
 import json
-import subprocess
-import sys
+import shutil
 
 import numpy as np
 import pytest
@@ -14,15 +13,14 @@ from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
 from sb3_collapse.train import main
+from tests.shared_runs import TINY_WALKER_RUN
 
 
-def test_train_end_to_end(tmp_path):
-    config = TrainConfig(
-        env="walker-walk", frames=800, action_repeat=20, seed_frames=400, batch_size=8, hidden_dim=64,
-        eval_every_frames=400, eval_episodes=1, logdir=str(tmp_path), progress_bar=False, replay_sampling="sb3",
-    )
-    result = train(config)
-    assert result.run_dir == tmp_path / "walker-walk_s0"
+def test_train_end_to_end(tiny_walker_run, tmp_path_factory, tmp_path):
+    # The session's tiny run (tests/conftest.py: walker-walk, 800 frames at action repeat 20, evaluated every 400).
+    config = TrainConfig(**TINY_WALKER_RUN, logdir=str(tmp_path_factory.getbasetemp() / "tiny_walker_run"))
+    result = tiny_walker_run
+    assert result.run_dir == tmp_path_factory.getbasetemp() / "tiny_walker_run" / "walker-walk_s0"
     with open(result.run_dir / "eval.csv") as file:
         rows = list(csv.DictReader(file))
     # The scheduled evaluations (the reference's: frame 0, then every 400 frames, none at the budget's end).
@@ -58,8 +56,10 @@ def test_train_end_to_end(tmp_path):
     assert [e.step for e in accumulator.Scalars("eval/mean_reward")] == [0, 20]
     assert [e.step for e in accumulator.Scalars("eval_saved_model/mean_reward")] == [40]
 
-    # A second run with the same name gets its own folder.
-    second = train(TrainConfig(**{**config.__dict__, "frames": 80, "eval_every_frames": 0}))
+    # A second run with the same name gets its own folder (beside a copy of the first: the session's stays as it is).
+    shutil.copytree(result.run_dir, tmp_path / "walker-walk_s0")
+    changes = {"frames": 80, "eval_every_frames": 0, "snapshots": False, "logdir": str(tmp_path), "torch_threads": None}
+    second = train(TrainConfig(**{**config.__dict__, **changes}))
     assert second.run_dir == tmp_path / "walker-walk_s0_2"
     assert second.evaluations == []
 
@@ -132,10 +132,12 @@ def test_train_into_an_exact_run_dir(tmp_path):
     assert json.loads((transplanted.run_dir / "config.json").read_text())["init_mlp"] == str(run_dir / "final_model")
 
 
-def test_help_documents_units():
-    out = subprocess.run(
-        [sys.executable, "-m", "sb3_collapse.train", "--help"], capture_output=True, text=True, check=True
-    ).stdout
+def test_help_documents_units(monkeypatch, capsys):
+    monkeypatch.setenv("COLUMNS", "80")  # the width of `python -m sb3_collapse.train --help` into a pipe
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
     for flag in ("--frames", "--eval-every-frames", "--seed-frames", "--stddev-schedule", "--buffer-size", "--logdir"):
         assert flag in out
     assert "in frames" in out and "agent steps" in out
@@ -198,17 +200,20 @@ def test_train_sb3_sac_with_an_intervention(tmp_path):
     assert TrainConfig(reset_rule=True).variant_name == "drqv2+reset"
 
 
-def test_train_with_parallel_envs(tmp_path):
+def test_train_with_parallel_envs(tmp_path, capsys):
     """--n-envs 2: subprocess envs, frames summed over them, one update per 2 transitions, the timings in
-    result.json."""
-    out = subprocess.run(
-        [sys.executable, "-m", "sb3_collapse.train", "--env", "walker-walk", "--frames", "320", "--action-repeat", "20",
+    result.json. The command's main in this process: the environments' processes are the subprocesses."""
+    threads = th.get_num_threads()
+    status = main(
+        ["--env", "walker-walk", "--frames", "320", "--action-repeat", "20",
          "--size", "48", "--seed-frames", "160", "--batch-size", "8", "--hidden-dim", "32", "--n-envs", "2",
          "--eval-every-frames", "320", "--eval-episodes", "1", "--collapse-metrics-every-frames", "0",
          "--replay-sampling", "sb3",
          "--run-dir", str(tmp_path / "run"), "--torch-threads", "1", "--no-progress-bar"],
-        capture_output=True, text=True, check=True,
-    ).stdout
+    )  # fmt: skip
+    th.set_num_threads(threads)
+    assert status == 0
+    out = capsys.readouterr().out
     assert "summed over 2 envs" in out
     summary = json.loads((tmp_path / "run" / "result.json").read_text())
     assert summary["frames"] == 320 and summary["agent_steps"] == 16

@@ -161,3 +161,31 @@ def _activation_taps(layers: Iterable[nn.Module], kind: type[nn.Module], prefix:
 def layer_parameters(model: BaseAlgorithm | BasePolicy) -> dict[str, tuple[nn.Parameter, ...]]:
     """:return: name -> the parameters of the layer that computes it, input to output (``cnn0`` left out)"""
     return {name: tap.parameters for name, tap in layer_taps(model).items() if tap.parameters}
+
+
+def critic_layer_taps(model: BaseAlgorithm | BasePolicy) -> dict[str, LayerTap]:
+    """
+    :return: name -> :class:`LayerTap` of each Q network ``q<k>`` of a DrQv2, TD3, DDPG or SAC critic (algorithm or
+        policy), named as the actor's (docs/monitoring.md#the-critic): ``q<k>.mlp0`` the network's input (the
+        critic's features and the action, concatenated), ``q<k>.mlp1``.. after each hidden Linear + activation,
+        ``q<k>`` the Q value ``(n, 1)``; ``LayerMappingError`` for an unknown layout
+    """
+    policy = policy_of(model)
+    heads = getattr(getattr(policy, "critic", None), "q_networks", None)
+    if not heads:
+        raise LayerMappingError(
+            f"Cannot map the critic of {type(policy).__name__}: critic layers are defined for DrQv2 and for SB3's "
+            "TD3, DDPG and SAC policies (a `critic` with `q_networks`)."
+        )
+    taps: dict[str, LayerTap] = {}
+    for k, head in enumerate(heads, start=1):
+        modules = list(head)
+        linears = [i for i, module in enumerate(modules) if isinstance(module, nn.Linear)]
+        if not linears or linears[-1] != len(modules) - 1:
+            raise LayerMappingError(
+                f"Cannot map the layers of Q network q{k}: expected Linear, activation, ... Linear."
+            )
+        taps[f"q{k}.mlp0"] = LayerTap(modules[0], (), source="input")
+        taps.update(_activation_taps(modules[: linears[-1]], nn.Linear, f"q{k}.mlp"))
+        taps[f"q{k}"] = LayerTap(modules[-1], tuple(modules[-1].parameters()))
+    return taps

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+import io
 import json
 import os
 import pathlib
@@ -14,10 +16,12 @@ import numpy as np
 import stable_baselines3
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
+from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.rounds import TRAIN_FREQ_UNITS
 from sb3_collapse.errors import ParameterError, SpaceError
 
@@ -124,7 +128,8 @@ def compile_mode(compile_update: bool | str, device: th.device) -> str:
 
 def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv2.load") -> None:
     """Check ``load``'s ``path`` and ``kwargs`` before SB3 reads anything (``name``: the caller): ``TypeError`` for
-    ``init_from``, ``FileNotFoundError`` without the file, ``ParameterError`` for a zip of one of SB3's algorithms."""
+    ``init_from``, ``FileNotFoundError`` without the file, ``ParameterError`` for a zip of one of SB3's algorithms (a
+    path, or a file object: read from its position, then put back there)."""
     if "init_from" in kwargs:
         raise TypeError(
             f"{name} does not transplant layers (init_from): it restores the saved weights. Build a new "
@@ -136,15 +141,24 @@ def check_load_arguments(path: Any, kwargs: Mapping[str, Any], name: str = "DrQv
             suffix = pathlib.Path(path).suffix
             tried = f"{os.fspath(path)!r}" + ("" if suffix == ".zip" else f" (nor {os.fspath(path) + '.zip'!r})")
             raise FileNotFoundError(f"{name}: no model file {tried}; give the path of a zip saved by DrQv2.save.")
-        saved = saved_sb3_algorithm(found)
-        if saved is not None:
-            algorithm, policy = saved
-            loader = f"stable_baselines3.{algorithm}.load" if algorithm else "the SB3 algorithm that saved it"
-            raise ParameterError(
-                "path",
-                f"path {os.fspath(path)!r} holds a {algorithm or 'Stable-Baselines3'} checkpoint (policy {policy}), "
-                f"not a DrQv2 one: load it with {loader}.",
-            )
+        saved, shown = saved_sb3_algorithm(found), f"path {os.fspath(path)!r}"
+    elif isinstance(path, io.IOBase) and path.readable() and path.seekable():
+        start = path.tell()
+        try:
+            saved = saved_sb3_algorithm(path)
+        finally:
+            path.seek(start)  # SB3's load reads the zip from where the caller left the stream
+        shown = f"path (a {type(path).__name__} file object)"
+    else:
+        return
+    if saved is not None:
+        algorithm, policy = saved
+        loader = f"stable_baselines3.{algorithm}.load" if algorithm else "the SB3 algorithm that saved it"
+        raise ParameterError(
+            "path",
+            f"{shown} holds a {algorithm or 'Stable-Baselines3'} checkpoint (policy {policy}), not a DrQv2 one: load "
+            f"it with {loader}.",
+        )
 
 
 def zip_file(path: str | os.PathLike[str]) -> pathlib.Path | None:
@@ -154,9 +168,9 @@ def zip_file(path: str | os.PathLike[str]) -> pathlib.Path | None:
     return given if given.is_file() else zipped if given.suffix != ".zip" and zipped.is_file() else None
 
 
-def saved_sb3_algorithm(path: pathlib.Path) -> tuple[str | None, str] | None:
-    """:return: ``(algorithm or None, policy class)`` read from the ``data`` of a zip saved by one of SB3's algorithms;
-    ``None`` for another policy or an unreadable file"""
+def saved_sb3_algorithm(path: pathlib.Path | io.IOBase) -> tuple[str | None, str] | None:
+    """:return: ``(algorithm or None, policy class)`` read from the ``data`` of a zip (a path or a seekable file object,
+    read from its position) saved by one of SB3's algorithms; ``None`` for another policy or an unreadable file"""
     try:
         with zipfile.ZipFile(path) as archive:
             data = json.loads(archive.read("data"))
@@ -171,6 +185,61 @@ def saved_sb3_algorithm(path: pathlib.Path) -> tuple[str | None, str] | None:
     if algorithm == "TD3" and data.get("policy_delay") == 1 and data.get("target_noise_clip") == 0.0:
         algorithm = "DDPG"  # SB3's DDPG is TD3 with these settings, and saves TD3's policies
     return (algorithm if hasattr(stable_baselines3, algorithm) else None), policy
+
+
+_SB3_BUFFER_ARGUMENTS = {  # what SB3 passes to every replay buffer itself -> where it comes from
+    "self": "", "buffer_size": "buffer_size", "observation_space": "the env", "action_space": "the env",
+    "device": "device", "n_envs": "the env", "optimize_memory_usage": "optimize_memory_usage",
+}  # fmt: skip
+
+
+def _keywords(replay_buffer_class: type) -> set[str] | None:
+    """:return: the keyword arguments ``replay_buffer_class`` takes (its ``__init__``'s and those it passes on with
+    ``**kwargs`` to a base class), ``None`` when some ``**kwargs`` go further"""
+    names: set[str] = set()
+    for cls in replay_buffer_class.__mro__:
+        if "__init__" not in vars(cls):
+            continue
+        parameters = inspect.signature(cls.__init__).parameters.values()
+        names |= {p.name for p in parameters if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+        if not any(p.kind == p.VAR_KEYWORD for p in parameters):
+            return names
+    return None
+
+
+def check_replay_buffer_kwargs(
+    replay_buffer_class: type[ReplayBuffer] | None, replay_buffer_kwargs: Mapping[str, Any], policy_class: type
+) -> None:
+    """
+    :param replay_buffer_class: the replay buffer ``DrQv2`` chose (``None``: SB3's ``NStepReplayBuffer`` or
+        ``ReplayBuffer``, as SB3 chooses)
+    :param replay_buffer_kwargs: its keyword arguments
+    :param policy_class: the model's policy, for the message
+    :raises ParameterError: naming ``replay_buffer_kwargs['<key>']`` for a keyword that buffer does not take (SB3
+        would raise a bare ``TypeError`` as it builds it); ``sampling``, ``frame_stack`` and ``min_episode_length``
+        are ``FrameStackReplayBuffer``'s (docs/algorithm.md)
+    """
+    buffer = replay_buffer_class or NStepReplayBuffer
+    taken = _keywords(buffer)
+    if taken is None:
+        return
+    taken -= set(_SB3_BUFFER_ARGUMENTS)
+    frame_stack_only = (_keywords(FrameStackReplayBuffer) or set()) - taken - set(_SB3_BUFFER_ARGUMENTS)
+    for key in replay_buffer_kwargs:
+        if key in taken:
+            continue
+        here = f"the replay buffer here (policy {policy_class.__name__})"
+        if key in _SB3_BUFFER_ARGUMENTS:
+            message = f"is set by the model ({_SB3_BUFFER_ARGUMENTS[key]}): leave it out."
+        elif key in frame_stack_only:
+            message = (
+                "is a setting of FrameStackReplayBuffer, the buffer of CnnPolicy on a frame-stacked pixel env (or "
+                f"replay_buffer_class=FrameStackReplayBuffer), and {buffer.__name__} is {here}, which samples as SB3 "
+                "does: leave it out (docs/algorithm.md)."
+            )
+        else:
+            message = f"is not a keyword of {buffer.__name__}, {here}: it takes {', '.join(sorted(taken))}."
+        raise ParameterError("replay_buffer_kwargs", f"replay_buffer_kwargs[{key!r}] {message}")
 
 
 def compile_losses(critic_loss: Callable, actor_loss: Callable, compile_update: bool | str, device: th.device) -> tuple:

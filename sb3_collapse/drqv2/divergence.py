@@ -10,7 +10,7 @@ from typing import Any
 
 import torch as th
 
-from sb3_collapse.errors import DivergenceError
+from sb3_collapse.errors import DivergenceError, InputError
 
 GROWTH_FACTOR = 1e4  # times its starting scale a loss may grow before a warning
 REFERENCE_DUMPS = 10  # log dumps whose losses set the starting scale
@@ -21,6 +21,33 @@ def all_finite(tensors: Iterable[th.Tensor]) -> th.Tensor:
     """:return: a 0-d boolean tensor on the ``tensors``' device: whether every entry of every tensor is finite"""
     tensors = list(tensors)
     return th.stack(th._foreach_norm(tensors)).isfinite().all() if tensors else th.tensor(True, device="cpu")
+
+
+def first_non_finite(tensors: Mapping[str, Any]) -> str | None:
+    """:return: the name of the first floating-point tensor of ``tensors`` (a ``state_dict``; other values skipped)
+    holding a NaN or an infinity, ``None`` when there is none (one host synchronization for them all)"""
+    names = [name for name, value in tensors.items() if isinstance(value, th.Tensor) and value.is_floating_point()]
+    if not names:
+        return None
+    device = tensors[names[0]].device  # a state_dict on one device: no copy
+    finite = th.stack([tensors[name].isfinite().all().to(device) for name in names]).cpu()
+    return None if bool(finite.all()) else names[int((~finite).nonzero()[0])]
+
+
+def check_finite_weights(tensors: Mapping[str, Any], where: str) -> None:
+    """Refuse the weights ``tensors`` (a ``state_dict``) read from ``where`` (a file, in the caller's words) when one
+    is not finite: a diverged model gives meaningless actions (or none MuJoCo accepts) and probes.
+
+    :raises InputError: naming ``where`` and the first non-finite tensor
+    """
+    name = first_non_finite(tensors)
+    if name is not None:
+        value = tensors[name]
+        count = int((~value.isfinite()).sum())
+        raise InputError(
+            f"{where} holds weights that are not finite: {name!r} has {count:,} NaN or infinite value(s) of "
+            f"{value.numel():,} (a diverged model); give a checkpoint saved before it diverged."
+        )
 
 
 class DivergenceGuard:

@@ -16,7 +16,13 @@ from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.common.model import read_env_config
 from sb3_collapse.drqv2 import replay_memory
 from sb3_collapse.drqv2.augmentation import draw_shifts
-from sb3_collapse.drqv2.checks import check_compile_update, check_hyperparameters, compile_losses, uses_cuda_graphs
+from sb3_collapse.drqv2.checks import (
+    check_compile_update,
+    check_hyperparameters,
+    check_replay_buffer_kwargs,
+    compile_losses,
+    uses_cuda_graphs,
+)
 from sb3_collapse.drqv2.divergence import DivergenceGuard, all_finite
 from sb3_collapse.drqv2.encoders import PixelEncoder, StateEncoder
 from sb3_collapse.drqv2.policies import (
@@ -35,6 +41,7 @@ from sb3_collapse.drqv2.policies import (
     soft_update,
 )
 from sb3_collapse.drqv2.prefetch import ReplayPrefetcher
+from sb3_collapse.drqv2.replay_buffer import refuse_non_finite
 from sb3_collapse.drqv2.rounds import RoundsAlgorithm
 from sb3_collapse.drqv2.sb3_compat import ConstructorCallbacks, combine_callbacks
 from sb3_collapse.drqv2.schedules import ScheduleSpec, StddevSchedule
@@ -70,7 +77,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     :param compile_update: ``torch.compile`` the losses: ``True`` or a ``torch.compile`` mode
     :param callback: callback(s) run at every ``learn()`` before its own, saved with the model where possible
     :param replay_buffer_class: ``None``: ``FrameStackReplayBuffer`` on a frame-stacked env, SB3's otherwise
-    :param replay_buffer_kwargs: its keyword arguments (``dict(sampling="drqv2")``: finished episodes only)
+    :param replay_buffer_kwargs: its keyword arguments (``dict(sampling="drqv2")``: finished episodes only, with
+        ``FrameStackReplayBuffer``); copied, not changed
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder, ``None`` for none
     :param policy_kwargs: keyword arguments of the policy (``DrQv2Policy``): DrQ-v2's and SB3's
@@ -140,7 +148,8 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
             policy, env, learning_rate, buffer_size, learning_starts, batch_size, tau, gamma,  # type: ignore[arg-type]
             train_freq, gradient_steps, action_noise=action_noise, optimize_memory_usage=optimize_memory_usage,
             replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs, n_steps=n_steps, policy_kwargs=policy_kwargs,
+            replay_buffer_kwargs=dict(replay_buffer_kwargs or {}),  # a copy: _setup_model fills in its defaults
+            n_steps=n_steps, policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size, tensorboard_log=tensorboard_log, verbose=verbose, device=device,
             seed=seed, sde_support=False, support_multi_env=True,
             supported_action_spaces=None,  # checked in _setup_model, with a clearer message than SB3's assertion
@@ -171,6 +180,7 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
         with replay_memory.replay_buffer_setup(self):  # the buffer chosen; a MemoryError suggests a size
+            check_replay_buffer_kwargs(self.replay_buffer_class, self.replay_buffer_kwargs, self.policy_class)
             super()._setup_model()
         if self.cudnn_benchmark and self.device.type == "cuda" and not th.are_deterministic_algorithms_enabled():
             th.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest kernels
@@ -216,6 +226,10 @@ class DrQv2(ConstructorCallbacks, RoundsAlgorithm):
             deterministic = action_noise is not None  # an SB3 action noise replaces the schedule's Gaussian
             unscaled_action, _ = self.predict(self._last_obs, deterministic=deterministic)  # type: ignore[arg-type]
             if not np.isfinite(unscaled_action).all():  # on the host already: checking costs nothing
+                observations = self._last_obs.values() if isinstance(self._last_obs, dict) else [self._last_obs]
+                for values in observations:  # an env's NaN (a reset's: not stored yet) is not a divergence
+                    if np.issubdtype(np.asarray(values).dtype, np.floating):
+                        refuse_non_finite(values, n_envs, "observation")
                 raise DivergenceError(
                     f"training diverged: the actor's action is not finite after update {self._n_updates} "
                     f"(frame {self.num_frames:,})."

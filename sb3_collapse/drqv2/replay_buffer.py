@@ -14,7 +14,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_collapse.errors import ParameterError
+from sb3_collapse.errors import NonFiniteDataError, ParameterError
 
 REPLAY_SAMPLINGS = ("sb3", "drqv2")
 FALLBACK_ADVICE = (
@@ -154,7 +154,12 @@ class FrameStackReplayBuffer(ReplayBuffer):
         infos: list[dict[str, Any]],
     ) -> None:
         """SB3's ``add``, ``obs`` ``(n_envs, channels * frame_stack, height, width)``; a ``next_obs`` that is not its
-        ``obs`` shifted by one frame raises ``ValueError`` (nothing stored)."""
+        ``obs`` shifted by one frame raises ``ValueError``, a non-finite ``reward`` or (float frames) ``next_obs``
+        ``NonFiniteDataError`` (nothing stored)."""
+        refuse_non_finite(reward, self.n_envs, "reward")
+        if self.frames.dtype.kind == "f":  # pixels (integers) cannot hold a NaN
+            refuse_non_finite(next_obs, self.n_envs, "observation")
+            refuse_non_finite(obs, self.n_envs, "observation")  # an episode's first
         k, frame_shape = self.frame_stack, self.frame_shape
         obs_frames = np.asarray(obs).reshape(self.n_envs, k, *frame_shape)
         next_frames = np.asarray(next_obs).reshape(self.n_envs, k, *frame_shape)
@@ -344,6 +349,20 @@ def n_step_returns(
     last = (batch_inds + used) % size
     dones = (buffer.dones[last, env_indices] * (1.0 - buffer.timeouts[last, env_indices]))[:, None]
     return returns, discounts, dones.astype(np.float32), last
+
+
+def refuse_non_finite(values: np.ndarray, n_envs: int, what: str) -> None:
+    """:raises NonFiniteDataError: naming the first env whose ``values`` (a ``what`` per env, ``(n_envs, ...)``) are
+    not all finite"""
+    rows = np.asarray(values).reshape(n_envs, -1)
+    bad = ~np.isfinite(rows)
+    if bad.any():
+        env = int(bad.any(axis=1).argmax())
+        raise NonFiniteDataError(
+            f"env {env} returned {'an' if what[0] in 'aeiou' else 'a'} {what} that is not finite "
+            f"({rows[env][bad[env]][0]}), refused before it was stored: bad data from the environment, not a "
+            "divergence of the training."
+        )
 
 
 def _check_layout(observation_space: spaces.Space, frame_stack: int | None) -> int:

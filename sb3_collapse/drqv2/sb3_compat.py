@@ -17,6 +17,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_collapse.common.saved_callbacks import restore_callbacks, saved_callbacks
 from sb3_collapse.drqv2.checks import check_load_arguments
+from sb3_collapse.drqv2.divergence import check_finite_weights
 from sb3_collapse.drqv2.replay_buffer import n_step_returns
 
 SelfConstructorCallbacks = TypeVar("SelfConstructorCallbacks", bound="ConstructorCallbacks")
@@ -64,6 +65,8 @@ class ConstructorCallbacks:
         check_load_arguments(path, kwargs, f"{cls.__name__}.load")
         kwargs = {name: cls.load_parsers.get(name, lambda value: value)(value) for name, value in kwargs.items()}
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[misc]
+        where = path if isinstance(path, (str, pathlib.Path)) else f"the {type(path).__name__} file object"
+        check_finite_weights(model.policy.state_dict(), f"{cls.__name__}.load: {where}")  # before any use of them
         saved = model.__dict__.pop("constructor_callbacks", None)
         if "callback" not in kwargs and saved is not None and saved["specs"]:
             model.callback = restore_callbacks(saved, f"{cls.__name__}.load")

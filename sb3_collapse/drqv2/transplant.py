@@ -20,6 +20,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
 
 from sb3_collapse.drqv2.checks import split_sb3_feature_size, zip_file
+from sb3_collapse.drqv2.divergence import check_finite_weights
 from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.drqv2.policies import DrQv2Policy
 
@@ -257,7 +258,8 @@ def source_key(target_key: str) -> str:
 
 def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]) -> dict[str, th.Tensor]:
     """:return: target ``state_dict`` key -> the source tensor to copy into it, a transplant of ``sources`` into
-    ``policy`` checked (``ValueError`` for a group either lacks, other keys, shapes, dtypes or ``channels_last``)"""
+    ``policy`` checked (``ValueError`` for a group either lacks, other keys, shapes, dtypes or ``channels_last``, or
+    source weights that are not finite)"""
     target_state = policy.state_dict()
     settings = target_settings(policy)
     plan: dict[str, th.Tensor] = {}
@@ -308,6 +310,7 @@ def plan_transplant(policy: DrQv2Policy, sources: Mapping[str, TransplantSource]
                     f"{expected.dtype} in this model."
                 )
             plan[key] = value
+        check_finite_weights({source_key(key): plan[key] for key in targets}, where)  # those it copies
     return plan
 
 

@@ -16,7 +16,7 @@ from gymnasium.utils import EzPickle
 
 from sb3_collapse.envs.registration import DMC_TASKS, DOMAIN_ALIASES, DOMAIN_NAMES
 from sb3_collapse.envs.rendering import ensure_rendering_backend
-from sb3_collapse.errors import ParameterError
+from sb3_collapse.errors import NonFiniteDataError, ParameterError
 
 OBS_TYPES = ("pixels", "state")
 DEFAULT_CAMERA_IDS: dict[str, int] = {"quadruped": 2}  # DrQ-v2 zooms in on the quadruped; 0 otherwise
@@ -316,7 +316,10 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         reward, discount = 0.0, 1.0
         terminated = truncated = False
         for _ in range(self.action_repeat):
-            self._dmc_observation, frame_reward, terminated, truncated, info = self._dmc.step(dmc_action)
+            try:
+                self._dmc_observation, frame_reward, terminated, truncated, info = self._dmc.step(dmc_action)
+            except RuntimeError as error:  # dm_control's PhysicsError: one line, not a traceback
+                raise _physics_error(error, action, self._elapsed_frames + 1) from None
             self._elapsed_frames += 1
             reward += float(frame_reward) * discount
             discount *= float(info["timestep.discount"])
@@ -386,3 +389,16 @@ def make_dmc_env(
     :param obs_type: "pixels" for stacked renders, "state" for the vectorized true state
     """
     return DMCEnv(task, seed, action_repeat, frame_stack, size, camera_id, obs_type)
+
+
+def _physics_error(error: RuntimeError, action: np.ndarray, frame: int) -> Exception:
+    """:return: ``error`` as a ``NonFiniteDataError`` naming the ``action`` and the ``frame`` of the episode when it is
+    dm_control's ``PhysicsError`` (MuJoCo could not step), else ``error``"""
+    from dm_control.rl.control import PhysicsError
+
+    if not isinstance(error, PhysicsError):
+        return error
+    why = "the action is not finite (a diverged policy?)" if not np.isfinite(action).all() else "an unstable simulation"
+    reason = (str(error).strip().splitlines() or [""])[0]
+    return NonFiniteDataError(f"MuJoCo could not step frame {frame} of the episode with the action {action}: {why} "
+                              f"(PhysicsError: {reason}).")  # fmt: skip

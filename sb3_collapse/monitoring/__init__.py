@@ -1,6 +1,6 @@
 """Collapse monitoring: named activations, collapse metrics, the callbacks built on them, the interventions."""
 
-from sb3_collapse.common.layers import LayerTap, layer_parameters, layer_taps
+from sb3_collapse.common.layers import LayerTap, critic_layer_taps, layer_parameters, layer_taps
 from sb3_collapse.monitoring.activations import collect_activations
 from sb3_collapse.monitoring.callbacks import (
     ActivationLogger,
@@ -8,10 +8,12 @@ from sb3_collapse.monitoring.callbacks import (
     FrameScheduleCallback,
     MetricsBatchSampler,
     action_repeat_of,
+    dashboard_layout,
     frames_of,
 )
 from sb3_collapse.monitoring.evaluation import PeriodicEvaluation
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, grad_norms_of, track_grad_norms
+from sb3_collapse.monitoring.health import HealthMemory, measure_health
 from sb3_collapse.monitoring.interventions import (
     INTERVENTIONS,
     InterventionResult,
@@ -25,19 +27,27 @@ from sb3_collapse.monitoring.interventions import (
 )
 from sb3_collapse.monitoring.metrics import (
     action_spread,
+    active_fraction,
     dead_fraction,
     dead_units,
     dormant_ratio,
+    dormant_ratios,
     dormant_units,
     effective_rank,
+    entropy_effective_rank,
+    feature_norm,
     gradient_norm,
     input_correlation,
     layer_metrics,
     numerical_rank,
+    persistent_dormant_fraction,
     saturated_fraction,
     singular_values,
+    stable_rank,
     unit_correlation,
     unit_count,
+    weight_change,
+    weight_magnitude,
     zero_fraction,
 )
 from sb3_collapse.monitoring.periodic_redo import PeriodicReDo
@@ -49,6 +59,7 @@ __all__ = [
     "CollapseMetrics",
     "CollapseReset",
     "FrameScheduleCallback",
+    "HealthMemory",
     "InterventionResult",
     "LayerTap",
     "MetricsBatchSampler",
@@ -56,13 +67,19 @@ __all__ = [
     "PeriodicReDo",
     "action_repeat_of",
     "action_spread",
+    "active_fraction",
     "apply_intervention",
     "collect_activations",
+    "critic_layer_taps",
+    "dashboard_layout",
     "dead_fraction",
     "dead_units",
     "dormant_ratio",
+    "dormant_ratios",
     "dormant_units",
     "effective_rank",
+    "entropy_effective_rank",
+    "feature_norm",
     "frames_of",
     "grad_norm_recorder",
     "grad_norms_of",
@@ -71,7 +88,9 @@ __all__ = [
     "layer_metrics",
     "layer_parameters",
     "layer_taps",
+    "measure_health",
     "numerical_rank",
+    "persistent_dormant_fraction",
     "redo",
     "reset_actor",
     "reset_from_scratch",
@@ -80,8 +99,11 @@ __all__ = [
     "shrink_perturb",
     "shrink_perturb_noise",
     "singular_values",
+    "stable_rank",
     "track_grad_norms",
     "unit_correlation",
     "unit_count",
+    "weight_change",
+    "weight_magnitude",
     "zero_fraction",
 ]

@@ -17,19 +17,14 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import TensorBoardOutputFormat
 
 from sb3_collapse.baselines import collapse_model
 from sb3_collapse.common.model import CollapseModel, env_action_repeat
+from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import Observations, collect_activations
-from sb3_collapse.monitoring.grad_norms import grad_norms_of
-from sb3_collapse.monitoring.metrics import (
-    DORMANT_TAU,
-    SATURATION_LIMIT,
-    SRANK_DELTA,
-    action_spread,
-    layer_metrics,
-    saturated_fraction,
-)
+from sb3_collapse.monitoring.health import DEFAULT_METRICS, HealthMemory, check_health_arguments, measure_health
+from sb3_collapse.monitoring.metrics import DORMANT_TAU, DORMANT_TAUS, SATURATION_LIMIT, SRANK_DELTA
 from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows, atomic_output
 
@@ -184,8 +179,13 @@ class FrameScheduleCallback(ResumableCallback):
 
     def __init__(self, check_every_frames: int, verbose: int = 0) -> None:
         super().__init__(verbose)
-        if check_every_frames < self.min_period:
-            raise ValueError(f"{self.period_parameter} must be >= {self.min_period}, got {check_every_frames}.")
+        whole = isinstance(check_every_frames, (int, np.integer)) and not isinstance(check_every_frames, bool)
+        if not whole or check_every_frames < self.min_period:  # a str, nan, 2.5: refused, not a check at every step
+            raise ParameterError(
+                self.period_parameter,
+                f"{self.period_parameter} must be {'' if whole else 'an integer '}>= {self.min_period}, got "
+                f"{check_every_frames!r}.",
+            )
         setattr(self, self.period_parameter, check_every_frames)
         self.next_check = 0  # the count of the next check, set when learn() starts
         self.n_checks = 0  # checks so far, all learn() calls
@@ -260,7 +260,9 @@ class FrameScheduleCallback(ResumableCallback):
 class CollapseMetrics(FrameScheduleCallback):
     """
     Logs the collapse metrics of every named layer (tags: docs/monitoring.md) on a metrics batch of replay
-    observations every ``check_every_frames`` (while enough are stored); the last values in :attr:`last_metrics`.
+    observations every ``check_every_frames`` (while enough are stored), measured by :func:`measure_health`; the last
+    values in :attr:`last_metrics`. With a TensorBoard logger, it writes a custom-scalars layout into the run's folder
+    (docs/monitoring.md#dashboard).
 
     :param check_every_frames: frames between two checks
     :param batch_size: observations of the metrics batch
@@ -272,9 +274,16 @@ class CollapseMetrics(FrameScheduleCallback):
     :param seed: seed of the batch's indices; ``None``: derived from the model's seed
     :param csv_path: CSV file that each check appends a row per tag to (``None``: none)
     :param verbose: 0 silent, 1 prints a line per check
+    :param metrics: which, of ``HEALTH_METRICS`` (``sb3_collapse.monitoring.health``); ``None``: ``DEFAULT_METRICS``,
+        the tags logged by default
+    :param networks: which, of ``"actor"`` and ``"critic"`` (the critic's layers ``q1.mlp0``.., ``q1``..)
+    :param taus: thresholds of the ``dormant_ratios`` metric, a tag ``dormant_ratio_tau<tau>`` each
+    :param dashboard: write the TensorBoard custom-scalars layout, once per run folder
     """
 
     state_attributes = (*FrameScheduleCallback.state_attributes, "last_metrics")
+    # Not in the saved state (a state written before them stays readable): the memory of the dormant units and of
+    # the weights at the last reset starts again when a resumed run's learn() starts.
 
     def __init__(
         self,
@@ -288,8 +297,16 @@ class CollapseMetrics(FrameScheduleCallback):
         seed: int | None = None,
         csv_path: str | os.PathLike | None = None,
         verbose: int = 0,
+        metrics: Iterable[str] | None = None,
+        networks: Iterable[str] = ("actor",),
+        taus: Sequence[float] = DORMANT_TAUS,
+        dashboard: bool = True,
     ) -> None:
         super().__init__(check_every_frames, verbose)
+        self.metrics = None if metrics is None else list(metrics)
+        self.networks = list(networks)
+        self.taus = list(taus)
+        check_health_arguments(self.measured, self.networks, self.taus)
         if batch_size < 2:
             raise ValueError(f"batch_size must be >= 2 observations (correlations need pairs), got {batch_size}.")
         self.batch_size = batch_size
@@ -300,32 +317,69 @@ class CollapseMetrics(FrameScheduleCallback):
         self.forward_batch_size = forward_batch_size
         self.seed = seed
         self.csv_path = None if csv_path is None else Path(csv_path)
+        self.dashboard = dashboard
         self.sampler: MetricsBatchSampler | None = None
         self.last_metrics: dict[str, float] = {}
+        self.memory = HealthMemory()  # the dormant units of the last check, the weights at the last reset
+        self._memory_step: int | None = None  # the model's reset_step when the memory was started
+        self._dashboard_folders: set[str] = set()
+
+    @property
+    def measured(self) -> tuple[str, ...]:
+        """The metrics measured: :attr:`metrics`, else ``DEFAULT_METRICS``."""
+        return DEFAULT_METRICS if self.metrics is None else tuple(self.metrics)
 
     def _init_callback(self) -> None:
         super()._init_callback()
         self.sampler = MetricsBatchSampler.for_model(self.model, self.seed)
         self._append_rows(self.csv_path, COLLAPSE_METRICS_FIELDS)
+        if self.dashboard:
+            self._write_dashboard()
+
+    def _write_dashboard(self) -> None:
+        """The custom-scalars layout, into the folder of each TensorBoard output of the logger not written yet."""
+        for output in self.logger.output_formats:
+            writer = getattr(output, "writer", None)
+            if (
+                isinstance(output, TensorBoardOutputFormat)
+                and writer is not None
+                and writer.log_dir not in self._dashboard_folders
+            ):
+                writer.add_custom_scalars(dashboard_layout(self.measured, self.networks))
+                writer.flush()
+                self._dashboard_folders.add(writer.log_dir)
+
+    def _on_step(self) -> bool:
+        # A reset from scratch (model.reset_step moves): the weights now are the reference of weight_change, and the
+        # dormant units of the old networks are forgotten; read at each step, so before any update of the new ones.
+        reset_step = getattr(self.model, "reset_step", 0)
+        if self._memory_step != reset_step:
+            self._memory_step = reset_step
+            self.memory = HealthMemory()
+            if "weight_change" in self.measured:
+                self.memory.remember_weights(self.model, self.networks)
+        return super()._on_step()
 
     def compute(self) -> dict[str, float] | None:
         """:return: every metric on a new metrics batch, not logged: tag -> value (``None`` while too few are stored)"""
-        drawn = self._batch_activations(self.layers, batch_size=self.forward_batch_size, device=self.model.device)
-        if drawn is None:
+        assert self.sampler is not None, "The callback is not initialized: pass it to learn() first."
+        batch = self.sampler.sample(self.model, self.batch_size)
+        if batch is None:
             return None
-        activations = drawn[0]
-        values = {
-            f"collapse/{layer}/{name}": value
-            for layer, acts in activations.items()
-            for name, value in layer_metrics(acts, self.tau, self.delta).items()
-        }
-        for layer, norm in grad_norms_of(self.model).items():
-            if self.layers is None or layer in self.layers:
-                values[f"collapse/{layer}/grad_norm"] = norm
-        if "action" in activations:
-            values["collapse/action_std"] = action_spread(activations["action"])
-            values["collapse/action_saturation"] = saturated_fraction(activations["action"], self.saturation_limit)
-        return values
+        return measure_health(
+            self.model,
+            batch[0],
+            self.measured,
+            self.networks,
+            self.layers,
+            tau=self.tau,
+            taus=self.taus,
+            delta=self.delta,
+            saturation_limit=self.saturation_limit,
+            batch_size=self.forward_batch_size,
+            device=self.model.device,
+            memory=self.memory,
+        )
 
     def _on_check(self, frames: int) -> None:
         values = self.compute()
@@ -341,6 +395,57 @@ class CollapseMetrics(FrameScheduleCallback):
             shown = (metric_tag(PAPER.layer, ""), "collapse/action_std")
             summary = ", ".join(f"{k}={v:.4g}" for k, v in values.items() if k.startswith(shown))
             print(f"CollapseMetrics at frame {frames}: {summary}")
+
+
+FIGURE4_PANELS = (
+    ("numerical_rank", "numerical rank"),
+    ("correlation", "correlation"),
+    ("dead_units", "dead units"),
+    ("grad_norm", "gradient norm"),
+)
+"""The paper's Figure 4 columns, metric -> title, as the dashboard groups them (the actor's ``mlp1``, ``mlp2``..)."""
+
+
+def dashboard_layout(metrics: Iterable[str] = DEFAULT_METRICS, networks: Iterable[str] = ("actor",)) -> dict:
+    """
+    The TensorBoard custom-scalars layout of the tags :class:`CollapseMetrics` logs (and :class:`CollapseReset`'s),
+    for ``SummaryWriter.add_custom_scalars``: category -> chart title -> ``["Multiline", [tag regexes]]``.
+
+    :param metrics: the metrics measured (a chart of each, every layer a line, in the "all layers" category)
+    :param networks: the networks measured (the critic's Q values get charts of their own)
+    :return: ``collapse: Figure 4`` (the paper's four panels, a line per hidden layer ``mlp1``, ``mlp2``.., and the
+        actions' spread), ``collapse: reset rule`` (its value against its threshold, resets and escape), then
+        ``collapse: critic`` and ``collapse: all layers``
+    """
+    metrics, networks = list(metrics), list(networks)
+    hidden = r"^collapse/mlp[1-9][0-9]*/{}$"
+    figure4 = {title: ["Multiline", [hidden.format(metric)]] for metric, title in FIGURE4_PANELS if metric in metrics}
+    if "action_std" in metrics:
+        figure4["action spread"] = ["Multiline", [r"^collapse/action_std$"]]
+    layout = {
+        "collapse: Figure 4": figure4,
+        "collapse: reset rule": {
+            "rule value against its threshold": [
+                "Multiline",
+                [r"^collapse/reset_rule/value$", r"^collapse/reset_rule/threshold$"],
+            ],
+            "resets and escape": ["Multiline", [r"^collapse/resets$", r"^collapse/escaped$"]],
+        },
+    }
+    if "critic" in networks:
+        layout["collapse: critic"] = {
+            f"Q {stat[2:]} (Q(s, mu(s)))": ["Multiline", [rf"^collapse/q[0-9]+/{stat}$"]]
+            for stat in ("q_mean", "q_std")
+            if stat in metrics
+        }
+    tags = {"action_std": r"^collapse/action_std$", "action_saturation": r"^collapse/action_saturation$"}
+    tags["dormant_ratios"] = r"^collapse/[^/]+/dormant_ratio_tau.*$"
+    layout["collapse: all layers"] = {
+        metric: ["Multiline", [tags.get(metric, rf"^collapse/[^/]+/{metric}$")]]
+        for metric in metrics
+        if metric not in ("q_mean", "q_std")
+    }
+    return {category: charts for category, charts in layout.items() if charts}
 
 
 class ActivationLogger(FrameScheduleCallback):

@@ -6,11 +6,13 @@ floats; ``H`` the ``n x d`` matrix of the flattened activations, a unit a featur
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable, Sequence
 
 import torch as th
 
 DORMANT_TAU = 0.025  # ReDo's threshold of the dormant ratio (Sokar et al., 2023)
+DORMANT_TAUS = (0.0, 0.025, 0.1)  # the thresholds of ReDo's paper (Sokar et al., 2023, Figures 1-3), in one check
+STABLE_RANK_MASS = 0.99  # Plasticine's stable rank: singular values up to 99% of their sum
 SRANK_DELTA = 0.01  # Kumar et al.'s (2021) threshold of the effective rank
 SATURATION_LIMIT = 0.99  # an action component is saturated when its absolute value exceeds this
 
@@ -238,26 +240,215 @@ def gradient_norm(gradients: Iterable[th.Tensor | None]) -> float:
     return float(th.stack(squares).sum().sqrt()) if squares else 0.0
 
 
-def layer_metrics(activations: th.Tensor, tau: float = DORMANT_TAU, delta: float = SRANK_DELTA) -> dict[str, float]:
+def dormant_ratios(activations: th.Tensor, taus: Sequence[float] = DORMANT_TAUS) -> dict[float, float]:
     """
-    Every activation metric of one layer (float64; the ranks and the input correlation from one Gram matrix).
+    ReDo's dormant ratio (:func:`dormant_ratio`) at several thresholds from one score per unit, as dopamine's ReDo
+    code scores a layer (``labs/redo/weight_recyclers.py``, ``estimate_neuron_score``: ``score = mean |a|`` over every
+    axis but the unit's, ``score /= mean(score) + 1e-9``; dormant when ``score <= tau``).
+
+    :param activations: ``(n, d)`` or ``(n, C, height, width)`` activations
+    :param taus: thresholds, each >= 0, relative to the layer's mean
+    :return: tau -> the fraction of dormant units, in ``[0, 1]``
+    """
+    if any(tau < 0 for tau in taus):
+        raise ValueError(f"taus must be >= 0, got {list(taus)}.")
+    score = unit_activations(activations).double().abs().mean(1)
+    score = score / (score.mean() + 1e-9)
+    thresholds = th.as_tensor(list(taus), dtype=score.dtype, device=score.device)
+    values = (score[None, :] <= thresholds[:, None]).double().mean(1).tolist()  # one host transfer for every tau
+    return dict(zip(taus, values, strict=True))
+
+
+def persistent_dormant_fraction(dormant: th.Tensor, previous: th.Tensor) -> float:
+    """
+    The fraction of a layer's units dormant at this check and at the previous one (dopamine's ReDo follows the units
+    that stay dormant; Sokar et al., 2023, Section 3): ``mean(dormant & previous)``.
+
+    :param dormant: ``(units,)`` boolean mask of this check (:func:`dormant_units`)
+    :param previous: ``(units,)`` boolean mask of the previous check, same layer
+    :return: a fraction in ``[0, 1]``, at most each mask's dormant ratio
+    """
+    if dormant.shape != previous.shape:
+        raise ValueError(
+            f"previous must have the shape of dormant {tuple(dormant.shape)}, got {tuple(previous.shape)}."
+        )
+    return float((dormant & previous.to(dormant.device)).double().mean())
+
+
+def active_fraction(activations: th.Tensor) -> float:
+    """
+    Fraction of active units, FAU (Ma et al., 2024, "Revisiting plasticity in visual reinforcement learning", eq. 1):
+    ``FAU = (1 / n) sum_i (1 / M) sum_m 1[a_m(x_i) > 0]``, the mean over the inputs of the fraction of the ``M``
+    activations (a feature, or a channel at one position) that are positive.
+
+    :param activations: ``(n, *unit_shape)`` activations
+    :return: a fraction in ``[0, 1]``
+    """
+    _check_batch(activations)
+    return float((activations > 0).double().mean())
+
+
+def _stable_rank(s: th.Tensor, mass: float) -> float:
+    return _effective_rank(s, 1.0 - mass)
+
+
+def stable_rank(activations: th.Tensor, mass: float = STABLE_RANK_MASS) -> float:
+    """
+    Stable rank as Plasticine computes it (RLE-Foundation/Plasticine, ``plasticine/metrics.py``,
+    ``compute_stable_rank``, after Dohare et al. (2024)'s loss-of-plasticity code): the number of partial sums
+    ``(s_1 + ... + s_k) / sum_i s_i`` below ``mass``, plus one; the smallest ``k`` whose partial sum reaches ``mass``.
+    With ``mass = 0.99`` it equals Kumar et al.'s ``srank`` (:func:`effective_rank`) at ``delta = 0.01``; both names
+    are kept as the two literatures use them. 0 for an all-zero matrix.
+
+    :param activations: ``(n, *unit_shape)`` activations
+    :param mass: fraction of the sum of the singular values, in ``(0, 1]``
+    :return: an integer in ``[0, min(n, d)]`` (as a float)
+    """
+    if not 0.0 < mass <= 1.0:
+        raise ValueError(f"mass must be in (0, 1], got {mass}.")
+    return _stable_rank(singular_values(activations), mass)
+
+
+def _entropy_effective_rank(s: th.Tensor) -> float:
+    total = s.sum()
+    if float(total) <= 0:
+        return 0.0
+    p = s / total
+    p = p[p > 0]
+    return float(th.exp(-(p * p.log()).sum()))
+
+
+def entropy_effective_rank(activations: th.Tensor) -> float:
+    """
+    Effective rank of Roy and Vetterli (2007, "The effective rank: a measure of effective dimensionality"):
+    ``exp(-sum_i p_i log p_i)``, ``p_i = s_i / sum_j s_j`` the normalized singular values of ``H`` (``0 log 0 = 0``),
+    as Plasticine's ``compute_effective_rank``; 0 for an all-zero matrix.
+
+    :param activations: ``(n, *unit_shape)`` activations
+    :return: a real number in ``[1, min(n, d)]`` (0 for an all-zero matrix)
+    """
+    return _entropy_effective_rank(singular_values(activations))
+
+
+def feature_norm(activations: th.Tensor) -> float:
+    """
+    Feature norm (Plasticine's ``compute_feature_norm``; Lyle et al., 2024): the mean over the inputs of the L2 norm
+    of an input's flattened activations, ``(1 / n) sum_i ||h_i||_2``.
+
+    :param activations: ``(n, *unit_shape)`` activations
+    :return: the mean norm, >= 0
+    """
+    return float(th.linalg.vector_norm(flatten_batch(activations), dim=1).mean())
+
+
+def weight_magnitude(parameters: Iterable[th.Tensor]) -> float:
+    """
+    Weight norm of a layer as Plasticine's weight magnitude (``compute_weight_magnitude``): the root mean square of
+    its parameters, ``sqrt(sum_j w_j^2 / N)`` over the ``N`` entries of every parameter of the layer.
+
+    :param parameters: the layer's parameters (weight, bias)
+    :return: the norm, >= 0; 0 for a layer without parameters
+    """
+    tensors = [p.detach() for p in parameters]
+    if not tensors:
+        return 0.0
+    squares = th.stack([th.linalg.vector_norm(p.double()) ** 2 for p in tensors]).sum()
+    return float((squares / sum(p.numel() for p in tensors)).sqrt())
+
+
+def weight_change(parameters: Iterable[th.Tensor], reference: Iterable[th.Tensor]) -> float:
+    """
+    Weight change (Plasticine's ``compute_l2_norm_difference``; Lyle et al., 2023): the distance of a layer's
+    parameters from their values at a reference point (the last reset), as a root mean square,
+    ``sqrt(sum_j (w_j - w0_j)^2 / N)``; 0 for identical weights.
+
+    :param parameters: the layer's parameters now
+    :param reference: the same parameters (same order and shapes) at the reference point, on any device
+    :return: the distance, >= 0
+    """
+    now, then = [p.detach() for p in parameters], [p.detach() for p in reference]
+    if len(now) != len(then) or any(a.shape != b.shape for a, b in zip(now, then, strict=False)):
+        raise ValueError(
+            f"reference must hold the parameters' shapes {[tuple(p.shape) for p in now]}, "
+            f"got {[tuple(p.shape) for p in then]}."
+        )
+    if not now:
+        return 0.0
+    squares = th.stack([th.linalg.vector_norm(a.double() - b.to(a.device).double()) ** 2 for a, b in zip(now, then)])
+    return float((squares.sum() / sum(p.numel() for p in now)).sqrt())
+
+
+LAYER_METRICS = (
+    "numerical_rank",
+    "srank",
+    "correlation",
+    "input_correlation",
+    "zero_fraction",
+    "dead_fraction",
+    "dead_units",
+    "dormant_ratio",
+)
+"""The activation metrics :func:`layer_metrics` computes by default (those :class:`CollapseMetrics` logs by default)."""
+EXTRA_LAYER_METRICS = ("dormant_ratios", "stable_rank", "entropy_effective_rank", "active_fraction", "feature_norm")
+"""The other activation metrics :func:`layer_metrics` can compute; ``dormant_ratios`` gives ``dormant_ratio_tau<tau>``
+for each of ``taus``."""
+
+
+def dormant_ratio_name(tau: float) -> str:
+    """:return: the name of the dormant ratio at ``tau`` among several, ``dormant_ratio_tau<tau>`` (``%g``)"""
+    return f"dormant_ratio_tau{tau:g}"
+
+
+def layer_metrics(
+    activations: th.Tensor,
+    tau: float = DORMANT_TAU,
+    delta: float = SRANK_DELTA,
+    metrics: Collection[str] = LAYER_METRICS,
+    taus: Sequence[float] = DORMANT_TAUS,
+) -> dict[str, float]:
+    """
+    Activation metrics of one layer (float64; every rank and the input correlation from one Gram matrix).
 
     :param activations: ``(n, *unit_shape)`` activations
     :param tau: threshold of :func:`dormant_ratio`
     :param delta: threshold of :func:`effective_rank`
-    :return: ``numerical_rank``, ``srank``, ``correlation`` (:func:`unit_correlation`), ``input_correlation``,
-        ``zero_fraction``, ``dead_fraction``, ``dead_units`` (as a float), ``dormant_ratio``
+    :param metrics: which, of :data:`LAYER_METRICS` and :data:`EXTRA_LAYER_METRICS`
+    :param taus: thresholds of ``dormant_ratios``
+    :return: name -> value, in the order of the two tuples: ``numerical_rank``, ``srank``, ``correlation``
+        (:func:`unit_correlation`), ``input_correlation``, ``zero_fraction``, ``dead_fraction``, ``dead_units`` (as a
+        float), ``dormant_ratio``, ``dormant_ratio_tau<tau>`` (:func:`dormant_ratio_name`) for each of ``taus``,
+        ``stable_rank``, ``entropy_effective_rank``, ``active_fraction``, ``feature_norm``
     """
+    metrics = tuple(metrics)
+    unknown = [name for name in metrics if name not in LAYER_METRICS + EXTRA_LAYER_METRICS]
+    if unknown:
+        raise ValueError(
+            f"Unknown layer metric(s) {unknown}; choose among {list(LAYER_METRICS + EXTRA_LAYER_METRICS)}."
+        )
     h = flatten_batch(activations)
-    gram = h @ h.T
-    s = _singular_values_from(h, gram)
-    return {
-        "numerical_rank": _numerical_rank(s),
-        "srank": _effective_rank(s, delta),
-        "correlation": unit_correlation(activations),
-        "input_correlation": _input_correlation(h, gram),
-        "zero_fraction": zero_fraction(activations),
-        "dead_fraction": dead_fraction(activations),
-        "dead_units": float(dead_units(activations)),
-        "dormant_ratio": dormant_ratio(activations, tau),
+    needs_gram = {"numerical_rank", "srank", "input_correlation", "stable_rank", "entropy_effective_rank"}
+    gram = h @ h.T if needs_gram.intersection(metrics) else None
+    s = _singular_values_from(h, gram) if gram is not None else None
+    compute = {
+        "numerical_rank": lambda: _numerical_rank(s),
+        "srank": lambda: _effective_rank(s, delta),
+        "correlation": lambda: unit_correlation(activations),
+        "input_correlation": lambda: _input_correlation(h, gram),
+        "zero_fraction": lambda: zero_fraction(activations),
+        "dead_fraction": lambda: dead_fraction(activations),
+        "dead_units": lambda: float(dead_units(activations)),
+        "dormant_ratio": lambda: dormant_ratio(activations, tau),
+        "stable_rank": lambda: _stable_rank(s, STABLE_RANK_MASS),
+        "entropy_effective_rank": lambda: _entropy_effective_rank(s),
+        "active_fraction": lambda: active_fraction(activations),
+        "feature_norm": lambda: float(th.linalg.vector_norm(h, dim=1).mean()),
     }
+    values: dict[str, float] = {}
+    for name in LAYER_METRICS + EXTRA_LAYER_METRICS:
+        if name not in metrics:
+            continue
+        if name == "dormant_ratios":
+            values.update({dormant_ratio_name(t): value for t, value in dormant_ratios(activations, taus).items()})
+        else:
+            values[name] = compute[name]()
+    return values

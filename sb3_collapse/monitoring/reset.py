@@ -173,6 +173,7 @@ class CollapseReset(FrameScheduleCallback):
         if value is not None:
             self.streak = self.streak + 1 if value > self.threshold else 0
             self.logger.record("collapse/reset_rule/value", value)
+            self.logger.record("collapse/reset_rule/threshold", self.threshold)  # beside it on the dashboard
         if self.streak >= self.patience:
             self.escaped = True
             self.escape_frame = frames

@@ -1,6 +1,8 @@
-"""Offline OMP probing of an actor's layers (Section 4.1) and the other computations on fixed inputs: docs/probe.md."""
+"""Offline OMP probing of an actor's layers (Section 4.1), the network health of saved models and the other
+computations on fixed inputs: docs/probe.md."""
 
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
+from sb3_collapse.probe.health import HealthSettings, checkpoint_health
 from sb3_collapse.probe.omp import OMPPath, OrthogonalMatchingPursuit, omp_path, path_predictions
 from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
 from sb3_collapse.probe.probing import (
@@ -16,11 +18,13 @@ from sb3_collapse.probe.rollouts import Rollouts, record_rollouts
 __all__ = [
     "PROBE_LAYERS",
     "Checkpoint",
+    "HealthSettings",
     "OMPPath",
     "OrthogonalMatchingPursuit",
     "ProbeSettings",
     "RecordOptions",
     "Rollouts",
+    "checkpoint_health",
     "load_checkpoint",
     "omp_path",
     "path_predictions",

@@ -1,4 +1,5 @@
-"""The command line ``python -m sb3_collapse.probe`` (``run``, ``record``, ``sweep``, ``film``): docs/probe.md."""
+"""The command line ``python -m sb3_collapse.probe`` (``run``, ``record``, ``sweep``, ``film``, ``health``):
+docs/probe.md."""
 
 from __future__ import annotations
 
@@ -10,14 +11,16 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
-from sb3_collapse.errors import InputError, cli_message, report_unwritable_outputs
+from sb3_collapse.errors import InputError, NonFiniteDataError, cli_message, report_unwritable_outputs
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
+from sb3_collapse.probe.health import HealthSettings
 from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
-from sb3_collapse.probe.probing import ProbeSettings
+from sb3_collapse.probe.probing import ProbeSettings, check_fractions
 from sb3_collapse.protocol import EXIT_INTERRUPTED, SWEEP_PROBE_DIR
 from sb3_collapse.report.figure2 import probe_sweep
 from sb3_collapse.report.film import STRIP_EVERY_FRAMES, film_to_folder
+from sb3_collapse.report.health import health_to_folder
 from sb3_collapse.report.probe_outputs import probe_to_folder
 from sb3_collapse.run.config import setting
 from sb3_collapse.run.settings import CommandLine, add_setting_arguments, check_arguments, prog_name
@@ -116,11 +119,38 @@ class RecordFlags:
     progress: bool = setting(True, help="show the progress bar", unit=None)
 
 
+@dataclass
+class HealthFlags:
+    """
+    network health of checkpoints: the metrics of CollapseMetrics (but the gradient norm), offline
+
+    Measure each checkpoint's actor and critic (rank, correlation, dead and dormant units, stable and effective rank,
+    active fraction, feature and weight norms, Q values, action spread; docs/monitoring.md) on one observation set:
+    --rollouts, else the first checkpoint's own rollouts (its DeepMind Control pixel env, or with --env a gymnasium
+    id for a model of vector observations). Checkpoints of distinct training steps (a run folder: its snapshots) are
+    a time series: weight change from the first, units dormant at this checkpoint and the one before. Write
+    health.csv, health_<network>.png and health.json into --out, only when every checkpoint was measured.
+    """
+
+    checkpoints: tuple[str, ...] | None = setting(
+        help="SB3 zips of DrQv2, TD3, DDPG or SAC (CNN or MLP policies), snapshots, or run folders (their snapshots)",
+        unit=None,
+        flag="checkpoints",
+        nargs="+",
+    )
+    rollouts: str | None = setting(
+        help="rollouts .npz from `record`; default: record them from the first checkpoint", unit=None
+    )
+    out: str = setting("health", help="output folder", unit=None)
+    overwrite: bool = setting(False, help="replace a previous run's outputs in `out`", unit=None)
+
+
 COMMANDS: dict[str, tuple[type, ...]] = {
     "run": (RunFlags, ProbeSettings, RecordOptions),
     "record": (RecordFlags, RecordOptions),
     "sweep": (SweepFlags, ProbeSettings, RecordOptions),
     "film": (FilmFlags,),
+    "health": (HealthFlags, HealthSettings, RecordOptions),
 }
 """Each sub-command's flags, by the dataclasses that declare them (its parser, its help, its range checks and its
 table in ``docs/probe.md`` are generated from them); the first one's docstring is its help line and description."""
@@ -170,7 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """
     :param argv: the arguments (``sys.argv[1:]`` when ``None``; without a sub-command: ``run``)
-    :return: the exit status: 0, 2 for bad input, 75 when a SIGINT or SIGTERM stopped it (nothing written)
+    :return: the exit status: 0, 1 when the simulator could not step, 2 for bad input, 75 when a SIGINT or SIGTERM
+        stopped it (nothing written)
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -181,13 +212,22 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["run", *argv]
     args = parser.parse_args(argv)
     subparsers = next(action for action in parser._actions if isinstance(action, argparse._SubParsersAction))
-    check_arguments(subparsers.choices[args.command], args, *COMMANDS[args.command])
+    command_parser = subparsers.choices[args.command]
+    if ProbeSettings in COMMANDS[args.command]:  # the split as a whole first: every --split error in the same words
+        try:
+            check_fractions(args.fractions)
+        except InputError as error:
+            command_parser.error(cli_message(error, command_parser))
+    check_arguments(command_parser, args, *COMMANDS[args.command])
     try:
         with stop_signal_handlers(_interrupt):  # the staged outputs are removed on the way out
             _run(args, [parser.prog, *argv])
     except InputError as error:
         print(f"error: {cli_message(error, parser)}", file=sys.stderr)
         return 2
+    except NonFiniteDataError as error:  # the simulator could not step (nothing written: the outputs are staged)
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt as stop:
         name, out = stop.args[0] if stop.args else "SIGINT", args.out or "the output folder"
         print(
@@ -210,6 +250,11 @@ def _run(args: argparse.Namespace, command: list[str]) -> None:
         record_to_file(args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, args.progress)
     elif args.command == "film":
         film_to_folder(args.checkpoints, **_values(args, FilmFlags, "checkpoints"))
+    elif args.command == "health":
+        health = HealthSettings(**_values(args, HealthSettings))
+        health_to_folder(
+            args.checkpoints, args.out, health, args.rollouts, _record_options(args), args.overwrite, command
+        )
     else:
         probe = dict(settings=_settings(args), record_options=_record_options(args), command=command)
         if args.command == "sweep":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import itertools
 import json
 import zipfile
@@ -14,6 +15,7 @@ from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.drqv2.divergence import check_finite_weights
 from sb3_collapse.errors import InputError, LayerMappingError
 from sb3_collapse.monitoring import layer_taps
 from sb3_collapse.monitoring.callbacks import action_repeat_of
@@ -65,7 +67,7 @@ class Checkpoint:
 
 def read_saved_data(path: str | Path) -> tuple[type[BaseAlgorithm], dict[str, Any]]:
     """:return: the algorithm class that loads the SB3 zip ``path`` and its ``data`` JSON; :raises InputError: for
-    anything else (a folder, a missing file, an algorithm whose actor has no named layers)"""
+    anything else (a folder, a missing file, an algorithm whose actor has no named layers, weights not finite)"""
     path = Path(path)
     if path.is_dir():
         raise InputError(_folder_message(path))
@@ -81,6 +83,11 @@ def read_saved_data(path: str | Path) -> tuple[type[BaseAlgorithm], dict[str, An
             data = json.loads(archive.read("data"))
         except (json.JSONDecodeError, UnicodeDecodeError) as error:
             raise InputError(f"{path}: SB3's `data` entry is not valid JSON ({error}).") from error
+        try:
+            weights = th.load(io.BytesIO(archive.read("policy.pth")), map_location="cpu", weights_only=True)
+        except Exception as error:  # any failure to unpickle: a damaged member
+            raise InputError(f"{path}: its policy.pth cannot be read ({type(error).__name__}: {error}).") from error
+    check_finite_weights(weights if isinstance(weights, dict) else {}, str(path))
     module = (data.get("policy_class") or {}).get("__module__")
     if module not in ALGORITHMS:
         raise InputError(

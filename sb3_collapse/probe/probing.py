@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 import time
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -46,8 +47,10 @@ class EpisodeSplit:
 
 
 def check_fractions(fractions: Sequence[float]) -> None:
-    """:raises InputError: unless ``fractions`` are 3 positive fractions (train, validation, test) summing to 1"""
-    if len(fractions) != 3 or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
+    """:raises InputError: unless ``fractions`` are 3 finite positive fractions (train, validation, test) summing
+    to 1"""
+    finite = len(fractions) == 3 and all(map(math.isfinite, fractions))
+    if not finite or min(fractions) <= 0 or not np.isclose(sum(fractions), 1.0):
         raise InputError(
             f"fractions must be 3 positive fractions summing to 1 (train validation test), got {list(fractions)}.",
             parameter="fractions",

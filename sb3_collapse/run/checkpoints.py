@@ -26,7 +26,7 @@ from stable_baselines3.common.save_util import load_from_zip_file, recursive_set
 
 from sb3_collapse import __version__
 from sb3_collapse.common.saved_callbacks import callback_states, load_callback_states
-from sb3_collapse.drqv2.divergence import all_finite
+from sb3_collapse.drqv2.divergence import all_finite, first_non_finite
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.update_stats import UpdateStats
 from sb3_collapse.envs.replay import episode_records, replay_episodes
@@ -286,9 +286,12 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint | None:
 
 def restore_model(model: BaseAlgorithm, path: str | os.PathLike) -> None:
     """Put the zip of SB3's ``save`` at ``path`` back into ``model`` (built with the same settings) as
-    ``BaseAlgorithm.load`` does, without a new model and replay buffer; :raises CheckpointError: for other spaces."""
+    ``BaseAlgorithm.load`` does, without a new model and replay buffer; :raises CheckpointError: for other spaces,
+    (damaged) for weights that are not finite."""
     data, params, variables = load_from_zip_file(path, device=model.device, print_system_info=False)
     assert data is not None and params is not None
+    if (name := first_non_finite(params["policy"])) is not None:  # never written so (save refuses): damaged
+        raise CheckpointError(f"{CHECKPOINT_MODEL}'s weight {name!r} is not finite", damaged=True)
     for name in ("observation_space", "action_space"):
         saved, current = data[name], getattr(model, name)
         if getattr(saved, "shape", None) != getattr(current, "shape", None):
@@ -478,8 +481,15 @@ class ResumableCheckpoints(FrameScheduleCallback):
         if self.stop_signal:
             raise TrainingInterrupted(self.last_checkpoint, self.stop_signal)  # type: ignore[arg-type]
 
-    def save(self) -> Path:
-        """Write a checkpoint now (between two rounds of ``learn()``); return its folder."""
+    def capture(self) -> dict[str, Any]:
+        """:return: the run's state now (:func:`capture_state`), for a :meth:`save` after a step that changes it but
+        is given up (the evaluation of the final model, stopped by a signal)"""
+        extra = self.extra_state() if self.extra_state is not None else None
+        return capture_state(self.model, self.callbacks, self.eval_env, self.csv_files, extra)
+
+    def save(self, state: dict[str, Any] | None = None) -> Path:
+        """Write a checkpoint now (between two rounds of ``learn()``, or after it), of the run's state ``state`` (of
+        :meth:`capture`; ``None``: now); return its folder."""
         name = CHECKPOINT_FOLDER.format(step=self.model.num_timesteps)
         if self.last_checkpoint is not None and self.last_checkpoint.name == name:
             return self.last_checkpoint  # taken at this step already (a signal right after a scheduled checkpoint)
@@ -488,8 +498,7 @@ class ResumableCheckpoints(FrameScheduleCallback):
             raise DivergenceError(
                 f"training diverged: a weight is not finite at frame {self.frames:,}; no checkpoint was written."
             )
-        extra = self.extra_state() if self.extra_state is not None else None
-        state = capture_state(self.model, self.callbacks, self.eval_env, self.csv_files, extra)
+        state = self.capture() if state is None else state
         self.last_checkpoint = save_checkpoint(self.model, self.directory, self.store, state, keep=self.keep)
         if self.verbose >= 1:
             took = time.perf_counter() - start

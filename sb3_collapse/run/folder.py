@@ -214,8 +214,7 @@ def open_run_dir(run_dir: Path, config: TrainConfig) -> LoadedCheckpoint | None:
                 first = error_file.read_text().splitlines()[:1]
                 print(f"The previous attempt {first[0] if first else 'failed'}; resuming.")
                 error_file.replace(run_dir / CHECKPOINTS_DIR / f"error_{time.strftime('%Y%m%d-%H%M%S')}.txt")
-            print(f"Resuming {run_dir} from its checkpoint at frame {checkpoint.frames:,} ({checkpoint.folder.name}).")
-            return checkpoint
+            return checkpoint  # train says which it resumes from, once its replay chunks are read
         if set_aside_damaged_checkpoints(run_dir, skipped) is None:
             print(f"{run_dir} holds an unfinished run without a checkpoint: restarting it from frame 0.")
     for path in run_dir.iterdir():  # but the lock (held) and what was set aside as damaged (it cannot be rebuilt)

@@ -52,10 +52,15 @@ class RunLock:
                 if os.stat(self.path).st_ino == os.fstat(file.fileno()).st_ino:
                     break
             file.close()  # its owner deleted the file we locked: lock the one at the path now
-        file.seek(0)
-        file.truncate()
-        file.write(f"pid {os.getpid()} on host {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
-        file.flush()
+        try:
+            file.seek(0)
+            file.truncate()
+            file.write(f"pid {os.getpid()} on host {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+            file.flush()
+        except OSError as error:  # a full disk: the message names the lock file
+            with contextlib.suppress(OSError):
+                file.close()  # its unwritten line is dropped (the file descriptor is closed all the same)
+            raise OSError(error.errno, error.strerror, str(self.path)) from None
         self._file = file
         return self
 

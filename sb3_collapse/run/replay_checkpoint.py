@@ -149,12 +149,10 @@ class ReplayStore:
             for chunk in written:
                 (self.directory / chunk["file"]).unlink(missing_ok=True)
             needed = sum(_plan_bytes(plan, _row_bytes(buffer)) for plan in plans)
-            raise OSError(
+            raise OSError(  # the cause only: the caller says what to do (save_checkpoint: once, in its own words)
                 error.errno,
-                f"Could not write the replay buffer checkpoint in {self.directory}: "
-                f"{error.strerror or error} ({needed:,} bytes to write). Nothing of this checkpoint was kept and every "
-                f"earlier one is intact; free space in {self.directory} (or move the run) and resume from the last "
-                "checkpoint.",
+                f"{error.strerror or error} ({needed:,} bytes of replay chunks to write; none kept, the earlier ones "
+                "intact)",
                 str(self.directory),
             ) from error
         return written
@@ -364,8 +362,9 @@ def _chunk_blocks(buffer: FrameStackReplayBuffer, segments: list[dict[str, Any]]
 
 
 def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any]) -> None:
-    """Read a chunk's rows into the buffer, checking its CRC-32."""
-    crc = 0
+    """Read a chunk's rows into the buffer, checking its CRC-32, then that its floats (rewards, actions, float
+    frames) are finite: a chunk written with a NaN (by a version that stored an env's NaN) is damaged too."""
+    crc, non_finite = 0, None
     try:
         with open(path, "rb") as file:
             for block in _chunk_blocks(buffer, chunk["segments"]):
@@ -374,6 +373,8 @@ def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any
                 if file.readinto(data) != data.nbytes:
                     raise _damaged(f"The replay checkpoint chunk {path} ended early (truncated).")
                 crc = zlib.crc32(data, crc)
+                if non_finite is None and target.dtype.kind == "f" and not np.isfinite(target).all():
+                    non_finite = (_array_name(buffer, block), target[~np.isfinite(target)][0])
                 if target is not block:
                     block[...] = target
     except OSError as error:
@@ -381,6 +382,15 @@ def _read_chunk(buffer: FrameStackReplayBuffer, path: Path, chunk: dict[str, Any
     if crc != chunk["crc32"]:
         raise _damaged(f"The replay checkpoint chunk {path} is corrupt (CRC-32 {crc:#010x}, the checkpoint expects "
                        f"{chunk['crc32']:#010x}).")  # fmt: skip
+    if non_finite is not None:
+        raise _damaged(f"The replay checkpoint chunk {path} holds a non-finite value ({non_finite[1]}) in its "
+                       f"{non_finite[0]}, though its CRC-32 matches: it was written so (an environment's reward or "
+                       "observation stored as it came).")  # fmt: skip
+
+
+def _array_name(buffer: FrameStackReplayBuffer, block: np.ndarray) -> str:
+    """:return: the name of the buffer's storage array that ``block`` is a view of"""
+    return next(name for name, array in buffer.storage_arrays.items() if np.may_share_memory(block, array))
 
 
 def fsync_path(path: Path) -> None:

@@ -36,6 +36,7 @@ from sb3_collapse.errors import (
     CheckpointError,
     DivergenceError,
     InputError,
+    NonFiniteDataError,
     OutputError,
     TrainingInterrupted,
     unwritable_message,
@@ -64,7 +65,7 @@ from sb3_collapse.run.cpu_allocator import tune_cpu_allocator
 from sb3_collapse.run.folder import check_run_folder, new_run_dir, open_run_dir
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.resumed_logger import resumed_logger
-from sb3_collapse.run.signals import stop_signals
+from sb3_collapse.run.signals import StopSignals, stop_signals
 from sb3_collapse.run.snapshots import Snapshots
 from sb3_collapse.run.timing import LearnTimer, LearnTimings, TimedVecEnv
 
@@ -148,6 +149,7 @@ def train(config: TrainConfig) -> TrainResult:
         another process trains into the folder
     :raises TrainingInterrupted: after a SIGTERM or SIGINT, once the checkpoint is written
     :raises OutputError: when an output cannot be written (a full disk): the previous checkpoint is intact
+    :raises NonFiniteDataError: when the environment returns a reward or an observation that is not finite
     """
     start_time = time.time()
     config = config.resolve()
@@ -335,47 +337,73 @@ def _train_into(
         verbose=1,
     )
     checkpoints.init_callback(model)
-    if checkpoint is not None:
-        checkpoint, notes = checkpoints.resume(checkpoint)
-        for note in notes:
-            print(f"Note: {note}")
-        earlier = {**checkpoint.state["extra"], "resumes": checkpoint.state["extra"]["resumes"] + 1}
-        if evaluation is not None:
-            evaluation.start_time = start_time - earlier["elapsed_s"]
-    callbacks.append(checkpoints)
-    timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
-    formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
-    model.set_logger(resumed_logger(run_dir, formats, checkpoint))
+    with stop_signals(checkpoints) as stops:  # from the resume (it may read GBs of replay) to the result file
+        if checkpoint is not None:
+            checkpoint, notes = checkpoints.resume(checkpoint)  # an older one when the newer's replay is damaged
+            print(f"Resuming {run_dir} from its checkpoint at frame {checkpoint.frames:,} ({checkpoint.folder.name}).")
+            for note in notes:
+                print(f"Note: {note}")
+            earlier = {**checkpoint.state["extra"], "resumes": checkpoint.state["extra"]["resumes"] + 1}
+            if evaluation is not None:
+                evaluation.start_time = start_time - earlier["elapsed_s"]
+        callbacks.append(checkpoints)
+        timer = LearnTimer(env if isinstance(env, TimedVecEnv) else None)
+        formats = ["stdout", "csv", "tensorboard"] if config.verbose else ["csv", "tensorboard"]
+        model.set_logger(resumed_logger(run_dir, formats, checkpoint))
 
-    _announce(config, task_id, run_dir, model)
-    with contextlib.ExitStack() as open_files:  # closed on every way out: the environment, then the logger's files
-        open_files.callback(env.close)
-        open_files.push(_logger_closer(model))
-        _learn(config, model, [*callbacks, timer], checkpoints, resumed=checkpoint is not None)
-        model_path = run_dir / FINAL_MODEL
-        try:
-            with atomic_output(model_path) as temporary:
-                model.save(temporary)
-            saved_model_eval = None
-            if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in the eval file)
-                saved_model_eval = evaluation.evaluate_saved_model()  # and its snapshot
-            open_files.close()  # the logs complete before the result file marks the run as finished
-            evaluations = evaluation.rows if evaluation is not None else []
-            _print_last_evaluations(evaluations, saved_model_eval)
-            wall_time_s, resumes = earlier["elapsed_s"] + time.time() - start_time, earlier["resumes"]
-            timings = timer.timings if isinstance(model, DrQv2) else None
-            summary = run_summary(
-                config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
-            )
-            write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
-        except OSError as error:
-            message = unwritable_message(error)
-            if message is None:
-                raise
-            raise OutputError(f"{message} The run's final outputs are not written; {_resumes(checkpoints)}.") from None
+        _announce(config, task_id, run_dir, model)
+        with contextlib.ExitStack() as open_files:  # closed on every way out: the environment, then the logger's files
+            open_files.callback(env.close)
+            open_files.push(_logger_closer(model))
+            _learn(config, model, [*callbacks, timer], checkpoints, resumed=checkpoint is not None)
+            model_path = run_dir / FINAL_MODEL
+            try:
+                stops.doing = "the training is done; " + (
+                    "writing a checkpoint after the final save, then stopping before the evaluation of the final model"
+                    if evaluation is not None
+                    else "finishing its final outputs (seconds)"
+                )
+                with atomic_output(model_path) as temporary:
+                    model.save(temporary)
+                saved_model_eval = None
+                if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not in eval.csv)
+                    saved_model_eval = _evaluate_saved_model(evaluation, checkpoints, stops)  # and its snapshot
+                stops.doing = "the training and its evaluation are done; finishing the final outputs (seconds)"
+                open_files.close()  # the logs complete before the result file marks the run as finished
+                evaluations = evaluation.rows if evaluation is not None else []
+                _print_last_evaluations(evaluations, saved_model_eval)
+                wall_time_s, resumes = earlier["elapsed_s"] + time.time() - start_time, earlier["resumes"]
+                timings = timer.timings if isinstance(model, DrQv2) else None
+                summary = run_summary(
+                    config, task_id, model, evaluations, reset_rule, wall_time_s, resumes, saved_model_eval, timings
+                )
+                write_json_atomically(run_dir / RESULT_JSON, summary)  # last: it marks the run as finished
+            except OSError as error:
+                message = unwritable_message(error)
+                if message is None:
+                    raise
+                raise OutputError(
+                    f"{message} The run's final outputs are not written; {_resumes(checkpoints)}."
+                ) from None
     shutil.rmtree(run_dir / CHECKPOINTS_DIR, ignore_errors=True)  # the run is over: its checkpoints are of no use
     print(f"Saved {model_path}")
     return TrainResult(run_dir, model_path, evaluations, summary, saved_model_evaluation=saved_model_eval)
+
+
+def _evaluate_saved_model(
+    evaluation: PeriodicEvaluation, checkpoints: ResumableCheckpoints, stops: StopSignals
+) -> dict[str, float]:
+    """:return: the evaluation of the saved final model; a stop before or during it (episodes at paper scale take
+    longer than a scheduler's grace period) gives it up: a checkpoint of the run as it was before it, then
+    ``TrainingInterrupted`` (the same command resumes there and evaluates it)"""
+    state = checkpoints.capture()  # before the evaluation steps the evaluation env
+    try:
+        with stops.abortable("stopping the evaluation of the final model, writing a checkpoint, then stopping"):
+            return evaluation.evaluate_saved_model()
+    except KeyboardInterrupt:  # raised by the stop handler (abortable), which asked the checkpoints to stop
+        if checkpoints.stop_signal is None:
+            raise
+        raise TrainingInterrupted(checkpoints.save(state), checkpoints.stop_signal) from None
 
 
 def _resumes(checkpoints: ResumableCheckpoints) -> str:
@@ -391,21 +419,28 @@ def _learn(
     checkpoints: ResumableCheckpoints,
     resumed: bool,
 ) -> None:
-    """``model.learn`` up to the run's agent steps (the learn timer last in ``callbacks``); SIGINT/SIGTERM stop it with
-    a checkpoint; :raises DivergenceError:, :raises OutputError: (an unwritable run folder) naming the checkpoint."""
+    """``model.learn`` up to the run's agent steps (the learn timer last in ``callbacks``), inside ``stop_signals``:
+    SIGINT/SIGTERM stop it with a checkpoint; :raises DivergenceError:, :raises NonFiniteDataError: (an env's),
+    :raises OutputError: (an unwritable run folder) naming the checkpoint."""
     try:
-        with stop_signals(checkpoints):
-            model.learn(
-                config.agent_steps - model.num_timesteps,
-                callback=CallbackList(callbacks),
-                log_interval=1,
-                progress_bar=on_terminal(config.progress_bar),  # no bar frames in a log
-                reset_num_timesteps=not resumed,
-            )
+        model.learn(
+            config.agent_steps - model.num_timesteps,
+            callback=CallbackList(callbacks),
+            log_interval=1,
+            progress_bar=on_terminal(config.progress_bar),  # no bar frames in a log
+            reset_num_timesteps=not resumed,
+        )
     except DivergenceError as error:
         kept = checkpoints.last_checkpoint
         where = f"its last checkpoint, {kept}, holds the weights before it" if kept else "no checkpoint was written"
         raise DivergenceError(f"{error} The run stops; {where}. Try a smaller --lr in another run folder.") from None
+    except NonFiniteDataError as error:  # from an environment, refused before it was stored
+        kept = checkpoints.last_checkpoint
+        where = f"its last checkpoint, {kept}, holds none of it" if kept else "no checkpoint was written"
+        raise NonFiniteDataError(
+            f"{config.env} at agent step {model.num_timesteps:,} (frame {frames_of(model):,}): {error} The run stops; "
+            f"{where}. A rerun meets it again: fix the environment, or train another --seed in another run folder."
+        ) from None
     except OSError as error:  # the run folder became read-only, or full, while training (a log, a file of a callback)
         if unwritable_message(error) is None:
             raise

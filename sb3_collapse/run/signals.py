@@ -30,11 +30,36 @@ def clear_training_stop() -> None:
     _stop_requests.clear()
 
 
+class StopSignals:
+    """What :func:`stop_signals` yields: ``doing``, what a stop signal does now, in the line it prints (the run sets
+    it as it goes from training to its final outputs), and :meth:`abortable` for a long step a checkpoint replaces."""
+
+    def __init__(self, checkpoints: ResumableCheckpoints) -> None:
+        self.checkpoints = checkpoints
+        self.doing = "writing a checkpoint at the end of this round, then stopping"
+        self.abort = False
+
+    @contextlib.contextmanager
+    def abortable(self, doing: str) -> Iterator[None]:
+        """While inside, a stop signal raises ``KeyboardInterrupt(<its name>)`` at once, as does entering after a stop
+        was asked for (a signal or :func:`request_training_stop`); ``doing``: what the run does then, in the signal's
+        line."""
+        self.doing, self.abort = doing, True
+        try:
+            if self.checkpoints.stop_signal is not None:
+                raise KeyboardInterrupt(self.checkpoints.stop_signal)
+            yield
+        finally:
+            self.abort = False
+
+
 @contextlib.contextmanager
-def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
+def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[StopSignals]:
     """While inside, SIGTERM, SIGINT and :func:`request_training_stop` ask ``checkpoints`` (the run's callback) to write
-    a checkpoint and stop (``TrainingInterrupted``); a second SIGINT stops at once (``KeyboardInterrupt``)."""
+    a checkpoint and stop (``TrainingInterrupted``); a second SIGINT stops at once (``KeyboardInterrupt``). The
+    :class:`StopSignals` yielded says what a signal does after ``learn()``."""
     received: list[str] = []  # signals, not requests: a sweep's request and a Ctrl-C are one stop, not two
+    stops = StopSignals(checkpoints)
 
     def handler(signum: int, _frame: Any) -> None:
         name = signal.Signals(signum).name
@@ -42,15 +67,17 @@ def stop_signals(checkpoints: ResumableCheckpoints) -> Iterator[None]:
             raise KeyboardInterrupt
         received.append(name)
         checkpoints.request_stop(name)
-        print(f"\n{name}: writing a checkpoint at the end of this round, then stopping (SIGINT again: stop now).",
-              flush=True)  # fmt: skip
+        again = " (SIGINT again: stop now)" if signum == signal.SIGINT else ""  # a second SIGTERM changes nothing
+        print(f"\n{name}: {stops.doing}{again}.", flush=True)
+        if stops.abort:
+            raise KeyboardInterrupt(name)
 
     _training.append(checkpoints)
     if _stop_requests:
         checkpoints.request_stop(_stop_requests[0])
     try:
         with stop_signal_handlers(handler):
-            yield
+            yield stops
     finally:
         _training.remove(checkpoints)
 

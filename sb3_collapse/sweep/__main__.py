@@ -15,11 +15,11 @@ from sb3_collapse.errors import (
     report_unwritable_outputs,
 )
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, RESULT_JSON
+from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, SWEEP_LOCK
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.settings import CommandLine, prog_name, training_arguments, training_settings
-from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status, unreadable_result
+from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_folder_owner, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
@@ -29,13 +29,15 @@ from sb3_collapse.sweep.donors import (
     donors_record,
     pick_donors,
 )
-from sb3_collapse.sweep.plan import check_node, sweep_plan
+from sb3_collapse.sweep.plan import check_disk, check_node, size_text, sweep_plan
 from sb3_collapse.sweep.runner import (
+    IN_USE,
     SweepSummary,
     check_sweep,
     prepare_sweep_folder,
     run_sweep,
     sweep_settings,
+    trial_left_as_is,
 )
 from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
@@ -141,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     """
     :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
     :return: exit status: 0 when every trial finished, 1 when some failed (or the cluster did not answer), 2 for
-        bad arguments, :data:`~sb3_collapse.protocol.EXIT_INTERRUPTED` when a signal stopped the sweep
+        bad arguments, :data:`~sb3_collapse.protocol.EXIT_INTERRUPTED` when a signal stopped the sweep or another
+        process held a trial's folder (run the same command again once it ended)
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -163,13 +166,16 @@ def main(argv: list[str] | None = None) -> int:
             trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
         )
         states = trial_states(trials, args.out, training, checkpoints)
-        configs = {trial: state[2] for trial, state in states.items() if state[1] is None}  # damaged: not trained
+        # Damaged trials are not trained; those in use hold files but are not trained now.
+        configs = {trial: state[2] for trial, state in states.items() if state[1] is None or state[1][0] == IN_USE}
         done = {
-            trial: state[3] for trial, state in states.items() if trial in configs and state[0] != RunStatus.FINISHED
+            trial: state[3] for trial, state in states.items() if state[1] is None and state[0] != RunStatus.FINISHED
         }
-        plan = sweep_plan(configs, done, args.cpus_per_trial, args.gpus_per_trial, args.frames_per_second)
+        plan = sweep_plan(configs, done, args.cpus_per_trial, args.gpus_per_trial, args.frames_per_second, args.out)
         if args.address is None:  # this machine runs the trials: it must hold one
             check_node(plan)
+        if (shortage := check_disk(plan)) is not None:  # one trial that cannot fit: refused (an InputError)
+            print(f"warning: {cli_message(InputError(shortage), parser)}", file=sys.stderr)
         if args.dry_run:
             return dry_run(
                 states, args.out, training, checkpoints, args.allow_changed_settings, donors, plan, args.list_limit
@@ -202,16 +208,29 @@ def print_summary(summary: SweepSummary, out: str) -> int:
         f"{len(summary.failed)} failed"
         + (f", {stopped} stopped at a checkpoint" if stopped else "")
         + (f", {len(summary.interrupted) - stopped} not started" if len(summary.interrupted) > stopped else "")
+        + (f", {len(summary.in_use)} in use by another process" if summary.in_use else "")
         + "."
     )
     for trial, error_path in summary.failed.items():  # a damaged trial's line says the way out
         again = ", and would again at a rerun" if trial in summary.repeating and trial not in summary.damaged else ""
         why = f": {summary.damaged[trial]}" if trial in summary.damaged else f" (see {error_path})"
+        if trial in summary.reasons and not error_path.is_file():  # its error file could not be written
+            why = f": {summary.reasons[trial]}"
         print(f"  failed{again}: {trial}{why}")
+    for trial, owner in summary.in_use.items():
+        print(f"  in use: {trial}: its folder is held by {owner}; left as it is")
     if others := len(summary.failed) - len(summary.damaged):
         print(failure_advice(others, len(summary.repeating) - len(summary.damaged)))
+    if summary.in_use:
+        them = "it" if len(summary.in_use) == 1 else "them"
+        print(
+            f"Run the same command again once the process holding {them} has ended: the sweep trains {them} then"
+            + ("." if summary.failed or summary.interrupted else f" (exit status {EXIT_INTERRUPTED}).")
+        )
     if summary.failed:
         return 1
+    if summary.in_use and not summary.interrupted:
+        return EXIT_INTERRUPTED
     if summary.interrupted:
         print(
             f"Stopped by {summary.stopped_by or 'a signal to the trials'}: run the same command again to resume "
@@ -264,14 +283,15 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
 
 def trial_states(
     trials: list, out: str, training: dict, checkpoints: dict
-) -> dict[Trial, tuple[str, str | None, TrainConfig, int]]:
-    """Trial -> its status, why its result file is unreadable (``None``: readable or none), its resolved settings and
-    the frames done (the budget when finished, the newest checkpoint's when unfinished, else 0)."""
+) -> dict[Trial, tuple[str, tuple[str, str] | None, TrainConfig, int]]:
+    """Trial -> its status, why the sweep leaves it as it is (:func:`~sb3_collapse.sweep.runner.trial_left_as_is`:
+    kind and line; ``None``: finished, or trained), its resolved settings and the frames done (the budget when
+    finished, the newest checkpoint's when unfinished, else 0)."""
     states = {}
     for trial in trials:
         folder = trial_dir(out, trial)
         status = str(run_status(folder) or NOT_A_RUN)
-        reason = None if status == RunStatus.FINISHED else unreadable_result(folder)
+        reason = None if status == RunStatus.FINISHED else trial_left_as_is(folder)
         config = trial_config(trial, out, training, checkpoints)
         done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
         states[trial] = (status, reason, config, config.frames if status == RunStatus.FINISHED else done or 0)
@@ -292,10 +312,13 @@ def dry_run(
     settings = sweep_settings(list(states), training, checkpoints, resources={}, donors=donors, plan=plan)
     prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
     listed = list(states.items())[:list_limit]
-    for trial, (status, reason, config, done) in listed:
+    for trial, (status, left, config, done) in listed:
         folder = trial_dir(out, trial)
-        if reason is not None:  # not run: a rerun would not repair it
-            print(f"{status:<10} keep   {folder}: {reason}")
+        if left is not None and left[0] == IN_USE:  # not run now, nothing written into it: a rerun once it ends
+            print(f"{status:<10} in use {folder}: held by {left[1]}; left as it is, run the same command once it ends")
+            continue
+        if left is not None:  # not run: a rerun would not repair it
+            print(f"{status:<10} keep   {folder}: {left[1]}")
             continue
         action = "skip" if status == RunStatus.FINISHED else "resume" if done else "run"
         print(f"{status:<10} {action:<6} {done:>10,} of {config.frames:,} frames  {folder}")
@@ -304,20 +327,22 @@ def dry_run(
     if plan["trials_pending"]:
         print("\n".join(plan_lines(plan)))
     counts = Counter(status for status, *_ in states.values())
-    kept = sum(reason is not None for _, reason, *_ in states.values())
+    as_is = Counter(reason[0] for _, reason, *_ in states.values() if reason is not None)
     print(
         f"{len(states)} trials: "
         + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
         + f"; {plan['trials_pending']} would run (frames done: the newest checkpoint of an unfinished trial)"
-        + (f"; {kept} kept as they are (an unreadable {RESULT_JSON})." if kept else ".")
+        + (f"; {as_is[IN_USE]} in use by another process (run once it ends)" if as_is[IN_USE] else "")
+        + "".join(f"; {number} kept as they are ({kind})" for kind, number in as_is.items() if kind != IN_USE)
+        + "."
     )
+    owner = run_folder_owner(out, SWEEP_LOCK)
+    if owner is not None:  # the command itself would be refused now
+        print(
+            f"Note: sweep folder {out} is in use by {owner}: without --dry-run this command is refused until it ends; "
+            "wait for it to end (or stop it), or give this sweep another --out."
+        )
     return 0
-
-
-def _size(nbytes: float | None) -> str:
-    if nbytes is None:
-        return "-"
-    return f"{nbytes / 1e9:,.2f} GB" if nbytes >= 1e9 else f"{nbytes / 1e6:,.1f} MB"
 
 
 def plan_lines(plan: dict) -> list[str]:
@@ -329,9 +354,14 @@ def plan_lines(plan: dict) -> list[str]:
         f"plan of the {plan['trials_pending']} trials to train: {total}",
         row("per trial", "replay RAM", "checkpoints peak", "snapshots", "final model"),
     ]
-    lines += [row(group, *(_size(sizes[name]) for name in columns)) for group, sizes in plan["bytes"].items()]
+    lines += [row(group, *(size_text(sizes[name]) for name in columns)) for group, sizes in plan["bytes"].items()]
     node, limits = plan["node"], plan["limits"]
-    lines.append(f"  disk at the end: {_size(plan['disk_at_end_bytes'])} (final models and snapshots)")
+    lines.append(f"  disk at the end: {size_text(plan['disk_at_end_bytes'])} (final models and snapshots)")
+    if plan.get("out_free_bytes") is not None:
+        lines.append(
+            f"  disk to write: up to {size_text(plan['disk_needed_bytes'])} (final models, snapshots, the checkpoints "
+            f"of the trials at once); {size_text(plan['out_free_bytes'])} free at --out"
+        )
     lines.append(
         f"  at once on this machine: {plan['trials_at_once']} trials (by RAM {limits['ram']:,} of "
         f"{node['ram_bytes'] / 1e9:,.1f} GB; by CPUs {limits['cpus']} of {node['cpus']}"

@@ -6,7 +6,9 @@ from __future__ import annotations
 import functools
 import inspect
 import os
+import shutil
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -89,12 +91,26 @@ def _group(trial: Trial) -> str:
     return f"{trial.task}/{trial.variant}"
 
 
+def free_bytes(out: str | os.PathLike) -> int:
+    """:return: the free bytes of the filesystem holding ``out`` (of its nearest existing parent: it may not exist)"""
+    path = Path(out).absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return shutil.disk_usage(path).free
+
+
+def _trial_disk(sizes: Mapping[str, int | None]) -> int:
+    """Bytes one trial writes at most: its checkpoints at their peak, its snapshots and its final model."""
+    return (sizes["checkpoints_peak"] or 0) + (sizes["snapshots"] or 0) + (sizes["model"] or 0)
+
+
 def sweep_plan(
     configs: Mapping[Trial, TrainConfig],
     done_frames: Mapping[Trial, int],
     cpus_per_trial: float = 1,
     gpus_per_trial: float = 0,
     frames_per_second: float | None = None,
+    out: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """
     :param configs: the resolved settings of every trial that will hold files (finished or to train)
@@ -102,8 +118,11 @@ def sweep_plan(
     :param cpus_per_trial: CPUs per trial
     :param gpus_per_trial: GPUs per trial
     :param frames_per_second: one trial's training frames per second (measured), for the time estimate
+    :param out: the sweep folder, for the free space of its disk (``out_free_bytes``; ``None``: not measured)
     :return: the plan (the sweep settings file's ``plan``): frames, agent steps and updates to train, bytes per (task,
-        variant), the disk the sweep holds at the end, this machine's RAM/CPUs/GPUs and the trials it runs at once
+        variant), the disk the sweep holds at the end, the disk its pending trials write at most (``disk_needed_bytes``:
+        their final models and snapshots, and the checkpoints of those at once; ``largest_trial_disk_bytes``: one
+        trial's), this machine's RAM/CPUs/GPUs and the trials it runs at once
     """
     frames = steps = updates = 0
     for trial, done in done_frames.items():
@@ -124,11 +143,15 @@ def sweep_plan(
     if gpus_per_trial > 0:
         limits["gpus"] = int(node["gpus"] // gpus_per_trial)
     at_once = min(len(pending), *limits.values())
+    peaks = sorted((sizes["checkpoints_peak"] for sizes in pending), reverse=True)  # removed as each trial finishes
+    needed = sum(sizes["snapshots"] + (sizes["model"] or 0) for sizes in pending) + sum(peaks[:at_once])
     hours = frames / (frames_per_second * at_once) / 3600 if frames_per_second and at_once else None
     return {
         "trials_pending": len(done_frames), "frames": frames, "agent_steps": steps, "updates": updates,
         "bytes": groups, "disk_at_end_bytes": at_end, "node": node, "largest_replay_ram_bytes": largest,
         "trials_at_once": at_once, "limits": limits, "frames_per_second": frames_per_second, "hours": hours,
+        "disk_needed_bytes": needed, "largest_trial_disk_bytes": max(map(_trial_disk, pending), default=0),
+        "out_free_bytes": None if out is None else free_bytes(out),
     }  # fmt: skip
 
 
@@ -141,3 +164,36 @@ def check_node(plan: Mapping[str, Any]) -> None:
             "GB once full): pass a smaller `buffer_size` or run on a larger machine; nothing was written.",
             parameter="buffer_size",
         )
+
+
+def check_disk(plan: Mapping[str, Any]) -> str | None:
+    """
+    The plan's disk against the free space at ``out`` (``out_free_bytes``), as :func:`check_node` checks the RAM.
+
+    :return: a warning line when the pending trials may write more than is free (the trials that meet the full disk
+        fail with their checkpoints intact, and resume at a rerun once there is space), ``None`` when it fits
+    :raises InputError: naming ``out``, when one trial's outputs alone do not fit (none could finish)
+    """
+    free, needed, largest = plan["out_free_bytes"], plan["disk_needed_bytes"], plan["largest_trial_disk_bytes"]
+    if free is None or needed <= free:
+        return None
+    free_text, at_once = size_text(free), plan["trials_at_once"]
+    if largest > free:
+        raise InputError(
+            f"out: its disk has {free_text} free, less than one trial writes ({size_text(largest)}: its checkpoints "
+            "at their peak, snapshots and final model): free space or give `out` on a larger disk (or pass a smaller "
+            "`buffer_size`); nothing was written.",
+            parameter="out",
+        )
+    return (
+        f"the {plan['trials_pending']} trials to train write up to {size_text(needed)} ({at_once} at once) and the "
+        f"disk of `out` has {free_text} free: the trials that meet a full disk fail with their checkpoints intact; "
+        "free space, then run the same command again to resume them."
+    )
+
+
+def size_text(nbytes: float | None) -> str:
+    """``nbytes`` for a person: in GB with 2 decimals from 1e9 bytes, else in MB with 1 (``"-"`` for ``None``)."""
+    if nbytes is None:
+        return "-"
+    return f"{nbytes / 1e9:,.2f} GB" if nbytes >= 1e9 else f"{nbytes / 1e6:,.1f} MB"

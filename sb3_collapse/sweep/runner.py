@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import os
 import shutil
 import signal
@@ -14,10 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sb3_collapse import __version__
 from sb3_collapse.common import progress
-from sb3_collapse.errors import InputError, OutputError, TrainingInterrupted
+from sb3_collapse.errors import FULL_DISK_ERRNOS, InputError, OutputError, TrainingInterrupted
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
+    CHECKPOINT_JSON,
+    CHECKPOINTS_DIR,
     CONFIG_JSON,
     ERROR_TXT,
     FINISHED,
@@ -30,12 +34,20 @@ from sb3_collapse.protocol import (
     write_json_atomically,
     write_text_atomically,
 )
+from sb3_collapse.run.checkpoints import CHECKPOINT_FORMAT, checkpoint_folders
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import settings_differences, tidy_finished_run
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
-from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status, unreadable_result
+from sb3_collapse.runfolder import (
+    DAMAGED_RESULT_WAY_OUT,
+    RESUMABLE,
+    RunStatus,
+    run_folder_owner,
+    run_status,
+    unreadable_result,
+)
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
 from sb3_collapse.sweep.trials import (
     Trial,
@@ -115,6 +127,63 @@ def _check_writable(folder: Path) -> None:
         raise OSError(error.errno, error.strerror, str(folder)) from None
 
 
+IN_USE = "in use"  # a trial whose folder another process holds (a train): left as it is, trained by a later rerun
+UNREADABLE_RESULT = f"an unreadable {RESULT_JSON}"  # a trial a rerun would not change: not run, failed...
+OTHER_VERSION = "a checkpoint of another version"  # ... and neither is this one
+
+
+def other_version_checkpoint(folder: Path) -> str | None:
+    """:return: one line when the checkpoint the unfinished trial in ``folder`` would resume from (the newest whose
+    checkpoint file reads, as ``train`` takes it) was written by another version of sb3-collapse, which ``train``
+    refuses; ``None`` otherwise"""
+    for checkpoint in checkpoint_folders(folder / CHECKPOINTS_DIR):
+        try:
+            info = json.loads((checkpoint / CHECKPOINT_JSON).read_text())
+        except (OSError, ValueError):
+            continue  # damaged: train passes over it to the one before
+        if not isinstance(info, dict):
+            continue
+        if (
+            info.get("format", CHECKPOINT_FORMAT) == CHECKPOINT_FORMAT
+            and info.get("version", __version__) == __version__
+        ):
+            return None  # a file without them is left to train, which refuses it naming what it lacks
+        return (
+            f"its checkpoint {checkpoint} was written by sb3-collapse {info.get('version')}, this is {__version__}: "
+            f"rerun with the version that wrote it, or {DAMAGED_RESULT_WAY_OUT}."
+        )
+    return None
+
+
+def trial_left_as_is(folder: Path) -> tuple[str, str] | None:
+    """
+    :param folder: the folder of a trial that has not finished
+    :return: why a sweep leaves it as it is, ``None`` when it trains it: ``(IN_USE, owner)`` while another process
+        holds its lock (a rerun once that ends trains it), ``(UNREADABLE_RESULT, line)`` or ``(OTHER_VERSION, line)``
+        where a rerun would not change it (the line says the way out)
+    """
+    owner = run_folder_owner(folder)
+    if owner is not None:
+        return IN_USE, owner
+    if (reason := unreadable_result(folder)) is not None:
+        return UNREADABLE_RESULT, reason
+    if (reason := other_version_checkpoint(folder)) is not None:
+        return OTHER_VERSION, reason
+    return None
+
+
+def write_error_file(folder: Path, text: str, error_line: str) -> str:
+    """Write ``text`` into the trial ``folder``'s error file; :return: ``error_line``, and when the file could not be
+    written (a full disk) why, naming it: the reason reaches the sweep's summary either way"""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        write_text_atomically(folder / ERROR_TXT, text)
+    except OSError as error:
+        reason = error.strerror or str(error)
+        return f"{error_line.rstrip('.')} (and its {ERROR_TXT} could not be written: {folder / ERROR_TXT}: {reason})."
+    return error_line
+
+
 def run_trial(
     trial: Trial,
     out: str,
@@ -127,13 +196,17 @@ def run_trial(
     Run one trial into its folder (an unfinished attempt resumes; with other settings it is deleted first); a failure
     goes to the trial's error file. The parameters are :func:`~sb3_collapse.sweep.trials.trial_config`'s.
 
-    :return: ``{"trial", "status": "finished" | "failed" | "interrupted", "error": its line or None, "resumes"}``,
-        ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or the driver
+    :return: ``{"trial", "status": "finished" | "failed" | "interrupted" | "in use", "error": its line (the owner
+        when in use) or None, "resumes"}``, ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or
+        the driver; a folder another process holds is left as it is (``"in use"``), nothing written into it
     """
     stop_file = Path(out) / SWEEP_STOP
     if stop_file.exists():  # the driver is stopping: a trial that had not started stays as it is
         return {"trial": str(trial), "status": "interrupted", "error": "not started: the sweep was stopping"}
     folder = trial_dir(out, trial)
+    owner = run_folder_owner(folder)
+    if owner is not None:  # another process trains into it (checked again by train's lock): nothing written there
+        return {"trial": str(trial), "status": IN_USE, "error": owner}
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)
     if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
         try:
@@ -149,10 +222,12 @@ def run_trial(
     except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
         return {"trial": str(trial), "status": "interrupted", "error": str(error), "checkpoint": str(error.checkpoint)}
     except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary
-        if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
-            folder.mkdir(parents=True, exist_ok=True)
-            write_text_atomically(folder / ERROR_TXT, traceback.format_exc())
+        owner = run_folder_owner(folder) if isinstance(error, InputError) else None
+        if owner is not None:  # taken since the check above (train's lock refused it): left as it is
+            return {"trial": str(trial), "status": IN_USE, "error": owner}
         error_line = f"{type(error).__name__}: {error}"
+        if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
+            error_line = write_error_file(folder, traceback.format_exc(), error_line)
         return {"trial": str(trial), "status": "failed", "error": error_line, "retryable": retryable(error)}
     return {"trial": str(trial), "status": FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
 
@@ -191,11 +266,20 @@ def _error_file_stamp(folder: Path) -> tuple[int, int] | None:
 
 
 def retryable(error: BaseException) -> bool:
-    """Whether a rerun may succeed: only a fault of what the trial ran on (disk, memory); it resumes bit for bit."""
+    """Whether a rerun may succeed: only a fault of what the trial ran on (disk, memory); it resumes bit for bit. A
+    full disk is one wherever it was met, also where it was reported as bad input (a run folder that cannot be
+    written at the start of ``train``)."""
     import torch as th
 
     transient = (OSError, MemoryError, OutputError, th.cuda.OutOfMemoryError)
-    return isinstance(error, transient) and not isinstance(error, InputError)
+    if isinstance(error, transient) and not isinstance(error, InputError):
+        return True
+    cause: BaseException | None = error
+    while cause is not None:  # the errors it was raised from or while handling
+        if isinstance(cause, OSError) and cause.errno in FULL_DISK_ERRNOS:
+            return True
+        cause = cause.__cause__ or cause.__context__
+    return False
 
 
 @dataclass
@@ -209,7 +293,11 @@ class SweepSummary:
     :param resumed: the trials finished in this run that continued from a checkpoint
     :param interrupted: trial -> the checkpoint it wrote as it stopped by a signal (``None``: it had not started)
     :param stopped_by: the signal that stopped the sweep's driver (``"SIGTERM"``, ``"SIGINT"``), ``None`` if none
-    :param damaged: trial -> why its result file is unreadable and the way out (not run; in ``failed``, ``repeating``)
+    :param damaged: trial -> why a rerun would not change it (an unreadable result file, a checkpoint of another
+        version) and the way out (not run; in ``failed``, ``repeating``)
+    :param in_use: trial -> the process that holds its folder (a ``train``): left as it is, nothing written into it;
+        a rerun once that process ended trains it
+    :param reasons: failed trial -> its one-line reason (the error file holds the traceback where it could be written)
     """
 
     trials: list[Trial]
@@ -221,6 +309,8 @@ class SweepSummary:
     interrupted: dict[Trial, Path | None] = dataclasses.field(default_factory=dict)
     stopped_by: str | None = None
     damaged: dict[Trial, str] = dataclasses.field(default_factory=dict)
+    in_use: dict[Trial, str] = dataclasses.field(default_factory=dict)
+    reasons: dict[Trial, str] = dataclasses.field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -363,10 +453,13 @@ def run_sweep(
             if run_status(folder) == RunStatus.FINISHED:
                 summary.skipped.append(trial)
                 tidy_finished_run(folder)  # a trial killed after its result file left its checkpoints behind
-            elif (reason := unreadable_result(folder)) is not None:  # not repaired: neither run nor retryable
-                summary.damaged[trial], summary.failed[trial] = reason, folder / RESULT_JSON
+            elif (left := trial_left_as_is(folder)) is not None and left[0] == IN_USE:
+                summary.in_use[trial] = left[1]
+            elif left is not None:  # not repaired: neither run nor retryable
+                summary.damaged[trial] = left[1]
+                summary.failed[trial] = folder / (RESULT_JSON if left[0] == UNREADABLE_RESULT else CHECKPOINTS_DIR)
                 summary.repeating.append(trial)
-        to_run = [trial for trial in trials if trial not in {*summary.skipped, *summary.damaged}]
+        to_run = [trial for trial in trials if trial not in {*summary.skipped, *summary.damaged, *summary.in_use}]
         if not to_run:
             prepare_sweep_folder(out, settings, allow_changed_settings)
             return summary
@@ -432,10 +525,10 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
     try:
         outcome = ray.get(ref)
     except Exception as error:  # noqa: BLE001  the Ray task itself died (worker crash, out of memory...)
-        outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}".splitlines()[0]}
+        line = f"{type(error).__name__}: {error}".splitlines()[0]
         # The first line reads on in the rerun's "The previous attempt failed: ...; resuming."
-        trial_dir(out, trial).mkdir(parents=True, exist_ok=True)
-        write_text_atomically(trial_dir(out, trial) / ERROR_TXT, f"failed: the Ray task of {trial} died\n{error}\n")
+        text = f"failed: the Ray task of {trial} died\n{error}\n"
+        outcome = {"status": "failed", "error": write_error_file(trial_dir(out, trial), text, line)}
     if outcome["status"] == FINISHED:
         summary.finished.append(trial)
         if outcome.get("resumes"):
@@ -445,8 +538,12 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
         summary.interrupted[trial] = Path(checkpoint) if checkpoint else None
         if checkpoint:
             bar.write(f"stopped {trial} at its checkpoint {checkpoint}")
+    elif outcome["status"] == IN_USE:
+        summary.in_use[trial] = outcome["error"]
+        bar.write(f"in use: {trial}: its folder is held by {outcome['error']}; left as it is")
     else:
         summary.failed[trial] = trial_dir(out, trial) / ERROR_TXT
+        summary.reasons[trial] = outcome["error"]
         if not outcome.get("retryable", True):  # a dead Ray task (a crash, memory) is retryable
             summary.repeating.append(trial)
         bar.write(f"FAILED {trial}: {outcome['error']} (traceback in {summary.failed[trial]})")

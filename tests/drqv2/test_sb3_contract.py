@@ -832,3 +832,50 @@ def test_loading_another_sb3_algorithms_zip_names_it_and_what_loads_it(tmp_path,
         f"path {str(tmp_path / 'other')!r} holds a {algorithm} checkpoint (policy stable_baselines3.{policy}), "
         f"not a DrQv2 one: load it with stable_baselines3.{algorithm}.load."
     )
+
+
+def test_the_callers_replay_buffer_kwargs_are_not_changed_and_a_setting_of_another_buffer_is_named():
+    """DrQv2 filled its defaults (n_steps, gamma, frame_stack) into the caller's dict, so that a loop reusing one dict
+    trained later models with the first one's n-step returns and discount; sampling with an SB3 buffer was a raw
+    TypeError."""
+    shared = {}
+    first = model_for("MlpPolicy", n_steps=5, gamma=0.9, replay_buffer_kwargs=shared)
+    assert shared == {} and first.replay_buffer_kwargs == {"n_steps": 5, "gamma": 0.9}
+    second = model_for("MlpPolicy", replay_buffer_kwargs=shared)
+    assert (second.replay_buffer.n_steps, second.replay_buffer.gamma) == (3, 0.99)
+    pixels = RandomObservationEnv(spaces.Box(0, 255, (9, 36, 36), np.uint8), ACTIONS)
+    stacked = {"sampling": "sb3", "frame_stack": 3}
+    model = model_for("CnnPolicy", env=pixels, replay_buffer_class=FrameStackReplayBuffer, replay_buffer_kwargs=stacked)
+    assert stacked == {"sampling": "sb3", "frame_stack": 3} and model.replay_buffer_kwargs["n_steps"] == 3
+
+    for policy in ("MlpPolicy", "MultiInputPolicy"):
+        with pytest.raises(ParameterError, match=r"^replay_buffer_kwargs\['sampling'\] is a setting of FrameStack"):
+            model_for(policy, replay_buffer_kwargs=dict(sampling="drqv2"))
+    with pytest.raises(ParameterError, match=r"DictNStepReplayBuffer is the replay buffer here \(policy Multi"):
+        model_for("MultiInputPolicy", replay_buffer_kwargs=dict(sampling="drqv2"))
+    with pytest.raises(ParameterError, match=r"^replay_buffer_kwargs\['capacity'\] is not a keyword of NStepReplay"):
+        model_for("MlpPolicy", replay_buffer_kwargs=dict(capacity=10))
+    with pytest.raises(ParameterError, match=r"^replay_buffer_kwargs\['device'\] is set by the model \(device\)"):
+        model_for("MlpPolicy", replay_buffer_kwargs=dict(device="cpu"))
+
+
+def test_load_of_an_sb3_zip_given_as_a_file_object_names_its_algorithm(tmp_path):
+    """DrQv2.load of a TD3 zip given as a file object raised a raw AttributeError: the check of a path covers
+    streams (read from where the caller left them, and put back there)."""
+    import io
+
+    from stable_baselines3 import TD3
+
+    env = make_env("MlpPolicy")
+    TD3("MlpPolicy", env, buffer_size=10).save(tmp_path / "td3.zip")
+    stream = io.BytesIO(b"head" + (tmp_path / "td3.zip").read_bytes())
+    stream.seek(4)
+    with pytest.raises(ParameterError, match=r"^path \(a BytesIO file object\) holds a TD3 checkpoint .*TD3\.load\."):
+        DrQv2.load(stream)
+    assert stream.tell() == 4
+    with open(tmp_path / "td3.zip", "rb") as file, pytest.raises(ParameterError, match="BufferedReader file object"):
+        DrQv2.load(file)
+    saved = io.BytesIO()
+    model_for("MlpPolicy").save(saved)
+    saved.seek(0)
+    assert isinstance(DrQv2.load(saved), DrQv2)

@@ -383,14 +383,15 @@ def test_truncation_at_the_time_limit(make_env, action_repeat: int, n_steps: int
 
 
 def test_pixel_episode_through_gymnasium_make() -> None:
-    env = gym.make("sb3_collapse/walker-walk-v0", action_repeat=8, size=48)
+    # Action repeat 25: the whole episode of 1000 frames in 40 rendered agent steps.
+    env = gym.make("sb3_collapse/walker-walk-v0", action_repeat=25, size=48)
     try:
         env.reset(seed=0)
-        for step in range(1, 126):
+        for step in range(1, 41):
             obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
             assert obs.shape == (9, 48, 48)
             assert not terminated
-            assert truncated == (step == 125)
+            assert truncated == (step == 40)
         assert info["frames"] == 1000
     finally:
         env.close()

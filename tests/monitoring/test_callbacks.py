@@ -301,3 +301,147 @@ def test_a_state_of_another_version_is_refused_in_one_line():
         rule.load_state_dict(older)
     with pytest.raises(ValueError, match="^CollapseMetrics: the saved state lacks num_timesteps: "):
         CollapseMetrics().load_state_dict({"next_check": 10_000, "n_checks": 0, "last_metrics": {}})
+
+
+def test_every_schedule_period_is_checked_for_type_and_finiteness():
+    """CollapseMetrics(check_every_frames="1000") raised a raw TypeError and nan was accepted (then a check at every
+    step): each period of the one schedule is refused unless an integer, naming its parameter."""
+    from sb3_collapse.errors import ParameterError
+    from sb3_collapse.monitoring import PeriodicReDo
+
+    for value in ("1000", float("nan"), float("inf"), 2.5, 1000.0, True, None):
+        with pytest.raises(ParameterError, match="^check_every_frames must be an integer >= 1, got ") as caught:
+            CollapseMetrics(check_every_frames=value)
+        assert caught.value.parameter == "check_every_frames"
+        with pytest.raises(ParameterError, match="^check_every_frames must be an integer >= 1"):
+            CollapseReset(check_every_frames=value)
+        with pytest.raises(ParameterError, match="^every_frames must be an integer >= 1"):
+            ActivationLogger(every_frames=value, path="unused")
+    with pytest.raises(ParameterError, match=r"^check_every_frames must be >= 1, got 0\.$"):
+        CollapseMetrics(check_every_frames=0)
+    assert CollapseMetrics(check_every_frames=np.int64(1000)).period == 1000
+    with pytest.raises(ValueError, match="^every_updates must be an integer >= 1, got nan"):
+        PeriodicReDo(float("nan"))
+    from sb3_collapse.run.checkpoints import ResumableCheckpoints
+
+    with pytest.raises(ParameterError, match="^every_frames must be an integer >= 0, got nan"):
+        ResumableCheckpoints("unused", float("nan"))
+
+
+# The tags the default CollapseMetrics logs (the report's figures read them): pinned, whatever it can also measure.
+DEFAULT_TAGS_PIXELS = (
+    {f"collapse/{layer}/{metric}" for layer in LAYERS for metric in METRICS}
+    | {f"collapse/{layer}/grad_norm" for layer in LAYERS[1:]}
+    | {"collapse/action_std", "collapse/action_saturation"}
+)
+
+
+def test_default_tags_are_pinned_on_drqv2_pixels_and_td3_mlp():
+    metrics = CollapseMetrics(check_every_frames=40, batch_size=16)
+    tiny_model().learn(60, callback=metrics)
+    assert set(metrics.last_metrics) == DEFAULT_TAGS_PIXELS
+
+    env = RandomObservationEnv(gym.spaces.Box(-1, 1, (5,), np.float32))
+    model = TD3("MlpPolicy", env, learning_starts=10, batch_size=8, policy_kwargs=dict(net_arch=[16, 16]), seed=0)
+    metrics = CollapseMetrics(check_every_frames=30, batch_size=16)
+    model.learn(40, callback=metrics)
+    layers = ("mlp0", "mlp1", "mlp2", "action")
+    expected = {f"collapse/{layer}/{metric}" for layer in layers for metric in METRICS}
+    expected |= {f"collapse/{layer}/grad_norm" for layer in layers[1:]}
+    assert set(metrics.last_metrics) == expected | {"collapse/action_std", "collapse/action_saturation"}
+
+
+def test_collapse_metrics_arguments_are_checked_naming_each():
+    from sb3_collapse.errors import ParameterError
+
+    for kwargs, parameter in (
+        (dict(metrics=["numerical_rank", "rank"]), "metrics"),
+        (dict(networks=["actor", "target"]), "networks"),
+        (dict(taus=[0.1, -0.5]), "taus"),
+        (dict(taus=[]), "taus"),
+    ):
+        with pytest.raises(ParameterError, match=f"^{parameter}") as raised:
+            CollapseMetrics(**kwargs)
+        assert raised.value.parameter == parameter
+    chosen = CollapseMetrics(metrics=["stable_rank"], networks=["critic"], taus=[0.5])
+    assert chosen.get_config()["metrics"] == ["stable_rank"] and chosen.get_config()["taus"] == [0.5]
+
+
+def layout_of(folder):
+    """The one custom-scalars layout of a run folder, over its event files (one per learn() call)."""
+    from tensorboard.plugins.custom_scalar import layout_pb2
+
+    layouts = []
+    for events in glob.glob(str(folder / "events.out.tfevents.*")):
+        accumulator = EventAccumulator(events)
+        accumulator.Reload()
+        if "custom_scalars__config__" in accumulator.Tags()["tensors"]:
+            layouts += accumulator.Tensors("custom_scalars__config__")
+    assert len(layouts) == 1
+    return layout_pb2.Layout.FromString(layouts[0].tensor_proto.string_val[0])
+
+
+def test_extended_set_actor_and_critic_with_a_reset_and_the_dashboard(tmp_path):
+    from sb3_collapse.monitoring.health import HEALTH_METRICS
+
+    path = tmp_path / "collapse_metrics.csv"
+    metrics = CollapseMetrics(20, batch_size=8, metrics=HEALTH_METRICS, networks=("actor", "critic"), csv_path=path)
+    rule = CollapseReset(window_frames=70, check_every_frames=20, threshold=1e9, max_resets=1)
+    model = tiny_model(tensorboard_log=str(tmp_path / "tb"))
+    history = []
+    metrics_check = metrics._on_check
+    metrics._on_check = lambda frames: (metrics_check(frames), history.append((frames, dict(metrics.last_metrics))))
+    model.learn(50, callback=CallbackList([rule, metrics]), log_interval=1)
+    assert rule.resets == 1 and model.reset_step == 35  # frame 70
+    values = dict(history)
+    # Updates from step 21 to the reset at step 35; none in the warm-up after it, to step 50 (frame 100).
+    assert values[60]["collapse/mlp1/weight_change"] > 0 and values[60]["collapse/q1.mlp1/weight_change"] > 0
+    assert values[100]["collapse/mlp1/weight_change"] == 0 and values[100]["collapse/q2.mlp2/weight_change"] == 0
+    assert np.isnan(values[100]["collapse/mlp1/persistent_dormant_fraction"])  # the memory restarted at the reset
+    assert 0 <= values[60]["collapse/mlp1/persistent_dormant_fraction"] <= values[60]["collapse/mlp1/dormant_ratio"]
+    for tag in (
+        "collapse/q1/q_mean",
+        "collapse/q2/q_std",
+        "collapse/q1.mlp0/stable_rank",
+        "collapse/cnn2/active_fraction",
+    ):
+        assert tag in values[100]
+    with open(path) as file:
+        logged = {row["tag"] for row in csv.DictReader(file) if row["frame"] == "100"}
+    assert logged == set(values[100])
+    accumulator = scalars(tmp_path / "tb" / "DrQv2_1")
+    assert {"collapse/q1.mlp1/entropy_effective_rank", "collapse/reset_rule/threshold"} <= set(
+        accumulator.Tags()["scalars"]
+    )
+    assert {e.value for e in accumulator.Scalars("collapse/reset_rule/threshold")} == {1e9}
+
+    layout = layout_of(tmp_path / "tb" / "DrQv2_1")
+    charts = {
+        category.title: {chart.title: list(chart.multiline.tag) for chart in category.chart}
+        for category in layout.category
+    }
+    figure4 = charts["collapse: Figure 4"]
+    assert list(figure4) == ["numerical rank", "correlation", "dead units", "gradient norm", "action spread"]
+    assert figure4["dead units"] == [r"^collapse/mlp[1-9][0-9]*/dead_units$"]
+    rule_chart = charts["collapse: reset rule"]["rule value against its threshold"]
+    assert rule_chart == [r"^collapse/reset_rule/value$", r"^collapse/reset_rule/threshold$"]
+    assert "collapse: critic" in charts and "stable_rank" in charts["collapse: all layers"]
+
+
+def test_dashboard_is_written_once_per_run_folder(tmp_path):
+    metrics = CollapseMetrics(check_every_frames=40, batch_size=16)
+    model = tiny_model(tensorboard_log=str(tmp_path / "tb"))
+    model.learn(30, callback=metrics)
+    model.learn(30, callback=metrics, reset_num_timesteps=False)  # the same folder, DrQv2_1, a second event file
+    assert len(glob.glob(str(tmp_path / "tb" / "DrQv2_1" / "events.out.tfevents.*"))) == 2
+    model.learn(30, callback=metrics)  # a new one, DrQv2_2
+    for run in ("DrQv2_1", "DrQv2_2"):
+        layout = layout_of(tmp_path / "tb" / run)
+        titles = [category.title for category in layout.category]
+        assert titles == ["collapse: Figure 4", "collapse: reset rule", "collapse: all layers"]
+    silent = CollapseMetrics(check_every_frames=40, batch_size=16, dashboard=False)
+    tiny_model(tensorboard_log=str(tmp_path / "quiet")).learn(30, callback=silent)
+    events = glob.glob(str(tmp_path / "quiet" / "DrQv2_1" / "events.out.tfevents.*"))
+    accumulator = EventAccumulator(events[0])
+    accumulator.Reload()
+    assert "custom_scalars__config__" not in accumulator.Tags()["tensors"]

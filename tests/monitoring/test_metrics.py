@@ -5,20 +5,30 @@ import pytest
 import torch as th
 
 from sb3_collapse.monitoring.metrics import (
+    EXTRA_LAYER_METRICS,
     action_spread,
+    active_fraction,
     dead_fraction,
     dead_units,
     dormant_ratio,
+    dormant_ratios,
+    dormant_units,
     effective_rank,
+    entropy_effective_rank,
+    feature_norm,
     gradient_norm,
     input_correlation,
     layer_metrics,
     numerical_rank,
+    persistent_dormant_fraction,
     saturated_fraction,
     singular_values,
+    stable_rank,
     unit_activations,
     unit_correlation,
     unit_count,
+    weight_change,
+    weight_magnitude,
     zero_fraction,
 )
 
@@ -211,3 +221,123 @@ def test_bad_input_is_refused():
         effective_rank(th.eye(3), delta=1.0)
     with pytest.raises(ValueError, match="action_dim"):
         action_spread(th.ones(4, 2, 2))
+
+
+# The plasticity literature's metrics (docs/monitoring.md#metrics): by hand, then against numpy.
+
+
+@pytest.mark.parametrize("shape", [(40, 12), (8, 30)])  # SVD path (d <= n) and Gram path (d > n)
+@pytest.mark.parametrize("k", [1, 3, 5])
+def test_ranks_of_a_rank_k_matrix_with_equal_singular_values(shape, k):
+    h = th.zeros(shape)
+    h[:k, :k] = th.eye(k) * 2.0  # singular values 2 (k times), then 0
+    assert stable_rank(h) == k
+    assert effective_rank(h) == k
+    assert entropy_effective_rank(h) == pytest.approx(k)  # exp(log k)
+    assert numerical_rank(h) == pytest.approx(k)
+
+
+def test_ranks_of_unequal_singular_values_by_hand():
+    h = th.zeros(10, 4)
+    h[0, 0], h[1, 1], h[2, 2] = 6.0, 3.0, 1.0  # s = (6, 3, 1, 0): partial sums 0.6, 0.9, 1.0
+    assert stable_rank(h) == 3 and stable_rank(h, mass=0.9) == 2 and stable_rank(h, mass=0.5) == 1
+    p = np.array([0.6, 0.3, 0.1])
+    assert entropy_effective_rank(h) == pytest.approx(math.exp(-(p * np.log(p)).sum()))
+    assert stable_rank(th.zeros(5, 3)) == 0.0 and entropy_effective_rank(th.zeros(5, 3)) == 0.0
+
+
+def test_dormant_ratios_of_a_layer_with_known_scores():
+    # Five units whose mean |activation| is 0, 0.02, 0.08, 1.9, 3.0: the layer mean is 1, so the scores are those.
+    magnitudes = th.tensor([0.0, 0.02, 0.08, 1.9, 3.0])
+    signs = th.tensor([1.0, -1.0, 1.0, -1.0])[:, None]
+    h = signs * magnitudes  # (4 inputs, 5 units), |h| constant per unit
+    assert dormant_ratios(h) == pytest.approx({0.0: 1 / 5, 0.025: 2 / 5, 0.1: 3 / 5})
+    assert dormant_ratios(h, (0.5, 2.0)) == pytest.approx({0.5: 3 / 5, 2.0: 4 / 5})
+    assert dormant_ratios(h)[0.025] == dormant_ratio(h, 0.025)
+    # Channels of a conv layer: a channel's score is its mean over inputs and positions.
+    conv = magnitudes[None, :, None, None].expand(3, 5, 2, 2)
+    assert dormant_ratios(conv) == pytest.approx({0.0: 1 / 5, 0.025: 2 / 5, 0.1: 3 / 5})
+    with pytest.raises(ValueError, match="taus must be >= 0"):
+        dormant_ratios(h, (-0.1,))
+
+
+def test_persistent_dormant_fraction_counts_units_dormant_at_both_checks():
+    now = th.tensor([True, True, False, False])
+    before = th.tensor([True, False, True, False])
+    assert persistent_dormant_fraction(now, before) == 0.25
+    assert persistent_dormant_fraction(now, now) == 0.5
+    with pytest.raises(ValueError, match="previous must have the shape"):
+        persistent_dormant_fraction(now, before[:3])
+
+
+def test_active_fraction_and_feature_norm_by_hand():
+    h = th.tensor([[3.0, 4.0, 0.0, -1.0], [0.0, 0.0, 0.0, 0.0]])
+    assert active_fraction(h) == 2 / 8  # (2/4 + 0/4) / 2
+    assert feature_norm(h) == pytest.approx((math.sqrt(26.0) + 0.0) / 2)
+    assert active_fraction(th.ones(3, 2, 4, 4)) == 1.0
+
+
+def test_weight_magnitude_and_change_by_hand():
+    weight, bias = th.full((2, 2), 2.0), th.zeros(4)
+    assert weight_magnitude([weight, bias]) == pytest.approx(math.sqrt(16 / 8))  # root mean square
+    assert weight_change([weight, bias], [weight.clone(), bias.clone()]) == 0.0  # identical weights: no change
+    assert weight_change([weight + 1, bias], [weight, bias]) == pytest.approx(math.sqrt(4 / 8))
+    assert weight_magnitude([]) == 0.0
+    with pytest.raises(ValueError, match="reference must hold"):
+        weight_change([weight], [bias])
+
+
+def test_plasticity_metrics_match_numpy():
+    rng = np.random.default_rng(3)
+    for shape in ((50, 20), (16, 3, 5, 5), (10, 64)):
+        a = np.maximum(
+            rng.normal(size=shape)
+            * rng.uniform(0, 2, size=shape[1])[None, :, None, None].reshape((1, shape[1]) + (1,) * (len(shape) - 2)),
+            0.0,
+        )
+        h = th.as_tensor(a, dtype=th.float32)
+        flat = a.reshape(shape[0], -1).astype(np.float32).astype(np.float64)
+        s = np.linalg.svd(flat, compute_uv=False)
+        cumulative = np.cumsum(s) / s.sum()
+        assert stable_rank(h) == np.sum(cumulative < 0.99) + 1  # Plasticine's compute_stable_rank
+        p = s / s.sum()
+        p = p[p > 0]
+        assert entropy_effective_rank(h) == pytest.approx(np.exp(-(p * np.log(p)).sum()), rel=1e-6)
+        assert active_fraction(h) == pytest.approx((flat > 0).mean())
+        assert feature_norm(h) == pytest.approx(np.linalg.norm(flat, axis=1).mean())
+        per_unit = np.moveaxis(np.abs(a), 1, -1).reshape(-1, shape[1]).mean(0)  # dopamine: mean over all but units
+        score = per_unit / (per_unit.mean() + 1e-9)
+        expected = {tau: float((score <= tau).mean()) for tau in (0.0, 0.025, 0.1, 0.5)}
+        assert dormant_ratios(h, tuple(expected)) == pytest.approx(expected)
+        assert th.equal(dormant_units(h, 0.5), th.as_tensor(score <= 0.5))
+    w, w0 = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+    b, b0 = rng.normal(size=7), rng.normal(size=7)
+    tensors = [th.as_tensor(x) for x in (w, b)]
+    assert weight_magnitude(tensors) == pytest.approx(np.sqrt((np.sum(w**2) + np.sum(b**2)) / 28))
+    change = np.sqrt((np.sum((w - w0) ** 2) + np.sum((b - b0) ** 2)) / 28)
+    assert weight_change(tensors, [th.as_tensor(w0), th.as_tensor(b0)]) == pytest.approx(change)
+
+
+def test_layer_metrics_extra_names_equal_the_single_functions():
+    h = th.relu(th.randn(64, 32, generator=th.Generator().manual_seed(2)))
+    values = layer_metrics(h, metrics=EXTRA_LAYER_METRICS, taus=(0.0, 0.1))
+    assert values == pytest.approx(
+        {
+            "dormant_ratio_tau0": dormant_ratio(h, 0.0),
+            "dormant_ratio_tau0.1": dormant_ratio(h, 0.1),
+            "stable_rank": stable_rank(h),
+            "entropy_effective_rank": entropy_effective_rank(h),
+            "active_fraction": active_fraction(h),
+            "feature_norm": feature_norm(h),
+        }
+    )
+    assert list(layer_metrics(h)) == list(layer_metrics(h, metrics=reversed(list(layer_metrics(h)))))  # fixed order
+    with pytest.raises(ValueError, match="Unknown layer metric"):
+        layer_metrics(h, metrics=("rank",))
+
+
+def test_plasticity_metrics_keep_the_device_and_take_float64():
+    h = th.relu(th.randn(20, 6, dtype=th.float64, generator=th.Generator().manual_seed(4)))
+    assert dormant_units(h).device == h.device
+    assert stable_rank(h) == stable_rank(h.float())
+    assert entropy_effective_rank(h) == pytest.approx(entropy_effective_rank(h.float()), rel=1e-6)

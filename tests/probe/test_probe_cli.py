@@ -149,7 +149,6 @@ def test_bad_inputs_exit_with_a_message_and_no_outputs(files, tmp_path, capsys):
         # checkpoints of two image sizes are refused before anything is recorded: nothing is written
         "of shape (9, 40, 40): the probe feeds every checkpoint the same rollouts": [str(files["early"]), str(bigger)],
         "not a rollouts file": [str(files["early"]), "--rollouts", str(folder / "notes.txt")],
-        "--split must be 3 positive fractions summing to 1": [str(files["early"]), "--split", "0.5", "0.5", "0.5"],
     }
     for message, args in cases.items():
         rollouts = [] if "--rollouts" in args else ["--rollouts", str(files["rollouts"])]
@@ -215,8 +214,11 @@ def test_bad_layers_and_split_are_refused_before_any_rollout(files, tmp_path, mo
         with pytest.raises(SystemExit) as exit_info:
             main([*command, "--layers", "mlp9", "--out", str(out)])
         assert exit_info.value.code == 2 and "invalid choice: 'mlp9'" in capsys.readouterr().err
-        assert main([*command, "--split", "0.5", "0.5", "0.5", "--out", str(out), "--no-progress"]) == 2
-        assert "--split must be 3 positive fractions summing to 1" in capsys.readouterr().err
+        with pytest.raises(SystemExit) as exit_info:
+            main([*command, "--split", "0.5", "0.5", "0.5", "--out", str(out), "--no-progress"])
+        assert (
+            exit_info.value.code == 2 and "--split must be 3 positive fractions summing to 1" in capsys.readouterr().err
+        )
         assert_no_outputs(out)
 
 
@@ -276,3 +278,19 @@ def test_commands_draw_no_progress_bar_into_a_captured_stderr_and_the_summary_ho
     few = next(warning for warning in warnings if warning["kind"] == "few test samples")
     assert few["layers"] == ["cnn4", "mlp2"] and f"Warning: {few['message']}" in captured.err
     assert "well-performing agent" in few["message"]
+
+
+@pytest.mark.parametrize("split", [("0.5", "0.5", "0.5"), ("nan", "0.5", "0.5"), ("2", "0", "0"), ("x", "0.5", "0.5")])
+@pytest.mark.parametrize("command", ["run", "sweep"])
+def test_every_split_error_is_one_line_with_the_same_prefix(tmp_path, capsys, command, split):
+    """A sum other than 1, a NaN (once "must be <= 1"), a fraction out of range, a word: each is the sub-command's
+    `<prog> <command>: error: --split ...` line, exit status 2, before any file is read."""
+    where = ["sweep", str(tmp_path), "--task", "walker-walk"] if command == "sweep" else [str(tmp_path / "a.zip")]
+    with pytest.raises(SystemExit) as exit_info:
+        main([*where, "--split", *split, "--out", str(tmp_path / "out")])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and lines[-1].startswith(f"python -m sb3_collapse.probe {command}: error: ")
+    expected = "argument --split: invalid float value: 'x'" if split[0] == "x" else (
+        f"--split must be 3 positive fractions summing to 1 (train validation test), got {[float(v) for v in split]}."
+    )  # fmt: skip
+    assert lines[-1].endswith(expected) and "<= 1" not in lines[-1]

@@ -44,14 +44,10 @@ from fabricated_sweep import write_probe_sweep
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    """800 frames (40 agent steps at action repeat 20: short evaluation episodes) at 48x48, evaluated every 400."""
-    config = TrainConfig(
-        env="walker-walk", frames=800, action_repeat=20, seed_frames=400, batch_size=16, hidden_dim=64, size=48,
-        eval_every_frames=400, eval_episodes=1, logdir=str(tmp_path_factory.mktemp("snapshots")), progress_bar=False,
-        replay_sampling="sb3", collapse_metrics_every_frames=0, snapshots=True, torch_threads=1,
-    )  # fmt: skip
-    return train(config)
+def run(tiny_walker_run):
+    """800 frames (40 agent steps at action repeat 20: short evaluation episodes) at 48x48, evaluated every 400: the
+    session's run (tests/conftest.py), which test_train_cli.py reads too."""
+    return tiny_walker_run
 
 
 def test_one_snapshot_per_evaluation(run):

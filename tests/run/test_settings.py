@@ -203,7 +203,12 @@ def _fail(*args, **kwargs):
     [
         ("sb3_collapse.probe", ["a.zip", "--layers", "mlp9"], "--layers", "invalid choice: 'mlp9'"),
         ("sb3_collapse.probe", ["a.zip", "--max-tau", "0"], "--max-tau", "must be >= 1, got 0."),
-        ("sb3_collapse.probe", ["a.zip", "--split", "0.5", "0.5", "1.5"], "--split", "must be <= 1, got 1.5."),
+        (
+            "sb3_collapse.probe",
+            ["a.zip", "--split", "0.5", "0.5", "1.5"],
+            "--split",
+            "summing to 1 (train validation test), got [0.5, 0.5, 1.5].",
+        ),
         ("sb3_collapse.probe", ["a.zip", "--memory-gb", "0"], "--memory-gb", "must be > 0, got 0.0."),
         ("sb3_collapse.probe", ["a.zip", "--noise-std", "-1"], "--noise-std", "must be >= 0, got -1.0."),
         ("sb3_collapse.probe", ["sweep", "runs", "--task", "t", "--jobs", "0"], "--jobs", "must be >= 1, got 0."),
@@ -232,9 +237,10 @@ def test_a_bad_value_exits_2_with_one_line_naming_the_flag_before_any_work(
 def test_split_that_does_not_sum_to_1_is_refused_before_recording(monkeypatch, capsys):
     monkeypatch.setattr(probe_outputs, "load_checkpoint", _fail)
     monkeypatch.setattr(probe_outputs, "record", _fail)
-    assert probe_cli.main(["a.zip", "--split", "0.5", "0.5", "0.5"]) == 2
-    assert capsys.readouterr().err == (
-        "error: --split must be 3 positive fractions summing to 1 (train validation test), got [0.5, 0.5, 0.5].\n"
+    with pytest.raises(SystemExit) as exit_info:  # the sub-command's line, as every other --split error
+        probe_cli.main(["a.zip", "--split", "0.5", "0.5", "0.5"])
+    assert exit_info.value.code == 2 and capsys.readouterr().err.endswith(
+        "run: error: --split must be 3 positive fractions summing to 1 (train validation test), got [0.5, 0.5, 0.5].\n"
     )
 
 
@@ -299,3 +305,21 @@ def test_a_settings_help_is_the_docstring_under_it_unless_given():
         @dataclasses.dataclass
         class Undocumented:
             third: int = setting(3)
+
+
+def test_a_dict_key_in_a_message_is_not_turned_into_a_flag():
+    """The flag translation turned policy_kwargs['hidden_dim'] into policy_kwargs['--hidden-dim']: a key stays, the
+    bare name of a setting still becomes its flag."""
+    from sb3_collapse.errors import ParameterError, cli_message
+    from sb3_collapse.train import build_parser
+
+    error = ParameterError(
+        "policy_kwargs['hidden_dim']",
+        "policy_kwargs['hidden_dim'] must be an integer >= 1, got 0 (or pass hidden_dim).",
+    )
+    assert cli_message(error, build_parser()) == (
+        "policy_kwargs['hidden_dim'] must be an integer >= 1, got 0 (or pass --hidden-dim)."
+    )
+    assert cli_message(ParameterError("x", 'kwargs["feature_dim"] and feature_dim'), build_parser()) == (
+        'kwargs["feature_dim"] and --feature-dim'
+    )

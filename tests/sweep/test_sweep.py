@@ -1,3 +1,4 @@
+import contextlib
 import csv
 import itertools
 import json
@@ -790,3 +791,263 @@ def test_tiny_sweep_records_its_plan_and_the_report_shows_it(tiny_sweep):
     assert plan["trials_pending"] == 4 and plan["frames"] == 4 * 1000 and plan["agent_steps"] == 4 * 50
     assert set(plan["bytes"]) == {"walker-walk/drqv2", "walker-walk/drqv2+reset"}
     assert "trials_pending" in settings_table(settings)
+
+
+# The fabricated preset of PLAN_PRESET as flags (the trials write 2.3 MB each at most: 1.9 MB of checkpoints at their
+# peak, 0.4 MB of final model).
+PLAN_FLAGS = [
+    "--frames", "4000", "--action-repeat", "4", "--frame-stack", "2", "--size", "16", "--buffer-size", "500",
+    "--hidden-dim", "8", "--feature-dim", "4", "--seed-frames", "400",
+]  # fmt: skip
+
+
+def test_dry_run_compares_the_plans_disk_with_the_free_space_at_out(tmp_path, monkeypatch, capsys):
+    """The dry run compared only the RAM: a plan far larger than the disk of --out said nothing. One trial that cannot
+    fit is refused as the RAM is (nothing written, the sweep itself too); a plan larger than the free space warns."""
+    import sb3_collapse.sweep.plan as plan_module
+
+    asked = []
+
+    def disk_usage(path):
+        asked.append(path)
+        return shutil._ntuple_diskusage(10**9, 10**9 - free, free)
+
+    monkeypatch.setattr(plan_module.shutil, "disk_usage", disk_usage)
+    out = tmp_path / "new" / "sweep"
+    argv = ["--tasks", "cartpole-balance", "--seeds", "2", "--variants", "drqv2", "--out", str(out), *PLAN_FLAGS]
+    free = 10**6  # 1 MB
+    with pytest.raises(SystemExit) as stopped:
+        main([*argv, "--dry-run"])
+    assert stopped.value.code == 2 and asked[-1] == tmp_path  # the nearest existing parent of --out
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.endswith(
+        "error: --out: its disk has 1.0 MB free, less than one trial writes (2.3 MB: its checkpoints at their peak, "
+        "snapshots and final model): free space or give --out on a larger disk (or pass a smaller --buffer-size); "
+        "nothing was written."
+    )
+    with pytest.raises(SystemExit):  # the sweep itself, before Ray or the folder
+        main(argv)
+    assert not (tmp_path / "new").exists() and "less than one trial writes" in capsys.readouterr().err
+
+    free = 3 * 10**6  # one trial fits, not both at once
+    monkeypatch.setattr(plan_module.os, "cpu_count", lambda: 2)  # 2 trials at once
+    assert main([*argv, "--dry-run"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.strip().splitlines() == [
+        (
+            "warning: the 2 trials to train write up to 4.5 MB (2 at once) and the disk of --out has 3.0 MB free: the "
+            "trials that meet a full disk fail with their checkpoints intact; free space, then run the same command "
+            "again to resume them."
+        )
+    ]
+    assert "  disk to write: up to " in captured.out and "; 3.0 MB free at --out" in captured.out
+    free = 10**9
+    assert main([*argv, "--dry-run"]) == 0 and capsys.readouterr().err == ""
+    assert not (tmp_path / "new").exists()
+
+
+class _Ray:
+    """Ray's get, for _collect: the outcome a trial's task returned, or the error its death raised."""
+
+    def __init__(self, outcome):
+        self.outcome = outcome
+
+    def get(self, _ref):
+        if isinstance(self.outcome, Exception):
+            raise self.outcome
+        return self.outcome
+
+
+class _Bar:
+    def write(self, line):
+        print(line)
+
+    def set_postfix(self, **_):
+        pass
+
+    def update(self):
+        pass
+
+
+def test_a_trial_meeting_a_full_disk_at_its_start_reports_its_own_reason(tmp_path, monkeypatch, capsys):
+    """A trial that met a full disk at its start became "the Ray task died" (RayTaskError(OSError)): writing its
+    error.txt failed on the full disk too. Its own line reaches the summary, naming the files it could not write, and
+    the trial is called retryable. (A full disk by patched writes; a real one in the next test, where one can be
+    made.)"""
+    import errno
+
+    from sb3_collapse.sweep import runner
+    from sb3_collapse.sweep.__main__ import print_summary
+    from sb3_collapse.sweep.runner import SweepSummary, _collect, run_trial
+
+    trial, out = Trial("cartpole-balance", "drqv2", 0), tmp_path / "sweep"
+    folder = trial_dir(out, trial)
+
+    def full_disk_train(config):  # as train says a run folder it cannot write at its start
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device", str(folder / "run.lock"))
+        except OSError as error:
+            raise InputError(f"run folder: could not write {error.filename} (No space left on device): free "
+                             "space, then run the same command again.") from None  # fmt: skip
+
+    def full_disk_write(path, _text):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(runner, "train", full_disk_train)
+    monkeypatch.setattr(runner, "write_text_atomically", full_disk_write)
+    outcome = run_trial(trial, str(out), {"frames": 800})
+    line = (
+        f"InputError: run folder: could not write {folder / 'run.lock'} (No space left on device): free space, then "
+        f"run the same command again (and its error.txt could not be written: {folder / 'error.txt'}: No space left "
+        "on device)."
+    )
+    assert outcome == {"trial": str(trial), "status": "failed", "error": line, "retryable": True}
+    summary = SweepSummary(trials=[trial], skipped=[], finished=[], failed={})
+    _collect(_Ray(outcome), None, trial, out, summary, _Bar())
+    capsys.readouterr()
+    assert print_summary(summary, str(out)) == 1
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1:] == [f"  failed: {trial}: {line}", "Rerun the same command to retry the failed trials."]
+
+    # The Ray task itself died, and the driver cannot write its error file either: the summary says both.
+    summary = SweepSummary(trials=[trial], skipped=[], finished=[], failed={})
+    _collect(_Ray(RuntimeError("worker died\ndetails")), None, trial, out, summary, _Bar())
+    print_summary(summary, str(out))
+    assert (
+        f"  failed: {trial}: RuntimeError: worker died (and its error.txt could not be written: "
+        f"{folder / 'error.txt'}: No space left on device)."
+    ) in capsys.readouterr().out.splitlines()
+    assert not (folder / "error.txt").exists()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a 1 MB tmpfs needs root")
+def test_a_trial_on_a_real_full_disk_at_its_start(tmp_path):
+    """The same on a 1 MB tmpfs filled to the last byte, with the real train (where this process may mount one)."""
+    from sb3_collapse.sweep.runner import run_trial
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], check=False).returncode != 0:
+        pytest.skip("no tmpfs can be mounted here")
+    try:
+        with contextlib.suppress(OSError), open(disk / "fill", "wb", buffering=0) as file:
+            while True:  # to the last byte
+                file.write(b"\0" * 4096)
+        trial, training = Trial("cartpole-balance", "drqv2", 0), {"frames": 800, "action_repeat": 20, "size": 36}
+        outcome = run_trial(trial, str(disk / "sweep"), training, torch_threads=1)
+        folder = trial_dir(disk / "sweep", trial)
+        assert outcome["status"] == "failed" and outcome["retryable"] is True
+        assert f"could not write {folder / 'run.lock'} (No space left on device)" in outcome["error"]
+        assert f"(and its error.txt could not be written: {folder / 'error.txt'}: No space left" in outcome["error"]
+    finally:
+        subprocess.run(["umount", str(disk)], check=False)
+
+
+def _hold_run_lock(folder):
+    """A process that holds ``folder``'s run lock (as a live train does) until its stdin closes."""
+    code = (
+        "import sys; from sb3_collapse.run.lock import RunLock\n"
+        f"with RunLock({str(folder)!r}):\n    print('held', flush=True); sys.stdin.read()"
+    )
+    holder = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_a_trial_folder_held_by_another_process_is_left_as_it_is(tmp_path, monkeypatch, capsys):
+    """A sweep wrote error.txt into a trial folder a live train held, called the trial permanently failed and the
+    folder then failed every rerun. Now it is in use: nothing is written into it, the dry run and the summary say so,
+    and the same command once the holder ended trains it."""
+    from sb3_collapse.runfolder import run_folder_owner as owner_of
+    from sb3_collapse.sweep import runner
+    from sb3_collapse.sweep.runner import run_trial
+
+    out = tmp_path / "sweep"
+    trial = Trial("cartpole-balance", "drqv2", 0)
+    folder = trial_dir(out, trial)
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"env": "cartpole-balance", "lr": "other settings"}))
+    argv = ["--tasks", "cartpole-balance", "--seed-list", "0", "--variants", "drqv2", "--out", str(out), *PLAN_FLAGS]
+    holder = _hold_run_lock(folder)
+    try:
+        owner = f"pid {holder.pid} on host "
+        before = mtimes(folder)
+        assert main([*argv, "--dry-run"]) == 0
+        lines = own_lines(capsys.readouterr().out)
+        assert lines[0].startswith(f"running    in use {folder}: held by {owner}")
+        assert lines[0].endswith("; left as it is, run the same command once it ends")
+        assert lines[-1] == (
+            "1 trials: 1 running; 0 would run (frames done: the newest checkpoint of an unfinished trial); 1 in use "
+            "by another process (run once it ends)."
+        )
+        # The sweep: no Ray task for it (none started: it is the only trial); exit status 75, run again later.
+        assert main([*argv, "--no-progress-bar"]) == 75
+        stdout = capsys.readouterr().out
+        assert "0 finished before, 0 failed, 1 in use by another process." in stdout
+        assert f"  in use: {trial}: its folder is held by {owner}" in stdout
+        assert "Run the same command again once the process holding it has ended: the sweep trains it then (exit " \
+            "status 75)." in stdout  # fmt: skip
+        # A trial's task finds it held (it was taken after the driver looked): the same, with other settings too
+        # (its folder would have been deleted).
+        assert run_trial(trial, str(out), {"frames": 800}) == {"trial": str(trial), "status": "in use", "error": ANY}
+        # Taken between that look and train's lock: train's lock says so, and nothing is written either.
+        looks = [None]  # the first look misses the holder, the look after train's refusal sees it
+        monkeypatch.setattr(runner, "run_folder_owner", lambda folder: looks.pop() if looks else owner_of(folder))
+        monkeypatch.setattr(runner, "settings_differences", lambda saved, config: [])
+        outcome = run_trial(trial, str(out), {"frames": 800, "action_repeat": 20, "size": 36}, torch_threads=1)
+        assert outcome["status"] == "in use" and outcome["error"].startswith(owner)
+        assert mtimes(folder) == before and not (folder / "error.txt").exists()
+    finally:
+        holder.stdin.close()
+        holder.wait(timeout=60)
+    monkeypatch.undo()
+    assert run_status(folder) != "running"
+
+
+class _Anything:
+    def __eq__(self, other):
+        return isinstance(other, str) and other.startswith("pid ")
+
+
+ANY = _Anything()
+
+
+def test_dry_run_says_what_the_real_command_would_refuse(tmp_path, capsys):
+    """The dry run of a folder another sweep holds said "2 would run" without saying the command would be refused, and
+    called a checkpoint of another version "resume" (train refuses it): it now says both, and the sweep leaves such a
+    trial as it is, failed with the way out, without starting Ray for it."""
+    from sb3_collapse import __version__
+    from sb3_collapse.sweep.runner import sweep_folder_locked
+
+    out = tmp_path / "sweep"
+    old = trial_dir(out, Trial("walker-walk", "drqv2", 0))
+    step = old / "checkpoints" / "step_000000000100"
+    step.mkdir(parents=True)
+    (old / "config.json").write_text("{}")
+    (step / "checkpoint.json").write_text(json.dumps({"frames": 400, "format": 1, "version": "0.0.1"}))
+    argv = ["--tasks", "walker-walk", "--seed-list", "0", "1", "--variants", "drqv2", "--out", str(out), *TINY]
+    line = (
+        f"its checkpoint {step} was written by sb3-collapse 0.0.1, this is {__version__}: rerun with the version that "
+        "wrote it, or move the folder aside to train this seed again."
+    )
+    before = mtimes(out)
+    with sweep_folder_locked(out):
+        assert main([*argv, "--dry-run"]) == 0
+    lines = own_lines(capsys.readouterr().out)
+    assert lines[0] == f"unfinished keep   {old}: {line}"
+    assert lines[-2] == (
+        "2 trials: 1 new, 1 unfinished; 1 would run (frames done: the newest checkpoint of an unfinished trial); 1 "
+        "kept as they are (a checkpoint of another version)."
+    )
+    assert lines[-1].startswith(f"Note: sweep folder {out} is in use by pid {os.getpid()} on host ")
+    assert lines[-1].endswith(
+        ": without --dry-run this command is refused until it ends; wait for it to end (or stop it), or give this "
+        "sweep another --out."
+    )
+    assert main([*argv, "--dry-run"]) == 0 and "Note: sweep folder" not in capsys.readouterr().out  # once it ended
+
+    argv = ["--tasks", "walker-walk", "--seed-list", "0", "--variants", "drqv2", "--out", str(out), *TINY]
+    assert main([*argv, "--no-progress-bar"]) == 1
+    stdout = capsys.readouterr().out
+    assert f"  failed: walker-walk/drqv2/seed_0: {line}" in stdout.splitlines() and "retry" not in stdout.lower()
+    assert {path: mtime for path, mtime in mtimes(out).items() if old in path.parents} == before
