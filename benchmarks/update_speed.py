@@ -125,6 +125,13 @@ def timed_ms(update, device: th.device) -> float:
     return (time.perf_counter() - start) * 1000
 
 
+def worker_ignores_sigint() -> None:
+    """A worker's first act: SIGINT, blocked since it started (the parent's mask), ignored, then unblocked (a pending
+    one is discarded): the process group's SIGINT is for the parent."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def worker(impl: str, batch_sizes: list[int], device: str, buffer_size: int, size: int, hidden_dim: int) -> None:
     """
     One implementation in this process: build the model, make two warm-up updates per batch size (the first
@@ -178,13 +185,15 @@ def start_workers(
         command = [sys.executable, __file__, "--worker", impl, "--device", args.device, "--buffer-size",
                    str(args.buffer_size), "--size", str(args.size), "--hidden-dim", str(args.hidden_dim),
                    "--batch-sizes", *map(str, sizes[impl])]  # fmt: skip
-        # SIGINT ignored from the worker's first instruction (inherited; Python then installs no handler): the
-        # SIGINT that `timeout --signal=INT` sends to the process group is for this process, which stops the workers.
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        # The SIGINT that `timeout --signal=INT` sends to the process group is for this process, which stops the
+        # workers: SIGINT is blocked while a worker starts (the mask is inherited through exec), and the worker
+        # ignores it before it unblocks it (worker_ignores_sigint). This process's handler is never swapped: a SIGINT
+        # sent meanwhile stays pending and reaches it once unblocked, never lost.
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             workers[impl] = subprocess.Popen(command, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         finally:
-            signal.signal(signal.SIGINT, previous)
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     deadline = None if args.ready_timeout is None else time.monotonic() + args.ready_timeout
     waiting = {workers[impl].stdout: impl for impl in impls}
     warmups = {}
@@ -272,6 +281,7 @@ def main() -> int:
     args = parser.parse_args()
 
     if args.worker:
+        worker_ignores_sigint()
         worker(args.worker, args.batch_sizes, args.device, args.buffer_size, args.size, args.hidden_dim)
         return 0
 
@@ -318,6 +328,7 @@ def main() -> int:
                               "compiled for its own shapes)", flush=True)  # fmt: skip
     except KeyboardInterrupt:
         print("interrupted: the rows above are complete", flush=True)
+        return 0  # what was measured is printed; a worker still starting is no failure
     finally:
         for process in workers.values():
             process.kill()

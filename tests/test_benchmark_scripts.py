@@ -61,7 +61,7 @@ def test_update_speed_prints_the_eager_rows_before_compiling_and_keeps_them_when
     assert [row[0] for row in rows] == ["8", "4"]
     for row in rows:  # milliseconds of both, and the ratio with its range
         assert float(row[1]) > 0 and float(row[2]) > 0 and float(row[3]) > 0, row
-    assert after.strip().splitlines()[-1] == "interrupted: the rows above are complete"
+    assert after.strip().splitlines()[-1] == "interrupted: the rows above are complete", output + errors
     assert "ours-compiled (ms)" not in output
     assert "KeyboardInterrupt" not in errors  # the workers ignored the SIGINT
     assert _group_is_gone(process.pid)  # every worker stopped
