@@ -21,7 +21,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_collapse.envs import DMC_TASKS, DMCEnv, ensure_rendering_backend, make_dmc_env, parse_task
-from sb3_collapse.envs.dmc import REWARD_INPUTS, reward_inputs_of, scale_action
+from sb3_collapse.envs.dmc import REWARD_INPUTS, ignore_dm_control_shape_deprecation, reward_inputs_of, scale_action
 
 ensure_rendering_backend(required=False)  # the OpenGL backend, before dm_control is imported (it reads MUJOCO_GL once)
 from dm_control import suite  # isort: skip
@@ -36,13 +36,11 @@ WALKER_STATE_SHAPES = {"orientations": 14, "height": 1, "velocity": 9}
 
 @contextlib.contextmanager
 def warnings_as_errors() -> Iterator[None]:
-    """Turn every warning into an error but dm_control's own deprecation under NumPy >= 2.5 (named by pyproject.toml's
-    filterwarnings too): its named indexing sets an array's ``shape``, which the environments' observations use."""
+    """Turn every warning into an error but dm_control's own deprecation under NumPy >= 2.5, which the environments
+    ignore (pyproject.toml's filterwarnings too)."""
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        warnings.filterwarnings(
-            "ignore", "Setting the shape on a NumPy array", DeprecationWarning, module=r"dm_control\."
-        )
+        ignore_dm_control_shape_deprecation()
         yield
 
 
@@ -219,6 +217,25 @@ def test_import_chooses_nothing_and_building_an_env_chooses_the_backend() -> Non
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines()[-1].startswith("backend: ")
+
+
+def test_steps_write_no_dm_control_deprecation_to_stderr() -> None:
+    """In a fresh interpreter, where importing shimmy makes every DeprecationWarning show: steps write nothing to stderr
+    (under NumPy >= 2.5, dm_control's named indexing warned at each step; a training process whose stderr is a pipe
+    that nobody reads until it ends, as in tests/test_checkpoints.py, then blocked once the pipe was full)."""
+    code = (
+        "from sb3_collapse.envs import make_dmc_env\n"
+        "env = make_dmc_env('cartpole-balance', obs_type='state')\n"
+        "env.reset(seed=0)\n"
+        "for _ in range(3):\n"
+        "    env.step(env.action_space.sample())\n"
+        "import sys, warnings\n"
+        "print(any(f[0] == 'always' and f[2] is DeprecationWarning and f[3] is None for f in warnings.filters))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], check=False, timeout=300, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines()[-1] == "True"  # dm_control.composer's "always", which shows the others
+    assert "DeprecationWarning" not in result.stderr, result.stderr
 
 
 # ---------------------------------------------------------------- pixel observations
