@@ -45,11 +45,12 @@ python_version() { "$1" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2
 
 find_python() {
     # PYTHON chooses (a version outside SUPPORTED with a warning); else the first candidate of a supported version.
-    local candidate version
+    local candidate version supported
+    supported=$(printf '%s, ' "${SUPPORTED[@]}")
     if [[ -n $PYTHON ]]; then
         version=$(python_version "$PYTHON") || { echo "PYTHON=$PYTHON does not run here." >&2; exit 1; }
         [[ " ${SUPPORTED[*]} " == *" $version "* ]] ||
-            echo "Warning: $PYTHON is Python $version; the test suite passes on ${SUPPORTED[*]}." >&2
+            echo "Warning: $PYTHON is Python $version; the test suite passes on ${supported%, }." >&2
         echo "$PYTHON"; return
     fi
     for candidate in python3.11 python3.12 python3.13 python3; do
@@ -58,7 +59,8 @@ find_python() {
             echo "$candidate"; return
         fi
     done
-    echo "Python ${SUPPORTED[*]} is required: none of python3.11, python3.12, python3.13, python3 is one (set PYTHON=...)." >&2
+    echo "None of python3.11, python3.12, python3.13, python3 is Python ${supported%, } here:" \
+        "set PYTHON=... to one." >&2
     exit 1
 }
 
@@ -98,8 +100,9 @@ setup() {
 install_package() {
     # $1: this package with its extras, installed in editable mode with its dependencies.
     if "$VENV/bin/python" -c 'import sys; sys.exit(sys.version_info < (3, 13))'; then
-        log "Installing sb3-collapse and its dependencies but labmaze, which has no wheel for Python 3.13 and builds" \
-            "only with Bazel: dm_control.locomotion, which needs it and which this package does not use, will not import"
+        log "Installing sb3-collapse and its dependencies but labmaze, which has no wheel for Python 3.13 and" \
+            "builds only with Bazel: dm_control.locomotion, which needs it and which this package does not use," \
+            "will not import"
         # pip resolves as usual (labmaze's metadata comes from its source) and installs nothing; then each package it
         # chose, labmaze aside, is installed at the chosen version without its dependencies (pip chose them all).
         local report
@@ -109,7 +112,8 @@ install_package() {
 import json, sys
 for item in json.load(open(sys.argv[1]))["install"]:
     if item["metadata"]["name"].lower() not in ("labmaze", "sb3-collapse"):
-        print(item["metadata"]["name"] + "==" + item["metadata"]["version"])' "$report/report.json" >"$report/requirements.txt"
+        print(item["metadata"]["name"] + "==" + item["metadata"]["version"])
+' "$report/report.json" >"$report/requirements.txt"
         if [[ -s $report/requirements.txt ]]; then
             pip_install --no-deps -r "$report/requirements.txt"
         fi
