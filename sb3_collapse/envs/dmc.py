@@ -4,7 +4,10 @@ dm_control control step; an *agent step* one :meth:`DMCEnv.step`, ``action_repea
 
 from __future__ import annotations
 
+import contextlib
 import difflib
+import io
+import sys
 import warnings
 from collections import OrderedDict, deque
 from dataclasses import dataclass
@@ -258,7 +261,12 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         """:return: the dm_control task wrapped by shimmy's ``DmControlCompatibilityV0``, seeded with ``seed``"""
         ensure_rendering_backend(required=self.obs_type == "pixels")
         from dm_control import suite
-        from shimmy.dm_control_compatibility import DmControlCompatibilityV0
+
+        # shimmy prints to stdout why it registered no locomotion envs (no labmaze, as on Python 3.13): said on stderr
+        # instead, so that stdout holds only what this package prints.
+        with contextlib.redirect_stdout(io.StringIO()) as shimmy_printed:
+            from shimmy.dm_control_compatibility import DmControlCompatibilityV0
+        sys.stderr.write(shimmy_printed.getvalue())
 
         ignore_dm_control_shape_deprecation()  # after shimmy's import, which imports dm_control.composer
         dm_env = suite.load(self.domain, self.task_name, task_kwargs={"random": seed}, visualize_reward=False)
