@@ -2,7 +2,8 @@
 # sb3-collapse: set up and run.   bash run.sh demo   |   bash run.sh test   |   bash run.sh setup
 #
 # setup: headless OpenGL (Debian packages, when missing and apt-get can install them), a virtual
-#        environment in .venv (Python >= 3.11; PYTHON=python3.12 picks one), PyTorch (the one already there, else
+#        environment in .venv (Python 3.11, 3.12 or 3.13: the first of python3.11, python3.12, python3.13, python3
+#        that is one; PYTHON=python3.12 chooses), PyTorch (the one already there, else
 #        `pip install $TORCH_SPEC`, torch==2.13.0 by default: from PyPI on Linux that is the CUDA build; see
 #        README.md#requirements), then this package in editable mode (with its test, zoo, sweep and dev extras
 #        for `setup` and `test`).
@@ -14,6 +15,8 @@ cd "$(dirname "$0")"
 PYTHON=${PYTHON:-}
 VENV=${VENV:-.venv}
 TORCH_SPEC=${TORCH_SPEC:-torch==2.13.0}
+# The Python versions the test suite passes on (pyproject.toml's classifiers name the same).
+SUPPORTED=(3.11 3.12 3.13)
 EGL_PACKAGES=(libegl1 libgl1-mesa-dri libegl-mesa0)
 
 log() { printf '\n==> %s\n' "$*"; }
@@ -38,14 +41,26 @@ install_rendering_packages() {
     DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" libosmesa6 >/dev/null
 }
 
+python_version() { "$1" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null; }
+
 find_python() {
-    local candidate
-    for candidate in ${PYTHON:-python3.11 python3.12 python3}; do
-        if "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
+    # PYTHON chooses (a version outside SUPPORTED with a warning); else the first candidate of a supported version.
+    local candidate version supported
+    supported=$(printf '%s, ' "${SUPPORTED[@]}")
+    if [[ -n $PYTHON ]]; then
+        version=$(python_version "$PYTHON") || { echo "PYTHON=$PYTHON does not run here." >&2; exit 1; }
+        [[ " ${SUPPORTED[*]} " == *" $version "* ]] ||
+            echo "Warning: $PYTHON is Python $version; the test suite passes on ${supported%, }." >&2
+        echo "$PYTHON"; return
+    fi
+    for candidate in python3.11 python3.12 python3.13 python3; do
+        version=$(python_version "$candidate") || continue
+        if [[ " ${SUPPORTED[*]} " == *" $version "* ]]; then
             echo "$candidate"; return
         fi
     done
-    echo "Python >= 3.11 is required; ${PYTHON:-python3.11, python3.12, python3}: none here (set PYTHON=...)." >&2
+    echo "None of python3.11, python3.12, python3.13, python3 is Python ${supported%, } here:" \
+        "set PYTHON=... to one." >&2
     exit 1
 }
 
@@ -53,8 +68,8 @@ check_venv_python() {
     # A venv made by another Python is kept only when PYTHON does not ask for a different version.
     [[ -n $PYTHON ]] || return 0
     local wanted have
-    wanted=$("$(find_python)" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
-    have=$("$VENV/bin/python" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
+    wanted=$(python_version "$(find_python)")
+    have=$(python_version "$VENV/bin/python")
     if [[ $wanted != "$have" ]]; then
         echo "$VENV holds Python $have, not $PYTHON's $wanted: set VENV=.venv-$wanted (or remove $VENV) and rerun." >&2
         exit 1
@@ -67,17 +82,47 @@ setup() {
         install_rendering_packages
     fi
     if [[ ! -x $VENV/bin/python ]]; then
-        log "Creating the virtual environment $VENV"
-        "$(find_python)" -m venv "$VENV"
+        local python
+        python=$(find_python)
+        log "Creating the virtual environment $VENV with $python (Python $(python_version "$python"))"
+        "$python" -m venv "$VENV"
     fi
     check_venv_python
+    log "Using $VENV: Python $("$VENV/bin/python" -c 'import platform; print(platform.python_version())')"
     if ! "$VENV/bin/python" -c 'import torch' 2>/dev/null; then
         log "Installing PyTorch ($TORCH_SPEC)"
         # shellcheck disable=SC2086  # TORCH_SPEC's words: a requirement and pip's options (--index-url ...)
         pip_install $TORCH_SPEC
     fi
-    log "Installing sb3-collapse and its dependencies"
-    pip_install -e ".${extras:+[$extras]}"
+    install_package ".${extras:+[$extras]}"
+}
+
+install_package() {
+    # $1: this package with its extras, installed in editable mode with its dependencies.
+    if "$VENV/bin/python" -c 'import sys; sys.exit(sys.version_info < (3, 13))'; then
+        log "Installing sb3-collapse and its dependencies but labmaze, which has no wheel for Python 3.13 and" \
+            "builds only with Bazel: dm_control.locomotion, which needs it and which this package does not use," \
+            "will not import"
+        # pip resolves as usual (labmaze's metadata comes from its source) and installs nothing; then each package it
+        # chose, labmaze aside, is installed at the chosen version without its dependencies (pip chose them all).
+        local report
+        report=$(mktemp -d)
+        pip_install --dry-run --report "$report/report.json" -e "$1"
+        "$VENV/bin/python" -c '
+import json, sys
+for item in json.load(open(sys.argv[1]))["install"]:
+    if item["metadata"]["name"].lower() not in ("labmaze", "sb3-collapse"):
+        print(item["metadata"]["name"] + "==" + item["metadata"]["version"])
+' "$report/report.json" >"$report/requirements.txt"
+        if [[ -s $report/requirements.txt ]]; then
+            pip_install --no-deps -r "$report/requirements.txt"
+        fi
+        pip_install --no-deps -e "$1"
+        rm -rf "$report"
+    else
+        log "Installing sb3-collapse and its dependencies"
+        pip_install -e "$1"
+    fi
 }
 
 pip_install() {

@@ -4,7 +4,11 @@ dm_control control step; an *agent step* one :meth:`DMCEnv.step`, ``action_repea
 
 from __future__ import annotations
 
+import contextlib
 import difflib
+import io
+import sys
+import warnings
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 from typing import Any
@@ -24,6 +28,14 @@ DEFAULT_CAMERA_IDS: dict[str, int] = {"quadruped": 2}  # DrQ-v2 zooms in on the 
 _UNDERSCORE_NAMES: dict[str, tuple[str, str]] = {  # DrQ-v2's names ("walker_walk", "cup_catch") -> (domain, task)
     f"{name}_{task}": (domain, task) for name, domain in DOMAIN_NAMES.items() for d, task in DMC_TASKS if d == domain
 }
+
+
+def ignore_dm_control_shape_deprecation() -> None:
+    """Ignore NumPy's (>= 2.5) DeprecationWarning about setting an array's shape where dm_control's named indexing
+    (``dm_control/mujoco/index.py``) raises it, at each step of tasks such as cartpole and walker. Importing
+    ``dm_control.composer`` (as shimmy does) shows every DeprecationWarning ("always"), so this filter goes in front
+    of the list after it."""
+    warnings.filterwarnings("ignore", "Setting the shape on a NumPy array", DeprecationWarning, r"dm_control\.")
 
 
 @dataclass(frozen=True)
@@ -249,8 +261,14 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray], EzPickle):
         """:return: the dm_control task wrapped by shimmy's ``DmControlCompatibilityV0``, seeded with ``seed``"""
         ensure_rendering_backend(required=self.obs_type == "pixels")
         from dm_control import suite
-        from shimmy.dm_control_compatibility import DmControlCompatibilityV0
 
+        # shimmy prints to stdout why it registered no locomotion envs (no labmaze, as on Python 3.13): said on stderr
+        # instead, so that stdout holds only what this package prints.
+        with contextlib.redirect_stdout(io.StringIO()) as shimmy_printed:
+            from shimmy.dm_control_compatibility import DmControlCompatibilityV0
+        sys.stderr.write(shimmy_printed.getvalue())
+
+        ignore_dm_control_shape_deprecation()  # after shimmy's import, which imports dm_control.composer
         dm_env = suite.load(self.domain, self.task_name, task_kwargs={"random": seed}, visualize_reward=False)
         render_kwargs = {"height": self.size, "width": self.size, "camera_id": self.camera_id}
         return DmControlCompatibilityV0(dm_env, render_mode="rgb_array", render_kwargs=render_kwargs)
