@@ -366,7 +366,7 @@ def _train_into(
                 with atomic_output(model_path) as temporary:
                     model.save(temporary)
                 saved_model_eval = None
-                if evaluation is not None:  # the saved model, outside the schedule (labelled apart, not among the scheduled rows)
+                if evaluation is not None:  # the saved model: outside the schedule, labelled apart
                     saved_model_eval = _evaluate_saved_model(evaluation, checkpoints, stops)  # and its snapshot
                 stops.doing = "the training and its evaluation are done; finishing the final outputs (seconds)"
                 open_files.close()  # the logs complete before the result file marks the run as finished

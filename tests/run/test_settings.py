@@ -129,7 +129,13 @@ def test_no_package_module_imports_the_train_command():
 # The probe's and the report's flags: declared once with the same setting(), in their __main__ modules.
 
 CLIS = {"sb3_collapse.probe": probe_cli, "sb3_collapse.report": report_cli}
-POSITIONALS = {"run": ["a.zip"], "sweep": ["runs", "--task", "walker-walk"], "film": ["a.zip"], "record": ["a.zip"], "health": ["a.zip"]}
+POSITIONALS = {
+    "run": ["a.zip"],
+    "sweep": ["runs", "--task", "walker-walk"],
+    "film": ["a.zip"],
+    "record": ["a.zip"],
+    "health": ["a.zip"],
+}
 
 
 def _subparsers(cli):
