@@ -469,6 +469,7 @@ def main() -> int:
         help="also time train.py of a facebookresearch/drqv2 checkout at DIR, its own loop (needs --frames >= 2000)",
     )
     args = parser.parse_args()
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # interruptible whatever it inherited (update_speed.py)
     if args.reference is not None:
         if not (Path(args.reference) / "train.py").is_file():
             parser.error(f"--reference: no train.py in {args.reference} (a checkout of facebookresearch/drqv2)")

@@ -284,6 +284,9 @@ def main() -> int:
         worker_ignores_sigint()
         worker(args.worker, args.batch_sizes, args.device, args.buffer_size, args.size, args.hidden_dim)
         return 0
+    # SIGINT interrupts this process whatever it inherited: a shell's background job, or a parent that ignored it,
+    # passes SIGINT on ignored, and Python then installs no handler (`timeout --signal=INT` would do nothing).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     device = get_device(args.device)
     name = (
