@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sb3_collapse.report import write_report
+from sb3_collapse.commands.report_pipelines import write_report
 
 
 def write_sweep(root: Path, tasks: list[str], seeds: int, frames: int, every: int, tags: int) -> int:

@@ -129,7 +129,7 @@ def child(argv: list[str]) -> None:
     """Run the train CLI in this process, then print its peak memory (RSS, and the GPU's when on CUDA) as JSON."""
     import torch as th
 
-    from sb3_collapse.train import main
+    from sb3_collapse.commands.train import main
 
     main(argv)
     peak_gpu = th.cuda.max_memory_reserved() / 2**20 if th.cuda.is_available() and th.cuda.is_initialized() else None

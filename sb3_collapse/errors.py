@@ -1,19 +1,11 @@
-"""The package's exceptions, one class per kind of error, and :func:`cli_message`, which says a library message
-(``episodes must be >= 1``) in a command line's words (``--episodes must be >= 1``)."""
+"""The package's exceptions, one class per kind of error, and the one-line message of an output that could not be
+written (:func:`unwritable_message`); the command lines say them in their words (:mod:`sb3_collapse.commands.cli`)."""
 
 from __future__ import annotations
 
-import argparse
 import errno
-import functools
 import os
-import re
-import sys
-from collections.abc import Callable
 from pathlib import Path
-from typing import ParamSpec
-
-P = ParamSpec("P")
 
 
 class InputError(ValueError):
@@ -101,56 +93,3 @@ def unwritable_message(error: BaseException) -> str | None:
     return f"cannot write {where} ({reason}): choose a folder you can write to, or make this one writable."
 
 
-def report_unwritable_outputs(main: Callable[P, int]) -> Callable[P, int]:
-    """:return: a command line's ``main``, ended by an unwritable output with ``error: ...`` and exit status 2
-    (read-only) or 1 (full disk), not a traceback"""
-
-    @functools.wraps(main)
-    def wrapped(*args: P.args, **kwargs: P.kwargs) -> int:
-        try:
-            return main(*args, **kwargs)
-        except OSError as error:
-            message = unwritable_message(error)
-            if message is None:
-                raise
-            print(f"error: {message}", file=sys.stderr)
-            return 1 if error.errno in FULL_DISK_ERRNOS else 2
-
-    return wrapped
-
-
-def parameter_flags(parser: argparse.ArgumentParser) -> dict[str, str]:
-    """:return: each destination (Python name) of ``parser`` and its sub-commands -> its long flag (``"--lr"``)"""
-    flags = {}
-    for action in parser._actions:
-        long_flags = [flag for flag in action.option_strings if flag.startswith("--")]
-        if long_flags and action.dest != "help":
-            flags.setdefault(action.dest, long_flags[0])
-        if isinstance(action, argparse._SubParsersAction):  # the flags of every sub-command
-            for subparser in action.choices.values():
-                for dest, flag in parameter_flags(subparser).items():
-                    flags.setdefault(dest, flag)
-    return flags
-
-
-def cli_message(error: BaseException, parser: argparse.ArgumentParser) -> str:
-    """:return: ``error``'s message with ``parser``'s flags for Python names (``learning_rate`` -> ``--lr``): names
-    with an underscore anywhere; a one-word name when it is the error's ``parameter`` and starts the message, or in
-    backticks (`` `episodes=3` `` -> ``--episodes 3``)"""
-    message = str(error)
-    flags = parameter_flags(parser)
-
-    def quoted(match: re.Match) -> str:
-        name, value = match.group(1), match.group(2)
-        if name not in flags:
-            return match.group(0)
-        return flags[name] if value in (None, "True") else f"{flags[name]} {value}"
-
-    message = re.sub(r"`(\w+)(?:=([^`]*))?`", quoted, message)
-    for name in sorted(flags, key=len, reverse=True):
-        if "_" in name:  # a dict's key stays as it is: policy_kwargs['hidden_dim']
-            message = re.sub(rf"(?<![\w\-./])(?<!\[['\"]){re.escape(name)}(?![\w\-/])", flags[name], message)
-    parameter = getattr(error, "parameter", None)
-    if parameter in flags and "_" not in parameter and message.startswith(parameter):
-        message = flags[parameter] + message[len(parameter) :]
-    return message

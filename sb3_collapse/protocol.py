@@ -39,6 +39,7 @@ SWEEP_STOP = ".stop_requested"  # while a sweep's driver stops at a signal (its 
 SWEEP_PROBE_DIR = "probe/{task}_{variant}"  # in a sweep folder: ``probe sweep``'s outputs per task and variant
 FIGURE2_PNG = "figure2.png"  # Figure 2 in :data:`SWEEP_PROBE_DIR`
 TABLES_1_6_CSV = "tables_1_6.csv"  # Tables 1-6 in :data:`SWEEP_PROBE_DIR`
+REWARD_PREFIX = "reward:"  # of the probe's targets (and groups) that are reward inputs, e.g. ``reward:torso_height``
 
 EVAL_FIELDS = ("frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s")
 COLLAPSE_METRICS_FIELDS = ("frame", "step", "tag", "value")

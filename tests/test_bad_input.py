@@ -18,14 +18,14 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse import CollapseReset, DrQv2, make_dmc_env
-from sb3_collapse.probe.__main__ import main as probe_main
+from sb3_collapse.commands.probe import main as probe_main
+from sb3_collapse.commands.report import main as report_main
+from sb3_collapse.commands.sweep import main as sweep_main
+from sb3_collapse.commands.train import main as train_main
+from sb3_collapse.commands.zoo import main as zoo_main
 from sb3_collapse.protocol import ERROR_TXT, failed_before_training
-from sb3_collapse.report.__main__ import main as report_main
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
-from sb3_collapse.sweep.__main__ import main as sweep_main
-from sb3_collapse.train import main as train_main
-from sb3_collapse.zoo.launcher import main as zoo_main
 from tests.random_env import RandomObservationEnv
 
 TINY = ["--env", "cartpole-balance", "--frames", "400", "--seed-frames", "200", "--batch-size", "16",

@@ -27,6 +27,7 @@ from stable_baselines3.common.callbacks import EveryNTimesteps, StopTrainingOnMa
 from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_collapse import CollapseReset, DrQv2, make_dmc_env
+from sb3_collapse.commands.train import main
 from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.errors import CheckpointError, InputError, OutputError
 from sb3_collapse.protocol import (
@@ -47,7 +48,6 @@ from sb3_collapse.protocol import (
 from sb3_collapse.run.checkpoints import ResumableCheckpoints, checkpoint_folders, load_checkpoint
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.signals import stop_signals
-from sb3_collapse.train import main
 
 # 100 agent steps of cartpole at action repeat 20 (episodes of 50 steps): checkpoints every 10 steps, most of them
 # mid-episode; the reset rule resets at frames 800 and 1600; updates from step 20 on; ReDo every 7 updates.

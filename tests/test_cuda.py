@@ -26,6 +26,7 @@ from stable_baselines3.common.monitor import Monitor
 
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.backends import configure_backends
+from sb3_collapse.commands.train import main
 from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.monitoring import MetricsBatchSampler, metrics
@@ -34,7 +35,6 @@ from sb3_collapse.monitoring.interventions import encoder_channels, redo
 from sb3_collapse.protocol import CHECKPOINTS_DIR, COLLAPSE_METRICS_CSV, EXIT_INTERRUPTED, RESULT_JSON
 from sb3_collapse.run.checkpoints import ResumableCheckpoints, checkpoint_folders, load_checkpoint
 from sb3_collapse.run.timing import LearnTimer
-from sb3_collapse.train import main
 from tests.random_env import RandomObservationEnv
 
 pytestmark = [

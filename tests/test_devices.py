@@ -26,6 +26,7 @@ from torch.overrides import TorchFunctionMode
 import sb3_collapse
 from sb3_collapse import CollapseMetrics, DrQv2
 from sb3_collapse.backends import BackendSettings, configure_backends, current_backends
+from sb3_collapse.commands.train import main
 from sb3_collapse.common.grad_norms import GradNormRecorder
 from sb3_collapse.envs.replay import EpisodeReplay
 from sb3_collapse.errors import InputError, ParameterError
@@ -42,7 +43,6 @@ from sb3_collapse.run.checkpoints import (
     tensors_to,
 )
 from sb3_collapse.run.timing import PhaseTime, UpdateClock
-from sb3_collapse.train import main
 from tests.random_env import RandomObservationEnv
 
 PACKAGE = str(Path(sb3_collapse.__file__).parent)

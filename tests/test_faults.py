@@ -18,8 +18,11 @@ import torch as th
 from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_collapse import DrQv2
+from sb3_collapse.commands.cli import report_unwritable_outputs
+from sb3_collapse.commands.sweep import main as sweep_main
+from sb3_collapse.commands.train import main
 from sb3_collapse.drqv2.divergence import DivergenceGuard, all_finite
-from sb3_collapse.errors import DivergenceError, report_unwritable_outputs, unwritable_message
+from sb3_collapse.errors import DivergenceError, unwritable_message
 from sb3_collapse.protocol import (
     CHECKPOINT_MODEL,
     CHECKPOINTS_DIR,
@@ -29,8 +32,6 @@ from sb3_collapse.protocol import (
     atomic_output,
 )
 from sb3_collapse.run.checkpoints import checkpoint_folders
-from sb3_collapse.sweep.__main__ import main as sweep_main
-from sb3_collapse.train import main
 from tests.random_env import RandomObservationEnv
 
 

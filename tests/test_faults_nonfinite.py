@@ -19,13 +19,13 @@ import pytest
 import torch as th
 
 from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse.commands.probe import main as probe_main
+from sb3_collapse.commands.train import main
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.errors import NonFiniteDataError
-from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.protocol import CHECKPOINTS_DIR, RESULT_JSON
 from sb3_collapse.run import runner
 from sb3_collapse.run.checkpoints import checkpoint_folders
-from sb3_collapse.train import main
 from tests.random_env import RandomObservationEnv
 from tests.test_faults import _flags, _unfinished_run
 

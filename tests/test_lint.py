@@ -11,6 +11,7 @@ import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -95,9 +96,26 @@ def _draws(name: str) -> bool:
     return any(name == top or name.startswith(top + ".") for top in ("sb3_collapse.report", "matplotlib"))
 
 
-def test_the_probe_computes_and_the_report_draws():
-    """No module of sb3_collapse/probe but its command line (``__main__.py``, the top layer) imports sb3_collapse.report
-    or matplotlib, at the top or inside a function: the report imports the probe, never the reverse."""
+def _within(name: str, package: str) -> bool:
+    """:return: whether the imported module ``name`` is ``package`` or inside it"""
+    return name == package or name.startswith(package + ".")
+
+
+def _importers(folder: Path, forbidden: Callable[[str], bool]) -> dict[str, list[str]]:
+    """:return: each module under ``folder`` (its faces ``__main__.py`` left out) -> the imports that ``forbidden``
+    marks, at the top or inside a function"""
+    found = {}
+    for path in sorted(folder.rglob("*.py")):
+        names = sorted(n for n in _imports(path.read_text(), _module_name(path)) if forbidden(n))
+        if path.stem != "__main__" and names:
+            found[str(path.relative_to(ROOT))] = names
+    return found
+
+
+def test_probe_and_report_do_not_import_each_other():
+    """probe/ computes and report/ draws: no module of sb3_collapse/probe imports sb3_collapse.report or matplotlib,
+    no module of sb3_collapse/report imports sb3_collapse.probe, at the top or inside a function; the pipelines of
+    sb3_collapse/commands call both."""
     constructed = "import numpy\ndef plot():\n    from sb3_collapse import report\n    from ..report.film import x\n"
     assert {n for n in _imports(constructed, "sb3_collapse.probe.film") if _draws(n)} == {
         "sb3_collapse.report",
@@ -105,12 +123,31 @@ def test_the_probe_computes_and_the_report_draws():
         "sb3_collapse.report.film.x",
     }
     assert not any(_draws(n) for n in _imports("import matplotlib_inline\nfrom sb3_collapse import reporting", "a"))
-    drawing = {}
-    for path in sorted((PACKAGE / "probe").rglob("*.py")):
-        names = sorted(n for n in _imports(path.read_text(), _module_name(path)) if _draws(n))
-        if path.stem != "__main__" and names:
-            drawing[str(path.relative_to(ROOT))] = names
+    assert _within("sb3_collapse.probe.film", "sb3_collapse.probe") and not _within(
+        "sb3_collapse.prober", "sb3_collapse.probe"
+    )
+    drawing = _importers(PACKAGE / "probe", _draws)
     assert not drawing, f"probe modules that draw or import the report (move the drawing to report/): {drawing}"
+    probing = _importers(PACKAGE / "report", lambda name: _within(name, "sb3_collapse.probe"))
+    assert not probing, f"report modules that import the probe (compute in the pipeline of commands/): {probing}"
+
+
+def test_nothing_below_commands_imports_it():
+    """sb3_collapse/commands is the top layer: outside it, only the faces (``train.py`` and the ``__main__.py`` of
+    the packages: ``python -m sb3_collapse.<command>``) import it."""
+    faces = {PACKAGE / "train.py", *PACKAGE.glob("*/__main__.py")}
+    constructed = "def f():\n    from sb3_collapse.commands.cli import cli_message\n"
+    assert "sb3_collapse.commands.cli" in _imports(constructed, "sb3_collapse.run.runner")
+    below = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path in faces or path.is_relative_to(PACKAGE / "commands"):
+            continue
+        names = sorted(n for n in _imports(path.read_text(), _module_name(path)) if _within(n, "sb3_collapse.commands"))
+        if names:
+            below[str(path.relative_to(ROOT))] = names
+    assert not below, f"modules below commands/ that import it (move the code up, or what it needs down): {below}"
+    for face in sorted(faces):
+        assert len(face.read_text().splitlines()) <= 10, f"{face.relative_to(ROOT)} is a face: a few lines"
 
 
 def test_importing_the_probe_loads_neither_the_report_nor_matplotlib():

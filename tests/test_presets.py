@@ -5,14 +5,14 @@ from pathlib import Path
 
 import pytest
 
+from sb3_collapse.commands.cli import training_settings
+from sb3_collapse.commands.sweep import build_parser as sweep_parser
+from sb3_collapse.commands.train import build_parser, main
 from sb3_collapse.presets import PRESETS, SETTING_NAMES, preset
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
-from sb3_collapse.run.settings import training_settings
-from sb3_collapse.sweep.__main__ import build_parser as sweep_parser
 from sb3_collapse.sweep.runner import settings_changes, sweep_settings
 from sb3_collapse.sweep.trials import expand_trials, trial_config
-from sb3_collapse.train import build_parser, main
 from sb3_collapse.zoo.config import render_zoo_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

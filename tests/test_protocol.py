@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from sb3_collapse import CollapseMetrics, CollapseReset
-from sb3_collapse.errors import ParameterError, cli_message
+from sb3_collapse.commands.cli import cli_message
+from sb3_collapse.errors import ParameterError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import (
     CONFIG_JSON,

@@ -9,10 +9,10 @@ from stable_baselines3 import SAC
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import DrQv2
+from sb3_collapse.commands.train import main
 from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
-from sb3_collapse.train import main
 from tests.shared_runs import TINY_WALKER_RUN
 
 

@@ -4,7 +4,6 @@ computations on fixed inputs: docs/probe.md."""
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint
 from sb3_collapse.probe.health import HealthSettings, checkpoint_health
 from sb3_collapse.probe.omp import OMPPath, OrthogonalMatchingPursuit, omp_path, path_predictions
-from sb3_collapse.probe.pipeline import RecordOptions, record_to_file
 from sb3_collapse.probe.probing import (
     PROBE_LAYERS,
     ProbeSettings,
@@ -13,7 +12,7 @@ from sb3_collapse.probe.probing import (
     probe_layer,
     split_by_episode,
 )
-from sb3_collapse.probe.rollouts import Rollouts, record_rollouts
+from sb3_collapse.probe.rollouts import RecordOptions, Rollouts, record_rollouts
 
 __all__ = [
     "PROBE_LAYERS",
@@ -32,6 +31,5 @@ __all__ = [
     "probe_each_checkpoint",
     "probe_layer",
     "record_rollouts",
-    "record_to_file",
     "split_by_episode",
 ]

@@ -5,11 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from stable_baselines3.common.utils import get_device
-
-from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
-from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint, read_saved_data
+from sb3_collapse.probe.checkpoints import Checkpoint, read_saved_data
 from sb3_collapse.probe.rollouts import ENV_SETTINGS, RecordOptions, Rollouts, record_rollouts, resolve_env_config
 
 ROLLOUTS_NAME = "rollouts.npz"
@@ -22,40 +19,6 @@ def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True
     how = {key: getattr(options, key) for key in ("episodes", "seed", "deterministic", "noise_std", "max_steps")}
     metadata = {"checkpoint": str(checkpoint.path), "checkpoint_num_timesteps": checkpoint.num_timesteps}
     return record_rollouts(checkpoint.model, env_config, progress=progress, metadata=metadata, **how)
-
-
-def record_to_file(
-    checkpoint_path: str | Path,
-    out: str | Path,
-    options: RecordOptions,
-    overwrite: bool = False,
-    device: str = "auto",
-    progress: bool = True,
-) -> Path:
-    """
-    ``python -m sb3_collapse.probe record``: record rollouts and save them (atomically).
-
-    :param checkpoint_path: the agent's checkpoint
-    :param out: the ``.npz`` to write
-    :param options: what to record
-    :param overwrite: replace an existing file
-    :param device: where the networks run
-    :param progress: show a progress bar
-    :return: the file written
-    :raises InputError: for bad input
-    """
-    out = Path(out)
-    if out.is_dir():
-        raise InputError(f"out {out} is a folder; give the path of the .npz file to write.", parameter="out")
-    if out.exists() and not overwrite:
-        raise InputError(f"{out} exists: pass `overwrite=True` or another `out`.", parameter="out")
-    options.check()
-    check_device(device)
-    checkpoint = load_checkpoint(checkpoint_path, device=get_device(device))
-    rollouts = record(checkpoint, options, progress)
-    path, task = rollouts.save(out), rollouts.env_config["task_id"]
-    print(f"Saved {len(rollouts)} agent steps of {rollouts.n_episodes} episodes of {task} to {path}")
-    return path
 
 
 def check_checkpoint_files(paths: Sequence[str | Path], same_observations: bool = True) -> None:

@@ -17,13 +17,11 @@ from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.envs import make_dmc_env, parse_task
 from sb3_collapse.envs.dmc import reward_inputs_of
 from sb3_collapse.errors import InputError, ParameterError
-from sb3_collapse.protocol import atomic_output
+from sb3_collapse.protocol import REWARD_PREFIX, atomic_output
 from sb3_collapse.run.config import declared_problem, setting
 
 FORMAT_VERSION = 2
 """The format of the rollouts files written and read (a file of another is refused)."""
-REWARD_PREFIX = "reward:"
-"""Prefix of the probing targets (and groups) that are reward inputs, e.g. ``reward:torso_height``."""
 ENV_SETTINGS = ("task_id", "action_repeat", "frame_stack", "size", "camera_id")
 """``make_dmc_env`` settings stored with the rollouts (``obs_type`` is always ``"pixels"``)."""
 ARRAYS = ("observations", "actions", "rewards", "episode_ids", "steps")

@@ -3,7 +3,6 @@ The readings: docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents."""
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,20 +14,15 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
 from matplotlib.ticker import LogLocator, NullLocator
-from stable_baselines3.common.utils import get_device
 
-from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, metric_tag
-from sb3_collapse.probe.fixed_inputs import FIXED_SAMPLES, FixedInputs, FixedMetrics, fixed_metrics, load_fixed_inputs
 from sb3_collapse.protocol import (
     COLLAPSE_EVENTS_CSV,
     COLLAPSE_METRICS_CSV,
     CONFIG_JSON,
     EVAL_CSV,
-    snapshot_files,
 )
-from sb3_collapse.report.headline import BASELINE_VARIANT
 from sb3_collapse.report.loading import Trial, load_trial
 from sb3_collapse.report.style import ESCAPE_COLOR, RESET_COLOR, RETURN_COLOR, frames_axis, layer_style
 from sb3_collapse.runfolder import read_collapse_events, read_collapse_metrics, read_json
@@ -303,97 +297,3 @@ def is_run_folder(path: str | Path) -> bool:
     """:return: whether ``path`` is a single run folder (its own settings and evaluation files), not a sweep"""
     path = Path(path)
     return (path / CONFIG_JSON).is_file() and (path / EVAL_CSV).is_file()
-
-
-@dataclass
-class FixedInputSettings:
-    """
-    How Figures 4, 8, 9 pick their agents and compute on the fixed observation set.
-
-    :param pick_seed: seed of the random pick of the three agents
-    :param failure_return: a final return below it is poorly performing
-    :param rollouts: the rollouts file of the observations, for the tasks it was recorded on
-    :param rollouts_variant: the variant whose ``probe sweep`` rollouts are every variant's fixed set (``None``: each
-        variant's own)
-    :param fixed_samples: observations drawn from the rollouts (``None``: all)
-    :param sample_seed: seed of that draw
-    :param device: where the checkpoints run
-    :param batch_size: observations per forward pass
-    :param layers: the layers measured and drawn
-    """
-
-    pick_seed: int = 0
-    failure_return: float = PAPER.failure_return
-    rollouts: str | Path | None = None
-    rollouts_variant: str | None = BASELINE_VARIANT
-    fixed_samples: int | None = FIXED_SAMPLES
-    sample_seed: int = 0
-    device: str = "auto"
-    batch_size: int = 256
-    layers: tuple[str, ...] = FIGURE4_LAYERS
-
-    def validate(self) -> None:
-        """:raises InputError: on a setting out of range, or a rollouts file that does not exist"""
-        if self.fixed_samples is not None and self.fixed_samples < 2:
-            raise InputError(
-                f"fixed_samples must be >= 2 observations, got {self.fixed_samples}.", parameter="fixed_samples"
-            )
-        if self.batch_size < 1:
-            raise InputError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
-        if self.rollouts is not None and not Path(self.rollouts).is_file():
-            raise InputError(
-                f"rollouts {self.rollouts} is not a file; give the rollouts.npz of python -m sb3_collapse.probe sweep "
-                "(or of probe record).",
-                parameter="rollouts",
-            )
-        check_device(self.device)
-
-    def load(self, path: str | Path) -> FixedInputs:
-        """:return: the fixed set of the rollouts file ``path`` (InputError: not a rollouts file)"""
-        try:
-            return load_fixed_inputs(path, self.fixed_samples, self.sample_seed)
-        except InputError as error:
-            raise InputError(str(error), parameter="rollouts") from error
-
-
-FIXED_METRICS = ("numerical_rank", "correlation", "dead_units")
-"""The columns of Figure 4 taken from the fixed set (the gradient norm is the training-time one)."""
-
-
-def fixed_agent_rows(
-    picks: Sequence[AgentPick], inputs: FixedInputs, settings: FixedInputSettings, progress: bool = False
-) -> tuple[list[AgentMetrics], dict[int, FixedMetrics]]:
-    """:return: the rows of Figures 4, 8, 9 (:data:`FIXED_METRICS` of each snapshot on ``inputs``, the training-time
-    gradient norms), and seed -> its fixed-set metrics"""
-    rows, computed = online_agent_rows(picks, settings.layers), {}
-    tags = [metric_tag(layer, metric) for layer in settings.layers for metric in FIXED_METRICS]
-    how = (inputs, settings.layers, get_device(settings.device), settings.batch_size, progress)
-    for row in rows:
-        if row.trial is None:
-            continue
-        fixed = fixed_metrics(snapshot_files(row.trial.path), *how, f"seed {row.trial.seed} checkpoints")
-        computed[row.trial.seed] = fixed
-        row.metrics = {tag: value for tag, value in row.metrics.items() if tag.endswith("/grad_norm")}
-        row.metrics |= {tag: fixed.metrics[tag] for tag in tags if tag in fixed.metrics}
-        row.widths = fixed.widths or row.widths
-    return rows, computed
-
-
-FIXED_CSV_COLUMNS = ("role", "seed", "final_return", "checkpoint", "frame", "tag", "value")
-
-
-def write_fixed_metrics_csv(path: Path, picks: Sequence[AgentPick], computed: dict[int, FixedMetrics]) -> None:
-    """Write every fixed-set metric of the picked agents (``computed``: :func:`fixed_agent_rows`), long format."""
-    with path.open("w", newline="") as file:
-        writer = csv.writer(file)
-        writer.writerow(FIXED_CSV_COLUMNS)
-        for pick in picks:
-            if pick.trial is None or pick.trial.seed not in computed:
-                continue
-            fixed = computed[pick.trial.seed]
-            final = pick.trial.final_return
-            for tag, (frames, values) in fixed.metrics.items():
-                for checkpoint, frame, value in zip(fixed.checkpoints, frames, values):
-                    writer.writerow(
-                        [pick.role, pick.trial.seed, repr(final), checkpoint.name, int(frame), tag, repr(float(value))]
-                    )

@@ -4,13 +4,10 @@ The columns and readings: docs/figures.md#figure-2-and-tables-1-6-probing-over-t
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import time
 from collections import defaultdict
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -20,29 +17,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
-from stable_baselines3.common.utils import get_device
 
-from sb3_collapse.errors import InputError
-from sb3_collapse.paper import PAPER
-from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions
-from sb3_collapse.probe.probing import ProbeSettings, probe_each_checkpoint, probe_warnings, split_by_episode
-from sb3_collapse.probe.rollouts import REWARD_PREFIX, Rollouts
-from sb3_collapse.protocol import (
-    FIGURE2_PNG,
-    FINAL_MODEL,
-    SNAPSHOTS_DIR,
-    SWEEP_PROBE_DIR,
-    TABLES_1_6_CSV,
-    snapshot_files,
-    write_json_atomically,
-)
-from sb3_collapse.report.collapse_figure import PAPER_ROLES, agent_class
-from sb3_collapse.report.loading import Sweep, Trial, load_sweep
-from sb3_collapse.report.probe_outputs import checked_record_options, record_rollouts, report_warnings, warned
-from sb3_collapse.report.statistics import across_seed_std, budget_frames, stage_indices, stages_caption
+from sb3_collapse.protocol import REWARD_PREFIX
+from sb3_collapse.report.collapse_figure import PAPER_ROLES
+from sb3_collapse.report.statistics import across_seed_std, stage_indices, stages_caption
 from sb3_collapse.report.style import frames_axis, layer_style
-from sb3_collapse.report.tables import markdown_table, write_csv
-from sb3_collapse.staged_outputs import StagedOutputs
+from sb3_collapse.report.tables import markdown_table
 
 ORIENTATION = "orientation (torso upright)"
 """The title of walker's second column: the paper's "joint orientation", read as the orientation the reward reads."""
@@ -226,215 +206,3 @@ def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
         lines += [f"## {title}", "", *markdown_table(header, body), ""]
     lines.append(stages_caption("shared snapshots") + " Std across agents, ddof=1 (- with one agent).")
     return "\n".join(lines) + "\n"
-
-
-TABLES_MD = "tables_1_6.md"
-PROBE_CSV = "probe.csv"
-SUMMARY_JSON = "summary.json"
-OUTPUT_FILES = (FIGURE2_PNG, TABLES_1_6_CSV, TABLES_MD, PROBE_CSV, ROLLOUTS_NAME, SUMMARY_JSON)
-"""Every file ``probe sweep`` writes (``summary.json`` last)."""
-
-
-def split_agents(
-    trials: Sequence[Trial], success_return: float = PAPER.success_return, failure_return: float = PAPER.failure_return
-) -> tuple[list[Trial], list[Trial]]:
-    """:return: ``(well, poor)`` finished trials (:func:`agent_class`), each by decreasing final return"""
-    ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.final_return, t.seed))
-    classes = [agent_class(t.final_return, success_return, failure_return) for t in ranked]
-    return [t for t, c in zip(ranked, classes) if c == ROWS[0]], [t for t, c in zip(ranked, classes) if c == ROWS[1]]
-
-
-def probe_sweep(
-    sweep_dir: str | Path,
-    task: str,
-    variant: str = "drqv2",
-    out: str | Path | None = None,
-    settings: ProbeSettings | None = None,
-    rollouts_path: str | Path | None = None,
-    record_options: RecordOptions | None = None,
-    success_return: float = PAPER.success_return,
-    failure_return: float = PAPER.failure_return,
-    overwrite: bool = False,
-    command: Sequence[str] | None = None,
-    jobs: int = 1,
-) -> dict[str, Any]:
-    """
-    Figure 2 and Tables 1-6 of one task and variant of a sweep, written into ``out`` only when everything succeeded;
-    a damaged trial is listed (``damaged``), not probed. The steps: docs/figures.md.
-
-    :param sweep_dir: the sweep folder
-    :param task: its task folder, e.g. ``"walker-walk"``
-    :param variant: its variant folder
-    :param out: the output folder (default ``<sweep>/probe/<task>_<variant>``)
-    :param settings: the probe's settings
-    :param rollouts_path: rollouts to probe on (``None``: record them from the best well-performing seed)
-    :param record_options: how to record
-    :param success_return: final return of a well-performing agent, at least
-    :param failure_return: final return of a poorly performing agent, below
-    :param overwrite: replace a previous run's outputs in ``out``
-    :param command: the command line, for the summary
-    :param jobs: checkpoints probed at once
-    :return: the summary (as written to ``summary.json``)
-    :raises InputError: for bad input (nothing written then)
-    """
-    started = time.perf_counter()
-    settings = settings or ProbeSettings()
-    record_options = record_options or RecordOptions()
-    sweep, agents, files = _sweep_agents(
-        sweep_dir, task, variant, settings, rollouts_path, record_options, success_return, failure_return, jobs
-    )
-    out = Path(sweep_dir) / SWEEP_PROBE_DIR.format(task=task, variant=variant) if out is None else Path(out)
-    with StagedOutputs(out, OUTPUT_FILES, SUMMARY_JSON, overwrite=overwrite, error=InputError) as staged:
-        rollouts, recorded_from = _sweep_rollouts(agents, files, rollouts_path, record_options, settings, staged)
-        rows, warnings = _probe_agents(agents, files, rollouts, settings, jobs)
-        report_warnings(warnings)
-        columns = _write_figure2(rows, rollouts, agents, task, variant, staged, warnings)
-        summary = {
-            "complete": True,
-            "created": datetime.now(UTC).isoformat(timespec="seconds"),
-            "command": list(command) if command is not None else None,
-            "sweep": str(sweep_dir),
-            "task": task,
-            "variant": variant,
-            "success_return": success_return,
-            "failure_return": failure_return,
-            "agents": [
-                {"seed": t.seed, "row": which, "final_return": t.final_return, "checkpoints": len(files[t.seed])}
-                for t, which in agents
-            ],
-            "not_probed": [
-                {"seed": t.seed, "final_return": t.final_return} for t in sweep.finished if t.seed not in files
-            ],
-            "unfinished": [t.seed for t in sweep.unfinished],
-            "damaged": [{"seed": t.seed, "reason": t.reason} for t in sweep.unfinished if t.reason],
-            "rollouts": {"recorded_from": recorded_from, "samples": len(rollouts), "episodes": rollouts.n_episodes},
-            "columns": {title: list(targets) for title, targets in columns},
-            "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
-            "jobs": jobs,
-            "warnings": warnings,
-            "total_seconds": round(time.perf_counter() - started, 1),
-        }
-        write_json_atomically(staged.path(SUMMARY_JSON), summary)
-        written = staged.commit()
-    for damaged in summary["damaged"]:
-        print(f"Not probed: seed {damaged['seed']}: {damaged['reason']}")
-    print("Wrote " + ", ".join(str(f) for f in written))
-    return summary
-
-
-def _sweep_rollouts(
-    agents: list[tuple[Trial, str]],
-    files: dict[int, list[Path]],
-    rollouts_path: str | Path | None,
-    record_options: RecordOptions,
-    settings: ProbeSettings,
-    staged: StagedOutputs,
-) -> tuple[Rollouts, str]:
-    """:return: the rollouts to probe on (``rollouts_path``, or recorded from the best agent's final model or last
-    checkpoint), and where they come from"""
-    if rollouts_path is not None:
-        return Rollouts.load(rollouts_path), str(rollouts_path)
-    well = agents[0][0]
-    source = well.path / FINAL_MODEL if (well.path / FINAL_MODEL).exists() else files[well.seed][-1]
-    return record_rollouts(source, get_device(settings.device), record_options, settings, staged), str(source)
-
-
-def _probe_agents(
-    agents: list[tuple[Trial, str]],
-    files: dict[int, list[Path]],
-    rollouts: Rollouts,
-    settings: ProbeSettings,
-    jobs: int,
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """:return: the probe's rows of every checkpoint of every agent, with its agent, row and final return, and the
-    probe's warnings"""
-    split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
-    work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
-    labels = [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work]
-    per_checkpoint = probe_each_checkpoint([path for _, _, path in work], labels, rollouts, split, settings, jobs)
-    for (trial, which, _), result_rows in zip(work, per_checkpoint):
-        for row in result_rows:
-            row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=trial.final_return)
-    rows = [row for result_rows in per_checkpoint for row in result_rows]
-    return rows, probe_warnings(rollouts, split, rows, settings)
-
-
-def _sweep_agents(
-    sweep_dir: str | Path,
-    task: str,
-    variant: str,
-    settings: ProbeSettings,
-    rollouts_path: str | Path | None,
-    record_options: RecordOptions,
-    success_return: float,
-    failure_return: float,
-    jobs: int,
-) -> tuple[Sweep, list[tuple[Trial, str]], dict[int, list[Path]]]:
-    """:return: the sweep, its agents with their row of Figure 2 (the well-performing first) and seed -> snapshots,
-    :func:`probe_sweep`'s arguments checked before any work (:raises InputError: naming the bad one)"""
-    settings.validate()
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise InputError(f"jobs must be an integer >= 1, got {jobs!r}.", parameter="jobs")
-    if not failure_return <= success_return:
-        raise InputError(
-            f"failure_return must be <= success_return, got {failure_return:g} and {success_return:g}.",
-            parameter="failure_return",
-        )
-    try:
-        sweep = load_sweep(sweep_dir, tasks=[task], variants=[variant], progress=False)
-    except InputError as error:
-        raise InputError(
-            str(error), parameter=error.parameter if error.parameter != "sweep" else "sweep_dir"
-        ) from error
-    well, poor = split_agents(sweep.finished, success_return, failure_return)
-    if not well and not poor:
-        finals = ", ".join(f"seed {t.seed}: {t.final_return:.0f}" for t in sweep.finished) or "no finished trial"
-        raise InputError(
-            f"{task} / {variant} has no well-performing (final return >= {success_return:g}) nor poorly performing "
-            f"(< {failure_return:g}) finished trial ({finals}); lower success_return or raise failure_return.",
-            parameter="success_return",
-        )
-    agents = [(trial, ROWS[0]) for trial in well] + [(trial, ROWS[1]) for trial in poor]
-    files = {trial.seed: snapshot_files(trial.path) for trial, _ in agents}
-    lacking = [t for t, _ in agents if not files[t.seed]]
-    if lacking:
-        raise InputError(
-            f"no {SNAPSHOTS_DIR}/*.zip in {', '.join(str(t.path) for t in lacking)}: train the trials with "
-            "--snapshots (TrainConfig.snapshots) to probe them over training."
-        )
-    if rollouts_path is None:
-        if not well:
-            raise InputError(
-                f"{task} / {variant} has no well-performing trial (final return >= {success_return:g}) to record "
-                "rollouts from: pass rollouts_path (python -m sb3_collapse.probe record GOOD.zip).",
-                parameter="rollouts_path",
-            )
-        checked_record_options(record_options)
-    return sweep, agents, files
-
-
-def _write_figure2(
-    rows: list[dict[str, Any]],
-    rollouts: Rollouts,
-    agents: Sequence[tuple[Trial, str]],
-    task: str,
-    variant: str,
-    staged: StagedOutputs,
-    warnings: Sequence[dict[str, Any]] = (),
-) -> list[tuple[str, tuple[str, ...]]]:
-    """Write Figure 2 (marking what ``warnings`` name), Tables 1-6 and ``probe.csv`` into ``staged``; :return: Figure
-    2's columns"""
-    names, groups, _ = rollouts.targets()
-    columns = figure2_columns(task, names, groups)
-    curves = panel_curves(rows, {f"seed {t.seed}": which for t, which in agents}, columns)
-    well = sum(which == ROWS[0] for _, which in agents)
-    described = f"well-performing: {well}, poorly performing: {len(agents) - well}"
-    flat = [title for title, targets in columns if warned(warnings, "targets") & set(targets)]
-    title = f"{task} / {variant}: OMP probing over training ({described})"
-    plot_figure2(curves, staged.path(FIGURE2_PNG), title, flat, warned(warnings, "layers"))
-    table_rows = stage_table_rows(curves, budget_frames([trial for trial, _ in agents]))
-    if table_rows:
-        write_csv(table_rows, list(table_rows[0]), staged.path(TABLES_1_6_CSV))
-    staged.path(TABLES_MD).write_text(stage_tables_markdown(table_rows))
-    write_csv(rows, list(rows[0]), staged.path(PROBE_CSV))
-    return columns

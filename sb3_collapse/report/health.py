@@ -1,13 +1,10 @@
 """``python -m sb3_collapse.probe health``: the network health of saved models (computed by
-:mod:`sb3_collapse.probe.health`) as ``health.csv``, a PNG per network and ``health.json`` (all or none);
-docs/probe.md#network-health."""
+:mod:`sb3_collapse.probe.health`), a PNG per network; docs/probe.md#network-health."""
 
 from __future__ import annotations
 
 import itertools
-import time
 from collections.abc import Sequence
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -18,22 +15,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
 
-from sb3_collapse.errors import InputError
-from sb3_collapse.probe.checkpoints import checkpoint_labels
-from sb3_collapse.probe.health import HEALTH_COLUMNS, HealthSettings, checkpoint_health, health_checkpoint_paths
-from sb3_collapse.probe.rollouts import RecordOptions
-from sb3_collapse.protocol import write_json_atomically
 from sb3_collapse.report.collapse_figure import BOUNDED_METRICS
 from sb3_collapse.report.plots import panels
 from sb3_collapse.report.style import LAYER_COLORS, OKABE_ITO, TOL_MUTED, frames_axis
-from sb3_collapse.report.tables import write_csv
-from sb3_collapse.staged_outputs import StagedOutputs
 
-HEALTH_CSV = "health.csv"
-HEALTH_JSON = "health.json"
-HEALTH_PNG = "health_{network}.png"
-OUTPUT_FILES = (HEALTH_CSV, "health_*.png", HEALTH_JSON)
-"""What ``health`` writes (``health.json`` last: its presence marks a complete run)."""
 FRACTION_METRICS = (*BOUNDED_METRICS, "active_fraction", "persistent_dormant_fraction", "action_saturation")
 """Metrics in [0, 1], drawn on that range (the dormant ratios too: their names start with ``dormant_ratio``)."""
 
@@ -118,58 +103,3 @@ def plot_health(rows: Sequence[dict[str, Any]], network: str, path: Path, series
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), per_row), fontsize=7, frameon=False)
     fig.savefig(path, dpi=100)
     plt.close(fig)
-
-
-def health_to_folder(
-    checkpoint_paths: Sequence[str | Path],
-    out: str | Path,
-    settings: HealthSettings | None = None,
-    rollouts_path: str | Path | None = None,
-    record_options: RecordOptions | None = None,
-    overwrite: bool = False,
-    command: Sequence[str] | None = None,
-) -> list[Path]:
-    """
-    ``python -m sb3_collapse.probe health``: the health metrics of checkpoints (a run folder: its snapshots) on one
-    observation set, written into ``out`` only when every checkpoint was measured: ``health.csv`` (long format,
-    :data:`~sb3_collapse.probe.health.HEALTH_COLUMNS`), ``health_<network>.png`` per network and ``health.json``.
-
-    :param checkpoint_paths: SB3 zips of DrQv2, TD3, DDPG or SAC, DrQv2 snapshots, or run folders with snapshots
-    :param out: the output folder
-    :param settings: the metrics, networks, observations and device (``None``: the defaults)
-    :param rollouts_path: a rollouts file, or ``None``: the first checkpoint's own rollouts, recorded
-    :param record_options: how to record them
-    :param overwrite: replace a previous run's outputs in ``out``
-    :param command: the command line, stored in ``health.json``
-    :return: the written files
-    :raises InputError: for bad input (nothing written)
-    """
-    started = time.perf_counter()
-    settings = settings or HealthSettings()
-    paths = health_checkpoint_paths(checkpoint_paths)
-    if not paths:
-        raise InputError("Give at least one checkpoint (.zip) or a run folder with snapshots.", parameter="checkpoints")
-    labels = checkpoint_labels(list(paths))
-    with StagedOutputs(out, OUTPUT_FILES, HEALTH_JSON, overwrite=overwrite, error=InputError) as staged:
-        rows, measured = checkpoint_health(paths, settings, rollouts_path, record_options, labels)
-        write_csv(rows, list(HEALTH_COLUMNS), staged.path(HEALTH_CSV))
-        count = len(measured["checkpoints"])
-        what = (
-            f"{count} checkpoints over training"
-            if measured["series"]
-            else ", ".join(c["checkpoint"] for c in measured["checkpoints"])
-        )
-        for network in measured["networks"]:
-            title = f"{network} health of {what}\non {measured['inputs']}"
-            plot_health(rows, network, staged.path(HEALTH_PNG.format(network=network)), measured["series"], title)
-        summary = {
-            "complete": True,
-            "created": datetime.now(UTC).isoformat(timespec="seconds"),
-            "command": list(command) if command is not None else None,
-            **measured,
-            "seconds": round(time.perf_counter() - started, 1),
-        }
-        write_json_atomically(staged.path(HEALTH_JSON), summary)
-        written = staged.commit()
-    print("Wrote " + ", ".join(str(path) for path in written))
-    return written

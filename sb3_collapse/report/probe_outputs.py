@@ -1,14 +1,10 @@
-"""``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and PNG plots (all or
-none)."""
+"""``python -m sb3_collapse.probe``'s plots and tables of the probe's rows: MSE by layer, MSE over training."""
 
 from __future__ import annotations
 
-import dataclasses
 import sys
-import time
 from collections import defaultdict
 from collections.abc import Sequence
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -17,46 +13,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-import torch as th
-from stable_baselines3.common.utils import get_device
 
-from sb3_collapse.errors import InputError
-from sb3_collapse.paper import PAPER
-from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
-from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, check_checkpoint_files, record
-from sb3_collapse.probe.probing import (
-    MIN_EPISODES,
-    CheckpointProbe,
-    EpisodeSplit,
-    ProbeSettings,
-    probe_checkpoint,
-    probe_warnings,
-    split_by_episode,
-)
-from sb3_collapse.probe.rollouts import Rollouts
-from sb3_collapse.protocol import write_json_atomically
 from sb3_collapse.report.plots import panels
-from sb3_collapse.report.tables import write_csv
-from sb3_collapse.staged_outputs import StagedOutputs
-
-CSV_NAME = "probe.csv"
-SUMMARY_NAME = "summary.json"
-BY_LAYER_PLOT = "mse_by_layer.png"
-OVER_TRAINING_PLOT = "mse_over_training.png"
-OUTPUT_FILES = (CSV_NAME, SUMMARY_NAME, BY_LAYER_PLOT, OVER_TRAINING_PLOT)
-"""The files a probe run writes (``summary.json`` last: its presence marks a complete run)."""
-SELF_RECORDED_NOTE = (
-    "the rollouts were recorded by the first probed checkpoint itself; the paper's protocol (Section 4.1) records "
-    "them once from a well-performing agent (final return >= {success:g}) and probes every checkpoint on them: "
-    "record with `python -m sb3_collapse.probe record GOOD.zip --out rollouts.npz` and pass `--rollouts "
-    "rollouts.npz` (library: `rollouts_path`), or use `python -m sb3_collapse.probe sweep` on a sweep folder"
-)
-"""What the probe says when it records its rollouts from the checkpoint it probes."""
-
-
-def staged_output(out: str | Path, overwrite: bool = False) -> StagedOutputs:
-    """:return: the probe's staged output folder ``out`` (moved in on success, ``summary.json`` last)"""
-    return StagedOutputs(out, OUTPUT_FILES, SUMMARY_NAME, overwrite=overwrite, error=InputError)
 
 
 def group_means(rows: list[dict[str, Any]], key: str = "test_mse") -> dict[tuple[str, str, str], float]:
@@ -180,174 +138,3 @@ def format_table(rows: list[dict[str, Any]]) -> str:
                 f"  {layer:<6}" + "".join(f"{means[(checkpoint, layer, group)]:>{width}.4f}" for group in groups)
             )
     return "\n".join(lines)
-
-
-def probe_to_folder(
-    checkpoint_paths: Sequence[str | Path],
-    out: str | Path,
-    settings: ProbeSettings,
-    rollouts_path: str | Path | None = None,
-    record_options: RecordOptions | None = None,
-    overwrite: bool = False,
-    command: Sequence[str] | None = None,
-) -> dict[str, Any]:
-    """
-    ``python -m sb3_collapse.probe``: probe checkpoints and write ``probe.csv``, ``summary.json`` and the plots into
-    ``out`` when every checkpoint succeeded. Without ``rollouts_path``, the first checkpoint's are recorded first.
-
-    :param checkpoint_paths: the checkpoints
-    :param out: the output folder
-    :param settings: the probe's settings
-    :param rollouts_path: recorded rollouts, or ``None`` to record them
-    :param record_options: how to record (when ``rollouts_path`` is ``None``)
-    :param overwrite: replace a previous run's outputs in ``out``
-    :param command: the command line, stored in the summary
-    :return: the summary (as written to ``summary.json``)
-    :raises InputError: for bad input
-    """
-    started = time.perf_counter()
-    settings.validate()
-    check_checkpoint_files(checkpoint_paths)
-    labels = checkpoint_labels(list(checkpoint_paths))
-    device = get_device(settings.device)
-    out = Path(out)
-    if rollouts_path is None:
-        record_options = checked_record_options(record_options)
-        if (out / ROLLOUTS_NAME).exists() and not overwrite:
-            raise InputError(
-                f"{out / ROLLOUTS_NAME} exists: reuse it with `rollouts`, or pass `overwrite=True`.", parameter="out"
-            )
-    self_recorded = rollouts_path is None
-    with staged_output(out, overwrite=overwrite) as staged:
-        if rollouts_path is None:
-            rollouts = record_rollouts(checkpoint_paths[0], device, record_options, settings, staged)
-            print(f"Recorded {len(rollouts)} agent steps of {rollouts.n_episodes} episodes to {out / ROLLOUTS_NAME}")
-            print(f"Note: {SELF_RECORDED_NOTE.format(success=PAPER.success_return)}.", flush=True)
-            rollouts_path = out / ROLLOUTS_NAME
-        else:
-            rollouts = Rollouts.load(rollouts_path)
-        split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
-        results = _probe_checkpoints(checkpoint_paths, labels, device, rollouts, split, settings)
-        rows = [row for result in results for row in result.rows]
-        warnings = probe_warnings(rollouts, split, rows, settings)
-        report_warnings(warnings)
-        write_csv(rows, list(rows[0]), staged.path(CSV_NAME))
-        plot_mse_by_layer(rows, staged.path(BY_LAYER_PLOT), warnings)
-        over_training = plot_mse_over_training(rows, staged.path(OVER_TRAINING_PLOT))
-        summary = _summary(results, rows, rollouts, rollouts_path, split, settings, over_training, command)
-        summary["warnings"] = warnings
-        if self_recorded:
-            summary["rollouts"]["note"] = SELF_RECORDED_NOTE.format(success=PAPER.success_return)
-        summary["total_seconds"] = round(time.perf_counter() - started, 1)
-        write_json_atomically(staged.path(SUMMARY_NAME), summary)
-        files = staged.commit()
-    print("Wrote " + ", ".join(str(f) for f in files))
-    return summary
-
-
-def checked_record_options(record_options: RecordOptions | None) -> RecordOptions:
-    """:return: ``record_options`` (``None``: the defaults), checked (InputError: naming the bad option)"""
-    record_options = record_options or RecordOptions()
-    record_options.check()
-    if record_options.episodes < MIN_EPISODES:  # the split needs them
-        raise InputError(
-            f"episodes must be >= {MIN_EPISODES} to split them into training, validation and test episodes, "
-            f"got {record_options.episodes}.",
-            parameter="episodes",
-        )
-    return record_options
-
-
-def record_rollouts(
-    source: str | Path, device: th.device, record_options: RecordOptions, settings: ProbeSettings, staged: StagedOutputs
-) -> Rollouts:
-    """:return: the rollouts recorded by the checkpoint ``source``, saved into ``staged`` (moved in on success)"""
-    recorder = load_checkpoint(source, device=device)
-    rollouts = record(recorder, record_options, settings.progress)
-    del recorder
-    rollouts.save(staged.path(ROLLOUTS_NAME))
-    return rollouts
-
-
-def _probe_checkpoints(
-    checkpoint_paths: Sequence[str | Path],
-    labels: Sequence[str],
-    device: th.device,
-    rollouts: Rollouts,
-    split: EpisodeSplit,
-    settings: ProbeSettings,
-) -> list[CheckpointProbe]:
-    """Probe each checkpoint in turn on ``rollouts``, printing its table; the networks are freed after each."""
-    results: list[CheckpointProbe] = []
-    reuse: dict = {}  # cnn0 (the normalized pixels) is probed once for checkpoints that normalize alike
-    for path, label in zip(checkpoint_paths, labels):
-        checkpoint = load_checkpoint(path, device=device)
-        checkpoint.label = label
-        print(
-            f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)", flush=True
-        )
-        result = probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
-        result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
-        results.append(result)
-        print(format_table(result.rows), flush=True)
-    return results
-
-
-def _summary(
-    results: list[CheckpointProbe],
-    rows: list[dict[str, Any]],
-    rollouts: Rollouts,
-    rollouts_path: str | Path,
-    split: EpisodeSplit,
-    settings: ProbeSettings,
-    over_training: bool,
-    command: Sequence[str] | None,
-) -> dict[str, Any]:
-    means = group_means(rows)
-    names, groups, _ = rollouts.targets()
-    files = [CSV_NAME, BY_LAYER_PLOT] + ([OVER_TRAINING_PLOT] if over_training else []) + [SUMMARY_NAME]
-    return {
-        "complete": True,
-        "created": datetime.now(UTC).isoformat(timespec="seconds"),
-        "command": list(command) if command is not None else None,
-        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
-        "method": "OMP per (layer, component) on features standardized with train statistics (constant columns "
-        "dropped) and standardized targets, no intercept; tau = argmin validation MSE over 1..max_tau; "
-        "MSE in standardized units (columns *_mse) and in state units squared (*_mse_raw).",
-        "rollouts": {
-            "path": str(rollouts_path),
-            "samples": len(rollouts),
-            "episodes": rollouts.n_episodes,
-            "observation_shape": list(rollouts.observations.shape[1:]),
-            "env_config": rollouts.env_config,
-            "metadata": rollouts.metadata,
-        },
-        "split": {key: getattr(split, key) for key in ("n_train", "n_validation", "n_test", "episodes")},
-        "targets": {"names": names, "groups": groups},
-        "checkpoints": [
-            {
-                "name": r.checkpoint.name,
-                "path": str(r.checkpoint.path),
-                "algorithm": r.checkpoint.algorithm,
-                "num_timesteps": r.checkpoint.num_timesteps,
-                "frames": r.checkpoint.frames,
-                "extract_seconds": round(r.extract_seconds, 2),
-                "layers": {
-                    layer.layer: {
-                        "n_features": layer.n_features,
-                        "n_features_kept": layer.n_features_kept,
-                        "max_tau": layer.max_tau,
-                        "fit_seconds": round(layer.fit_seconds, 2),
-                        "reused_from_an_earlier_checkpoint": layer.reused,
-                        "mean_test_mse": {
-                            group: means[(r.checkpoint.name, layer.layer, group)] for group in dict.fromkeys(groups)
-                        },
-                    }
-                    for layer in r.layers
-                },
-            }
-            for r in results
-        ],
-        "mse_over_training": "written" if over_training else "skipped: needs >= 2 checkpoints with distinct steps",
-        "files": files,
-    }

@@ -1,5 +1,5 @@
 """The settings of one training run, :class:`TrainConfig`, each declared once with :func:`setting`; the flags, help
-and docs tables generated from them: :mod:`sb3_collapse.run.settings`. Units: docs/throughput.md#units."""
+and docs tables generated from them: :mod:`sb3_collapse.commands.cli`. Units: docs/throughput.md#units."""
 
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ def setting(
     default_factory: Any = dataclasses.MISSING,
 ) -> Any:
     """
-    A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.run.settings`);
+    A setting of a command line, declared once as a dataclass field (see :mod:`sb3_collapse.commands.cli`);
     ``choices``, ``minimum``, ``maximum``, ``above`` (exclusive), ``metavar`` and ``required`` as ``argparse`` would.
 
     :param default: the default value (``None`` for a preset setting: the task's preset fills it)

@@ -11,8 +11,8 @@ import pytest
 from stable_baselines3 import PPO, TD3
 
 from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse.commands.probe import main
 from sb3_collapse.errors import ParameterError
-from sb3_collapse.probe.__main__ import main
 from sb3_collapse.probe.health import HEALTH_COLUMNS, OFFLINE_METRICS, SERIES_METRICS, HealthSettings, tag_parts
 from sb3_collapse.run.snapshots import save_snapshot
 from tests.random_env import RandomObservationEnv

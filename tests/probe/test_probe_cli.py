@@ -11,6 +11,8 @@ import pytest
 from stable_baselines3 import PPO, SAC
 
 from sb3_collapse import DrQv2, make_dmc_env
+from sb3_collapse.commands.probe import main
+from sb3_collapse.commands.probe_pipelines import PROBE_FILES as OUTPUT_FILES
 from sb3_collapse.probe import (
     ProbeSettings,
     Rollouts,
@@ -19,8 +21,6 @@ from sb3_collapse.probe import (
     probe_each_checkpoint,
     split_by_episode,
 )
-from sb3_collapse.probe.__main__ import main
-from sb3_collapse.report.probe_outputs import OUTPUT_FILES
 from tests.random_env import RandomObservationEnv
 
 FAST = ["--max-tau", "4", "--no-progress"]
@@ -202,13 +202,10 @@ def test_bad_layers_and_split_are_refused_before_any_rollout(files, tmp_path, mo
     def never(*args, **kwargs):
         raise AssertionError("called before the flags were checked")
 
-    from sb3_collapse.probe import pipeline
-    from sb3_collapse.report import figure2, probe_outputs
+    from sb3_collapse.commands import probe_pipelines
 
-    for module in (pipeline, probe_outputs, figure2):
-        for name in ("record_rollouts", "record", "load_checkpoint", "load_sweep"):
-            if hasattr(module, name):
-                monkeypatch.setattr(module, name, never)
+    for name in ("record_rollouts", "record", "load_checkpoint", "load_sweep"):
+        monkeypatch.setattr(probe_pipelines, name, never)
     out = tmp_path / "out"
     for command in ([str(files["early"])], ["sweep", str(tmp_path), "--task", "walker-walk"]):
         with pytest.raises(SystemExit) as exit_info:

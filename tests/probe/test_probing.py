@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch as th
 
+from sb3_collapse.commands.probe_pipelines import staged_output
 from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.probe import ProbeSettings, Rollouts
 from sb3_collapse.probe.pipeline import RecordOptions
@@ -13,7 +14,7 @@ from sb3_collapse.probe.probing import (
     standardize_features_,
     standardize_targets,
 )
-from sb3_collapse.report.probe_outputs import staged_output, training_order
+from sb3_collapse.report.probe_outputs import training_order
 
 
 def test_split_never_cuts_an_episode():

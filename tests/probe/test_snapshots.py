@@ -16,9 +16,10 @@ import torch as th
 from PIL import Image
 
 from sb3_collapse import DrQv2
+from sb3_collapse.commands.probe import main as probe_main
+from sb3_collapse.commands.report_pipelines import FixedInputSettings, fixed_agent_rows, write_report
 from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_metrics
-from sb3_collapse.probe.__main__ import main as probe_main
 from sb3_collapse.probe.checkpoints import load_checkpoint
 from sb3_collapse.probe.film import film_episode
 from sb3_collapse.probe.fixed_inputs import fixed_metrics
@@ -32,8 +33,6 @@ from sb3_collapse.protocol import (
     TABLES_1_6_CSV,
     snapshot_files,
 )
-from sb3_collapse.report import write_report
-from sb3_collapse.report.collapse_figure import FixedInputSettings, fixed_agent_rows
 from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train

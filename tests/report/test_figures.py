@@ -9,13 +9,13 @@ import pytest
 from browser import check_page
 from fabricated_sweep import TRANSPLANT_FRAMES, write_fake_sweep
 
+from sb3_collapse.commands.report import main
+from sb3_collapse.commands.report_pipelines import FixedInputSettings, build_report, write_report, write_run_report
 from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.probe.fixed_inputs import FixedInputs
-from sb3_collapse.report import figure2, write_report
-from sb3_collapse.report.__main__ import main
+from sb3_collapse.report import figure2
 from sb3_collapse.report.collapse_figure import (
     PAPER_ROLES,
-    FixedInputSettings,
     agent_class,
     agent_metrics,
     pick_agents,
@@ -30,8 +30,6 @@ from sb3_collapse.report.pipeline import (
     FIGURE3B_PNG,
     RUN_COLLAPSE_PNG,
     TABLE7_CSV,
-    build_report,
-    write_run_report,
 )
 from sb3_collapse.report.statistics import stage_indices, transplant_curves
 from sb3_collapse.runfolder import read_collapse_metrics

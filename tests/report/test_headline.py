@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from fabricated_sweep import FRAMES, write_fake_sweep
 
+from sb3_collapse.commands import report_pipelines
+from sb3_collapse.commands.report_pipelines import build_report, write_report
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1
-from sb3_collapse.report import pipeline
 from sb3_collapse.report.headline import (
     escape_interval,
     escape_probability,
@@ -19,7 +20,6 @@ from sb3_collapse.report.headline import (
     wilson_interval,
 )
 from sb3_collapse.report.loading import Sweep, Trial, load_trial
-from sb3_collapse.report.pipeline import build_report, write_report
 from sb3_collapse.report.statistics import ReportSettings, VariantSummary
 
 Z = NormalDist().inv_cdf(0.975)
@@ -135,8 +135,8 @@ def test_figure5_has_no_transplant_series(fake, monkeypatch, tmp_path):
         drawn["curves"], drawn["partial"] = curves, partial
         return plot(curves, path, references, partial, percentiles)
 
-    plot = pipeline.plot_figure5
-    monkeypatch.setattr(pipeline, "plot_figure5", record)
+    plot = report_pipelines.plot_figure5
+    monkeypatch.setattr(report_pipelines, "plot_figure5", record)
     report = write_report(fake.path, out=tmp_path / "report", include_unfinished=True, progress=False)
     names = {task: [curve.name for curve in curves] for task, curves in drawn["curves"].items()}
     assert names == {"hopper-stand": ["drqv2", "drqv2+reset"], "walker-walk": ["drqv2", "drqv2+reset"]}

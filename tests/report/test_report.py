@@ -11,17 +11,12 @@ import numpy as np
 import pytest
 from fabricated_sweep import FakeSweep, FakeTrial, write_fake_sweep
 
+from sb3_collapse.commands import report_pipelines
+from sb3_collapse.commands.report import main
+from sb3_collapse.commands.report_pipelines import build_report, write_report
 from sb3_collapse.errors import InputError
-from sb3_collapse.report import (
-    ReportSettings,
-    build_report,
-    load_reference_curves,
-    reference_task_name,
-    stuck_in_collapse,
-    write_report,
-)
+from sb3_collapse.report import ReportSettings, load_reference_curves, reference_task_name, stuck_in_collapse
 from sb3_collapse.report import pipeline as report_pipeline
-from sb3_collapse.report.__main__ import main
 from sb3_collapse.report.reference import pack_reference_curves
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -404,7 +399,7 @@ def test_failed_report_keeps_the_previous_one(fake_sweep, tmp_path, monkeypatch)
     def broken(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(report_pipeline, "plot_transplant_grid", broken)
+    monkeypatch.setattr(report_pipelines, "plot_transplant_grid", broken)
     with pytest.raises(RuntimeError, match="disk full"):
         write_report(root, progress=False, overwrite=True)
     assert {p.name: p.read_bytes() for p in (root / "report").iterdir()} == before  # no .partial-* left either

@@ -9,14 +9,10 @@ from pathlib import Path
 
 import pytest
 
-import sb3_collapse.probe.__main__ as probe_cli
-import sb3_collapse.report.__main__ as report_cli
-from sb3_collapse.presets import SETTING_NAMES
-from sb3_collapse.probe import ProbeSettings
-from sb3_collapse.probe.pipeline import RecordOptions
-from sb3_collapse.report import probe_outputs
-from sb3_collapse.run.config import RUN, TRAINING, UNITS, TrainConfig, declared, setting
-from sb3_collapse.run.settings import (
+import sb3_collapse.commands.probe as probe_cli
+import sb3_collapse.commands.report as report_cli
+from sb3_collapse.commands import probe_pipelines
+from sb3_collapse.commands.cli import (
     FLAGS_END,
     MARKDOWN_BEGIN,
     MARKDOWN_END,
@@ -30,8 +26,12 @@ from sb3_collapse.run.settings import (
     training_arguments,
     with_markdown,
 )
-from sb3_collapse.sweep.__main__ import build_parser as sweep_parser
-from sb3_collapse.train import build_parser
+from sb3_collapse.commands.sweep import build_parser as sweep_parser
+from sb3_collapse.commands.train import build_parser
+from sb3_collapse.presets import SETTING_NAMES
+from sb3_collapse.probe import ProbeSettings
+from sb3_collapse.probe.pipeline import RecordOptions
+from sb3_collapse.run.config import RUN, TRAINING, UNITS, TrainConfig, declared, setting
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 FIELDS = {field.name: field for field in dataclasses.fields(TrainConfig)}
@@ -101,7 +101,7 @@ def test_show_settings_lists_every_field(capsys):
 def test_presets_doc_holds_the_generated_tables(tmp_path, capsys):
     doc = (REPO_ROOT / "docs" / "presets.md").read_text()
     assert doc == with_markdown(doc), (
-        "docs/presets.md is out of date: run python -m sb3_collapse.run.settings --markdown docs/presets.md"
+        "docs/presets.md is out of date: run python -m sb3_collapse.commands.cli --markdown docs/presets.md"
     )
     region = doc[doc.index(MARKDOWN_BEGIN) : doc.index(MARKDOWN_END)]
     assert all(f"| `{name}` |" in region for name in FIELDS)
@@ -126,7 +126,7 @@ def test_no_package_module_imports_the_train_command():
             assert "sb3_collapse.train" not in names, f"{path.relative_to(REPO_ROOT)} imports the train command"
 
 
-# The probe's and the report's flags: declared once with the same setting(), in their __main__ modules.
+# The probe's and the report's flags: declared once with the same setting(), in their modules of commands/.
 
 CLIS = {"sb3_collapse.probe": probe_cli, "sb3_collapse.report": report_cli}
 POSITIONALS = {
@@ -186,7 +186,7 @@ def test_probe_flags_keep_their_spellings_and_defaults():
 def test_flag_tables_of_the_docs_are_fresh(page, tmp_path):
     doc = (REPO_ROOT / "docs" / page).read_text()
     assert doc == with_markdown(doc), (
-        f"docs/{page} is out of date: run python -m sb3_collapse.run.settings --markdown docs/{page}"
+        f"docs/{page} is out of date: run python -m sb3_collapse.commands.cli --markdown docs/{page}"
     )
     package = "sb3_collapse.probe" if page == "probe.md" else "sb3_collapse.report"
     cli = CLIS[package]
@@ -241,8 +241,8 @@ def test_a_bad_value_exits_2_with_one_line_naming_the_flag_before_any_work(
 
 
 def test_split_that_does_not_sum_to_1_is_refused_before_recording(monkeypatch, capsys):
-    monkeypatch.setattr(probe_outputs, "load_checkpoint", _fail)
-    monkeypatch.setattr(probe_outputs, "record", _fail)
+    monkeypatch.setattr(probe_pipelines, "load_checkpoint", _fail)
+    monkeypatch.setattr(probe_pipelines, "record", _fail)
     with pytest.raises(SystemExit) as exit_info:  # the sub-command's line, as every other --split error
         probe_cli.main(["a.zip", "--split", "0.5", "0.5", "0.5"])
     assert exit_info.value.code == 2 and capsys.readouterr().err.endswith(
@@ -316,8 +316,9 @@ def test_a_settings_help_is_the_docstring_under_it_unless_given():
 def test_a_dict_key_in_a_message_is_not_turned_into_a_flag():
     """The flag translation turned policy_kwargs['hidden_dim'] into policy_kwargs['--hidden-dim']: a key stays, the
     bare name of a setting still becomes its flag."""
-    from sb3_collapse.errors import ParameterError, cli_message
-    from sb3_collapse.train import build_parser
+    from sb3_collapse.commands.cli import cli_message
+    from sb3_collapse.commands.train import build_parser
+    from sb3_collapse.errors import ParameterError
 
     error = ParameterError(
         "policy_kwargs['hidden_dim']",

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import pytest
 
+from sb3_collapse.commands.sweep import main
 from sb3_collapse.errors import ClusterUnreachable
 from sb3_collapse.runfolder import run_status
-from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.cluster import check_cluster
 
 # A trial that checkpoints: 60 agent steps of cartpole at action repeat 20, a checkpoint every 10 agent steps.

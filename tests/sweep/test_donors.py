@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from sb3_collapse.commands.sweep import build_parser, main, transplant_checkpoints
 from sb3_collapse.errors import InputError
 from sb3_collapse.sweep import Trial, donor_candidates, pick_donors, trial_config
-from sb3_collapse.sweep.__main__ import build_parser, main, transplant_checkpoints
 from sb3_collapse.sweep.donors import donors_record, final_return
 from sb3_collapse.sweep.runner import sweep_settings
 

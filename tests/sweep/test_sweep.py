@@ -14,6 +14,7 @@ import zipfile
 import pytest
 
 from sb3_collapse import DrQv2
+from sb3_collapse.commands.sweep import main
 from sb3_collapse.errors import InputError
 from sb3_collapse.report.collapse_figure import agent_class
 from sb3_collapse.run.checkpoints import checkpoint_folders, checkpoint_frames
@@ -32,7 +33,6 @@ from sb3_collapse.sweep import (
     trial_dir,
     variant_settings,
 )
-from sb3_collapse.sweep.__main__ import main
 from sb3_collapse.sweep.cluster import check_resources
 
 # A tiny trial: 1000 frames = 50 agent steps of 20 frames (a whole DMC episode is then 50 agent steps, so that the
@@ -375,7 +375,8 @@ def test_resources_and_settings_checks():
 
 
 def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
-    from sb3_collapse.report import ReportSettings, write_report
+    from sb3_collapse.commands.report_pipelines import write_report
+    from sb3_collapse.report import ReportSettings
 
     # At frame 1000 the plain runs have an mlp1 gradient norm, the reset runs (reset at frame 500, no update since:
     # the warm-up restarts) have none: collapse "unknown" for them, not stuck.
@@ -423,9 +424,9 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
 
 
 def test_probe_sweep_on_the_tiny_real_sweep(tiny_sweep, tmp_path):
+    from sb3_collapse.commands.probe_pipelines import probe_sweep
     from sb3_collapse.probe import ProbeSettings
     from sb3_collapse.probe.pipeline import RecordOptions
-    from sb3_collapse.report.figure2 import probe_sweep
 
     finals = {
         seed: json.loads((tiny_sweep / "walker-walk" / "drqv2" / f"seed_{seed}" / "result.json").read_text())[
@@ -488,7 +489,8 @@ COMPARISON = [
 def test_sweep_compares_interventions_and_sb3_algorithms(ray_local, tmp_path, monkeypatch):
     from stable_baselines3 import TD3
 
-    from sb3_collapse.report import plots, write_report
+    from sb3_collapse.commands.report_pipelines import write_report
+    from sb3_collapse.report import plots
 
     out = tmp_path / "comparison"
     start = time.perf_counter()
@@ -639,8 +641,8 @@ def test_failed_trial_keeps_trains_error_header_and_is_called_retryable_only_if_
     error of the training code is not retryable; a full disk is."""
     import errno
 
+    from sb3_collapse.commands.sweep import failure_advice
     from sb3_collapse.errors import OutputError, ParameterError
-    from sb3_collapse.sweep.__main__ import failure_advice
     from sb3_collapse.sweep.runner import retryable, run_trial
 
     trial = Trial("cartpole-balance", "drqv2", 0)
@@ -876,8 +878,8 @@ def test_a_trial_meeting_a_full_disk_at_its_start_reports_its_own_reason(tmp_pat
     made.)"""
     import errno
 
+    from sb3_collapse.commands.sweep import print_summary
     from sb3_collapse.sweep import runner
-    from sb3_collapse.sweep.__main__ import print_summary
     from sb3_collapse.sweep.runner import SweepSummary, _collect, run_trial
 
     trial, out = Trial("cartpole-balance", "drqv2", 0), tmp_path / "sweep"

@@ -16,11 +16,11 @@ from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.vec_env import VecTransposeImage, is_vecenv_wrapped
 
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
+from sb3_collapse.commands.zoo import collapse_callbacks, main
 from sb3_collapse.drqv2 import FrameStackReplayBuffer
 from sb3_collapse.errors import InputError
-from sb3_collapse.zoo import main, register_with_zoo
+from sb3_collapse.zoo import register_with_zoo
 from sb3_collapse.zoo.experiment import ZooExperimentManager
-from sb3_collapse.zoo.launcher import collapse_callbacks
 
 CONFIG = Path(__file__).resolve().parents[2] / "zoo_configs" / "drqv2.yml"
 WALKER = "sb3_collapse/walker-walk-v0"
@@ -301,7 +301,7 @@ def test_help(capsys):
 def test_zoo_train_sets_the_train_commands_cuda_flags(monkeypatch):
     # Building a model leaves torch's process-wide flags alone; the zoo's train command sets them as `train` does.
     from sb3_collapse.backends import configure_backends, current_backends
-    from sb3_collapse.zoo.launcher import run_train
+    from sb3_collapse.commands.zoo import run_train
 
     before = current_backends()
     benchmark_before = th.backends.cudnn.benchmark

@@ -1,0 +1,387 @@
+"""Multi-seed sweeps on Ray: ``python -m sb3_collapse.sweep --help``, docs/sweeps.md."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from pathlib import Path
+
+from sb3_collapse.commands.cli import (
+    CommandLine,
+    cli_message,
+    prog_name,
+    report_unwritable_outputs,
+    training_arguments,
+    training_settings,
+)
+from sb3_collapse.errors import (
+    ClusterUnreachable,
+    InputError,
+    MissingDependencyError,
+)
+from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, SWEEP_LOCK
+from sb3_collapse.run.checkpoints import checkpoint_frames
+from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_folder_owner, run_status
+from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
+from sb3_collapse.sweep.donors import (
+    DONOR_KEYS,
+    DONOR_PARTS,
+    DONOR_SOURCES,
+    check_distinct_donors,
+    donors_record,
+    pick_donors,
+)
+from sb3_collapse.sweep.plan import check_disk, check_node, size_text, sweep_plan
+from sb3_collapse.sweep.runner import (
+    IN_USE,
+    SweepSummary,
+    check_sweep,
+    prepare_sweep_folder,
+    run_sweep,
+    sweep_settings,
+    trial_left_as_is,
+)
+from sb3_collapse.sweep.trials import (
+    GRID_VARIANTS,
+    VARIANT_FORMS,
+    Trial,
+    donor_key,
+    expand_trials,
+    parse_checkpoint_specs,
+    transplant_of,
+    trial_config,
+    trial_dir,
+)
+
+DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
+THROUGHPUT_ROWS = "benchmarks/README.md#train-throughput-gpu (cuda), #train-throughput-cpu (cpu)"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags and every training flag of train."""
+    p = CommandLine(
+        prog=prog_name("sb3_collapse.sweep"),
+        description="Run every (task, variant, seed) as an independent trial on Ray (DrQ-v2, or the TD3/SAC "
+        "baselines that --variants names), each into <out>/<task>/<variant>/seed_<k> (the run folder of python -m "
+        "sb3_collapse.train). Each task trains with its own DrQ-v2 preset (docs/presets.md); a DrQ-v2 flag given "
+        "here overrides it for every task and is recorded. Rerun the same command to resume: finished trials are "
+        "skipped, unfinished ones resume from their newest checkpoint. Frames = agent steps x action repeat.",
+        parents=[training_arguments()],
+    )
+    g = p.add_argument_group("sweep")
+    g.add_argument("--tasks", nargs="+", required=True, help="dm_control tasks: walker-walk hopper-stand ...")
+    seeds = g.add_mutually_exclusive_group(required=True)
+    seeds.add_argument("--seeds", type=int, help="number of seeds: N runs seeds 0 .. N-1")
+    seeds.add_argument("--seed-list", type=int, nargs="+", help="explicit seeds, e.g. 3 7")
+    g.add_argument(
+        "--variants",
+        nargs="+",
+        help=f"{VARIANT_FORMS} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations; "
+        f"docs/interventions.md); default: {' '.join(DEFAULT_VARIANTS)} (only the grid with --transplant-grid)",
+    )
+    g.add_argument("--transplant-grid", action="store_true", help="add the 9 cells of the CNN x MLP transplant grid")
+    donors = p.add_argument_group(
+        "transplant donors (Study 2: the CNN and the MLP of a source from two different agents; docs/sweeps.md)"
+    )
+    for source in DONOR_SOURCES:
+        for part in DONOR_PARTS:
+            donors.add_argument(
+                f"--{source}-{part}", dest=donor_key(source, part), nargs="+", metavar="[TASK=]PATH",
+                help=f"DrQv2 checkpoint(s) of the {'well' if source == 'good' else 'poorly'} performing agent that "
+                f"gives the {source} {part.upper()}: PATH for every task, TASK=PATH per task",
+            )  # fmt: skip
+    donors.add_argument(
+        "--donors-from",
+        metavar="SWEEP",
+        help="pick the donors at random from this finished sweep instead: per task, two different seeds with a final "
+        f"return >= {PAPER.success_return:g} (good CNN, good MLP) and two < {PAPER.failure_return:g} (bad ones)",
+    )
+    donors.add_argument(
+        "--donor-variant", default="drqv2", help="the variant of --donors-from giving parts (default: %(default)s)"
+    )
+    donors.add_argument(
+        "--donor-seed", type=int, default=0, help="seed of the pick of --donors-from (default: %(default)s)"
+    )
+    g.add_argument("--out", required=True, help="the sweep folder (with --address: on storage every node sees)")
+    g.add_argument(
+        "--address",
+        help="Ray cluster to run on ('auto', 'ray://head:10001', 'head:6379'); default: a new local Ray instance. "
+        "sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees",
+    )
+    g.add_argument(
+        "--connect-timeout", dest="connect_timeout_s", type=float, default=CONNECT_TIMEOUT_S, metavar="SECONDS",
+        help="with --address: give up, writing nothing, when the cluster does not answer within this time "
+        "(exit status 1; default: %(default)g)",
+    )  # fmt: skip
+    g.add_argument(
+        "--cpus-per-trial", type=float, default=1, help="CPUs per trial; also its torch threads (default: %(default)s)"
+    )
+    g.add_argument(
+        "--gpus-per-trial", type=float, default=0, help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 "
+        "trials per GPU); > 0 trains on cuda, 0 on cpu (default: %(default)s)",
+    )  # fmt: skip
+    g.add_argument(
+        "--allow-changed-settings", action="store_true", help="run even if --out holds a sweep with other training "
+        "settings (finished trials keep theirs)",
+    )  # fmt: skip
+    g.add_argument(
+        "--dry-run", action="store_true", help="list the trials and their status, then the plan (what the trials to "
+        "train take: frames, updates, RAM, disk, time; docs/sweeps.md), run nothing",
+    )  # fmt: skip
+    g.add_argument(
+        "--list", dest="list_limit", type=int, metavar="N", help="with --dry-run: list only the first N trials "
+        "(0: the counts and the plan only; default: all)",
+    )  # fmt: skip
+    g.add_argument(
+        "--frames-per-second", type=float, metavar="FPS", help="one trial's training frames/s, measured on this "
+        f"device ({THROUGHPUT_ROWS}): the plan's time estimate; none without it",
+    )  # fmt: skip
+    g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
+    return p
+
+
+@report_unwritable_outputs
+def main(argv: list[str] | None = None) -> int:
+    """
+    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
+    :return: exit status: 0 when every trial finished, 1 when some failed (or the cluster did not answer), 2 for
+        bad arguments, :data:`~sb3_collapse.protocol.EXIT_INTERRUPTED` when a signal stopped the sweep or another
+        process held a trial's folder (run the same command again once it ended)
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    training = training_settings(args)
+    if args.seeds is not None and args.seeds < 1:
+        parser.error(f"--seeds must be >= 1, got {args.seeds}.")
+    seeds = range(args.seeds) if args.seeds is not None else args.seed_list
+    variants = list(args.variants or ([] if args.transplant_grid else DEFAULT_VARIANTS))
+    if args.transplant_grid:
+        variants += GRID_VARIANTS
+    if args.list_limit is not None and args.list_limit < 0:
+        parser.error(f"--list must be >= 0, got {args.list_limit}.")
+    if args.frames_per_second is not None and not 0 < args.frames_per_second < float("inf"):
+        parser.error(f"--frames-per-second must be a number > 0, got {args.frames_per_second}.")
+    try:
+        trials = expand_trials(args.tasks, variants, seeds)
+        checkpoints, donors = transplant_checkpoints(args, trials)
+        check_sweep(
+            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
+        )
+        states = trial_states(trials, args.out, training, checkpoints)
+        # Damaged trials are not trained; those in use hold files but are not trained now.
+        configs = {trial: state[2] for trial, state in states.items() if state[1] is None or state[1][0] == IN_USE}
+        done = {
+            trial: state[3] for trial, state in states.items() if state[1] is None and state[0] != RunStatus.FINISHED
+        }
+        plan = sweep_plan(configs, done, args.cpus_per_trial, args.gpus_per_trial, args.frames_per_second, args.out)
+        if args.address is None:  # this machine runs the trials: it must hold one
+            check_node(plan)
+        if (shortage := check_disk(plan)) is not None:  # one trial that cannot fit: refused (an InputError)
+            print(f"warning: {cli_message(InputError(shortage), parser)}", file=sys.stderr)
+        if args.dry_run:
+            return dry_run(
+                states, args.out, training, checkpoints, args.allow_changed_settings, donors, plan, args.list_limit
+            )
+        summary = run_sweep(
+            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.address,
+            args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s, plan,
+        )  # fmt: skip
+    except (MissingDependencyError, ValueError) as error:
+        parser.error(cli_message(error, parser))
+    except ClusterUnreachable as error:
+        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(
+            f"\nStopped at once: the running trials resume from their last checkpoints; run the same command again "
+            f"to resume (finished trials in {args.out} are kept; exit status {EXIT_INTERRUPTED}).",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    return print_summary(summary, args.out)
+
+
+def print_summary(summary: SweepSummary, out: str) -> int:
+    """Print what the sweep did; return the exit status (0 all finished, 1 some failed, EXIT_INTERRUPTED stopped)."""
+    stopped = sum(checkpoint is not None for checkpoint in summary.interrupted.values())
+    print(
+        f"{len(summary.trials)} trials in {out}: {len(summary.finished)} finished now "
+        f"({len(summary.resumed)} resumed from a checkpoint), {len(summary.skipped)} finished before, "
+        f"{len(summary.failed)} failed"
+        + (f", {stopped} stopped at a checkpoint" if stopped else "")
+        + (f", {len(summary.interrupted) - stopped} not started" if len(summary.interrupted) > stopped else "")
+        + (f", {len(summary.in_use)} in use by another process" if summary.in_use else "")
+        + "."
+    )
+    for trial, error_path in summary.failed.items():  # a damaged trial's line says the way out
+        again = ", and would again at a rerun" if trial in summary.repeating and trial not in summary.damaged else ""
+        why = f": {summary.damaged[trial]}" if trial in summary.damaged else f" (see {error_path})"
+        if trial in summary.reasons and not error_path.is_file():  # its error file could not be written
+            why = f": {summary.reasons[trial]}"
+        print(f"  failed{again}: {trial}{why}")
+    for trial, owner in summary.in_use.items():
+        print(f"  in use: {trial}: its folder is held by {owner}; left as it is")
+    if others := len(summary.failed) - len(summary.damaged):
+        print(failure_advice(others, len(summary.repeating) - len(summary.damaged)))
+    if summary.in_use:
+        them = "it" if len(summary.in_use) == 1 else "them"
+        print(
+            f"Run the same command again once the process holding {them} has ended: the sweep trains {them} then"
+            + ("." if summary.failed or summary.interrupted else f" (exit status {EXIT_INTERRUPTED}).")
+        )
+    if summary.failed:
+        return 1
+    if summary.in_use and not summary.interrupted:
+        return EXIT_INTERRUPTED
+    if summary.interrupted:
+        print(
+            f"Stopped by {summary.stopped_by or 'a signal to the trials'}: run the same command again to resume "
+            f"(exit status {EXIT_INTERRUPTED})."
+        )
+        return EXIT_INTERRUPTED
+    return 0
+
+
+def failure_advice(failed: int, repeating: int) -> str:
+    """One line: what to do about ``failed`` trials, ``repeating`` of them failing the same way at a rerun."""
+    fix = (
+        f"fix the cause first (their {ERROR_TXT} says it: bad settings, a diverging run, an error of the training code)"
+    )
+    if repeating == 0:
+        return "Rerun the same command to retry the failed trials."
+    if repeating == failed:
+        return f"A rerun would fail {'this trial' if failed == 1 else 'these trials'} the same way: {fix}."
+    return (
+        f"Rerun the same command to retry the other {failed - repeating} failed trials; the {repeating} marked would "
+        f"fail the same way: {fix}."
+    )
+
+
+def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict[str, dict[str, str]], dict | None]:
+    """The grid cells' donors, given (``--good-cnn``...) or picked (``--donors-from``): key -> task -> path, record."""
+    tasks = list(dict.fromkeys(trial.task for trial in trials))
+    given = {key: getattr(args, key) for key in DONOR_KEYS if getattr(args, key) is not None}
+    if args.donors_from is None:
+        checkpoints = {
+            key: parse_checkpoint_specs(specs, tasks, f"--{key.replace('_', '-')}") for key, specs in given.items()
+        }
+        check_distinct_donors(checkpoints)
+        return checkpoints, None
+    if given:
+        flags = ", ".join(f"--{key.replace('_', '-')}" for key in given)
+        raise InputError(f"--donors-from picks every donor: leave out {flags}.", parameter="donors_from")
+    needed = {source for trial in trials for source in (transplant_of(trial.variant) or {}).values()} - {"blank"}
+    grid_tasks = list(dict.fromkeys(trial.task for trial in trials if transplant_of(trial.variant)))
+    picked = {
+        task: pick_donors(args.donors_from, task, args.donor_seed, args.donor_variant, sorted(needed))
+        for task in grid_tasks
+    }
+    checkpoints: dict[str, dict[str, str]] = {}
+    for task, donors in picked.items():
+        for key, donor in donors.items():
+            checkpoints.setdefault(key, {})[task] = donor.path
+    return checkpoints, donors_record(args.donors_from, args.donor_seed, args.donor_variant, picked)
+
+
+def trial_states(
+    trials: list, out: str, training: dict, checkpoints: dict
+) -> dict[Trial, tuple[str, tuple[str, str] | None, TrainConfig, int]]:
+    """Trial -> its status, why the sweep leaves it as it is (:func:`~sb3_collapse.sweep.runner.trial_left_as_is`:
+    kind and line; ``None``: finished, or trained), its resolved settings and the frames done (the budget when
+    finished, the newest checkpoint's when unfinished, else 0)."""
+    states = {}
+    for trial in trials:
+        folder = trial_dir(out, trial)
+        status = str(run_status(folder) or NOT_A_RUN)
+        reason = None if status == RunStatus.FINISHED else trial_left_as_is(folder)
+        config = trial_config(trial, out, training, checkpoints)
+        done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
+        states[trial] = (status, reason, config, config.frames if status == RunStatus.FINISHED else done or 0)
+    return states
+
+
+def dry_run(
+    states: dict, out: str, training: dict, checkpoints: dict, allow_changed_settings: bool, donors: dict | None,
+    plan: dict, list_limit: int | None = None,
+) -> int:  # fmt: skip
+    """Print the first ``list_limit`` trials' status and folder (all: ``None``), the ``plan`` and the counts, after
+    checking the sweep's settings file; return 0."""
+    if donors is not None:
+        for task, picked in donors["tasks"].items():
+            for key, donor in picked.items():
+                final = donor["final_return"]
+                print(f"donor {task} {key}: seed {donor['seed']} (final return {final:.1f}) {donor['path']}")
+    settings = sweep_settings(list(states), training, checkpoints, resources={}, donors=donors, plan=plan)
+    prepare_sweep_folder(Path(out), settings, allow_changed_settings, write=False)
+    listed = list(states.items())[:list_limit]
+    for trial, (status, left, config, done) in listed:
+        folder = trial_dir(out, trial)
+        if left is not None and left[0] == IN_USE:  # not run now, nothing written into it: a rerun once it ends
+            print(f"{status:<10} in use {folder}: held by {left[1]}; left as it is, run the same command once it ends")
+            continue
+        if left is not None:  # not run: a rerun would not repair it
+            print(f"{status:<10} keep   {folder}: {left[1]}")
+            continue
+        action = "skip" if status == RunStatus.FINISHED else "resume" if done else "run"
+        print(f"{status:<10} {action:<6} {done:>10,} of {config.frames:,} frames  {folder}")
+    if len(listed) < len(states):
+        print(f"... {len(states) - len(listed)} more trials (--list)")
+    if plan["trials_pending"]:
+        print("\n".join(plan_lines(plan)))
+    counts = Counter(status for status, *_ in states.values())
+    as_is = Counter(reason[0] for _, reason, *_ in states.values() if reason is not None)
+    print(
+        f"{len(states)} trials: "
+        + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
+        + f"; {plan['trials_pending']} would run (frames done: the newest checkpoint of an unfinished trial)"
+        + (f"; {as_is[IN_USE]} in use by another process (run once it ends)" if as_is[IN_USE] else "")
+        + "".join(f"; {number} kept as they are ({kind})" for kind, number in as_is.items() if kind != IN_USE)
+        + "."
+    )
+    owner = run_folder_owner(out, SWEEP_LOCK)
+    if owner is not None:  # the command itself would be refused now
+        print(
+            f"Note: sweep folder {out} is in use by {owner}: without --dry-run this command is refused until it ends; "
+            "wait for it to end (or stop it), or give this sweep another --out."
+        )
+    return 0
+
+
+def plan_lines(plan: dict) -> list[str]:
+    """:return: the plan as the dry run prints it (a short table)"""
+    columns = ("replay_ram", "checkpoints_peak", "snapshots", "model")
+    row = "  {:<32} {:>12} {:>17} {:>12} {:>12}".format
+    total = f"{plan['frames']:,} frames ({plan['agent_steps']:,} agent steps), {plan['updates']:,} updates in all"
+    lines = [
+        f"plan of the {plan['trials_pending']} trials to train: {total}",
+        row("per trial", "replay RAM", "checkpoints peak", "snapshots", "final model"),
+    ]
+    lines += [row(group, *(size_text(sizes[name]) for name in columns)) for group, sizes in plan["bytes"].items()]
+    node, limits = plan["node"], plan["limits"]
+    lines.append(f"  disk at the end: {size_text(plan['disk_at_end_bytes'])} (final models and snapshots)")
+    if plan.get("out_free_bytes") is not None:
+        lines.append(
+            f"  disk to write: up to {size_text(plan['disk_needed_bytes'])} (final models, snapshots, the checkpoints "
+            f"of the trials at once); {size_text(plan['out_free_bytes'])} free at --out"
+        )
+    lines.append(
+        f"  at once on this machine: {plan['trials_at_once']} trials (by RAM {limits['ram']:,} of "
+        f"{node['ram_bytes'] / 1e9:,.1f} GB; by CPUs {limits['cpus']} of {node['cpus']}"
+        + (f"; by GPUs {limits['gpus']} of {node['gpus']}" if "gpus" in limits else "")
+        + ")"
+    )
+    if plan["hours"] is None:
+        lines.append(f"  time: no estimate: pass --frames-per-second (one trial's, measured: {THROUGHPUT_ROWS})")
+    else:
+        lines.append(
+            f"  time (estimate): {plan['hours']:,.1f} h at {plan['frames_per_second']:g} frames/s per trial "
+            f"(--frames-per-second), {plan['trials_at_once']} at once"
+        )
+    return lines
+
+
+if __name__ == "__main__":
+    sys.exit(main())
