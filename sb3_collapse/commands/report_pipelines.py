@@ -150,7 +150,7 @@ def build_report(
     tasks: Sequence[str] | None = None,
     variants: Sequence[str] | None = None,
     progress: bool = True,
-    collapse_settings: collapse_figure.FixedInputSettings | None = None,
+    collapse_settings: FixedInputSettings | None = None,
 ) -> Report:
     """
     Read a sweep and compute everything the report shows, without writing.
@@ -162,13 +162,13 @@ def build_report(
     :param tasks: only these tasks (``None``: all)
     :param variants: only these variants (``None``: all)
     :param progress: show the progress of the long stages
-    :param collapse_settings: Figures 4, 8, 9 (:class:`collapse_figure.FixedInputSettings` defaults when ``None``)
+    :param collapse_settings: Figures 4, 8, 9 (:class:`FixedInputSettings` defaults when ``None``)
     :return: the report (``files`` empty)
     :raises InputError: on a bad folder or setting, or a sweep none of whose trials can be read
     """
     settings = settings or stats.ReportSettings()
     settings.validate()
-    collapse_settings = collapse_settings or collapse_figure.FixedInputSettings()
+    collapse_settings = collapse_settings or FixedInputSettings()
     collapse_settings.validate()
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
     rows = stats.summarize(sweep, settings)
@@ -198,7 +198,7 @@ def build_report(
 def collapse_figures(
     report: Report,
     settings: stats.ReportSettings,
-    collapse_settings: collapse_figure.FixedInputSettings,
+    collapse_settings: FixedInputSettings,
     progress: bool = False,
 ) -> None:
     """Fill the report's ``collapse*`` fields (Figures 4, 8, 9) per task and variant that is not a transplant cell:
@@ -239,7 +239,7 @@ def collapse_figures(
             bar = on_terminal(progress)  # elsewhere one line, no bar frames
             if progress and not bar:
                 print(f"fixed-set metrics: {task} / {variant}", file=sys.stderr, flush=True)
-            rows, computed = collapse_figure.fixed_agent_rows(picks, inputs, collapse_settings, bar)
+            rows, computed = fixed_agent_rows(picks, inputs, collapse_settings, bar)
             report.collapse[key], report.collapse_inputs[key], report.collapse_fixed[key] = rows, inputs, computed
 
 
@@ -272,7 +272,7 @@ def write_report(
     variants: Sequence[str] | None = None,
     progress: bool = True,
     overwrite: bool = False,
-    collapse_settings: collapse_figure.FixedInputSettings | None = None,
+    collapse_settings: FixedInputSettings | None = None,
 ) -> Report:
     """
     The report of a sweep folder (:func:`build_report`, whose parameters it shares), written to ``out``: staged,
@@ -285,7 +285,7 @@ def write_report(
     :raises InputError: on a bad folder or setting; nothing is written then
     """
     settings = settings or stats.ReportSettings()
-    layers = (collapse_settings or collapse_figure.FixedInputSettings()).layers
+    layers = (collapse_settings or FixedInputSettings()).layers
     out_dir = Path(sweep_dir) / REPORT_FOLDER if out is None else Path(out)
     staged_outputs = StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, overwrite=overwrite, error=InputError)
     report = build_report(

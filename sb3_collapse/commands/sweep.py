@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 from sb3_collapse.commands.cli import (
     CommandLine,
+    add_setting_arguments,
+    check_arguments,
     cli_message,
     prog_name,
     report_unwritable_outputs,
+    setting_flags,
     training_arguments,
     training_settings,
 )
@@ -23,13 +28,11 @@ from sb3_collapse.errors import (
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, SWEEP_LOCK
 from sb3_collapse.run.checkpoints import checkpoint_frames
-from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.config import RUN, TrainConfig, declared, setting
 from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_folder_owner, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
-    DONOR_PARTS,
-    DONOR_SOURCES,
     check_distinct_donors,
     donors_record,
     pick_donors,
@@ -48,7 +51,6 @@ from sb3_collapse.sweep.trials import (
     GRID_VARIANTS,
     VARIANT_FORMS,
     Trial,
-    donor_key,
     expand_trials,
     parse_checkpoint_specs,
     transplant_of,
@@ -60,8 +62,82 @@ DEFAULT_VARIANTS = ("drqv2", "drqv2+reset")
 THROUGHPUT_ROWS = "benchmarks/README.md#train-throughput-gpu (cuda), #train-throughput-cpu (cpu)"
 
 
+@declared
+@dataclass
+class SweepFlags:
+    """The sweep's own flags (beside every training flag of train), declared once: parser, help and range checks."""
+
+    tasks: tuple[str, ...] | None = setting(cli=RUN, nargs="+", required=True)
+    """dm_control tasks: walker-walk hopper-stand ..."""
+    seeds: int | None = setting(cli=RUN, minimum=1)
+    """number of seeds: N runs seeds 0 .. N-1"""
+    seed_list: tuple[int, ...] | None = setting(cli=RUN, nargs="+")
+    """explicit seeds, e.g. 3 7"""
+    variants: tuple[str, ...] | None = setting(
+        cli=RUN,
+        nargs="+",
+        help=f"{VARIANT_FORMS} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations; "
+        f"docs/interventions.md); default: {' '.join(DEFAULT_VARIANTS)} (only the grid with --transplant-grid)",
+    )
+    transplant_grid: bool = setting(False, cli=RUN)
+    """add the 9 cells of the CNN x MLP transplant grid"""
+    out: str | None = setting(cli=RUN, required=True)
+    """the sweep folder (with --address: on storage every node sees)"""
+    address: str | None = setting(cli=RUN)
+    """Ray cluster to run on ('auto', 'ray://head:10001', 'head:6379'); default: a new local Ray instance.
+    sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees"""
+    connect_timeout_s: float = setting(CONNECT_TIMEOUT_S, cli=RUN, flag="--connect-timeout", metavar="SECONDS")
+    """with --address: give up, writing nothing, when the cluster does not answer within this time (exit status 1)"""
+    cpus_per_trial: float = setting(1, cli=RUN)
+    """CPUs per trial; also its torch threads"""
+    gpus_per_trial: float = setting(0, cli=RUN)
+    """GPUs Ray reserves per trial, fractions allowed (0.25: 4 trials per GPU); > 0 trains on cuda, 0 on cpu"""
+    allow_changed_settings: bool = setting(False, cli=RUN)
+    """run even if --out holds a sweep with other training settings (finished trials keep theirs)"""
+    dry_run: bool = setting(False, cli=RUN)
+    """list the trials and their status, then the plan (what the trials to train take: frames, updates, RAM, disk,
+    time; docs/sweeps.md), run nothing"""
+    list_limit: int | None = setting(cli=RUN, flag="--list", metavar="N", minimum=0)
+    """with --dry-run: list only the first N trials (0: the counts and the plan only; default: all)"""
+    frames_per_second: float | None = setting(cli=RUN, metavar="FPS", above=0)
+    """one trial's training frames/s, measured on this device (benchmarks/README.md#train-throughput-gpu (cuda),
+    #train-throughput-cpu (cpu)): the plan's time estimate; none without it"""
+    progress_bar: bool = setting(True, cli=RUN)
+    """show the progress bar"""
+
+
+@declared
+@dataclass
+class DonorFlags:
+    """transplant donors (Study 2: the CNN and the MLP of a source from two different agents; docs/sweeps.md)"""
+
+    good_cnn: tuple[str, ...] | None = setting(cli=RUN, nargs="+", metavar="[TASK=]PATH")
+    """DrQv2 checkpoint(s) of the well performing agent that gives the good CNN: PATH for every task, TASK=PATH per
+    task"""
+    good_mlp: tuple[str, ...] | None = setting(cli=RUN, nargs="+", metavar="[TASK=]PATH")
+    """DrQv2 checkpoint(s) of the well performing agent that gives the good MLP: PATH for every task, TASK=PATH per
+    task"""
+    bad_cnn: tuple[str, ...] | None = setting(cli=RUN, nargs="+", metavar="[TASK=]PATH")
+    """DrQv2 checkpoint(s) of the poorly performing agent that gives the bad CNN: PATH for every task, TASK=PATH per
+    task"""
+    bad_mlp: tuple[str, ...] | None = setting(cli=RUN, nargs="+", metavar="[TASK=]PATH")
+    """DrQv2 checkpoint(s) of the poorly performing agent that gives the bad MLP: PATH for every task, TASK=PATH per
+    task"""
+    donors_from: str | None = setting(
+        cli=RUN,
+        metavar="SWEEP",
+        help="pick the donors at random from this finished sweep instead: per task, two different seeds with a final "
+        f"return >= {PAPER.success_return:g} (good CNN, good MLP) and two < {PAPER.failure_return:g} (bad ones)",
+    )
+    donor_variant: str = setting("drqv2", cli=RUN)
+    """the variant of `donors_from` giving parts"""
+    donor_seed: int = setting(0, cli=RUN)
+    """seed of the pick of `donors_from`"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags and every training flag of train."""
+    """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags (:class:`SweepFlags`,
+    :class:`DonorFlags`) and every training flag of train."""
     p = CommandLine(
         prog=prog_name("sb3_collapse.sweep"),
         description="Run every (task, variant, seed) as an independent trial on Ray (DrQ-v2, or the TD3/SAC "
@@ -71,75 +147,12 @@ def build_parser() -> argparse.ArgumentParser:
         "skipped, unfinished ones resume from their newest checkpoint. Frames = agent steps x action repeat.",
         parents=[training_arguments()],
     )
-    g = p.add_argument_group("sweep")
-    g.add_argument("--tasks", nargs="+", required=True, help="dm_control tasks: walker-walk hopper-stand ...")
-    seeds = g.add_mutually_exclusive_group(required=True)
-    seeds.add_argument("--seeds", type=int, help="number of seeds: N runs seeds 0 .. N-1")
-    seeds.add_argument("--seed-list", type=int, nargs="+", help="explicit seeds, e.g. 3 7")
-    g.add_argument(
-        "--variants",
-        nargs="+",
-        help=f"{VARIANT_FORMS} (td3, sac: SB3's, from the same pixels; drqv2-leaky: Leaky-ReLU activations; "
-        f"docs/interventions.md); default: {' '.join(DEFAULT_VARIANTS)} (only the grid with --transplant-grid)",
-    )
-    g.add_argument("--transplant-grid", action="store_true", help="add the 9 cells of the CNN x MLP transplant grid")
-    donors = p.add_argument_group(
-        "transplant donors (Study 2: the CNN and the MLP of a source from two different agents; docs/sweeps.md)"
-    )
-    for source in DONOR_SOURCES:
-        for part in DONOR_PARTS:
-            donors.add_argument(
-                f"--{source}-{part}", dest=donor_key(source, part), nargs="+", metavar="[TASK=]PATH",
-                help=f"DrQv2 checkpoint(s) of the {'well' if source == 'good' else 'poorly'} performing agent that "
-                f"gives the {source} {part.upper()}: PATH for every task, TASK=PATH per task",
-            )  # fmt: skip
-    donors.add_argument(
-        "--donors-from",
-        metavar="SWEEP",
-        help="pick the donors at random from this finished sweep instead: per task, two different seeds with a final "
-        f"return >= {PAPER.success_return:g} (good CNN, good MLP) and two < {PAPER.failure_return:g} (bad ones)",
-    )
-    donors.add_argument(
-        "--donor-variant", default="drqv2", help="the variant of --donors-from giving parts (default: %(default)s)"
-    )
-    donors.add_argument(
-        "--donor-seed", type=int, default=0, help="seed of the pick of --donors-from (default: %(default)s)"
-    )
-    g.add_argument("--out", required=True, help="the sweep folder (with --address: on storage every node sees)")
-    g.add_argument(
-        "--address",
-        help="Ray cluster to run on ('auto', 'ray://head:10001', 'head:6379'); default: a new local Ray instance. "
-        "sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees",
-    )
-    g.add_argument(
-        "--connect-timeout", dest="connect_timeout_s", type=float, default=CONNECT_TIMEOUT_S, metavar="SECONDS",
-        help="with --address: give up, writing nothing, when the cluster does not answer within this time "
-        "(exit status 1; default: %(default)g)",
-    )  # fmt: skip
-    g.add_argument(
-        "--cpus-per-trial", type=float, default=1, help="CPUs per trial; also its torch threads (default: %(default)s)"
-    )
-    g.add_argument(
-        "--gpus-per-trial", type=float, default=0, help="GPUs Ray reserves per trial, fractions allowed (0.25: 4 "
-        "trials per GPU); > 0 trains on cuda, 0 on cpu (default: %(default)s)",
-    )  # fmt: skip
-    g.add_argument(
-        "--allow-changed-settings", action="store_true", help="run even if --out holds a sweep with other training "
-        "settings (finished trials keep theirs)",
-    )  # fmt: skip
-    g.add_argument(
-        "--dry-run", action="store_true", help="list the trials and their status, then the plan (what the trials to "
-        "train take: frames, updates, RAM, disk, time; docs/sweeps.md), run nothing",
-    )  # fmt: skip
-    g.add_argument(
-        "--list", dest="list_limit", type=int, metavar="N", help="with --dry-run: list only the first N trials "
-        "(0: the counts and the plan only; default: all)",
-    )  # fmt: skip
-    g.add_argument(
-        "--frames-per-second", type=float, metavar="FPS", help="one trial's training frames/s, measured on this "
-        f"device ({THROUGHPUT_ROWS}): the plan's time estimate; none without it",
-    )  # fmt: skip
-    g.add_argument("--no-progress-bar", dest="progress_bar", action="store_false", help="hide the progress bar")
+    g, first = p.add_argument_group("sweep"), ["tasks", "seeds", "seed_list", "variants", "transplant_grid"]
+    add_setting_arguments(g, first[:1], SweepFlags)
+    add_setting_arguments(g.add_mutually_exclusive_group(required=True), first[1:3], SweepFlags)
+    add_setting_arguments(g, first[3:], SweepFlags)
+    add_setting_arguments(p.add_argument_group(inspect.getdoc(DonorFlags)), declaration=DonorFlags)
+    add_setting_arguments(g, [name for name in setting_flags(SweepFlags) if name not in first], SweepFlags)
     return p
 
 
@@ -153,17 +166,12 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    check_arguments(parser, args, SweepFlags, DonorFlags)
     training = training_settings(args)
-    if args.seeds is not None and args.seeds < 1:
-        parser.error(f"--seeds must be >= 1, got {args.seeds}.")
     seeds = range(args.seeds) if args.seeds is not None else args.seed_list
     variants = list(args.variants or ([] if args.transplant_grid else DEFAULT_VARIANTS))
     if args.transplant_grid:
         variants += GRID_VARIANTS
-    if args.list_limit is not None and args.list_limit < 0:
-        parser.error(f"--list must be >= 0, got {args.list_limit}.")
-    if args.frames_per_second is not None and not 0 < args.frames_per_second < float("inf"):
-        parser.error(f"--frames-per-second must be a number > 0, got {args.frames_per_second}.")
     try:
         trials = expand_trials(args.tasks, variants, seeds)
         checkpoints, donors = transplant_checkpoints(args, trials)

@@ -7,6 +7,7 @@ import ast
 import dataclasses
 import inspect
 import itertools
+import math
 import operator
 import textwrap
 import types
@@ -334,6 +335,8 @@ def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str
             return f"must be {'an integer' if integer else 'a number'} {sign} {metadata[key]}{zero}, got {value!r}."
         if not holds(value, metadata[key]):
             return f"must be {sign} {metadata[key]}{zero}, got {value}."
+        if not math.isfinite(value):  # a bounded setting is a finite number: inf passes a lower bound
+            return f"must be a finite number {sign} {metadata[key]}{zero}, got {value}."
     return None
 
 
