@@ -91,5 +91,3 @@ def unwritable_message(error: BaseException) -> str | None:
     if error.errno in FULL_DISK_ERRNOS:
         return f"could not write {where} ({reason}): free space, then run the same command again."
     return f"cannot write {where} ({reason}): choose a folder you can write to, or make this one writable."
-
-

@@ -1,8 +1,6 @@
 """``python -m sb3_collapse.train``: :mod:`sb3_collapse.commands.train` (docs/training.md)."""
 
-import sys
-
 from sb3_collapse.commands.train import main
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

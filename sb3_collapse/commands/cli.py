@@ -124,6 +124,12 @@ def check_arguments(parser: argparse.ArgumentParser, parsed: argparse.Namespace,
                     parser.error(f"{flags[field.name]} {problem}")
 
 
+def parsed_values(parsed: argparse.Namespace, declaration: type, *skip: str) -> dict[str, Any]:
+    """:return: the ``parsed`` values of ``declaration``'s settings with a flag (lists as tuples), but ``skip``"""
+    values = {name: getattr(parsed, name) for name in setting_flags(declaration) if name not in skip}
+    return {name: tuple(value) if isinstance(value, list) else value for name, value in values.items()}
+
+
 class CommandLine(argparse.ArgumentParser):
     """An ``argparse`` parser whose errors are a pointer to ``--help`` then one line, ``<prog>: error: ...``, without
     the usage (exit status 2); its sub-commands' parsers are too."""

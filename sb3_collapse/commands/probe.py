@@ -4,7 +4,6 @@ docs/probe.md."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import inspect
 import signal
 import sys
@@ -16,6 +15,7 @@ from sb3_collapse.commands.cli import (
     add_setting_arguments,
     check_arguments,
     cli_message,
+    parsed_values,
     prog_name,
     report_unwritable_outputs,
 )
@@ -169,20 +169,6 @@ table in ``docs/probe.md`` are generated from them); the first one's docstring i
 RECORDING_TITLE = "recording (settings left out come from the checkpoint, else make_dmc_env's)"
 
 
-def _values(args: argparse.Namespace, declaration: type, *skip: str) -> dict[str, Any]:
-    """The parsed values of ``declaration``'s fields (lists as tuples), but ``skip``."""
-    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(declaration) if f.name not in skip}
-    return {name: tuple(value) if isinstance(value, list) else value for name, value in values.items()}
-
-
-def _settings(args: argparse.Namespace) -> ProbeSettings:
-    return ProbeSettings(**_values(args, ProbeSettings))
-
-
-def _record_options(args: argparse.Namespace) -> RecordOptions:
-    return RecordOptions(**_values(args, RecordOptions))
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command line: sub-commands ``run`` (the default), ``sweep``, ``film`` and ``record``, their flags
     generated from :data:`COMMANDS`."""
@@ -257,24 +243,20 @@ def _interrupt(signum: int, _frame: Any) -> None:
 
 def _run(args: argparse.Namespace, command: list[str]) -> None:
     """Run the sub-command of ``args`` (``command``: the command line, recorded in the summary)."""
+    record = RecordOptions(**parsed_values(args, RecordOptions)) if RecordOptions in COMMANDS[args.command] else None
     if args.command == "record":
-        record_to_file(args.checkpoint, args.out, _record_options(args), args.overwrite, args.device, args.progress)
+        record_to_file(args.checkpoint, args.out, record, args.overwrite, args.device, args.progress)
     elif args.command == "film":
-        film_to_folder(args.checkpoints, **_values(args, FilmFlags, "checkpoints"))
+        film_to_folder(args.checkpoints, **parsed_values(args, FilmFlags, "checkpoints"))
     elif args.command == "health":
-        health = HealthSettings(**_values(args, HealthSettings))
-        health_to_folder(
-            args.checkpoints, args.out, health, args.rollouts, _record_options(args), args.overwrite, command
-        )
+        health = HealthSettings(**parsed_values(args, HealthSettings))
+        health_to_folder(args.checkpoints, args.out, health, args.rollouts, record, args.overwrite, command)
     else:
-        probe = dict(settings=_settings(args), record_options=_record_options(args), command=command)
+        probe = dict(settings=ProbeSettings(**parsed_values(args, ProbeSettings)), record_options=record)
+        probe["command"] = command
         if args.command == "sweep":
             probe_sweep(
-                args.sweep, rollouts_path=args.rollouts, **probe, **_values(args, SweepFlags, "sweep", "rollouts")
+                args.sweep, rollouts_path=args.rollouts, **probe, **parsed_values(args, SweepFlags, "sweep", "rollouts")
             )
         else:
             probe_to_folder(args.checkpoints, args.out, rollouts_path=args.rollouts, overwrite=args.overwrite, **probe)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

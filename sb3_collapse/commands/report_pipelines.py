@@ -64,45 +64,43 @@ from sb3_collapse.report.pipeline import (
 )
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
+from sb3_collapse.run.config import RUN, check_declared, declared, setting
 from sb3_collapse.runfolder import read_json
 from sb3_collapse.staged_outputs import StagedOutputs
 
 
+@declared
 @dataclass
 class FixedInputSettings:
-    """
-    How Figures 4, 8, 9 pick their agents and compute on the fixed observation set.
+    """How Figures 4, 8, 9 pick their agents and compute on the fixed observation set, each setting declared once
+    (the report's flags and range checks are generated from them); ``rollouts_variant=None``: each variant on its own
+    variant's rollouts, ``fixed_samples`` ``None`` or 0: every observation."""
 
-    :param pick_seed: seed of the random pick of the three agents
-    :param failure_return: a final return below it is poorly performing
-    :param rollouts: the rollouts file of the observations, for the tasks it was recorded on
-    :param rollouts_variant: the variant whose ``probe sweep`` rollouts are every variant's fixed set (``None``: each
-        variant's own)
-    :param fixed_samples: observations drawn from the rollouts (``None``: all)
-    :param sample_seed: seed of that draw
-    :param device: where the checkpoints run
-    :param batch_size: observations per forward pass
-    :param layers: the layers measured and drawn
-    """
-
-    pick_seed: int = 0
-    failure_return: float = PAPER.failure_return
-    rollouts: str | Path | None = None
-    rollouts_variant: str | None = BASELINE_VARIANT
-    fixed_samples: int | None = FIXED_SAMPLES
-    sample_seed: int = 0
-    device: str = "auto"
-    batch_size: int = 256
-    layers: tuple[str, ...] = FIGURE4_LAYERS
+    pick_seed: int = setting(0, cli=RUN)
+    """Figures 4, 8, 9: seed of the random pick of one agent per class"""
+    failure_return: float = setting(PAPER.failure_return, cli=RUN)
+    """Figures 4, 8, 9: a seed is poorly performing when its final return is < this, well-performing when >= the
+    success return, middle in between"""
+    rollouts: str | Path | None = setting(cli=RUN)  # noqa: RUF009  (a declaration, as every field here)
+    """Figures 4, 8, 9: rollouts file whose observations every snapshot of the picked agents is run on; default: the
+    rollouts of `rollouts_variant`"""
+    rollouts_variant: str | None = setting(BASELINE_VARIANT, cli=RUN)
+    """Figures 4, 8, 9: every variant of a task is run on the rollouts that python -m sb3_collapse.probe sweep recorded
+    from this variant's best well-performing seed, <sweep>/probe/<task>_<variant>/rollouts.npz"""
+    fixed_samples: int | None = setting(FIXED_SAMPLES, cli=RUN, unit="observations", minimum=2, zero_means="all")
+    """Figures 4, 8, 9: observations drawn from the rollouts (seeded)"""
+    sample_seed: int = setting(0, cli=None)
+    """seed of the draw of `fixed_samples`"""
+    device: str = setting("auto", cli=RUN)
+    """Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda"""
+    batch_size: int = setting(256, cli=None, minimum=1)
+    """observations per forward pass"""
+    layers: tuple[str, ...] = setting(FIGURE4_LAYERS, cli=None)
+    """the layers measured and drawn"""
 
     def validate(self) -> None:
-        """:raises InputError: on a setting out of range, or a rollouts file that does not exist"""
-        if self.fixed_samples is not None and self.fixed_samples < 2:
-            raise InputError(
-                f"fixed_samples must be >= 2 observations, got {self.fixed_samples}.", parameter="fixed_samples"
-            )
-        if self.batch_size < 1:
-            raise InputError(f"batch_size must be >= 1, got {self.batch_size}.", parameter="batch_size")
+        """:raises InputError: on a setting out of its declared range, or a rollouts file that does not exist"""
+        check_declared(self)
         if self.rollouts is not None and not Path(self.rollouts).is_file():
             raise InputError(
                 f"rollouts {self.rollouts} is not a file; give the rollouts.npz of python -m sb3_collapse.probe sweep "
@@ -114,7 +112,7 @@ class FixedInputSettings:
     def load(self, path: str | Path) -> FixedInputs:
         """:return: the fixed set of the rollouts file ``path`` (InputError: not a rollouts file)"""
         try:
-            return load_fixed_inputs(path, self.fixed_samples, self.sample_seed)
+            return load_fixed_inputs(path, self.fixed_samples or None, self.sample_seed)
         except InputError as error:
             raise InputError(str(error), parameter="rollouts") from error
 

@@ -389,7 +389,3 @@ def plan_lines(plan: dict) -> list[str]:
             f"(--frames-per-second), {plan['trials_at_once']} at once"
         )
     return lines
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -67,7 +67,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"Stopped by {error.signal_name} after the checkpoint {error.checkpoint}: {resume}.", file=sys.stderr)
         return EXIT_INTERRUPTED
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,8 +1,6 @@
 """``python -m sb3_collapse.probe``: :mod:`sb3_collapse.commands.probe` (docs/probe.md)."""
 
-import sys
-
 from sb3_collapse.commands.probe import main
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

@@ -14,43 +14,45 @@ import numpy as np
 
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV
 from sb3_collapse.report.loading import Sweep, Trial
+from sb3_collapse.run.config import RUN, check_declared, declared, setting
 
 TRANSPLANT_SOURCES = ("blank", "good", "bad")
 """Where a transplanted CNN or MLP comes from (Figure 3(a)'s rows and columns)."""
 TRANSPLANT_VARIANT = re.compile(r"^cnn-(blank|good|bad)_mlp-(blank|good|bad)$")
 
 
+@declared
 @dataclass
 class ReportSettings:
-    """
-    The definitions of the report's numbers (defaults: the paper's, :data:`sb3_collapse.paper.PAPER`).
+    """The definitions of the report's numbers (defaults: the paper's, :data:`sb3_collapse.paper.PAPER`), each
+    declared once: ``python -m sb3_collapse.report``'s flags and range checks are generated from them."""
 
-    :param collapse_tag: the collapse metric that decides "stuck" (the reset rule's)
-    :param collapse_threshold: stuck when the median of the last ``collapse_checks`` values is ``<=`` this
-    :param collapse_checks: number of last checks whose median is compared with the threshold
-    :param last_evals: the across-seed std is averaged over this many last frames of the aligned grid
-    :param success_return: a seed whose final return is ``>=`` this succeeds (transplant grid)
-    :param percentiles: the band of Figure 5, in percent
-    """
-
-    collapse_tag: str = PAPER.collapse_tag
-    collapse_threshold: float = PAPER.threshold
-    collapse_checks: int = PAPER.patience
-    last_evals: int = PAPER.last_evals
-    success_return: float = PAPER.success_return
-    percentiles: tuple[float, float] = PAPER.percentiles
+    collapse_tag: str = setting(
+        PAPER.collapse_tag, cli=RUN, help=f"{COLLAPSE_METRICS_CSV} tag that decides 'stuck in action collapse'"
+    )
+    collapse_threshold: float = setting(PAPER.threshold, cli=RUN)
+    """a seed is stuck when the median of its last `collapse_checks` values is <= this"""
+    collapse_checks: int = setting(PAPER.patience, cli=RUN, minimum=1)
+    """number of last collapse checks whose median is tested"""
+    last_evals: int = setting(PAPER.last_evals, cli=RUN, unit="evaluations", minimum=1)
+    """the across-seed std is averaged over this many last evaluations"""
+    success_return: float = setting(PAPER.success_return, cli=RUN)
+    """transplant grid: a seed succeeds when its final return is >= this"""
+    percentiles: tuple[float, float] = setting(
+        PAPER.percentiles, cli=RUN, unit="percent", nargs=2, metavar=("LOW", "HIGH"), minimum=0, maximum=100
+    )
+    """Figure 5's band"""
 
     def validate(self) -> None:
-        """:raises InputError: on a setting out of range (the message names it)"""
-        if self.collapse_checks < 1:
-            raise InputError(f"collapse_checks must be >= 1, got {self.collapse_checks}.")
-        if self.last_evals < 1:
-            raise InputError(f"last_evals must be >= 1 evaluation, got {self.last_evals}.")
+        """:raises InputError: on a setting out of its declared range (the message names it), a threshold that is not
+        finite or a band whose low end is not below its high end"""
+        check_declared(self)
         if not math.isfinite(self.collapse_threshold):
             raise InputError(f"collapse_threshold must be a finite number, got {self.collapse_threshold}.")
         low, high = self.percentiles
-        if not 0 <= low < high <= 100:
+        if not low < high:
             raise InputError(f"percentiles must satisfy 0 <= low < high <= 100, got {low} and {high}.")
 
 

@@ -323,7 +323,7 @@ def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str
     """:return: what is wrong with ``value`` (``None`` passes) against the ``choices`` and bounds of a ``field``
     declared with :func:`setting` (``"must be >= 1, got 0."``), ``None`` when nothing is"""
     metadata = field.metadata
-    if value is None:
+    if value is None or (metadata["zero_means"] and value == 0 and not isinstance(value, bool)):
         return None
     if metadata["choices"] is not None and value not in metadata["choices"]:
         return f"must be one of {', '.join(metadata['choices'])}, got {value!r}."
@@ -338,6 +338,16 @@ def declared_problem(field: dataclasses.Field, value: Any, integer: bool) -> str
         if not math.isfinite(value):  # a bounded setting is a finite number: inf passes a lower bound
             return f"must be a finite number {sign} {metadata[key]}{zero}, got {value}."
     return None
+
+
+def check_declared(settings: Any) -> None:
+    """:raises ParameterError: naming the first field of the dataclass ``settings`` declared with :func:`setting`
+    whose value (each value, for ``nargs``) is out of its declared choices or range"""
+    for field in dataclasses.fields(settings):
+        value = getattr(settings, field.name)
+        for item in value if field.metadata.get("nargs") is not None and value is not None else [value]:
+            if "help" in field.metadata and (problem := declared_problem(field, item, integer=False)) is not None:
+                raise ParameterError(field.name, f"{field.name} {problem}")
 
 
 def _check_drqv2_only(config: TrainConfig) -> None:

@@ -1,8 +1,6 @@
 """``python -m sb3_collapse.zoo {train,enjoy} ...``: :mod:`sb3_collapse.commands.zoo`."""
 
-import sys
-
 from sb3_collapse.commands.zoo import main
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

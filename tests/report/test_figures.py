@@ -189,11 +189,13 @@ def test_collapse_figure_flags(reported, tmp_path, capsys):
     for flags, named in (
         (["--rollouts", str(tmp_path / "missing.npz")], "--rollouts"),
         (["--rollouts", str(tmp_path / "text.npz")], "text.npz is not a rollouts file"),  # the probe's error
-        (["--fixed-samples", "1"], "--fixed-samples"),
         (["--failure-return", "950"], "--failure-return"),
     ):
         assert main([str(fake.path), "--out", str(tmp_path / "out"), "--no-progress", *flags]) == 2
         assert named in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_status:  # out of its declared range (0: all): refused before any work
+        main([str(fake.path), "--out", str(tmp_path / "out"), "--no-progress", "--fixed-samples", "1"])
+    assert exit_status.value.code == 2 and "--fixed-samples must be >= 2 (0: all), got 1." in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 
