@@ -23,12 +23,11 @@ from sb3_collapse.report.statistics import (
     transplant_sources,
 )
 from sb3_collapse.report.tables import markdown_table
+from sb3_collapse.run.variants import BASELINE_VARIANT, RULE_VARIANT, split_variant
 
 CONFIDENCE = 0.95
 """The confidence of every interval of the headline and of Proposition 1."""
 BOOTSTRAP_RESAMPLES = 2000
-BASELINE_VARIANT, RULE_VARIANT = "drqv2", "drqv2+reset"
-"""The variants of the paper's Figure 5: DrQ-v2, and DrQ-v2 plus the rule."""
 
 Interval = tuple[float, float]
 
@@ -218,9 +217,9 @@ def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Prop
     by_key = {(row.task, row.variant): row for row in rows}
     result = []
     for row in rows:
-        algorithm, plus, _ = row.variant.partition("+")
+        algorithm, suffix = split_variant(row.variant)
         base = by_key.get((row.task, algorithm))
-        if not plus or base is None or base.seeds == 0 or row.reset_rule_seeds == 0:
+        if suffix is None or base is None or base.seeds == 0 or row.reset_rule_seeds == 0:
             continue
         stuck = _stuck(base)
         windows, window_frames = rule_windows(sweep.select(row.task, row.variant))

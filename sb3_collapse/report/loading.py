@@ -14,6 +14,7 @@ from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
+from sb3_collapse.run.variants import BASELINE_VARIANT, RULE_VARIANT
 from sb3_collapse.runfolder import (
     DAMAGED_RESULT_WAY_OUT,
     NOT_A_RUN,
@@ -122,7 +123,7 @@ class Sweep:
 
 def variant_order(variants: Iterable[str]) -> list[str]:
     """:return: the variant names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted"""
-    first = {"drqv2": 0, "drqv2+reset": 1}
+    first = {BASELINE_VARIANT: 0, RULE_VARIANT: 1}
     return sorted(set(variants), key=lambda name: (first.get(name, 2), name))
 
 

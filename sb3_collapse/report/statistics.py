@@ -6,7 +6,6 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -15,10 +14,7 @@ import numpy as np
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.report.loading import Sweep, Trial
-
-TRANSPLANT_SOURCES = ("blank", "good", "bad")
-"""Where a transplanted CNN or MLP comes from (Figure 3(a)'s rows and columns)."""
-TRANSPLANT_VARIANT = re.compile(r"^cnn-(blank|good|bad)_mlp-(blank|good|bad)$")
+from sb3_collapse.run.variants import TRANSPLANT_SOURCES, transplant_sources
 
 
 @dataclass
@@ -185,12 +181,6 @@ def summarize(sweep: Sweep, settings: ReportSettings) -> list[VariantSummary]:
         for task in sweep.tasks()
         for variant in sweep.variants(task)
     ]
-
-
-def transplant_sources(variant: str) -> tuple[str, str] | None:
-    """:return: ``(cnn source, mlp source)`` of a ``cnn-<src>_mlp-<src>`` variant, else ``None``"""
-    match = TRANSPLANT_VARIANT.match(variant)
-    return (match.group(1), match.group(2)) if match else None
 
 
 @dataclass

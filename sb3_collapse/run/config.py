@@ -13,7 +13,7 @@ import types
 from dataclasses import dataclass
 from typing import Any
 
-from sb3_collapse.baselines import BASELINES, NATURE_CNN_MIN_SIZE
+from sb3_collapse.baselines import NATURE_CNN_MIN_SIZE
 from sb3_collapse.drqv2 import StddevSchedule
 from sb3_collapse.drqv2.checks import check_hyperparameters
 from sb3_collapse.drqv2.encoders import ACTIVATIONS, check_image_size
@@ -25,8 +25,7 @@ from sb3_collapse.monitoring import INTERVENTIONS, CollapseReset
 from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
 from sb3_collapse.protocol import SNAPSHOTS_DIR
-
-ALGORITHMS = ("drqv2", *BASELINES)  # what ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (baselines.py)
+from sb3_collapse.run.variants import ALGORITHMS, variant_name
 
 RESUME_FREE_SETTINGS = ("logdir", "run_name", "run_dir", "progress_bar", "verbose", "torch_threads", "device")
 RESUME_FREE_SETTINGS += ("checkpoint_every_frames", "sources")
@@ -302,10 +301,8 @@ class TrainConfig:
         """:attr:`variant`, or the name of the plain variant these settings run."""
         if self.variant is not None:
             return self.variant
-        base = self.algorithm + ("-leaky" if self.activation == "leaky_relu" else "")
-        if self.reset_rule:
-            return f"{base}+{self.intervention or 'reset'}"
-        return f"{base}+redo_periodic" if self.redo_every_updates > 0 else base
+        settings = (self.algorithm, self.activation, self.reset_rule, self.intervention, self.redo_every_updates)
+        return variant_name(*settings)
 
     def record(self) -> dict[str, Any]:
         """:return: the run's settings file: every setting (resolved), ``variant``, ``preset`` and ``sources``"""

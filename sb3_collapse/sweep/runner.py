@@ -40,6 +40,7 @@ from sb3_collapse.run.folder import settings_differences, tidy_finished_run
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
+from sb3_collapse.run.variants import BLANK_SOURCE, transplant_of, variant_settings
 from sb3_collapse.runfolder import (
     DAMAGED_RESULT_WAY_OUT,
     RESUMABLE,
@@ -49,14 +50,7 @@ from sb3_collapse.runfolder import (
     unreadable_result,
 )
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
-from sb3_collapse.sweep.trials import (
-    Trial,
-    donor_key,
-    transplant_of,
-    trial_config,
-    trial_dir,
-    variant_settings,
-)
+from sb3_collapse.sweep.trials import Trial, donor_key, trial_config, trial_dir
 
 
 def check_sweep(
@@ -97,7 +91,7 @@ def check_sweep(
         TrainConfig(**{**training, "env": task, **variant_settings(variant)}).validate()
     for trial in trials:
         for part, source in (transplant_of(trial.variant) or {}).items():
-            if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
+            if source != BLANK_SOURCE and trial.task not in checkpoints.get(donor_key(source, part), {}):
                 raise InputError(
                     f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-{part} "
                     f"PATH (or {trial.task}=PATH) for {trial.task}, or --donors-from a finished sweep."
