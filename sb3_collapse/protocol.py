@@ -61,12 +61,6 @@ def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Pa
     return Path(out) / task / variant / f"{SEED_FOLDER_PREFIX}{seed}"
 
 
-def read_settings(path: str | os.PathLike) -> dict[str, Any]:
-    """:return: a run's (:data:`CONFIG_JSON`) or a sweep's settings file (:data:`SWEEP_JSON`) at ``path``; :raises
-    OSError: when it cannot be read, ``ValueError`` when it is not JSON"""
-    return json.loads(Path(path).read_text())
-
-
 def snapshot_files(run_dir: str | os.PathLike) -> list[Path]:
     """:return: the snapshots of a run folder, in training order (another zip's name first)"""
 

@@ -107,8 +107,11 @@ def run_folder_owner(folder: str | os.PathLike, lock_file: str = LOCK_FILE) -> s
 
 
 def read_json(path: str | os.PathLike) -> dict[str, Any]:
-    """:return: the object of a JSON file
-    :raises InputError: naming the file, when it is not a readable JSON object"""
+    """The one reader of the run folder's JSON files: a run's or a sweep's settings (:data:`CONFIG_JSON`,
+    :data:`SWEEP_JSON`), a result, a checkpoint's file.
+
+    :return: the object of the JSON file ``path``
+    :raises InputError: naming the file, when it is not a readable JSON object (an ``OSError`` or bad JSON included)"""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:

@@ -10,8 +10,9 @@ from statistics import NormalDist
 
 import numpy as np
 
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
-from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON, read_settings
+from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON
 from sb3_collapse.report.loading import Sweep, Trial
 from sb3_collapse.report.statistics import (
     BandCurve,
@@ -24,6 +25,7 @@ from sb3_collapse.report.statistics import (
 )
 from sb3_collapse.report.tables import markdown_table
 from sb3_collapse.run.variants import BASELINE_VARIANT, RULE_VARIANT, split_variant
+from sb3_collapse.runfolder import read_json
 
 CONFIDENCE = 0.95
 """The confidence of every interval of the headline and of Proposition 1."""
@@ -202,8 +204,8 @@ def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
     found = set()
     for trial in trials:
         try:
-            config = read_settings(trial.path / CONFIG_JSON)
-        except (OSError, ValueError):
+            config = read_json(trial.path / CONFIG_JSON)
+        except InputError:
             continue
         frames, window = config.get("frames"), config.get("reset_window_frames") or PAPER.window_frames
         if isinstance(frames, int) and isinstance(window, int) and window > 0:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import os
 import shutil
 import signal
@@ -20,7 +19,6 @@ from sb3_collapse.common import progress
 from sb3_collapse.errors import FULL_DISK_ERRNOS, InputError, OutputError, TrainingInterrupted
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
-    CHECKPOINT_JSON,
     CHECKPOINTS_DIR,
     CONFIG_JSON,
     ERROR_TXT,
@@ -30,11 +28,10 @@ from sb3_collapse.protocol import (
     SWEEP_LOCK,
     SWEEP_STOP,
     blocking_file,
-    read_settings,
     write_json_atomically,
     write_text_atomically,
 )
-from sb3_collapse.run.checkpoints import CHECKPOINT_FORMAT, checkpoint_folders
+from sb3_collapse.run.checkpoints import CHECKPOINT_FORMAT, checkpoint_folders, read_checkpoint_info
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import settings_differences, tidy_finished_run
 from sb3_collapse.run.lock import RunLock
@@ -45,6 +42,7 @@ from sb3_collapse.runfolder import (
     DAMAGED_RESULT_WAY_OUT,
     RESUMABLE,
     RunStatus,
+    read_json,
     run_folder_owner,
     run_status,
     unreadable_result,
@@ -132,11 +130,9 @@ def other_version_checkpoint(folder: Path) -> str | None:
     refuses; ``None`` otherwise"""
     for checkpoint in checkpoint_folders(folder / CHECKPOINTS_DIR):
         try:
-            info = json.loads((checkpoint / CHECKPOINT_JSON).read_text())
-        except (OSError, ValueError):
+            info = read_checkpoint_info(checkpoint)
+        except InputError:
             continue  # damaged: train passes over it to the one before
-        if not isinstance(info, dict):
-            continue
         if (
             info.get("format", CHECKPOINT_FORMAT) == CHECKPOINT_FORMAT
             and info.get("version", __version__) == __version__
@@ -204,8 +200,8 @@ def run_trial(
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)
     if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
         try:
-            differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
-        except (OSError, ValueError):
+            differences = settings_differences(read_json(folder / CONFIG_JSON), config)
+        except InputError:
             differences = ["unreadable settings"]
         if differences:  # the sweep's settings changed (allowed): this attempt cannot continue
             shutil.rmtree(folder)
@@ -375,7 +371,7 @@ def prepare_sweep_folder(
     and that is not allowed), then, with ``write``, write there the tasks, variants, seeds and checkpoints of both.
     """
     path = Path(out) / SWEEP_JSON
-    previous: dict[str, Any] = read_settings(path) if path.is_file() else {}
+    previous: dict[str, Any] = read_json(path) if path.is_file() else {}
     changes = settings_changes(previous, settings) if path.is_file() else []
     if changes and not allow_changed_settings:
         raise InputError(
