@@ -279,12 +279,22 @@ def trial_folders(sweep: str | os.PathLike) -> list[tuple[str, str, int, Path]]:
     return sorted(found, key=lambda item: item[:3])
 
 
+def final_return_of(returns: np.ndarray) -> float | None:
+    """
+    The paper's final return of a run, the one its agent classes read: the mean return of the last scheduled
+    evaluation (not the saved final model's, which the result file holds).
+
+    :param returns: the mean return of each scheduled evaluation, in order (:func:`read_evaluations`)
+    :return: the last one, ``None`` without any
+    """
+    return float(returns[-1]) if len(returns) else None
+
+
 def final_return(folder: str | os.PathLike) -> float | None:
     """
     :param folder: a run folder
-    :return: the mean return of its last scheduled evaluation (the one the paper's agent classes read); ``None`` when
-        the run is not finished, its result file is of another version, or its evaluation file is missing, malformed
-        or empty
+    :return: its :func:`final_return_of`; ``None`` when the run is not finished, its result file is of another
+        version, or its evaluation file is missing, malformed or empty
     """
     result = read_result(folder)
     if result is None or run_status(folder, result=result) != RunStatus.FINISHED:
