@@ -304,4 +304,4 @@ def final_return(folder: str | os.PathLike) -> float | None:
         _, returns = read_evaluations(folder)
     except InputError:
         return None
-    return float(returns[-1]) if len(returns) else None
+    return final_return_of(returns)

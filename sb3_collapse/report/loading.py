@@ -20,6 +20,7 @@ from sb3_collapse.runfolder import (
     NOT_A_RUN,
     RunStatus,
     check_result_version,
+    final_return_of,
     read_collapse_metrics,
     read_evaluations,
     read_result,
@@ -67,8 +68,9 @@ class Trial:
 
     @property
     def final_return(self) -> float:
-        """The mean return of its last scheduled evaluation (nan unless finished): the paper's final return."""
-        return float(self.returns[-1]) if self.finished and len(self.returns) else float("nan")
+        """The paper's final return (:func:`~sb3_collapse.runfolder.final_return_of`; nan unless finished)."""
+        final = final_return_of(self.returns) if self.finished else None
+        return float("nan") if final is None else final
 
     @property
     def resets(self) -> int:
