@@ -37,6 +37,7 @@ SWEEP_JSON = "sweep.json"  # a sweep folder's settings
 SWEEP_LOCK = "sweep.lock"  # while a sweep runs into its folder: the lock's owner (pid, host)
 SWEEP_STOP = ".stop_requested"  # while a sweep's driver stops at a signal (its name): each trial checkpoints, stops
 SWEEP_PROBE_DIR = "probe/{task}_{variant}"  # in a sweep folder: ``probe sweep``'s outputs per task and variant
+PROBE_SUMMARY_JSON = "summary.json"  # written last into a probe's output folder: its summary (probe.summary_head)
 FIGURE2_PNG = "figure2.png"  # Figure 2 in :data:`SWEEP_PROBE_DIR`
 TABLES_1_6_CSV = "tables_1_6.csv"  # Tables 1-6 in :data:`SWEEP_PROBE_DIR`
 

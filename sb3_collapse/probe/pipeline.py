@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from stable_baselines3.common.utils import get_device
 
@@ -13,6 +16,26 @@ from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint, read_sav
 from sb3_collapse.probe.rollouts import ENV_SETTINGS, RecordOptions, Rollouts, record_rollouts, resolve_env_config
 
 ROLLOUTS_NAME = "rollouts.npz"
+
+
+def summary_head(command: Sequence[str] | None, settings: Any = None) -> dict[str, Any]:
+    """
+    The first keys of the summary that a probe's output folder gets last (:data:`~sb3_collapse.protocol.
+    PROBE_SUMMARY_JSON`, the health's file too).
+
+    :param command: the command line (``None`` from the library)
+    :param settings: the settings dataclass of the probe, if any
+    :return: ``complete`` (true: the summary is written last, so that one that exists marks its folder complete),
+        ``created`` (UTC, to the second), ``command`` and, given ``settings``, ``settings`` (tuples as JSON lists)
+    """
+    head: dict[str, Any] = {
+        "complete": True,
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "command": list(command) if command is not None else None,
+    }
+    if settings is not None:
+        head["settings"] = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(settings).items()}
+    return head
 
 
 def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True) -> Rollouts:

@@ -30,6 +30,7 @@ from sb3_collapse.probe.rollouts import REWARD_PREFIX, Rollouts
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
     FINAL_MODEL,
+    PROBE_SUMMARY_JSON,
     SNAPSHOTS_DIR,
     SWEEP_PROBE_DIR,
     TABLES_1_6_CSV,
@@ -230,7 +231,7 @@ def stage_tables_markdown(table_rows: Sequence[Mapping[str, Any]]) -> str:
 
 TABLES_MD = "tables_1_6.md"
 PROBE_CSV = "probe.csv"
-SUMMARY_JSON = "summary.json"
+SUMMARY_JSON = PROBE_SUMMARY_JSON
 OUTPUT_FILES = (FIGURE2_PNG, TABLES_1_6_CSV, TABLES_MD, PROBE_CSV, ROLLOUTS_NAME, SUMMARY_JSON)
 """Every file ``probe sweep`` writes (``summary.json`` last)."""
 

@@ -3,12 +3,10 @@ none)."""
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 from collections import defaultdict
 from collections.abc import Sequence
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +21,7 @@ from stable_baselines3.common.utils import get_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
-from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, check_checkpoint_files, record
+from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, check_checkpoint_files, record, summary_head
 from sb3_collapse.probe.probing import (
     MIN_EPISODES,
     CheckpointProbe,
@@ -34,13 +32,13 @@ from sb3_collapse.probe.probing import (
     split_by_episode,
 )
 from sb3_collapse.probe.rollouts import Rollouts
-from sb3_collapse.protocol import write_json_atomically
+from sb3_collapse.protocol import PROBE_SUMMARY_JSON, write_json_atomically
 from sb3_collapse.report.plots import panels
 from sb3_collapse.report.tables import write_csv
 from sb3_collapse.staged_outputs import StagedOutputs
 
 CSV_NAME = "probe.csv"
-SUMMARY_NAME = "summary.json"
+SUMMARY_NAME = PROBE_SUMMARY_JSON
 BY_LAYER_PLOT = "mse_by_layer.png"
 OVER_TRAINING_PLOT = "mse_over_training.png"
 OUTPUT_FILES = (CSV_NAME, SUMMARY_NAME, BY_LAYER_PLOT, OVER_TRAINING_PLOT)
@@ -307,10 +305,7 @@ def _summary(
     names, groups, _ = rollouts.targets()
     files = [CSV_NAME, BY_LAYER_PLOT] + ([OVER_TRAINING_PLOT] if over_training else []) + [SUMMARY_NAME]
     return {
-        "complete": True,
-        "created": datetime.now(UTC).isoformat(timespec="seconds"),
-        "command": list(command) if command is not None else None,
-        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
+        **summary_head(command, settings),
         "method": "OMP per (layer, component) on features standardized with train statistics (constant columns "
         "dropped) and standardized targets, no intercept; tau = argmin validation MSE over 1..max_tau; "
         "MSE in standardized units (columns *_mse) and in state units squared (*_mse_raw).",
