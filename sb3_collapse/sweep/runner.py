@@ -11,6 +11,7 @@ import threading
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -119,7 +120,19 @@ def _check_writable(folder: Path) -> None:
         raise OSError(error.errno, error.strerror, str(folder)) from None
 
 
-IN_USE = "in use"  # a trial whose folder another process holds (a train): left as it is, trained by a later rerun
+class Attempt(str, Enum):
+    """The status of one attempt at a trial: the word :func:`run_trial` returns it with and the driver reads."""
+
+    FINISHED = FINISHED  # the run finished (its result file says so)
+    FAILED = "failed"  # its error file says why
+    INTERRUPTED = "interrupted"  # stopped by a signal at its checkpoint, or not started while the sweep stopped
+    IN_USE = "in use"  # another process holds its folder (a train): left as it is, trained by a later rerun
+
+    def __str__(self) -> str:
+        return self.value
+
+
+IN_USE = Attempt.IN_USE  # sweep/__main__.py's name of it
 UNREADABLE_RESULT = f"an unreadable {RESULT_JSON}"  # a trial a rerun would not change: not run, failed...
 OTHER_VERSION = "a checkpoint of another version"  # ... and neither is this one
 
@@ -148,13 +161,13 @@ def other_version_checkpoint(folder: Path) -> str | None:
 def trial_left_as_is(folder: Path) -> tuple[str, str] | None:
     """
     :param folder: the folder of a trial that has not finished
-    :return: why a sweep leaves it as it is, ``None`` when it trains it: ``(IN_USE, owner)`` while another process
-        holds its lock (a rerun once that ends trains it), ``(UNREADABLE_RESULT, line)`` or ``(OTHER_VERSION, line)``
-        where a rerun would not change it (the line says the way out)
+    :return: why a sweep leaves it as it is, ``None`` when it trains it: ``(Attempt.IN_USE, owner)`` while another
+        process holds its lock (a rerun once that ends trains it), ``(UNREADABLE_RESULT, line)`` or
+        ``(OTHER_VERSION, line)`` where a rerun would not change it (the line says the way out)
     """
     owner = run_folder_owner(folder)
     if owner is not None:
-        return IN_USE, owner
+        return Attempt.IN_USE, owner
     if (reason := unreadable_result(folder)) is not None:
         return UNREADABLE_RESULT, reason
     if (reason := other_version_checkpoint(folder)) is not None:
@@ -186,17 +199,17 @@ def run_trial(
     Run one trial into its folder (an unfinished attempt resumes; with other settings it is deleted first); a failure
     goes to the trial's error file. The parameters are :func:`~sb3_collapse.sweep.trials.trial_config`'s.
 
-    :return: ``{"trial", "status": "finished" | "failed" | "interrupted" | "in use", "error": its line (the owner
+    :return: ``{"trial", "status": an :class:`Attempt`, "error": its line (the owner
         when in use) or None, "resumes"}``, ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or
         the driver; a folder another process holds is left as it is (``"in use"``), nothing written into it
     """
     stop_file = Path(out) / SWEEP_STOP
     if stop_file.exists():  # the driver is stopping: a trial that had not started stays as it is
-        return {"trial": str(trial), "status": "interrupted", "error": "not started: the sweep was stopping"}
+        return {"trial": str(trial), "status": Attempt.INTERRUPTED, "error": "not started: the sweep was stopping"}
     folder = trial_dir(out, trial)
     owner = run_folder_owner(folder)
     if owner is not None:  # another process trains into it (checked again by train's lock): nothing written there
-        return {"trial": str(trial), "status": IN_USE, "error": owner}
+        return {"trial": str(trial), "status": Attempt.IN_USE, "error": owner}
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)
     if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
         try:
@@ -210,16 +223,17 @@ def run_trial(
         with _stop_requests_watched(stop_file):
             result = train(config)
     except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
-        return {"trial": str(trial), "status": "interrupted", "error": str(error), "checkpoint": str(error.checkpoint)}
+        checkpoint = str(error.checkpoint)
+        return {"trial": str(trial), "status": Attempt.INTERRUPTED, "error": str(error), "checkpoint": checkpoint}
     except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary
         owner = run_folder_owner(folder) if isinstance(error, InputError) else None
         if owner is not None:  # taken since the check above (train's lock refused it): left as it is
-            return {"trial": str(trial), "status": IN_USE, "error": owner}
+            return {"trial": str(trial), "status": Attempt.IN_USE, "error": owner}
         error_line = f"{type(error).__name__}: {error}"
         if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
             error_line = write_error_file(folder, traceback.format_exc(), error_line)
-        return {"trial": str(trial), "status": "failed", "error": error_line, "retryable": retryable(error)}
-    return {"trial": str(trial), "status": FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
+        return {"trial": str(trial), "status": Attempt.FAILED, "error": error_line, "retryable": retryable(error)}
+    return {"trial": str(trial), "status": Attempt.FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
 
 
 @contextlib.contextmanager
@@ -443,7 +457,7 @@ def run_sweep(
             if run_status(folder) == RunStatus.FINISHED:
                 summary.skipped.append(trial)
                 tidy_finished_run(folder)  # a trial killed after its result file left its checkpoints behind
-            elif (left := trial_left_as_is(folder)) is not None and left[0] == IN_USE:
+            elif (left := trial_left_as_is(folder)) is not None and left[0] == Attempt.IN_USE:
                 summary.in_use[trial] = left[1]
             elif left is not None:  # not repaired: neither run nor retryable
                 summary.damaged[trial] = left[1]
@@ -518,17 +532,17 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
         line = f"{type(error).__name__}: {error}".splitlines()[0]
         # The first line reads on in the rerun's "The previous attempt failed: ...; resuming."
         text = f"failed: the Ray task of {trial} died\n{error}\n"
-        outcome = {"status": "failed", "error": write_error_file(trial_dir(out, trial), text, line)}
-    if outcome["status"] == FINISHED:
+        outcome = {"status": Attempt.FAILED, "error": write_error_file(trial_dir(out, trial), text, line)}
+    if outcome["status"] == Attempt.FINISHED:
         summary.finished.append(trial)
         if outcome.get("resumes"):
             summary.resumed.append(trial)
-    elif outcome["status"] == "interrupted":
+    elif outcome["status"] == Attempt.INTERRUPTED:
         checkpoint = outcome.get("checkpoint")
         summary.interrupted[trial] = Path(checkpoint) if checkpoint else None
         if checkpoint:
             bar.write(f"stopped {trial} at its checkpoint {checkpoint}")
-    elif outcome["status"] == IN_USE:
+    elif outcome["status"] == Attempt.IN_USE:
         summary.in_use[trial] = outcome["error"]
         bar.write(f"in use: {trial}: its folder is held by {outcome['error']}; left as it is")
     else:
