@@ -158,7 +158,7 @@ def save_checkpoint(
         for stale in directory.glob(".step_*.partial"):  # left by a process killed while writing (the run is locked)
             shutil.rmtree(stale)
         partial.mkdir()
-        if isinstance(model.replay_buffer, FrameStackReplayBuffer):
+        if isinstance(model.replay_buffer, FrameStackReplayBuffer):  # the chunks first, durable; the manifest in info
             replay: dict[str, Any] = {"store": store.save(model.replay_buffer)}
         else:  # another buffer class: pickled whole into the state
             replay, state = {"pickle": True}, {**state, "replay_buffer": model.replay_buffer}
@@ -177,7 +177,7 @@ def save_checkpoint(
             "files": {path.name: _digest(path) for path in files},
             "replay": replay,
         }
-        write_json_atomically(partial / CHECKPOINT_JSON, info)
+        write_json_atomically(partial / CHECKPOINT_JSON, info)  # manifest last: it lists only chunks on disk
         if final.exists():  # a stale one of an earlier process at this step (resumed from an older checkpoint)
             shutil.rmtree(final)
         os.replace(partial, final)
@@ -198,6 +198,7 @@ def save_checkpoint(
     for folder in kept:
         with contextlib.suppress(OSError, ValueError, KeyError):
             manifests.append(read_checkpoint_info(folder)["replay"].get("store"))
+    # After the new checkpoint is in place (manifest last), so that its chunks are among those kept.
     if len(manifests) == len(kept) and None not in manifests:  # else a manifest's chunks would go
         store.collect_garbage(manifests)
     return final
