@@ -16,7 +16,7 @@ import numpy as np
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import FINAL_MODEL
-from sb3_collapse.run.variants import BLANK_SOURCE, TRANSPLANT_SOURCES
+from sb3_collapse.run.variants import BASELINE_VARIANT, BLANK_SOURCE, TRANSPLANT_SOURCES
 from sb3_collapse.runfolder import final_return, trial_folders
 from sb3_collapse.sweep.trials import canonical_task, donor_key
 
@@ -43,7 +43,7 @@ class Donor:
 def donor_candidates(
     sweep: str | Path,
     task: str,
-    variant: str = "drqv2",
+    variant: str = BASELINE_VARIANT,
     success_return: float = PAPER.success_return,
     failure_return: float = PAPER.failure_return,
 ) -> dict[str, list[Donor]]:
@@ -75,7 +75,7 @@ def pick_donors(
     sweep: str | Path,
     task: str,
     seed: int = 0,
-    variant: str = "drqv2",
+    variant: str = BASELINE_VARIANT,
     sources: Sequence[str] = DONOR_SOURCES,
     success_return: float = PAPER.success_return,
     failure_return: float = PAPER.failure_return,
