@@ -32,12 +32,12 @@ def escape_step(
     One check of the rule's escape test, the one definition that :class:`CollapseReset` runs during training and the
     report runs over a run's logged checks (:func:`first_escape`). Section 5.2: "we choose to use the gradient norm of
     mlp1 to determine whether an agent suffers from action collapse", and "if we do not see a gradient norm larger
-    than 0.001 of consecutive five computations every 2e5 frames, the training would be reset; once we see that, the
-    training continues until the end".
+    than [``threshold``] of consecutive five computations every 2e5 frames, the training would be reset; once we see
+    that, the training continues until the end" (defaults: :data:`sb3_collapse.paper.PAPER`).
 
     :param streak: consecutive healthy checks before this one
     :param value: the check's value (``None``: no value, the streak is left as it is)
-    :param threshold: a value above it is healthy ("larger than 0.001")
+    :param threshold: a value above it is healthy ("a gradient norm larger than" it)
     :param patience: consecutive healthy checks that mean an escape ("consecutive five computations")
     :return: the streak after this check (one more when ``value > threshold``, else 0) and whether it reaches
         ``patience`` (an escape)

@@ -172,7 +172,7 @@ class TrainConfig:
     """what the reset rule does instead of the paper's reset from scratch (needs `reset_rule`; docs/interventions.md)"""
     reset_window_frames: int | None = setting(unit="frames")
     """the reset rule's window, in frames; default: Proposition 1's m, the frame at which `stddev_schedule` reaches
-    its final value (its duration x `action_repeat`: 200,000 for the easy tasks, 1,000,000 medium, 4,000,000 hard)"""
+    its final value (its duration x `action_repeat`: the paper's 2e5 for the easy tasks, 1e6 medium, 4e6 hard)"""
     activation: str = setting("relu", cli=RUN, choices=ACTIVATIONS)
     """hidden activation of DrQ-v2's networks: relu, or leaky_relu of slope 0.01 (the paper's footnote 1)"""
     redo_every_updates: int = setting(0, unit="updates", cli=RUN, minimum=0, zero_means="no ReDo")
