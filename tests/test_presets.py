@@ -80,9 +80,7 @@ def test_sweep_flag_overrides_every_task_and_is_recorded(tmp_path):
     record = configs["walker-walk"].record()
     assert record["sources"]["batch_size"] == "user" and record["sources"]["n_steps"] == "user"
     assert record["sources"]["learning_rate"] == "preset" and record["preset"] == {
-        "task": "walker-walk",
-        "tier": "easy",
-        "from_drqv2": True,
+        "task": "walker-walk", "tier": "easy", "from_drqv2": True
     }
     # Resuming the sweep folder with other settings is refused, naming the setting.
     previous = sweep_settings(trials, training, {}, {})
@@ -115,16 +113,8 @@ def test_the_rules_window_is_the_tasks_exploration_end(tmp_path):
 
 def test_train_records_values_and_sources(tmp_path):
     config = TrainConfig(
-        env="walker-walk",
-        frames=64,
-        action_repeat=8,
-        size=32,
-        hidden_dim=32,
-        eval_every_frames=0,
-        collapse_metrics_every_frames=0,
-        run_dir=str(tmp_path / "run"),
-        progress_bar=False,
-        torch_threads=1,
+        env="walker-walk", frames=64, action_repeat=8, size=32, hidden_dim=32, eval_every_frames=0,
+        collapse_metrics_every_frames=0, run_dir=str(tmp_path / "run"), progress_bar=False, torch_threads=1,
     )
     train(config)
     saved = json.loads((tmp_path / "run" / "config.json").read_text())

@@ -34,9 +34,7 @@ def test_train_end_to_end(tiny_walker_run, tmp_path_factory, tmp_path):
     assert summary["status"] == "finished" and summary["task"] == "walker-walk" and summary["variant"] == "drqv2"
     assert summary["seed"] == 0 and summary["frames"] == 800 and summary["agent_steps"] == 40
     assert summary["final_eval"] == {
-        "frame": 400,
-        "mean_reward": float(rows[-1]["mean_reward"]),
-        "std_reward": float(rows[-1]["std_reward"]),
+        "frame": 400, "mean_reward": float(rows[-1]["mean_reward"]), "std_reward": float(rows[-1]["std_reward"])
     }
     # The saved model's evaluation, at the budget's end, is labelled apart: not a row of eval.csv.
     final_model = summary["saved_model_eval"]
@@ -68,20 +66,9 @@ def test_train_end_to_end(tiny_walker_run, tmp_path_factory, tmp_path):
 
 def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
     config = TrainConfig(
-        env="walker-walk",
-        frames=800,
-        action_repeat=8,
-        seed_frames=160,
-        batch_size=8,
-        hidden_dim=32,
-        eval_every_frames=0,
-        logdir=str(tmp_path),
-        progress_bar=False,
-        collapse_metrics_every_frames=400,
-        collapse_metrics_batch=16,
-        reset_rule=True,
-        stddev_schedule="linear(1.0,0.1,50)",
-        replay_sampling="sb3",
+        env="walker-walk", frames=800, action_repeat=8, seed_frames=160, batch_size=8, hidden_dim=32,
+        eval_every_frames=0, logdir=str(tmp_path), progress_bar=False, collapse_metrics_every_frames=400,
+        collapse_metrics_batch=16, reset_rule=True, stddev_schedule="linear(1.0,0.1,50)", replay_sampling="sb3",
     )
     result = train(config)
     # The rule's window by default: the frame at which the std schedule ends, 50 agent steps x 8 frames.
@@ -117,19 +104,9 @@ def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
 def test_train_into_an_exact_run_dir(tmp_path):
     run_dir = tmp_path / "sweep" / "walker-walk" / "cnn-good_mlp-bad" / "seed_3"
     config = TrainConfig(
-        env="walker_walk",
-        frames=48,
-        action_repeat=8,
-        size=32,
-        seed=3,
-        seed_frames=400,
-        eval_every_frames=0,
-        collapse_metrics_every_frames=0,
-        run_dir=str(run_dir),
-        progress_bar=False,
-        torch_threads=1,
-        variant="cnn-good_mlp-bad",
-        transplant={"cnn": "good", "mlp": "bad"},
+        env="walker_walk", frames=48, action_repeat=8, size=32, seed=3, seed_frames=400, eval_every_frames=0,
+        collapse_metrics_every_frames=0, run_dir=str(run_dir), progress_bar=False, torch_threads=1,
+        variant="cnn-good_mlp-bad", transplant={"cnn": "good", "mlp": "bad"},
     )
     result = train(config)
     assert result.run_dir == run_dir and not (tmp_path / "runs").exists()
@@ -196,25 +173,10 @@ def test_bad_arguments_exit_with_a_message(argv, message, capsys):
 def test_train_sb3_sac_with_an_intervention(tmp_path):
     # 20 agent steps of 25 frames; the rule's window of 200 frames ends at frames 200 and 400.
     config = TrainConfig(
-        env="cartpole-balance",
-        algorithm="sac",
-        reset_rule=True,
-        intervention="shrink_perturb",
-        frames=500,
-        action_repeat=25,
-        size=48,
-        hidden_dim=32,
-        feature_dim=16,
-        batch_size=8,
-        seed_frames=100,
-        eval_every_frames=500,
-        eval_episodes=1,
-        collapse_metrics_every_frames=200,
-        collapse_metrics_batch=4,
-        reset_window_frames=200,
-        run_dir=str(tmp_path / "run"),
-        progress_bar=False,
-        torch_threads=1,
+        env="cartpole-balance", algorithm="sac", reset_rule=True, intervention="shrink_perturb", frames=500,
+        action_repeat=25, size=48, hidden_dim=32, feature_dim=16, batch_size=8, seed_frames=100, eval_every_frames=500,
+        eval_episodes=1, collapse_metrics_every_frames=200, collapse_metrics_batch=4, reset_window_frames=200,
+        run_dir=str(tmp_path / "run"), progress_bar=False, torch_threads=1,
     )
     assert config.variant_name == "sac+shrink_perturb"
     result = train(config)
