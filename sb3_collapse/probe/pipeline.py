@@ -8,12 +8,20 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import torch as th
 from stable_baselines3.common.utils import get_device
 
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.probe.checkpoints import Checkpoint, load_checkpoint, read_saved_data
-from sb3_collapse.probe.rollouts import ENV_SETTINGS, RecordOptions, Rollouts, record_rollouts, resolve_env_config
+from sb3_collapse.probe.rollouts import (
+    ENV_SETTINGS,
+    RecordOptions,
+    Rollouts,
+    pool_rollouts,
+    record_rollouts,
+    resolve_env_config,
+)
 
 ROLLOUTS_NAME = "rollouts.npz"
 
@@ -45,6 +53,35 @@ def record(checkpoint: Checkpoint, options: RecordOptions, progress: bool = True
     how = {key: getattr(options, key) for key in ("episodes", "seed", "deterministic", "noise_std", "max_steps")}
     metadata = {"checkpoint": str(checkpoint.path), "checkpoint_num_timesteps": checkpoint.num_timesteps}
     return record_rollouts(checkpoint.model, env_config, progress=progress, metadata=metadata, **how)
+
+
+def record_agents(
+    sources: Sequence[str | Path], options: RecordOptions, device: th.device, progress: bool = True
+) -> Rollouts:
+    """
+    Record rollouts of each agent in turn (its checkpoint loaded, recorded, freed) and pool them
+    (:func:`pool_rollouts`): agent ``rank`` records ``options.shares()[rank]`` episodes with seed ``options.seed +
+    rank`` (distinct initial states); one source records as :func:`record` does.
+
+    :param sources: the agents' checkpoints, ``options.pool_agents`` of them
+    :param options: what to record (``episodes`` in all)
+    :param device: where the networks run
+    :param progress: show a progress bar per agent
+    :return: the rollouts
+    :raises InputError: when the number of ``sources`` is not ``options.pool_agents``
+    """
+    if len(sources) != options.pool_agents:
+        raise InputError(
+            f"pool_agents={options.pool_agents} but {len(sources)} agent(s) to record from.", parameter="pool_agents"
+        )
+    parts = []
+    for rank, (source, episodes) in enumerate(zip(sources, options.shares())):
+        checkpoint = load_checkpoint(source, device=device)
+        parts.append(
+            record(checkpoint, dataclasses.replace(options, episodes=episodes, seed=options.seed + rank), progress)
+        )
+        del checkpoint
+    return parts[0] if len(parts) == 1 else pool_rollouts(parts)
 
 
 def record_to_file(

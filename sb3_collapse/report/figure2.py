@@ -25,7 +25,7 @@ from stable_baselines3.common.utils import get_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions
-from sb3_collapse.probe.probing import ProbeSettings, probe_each_checkpoint, probe_warnings, split_by_episode
+from sb3_collapse.probe.probing import ProbeSettings, agent_split, probe_each_checkpoint, probe_warnings
 from sb3_collapse.probe.rollouts import REWARD_PREFIX, Rollouts
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
@@ -268,7 +268,8 @@ def probe_sweep(
     :param variant: its variant folder
     :param out: the output folder (default ``<sweep>/probe/<task>_<variant>``)
     :param settings: the probe's settings
-    :param rollouts_path: rollouts to probe on (``None``: record them from the best well-performing seed)
+    :param rollouts_path: rollouts to probe on (``None``: record them from the best well-performing seed, or pool
+        those of the ``record_options.pool_agents`` best)
     :param record_options: how to record
     :param success_return: final return of a well-performing agent, at least
     :param failure_return: final return of a poorly performing agent, below
@@ -331,13 +332,14 @@ def _sweep_rollouts(
     settings: ProbeSettings,
     staged: StagedOutputs,
 ) -> tuple[Rollouts, str]:
-    """:return: the rollouts to probe on (``rollouts_path``, or recorded from the best agent's final model or last
-    checkpoint), and where they come from"""
+    """:return: the rollouts to probe on (``rollouts_path``, or recorded from the final model or last checkpoint of
+    the best agent, or of the ``record_options.pool_agents`` best, pooled), and where they come from"""
     if rollouts_path is not None:
         return Rollouts.load(rollouts_path), str(rollouts_path)
-    well = agents[0][0]
-    source = well.path / FINAL_MODEL if (well.path / FINAL_MODEL).exists() else files[well.seed][-1]
-    return record_rollouts(source, get_device(settings.device), record_options, settings, staged), str(source)
+    wells = [trial for trial, which in agents if which == ROWS[0]][: record_options.pool_agents]
+    sources = [t.path / FINAL_MODEL if (t.path / FINAL_MODEL).exists() else files[t.seed][-1] for t in wells]
+    rollouts = record_rollouts(sources, get_device(settings.device), record_options, settings, staged)
+    return rollouts, ", ".join(map(str, sources))
 
 
 def _probe_agents(
@@ -348,16 +350,24 @@ def _probe_agents(
     jobs: int,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """:return: the probe's rows of every checkpoint of every agent, with its agent, row and final return, and the
-    probe's warnings"""
-    split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
+    probe's warnings (of each distinct split, :func:`agent_split`)"""
+    splits = {trial.seed: agent_split(rollouts.episode_ids, settings, trial.seed) for trial, _ in agents}
     work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
     labels = [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work]
-    per_checkpoint = probe_each_checkpoint([path for _, _, path in work], labels, rollouts, split, settings, jobs)
+    paths, work_splits = [path for _, _, path in work], [splits[trial.seed] for trial, _, _ in work]
+    per_checkpoint = probe_each_checkpoint(paths, labels, rollouts, work_splits, settings, jobs)
     for (trial, which, _), result_rows in zip(work, per_checkpoint):
         for row in result_rows:
             row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=trial.final_return)
     rows = [row for result_rows in per_checkpoint for row in result_rows]
-    return rows, probe_warnings(rollouts, split, rows, settings)
+    if not settings.split_per_agent:  # one split for every agent
+        return rows, probe_warnings(rollouts, work_splits[0], rows, settings)
+    warnings: list[dict[str, Any]] = []
+    for seed, split in splits.items():  # each agent's split: the warnings of the rows probed on it, once each
+        for warning in probe_warnings(rollouts, split, [r for r in rows if r["agent"] == f"seed {seed}"], settings):
+            if warning not in warnings:
+                warnings.append(warning)
+    return rows, warnings
 
 
 def _sweep_agents(
@@ -410,7 +420,13 @@ def _sweep_agents(
                 "rollouts from: pass rollouts_path (python -m sb3_collapse.probe record GOOD.zip).",
                 parameter="rollouts_path",
             )
-        checked_record_options(record_options)
+        checked_record_options(record_options, pooled=True)
+        if record_options.pool_agents > len(well):
+            raise InputError(
+                f"pool_agents={record_options.pool_agents} but {task} / {variant} has {len(well)} well-performing "
+                f"trial(s) (final return >= {success_return:g}) to record from: pass at most {len(well)}.",
+                parameter="pool_agents",
+            )
     return sweep, agents, files
 
 

@@ -78,6 +78,11 @@ class Trial:
         return int(self.result["resets"]) if self.result is not None else 0
 
     @property
+    def reset_frames(self) -> list[int]:
+        """The result file's ``reset_frames``, the frames of the reset rule's interventions (empty without one)."""
+        return [int(frame) for frame in (self.result or {}).get("reset_frames") or ()]
+
+    @property
     def escaped(self) -> bool | None:
         """The result file's ``escaped``: ``None`` when the trial ran without the reset rule."""
         return None if self.result is None else self.result.get("escaped")

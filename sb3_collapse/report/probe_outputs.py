@@ -21,7 +21,13 @@ from stable_baselines3.common.utils import get_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
-from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, check_checkpoint_files, record, summary_head
+from sb3_collapse.probe.pipeline import (
+    ROLLOUTS_NAME,
+    RecordOptions,
+    check_checkpoint_files,
+    record_agents,
+    summary_head,
+)
 from sb3_collapse.probe.probing import (
     MIN_EPISODES,
     CheckpointProbe,
@@ -205,6 +211,9 @@ def probe_to_folder(
     """
     started = time.perf_counter()
     settings.validate()
+    if settings.split_per_agent:
+        message = "split_per_agent seeds each agent's split by its seed in a sweep (probe sweep); one split here."
+        raise InputError(message, parameter="split_per_agent")
     check_checkpoint_files(checkpoint_paths)
     labels = checkpoint_labels(list(checkpoint_paths))
     device = get_device(settings.device)
@@ -243,10 +252,11 @@ def probe_to_folder(
     return summary
 
 
-def checked_record_options(record_options: RecordOptions | None) -> RecordOptions:
-    """:return: ``record_options`` (``None``: the defaults), checked (InputError: naming the bad option)"""
+def checked_record_options(record_options: RecordOptions | None, pooled: bool = False) -> RecordOptions:
+    """:return: ``record_options`` (``None``: the defaults), checked (InputError: naming the bad option; ``pooled``:
+    the caller records from ``pool_agents`` agents)"""
     record_options = record_options or RecordOptions()
-    record_options.check()
+    record_options.check(pooled)
     if record_options.episodes < MIN_EPISODES:  # the split needs them
         raise InputError(
             f"episodes must be >= {MIN_EPISODES} to split them into training, validation and test episodes, "
@@ -257,12 +267,16 @@ def checked_record_options(record_options: RecordOptions | None) -> RecordOption
 
 
 def record_rollouts(
-    source: str | Path, device: th.device, record_options: RecordOptions, settings: ProbeSettings, staged: StagedOutputs
+    source: str | Path | Sequence[str | Path],
+    device: th.device,
+    record_options: RecordOptions,
+    settings: ProbeSettings,
+    staged: StagedOutputs,
 ) -> Rollouts:
-    """:return: the rollouts recorded by the checkpoint ``source``, saved into ``staged`` (moved in on success)"""
-    recorder = load_checkpoint(source, device=device)
-    rollouts = record(recorder, record_options, settings.progress)
-    del recorder
+    """:return: the rollouts recorded by the checkpoint ``source`` (or pooled from several: :func:`record_agents`),
+    saved into ``staged`` (moved in on success)"""
+    sources = [source] if isinstance(source, (str, Path)) else list(source)
+    rollouts = record_agents(sources, record_options, device, settings.progress)
     rollouts.save(staged.path(ROLLOUTS_NAME))
     return rollouts
 

@@ -141,7 +141,9 @@ def sweep_plan(
         :func:`trial_events` (``events``) per (task, variant), the disk the sweep holds at the end, the disk its
         pending trials write at most (``disk_needed_bytes``: their final models and snapshots, and the checkpoints
         of those at once; ``largest_trial_disk_bytes``: one trial's), this machine's RAM/CPUs/GPUs and the trials it
-        runs at once
+        runs at once,
+        and the reset rule's window of each (task, variant) that runs it (``reset_window_frames``: the task's
+        exploration end unless given)
     """
     frames = steps = updates = 0
     for trial, done in done_frames.items():
@@ -173,6 +175,7 @@ def sweep_plan(
         "trials_at_once": at_once, "limits": limits, "frames_per_second": frames_per_second, "hours": hours,
         "disk_needed_bytes": needed, "largest_trial_disk_bytes": max(map(_trial_disk, pending), default=0),
         "out_free_bytes": None if out is None else free_bytes(out),
+        "reset_window_frames": {_group(t): c.reset_window_frames for t, c in configs.items() if c.reset_rule},
     }  # fmt: skip
 
 
