@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from sb3_collapse.common.schedule import due_counts
+
 
 @dataclass(frozen=True)
 class PaperProtocol:
@@ -117,12 +119,7 @@ def evaluation_schedule(frames: int, every_frames: int, frames_per_step: int = 1
     """
     if every_frames <= 0 or frames_per_step <= 0:
         raise ValueError(f"every_frames and frames_per_step must be > 0, got {every_frames} and {frames_per_step}.")
-    schedule = []
-    for target in range(0, frames, every_frames):
-        frame = -(-target // frames_per_step) * frames_per_step
-        if frame < frames and (not schedule or frame > schedule[-1]):
-            schedule.append(frame)
-    return schedule
+    return due_counts(frames, every_frames, frames_per_step, at_start=True)  # PeriodicEvaluation's own rule
 
 
 def metric_tag(layer: str, metric: str) -> str:

@@ -9,7 +9,9 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
+from sb3_collapse.drqv2.schedules import StddevSchedule
 from sb3_collapse.envs.dmc import parse_task
+from sb3_collapse.paper import PAPER
 
 
 @dataclass(frozen=True)
@@ -97,3 +99,25 @@ def preset(task: str) -> TaskPreset:
     if task_id in PRESETS:
         return PRESETS[task_id]
     return TaskPreset(task=task_id, tier=FALLBACK_TIER, from_drqv2=False, **TIERS[FALLBACK_TIER])
+
+
+def reset_window_frames(task: str, stddev_schedule: str | None = None, action_repeat: int | None = None) -> int:
+    """
+    The reset rule's default window, Proposition 1's m: "m is the frames where the exploration decreases to the
+    smallest" (Section 5.2; "DrQ-v2 uses an exploration noise that decreases with training steps, which becomes the
+    smallest (but not zero) when x = 20", Observation 3): the agent step at which ``stddev_schedule`` reaches its
+    final value, times ``action_repeat``. The easy tasks' ``linear(1.0,0.1,100000)`` at action repeat 2 gives the
+    paper's 200,000 frames; the medium tier's 1,000,000, the hard tier's 4,000,000.
+
+    :param task: the task, whose preset gives what is not passed
+    :param stddev_schedule: the run's exploration schedule, durations in agent steps (``None``: the preset's)
+    :param action_repeat: the run's frames per agent step (``None``: the preset's)
+    :return: the window in frames; the paper's 200,000 (:data:`~sb3_collapse.paper.PAPER`) for a schedule that does
+        not decay (a constant)
+    :raises ValueError: for an unknown task or a malformed schedule
+    """
+    task_preset = preset(task)
+    schedule = StddevSchedule(task_preset.stddev_schedule if stddev_schedule is None else stddev_schedule)
+    repeat = task_preset.action_repeat if action_repeat is None else action_repeat
+    end = schedule.end_step
+    return PAPER.window_frames if not end else end * repeat

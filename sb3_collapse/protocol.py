@@ -37,6 +37,7 @@ SWEEP_JSON = "sweep.json"  # a sweep folder's settings
 SWEEP_LOCK = "sweep.lock"  # while a sweep runs into its folder: the lock's owner (pid, host)
 SWEEP_STOP = ".stop_requested"  # while a sweep's driver stops at a signal (its name): each trial checkpoints, stops
 SWEEP_PROBE_DIR = "probe/{task}_{variant}"  # in a sweep folder: ``probe sweep``'s outputs per task and variant
+PROBE_SUMMARY_JSON = "summary.json"  # written last into a probe's output folder: its summary (probe.summary_head)
 FIGURE2_PNG = "figure2.png"  # Figure 2 in :data:`SWEEP_PROBE_DIR`
 TABLES_1_6_CSV = "tables_1_6.csv"  # Tables 1-6 in :data:`SWEEP_PROBE_DIR`
 REWARD_PREFIX = "reward:"  # of the probe's targets (and groups) that are reward inputs, e.g. ``reward:torso_height``
@@ -60,12 +61,6 @@ SEED_FOLDER = re.compile(rf"^{SEED_FOLDER_PREFIX}(\d+)$")  # a sweep's trial fol
 def trial_path(out: str | os.PathLike, task: str, variant: str, seed: int) -> Path:
     """:return: the folder of a sweep's trial, ``<out>/<task>/<variant>/seed_<seed>``"""
     return Path(out) / task / variant / f"{SEED_FOLDER_PREFIX}{seed}"
-
-
-def read_settings(path: str | os.PathLike) -> dict[str, Any]:
-    """:return: a run's (:data:`CONFIG_JSON`) or a sweep's settings file (:data:`SWEEP_JSON`) at ``path``; :raises
-    OSError: when it cannot be read, ``ValueError`` when it is not JSON"""
-    return json.loads(Path(path).read_text())
 
 
 def snapshot_files(run_dir: str | os.PathLike) -> list[Path]:

@@ -107,8 +107,11 @@ def run_folder_owner(folder: str | os.PathLike, lock_file: str = LOCK_FILE) -> s
 
 
 def read_json(path: str | os.PathLike) -> dict[str, Any]:
-    """:return: the object of a JSON file
-    :raises InputError: naming the file, when it is not a readable JSON object"""
+    """The one reader of the run folder's JSON files: a run's or a sweep's settings (:data:`CONFIG_JSON`,
+    :data:`SWEEP_JSON`), a result, a checkpoint's file.
+
+    :return: the object of the JSON file ``path``
+    :raises InputError: naming the file, when it is not a readable JSON object (an ``OSError`` or bad JSON included)"""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -276,12 +279,22 @@ def trial_folders(sweep: str | os.PathLike) -> list[tuple[str, str, int, Path]]:
     return sorted(found, key=lambda item: item[:3])
 
 
+def final_return_of(returns: np.ndarray) -> float | None:
+    """
+    The paper's final return of a run, the one its agent classes read: the mean return of the last scheduled
+    evaluation (not the saved final model's, which the result file holds).
+
+    :param returns: the mean return of each scheduled evaluation, in order (:func:`read_evaluations`)
+    :return: the last one, ``None`` without any
+    """
+    return float(returns[-1]) if len(returns) else None
+
+
 def final_return(folder: str | os.PathLike) -> float | None:
     """
     :param folder: a run folder
-    :return: the mean return of its last scheduled evaluation (the one the paper's agent classes read); ``None`` when
-        the run is not finished, its result file is of another version, or its evaluation file is missing, malformed
-        or empty
+    :return: its :func:`final_return_of`; ``None`` when the run is not finished, its result file is of another
+        version, or its evaluation file is missing, malformed or empty
     """
     result = read_result(folder)
     if result is None or run_status(folder, result=result) != RunStatus.FINISHED:
@@ -291,4 +304,4 @@ def final_return(folder: str | os.PathLike) -> float | None:
         _, returns = read_evaluations(folder)
     except InputError:
         return None
-    return float(returns[-1]) if len(returns) else None
+    return final_return_of(returns)

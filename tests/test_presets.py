@@ -8,9 +8,12 @@ import pytest
 from sb3_collapse.commands.cli import training_settings
 from sb3_collapse.commands.sweep import build_parser as sweep_parser
 from sb3_collapse.commands.train import build_parser, main
-from sb3_collapse.presets import PRESETS, SETTING_NAMES, preset
+from sb3_collapse.drqv2 import StddevSchedule
+from sb3_collapse.paper import PAPER
+from sb3_collapse.presets import PRESETS, SETTING_NAMES, preset, reset_window_frames
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
+from sb3_collapse.sweep.plan import sweep_plan
 from sb3_collapse.sweep.runner import settings_changes, sweep_settings
 from sb3_collapse.sweep.trials import expand_trials, trial_config
 from sb3_collapse.zoo.config import render_zoo_config
@@ -45,11 +48,11 @@ def test_zoo_config_is_generated_from_the_table():
     )
 
 
-def _sweep_trial_configs(tmp_path, *flags):
+def _sweep_trial_configs(tmp_path, *flags, variants=("drqv2",)):
     tasks = ["walker-walk", "hopper-stand", "cheetah-run", "humanoid-walk"]
     args = sweep_parser().parse_args(["--tasks", *tasks, "--seeds", "1", "--out", str(tmp_path), *flags])
     training = training_settings(args)
-    trials = expand_trials(args.tasks, ["drqv2"], range(args.seeds))
+    trials = expand_trials(args.tasks, list(variants), range(args.seeds))
     return training, trials, {trial.task: trial_config(trial, tmp_path, training) for trial in trials}
 
 
@@ -83,6 +86,29 @@ def test_sweep_flag_overrides_every_task_and_is_recorded(tmp_path):
     previous = sweep_settings(trials, training, {}, {})
     current = sweep_settings(trials, {**training, "batch_size": None}, {}, {})
     assert any(change.startswith("`batch_size`: 64") for change in settings_changes(previous, current))
+
+
+def test_the_rules_window_is_the_tasks_exploration_end(tmp_path):
+    # Proposition 1: m is "the frames where the exploration decreases to the smallest": the agent step at which the
+    # preset's std schedule reaches its final value, times the action repeat.
+    cheetah = preset("cheetah-run")
+    end = StddevSchedule(cheetah.stddev_schedule).end_step * cheetah.action_repeat
+    assert (cheetah.tier, end) == ("medium", 500_000 * 2)
+    assert reset_window_frames("cheetah-run") == end and reset_window_frames("humanoid-walk") == 4_000_000
+    assert reset_window_frames("walker-walk") == reset_window_frames("finger-spin") == PAPER.window_frames == 200_000
+    assert reset_window_frames("cheetah-run", "0.2") == PAPER.window_frames  # a constant std has no end to read
+    # The runner's settings (resolve), the sweep's trials and its plan take it; the flag overrides it.
+    assert TrainConfig(env="cheetah-run").resolve().reset_window_frames == end
+    assert TrainConfig(env="cheetah-run", action_repeat=4).resolve().reset_window_frames == 2 * end  # the run's repeat
+    assert TrainConfig(env="cheetah-run", reset_window_frames=300_000).resolve().reset_window_frames == 300_000
+    _, trials, configs = _sweep_trial_configs(tmp_path, variants=("drqv2+reset",))
+    assert {task: c.reset_window_frames for task, c in configs.items()} == {
+        "walker-walk": 200_000, "hopper-stand": 200_000, "cheetah-run": end, "humanoid-walk": 4_000_000
+    }  # fmt: skip
+    plan = sweep_plan({trial: configs[trial.task] for trial in trials}, {})
+    assert plan["reset_window_frames"]["cheetah-run/drqv2+reset"] == end
+    _, _, given = _sweep_trial_configs(tmp_path, "--reset-window-frames", "300000", variants=("drqv2+reset",))
+    assert {c.reset_window_frames for c in given.values()} == {300_000}
 
 
 def test_train_records_values_and_sources(tmp_path):

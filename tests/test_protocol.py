@@ -14,10 +14,10 @@ from sb3_collapse.errors import ParameterError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import (
     CONFIG_JSON,
-    read_settings,
     write_json_atomically,
 )
 from sb3_collapse.report import ReportSettings
+from sb3_collapse.runfolder import read_json
 
 PACKAGE = Path(__file__).resolve().parents[1] / "sb3_collapse"
 # The paper's numbers (window, threshold, success return) live in paper.py (and DrQ-v2's presets); the run-folder
@@ -106,10 +106,10 @@ def test_a_settings_file_of_another_version_is_not_resumed(tmp_path):
     config = TrainConfig(env="walker-walk", frames=800, snapshots=True, collapse_metrics_batch=16)
     saved = json.loads(json.dumps(config.record()))
     write_json_atomically(tmp_path / CONFIG_JSON, saved)
-    assert settings_differences(read_settings(tmp_path / CONFIG_JSON), config) == []
+    assert settings_differences(read_json(tmp_path / CONFIG_JSON), config) == []
     saved["probe_checkpoints"] = saved.pop("snapshots")  # a name this version does not have, one it has missing
     write_json_atomically(tmp_path / CONFIG_JSON, saved)
-    assert settings_differences(read_settings(tmp_path / CONFIG_JSON), config) == [
+    assert settings_differences(read_json(tmp_path / CONFIG_JSON), config) == [
         "`probe_checkpoints=None` (the run folder has True)",
         "`snapshots=True` (the run folder has None)",
     ]

@@ -68,9 +68,11 @@ def test_train_with_collapse_metrics_and_reset_rule(tmp_path):
     config = TrainConfig(
         env="walker-walk", frames=800, action_repeat=8, seed_frames=160, batch_size=8, hidden_dim=32,
         eval_every_frames=0, logdir=str(tmp_path), progress_bar=False, collapse_metrics_every_frames=400,
-        collapse_metrics_batch=16, reset_rule=True, reset_window_frames=400, replay_sampling="sb3",
+        collapse_metrics_batch=16, reset_rule=True, stddev_schedule="linear(1.0,0.1,50)", replay_sampling="sb3",
     )
     result = train(config)
+    # The rule's window by default: the frame at which the std schedule ends, 50 agent steps x 8 frames.
+    assert json.loads((result.run_dir / "config.json").read_text())["reset_window_frames"] == 400
     accumulator = EventAccumulator(str(next(result.run_dir.glob("events.out.tfevents.*"))))
     accumulator.Reload()
     tags = set(accumulator.Tags()["scalars"])

@@ -18,56 +18,41 @@ from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
+from sb3_collapse.probe import probing
 from sb3_collapse.probe.checkpoints import checkpoint_labels, load_checkpoint
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE, film_episode
 from sb3_collapse.probe.health import HEALTH_COLUMNS, HealthSettings, checkpoint_health, health_checkpoint_paths
-from sb3_collapse.probe.pipeline import ROLLOUTS_NAME, RecordOptions, check_checkpoint_files, record
-from sb3_collapse.probe.probing import (
-    MIN_EPISODES,
-    CheckpointProbe,
-    EpisodeSplit,
-    ProbeSettings,
-    probe_checkpoint,
-    probe_each_checkpoint,
-    probe_warnings,
-    split_by_episode,
+from sb3_collapse.probe.pipeline import (
+    ROLLOUTS_NAME,
+    RecordOptions,
+    check_checkpoint_files,
+    record,
+    record_agents,
+    summary_head,
 )
+from sb3_collapse.probe.probing import ProbeSettings
 from sb3_collapse.probe.rollouts import Rollouts, resolve_env_config
 from sb3_collapse.protocol import (
     FIGURE2_PNG,
     FINAL_MODEL,
+    PROBE_SUMMARY_JSON,
     SNAPSHOTS_DIR,
     SWEEP_PROBE_DIR,
     TABLES_1_6_CSV,
     snapshot_files,
     write_json_atomically,
 )
+from sb3_collapse.report import figure2, probe_outputs
 from sb3_collapse.report.collapse_figure import agent_class
-from sb3_collapse.report.figure2 import (
-    ROWS,
-    figure2_columns,
-    panel_curves,
-    plot_figure2,
-    stage_table_rows,
-    stage_tables_markdown,
-)
 from sb3_collapse.report.film import STRIP_EVERY_FRAMES, plot_filmstrip, write_actions_csv, write_gif
 from sb3_collapse.report.health import plot_health
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
-from sb3_collapse.report.probe_outputs import (
-    format_table,
-    group_means,
-    plot_mse_by_layer,
-    plot_mse_over_training,
-    report_warnings,
-    warned,
-)
 from sb3_collapse.report.statistics import budget_frames
 from sb3_collapse.report.tables import write_csv
 from sb3_collapse.staged_outputs import StagedOutputs
 
 CSV_NAME = "probe.csv"
-SUMMARY_NAME = "summary.json"
+SUMMARY_NAME = PROBE_SUMMARY_JSON
 BY_LAYER_PLOT = "mse_by_layer.png"
 OVER_TRAINING_PLOT = "mse_over_training.png"
 PROBE_FILES = (CSV_NAME, SUMMARY_NAME, BY_LAYER_PLOT, OVER_TRAINING_PLOT)
@@ -159,6 +144,9 @@ def probe_to_folder(
     """
     started = time.perf_counter()
     settings.validate()
+    if settings.split_per_agent:
+        message = "split_per_agent seeds each agent's split by its seed in a sweep (probe sweep); one split here."
+        raise InputError(message, parameter="split_per_agent")
     check_checkpoint_files(checkpoint_paths)
     labels = checkpoint_labels(list(checkpoint_paths))
     device = get_device(settings.device)
@@ -178,14 +166,14 @@ def probe_to_folder(
             rollouts_path = out / ROLLOUTS_NAME
         else:
             rollouts = Rollouts.load(rollouts_path)
-        split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
+        split = probing.split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
         results = _probe_checkpoints(checkpoint_paths, labels, device, rollouts, split, settings)
         rows = [row for result in results for row in result.rows]
-        warnings = probe_warnings(rollouts, split, rows, settings)
-        report_warnings(warnings)
+        warnings = probing.probe_warnings(rollouts, split, rows, settings)
+        probe_outputs.report_warnings(warnings)
         write_csv(rows, list(rows[0]), staged.path(CSV_NAME))
-        plot_mse_by_layer(rows, staged.path(BY_LAYER_PLOT), warnings)
-        over_training = plot_mse_over_training(rows, staged.path(OVER_TRAINING_PLOT))
+        probe_outputs.plot_mse_by_layer(rows, staged.path(BY_LAYER_PLOT), warnings)
+        over_training = probe_outputs.plot_mse_over_training(rows, staged.path(OVER_TRAINING_PLOT))
         summary = _summary(results, rows, rollouts, rollouts_path, split, settings, over_training, command)
         summary["warnings"] = warnings
         if self_recorded:
@@ -197,13 +185,14 @@ def probe_to_folder(
     return summary
 
 
-def checked_record_options(record_options: RecordOptions | None) -> RecordOptions:
-    """:return: ``record_options`` (``None``: the defaults), checked (InputError: naming the bad option)"""
+def checked_record_options(record_options: RecordOptions | None, pooled: bool = False) -> RecordOptions:
+    """:return: ``record_options`` (``None``: the defaults), checked (InputError: naming the bad option; ``pooled``:
+    the caller records from ``pool_agents`` agents)"""
     record_options = record_options or RecordOptions()
-    record_options.check()
-    if record_options.episodes < MIN_EPISODES:  # the split needs them
+    record_options.check(pooled)
+    if record_options.episodes < probing.MIN_EPISODES:  # the split needs them
         raise InputError(
-            f"episodes must be >= {MIN_EPISODES} to split them into training, validation and test episodes, "
+            f"episodes must be >= {probing.MIN_EPISODES} to split them into training, validation and test episodes, "
             f"got {record_options.episodes}.",
             parameter="episodes",
         )
@@ -211,12 +200,16 @@ def checked_record_options(record_options: RecordOptions | None) -> RecordOption
 
 
 def record_rollouts(
-    source: str | Path, device: th.device, record_options: RecordOptions, settings: ProbeSettings, staged: StagedOutputs
+    source: str | Path | Sequence[str | Path],
+    device: th.device,
+    record_options: RecordOptions,
+    settings: ProbeSettings,
+    staged: StagedOutputs,
 ) -> Rollouts:
-    """:return: the rollouts recorded by the checkpoint ``source``, saved into ``staged`` (moved in on success)"""
-    recorder = load_checkpoint(source, device=device)
-    rollouts = record(recorder, record_options, settings.progress)
-    del recorder
+    """:return: the rollouts recorded by the checkpoint ``source`` (or pooled from several: :func:`record_agents`),
+    saved into ``staged`` (moved in on success)"""
+    sources = [source] if isinstance(source, (str, Path)) else list(source)
+    rollouts = record_agents(sources, record_options, device, settings.progress)
     rollouts.save(staged.path(ROLLOUTS_NAME))
     return rollouts
 
@@ -226,11 +219,11 @@ def _probe_checkpoints(
     labels: Sequence[str],
     device: th.device,
     rollouts: Rollouts,
-    split: EpisodeSplit,
+    split: probing.EpisodeSplit,
     settings: ProbeSettings,
-) -> list[CheckpointProbe]:
+) -> list[probing.CheckpointProbe]:
     """Probe each checkpoint in turn on ``rollouts``, printing its table; the networks are freed after each."""
-    results: list[CheckpointProbe] = []
+    results: list[probing.CheckpointProbe] = []
     reuse: dict = {}  # cnn0 (the normalized pixels) is probed once for checkpoints that normalize alike
     for path, label in zip(checkpoint_paths, labels):
         checkpoint = load_checkpoint(path, device=device)
@@ -238,31 +231,28 @@ def _probe_checkpoints(
         print(
             f"Probing {checkpoint.path} ({checkpoint.algorithm}, {checkpoint.num_timesteps:,} agent steps)", flush=True
         )
-        result = probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
+        result = probing.probe_checkpoint(checkpoint, rollouts, split, settings, reuse)
         result.checkpoint.model = None  # type: ignore[assignment]  # free the networks
         results.append(result)
-        print(format_table(result.rows), flush=True)
+        print(probe_outputs.format_table(result.rows), flush=True)
     return results
 
 
 def _summary(
-    results: list[CheckpointProbe],
+    results: list[probing.CheckpointProbe],
     rows: list[dict[str, Any]],
     rollouts: Rollouts,
     rollouts_path: str | Path,
-    split: EpisodeSplit,
+    split: probing.EpisodeSplit,
     settings: ProbeSettings,
     over_training: bool,
     command: Sequence[str] | None,
 ) -> dict[str, Any]:
-    means = group_means(rows)
+    means = probe_outputs.group_means(rows)
     names, groups, _ = rollouts.targets()
     files = [CSV_NAME, BY_LAYER_PLOT] + ([OVER_TRAINING_PLOT] if over_training else []) + [SUMMARY_NAME]
     return {
-        "complete": True,
-        "created": datetime.now(UTC).isoformat(timespec="seconds"),
-        "command": list(command) if command is not None else None,
-        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()},
+        **summary_head(command, settings),
         "method": "OMP per (layer, component) on features standardized with train statistics (constant columns "
         "dropped) and standardized targets, no intercept; tau = argmin validation MSE over 1..max_tau; "
         "MSE in standardized units (columns *_mse) and in state units squared (*_mse_raw).",
@@ -311,7 +301,8 @@ def split_agents(
     """:return: ``(well, poor)`` finished trials (:func:`agent_class`), each by decreasing final return"""
     ranked = sorted((t for t in trials if t.finished and len(t.returns)), key=lambda t: (-t.final_return, t.seed))
     classes = [agent_class(t.final_return, success_return, failure_return) for t in ranked]
-    return [t for t, c in zip(ranked, classes) if c == ROWS[0]], [t for t, c in zip(ranked, classes) if c == ROWS[1]]
+    well, poor = figure2.ROWS
+    return [t for t, c in zip(ranked, classes) if c == well], [t for t, c in zip(ranked, classes) if c == poor]
 
 
 def probe_sweep(
@@ -337,7 +328,8 @@ def probe_sweep(
     :param variant: its variant folder
     :param out: the output folder (default ``<sweep>/probe/<task>_<variant>``)
     :param settings: the probe's settings
-    :param rollouts_path: rollouts to probe on (``None``: record them from the best well-performing seed)
+    :param rollouts_path: rollouts to probe on (``None``: record them from the best well-performing seed, or pool
+        those of the ``record_options.pool_agents`` best)
     :param record_options: how to record
     :param success_return: final return of a well-performing agent, at least
     :param failure_return: final return of a poorly performing agent, below
@@ -357,7 +349,7 @@ def probe_sweep(
     with StagedOutputs(out, SWEEP_FILES, SUMMARY_NAME, overwrite=overwrite, error=InputError) as staged:
         rollouts, recorded_from = _sweep_rollouts(agents, files, rollouts_path, record_options, settings, staged)
         rows, warnings = _probe_agents(agents, files, rollouts, settings, jobs)
-        report_warnings(warnings)
+        probe_outputs.report_warnings(warnings)
         columns = _write_figure2(rows, rollouts, agents, task, variant, staged, warnings)
         summary = {
             "complete": True,
@@ -400,13 +392,14 @@ def _sweep_rollouts(
     settings: ProbeSettings,
     staged: StagedOutputs,
 ) -> tuple[Rollouts, str]:
-    """:return: the rollouts to probe on (``rollouts_path``, or recorded from the best agent's final model or last
-    checkpoint), and where they come from"""
+    """:return: the rollouts to probe on (``rollouts_path``, or recorded from the final model or last checkpoint of
+    the best agent, or of the ``record_options.pool_agents`` best, pooled), and where they come from"""
     if rollouts_path is not None:
         return Rollouts.load(rollouts_path), str(rollouts_path)
-    well = agents[0][0]
-    source = well.path / FINAL_MODEL if (well.path / FINAL_MODEL).exists() else files[well.seed][-1]
-    return record_rollouts(source, get_device(settings.device), record_options, settings, staged), str(source)
+    wells = [trial for trial, which in agents if which == figure2.ROWS[0]][: record_options.pool_agents]
+    sources = [t.path / FINAL_MODEL if (t.path / FINAL_MODEL).exists() else files[t.seed][-1] for t in wells]
+    rollouts = record_rollouts(sources, get_device(settings.device), record_options, settings, staged)
+    return rollouts, ", ".join(map(str, sources))
 
 
 def _probe_agents(
@@ -417,16 +410,26 @@ def _probe_agents(
     jobs: int,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """:return: the probe's rows of every checkpoint of every agent, with its agent, row and final return, and the
-    probe's warnings"""
-    split = split_by_episode(rollouts.episode_ids, settings.fractions, settings.split_seed)
+    probe's warnings (of each distinct split, :func:`~sb3_collapse.probe.probing.agent_split`)"""
+    splits = {trial.seed: probing.agent_split(rollouts.episode_ids, settings, trial.seed) for trial, _ in agents}
     work = [(trial, which, path) for trial, which in agents for path in files[trial.seed]]
     labels = [f"seed_{trial.seed}/{path.stem}" for trial, _, path in work]
-    per_checkpoint = probe_each_checkpoint([path for _, _, path in work], labels, rollouts, split, settings, jobs)
+    paths, work_splits = [path for _, _, path in work], [splits[trial.seed] for trial, _, _ in work]
+    per_checkpoint = probing.probe_each_checkpoint(paths, labels, rollouts, work_splits, settings, jobs)
     for (trial, which, _), result_rows in zip(work, per_checkpoint):
         for row in result_rows:
             row.update(agent=f"seed {trial.seed}", agent_row=which, final_return=trial.final_return)
     rows = [row for result_rows in per_checkpoint for row in result_rows]
-    return rows, probe_warnings(rollouts, split, rows, settings)
+    if not settings.split_per_agent:  # one split for every agent
+        return rows, probing.probe_warnings(rollouts, work_splits[0], rows, settings)
+    warnings: list[dict[str, Any]] = []
+    for seed, split in splits.items():  # each agent's split: the warnings of the rows probed on it, once each
+        for warning in probing.probe_warnings(
+            rollouts, split, [r for r in rows if r["agent"] == f"seed {seed}"], settings
+        ):
+            if warning not in warnings:
+                warnings.append(warning)
+    return rows, warnings
 
 
 def _sweep_agents(
@@ -464,7 +467,7 @@ def _sweep_agents(
             f"(< {failure_return:g}) finished trial ({finals}); lower success_return or raise failure_return.",
             parameter="success_return",
         )
-    agents = [(trial, ROWS[0]) for trial in well] + [(trial, ROWS[1]) for trial in poor]
+    agents = [(trial, figure2.ROWS[0]) for trial in well] + [(trial, figure2.ROWS[1]) for trial in poor]
     files = {trial.seed: snapshot_files(trial.path) for trial, _ in agents}
     lacking = [t for t, _ in agents if not files[t.seed]]
     if lacking:
@@ -479,7 +482,13 @@ def _sweep_agents(
                 "rollouts from: pass rollouts_path (python -m sb3_collapse.probe record GOOD.zip).",
                 parameter="rollouts_path",
             )
-        checked_record_options(record_options)
+        checked_record_options(record_options, pooled=True)
+        if record_options.pool_agents > len(well):
+            raise InputError(
+                f"pool_agents={record_options.pool_agents} but {task} / {variant} has {len(well)} well-performing "
+                f"trial(s) (final return >= {success_return:g}) to record from: pass at most {len(well)}.",
+                parameter="pool_agents",
+            )
     return sweep, agents, files
 
 
@@ -495,17 +504,17 @@ def _write_figure2(
     """Write Figure 2 (marking what ``warnings`` name), Tables 1-6 and ``probe.csv`` into ``staged``; :return: Figure
     2's columns"""
     names, groups, _ = rollouts.targets()
-    columns = figure2_columns(task, names, groups)
-    curves = panel_curves(rows, {f"seed {t.seed}": which for t, which in agents}, columns)
-    well = sum(which == ROWS[0] for _, which in agents)
+    columns = figure2.figure2_columns(task, names, groups)
+    curves = figure2.panel_curves(rows, {f"seed {t.seed}": which for t, which in agents}, columns)
+    well = sum(which == figure2.ROWS[0] for _, which in agents)
     described = f"well-performing: {well}, poorly performing: {len(agents) - well}"
-    flat = [title for title, targets in columns if warned(warnings, "targets") & set(targets)]
+    flat = [title for title, targets in columns if probe_outputs.warned(warnings, "targets") & set(targets)]
     title = f"{task} / {variant}: OMP probing over training ({described})"
-    plot_figure2(curves, staged.path(FIGURE2_PNG), title, flat, warned(warnings, "layers"))
-    table_rows = stage_table_rows(curves, budget_frames([trial for trial, _ in agents]))
+    figure2.plot_figure2(curves, staged.path(FIGURE2_PNG), title, flat, probe_outputs.warned(warnings, "layers"))
+    table_rows = figure2.stage_table_rows(curves, budget_frames([trial for trial, _ in agents]))
     if table_rows:
         write_csv(table_rows, list(table_rows[0]), staged.path(TABLES_1_6_CSV))
-    staged.path(TABLES_MD).write_text(stage_tables_markdown(table_rows))
+    staged.path(TABLES_MD).write_text(figure2.stage_tables_markdown(table_rows))
     write_csv(rows, list(rows[0]), staged.path(CSV_NAME))
     return columns
 

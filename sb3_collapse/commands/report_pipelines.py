@@ -18,50 +18,12 @@ from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.probe.fixed_inputs import FIXED_SAMPLES, FixedInputs, FixedMetrics, fixed_metrics, load_fixed_inputs
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
-from sb3_collapse.protocol import (
-    CONFIG_JSON,
-    RESULT_JSON,
-    SWEEP_PROBE_DIR,
-    snapshot_files,
-)
+from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON, SWEEP_PROBE_DIR, snapshot_files
 from sb3_collapse.report import collapse_figure, headline, html, tables
+from sb3_collapse.report import pipeline as page
 from sb3_collapse.report import statistics as stats
-from sb3_collapse.report.collapse_figure import (
-    FIGURE4_LAYERS,
-    ONLINE_INPUTS,
-    AgentMetrics,
-    AgentPick,
-    online_agent_rows,
-    paper_figure_title,
-    plot_collapse_metrics,
-)
 from sb3_collapse.report.headline import BASELINE_VARIANT
 from sb3_collapse.report.loading import Trial, load_sweep
-from sb3_collapse.report.pipeline import (
-    AGENTS_COLUMNS,
-    COLLAPSE_AGENTS_CSV,
-    COLLAPSE_FIXED_CSV,
-    COLLAPSE_ONLINE_PNG,
-    COLLAPSE_PNG,
-    FIGURE3B_PNG,
-    FIGURE5_PNG,
-    GRID_CSV,
-    GRID_MD,
-    GRID_PNG,
-    OUTPUT_FILES,
-    REPORT_FOLDER,
-    RUN_COLLAPSE_PNG,
-    SUMMARY_CSV,
-    SUMMARY_MD,
-    TABLE7_CSV,
-    TABLE7_MD,
-    Report,
-    agents_rows,
-    sweep_notes,
-    sweep_page,
-    transplant_notes,
-    unfinished_markdown,
-)
 from sb3_collapse.report.plots import plot_figure3b, plot_figure5, plot_transplant_grid
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
 from sb3_collapse.run.config import RUN, check_declared, declared, setting
@@ -95,7 +57,7 @@ class FixedInputSettings:
     """Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda"""
     batch_size: int = setting(256, cli=None, minimum=1)
     """observations per forward pass"""
-    layers: tuple[str, ...] = setting(FIGURE4_LAYERS, cli=None)
+    layers: tuple[str, ...] = setting(collapse_figure.FIGURE4_LAYERS, cli=None)
     """the layers measured and drawn"""
 
     def validate(self) -> None:
@@ -122,11 +84,14 @@ FIXED_METRICS = ("numerical_rank", "correlation", "dead_units")
 
 
 def fixed_agent_rows(
-    picks: Sequence[AgentPick], inputs: FixedInputs, settings: FixedInputSettings, progress: bool = False
-) -> tuple[list[AgentMetrics], dict[int, FixedMetrics]]:
+    picks: Sequence[collapse_figure.AgentPick],
+    inputs: FixedInputs,
+    settings: FixedInputSettings,
+    progress: bool = False,
+) -> tuple[list[collapse_figure.AgentMetrics], dict[int, FixedMetrics]]:
     """:return: the rows of Figures 4, 8, 9 (:data:`FIXED_METRICS` of each snapshot on ``inputs``, the training-time
     gradient norms), and seed -> its fixed-set metrics"""
-    rows, computed = online_agent_rows(picks, settings.layers), {}
+    rows, computed = collapse_figure.online_agent_rows(picks, settings.layers), {}
     tags = [metric_tag(layer, metric) for layer in settings.layers for metric in FIXED_METRICS]
     how = (inputs, settings.layers, get_device(settings.device), settings.batch_size, progress)
     for row in rows:
@@ -149,7 +114,7 @@ def build_report(
     variants: Sequence[str] | None = None,
     progress: bool = True,
     collapse_settings: FixedInputSettings | None = None,
-) -> Report:
+) -> page.Report:
     """
     Read a sweep and compute everything the report shows, without writing.
 
@@ -170,7 +135,7 @@ def build_report(
     collapse_settings.validate()
     sweep = load_sweep(sweep_dir, settings.collapse_tag, include_unfinished, tasks, variants, progress)
     rows = stats.summarize(sweep, settings)
-    notes = sweep_notes(sweep, rows, include_unfinished)
+    notes = page.sweep_notes(sweep, rows, include_unfinished)
     plain = sorted({t.task for t in sweep.trials if stats.transplant_sources(t.variant) is None})  # Figure 5's panels
     curves = {task: headline.figure5_curves(sweep, task, settings.percentiles) for task in plain}
     references = {}
@@ -180,21 +145,23 @@ def build_report(
             notes.append(f"{task}: no published DrQ-v2 curve for this task; no reference overlay")
         else:
             references[task] = stats.band_curve(REFERENCE_LABEL, data.frames, data.returns, settings.percentiles)
-    report = Report(sweep, rows, stats.transplant_grid(rows, settings.success_return), curves, references, notes, "")
+    report = page.Report(
+        sweep, rows, stats.transplant_grid(rows, settings.success_return), curves, references, notes, ""
+    )
     report.transplant = stats.transplant_curves(sweep, settings.success_return)
-    report.notes += transplant_notes(report)
+    report.notes += page.transplant_notes(report)
     collapse_figures(report, settings, collapse_settings, progress)
     report.headline = headline.headline_rows(sweep, rows, settings)
     report.proposition = headline.proposition1_rows(sweep, rows)
     title = "# Sweep report\n\n"
     summary = tables.summary_markdown(rows, settings, report.notes).removeprefix(title)
     top = headline.headline_markdown(report.headline, report.proposition, settings)
-    report.markdown = title + top + "\n" + summary + unfinished_markdown(sweep)
+    report.markdown = title + top + "\n" + summary + page.unfinished_markdown(sweep)
     return report
 
 
 def collapse_figures(
-    report: Report,
+    report: page.Report,
     settings: stats.ReportSettings,
     collapse_settings: FixedInputSettings,
     progress: bool = False,
@@ -224,7 +191,7 @@ def collapse_figures(
             rollouts = sweep.path / SWEEP_PROBE_DIR.format(task=task, variant=source) / ROLLOUTS_NAME
             why = _why_no_fixed_inputs(sweep.path, task, source, picks, rollouts if inputs is None else None, given)
             if why is not None:
-                online = COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
+                online = page.COLLAPSE_ONLINE_PNG.format(task=task, variant=variant)
                 report.notes.append(
                     f"{task} / {variant}: Figure 4 on the probing samples not drawn: {why}; {online} shows the online "
                     "metrics"
@@ -271,7 +238,7 @@ def write_report(
     progress: bool = True,
     overwrite: bool = False,
     collapse_settings: FixedInputSettings | None = None,
-) -> Report:
+) -> page.Report:
     """
     The report of a sweep folder (:func:`build_report`, whose parameters it shares), written to ``out``: staged,
     moved in only when every file is written; outputs of a previous report that this one does not write are removed.
@@ -284,8 +251,8 @@ def write_report(
     """
     settings = settings or stats.ReportSettings()
     layers = (collapse_settings or FixedInputSettings()).layers
-    out_dir = Path(sweep_dir) / REPORT_FOLDER if out is None else Path(out)
-    staged_outputs = StagedOutputs(out_dir, OUTPUT_FILES, SUMMARY_MD, overwrite=overwrite, error=InputError)
+    out_dir = Path(sweep_dir) / page.REPORT_FOLDER if out is None else Path(out)
+    staged_outputs = StagedOutputs(out_dir, page.OUTPUT_FILES, page.SUMMARY_MD, overwrite=overwrite, error=InputError)
     report = build_report(
         sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
     )
@@ -294,30 +261,30 @@ def write_report(
         plain = [t for t in report.sweep.unfinished if stats.transplant_sources(t.variant) is None]
         partial = {task: [t for t in plain if t.task == task] for task in report.curves}
     with staged_outputs as staged:
-        plot_figure5(report.curves, staged.path(FIGURE5_PNG), report.references, partial, settings.percentiles)
-        tables.write_csv(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS, staged.path(SUMMARY_CSV))
+        plot_figure5(report.curves, staged.path(page.FIGURE5_PNG), report.references, partial, settings.percentiles)
+        tables.write_csv(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS, staged.path(page.SUMMARY_CSV))
         if report.grid:
-            tables.write_csv(tables.grid_rows(report.grid), tables.GRID_COLUMNS, staged.path(GRID_CSV))
-            staged.path(GRID_MD).write_text(tables.grid_markdown(report.grid, settings.success_return))
-            plot_transplant_grid(report.grid, staged.path(GRID_PNG), settings.success_return)
+            tables.write_csv(tables.grid_rows(report.grid), tables.GRID_COLUMNS, staged.path(page.GRID_CSV))
+            staged.path(page.GRID_MD).write_text(tables.grid_markdown(report.grid, settings.success_return))
+            plot_transplant_grid(report.grid, staged.path(page.GRID_PNG), settings.success_return)
         if report.transplant:
-            plot_figure3b(report.transplant, staged.path(FIGURE3B_PNG), settings.success_return)
-            tables.write_csv(tables.table7_rows(report.transplant), tables.TABLE7_COLUMNS, staged.path(TABLE7_CSV))
-            staged.path(TABLE7_MD).write_text(tables.table7_markdown(report.transplant, settings.success_return))
+            plot_figure3b(report.transplant, staged.path(page.FIGURE3B_PNG), settings.success_return)
+            tables.write_csv(tables.table7_rows(report.transplant), tables.TABLE7_COLUMNS, staged.path(page.TABLE7_CSV))
+            staged.path(page.TABLE7_MD).write_text(tables.table7_markdown(report.transplant, settings.success_return))
         for key, picks in progress_bar(report.collapse_picks.items(), "collapse figures", "figure", progress):
-            path = staged.path(COLLAPSE_ONLINE_PNG.format(task=key[0], variant=key[1]))
-            title = paper_figure_title(*key, picks, ONLINE_INPUTS)
-            plot_collapse_metrics(report.collapse_online[key], path, title, layers)
+            path = staged.path(page.COLLAPSE_ONLINE_PNG.format(task=key[0], variant=key[1]))
+            title = collapse_figure.paper_figure_title(*key, picks, collapse_figure.ONLINE_INPUTS)
+            collapse_figure.plot_collapse_metrics(report.collapse_online[key], path, title, layers)
             if key in report.collapse:
-                path = staged.path(COLLAPSE_PNG.format(task=key[0], variant=key[1]))
-                title = paper_figure_title(*key, picks, report.collapse_inputs[key].describe())
-                plot_collapse_metrics(report.collapse[key], path, title, layers, "snapshots")
-                path = staged.path(COLLAPSE_FIXED_CSV.format(task=key[0], variant=key[1]))
+                path = staged.path(page.COLLAPSE_PNG.format(task=key[0], variant=key[1]))
+                title = collapse_figure.paper_figure_title(*key, picks, report.collapse_inputs[key].describe())
+                collapse_figure.plot_collapse_metrics(report.collapse[key], path, title, layers, "snapshots")
+                path = staged.path(page.COLLAPSE_FIXED_CSV.format(task=key[0], variant=key[1]))
                 write_fixed_metrics_csv(path, picks, report.collapse_fixed[key])
         if report.collapse_picks:
-            tables.write_csv(agents_rows(report), AGENTS_COLUMNS, staged.path(COLLAPSE_AGENTS_CSV))
-        staged.path(html.INDEX_HTML).write_text(sweep_page(report, settings, staged.path))
-        staged.path(SUMMARY_MD).write_text(report.markdown)
+            tables.write_csv(page.agents_rows(report), page.AGENTS_COLUMNS, staged.path(page.COLLAPSE_AGENTS_CSV))
+        staged.path(html.INDEX_HTML).write_text(page.sweep_page(report, settings, staged.path))
+        staged.path(page.SUMMARY_MD).write_text(report.markdown)
         report.files = staged.commit()
     return report
 
@@ -331,17 +298,17 @@ def write_run_report(
     """The report of one run folder of the train CLI into ``out`` (``<run_dir>/report`` when ``None``): its online
     Figure 4 (``collapse_metrics.png``) and ``index.html`` with the run's settings, as far as its files go. Returns
     the run (as a trial) and the written files; an InputError when it is not a run folder or a file is malformed."""
-    out_dir = Path(run_dir) / REPORT_FOLDER if out is None else Path(out)
-    run_files = (RUN_COLLAPSE_PNG, html.INDEX_HTML)
+    out_dir = Path(run_dir) / page.REPORT_FOLDER if out is None else Path(out)
+    run_files = (page.RUN_COLLAPSE_PNG, html.INDEX_HTML)
     staged_outputs = StagedOutputs(out_dir, run_files, html.INDEX_HTML, overwrite=overwrite, error=InputError)
     trial = collapse_figure.run_folder_trial(run_dir)
     agent = collapse_figure.agent_metrics(trial, "run", layers)
     with staged_outputs as staged:
         title = f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})"
-        title += f"\non {ONLINE_INPUTS}"
-        plot_collapse_metrics([agent], staged.path(RUN_COLLAPSE_PNG), title, layers)
+        title += f"\non {collapse_figure.ONLINE_INPUTS}"
+        collapse_figure.plot_collapse_metrics([agent], staged.path(page.RUN_COLLAPSE_PNG), title, layers)
         section = html.Section("Figure 4: collapse metrics over training")
-        section.parts.append(html.figure(staged.path(RUN_COLLAPSE_PNG), title))
+        section.parts.append(html.figure(staged.path(page.RUN_COLLAPSE_PNG), title))
         config = html.Section("Settings")
         config.parts.append(html.settings_table(read_json(trial.path / CONFIG_JSON), f"{CONFIG_JSON} of the run"))
         if trial.result is not None:
@@ -354,7 +321,9 @@ def write_run_report(
 FIXED_CSV_COLUMNS = ("role", "seed", "final_return", "checkpoint", "frame", "tag", "value")
 
 
-def write_fixed_metrics_csv(path: Path, picks: Sequence[AgentPick], computed: dict[int, FixedMetrics]) -> None:
+def write_fixed_metrics_csv(
+    path: Path, picks: Sequence[collapse_figure.AgentPick], computed: dict[int, FixedMetrics]
+) -> None:
     """Write every fixed-set metric of the picked agents (``computed``: :func:`fixed_agent_rows`), long format."""
     with path.open("w", newline="") as file:
         writer = csv.writer(file)

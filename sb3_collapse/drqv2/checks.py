@@ -168,12 +168,32 @@ def zip_file(path: str | os.PathLike[str]) -> pathlib.Path | None:
     return given if given.is_file() else zipped if given.suffix != ".zip" and zipped.is_file() else None
 
 
+SB3_DATA, SB3_POLICY = "data", "policy.pth"  # members of a zip of SB3's save: settings and spaces as JSON, weights
+
+
+def read_sb3_data(archive: zipfile.ZipFile) -> dict[str, Any]:
+    """
+    The one reader of an SB3 zip's :data:`SB3_DATA` member: the algorithm's settings, its policy's class and its
+    spaces, as SB3's ``save`` wrote them (each class or space a JSON object of its ``__module__`` and a serialization;
+    ``stable_baselines3.common.save_util.json_to_data`` rebuilds them).
+
+    :param archive: the open zip
+    :return: the member's JSON object
+    :raises KeyError: without the member; ``ValueError`` (``json.JSONDecodeError``, ``UnicodeDecodeError``) when it is
+        not a JSON object
+    """
+    data = json.loads(archive.read(SB3_DATA))
+    if not isinstance(data, dict):
+        raise ValueError(f"expected a JSON object, got {type(data).__name__}")
+    return data
+
+
 def saved_sb3_algorithm(path: pathlib.Path | io.IOBase) -> tuple[str | None, str] | None:
     """:return: ``(algorithm or None, policy class)`` read from the ``data`` of a zip (a path or a seekable file object,
     read from its position) saved by one of SB3's algorithms; ``None`` for another policy or an unreadable file"""
     try:
         with zipfile.ZipFile(path) as archive:
-            data = json.loads(archive.read("data"))
+            data = read_sb3_data(archive)
         module = str(data["policy_class"]["__module__"])
         init = re.search(r"<function (\w+)\.__init__", str(data["policy_class"].get("__init__", "")))
     except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile):

@@ -242,6 +242,10 @@ class ReplayPrefetcher:
         try:
             for _ in range(gradient_steps):
                 batch = self._hand_over(prepared)
+                # The draw for the next update takes np.random's global generator while this update runs: the
+                # batches of a serial sampler calling sample() here, on either thread, because nothing else draws
+                # from it during an update (augmentation and action noise use torch's generators, callbacks run
+                # between rounds) and no transition is added during train() (the finally below waits for the worker).
                 if self.uses_worker(buffer.device):
                     upcoming = self._worker().submit(self._prepare, buffer, batch_size, env)
                 else:
@@ -258,6 +262,7 @@ class ReplayPrefetcher:
         self, buffer: ReplayBuffer, batch_size: int, env: VecNormalize | None, reserve: bool = False
     ) -> PreparedBatch:
         """Draw and make a batch; ``reserve``: allocate the other staging sets now (on the training thread)."""
+        # Before the draw: what restore() sets back to draw this batch again after a load (the same draws, as above).
         generator_state, counters = np.random.get_state(), buffer_counters(buffer)
         staging = self._staging if isinstance(buffer, FrameStackReplayBuffer) and env is None else None
         ready = None
@@ -266,7 +271,7 @@ class ReplayPrefetcher:
                 batch = buffer.sample(batch_size, env=env)
             else:
                 assert isinstance(buffer, FrameStackReplayBuffer)
-                batch_inds, env_indices = buffer.sample_indices(batch_size)  # sample()'s draws
+                batch_inds, env_indices = buffer.sample_indices(batch_size)  # sample()'s draws, in its order
                 slot = staging.claim()
                 staging.gather(slot, buffer, batch_inds, env_indices)
                 if reserve:
@@ -325,7 +330,7 @@ class ReplayPrefetcher:
         finally:
             drawn_to = np.random.get_state()
             np.random.set_state(now)
-        if not _same_generator_state(drawn_to, now):
+        if not _same_generator_state(drawn_to, now):  # the draw must end where the checkpoint left the generator
             return False  # not the draw it was (another buffer with the same counters)
         self._prepared = again
         return True

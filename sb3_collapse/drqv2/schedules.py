@@ -79,6 +79,15 @@ class StddevSchedule:
         schedule = linear_schedule if match.group(1) == "linear" else step_linear_schedule
         return lambda step: schedule(*args, step)  # type: ignore[operator]
 
+    @property
+    def end_step(self) -> int | None:
+        """The agent step at which the std reaches its final value and stays there: a ``linear`` schedule's duration,
+        the sum of ``step_linear``'s two; ``None`` for a constant or a callable (no decay to read)."""
+        match = _FORM.match(self.spec) if isinstance(self.spec, str) else None
+        if match is None:
+            return None
+        return math.ceil(sum(float(arg) for arg in match.group(2).split(",")[2::2]))
+
     def __call__(self, step: int) -> float:
         """:return: the exploration standard deviation at agent ``step``"""
         return float(self._fn(step))

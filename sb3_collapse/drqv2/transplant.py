@@ -19,7 +19,7 @@ import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
 
-from sb3_collapse.drqv2.checks import split_sb3_feature_size, zip_file
+from sb3_collapse.drqv2.checks import SB3_DATA, SB3_POLICY, read_sb3_data, split_sb3_feature_size, zip_file
 from sb3_collapse.drqv2.divergence import check_finite_weights
 from sb3_collapse.drqv2.encoders import PixelEncoder
 from sb3_collapse.drqv2.policies import DrQv2Policy
@@ -132,20 +132,20 @@ def read_source_zip(key: str, path: Path) -> TransplantSource:
     if not zipfile.is_zipfile(path):
         raise ValueError(f"{where} is not a zip file (corrupt or truncated?); expected a zip saved by DrQv2.save.")
     with zipfile.ZipFile(path) as archive:
-        missing = {"data", "policy.pth"} - set(archive.namelist())
+        missing = {SB3_DATA, SB3_POLICY} - set(archive.namelist())
         if missing:
             raise ValueError(f"{where} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
-        raw = _read_member(where, "data", lambda: json.loads(archive.read("data")))
-        module = (raw.get("policy_class") or {}).get("__module__") if isinstance(raw, dict) else None
+        raw = _read_member(where, SB3_DATA, lambda: read_sb3_data(archive))
+        module = (raw.get("policy_class") or {}).get("__module__")
         if module != DRQV2_POLICY_MODULE:
             raise ValueError(
                 f"{where} is not a DrQv2 model: its policy comes from {module!r}, not {DRQV2_POLICY_MODULE!r}; "
                 "transplants copy DrQv2 layers, give a zip saved by DrQv2.save."
             )
         needed = ("policy_class", "policy_kwargs", "observation_space", "action_space")
-        data = _read_member(where, "data", lambda: json_to_data(json.dumps({name: raw[name] for name in needed})))
+        data = _read_member(where, SB3_DATA, lambda: json_to_data(json.dumps({name: raw[name] for name in needed})))
         load = functools.partial(th.load, map_location="cpu", weights_only=True)
-        state_dict = _read_member(where, "policy.pth", lambda: load(io.BytesIO(archive.read("policy.pth"))))
+        state_dict = _read_member(where, SB3_POLICY, lambda: load(io.BytesIO(archive.read(SB3_POLICY))))
     policy_class = data.get("policy_class")
     if not (isinstance(policy_class, type) and issubclass(policy_class, DrQv2Policy)):
         raise ValueError(f"{where}: its policy class could not be restored as a DrQv2Policy (got {policy_class!r}).")

@@ -21,6 +21,7 @@ from stable_baselines3.common.logger import TensorBoardOutputFormat
 
 from sb3_collapse.baselines import collapse_model
 from sb3_collapse.common.model import CollapseModel, env_action_repeat
+from sb3_collapse.common.schedule import next_due
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import Observations, collect_activations
 from sb3_collapse.monitoring.health import DEFAULT_METRICS, HealthMemory, check_health_arguments, measure_health
@@ -206,8 +207,9 @@ class FrameScheduleCallback(ResumableCallback):
             self._check_if_due()
 
     def _following(self, count: int) -> int:
-        """The first multiple of the period above ``count``."""
-        return (count // self.period + 1) * self.period if self.period else 0
+        """The first multiple of the period above ``count`` (:func:`~sb3_collapse.common.schedule.next_due`, the
+        rule that the plan's counts follow too)."""
+        return next_due(count, self.period) if self.period else 0
 
     @property
     def frames(self) -> int:

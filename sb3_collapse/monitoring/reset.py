@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +23,60 @@ from sb3_collapse.monitoring.interventions import (
 from sb3_collapse.monitoring.metrics import action_spread
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_EVENT_FIELDS
+
+
+def escape_step(
+    streak: int, value: float | None, threshold: float = PAPER.threshold, patience: int = PAPER.patience
+) -> tuple[int, bool]:
+    """
+    One check of the rule's escape test, the one definition that :class:`CollapseReset` runs during training and the
+    report runs over a run's logged checks (:func:`first_escape`). Section 5.2: "we choose to use the gradient norm of
+    mlp1 to determine whether an agent suffers from action collapse", and "if we do not see a gradient norm larger
+    than [``threshold``] of consecutive five computations every 2e5 frames, the training would be reset; once we see
+    that, the training continues until the end" (defaults: :data:`sb3_collapse.paper.PAPER`).
+
+    :param streak: consecutive healthy checks before this one
+    :param value: the check's value (``None``: no value, the streak is left as it is)
+    :param threshold: a value above it is healthy ("a gradient norm larger than" it)
+    :param patience: consecutive healthy checks that mean an escape ("consecutive five computations")
+    :return: the streak after this check (one more when ``value > threshold``, else 0) and whether it reaches
+        ``patience`` (an escape)
+    """
+    if value is not None:
+        streak = streak + 1 if value > threshold else 0
+    return streak, streak >= patience
+
+
+def first_escape(
+    frames: Iterable[int],
+    values: Iterable[float | None],
+    threshold: float = PAPER.threshold,
+    patience: int = PAPER.patience,
+    restarts: Iterable[int] = (),
+) -> int | None:
+    """
+    The rule's escape test (:func:`escape_step`) over a run's logged checks, in frame order: the frame of the check
+    that completes the first escape, ``None`` when none does. The streak starts again after each frame of
+    ``restarts`` (the rule's resets: a check at a reset's frame belongs to the window it ends, as in
+    :class:`CollapseReset`, whose check runs before its reset in the same step).
+
+    :param frames: the frame of each check, increasing
+    :param values: the metric at each check (``None`` or nan: no value)
+    :param threshold: a value above it is healthy
+    :param patience: consecutive healthy checks that mean an escape
+    :param restarts: frames after which the streak starts from 0 (a new window)
+    :return: the escape's frame, or ``None``
+    """
+    pending, streak = sorted(restarts), 0
+    for frame, value in zip(frames, values, strict=True):
+        while pending and frame > pending[0]:
+            pending.pop(0)
+            streak = 0
+        value = None if value is None or not math.isfinite(value) else float(value)
+        streak, escaped = escape_step(streak, value, threshold, patience)
+        if escaped:
+            return int(frame)
+    return None
 
 
 class CollapseReset(FrameScheduleCallback):
@@ -170,11 +224,11 @@ class CollapseReset(FrameScheduleCallback):
             return
         value = self.read_metric()
         self.history.append((frames, value))
+        self.streak, escaped = escape_step(self.streak, value, self.threshold, self.patience)
         if value is not None:
-            self.streak = self.streak + 1 if value > self.threshold else 0
             self.logger.record("collapse/reset_rule/value", value)
             self.logger.record("collapse/reset_rule/threshold", self.threshold)  # beside it on the dashboard
-        if self.streak >= self.patience:
+        if escaped:
             self.escaped = True
             self.escape_frame = frames
             self.logger.record("collapse/escape_frame", frames)

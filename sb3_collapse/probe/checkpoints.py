@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import io
 import itertools
-import json
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +14,7 @@ from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_collapse.drqv2 import DrQv2
+from sb3_collapse.drqv2.checks import SB3_DATA, SB3_POLICY, read_sb3_data
 from sb3_collapse.drqv2.divergence import check_finite_weights
 from sb3_collapse.errors import InputError, LayerMappingError
 from sb3_collapse.monitoring import layer_taps
@@ -76,15 +76,15 @@ def read_saved_data(path: str | Path) -> tuple[type[BaseAlgorithm], dict[str, An
     if not zipfile.is_zipfile(path):
         raise InputError(f"{path} is not a zip file; expected an SB3 checkpoint saved with `model.save(...)`.")
     with zipfile.ZipFile(path) as archive:
-        missing = {"data", "policy.pth"} - set(archive.namelist())
+        missing = {SB3_DATA, SB3_POLICY} - set(archive.namelist())
         if missing:
             raise InputError(f"{path} is a zip but not an SB3 model: it lacks {sorted(missing)}.")
         try:
-            data = json.loads(archive.read("data"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            data = read_sb3_data(archive)
+        except ValueError as error:  # bad JSON, or not an object
             raise InputError(f"{path}: SB3's `data` entry is not valid JSON ({error}).") from error
         try:
-            weights = th.load(io.BytesIO(archive.read("policy.pth")), map_location="cpu", weights_only=True)
+            weights = th.load(io.BytesIO(archive.read(SB3_POLICY)), map_location="cpu", weights_only=True)
         except Exception as error:  # any failure to unpickle: a damaged member
             raise InputError(f"{path}: its policy.pth cannot be read ({type(error).__name__}: {error}).") from error
     check_finite_weights(weights if isinstance(weights, dict) else {}, str(path))

@@ -98,7 +98,7 @@ def omp_path(
     n_active = th.full((m,), max_atoms, dtype=th.long, device=device)
     residual = Y64.clone()  # (n, m)
     running = th.arange(m, device=device)  # targets still selecting atoms
-    initial_correlations: th.Tensor | None = None  # X^T y, (d, m)
+    initial_correlations: th.Tensor | None = None  # X^T y, (d, m): set at k = 0, where every target runs
 
     for k in progress_bar(range(max_atoms), desc, "atom", progress, leave=False):
         if running.numel() == 0:
@@ -108,9 +108,9 @@ def omp_path(
         correlations = X.T @ R  # (d, r): the one large product of the iteration
         if offset is not None:
             correlations -= offset[:, None] * R.sum(0)[None, :]
-        if initial_correlations is None:
+        if initial_correlations is None:  # k = 0: residual = y and all m targets run, so columns = target ids
             initial_correlations = correlations
-        new = correlations.abs().argmax(0)  # (r,)
+        new = correlations.abs().argmax(0)  # (r,): the first maximum, so ties go to the lowest feature index
 
         x_new = X[:, new].T.to(th.float64)  # (r, n)
         if offset is not None:
@@ -119,14 +119,20 @@ def omp_path(
         if k > 0:
             cross = th.bmm(atoms[sel, :k], x_new.unsqueeze(2))  # (r, k, 1): X_S^T x_new
             v = th.linalg.solve_triangular(chol[sel, :k, :k], cross, upper=False).squeeze(2)
+            # The new row of L L^T = X_S^T X_S: pivot = ||x_new||^2 - ||v||^2, the squared distance of x_new from
+            # the span of the selected atoms.
             pivot = squared_norm - (v * v).sum(1)
             already = (indices[sel, :k] == new[:, None]).any(1)
         else:
             v, pivot = None, squared_norm
             already = th.zeros_like(new, dtype=th.bool)
+        # scikit-learn's early stops (_cholesky_omp), in its order: an atom selected again (the residual is orthogonal
+        # to the selected atoms, so the largest |x_i^T r| falls on one only when every correlation is rounding);
+        # x_a^T y too small ((x_a^T y)^2 < eps, its alpha[lam] ** 2 < min_float); x_new in the selected atoms' span
+        # (pivot <= eps: L would not stay positive definite). eps: the machine epsilon of X's dtype.
         negligible = initial_correlations[new, running].to(th.float64) ** 2 < eps
         stop = already | negligible | (pivot <= eps)
-        if stop.any():
+        if stop.any():  # a stopped target keeps its k atoms: n_active = k, its path filled after the loop
             n_active[running[stop]] = k
             keep = ~stop
             running, new, x_new, pivot = running[keep], new[keep], x_new[keep], pivot[keep]
@@ -139,7 +145,7 @@ def omp_path(
         chol[sel, k, k] = pivot.sqrt()
         atoms[sel, k] = x_new
         indices[sel, k] = new
-        alpha[sel, k] = (x_new * Y64[:, sel].T).sum(1)
+        alpha[sel, k] = (x_new * Y64[:, sel].T).sum(1)  # x_a^T y, not the residual: L L^T w = X_S^T y
         gamma = th.cholesky_solve(alpha[sel, : k + 1, None], chol[sel, : k + 1, : k + 1])  # (r, k+1, 1)
         coef_path[sel, : k + 1, k] = gamma.squeeze(2)
         fitted = th.bmm(gamma.transpose(1, 2), atoms[sel, : k + 1]).squeeze(1)  # (r, n)

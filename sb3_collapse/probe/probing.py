@@ -58,14 +58,14 @@ def check_fractions(fractions: Sequence[float]) -> None:
 
 
 def split_by_episode(
-    episode_ids: np.ndarray, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int = 0
+    episode_ids: np.ndarray, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int | Sequence[int] = 0
 ) -> EpisodeSplit:
     """
     Shuffle the episodes: ``round(fraction x episodes)`` (at least one) go to validation and to test, the rest to train.
 
     :param episode_ids: ``(N,)`` episode of each sample
     :param fractions: train, validation, test fractions of the episodes (summing to 1)
-    :param seed: seed of the shuffle
+    :param seed: seed of the shuffle (a sequence: ``numpy``'s seed of several entropy words, as :func:`agent_split`'s)
     :return: the split
     :raises InputError: with fewer than 3 episodes, or fractions that leave a set empty
     """
@@ -250,6 +250,12 @@ class ProbeSettings:
         maximum=1,
     )
     split_seed: int = setting(0, help="seed of the episode shuffle", unit=None)
+    split_per_agent: bool = setting(
+        False,
+        help="probe sweep: split the episodes of each agent's probe by its own shuffle, seeded by `split_seed` and the "
+        "agent's seed (default: one split for every agent)",
+        unit=None,
+    )
     batch_size: int = setting(256, help="observations per forward pass", unit="observations", minimum=1)
     memory_gb: float = setting(
         4.0, help="activations held at once, in GB; layers share a forward pass while they fit", unit="GB", above=0
@@ -277,6 +283,20 @@ class ProbeSettings:
                 raise ParameterError(option.name, f"{option.name} {problem}")
         check_fractions(self.fractions)
         check_device(self.device)
+
+
+def agent_split(episode_ids: np.ndarray, settings: ProbeSettings, agent: int | None = None) -> EpisodeSplit:
+    """
+    The episode split of one agent's probe: :func:`split_by_episode` seeded by ``settings.split_seed``, or with
+    ``settings.split_per_agent`` by ``(split_seed, agent)`` (each agent its own shuffle of the same episodes).
+
+    :param episode_ids: ``(N,)`` episode of each sample
+    :param settings: the probe's ``fractions``, ``split_seed`` and ``split_per_agent``
+    :param agent: the agent's seed (``None``: the shared split)
+    :return: the split
+    """
+    seed = [settings.split_seed, agent] if settings.split_per_agent and agent is not None else settings.split_seed
+    return split_by_episode(episode_ids, settings.fractions, seed)
 
 
 @dataclass
@@ -343,7 +363,8 @@ def probe_checkpoint(
     result, probes, pixel_key = CheckpointProbe(checkpoint), {}, None
     if reuse is not None and "cnn0" in layers:  # the exact values of cnn0 on a few observations
         pixels = collect_activations(model, observations[split.order[:16]], layers=["cnn0"])["cnn0"]
-        pixel_key = hashlib.sha1(pixels.cpu().numpy().tobytes()).hexdigest()
+        # The pixels as this model normalizes them, and the split: a probe is reused on the same samples and sets.
+        pixel_key = hashlib.sha1(pixels.cpu().numpy().tobytes() + split.order.tobytes()).hexdigest()
         if pixel_key in reuse:
             probes["cnn0"] = dataclasses.replace(reuse[pixel_key], fit_seconds=0.0, reused=True)
     wanted = {name: dim for name, dim in dims.items() if name not in probes}
@@ -408,17 +429,18 @@ def probe_each_checkpoint(
     paths: Sequence[str | Path],
     labels: Sequence[str],
     rollouts: Rollouts,
-    split: EpisodeSplit,
+    split: EpisodeSplit | Sequence[EpisodeSplit],
     settings: ProbeSettings,
     jobs: int = 1,
 ) -> list[list[dict[str, Any]]]:
     """
-    :func:`probe_checkpoint` of many checkpoints on the same rollouts, the first alone (the others reuse its ``cnn0``).
+    :func:`probe_checkpoint` of many checkpoints on the same rollouts, the first alone (the others reuse its ``cnn0``
+    where they share its split).
 
     :param paths: the checkpoints
     :param labels: their names in the rows (``checkpoint``)
     :param rollouts: the recorded observations and states
-    :param split: the episode split of the rollouts
+    :param split: the episode split of the rollouts, or one per checkpoint (:func:`agent_split`)
     :param settings: the probe's settings; ``settings.progress`` shows one bar over the checkpoints
     :param jobs: checkpoints probed at once (threads, each with ``settings.memory_gb / jobs``); the results do not
         depend on it
@@ -429,15 +451,19 @@ def probe_each_checkpoint(
     quiet = dataclasses.replace(settings, progress=False, memory_gb=settings.memory_gb / jobs)
     reuse: dict[str, LayerProbe] = {}
 
-    def probe_one(item: tuple[str | Path, str]) -> list[dict[str, Any]]:
+    splits = [split] * len(paths) if isinstance(split, EpisodeSplit) else list(split)
+    if len(splits) != len(paths):
+        raise ValueError(f"split: one split or one per checkpoint ({len(paths)}), got {len(splits)}.")
+
+    def probe_one(item: tuple[str | Path, str, EpisodeSplit]) -> list[dict[str, Any]]:
         checkpoint = load_checkpoint(item[0], device=device)
         checkpoint.label = item[1]
-        return probe_checkpoint(checkpoint, rollouts, split, quiet, reuse).rows
+        return probe_checkpoint(checkpoint, rollouts, item[2], quiet, reuse).rows
 
-    def in_order(work: list[tuple[str | Path, str]]) -> Iterator[list[dict[str, Any]]]:
+    def in_order(work: list[tuple[str | Path, str, EpisodeSplit]]) -> Iterator[list[dict[str, Any]]]:
         yield probe_one(work[0])  # alone: the others reuse its cnn0 probe
         with ThreadPoolExecutor(max_workers=jobs) as pool:
             yield from pool.map(probe_one, work[1:])  # in the order of work, whatever finishes first
 
-    work = list(zip(paths, labels))
+    work = list(zip(paths, labels, splits))
     return list(progress_bar(in_order(work), "probing checkpoints", "checkpoint", settings.progress, len(work)))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import inspect
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -175,12 +176,74 @@ class RecordOptions:
     frame_stack: int | None = setting(help="stacked RGB frames per observation", unit=None, minimum=1)
     size: int | None = setting(help="image height and width", unit="pixels", minimum=1)
     camera_id: int | None = setting(help="camera of the renders", unit=None)
+    pool_agents: int = setting(
+        1,
+        help="probe sweep: pool the rollouts of this many well-performing seeds (the best first), `episodes` in all "
+        'divided among them, each recorded with `seed` + its rank (Section 4.1: the samples are "collected from '
+        'well-performing agents"); the other commands record one checkpoint',
+        unit=None,
+        minimum=1,
+    )
 
-    def check(self) -> None:
-        """:raises ParameterError: for an option out of its declared range, before anything is loaded or recorded"""
+    def check(self, pooled: bool = False) -> None:
+        """
+        :param pooled: whether the caller records from several agents (``probe sweep``); else ``pool_agents`` must be 1
+        :raises ParameterError: for an option out of its declared range, before anything is loaded or recorded
+        """
         for option in fields(self):
             if (problem := declared_problem(option, getattr(self, option.name), integer=False)) is not None:
                 raise ParameterError(option.name, f"{option.name} {problem}")
+        if not pooled and self.pool_agents != 1:
+            message = "pools the rollouts of a sweep's best seeds (probe sweep); here they come from one checkpoint"
+            raise ParameterError("pool_agents", f"pool_agents={self.pool_agents} {message}: leave it at 1.")
+        if self.pool_agents > self.episodes:
+            message = (
+                f"pool_agents={self.pool_agents} needs at least one of the `episodes` per agent, got {self.episodes}."
+            )
+            raise ParameterError("pool_agents", message)
+
+    def shares(self) -> list[int]:
+        """:return: the episodes each of the ``pool_agents`` agents records, ``episodes`` in all (the first get the
+        remainder)"""
+        share, remainder = divmod(self.episodes, self.pool_agents)
+        return [share + (rank < remainder) for rank in range(self.pool_agents)]
+
+
+def pool_rollouts(parts: Sequence[Rollouts]) -> Rollouts:
+    """
+    The rollouts of several agents as one set: the samples in order, each part's episodes numbered after the
+    previous part's (a split by episode never mixes two agents' episodes in one episode).
+
+    :param parts: rollouts of the same task and env settings, with the same state components and reward inputs
+    :return: the pooled rollouts; ``metadata["pooled"]``: each part's metadata, ``metadata["agents"]``: their number
+    :raises InputError: when the parts were recorded in different envs or hold different components
+    """
+    if not parts:
+        raise InputError("pool_rollouts needs at least one Rollouts.", parameter="parts")
+    first = parts[0]
+    for part in parts[1:]:
+        same = (part.env_config, list(part.states), list(part.reward_inputs))
+        if same != (first.env_config, list(first.states), list(first.reward_inputs)):
+            raise InputError(
+                f"pooled rollouts must share their env settings and components: {part.env_config} vs "
+                f"{first.env_config}; record them with the same task, size and frame stack.",
+                parameter="parts",
+            )
+    offsets = np.cumsum([0] + [int(part.episode_ids.max()) + 1 if len(part) else 0 for part in parts[:-1]])
+    arrays = {name: np.concatenate([getattr(part, name) for part in parts]) for name in ARRAYS if name != "episode_ids"}
+    arrays["episode_ids"] = np.concatenate([part.episode_ids + offset for part, offset in zip(parts, offsets)])
+
+    def joined(kind: str) -> dict[str, np.ndarray]:
+        return {name: np.concatenate([getattr(part, kind)[name] for part in parts]) for name in getattr(first, kind)}
+
+    metadata = {"agents": len(parts), "pooled": [part.metadata for part in parts]}
+    return Rollouts(
+        states=joined("states"),
+        reward_inputs=joined("reward_inputs"),
+        env_config=dict(first.env_config),
+        metadata=metadata,
+        **arrays,
+    )
 
 
 def record_rollouts(

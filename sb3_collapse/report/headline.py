@@ -10,8 +10,10 @@ from statistics import NormalDist
 
 import numpy as np
 
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, PAPER_RESULTS, PROPOSITION_1, PaperResult
-from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON, read_settings
+from sb3_collapse.presets import reset_window_frames
+from sb3_collapse.protocol import CONFIG_JSON, RESULT_JSON
 from sb3_collapse.report.loading import Sweep, Trial
 from sb3_collapse.report.statistics import (
     BandCurve,
@@ -23,12 +25,12 @@ from sb3_collapse.report.statistics import (
     transplant_sources,
 )
 from sb3_collapse.report.tables import markdown_table
+from sb3_collapse.run.variants import BASELINE_VARIANT, RULE_VARIANT, split_variant
+from sb3_collapse.runfolder import read_json
 
 CONFIDENCE = 0.95
 """The confidence of every interval of the headline and of Proposition 1."""
 BOOTSTRAP_RESAMPLES = 2000
-BASELINE_VARIANT, RULE_VARIANT = "drqv2", "drqv2+reset"
-"""The variants of the paper's Figure 5: DrQ-v2, and DrQ-v2 plus the rule."""
 
 Interval = tuple[float, float]
 
@@ -125,23 +127,30 @@ class Estimate:
 @dataclass
 class HeadlineRow:
     """One task of the headline: the paper's numbers and the sweep's (``None``: not in the paper / the sweep); the
-    cells' definitions: :func:`headline_definitions`."""
+    cells' definitions: :func:`headline_definitions`. Both arms are counted by one test, the reset rule's own escape
+    test over each seed's logged checks (:func:`~sb3_collapse.report.statistics.escaped_at`): ``never_escaped_*``
+    is the paper's "seeds stuck in action collapse continuously" for DrQ-v2 and its "all 40 seeds of ours escape
+    action collapse" for the rule; ``stuck_end_*`` the seeds stuck at the end of training, a column of its own."""
 
     task: str
     paper: PaperResult | None
     baseline: VariantSummary | None
     rule: VariantSummary | None
-    stuck_baseline: Proportion | None
-    stuck_rule: Proportion | None
+    never_escaped_baseline: Proportion | None
     never_escaped_rule: Proportion | None
+    stuck_end_baseline: Proportion | None
+    stuck_end_rule: Proportion | None
     std_baseline: Estimate | None
     std_rule: Estimate | None
 
 
-def _never_escaped(row: VariantSummary | None) -> Proportion | None:
+def _never_escaped(row: VariantSummary | None, within_frames: int | None = None) -> Proportion | None:
+    """:return: ``row``'s seeds that never passed the escape test (within the first ``within_frames`` frames, when
+    given), of the seeds whose collapse state is known; ``None`` without seeds"""
     if row is None or row.seeds == 0:
         return None
-    return Proportion.of(row.reset_rule_seeds - row.escaped, row.reset_rule_seeds)
+    count = row.never_escaped if within_frames is None else row.stuck_after(within_frames)
+    return Proportion.of(count, len(row.escape_frames))
 
 
 def _stuck(row: VariantSummary | None) -> Proportion | None:
@@ -164,8 +173,8 @@ def headline_rows(
     baseline: str = BASELINE_VARIANT,
     rule: str = RULE_VARIANT,
 ) -> list[HeadlineRow]:
-    """The headline, a row per task (the paper's first, in its order): the ``baseline`` variant's stuck seeds, the
-    ``rule`` variant's seeds that never escaped and "the average standard deviation over the last ten evaluations",
+    """The headline, a row per task (the paper's first, in its order): each arm's seeds that never escaped (one test
+    for both), its seeds stuck at the end and "the average standard deviation over the last ten evaluations",
     beside the paper's."""
     by_key = {(row.task, row.variant): row for row in rows}
     papers = {result.task: result for result in PAPER_RESULTS}
@@ -176,16 +185,17 @@ def headline_rows(
         if task not in papers and base is None and ruled is None:
             continue
         stds = _std(sweep, base, settings), _std(sweep, ruled, settings)
-        headline.append(
-            HeadlineRow(task, papers.get(task), base, ruled, _stuck(base), _stuck(ruled), _never_escaped(ruled), *stds)
-        )
+        counts = _never_escaped(base), _never_escaped(ruled), _stuck(base), _stuck(ruled)
+        headline.append(HeadlineRow(task, papers.get(task), base, ruled, *counts, *stds))
     return headline
 
 
 @dataclass
 class Proposition1Row:
-    """Proposition 1 for one task and ``rule`` variant: p the ``baseline``'s ``stuck`` fraction, n the rule's whole
-    ``windows`` of m ``window_frames`` in the budget (``None``: unknown), the ``predicted`` ``1 - p^n``."""
+    """Proposition 1 for one task and ``rule`` variant: p the ``baseline``'s ``stuck`` fraction (its seeds with no
+    escape within the first window of m frames, by the rule's escape test), n the rule's whole ``windows`` of m
+    ``window_frames`` in the budget (``None``: unknown), the ``predicted`` ``1 - p^n``, and the rule's seeds that
+    ``escaped`` by the same test."""
 
     task: str
     baseline: str
@@ -199,35 +209,49 @@ class Proposition1Row:
 
 def rule_windows(trials: Sequence[Trial]) -> tuple[int | None, int | None]:
     """:return: Proposition 1's ``(n, m)`` from the settings of a rule variant's ``trials``: m the rule's window in
-    frames, n ``frames // m``; ``(None, None)`` when no settings file says, or they disagree"""
+    frames (a settings file without it: :func:`~sb3_collapse.presets.reset_window_frames` of its task, schedule and
+    action repeat, as the runner resolves it), n ``frames // m``; ``(None, None)`` when no settings file says, or
+    they disagree"""
     found = set()
     for trial in trials:
         try:
-            config = read_settings(trial.path / CONFIG_JSON)
-        except (OSError, ValueError):
+            config = read_json(trial.path / CONFIG_JSON)
+        except InputError:
             continue
-        frames, window = config.get("frames"), config.get("reset_window_frames") or PAPER.window_frames
+        frames, window = config.get("frames"), config.get("reset_window_frames")
+        if window is None:  # a settings file of a version that did not record it: the task's exploration end
+            try:
+                window = reset_window_frames(trial.task, config.get("stddev_schedule"), config.get("action_repeat"))
+            except ValueError:
+                continue
         if isinstance(frames, int) and isinstance(window, int) and window > 0:
             found.add((frames // window, window))
     return found.pop() if len(found) == 1 else (None, None)
 
 
 def proposition1_rows(sweep: Sweep, rows: Sequence[VariantSummary]) -> list[Proposition1Row]:
-    """Proposition 1 ("the probability of escaping action collapse when applying our proposed rule is 1 - p^n") per
-    task and ``<algorithm>+<intervention>`` variant whose plain algorithm is in the sweep."""
+    """
+    Proposition 1 ("the probability of escaping action collapse when applying our proposed rule is 1 - p^n") per
+    task and ``<algorithm>+<intervention>`` variant whose plain algorithm is in the sweep. One test counts both arms,
+    the rule's own (:func:`~sb3_collapse.report.statistics.escaped_at`): p, "the probability of getting stuck in
+    action collapse" in one window, is the fraction of the plain algorithm's seeds that did not escape within its
+    first m frames (a window of the rule is such a start from scratch; all of its frames when m is unknown); the
+    observed escape is the fraction of the rule's seeds that escaped.
+    """
     by_key = {(row.task, row.variant): row for row in rows}
     result = []
     for row in rows:
-        algorithm, plus, _ = row.variant.partition("+")
+        algorithm, suffix = split_variant(row.variant)
         base = by_key.get((row.task, algorithm))
-        if not plus or base is None or base.seeds == 0 or row.reset_rule_seeds == 0:
+        if suffix is None or base is None or base.seeds == 0 or row.reset_rule_seeds == 0:
             continue
-        stuck = _stuck(base)
         windows, window_frames = rule_windows(sweep.select(row.task, row.variant))
+        stuck = _never_escaped(base, window_frames)
         predicted = None
         if windows is not None and stuck.total:
             predicted = Estimate(escape_probability(stuck.fraction, windows), escape_interval(stuck.interval, windows))
-        escaped = Proportion.of(row.escaped, row.reset_rule_seeds)
+        known = len(row.escape_frames)
+        escaped = Proportion.of(known - row.never_escaped, known)
         result.append(
             Proposition1Row(row.task, algorithm, row.variant, stuck, windows, predicted, escaped, window_frames)
         )
@@ -263,11 +287,12 @@ def _estimate(value: Estimate | None) -> str:
 
 HEADLINE_HEADER = (
     "task",
-    "stuck in collapse, DrQ-v2: paper",
+    "stuck continuously (never escaped), DrQ-v2: paper",
     "this sweep",
-    "with the rule, never escaped: paper",
+    "with the rule: paper",
     "this sweep",
-    "with the rule, stuck at the end: this sweep",
+    "stuck at the end, DrQ-v2: this sweep",
+    "with the rule: this sweep",
     "std over last 10 evals, DrQ-v2: paper",
     "this sweep",
     "with the rule: paper",
@@ -276,7 +301,7 @@ HEADLINE_HEADER = (
 PROPOSITION1_HEADER = (
     "task",
     "rule",
-    "p: baseline stuck",
+    "p: baseline not escaped within m",
     "n windows (m frames)",
     "predicted escape 1 - p^n",
     "observed escape",
@@ -290,9 +315,12 @@ def headline_table(headline: Sequence[HeadlineRow]) -> list[list[str]]:
         p = row.paper
         papers = ("-",) * 4 if p is None else (f"{p.stuck_baseline}/{p.seeds}", f"{p.never_escaped_rule}/{p.seeds}")
         papers += () if p is None else (f"{p.std_baseline:.1f}", f"{p.std_rule:.1f}")
-        stuck, never, rule_stuck = map(_proportion, (row.stuck_baseline, row.never_escaped_rule, row.stuck_rule))
+        never = _proportion(row.never_escaped_baseline), _proportion(row.never_escaped_rule)
+        stuck = _proportion(row.stuck_end_baseline), _proportion(row.stuck_end_rule)
         stds = _estimate(row.std_baseline), _estimate(row.std_rule)
-        table.append([row.task, papers[0], stuck, papers[1], never, rule_stuck, papers[2], stds[0], papers[3], stds[1]])
+        table.append(
+            [row.task, papers[0], never[0], papers[1], never[1], *stuck, papers[2], stds[0], papers[3], stds[1]]
+        )
     return table
 
 
@@ -310,16 +338,19 @@ def headline_definitions(settings: ReportSettings) -> str:
     """:return: what the headline's and Proposition 1's cells mean, one paragraph"""
     return (
         f"Paper: Section 5.2 (40 seeds per task and variant). This sweep: {BASELINE_VARIANT} and {RULE_VARIANT}, "
-        "finished seeds. Stuck in collapse (DrQ-v2) and stuck at the end (the rule): seeds stuck at the end of "
-        "training (see the summary's definitions), of the seeds whose collapse state is known. Never escaped (the "
-        'rule; the paper: "all 40 seeds of ours escape action collapse"): seeds whose rule never saw an escape '
-        f"({RESULT_JSON}'s escaped false), of the seeds that ran the rule; a seed that escaped and collapsed again "
-        "counts as stuck at the end, not as never escaped. "
+        "finished seeds whose collapse state is known. Both arms are counted by one test, the rule's own escape "
+        f"test over each seed's logged checks ({settings.collapse_checks} consecutive {settings.collapse_tag} values "
+        f"above {settings.collapse_threshold:g}, the streak starting again after each of the rule's resets). Stuck "
+        'continuously (the paper: "seeds stuck in action collapse continuously", and for the rule "all 40 seeds of '
+        'ours escape action collapse"): seeds that never passed it. Stuck at the end: seeds stuck at the end of '
+        "training (see the summary's definitions); a seed that escaped and collapsed again counts there, not as "
+        f"stuck continuously ({RESULT_JSON}'s escaped, the rule's own record, is in the summary table). "
         f"Std over last {settings.last_evals} evals: the across-seed std at each of the last "
         f"{settings.last_evals} scheduled evaluations, averaged. Intervals: {CONFIDENCE:.0%}, Wilson for counts, "
         f"percentile bootstrap over seeds ({BOOTSTRAP_RESAMPLES} resamples) for the std. Proposition 1: p is the "
-        "baseline's stuck fraction, n the rule's whole windows in the budget; p's Wilson interval [lo, hi] gives "
-        "[1 - hi^n, 1 - lo^n]; observed escape: the rule's seeds whose rule saw an escape."
+        "fraction of the baseline's seeds that did not pass the test within the rule's window m (a window is such a "
+        "start from scratch), n the rule's whole windows in the budget; p's Wilson interval [lo, hi] gives "
+        "[1 - hi^n, 1 - lo^n]; observed escape: the rule's seeds that passed the test."
     )
 
 

@@ -14,11 +14,13 @@ from sb3_collapse.common.progress import progress_bar
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
+from sb3_collapse.run.variants import BASELINE_VARIANT, RULE_VARIANT
 from sb3_collapse.runfolder import (
     DAMAGED_RESULT_WAY_OUT,
     NOT_A_RUN,
     RunStatus,
     check_result_version,
+    final_return_of,
     read_collapse_metrics,
     read_evaluations,
     read_result,
@@ -66,13 +68,19 @@ class Trial:
 
     @property
     def final_return(self) -> float:
-        """The mean return of its last scheduled evaluation (nan unless finished): the paper's final return."""
-        return float(self.returns[-1]) if self.finished and len(self.returns) else float("nan")
+        """The paper's final return (:func:`~sb3_collapse.runfolder.final_return_of`; nan unless finished)."""
+        final = final_return_of(self.returns) if self.finished else None
+        return float("nan") if final is None else final
 
     @property
     def resets(self) -> int:
         """The result file's ``resets`` (0 without one)."""
         return int(self.result["resets"]) if self.result is not None else 0
+
+    @property
+    def reset_frames(self) -> list[int]:
+        """The result file's ``reset_frames``, the frames of the reset rule's interventions (empty without one)."""
+        return [int(frame) for frame in (self.result or {}).get("reset_frames") or ()]
 
     @property
     def escaped(self) -> bool | None:
@@ -122,7 +130,7 @@ class Sweep:
 
 def variant_order(variants: Iterable[str]) -> list[str]:
     """:return: the variant names in display order: ``drqv2``, ``drqv2+reset``, then the others sorted"""
-    first = {"drqv2": 0, "drqv2+reset": 1}
+    first = {BASELINE_VARIANT: 0, RULE_VARIANT: 1}
     return sorted(set(variants), key=lambda name: (first.get(name, 2), name))
 
 

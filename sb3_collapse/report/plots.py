@@ -16,8 +16,9 @@ from matplotlib.ticker import EngFormatter
 from sb3_collapse.monitoring.interventions import INTERVENTION_LABELS
 from sb3_collapse.paper import PAPER
 from sb3_collapse.report.loading import Trial
-from sb3_collapse.report.statistics import TRANSPLANT_SOURCES, BandCurve, GridCell, TransplantCurves
+from sb3_collapse.report.statistics import BandCurve, GridCell, TransplantCurves
 from sb3_collapse.report.style import OKABE_ITO, TOL_MUTED, frames_axis
+from sb3_collapse.run.variants import TRANSPLANT_SOURCES, split_variant
 
 REFERENCE_COLOR = "0.15"
 
@@ -33,8 +34,8 @@ def variant_colors(variants: Sequence[str]) -> dict[str, tuple[float, ...] | str
 
 def variant_label(variant: str) -> str:
     """:return: the legend name of ``variant``: ``<algorithm>+<intervention>`` gets the intervention's name"""
-    _, plus, intervention = variant.partition("+")
-    label = INTERVENTION_LABELS.get(intervention) if plus else None
+    _, suffix = split_variant(variant)
+    label = INTERVENTION_LABELS.get(suffix) if suffix is not None else None
     return variant if label is None else f"{variant}: {label}"
 
 

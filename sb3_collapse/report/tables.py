@@ -11,13 +11,13 @@ from typing import Any
 
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, FINISHED, RESULT_JSON
 from sb3_collapse.report.statistics import (
-    TRANSPLANT_SOURCES,
     GridCell,
     ReportSettings,
     TransplantCurves,
     VariantSummary,
     stages_caption,
 )
+from sb3_collapse.run.variants import TRANSPLANT_SOURCES
 
 SUMMARY_COLUMNS = tuple(
     f.name for f in fields(VariantSummary) if f.name not in ("dropped_frames", "finals", "seed_ids")

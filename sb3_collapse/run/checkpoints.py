@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import os
 import pickle
 import random
@@ -44,6 +43,7 @@ from sb3_collapse.protocol import (
     write_json_atomically,
 )
 from sb3_collapse.run.replay_checkpoint import ReplayStore, check_file_size, fsync_path
+from sb3_collapse.runfolder import read_json
 
 CHECKPOINT_FORMAT = 1  # version of the checkpoint layout; a checkpoint of another format is refused
 DAMAGED_NOTE = "damaged.txt"  # in a folder set aside as damaged (set_aside): why
@@ -58,9 +58,9 @@ def checkpoint_folders(directory: str | os.PathLike) -> list[Path]:
     return sorted(folders, key=lambda path: path.name, reverse=True)
 
 
-def _read_info(folder: Path) -> dict[str, Any]:
-    """:return: a checkpoint folder's ``checkpoint.json`` (not verified); raises ``OSError`` or ``ValueError``"""
-    return json.loads((folder / CHECKPOINT_JSON).read_text())
+def read_checkpoint_info(folder: Path) -> dict[str, Any]:
+    """:return: a checkpoint folder's ``checkpoint.json`` (not verified); :raises InputError: when unreadable"""
+    return read_json(folder / CHECKPOINT_JSON)
 
 
 def _digest(path: Path) -> dict[str, Any]:
@@ -158,7 +158,7 @@ def save_checkpoint(
         for stale in directory.glob(".step_*.partial"):  # left by a process killed while writing (the run is locked)
             shutil.rmtree(stale)
         partial.mkdir()
-        if isinstance(model.replay_buffer, FrameStackReplayBuffer):
+        if isinstance(model.replay_buffer, FrameStackReplayBuffer):  # the chunks first, durable; the manifest in info
             replay: dict[str, Any] = {"store": store.save(model.replay_buffer)}
         else:  # another buffer class: pickled whole into the state
             replay, state = {"pickle": True}, {**state, "replay_buffer": model.replay_buffer}
@@ -177,7 +177,7 @@ def save_checkpoint(
             "files": {path.name: _digest(path) for path in files},
             "replay": replay,
         }
-        write_json_atomically(partial / CHECKPOINT_JSON, info)
+        write_json_atomically(partial / CHECKPOINT_JSON, info)  # manifest last: it lists only chunks on disk
         if final.exists():  # a stale one of an earlier process at this step (resumed from an older checkpoint)
             shutil.rmtree(final)
         os.replace(partial, final)
@@ -197,7 +197,8 @@ def save_checkpoint(
     kept, manifests = kept[: max(1, keep)], []
     for folder in kept:
         with contextlib.suppress(OSError, ValueError, KeyError):
-            manifests.append(_read_info(folder)["replay"].get("store"))
+            manifests.append(read_checkpoint_info(folder)["replay"].get("store"))
+    # After the new checkpoint is in place (manifest last), so that its chunks are among those kept.
     if len(manifests) == len(kept) and None not in manifests:  # else a manifest's chunks would go
         store.collect_garbage(manifests)
     return final
@@ -207,7 +208,7 @@ def checkpoint_frames(directory: str | os.PathLike) -> int | None:
     """:return: the frames of the newest checkpoint in ``directory`` as it says (not verified), ``None`` without one"""
     for folder in checkpoint_folders(directory):
         with contextlib.suppress(OSError, ValueError, KeyError):
-            return int(_read_info(folder)["frames"])
+            return int(read_checkpoint_info(folder)["frames"])
     return None
 
 
@@ -228,7 +229,7 @@ class LoadedCheckpoint:
 
 def _read_checkpoint(folder: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     try:
-        info = _read_info(folder)
+        info = read_checkpoint_info(folder)
     except (OSError, ValueError) as error:
         raise CheckpointError(f"no readable {CHECKPOINT_JSON}: {error}", damaged=True) from None
     if info.get("format") != CHECKPOINT_FORMAT or info.get("version") != __version__:

@@ -14,7 +14,7 @@ import types
 from dataclasses import dataclass
 from typing import Any
 
-from sb3_collapse.baselines import BASELINES, NATURE_CNN_MIN_SIZE
+from sb3_collapse.baselines import NATURE_CNN_MIN_SIZE
 from sb3_collapse.drqv2 import StddevSchedule
 from sb3_collapse.drqv2.checks import check_hyperparameters
 from sb3_collapse.drqv2.encoders import ACTIVATIONS, check_image_size
@@ -24,10 +24,9 @@ from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseReset
 from sb3_collapse.paper import PAPER
-from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset
+from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset, reset_window_frames
 from sb3_collapse.protocol import SNAPSHOTS_DIR
-
-ALGORITHMS = ("drqv2", *BASELINES)  # what ``algorithm`` trains: DrQ-v2, or SB3's TD3 or SAC (baselines.py)
+from sb3_collapse.run.variants import ALGORITHMS, variant_name
 
 RESUME_FREE_SETTINGS = ("logdir", "run_name", "run_dir", "progress_bar", "verbose", "torch_threads", "device")
 RESUME_FREE_SETTINGS += ("checkpoint_every_frames", "sources")
@@ -171,8 +170,9 @@ class TrainConfig:
     """reset from scratch when the agent has not escaped action collapse within a window (the paper's rule)"""
     intervention: str | None = setting(cli=RUN, choices=tuple(INTERVENTIONS))
     """what the reset rule does instead of the paper's reset from scratch (needs `reset_rule`; docs/interventions.md)"""
-    reset_window_frames: int = setting(PAPER.window_frames, unit="frames")
-    """the reset rule's window, in frames (the paper's by default)"""
+    reset_window_frames: int | None = setting(unit="frames")
+    """the reset rule's window, in frames; default: Proposition 1's m, the frame at which `stddev_schedule` reaches
+    its final value (its duration x `action_repeat`: the paper's 2e5 for the easy tasks, 1e6 medium, 4e6 hard)"""
     activation: str = setting("relu", cli=RUN, choices=ACTIVATIONS)
     """hidden activation of DrQ-v2's networks: relu, or leaky_relu of slope 0.01 (the paper's footnote 1)"""
     redo_every_updates: int = setting(0, unit="updates", cli=RUN, minimum=0, zero_means="no ReDo")
@@ -218,13 +218,15 @@ class TrainConfig:
 
     @property
     def resolved(self) -> bool:
-        """Whether every preset setting has a value (:meth:`resolve` was called)."""
-        return all(getattr(self, name) is not None for name in SETTING_NAMES)
+        """Whether every preset setting and the rule's window have a value (:meth:`resolve` was called)."""
+        return all(getattr(self, name) is not None for name in (*SETTING_NAMES, "reset_window_frames"))
 
     def resolve(self) -> TrainConfig:
         """
         :return: a new config with every preset setting left at ``None`` taken from the task's preset, and
-            :attr:`sources` filled in; the preset's ``buffer_size`` is capped at the run's agent steps
+            :attr:`sources` filled in; the preset's ``buffer_size`` is capped at the run's agent steps; the rule's
+            window left at ``None``, :func:`~sb3_collapse.presets.reset_window_frames` of the resolved exploration
+            schedule and action repeat
         :raises ParameterError: for an unknown task (``env``)
         """
         try:
@@ -237,7 +239,13 @@ class TrainConfig:
         if sources["buffer_size"] == PRESET:  # a larger buffer is never filled
             steps = max(1, values["frames"] // max(1, values["action_repeat"]))
             values["buffer_size"] = min(values["buffer_size"], steps)
-        return dataclasses.replace(self, **values, sources=sources)
+        window = self.reset_window_frames
+        if window is None:
+            try:
+                window = reset_window_frames(self.env, values["stddev_schedule"], values["action_repeat"])
+            except ValueError:  # a malformed schedule: validate() names it
+                window = PAPER.window_frames
+        return dataclasses.replace(self, **values, reset_window_frames=window, sources=sources)
 
     def validate(self) -> None:
         """
@@ -303,10 +311,8 @@ class TrainConfig:
         """:attr:`variant`, or the name of the plain variant these settings run."""
         if self.variant is not None:
             return self.variant
-        base = self.algorithm + ("-leaky" if self.activation == "leaky_relu" else "")
-        if self.reset_rule:
-            return f"{base}+{self.intervention or 'reset'}"
-        return f"{base}+redo_periodic" if self.redo_every_updates > 0 else base
+        settings = (self.algorithm, self.activation, self.reset_rule, self.intervention, self.redo_every_updates)
+        return variant_name(*settings)
 
     def record(self) -> dict[str, Any]:
         """:return: the run's settings file: every setting (resolved), ``variant``, ``preset`` and ``sources``"""

@@ -23,13 +23,12 @@ from sb3_collapse.protocol import (
     LOCK_FILE,
     RESULT_JSON,
     blocking_file,
-    read_settings,
     write_json_atomically,
 )
 from sb3_collapse.run.checkpoints import DAMAGED_NOTE, LoadedCheckpoint, read_checkpoints, set_aside
 from sb3_collapse.run.config import RESUME_FREE_SETTINGS, TrainConfig
 from sb3_collapse.run.lock import RunLock
-from sb3_collapse.runfolder import RESUMABLE, RunStatus, run_status, unreadable_result
+from sb3_collapse.runfolder import RESUMABLE, RunStatus, read_json, run_status, unreadable_result
 
 
 def _check_run_dir(run_dir: Path) -> RunStatus:
@@ -76,8 +75,8 @@ def _resume_differences(run_dir: Path, config: TrainConfig, checkpoint: Path | N
     a settings file edited later) that is not ``config``'s; :raises ParameterError: for an unreadable settings file"""
     if checkpoint is None:
         try:
-            saved = read_settings(run_dir / CONFIG_JSON)
-        except (OSError, ValueError) as error:
+            saved = read_json(run_dir / CONFIG_JSON)
+        except InputError as error:
             raise ParameterError("run_dir", f"run_dir {run_dir}: its {CONFIG_JSON} cannot be read ({error}).") from None
         return settings_differences(saved, config)
     rates: set[float] = set()

@@ -99,6 +99,8 @@ class ReplayStore:
         _check_counters(buffer)
         live = _live_windows(buffer)
         base = self._base(buffer)
+        # Chunks are append-only (never modified, no name reused): the base's chunks still hold what they held, so
+        # the new manifest lists them again and adds only what is new.
         chain: list[dict[str, Any]] = [] if base is None else list(base.chunks)
         new = live
         if base is not None:
@@ -122,7 +124,7 @@ class ReplayStore:
             return None
         if buffer.transitions_added < tracked.transitions_added or (buffer.frame_heads < tracked.frame_heads).any():
             return None
-        for chunk in tracked.chunks:
+        for chunk in tracked.chunks:  # append-only: a chunk still there with its size holds what was saved
             path = self.directory / chunk["file"]
             if not path.is_file() or path.stat().st_size != chunk["bytes"]:
                 warnings.warn(
@@ -144,6 +146,8 @@ class ReplayStore:
             names = [int(match.group(1)) for name in os.listdir(self.directory) if (match := CHUNK_NAME.match(name))]
             for number, plan in enumerate(plans, start=max(names, default=0) + 1):  # no save reuses a name
                 written.append(self._write_chunk(buffer, plan, number))
+            # Manifest last: the caller writes the manifest that lists these chunks only after this returns, so
+            # their names are durable first and a manifest on disk never lists a chunk that is not.
             fsync_path(self.directory)
         except OSError as error:
             for chunk in written:
@@ -170,7 +174,7 @@ class ReplayStore:
                     size += data.nbytes
                 file.flush()
                 os.fsync(file.fileno())
-            os.rename(temporary, self.directory / name)
+            os.rename(temporary, self.directory / name)  # a chunk has its name only once complete and fsync'd
         except BaseException:
             temporary.unlink(missing_ok=True)
             raise
@@ -237,6 +241,8 @@ class ReplayStore:
         if not self.directory.is_dir():
             return 0
         freed = 0
+        # Manifest last: a chunk that no kept manifest lists belongs to a save whose checkpoint was never written, or
+        # is no longer needed; a temporary file is a save that never completed. Neither can be read by a resume.
         for path in self.directory.iterdir():
             name = path.name
             stray = name.startswith(f".{CHUNK_PREFIX}") and name.endswith(TEMP_SUFFIX)

@@ -257,9 +257,11 @@ def _run_callbacks(
         callbacks.append(CollapseMetrics(every, batch_size=batch, csv_path=run_dir / COLLAPSE_METRICS_CSV))
     reset_rule = None
     if config.reset_rule:
+        window = config.reset_window_frames  # resolved: the task's exploration end unless given
+        assert window is not None, "train() runs resolved settings."
         reset_rule = CollapseReset(
-            config.reset_window_frames,
-            check_every_frames=min(PAPER.check_every_frames, config.reset_window_frames),
+            window,
+            check_every_frames=min(PAPER.check_every_frames, window),
             batch_size=config.collapse_metrics_batch,
             events_path=run_dir / COLLAPSE_EVENTS_CSV,
             intervention=config.intervention or "reset",

@@ -16,11 +16,12 @@ import numpy as np
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import FINAL_MODEL
+from sb3_collapse.run.variants import BASELINE_VARIANT, BLANK_SOURCE, TRANSPLANT_SOURCES
 from sb3_collapse.runfolder import final_return, trial_folders
 from sb3_collapse.sweep.trials import canonical_task, donor_key
 
 DONOR_PARTS = ("cnn", "mlp")  # in the order a pick assigns them: the first agent drawn gives the CNN
-DONOR_SOURCES = ("good", "bad")  # the classes of donors (Figure 3(a)'s rows and columns besides blank)
+DONOR_SOURCES = tuple(s for s in TRANSPLANT_SOURCES if s != BLANK_SOURCE)  # good, bad: the classes of donors
 DONOR_KEYS = tuple(donor_key(source, part) for source in DONOR_SOURCES for part in DONOR_PARTS)  # good_cnn...
 
 
@@ -42,7 +43,7 @@ class Donor:
 def donor_candidates(
     sweep: str | Path,
     task: str,
-    variant: str = "drqv2",
+    variant: str = BASELINE_VARIANT,
     success_return: float = PAPER.success_return,
     failure_return: float = PAPER.failure_return,
 ) -> dict[str, list[Donor]]:
@@ -74,7 +75,7 @@ def pick_donors(
     sweep: str | Path,
     task: str,
     seed: int = 0,
-    variant: str = "drqv2",
+    variant: str = BASELINE_VARIANT,
     sources: Sequence[str] = DONOR_SOURCES,
     success_return: float = PAPER.success_return,
     failure_return: float = PAPER.failure_return,

@@ -15,12 +15,12 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
+from sb3_collapse.common.schedule import due_counts
 from sb3_collapse.drqv2.policies import CnnPolicy
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.replay_memory import bytes_per_transition, physical_memory_bytes
 from sb3_collapse.envs import ensure_rendering_backend, parse_task
 from sb3_collapse.errors import InputError
-from sb3_collapse.paper import evaluation_schedule
 from sb3_collapse.run.checkpoints import ResumableCheckpoints
 from sb3_collapse.run.config import TrainConfig, drqv2_kwargs
 from sb3_collapse.run.snapshots import SNAPSHOT_PREFIXES
@@ -55,6 +55,27 @@ def _drqv2_bytes(obs_shape: tuple[int, ...], action_dim: int, policy_kwargs: tup
     return size(state.values()) + 2 * size(optimized), snapshot
 
 
+def trial_events(config: TrainConfig) -> dict[str, int]:
+    """
+    :param config: a trial's resolved settings
+    :return: how many of each periodic output a run of it writes from frame 0, counted by the rule of the callbacks
+        that write them (:func:`~sb3_collapse.common.schedule.due_counts`): its scheduled evaluations
+        (``evaluations``, the rows of its evaluation file), its snapshots (``snapshots``: one per evaluation and the
+        final model's, with ``snapshots``) and its collapse checks (``collapse_checks``, each one row per tag)
+    """
+    per_step = config.action_repeat * config.n_envs  # type: ignore[operator]  # frames an agent step adds
+
+    def count(period: int, at_start: bool = False) -> int:
+        return len(due_counts(config.frames, period, per_step, at_start)) if period > 0 else 0  # 0: none
+
+    evaluations = count(config.eval_every_frames, at_start=True)  # type: ignore[arg-type]  # PeriodicEvaluation's
+    return {
+        "evaluations": evaluations,
+        "snapshots": evaluations + 1 if config.snapshots else 0,  # Snapshots: after each evaluation, the final model
+        "collapse_checks": count(config.collapse_metrics_every_frames),  # CollapseMetrics'
+    }
+
+
 def trial_bytes(config: TrainConfig) -> dict[str, int | None]:
     """
     :param config: a trial's resolved settings
@@ -74,10 +95,7 @@ def trial_bytes(config: TrainConfig) -> dict[str, int | None]:
     if config.algorithm == "drqv2":
         policy_kwargs = tuple(sorted(drqv2_kwargs(config)["policy_kwargs"].items()))
         model, snapshot = _drqv2_bytes(obs.shape, int(np.prod(action.shape)), policy_kwargs)
-    snapshots = 0  # one per evaluation (from frame 0, every eval_every_frames) and one of the final model
-    if config.snapshots and snapshot is not None:
-        steps = evaluation_schedule(config.frames, config.eval_every_frames, config.action_repeat * config.n_envs)  # type: ignore[arg-type,operator]
-        snapshots = snapshot * (len(steps) + 1)
+    snapshots = snapshot * trial_events(config)["snapshots"] if snapshot is not None else 0
     return {
         "replay_ram": round(per_transition * config.buffer_size),  # type: ignore[operator]
         "checkpoints_peak": round(chunks) + (KEEP + 1) * (model or 0),
@@ -119,10 +137,13 @@ def sweep_plan(
     :param gpus_per_trial: GPUs per trial
     :param frames_per_second: one trial's training frames per second (measured), for the time estimate
     :param out: the sweep folder, for the free space of its disk (``out_free_bytes``; ``None``: not measured)
-    :return: the plan (the sweep settings file's ``plan``): frames, agent steps and updates to train, bytes per (task,
-        variant), the disk the sweep holds at the end, the disk its pending trials write at most (``disk_needed_bytes``:
-        their final models and snapshots, and the checkpoints of those at once; ``largest_trial_disk_bytes``: one
-        trial's), this machine's RAM/CPUs/GPUs and the trials it runs at once
+    :return: the plan (the sweep settings file's ``plan``): frames, agent steps and updates to train, bytes and
+        :func:`trial_events` (``events``) per (task, variant), the disk the sweep holds at the end, the disk its
+        pending trials write at most (``disk_needed_bytes``: their final models and snapshots, and the checkpoints
+        of those at once; ``largest_trial_disk_bytes``: one trial's), this machine's RAM/CPUs/GPUs and the trials it
+        runs at once,
+        and the reset rule's window of each (task, variant) that runs it (``reset_window_frames``: the task's
+        exploration end unless given)
     """
     frames = steps = updates = 0
     for trial, done in done_frames.items():
@@ -134,6 +155,7 @@ def sweep_plan(
         every = config.train_freq if config.algorithm == "drqv2" else 1  # agent steps per update (SB3's: 1)
         updates += max(0, config.agent_steps - start) // every  # type: ignore[operator]
     groups = {_group(trial): trial_bytes(config) for trial, config in configs.items()}
+    events = {_group(trial): trial_events(config) for trial, config in configs.items()}
     pending = [groups[_group(trial)] for trial in done_frames]
     at_end = sum(groups[_group(trial)]["snapshots"] + (groups[_group(trial)]["model"] or 0) for trial in configs)
     node = {"ram_bytes": physical_memory_bytes(), "cpus": os.cpu_count() or 1, "gpus": th.cuda.device_count()}
@@ -148,10 +170,12 @@ def sweep_plan(
     hours = frames / (frames_per_second * at_once) / 3600 if frames_per_second and at_once else None
     return {
         "trials_pending": len(done_frames), "frames": frames, "agent_steps": steps, "updates": updates,
-        "bytes": groups, "disk_at_end_bytes": at_end, "node": node, "largest_replay_ram_bytes": largest,
+        "bytes": groups, "events": events, "disk_at_end_bytes": at_end, "node": node,
+        "largest_replay_ram_bytes": largest,
         "trials_at_once": at_once, "limits": limits, "frames_per_second": frames_per_second, "hours": hours,
         "disk_needed_bytes": needed, "largest_trial_disk_bytes": max(map(_trial_disk, pending), default=0),
         "out_free_bytes": None if out is None else free_bytes(out),
+        "reset_window_frames": {_group(t): c.reset_window_frames for t, c in configs.items() if c.reset_rule},
     }  # fmt: skip
 
 

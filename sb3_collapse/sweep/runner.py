@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import os
 import shutil
 import signal
@@ -12,6 +11,7 @@ import threading
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +20,6 @@ from sb3_collapse.common import progress
 from sb3_collapse.errors import FULL_DISK_ERRNOS, InputError, OutputError, TrainingInterrupted
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
-    CHECKPOINT_JSON,
     CHECKPOINTS_DIR,
     CONFIG_JSON,
     ERROR_TXT,
@@ -30,33 +29,27 @@ from sb3_collapse.protocol import (
     SWEEP_LOCK,
     SWEEP_STOP,
     blocking_file,
-    read_settings,
     write_json_atomically,
     write_text_atomically,
 )
-from sb3_collapse.run.checkpoints import CHECKPOINT_FORMAT, checkpoint_folders
+from sb3_collapse.run.checkpoints import CHECKPOINT_FORMAT, checkpoint_folders, read_checkpoint_info
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.folder import settings_differences, tidy_finished_run
 from sb3_collapse.run.lock import RunLock
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.signals import clear_training_stop, request_training_stop, stop_signal_handlers
+from sb3_collapse.run.variants import BLANK_SOURCE, transplant_of, variant_settings
 from sb3_collapse.runfolder import (
     DAMAGED_RESULT_WAY_OUT,
     RESUMABLE,
     RunStatus,
+    read_json,
     run_folder_owner,
     run_status,
     unreadable_result,
 )
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S, check_resources, import_ray, ray_session
-from sb3_collapse.sweep.trials import (
-    Trial,
-    donor_key,
-    transplant_of,
-    trial_config,
-    trial_dir,
-    variant_settings,
-)
+from sb3_collapse.sweep.trials import Trial, donor_key, trial_config, trial_dir
 
 
 def check_sweep(
@@ -97,7 +90,7 @@ def check_sweep(
         TrainConfig(**{**training, "env": task, **variant_settings(variant)}).validate()
     for trial in trials:
         for part, source in (transplant_of(trial.variant) or {}).items():
-            if source != "blank" and trial.task not in checkpoints.get(donor_key(source, part), {}):
+            if source != BLANK_SOURCE and trial.task not in checkpoints.get(donor_key(source, part), {}):
                 raise InputError(
                     f"Variant {trial.variant} takes the {part.upper()} of a {source} agent: pass --{source}-{part} "
                     f"PATH (or {trial.task}=PATH) for {trial.task}, or --donors-from a finished sweep."
@@ -127,7 +120,19 @@ def _check_writable(folder: Path) -> None:
         raise OSError(error.errno, error.strerror, str(folder)) from None
 
 
-IN_USE = "in use"  # a trial whose folder another process holds (a train): left as it is, trained by a later rerun
+class Attempt(str, Enum):
+    """The status of one attempt at a trial: the word :func:`run_trial` returns it with and the driver reads."""
+
+    FINISHED = FINISHED  # the run finished (its result file says so)
+    FAILED = "failed"  # its error file says why
+    INTERRUPTED = "interrupted"  # stopped by a signal at its checkpoint, or not started while the sweep stopped
+    IN_USE = "in use"  # another process holds its folder (a train): left as it is, trained by a later rerun
+
+    def __str__(self) -> str:
+        return self.value
+
+
+IN_USE = Attempt.IN_USE  # sweep/__main__.py's name of it
 UNREADABLE_RESULT = f"an unreadable {RESULT_JSON}"  # a trial a rerun would not change: not run, failed...
 OTHER_VERSION = "a checkpoint of another version"  # ... and neither is this one
 
@@ -138,11 +143,9 @@ def other_version_checkpoint(folder: Path) -> str | None:
     refuses; ``None`` otherwise"""
     for checkpoint in checkpoint_folders(folder / CHECKPOINTS_DIR):
         try:
-            info = json.loads((checkpoint / CHECKPOINT_JSON).read_text())
-        except (OSError, ValueError):
+            info = read_checkpoint_info(checkpoint)
+        except InputError:
             continue  # damaged: train passes over it to the one before
-        if not isinstance(info, dict):
-            continue
         if (
             info.get("format", CHECKPOINT_FORMAT) == CHECKPOINT_FORMAT
             and info.get("version", __version__) == __version__
@@ -158,13 +161,13 @@ def other_version_checkpoint(folder: Path) -> str | None:
 def trial_left_as_is(folder: Path) -> tuple[str, str] | None:
     """
     :param folder: the folder of a trial that has not finished
-    :return: why a sweep leaves it as it is, ``None`` when it trains it: ``(IN_USE, owner)`` while another process
-        holds its lock (a rerun once that ends trains it), ``(UNREADABLE_RESULT, line)`` or ``(OTHER_VERSION, line)``
-        where a rerun would not change it (the line says the way out)
+    :return: why a sweep leaves it as it is, ``None`` when it trains it: ``(Attempt.IN_USE, owner)`` while another
+        process holds its lock (a rerun once that ends trains it), ``(UNREADABLE_RESULT, line)`` or
+        ``(OTHER_VERSION, line)`` where a rerun would not change it (the line says the way out)
     """
     owner = run_folder_owner(folder)
     if owner is not None:
-        return IN_USE, owner
+        return Attempt.IN_USE, owner
     if (reason := unreadable_result(folder)) is not None:
         return UNREADABLE_RESULT, reason
     if (reason := other_version_checkpoint(folder)) is not None:
@@ -196,22 +199,22 @@ def run_trial(
     Run one trial into its folder (an unfinished attempt resumes; with other settings it is deleted first); a failure
     goes to the trial's error file. The parameters are :func:`~sb3_collapse.sweep.trials.trial_config`'s.
 
-    :return: ``{"trial", "status": "finished" | "failed" | "interrupted" | "in use", "error": its line (the owner
+    :return: ``{"trial", "status": an :class:`Attempt`, "error": its line (the owner
         when in use) or None, "resumes"}``, ``"retryable"`` when failed, ``"checkpoint"`` when stopped by a signal or
         the driver; a folder another process holds is left as it is (``"in use"``), nothing written into it
     """
     stop_file = Path(out) / SWEEP_STOP
     if stop_file.exists():  # the driver is stopping: a trial that had not started stays as it is
-        return {"trial": str(trial), "status": "interrupted", "error": "not started: the sweep was stopping"}
+        return {"trial": str(trial), "status": Attempt.INTERRUPTED, "error": "not started: the sweep was stopping"}
     folder = trial_dir(out, trial)
     owner = run_folder_owner(folder)
     if owner is not None:  # another process trains into it (checked again by train's lock): nothing written there
-        return {"trial": str(trial), "status": IN_USE, "error": owner}
+        return {"trial": str(trial), "status": Attempt.IN_USE, "error": owner}
     config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)
     if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
         try:
-            differences = settings_differences(read_settings(folder / CONFIG_JSON), config)
-        except (OSError, ValueError):
+            differences = settings_differences(read_json(folder / CONFIG_JSON), config)
+        except InputError:
             differences = ["unreadable settings"]
         if differences:  # the sweep's settings changed (allowed): this attempt cannot continue
             shutil.rmtree(folder)
@@ -220,16 +223,17 @@ def run_trial(
         with _stop_requests_watched(stop_file):
             result = train(config)
     except TrainingInterrupted as error:  # a signal to the worker: the checkpoint is there for the next sweep
-        return {"trial": str(trial), "status": "interrupted", "error": str(error), "checkpoint": str(error.checkpoint)}
+        checkpoint = str(error.checkpoint)
+        return {"trial": str(trial), "status": Attempt.INTERRUPTED, "error": str(error), "checkpoint": checkpoint}
     except Exception as error:  # noqa: BLE001  reported in the error file and in the sweep's summary
         owner = run_folder_owner(folder) if isinstance(error, InputError) else None
         if owner is not None:  # taken since the check above (train's lock refused it): left as it is
-            return {"trial": str(trial), "status": IN_USE, "error": owner}
+            return {"trial": str(trial), "status": Attempt.IN_USE, "error": owner}
         error_line = f"{type(error).__name__}: {error}"
         if _error_file_stamp(folder) in (None, before):  # train wrote none (its own starts with the step it failed at)
             error_line = write_error_file(folder, traceback.format_exc(), error_line)
-        return {"trial": str(trial), "status": "failed", "error": error_line, "retryable": retryable(error)}
-    return {"trial": str(trial), "status": FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
+        return {"trial": str(trial), "status": Attempt.FAILED, "error": error_line, "retryable": retryable(error)}
+    return {"trial": str(trial), "status": Attempt.FINISHED, "error": None, "resumes": result.summary.get("resumes", 0)}
 
 
 @contextlib.contextmanager
@@ -381,7 +385,7 @@ def prepare_sweep_folder(
     and that is not allowed), then, with ``write``, write there the tasks, variants, seeds and checkpoints of both.
     """
     path = Path(out) / SWEEP_JSON
-    previous: dict[str, Any] = read_settings(path) if path.is_file() else {}
+    previous: dict[str, Any] = read_json(path) if path.is_file() else {}
     changes = settings_changes(previous, settings) if path.is_file() else []
     if changes and not allow_changed_settings:
         raise InputError(
@@ -453,7 +457,7 @@ def run_sweep(
             if run_status(folder) == RunStatus.FINISHED:
                 summary.skipped.append(trial)
                 tidy_finished_run(folder)  # a trial killed after its result file left its checkpoints behind
-            elif (left := trial_left_as_is(folder)) is not None and left[0] == IN_USE:
+            elif (left := trial_left_as_is(folder)) is not None and left[0] == Attempt.IN_USE:
                 summary.in_use[trial] = left[1]
             elif left is not None:  # not repaired: neither run nor retryable
                 summary.damaged[trial] = left[1]
@@ -528,17 +532,17 @@ def _collect(ray: Any, ref: Any, trial: Trial, out: Path, summary: SweepSummary,
         line = f"{type(error).__name__}: {error}".splitlines()[0]
         # The first line reads on in the rerun's "The previous attempt failed: ...; resuming."
         text = f"failed: the Ray task of {trial} died\n{error}\n"
-        outcome = {"status": "failed", "error": write_error_file(trial_dir(out, trial), text, line)}
-    if outcome["status"] == FINISHED:
+        outcome = {"status": Attempt.FAILED, "error": write_error_file(trial_dir(out, trial), text, line)}
+    if outcome["status"] == Attempt.FINISHED:
         summary.finished.append(trial)
         if outcome.get("resumes"):
             summary.resumed.append(trial)
-    elif outcome["status"] == "interrupted":
+    elif outcome["status"] == Attempt.INTERRUPTED:
         checkpoint = outcome.get("checkpoint")
         summary.interrupted[trial] = Path(checkpoint) if checkpoint else None
         if checkpoint:
             bar.write(f"stopped {trial} at its checkpoint {checkpoint}")
-    elif outcome["status"] == IN_USE:
+    elif outcome["status"] == Attempt.IN_USE:
         summary.in_use[trial] = outcome["error"]
         bar.write(f"in use: {trial}: its folder is held by {outcome['error']}; left as it is")
     else:

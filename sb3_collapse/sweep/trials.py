@@ -14,27 +14,9 @@ from typing import Any
 from sb3_collapse.drqv2.transplant import resolve_source_path
 from sb3_collapse.envs import parse_task
 from sb3_collapse.errors import InputError
-from sb3_collapse.monitoring.interventions import INTERVENTIONS
-from sb3_collapse.monitoring.periodic_redo import REDO_EVERY_UPDATES
 from sb3_collapse.protocol import trial_path
-from sb3_collapse.run.config import ALGORITHMS, TrainConfig
-
-LEAKY = "-leaky"  # suffix of the DrQ-v2 variants with Leaky-ReLU activations (drqv2-leaky)
-PERIODIC_REDO = "redo_periodic"  # <algorithm>+redo_periodic: ReDo every REDO_EVERY_UPDATES updates, no rule
-BASE_VARIANTS = ("drqv2", f"drqv2{LEAKY}", *(algorithm for algorithm in ALGORITHMS if algorithm != "drqv2"))
-PLAIN_VARIANTS = tuple(
-    f"{base}{suffix}"
-    for base in BASE_VARIANTS
-    for suffix in ("", *(f"+{i}" for i in INTERVENTIONS), f"+{PERIODIC_REDO}")
-)
-TRANSPLANT_SOURCES = ("blank", "good", "bad")
-GRID_VARIANTS = tuple(f"cnn-{cnn}_mlp-{mlp}" for cnn in TRANSPLANT_SOURCES for mlp in TRANSPLANT_SOURCES)
-VARIANT_FORMS = (
-    f"<algorithm>, <algorithm>+<intervention> with <algorithm> in {', '.join(BASE_VARIANTS)} and <intervention> in "
-    f"{', '.join(INTERVENTIONS)} (the paper's rule doing it) or {PERIODIC_REDO} (ReDo every {REDO_EVERY_UPDATES} "
-    "updates, no rule), e.g. drqv2+reset, td3+redo, drqv2-leaky+redo_periodic; or a transplant-grid cell "
-    f"cnn-<src>_mlp-<src> with <src> in {', '.join(TRANSPLANT_SOURCES)} (e.g. cnn-good_mlp-bad)"
-)
+from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.variants import BLANK_SOURCE, GRID_VARIANTS, VARIANT_FORMS, transplant_of, variant_settings  # noqa: F401  sweep/__main__.py imports them here
 
 
 def donor_key(source: str, part: str) -> str:
@@ -67,41 +49,6 @@ def canonical_task(name: str) -> str:
     except ValueError as error:
         raise InputError(str(error)) from None
     return f"{domain}-{task}"
-
-
-def transplant_of(variant: str) -> dict[str, str] | None:
-    """
-    :param variant: a variant name
-    :return: ``{"cnn": src, "mlp": src}`` for a transplant-grid cell, ``None`` for a plain variant
-    :raises InputError: for an unknown variant, listing the valid ones
-    """
-    if variant in PLAIN_VARIANTS:
-        return None
-    if variant in GRID_VARIANTS:
-        cnn, mlp = variant.split("_")
-        return {"cnn": cnn.removeprefix("cnn-"), "mlp": mlp.removeprefix("mlp-")}
-    raise InputError(f"Unknown variant {variant!r}: use {VARIANT_FORMS}.")
-
-
-def variant_settings(variant: str) -> dict[str, Any]:
-    """
-    :param variant: a variant name (an unknown one: ``InputError``)
-    :return: the ``TrainConfig`` settings it fixes: algorithm, reset_rule, intervention, activation, redo_every_updates
-    """
-    settings: dict[str, Any] = {
-        "algorithm": "drqv2", "reset_rule": False, "intervention": None, "activation": "relu", "redo_every_updates": 0
-    }  # fmt: skip
-    if transplant_of(variant) is not None:
-        return settings
-    base, _, suffix = variant.partition("+")
-    settings["algorithm"] = base.removesuffix(LEAKY)
-    if base.endswith(LEAKY):
-        settings["activation"] = "leaky_relu"
-    if suffix == PERIODIC_REDO:
-        settings["redo_every_updates"] = REDO_EVERY_UPDATES
-    elif suffix:
-        settings.update(reset_rule=True, intervention=suffix)
-    return settings
 
 
 def expand_trials(tasks: Iterable[str], variants: Iterable[str], seeds: Iterable[int]) -> list[Trial]:
@@ -202,6 +149,6 @@ def trial_config(
         "progress_bar": False,
     }  # fmt: skip
     for part, source in (transplant or {}).items():
-        if source != "blank":
+        if source != BLANK_SOURCE:
             per_trial[f"init_{part}"] = (checkpoints or {})[donor_key(source, part)][trial.task]
     return TrainConfig(**{**training, **per_trial}).resolve()

@@ -14,6 +14,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_collapse import ActivationLogger, CollapseMetrics, CollapseReset, DrQv2
+from sb3_collapse.common.schedule import due_counts
 from sb3_collapse.monitoring import FrameScheduleCallback, MetricsBatchSampler
 from tests.random_env import RandomObservationEnv
 
@@ -133,6 +134,9 @@ def test_checks_follow_frames_with_several_envs_and_action_repeat():
     assert recorder.checks == [(16, 32), (30, 60), (46, 92)]  # the first frame count >= 30, 60, 90
     # A step that crosses two multiples of 3 (e.g. frames 8 -> 12 cross 9 and 12) gives one check.
     assert every_step.checks == [(t, 2 * t) for t in range(2, 52, 2)]  # learn() ends at 50 (2 transitions per round)
+    # The offline count of the same rule (the sweep's plan) finds the same frames: 100 frames in steps of 4.
+    for callback in (recorder, every_step):
+        assert [frames for _, frames in callback.checks] == due_counts(100, callback.period, per_step=4)
 
 
 def test_metrics_skip_checks_while_the_buffer_is_small(capsys):

@@ -10,6 +10,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_collapse import CollapseMetrics, CollapseReset, DrQv2
 from sb3_collapse.monitoring import grad_norms_of
+from sb3_collapse.monitoring.reset import escape_step, first_escape
 from tests.random_env import RandomObservationEnv
 
 PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
@@ -117,6 +118,9 @@ def test_collapsed_actor_is_reset_from_scratch_at_the_end_of_the_window(tmp_path
     assert model.last_grad_norms["mlp1"] > 1e-3
     # The fresh actor is healthy: it escapes, and the rule stops.
     assert rule.escaped and rule.escape_frame > 240
+    # The report's reading of the logged checks is the rule's own test: the same escape frame.
+    frames, values = zip(*rule.history)
+    assert first_escape(frames, values, patience=RULE["patience"], restarts=rule.reset_frames) == rule.escape_frame
     # The events file: one row per reset and the escape, in frames and agent steps.
     with open(tmp_path / "collapse_events.csv") as file:
         rows = list(csv.DictReader(file))
@@ -136,6 +140,23 @@ def test_collapsed_actor_is_reset_from_scratch_at_the_end_of_the_window(tmp_path
         },
     ]
     assert rule.interventions[0].scalars["transitions_dropped"] == 99
+
+
+def test_the_escape_test_over_logged_checks():
+    # Section 5.2: "a gradient norm larger than 0.001 of consecutive five computations".
+    assert (
+        escape_step(4, 2e-3) == (5, True) and escape_step(4, 1e-3) == (0, False) and escape_step(4, None) == (4, False)
+    )
+    frames = list(range(10, 130, 10))
+    healthy = [1e-6, 1e-6, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 1e-6]
+    assert first_escape(frames, healthy) == 70  # the fifth healthy check in a row
+    assert first_escape(frames, healthy[:6] + [1e-6] * 6) is None  # four in a row: no escape
+    gaps = [1e-6, 1e-6, 0.05, 0.05, float("nan"), 0.05, None, 0.05, 0.05, 1e-6, 1e-6, 1e-6]
+    assert first_escape(frames, gaps) == 90  # a check without a value leaves the streak as it is
+    # A reset at frame 50 starts a new window: the streak starts again after it (the check at 50 is the old window's).
+    assert first_escape(frames, healthy, restarts=[50]) == 100
+    assert first_escape(frames, healthy, restarts=[40]) == 90
+    assert first_escape([], []) is None
 
 
 def test_events_file_has_a_header_when_nothing_happens(tmp_path):

@@ -7,6 +7,7 @@ from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.probe import ProbeSettings, Rollouts
 from sb3_collapse.probe.pipeline import RecordOptions
 from sb3_collapse.probe.probing import (
+    agent_split,
     plan_passes,
     probe_layer,
     probe_warnings,
@@ -35,6 +36,21 @@ def test_split_never_cuts_an_episode():
         split_by_episode(np.array([0, 0, 1, 1]))
     with pytest.raises(InputError, match="fractions"):
         split_by_episode(episode_ids, (0.5, 0.2, 0.2))
+
+
+def test_a_split_per_agent():
+    # One split for every agent by default; with split_per_agent, each agent's own shuffle of the same episodes,
+    # seeded by (split_seed, its seed): the same agent gets the same split again.
+    episode_ids = np.repeat(np.arange(20), 5)
+    shared = ProbeSettings(split_seed=3)
+    assert agent_split(episode_ids, shared, 0).episodes == agent_split(episode_ids, shared, 7).episodes
+    assert agent_split(episode_ids, shared, 0).episodes == split_by_episode(episode_ids, seed=3).episodes
+    own = ProbeSettings(split_seed=3, split_per_agent=True)
+    splits = {seed: agent_split(episode_ids, own, seed).episodes for seed in range(4)}
+    assert len({str(episodes) for episodes in splits.values()}) == 4  # four different test sets
+    assert agent_split(episode_ids, own, 2).episodes == splits[2]
+    assert agent_split(episode_ids, ProbeSettings(split_seed=4, split_per_agent=True), 2).episodes != splits[2]
+    assert agent_split(episode_ids, own).episodes == split_by_episode(episode_ids, seed=3).episodes  # no agent
 
 
 def test_features_standardized_in_place_with_train_statistics():
@@ -133,9 +149,15 @@ def test_settings_and_record_options_are_checked_against_their_declared_ranges()
         (RecordOptions(episodes=0), "episodes must be >= 1, got 0."),
         (RecordOptions(max_steps=0), "max_steps must be >= 1, got 0."),
         (RecordOptions(noise_std=float("nan")), "noise_std must be >= 0, got nan."),
+        (RecordOptions(pool_agents=2), r"pool_agents=2 pools the rollouts of a sweep's best seeds \(probe sweep\)"),
+        (RecordOptions(pool_agents=0), "pool_agents must be >= 1, got 0."),
     ]:
         with pytest.raises(ParameterError, match=message):
             options.check()
+    RecordOptions(pool_agents=3, episodes=20).check(pooled=True)
+    assert RecordOptions(pool_agents=3, episodes=20).shares() == [7, 7, 6]
+    with pytest.raises(ParameterError, match="pool_agents=3 needs at least one of the `episodes` per agent, got 2"):
+        RecordOptions(pool_agents=3, episodes=2).check(pooled=True)
 
 
 def test_probe_warns_of_barely_varying_targets_and_of_too_few_test_samples():

@@ -6,7 +6,7 @@ import pytest
 from sb3_collapse import DrQv2, make_dmc_env
 from sb3_collapse.errors import InputError
 from sb3_collapse.probe import Rollouts, record_rollouts
-from sb3_collapse.probe.rollouts import resolve_env_config
+from sb3_collapse.probe.rollouts import pool_rollouts, resolve_env_config
 
 ENV = {"action_repeat": 8, "frame_stack": 3, "size": 32}
 
@@ -47,6 +47,23 @@ def test_recorded_arrays_and_walker_targets(rollouts):
     assert len(names) == 27 and groups.count("velocity") == 9 and values.shape == (12, 27)
     # walker's observed height is the torso height its reward reads
     np.testing.assert_array_equal(values[:, 14], values[:, 24])
+
+
+def test_rollouts_of_several_agents_are_pooled(model, rollouts):
+    # Section 4.1: "All the samples in three sets are collected from well-performing agents".
+    config = resolve_env_config(model.env_config)
+    other = record_rollouts(model, config, episodes=2, seed=6, max_steps=3, progress=False)
+    pooled = pool_rollouts([rollouts, other])
+    assert len(pooled) == 12 + 6 and pooled.n_episodes == 5
+    assert pooled.episode_ids.tolist() == [0] * 4 + [1] * 4 + [2] * 4 + [3] * 3 + [4] * 3  # never one mixed episode
+    np.testing.assert_array_equal(pooled.observations[12:], other.observations)
+    for name in rollouts.states:
+        np.testing.assert_array_equal(pooled.states[name], np.concatenate([rollouts.states[name], other.states[name]]))
+    assert pooled.reward_inputs.keys() == rollouts.reward_inputs.keys() and pooled.env_config == rollouts.env_config
+    assert pooled.metadata["agents"] == 2 and [m["seed"] for m in pooled.metadata["pooled"]] == [5, 6]
+    moved = Rollouts(**{**vars(other), "env_config": {**other.env_config, "size": 64}})
+    with pytest.raises(InputError, match="pooled rollouts must share their env settings"):
+        pool_rollouts([rollouts, moved])
 
 
 def test_state_is_the_one_behind_each_observation(model, rollouts):

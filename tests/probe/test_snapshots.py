@@ -192,6 +192,31 @@ def test_probe_sweep_draws_figure2_and_tables(run, tmp_path, capsys):
     assert "--snapshots" in capsys.readouterr().err
 
 
+def test_probe_sweep_pools_good_agents_and_splits_per_agent(run, tmp_path, capsys):
+    # Rollouts "collected from well-performing agents": the two best seeds' rollouts pooled; each agent's probe on
+    # its own split: cnn0 (the pixels, the same for every agent at every stage) then varies across agents.
+    root = write_probe_sweep(tmp_path / "sweep", run.run_dir, {0: 950.0, 1: 920.0, 2: 20.0, 3: 10.0})
+    argv = ["sweep", str(root), "--task", "walker-walk", "--episodes", "7", "--max-steps", "3", "--max-tau", "4"]
+    argv += ["--layers", "cnn0", "mlp1", "--no-progress", "--pool-agents", "2", "--split-per-agent"]
+    assert probe_main(argv) == 0
+    out = root / SWEEP_PROBE_DIR.format(task="walker-walk", variant="drqv2")
+    summary = json.loads((out / "summary.json").read_text())
+    sources = summary["rollouts"]["recorded_from"].split(", ")
+    assert [Path(source).parent.name for source in sources] == ["seed_0", "seed_1"]  # the two best
+    assert (summary["rollouts"]["episodes"], summary["rollouts"]["samples"]) == (7, 21)  # 4 + 3 episodes
+    assert summary["settings"]["split_per_agent"] is True
+    with (out / TABLES_1_6_CSV).open() as file:
+        tables = list(csv.DictReader(file))
+    cnn0 = [t for t in tables if t["layer"] == "cnn0" and t["table"] in ("1", "2", "3", "4", "5", "6")]
+    assert all(float(t["std"]) > 0 for t in cnn0)  # each agent's split: cnn0 differs across agents...
+    for row in ("well-performing", "poorly performing"):
+        stds = {t["std"] for t in cnn0 if t["row"] == row and t["column"] == "torso height"}
+        assert len(stds) == 1  # ...and is the same at every stage (the same pixels, the same splits)
+    # More agents to pool than well-performing seeds: one line naming the flag, nothing written.
+    assert probe_main([*argv[:-3], "--pool-agents", "3", "--overwrite"]) == 2
+    assert "--pool-agents=3 but walker-walk / drqv2 has 2 well-performing trial(s)" in capsys.readouterr().err
+
+
 def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
     """Every snapshot of the picked agents run on the same observations: the metrics are layer_metrics of
     the snapshot's activations of those observations."""

@@ -743,6 +743,8 @@ def test_plan_of_a_fabricated_preset_by_hand():
             "replay_ram": replay, "checkpoints_peak": checkpoints, "snapshots": snapshots, "model": model
         }
     }  # fmt: skip
+    # Evaluations at frames 0, 1000, 2000 and 3000; collapse checks every 10,000 frames (the default): none in 4,000.
+    assert plan["events"] == {"cartpole-balance/drqv2": {"evaluations": 4, "snapshots": 5, "collapse_checks": 0}}
     assert plan["trials_pending"] == 2
     assert plan["frames"] == 4000 + 2000 and plan["agent_steps"] == 1000 + 500
     assert plan["updates"] == (1000 - 100) // 2 + (1000 - 500) // 2  # no update in the warm-up
@@ -793,6 +795,17 @@ def test_tiny_sweep_records_its_plan_and_the_report_shows_it(tiny_sweep):
     assert plan["trials_pending"] == 4 and plan["frames"] == 4 * 1000 and plan["agent_steps"] == 4 * 50
     assert set(plan["bytes"]) == {"walker-walk/drqv2", "walker-walk/drqv2+reset"}
     assert "trials_pending" in settings_table(settings)
+    # The plan's counts (by the callbacks' own rule) are what each trial wrote: evaluations at frame 0 only (1000 is
+    # the budget's end), snapshots of it and of the final model, collapse checks at frames 500 and 1000.
+    for group, events in plan["events"].items():
+        assert events == {"evaluations": 1, "snapshots": 2, "collapse_checks": 2}
+        for folder in (tiny_sweep / group).glob("seed_*"):
+            written = {
+                "evaluations": len(read_csv(folder / "eval.csv")),
+                "snapshots": len(list((folder / "snapshots").glob("*.zip"))),
+                "collapse_checks": len({row["frame"] for row in read_csv(folder / "collapse_metrics.csv")}),
+            }
+            assert written == events, folder
 
 
 # The fabricated preset of PLAN_PRESET as flags (the trials write 2.3 MB each at most: 1.9 MB of checkpoints at their
