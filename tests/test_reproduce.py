@@ -126,12 +126,12 @@ def _job(out):
 
 def test_a_rerun_trains_nothing(tiny_reproduction, capsys):
     out, _, _ = tiny_reproduction
-    before = mtimes(out / "sweep")
+    before = mtimes(out)
     assert main(["--out", str(out), "--scale", "tiny", "--no-progress-bar"]) == 0
     printed = capsys.readouterr().out
     for stage in ("sweep", "transplant", "probe", "film", "report"):
-        assert f"stage {stage}: done before" in printed
-    assert "Started a local Ray" not in printed and mtimes(out / "sweep") == before
+        assert f"stage {stage}: done before ({out / 'stages' / stage}.json): skipped" in printed
+    assert mtimes(out) == before  # no trial trained, no file written again
 
 
 def test_dry_run_writes_nothing_and_prints_gpu_hours_and_disk(tiny_reproduction, tmp_path, capsys):
