@@ -4,6 +4,7 @@
 import csv
 import json
 import re
+import shutil
 
 import matplotlib.image
 import pytest
@@ -176,3 +177,22 @@ def test_out_holding_something_else_is_refused(tiny_reproduction, tmp_path, caps
     with pytest.raises(SystemExit):  # another count than the reproduction's
         main(["--out", str(tiny_reproduction[0]), "--scale", "tiny", "--seeds", "5"])
     assert "--seeds: " in capsys.readouterr().err
+
+
+def test_a_damaged_trial_is_named_and_the_rest_goes_on(tiny_reproduction, tmp_path, capsys):
+    out = tmp_path / "copy"
+    shutil.copytree(tiny_reproduction[0], out)
+    damaged = out / "sweep" / "hopper-stand" / "drqv2+reset" / "seed_1"
+    (damaged / "result.json").write_text('{"status": "fini')  # truncated: a rerun would not change it
+    for stage in ("sweep", "report"):
+        (out / "stages" / f"{stage}.json").unlink()
+    trials = mtimes(out / "sweep" / "walker-walk")
+    assert main(["--out", str(out), "--scale", "tiny", "--no-progress-bar", "--stages", "sweep", "report"]) == 0
+    printed = capsys.readouterr().out
+    assert "  failed: hopper-stand/drqv2+reset/seed_1: " in printed and "not a readable JSON file" in printed  # named
+    assert "stage sweep: done in" in printed and "stage report: done in" in printed  # the rest went on
+    assert list(json.loads((out / "stages" / "sweep.json").read_text())["damaged"]) == [
+        "hopper-stand/drqv2+reset/seed_1"
+    ]
+    unfinished = (out / "report" / "summary.md").read_text().split("## Unfinished trials")[1]
+    assert "| hopper-stand | drqv2+reset | 1 |" in unfinished and mtimes(out / "sweep" / "walker-walk") == trials

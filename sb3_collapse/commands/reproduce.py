@@ -311,22 +311,24 @@ def _grid_variants() -> tuple[str, ...]:
 # --- the stages ------------------------------------------------------------------------------------------------------
 
 
-class StageFailed(Exception):
-    """A stage ended without its outputs (its trials failed, a task could not be probed): named, the rest goes on."""
+NOT_DONE = "not_done"
+"""The key of a stage's record that says why it ended without its outputs (its trials failed, a task could not be
+probed): the stage stays undone, named, and the stages that do not read it go on."""
 
 
 def run_sweep_stage(job: Reproduction, trials: list, checkpoints: Mapping, donors: Mapping | None) -> dict[str, Any]:
     """Train ``trials`` into the sweep folder (finished ones skipped, unfinished ones resumed).
 
-    :return: the stage's record: trials, and the damaged ones named
-    :raises StageFailed: when a trial failed in a way a rerun may fix (``KeyboardInterrupt``: interrupted)
+    :return: the stage's record: trials, and the damaged ones named (:data:`NOT_DONE` when a trial failed in a way
+        a rerun may fix; ``KeyboardInterrupt`` when interrupted)
     """
     from sb3_collapse.sweep.__main__ import print_summary
     from sb3_collapse.sweep.cluster import import_ray, ray_session
-    from sb3_collapse.sweep.runner import run_sweep
+    from sb3_collapse.sweep.runner import run_sweep, trial_left_as_is
     from sb3_collapse.sweep.trials import trial_dir
 
-    pending = any(run_status(trial_dir(job.sweep, trial)) != RunStatus.FINISHED for trial in trials)
+    folders = [trial_dir(job.sweep, trial) for trial in trials]  # to train: neither finished nor left as they are
+    pending = any(run_status(folder) != RunStatus.FINISHED and trial_left_as_is(folder) is None for folder in folders)
     if pending and not import_ray().is_initialized():  # one Ray for both training stages (run_sweep takes it as is)
         job.resources.enter_context(ray_session(job.address, connect_timeout_s=job.connect_timeout_s))
 
@@ -347,7 +349,7 @@ def run_sweep_stage(job: Reproduction, trials: list, checkpoints: Mapping, donor
     if summary.interrupted:
         raise KeyboardInterrupt
     if status != 0 and set(summary.failed) - set(summary.damaged):
-        raise StageFailed(f"{len(summary.failed)} trial(s) failed (listed above); run the same command again")
+        return {NOT_DONE: f"{len(summary.failed)} trial(s) failed (listed above)"}
     return {
         "trials": len(trials),
         "trained_now": len(summary.finished),
@@ -361,16 +363,14 @@ def stage_sweep(job: Reproduction) -> dict[str, Any]:
 
 
 def pick_grid_donors(job: Reproduction) -> tuple[dict[str, dict[str, str]], dict[str, Any], Classes]:
-    """:return: the grid's donor checkpoints (key -> task -> path), their record, and the classes they were drawn by"""
+    """:return: the grid's donor checkpoints (key -> task -> path), their record, and the classes they were drawn by
+    (:raises InputError: a class of fewer than two agents)"""
     from sb3_collapse.sweep.donors import donors_record, pick_donors
 
     task, classes = job.transplant_task, job.classes(job.transplant_task)
-    try:
-        picked = pick_donors(
-            job.sweep, task, 0, "drqv2", success_return=classes.success_return, failure_return=classes.failure_return
-        )
-    except InputError as error:
-        raise StageFailed(str(error).replace("--donors-from ", "")) from None
+    picked = pick_donors(
+        job.sweep, task, 0, "drqv2", success_return=classes.success_return, failure_return=classes.failure_return
+    )
     checkpoints = {key: {task: donor.path} for key, donor in picked.items()}
     record = donors_record(job.sweep, 0, "drqv2", {task: picked}, classes.success_return, classes.failure_return)
     return checkpoints, record, classes
@@ -378,12 +378,14 @@ def pick_grid_donors(job: Reproduction) -> tuple[dict[str, dict[str, str]], dict
 
 def stage_transplant(job: Reproduction) -> dict[str, Any]:
     """Stage ``transplant``: the nine cells on Study 2's task, from two good and two bad agents of the sweep."""
-    checkpoints, record, classes = pick_grid_donors(job)
+    try:
+        checkpoints, record, classes = pick_grid_donors(job)
+    except InputError as error:
+        return {NOT_DONE: str(error).replace("--donors-from ", "")}
     print(classes.line(f"donors of {job.transplant_task}"))
     for key, donor in record["tasks"][job.transplant_task].items():
         print(f"  donor {key}: seed {donor['seed']} (final return {donor['final_return']:.1f}) {donor['path']}")
-    done = run_sweep_stage(job, job.grid_trials(), checkpoints, record)
-    return {**done, "donors": record}
+    return {**run_sweep_stage(job, job.grid_trials(), checkpoints, record), "donors": record}
 
 
 def stage_probe(job: Reproduction) -> dict[str, Any]:
@@ -416,18 +418,16 @@ def stage_probe(job: Reproduction) -> dict[str, Any]:
                 failed.append(task)
                 continue
         done[task] = {"folder": str(folder), **dataclasses.asdict(classes)}
-    if failed:
-        raise StageFailed(f"probe: {', '.join(failed)} not probed (the reason above)")
-    return {"tasks": done}
+    return {"tasks": done, **({NOT_DONE: f"{', '.join(failed)} not probed (the reason above)"} if failed else {})}
 
 
 def film_agents(job: Reproduction, task: str) -> tuple[tuple[int, float], tuple[int, float], Classes, str]:
     """:return: the good and the poor agent filmed of ``task`` (seed, final return): the best well-performing and
     the worst poorly performing DrQ-v2 seeds, their classes and a note when a class is empty (then the best and the
-    worst seed)"""
+    worst seed; :raises InputError: fewer than two finished seeds)"""
     finals = drqv2_finals(job.sweep, task)
     if len(finals) < 2:
-        raise StageFailed(f"film: {task}/drqv2 has {len(finals)} finished trial(s) with a final model; a film needs 2")
+        raise InputError(f"{task}/drqv2 has {len(finals)} finished trial(s) with a final model; a film needs 2")
     classes = job.classes(task)
     ranked = sorted(finals.items(), key=lambda item: (-item[1], item[0]))
     good = [item for item in ranked if item[1] >= classes.success_return]
@@ -450,7 +450,10 @@ def stage_film(job: Reproduction) -> dict[str, Any]:
             print(f"film: Figure {number} films {task}, not in --tasks: skipped")
             continue
         folder = job.out / FILMS_DIR / f"figure{number}_{task}"
-        (good, good_return), (poor, poor_return), classes, note = film_agents(job, task)
+        try:
+            (good, good_return), (poor, poor_return), classes, note = film_agents(job, task)
+        except InputError as error:
+            return {"films": films, NOT_DONE: str(error)}
         named = (
             f"good: seed {good} (final return {good_return:.1f}), poor: seed {poor} (final return {poor_return:.1f})"
         )
@@ -869,10 +872,9 @@ def _run_each(job: Reproduction, stages: Sequence[str]) -> list[str]:
             continue
         print(f"stage {stage}: running")
         begin = time.perf_counter()
-        try:
-            record = STAGE_FUNCTIONS[stage](job)
-        except StageFailed as error:
-            print(f"stage {stage}: not finished: {error}")
+        record = STAGE_FUNCTIONS[stage](job)
+        if NOT_DONE in record:
+            print(f"stage {stage}: not finished: {record[NOT_DONE]}")
             failed.append(stage)
             continue
         job.finish(stage, {**record, "seconds": round(time.perf_counter() - begin, 1)})
