@@ -12,6 +12,9 @@ import pytest
 from sb3_collapse.commands.reproduce import PAPER_MD, main, paper_items, split_classes
 from sb3_collapse.paper import PAPER
 
+# The first test that reads the session's tiny reproduction runs it: minutes on a quiet 2-core CPU, far more on a busy
+# one (benchmarks/README.md#reproduce-tiny), above the suite's 600 s per test.
+pytestmark = pytest.mark.timeout(2400)
 PNG = b"\x89PNG\r\n\x1a\n"
 ITEMS = [
     "Figure 2", "Figure 3(a)", "Figure 3(b)", "Figure 4", "Figure 5", "Figure 6", "Figure 7", "Figure 8", "Figure 9",

@@ -422,6 +422,7 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
     assert all(agent_class(a.final_return) == a.role for a in agents)
 
 
+@pytest.mark.timeout(2400)  # it may be the first reader of the session's tiny reproduction (tests/test_reproduce.py)
 def test_probe_sweep_on_the_tiny_real_sweep(tiny_reproduction):
     """``probe sweep`` of real trials: the probe stage of the session's tiny reproduction (tests/conftest.py) on its
     four walker-walk DrQ-v2 trials, split at the median of their final returns (tiny runs do not reach 900)."""
