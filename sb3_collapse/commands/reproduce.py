@@ -639,7 +639,10 @@ def dry_run(job: Reproduction, stages: Sequence[str], fps: float, fps_source: st
             snapshots = ", ".join(SNAPSHOT_VARIANTS) if stage == "sweep" else "none"
             print(f"  snapshots kept by: {snapshots}")
             if plan["trials_pending"]:
-                print("\n".join(plan_lines(plan)))
+                lines = "\n".join(plan_lines(plan))  # the sweep's wording names the flag: say the rate's source
+                print(
+                    lines.replace(" (--frames-per-second)", "" if fps_source == "--frames-per-second" else " (below)")
+                )
             gpus = job.gpus_per_trial
             on = (
                 f"{hours * gpus:,.1f} GPU-hours at --gpus-per-trial {gpus:g}"
