@@ -1,0 +1,1 @@
+"""The command lines and the folder pipelines they run (docs/layout.md)."""
