@@ -30,6 +30,9 @@ class PaperProtocol:
     :param figure5_tasks: the tasks of Figure 5 (walker_walk, hopper_stand, finger_spin)
     :param train_frames: frames of a run (Section 4.1: "The total number of training frames is 1.1e6")
     :param stage_frames: the four training stages of Tables 1-7 (their columns "x = 0, 35, 70, 110"), in frames
+    :param transplant_seeds: seeds per cell of Study 2's transplant grid (Figure 3: "out of 20 seeds")
+    :param transplant_task: the task of Study 2 and of Figure 2 (Figure 6's walker_walk; Section 4's agents)
+    :param film_tasks: the tasks filmed in Figures 6 and 7 ("in walker_walk", "in finger_spin")
     """
 
     check_every_frames: int = 10_000
@@ -45,6 +48,9 @@ class PaperProtocol:
     figure5_tasks: tuple[str, ...] = ("walker-walk", "hopper-stand", "finger-spin")
     train_frames: int = 1_100_000
     stage_frames: tuple[int, ...] = (0, 350_000, 700_000, 1_100_000)
+    transplant_seeds: int = 20
+    transplant_task: str = "walker-walk"
+    film_tasks: tuple[str, ...] = ("walker-walk", "finger-spin")
 
     def stages(self, budget_frames: int | None = None) -> tuple[int, ...]:
         """:return: the training stages of Tables 1-7, :attr:`stage_frames` scaled to ``budget_frames`` (``None``: the

@@ -26,3 +26,30 @@ def tiny_walker_run(tmp_path_factory):
         return train(TrainConfig(**TINY_WALKER_RUN, logdir=str(tmp_path_factory.getbasetemp() / "tiny_walker_run")))
     finally:
         th.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def tiny_reproduction(tmp_path_factory):
+    """
+    ``python -m sb3_collapse.reproduce --scale tiny`` run once (every stage: the sweep, the transplant grid, the probe,
+    the films and the report at CPU sizes), in ``<tmp_path_factory's base>/tiny_reproduction`` (read it, never
+    modify it).
+
+    :return: ``(out, exit status, its output)``
+    """
+    import contextlib
+    import io
+    import time
+
+    from sb3_collapse.commands.reproduce import main
+
+    out = tmp_path_factory.getbasetemp() / "tiny_reproduction"
+    threads, printed = th.get_num_threads(), io.StringIO()
+    start = time.perf_counter()
+    try:
+        with contextlib.redirect_stdout(printed):
+            status = main(["--out", str(out), "--scale", "tiny", "--no-progress-bar"])
+    finally:
+        th.set_num_threads(threads)
+    print(f"tiny reproduction: {time.perf_counter() - start:.1f} s")
+    return out, status, printed.getvalue()

@@ -133,9 +133,9 @@ def test_probe_and_report_do_not_import_each_other():
 
 
 def test_nothing_below_commands_imports_it():
-    """sb3_collapse/commands is the top layer: outside it, only the faces (``train.py`` and the ``__main__.py`` of
-    the packages: ``python -m sb3_collapse.<command>``) import it."""
-    faces = {PACKAGE / "train.py", *PACKAGE.glob("*/__main__.py")}
+    """sb3_collapse/commands is the top layer: outside it, only the faces (``train.py``, ``reproduce.py``, the
+    ``__main__.py`` of the packages: ``python -m sb3_collapse.<command>``) import it."""
+    faces = {PACKAGE / "train.py", PACKAGE / "reproduce.py", *PACKAGE.glob("*/__main__.py")}
     constructed = "def f():\n    from sb3_collapse.commands.cli import cli_message\n"
     assert "sb3_collapse.commands.cli" in _imports(constructed, "sb3_collapse.run.runner")
     below = {}

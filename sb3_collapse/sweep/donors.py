@@ -127,14 +127,20 @@ def check_distinct_donors(checkpoints: Mapping[str, Mapping[str, str]]) -> None:
 
 
 def donors_record(
-    sweep: str | Path, seed: int, variant: str, picked: Mapping[str, Mapping[str, Donor]]
+    sweep: str | Path,
+    seed: int,
+    variant: str,
+    picked: Mapping[str, Mapping[str, Donor]],
+    success_return: float = PAPER.success_return,
+    failure_return: float = PAPER.failure_return,
 ) -> dict[str, Any]:
-    """What the sweep's settings file records of a draw (key ``donors``), ``picked``: task -> :func:`pick_donors`."""
+    """What the sweep's settings file records of a draw (key ``donors``), ``picked``: task -> :func:`pick_donors`
+    (with ``success_return`` and ``failure_return``, its classes)."""
     return {
         "from": str(Path(sweep).resolve()),
         "seed": int(seed),
         "variant": variant,
-        "success_return": PAPER.success_return,
-        "failure_return": PAPER.failure_return,
+        "success_return": float(success_return),
+        "failure_return": float(failure_return),
         "tasks": {task: {key: asdict(donor) for key, donor in donors.items()} for task, donors in picked.items()},
     }

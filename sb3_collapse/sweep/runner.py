@@ -9,7 +9,7 @@ import shutil
 import signal
 import threading
 import traceback
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -194,6 +194,7 @@ def run_trial(
     checkpoints: Mapping[str, Mapping[str, str]] | None = None,
     device: str = "cpu",
     torch_threads: int | None = None,
+    snapshot_variants: Collection[str] | None = None,
 ) -> dict[str, Any]:
     """
     Run one trial into its folder (an unfinished attempt resumes; with other settings it is deleted first); a failure
@@ -210,7 +211,7 @@ def run_trial(
     owner = run_folder_owner(folder)
     if owner is not None:  # another process trains into it (checked again by train's lock): nothing written there
         return {"trial": str(trial), "status": Attempt.IN_USE, "error": owner}
-    config = trial_config(trial, out, training, checkpoints, device=device, torch_threads=torch_threads)
+    config = trial_config(trial, out, training, checkpoints, device, torch_threads, snapshot_variants)
     if run_status(folder) in RESUMABLE and (folder / CONFIG_JSON).is_file():
         try:
             differences = settings_differences(read_json(folder / CONFIG_JSON), config)
@@ -332,9 +333,11 @@ def sweep_settings(
     resources: Mapping[str, Any],
     donors: Mapping[str, Any] | None = None,
     plan: Mapping[str, Any] | None = None,
+    snapshot_variants: Collection[str] | None = None,
 ) -> dict[str, Any]:
     """The content of the sweep's settings file (``task_settings``: the DrQ-v2 settings each task's trials use;
-    ``plan``: :func:`~sb3_collapse.sweep.plan.sweep_plan`'s)."""
+    ``plan``: :func:`~sb3_collapse.sweep.plan.sweep_plan`'s; ``snapshot_variants``: the variants whose trials save
+    snapshots, when not every trial's ``training`` says it)."""
     tasks = list(dict.fromkeys(trial.task for trial in trials))
     configs = {task: TrainConfig(**{**training, "env": task}).resolve() for task in tasks}
     return {
@@ -347,6 +350,7 @@ def sweep_settings(
         "resources": dict(resources),
         **({} if donors is None else {"donors": dict(donors)}),
         **({} if plan is None else {"plan": dict(plan)}),
+        **({} if snapshot_variants is None else {"snapshot_variants": sorted(snapshot_variants)}),
     }
 
 
@@ -421,6 +425,7 @@ def run_sweep(
     donors: Mapping[str, Any] | None = None,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
     plan: Mapping[str, Any] | None = None,
+    snapshot_variants: Collection[str] | None = None,
 ) -> SweepSummary:
     """
     Run every unfinished trial as an independent Ray task (resuming from its newest checkpoint) and wait for all of
@@ -438,6 +443,7 @@ def run_sweep(
     :param donors: how the donors were picked (:func:`~sb3_collapse.sweep.donors.donors_record`), ``None`` if given
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer (:func:`ray_session`)
     :param plan: the sweep's plan for its settings file (:func:`~sb3_collapse.sweep.plan.sweep_plan`), if any
+    :param snapshot_variants: only the trials of these variants save snapshots (``None``: as ``training`` says)
     :return: what was skipped, finished, failed and interrupted
     :raises InputError: for settings that cannot run, or another sweep running into ``out`` (nothing written)
     :raises MissingDependencyError: when there are trials to run and Ray is not installed
@@ -447,7 +453,7 @@ def run_sweep(
     check_sweep(trials, out, training, checkpoints, cpus_per_trial, gpus_per_trial, connect_timeout_s)
     out = Path(out).resolve()
     resources = {"cpus_per_trial": cpus_per_trial, "gpus_per_trial": gpus_per_trial, "address": address}
-    settings = sweep_settings(trials, training, checkpoints, resources, donors, plan)
+    settings = sweep_settings(trials, training, checkpoints, resources, donors, plan, snapshot_variants)
     prepare_sweep_folder(out, settings, allow_changed_settings, write=False)
     _check_writable(out)  # before starting Ray: a read-only folder is said at once
     with sweep_folder_locked(out):  # a second sweep into the folder is refused, before its Ray starts
@@ -479,7 +485,8 @@ def run_sweep(
             )
             device, threads = ("cuda" if gpus_per_trial > 0 else "cpu"), max(1, int(cpus_per_trial))
             pending = {
-                remote.remote(trial, str(out), dict(training), checkpoints, device, threads): trial for trial in to_run
+                remote.remote(trial, str(out), dict(training), checkpoints, device, threads, snapshot_variants): trial
+                for trial in to_run
             }
             _wait_for_trials(ray, pending, out, summary, progress_bar)
     return summary

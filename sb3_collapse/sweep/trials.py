@@ -6,7 +6,7 @@ The variants (``drqv2``, ``td3+reset``, ``drqv2-leaky+redo_periodic``, ``cnn-goo
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -130,6 +130,7 @@ def trial_config(
     checkpoints: Mapping[str, Mapping[str, str]] | None = None,
     device: str = "cpu",
     torch_threads: int | None = None,
+    snapshot_variants: Collection[str] | None = None,
 ) -> TrainConfig:
     """
     The resolved ``TrainConfig`` of one trial: the sweep's settings, its task, seed, folder, variant and donors; the
@@ -141,6 +142,8 @@ def trial_config(
     :param checkpoints: :func:`donor_key` (``"good_cnn"``...) -> task -> checkpoint path, for transplant-grid cells
     :param device: the torch device of the trial
     :param torch_threads: threads of torch's CPU operations in the trial
+    :param snapshot_variants: the variants whose trials save snapshots (``TrainConfig.snapshots``, the disk of
+        docs/sweeps.md's plan); ``None``: ``training``'s ``snapshots`` for every trial
     """
     transplant = transplant_of(trial.variant)
     per_trial: dict[str, Any] = {
@@ -148,6 +151,8 @@ def trial_config(
         "variant": trial.variant, "transplant": transplant, "device": device, "torch_threads": torch_threads,
         "progress_bar": False,
     }  # fmt: skip
+    if snapshot_variants is not None:
+        per_trial["snapshots"] = trial.variant in snapshot_variants
     for part, source in (transplant or {}).items():
         if source != BLANK_SOURCE:
             per_trial[f"init_{part}"] = (checkpoints or {})[donor_key(source, part)][trial.task]

@@ -1,0 +1,882 @@
+"""
+``python -m sb3_collapse.reproduce --out DIR``: the paper's protocol as five stages, each started when its inputs
+exist, skipped when done and resumed when interrupted (run the same command again); docs/reproduce.md.
+
+``sweep`` (Figure 5's trials), ``transplant`` (Study 2's grid, donors drawn from ``sweep``), ``probe`` (``probe
+sweep`` per task: Figure 2, Tables 1-6, the fixed inputs of Figures 4, 8, 9), ``film`` (Figures 6-7) and ``report``
+(every figure and table, the headline, Proposition 1, and ``paper.md``: each of the paper's items and its file).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sb3_collapse.commands.cli import CommandLine, cli_message, prog_name, report_unwritable_outputs
+from sb3_collapse.errors import ClusterUnreachable, InputError, MissingDependencyError
+from sb3_collapse.paper import PAPER, PAPER_RESULTS
+from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
+from sb3_collapse.probe.pipeline import RecordOptions
+from sb3_collapse.probe.probing import ProbeSettings
+from sb3_collapse.protocol import (
+    EXIT_INTERRUPTED,
+    FIGURE2_PNG,
+    FINAL_MODEL,
+    SWEEP_PROBE_DIR,
+    TABLES_1_6_CSV,
+    write_json_atomically,
+    write_text_atomically,
+)
+from sb3_collapse.runfolder import RunStatus, final_return, read_json, run_status, trial_folders
+from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
+
+STAGES = ("sweep", "transplant", "probe", "film", "report")
+"""The stages, in the order they run."""
+INPUTS: dict[str, tuple[str, ...]] = {
+    "sweep": (),
+    "transplant": ("sweep",),
+    "probe": ("sweep",),
+    "film": ("sweep",),
+    "report": ("sweep", "transplant", "probe", "film"),
+}
+"""Stage -> the stages whose outputs it reads."""
+STAGE_HELP = {
+    "sweep": "Figure 5's trials (the DrQ-v2 ones keep snapshots)",
+    "transplant": "Study 2's nine grid cells on walker-walk, donors drawn from the sweep",
+    "probe": "probe sweep of each task (Figure 2, Tables 1-6, the fixed inputs of Figures 4, 8, 9)",
+    "film": "Figures 6-7 from a good and a poor agent",
+    "report": "every figure and table, the headline, Proposition 1, and paper.md",
+}
+"""What each stage does (the command's help)."""
+VARIANTS = ("drqv2", "drqv2+reset")
+"""Figure 5's variants: DrQ-v2 and DrQ-v2 with the paper's rule."""
+SNAPSHOT_VARIANTS = ("drqv2",)
+"""The variants whose trials keep snapshots: Figure 2 probes the snapshots of every well- and poorly performing
+DrQ-v2 trial, and Figures 4, 8, 9 those of three DrQ-v2 agents, picked only once every trial has finished. The rule's
+trials and the grid cells keep none (the report draws their Figure 4 from the online metrics)."""
+SWEEP_DIR, FILMS_DIR, REPORT_DIR, STAGES_DIR = "sweep", "films", "report", "stages"
+SETTINGS_JSON = "reproduce.json"
+"""What ``--out`` was started with (a rerun with other settings is refused)."""
+PAPER_MD = "paper.md"
+"""The paper's figures and tables, each with the file of this reproduction that holds it."""
+REFERENCE_FPS = 100.0
+REFERENCE_FPS_SOURCE = (
+    "the reference DrQ-v2's ~100 frames/s on one GPU (benchmarks/README.md#train-throughput-gpu: not measured here "
+    "yet); pass --frames-per-second with this package's measured rate"
+)
+"""The default training rate of the dry run's GPU-hours, and where it comes from."""
+
+
+@dataclass(frozen=True)
+class Scale:
+    """
+    The sizes of a reproduction.
+
+    :param name: ``paper`` or ``tiny``
+    :param training: ``TrainConfig`` settings of every trial beyond the task presets (``{}``: the presets, the
+        paper's budgets)
+    :param seeds: seeds per task and variant of the sweep stage
+    :param transplant_seeds: seeds per cell of the transplant grid
+    :param tasks: the tasks of the sweep, probe and report stages
+    :param probe: the probe's settings (Figure 2)
+    :param record: the rollouts the probe records (and Figures 4, 8, 9 read)
+    :param film_frames: environment frames per film (Figures 6-7)
+    :param film_size: height and width of the film's renders, in pixels
+    :param film_every_frames: frames between two pictures of a film strip
+    :param paper_classes: the paper's classes of agents (900 and 30); ``False``: thresholds that split the agents
+    """
+
+    name: str
+    training: Mapping[str, Any]
+    seeds: int
+    transplant_seeds: int
+    tasks: tuple[str, ...]
+    probe: ProbeSettings = field(default_factory=ProbeSettings)
+    record: RecordOptions = field(default_factory=RecordOptions)
+    film_frames: int = FILM_FRAMES
+    film_size: int = FILM_SIZE
+    film_every_frames: int = 30
+    paper_classes: bool = True
+
+
+PAPER_SCALE = Scale("paper", {}, PAPER.figure5_seeds, PAPER.transplant_seeds, PAPER.figure5_tasks)
+# CPU sizes: 1000 frames = 40 agent steps of 25 frames (a DMC episode is then 40 agent steps: cheap evaluations),
+# 32x32 images, small networks, learning from frame 500, evaluations (and snapshots) at frames 0 and 500 and of the
+# final model at 1000, collapse checks every 250 frames and the rule's window of 500 frames. Four seeds: the grid's
+# donors are two good and two bad walker-walk agents.
+TINY_SCALE = Scale(
+    "tiny",
+    dict(
+        frames=1000,
+        action_repeat=25,
+        size=32,
+        seed_frames=500,
+        batch_size=8,
+        hidden_dim=32,
+        feature_dim=16,
+        eval_every_frames=500,
+        eval_episodes=1,
+        collapse_metrics_every_frames=250,
+        collapse_metrics_batch=8,
+        reset_window_frames=500,
+        replay_sampling="sb3",
+    ),
+    seeds=4,
+    transplant_seeds=1,
+    tasks=PAPER.figure5_tasks,
+    probe=ProbeSettings(max_tau=4, progress=False, device="cpu"),
+    record=RecordOptions(episodes=3, max_steps=10),
+    film_frames=250,
+    film_size=64,
+    film_every_frames=50,
+    paper_classes=False,
+)
+SCALES = {scale.name: scale for scale in (PAPER_SCALE, TINY_SCALE)}
+
+
+@dataclass(frozen=True)
+class Classes:
+    """
+    The classes of agents by final return: well-performing ``>= success_return``, poorly performing
+    ``< failure_return``; ``source`` says where the numbers come from.
+    """
+
+    success_return: float
+    failure_return: float
+    source: str
+
+    def line(self, what: str) -> str:
+        """:return: one line for the output"""
+        return (
+            f"{what}: well-performing >= {self.success_return:g}, poorly performing < {self.failure_return:g} "
+            f"({self.source})"
+        )
+
+
+PAPER_CLASSES = Classes(PAPER.success_return, PAPER.failure_return, "the paper's, Section 4.1")
+
+
+def split_classes(finals: Sequence[float], what: str, parts: int = 2) -> Classes:
+    """
+    Thresholds that split ``finals`` (the tiny scale's agents, which never reach the paper's 900): ``parts=2``, one cut
+    at the median (``success_return == failure_return``: every agent in one of the two classes); ``parts=3``, the
+    cuts at the thirds (the middle third between). A cut lies midway between two distinct sorted values, moved to the
+    nearest gap where values tie; with one distinct value every agent is well-performing.
+
+    :param finals: the final returns
+    :param what: the agents, for :attr:`Classes.source`
+    :param parts: 2 or 3
+    """
+    values = sorted(finals)
+    gaps = [k for k in range(1, len(values)) if values[k - 1] < values[k]]
+
+    def cut(k: int) -> float:
+        if not gaps:
+            return values[0] if values else 0.0
+        nearest = min(gaps, key=lambda gap: (abs(gap - k), gap))
+        return (values[nearest - 1] + values[nearest]) / 2
+
+    low, high = (cut(len(values) // 2),) * 2 if parts == 2 else (cut(len(values) // 3), cut(2 * len(values) // 3))
+    source = f"tiny scale: the {parts}-way split of the {len(values)} final returns of {what}, not the paper's 900/30"
+    return Classes(max(low, high) if parts == 2 else high, min(low, high), source)
+
+
+def drqv2_finals(sweep: Path, task: str, variant: str = "drqv2") -> dict[int, float]:
+    """:return: seed -> final return of the finished trials of ``task`` and ``variant`` with a final model"""
+    finals = {}
+    for *names, seed, folder in trial_folders(sweep):
+        value = final_return(folder) if names == [task, variant] else None
+        if value is not None and (folder / FINAL_MODEL).is_file():
+            finals[seed] = value
+    return finals
+
+
+@dataclass
+class Reproduction:
+    """
+    One reproduction: its folder, scale, counts, resources.
+
+    :param out: the folder of every output
+    :param scale: its sizes
+    :param tasks: the tasks of the sweep, probe and report stages
+    :param seeds: seeds per task and variant of the sweep stage
+    :param transplant_seeds: seeds per cell of the transplant grid
+    :param address: Ray cluster, ``None`` for a local instance
+    :param cpus_per_trial: CPUs per trial
+    :param gpus_per_trial: GPUs per trial
+    :param connect_timeout_s: seconds to wait for the cluster at ``address``
+    :param progress: progress bars
+    :param resources: what the stages hold until the end (the Ray session of the training stages)
+    """
+
+    out: Path
+    scale: Scale
+    tasks: tuple[str, ...]
+    seeds: int
+    transplant_seeds: int
+    address: str | None = None
+    cpus_per_trial: float = 1
+    gpus_per_trial: float = 0
+    connect_timeout_s: float = CONNECT_TIMEOUT_S
+    progress: bool = True
+    resources: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)
+
+    @property
+    def sweep(self) -> Path:
+        """The sweep folder of both training stages (the report reads one folder)."""
+        return self.out / SWEEP_DIR
+
+    @property
+    def transplant_task(self) -> str:
+        """Study 2's task."""
+        return PAPER.transplant_task
+
+    def settings(self) -> dict[str, Any]:
+        """What ``reproduce.json`` records (a rerun must match)."""
+        return {
+            "scale": self.scale.name,
+            "tasks": list(self.tasks),
+            "seeds": self.seeds,
+            "transplant_seeds": self.transplant_seeds,
+        }
+
+    def marker(self, stage: str) -> Path:
+        """The done-marker of ``stage``, written last."""
+        return self.out / STAGES_DIR / f"{stage}.json"
+
+    def done(self, stage: str) -> dict[str, Any] | None:
+        """:return: what ``stage`` recorded when it finished, ``None`` when it has not"""
+        path = self.marker(stage)
+        return read_json(path) if path.is_file() else None
+
+    def finish(self, stage: str, record: Mapping[str, Any]) -> None:
+        """Write the done-marker of ``stage`` (after all its outputs)."""
+        path = self.marker(stage)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomically(path, {"stage": stage, **record})
+
+    def sweep_trials(self) -> list:
+        """Figure 5's trials."""
+        from sb3_collapse.sweep.trials import expand_trials
+
+        return expand_trials(self.tasks, VARIANTS, range(self.seeds))
+
+    def grid_trials(self) -> list:
+        """Study 2's trials: the nine cells on its task."""
+        from sb3_collapse.sweep.trials import GRID_VARIANTS, expand_trials
+
+        return expand_trials([self.transplant_task], GRID_VARIANTS, range(self.transplant_seeds))
+
+    def classes(self, task: str, parts: int = 2) -> Classes:
+        """The classes of ``task``'s DrQ-v2 agents (the paper's, or at the tiny scale a split of its finals)."""
+        if self.scale.paper_classes:
+            return PAPER_CLASSES
+        return split_classes(list(drqv2_finals(self.sweep, task).values()), f"{task}/drqv2", parts)
+
+    def report_classes(self) -> Classes:
+        """The report's classes: one pair for every task (the paper's, or at the tiny scale the split of every final
+        return of Study 2's task: its DrQ-v2, rule and grid trials, so that some grid cells succeed)."""
+        if self.scale.paper_classes:
+            return PAPER_CLASSES
+        task = self.transplant_task
+        finals = [
+            v for variant in (*VARIANTS, *_grid_variants()) for v in drqv2_finals(self.sweep, task, variant).values()
+        ]
+        median = split_classes(finals, f"every {task} trial (Figure 5's and the grid's)")
+        third = split_classes(finals, f"every {task} trial", 3)
+        failure = min(third.failure_return, median.success_return)
+        return Classes(median.success_return, failure, median.source + "; poorly performing: the lowest third")
+
+
+def _grid_variants() -> tuple[str, ...]:
+    from sb3_collapse.sweep.trials import GRID_VARIANTS
+
+    return GRID_VARIANTS
+
+
+# --- the stages ------------------------------------------------------------------------------------------------------
+
+
+NOT_DONE = "not_done"
+"""The key of a stage's record that says why it ended without its outputs (its trials failed, a task could not be
+probed): the stage stays undone, named, and the stages that do not read it go on."""
+
+
+def run_sweep_stage(job: Reproduction, trials: list, checkpoints: Mapping, donors: Mapping | None) -> dict[str, Any]:
+    """Train ``trials`` into the sweep folder (finished ones skipped, unfinished ones resumed).
+
+    :return: the stage's record: trials, and the damaged ones named (:data:`NOT_DONE` when a trial failed in a way
+        a rerun may fix; ``KeyboardInterrupt`` when interrupted)
+    """
+    from sb3_collapse.commands.sweep import print_summary
+    from sb3_collapse.sweep.cluster import import_ray, ray_session
+    from sb3_collapse.sweep.runner import run_sweep, trial_left_as_is
+    from sb3_collapse.sweep.trials import trial_dir
+
+    folders = [trial_dir(job.sweep, trial) for trial in trials]  # to train: neither finished nor left as they are
+    pending = any(run_status(folder) != RunStatus.FINISHED and trial_left_as_is(folder) is None for folder in folders)
+    if pending and not import_ray().is_initialized():  # one Ray for both training stages (run_sweep takes it as is)
+        job.resources.enter_context(ray_session(job.address, connect_timeout_s=job.connect_timeout_s))
+
+    summary = run_sweep(
+        trials,
+        job.sweep,
+        dict(job.scale.training),
+        checkpoints,
+        job.cpus_per_trial,
+        job.gpus_per_trial,
+        job.address,
+        progress_bar=job.progress,
+        donors=donors,
+        connect_timeout_s=job.connect_timeout_s,
+        snapshot_variants=SNAPSHOT_VARIANTS,
+    )
+    status = print_summary(summary, str(job.sweep))
+    if summary.interrupted:
+        raise KeyboardInterrupt
+    if status != 0 and set(summary.failed) - set(summary.damaged):
+        return {NOT_DONE: f"{len(summary.failed)} trial(s) failed (listed above)"}
+    return {
+        "trials": len(trials),
+        "trained_now": len(summary.finished),
+        "damaged": {str(trial): reason for trial, reason in summary.damaged.items()},
+    }
+
+
+def stage_sweep(job: Reproduction) -> dict[str, Any]:
+    """Stage ``sweep``: Figure 5's trials, the DrQ-v2 ones with snapshots."""
+    return run_sweep_stage(job, job.sweep_trials(), {}, None)
+
+
+def pick_grid_donors(job: Reproduction) -> tuple[dict[str, dict[str, str]], dict[str, Any], Classes]:
+    """:return: the grid's donor checkpoints (key -> task -> path), their record, and the classes they were drawn by
+    (:raises InputError: a class of fewer than two agents)"""
+    from sb3_collapse.sweep.donors import donors_record, pick_donors
+
+    task, classes = job.transplant_task, job.classes(job.transplant_task)
+    picked = pick_donors(
+        job.sweep, task, 0, "drqv2", success_return=classes.success_return, failure_return=classes.failure_return
+    )
+    checkpoints = {key: {task: donor.path} for key, donor in picked.items()}
+    record = donors_record(job.sweep, 0, "drqv2", {task: picked}, classes.success_return, classes.failure_return)
+    return checkpoints, record, classes
+
+
+def stage_transplant(job: Reproduction) -> dict[str, Any]:
+    """Stage ``transplant``: the nine cells on Study 2's task, from two good and two bad agents of the sweep."""
+    try:
+        checkpoints, record, classes = pick_grid_donors(job)
+    except InputError as error:
+        return {NOT_DONE: str(error).replace("--donors-from ", "")}
+    print(classes.line(f"donors of {job.transplant_task}"))
+    for key, donor in record["tasks"][job.transplant_task].items():
+        print(f"  donor {key}: seed {donor['seed']} (final return {donor['final_return']:.1f}) {donor['path']}")
+    return {**run_sweep_stage(job, job.grid_trials(), checkpoints, record), "donors": record}
+
+
+def stage_probe(job: Reproduction) -> dict[str, Any]:
+    """Stage ``probe``: ``probe sweep`` of each task's DrQ-v2 trials (a task done before is skipped)."""
+    from sb3_collapse.commands.probe_pipelines import SUMMARY_NAME as SUMMARY_JSON
+    from sb3_collapse.commands.probe_pipelines import probe_sweep
+
+    done, failed = {}, []
+    for task in job.tasks:
+        folder = job.sweep / SWEEP_PROBE_DIR.format(task=task, variant="drqv2")
+        classes = job.classes(task)
+        if (folder / SUMMARY_JSON).is_file():
+            print(f"probe {task}: done before ({folder}): skipped")
+        else:
+            print(classes.line(f"probe {task}"))
+            try:
+                probe_sweep(
+                    job.sweep,
+                    task,
+                    "drqv2",
+                    folder,
+                    job.scale.probe,
+                    record_options=job.scale.record,
+                    success_return=classes.success_return,
+                    failure_return=classes.failure_return,
+                    overwrite=True,
+                    command=[*prog_name("sb3_collapse.reproduce").split(), "--out", str(job.out)],
+                )
+            except InputError as error:
+                print(f"probe {task}: not done: {error}")
+                failed.append(task)
+                continue
+        done[task] = {"folder": str(folder), **dataclasses.asdict(classes)}
+    return {"tasks": done, **({NOT_DONE: f"{', '.join(failed)} not probed (the reason above)"} if failed else {})}
+
+
+def film_agents(job: Reproduction, task: str) -> tuple[tuple[int, float], tuple[int, float], Classes, str]:
+    """:return: the good and the poor agent filmed of ``task`` (seed, final return): the best well-performing and
+    the worst poorly performing DrQ-v2 seeds, their classes and a note when a class is empty (then the best and the
+    worst seed; :raises InputError: fewer than two finished seeds)"""
+    finals = drqv2_finals(job.sweep, task)
+    if len(finals) < 2:
+        raise InputError(f"{task}/drqv2 has {len(finals)} finished trial(s) with a final model; a film needs 2")
+    classes = job.classes(task)
+    ranked = sorted(finals.items(), key=lambda item: (-item[1], item[0]))
+    good = [item for item in ranked if item[1] >= classes.success_return]
+    poor = [item for item in ranked if item[1] < classes.failure_return]
+    note = ""
+    if not good or not poor:
+        note = f"no {'well' if not good else 'poorly'}-performing seed: the best and the worst seed instead"
+        good, poor = ranked[:1], ranked[-1:]
+    return good[0], poor[-1], classes, note
+
+
+def stage_film(job: Reproduction) -> dict[str, Any]:
+    """Stage ``film``: Figure 6 (walker-walk: the poor agent from two initial states) and Figure 7 (finger-spin)."""
+    from sb3_collapse.commands.probe_pipelines import FILMSTRIP_PNG, film_to_folder
+    from sb3_collapse.sweep.trials import Trial, trial_dir
+
+    films = {}
+    for number, task in zip((6, 7), PAPER.film_tasks):
+        if task not in job.tasks:
+            print(f"film: Figure {number} films {task}, not in --tasks: skipped")
+            continue
+        folder = job.out / FILMS_DIR / f"figure{number}_{task}"
+        try:
+            (good, good_return), (poor, poor_return), classes, note = film_agents(job, task)
+        except InputError as error:
+            return {"films": films, NOT_DONE: str(error)}
+        named = (
+            f"good: seed {good} (final return {good_return:.1f}), poor: seed {poor} (final return {poor_return:.1f})"
+        )
+        print(f"film Figure {number}, {task}: {named}" + (f"; {note}" if note else ""))
+        if not (folder / FILMSTRIP_PNG).is_file() or not (folder / "actions.csv").is_file():
+            paths = [trial_dir(job.sweep, Trial(task, "drqv2", seed)) / FINAL_MODEL for seed in (good, poor)]
+            film_to_folder(
+                paths,
+                folder,
+                job.scale.film_frames,
+                job.scale.film_size,
+                job.scale.film_every_frames,
+                seeds=(0, 1) if number == 6 else (0,),
+                device="auto",
+                overwrite=True,
+                progress=job.progress,
+            )
+        films[f"figure{number}"] = {
+            "task": task,
+            "folder": str(folder),
+            "good": {"seed": good, "final_return": good_return},
+            "poor": {"seed": poor, "final_return": poor_return},
+            "classes": dataclasses.asdict(classes),
+            "note": note,
+        }
+    return {"films": films}
+
+
+def stage_report(job: Reproduction) -> dict[str, Any]:
+    """Stage ``report``: the sweep's report (every figure and table but the films) and ``paper.md``."""
+    from sb3_collapse.commands.report_pipelines import FixedInputSettings, write_report
+    from sb3_collapse.report.statistics import ReportSettings
+
+    classes = job.report_classes()
+    print(classes.line("report"))
+    settings = ReportSettings(success_return=classes.success_return)
+    fixed = FixedInputSettings(failure_return=classes.failure_return, rollouts_variant="drqv2")
+    report = write_report(
+        job.sweep,
+        job.out / REPORT_DIR,
+        settings,
+        tasks=job.tasks,
+        progress=job.progress,
+        overwrite=True,
+        collapse_settings=fixed,
+    )
+    text = paper_markdown(job, report, classes)
+    write_text_atomically(job.out / PAPER_MD, text)
+    print(f"Wrote {job.out / REPORT_DIR} ({len(report.files)} files) and {job.out / PAPER_MD}")
+    return {"classes": dataclasses.asdict(classes), "files": [str(path) for path in report.files]}
+
+
+STAGE_FUNCTIONS = {
+    "sweep": stage_sweep,
+    "transplant": stage_transplant,
+    "probe": stage_probe,
+    "film": stage_film,
+    "report": stage_report,
+}
+
+
+# --- paper.md --------------------------------------------------------------------------------------------------------
+
+
+def paper_items(job: Reproduction) -> list[tuple[str, str, list[Path]]]:
+    """:return: each of the paper's figures and tables: its name, what it shows, the files of this reproduction that
+    hold it (relative names resolve under ``out``)"""
+    from sb3_collapse.commands.probe_pipelines import TABLES_MD
+    from sb3_collapse.report import pipeline as rp
+
+    report, walker = job.out / REPORT_DIR, job.transplant_task
+    probe = job.sweep / SWEEP_PROBE_DIR.format(task=walker, variant="drqv2")
+    collapse = {task: report / rp.COLLAPSE_PNG.format(task=task, variant="drqv2") for task in PAPER.figure5_tasks}
+    films = {number: job.out / FILMS_DIR / f"figure{number}_{task}" for number, task in zip((6, 7), PAPER.film_tasks)}
+    return [
+        ("Figure 2", f"probing MSE over training, {walker}", [probe / FIGURE2_PNG]),
+        ("Figure 3(a)", "successful seeds of the transplant grid", [report / rp.GRID_PNG, report / rp.GRID_MD]),
+        ("Figure 3(b)", "the successful seeds' curves per cell", [report / rp.FIGURE3B_PNG]),
+        ("Figure 4", f"collapse metrics of three agents, {walker}", [collapse["walker-walk"]]),
+        ("Figure 5", "DrQ-v2 against DrQ-v2 + the rule", [report / rp.FIGURE5_PNG]),
+        ("Figure 6", "film of a good and a poor agent, walker-walk", [films[6] / "filmstrip.png"]),
+        ("Figure 7", "film of a good and a poor agent, finger-spin", [films[7] / "filmstrip.png"]),
+        ("Figure 8", "collapse metrics of three agents, hopper-stand", [collapse["hopper-stand"]]),
+        ("Figure 9", "collapse metrics of three agents, finger-spin", [collapse["finger-spin"]]),
+        (
+            "Tables 1-6",
+            f"std of Figure 2's panels at four stages, {walker}",
+            [probe / TABLES_MD, probe / TABLES_1_6_CSV],
+        ),
+        ("Table 7", "std of Figure 3(b) at four stages", [report / rp.TABLE7_MD]),
+        ("Headline", "stuck seeds and std, against the paper's numbers", [report / rp.SUMMARY_MD]),
+        ("Proposition 1", "1 - p^n against the rule's escapes", [report / rp.SUMMARY_MD]),
+    ]
+
+
+def paper_markdown(job: Reproduction, report: Any, classes: Classes) -> str:
+    """:return: ``paper.md``: the classes, then a row per item of :func:`paper_items` (its files, or missing), the
+    films' agents, and the report's headline and Proposition 1"""
+    lines = [
+        "# The paper's figures and tables, reproduced",
+        "",
+        (
+            f"Scale: {job.scale.name}; tasks {', '.join(job.tasks)}; {job.seeds} seeds per task and variant; "
+            f"{job.transplant_seeds} per transplant cell. {classes.line('Classes of the report')}."
+        ),
+        "",
+        "| item | what | files |",
+        "|---|---|---|",
+    ]
+    for name, what, paths in paper_items(job):
+        cells = [
+            f"[{path.relative_to(job.out)}]({path.relative_to(job.out)})"
+            if path.is_file()
+            else f"missing: {path.relative_to(job.out)}"
+            for path in paths
+        ]
+        lines.append(f"| {name} | {what} | {'; '.join(cells)} |")
+    film = job.done("film") or {}
+    for name, entry in film.get("films", {}).items():
+        good, poor = entry["good"], entry["poor"]
+        lines.append(
+            f"\n{name}: {entry['task']}, good agent seed {good['seed']} (final return {good['final_return']:.1f}), "
+            f"poor agent seed {poor['seed']} (final return {poor['final_return']:.1f})"
+            + (f"; {entry['note']}" if entry["note"] else "")
+        )
+    donors = (job.done("transplant") or {}).get("donors")
+    if donors:
+        for key, donor in donors["tasks"][job.transplant_task].items():
+            lines.append(f"\nDonor {key}: seed {donor['seed']} (final return {donor['final_return']:.1f})")
+    paper = ", ".join(f"{r.task} {r.stuck_baseline}/{r.seeds}" for r in PAPER_RESULTS)
+    lines += ["", f"The paper's DrQ-v2 seeds stuck in action collapse: {paper}.", "", report.markdown]
+    return "\n".join(lines) + "\n"
+
+
+# --- the plan (--dry-run) --------------------------------------------------------------------------------------------
+
+
+def training_plan(job: Reproduction, trials: list, checkpoints: Mapping, fps: float) -> dict[str, Any]:
+    """:return: :func:`~sb3_collapse.sweep.plan.sweep_plan` of ``trials`` (their folders read, nothing written)"""
+    from sb3_collapse.commands.sweep import trial_states
+    from sb3_collapse.sweep.plan import sweep_plan
+    from sb3_collapse.sweep.runner import IN_USE
+
+    states = trial_states(trials, str(job.sweep), dict(job.scale.training), checkpoints)
+    # trial_states' configs take the training's snapshots: the stage's choice per variant instead
+    configs = {
+        trial: dataclasses.replace(state[2], snapshots=trial.variant in SNAPSHOT_VARIANTS)
+        for trial, state in states.items()
+        if state[1] is None or state[1][0] == IN_USE
+    }
+    done = {t: s[3] for t, s in states.items() if s[1] is None and s[0] != "finished"}
+    return sweep_plan(configs, done, job.cpus_per_trial, job.gpus_per_trial, fps, job.sweep)
+
+
+def dry_run(job: Reproduction, stages: Sequence[str], fps: float, fps_source: str) -> int:
+    """Print every stage's plan (trials, frames, GPU-hours, RAM, disk, trials at once); write nothing."""
+    from sb3_collapse.commands.sweep import plan_lines
+    from sb3_collapse.sweep.donors import DONOR_KEYS
+    from sb3_collapse.sweep.plan import size_text
+
+    print(f"Plan of {job.out} at the {job.scale.name} scale (nothing written):")
+    total_hours, disk_end, disk_peak = 0.0, 0, 0
+    for stage in stages:
+        marker = job.done(stage)
+        state = "done: skipped" if marker is not None else "to run"
+        if stage in ("sweep", "transplant"):
+            trials = job.sweep_trials() if stage == "sweep" else job.grid_trials()
+            placeholder = str(job.sweep / "<donor drawn from the sweep stage>")
+            checkpoints = {} if stage == "sweep" else {k: {job.transplant_task: placeholder} for k in DONOR_KEYS}
+            plan = training_plan(job, trials, checkpoints, fps)
+            hours = plan["frames"] / fps / 3600
+            total_hours += hours
+            disk_peak = max(disk_peak, disk_end + plan["disk_needed_bytes"])
+            disk_end += plan["disk_at_end_bytes"]
+            what = (
+                f"{len(job.tasks)} tasks x {', '.join(VARIANTS)} x {job.seeds} seeds"
+                if stage == "sweep"
+                else f"{job.transplant_task} x 9 cells x {job.transplant_seeds} seeds, donors: two good and two bad "
+                "DrQ-v2 agents of the sweep stage"
+            )
+            print(f"\nstage {stage} ({state}): {len(trials)} trials ({what}), {plan['trials_pending']} to train")
+            snapshots = ", ".join(SNAPSHOT_VARIANTS) if stage == "sweep" else "none"
+            print(f"  snapshots kept by: {snapshots}")
+            if plan["trials_pending"]:
+                lines = "\n".join(plan_lines(plan))  # the sweep's wording names the flag: say the rate's source
+                print(
+                    lines.replace(" (--frames-per-second)", "" if fps_source == "--frames-per-second" else " (below)")
+                )
+            gpus = job.gpus_per_trial
+            on = (
+                f"{hours * gpus:,.1f} GPU-hours at --gpus-per-trial {gpus:g}"
+                if gpus > 0
+                else (f"{hours:,.1f} GPU-hours at one GPU per trial (--gpus-per-trial 0 trains on CPUs)")
+            )
+            print(f"  compute: {hours:,.1f} trial-hours at {fps:g} frames/s per trial ({fps_source}): {on}")
+        elif stage == "probe":
+            probe = job.scale.probe
+            print(
+                f"\nstage probe ({state}): probe sweep of {', '.join(job.tasks)} / drqv2: rollouts of "
+                f"{job.scale.record.episodes} episodes from the best well-performing seed, then every snapshot of "
+                f"the well- and poorly performing seeds (at most {job.seeds} per task), layers "
+                f"{' '.join(probe.layers or ('cnn0..mlp2',))}, max_tau {probe.max_tau}; writes "
+                f"{SWEEP_DIR}/{SWEEP_PROBE_DIR.format(task='<task>', variant='drqv2')}/"
+            )
+        elif stage == "film":
+            print(
+                f"\nstage film ({state}): Figures 6 and 7, {' and '.join(PAPER.film_tasks)}: the best well-performing "
+                f"and the worst poorly performing DrQ-v2 seed, {job.scale.film_frames} frames at "
+                f"{job.scale.film_size}x{job.scale.film_size}; writes {FILMS_DIR}/figure<6|7>_<task>/"
+            )
+        else:
+            print(f"\nstage report ({state}): every figure and table into {REPORT_DIR}/, and {PAPER_MD}")
+    print(
+        f"\nin all: {total_hours:,.1f} trial-hours to train; disk at the peak {size_text(disk_peak)}, at the end "
+        f"{size_text(disk_end)} (final models and snapshots; the probe, films and report add a few MB)"
+    )
+    return 0
+
+
+# --- the command line ------------------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m sb3_collapse.reproduce``."""
+    p = CommandLine(
+        prog=prog_name("sb3_collapse.reproduce"),
+        description="The action-collapse paper's protocol as stages, each started when its inputs exist and "
+        "skipped when done (rerun the same command to resume): "
+        + "; ".join(f"{stage}: {what}" for stage, what in STAGE_HELP.items())
+        + ". Frames = agent steps x action repeat; docs/reproduce.md.",
+    )
+    p.add_argument("--out", required=True, help="the folder of every output (new, or one this command started)")
+    p.add_argument(
+        "--scale",
+        choices=sorted(SCALES),
+        default="paper",
+        help="paper: the paper's counts and budgets; tiny: the "
+        "same stages at CPU sizes in minutes (default: %(default)s)",
+    )
+    p.add_argument(
+        "--stages", nargs="+", metavar="STAGE", help=f"the stages to run, of {' '.join(STAGES)} (default: all)"
+    )
+    p.add_argument("--tasks", nargs="+", help=f"tasks of Figure 5 (default: {' '.join(PAPER.figure5_tasks)})")
+    p.add_argument(
+        "--seeds",
+        type=int,
+        help=f"seeds per task and variant (default: {PAPER.figure5_seeds}; tiny: {TINY_SCALE.seeds})",
+    )
+    p.add_argument(
+        "--transplant-seeds",
+        type=int,
+        help=f"seeds per transplant cell (default: {PAPER.transplant_seeds}; tiny: {TINY_SCALE.transplant_seeds})",
+    )
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print every stage's plan (trials, frames, GPU-hours, RAM, disk, trials at once); write nothing",
+    )
+    p.add_argument(
+        "--frames-per-second",
+        type=float,
+        metavar="FPS",
+        help=f"one trial's training frames/s, for the GPU-hours (default: {REFERENCE_FPS:g}, {REFERENCE_FPS_SOURCE})",
+    )
+    g = p.add_argument_group("resources (those of python -m sb3_collapse.sweep)")
+    g.add_argument("--address", help="Ray cluster ('auto', 'ray://head:10001'); default: a new local Ray instance")
+    g.add_argument(
+        "--connect-timeout",
+        dest="connect_timeout_s",
+        type=float,
+        default=CONNECT_TIMEOUT_S,
+        metavar="SECONDS",
+        help="with --address: seconds to wait for the cluster (default: %(default)g)",
+    )
+    g.add_argument("--cpus-per-trial", type=float, default=1, help="CPUs per trial (default: %(default)s)")
+    g.add_argument(
+        "--gpus-per-trial",
+        type=float,
+        default=0,
+        help="GPUs per trial, fractions allowed; > 0 trains on cuda (default: %(default)s)",
+    )
+    g.add_argument("--no-progress-bar", dest="progress", action="store_false", help="hide the progress bars")
+    return p
+
+
+def check_out(parser: argparse.ArgumentParser, job: Reproduction) -> None:
+    """``--out``: new, empty, or a reproduction started with the same settings (else one line naming the flag)."""
+    out = job.out
+    if out.exists() and not out.is_dir():
+        parser.error(f"--out {out} is a file: give a folder.")
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    path = out / SETTINGS_JSON
+    if not path.is_file():
+        held = ", ".join(sorted(p.name for p in out.iterdir())[:3])
+        parser.error(f"--out {out} holds other files ({held}...), not a reproduction: give a new or empty folder.")
+    before = read_json(path)
+    for name, value in job.settings().items():
+        if before.get(name) != value:
+            flag = "--" + name.replace("_", "-")
+            parser.error(
+                f"{flag}: {out} is a reproduction with {flag} {before.get(name)}, not {value}: give the same "
+                "settings to resume it, or another --out."
+            )
+
+
+def check_stages(parser: argparse.ArgumentParser, job: Reproduction, stages: Sequence[str]) -> None:
+    """``--stages``: known, and each stage's inputs done or scheduled before it."""
+    for stage in stages:
+        if stage not in STAGES:
+            parser.error(f"--stages: unknown stage {stage!r}; the stages are {' '.join(STAGES)}.")
+    for stage in stages:
+        for needed in INPUTS[stage]:
+            if needed not in stages and job.done(needed) is None:
+                parser.error(
+                    f"--stages: {stage} reads the outputs of {needed}, which {job.out} does not hold and --stages "
+                    f"does not run: add {needed}."
+                )
+
+
+@report_unwritable_outputs
+def main(argv: list[str] | None = None) -> int:
+    """
+    :param argv: command-line arguments (``sys.argv[1:]`` when ``None``)
+    :return: exit status: 0 when every stage is done, 1 when a stage could not finish (named; the others went on),
+        2 for bad input, :data:`~sb3_collapse.protocol.EXIT_INTERRUPTED` when interrupted (run it again to resume)
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    scale = SCALES[args.scale]
+    for flag, value in (("--seeds", args.seeds), ("--transplant-seeds", args.transplant_seeds)):
+        if value is not None and value < 1:
+            parser.error(f"{flag} must be >= 1, got {value}.")
+    if args.frames_per_second is not None and not 0 < args.frames_per_second < float("inf"):
+        parser.error(f"--frames-per-second must be a number > 0, got {args.frames_per_second}.")
+    try:
+        from sb3_collapse.sweep.trials import canonical_task
+
+        tasks = tuple(canonical_task(task) for task in args.tasks or scale.tasks)
+    except InputError as error:
+        parser.error(f"--tasks: {error}")
+    if PAPER.transplant_task not in tasks:
+        parser.error(f"--tasks must hold {PAPER.transplant_task}: Study 2's grid, Figure 2 and the report read it.")
+    job = Reproduction(
+        Path(args.out),
+        scale,
+        tasks,
+        args.seeds or scale.seeds,
+        args.transplant_seeds or scale.transplant_seeds,
+        args.address,
+        args.cpus_per_trial,
+        args.gpus_per_trial,
+        args.connect_timeout_s,
+        args.progress,
+    )
+    stages = [stage for stage in STAGES if stage in (args.stages or STAGES)]
+    check_stages(parser, job, args.stages or STAGES)
+    check_out(parser, job)
+    try:
+        from sb3_collapse.sweep.runner import check_sweep
+
+        for trials in (job.sweep_trials(),):
+            check_sweep(
+                trials,
+                job.sweep,
+                dict(scale.training),
+                {},
+                job.cpus_per_trial,
+                job.gpus_per_trial,
+                job.connect_timeout_s,
+            )
+        if args.dry_run:
+            fps = args.frames_per_second or REFERENCE_FPS
+            source = "--frames-per-second" if args.frames_per_second else REFERENCE_FPS_SOURCE
+            return dry_run(job, stages, fps, source)
+        return run_stages(job, stages)
+    except (MissingDependencyError, InputError) as error:
+        parser.error(cli_message(error, parser))
+    except ClusterUnreachable as error:
+        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(
+            f"\nStopped: run the same command again to resume (the finished stages and trials in {job.out} are kept; "
+            f"exit status {EXIT_INTERRUPTED}).",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+
+
+def run_stages(job: Reproduction, stages: Sequence[str]) -> int:
+    """Run ``stages`` in order: each skipped when done, started when its inputs are done; :return: the exit status"""
+    job.out.mkdir(parents=True, exist_ok=True)
+    if not (job.out / SETTINGS_JSON).is_file():
+        write_json_atomically(job.out / SETTINGS_JSON, job.settings())
+    started, failed = time.perf_counter(), []
+    with job.resources:
+        failed = _run_each(job, stages)
+    took = f"{time.perf_counter() - started:.0f} s"
+    if failed:
+        print(f"Not finished: {', '.join(failed)} ({took}); run the same command again once the cause is fixed.")
+        return 1
+    print(f"Every stage done ({took}): {job.out / PAPER_MD} lists the paper's figures and tables.")
+    return 0
+
+
+def _run_each(job: Reproduction, stages: Sequence[str]) -> list[str]:
+    """Run ``stages`` in order; :return: those not done"""
+    failed = []
+    for stage in stages:
+        if job.done(stage) is not None:
+            print(f"stage {stage}: done before ({job.marker(stage)}): skipped")
+            continue
+        lacking = [needed for needed in INPUTS[stage] if job.done(needed) is None]
+        if lacking:
+            print(f"stage {stage}: not started: {', '.join(lacking)} did not finish")
+            failed.append(stage)
+            continue
+        print(f"stage {stage}: running")
+        begin = time.perf_counter()
+        record = STAGE_FUNCTIONS[stage](job)
+        if NOT_DONE in record:
+            print(f"stage {stage}: not finished: {record[NOT_DONE]}")
+            failed.append(stage)
+            continue
+        job.finish(stage, {**record, "seconds": round(time.perf_counter() - begin, 1)})
+        print(f"stage {stage}: done in {time.perf_counter() - begin:.0f} s")
+    return failed
+
+
+if __name__ == "__main__":
+    sys.exit(main())
