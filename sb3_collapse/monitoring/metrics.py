@@ -91,8 +91,8 @@ activations"), by metric name: between inputs over the non-zero units (:func:`in
 signed (:func:`unit_correlation`) and absolute (:func:`unit_abs_correlation`)."""
 FIGURE_CORRELATION = "input_correlation"
 """The reading of :data:`CORRELATION_READINGS` that Figures 4, 8, 9 and the dashboard draw by default: the one of the
-three that is high on a layer collapsed to a point and low on a healthy one (docs/figures.md#correlation, measured
-in benchmarks/README.md#correlation-readings)."""
+three that is high on a layer collapsed to a point and low on a healthy one (the choice and its reasons:
+docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents; measured: benchmarks/README.md#correlation-readings)."""
 
 
 def _input_correlation(h: th.Tensor, gram: th.Tensor) -> float:

@@ -355,7 +355,7 @@ class FixedInputSettings:
     :param batch_size: observations per forward pass
     :param layers: the layers measured and drawn
     :param correlation: the reading of the correlation column, one of ``CORRELATION_READINGS`` (the others stay in
-        the fixed-set CSV under their names; docs/figures.md#correlation)
+        the fixed-set CSV under their names; docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents)
     :param train_episodes: draw the fixed set from the probe's training episodes of the rollouts only, Figure 1's H
         (:func:`~sb3_collapse.probe.fixed_inputs.load_fixed_inputs`), instead of from every episode
     """

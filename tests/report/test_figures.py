@@ -227,6 +227,11 @@ def test_collapse_figure_flags(reported, tmp_path, capsys):
         assert main([str(fake.path), "--out", str(tmp_path / "out"), "--no-progress", *flags]) == 2
         assert named in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+    with pytest.raises(SystemExit) as exit_status:  # the readings by name only
+        main([str(fake.path), "--out", str(tmp_path / "out"), "--correlation", "correlation"])
+    assert exit_status.value.code == 2 and "--correlation: invalid choice" in capsys.readouterr().err
+    flags = ["--correlation", "unit_abs_correlation", "--train-episodes", "--tasks", "hopper-stand"]
+    assert main([str(fake.path), "--out", str(tmp_path / "abs"), "--no-progress", *flags]) == 0
 
 
 def test_table7_matches_the_fabricated_returns(reported):
