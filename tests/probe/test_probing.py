@@ -14,6 +14,7 @@ from sb3_collapse.probe.probing import (
     standardize_features_,
     standardize_targets,
 )
+from sb3_collapse.report.collapse_figure import FixedInputSettings
 from sb3_collapse.report.probe_outputs import staged_output, training_order
 
 
@@ -60,6 +61,9 @@ def test_fixed_set_from_the_probes_training_episodes(tmp_path):
     assert list(drawn.indices) == sorted(drawn.indices)
     every = load_fixed_inputs(path, samples=None)
     assert len(every.indices) == n and every.train_episodes is None and "all 70 observations" in every.describe()
+    # the report's setting (--train-episodes) reads the same set
+    settings = FixedInputSettings(fixed_samples=None, train_episodes=True)
+    np.testing.assert_array_equal(settings.load(path).indices, train_rows)
 
 
 def test_features_standardized_in_place_with_train_statistics():
