@@ -14,7 +14,8 @@ unit variance for a unit-variance ``z``), ``b`` zero ("no bias") or Gaussian of 
 Snapshots (``--run-dir``): every snapshot of a train run (``--snapshots``) on the fixed set of Figures 4, 8, 9 drawn
 from a rollouts file (``--rollouts``, of ``python -m sb3_collapse.probe record``) as the report draws it
 (``FixedInputSettings``; ``--train-episodes``: the probe's training episodes, Figure 1's H), beside the run's
-evaluation return and its training-time collapse check at the same frame (mlp1's gradient norm, action saturation).
+evaluation return and its training-time collapse check at the same frame (mlp1's gradient norm, the actions' spread
+and saturation on the check's replay batch).
 
     python benchmarks/correlation_readings.py                         # constructed layers only
     python benchmarks/correlation_readings.py --run-dir RUN --rollouts RUN/rollouts.npz
@@ -32,7 +33,7 @@ import torch as th
 from sb3_collapse.monitoring import CORRELATION_READINGS, dead_units, layer_metrics
 from sb3_collapse.paper import metric_tag
 from sb3_collapse.probe.fixed_inputs import fixed_metrics
-from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, snapshot_files
+from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, SNAPSHOT_FILE, snapshot_files
 from sb3_collapse.report.collapse_figure import FixedInputSettings, run_folder_trial
 from sb3_collapse.runfolder import read_collapse_metrics
 
@@ -90,32 +91,35 @@ def snapshot_table(args: argparse.Namespace) -> list[str]:
     inputs = settings.load(args.rollouts)
     trial = run_folder_trial(args.run_dir)
     returns = dict(zip(trial.frames.tolist(), trial.returns.tolist()))
-    online_tags = [metric_tag("mlp1", "grad_norm"), "collapse/action_saturation"]
+    online_tags = [metric_tag("mlp1", "grad_norm"), "collapse/action_std", "collapse/action_saturation"]
     online = read_collapse_metrics(Path(args.run_dir) / COLLAPSE_METRICS_CSV, online_tags)
     online_at = {tag: dict(zip(f.tolist(), v.tolist())) for tag, (f, v) in online.items()}
     paths = snapshot_files(args.run_dir)
+    if args.frames:
+        paths = [path for path in paths if path.name in {SNAPSHOT_FILE.format(frames=f) for f in args.frames}]
     start = time.perf_counter()
     fixed = fixed_metrics(paths, inputs, args.layers, "cpu", 256, progress=True)
     seconds = time.perf_counter() - start
     lines = [
         f"snapshots of {args.run_dir} on {inputs.describe()} ({len(paths)} snapshots in {seconds:.0f} s)",
         "",
-        "| frame | eval return | train-time mlp1 grad norm | action saturation | layer | "
+        "| frame | eval return | train-time mlp1 grad norm | action std | action saturation | layer | "
         + " | ".join(CORRELATION_READINGS)
         + " | dead units |",
-        "|---|---|---|---|---|" + "---|" * (len(CORRELATION_READINGS) + 1),
+        "|---|---|---|---|---|---|" + "---|" * (len(CORRELATION_READINGS) + 1),
     ]
     frames = fixed.metrics[metric_tag(args.layers[0], "dead_units")][0].tolist()
     for i, frame in enumerate(frames):
         ret = returns.get(frame, math.nan)
         grad = online_at.get(online_tags[0], {}).get(frame, math.nan)
-        saturation = online_at.get(online_tags[1], {}).get(frame, math.nan)
+        spread = online_at.get(online_tags[1], {}).get(frame, math.nan)
+        saturation = online_at.get(online_tags[2], {}).get(frame, math.nan)
         for layer in args.layers:
             cells = " | ".join(_fmt(fixed.metrics[metric_tag(layer, r)][1][i]) for r in CORRELATION_READINGS)
             dead = int(fixed.metrics[metric_tag(layer, "dead_units")][1][i])
             lines.append(
-                f"| {frame:,} | {ret:.1f} | {grad:.3g} | {_fmt(saturation)} | {layer} | {cells} | {dead} of "
-                f"{fixed.widths[layer]} |"
+                f"| {frame:,} | {ret:.1f} | {grad:.3g} | {_fmt(spread)} | {_fmt(saturation)} | {layer} | {cells} | "
+                f"{dead} of {fixed.widths[layer]} |"
             )
     return lines
 
@@ -131,6 +135,7 @@ def main() -> None:
     parser.add_argument("--run-dir", help="a train run folder with --snapshots")
     parser.add_argument("--rollouts", help="rollouts file (probe record) of the fixed set")
     parser.add_argument("--layers", nargs="+", default=["mlp1", "mlp2"], help="snapshot layers")
+    parser.add_argument("--frames", type=int, nargs="+", help="only the snapshots of these frames (default: all)")
     parser.add_argument("--train-episodes", action="store_true", help="the probe's training episodes (Figure 1's H)")
     parser.add_argument("--skip-constructed", action="store_true", help="snapshots only")
     args = parser.parse_args()
