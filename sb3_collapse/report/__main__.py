@@ -8,6 +8,7 @@ import sys
 from dataclasses import dataclass, fields
 
 from sb3_collapse.errors import InputError, cli_message, report_unwritable_outputs
+from sb3_collapse.monitoring import CORRELATION_READINGS
 from sb3_collapse.protocol import COLLAPSE_METRICS_CSV, RESULT_JSON
 from sb3_collapse.report.collapse_figure import FixedInputSettings, is_run_folder
 from sb3_collapse.report.headline import BASELINE_VARIANT
@@ -100,6 +101,17 @@ class ReportFlags:
         zero_means="all",
     )
     device: str = setting(_FIXED.device, help="Figures 4, 8, 9: where the snapshots run: auto, cpu, cuda", unit=None)
+    correlation: str = setting(
+        _FIXED.correlation,
+        help="Figures 4, 8, 9: the reading of the correlation column (every reading stays in the CSV files)",
+        unit=None,
+        choices=CORRELATION_READINGS,
+    )
+    train_episodes: bool = setting(
+        False,
+        help="Figures 4, 8, 9: the fixed set from the probe's training episodes of the rollouts only (Figure 1's H)",
+        unit=None,
+    )
     overwrite: bool = setting(False, help="replace the files of a previous report in the output folder", unit=None)
     progress: bool = setting(True, help="show a progress bar", unit=None)
 
@@ -141,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
         rollouts_variant=None if args.rollouts_per_variant else (args.rollouts_variant or BASELINE_VARIANT),
         fixed_samples=args.fixed_samples or None,
         device=args.device,
+        correlation=args.correlation,
+        train_episodes=args.train_episodes,
     )
     try:
         if is_run_folder(args.sweep):

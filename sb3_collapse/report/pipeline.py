@@ -230,7 +230,9 @@ def collapse_figures(
             if not any(pick.trial is not None for pick in picks):
                 continue
             report.collapse_picks[key] = picks
-            report.collapse_online[key] = collapse_figure.online_agent_rows(picks, collapse_settings.layers)
+            report.collapse_online[key] = collapse_figure.online_agent_rows(
+                picks, collapse_settings.layers, collapse_settings.correlation
+            )
             inputs = given if given is not None and given.fits(task) else None
             source = collapse_settings.rollouts_variant or variant
             rollouts = sweep.path / SWEEP_PROBE_DIR.format(task=task, variant=source) / ROLLOUTS_NAME
