@@ -73,10 +73,11 @@ SETTINGS_JSON = "reproduce.json"
 """What ``--out`` was started with (a rerun with other settings is refused)."""
 PAPER_MD = "paper.md"
 """The paper's figures and tables, each with the file of this reproduction that holds it."""
-REFERENCE_FPS = 100.0
+REFERENCE_FPS = 69.5  # benchmarks/README.md#reference-rate: the median of DrQ-v2's published walker-walk curves
 REFERENCE_FPS_SOURCE = (
-    "the reference DrQ-v2's ~100 frames/s on one GPU (benchmarks/README.md#train-throughput-gpu: not measured here "
-    "yet); pass --frames-per-second with this package's measured rate"
+    "DrQ-v2's own walker-walk rate, evaluations included, from the hour column of its published curves "
+    "(benchmarks/README.md#reference-rate; this package's GPU rate is not measured yet: "
+    "benchmarks/README.md#train-throughput-gpu); pass --frames-per-second with a measured rate"
 )
 """The default training rate of the dry run's GPU-hours, and where it comes from."""
 
