@@ -36,12 +36,11 @@ from sb3_collapse.protocol import (
     FINAL_MODEL,
     SWEEP_PROBE_DIR,
     TABLES_1_6_CSV,
-    read_settings,
     write_json_atomically,
     write_text_atomically,
 )
 from sb3_collapse.run.settings import CommandLine, prog_name
-from sb3_collapse.runfolder import RunStatus, final_return, run_status, trial_folders
+from sb3_collapse.runfolder import RunStatus, final_return, read_json, run_status, trial_folders
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
 
 STAGES = ("sweep", "transplant", "probe", "film", "report")
@@ -262,7 +261,7 @@ class Reproduction:
     def done(self, stage: str) -> dict[str, Any] | None:
         """:return: what ``stage`` recorded when it finished, ``None`` when it has not"""
         path = self.marker(stage)
-        return read_settings(path) if path.is_file() else None
+        return read_json(path) if path.is_file() else None
 
     def finish(self, stage: str, record: Mapping[str, Any]) -> None:
         """Write the done-marker of ``stage`` (after all its outputs)."""
@@ -597,14 +596,14 @@ def training_plan(job: Reproduction, trials: list, checkpoints: Mapping, fps: fl
     """:return: :func:`~sb3_collapse.sweep.plan.sweep_plan` of ``trials`` (their folders read, nothing written)"""
     from sb3_collapse.sweep.__main__ import trial_states
     from sb3_collapse.sweep.plan import sweep_plan
-    from sb3_collapse.sweep.runner import IN_USE
+    from sb3_collapse.sweep.runner import Attempt
 
     states = trial_states(trials, str(job.sweep), dict(job.scale.training), checkpoints)
     # trial_states' configs take the training's snapshots: the stage's choice per variant instead
     configs = {
         trial: dataclasses.replace(state[2], snapshots=trial.variant in SNAPSHOT_VARIANTS)
         for trial, state in states.items()
-        if state[1] is None or state[1][0] == IN_USE
+        if state[1] is None or state[1][0] == Attempt.IN_USE
     }
     done = {t: s[3] for t, s in states.items() if s[1] is None and s[0] != "finished"}
     return sweep_plan(configs, done, job.cpus_per_trial, job.gpus_per_trial, fps, job.sweep)
@@ -752,7 +751,7 @@ def check_out(parser: argparse.ArgumentParser, job: Reproduction) -> None:
     if not path.is_file():
         held = ", ".join(sorted(p.name for p in out.iterdir())[:3])
         parser.error(f"--out {out} holds other files ({held}...), not a reproduction: give a new or empty folder.")
-    before = read_settings(path)
+    before = read_json(path)
     for name, value in job.settings().items():
         if before.get(name) != value:
             flag = "--" + name.replace("_", "-")
