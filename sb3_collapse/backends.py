@@ -36,7 +36,9 @@ def configure_backends(tf32: bool = True, deterministic: bool = False) -> Backen
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", CUBLAS_WORKSPACE_CONFIG)
     th.backends.cudnn.benchmark = not deterministic
     th.backends.cudnn.deterministic = deterministic
-    th.use_deterministic_algorithms(deterministic, warn_only=True)
+    if deterministic or th.are_deterministic_algorithms_enabled():
+        # Only when it changes something: the call imports torch's compiler (torch._inductor), seconds per process.
+        th.use_deterministic_algorithms(deterministic, warn_only=True)
     return BackendSettings(tf32=tf32, deterministic=deterministic)
 
 

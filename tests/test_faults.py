@@ -339,7 +339,7 @@ def _unfinished_run(run_dir: Path, *flags: str) -> Path:
     return run_dir
 
 
-EVALUATIONS = ("--eval-every-frames", "200", "--eval-episodes", "1")
+EVALUATIONS = ("--eval-every-frames", "400", "--eval-episodes", "1")
 
 
 @pytest.fixture(scope="module")
@@ -350,7 +350,8 @@ def unfinished_run(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def unfinished_evaluated_run(tmp_path_factory) -> Path:
-    """One unfinished run evaluated every 200 frames, for the tests that damage its eval.csv: each damages a copy."""
+    """One unfinished run evaluated every 400 frames (as :func:`_evaluated_flags`), for the tests that damage its
+    eval.csv and the stop while it resumes: each changes a copy."""
     return _unfinished_run(tmp_path_factory.mktemp("unfinished_evaluated") / "run", *EVALUATIONS)
 
 
@@ -471,14 +472,14 @@ def test_eval_csv_out_of_step_with_the_checkpoint_is_rewritten_from_it_on_resume
     shutil.copytree(unfinished_evaluated_run, run_dir)  # stopped at its final save: checkpoints at frames 400 and 600
     eval_csv = run_dir / "eval.csv"
     uninterrupted = [line.split(",")[:3] for line in eval_csv.read_text().splitlines()]
-    assert [row[0] for row in uninterrupted] == ["frame", "0", "200", "400", "600"]
+    assert [row[0] for row in uninterrupted] == ["frame", "0", "400"]
     lines = eval_csv.read_bytes().splitlines(keepends=True)
     eval_csv.write_bytes(b"".join(lines[:2]) if damage == "short" else b"".join(lines[:2]) + lines[2][:5])
     capsys.readouterr()
 
     assert main([*_flags(run_dir), *evaluations]) == 0
     notes = [line for line in capsys.readouterr().out.splitlines() if "rewritten from it" in line]
-    why = "3 line(s) short" if damage == "short" else "cut mid-row"
+    why = "1 line(s) short" if damage == "short" else "cut mid-row"
     assert notes == [
         (
             f"Note: eval.csv ({why}) did not hold what the checkpoint at frame 600 recorded: rewritten from it (the "
@@ -556,7 +557,7 @@ def uninterrupted_run(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("phase", ["resume", "final save", "evaluation", "result file"])
 def test_a_stop_after_learn_finishes_or_exits_75_and_the_rerun_ends_as_an_uninterrupted_run(
-    tmp_path, monkeypatch, capsys, uninterrupted_run, phase
+    tmp_path, monkeypatch, capsys, uninterrupted_run, unfinished_evaluated_run, phase
 ):
     """SIGTERM while the run resumes, saves its final model, evaluates it or writes its result file (each patched to
     send it to this process): before the result file, a checkpoint at the last step (of the run as it was before the
@@ -580,8 +581,8 @@ def test_a_stop_after_learn_finishes_or_exits_75_and_the_rerun_ends_as_an_uninte
         return patched
 
     if phase == "resume":
-        _unfinished_run(run_dir, "--eval-every-frames", "400", "--eval-episodes", "1")  # flags' values
-        capsys.readouterr()
+        shutil.copytree(unfinished_evaluated_run, run_dir)  # run with the values of flags
+        capsys.readouterr()  # what the module's fixture printed, if it ran in this test
         monkeypatch.setattr(ResumableCheckpoints, "resume", sigterm_then(ResumableCheckpoints.resume))
     elif phase == "final save":
         monkeypatch.setattr(DrQv2, "save", sigterm_then(DrQv2.save, lambda _, path: "final_model" in str(path)))

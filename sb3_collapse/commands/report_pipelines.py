@@ -15,6 +15,7 @@ from stable_baselines3.common.utils import get_device
 from sb3_collapse.common.progress import on_terminal, progress_bar
 from sb3_collapse.drqv2.checks import check_device
 from sb3_collapse.errors import InputError
+from sb3_collapse.monitoring import CORRELATION_READINGS, FIGURE_CORRELATION
 from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.probe.fixed_inputs import FIXED_SAMPLES, FixedInputs, FixedMetrics, fixed_metrics, load_fixed_inputs
 from sb3_collapse.probe.pipeline import ROLLOUTS_NAME
@@ -59,6 +60,11 @@ class FixedInputSettings:
     """observations per forward pass"""
     layers: tuple[str, ...] = setting(collapse_figure.FIGURE4_LAYERS, cli=None)
     """the layers measured and drawn"""
+    correlation: str = setting(FIGURE_CORRELATION, cli=RUN, choices=CORRELATION_READINGS)
+    """Figures 4, 8, 9: the reading of the correlation column (every reading stays in the CSV files;
+    docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents)"""
+    train_episodes: bool = setting(False, cli=RUN)
+    """Figures 4, 8, 9: the fixed set from the probe's training episodes of the rollouts only (Figure 1's H)"""
 
     def validate(self) -> None:
         """:raises InputError: on a setting out of its declared range, or a rollouts file that does not exist"""
@@ -74,13 +80,9 @@ class FixedInputSettings:
     def load(self, path: str | Path) -> FixedInputs:
         """:return: the fixed set of the rollouts file ``path`` (InputError: not a rollouts file)"""
         try:
-            return load_fixed_inputs(path, self.fixed_samples or None, self.sample_seed)
+            return load_fixed_inputs(path, self.fixed_samples or None, self.sample_seed, self.train_episodes)
         except InputError as error:
             raise InputError(str(error), parameter="rollouts") from error
-
-
-FIXED_METRICS = ("numerical_rank", "correlation", "dead_units")
-"""The columns of Figure 4 taken from the fixed set (the gradient norm is the training-time one)."""
 
 
 def fixed_agent_rows(
@@ -89,10 +91,13 @@ def fixed_agent_rows(
     settings: FixedInputSettings,
     progress: bool = False,
 ) -> tuple[list[collapse_figure.AgentMetrics], dict[int, FixedMetrics]]:
-    """:return: the rows of Figures 4, 8, 9 (:data:`FIXED_METRICS` of each snapshot on ``inputs``, the training-time
-    gradient norms), and seed -> its fixed-set metrics"""
-    rows, computed = collapse_figure.online_agent_rows(picks, settings.layers), {}
-    tags = [metric_tag(layer, metric) for layer in settings.layers for metric in FIXED_METRICS]
+    """:return: the rows of Figures 4, 8, 9 (the columns of :func:`~sb3_collapse.report.collapse_figure.figure4_metrics`
+    of each snapshot on ``inputs``, the training-time gradient norms), and seed -> its fixed-set metrics"""
+    rows, computed = collapse_figure.online_agent_rows(picks, settings.layers, settings.correlation), {}
+    fixed_columns = [
+        metric for metric, _ in collapse_figure.figure4_metrics(settings.correlation) if metric != "grad_norm"
+    ]
+    tags = [metric_tag(layer, metric) for layer in settings.layers for metric in fixed_columns]
     how = (inputs, settings.layers, get_device(settings.device), settings.batch_size, progress)
     for row in rows:
         if row.trial is None:
@@ -185,7 +190,9 @@ def collapse_figures(
             if not any(pick.trial is not None for pick in picks):
                 continue
             report.collapse_picks[key] = picks
-            report.collapse_online[key] = collapse_figure.online_agent_rows(picks, collapse_settings.layers)
+            report.collapse_online[key] = collapse_figure.online_agent_rows(
+                picks, collapse_settings.layers, collapse_settings.correlation
+            )
             inputs = given if given is not None and given.fits(task) else None
             source = collapse_settings.rollouts_variant or variant
             rollouts = sweep.path / SWEEP_PROBE_DIR.format(task=task, variant=source) / ROLLOUTS_NAME

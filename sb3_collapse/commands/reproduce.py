@@ -66,10 +66,11 @@ SETTINGS_JSON = "reproduce.json"
 """What ``--out`` was started with (a rerun with other settings is refused)."""
 PAPER_MD = "paper.md"
 """The paper's figures and tables, each with the file of this reproduction that holds it."""
-REFERENCE_FPS = 100.0
+REFERENCE_FPS = 69.5  # benchmarks/README.md#reference-rate: the median of DrQ-v2's published walker-walk curves
 REFERENCE_FPS_SOURCE = (
-    "the reference DrQ-v2's ~100 frames/s on one GPU (benchmarks/README.md#train-throughput-gpu: not measured here "
-    "yet); pass --frames-per-second with this package's measured rate"
+    "DrQ-v2's own walker-walk rate, evaluations included, from the hour column of its published curves "
+    "(benchmarks/README.md#reference-rate; this package's GPU rate is not measured yet: "
+    "benchmarks/README.md#train-throughput-gpu); pass --frames-per-second with a measured rate"
 )
 """The default training rate of the dry run's GPU-hours, and where it comes from."""
 
@@ -589,14 +590,14 @@ def training_plan(job: Reproduction, trials: list, checkpoints: Mapping, fps: fl
     """:return: :func:`~sb3_collapse.sweep.plan.sweep_plan` of ``trials`` (their folders read, nothing written)"""
     from sb3_collapse.commands.sweep import trial_states
     from sb3_collapse.sweep.plan import sweep_plan
-    from sb3_collapse.sweep.runner import IN_USE
+    from sb3_collapse.sweep.runner import Attempt
 
     states = trial_states(trials, str(job.sweep), dict(job.scale.training), checkpoints)
     # trial_states' configs take the training's snapshots: the stage's choice per variant instead
     configs = {
         trial: dataclasses.replace(state[2], snapshots=trial.variant in SNAPSHOT_VARIANTS)
         for trial, state in states.items()
-        if state[1] is None or state[1][0] == IN_USE
+        if state[1] is None or state[1][0] == Attempt.IN_USE
     }
     done = {t: s[3] for t, s in states.items() if s[1] is None and s[0] != "finished"}
     return sweep_plan(configs, done, job.cpus_per_trial, job.gpus_per_trial, fps, job.sweep)

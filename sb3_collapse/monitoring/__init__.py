@@ -26,6 +26,8 @@ from sb3_collapse.monitoring.interventions import (
     shrink_perturb_noise,
 )
 from sb3_collapse.monitoring.metrics import (
+    CORRELATION_READINGS,
+    FIGURE_CORRELATION,
     action_spread,
     active_fraction,
     dead_fraction,
@@ -44,6 +46,7 @@ from sb3_collapse.monitoring.metrics import (
     saturated_fraction,
     singular_values,
     stable_rank,
+    unit_abs_correlation,
     unit_correlation,
     unit_count,
     weight_change,
@@ -54,6 +57,8 @@ from sb3_collapse.monitoring.periodic_redo import PeriodicReDo
 from sb3_collapse.monitoring.reset import CollapseReset
 
 __all__ = [
+    "CORRELATION_READINGS",
+    "FIGURE_CORRELATION",
     "INTERVENTIONS",
     "ActivationLogger",
     "CollapseMetrics",
@@ -101,6 +106,7 @@ __all__ = [
     "singular_values",
     "stable_rank",
     "track_grad_norms",
+    "unit_abs_correlation",
     "unit_correlation",
     "unit_count",
     "weight_change",

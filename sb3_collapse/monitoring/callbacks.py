@@ -25,7 +25,7 @@ from sb3_collapse.common.schedule import next_due
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring.activations import Observations, collect_activations
 from sb3_collapse.monitoring.health import DEFAULT_METRICS, HealthMemory, check_health_arguments, measure_health
-from sb3_collapse.monitoring.metrics import DORMANT_TAU, DORMANT_TAUS, SATURATION_LIMIT, SRANK_DELTA
+from sb3_collapse.monitoring.metrics import DORMANT_TAU, DORMANT_TAUS, FIGURE_CORRELATION, SATURATION_LIMIT, SRANK_DELTA
 from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.protocol import COLLAPSE_METRICS_FIELDS, append_csv_rows, atomic_output
 
@@ -401,7 +401,7 @@ class CollapseMetrics(FrameScheduleCallback):
 
 FIGURE4_PANELS = (
     ("numerical_rank", "numerical rank"),
-    ("correlation", "correlation"),
+    (FIGURE_CORRELATION, "correlation"),
     ("dead_units", "dead units"),
     ("grad_norm", "gradient norm"),
 )

@@ -85,13 +85,27 @@ def effective_rank(activations: th.Tensor, delta: float = SRANK_DELTA) -> float:
     return _effective_rank(singular_values(activations), delta)
 
 
+CORRELATION_READINGS = ("input_correlation", "unit_correlation", "unit_abs_correlation")
+"""The three readings of the paper's correlation (Section 5.1, "the average correlation among every two non-zero
+activations"), by metric name: between inputs over the non-zero units (:func:`input_correlation`), between units,
+signed (:func:`unit_correlation`) and absolute (:func:`unit_abs_correlation`)."""
+FIGURE_CORRELATION = "input_correlation"
+"""The reading of :data:`CORRELATION_READINGS` that Figures 4, 8, 9 and the dashboard draw by default: the one of the
+three that is high on a layer collapsed to a point and low on a healthy one (the choice and its reasons:
+docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents; measured: benchmarks/README.md#correlation-readings)."""
+
+
 def _input_correlation(h: th.Tensor, gram: th.Tensor) -> float:
-    n_units = h.shape[1]
+    # The units zero for every input add nothing to h h^T nor to the row sums: leaving them out only changes the
+    # count the means divide by.
+    nonzero = int((h != 0).any(0).sum())
+    if nonzero < 2:
+        return math.nan
     row_sums, row_max_abs = h.sum(1), h.abs().amax(1)
-    centered = gram - th.outer(row_sums, row_sums) / n_units  # sum_k (h_ik - m_i)(h_jk - m_j)
+    centered = gram - th.outer(row_sums, row_sums) / nonzero  # sum_k (h_ik - m_i)(h_jk - m_j) over non-zero units
     variance = centered.diagonal()
     # All-zero rows are left out, and constant ones (zero variance up to rounding: Pearson's correlation undefined).
-    valid = (row_max_abs > 0) & (variance > 1e-12 * (row_max_abs**2) * n_units)
+    valid = (row_max_abs > 0) & (variance > 1e-12 * (row_max_abs**2) * nonzero)
     m = int(valid.sum())
     if m < 2:
         return math.nan
@@ -102,28 +116,27 @@ def _input_correlation(h: th.Tensor, gram: th.Tensor) -> float:
 
 def input_correlation(activations: th.Tensor) -> float:
     """
-    Mean Pearson correlation between the activation vectors of two different inputs (rows of ``H``), over the
-    inputs whose vector is neither all zero nor constant: the pairs-of-inputs reading of the paper's correlation
-    (Figures 4, 8, 9 show :func:`unit_correlation`; docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents).
+    The paper's correlation read between inputs (Section 5.1: "the average correlation among every two non-zero
+    activations", a reflection of "the similarity of MLP activations" that is "high for a poorly performing agent",
+    whose features "collapse to a single point"): the mean over two different inputs ``i != j`` of Pearson's
+    correlation between their activation vectors (rows of ``H``), restricted to the **non-zero units**, those not
+    zero for every input of the batch (the paper's zeros, :func:`dead_units`, are the others; a flattened entry for
+    a convolutional layer). 1 when every input maps to the same point.
+
+    Undefined cases: an input whose restricted vector is constant (all zero included) has no correlation and is
+    left out (variance at most ``1e-12`` times its largest square, per unit); NaN when fewer than two non-zero units
+    or fewer than two inputs remain.
 
     :param activations: ``(n, *unit_shape)`` activations
-    :return: the mean correlation, in ``[-1, 1]``; NaN when fewer than two inputs qualify
+    :return: the mean correlation, in ``[-1, 1]``; NaN as above
     """
     h = flatten_batch(activations)
     return _input_correlation(h, h @ h.T)
 
 
-def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
-    """
-    The paper's correlation (Section 5.1): "the average correlation among every two non-zero activations", the
-    activations being the units: the mean over ``a != b`` of Pearson's correlation over the inputs (and positions)
-    of units ``a`` and ``b`` (:func:`unit_activations`), dead and constant units (std at most ``1e-6`` times the largest
-    absolute value) left out; float64 on the activations' device.
-
-    :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
-    :param absolute: average the absolute values of the correlations
-    :return: the mean correlation (``[-1/(m-1), 1]`` for ``m`` varying units), NaN when fewer than two units vary
-    """
+def _unit_correlations(activations: th.Tensor) -> tuple[float, float]:
+    """:return: the signed and the absolute mean correlation between units (:func:`unit_correlation`), from one
+    correlation matrix"""
     units = unit_activations(activations).double()  # (units, N): N = n x positions
     largest = th.maximum(units.amax(1), -units.amin(1))
     centered = units - units.mean(1, keepdim=True)
@@ -132,13 +145,45 @@ def unit_correlation(activations: th.Tensor, absolute: bool = False) -> float:
     varies = norms > 1e-6 * largest * math.sqrt(centered.shape[1])
     m = int(varies.sum())
     if m < 2:
-        return math.nan
+        return math.nan, math.nan
     z = centered[varies] if m < len(varies) else centered
     z /= norms[varies, None]  # in place: z is this function's own tensor
-    corr = z @ z.T  # (m, m)
-    if absolute:
-        corr = corr.abs()
-    return float((corr.sum() - corr.diagonal().sum()) / (m * (m - 1)))
+    corr = z @ z.T  # (m, m), unit diagonal up to rounding
+    pairs = m * (m - 1)
+    signed = (corr.sum() - corr.diagonal().sum()) / pairs
+    absolute = (corr.abs().sum() - corr.diagonal().abs().sum()) / pairs
+    return float(signed), float(absolute)
+
+
+def unit_correlation(activations: th.Tensor) -> float:
+    """
+    The paper's correlation read between units, signed (Section 5.1: "the average correlation among every two
+    non-zero activations", the activations being the units as in its zeros, "the number of zero activations, also
+    called dead neurons"): the mean over units ``a != b`` of Pearson's correlation over the inputs (and positions)
+    of ``a`` and ``b`` (:func:`unit_activations`); float64 on the activations' device. Units that follow a collapsed
+    layer's small residual motion with either sign cancel: near 0 on a layer collapsed to a point.
+
+    Undefined cases: dead and constant units (std at most ``1e-6`` times the largest absolute value) are left out;
+    NaN when fewer than two units vary, as on a layer where every input gives the same activations.
+
+    :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
+    :return: the mean correlation (``[-1/(m-1), 1]`` for ``m`` varying units); NaN as above
+    """
+    return _unit_correlations(activations)[0]
+
+
+def unit_abs_correlation(activations: th.Tensor) -> float:
+    """
+    The paper's correlation read between units, absolute (Section 5.1: "the average correlation among every two
+    non-zero activations"): :func:`unit_correlation` with ``|corr|`` averaged, so that units moving with opposite
+    signs count as alike; 1 when the varying units follow one direction, whatever its size.
+
+    Undefined cases: as :func:`unit_correlation` (NaN when fewer than two units vary).
+
+    :param activations: ``(n, d)`` dense or ``(n, C, height, width)`` convolutional activations
+    :return: the mean absolute correlation, in ``[0, 1]``; NaN as above
+    """
+    return _unit_correlations(activations)[1]
 
 
 def unit_activations(activations: th.Tensor) -> th.Tensor:
@@ -381,8 +426,9 @@ def weight_change(parameters: Iterable[th.Tensor], reference: Iterable[th.Tensor
 LAYER_METRICS = (
     "numerical_rank",
     "srank",
-    "correlation",
     "input_correlation",
+    "unit_correlation",
+    "unit_abs_correlation",
     "zero_fraction",
     "dead_fraction",
     "dead_units",
@@ -414,9 +460,10 @@ def layer_metrics(
     :param delta: threshold of :func:`effective_rank`
     :param metrics: which, of :data:`LAYER_METRICS` and :data:`EXTRA_LAYER_METRICS`
     :param taus: thresholds of ``dormant_ratios``
-    :return: name -> value, in the order of the two tuples: ``numerical_rank``, ``srank``, ``correlation``
-        (:func:`unit_correlation`), ``input_correlation``, ``zero_fraction``, ``dead_fraction``, ``dead_units`` (as a
-        float), ``dormant_ratio``, ``dormant_ratio_tau<tau>`` (:func:`dormant_ratio_name`) for each of ``taus``,
+    :return: name -> value, in the order of the two tuples: ``numerical_rank``, ``srank``, ``input_correlation``,
+        ``unit_correlation``, ``unit_abs_correlation`` (:data:`CORRELATION_READINGS`), ``zero_fraction``,
+        ``dead_fraction``, ``dead_units`` (as a float), ``dormant_ratio``, ``dormant_ratio_tau<tau>``
+        (:func:`dormant_ratio_name`) for each of ``taus``,
         ``stable_rank``, ``entropy_effective_rank``, ``active_fraction``, ``feature_norm``
     """
     metrics = tuple(metrics)
@@ -429,11 +476,13 @@ def layer_metrics(
     needs_gram = {"numerical_rank", "srank", "input_correlation", "stable_rank", "entropy_effective_rank"}
     gram = h @ h.T if needs_gram.intersection(metrics) else None
     s = _singular_values_from(h, gram) if gram is not None else None
+    units = _unit_correlations(activations) if {"unit_correlation", "unit_abs_correlation"} & set(metrics) else None
     compute = {
         "numerical_rank": lambda: _numerical_rank(s),
         "srank": lambda: _effective_rank(s, delta),
-        "correlation": lambda: unit_correlation(activations),
         "input_correlation": lambda: _input_correlation(h, gram),
+        "unit_correlation": lambda: units[0],
+        "unit_abs_correlation": lambda: units[1],
         "zero_fraction": lambda: zero_fraction(activations),
         "dead_fraction": lambda: dead_fraction(activations),
         "dead_units": lambda: float(dead_units(activations)),

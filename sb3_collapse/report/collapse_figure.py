@@ -16,6 +16,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogLocator, NullLocator
 
 from sb3_collapse.errors import InputError
+from sb3_collapse.monitoring import CORRELATION_READINGS, FIGURE_CORRELATION
 from sb3_collapse.paper import PAPER, metric_tag
 from sb3_collapse.protocol import (
     COLLAPSE_EVENTS_CSV,
@@ -27,18 +28,37 @@ from sb3_collapse.report.loading import Trial, load_trial
 from sb3_collapse.report.style import ESCAPE_COLOR, RESET_COLOR, RETURN_COLOR, frames_axis, layer_style
 from sb3_collapse.runfolder import read_collapse_events, read_collapse_metrics, read_json
 
-FIGURE4_METRICS: tuple[tuple[str, str], ...] = (
-    ("numerical_rank", "numerical rank"),
-    ("correlation", "correlation"),
-    ("dead_units", "dead units"),
-    ("grad_norm", "gradient norm"),
-)
-"""Figure 4's metric columns: metric -> axis label (the paper's "zeros", "the number of zero activations, also called
-dead neurons", are the dead units)."""
+CORRELATION_LABELS = {
+    "input_correlation": "correlation (between inputs)",
+    "unit_correlation": "correlation (between units)",
+    "unit_abs_correlation": "|correlation| (between units)",
+}
+"""The axis label of each reading of the paper's correlation (``CORRELATION_READINGS``)."""
+
+
+def figure4_metrics(correlation: str = FIGURE_CORRELATION) -> tuple[tuple[str, str], ...]:
+    """
+    Figure 4's metric columns, metric -> axis label (the paper's "zeros", "the number of zero activations, also
+    called dead neurons", are the dead units).
+
+    :param correlation: the reading of the correlation column, one of ``CORRELATION_READINGS``
+    """
+    if correlation not in CORRELATION_LABELS:
+        raise InputError(
+            f"correlation must be one of {list(CORRELATION_READINGS)}, got {correlation!r}.", parameter="correlation"
+        )
+    return (
+        ("numerical_rank", "numerical rank"),
+        (correlation, CORRELATION_LABELS[correlation]),
+        ("dead_units", "dead units"),
+        ("grad_norm", "gradient norm"),
+    )
+
+
 FIGURE4_LAYERS = ("mlp1", "mlp2")
 """The layers of Figure 4 ("we only visualize the metrics of mlp1 and mlp2"; ``mlp0`` on request)."""
-BOUNDED_METRICS = ("correlation", "zero_fraction", "dead_fraction")
-"""Metrics in [0, 1], drawn on that range."""
+BOUNDED_METRICS = (*CORRELATION_READINGS, "zero_fraction", "dead_fraction")
+"""Metrics in [0, 1], drawn on that range (a signed correlation below 0 extends it)."""
 _CENTRED = {"ha": "center", "va": "center", "fontsize": 8}
 _EVENTS = (("resets", "reset", RESET_COLOR, "-.", 0.8), ("escapes", "escape (reset rule)", ESCAPE_COLOR, ":", 0.9))
 """The vertical lines of Figure 4: :class:`AgentMetrics` field, legend label, colour, line style, alpha."""
@@ -51,7 +71,8 @@ PAPER_ROLES = ("well-performing", "middle", "poorly performing")
 @dataclass
 class AgentMetrics:
     """One row of Figure 4: a trial's (``None``: ``absent`` says why) metrics, tag -> ``(frames, values)``, the frames
-    of its resets and escapes, and layer -> width in units where known (``role``: ``"run"`` for one run folder)."""
+    of its resets and escapes, and layer -> width in units where known (``role``: ``"run"`` for one run folder);
+    ``correlation``: the reading of its correlation column (``CORRELATION_READINGS``)."""
 
     trial: Trial | None
     role: str
@@ -60,6 +81,7 @@ class AgentMetrics:
     escapes: list[int] = field(default_factory=list)
     absent: str = ""
     widths: dict[str, int] = field(default_factory=dict)
+    correlation: str = FIGURE_CORRELATION
 
     @property
     def final_return(self) -> float:
@@ -143,21 +165,28 @@ def pick_paper_agents(
     return picks
 
 
-def online_agent_rows(picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS) -> list[AgentMetrics]:
+def online_agent_rows(
+    picks: Sequence[AgentPick], layers: Sequence[str] = FIGURE4_LAYERS, correlation: str = FIGURE_CORRELATION
+) -> list[AgentMetrics]:
     """:return: one row of the online figure per pick (:func:`agent_metrics` of its trial)"""
     return [
-        AgentMetrics(None, p.role, absent=p.absent) if p.trial is None else agent_metrics(p.trial, p.role, layers)
+        AgentMetrics(None, p.role, absent=p.absent, correlation=correlation)
+        if p.trial is None
+        else agent_metrics(p.trial, p.role, layers, correlation)
         for p in picks
     ]
 
 
-def agent_metrics(trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYERS) -> AgentMetrics:
-    """:return: the row of ``trial``: its collapse metrics of ``layers`` and events (InputError: a malformed file)"""
-    tags = [metric_tag(layer, metric) for metric, _ in FIGURE4_METRICS for layer in layers]
+def agent_metrics(
+    trial: Trial, role: str, layers: Sequence[str] = FIGURE4_LAYERS, correlation: str = FIGURE_CORRELATION
+) -> AgentMetrics:
+    """:return: the row of ``trial``: its collapse metrics of ``layers`` (``correlation``: the reading of the
+    correlation column) and events (InputError: a malformed file)"""
+    tags = [metric_tag(layer, metric) for metric, _ in figure4_metrics(correlation) for layer in layers]
     config = read_json(trial.path / CONFIG_JSON) if (trial.path / CONFIG_JSON).is_file() else {}
     sizes = {"mlp0": config.get("feature_dim"), "mlp1": config.get("hidden_dim"), "mlp2": config.get("hidden_dim")}
     widths = {layer: int(sizes[layer]) for layer in layers if isinstance(sizes.get(layer), int)}
-    agent = AgentMetrics(trial, role, widths=widths)
+    agent = AgentMetrics(trial, role, widths=widths, correlation=correlation)
     metrics_path = trial.path / COLLAPSE_METRICS_CSV
     if metrics_path.exists():
         agent.metrics = read_collapse_metrics(metrics_path, tags)
@@ -194,11 +223,15 @@ def plot_collapse_metrics(
     source: str = COLLAPSE_METRICS_CSV,
 ) -> None:
     """The paper's Figure 4 to the PNG ``path``: a row per agent; its evaluation return, then a panel per metric of
-    :data:`FIGURE4_METRICS`, a line per layer; resets and escapes as vertical lines (``source``: where a missing
-    metric other than the gradient norm would come from)."""
+    :func:`figure4_metrics` (the agents' reading of the correlation), a line per layer; resets and escapes as
+    vertical lines (``source``: where a missing metric other than the gradient norm would come from)."""
     if not agents:
         raise ValueError("agents must hold at least one agent to plot.")
-    columns, rows = 1 + len(FIGURE4_METRICS), len(agents)
+    readings = {agent.correlation for agent in agents}
+    if len(readings) != 1:
+        raise ValueError(f"agents must share one reading of the correlation, got {sorted(readings)}.")
+    metrics = figure4_metrics(readings.pop())
+    columns, rows = 1 + len(metrics), len(agents)
     height = 2.4 * rows + 1.1
     widths: dict[str, int] = {}
     for agent in agents:
@@ -217,20 +250,21 @@ def plot_collapse_metrics(
         else:
             ax.plot(agent.trial.frames, agent.trial.returns, color=RETURN_COLOR, lw=1.4)
             ax.set_ylim(bottom=min(0.0, float(np.min(agent.trial.returns))))
-        for ax, (metric, label) in zip(row[1:], FIGURE4_METRICS):
-            drawn = False
+        for ax, (metric, label) in zip(row[1:], metrics):
+            drawn, lowest = False, 0.0
             for layer in layers:
                 frames, values = agent.metrics.get(metric_tag(layer, metric), (np.zeros(0), np.zeros(0)))
                 if len(frames):
                     ax.plot(frames, values, lw=1.2, **layer_style(layer))
                     drawn = True
+                    lowest = min(lowest, float(np.nanmin(values, initial=0.0)))
             if metric == "grad_norm" and drawn:
                 ax.set_yscale("log")
                 # a few major ticks and no minor ones: a log axis' minor ticks cost most of the drawing time
                 ax.yaxis.set_major_locator(LogLocator(numticks=5))
                 ax.yaxis.set_minor_locator(NullLocator())
             if metric in BOUNDED_METRICS:
-                ax.set_ylim(-0.02, 1.02)
+                ax.set_ylim(lowest - 0.02, 1.02)
             if metric == "dead_units":
                 label = dead_units_label(widths, layers)
                 if full_scale is not None:

@@ -22,8 +22,9 @@ PIXELS = gym.spaces.Box(0, 255, (9, 32, 32), np.uint8)
 METRICS = (
     "numerical_rank",
     "srank",
-    "correlation",
     "input_correlation",
+    "unit_correlation",
+    "unit_abs_correlation",
     "zero_fraction",
     "dead_fraction",
     "dead_units",

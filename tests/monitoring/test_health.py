@@ -110,7 +110,7 @@ def test_default_metrics_are_the_callback_s_and_layers_filter_both_networks():
     obs = observations(gym.spaces.Box(0, 255, (3, 36, 36), np.uint8), n=8)
     values = measure_health(model, obs, layers=["mlp1", "q1.mlp1"], networks=("actor", "critic"))
     assert {tag.split("/")[1] for tag in values} == {"mlp1", "q1.mlp1"}
-    assert len(values) == 2 * 8  # the eight activation metrics; no gradient yet; no action measured
+    assert len(values) == 2 * 9  # the nine activation metrics; no gradient yet; no action measured
     assert set(DEFAULT_METRICS) <= set(HEALTH_METRICS)
 
 

@@ -5,7 +5,9 @@ import pytest
 import torch as th
 
 from sb3_collapse.monitoring.metrics import (
+    CORRELATION_READINGS,
     EXTRA_LAYER_METRICS,
+    FIGURE_CORRELATION,
     action_spread,
     active_fraction,
     dead_fraction,
@@ -24,6 +26,7 @@ from sb3_collapse.monitoring.metrics import (
     saturated_fraction,
     singular_values,
     stable_rank,
+    unit_abs_correlation,
     unit_activations,
     unit_correlation,
     unit_count,
@@ -75,8 +78,8 @@ def test_identical_rows_collapse_to_one_point():
     h = row.repeat(8, 1)
     assert input_correlation(h) == pytest.approx(1.0)
     # every unit is constant over the inputs: no pair of varying units, the paper's correlation is undefined
-    assert math.isnan(unit_correlation(h)) and math.isnan(unit_correlation(h, absolute=True))
-    assert math.isnan(layer_metrics(h)["correlation"])
+    assert math.isnan(unit_correlation(h)) and math.isnan(unit_abs_correlation(h))
+    assert math.isnan(layer_metrics(h)["unit_correlation"]) and math.isnan(layer_metrics(h)["unit_abs_correlation"])
     assert numerical_rank(h) == pytest.approx(1.0)
     assert dead_fraction(h) == pytest.approx(2 / 5)
     assert zero_fraction(h) == pytest.approx(2 / 5)
@@ -94,10 +97,10 @@ def test_unit_correlation_by_hand():
     u0 = [0.0, 1.0, 2.0, 3.0]
     h = th.tensor([[a, 3.0 - a, b, 0.0, 2.0] for a, b in zip(u0, [0.0, 1.0, 0.0, 1.0])])
     assert unit_correlation(h) == pytest.approx(-1 / 3)
-    assert unit_correlation(h, absolute=True) == pytest.approx((1 + 2 / math.sqrt(5)) / 3)
+    assert unit_abs_correlation(h) == pytest.approx((1 + 2 / math.sqrt(5)) / 3)
     corr = np.corrcoef(h[:, :3].numpy().T)
     assert unit_correlation(h) == pytest.approx(_mean_off_diagonal(corr))
-    assert unit_correlation(h, absolute=True) == pytest.approx(_mean_off_diagonal(np.abs(corr)))
+    assert unit_abs_correlation(h) == pytest.approx(_mean_off_diagonal(np.abs(corr)))
     assert math.isnan(unit_correlation(h[:, [0, 3, 4]]))  # one varying unit: no pair
     assert math.isnan(unit_correlation(th.zeros(5, 4)))  # every unit dead
     # a convolutional unit is a channel, its vector every input at every position
@@ -121,7 +124,7 @@ def test_unit_and_input_correlations_of_a_healthy_layer(bias_std):
     h = th.as_tensor(np.maximum(x @ w.T + b, 0.0), dtype=th.float32)
     assert input_correlation(h) > {1.0: 0.35, 2.0: 0.65}[bias_std]
     assert abs(unit_correlation(h)) < 0.01
-    assert unit_correlation(h, absolute=True) < 0.06  # |corr| of independent units over 512 inputs ~ 0.035
+    assert unit_abs_correlation(h) < 0.06  # |corr| of independent units over 512 inputs ~ 0.035
     live = h.numpy().std(0) > 0
     assert unit_correlation(h) == pytest.approx(_mean_off_diagonal(np.corrcoef(h.numpy()[:, live].T)), abs=1e-9)
 
@@ -131,6 +134,52 @@ def test_all_zero_rows_are_left_out_of_the_correlation():
     expected = np.corrcoef(h[0].numpy(), h[1].numpy())[0, 1]
     assert input_correlation(h) == pytest.approx(expected)
     assert math.isnan(input_correlation(th.zeros(5, 4)))  # no pair to correlate
+
+
+def test_input_correlation_leaves_the_dead_units_out():
+    # Units 1 and 3 are zero for every input: the paper's zeros, not among its "non-zero activations". Over the
+    # other three units the two inputs are 1, 2, 4 and 2, 4, 7.
+    h = th.tensor([[1.0, 0.0, 2.0, 0.0, 4.0], [2.0, 0.0, 4.0, 0.0, 7.0]])
+    expected = np.corrcoef([1.0, 2.0, 4.0], [2.0, 4.0, 7.0])[0, 1]
+    assert input_correlation(h) == pytest.approx(expected)
+    assert input_correlation(h) != pytest.approx(np.corrcoef(h.numpy())[0, 1])  # the dead units would count
+    # undefined cases: a single non-zero unit; inputs constant over the non-zero units (left out)
+    assert math.isnan(input_correlation(th.tensor([[0.0, 1.0], [0.0, 2.0], [0.0, 3.0]])))
+    assert math.isnan(input_correlation(th.tensor([[1.0, 1.0, 0.0], [2.0, 2.0, 0.0], [1.0, 3.0, 0.0]])))
+
+
+def _relu_layer(directions, bias, n=512, width=256, dim=50, eps=0.05, seed=0):
+    """``relu(W z + b)`` of ``n`` inputs: ``z ~ N(0, I)`` (healthy, ``directions`` None) or one point plus a variation
+    of size ``eps`` in ``directions`` orthonormal directions (0: every input at the point)."""
+    gen = th.Generator().manual_seed(seed)
+    w = th.randn(width, dim, generator=gen, dtype=th.float64) / math.sqrt(dim)
+    b = th.randn(width, generator=gen, dtype=th.float64) if bias else th.zeros(width, dtype=th.float64)
+    if directions is None:
+        return th.relu(th.randn(n, dim, generator=gen, dtype=th.float64) @ w.T + b)
+    z = th.randn(dim, generator=gen, dtype=th.float64).expand(n, dim).clone()
+    if directions:
+        basis, _ = th.linalg.qr(th.randn(dim, directions, generator=gen, dtype=th.float64))
+        z += eps * th.randn(n, directions, generator=gen, dtype=th.float64) @ basis.T
+    return th.relu(z @ w.T + b)
+
+
+@pytest.mark.parametrize("bias", [False, True])
+@pytest.mark.parametrize("directions", [0, 1, 3, 50])
+def test_the_figures_correlation_is_high_on_a_collapsed_layer_and_low_on_a_healthy_one(directions, bias):
+    """Figures 4, 8, 9's reading (FIGURE_CORRELATION): a layer whose inputs "collapse to a single point" (up to a
+    small variation in 1, 3 or 50 directions, or exactly) reads near 1; random features of inputs that differ read
+    far lower. The unit readings do not separate them: the signed one cancels to about 0 on both, the absolute one
+    is high only for a variation along one direction, and both are undefined on an exact collapse."""
+    collapsed = layer_metrics(_relu_layer(directions, bias), metrics=CORRELATION_READINGS)
+    healthy = layer_metrics(_relu_layer(None, bias), metrics=CORRELATION_READINGS)
+    assert FIGURE_CORRELATION == "input_correlation"
+    assert collapsed[FIGURE_CORRELATION] > 0.99
+    assert healthy[FIGURE_CORRELATION] < 0.5
+    if directions == 0:  # every unit constant: no pair of varying units
+        assert math.isnan(collapsed["unit_correlation"]) and math.isnan(collapsed["unit_abs_correlation"])
+    else:
+        assert abs(collapsed["unit_correlation"]) < 0.05 and abs(healthy["unit_correlation"]) < 0.05
+        assert (collapsed["unit_abs_correlation"] > 0.95) == (directions == 1)
 
 
 def test_all_zero_columns_are_dead_and_dormant():
@@ -202,7 +251,8 @@ def test_layer_metrics_equal_the_single_functions():
     metrics = layer_metrics(h)
     assert metrics["numerical_rank"] == pytest.approx(numerical_rank(h))
     assert metrics["srank"] == effective_rank(h)
-    assert metrics["correlation"] == pytest.approx(unit_correlation(h))
+    assert metrics["unit_correlation"] == pytest.approx(unit_correlation(h))
+    assert metrics["unit_abs_correlation"] == pytest.approx(unit_abs_correlation(h))
     assert metrics["input_correlation"] == pytest.approx(input_correlation(h))
     assert metrics["zero_fraction"] == zero_fraction(h)
     assert metrics["dead_fraction"] == dead_fraction(h)
@@ -211,7 +261,8 @@ def test_layer_metrics_equal_the_single_functions():
     flat = h.reshape(40, -1).numpy()
     assert metrics["input_correlation"] == pytest.approx(_mean_off_diagonal(np.corrcoef(flat)))
     channels = h.transpose(0, 1).reshape(3, -1).double().numpy()  # every channel varies
-    assert metrics["correlation"] == pytest.approx(_mean_off_diagonal(np.corrcoef(channels)))
+    assert metrics["unit_correlation"] == pytest.approx(_mean_off_diagonal(np.corrcoef(channels)))
+    assert metrics["unit_abs_correlation"] == pytest.approx(_mean_off_diagonal(np.abs(np.corrcoef(channels))))
 
 
 def test_bad_input_is_refused():

@@ -254,7 +254,7 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
                 for metric, value in expected.items():
                     tag = f"collapse/{layer}/{metric}"
                     assert values[(pick.trial.seed, file.name, tag)] == pytest.approx(value, rel=1e-9, nan_ok=True)
-                for metric in ("numerical_rank", "correlation", "dead_units"):
+                for metric in ("numerical_rank", "input_correlation", "dead_units"):  # the default reading
                     tag = f"collapse/{layer}/{metric}"
                     assert row.metrics[tag][1][index] == pytest.approx(expected[metric], rel=1e-9, nan_ok=True)
     # the seeds' snapshots differ (noise added per seed), so do their metrics on the same inputs

@@ -25,7 +25,7 @@ TRANSPLANT_FRAMES = 50_000
 COLLAPSE_TAGS = tuple(
     f"collapse/{layer}/{metric}"
     for layer in ("mlp0", "mlp1", "mlp2")
-    for metric in ("numerical_rank", "correlation", "zero_fraction", "dead_fraction", "dead_units", "grad_norm")
+    for metric in ("numerical_rank", "input_correlation", "zero_fraction", "dead_fraction", "dead_units", "grad_norm")
 ) + ("collapse/action_std",)
 """Every tag a fabricated collapse_metrics.csv has: Figure 4's metrics of mlp0..mlp2, consistent with the trial's
 collapse state (a collapsed check: rank ~1-3, correlation ~0.95, ~90% zeros and dead units, tiny grad norms), and
@@ -107,7 +107,7 @@ def _metric(rng: np.random.Generator, tag: str, mlp1_norm: float) -> float:
     width = 50 if layer == "mlp0" else 1024
     if metric == "numerical_rank":
         return rng.uniform(1.0, 3.0) if collapsed else rng.uniform(0.2, 0.6) * min(width, 100)
-    if metric == "correlation":
+    if metric == "input_correlation":
         return rng.uniform(0.9, 0.99) if collapsed else rng.uniform(0.2, 0.4)
     if metric in ("zero_fraction", "dead_fraction"):
         return rng.uniform(0.85, 0.95) if collapsed else rng.uniform(0.4, 0.6)

@@ -11,15 +11,21 @@ from fabricated_sweep import TRANSPLANT_FRAMES, write_fake_sweep
 
 from sb3_collapse.commands.report import main
 from sb3_collapse.commands.report_pipelines import FixedInputSettings, build_report, write_report, write_run_report
+from sb3_collapse.errors import InputError
+from sb3_collapse.monitoring import CORRELATION_READINGS, FIGURE_CORRELATION
 from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.probe.fixed_inputs import FixedInputs
 from sb3_collapse.report import figure2
 from sb3_collapse.report.collapse_figure import (
+    CORRELATION_LABELS,
     PAPER_ROLES,
+    AgentMetrics,
     agent_class,
     agent_metrics,
+    figure4_metrics,
     pick_agents,
     pick_paper_agents,
+    plot_collapse_metrics,
 )
 from sb3_collapse.report.figure2 import PanelCurve, stage_table_rows
 from sb3_collapse.report.loading import Sweep, Trial
@@ -154,6 +160,30 @@ def test_collapse_figures_pick_the_fabricated_agents(reported):
     assert picks[0].pick_seed == 7 and picks[0].trial.seed in (0, 2, 4) and picks[1].trial is None
 
 
+def test_the_correlation_column_draws_the_reading_named(reported, tmp_path):
+    """The default reading (FIGURE_CORRELATION, high on a collapsed layer: tests/monitoring/test_metrics.py) is the
+    column of every row; the other readings of CORRELATION_READINGS are drawn when named."""
+    fake, report = reported
+    walker = report.collapse_online[("walker-walk", "drqv2")]
+    assert {agent.correlation for agent in walker} == {FIGURE_CORRELATION}
+    frames, values = walker[2].metrics[f"collapse/mlp1/{FIGURE_CORRELATION}"]  # fabricated: ~0.95 while collapsed
+    assert len(frames) == 20 and values.min() > 0.9
+    for reading in CORRELATION_READINGS:
+        assert figure4_metrics(reading)[1] == (reading, CORRELATION_LABELS[reading])
+    with pytest.raises(InputError, match="correlation must be one of") as error:
+        FixedInputSettings(correlation="correlation").validate()
+    assert error.value.parameter == "correlation"
+    # a row of another reading reads that reading's tag and is drawn under its label
+    trial = walker[2].trial
+    row = agent_metrics(trial, "poorly performing", correlation="unit_abs_correlation")
+    assert row.correlation == "unit_abs_correlation" and f"collapse/mlp1/{FIGURE_CORRELATION}" not in row.metrics
+    row.metrics["collapse/mlp1/unit_abs_correlation"] = (np.array([0, 10_000]), np.array([0.2, 0.9]))
+    plot_collapse_metrics([row], tmp_path / "abs.png", "unit_abs_correlation")
+    assert matplotlib.image.imread(tmp_path / "abs.png")[..., :3].std() > 0.05
+    with pytest.raises(ValueError, match="one reading of the correlation"):
+        plot_collapse_metrics([row, AgentMetrics(None, "middle")], tmp_path / "mixed.png", "mixed")
+
+
 def test_every_variant_reads_the_baselines_rollouts_by_default(reported, capsys, tmp_path):
     fake, report = reported
     baseline = fake.path / "probe" / "walker-walk_drqv2" / "rollouts.npz"
@@ -197,6 +227,11 @@ def test_collapse_figure_flags(reported, tmp_path, capsys):
         main([str(fake.path), "--out", str(tmp_path / "out"), "--no-progress", "--fixed-samples", "1"])
     assert exit_status.value.code == 2 and "--fixed-samples must be >= 2 (0: all), got 1." in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+    with pytest.raises(SystemExit) as exit_status:  # the readings by name only
+        main([str(fake.path), "--out", str(tmp_path / "out"), "--correlation", "correlation"])
+    assert exit_status.value.code == 2 and "--correlation: invalid choice" in capsys.readouterr().err
+    flags = ["--correlation", "unit_abs_correlation", "--train-episodes", "--tasks", "hopper-stand"]
+    assert main([str(fake.path), "--out", str(tmp_path / "abs"), "--no-progress", *flags]) == 0
 
 
 def test_table7_matches_the_fabricated_returns(reported):

@@ -329,57 +329,68 @@ def test_cli_errors(fake_sweep, tmp_path, capsys, case, message):
             write_report(root, progress=False)
 
 
-@pytest.mark.parametrize(
-    "case, message",
-    [
-        ("result_truncated", "walker-walk/drqv2/seed_0/result.json: not a readable JSON file"),
-        ("eval_cut_mid_row", "walker-walk/drqv2/seed_0/eval.csv, line 22: the number of fields differs"),
-        ("eval_number", "walker-walk/drqv2/seed_0/eval.csv, line 3: column 'mean_reward' is 'abc'"),
-        ("eval_column", "walker-walk/drqv2/seed_0/eval.csv: missing column(s) mean_reward"),
-        ("eval_missing", "walker-walk/drqv2/seed_0/eval.csv is missing"),
-        ("result_resets", "walker-walk/drqv2/seed_0/result.json: 'resets' must be an integer"),
-        ("metrics_number", "walker-walk/drqv2/seed_0/collapse_metrics.csv, line 2: column 'value' is 'x'"),
-    ],
-)
-def test_a_damaged_trial_is_listed_and_the_rest_drawn(fake_sweep, tmp_path, capsys, case, message):
+# Each damage, its trial (several per cell: every cell but hopper-stand / drqv2 keeps finished seeds) and the reason
+# the report gives for it.
+DAMAGES = [
+    ("result_truncated", "walker-walk/drqv2/seed_0", "result.json: not a readable JSON file"),
+    ("eval_cut_mid_row", "walker-walk/drqv2/seed_1", "eval.csv, line 22: the number of fields differs"),
+    ("eval_number", "walker-walk/drqv2/seed_2", "eval.csv, line 3: column 'mean_reward' is 'abc'"),
+    ("eval_column", "walker-walk/drqv2+reset/seed_0", "eval.csv: missing column(s) mean_reward"),
+    ("eval_missing", "walker-walk/drqv2+reset/seed_1", "eval.csv is missing"),
+    ("result_resets", "hopper-stand/drqv2+reset/seed_0", "result.json: 'resets' must be an integer"),
+    ("metrics_number", "hopper-stand/drqv2+reset/seed_1", "collapse_metrics.csv, line 2: column 'value' is 'x'"),
+]
+
+
+def test_a_damaged_trial_is_listed_and_the_rest_drawn(fake_sweep, tmp_path, capsys):
+    """Seven trials, each damaged its own way, in one report: each is listed failed with its reason and the way out
+    (once), in the printed summary and the page; the other seeds of their cells and the other cells are drawn."""
     root = _copy(fake_sweep, tmp_path)
-    trial = root / "walker-walk" / "drqv2" / "seed_0"
-    if case == "result_truncated":
-        text = (trial / "result.json").read_text()
-        (trial / "result.json").write_text(text[: len(text) // 2])
-    elif case == "eval_cut_mid_row":
-        text = (trial / "eval.csv").read_text()
-        (trial / "eval.csv").write_text(text[: text.rindex(",", 0, len(text) - 1)])
-    elif case == "eval_number":
-        lines = (trial / "eval.csv").read_text().splitlines()
-        lines[2] = "10000,5000,abc,1.0,10,1.0"
-        (trial / "eval.csv").write_text("\n".join(lines) + "\n")
-    elif case == "eval_column":
-        (trial / "eval.csv").write_text("frame,step,reward\n0,0,1.0\n")
-    elif case == "eval_missing":
-        (trial / "eval.csv").unlink()
-    elif case == "result_resets":
-        result = json.loads((trial / "result.json").read_text())
-        (trial / "result.json").write_text(json.dumps({**result, "resets": "two"}))
-    elif case == "metrics_number":
-        lines = (trial / "collapse_metrics.csv").read_text().splitlines()
-        lines[1] = "10000,5000,collapse/mlp1/grad_norm,x"
-        (trial / "collapse_metrics.csv").write_text("\n".join(lines) + "\n")
+    for case, name, _ in DAMAGES:
+        trial = root / name
+        if case == "result_truncated":
+            text = (trial / "result.json").read_text()
+            (trial / "result.json").write_text(text[: len(text) // 2])
+        elif case == "eval_cut_mid_row":
+            text = (trial / "eval.csv").read_text()
+            (trial / "eval.csv").write_text(text[: text.rindex(",", 0, len(text) - 1)])
+        elif case == "eval_number":
+            lines = (trial / "eval.csv").read_text().splitlines()
+            lines[2] = "10000,5000,abc,1.0,10,1.0"
+            (trial / "eval.csv").write_text("\n".join(lines) + "\n")
+        elif case == "eval_column":
+            (trial / "eval.csv").write_text("frame,step,reward\n0,0,1.0\n")
+        elif case == "eval_missing":
+            (trial / "eval.csv").unlink()
+        elif case == "result_resets":
+            result = json.loads((trial / "result.json").read_text())
+            (trial / "result.json").write_text(json.dumps({**result, "resets": "two"}))
+        elif case == "metrics_number":
+            lines = (trial / "collapse_metrics.csv").read_text().splitlines()
+            lines[1] = "10000,5000,collapse/mlp1/grad_norm,x"
+            (trial / "collapse_metrics.csv").write_text("\n".join(lines) + "\n")
     assert main([str(root), "--no-progress"]) == 0
     printed = capsys.readouterr().out
-    reason = f"{message}"
     markdown = (root / "report" / "summary.md").read_text()
     unfinished = markdown[markdown.index("## Unfinished trials") :]
-    line = next(line for line in unfinished.splitlines() if line.startswith("| walker-walk | drqv2 | 0 | failed |"))
-    assert reason in line and line.count("move the folder aside to train this seed again") == 1
     assert unfinished in printed
     page = (root / "report" / "index.html").read_text()
     section = page[page.index('<section id="unfinished-trials">') :]
     section = section[: section.index("</section>")]
-    assert html.escape(reason) in section and "move the folder aside to train this seed again" in section
+    for case, name, message in DAMAGES:
+        reason = f"{name}/{message}"
+        task, variant, seed = name.split("/")
+        start = f"| {task} | {variant} | {seed.removeprefix('seed_')} | failed |"
+        line = next(line for line in unfinished.splitlines() if line.startswith(start))
+        assert reason in line and line.count("move the folder aside to train this seed again") == 1, case
+        assert html.escape(reason) in section, case
+    assert section.count("move the folder aside to train this seed again") >= len(DAMAGES)
     summary = {(r["task"], r["variant"]): r for r in _read_csv(root / "report" / "summary.csv")}
-    assert summary[("walker-walk", "drqv2")]["seeds"] == "4" and summary[("walker-walk", "drqv2")]["unfinished"] == "3"
-    assert summary[("hopper-stand", "drqv2")]["seeds"] == "5"  # the rest is drawn as before
+    # Finished seeds left, and the unfinished ones: walker-walk / drqv2's running and failed seeds besides.
+    counts = {(task, variant): (r["seeds"], r["unfinished"]) for (task, variant), r in summary.items()}
+    assert counts[("walker-walk", "drqv2")] == ("2", "5") and counts[("walker-walk", "drqv2+reset")] == ("3", "2")
+    assert counts[("hopper-stand", "drqv2+reset")] == ("3", "2")
+    assert counts[("hopper-stand", "drqv2")] == ("5", "0")  # the rest is drawn as before
     _assert_png(root / "report" / "figure5.png")
 
 
