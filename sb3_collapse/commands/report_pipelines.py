@@ -61,8 +61,7 @@ class FixedInputSettings:
     layers: tuple[str, ...] = setting(collapse_figure.FIGURE4_LAYERS, cli=None)
     """the layers measured and drawn"""
     correlation: str = setting(FIGURE_CORRELATION, cli=RUN, choices=CORRELATION_READINGS)
-    """Figures 4, 8, 9: the reading of the correlation column (every reading stays in the CSV files;
-    docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents)"""
+    """Figures 4, 8, 9: the reading of the correlation column (every reading stays in the CSV files)"""
     train_episodes: bool = setting(False, cli=RUN)
     """Figures 4, 8, 9: the fixed set from the probe's training episodes of the rollouts only (Figure 1's H)"""
 
