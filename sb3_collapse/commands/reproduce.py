@@ -91,7 +91,8 @@ class Scale:
     :param film_frames: environment frames per film (Figures 6-7)
     :param film_size: height and width of the film's renders, in pixels
     :param film_every_frames: frames between two pictures of a film strip
-    :param paper_classes: the paper's classes of agents (900 and 30); ``False``: thresholds that split the agents
+    :param paper_classes: the paper's classes of agents (``PAPER.success_return`` and ``PAPER.failure_return``);
+        ``False``: thresholds that split the agents
     """
 
     name: str
@@ -166,7 +167,8 @@ PAPER_CLASSES = Classes(PAPER.success_return, PAPER.failure_return, "the paper's
 
 def split_classes(finals: Sequence[float], what: str, parts: int = 2) -> Classes:
     """
-    Thresholds that split ``finals`` (the tiny scale's agents, which never reach the paper's 900): ``parts=2``, one cut
+    Thresholds that split ``finals`` (the tiny scale's agents, which never reach the paper's
+    ``PAPER.success_return``): ``parts=2``, one cut
     at the median (``success_return == failure_return``: every agent in one of the two classes); ``parts=3``, the
     cuts at the thirds (the middle third between). A cut lies midway between two distinct sorted values, moved to the
     nearest gap where values tie; with one distinct value every agent is well-performing.
@@ -185,7 +187,8 @@ def split_classes(finals: Sequence[float], what: str, parts: int = 2) -> Classes
         return (values[nearest - 1] + values[nearest]) / 2
 
     low, high = (cut(len(values) // 2),) * 2 if parts == 2 else (cut(len(values) // 3), cut(2 * len(values) // 3))
-    source = f"tiny scale: the {parts}-way split of the {len(values)} final returns of {what}, not the paper's 900/30"
+    paper = f"{PAPER.success_return:g}/{PAPER.failure_return:g}"
+    source = f"tiny scale: the {parts}-way split of the {len(values)} final returns of {what}, not the paper's {paper}"
     return Classes(max(low, high) if parts == 2 else high, min(low, high), source)
 
 
