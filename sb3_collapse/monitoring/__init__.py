@@ -13,7 +13,7 @@ from sb3_collapse.monitoring.callbacks import (
 )
 from sb3_collapse.monitoring.evaluation import PeriodicEvaluation
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, grad_norms_of, track_grad_norms
-from sb3_collapse.monitoring.health import HealthMemory, measure_health
+from sb3_collapse.monitoring.health import DEFAULT_METRICS, HEALTH_METRICS, HealthMemory, measure_health
 from sb3_collapse.monitoring.interventions import (
     INTERVENTIONS,
     InterventionResult,
@@ -54,6 +54,8 @@ from sb3_collapse.monitoring.periodic_redo import PeriodicReDo
 from sb3_collapse.monitoring.reset import CollapseReset
 
 __all__ = [
+    "DEFAULT_METRICS",
+    "HEALTH_METRICS",
     "INTERVENTIONS",
     "ActivationLogger",
     "CollapseMetrics",

@@ -4,6 +4,7 @@
 from sb3_collapse.report.collapse_figure import FixedInputSettings
 from sb3_collapse.report.figure2 import probe_sweep
 from sb3_collapse.report.film import film_to_folder
+from sb3_collapse.report.headline import escape_probability
 from sb3_collapse.report.health import health_to_folder
 from sb3_collapse.report.loading import Sweep, Trial, load_sweep
 from sb3_collapse.report.pipeline import Report, build_report, write_report
@@ -18,6 +19,7 @@ __all__ = [
     "Sweep",
     "Trial",
     "build_report",
+    "escape_probability",
     "film_to_folder",
     "health_to_folder",
     "load_reference_curves",
