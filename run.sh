@@ -53,11 +53,16 @@ find_python() {
             echo "Warning: $PYTHON is Python $version; the test suite passes on ${supported%, }." >&2
         echo "$PYTHON"; return
     fi
+    local skipped=()
     for candidate in python3.11 python3.12 python3.13 python3; do
-        version=$(python_version "$candidate") || continue
+        version=$(python_version "$candidate") || { skipped+=("$candidate: not found"); continue; }
         if [[ " ${SUPPORTED[*]} " == *" $version "* ]]; then
+            # Say why it is not the first choice (stderr: the caller reads the name from stdout).
+            ((${#skipped[@]} == 0)) ||
+                echo "Took $candidate (Python $version) because $(IFS=';'; echo "${skipped[*]}" | sed 's/;/; /g')." >&2
             echo "$candidate"; return
         fi
+        skipped+=("$candidate is Python $version")
     done
     echo "None of python3.11, python3.12, python3.13, python3 is Python ${supported%, } here:" \
         "set PYTHON=... to one." >&2
