@@ -5,7 +5,7 @@
 #        environment in .venv (Python 3.11, 3.12 or 3.13: the first of python3.11, python3.12, python3.13, python3
 #        that is one; PYTHON=python3.12 chooses), PyTorch (the one already there, else
 #        `pip install $TORCH_SPEC`, torch==2.13.0 by default: from PyPI on Linux that is the CUDA build; see
-#        README.md#requirements), then this package in editable mode (with its test, zoo, sweep and dev extras
+#        docs/install.md#requirements), then this package in editable mode (with its test, zoo, sweep and dev extras
 #        for `setup` and `test`).
 # demo:  setup, then a short DrQ-v2 run on walker-walk from pixels; writes runs/walker-walk_s0/.
 # test:  setup, then the test suite (pytest). Extra arguments go to pytest.
