@@ -5,7 +5,7 @@
 #        environment in .venv (Python 3.11, 3.12 or 3.13: the first of python3.11, python3.12, python3.13, python3
 #        that is one; PYTHON=python3.12 chooses), PyTorch (the one already there, else
 #        `pip install $TORCH_SPEC`, torch==2.13.0 by default: from PyPI on Linux that is the CUDA build; see
-#        README.md#requirements), then this package in editable mode (with its test, zoo, sweep and dev extras
+#        docs/install.md#requirements), then this package in editable mode (with its test, zoo, sweep and dev extras
 #        for `setup` and `test`).
 # demo:  setup, then a short DrQ-v2 run on walker-walk from pixels; writes runs/walker-walk_s0/.
 # test:  setup, then the test suite (pytest). Extra arguments go to pytest.
@@ -53,11 +53,16 @@ find_python() {
             echo "Warning: $PYTHON is Python $version; the test suite passes on ${supported%, }." >&2
         echo "$PYTHON"; return
     fi
+    local skipped=()
     for candidate in python3.11 python3.12 python3.13 python3; do
-        version=$(python_version "$candidate") || continue
+        version=$(python_version "$candidate") || { skipped+=("$candidate: not found"); continue; }
         if [[ " ${SUPPORTED[*]} " == *" $version "* ]]; then
+            # Say why it is not the first choice (stderr: the caller reads the name from stdout).
+            ((${#skipped[@]} == 0)) ||
+                echo "Took $candidate (Python $version) because $(IFS=';'; echo "${skipped[*]}" | sed 's/;/; /g')." >&2
             echo "$candidate"; return
         fi
+        skipped+=("$candidate is Python $version")
     done
     echo "None of python3.11, python3.12, python3.13, python3 is Python ${supported%, } here:" \
         "set PYTHON=... to one." >&2

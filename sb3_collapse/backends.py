@@ -3,6 +3,8 @@ and every sweep trial, never by building a model. What is exact where: docs/chec
 
 from __future__ import annotations
 
+__all__ = ["BackendSettings", "configure_backends", "current_backends"]
+
 import os
 from dataclasses import dataclass
 

@@ -3,6 +3,8 @@ DeepMind Control pixels, sized like DrQ-v2 (docs/interventions.md#sb3s-td3-and-s
 
 from __future__ import annotations
 
+__all__ = ["BASELINES", "DDPG", "SAC", "TD3", "build_baseline"]
+
 from typing import Any, TypeVar
 
 import numpy as np
@@ -102,6 +104,7 @@ def collapse_model(model: ModelT) -> ModelT:
 
 
 BASELINES: dict[str, type[TD3 | SAC]] = {"td3": TD3, "sac": SAC}
+"""The algorithms :func:`build_baseline` builds, by name (the train command's ``--algorithm``)."""
 DRQV2_ONLY_SETTINGS = (
     "n_steps", "stddev_schedule", "stddev_clip", "tau", "train_freq", "augmentation_pad", "replay_sampling"
 )  # fmt: skip

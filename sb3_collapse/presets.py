@@ -51,6 +51,46 @@ class TaskPreset:
         """The hyperparameters, by name (every field but ``task``, ``tier`` and ``from_drqv2``)."""
         return {name: getattr(self, name) for name in SETTING_NAMES}
 
+    def env_kwargs(self) -> dict[str, Any]:
+        """:return: the keyword arguments of ``make_dmc_env(task, ...)`` that this preset sets (``action_repeat``,
+        ``frame_stack``)"""
+        return dict(action_repeat=self.action_repeat, frame_stack=self.frame_stack)
+
+    def drqv2_kwargs(self, frames: int | None = None, **kwargs: Any) -> dict[str, Any]:
+        """
+        The keyword arguments of ``DrQv2(policy, env, ...)`` that the train command gives a run of this preset, so
+        that a library run and the command's are the same configuration::
+
+            task = preset("walker-walk")
+            env = make_dmc_env(task.task, seed=0, **task.env_kwargs())
+            model = DrQv2("CnnPolicy", env, seed=0, **task.drqv2_kwargs())
+            model.learn(task.frames // task.action_repeat)  # SB3 counts agent steps
+
+        :param frames: the run's budget, in frames (default: the preset's ``frames``): the replay buffer is capped at
+            its agent steps, as the train command caps it (a larger buffer is never filled)
+        :param kwargs: keyword arguments of ``DrQv2`` given over the preset's (``seed``, ``device``, ``callback``...)
+        :return: the keyword arguments (``learning_starts`` and ``buffer_size`` in agent steps)
+        """
+        settings = self.settings()
+        steps = max(1, (self.frames if frames is None else frames) // self.action_repeat)
+        settings["buffer_size"] = min(self.buffer_size, steps)
+        return drqv2_kwargs_of(settings) | kwargs
+
+
+def drqv2_kwargs_of(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """
+    :param settings: a value for each of :data:`SETTING_NAMES` (a preset's, or a run's resolved settings)
+    :return: the keyword arguments of ``DrQv2(policy, env, ...)`` they make: DrQ-v2's update ratio with any number of
+        environments (``train_freq`` counted in transitions), ``learning_starts`` = ``seed_frames // action_repeat``
+    """
+    same = ("learning_rate", "buffer_size", "batch_size", "gamma", "tau", "n_steps", "stddev_schedule", "stddev_clip")
+    return {name: settings[name] for name in (*same, "augmentation_pad")} | dict(
+        learning_starts=settings["seed_frames"] // settings["action_repeat"],
+        train_freq=(settings["train_freq"], "transition"),
+        replay_buffer_kwargs=dict(sampling=settings["replay_sampling"]),
+        policy_kwargs=dict(feature_dim=settings["feature_dim"], hidden_dim=settings["hidden_dim"]),
+    )
+
 
 SETTING_NAMES: tuple[str, ...] = tuple(
     field.name for field in dataclasses.fields(TaskPreset) if field.name not in ("task", "tier", "from_drqv2")

@@ -3,6 +3,8 @@ events, a sweep's trial folders. The file names and the writers are in :mod:`sb3
 
 from __future__ import annotations
 
+__all__ = ["RunStatus", "final_return", "read_evaluations", "read_result", "run_status"]
+
 import contextlib
 import csv
 import errno

@@ -411,10 +411,33 @@ def test_the_demo_says_which_preset_values_it_changes():
 
 API = ROOT / "docs" / "api"
 def _public_packages() -> list[str]:
-    """The packages of ``sb3_collapse`` that declare their public names in ``__all__``."""
-    return sorted(
-        f"sb3_collapse.{init.parent.name}" for init in PACKAGE.glob("*/__init__.py") if "__all__" in init.read_text()
-    )
+    """The packages of ``sb3_collapse`` and its top-level modules that declare their public names in ``__all__``."""
+    inits = [init for init in PACKAGE.glob("*/__init__.py") if "__all__" in init.read_text()]
+    modules = [path for path in PACKAGE.glob("*.py") if path.name != "__init__.py" and "__all__" in path.read_text()]
+    return sorted([f"sb3_collapse.{init.parent.name}" for init in inits] + [f"sb3_collapse.{m.stem}" for m in modules])
+
+
+DOCUMENTED_MODULES = ("sb3_collapse.errors", "sb3_collapse.paper", "sb3_collapse.presets")  # every name public
+
+
+def test_every_name_the_docs_import_is_public():
+    # A name a user is taught to import is in the API reference: in a public __all__ or a wholly public module.
+    public = {f"{module}.{name}" for module in _public_packages() for name in importlib.import_module(module).__all__}
+    public |= {f"sb3_collapse.{name}" for name in importlib.import_module("sb3_collapse").__all__}
+    taught = []
+    for doc in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        for number, line in _prose_and_code(doc)[1]:
+            if (found := re.match(r"\s*from (sb3_collapse(?:\.\w+)*) import \(?([\w, ]+)", line)) is None:
+                continue
+            module, names = found[1], [name.strip() for name in found[2].split(",") if name.strip()]
+            taught += [(f"{_relative(doc)}:{number}", module, name) for name in names]
+    assert taught, "no import found in the docs: the pattern is wrong"
+    internal = [
+        f"{where}: {module}.{name}"
+        for where, module, name in taught
+        if module not in DOCUMENTED_MODULES and f"{module}.{name}" not in public
+    ]
+    assert internal == [], f"the docs import internal names (make them public or stop teaching them): {internal}"
 
 
 def test_the_api_reference_names_every_public_package():

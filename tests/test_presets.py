@@ -11,7 +11,7 @@ from sb3_collapse.commands.train import build_parser, main
 from sb3_collapse.drqv2 import StddevSchedule
 from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import PRESETS, SETTING_NAMES, preset, reset_window_frames
-from sb3_collapse.run.config import TrainConfig
+from sb3_collapse.run.config import TrainConfig, drqv2_kwargs
 from sb3_collapse.run.runner import train
 from sb3_collapse.sweep.plan import sweep_plan
 from sb3_collapse.sweep.runner import settings_changes, sweep_settings
@@ -132,3 +132,26 @@ def test_cli_defaults_are_the_task_preset(capsys):
     assert "0.001  (user)" in capsys.readouterr().out
     help_text = build_parser().format_help()
     assert "preset" in help_text and "docs/presets.md" in help_text
+
+
+@pytest.mark.parametrize("task", ["walker-walk", "hopper-stand", "cheetah-run", "quadruped-run", "humanoid-walk"])
+def test_a_presets_drqv2_kwargs_are_the_train_commands(task):
+    # What `train --env TASK --seed 3` gives DrQv2 (its parsed flags, resolved), against the library's one call.
+    arguments = vars(build_parser().parse_args(["--env", task, "--seed", "3"]))
+    config = TrainConfig(**{name: value for name, value in arguments.items() if name != "show_settings"}).resolve()
+    command = drqv2_kwargs(config)
+    library = preset(task).drqv2_kwargs(seed=3)
+    run_only = {"device", "verbose", "step_envs_during_updates", "compile_update", "init_from"}
+    assert {**library, "policy_kwargs": {**library["policy_kwargs"], "activation": "relu"}} == {
+        name: value for name, value in command.items() if name not in run_only
+    }
+    assert library["buffer_size"] == min(preset(task).buffer_size, preset(task).frames // preset(task).action_repeat)
+    assert preset(task).env_kwargs() == {"action_repeat": config.action_repeat, "frame_stack": config.frame_stack}
+
+
+def test_a_presets_drqv2_kwargs_take_a_budget_and_overrides():
+    walker = preset("walker-walk")
+    kwargs = walker.drqv2_kwargs(frames=6_000, seed=1, batch_size=32)
+    assert (kwargs["buffer_size"], kwargs["batch_size"], kwargs["seed"], kwargs["n_steps"]) == (3_000, 32, 1, 1)
+    assert (kwargs["learning_starts"], kwargs["train_freq"]) == (2_000, (2, "transition"))
+    assert kwargs["replay_buffer_kwargs"] == {"sampling": "drqv2"}

@@ -3,7 +3,7 @@
 from sb3_collapse.common.layers import LAYER_NAMES
 from sb3_collapse.drqv2.augmentation import random_shift
 from sb3_collapse.drqv2.drqv2 import DrQv2
-from sb3_collapse.drqv2.policies import CnnPolicy, DrQv2Policy, MlpPolicy
+from sb3_collapse.drqv2.policies import CnnPolicy, DrQv2Policy, MlpPolicy, MultiInputPolicy
 from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.schedules import StddevSchedule
 
@@ -14,6 +14,7 @@ __all__ = [
     "DrQv2Policy",
     "FrameStackReplayBuffer",
     "MlpPolicy",
+    "MultiInputPolicy",
     "StddevSchedule",
     "random_shift",
 ]

@@ -13,7 +13,7 @@ from sb3_collapse.monitoring.callbacks import (
 )
 from sb3_collapse.monitoring.evaluation import PeriodicEvaluation
 from sb3_collapse.monitoring.grad_norms import grad_norm_recorder, grad_norms_of, track_grad_norms
-from sb3_collapse.monitoring.health import HealthMemory, measure_health
+from sb3_collapse.monitoring.health import DEFAULT_METRICS, HEALTH_METRICS, HealthMemory, measure_health
 from sb3_collapse.monitoring.interventions import (
     INTERVENTIONS,
     InterventionResult,
@@ -58,7 +58,9 @@ from sb3_collapse.monitoring.reset import CollapseReset
 
 __all__ = [
     "CORRELATION_READINGS",
+    "DEFAULT_METRICS",
     "FIGURE_CORRELATION",
+    "HEALTH_METRICS",
     "INTERVENTIONS",
     "ActivationLogger",
     "CollapseMetrics",

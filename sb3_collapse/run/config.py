@@ -24,7 +24,7 @@ from sb3_collapse.envs.dmc import check_env_arguments
 from sb3_collapse.errors import ParameterError
 from sb3_collapse.monitoring import INTERVENTIONS, CollapseReset
 from sb3_collapse.paper import PAPER
-from sb3_collapse.presets import SETTING_NAMES, TaskPreset, preset, reset_window_frames
+from sb3_collapse.presets import SETTING_NAMES, TaskPreset, drqv2_kwargs_of, preset, reset_window_frames
 from sb3_collapse.protocol import SNAPSHOTS_DIR
 from sb3_collapse.run.variants import ALGORITHMS, variant_name
 
@@ -391,15 +391,12 @@ def _model_kwargs(config: TrainConfig, *names: str) -> dict[str, Any]:
 
 
 def drqv2_kwargs(config: TrainConfig) -> dict[str, Any]:
-    """:return: the keyword arguments of ``DrQv2(policy, env, ...)`` for the resolved ``config``"""
-    same = ("tau", "n_steps", "stddev_schedule", "stddev_clip", "augmentation_pad", "step_envs_during_updates")
-    return dict(
-        _model_kwargs(config, *same, "compile_update"),
-        train_freq=(config.train_freq, "transition"),  # DrQ-v2's ratio with any number of environments
-        replay_buffer_kwargs=dict(sampling=config.replay_sampling),
-        policy_kwargs=dict(feature_dim=config.feature_dim, hidden_dim=config.hidden_dim, activation=config.activation),
-        init_from=config.init_from or None,
-    )
+    """:return: the keyword arguments of ``DrQv2(policy, env, ...)`` for the resolved ``config``: its preset settings'
+    (:func:`~sb3_collapse.presets.drqv2_kwargs_of`, as ``preset(task).drqv2_kwargs()`` makes them) and the run's"""
+    kwargs = drqv2_kwargs_of({name: getattr(config, name) for name in SETTING_NAMES})
+    kwargs["policy_kwargs"]["activation"] = config.activation
+    run = ("seed", "device", "verbose", "step_envs_during_updates", "compile_update")
+    return kwargs | {name: getattr(config, name) for name in run} | {"init_from": config.init_from or None}
 
 
 def baseline_kwargs(config: TrainConfig) -> dict[str, Any]:

@@ -1,4 +1,5 @@
-"""``zoo_configs/drqv2.yml``, generated from the preset table: ``python -m sb3_collapse.zoo.config [--check] PATH``."""
+"""``zoo_configs/drqv2.yml``, generated from the preset table: ``python -m sb3_collapse.zoo.config [--check] PATH``
+(needs pyyaml, which the ``zoo`` extra installs)."""
 
 from __future__ import annotations
 
@@ -7,9 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from sb3_collapse.envs.registration import DOMAIN_ALIASES, dmc_env_id
+from sb3_collapse.errors import MissingDependencyError
 from sb3_collapse.presets import PRESETS, TaskPreset
 
 HEADER = """\
@@ -48,7 +48,13 @@ def _zoo_env_ids(task: str) -> list[str]:
 
 
 def render_zoo_config() -> str:
-    """The text of ``zoo_configs/drqv2.yml``: an entry per preset (and per alias id), by tier."""
+    """The text of ``zoo_configs/drqv2.yml``: an entry per preset (and per alias id), by tier.
+
+    :raises MissingDependencyError: without pyyaml"""
+    try:
+        import yaml
+    except ImportError as error:
+        raise MissingDependencyError("pyyaml cannot be imported: pip install -e '.[zoo]' (or pyyaml)") from error
     parts = [HEADER]
     for tier in ("easy", "medium", "hard"):
         presets = [task_preset for task_preset in PRESETS.values() if task_preset.tier == tier]
@@ -68,7 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("path", help="the YAML file to write (or check)")
     parser.add_argument("--check", action="store_true", help="only check that the file is up to date")
     args = parser.parse_args(argv)
-    text, path = render_zoo_config(), Path(args.path)
+    try:
+        text, path = render_zoo_config(), Path(args.path)
+    except MissingDependencyError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     if args.check:
         if not path.is_file() or path.read_text() != text:
             print(f"{path} is not up to date: run python -m sb3_collapse.zoo.config {path}", file=sys.stderr)

@@ -320,3 +320,12 @@ def test_zoo_train_sets_the_train_commands_cuda_flags(monkeypatch):
         th.backends.cudnn.benchmark = benchmark_before
     assert seen["settings"].tf32 and not seen["settings"].deterministic
     assert seen["benchmark"] is True
+
+
+def test_the_config_command_without_pyyaml_says_what_to_install(monkeypatch, tmp_path, capsys):
+    from sb3_collapse.zoo import config
+
+    monkeypatch.setitem(sys.modules, "yaml", None)  # import yaml raises ImportError
+    assert config.main([str(tmp_path / "drqv2.yml")]) == 1
+    assert capsys.readouterr().err == "error: pyyaml cannot be imported: pip install -e '.[zoo]' (or pyyaml)\n"
+    assert not (tmp_path / "drqv2.yml").exists()
