@@ -274,7 +274,8 @@ class Reproduction:
 
     def grid_trials(self) -> list:
         """Study 2's trials: the nine cells on its task."""
-        from sb3_collapse.sweep.trials import GRID_VARIANTS, expand_trials
+        from sb3_collapse.run.variants import GRID_VARIANTS
+        from sb3_collapse.sweep.trials import expand_trials
 
         return expand_trials([self.transplant_task], GRID_VARIANTS, range(self.transplant_seeds))
 
@@ -300,7 +301,7 @@ class Reproduction:
 
 
 def _grid_variants() -> tuple[str, ...]:
-    from sb3_collapse.sweep.trials import GRID_VARIANTS
+    from sb3_collapse.run.variants import GRID_VARIANTS
 
     return GRID_VARIANTS
 

@@ -29,6 +29,7 @@ from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, SWEEP_LOCK
 from sb3_collapse.run.checkpoints import checkpoint_frames
 from sb3_collapse.run.config import RUN, TrainConfig, declared, setting
+from sb3_collapse.run.variants import BLANK_SOURCE, GRID_VARIANTS, VARIANT_FORMS, transplant_of
 from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_folder_owner, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
 from sb3_collapse.sweep.donors import (
@@ -39,7 +40,7 @@ from sb3_collapse.sweep.donors import (
 )
 from sb3_collapse.sweep.plan import check_disk, check_node, size_text, sweep_plan
 from sb3_collapse.sweep.runner import (
-    IN_USE,
+    Attempt,
     SweepSummary,
     check_sweep,
     prepare_sweep_folder,
@@ -48,12 +49,9 @@ from sb3_collapse.sweep.runner import (
     trial_left_as_is,
 )
 from sb3_collapse.sweep.trials import (
-    GRID_VARIANTS,
-    VARIANT_FORMS,
     Trial,
     expand_trials,
     parse_checkpoint_specs,
-    transplant_of,
     trial_config,
     trial_dir,
 )
@@ -180,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         states = trial_states(trials, args.out, training, checkpoints)
         # Damaged trials are not trained; those in use hold files but are not trained now.
-        configs = {trial: state[2] for trial, state in states.items() if state[1] is None or state[1][0] == IN_USE}
+        to_plan = [trial for trial, state in states.items() if state[1] is None or state[1][0] == Attempt.IN_USE]
+        configs = {trial: states[trial][2] for trial in to_plan}
         done = {
             trial: state[3] for trial, state in states.items() if state[1] is None and state[0] != RunStatus.FINISHED
         }
@@ -281,7 +280,7 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
     if given:
         flags = ", ".join(f"--{key.replace('_', '-')}" for key in given)
         raise InputError(f"--donors-from picks every donor: leave out {flags}.", parameter="donors_from")
-    needed = {source for trial in trials for source in (transplant_of(trial.variant) or {}).values()} - {"blank"}
+    needed = {source for trial in trials for source in (transplant_of(trial.variant) or {}).values()} - {BLANK_SOURCE}
     grid_tasks = list(dict.fromkeys(trial.task for trial in trials if transplant_of(trial.variant)))
     picked = {
         task: pick_donors(args.donors_from, task, args.donor_seed, args.donor_variant, sorted(needed))
@@ -327,7 +326,7 @@ def dry_run(
     listed = list(states.items())[:list_limit]
     for trial, (status, left, config, done) in listed:
         folder = trial_dir(out, trial)
-        if left is not None and left[0] == IN_USE:  # not run now, nothing written into it: a rerun once it ends
+        if left is not None and left[0] == Attempt.IN_USE:  # not run now, nothing written into it: a rerun once it ends
             print(f"{status:<10} in use {folder}: held by {left[1]}; left as it is, run the same command once it ends")
             continue
         if left is not None:  # not run: a rerun would not repair it
@@ -345,8 +344,8 @@ def dry_run(
         f"{len(states)} trials: "
         + ", ".join(f"{counts[status]} {status}" for status in (*RunStatus, NOT_A_RUN) if counts[status])
         + f"; {plan['trials_pending']} would run (frames done: the newest checkpoint of an unfinished trial)"
-        + (f"; {as_is[IN_USE]} in use by another process (run once it ends)" if as_is[IN_USE] else "")
-        + "".join(f"; {number} kept as they are ({kind})" for kind, number in as_is.items() if kind != IN_USE)
+        + (f"; {as_is[Attempt.IN_USE]} in use by another process (run once it ends)" if as_is[Attempt.IN_USE] else "")
+        + "".join(f"; {number} kept as they are ({kind})" for kind, number in as_is.items() if kind != Attempt.IN_USE)
         + "."
     )
     owner = run_folder_owner(out, SWEEP_LOCK)

@@ -10,13 +10,14 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from sb3_collapse.commands.cli import prog_name
 from sb3_collapse.envs.rendering import ensure_rendering_backend
 from sb3_collapse.errors import InputError, MissingDependencyError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.presets import PRESETS
 from sb3_collapse.zoo.registration import ALGO_NAME, register_with_zoo
 
-PROG = "python -m sb3_collapse.zoo"
+PROG = prog_name("sb3_collapse.zoo")
 COMMANDS = ("train", "enjoy")
 _DRQV2 = PRESETS["walker-walk"]  # the evaluation protocol is the same for every task
 DRQV2_EVAL_FREQ = _DRQV2.eval_every_frames // _DRQV2.action_repeat  # DrQ-v2's evaluation period, in agent steps

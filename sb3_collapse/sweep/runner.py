@@ -132,7 +132,6 @@ class Attempt(str, Enum):
         return self.value
 
 
-IN_USE = Attempt.IN_USE  # sweep/__main__.py's name of it
 UNREADABLE_RESULT = f"an unreadable {RESULT_JSON}"  # a trial a rerun would not change: not run, failed...
 OTHER_VERSION = "a checkpoint of another version"  # ... and neither is this one
 

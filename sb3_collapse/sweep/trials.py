@@ -16,7 +16,7 @@ from sb3_collapse.envs import parse_task
 from sb3_collapse.errors import InputError
 from sb3_collapse.protocol import trial_path
 from sb3_collapse.run.config import TrainConfig
-from sb3_collapse.run.variants import BLANK_SOURCE, GRID_VARIANTS, VARIANT_FORMS, transplant_of, variant_settings  # noqa: F401  sweep/__main__.py imports them here
+from sb3_collapse.run.variants import BLANK_SOURCE, transplant_of, variant_settings
 
 
 def donor_key(source: str, part: str) -> str:
