@@ -152,7 +152,9 @@ case $command in
     test)
         setup test,zoo,sweep,dev
         log "Running the test suite"
-        "$VENV/bin/python" -m pytest "$@"
+        # Two workers (pytest-xdist): on two cores the suite takes about 0.6x as long as in one process
+        # (benchmarks/README.md#test-suite); tests/conftest.py shares the longest run between the workers. -n 0 runs it in one.
+        "$VENV/bin/python" -m pytest -n auto --maxprocesses 2 --dist loadfile --no-loadscope-reorder "$@"
         ;;
     *)
         echo "usage: bash run.sh demo|test|setup [extra arguments]" >&2

@@ -1,12 +1,56 @@
 """
 The expensive runs that tests of several modules read, made once per session (read them, never modify them: copy a
-folder before changing it).
+folder before changing it), and how the suite shares two cores under pytest-xdist (``bash run.sh test`` runs it with
+``-n auto --maxprocesses 2 --dist loadfile --no-loadscope-reorder``).
 """
+
+import json
+import os
+from pathlib import Path
 
 import pytest
 import torch as th
 
 from tests.shared_runs import TINY_WALKER_RUN
+
+
+def pytest_configure(config):
+    """An xdist worker uses one thread (torch's and its subprocesses' OpenMP): two workers on two cores would
+    otherwise run four."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
+        th.set_num_threads(1)
+
+
+def pytest_collection_modifyitems(config, items):
+    """
+    Under xdist (``--dist loadfile --no-loadscope-reorder``: each file on one worker, the files in this order): the
+    file of the tiny reproduction's own tests goes first, so that one worker makes it (minutes) while the other runs
+    the files that do not read it.
+    """
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        items.sort(key=lambda item: item.path.name != "test_reproduce.py")  # stable: the rest in collection order
+
+
+def shared_by_the_workers(tmp_path_factory, name: str, make):
+    """
+    ``make(folder)`` once per session: under xdist the first worker to ask makes it in a folder shared by the
+    workers (under a file lock); the others wait for it and get what it returned.
+
+    :param name: the folder's name, in the session's base temporary folder
+    :param make: ``folder -> JSON-able result``
+    :return: what ``make`` returned
+    """
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return make(tmp_path_factory.getbasetemp() / name)
+    from filelock import FileLock  # torch's own dependency
+
+    root = tmp_path_factory.getbasetemp().parent  # the session's, above each worker's popen-gwN
+    with FileLock(str(root / f"{name}.lock")):
+        done = root / f"{name}.json"
+        if not done.exists():  # the first worker: make it; a worker whose make raised left no file
+            done.write_text(json.dumps(make(root / name)))
+        return json.loads(done.read_text())
 
 
 @pytest.fixture(scope="session")
@@ -32,8 +76,8 @@ def tiny_walker_run(tmp_path_factory):
 def tiny_reproduction(tmp_path_factory):
     """
     ``python -m sb3_collapse.reproduce --scale tiny`` run once (every stage: the sweep, the transplant grid, the probe,
-    the films and the report at CPU sizes), in ``<tmp_path_factory's base>/tiny_reproduction`` (read it, never
-    modify it).
+    the films and the report at CPU sizes), in the folder ``tiny_reproduction`` of the session's base temporary
+    folder (shared by xdist's workers: :func:`shared_by_the_workers`; read it, never modify it).
 
     :return: ``(out, exit status, its output)``
     """
@@ -43,13 +87,16 @@ def tiny_reproduction(tmp_path_factory):
 
     from sb3_collapse.commands.reproduce import main
 
-    out = tmp_path_factory.getbasetemp() / "tiny_reproduction"
-    threads, printed = th.get_num_threads(), io.StringIO()
-    start = time.perf_counter()
-    try:
-        with contextlib.redirect_stdout(printed):
-            status = main(["--out", str(out), "--scale", "tiny", "--no-progress-bar"])
-    finally:
-        th.set_num_threads(threads)
-    print(f"tiny reproduction: {time.perf_counter() - start:.1f} s")
-    return out, status, printed.getvalue()
+    def reproduce(out):
+        threads, printed = th.get_num_threads(), io.StringIO()
+        start = time.perf_counter()
+        try:
+            with contextlib.redirect_stdout(printed):
+                status = main(["--out", str(out), "--scale", "tiny", "--no-progress-bar"])
+        finally:
+            th.set_num_threads(threads)
+        print(f"tiny reproduction: {time.perf_counter() - start:.1f} s")
+        return str(out), status, printed.getvalue()
+
+    out, status, printed = shared_by_the_workers(tmp_path_factory, "tiny_reproduction", reproduce)
+    return Path(out), status, printed

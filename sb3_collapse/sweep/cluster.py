@@ -145,7 +145,8 @@ def ray_session(
     Ray for the block: an initialized Ray as it is, else a new local instance (ended with this process, even by
     SIGKILL) or the cluster at ``address``, checked first (:func:`check_cluster`).
 
-    :param address: Ray cluster address, ``None`` for a new local instance
+    :param address: Ray cluster address, ``None`` for a new local instance (also where a ``ray start`` cluster runs
+        on this machine or ``RAY_ADDRESS`` is set: Ray's own ``None`` would join those)
     :param num_cpus: CPUs of a new local instance (``None``: all of the machine's); ignored with ``address``
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer
     :return: the ``ray`` module
@@ -158,7 +159,7 @@ def ray_session(
         return
     watchdog = None
     if address is None:
-        ray.init(include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
+        ray.init(address="local", include_dashboard=False, num_cpus=num_cpus, log_to_driver=True)
         watchdog = subprocess.Popen(  # not in the driver's process group: a Ctrl-C or a group kill does not reach it
             [sys.executable, "-m", "sb3_collapse.sweep.watchdog", str(os.getpid())], stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,

@@ -163,3 +163,15 @@ def test_sigterm_to_a_sweep_on_a_ray_start_cluster_stops_at_a_checkpoint_and_the
     assert f"from its checkpoint at frame {info['frames']:,} ({stopped.name})" in rerun.stdout
     result = json.loads((folder / "result.json").read_text())
     assert result["resumes"] == 1 and result["frames"] == 1200
+
+
+@pytest.mark.ray_cluster
+def test_no_address_starts_a_local_instance_even_beside_a_running_cluster(ray_cluster, monkeypatch):
+    """Ray's own ``address=None`` joins the cluster that ``RAY_ADDRESS`` or ``ray start`` names; a sweep without
+    ``--address`` starts a new local instance, as its help says (and two sweeps on one machine stay apart)."""
+    from sb3_collapse.sweep.cluster import ray_session
+
+    monkeypatch.setenv("RAY_ADDRESS", ray_cluster["address"])
+    with ray_session(num_cpus=1) as ray:
+        assert ray.cluster_resources()["CPU"] == 1  # the cluster has 2
+        assert ray.get_runtime_context().gcs_address != ray_cluster["address"]
