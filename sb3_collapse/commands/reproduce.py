@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sb3_collapse.commands.cli import CommandLine, cli_message, prog_name, report_unwritable_outputs
-from sb3_collapse.errors import ClusterUnreachable, InputError, MissingDependencyError
+from sb3_collapse.commands.cli import CommandLine, prog_name, report_unwritable_outputs, run_command
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, PAPER_RESULTS
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
 from sb3_collapse.probe.pipeline import RecordOptions
@@ -811,36 +811,32 @@ def main(argv: list[str] | None = None) -> int:
     stages = [stage for stage in STAGES if stage in (args.stages or STAGES)]
     check_stages(parser, job, args.stages or STAGES)
     check_out(parser, job)
-    try:
-        from sb3_collapse.sweep.runner import check_sweep
+    stopped = (
+        f"\nStopped: run the same command again to resume (the finished stages and trials in {job.out} are kept; "
+        f"exit status {EXIT_INTERRUPTED})."
+    )
+    return run_command(parser, lambda: run(job, stages, args.dry_run, args.frames_per_second), lambda _: stopped)
 
-        for trials in (job.sweep_trials(),):
-            check_sweep(
-                trials,
-                job.sweep,
-                dict(scale.training),
-                {},
-                job.cpus_per_trial,
-                job.gpus_per_trial,
-                job.connect_timeout_s,
-            )
-        if args.dry_run:
-            fps = args.frames_per_second or REFERENCE_FPS
-            source = "--frames-per-second" if args.frames_per_second else REFERENCE_FPS_SOURCE
-            return dry_run(job, stages, fps, source)
-        return run_stages(job, stages)
-    except (MissingDependencyError, InputError) as error:
-        parser.error(cli_message(error, parser))
-    except ClusterUnreachable as error:
-        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(
-            f"\nStopped: run the same command again to resume (the finished stages and trials in {job.out} are kept; "
-            f"exit status {EXIT_INTERRUPTED}).",
-            file=sys.stderr,
-        )
-        return EXIT_INTERRUPTED
+
+def run(job: Reproduction, stages: Sequence[str], plan_only: bool, frames_per_second: float | None) -> int:
+    """Check the sweep stage's settings, then print the plan of ``stages`` (``plan_only``) or run them; :return: the
+    exit status"""
+    from sb3_collapse.sweep.runner import check_sweep
+
+    check_sweep(
+        job.sweep_trials(),
+        job.sweep,
+        dict(job.scale.training),
+        {},
+        job.cpus_per_trial,
+        job.gpus_per_trial,
+        job.connect_timeout_s,
+    )
+    if plan_only:
+        fps = frames_per_second or REFERENCE_FPS
+        source = "--frames-per-second" if frames_per_second else REFERENCE_FPS_SOURCE
+        return dry_run(job, stages, fps, source)
+    return run_stages(job, stages)
 
 
 def run_stages(job: Reproduction, stages: Sequence[str]) -> int:

@@ -16,15 +16,12 @@ from sb3_collapse.commands.cli import (
     cli_message,
     prog_name,
     report_unwritable_outputs,
+    run_command,
     setting_flags,
     training_arguments,
     training_settings,
 )
-from sb3_collapse.errors import (
-    ClusterUnreachable,
-    InputError,
-    MissingDependencyError,
-)
+from sb3_collapse.errors import InputError, MissingDependencyError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, SWEEP_LOCK
 from sb3_collapse.run.checkpoints import checkpoint_frames
@@ -165,49 +162,45 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     check_arguments(parser, args, SweepFlags, DonorFlags)
+    stopped = (
+        f"\nStopped at once: the running trials resume from their last checkpoints; run the same command again to "
+        f"resume (finished trials in {args.out} are kept; exit status {EXIT_INTERRUPTED})."
+    )
+    return run_command(
+        parser, lambda: run(parser, args), lambda _: stopped, bad_input=(MissingDependencyError, ValueError)
+    )
+
+
+def run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """The sweep of the parsed ``args`` (its dry run with ``--dry-run``); :return: the exit status"""
     training = training_settings(args)
     seeds = range(args.seeds) if args.seeds is not None else args.seed_list
     variants = list(args.variants or ([] if args.transplant_grid else DEFAULT_VARIANTS))
     if args.transplant_grid:
         variants += GRID_VARIANTS
-    try:
-        trials = expand_trials(args.tasks, variants, seeds)
-        checkpoints, donors = transplant_checkpoints(args, trials)
-        check_sweep(
-            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
+    trials = expand_trials(args.tasks, variants, seeds)
+    checkpoints, donors = transplant_checkpoints(args, trials)
+    check_sweep(
+        trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
+    )
+    states = trial_states(trials, args.out, training, checkpoints)
+    # Damaged trials are not trained; those in use hold files but are not trained now.
+    to_plan = [trial for trial, state in states.items() if state[1] is None or state[1][0] == Attempt.IN_USE]
+    configs = {trial: states[trial][2] for trial in to_plan}
+    done = {trial: state[3] for trial, state in states.items() if state[1] is None and state[0] != RunStatus.FINISHED}
+    plan = sweep_plan(configs, done, args.cpus_per_trial, args.gpus_per_trial, args.frames_per_second, args.out)
+    if args.address is None:  # this machine runs the trials: it must hold one
+        check_node(plan)
+    if (shortage := check_disk(plan)) is not None:  # one trial that cannot fit: refused (an InputError)
+        print(f"warning: {cli_message(InputError(shortage), parser)}", file=sys.stderr)
+    if args.dry_run:
+        return dry_run(
+            states, args.out, training, checkpoints, args.allow_changed_settings, donors, plan, args.list_limit
         )
-        states = trial_states(trials, args.out, training, checkpoints)
-        # Damaged trials are not trained; those in use hold files but are not trained now.
-        to_plan = [trial for trial, state in states.items() if state[1] is None or state[1][0] == Attempt.IN_USE]
-        configs = {trial: states[trial][2] for trial in to_plan}
-        done = {
-            trial: state[3] for trial, state in states.items() if state[1] is None and state[0] != RunStatus.FINISHED
-        }
-        plan = sweep_plan(configs, done, args.cpus_per_trial, args.gpus_per_trial, args.frames_per_second, args.out)
-        if args.address is None:  # this machine runs the trials: it must hold one
-            check_node(plan)
-        if (shortage := check_disk(plan)) is not None:  # one trial that cannot fit: refused (an InputError)
-            print(f"warning: {cli_message(InputError(shortage), parser)}", file=sys.stderr)
-        if args.dry_run:
-            return dry_run(
-                states, args.out, training, checkpoints, args.allow_changed_settings, donors, plan, args.list_limit
-            )
-        summary = run_sweep(
-            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.address,
-            args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s, plan,
-        )  # fmt: skip
-    except (MissingDependencyError, ValueError) as error:
-        parser.error(cli_message(error, parser))
-    except ClusterUnreachable as error:
-        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(
-            f"\nStopped at once: the running trials resume from their last checkpoints; run the same command again "
-            f"to resume (finished trials in {args.out} are kept; exit status {EXIT_INTERRUPTED}).",
-            file=sys.stderr,
-        )
-        return EXIT_INTERRUPTED
+    summary = run_sweep(
+        trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.address,
+        args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s, plan,
+    )  # fmt: skip
     return print_summary(summary, args.out)
 
 
