@@ -96,8 +96,10 @@ def run(args: argparse.Namespace, settings: ReportSettings, collapse: FixedInput
         trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
         print(f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations")
     else:
-        flags = (args.reference, args.include_unfinished, args.tasks, args.variants, args.progress, args.overwrite)
-        report = write_report(args.sweep, args.out, settings, *flags, collapse_settings=collapse)
+        flags = parsed_values(args, ReportFlags, "sweep", "out", "overwrite", "rollouts_per_variant")
+        report = write_report(
+            args.sweep, args.out, args.overwrite, settings=settings, collapse_settings=collapse, **flags
+        )
         print(report.markdown)
         if report.grid:
             print(grid_markdown(report.grid, settings.success_return))
