@@ -9,8 +9,9 @@ import shutil
 import matplotlib.image
 import pytest
 
-from sb3_collapse.commands.reproduce import PAPER_MD, main, paper_items, split_classes
+from sb3_collapse.commands.reproduce import main, paper_items
 from sb3_collapse.paper import PAPER
+from sb3_collapse.sweep.reproduction import PAPER_MD, TINY_SCALE, Reproduction, split_classes
 
 # The first test that reads the session's tiny reproduction runs it: minutes on a quiet 2-core CPU, far more on a busy
 # one (benchmarks/README.md#reproduce-tiny), above the suite's 600 s per test.
@@ -123,8 +124,6 @@ def test_tiny_reproduction_holds_every_figure_and_table(tiny_reproduction):
 
 
 def _job(out):
-    from sb3_collapse.commands.reproduce import TINY_SCALE, Reproduction
-
     return Reproduction(out, TINY_SCALE, TINY_SCALE.tasks, TINY_SCALE.seeds, TINY_SCALE.transplant_seeds)
 
 

@@ -2,8 +2,9 @@
 :func:`~sb3_collapse.run.config.setting`: the flags and their range checks, ``--show-settings``, the docs' tables
 (``python -m sb3_collapse.commands.cli --markdown FILE`` rewrites those of FILE; a test fails when they are out of
 date; docs/presets.md#every-training-setting), the one-line errors (:func:`cli_message`: a library message in the
-flags' words; :func:`report_unwritable_outputs`) and the exit statuses: 0 done, 1 failed, 2 bad input,
-:data:`~sb3_collapse.protocol.EXIT_INTERRUPTED` stopped (run the same command again)."""
+flags' words; :func:`run_command`: how every command line ends; :func:`report_unwritable_outputs`) and the exit
+statuses: 0 done, 1 failed, 2 bad input, :data:`~sb3_collapse.protocol.EXIT_INTERRUPTED` stopped (run the same command
+again)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,17 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ParamSpec
 
-from sb3_collapse.errors import FULL_DISK_ERRNOS, unwritable_message
+from sb3_collapse.errors import (
+    FULL_DISK_ERRNOS,
+    ClusterUnreachable,
+    DivergenceError,
+    InputError,
+    MissingDependencyError,
+    NonFiniteDataError,
+    OutputError,
+    unwritable_message,
+)
+from sb3_collapse.protocol import EXIT_INTERRUPTED
 from sb3_collapse.run.config import RUN, TRAINING, TrainConfig, declared_problem
 
 P = ParamSpec("P")
@@ -317,6 +328,60 @@ def report_unwritable_outputs(main: Callable[P, int]) -> Callable[P, int]:
             return 1 if error.errno in FULL_DISK_ERRNOS else 2
 
     return wrapped
+
+
+EXIT_FAILED, EXIT_BAD_INPUT = 1, 2
+"""The exit statuses of a failure (the command ran and could not finish) and of bad input (nothing was done)."""
+BAD_INPUT: tuple[type[BaseException], ...] = (InputError, MissingDependencyError)
+"""The exceptions of bad input: :data:`EXIT_BAD_INPUT`."""
+FAILURES: tuple[type[BaseException], ...] = (ClusterUnreachable, OutputError, DivergenceError, NonFiniteDataError)
+"""The exceptions of a failure: :data:`EXIT_FAILED` (the message says what to do; a rerun resumes)."""
+
+
+def run_command(
+    parser: argparse.ArgumentParser,
+    work: Callable[[], int],
+    stopped: Callable[[BaseException], str] | None = None,
+    *,
+    stops: tuple[type[BaseException], ...] = (KeyboardInterrupt,),
+    bad_input: tuple[type[BaseException], ...] = BAD_INPUT,
+    help_pointer: bool = True,
+    message: Callable[[BaseException], str] | None = None,
+) -> int:
+    """
+    Run a command line's ``work`` (what it does once its flags are parsed and checked) and end it as every command
+    line ends: one line in the flags' words (:func:`cli_message`) and an exit status, no traceback. An unwritable
+    output is :func:`report_unwritable_outputs`'s; any other exception propagates (a traceback: a bug).
+
+    :param parser: the command line's parser (its flags name the parameters in the messages)
+    :param work: the work; :return: its exit status
+    :param stopped: the line printed when one of ``stops`` ends the work (:data:`EXIT_INTERRUPTED`: run the same
+        command again); ``None``: a stop propagates
+    :param stops: the exceptions of a stop (a signal)
+    :param bad_input: the exceptions of bad input: ``parser.error`` (the pointer to ``--help`` and
+        ``<prog>: error: ...``, :data:`EXIT_BAD_INPUT`), or with ``help_pointer=False`` ``error: ...`` and
+        :data:`EXIT_BAD_INPUT` (an input that is not a flag's value: a folder, a file)
+    :param help_pointer: bad input through ``parser.error``
+    :param message: the line of an error (``None``: :func:`cli_message` with ``parser``)
+    :return: the exit status: ``work``'s, :data:`EXIT_FAILED` after ``error: ...`` for one of :data:`FAILURES`,
+        :data:`EXIT_BAD_INPUT`, :data:`EXIT_INTERRUPTED`
+    """
+    line = message or functools.partial(cli_message, parser=parser)
+    try:
+        return work()
+    except FAILURES as error:  # before bad input: a NonFiniteDataError is a ValueError
+        print(f"error: {line(error)}", file=sys.stderr)
+        return EXIT_FAILED
+    except bad_input as error:
+        if help_pointer:
+            parser.error(line(error))
+        print(f"error: {line(error)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except stops as stop:
+        if stopped is None:
+            raise
+        print(stopped(stop), file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from sb3_collapse.commands.cli import (
     parsed_values,
     prog_name,
     report_unwritable_outputs,
+    run_command,
 )
 from sb3_collapse.commands.probe_pipelines import (
     film_to_folder,
@@ -26,7 +27,7 @@ from sb3_collapse.commands.probe_pipelines import (
     probe_to_folder,
     record_to_file,
 )
-from sb3_collapse.errors import InputError, NonFiniteDataError
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER
 from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
 from sb3_collapse.probe.health import HealthSettings
@@ -216,24 +217,15 @@ def main(argv: list[str] | None = None) -> int:
         except InputError as error:
             command_parser.error(cli_message(error, command_parser))
     check_arguments(command_parser, args, *COMMANDS[args.command])
-    try:
-        with stop_signal_handlers(_interrupt):  # the staged outputs are removed on the way out
-            _run(args, [parser.prog, *argv])
-    except InputError as error:
-        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
-        return 2
-    except NonFiniteDataError as error:  # the simulator could not step (nothing written: the outputs are staged)
-        print(f"error: {error}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt as stop:
+
+    def stopped(stop: BaseException) -> str:
         name, out = stop.args[0] if stop.args else "SIGINT", args.out or "the output folder"
-        print(
+        return (
             f"\nStopped by {name}: nothing was written under {out} (the outputs are staged and moved there only when "
-            f"complete); run the same command again (exit status {EXIT_INTERRUPTED}).",
-            file=sys.stderr,
+            f"complete); run the same command again (exit status {EXIT_INTERRUPTED})."
         )
-        return EXIT_INTERRUPTED
-    return 0
+
+    return run_command(parser, lambda: _run(args, [parser.prog, *argv]), stopped, help_pointer=False)
 
 
 def _interrupt(signum: int, _frame: Any) -> None:
@@ -241,8 +233,15 @@ def _interrupt(signum: int, _frame: Any) -> None:
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
-def _run(args: argparse.Namespace, command: list[str]) -> None:
-    """Run the sub-command of ``args`` (``command``: the command line, recorded in the summary)."""
+def _run(args: argparse.Namespace, command: list[str]) -> int:
+    """Run the sub-command of ``args`` (``command``: the command line, recorded in the summary); :return: 0"""
+    with stop_signal_handlers(_interrupt):  # the staged outputs are removed on the way out
+        _run_sub_command(args, command)
+    return 0
+
+
+def _run_sub_command(args: argparse.Namespace, command: list[str]) -> None:
+    """The sub-command of ``args``, run."""
     record = RecordOptions(**parsed_values(args, RecordOptions)) if RecordOptions in COMMANDS[args.command] else None
     if args.command == "record":
         record_to_file(args.checkpoint, args.out, record, args.overwrite, args.device, args.progress)

@@ -4,21 +4,19 @@ input print ``error: ...`` and exit with status 2."""
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import dataclass
 
 from sb3_collapse.commands.cli import (
     CommandLine,
     add_setting_arguments,
     check_arguments,
-    cli_message,
     parsed_values,
     prog_name,
     report_unwritable_outputs,
+    run_command,
     setting_flags,
 )
 from sb3_collapse.commands.report_pipelines import FixedInputSettings, write_report, write_run_report
-from sb3_collapse.errors import InputError
 from sb3_collapse.protocol import RESULT_JSON
 from sb3_collapse.report.collapse_figure import is_run_folder
 from sb3_collapse.report.headline import BASELINE_VARIANT
@@ -89,21 +87,22 @@ def main(argv: list[str] | None = None) -> int:
     settings = ReportSettings(**parsed_values(args, ReportSettings))
     collapse = FixedInputSettings(**parsed_values(args, FixedInputSettings))
     collapse.rollouts_variant = None if args.rollouts_per_variant else args.rollouts_variant or BASELINE_VARIANT
-    try:
-        if is_run_folder(args.sweep):
-            trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
-            print(
-                f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations"
-            )
-        else:
-            flags = (args.reference, args.include_unfinished, args.tasks, args.variants, args.progress, args.overwrite)
-            report = write_report(args.sweep, args.out, settings, *flags, collapse_settings=collapse)
-            print(report.markdown)
-            if report.grid:
-                print(grid_markdown(report.grid, settings.success_return))
-            files = report.files
-    except InputError as error:
-        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
-        return 2
+    return run_command(parser, lambda: run(args, settings, collapse), help_pointer=False)
+
+
+def run(args: argparse.Namespace, settings: ReportSettings, collapse: FixedInputSettings) -> int:
+    """Write the report of the parsed ``args``; :return: 0"""
+    if is_run_folder(args.sweep):
+        trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
+        print(f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations")
+    else:
+        flags = parsed_values(args, ReportFlags, "sweep", "out", "overwrite", "rollouts_per_variant")
+        report = write_report(
+            args.sweep, args.out, args.overwrite, settings=settings, collapse_settings=collapse, **flags
+        )
+        print(report.markdown)
+        if report.grid:
+            print(grid_markdown(report.grid, settings.success_return))
+        files = report.files
     print("wrote " + ", ".join(str(path) for path in files))
     return 0

@@ -5,10 +5,12 @@ write the report folder (staged: all files or none)."""
 from __future__ import annotations
 
 import csv
+import inspect
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from stable_baselines3.common.utils import get_device
 
@@ -234,34 +236,31 @@ def _why_no_fixed_inputs(
 
 
 def write_report(
-    sweep_dir: str | Path,
-    out: str | Path | None = None,
-    settings: stats.ReportSettings | None = None,
-    reference: bool = False,
-    include_unfinished: bool = False,
-    tasks: Sequence[str] | None = None,
-    variants: Sequence[str] | None = None,
-    progress: bool = True,
-    overwrite: bool = False,
-    collapse_settings: FixedInputSettings | None = None,
+    sweep_dir: str | Path, out: str | Path | None = None, overwrite: bool = False, **build_options: Any
 ) -> page.Report:
     """
-    The report of a sweep folder (:func:`build_report`, whose parameters it shares), written to ``out``: staged,
-    moved in only when every file is written; outputs of a previous report that this one does not write are removed.
-    Every file: docs/figures.md and docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
+    The report of a sweep folder (:func:`build_report`'s), written to ``out``: staged, moved in only when every file
+    is written; outputs of a previous report that this one does not write are removed. Every file: docs/figures.md
+    and docs/sweeps.md#reports-python--m-sb3_collapsereport-runssweep.
 
+    :param sweep_dir: the sweep folder
     :param out: the output folder (``<sweep_dir>/report`` when ``None``)
     :param overwrite: replace the outputs of a previous report in ``out`` (else an error, before the sweep is read)
+    :param build_options: the keywords of :func:`build_report` (``settings``, ``reference``, ``include_unfinished``,
+        ``tasks``, ``variants``, ``progress``, ``collapse_settings``; its defaults for those left out)
     :return: the report, with ``files`` the written paths
     :raises InputError: on a bad folder or setting; nothing is written then
+    :raises TypeError: on a keyword :func:`build_report` does not take
     """
-    settings = settings or stats.ReportSettings()
-    layers = (collapse_settings or FixedInputSettings()).layers
+    options = inspect.signature(build_report).bind(sweep_dir, **build_options)
+    options.apply_defaults()
+    given = options.arguments  # build_report's defaults of its two settings objects, made here to read them too
+    settings = given["settings"] = given["settings"] or stats.ReportSettings()
+    layers = (given["collapse_settings"] or FixedInputSettings()).layers
+    include_unfinished, progress = given["include_unfinished"], given["progress"]
     out_dir = Path(sweep_dir) / page.REPORT_FOLDER if out is None else Path(out)
     staged_outputs = StagedOutputs(out_dir, page.OUTPUT_FILES, page.SUMMARY_MD, overwrite=overwrite, error=InputError)
-    report = build_report(
-        sweep_dir, settings, reference, include_unfinished, tasks, variants, progress, collapse_settings
-    )
+    report = build_report(*options.args, **options.kwargs)
     partial = None
     if include_unfinished:  # the unfinished trials of Figure 5's variants, drawn dotted
         plain = [t for t in report.sweep.unfinished if stats.transplant_sources(t.variant) is None]

@@ -5,26 +5,23 @@ exist, skipped when done and resumed when interrupted (run the same command agai
 ``sweep`` (Figure 5's trials), ``transplant`` (Study 2's grid, donors drawn from ``sweep``), ``probe`` (``probe
 sweep`` per task: Figure 2, Tables 1-6, the fixed inputs of Figures 4, 8, 9), ``film`` (Figures 6-7) and ``report``
 (every figure and table, the headline, Proposition 1, and ``paper.md``: each of the paper's items and its file).
+Here: the flags, the stages run on the folder pipelines, ``paper.md`` and the dry run's lines; the sizes, the classes
+of agents, a reproduction folder's state and the plan: :mod:`sb3_collapse.sweep.reproduction`.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import sys
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sb3_collapse.commands.cli import CommandLine, cli_message, prog_name, report_unwritable_outputs
-from sb3_collapse.errors import ClusterUnreachable, InputError, MissingDependencyError
+from sb3_collapse.commands.cli import CommandLine, prog_name, report_unwritable_outputs, run_command
+from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, PAPER_RESULTS
-from sb3_collapse.probe.film import FILM_FRAMES, FILM_SIZE
-from sb3_collapse.probe.pipeline import RecordOptions
-from sb3_collapse.probe.probing import ProbeSettings
 from sb3_collapse.protocol import (
     EXIT_INTERRUPTED,
     FIGURE2_PNG,
@@ -34,19 +31,27 @@ from sb3_collapse.protocol import (
     write_json_atomically,
     write_text_atomically,
 )
-from sb3_collapse.runfolder import RunStatus, final_return, read_json, run_status, trial_folders
+from sb3_collapse.runfolder import RunStatus, read_json, run_status
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
+from sb3_collapse.sweep.reproduction import (
+    FILMS_DIR,
+    INPUTS,
+    PAPER_MD,
+    REPORT_DIR,
+    SCALES,
+    SETTINGS_JSON,
+    SNAPSHOT_VARIANTS,
+    STAGES,
+    SWEEP_DIR,
+    TINY_SCALE,
+    VARIANTS,
+    Classes,
+    Reproduction,
+    film_agents,
+    pick_grid_donors,
+    reproduction_plan,
+)
 
-STAGES = ("sweep", "transplant", "probe", "film", "report")
-"""The stages, in the order they run."""
-INPUTS: dict[str, tuple[str, ...]] = {
-    "sweep": (),
-    "transplant": ("sweep",),
-    "probe": ("sweep",),
-    "film": ("sweep",),
-    "report": ("sweep", "transplant", "probe", "film"),
-}
-"""Stage -> the stages whose outputs it reads."""
 STAGE_HELP = {
     "sweep": "Figure 5's trials (the DrQ-v2 ones keep snapshots)",
     "transplant": "Study 2's nine grid cells on walker-walk, donors drawn from the sweep",
@@ -55,17 +60,6 @@ STAGE_HELP = {
     "report": "every figure and table, the headline, Proposition 1, and paper.md",
 }
 """What each stage does (the command's help)."""
-VARIANTS = ("drqv2", "drqv2+reset")
-"""Figure 5's variants: DrQ-v2 and DrQ-v2 with the paper's rule."""
-SNAPSHOT_VARIANTS = ("drqv2",)
-"""The variants whose trials keep snapshots: Figure 2 probes the snapshots of every well- and poorly performing
-DrQ-v2 trial, and Figures 4, 8, 9 those of three DrQ-v2 agents, picked only once every trial has finished. The rule's
-trials and the grid cells keep none (the report draws their Figure 4 from the online metrics)."""
-SWEEP_DIR, FILMS_DIR, REPORT_DIR, STAGES_DIR = "sweep", "films", "report", "stages"
-SETTINGS_JSON = "reproduce.json"
-"""What ``--out`` was started with (a rerun with other settings is refused)."""
-PAPER_MD = "paper.md"
-"""The paper's figures and tables, each with the file of this reproduction that holds it."""
 REFERENCE_FPS = 69.5  # benchmarks/README.md#reference-rate: the median of DrQ-v2's published walker-walk curves
 REFERENCE_FPS_SOURCE = (
     "DrQ-v2's own walker-walk rate, evaluations included, from the hour column of its published curves "
@@ -73,237 +67,6 @@ REFERENCE_FPS_SOURCE = (
     "benchmarks/README.md#train-throughput-gpu); pass --frames-per-second with a measured rate"
 )
 """The default training rate of the dry run's GPU-hours, and where it comes from."""
-
-
-@dataclass(frozen=True)
-class Scale:
-    """
-    The sizes of a reproduction.
-
-    :param name: ``paper`` or ``tiny``
-    :param training: ``TrainConfig`` settings of every trial beyond the task presets (``{}``: the presets, the
-        paper's budgets)
-    :param seeds: seeds per task and variant of the sweep stage
-    :param transplant_seeds: seeds per cell of the transplant grid
-    :param tasks: the tasks of the sweep, probe and report stages
-    :param probe: the probe's settings (Figure 2)
-    :param record: the rollouts the probe records (and Figures 4, 8, 9 read)
-    :param film_frames: environment frames per film (Figures 6-7)
-    :param film_size: height and width of the film's renders, in pixels
-    :param film_every_frames: frames between two pictures of a film strip
-    :param paper_classes: the paper's classes of agents (``PAPER.success_return`` and ``PAPER.failure_return``);
-        ``False``: thresholds that split the agents
-    """
-
-    name: str
-    training: Mapping[str, Any]
-    seeds: int
-    transplant_seeds: int
-    tasks: tuple[str, ...]
-    probe: ProbeSettings = field(default_factory=ProbeSettings)
-    record: RecordOptions = field(default_factory=RecordOptions)
-    film_frames: int = FILM_FRAMES
-    film_size: int = FILM_SIZE
-    film_every_frames: int = 30
-    paper_classes: bool = True
-
-
-PAPER_SCALE = Scale("paper", {}, PAPER.figure5_seeds, PAPER.transplant_seeds, PAPER.figure5_tasks)
-# CPU sizes: 1000 frames = 40 agent steps of 25 frames (a DMC episode is then 40 agent steps: cheap evaluations),
-# 32x32 images, small networks, learning from frame 500, evaluations (and snapshots) at frames 0 and 500 and of the
-# final model at 1000, collapse checks every 250 frames and the rule's window of 500 frames. Four seeds: the grid's
-# donors are two good and two bad walker-walk agents.
-TINY_SCALE = Scale(
-    "tiny",
-    dict(
-        frames=1000,
-        action_repeat=25,
-        size=32,
-        seed_frames=500,
-        batch_size=8,
-        hidden_dim=32,
-        feature_dim=16,
-        eval_every_frames=500,
-        eval_episodes=1,
-        collapse_metrics_every_frames=250,
-        collapse_metrics_batch=8,
-        reset_window_frames=500,
-        replay_sampling="sb3",
-    ),
-    seeds=4,
-    transplant_seeds=1,
-    tasks=PAPER.figure5_tasks,
-    probe=ProbeSettings(max_tau=4, progress=False, device="cpu"),
-    record=RecordOptions(episodes=3, max_steps=10),
-    film_frames=250,
-    film_size=64,
-    film_every_frames=50,
-    paper_classes=False,
-)
-SCALES = {scale.name: scale for scale in (PAPER_SCALE, TINY_SCALE)}
-
-
-@dataclass(frozen=True)
-class Classes:
-    """
-    The classes of agents by final return: well-performing ``>= success_return``, poorly performing
-    ``< failure_return``; ``source`` says where the numbers come from.
-    """
-
-    success_return: float
-    failure_return: float
-    source: str
-
-    def line(self, what: str) -> str:
-        """:return: one line for the output"""
-        return (
-            f"{what}: well-performing >= {self.success_return:g}, poorly performing < {self.failure_return:g} "
-            f"({self.source})"
-        )
-
-
-PAPER_CLASSES = Classes(PAPER.success_return, PAPER.failure_return, "the paper's, Section 4.1")
-
-
-def split_classes(finals: Sequence[float], what: str, parts: int = 2) -> Classes:
-    """
-    Thresholds that split ``finals`` (the tiny scale's agents, which never reach the paper's
-    ``PAPER.success_return``): ``parts=2``, one cut
-    at the median (``success_return == failure_return``: every agent in one of the two classes); ``parts=3``, the
-    cuts at the thirds (the middle third between). A cut lies midway between two distinct sorted values, moved to the
-    nearest gap where values tie; with one distinct value every agent is well-performing.
-
-    :param finals: the final returns
-    :param what: the agents, for :attr:`Classes.source`
-    :param parts: 2 or 3
-    """
-    values = sorted(finals)
-    gaps = [k for k in range(1, len(values)) if values[k - 1] < values[k]]
-
-    def cut(k: int) -> float:
-        if not gaps:
-            return values[0] if values else 0.0
-        nearest = min(gaps, key=lambda gap: (abs(gap - k), gap))
-        return (values[nearest - 1] + values[nearest]) / 2
-
-    low, high = (cut(len(values) // 2),) * 2 if parts == 2 else (cut(len(values) // 3), cut(2 * len(values) // 3))
-    paper = f"{PAPER.success_return:g}/{PAPER.failure_return:g}"
-    source = f"tiny scale: the {parts}-way split of the {len(values)} final returns of {what}, not the paper's {paper}"
-    return Classes(max(low, high) if parts == 2 else high, min(low, high), source)
-
-
-def drqv2_finals(sweep: Path, task: str, variant: str = "drqv2") -> dict[int, float]:
-    """:return: seed -> final return of the finished trials of ``task`` and ``variant`` with a final model"""
-    finals = {}
-    for *names, seed, folder in trial_folders(sweep):
-        value = final_return(folder) if names == [task, variant] else None
-        if value is not None and (folder / FINAL_MODEL).is_file():
-            finals[seed] = value
-    return finals
-
-
-@dataclass
-class Reproduction:
-    """
-    One reproduction: its folder, scale, counts, resources.
-
-    :param out: the folder of every output
-    :param scale: its sizes
-    :param tasks: the tasks of the sweep, probe and report stages
-    :param seeds: seeds per task and variant of the sweep stage
-    :param transplant_seeds: seeds per cell of the transplant grid
-    :param address: Ray cluster, ``None`` for a local instance
-    :param cpus_per_trial: CPUs per trial
-    :param gpus_per_trial: GPUs per trial
-    :param connect_timeout_s: seconds to wait for the cluster at ``address``
-    :param progress: progress bars
-    :param resources: what the stages hold until the end (the Ray session of the training stages)
-    """
-
-    out: Path
-    scale: Scale
-    tasks: tuple[str, ...]
-    seeds: int
-    transplant_seeds: int
-    address: str | None = None
-    cpus_per_trial: float = 1
-    gpus_per_trial: float = 0
-    connect_timeout_s: float = CONNECT_TIMEOUT_S
-    progress: bool = True
-    resources: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)
-
-    @property
-    def sweep(self) -> Path:
-        """The sweep folder of both training stages (the report reads one folder)."""
-        return self.out / SWEEP_DIR
-
-    @property
-    def transplant_task(self) -> str:
-        """Study 2's task."""
-        return PAPER.transplant_task
-
-    def settings(self) -> dict[str, Any]:
-        """What ``reproduce.json`` records (a rerun must match)."""
-        return {
-            "scale": self.scale.name,
-            "tasks": list(self.tasks),
-            "seeds": self.seeds,
-            "transplant_seeds": self.transplant_seeds,
-        }
-
-    def marker(self, stage: str) -> Path:
-        """The done-marker of ``stage``, written last."""
-        return self.out / STAGES_DIR / f"{stage}.json"
-
-    def done(self, stage: str) -> dict[str, Any] | None:
-        """:return: what ``stage`` recorded when it finished, ``None`` when it has not"""
-        path = self.marker(stage)
-        return read_json(path) if path.is_file() else None
-
-    def finish(self, stage: str, record: Mapping[str, Any]) -> None:
-        """Write the done-marker of ``stage`` (after all its outputs)."""
-        path = self.marker(stage)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_json_atomically(path, {"stage": stage, **record})
-
-    def sweep_trials(self) -> list:
-        """Figure 5's trials."""
-        from sb3_collapse.sweep.trials import expand_trials
-
-        return expand_trials(self.tasks, VARIANTS, range(self.seeds))
-
-    def grid_trials(self) -> list:
-        """Study 2's trials: the nine cells on its task."""
-        from sb3_collapse.run.variants import GRID_VARIANTS
-        from sb3_collapse.sweep.trials import expand_trials
-
-        return expand_trials([self.transplant_task], GRID_VARIANTS, range(self.transplant_seeds))
-
-    def classes(self, task: str, parts: int = 2) -> Classes:
-        """The classes of ``task``'s DrQ-v2 agents (the paper's, or at the tiny scale a split of its finals)."""
-        if self.scale.paper_classes:
-            return PAPER_CLASSES
-        return split_classes(list(drqv2_finals(self.sweep, task).values()), f"{task}/drqv2", parts)
-
-    def report_classes(self) -> Classes:
-        """The report's classes: one pair for every task (the paper's, or at the tiny scale the split of every final
-        return of Study 2's task: its DrQ-v2, rule and grid trials, so that some grid cells succeed)."""
-        if self.scale.paper_classes:
-            return PAPER_CLASSES
-        task = self.transplant_task
-        finals = [
-            v for variant in (*VARIANTS, *_grid_variants()) for v in drqv2_finals(self.sweep, task, variant).values()
-        ]
-        median = split_classes(finals, f"every {task} trial (Figure 5's and the grid's)")
-        third = split_classes(finals, f"every {task} trial", 3)
-        failure = min(third.failure_return, median.success_return)
-        return Classes(median.success_return, failure, median.source + "; poorly performing: the lowest third")
-
-
-def _grid_variants() -> tuple[str, ...]:
-    from sb3_collapse.run.variants import GRID_VARIANTS
-
-    return GRID_VARIANTS
 
 
 # --- the stages ------------------------------------------------------------------------------------------------------
@@ -360,20 +123,6 @@ def stage_sweep(job: Reproduction) -> dict[str, Any]:
     return run_sweep_stage(job, job.sweep_trials(), {}, None)
 
 
-def pick_grid_donors(job: Reproduction) -> tuple[dict[str, dict[str, str]], dict[str, Any], Classes]:
-    """:return: the grid's donor checkpoints (key -> task -> path), their record, and the classes they were drawn by
-    (:raises InputError: a class of fewer than two agents)"""
-    from sb3_collapse.sweep.donors import donors_record, pick_donors
-
-    task, classes = job.transplant_task, job.classes(job.transplant_task)
-    picked = pick_donors(
-        job.sweep, task, 0, "drqv2", success_return=classes.success_return, failure_return=classes.failure_return
-    )
-    checkpoints = {key: {task: donor.path} for key, donor in picked.items()}
-    record = donors_record(job.sweep, 0, "drqv2", {task: picked}, classes.success_return, classes.failure_return)
-    return checkpoints, record, classes
-
-
 def stage_transplant(job: Reproduction) -> dict[str, Any]:
     """Stage ``transplant``: the nine cells on Study 2's task, from two good and two bad agents of the sweep."""
     try:
@@ -418,24 +167,6 @@ def stage_probe(job: Reproduction) -> dict[str, Any]:
                 continue
         done[task] = {"folder": str(folder), **dataclasses.asdict(classes)}
     return {"tasks": done, **({NOT_DONE: f"{', '.join(failed)} not probed (the reason above)"} if failed else {})}
-
-
-def film_agents(job: Reproduction, task: str) -> tuple[tuple[int, float], tuple[int, float], Classes, str]:
-    """:return: the good and the poor agent filmed of ``task`` (seed, final return): the best well-performing and
-    the worst poorly performing DrQ-v2 seeds, their classes and a note when a class is empty (then the best and the
-    worst seed; :raises InputError: fewer than two finished seeds)"""
-    finals = drqv2_finals(job.sweep, task)
-    if len(finals) < 2:
-        raise InputError(f"{task}/drqv2 has {len(finals)} finished trial(s) with a final model; a film needs 2")
-    classes = job.classes(task)
-    ranked = sorted(finals.items(), key=lambda item: (-item[1], item[0]))
-    good = [item for item in ranked if item[1] >= classes.success_return]
-    poor = [item for item in ranked if item[1] < classes.failure_return]
-    note = ""
-    if not good or not poor:
-        note = f"no {'well' if not good else 'poorly'}-performing seed: the best and the worst seed instead"
-        good, poor = ranked[:1], ranked[-1:]
-    return good[0], poor[-1], classes, note
 
 
 def stage_film(job: Reproduction) -> dict[str, Any]:
@@ -493,10 +224,10 @@ def stage_report(job: Reproduction) -> dict[str, Any]:
     report = write_report(
         job.sweep,
         job.out / REPORT_DIR,
-        settings,
+        overwrite=True,
+        settings=settings,
         tasks=job.tasks,
         progress=job.progress,
-        overwrite=True,
         collapse_settings=fixed,
     )
     text = paper_markdown(job, report, classes)
@@ -590,50 +321,26 @@ def paper_markdown(job: Reproduction, report: Any, classes: Classes) -> str:
 # --- the plan (--dry-run) --------------------------------------------------------------------------------------------
 
 
-def training_plan(job: Reproduction, trials: list, checkpoints: Mapping, fps: float) -> dict[str, Any]:
-    """:return: :func:`~sb3_collapse.sweep.plan.sweep_plan` of ``trials`` (their folders read, nothing written)"""
-    from sb3_collapse.commands.sweep import trial_states
-    from sb3_collapse.sweep.plan import sweep_plan
-    from sb3_collapse.sweep.runner import Attempt
-
-    states = trial_states(trials, str(job.sweep), dict(job.scale.training), checkpoints)
-    # trial_states' configs take the training's snapshots: the stage's choice per variant instead
-    configs = {
-        trial: dataclasses.replace(state[2], snapshots=trial.variant in SNAPSHOT_VARIANTS)
-        for trial, state in states.items()
-        if state[1] is None or state[1][0] == Attempt.IN_USE
-    }
-    done = {t: s[3] for t, s in states.items() if s[1] is None and s[0] != "finished"}
-    return sweep_plan(configs, done, job.cpus_per_trial, job.gpus_per_trial, fps, job.sweep)
-
-
 def dry_run(job: Reproduction, stages: Sequence[str], fps: float, fps_source: str) -> int:
     """Print every stage's plan (trials, frames, GPU-hours, RAM, disk, trials at once); write nothing."""
     from sb3_collapse.commands.sweep import plan_lines
-    from sb3_collapse.sweep.donors import DONOR_KEYS
     from sb3_collapse.sweep.plan import size_text
 
     print(f"Plan of {job.out} at the {job.scale.name} scale (nothing written):")
-    total_hours, disk_end, disk_peak = 0.0, 0, 0
+    planned = reproduction_plan(job, stages, fps)
     for stage in stages:
         marker = job.done(stage)
         state = "done: skipped" if marker is not None else "to run"
-        if stage in ("sweep", "transplant"):
-            trials = job.sweep_trials() if stage == "sweep" else job.grid_trials()
-            placeholder = str(job.sweep / "<donor drawn from the sweep stage>")
-            checkpoints = {} if stage == "sweep" else {k: {job.transplant_task: placeholder} for k in DONOR_KEYS}
-            plan = training_plan(job, trials, checkpoints, fps)
-            hours = plan["frames"] / fps / 3600
-            total_hours += hours
-            disk_peak = max(disk_peak, disk_end + plan["disk_needed_bytes"])
-            disk_end += plan["disk_at_end_bytes"]
+        if stage in planned["stages"]:
+            entry = planned["stages"][stage]
+            trials, plan, hours = entry["trials"], entry["plan"], entry["trial_hours"]
             what = (
                 f"{len(job.tasks)} tasks x {', '.join(VARIANTS)} x {job.seeds} seeds"
                 if stage == "sweep"
                 else f"{job.transplant_task} x 9 cells x {job.transplant_seeds} seeds, donors: two good and two bad "
                 "DrQ-v2 agents of the sweep stage"
             )
-            print(f"\nstage {stage} ({state}): {len(trials)} trials ({what}), {plan['trials_pending']} to train")
+            print(f"\nstage {stage} ({state}): {trials} trials ({what}), {plan['trials_pending']} to train")
             snapshots = ", ".join(SNAPSHOT_VARIANTS) if stage == "sweep" else "none"
             print(f"  snapshots kept by: {snapshots}")
             if plan["trials_pending"]:
@@ -666,8 +373,9 @@ def dry_run(job: Reproduction, stages: Sequence[str], fps: float, fps_source: st
         else:
             print(f"\nstage report ({state}): every figure and table into {REPORT_DIR}/, and {PAPER_MD}")
     print(
-        f"\nin all: {total_hours:,.1f} trial-hours to train; disk at the peak {size_text(disk_peak)}, at the end "
-        f"{size_text(disk_end)} (final models and snapshots; the probe, films and report add a few MB)"
+        f"\nin all: {planned['trial_hours']:,.1f} trial-hours to train; disk at the peak "
+        f"{size_text(planned['disk_peak_bytes'])}, at the end {size_text(planned['disk_end_bytes'])} (final models and "
+        "snapshots; the probe, films and report add a few MB)"
     )
     return 0
 
@@ -811,36 +519,32 @@ def main(argv: list[str] | None = None) -> int:
     stages = [stage for stage in STAGES if stage in (args.stages or STAGES)]
     check_stages(parser, job, args.stages or STAGES)
     check_out(parser, job)
-    try:
-        from sb3_collapse.sweep.runner import check_sweep
+    stopped = (
+        f"\nStopped: run the same command again to resume (the finished stages and trials in {job.out} are kept; "
+        f"exit status {EXIT_INTERRUPTED})."
+    )
+    return run_command(parser, lambda: run(job, stages, args.dry_run, args.frames_per_second), lambda _: stopped)
 
-        for trials in (job.sweep_trials(),):
-            check_sweep(
-                trials,
-                job.sweep,
-                dict(scale.training),
-                {},
-                job.cpus_per_trial,
-                job.gpus_per_trial,
-                job.connect_timeout_s,
-            )
-        if args.dry_run:
-            fps = args.frames_per_second or REFERENCE_FPS
-            source = "--frames-per-second" if args.frames_per_second else REFERENCE_FPS_SOURCE
-            return dry_run(job, stages, fps, source)
-        return run_stages(job, stages)
-    except (MissingDependencyError, InputError) as error:
-        parser.error(cli_message(error, parser))
-    except ClusterUnreachable as error:
-        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(
-            f"\nStopped: run the same command again to resume (the finished stages and trials in {job.out} are kept; "
-            f"exit status {EXIT_INTERRUPTED}).",
-            file=sys.stderr,
-        )
-        return EXIT_INTERRUPTED
+
+def run(job: Reproduction, stages: Sequence[str], plan_only: bool, frames_per_second: float | None) -> int:
+    """Check the sweep stage's settings, then print the plan of ``stages`` (``plan_only``) or run them; :return: the
+    exit status"""
+    from sb3_collapse.sweep.runner import check_sweep
+
+    check_sweep(
+        job.sweep_trials(),
+        job.sweep,
+        dict(job.scale.training),
+        {},
+        job.cpus_per_trial,
+        job.gpus_per_trial,
+        job.connect_timeout_s,
+    )
+    if plan_only:
+        fps = frames_per_second or REFERENCE_FPS
+        source = "--frames-per-second" if frames_per_second else REFERENCE_FPS_SOURCE
+        return dry_run(job, stages, fps, source)
+    return run_stages(job, stages)
 
 
 def run_stages(job: Reproduction, stages: Sequence[str]) -> int:

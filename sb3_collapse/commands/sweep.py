@@ -16,21 +16,17 @@ from sb3_collapse.commands.cli import (
     cli_message,
     prog_name,
     report_unwritable_outputs,
+    run_command,
     setting_flags,
     training_arguments,
     training_settings,
 )
-from sb3_collapse.errors import (
-    ClusterUnreachable,
-    InputError,
-    MissingDependencyError,
-)
+from sb3_collapse.errors import InputError, MissingDependencyError
 from sb3_collapse.paper import PAPER
-from sb3_collapse.protocol import CHECKPOINTS_DIR, ERROR_TXT, EXIT_INTERRUPTED, SWEEP_LOCK
-from sb3_collapse.run.checkpoints import checkpoint_frames
-from sb3_collapse.run.config import RUN, TrainConfig, declared, setting
+from sb3_collapse.protocol import ERROR_TXT, EXIT_INTERRUPTED, SWEEP_LOCK
+from sb3_collapse.run.config import RUN, declared, setting
 from sb3_collapse.run.variants import BLANK_SOURCE, GRID_VARIANTS, VARIANT_FORMS, transplant_of
-from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_folder_owner, run_status
+from sb3_collapse.runfolder import NOT_A_RUN, RunStatus, run_folder_owner
 from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
 from sb3_collapse.sweep.donors import (
     DONOR_KEYS,
@@ -38,7 +34,7 @@ from sb3_collapse.sweep.donors import (
     donors_record,
     pick_donors,
 )
-from sb3_collapse.sweep.plan import check_disk, check_node, size_text, sweep_plan
+from sb3_collapse.sweep.plan import check_disk, check_node, size_text, states_plan, trial_states
 from sb3_collapse.sweep.runner import (
     Attempt,
     SweepSummary,
@@ -46,13 +42,10 @@ from sb3_collapse.sweep.runner import (
     prepare_sweep_folder,
     run_sweep,
     sweep_settings,
-    trial_left_as_is,
 )
 from sb3_collapse.sweep.trials import (
-    Trial,
     expand_trials,
     parse_checkpoint_specs,
-    trial_config,
     trial_dir,
 )
 
@@ -165,49 +158,41 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     check_arguments(parser, args, SweepFlags, DonorFlags)
+    stopped = (
+        f"\nStopped at once: the running trials resume from their last checkpoints; run the same command again to "
+        f"resume (finished trials in {args.out} are kept; exit status {EXIT_INTERRUPTED})."
+    )
+    return run_command(
+        parser, lambda: run(parser, args), lambda _: stopped, bad_input=(MissingDependencyError, ValueError)
+    )
+
+
+def run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """The sweep of the parsed ``args`` (its dry run with ``--dry-run``); :return: the exit status"""
     training = training_settings(args)
     seeds = range(args.seeds) if args.seeds is not None else args.seed_list
     variants = list(args.variants or ([] if args.transplant_grid else DEFAULT_VARIANTS))
     if args.transplant_grid:
         variants += GRID_VARIANTS
-    try:
-        trials = expand_trials(args.tasks, variants, seeds)
-        checkpoints, donors = transplant_checkpoints(args, trials)
-        check_sweep(
-            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
+    trials = expand_trials(args.tasks, variants, seeds)
+    checkpoints, donors = transplant_checkpoints(args, trials)
+    check_sweep(
+        trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.connect_timeout_s
+    )
+    states = trial_states(trials, args.out, training, checkpoints)
+    plan = states_plan(states, args.cpus_per_trial, args.gpus_per_trial, args.frames_per_second, args.out)
+    if args.address is None:  # this machine runs the trials: it must hold one
+        check_node(plan)
+    if (shortage := check_disk(plan)) is not None:  # one trial that cannot fit: refused (an InputError)
+        print(f"warning: {cli_message(InputError(shortage), parser)}", file=sys.stderr)
+    if args.dry_run:
+        return dry_run(
+            states, args.out, training, checkpoints, args.allow_changed_settings, donors, plan, args.list_limit
         )
-        states = trial_states(trials, args.out, training, checkpoints)
-        # Damaged trials are not trained; those in use hold files but are not trained now.
-        to_plan = [trial for trial, state in states.items() if state[1] is None or state[1][0] == Attempt.IN_USE]
-        configs = {trial: states[trial][2] for trial in to_plan}
-        done = {
-            trial: state[3] for trial, state in states.items() if state[1] is None and state[0] != RunStatus.FINISHED
-        }
-        plan = sweep_plan(configs, done, args.cpus_per_trial, args.gpus_per_trial, args.frames_per_second, args.out)
-        if args.address is None:  # this machine runs the trials: it must hold one
-            check_node(plan)
-        if (shortage := check_disk(plan)) is not None:  # one trial that cannot fit: refused (an InputError)
-            print(f"warning: {cli_message(InputError(shortage), parser)}", file=sys.stderr)
-        if args.dry_run:
-            return dry_run(
-                states, args.out, training, checkpoints, args.allow_changed_settings, donors, plan, args.list_limit
-            )
-        summary = run_sweep(
-            trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.address,
-            args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s, plan,
-        )  # fmt: skip
-    except (MissingDependencyError, ValueError) as error:
-        parser.error(cli_message(error, parser))
-    except ClusterUnreachable as error:
-        print(f"error: {cli_message(error, parser)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(
-            f"\nStopped at once: the running trials resume from their last checkpoints; run the same command again "
-            f"to resume (finished trials in {args.out} are kept; exit status {EXIT_INTERRUPTED}).",
-            file=sys.stderr,
-        )
-        return EXIT_INTERRUPTED
+    summary = run_sweep(
+        trials, args.out, training, checkpoints, args.cpus_per_trial, args.gpus_per_trial, args.address,
+        args.allow_changed_settings, args.progress_bar, donors, args.connect_timeout_s, plan,
+    )  # fmt: skip
     return print_summary(summary, args.out)
 
 
@@ -291,23 +276,6 @@ def transplant_checkpoints(args: argparse.Namespace, trials: list) -> tuple[dict
         for key, donor in donors.items():
             checkpoints.setdefault(key, {})[task] = donor.path
     return checkpoints, donors_record(args.donors_from, args.donor_seed, args.donor_variant, picked)
-
-
-def trial_states(
-    trials: list, out: str, training: dict, checkpoints: dict
-) -> dict[Trial, tuple[str, tuple[str, str] | None, TrainConfig, int]]:
-    """Trial -> its status, why the sweep leaves it as it is (:func:`~sb3_collapse.sweep.runner.trial_left_as_is`:
-    kind and line; ``None``: finished, or trained), its resolved settings and the frames done (the budget when
-    finished, the newest checkpoint's when unfinished, else 0)."""
-    states = {}
-    for trial in trials:
-        folder = trial_dir(out, trial)
-        status = str(run_status(folder) or NOT_A_RUN)
-        reason = None if status == RunStatus.FINISHED else trial_left_as_is(folder)
-        config = trial_config(trial, out, training, checkpoints)
-        done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
-        states[trial] = (status, reason, config, config.frames if status == RunStatus.FINISHED else done or 0)
-    return states
 
 
 def dry_run(

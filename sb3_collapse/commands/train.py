@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import re
-import sys
 
 from sb3_collapse import errors
 from sb3_collapse.commands.cli import (
@@ -14,6 +13,7 @@ from sb3_collapse.commands.cli import (
     cli_message,
     prog_name,
     report_unwritable_outputs,
+    run_command,
     show_settings,
     training_arguments,
 )
@@ -55,15 +55,19 @@ def main(argv: list[str] | None = None) -> int:
     if show:
         print("\n".join(show_settings(config)))
         return 0
-    try:
-        train(config)
-    except errors.InputError as error:  # raised before training: nothing was written
-        parser.error(re.sub(r"init_from\['(\w+)'\]", r"--init-\1", cli_message(error, parser)))
-    except (errors.OutputError, errors.DivergenceError, errors.NonFiniteDataError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
-    except errors.TrainingInterrupted as error:
+
+    def stopped(stop: BaseException) -> str:
+        assert isinstance(stop, errors.TrainingInterrupted)  # the one stop caught here
         resume = f"run the same command again to resume (exit status {EXIT_INTERRUPTED})"
-        print(f"Stopped by {error.signal_name} after the checkpoint {error.checkpoint}: {resume}.", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return f"Stopped by {stop.signal_name} after the checkpoint {stop.checkpoint}: {resume}."
+
+    def message(error: BaseException) -> str:  # DrQv2's init_from['cnn'] is the flag --init-cnn here
+        return re.sub(r"init_from\['(\w+)'\]", r"--init-\1", cli_message(error, parser))
+
+    return run_command(parser, lambda: run(config), stopped, stops=(errors.TrainingInterrupted,), message=message)
+
+
+def run(config: TrainConfig) -> int:
+    """Train as the resolved ``config`` says; :return: 0 (raised: bad input before training, a failure, a stop)"""
+    train(config)
     return 0

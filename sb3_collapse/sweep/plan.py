@@ -3,11 +3,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import inspect
 import os
 import shutil
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +22,17 @@ from sb3_collapse.drqv2.replay_buffer import FrameStackReplayBuffer
 from sb3_collapse.drqv2.replay_memory import bytes_per_transition, physical_memory_bytes
 from sb3_collapse.envs import ensure_rendering_backend, parse_task
 from sb3_collapse.errors import InputError
-from sb3_collapse.run.checkpoints import ResumableCheckpoints
+from sb3_collapse.protocol import CHECKPOINTS_DIR
+from sb3_collapse.run.checkpoints import ResumableCheckpoints, checkpoint_frames
 from sb3_collapse.run.config import TrainConfig, drqv2_kwargs
 from sb3_collapse.run.snapshots import SNAPSHOT_PREFIXES
-from sb3_collapse.sweep.trials import Trial
+from sb3_collapse.runfolder import NOT_A_RUN, RESUMABLE, RunStatus, run_status
+from sb3_collapse.sweep.runner import Attempt, trial_left_as_is
+from sb3_collapse.sweep.trials import Trial, trial_config, trial_dir
 
+TrialState = tuple[str, tuple[str, str] | None, TrainConfig, int]
+"""A trial's status, why the sweep leaves it as it is (kind and line; ``None``: finished, or to train), its resolved
+settings and its frames done (:func:`trial_states`)."""
 KEEP = inspect.signature(ResumableCheckpoints).parameters["keep"].default  # complete checkpoints a run keeps
 
 
@@ -177,6 +184,45 @@ def sweep_plan(
         "out_free_bytes": None if out is None else free_bytes(out),
         "reset_window_frames": {_group(t): c.reset_window_frames for t, c in configs.items() if c.reset_rule},
     }  # fmt: skip
+
+
+def trial_states(
+    trials: Sequence[Trial], out: str | Path, training: Mapping[str, Any], checkpoints: Mapping
+) -> dict[Trial, TrialState]:
+    """Trial -> its status, why the sweep leaves it as it is (:func:`~sb3_collapse.sweep.runner.trial_left_as_is`:
+    kind and line; ``None``: finished, or trained), its resolved settings and the frames done (the budget when
+    finished, the newest checkpoint's when unfinished, else 0)."""
+    states = {}
+    for trial in trials:
+        folder = trial_dir(out, trial)
+        status = str(run_status(folder) or NOT_A_RUN)
+        reason = None if status == RunStatus.FINISHED else trial_left_as_is(folder)
+        config = trial_config(trial, out, training, checkpoints)
+        done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
+        states[trial] = (status, reason, config, config.frames if status == RunStatus.FINISHED else done or 0)
+    return states
+
+
+def states_plan(
+    states: Mapping[Trial, TrialState],
+    cpus_per_trial: float = 1,
+    gpus_per_trial: float = 0,
+    frames_per_second: float | None = None,
+    out: str | os.PathLike | None = None,
+    snapshot_variants: Collection[str] | None = None,
+) -> dict[str, Any]:
+    """
+    :func:`sweep_plan` of the trials of ``states`` (:func:`trial_states`): every trial that holds files but the
+    damaged ones (those in use by another process count, though not trained now); the finished ones hold their
+    outputs, the others are to train from their frames done.
+
+    :param snapshot_variants: the variants whose trials keep snapshots (``None``: as their settings say)
+    """
+    configs = {trial: state[2] for trial, state in states.items() if state[1] is None or state[1][0] == Attempt.IN_USE}
+    if snapshot_variants is not None:
+        configs = {t: dataclasses.replace(c, snapshots=t.variant in snapshot_variants) for t, c in configs.items()}
+    done = {trial: state[3] for trial, state in states.items() if state[1] is None and state[0] != RunStatus.FINISHED}
+    return sweep_plan(configs, done, cpus_per_trial, gpus_per_trial, frames_per_second, out)
 
 
 def check_node(plan: Mapping[str, Any]) -> None:
