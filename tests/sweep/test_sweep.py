@@ -851,9 +851,7 @@ def test_tiny_sweep_records_its_plan_and_the_report_shows_it(reproduced_sweep, r
     assert main([*argv, "--no-progress-bar", *training_flags(reproduced_sweep)]) == 0
     assert "1 finished now (0 resumed from a checkpoint), 3 finished before, 0 failed" in capsys.readouterr().out
     settings = json.loads((out / "sweep.json").read_text())
-    plan = settings[
-        "plan"
-    ]  # as the sweep planned its 1 pending trial of 1,000 frames (action repeat 25: 40 agent steps)
+    plan = settings["plan"]  # as the sweep planned its pending trial: 1,000 frames (action repeat 25: 40 agent steps)
     assert plan["trials_pending"] == 1 and plan["frames"] == 1000 and plan["agent_steps"] == 40
     assert set(plan["bytes"]) == {"walker-walk/drqv2+reset"}
     assert "trials_pending" in settings_table(settings)
