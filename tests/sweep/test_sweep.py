@@ -63,15 +63,44 @@ def ray_local():
         yield
 
 
-@pytest.fixture(scope="module")
-def tiny_sweep(ray_local, tmp_path_factory):
-    """A real sweep folder: walker-walk, variants drqv2 and drqv2+reset, seeds 0 and 1, through the CLI (do not
-    modify it)."""
-    out = tmp_path_factory.mktemp("tiny_sweep")
-    start = time.perf_counter()
-    status = main([*TINY_TRIALS, "--out", str(out), "--no-progress-bar", *TINY])
-    print(f"tiny sweep: 4 trials in {time.perf_counter() - start:.1f} s")
-    assert status == 0
+# The session's tiny reproduction (tests/conftest.py) trained its sweep through this package's sweep: Figure 5's trials
+# (walker-walk, hopper-stand, finger-spin x drqv2, drqv2+reset x seeds 0-3: 1000 frames = 40 agent steps of 25 frames,
+# 32x32, learning from frame 500, evaluations at frames 0 and 500 and the final model's at 1000, collapse checks every
+# 250 frames, the rule's window 500 frames: a reset at frame 500 and none at 1000, the budget's end; snapshots only
+# for drqv2), then the transplant grid's nine walker-walk cells (seed 0). The tests below read it (never modify it:
+# copy it first).
+TASKS = ["walker-walk", "hopper-stand", "finger-spin"]
+REPRODUCED_TRIALS = ["--tasks", *TASKS, "--seeds", "4", "--variants", "drqv2", "drqv2+reset"]
+
+
+@pytest.fixture
+def reproduced_sweep(tiny_reproduction):
+    """The sweep folder of the session's tiny reproduction (read it, never modify it)."""
+    return tiny_reproduction[0] / "sweep"
+
+
+def training_flags(sweep):
+    """:return: the training settings in the reproduction's ``sweep`` folder as the sweep's command line takes them"""
+    training = json.loads((sweep / "sweep.json").read_text())["training"]
+    return [item for name, value in training.items() for item in (f"--{name.replace('_', '-')}", str(value))]
+
+
+def command_line_copy(sweep, out):
+    """
+    Copy ``sweep`` (the reproduction's, read only) to ``out`` and record there its training settings as the sweep's
+    command line records the same flags (:func:`training_flags`): the reproduction records only the settings it gives,
+    the command line every training flag's value, defaults included, and would refuse the missing ones as changed.
+
+    :return: ``out``
+    """
+    from sb3_collapse.commands.cli import training_settings
+    from sb3_collapse.commands.sweep import build_parser
+
+    shutil.copytree(sweep, out)  # copy2 keeps the modification times
+    settings = json.loads((out / "sweep.json").read_text())
+    parsed = build_parser().parse_args([*REPRODUCED_TRIALS, "--out", str(out), *training_flags(sweep)])
+    settings["training"] = training_settings(parsed)
+    (out / "sweep.json").write_text(json.dumps(settings, indent=2))
     return out
 
 
@@ -89,31 +118,41 @@ def mtimes(folder):
     return {path: path.stat().st_mtime_ns for path in folder.rglob("*") if path.is_file()}
 
 
-def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
-    settings = json.loads((tiny_sweep / "sweep.json").read_text())
-    assert settings["tasks"] == ["walker-walk"] and settings["variants"] == ["drqv2", "drqv2+reset"]
-    assert settings["seeds"] == [0, 1] and settings["training"]["frames"] == 1000
+READER = pytest.mark.timeout(2400)  # a test that may be the first reader of the session's tiny reproduction
+
+
+@READER
+def test_tiny_sweep_writes_the_trial_contract(reproduced_sweep):
+    sweep = reproduced_sweep
+    settings = json.loads((sweep / "sweep.json").read_text())
+    assert settings["tasks"] == TASKS and settings["variants"] == ["drqv2", "drqv2+reset", *GRID_VARIANTS]
+    assert settings["seeds"] == [0, 1, 2, 3] and settings["training"]["frames"] == 1000
+    assert settings["snapshot_variants"] == ["drqv2"]
     assert settings["resources"] == {"cpus_per_trial": 1, "gpus_per_trial": 0, "address": None}
-    assert not (tiny_sweep / "sweep.lock").exists()  # held while the sweep ran, deleted at its end
-    for variant, seed in itertools.product(("drqv2", "drqv2+reset"), (0, 1)):
-        folder = tiny_sweep / "walker-walk" / variant / f"seed_{seed}"
+    assert not (sweep / "sweep.lock").exists()  # held while the sweep ran, deleted at its end
+    for task, variant, seed in itertools.product(TASKS, ("drqv2", "drqv2+reset"), range(4)):
+        folder = sweep / task / variant / f"seed_{seed}"
         config = json.loads((folder / "config.json").read_text())
-        assert config["variant"] == variant and config["transplant"] is None and config["env"] == "walker-walk"
+        assert config["variant"] == variant and config["transplant"] is None and config["env"] == task
         assert config["reset_rule"] == (variant == "drqv2+reset") and config["run_dir"] == str(folder)
         assert config["device"] == "cpu" and config["torch_threads"] == 1 and config["progress_bar"] is False
 
         evaluations = read_csv(folder / "eval.csv")
         assert list(evaluations[0]) == ["frame", "step", "mean_reward", "std_reward", "episodes", "wall_time_s"]
-        assert [int(row["frame"]) for row in evaluations] == [0]  # scheduled; 1000 (the budget): the final model's
+        assert [int(row["frame"]) for row in evaluations] == [0, 500]  # scheduled; 1000 (the budget): the final model's
         assert (folder / "progress.csv").stat().st_size > 0 and list(folder.glob("events.out.tfevents.*"))
         assert zipfile.is_zipfile(folder / "final_model.zip")
-        assert config["snapshots"] is True
-        snapshots = sorted(p.name for p in (folder / "snapshots").iterdir())
-        assert snapshots == ["snapshot_0000000000_frames.zip", "snapshot_0000001000_frames.zip"]
+        assert config["snapshots"] is (variant == "drqv2")  # the reproduction's snapshot variants
+        if variant == "drqv2":
+            snapshots = sorted(p.name for p in (folder / "snapshots").iterdir())
+            assert snapshots == [f"snapshot_{frame:010d}_frames.zip" for frame in (0, 500, 1000)]
+        else:
+            assert not (folder / "snapshots").exists()
 
         metrics = read_csv(folder / "collapse_metrics.csv")
         assert list(metrics[0]) == ["frame", "step", "tag", "value"]
-        assert {int(row["frame"]) for row in metrics} <= {500, 1000} and 1000 in {int(row["frame"]) for row in metrics}
+        frames = {int(row["frame"]) for row in metrics}
+        assert frames <= {250, 500, 750, 1000} and 1000 in frames
         tags = {row["tag"] for row in metrics if row["frame"] == "1000"}
         assert {"collapse/mlp1/dead_fraction", "collapse/mlp1/srank", "collapse/action_std"} <= tags
         # Gradient norms once an update happened: with the rule, the reset at frame 500 restarts the warm-up.
@@ -121,9 +160,9 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
 
         result = json.loads((folder / "result.json").read_text())
         assert set(result) == RESULT_KEYS
-        assert result["status"] == "finished" and result["task"] == "walker-walk" and result["variant"] == variant
-        assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == 50
-        assert result["final_eval"]["frame"] == 0  # the last scheduled evaluation
+        assert result["status"] == "finished" and result["task"] == task and result["variant"] == variant
+        assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == 40
+        assert result["final_eval"]["frame"] == 500  # the last scheduled evaluation
         assert result["final_eval"]["mean_reward"] == float(evaluations[-1]["mean_reward"])
         assert result["saved_model_eval"]["frame"] == 1000 and result["saved_model_eval"]["episodes"] == 1
         assert result["wall_time_s"] > 0
@@ -139,14 +178,14 @@ def test_tiny_sweep_writes_the_trial_contract(tiny_sweep):
             assert result["escaped"] is False and result["escape_frame"] is None
 
 
-def test_resume_skips_finished_trials_and_reruns_unfinished_ones(tiny_sweep, tmp_path, capsys):
-    out = tmp_path / "sweep"
-    shutil.copytree(tiny_sweep, out)  # copy2 keeps the modification times
-    before = mtimes(out / "walker-walk")
+@READER
+def test_resume_skips_finished_trials_and_reruns_unfinished_ones(reproduced_sweep, ray_local, tmp_path, capsys):
+    out = command_line_copy(reproduced_sweep, tmp_path / "sweep")
+    before = {path: mtime for path, mtime in mtimes(out).items() if path.name != "sweep.json"}
     # The same command again: nothing to run, no trial file touched (Ray is not even needed).
-    assert main([*TINY_TRIALS, "--out", str(out), "--no-progress-bar", *TINY]) == 0
-    assert "0 finished now (0 resumed from a checkpoint), 4 finished before, 0 failed" in capsys.readouterr().out
-    assert mtimes(out / "walker-walk") == before
+    assert main([*REPRODUCED_TRIALS, "--out", str(out), "--no-progress-bar", *training_flags(reproduced_sweep)]) == 0
+    assert "0 finished now (0 resumed from a checkpoint), 24 finished before, 0 failed" in capsys.readouterr().out
+    assert {path: mtime for path, mtime in mtimes(out).items() if path.name != "sweep.json"} == before
 
     # An interrupted trial: no result.json, a leftover file. It runs again from an empty folder; the other is kept.
     partial = out / "walker-walk" / "drqv2" / "seed_0"
@@ -154,43 +193,49 @@ def test_resume_skips_finished_trials_and_reruns_unfinished_ones(tiny_sweep, tmp
     (partial / "result.json").unlink()
     (partial / "leftover.txt").write_text("from the interrupted attempt")
     assert run_status(partial) == "unfinished"
-    training = json.loads((out / "sweep.json").read_text())["training"]
+    settings = json.loads((out / "sweep.json").read_text())
     trials = expand_trials(["walker-walk"], ["drqv2", "drqv2+reset"], [0])
-    summary = run_sweep(trials, out, training, progress_bar=False)  # the library call behind the CLI
+    # the library call behind the CLI, as the reproduction made it (snapshots for drqv2 only)
+    summary = run_sweep(trials, out, settings["training"], progress_bar=False, snapshot_variants=["drqv2"])
     assert summary.finished == [Trial("walker-walk", "drqv2", 0)] and summary.skipped == [trials[1]] and summary.ok
     assert run_status(partial) == "finished" and not (partial / "leftover.txt").exists()
-    assert [int(row["frame"]) for row in read_csv(partial / "eval.csv")] == [0]
+    assert [int(row["frame"]) for row in read_csv(partial / "eval.csv")] == [0, 500]
     assert mtimes(kept) == {path: mtime for path, mtime in before.items() if kept in path.parents}
 
 
-def test_changed_training_settings_are_refused(tiny_sweep, capsys):
-    argv = [*TINY_TRIALS, "--out", str(tiny_sweep), *TINY, "--frames", "2000", "--lr", "0.001"]
+@READER
+def test_changed_training_settings_are_refused(reproduced_sweep, tmp_path, capsys):
+    sweep = command_line_copy(reproduced_sweep, tmp_path / "sweep")
+    before = mtimes(sweep)
+    argv = [*REPRODUCED_TRIALS, "--out", str(sweep), *training_flags(reproduced_sweep),
+            "--frames", "2000", "--lr", "0.001"]  # fmt: skip
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert "--frames: 1000 in sweep.json, 2000 now" in err and "--lr: the presets' in sweep.json, 0.001 now" in err
+    named = {line.split()[0].rstrip(":") for line in err.splitlines() if " in sweep.json, " in line}
+    assert named == {"--frames", "--lr", "--buffer-size"}  # each task's buffer: from the frames; nothing else
     assert "--allow-changed-settings" in err
-    assert json.loads((tiny_sweep / "sweep.json").read_text())["training"]["frames"] == 1000
+    assert json.loads((sweep / "sweep.json").read_text())["training"]["frames"] == 1000
     assert main([*argv, "--allow-changed-settings", "--dry-run"]) == 0
+    assert mtimes(sweep) == before  # neither the refused run nor the dry run wrote anything
 
 
-def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
-    argv = ["--tasks", "walker-walk", "--seeds", "3", "--variants", "drqv2", "drqv2+reset", "--out", str(tiny_sweep)]
-    before = mtimes(tiny_sweep)
-    assert main([*argv, *TINY, "--dry-run"]) == 0
+@READER
+def test_dry_run_lists_trials_and_their_status(reproduced_sweep, tmp_path, capsys):
+    sweep = command_line_copy(reproduced_sweep, tmp_path / "reproduced")
+    argv = ["--tasks", "walker-walk", "--seeds", "5", "--variants", "drqv2", "drqv2+reset", "--out", str(sweep)]
+    before = mtimes(sweep)
+    assert main([*argv, *training_flags(reproduced_sweep), "--dry-run"]) == 0
     lines = own_lines(capsys.readouterr().out)
-    assert (
-        lines[0] == f"finished   skip        1,000 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_0'}"
-    )
-    assert (
-        lines[1] == f"finished   skip        1,000 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_1'}"
-    )
-    assert (
-        lines[2] == f"new        run             0 of 1,000 frames  {tiny_sweep / 'walker-walk' / 'drqv2' / 'seed_2'}"
-    )
-    assert lines[-1].startswith("6 trials: 2 new, 4 finished; 2 would run")
-    assert mtimes(tiny_sweep) == before
+    for seed in range(4):
+        assert lines[seed] == (
+            f"finished   skip        1,000 of 1,000 frames  {sweep / 'walker-walk' / 'drqv2' / f'seed_{seed}'}"
+        )
+    assert lines[4] == f"new        run             0 of 1,000 frames  {sweep / 'walker-walk' / 'drqv2' / 'seed_4'}"
+    assert lines[-1].startswith("10 trials: 2 new, 8 finished; 2 would run")
+    assert mtimes(sweep) == before
 
     # Every status, on fabricated folders.
     out = tmp_path / "sweep"
@@ -214,11 +259,15 @@ def test_dry_run_lists_trials_and_their_status(tiny_sweep, tmp_path, capsys):
     assert f"unfinished resume        400 of 1,000 frames  {partial}" in own_lines(capsys.readouterr().out)
 
 
-def test_failing_trial_is_reported_and_a_transplant_grid_cell_starts_from_the_checkpoints(tiny_sweep, tmp_path, capsys):
+@READER
+def test_failing_trial_is_reported_and_a_transplant_grid_cell_starts_from_the_checkpoints(
+    reproduced_sweep, ray_local, tmp_path, capsys
+):
     """One sweep of two grid cells (run side by side): the one whose checkpoint is not a zip fails, is reported and not
-    called retryable; the other starts from the tiny sweep's checkpoints and finishes."""
-    good = tiny_sweep / "walker-walk" / "drqv2" / "seed_0" / "final_model.zip"
-    bad = tiny_sweep / "walker-walk" / "drqv2+reset" / "seed_0" / "final_model.zip"
+    called retryable; the other starts from the reproduction's checkpoints (the networks' sizes of TINY) and
+    finishes."""
+    good = reproduced_sweep / "walker-walk" / "drqv2" / "seed_0" / "final_model.zip"
+    bad = reproduced_sweep / "walker-walk" / "drqv2+reset" / "seed_0" / "final_model.zip"
     broken = tmp_path / "broken.zip"
     broken.write_text("not a checkpoint")
     out = tmp_path / "grid"
@@ -373,14 +422,21 @@ def test_resources_and_settings_checks():
     ]
 
 
-def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
+@READER
+def test_report_renders_from_the_tiny_real_sweep(reproduced_sweep, tmp_path):
     from sb3_collapse.commands.report_pipelines import write_report
     from sb3_collapse.report import ReportSettings
 
+    sweep = reproduced_sweep
     # At frame 1000 the plain runs have an mlp1 gradient norm, the reset runs (reset at frame 500, no update since:
-    # the warm-up restarts) have none: collapse "unknown" for them, not stuck.
+    # the warm-up restarts) have none: collapse "unknown" for them, not stuck. Figure 5's walker-walk trials only.
     report = write_report(
-        tiny_sweep, out=tmp_path / "report", settings=ReportSettings(collapse_checks=1), progress=False
+        sweep,
+        out=tmp_path / "report",
+        settings=ReportSettings(collapse_checks=1),
+        tasks=["walker-walk"],
+        variants=["drqv2", "drqv2+reset"],
+        progress=False,
     )
     assert {path.name for path in report.files} == {
         "figure5.png",
@@ -390,6 +446,9 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
         "collapse_metrics_online_walker-walk_drqv2.png",
         "collapse_metrics_online_walker-walk_drqv2+reset.png",
         "collapse_agents.csv",
+        # Figure 4 on the fixed probing set: the rollouts the reproduction's probe recorded for walker-walk/drqv2
+        "collapse_metrics_walker-walk_drqv2.png",
+        "collapse_metrics_walker-walk_drqv2.csv",
     }
     for path in report.files:
         assert path.parent == tmp_path / "report" and path.stat().st_size > 0
@@ -397,28 +456,28 @@ def test_report_renders_from_the_tiny_real_sweep(tiny_sweep, tmp_path):
     rows = {row.variant: row for row in report.rows}
     assert set(rows) == {"drqv2", "drqv2+reset"}
     for variant, row in rows.items():
-        folders = [tiny_sweep / "walker-walk" / variant / f"seed_{seed}" for seed in (0, 1)]
+        folders = [sweep / "walker-walk" / variant / f"seed_{seed}" for seed in range(4)]
         finals = [json.loads((folder / "result.json").read_text())["final_eval"]["mean_reward"] for folder in folders]
-        assert row.task == "walker-walk" and row.seeds == 2 and row.unfinished == 0 and row.final_frame == 0
-        assert row.final_mean == pytest.approx(sum(finals) / 2)
-        assert row.last_evals == 1  # the scheduled evaluation at frame 0 (1000: the final model's, apart)
+        assert row.task == "walker-walk" and row.seeds == 4 and row.unfinished == 0 and row.final_frame == 500
+        assert row.final_mean == pytest.approx(sum(finals) / 4)
+        assert row.last_evals == 2  # the scheduled evaluations at frames 0 and 500 (1000: the final model's, apart)
     assert rows["drqv2"].resets_total == 0 and rows["drqv2"].reset_rule_seeds == 0
     last_grad_norms = [
         float(
             [r for r in read_csv(folder / "collapse_metrics.csv") if r["tag"] == "collapse/mlp1/grad_norm"][-1]["value"]
         )
-        for folder in (tiny_sweep / "walker-walk" / "drqv2" / f"seed_{seed}" for seed in (0, 1))
+        for folder in (sweep / "walker-walk" / "drqv2" / f"seed_{seed}" for seed in range(4))
     ]
     assert rows["drqv2"].collapse_unknown == 0
     assert rows["drqv2"].stuck == sum(norm <= 1e-3 for norm in last_grad_norms)
-    assert rows["drqv2+reset"].resets_total == 2 and rows["drqv2+reset"].seeds_reset == 2
-    assert rows["drqv2+reset"].collapse_unknown == 2 and rows["drqv2+reset"].stuck == 0
+    assert rows["drqv2+reset"].resets_total == 4 and rows["drqv2+reset"].seeds_reset == 4
+    assert rows["drqv2+reset"].collapse_unknown == 4 and rows["drqv2+reset"].stuck == 0
     markdown = (tmp_path / "report" / "summary.md").read_text()
     assert "drqv2+reset" in markdown and "walker-walk" in markdown
     assert read_csv(tmp_path / "report" / "summary.csv")[0]["task"] == "walker-walk"
-    # Figure 4's rows (online: no rollouts here): one seed per class of final return; the reset at frame 500 marked
+    # Figure 4's rows (online): one seed per class of final return; the reset at frame 500 marked
     agents = [a for a in report.collapse_online[("walker-walk", "drqv2+reset")] if a.trial is not None]
-    assert agents and {a.trial.seed for a in agents} <= {0, 1} and all(a.resets == [500] for a in agents)
+    assert agents and {a.trial.seed for a in agents} <= set(range(4)) and all(a.resets == [500] for a in agents)
     assert all(agent_class(a.final_return) == a.role for a in agents)
 
 
@@ -779,25 +838,46 @@ def test_dry_run_refuses_a_machine_too_small_for_one_buffer(tmp_path, monkeypatc
     assert not out.exists()
 
 
-def test_tiny_sweep_records_its_plan_and_the_report_shows_it(tiny_sweep):
+@READER
+def test_tiny_sweep_records_its_plan_and_the_report_shows_it(reproduced_sweep, ray_local, tmp_path, capsys):
+    """The reproduction's sweep records no plan (its stages call the library): one of its trials, made unfinished in
+    a copy, is trained again through the command line, which records its plan."""
     from sb3_collapse.report.html import settings_table
+    from sb3_collapse.sweep.plan import trial_events
 
-    settings = json.loads((tiny_sweep / "sweep.json").read_text())
-    plan = settings["plan"]  # as the sweep planned its 4 new trials of 1,000 frames (action repeat 20: 50 agent steps)
-    assert plan["trials_pending"] == 4 and plan["frames"] == 4 * 1000 and plan["agent_steps"] == 4 * 50
-    assert set(plan["bytes"]) == {"walker-walk/drqv2", "walker-walk/drqv2+reset"}
+    out = command_line_copy(reproduced_sweep, tmp_path / "sweep")
+    (out / "walker-walk" / "drqv2+reset" / "seed_0" / "result.json").unlink()  # unfinished: trained again
+    argv = ["--tasks", "walker-walk", "--seeds", "4", "--variants", "drqv2+reset", "--out", str(out)]
+    assert main([*argv, "--no-progress-bar", *training_flags(reproduced_sweep)]) == 0
+    assert "1 finished now (0 resumed from a checkpoint), 3 finished before, 0 failed" in capsys.readouterr().out
+    settings = json.loads((out / "sweep.json").read_text())
+    plan = settings["plan"]  # as the sweep planned its pending trial: 1,000 frames (action repeat 25: 40 agent steps)
+    assert plan["trials_pending"] == 1 and plan["frames"] == 1000 and plan["agent_steps"] == 40
+    assert set(plan["bytes"]) == {"walker-walk/drqv2+reset"}
     assert "trials_pending" in settings_table(settings)
-    # The plan's counts (by the callbacks' own rule) are what each trial wrote: evaluations at frame 0 only (1000 is
-    # the budget's end), snapshots of it and of the final model, collapse checks at frames 500 and 1000.
-    for group, events in plan["events"].items():
-        assert events == {"evaluations": 1, "snapshots": 2, "collapse_checks": 2}
-        for folder in (tiny_sweep / group).glob("seed_*"):
-            written = {
-                "evaluations": len(read_csv(folder / "eval.csv")),
-                "snapshots": len(list((folder / "snapshots").glob("*.zip"))),
-                "collapse_checks": len({row["frame"] for row in read_csv(folder / "collapse_metrics.csv")}),
-            }
-            assert written == events, folder
+    # The plan's counts (by the callbacks' own rule) are what each trial wrote (the one trained now and the
+    # reproduction's): evaluations at frames 0 and 500 (1000 is the budget's end), no snapshots (the command line
+    # gave none), collapse checks at frames 250, 500, 750 and 1000.
+    assert plan["events"] == {"walker-walk/drqv2+reset": {"evaluations": 2, "snapshots": 0, "collapse_checks": 4}}
+
+    def written(folder):
+        return {
+            "evaluations": len(read_csv(folder / "eval.csv")),
+            "snapshots": len(list((folder / "snapshots").glob("*.zip"))),
+            "collapse_checks": len({row["frame"] for row in read_csv(folder / "collapse_metrics.csv")}),
+        }
+
+    for folder in (out / "walker-walk" / "drqv2+reset").glob("seed_*"):
+        assert written(folder) == plan["events"]["walker-walk/drqv2+reset"], folder
+    # The same rule for the reproduction's trials of every task: its drqv2 ones kept snapshots of both evaluations
+    # and of the final model.
+    reproduced = json.loads((reproduced_sweep / "sweep.json").read_text())
+    for task, variant, seed in itertools.product(TASKS, ("drqv2", "drqv2+reset"), range(4)):
+        trial = Trial(task, variant, seed)
+        config = trial_config(trial, reproduced_sweep, reproduced["training"], {}, snapshot_variants=["drqv2"])
+        events = trial_events(config)
+        assert events == {"evaluations": 2, "snapshots": 3 if variant == "drqv2" else 0, "collapse_checks": 4}
+        assert written(trial_dir(reproduced_sweep, trial)) == events, trial
 
 
 # The fabricated preset of PLAN_PRESET as flags (the trials write 2.3 MB each at most: 1.9 MB of checkpoints at their
