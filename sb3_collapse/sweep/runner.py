@@ -353,6 +353,15 @@ def sweep_settings(
     }
 
 
+TRAINING_DEFAULTS: dict[str, Any] = {
+    field.name: field.default for field in dataclasses.fields(TrainConfig) if field.default is not dataclasses.MISSING
+}
+"""A training setting's value where a settings file does not record it (``None``: the presets')."""
+KEPT_RECORDS = ("donors", "snapshot_variants")
+"""What a sweep's settings file keeps from an earlier run that this one does not set (the donors it drew, the variants
+whose trials keep snapshots)."""
+
+
 def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) -> list[str]:
     """
     :param previous: the settings in the sweep's settings file
@@ -360,8 +369,10 @@ def settings_changes(previous: Mapping[str, Any], current: Mapping[str, Any]) ->
     :return: one line per training setting that differs (tasks, seeds, variants and donors may be added)
     """
     changes = []
-    old, new = previous.get("training", {}), current.get("training", {})
-    for name in sorted(set(old) | set(new)):
+    # A setting missing from one side is at its default: the command line records every training setting, a library
+    # call (the reproduction's stages) the ones it sets.
+    old, new = ({**TRAINING_DEFAULTS, **settings.get("training", {})} for settings in (previous, current))
+    for name in sorted(set(previous.get("training", {})) | set(current.get("training", {}))):
         if old.get(name) != new.get(name):
             before, now = ("the presets'" if value is None else repr(value) for value in (old.get(name), new.get(name)))
             changes.append(f"`{name}`: {before} in {SWEEP_JSON}, {now} now")
@@ -399,7 +410,7 @@ def prepare_sweep_folder(
         )
     if not write:
         return
-    merged = dict(settings)
+    merged = {**{key: previous[key] for key in KEPT_RECORDS if key in previous}, **settings}  # nothing written lost
     merged["task_settings"] = {**previous.get("task_settings", {}), **settings.get("task_settings", {})}
     for key in ("tasks", "variants"):
         merged[key] = list(dict.fromkeys([*previous.get(key, []), *settings.get(key, [])]))

@@ -87,20 +87,12 @@ def training_flags(sweep):
 
 def command_line_copy(sweep, out):
     """
-    Copy ``sweep`` (the reproduction's, read only) to ``out`` and record there its training settings as the sweep's
-    command line records the same flags (:func:`training_flags`): the reproduction records only the settings it gives,
-    the command line every training flag's value, defaults included, and would refuse the missing ones as changed.
+    Copy ``sweep`` (the reproduction's, read only) to ``out``, for the sweep's command line to run into: the
+    reproduction records the training settings it gives, the command line every one, and a default is no change.
 
     :return: ``out``
     """
-    from sb3_collapse.commands.cli import training_settings
-    from sb3_collapse.commands.sweep import build_parser
-
     shutil.copytree(sweep, out)  # copy2 keeps the modification times
-    settings = json.loads((out / "sweep.json").read_text())
-    parsed = build_parser().parse_args([*REPRODUCED_TRIALS, "--out", str(out), *training_flags(sweep)])
-    settings["training"] = training_settings(parsed)
-    (out / "sweep.json").write_text(json.dumps(settings, indent=2))
     return out
 
 
@@ -420,6 +412,24 @@ def test_resources_and_settings_checks():
     assert settings_changes(previous, moved) == [
         "`good_cnn` checkpoint for walker-walk: /a.zip in sweep.json, /c.zip now"
     ]
+    # The reproduction's stages record the settings they set, the command line every one: a default is no change.
+    every = {"training": {"frames": 1000, "snapshots": False, "tf32": True, "batch_size": None, "size": 84}}
+    assert settings_changes(previous, every) == [] and settings_changes(every, previous) == []
+    assert settings_changes(previous, {"training": {"frames": 1000, "snapshots": True}}) == [
+        "`snapshots`: False in sweep.json, True now"
+    ]
+
+
+def test_a_rerun_keeps_the_donors_and_snapshot_variants_of_the_settings_file(tmp_path):
+    from sb3_collapse.sweep.runner import prepare_sweep_folder
+
+    first = {"training": {"frames": 1000}, "tasks": ["walker-walk"], "seeds": [0], "snapshot_variants": ["drqv2"],
+             "donors": {"good_cnn": {"walker-walk": "/a.zip"}}}  # fmt: skip
+    prepare_sweep_folder(tmp_path, first)
+    prepare_sweep_folder(tmp_path, {"training": {"frames": 1000, "snapshots": False}, "tasks": ["hopper-stand"]})
+    kept = json.loads((tmp_path / "sweep.json").read_text())
+    assert kept["donors"] == first["donors"] and kept["snapshot_variants"] == ["drqv2"]
+    assert kept["tasks"] == ["walker-walk", "hopper-stand"] and kept["training"]["snapshots"] is False
 
 
 @READER
