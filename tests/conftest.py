@@ -25,11 +25,21 @@ def pytest_configure(config):
 def pytest_collection_modifyitems(config, items):
     """
     Under xdist (``--dist loadfile --no-loadscope-reorder``: each file on one worker, the files in this order): the
-    file of the tiny reproduction's own tests goes first, so that one worker makes it (minutes) while the other runs
-    the files that do not read it.
+    tiny reproduction's own file first, so that one worker makes it (minutes) while the other runs the files that do
+    not read it; the other files that read it last, their readers after their other tests, so that no worker waits
+    for it while there is other work.
     """
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        items.sort(key=lambda item: item.path.name != "test_reproduce.py")  # stable: the rest in collection order
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    files = list(dict.fromkeys(item.path for item in items))
+    readers = {item.path for item in items if "tiny_reproduction" in item.fixturenames}
+
+    def order(item):
+        reads = "tiny_reproduction" in item.fixturenames
+        rank = 0 if item.path.name == "test_reproduce.py" else 2 if item.path in readers else 1
+        return rank, files.index(item.path), rank == 2 and reads
+
+    items.sort(key=order)  # stable: in collection order within each key
 
 
 def shared_by_the_workers(tmp_path_factory, name: str, make):
