@@ -137,6 +137,20 @@ def test_a_rerun_trains_nothing(tiny_reproduction, capsys):
     assert mtimes(out) == before  # no trial trained, no file written again
 
 
+def test_tiny_trials_share_their_worker_processes(tiny_reproduction, tmp_path):
+    from sb3_collapse.errors import ParameterError
+    from sb3_collapse.sweep import expand_trials, run_sweep
+
+    out, _, _ = tiny_reproduction
+    # TensorBoard names its event file after the writing process: a worker ran trial after trial.
+    pids = {path.name.split(".")[-2] for path in (out / "sweep").glob("*/*/seed_*/events.out.tfevents.*")}
+    trials = list((out / "sweep").glob("*/*/seed_*"))
+    assert TINY_SCALE.trials_per_worker == 0 and len(trials) == 33 and 1 <= len(pids) < len(trials) / 2
+    with pytest.raises(ParameterError, match="trials_per_worker must be an integer >= 0, got -1"):
+        run_sweep(expand_trials(["walker-walk"], ["drqv2"], [0]), tmp_path / "sweep", {}, trials_per_worker=-1)
+    assert not (tmp_path / "sweep").exists()
+
+
 def test_dry_run_writes_nothing_and_prints_gpu_hours_and_disk(tiny_reproduction, tmp_path, capsys):
     out = tmp_path / "new"
     assert main(["--out", str(out), "--dry-run", "--stages", "sweep", "--frames-per-second", "200"]) == 0

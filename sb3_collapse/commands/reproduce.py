@@ -105,6 +105,7 @@ def run_sweep_stage(job: Reproduction, trials: list, checkpoints: Mapping, donor
         donors=donors,
         connect_timeout_s=job.connect_timeout_s,
         snapshot_variants=SNAPSHOT_VARIANTS,
+        trials_per_worker=job.scale.trials_per_worker,
     )
     status = print_summary(summary, str(job.sweep))
     if summary.interrupted:

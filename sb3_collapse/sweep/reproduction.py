@@ -67,6 +67,8 @@ class Scale:
     :param film_frames: environment frames per film (Figures 6-7)
     :param film_size: height and width of the film's renders, in pixels
     :param film_every_frames: frames between two pictures of a film strip
+    :param trials_per_worker: trials a Ray worker process runs before a fresh one replaces it (``run_sweep``'s:
+        ``1`` at the paper's scale, ``0`` no limit at the tiny one, where a process's start is most of a trial)
     :param paper_classes: the paper's classes of agents (``PAPER.success_return`` and ``PAPER.failure_return``);
         ``False``: thresholds that split the agents
     """
@@ -81,6 +83,7 @@ class Scale:
     film_frames: int = FILM_FRAMES
     film_size: int = FILM_SIZE
     film_every_frames: int = 30
+    trials_per_worker: int = 1
     paper_classes: bool = True
 
 
@@ -88,7 +91,8 @@ PAPER_SCALE = Scale("paper", {}, PAPER.figure5_seeds, PAPER.transplant_seeds, PA
 # CPU sizes: 1000 frames = 40 agent steps of 25 frames (a DMC episode is then 40 agent steps: cheap evaluations),
 # 32x32 images, small networks, learning from frame 500, evaluations (and snapshots) at frames 0 and 500 and of the
 # final model at 1000, collapse checks every 250 frames and the rule's window of 500 frames. Four seeds: the grid's
-# donors are two good and two bad walker-walk agents.
+# donors are two good and two bad walker-walk agents. A Ray worker runs trial after trial (trials_per_worker=0): a
+# process's start (imports, the rendering check) would be most of a tiny trial.
 TINY_SCALE = Scale(
     "tiny",
     dict(
@@ -114,6 +118,7 @@ TINY_SCALE = Scale(
     film_frames=250,
     film_size=64,
     film_every_frames=50,
+    trials_per_worker=0,
     paper_classes=False,
 )
 SCALES = {scale.name: scale for scale in (PAPER_SCALE, TINY_SCALE)}

@@ -17,7 +17,7 @@ from typing import Any
 
 from sb3_collapse import __version__
 from sb3_collapse.common import progress
-from sb3_collapse.errors import FULL_DISK_ERRNOS, InputError, OutputError, TrainingInterrupted
+from sb3_collapse.errors import FULL_DISK_ERRNOS, InputError, OutputError, ParameterError, TrainingInterrupted
 from sb3_collapse.presets import SETTING_NAMES
 from sb3_collapse.protocol import (
     CHECKPOINTS_DIR,
@@ -436,6 +436,7 @@ def run_sweep(
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
     plan: Mapping[str, Any] | None = None,
     snapshot_variants: Collection[str] | None = None,
+    trials_per_worker: int = 1,
 ) -> SweepSummary:
     """
     Run every unfinished trial as an independent Ray task (resuming from its newest checkpoint) and wait for all of
@@ -454,6 +455,9 @@ def run_sweep(
     :param connect_timeout_s: seconds to wait for the cluster at ``address`` to answer (:func:`ray_session`)
     :param plan: the sweep's plan for its settings file (:func:`~sb3_collapse.sweep.plan.sweep_plan`), if any
     :param snapshot_variants: only the trials of these variants save snapshots (``None``: as ``training`` says)
+    :param trials_per_worker: trials a Ray worker process runs before a fresh one replaces it: ``1`` (each trial in
+        a fresh process: nothing a trial leaves in its process reaches the next), ``0`` no limit (for trials so short
+        that a process's start, its imports and rendering check, is most of their time: the tiny reproduction's)
     :return: what was skipped, finished, failed and interrupted
     :raises InputError: for settings that cannot run, or another sweep running into ``out`` (nothing written)
     :raises MissingDependencyError: when there are trials to run and Ray is not installed
@@ -483,14 +487,19 @@ def run_sweep(
         if not to_run:
             prepare_sweep_folder(out, settings, allow_changed_settings)
             return summary
+        if isinstance(trials_per_worker, bool) or not isinstance(trials_per_worker, int) or trials_per_worker < 0:
+            raise ParameterError(
+                "trials_per_worker", f"trials_per_worker must be an integer >= 0, got {trials_per_worker!r}."
+            )
         import_ray()  # before writing anything: a missing Ray leaves the folder as it was
         with ray_session(address, connect_timeout_s=connect_timeout_s) as ray:
             check_resources(ray.cluster_resources(), cpus_per_trial, gpus_per_trial)
             prepare_sweep_folder(out, settings, allow_changed_settings)  # the cluster answered: now the folder
             (out / SWEEP_STOP).unlink(missing_ok=True)  # the request of an earlier run that did not end cleanly
-            # max_calls=1: every trial in a fresh worker process (nothing a trial leaves in its process reaches the
-            # next); max_retries: Ray runs the task again when its worker dies (not when the trial raises): it resumes.
-            remote = ray.remote(max_calls=1)(run_trial).options(
+            # max_calls=1 (the default): every trial in a fresh worker process (nothing a trial leaves in its process
+            # reaches the next); max_retries: Ray runs the task again when its worker dies (not when the trial
+            # raises): it resumes.
+            remote = ray.remote(max_calls=trials_per_worker)(run_trial).options(
                 num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=TRIAL_RETRIES
             )
             device, threads = ("cuda" if gpus_per_trial > 0 else "cpu"), max(1, int(cpus_per_trial))
