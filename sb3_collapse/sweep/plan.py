@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import inspect
 import os
@@ -187,17 +186,22 @@ def sweep_plan(
 
 
 def trial_states(
-    trials: Sequence[Trial], out: str | Path, training: Mapping[str, Any], checkpoints: Mapping
+    trials: Sequence[Trial],
+    out: str | Path,
+    training: Mapping[str, Any],
+    checkpoints: Mapping,
+    snapshot_variants: Collection[str] | None = None,
 ) -> dict[Trial, TrialState]:
     """Trial -> its status, why the sweep leaves it as it is (:func:`~sb3_collapse.sweep.runner.trial_left_as_is`:
-    kind and line; ``None``: finished, or trained), its resolved settings and the frames done (the budget when
-    finished, the newest checkpoint's when unfinished, else 0)."""
+    kind and line; ``None``: finished, or trained), its resolved settings (:func:`~sb3_collapse.sweep.trials.
+    trial_config`'s, ``snapshot_variants`` included) and the frames done (the budget when finished, the newest
+    checkpoint's when unfinished, else 0)."""
     states = {}
     for trial in trials:
         folder = trial_dir(out, trial)
         status = str(run_status(folder) or NOT_A_RUN)
         reason = None if status == RunStatus.FINISHED else trial_left_as_is(folder)
-        config = trial_config(trial, out, training, checkpoints)
+        config = trial_config(trial, out, training, checkpoints, snapshot_variants=snapshot_variants)
         done = checkpoint_frames(folder / CHECKPOINTS_DIR) if status in RESUMABLE else None
         states[trial] = (status, reason, config, config.frames if status == RunStatus.FINISHED else done or 0)
     return states
@@ -209,18 +213,13 @@ def states_plan(
     gpus_per_trial: float = 0,
     frames_per_second: float | None = None,
     out: str | os.PathLike | None = None,
-    snapshot_variants: Collection[str] | None = None,
 ) -> dict[str, Any]:
     """
     :func:`sweep_plan` of the trials of ``states`` (:func:`trial_states`): every trial that holds files but the
     damaged ones (those in use by another process count, though not trained now); the finished ones hold their
     outputs, the others are to train from their frames done.
-
-    :param snapshot_variants: the variants whose trials keep snapshots (``None``: as their settings say)
     """
     configs = {trial: state[2] for trial, state in states.items() if state[1] is None or state[1][0] == Attempt.IN_USE}
-    if snapshot_variants is not None:
-        configs = {t: dataclasses.replace(c, snapshots=t.variant in snapshot_variants) for t, c in configs.items()}
     done = {trial: state[3] for trial, state in states.items() if state[1] is None and state[0] != RunStatus.FINISHED}
     return sweep_plan(configs, done, cpus_per_trial, gpus_per_trial, frames_per_second, out)
 

@@ -317,8 +317,8 @@ def training_plan(job: Reproduction, stage: str, fps: float) -> tuple[list[Trial
     trials = job.sweep_trials() if stage == "sweep" else job.grid_trials()
     placeholder = str(job.sweep / "<donor drawn from the sweep stage>")
     checkpoints = {} if stage == "sweep" else {key: {job.transplant_task: placeholder} for key in DONOR_KEYS}
-    states = trial_states(trials, job.sweep, dict(job.scale.training), checkpoints)
-    plan = states_plan(states, job.cpus_per_trial, job.gpus_per_trial, fps, job.sweep, SNAPSHOT_VARIANTS)
+    states = trial_states(trials, job.sweep, dict(job.scale.training), checkpoints, SNAPSHOT_VARIANTS)
+    plan = states_plan(states, job.cpus_per_trial, job.gpus_per_trial, fps, job.sweep)
     return trials, plan
 
 
