@@ -171,7 +171,7 @@ def test_dry_run_writes_nothing_and_prints_gpu_hours_and_disk(tiny_reproduction,
 @pytest.mark.parametrize(
     ("argv", "line"),
     [
-        (["--stages", "sweep", "plot"], "--stages: unknown stage 'plot'"),
+        (["--stages", "sweep", "plot"], "argument --stages: invalid choice: 'plot'"),
         (["--stages", "probe"], "--stages: probe reads the outputs of sweep, which"),
         (["--seeds", "0"], "--seeds must be >= 1, got 0."),
         (["--tasks", "walker-walk", "nothing-here"], "--tasks: "),

@@ -16,10 +16,19 @@ import dataclasses
 import sys
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sb3_collapse.commands.cli import CommandLine, prog_name, report_unwritable_outputs, run_command
+from sb3_collapse.commands.cli import (
+    CommandLine,
+    add_setting_arguments,
+    check_arguments,
+    prog_name,
+    report_unwritable_outputs,
+    run_command,
+)
+from sb3_collapse.commands.sweep import ResourceFlags
 from sb3_collapse.errors import InputError
 from sb3_collapse.paper import PAPER, PAPER_RESULTS
 from sb3_collapse.protocol import (
@@ -31,8 +40,8 @@ from sb3_collapse.protocol import (
     write_json_atomically,
     write_text_atomically,
 )
+from sb3_collapse.run.config import RUN, declared, setting
 from sb3_collapse.runfolder import RunStatus, read_json, run_status
-from sb3_collapse.sweep.cluster import CONNECT_TIMEOUT_S
 from sb3_collapse.sweep.reproduction import (
     FILMS_DIR,
     INPUTS,
@@ -384,67 +393,64 @@ def dry_run(job: Reproduction, stages: Sequence[str], fps: float, fps_source: st
 # --- the command line ------------------------------------------------------------------------------------------------
 
 
+@declared
+@dataclass
+class ReproduceFlags:
+    """The reproduction's own flags (beside the sweep's :class:`~sb3_collapse.commands.sweep.ResourceFlags`),
+    declared once: parser, help, range checks and the table in docs/reproduce.md."""
+
+    out: str | None = setting(cli=RUN, required=True)
+    """the folder of every output: a new or empty one, or one this command started with the same --scale, --tasks,
+    --seeds and --transplant-seeds"""
+    scale: str = setting("paper", cli=RUN, choices=tuple(SCALES))
+    """paper: the paper's counts and budgets; tiny: the same stages at CPU sizes, in minutes (docs/reproduce.md)"""
+    stages: tuple[str, ...] | None = setting(cli=RUN, nargs="+", metavar="STAGE", choices=STAGES)
+    """the stages to run, in their order (default: all); a stage whose inputs are neither done nor in --stages is
+    refused"""
+    tasks: tuple[str, ...] | None = setting(
+        cli=RUN,
+        nargs="+",
+        help=f"Figure 5's tasks (default: {' '.join(PAPER.figure5_tasks)}; {PAPER.transplant_task} is required: Study "
+        "2's grid, Figure 2 and the report read it)",
+    )
+    seeds: int | None = setting(
+        cli=RUN,
+        minimum=1,
+        help=f"seeds per task and variant (default: {PAPER.figure5_seeds}; tiny: {TINY_SCALE.seeds})",
+    )
+    transplant_seeds: int | None = setting(
+        cli=RUN,
+        minimum=1,
+        help=f"seeds per transplant cell (default: {PAPER.transplant_seeds}; tiny: {TINY_SCALE.transplant_seeds})",
+    )
+    dry_run: bool = setting(False, cli=RUN)
+    """print every stage's plan (trials, frames, GPU-hours, RAM, disk, trials at once); write nothing"""
+    frames_per_second: float | None = setting(
+        cli=RUN,
+        metavar="FPS",
+        above=0,
+        help=f"one trial's training frames/s, for the GPU-hours (default: {REFERENCE_FPS:g}, {REFERENCE_FPS_SOURCE})",
+    )
+
+
+COMMANDS: dict[str, tuple[type, ...]] = {"": (ReproduceFlags, ResourceFlags)}
+"""The flags, by the dataclasses that declare them (the parser, the help, the range checks and the table in
+``docs/reproduce.md`` are generated from it)."""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m sb3_collapse.reproduce``."""
-    p = CommandLine(
+    """The command line of ``python -m sb3_collapse.reproduce``, its flags generated from :data:`COMMANDS`."""
+    parser = CommandLine(
         prog=prog_name("sb3_collapse.reproduce"),
         description="The action-collapse paper's protocol as stages, each started when its inputs exist and "
         "skipped when done (rerun the same command to resume): "
         + "; ".join(f"{stage}: {what}" for stage, what in STAGE_HELP.items())
         + ". Frames = agent steps x action repeat; docs/reproduce.md.",
     )
-    p.add_argument("--out", required=True, help="the folder of every output (new, or one this command started)")
-    p.add_argument(
-        "--scale",
-        choices=sorted(SCALES),
-        default="paper",
-        help="paper: the paper's counts and budgets; tiny: the "
-        "same stages at CPU sizes in minutes (default: %(default)s)",
-    )
-    p.add_argument(
-        "--stages", nargs="+", metavar="STAGE", help=f"the stages to run, of {' '.join(STAGES)} (default: all)"
-    )
-    p.add_argument("--tasks", nargs="+", help=f"tasks of Figure 5 (default: {' '.join(PAPER.figure5_tasks)})")
-    p.add_argument(
-        "--seeds",
-        type=int,
-        help=f"seeds per task and variant (default: {PAPER.figure5_seeds}; tiny: {TINY_SCALE.seeds})",
-    )
-    p.add_argument(
-        "--transplant-seeds",
-        type=int,
-        help=f"seeds per transplant cell (default: {PAPER.transplant_seeds}; tiny: {TINY_SCALE.transplant_seeds})",
-    )
-    p.add_argument(
-        "--dry-run",
-        action="store_true",
-        help="print every stage's plan (trials, frames, GPU-hours, RAM, disk, trials at once); write nothing",
-    )
-    p.add_argument(
-        "--frames-per-second",
-        type=float,
-        metavar="FPS",
-        help=f"one trial's training frames/s, for the GPU-hours (default: {REFERENCE_FPS:g}, {REFERENCE_FPS_SOURCE})",
-    )
-    g = p.add_argument_group("resources (those of python -m sb3_collapse.sweep)")
-    g.add_argument("--address", help="Ray cluster ('auto', 'ray://head:10001'); default: a new local Ray instance")
-    g.add_argument(
-        "--connect-timeout",
-        dest="connect_timeout_s",
-        type=float,
-        default=CONNECT_TIMEOUT_S,
-        metavar="SECONDS",
-        help="with --address: seconds to wait for the cluster (default: %(default)g)",
-    )
-    g.add_argument("--cpus-per-trial", type=float, default=1, help="CPUs per trial (default: %(default)s)")
-    g.add_argument(
-        "--gpus-per-trial",
-        type=float,
-        default=0,
-        help="GPUs per trial, fractions allowed; > 0 trains on cuda (default: %(default)s)",
-    )
-    g.add_argument("--no-progress-bar", dest="progress", action="store_false", help="hide the progress bars")
-    return p
+    add_setting_arguments(parser, declaration=ReproduceFlags)
+    add_setting_arguments(parser.add_argument_group("resources (those of python -m sb3_collapse.sweep)"),
+                          declaration=ResourceFlags)  # fmt: skip
+    return parser
 
 
 def check_out(parser: argparse.ArgumentParser, job: Reproduction) -> None:
@@ -469,10 +475,8 @@ def check_out(parser: argparse.ArgumentParser, job: Reproduction) -> None:
 
 
 def check_stages(parser: argparse.ArgumentParser, job: Reproduction, stages: Sequence[str]) -> None:
-    """``--stages``: known, and each stage's inputs done or scheduled before it."""
-    for stage in stages:
-        if stage not in STAGES:
-            parser.error(f"--stages: unknown stage {stage!r}; the stages are {' '.join(STAGES)}.")
+    """``--stages`` (each one of :data:`STAGES`, as argparse checked): each stage's inputs done or scheduled before
+    it."""
     for stage in stages:
         for needed in INPUTS[stage]:
             if needed not in stages and job.done(needed) is None:
@@ -491,12 +495,8 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    check_arguments(parser, args, *COMMANDS[""])
     scale = SCALES[args.scale]
-    for flag, value in (("--seeds", args.seeds), ("--transplant-seeds", args.transplant_seeds)):
-        if value is not None and value < 1:
-            parser.error(f"{flag} must be >= 1, got {value}.")
-    if args.frames_per_second is not None and not 0 < args.frames_per_second < float("inf"):
-        parser.error(f"--frames-per-second must be a number > 0, got {args.frames_per_second}.")
     try:
         from sb3_collapse.sweep.trials import canonical_task
 
@@ -515,7 +515,7 @@ def main(argv: list[str] | None = None) -> int:
         args.cpus_per_trial,
         args.gpus_per_trial,
         args.connect_timeout_s,
-        args.progress,
+        args.progress_bar,
     )
     stages = [stage for stage in STAGES if stage in (args.stages or STAGES)]
     check_stages(parser, job, args.stages or STAGES)

@@ -74,15 +74,6 @@ class SweepFlags:
     """add the 9 cells of the CNN x MLP transplant grid"""
     out: str | None = setting(cli=RUN, required=True)
     """the sweep folder (with --address: on storage every node sees)"""
-    address: str | None = setting(cli=RUN)
-    """Ray cluster to run on ('auto', 'ray://head:10001', 'head:6379'); default: a new local Ray instance.
-    sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees"""
-    connect_timeout_s: float = setting(CONNECT_TIMEOUT_S, cli=RUN, flag="--connect-timeout", metavar="SECONDS")
-    """with --address: give up, writing nothing, when the cluster does not answer within this time (exit status 1)"""
-    cpus_per_trial: float = setting(1, cli=RUN)
-    """CPUs per trial; also its torch threads"""
-    gpus_per_trial: float = setting(0, cli=RUN)
-    """GPUs Ray reserves per trial, fractions allowed (0.25: 4 trials per GPU); > 0 trains on cuda, 0 on cpu"""
     allow_changed_settings: bool = setting(False, cli=RUN)
     """run even if --out holds a sweep with other training settings (finished trials keep theirs)"""
     dry_run: bool = setting(False, cli=RUN)
@@ -93,6 +84,23 @@ class SweepFlags:
     frames_per_second: float | None = setting(cli=RUN, metavar="FPS", above=0)
     """one trial's training frames/s, measured on this device (benchmarks/README.md#train-throughput-gpu (cuda),
     #train-throughput-cpu (cpu)): the plan's time estimate; none without it"""
+
+
+@declared
+@dataclass
+class ResourceFlags:
+    """Where and with what the trials run: the flags of the sweep and of the reproduction (``python -m
+    sb3_collapse.reproduce``), declared once."""
+
+    address: str | None = setting(cli=RUN)
+    """Ray cluster to run on ('auto', 'ray://head:10001', 'head:6379'); default: a new local Ray instance.
+    sb3-collapse must be installed on every node and --out, the checkpoints on storage every node sees"""
+    connect_timeout_s: float = setting(CONNECT_TIMEOUT_S, cli=RUN, flag="--connect-timeout", metavar="SECONDS")
+    """with --address: give up, writing nothing, when the cluster does not answer within this time (exit status 1)"""
+    cpus_per_trial: float = setting(1, cli=RUN)
+    """CPUs per trial; also its torch threads"""
+    gpus_per_trial: float = setting(0, cli=RUN)
+    """GPUs Ray reserves per trial, fractions allowed (0.25: 4 trials per GPU); > 0 trains on cuda, 0 on cpu"""
     progress_bar: bool = setting(True, cli=RUN)
     """show the progress bar"""
 
@@ -128,7 +136,7 @@ class DonorFlags:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python -m sb3_collapse.sweep``: the sweep's flags (:class:`SweepFlags`,
-    :class:`DonorFlags`) and every training flag of train."""
+    :class:`ResourceFlags`, :class:`DonorFlags`) and every training flag of train."""
     p = CommandLine(
         prog=prog_name("sb3_collapse.sweep"),
         description="Run every (task, variant, seed) as an independent trial on Ray (DrQ-v2, or the TD3/SAC "
@@ -144,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_setting_arguments(g, first[3:], SweepFlags)
     add_setting_arguments(p.add_argument_group(inspect.getdoc(DonorFlags)), declaration=DonorFlags)
     add_setting_arguments(g, [name for name in setting_flags(SweepFlags) if name not in first], SweepFlags)
+    add_setting_arguments(g, declaration=ResourceFlags)
     return p
 
 
@@ -157,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
-    check_arguments(parser, args, SweepFlags, DonorFlags)
+    check_arguments(parser, args, SweepFlags, ResourceFlags, DonorFlags)
     stopped = (
         f"\nStopped at once: the running trials resume from their last checkpoints; run the same command again to "
         f"resume (finished trials in {args.out} are kept; exit status {EXIT_INTERRUPTED})."

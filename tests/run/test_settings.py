@@ -11,6 +11,7 @@ import pytest
 
 import sb3_collapse.commands.probe as probe_cli
 import sb3_collapse.commands.report as report_cli
+import sb3_collapse.commands.reproduce as reproduce_cli
 from sb3_collapse.commands import probe_pipelines
 from sb3_collapse.commands.cli import (
     FLAGS_END,
@@ -129,7 +130,7 @@ def test_no_package_module_imports_the_train_command():
 
 # The probe's and the report's flags: declared once with the same setting(), in their modules of commands/.
 
-CLIS = {"sb3_collapse.probe": probe_cli, "sb3_collapse.report": report_cli}
+CLIS = {"sb3_collapse.probe": probe_cli, "sb3_collapse.report": report_cli, "sb3_collapse.reproduce": reproduce_cli}
 POSITIONALS = {
     "run": ["a.zip"],
     "sweep": ["runs", "--task", "walker-walk"],
@@ -142,14 +143,14 @@ POSITIONALS = {
 def _subparsers(cli):
     """Sub-command ("" for none) -> (its parser, the arguments it needs)."""
     parser = cli.build_parser()
-    if cli is report_cli:
-        return {"": (parser, ["runs"])}
+    if cli in (report_cli, reproduce_cli):
+        return {"": (parser, ["runs"] if cli is report_cli else ["--out", "runs"])}
     (action,) = [action for action in parser._actions if isinstance(action, argparse._SubParsersAction)]
     return {command: (action.choices[command], POSITIONALS[command]) for command in cli.COMMANDS}
 
 
 @pytest.mark.parametrize("package", CLIS)
-def test_every_probe_and_report_flag_is_declared_with_help_and_unit(package):
+def test_every_probe_report_and_reproduce_flag_is_declared_with_help_and_unit(package):
     cli = CLIS[package]
     for command, (parser, needed) in _subparsers(cli).items():
         declared = {  # the settings with a flag (the library's FixedInputSettings has a few without)
@@ -188,13 +189,13 @@ def test_probe_flags_keep_their_spellings_and_defaults():
     assert report.percentiles == [10.0, 90.0] and report.tasks == ["walker-walk"] and report.progress is True
 
 
-@pytest.mark.parametrize("page", ["probe.md", "sweeps.md"])
+@pytest.mark.parametrize("page", ["probe.md", "sweeps.md", "reproduce.md"])
 def test_flag_tables_of_the_docs_are_fresh(page, tmp_path):
     doc = (REPO_ROOT / "docs" / page).read_text()
     assert doc == with_markdown(doc), (
         f"docs/{page} is out of date: run python -m sb3_collapse.commands.cli --markdown docs/{page}"
     )
-    package = "sb3_collapse.probe" if page == "probe.md" else "sb3_collapse.report"
+    package = {"probe.md": "sb3_collapse.probe", "sweeps.md": "sb3_collapse.report"}.get(page, "sb3_collapse.reproduce")
     cli = CLIS[package]
     for declarations in cli.COMMANDS.values():
         for field in (field for declaration in declarations for field in dataclasses.fields(declaration)):
@@ -229,13 +230,24 @@ def _fail(*args, **kwargs):
         ("sb3_collapse.report", ["runs", "--collapse-checks", "0"], "--collapse-checks", "must be >= 1, got 0."),
         ("sb3_collapse.report", ["runs", "--percentiles", "5", "101"], "--percentiles", "must be <= 100, got 101.0."),
         ("sb3_collapse.report", ["runs", "--fixed-samples", "1"], "--fixed-samples", "must be >= 2 (0: all), got 1."),
+        ("sb3_collapse.reproduce", ["--out", "x", "--transplant-seeds", "0"], "--transplant-seeds", "must be >= 1"),
+        ("sb3_collapse.reproduce", ["--out", "x", "--cpus-per-trial", "0"], "--cpus-per-trial", "must be > 0"),
     ],
 )
 def test_a_bad_value_exits_2_with_one_line_naming_the_flag_before_any_work(
     package, argv, flag, problem, monkeypatch, capsys
 ):
     cli = CLIS[package]
-    for name in ("probe_to_folder", "probe_sweep", "film_to_folder", "record_to_file", "write_report", "is_run_folder"):
+    for name in (
+        "probe_to_folder",
+        "probe_sweep",
+        "film_to_folder",
+        "record_to_file",
+        "write_report",
+        "is_run_folder",
+        "run_stages",
+        "dry_run",
+    ):
         if hasattr(cli, name):
             monkeypatch.setattr(cli, name, _fail)
     monkeypatch.setattr(sys, "argv", ["/venv/bin/sb3-collapse-" + package.rsplit(".", 1)[1]])
