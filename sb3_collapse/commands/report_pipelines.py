@@ -5,7 +5,6 @@ write the report folder (staged: all files or none)."""
 from __future__ import annotations
 
 import csv
-import inspect
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -154,6 +153,10 @@ def build_report(
     report = page.Report(
         sweep, rows, stats.transplant_grid(rows, settings.success_return), curves, references, notes, ""
     )
+    report.settings, report.layers = settings, collapse_settings.layers
+    if include_unfinished:  # the unfinished trials of Figure 5's variants, drawn dotted
+        unfinished = [t for t in sweep.unfinished if stats.transplant_sources(t.variant) is None]
+        report.partial = {task: [t for t in unfinished if t.task == task] for task in curves}
     report.transplant = stats.transplant_curves(sweep, settings.success_return)
     report.notes += page.transplant_notes(report)
     collapse_figures(report, settings, collapse_settings, progress)
@@ -236,7 +239,11 @@ def _why_no_fixed_inputs(
 
 
 def write_report(
-    sweep_dir: str | Path, out: str | Path | None = None, overwrite: bool = False, **build_options: Any
+    sweep_dir: str | Path,
+    out: str | Path | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    **build_options: Any,
 ) -> page.Report:
     """
     The report of a sweep folder (:func:`build_report`'s), written to ``out``: staged, moved in only when every file
@@ -246,27 +253,21 @@ def write_report(
     :param sweep_dir: the sweep folder
     :param out: the output folder (``<sweep_dir>/report`` when ``None``)
     :param overwrite: replace the outputs of a previous report in ``out`` (else an error, before the sweep is read)
-    :param build_options: the keywords of :func:`build_report` (``settings``, ``reference``, ``include_unfinished``,
-        ``tasks``, ``variants``, ``progress``, ``collapse_settings``; its defaults for those left out)
+    :param progress: show the progress of the long stages (reading, drawing)
+    :param build_options: the other keywords of :func:`build_report` (``settings``, ``reference``,
+        ``include_unfinished``, ``tasks``, ``variants``, ``collapse_settings``; its defaults for those left out)
     :return: the report, with ``files`` the written paths
     :raises InputError: on a bad folder or setting; nothing is written then
     :raises TypeError: on a keyword :func:`build_report` does not take
     """
-    options = inspect.signature(build_report).bind(sweep_dir, **build_options)
-    options.apply_defaults()
-    given = options.arguments  # build_report's defaults of its two settings objects, made here to read them too
-    settings = given["settings"] = given["settings"] or stats.ReportSettings()
-    layers = (given["collapse_settings"] or FixedInputSettings()).layers
-    include_unfinished, progress = given["include_unfinished"], given["progress"]
     out_dir = Path(sweep_dir) / page.REPORT_FOLDER if out is None else Path(out)
     staged_outputs = StagedOutputs(out_dir, page.OUTPUT_FILES, page.SUMMARY_MD, overwrite=overwrite, error=InputError)
-    report = build_report(*options.args, **options.kwargs)
-    partial = None
-    if include_unfinished:  # the unfinished trials of Figure 5's variants, drawn dotted
-        plain = [t for t in report.sweep.unfinished if stats.transplant_sources(t.variant) is None]
-        partial = {task: [t for t in plain if t.task == task] for task in report.curves}
+    report = build_report(sweep_dir, progress=progress, **build_options)
+    settings = report.settings
     with staged_outputs as staged:
-        plot_figure5(report.curves, staged.path(page.FIGURE5_PNG), report.references, partial, settings.percentiles)
+        plot_figure5(
+            report.curves, staged.path(page.FIGURE5_PNG), report.references, report.partial, settings.percentiles
+        )
         tables.write_csv(tables.summary_rows(report.rows), tables.SUMMARY_COLUMNS, staged.path(page.SUMMARY_CSV))
         if report.grid:
             tables.write_csv(tables.grid_rows(report.grid), tables.GRID_COLUMNS, staged.path(page.GRID_CSV))
@@ -279,11 +280,11 @@ def write_report(
         for key, picks in progress_bar(report.collapse_picks.items(), "collapse figures", "figure", progress):
             path = staged.path(page.COLLAPSE_ONLINE_PNG.format(task=key[0], variant=key[1]))
             title = collapse_figure.paper_figure_title(*key, picks, collapse_figure.ONLINE_INPUTS)
-            collapse_figure.plot_collapse_metrics(report.collapse_online[key], path, title, layers)
+            collapse_figure.plot_collapse_metrics(report.collapse_online[key], path, title, report.layers)
             if key in report.collapse:
                 path = staged.path(page.COLLAPSE_PNG.format(task=key[0], variant=key[1]))
                 title = collapse_figure.paper_figure_title(*key, picks, report.collapse_inputs[key].describe())
-                collapse_figure.plot_collapse_metrics(report.collapse[key], path, title, layers, "snapshots")
+                collapse_figure.plot_collapse_metrics(report.collapse[key], path, title, report.layers, "snapshots")
                 path = staged.path(page.COLLAPSE_FIXED_CSV.format(task=key[0], variant=key[1]))
                 write_fixed_metrics_csv(path, picks, report.collapse_fixed[key])
         if report.collapse_picks:

@@ -21,7 +21,7 @@ from sb3_collapse.report import collapse_figure, headline, html, tables
 from sb3_collapse.report import statistics as stats
 from sb3_collapse.report.collapse_figure import ONLINE_INPUTS, paper_figure_title
 from sb3_collapse.report.figure2 import stage_panels
-from sb3_collapse.report.loading import Sweep
+from sb3_collapse.report.loading import Sweep, Trial
 from sb3_collapse.report.reference import REFERENCE_LABEL, load_reference_curves
 from sb3_collapse.runfolder import read_json
 
@@ -82,6 +82,9 @@ class Report:
         (:class:`~sb3_collapse.probe.fixed_inputs.FixedMetrics`)
     :param headline: the paper's headline numbers beside the sweep's
     :param proposition: Proposition 1's prediction beside the rule's escapes
+    :param settings: the definitions it was computed with
+    :param layers: the layers of Figures 4, 8, 9
+    :param partial: task -> the unfinished trials whose partial curves Figure 5 draws dotted (``None``: not drawn)
     """
 
     sweep: Sweep
@@ -100,6 +103,9 @@ class Report:
     collapse_fixed: dict[tuple[str, str], dict[int, Any]] = field(default_factory=dict)
     headline: list[headline.HeadlineRow] = field(default_factory=list)
     proposition: list[headline.Proposition1Row] = field(default_factory=list)
+    settings: stats.ReportSettings = field(default_factory=stats.ReportSettings)
+    layers: tuple[str, ...] = ()
+    partial: dict[str, list[Trial]] | None = None
 
 
 def sweep_notes(sweep: Sweep, rows: Sequence[stats.VariantSummary], include_unfinished: bool) -> list[str]:
