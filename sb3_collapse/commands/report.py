@@ -53,6 +53,9 @@ class ReportFlags:
 
 
 COMMANDS: dict[str, tuple[type, ...]] = {"": (ReportFlags, ReportSettings, FixedInputSettings)}
+RUN_FOLDER_FLAGS = ("sweep", "out", "overwrite", "progress", "rollouts", "fixed_samples", "device", "correlation")
+RUN_FOLDER_FLAGS += ("train_episodes",)
+"""The settings whose flags apply to one run folder (:func:`write_run_report`); the others are a sweep's."""
 """The flags, by the dataclasses that declare them (the parser, the help, the range checks and the table in
 ``docs/sweeps.md`` are generated from it)."""
 
@@ -65,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
             "The figures and tables of a sweep folder <sweep>/<task>/<variant>/seed_<k>/: Figure 5 and the table, "
             "Figures 4, 8, 9 (collapse metrics of a picked well-performing, middle and poorly performing seed), "
             f"Figure 3 and Table 7 (cnn-<src>_mlp-<src> variants), and report/index.html; only finished trials "
-            f"({RESULT_JSON}) enter the statistics. Given one run folder of the train CLI: its Figure 4 and index.html."
+            f"({RESULT_JSON}) enter the statistics. Given one run folder of the train CLI: its Figure 4 and index.html "
+            "(with --rollouts, its snapshots on that fixed set too)."
         ),
     )
     one_reading = ("rollouts_variant", "rollouts_per_variant")  # every variant on one variant's rollouts, or its own
@@ -86,14 +90,32 @@ def main(argv: list[str] | None = None) -> int:
     check_arguments(parser, args, *COMMANDS[""])
     settings = ReportSettings(**parsed_values(args, ReportSettings))
     collapse = FixedInputSettings(**parsed_values(args, FixedInputSettings))
+    if is_run_folder(args.sweep):
+        check_run_folder_flags(parser, args)
     collapse.rollouts_variant = None if args.rollouts_per_variant else args.rollouts_variant or BASELINE_VARIANT
     return run_command(parser, lambda: run(args, settings, collapse), help_pointer=False)
+
+
+def check_run_folder_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse, in one line naming them, the flags given with a run folder that only a sweep folder uses."""
+    given = [
+        flag
+        for declaration in COMMANDS[""]
+        for name, flag in setting_flags(declaration).items()
+        if name not in RUN_FOLDER_FLAGS and getattr(args, name) != parser.get_default(name)
+    ]
+    if given:
+        used = ", ".join(f"--{name.replace('_', '-')}" for name in RUN_FOLDER_FLAGS[1:] if name != "progress")
+        parser.error(
+            f"{', '.join(given)}: for a sweep folder; {args.sweep} is one run folder, whose report takes {used} and "
+            "--no-progress."
+        )
 
 
 def run(args: argparse.Namespace, settings: ReportSettings, collapse: FixedInputSettings) -> int:
     """Write the report of the parsed ``args``; :return: 0"""
     if is_run_folder(args.sweep):
-        trial, files = write_run_report(args.sweep, out=args.out, overwrite=args.overwrite)
+        trial, files = write_run_report(args.sweep, args.out, args.overwrite, collapse, args.progress)
         print(f"{trial.task} / {trial.variant} / seed {trial.seed} ({trial.status}): {len(trial.frames)} evaluations")
     else:
         flags = parsed_values(args, ReportFlags, "sweep", "out", "overwrite", "rollouts_per_variant")

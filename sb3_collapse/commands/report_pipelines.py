@@ -299,27 +299,60 @@ def write_run_report(
     run_dir: str | Path,
     out: str | Path | None = None,
     overwrite: bool = False,
-    layers: Sequence[str] = collapse_figure.FIGURE4_LAYERS,
+    collapse_settings: FixedInputSettings | None = None,
+    progress: bool = False,
 ) -> tuple[Trial, list[Path]]:
-    """The report of one run folder of the train CLI into ``out`` (``<run_dir>/report`` when ``None``): its online
-    Figure 4 (``collapse_metrics.png``) and ``index.html`` with the run's settings, as far as its files go. Returns
-    the run (as a trial) and the written files; an InputError when it is not a run folder or a file is malformed."""
+    """
+    The report of one run folder of the train CLI into ``out``, as far as its files go: its online Figure 4
+    (``collapse_metrics.png``), with ``collapse_settings.rollouts`` its snapshots on that fixed probing set too
+    (``collapse_metrics_fixed.png`` and ``.csv``), and ``index.html`` with the run's settings.
+
+    :param run_dir: the run folder
+    :param out: the output folder (``<run_dir>/report`` when ``None``)
+    :param overwrite: replace the outputs of a previous report in ``out`` (else an error, before the run is read)
+    :param collapse_settings: the layers, the correlation's reading and the fixed set (:class:`FixedInputSettings`
+        defaults when ``None``: the online figure only); its agent-picking settings do not apply to one run
+    :param progress: show the progress of the snapshots' metrics
+    :return: the run (as a trial) and the written files
+    :raises InputError: not a run folder, a malformed file, a setting out of range, rollouts of another task, or a
+        fixed set asked of a run without snapshots; nothing is written then
+    """
+    settings = collapse_settings or FixedInputSettings()
+    settings.validate()
     out_dir = Path(run_dir) / page.REPORT_FOLDER if out is None else Path(out)
-    run_files = (page.RUN_COLLAPSE_PNG, html.INDEX_HTML)
+    run_files = (page.RUN_COLLAPSE_PNG, page.RUN_COLLAPSE_FIXED_PNG, page.RUN_COLLAPSE_FIXED_CSV, html.INDEX_HTML)
     staged_outputs = StagedOutputs(out_dir, run_files, html.INDEX_HTML, overwrite=overwrite, error=InputError)
     trial = collapse_figure.run_folder_trial(run_dir)
-    agent = collapse_figure.agent_metrics(trial, "run", layers)
+    agent = collapse_figure.agent_metrics(trial, "run", settings.layers, settings.correlation)
+    fixed = None
+    if settings.rollouts is not None:
+        inputs = settings.load(settings.rollouts)
+        if not inputs.fits(trial.task):
+            message = f"rollouts {settings.rollouts} were recorded on {inputs.task}, not on the run's {trial.task}."
+            raise InputError(message, parameter="rollouts")
+        if not snapshot_files(trial.path):
+            message = f"rollouts: {trial.path} has no snapshots to run on them (train with --snapshots)."
+            raise InputError(message, parameter="rollouts")
+        pick = collapse_figure.AgentPick("run", trial, [trial.seed], 1, 0)
+        fixed = (pick, inputs, *fixed_agent_rows([pick], inputs, settings, on_terminal(progress)))
+    name = f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})"
     with staged_outputs as staged:
-        title = f"{trial.task} / {trial.variant} / seed {trial.seed}: collapse metrics over training ({trial.status})"
-        title += f"\non {collapse_figure.ONLINE_INPUTS}"
-        collapse_figure.plot_collapse_metrics([agent], staged.path(page.RUN_COLLAPSE_PNG), title, layers)
         section = html.Section("Figure 4: collapse metrics over training")
+        title = f"{name}\non {collapse_figure.ONLINE_INPUTS}"
+        collapse_figure.plot_collapse_metrics([agent], staged.path(page.RUN_COLLAPSE_PNG), title, settings.layers)
         section.parts.append(html.figure(staged.path(page.RUN_COLLAPSE_PNG), title))
+        if fixed is not None:
+            pick, inputs, rows, computed = fixed
+            title = f"{name}\nrank, correlation, dead units on {inputs.describe()}; gradient norms at training time"
+            path = staged.path(page.RUN_COLLAPSE_FIXED_PNG)
+            collapse_figure.plot_collapse_metrics(rows, path, title, settings.layers, "snapshots")
+            section.parts.append(html.figure(path, title))
+            write_fixed_metrics_csv(staged.path(page.RUN_COLLAPSE_FIXED_CSV), [pick], computed)
         config = html.Section("Settings")
         config.parts.append(html.settings_table(read_json(trial.path / CONFIG_JSON), f"{CONFIG_JSON} of the run"))
         if trial.result is not None:
             config.parts.append(html.settings_table(trial.result, f"{RESULT_JSON} of the run"))
-        staged.path(html.INDEX_HTML).write_text(html.html_page(f"Run report: {trial.path}", [section, config], title))
+        staged.path(html.INDEX_HTML).write_text(html.html_page(f"Run report: {trial.path}", [section, config], name))
         files = staged.commit()
     return trial, files
 

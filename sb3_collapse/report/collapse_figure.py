@@ -3,6 +3,7 @@ The readings: docs/figures.md#figures-4-8-9-collapse-metrics-of-three-agents."""
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,6 +60,12 @@ FIGURE4_LAYERS = ("mlp1", "mlp2")
 """The layers of Figure 4 ("we only visualize the metrics of mlp1 and mlp2"; ``mlp0`` on request)."""
 BOUNDED_METRICS = (*CORRELATION_READINGS, "zero_fraction", "dead_fraction")
 """Metrics in [0, 1], drawn on that range (a signed correlation below 0 extends it)."""
+GRAD_NORM_FLOOR = 1e-12
+"""The floor of the gradient-norm column (a log axis): a norm at or below it, such as the exact 0 of a collapsed
+actor (Section 5.1: "the gradient norm is always around zero when an agent gets stuck"), is drawn on it, where the
+log axis would leave it out; the axis label says so."""
+THRESHOLD_STYLE = {"color": "0.45", "ls": "--", "lw": 0.8}
+"""The line of the rule's threshold (``PAPER.threshold``) on the gradient-norm column."""
 _CENTRED = {"ha": "center", "va": "center", "fontsize": 8}
 _EVENTS = (("resets", "reset", RESET_COLOR, "-.", 0.8), ("escapes", "escape (reset rule)", ESCAPE_COLOR, ":", 0.9))
 """The vertical lines of Figure 4: :class:`AgentMetrics` field, legend label, colour, line style, alpha."""
@@ -202,7 +209,8 @@ def _row_label(agent: AgentMetrics) -> str:
     if agent.trial is None:
         return agent.role
     role = "" if agent.role == "run" else f"{agent.role}: "
-    return f"{role}seed {agent.trial.seed}\nfinal return {agent.final_return:.0f}"
+    final = "none yet" if np.isnan(agent.final_return) else f"{agent.final_return:.0f}"
+    return f"{role}seed {agent.trial.seed}\nfinal return {final}"
 
 
 def dead_units_label(widths: dict[str, int], layers: Sequence[str]) -> str:
@@ -232,7 +240,10 @@ def plot_collapse_metrics(
         raise ValueError(f"agents must share one reading of the correlation, got {sorted(readings)}.")
     metrics = figure4_metrics(readings.pop())
     columns, rows = 1 + len(metrics), len(agents)
-    height = 2.4 * rows + 1.1
+    # the title wrapped to the figure's width (about 13 characters of its 9-point font per inch), 0.15 inch a line
+    title = "\n".join(textwrap.fill(line, int(13 * 3.2 * columns)) for line in title.split("\n"))
+    title_inches = 0.3 + 0.15 * (title.count("\n") + 1)
+    height = 2.4 * rows + 0.5 + title_inches
     widths: dict[str, int] = {}
     for agent in agents:
         widths.update(agent.widths)
@@ -241,7 +252,9 @@ def plot_collapse_metrics(
     # Shared x, and shared y per column: the rows compare at a glance.
     fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, height), squeeze=False, sharex=True, sharey="col")
     # A fixed layout (inches from the edges): tight_layout would double the drawing time.
-    fig.subplots_adjust(left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - 0.6 / height, bottom=0.75 / height)
+    fig.subplots_adjust(
+        left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - title_inches / height, bottom=0.75 / height
+    )
     for row, agent in zip(axes, agents):
         ax = row[0]
         ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
@@ -254,11 +267,15 @@ def plot_collapse_metrics(
             drawn, lowest = False, 0.0
             for layer in layers:
                 frames, values = agent.metrics.get(metric_tag(layer, metric), (np.zeros(0), np.zeros(0)))
+                if metric == "grad_norm":
+                    values = np.maximum(values, GRAD_NORM_FLOOR)  # NaN stays NaN: a gap
                 if len(frames):
                     ax.plot(frames, values, lw=1.2, **layer_style(layer))
                     drawn = True
                     lowest = min(lowest, float(np.nanmin(values, initial=0.0)))
             if metric == "grad_norm" and drawn:
+                ax.axhline(PAPER.threshold, **THRESHOLD_STYLE)
+                label = f"{label} ({GRAD_NORM_FLOOR:g} and below\ndrawn at {GRAD_NORM_FLOOR:g})"
                 ax.set_yscale("log")
                 # a few major ticks and no minor ones: a log axis' minor ticks cost most of the drawing time
                 ax.yaxis.set_major_locator(LogLocator(numticks=5))
@@ -283,6 +300,9 @@ def plot_collapse_metrics(
         frames_axis(ax)
     handles = [Line2D([], [], lw=1.2, **layer_style(layer)) for layer in layers]
     labels = list(layers)
+    if any(metric_tag(layer, "grad_norm") in agent.metrics for agent in agents for layer in layers):
+        handles.append(Line2D([], [], **THRESHOLD_STYLE))
+        labels.append(f"the rule's threshold ({PAPER.threshold:g})")
     for events, label, color, style, _ in _EVENTS:
         if any(getattr(agent, events) for agent in agents):
             handles.append(Line2D([], [], color=color, ls=style, lw=1.0))

@@ -38,7 +38,9 @@ COLLAPSE_PNG = "collapse_metrics_{task}_{variant}.png"  # Figures 4, 8, 9 on the
 COLLAPSE_FIXED_CSV = "collapse_metrics_{task}_{variant}.csv"  # their values
 COLLAPSE_ONLINE_PNG = "collapse_metrics_online_{task}_{variant}.png"  # on the agents' own replay batches
 COLLAPSE_AGENTS_CSV = "collapse_agents.csv"  # the agents of Figures 4, 8, 9 (AGENTS_COLUMNS)
-RUN_COLLAPSE_PNG = "collapse_metrics.png"  # Figure 4 of a single run folder
+RUN_COLLAPSE_PNG = "collapse_metrics.png"  # Figure 4 of a single run folder (online)
+RUN_COLLAPSE_FIXED_PNG = "collapse_metrics_fixed.png"  # the same run's snapshots on a fixed probing set
+RUN_COLLAPSE_FIXED_CSV = "collapse_metrics_fixed.csv"  # their values
 _PATTERNS = tuple(
     name.format(task="*", variant="*") for name in (COLLAPSE_PNG, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG)
 )

@@ -17,7 +17,8 @@ from PIL import Image
 
 from sb3_collapse import DrQv2
 from sb3_collapse.commands.probe import main as probe_main
-from sb3_collapse.commands.report_pipelines import FixedInputSettings, fixed_agent_rows, write_report
+from sb3_collapse.commands.report import main as report_main
+from sb3_collapse.commands.report_pipelines import FixedInputSettings, fixed_agent_rows, write_report, write_run_report
 from sb3_collapse.errors import InputError, ParameterError
 from sb3_collapse.monitoring import collect_activations, layer_metrics
 from sb3_collapse.probe.checkpoints import load_checkpoint
@@ -33,7 +34,15 @@ from sb3_collapse.protocol import (
     TABLES_1_6_CSV,
     snapshot_files,
 )
-from sb3_collapse.report.pipeline import COLLAPSE_AGENTS_CSV, COLLAPSE_FIXED_CSV, COLLAPSE_ONLINE_PNG, COLLAPSE_PNG
+from sb3_collapse.report.pipeline import (
+    COLLAPSE_AGENTS_CSV,
+    COLLAPSE_FIXED_CSV,
+    COLLAPSE_ONLINE_PNG,
+    COLLAPSE_PNG,
+    RUN_COLLAPSE_FIXED_CSV,
+    RUN_COLLAPSE_FIXED_PNG,
+    RUN_COLLAPSE_PNG,
+)
 from sb3_collapse.run.config import TrainConfig
 from sb3_collapse.run.runner import train
 from sb3_collapse.run.snapshots import MARKER, is_snapshot, load_snapshot, save_snapshot
@@ -274,6 +283,51 @@ def test_figure4_metrics_on_the_fixed_probing_set(run, tmp_path):
     with pytest.raises(InputError, match="rollouts") as error:
         fixed_agent_rows(picks[:1], small, settings)
     assert error.value.parameter == "rollouts"
+
+
+def test_a_run_folder_report_runs_its_snapshots_on_a_fixed_set(run, tmp_path, capsys, monkeypatch):
+    """`report RUN --rollouts FILE`: the run's own snapshots on that fixed set, beside its online figure; the flags
+    that only a sweep uses are refused with a run folder, not ignored."""
+    recorder = load_checkpoint(run.model_path).model
+    rollouts = record_rollouts(recorder, resolve_env_config(recorder.env_config), 2, max_steps=6, progress=False)
+    path = rollouts.save(tmp_path / "rollouts.npz")
+    out = tmp_path / "report"
+    argv = [str(run.run_dir), "--out", str(out), "--rollouts", str(path), "--fixed-samples", "8", "--device", "cpu"]
+    assert report_main([*argv, "--no-progress"]) == 0
+    assert {p.name for p in out.iterdir()} == {
+        RUN_COLLAPSE_PNG,
+        RUN_COLLAPSE_FIXED_PNG,
+        RUN_COLLAPSE_FIXED_CSV,
+        "index.html",
+    }
+    settings = FixedInputSettings(rollouts=path, fixed_samples=8, device="cpu")
+    inputs = settings.load(path)
+    expected = fixed_metrics(snapshot_files(run.run_dir), inputs, settings.layers)
+    with (out / RUN_COLLAPSE_FIXED_CSV).open() as file:
+        rows = list(csv.DictReader(file))
+    assert {int(r["frame"]) for r in rows} == {0, 400, 800} and {r["role"] for r in rows} == {"run"}
+    for layer in ("mlp1", "mlp2"):
+        tag = f"collapse/{layer}/input_correlation"
+        written = [float(r["value"]) for r in rows if r["tag"] == tag]
+        np.testing.assert_allclose(written, expected.metrics[tag][1], rtol=1e-9)
+    assert inputs.describe() in (out / "index.html").read_text()
+    # only the sweep's flags: refused in one line naming them, nothing written
+    with pytest.raises(SystemExit) as stop:
+        report_main([*argv, "--overwrite", "--tasks", "walker-walk", "--pick-seed", "3"])
+    assert stop.value.code == 2 and "--tasks, --pick-seed: for a sweep folder;" in capsys.readouterr().err
+    # a run without snapshots has no fixed-set figure: one line naming --rollouts
+    bare = tmp_path / "bare"
+    shutil.copytree(run.run_dir, bare, ignore=shutil.ignore_patterns(SNAPSHOTS_DIR, "checkpoints"))
+    assert report_main([str(bare), "--rollouts", str(path), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"error: --rollouts: {bare} has no snapshots to run on them (train with --snapshots)." in err
+    assert not (bare / "report").exists()
+    # rollouts of another task
+    other = dataclasses.replace(inputs, task="hopper-stand")
+    monkeypatch.setattr(FixedInputSettings, "load", lambda self, path: other)
+    with pytest.raises(InputError, match="recorded on hopper-stand, not on the run's walker-walk") as error:
+        write_run_report(run.run_dir, tmp_path / "other", collapse_settings=settings)
+    assert error.value.parameter == "rollouts" and not (tmp_path / "other").exists()
 
 
 def test_figure4_reads_one_observation_set_per_task(run, tmp_path):

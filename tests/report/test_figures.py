@@ -15,9 +15,10 @@ from sb3_collapse.errors import InputError
 from sb3_collapse.monitoring import CORRELATION_READINGS, FIGURE_CORRELATION
 from sb3_collapse.paper import PAPER, evaluation_schedule
 from sb3_collapse.probe.fixed_inputs import FixedInputs
-from sb3_collapse.report import figure2
+from sb3_collapse.report import collapse_figure, figure2
 from sb3_collapse.report.collapse_figure import (
     CORRELATION_LABELS,
+    GRAD_NORM_FLOOR,
     PAPER_ROLES,
     AgentMetrics,
     agent_class,
@@ -182,6 +183,27 @@ def test_the_correlation_column_draws_the_reading_named(reported, tmp_path):
     assert matplotlib.image.imread(tmp_path / "abs.png")[..., :3].std() > 0.05
     with pytest.raises(ValueError, match="one reading of the correlation"):
         plot_collapse_metrics([row, AgentMetrics(None, "middle")], tmp_path / "mixed.png", "mixed")
+
+
+def test_the_gradient_norm_column_draws_a_collapsed_actors_zeros_on_its_floor(reported, tmp_path, monkeypatch):
+    """An exact 0 (a collapsed actor's mlp1: Section 5.1, "always around zero") is drawn on the log axis' floor, not
+    left out; the rule's threshold is a line of its own."""
+    _, report = reported
+    row = agent_metrics(report.collapse_online[("walker-walk", "drqv2")][2].trial, "poorly performing", ["mlp1"])
+    row.metrics["collapse/mlp1/grad_norm"] = (
+        np.array([0, 10_000, 20_000, 30_000]),
+        np.array([2e-2, 0.0, 3e-11, np.nan]),
+    )
+    drawn = []
+    monkeypatch.setattr(collapse_figure.plt, "close", drawn.append)  # keep the figure to read it
+    plot_collapse_metrics([row], tmp_path / "grad.png", "title", ["mlp1"])
+    (fig,) = drawn
+    (ax,) = [ax for ax in fig.axes if ax.get_ylabel().startswith("gradient norm")]
+    line, threshold = ax.get_lines()
+    np.testing.assert_array_equal(line.get_ydata(), [2e-2, GRAD_NORM_FLOOR, 3e-11, np.nan])
+    assert list(threshold.get_ydata()) == [PAPER.threshold] * 2 and ax.get_yscale() == "log"
+    assert f"drawn at {GRAD_NORM_FLOOR:g}" in ax.get_ylabel() and ax.get_ylim()[0] <= GRAD_NORM_FLOOR
+    assert f"the rule's threshold ({PAPER.threshold:g})" in [text.get_text() for text in fig.legends[0].get_texts()]
 
 
 def test_every_variant_reads_the_baselines_rollouts_by_default(reported, capsys, tmp_path):
