@@ -53,11 +53,11 @@ class ReportFlags:
 
 
 COMMANDS: dict[str, tuple[type, ...]] = {"": (ReportFlags, ReportSettings, FixedInputSettings)}
+"""The flags, by the dataclasses that declare them (the parser, the help, the range checks and the table in
+``docs/sweeps.md`` are generated from it)."""
 RUN_FOLDER_FLAGS = ("sweep", "out", "overwrite", "progress", "rollouts", "fixed_samples", "device", "correlation")
 RUN_FOLDER_FLAGS += ("train_episodes",)
 """The settings whose flags apply to one run folder (:func:`write_run_report`); the others are a sweep's."""
-"""The flags, by the dataclasses that declare them (the parser, the help, the range checks and the table in
-``docs/sweeps.md`` are generated from it)."""
 
 
 def build_parser() -> argparse.ArgumentParser:

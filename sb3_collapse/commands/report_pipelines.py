@@ -300,7 +300,7 @@ def write_run_report(
     out: str | Path | None = None,
     overwrite: bool = False,
     collapse_settings: FixedInputSettings | None = None,
-    progress: bool = False,
+    progress: bool = True,
 ) -> tuple[Trial, list[Path]]:
     """
     The report of one run folder of the train CLI into ``out``, as far as its files go: its online Figure 4
