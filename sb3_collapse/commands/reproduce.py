@@ -448,8 +448,8 @@ def build_parser() -> argparse.ArgumentParser:
         + ". Frames = agent steps x action repeat; docs/reproduce.md.",
     )
     add_setting_arguments(parser, declaration=ReproduceFlags)
-    add_setting_arguments(parser.add_argument_group("resources (those of python -m sb3_collapse.sweep)"),
-                          declaration=ResourceFlags)  # fmt: skip
+    resources = parser.add_argument_group("resources (those of python -m sb3_collapse.sweep)")
+    add_setting_arguments(resources, declaration=ResourceFlags)
     return parser
 
 
