@@ -128,7 +128,7 @@ def test_no_package_module_imports_the_train_command():
             assert "sb3_collapse.train" not in names, f"{path.relative_to(REPO_ROOT)} imports the train command"
 
 
-# The probe's and the report's flags: declared once with the same setting(), in their modules of commands/.
+# The probe's, the report's and the reproduction's flags: declared once with setting(), in their modules of commands/.
 
 CLIS = {"sb3_collapse.probe": probe_cli, "sb3_collapse.report": report_cli, "sb3_collapse.reproduce": reproduce_cli}
 POSITIONALS = {
