@@ -98,18 +98,16 @@ def main(argv: list[str] | None = None) -> int:
 
 def check_run_folder_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse, in one line naming them, the flags given with a run folder that only a sweep folder uses."""
+    flags = {name: flag for declaration in COMMANDS[""] for name, flag in setting_flags(declaration).items()}
     given = [
         flag
-        for declaration in COMMANDS[""]
-        for name, flag in setting_flags(declaration).items()
+        for name, flag in flags.items()
         if name not in RUN_FOLDER_FLAGS and getattr(args, name) != parser.get_default(name)
     ]
     if given:
-        used = ", ".join(f"--{name.replace('_', '-')}" for name in RUN_FOLDER_FLAGS[1:] if name != "progress")
-        parser.error(
-            f"{', '.join(given)}: for a sweep folder; {args.sweep} is one run folder, whose report takes {used} and "
-            "--no-progress."
-        )
+        used = ", ".join(flags[name] for name in RUN_FOLDER_FLAGS if flags[name].startswith("-"))  # not the folder
+        run_folder = f"{args.sweep} is one run folder, whose report takes {used}"
+        parser.error(f"{', '.join(given)}: for a sweep folder; {run_folder}.")
 
 
 def run(args: argparse.Namespace, settings: ReportSettings, collapse: FixedInputSettings) -> int:

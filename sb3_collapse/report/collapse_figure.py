@@ -255,6 +255,7 @@ def plot_collapse_metrics(
     fig.subplots_adjust(
         left=0.075, right=0.99, wspace=0.42, hspace=0.18, top=1 - title_inches / height, bottom=0.75 / height
     )
+    threshold_drawn = False
     for row, agent in zip(axes, agents):
         ax = row[0]
         ax.set_ylabel(f"{_row_label(agent)}\n\nevaluation return", fontsize=8)
@@ -275,6 +276,7 @@ def plot_collapse_metrics(
                     lowest = min(lowest, float(np.nanmin(values, initial=0.0)))
             if metric == "grad_norm" and drawn:
                 ax.axhline(PAPER.threshold, **THRESHOLD_STYLE)
+                threshold_drawn = True
                 label = f"{label} ({GRAD_NORM_FLOOR:g} and below\ndrawn at {GRAD_NORM_FLOOR:g})"
                 ax.set_yscale("log")
                 # a few major ticks and no minor ones: a log axis' minor ticks cost most of the drawing time
@@ -300,7 +302,7 @@ def plot_collapse_metrics(
         frames_axis(ax)
     handles = [Line2D([], [], lw=1.2, **layer_style(layer)) for layer in layers]
     labels = list(layers)
-    if any(metric_tag(layer, "grad_norm") in agent.metrics for agent in agents for layer in layers):
+    if threshold_drawn:
         handles.append(Line2D([], [], **THRESHOLD_STYLE))
         labels.append(f"the rule's threshold ({PAPER.threshold:g})")
     for events, label, color, style, _ in _EVENTS:
