@@ -4,6 +4,7 @@ the command lines, no traceback, and nothing written or lost.
 """
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -274,6 +275,24 @@ def test_probe_takes_snapshots_and_sb3_baselines_and_refuses_mixed_image_sizes(t
         "their own."
     )
     assert not (tmp_path / "c").exists()  # refused before recording
+
+
+def test_a_stop_caught_inside_a_string_exec_still_exits_75(tmp_path):
+    """CPython marks a KeyboardInterrupt leaving a string ``exec`` unhandled, caught or not; under ``python -m`` the
+    process then died by SIGINT (-2) after printing its line: the flake of the probe's signal test below, made
+    certain (a SIGINT handled while a dataclass's method was being built)."""
+    (tmp_path / "stop_in_exec.py").write_text(
+        "import argparse\n"
+        "from sb3_collapse.commands.cli import run_command\n"
+        "def work():\n"
+        "    exec('raise KeyboardInterrupt', {})\n"
+        "raise SystemExit(run_command(argparse.ArgumentParser(), work, lambda stop: 'Stopped.'))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run(
+        [sys.executable, "-m", "stop_in_exec"], capture_output=True, text=True, env=env, timeout=120, check=False
+    )
+    assert (done.returncode, done.stderr) == (75, "Stopped.\n")
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT])

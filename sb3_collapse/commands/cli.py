@@ -380,8 +380,20 @@ def run_command(
     except stops as stop:
         if stopped is None:
             raise
+        _forget_caught_keyboard_interrupt()
         print(stopped(stop), file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def _forget_caught_keyboard_interrupt() -> None:
+    """
+    Clear CPython's mark of an unhandled KeyboardInterrupt, once the stop is caught. CPython (3.11 to 3.13) marks a
+    KeyboardInterrupt that leaves a string ``exec`` or ``eval`` as unhandled even when a caller catches it (a signal
+    handler that raises runs inside whatever code is running: a dataclass's generated ``__init__`` being built, a
+    forward reference evaluated), and ``python -m`` then ends the process by SIGINT (exit status -2 to its parent)
+    instead of with the status returned. Every string ``exec`` clears the mark at its start, so one empty one does.
+    """
+    exec("pass", {})  # noqa: S102 (a constant; the only reset of the mark reachable from Python)
 
 
 if __name__ == "__main__":
