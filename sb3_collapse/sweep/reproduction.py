@@ -88,16 +88,17 @@ class Scale:
 
 
 PAPER_SCALE = Scale("paper", {}, PAPER.figure5_seeds, PAPER.transplant_seeds, PAPER.figure5_tasks)
-# CPU sizes: 1000 frames = 40 agent steps of 25 frames (a DMC episode is then 40 agent steps: cheap evaluations),
-# 32x32 images, small networks, learning from frame 500, evaluations (and snapshots) at frames 0 and 500 and of the
-# final model at 1000, collapse checks every 250 frames and the rule's window of 500 frames. Four seeds: the grid's
-# donors are two good and two bad walker-walk agents. A Ray worker runs trial after trial (trials_per_worker=0): a
-# process's start (imports, the rendering check) would be most of a tiny trial.
+# CPU sizes: 1000 frames = 20 agent steps of 50 frames (a DMC episode is then 20 agent steps, 20 renders: rendering is
+# most of a tiny trial's time on a CPU, its evaluations most of that), 32x32 images, small networks, learning from frame
+# 500, evaluations (and snapshots) at frames 0 and 500 and of the final model at 1000, collapse checks every 250 frames
+# on batches of 4 (a check finds at least 5 transitions stored, after a reset too) and the rule's window of 500 frames.
+# Four seeds: the grid's donors are two good and two bad walker-walk agents. A Ray worker runs trial after trial
+# (trials_per_worker=0): a process's start (imports, the rendering check) would be most of a tiny trial.
 TINY_SCALE = Scale(
     "tiny",
     dict(
         frames=1000,
-        action_repeat=25,
+        action_repeat=50,
         size=32,
         seed_frames=500,
         batch_size=8,
@@ -106,7 +107,7 @@ TINY_SCALE = Scale(
         eval_every_frames=500,
         eval_episodes=1,
         collapse_metrics_every_frames=250,
-        collapse_metrics_batch=8,
+        collapse_metrics_batch=4,
         reset_window_frames=500,
         replay_sampling="sb3",
     ),

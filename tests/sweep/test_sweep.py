@@ -34,6 +34,7 @@ from sb3_collapse.sweep import (
     variant_settings,
 )
 from sb3_collapse.sweep.cluster import check_resources
+from sb3_collapse.sweep.reproduction import TINY_SCALE
 
 # A tiny trial: 1000 frames = 50 agent steps of 20 frames (a whole DMC episode is then 50 agent steps, so that the
 # evaluations at frames 0 and 1000 stay cheap: rendering is most of a trial's time), 32x32 images, learning from
@@ -64,12 +65,13 @@ def ray_local():
 
 
 # The session's tiny reproduction (tests/conftest.py) trained its sweep through this package's sweep: Figure 5's trials
-# (walker-walk, hopper-stand, finger-spin x drqv2, drqv2+reset x seeds 0-3: 1000 frames = 40 agent steps of 25 frames,
+# (walker-walk, hopper-stand, finger-spin x drqv2, drqv2+reset x seeds 0-3: 1000 frames = 20 agent steps of 50 frames,
 # 32x32, learning from frame 500, evaluations at frames 0 and 500 and the final model's at 1000, collapse checks every
 # 250 frames, the rule's window 500 frames: a reset at frame 500 and none at 1000, the budget's end; snapshots only
 # for drqv2), then the transplant grid's nine walker-walk cells (seed 0). The tests below read it (never modify it:
 # copy it first).
 TASKS = ["walker-walk", "hopper-stand", "finger-spin"]
+TINY_STEPS = 1000 // TINY_SCALE.training["action_repeat"]  # agent steps of a trial
 REPRODUCED_TRIALS = ["--tasks", *TASKS, "--seeds", "4", "--variants", "drqv2", "drqv2+reset"]
 
 
@@ -153,7 +155,7 @@ def test_tiny_sweep_writes_the_trial_contract(reproduced_sweep):
         result = json.loads((folder / "result.json").read_text())
         assert set(result) == RESULT_KEYS
         assert result["status"] == "finished" and result["task"] == task and result["variant"] == variant
-        assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == 40
+        assert result["seed"] == seed and result["frames"] == 1000 and result["agent_steps"] == TINY_STEPS
         assert result["final_eval"]["frame"] == 500  # the last scheduled evaluation
         assert result["final_eval"]["mean_reward"] == float(evaluations[-1]["mean_reward"])
         assert result["saved_model_eval"]["frame"] == 1000 and result["saved_model_eval"]["episodes"] == 1
@@ -861,8 +863,8 @@ def test_tiny_sweep_records_its_plan_and_the_report_shows_it(reproduced_sweep, r
     assert main([*argv, "--no-progress-bar", *training_flags(reproduced_sweep)]) == 0
     assert "1 finished now (0 resumed from a checkpoint), 3 finished before, 0 failed" in capsys.readouterr().out
     settings = json.loads((out / "sweep.json").read_text())
-    plan = settings["plan"]  # as the sweep planned its pending trial: 1,000 frames (action repeat 25: 40 agent steps)
-    assert plan["trials_pending"] == 1 and plan["frames"] == 1000 and plan["agent_steps"] == 40
+    plan = settings["plan"]  # as the sweep planned its pending trial: 1,000 frames
+    assert plan["trials_pending"] == 1 and plan["frames"] == 1000 and plan["agent_steps"] == TINY_STEPS
     assert set(plan["bytes"]) == {"walker-walk/drqv2+reset"}
     assert "trials_pending" in settings_table(settings)
     # The plan's counts (by the callbacks' own rule) are what each trial wrote (the one trained now and the
