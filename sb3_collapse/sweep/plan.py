@@ -67,7 +67,9 @@ def trial_events(config: TrainConfig) -> dict[str, int]:
     :return: how many of each periodic output a run of it writes from frame 0, counted by the rule of the callbacks
         that write them (:func:`~sb3_collapse.common.schedule.due_counts`): its scheduled evaluations
         (``evaluations``, the rows of its evaluation file), its snapshots (``snapshots``: one per evaluation and the
-        final model's, with ``snapshots``) and its collapse checks (``collapse_checks``, each one row per tag)
+        final model's, with ``snapshots``) and its collapse checks (``collapse_checks``, each one row per tag; a
+        check that finds fewer than ``collapse_metrics_batch`` transitions stored, early in a tiny run or soon after
+        a reset, writes nothing, so these are the most it writes)
     """
     per_step = config.action_repeat * config.n_envs  # type: ignore[operator]  # frames an agent step adds
 
