@@ -16,12 +16,9 @@ from tests.shared_runs import TINY_WALKER_RUN
 
 def pytest_configure(config):
     """An xdist worker uses one thread (torch's and its subprocesses' OpenMP): two workers on two cores would
-    otherwise run four. So does Mesa's software rasterizer (llvmpipe, which renders the envs on a machine without a
-    GPU: ``LP_NUM_THREADS=0`` renders in the calling thread), read when a process first renders: its threads cost a
-    tiny render more CPU time than they save wall time on a busy machine."""
+    otherwise run four."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
-        os.environ.setdefault("LP_NUM_THREADS", "0")
         th.set_num_threads(1)
 
 
