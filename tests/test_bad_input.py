@@ -288,7 +288,7 @@ def test_a_stop_caught_inside_a_string_exec_still_exits_75(tmp_path):
         "    exec('raise KeyboardInterrupt', {})\n"
         "raise SystemExit(run_command(argparse.ArgumentParser(), work, lambda stop: 'Stopped.'))\n"
     )
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")]))}
     done = subprocess.run(
         [sys.executable, "-m", "stop_in_exec"], capture_output=True, text=True, env=env, timeout=120, check=False
     )

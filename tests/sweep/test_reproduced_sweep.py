@@ -1,7 +1,7 @@
 """
 The sweep command on the sweep of the session's tiny reproduction (tests/conftest.py). Apart from
 tests/sweep/test_sweep.py so that under xdist (a file to a worker) the other sweep tests run while the reproduction is
-made, and only these wait for it, last (before, the whole of test_sweep.py came last: a worker ran its minutes alone).
+made, and only these wait for it, last.
 """
 
 import itertools
